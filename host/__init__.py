@@ -1,0 +1,2 @@
+"""The host side: the daemon (asyncio link session, transports, control, scenes, Rerun logging, local API)
+and the ``phantom`` command line."""

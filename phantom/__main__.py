@@ -1,0 +1,5 @@
+import sys
+
+from phantom.host.cli import main
+
+sys.exit(main())

@@ -1,0 +1,41 @@
+#!/usr/bin/env bash
+# Make this checkout ready to build and test: the Debian packages in scripts/apt-packages.txt and a
+# Python environment in .venv/ with the project installed editable with its test extras.
+# Idempotent: a second run checks, prints one line, and installs nothing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+packages=$(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' scripts/apt-packages.txt)
+missing=""
+for package in $packages; do
+    dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "install ok installed" || missing="$missing $package"
+done
+if [ -n "$missing" ]; then
+    if [ "$(id -u)" -eq 0 ]; then
+        as_root=""
+    elif command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then
+        as_root="sudo"
+    else
+        echo "bootstrap: these Debian packages are missing:$missing" >&2
+        echo "bootstrap: install them as root:  sudo apt-get install -y$missing" >&2
+        exit 1
+    fi
+    echo "bootstrap: installing Debian packages:$missing"
+    $as_root apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $as_root apt-get install -y -qq --no-install-recommends $missing >/dev/null
+fi
+
+python=${PYTHON:-python3}
+stamp=.venv/.installed
+wanted=$(sha256sum pyproject.toml | cut -d' ' -f1)
+if [ ! -x .venv/bin/python ]; then
+    echo "bootstrap: creating .venv with $($python --version)"
+    "$python" -m venv .venv
+fi
+if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
+    echo "bootstrap: installing the project and its test extras into .venv (about a minute the first time)"
+    .venv/bin/python -m pip install -q --upgrade pip
+    .venv/bin/python -m pip install -q -e ".[test]"
+    echo "$wanted" > "$stamp"
+fi
+echo "bootstrap: ready (Debian packages present, .venv up to date)"

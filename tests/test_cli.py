@@ -1,0 +1,49 @@
+"""The ``phantom`` console script as a user meets it: installed, on PATH, with clear usage errors."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import phantom
+from phantom.host import cli
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+
+
+def run_phantom(*arguments: str) -> subprocess.CompletedProcess:
+    return subprocess.run([str(PHANTOM), *arguments], capture_output=True, text=True, timeout=120)
+
+
+def test_console_script_reports_the_package_version():
+    result = run_phantom("--version")
+    assert result.returncode == 0
+    assert result.stdout.strip() == f"phantom {phantom.__version__}"
+
+
+def test_missing_subcommand_is_a_usage_error():
+    result = run_phantom()
+    assert result.returncode == 2
+    assert "usage: phantom" in result.stderr
+
+
+def test_unknown_subcommand_names_the_choices():
+    result = run_phantom("no-such-command")
+    assert result.returncode == 2
+    assert "invalid choice: 'no-such-command'" in result.stderr
+
+
+def test_user_errors_print_one_line_and_exit_2(capsys, monkeypatch):
+    def fails(args):
+        raise phantom.PhantomError("the scene file x.toml does not exist: check the path")
+
+    parser = cli.build_parser()
+    parser.parse_args = lambda argv=None: type("Args", (), {"command": "demo", "run": staticmethod(fails)})()
+    monkeypatch.setattr(cli, "build_parser", lambda: parser)
+    assert cli.main([]) == 2
+    assert capsys.readouterr().err == "phantom demo: error: the scene file x.toml does not exist: check the path\n"
+
+
+def test_cache_dir_honours_the_override(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    assert phantom.cache_dir("meshes") == tmp_path / "meshes"
+    assert (tmp_path / "meshes").is_dir()
