@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 PHANTOM := $(VENV)/bin/phantom
 
-.PHONY: setup demo test lint pytest clean
+.PHONY: setup demo test lint protocol-check firmware-test pytest clean
 
 setup:
 	@scripts/bootstrap.sh
@@ -12,10 +12,18 @@ setup:
 demo: setup
 	$(PHANTOM) forward --scene builtin --pressures-kpa 1,1,1
 
-test: setup lint pytest
+test: setup lint protocol-check firmware-test pytest
 
 lint:
 	$(VENV)/bin/ruff check .
+
+# The generated protocol files (messages.py, protocol_generated.h) must match protocol/spec.toml.
+protocol-check:
+	$(PY) -m phantom.protocol.generate --check
+
+# The firmware core's native unit tests, the C++ golden-vector test and a bounded libFuzzer run.
+firmware-test:
+	$(MAKE) -C firmware test PYTHON=$(abspath $(PY))
 
 pytest:
 	$(PY) -m pytest -q

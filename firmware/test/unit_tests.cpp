@@ -1,0 +1,748 @@
+// Native unit tests of the firmware core: framing, sensor conversion, the PID against a plant and a float
+// reference, and the controller's commands, faults and deadlines through real frames.
+#include <math.h>
+#include <stdlib.h>
+#include <string.h>
+
+#include <vector>
+
+#include "check.h"
+#include "core/cobs.h"
+#include "core/controller.h"
+#include "core/crc16.h"
+#include "core/frame.h"
+#include "core/sensor.h"
+#include "plant.h"
+
+using namespace core;
+using namespace proto;
+
+// ---- framing ---------------------------------------------------------------------------------------
+
+TEST(crc_matches_the_catalogue_check_value) {
+    const uint8_t text[] = {'1', '2', '3', '4', '5', '6', '7', '8', '9'};
+    CHECK_EQ(crc16(text, sizeof text), 0x6F91);
+}
+
+TEST(cobs_matches_published_examples) {
+    struct Example {
+        std::vector<uint8_t> raw, encoded;
+    };
+    std::vector<uint8_t> long_raw, long_encoded(1, 0xFF);
+    for (int i = 1; i < 255; ++i) long_raw.push_back((uint8_t)i);
+    long_encoded.insert(long_encoded.end(), long_raw.begin(), long_raw.end());
+    long_encoded.push_back(0x01);
+    const Example examples[] = {
+        {{0x00}, {0x01, 0x01}},
+        {{0x00, 0x00}, {0x01, 0x01, 0x01}},
+        {{0x00, 0x11, 0x00}, {0x01, 0x02, 0x11, 0x01}},
+        {{0x11, 0x22, 0x00, 0x33}, {0x03, 0x11, 0x22, 0x02, 0x33}},
+        {{0x11, 0x22, 0x33, 0x44}, {0x05, 0x11, 0x22, 0x33, 0x44}},
+        {{0x11, 0x00, 0x00, 0x00}, {0x02, 0x11, 0x01, 0x01, 0x01}},
+        {long_raw, long_encoded},
+    };
+    for (const Example& e : examples) {
+        uint8_t out[300];
+        uint16_t len = cobs_encode(e.raw.data(), (uint16_t)e.raw.size(), out);
+        CHECK(std::vector<uint8_t>(out, out + len) == e.encoded);
+        int back = cobs_decode(e.encoded.data(), (uint16_t)e.encoded.size(), out);
+        CHECK(back >= 0 && std::vector<uint8_t>(out, out + back) == e.raw);
+    }
+    const uint8_t past_end[] = {0x05, 0x01, 0x02};
+    const uint8_t zero_inside[] = {0x03, 0x00, 0x02};
+    uint8_t out[8];
+    CHECK_EQ(cobs_decode(past_end, sizeof past_end, out), -1);
+    CHECK_EQ(cobs_decode(zero_inside, sizeof zero_inside, out), -1);
+}
+
+static std::vector<uint8_t> frame_of(uint8_t id, uint8_t seq, const uint8_t* payload, uint8_t len) {
+    uint8_t out[MAX_FRAME_BYTES];
+    uint8_t n = frame_encode(id, seq, payload, len, out);
+    return std::vector<uint8_t>(out, out + n);
+}
+
+TEST(reader_takes_frames_split_anywhere_with_garbage_between) {
+    uint8_t ping[4] = {1, 2, 3, 4};
+    std::vector<uint8_t> good = frame_of(MSG_PING, 9, ping, 4);
+    const uint8_t garbage[] = {0x13, 0x37, 0xFF, 0x00, 0x00, 0x05, 0x01, 0x00, 0x42};
+    std::vector<uint8_t> stream(garbage, garbage + sizeof garbage);
+    stream.push_back(0x00);
+    for (int i = 0; i < 3; ++i) {
+        stream.insert(stream.end(), good.begin(), good.end());
+        stream.insert(stream.end(), garbage, garbage + sizeof garbage);
+        stream.push_back(0x00);
+    }
+    FrameReader reader;
+    int frames = 0;
+    for (uint8_t byte : stream) {
+        if (reader.feed(byte)) {
+            ++frames;
+            CHECK_EQ(reader.msg_id(), MSG_PING);
+            CHECK_EQ(reader.seq(), 9);
+            CHECK_EQ(get_u32(reader.payload()), 0x04030201);
+        }
+    }
+    CHECK_EQ(frames, 3);
+    CHECK_EQ(reader.frames_ok, 3);
+    CHECK(reader.bad_frame + reader.bad_crc >= 4);  // each garbage run ends in at least one bad frame
+}
+
+TEST(reader_drops_bad_crc_overflow_board_ids_and_wrong_lengths) {
+    uint8_t ping[4] = {0, 0, 0, 0};
+    std::vector<uint8_t> frame = frame_of(MSG_PING, 1, ping, 4);
+    FrameReader reader;
+    std::vector<uint8_t> corrupt = frame;
+    corrupt[2] ^= 0x10;
+    for (uint8_t b : corrupt) CHECK(!reader.feed(b));
+    CHECK_EQ(reader.bad_crc, 1);
+
+    for (int i = 0; i < 100; ++i) CHECK(!reader.feed(0x01));
+    CHECK(!reader.feed(0x00));
+    CHECK_EQ(reader.overflow, 1);
+
+    std::vector<uint8_t> board_only = frame_of(MSG_TELEMETRY, 1, ping, 4);
+    for (uint8_t b : board_only) CHECK(!reader.feed(b));
+    std::vector<uint8_t> short_ping = frame_of(MSG_PING, 1, ping, 3);
+    for (uint8_t b : short_ping) CHECK(!reader.feed(b));
+    CHECK_EQ(reader.bad_frame, 2);
+
+    bool accepted = false;
+    for (uint8_t b : frame) accepted = reader.feed(b);
+    CHECK(accepted);
+    CHECK_EQ(reader.frames_ok, 1);
+}
+
+// ---- sensor conversion -----------------------------------------------------------------------------
+
+TEST(sensor_conversion_matches_the_datasheet_across_its_range) {
+    // Independent truth: the datasheet's transfer function in double precision, Vout/Vs = 0.018 P + 0.5.
+    for (int pressure_pa = -25000; pressure_pa <= 25000; pressure_pa += 250) {
+        double counts = 1024.0 * (0.018 * pressure_pa / 1000.0 + 0.5);
+        int16_t x16 = (int16_t)lround(counts * 16);
+        // Half a sixteenth of a count (1.7 Pa) of rounding in x16, half a Pa of output rounding, and the
+        // Q12 constant's 1e-5 relative error (0.25 Pa at 25 kPa).
+        CHECK_NEAR(sensor_x16_to_pa(x16, NOMINAL_ZERO_X16), pressure_pa, 2.5);
+    }
+}
+
+TEST(sensor_round_trips_at_the_range_ends) {
+    const int16_t ends_pa[] = {-25000, -24999, -1, 0, 1, 24999, 25000};
+    for (int16_t pressure_pa : ends_pa) {
+        int16_t x16 = sensor_pa_to_x16(pressure_pa, NOMINAL_ZERO_X16);
+        // One sixteenth of a count is 3.39 Pa: the round trip is good to half of that plus half a Pa.
+        CHECK_NEAR(sensor_x16_to_pa(x16, NOMINAL_ZERO_X16), pressure_pa, 2.2);
+    }
+    const int16_t readings_x16[] = {SENSOR_MIN_VALID_X16, NOMINAL_ZERO_X16, SENSOR_MAX_VALID_X16, 0, 1023 * 16};
+    for (int16_t x16 : readings_x16) {
+        CHECK_EQ(sensor_pa_to_x16(sensor_x16_to_pa(x16, 8000), 8000), x16);
+    }
+}
+
+TEST(sensor_band_is_0v1_to_4v9) {
+    CHECK(!sensor_in_range(sensor_average_x16(20 * 4, 4)));   // 0.098 V
+    CHECK(sensor_in_range(sensor_average_x16(21 * 4, 4)));    // 0.103 V
+    CHECK(sensor_in_range(sensor_average_x16(1003 * 4, 4)));  // 4.897 V
+    CHECK(!sensor_in_range(sensor_average_x16(1004 * 4, 4)));  // 4.902 V
+    CHECK_EQ(sensor_average_x16(100 * 3 + 1, 3), 1605);       // 100.33 counts, rounded to sixteenths
+    CHECK_EQ(sensor_average_x16(0, 0), 0);
+}
+
+// ---- PID -------------------------------------------------------------------------------------------
+
+static const PidGains DEFAULT_GAINS = {DEFAULT_KP_PER_KPA, DEFAULT_KI_PER_KPA_S, DEFAULT_KD_S_PER_KPA, 65535};
+
+struct StepResult {
+    double overshoot_fraction;
+    double settle_s;  // last time outside +-2 % of the target
+    double final_pa;
+};
+
+// Closed loop at 500 Hz: the plant integrated at 10 kHz, the sensor read through the ADC model (4 samples).
+static StepResult run_step(const PidGains& gains, double target_pa, double seconds) {
+    Pid pid;
+    pid.init(gains);
+    plant::Chamber chamber;
+    StepResult result = {0, 0, 0};
+    double peak = 0;
+    uint16_t drive = 0;
+    int ticks = (int)(seconds * TICK_HZ);
+    for (int tick = 0; tick < ticks; ++tick) {
+        for (int k = 0; k < 20; ++k) chamber.advance(drive / 65535.0, 1.0 / (TICK_HZ * 20));
+        int16_t measured = sensor_x16_to_pa(sensor_average_x16(4 * plant::adc_counts(chamber.pressure_pa), 4),
+                                            NOMINAL_ZERO_X16 - 8);  // the ADC floors: 0 Pa reads 511.5 on average
+        drive = pid.step((int16_t)target_pa, measured);
+        if (chamber.pressure_pa > peak) peak = chamber.pressure_pa;
+        if (fabs(chamber.pressure_pa - target_pa) > 0.02 * target_pa) result.settle_s = (tick + 1.0) / TICK_HZ;
+        CHECK(pid.integral() <= gains.max_drive);
+    }
+    result.overshoot_fraction = (peak - target_pa) / target_pa;
+    result.final_pa = chamber.pressure_pa;
+    return result;
+}
+
+TEST(pid_step_0_to_2kpa_settles_without_overshoot_on_the_plant) {
+    StepResult r = run_step(DEFAULT_GAINS, 2000, 4.0);
+    printf("     0 -> 2 kPa: overshoot %.2f %%, settles (2 %%) in %.3f s, final %.1f Pa\n",
+           100 * r.overshoot_fraction, r.settle_s, r.final_pa);
+    CHECK(r.overshoot_fraction < 0.05);
+    CHECK(r.settle_s < 1.0);
+    CHECK_NEAR(r.final_pa, 2000, 54.3);  // within one ADC count at steady state
+}
+
+TEST(pid_antiwindup_recovers_at_once_after_long_saturation) {
+    // max_drive 0.3 cannot hold 3 kPa against the leak: the output saturates for 5 s. Then the target falls to
+    // just below the pressure reached. A wound-up integrator (even one clamped to max_drive) would keep the
+    // blower running and push the pressure further up; conditional integration leaves nothing to unwind.
+    PidGains gains = DEFAULT_GAINS;
+    gains.max_drive = (uint16_t)(0.3 * 65535);
+    Pid pid;
+    pid.init(gains);
+    plant::Chamber chamber;
+    uint16_t drive = 0;
+    for (int tick = 0; tick < 5 * TICK_HZ; ++tick) {
+        chamber.advance(drive / 65535.0, 1.0 / TICK_HZ);
+        drive = pid.step(3000, (int16_t)chamber.pressure_pa);
+        CHECK(drive <= gains.max_drive);
+    }
+    CHECK_EQ(drive, gains.max_drive);
+    CHECK(chamber.pressure_pa < 2500);
+    CHECK(pid.integral() < 0.05 * gains.max_drive);
+    double switch_pa = chamber.pressure_pa;
+    int16_t target = (int16_t)(switch_pa - 100);
+    double peak = switch_pa;
+    for (int tick = 0; tick < 4 * TICK_HZ; ++tick) {
+        chamber.advance(drive / 65535.0, 1.0 / TICK_HZ);
+        drive = pid.step(target, (int16_t)chamber.pressure_pa);
+        if (tick < 2) CHECK_EQ(drive, 0);
+        if (chamber.pressure_pa > peak) peak = chamber.pressure_pa;
+    }
+    CHECK(peak < switch_pa + 5);  // one tick of the old drive, then nothing more
+    CHECK_NEAR(chamber.pressure_pa, target, 20);
+}
+
+TEST(pid_output_is_one_sided_and_clamped) {
+    Pid pid;
+    pid.init(DEFAULT_GAINS);
+    CHECK_EQ(pid.step(0, 2000), 0);      // above the setpoint: no negative drive, only off
+    CHECK_EQ(pid.step(6000, -6000), 65535);
+    PidGains strong = {100, 1000, 1, 40000};
+    pid.set_gains(strong);
+    for (int i = 0; i < 100; ++i) CHECK(pid.step(32767, -32768) <= 40000);
+    for (int i = 0; i < 100; ++i) CHECK_EQ(pid.step(-32768, 32767), 0);
+}
+
+// Independent float reference of the same control law, to check the fixed-point arithmetic.
+struct FloatPid {
+    FloatPid(double kp_, double ki_, double kd_, double max_) : kp(kp_), ki(ki_), kd(kd_), max(max_) {}
+    double kp, ki, kd, max, integral = 0, derivative = 0, last_p = 0;
+    double step(double sp, double p) {
+        double e = sp - p;
+        if (kd > 0) derivative += (-kd * (p - last_p) - derivative) / 4;
+        last_p = p;
+        double prop = kp * e;
+        double cand = integral + ki * e;
+        double raw = prop + cand + derivative;
+        bool winding = (raw > max && e > 0) || (raw < 0 && e < 0);
+        if (!winding) integral = cand < 0 ? 0 : (cand > max ? max : cand);
+        double u = prop + integral + derivative;
+        return u < 0 ? 0 : (u > max ? max : u);
+    }
+};
+
+TEST(pid_fixed_point_tracks_a_float_reference) {
+    srand(7);
+    PidGains gains = {1.5f, 4.0f, 0.05f, 60000};
+    Pid pid;
+    pid.init(gains);
+    double dt = 1.0 / TICK_HZ;
+    FloatPid ref(1.5e-3, 4.0e-3 * dt, 0.05e-3 / dt, 60000 / 65535.0);
+    double worst = 0;
+    int16_t p = 0;
+    for (int i = 0; i < 20000; ++i) {
+        int16_t sp = (int16_t)((i / 2000) * 300);
+        p = (int16_t)(p + (rand() % 61) - 30);
+        if (p < -500) p = -500;
+        if (p > 3500) p = 3500;
+        double expected = ref.step(sp, p);
+        double got = pid.step(sp, p) / 65535.0;
+        worst = fabs(got - expected) > worst ? fabs(got - expected) : worst;
+    }
+    printf("     fixed point vs float reference: worst difference %.2e of full drive\n", worst);
+    CHECK(worst < 2e-4);  // Q28 gains round to 1e-8 relative; the u16 output truncates by < 1.6e-5
+}
+
+TEST(pid_gain_change_is_bumpless) {
+    const PidGains gentle = {2.0f, 3.0f, 0.0f, 65535};
+    Pid pid;
+    pid.init(gentle);
+    uint16_t before = 0;
+    // 200 ticks at a 100 Pa error: P = 0.2, I = 200 * ki e dt = 0.12, well inside the output range.
+    for (int i = 0; i < 200; ++i) before = pid.step(2000, 1900);
+    CHECK_NEAR(before, 0.32 * 65535, 0.002 * 65535);
+    PidGains stronger = gentle;
+    stronger.kp_per_kpa = 3.0f;
+    pid.set_gains(stronger);
+    uint16_t after = pid.step(2000, 1900);
+    // Without re-seeding the output would jump by the P change, 0.1; the step itself adds one tick of
+    // integral, ki e dt = 6e-4.
+    CHECK_NEAR(after, before, 0.001 * 65535);
+}
+
+TEST(pid_derivative_acts_on_the_measurement_only) {
+    PidGains gains = {1.0f, 0.0f, 0.5f, 65535};
+    Pid with_kd, without_kd;
+    with_kd.init(gains);
+    gains.kd_s_per_kpa = 0;
+    without_kd.init(gains);
+    with_kd.reset(500);
+    without_kd.reset(500);
+    for (int i = 0; i < 10; ++i) {
+        with_kd.step(1000, 500);
+        without_kd.step(1000, 500);
+    }
+    // A setpoint step at a constant measurement: no derivative kick (P = 0.7, inside the output range).
+    CHECK_EQ(with_kd.step(1200, 500), without_kd.step(1200, 500));
+    // A rising measurement: the derivative term brakes.
+    CHECK(with_kd.step(1200, 510) < without_kd.step(1200, 510) - 0.1 * 65535);
+}
+
+TEST(pid_rejects_invalid_gains) {
+    PidGains g = DEFAULT_GAINS;
+    CHECK(pid_gains_valid(g));
+    g.kp_per_kpa = -1;
+    CHECK(!pid_gains_valid(g));
+    g = DEFAULT_GAINS;
+    g.ki_per_kpa_s = NAN;
+    CHECK(!pid_gains_valid(g));
+    g = DEFAULT_GAINS;
+    g.kd_s_per_kpa = INFINITY;
+    CHECK(!pid_gains_valid(g));
+    g = DEFAULT_GAINS;
+    g.kp_per_kpa = MAX_KP_PER_KPA * 1.01f;
+    CHECK(!pid_gains_valid(g));
+}
+
+// ---- controller ------------------------------------------------------------------------------------
+
+// A controller wired to a captured transport and a sensor model; frames the board sends are decoded.
+struct Bench {
+    struct Sent {
+        uint8_t id, seq;
+        std::vector<uint8_t> payload;
+    };
+    Controller controller;
+    FrameReader board_frames{true};
+    std::vector<Sent> sent;
+    uint16_t counts[CHAMBERS] = {512, 512, 512};
+    uint8_t host_seq = 0;
+    bool transport_full = false;
+
+    static bool capture(const uint8_t* frame, uint8_t len, void* context) {
+        Bench* bench = static_cast<Bench*>(context);
+        if (bench->transport_full) return false;
+        for (uint8_t i = 0; i < len; ++i) {
+            if (bench->board_frames.feed(frame[i])) {
+                const FrameReader& r = bench->board_frames;
+                bench->sent.push_back(Sent{r.msg_id(), r.seq(), std::vector<uint8_t>(r.payload(), r.payload() + r.payload_len())});
+            }
+        }
+        return true;
+    }
+
+    explicit Bench(uint8_t reset_cause = RESET_CAUSE_POWER_ON) {
+        controller.init(BOARD_NATIVE, reset_cause, capture, this);
+    }
+
+    void feed(const std::vector<uint8_t>& bytes) {
+        for (uint8_t b : bytes) controller.receive(b);
+    }
+    uint8_t command(uint8_t id, const uint8_t* payload, uint8_t len) {
+        uint8_t seq = host_seq++;
+        feed(frame_of(id, seq, payload, len));
+        return seq;
+    }
+    void hello(uint32_t hash = SPEC_HASH) {
+        uint8_t p[Hello::PAYLOAD_SIZE];
+        Hello h = {PROTOCOL_VERSION, hash};
+        encode(h, p);
+        command(MSG_HELLO, p, sizeof p);
+    }
+    uint8_t setpoints(int16_t a, int16_t b, int16_t c) {
+        SetSetpoints m = {{a, b, c}};
+        uint8_t p[SetSetpoints::PAYLOAD_SIZE];
+        encode(m, p);
+        return command(MSG_SET_SETPOINTS, p, sizeof p);
+    }
+    uint8_t simple(uint8_t id) { return command(id, 0, 0); }
+    uint8_t config(uint16_t period_ms, uint16_t deadline_ms) {
+        SetConfig m = {period_ms, deadline_ms};
+        uint8_t p[SetConfig::PAYLOAD_SIZE];
+        encode(m, p);
+        return command(MSG_SET_CONFIG, p, sizeof p);
+    }
+    uint8_t set_pid(uint8_t chamber, float kp, float ki, float kd, int16_t max_pa, uint16_t max_drive) {
+        SetPid m = {chamber, kp, ki, kd, max_pa, max_drive};
+        uint8_t p[SetPid::PAYLOAD_SIZE];
+        encode(m, p);
+        return command(MSG_SET_PID, p, sizeof p);
+    }
+    void set_pressure(uint8_t chamber, double pressure_pa) { counts[chamber] = plant::adc_counts(pressure_pa); }
+    void ticks(int n) {
+        for (int i = 0; i < n; ++i) {
+            AdcTick adc;
+            for (uint8_t c = 0; c < CHAMBERS; ++c) {
+                adc.sum[c] = (uint16_t)(4 * counts[c]);
+                adc.count[c] = 4;
+            }
+            controller.tick(adc, 0);
+        }
+    }
+    // The status of the last ACK/NACK for a command seq (-1 if none); is_ack tells which kind.
+    int reply_status(uint8_t seq, bool* is_ack = 0) const {
+        for (size_t i = sent.size(); i-- > 0;) {
+            const Sent& s = sent[i];
+            if ((s.id == MSG_ACK || s.id == MSG_NACK) && s.payload[1] == seq) {
+                if (is_ack) *is_ack = s.id == MSG_ACK;
+                return s.payload[2];
+            }
+        }
+        return -1;
+    }
+    int count(uint8_t id) const {
+        int n = 0;
+        for (const Sent& s : sent) n += s.id == id;
+        return n;
+    }
+    const Sent* last(uint8_t id) const {
+        for (size_t i = sent.size(); i-- > 0;)
+            if (sent[i].id == id) return &sent[i];
+        return 0;
+    }
+};
+
+static void check_all_off(const Bench& b) {
+    for (uint8_t c = 0; c < CHAMBERS; ++c) {
+        CHECK_EQ(b.controller.drive(c), 0);
+        CHECK_EQ(b.controller.chamber_state(c), CHAMBER_STATE_FAULT);
+        CHECK_EQ(b.controller.setpoint_pa(c), 0);
+    }
+}
+
+TEST(hello_opens_a_session_and_a_wrong_hash_is_refused) {
+    Bench b;
+    uint8_t seq = b.setpoints(1000, 0, 0);
+    CHECK_EQ(b.reply_status(seq), STATUS_NO_SESSION);
+    b.hello(SPEC_HASH ^ 1);
+    HelloReply reply;
+    decode(reply, b.last(MSG_HELLO_REPLY)->payload.data());
+    CHECK_EQ(reply.status, STATUS_SPEC_MISMATCH);
+    CHECK_EQ(reply.spec_hash, SPEC_HASH);
+    CHECK(!b.controller.session_open());
+    b.hello();
+    decode(reply, b.last(MSG_HELLO_REPLY)->payload.data());
+    CHECK_EQ(reply.status, STATUS_OK);
+    CHECK_EQ(reply.reset_cause, RESET_CAUSE_POWER_ON);
+    CHECK_EQ(reply.chamber_count, 3);
+    CHECK_EQ(reply.fault_flags, 0);
+    seq = b.setpoints(1000, 0, 0);
+    bool ack = false;
+    CHECK_EQ(b.reply_status(seq, &ack), STATUS_OK);
+    CHECK(ack);
+    b.ticks(1);
+    CHECK(b.controller.drive(0) > 0);
+    b.hello(SPEC_HASH + 1);  // a host from another spec takes over: refused, and the blowers stop
+    CHECK(!b.controller.session_open());
+    CHECK_EQ(b.controller.drive(0), 0);
+    CHECK_EQ(b.controller.setpoint_pa(0), 0);
+}
+
+TEST(ping_is_answered_with_the_host_timestamp) {
+    Bench b;
+    b.ticks(50);
+    uint8_t p[4];
+    put_u32(p, 0xCAFEF00D);
+    b.command(MSG_PING, p, 4);
+    Pong pong;
+    decode(pong, b.last(MSG_PONG)->payload.data());
+    CHECK_EQ(pong.host_time_ms, 0xCAFEF00D);
+    CHECK_EQ(pong.board_time_ms, 100);
+}
+
+TEST(setpoints_are_absolute_validated_and_all_or_nothing) {
+    Bench b;
+    b.hello();
+    CHECK_EQ(b.reply_status(b.setpoints(1000, 2000, 0)), STATUS_OK);
+    CHECK_EQ(b.reply_status(b.setpoints(1500, -1, 0)), STATUS_BAD_VALUE);
+    CHECK_EQ(b.reply_status(b.setpoints(1500, 0, DEFAULT_MAX_PRESSURE_PA + 1)), STATUS_BAD_VALUE);
+    CHECK_EQ(b.controller.setpoint_pa(0), 1000);
+    CHECK_EQ(b.controller.setpoint_pa(1), 2000);
+    uint8_t seq = b.setpoints(1500, 0, 0);
+    b.feed(frame_of(MSG_SET_SETPOINTS, seq, 0, 0));  // wrong length: dropped, not acted on
+    CHECK_EQ(b.controller.setpoint_pa(0), 1500);
+    CHECK_EQ(b.controller.chamber_state(1), CHAMBER_STATE_OFF);
+}
+
+TEST(telemetry_streams_at_the_configured_period) {
+    Bench b;
+    b.ticks(500);
+    CHECK_EQ(b.count(MSG_TELEMETRY), 0);  // no session, no stream
+    b.hello();
+    b.config(20, 10000);
+    b.ticks(TICK_HZ);
+    CHECK_EQ(b.count(MSG_TELEMETRY), 50);
+    CHECK_EQ(b.reply_status(b.config(100, 10000)), STATUS_OK);
+    b.ticks(TICK_HZ);
+    CHECK_EQ(b.count(MSG_TELEMETRY), 60);
+    CHECK_EQ(b.reply_status(b.config(5, 500)), STATUS_BAD_VALUE);
+    CHECK_EQ(b.reply_status(b.config(20, 20000)), STATUS_BAD_VALUE);
+    CHECK_EQ(b.reply_status(b.config(0, 10000)), STATUS_OK);
+    b.ticks(TICK_HZ);
+    CHECK_EQ(b.count(MSG_TELEMETRY), 60);
+}
+
+TEST(dropped_frames_are_counted_in_telemetry) {
+    Bench b;
+    b.hello();
+    std::vector<uint8_t> bad = frame_of(MSG_VENT, 3, 0, 0);
+    bad[1] ^= 0x40;
+    b.feed(bad);
+    b.feed(std::vector<uint8_t>(200, 0x55));
+    b.feed(std::vector<uint8_t>(1, 0x00));
+    b.transport_full = true;
+    b.ticks(10);
+    b.transport_full = false;
+    b.ticks(10);
+    Telemetry t;
+    decode(t, b.last(MSG_TELEMETRY)->payload.data());
+    CHECK_EQ(t.rx_bad_crc, 1);
+    CHECK_EQ(t.rx_overflow, 1);
+    CHECK_EQ(t.tx_dropped, 1);
+}
+
+TEST(over_pressure_latches_stops_every_blower_and_clears_only_on_command) {
+    Bench b;
+    b.hello();
+    b.config(20, 10000);
+    b.setpoints(2000, 1000, 1000);
+    b.ticks(5);
+    CHECK(b.controller.drive(0) > 0 && b.controller.drive(1) > 0);
+    b.set_pressure(1, 4100);  // above the default 4 kPa limit
+    b.ticks(1);
+    check_all_off(b);
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_OVERPRESSURE_1);
+    Fault fault;
+    decode(fault, b.last(MSG_FAULT)->payload.data());
+    CHECK_EQ(fault.fault_bit, FAULT_OVERPRESSURE_1);
+    CHECK_NEAR(fault.pressure_pa[1], 4100, 54.3);
+    CHECK_EQ(b.count(MSG_FAULT), 1);
+
+    b.ticks(50);
+    CHECK_EQ(b.count(MSG_FAULT), 1);  // reported once
+    CHECK_EQ(b.reply_status(b.setpoints(1000, 0, 0)), STATUS_FAULT_LATCHED);
+    CHECK_EQ(b.reply_status(b.simple(MSG_CLEAR_FAULT)), STATUS_FAULT_ACTIVE);
+    b.set_pressure(1, 0);
+    b.ticks(50);
+    check_all_off(b);  // still latched: the cause is gone but nobody cleared it
+    CHECK_EQ(b.reply_status(b.simple(MSG_CLEAR_FAULT)), STATUS_OK);
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    CHECK_EQ(b.controller.chamber_state(0), CHAMBER_STATE_OFF);
+    CHECK_EQ(b.reply_status(b.setpoints(1000, 0, 0)), STATUS_OK);
+    b.ticks(1);
+    CHECK(b.controller.drive(0) > 0);
+}
+
+TEST(over_pressure_limit_is_clamped_to_the_ceiling) {
+    Bench b;
+    b.hello();
+    bool ack = false;
+    CHECK_EQ(b.reply_status(b.set_pid(2, 2, 3, 0, 30000, 65535), &ack), STATUS_CLAMPED);
+    CHECK(ack);
+    CHECK_EQ(b.controller.max_pressure_pa(2), PRESSURE_CEILING_PA);
+    b.set_pressure(2, PRESSURE_CEILING_PA - 60);
+    b.ticks(3);
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    b.set_pressure(2, PRESSURE_CEILING_PA + 60);
+    b.ticks(1);
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_OVERPRESSURE_2);
+}
+
+TEST(set_pid_checks_its_fields) {
+    Bench b;
+    b.hello();
+    CHECK_EQ(b.reply_status(b.set_pid(3, 2, 3, 0, 3000, 65535)), STATUS_BAD_CHAMBER);
+    CHECK_EQ(b.reply_status(b.set_pid(0, -2, 3, 0, 3000, 65535)), STATUS_BAD_VALUE);
+    CHECK_EQ(b.reply_status(b.set_pid(0, 2, NAN, 0, 3000, 65535)), STATUS_BAD_VALUE);
+    CHECK_EQ(b.reply_status(b.set_pid(0, 2, 3, 0, 0, 65535)), STATUS_BAD_VALUE);
+    b.setpoints(2500, 0, 0);
+    CHECK_EQ(b.reply_status(b.set_pid(0, 2, 3, 0, 2000, 65535)), STATUS_BAD_VALUE);  // below the setpoint
+    CHECK_EQ(b.reply_status(b.set_pid(0, 4, 1, 0.01f, 3000, 30000)), STATUS_OK);
+    CHECK_NEAR(b.controller.pid(0).gains().kp_per_kpa, 4, 0);
+    CHECK_EQ(b.controller.max_pressure_pa(0), 3000);
+}
+
+TEST(sensor_out_of_range_latches_after_five_ticks_in_a_row) {
+    Bench b;
+    b.hello();
+    b.config(20, 10000);
+    b.setpoints(1000, 1000, 1000);
+    b.ticks(3);
+    b.counts[0] = 5;  // broken wire: 0.02 V
+    b.ticks(SENSOR_BAD_TICKS - 1);
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    CHECK_EQ(b.controller.drive(0), 0);  // a suspect reading never drives its blower
+    CHECK(b.controller.drive(1) > 0);
+    b.counts[0] = 512;  // one good tick restarts the count
+    b.ticks(1);
+    b.counts[0] = 1020;  // rail high: 4.98 V, also an over-pressure reading, which must not be reported as such
+    b.ticks(SENSOR_BAD_TICKS - 1);
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    b.ticks(1);
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_SENSOR_0);
+    check_all_off(b);
+    CHECK_EQ(b.reply_status(b.simple(MSG_CLEAR_FAULT)), STATUS_FAULT_ACTIVE);
+    b.counts[0] = 512;
+    b.ticks(1);
+    CHECK_EQ(b.reply_status(b.simple(MSG_CLEAR_FAULT)), STATUS_OK);
+}
+
+TEST(dead_host_deadline_trips_and_pings_keep_the_link_alive) {
+    Bench b;
+    b.ticks(1000);
+    CHECK_EQ(b.controller.fault_flags(), 0);  // no session: nothing to guard
+    b.hello();
+    b.setpoints(1000, 0, 0);
+    uint8_t p[4] = {0, 0, 0, 0};
+    for (int i = 0; i < 20; ++i) {
+        b.ticks(200);  // 400 ms
+        b.command(MSG_PING, p, 4);
+    }
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    b.ticks(DEFAULT_HOST_DEADLINE_MS / TICK_MS);  // exactly the deadline: not yet
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    CHECK(b.controller.drive(0) > 0);
+    b.ticks(1);
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_DEAD_HOST);
+    check_all_off(b);
+    CHECK_EQ(b.reply_status(b.simple(MSG_CLEAR_FAULT)), STATUS_OK);
+    b.config(20, 100);
+    b.ticks(50);
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    b.ticks(1);
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_DEAD_HOST);
+}
+
+TEST(garbage_does_not_count_as_a_sign_of_life) {
+    Bench b;
+    b.hello();
+    for (int i = 0; i < 10; ++i) {
+        b.ticks(100);
+        b.feed(std::vector<uint8_t>(30, 0x11));
+        b.feed(std::vector<uint8_t>(1, 0x00));
+    }
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_DEAD_HOST);
+}
+
+TEST(watchdog_reset_is_latched_and_reported_at_hello) {
+    Bench b(RESET_CAUSE_WATCHDOG);
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_WATCHDOG_RESET);
+    CHECK_EQ(b.count(MSG_FAULT), 1);  // through the one fault path, FAULT frame included
+    CHECK_EQ(b.last(MSG_FAULT)->payload[4], FAULT_WATCHDOG_RESET);
+    b.hello();
+    HelloReply reply;
+    decode(reply, b.last(MSG_HELLO_REPLY)->payload.data());
+    CHECK_EQ(reply.reset_cause, RESET_CAUSE_WATCHDOG);
+    CHECK_EQ(reply.fault_flags, 1 << FAULT_WATCHDOG_RESET);
+    CHECK_EQ(b.reply_status(b.setpoints(1000, 0, 0)), STATUS_FAULT_LATCHED);
+    CHECK_EQ(b.reply_status(b.simple(MSG_CLEAR_FAULT)), STATUS_OK);
+    CHECK_EQ(b.reply_status(b.setpoints(1000, 0, 0)), STATUS_OK);
+}
+
+TEST(vent_stops_every_blower_at_once_even_without_a_session) {
+    Bench fresh;
+    bool ack = false;
+    CHECK_EQ(fresh.reply_status(fresh.simple(MSG_VENT), &ack), STATUS_OK);
+    CHECK(ack);
+    Bench b;
+    b.hello();
+    b.setpoints(1000, 2000, 3000);
+    b.ticks(2);
+    CHECK(b.controller.drive(2) > 0);
+    b.simple(MSG_VENT);
+    for (uint8_t c = 0; c < CHAMBERS; ++c) {
+        CHECK_EQ(b.controller.drive(c), 0);  // before the next tick
+        CHECK_EQ(b.controller.setpoint_pa(c), 0);
+    }
+    CHECK_EQ(b.controller.fault_flags(), 0);
+}
+
+TEST(zero_calibration_measures_offsets_and_refuses_implausible_ones) {
+    Bench b;
+    b.hello();
+    b.config(20, 10000);
+    b.setpoints(1000, 0, 0);
+    CHECK_EQ(b.reply_status(b.simple(MSG_ZERO_SENSORS)), STATUS_NOT_VENTED);
+    b.simple(MSG_VENT);
+    b.ticks(1);
+    b.counts[0] = 520;  // +8 counts of offset
+    b.counts[1] = 505;
+    uint8_t seq = b.simple(MSG_ZERO_SENSORS);
+    CHECK_EQ(b.reply_status(seq), -1);  // the answer comes when it is done
+    b.ticks(1);
+    CHECK_EQ(b.controller.chamber_state(0), CHAMBER_STATE_ZEROING);
+    CHECK_EQ(b.reply_status(b.setpoints(1000, 0, 0)), STATUS_BUSY);
+    b.ticks(ZERO_TICKS - 1);
+    CHECK_EQ(b.reply_status(seq), STATUS_OK);
+    CHECK_EQ(b.controller.zero_x16(0), 520 * 16);
+    CHECK_EQ(b.controller.zero_x16(1), 505 * 16);
+    b.ticks(1);
+    CHECK_EQ(b.controller.pressure_pa(0), 0);
+    CHECK_EQ(b.controller.pressure_pa(1), 0);
+    b.counts[2] = 512 + 60;  // 3.3 kPa of offset: not a vented sensor
+    seq = b.simple(MSG_ZERO_SENSORS);
+    b.ticks(ZERO_TICKS);
+    CHECK_EQ(b.reply_status(seq), STATUS_ZERO_OUT_OF_RANGE);
+    CHECK_EQ(b.controller.zero_x16(0), 520 * 16);  // all or nothing
+    CHECK_EQ(b.controller.zero_x16(2), NOMINAL_ZERO_X16);
+}
+
+TEST(test_hang_needs_its_magic_and_is_acknowledged_first) {
+    Bench b;
+    b.hello();
+    uint8_t p[4];
+    put_u32(p, 0x12345678);
+    CHECK_EQ(b.reply_status(b.command(MSG_TEST_HANG, p, 4)), STATUS_BAD_MAGIC);
+    CHECK(!b.controller.hang_requested());
+    b.setpoints(1000, 0, 0);
+    b.ticks(1);
+    put_u32(p, TEST_HANG_MAGIC);
+    CHECK_EQ(b.reply_status(b.command(MSG_TEST_HANG, p, 4)), STATUS_OK);
+    CHECK(b.controller.hang_requested());
+    CHECK_EQ(b.controller.drive(0), 0);
+}
+
+TEST(closed_loop_through_the_controller_reaches_the_setpoints) {
+    Bench b;
+    b.hello();
+    b.config(20, 10000);
+    plant::Chamber chambers[CHAMBERS];
+    chambers[1].compliance_m3_per_pa = 4e-9;  // a softer chamber
+    b.setpoints(2000, 1500, 0);
+    for (int tick = 0; tick < 3 * TICK_HZ; ++tick) {
+        for (uint8_t c = 0; c < CHAMBERS; ++c) {
+            for (int k = 0; k < 10; ++k) chambers[c].advance(b.controller.drive(c) / 65535.0, 1.0 / (10 * TICK_HZ));
+            b.set_pressure(c, chambers[c].pressure_pa);
+        }
+        b.ticks(1);
+    }
+    Telemetry t;
+    decode(t, b.last(MSG_TELEMETRY)->payload.data());
+    CHECK_NEAR(t.pressure_pa[0], 2000, 54.3);
+    CHECK_NEAR(t.pressure_pa[1], 1500, 54.3);
+    CHECK_NEAR(chambers[0].pressure_pa, 2000, 60);
+    CHECK_EQ(t.drive[2], 0);
+    CHECK_EQ(t.state[0], CHAMBER_STATE_REGULATING);
+    CHECK_EQ(t.state[2], CHAMBER_STATE_OFF);
+    CHECK_EQ(t.fault_flags, 0);
+}
+
+int main() { return check::run_all("firmware core unit tests"); }
