@@ -1,5 +1,6 @@
 """Subcommands of ``phantom``: the hardware-in-the-loop bench: phantom hil ....
 
+The same checks run against the firmware in simavr (``--sim``) or a real board (``--port /dev/ttyACM0``).
 Only argparse is imported at module load; handlers import what they need when they run.
 """
 
@@ -8,3 +9,185 @@ import argparse
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
+    hil = subparsers.add_parser(
+        "hil",
+        help="hardware-in-the-loop bench: the firmware in simavr (--sim) or a real board (--port)",
+        description="Run bench checks against the firmware image in simavr (--sim) or a board on a serial port.",
+    )
+    checks = hil.add_subparsers(dest="check", metavar="CHECK", required=True)
+
+    def add_check(name: str, help_text: str, handler) -> argparse.ArgumentParser:
+        parser = checks.add_parser(name, help=help_text, description=help_text)
+        target = parser.add_mutually_exclusive_group(required=True)
+        target.add_argument("--sim", action="store_true", help="run the firmware image in simavr against the plant")
+        target.add_argument("--port", help="serial port of a real board, e.g. /dev/ttyACM0")
+        parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+        parser.add_argument("--elf", help="firmware image for --sim (default firmware/build/uno/phantom.elf)")
+        parser.add_argument("--plant", help="plant parameter file for --sim (default hil/plant.toml)")
+        parser.add_argument(
+            "--speed", type=float, default=1.0, help="--sim: simulated time per wall-clock time (default 1 = real time)"
+        )
+        parser.add_argument("--seed", type=int, default=0, help="--sim: seed of the sensor and line noise")
+        parser.add_argument("--json", action="store_true", help="print the result as JSON")
+        parser.set_defaults(run=handler)
+        return parser
+
+    add_check("handshake", "HELLO: the board's identity, and a foreign spec hash refused", _run_handshake)
+    step = add_check("step", "step response of one chamber: rise, overshoot, settling, steady-state error", _run_step)
+    step.add_argument("--chamber", type=int, default=0, choices=(0, 1, 2), help="chamber to step (default 0)")
+    step.add_argument("--kpa", type=float, default=2.0, help="step height in kPa (default 2)")
+    step.add_argument("--duration-s", type=float, default=3.0, help="how long to record after the step (default 3)")
+    step.add_argument("--plot", help="write the response as a PNG to this path")
+    step.add_argument("--pid", help="KP,KI,KD gains (per kPa, per kPa s, s per kPa) to send with SET_PID first")
+    add_check("faults", "each fault trips the latch and the blowers stop in the stated time", _run_faults)
+    add_check("noise", "the link survives line noise: no corrupted command applied", _run_noise)
+    add_check("watchdog", "a watchdog reset is reported by the next HELLO", _run_watchdog)
+    report = add_check("report", "every check, with a Markdown/JSON report and PNG plots", _run_report)
+    report.add_argument("--out", default="out/hil-report", help="output folder (default ./out/hil-report)")
+    report.add_argument("--kpa", type=float, default=2.0, help="step height in kPa (default 2)")
+    cycles = add_check("cycles", "CPU use of the firmware from simavr's cycle counter (--sim only)", _run_cycles)
+    cycles.add_argument("--duration-s", type=float, default=5.0, help="measurement time (default 5 s)")
+    cycles.add_argument("--telemetry-ms", type=int, default=20, help="telemetry period (default 20 ms = 50 Hz)")
+    cycles.add_argument("--kpa", type=float, default=2.0, help="setpoint of all three chambers (default 2)")
+
+
+class _Bench:
+    """The link (and the simulated board, with --sim) for one command."""
+
+    def __init__(self, args):
+        self.args = args
+        self.board = None
+        self.link = None
+
+    def __enter__(self):
+        from phantom.hil.link import BoardLink
+        from phantom.hil.sim import SimulatedBoard
+
+        port, scale = self.args.port, 1.0
+        if self.args.sim:
+            _progress("starting the firmware in simavr")
+            self.board = SimulatedBoard(self.args.elf, self.args.plant, speed=self.args.speed, seed=self.args.seed)
+            self.board.start()
+            port, scale = self.board.port, (self.args.speed or 1.0)
+        self.link = BoardLink(port, baudrate=self.args.baud, time_scale=scale)
+        return self
+
+    def __exit__(self, *exc_info):
+        if self.link is not None:
+            self.link.close()
+        if self.board is not None:
+            self.board.stop()
+
+
+def _progress(message: str) -> None:
+    import sys
+
+    print(f"phantom hil: {message}", file=sys.stderr, flush=True)
+
+
+def _emit(args, result: dict, lines: list[str]) -> int:
+    import json
+
+    print(json.dumps(result, indent=1) if args.json else "\n".join(lines))
+    return 0 if result.get("passed", True) else 1
+
+
+def _run_handshake(args) -> int:
+    from phantom.hil import bench
+
+    with _Bench(args) as b:
+        result = bench.check_handshake(b.link)
+    lines = [f"{key}: {value}" for key, value in result.items()]
+    return _emit(args, result, lines)
+
+
+def _run_step(args) -> int:
+    from pathlib import Path
+
+    from phantom import PhantomError
+    from phantom.hil import bench
+
+    gains = None
+    if args.pid is not None:
+        try:
+            gains = [float(value) for value in args.pid.split(",")]
+        except ValueError:
+            gains = []
+        if len(gains) != 3 or any(g < 0 for g in gains):
+            raise PhantomError(f"--pid takes three gains >= 0 as KP,KI,KD (e.g. 4,15,0), got {args.pid!r}")
+    with _Bench(args) as b:
+        _progress(f"step 0 -> {args.kpa} kPa on chamber {args.chamber}")
+        result = bench.check_step(b.link, args.chamber, args.kpa, duration_s=args.duration_s, gains=gains)
+    if args.plot:
+        bench.plot_steps([result], Path(args.plot))
+    result.pop("trace")
+    lines = [f"{key}: {value:.4g}" if isinstance(value, float) else f"{key}: {value}" for key, value in result.items()]
+    return _emit(args, result, lines)
+
+
+def _run_faults(args) -> int:
+    from phantom.hil import bench
+
+    results = []
+    with _Bench(args) as b:
+        for fault, chamber in (("sensor_cut", 1), ("stuck_blower", 0), ("leak", 2), ("silent_host", None)):
+            _progress(f"fault: {fault}")
+            results.append(bench.check_fault(b.link, b.board, fault, chamber))
+    passed = all(r.get("passed", True) for r in results)
+    lines = [
+        f"{r['fault']}: skipped ({r['skipped']})"
+        if "skipped" in r
+        else f"{r['fault']}: {'PASS' if r['passed'] else 'FAIL'}, latched {r['latched']}, "
+        f"blowers off after {r.get('stop_time_s')} s (limit {r.get('limit_s')} s)"
+        for r in results
+    ]
+    return _emit(args, {"passed": passed, "faults": results}, lines)
+
+
+def _run_noise(args) -> int:
+    from phantom.hil import bench
+
+    with _Bench(args) as b:
+        result = bench.check_line_noise(b.link, b.board)
+    return _emit(args, result, [f"{key}: {value}" for key, value in result.items()])
+
+
+def _run_watchdog(args) -> int:
+    from phantom.hil import bench
+
+    with _Bench(args) as b:
+        result = bench.check_watchdog(b.link, b.board)
+    return _emit(args, result, [f"{key}: {value}" for key, value in result.items()])
+
+
+def _run_report(args) -> int:
+    from pathlib import Path
+
+    from phantom.hil import bench
+
+    out = Path(args.out)
+    with _Bench(args) as b:
+        report = bench.run_report(b.link, b.board, out, target_kpa=args.kpa)
+    passed = (
+        report["handshake"]["passed"]
+        and all(f.get("passed", True) for f in report["faults"])
+        and report["line_noise"].get("passed", True)
+        and report["watchdog"]["passed"]
+    )
+    _progress(f"report written to {out}/report.md (plots: {out}/steps.png)")
+    if args.json:
+        for step in report["steps"]:
+            step.pop("trace")
+    return _emit(args, {"passed": passed, **report}, [(out / "report.md").read_text()])
+
+
+def _run_cycles(args) -> int:
+    from phantom import PhantomError
+    from phantom.hil import bench
+
+    if not args.sim:
+        raise PhantomError("cycle counts need the simulator: use `phantom hil cycles --sim`")
+    with _Bench(args) as b:
+        result = bench.measure_cycles(b.link, b.board, args.duration_s, args.telemetry_ms, args.kpa)
+    lines = [f"{key}: {value:.6g}" if isinstance(value, float) else f"{key}: {value}" for key, value in result.items()]
+    return _emit(args, result, lines)

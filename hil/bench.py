@@ -1,0 +1,611 @@
+"""The test bench: the same checks against a simulated board (simavr) or a real one on a serial port.
+
+Each check takes a :class:`~phantom.hil.link.BoardLink` and, for the faults that must be injected into the
+plant or the line, the :class:`~phantom.hil.sim.SimulatedBoard`; on a real board those are skipped with the
+reason. Times are in board time (the firmware's ``time_ms``) or, for fault reaction times, in simulated time
+read from the harness, which sees the PWM registers at the plant's step (100 us).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from phantom import PhantomError
+from phantom.hil.link import TEST_HANG_MAGIC, BoardLink, LinkError
+
+#: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
+TELEMETRY_PERIOD_MS = 10
+#: Dead-host deadline the checks configure (ms): the firmware's default.
+HOST_DEADLINE_MS = 500
+#: Stated time within which the blowers must stop after each fault (s), and why:
+STOP_LIMITS_S = {
+    # from the injection: a few bad samples in a row at 500 Hz, plus the tick that acts on it
+    "sensor_cut": 0.05,
+    # from the injection: the stuck blower first has to push the pressure over the limit (about 0.5 s on the
+    # default plant from 1.5 kPa), then one tick
+    "stuck_blower": 2.0,
+    # from the host's last byte: the deadline, counted from the tick that saw the last frame (up to one tick
+    # later) and compared strictly (one more tick), then the drive update after that tick (under one tick)
+    "silent_host": HOST_DEADLINE_MS / 1000 + 0.006,
+}
+#: Settling band of the step (fraction of the step).
+SETTLING_BAND = 0.02
+#: Window of the centred moving average the settling time is judged on (s). The 2 % band of a 2 kPa step,
+#: +/-40 Pa, is under one ADC count (54 Pa): single noisy samples of the measurement cross it although the
+#: pressure has settled; 50 ms of averaging (5 telemetry samples) removes that and shifts a settling time by
+#: well under a sample for responses slower than about 0.1 s.
+SETTLING_SMOOTHING_S = 0.05
+
+
+class BenchError(PhantomError):
+    """A bench check could not run (bad arguments, board not answering)."""
+
+
+def fault_bits() -> dict[str, int]:
+    from phantom.protocol.messages import BITS
+
+    return BITS["fault"]
+
+
+def _settling_time(t: np.ndarray, p: np.ndarray, target: float, band: float) -> float | None:
+    """The time after which p stays within target +/- band * target (None if it ends outside)."""
+    outside = np.nonzero(np.abs(p - target) > band * target)[0]
+    if outside.size == 0:
+        return float(t[0])
+    if outside[-1] == p.size - 1:
+        return None
+    return float(t[outside[-1] + 1])
+
+
+def step_metrics(
+    times_s, pressures_kpa, target_kpa: float, band: float = SETTLING_BAND, smoothing_s: float = SETTLING_SMOOTHING_S
+) -> dict:
+    """Rise time, overshoot, settling time and steady-state error of a step from 0 at t = 0.
+
+    Parameters
+    ----------
+    times_s, pressures_kpa
+        The response sampled from the step on (times relative to the step, s; pressures in kPa).
+    target_kpa
+        The setpoint.
+    band
+        Settling band as a fraction of the target.
+    smoothing_s
+        Width of the centred moving average the settling time is judged on (0: the raw samples).
+
+    Returns
+    -------
+    dict
+        ``rise_time_s`` (10 % to 90 % of the target, first crossings), ``overshoot_pct`` (peak above the target
+        in % of it, 0 if none), ``settling_time_s`` (from then on the smoothed response stays inside
+        target +/- band; None if it never settles), ``settling_time_raw_s`` (the same on the raw samples),
+        ``steady_state_error_kpa`` (mean of target - p over the last 20 % of the record),
+        ``steady_state_noise_kpa`` (standard deviation there).
+    """
+    t = np.asarray(times_s, dtype=float)
+    p = np.asarray(pressures_kpa, dtype=float)
+    if t.size < 5 or t.size != p.size:
+        raise BenchError("a step response needs at least 5 samples of time and pressure")
+    if target_kpa <= 0:
+        raise BenchError(f"the step target must be > 0 kPa, got {target_kpa}")
+
+    def first_crossing(level: float) -> float | None:
+        above = np.nonzero(p >= level)[0]
+        if above.size == 0:
+            return None
+        k = above[0]
+        if k == 0:
+            return float(t[0])
+        # linear interpolation between the samples around the crossing
+        return float(t[k - 1] + (level - p[k - 1]) * (t[k] - t[k - 1]) / (p[k] - p[k - 1]))
+
+    t10, t90 = first_crossing(0.1 * target_kpa), first_crossing(0.9 * target_kpa)
+    window = max(1, int(round(smoothing_s / np.median(np.diff(t))))) if smoothing_s > 0 else 1
+    smoothed = np.convolve(p, np.ones(window) / window, mode="valid")
+    centred_t = t[(window - 1) // 2 : (window - 1) // 2 + smoothed.size]
+    tail = p[t >= t[0] + 0.8 * (t[-1] - t[0])]
+    return {
+        "rise_time_s": None if t10 is None or t90 is None else t90 - t10,
+        "overshoot_pct": max(0.0, float(p.max() - target_kpa) / target_kpa * 100.0),
+        "settling_time_s": _settling_time(centred_t, smoothed, target_kpa, band),
+        "settling_time_raw_s": _settling_time(t, p, target_kpa, band),
+        "steady_state_error_kpa": float(target_kpa - tail.mean()),
+        "steady_state_noise_kpa": float(tail.std()),
+    }
+
+
+def start_session(link: BoardLink, telemetry_period_ms: int = TELEMETRY_PERIOD_MS) -> dict:
+    """HELLO, configure telemetry and the deadline, start the keepalive, clear a latched fault if any."""
+    reply = link.hello()
+    link.command("SET_CONFIG", {"telemetry_period_ms": telemetry_period_ms, "host_deadline_ms": HOST_DEADLINE_MS})
+    link.keepalive(True)
+    if reply.fields["fault_flags"]:
+        link.command("CLEAR_FAULT", accept_nack=True)
+    return reply.fields
+
+
+def latest_telemetry(link: BoardLink, timeout_s: float = 1.0):
+    """The next TELEMETRY message to arrive (its fields)."""
+    got = link.wait_for(lambda m: m.name == "TELEMETRY", timeout_s, link.mark())
+    if got is None:
+        raise LinkError(f"no telemetry from the board within {timeout_s} s")
+    return got.message.fields
+
+
+def wait_on_board_clock(link: BoardLink, predicate, seconds: float, start: int):
+    """The first message from index start satisfying predicate within ``seconds`` of board time (telemetry
+    clock), or None. Without telemetry, a generous host-side timeout ends the wait."""
+    t0_ms = None
+
+    def done(message) -> bool:
+        nonlocal t0_ms
+        if predicate(message):
+            return True
+        if message.name == "TELEMETRY":
+            t0_ms = message.fields["time_ms"] if t0_ms is None else t0_ms
+            return message.fields["time_ms"] - t0_ms > seconds * 1e3
+        return False
+
+    got = link.wait_for(done, (5.0 + 10.0 * seconds) * link.time_scale, start)
+    return got if got is not None and predicate(got.message) else None
+
+
+def wait_board_time(link: BoardLink, seconds: float) -> dict:
+    """Wait until the board's telemetry clock has advanced by ``seconds``; returns the last telemetry fields.
+
+    Waiting on the board's clock, not the host's, keeps the checks right when the simulator runs slower than
+    asked (a loaded machine); the host-side timeout only catches a board that stopped talking.
+    """
+    start = link.mark()
+    first = link.wait_for(lambda m: m.name == "TELEMETRY", 1.0, start)
+    if first is None:
+        raise BenchError("no telemetry from the board: is a session open?")
+    t0_ms = first.message.fields["time_ms"]
+    got = link.wait_for(
+        lambda m: m.name == "TELEMETRY" and m.fields["time_ms"] - t0_ms >= seconds * 1e3,
+        (5.0 + 10.0 * seconds) * link.time_scale,
+        start,
+    )
+    if got is None:
+        raise BenchError(f"the board's telemetry stopped before {seconds} s of board time had passed")
+    return got.message.fields
+
+
+def vent_and_wait(link: BoardLink, below_kpa: float = 0.05, timeout_s: float = 20.0) -> None:
+    """VENT, then wait until every chamber reads below below_kpa, for at most timeout_s of board time."""
+    link.command("VENT")
+    start = link.mark()
+    first = link.wait_for(lambda m: m.name == "TELEMETRY", 1.0, start)
+    if first is None:
+        raise BenchError("no telemetry from the board: is a session open?")
+    t0_ms = first.message.fields["time_ms"]
+    got = link.wait_for(
+        lambda m: m.name == "TELEMETRY"
+        and (max(m.fields["pressure_pa"]) < below_kpa * 1e3 or m.fields["time_ms"] - t0_ms > timeout_s * 1e3),
+        (5.0 + 10.0 * timeout_s) * link.time_scale,
+        start,
+    )
+    if got is None or max(got.message.fields["pressure_pa"]) >= below_kpa * 1e3:
+        raise BenchError(f"the chambers did not vent below {below_kpa} kPa within {timeout_s} s")
+
+
+def zero_sensors(link: BoardLink, attempts: int = 5) -> None:
+    """ZERO_SENSORS with the chambers vented; if a zeroing is already running (the board's own at start-up),
+    wait for it to end and ask again, so that the offsets are measured now."""
+    from phantom.protocol.messages import ENUMS
+
+    zeroing, busy = ENUMS["chamber_state"]["ZEROING"], ENUMS["status"]["BUSY"]
+    for _ in range(attempts):
+        # one transmission with a long wait: a late retransmission would start a second zeroing
+        answer = link.command("ZERO_SENSORS", timeout_s=2.0, attempts=1, accept_nack=True)
+        if answer.name == "ACK":
+            return
+        if answer.fields["status"] != busy:
+            names = {v: k for k, v in ENUMS["status"].items()}
+            raise BenchError(f"the board refused ZERO_SENSORS: {names.get(answer.fields['status'])}")
+        link.wait_for(lambda m: m.name == "TELEMETRY" and zeroing not in m.fields["state"], 2.0, link.mark())
+    raise BenchError(f"ZERO_SENSORS stayed busy after {attempts} tries")
+
+
+def set_setpoints(link: BoardLink, setpoints_pa: list[int], attempts: int = 5) -> None:
+    """SET_SETPOINTS, waiting out a zeroing in progress (NACK BUSY) before trying again."""
+    from phantom.protocol.messages import ENUMS
+
+    zeroing = ENUMS["chamber_state"]["ZEROING"]
+    for _ in range(attempts):
+        answer = link.command("SET_SETPOINTS", {"setpoint_pa": list(setpoints_pa)}, accept_nack=True)
+        if answer.name == "ACK":
+            return
+        if answer.fields["status"] != ENUMS["status"]["BUSY"]:
+            names = {v: k for k, v in ENUMS["status"].items()}
+            raise LinkError(f"the board refused SET_SETPOINTS: NACK {names.get(answer.fields['status'])}")
+        link.wait_for(lambda m: m.name == "TELEMETRY" and zeroing not in m.fields["state"], 2.0, link.mark())
+    raise LinkError(f"SET_SETPOINTS stayed busy after {attempts} tries")
+
+
+def check_handshake(link: BoardLink) -> dict:
+    """HELLO is answered with the board's identity; a HELLO with another spec hash is refused."""
+    from phantom.protocol.messages import ENUMS, PROTOCOL_VERSION, SPEC_HASH
+
+    reply = link.hello().fields
+    start = link.mark()
+    link.send("HELLO", {"protocol_version": PROTOCOL_VERSION, "spec_hash": SPEC_HASH ^ 0xFFFFFFFF})
+    refused = link.wait_for(lambda m: m.name == "HELLO_REPLY", 1.0, start)
+    names = {kind: {v: k for k, v in values.items()} for kind, values in ENUMS.items()}
+    link.hello()
+    return {
+        "passed": refused is not None and refused.message.fields["status"] == ENUMS["status"]["SPEC_MISMATCH"],
+        "protocol_version": reply["protocol_version"],
+        "spec_hash": f"0x{reply['spec_hash']:08X}",
+        "firmware_version": f"{reply['firmware_major']}.{reply['firmware_minor']}.{reply['firmware_patch']}",
+        "board": names["board"].get(reply["board"], reply["board"]),
+        "chamber_count": reply["chamber_count"],
+        "reset_cause": names["reset_cause"].get(reply["reset_cause"], reply["reset_cause"]),
+        "mismatched_hello_refused": refused is not None
+        and refused.message.fields["status"] == ENUMS["status"]["SPEC_MISMATCH"],
+    }
+
+
+def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: float = 3.0, gains=None) -> dict:
+    """A step 0 -> target_kpa on one chamber (the others off); metrics from the board's own telemetry.
+
+    The step time is the board time of the first telemetry sample carrying the new setpoint, so it is late by
+    at most one telemetry period (10 ms); the metrics' times count from there. ``gains`` (kp per kPa, ki per
+    kPa s, kd s per kPa) are sent with SET_PID first (limits: 4 kPa, full drive); None keeps the board's.
+    """
+    if chamber not in (0, 1, 2):
+        raise BenchError(f"chamber must be 0, 1 or 2, got {chamber!r}")
+    if not 0 < target_kpa <= 20:
+        raise BenchError(f"the step target must be in (0, 20] kPa, got {target_kpa!r}")
+    start_session(link)
+    if gains is not None:
+        kp, ki, kd = (float(g) for g in gains)
+        link.command("SET_PID", {"chamber": chamber, "kp_per_kpa": kp, "ki_per_kpa_s": ki, "kd_s_per_kpa": kd,
+                                 "max_pressure_pa": 4000, "max_drive": 65535})
+    vent_and_wait(link)
+    zero_sensors(link)
+    setpoints = [0, 0, 0]
+    setpoints[chamber] = int(round(target_kpa * 1e3))
+    start = link.mark()
+    set_setpoints(link, setpoints)
+    first = link.wait_for(
+        lambda m: m.name == "TELEMETRY" and m.fields["setpoint_pa"][chamber] == setpoints[chamber], 1.0, start
+    )
+    if first is None:
+        raise BenchError("the board acknowledged the setpoint but its telemetry never showed it")
+    t0_ms = first.message.fields["time_ms"]
+    link.wait_for(
+        lambda m: m.name == "TELEMETRY" and m.fields["time_ms"] - t0_ms >= duration_s * 1e3, duration_s + 2.0, start
+    )
+    samples = [r.message.fields for r in link.telemetry(start) if r.message.fields["time_ms"] >= t0_ms]
+    link.command("VENT")
+    times_s = np.array([(s["time_ms"] - t0_ms) / 1e3 for s in samples])
+    pressures_kpa = np.array([s["pressure_pa"][chamber] / 1e3 for s in samples])
+    drives = np.array([s["drive"][chamber] / 65535 for s in samples])
+    metrics = step_metrics(times_s, pressures_kpa, target_kpa)
+    others = np.array([[s["pressure_pa"][k] / 1e3 for k in range(3) if k != chamber] for s in samples])
+    metrics.update(
+        chamber=chamber,
+        target_kpa=target_kpa,
+        gains=None if gains is None else [float(g) for g in gains],
+        adc_count_kpa=5.0 / 1024 / (5.0 * 0.018),
+        max_drive_level=float(drives.max()),
+        final_drive_level=float(drives[-20:].mean()),
+        other_chambers_max_kpa=float(others.max()),
+        tick_overruns=samples[-1]["tick_overruns"] - samples[0]["tick_overruns"],
+        trace={"time_s": times_s.tolist(), "pressure_kpa": pressures_kpa.tolist(), "drive_level": drives.tolist()},
+    )
+    return metrics
+
+
+def _regulate(link: BoardLink, kpa: float, settle_s: float) -> None:
+    start_session(link)
+    set_setpoints(link, [int(kpa * 1e3)] * 3)
+    wait_board_time(link, settle_s)
+
+
+def _recover(link: BoardLink, board) -> None:
+    """Remove the injected fault, re-open the session and clear the latch (retrying while its cause lasts)."""
+    board.inject("clear")
+    for _ in range(40):
+        start_session(link)
+        answer = link.command("CLEAR_FAULT", accept_nack=True)
+        if answer.name == "ACK":
+            break
+        link.command("VENT", accept_nack=True)
+        link.wait_for(lambda m: False, 0.25, link.mark())
+    vent_and_wait(link)
+
+
+def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) -> dict:
+    """Inject one fault while all chambers hold 1.5 kPa; the latch must trip and every blower stop in time.
+
+    ``fault`` is ``sensor_cut``, ``stuck_blower``, ``leak`` (needs ``board``, a SimulatedBoard) or
+    ``silent_host``. The stop time is measured in simulated time from the injection (from the host's last
+    byte for a silent host) to the first plant step at which every PWM output is off.
+    """
+    bits = fault_bits()
+    if board is None and fault != "silent_host":
+        return {"fault": fault, "skipped": "needs --sim: faults are injected into the simulated plant"}
+    _regulate(link, 1.5, 1.5)
+    start = link.mark()
+    if fault == "silent_host":
+        link.keepalive(False)
+        injected_s = None
+    else:
+        injected_s = board.inject(fault, chamber=chamber)
+    window_s = 3.0 if fault != "leak" else 2.0
+    got = wait_on_board_clock(link, lambda m: m.name == "FAULT", window_s, start)
+    result = {"fault": fault, "chamber": chamber}
+    if board is not None:
+        state = board.plant_state()
+        if fault == "silent_host":
+            injected_s = state["last_host_byte_s"]
+        off_since = state["all_off_since_s"]
+        result["stop_time_s"] = None if off_since is None or got is None else off_since - injected_s
+        result["pressures_kpa_after"] = [p / 1e3 for p in state["pressures_pa"]]
+    if board is None and fault == "silent_host" and got is not None:
+        # on a real board, board time: from the board's clock at the last PING it answered to the latch
+        before = [r for r in list(link.received) if r.host_time_s <= got.host_time_s]
+        pongs = [r.message for r in before if r.message.name == "PONG"]
+        if pongs:
+            result["stop_time_s"] = (got.message.fields["time_ms"] - pongs[-1].fields["board_time_ms"]) / 1e3
+    if got is not None:
+        names = {v: k for k, v in bits.items()}
+        result["latched"] = names.get(got.message.fields["fault_bit"], got.message.fields["fault_bit"])
+        result["pressures_kpa_at_latch"] = [p / 1e3 for p in got.message.fields["pressure_pa"]]
+    else:
+        result["latched"] = None
+    if fault == "leak":
+        # The firmware has no leak detection: a leak it can outpump is compensated, which is the right outcome.
+        telemetry = latest_telemetry(link)
+        result["passed"] = got is None and abs(telemetry["pressure_pa"][chamber] - 1500) < 100
+        result["held_kpa"] = telemetry["pressure_pa"][chamber] / 1e3
+        result["drive_level"] = telemetry["drive"][chamber] / 65535
+    else:
+        expected = {
+            "sensor_cut": f"SENSOR_{chamber}",
+            "stuck_blower": f"OVERPRESSURE_{chamber}",
+            "silent_host": "DEAD_HOST",
+        }[fault]
+        result["expected"] = expected
+        result["limit_s"] = STOP_LIMITS_S[fault]
+        stop = result.get("stop_time_s")
+        result["passed"] = result["latched"] == expected and stop is not None and stop <= STOP_LIMITS_S[fault]
+    if board is not None:
+        _recover(link, board)
+    else:
+        link.keepalive(True)
+        start_session(link)
+        link.command("CLEAR_FAULT", accept_nack=True)
+        link.command("VENT")
+    return result
+
+
+def check_line_noise(
+    link: BoardLink, board, commands: int = 30, flip_probability: float = 0.01, drop_probability: float = 0.01
+) -> dict:
+    """Setpoint commands through a noisy line: every one is acknowledged (retransmission recovers), the board
+    never applies a value that was not sent, and its counters show the corrupted frames it dropped."""
+    if board is None:
+        return {"skipped": "needs --sim: line noise is injected into the simulated serial line"}
+    start_session(link)
+    before = latest_telemetry(link)
+    board.inject("line_noise", flip_probability=flip_probability, drop_probability=drop_probability)
+    start = link.mark()
+    sent = []
+    retransmissions = link.retransmissions
+    for k in range(commands):
+        setpoints = [500 + 37 * k, 700 + 23 * k, 900 + 11 * k]
+        link.command("SET_SETPOINTS", {"setpoint_pa": setpoints}, attempts=12)
+        sent.append(tuple(setpoints))
+    board.inject("clear")
+    after = latest_telemetry(link, timeout_s=2.0)
+    seen = {tuple(r.message.fields["setpoint_pa"]) for r in link.telemetry(start)}
+    foreign = sorted(seen - set(sent) - {tuple(before["setpoint_pa"])})
+    dropped = sum(after[k] - before[k] for k in ("rx_bad_crc", "rx_bad_frame", "rx_overflow")) & 0xFFFF
+    link.command("VENT")
+    return {
+        "commands": commands,
+        "retransmissions": link.retransmissions - retransmissions,
+        "board_frames_dropped": dropped,
+        "host_frames_dropped": link.reader.bad_crc
+        + link.reader.bad_cobs
+        + link.reader.bad_length
+        + link.reader.unknown_id,
+        "foreign_setpoints_applied": [list(s) for s in foreign],
+        "final_setpoint_pa": list(after["setpoint_pa"]),
+        "passed": not foreign and tuple(after["setpoint_pa"]) == sent[-1] and dropped > 0,
+    }
+
+
+def check_watchdog(link: BoardLink, board) -> dict:
+    """TEST_HANG stops the firmware kicking the watchdog: the board resets, and HELLO reports it."""
+    from phantom.protocol.messages import ENUMS
+
+    start_session(link)
+    resets_before = board.plant_state()["resets"] if board is not None else None
+    link.command("TEST_HANG", {"magic": TEST_HANG_MAGIC})
+    link.keepalive(False)
+    link.wait_for(lambda m: False, 0.2, link.mark())
+    reply = None
+    for _ in range(20):
+        try:
+            reply = link.hello(attempts=1, timeout_s=0.25)
+        except LinkError:
+            continue
+        if reply.fields["reset_cause"] == ENUMS["reset_cause"]["WATCHDOG"]:
+            break
+    result = {
+        "reset_cause": None
+        if reply is None
+        else {v: k for k, v in ENUMS["reset_cause"].items()}.get(reply.fields["reset_cause"]),
+        "watchdog_fault_latched": bool(reply and reply.fields["fault_flags"] >> fault_bits()["WATCHDOG_RESET"] & 1),
+    }
+    if board is not None:
+        result["resets_seen_by_simulator"] = board.plant_state()["resets"] - resets_before
+    result["passed"] = (
+        result["reset_cause"] == "WATCHDOG"
+        and result["watchdog_fault_latched"]
+        and (board is None or result["resets_seen_by_simulator"] >= 1)
+    )
+    link.keepalive(True)
+    start_session(link)
+    link.command("CLEAR_FAULT", accept_nack=True)
+    return result
+
+
+def plot_steps(steps: list[dict], path: Path) -> Path:
+    """One PNG with each step response (pressure and drive level against time)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
+    for step in steps:
+        trace = step["trace"]
+        top.plot(trace["time_s"], trace["pressure_kpa"], label=f"chamber {step['chamber']}")
+        bottom.plot(trace["time_s"], trace["drive_level"], label=f"chamber {step['chamber']}")
+    if steps:
+        target = steps[0]["target_kpa"]
+        top.axhline(target, color="k", lw=0.8)
+        for edge in (1 - SETTLING_BAND, 1 + SETTLING_BAND):
+            top.axhline(target * edge, color="k", lw=0.5, ls=":")
+    top.set_ylabel("pressure (kPa)")
+    bottom.set_ylabel("drive level")
+    bottom.set_xlabel("time since the step (s)")
+    top.legend()
+    top.set_title("Step responses (board telemetry)")
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def progress(message: str) -> None:
+    print(f"phantom hil: {message}", file=sys.stderr, flush=True)
+
+
+def run_report(link: BoardLink, board, out_dir: Path, target_kpa: float = 2.0) -> dict:
+    """Every check, then report.json, report.md and steps.png in out_dir."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    report = {"board": "simulated (simavr)" if board is not None else link.port_path}
+    progress("handshake")
+    report["handshake"] = check_handshake(link)
+    report["steps"] = []
+    for chamber in range(3):
+        progress(f"step response, chamber {chamber}")
+        report["steps"].append(check_step(link, chamber, target_kpa))
+    report["faults"] = []
+    for fault, chamber in (("sensor_cut", 1), ("stuck_blower", 0), ("leak", 2), ("silent_host", None)):
+        progress(f"fault: {fault}")
+        report["faults"].append(check_fault(link, board, fault, chamber))
+    progress("line noise")
+    report["line_noise"] = check_line_noise(link, board)
+    progress("watchdog")
+    report["watchdog"] = check_watchdog(link, board)
+    if board is not None:
+        report["cycles"] = board.cycle_stats()
+    plot_steps(report["steps"], out_dir / "steps.png")
+    (out_dir / "report.json").write_text(json.dumps(report, indent=1))
+    (out_dir / "report.md").write_text(format_report(report))
+    return report
+
+
+def _fmt(value, digits=3) -> str:
+    return "n/a" if value is None else f"{value:.{digits}g}" if isinstance(value, float) else str(value)
+
+
+def format_report(report: dict) -> str:
+    """The short Markdown report."""
+    lines = [f"# HIL bench report ({report['board']})", ""]
+    h = report["handshake"]
+    lines += [
+        f"Handshake: {'PASS' if h['passed'] else 'FAIL'}; firmware {h['firmware_version']} on {h['board']}, "
+        f"protocol v{h['protocol_version']} ({h['spec_hash']}), reset cause {h['reset_cause']}.",
+        "",
+    ]
+    lines += [
+        "## Step responses (steps.png)",
+        "",
+        "| chamber | target kPa | rise s | overshoot % | settling (2 %) s | steady-state error kPa |",
+        "|---|---|---|---|---|---|",
+    ]
+    for s in report["steps"]:
+        lines.append(
+            f"| {s['chamber']} | {s['target_kpa']} | {_fmt(s['rise_time_s'])} | {_fmt(s['overshoot_pct'])} | "
+            f"{_fmt(s['settling_time_s'])} | {_fmt(s['steady_state_error_kpa'])} |"
+        )
+    lines += ["", "## Faults", "", "| fault | latched | stop time s | limit s | result |", "|---|---|---|---|---|"]
+    for f in report["faults"]:
+        if "skipped" in f:
+            lines.append(f"| {f['fault']} | | | | skipped: {f['skipped']} |")
+            continue
+        lines.append(
+            f"| {f['fault']} | {f['latched']} | {_fmt(f.get('stop_time_s'))} | {_fmt(f.get('limit_s'))} | "
+            f"{'PASS' if f['passed'] else 'FAIL'} |"
+        )
+    n = report["line_noise"]
+    lines += ["", "## Line noise", ""]
+    lines.append(
+        f"skipped: {n['skipped']}"
+        if "skipped" in n
+        else f"{'PASS' if n['passed'] else 'FAIL'}: {n['commands']} commands, {n['retransmissions']} retransmissions, "
+        f"{n['board_frames_dropped']} frames dropped by the board, {n['host_frames_dropped']} by the host, "
+        f"foreign setpoints applied: {n['foreign_setpoints_applied'] or 'none'}."
+    )
+    w = report["watchdog"]
+    lines += [
+        "",
+        "## Watchdog",
+        "",
+        f"{'PASS' if w['passed'] else 'FAIL'}: reset cause {w['reset_cause']}, "
+        f"WATCHDOG_RESET latched: {w['watchdog_fault_latched']}.",
+    ]
+    if "cycles" in report:
+        c = report["cycles"]
+        lines += [
+            "",
+            "## CPU (simavr cycle counts)",
+            "",
+            f"control tick: mean {_fmt(c['control_tick_cycles_mean'], 5)}, max {_fmt(c['control_tick_cycles_max'])} "
+            f"cycles; telemetry frame: mean {_fmt(c['telemetry_frame_cycles_mean'], 5)}, max "
+            f"{_fmt(c['telemetry_frame_cycles_max'])} cycles; CPU use {_fmt(100 * (c['cpu_use_fraction'] or 0))} %.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def measure_cycles(link: BoardLink, board, duration_s: float, telemetry_period_ms: int, kpa: float) -> dict:
+    """Cycle counts with all three chambers regulating at ``kpa`` and telemetry every telemetry_period_ms.
+
+    The counters are reset once the pressures have settled (2 s), then read after duration_s of board time.
+    """
+    if board is None:
+        raise BenchError("cycle counts need the simulator (--sim)")
+    start_session(link, telemetry_period_ms=telemetry_period_ms)
+    set_setpoints(link, [int(kpa * 1e3)] * 3)
+    wait_board_time(link, 2.0)
+    board.cycle_stats(reset=True)
+    wait_board_time(link, duration_s)
+    stats = board.cycle_stats()
+    link.command("VENT")
+    frequency = stats["frequency_hz"]
+    elapsed_s = stats["elapsed_cycles"] / frequency
+    return {
+        "elapsed_s": elapsed_s,
+        "control_tick_hz": stats["control_ticks"] / elapsed_s,
+        "control_tick_cycles_mean": stats["control_tick_cycles_mean"],
+        "control_tick_cycles_max": stats["control_tick_cycles_max"],
+        "control_tick_us_max": stats["control_tick_cycles_max"] / frequency * 1e6,
+        "telemetry_hz": stats["telemetry_frames"] / elapsed_s,
+        "telemetry_frame_cycles_mean": stats["telemetry_frame_cycles_mean"],
+        "telemetry_frame_cycles_max": stats["telemetry_frame_cycles_max"],
+        "cpu_use_fraction": stats["cpu_use_fraction"],
+        "control_cpu_fraction": stats["regions"]["control_tick"]["total_cycles"] / stats["elapsed_cycles"],
+        "regions": stats["regions"],
+    }

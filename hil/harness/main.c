@@ -1,0 +1,504 @@
+/*
+ * phantom-hil: run the real firmware image in simavr against the pneumatic plant.
+ *
+ * The plant is stepped at a fixed step in simulated time; ADC channels 0..2 read its sensors, the PWM
+ * timers drive its blowers, USART0 is a pseudo-terminal. Line commands on stdin control it, and each
+ * gets one JSON line on stdout (see hil/README.md). Time is paced to the wall clock times --speed.
+ */
+#define _GNU_SOURCE
+#include <errno.h>
+#include <fcntl.h>
+#include <getopt.h>
+#include <math.h>
+#include <poll.h>
+#include <signal.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "board.h"
+#include "plant.h"
+#include "profile.h"
+#include "serial_pty.h"
+#include "sim_avr.h"
+#include "sim_elf.h"
+
+typedef struct harness {
+	avr_t *avr;                   /* NULL when running the plant alone (--no-mcu) */
+	plant_t plant;
+	serial_pty_t serial;
+	profile_t profile;
+	int powered;                  /* the board has power (USB plugged in) and a running core */
+	int halted;                   /* the core stopped by itself (crash or sleep with interrupts off) */
+	double speed;                 /* 1 = wall clock, > 1 faster, 0 = as fast as possible */
+	uint64_t frequency_hz;
+	uint64_t cycle;               /* running cycle count: survives MCU resets, advances while unpowered */
+	uint64_t last_core_cycle;
+	uint64_t plant_step_cycles, service_cycles, byte_cycles;
+	uint64_t next_plant_cycle, next_service_cycle, next_byte_cycle;
+	double pace_origin_wall_s;
+	uint64_t pace_origin_cycle;
+	double max_lag_s;             /* the longest stall behind the clock */
+	double lost_s;                /* wall-clock time the simulation could not keep up with, in total */
+	uint64_t resets;
+	double all_off_since_s;       /* since when every commanded drive level is 0; < 0 while one is on */
+	double last_host_byte_s;      /* when the UART last received a byte from the host; < 0 before any */
+	char line[1024];
+	size_t line_length;
+	int quit;
+} harness_t;
+
+/* Monotonic wall-clock time in seconds. */
+static double wall_seconds(void)
+{
+	struct timespec now;
+	clock_gettime(CLOCK_MONOTONIC, &now);
+	return now.tv_sec + now.tv_nsec * 1e-9;
+}
+
+/* Simulated time since start (s), from the running cycle count. */
+static double simulated_seconds(const harness_t *h)
+{
+	return (double)h->cycle / (double)h->frequency_hz;
+}
+
+/* Print one JSON reply line. */
+static void reply(const char *format, ...) __attribute__((format(printf, 1, 2)));
+static void reply(const char *format, ...)
+{
+	va_list args;
+	va_start(args, format);
+	vprintf(format, args);
+	va_end(args);
+	putchar('\n');
+	fflush(stdout);
+}
+
+/* Print a JSON array of three numbers. */
+static void format_triple(char *out, size_t size, const double values[3], double scale)
+{
+	snprintf(out, size, "[%.9g, %.9g, %.9g]", values[0] * scale, values[1] * scale, values[2] * scale);
+}
+
+/* Answer `state`: the plant and the board as the bench sees them. */
+static void reply_state(harness_t *h)
+{
+	double volumes_m3[3], voltages_v[3], effective[3];
+	char pressures[96], drives[96], volumes[96], sensed[96], actual[96];
+	plant_chamber_volumes(&h->plant, volumes_m3);
+	for (int i = 0; i < 3; i++) {
+		voltages_v[i] = h->plant.sensor_cut[i] ? 0.0 : h->plant.params.sensor_supply_v
+		                  * (h->plant.params.sensor_gain_per_pa * (h->plant.sensed_pressure_pa[i]
+		                  + h->plant.params.sensor_offset_pa[i]) + 0.5);
+		effective[i] = plant_effective_drive(&h->plant, i);
+	}
+	format_triple(pressures, sizeof(pressures), h->plant.pressure_pa, 1.0);
+	format_triple(drives, sizeof(drives), h->plant.drive_level, 1.0);
+	format_triple(actual, sizeof(actual), effective, 1.0);
+	format_triple(volumes, sizeof(volumes), volumes_m3, 1e6);
+	format_triple(sensed, sizeof(sensed), voltages_v, 1.0);
+	char off_since[32] = "null", last_byte[32] = "null";
+	if (h->all_off_since_s >= 0)
+		snprintf(off_since, sizeof(off_since), "%.9f", h->all_off_since_s);
+	if (h->last_host_byte_s >= 0)
+		snprintf(last_byte, sizeof(last_byte), "%.9f", h->last_host_byte_s);
+	reply("{\"time_s\": %.9f, \"all_off_since_s\": %s, \"last_host_byte_s\": %s, \"pressures_pa\": %s, \"drive_levels\": %s, \"effective_drive_levels\": %s, "
+	      "\"chamber_volumes_ml\": %s, \"sensor_voltages_v\": %s, \"powered\": %s, \"halted\": %s, "
+	      "\"resets\": %llu, \"max_lag_s\": %.6f, \"lost_s\": %.6f}",
+	      simulated_seconds(h), off_since, last_byte, pressures, drives, actual, volumes, sensed, h->powered ? "true" : "false",
+	      h->halted ? "true" : "false", (unsigned long long)h->resets, h->max_lag_s, h->lost_s);
+}
+
+/* Answer `stats`: cycle counts of the timed functions and the serial line counters. */
+static void reply_stats(harness_t *h)
+{
+	char regions[2048] = "";
+	size_t used = 0;
+	for (int k = 0; k < h->profile.count; k++) {
+		profile_region_t *r = &h->profile.regions[k];
+		used += snprintf(regions + used, sizeof(regions) - used,
+		                 "%s\"%s\": {\"calls\": %llu, \"short_calls\": %llu, \"total_cycles\": %llu, "
+		                 "\"max_cycles\": %llu}",
+		                 k ? ", " : "", r->name, (unsigned long long)r->calls, (unsigned long long)r->short_calls,
+		                 (unsigned long long)r->total_cycles, (unsigned long long)r->max_cycles);
+	}
+	serial_pty_t *s = &h->serial;
+	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"frequency_hz\": %llu, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
+	      "\"bytes_from_mcu\": %llu, \"bytes_dropped\": %llu, \"bytes_flipped\": %llu, \"bytes_overflowed\": %llu}}",
+	      (unsigned long long)(h->cycle - h->profile.since_cycle), (unsigned long long)h->profile.busy_cycles,
+	      (unsigned long long)h->frequency_hz, regions,
+	      (unsigned long long)s->bytes_to_mcu, (unsigned long long)s->bytes_from_mcu,
+	      (unsigned long long)s->bytes_dropped, (unsigned long long)s->bytes_flipped,
+	      (unsigned long long)s->bytes_overflowed);
+}
+
+/* Advance the plant one fixed step with the drive levels the firmware commands now. */
+static void step_plant(harness_t *h)
+{
+	if (h->avr && h->powered && !h->halted)
+		board_read_drive_levels(h->avr, h->plant.drive_level);
+	else if (h->avr)
+		h->plant.drive_level[0] = h->plant.drive_level[1] = h->plant.drive_level[2] = 0.0;
+	plant_step(&h->plant, h->plant.params.step_s);
+	int any_on = h->plant.drive_level[0] > 0 || h->plant.drive_level[1] > 0 || h->plant.drive_level[2] > 0;
+	if (any_on)
+		h->all_off_since_s = -1;
+	else if (h->all_off_since_s < 0)
+		h->all_off_since_s = simulated_seconds(h);
+}
+
+/* Parse a chamber index argument; -1 if invalid. */
+static int parse_chamber(const char *text)
+{
+	if (!text || text[1] || text[0] < '0' || text[0] > '2')
+		return -1;
+	return text[0] - '0';
+}
+
+/* Parse a number argument into *value; 0 on success. */
+static int parse_number(const char *text, double *value)
+{
+	char *end;
+	if (!text)
+		return -1;
+	*value = strtod(text, &end);
+	return (end == text || *end || !isfinite(*value)) ? -1 : 0;
+}
+
+/* Run a `fault ...` command: inject into the plant or the line, or clear. */
+static void handle_fault(harness_t *h, char **words, int count)
+{
+	double value = 0, other = 0;
+	int chamber = count > 2 ? parse_chamber(words[2]) : -1;
+	const char *kind = words[1];
+	if (!strcmp(kind, "clear")) {
+		for (int i = 0; i < 3; i++) {
+			h->plant.sensor_cut[i] = 0;
+			h->plant.fault_leak_m3_per_s_per_pa[i] = 0;
+			h->plant.stuck_drive_level[i] = -1;
+		}
+		h->serial.flip_probability = h->serial.drop_probability = 0;
+	} else if (!strcmp(kind, "sensor_cut") && count == 3 && chamber >= 0) {
+		h->plant.sensor_cut[chamber] = 1;
+	} else if (!strcmp(kind, "leak") && count == 4 && chamber >= 0 && !parse_number(words[3], &value) && value >= 0) {
+		h->plant.fault_leak_m3_per_s_per_pa[chamber] = value;
+	} else if (!strcmp(kind, "stuck_blower") && count == 4 && chamber >= 0 && !parse_number(words[3], &value)
+	           && value >= 0 && value <= 1) {
+		h->plant.stuck_drive_level[chamber] = value;
+	} else if (!strcmp(kind, "line_noise") && count == 4 && !parse_number(words[2], &value)
+	           && !parse_number(words[3], &other) && value >= 0 && value <= 1 && other >= 0 && other <= 1) {
+		h->serial.flip_probability = value;
+		h->serial.drop_probability = other;
+	} else {
+		reply("{\"error\": \"bad fault command: use 'fault sensor_cut CH', 'fault leak CH M3_PER_S_PER_PA', "
+		      "'fault stuck_blower CH LEVEL', 'fault line_noise FLIP_PROB DROP_PROB' or 'fault clear'\"}");
+		return;
+	}
+	reply("{\"ok\": true, \"time_s\": %.9f}", simulated_seconds(h));
+}
+
+/* Data-space address of MCUSR (the reset cause), the same on the ATmega328P and the ATmega2560. */
+#define MCUSR_ADDRESS 0x54
+#define MCUSR_POWER_ON 0x01
+
+/* Start the core as a board does when it gets power: reset, with the power-on flag in MCUSR. */
+static void power_on(harness_t *h)
+{
+	avr_reset(h->avr);
+	h->avr->data[MCUSR_ADDRESS] |= MCUSR_POWER_ON;
+	h->last_core_cycle = h->avr->cycle;
+	h->powered = 1;
+	h->halted = 0;
+	profile_reset(&h->profile, h->cycle);
+}
+
+/* Run one stdin command. */
+static void handle_command(harness_t *h, char *line)
+{
+	char *words[8];
+	int count = 0;
+	for (char *word = strtok(line, " \t\r\n"); word && count < 8; word = strtok(NULL, " \t\r\n"))
+		words[count++] = word;
+	if (count == 0)
+		return;
+	const char *command = words[0];
+	double value;
+	if (!strcmp(command, "state")) {
+		reply_state(h);
+	} else if (!strcmp(command, "stats")) {
+		reply_stats(h);
+		if (count > 1 && !strcmp(words[1], "reset"))
+			profile_reset(&h->profile, h->cycle);
+	} else if (!strcmp(command, "fault") && count >= 2) {
+		handle_fault(h, words, count);
+	} else if (!strcmp(command, "unplug") && h->avr) {
+		if (h->powered)
+			serial_pty_close(&h->serial);
+		h->powered = 0;
+		reply("{\"ok\": true}");
+	} else if (!strcmp(command, "replug") && h->avr) {
+		if (!h->powered) {
+			if (serial_pty_open(&h->serial) < 0) {
+				reply("{\"error\": \"cannot create the pty: %s\"}", strerror(errno));
+				return;
+			}
+			power_on(h);
+		}
+		reply("{\"ok\": true, \"pty\": \"%s\"}", h->serial.slave_path);
+	} else if (!strcmp(command, "reset") && h->avr) {
+		power_on(h);
+		reply("{\"ok\": true}");
+	} else if (!strcmp(command, "drive") && !h->avr && count == 4) {
+		for (int i = 0; i < 3; i++)
+			if (parse_number(words[i + 1], &h->plant.drive_level[i])) {
+				reply("{\"error\": \"drive takes three numbers\"}");
+				return;
+			}
+		reply("{\"ok\": true}");
+	} else if (!strcmp(command, "advance") && !h->avr && count == 2 && !parse_number(words[1], &value) && value >= 0) {
+		uint64_t target = h->cycle + (uint64_t)llround(value * h->frequency_hz);
+		while (h->cycle + h->plant_step_cycles <= target) {
+			h->cycle += h->plant_step_cycles;
+			step_plant(h);
+		}
+		reply_state(h);
+	} else if (!strcmp(command, "quit")) {
+		h->quit = 1;
+		reply("{\"ok\": true}");
+	} else {
+		reply("{\"error\": \"unknown command '%s': use state, stats [reset], fault ..., unplug, replug, reset, quit%s\"}",
+		      command, h->avr ? "" : ", drive U0 U1 U2, advance SECONDS");
+	}
+}
+
+/* Read what is available on stdin and run each complete line; EOF quits. */
+static void poll_commands(harness_t *h, int timeout_ms)
+{
+	struct pollfd fd = {.fd = STDIN_FILENO, .events = POLLIN};
+	if (poll(&fd, 1, timeout_ms) <= 0)
+		return;
+	char buffer[512];
+	ssize_t got = read(STDIN_FILENO, buffer, sizeof(buffer));
+	if (got <= 0) {
+		h->quit = 1;
+		return;
+	}
+	for (ssize_t k = 0; k < got; k++) {
+		if (buffer[k] == '\n') {
+			h->line[h->line_length] = 0;
+			handle_command(h, h->line);
+			h->line_length = 0;
+		} else if (h->line_length + 1 < sizeof(h->line)) {
+			h->line[h->line_length++] = buffer[k];
+		}
+	}
+}
+
+/* How far simulated time may fall behind the clock before the difference is given up (s). */
+#define PACE_SLACK_S 0.01
+
+/* Sleep until the wall clock catches up with simulated time divided by the speed. */
+static void pace(harness_t *h)
+{
+	if (h->speed <= 0)
+		return;
+	double target_s = h->pace_origin_wall_s + (double)(h->cycle - h->pace_origin_cycle) / h->frequency_hz / h->speed;
+	double now_s = wall_seconds();
+	double ahead_s = target_s - now_s;
+	if (ahead_s > 0) {
+		struct timespec pause = {.tv_sec = (time_t)ahead_s, .tv_nsec = (long)((ahead_s - floor(ahead_s)) * 1e9)};
+		nanosleep(&pause, NULL);
+	} else if (-ahead_s > PACE_SLACK_S) {
+		/* behind the clock: give the time up rather than catch it up later, so that simulated time never runs
+		   faster than asked (a host deadline never shrinks) */
+		if (-ahead_s > h->max_lag_s)
+			h->max_lag_s = -ahead_s;
+		h->lost_s += -ahead_s;
+		h->pace_origin_wall_s = now_s;
+		h->pace_origin_cycle = h->cycle;
+	}
+}
+
+/* Periodic housekeeping: the pty, the commands, the pacing. */
+static void service(harness_t *h)
+{
+	serial_pty_poll(&h->serial);
+	poll_commands(h, 0);
+	pace(h);
+}
+
+/* Keep simavr from sleeping in real time when the firmware sleeps: pacing is ours. */
+static void no_sleep(avr_t *avr, avr_cycle_count_t how_long)
+{
+	(void)avr;
+	(void)how_long;
+}
+
+/* Run one instruction (or one step of an unpowered board) and the due periodic work. */
+static void run_once(harness_t *h)
+{
+	if (h->powered && !h->halted) {
+		int state = avr_run(h->avr);
+		uint64_t core_cycle = h->avr->cycle;
+		h->cycle += core_cycle - h->last_core_cycle;
+		h->last_core_cycle = core_cycle;
+		if (h->avr->pc == 0) {
+			/* the core restarted (watchdog): a function being timed never returns */
+			h->resets++;
+			profile_abort(&h->profile);
+		}
+		if (h->profile.count)
+			profile_check(&h->profile, h->avr, h->cycle);
+		if (state == cpu_Done || state == cpu_Crashed) {
+			fprintf(stderr, "phantom-hil: the core stopped (state %d) at pc 0x%x\n", state, h->avr->pc);
+			h->halted = 1;
+		}
+	} else {
+		h->cycle = h->next_plant_cycle < h->next_service_cycle ? h->next_plant_cycle : h->next_service_cycle;
+	}
+	while (h->cycle >= h->next_byte_cycle) {
+		if (h->powered && !h->halted && serial_pty_feed(&h->serial))
+			h->last_host_byte_s = simulated_seconds(h);
+		h->next_byte_cycle += h->byte_cycles;
+	}
+	while (h->cycle >= h->next_plant_cycle) {
+		step_plant(h);
+		h->next_plant_cycle += h->plant_step_cycles;
+	}
+	if (h->cycle >= h->next_service_cycle) {
+		service(h);
+		h->next_service_cycle += h->service_cycles;
+	}
+}
+
+/* Print what was wrong and the usage, and exit with status 2. */
+static void usage(const char *message)
+{
+	fprintf(stderr, "phantom-hil: %s\n"
+	        "usage: phantom-hil (--elf FIRMWARE.elf [--mcu atmega328p] [--link PATH] [--baud 115200]\n"
+	        "                    [--speed 1.0] [--profile NAME=0xADDR[:MIN_CYCLES]]... | --no-mcu)\n"
+	        "                   [--frequency 16000000] [--seed 0] --param NAME=VALUE...\n", message);
+	exit(2);
+}
+
+/* Parse the options, load the image, wire it to the plant and the pty, and run until `quit` or EOF. */
+int main(int argc, char **argv)
+{
+	static harness_t harness;
+	harness_t *h = &harness;
+	const char *elf_path = NULL, *mcu = "atmega328p";
+	int no_mcu = 0;
+	unsigned long long seed = 0;
+	double baud = 115200;
+	plant_params_t params;
+	plant_unset_params(&params);
+	h->speed = 1.0;
+	h->frequency_hz = 16000000;
+	h->serial.master_fd = h->serial.slave_fd = -1;
+	static const struct option options[] = {
+		{"elf", required_argument, 0, 'e'}, {"mcu", required_argument, 0, 'm'},
+		{"link", required_argument, 0, 'l'}, {"baud", required_argument, 0, 'b'},
+		{"speed", required_argument, 0, 's'}, {"profile", required_argument, 0, 'p'},
+		{"no-mcu", no_argument, 0, 'n'}, {"frequency", required_argument, 0, 'f'},
+		{"seed", required_argument, 0, 'r'}, {"param", required_argument, 0, 'k'}, {0, 0, 0, 0},
+	};
+	int option;
+	while ((option = getopt_long(argc, argv, "", options, NULL)) != -1) {
+		char *equals;
+		double value;
+		switch (option) {
+		case 'e': elf_path = optarg; break;
+		case 'm': mcu = optarg; break;
+		case 'l': snprintf(h->serial.link_path, sizeof(h->serial.link_path), "%s", optarg); break;
+		case 'b': if (parse_number(optarg, &baud) || baud <= 0) usage("--baud takes a positive number"); break;
+		case 's': if (parse_number(optarg, &h->speed) || h->speed < 0) usage("--speed takes a number >= 0"); break;
+		case 'n': no_mcu = 1; break;
+		case 'f': h->frequency_hz = strtoull(optarg, NULL, 0); break;
+		case 'r': seed = strtoull(optarg, NULL, 0); break;
+		case 'p':
+			if (profile_add(&h->profile, optarg)) usage("--profile takes NAME=0xADDRESS[:MIN_CYCLES] (at most 12)");
+			break;
+		case 'k':
+			equals = strchr(optarg, '=');
+			if (!equals) usage("--param takes NAME=VALUE");
+			*equals = 0;
+			if (parse_number(equals + 1, &value) || plant_set_param(&params, optarg, value)) {
+				fprintf(stderr, "phantom-hil: unknown plant parameter or bad value: %s=%s\n", optarg, equals + 1);
+				return 2;
+			}
+			break;
+		default: usage("unknown option");
+		}
+	}
+	if (!no_mcu && !elf_path)
+		usage("give --elf FIRMWARE.elf, or --no-mcu to run the plant alone");
+	if (h->frequency_hz == 0)
+		usage("--frequency must be positive");
+	const char *problem = plant_check_params(&params);
+	if (problem) {
+		fprintf(stderr, "phantom-hil: %s\n", problem);
+		return 2;
+	}
+	plant_init(&h->plant, &params, seed);
+	h->all_off_since_s = 0;
+	h->last_host_byte_s = -1;
+	h->plant_step_cycles = (uint64_t)llround(params.step_s * h->frequency_hz);
+	if (h->plant_step_cycles == 0)
+		h->plant_step_cycles = 1;
+	h->service_cycles = h->frequency_hz / 1000;
+	h->byte_cycles = (uint64_t)llround(10.0 * h->frequency_hz / baud);
+	signal(SIGPIPE, SIG_IGN);
+
+	if (no_mcu) {
+		reply("{\"ready\": true, \"mcu\": null}");
+		while (!h->quit)
+			poll_commands(h, -1);
+		return 0;
+	}
+
+	static elf_firmware_t firmware;
+	/* simavr prints loader chatter on stdout, which is our reply channel: send it to stderr */
+	fflush(stdout);
+	int saved_stdout = dup(STDOUT_FILENO);
+	dup2(STDERR_FILENO, STDOUT_FILENO);
+	int unreadable = elf_read_firmware(elf_path, &firmware);
+	if (unreadable) {
+		fprintf(stderr, "phantom-hil: cannot read the firmware image %s\n", elf_path);
+		return 2;
+	}
+	h->avr = avr_make_mcu_by_name(mcu);
+	if (!h->avr) {
+		fprintf(stderr, "phantom-hil: simavr does not know the MCU '%s'\n", mcu);
+		return 2;
+	}
+	avr_init(h->avr);
+	h->avr->log = 0;
+	h->avr->frequency = h->frequency_hz;
+	h->avr->vcc = h->avr->avcc = h->avr->aref = (uint32_t)lround(params.sensor_supply_v * 1000.0);
+	h->avr->sleep = no_sleep;
+	avr_load_firmware(h->avr, &firmware);
+	fflush(stdout);
+	dup2(saved_stdout, STDOUT_FILENO);
+	close(saved_stdout);
+	board_attach_adc(h->avr, &h->plant);
+	serial_pty_attach(&h->serial, h->avr, seed);
+	if (serial_pty_open(&h->serial) < 0) {
+		fprintf(stderr, "phantom-hil: cannot create the pty or its link: %s\n", strerror(errno));
+		return 2;
+	}
+	power_on(h);
+	h->next_plant_cycle = h->plant_step_cycles;
+	h->next_service_cycle = h->service_cycles;
+	h->next_byte_cycle = h->byte_cycles;
+	reply("{\"ready\": true, \"mcu\": \"%s\", \"pty\": \"%s\", \"link\": \"%s\"}", mcu, h->serial.slave_path,
+	      h->serial.link_path);
+	h->pace_origin_wall_s = wall_seconds();
+	h->pace_origin_cycle = 0;
+	while (!h->quit)
+		run_once(h);
+	serial_pty_close(&h->serial);
+	return 0;
+}

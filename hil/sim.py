@@ -1,0 +1,223 @@
+"""A simulated board: the real firmware image in simavr, wired to the pneumatic plant, on a pseudo-terminal.
+
+>>> with SimulatedBoard(speed=1.0) as board:           # doctest: +SKIP
+...     link = serial.Serial(board.port, 115200)        # opens like /dev/ttyACM0
+...     board.inject("sensor_cut", chamber=1)
+...     board.plant_state()["pressures_pa"]
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+from phantom import PhantomError
+from phantom.hil.firmware import ensure_firmware, function_addresses, mcu_of
+from phantom.hil.harness import HarnessProcess
+from phantom.hil.plant import load_plant
+
+#: Firmware functions timed by the cycle counter: role -> (demangled name or its start, min cycles). A call
+#: shorter than min cycles is an early return (no telemetry frame due: its prologue and epilogue alone take a
+#: few hundred cycles, more if an interrupt hits) and is counted apart; a frame takes several thousand. The
+#: control tick covers the three sensors, the safety checks, the PIDs and the telemetry frame when one is due.
+PROFILED_FUNCTIONS = {
+    "control_tick": ("core::Controller::tick(", 0),
+    "telemetry_frame": ("core::Controller::send_telemetry(", 1500),
+    "receive": ("core::Controller::receive(", 0),
+}
+#: Interrupt vectors also counted as busy time (vector numbers differ between the two MCUs).
+PROFILED_VECTORS = {
+    "atmega328p": {"adc_isr": 21, "tick_isr": 13, "millis_isr": 16, "uart_rx_isr": 18, "uart_tx_isr": 19},
+    "atmega2560": {"adc_isr": 29, "tick_isr": 20, "millis_isr": 23, "uart_rx_isr": 25, "uart_tx_isr": 26},
+}
+
+#: Faults and their parameters (unit in the name) with defaults.
+FAULTS = {
+    "sensor_cut": {},
+    "leak": {"conductance_ml_per_s_per_kpa": 5.0},
+    "stuck_blower": {"level": 1.0},
+    "line_noise": {"flip_probability": 0.01, "drop_probability": 0.01},
+    "clear": {},
+}
+_PER_CHAMBER = {"sensor_cut", "leak", "stuck_blower"}
+
+
+class SimulationError(PhantomError):
+    """A simulated board was used wrongly (bad fault, not started ...)."""
+
+
+def _profiled_regions(elf: Path, mcu: str) -> dict[str, tuple[int, int]]:
+    """Entry address and min cycles of each timed function found in the image."""
+    addresses = function_addresses(elf)
+    regions = {}
+    for role, (prefix, min_cycles) in PROFILED_FUNCTIONS.items():
+        found = [address for name, address in addresses.items() if name.startswith(prefix)]
+        if found:
+            regions[role] = (found[0], min_cycles)
+    for role, vector in PROFILED_VECTORS[mcu].items():
+        name = f"__vector_{vector}"
+        # an unused vector is an alias of __bad_interrupt: nothing to time
+        if name in addresses and addresses[name] != addresses.get("__bad_interrupt"):
+            regions[role] = (addresses[name], 0)
+    return regions
+
+
+class SimulatedBoard:
+    """The firmware image running in simavr against the plant, reachable at ``.port`` like a real board.
+
+    Parameters
+    ----------
+    elf
+        Firmware image; default ``firmware/build/uno/phantom.elf``, built with ``make -C firmware`` if missing.
+    plant
+        Plant parameter file; default ``hil/plant.toml``.
+    speed
+        1.0 paces simulated time to the wall clock; > 1 runs faster than real time; 0 as fast as possible.
+    seed
+        Seed of the sensor noise and the line noise, so a run can be repeated.
+    """
+
+    def __init__(self, elf=None, plant=None, speed: float = 1.0, seed: int = 0):
+        if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed >= 0):
+            raise SimulationError(
+                f"speed must be a number >= 0 (1 = real time, 0 = as fast as possible), got {speed!r}"
+            )
+        self.elf = ensure_firmware(elf)
+        self.plant = load_plant(plant)
+        self.speed = float(speed)
+        self.seed = int(seed)
+        self._directory = None
+        self._harness = None
+
+    @property
+    def port(self) -> str:
+        """Stable path of the board's serial port (a symlink to the current pseudo-terminal)."""
+        if self._directory is None:
+            raise SimulationError("the simulated board is not started: use it as a context manager or call start()")
+        return str(Path(self._directory.name) / "ttySIM0")
+
+    def start(self) -> SimulatedBoard:
+        """Start the harness; the port exists when this returns."""
+        if self._harness is not None:
+            return self
+        self._directory = tempfile.TemporaryDirectory(prefix="phantom-sim-")
+        mcu = mcu_of(self.elf)
+        arguments = ["--elf", str(self.elf), "--mcu", mcu, "--link", self.port]
+        arguments += ["--speed", repr(self.speed), "--seed", str(self.seed)]
+        for role, (address, min_cycles) in _profiled_regions(self.elf, mcu).items():
+            arguments += ["--profile", f"{role}={address:#x}:{min_cycles}"]
+        try:
+            self._harness = HarnessProcess(arguments + self.plant.harness_arguments())
+        except BaseException:
+            self._directory.cleanup()
+            self._directory = None
+            raise
+        return self
+
+    def stop(self) -> None:
+        """Stop the harness and remove the port."""
+        if self._harness is not None:
+            self._harness.close()
+            self._harness = None
+        if self._directory is not None:
+            self._directory.cleanup()
+            self._directory = None
+
+    def __enter__(self) -> SimulatedBoard:
+        return self.start()
+
+    def __exit__(self, *exc_info) -> None:
+        self.stop()
+
+    def _command(self, line: str) -> dict:
+        if self._harness is None:
+            raise SimulationError("the simulated board is not started: use it as a context manager or call start()")
+        return self._harness.command(line)
+
+    def unplug(self) -> None:
+        """Pull the USB cable: the port disappears and the board loses power (the blowers stop)."""
+        self._command("unplug")
+
+    def replug(self) -> None:
+        """Plug it back: the port returns at the same path and the board starts from a power-on reset."""
+        self._command("replug")
+
+    def inject(self, fault: str, chamber: int | None = None, **params) -> float:
+        """Inject a fault into the plant or the serial line.
+
+        Parameters
+        ----------
+        fault
+            ``"sensor_cut"`` (the chamber's sensor reads 0 V), ``"leak"`` (extra leak of
+            ``conductance_ml_per_s_per_kpa``, default 5), ``"stuck_blower"`` (the chamber's blower runs at
+            ``level`` in [0, 1] whatever the firmware commands, default 1), ``"line_noise"`` (each byte in
+            either direction is dropped with ``drop_probability`` and has one bit flipped with
+            ``flip_probability``, defaults 0.01), ``"clear"`` (remove every injected fault).
+            A silent host needs no injection: the host just stops sending.
+        chamber
+            0, 1 or 2 for the per-chamber faults; must be None for the others.
+
+        Returns
+        -------
+        float
+            The simulated time (s) at which the fault took effect.
+        """
+        if fault not in FAULTS:
+            raise SimulationError(f"unknown fault {fault!r}: choose one of {', '.join(FAULTS)}")
+        unknown = sorted(set(params) - set(FAULTS[fault]))
+        if unknown:
+            raise SimulationError(f"fault {fault!r} takes {sorted(FAULTS[fault]) or 'no parameters'}, not {unknown}")
+        if fault in _PER_CHAMBER:
+            if chamber not in (0, 1, 2):
+                raise SimulationError(f"fault {fault!r} needs chamber=0, 1 or 2, got {chamber!r}")
+        elif chamber is not None:
+            raise SimulationError(f"fault {fault!r} applies to the whole board: leave chamber=None")
+        values = {**FAULTS[fault], **params}
+        for name, value in values.items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise SimulationError(f"{fault}.{name} must be a number, got {value!r}")
+            limit = 1.0 if name in ("level", "flip_probability", "drop_probability") else math.inf
+            if not 0 <= value <= limit:
+                raise SimulationError(f"{fault}.{name} must be in [0, {limit:g}], got {value!r}")
+        if fault == "leak":
+            line = f"fault leak {chamber} {values['conductance_ml_per_s_per_kpa'] * 1e-9!r}"
+        elif fault == "stuck_blower":
+            line = f"fault stuck_blower {chamber} {float(values['level'])!r}"
+        elif fault == "line_noise":
+            line = f"fault line_noise {float(values['flip_probability'])!r} {float(values['drop_probability'])!r}"
+        elif fault == "sensor_cut":
+            line = f"fault sensor_cut {chamber}"
+        else:
+            line = "fault clear"
+        return self._command(line)["time_s"]
+
+    def plant_state(self) -> dict:
+        """The plant now: time_s, pressures_pa, drive_levels (what the firmware's PWM commands, [0, 1]),
+        chamber_volumes_ml, plus effective_drive_levels (after a stuck blower), sensor_voltages_v, powered,
+        resets (MCU resets seen, e.g. by the watchdog), max_lag_s (the longest stall behind the wall clock) and
+        lost_s (wall-clock time the simulation could not keep up with, in total)."""
+        return self._command("state")
+
+    def cycle_stats(self, reset: bool = False) -> dict:
+        """CPU cost of the firmware, counted exactly in simavr cycles since start (or the last reset).
+
+        Returns control_tick_cycles_mean/_max and control_ticks, telemetry_frame_cycles_mean/_max and
+        telemetry_frames (None when the firmware has no such function), elapsed_cycles, frequency_hz,
+        cpu_use_fraction (cycles inside any timed function or interrupt handler, counted once when they nest,
+        over elapsed cycles), regions (every timed function's calls, total and max cycles) and serial (byte
+        counters of the line).
+        """
+        reply = self._command("stats reset" if reset else "stats")
+        stats = {"elapsed_cycles": reply["elapsed_cycles"], "frequency_hz": reply["frequency_hz"]}
+        for role, plural in (("control_tick", "control_ticks"), ("telemetry_frame", "telemetry_frames")):
+            region = reply["regions"].get(role)
+            calls = region["calls"] if region else 0
+            stats[plural] = calls
+            stats[f"{role}_cycles_mean"] = region["total_cycles"] / calls if calls else None
+            stats[f"{role}_cycles_max"] = region["max_cycles"] if calls else None
+        elapsed = reply["elapsed_cycles"]
+        stats["cpu_use_fraction"] = reply["busy_cycles"] / elapsed if elapsed else None
+        stats["regions"] = reply["regions"]
+        stats["serial"] = reply["serial"]
+        return stats

@@ -1,0 +1,270 @@
+"""The bench against the real firmware image running in simavr (the plant in the loop, the UART on a pty).
+
+One simulated board serves the module; each check leaves it vented with no fault latched. The simulator is
+asked for 2x real time; on a loaded machine it runs slower, which the checks tolerate because they wait on
+the board's clock (telemetry time) rather than the host's.
+"""
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import serial
+
+from phantom import PhantomError
+from phantom.hil import bench
+from phantom.hil.link import BoardLink
+from phantom.hil.sim import SimulatedBoard
+
+pytestmark = [pytest.mark.sim, pytest.mark.timeout(240)]
+
+SPEED = 2.0
+#: The firmware's dead-host deadline the bench configures (s).
+HOST_DEADLINE_S = bench.HOST_DEADLINE_MS / 1000
+#: One ADC count in kPa: 5 V / 1024 counts / (5 V x 0.018 per kPa).
+ADC_COUNT_KPA = 5.0 / 1024 / (5.0 * 0.018)
+
+
+@pytest.fixture(scope="module")
+def board():
+    with SimulatedBoard(speed=SPEED, seed=1) as simulated:
+        yield simulated
+
+
+@pytest.fixture(scope="module")
+def link(board):
+    with BoardLink(board.port, time_scale=SPEED) as session:
+        yield session
+
+
+def test_step_metrics_match_analytic_responses():
+    """First order p = A (1 - exp(-t/tau)): rise tau ln 9, 2 % settling tau ln 50, no overshoot. Second order
+    with damping z: overshoot exp(-z pi / sqrt(1 - z^2)). Sampled at 1 ms, so times are good to about 1 ms.
+    A noise spike late in the record moves the raw settling time but not the smoothed one."""
+    t = np.arange(0, 3, 1e-3)
+    tau = 0.2
+    first = bench.step_metrics(t, 2.0 * (1 - np.exp(-t / tau)), 2.0)
+    assert first["rise_time_s"] == pytest.approx(tau * math.log(9), abs=1e-3)
+    # smoothing over 50 ms scales the decaying error by sinh(x)/x with x = 25 ms / tau: a 0.5 ms shift
+    assert first["settling_time_s"] == pytest.approx(tau * math.log(50), abs=1e-3)
+    assert first["settling_time_raw_s"] == pytest.approx(tau * math.log(50), abs=1e-3)
+    assert first["overshoot_pct"] == 0.0
+    # the last 20 % (t >= 2.4 s) still lacks 2 exp(-2.4 / 0.2) kPa at most
+    assert 0 < first["steady_state_error_kpa"] < 2 * math.exp(-2.4 / tau)
+    zeta, omega = 0.3, 20.0
+    damped = omega * math.sqrt(1 - zeta**2)
+    second = 1 - np.exp(-zeta * omega * t) * (np.cos(damped * t) + zeta / math.sqrt(1 - zeta**2) * np.sin(damped * t))
+    metrics = bench.step_metrics(t, second, 1.0)
+    assert metrics["overshoot_pct"] == pytest.approx(100 * math.exp(-zeta * math.pi / math.sqrt(1 - zeta**2)), rel=1e-3)
+    spiked = 2.0 * (1 - np.exp(-t / tau))
+    spiked[2000] += 0.1
+    with_spike = bench.step_metrics(t, spiked, 2.0)
+    assert with_spike["settling_time_raw_s"] == pytest.approx(2.001)
+    assert with_spike["settling_time_s"] == pytest.approx(tau * math.log(50), abs=1e-3)
+    never = bench.step_metrics(t, 0.5 * (1 - np.exp(-t / tau)), 1.0)
+    assert never["settling_time_s"] is None and never["rise_time_s"] is None
+
+
+def test_step_metrics_refuse_bad_input():
+    with pytest.raises(bench.BenchError, match="at least 5 samples"):
+        bench.step_metrics([0, 1], [0, 1], 1.0)
+    with pytest.raises(bench.BenchError, match="must be > 0 kPa"):
+        bench.step_metrics(np.arange(10), np.arange(10), 0.0)
+
+
+def test_simulated_board_refuses_bad_use(tmp_path):
+    with pytest.raises(PhantomError, match="does not exist"):
+        SimulatedBoard(elf=tmp_path / "missing.elf")
+    with pytest.raises(PhantomError, match="speed must be a number >= 0"):
+        SimulatedBoard(speed=-1)
+    idle = SimulatedBoard()
+    with pytest.raises(PhantomError, match="not started"):
+        idle.port  # noqa: B018
+    with pytest.raises(PhantomError, match="not started"):
+        idle.plant_state()
+
+
+def test_inject_refuses_bad_faults(board):
+    with pytest.raises(PhantomError, match="unknown fault 'fire'"):
+        board.inject("fire")
+    with pytest.raises(PhantomError, match="needs chamber=0, 1 or 2"):
+        board.inject("leak")
+    with pytest.raises(PhantomError, match="needs chamber=0, 1 or 2"):
+        board.inject("sensor_cut", chamber=3)
+    with pytest.raises(PhantomError, match=r"level must be in \[0, 1\]"):
+        board.inject("stuck_blower", chamber=0, level=2.0)
+    with pytest.raises(PhantomError, match="whole board"):
+        board.inject("line_noise", chamber=1)
+    with pytest.raises(PhantomError, match="takes"):
+        board.inject("leak", chamber=0, size=3)
+
+
+def test_handshake_identifies_the_board_and_refuses_a_foreign_spec(link):
+    result = bench.check_handshake(link)
+    assert result["passed"] and result["mismatched_hello_refused"]
+    assert result["board"] == "UNO" and result["chamber_count"] == 3
+    assert result["reset_cause"] == "POWER_ON"
+
+
+def test_step_reaches_the_setpoint_in_telemetry_and_in_the_plant(board, link):
+    """The firmware's measured pressure settles on the setpoint (within one ADC count), and so does the plant's
+    true pressure: after ZERO_SENSORS removes the sensor offset (60 Pa on chamber 1), the true pressure differs
+    from the setpoint by the steady-state error plus sensor noise averaged over the firmware's samples, well
+    under two counts."""
+    result = bench.check_step(link, 1, 2.0, duration_s=2.5)
+    truth_kpa = board.plant_state()["pressures_pa"][1] / 1e3
+    assert abs(result["steady_state_error_kpa"]) < ADC_COUNT_KPA
+    assert result["rise_time_s"] is not None and result["rise_time_s"] < 1.0
+    assert result["overshoot_pct"] < 10
+    assert result["max_drive_level"] == pytest.approx(1.0, abs=0.01), "a 2 kPa step saturates the blower first"
+    # the state was read after VENT was sent, so allow the first milliseconds of deflation (< 20 Pa)
+    assert truth_kpa == pytest.approx(2.0, abs=2 * ADC_COUNT_KPA)
+    # chamber 1 squeezes the idle chambers through the off-diagonal compliance: they see a small pressure
+    assert 0.05 < result["other_chambers_max_kpa"] < 0.6
+
+
+@pytest.mark.parametrize(("fault", "chamber"), [("sensor_cut", 1), ("stuck_blower", 0), ("silent_host", None)])
+def test_fault_trips_the_latch_and_stops_the_blowers_in_time(board, link, fault, chamber):
+    result = bench.check_fault(link, board, fault, chamber)
+    assert result["latched"] == result["expected"], result
+    assert result["stop_time_s"] is not None and 0 <= result["stop_time_s"] <= result["limit_s"], result
+    assert result["passed"], result
+    state = board.plant_state()
+    assert state["drive_levels"] == [0, 0, 0], "the bench leaves the board vented"
+
+
+def test_leak_is_compensated_without_a_latch(board, link):
+    result = bench.check_fault(link, board, "leak", 2)
+    assert result["latched"] is None
+    assert result["held_kpa"] == pytest.approx(1.5, abs=0.1)
+    assert result["drive_level"] > 0.5, "holding against the leak takes more than the 0.3 of a tight chamber"
+
+
+def test_link_survives_line_noise(board, link):
+    result = bench.check_line_noise(link, board, commands=20, flip_probability=0.01, drop_probability=0.01)
+    assert result["foreign_setpoints_applied"] == []
+    assert result["board_frames_dropped"] > 0 and result["retransmissions"] > 0, "the noise was not there"
+    assert result["passed"]
+    stats = board.cycle_stats()["serial"]
+    assert stats["bytes_flipped"] > 0 and stats["bytes_dropped"] > 0
+
+
+def test_watchdog_reset_is_reported(board, link):
+    result = bench.check_watchdog(link, board)
+    assert result["reset_cause"] == "WATCHDOG"
+    assert result["watchdog_fault_latched"]
+    assert result["resets_seen_by_simulator"] == 1
+
+
+def test_cycle_counts_follow_the_firmware_rates(board, link):
+    """500 Hz ticks and 50 Hz telemetry are the firmware's design; the counts must match them to 1 %."""
+    result = bench.measure_cycles(link, board, duration_s=2.0, telemetry_period_ms=20, kpa=1.0)
+    assert result["control_tick_hz"] == pytest.approx(500, rel=0.01)
+    assert result["telemetry_hz"] == pytest.approx(50, rel=0.01)
+    assert 0 < result["control_tick_cycles_mean"] <= result["control_tick_cycles_max"] < 32000
+    assert result["telemetry_frame_cycles_mean"] > 1500
+    assert result["control_cpu_fraction"] < result["cpu_use_fraction"] < 1
+
+
+def test_unplug_and_replug_like_a_usb_cable():
+    """Unplug: the port vanishes, an open link sees the device go, the blowers lose power. Replug: the same
+    path comes back and the board has restarted from a power-on reset. (A board of its own: a second reader
+    on the module's port would steal bytes from the module's link.)"""
+    with SimulatedBoard(speed=SPEED, seed=2) as board:
+        check_unplug_and_replug(board)
+
+
+def check_unplug_and_replug(board):
+    path = board.port
+    with BoardLink(path, time_scale=SPEED) as session:
+        bench.start_session(session)
+        session.command("SET_SETPOINTS", {"setpoint_pa": [1000, 0, 0]})
+        bench.wait_board_time(session, 0.3)
+        board.unplug()
+        assert not os.path.exists(path)
+        assert session.wait_for(lambda m: False, 0.5) is None and session.disconnected
+    state = board.plant_state()
+    assert state["drive_levels"] == [0, 0, 0] and not state["powered"]
+    with pytest.raises(serial.SerialException):
+        serial.Serial(path)
+    board.replug()
+    assert os.path.islink(path)
+    with BoardLink(path, time_scale=SPEED) as session:
+        assert session.hello().fields["reset_cause"] == 1  # POWER_ON
+        bench.vent_and_wait(session)
+
+
+def test_cli_step_prints_the_metrics_as_json():
+    phantom = Path(sys.executable).with_name("phantom")
+    result = subprocess.run(
+        [str(phantom), "hil", "step", "--sim", "--speed", str(SPEED), "--chamber", "2", "--kpa", "1.5",
+         "--duration-s", "2", "--json"],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads(result.stdout)
+    for key in ("rise_time_s", "overshoot_pct", "settling_time_s", "steady_state_error_kpa"):
+        assert key in metrics
+    assert metrics["chamber"] == 2 and abs(metrics["steady_state_error_kpa"]) < ADC_COUNT_KPA
+
+
+def test_cli_refuses_cycles_on_a_real_port_and_a_missing_port(tmp_path):
+    phantom = Path(sys.executable).with_name("phantom")
+    cycles = subprocess.run([str(phantom), "hil", "cycles", "--port", str(tmp_path / "tty")], capture_output=True,
+                            text=True, timeout=60)
+    assert cycles.returncode == 2 and "need the simulator" in cycles.stderr
+    bad_gains = subprocess.run([str(phantom), "hil", "step", "--sim", "--pid", "1,2"], capture_output=True, text=True,
+                               timeout=60)
+    assert bad_gains.returncode == 2 and "--pid takes three gains" in bad_gains.stderr
+    missing = subprocess.run([str(phantom), "hil", "handshake", "--port", str(tmp_path / "tty")], capture_output=True,
+                             text=True, timeout=60)
+    assert missing.returncode == 2 and "cannot open the serial port" in missing.stderr
+
+
+def test_mega_image_runs_with_its_own_pins_and_vectors():
+    """The second target: the ATmega2560 image, whose chamber 2 blower is OC2B on D9 and whose interrupt vectors
+    are numbered differently; its handshake names the board and chamber 2 regulates."""
+    from phantom.hil.firmware import default_elf, ensure_firmware
+
+    ensure_firmware()
+    mega = default_elf().parents[1] / "mega" / "phantom.elf"
+    assert mega.is_file(), "`make -C firmware` should build the Mega image beside the Uno one"
+    with SimulatedBoard(elf=mega, speed=SPEED) as board, BoardLink(board.port, time_scale=SPEED) as session:
+        assert bench.check_handshake(session)["board"] == "MEGA2560"
+        result = bench.check_step(session, 2, 1.5, duration_s=1.5)
+        assert abs(result["steady_state_error_kpa"]) < ADC_COUNT_KPA
+        stats = board.cycle_stats()
+        assert stats["control_ticks"] > 0 and stats["regions"]["adc_isr"]["calls"] > 0
+
+
+def test_bench_against_a_port_runs_what_a_real_board_allows():
+    """With only a port (as for /dev/ttyACM0), the injected faults are skipped with the reason, and the silent
+    host's stop time comes from the board's own clock (last PONG to the FAULT frame)."""
+    with SimulatedBoard(speed=SPEED, seed=3) as board, BoardLink(board.port, time_scale=SPEED) as session:
+        assert bench.check_fault(session, None, "sensor_cut", 1)["skipped"].startswith("needs --sim")
+        assert "skipped" in bench.check_line_noise(session, None)
+        silent = bench.check_fault(session, None, "silent_host")
+        assert silent["latched"] == "DEAD_HOST"
+        assert HOST_DEADLINE_S < silent["stop_time_s"] <= silent["limit_s"], silent
+        assert silent["passed"]
+
+
+def test_simulated_time_is_paced_to_the_wall_clock():
+    """At speed 0.5 (which this machine sustains) one wall second is half a simulated second, to within the
+    command round trips and one 1 ms service period; time the simulator could not keep up with is reported in
+    lost_s, never caught up later."""
+    import time
+
+    with SimulatedBoard(speed=0.5) as board:
+        first, wall_start = board.plant_state(), time.monotonic()
+        time.sleep(1.0)
+        second, wall_end = board.plant_state(), time.monotonic()
+    simulated_s = second["time_s"] - first["time_s"]
+    lost_s = second["lost_s"] - first["lost_s"]
+    assert simulated_s <= 0.5 * (wall_end - wall_start) + 0.01
+    assert simulated_s + 0.5 * lost_s == pytest.approx(0.5 * (wall_end - wall_start), abs=0.03)
