@@ -31,7 +31,26 @@ STOP_LIMITS_S = {
     # from the host's last byte: the deadline, counted from the tick that saw the last frame (up to one tick
     # later) and compared strictly (one more tick), then the drive update after that tick (under one tick)
     "silent_host": HOST_DEADLINE_MS / 1000 + 0.006,
+    # from the injection: the severe leak first pulls the pressure more than 200 Pa below the setpoint (about
+    # 25 ms from 1.5 kPa with LEAK_SEVERE_ML_PER_S_PER_KPA), then the firmware's 2 s with the blower at its
+    # ceiling, then one tick; 0.1 s of margin for the fall
+    "leak": 2.0 + 0.1 + 0.002,
 }
+#: The firmware's leak rule (firmware/src/core/config.h, PROTOCOL.md section 7): LEAK_n latches when the blower
+#: sits at its ceiling while the chamber reads more than this far below its setpoint (kPa) ...
+LEAK_MIN_ERROR_KPA = 0.2
+#: ... for this long (s).
+LEAK_TIME_S = 2.0
+#: Extra leak (ml/s per kPa) of the severe leak: on the default plant the blower at full drive then holds only
+#: about 0.6 kPa (13.3 ml/s of free flow against 1.8 + 20 ml/s/kPa of leak), far below the 1.5 kPa setpoint.
+LEAK_SEVERE_ML_PER_S_PER_KPA = 20.0
+#: Extra leak of the mild one: holding 1.5 kPa then takes 10.2 ml/s of the 12.3 ml/s the blower gives there at
+#: full drive (a drive of about 0.83), so the PID compensates it.
+LEAK_MILD_ML_PER_S_PER_KPA = 5.0
+#: How long the mild leak is watched (s of board time): longer than the leak time limit.
+LEAK_MILD_WATCH_S = LEAK_TIME_S + 1.5
+#: The fault checks of a report, with the chamber each is injected into.
+FAULT_CHECKS = (("sensor_cut", 1), ("stuck_blower", 0), ("leak", 2), ("mild_leak", 2), ("silent_host", None))
 #: Settling band of the step (fraction of the step).
 SETTLING_BAND = 0.02
 #: Window of the centred moving average the settling time is judged on (s). The 2 % band of a 2 kPa step,
@@ -297,6 +316,7 @@ def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: flo
         final_drive_level=float(drives[-20:].mean()),
         other_chambers_max_kpa=float(others.max()),
         tick_overruns=samples[-1]["tick_overruns"] - samples[0]["tick_overruns"],
+        fault_flags=int(np.bitwise_or.reduce([s["fault_flags"] for s in samples])),
         trace={"time_s": times_s.tolist(), "pressure_kpa": pressures_kpa.tolist(), "drive_level": drives.tolist()},
     )
     return metrics
@@ -324,10 +344,14 @@ def _recover(link: BoardLink, board) -> None:
 def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) -> dict:
     """Inject one fault while all chambers hold 1.5 kPa; the latch must trip and every blower stop in time.
 
-    ``fault`` is ``sensor_cut``, ``stuck_blower``, ``leak`` (needs ``board``, a SimulatedBoard) or
-    ``silent_host``. The stop time is measured in simulated time from the injection (from the host's last
-    byte for a silent host) to the first plant step at which every PWM output is off.
+    ``fault`` is ``sensor_cut``, ``stuck_blower``, ``leak`` (a severe leak, LEAK_SEVERE_ML_PER_S_PER_KPA, that
+    the blower cannot overcome), ``mild_leak`` (LEAK_MILD_ML_PER_S_PER_KPA: the PID must compensate it and
+    nothing may latch; these need ``board``, a SimulatedBoard) or ``silent_host``. The stop time is measured in
+    simulated time from the injection (from the host's last byte for a silent host) to the first plant step at
+    which every PWM output is off.
     """
+    if fault == "mild_leak":
+        return _check_mild_leak(link, board, chamber)
     bits = fault_bits()
     if board is None and fault != "silent_host":
         return {"fault": fault, "skipped": "needs --sim: faults are injected into the simulated plant"}
@@ -336,10 +360,11 @@ def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) 
     if fault == "silent_host":
         link.keepalive(False)
         injected_s = None
+    elif fault == "leak":
+        injected_s = board.inject(fault, chamber=chamber, conductance_ml_per_s_per_kpa=LEAK_SEVERE_ML_PER_S_PER_KPA)
     else:
         injected_s = board.inject(fault, chamber=chamber)
-    window_s = 3.0 if fault != "leak" else 2.0
-    got = wait_on_board_clock(link, lambda m: m.name == "FAULT", window_s, start)
+    got = wait_on_board_clock(link, lambda m: m.name == "FAULT", max(3.0, 1.0 + STOP_LIMITS_S[fault]), start)
     result = {"fault": fault, "chamber": chamber}
     if board is not None:
         state = board.plant_state()
@@ -360,22 +385,16 @@ def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) 
         result["pressures_kpa_at_latch"] = [p / 1e3 for p in got.message.fields["pressure_pa"]]
     else:
         result["latched"] = None
-    if fault == "leak":
-        # The firmware has no leak detection: a leak it can outpump is compensated, which is the right outcome.
-        telemetry = latest_telemetry(link)
-        result["passed"] = got is None and abs(telemetry["pressure_pa"][chamber] - 1500) < 100
-        result["held_kpa"] = telemetry["pressure_pa"][chamber] / 1e3
-        result["drive_level"] = telemetry["drive"][chamber] / 65535
-    else:
-        expected = {
-            "sensor_cut": f"SENSOR_{chamber}",
-            "stuck_blower": f"OVERPRESSURE_{chamber}",
-            "silent_host": "DEAD_HOST",
-        }[fault]
-        result["expected"] = expected
-        result["limit_s"] = STOP_LIMITS_S[fault]
-        stop = result.get("stop_time_s")
-        result["passed"] = result["latched"] == expected and stop is not None and stop <= STOP_LIMITS_S[fault]
+    expected = {
+        "sensor_cut": f"SENSOR_{chamber}",
+        "stuck_blower": f"OVERPRESSURE_{chamber}",
+        "leak": f"LEAK_{chamber}",
+        "silent_host": "DEAD_HOST",
+    }[fault]
+    result["expected"] = expected
+    result["limit_s"] = STOP_LIMITS_S[fault]
+    stop = result.get("stop_time_s")
+    result["passed"] = result["latched"] == expected and stop is not None and stop <= STOP_LIMITS_S[fault]
     if board is not None:
         _recover(link, board)
     else:
@@ -383,6 +402,36 @@ def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) 
         start_session(link)
         link.command("CLEAR_FAULT", accept_nack=True)
         link.command("VENT")
+    return result
+
+
+def _check_mild_leak(link: BoardLink, board, chamber: int | None) -> dict:
+    """A leak the PID can outpump, while all chambers hold 1.5 kPa: no fault for LEAK_MILD_WATCH_S (longer
+    than the leak time limit), the chamber held within 0.1 kPa (two ADC counts) at a higher drive, below the
+    ceiling."""
+    if board is None:
+        return {"fault": "mild_leak", "skipped": "needs --sim: faults are injected into the simulated plant"}
+    _regulate(link, 1.5, 1.5)
+    tight_drive = latest_telemetry(link)["drive"][chamber] / 65535
+    start = link.mark()
+    board.inject("leak", chamber=chamber, conductance_ml_per_s_per_kpa=LEAK_MILD_ML_PER_S_PER_KPA)
+    got = wait_on_board_clock(link, lambda m: m.name == "FAULT", LEAK_MILD_WATCH_S, start)
+    telemetry = latest_telemetry(link)
+    names = {v: k for k, v in fault_bits().items()}
+    held_kpa = telemetry["pressure_pa"][chamber] / 1e3
+    drive = telemetry["drive"][chamber] / 65535
+    result = {
+        "fault": "mild_leak",
+        "chamber": chamber,
+        "expected": None,
+        "latched": None if got is None else names.get(got.message.fields["fault_bit"], got.message.fields["fault_bit"]),
+        "watched_s": LEAK_MILD_WATCH_S,
+        "held_kpa": held_kpa,
+        "drive_level": drive,
+        "drive_level_before": tight_drive,
+        "passed": got is None and telemetry["fault_flags"] == 0 and abs(held_kpa - 1.5) < 0.1 and drive < 1.0,
+    }
+    _recover(link, board)
     return result
 
 
@@ -502,7 +551,7 @@ def run_report(link: BoardLink, board, out_dir: Path, target_kpa: float = 2.0) -
         progress(f"step response, chamber {chamber}")
         report["steps"].append(check_step(link, chamber, target_kpa))
     report["faults"] = []
-    for fault, chamber in (("sensor_cut", 1), ("stuck_blower", 0), ("leak", 2), ("silent_host", None)):
+    for fault, chamber in FAULT_CHECKS:
         progress(f"fault: {fault}")
         report["faults"].append(check_fault(link, board, fault, chamber))
     progress("line noise")
@@ -545,6 +594,13 @@ def format_report(report: dict) -> str:
     for f in report["faults"]:
         if "skipped" in f:
             lines.append(f"| {f['fault']} | | | | skipped: {f['skipped']} |")
+            continue
+        if f["fault"] == "mild_leak":
+            latched = f["latched"] or (
+                f"none in {_fmt(f['watched_s'])} s: held {f['held_kpa']:.2f} kPa at drive "
+                f"{f['drive_level']:.2f} (was {f['drive_level_before']:.2f})"
+            )
+            lines.append(f"| mild_leak | {latched} | | | {'PASS' if f['passed'] else 'FAIL'} |")
             continue
         lines.append(
             f"| {f['fault']} | {f['latched']} | {_fmt(f.get('stop_time_s'))} | {_fmt(f.get('limit_s'))} | "

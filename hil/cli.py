@@ -79,6 +79,18 @@ class _Bench:
             self.board.stop()
 
 
+def _fault_line(result: dict) -> str:
+    """One line of `phantom hil faults` for one fault check's result."""
+    if "skipped" in result:
+        return f"{result['fault']}: skipped ({result['skipped']})"
+    verdict = "PASS" if result["passed"] else "FAIL"
+    if result["fault"] == "mild_leak":
+        return f"mild_leak: {verdict}, held {result.get('held_kpa')} kPa at drive {result.get('drive_level', 0.0):.2f}"
+    stop_time_s = result.get("stop_time_s")
+    stopped = "blowers not stopped" if stop_time_s is None else f"blowers off after {stop_time_s:.3f} s"
+    return f"{result['fault']}: {verdict}, latched {result['latched']}, {stopped} (limit {result.get('limit_s')} s)"
+
+
 def _progress(message: str) -> None:
     import sys
 
@@ -130,17 +142,11 @@ def _run_faults(args) -> int:
 
     results = []
     with _Bench(args) as b:
-        for fault, chamber in (("sensor_cut", 1), ("stuck_blower", 0), ("leak", 2), ("silent_host", None)):
+        for fault, chamber in bench.FAULT_CHECKS:
             _progress(f"fault: {fault}")
             results.append(bench.check_fault(b.link, b.board, fault, chamber))
     passed = all(r.get("passed", True) for r in results)
-    lines = [
-        f"{r['fault']}: skipped ({r['skipped']})"
-        if "skipped" in r
-        else f"{r['fault']}: {'PASS' if r['passed'] else 'FAIL'}, latched {r['latched']}, "
-        f"blowers off after {r.get('stop_time_s')} s (limit {r.get('limit_s')} s)"
-        for r in results
-    ]
+    lines = [_fault_line(result) for result in results]
     return _emit(args, {"passed": passed, "faults": results}, lines)
 
 

@@ -32,7 +32,7 @@ class MessageSpec(NamedTuple):
 
 
 PROTOCOL_VERSION = 1
-SPEC_HASH = 0x315F6730
+SPEC_HASH = 0xDB551DA4
 MAX_BODY_BYTES = 64
 CHAMBER_COUNT = 3
 
@@ -81,6 +81,9 @@ BITS: dict[str, dict[str, int]] = {
         'SENSOR_2': 5,
         'DEAD_HOST': 6,
         'WATCHDOG_RESET': 7,
+        'LEAK_0': 8,
+        'LEAK_1': 9,
+        'LEAK_2': 10,
     },
 }
 

@@ -138,11 +138,43 @@ def test_fault_trips_the_latch_and_stops_the_blowers_in_time(board, link, fault,
     assert state["drive_levels"] == [0, 0, 0], "the bench leaves the board vented"
 
 
-def test_leak_is_compensated_without_a_latch(board, link):
-    result = bench.check_fault(link, board, "leak", 2)
-    assert result["latched"] is None
+def test_severe_leak_latches_only_after_the_leak_time_limit(board, link):
+    """The blower at full drive cannot hold the setpoint: LEAK_n latches, but not before the firmware's 2 s at
+    the ceiling have passed (the pressure falls below the threshold within a few tens of ms of the injection),
+    and its FAULT frame shows the chamber far below its setpoint and the others holding."""
+    result = bench.check_fault(link, board, "leak", 1)
+    assert result["latched"] == "LEAK_1", result
+    assert bench.LEAK_TIME_S <= result["stop_time_s"] <= result["limit_s"], result
+    assert result["passed"], result
+    at_latch = result["pressures_kpa_at_latch"]
+    assert at_latch[1] < 1.5 - bench.LEAK_MIN_ERROR_KPA
+    assert at_latch[0] == pytest.approx(1.5, abs=0.15) and at_latch[2] == pytest.approx(1.5, abs=0.15)
+    assert board.plant_state()["drive_levels"] == [0, 0, 0], "the bench leaves the board vented"
+
+
+def test_mild_leak_is_compensated_without_a_latch(board, link):
+    result = bench.check_fault(link, board, "mild_leak", 2)
+    assert result["latched"] is None, result
+    assert result["watched_s"] > bench.LEAK_TIME_S
     assert result["held_kpa"] == pytest.approx(1.5, abs=0.1)
-    assert result["drive_level"] > 0.5, "holding against the leak takes more than the 0.3 of a tight chamber"
+    # holding against the leak takes far more than the 0.2 a tight chamber needs at 1.5 kPa, but not full drive
+    assert result["drive_level_before"] < 0.45 and 0.6 < result["drive_level"] < 1.0, result
+    assert result["passed"]
+
+
+def test_normal_step_to_3kpa_does_not_trip_the_leak_fault(link):
+    """The blower sits at full drive while the chamber rises: for well under the leak time limit (measured
+    from the board's own telemetry: drive at 1.0 and more than 0.2 kPa below the target), and nothing latches."""
+    result = bench.check_step(link, 0, 3.0, duration_s=2.5)
+    assert result["fault_flags"] == 0, result["fault_flags"]
+    trace = result["trace"]
+    starved = (np.array(trace["drive_level"]) >= 1.0) & (
+        3.0 - np.array(trace["pressure_kpa"]) > bench.LEAK_MIN_ERROR_KPA
+    )
+    runs = np.diff(np.flatnonzero(np.diff(np.concatenate(([0], starved.astype(int), [0])))))[::2]
+    longest_s = runs.max(initial=0) * np.median(np.diff(trace["time_s"]))
+    assert 0.3 < longest_s < 0.6 * bench.LEAK_TIME_S, longest_s
+    assert abs(result["steady_state_error_kpa"]) < ADC_COUNT_KPA
 
 
 def test_link_survives_line_noise(board, link):

@@ -611,6 +611,7 @@ TEST(dead_host_deadline_trips_and_pings_keep_the_link_alive) {
     CHECK_EQ(b.controller.fault_flags(), 0);  // no session: nothing to guard
     b.hello();
     b.setpoints(1000, 0, 0);
+    b.set_pressure(0, 950);  // close to the setpoint: a reading stuck far below it would be a leak
     uint8_t p[4] = {0, 0, 0, 0};
     for (int i = 0; i < 20; ++i) {
         b.ticks(200);  // 400 ms
@@ -743,6 +744,172 @@ TEST(closed_loop_through_the_controller_reaches_the_setpoints) {
     CHECK_EQ(t.state[0], CHAMBER_STATE_REGULATING);
     CHECK_EQ(t.state[2], CHAMBER_STATE_OFF);
     CHECK_EQ(t.fault_flags, 0);
+}
+
+// ---- leak: a chamber that cannot reach or hold its setpoint ------------------------------------------
+
+// The bench and one plant per chamber in closed loop, 10 plant steps per tick.
+struct ClosedLoop {
+    Bench bench;
+    plant::Chamber chambers[CHAMBERS];
+    int tick = 0;
+    int starved_run = 0;      // ticks in a row seen from outside: full drive and > LEAK_MIN_ERROR_PA below
+    int longest_starved = 0;  // the longest such run
+
+    ClosedLoop() {
+        bench.hello();
+        bench.config(20, 10000);
+    }
+    // Run up to n ticks; stop after the tick at which a new fault latched. Returns the ticks run.
+    int run(int n) {
+        uint16_t faults_before = bench.controller.fault_flags();
+        for (int k = 0; k < n; ++k) {
+            for (uint8_t c = 0; c < CHAMBERS; ++c) {
+                for (int s = 0; s < 10; ++s)
+                    chambers[c].advance(bench.controller.drive(c) / 65535.0, 1.0 / (10 * TICK_HZ));
+                bench.set_pressure(c, chambers[c].pressure_pa);
+            }
+            // the drive applied over the tick that ends now, and the reading the tick takes
+            bool at_ceiling[CHAMBERS];
+            int16_t setpoint_pa[CHAMBERS];
+            for (uint8_t c = 0; c < CHAMBERS; ++c) {
+                at_ceiling[c] = bench.controller.drive(c) == bench.controller.pid(c).gains().max_drive;
+                setpoint_pa[c] = bench.controller.setpoint_pa(c);
+            }
+            bench.ticks(1);
+            ++tick;
+            bool starved = false;
+            for (uint8_t c = 0; c < CHAMBERS; ++c) {
+                starved |= setpoint_pa[c] > 0 && at_ceiling[c] &&
+                           setpoint_pa[c] - bench.controller.pressure_pa(c) > LEAK_MIN_ERROR_PA;
+            }
+            starved_run = starved ? starved_run + 1 : 0;
+            longest_starved = starved_run > longest_starved ? starved_run : longest_starved;
+            if (bench.controller.fault_flags() != faults_before) return k + 1;
+        }
+        return n;
+    }
+};
+
+// Extra leak of the plant's chamber in ml/s per kPa (the plant's own back-leak is 0.83 ml/s/kPa).
+static void add_leak(plant::Chamber& chamber, double ml_per_s_per_kpa) { chamber.leak_m3_s_per_pa += ml_per_s_per_kpa * 1e-9; }
+
+TEST(leak_is_not_tripped_by_a_normal_step_to_3kpa) {
+    // Independent of the firmware's own count: the loop measures from outside how long the blower sat at full
+    // drive with the chamber far below its setpoint. The step must really saturate (else the test proves
+    // nothing), and for less than the limit.
+    ClosedLoop loop;
+    loop.bench.setpoints(3000, 3000, 0);
+    loop.run(6 * TICK_HZ);
+    printf("     0 -> 3 kPa: blower at full drive, > %d Pa below the setpoint, for %.3f s (limit %.1f s)\n",
+           LEAK_MIN_ERROR_PA, (double)loop.longest_starved / TICK_HZ, (double)LEAK_TICKS / TICK_HZ);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 0);
+    CHECK(loop.longest_starved > TICK_HZ / 2);
+    CHECK(loop.longest_starved < LEAK_TICKS);
+    CHECK_NEAR(loop.chambers[0].pressure_pa, 3000, 60);
+}
+
+TEST(leak_that_the_pid_can_outpump_is_compensated_without_a_latch) {
+    // 2 ml/s/kPa more: holding 1.5 kPa takes about 4.3 ml/s of the 7 ml/s the blower gives at full drive there.
+    ClosedLoop loop;
+    loop.bench.setpoints(1500, 1500, 1500);
+    loop.run(2 * TICK_HZ);
+    add_leak(loop.chambers[2], 2.0);
+    loop.run(8 * TICK_HZ);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 0);
+    CHECK_NEAR(loop.chambers[2].pressure_pa, 1500, 60);
+    CHECK(loop.bench.controller.drive(2) > 0.45 * 65535 && loop.bench.controller.drive(2) < 65535);
+}
+
+TEST(leak_the_blower_cannot_overcome_latches_through_the_one_fault_path) {
+    // 10 ml/s/kPa more: at full drive the chamber only reaches about 0.7 kPa of its 1.5 kPa.
+    ClosedLoop loop;
+    loop.bench.setpoints(1500, 1500, 1500);
+    loop.run(2 * TICK_HZ);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 0);
+    add_leak(loop.chambers[2], 10.0);
+    int ticks = loop.run(6 * TICK_HZ);
+    printf("     severe leak: LEAK_2 latched %.3f s after it opened\n", (double)ticks / TICK_HZ);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 1 << FAULT_LEAK_2);
+    // the limit, plus the time the pressure needs to fall 200 Pa (a few tens of ms on this plant)
+    CHECK(ticks >= LEAK_TICKS && ticks <= LEAK_TICKS + TICK_HZ / 5);
+    CHECK_EQ(loop.starved_run, LEAK_TICKS);  // seen from outside: exactly LEAK_TICKS starved ticks in a row
+    check_all_off(loop.bench);
+    Fault fault;
+    decode(fault, loop.bench.last(MSG_FAULT)->payload.data());
+    CHECK_EQ(fault.fault_bit, FAULT_LEAK_2);
+    CHECK_EQ(fault.fault_flags, 1 << FAULT_LEAK_2);
+    CHECK(fault.pressure_pa[2] < 1500 - LEAK_MIN_ERROR_PA);
+    CHECK_NEAR(fault.pressure_pa[0], 1500, 60);
+    Telemetry telemetry;
+    loop.run(TICK_HZ / 10);  // the plants vent, the latch holds
+    decode(telemetry, loop.bench.last(MSG_TELEMETRY)->payload.data());
+    CHECK_EQ(telemetry.fault_flags, 1 << FAULT_LEAK_2);
+    CHECK_EQ(telemetry.state[0], CHAMBER_STATE_FAULT);
+}
+
+TEST(leak_stays_latched_until_cleared_and_trips_again_if_it_persists) {
+    ClosedLoop loop;
+    loop.bench.setpoints(1500, 0, 0);
+    loop.run(TICK_HZ);
+    add_leak(loop.chambers[0], 10.0);
+    loop.run(3 * TICK_HZ);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 1 << FAULT_LEAK_0);
+    loop.run(5 * TICK_HZ);  // the chambers deflate; nothing clears the latch by itself
+    CHECK_EQ(loop.bench.controller.fault_flags(), 1 << FAULT_LEAK_0);
+    check_all_off(loop.bench);
+    CHECK(loop.chambers[0].pressure_pa < 50);
+    CHECK_EQ(loop.bench.reply_status(loop.bench.setpoints(1500, 0, 0)), STATUS_FAULT_LATCHED);
+    CHECK_EQ(loop.bench.count(MSG_FAULT), 1);
+    // With the blowers off no chamber can be starved: a leak leaves no present cause, as a dead host does.
+    // Another fault's present cause still refuses the clear, which then keeps LEAK_0 latched too.
+    loop.bench.counts[1] = 5;
+    loop.bench.ticks(SENSOR_BAD_TICKS);
+    CHECK_EQ(loop.bench.reply_status(loop.bench.simple(MSG_CLEAR_FAULT)), STATUS_FAULT_ACTIVE);
+    CHECK_EQ(loop.bench.controller.fault_flags(), (1 << FAULT_LEAK_0) | (1 << FAULT_SENSOR_1));
+    loop.bench.counts[1] = 512;
+    loop.bench.ticks(1);
+    CHECK_EQ(loop.bench.reply_status(loop.bench.simple(MSG_CLEAR_FAULT)), STATUS_OK);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 0);
+    // The leak is still there: re-inflating trips it again, after the full limit (the count started over).
+    CHECK_EQ(loop.bench.reply_status(loop.bench.setpoints(1500, 0, 0)), STATUS_OK);
+    int ticks = loop.run(4 * TICK_HZ);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 1 << FAULT_LEAK_0);
+    CHECK(ticks >= LEAK_TICKS && ticks <= LEAK_TICKS + TICK_HZ / 2);
+    CHECK_EQ(loop.bench.count(MSG_FAULT), 3);  // LEAK_0, SENSOR_1, LEAK_0 again
+}
+
+TEST(leak_count_restarts_when_the_chamber_gets_close_or_the_drive_leaves_its_ceiling) {
+    // Driven by hand: the reading is held far below the setpoint, the blower saturates.
+    Bench b;
+    b.hello();
+    b.config(20, 10000);
+    b.setpoints(2000, 0, 0);
+    b.set_pressure(0, 1000);
+    b.ticks(LEAK_TICKS);  // the first tick's drive was 0 (not yet at the ceiling): one short of the limit
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    CHECK_EQ(b.controller.drive(0), 65535);
+    b.set_pressure(0, 2000 - LEAK_MIN_ERROR_PA + 60);  // within the threshold for one tick: drive 0.6
+    b.ticks(1);
+    CHECK(b.controller.drive(0) < 65535);
+    b.set_pressure(0, 1000);
+    b.ticks(LEAK_TICKS);  // again the first tick ran on a drive below the ceiling
+    CHECK_EQ(b.controller.fault_flags(), 0);
+    b.ticks(1);
+    CHECK_EQ(b.controller.fault_flags(), 1 << FAULT_LEAK_0);
+}
+
+TEST(leak_ceiling_is_the_chambers_max_drive) {
+    // A drive ceiling of 0.3 cannot hold 3 kPa on the plant (it needs about 0.45): starved at 0.3, not at 1.0.
+    ClosedLoop loop;
+    CHECK_EQ(loop.bench.reply_status(loop.bench.set_pid(1, DEFAULT_KP_PER_KPA, DEFAULT_KI_PER_KPA_S, 0, 4000,
+                                                        (uint16_t)(0.3 * 65535))),
+             STATUS_OK);
+    loop.bench.setpoints(0, 3000, 0);
+    int ticks = loop.run(8 * TICK_HZ);
+    CHECK_EQ(loop.bench.controller.fault_flags(), 1 << FAULT_LEAK_1);
+    CHECK(ticks >= LEAK_TICKS);
+    CHECK(loop.chambers[1].pressure_pa < 3000 - LEAK_MIN_ERROR_PA);
 }
 
 int main() { return check::run_all("firmware core unit tests"); }

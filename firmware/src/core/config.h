@@ -5,7 +5,7 @@
 namespace core {
 
 const uint8_t FIRMWARE_MAJOR = 0;
-const uint8_t FIRMWARE_MINOR = 1;
+const uint8_t FIRMWARE_MINOR = 2;
 const uint8_t FIRMWARE_PATCH = 0;
 
 const uint16_t TICK_HZ = 500;                 // control rate
@@ -23,6 +23,12 @@ const float DEFAULT_KD_S_PER_KPA = 0.0f;
 
 // Sensor fault: consecutive out-of-band ticks that latch it (sensor.h has the band).
 const uint8_t SENSOR_BAD_TICKS = 5;                // consecutive out-of-range ticks that latch the fault
+// Leak (a chamber that cannot reach or hold its setpoint): the blower at its ceiling while the reading stays
+// more than LEAK_MIN_ERROR_PA below the setpoint, LEAK_TICKS in a row. The default plant's blower runs at full
+// drive for about 0.4 s of a 0 -> 2 kPa step and 0.8 s of a 0 -> 3 kPa one; 2 s leaves room for a slower
+// blower, and 200 Pa (about 4 ADC counts) is far above the sensor noise.
+const int16_t LEAK_MIN_ERROR_PA = 200;
+const uint16_t LEAK_TICKS = 2 * TICK_HZ;           // 2 s
 // A measured zero further than this from the nominal zero is refused (the datasheet's 5 % of the 50 kPa span
 // is 46 counts), in sixteenths of a count.
 const int16_t ZERO_MAX_OFFSET_X16 = 46 * 16;

@@ -185,18 +185,37 @@ void Controller::read_sensors(const AdcTick& adc) {
     }
 }
 
-// Sensor band (several ticks in a row), over-pressure (on a valid reading) and the dead-host deadline.
+// Sensor band (several ticks in a row), over-pressure and leak (on a valid reading), the dead-host deadline.
 void Controller::check_safety() {
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
         if (!sensor_in_range(counts_x16_[i])) {
             if (bad_ticks_[i] < SENSOR_BAD_TICKS) ++bad_ticks_[i];
             if (bad_ticks_[i] >= SENSOR_BAD_TICKS) latch_fault((uint8_t)(FAULT_SENSOR_0 + i));
+            leak_ticks_[i] = 0;
             continue;
         }
         bad_ticks_[i] = 0;
         if (pressure_pa_[i] > max_pressure_pa_[i]) latch_fault((uint8_t)(FAULT_OVERPRESSURE_0 + i));
+        check_leak(i);
     }
     if (session_open_ && time_ms_ - last_rx_ms_ > host_deadline_ms_) latch_fault(FAULT_DEAD_HOST);
+}
+
+// Count the ticks a chamber's blower spent at its ceiling (the drive of the last tick, the whole tick long)
+// while it still reads more than LEAK_MIN_ERROR_PA below its setpoint; LEAK_TICKS in a row latch LEAK_n.
+// A chamber that is off, vented or faulted has setpoint 0 and never counts. (A setpoint is 0..6000 Pa, so
+// setpoint - LEAK_MIN_ERROR_PA cannot overflow 16 bits.)
+void Controller::check_leak(uint8_t chamber) {
+    int16_t setpoint_pa = setpoint_pa_[chamber];
+    bool starved = setpoint_pa > 0 && drive_[chamber] >= pid_[chamber].gains().max_drive &&
+                   pressure_pa_[chamber] < setpoint_pa - LEAK_MIN_ERROR_PA;
+    if (!starved) {
+        leak_ticks_[chamber] = 0;
+        return;
+    }
+    if (++leak_ticks_[chamber] < LEAK_TICKS) return;
+    leak_ticks_[chamber] = 0;
+    latch_fault((uint8_t)(FAULT_LEAK_0 + chamber));
 }
 
 // Accumulate the zero readings; at the end store them all, or refuse them all if one is implausible.
@@ -276,7 +295,9 @@ void Controller::latch_fault(uint8_t bit) {
     send(MSG_FAULT, out, sizeof out);
 }
 
-// Whether a latched fault's cause persists: a sensor out of band or a chamber above its limit.
+// Whether a latched fault's cause persists: a sensor out of band or a chamber above its limit. A leak, a dead
+// host or a watchdog reset leave nothing to observe once the blowers are off (a leak that persists trips again
+// when the host re-inflates).
 bool Controller::fault_cause_present() const {
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
         if (!sensor_in_range(counts_x16_[i])) return true;

@@ -62,6 +62,7 @@ private:
 
     void read_sensors(const AdcTick& adc);
     void check_safety();
+    void check_leak(uint8_t chamber);
     void run_zeroing();
     void run_control();
     void send_telemetry();
@@ -97,6 +98,7 @@ private:
     int16_t counts_x16_[CHAMBERS] = {0, 0, 0};  // latest averaged reading, sixteenths of a count
     int16_t pressure_pa_[CHAMBERS] = {0, 0, 0};
     uint8_t bad_ticks_[CHAMBERS] = {0, 0, 0};
+    uint16_t leak_ticks_[CHAMBERS] = {0, 0, 0};  // ticks in a row at the drive ceiling and far below the setpoint
     uint16_t drive_[CHAMBERS] = {0, 0, 0};
 
     uint8_t zero_ticks_left_ = 0;  // > 0 while ZERO_SENSORS runs

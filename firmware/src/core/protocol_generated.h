@@ -6,7 +6,7 @@
 namespace proto {
 
 const uint16_t PROTOCOL_VERSION = 1;
-const uint32_t SPEC_HASH = 0x315F6730UL;
+const uint32_t SPEC_HASH = 0xDB551DA4UL;
 const uint8_t MAX_BODY_BYTES = 64;
 const uint8_t CHAMBER_COUNT = 3;
 
@@ -78,6 +78,9 @@ enum FaultBit : uint8_t {
     FAULT_SENSOR_2 = 5,
     FAULT_DEAD_HOST = 6,
     FAULT_WATCHDOG_RESET = 7,
+    FAULT_LEAK_0 = 8,
+    FAULT_LEAK_1 = 9,
+    FAULT_LEAK_2 = 10,
 };
 
 // Little-endian field access, independent of the host's byte order and alignment.
