@@ -11,6 +11,8 @@ setup:
 
 demo: setup
 	$(PHANTOM) forward --scene builtin --pressures-kpa 1,1,1
+	$(MAKE) -C firmware
+	$(PY) -m phantom.host.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
 
 test: setup lint protocol-check firmware-test pytest
 

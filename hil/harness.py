@@ -59,8 +59,14 @@ class HarnessProcess:
     def __init__(self, arguments: list[str], start_timeout_s: float = 20.0):
         executable = build_harness()
         self._stderr = tempfile.TemporaryFile()
+        # Its own session: a Ctrl-C or SIGTERM meant for the host must not kill the simulated board before the
+        # host has vented it; the board is stopped through stop() instead.
         self._process = subprocess.Popen(
-            [str(executable), *arguments], stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._stderr
+            [str(executable), *arguments],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=self._stderr,
+            start_new_session=True,
         )
         self._buffer = b""
         self._lock = threading.Lock()

@@ -5,6 +5,316 @@ Only argparse is imported at module load; handlers import what they need when th
 
 import argparse
 
+#: Keys of the daemon's config file (``[daemon]`` table, e.g. /etc/phantom/phantomd.toml) and their types.
+CONFIG_KEYS = {"port": str, "sim": bool, "sim_speed": float, "can_channel": str, "can_interface": str,
+               "baudrate": int, "scene": str, "socket": str, "rerun_save": str, "rerun_connect": str,
+               "mesh_hz": float, "host_deadline_ms": int, "telemetry_period_ms": int, "vent_on_exit": bool,
+               "run_scene": bool}
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
+    daemon = subparsers.add_parser("daemon", help="run the host daemon (link, control, scenes, Rerun, local API)",
+                                   description="Run the host daemon in the foreground until SIGTERM/SIGINT, "
+                                   "which vent the phantom and close the recording.")
+    board = daemon.add_mutually_exclusive_group()
+    board.add_argument("--port", metavar="DEV", help="the board's serial port (e.g. /dev/serial/by-id/usb-...)")
+    board.add_argument("--sim", action="store_true", default=None,
+                       help="start the simulated board (the real firmware in simavr) and drive it")
+    board.add_argument("--can-channel", metavar="CH", help="talk to the board over CAN on this channel")
+    daemon.add_argument("--can-interface", metavar="NAME", help="python-can interface (default socketcan)")
+    daemon.add_argument("--sim-speed", type=float, metavar="X", help="simulated board speed-up (default 1: real time)")
+    daemon.add_argument("--scene", metavar="S", help="scene: 'builtin' or a TOML path (default builtin)")
+    daemon.add_argument("--run-scene", action="store_true", default=None,
+                        help="play the scene's [[steps]] as soon as the daemon is ready")
+    record = daemon.add_mutually_exclusive_group()
+    record.add_argument("--rerun-save", metavar="FILE", help="record to this .rrd file")
+    record.add_argument("--rerun-connect", metavar="ADDR", help="stream to a Rerun viewer (rerun+http://.../proxy)")
+    daemon.add_argument("--mesh-hz", type=float, metavar="HZ",
+                        help="rate of deformed-mesh logging while recording (default 1; 0: none)")
+    daemon.add_argument("--config", metavar="FILE", help="a TOML config file with a [daemon] table (flags win)")
+    _add_socket(daemon)
+    daemon.set_defaults(run=_run_daemon)
+
+    status = subparsers.add_parser("status", help="show the daemon's link, pressures, volumes and faults")
+    status.add_argument("--json", action="store_true", help="print the whole status as JSON")
+    _add_socket(status)
+    status.set_defaults(run=_run_status)
+
+    set_target = subparsers.add_parser("set", help="set a target: a volume, chamber volumes or raw pressures")
+    target = set_target.add_mutually_exclusive_group(required=True)
+    target.add_argument("--volume-ml", type=float, metavar="V", help="the gland's total volume (ml)")
+    target.add_argument("--chamber-volumes-ml", metavar="A,B,C",
+                        help="each chamber's volume (ml); '-' leaves one free")
+    target.add_argument("--pressures-kpa", metavar="A,B,C", help="raw chamber pressures (kPa)")
+    set_target.add_argument("--growth-ratio", metavar="NAME=W,...",
+                            help="with --volume-ml: e.g. chamber1=2,chamber2=1 (left lobe grows twice the right)")
+    set_target.add_argument("--json", action="store_true", help="print the answer as JSON")
+    _add_socket(set_target)
+    set_target.set_defaults(run=_run_set)
+
+    vent = subparsers.add_parser("vent", help="all blowers off now (every setpoint 0)")
+    _add_socket(vent)
+    vent.set_defaults(run=_run_simple, method="vent")
+
+    clear = subparsers.add_parser("clear-fault", help="clear the board's latched fault (if its cause is gone)")
+    _add_socket(clear)
+    clear.set_defaults(run=_run_simple, method="clear_fault")
+
+    scene = subparsers.add_parser("run-scene", help="play a scene's [[steps]] timeline on the daemon")
+    scene.add_argument("file", help="the scene TOML file (or the name of a shipped example: bph_growth, lopsided)")
+    scene.add_argument("--time-scale", type=float, default=1.0, metavar="X",
+                       help="play the timeline X times faster (default 1)")
+    scene.add_argument("--wait", action="store_true",
+                       help="wait for the end and print each step's target, reached volume and time")
+    scene.add_argument("--json", action="store_true", help="with --wait: print the step table as JSON")
+    _add_socket(scene)
+    scene.set_defaults(run=_run_scene)
+
+    watch = subparsers.add_parser("watch", help="a live text view of pressures, volumes and events")
+    watch.add_argument("--count", type=int, metavar="N", help="stop after N status lines")
+    _add_socket(watch)
+    watch.set_defaults(run=_run_watch)
+
+
+def _add_socket(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--socket", metavar="PATH",
+                        help="the daemon's socket (default: $PHANTOM_SOCKET, /run/phantom/phantomd.sock, "
+                        "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID.sock)")
+
+
+def _socket(args):
+    from pathlib import Path
+
+    from phantom.host.api import default_socket_path
+
+    return Path(args.socket) if args.socket else default_socket_path()
+
+
+def _client(args):
+    from phantom.host.client import DaemonClient
+
+    return DaemonClient(_socket(args))
+
+
+def _numbers(text: str, flag: str, allow_free: bool = False) -> list:
+    from phantom import PhantomError
+
+    values = []
+    for item in text.split(","):
+        item = item.strip()
+        if allow_free and item in ("-", ""):
+            values.append(None)
+            continue
+        try:
+            values.append(float(item))
+        except ValueError:
+            raise PhantomError(f"{flag}: {item!r} is not a number; give comma-separated numbers like 1,1.5,0") from None
+    return values
+
+
+def load_config(path) -> dict:
+    """The ``[daemon]`` table of a config file, checked against :data:`CONFIG_KEYS`."""
+    import tomllib
+    from pathlib import Path
+
+    from phantom import PhantomError
+
+    path = Path(path)
+    try:
+        raw = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise PhantomError(f"the config file {path} does not exist") from None
+    except tomllib.TOMLDecodeError as error:
+        raise PhantomError(f"the config file {path} is not valid TOML: {error}") from None
+    table = raw.get("daemon", {})
+    unknown = sorted(set(table) - set(CONFIG_KEYS))
+    if unknown:
+        raise PhantomError(f"{path}: unknown key(s) in [daemon]: {', '.join(unknown)}; known: {', '.join(CONFIG_KEYS)}")
+    for key, value in table.items():
+        kind = CONFIG_KEYS[key]
+        numeric = kind is float and isinstance(value, int)
+        if isinstance(value, bool) != (kind is bool) or not (isinstance(value, kind) or numeric):
+            raise PhantomError(f"{path}: [daemon] {key} must be a {kind.__name__}, got {value!r}")
+    return table
+
+
+def _run_daemon(args) -> int:
+    from pathlib import Path
+
+    from phantom.host.daemon import DaemonConfig, run_daemon
+
+    settings = load_config(args.config) if args.config else {}
+    flags = {"port": args.port, "sim": args.sim, "sim_speed": args.sim_speed, "can_channel": args.can_channel,
+             "can_interface": args.can_interface, "scene": args.scene, "socket": args.socket,
+             "rerun_save": args.rerun_save, "rerun_connect": args.rerun_connect, "mesh_hz": args.mesh_hz,
+             "run_scene": args.run_scene}
+    if args.port or args.sim or args.can_channel:
+        settings = {key: value for key, value in settings.items() if key not in ("port", "sim", "can_channel")}
+    if args.rerun_save or args.rerun_connect:
+        settings = {key: value for key, value in settings.items() if key not in ("rerun_save", "rerun_connect")}
+    settings.update({key: value for key, value in flags.items() if value is not None})
+    config = DaemonConfig()
+    for key, value in settings.items():
+        setattr(config, key, value)
+    config.socket = Path(config.socket) if settings.get("socket") else _socket(args)
+    config.rerun_save = Path(config.rerun_save) if config.rerun_save else None
+    return run_daemon(config)
+
+
+def _run_status(args) -> int:
+    import json
+
+    with _client(args) as client:
+        status = client.call("status")
+    if args.json:
+        print(json.dumps(status, indent=2))
+        return 0
+    print(format_status(status))
+    return 0
+
+
+def _kpa(values) -> str:
+    return "-" if values is None else " ".join(f"{value:6.3f}" for value in values)
+
+
+def _ml(value) -> str:
+    return "-" if value is None else f"{value:.2f} ml"
+
+
+def format_status(status: dict) -> str:
+    """A few readable lines of a status answer."""
+    link = status["link_detail"]
+    board = link.get("board") or {}
+    stats = link["stats"]
+    rtt = "-" if stats.get("rtt_ms_mean") is None else f"{stats['rtt_ms_mean']:.1f} ms"
+    error = f": {link['last_error']}" if link.get("last_error") else ""
+    lines = [
+        f"link      {status['link']} ({link['transport']}){error}",
+        f"board     {board.get('board', '-')} firmware {board.get('firmware_version', '-')}, reset cause "
+        f"{board.get('reset_cause', '-')}; rtt {rtt}, retries {stats['retries']}, bad frames {stats['bad_frames']}, "
+        f"reconnects {stats['reconnects']}",
+        f"control   {status['control']}" + (f" ({status['target_source']})" if status.get("target_source") else ""),
+        f"pressure  {_kpa(status['pressures_kpa'])} kPa measured",
+        f"setpoint  {_kpa(status['setpoints_kpa'])} kPa",
+        f"volume    {_ml(status['estimated_volume_ml'])} estimated, target {_ml(status['target_volume_ml'])} "
+        f"(rest {status['rest_volume_ml']:.2f} ml)",
+        f"faults    {', '.join(status['faults']) or 'none'}",
+    ]
+    if status.get("scene"):
+        scene = status["scene"]
+        lines.append(f"scene     {scene['name']}: {scene['time_s']:.1f} / {scene['end_s']:g} s"
+                     + (" (finished)" if scene["finished"] else ""))
+    return "\n".join(lines)
+
+
+def _run_set(args) -> int:
+    import json
+
+    from phantom import PhantomError
+
+    if args.volume_ml is not None:
+        params = {"volume_ml": args.volume_ml}
+    elif args.chamber_volumes_ml is not None:
+        params = {"chamber_volumes_ml": _numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True)}
+    else:
+        params = {"pressures_kpa": _numbers(args.pressures_kpa, "--pressures-kpa")}
+    if args.growth_ratio:
+        if args.volume_ml is None:
+            raise PhantomError("--growth-ratio goes with --volume-ml")
+        ratio = {}
+        for item in args.growth_ratio.split(","):
+            name, _, weight = item.partition("=")
+            ratio[name.strip()] = _numbers(weight, "--growth-ratio")[0]
+        params["growth_ratio"] = ratio
+    with _client(args) as client:
+        result = client.call("set_target", params)
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(f"setpoints {_kpa(result['pressures_kpa'])} kPa, predicted {result['predicted_volume_ml']:.2f} ml "
+              f"(inverse {result['iterations']} iteration(s), {result['solve_time_s'] * 1e3:.1f} ms)")
+    return 0
+
+
+def _run_simple(args) -> int:
+    import json
+
+    with _client(args) as client:
+        print(json.dumps(client.call(args.method)))
+    return 0
+
+
+def format_steps(steps: list[dict]) -> str:
+    """The table ``make demo`` prints: each step's target, reached volume, error and time to reach it."""
+    lines = [f"{'step':>4} {'at (s)':>7} {'target':<34} {'target ml':>9} {'reached ml':>10} {'error %':>8} "
+             f"{'time to 1 % (s)':>15}"]
+    for step in steps:
+        def number(value, digits=2):
+            return "-" if value is None else f"{value:.{digits}f}"
+        lines.append(f"{step['index']:>4} {step['at_s']:>7.1f} {step['target']:<34} "
+                     f"{number(step['target_volume_ml']):>9} {number(step['reached_volume_ml']):>10} "
+                     f"{number(step['error_pct']):>8} {number(step['reached_after_s'], 1):>15}")
+    return "\n".join(lines)
+
+
+def _run_scene(args) -> int:
+    import json
+    import sys
+    import time
+    from pathlib import Path
+
+    from phantom import PhantomError
+    from phantom.host.scenes import example_scene_path
+
+    path = Path(args.file)
+    if not path.exists() and "/" not in args.file and not args.file.endswith(".toml"):
+        path = example_scene_path(args.file)
+    with _client(args) as client:
+        started = client.call("run_scene", {"path": str(path.resolve()), "time_scale": args.time_scale})
+        print(f"scene {started['name']}: {started['steps']} steps, {started['end_s']:g} s of timeline, about "
+              f"{started['wall_duration_s']:.0f} s at time scale {args.time_scale:g}", file=sys.stderr)
+        if not args.wait:
+            return 0
+        while True:
+            status = client.call("status")
+            scene = status["scene"]
+            if scene is None or scene["name"] != started["name"]:
+                raise PhantomError("the scene was replaced by another request before it finished")
+            print(f"\r  {scene['time_s'] / args.time_scale:5.1f} / {started['wall_duration_s']:.0f} s  volume "
+                  f"{_ml(status['estimated_volume_ml'])}, target {_ml(status['target_volume_ml'])}   ",
+                  end="", file=sys.stderr, flush=True)
+            if scene["finished"]:
+                print(file=sys.stderr)
+                break
+            time.sleep(0.5)
+    if args.json:
+        print(json.dumps(scene["steps"], indent=2))
+    else:
+        print(format_steps(scene["steps"]))
+    return 0
+
+
+def _run_watch(args) -> int:
+    import sys
+
+    printed = 0
+    last_s = -1.0
+    with _client(args) as client:
+        for message in client.events(["status", "events"]):
+            if message["event"] == "events":
+                event = message["data"]
+                print(f"{event['time_s']:9.2f}  [{event['level']}] {event['text']}", flush=True)
+                continue
+            status = message["data"]
+            if status["uptime_s"] - last_s < 0.5:
+                continue
+            last_s = status["uptime_s"]
+            print(f"{status['uptime_s']:9.2f}  {status['link']:<12} p {_kpa(status['pressures_kpa'])} kPa  "
+                  f"set {_kpa(status['setpoints_kpa'])} kPa  V {_ml(status['estimated_volume_ml'])} "
+                  f"-> {_ml(status['target_volume_ml'])}  faults {','.join(status['faults']) or 'none'}",
+                  file=sys.stdout, flush=True)
+            printed += 1
+            if args.count and printed >= args.count:
+                return 0
+    return 0

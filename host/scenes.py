@@ -1,0 +1,267 @@
+"""Scene timelines: the ``[[steps]]`` of a scene file as targets over time, with holds and ramps.
+
+A step starts at ``at_s`` (seconds from the start of the run) with exactly one target form:
+``volume_ml`` (the gland's total volume, optionally with ``growth_ratio``), ``chamber_volumes_ml`` (one
+per chamber) or ``pressures_kpa`` (raw pressures, one per chamber). With ``ramp_s`` > 0 the target moves
+linearly from the previous step's over ``ramp_s`` seconds; it then holds until the next step starts.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from phantom import PhantomError
+
+#: The target forms a step may have, in the units people see.
+TARGET_KINDS: tuple[str, ...] = ("volume_ml", "chamber_volumes_ml", "pressures_kpa")
+
+
+class SceneError(PhantomError):
+    """A scene's timeline (or a target given through the API) is malformed."""
+
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """One target as a person states it.
+
+    Attributes
+    ----------
+    kind : str
+        ``"volume_ml"`` (gland volume, ml), ``"chamber_volumes_ml"`` (ml per chamber, ``None`` = free) or
+        ``"pressures_kpa"`` (kPa per chamber).
+    values : tuple
+        One number for ``volume_ml``; one per chamber otherwise (ml or kPa as ``kind`` says).
+    growth_ratio : tuple of (int, float), optional
+        With ``volume_ml``: chamber index and weight; the named chambers' growths keep these proportions.
+    """
+
+    kind: str
+    values: tuple
+    growth_ratio: tuple = ()
+
+    def describe(self) -> str:
+        """A short human-readable form, e.g. ``32.0 ml`` or ``pressures 1.00,1.00,1.00 kPa``."""
+        if self.kind == "volume_ml":
+            ratio = "" if not self.growth_ratio else " (growth ratio " + ", ".join(
+                f"chamber{index}:{weight:g}" for index, weight in self.growth_ratio) + ")"
+            return f"{self.values[0]:.2f} ml{ratio}"
+        unit = "ml" if self.kind == "chamber_volumes_ml" else "kPa"
+        numbers = ",".join("free" if value is None else f"{value:.2f}" for value in self.values)
+        return f"{self.kind.split('_')[0]} {numbers} {unit}"
+
+    def to_json(self) -> dict:
+        """The target as a JSON-ready dict (the API's ``set_target`` params form)."""
+        result = {self.kind: self.values[0] if self.kind == "volume_ml" else list(self.values)}
+        if self.growth_ratio:
+            result["growth_ratio"] = {str(index): weight for index, weight in self.growth_ratio}
+        return result
+
+
+@dataclass(frozen=True)
+class Step:
+    """One timeline step: from ``at_s`` (s) the target moves to ``target`` over ``ramp_s`` (s), then holds."""
+
+    at_s: float
+    target: TargetSpec
+    ramp_s: float = 0.0
+
+
+@dataclass
+class Timeline:
+    """An ordered list of steps, with the target at any time of the run.
+
+    Attributes
+    ----------
+    steps : list of Step
+        Sorted by ``at_s``; the first starts at 0 s or later (before it there is no target).
+    name : str
+        Where the timeline came from (a scene path), for messages.
+    """
+
+    steps: list[Step] = field(default_factory=list)
+    name: str = "timeline"
+
+    @property
+    def duration_s(self) -> float:
+        """The time (s) at which the last step has finished ramping."""
+        if not self.steps:
+            return 0.0
+        return max(step.at_s + step.ramp_s for step in self.steps)
+
+    def step_index_at(self, time_s: float) -> int | None:
+        """Index of the step in force at ``time_s`` (s), or None before the first."""
+        index = None
+        for position, step in enumerate(self.steps):
+            if step.at_s <= time_s:
+                index = position
+        return index
+
+    def target_at(self, time_s: float) -> TargetSpec | None:
+        """The target at ``time_s`` (s): the step in force, linearly interpolated while it ramps.
+
+        During a ramp of step k from ``at_s`` over ``ramp_s`` the values are
+        ``previous + (time_s - at_s) / ramp_s * (target - previous)``.
+        """
+        index = self.step_index_at(time_s)
+        if index is None:
+            return None
+        step = self.steps[index]
+        if step.ramp_s <= 0 or index == 0 or time_s >= step.at_s + step.ramp_s:
+            return step.target
+        previous = self.steps[index - 1].target
+        fraction = (time_s - step.at_s) / step.ramp_s
+        values = tuple(
+            None if new is None else old + fraction * (new - old)
+            for old, new in zip(previous.values, step.target.values, strict=True)
+        )
+        return TargetSpec(step.target.kind, values, step.target.growth_ratio)
+
+
+def _number(value, what: str) -> float:
+    """A finite float from a TOML/JSON value, or a SceneError naming ``what``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(f"{what} must be a number, got {value!r}")
+    if not math.isfinite(value):
+        raise SceneError(f"{what} must be finite, got {value!r}")
+    return float(value)
+
+
+def parse_target(raw: dict, chamber_names: list[str], where: str = "target") -> TargetSpec:
+    """Check and convert one target given as a dict (a scene step or the API's ``set_target`` params).
+
+    Parameters
+    ----------
+    raw : dict
+        Exactly one of ``volume_ml`` (ml, > 0), ``chamber_volumes_ml`` (list of ml or None, one per chamber),
+        ``pressures_kpa`` (list of kPa >= 0, one per chamber); optional ``growth_ratio`` (with ``volume_ml``
+        only: a table from chamber name, or chamber index, to a weight > 0).
+    chamber_names : list of str
+        The phantom's chambers, in order: lengths and growth-ratio keys are checked against them.
+    where : str
+        Names the target in error messages (e.g. ``"steps[2]"``).
+    """
+    if not isinstance(raw, dict):
+        raise SceneError(f"{where}: a target must be a table/object, got {type(raw).__name__}")
+    kinds = [kind for kind in TARGET_KINDS if kind in raw]
+    if len(kinds) != 1:
+        raise SceneError(
+            f"{where}: give exactly one of {', '.join(TARGET_KINDS)}; got "
+            f"{', '.join(kinds) if kinds else 'none'}")
+    kind = kinds[0]
+    n_chambers = len(chamber_names)
+    if kind == "volume_ml":
+        volume_ml = _number(raw[kind], f"{where}: volume_ml")
+        if volume_ml <= 0:
+            raise SceneError(f"{where}: volume_ml must be positive, got {volume_ml:g}")
+        values: tuple = (volume_ml,)
+    else:
+        listed = raw[kind]
+        if not isinstance(listed, (list, tuple)) or len(listed) != n_chambers:
+            raise SceneError(f"{where}: {kind} must be a list of {n_chambers} numbers (one per chamber: "
+                             f"{', '.join(chamber_names)}), got {listed!r}")
+        if kind == "pressures_kpa":
+            values = tuple(_number(value, f"{where}: pressures_kpa[{i}]") for i, value in enumerate(listed))
+            if min(values) < 0:
+                raise SceneError(f"{where}: pressures_kpa must be >= 0 (the blowers only push), got {list(values)}")
+        else:
+            values = tuple(None if value is None else _number(value, f"{where}: chamber_volumes_ml[{i}]")
+                           for i, value in enumerate(listed))
+            if all(value is None for value in values):
+                raise SceneError(f"{where}: chamber_volumes_ml needs at least one number")
+            if any(value is not None and value <= 0 for value in values):
+                raise SceneError(f"{where}: chamber_volumes_ml must be positive, got {list(values)}")
+    growth_ratio = _parse_growth_ratio(raw.get("growth_ratio"), kind, chamber_names, where)
+    unknown = set(raw) - set(TARGET_KINDS) - {"growth_ratio", "at_s", "ramp_s"}
+    if unknown:
+        raise SceneError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
+    return TargetSpec(kind, values, growth_ratio)
+
+
+def _parse_growth_ratio(raw, kind: str, chamber_names: list[str], where: str) -> tuple:
+    """The growth ratio as sorted (chamber index, weight) pairs; keys are chamber names or indices."""
+    if raw is None:
+        return ()
+    if kind != "volume_ml":
+        raise SceneError(f"{where}: growth_ratio goes with volume_ml only")
+    if not isinstance(raw, dict) or not raw:
+        raise SceneError(f"{where}: growth_ratio must be a table like {{ chamber1 = 2.0, chamber2 = 1.0 }}")
+    pairs = []
+    for key, weight in raw.items():
+        if key in chamber_names:
+            index = chamber_names.index(key)
+        elif str(key).isdigit() and int(key) < len(chamber_names):
+            index = int(key)
+        else:
+            raise SceneError(f"{where}: growth_ratio names unknown chamber {key!r}; chambers are "
+                             f"{', '.join(chamber_names)}")
+        weight = _number(weight, f"{where}: growth_ratio[{key}]")
+        if weight <= 0:
+            raise SceneError(f"{where}: growth_ratio weights must be positive, got {key} = {weight:g}")
+        pairs.append((index, weight))
+    return tuple(sorted(pairs))
+
+
+def parse_timeline(raw_steps, chamber_names: list[str], name: str = "timeline") -> Timeline:
+    """Check and convert a scene's ``[[steps]]`` list into a :class:`Timeline`.
+
+    Steps must be in increasing ``at_s`` (s, >= 0); a step with ``ramp_s`` (s, >= 0) > 0 must follow a
+    step of the same target form (a ramp interpolates between two targets of one kind) and end before the
+    next step starts.
+    """
+    if raw_steps is None:
+        return Timeline([], name)
+    if not isinstance(raw_steps, list):
+        raise SceneError(f"{name}: steps must be an array of tables ([[steps]])")
+    steps: list[Step] = []
+    for position, raw in enumerate(raw_steps):
+        where = f"{name}: steps[{position}]"
+        if not isinstance(raw, dict) or "at_s" not in raw:
+            raise SceneError(f"{where}: every step needs at_s (its start time in seconds)")
+        at_s = _number(raw["at_s"], f"{where}: at_s")
+        ramp_s = _number(raw.get("ramp_s", 0.0), f"{where}: ramp_s")
+        if at_s < 0 or ramp_s < 0:
+            raise SceneError(f"{where}: at_s and ramp_s must be >= 0, got at_s={at_s:g}, ramp_s={ramp_s:g}")
+        target = parse_target(raw, chamber_names, where)
+        if steps:
+            previous = steps[-1]
+            if at_s <= previous.at_s:
+                raise SceneError(f"{where}: at_s={at_s:g} must be later than the previous step's {previous.at_s:g}")
+            if previous.at_s + previous.ramp_s > at_s:
+                raise SceneError(f"{name}: steps[{position - 1}] ramps until {previous.at_s + previous.ramp_s:g} s, "
+                                 f"after steps[{position}] starts at {at_s:g} s")
+        if ramp_s > 0:
+            if not steps:
+                raise SceneError(f"{where}: the first step cannot ramp (there is nothing to ramp from)")
+            previous_target = steps[-1].target
+            if previous_target.kind != target.kind:
+                raise SceneError(f"{where}: a ramp needs the previous step to have the same target form "
+                                 f"({previous_target.kind} -> {target.kind})")
+            if target.kind == "chamber_volumes_ml" and [v is None for v in previous_target.values] != [
+                    v is None for v in target.values]:
+                raise SceneError(f"{where}: a chamber-volume ramp needs the same free chambers in both steps")
+        steps.append(Step(at_s, target, ramp_s))
+    return Timeline(steps, name)
+
+
+def read_scene_toml(path: str | Path) -> dict:
+    """The parsed TOML of a scene file, with a clear error when it is missing or malformed."""
+    import tomllib
+
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"the scene file {path} does not exist: check the path")
+    try:
+        return tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise SceneError(f"the scene file {path} is not valid TOML: {error}") from error
+
+
+def example_scene_path(name: str) -> Path:
+    """The path of a shipped example scene (``host/scenes/<name>.toml``)."""
+    path = Path(__file__).resolve().parent / "scenes" / f"{name}.toml"
+    if not path.is_file():
+        shipped = sorted(p.stem for p in path.parent.glob("*.toml"))
+        raise SceneError(f"no example scene {name!r}; shipped: {', '.join(shipped)}")
+    return path

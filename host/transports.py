@@ -1,0 +1,251 @@
+"""Byte transports between the daemon and a board: a serial port (pyserial) and a CAN bus (python-can).
+
+Every transport moves whole wire frames (``COBS(body) 0x00``, see protocol/PROTOCOL.md): ``write`` takes one
+frame, ``read`` returns wire bytes to feed a :class:`phantom.protocol.codec.FrameReader`. A transport that
+goes away (USB unplugged, bus closed) raises :class:`TransportLost`; the link session then reconnects.
+
+CAN mapping (classic CAN, 11-bit ids, 8 data bytes)
+---------------------------------------------------
+One message travels as up to 16 CAN frames, all with the same arbitration id:
+
+    arbitration id   0x100 + msg_id   host -> board
+                     0x200 + msg_id   board -> host   (a lower id wins arbitration: commands before telemetry)
+    data[0]          segment index (high nibble) | segment count - 1 (low nibble)
+    data[1:]         up to 7 bytes of ``seq | payload | crc16`` (the frame body without msg_id, which the id
+                     carries), in order
+
+The receiver rebuilds the body ``msg_id | seq | payload | crc16`` and checks the protocol's own CRC as on a
+serial link (CAN's CRC protects one CAN frame, ours the reassembled message). Segments out of order or a new
+index 0 before the last segment drop the partial message (counted in ``dropped_segments``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+from pathlib import Path
+
+from phantom import PhantomError
+
+#: Arbitration-id bases of the CAN mapping.
+CAN_ID_HOST_TO_BOARD = 0x100
+CAN_ID_BOARD_TO_HOST = 0x200
+#: Body bytes per CAN frame after the segment header.
+CAN_SEGMENT_BYTES = 7
+
+
+class TransportUnavailable(PhantomError):
+    """The board's port cannot be opened now (absent, busy or no permission); the session retries."""
+
+
+class TransportLost(PhantomError):
+    """An open transport went away (device unplugged, read error); the session reconnects."""
+
+
+class SerialTransport:
+    """A serial port (a USB CDC device, a ``/dev/serial/by-id/...`` path, or a pseudo-terminal).
+
+    The port is configured by pyserial (raw, 8N1, ``baudrate``) and read through the event loop's reader
+    callback on its file descriptor, so no thread is needed and an unplugged device is seen at once (EIO).
+    """
+
+    def __init__(self, path: str | Path, baudrate: int = 115200):
+        self.path = str(path)
+        self.baudrate = baudrate
+        self.description = f"serial {self.path}"
+        self._serial = None
+        self._queue: asyncio.Queue | None = None
+        self.tx_dropped = 0
+
+    async def open(self) -> None:
+        """Open and configure the port; raises TransportUnavailable when it is not there."""
+        import serial
+
+        if not os.path.exists(self.path):
+            raise TransportUnavailable(f"{self.path} does not exist (board unplugged?)")
+        try:
+            self._serial = serial.Serial(self.path, self.baudrate, timeout=0, write_timeout=0, exclusive=True)
+        except (serial.SerialException, OSError) as error:
+            raise TransportUnavailable(f"cannot open {self.path}: {error}") from error
+        self._serial.reset_input_buffer()
+        self._queue = asyncio.Queue()
+        asyncio.get_running_loop().add_reader(self._serial.fileno(), self._on_readable)
+
+    def _on_readable(self) -> None:
+        """Move what the port holds into the queue; an empty read or EIO means the device went away."""
+        try:
+            data = os.read(self._serial.fileno(), 4096)
+        except BlockingIOError:
+            return
+        except OSError as error:
+            data = TransportLost(f"{self.path}: {error.strerror} (board unplugged or reset)")
+        if not data:
+            data = TransportLost(f"{self.path} closed (board unplugged or reset)")
+        if isinstance(data, TransportLost):
+            asyncio.get_running_loop().remove_reader(self._serial.fileno())
+        self._queue.put_nowait(data)
+
+    async def read(self) -> bytes:
+        """The next bytes from the port; raises TransportLost when the device went away."""
+        data = await self._queue.get()
+        if isinstance(data, Exception):
+            raise data
+        return data
+
+    def write(self, frame: bytes) -> None:
+        """Send one wire frame without blocking; a full output buffer drops it (counted)."""
+        if self._serial is None:
+            raise TransportLost(f"{self.path} is not open")
+        try:
+            written = os.write(self._serial.fileno(), frame)
+        except BlockingIOError:
+            self.tx_dropped += 1
+            return
+        except OSError as error:
+            raise TransportLost(f"{self.path}: {error}") from error
+        if written != len(frame):
+            self.tx_dropped += 1
+
+    def close(self) -> None:
+        """Close the port (safe to call twice)."""
+        if self._serial is None:
+            return
+        with contextlib.suppress(Exception):
+            asyncio.get_running_loop().remove_reader(self._serial.fileno())
+        with contextlib.suppress(Exception):
+            self._serial.close()
+        self._serial = None
+
+
+def can_frames(body: bytes, to_board: bool) -> list[tuple[int, bytes]]:
+    """Split one frame body into (arbitration id, data) CAN frames of the documented mapping.
+
+    Parameters
+    ----------
+    body : bytes
+        ``msg_id | seq | payload | crc16``, at most 64 bytes.
+    to_board : bool
+        Direction: host -> board (id base 0x100) or board -> host (0x200).
+    """
+    arbitration_id = (CAN_ID_HOST_TO_BOARD if to_board else CAN_ID_BOARD_TO_HOST) + body[0]
+    rest = body[1:]
+    count = max(1, -(-len(rest) // CAN_SEGMENT_BYTES))
+    if count > 16:
+        raise ValueError(f"a body of {len(body)} bytes needs {count} CAN segments; the mapping allows 16")
+    return [(arbitration_id, bytes([index << 4 | (count - 1)]) + rest[index * CAN_SEGMENT_BYTES:
+                                                                     (index + 1) * CAN_SEGMENT_BYTES])
+            for index in range(count)]
+
+
+class CanReassembler:
+    """Rebuilds frame bodies from CAN frames of one direction (see the module's mapping)."""
+
+    def __init__(self, from_board: bool):
+        self.base = CAN_ID_BOARD_TO_HOST if from_board else CAN_ID_HOST_TO_BOARD
+        self.dropped_segments = 0
+        self._partial: dict[int, tuple[int, bytearray]] = {}
+
+    def feed(self, arbitration_id: int, data: bytes) -> bytes | None:
+        """Take one CAN frame; return a whole body once its last segment arrives, else None."""
+        if not self.base <= arbitration_id < self.base + 0x100 or not data:
+            return None
+        msg_id = arbitration_id - self.base
+        index, last = data[0] >> 4, data[0] & 0x0F
+        if index == 0:
+            if msg_id in self._partial:
+                self.dropped_segments += 1
+            self._partial[msg_id] = (0, bytearray(data[1:]))
+        else:
+            expected, collected = self._partial.get(msg_id, (-1, None))
+            if collected is None or index != expected + 1:
+                self.dropped_segments += 1
+                self._partial.pop(msg_id, None)
+                return None
+            collected += data[1:]
+            self._partial[msg_id] = (index, collected)
+        if index == last:
+            _, collected = self._partial.pop(msg_id)
+            return bytes([msg_id]) + bytes(collected)
+        return None
+
+
+class CanTransport:
+    """The protocol over a CAN bus through python-can (tested on its ``virtual`` interface).
+
+    Parameters
+    ----------
+    channel : str
+        The bus channel (``can0`` for SocketCAN, any name for ``virtual``).
+    interface : str
+        python-can interface name.
+    role : str
+        ``"host"`` (sends with the host -> board ids) or ``"board"`` (the other end; used by tests and
+        bench peers).
+    """
+
+    def __init__(self, channel: str, interface: str = "socketcan", role: str = "host", **bus_options):
+        if role not in ("host", "board"):
+            raise ValueError(f"role must be 'host' or 'board', got {role!r}")
+        self.channel = channel
+        self.interface = interface
+        self.role = role
+        self.bus_options = bus_options
+        self.description = f"CAN {interface}:{channel}"
+        self.reassembler = CanReassembler(from_board=(role == "host"))
+        self.tx_dropped = 0
+        self._bus = None
+        self._notifier = None
+        self._reader = None
+
+    async def open(self) -> None:
+        """Connect to the bus; raises TransportUnavailable when the interface cannot be opened."""
+        import can
+
+        try:
+            self._bus = can.Bus(interface=self.interface, channel=self.channel, **self.bus_options)
+        except (can.CanError, OSError, ValueError) as error:
+            raise TransportUnavailable(f"cannot open CAN {self.interface}:{self.channel}: {error}") from error
+        self._reader = can.AsyncBufferedReader()
+        self._notifier = can.Notifier(self._bus, [self._reader], loop=asyncio.get_running_loop())
+
+    async def read(self) -> bytes:
+        """Wire bytes of the next complete message (COBS-encoded, delimited, for the FrameReader)."""
+        from phantom.protocol.framing import cobs_encode
+
+        while True:
+            if self._reader is None:
+                raise TransportLost(f"{self.description} is closed")
+            message = await self._reader.get_message()
+            if message.is_error_frame or message.is_remote_frame or message.is_extended_id:
+                continue
+            body = self.reassembler.feed(message.arbitration_id, bytes(message.data))
+            if body is not None:
+                return cobs_encode(body) + b"\x00"
+
+    def write(self, frame: bytes) -> None:
+        """Send one wire frame as its CAN segments."""
+        import can
+
+        from phantom.protocol.framing import cobs_decode
+
+        if self._bus is None:
+            raise TransportLost(f"{self.description} is closed")
+        body = cobs_decode(frame.rstrip(b"\x00"))
+        for arbitration_id, data in can_frames(body, to_board=(self.role == "host")):
+            try:
+                self._bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False),
+                               timeout=0.05)
+            except can.CanError:
+                self.tx_dropped += 1
+                return
+
+    def close(self) -> None:
+        """Stop the notifier and shut the bus down (safe to call twice)."""
+        if self._notifier is not None:
+            self._notifier.stop()
+            self._notifier = None
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+        self._reader = None

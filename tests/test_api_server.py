@@ -1,0 +1,169 @@
+"""The local API server on a real Unix socket: request/answer rules, error codes, subscriptions, slow clients.
+
+These use toy handlers (the daemon's own are exercised end to end in tests/test_daemon_e2e.py), so that
+each rule of the JSON-lines protocol is checked on its own.
+"""
+
+import asyncio
+import json
+import os
+import socket
+import stat
+
+import pytest
+
+from phantom import PhantomError
+from phantom.host.api import ERROR_CODES, ApiError, ApiServer
+
+
+async def echo(params):
+    return {"echo": params}
+
+
+async def refuse(params):
+    raise ApiError("unreachable", "45 ml is out of reach: 26.3 to 41.0 ml with 3 kPa")
+
+
+async def crash(params):
+    raise ZeroDivisionError("boom")
+
+
+HANDLERS = {"echo": echo, "refuse": refuse, "crash": crash}
+
+
+async def exchange(path, *lines):
+    reader, writer = await asyncio.open_unix_connection(str(path))
+    answers = []
+    for line in lines:
+        writer.write(line if isinstance(line, bytes) else (json.dumps(line) + "\n").encode())
+        await writer.drain()
+        answers.append(json.loads(await asyncio.wait_for(reader.readline(), 5)))
+    writer.close()
+    return answers
+
+
+def serve(tmp_path, script, **options):
+    async def main():
+        server = ApiServer(tmp_path / "api.sock", HANDLERS, **options)
+        await server.start()
+        try:
+            return await script(server)
+        finally:
+            await server.close()
+
+    return asyncio.run(main())
+
+
+def test_answers_carry_the_request_id_and_errors_carry_a_code(tmp_path):
+    async def script(server):
+        return await exchange(
+            server.socket_path,
+            {"id": 1, "method": "echo", "params": {"x": 1}},
+            {"id": "two", "method": "refuse"},
+            {"id": 3, "method": "nope"},
+            b"this is not json\n",
+            b"[1, 2]\n",
+            {"id": 6, "params": {}},
+            {"id": 7, "method": "echo", "params": [1]},
+            {"id": 8, "method": "crash"},
+            {"id": 9, "method": "subscribe", "params": {"topics": ["gossip"]}},
+        )
+
+    answers = serve(tmp_path, script)
+    assert answers[0] == {"id": 1, "result": {"echo": {"x": 1}}}
+    codes = [answer.get("error", {}).get("code") for answer in answers[1:]]
+    assert codes == ["unreachable", "unknown_method", "parse_error", "parse_error", "invalid_request",
+                     "invalid_request", "internal", "invalid_params"]
+    assert answers[1]["id"] == "two" and "26.3 to 41.0 ml" in answers[1]["error"]["message"]
+    assert "methods: crash, echo, refuse, subscribe" in answers[2]["error"]["message"]
+    assert answers[3]["id"] is None
+    assert "ZeroDivisionError: boom" in answers[7]["error"]["message"]
+    assert "topics: telemetry, status, events" in answers[8]["error"]["message"]
+    assert all(code in ERROR_CODES for code in codes)
+
+
+def test_unknown_error_codes_are_a_programming_error():
+    with pytest.raises(ValueError):
+        ApiError("whatever", "x")
+
+
+def test_subscribers_get_only_their_topics(tmp_path):
+    async def script(server):
+        reader, writer = await asyncio.open_unix_connection(str(server.socket_path))
+        writer.write(b'{"id": 1, "method": "subscribe", "params": {"topics": ["events"]}}\n')
+        reply = json.loads(await reader.readline())
+        server.publish("telemetry", {"n": 1})
+        server.publish("events", {"text": "fault latched"})
+        event = json.loads(await asyncio.wait_for(reader.readline(), 5))
+        writer.close()
+        return reply, event
+
+    reply, event = serve(tmp_path, script)
+    assert reply == {"id": 1, "result": {"topics": ["events"]}}
+    assert event == {"event": "events", "data": {"text": "fault latched"}}
+
+
+def test_a_client_that_never_reads_is_dropped_from_not_waited_for(tmp_path):
+    async def script(server):
+        stalled = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        stalled.connect(str(server.socket_path))
+        stalled.sendall(b'{"id": 1, "method": "subscribe"}\n')
+        while not server.clients or not next(iter(server.clients.values())).topics:
+            await asyncio.sleep(0.01)
+        payload = {"samples": list(range(200))}
+        for _ in range(20000):  # far more than the queue and the socket buffers hold
+            server.publish("telemetry", payload)
+            await asyncio.sleep(0) if _ % 100 == 0 else None
+        answers = await exchange(server.socket_path, {"id": 2, "method": "echo", "params": {"still": "alive"}})
+        stats = server.stats()
+        stalled.close()
+        return answers, stats
+
+    answers, stats = serve(tmp_path, script, queue_lines=64)
+    assert answers == [{"id": 2, "result": {"echo": {"still": "alive"}}}]
+    assert stats["dropped_lines"] > 10000
+
+
+def test_socket_mode_stale_socket_and_a_second_daemon(tmp_path):
+    path = tmp_path / "api.sock"
+    stale = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    stale.bind(str(path))
+    stale.close()  # a file left by a daemon that died
+
+    async def script(server):
+        mode = stat.S_IMODE(os.stat(server.socket_path).st_mode)
+        second = ApiServer(server.socket_path, HANDLERS)
+        with pytest.raises(PhantomError, match="already listens"):
+            await second.start()
+        return mode
+
+    assert serve(tmp_path, script) == 0o660
+    assert not path.exists()
+
+
+def test_nan_values_become_null_in_answers(tmp_path):
+    async def nan(params):
+        return {"volume_ml": float("nan"), "list": [1.0, float("inf")]}
+
+    async def main():
+        server = ApiServer(tmp_path / "api.sock", {"nan": nan})
+        await server.start()
+        try:
+            return await exchange(server.socket_path, {"id": 1, "method": "nan"})
+        finally:
+            await server.close()
+
+    assert asyncio.run(main()) == [{"id": 1, "result": {"volume_ml": None, "list": [1.0, None]}}]
+
+
+def test_an_overlong_request_is_refused(tmp_path):
+    async def script(server):
+        reader, writer = await asyncio.open_unix_connection(str(server.socket_path))
+        writer.write(b'{"id": 1, "method": "echo", "params": {"x": "' + b"a" * 100_000 + b'"}}\n')
+        await writer.drain()
+        answer = json.loads(await asyncio.wait_for(reader.readline(), 5))
+        writer.close()
+        return answer
+
+    answer = serve(tmp_path, script)
+    assert answer["error"]["code"] == "invalid_request" and "longer than" in answer["error"]["message"]

@@ -1,0 +1,83 @@
+"""The daemon's command line, its config file and the systemd unit, without a board."""
+
+import configparser
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from phantom import PhantomError
+from phantom.host.commands import CONFIG_KEYS, format_steps, load_config
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+HOST = Path(__file__).resolve().parent.parent / "host"
+
+
+def run_phantom(*arguments, env=None):
+    return subprocess.run([str(PHANTOM), *arguments], capture_output=True, text=True, timeout=120, env=env)
+
+
+def test_the_shipped_config_file_is_valid_and_uses_known_keys():
+    table = load_config(HOST / "systemd" / "phantomd.toml")
+    assert set(table) <= set(CONFIG_KEYS)
+    assert table["socket"] == "/run/phantom/phantomd.sock" and table["port"].startswith("/dev/serial/by-id/")
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("[daemon]\nprot = '/dev/ttyACM0'\n", "unknown key.*prot"),
+    ("[daemon]\nsim = 'yes'\n", "sim must be a bool"),
+    ("[daemon]\nbaudrate = true\n", "baudrate must be a int"),
+    ("[daemon\n", "not valid TOML"),
+])
+def test_bad_config_files_are_refused_with_the_key(tmp_path, text, message):
+    path = tmp_path / "phantomd.toml"
+    path.write_text(text)
+    with pytest.raises(PhantomError, match=message):
+        load_config(path)
+    with pytest.raises(PhantomError, match="does not exist"):
+        load_config(tmp_path / "missing.toml")
+
+
+def test_systemd_unit_restarts_on_failure_vents_on_sigterm_and_uses_the_serial_group():
+    unit = configparser.ConfigParser(strict=False, interpolation=None)
+    unit.optionxform = str
+    unit.read(HOST / "systemd" / "phantomd.service")
+    service = unit["Service"]
+    assert service["Restart"] == "on-failure"
+    assert "dialout" in service["SupplementaryGroups"]
+    assert service["KillSignal"] == "SIGTERM" and service["KillMode"] == "mixed"
+    assert service["ExecStart"].endswith("phantom daemon --config /etc/phantom/phantomd.toml")
+    assert service["RuntimeDirectory"] == "phantom"
+    assert unit["Install"]["WantedBy"] == "multi-user.target"
+
+
+def test_daemon_needs_exactly_one_board(tmp_path):
+    both = run_phantom("daemon", "--port", "/dev/null", "--sim")
+    assert both.returncode == 2 and "not allowed with argument" in both.stderr
+    none = run_phantom("daemon", "--socket", str(tmp_path / "d.sock"))
+    assert none.returncode == 2
+    assert none.stderr.strip() == ("phantom daemon: error: give exactly one board: --port DEV, --sim, or "
+                                   "--can-channel CH")
+
+
+def test_client_usage_errors_are_one_line(tmp_path):
+    ratio = run_phantom("set", "--pressures-kpa", "1,1,1", "--growth-ratio", "chamber1=2", "--socket",
+                        str(tmp_path / "none.sock"))
+    assert ratio.returncode == 2 and "--growth-ratio goes with --volume-ml" in ratio.stderr
+    scene = run_phantom("run-scene", "no_such_scene", "--socket", str(tmp_path / "none.sock"))
+    assert scene.returncode == 2 and "no example scene 'no_such_scene'; shipped: bph_growth, lopsided" in scene.stderr
+    target = run_phantom("set", "--socket", str(tmp_path / "none.sock"))
+    assert target.returncode == 2 and "one of the arguments" in target.stderr
+
+
+def test_the_step_table_has_a_row_per_step_with_blanks_for_unknowns():
+    table = format_steps([
+        {"index": 0, "at_s": 0.0, "target": "30.00 ml", "target_volume_ml": 30.0, "reached_volume_ml": 29.98,
+         "error_pct": -0.0667, "reached_after_s": 1.25},
+        {"index": 1, "at_s": 30.0, "target": "pressures 1.00,1.00,1.00 kPa", "target_volume_ml": None,
+         "reached_volume_ml": 31.0, "error_pct": None, "reached_after_s": None},
+    ]).splitlines()
+    assert len(table) == 3 and "time to 1 %" in table[0]
+    assert table[1].split() == ["0", "0.0", "30.00", "ml", "30.00", "29.98", "-0.07", "1.2"]
+    assert table[2].split()[-3:] == ["31.00", "-", "-"]

@@ -1,0 +1,431 @@
+"""The link session over real transports (a pseudo-terminal, python-can's virtual bus) against a scripted peer.
+
+The peer speaks the real codec (phantom.protocol) and is the one fake here: it stands in for the firmware so
+that the session's rules (handshake, spec-hash refusal, retransmission with backoff, NACK, keepalive, loss
+and reconnection with the reset cause) can be checked one by one, including the cases a real board makes
+hard to provoke on demand. The end-to-end proof against the real firmware in simavr is tests/test_daemon_e2e.py.
+"""
+
+import asyncio
+import os
+import threading
+import time
+import tty
+
+import pytest
+
+from phantom.host.session import CommandRejected, LinkDown, LinkSession, LinkState, LinkTiming, fault_names
+from phantom.host.transports import (
+    CanReassembler,
+    CanTransport,
+    SerialTransport,
+    TransportLost,
+    TransportUnavailable,
+    can_frames,
+)
+from phantom.protocol.codec import FrameReader, encode
+from phantom.protocol.messages import BITS, ENUMS, MESSAGES, PROTOCOL_VERSION, SPEC_HASH
+
+FAST = LinkTiming(ack_timeout_s=0.05, command_attempts=4, keepalive_s=0.05, silence_s=0.5, hello_timeout_s=0.2,
+                  hello_attempts=3, reconnect_s=0.05, incompatible_retry_s=0.3)
+
+
+class ScriptedBoard:
+    """A stand-in board on a pty: answers HELLO, ACKs commands, PONGs pings, streams telemetry.
+
+    ``drop_first`` acked frames are ignored (to force retransmission); ``nack`` maps a command name to
+    a status name to refuse it with; ``spec_hash`` and ``reset_cause`` are what HELLO_REPLY says.
+    """
+
+    def __init__(self, link_path, spec_hash=SPEC_HASH, reset_cause="POWER_ON", drop_first=0, nack=None):
+        self.link_path = str(link_path)
+        self.spec_hash = spec_hash
+        self.reset_cause = reset_cause
+        self.drop_first = drop_first
+        self.nack = nack or {}
+        self.received = []
+        self.setpoints_pa = [0, 0, 0]
+        self.fault_flags = 0
+        self.time0 = time.monotonic()
+        self._master = None
+        self._stop = threading.Event()
+        self._threads = []
+        self.plug()
+
+    def plug(self):
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        self._slave_name = os.ttyname(slave)
+        os.close(slave)
+        self._master = master
+        os.symlink(self._slave_name, self.link_path)
+        self._stop.clear()
+        self._threads = [threading.Thread(target=self._serve, daemon=True),
+                         threading.Thread(target=self._stream, daemon=True)]
+        for thread in self._threads:
+            thread.start()
+
+    def unplug(self):
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(2)
+        os.unlink(self.link_path)
+        os.close(self._master)
+        self._master = None
+
+    def _time_ms(self):
+        return int((time.monotonic() - self.time0) * 1000)
+
+    def _send(self, name, fields, seq=0):
+        if self._master is not None:
+            try:
+                os.write(self._master, encode(name, seq, fields))
+            except OSError:
+                pass
+
+    def _stream(self):
+        while not self._stop.wait(0.02):
+            self._send("TELEMETRY", {
+                "time_ms": self._time_ms(), "pressure_pa": list(self.setpoints_pa),
+                "setpoint_pa": list(self.setpoints_pa), "drive": [1000, 2000, 3000], "state": [1, 1, 1],
+                "fault_flags": self.fault_flags, "rx_bad_crc": 0, "rx_overflow": 0, "rx_bad_frame": 0,
+                "tx_dropped": 0, "tick_overruns": 0})
+
+    def _serve(self):
+        import select
+
+        reader = FrameReader()
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._master], [], [], 0.02)
+            if not ready:
+                continue
+            try:
+                data = os.read(self._master, 4096)
+            except OSError:
+                continue
+            for message in reader.feed(data):
+                self.received.append(message)
+                self._answer(message)
+
+    def _answer(self, message):
+        status = ENUMS["status"]
+        if message.name == "HELLO":
+            self._send("HELLO_REPLY", {
+                "protocol_version": PROTOCOL_VERSION, "spec_hash": self.spec_hash,
+                "status": status["OK"] if self.spec_hash == message.fields["spec_hash"] else status["SPEC_MISMATCH"],
+                "firmware_major": 0, "firmware_minor": 1, "firmware_patch": 0, "board": ENUMS["board"]["UNO"],
+                "chamber_count": 3, "reset_cause": ENUMS["reset_cause"][self.reset_cause],
+                "fault_flags": self.fault_flags, "time_ms": self._time_ms()}, message.seq)
+        elif message.name == "PING":
+            self._send("PONG", {"host_time_ms": message.fields["host_time_ms"], "board_time_ms": self._time_ms()})
+        elif MESSAGES[message.name].acked:
+            if self.drop_first > 0:
+                self.drop_first -= 1
+                return
+            if message.name in self.nack:
+                self._send("NACK", {"ref_msg_id": message.msg_id, "ref_seq": message.seq,
+                                    "status": status[self.nack[message.name]]})
+                return
+            if message.name == "SET_SETPOINTS":
+                self.setpoints_pa = list(message.fields["setpoint_pa"])
+            self._send("ACK", {"ref_msg_id": message.msg_id, "ref_seq": message.seq, "status": status["OK"]})
+
+
+def run_session(transport, script, timing=FAST, **callbacks):
+    """Run a LinkSession on ``transport`` while ``script(session)`` (a coroutine) runs; return its result."""
+
+    async def main():
+        session = LinkSession(transport, timing, **callbacks)
+        task = asyncio.create_task(session.run())
+        try:
+            return await asyncio.wait_for(script(session), 20)
+        finally:
+            session.stop()
+            await asyncio.wait_for(task, 5)
+
+    return asyncio.run(main())
+
+
+async def wait_for(predicate, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        await asyncio.sleep(0.01)
+
+
+def test_handshake_config_setpoints_and_telemetry_over_a_pty(tmp_path):
+    board = ScriptedBoard(tmp_path / "board")
+    telemetry = []
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        assert session.board.board == "UNO" and session.board.reset_cause == "POWER_ON"
+        assert await session.command("SET_SETPOINTS", {"setpoint_pa": [1000, 1500, 0]}) == "OK"
+        await wait_for(lambda: telemetry and telemetry[-1].setpoints_pa.tolist() == [1000, 1500, 0])
+        await wait_for(lambda: session.stats.rtt_ms is not None)
+        return session.status()
+
+    try:
+        status = run_session(SerialTransport(tmp_path / "board"), script, on_telemetry=telemetry.append)
+    finally:
+        board.unplug()
+    names = [message.name for message in board.received]
+    assert names[0] == "HELLO" and names[1] == "SET_CONFIG"
+    config = board.received[1].fields
+    assert config == {"telemetry_period_ms": 20, "host_deadline_ms": 500}
+    assert "PING" in names
+    assert status["state"] == "online"
+    assert 0 <= status["stats"]["rtt_ms"] < 200
+    last = telemetry[-1]
+    assert last.drive_levels == pytest.approx([1000 / 65535, 2000 / 65535, 3000 / 65535])
+    assert last.states == ["REGULATING"] * 3
+
+
+def test_lost_acks_are_retransmitted_with_the_same_seq(tmp_path):
+    board = ScriptedBoard(tmp_path / "board")
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        board.drop_first = 2
+        started = time.monotonic()
+        assert await session.command("VENT") == "OK"
+        return time.monotonic() - started, session.stats.retries
+
+    try:
+        elapsed_s, retries = run_session(SerialTransport(tmp_path / "board"), script)
+    finally:
+        board.unplug()
+    vents = [message for message in board.received if message.name == "VENT"]
+    assert len(vents) == 3 and len({message.seq for message in vents}) == 1
+    assert retries == 2
+    # backoff: 0.05 s then 0.1 s of waiting before the third copy is answered
+    assert elapsed_s >= 0.15
+
+
+def test_a_command_never_acknowledged_fails_after_every_attempt(tmp_path):
+    board = ScriptedBoard(tmp_path / "board")
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        board.drop_first = 100
+        with pytest.raises(LinkDown, match="not acknowledged after 4 attempts"):
+            await session.command("VENT")
+        return session.stats.commands_failed
+
+    try:
+        assert run_session(SerialTransport(tmp_path / "board"), script) == 1
+    finally:
+        board.unplug()
+
+
+def test_a_nack_names_the_status_and_what_to_do(tmp_path):
+    board = ScriptedBoard(tmp_path / "board", nack={"CLEAR_FAULT": "FAULT_ACTIVE"})
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        with pytest.raises(CommandRejected, match="FAULT_ACTIVE .*cause is still present") as error:
+            await session.command("CLEAR_FAULT")
+        return error.value.status
+
+    try:
+        assert run_session(SerialTransport(tmp_path / "board"), script) == "FAULT_ACTIVE"
+    finally:
+        board.unplug()
+
+
+def test_a_board_built_from_another_spec_is_refused_with_both_hashes(tmp_path):
+    board = ScriptedBoard(tmp_path / "board", spec_hash=SPEC_HASH ^ 0x1234)
+    events = []
+
+    async def script(session):
+        await wait_for(lambda: session.state is LinkState.INCOMPATIBLE)
+        with pytest.raises(LinkDown, match="incompatible"):
+            await session.command("VENT")
+        return session.last_error
+
+    try:
+        error = run_session(SerialTransport(tmp_path / "board"), script, on_event=lambda *e: events.append(e))
+    finally:
+        board.unplug()
+    assert f"0x{SPEC_HASH ^ 0x1234:08X}" in error and f"0x{SPEC_HASH:08X}" in error
+    assert events[0][0] == "incompatible"
+    assert not any(message.name == "SET_CONFIG" for message in board.received)
+
+
+def test_unplug_and_replug_reconnects_reports_the_reset_cause_and_restores(tmp_path):
+    board = ScriptedBoard(tmp_path / "board")
+    events = []
+    onlines = []
+
+    async def on_online(info, reconnected):
+        onlines.append((info.reset_cause, reconnected))
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        board._stop.set()
+        # the cable is pulled in the middle of a frame: its first half must not spoil the next connection
+        os.write(board._master, encode("TELEMETRY", 0, {
+            "time_ms": 1, "pressure_pa": [1, 2, 3], "setpoint_pa": [0, 0, 0], "drive": [0, 0, 0], "state": [0, 0, 0],
+            "fault_flags": 0, "rx_bad_crc": 0, "rx_overflow": 0, "rx_bad_frame": 0, "tx_dropped": 0,
+            "tick_overruns": 0})[:20])
+        await asyncio.sleep(0.1)
+        board.unplug()
+        await wait_for(lambda: session.state is LinkState.DISCONNECTED)
+        with pytest.raises(LinkDown, match="disconnected"):
+            await session.command("VENT")
+        board.reset_cause = "WATCHDOG"
+        board.fault_flags = 1 << BITS["fault"]["WATCHDOG_RESET"]
+        board.plug()
+        await wait_for(lambda: session.state is LinkState.ONLINE and session.stats.reconnects == 1)
+        return session.stats
+
+    try:
+        stats = run_session(SerialTransport(tmp_path / "board"), script, on_online=on_online,
+                            on_event=lambda *e: events.append(e))
+    finally:
+        board.unplug()
+    assert onlines == [("POWER_ON", False), ("WATCHDOG", True)]
+    kinds = [event[0] for event in events]
+    assert kinds == ["connected", "link_lost", "reconnected", "fault"]
+    assert "reset cause WATCHDOG" in events[2][1] and "link restored after" in events[2][1]
+    assert "WATCHDOG_RESET" in events[3][1]
+    assert stats.links_lost == 1 and stats.connects == 2
+    # one HELLO per connection: the reply after the replug was not lost to the half frame
+    assert [message.name for message in board.received].count("HELLO") == 2
+
+
+def test_a_silent_board_is_declared_lost(tmp_path):
+    board = ScriptedBoard(tmp_path / "board")
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        board._stop.set()  # the board hangs: the port stays, nothing comes
+        await wait_for(lambda: session.state is not LinkState.ONLINE, 3)
+        return session.last_error
+
+    try:
+        error = run_session(SerialTransport(tmp_path / "board"), script)
+    finally:
+        board.unplug()
+    assert "no frame from the board for 0.5 s" in error
+
+
+def test_garbage_on_the_line_is_counted_and_the_link_survives(tmp_path):
+    board = ScriptedBoard(tmp_path / "board")
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        os.write(board._master, b"\x13\x37garbage\x00" + encode("PONG", 1, {"host_time_ms": 1, "board_time_ms": 2})[
+            :-3] + b"\x55\x00")
+        assert await session.command("VENT") == "OK"
+        return session.status()["stats"]
+
+    try:
+        stats = run_session(SerialTransport(tmp_path / "board"), script)
+    finally:
+        board.unplug()
+    assert stats["bad_frames"] >= 2
+
+
+def test_missing_port_is_unavailable_not_a_crash(tmp_path):
+    async def main():
+        with pytest.raises(TransportUnavailable, match="does not exist"):
+            await SerialTransport(tmp_path / "nothing").open()
+
+    asyncio.run(main())
+
+
+def test_fault_names_follow_the_spec_bits():
+    flags = 1 << BITS["fault"]["DEAD_HOST"] | 1 << BITS["fault"]["OVERPRESSURE_1"]
+    assert fault_names(flags) == ["OVERPRESSURE_1", "DEAD_HOST"]
+    assert fault_names(0) == []
+
+
+# --- CAN ----------------------------------------------------------------------------------------------------
+
+
+def test_can_mapping_splits_and_rebuilds_every_message_body():
+    from phantom.protocol.codec import encode_body
+
+    reassembler = CanReassembler(from_board=True)
+    body = encode_body("TELEMETRY", 7, {
+        "time_ms": 123456, "pressure_pa": [1, -2, 3], "setpoint_pa": [4, 5, 6], "drive": [7, 8, 65535],
+        "state": [0, 1, 3], "fault_flags": 0x81, "rx_bad_crc": 1, "rx_overflow": 2, "rx_bad_frame": 3,
+        "tx_dropped": 4, "tick_overruns": 5})
+    frames = can_frames(body, to_board=False)
+    assert all(arbitration_id == 0x200 + MESSAGES["TELEMETRY"].msg_id for arbitration_id, _ in frames)
+    assert all(len(data) <= 8 for _, data in frames)
+    assert len(frames) == -(-(len(body) - 1) // 7)
+    results = [reassembler.feed(arbitration_id, data) for arbitration_id, data in frames]
+    assert results[:-1] == [None] * (len(frames) - 1) and results[-1] == body
+    # a lost middle segment drops the message rather than splicing a wrong one
+    assert [reassembler.feed(i, d) for i, d in frames[:1] + frames[2:]] == [None] * (len(frames) - 1)
+    assert reassembler.dropped_segments == len(frames) - 2  # every segment after the gap
+    # the other direction's ids are not ours
+    assert reassembler.feed(0x100 + 5, bytes([0, 1, 2])) is None
+
+
+def test_session_over_python_can_virtual_bus():
+    channel = f"phantom-test-{os.getpid()}"
+
+    async def peer(bus_transport, stop):
+        reader = FrameReader()
+        status = ENUMS["status"]
+        while not stop.is_set():
+            try:
+                data = await asyncio.wait_for(bus_transport.read(), 0.1)
+            except TimeoutError:
+                continue
+            for message in reader.feed(data):
+                if message.name == "HELLO":
+                    bus_transport.write(encode("HELLO_REPLY", message.seq, {
+                        "protocol_version": PROTOCOL_VERSION, "spec_hash": SPEC_HASH, "status": 0,
+                        "firmware_major": 0, "firmware_minor": 1, "firmware_patch": 0, "board": 1,
+                        "chamber_count": 3, "reset_cause": 1, "fault_flags": 0, "time_ms": 5}))
+                elif message.name == "PING":
+                    bus_transport.write(encode("PONG", 0, {"host_time_ms": message.fields["host_time_ms"],
+                                                           "board_time_ms": 1}))
+                elif MESSAGES[message.name].acked:
+                    bus_transport.write(encode("ACK", 0, {"ref_msg_id": message.msg_id, "ref_seq": message.seq,
+                                                          "status": status["OK"]}))
+
+    async def main():
+        board_side = CanTransport(channel, "virtual", role="board")
+        await board_side.open()
+        stop = asyncio.Event()
+        peer_task = asyncio.create_task(peer(board_side, stop))
+        timing = LinkTiming(ack_timeout_s=0.05, keepalive_s=0.05, silence_s=5.0, hello_timeout_s=0.2)
+        session = LinkSession(CanTransport(channel, "virtual"), timing)
+        task = asyncio.create_task(session.run())
+        try:
+            await asyncio.wait_for(session.online_event.wait(), 5)
+            status = await session.command("SET_SETPOINTS", {"setpoint_pa": [1200, 0, 800]})
+            await wait_for(lambda: session.stats.rtt_ms is not None)
+            return status, session.board
+        finally:
+            session.stop()
+            stop.set()
+            await asyncio.wait_for(task, 5)
+            await peer_task
+            board_side.close()
+
+    status, board = asyncio.run(main())
+    assert status == "OK" and board.board == "UNO"
+
+
+def test_can_transport_that_cannot_open_says_so():
+    async def main():
+        with pytest.raises(TransportUnavailable, match="cannot open CAN"):
+            await CanTransport("no-such-can0", "socketcan").open()
+
+    asyncio.run(main())
+
+
+def test_reading_a_closed_transport_is_a_loss(tmp_path):
+    async def main():
+        transport = CanTransport("x", "virtual")
+        with pytest.raises(TransportLost):
+            await transport.read()
+
+    asyncio.run(main())

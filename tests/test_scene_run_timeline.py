@@ -1,0 +1,110 @@
+"""Scene timelines: holds, ramps, the shipped example scenes, and every malformed step."""
+
+import pytest
+
+from phantom.host.scenes import (
+    SceneError,
+    TargetSpec,
+    example_scene_path,
+    parse_target,
+    parse_timeline,
+    read_scene_toml,
+)
+
+CHAMBERS = ["chamber0", "chamber1", "chamber2"]
+
+
+def timeline(*steps):
+    return parse_timeline(list(steps), CHAMBERS, "test")
+
+
+def test_a_step_holds_until_the_next_and_nothing_before_the_first():
+    line = timeline({"at_s": 2, "volume_ml": 30}, {"at_s": 10, "volume_ml": 35})
+    assert line.target_at(1.999) is None
+    assert line.target_at(2).values == (30.0,)
+    assert line.target_at(9.99).values == (30.0,)
+    assert line.target_at(10).values == (35.0,)
+    assert line.target_at(1e6).values == (35.0,)
+
+
+def test_a_ramp_is_linear_from_the_previous_target_then_holds():
+    line = timeline({"at_s": 0, "pressures_kpa": [0, 1, 2]}, {"at_s": 10, "ramp_s": 4, "pressures_kpa": [2, 1, 0]})
+    for time_s in (10, 11, 12.5, 13.9):
+        fraction = (time_s - 10) / 4
+        expected = [0 + 2 * fraction, 1, 2 - 2 * fraction]
+        assert line.target_at(time_s).values == pytest.approx(expected, abs=1e-12)
+    assert line.target_at(14).values == (2.0, 1.0, 0.0)
+    assert line.duration_s == 14
+
+
+def test_a_chamber_volume_ramp_keeps_free_chambers_free():
+    line = timeline({"at_s": 0, "chamber_volumes_ml": [None, 4, 4]},
+                    {"at_s": 5, "ramp_s": 10, "chamber_volumes_ml": [None, 6, 5]})
+    assert line.target_at(10).values == (None, 5.0, 4.5)
+
+
+def test_growth_ratio_takes_chamber_names_or_indices():
+    named = parse_target({"volume_ml": 40, "growth_ratio": {"chamber1": 2.0, "chamber2": 1}}, CHAMBERS)
+    indexed = parse_target({"volume_ml": 40, "growth_ratio": {"2": 1, "1": 2.0}}, CHAMBERS)
+    assert named == indexed == TargetSpec("volume_ml", (40.0,), ((1, 2.0), (2, 1.0)))
+    assert named.to_json() == {"volume_ml": 40.0, "growth_ratio": {"1": 2.0, "2": 1.0}}
+
+
+@pytest.mark.parametrize(("steps", "message"), [
+    ([{"volume_ml": 30}], "needs at_s"),
+    ([{"at_s": 0, "volume_ml": 30, "pressures_kpa": [1, 1, 1]}], "exactly one of"),
+    ([{"at_s": 0}], "exactly one of .* got none"),
+    ([{"at_s": 0, "volume_ml": -3}], "volume_ml must be positive"),
+    ([{"at_s": 0, "volume_ml": "big"}], "volume_ml must be a number"),
+    ([{"at_s": 0, "volume_ml": float("nan")}], "must be finite"),
+    ([{"at_s": 0, "pressures_kpa": [1, 1]}], "list of 3 numbers"),
+    ([{"at_s": 0, "pressures_kpa": [1, -1, 1]}], "must be >= 0"),
+    ([{"at_s": 0, "chamber_volumes_ml": [None, None, None]}], "at least one number"),
+    ([{"at_s": 0, "pressures_kpa": [1, 1, 1], "growth_ratio": {"chamber1": 1}}], "goes with volume_ml only"),
+    ([{"at_s": 0, "volume_ml": 30, "growth_ratio": {"lobe": 1}}], "unknown chamber 'lobe'"),
+    ([{"at_s": 0, "volume_ml": 30, "growth_ratio": {"chamber1": 0}}], "must be positive"),
+    ([{"at_s": 0, "volume_ml": 30, "colour": "red"}], "unknown key"),
+    ([{"at_s": -1, "volume_ml": 30}], "must be >= 0"),
+    ([{"at_s": 5, "volume_ml": 30}, {"at_s": 5, "volume_ml": 31}], "must be later"),
+    ([{"at_s": 0, "ramp_s": 3, "volume_ml": 30}], "first step cannot ramp"),
+    ([{"at_s": 0, "volume_ml": 30}, {"at_s": 5, "ramp_s": 2, "pressures_kpa": [1, 1, 1]}], "same target form"),
+    ([{"at_s": 0, "volume_ml": 30}, {"at_s": 5, "ramp_s": 20, "volume_ml": 35}, {"at_s": 10, "volume_ml": 40}],
+     "ramps until 25"),
+    ([{"at_s": 0, "chamber_volumes_ml": [None, 4, 4]}, {"at_s": 5, "ramp_s": 1, "chamber_volumes_ml": [4, 4, None]}],
+     "same free chambers"),
+])
+def test_malformed_steps_are_refused_with_what_is_wrong(steps, message):
+    with pytest.raises(SceneError, match=message):
+        timeline(*steps)
+
+
+def test_steps_must_be_an_array_of_tables():
+    with pytest.raises(SceneError, match=r"\[\[steps\]\]"):
+        parse_timeline({"at_s": 0}, CHAMBERS, "test")
+
+
+def test_the_shipped_bph_scene_grows_from_about_rest_to_45_ml_over_minutes():
+    raw = read_scene_toml(example_scene_path("bph_growth"))
+    line = parse_timeline(raw["steps"], raw["phantom"]["chambers"], "bph_growth")
+    volumes = [step.target.values[0] for step in line.steps]
+    assert volumes == sorted(volumes) and volumes[0] >= 26.3 and volumes[-1] == 45
+    assert any(step.ramp_s > 0 for step in line.steps)
+    assert 120 <= raw["timeline"]["end_s"] <= 600 and raw["timeline"]["end_s"] >= line.duration_s
+
+
+def test_the_shipped_lopsided_scene_grows_one_lobe_more():
+    raw = read_scene_toml(example_scene_path("lopsided"))
+    line = parse_timeline(raw["steps"], raw["phantom"]["chambers"], "lopsided")
+    ratios = [dict(step.target.growth_ratio) for step in line.steps if step.target.growth_ratio]
+    assert ratios[0][1] == 2 * ratios[0][2]
+
+
+def test_missing_or_broken_scene_files_say_so(tmp_path):
+    with pytest.raises(SceneError, match="does not exist"):
+        read_scene_toml(tmp_path / "nope.toml")
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[[steps]\nat_s = ")
+    with pytest.raises(SceneError, match="not valid TOML"):
+        read_scene_toml(broken)
+    with pytest.raises(SceneError, match="shipped: bph_growth, lopsided"):
+        example_scene_path("nothing")
