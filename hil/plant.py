@@ -13,11 +13,11 @@ which for one chamber is physics.md's dp/dt = p_atm (Q_in - Q_out) / (V + (p_atm
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import tomllib
 
 from phantom import PhantomError
 
