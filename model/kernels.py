@@ -1,0 +1,471 @@
+"""Element kernels of linear tetrahedra (numba, compiled once and cached on disk).
+
+Notation per element: rest positions ``X_a``, current positions ``x_a`` (a = 0..3), ``Dm = [X1-X0, X2-X0,
+X3-X0]``, deformation gradient ``F = Ds Dm^-1``. The co-rotational energy is ``1/2 u^T K_e u`` with the
+unrotated displacement ``u_a = R^T x_a - X_a`` and ``R = polar(F)``, computed by SVD (``F = U S V^T``,
+``R = U V^T`` with the last singular value taking the sign of ``det F``, so R is a proper rotation even for
+flat or inverted elements; :func:`polar_rotation` computes this 3 x 3 SVD itself by Jacobi rotations, about
+ten times faster than a LAPACK call per element). Its gradient is ``f_a = R (K_e u)_a``. Its Hessian is
+``R K_ab R^T`` plus the terms from the rotation's derivative: with ``S = R^T F``, ``dR = R [w]x`` where
+``w = (tr(S) I - S)^-1 sum_b [G_b]x R^T dx_b`` (``G_b`` the shape-function gradients), which gives the
+block ``R Z_a (tr(S) I - S)^-1 [G_b]x R^T`` with ``Z_a = -[(K u)_a]x + sum_c K_ac [R^T x_c]x``.
+"""
+
+import os
+import sys
+
+import phantom
+
+os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
+
+import numba  # noqa: E402
+import numpy as np  # noqa: E402
+
+if not any(phantom.cache_dir("numba").rglob("kernels.internal_forces-*.nbi")):
+    print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached)",
+          file=sys.stderr, flush=True)
+
+
+@numba.njit(cache=True)
+def element_rest_data(rest_positions_m, tets, youngs_modulus_pa, poisson_ratio):
+    """Inverse shape matrices ``Dm^-1`` (m, 3, 3), rest volumes (m^3) and linear stiffness matrices ``K_e``.
+
+    ``K_e = V B^T D B`` (N/m, 12 x 12 per element, node-major dof order x0 y0 z0 x1 ...), with the strain
+    matrix B of the constant shape-function gradients and the isotropic elasticity matrix D (Voigt order
+    xx yy zz yz xz xy, engineering shear strains).
+    """
+    n_tets = tets.shape[0]
+    dm_inverse = np.empty((n_tets, 3, 3))
+    volumes_m3 = np.empty(n_tets)
+    stiffness = np.empty((n_tets, 12, 12))
+    lame_lambda = youngs_modulus_pa * poisson_ratio / ((1.0 + poisson_ratio) * (1.0 - 2.0 * poisson_ratio))
+    lame_mu = youngs_modulus_pa / (2.0 * (1.0 + poisson_ratio))
+    elasticity = np.zeros((6, 6))
+    for i in range(3):
+        for j in range(3):
+            elasticity[i, j] = lame_lambda
+        elasticity[i, i] = lame_lambda + 2.0 * lame_mu
+        elasticity[i + 3, i + 3] = lame_mu
+    for e in range(n_tets):
+        dm = np.empty((3, 3))
+        for k in range(3):
+            for axis in range(3):
+                dm[axis, k] = rest_positions_m[tets[e, k + 1], axis] - rest_positions_m[tets[e, 0], axis]
+        inverse = np.linalg.inv(dm)
+        dm_inverse[e] = inverse
+        volumes_m3[e] = np.linalg.det(dm) / 6.0
+        gradients = np.empty((4, 3))
+        for axis in range(3):
+            gradients[1, axis] = inverse[0, axis]
+            gradients[2, axis] = inverse[1, axis]
+            gradients[3, axis] = inverse[2, axis]
+            gradients[0, axis] = -(inverse[0, axis] + inverse[1, axis] + inverse[2, axis])
+        strain = np.zeros((6, 12))
+        for a in range(4):
+            bx, by, bz = gradients[a, 0], gradients[a, 1], gradients[a, 2]
+            c = 3 * a
+            strain[0, c] = bx
+            strain[1, c + 1] = by
+            strain[2, c + 2] = bz
+            strain[3, c + 1] = bz
+            strain[3, c + 2] = by
+            strain[4, c] = bz
+            strain[4, c + 2] = bx
+            strain[5, c] = by
+            strain[5, c + 1] = bx
+        stiffness[e] = volumes_m3[e] * (strain.T @ elasticity @ strain)
+    return dm_inverse, volumes_m3, stiffness
+
+
+@numba.njit(cache=True)
+def _jacobi_rotate(a, vectors, p, q):
+    """Zero ``a[p, q]`` of the symmetric matrix by one Jacobi rotation, accumulated into ``vectors``."""
+    if a[p, q] == 0.0:
+        return
+    theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+    t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+    if theta < 0.0:
+        t = -t
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    s = t * c
+    for k in range(3):
+        akp, akq = a[k, p], a[k, q]
+        a[k, p] = c * akp - s * akq
+        a[k, q] = s * akp + c * akq
+    for k in range(3):
+        apk, aqk = a[p, k], a[q, k]
+        a[p, k] = c * apk - s * aqk
+        a[q, k] = s * apk + c * aqk
+    for k in range(3):
+        vkp, vkq = vectors[k, p], vectors[k, q]
+        vectors[k, p] = c * vkp - s * vkq
+        vectors[k, q] = s * vkp + c * vkq
+
+
+@numba.njit(cache=True)
+def symmetric_eigen_into(a, vectors, values):
+    """Eigen decomposition of a symmetric 3 x 3 matrix ``a`` (overwritten) into ``values`` (descending) and
+    ``vectors`` (orthonormal columns, det +1).
+
+    Cyclic Jacobi rotations, each zeroing one off-diagonal entry, until the off-diagonal part is below
+    rounding (a few sweeps: the convergence is quadratic). Allocation-free: it runs once per element.
+    """
+    for i in range(3):
+        for k in range(3):
+            vectors[i, k] = 1.0 if i == k else 0.0
+    scale = abs(a[0, 0]) + abs(a[1, 1]) + abs(a[2, 2]) + 1e-300
+    for _ in range(20):
+        if abs(a[0, 1]) + abs(a[0, 2]) + abs(a[1, 2]) <= 1e-17 * scale:
+            break
+        _jacobi_rotate(a, vectors, 0, 1)
+        _jacobi_rotate(a, vectors, 0, 2)
+        _jacobi_rotate(a, vectors, 1, 2)
+    for i in range(3):
+        values[i] = a[i, i]
+    for i in range(3):
+        for j in range(2 - i):
+            if values[j] < values[j + 1]:
+                values[j], values[j + 1] = values[j + 1], values[j]
+                for k in range(3):
+                    vectors[k, j], vectors[k, j + 1] = vectors[k, j + 1], vectors[k, j]
+    if _det3(vectors) < 0.0:
+        for k in range(3):
+            vectors[k, 2] = -vectors[k, 2]
+
+
+@numba.njit(cache=True)
+def _det3(m):
+    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+
+
+@numba.njit(cache=True)
+def polar_rotation_into(f, rotation, work, v, values):
+    """Rotation R of the polar decomposition ``F = R S``, from the SVD ``F = U Sigma V^T``: ``R = U V^T``.
+
+    V and the singular values come from the eigen decomposition of ``F^T F``; ``u_i = F v_i / sigma_i`` for
+    the two largest, re-orthogonalised, and ``u_3 = u_1 x u_2`` so that R is a proper rotation: for an
+    inverted element the smallest singular value takes the sign of det F, and a flat element (sigma_3 = 0)
+    still has a well-defined R. A collapsed element (sigma_1 = 0) gets R = I. ``work``, ``v`` (3 x 3) and
+    ``values`` (3) are scratch space.
+    """
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                total += f[k, i] * f[k, j]
+            work[i, j] = total
+    symmetric_eigen_into(work, v, values)
+    if values[0] <= 0.0:
+        for i in range(3):
+            for j in range(3):
+                rotation[i, j] = 1.0 if i == j else 0.0
+        return
+    # work's columns become u_1, u_2, u_3.
+    for column in range(2):
+        for i in range(3):
+            work[i, column] = f[i, 0] * v[0, column] + f[i, 1] * v[1, column] + f[i, 2] * v[2, column]
+    norm = np.sqrt(work[0, 0] ** 2 + work[1, 0] ** 2 + work[2, 0] ** 2)
+    for i in range(3):
+        work[i, 0] /= norm
+    projection = work[0, 0] * work[0, 1] + work[1, 0] * work[1, 1] + work[2, 0] * work[2, 1]
+    for i in range(3):
+        work[i, 1] -= projection * work[i, 0]
+    norm_second = np.sqrt(work[0, 1] ** 2 + work[1, 1] ** 2 + work[2, 1] ** 2)
+    if norm_second <= 1e-12 * norm:
+        # A needle-like element: any direction normal to u_1 completes the frame.
+        helper = 0 if abs(work[0, 0]) < 0.9 else 1
+        for i in range(3):
+            work[i, 1] = (1.0 if i == helper else 0.0) - work[helper, 0] * work[i, 0]
+        norm_second = np.sqrt(work[0, 1] ** 2 + work[1, 1] ** 2 + work[2, 1] ** 2)
+    for i in range(3):
+        work[i, 1] /= norm_second
+    work[0, 2] = work[1, 0] * work[2, 1] - work[2, 0] * work[1, 1]
+    work[1, 2] = work[2, 0] * work[0, 1] - work[0, 0] * work[2, 1]
+    work[2, 2] = work[0, 0] * work[1, 1] - work[1, 0] * work[0, 1]
+    for i in range(3):
+        for j in range(3):
+            rotation[i, j] = work[i, 0] * v[j, 0] + work[i, 1] * v[j, 1] + work[i, 2] * v[j, 2]
+
+
+@numba.njit(cache=True)
+def polar_rotation(deformation_gradient):
+    """The proper rotation of the polar decomposition of one 3 x 3 ``F`` (see :func:`polar_rotation_into`)."""
+    rotation = np.empty((3, 3))
+    polar_rotation_into(deformation_gradient, rotation, np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
+    return rotation
+
+
+@numba.njit(cache=True)
+def _rotate_blocks(element_stiffness, rotation, work, out):
+    """``out = diag(R) K_e diag(R)^T``: each 3 x 3 block K_ab becomes ``R K_ab R^T``."""
+    for a in range(4):
+        for b in range(4):
+            for i in range(3):
+                for j in range(3):
+                    total = 0.0
+                    for k in range(3):
+                        total += element_stiffness[3 * a + i, 3 * b + k] * rotation[j, k]
+                    work[i, j] = total
+            for i in range(3):
+                for j in range(3):
+                    total = 0.0
+                    for k in range(3):
+                        total += rotation[i, k] * work[k, j]
+                    out[3 * a + i, 3 * b + j] = total
+
+
+@numba.njit(cache=True)
+def _skew(vector, out):
+    """``out = [v]x``, the matrix of the cross product ``v x .``."""
+    out[0, 0], out[0, 1], out[0, 2] = 0.0, -vector[2], vector[1]
+    out[1, 0], out[1, 1], out[1, 2] = vector[2], 0.0, -vector[0]
+    out[2, 0], out[2, 1], out[2, 2] = -vector[1], vector[0], 0.0
+
+
+@numba.njit(cache=True)
+def _matmul3(a, b, out):
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@numba.njit(cache=True)
+def _inverse3(m, out):
+    """``out = m^-1`` by the adjugate; returns det m."""
+    det = _det3(m)
+    out[0, 0] = (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]) / det
+    out[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) / det
+    out[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) / det
+    out[1, 0] = (m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]) / det
+    out[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) / det
+    out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
+    out[2, 0] = (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]) / det
+    out[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) / det
+    out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
+    return det
+
+
+@numba.njit(cache=True)
+def _add_rotation_stiffness(element_stiffness, rotation, deformation_gradient, dm_inverse, local_force,
+                            unrotated_m, out, scratch):
+    """Add the Hessian terms from the rotation's derivative (module docstring) to the 12 x 12 ``out``.
+
+    ``scratch`` is (14, 3, 3) work space: no allocation per element.
+    """
+    s, shifted, inverse, skew, z, product = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
+    left, right = scratch[6:10], scratch[10:14]
+    for i in range(3):
+        for j in range(3):
+            s[i, j] = (rotation[0, i] * deformation_gradient[0, j] + rotation[1, i] * deformation_gradient[1, j]
+                       + rotation[2, i] * deformation_gradient[2, j])
+    trace = s[0, 0] + s[1, 1] + s[2, 2]
+    for i in range(3):
+        for j in range(3):
+            shifted[i, j] = -s[i, j]
+        shifted[i, i] += trace
+    if _det3(shifted) <= 1e-12 * abs(trace) ** 3:
+        return  # inverted past the point where the rotation is differentiable: keep R K R^T
+    _inverse3(shifted, inverse)
+    for a in range(4):
+        _skew(local_force[3 * a:3 * a + 3], skew)
+        for i in range(3):
+            for j in range(3):
+                z[i, j] = -skew[i, j]
+        for c in range(4):
+            _skew(unrotated_m[c], skew)
+            for i in range(3):
+                for j in range(3):
+                    z[i, j] += (element_stiffness[3 * a + i, 3 * c] * skew[0, j]
+                                + element_stiffness[3 * a + i, 3 * c + 1] * skew[1, j]
+                                + element_stiffness[3 * a + i, 3 * c + 2] * skew[2, j])
+        _matmul3(rotation, z, product)
+        _matmul3(product, inverse, left[a])
+        if a == 0:
+            for axis in range(3):
+                s[0, axis] = -(dm_inverse[0, axis] + dm_inverse[1, axis] + dm_inverse[2, axis])
+        else:
+            for axis in range(3):
+                s[0, axis] = dm_inverse[a - 1, axis]
+        _skew(s[0], skew)
+        for i in range(3):
+            for j in range(3):
+                right[a][i, j] = skew[i, 0] * rotation[j, 0] + skew[i, 1] * rotation[j, 1] + skew[i, 2] * rotation[j, 2]
+    for a in range(4):
+        for b in range(4):
+            _matmul3(left[a], right[b], product)
+            for i in range(3):
+                for j in range(3):
+                    out[3 * a + i, 3 * b + j] += product[i, j]
+
+
+@numba.njit(cache=True)
+def internal_forces(positions_m, rest_positions_m, tets, dm_inverse, stiffness, corotational,
+                    want_matrix, scatter, matrix_data):
+    """Elastic nodal forces (N, (n, 3)), elastic energy (J), smallest ``det F``; optionally the tangent.
+
+    Corotational: ``f = R K_e (R^T x - X)``; linear: ``f = K_e (x - X)``. When ``want_matrix`` is 1, the
+    blocks ``R K_e R^T`` (or ``K_e``) are added into ``matrix_data`` (the CSR data array, zeroed by the
+    caller) at the positions ``scatter[e, i, j]``; when 2 (co-rotational only), the exact Hessian, with the
+    rotation's derivative (it may be indefinite far from rest).
+    """
+    n_tets = tets.shape[0]
+    forces = np.zeros(positions_m.shape)
+    energy_j = 0.0
+    smallest_det = np.inf
+    rotation = np.eye(3)
+    ds = np.empty((3, 3))
+    deformation_gradient = np.empty((3, 3))
+    work = np.empty((3, 3))
+    singular_vectors = np.empty((3, 3))
+    values = np.empty(3)
+    displacement = np.empty(12)
+    local_force = np.empty(12)
+    rotated_stiffness = np.empty((12, 12))
+    unrotated_m = np.empty((4, 3))
+    scratch = np.empty((14, 3, 3))
+    for e in range(n_tets):
+        if corotational:
+            for k in range(3):
+                for axis in range(3):
+                    ds[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
+            for i in range(3):
+                for j in range(3):
+                    deformation_gradient[i, j] = (ds[i, 0] * dm_inverse[e, 0, j] + ds[i, 1] * dm_inverse[e, 1, j]
+                                                  + ds[i, 2] * dm_inverse[e, 2, j])
+            det = _det3(deformation_gradient)
+            if det < smallest_det:
+                smallest_det = det
+            polar_rotation_into(deformation_gradient, rotation, work, singular_vectors, values)
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                rotated = 0.0
+                for j in range(3):
+                    rotated += rotation[j, i] * positions_m[node, j]
+                displacement[3 * a + i] = rotated - rest_positions_m[node, i]
+        element_energy = 0.0
+        for i in range(12):
+            total = 0.0
+            for j in range(12):
+                total += stiffness[e, i, j] * displacement[j]
+            local_force[i] = total
+            element_energy += displacement[i] * total
+        energy_j += 0.5 * element_energy
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                value = 0.0
+                for j in range(3):
+                    value += rotation[i, j] * local_force[3 * a + j]
+                forces[node, i] += value
+        if want_matrix:
+            if corotational:
+                _rotate_blocks(stiffness[e], rotation, work, rotated_stiffness)
+                if want_matrix == 2:
+                    for a in range(4):
+                        for i in range(3):
+                            unrotated_m[a, i] = displacement[3 * a + i] + rest_positions_m[tets[e, a], i]
+                    _add_rotation_stiffness(stiffness[e], rotation, deformation_gradient, dm_inverse[e],
+                                            local_force, unrotated_m, rotated_stiffness, scratch)
+                for i in range(12):
+                    for j in range(12):
+                        matrix_data[scatter[e, i, j]] += rotated_stiffness[i, j]
+            else:
+                for i in range(12):
+                    for j in range(12):
+                        matrix_data[scatter[e, i, j]] += stiffness[e, i, j]
+    return forces, energy_j, smallest_det
+
+
+@numba.njit(cache=True)
+def deformation_determinants(positions_m, tets, dm_inverse):
+    """``det F_e`` of each element (volume ratio current / rest)."""
+    dets = np.empty(tets.shape[0])
+    ds = np.empty((3, 3))
+    for e in range(tets.shape[0]):
+        for k in range(3):
+            for axis in range(3):
+                ds[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
+        dets[e] = _det3(ds) * _det3(dm_inverse[e])
+    return dets
+
+
+@numba.njit(cache=True)
+def csr_positions(indptr, indices, rows, columns):
+    """Index into a CSR matrix's data array of each entry (rows[k], columns[k]) (binary search in the row)."""
+    positions = np.empty(rows.shape[0], np.int64)
+    for k in range(rows.shape[0]):
+        positions[k] = _csr_position(indptr, indices, rows[k], columns[k])
+    return positions
+
+
+@numba.njit(cache=True)
+def add_pressure_stiffness(positions_m, triangles, pressure_pa, indptr, indices, matrix_data):
+    """Add ``-p d2V/dx2`` of one chamber (oriented triangles) to a CSR tangent's data (N/m).
+
+    With ``V = sum_t x_a . (x_b x x_c) / 6``, the block ``d2V / dx_a dx_b = -[x_c]x / 6`` for each cyclic
+    order (a, b, c) of a triangle, and its transpose for (b, a); the follower load ``p dV/dx`` enters the
+    residual with a minus sign.
+    """
+    skew = np.empty((3, 3))
+    for t in range(triangles.shape[0]):
+        for corner in range(3):
+            a = triangles[t, corner]
+            b = triangles[t, (corner + 1) % 3]
+            c = triangles[t, (corner + 2) % 3]
+            _skew(positions_m[c], skew)
+            for i in range(3):
+                for j in range(3):
+                    value = pressure_pa * skew[i, j] / 6.0
+                    row, column = 3 * a + i, 3 * b + j
+                    position = _csr_position(indptr, indices, row, column)
+                    matrix_data[position] += value
+                    row, column = 3 * b + j, 3 * a + i
+                    position = _csr_position(indptr, indices, row, column)
+                    matrix_data[position] += value
+
+
+@numba.njit(cache=True)
+def _csr_position(indptr, indices, row, column):
+    low, high = indptr[row], indptr[row + 1]
+    while low < high:
+        middle = (low + high) // 2
+        if indices[middle] < column:
+            low = middle + 1
+        else:
+            high = middle
+    return low
+
+
+@numba.njit(cache=True)
+def cholesky_solve(indptr, indices, values, permutation, rhs):
+    """Solve ``A x = b`` from ``A[P][:, P] = L L^T`` (L lower triangular, CSC, diagonal first in each column).
+
+    ``x[P] = L^-T L^-1 b[P]``: a forward substitution by columns, then a backward one with L's columns as the
+    rows of L^T. ``rhs`` is (n,) or (n, k).
+    """
+    single = rhs.ndim == 1
+    right = rhs.reshape(rhs.shape[0], -1)
+    n, k = right.shape
+    solution = np.empty((n, k))
+    work = np.empty(n)
+    for column in range(k):
+        for i in range(n):
+            work[i] = right[permutation[i], column]
+        for j in range(n):
+            work[j] /= values[indptr[j]]
+            value = work[j]
+            for position in range(indptr[j] + 1, indptr[j + 1]):
+                work[indices[position]] -= values[position] * value
+        for j in range(n - 1, -1, -1):
+            total = work[j]
+            for position in range(indptr[j] + 1, indptr[j + 1]):
+                total -= values[position] * work[indices[position]]
+            work[j] = total / values[indptr[j]]
+        for i in range(n):
+            solution[permutation[i], column] = work[i]
+    if single:
+        return solution[:, 0].copy()
+    return solution

@@ -1,0 +1,159 @@
+"""Scene files (TOML): which phantom, which material, what to compute (architecture.md, "The scene file")."""
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from phantom.model.errors import SceneError
+
+#: Names of the shipped scenes, as accepted by :func:`load_scene`.
+BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml"}
+
+#: Length units a scene may declare for its mesh, and their size in metres.
+LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
+
+MATERIAL_MODELS = ("corotational", "linear")
+
+
+@dataclass(frozen=True)
+class Material:
+    """Isotropic elastic material: ``model`` is "corotational" or "linear"; modulus in Pa."""
+
+    model: str
+    youngs_modulus_pa: float
+    poisson_ratio: float
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """What a scene asks the model to compute."""
+
+    volumes: bool = True
+    shape: bool = False
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A parsed scene.
+
+    Attributes
+    ----------
+    path : Path or None
+        The scene file (None for none).
+    mesh : str
+        ``"builtin:prostate"`` or an absolute path to a mesh file meshio reads.
+    units : str
+        Length unit of the mesh file's coordinates (a key of ``LENGTH_UNITS_M``).
+    chambers : list of str
+        Surface group names of the chamber walls, in chamber order.
+    fixed : str or None
+        Surface group held by penalty springs; None removes rigid-body motion only.
+    material : Material
+    outputs : Outputs
+    steps : list of dict
+        The timeline, raw (read by the host).
+    raw : dict
+        The whole parsed TOML, so that other parts can read their own tables.
+    """
+
+    path: Path | None
+    mesh: str
+    units: str
+    chambers: list[str]
+    fixed: str | None
+    material: Material
+    outputs: Outputs
+    steps: list[dict] = field(default_factory=list)
+    raw: dict = field(default_factory=dict)
+
+    @property
+    def length_scale_m(self) -> float:
+        """Metres per mesh-file length unit."""
+        return LENGTH_UNITS_M[self.units]
+
+
+def builtin_scene_path(name: str) -> Path:
+    """The TOML file of a shipped scene (``builtin`` or ``builtin:prostate``)."""
+    return Path(__file__).resolve().parent / "scenes" / BUILTIN_SCENES[name]
+
+
+def load_scene(source: str | Path) -> Scene:
+    """Read a scene: ``"builtin"``/``"builtin:prostate"`` or the path of a TOML file.
+
+    A mesh path in the file is taken relative to the scene file. Raises SceneError on anything missing or
+    out of range, naming the key and the file.
+    """
+    name = str(source)
+    path = builtin_scene_path(name) if name in BUILTIN_SCENES else Path(name)
+    if not path.is_file():
+        raise SceneError(f"the scene file {path} does not exist: give a TOML path or 'builtin'")
+    try:
+        raw = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        raise SceneError(f"the scene file {path} is not valid TOML: {error}") from error
+    return scene_from_dict(raw, path)
+
+
+def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
+    """Build a Scene from a parsed TOML dict; ``path`` anchors relative mesh paths (else the working folder)."""
+    where = f"scene {path}" if path else "scene"
+    phantom_table = _table(raw, "phantom", where)
+    mesh = phantom_table.get("mesh")
+    if not isinstance(mesh, str) or not mesh:
+        raise SceneError(f"{where}: [phantom] mesh must be 'builtin:prostate' or a mesh file path")
+    if not mesh.startswith("builtin:"):
+        mesh_path = Path(mesh)
+        if not mesh_path.is_absolute():
+            mesh_path = (path.parent if path else Path.cwd()) / mesh_path
+        mesh = str(mesh_path.resolve())
+    elif mesh != "builtin:prostate":
+        raise SceneError(f"{where}: unknown built-in mesh {mesh!r}: the only one is 'builtin:prostate'")
+    units = phantom_table.get("units", "mm")
+    if units not in LENGTH_UNITS_M:
+        raise SceneError(f"{where}: [phantom] units = {units!r} is not one of {', '.join(LENGTH_UNITS_M)}")
+    chambers = phantom_table.get("chambers")
+    if not isinstance(chambers, list) or not chambers or not all(isinstance(c, str) for c in chambers):
+        raise SceneError(f"{where}: [phantom] chambers must be a non-empty list of surface group names")
+    if len(set(chambers)) != len(chambers):
+        raise SceneError(f"{where}: [phantom] chambers lists a group twice: {chambers}")
+    fixed = phantom_table.get("fixed")
+    if fixed is not None and not isinstance(fixed, str):
+        raise SceneError(f"{where}: [phantom] fixed must be a surface group name (or absent)")
+    return Scene(
+        path=path,
+        mesh=mesh,
+        units=units,
+        chambers=list(chambers),
+        fixed=fixed,
+        material=_material(raw.get("material", {}), where),
+        outputs=Outputs(**_outputs(raw.get("outputs", {}), where)),
+        steps=list(raw.get("steps", [])),
+        raw=raw,
+    )
+
+
+def _table(raw: dict, key: str, where: str) -> dict:
+    table = raw.get(key)
+    if not isinstance(table, dict):
+        raise SceneError(f"{where}: the [{key}] table is missing")
+    return table
+
+
+def _material(table: dict, where: str) -> Material:
+    model = table.get("model", "corotational")
+    if model not in MATERIAL_MODELS:
+        raise SceneError(f"{where}: [material] model = {model!r}: use 'corotational' or 'linear'")
+    youngs_modulus_kpa = table.get("youngs_modulus_kpa", 50.0)
+    poisson_ratio = table.get("poisson_ratio", 0.45)
+    if not isinstance(youngs_modulus_kpa, int | float) or not youngs_modulus_kpa > 0:
+        raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got {youngs_modulus_kpa}")
+    if not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
+        raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio}")
+    return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio))
+
+
+def _outputs(table: dict, where: str) -> dict:
+    unknown = set(table) - {"volumes", "shape"}
+    if unknown:
+        raise SceneError(f"{where}: [outputs] has unknown keys {sorted(unknown)}: use volumes, shape")
+    return {key: bool(value) for key, value in table.items()}

@@ -1,0 +1,195 @@
+"""Meshes generated with gmsh: the built-in prostate phantom and the thick hollow sphere used for verification.
+
+Geometry (the built-in prostate, millimetres, x to the patient's left, y anterior, z from apex to base): a
+chestnut-like body of revolution about z, profile ``r(z) = R sqrt(1 - t^2) (1 + k t)`` with ``t = z / c``,
+widest toward the base (+z), squeezed front-to-back by ``ANTERIOR_POSTERIOR_RATIO``; ``R`` is set so the
+body encloses ``REST_VOLUME_ML``. Three ellipsoidal cavities are cut from it: chamber 0 at the base, chambers 1
+(+x, left lobe) and 2 (-x, right lobe) mirror images about the mid-sagittal plane x = 0; every wall is at
+least 3.5 mm thick. The ``fixed`` patch is the base surface within ``FIXATION_RADIUS_MM`` of the base pole,
+where the three air tubes enter.
+"""
+
+import math
+import os
+import sys
+import tempfile
+
+import numpy as np
+
+import phantom
+from phantom.model.errors import MeshError
+from phantom.model.mesh import TetMesh, boundary_faces, check_tets, surface_components
+
+#: Bump when the generated geometry changes, so cached meshes are regenerated.
+PROSTATE_GEOMETRY_VERSION = 2
+REST_VOLUME_ML = 26.3
+HALF_LENGTH_MM = 20.0
+TAPER = 0.3
+ANTERIOR_POSTERIOR_RATIO = 0.66
+#: Chamber ellipsoids: centre (x, y, z) and semi-axes (a, b, c), millimetres.
+CHAMBER_ELLIPSOIDS_MM = (
+    ((0.0, 0.0, 11.0), (12.5, 8.5, 4.5)),
+    ((8.7, 0.0, -2.5), (5.7, 7.5, 6.5)),
+    ((-8.7, 0.0, -2.5), (5.7, 7.5, 6.5)),
+)
+FIXATION_RADIUS_MM = 6.0
+#: Default element size of the built-in mesh (mm): about 3k nodes.
+DEFAULT_SIZE_MM = 2.5
+#: Elements per 2 pi of curvature, so small cavities keep their volume on coarse meshes.
+CURVATURE_ELEMENTS = 16
+
+
+def _profile_radius_mm(t: np.ndarray, equator_radius_mm: float) -> np.ndarray:
+    """Radius of the body of revolution at ``z = t * HALF_LENGTH_MM`` (mm)."""
+    return equator_radius_mm * np.sqrt(np.clip(1.0 - t * t, 0.0, None)) * (1.0 + TAPER * t)
+
+
+def _equator_radius_mm() -> float:
+    """``R`` such that the body's volume is REST_VOLUME_ML: ``V = pi R^2 c q (4/3 + 4 k^2 / 15)``."""
+    shape_integral = 4.0 / 3.0 + 4.0 * TAPER**2 / 15.0
+    volume_mm3 = REST_VOLUME_ML * 1e3
+    return math.sqrt(volume_mm3 / (math.pi * HALF_LENGTH_MM * ANTERIOR_POSTERIOR_RATIO * shape_integral))
+
+
+class _Gmsh:
+    """gmsh initialised quietly for one model, finalised on exit."""
+
+    def __enter__(self):
+        import gmsh
+
+        gmsh.initialize(interruptible=False)
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        return gmsh
+
+    def __exit__(self, *exc):
+        import gmsh
+
+        gmsh.finalize()
+
+
+def _ellipsoid(occ, centre_mm, semi_axes_mm) -> tuple[int, int]:
+    sphere = occ.addSphere(0.0, 0.0, 0.0, 1.0)
+    occ.dilate([(3, sphere)], 0.0, 0.0, 0.0, *semi_axes_mm)
+    occ.translate([(3, sphere)], *centre_mm)
+    return (3, sphere)
+
+
+def _mesh_solid(gmsh, solid, size_mm: float, curvature_elements: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh one solid; return its nodes (mm) and positively oriented tets, numbered from 0 without gaps."""
+    gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / 4.0)
+    gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", curvature_elements)
+    gmsh.option.setNumber("Mesh.Optimize", 1)
+    gmsh.model.addPhysicalGroup(3, [solid[1]], name="solid")
+    gmsh.model.mesh.generate(3)
+    node_tags, coordinates, _ = gmsh.model.mesh.getNodes()
+    order = np.argsort(node_tags)
+    node_tags, coordinates = node_tags[order], coordinates.reshape(-1, 3)[order]
+    _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
+    tets = np.searchsorted(node_tags, tet_nodes.reshape(-1, 4))
+    used = np.unique(tets)
+    renumber = np.full(len(node_tags), -1)
+    renumber[used] = np.arange(len(used))
+    nodes_mm = coordinates[used]
+    return nodes_mm, check_tets(nodes_mm, renumber[tets], "gmsh")
+
+
+def _mirror_about_x(nodes_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Join a mesh of the half x >= 0 with its mirror image; nodes on the plane x = 0 are shared."""
+    on_plane = np.abs(nodes_mm[:, 0]) < 1e-9 * np.abs(nodes_mm).max()
+    mirrored = np.flatnonzero(~on_plane)
+    image = np.arange(len(nodes_mm))
+    image[mirrored] = len(nodes_mm) + np.arange(len(mirrored))
+    nodes_mm = nodes_mm.copy()
+    nodes_mm[on_plane, 0] = 0.0
+    reflected = nodes_mm[mirrored] * np.array([-1.0, 1.0, 1.0])
+    # A reflection reverses orientation: swap two vertices to keep the volumes positive.
+    mirror_tets = image[tets][:, [0, 2, 1, 3]]
+    return np.vstack([nodes_mm, reflected]), np.vstack([tets, mirror_tets])
+
+
+def generate_prostate(size_mm: float = DEFAULT_SIZE_MM) -> TetMesh:
+    """Mesh the built-in prostate phantom with gmsh (element size ``size_mm``); nodes in metres."""
+    if not 0.3 <= size_mm <= 10.0:
+        raise MeshError(f"mesh size {size_mm} mm is out of range: use 0.3 to 10 mm (default {DEFAULT_SIZE_MM})")
+    equator_radius_mm = _equator_radius_mm()
+    with _Gmsh() as gmsh:
+        occ = gmsh.model.occ
+        t_values = np.linspace(-1.0, 1.0, 33)
+        radii = _profile_radius_mm(t_values, equator_radius_mm)
+        points = [occ.addPoint(r, 0.0, HALF_LENGTH_MM * t) for r, t in zip(radii, t_values, strict=True)]
+        profile = occ.addSpline(points)
+        axis = occ.addLine(points[-1], points[0])
+        section = occ.addPlaneSurface([occ.addCurveLoop([profile, axis])])
+        body = [d for d in occ.revolve([(2, section)], 0, 0, 0, 0, 0, 1, 2 * math.pi) if d[0] == 3]
+        occ.dilate(body, 0.0, 0.0, 0.0, 1.0, ANTERIOR_POSTERIOR_RATIO, 1.0)
+        cavities = [_ellipsoid(occ, centre, axes) for centre, axes in CHAMBER_ELLIPSOIDS_MM]
+        solid, _ = occ.cut(body, cavities)
+        # Mesh the left half and mirror it, so that chambers 1 and 2 are exact mirror images.
+        extent_mm = 4.0 * HALF_LENGTH_MM
+        half_space = occ.addBox(0.0, -extent_mm, -extent_mm, extent_mm, 2 * extent_mm, 2 * extent_mm)
+        half, _ = occ.intersect(solid, [(3, half_space)])
+        occ.synchronize()
+        if len(half) != 1:
+            raise MeshError(f"gmsh produced {len(half)} volumes for the prostate instead of one")
+        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half[0], size_mm, CURVATURE_ELEMENTS))
+    tets = check_tets(nodes_mm, tets, "mirrored prostate mesh")
+    faces, _ = boundary_faces(tets)
+    centroids = nodes_mm[faces].mean(axis=1)
+    # Each cavity wall is one connected component of the boundary; name it by the nearest chamber centre.
+    labels = surface_components(faces)
+    groups = {}
+    on_cavity = np.zeros(len(faces), bool)
+    for index, (centre, axes) in enumerate(CHAMBER_ELLIPSOIDS_MM):
+        scaled = np.linalg.norm((centroids - np.asarray(centre)) / np.asarray(axes), axis=1)
+        component = labels[np.argmin(scaled)]
+        groups[f"chamber{index}"] = faces[labels == component]
+        on_cavity |= labels == component
+    base_pole_mm = np.array([0.0, 0.0, HALF_LENGTH_MM])
+    vertex_distance = np.linalg.norm(nodes_mm[faces] - base_pole_mm, axis=2).max(axis=1)
+    groups["fixed"] = faces[~on_cavity & (vertex_distance < FIXATION_RADIUS_MM)]
+    return TetMesh(nodes_mm * 1e-3, tets, groups)
+
+
+def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_mm: float) -> TetMesh:
+    """Mesh a thick hollow sphere (centre at the origin); groups ``cavity`` and ``outer``; nodes in metres.
+
+    Nodes of both spherical surfaces lie on the exact spheres (gmsh places them on the geometry).
+    """
+    with _Gmsh() as gmsh:
+        occ = gmsh.model.occ
+        outer = occ.addSphere(0.0, 0.0, 0.0, outer_radius_mm)
+        inner = occ.addSphere(0.0, 0.0, 0.0, inner_radius_mm)
+        solid, _ = occ.cut([(3, outer)], [(3, inner)])
+        occ.synchronize()
+        nodes_mm, tets = _mesh_solid(gmsh, solid[0], size_mm, 0)
+    faces, _ = boundary_faces(tets)
+    radius = np.linalg.norm(nodes_mm[faces].mean(axis=1), axis=1)
+    cavity = radius < 0.5 * (inner_radius_mm + outer_radius_mm)
+    return TetMesh(nodes_mm * 1e-3, tets, {"cavity": faces[cavity], "outer": faces[~cavity]})
+
+
+def builtin_prostate(size_mm: float | None = None) -> TetMesh:
+    """The built-in prostate mesh, from the on-disk cache (``phantom.cache_dir("meshes")``) or generated.
+
+    The cache key is the geometry version and the element size.
+    """
+    size_mm = DEFAULT_SIZE_MM if size_mm is None else float(size_mm)
+    cache_path = phantom.cache_dir("meshes") / f"prostate-v{PROSTATE_GEOMETRY_VERSION}-h{size_mm:.6g}mm.npz"
+    if cache_path.is_file():
+        try:
+            with np.load(cache_path) as stored:
+                groups = {key[len("group_"):]: stored[key] for key in stored.files if key.startswith("group_")}
+                return TetMesh(stored["nodes_m"], stored["tets"], groups)
+        except (OSError, ValueError, KeyError):
+            cache_path.unlink(missing_ok=True)
+    print(f"phantom: meshing the built-in prostate at {size_mm:g} mm (cached afterwards)...", file=sys.stderr)
+    mesh = generate_prostate(size_mm)
+    arrays = {"nodes_m": mesh.nodes_m, "tets": mesh.tets}
+    arrays.update({f"group_{name}": triangles for name, triangles in mesh.surface_groups.items()})
+    handle, temporary = tempfile.mkstemp(dir=cache_path.parent, suffix=".npz")
+    os.close(handle)
+    np.savez(temporary, **arrays)
+    os.replace(temporary, cache_path)
+    return mesh

@@ -1,0 +1,70 @@
+"""The thick hollow sphere (Lame): cavity and outer volume change against the closed form (physics.md).
+
+Convergence study on three meshes (h = 4, 2.83, 2 mm for a = 10 mm, b = 20 mm), done once by hand down to
+h = 1.41 mm (bench/README.md): the error falls as h^2 (fitted orders 1.8-2.0), and is large on coarse meshes
+because linear tetrahedra are too stiff (more so as nu nears 0.5). The tolerances below come from that study.
+"""
+
+import numpy as np
+import pytest
+
+from phantom.model import kernels
+from phantom.model.fem import PhantomModel
+from phantom.model.mesh import prepare_surfaces, volume_gradient_m2
+from phantom.model.scene import Material
+from phantom.model.shapes import generate_hollow_sphere
+
+INNER_MM, OUTER_MM = 10.0, 20.0
+SIZES_MM = (4.0, 2.83, 2.0)
+YOUNGS_MODULUS_PA = 50e3
+
+
+def lame_volume_changes_m3_per_pa(poisson_ratio):
+    """dV_cavity/p and dV_outer/p of the thick sphere (physics.md), m^3/Pa."""
+    a, b, e = INNER_MM * 1e-3, OUTER_MM * 1e-3, YOUNGS_MODULUS_PA
+    bulk = e / (3 * (1 - 2 * poisson_ratio))
+    shear = e / (2 * (1 + poisson_ratio))
+    cavity = 4 * np.pi * a**3 / (b**3 - a**3) * (a**3 / (3 * bulk) + b**3 / (4 * shear))
+    outer = 6 * np.pi * (1 - poisson_ratio) * a**3 * b**3 / (e * (b**3 - a**3))
+    return cavity, outer
+
+
+def sphere_model(size_mm, poisson_ratio):
+    mesh = generate_hollow_sphere(INNER_MM, OUTER_MM, size_mm)
+    surfaces = prepare_surfaces(mesh, ["cavity"], None, "sphere")
+    return PhantomModel(mesh, surfaces, ["cavity"], Material("linear", YOUNGS_MODULUS_PA, poisson_ratio))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("poisson_ratio", "extrapolated_tolerance"), [(0.3, 0.03), (0.45, 0.06)])
+def test_hollow_sphere_converges_at_second_order(poisson_ratio, extrapolated_tolerance):
+    exact = np.array(lame_volume_changes_m3_per_pa(poisson_ratio))
+    computed = []
+    for size_mm in SIZES_MM:
+        compliance = sphere_model(size_mm, poisson_ratio).compliance()
+        computed.append([compliance.chamber_m3_per_pa[0, 0], compliance.gland_m3_per_pa[0]])
+    errors = np.array(computed) / exact - 1.0
+    assert np.all(errors < 0), "linear tetrahedra are stiffer than the continuum"
+    assert np.all(np.diff(np.abs(errors), axis=0) < 0), "the error must fall as the mesh is refined"
+    orders = [np.polyfit(np.log(SIZES_MM), np.log(np.abs(errors[:, k])), 1)[0] for k in range(2)]
+    assert all(1.5 < order < 2.5 for order in orders), f"observed orders {orders}"
+    # Richardson extrapolation with order 2 from the two finest meshes (h ratio sqrt 2): 2 V(h) - V(sqrt2 h).
+    extrapolated = 2 * np.array(computed[-1]) - np.array(computed[-2])
+    assert np.abs(extrapolated / exact - 1).max() < extrapolated_tolerance
+
+
+def test_rigid_motion_is_removed_without_restraining_the_expansion():
+    model = sphere_model(5.0, 0.45)
+    pressure_pa = 100.0  # p/E = 2e-3: the co-rotational answer is linear to about that relative size
+    state = model.solve([pressure_pa], formulation="corotational")
+    compliance = model.compliance()
+    change = state.chamber_volumes_m3[0] - model.rest_chamber_volumes_m3[0]
+    assert change == pytest.approx(compliance.chamber_m3_per_pa[0, 0] * pressure_pa, rel=1e-2)
+    # The 3-2-1 constraints must carry no force: the full out-of-balance force, including the held dofs,
+    # vanishes at the solution (the pressure load is self-equilibrated).
+    dm_inverse, _, stiffness = kernels.element_rest_data(model.nodes_m, model.tets, YOUNGS_MODULUS_PA, 0.45)
+    forces, _, _ = kernels.internal_forces(state.positions_m, model.nodes_m, model.tets, dm_inverse, stiffness,
+                                           True, False, np.zeros((1, 12, 12), np.int64), np.zeros(1))
+    load = pressure_pa * volume_gradient_m2(state.positions_m, model.chamber_triangles[0])
+    reactions = (forces - load).ravel()[model.held_dofs]
+    assert np.abs(reactions).max() < 1e-6 * np.abs(load).max()

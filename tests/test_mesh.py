@@ -1,0 +1,230 @@
+"""Meshes: the built-in prostate's geometry, loading tagged meshes in three formats, and the checks on load."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import meshio
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from phantom.model import MeshError, PhantomModel, load_scene
+from phantom.model.mesh import TetMesh, enclosed_volume_m3, prepare_surfaces, read_mesh, write_mesh
+from phantom.model.shapes import (
+    CHAMBER_ELLIPSOIDS_MM,
+    DEFAULT_SIZE_MM,
+    REST_VOLUME_ML,
+    builtin_prostate,
+    generate_hollow_sphere,
+)
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+CHAMBERS = ["chamber0", "chamber1", "chamber2"]
+
+
+@pytest.fixture(scope="module")
+def prostate():
+    mesh = builtin_prostate()
+    return mesh, prepare_surfaces(mesh, CHAMBERS, "fixed", "builtin")
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return generate_hollow_sphere(10.0, 20.0, 6.0)
+
+
+def test_builtin_rest_volume_is_26_3_ml_within_1_percent(prostate):
+    mesh, surfaces = prostate
+    volume_ml = enclosed_volume_m3(mesh.nodes_m, surfaces.outer_triangles) * 1e6
+    # The geometry encloses exactly 26.3 ml; flat facets on a convex surface lose O(h^2) of it.
+    assert volume_ml == pytest.approx(REST_VOLUME_ML, rel=0.01)
+    assert volume_ml < REST_VOLUME_ML
+
+
+def test_builtin_dimensions_and_taper(prostate):
+    mesh, _ = prostate
+    extent_mm = np.ptp(mesh.nodes_m, axis=0) * 1e3
+    assert 40 <= extent_mm[0] <= 46  # left-right (physics.md: about 40-45 mm)
+    assert 25 <= extent_mm[1] <= 31  # front-back (25-30 mm)
+    assert 35 <= extent_mm[2] <= 41  # base-apex (35-40 mm)
+    z_mm = mesh.nodes_m[:, 2] * 1e3
+    width_at = [np.ptp(mesh.nodes_m[np.abs(z_mm - z) < 1.5, 0]) for z in (-10.0, 10.0)]
+    assert width_at[1] > 1.1 * width_at[0]  # wider toward the base (+z) than toward the apex
+
+
+def test_builtin_chambers_are_closed_and_placed(prostate):
+    mesh, surfaces = prostate
+    volumes_ml = [enclosed_volume_m3(mesh.nodes_m, t) * 1e6 for t in surfaces.chamber_triangles]
+    for (_, axes), volume_ml in zip(CHAMBER_ELLIPSOIDS_MM, volumes_ml, strict=True):
+        exact_ml = 4 / 3 * np.pi * np.prod(axes) * 1e-3
+        # Curvature-based refinement keeps each small cavity within a few percent of the ellipsoid's volume.
+        assert volume_ml == pytest.approx(exact_ml, rel=0.05)
+    centres = [mesh.nodes_m[np.unique(t)].mean(axis=0) * 1e3 for t in surfaces.chamber_triangles]
+    assert centres[0][2] > 5 and abs(centres[0][0]) < 0.1
+    assert centres[1][0] > 5 and centres[2][0] < -5
+
+
+def test_chambers_1_and_2_are_mirror_images(prostate):
+    mesh, surfaces = prostate
+    left = mesh.nodes_m[np.unique(surfaces.chamber_triangles[1])]
+    right = mesh.nodes_m[np.unique(surfaces.chamber_triangles[2])] * np.array([-1.0, 1.0, 1.0])
+    distances, _ = cKDTree(left).query(right)
+    assert len(left) == len(right) and distances.max() < 1e-12
+
+
+def test_walls_are_thick_enough_to_cast(prostate):
+    mesh, surfaces = prostate
+    walls = [*surfaces.chamber_triangles, surfaces.outer_triangles]
+    points = [mesh.nodes_m[np.unique(t)] for t in walls]
+    for i in range(len(points)):
+        for j in range(i + 1, len(points)):
+            distances, _ = cKDTree(points[j]).query(points[i])
+            assert distances.min() > 3.0e-3
+
+
+def test_fixed_patch_is_on_the_base_around_the_pole(prostate):
+    mesh, surfaces = prostate
+    patch_m = mesh.nodes_m[np.unique(surfaces.fixed_triangles)]
+    assert len(patch_m) >= 10
+    assert patch_m[:, 2].min() > 0.015
+    outer = set(np.unique(surfaces.outer_triangles).tolist())
+    assert set(np.unique(surfaces.fixed_triangles).tolist()) <= outer
+
+
+def test_builtin_mesh_is_cached_on_disk(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    first = builtin_prostate(6.0)
+    cached = list((tmp_path / "meshes").glob("prostate-*6mm.npz"))
+    assert len(cached) == 1
+    second = builtin_prostate(6.0)
+    np.testing.assert_array_equal(first.nodes_m, second.nodes_m)
+    np.testing.assert_array_equal(first.surface_groups["fixed"], second.surface_groups["fixed"])
+    with pytest.raises(MeshError, match="out of range"):
+        builtin_prostate(50.0)
+
+
+def write_scene(tmp_path, mesh_name, units="mm", chambers=("cavity",), fixed=None):
+    text = f'[phantom]\nmesh = "{mesh_name}"\nunits = "{units}"\nchambers = {list(chambers)!r}\n'
+    if fixed:
+        text += f'fixed = "{fixed}"\n'
+    path = tmp_path / f"{Path(mesh_name).stem}.toml"
+    path.write_text(text.replace("'", '"'))
+    return path
+
+
+def write_msh22(mesh: TetMesh, path: Path):
+    """MSH 2.2 as older tools write it: integer physical tags, names in field data."""
+    names = list(mesh.surface_groups)
+    triangles = np.concatenate([mesh.surface_groups[n] for n in names])
+    tags = np.concatenate([np.full(len(mesh.surface_groups[n]), k + 2) for k, n in enumerate(names)])
+    field_data = {"solid": np.array([1, 3])} | {n: np.array([k + 2, 2]) for k, n in enumerate(names)}
+    out = meshio.Mesh(mesh.nodes_m * 1e3, [("tetra", mesh.tets), ("triangle", triangles)],
+                      cell_data={"gmsh:physical": [np.ones(len(mesh.tets), int), tags],
+                                 "gmsh:geometrical": [np.ones(len(mesh.tets), int), tags]},
+                      field_data=field_data)
+    meshio.write(path, out, file_format="gmsh22", binary=False)
+
+
+@pytest.mark.parametrize("suffix", [".msh", ".vtu", "-v22.msh"])
+def test_tagged_meshes_load_in_each_format(tmp_path, sphere, suffix):
+    path = tmp_path / f"sphere{suffix}"
+    if suffix == "-v22.msh":
+        write_msh22(sphere, path)
+        assert path.read_text().startswith("$MeshFormat\n2.2")
+    else:
+        write_mesh(sphere, path)
+    scene = load_scene(write_scene(tmp_path, path.name))
+    model = PhantomModel.from_scene(scene)
+    reference = prepare_surfaces(sphere, ["cavity"], None, "sphere")
+    assert model.nodes_m.shape == sphere.nodes_m.shape
+    assert model.rest_chamber_volumes_m3[0] == pytest.approx(
+        enclosed_volume_m3(sphere.nodes_m, reference.chamber_triangles[0]), rel=1e-12)
+    assert model.rest_gland_volume_m3 == pytest.approx(
+        enclosed_volume_m3(sphere.nodes_m, reference.outer_triangles), rel=1e-12)
+
+
+def test_the_scene_unit_scales_the_mesh(tmp_path, sphere):
+    write_mesh(sphere, tmp_path / "s.msh")
+    in_cm = PhantomModel.from_scene(load_scene(write_scene(tmp_path, "s.msh", units="cm")))
+    assert in_cm.rest_gland_volume_m3 == pytest.approx(1e3 * enclosed_volume_m3(
+        sphere.nodes_m, prepare_surfaces(sphere, ["cavity"], None, "s").outer_triangles), rel=1e-12)
+
+
+def test_chamber_walls_are_oriented_whatever_the_file_says(tmp_path, sphere):
+    flipped = TetMesh(sphere.nodes_m, sphere.tets[:, [0, 2, 1, 3]],
+                      {"cavity": sphere.surface_groups["cavity"][:, ::-1], "outer": sphere.surface_groups["outer"]})
+    write_mesh(flipped, tmp_path / "f.msh")
+    model = PhantomModel.from_scene(load_scene(write_scene(tmp_path, "f.msh")))
+    assert model.rest_chamber_volumes_m3[0] == pytest.approx(4 / 3 * np.pi * 0.01**3, rel=0.1)
+
+
+def mesh_error(tmp_path, mesh: TetMesh, chambers=("cavity",), fixed=None, name="bad.msh") -> str:
+    write_mesh(mesh, tmp_path / name)
+    with pytest.raises(MeshError) as error:
+        PhantomModel.from_scene(load_scene(write_scene(tmp_path, name, chambers=chambers, fixed=fixed)))
+    return str(error.value)
+
+
+def test_a_missing_group_is_named_with_those_present(tmp_path, sphere):
+    message = mesh_error(tmp_path, sphere, chambers=("cavity", "chamber9"))
+    assert "'chamber9' is missing" in message and "cavity, outer" in message
+    assert "fixed group 'clamp' is missing" in mesh_error(tmp_path, sphere, fixed="clamp")
+
+
+def test_an_open_chamber_wall_is_refused(tmp_path, sphere):
+    groups = dict(sphere.surface_groups, cavity=sphere.surface_groups["cavity"][1:])
+    assert "is not closed (3 open edges)" in mesh_error(tmp_path, TetMesh(sphere.nodes_m, sphere.tets, groups))
+
+
+def test_a_chamber_that_is_not_a_boundary_is_refused(tmp_path, sphere):
+    interior = np.array([sphere.tets[0, :3]])
+    groups = dict(sphere.surface_groups, cavity=np.vstack([sphere.surface_groups["cavity"], interior]))
+    message = mesh_error(tmp_path, TetMesh(sphere.nodes_m, sphere.tets, groups))
+    assert "not on the boundary" in message
+
+
+def test_inverted_tets_are_refused(tmp_path, sphere):
+    tets = sphere.tets.copy()
+    tets[5] = tets[5, [0, 2, 1, 3]]
+    message = mesh_error(tmp_path, TetMesh(sphere.nodes_m, tets, sphere.surface_groups))
+    assert f"1 of {len(tets)} tetrahedra are inverted" in message and "tet 5" in message
+
+
+def test_degenerate_tets_are_refused(tmp_path, sphere):
+    tets = np.vstack([sphere.tets, [[0, 0, 1, 2]]])
+    message = mesh_error(tmp_path, TetMesh(sphere.nodes_m, tets, sphere.surface_groups), name="bad.vtu")
+    assert "1 degenerate (flat) tetrahedra" in message
+
+
+def test_nodes_outside_every_tet_are_refused(tmp_path, sphere):
+    nodes = np.vstack([sphere.nodes_m, [[1.0, 1.0, 1.0]]])
+    message = mesh_error(tmp_path, TetMesh(nodes, sphere.tets, sphere.surface_groups), name="bad.vtu")
+    assert "1 node(s) lie outside every tetrahedron" in message
+
+
+def test_a_surface_mesh_without_tets_is_refused(tmp_path, sphere):
+    path = tmp_path / "surface.vtu"
+    meshio.Mesh(sphere.nodes_m * 1e3, [("triangle", sphere.surface_groups["outer"])]).write(path)
+    with pytest.raises(MeshError, match="no tetrahedra"):
+        read_mesh(path, 1e-3)
+    with pytest.raises(MeshError, match="does not exist"):
+        read_mesh(tmp_path / "none.msh", 1e-3)
+
+
+def test_mesh_command_writes_a_loadable_file(tmp_path):
+    out = tmp_path / "prostate.msh"
+    result = subprocess.run([str(PHANTOM), "mesh", "--scene", "builtin", "--out", str(out), "--size-mm", "6"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "groups chamber0, chamber1, chamber2, fixed" in result.stdout
+    scene_path = write_scene(tmp_path, "prostate.msh", chambers=CHAMBERS, fixed="fixed")
+    model = PhantomModel.from_scene(load_scene(scene_path))
+    assert model.rest_gland_volume_m3 * 1e6 == pytest.approx(REST_VOLUME_ML, rel=0.03)
+    bad = subprocess.run([str(PHANTOM), "mesh", "--scene", str(scene_path), "--out", str(tmp_path / "x.msh"),
+                          "--size-mm", "2"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "built-in mesh only" in bad.stderr
+
+
+def test_default_size_is_documented():
+    assert DEFAULT_SIZE_MM == 2.5

@@ -1,0 +1,84 @@
+"""Scene files: the built-in scene, relative mesh paths, and clear errors for bad scenes."""
+
+import pytest
+
+from phantom import PhantomError
+from phantom.model import SceneError, load_scene
+from phantom.model.scene import builtin_scene_path
+
+
+def write_scene(tmp_path, text):
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    return path
+
+
+GOOD = """
+[phantom]
+mesh = "meshes/p.msh"
+units = "cm"
+chambers = ["a", "b"]
+
+[material]
+model = "linear"
+youngs_modulus_kpa = 20
+poisson_ratio = 0.3
+
+[[steps]]
+at_s = 0
+volume_ml = 30
+
+[host]
+rate_hz = 50
+"""
+
+
+def test_builtin_scene_names_the_shipped_file():
+    for name in ("builtin", "builtin:prostate"):
+        scene = load_scene(name)
+        assert scene.path == builtin_scene_path(name)
+        assert scene.mesh == "builtin:prostate"
+        assert scene.chambers == ["chamber0", "chamber1", "chamber2"]
+        assert scene.fixed == "fixed"
+        assert scene.material.model == "corotational"
+        assert scene.material.youngs_modulus_pa == pytest.approx(50e3)
+        assert scene.units == "mm" and scene.length_scale_m == 1e-3
+
+
+def test_a_scene_file_is_read_with_its_mesh_relative_to_it(tmp_path):
+    scene = load_scene(write_scene(tmp_path, GOOD))
+    assert scene.mesh == str((tmp_path / "meshes" / "p.msh").resolve())
+    assert scene.length_scale_m == pytest.approx(1e-2)
+    assert scene.fixed is None
+    assert scene.material.youngs_modulus_pa == pytest.approx(20e3)
+    assert scene.steps == [{"at_s": 0, "volume_ml": 30}]
+    assert scene.raw["host"] == {"rate_hz": 50}
+    assert scene.outputs.volumes and not scene.outputs.shape
+
+
+@pytest.mark.parametrize(
+    ("replace", "by", "message"),
+    [
+        ('units = "cm"', 'units = "inch"', "units = 'inch'"),
+        ('chambers = ["a", "b"]', "chambers = []", "chambers must be a non-empty list"),
+        ('chambers = ["a", "b"]', 'chambers = ["a", "a"]', "lists a group twice"),
+        ('model = "linear"', 'model = "neohookean"', "use 'corotational' or 'linear'"),
+        ("poisson_ratio = 0.3", "poisson_ratio = 0.5", "poisson_ratio must lie in (-1, 0.5)"),
+        ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = -1", "youngs_modulus_kpa must be a positive"),
+        ('mesh = "meshes/p.msh"', 'mesh = "builtin:liver"', "unknown built-in mesh"),
+        ("[phantom]", "[phantom_]", "the [phantom] table is missing"),
+    ],
+)
+def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
+    assert replace in GOOD
+    with pytest.raises(SceneError) as error:
+        load_scene(write_scene(tmp_path, GOOD.replace(replace, by)))
+    assert message in str(error.value)
+    assert isinstance(error.value, PhantomError)
+
+
+def test_missing_and_unparsable_scene_files(tmp_path):
+    with pytest.raises(SceneError, match="does not exist"):
+        load_scene(tmp_path / "nope.toml")
+    with pytest.raises(SceneError, match="not valid TOML"):
+        load_scene(write_scene(tmp_path, "[phantom\nmesh = 1"))
