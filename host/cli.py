@@ -13,7 +13,12 @@ import sys
 import phantom
 
 #: Modules that add subcommands, in the order they appear in ``phantom --help``.
-COMMAND_MODULES: tuple[str, ...] = ("phantom.model.cli", "phantom.hil.cli", "phantom.host.commands")
+COMMAND_MODULES: tuple[str, ...] = (
+    "phantom.model.cli",
+    "phantom.model.inverse_cli",
+    "phantom.hil.cli",
+    "phantom.host.commands",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,210 @@
+"""Three ways to answer "what volumes (and shape) do these chamber pressures give", from cheap to exact.
+
+``rest``
+    The rest compliance: ``c(p) = c_0 + W_0 p``, ``g(p) = g_0 + h_0 . p``, a 3x3 matrix product. The shape is
+    ``x = X + sum_i p_i D_i`` with ``D_i`` the displacement per pascal of chamber ``i``.
+``updated``
+    The compliance updated along the way: the pressure ray ``t p``, ``t`` in [0, 1], is followed in
+    ``steps`` increments with the midpoint rule, each taking the tangent displacement per pascal
+    ``D = K_t(x, p)^-1 H(x)^T`` at the half-step configuration (one sparse factorisation per increment; the
+    rest one is cached). ``K_t`` is the exact tangent of the co-rotational energy, including the stiffness of
+    the follower pressure load ``-sum_i p_i d^2 V_i / dx^2``. Volumes are then measured exactly on the
+    predicted nodes, so the geometric part of the nonlinearity is kept. For a small-strain (linear) material
+    the displacement is exactly the rest compliance's, so this level is the full answer at no solve.
+``full``
+    The full co-rotational solve (``model.solve``).
+
+Only what is asked for is computed: :meth:`VolumeEstimator.volumes` never forms nodal positions at the rest
+level, and nothing here builds meshes or stresses. ``counts`` records the work done (full solves, tangent
+solves, shapes formed) so that tests can show it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from phantom import PhantomError
+
+LEVELS = ("rest", "updated", "full")
+#: Volume accuracy assumed when a scene states none (percent of the volume).
+DEFAULT_ACCURACY_PCT = 1.0
+#: Pressure used to probe the levels' errors when a scene states no maximum (Pa).
+DEFAULT_PRESSURE_MAX_PA = 3000.0
+
+
+def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
+    """Node displacement per pascal of each chamber (n_chambers, nodes, 3) at a configuration under pressures:
+    ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the model's exact co-rotational tangent including the follower
+    pressure load's stiffness. Held dofs (rows of ``K_t`` that are a bare diagonal) get no displacement."""
+    from phantom.model.linsolve import Factorization
+
+    stiffness = model.stiffness_matrix(positions_m, "corotational", pressures_pa=pressures_pa).tocsr()
+    magnitudes = abs(stiffness)
+    held = np.asarray(magnitudes.sum(axis=1)).ravel() == magnitudes.diagonal()
+    gradients = model.volume_gradients(positions_m)[:-1]
+    gradients[:, held] = 0.0
+    displacement = Factorization(stiffness).solve(np.ascontiguousarray(gradients.T)).T
+    displacement[:, held] = 0.0
+    return displacement.reshape(len(pressures_pa), -1, 3)
+
+
+def scene_model_settings(model, scene=None) -> dict:
+    """The scene's optional ``[model]`` table (fidelity, accuracy_pct, pressure_max_kpa), or {}; the scene is
+    ``scene`` if given, else ``model.scene`` if the model keeps one."""
+    scene = scene if scene is not None else getattr(model, "scene", None)
+    raw = getattr(scene, "raw", None) or {}
+    settings = raw.get("model", {})
+    if not isinstance(settings, dict):
+        raise PhantomError("the scene's [model] must be a table with fidelity, accuracy_pct, pressure_max_kpa")
+    return settings
+
+
+def _checked_pressures(pressures_pa, n_chambers: int) -> np.ndarray:
+    pressures = np.asarray(pressures_pa, dtype=float).reshape(-1)
+    if pressures.shape != (n_chambers,):
+        raise PhantomError(f"give {n_chambers} chamber pressures, got {pressures.size}")
+    if not np.all(np.isfinite(pressures)):
+        raise PhantomError(f"chamber pressures must be finite numbers, got {pressures.tolist()} Pa")
+    return pressures
+
+
+class VolumeEstimator:
+    """Chamber and gland volumes (m^3), and on request the shape, at given chamber pressures (Pa).
+
+    Parameters
+    ----------
+    model : PhantomModel
+    level : {"rest", "updated", "full"} or None
+        None: the scene's ``[model] fidelity`` if it names one, else the cheapest level whose volume error
+        against the full solve, probed with every chamber at ``pressure_max_pa``, is within the scene's
+        ``accuracy_pct`` (default 1 %); cheapest = fastest on that probe. The probe's errors (% of the volume)
+        and times (s) are kept in ``probe_errors_pct`` and ``probe_times_s``.
+    accuracy_pct, pressure_max_pa : float, optional
+        Override the scene's ``[model] accuracy_pct`` (%) and ``pressure_max_kpa`` (given here in Pa).
+    steps : int
+        Increments of the ``updated`` level.
+    scene : Scene, optional
+        Where the ``[model]`` table is read (default: ``model.scene`` if the model keeps its scene).
+    """
+
+    def __init__(self, model, level: str | None = None, accuracy_pct: float | None = None,
+                 pressure_max_pa: float | None = None, steps: int = 1, scene=None):
+        settings = scene_model_settings(model, scene)
+        self.model = model
+        self.n_chambers = int(model.n_chambers)
+        self.steps = int(steps)
+        if self.steps < 1:
+            raise PhantomError(f"steps must be at least 1, got {steps}")
+        self.accuracy_pct = float(accuracy_pct if accuracy_pct is not None
+                                  else settings.get("accuracy_pct", DEFAULT_ACCURACY_PCT))
+        if not np.isfinite(self.accuracy_pct) or self.accuracy_pct <= 0:
+            raise PhantomError(f"accuracy_pct must be a positive percentage, got {self.accuracy_pct}")
+        if pressure_max_pa is None:
+            pressure_max_pa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3)) * 1e3
+        self.pressure_max_pa = float(pressure_max_pa)
+        self.counts = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
+        self.probe_errors_pct: dict[str, float] = {}
+        self.probe_times_s: dict[str, float] = {}
+        self._rest_compliance = None
+        self._last_positions_m = None
+        level = level if level is not None else settings.get("fidelity")
+        if level is None:
+            level = self._cheapest_level()
+        if level not in LEVELS:
+            raise PhantomError(f"fidelity must be one of {', '.join(LEVELS)}, got {level!r}")
+        self.level = level
+
+    # ----------------------------------------------------------------- public
+    def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
+        """Chamber volumes (m^3, one per chamber) and the gland volume (m^3) at ``pressures_pa``."""
+        chamber_volumes_m3, gland_volume_m3, _ = self.evaluate(pressures_pa)
+        return chamber_volumes_m3, gland_volume_m3
+
+    def shape(self, pressures_pa) -> np.ndarray:
+        """Nodal positions (m, shape (nodes, 3)) at ``pressures_pa``; computed only when called."""
+        pressures = _checked_pressures(pressures_pa, self.n_chambers)
+        self.counts["shapes"] += 1
+        if self.level == "rest":
+            return self._rest_positions(pressures)
+        if self.level == "updated":
+            return self._updated_positions(pressures)
+        return self._full_state(pressures).positions_m
+
+    def evaluate(self, pressures_pa):
+        """Volumes as :meth:`volumes`, plus the full solver state at the ``full`` level (else None)."""
+        pressures = _checked_pressures(pressures_pa, self.n_chambers)
+        if self.level == "rest":
+            compliance = self.rest_compliance
+            return (np.asarray(self.model.rest_chamber_volumes_m3, dtype=float) + compliance.chamber_m3_per_pa
+                    @ pressures, float(self.model.rest_gland_volume_m3 + compliance.gland_m3_per_pa @ pressures),
+                    None)
+        if self.level == "updated":
+            chamber_volumes_m3, gland_volume_m3 = self.model.volumes(self._updated_positions(pressures))
+            return np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3), None
+        state = self._full_state(pressures)
+        return np.asarray(state.chamber_volumes_m3, dtype=float), float(state.gland_volume_m3), state
+
+    @property
+    def rest_compliance(self):
+        """The model's rest compliance (computed once; the model caches it on disk)."""
+        if self._rest_compliance is None:
+            self._rest_compliance = self.model.compliance()
+        return self._rest_compliance
+
+    # ----------------------------------------------------------------- levels
+    def _rest_positions(self, pressures_pa: np.ndarray) -> np.ndarray:
+        displacement = np.asarray(self.rest_compliance.displacement_m_per_pa, dtype=float)
+        return np.asarray(self.model.nodes_m, dtype=float) + np.tensordot(pressures_pa, displacement, axes=1)
+
+    def _updated_positions(self, pressures_pa: np.ndarray) -> np.ndarray:
+        """Midpoint-rule path along ``t pressures_pa``: x_{k+1} = x_k + D(x_k + D(x_k) dp/2) dp."""
+        if getattr(self.model, "formulation", "corotational") == "linear":
+            # Small-strain material: the displacement is exactly linear in p, only the volume measure is not.
+            return self._rest_positions(pressures_pa)
+        positions_m = np.asarray(self.model.nodes_m, dtype=float).copy()
+        increment_pa = pressures_pa / self.steps
+        reached_pa = np.zeros(self.n_chambers)
+        if not np.any(pressures_pa):
+            return positions_m
+        for step in range(self.steps):
+            start_displacement = (self.rest_compliance.displacement_m_per_pa if step == 0
+                                  else self._tangent_displacement(positions_m, reached_pa))
+            half_positions_m = positions_m + 0.5 * np.tensordot(increment_pa, start_displacement, axes=1)
+            half_displacement = self._tangent_displacement(half_positions_m, reached_pa + 0.5 * increment_pa)
+            positions_m = positions_m + np.tensordot(increment_pa, half_displacement, axes=1)
+            reached_pa = reached_pa + increment_pa
+        return positions_m
+
+    def _tangent_displacement(self, positions_m: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
+        self.counts["tangent_solves"] += 1
+        return tangent_displacement_m_per_pa(self.model, positions_m, pressures_pa)
+
+    def _full_state(self, pressures_pa: np.ndarray):
+        self.counts["full_solves"] += 1
+        if getattr(self.model, "formulation", "corotational") == "linear":
+            # A small-strain solve takes its load on the starting configuration: it must start at rest.
+            return self.model.solve(pressures_pa)
+        state = self.model.solve(pressures_pa, initial_positions_m=self._last_positions_m)
+        self._last_positions_m = state.positions_m
+        return state
+
+    def _cheapest_level(self) -> str:
+        """Probe each level against the full solve with every chamber at the pressure limit; keep the fastest
+        (measured on the probe) whose volume error is within the stated accuracy. The full level always is."""
+        import time
+
+        probe_pa = np.full(self.n_chambers, self.pressure_max_pa)
+        self.level = "rest"
+        self.evaluate(probe_pa)  # the one-time rest compliance is not part of an answer's cost
+        results = {}
+        for level in ("full", "rest", "updated"):
+            self.level = level
+            started = time.perf_counter()
+            chambers, gland, _ = self.evaluate(probe_pa)
+            results[level] = (time.perf_counter() - started, np.append(chambers, gland))
+        reference = results["full"][1]
+        for level, (seconds, volumes) in results.items():
+            self.probe_errors_pct[level] = float(np.max(np.abs(volumes - reference) / np.abs(reference)) * 100)
+            self.probe_times_s[level] = seconds
+        meeting = [level for level in LEVELS if self.probe_errors_pct[level] <= self.accuracy_pct]
+        return min(meeting, key=lambda level: self.probe_times_s[level])

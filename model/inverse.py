@@ -1,0 +1,561 @@
+"""The inverse problem: which chamber pressures give a wanted gland or chamber volume.
+
+Around a state with pressures ``p_k`` (Pa), chamber volumes ``c_k`` and gland volume ``g_k`` (m^3), the
+volumes are linear in the pressures to first order:
+
+    c(p) = c_k + W_k (p - p_k)          g(p) = g_k + h_k . p - h_k . p_k
+
+with ``W_k`` the chamber compliance (m^3/Pa, symmetric) and ``h_k`` the gland compliance. Each target is a
+row ``a . p = b``. physics.md's formulation is the regularised least squares
+
+    minimise   1/2 |A p - b|^2 + epsilon/2 p^T W_0 p        (W_0: rest compliance, the actuation energy)
+    subject to 0 <= p <= p_max,  growth ratios (equalities),  growth limits (upper bounds)
+
+whose answer, as epsilon -> 0+, is the least actuation energy among the pressures that meet the targets: that
+is what a total-volume target (one combination of three pressures) needs to be unique and well spread. For a
+reachable target we solve that limit directly, which is exact and well conditioned (P = W_0):
+
+    minimise   1/2 p^T W_0 p    subject to  A p = b,  the bounds and constraints above
+
+and only when it is infeasible do we solve the least-squares form (epsilon = 1e-3 relative), to find the
+closest pressures and explain what is reachable. Both are QPs solved with OSQP, set up once per problem shape
+and updated in place, warm-started. The linearisation is then iterated (Newton with the tangent compliance at
+the full level, a chord iteration with ``W_0`` at the others): the volumes at the answer are recomputed at
+the solver's fidelity level, the compliance updated at the inflated state, until those volumes meet the
+target. Inside, the QP's pressures and volumes are scaled so that its entries are of order one.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from itertools import pairwise
+
+import numpy as np
+
+from phantom import PhantomError
+
+#: Millilitres per cubic metre, for messages.
+ML_PER_M3 = 1e6
+#: Weight of the actuation energy relative to the targets' curvature in the least-squares (closest) QP used
+#: when a target is out of reach, dimensionless: it fixes the null space of a rank-one (total volume) target.
+CLOSEST_REGULARISER_WEIGHT = 1e-3
+
+
+class UnreachableTargetError(PhantomError):
+    """A target no allowed pressures reach; the message states the reachable range."""
+
+
+class LimitPointError(UnreachableTargetError):
+    """The target lies at or past the pressure-control limit point, where the chamber snaps through."""
+
+
+@dataclass(frozen=True)
+class Target:
+    """What the inverse should reach (SI units).
+
+    Attributes
+    ----------
+    gland_volume_m3 : float or None
+        The gland's total volume (m^3), the paper's case.
+    chamber_volumes_m3 : list of (float or None), or None
+        One entry per chamber: its wanted volume (m^3), or None to leave it free.
+    growth_ratio : dict of int to float, or None
+        Chamber index -> weight: the growths (volume above rest) of the named chambers keep these proportions;
+        ``{1: 2.0, 2: 1.0}`` = the left lobe grows twice as much as the right. Weights must be positive.
+    pressures_pa : list of float, or None
+        Raw chamber pressures (Pa): no QP, only checked against the bounds.
+    """
+
+    gland_volume_m3: float | None = None
+    chamber_volumes_m3: list | None = None
+    growth_ratio: dict | None = None
+    pressures_pa: list | None = None
+
+
+@dataclass
+class InverseResult:
+    """The answer of :meth:`InverseSolver.solve` (SI units).
+
+    ``iterations`` counts linearisations (QP solves); ``solve_time_s`` is the whole inverse, including the
+    forward evaluations; ``qp_solve_time_s`` the OSQP time summed over the iterations.
+    """
+
+    pressures_pa: np.ndarray
+    predicted_gland_volume_m3: float
+    predicted_chamber_volumes_m3: np.ndarray
+    iterations: int
+    solve_time_s: float
+    qp_solve_time_s: float
+    history: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class Linearisation:
+    """Volumes and their derivatives at one state (SI): the QP's model of the forward problem."""
+
+    pressures_pa: np.ndarray
+    chamber_volumes_m3: np.ndarray
+    gland_volume_m3: float
+    chamber_m3_per_pa: np.ndarray
+    gland_m3_per_pa: np.ndarray
+
+    def predict(self, pressures_pa: np.ndarray) -> tuple[np.ndarray, float]:
+        """First-order chamber volumes (m^3) and gland volume (m^3) at ``pressures_pa``."""
+        step_pa = np.asarray(pressures_pa, dtype=float) - self.pressures_pa
+        return (self.chamber_volumes_m3 + self.chamber_m3_per_pa @ step_pa,
+                float(self.gland_volume_m3 + self.gland_m3_per_pa @ step_pa))
+
+
+def _finite(name: str, values) -> np.ndarray:
+    array = np.asarray(values, dtype=float)
+    if not np.all(np.isfinite(array)):
+        raise PhantomError(f"{name} must be finite numbers, got {np.asarray(values).tolist()}")
+    return array
+
+
+def _dense_csc_pattern(matrix: np.ndarray, upper: bool):
+    """A CSC matrix (scipy) holding every entry of ``matrix`` (the upper triangle only when ``upper``),
+    zeros included, so that later value updates keep one fixed sparsity pattern."""
+    from scipy import sparse
+
+    rows, columns = matrix.shape
+    data, indices, indptr = [], [], [0]
+    for column in range(columns):
+        last_row = column + 1 if upper else rows
+        indices.extend(range(last_row))
+        data.extend(matrix[:last_row, column])
+        indptr.append(len(indices))
+    return sparse.csc_matrix((np.array(data, dtype=float), np.array(indices), np.array(indptr)),
+                             shape=(rows, columns))
+
+
+def _dense_values(matrix: np.ndarray, upper: bool) -> np.ndarray:
+    """The values of :func:`_dense_csc_pattern` in storage order."""
+    if upper:
+        return np.concatenate([matrix[: column + 1, column] for column in range(matrix.shape[1])])
+    return matrix.T.reshape(-1).copy()
+
+
+class _Infeasible(Exception):
+    """The QP's constraints admit no point (internal: the caller falls back or explains)."""
+
+
+class VolumeQP:
+    """One OSQP problem of a fixed shape, in scaled units, updated in place and warm-started.
+
+    Variables: chamber pressures ``x`` (scaled). Objective ``1/2 x^T P x + q^T x``, constraints ``l <= C x <= u``
+    whose first rows are the identity (pressure bounds). The sparsity patterns are dense and fixed, so later
+    solves only update values.
+    """
+
+    def __init__(self, n_chambers: int, n_constraint_rows: int):
+        import osqp
+
+        self.n_chambers = n_chambers
+        self.n_constraint_rows = n_constraint_rows
+        self._osqp = osqp
+        self._problem = None
+
+    def solve(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
+              lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, float]:
+        """Solve the QP; returns the pressures (scaled) and OSQP's own solve time (s).
+
+        Raises ``_Infeasible`` when the constraints contradict each other.
+        """
+        if constraint_matrix.shape != (self.n_constraint_rows, self.n_chambers):
+            raise ValueError(f"constraint matrix shape {constraint_matrix.shape} does not match this QP")
+        if self._problem is None:
+            self._problem = self._osqp.OSQP()
+            self._problem.setup(_dense_csc_pattern(objective_hessian, upper=True), objective_linear,
+                                _dense_csc_pattern(constraint_matrix, upper=False), lower, upper,
+                                verbose=False, warm_starting=True, polishing=True, eps_abs=1e-10, eps_rel=1e-10,
+                                eps_prim_inf=1e-9, eps_dual_inf=1e-9, max_iter=20000)
+        else:
+            self._problem.update(Px=_dense_values(objective_hessian, upper=True),
+                                 Ax=_dense_values(constraint_matrix, upper=False),
+                                 q=objective_linear, l=lower, u=upper)
+        result = self._problem.solve(raise_error=False)
+        status = self._osqp.SolverStatus(result.info.status_val)
+        if status in (self._osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE,
+                      self._osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE):
+            raise _Infeasible()
+        if status not in (self._osqp.SolverStatus.OSQP_SOLVED, self._osqp.SolverStatus.OSQP_SOLVED_INACCURATE):
+            raise UnreachableTargetError(f"the volume QP did not solve (OSQP status {status.name}); "
+                                         "the compliance may be singular: check the model")
+        return np.asarray(result.x, dtype=float), float(result.info.solve_time)
+
+
+@dataclass
+class _Rows:
+    """A target turned into rows (in the QP's scaled units) at one linearisation."""
+
+    objective_rows: np.ndarray          # (k, n): scaled volume per scaled pressure
+    objective_targets: np.ndarray       # (k,): scaled volume
+    objective_names: list
+    constraint_rows: np.ndarray         # (m, n), after the n pressure-bound rows
+    constraint_lower: np.ndarray
+    constraint_upper: np.ndarray
+
+
+class InverseSolver:
+    """Chamber pressures (Pa) that give a wanted volume, for one model.
+
+    Parameters
+    ----------
+    model : PhantomModel
+        The forward model (``phantom.model``).
+    pressure_max_pa : float or sequence of float
+        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push).
+    fidelity : {"rest", "updated", "full"} or None
+        How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.VolumeEstimator`);
+        None takes the cheapest level that meets the scene's stated accuracy.
+    max_growth_m3 : float or sequence of (float or None), optional
+        Upper limit on each chamber's growth above its rest volume (m^3).
+    tolerance : float
+        Relative volume tolerance of the outer iteration (dimensionless, of the target volume).
+    max_iterations : int
+        Linearisations before giving up.
+    scene : Scene, optional
+        Where the ``[model]`` table (fidelity, accuracy) is read, if the model does not keep its scene.
+    estimator : VolumeEstimator, optional
+        A ready estimator to share (its level wins over ``fidelity``).
+    """
+
+    def __init__(self, model, pressure_max_pa=3000.0, fidelity: str | None = None, max_growth_m3=None,
+                 tolerance: float = 2e-5, max_iterations: int = 15, scene=None, estimator=None):
+        from phantom.model.fidelity import VolumeEstimator
+
+        self.model = model
+        self.n_chambers = int(model.n_chambers)
+        self.pressure_max_pa = np.broadcast_to(_finite("pressure_max_pa", pressure_max_pa),
+                                               (self.n_chambers,)).astype(float)
+        if np.any(self.pressure_max_pa <= 0):
+            raise PhantomError(f"pressure_max_pa must be positive, got {self.pressure_max_pa.tolist()}")
+        if max_growth_m3 is None:
+            max_growth_m3 = [None] * self.n_chambers
+        max_growth_m3 = list(np.broadcast_to(np.array(max_growth_m3, dtype=object), (self.n_chambers,)))
+        self.max_growth_m3 = [None if value is None else float(value) for value in max_growth_m3]
+        # QP units: pressures in units of the largest bound, volumes in units of the rest compliance's volume
+        # change at that pressure, so that every entry of the QP is of order one whatever E and the mesh.
+        self.pressure_per_pa = 1.0 / float(self.pressure_max_pa.max())
+        self.tolerance = float(tolerance)
+        self.max_iterations = int(max_iterations)
+        self.estimator = estimator or VolumeEstimator(model, level=fidelity, scene=scene,
+                                                      pressure_max_pa=float(self.pressure_max_pa.max()))
+        rest = model.compliance()
+        self.rest = Linearisation(np.zeros(self.n_chambers), np.asarray(model.rest_chamber_volumes_m3, dtype=float),
+                                  float(model.rest_gland_volume_m3), np.asarray(rest.chamber_m3_per_pa, dtype=float),
+                                  np.asarray(rest.gland_m3_per_pa, dtype=float))
+        eigenvalues = np.linalg.eigvalsh(0.5 * (self.rest.chamber_m3_per_pa + self.rest.chamber_m3_per_pa.T))
+        if not np.all(np.isfinite(eigenvalues)) or eigenvalues.min() <= 0:
+            raise PhantomError(f"the rest compliance is not positive definite (eigenvalues {eigenvalues.tolist()} "
+                               "m^3/Pa): the model is not restrained or not elastic; check the scene")
+        self.volume_per_m3 = 1.0 / (float(np.mean(eigenvalues)) / self.pressure_per_pa)
+        self._problems: dict[tuple, VolumeQP] = {}
+
+    # ----------------------------------------------------------------- targets -> rows
+    def _check_target(self, target: Target) -> None:
+        n = self.n_chambers
+        forms = [target.gland_volume_m3 is not None, target.chamber_volumes_m3 is not None,
+                 target.pressures_pa is not None]
+        if target.pressures_pa is not None and sum(forms) > 1:
+            raise PhantomError("a target gives either raw pressures or volumes, not both")
+        if not any(forms):
+            raise PhantomError("the target is empty: give a gland volume, chamber volumes or pressures")
+        if target.gland_volume_m3 is not None:
+            _finite("gland_volume_m3", target.gland_volume_m3)
+        if target.chamber_volumes_m3 is not None:
+            if len(target.chamber_volumes_m3) != n:
+                raise PhantomError(f"chamber_volumes_m3 needs {n} entries (None for a free chamber), "
+                                   f"got {len(target.chamber_volumes_m3)}")
+            for value in target.chamber_volumes_m3:
+                if value is not None:
+                    _finite("chamber_volumes_m3", value)
+        if target.growth_ratio is not None:
+            if len(target.growth_ratio) < 2:
+                raise PhantomError("a growth ratio relates at least two chambers, e.g. {1: 2.0, 2: 1.0}")
+            for index, weight in target.growth_ratio.items():
+                if not (isinstance(index, (int, np.integer)) and 0 <= index < n):
+                    raise PhantomError(f"growth_ratio names chamber {index!r}: chambers are 0..{n - 1}")
+                if not np.isfinite(weight) or weight <= 0:
+                    raise UnreachableTargetError(
+                        f"growth_ratio weight {weight} for chamber {index} asks for a chamber to shrink or stay: "
+                        "the blowers only inflate, so weights must be positive")
+
+    def _rows(self, target: Target, linearisation: Linearisation) -> _Rows:
+        """The target's rows and constraint rows at ``linearisation`` (scaled units)."""
+        scale = self.volume_per_m3 / self.pressure_per_pa
+        chamber_scaled_slope = linearisation.chamber_m3_per_pa * scale
+        gland_scaled_slope = linearisation.gland_m3_per_pa * scale
+        pressures_scaled = linearisation.pressures_pa * self.pressure_per_pa
+        # Constant parts: the volume the linear model gives at zero pressure.
+        chamber_offset_scaled = (linearisation.chamber_volumes_m3 * self.volume_per_m3
+                                 - chamber_scaled_slope @ pressures_scaled)
+        gland_offset_scaled = linearisation.gland_volume_m3 * self.volume_per_m3 - gland_scaled_slope @ pressures_scaled
+        rest_chamber_scaled = self.rest.chamber_volumes_m3 * self.volume_per_m3
+
+        rows, values, names = [], [], []
+        if target.gland_volume_m3 is not None:
+            rows.append(gland_scaled_slope)
+            values.append(target.gland_volume_m3 * self.volume_per_m3 - gland_offset_scaled)
+            names.append("gland")
+        for index, volume in enumerate(target.chamber_volumes_m3 or []):
+            if volume is not None:
+                rows.append(chamber_scaled_slope[index])
+                values.append(volume * self.volume_per_m3 - chamber_offset_scaled[index])
+                names.append(f"chamber {index}")
+
+        constraint_rows, lower, upper = [], [], []
+        if target.growth_ratio:
+            for (first, first_weight), (second, second_weight) in pairwise(sorted(target.growth_ratio.items())):
+                # growth_first / w_first = growth_second / w_second, growth = offset + row . x - rest
+                constraint_rows.append(second_weight * chamber_scaled_slope[first]
+                                       - first_weight * chamber_scaled_slope[second])
+                constant = (second_weight * (chamber_offset_scaled[first] - rest_chamber_scaled[first])
+                            - first_weight * (chamber_offset_scaled[second] - rest_chamber_scaled[second]))
+                lower.append(-constant)
+                upper.append(-constant)
+        for index, limit in enumerate(self.max_growth_m3):
+            if limit is not None:
+                constraint_rows.append(chamber_scaled_slope[index])
+                lower.append(-np.inf)
+                upper.append(limit * self.volume_per_m3 + rest_chamber_scaled[index] - chamber_offset_scaled[index])
+        n = self.n_chambers
+        return _Rows(np.array(rows, dtype=float).reshape(-1, n), np.array(values, dtype=float), names,
+                     np.array(constraint_rows, dtype=float).reshape(-1, n), np.array(lower, dtype=float),
+                     np.array(upper, dtype=float))
+
+    def _qp_inputs(self, rows: _Rows, exact: bool):
+        """OSQP data (scaled units). Exact: the targets are equalities and the objective is the actuation energy
+        ``1/2 x^T W_0 x``. Closest: the targets are least squares ``1/2 |A x - b|^2 + epsilon/2 x^T W_0 x``."""
+        n = self.n_chambers
+        rest_scaled_slope = self.rest.chamber_m3_per_pa * (self.volume_per_m3 / self.pressure_per_pa)
+        energy = 0.5 * (rest_scaled_slope + rest_scaled_slope.T)
+        bounds_lower, bounds_upper = np.zeros(n), self.pressure_max_pa * self.pressure_per_pa
+        if exact:
+            hessian, linear = energy, np.zeros(n)
+            constraint_matrix = np.vstack([np.eye(n), rows.objective_rows, rows.constraint_rows])
+            lower = np.concatenate([bounds_lower, rows.objective_targets, rows.constraint_lower])
+            upper = np.concatenate([bounds_upper, rows.objective_targets, rows.constraint_upper])
+            return hessian, linear, constraint_matrix, lower, upper
+        # Closest: the growth ratios join the least squares (the linearised ratio may not hold at any allowed
+        # pressure); the one-sided growth limits stay constraints.
+        equality = rows.constraint_lower == rows.constraint_upper
+        least_squares_rows = np.vstack([rows.objective_rows, rows.constraint_rows[equality]])
+        least_squares_targets = np.concatenate([rows.objective_targets, rows.constraint_upper[equality]])
+        curvature = least_squares_rows.T @ least_squares_rows
+        epsilon = CLOSEST_REGULARISER_WEIGHT * max(np.trace(curvature), 1e-12) / np.trace(energy)
+        constraint_matrix = np.vstack([np.eye(n), rows.constraint_rows[~equality]])
+        return (curvature + epsilon * energy, -least_squares_rows.T @ least_squares_targets, constraint_matrix,
+                np.concatenate([bounds_lower, rows.constraint_lower[~equality]]),
+                np.concatenate([bounds_upper, rows.constraint_upper[~equality]]))
+
+    def _problem(self, kind: str, rows: _Rows, n_constraint_rows: int) -> VolumeQP:
+        shape = (kind, len(rows.objective_names), n_constraint_rows)
+        problem = self._problems.get(shape)
+        if problem is None:
+            problem = self._problems[shape] = VolumeQP(self.n_chambers, n_constraint_rows)
+        return problem
+
+    def solve_linearised(self, target: Target, linearisation: Linearisation):
+        """One QP at ``linearisation``.
+
+        Returns the pressures (Pa), the OSQP time (s), the rows used, and whether the targets are met exactly
+        (False: no allowed pressures meet them to first order, and the pressures are the least-squares closest).
+        """
+        rows = self._rows(target, linearisation)
+        qp_time_s = 0.0
+        try:
+            inputs = self._qp_inputs(rows, exact=True)
+            pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).solve(*inputs)
+            reached = True
+        except _Infeasible:
+            inputs = self._qp_inputs(rows, exact=False)
+            try:
+                pressures_scaled, closest_time_s = self._problem("closest", rows, inputs[2].shape[0]).solve(*inputs)
+            except _Infeasible:
+                raise UnreachableTargetError(
+                    "the constraints contradict each other: no pressures between the bounds satisfy the growth "
+                    "ratio and growth limits together; relax one of them") from None
+            qp_time_s += closest_time_s
+            reached = False
+        pressures_scaled = np.clip(pressures_scaled, 0.0, self.pressure_max_pa * self.pressure_per_pa)
+        return pressures_scaled / self.pressure_per_pa, qp_time_s, rows, reached
+
+    def reachable_range_ml(self, target: Target, linearisation: Linearisation, row_name: str) -> tuple[float, float]:
+        """The least and greatest value (ml) of one target row over the allowed pressures, to first order
+        at ``linearisation`` (a linear program over the bounds and constraints)."""
+        from scipy.optimize import linprog
+
+        rows = self._rows(target, linearisation)
+        index = rows.objective_names.index(row_name)
+        offset_scaled = self._row_offset_scaled(linearisation, row_name)
+        bounds = [(0.0, value * self.pressure_per_pa) for value in self.pressure_max_pa]
+        equality = np.isfinite(rows.constraint_lower) & (rows.constraint_lower == rows.constraint_upper)
+        inequality = ~equality
+        extremes = []
+        for sign in (1.0, -1.0):
+            solution = linprog(sign * rows.objective_rows[index], bounds=bounds,
+                               A_eq=rows.constraint_rows[equality] if equality.any() else None,
+                               b_eq=rows.constraint_upper[equality] if equality.any() else None,
+                               A_ub=rows.constraint_rows[inequality] if inequality.any() else None,
+                               b_ub=rows.constraint_upper[inequality] if inequality.any() else None,
+                               method="highs")
+            if not solution.success:
+                raise UnreachableTargetError("the constraints contradict each other: no pressures between the "
+                                             "bounds satisfy them; relax the growth ratio or growth limits")
+            extremes.append((offset_scaled + float(rows.objective_rows[index] @ solution.x)) * ML_PER_M3
+                            / self.volume_per_m3)
+        return extremes[0], extremes[1]
+
+    # ----------------------------------------------------------------- the outer iteration
+    def _linearise(self, pressures_pa: np.ndarray, evaluation) -> Linearisation:
+        """The linearisation at an evaluated state: tangent compliance for the full level (exact and cheap for a
+        small-strain material), else the rest one (a chord iteration, which converges while the response is
+        mildly nonlinear)."""
+        chamber_volumes_m3, gland_volume_m3, state = evaluation
+        small_strain = getattr(self.model, "formulation", "corotational") == "linear"
+        if self.estimator.level != "rest" and small_strain and np.any(pressures_pa):
+            # Small strain: x = X + D_0 p exactly, so dV_i/dp_j = H_i(x) . D_0j (the volume measure's own
+            # nonlinearity is all there is).
+            displacement = np.asarray(self.estimator.rest_compliance.displacement_m_per_pa, dtype=float)
+            positions_m = np.asarray(self.model.nodes_m, dtype=float) + np.tensordot(pressures_pa, displacement, 1)
+            gradients = self.model.volume_gradients(positions_m) @ displacement.reshape(self.n_chambers, -1).T
+            slope_chamber, slope_gland = gradients[:-1], gradients[-1]
+        elif state is None or not np.any(pressures_pa):
+            slope_chamber, slope_gland = self.rest.chamber_m3_per_pa, self.rest.gland_m3_per_pa
+        else:
+            tangent = self.model.compliance(state)
+            slope_chamber = np.asarray(tangent.chamber_m3_per_pa, dtype=float)
+            slope_gland = np.asarray(tangent.gland_m3_per_pa, dtype=float)
+            eigenvalues = np.linalg.eigvalsh(0.5 * (slope_chamber + slope_chamber.T))
+            if not np.all(np.isfinite(eigenvalues)) or eigenvalues.min() <= 0:
+                raise LimitPointError(
+                    f"at pressures {np.round(pressures_pa / 1e3, 3).tolist()} kPa the tangent compliance has "
+                    f"eigenvalues {eigenvalues.tolist()} m^3/Pa: the phantom is at the pressure-control limit point "
+                    "(it would snap through); ask for a smaller volume, or control it by volume")
+        return Linearisation(pressures_pa.copy(), chamber_volumes_m3, gland_volume_m3, slope_chamber, slope_gland)
+
+    def solve(self, target: Target) -> InverseResult:
+        """The pressures (Pa) that reach ``target`` with the solver's fidelity level.
+
+        Raises
+        ------
+        UnreachableTargetError
+            The target needs pressures outside the bounds or contradicts the constraints; the message gives
+            the reachable range.
+        LimitPointError
+            The target lies past the pressure-control limit point.
+        """
+        started = time.perf_counter()
+        self._check_target(target)
+        if target.pressures_pa is not None:
+            return self._evaluate_raw_pressures(target, started)
+
+        linearisation = self.rest
+        pressures_pa = np.zeros(self.n_chambers)
+        qp_time_s = 0.0
+        history = []
+        previous_pressures_pa = None
+        for iteration in range(1, self.max_iterations + 1):
+            pressures_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation)
+            qp_time_s += qp_step_s
+            evaluation = self._evaluate(pressures_pa)
+            chamber_volumes_m3, gland_volume_m3, _ = evaluation
+            error = self._relative_error(target, chamber_volumes_m3, gland_volume_m3)
+            history.append({"pressures_pa": pressures_pa.tolist(), "relative_error": error, "reached": reached})
+            settled = previous_pressures_pa is not None and np.allclose(
+                pressures_pa, previous_pressures_pa, rtol=1e-6, atol=1e-6 * float(self.pressure_max_pa.max()))
+            if not reached and (settled or self.estimator.level == "rest"):
+                residual_scaled = rows.objective_rows @ (pressures_pa * self.pressure_per_pa) - rows.objective_targets
+                worst = rows.objective_names[int(np.argmax(np.abs(residual_scaled) / self._row_offsets_scaled(rows)))]
+                low_ml, high_ml = self.reachable_range_ml(target, linearisation, worst)
+                raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
+            if reached and error <= self.tolerance:
+                return InverseResult(pressures_pa, gland_volume_m3, chamber_volumes_m3, iteration,
+                                     time.perf_counter() - started, qp_time_s, history)
+            previous_pressures_pa = pressures_pa
+            linearisation = self._linearise(pressures_pa, evaluation)
+        errors = [round(entry["relative_error"] * 100, 4) for entry in history]
+        raise LimitPointError(
+            f"the inverse did not converge in {len(history)} linearisations (relative volume errors {errors} %): "
+            "the response is too nonlinear here, which happens near the pressure-control limit point; "
+            "ask for a smaller volume")
+
+    def _evaluate(self, pressures_pa: np.ndarray):
+        """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
+        past the limit point."""
+        from phantom.model.errors import SolveError
+
+        try:
+            return self.estimator.evaluate(pressures_pa)
+        except SolveError as error:
+            raise LimitPointError(
+                f"the forward model has no equilibrium at {np.round(pressures_pa / 1e3, 4).tolist()} kPa ({error}): "
+                "the target lies past the pressure-control limit point; ask for a smaller volume") from error
+
+    def _relative_error(self, target: Target, chamber_volumes_m3, gland_volume_m3) -> float:
+        errors = []
+        if target.gland_volume_m3 is not None:
+            errors.append(abs(gland_volume_m3 - target.gland_volume_m3) / abs(target.gland_volume_m3))
+        for index, volume in enumerate(target.chamber_volumes_m3 or []):
+            if volume is not None:
+                errors.append(abs(chamber_volumes_m3[index] - volume) / abs(volume))
+        if target.growth_ratio:
+            growth_m3 = np.asarray(chamber_volumes_m3) - self.rest.chamber_volumes_m3
+            shares_m3 = np.array([growth_m3[index] / weight for index, weight in sorted(target.growth_ratio.items())])
+            errors.append(float(np.ptp(shares_m3) / max(np.abs(shares_m3).max(), 1e-30)))
+        return max(errors) if errors else 0.0
+
+    def _row_offsets_scaled(self, rows: _Rows) -> np.ndarray:
+        """A volume scale per row (ml): the rest volume of what the row targets."""
+        offsets = []
+        for name in rows.objective_names:
+            if name == "gland":
+                offsets.append(self.rest.gland_volume_m3 * self.volume_per_m3)
+            else:
+                offsets.append(self.rest.chamber_volumes_m3[int(name.split()[1])] * self.volume_per_m3)
+        return np.array(offsets)
+
+    def _unreachable_message(self, target: Target, row_name: str, low_ml: float, high_ml: float) -> str:
+        wanted_ml = (target.gland_volume_m3 if row_name == "gland"
+                     else target.chamber_volumes_m3[int(row_name.split()[1])]) * ML_PER_M3
+        what = "the gland volume" if row_name == "gland" else f"the volume of {row_name}"
+        limits = ", ".join(f"{value / 1e3:g}" for value in self.pressure_max_pa)
+        constraints = []
+        if target.growth_ratio:
+            constraints.append(f"growth ratio {dict(target.growth_ratio)}")
+        if any(limit is not None for limit in self.max_growth_m3):
+            constraints.append("growth limits")
+        with_constraints = f" with the {' and '.join(constraints)}" if constraints else ""
+        if low_ml - 1e-9 <= wanted_ml <= high_ml + 1e-9:
+            return (f"{what} target {wanted_ml:.3f} ml is within the reachable range {low_ml:.3f}-{high_ml:.3f} ml "
+                    f"on its own, but contradicts the other targets{with_constraints}; drop or change one of them")
+        return (f"{what} target {wanted_ml:.3f} ml is unreachable: pressures between 0 and [{limits}] kPa"
+                f"{with_constraints} give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range "
+                "or raise pressure_max")
+
+    def _row_offset_scaled(self, linearisation: Linearisation, row_name: str) -> float:
+        """The constant part (QP volume units) of one row's linear volume model: volume = offset + row . x."""
+        scale = self.volume_per_m3 / self.pressure_per_pa
+        pressures_scaled = linearisation.pressures_pa * self.pressure_per_pa
+        if row_name == "gland":
+            return float(linearisation.gland_volume_m3 * self.volume_per_m3
+                         - (linearisation.gland_m3_per_pa * scale) @ pressures_scaled)
+        chamber = int(row_name.split()[1])
+        return float(linearisation.chamber_volumes_m3[chamber] * self.volume_per_m3
+                     - (linearisation.chamber_m3_per_pa[chamber] * scale) @ pressures_scaled)
+
+    def _evaluate_raw_pressures(self, target: Target, started: float) -> InverseResult:
+        pressures_pa = _finite("pressures_pa", target.pressures_pa)
+        if pressures_pa.shape != (self.n_chambers,):
+            raise PhantomError(f"pressures_pa needs {self.n_chambers} values, got {pressures_pa.size}")
+        if np.any(pressures_pa < 0) or np.any(pressures_pa > self.pressure_max_pa):
+            raise UnreachableTargetError(
+                f"pressures {(pressures_pa / 1e3).tolist()} kPa are outside the allowed 0 to "
+                f"{(self.pressure_max_pa / 1e3).tolist()} kPa: the blowers only push, and the limit protects the "
+                "phantom")
+        chamber_volumes_m3, gland_volume_m3, _ = self.estimator.evaluate(pressures_pa)
+        return InverseResult(pressures_pa, gland_volume_m3, chamber_volumes_m3, 0, time.perf_counter() - started,
+                             0.0, [])

@@ -1,0 +1,167 @@
+"""Subcommands of ``phantom``: ``inverse`` (pressures for a wanted volume) and ``calibrate`` (fit the material).
+
+Only argparse is imported at module load; handlers import what they need when they run.
+"""
+
+import argparse
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``inverse`` and ``calibrate`` to the ``phantom`` parser."""
+    inverse = subparsers.add_parser(
+        "inverse", help="chamber pressures that give a wanted volume (offline)",
+        description="Solve the inverse problem: the chamber pressures (kPa) that give a wanted gland volume, "
+                    "chamber volumes, or a gland volume with a growth ratio between chambers.")
+    inverse.add_argument("--scene", default="builtin", help="scene TOML path or 'builtin' (default)")
+    target = inverse.add_mutually_exclusive_group(required=True)
+    target.add_argument("--volume-ml", type=float, help="the gland's total volume (ml)")
+    target.add_argument("--chamber-volumes-ml",
+                        help="one volume (ml) per chamber, comma-separated; '-' leaves a chamber free")
+    target.add_argument("--pressures-kpa", help="raw pressures (kPa), comma-separated: only bounds-checked")
+    inverse.add_argument("--growth-ratio",
+                         help="with --volume-ml: chamber:weight pairs, e.g. '1:2,2:1' = chamber 1 grows twice "
+                              "as much as chamber 2")
+    inverse.add_argument("--max-growth-ml",
+                         help="upper limit on each chamber's growth above rest (ml), comma-separated; '-' for none")
+    inverse.add_argument("--pressure-max-kpa", type=float,
+                         help="upper pressure bound per chamber (kPa; default: the scene's, else 3)")
+    inverse.add_argument("--fidelity", choices=("rest", "updated", "full"),
+                         help="forward model the answer must satisfy (default: the scene's, else full)")
+    inverse.add_argument("--size-mm", type=float, help="element size of the built-in mesh (mm)")
+    inverse.add_argument("--json", action="store_true", help="print one JSON object")
+    inverse.set_defaults(run=run_inverse)
+
+    calibrate = subparsers.add_parser(
+        "calibrate", help="fit Young's modulus to measured volumes (offline)",
+        description="Fit the scene's Young's modulus to measured gland volumes by least squares, report the fit "
+                    "and leave-one-out errors, and write a scene with the fitted value.")
+    calibrate.add_argument("--scene", default="builtin", help="scene TOML path or 'builtin' (default)")
+    calibrate.add_argument("--measurements", required=True,
+                           help="CSV with columns p0_kpa,p1_kpa,...,measured_ml")
+    calibrate.add_argument("--output", help="scene file to write (default: <scene>_calibrated.toml here)")
+    calibrate.add_argument("--size-mm", type=float, help="element size of the built-in mesh (mm)")
+    calibrate.add_argument("--json", action="store_true", help="print one JSON object")
+    calibrate.set_defaults(run=run_calibrate)
+
+
+def _parse_list(text: str, option: str, allow_free: bool = False) -> list:
+    from phantom import PhantomError
+
+    values = []
+    for item in text.split(","):
+        item = item.strip()
+        if allow_free and item in ("-", ""):
+            values.append(None)
+            continue
+        try:
+            values.append(float(item))
+        except ValueError:
+            raise PhantomError(f"{option} takes comma-separated numbers{' or -' if allow_free else ''}, "
+                               f"got {text!r}") from None
+    return values
+
+
+def _parse_growth_ratio(text: str) -> dict:
+    from phantom import PhantomError
+
+    ratio = {}
+    for pair in text.split(","):
+        chamber, _, weight = pair.partition(":")
+        try:
+            ratio[int(chamber)] = float(weight)
+        except ValueError:
+            raise PhantomError(f"--growth-ratio takes chamber:weight pairs such as '1:2,2:1', got {text!r}") from None
+    return ratio
+
+
+def _load_model(args):
+    from phantom.model import PhantomModel, load_scene
+
+    scene = load_scene(args.scene)
+    return scene, PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
+
+
+def run_inverse(args) -> int:
+    """Handler of ``phantom inverse``."""
+    import json
+
+    from phantom import PhantomError
+    from phantom.model.fidelity import scene_model_settings
+    from phantom.model.inverse import InverseSolver, Target
+
+    if args.growth_ratio and args.volume_ml is None:
+        raise PhantomError("--growth-ratio goes with --volume-ml (the gland volume it shares out)")
+    scene, model = _load_model(args)
+    settings = scene_model_settings(model, scene)
+    pressure_max_kpa = args.pressure_max_kpa or float(settings.get("pressure_max_kpa", 3.0))
+    fidelity = args.fidelity or settings.get("fidelity", "full")
+    if args.volume_ml is not None:
+        target = Target(gland_volume_m3=args.volume_ml * 1e-6,
+                        growth_ratio=_parse_growth_ratio(args.growth_ratio) if args.growth_ratio else None)
+    elif args.chamber_volumes_ml is not None:
+        volumes = _parse_list(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True)
+        target = Target(chamber_volumes_m3=[None if value is None else value * 1e-6 for value in volumes])
+    else:
+        target = Target(pressures_pa=[value * 1e3 for value in _parse_list(args.pressures_kpa, "--pressures-kpa")])
+    max_growth_m3 = None
+    if args.max_growth_ml:
+        limits_ml = _parse_list(args.max_growth_ml, "--max-growth-ml", allow_free=True)
+        if len(limits_ml) != model.n_chambers:
+            raise PhantomError(f"--max-growth-ml needs {model.n_chambers} values ('-' for none), got {len(limits_ml)}")
+        max_growth_m3 = [None if value is None else value * 1e-6 for value in limits_ml]
+    solver = InverseSolver(model, pressure_max_pa=pressure_max_kpa * 1e3, fidelity=fidelity, scene=scene,
+                           max_growth_m3=max_growth_m3)
+    result = solver.solve(target)
+    report = {
+        "pressures_kpa": (result.pressures_pa / 1e3).tolist(),
+        "predicted_volume_ml": result.predicted_gland_volume_m3 * 1e6,
+        "predicted_chamber_volumes_ml": (result.predicted_chamber_volumes_m3 * 1e6).tolist(),
+        "iterations": result.iterations,
+        "solve_time_s": result.solve_time_s,
+        "qp_solve_time_s": result.qp_solve_time_s,
+        "fidelity": solver.estimator.level,
+    }
+    if args.json:
+        print(json.dumps(report))
+    else:
+        pressures = ", ".join(f"{value:.4f}" for value in report["pressures_kpa"])
+        chambers = ", ".join(f"{value:.3f}" for value in report["predicted_chamber_volumes_ml"])
+        print(f"pressures: {pressures} kPa\npredicted gland volume: {report['predicted_volume_ml']:.4f} ml\n"
+              f"predicted chamber volumes: {chambers} ml\niterations: {result.iterations} ({report['fidelity']} "
+              f"model), {result.solve_time_s * 1e3:.1f} ms (QP {result.qp_solve_time_s * 1e6:.0f} us)")
+    return 0
+
+
+def run_calibrate(args) -> int:
+    """Handler of ``phantom calibrate``."""
+    import json
+    from pathlib import Path
+
+    from phantom.model.calibrate import calibrate, load_measurements, stderr_progress, write_calibrated_scene
+
+    scene, model = _load_model(args)
+    measurements = load_measurements(args.measurements, n_chambers=model.n_chambers)
+    result = calibrate(model, measurements, scene.material.youngs_modulus_pa,
+                       progress=stderr_progress("calibrate: solving along the rays"))
+    stem = Path(scene.path).stem if scene.path else "scene"
+    output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
+    best = result.best
+    comment = (f"Calibrated by `phantom calibrate` on {Path(measurements.path).name} ({len(measurements.volumes_m3)} "
+               f"points): {best.formulation} material, E = {best.youngs_modulus_pa / 1e3:.3f} kPa,\n"
+               f"fit mean |error| {best.fit_mean_abs_pct_error:.2f} %, leave-one-out "
+               f"{best.loo_mean_abs_pct_error:.2f} % (the lowest leave-one-out error of: "
+               + ", ".join(f"{name} {fit.loo_mean_abs_pct_error:.2f} %" for name, fit in result.candidates.items())
+               + f").\nSource scene: {args.scene}; mesh size: {args.size_mm or 'default'} mm.")
+    written = write_calibrated_scene(scene, best.youngs_modulus_pa, output, comment, material_model=best.formulation)
+    report = result.as_json(measurements)
+    report["scene_written"] = str(written)
+    if args.json:
+        print(json.dumps(report))
+    else:
+        for name, fit in result.candidates.items():
+            limit = " (at the search limit: the solver reached its limit point first)" if fit.at_search_limit else ""
+            print(f"{name:>13}: E {fit.youngs_modulus_pa / 1e3:8.3f} kPa, fit mean |error| "
+                  f"{fit.fit_mean_abs_pct_error:6.3f} %, leave-one-out {fit.loo_mean_abs_pct_error:6.3f} %{limit}")
+        print(f"kept {best.formulation}: Young's modulus {best.youngs_modulus_pa / 1e3:.3f} kPa, leave-one-out "
+              f"{best.loo_mean_abs_pct_error:.3f} %\nwrote {written}")
+    return 0

@@ -1,0 +1,202 @@
+"""The three fidelity levels on the real finite-element model, against the full co-rotational solve.
+
+A coarse built-in mesh (6 mm) keeps this quick; the accuracy of each level against mesh size is measured in
+bench/model_fidelity.py, not here.
+"""
+
+import numpy as np
+import pytest
+from scipy import sparse
+
+from phantom import PhantomError
+from phantom.model import PhantomModel, load_scene
+from phantom.model.fidelity import VolumeEstimator, tangent_displacement_m_per_pa
+from phantom.model.mesh import enclosed_volume_m3, volume_gradient_m2
+
+COARSE_MM = 6.0
+
+
+def skew(vectors):
+    """Cross-product matrices [v]_x (k, 3, 3) of vectors (k, 3)."""
+    zero = np.zeros(len(vectors))
+    x, y, z = vectors.T
+    return np.stack([np.stack([zero, -z, y], -1), np.stack([z, zero, -x], -1), np.stack([-y, x, zero], -1)], 1)
+
+
+def volume_hessian(positions_m, triangles):
+    """Second derivative (1/m, sparse) of V = sum_t x_a . (x_b x x_c) / 6, written out independently of the
+    model: per triangle d^2V/dx_a dx_b = -[x_c]_x / 6 cyclically, with the transposed blocks +[x_c]_x / 6."""
+    rows, columns, values = [], [], []
+    corners = [triangles[:, k] for k in range(3)]
+    for first, second, third in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        block = -skew(positions_m[corners[third]]) / 6.0
+        for row_nodes, column_nodes, matrix in ((corners[first], corners[second], block),
+                                                (corners[second], corners[first], -block)):
+            rows.append((3 * row_nodes[:, None, None] + np.arange(3)[None, :, None]).repeat(3, 2).ravel())
+            columns.append((3 * column_nodes[:, None, None] + np.arange(3)[None, None, :]).repeat(3, 1).ravel())
+            values.append(matrix.ravel())
+    return sparse.csr_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(columns))),
+                             shape=(positions_m.size, positions_m.size))
+
+
+@pytest.fixture(scope="module")
+def model():
+    return PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=COARSE_MM)
+
+
+class CountingModel:
+    """The real model, with every call to the methods that build positions or shapes counted."""
+
+    def __init__(self, model):
+        self._model = model
+        self.calls = {"solve": 0, "volumes": 0, "stiffness_matrix": 0, "compliance_at_state": 0}
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def solve(self, *args, **kwargs):
+        self.calls["solve"] += 1
+        return self._model.solve(*args, **kwargs)
+
+    def volumes(self, positions_m):
+        self.calls["volumes"] += 1
+        return self._model.volumes(positions_m)
+
+    def stiffness_matrix(self, *args, **kwargs):
+        self.calls["stiffness_matrix"] += 1
+        return self._model.stiffness_matrix(*args, **kwargs)
+
+    def compliance(self, state=None):
+        if state is not None:
+            self.calls["compliance_at_state"] += 1
+        return self._model.compliance(state)
+
+
+def test_the_volume_hessian_is_the_derivative_of_the_volume_gradient():
+    # An octahedron (closed), perturbed: central differences of the model's own volume gradient.
+    nodes_m = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float) * 0.01
+    triangles = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    assert enclosed_volume_m3(nodes_m, triangles) == pytest.approx(4 / 3 * 0.01**3)
+    rng = np.random.default_rng(1)
+    positions_m = nodes_m + rng.normal(scale=1e-3, size=nodes_m.shape)
+    hessian = volume_hessian(positions_m, triangles)
+    assert abs(hessian - hessian.T).max() == 0.0
+    step_m = rng.normal(size=nodes_m.shape) * 1e-6
+    difference = (volume_gradient_m2(positions_m + step_m, triangles)
+                  - volume_gradient_m2(positions_m - step_m, triangles)).ravel() / 2
+    # The gradient is quadratic in x, so the central difference is exact up to rounding.
+    np.testing.assert_allclose(hessian @ step_m.ravel(), difference, rtol=0, atol=1e-12 * np.abs(difference).max())
+
+
+def test_at_rest_the_tangent_is_the_rest_compliance(model):
+    tangent = tangent_displacement_m_per_pa(model, model.nodes_m, np.zeros(model.n_chambers))
+    np.testing.assert_allclose(tangent, model.compliance().displacement_m_per_pa, rtol=1e-8,
+                               atol=1e-10 * np.abs(tangent).max())
+
+
+def test_the_models_load_stiffness_is_the_pressure_times_the_volume_hessian(model):
+    # The tangent the updated level relies on, checked against the Hessian written out above.
+    positions_m = model.solve([2000.0, 0.0, 0.0]).positions_m
+    pressures_pa = np.array([2000.0, 500.0, 0.0])
+    loaded = model.stiffness_matrix(positions_m, "corotational", pressures_pa=pressures_pa)
+    unloaded = model.stiffness_matrix(positions_m, "corotational")
+    expected = -sum(pressure * volume_hessian(positions_m, triangles)
+                    for pressure, triangles in zip(pressures_pa, model.chamber_triangles, strict=True))
+    difference = (loaded - unloaded - expected).toarray()
+    assert np.abs(difference).max() <= 1e-9 * np.abs(unloaded.toarray()).max()
+
+
+def test_levels_approach_the_full_solve_in_order(model):
+    pressures_pa = np.array([3000.0, 2000.0, 1000.0])
+    full = VolumeEstimator(model, level="full").volumes(pressures_pa)
+    rest = VolumeEstimator(model, level="rest").volumes(pressures_pa)
+    errors = {}
+    for steps in (1, 2):
+        updated = VolumeEstimator(model, level="updated", steps=steps).volumes(pressures_pa)
+        errors[steps] = abs(updated[1] - full[1])
+    growth = full[1] - model.rest_gland_volume_m3
+    rest_error = abs(rest[1] - full[1])
+    # The co-rotational response softens: the rest compliance under-predicts the growth; each tangent update
+    # (midpoint rule, second order) cuts the error.
+    assert rest[1] < full[1]
+    assert errors[1] < 0.5 * rest_error
+    assert errors[2] < 0.5 * errors[1]
+    assert errors[2] < 0.01 * growth
+
+
+def test_a_volumes_only_scene_never_builds_shapes(model):
+    counting = CountingModel(model)
+    estimator = VolumeEstimator(counting, level="rest")
+    timeline_pa = np.linspace(0, 3000, 25)[:, None] * np.array([1.0, 0.5, 0.25])
+    volumes = [estimator.volumes(pressures) for pressures in timeline_pa]
+    assert len(volumes) == 25
+    assert counting.calls == {"solve": 0, "volumes": 0, "stiffness_matrix": 0, "compliance_at_state": 0}
+    assert estimator.counts == {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
+    # Asking for the shape is what builds it, once per call.
+    positions_m = estimator.shape(timeline_pa[-1])
+    assert positions_m.shape == model.nodes_m.shape
+    assert estimator.counts["shapes"] == 1
+    # The linear shape and the linear volumes agree to first order: both come from the same compliance.
+    linear_volume = estimator.volumes(timeline_pa[1])[1]
+    shape_volume = model.volumes(estimator.shape(timeline_pa[1]))[1]
+    assert shape_volume == pytest.approx(linear_volume, rel=1e-5)
+
+
+def test_the_cheapest_level_meeting_the_stated_accuracy_is_chosen(model):
+    loose = VolumeEstimator(model, accuracy_pct=50.0, pressure_max_pa=3000.0)
+    assert loose.level == "rest"
+    assert loose.probe_times_s["rest"] < loose.probe_times_s["full"]
+    strict = VolumeEstimator(model, accuracy_pct=1e-9, pressure_max_pa=3000.0)
+    assert strict.level == "full"
+    assert strict.probe_errors_pct["full"] == 0.0
+    assert strict.probe_errors_pct["rest"] > strict.probe_errors_pct["updated"] > 1e-9
+    middle_pct = 0.5 * (strict.probe_errors_pct["rest"] + strict.probe_errors_pct["updated"])
+    middle = VolumeEstimator(model, accuracy_pct=middle_pct, pressure_max_pa=3000.0)
+    # rest misses the accuracy; of the two that meet it, the faster on the probe is kept.
+    assert middle.level in ("updated", "full")
+    other = "full" if middle.level == "updated" else "updated"
+    assert middle.probe_times_s[middle.level] <= middle.probe_times_s[other]
+
+
+def test_the_scene_model_table_picks_the_level(tmp_path, model):
+    scene_path = tmp_path / "scene.toml"
+    scene_path.write_text('[phantom]\nmesh = "builtin:prostate"\nchambers = ["chamber0", "chamber1", "chamber2"]\n'
+                          'fixed = "fixed"\n[model]\nfidelity = "updated"\naccuracy_pct = 2.0\n')
+    estimator = VolumeEstimator(model, scene=load_scene(scene_path))
+    assert estimator.level == "updated"
+    assert estimator.accuracy_pct == 2.0
+
+
+@pytest.mark.parametrize("arguments, message", [
+    ({"level": "medium"}, "fidelity must be one of rest, updated, full"),
+    ({"level": "rest", "accuracy_pct": -1.0}, "positive percentage"),
+    ({"level": "rest", "accuracy_pct": float("nan")}, "positive percentage"),
+    ({"level": "updated", "steps": 0}, "at least 1"),
+])
+def test_bad_settings_are_refused(model, arguments, message):
+    with pytest.raises(PhantomError, match=message):
+        VolumeEstimator(model, **arguments)
+
+
+@pytest.mark.parametrize("pressures, message", [
+    ([float("nan"), 0.0, 0.0], "finite"),
+    ([float("inf"), 0.0, 0.0], "finite"),
+    ([0.0, 0.0], "give 3 chamber pressures"),
+])
+def test_bad_pressures_are_refused(model, pressures, message):
+    estimator = VolumeEstimator(model, level="rest")
+    with pytest.raises(PhantomError, match=message):
+        estimator.volumes(pressures)
+    with pytest.raises(PhantomError, match=message):
+        estimator.shape(pressures)
+
+
+def test_for_a_small_strain_material_the_updated_level_is_the_full_answer(model):
+    linear = model.with_material(model="linear")
+    pressures_pa = np.array([3000.0, 1000.0, 2000.0])
+    updated = VolumeEstimator(linear, level="updated")
+    chambers, gland = updated.volumes(pressures_pa)
+    state = linear.solve(pressures_pa)
+    np.testing.assert_allclose(chambers, state.chamber_volumes_m3, rtol=1e-9)
+    assert gland == pytest.approx(state.gland_volume_m3, rel=1e-9)
+    assert updated.counts["tangent_solves"] == 0

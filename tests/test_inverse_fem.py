@@ -1,0 +1,103 @@
+"""The inverse on the real finite-element model: its answer, checked by an independent forward solve.
+
+A coarse built-in mesh (6 mm) keeps this quick. The check is what the user does: solve the forward model at
+the returned pressures and compare with the target (issue: within 0.1 %).
+"""
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+
+from phantom.model import PhantomModel, inverse_cli, load_scene
+from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
+
+COARSE_MM = 6.0
+
+
+@pytest.fixture(scope="module")
+def model():
+    return PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=COARSE_MM)
+
+
+def run_cli(*arguments: str) -> tuple[int, str]:
+    parser = argparse.ArgumentParser(prog="phantom")
+    inverse_cli.register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(arguments)
+    return args.run(args), args
+
+
+def test_the_cli_answer_meets_the_target_on_the_full_model_within_0_1_percent(model, capsys):
+    target_ml = model.rest_gland_volume_m3 * 1e6 + 0.8
+    status, _ = run_cli("inverse", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--volume-ml", str(target_ml),
+                        "--pressure-max-kpa", "20", "--fidelity", "full", "--json")
+    assert status == 0
+    report = json.loads(capsys.readouterr().out)
+    assert set(report) >= {"pressures_kpa", "predicted_volume_ml", "iterations", "solve_time_s"}
+    # The forward model, solved afresh at the answer, is the independent check.
+    check = model.solve(np.array(report["pressures_kpa"]) * 1e3)
+    assert check.gland_volume_m3 * 1e6 == pytest.approx(target_ml, rel=1e-3)
+    assert report["predicted_volume_ml"] == pytest.approx(target_ml, rel=1e-4)
+    # The co-rotational response is not linear: the rest compliance alone is not enough, the tangent is updated.
+    assert report["iterations"] >= 2
+    assert all(value > 0 for value in report["pressures_kpa"])
+
+
+def test_a_growth_ratio_holds_on_the_full_model(model):
+    solver = InverseSolver(model, pressure_max_pa=20e3, fidelity="full")
+    target_m3 = model.rest_gland_volume_m3 + 0.6e-6
+    result = solver.solve(Target(gland_volume_m3=target_m3, growth_ratio={1: 2.0, 2: 1.0}))
+    check = model.solve(result.pressures_pa)
+    growth_m3 = check.chamber_volumes_m3 - model.rest_chamber_volumes_m3
+    assert growth_m3[1] == pytest.approx(2.0 * growth_m3[2], rel=1e-3)
+    assert check.gland_volume_m3 == pytest.approx(target_m3, rel=1e-4)
+    # The mirror-image lobes: twice the growth needs a higher pressure in chamber 1 than in chamber 2.
+    assert result.pressures_pa[1] > result.pressures_pa[2]
+
+
+def test_an_unreachable_volume_states_the_range_the_full_model_reaches(model, capsys):
+    with pytest.raises(UnreachableTargetError) as caught:
+        run_cli("inverse", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--volume-ml", "45",
+                "--pressure-max-kpa", "3", "--fidelity", "full")
+    message = str(caught.value)
+    assert "45.000 ml is unreachable" in message and "between 0 and [3, 3, 3] kPa" in message
+    highest_ml = float(message.split(" to ")[1].split(" ml")[0])
+    at_limit = model.solve([3e3, 3e3, 3e3])
+    assert highest_ml == pytest.approx(at_limit.gland_volume_m3 * 1e6, rel=1e-3)
+
+
+def test_raw_pressures_and_chamber_targets_through_the_cli(model, capsys):
+    status, _ = run_cli("inverse", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--pressures-kpa", "1,0,2",
+                        "--fidelity", "rest", "--json")
+    assert status == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["pressures_kpa"] == [1.0, 0.0, 2.0]
+    assert report["iterations"] == 0
+    wanted_ml = model.rest_chamber_volumes_m3[0] * 1e6 + 0.05
+    status, _ = run_cli("inverse", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--chamber-volumes-ml",
+                        f"{wanted_ml},-,-", "--fidelity", "rest", "--json")
+    report = json.loads(capsys.readouterr().out)
+    assert report["predicted_chamber_volumes_ml"][0] == pytest.approx(wanted_ml, rel=1e-6)
+
+
+def test_growth_limits_through_the_cli(model, capsys):
+    target_ml = model.rest_gland_volume_m3 * 1e6 + 0.3
+    status, _ = run_cli("inverse", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--volume-ml", str(target_ml),
+                        "--pressure-max-kpa", "20", "--max-growth-ml", "0.1,-,-", "--fidelity", "rest", "--json")
+    report = json.loads(capsys.readouterr().out)
+    assert report["predicted_chamber_volumes_ml"][0] - model.rest_chamber_volumes_m3[0] * 1e6 <= 0.1 + 1e-6
+    assert report["predicted_volume_ml"] == pytest.approx(target_ml, rel=1e-6)
+
+
+@pytest.mark.parametrize("arguments, message", [
+    (("--volume-ml", "30", "--growth-ratio", "1:two"), "chamber:weight pairs"),
+    (("--chamber-volumes-ml", "1,x,2"), "comma-separated numbers"),
+    (("--pressures-kpa", "1,1,1", "--growth-ratio", "1:2,2:1"), "goes with --volume-ml"),
+    (("--volume-ml", "26.5", "--max-growth-ml", "0.1,0.1"), "needs 3 values"),
+])
+def test_cli_input_errors_say_what_to_do(arguments, message):
+    from phantom import PhantomError
+
+    with pytest.raises(PhantomError, match=message):
+        run_cli("inverse", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--fidelity", "rest", *arguments)
