@@ -8,6 +8,7 @@ and returns the process exit status.
 
 import argparse
 import importlib
+import math
 import sys
 
 import phantom
@@ -19,6 +20,44 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.hil.cli",
     "phantom.host.commands",
 )
+
+
+def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float | None]:
+    """A comma-separated list of finite numbers given to ``option``, e.g. ``1,1.5,0``.
+
+    With ``allow_free``, ``-`` (or an empty item) stands for "no value" and gives ``None``.
+    """
+    values: list[float | None] = []
+    for item in text.split(","):
+        item = item.strip()
+        if allow_free and item in ("-", ""):
+            values.append(None)
+            continue
+        try:
+            value = float(item)
+        except ValueError:
+            free = " or -" if allow_free else ""
+            raise phantom.PhantomError(
+                f"{option} takes comma-separated numbers{free} like 1,1.5,0; {item!r} is not a number"
+            ) from None
+        if not math.isfinite(value):
+            raise phantom.PhantomError(f"{option}: {item!r} is not a finite number")
+        values.append(value)
+    return values
+
+
+def parse_growth_ratio(text: str, option: str = "--growth-ratio") -> dict[str, float]:
+    """Chamber growth weights given as ``NAME=WEIGHT`` pairs, e.g. ``chamber1=2,chamber2=1``.
+
+    A name is a chamber's group name or its index; checking it against the scene's chambers is the caller's.
+    """
+    ratio = {}
+    for pair in text.split(","):
+        name, separator, weight = pair.partition("=")
+        if not separator or not name.strip():
+            raise phantom.PhantomError(f"{option} takes NAME=WEIGHT pairs like chamber1=2,chamber2=1; got {pair!r}")
+        ratio[name.strip()] = parse_numbers(weight, option)[0]
+    return ratio
 
 
 def build_parser() -> argparse.ArgumentParser:

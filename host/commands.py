@@ -97,22 +97,6 @@ def _client(args):
     return DaemonClient(_socket(args))
 
 
-def _numbers(text: str, flag: str, allow_free: bool = False) -> list:
-    from phantom import PhantomError
-
-    values = []
-    for item in text.split(","):
-        item = item.strip()
-        if allow_free and item in ("-", ""):
-            values.append(None)
-            continue
-        try:
-            values.append(float(item))
-        except ValueError:
-            raise PhantomError(f"{flag}: {item!r} is not a number; give comma-separated numbers like 1,1.5,0") from None
-    return values
-
-
 def load_config(path) -> dict:
     """The ``[daemon]`` table of a config file, checked against :data:`CONFIG_KEYS`."""
     import tomllib
@@ -212,21 +196,18 @@ def _run_set(args) -> int:
     import json
 
     from phantom import PhantomError
+    from phantom.host.cli import parse_growth_ratio, parse_numbers
 
     if args.volume_ml is not None:
         params = {"volume_ml": args.volume_ml}
     elif args.chamber_volumes_ml is not None:
-        params = {"chamber_volumes_ml": _numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True)}
+        params = {"chamber_volumes_ml": parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True)}
     else:
-        params = {"pressures_kpa": _numbers(args.pressures_kpa, "--pressures-kpa")}
+        params = {"pressures_kpa": parse_numbers(args.pressures_kpa, "--pressures-kpa")}
     if args.growth_ratio:
         if args.volume_ml is None:
             raise PhantomError("--growth-ratio goes with --volume-ml")
-        ratio = {}
-        for item in args.growth_ratio.split(","):
-            name, _, weight = item.partition("=")
-            ratio[name.strip()] = _numbers(weight, "--growth-ratio")[0]
-        params["growth_ratio"] = ratio
+        params["growth_ratio"] = parse_growth_ratio(args.growth_ratio)
     with _client(args) as client:
         result = client.call("set_target", params)
     if args.json:

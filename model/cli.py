@@ -23,23 +23,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Solve the scene's model at gauge pressures (kPa, chamber order) and print the chamber "
                     "volumes, the gland volume and its change, the iterations and the solve time.")
     forward.add_argument("--scene", required=True, help="a scene TOML path, or 'builtin'")
-    forward.add_argument("--pressures-kpa", required=True, type=_pressure_list,
+    forward.add_argument("--pressures-kpa", required=True,
                          help="comma-separated gauge pressures in kPa, one per chamber, e.g. 1,1,1")
     forward.add_argument("--formulation", choices=("corotational", "linear"), default=None,
                          help="override the scene's material model")
     forward.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     forward.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     forward.set_defaults(run=run_forward)
-
-
-def _pressure_list(text: str) -> list[float]:
-    try:
-        values = [float(item) for item in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of numbers (kPa)") from None
-    if not all(abs(value) < float("inf") for value in values):
-        raise argparse.ArgumentTypeError(f"{text!r}: pressures must be finite")
-    return values
 
 
 def _single_threaded_blas() -> None:
@@ -74,10 +64,12 @@ def run_forward(args: argparse.Namespace) -> int:
     import json
     import time
 
+    from phantom.host.cli import parse_numbers
     from phantom.model.errors import SolveError
     from phantom.model.fem import PhantomModel
     from phantom.model.scene import load_scene
 
+    args.pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
     started = time.perf_counter()
     scene = load_scene(args.scene)
     model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)

@@ -19,8 +19,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="one volume (ml) per chamber, comma-separated; '-' leaves a chamber free")
     target.add_argument("--pressures-kpa", help="raw pressures (kPa), comma-separated: only bounds-checked")
     inverse.add_argument("--growth-ratio",
-                         help="with --volume-ml: chamber:weight pairs, e.g. '1:2,2:1' = chamber 1 grows twice "
-                              "as much as chamber 2")
+                         help="with --volume-ml: NAME=WEIGHT pairs (chamber names or indices), e.g. "
+                              "'chamber1=2,chamber2=1' = chamber 1 grows twice as much as chamber 2")
     inverse.add_argument("--max-growth-ml",
                          help="upper limit on each chamber's growth above rest (ml), comma-separated; '-' for none")
     inverse.add_argument("--pressure-max-kpa", type=float,
@@ -44,34 +44,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     calibrate.set_defaults(run=run_calibrate)
 
 
-def _parse_list(text: str, option: str, allow_free: bool = False) -> list:
+def _growth_ratio_by_index(text: str, chamber_names: list[str]) -> dict[int, float]:
+    """``--growth-ratio`` (``chamber1=2,chamber2=1``, names or indices) as chamber index -> weight."""
     from phantom import PhantomError
+    from phantom.host.cli import parse_growth_ratio
 
-    values = []
-    for item in text.split(","):
-        item = item.strip()
-        if allow_free and item in ("-", ""):
-            values.append(None)
-            continue
-        try:
-            values.append(float(item))
-        except ValueError:
-            raise PhantomError(f"{option} takes comma-separated numbers{' or -' if allow_free else ''}, "
-                               f"got {text!r}") from None
-    return values
-
-
-def _parse_growth_ratio(text: str) -> dict:
-    from phantom import PhantomError
-
-    ratio = {}
-    for pair in text.split(","):
-        chamber, _, weight = pair.partition(":")
-        try:
-            ratio[int(chamber)] = float(weight)
-        except ValueError:
-            raise PhantomError(f"--growth-ratio takes chamber:weight pairs such as '1:2,2:1', got {text!r}") from None
-    return ratio
+    by_index = {}
+    for name, weight in parse_growth_ratio(text).items():
+        if name in chamber_names:
+            by_index[chamber_names.index(name)] = weight
+        elif name.isdigit() and int(name) < len(chamber_names):
+            by_index[int(name)] = weight
+        else:
+            known = ", ".join(chamber_names)
+            raise PhantomError(f"--growth-ratio names unknown chamber {name!r}; chambers are {known}")
+    return by_index
 
 
 def _load_model(args):
@@ -86,6 +73,7 @@ def run_inverse(args) -> int:
     import json
 
     from phantom import PhantomError
+    from phantom.host.cli import parse_numbers
     from phantom.model.fidelity import scene_model_settings
     from phantom.model.inverse import InverseSolver, Target
 
@@ -97,15 +85,16 @@ def run_inverse(args) -> int:
     fidelity = args.fidelity or settings.get("fidelity", "full")
     if args.volume_ml is not None:
         target = Target(gland_volume_m3=args.volume_ml * 1e-6,
-                        growth_ratio=_parse_growth_ratio(args.growth_ratio) if args.growth_ratio else None)
+                        growth_ratio=_growth_ratio_by_index(args.growth_ratio, model.chamber_names)
+                        if args.growth_ratio else None)
     elif args.chamber_volumes_ml is not None:
-        volumes = _parse_list(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True)
+        volumes = parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True)
         target = Target(chamber_volumes_m3=[None if value is None else value * 1e-6 for value in volumes])
     else:
-        target = Target(pressures_pa=[value * 1e3 for value in _parse_list(args.pressures_kpa, "--pressures-kpa")])
+        target = Target(pressures_pa=[value * 1e3 for value in parse_numbers(args.pressures_kpa, "--pressures-kpa")])
     max_growth_m3 = None
     if args.max_growth_ml:
-        limits_ml = _parse_list(args.max_growth_ml, "--max-growth-ml", allow_free=True)
+        limits_ml = parse_numbers(args.max_growth_ml, "--max-growth-ml", allow_free=True)
         if len(limits_ml) != model.n_chambers:
             raise PhantomError(f"--max-growth-ml needs {model.n_chambers} values ('-' for none), got {len(limits_ml)}")
         max_growth_m3 = [None if value is None else value * 1e-6 for value in limits_ml]
