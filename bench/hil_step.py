@@ -44,8 +44,11 @@ def main() -> None:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     bench.plot_steps([s for s in steps if s["gains"] is None], out)
-    bench.plot_steps([s for s in steps if s["gains"] is not None], out.with_name(out.stem + "_other.png"))
-    print(f"\nplots: {out}, {out.with_name(out.stem + '_other.png')}")
+    plots = [out]
+    if len(gain_sets) > 1:
+        plots.append(out.with_name(out.stem + "_other.png"))
+        bench.plot_steps([s for s in steps if s["gains"] is not None], plots[-1])
+    print(f"\nplots: {', '.join(map(str, plots))}")
 
 
 if __name__ == "__main__":

@@ -31,9 +31,10 @@ STOP_LIMITS_S = {
     # from the host's last byte: the deadline, counted from the tick that saw the last frame (up to one tick
     # later) and compared strictly (one more tick), then the drive update after that tick (under one tick)
     "silent_host": HOST_DEADLINE_MS / 1000 + 0.006,
-    # from the injection: the severe leak first pulls the pressure more than 200 Pa below the setpoint (about
-    # 25 ms from 1.5 kPa with LEAK_SEVERE_ML_PER_S_PER_KPA), then the firmware's 2 s with the blower at its
-    # ceiling, then one tick; 0.1 s of margin for the fall
+    # from the injection: the severe leak first pulls the pressure more than 200 Pa below the setpoint (from
+    # 1.5 kPa with LEAK_SEVERE_ML_PER_S_PER_KPA: about 25 ms on chamber 0, under 10 ms on a lobe, which has a
+    # third of its compliance), then the firmware's 2 s with the blower at its ceiling, then one tick; 0.1 s of
+    # margin for the fall
     "leak": 2.0 + 0.1 + 0.002,
 }
 #: The firmware's leak rule (firmware/src/core/config.h, PROTOCOL.md section 7): LEAK_n latches when the blower

@@ -8,11 +8,19 @@ conditions), the isothermal air content (p_atm + p_i) V_i changes by p_atm (Q_in
     sum_j [V_i delta_ij + (p_atm + p_i) C_ij] dp_j/dt = p_atm (Q_in,i - Q_out,i)
 
 which for one chamber is physics.md's dp/dt = p_atm (Q_in - Q_out) / (V + (p_atm + p) C).
+
+The rest volumes V0 (each cavity's air plus its tube's dead volume) and the compliance C come from the FEM at
+rest; :func:`chambers_from_scene` computes them and :func:`write_chambers` puts them into a plant file:
+
+    python -m phantom.hil.plant --from-scene model/scenes/prostate_calibrated.toml [--plant hil/plant.toml]
 """
 
 from __future__ import annotations
 
+import argparse
 import math
+import re
+import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +31,10 @@ from phantom import PhantomError
 
 #: The shipped plant parameter file.
 DEFAULT_PLANT_PATH = Path(__file__).resolve().parent / "plant.toml"
+#: The scene whose FEM gives the shipped plant's chamber volumes and compliance.
+CALIBRATED_SCENE_PATH = Path(__file__).resolve().parent.parent / "model" / "scenes" / "prostate_calibrated.toml"
+#: Significant digits written for volumes (ml) and compliances (ml/kPa): rounding moves a value by <= 5e-5 of it.
+WRITTEN_DIGITS = 5
 
 N_CHAMBERS = 3
 
@@ -37,7 +49,8 @@ class PlantParameters:
 
     path: Path
     atmospheric_pressure_pa: float
-    rest_volume_m3: np.ndarray
+    cavity_volume_m3: np.ndarray
+    tubing_volume_m3: np.ndarray
     compliance_m3_per_pa: np.ndarray
     free_flow_m3_per_s: np.ndarray
     blocked_pressure_pa: np.ndarray
@@ -48,6 +61,11 @@ class PlantParameters:
     sensor_noise_v: float
     sensor_response_time_s: float
     step_s: float
+
+    @property
+    def rest_volume_m3(self) -> np.ndarray:
+        """Air volume of each chamber at 0 gauge (m^3): the cavity's plus its tube's."""
+        return self.cavity_volume_m3 + self.tubing_volume_m3
 
     def harness_arguments(self) -> list[str]:
         """The ``--param NAME=VALUE`` arguments that give the harness this plant (names as in plant.c)."""
@@ -134,10 +152,19 @@ def load_plant(path: str | Path | None = None) -> PlantParameters:
         the message names the key.
     """
     path = Path(path) if path is not None else DEFAULT_PLANT_PATH
+    return _plant_from_text(_read_plant_text(path), path)
+
+
+def _read_plant_text(path: Path) -> str:
     try:
-        document = tomllib.loads(path.read_text())
+        return path.read_text()
     except FileNotFoundError:
         raise PlantError(f"the plant file {path} does not exist: pass a path to a file like hil/plant.toml") from None
+
+
+def _plant_from_text(text: str, path: Path) -> PlantParameters:
+    try:
+        document = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise PlantError(f"the plant file {path} is not valid TOML: {error}") from None
     gas, chambers = _section(document, "gas", path), _section(document, "chambers", path)
@@ -150,8 +177,9 @@ def load_plant(path: str | Path | None = None) -> PlantParameters:
         path=path,
         atmospheric_pressure_pa=1e3
         * _number(gas, "atmospheric_pressure_kpa", f"{path} [gas]", positive=True, allow_zero=False),
-        rest_volume_m3=1e-6
-        * _per_chamber(chambers, "rest_volume_ml", f"{path} [chambers]", positive=True, allow_zero=False),
+        cavity_volume_m3=1e-6
+        * _per_chamber(chambers, "cavity_volume_ml", f"{path} [chambers]", positive=True, allow_zero=False),
+        tubing_volume_m3=1e-6 * _per_chamber(chambers, "tubing_volume_ml", f"{path} [chambers]", positive=True),
         compliance_m3_per_pa=_compliance(chambers, f"{path} [chambers]"),
         free_flow_m3_per_s=1e-6 / 60 * _per_chamber(blower, "free_flow_ml_per_min", f"{path} [blower]", positive=True),
         blocked_pressure_pa=1e3
@@ -167,3 +195,132 @@ def load_plant(path: str | Path | None = None) -> PlantParameters:
         sensor_response_time_s=1e-3 * _number(sensor, "response_time_ms", f"{path} [sensor]", positive=True),
         step_s=1e-6 * step_us,
     )
+
+
+@dataclass(frozen=True)
+class FemChambers:
+    """The chambers of a scene's FEM at rest, in the plant file's units (ml, ml/kPa).
+
+    ``compliance_ml_per_kpa`` is W = H K^-1 H^T (physics.md), symmetrised as (W + W^T) / 2 so that the file's
+    exact symmetry check holds after rounding.
+    """
+
+    scene: str
+    description: str
+    cavity_volume_ml: np.ndarray
+    compliance_ml_per_kpa: np.ndarray
+
+
+def chambers_from_scene(scene: str | Path, mesh_size_mm: float | None = None) -> FemChambers:
+    """The rest air volume of each chamber and the compliance matrix from the FEM of a scene.
+
+    ``PhantomModel.from_scene(load_scene(scene), mesh_size_mm)``: ``rest_chamber_volumes_m3`` (m^3 -> ml) and
+    ``compliance().chamber_m3_per_pa`` (m^3/Pa -> ml/kPa, a factor 1e9). The tubes' dead volume is not part of
+    the FEM (see :func:`write_chambers`).
+
+    Raises
+    ------
+    PlantError
+        When the scene does not have exactly three chambers (the plant and the board have three).
+    phantom.PhantomError
+        From the model, when the scene or its mesh is unusable.
+    """
+    from phantom.model import PhantomModel, load_scene
+
+    loaded = load_scene(scene)
+    model = PhantomModel.from_scene(loaded, mesh_size_mm=mesh_size_mm)
+    if model.n_chambers != N_CHAMBERS:
+        raise PlantError(
+            f"the scene {scene} has {model.n_chambers} chambers ({', '.join(model.chamber_names)}); the plant and "
+            f"the board have {N_CHAMBERS}: give a scene with three"
+        )
+    compliance_m3_per_pa = model.compliance().chamber_m3_per_pa
+    material = loaded.material
+    mesh = "default mesh" if mesh_size_mm is None else f"{mesh_size_mm:g} mm mesh"
+    return FemChambers(
+        scene=str(scene),
+        description=f"{material.model}, E = {material.youngs_modulus_pa / 1e3:.5g} kPa, "
+        f"nu = {material.poisson_ratio:g}, {mesh}",
+        cavity_volume_ml=1e6 * np.asarray(model.rest_chamber_volumes_m3, dtype=float),
+        compliance_ml_per_kpa=1e9 * 0.5 * (compliance_m3_per_pa + compliance_m3_per_pa.T),
+    )
+
+
+def _toml_list(values: np.ndarray) -> str:
+    return "[" + ", ".join(f"{value:.{WRITTEN_DIGITS}g}" for value in values) + "]"
+
+
+def _replace_once(text: str, pattern: str, replacement: str, what: str, path: Path) -> str:
+    new_text, count = re.subn(pattern, lambda _: replacement, text, flags=re.MULTILINE)
+    if count != 1:
+        raise PlantError(
+            f"{path}: expected one {what} in [chambers] to replace, found {count}; start from a copy of "
+            f"hil/plant.toml"
+        )
+    return new_text
+
+
+def write_chambers(chambers: FemChambers, path: str | Path | None = None) -> PlantParameters:
+    """Put the FEM's chamber volumes and compliance into a plant file (default ``hil/plant.toml``), in place.
+
+    Rewrites ``cavity_volume_ml``, ``compliance_ml_per_kpa`` (to WRITTEN_DIGITS significant digits) and the
+    ``# FEM source:`` comment; every other line, ``tubing_volume_ml`` (the tubes' dead volume, which the FEM
+    does not know) included, is kept. The result is checked with the file's own rules before it is written.
+
+    Returns
+    -------
+    PlantParameters
+        The plant as read back from the new text.
+    """
+    path = Path(path) if path is not None else DEFAULT_PLANT_PATH
+    text = _read_plant_text(path)
+    rows = ",\n".join(f"  {_toml_list(row)}" for row in chambers.compliance_ml_per_kpa)
+    text = _replace_once(
+        text, r"^# FEM source: .*$", f"# FEM source: {chambers.scene} ({chambers.description})", "'# FEM source:'", path
+    )
+    text = _replace_once(
+        text,
+        r"^cavity_volume_ml = \[[^\]\n]*\]$",
+        f"cavity_volume_ml = {_toml_list(chambers.cavity_volume_ml)}",
+        "cavity_volume_ml line",
+        path,
+    )
+    text = _replace_once(
+        text,
+        r"^compliance_ml_per_kpa = \[\n(?:\s*\[[^\]\n]*\],?\n){3}\]$",
+        f"compliance_ml_per_kpa = [\n{rows},\n]",
+        "compliance_ml_per_kpa matrix (one row per line)",
+        path,
+    )
+    plant = _plant_from_text(text, path)
+    path.write_text(text)
+    return plant
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m phantom.hil.plant --from-scene SCENE [--plant FILE]``: regenerate a plant file's chambers."""
+    parser = argparse.ArgumentParser(
+        prog="python -m phantom.hil.plant",
+        description="Write the FEM's chamber volumes and compliance (at rest) into a plant parameter file.",
+    )
+    parser.add_argument("--from-scene", required=True, help="scene TOML (or 'builtin') whose FEM gives the values")
+    parser.add_argument("--plant", default=str(DEFAULT_PLANT_PATH), help="plant file (default hil/plant.toml)")
+    parser.add_argument("--mesh-size-mm", type=float, help="mesh size of the built-in mesh (default: the model's)")
+    args = parser.parse_args(argv)
+    try:
+        print(f"phantom.hil.plant: FEM of {args.from_scene} (meshing first if not cached)", file=sys.stderr)
+        chambers = chambers_from_scene(args.from_scene, args.mesh_size_mm)
+        plant = write_chambers(chambers, args.plant)
+    except PhantomError as error:
+        print(f"phantom.hil.plant: error: {error}", file=sys.stderr)
+        return 2
+    print(f"wrote {plant.path}: {chambers.description}")
+    print(f"cavity_volume_ml = {_toml_list(chambers.cavity_volume_ml)}")
+    print(f"rest air volume (with the tubes) ml = {_toml_list(1e6 * plant.rest_volume_m3)}")
+    for row in chambers.compliance_ml_per_kpa:
+        print(f"compliance_ml_per_kpa row = {_toml_list(row)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

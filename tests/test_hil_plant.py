@@ -1,12 +1,23 @@
 """The HIL plant: its parameter file, and the C integrator of the harness against independent solutions."""
 
+import re
+import tomllib
+
 import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
 from phantom import PhantomError
 from phantom.hil.harness import HarnessError, HarnessProcess
-from phantom.hil.plant import DEFAULT_PLANT_PATH, PlantError, load_plant
+from phantom.hil.plant import (
+    CALIBRATED_SCENE_PATH,
+    DEFAULT_PLANT_PATH,
+    PlantError,
+    chambers_from_scene,
+    load_plant,
+    main,
+    write_chambers,
+)
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -15,11 +26,12 @@ pytestmark = pytest.mark.timeout(120)
 def plant_file(tmp_path):
     """A copy of the shipped plant file that a test may edit."""
 
-    def write(old: str | None = None, new: str | None = None):
+    def write(pattern: str | None = None, new: str | None = None):
+        """The shipped file with the one match of the regular expression ``pattern`` (a line) replaced."""
         text = DEFAULT_PLANT_PATH.read_text()
-        if old is not None:
-            assert old in text
-            text = text.replace(old, new)
+        if pattern is not None:
+            text, count = re.subn(pattern, lambda _: new, text, flags=re.MULTILINE)
+            assert count == 1, pattern
         path = tmp_path / "plant.toml"
         path.write_text(text)
         return path
@@ -32,36 +44,102 @@ def plant_only(plant, seed=0) -> HarnessProcess:
 
 
 def test_shipped_plant_is_converted_to_si():
+    """Every unit conversion, against the file's own numbers read with tomllib."""
+    document = tomllib.loads(DEFAULT_PLANT_PATH.read_text())
+    chambers, blower = document["chambers"], document["blower"]
     plant = load_plant()
-    assert plant.atmospheric_pressure_pa == pytest.approx(101325.0)
-    assert plant.rest_volume_m3 == pytest.approx([4e-6] * 3)
-    assert plant.compliance_m3_per_pa[0, 0] == pytest.approx(2.75e-9)
-    assert plant.free_flow_m3_per_s[1] == pytest.approx(800e-6 / 60)
-    assert plant.leak_conductance_m3_per_s_per_pa[2] == pytest.approx(1.8e-9)
-    assert plant.sensor_gain_per_pa == pytest.approx(1.8e-5)
+    assert plant.atmospheric_pressure_pa == pytest.approx(1e3 * document["gas"]["atmospheric_pressure_kpa"])
+    rest_ml = np.add(chambers["cavity_volume_ml"], chambers["tubing_volume_ml"])
+    assert plant.rest_volume_m3 == pytest.approx(1e-6 * rest_ml, rel=1e-12)
+    assert plant.compliance_m3_per_pa == pytest.approx(1e-9 * np.array(chambers["compliance_ml_per_kpa"]), rel=1e-12)
+    assert plant.free_flow_m3_per_s == pytest.approx(np.array(blower["free_flow_ml_per_min"]) * 1e-6 / 60)
+    leak_ml_per_s_per_kpa = np.array(blower["back_leak_ml_per_s_per_kpa"])
+    assert plant.leak_conductance_m3_per_s_per_pa == pytest.approx(1e-9 * leak_ml_per_s_per_kpa)
+    assert plant.sensor_gain_per_pa == pytest.approx(1e-3 * document["sensor"]["sensitivity_per_kpa"])
+    # the harness gets the total air volume, tube included
+    arguments = plant.harness_arguments()
+    assert f"rest_volume_m3.1={float(plant.rest_volume_m3[1])!r}" in arguments
+
+
+COMPLIANCE_MATRIX = r"^compliance_ml_per_kpa = \[\n(?:.*\n){3}\]$"
 
 
 @pytest.mark.parametrize(
-    ("old", "new", "message"),
+    ("pattern", "new", "message"),
     [
-        ("rest_volume_ml = [4.0, 4.0, 4.0]", "rest_volume_ml = [4.0, -1.0, 4.0]", "rest_volume_ml: must be > 0"),
-        ("rest_volume_ml = [4.0, 4.0, 4.0]", "rest_volume_ml = [4.0, 4.0]", "list of 3 numbers"),
-        ("[2.75, -0.6, -0.6],\n  [-0.6, 2.75", "[2.75, -0.5, -0.6],\n  [-0.6, 2.75", "must be symmetric"),
+        (r"^cavity_volume_ml = .*$", "cavity_volume_ml = [2.0, -1.0, 2.0]", "cavity_volume_ml: must be > 0"),
+        (r"^cavity_volume_ml = .*$", "cavity_volume_ml = [2.0, 2.0]", "list of 3 numbers"),
+        (r"^tubing_volume_ml = .*$", "tubing_volume_ml = [1.0, -0.5, 1.0]", "tubing_volume_ml: must be >= 0"),
+        (r"^tubing_volume_ml = .*$", "", "missing key 'tubing_volume_ml'"),
+        (COMPLIANCE_MATRIX, "compliance_ml_per_kpa = [[2, 0.1, 0], [0, 1, 0], [0, 0, 1]]", "must be symmetric"),
         (
-            "[2.75, -0.6, -0.6],\n  [-0.6, 2.75, -0.6],\n  [-0.6, -0.6, 2.75]",
-            "[2.75, -2.0, -2.0],\n  [-2.0, 2.75, -2.0],\n  [-2.0, -2.0, 2.75]",
+            COMPLIANCE_MATRIX,
+            "compliance_ml_per_kpa = [[1, -0.9, -0.9], [-0.9, 1, -0.9], [-0.9, -0.9, 1]]",
             "positive definite",
         ),
-        ("supply_v = 5.0", 'supply_v = "five"', "supply_v: expected a finite number"),
-        ("step_us = 100.0", "step_us = 5000.0", "too coarse"),
-        ("[integration]", "[integrator]", "missing table [integration]"),
-        ("noise_mv = 1.5", "", "missing key 'noise_mv'"),
-        ("[gas]", "[gas", "not valid TOML"),
+        (COMPLIANCE_MATRIX, "compliance_ml_per_kpa = [[1, 0], [0, 1]]", "3x3 matrix"),
+        (r"^supply_v = .*$", 'supply_v = "five"', "supply_v: expected a finite number"),
+        (r"^step_us = .*$", "step_us = 5000.0", "too coarse"),
+        (r"^\[integration\]$", "[integrator]", "missing table [integration]"),
+        (r"^noise_mv = .*$", "", "missing key 'noise_mv'"),
+        (r"^\[gas\]$", "[gas", "not valid TOML"),
     ],
 )
-def test_bad_plant_files_are_refused_with_the_key_named(plant_file, old, new, message):
-    with pytest.raises(PlantError, match=message.replace("[", r"\[").replace("]", r"\]")):
-        load_plant(plant_file(old, new))
+def test_bad_plant_files_are_refused_with_the_key_named(plant_file, pattern, new, message):
+    with pytest.raises(PlantError, match=re.escape(message)):
+        load_plant(plant_file(pattern, new))
+
+
+def test_shipped_chambers_match_the_fem_of_the_calibrated_scene():
+    """The shipped volumes and compliance are the calibrated scene's FEM, so they cannot drift from it silently.
+
+    Tolerance: 1e-3 relative, 20 times the file's rounding to 5 significant digits (<= 5e-5); a recalibration
+    that moves E by 0.1 % (its leave-one-out values spread by +/-6 %) or a change of the mesh fails it. Plus
+    1e-4 ml/kPa absolute (1e-4 of chamber 0's compliance) so the near-zero couplings (about 1 % of the diagonal)
+    are not held to a relative precision no one needs. Cold cache: about 17 s (meshing, numba); warm: 2 s.
+    """
+    fem = chambers_from_scene(CALIBRATED_SCENE_PATH)
+    plant = load_plant()
+    assert 1e6 * plant.cavity_volume_m3 == pytest.approx(fem.cavity_volume_ml, rel=1e-3)
+    np.testing.assert_allclose(1e9 * plant.compliance_m3_per_pa, fem.compliance_ml_per_kpa, rtol=1e-3, atol=1e-4)
+    assert "prostate_calibrated.toml (linear, E = 2.6301 kPa" in DEFAULT_PLANT_PATH.read_text()
+
+
+def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, capsys):
+    """The one-liner on the built-in scene (E = 50 kPa, same mesh): the rest compliance of a linear elastic body
+    is proportional to 1/E (the co-rotational tangent at rest is the linear stiffness), so it must be the
+    shipped one times 2.6301/50, and the rest volumes the same; each side is rounded to 5 digits, hence 2e-4.
+    Everything else in the file, the tubes' dead volume included, stays as it was."""
+    path = plant_file()
+    before = path.read_text()
+    assert main(["--from-scene", "builtin", "--plant", str(path)]) == 0
+    assert "wrote" in capsys.readouterr().out
+    shipped, regenerated = load_plant(), load_plant(path)
+    scale = 2.6301 / 50.0
+    np.testing.assert_allclose(
+        regenerated.compliance_m3_per_pa, scale * shipped.compliance_m3_per_pa, rtol=2e-4, atol=1e-16
+    )
+    assert regenerated.cavity_volume_m3 == pytest.approx(shipped.cavity_volume_m3, rel=2e-4)
+    assert np.array_equal(regenerated.tubing_volume_m3, shipped.tubing_volume_m3)
+    assert "# FEM source: builtin (corotational, E = 50 kPa" in path.read_text()
+    changed = {line for line in set(path.read_text().splitlines()) ^ set(before.splitlines())}
+    assert all(line.startswith(("# FEM source:", "cavity_volume_ml", "  [")) for line in changed), changed
+
+
+def test_regeneration_refuses_bad_input(plant_file, tmp_path, capsys):
+    assert main(["--from-scene", str(tmp_path / "none.toml"), "--plant", str(plant_file())]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    # a file without the generated keys in the expected layout is not rewritten blindly
+    path = plant_file(r"^cavity_volume_ml = .*$", "")
+    fem = chambers_from_scene("builtin")
+    with pytest.raises(PlantError, match="expected one cavity_volume_ml line"):
+        write_chambers(fem, path)
+    # nor is one whose result would be invalid: the file is left untouched
+    path = plant_file(r"^tubing_volume_ml = .*$", "tubing_volume_ml = [1.0, 1.0]")
+    before = path.read_text()
+    with pytest.raises(PlantError, match="tubing_volume_ml"):
+        write_chambers(fem, path)
+    assert path.read_text() == before
 
 
 def test_missing_plant_file_is_a_user_error(tmp_path):

@@ -124,8 +124,9 @@ def test_step_reaches_the_setpoint_in_telemetry_and_in_the_plant(board, link):
     assert result["max_drive_level"] == pytest.approx(1.0, abs=0.01), "a 2 kPa step saturates the blower first"
     # the state was read after VENT was sent, so allow the first milliseconds of deflation (< 20 Pa)
     assert truth_kpa == pytest.approx(2.0, abs=2 * ADC_COUNT_KPA)
-    # chamber 1 squeezes the idle chambers through the off-diagonal compliance: they see a small pressure
-    assert 0.05 < result["other_chambers_max_kpa"] < 0.6
+    # the FEM couples the chambers by about 1 % of the diagonal compliance: the idle chambers (blowers off) move
+    # by under 10 Pa, inside the sensor noise, so their readings stay within two ADC counts of zero
+    assert abs(result["other_chambers_max_kpa"]) < 2 * ADC_COUNT_KPA
 
 
 @pytest.mark.parametrize(("fault", "chamber"), [("sensor_cut", 1), ("stuck_blower", 0), ("silent_host", None)])
