@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     board.add_argument("--can-channel", metavar="CH", help="talk to the board over CAN on this channel")
     daemon.add_argument("--can-interface", metavar="NAME", help="python-can interface (default socketcan)")
     daemon.add_argument("--sim-speed", type=float, metavar="X", help="simulated board speed-up (default 1: real time)")
-    daemon.add_argument("--scene", metavar="S", help="scene: 'builtin' or a TOML path (default builtin)")
+    daemon.add_argument("--scene", metavar="S",
+                        help="scene: 'builtin:calibrated', 'builtin' or a TOML path (default builtin:calibrated)")
     daemon.add_argument("--run-scene", action="store_true", default=None,
                         help="play the scene's [[steps]] as soon as the daemon is ready")
     record = daemon.add_mutually_exclusive_group()

@@ -49,7 +49,8 @@ class Controller:
     Parameters
     ----------
     scene_source : str
-        ``builtin`` or a scene TOML path (``phantom.model.load_scene``).
+        ``builtin:calibrated`` (the daemon's default), another built-in name, or a scene TOML path
+        (``phantom.model.load_scene``).
     report : callable(str), optional
         Where start-up progress goes (stderr by default): each stage and how long it took.
     """
@@ -72,16 +73,19 @@ class Controller:
         report(f"compliance ready in {self.timings_s['compliance_s']:.2f} s (computed, or loaded from "
                f"{phantom.cache_dir('compliance')}); inverse solver ...")
         stage = time.perf_counter()
-        settings = self.scene.raw.get("model", {}) if isinstance(self.scene.raw.get("model"), dict) else {}
-        self.pressure_max_pa = float(settings.get("pressure_max_kpa", 3.0)) * PA_PER_KPA
-        # The scene's [model] fidelity is passed on explicitly; without one the inverse probes for the cheapest
-        # level that meets the scene's accuracy (full solves at the pressure limit: seconds at start-up).
-        self.solver = InverseSolver(self.model, pressure_max_pa=self.pressure_max_pa,
-                                    fidelity=settings.get("fidelity"))
+        # The model keeps its scene: the inverse reads the [model] table (pressure_max_kpa, fidelity) from it, and
+        # without a fidelity probes for the cheapest level within the scene's accuracy_pct (one solve per level
+        # at the pressure limit).
+        self.solver = InverseSolver(self.model)
+        self.pressure_max_pa = float(self.solver.pressure_max_pa.max())
         self.estimator = self.solver.estimator
         self.timings_s["inverse_setup_s"] = time.perf_counter() - stage
         self.timings_s["total_s"] = time.perf_counter() - started
-        report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}); "
+        probe = ""
+        if self.estimator.probe_errors_pct:
+            probe = ", chosen for accuracy_pct {:g} from errors {}".format(self.estimator.accuracy_pct, ", ".join(
+                f"{level} {error:.3g} %" for level, error in self.estimator.probe_errors_pct.items()))
+        report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}{probe}); "
                f"start-up took {self.timings_s['total_s']:.2f} s")
         self.chamber_names = list(self.model.chamber_names)
         self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3

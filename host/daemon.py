@@ -59,7 +59,7 @@ class DaemonConfig:
     can_channel: str | None = None
     can_interface: str = "socketcan"
     baudrate: int = 115200
-    scene: str = "builtin"
+    scene: str = "builtin:calibrated"
     socket: Path = field(default_factory=default_socket_path)
     socket_mode: int = 0o660
     rerun_save: Path | None = None

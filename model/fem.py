@@ -12,6 +12,7 @@ one at (p E0 / E, E0). Without a fixed group, a 3-2-1 set of displacement constr
 only (the pressure load is self-equilibrated, so these carry no force).
 """
 
+import dataclasses
 import hashlib
 import os
 import tempfile
@@ -38,6 +39,8 @@ MAX_ITERATIONS_PER_STEP = 40
 #: A load step fails when the residual has not halved in this many iterations (past a limit point).
 STALLED_ITERATIONS = 6
 MAX_LOAD_BISECTIONS = 6
+#: A stalled residual within this factor of the rounding floor (eps |diag K| |x|) is blamed on conditioning.
+ROUNDING_FLOOR_MARGIN = 1e3
 #: Inexact Newton: relative residual of the preconditioned CG solve, and its iteration budget.
 KRYLOV_TOLERANCE = 1e-3
 KRYLOV_ITERATIONS = 25
@@ -54,7 +57,9 @@ class State:
 
     positions_m : (n, 3) node positions; chamber_volumes_m3 : (n_chambers,); gland_volume_m3 : volume enclosed
     by the outer boundary; iterations : Newton iterations over all load steps; solve_time_s : wall time;
-    pressures_pa : (n_chambers,) the gauge pressures solved for; formulation : "corotational" or "linear".
+    pressures_pa : (n_chambers,) the gauge pressures solved for; formulation : "corotational" or "linear";
+    load_positions_m : (n, 3) or None, for the linear formulation the configuration its (dead) pressure load was
+    taken on when that was not the rest shape (None: rest).
     """
 
     positions_m: np.ndarray
@@ -65,6 +70,7 @@ class State:
     pressures_pa: np.ndarray
     formulation: str = "corotational"
     load_steps: int = 1
+    load_positions_m: np.ndarray | None = None
 
 
 @dataclass
@@ -90,6 +96,18 @@ class _Step:
     iterations: int
     reason: str = ""
     worst_element: int = -1
+    #: Newton stopped making progress; the smallest residual it reached and the floating-point floor of the
+    #: residual, both relative to the load.
+    stalled: bool = False
+    residual_ratio: float = 0.0
+    rounding_floor_ratio: float = 0.0
+
+    @property
+    def ill_conditioned(self) -> bool:
+        """Newton stalled (no inverted element) with its residual down at what rounding in the positions alone
+        produces, so no iteration or smaller load step can meet the tolerance."""
+        return (self.stalled and self.worst_element < 0
+                and self.residual_ratio <= ROUNDING_FLOOR_MARGIN * self.rounding_floor_ratio)
 
 
 @dataclass
@@ -213,16 +231,18 @@ class PhantomModel:
     Build with :meth:`from_scene`. Attributes: ``chamber_names``, ``n_chambers``, ``nodes_m`` (n, 3) rest
     positions, ``tets`` (m, 4), ``outer_triangles`` (k, 3) outward, ``chamber_triangles`` (list, each
     oriented out of its cavity), ``rest_chamber_volumes_m3``, ``rest_gland_volume_m3``, ``material``,
-    ``formulation`` (the scene's).
+    ``formulation`` (the scene's), ``scene`` (the Scene it was built from, None for a bare mesh: the inverse
+    and the volume estimator read its ``[model]`` table).
     """
 
     def __init__(self, mesh: TetMesh, surfaces: Surfaces, chamber_names: list[str], material: Material,
-                 source: str = "mesh", linear_solver: str | None = None):
+                 source: str = "mesh", linear_solver: str | None = None, scene: Scene | None = None):
         if not 0 < material.youngs_modulus_pa < np.inf or not -1.0 < material.poisson_ratio < 0.5:
             raise SolveError(f"material out of range: E = {material.youngs_modulus_pa} Pa (> 0), "
                              f"nu = {material.poisson_ratio} (in (-1, 0.5))")
         self.mesh = mesh
         self.source = source
+        self.scene = scene
         self.nodes_m = mesh.nodes_m
         self.tets = mesh.tets
         self.chamber_names = list(chamber_names)
@@ -286,18 +306,19 @@ class PhantomModel:
                 raise MeshError(f"mesh_size_mm applies to the built-in mesh only; {scene.mesh} is read as it is")
             mesh, source = read_mesh(scene.mesh, scene.length_scale_m), scene.mesh
         surfaces = prepare_surfaces(mesh, scene.chambers, scene.fixed, source)
-        return cls(mesh, surfaces, scene.chambers, scene.material, source)
+        return cls(mesh, surfaces, scene.chambers, scene.material, source, scene=scene)
 
     def with_material(self, youngs_modulus_pa: float | None = None, poisson_ratio: float | None = None,
                       model: str | None = None) -> "PhantomModel":
-        """The same mesh and fixation with another material (modulus in Pa)."""
+        """The same mesh, fixation and scene settings with another material (modulus in Pa)."""
         material = Material(
             model or self.material.model,
             self.material.youngs_modulus_pa if youngs_modulus_pa is None else float(youngs_modulus_pa),
             self.material.poisson_ratio if poisson_ratio is None else float(poisson_ratio),
         )
         surfaces = Surfaces(self.chamber_triangles, self.outer_triangles, self.fixed_triangles)
-        return PhantomModel(self.mesh, surfaces, self.chamber_names, material, self.source, self.linear_solver)
+        scene = None if self.scene is None else dataclasses.replace(self.scene, material=material)
+        return PhantomModel(self.mesh, surfaces, self.chamber_names, material, self.source, self.linear_solver, scene)
 
     # --- volumes and loads -------------------------------------------------------------------------------
 
@@ -436,8 +457,9 @@ class PhantomModel:
             positions_m, iterations, steps = self._continuation(start_m, pressures, formulation, tolerance,
                                                                 self._constraints_for(frame_m))
         chamber_volumes_m3, gland_volume_m3 = self.volumes(positions_m)
+        load_positions_m = start_m if formulation == "linear" and initial_positions_m is not None else None
         return State(positions_m, chamber_volumes_m3, gland_volume_m3, iterations,
-                     time.perf_counter() - started, pressures, formulation, steps)
+                     time.perf_counter() - started, pressures, formulation, steps, load_positions_m)
 
     def _continuation(self, start_m, pressures, formulation, tolerance, constraints) -> tuple[np.ndarray, int, int]:
         """Load steps from 0 to the full pressures; a failed step is halved up to MAX_LOAD_BISECTIONS times."""
@@ -453,14 +475,25 @@ class PhantomModel:
                 increment *= 2.0 if step.iterations < 8 else 1.0
                 continue
             bisections += 1
-            if bisections > MAX_LOAD_BISECTIONS or formulation == "linear":
+            # A smaller load cannot help a linear model, nor a residual stuck at the rounding floor (the floor
+            # relative to the load only grows as the load shrinks).
+            if bisections > MAX_LOAD_BISECTIONS or formulation == "linear" or step.ill_conditioned:
                 raise self._failure(pressures, target, step)
             increment /= 2.0
         return positions_m, iterations, steps
 
     def _failure(self, pressures, target, step: _Step) -> SolveError:
-        """A SolveError that names the chamber most likely at fault, the pressure, and what to try."""
+        """A SolveError that names the chamber most likely at fault, the pressure, and what to try; or, when
+        the residual stalled at its rounding floor, the ill-conditioning and the penalty factor behind it."""
         pressures_kpa = ", ".join(f"{p / 1e3:g}" for p in pressures)
+        if step.ill_conditioned:
+            return SolveError(
+                f"the stiffness is ill-conditioned: at pressures ({pressures_kpa}) kPa Newton's residual stagnated "
+                f"at {step.residual_ratio:.2g} of the load, the floor that rounding the node positions alone "
+                f"gives ({step.rounding_floor_ratio:.2g}: stiffness diagonal ratio {self._diagonal_ratio():.2g}, "
+                f"condition number at least that), while the tolerance is {RELATIVE_TOLERANCE:g}; the fixation "
+                f"springs are FIXED_PENALTY = {FIXED_PENALTY:g} times E: use a lower penalty factor (the default "
+                f"1e3 already clamps the fixed patch; 1e6 converges)")
         chamber = int(np.argmax(np.abs(pressures)))
         if step.worst_element >= 0:
             centroid = self.nodes_m[self.tets[step.worst_element]].mean(axis=0)
@@ -522,7 +555,8 @@ class PhantomModel:
                 best_norm, best_iteration = residual_norm, iteration
             elif iteration - best_iteration >= STALLED_ITERATIONS:
                 return _Step(positions_m, False, iteration, f"solve stopped converging after {iteration} iterations",
-                             self._worst_element(positions_m))
+                             self._worst_element(positions_m), True, best_norm / load_scale,
+                             self._rounding_floor_n(positions_m) / load_scale)
             previous_norm = residual_norm
             if kind == "krylov":
                 hessian = self.stiffness_matrix(positions_m, "corotational", pressures, constraints)
@@ -548,6 +582,22 @@ class PhantomModel:
                 kind, factorization = "exact", self._tangent(positions_m, constraints, pressures, exact=True)
         return _Step(positions_m, False, MAX_ITERATIONS_PER_STEP, "solve did not converge in "
                      f"{MAX_ITERATIONS_PER_STEP} iterations", self._worst_element(positions_m))
+
+    def _rest_diagonal_n_per_m(self) -> np.ndarray:
+        """Diagonal of the small-strain stiffness with the springs (N/m) at the free dofs."""
+        _, _, _, data = self._elastic(self.nodes_m, False, 1, self._rest_constraints)
+        return data[self._pattern.diagonal][self._rest_constraints.free_mask]
+
+    def _rounding_floor_n(self, positions_m: np.ndarray) -> float:
+        """The residual (N) that rounding the positions to double precision alone produces: each force is a
+        stiffness times a position known to ``eps |x|``, so ``eps |diag(K) |x||`` is as low as Newton can go."""
+        free = self._rest_constraints.free_mask
+        return float(np.finfo(float).eps * _norm(self._rest_diagonal_n_per_m() * np.abs(positions_m.ravel()[free])))
+
+    def _diagonal_ratio(self) -> float:
+        """Largest over smallest stiffness diagonal entry: a lower bound of the condition number."""
+        diagonal = self._rest_diagonal_n_per_m()
+        return float(diagonal.max() / diagonal.min())
 
     @property
     def _length_scale_m(self) -> float:
@@ -606,11 +656,20 @@ class PhantomModel:
     def compliance(self, state: State | None = None) -> Compliance:
         """Compliance at rest (``W = H K^-1 H^T`` with the rest stiffness) or the tangent at ``state``.
 
-        At a state the derivative of the nonlinear solution with respect to each chamber's pressure is taken
-        by central differences of re-solves started from the state (step 1 % of the largest pressure, at
-        least 1e-4 E), which includes the rotation and follower-load terms the Newton tangent leaves out.
-        Cached on disk (``phantom.cache_dir("compliance")``) by a hash of mesh, material, solver and state.
+        At a co-rotational state the derivative of the nonlinear solution with respect to each chamber's
+        pressure is taken by central differences of re-solves started from the state (step 1 % of the largest
+        pressure, at least 1e-4 E), which includes the rotation and follower-load terms the Newton tangent leaves
+        out. Cached on disk (``phantom.cache_dir("compliance")``) by a hash of mesh, material, solver and state.
+
+        At a linear (small-strain) state ``x = X + K^-1 H(x_L)^T p``, with the rest stiffness K and the load
+        taken on the solve's starting shape ``x_L`` (rest unless ``state.load_positions_m``), so the displacement
+        per pascal ``D = K^-1 H(x_L)^T`` does not depend on p and the tangent is exactly
+        ``dV_i/dp_j = H_i(x) . D_j``: the rest displacement, with the volume gradients of the deformed state
+        (the volume measure's own nonlinearity). Re-solving from the state would take the load on the deformed
+        shape instead, which is another problem. One back-substitution (none from rest), so not cached.
         """
+        if state is not None and state.formulation == "linear":
+            return self._linear_state_compliance(state)
         extra = b"rest"
         if state is not None:
             extra = (state.formulation.encode() + np.ascontiguousarray(state.pressures_pa).tobytes()
@@ -631,13 +690,31 @@ class PhantomModel:
         return result
 
     def _rest_compliance(self) -> Compliance:
-        gradients = self.volume_gradients(self.nodes_m)
+        displacement = self._small_strain_displacement(self.nodes_m)
+        return self._compliance_of(displacement, self.nodes_m)
+
+    def _small_strain_displacement(self, load_positions_m: np.ndarray) -> np.ndarray:
+        """``D = K^-1 H(x_L)^T`` (n_chambers, 3n), m/Pa: the small-strain displacement per pascal of each chamber
+        with the load taken on ``load_positions_m`` (held dofs do not move)."""
+        gradients = self.volume_gradients(load_positions_m)[:-1]
         held = ~self._rest_constraints.free_mask
         gradients[:, held] = 0.0
-        displacement = self.rest_factorization().solve(gradients[:-1].T).T
+        displacement = self.rest_factorization().solve(gradients.T).T
         displacement[:, held] = 0.0
+        return displacement
+
+    def _compliance_of(self, displacement: np.ndarray, positions_m: np.ndarray) -> Compliance:
+        """Volume derivatives ``H(x) D^T`` at ``positions_m`` for a displacement per pascal ``D`` (n_chambers, 3n)."""
+        gradients = self.volume_gradients(positions_m)
         return Compliance(gradients[:-1] @ displacement.T, gradients[-1] @ displacement.T,
                           displacement.reshape(self.n_chambers, -1, 3))
+
+    def _linear_state_compliance(self, state: State) -> Compliance:
+        if state.load_positions_m is None:
+            displacement = self.compliance().displacement_m_per_pa.reshape(self.n_chambers, -1)
+        else:
+            displacement = self._small_strain_displacement(np.asarray(state.load_positions_m, float))
+        return self._compliance_of(displacement, state.positions_m)
 
     def _state_compliance(self, state: State) -> Compliance:
         step_pa = max(1e-2 * float(np.max(np.abs(state.pressures_pa))), 1e-4 * self.material.youngs_modulus_pa)
@@ -649,9 +726,8 @@ class PhantomModel:
             for sign in (1.0, -1.0):
                 pressures = state.pressures_pa.copy()
                 pressures[j] += sign * step_pa
-                frame_m = self.nodes_m if state.formulation == "linear" else state.positions_m
                 solutions.append(self._continuation(state.positions_m, pressures, state.formulation, 1e-11,
-                                                    self._constraints_for(frame_m))[0])
+                                                    self._constraints_for(state.positions_m))[0])
             displacement[j] = (solutions[0] - solutions[1]) / (2 * step_pa)
             plus, minus = self.volumes(solutions[0]), self.volumes(solutions[1])
             chamber[:, j] = (plus[0] - minus[0]) / (2 * step_pa)

@@ -10,7 +10,9 @@
     rest one is cached). ``K_t`` is the exact tangent of the co-rotational energy, including the stiffness of
     the follower pressure load ``-sum_i p_i d^2 V_i / dx^2``. Volumes are then measured exactly on the
     predicted nodes, so the geometric part of the nonlinearity is kept. For a small-strain (linear) material
-    the displacement is exactly the rest compliance's, so this level is the full answer at no solve.
+    the displacement is exactly the rest compliance's, so this level is the full (linear) answer at no solve:
+    one tensor product and a volume measure, milliseconds. The ``rest`` level is then exact in the
+    displacements but not in the volumes, which are not linear in the displacements (at p ~ E, tens of %).
 ``full``
     The full co-rotational solve (``model.solve``).
 
@@ -48,11 +50,11 @@ def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: 
     return displacement.reshape(len(pressures_pa), -1, 3)
 
 
-def scene_model_settings(model, scene=None) -> dict:
-    """The scene's optional ``[model]`` table (fidelity, accuracy_pct, pressure_max_kpa), or {}; the scene is
-    ``scene`` if given, else ``model.scene`` if the model keeps one."""
-    scene = scene if scene is not None else getattr(model, "scene", None)
-    raw = getattr(scene, "raw", None) or {}
+def scene_model_settings(model) -> dict:
+    """The optional ``[model]`` table (fidelity, accuracy_pct, pressure_max_kpa) of the scene the model was
+    built from (``model.scene``), or {} for a model without a scene or a scene without the table.
+    """
+    raw = getattr(model.scene, "raw", None) or {}
     settings = raw.get("model", {})
     if not isinstance(settings, dict):
         raise PhantomError("the scene's [model] must be a table with fidelity, accuracy_pct, pressure_max_kpa")
@@ -83,13 +85,13 @@ class VolumeEstimator:
         Override the scene's ``[model] accuracy_pct`` (%) and ``pressure_max_kpa`` (given here in Pa).
     steps : int
         Increments of the ``updated`` level.
-    scene : Scene, optional
-        Where the ``[model]`` table is read (default: ``model.scene`` if the model keeps its scene).
+
+    The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
     """
 
     def __init__(self, model, level: str | None = None, accuracy_pct: float | None = None,
-                 pressure_max_pa: float | None = None, steps: int = 1, scene=None):
-        settings = scene_model_settings(model, scene)
+                 pressure_max_pa: float | None = None, steps: int = 1):
+        settings = scene_model_settings(model)
         self.model = model
         self.n_chambers = int(model.n_chambers)
         self.steps = int(steps)
@@ -131,7 +133,8 @@ class VolumeEstimator:
         return self._full_state(pressures).positions_m
 
     def evaluate(self, pressures_pa):
-        """Volumes as :meth:`volumes`, plus the full solver state at the ``full`` level (else None)."""
+        """Volumes as :meth:`volumes`, plus the solver state where the level has one (else None): ``full``, and
+        ``updated`` for a small-strain material, whose positions are exactly the linear solve's."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
         if self.level == "rest":
             compliance = self.rest_compliance
@@ -139,8 +142,14 @@ class VolumeEstimator:
                     @ pressures, float(self.model.rest_gland_volume_m3 + compliance.gland_m3_per_pa @ pressures),
                     None)
         if self.level == "updated":
-            chamber_volumes_m3, gland_volume_m3 = self.model.volumes(self._updated_positions(pressures))
-            return np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3), None
+            positions_m = self._updated_positions(pressures)
+            chamber_volumes_m3, gland_volume_m3 = self.model.volumes(positions_m)
+            state = None
+            if self.model.formulation == "linear":
+                from phantom.model.fem import State
+
+                state = State(positions_m, chamber_volumes_m3, gland_volume_m3, 0, 0.0, pressures, "linear")
+            return np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3), state
         state = self._full_state(pressures)
         return np.asarray(state.chamber_volumes_m3, dtype=float), float(state.gland_volume_m3), state
 
@@ -158,7 +167,7 @@ class VolumeEstimator:
 
     def _updated_positions(self, pressures_pa: np.ndarray) -> np.ndarray:
         """Midpoint-rule path along ``t pressures_pa``: x_{k+1} = x_k + D(x_k + D(x_k) dp/2) dp."""
-        if getattr(self.model, "formulation", "corotational") == "linear":
+        if self.model.formulation == "linear":
             # Small-strain material: the displacement is exactly linear in p, only the volume measure is not.
             return self._rest_positions(pressures_pa)
         positions_m = np.asarray(self.model.nodes_m, dtype=float).copy()
@@ -181,7 +190,7 @@ class VolumeEstimator:
 
     def _full_state(self, pressures_pa: np.ndarray):
         self.counts["full_solves"] += 1
-        if getattr(self.model, "formulation", "corotational") == "linear":
+        if self.model.formulation == "linear":
             # A small-strain solve takes its load on the starting configuration: it must start at rest.
             return self.model.solve(pressures_pa)
         state = self.model.solve(pressures_pa, initial_positions_m=self._last_positions_m)

@@ -205,29 +205,36 @@ class InverseSolver:
     ----------
     model : PhantomModel
         The forward model (``phantom.model``).
-    pressure_max_pa : float or sequence of float
-        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push).
+    pressure_max_pa : float or sequence of float, or None
+        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the scene's
+        ``[model] pressure_max_kpa``, else 3000 Pa.
     fidelity : {"rest", "updated", "full"} or None
         How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.VolumeEstimator`);
-        None takes the cheapest level that meets the scene's stated accuracy.
+        None takes the scene's ``[model] fidelity``, else the cheapest level that meets its ``accuracy_pct``.
     max_growth_m3 : float or sequence of (float or None), optional
         Upper limit on each chamber's growth above its rest volume (m^3).
     tolerance : float
         Relative volume tolerance of the outer iteration (dimensionless, of the target volume).
     max_iterations : int
         Linearisations before giving up.
-    scene : Scene, optional
-        Where the ``[model]`` table (fidelity, accuracy) is read, if the model does not keep its scene.
     estimator : VolumeEstimator, optional
         A ready estimator to share (its level wins over ``fidelity``).
+    scene : Scene, optional
+        Accepted only as ``model.scene`` itself, for callers written before models kept their scene
+        (model/inverse_cli.py); to be removed with them.
+
+    The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
     """
 
-    def __init__(self, model, pressure_max_pa=3000.0, fidelity: str | None = None, max_growth_m3=None,
-                 tolerance: float = 2e-5, max_iterations: int = 15, scene=None, estimator=None):
-        from phantom.model.fidelity import VolumeEstimator
+    def __init__(self, model, pressure_max_pa=None, fidelity: str | None = None, max_growth_m3=None,
+                 tolerance: float = 2e-5, max_iterations: int = 15, estimator=None):
+        from phantom.model.fidelity import DEFAULT_PRESSURE_MAX_PA, VolumeEstimator, scene_model_settings
 
         self.model = model
         self.n_chambers = int(model.n_chambers)
+        settings = scene_model_settings(model)
+        if pressure_max_pa is None:
+            pressure_max_pa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3)) * 1e3
         self.pressure_max_pa = np.broadcast_to(_finite("pressure_max_pa", pressure_max_pa),
                                                (self.n_chambers,)).astype(float)
         if np.any(self.pressure_max_pa <= 0):
@@ -241,7 +248,7 @@ class InverseSolver:
         self.pressure_per_pa = 1.0 / float(self.pressure_max_pa.max())
         self.tolerance = float(tolerance)
         self.max_iterations = int(max_iterations)
-        self.estimator = estimator or VolumeEstimator(model, level=fidelity, scene=scene,
+        self.estimator = estimator or VolumeEstimator(model, level=fidelity,
                                                       pressure_max_pa=float(self.pressure_max_pa.max()))
         rest = model.compliance()
         self.rest = Linearisation(np.zeros(self.n_chambers), np.asarray(model.rest_chamber_volumes_m3, dtype=float),
@@ -385,12 +392,13 @@ class InverseSolver:
 
     def reachable_range_ml(self, target: Target, linearisation: Linearisation, row_name: str) -> tuple[float, float]:
         """The least and greatest value (ml) of one target row over the allowed pressures, to first order
-        at ``linearisation`` (a linear program over the bounds and constraints)."""
+        at ``linearisation`` (a linear program over the bounds and constraints), the row's volume then evaluated
+        at those extreme pressures at the solver's fidelity level (a linearisation made at the pressure limit
+        would otherwise extrapolate the low end below the rest volume)."""
         from scipy.optimize import linprog
 
         rows = self._rows(target, linearisation)
         index = rows.objective_names.index(row_name)
-        offset_scaled = self._row_offset_scaled(linearisation, row_name)
         bounds = [(0.0, value * self.pressure_per_pa) for value in self.pressure_max_pa]
         equality = np.isfinite(rows.constraint_lower) & (rows.constraint_lower == rows.constraint_upper)
         inequality = ~equality
@@ -405,25 +413,18 @@ class InverseSolver:
             if not solution.success:
                 raise UnreachableTargetError("the constraints contradict each other: no pressures between the "
                                              "bounds satisfy them; relax the growth ratio or growth limits")
-            extremes.append((offset_scaled + float(rows.objective_rows[index] @ solution.x)) * ML_PER_M3
-                            / self.volume_per_m3)
+            chamber_volumes_m3, gland_volume_m3, _ = self._evaluate(np.asarray(solution.x) / self.pressure_per_pa)
+            volume_m3 = gland_volume_m3 if row_name == "gland" else chamber_volumes_m3[int(row_name.split()[1])]
+            extremes.append(float(volume_m3) * ML_PER_M3)
         return extremes[0], extremes[1]
 
     # ----------------------------------------------------------------- the outer iteration
     def _linearise(self, pressures_pa: np.ndarray, evaluation) -> Linearisation:
-        """The linearisation at an evaluated state: tangent compliance for the full level (exact and cheap for a
-        small-strain material), else the rest one (a chord iteration, which converges while the response is
-        mildly nonlinear)."""
+        """The linearisation at an evaluated state: the model's tangent compliance where the estimator has a
+        state (exact, and one back-substitution for a small-strain material), else the rest one (a chord
+        iteration, which converges while the response is mildly nonlinear)."""
         chamber_volumes_m3, gland_volume_m3, state = evaluation
-        small_strain = getattr(self.model, "formulation", "corotational") == "linear"
-        if self.estimator.level != "rest" and small_strain and np.any(pressures_pa):
-            # Small strain: x = X + D_0 p exactly, so dV_i/dp_j = H_i(x) . D_0j (the volume measure's own
-            # nonlinearity is all there is).
-            displacement = np.asarray(self.estimator.rest_compliance.displacement_m_per_pa, dtype=float)
-            positions_m = np.asarray(self.model.nodes_m, dtype=float) + np.tensordot(pressures_pa, displacement, 1)
-            gradients = self.model.volume_gradients(positions_m) @ displacement.reshape(self.n_chambers, -1).T
-            slope_chamber, slope_gland = gradients[:-1], gradients[-1]
-        elif state is None or not np.any(pressures_pa):
+        if state is None or not np.any(pressures_pa):
             slope_chamber, slope_gland = self.rest.chamber_m3_per_pa, self.rest.gland_m3_per_pa
         else:
             tangent = self.model.compliance(state)
@@ -535,17 +536,6 @@ class InverseSolver:
         return (f"{what} target {wanted_ml:.3f} ml is unreachable: pressures between 0 and [{limits}] kPa"
                 f"{with_constraints} give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range "
                 "or raise pressure_max")
-
-    def _row_offset_scaled(self, linearisation: Linearisation, row_name: str) -> float:
-        """The constant part (QP volume units) of one row's linear volume model: volume = offset + row . x."""
-        scale = self.volume_per_m3 / self.pressure_per_pa
-        pressures_scaled = linearisation.pressures_pa * self.pressure_per_pa
-        if row_name == "gland":
-            return float(linearisation.gland_volume_m3 * self.volume_per_m3
-                         - (linearisation.gland_m3_per_pa * scale) @ pressures_scaled)
-        chamber = int(row_name.split()[1])
-        return float(linearisation.chamber_volumes_m3[chamber] * self.volume_per_m3
-                     - (linearisation.chamber_m3_per_pa[chamber] * scale) @ pressures_scaled)
 
     def _evaluate_raw_pressures(self, target: Target, started: float) -> InverseResult:
         pressures_pa = _finite("pressures_pa", target.pressures_pa)

@@ -12,7 +12,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "inverse", help="chamber pressures that give a wanted volume (offline)",
         description="Solve the inverse problem: the chamber pressures (kPa) that give a wanted gland volume, "
                     "chamber volumes, or a gland volume with a growth ratio between chambers.")
-    inverse.add_argument("--scene", default="builtin", help="scene TOML path or 'builtin' (default)")
+    inverse.add_argument("--scene", default="builtin:calibrated",
+                         help="scene TOML path, 'builtin' or 'builtin:calibrated' (default: the phantom as measured)")
     target = inverse.add_mutually_exclusive_group(required=True)
     target.add_argument("--volume-ml", type=float, help="the gland's total volume (ml)")
     target.add_argument("--chamber-volumes-ml",
@@ -79,9 +80,8 @@ def run_inverse(args) -> int:
 
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml (the gland volume it shares out)")
-    scene, model = _load_model(args)
-    settings = scene_model_settings(model, scene)
-    pressure_max_kpa = args.pressure_max_kpa or float(settings.get("pressure_max_kpa", 3.0))
+    _, model = _load_model(args)
+    settings = scene_model_settings(model)
     fidelity = args.fidelity or settings.get("fidelity", "full")
     if args.volume_ml is not None:
         target = Target(gland_volume_m3=args.volume_ml * 1e-6,
@@ -98,8 +98,8 @@ def run_inverse(args) -> int:
         if len(limits_ml) != model.n_chambers:
             raise PhantomError(f"--max-growth-ml needs {model.n_chambers} values ('-' for none), got {len(limits_ml)}")
         max_growth_m3 = [None if value is None else value * 1e-6 for value in limits_ml]
-    solver = InverseSolver(model, pressure_max_pa=pressure_max_kpa * 1e3, fidelity=fidelity, scene=scene,
-                           max_growth_m3=max_growth_m3)
+    pressure_max_pa = None if args.pressure_max_kpa is None else args.pressure_max_kpa * 1e3
+    solver = InverseSolver(model, pressure_max_pa=pressure_max_pa, fidelity=fidelity, max_growth_m3=max_growth_m3)
     result = solver.solve(target)
     report = {
         "pressures_kpa": (result.pressures_pa / 1e3).tolist(),

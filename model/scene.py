@@ -7,7 +7,10 @@ from pathlib import Path
 from phantom.model.errors import SceneError
 
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
-BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml"}
+#: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;
+#: "builtin:calibrated" is the same mesh with the material `phantom calibrate` fitted to the measurements.
+BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
+                  "builtin:calibrated": "prostate_calibrated.toml"}
 
 #: Length units a scene may declare for its mesh, and their size in metres.
 LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
@@ -73,12 +76,12 @@ class Scene:
 
 
 def builtin_scene_path(name: str) -> Path:
-    """The TOML file of a shipped scene (``builtin`` or ``builtin:prostate``)."""
+    """The TOML file of a shipped scene (a key of ``BUILTIN_SCENES``)."""
     return Path(__file__).resolve().parent / "scenes" / BUILTIN_SCENES[name]
 
 
 def load_scene(source: str | Path) -> Scene:
-    """Read a scene: ``"builtin"``/``"builtin:prostate"`` or the path of a TOML file.
+    """Read a scene: ``"builtin"``/``"builtin:prostate"``, ``"builtin:calibrated"`` or the path of a TOML file.
 
     A mesh path in the file is taken relative to the scene file. Raises SceneError on anything missing or
     out of range, naming the key and the file.
@@ -86,7 +89,8 @@ def load_scene(source: str | Path) -> Scene:
     name = str(source)
     path = builtin_scene_path(name) if name in BUILTIN_SCENES else Path(name)
     if not path.is_file():
-        raise SceneError(f"the scene file {path} does not exist: give a TOML path or 'builtin'")
+        raise SceneError(f"the scene file {path} does not exist: give a TOML path or one of "
+                         f"{', '.join(BUILTIN_SCENES)}")
     try:
         raw = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:

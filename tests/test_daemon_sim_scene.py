@@ -54,7 +54,9 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
         assert status["setpoints_kpa"] == pytest.approx([0.0, 1.5, 0.5], abs=0.001)
         assert status["faults"] == [] and status["link_detail"]["stats"]["commands_failed"] == 0
         # nothing records or views, so the daemon never asks the model for a shape
-        assert status["model_counts"]["shapes"] == 0 and status["fidelity"] == "rest"
+        assert status["model_counts"]["shapes"] == 0 and status["fidelity"] == "updated"
+        # the calibrated linear material's exact answer needs no solve at the "updated" level
+        assert status["model_counts"]["full_solves"] == 0 and status["model_counts"]["tangent_solves"] == 0
     finally:
         process.send_signal(signal.SIGTERM)
         code = process.wait(30)

@@ -11,7 +11,8 @@ from scipy import sparse
 from phantom import PhantomError
 from phantom.model import PhantomModel, load_scene
 from phantom.model.fidelity import VolumeEstimator, tangent_displacement_m_per_pa
-from phantom.model.mesh import enclosed_volume_m3, volume_gradient_m2
+from phantom.model.inverse import InverseSolver
+from phantom.model.mesh import Surfaces, enclosed_volume_m3, volume_gradient_m2
 
 COARSE_MM = 6.0
 
@@ -158,13 +159,40 @@ def test_the_cheapest_level_meeting_the_stated_accuracy_is_chosen(model):
     assert middle.probe_times_s[middle.level] <= middle.probe_times_s[other]
 
 
-def test_the_scene_model_table_picks_the_level(tmp_path, model):
+def test_the_scene_model_table_picks_the_level(tmp_path):
+    # The model keeps its scene, so the estimator and the inverse read the [model] table without being told.
     scene_path = tmp_path / "scene.toml"
     scene_path.write_text('[phantom]\nmesh = "builtin:prostate"\nchambers = ["chamber0", "chamber1", "chamber2"]\n'
-                          'fixed = "fixed"\n[model]\nfidelity = "updated"\naccuracy_pct = 2.0\n')
-    estimator = VolumeEstimator(model, scene=load_scene(scene_path))
+                          'fixed = "fixed"\n[model]\nfidelity = "updated"\naccuracy_pct = 2.0\n'
+                          'pressure_max_kpa = 2.5\n')
+    model = PhantomModel.from_scene(load_scene(scene_path), mesh_size_mm=COARSE_MM)
+    assert model.scene.path == scene_path
+    estimator = VolumeEstimator(model)
     assert estimator.level == "updated"
     assert estimator.accuracy_pct == 2.0
+    assert estimator.pressure_max_pa == 2500.0
+    solver = InverseSolver(model)
+    assert solver.estimator.level == "updated"
+    np.testing.assert_array_equal(solver.pressure_max_pa, [2500.0] * 3)
+    # The same model with another material keeps the scene's settings; a model without a scene has none.
+    assert VolumeEstimator(model.with_material(youngs_modulus_pa=10e3)).level == "updated"
+    bare = PhantomModel(model.mesh, Surfaces(model.chamber_triangles, model.outer_triangles, model.fixed_triangles),
+                        model.chamber_names, model.material)
+    assert bare.scene is None and VolumeEstimator(bare, pressure_max_pa=100.0).accuracy_pct == 1.0
+
+
+def test_without_a_fidelity_the_scenes_accuracy_picks_the_level(tmp_path):
+    # A calibrated (linear) scene with no fidelity: "rest" linearises the volume measure, which at 3 kPa on
+    # E = 2.6 kPa is far outside 1 %, while "updated" is the linear model's exact answer (error 0), cheaper than
+    # the full solve; with a loose enough accuracy_pct, "rest" is cheapest and kept.
+    for accuracy_pct, expected in ((1.0, "updated"), (1e4, "rest")):
+        scene_path = tmp_path / f"calibrated_{accuracy_pct:g}.toml"
+        text = load_scene("builtin:calibrated").path.read_text()
+        scene_path.write_text(text + f"\n[model]\naccuracy_pct = {accuracy_pct}\npressure_max_kpa = 3.0\n")
+        estimator = VolumeEstimator(PhantomModel.from_scene(load_scene(scene_path), mesh_size_mm=COARSE_MM))
+        assert estimator.probe_errors_pct["updated"] <= 1e-9
+        assert estimator.probe_errors_pct["rest"] > 5.0, estimator.probe_errors_pct
+        assert estimator.level == expected, (estimator.probe_errors_pct, estimator.probe_times_s)
 
 
 @pytest.mark.parametrize("arguments, message", [

@@ -62,9 +62,11 @@ def test_an_unreachable_volume_states_the_range_the_full_model_reaches(model, ca
                 "--pressure-max-kpa", "3", "--fidelity", "full")
     message = str(caught.value)
     assert "45.000 ml is unreachable" in message and "between 0 and [3, 3, 3] kPa" in message
-    highest_ml = float(message.split(" to ")[1].split(" ml")[0])
+    lowest_ml, highest_ml = (float(value) for value in message.split(" give ")[1].split(" ml")[0].split(" to "))
     at_limit = model.solve([3e3, 3e3, 3e3])
     assert highest_ml == pytest.approx(at_limit.gland_volume_m3 * 1e6, rel=1e-3)
+    # The low end is the model at zero pressure, not the linearisation at the limit extrapolated down to zero.
+    assert lowest_ml == pytest.approx(model.rest_gland_volume_m3 * 1e6, abs=5e-4)  # printed to 0.001 ml
 
 
 def test_raw_pressures_and_chamber_targets_through_the_cli(model, capsys):
@@ -91,7 +93,7 @@ def test_growth_limits_through_the_cli(model, capsys):
 
 
 @pytest.mark.parametrize("arguments, message", [
-    (("--volume-ml", "30", "--growth-ratio", "1:two"), "chamber:weight pairs"),
+    (("--volume-ml", "30", "--growth-ratio", "1:two"), "NAME=WEIGHT pairs"),
     (("--chamber-volumes-ml", "1,x,2"), "comma-separated numbers"),
     (("--pressures-kpa", "1,1,1", "--growth-ratio", "1:2,2:1"), "goes with --volume-ml"),
     (("--volume-ml", "26.5", "--max-growth-ml", "0.1,0.1"), "needs 3 values"),

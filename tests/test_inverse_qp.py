@@ -28,6 +28,11 @@ ML_PER_KPA = 1e-9  # (m^3/Pa) per (ml/kPa)
 class LinearStandIn:
     """A forward model that is exactly linear: c = c0 + W p, g = g0 + h . p (given in ml and kPa)."""
 
+    # PhantomModel's attributes that the inverse reads: no scene (so no [model] table), and the general
+    # (nonlinear, warm-started) formulation, which SofteningStandIn below is.
+    scene = None
+    formulation = "corotational"
+
     def __init__(self, chamber_ml_per_kpa, gland_ml_per_kpa, rest_chambers_ml, rest_gland_ml):
         self.chamber_ml_per_kpa = np.asarray(chamber_ml_per_kpa, dtype=float)
         self.gland_ml_per_kpa = np.asarray(gland_ml_per_kpa, dtype=float)

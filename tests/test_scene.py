@@ -45,6 +45,20 @@ def test_builtin_scene_names_the_shipped_file():
         assert scene.units == "mm" and scene.length_scale_m == 1e-3
 
 
+def test_the_calibrated_builtin_scene_is_the_fitted_material_on_the_same_mesh():
+    scene = load_scene("builtin:calibrated")
+    assert scene.path == builtin_scene_path("builtin:calibrated") and scene.path.name == "prostate_calibrated.toml"
+    assert scene.mesh == "builtin:prostate" and scene.chambers == load_scene("builtin").chambers
+    assert scene.material.model == "linear"
+    assert scene.material.youngs_modulus_pa == pytest.approx(2630.1)
+    assert scene.material.poisson_ratio == pytest.approx(0.45)
+
+
+def test_an_unknown_builtin_name_lists_the_shipped_ones():
+    with pytest.raises(SceneError, match="builtin, builtin:prostate, builtin:calibrated"):
+        load_scene("builtin:liver")
+
+
 def test_a_scene_file_is_read_with_its_mesh_relative_to_it(tmp_path):
     scene = load_scene(write_scene(tmp_path, GOOD))
     assert scene.mesh == str((tmp_path / "meshes" / "p.msh").resolve())
