@@ -174,8 +174,9 @@ def wait_on_board_clock(link: BoardLink, predicate, seconds: float, start: int):
     return got if got is not None and predicate(got.message) else None
 
 
-def wait_board_time(link: BoardLink, seconds: float) -> dict:
-    """Wait until the board's telemetry clock has advanced by ``seconds``; returns the last telemetry fields.
+def wait_board_time(link: BoardLink, seconds: float, until=None):
+    """Wait on the board's telemetry clock until ``until(fields)`` holds or ``seconds`` of board time have
+    passed; returns the last telemetry fields, or None when the board's clock ran out first.
 
     Waiting on the board's clock, not the host's, keeps the checks right when the simulator runs slower than
     asked (a loaded machine); the host-side timeout only catches a board that stopped talking.
@@ -185,31 +186,23 @@ def wait_board_time(link: BoardLink, seconds: float) -> dict:
     if first is None:
         raise BenchError("no telemetry from the board: is a session open?")
     t0_ms = first.message.fields["time_ms"]
-    got = link.wait_for(
-        lambda m: m.name == "TELEMETRY" and m.fields["time_ms"] - t0_ms >= seconds * 1e3,
-        (5.0 + 10.0 * seconds) * link.time_scale,
-        start,
-    )
+
+    def done(message) -> bool:
+        if message.name != "TELEMETRY":
+            return False
+        return message.fields["time_ms"] - t0_ms >= seconds * 1e3 or (until is not None and until(message.fields))
+
+    got = link.wait_for(done, (5.0 + 10.0 * seconds) * link.time_scale, start)
     if got is None:
         raise BenchError(f"the board's telemetry stopped before {seconds} s of board time had passed")
-    return got.message.fields
+    fields = got.message.fields
+    return fields if until is None or until(fields) else None
 
 
 def vent_and_wait(link: BoardLink, below_kpa: float = 0.05, timeout_s: float = 20.0) -> None:
     """VENT, then wait until every chamber reads below below_kpa, for at most timeout_s of board time."""
     link.command("VENT")
-    start = link.mark()
-    first = link.wait_for(lambda m: m.name == "TELEMETRY", 1.0, start)
-    if first is None:
-        raise BenchError("no telemetry from the board: is a session open?")
-    t0_ms = first.message.fields["time_ms"]
-    got = link.wait_for(
-        lambda m: m.name == "TELEMETRY"
-        and (max(m.fields["pressure_pa"]) < below_kpa * 1e3 or m.fields["time_ms"] - t0_ms > timeout_s * 1e3),
-        (5.0 + 10.0 * timeout_s) * link.time_scale,
-        start,
-    )
-    if got is None or max(got.message.fields["pressure_pa"]) >= below_kpa * 1e3:
+    if wait_board_time(link, timeout_s, lambda fields: max(fields["pressure_pa"]) < below_kpa * 1e3) is None:
         raise BenchError(f"the chambers did not vent below {below_kpa} kPa within {timeout_s} s")
 
 

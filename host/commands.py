@@ -240,13 +240,36 @@ def format_steps(steps: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def follow_scene(client, name: str, time_scale: float, poll_s: float = 0.5) -> dict:
+    """Poll the daemon's status until the scene ``name`` has finished, showing its progress on stderr.
+
+    Returns the last status (its ``scene`` holds each step's record). Raises when another request replaced
+    the scene before it finished.
+    """
+    import sys
+    import time
+
+    from phantom import PhantomError
+
+    while True:
+        status = client.call("status")
+        scene = status["scene"]
+        if scene is None or scene["name"] != name:
+            raise PhantomError("the scene was replaced by another request before it finished")
+        print(f"\r  {scene['time_s']:6.1f} / {scene['end_s']:g} s of scene (x{time_scale:g})   volume "
+              f"{_ml(status['estimated_volume_ml'])}   target {_ml(status['target_volume_ml'])} ",
+              end="", file=sys.stderr, flush=True)
+        if scene["finished"]:
+            print(file=sys.stderr)
+            return status
+        time.sleep(poll_s)
+
+
 def _run_scene(args) -> int:
     import json
     import sys
-    import time
     from pathlib import Path
 
-    from phantom import PhantomError
     from phantom.host.scenes import example_scene_path
 
     path = Path(args.file)
@@ -258,18 +281,7 @@ def _run_scene(args) -> int:
               f"{started['wall_duration_s']:.0f} s at time scale {args.time_scale:g}", file=sys.stderr)
         if not args.wait:
             return 0
-        while True:
-            status = client.call("status")
-            scene = status["scene"]
-            if scene is None or scene["name"] != started["name"]:
-                raise PhantomError("the scene was replaced by another request before it finished")
-            print(f"\r  {scene['time_s'] / args.time_scale:5.1f} / {started['wall_duration_s']:.0f} s  volume "
-                  f"{_ml(status['estimated_volume_ml'])}, target {_ml(status['target_volume_ml'])}   ",
-                  end="", file=sys.stderr, flush=True)
-            if scene["finished"]:
-                print(file=sys.stderr)
-                break
-            time.sleep(0.5)
+        scene = follow_scene(client, started["name"], args.time_scale)["scene"]
     if args.json:
         print(json.dumps(scene["steps"], indent=2))
     else:

@@ -36,7 +36,7 @@ def _wait_online(client_factory, process, timeout_s: float) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     from phantom.host.client import DaemonClient
-    from phantom.host.commands import format_steps
+    from phantom.host.commands import follow_scene, format_steps
     from phantom.host.recording import read_rrd
     from phantom.host.scenes import example_scene_path
 
@@ -63,18 +63,8 @@ def main(argv: list[str] | None = None) -> int:
             run = client.call("run_scene", {"path": str(Path(args.scene).resolve()), "time_scale": args.time_scale})
             print(f"running {run['name']}: {run['steps']} steps, {run['end_s']:g} s of timeline in about "
                   f"{run['wall_duration_s']:.0f} s", file=sys.stderr)
-            while True:
-                status = client.call("status")
-                scene = status["scene"]
-                volume = status["estimated_volume_ml"]
-                print(f"\r  {scene['time_s']:6.1f} / {scene['end_s']:g} s of scene   volume "
-                      f"{'-' if volume is None else f'{volume:.2f}'} ml   target {status['target_volume_ml']} ml   ",
-                      end="", file=sys.stderr, flush=True)
-                if scene["finished"]:
-                    print(file=sys.stderr)
-                    break
-                time.sleep(0.5)
-        steps = scene["steps"]
+            status = follow_scene(client, run["name"], args.time_scale)
+        steps = status["scene"]["steps"]
         faults = status["faults"]
     finally:
         if process.poll() is None:
