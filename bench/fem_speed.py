@@ -22,14 +22,13 @@ from pathlib import Path
 
 import numpy as np
 import skfem
-from skfem.helpers import dot
-from skfem.models.elasticity import lame_parameters, linear_elasticity
 
 from phantom.model.fem import PhantomModel
 from phantom.model.linsolve import Factorization
 from phantom.model.mesh import prepare_surfaces
 from phantom.model.scene import Material
 from phantom.model.shapes import builtin_prostate
+from phantom.model.skfem_reference import skfem_problem, skfem_stiffness
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 YOUNGS_MODULUS_PA, POISSON_RATIO = 50e3, 0.45
@@ -52,42 +51,17 @@ def model_at(size_mm):
                                         Material("corotational", YOUNGS_MODULUS_PA, POISSON_RATIO))
 
 
-def skfem_problem(model):
-    """scikit-fem's assembly, pressure load and held dofs for the same problem."""
-    mesh = skfem.MeshTet(model.nodes_m.T.copy(), model.tets.T.copy())
-    basis = skfem.Basis(mesh, skfem.ElementVector(skfem.ElementTetP1()))
-    stiffness = skfem.asm(linear_elasticity(*lame_parameters(YOUNGS_MODULUS_PA, POISSON_RATIO)), basis)
-    facet_of = {tuple(sorted(f)): i for i, f in enumerate(mesh.facets.T.tolist())}
-    load = np.zeros(basis.N)
-    for pressure_pa, triangles in zip(PRESSURES_PA, model.chamber_triangles, strict=True):
-        facets = np.array([facet_of[tuple(sorted(t))] for t in triangles.tolist()])
-
-        @skfem.LinearForm
-        def traction(v, w, pressure_pa=pressure_pa):
-            return -pressure_pa * dot(w.n, v)
-
-        load += skfem.asm(traction, skfem.FacetBasis(mesh, basis.elem, facets=facets))
-    held = basis.nodal_dofs.T.ravel()[model.held_dofs]
-    return basis, stiffness, load, held
-
-
-def skfem_assembly(model):
-    mesh = skfem.MeshTet(model.nodes_m.T.copy(), model.tets.T.copy())
-    basis = skfem.Basis(mesh, skfem.ElementVector(skfem.ElementTetP1()))
-    return skfem.asm(linear_elasticity(*lame_parameters(YOUNGS_MODULUS_PA, POISSON_RATIO)), basis)
-
-
 def measure(size_mm, repeats):
     mesh, surfaces, model = model_at(size_mm)
     model.solve(PRESSURES_PA)  # compile and warm every kernel once
-    _, stiffness, load, held = skfem_problem(model)
+    _, stiffness, load, held = skfem_problem(model, PRESSURES_PA)
     row = {"size_mm": size_mm, "nodes": len(mesh.nodes_m), "tets": len(mesh.tets)}
     row["refill_s"] = best_time_s(lambda: model.stiffness_matrix(), repeats)
     deformed = model.solve(PRESSURES_PA).positions_m
     row["tangent_s"] = best_time_s(lambda: model.stiffness_matrix(deformed, "corotational", PRESSURES_PA), repeats)
     row["setup_s"] = best_time_s(lambda: PhantomModel(mesh, surfaces, CHAMBERS, model.material).stiffness_matrix(),
                                  repeats)
-    row["skfem_assembly_s"] = best_time_s(lambda: skfem_assembly(model), repeats)
+    row["skfem_assembly_s"] = best_time_s(lambda: skfem_stiffness(model), repeats)
     matrix = model.stiffness_matrix()
     right_hand_side = PRESSURES_PA @ model.volume_gradients(model.nodes_m)[:-1]
     right_hand_side[model.held_dofs] = 0.0
@@ -101,7 +75,7 @@ def measure(size_mm, repeats):
     row["iterations"] = fresh_corotational().iterations
 
     def skfem_whole():
-        _, k, f, d = skfem_problem(model)
+        _, k, f, d = skfem_problem(model, PRESSURES_PA)
         return skfem.solve(*skfem.condense(k, f, D=d))
 
     row["skfem_full_s"] = best_time_s(skfem_whole, repeats)

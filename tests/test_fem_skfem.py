@@ -2,39 +2,12 @@
 
 import numpy as np
 import pytest
-import skfem
-from skfem.helpers import dot
-from skfem.models.elasticity import lame_parameters, linear_elasticity
 
 from phantom.model.fem import PhantomModel
 from phantom.model.mesh import prepare_surfaces
 from phantom.model.scene import Material
 from phantom.model.shapes import builtin_prostate, generate_hollow_sphere
-
-
-def skfem_displacement(model: PhantomModel, pressures_pa) -> np.ndarray:
-    """Small-strain displacement (m, (n, 3)) by scikit-fem: pressure tractions -p n on each chamber wall, the
-    model's own constrained dofs held at zero."""
-    mesh = skfem.MeshTet(model.nodes_m.T.copy(), model.tets.T.copy())
-    basis = skfem.Basis(mesh, skfem.ElementVector(skfem.ElementTetP1()))
-    material = model.material
-    stiffness = skfem.asm(linear_elasticity(*lame_parameters(material.youngs_modulus_pa, material.poisson_ratio)),
-                          basis)
-    facet_of = {tuple(sorted(f)): i for i, f in enumerate(mesh.facets.T.tolist())}
-    load = np.zeros(basis.N)
-    for pressure_pa, triangles in zip(pressures_pa, model.chamber_triangles, strict=True):
-        facets = np.array([facet_of[tuple(sorted(t))] for t in triangles.tolist()])
-
-        @skfem.LinearForm
-        def traction(v, w, pressure_pa=pressure_pa):
-            # w.n is the solid's outward normal, which on a cavity wall points into the cavity.
-            return -pressure_pa * dot(w.n, v)
-
-        load += skfem.asm(traction, skfem.FacetBasis(mesh, basis.elem, facets=facets))
-    # The model numbers dofs 3 * node + axis; scikit-fem's are basis.nodal_dofs[axis, node].
-    held = basis.nodal_dofs.T.ravel()[model.held_dofs]
-    solution = skfem.solve(*skfem.condense(stiffness, load, D=held))
-    return solution[basis.nodal_dofs.T]
+from phantom.model.skfem_reference import skfem_displacement
 
 
 def unfixed_model(mesh, chambers, poisson_ratio):
