@@ -34,8 +34,13 @@ if [ ! -x .venv/bin/python ]; then
 fi
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
     echo "bootstrap: installing the project and its test extras into .venv (about a minute the first time)"
-    .venv/bin/python -m pip install -q --upgrade pip
-    .venv/bin/python -m pip install -q -e ".[test]"
+    log=.venv/install.log
+    if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[test]"; } \
+        >"$log" 2>&1; then
+        cat "$log" >&2
+        echo "bootstrap: pip failed (output above, also in $log)" >&2
+        exit 1
+    fi
     echo "$wanted" > "$stamp"
 fi
 echo "bootstrap: ready (Debian packages present, .venv up to date)"
