@@ -2,15 +2,14 @@
 # (scripts/bootstrap.sh: Debian packages and .venv/), idempotently.
 VENV := .venv
 PY := $(VENV)/bin/python
-PHANTOM := $(VENV)/bin/phantom
 
 .PHONY: setup demo test lint protocol-check firmware-test pytest clean
 
 setup:
 	@scripts/bootstrap.sh
 
+# The daemon drives the simulated phantom (the firmware image in simavr) through the BPH growth scene.
 demo: setup
-	$(PHANTOM) forward --scene builtin --pressures-kpa 1,1,1
 	$(MAKE) -C firmware
 	$(PY) -m phantom.host.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
 
