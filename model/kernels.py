@@ -1,5 +1,11 @@
 """Element kernels of linear tetrahedra (numba, compiled once and cached on disk).
 
+``python -m phantom.model.kernels`` (run by scripts/bootstrap.sh after an install) also compiles the exported
+kernels ahead of time with numba.pycc into ``phantom.cache_dir("kernels")``, keyed by this file's source; while
+that build matches, importing this module loads it and never imports numba, which saves a process 0.6 s (numba's
+import and its first-call start). Otherwise (no build, or ``PHANTOM_JIT_KERNELS=1``) numba compiles them on first
+use. Either way the callers get the same functions, which take any array dtypes and convert them.
+
 Notation per element: rest positions ``X_a``, current positions ``x_a`` (a = 0..3), ``Dm = [X1-X0, X2-X0,
 X3-X0]``, deformation gradient ``F = Ds Dm^-1``. The co-rotational energy is ``1/2 u^T K_e u`` with the
 unrotated displacement ``u_a = R^T x_a - X_a`` and ``R = polar(F)``, computed by SVD (``F = U S V^T``,
@@ -11,22 +17,72 @@ ten times faster than a LAPACK call per element). Its gradient is ``f_a = R (K_e
 block ``R Z_a (tr(S) I - S)^-1 [G_b]x R^T`` with ``Z_a = -[(K u)_a]x + sum_c K_ac [R^T x_c]x``.
 """
 
+import hashlib
+import importlib.util
 import os
 import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
 
 import phantom
 
-os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
+#: The kernels the model calls, with their argument dtypes (None: a scalar; "out": a float64 C array written in
+#: place) and the signature of their ahead-of-time build (all arrays C-contiguous).
+EXPORTS = {
+    "element_rest_data": (("f8", "i8", None, None),
+                          "Tuple((f8[:, :, ::1], f8[::1], f8[:, :, ::1]))(f8[:, ::1], i8[:, ::1], f8, f8)"),
+    "polar_rotation": (("f8",), "f8[:, ::1](f8[:, ::1])"),
+    "internal_forces": (("f8", "f8", "i8", "f8", "f8", None, None, "i8", "out"),
+                        "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[:, :, ::1], "
+                        "f8[:, :, ::1], b1, i8, i8[:, :, ::1], f8[::1])"),
+    "deformation_determinants": (("f8", "i8", "f8"), "f8[::1](f8[:, ::1], i8[:, ::1], f8[:, :, ::1])"),
+    "add_pressure_stiffness": (("f8", "i8", None, "i8", "i4", "out"),
+                               "void(f8[:, ::1], i8[:, ::1], f8, i8[::1], i4[::1], f8[::1])"),
+    "csr_multiply": (("i8", "i4", "f8", "f8"), "f8[::1](i8[::1], i4[::1], f8[::1], f8[::1])"),
+    "cholesky_solve": (("i8", "i4", "f8", "i8", "f8"), "f8[:, ::1](i8[::1], i4[::1], f8[::1], i8[::1], f8[:, ::1])"),
+}
 
-import numba  # noqa: E402
-import numpy as np  # noqa: E402
 
-if not any(phantom.cache_dir("numba").rglob("kernels.internal_forces-*.nbi")):
-    print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached)",
-          file=sys.stderr, flush=True)
+def compiled_kernels_path() -> Path:
+    """Where the ahead-of-time build of this module goes: keyed by its source, numpy's and Python's versions."""
+    digest = hashlib.sha256(Path(__file__).read_bytes())
+    digest.update(f"{np.__version__} {sys.version} {sys.platform}".encode())
+    return phantom.cache_dir("kernels") / f"phantom_kernels_{digest.hexdigest()[:16]}.so"
 
 
-@numba.njit(cache=True)
+def _load_compiled():
+    """The ahead-of-time build of these kernels when it exists for this source (else None): calling it needs
+    neither numba's import (0.2 s) nor its first-call start (0.4 s), which a CLI call would otherwise pay."""
+    path = compiled_kernels_path()
+    if os.environ.get("PHANTOM_JIT_KERNELS") or not path.is_file():
+        return None
+    spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
+    try:
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    except (ImportError, OSError):
+        return None
+    return module
+
+
+_COMPILED = _load_compiled()
+if _COMPILED is None:
+    os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
+    import numba
+
+    kernel = numba.njit(cache=True)
+    if __name__ != "__main__" and not any(phantom.cache_dir("numba").rglob("kernels.internal_forces-*.nbi")):
+        print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached; "
+              "`python -m phantom.model.kernels` builds them ahead of time)", file=sys.stderr, flush=True)
+else:
+    def kernel(function):
+        """Leave the Python source as it is: the ahead-of-time build replaces the exported kernels below."""
+        return function
+
+
+@kernel
 def element_rest_data(rest_positions_m, tets, youngs_modulus_pa, poisson_ratio):
     """Inverse shape matrices ``Dm^-1`` (m, 3, 3), rest volumes (m^3) and linear stiffness matrices ``K_e``.
 
@@ -46,14 +102,14 @@ def element_rest_data(rest_positions_m, tets, youngs_modulus_pa, poisson_ratio):
             elasticity[i, j] = lame_lambda
         elasticity[i, i] = lame_lambda + 2.0 * lame_mu
         elasticity[i + 3, i + 3] = lame_mu
+    dm = np.empty((3, 3))
+    stress_of_dof = np.empty((6, 12))
     for e in range(n_tets):
-        dm = np.empty((3, 3))
         for k in range(3):
             for axis in range(3):
                 dm[axis, k] = rest_positions_m[tets[e, k + 1], axis] - rest_positions_m[tets[e, 0], axis]
-        inverse = np.linalg.inv(dm)
-        dm_inverse[e] = inverse
-        volumes_m3[e] = np.linalg.det(dm) / 6.0
+        inverse = dm_inverse[e]
+        volumes_m3[e] = _inverse3(dm, inverse) / 6.0
         gradients = np.empty((4, 3))
         for axis in range(3):
             gradients[1, axis] = inverse[0, axis]
@@ -73,11 +129,23 @@ def element_rest_data(rest_positions_m, tets, youngs_modulus_pa, poisson_ratio):
             strain[4, c + 2] = bx
             strain[5, c] = by
             strain[5, c + 1] = bx
-        stiffness[e] = volumes_m3[e] * (strain.T @ elasticity @ strain)
+        # Loops rather than matmul: an ahead-of-time build would otherwise load scipy's BLAS (0.2 s) for it.
+        for k in range(6):
+            for j in range(12):
+                total = 0.0
+                for m in range(6):
+                    total += elasticity[k, m] * strain[m, j]
+                stress_of_dof[k, j] = total
+        for i in range(12):
+            for j in range(12):
+                total = 0.0
+                for k in range(6):
+                    total += strain[k, i] * stress_of_dof[k, j]
+                stiffness[e, i, j] = volumes_m3[e] * total
     return dm_inverse, volumes_m3, stiffness
 
 
-@numba.njit(cache=True)
+@kernel
 def _jacobi_rotate(a, vectors, p, q):
     """Zero ``a[p, q]`` of the symmetric matrix by one Jacobi rotation, accumulated into ``vectors``."""
     if a[p, q] == 0.0:
@@ -102,7 +170,7 @@ def _jacobi_rotate(a, vectors, p, q):
         vectors[k, q] = s * vkp + c * vkq
 
 
-@numba.njit(cache=True)
+@kernel
 def symmetric_eigen_into(a, vectors, values):
     """Eigen decomposition of a symmetric 3 x 3 matrix ``a`` (overwritten) into ``values`` (descending) and
     ``vectors`` (orthonormal columns, det +1).
@@ -133,14 +201,14 @@ def symmetric_eigen_into(a, vectors, values):
             vectors[k, 2] = -vectors[k, 2]
 
 
-@numba.njit(cache=True)
+@kernel
 def _det3(m):
     return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
             - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
             + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
 
 
-@numba.njit(cache=True)
+@kernel
 def polar_rotation_into(f, rotation, work, v, values):
     """Rotation R of the polar decomposition ``F = R S``, from the SVD ``F = U Sigma V^T``: ``R = U V^T``.
 
@@ -189,7 +257,7 @@ def polar_rotation_into(f, rotation, work, v, values):
             rotation[i, j] = work[i, 0] * v[j, 0] + work[i, 1] * v[j, 1] + work[i, 2] * v[j, 2]
 
 
-@numba.njit(cache=True)
+@kernel
 def polar_rotation(deformation_gradient):
     """The proper rotation of the polar decomposition of one 3 x 3 ``F`` (see :func:`polar_rotation_into`)."""
     rotation = np.empty((3, 3))
@@ -197,7 +265,7 @@ def polar_rotation(deformation_gradient):
     return rotation
 
 
-@numba.njit(cache=True)
+@kernel
 def _rotate_blocks(element_stiffness, rotation, work, out):
     """``out = diag(R) K_e diag(R)^T``: each 3 x 3 block K_ab becomes ``R K_ab R^T``."""
     for a in range(4):
@@ -216,7 +284,7 @@ def _rotate_blocks(element_stiffness, rotation, work, out):
                     out[3 * a + i, 3 * b + j] = total
 
 
-@numba.njit(cache=True)
+@kernel
 def _skew(vector, out):
     """``out = [v]x``, the matrix of the cross product ``v x .``."""
     out[0, 0], out[0, 1], out[0, 2] = 0.0, -vector[2], vector[1]
@@ -224,14 +292,14 @@ def _skew(vector, out):
     out[2, 0], out[2, 1], out[2, 2] = -vector[1], vector[0], 0.0
 
 
-@numba.njit(cache=True)
+@kernel
 def _matmul3(a, b, out):
     for i in range(3):
         for j in range(3):
             out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
 
 
-@numba.njit(cache=True)
+@kernel
 def _inverse3(m, out):
     """``out = m^-1`` by the adjugate; returns det m."""
     det = _det3(m)
@@ -247,7 +315,7 @@ def _inverse3(m, out):
     return det
 
 
-@numba.njit(cache=True)
+@kernel
 def _add_rotation_stiffness(element_stiffness, rotation, deformation_gradient, dm_inverse, local_force,
                             unrotated_m, out, scratch):
     """Add the Hessian terms from the rotation's derivative (module docstring) to the 12 x 12 ``out``.
@@ -300,7 +368,7 @@ def _add_rotation_stiffness(element_stiffness, rotation, deformation_gradient, d
                     out[3 * a + i, 3 * b + j] += product[i, j]
 
 
-@numba.njit(cache=True)
+@kernel
 def internal_forces(positions_m, rest_positions_m, tets, dm_inverse, stiffness, corotational,
                     want_matrix, scatter, matrix_data):
     """Elastic nodal forces (N, (n, 3)), elastic energy (J), smallest ``det F``; optionally the tangent.
@@ -379,7 +447,7 @@ def internal_forces(positions_m, rest_positions_m, tets, dm_inverse, stiffness, 
     return forces, energy_j, smallest_det
 
 
-@numba.njit(cache=True)
+@kernel
 def deformation_determinants(positions_m, tets, dm_inverse):
     """``det F_e`` of each element (volume ratio current / rest)."""
     dets = np.empty(tets.shape[0])
@@ -392,16 +460,7 @@ def deformation_determinants(positions_m, tets, dm_inverse):
     return dets
 
 
-@numba.njit(cache=True)
-def csr_positions(indptr, indices, rows, columns):
-    """Index into a CSR matrix's data array of each entry (rows[k], columns[k]) (binary search in the row)."""
-    positions = np.empty(rows.shape[0], np.int64)
-    for k in range(rows.shape[0]):
-        positions[k] = _csr_position(indptr, indices, rows[k], columns[k])
-    return positions
-
-
-@numba.njit(cache=True)
+@kernel
 def add_pressure_stiffness(positions_m, triangles, pressure_pa, indptr, indices, matrix_data):
     """Add ``-p d2V/dx2`` of one chamber (oriented triangles) to a CSR tangent's data (N/m).
 
@@ -427,7 +486,7 @@ def add_pressure_stiffness(positions_m, triangles, pressure_pa, indptr, indices,
                     matrix_data[position] += value
 
 
-@numba.njit(cache=True)
+@kernel
 def _csr_position(indptr, indices, row, column):
     low, high = indptr[row], indptr[row + 1]
     while low < high:
@@ -439,15 +498,27 @@ def _csr_position(indptr, indices, row, column):
     return low
 
 
-@numba.njit(cache=True)
+@kernel
+def csr_multiply(indptr, indices, data, vector):
+    """``A v`` for the CSR matrix ``A = (data, indices, indptr)`` (square, n = len(indptr) - 1)."""
+    n = indptr.shape[0] - 1
+    product = np.empty(n)
+    for row in range(n):
+        total = 0.0
+        for position in range(indptr[row], indptr[row + 1]):
+            total += data[position] * vector[indices[position]]
+        product[row] = total
+    return product
+
+
+@kernel
 def cholesky_solve(indptr, indices, values, permutation, rhs):
     """Solve ``A x = b`` from ``A[P][:, P] = L L^T`` (L lower triangular, CSC, diagonal first in each column).
 
     ``x[P] = L^-T L^-1 b[P]``: a forward substitution by columns, then a backward one with L's columns as the
-    rows of L^T. ``rhs`` is (n,) or (n, k).
+    rows of L^T. ``rhs`` is (n, k); the exported wrapper also takes (n,).
     """
-    single = rhs.ndim == 1
-    right = rhs.reshape(rhs.shape[0], -1)
+    right = rhs
     n, k = right.shape
     solution = np.empty((n, k))
     work = np.empty(n)
@@ -466,6 +537,66 @@ def cholesky_solve(indptr, indices, values, permutation, rhs):
             work[j] = total / values[indptr[j]]
         for i in range(n):
             solution[permutation[i], column] = work[i]
-    if single:
-        return solution[:, 0].copy()
     return solution
+
+
+def _exported(name, implementation, argument_dtypes):
+    """``name`` with its array arguments made C-contiguous of the dtypes the build was typed for."""
+
+    def call(*arguments):
+        converted = []
+        for argument, dtype in zip(arguments, argument_dtypes, strict=True):
+            if dtype == "out":
+                if argument.dtype != np.float64 or not argument.flags.c_contiguous:
+                    raise TypeError(f"{name}: the output array must be C-contiguous float64")
+            elif dtype is not None:
+                argument = np.ascontiguousarray(argument, dtype=dtype)
+            converted.append(argument)
+        if name == "cholesky_solve" and converted[-1].ndim == 1:
+            return implementation(*converted[:-1], converted[-1][:, None].copy())[:, 0].copy()
+        return implementation(*converted)
+
+    call.__name__ = name
+    call.__doc__ = implementation.__doc__
+    return call
+
+
+#: The JIT dispatchers of the exported kernels (None when the ahead-of-time build is in use).
+JIT_KERNELS = None if _COMPILED is not None else {name: globals()[name] for name in EXPORTS}
+for _name, (_dtypes, _) in EXPORTS.items():
+    globals()[_name] = _exported(_name, getattr(_COMPILED, _name) if _COMPILED else globals()[_name], _dtypes)
+
+
+def build_compiled() -> Path:
+    """Compile the exported kernels ahead of time (numba.pycc, for this machine's CPU) to
+    :func:`compiled_kernels_path`, which later imports of this module then use. Needs the JIT kernels (run it
+    with ``PHANTOM_JIT_KERNELS=1``, as ``python -m phantom.model.kernels`` does) and a C compiler."""
+    import warnings
+
+    if JIT_KERNELS is None:
+        raise RuntimeError("build_compiled needs the JIT kernels: set PHANTOM_JIT_KERNELS=1")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # numba.pycc announces its future deprecation
+        from numba.pycc import CC
+    path = compiled_kernels_path()
+    with tempfile.TemporaryDirectory(dir=path.parent) as build_dir:
+        compiler = CC(path.name.split(".")[0])
+        compiler.output_dir = build_dir
+        compiler.output_file = path.name
+        compiler.target_cpu = "host"
+        compiler.verbose = False
+        for name, (_, signature) in EXPORTS.items():
+            compiler.export(name, signature)(JIT_KERNELS[name].py_func)
+        compiler.compile()
+        os.replace(Path(build_dir) / path.name, path)
+    for stale in path.parent.glob("phantom_kernels_*.so"):
+        if stale != path:
+            stale.unlink(missing_ok=True)
+    return path
+
+
+if __name__ == "__main__":
+    if JIT_KERNELS is None:
+        print(f"phantom: the kernels are already built ahead of time: {compiled_kernels_path()}")
+    else:
+        print(f"phantom: built the kernels ahead of time: {build_compiled()}")

@@ -143,15 +143,31 @@ def open_edge_count(triangles: np.ndarray) -> int:
 
 
 def surface_components(triangles: np.ndarray) -> np.ndarray:
-    """Label of the edge-connected component of each triangle."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    """Label of the edge-connected component of each triangle (0, 1, ... in the order of their first triangle).
 
-    _, edge_ids = np.unique(_edge_keys(triangles), return_inverse=True)
+    Union-find over the triangles that share an edge, vectorised: each round hooks every pair's larger root under
+    the smaller one and then compresses the paths, so components merge in a logarithmic number of rounds.
+    """
+    edge_ids = np.unique(_edge_keys(triangles), return_inverse=True)[1].ravel()
     triangle_of_edge = np.repeat(np.arange(len(triangles)), 3)
-    incidence = coo_matrix((np.ones(len(edge_ids)), (triangle_of_edge, edge_ids.ravel()))).tocsr()
-    _, labels = connected_components(incidence @ incidence.T, directed=False)
-    return labels
+    order = np.argsort(edge_ids, kind="stable")
+    same_edge = edge_ids[order[1:]] == edge_ids[order[:-1]]
+    first, second = order[:-1][same_edge], order[1:][same_edge]
+    first, second = triangle_of_edge[first], triangle_of_edge[second]
+    parent = np.arange(len(triangles))
+    while True:
+        root_first, root_second = parent[first], parent[second]
+        differ = root_first != root_second
+        if not differ.any():
+            break
+        np.minimum.at(parent, np.maximum(root_first, root_second)[differ],
+                      np.minimum(root_first, root_second)[differ])
+        while True:
+            grandparent = parent[parent]
+            if np.array_equal(grandparent, parent):
+                break
+            parent = grandparent
+    return np.unique(parent, return_inverse=True)[1].ravel()
 
 
 def prepare_surfaces(mesh: TetMesh, chambers: list[str], fixed: str | None, source: str) -> Surfaces:

@@ -151,3 +151,78 @@ def test_corotational_tangent_is_the_exact_hessian(sphere):
     # the forces agree to O(step^2) and rounding, 1e-8 of the largest entry; R K R^T alone misses by ~10 %.
     expected = tangent @ direction.ravel()
     assert np.abs(difference - expected)[free].max() < 1e-7 * np.abs(expected).max()
+
+
+KERNEL_OUTPUTS = r"""
+import sys
+import numpy as np
+from scipy.spatial import Delaunay
+from phantom.model import kernels
+
+rng = np.random.default_rng(11)
+nodes = rng.uniform(0.0, 0.02, size=(60, 3))
+tets = Delaunay(nodes).simplices.astype(np.int64)
+_, volumes, _ = kernels.element_rest_data(nodes, tets, 50e3, 0.45)
+tets[volumes < 0] = tets[volumes < 0][:, [0, 2, 1, 3]]
+dm_inverse, volumes, stiffness = kernels.element_rest_data(nodes, tets, 50e3, 0.45)
+moved = nodes + 1e-3 * rng.normal(size=nodes.shape)
+scatter = np.arange(len(tets) * 144, dtype=np.int64).reshape(-1, 12, 12)
+hessian = np.zeros(scatter.size)
+forces, energy, smallest_det = kernels.internal_forces(moved, nodes, tets, dm_inverse, stiffness, True, 2, scatter,
+                                                       hessian)
+triangles = tets[:, :3].copy()
+indptr = np.arange(0, 3 * len(nodes) * 3 * len(nodes) + 1, 3 * len(nodes), dtype=np.int64)
+indices = np.tile(np.arange(3 * len(nodes), dtype=np.int32), 3 * len(nodes))
+pressure_stiffness = np.zeros(len(indices))
+kernels.add_pressure_stiffness(moved, triangles, 2e3, indptr, indices, pressure_stiffness)
+vector = rng.normal(size=3 * len(nodes))
+lower = np.tril(rng.normal(size=(8, 8)), -1) + np.diag(rng.uniform(1.0, 2.0, 8))
+columns = [np.flatnonzero(lower[:, j]) for j in range(8)]
+factor_indptr = np.cumsum([0] + [len(c) for c in columns]).astype(np.int64)
+factor_indices = np.concatenate(columns).astype(np.int32)
+factor_values = np.concatenate([lower[c, j] for j, c in enumerate(columns)])
+permutation = rng.permutation(8).astype(np.int64)
+np.savez(sys.argv[1], dm_inverse=dm_inverse, volumes=volumes, stiffness=stiffness, forces=forces,
+         energy=energy, smallest_det=smallest_det, hessian=hessian, pressure_stiffness=pressure_stiffness,
+         product=kernels.csr_multiply(indptr, indices, pressure_stiffness, vector),
+         determinants=kernels.deformation_determinants(moved, tets, dm_inverse),
+         rotation=kernels.polar_rotation(rng.normal(size=(3, 3))),
+         solution=kernels.cholesky_solve(factor_indptr, factor_indices, factor_values, permutation, vector[:8]),
+         solutions=kernels.cholesky_solve(factor_indptr, factor_indices, factor_values, permutation,
+                                          vector[:16].reshape(8, 2)),
+         aot=kernels.JIT_KERNELS is None, numba_loaded="numba" in sys.modules)
+"""
+
+
+@pytest.mark.slow
+def test_ahead_of_time_build_matches_the_jit_kernels_without_loading_numba(tmp_path):
+    """The kernels built ahead of time (what bootstrap makes, so a CLI call skips numba's 0.6 s start) give the
+    JIT kernels' numbers: the same source and IEEE operations, so they agree to rounding (1e-12 relative: the two
+    compilers may contract multiply-adds differently); and a process using them never imports numba."""
+    import os
+    import subprocess
+    import sys
+
+    environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / "cache"),
+                       NUMBA_CACHE_DIR=str(kernels.phantom.cache_dir("numba")))
+    environment.pop("PHANTOM_JIT_KERNELS", None)
+    build = subprocess.run([sys.executable, "-m", "phantom.model.kernels"], env=environment, capture_output=True,
+                           text=True, timeout=240)
+    assert build.returncode == 0, build.stderr
+    assert "built the kernels ahead of time" in build.stdout
+    again = subprocess.run([sys.executable, "-m", "phantom.model.kernels"], env=environment, capture_output=True,
+                           text=True, timeout=60)
+    assert "already built" in again.stdout
+    runs = {}
+    for mode, extra in (("aot", {}), ("jit", {"PHANTOM_JIT_KERNELS": "1"})):
+        out = tmp_path / f"{mode}.npz"
+        subprocess.run([sys.executable, "-c", KERNEL_OUTPUTS, str(out)], env=dict(environment, **extra), check=True,
+                       timeout=240)
+        runs[mode] = dict(np.load(out))
+    assert runs["aot"]["aot"] and not runs["aot"]["numba_loaded"]
+    assert not runs["jit"]["aot"] and runs["jit"]["numba_loaded"]
+    for name, jit_value in runs["jit"].items():
+        if name not in ("aot", "numba_loaded"):
+            scale = max(np.abs(jit_value).max(), 1e-300)
+            assert np.abs(runs["aot"][name] - jit_value).max() <= 1e-12 * scale, name
+            assert np.any(jit_value != 0), name
