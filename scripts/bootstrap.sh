@@ -33,7 +33,7 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
-    echo "bootstrap: installing the project and its test extras into .venv (about a minute the first time)"
+    echo "bootstrap: installing the project and its test extras into .venv (one to two minutes the first time)"
     log=.venv/install.log
     if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[test]"; } \
         >"$log" 2>&1; then
