@@ -29,7 +29,8 @@ import numpy as np
 
 from phantom import PhantomError
 from phantom.host.api import ApiError, ApiServer, default_socket_path
-from phantom.host.scenes import SceneError, Timeline, parse_target, parse_timeline, read_scene_toml
+from phantom.host.scenes import SceneError, Timeline, parse_target, parse_timeline
+from phantom.model.scene import read_scene_toml
 
 PA_PER_KPA = 1e3
 #: Estimated volumes average the measured pressures over this window (s of board time): sensor noise and
@@ -381,18 +382,22 @@ class Daemon:
                         f"solve {solution.solve_time_s * 1e3:.1f} ms)")
         return solution.to_json()
 
-    async def _send_setpoints(self, pressures_pa: np.ndarray) -> str:
-        """SET_SETPOINTS (acknowledged); translates link errors into API errors."""
+    async def _board_command(self, name: str, fields: dict | None = None) -> str:
+        """One acknowledged command to the board for an API request; link errors become API errors."""
         from phantom.host.session import CommandRejected, LinkDown
 
+        try:
+            return await self.session.command(name, fields)
+        except LinkDown as error:
+            raise ApiError("link_down", str(error)) from error
+        except CommandRejected as error:
+            raise ApiError("rejected", str(error)) from error
+
+    async def _send_setpoints(self, pressures_pa: np.ndarray) -> str:
+        """SET_SETPOINTS (acknowledged); translates link errors into API errors."""
         setpoints = [int(round(min(max(p, 0.0), 32767.0))) for p in pressures_pa]
         async with self._setpoint_lock:
-            try:
-                status = await self.session.command("SET_SETPOINTS", {"setpoint_pa": setpoints})
-            except LinkDown as error:
-                raise ApiError("link_down", str(error)) from error
-            except CommandRejected as error:
-                raise ApiError("rejected", str(error)) from error
+            status = await self._board_command("SET_SETPOINTS", {"setpoint_pa": setpoints})
         self.setpoints_pa = np.asarray(setpoints, dtype=float)
         if self.control_state is ControlState.VENTED or self.control_state is ControlState.IDLE:
             self.control_state = ControlState.HOLDING
@@ -560,16 +565,9 @@ class Daemon:
         return result
 
     async def _api_vent(self, params: dict) -> dict:
-        from phantom.host.session import CommandRejected, LinkDown
-
         if self.scene_run is not None and not self.scene_run.finished:
             self.scene_run.finished = True
-        try:
-            await self.session.command("VENT")
-        except LinkDown as error:
-            raise ApiError("link_down", str(error)) from error
-        except CommandRejected as error:
-            raise ApiError("rejected", str(error)) from error
+        await self._board_command("VENT")
         self.control_state = ControlState.VENTED
         self.setpoints_pa = np.zeros(len(self.controller.chamber_names))
         self.target, self.solution, self.target_source = None, None, None
@@ -577,15 +575,10 @@ class Daemon:
         return {"vented": True}
 
     async def _api_clear_fault(self, params: dict) -> dict:
-        from phantom.host.session import CommandRejected, LinkDown, fault_names
+        from phantom.host.session import fault_names
 
         before = fault_names(self.fault_flags)
-        try:
-            await self.session.command("CLEAR_FAULT")
-        except LinkDown as error:
-            raise ApiError("link_down", str(error)) from error
-        except CommandRejected as error:
-            raise ApiError("rejected", str(error)) from error
+        await self._board_command("CLEAR_FAULT")
         self._event("fault", f"faults cleared on request (were: {', '.join(before) or 'none'})")
         restored = False
         if self.setpoints_pa is not None and self.control_state is not ControlState.VENTED and np.any(
