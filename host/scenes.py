@@ -12,14 +12,10 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from phantom import PhantomError
+from phantom.model.errors import SceneError
 
 #: The target forms a step may have, in the units people see.
 TARGET_KINDS: tuple[str, ...] = ("volume_ml", "chamber_volumes_ml", "pressures_kpa")
-
-
-class SceneError(PhantomError):
-    """A scene's timeline (or a target given through the API) is malformed."""
 
 
 @dataclass(frozen=True)
@@ -243,19 +239,6 @@ def parse_timeline(raw_steps, chamber_names: list[str], name: str = "timeline") 
                 raise SceneError(f"{where}: a chamber-volume ramp needs the same free chambers in both steps")
         steps.append(Step(at_s, target, ramp_s))
     return Timeline(steps, name)
-
-
-def read_scene_toml(path: str | Path) -> dict:
-    """The parsed TOML of a scene file, with a clear error when it is missing or malformed."""
-    import tomllib
-
-    path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"the scene file {path} does not exist: check the path")
-    try:
-        return tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as error:
-        raise SceneError(f"the scene file {path} is not valid TOML: {error}") from error
 
 
 def example_scene_path(name: str) -> Path:

@@ -88,14 +88,19 @@ def load_scene(source: str | Path) -> Scene:
     """
     name = str(source)
     path = builtin_scene_path(name) if name in BUILTIN_SCENES else Path(name)
+    return scene_from_dict(read_scene_toml(path), path)
+
+
+def read_scene_toml(path: str | Path) -> dict:
+    """The parsed TOML of a scene file, with a clear SceneError when it is missing or malformed."""
+    path = Path(path)
     if not path.is_file():
         raise SceneError(f"the scene file {path} does not exist: give a TOML path or one of "
                          f"{', '.join(BUILTIN_SCENES)}")
     try:
-        raw = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
         raise SceneError(f"the scene file {path} is not valid TOML: {error}") from error
-    return scene_from_dict(raw, path)
 
 
 def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:

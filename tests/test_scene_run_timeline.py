@@ -9,8 +9,8 @@ from phantom.host.scenes import (
     example_scene_path,
     parse_target,
     parse_timeline,
-    read_scene_toml,
 )
+from phantom.model.scene import read_scene_toml
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 
