@@ -1,20 +1,40 @@
-"""The bench's serial link to a board (real or simulated): handshake, acknowledged commands, telemetry.
+"""The bench's serial link to a board (real or simulated): a blocking driver of the link core.
 
-It speaks the wire protocol through ``phantom.protocol.codec`` and keeps the session alive with PINGs. All its
-intervals are divided by ``time_scale`` so that a simulated board running faster than real time sees the same
-timing, in its own time, as a real board does.
+The rules (boot delay, handshake, sequence numbers, retransmission, keepalive) are
+:class:`phantom.protocol.link.HostLink`'s; one thread here reads the port, passes bytes and the time to it,
+writes what it gives back, and keeps every message received, so that a check can wait for what it expects.
+The core runs on the board's clock: host seconds times ``time_scale``, so that a simulated board running faster
+than real time sees the same timing, in its own time, as a real board does.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from phantom import PhantomError
+from phantom.protocol.codec import FrameReader, Message
+from phantom.protocol.link import (
+    Acked,
+    CommandFailed,
+    Event,
+    FrameIn,
+    HandshakeDone,
+    HandshakeRefused,
+    HandshakeTimedOut,
+    HostLink,
+    LinkTiming,
+    Nacked,
+)
+from phantom.protocol.messages import MsgId
 
 #: The TEST_HANG message's magic number ("HANG").
 TEST_HANG_MAGIC = 0x48414E47
+#: How long one read of the port blocks (s): the longest a deadline of the core can be late.
+_READ_SLICE_S = 0.005
 
 
 class LinkError(PhantomError):
@@ -26,7 +46,7 @@ class Received:
     """A message from the board and the host's monotonic clock when it arrived (s)."""
 
     host_time_s: float
-    message: object
+    message: Message
 
 
 class BoardLink:
@@ -40,50 +60,64 @@ class BoardLink:
         How much faster than real time the board runs (1 for a real board).
     keepalive_s
         PING period in board time while the keepalive runs (the firmware's host deadline is 500 ms).
+    boot_delay_s
+        Board seconds after opening the port during which nothing is sent and what arrives is dropped: opening
+        the port resets an Uno or a Mega, whose bootloader listens meanwhile (about 1 s after an Optiboot
+        reset; 2 s or more for the Mega's stk500v2). The constructor returns once it is over.
     """
 
-    def __init__(self, port: str, baudrate: int = 115200, time_scale: float = 1.0, keepalive_s: float = 0.1):
+    def __init__(self, port: str, baudrate: int = 115200, time_scale: float = 1.0, keepalive_s: float = 0.1,
+                 boot_delay_s: float = 0.0):
         import serial
-
-        from phantom.protocol.codec import FrameReader
 
         self.time_scale = time_scale
         self.keepalive_s = keepalive_s
         self.port_path = port
         try:
-            self._serial = serial.Serial(port, baudrate, timeout=0.01, write_timeout=1.0)
+            self._serial = serial.Serial(port, baudrate, timeout=_READ_SLICE_S, write_timeout=1.0)
         except (serial.SerialException, OSError) as error:
             raise LinkError(f"cannot open the serial port {port}: {error}; check the path and the cable") from None
-        self.reader = FrameReader()
+        self.link = HostLink(LinkTiming(keepalive_s=keepalive_s, boot_delay_s=boot_delay_s))
         self.received: list[Received] = []
-        self.retransmissions = 0
         self.disconnected = False
-        self._seq = 0
+        self._answers: dict[int, Event] = {}
+        self._handshake: Event | None = None
         self._changed = threading.Condition()
-        self._write_lock = threading.Lock()
         self._stop = threading.Event()
-        self._keepalive = threading.Event()
-        self._threads = [
-            threading.Thread(target=self._read_loop, daemon=True),
-            threading.Thread(target=self._keepalive_loop, daemon=True),
-        ]
-        for thread in self._threads:
-            thread.start()
+        with self._changed:
+            self.link.open(self._now(), handshake=False)
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        while self.link.booting(self._now()) and not self.disconnected:
+            time.sleep(min(0.05, boot_delay_s / time_scale))
+
+    @property
+    def reader(self) -> FrameReader:
+        """The frame reader, with its counters of frames dropped on receipt."""
+        return self.link.reader
+
+    @property
+    def retransmissions(self) -> int:
+        return self.link.counters.retries
 
     def close(self) -> None:
-        """Stop the threads and close the port."""
+        """Stop the thread and close the port."""
         self._stop.set()
-        for thread in self._threads:
-            thread.join(timeout=2)
+        self._thread.join(timeout=2)
         self._serial.close()
 
     def __enter__(self) -> BoardLink:
         return self
 
-    def __exit__(self, *exc_info) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.close()
 
-    def _read_loop(self) -> None:
+    def _now(self) -> float:
+        """The core's clock: board seconds."""
+        return time.monotonic() * self.time_scale
+
+    def _run(self) -> None:
+        """Read, feed the core, act on its deadlines, write its frames; until closed or the port goes away."""
         import serial
 
         while not self._stop.is_set():
@@ -94,89 +128,103 @@ class BoardLink:
                     self.disconnected = True
                     self._changed.notify_all()
                 return
-            if not data:
-                continue
-            messages = self.reader.feed(data)
-            if messages:
-                now = time.monotonic()
-                with self._changed:
-                    self.received.extend(Received(now, message) for message in messages)
+            arrived_s = time.monotonic()
+            with self._changed:
+                events = self.link.receive(data, self._now()) if data else []
+                events += self.link.poll(self._now())
+                for event in events:
+                    self._record(event, arrived_s)
+                try:
+                    self._flush()
+                except LinkError:
+                    self.disconnected = True
+                if events:
                     self._changed.notify_all()
 
-    def _keepalive_loop(self) -> None:
-        while not self._stop.wait(self.keepalive_s / self.time_scale):
-            if self._keepalive.is_set() and not self.disconnected:
-                try:
-                    self.send("PING", {"host_time_ms": int(time.monotonic() * 1000) & 0xFFFFFFFF})
-                except LinkError:
-                    pass
+    def _record(self, event: Event, arrived_s: float) -> None:
+        if isinstance(event, FrameIn):
+            self.received.append(Received(arrived_s, event.message))
+        elif isinstance(event, (Acked, Nacked, CommandFailed)):
+            self._answers[event.seq] = event
+        elif isinstance(event, (HandshakeDone, HandshakeRefused, HandshakeTimedOut)):
+            self._handshake = event
 
-    def keepalive(self, on: bool) -> None:
-        """Start or stop the PINGs that keep the session alive (stop them to play a silent host)."""
-        if on:
-            self._keepalive.set()
-        else:
-            self._keepalive.clear()
-
-    def send(self, name: str, fields: dict | None = None) -> int:
-        """Send one message without waiting; returns its seq."""
+    def _flush(self) -> None:
+        """Write the core's frames (the caller holds the lock)."""
         import serial
 
-        from phantom.protocol.codec import encode
-
-        with self._write_lock:
-            self._seq = (self._seq + 1) & 0xFF
-            frame = encode(name, self._seq, fields or {})
+        for frame in self.link.take_output():
             try:
                 self._serial.write(frame)
             except (serial.SerialException, OSError) as error:
                 raise LinkError(f"writing to {self.port_path} failed: {error}") from None
-            return self._seq
 
-    def _resend(self, name: str, seq: int, fields: dict) -> None:
-        import serial
-
-        from phantom.protocol.codec import encode
-
-        with self._write_lock:
-            try:
-                self._serial.write(encode(name, seq, fields))
-            except (serial.SerialException, OSError) as error:
-                raise LinkError(f"writing to {self.port_path} failed: {error}") from None
-
-    def wait_for(self, predicate, timeout_s: float, start: int = 0):
-        """The first received message (index >= start) satisfying predicate, within timeout_s board seconds;
-        None on timeout."""
-        deadline = time.monotonic() + timeout_s / self.time_scale
-        index = start
+    def _wait(self, done: Callable[[], Any], timeout_s: float) -> Any:
+        """Wait (holding the lock between checks) until ``done()`` gives something, or timeout_s host seconds."""
+        deadline = time.monotonic() + timeout_s
         with self._changed:
             while True:
-                while index < len(self.received):
-                    if predicate(self.received[index].message):
-                        return self.received[index]
-                    index += 1
+                result = done()
+                if result is not None:
+                    return result
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or self.disconnected:
                     return None
                 self._changed.wait(remaining)
+
+    def keepalive(self, on: bool) -> None:
+        """Start or stop the PINGs that keep the session alive (stop them to play a silent host)."""
+        with self._changed:
+            self.link.keepalive = on
+
+    def send(self, name: str, fields: dict[str, Any] | None = None) -> int:
+        """Send one message without waiting or retransmitting; returns its seq."""
+        with self._changed:
+            seq = self.link.send(name, fields, self._now())
+            self._flush()
+            return seq
+
+    def send_raw(self, frame: bytes) -> None:
+        """Send bytes as they are (a corrupted or hand-made frame for a fault test)."""
+        with self._changed:
+            self.link.send_raw(frame, self._now())
+            self._flush()
+
+    def wait_for(self, predicate: Callable[[Message], bool], timeout_s: float, start: int = 0) -> Received | None:
+        """The first received message (index >= start) satisfying predicate, within timeout_s board seconds;
+        None on timeout."""
+        index = start
+
+        def found() -> Received | None:
+            nonlocal index
+            while index < len(self.received):
+                if predicate(self.received[index].message):
+                    return self.received[index]
+                index += 1
+            return None
+
+        result: Received | None = self._wait(found, timeout_s / self.time_scale)
+        return result
 
     def mark(self) -> int:
         """An index into ``received``: pass it as ``start`` to wait only for what arrives after now."""
         with self._changed:
             return len(self.received)
 
-    def hello(self, attempts: int = 10, timeout_s: float = 0.3):
-        """Open a session: send HELLO until HELLO_REPLY arrives; returns the reply after checking the spec."""
-        from phantom.protocol.codec import check_hello_reply
-        from phantom.protocol.messages import PROTOCOL_VERSION, SPEC_HASH
+    def hello(self, attempts: int = 10, timeout_s: float = 0.3) -> Message:
+        """Open a session: send HELLO every timeout_s board seconds until HELLO_REPLY arrives; returns the reply
+        after checking the spec (ProtocolError when the board was built from another one)."""
+        from phantom.protocol.errors import ProtocolError
 
-        for _ in range(attempts):
-            start = self.mark()
-            self.send("HELLO", {"protocol_version": PROTOCOL_VERSION, "spec_hash": SPEC_HASH})
-            got = self.wait_for(lambda m: m.name == "HELLO_REPLY", timeout_s, start)
-            if got is not None:
-                check_hello_reply(got.message)
-                return got.message
+        with self._changed:
+            self._handshake = None
+            self.link.start_handshake(self._now(), attempts=attempts, interval_s=timeout_s)
+            self._flush()
+        outcome = self._wait(lambda: self._handshake, 2 * attempts * timeout_s / self.time_scale + 1.0)
+        if isinstance(outcome, HandshakeDone):
+            return outcome.message
+        if isinstance(outcome, HandshakeRefused):
+            raise ProtocolError(outcome.error)
         raise LinkError(
             f"no HELLO_REPLY from {self.port_path} after {attempts} tries: is the phantom firmware running "
             "at 115200 baud on this port?"
@@ -185,41 +233,30 @@ class BoardLink:
     def command(
         self,
         name: str,
-        fields: dict | None = None,
-        timeout_s: float = 0.1,
-        attempts: int = 8,
+        fields: dict[str, Any] | None = None,
+        timeout_s: float | None = None,
+        attempts: int | None = None,
         accept_nack: bool = False,
-    ):
-        """Send an acknowledged command, retransmitting with doubling timeouts; returns the ACK (or NACK).
+    ) -> Message:
+        """Send an acknowledged command, retransmitted by the link's rule (PROTOCOL.md section 5; ``timeout_s``
+        and ``attempts`` override its first wait and number of sends); returns the ACK (or NACK).
 
         Raises LinkError when no answer comes, or on a NACK unless accept_nack.
         """
-        from phantom.protocol.messages import ENUMS, MESSAGES
-
-        fields = fields or {}
-        seq = self.send(name, fields)
-        msg_id = MESSAGES[name].msg_id
-        wait_s = timeout_s
-        start = 0
-        for attempt in range(attempts):
-            got = self.wait_for(
-                lambda m: m.name in ("ACK", "NACK") and m.fields["ref_seq"] == seq and m.fields["ref_msg_id"] == msg_id,
-                wait_s,
-                start,
-            )
-            if got is not None:
-                if got.message.name == "NACK" and not accept_nack:
-                    status = {v: k for k, v in ENUMS["status"].items()}.get(got.message.fields["status"])
-                    raise LinkError(f"the board refused {name}: NACK {status}")
-                return got.message
-            if attempt + 1 < attempts:
-                start = self.mark()
-                self.retransmissions += 1
-                self._resend(name, seq, fields)
-                wait_s = min(2 * wait_s, 1.0)
-        raise LinkError(f"no ACK for {name} from {self.port_path} after {attempts} tries")
+        with self._changed:
+            seq = self.link.command(name, fields, self._now(), first_wait_s=timeout_s, attempts=attempts)
+            waits_s = self.link.timing.ack_waits_s(name, timeout_s, attempts)
+            self._flush()
+        answer = self._wait(lambda: self._answers.pop(seq, None), 2 * sum(waits_s) / self.time_scale + 1.0)
+        if isinstance(answer, Nacked):
+            if not accept_nack:
+                raise LinkError(f"the board refused {name}: NACK {answer.status}")
+            return answer.message
+        if isinstance(answer, Acked):
+            return answer.message
+        raise LinkError(f"no ACK for {name} from {self.port_path} after {len(waits_s)} tries")
 
     def telemetry(self, start: int = 0) -> list[Received]:
         """TELEMETRY messages received since index start."""
         with self._changed:
-            return [r for r in self.received[start:] if r.message.name == "TELEMETRY"]
+            return [r for r in self.received[start:] if r.message.msg_id == MsgId.TELEMETRY]

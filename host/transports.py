@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import os
 from pathlib import Path
 
@@ -41,6 +42,12 @@ class TransportUnavailable(PhantomError):
 
 class TransportLost(PhantomError):
     """An open transport went away (device unplugged, read error); the session reconnects."""
+
+
+def permission_hint(path: str) -> str:
+    """The message for a serial port this user may not open: on Debian and Ubuntu the group is dialout."""
+    return (f"permission denied on {path}: add your user to the dialout group (sudo usermod -aG dialout $USER), "
+            "then log out and in again")
 
 
 class SerialTransport:
@@ -64,9 +71,13 @@ class SerialTransport:
 
         if not os.path.exists(self.path):
             raise TransportUnavailable(f"{self.path} does not exist (board unplugged?)")
+        if not os.access(self.path, os.R_OK | os.W_OK):
+            raise TransportUnavailable(permission_hint(self.path))
         try:
             self._serial = serial.Serial(self.path, self.baudrate, timeout=0, write_timeout=0, exclusive=True)
         except (serial.SerialException, OSError) as error:
+            if getattr(error, "errno", None) == errno.EACCES or "Permission denied" in str(error):
+                raise TransportUnavailable(permission_hint(self.path)) from error
             raise TransportUnavailable(f"cannot open {self.path}: {error}") from error
         self._serial.reset_input_buffer()
         self._queue = asyncio.Queue()

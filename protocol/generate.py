@@ -17,6 +17,7 @@ import json
 import sys
 import zlib
 from pathlib import Path
+from typing import Any
 
 from phantom.protocol.errors import ProtocolError
 
@@ -137,6 +138,7 @@ def render_python(spec: dict) -> str:
         f"{GENERATED_NOTE}",
         '"""',
         "",
+        "from enum import IntEnum, IntFlag",
         "from typing import NamedTuple",
         "",
         "",
@@ -196,7 +198,29 @@ def render_python(spec: dict) -> str:
         "MESSAGES_BY_ID: dict[int, MessageSpec] = {m.msg_id: m for m in MESSAGES.values()}",
         "",
     ]
+    lines += render_python_enum_classes(spec)
     return "\n".join(lines)
+
+
+def _docstring(text: str) -> str:
+    return '    """' + text + '"""'
+
+
+def render_python_enum_classes(spec: dict[str, Any]) -> list[str]:
+    """Python source lines of one enum class per table: ``MsgId``, ``Status``..., and ``Fault`` (an IntFlag).
+
+    Code names a status as ``Status.FAULT_ACTIVE`` and reads a wire value back with ``Status(value).name``,
+    so that no module rebuilds a value -> name table of its own.
+    """
+    lines = ["", "class MsgId(IntEnum):", '    """Message ids."""', ""]
+    lines += [f"    {m['name']} = 0x{m['id']:02X}" for m in spec["message"]]
+    for enum_name, entries in spec["enums"].items():
+        lines += ["", "", f"class {_camel(enum_name)}(IntEnum):", _docstring(entries.get("doc", enum_name)), ""]
+        lines += [f"    {key} = {value}" for key, value in _table(entries).items()]
+    for bits_name, entries in spec["bits"].items():
+        lines += ["", "", f"class {_camel(bits_name)}(IntFlag):", _docstring(entries.get("doc", bits_name)), ""]
+        lines += [f"    {key} = 1 << {value}" for key, value in _table(entries).items()]
+    return lines + [""]
 
 
 def _upper(name: str) -> str:

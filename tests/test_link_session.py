@@ -1,12 +1,15 @@
 """The link session over real transports (a pseudo-terminal, python-can's virtual bus) against a scripted peer.
 
-The peer speaks the real codec (phantom.protocol) and is the one fake here: it stands in for the firmware so
-that the session's rules (handshake, spec-hash refusal, retransmission with backoff, NACK, keepalive, loss
-and reconnection with the reset cause) can be checked one by one, including the cases a real board makes
-hard to provoke on demand. The end-to-end proof against the real firmware in simavr is tests/test_daemon_e2e.py.
+The peer speaks through the link core's board end (phantom.protocol.link.BoardPeer) and is the one fake here: it
+stands in for the firmware so that the asyncio driver (handshake over a port, spec-hash refusal, retransmission,
+NACK, keepalive, loss and reconnection with the reset cause, boot delay, logging of link problems) can be
+checked over a real pty, including the cases a real board makes hard to provoke on demand. The link rules
+themselves, with their exact times, are checked on a fake clock in test_link_core.py. The end-to-end proof
+against the real firmware in simavr is tests/test_daemon_e2e.py.
 """
 
 import asyncio
+import logging
 import os
 import threading
 import time
@@ -14,7 +17,7 @@ import tty
 
 import pytest
 
-from phantom.host.session import CommandRejected, LinkDown, LinkSession, LinkState, LinkTiming, fault_names
+from phantom.host.session import CommandRejected, LinkDown, LinkSession, LinkState, LinkTiming
 from phantom.host.transports import (
     CanReassembler,
     CanTransport,
@@ -24,7 +27,8 @@ from phantom.host.transports import (
     can_frames,
 )
 from phantom.protocol.codec import FrameReader, encode
-from phantom.protocol.messages import BITS, ENUMS, MESSAGES, PROTOCOL_VERSION, SPEC_HASH
+from phantom.protocol.link import BoardPeer
+from phantom.protocol.messages import MESSAGES, SPEC_HASH, ChamberState, Fault
 
 FAST = LinkTiming(ack_timeout_s=0.05, command_attempts=4, keepalive_s=0.05, silence_s=0.5, hello_timeout_s=0.2,
                   hello_attempts=3, reconnect_s=0.05, incompatible_retry_s=0.3)
@@ -33,19 +37,19 @@ FAST = LinkTiming(ack_timeout_s=0.05, command_attempts=4, keepalive_s=0.05, sile
 class ScriptedBoard:
     """A stand-in board on a pty: answers HELLO, ACKs commands, PONGs pings, streams telemetry.
 
-    ``drop_first`` acked frames are ignored (to force retransmission); ``nack`` maps a command name to
-    a status name to refuse it with; ``spec_hash`` and ``reset_cause`` are what HELLO_REPLY says.
+    It speaks through ``BoardPeer`` (the board's end of the link core). ``drop_first`` acked frames are ignored
+    (to force retransmission); ``nack`` maps a command name to a status name to refuse it with; ``spec_hash``
+    and ``reset_cause`` are what HELLO_REPLY says.
     """
 
     def __init__(self, link_path, spec_hash=SPEC_HASH, reset_cause="POWER_ON", drop_first=0, nack=None):
         self.link_path = str(link_path)
-        self.spec_hash = spec_hash
-        self.reset_cause = reset_cause
+        self.peer = BoardPeer(spec_hash=spec_hash, reset_cause=reset_cause)
         self.drop_first = drop_first
         self.nack = nack or {}
         self.received = []
+        self.received_at = []
         self.setpoints_pa = [0, 0, 0]
-        self.fault_flags = 0
         self.time0 = time.monotonic()
         self._master = None
         self._stop = threading.Event()
@@ -58,6 +62,8 @@ class ScriptedBoard:
         self._slave_name = os.ttyname(slave)
         os.close(slave)
         self._master = master
+        self.plugged_at = time.monotonic()
+        self.peer.reader = FrameReader()
         os.symlink(self._slave_name, self.link_path)
         self._stop.clear()
         self._threads = [threading.Thread(target=self._serve, daemon=True),
@@ -76,25 +82,21 @@ class ScriptedBoard:
     def _time_ms(self):
         return int((time.monotonic() - self.time0) * 1000)
 
-    def _send(self, name, fields, seq=0):
-        if self._master is not None:
+    def _write(self, frame):
+        if self._master is not None and frame is not None:
             try:
-                os.write(self._master, encode(name, seq, fields))
+                os.write(self._master, frame)
             except OSError:
                 pass
 
     def _stream(self):
         while not self._stop.wait(0.02):
-            self._send("TELEMETRY", {
-                "time_ms": self._time_ms(), "pressure_pa": list(self.setpoints_pa),
-                "setpoint_pa": list(self.setpoints_pa), "drive": [1000, 2000, 3000], "state": [1, 1, 1],
-                "fault_flags": self.fault_flags, "rx_bad_crc": 0, "rx_overflow": 0, "rx_bad_frame": 0,
-                "tx_dropped": 0, "tick_overruns": 0})
+            self._write(self.peer.telemetry(self._time_ms(), self.setpoints_pa, self.setpoints_pa,
+                                            drive=[1000, 2000, 3000], states=[ChamberState.REGULATING] * 3))
 
     def _serve(self):
         import select
 
-        reader = FrameReader()
         while not self._stop.is_set():
             ready, _, _ = select.select([self._master], [], [], 0.02)
             if not ready:
@@ -103,32 +105,22 @@ class ScriptedBoard:
                 data = os.read(self._master, 4096)
             except OSError:
                 continue
-            for message in reader.feed(data):
+            for message in self.peer.receive(data):
                 self.received.append(message)
+                self.received_at.append(time.monotonic())
                 self._answer(message)
 
     def _answer(self, message):
-        status = ENUMS["status"]
-        if message.name == "HELLO":
-            self._send("HELLO_REPLY", {
-                "protocol_version": PROTOCOL_VERSION, "spec_hash": self.spec_hash,
-                "status": status["OK"] if self.spec_hash == message.fields["spec_hash"] else status["SPEC_MISMATCH"],
-                "firmware_major": 0, "firmware_minor": 1, "firmware_patch": 0, "board": ENUMS["board"]["UNO"],
-                "chamber_count": 3, "reset_cause": ENUMS["reset_cause"][self.reset_cause],
-                "fault_flags": self.fault_flags, "time_ms": self._time_ms()}, message.seq)
-        elif message.name == "PING":
-            self._send("PONG", {"host_time_ms": message.fields["host_time_ms"], "board_time_ms": self._time_ms()})
-        elif MESSAGES[message.name].acked:
+        if MESSAGES[message.name].acked:
             if self.drop_first > 0:
                 self.drop_first -= 1
                 return
             if message.name in self.nack:
-                self._send("NACK", {"ref_msg_id": message.msg_id, "ref_seq": message.seq,
-                                    "status": status[self.nack[message.name]]})
+                self._write(self.peer.nack(message, self.nack[message.name]))
                 return
             if message.name == "SET_SETPOINTS":
                 self.setpoints_pa = list(message.fields["setpoint_pa"])
-            self._send("ACK", {"ref_msg_id": message.msg_id, "ref_seq": message.seq, "status": status["OK"]})
+        self._write(self.peer.answer(message, self._time_ms()))
 
 
 def run_session(transport, script, timing=FAST, **callbacks):
@@ -199,8 +191,8 @@ def test_lost_acks_are_retransmitted_with_the_same_seq(tmp_path):
     vents = [message for message in board.received if message.name == "VENT"]
     assert len(vents) == 3 and len({message.seq for message in vents}) == 1
     assert retries == 2
-    # backoff: 0.05 s then 0.1 s of waiting before the third copy is answered
-    assert elapsed_s >= 0.15
+    # the waits themselves are checked on a fake clock (test_link_core.py); here only their lower bound
+    assert elapsed_s >= 0.05 + 0.1
 
 
 def test_a_command_never_acknowledged_fails_after_every_attempt(tmp_path):
@@ -274,8 +266,8 @@ def test_unplug_and_replug_reconnects_reports_the_reset_cause_and_restores(tmp_p
         await wait_for(lambda: session.state is LinkState.DISCONNECTED)
         with pytest.raises(LinkDown, match="disconnected"):
             await session.command("VENT")
-        board.reset_cause = "WATCHDOG"
-        board.fault_flags = 1 << BITS["fault"]["WATCHDOG_RESET"]
+        board.peer.reset_cause = "WATCHDOG"
+        board.peer.fault_flags = Fault.WATCHDOG_RESET
         board.plug()
         await wait_for(lambda: session.state is LinkState.ONLINE and session.stats.reconnects == 1)
         return session.stats
@@ -336,10 +328,54 @@ def test_missing_port_is_unavailable_not_a_crash(tmp_path):
     asyncio.run(main())
 
 
-def test_fault_names_follow_the_spec_bits():
-    flags = 1 << BITS["fault"]["DEAD_HOST"] | 1 << BITS["fault"]["OVERPRESSURE_1"]
-    assert fault_names(flags) == ["OVERPRESSURE_1", "DEAD_HOST"]
-    assert fault_names(0) == []
+def test_a_port_this_user_may_not_open_names_the_dialout_group(tmp_path, monkeypatch):
+    # the tests run as root, for whom every file is accessible: the permission check is made to fail
+    port = tmp_path / "ttyACM0"
+    port.touch()
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+
+    async def main():
+        with pytest.raises(TransportUnavailable, match="permission denied on .*ttyACM0: add your user to the dialout"):
+            await SerialTransport(port).open()
+
+    asyncio.run(main())
+
+
+def test_a_link_problem_is_logged_once_when_it_starts_and_once_when_it_ends(tmp_path, caplog):
+    caplog.set_level(logging.INFO, logger="phantom.host.session")
+
+    async def script(session):
+        await wait_for(lambda: session.state is LinkState.DISCONNECTED and session.last_error)
+        await asyncio.sleep(0.3)  # several reconnect attempts (every 0.05 s) fail the same way
+        board = ScriptedBoard(tmp_path / "board")
+        try:
+            await asyncio.wait_for(session.online_event.wait(), 5)
+        finally:
+            board.unplug()
+        return session.state
+
+    run_session(SerialTransport(tmp_path / "board"), script)
+    lines = [record for record in caplog.records if "link problem" in record.getMessage()]
+    assert [record.levelname for record in lines[:2]] == ["WARNING", "INFO"]
+    assert "does not exist" in lines[0].getMessage() and "over after" in lines[1].getMessage()
+
+
+def test_the_boot_delay_holds_the_first_hello_back(tmp_path):
+    board = ScriptedBoard(tmp_path / "board")
+    timing = LinkTiming(**{**FAST.__dict__, "boot_delay_s": 0.4})
+
+    async def script(session):
+        await asyncio.wait_for(session.online_event.wait(), 5)
+        return session.link.counters.boot_bytes_dropped
+
+    try:
+        dropped = run_session(SerialTransport(tmp_path / "board"), script, timing=timing)
+    finally:
+        board.unplug()
+    first_hello = board.received_at[[m.name for m in board.received].index("HELLO")]
+    assert first_hello - board.plugged_at >= 0.4
+    # the board streamed telemetry meanwhile: a bootloader's bytes would be dropped the same way
+    assert dropped > 0
 
 
 # --- CAN ----------------------------------------------------------------------------------------------------
@@ -370,25 +406,16 @@ def test_session_over_python_can_virtual_bus():
     channel = f"phantom-test-{os.getpid()}"
 
     async def peer(bus_transport, stop):
-        reader = FrameReader()
-        status = ENUMS["status"]
+        board = BoardPeer()
         while not stop.is_set():
             try:
                 data = await asyncio.wait_for(bus_transport.read(), 0.1)
             except TimeoutError:
                 continue
-            for message in reader.feed(data):
-                if message.name == "HELLO":
-                    bus_transport.write(encode("HELLO_REPLY", message.seq, {
-                        "protocol_version": PROTOCOL_VERSION, "spec_hash": SPEC_HASH, "status": 0,
-                        "firmware_major": 0, "firmware_minor": 1, "firmware_patch": 0, "board": 1,
-                        "chamber_count": 3, "reset_cause": 1, "fault_flags": 0, "time_ms": 5}))
-                elif message.name == "PING":
-                    bus_transport.write(encode("PONG", 0, {"host_time_ms": message.fields["host_time_ms"],
-                                                           "board_time_ms": 1}))
-                elif MESSAGES[message.name].acked:
-                    bus_transport.write(encode("ACK", 0, {"ref_msg_id": message.msg_id, "ref_seq": message.seq,
-                                                          "status": status["OK"]}))
+            for message in board.receive(data):
+                answer = board.answer(message, 5)
+                if answer is not None:
+                    bus_transport.write(answer)
 
     async def main():
         board_side = CanTransport(channel, "virtual", role="board")
@@ -429,3 +456,51 @@ def test_reading_a_closed_transport_is_a_loss(tmp_path):
             await transport.read()
 
     asyncio.run(main())
+
+
+# --- the bench's blocking driver (phantom.hil.link.BoardLink) -----------------------------------------------
+
+
+def test_board_link_handshake_commands_nack_retransmission_and_keepalive(tmp_path):
+    from phantom.hil.link import BoardLink, LinkError
+
+    board = ScriptedBoard(tmp_path / "board", nack={"CLEAR_FAULT": "FAULT_ACTIVE"})
+    try:
+        with BoardLink(str(tmp_path / "board")) as link:
+            reply = link.hello()
+            assert reply.name == "HELLO_REPLY" and reply.fields["reset_cause"] == 1
+            answer = link.command("SET_SETPOINTS", {"setpoint_pa": [700, 0, 0]})
+            assert answer.name == "ACK" and board.setpoints_pa == [700, 0, 0]
+            with pytest.raises(LinkError, match="refused CLEAR_FAULT: NACK FAULT_ACTIVE"):
+                link.command("CLEAR_FAULT")
+            assert link.command("CLEAR_FAULT", accept_nack=True).name == "NACK"
+            board.drop_first = 2
+            assert link.command("VENT").name == "ACK" and link.retransmissions == 2
+            vents = [m for m in board.received if m.name == "VENT"]
+            assert len(vents) == 3 and len({m.seq for m in vents}) == 1
+            board.drop_first = 100
+            with pytest.raises(LinkError, match="no ACK for VENT .* after 2 tries"):
+                link.command("VENT", timeout_s=0.05, attempts=2)
+            start = link.mark()
+            link.keepalive(True)
+            assert link.wait_for(lambda m: m.name == "PONG", 2.0, start) is not None
+            got = link.wait_for(lambda m: m.name == "TELEMETRY", 2.0, start)
+            assert got is not None and link.telemetry(start)[0] is got
+    finally:
+        board.unplug()
+
+
+def test_board_link_refuses_another_spec_and_waits_out_the_boot_delay(tmp_path):
+    from phantom.hil.link import BoardLink
+    from phantom.protocol.errors import ProtocolError
+
+    board = ScriptedBoard(tmp_path / "board", spec_hash=SPEC_HASH ^ 1)
+    try:
+        opened = time.monotonic()
+        with BoardLink(str(tmp_path / "board"), boot_delay_s=0.3) as link:
+            assert time.monotonic() - opened >= 0.3
+            assert link.received == [] and link.link.counters.boot_bytes_dropped > 0
+            with pytest.raises(ProtocolError, match="protocol mismatch"):
+                link.hello()
+    finally:
+        board.unplug()
