@@ -3,7 +3,7 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test lint protocol-check firmware-test pytest clean
+.PHONY: setup demo test check lint types protocol-check firmware-test firmware-test-one pytest pytest-fast clean
 
 setup:
 	@scripts/bootstrap.sh
@@ -13,10 +13,23 @@ demo: setup
 	$(MAKE) -C firmware
 	$(PY) -m phantom.host.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
 
-test: setup lint protocol-check firmware-test pytest
+test: setup lint types protocol-check firmware-test pytest
+
+# The contributor's fast loop, under a minute: lint, types, the protocol check and the tests that need no
+# simulator (pytest -m "not sim and not slow"; mark a test that runs simavr with @pytest.mark.sim).
+check: setup lint types protocol-check pytest-fast
 
 lint:
 	$(VENV)/bin/ruff check .
+
+# mypy: strict on phantom.protocol, and phantom.host (settings in pyproject.toml). mypy cannot follow the
+# editable install's import hook, so the package's folders are mapped into one tree under .cache/ first.
+MYPY_TREE := .cache/mypy-src/phantom
+types:
+	@mkdir -p $(MYPY_TREE)
+	@for f in __init__.py __main__.py; do ln -sfn ../../../phantom/$$f $(MYPY_TREE)/$$f; done
+	@for d in protocol host model hil; do ln -sfn ../../../$$d $(MYPY_TREE)/$$d; done
+	$(VENV)/bin/mypy -p phantom.protocol -p phantom.host
 
 # The generated protocol files (messages.py, protocol_generated.h) must match protocol/spec.toml.
 protocol-check:
@@ -25,6 +38,9 @@ protocol-check:
 # The firmware core's native unit tests, the C++ golden-vector test and a bounded libFuzzer run.
 firmware-test:
 	$(MAKE) -C firmware test PYTHON=$(abspath $(PY))
+
+pytest-fast:
+	$(PY) -m pytest -q -m "not sim and not slow"
 
 pytest:
 	$(PY) -m pytest -q

@@ -26,6 +26,7 @@ import contextlib
 import errno
 import os
 from pathlib import Path
+from typing import Any
 
 from phantom import PhantomError
 
@@ -61,8 +62,8 @@ class SerialTransport:
         self.path = str(path)
         self.baudrate = baudrate
         self.description = f"serial {self.path}"
-        self._serial = None
-        self._queue: asyncio.Queue | None = None
+        self._serial: Any = None  # serial.Serial once open
+        self._queue: asyncio.Queue[bytes | TransportLost] = asyncio.Queue()
         self.tx_dropped = 0
 
     async def open(self) -> None:
@@ -85,17 +86,18 @@ class SerialTransport:
 
     def _on_readable(self) -> None:
         """Move what the port holds into the queue; an empty read or EIO means the device went away."""
+        item: bytes | TransportLost
         try:
-            data = os.read(self._serial.fileno(), 4096)
+            item = os.read(self._serial.fileno(), 4096)
         except BlockingIOError:
             return
         except OSError as error:
-            data = TransportLost(f"{self.path}: {error.strerror} (board unplugged or reset)")
-        if not data:
-            data = TransportLost(f"{self.path} closed (board unplugged or reset)")
-        if isinstance(data, TransportLost):
+            item = TransportLost(f"{self.path}: {error.strerror} (board unplugged or reset)")
+        if not item:
+            item = TransportLost(f"{self.path} closed (board unplugged or reset)")
+        if isinstance(item, TransportLost):
             asyncio.get_running_loop().remove_reader(self._serial.fileno())
-        self._queue.put_nowait(data)
+        self._queue.put_nowait(item)
 
     async def read(self) -> bytes:
         """The next bytes from the port; raises TransportLost when the device went away."""
@@ -205,9 +207,9 @@ class CanTransport:
         self.description = f"CAN {interface}:{channel}"
         self.reassembler = CanReassembler(from_board=(role == "host"))
         self.tx_dropped = 0
-        self._bus = None
-        self._notifier = None
-        self._reader = None
+        self._bus: Any = None  # can.BusABC once open
+        self._notifier: Any = None
+        self._reader: Any = None
 
     async def open(self) -> None:
         """Connect to the bus; raises TransportUnavailable when the interface cannot be opened."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, field
+from typing import Any
 
 from phantom.protocol.errors import ProtocolError
 from phantom.protocol.framing import cobs_decode, cobs_encode, crc16_mcrf4xx
@@ -36,7 +37,7 @@ class Message:
     name: str
     msg_id: int
     seq: int
-    fields: dict
+    fields: dict[str, Any]
 
 
 def _struct_format(spec: MessageSpec) -> struct.Struct:
@@ -47,7 +48,7 @@ def _struct_format(spec: MessageSpec) -> struct.Struct:
 _STRUCTS = {name: _struct_format(spec) for name, spec in MESSAGES.items()}
 
 
-def _check_value(message: str, field_name: str, wire_type: str, value) -> None:
+def _check_value(message: str, field_name: str, wire_type: str, value: object) -> None:
     """Raise ProtocolError if ``value`` does not fit ``wire_type``."""
     if wire_type == "f32":
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -62,7 +63,7 @@ def _check_value(message: str, field_name: str, wire_type: str, value) -> None:
         raise ProtocolError(f"{message}.{field_name}: {value} is outside {wire_type} range {low}..{high}")
 
 
-def _flatten(spec: MessageSpec, fields: dict) -> list:
+def _flatten(spec: MessageSpec, fields: dict[str, Any]) -> list[int | float]:
     """The payload's values in wire order, checked against the spec."""
     names = {f.name for f in spec.fields}
     unknown = sorted(set(fields) - names)
@@ -72,7 +73,7 @@ def _flatten(spec: MessageSpec, fields: dict) -> list:
             f"{spec.name}: fields do not match the spec (missing {missing}, unknown {unknown}); "
             f"expected {[f.name for f in spec.fields]}"
         )
-    values = []
+    values: list[int | float] = []
     for f in spec.fields:
         value = fields[f.name]
         items = value if f.count > 1 else [value]
@@ -84,7 +85,7 @@ def _flatten(spec: MessageSpec, fields: dict) -> list:
     return values
 
 
-def encode_body(name: str, seq: int, fields: dict) -> bytes:
+def encode_body(name: str, seq: int, fields: dict[str, Any]) -> bytes:
     """The frame body before COBS: ``msg_id | seq | payload | crc16 (LE)``."""
     spec = MESSAGES.get(name)
     if spec is None:
@@ -95,7 +96,7 @@ def encode_body(name: str, seq: int, fields: dict) -> bytes:
     return head + struct.pack("<H", crc16_mcrf4xx(head))
 
 
-def encode(name: str, seq: int, fields: dict) -> bytes:
+def encode(name: str, seq: int, fields: dict[str, Any]) -> bytes:
     """The whole wire frame of one message: ``COBS(body) + b"\\x00"``.
 
     Raises
