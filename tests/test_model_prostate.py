@@ -165,6 +165,7 @@ def test_bad_pressures_and_options_are_refused(coarse):
         coarse.solve([0, 0, 0], initial_positions_m=np.zeros((3, 3)))
 
 
+@pytest.mark.slow
 def test_a_pressure_beyond_the_limit_point_names_the_chamber(coarse):
     pressure_pa = 2.0 * coarse.material.youngs_modulus_pa
     with pytest.raises(SolveError) as error:
