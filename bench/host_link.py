@@ -28,23 +28,20 @@ import numpy as np
 from phantom.host.api import ApiServer
 from phantom.host.session import LinkSession, LinkTiming
 from phantom.host.transports import SerialTransport
-from phantom.protocol.codec import FrameReader, encode
-from phantom.protocol.messages import MESSAGES, PROTOCOL_VERSION, SPEC_HASH
+from phantom.protocol.link import BoardPeer
 
 
 async def responder(master: int, stop: asyncio.Event) -> None:
-    """The peer board: answers HELLO, ACKs every acknowledged command, PONGs pings, streams telemetry."""
+    """The peer board (the link core's board end): answers HELLO, ACKs every acknowledged command, PONGs pings,
+    streams telemetry."""
     loop = asyncio.get_running_loop()
-    reader = FrameReader()
+    board = BoardPeer(board="NATIVE")
     queue: asyncio.Queue = asyncio.Queue()
     loop.add_reader(master, lambda: queue.put_nowait(os.read(master, 4096)))
-    telemetry = {"time_ms": 0, "pressure_pa": [0, 0, 0], "setpoint_pa": [0, 0, 0], "drive": [0, 0, 0],
-                 "state": [0, 0, 0], "fault_flags": 0, "rx_bad_crc": 0, "rx_overflow": 0, "rx_bad_frame": 0,
-                 "tx_dropped": 0, "tick_overruns": 0}
 
     async def stream():
         while not stop.is_set():
-            os.write(master, encode("TELEMETRY", 0, telemetry))
+            os.write(master, board.telemetry(0, [0, 0, 0], [0, 0, 0]))
             await asyncio.sleep(0.02)
 
     streamer = asyncio.create_task(stream())
@@ -54,18 +51,10 @@ async def responder(master: int, stop: asyncio.Event) -> None:
                 data = await asyncio.wait_for(queue.get(), 0.1)
             except TimeoutError:
                 continue
-            for message in reader.feed(data):
-                if message.name == "HELLO":
-                    os.write(master, encode("HELLO_REPLY", message.seq, {
-                        "protocol_version": PROTOCOL_VERSION, "spec_hash": SPEC_HASH, "status": 0, "firmware_major": 0,
-                        "firmware_minor": 0, "firmware_patch": 0, "board": 0, "chamber_count": 3, "reset_cause": 1,
-                        "fault_flags": 0, "time_ms": 0}))
-                elif message.name == "PING":
-                    os.write(master, encode("PONG", 0, {"host_time_ms": message.fields["host_time_ms"],
-                                                        "board_time_ms": 0}))
-                elif MESSAGES[message.name].acked:
-                    os.write(master, encode("ACK", 0, {"ref_msg_id": message.msg_id, "ref_seq": message.seq,
-                                                       "status": 0}))
+            for message in board.receive(data):
+                answer = board.answer(message, 0)
+                if answer is not None:
+                    os.write(master, answer)
     finally:
         streamer.cancel()
         loop.remove_reader(master)
