@@ -162,7 +162,7 @@ class LinkSession:
         The monotonic clock in seconds (``time.monotonic``).
     """
 
-    def __init__(self, transport: Any, timing: LinkTiming | None = None,
+    def __init__(self, transport: Transport, timing: LinkTiming | None = None,
                  on_telemetry: Callable[[Telemetry], None] | None = None,
                  on_event: Callable[[str, str, str], None] | None = None,
                  on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None = None,

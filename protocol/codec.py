@@ -220,13 +220,13 @@ def check_hello_reply(message: Message) -> None:
 
     The error names both sides' protocol versions and spec hashes, so that a user sees which side to rebuild.
     """
-    from phantom.protocol.messages import ENUMS, PROTOCOL_VERSION
+    from phantom.protocol.messages import PROTOCOL_VERSION, Status
 
     if message.name != "HELLO_REPLY":
         raise ProtocolError(f"expected HELLO_REPLY, got {message.name}")
     board_version = message.fields["protocol_version"]
     board_hash = message.fields["spec_hash"]
-    if board_hash != SPEC_HASH or message.fields["status"] == ENUMS["status"]["SPEC_MISMATCH"]:
+    if board_hash != SPEC_HASH or message.fields["status"] == Status.SPEC_MISMATCH:
         raise ProtocolError(
             f"protocol mismatch: the board speaks protocol v{board_version} (spec hash 0x{board_hash:08X}), "
             f"this host speaks v{PROTOCOL_VERSION} (spec hash 0x{SPEC_HASH:08X}); "
