@@ -399,8 +399,10 @@ class HostLink:
                 attempts: int | None = None) -> int:
         """Send acknowledged command ``name``; its Acked, Nacked or CommandFailed event will name the seq
         returned. ``first_wait_s`` and ``attempts`` override the timing's for this command."""
-        spec = MESSAGES[name] if name in MESSAGES else None
-        if spec is None or not spec.acked:
+        spec = MESSAGES.get(name)
+        if spec is None:
+            raise ProtocolError(f"unknown message {name!r}; known: {', '.join(MESSAGES)}")
+        if not spec.acked:
             raise ProtocolError(f"{name} is not an acknowledged command; use send()")
         self._check_not_booting(now, name)
         fields = dict(fields or {})

@@ -271,6 +271,8 @@ def test_commands_and_sends_are_checked():
     link.open(0.0)
     with pytest.raises(ProtocolError, match="not an acknowledged command"):
         link.command("PING", {"host_time_ms": 1}, 0.0)
+    with pytest.raises(ProtocolError, match="unknown message 'VENTS'"):
+        link.command("VENTS", None, 0.0)
     with pytest.raises(ProtocolError, match="attempts must be at least 1"):
         link.command("VENT", None, 0.0, attempts=0)
     sent(link)
