@@ -1,0 +1,592 @@
+"""Compare a 3D scan of the phantom with the model: read, clean, align, measure (millimetres throughout).
+
+A scan (OBJ, PLY or STL from photogrammetry or a structured-light scanner) is read in the unit it was exported
+in, cleaned (largest connected piece kept, stray fragments dropped, holes closed by MeshFix so that its volume
+is defined), and aligned rigidly to the model's deformed outer surface: a global start from the principal axes
+of both surfaces, trying all 24 axis-to-axis candidates (a principal axis' sign, and the order of two axes of
+similar extent, are not defined by the shape), then point-to-plane ICP on exact closest points. The result
+says how far the surfaces are apart (closest-point distances both ways, area-weighted) and, per model vertex,
+the signed distance to the scan (positive where the scan lies outside the model).
+
+Distances use an exact closest-point query: candidate triangles come from a k-d tree of triangle centroids and
+are examined nearest first until the centroid distance minus the largest triangle radius exceeds the best
+distance found; the point-triangle kernel is numba (cached on disk).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import phantom
+from phantom import PhantomError
+from phantom.model.mesh import enclosed_volume_m3, open_edge_count, surface_components
+
+#: Millimetres per unit of a scan file.
+UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+SCAN_SUFFIXES = (".obj", ".ply", ".stl")
+#: A scan whose size (area-weighted RMS radius) differs from the model's by more than this factor is not
+#: aligned: its unit is wrong, or it is not this phantom.
+SCALE_TOLERANCE = 1.5
+#: No alignment fits when the RMS scan-to-model distance exceeds this fraction of the model's RMS radius.
+FIT_RMS_LIMIT = 0.1
+#: A second alignment (rotated by more than AMBIGUOUS_ANGLE_DEG from the best) whose residual is within this
+#: factor of the best's makes the alignment ambiguous: the surface is close to symmetric under that rotation.
+AMBIGUOUS_RESIDUAL_RATIO = 1.1
+AMBIGUOUS_ANGLE_DEG = 10.0
+#: Scan points used by the global start (per candidate) and by the final ICP.
+START_POINTS = 600
+START_ITERATIONS = 8
+ICP_POINTS = 5000
+ICP_MAX_ITERATIONS = 50
+
+
+class ScanError(PhantomError):
+    """A scan file that cannot be read or used, or a scan that does not fit the model."""
+
+
+@dataclass
+class TriangleMesh:
+    """A triangle surface: vertices (n, 3) in mm and triangles (k, 3) vertex indices."""
+
+    vertices_mm: np.ndarray
+    triangles: np.ndarray
+
+
+@dataclass
+class CleanReport:
+    """What cleaning changed."""
+
+    input_vertices: int
+    input_triangles: int
+    removed_degenerate_triangles: int
+    removed_components: int
+    removed_component_triangles: int
+    holes_filled: int
+    added_triangles: int
+    reoriented: bool
+    output_vertices: int
+    output_triangles: int
+
+    def summary(self) -> str:
+        parts = [f"{self.input_vertices} vertices, {self.input_triangles} triangles read"]
+        if self.removed_degenerate_triangles:
+            parts.append(f"{self.removed_degenerate_triangles} degenerate or duplicate triangles dropped")
+        parts.append(f"{self.removed_components} stray fragment(s) removed "
+                     f"({self.removed_component_triangles} triangles)")
+        parts.append(f"{self.holes_filled} hole(s) closed ({self.added_triangles} triangles added)")
+        if self.reoriented:
+            parts.append("faces turned outward")
+        return "; ".join(parts)
+
+
+@dataclass
+class Alignment:
+    """``x_model = rotation @ x_scan + translation_mm``, and how well it fits."""
+
+    rotation: np.ndarray
+    translation_mm: np.ndarray
+    rms_mm: float
+    iterations: int
+    #: The best alignment that differs by more than AMBIGUOUS_ANGLE_DEG, its angle from this one and residual.
+    alternative_angle_deg: float
+    alternative_rms_mm: float
+
+    @property
+    def rotation_angle_deg(self) -> float:
+        return rotation_angle_deg(self.rotation)
+
+    @property
+    def ambiguous(self) -> bool:
+        return self.alternative_rms_mm <= AMBIGUOUS_RESIDUAL_RATIO * self.rms_mm
+
+    def apply(self, points_mm: np.ndarray) -> np.ndarray:
+        return points_mm @ self.rotation.T + self.translation_mm
+
+
+@dataclass
+class Comparison:
+    """Everything ``compare-scan`` reports; distances in mm, volumes in ml."""
+
+    clean: CleanReport
+    alignment: Alignment
+    scan_volume_ml: float
+    model_volume_ml: float
+    scan_to_model_mm: dict
+    model_to_scan_mm: dict
+    symmetric_mm: dict
+    model_vertices_mm: np.ndarray
+    model_triangles: np.ndarray
+    model_signed_distance_mm: np.ndarray
+    scan_aligned: TriangleMesh
+    stage_times_s: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        alignment = self.alignment
+        return {
+            "clean": dict(vars(self.clean)),
+            "transform": {
+                "rotation": alignment.rotation.tolist(),
+                "translation_mm": alignment.translation_mm.tolist(),
+                "rotation_angle_deg": alignment.rotation_angle_deg,
+                "fit_rms_mm": alignment.rms_mm,
+                "iterations": alignment.iterations,
+                "ambiguous": bool(alignment.ambiguous),
+                "alternative_angle_deg": alignment.alternative_angle_deg,
+                "alternative_rms_mm": alignment.alternative_rms_mm,
+            },
+            "scan_volume_ml": self.scan_volume_ml,
+            "model_volume_ml": self.model_volume_ml,
+            "volume_difference_pct": 100.0 * (self.scan_volume_ml - self.model_volume_ml) / self.model_volume_ml,
+            "distance_mm": self.symmetric_mm,
+            "scan_to_model_mm": self.scan_to_model_mm,
+            "model_to_scan_mm": self.model_to_scan_mm,
+            "signed_distance_range_mm": [float(self.model_signed_distance_mm.min()),
+                                         float(self.model_signed_distance_mm.max())],
+            "stage_times_s": self.stage_times_s,
+        }
+
+
+# --- reading ---------------------------------------------------------------------------------------------------
+
+
+def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
+    """Read an OBJ, PLY or STL triangle surface; coordinates in ``units`` (mm, cm or m) are returned in mm.
+
+    Polygons are split into triangles by the reader; exactly coincident vertices (an STL's triangle soup) are
+    merged. Raises ScanError for a missing or unreadable file, no faces (a point cloud), no vertices, indices out
+    of range, or non-finite coordinates.
+    """
+    if units not in UNITS_MM:
+        raise ScanError(f"unknown unit {units!r}: use one of {', '.join(UNITS_MM)}")
+    path = Path(path)
+    if not path.is_file():
+        raise ScanError(f"the scan file {path} does not exist: check the path")
+    if path.suffix.lower() not in SCAN_SUFFIXES:
+        raise ScanError(f"{path}: a scan must be an OBJ, PLY or STL file (not {path.suffix or 'no extension'})")
+    import trimesh
+
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+        vertices = np.asarray(loaded.vertices, dtype=np.float64)
+        faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+    except Exception as error:  # trimesh raises many types for files that are not meshes
+        raise ScanError(f"{path} is not a readable {path.suffix[1:].upper()} mesh ({type(error).__name__}: "
+                        f"{str(error).splitlines()[0] if str(error) else 'no detail'})") from None
+    if len(vertices) == 0:
+        raise ScanError(f"{path} holds no vertices: export the reconstructed mesh, not an empty scene")
+    if faces.size == 0:
+        raise ScanError(f"{path} is a point cloud ({len(vertices)} points, no faces): reconstruct a surface first "
+                        f"(e.g. Meshroom's meshing step, or screened Poisson in MeshLab) and export that")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.min() < 0 or faces.max() >= len(vertices):
+        raise ScanError(f"{path}: faces refer to vertices that do not exist: the file is damaged")
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.all():
+        raise ScanError(f"{path} has {np.count_nonzero(~finite)} vertices with non-finite coordinates (nan or "
+                        f"inf), first at index {int(np.flatnonzero(~finite)[0])}: re-export the scan")
+    vertices, faces = merge_coincident_vertices(vertices, faces)
+    return TriangleMesh(vertices * UNITS_MM[units], faces)
+
+
+def merge_coincident_vertices(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Merge exactly equal vertices and drop unreferenced ones (an STL stores each triangle's corners)."""
+    used = np.unique(triangles)
+    rows = np.ascontiguousarray(vertices[used])
+    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * 3))).ravel()
+    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    renumber = np.empty(len(vertices), np.int64)
+    renumber[used] = inverse.ravel()
+    return rows[first], renumber[triangles]
+
+
+# --- cleaning --------------------------------------------------------------------------------------------------
+
+
+def triangle_areas_mm2(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    a, b, c = (vertices_mm[triangles[:, k]] for k in range(3))
+    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+
+
+def drop_degenerate(triangles: np.ndarray, areas_mm2: np.ndarray) -> np.ndarray:
+    """Mask of triangles to keep: three distinct vertices, non-zero area, first copy of a repeated face."""
+    distinct = ((triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                & (triangles[:, 0] != triangles[:, 2]) & (areas_mm2 > 0))
+    keep = np.zeros(len(triangles), bool)
+    _, first = np.unique(np.sort(triangles, axis=1), axis=0, return_index=True)
+    keep[first] = True
+    return keep & distinct
+
+
+def largest_component(triangles: np.ndarray, areas_mm2: np.ndarray) -> tuple[np.ndarray, int]:
+    """Mask of the triangles of the edge-connected piece with the largest area, and the number of pieces."""
+    labels = surface_components(triangles)
+    piece_area = np.bincount(labels, areas_mm2)
+    return labels == int(np.argmax(piece_area)), len(piece_area)
+
+
+def compact(vertices_mm: np.ndarray, triangles: np.ndarray) -> TriangleMesh:
+    """Drop the vertices no triangle uses and renumber."""
+    used, inverse = np.unique(triangles, return_inverse=True)
+    return TriangleMesh(vertices_mm[used], inverse.reshape(triangles.shape).astype(np.int64))
+
+
+def close_holes(mesh: TriangleMesh) -> tuple[TriangleMesh, int]:
+    """Fill every boundary loop with MeshFix (triangulated and refined to the surrounding edge length); return
+    the closed surface and the number of holes it had. The choice of MeshFix is measured in
+    bench/scan_repair.py."""
+    import pymeshfix
+
+    surface = pymeshfix.PyTMesh()
+    surface.set_quiet(True)
+    surface.load_array(mesh.vertices_mm, mesh.triangles.astype(np.int32))
+    holes = surface.n_boundaries
+    surface.fill_small_boundaries(nbe=0, refine=True)
+    vertices, faces = surface.return_arrays()
+    return TriangleMesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64)), int(holes)
+
+
+def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanReport]:
+    """The watertight, outward-oriented largest piece of a scan, that piece before its holes were closed (the
+    measured surface, for distances), and what was changed."""
+    areas = triangle_areas_mm2(mesh.vertices_mm, mesh.triangles)
+    keep = drop_degenerate(mesh.triangles, areas)
+    triangles, areas = mesh.triangles[keep], areas[keep]
+    if len(triangles) == 0:
+        raise ScanError("the scan has no triangle of non-zero area")
+    in_largest, pieces = largest_component(triangles, areas)
+    measured = compact(mesh.vertices_mm, triangles[in_largest])
+    closed, holes = close_holes(measured)
+    if open_edge_count(closed.triangles) != 0:
+        raise ScanError(f"the scan could not be closed ({open_edge_count(closed.triangles)} open edges remain "
+                        f"after filling {holes} holes): repair it in MeshLab and export again")
+    reoriented = enclosed_volume_m3(closed.vertices_mm, closed.triangles) < 0
+    if reoriented:
+        closed.triangles = closed.triangles[:, ::-1].copy()
+        measured.triangles = measured.triangles[:, ::-1].copy()
+    report = CleanReport(
+        input_vertices=len(mesh.vertices_mm), input_triangles=len(mesh.triangles),
+        removed_degenerate_triangles=int(np.count_nonzero(~keep)), removed_components=pieces - 1,
+        removed_component_triangles=int(np.count_nonzero(~in_largest)), holes_filled=holes,
+        added_triangles=len(closed.triangles) - len(measured.triangles), reoriented=bool(reoriented),
+        output_vertices=len(closed.vertices_mm), output_triangles=len(closed.triangles))
+    return closed, measured, report
+
+
+def surface_volume_ml(mesh: TriangleMesh) -> float:
+    """Volume enclosed by a closed, outward-oriented surface in mm (ml)."""
+    return enclosed_volume_m3(mesh.vertices_mm, mesh.triangles) * 1e-3
+
+
+def scan_volume_ml(path: str | Path, units: str = "mm") -> float:
+    """The volume (ml) of a scan file after cleaning: its largest piece, holes closed."""
+    closed, _, _ = clean_scan(read_scan(path, units))
+    return surface_volume_ml(closed)
+
+
+# --- geometry --------------------------------------------------------------------------------------------------
+
+
+def vertex_areas_mm2(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """A third of the area of each triangle around a vertex (the vertex's share of the surface)."""
+    areas = triangle_areas_mm2(vertices_mm, triangles)
+    return np.bincount(triangles.ravel(), np.repeat(areas / 3.0, 3), len(vertices_mm))
+
+
+def vertex_normals(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (outward for an outward-oriented surface)."""
+    a, b, c = (vertices_mm[triangles[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)
+    normals = np.zeros_like(vertices_mm)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], face)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+
+def principal_frame(points_mm: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted centroid, principal axes (columns, largest spread first, right-handed) and variances (mm^2)."""
+    weights = weights / weights.sum()
+    centroid = weights @ points_mm
+    offsets = points_mm - centroid
+    variances, axes = np.linalg.eigh((offsets * weights[:, None]).T @ offsets)
+    variances, axes = variances[::-1], axes[:, ::-1]
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] *= -1
+    return centroid, axes, variances
+
+
+def axis_candidates() -> np.ndarray:
+    """The 24 proper rotations that map coordinate axes onto coordinate axes (signed permutations, det +1)."""
+    candidates = []
+    for order in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
+            matrix = np.zeros((3, 3))
+            matrix[np.arange(3), order] = signs
+            if np.linalg.det(matrix) > 0:
+                candidates.append(matrix)
+    return np.array(candidates)
+
+
+def rotation_angle_deg(rotation: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def rotation_from_vector(omega: np.ndarray) -> np.ndarray:
+    """Rodrigues: the rotation by ``|omega|`` radians about ``omega``."""
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = omega / angle
+    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
+
+
+def subdivide(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray | None = None):
+    """Split each triangle into four at its edge midpoints (the surface is unchanged); per-vertex ``values``
+    are interpolated linearly. Returns (vertices, triangles) or (vertices, triangles, values)."""
+    edges = np.sort(triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    unique_edges, edge_of = np.unique(edges, axis=0, return_inverse=True)
+    midpoint = len(vertices) + edge_of.reshape(-1, 3)
+    new_vertices = np.vstack([vertices, 0.5 * (vertices[unique_edges[:, 0]] + vertices[unique_edges[:, 1]])])
+    a, b, c = triangles.T
+    ab, bc, ca = midpoint.T
+    new_triangles = np.vstack([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
+    if values is None:
+        return new_vertices, new_triangles
+    new_values = np.concatenate([values, 0.5 * (values[unique_edges[:, 0]] + values[unique_edges[:, 1]])])
+    return new_vertices, new_triangles, new_values
+
+
+# --- closest points --------------------------------------------------------------------------------------------
+
+_KERNEL = None
+
+
+def _closest_kernel():
+    """The numba closest-point kernel, compiled once per process (and cached on disk)."""
+    global _KERNEL
+    if _KERNEL is None:
+        os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
+        from phantom.model import scan_kernels
+
+        _KERNEL = scan_kernels.closest_on_candidates
+    return _KERNEL
+
+
+class SurfaceIndex:
+    """Exact closest points on a triangle surface (mm) for many query points."""
+
+    def __init__(self, vertices_mm: np.ndarray, triangles: np.ndarray):
+        from scipy.spatial import cKDTree
+
+        self.vertices_mm = np.ascontiguousarray(vertices_mm, np.float64)
+        self.triangles = np.ascontiguousarray(triangles, np.int64)
+        corners = self.vertices_mm[self.triangles]
+        centroids = corners.mean(axis=1)
+        self.radius_max_mm = float(np.linalg.norm(corners - centroids[:, None, :], axis=2).max())
+        self.tree = cKDTree(centroids)
+        a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+        normals = np.cross(b - a, c - a)
+        self.face_normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+
+    def closest(self, points_mm: np.ndarray, first_k: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Distance (mm), closest point (mm) and triangle of each query point."""
+        kernel = _closest_kernel()
+        points_mm = np.ascontiguousarray(points_mm, np.float64)
+        n = len(points_mm)
+        distance = np.empty(n)
+        closest = np.empty((n, 3))
+        triangle = np.empty(n, np.int64)
+        pending = np.arange(n)
+        k = min(first_k, len(self.triangles))
+        while len(pending):
+            # Threads pay off only for large batches: starting them costs milliseconds on a busy machine.
+            workers = -1 if len(pending) > 50000 else 1
+            centroid_distance, candidates = self.tree.query(points_mm[pending], k=k, workers=workers)
+            centroid_distance = np.ascontiguousarray(centroid_distance.reshape(len(pending), -1))
+            candidates = np.ascontiguousarray(candidates.reshape(len(pending), -1), np.int64)
+            done = np.zeros(len(pending), np.bool_)
+            kernel(points_mm, pending, candidates, centroid_distance, self.vertices_mm, self.triangles,
+                   self.radius_max_mm, k >= len(self.triangles), distance, closest, triangle, done)
+            pending = pending[~done]
+            k = min(4 * k, len(self.triangles))
+        return distance, closest, triangle
+
+
+# --- alignment -------------------------------------------------------------------------------------------------
+
+
+def point_to_plane_step(points: np.ndarray, targets: np.ndarray, normals: np.ndarray,
+                        weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The small rotation vector and translation that minimise ``sum w ((R p + t - q) . n)^2`` (linearised)."""
+    jacobian = np.hstack([np.cross(points, normals), normals])
+    residual = np.einsum("ij,ij->i", points - targets, normals)
+    weighted = jacobian * weights[:, None]
+    solution = np.linalg.lstsq(weighted.T @ jacobian, -weighted.T @ residual, rcond=None)[0]
+    return solution[:3], solution[3:]
+
+
+def icp(points_mm: np.ndarray, correspond, rotation: np.ndarray, translation_mm: np.ndarray,
+        max_iterations: int, tolerance_mm: float = 1e-3) -> tuple[np.ndarray, np.ndarray, float, int]:
+    """Point-to-plane ICP of ``points_mm`` from a start; ``correspond(points)`` gives each point's distance,
+    target point and target normal. Pairs farther than three times the median distance are left out (stray
+    points, unfilled parts). Stops when a step moves no point by more than ``tolerance_mm``. Returns rotation,
+    translation, RMS distance (mm, all points, at the result) and iterations."""
+    moved = points_mm @ rotation.T + translation_mm
+    radius = float(np.max(np.linalg.norm(moved - moved.mean(axis=0), axis=1)))
+    iterations = 0
+    while iterations < max_iterations:
+        iterations += 1
+        distance, targets, normals = correspond(moved)
+        inlier = distance <= 3.0 * np.median(distance) + 1e-9
+        omega, shift = point_to_plane_step(moved[inlier], targets[inlier], normals[inlier],
+                                           np.ones(np.count_nonzero(inlier)))
+        step = rotation_from_vector(omega)
+        rotation, translation_mm = step @ rotation, step @ translation_mm + shift
+        moved = moved @ step.T + shift
+        if np.linalg.norm(omega) * radius + np.linalg.norm(shift) < tolerance_mm:
+            break
+    distance = correspond(moved)[0]
+    return rotation, translation_mm, float(np.sqrt(np.mean(distance**2))), iterations
+
+
+def rms_distance_mm(points_mm: np.ndarray, target: SurfaceIndex, rotation: np.ndarray,
+                    translation_mm: np.ndarray) -> float:
+    """RMS distance of the moved points from the target surface (mm)."""
+    distance, _, _ = target.closest(points_mm @ rotation.T + translation_mm)
+    return float(np.sqrt(np.mean(distance**2)))
+
+
+def exact_correspondence(index: SurfaceIndex):
+    """Closest points on the surface, with the normal of the triangle they lie on."""
+    def correspond(points_mm):
+        distance, closest, triangle = index.closest(points_mm)
+        return distance, closest, index.face_normals[triangle]
+    return correspond
+
+
+def vertex_correspondence(vertices_mm: np.ndarray, normals: np.ndarray):
+    """Nearest surface vertex and its normal: cheap, for the global start's many candidates."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(vertices_mm)
+
+    def correspond(points_mm):
+        distance, nearest = tree.query(points_mm)
+        return distance, vertices_mm[nearest], normals[nearest]
+    return correspond
+
+
+def rms_radius_mm(vertices_mm: np.ndarray, triangles: np.ndarray) -> float:
+    """Area-weighted RMS distance of a surface from its centroid (mm): its size, whatever its pose."""
+    _, _, variances = principal_frame(vertices_mm, vertex_areas_mm2(vertices_mm, triangles))
+    return float(np.sqrt(variances.sum()))
+
+
+def check_scale(scan: TriangleMesh, model: TriangleMesh, units: str) -> None:
+    """Raise ScanError when the scan's size is far from the model's, suggesting the unit that would fit."""
+    ratio = rms_radius_mm(scan.vertices_mm, scan.triangles) / rms_radius_mm(model.vertices_mm, model.triangles)
+    if 1.0 / SCALE_TOLERANCE <= ratio <= SCALE_TOLERANCE:
+        return
+    hint = "scale it to millimetres before comparing"
+    for unit, mm in UNITS_MM.items():
+        if unit != units and 1.0 / SCALE_TOLERANCE <= ratio * mm / UNITS_MM[units] <= SCALE_TOLERANCE:
+            hint = f"it looks like the file is in {unit}: pass --units {unit}"
+    raise ScanError(f"the scan is {ratio:.3g} times the model's size (read in {units}), too far off to align: "
+                    f"{hint}")
+
+
+def align(scan: TriangleMesh, measured_points_mm: np.ndarray, model: TriangleMesh, model_index: SurfaceIndex,
+          rng: np.random.Generator) -> Alignment:
+    """Rigid alignment of the scan onto the model surface: principal-axes candidates, each refined briefly by
+    ICP on a few hundred points, the best refined on up to ICP_POINTS points. Raises ScanError when even the
+    best leaves an RMS distance above FIT_RMS_LIMIT of the model's size."""
+    scan_centroid, scan_axes, _ = principal_frame(scan.vertices_mm, vertex_areas_mm2(scan.vertices_mm,
+                                                                                        scan.triangles))
+    model_centroid, model_axes, model_variances = principal_frame(
+        model.vertices_mm, vertex_areas_mm2(model.vertices_mm, model.triangles))
+    few = measured_points_mm[rng.choice(len(measured_points_mm), min(START_POINTS, len(measured_points_mm)),
+                                        replace=False)]
+    coarse = vertex_correspondence(model.vertices_mm, vertex_normals(model.vertices_mm, model.triangles))
+    starts = []
+    for swap in axis_candidates():
+        rotation = model_axes @ swap @ scan_axes.T
+        translation = model_centroid - rotation @ scan_centroid
+        starts.append(icp(few, coarse, rotation, translation, START_ITERATIONS))
+    order = np.argsort([rms for _, _, rms, _ in starts])
+    many = measured_points_mm[rng.choice(len(measured_points_mm), min(ICP_POINTS, len(measured_points_mm)),
+                                         replace=False)]
+    exact = exact_correspondence(model_index)
+    rotation, translation, rms, iterations = icp(many, exact, *starts[order[0]][:2], ICP_MAX_ITERATIONS)
+    # The best start that ends far from this one: its residual says how well the shape pins the rotation.
+    alternative_angle, alternative_rms = 180.0, np.inf
+    for index in order[1:]:
+        if rotation_angle_deg(starts[index][0] @ rotation.T) > AMBIGUOUS_ANGLE_DEG:
+            other = icp(few, exact, *starts[index][:2], 2 * START_ITERATIONS)
+            alternative_angle = rotation_angle_deg(other[0] @ rotation.T)
+            alternative_rms = rms_distance_mm(many, model_index, other[0], other[1])
+            break
+    size_mm = float(np.sqrt(model_variances.sum()))
+    if rms > FIT_RMS_LIMIT * size_mm:
+        raise ScanError(f"no rigid alignment fits the scan to the model: the best leaves an RMS distance of "
+                        f"{rms:.2f} mm ({100 * rms / size_mm:.0f} % of the model's size): is it this phantom, "
+                        f"at these pressures?")
+    return Alignment(rotation, translation, rms, iterations, alternative_angle, float(alternative_rms))
+
+
+# --- distances -------------------------------------------------------------------------------------------------
+
+
+def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict:
+    """Mean, median, 95th percentile and max of ``values`` with ``weights`` (area shares)."""
+    order = np.argsort(values)
+    sorted_values = values[order]
+    cumulative = np.cumsum(weights[order])
+    cumulative /= cumulative[-1]
+
+    def quantile(q: float) -> float:
+        return float(sorted_values[min(np.searchsorted(cumulative, q), len(values) - 1)])
+
+    return {"mean": float(np.average(values, weights=weights)), "median": quantile(0.5), "p95": quantile(0.95),
+            "max": float(sorted_values[-1])}
+
+
+def model_surface(positions_m: np.ndarray, outer_triangles: np.ndarray) -> TriangleMesh:
+    """The model's outer surface as its own mesh in mm (only the nodes on it)."""
+    return compact(np.asarray(positions_m) * 1e3, np.asarray(outer_triangles, np.int64))
+
+
+def compare(scan: TriangleMesh, model: TriangleMesh, model_volume_ml: float, units: str = "mm",
+            seed: int = 0) -> Comparison:
+    """Clean the scan, align it to the model surface (mm) and measure distances and volumes."""
+    times = {}
+    started = time.perf_counter()
+    closed, measured, report = clean_scan(scan)
+    times["clean"] = time.perf_counter() - started
+    check_scale(closed, model, units)
+    started = time.perf_counter()
+    model_index = SurfaceIndex(model.vertices_mm, model.triangles)
+    alignment = align(closed, measured.vertices_mm, model, model_index, np.random.default_rng(seed))
+    times["align"] = time.perf_counter() - started
+    started = time.perf_counter()
+    aligned = TriangleMesh(alignment.apply(closed.vertices_mm), closed.triangles)
+    measured_aligned = alignment.apply(measured.vertices_mm)
+    scan_distance, _, _ = model_index.closest(measured_aligned)
+    scan_weights = vertex_areas_mm2(measured_aligned, measured.triangles)
+    model_distance, model_closest, _ = SurfaceIndex(aligned.vertices_mm, aligned.triangles).closest(
+        model.vertices_mm)
+    model_weights = vertex_areas_mm2(model.vertices_mm, model.triangles)
+    outward = np.einsum("ij,ij->i", model_closest - model.vertices_mm,
+                        vertex_normals(model.vertices_mm, model.triangles))
+    signed = np.where(outward >= 0, model_distance, -model_distance)
+    symmetric = weighted_statistics(np.concatenate([scan_distance, model_distance]),
+                                    np.concatenate([scan_weights / scan_weights.sum(),
+                                                    model_weights / model_weights.sum()]))
+    times["distances"] = time.perf_counter() - started
+    return Comparison(report, alignment, surface_volume_ml(closed), model_volume_ml,
+                      weighted_statistics(scan_distance, scan_weights),
+                      weighted_statistics(model_distance, model_weights), symmetric, model.vertices_mm,
+                      model.triangles, signed, aligned, times)
