@@ -431,6 +431,15 @@ def rotation_angle_deg(rotation: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
 
 
+def rotation_axis(rotation: np.ndarray) -> np.ndarray:
+    """Unit axis of a rotation (right-handed with :func:`rotation_angle_deg`); any unit vector for none."""
+    values, vectors = np.linalg.eig(rotation)
+    axis = np.real(vectors[:, np.argmin(np.abs(values - 1.0))])
+    skew = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
+                     rotation[1, 0] - rotation[0, 1]])
+    return -axis if axis @ skew < 0 else axis
+
+
 def rotation_from_vector(omega: np.ndarray) -> np.ndarray:
     """Rodrigues: the rotation by ``|omega|`` radians about ``omega``."""
     angle = float(np.linalg.norm(omega))
