@@ -171,9 +171,17 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
     import trimesh
 
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+        loaded = trimesh.load(path, process=False)
+        if isinstance(loaded, trimesh.PointCloud):
+            raise ScanError(f"{path} is a point cloud ({len(loaded.vertices)} points, no faces): reconstruct a "
+                            f"surface first (e.g. Meshroom's meshing step, or screened Poisson in MeshLab) and "
+                            f"export that")
+        if isinstance(loaded, trimesh.Scene):
+            loaded = trimesh.load(path, force="mesh", process=False)
         vertices = np.asarray(loaded.vertices, dtype=np.float64)
         faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
+    except ScanError:
+        raise
     except Exception as error:  # trimesh raises many types for files that are not meshes
         raise ScanError(f"{path} is not a readable {path.suffix[1:].upper()} mesh ({type(error).__name__}: "
                         f"{str(error).splitlines()[0] if str(error) else 'no detail'})") from None
@@ -539,23 +547,36 @@ def icp(points_mm: np.ndarray, correspond, rotation: np.ndarray, translation_mm:
         max_iterations: int, tolerance_mm: float = 1e-3) -> tuple[np.ndarray, np.ndarray, float, int]:
     """Point-to-plane ICP of ``points_mm`` from a start; ``correspond(points)`` gives each point's distance,
     target point and target normal. Pairs farther than three times the median distance are left out (stray
-    points, unfilled parts). Stops when a step moves no point by more than ``tolerance_mm``. Returns rotation,
-    translation, RMS distance (mm, all points, at the result) and iterations."""
+    points, unfilled parts). Each Gauss-Newton step is halved until the (trimmed) sum of squared distances
+    decreases: where the distances do not go to zero (a scan that differs from the model) the linearisation
+    leaves out the surface's curvature and a full step can overshoot along a weakly constrained rotation.
+    Stops when a step moves no point by more than ``tolerance_mm``. Returns rotation, translation, RMS distance
+    (mm, all points, at the result) and iterations."""
     moved = points_mm @ rotation.T + translation_mm
     radius = float(np.max(np.linalg.norm(moved - moved.mean(axis=0), axis=1)))
+    distance, targets, normals = correspond(moved)
     iterations = 0
     while iterations < max_iterations:
         iterations += 1
-        distance, targets, normals = correspond(moved)
-        inlier = distance <= 3.0 * np.median(distance) + 1e-9
+        limit = 3.0 * np.median(distance) + 1e-9
+        inlier = distance <= limit
+        cost = np.sum(np.minimum(distance, limit) ** 2)
         omega, shift = point_to_plane_step(moved[inlier], targets[inlier], normals[inlier],
                                            np.ones(np.count_nonzero(inlier)))
-        step = rotation_from_vector(omega)
+        for _ in range(8):
+            step = rotation_from_vector(omega)
+            trial = moved @ step.T + shift
+            trial_correspondence = correspond(trial)
+            if np.sum(np.minimum(trial_correspondence[0], limit) ** 2) <= cost:
+                break
+            omega, shift = 0.5 * omega, 0.5 * shift
+        else:
+            break
         rotation, translation_mm = step @ rotation, step @ translation_mm + shift
-        moved = moved @ step.T + shift
+        moved = trial
+        distance, targets, normals = trial_correspondence
         if np.linalg.norm(omega) * radius + np.linalg.norm(shift) < tolerance_mm:
             break
-    distance = correspond(moved)[0]
     return rotation, translation_mm, float(np.sqrt(np.mean(distance**2))), iterations
 
 
@@ -567,10 +588,15 @@ def rms_distance_mm(points_mm: np.ndarray, target: SurfaceIndex, rotation: np.nd
 
 
 def exact_correspondence(index: SurfaceIndex):
-    """Closest points on the surface, with the normal of the triangle they lie on."""
+    """Closest points on the surface, with the direction from there to the point (the distance's gradient);
+    the face normal for points on the surface. A face normal alone would be wrong where the closest point is on
+    an edge or a corner (an offset surface mostly is): ICP would then minimise another objective and drift."""
     def correspond(points_mm):
         distance, closest, triangle = index.closest(points_mm)
-        return distance, closest, index.face_normals[triangle]
+        normals = index.face_normals[triangle]
+        away = distance > 1e-9
+        normals[away] = (points_mm[away] - closest[away]) / distance[away, None]
+        return distance, closest, normals
     return correspond
 
 
