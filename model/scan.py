@@ -15,6 +15,7 @@ distance found; the point-triangle kernel is numba (cached on disk).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass, field
@@ -24,7 +25,7 @@ import numpy as np
 
 import phantom
 from phantom import PhantomError
-from phantom.model.mesh import enclosed_volume_m3, open_edge_count
+from phantom.model.mesh import enclosed_volume_m3
 
 #: Millimetres per unit of a scan file.
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -47,6 +48,24 @@ ICP_MAX_ITERATIONS = 50
 
 class ScanError(PhantomError):
     """A scan file that cannot be read or used, or a scan that does not fit the model."""
+
+
+class StageClock:
+    """Wall and CPU seconds per named stage. CPU time (all threads of this process) shows the work itself when
+    other processes share the cores and stretch the wall time."""
+
+    def __init__(self):
+        self.wall_s: dict[str, float] = {}
+        self.cpu_s: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def stage(self, name: str):
+        wall, cpu = time.perf_counter(), time.process_time()
+        try:
+            yield
+        finally:
+            self.wall_s[name] = self.wall_s.get(name, 0.0) + time.perf_counter() - wall
+            self.cpu_s[name] = self.cpu_s.get(name, 0.0) + time.process_time() - cpu
 
 
 @dataclass
@@ -123,7 +142,7 @@ class Comparison:
     model_triangles: np.ndarray
     model_signed_distance_mm: np.ndarray
     scan_aligned: TriangleMesh
-    stage_times_s: dict = field(default_factory=dict)
+    clock: StageClock = field(default_factory=StageClock)
 
     def to_json(self) -> dict:
         alignment = self.alignment
@@ -147,7 +166,8 @@ class Comparison:
             "model_to_scan_mm": self.model_to_scan_mm,
             "signed_distance_range_mm": [float(self.model_signed_distance_mm.min()),
                                          float(self.model_signed_distance_mm.max())],
-            "stage_times_s": self.stage_times_s,
+            "stage_times_s": self.clock.wall_s,
+            "stage_cpu_s": self.clock.cpu_s,
         }
 
 
@@ -201,14 +221,22 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
 
 
 def merge_coincident_vertices(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Merge exactly equal vertices and drop unreferenced ones (an STL stores each triangle's corners)."""
-    used = np.unique(triangles)
-    rows = np.ascontiguousarray(vertices[used])
-    keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * 3))).ravel()
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    renumber = np.empty(len(vertices), np.int64)
-    renumber[used] = inverse.ravel()
-    return rows[first], renumber[triangles]
+    """Merge exactly equal vertices and drop unreferenced ones (an STL stores each triangle's corners; an OBJ
+    with texture coordinates may repeat a position at a seam).
+
+    Rows are grouped by a 64-bit hash of their bits (a hash table, much faster than sorting rows); a collision
+    would join different rows, so the grouping is checked and, if that ever happens, redone by sorting rows.
+    """
+    rows = np.ascontiguousarray(vertices + 0.0)  # + 0.0 turns -0.0 into 0.0: equal values, equal bits
+    bits = rows.view(np.uint64)
+    key = (bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)) ^ (bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)) \
+        ^ (bits[:, 2] * np.uint64(0x165667B19E3779F9))
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    if not np.array_equal(rows[first][inverse.ravel()], rows):
+        keys = rows.view(np.dtype((np.void, rows.dtype.itemsize * 3))).ravel()
+        _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
+    merged = compact(rows[first], inverse.ravel()[triangles])
+    return merged.vertices_mm, merged.triangles
 
 
 # --- cleaning --------------------------------------------------------------------------------------------------
@@ -317,8 +345,14 @@ def close_holes(mesh: TriangleMesh) -> tuple[TriangleMesh, int]:
     keep_label[labels[touches_hole[added].any(axis=1)]] = True
     added, labels = added[keep_label[labels]], labels[keep_label[labels]]
     added = _orient_fills(added, labels, edges, n_vertices + new_count)
-    vertices = np.vstack([mesh.vertices_mm, filled_rows[~is_old]])
     holes = _count_loops(edges, n_vertices)
+    # Closed when no hole edge and no edge of a fill is left on the patch's boundary (only its cut edge is).
+    left = boundary_edges(np.vstack([mesh.triangles[touching], added]))
+    unclosed = on_hole[left].all(axis=1) | (left >= n_vertices).any(axis=1)
+    if unclosed.any():
+        raise ScanError(f"the scan could not be closed ({np.count_nonzero(unclosed)} open edges remain after "
+                        f"filling {holes} holes): repair it in MeshLab and export again")
+    vertices = np.vstack([mesh.vertices_mm, filled_rows[~is_old]])
     return compact(vertices, np.vstack([mesh.triangles, added])), holes
 
 
@@ -365,9 +399,6 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
     in_largest, pieces = largest_component(triangles, areas)
     measured = compact(mesh.vertices_mm, triangles[in_largest])
     closed, holes = close_holes(measured)
-    if open_edge_count(closed.triangles) != 0:
-        raise ScanError(f"the scan could not be closed ({open_edge_count(closed.triangles)} open edges remain "
-                        f"after filling {holes} holes): repair it in MeshLab and export again")
     reoriented = enclosed_volume_m3(closed.vertices_mm, closed.triangles) < 0
     if reoriented:
         closed.triangles = closed.triangles[:, ::-1].copy()
@@ -490,6 +521,10 @@ def _closest_kernel():
     return _KERNEL
 
 
+#: Neighbour lists reach this many times the largest triangle radius (see SurfaceIndex.closest).
+NEIGHBOUR_REACH_RADII = 2.5
+
+
 class SurfaceIndex:
     """Exact closest points on a triangle surface (mm) for many query points."""
 
@@ -500,14 +535,39 @@ class SurfaceIndex:
         self.triangles = np.ascontiguousarray(triangles, np.int64)
         corners = self.vertices_mm[self.triangles]
         centroids = corners.mean(axis=1)
-        self.radius_max_mm = float(np.linalg.norm(corners - centroids[:, None, :], axis=2).max())
-        self.tree = cKDTree(centroids)
-        a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
-        normals = np.cross(b - a, c - a)
-        self.face_normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        self.radius_mm = np.sqrt(np.max(np.sum((corners - centroids[:, None, :]) ** 2, axis=2), axis=1))
+        self.radius_max_mm = float(self.radius_mm.max())
+        self.tree = cKDTree(centroids, balanced_tree=False, compact_nodes=False)
+        self._face_normals = None
+        self._neighbours = None
+
+    @property
+    def face_normals(self) -> np.ndarray:
+        """Unit normals of the triangles (made when first asked for: the model-to-scan query does not)."""
+        if self._face_normals is None:
+            a, b, c = (self.vertices_mm[self.triangles[:, k]] for k in range(3))
+            normals = np.cross(b - a, c - a)
+            self._face_normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
+        return self._face_normals
+
+    def _neighbour_lists(self):
+        """For each triangle, the triangles whose centroids lie within NEIGHBOUR_REACH_RADII * radius_max of its
+        centroid (CSR: start offsets and indices); made once, for many queries on a small surface."""
+        if self._neighbours is None:
+            reach = NEIGHBOUR_REACH_RADII * self.radius_max_mm
+            lists = self.tree.query_ball_point(self.tree.data, reach)
+            start = np.zeros(len(lists) + 1, np.int64)
+            start[1:] = np.cumsum([len(entries) for entries in lists])
+            self._neighbours = (reach, start, np.concatenate(lists).astype(np.int64))
+        return self._neighbours
 
     def closest(self, points_mm: np.ndarray, first_k: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Distance (mm), closest point (mm) and triangle of each query point."""
+        """Distance (mm), closest point (mm) and triangle of each query point.
+
+        Many points on a small surface (a scan against the model) first try the nearest centroid's neighbour
+        list (one nearest-neighbour query each); the rest, and few points on a large surface, query the k
+        nearest centroids, more until the answer is exact.
+        """
         kernel = _closest_kernel()
         points_mm = np.ascontiguousarray(points_mm, np.float64)
         n = len(points_mm)
@@ -515,6 +575,17 @@ class SurfaceIndex:
         closest = np.empty((n, 3))
         triangle = np.empty(n, np.int64)
         pending = np.arange(n)
+        if n > 10 * len(self.triangles):
+            from phantom.model import scan_kernels
+
+            reach, start, neighbours = self._neighbour_lists()
+            nearest_distance, nearest = self.tree.query(points_mm)
+            done = np.zeros(n, np.bool_)
+            scan_kernels.closest_by_neighbours(points_mm, nearest.astype(np.int64), nearest_distance, start,
+                                               neighbours, self.tree.data, self.radius_mm, self.radius_max_mm,
+                                               reach, self.vertices_mm, self.triangles, distance, closest,
+                                               triangle, done)
+            pending = pending[~done]
         k = min(first_k, len(self.triangles))
         while len(pending):
             # Threads pay off only for large batches: starting them costs milliseconds on a busy machine.
@@ -524,7 +595,7 @@ class SurfaceIndex:
             candidates = np.ascontiguousarray(candidates.reshape(len(pending), -1), np.int64)
             done = np.zeros(len(pending), np.bool_)
             kernel(points_mm, pending, candidates, centroid_distance, self.vertices_mm, self.triangles,
-                   self.radius_max_mm, k >= len(self.triangles), distance, closest, triangle, done)
+                   self.radius_mm, self.radius_max_mm, k >= len(self.triangles), distance, closest, triangle, done)
             pending = pending[~done]
             k = min(4 * k, len(self.triangles))
         return distance, closest, triangle
@@ -612,15 +683,27 @@ def vertex_correspondence(vertices_mm: np.ndarray, normals: np.ndarray):
     return correspond
 
 
-def rms_radius_mm(vertices_mm: np.ndarray, triangles: np.ndarray) -> float:
-    """Area-weighted RMS distance of a surface from its centroid (mm): its size, whatever its pose."""
-    _, _, variances = principal_frame(vertices_mm, vertex_areas_mm2(vertices_mm, triangles))
-    return float(np.sqrt(variances.sum()))
+@dataclass
+class Frame:
+    """A surface's area-weighted centroid (mm), principal axes (columns) and variances along them (mm^2)."""
+
+    centroid_mm: np.ndarray
+    axes: np.ndarray
+    variances_mm2: np.ndarray
+
+    @classmethod
+    def of(cls, mesh: TriangleMesh) -> Frame:
+        return cls(*principal_frame(mesh.vertices_mm, vertex_areas_mm2(mesh.vertices_mm, mesh.triangles)))
+
+    @property
+    def rms_radius_mm(self) -> float:
+        """RMS distance of the surface from its centroid: its size, whatever its pose."""
+        return float(np.sqrt(self.variances_mm2.sum()))
 
 
-def check_scale(scan: TriangleMesh, model: TriangleMesh, units: str) -> None:
+def check_scale(scan: Frame, model: Frame, units: str) -> None:
     """Raise ScanError when the scan's size is far from the model's, suggesting the unit that would fit."""
-    ratio = rms_radius_mm(scan.vertices_mm, scan.triangles) / rms_radius_mm(model.vertices_mm, model.triangles)
+    ratio = scan.rms_radius_mm / model.rms_radius_mm
     if 1.0 / SCALE_TOLERANCE <= ratio <= SCALE_TOLERANCE:
         return
     hint = "scale it to millimetres before comparing"
@@ -631,15 +714,13 @@ def check_scale(scan: TriangleMesh, model: TriangleMesh, units: str) -> None:
                     f"{hint}")
 
 
-def align(scan: TriangleMesh, measured_points_mm: np.ndarray, model: TriangleMesh, model_index: SurfaceIndex,
-          rng: np.random.Generator) -> Alignment:
+def align(scan: Frame, measured_points_mm: np.ndarray, model: TriangleMesh, model_frame: Frame,
+          model_index: SurfaceIndex, rng: np.random.Generator) -> Alignment:
     """Rigid alignment of the scan onto the model surface: principal-axes candidates, each refined briefly by
     ICP on a few hundred points, the best refined on up to ICP_POINTS points. Raises ScanError when even the
     best leaves an RMS distance above FIT_RMS_LIMIT of the model's size."""
-    scan_centroid, scan_axes, _ = principal_frame(scan.vertices_mm, vertex_areas_mm2(scan.vertices_mm,
-                                                                                        scan.triangles))
-    model_centroid, model_axes, model_variances = principal_frame(
-        model.vertices_mm, vertex_areas_mm2(model.vertices_mm, model.triangles))
+    scan_centroid, scan_axes = scan.centroid_mm, scan.axes
+    model_centroid, model_axes = model_frame.centroid_mm, model_frame.axes
     few = measured_points_mm[rng.choice(len(measured_points_mm), min(START_POINTS, len(measured_points_mm)),
                                         replace=False)]
     coarse = vertex_correspondence(model.vertices_mm, vertex_normals(model.vertices_mm, model.triangles))
@@ -661,7 +742,7 @@ def align(scan: TriangleMesh, measured_points_mm: np.ndarray, model: TriangleMes
             alternative_angle = rotation_angle_deg(other[0] @ rotation.T)
             alternative_rms = rms_distance_mm(many, model_index, other[0], other[1])
             break
-    size_mm = float(np.sqrt(model_variances.sum()))
+    size_mm = model_frame.rms_radius_mm
     if rms > FIT_RMS_LIMIT * size_mm:
         raise ScanError(f"no rigid alignment fits the scan to the model: the best leaves an RMS distance of "
                         f"{rms:.2f} mm ({100 * rms / size_mm:.0f} % of the model's size): is it this phantom, "
@@ -691,34 +772,33 @@ def model_surface(positions_m: np.ndarray, outer_triangles: np.ndarray) -> Trian
     return compact(np.asarray(positions_m) * 1e3, np.asarray(outer_triangles, np.int64))
 
 
-def compare(scan: TriangleMesh, model: TriangleMesh, model_volume_ml: float, units: str = "mm",
-            seed: int = 0) -> Comparison:
+def compare(scan: TriangleMesh, model: TriangleMesh, model_volume_ml: float, units: str = "mm", seed: int = 0,
+            clock: StageClock | None = None) -> Comparison:
     """Clean the scan, align it to the model surface (mm) and measure distances and volumes."""
-    times = {}
-    started = time.perf_counter()
-    closed, measured, report = clean_scan(scan)
-    times["clean"] = time.perf_counter() - started
-    check_scale(closed, model, units)
-    started = time.perf_counter()
-    model_index = SurfaceIndex(model.vertices_mm, model.triangles)
-    alignment = align(closed, measured.vertices_mm, model, model_index, np.random.default_rng(seed))
-    times["align"] = time.perf_counter() - started
-    started = time.perf_counter()
-    aligned = TriangleMesh(alignment.apply(closed.vertices_mm), closed.triangles)
-    measured_aligned = alignment.apply(measured.vertices_mm)
-    scan_distance, _, _ = model_index.closest(measured_aligned)
-    scan_weights = vertex_areas_mm2(measured_aligned, measured.triangles)
-    model_distance, model_closest, _ = SurfaceIndex(aligned.vertices_mm, aligned.triangles).closest(
-        model.vertices_mm)
-    model_weights = vertex_areas_mm2(model.vertices_mm, model.triangles)
-    outward = np.einsum("ij,ij->i", model_closest - model.vertices_mm,
-                        vertex_normals(model.vertices_mm, model.triangles))
-    signed = np.where(outward >= 0, model_distance, -model_distance)
-    symmetric = weighted_statistics(np.concatenate([scan_distance, model_distance]),
-                                    np.concatenate([scan_weights / scan_weights.sum(),
-                                                    model_weights / model_weights.sum()]))
-    times["distances"] = time.perf_counter() - started
+    clock = clock or StageClock()
+    with clock.stage("clean"):
+        closed, measured, report = clean_scan(scan)
+    with clock.stage("align"):
+        scan_frame, model_frame = Frame.of(closed), Frame.of(model)
+        check_scale(scan_frame, model_frame, units)
+        model_index = SurfaceIndex(model.vertices_mm, model.triangles)
+        alignment = align(scan_frame, measured.vertices_mm, model, model_frame, model_index,
+                          np.random.default_rng(seed))
+    with clock.stage("distances"):
+        aligned = TriangleMesh(alignment.apply(closed.vertices_mm), closed.triangles)
+        scan_distance, _, _ = model_index.closest(alignment.apply(measured.vertices_mm))
+        scan_weights = vertex_areas_mm2(measured.vertices_mm, measured.triangles)
+        # The model's vertices against the scan in the scan's own frame (the inverse motion), then back.
+        in_scan_frame = (model.vertices_mm - alignment.translation_mm) @ alignment.rotation
+        model_distance, model_closest, _ = SurfaceIndex(closed.vertices_mm, closed.triangles).closest(in_scan_frame)
+        model_weights = vertex_areas_mm2(model.vertices_mm, model.triangles)
+        outward = np.einsum("ij,ij->i", alignment.apply(model_closest) - model.vertices_mm,
+                            vertex_normals(model.vertices_mm, model.triangles))
+        signed = np.where(outward >= 0, model_distance, -model_distance)
+        symmetric = weighted_statistics(np.concatenate([scan_distance, model_distance]),
+                                        np.concatenate([scan_weights / scan_weights.sum(),
+                                                        model_weights / model_weights.sum()]))
     return Comparison(report, alignment, surface_volume_ml(closed), model_volume_ml,
                       weighted_statistics(scan_distance, scan_weights),
                       weighted_statistics(model_distance, model_weights), symmetric, model.vertices_mm,
-                      model.triangles, signed, aligned, times)
+                      model.triangles, signed, aligned, clock)

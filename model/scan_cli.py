@@ -30,7 +30,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_compare_scan(args: argparse.Namespace) -> int:
     """Handler of ``phantom compare-scan``."""
     import json
-    import time
     from pathlib import Path
 
     import numpy as np
@@ -38,38 +37,34 @@ def run_compare_scan(args: argparse.Namespace) -> int:
     from phantom.host.cli import parse_numbers
     from phantom.model.errors import SolveError
     from phantom.model.fem import PhantomModel
-    from phantom.model.scan import compare, model_surface, read_scan, rotation_axis
+    from phantom.model.scan import StageClock, compare, model_surface, read_scan, rotation_axis
     from phantom.model.scan_render import write_heatmap, write_recording
     from phantom.model.scene import load_scene
 
     pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
-    started = time.perf_counter()
-    scan = read_scan(args.scan, args.units)
-    read_s = time.perf_counter() - started
-    scene = load_scene(args.scene)
-    model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
-    if len(pressures_kpa) != model.n_chambers:
-        raise SolveError(f"--pressures-kpa has {len(pressures_kpa)} values; the scene has {model.n_chambers} "
-                         f"chambers ({', '.join(model.chamber_names)})")
-    started = time.perf_counter()
-    state = model.solve([p * 1e3 for p in pressures_kpa])
-    solve_s = time.perf_counter() - started
+    clock = StageClock()
+    with clock.stage("read"):
+        scan = read_scan(args.scan, args.units)
+    with clock.stage("model"):
+        scene = load_scene(args.scene)
+        model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
+        if len(pressures_kpa) != model.n_chambers:
+            raise SolveError(f"--pressures-kpa has {len(pressures_kpa)} values; the scene has {model.n_chambers} "
+                             f"chambers ({', '.join(model.chamber_names)})")
+        state = model.solve([p * 1e3 for p in pressures_kpa])
     result = compare(scan, model_surface(state.positions_m, model.outer_triangles), state.gland_volume_m3 * 1e6,
-                     args.units)
-    result.stage_times_s = {"read": read_s, "model": solve_s, **result.stage_times_s}
+                     args.units, clock=clock)
     at = ", ".join(f"{name} {p:g}" for name, p in zip(model.chamber_names, pressures_kpa, strict=True))
     distance = result.symmetric_mm
     title = (f"{Path(args.scan).name} against the model at {at} kPa\nmean {distance['mean']:.3f}, "
              f"p95 {distance['p95']:.3f}, max {distance['max']:.3f} mm; volume {result.scan_volume_ml:.2f} ml "
              f"(model {result.model_volume_ml:.2f} ml)")
-    started = time.perf_counter()
-    heatmap = write_heatmap(result, Path(args.out) / f"{Path(args.scan).stem}_vs_model.png", title)
-    result.stage_times_s["heatmap"] = time.perf_counter() - started
+    with clock.stage("heatmap"):
+        heatmap = write_heatmap(result, Path(args.out) / f"{Path(args.scan).stem}_vs_model.png", title)
     recording = None
     if args.rerun_save:
-        started = time.perf_counter()
-        recording = write_recording(result, args.rerun_save)
-        result.stage_times_s["rerun"] = time.perf_counter() - started
+        with clock.stage("rerun"):
+            recording = write_recording(result, args.rerun_save)
     alignment = result.alignment
     if args.json:
         summary = result.to_json()

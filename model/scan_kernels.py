@@ -55,12 +55,13 @@ def closest_on_triangle(p, a, b, c, out):
 
 
 @numba.njit(cache=True)
-def closest_on_candidates(points, pending, candidates, centroid_distance, vertices, triangles, radius_max,
-                          all_candidates, distance, closest, triangle, done):
+def closest_on_candidates(points, pending, candidates, centroid_distance, vertices, triangles, radius,
+                          radius_max, all_candidates, distance, closest, triangle, done):
     """For each pending point, the closest point over its candidate triangles (nearest centroid first).
 
-    A triangle lies at least ``|p - centroid| - radius_max`` from p, so once that exceeds the best distance no
-    later candidate can be closer and the answer is exact (``done``). Points whose candidates run out first
+    Triangle j lies at least ``|p - centroid_j| - radius_j`` from p (``radius_j``: its farthest corner from its
+    centroid), so it is skipped when that exceeds the best distance; once ``|p - centroid| - radius_max`` does,
+    no later candidate can be closer and the answer is exact (``done``). Points whose candidates run out first
     stay not done, unless the candidates were every triangle.
     """
     point_out = np.empty(3)
@@ -74,9 +75,13 @@ def closest_on_candidates(points, pending, candidates, centroid_distance, vertic
             if j >= n_triangles:
                 finished = True
                 break
-            if best < np.inf and centroid_distance[row, k] - radius_max > np.sqrt(best):
-                finished = True
-                break
+            if best < np.inf:
+                reach = np.sqrt(best)
+                if centroid_distance[row, k] - radius_max > reach:
+                    finished = True
+                    break
+                if centroid_distance[row, k] - radius[j] > reach:
+                    continue
             squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
                                           vertices[triangles[j, 2]], point_out)
             if squared < best:
@@ -86,3 +91,33 @@ def closest_on_candidates(points, pending, candidates, centroid_distance, vertic
         if finished:
             distance[i] = np.sqrt(best)
             done[row] = True
+
+
+@numba.njit(cache=True)
+def closest_by_neighbours(points, nearest, nearest_distance, neighbour_start, neighbours, centroids, radius,
+                          radius_max, reach, vertices, triangles, distance, closest, triangle, done):
+    """Closest points for many queries on a small surface: each point checks the triangles whose centroids lie
+    within ``reach`` of its nearest centroid (a precomputed list). Every triangle that could be closer than the
+    best found has its centroid within ``best + radius_max`` of the point, hence within
+    ``best + radius_max + |p - nearest centroid|`` of the nearest centroid: when that is at most ``reach`` the
+    answer is exact (``done``); the caller answers the other points another way."""
+    point_out = np.empty(3)
+    for i in range(points.shape[0]):
+        best = np.inf
+        c = nearest[i]
+        for entry in range(neighbour_start[c], neighbour_start[c + 1]):
+            j = neighbours[entry]
+            if best < np.inf:
+                gap = np.sqrt((points[i, 0] - centroids[j, 0]) ** 2 + (points[i, 1] - centroids[j, 1]) ** 2
+                              + (points[i, 2] - centroids[j, 2]) ** 2)
+                if gap - radius[j] > np.sqrt(best):
+                    continue
+            squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
+                                          vertices[triangles[j, 2]], point_out)
+            if squared < best:
+                best = squared
+                triangle[i] = j
+                closest[i, 0], closest[i, 1], closest[i, 2] = point_out[0], point_out[1], point_out[2]
+        if np.sqrt(best) + radius_max + nearest_distance[i] <= reach:
+            distance[i] = np.sqrt(best)
+            done[i] = True
