@@ -214,6 +214,18 @@ def test_bad_scan_files_give_one_line_errors(tmp_path, name, content, message):
     assert "\n" not in str(raised.value) and isinstance(raised.value, PhantomError)
 
 
+def test_a_textured_obj_is_read_closed_across_its_seams(tmp_path):
+    """Photogrammetry OBJs carry texture coordinates; a reader may split a vertex where they differ (a seam),
+    which would open the surface. A tetrahedron with a seam reads back closed, with its exact volume."""
+    path = tmp_path / "textured.obj"
+    path.write_text("mtllib texturedMesh.mtl\nv 0 0 0\nv 10 0 0\nv 0 10 0\nv 0 0 10\n"
+                    "vt 0 0\nvt 1 0\nvt 0 1\nvt 0.5 0.5\nvt 0.2 0.2\nusemtl material0\n"
+                    "f 1/1 3/3 2/2\nf 1/5 2/2 4/4\nf 1/1 4/4 3/3\nf 2/2 3/3 4/5\n")
+    scan = read_scan(path, units="cm")
+    assert len(scan.vertices_mm) == 4
+    assert scan_volume_ml(path, units="cm") == pytest.approx(1000.0 / 6.0)
+
+
 def test_a_missing_scan_file_is_named(tmp_path):
     with pytest.raises(ScanError, match="does not exist"):
         scan_volume_ml(tmp_path / "absent.stl")
