@@ -156,6 +156,24 @@ def test_closest_points_match_brute_force(surface):
     np.testing.assert_allclose(np.linalg.norm(points - closest, axis=1), distance, atol=1e-9)
 
 
+def test_many_points_take_the_neighbour_lists_and_agree(surface):
+    """More than ten points per triangle use the neighbour lists (one nearest-centroid query each): the same
+    answers as the k-nearest search (batches below that size) and as brute force."""
+    rng = np.random.default_rng(12)
+    n = 11 * len(surface.triangles)
+    points = surface.vertices_mm[rng.choice(len(surface.vertices_mm), n)] + rng.normal(0, 0.5, (n, 3))
+    points[:500] = surface.vertices_mm.mean(axis=0) + rng.normal(0, 30, (500, 3))
+    index = SurfaceIndex(surface.vertices_mm, surface.triangles)
+    distance, _, _ = index.closest(points)
+    assert index._neighbours is not None
+    batches = np.concatenate([SurfaceIndex(surface.vertices_mm, surface.triangles).closest(points[i:i + 5000])[0]
+                              for i in range(0, n, 5000)])
+    np.testing.assert_allclose(distance, batches, atol=1e-12)
+    sample = rng.choice(n, 300, replace=False)
+    np.testing.assert_allclose(distance[sample], brute_force_distance(points[sample], surface.vertices_mm,
+                                                                      surface.triangles), atol=1e-9)
+
+
 def test_a_symmetric_state_is_reported_ambiguous(model):
     """With equal lobe pressures the surface is symmetric under a half turn about z: two alignments fit."""
     state = model.solve([1e3, 1e3, 1e3])
