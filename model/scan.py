@@ -733,15 +733,20 @@ def align(scan: Frame, measured_points_mm: np.ndarray, model: TriangleMesh, mode
     many = measured_points_mm[rng.choice(len(measured_points_mm), min(ICP_POINTS, len(measured_points_mm)),
                                          replace=False)]
     exact = exact_correspondence(model_index)
-    rotation, translation, rms, iterations = icp(many, exact, *starts[order[0]][:2], ICP_MAX_ITERATIONS)
-    # The best start that ends far from this one: its residual says how well the shape pins the rotation.
-    alternative_angle, alternative_rms = 180.0, np.inf
+    best = icp(many, exact, *starts[order[0]][:2], ICP_MAX_ITERATIONS)
+    # The best start that lies far from that one is refined too: the better of the two is the answer, and the
+    # other's residual says how well the shape pins the rotation (nearly symmetric shapes fit both ways).
+    alternative = None
     for index in order[1:]:
-        if rotation_angle_deg(starts[index][0] @ rotation.T) > AMBIGUOUS_ANGLE_DEG:
-            other = icp(few, exact, *starts[index][:2], 2 * START_ITERATIONS)
-            alternative_angle = rotation_angle_deg(other[0] @ rotation.T)
-            alternative_rms = rms_distance_mm(many, model_index, other[0], other[1])
+        if rotation_angle_deg(starts[index][0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
+            alternative = icp(many, exact, *starts[index][:2], ICP_MAX_ITERATIONS)
             break
+    if alternative is not None and alternative[2] < best[2]:
+        best, alternative = alternative, best
+    rotation, translation, rms, iterations = best
+    alternative_angle, alternative_rms = 180.0, np.inf
+    if alternative is not None:
+        alternative_angle, alternative_rms = rotation_angle_deg(alternative[0] @ rotation.T), alternative[2]
     size_mm = model_frame.rms_radius_mm
     if rms > FIT_RMS_LIMIT * size_mm:
         raise ScanError(f"no rigid alignment fits the scan to the model: the best leaves an RMS distance of "
