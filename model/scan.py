@@ -35,9 +35,12 @@ SCAN_SUFFIXES = (".obj", ".ply", ".stl")
 SCALE_TOLERANCE = 1.5
 #: No alignment fits when the RMS scan-to-model distance exceeds this fraction of the model's RMS radius.
 FIT_RMS_LIMIT = 0.1
-#: A second alignment (rotated by more than AMBIGUOUS_ANGLE_DEG from the best) whose residual is within this
-#: factor of the best's makes the alignment ambiguous: the surface is close to symmetric under that rotation.
+#: A second alignment (rotated by more than AMBIGUOUS_ANGLE_DEG from the best) whose RMS residual exceeds the
+#: best's by less than 10 % of it, or by less than AMBIGUOUS_EXCESS_MM (a scanner's accuracy: a mesh's own
+#: discretisation makes an exactly symmetric shape fit its mirror turn 0.06 mm worse), makes the alignment
+#: ambiguous: the surface is close to symmetric under that rotation.
 AMBIGUOUS_RESIDUAL_RATIO = 1.1
+AMBIGUOUS_EXCESS_MM = 0.1
 AMBIGUOUS_ANGLE_DEG = 10.0
 #: Scan points used by the global start (per candidate) and by the final ICP.
 START_POINTS = 600
@@ -121,7 +124,8 @@ class Alignment:
 
     @property
     def ambiguous(self) -> bool:
-        return self.alternative_rms_mm <= AMBIGUOUS_RESIDUAL_RATIO * self.rms_mm
+        excess_mm = self.alternative_rms_mm - self.rms_mm
+        return excess_mm <= max((AMBIGUOUS_RESIDUAL_RATIO - 1.0) * self.rms_mm, AMBIGUOUS_EXCESS_MM)
 
     def apply(self, points_mm: np.ndarray) -> np.ndarray:
         return points_mm @ self.rotation.T + self.translation_mm
