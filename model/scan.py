@@ -159,8 +159,11 @@ class Comparison:
                 "fit_rms_mm": alignment.rms_mm,
                 "iterations": alignment.iterations,
                 "ambiguous": bool(alignment.ambiguous),
-                "alternative_angle_deg": alignment.alternative_angle_deg,
-                "alternative_rms_mm": alignment.alternative_rms_mm,
+                # None when no start ended far from the best (JSON has no infinity).
+                "alternative_angle_deg": (alignment.alternative_angle_deg
+                                          if np.isfinite(alignment.alternative_rms_mm) else None),
+                "alternative_rms_mm": (alignment.alternative_rms_mm
+                                       if np.isfinite(alignment.alternative_rms_mm) else None),
             },
             "scan_volume_ml": self.scan_volume_ml,
             "model_volume_ml": self.model_volume_ml,
@@ -655,13 +658,6 @@ def icp(points_mm: np.ndarray, correspond, rotation: np.ndarray, translation_mm:
     return rotation, translation_mm, float(np.sqrt(np.mean(distance**2))), iterations
 
 
-def rms_distance_mm(points_mm: np.ndarray, target: SurfaceIndex, rotation: np.ndarray,
-                    translation_mm: np.ndarray) -> float:
-    """RMS distance of the moved points from the target surface (mm)."""
-    distance, _, _ = target.closest(points_mm @ rotation.T + translation_mm)
-    return float(np.sqrt(np.mean(distance**2)))
-
-
 def exact_correspondence(index: SurfaceIndex):
     """Closest points on the surface, with the direction from there to the point (the distance's gradient);
     the face normal for points on the surface. A face normal alone would be wrong where the closest point is on
@@ -721,8 +717,9 @@ def check_scale(scan: Frame, model: Frame, units: str) -> None:
 def align(scan: Frame, measured_points_mm: np.ndarray, model: TriangleMesh, model_frame: Frame,
           model_index: SurfaceIndex, rng: np.random.Generator) -> Alignment:
     """Rigid alignment of the scan onto the model surface: principal-axes candidates, each refined briefly by
-    ICP on a few hundred points, the best refined on up to ICP_POINTS points. Raises ScanError when even the
-    best leaves an RMS distance above FIT_RMS_LIMIT of the model's size."""
+    ICP on a few hundred points against the model's vertices; the best, and the best that lies more than
+    AMBIGUOUS_ANGLE_DEG from it, refined on up to ICP_POINTS points against the exact surface, the better kept.
+    Raises ScanError when even that leaves an RMS distance above FIT_RMS_LIMIT of the model's size."""
     scan_centroid, scan_axes = scan.centroid_mm, scan.axes
     model_centroid, model_axes = model_frame.centroid_mm, model_frame.axes
     few = measured_points_mm[rng.choice(len(measured_points_mm), min(START_POINTS, len(measured_points_mm)),
