@@ -282,6 +282,19 @@ def test_the_command_reports_json_and_writes_the_heatmap_and_recording(tmp_path,
     assert np.median(distance) < 3 * NOISE_MM
 
 
+def test_the_command_reports_in_text_with_chamber_names(tmp_path, capsys, surface):
+    synthetic = make_scan(surface, np.random.default_rng(10), levels=1, holes=1, fragment=True,
+                          rotation=random_rotation(np.random.default_rng(10)))
+    scan_path = write_mesh(tmp_path / "scan.stl", synthetic.mesh, scale=0.1)
+    assert cli.main(["compare-scan", str(scan_path), "--scene", "builtin:calibrated", "--pressures-kpa",
+                     ",".join(map(str, PRESSURES_KPA)), "--units", "cm", "--out", str(tmp_path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in lines] == ["scan", "model", "transform", "volume", "distance", "heatmap"]
+    assert "1 stray fragment(s) removed" in lines[0] and "1 hole(s) closed" in lines[0]
+    assert "chamber0 1, chamber1 2, chamber2 0.5 kPa" in lines[1]
+    assert (tmp_path / "scan_vs_model.png").is_file()
+
+
 def test_the_command_prints_a_one_line_error_for_a_bad_scan(tmp_path, capsys):
     path = tmp_path / "cloud.ply"
     path.write_bytes(b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n"
