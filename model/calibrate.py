@@ -56,6 +56,9 @@ class Measurements:
 def load_measurements(path, n_chambers: int | None = None) -> Measurements:
     """Read a CSV with columns ``p0_kpa, p1_kpa, ..., measured_ml`` (``#`` lines are comments).
 
+    A ``measured_ml`` entry may instead name a scan file (.obj, .ply or .stl, in mm, relative to the CSV's
+    folder): its cleaned, watertight volume is used (``phantom.model.scan.scan_volume_ml``).
+
     Raises
     ------
     CalibrationError
@@ -85,7 +88,7 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
         row = {key.strip(): value for key, value in row.items() if key is not None}
         try:
             pressures_kpa.append([float(row[name]) for name in pressure_columns])
-            volumes_ml.append(float(row["measured_ml"]))
+            volumes_ml.append(_measured_volume_ml(row["measured_ml"], path.parent))
         except (TypeError, ValueError) as error:
             raise CalibrationError(f"{path}, data row {line_number - 1}: not a number ({error})") from None
     pressures_kpa, volumes_ml = np.array(pressures_kpa), np.array(volumes_ml)
@@ -98,6 +101,16 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
     if len(volumes_ml) < 3:
         raise CalibrationError(f"{path} has {len(volumes_ml)} rows: a fit with leave-one-out needs at least 3")
     return Measurements(pressures_kpa * 1e3, volumes_ml * 1e-6, str(path))
+
+
+def _measured_volume_ml(entry: str, folder: Path) -> float:
+    """A ``measured_ml`` entry: a number, or a scan file whose volume is measured."""
+    text = (entry or "").strip()
+    if Path(text).suffix.lower() not in (".obj", ".ply", ".stl"):
+        return float(text)
+    from phantom.model.scan import scan_volume_ml
+
+    return scan_volume_ml(folder / text)
 
 
 def relative_abs_errors_pct(predicted_m3: np.ndarray, measured_m3: np.ndarray) -> np.ndarray:

@@ -1,0 +1,99 @@
+"""Synthetic scans made from a surface with known damage: used by the tests and bench/scan_*.py.
+
+A synthetic scan is the surface subdivided (midpoints: the same surface, more vertices), its vertices moved
+along their normals by Gaussian noise (and optionally a constant offset), with holes cut out, a stray fragment
+added beside it, and the whole moved by a known rigid transform: ``x_scan = R x + t``.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from phantom.model.scan import TriangleMesh, compact, subdivide, vertex_normals
+
+
+@dataclass
+class SyntheticScan:
+    """The scan (mm) and the transform that made it from the surface: ``x_scan = rotation @ x + translation``."""
+
+    mesh: TriangleMesh
+    rotation: np.ndarray
+    translation_mm: np.ndarray
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A rotation drawn uniformly (a random unit quaternion)."""
+    q = rng.normal(size=4)
+    w, x, y, z = q / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def make_scan(surface: TriangleMesh, rng: np.random.Generator, levels: int = 2, noise_mm: float = 0.0,
+              offset_mm: float = 0.0, holes: int = 0, hole_radius_mm: float = 2.5, fragment: bool = False,
+              rotation: np.ndarray | None = None, translation_mm: np.ndarray | None = None) -> SyntheticScan:
+    """A damaged, moved copy of ``surface`` (mm); see the module docstring."""
+    vertices, triangles = surface.vertices_mm, surface.triangles
+    for _ in range(levels):
+        vertices, triangles = subdivide(vertices, triangles)
+    normals = vertex_normals(vertices, triangles)
+    vertices = vertices + normals * (offset_mm + noise_mm * rng.normal(size=(len(vertices), 1)))
+    if holes:
+        centres = vertices[rng.choice(len(vertices), holes, replace=False)]
+        centroid = vertices[triangles].mean(axis=1)
+        near = np.linalg.norm(centroid[:, None, :] - centres[None], axis=2).min(axis=1) < hole_radius_mm
+        triangles = triangles[~near]
+    mesh = compact(vertices, triangles)
+    if fragment:
+        mesh = _with_fragment(mesh)
+    rotation = np.eye(3) if rotation is None else rotation
+    translation_mm = np.zeros(3) if translation_mm is None else np.asarray(translation_mm, float)
+    return SyntheticScan(TriangleMesh(mesh.vertices_mm @ rotation.T + translation_mm, mesh.triangles), rotation,
+                         translation_mm)
+
+
+def _with_fragment(mesh: TriangleMesh) -> TriangleMesh:
+    """Add a small closed tetrahedron (a stray reconstruction blob) 8 mm outside the surface's extent."""
+    corner = mesh.vertices_mm.max(axis=0) + 8.0
+    blob = corner + 3.0 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]) + len(mesh.vertices_mm)
+    return TriangleMesh(np.vstack([mesh.vertices_mm, blob]), np.vstack([mesh.triangles, faces]))
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Write a synthetic scan of the model, e.g. to try ``phantom compare-scan``:
+    ``python -m phantom.model.scan_synthetic --out scan.ply --modulus-factor 0.8``."""
+    import argparse
+
+    import meshio
+
+    from phantom.model.fem import PhantomModel
+    from phantom.model.scan import model_surface
+    from phantom.model.scene import load_scene
+
+    parser = argparse.ArgumentParser(description="Write a synthetic scan (mm) of the model's deformed surface.")
+    parser.add_argument("--out", required=True, help="file to write: .ply, .stl or .obj")
+    parser.add_argument("--scene", default="builtin:calibrated")
+    parser.add_argument("--pressures-kpa", default="1,2,0.5")
+    parser.add_argument("--modulus-factor", type=float, default=1.0,
+                        help="make the scan from the model with E times this (another material)")
+    parser.add_argument("--noise-mm", type=float, default=0.05)
+    parser.add_argument("--holes", type=int, default=3)
+    parser.add_argument("--levels", type=int, default=2, help="midpoint subdivisions (4: about 250k vertices)")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+    model = PhantomModel.from_scene(load_scene(args.scene))
+    if args.modulus_factor != 1.0:
+        model = model.with_material(youngs_modulus_pa=args.modulus_factor * model.material.youngs_modulus_pa)
+    state = model.solve([float(p) * 1e3 for p in args.pressures_kpa.split(",")])
+    rng = np.random.default_rng(args.seed)
+    scan = make_scan(model_surface(state.positions_m, model.outer_triangles), rng, levels=args.levels,
+                     noise_mm=args.noise_mm, holes=args.holes, fragment=True, rotation=random_rotation(rng),
+                     translation_mm=rng.uniform(-50.0, 50.0, 3))
+    meshio.write_points_cells(args.out, scan.mesh.vertices_mm, [("triangle", scan.mesh.triangles.astype(np.int32))])
+    print(f"wrote {args.out}: {len(scan.mesh.vertices_mm)} vertices, gland {state.gland_volume_m3 * 1e6:.3f} ml")
+
+
+if __name__ == "__main__":
+    main()
