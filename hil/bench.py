@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from phantom import PhantomError
-from phantom.hil.link import TEST_HANG_MAGIC, BoardLink, LinkError
+from phantom.hil.link import BoardLink, LinkError
+from phantom.protocol.messages import CONSTANTS
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
 TELEMETRY_PERIOD_MS = 10
@@ -35,13 +36,13 @@ STOP_LIMITS_S = {
     # 1.5 kPa with LEAK_SEVERE_ML_PER_S_PER_KPA: about 25 ms on chamber 0, under 10 ms on a lobe, which has a
     # third of its compliance), then the firmware's 2 s with the blower at its ceiling, then one tick; 0.1 s of
     # margin for the fall
-    "leak": 2.0 + 0.1 + 0.002,
+    "leak": CONSTANTS["LEAK_TIME_MS"] / 1e3 + 0.1 + 0.002,
 }
-#: The firmware's leak rule (firmware/src/core/config.h, PROTOCOL.md section 7): LEAK_n latches when the blower
-#: sits at its ceiling while the chamber reads more than this far below its setpoint (kPa) ...
-LEAK_MIN_ERROR_KPA = 0.2
+#: The firmware's leak rule (protocol/spec.toml's constants, PROTOCOL.md section 7): LEAK_n latches when the
+#: blower sits at its ceiling while the chamber reads more than this far below its setpoint (kPa) ...
+LEAK_MIN_ERROR_KPA = CONSTANTS["LEAK_MIN_ERROR_PA"] / 1e3
 #: ... for this long (s).
-LEAK_TIME_S = 2.0
+LEAK_TIME_S = CONSTANTS["LEAK_TIME_MS"] / 1e3
 #: Extra leak (ml/s per kPa) of the severe leak: on the default plant the blower at full drive then holds only
 #: about 0.6 kPa (13.3 ml/s of free flow against 1.8 + 20 ml/s/kPa of leak), far below the 1.5 kPa setpoint.
 LEAK_SEVERE_ML_PER_S_PER_KPA = 20.0
@@ -206,22 +207,23 @@ def vent_and_wait(link: BoardLink, below_kpa: float = 0.05, timeout_s: float = 2
         raise BenchError(f"the chambers did not vent below {below_kpa} kPa within {timeout_s} s")
 
 
-def zero_sensors(link: BoardLink, attempts: int = 5) -> None:
-    """ZERO_SENSORS with the chambers vented; if a zeroing is already running (the board's own at start-up),
-    wait for it to end and ask again, so that the offsets are measured now."""
+def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
+    """ZERO_SENSORS with the chambers vented. The board refuses it (NOT_SETTLED) until every blower has been off
+    and every reading still for ZERO_SETTLE_MS, and answers BUSY while its own start-up zero runs: wait that
+    long on the board's clock and ask again, so that the offsets are measured now."""
     from phantom.protocol.messages import ENUMS
 
-    zeroing, busy = ENUMS["chamber_state"]["ZEROING"], ENUMS["status"]["BUSY"]
+    names = {v: k for k, v in ENUMS["status"].items()}
+    retry = {ENUMS["status"]["BUSY"], ENUMS["status"]["NOT_SETTLED"]}
     for _ in range(attempts):
         # one transmission with a long wait: a late retransmission would start a second zeroing
         answer = link.command("ZERO_SENSORS", timeout_s=2.0, attempts=1, accept_nack=True)
         if answer.name == "ACK":
             return
-        if answer.fields["status"] != busy:
-            names = {v: k for k, v in ENUMS["status"].items()}
+        if answer.fields["status"] not in retry:
             raise BenchError(f"the board refused ZERO_SENSORS: {names.get(answer.fields['status'])}")
-        link.wait_for(lambda m: m.name == "TELEMETRY" and zeroing not in m.fields["state"], 2.0, link.mark())
-    raise BenchError(f"ZERO_SENSORS stayed busy after {attempts} tries")
+        wait_board_time(link, CONSTANTS["ZERO_SETTLE_MS"] / 1e3 / 2)
+    raise BenchError(f"ZERO_SENSORS still refused ({names.get(answer.fields['status'])}) after {attempts} tries")
 
 
 def set_setpoints(link: BoardLink, setpoints_pa: list[int], attempts: int = 5) -> None:
@@ -278,7 +280,7 @@ def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: flo
     if gains is not None:
         kp, ki, kd = (float(g) for g in gains)
         link.command("SET_PID", {"chamber": chamber, "kp_per_kpa": kp, "ki_per_kpa_s": ki, "kd_s_per_kpa": kd,
-                                 "max_pressure_pa": 4000, "max_drive": 65535})
+                                 "max_pressure_pa": CONSTANTS["DEFAULT_MAX_PRESSURE_PA"], "max_drive": 65535})
     vent_and_wait(link)
     zero_sensors(link)
     setpoints = [0, 0, 0]
@@ -472,7 +474,7 @@ def check_watchdog(link: BoardLink, board) -> dict:
 
     start_session(link)
     resets_before = board.plant_state()["resets"] if board is not None else None
-    link.command("TEST_HANG", {"magic": TEST_HANG_MAGIC})
+    link.command("TEST_HANG", {"magic": CONSTANTS["TEST_HANG_MAGIC"]})
     link.keepalive(False)
     link.wait_for(lambda m: False, 0.2, link.mark())
     reply = None

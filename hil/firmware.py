@@ -15,10 +15,11 @@ class FirmwareError(PhantomError):
 
 
 def default_elf() -> Path:
-    """``firmware/build/uno/phantom.elf`` of the source checkout."""
+    """``firmware/build/uno-bench/phantom.elf`` of the source checkout: the Uno image with TEST_HANG (the
+    production image ``build/uno/`` refuses it), so that the bench can check the watchdog."""
     if phantom.SOURCE_ROOT is None:
         raise FirmwareError("no firmware sources in this install: pass the path of a firmware .elf explicitly")
-    return phantom.SOURCE_ROOT / "firmware" / "build" / "uno" / "phantom.elf"
+    return phantom.SOURCE_ROOT / "firmware" / "build" / "uno-bench" / "phantom.elf"
 
 
 def ensure_firmware(elf: str | Path | None = None) -> Path:

@@ -28,8 +28,8 @@ PROFILED_FUNCTIONS = {
 }
 #: Interrupt vectors also counted as busy time (vector numbers differ between the two MCUs).
 PROFILED_VECTORS = {
-    "atmega328p": {"adc_isr": 21, "tick_isr": 13, "millis_isr": 16, "uart_rx_isr": 18, "uart_tx_isr": 19},
-    "atmega2560": {"adc_isr": 29, "tick_isr": 20, "millis_isr": 23, "uart_rx_isr": 25, "uart_tx_isr": 26},
+    "atmega328p": {"adc_isr": 21, "tick_isr": 14, "uart_rx_isr": 18, "uart_tx_isr": 19, "watchdog_isr": 6},
+    "atmega2560": {"adc_isr": 29, "tick_isr": 21, "uart_rx_isr": 25, "uart_tx_isr": 26, "watchdog_isr": 12},
 }
 
 #: Faults and their parameters (unit in the name) with defaults.
