@@ -22,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         target.add_argument("--sim", action="store_true", help="run the firmware image in simavr against the plant")
         target.add_argument("--port", help="serial port of a real board, e.g. /dev/ttyACM0")
         parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
-        parser.add_argument("--elf", help="firmware image for --sim (default firmware/build/uno/phantom.elf)")
+        parser.add_argument("--elf", help="firmware image for --sim (default firmware/build/uno-bench/phantom.elf)")
         parser.add_argument("--plant", help="plant parameter file for --sim (default hil/plant.toml)")
         parser.add_argument(
             "--speed", type=float, default=1.0, help="--sim: simulated time per wall-clock time (default 1 = real time)"

@@ -204,7 +204,8 @@ void plant_step(plant_t *plant, double dt_s)
 	double blend = tau_s > 0 ? 1.0 - exp(-dt_s / tau_s) : 1.0;
 	for (int i = 0; i < 3; i++) {
 		plant->pressure_pa[i] += dt_s * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i]) / 6.0;
-		plant->sensed_pressure_pa[i] += blend * (plant->pressure_pa[i] - plant->sensed_pressure_pa[i]);
+		double at_port_pa = plant->tube_off[i] ? 0.0 : plant->pressure_pa[i];
+		plant->sensed_pressure_pa[i] += blend * (at_port_pa - plant->sensed_pressure_pa[i]);
 	}
 	plant->time_s += dt_s;
 }

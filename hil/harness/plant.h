@@ -32,6 +32,7 @@ typedef struct plant {
 	double stuck_drive_level[PLANT_CHAMBERS];    /* < 0: not stuck */
 	double fault_leak_m3_per_s_per_pa[PLANT_CHAMBERS];
 	int sensor_cut[PLANT_CHAMBERS];
+	int tube_off[PLANT_CHAMBERS];                /* the sensor's tube is off: it reads the room, not the chamber */
 	uint64_t rng_state;
 } plant_t;
 
