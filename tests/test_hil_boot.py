@@ -6,8 +6,11 @@ that comes off, the production image refusing TEST_HANG).
 Every wait is on the simulator's clock (``plant_state()["time_s"]``) or the board's (telemetry), not the host's.
 """
 
+import re
 import time
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from phantom.hil import bench
@@ -193,3 +196,37 @@ def test_tube_off_latches_within_half_a_second_under_the_ceiling(board, link):
         board.inject("clear")
         bench.vent_and_wait(link)
         link.command("CLEAR_FAULT")
+
+
+def test_over_pressure_latches_at_or_under_the_ceiling_after_a_host_zero(tmp_path):
+    """The host raises chamber 0's limit as far as it can (clamped to the ceiling) and zeroes the sensors; a
+    blower stuck at a level whose equilibrium lies just above the ceiling (on a plant with a tight back-leak)
+    then creeps past it: the latch comes at a true pressure at or under the ceiling."""
+    text = (Path(__file__).parents[1] / "hil" / "plant.toml").read_text()
+    tight = re.sub(r"(?m)^back_leak_ml_per_s_per_kpa = .*$", "back_leak_ml_per_s_per_kpa = [0.3, 0.3, 0.3]", text)
+    plant_file = tmp_path / "tight.toml"
+    plant_file.write_text(tight)
+    with SimulatedBoard(plant=plant_file, speed=SPEED, seed=5) as board:
+        with BoardLink(board.port, time_scale=SPEED) as link:
+            bench.start_session(link)
+            answer = link.command("SET_PID", {"chamber": 0, "kp_per_kpa": 4.0, "ki_per_kpa_s": 15.0,
+                                              "kd_s_per_kpa": 0.0, "max_pressure_pa": 30000, "max_drive": 65535})
+            assert answer.fields["status"] == STATUS["CLAMPED"]
+            bench.zero_sensors(link)
+            start = link.mark()
+            board.inject("stuck_blower", chamber=0, level=0.6)  # equilibrium about 7.7 kPa on this plant
+            trace = []  # (simulated time, true pressure) until the FAULT arrives
+            while (got := link.wait_for(lambda m: m.name == "FAULT", 0.01, start)) is None and len(trace) < 2000:
+                state = board.plant_state()
+                trace.append((state["time_s"], state["pressures_pa"][0]))
+            board.inject("clear")
+            assert got is not None and got.message.fields["fault_bit"] == BITS["fault"]["OVERPRESSURE_0"]
+            # board time counts from the first control tick
+            state = board.plant_state()
+            trip_s = state["control_since_s"] + got.message.fields["time_ms"] / 1e3 - 0.002
+            times, pressures = np.array(trace).T
+            true_pa = float(np.interp(trip_s, times, pressures))
+            print(f"over-pressure latched at a true {true_pa:.0f} Pa (read {got.message.fields['pressure_pa'][0]} Pa)")
+            assert times[0] < trip_s < times[-1] + 0.05
+            assert true_pa <= CONSTANTS["PRESSURE_CEILING_PA"] + 60  # one ADC count
+            assert true_pa > CONSTANTS["PRESSURE_CEILING_PA"] - 300
