@@ -113,7 +113,7 @@ void Controller::send_board_info() {
         info.zero_source[i] = zero_source_[i];
         info.zero_offset_pa[i] = sensor_x16_to_pa(zero_x16_[i], NOMINAL_ZERO_X16);
     }
-    info.supply_mv = supply_mv_;
+    info.supply_mv = supply_mv();
     uint8_t out[BoardInfo::PAYLOAD_SIZE];
     encode(info, out);
     send(MSG_BOARD_INFO, out, sizeof out);
@@ -236,16 +236,30 @@ void Controller::read_sensors(const AdcTick& adc) {
         if (stalled_[i]) continue;
         counts_x16_[i] = sensor_average_x16(adc.sum[i], adc.count[i]);
         pressure_pa_[i] = sensor_x16_to_pa(counts_x16_[i], zero_x16_[i]);
-        ceiling_pressure_pa_[i] = sensor_x16_to_pa(counts_x16_[i], ceiling_zero_x16_[i]);
     }
 }
 
-// AVcc from the 1.1 V reference read against it (counts = 1100 mV * 1024 / AVcc); SUPPLY_BAD_TICKS measured
-// ticks in a row below SUPPLY_MIN_MV latch SUPPLY. A tick without a measurement neither counts nor resets.
+// The smallest reading above the ceiling zero that sensor_x16_to_pa turns into more than PRESSURE_CEILING_PA:
+// the ceiling compared in counts, without a multiplication per chamber and tick.
+static const int16_t CEILING_X16 =
+    (int16_t)(((int32_t)(PRESSURE_CEILING_PA + 1) * 4096 - 2048 + PA_PER_COUNT_X16_Q12 - 1) / PA_PER_COUNT_X16_Q12);
+
+bool Controller::above_ceiling(uint8_t chamber) const {
+    return counts_x16_[chamber] - ceiling_zero_x16_[chamber] >= CEILING_X16;
+}
+
+// AVcc from the 1.1 V reference read against it (counts = 1100 mV * 1024 / AVcc): the supply is below
+// SUPPLY_MIN_MV when the count is above 1100 * 1024 / SUPPLY_MIN_MV. SUPPLY_BAD_TICKS measured ticks in a row
+// below it latch SUPPLY. A tick without a measurement neither counts nor resets.
+static const uint16_t SUPPLY_MAX_BANDGAP_COUNTS = (uint16_t)(1126400UL / SUPPLY_MIN_MV);
+
+uint16_t Controller::supply_mv() const {
+    return bandgap_counts_ ? (uint16_t)(1126400UL / bandgap_counts_) : 0;
+}
 void Controller::check_supply(uint16_t bandgap_counts) {
     if (bandgap_counts == 0) return;
-    supply_mv_ = (uint16_t)(1126400UL / bandgap_counts);
-    if (supply_mv_ >= SUPPLY_MIN_MV) {
+    bandgap_counts_ = bandgap_counts;
+    if (bandgap_counts <= SUPPLY_MAX_BANDGAP_COUNTS) {  // a comparison, not a 32-bit division, every tick
         supply_low_ticks_ = 0;
         return;
     }
@@ -264,7 +278,7 @@ void Controller::check_safety() {
             continue;
         }
         bad_ticks_[i] = 0;
-        if (pressure_pa_[i] > max_pressure_pa_[i] || ceiling_pressure_pa_[i] > PRESSURE_CEILING_PA)
+        if (pressure_pa_[i] > max_pressure_pa_[i] || above_ceiling(i))
             latch_fault((uint8_t)(FAULT_OVERPRESSURE_0 + i));
         check_leak(i);
         check_plausible(i);
@@ -376,7 +390,6 @@ void Controller::accept_zero(uint8_t chamber, int16_t zero_x16, uint8_t source) 
     else if (zero_x16 < ceiling_zero)
         ceiling_zero = zero_x16;
     pressure_pa_[chamber] = sensor_x16_to_pa(counts_x16_[chamber], zero_x16_[chamber]);
-    ceiling_pressure_pa_[chamber] = sensor_x16_to_pa(counts_x16_[chamber], ceiling_zero_x16_[chamber]);
 }
 
 // Run each chamber's PID; a chamber that is off, faulted or has a suspect reading gets no drive.
@@ -441,7 +454,7 @@ void Controller::latch_fault(uint8_t bit) {
 bool Controller::fault_cause_present() const {
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
         if (stalled_[i] || !sensor_in_range(counts_x16_[i])) return true;
-        if (pressure_pa_[i] > max_pressure_pa_[i] || ceiling_pressure_pa_[i] > PRESSURE_CEILING_PA) return true;
+        if (pressure_pa_[i] > max_pressure_pa_[i] || above_ceiling(i)) return true;
     }
     return supply_low_ticks_ != 0;
 }

@@ -55,7 +55,7 @@ public:
     uint8_t config_source() const { return config_source_; }
     uint8_t zero_source(uint8_t chamber) const { return zero_source_[chamber]; }
     int16_t ceiling_zero_x16(uint8_t chamber) const { return ceiling_zero_x16_[chamber]; }
-    uint16_t supply_mv() const { return supply_mv_; }
+    uint16_t supply_mv() const;
     // Bumped whenever a persistent setting changes; the AVR layer writes settings() to EEPROM when it moves.
     uint16_t settings_generation() const { return settings_generation_; }
     void settings(uint8_t out[SETTINGS_BYTES]) const;
@@ -80,6 +80,7 @@ private:
     void check_safety();
     void check_leak(uint8_t chamber);
     void check_plausible(uint8_t chamber);
+    bool above_ceiling(uint8_t chamber) const;
     void track_settling();
     void start_zeroing(bool by_host, uint8_t seq);
     void run_zeroing();
@@ -128,7 +129,7 @@ private:
     bool stalled_[CHAMBERS] = {false, false, false};  // no conversion in the last tick
     uint16_t implausible_ticks_[CHAMBERS] = {0, 0, 0};  // ticks in a row under high drive, starved
     int16_t implausible_ref_pa_[CHAMBERS] = {0, 0, 0};  // the reading when that run began
-    uint16_t supply_mv_ = 0;
+    uint16_t bandgap_counts_ = 0;  // the latest measurement of the 1.1 V reference (0: none yet)
     uint8_t supply_low_ticks_ = 0;
 
     // Zero: the readings must have stayed within ZERO_STABLE_X16 of settle_ref_x16_ with every blower off for
@@ -136,7 +137,6 @@ private:
     uint16_t settled_ticks_ = 0;
     int16_t settle_ref_x16_[CHAMBERS] = {0, 0, 0};
     int16_t ceiling_zero_x16_[CHAMBERS] = {0, 0, 0};
-    int16_t ceiling_pressure_pa_[CHAMBERS] = {0, 0, 0};
     uint8_t zero_source_[CHAMBERS] = {0, 0, 0};
     bool boot_zero_pending_ = true;  // until the first measured zero or the first setpoint
     bool zero_by_host_ = false;
