@@ -88,7 +88,10 @@ def _fault_line(result: dict) -> str:
         return f"mild_leak: {verdict}, held {result.get('held_kpa')} kPa at drive {result.get('drive_level', 0.0):.2f}"
     stop_time_s = result.get("stop_time_s")
     stopped = "blowers not stopped" if stop_time_s is None else f"blowers off after {stop_time_s:.3f} s"
-    return f"{result['fault']}: {verdict}, latched {result['latched']}, {stopped} (limit {result.get('limit_s')} s)"
+    line = f"{result['fault']}: {verdict}, latched {result['latched']}, {stopped} (limit {result.get('limit_s')} s)"
+    if result.get("chamber") is not None and "peak_true_kpa" in result:
+        line += f", true pressure at most {result['peak_true_kpa'][result['chamber']]:.2f} kPa"
+    return line
 
 
 def _progress(message: str) -> None:

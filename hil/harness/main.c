@@ -53,6 +53,7 @@ typedef struct harness {
 	double floating_s;            /* time a blower pin spent floating between that reset and the control tick */
 	int driven_before_control;    /* a blower pin was driven high or connected to PWM before the control tick */
 	int bootloader;               /* a bootloader was loaded: the reset vector is its start */
+	double peak_pa[3];            /* each chamber's highest true pressure since the last `fault` command */
 	char line[1024];
 	size_t line_length;
 	int quit;
@@ -112,7 +113,8 @@ static void reply_state(harness_t *h)
 		snprintf(off_since, sizeof(off_since), "%.9f", h->all_off_since_s);
 	if (h->last_host_byte_s >= 0)
 		snprintf(last_byte, sizeof(last_byte), "%.9f", h->last_host_byte_s);
-	char pins[96] = "null", control_since[32] = "null";
+	char pins[96] = "null", control_since[32] = "null", peaks[96];
+	format_triple(peaks, sizeof(peaks), h->peak_pa, 1.0);
 	if (h->avr) {
 		pin_mode_t modes[3];
 		board_blower_pin_modes(h->avr, modes);
@@ -124,10 +126,11 @@ static void reply_state(harness_t *h)
 	reply("{\"time_s\": %.9f, \"all_off_since_s\": %s, \"last_host_byte_s\": %s, \"pressures_pa\": %s, \"drive_levels\": %s, \"effective_drive_levels\": %s, "
 	      "\"chamber_volumes_ml\": %s, \"sensor_voltages_v\": %s, \"powered\": %s, \"halted\": %s, "
 	      "\"resets\": %llu, \"max_lag_s\": %.6f, \"lost_s\": %.6f, \"blower_pins\": %s, \"reset_s\": %.9f, "
-	      "\"control_since_s\": %s, \"floating_before_control_s\": %.6f, \"driven_before_control\": %s}",
+	      "\"control_since_s\": %s, \"floating_before_control_s\": %.6f, \"driven_before_control\": %s, "
+	      "\"peak_pressures_pa\": %s}",
 	      simulated_seconds(h), off_since, last_byte, pressures, drives, actual, volumes, sensed, h->powered ? "true" : "false",
 	      h->halted ? "true" : "false", (unsigned long long)h->resets, h->max_lag_s, h->lost_s, pins, h->reset_s,
-	      control_since, h->floating_s, h->driven_before_control ? "true" : "false");
+	      control_since, h->floating_s, h->driven_before_control ? "true" : "false", peaks);
 }
 
 /* Answer `stats`: cycle counts of the timed functions and the serial line counters. */
@@ -172,6 +175,9 @@ static void step_plant(harness_t *h)
 		if (floating)
 			h->floating_s += h->plant.params.step_s;
 	}
+	for (int i = 0; i < 3; i++)
+		if (h->plant.pressure_pa[i] > h->peak_pa[i])
+			h->peak_pa[i] = h->plant.pressure_pa[i];
 	int any_on = h->plant.drive_level[0] > 0 || h->plant.drive_level[1] > 0 || h->plant.drive_level[2] > 0;
 	if (any_on)
 		h->all_off_since_s = -1;
@@ -202,6 +208,8 @@ static void handle_fault(harness_t *h, char **words, int count)
 {
 	double value = 0, other = 0;
 	int chamber = count > 2 ? parse_chamber(words[2]) : -1;
+	for (int i = 0; i < 3; i++)
+		h->peak_pa[i] = h->plant.pressure_pa[i];
 	const char *kind = words[1];
 	if (!strcmp(kind, "clear")) {
 		for (int i = 0; i < 3; i++) {

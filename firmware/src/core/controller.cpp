@@ -304,9 +304,10 @@ void Controller::check_leak(uint8_t chamber) {
 }
 
 // A chamber whose reading does not respond to its blower: at least PLAUSIBLE_MIN_DRIVE while it reads more than
-// LEAK_MIN_ERROR_PA below its setpoint, and in PLAUSIBLE_TICKS of that the reading never moved
-// PLAUSIBLE_MIN_CHANGE_PA from where it was when the push began (up, or down as when a leak opens): its sensor
-// does not see the chamber. A push whose reading has moved is left to the leak rule until it ends.
+// LEAK_MIN_ERROR_PA below its setpoint, and in PLAUSIBLE_TICKS of that the reading never rose
+// PLAUSIBLE_MIN_CHANGE_PA above its lowest since the push began. Its sensor does not see the chamber (a tube off,
+// a stuck sensor), or the chamber is open to the air: either way the blower cannot raise the reading. A push
+// whose reading has risen is left to the leak rule (can rise, cannot reach or hold) until it ends.
 void Controller::check_plausible(uint8_t chamber) {
     static const uint16_t RESPONDED = 0xFFFF;
     int16_t setpoint_pa = setpoint_pa_[chamber];
@@ -324,8 +325,8 @@ void Controller::check_plausible(uint8_t chamber) {
         return;
     }
     if (ticks == RESPONDED) return;
-    int16_t moved_pa = (int16_t)(pressure_pa - implausible_ref_pa_[chamber]);
-    if (moved_pa >= PLAUSIBLE_MIN_CHANGE_PA || moved_pa <= -PLAUSIBLE_MIN_CHANGE_PA) {
+    if (pressure_pa < implausible_ref_pa_[chamber]) implausible_ref_pa_[chamber] = pressure_pa;
+    if (pressure_pa - implausible_ref_pa_[chamber] >= PLAUSIBLE_MIN_CHANGE_PA) {
         ticks = RESPONDED;
         return;
     }

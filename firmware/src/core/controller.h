@@ -128,7 +128,7 @@ private:
 
     bool stalled_[CHAMBERS] = {false, false, false};  // no conversion in the last tick
     uint16_t implausible_ticks_[CHAMBERS] = {0, 0, 0};  // ticks in a row under high drive, starved
-    int16_t implausible_ref_pa_[CHAMBERS] = {0, 0, 0};  // the reading when that run began
+    int16_t implausible_ref_pa_[CHAMBERS] = {0, 0, 0};  // the lowest reading since that run began
     uint16_t bandgap_counts_ = 0;  // the latest measurement of the 1.1 V reference (0: none yet)
     uint8_t supply_low_ticks_ = 0;
 
