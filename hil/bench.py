@@ -19,9 +19,9 @@ from phantom.hil.link import BoardLink, LinkError
 from phantom.protocol.messages import CONSTANTS
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
-TELEMETRY_PERIOD_MS = 10
+TELEMETRY_PERIOD_MS = CONSTANTS["MIN_TELEMETRY_PERIOD_MS"]
 #: Dead-host deadline the checks configure (ms): the firmware's default.
-HOST_DEADLINE_MS = 500
+HOST_DEADLINE_MS = CONSTANTS["DEFAULT_HOST_DEADLINE_MS"]
 #: Stated time within which the blowers must stop after each fault (s), and why:
 STOP_LIMITS_S = {
     # from the injection: a few bad samples in a row at 500 Hz, plus the tick that acts on it
