@@ -36,6 +36,7 @@ PROFILED_VECTORS = {
 FAULTS = {
     "sensor_cut": {},
     "tube_off": {},
+    "supply": {"volts": 4.0},
     "leak": {"conductance_ml_per_s_per_kpa": 5.0},
     "stuck_blower": {"level": 1.0},
     "line_noise": {"flip_probability": 0.01, "drop_probability": 0.01},
@@ -170,7 +171,8 @@ class SimulatedBoard:
         ----------
         fault
             ``"sensor_cut"`` (the chamber's sensor reads 0 V), ``"tube_off"`` (the sensor's tube came off: it
-            reads the room's pressure while the chamber inflates), ``"leak"`` (extra leak of
+            reads the room's pressure while the chamber inflates), ``"supply"`` (the board's 5 V rail, AVcc and
+            the sensors' supply, at ``volts`` in [2, 5.5], default 4.0), ``"leak"`` (extra leak of
             ``conductance_ml_per_s_per_kpa``, default 5), ``"stuck_blower"`` (the chamber's blower runs at
             ``level`` in [0, 1] whatever the firmware commands, default 1), ``"line_noise"`` (each byte in
             either direction is dropped with ``drop_probability`` and has one bit flipped with
@@ -198,15 +200,18 @@ class SimulatedBoard:
         for name, value in values.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise SimulationError(f"{fault}.{name} must be a number, got {value!r}")
-            limit = 1.0 if name in ("level", "flip_probability", "drop_probability") else math.inf
-            if not 0 <= value <= limit:
-                raise SimulationError(f"{fault}.{name} must be in [0, {limit:g}], got {value!r}")
+            low, limit = (2.0, 5.5) if name == "volts" else (0, 1.0 if name in ("level", "flip_probability",
+                                                                                  "drop_probability") else math.inf)
+            if not low <= value <= limit:
+                raise SimulationError(f"{fault}.{name} must be in [{low:g}, {limit:g}], got {value!r}")
         if fault == "leak":
             line = f"fault leak {chamber} {values['conductance_ml_per_s_per_kpa'] * 1e-9!r}"
         elif fault == "stuck_blower":
             line = f"fault stuck_blower {chamber} {float(values['level'])!r}"
         elif fault == "line_noise":
             line = f"fault line_noise {float(values['flip_probability'])!r} {float(values['drop_probability'])!r}"
+        elif fault == "supply":
+            line = f"fault supply {float(values['volts'])!r}"
         elif fault in ("sensor_cut", "tube_off"):
             line = f"fault {fault} {chamber}"
         else:

@@ -230,3 +230,21 @@ def test_over_pressure_latches_at_or_under_the_ceiling_after_a_host_zero(tmp_pat
             assert times[0] < trip_s < times[-1] + 0.05
             assert true_pa <= CONSTANTS["PRESSURE_CEILING_PA"] + 60  # one ADC count
             assert true_pa > CONSTANTS["PRESSURE_CEILING_PA"] - 300
+
+
+def test_supply_is_measured_on_the_1v1_reference_and_a_sag_latches_supply(board, link):
+    bench.vent_and_wait(link)
+    start = link.mark()
+    link.hello()
+    info = link.wait_for(lambda m: m.name == "BOARD_INFO", 1.0, start).message.fields
+    assert info["supply_mv"] == pytest.approx(5000, abs=25)  # the plant's 5.0 V rail, to about 2 ADC counts
+    start = link.mark()
+    board.inject("supply", volts=4.0)
+    got = bench.wait_on_board_clock(link, lambda m: m.name == "FAULT", 1.0, start)
+    board.inject("clear")
+    assert got is not None and got.message.fields["fault_bit"] == BITS["fault"]["SUPPLY"]
+    answer = link.command("CLEAR_FAULT", accept_nack=True)
+    if answer.name == "NACK":  # the rail's cause was still present at that tick: once more
+        bench.wait_board_time(link, 0.1)
+        link.command("CLEAR_FAULT")
+    assert bench.latest_telemetry(link)["fault_flags"] == 0

@@ -101,6 +101,8 @@ def test_inject_refuses_bad_faults(board):
         board.inject("stuck_blower", chamber=0, level=2.0)
     with pytest.raises(PhantomError, match="whole board"):
         board.inject("line_noise", chamber=1)
+    with pytest.raises(PhantomError, match=r"volts must be in \[2, 5.5\]"):
+        board.inject("supply", volts=12.0)
     with pytest.raises(PhantomError, match="takes"):
         board.inject("leak", chamber=0, size=3)
 

@@ -54,6 +54,7 @@ typedef struct harness {
 	int driven_before_control;    /* a blower pin was driven high or connected to PWM before the control tick */
 	int bootloader;               /* a bootloader was loaded: the reset vector is its start */
 	double peak_pa[3];            /* each chamber's highest true pressure since the last `fault` command */
+	double nominal_supply_v;      /* the 5 V rail as the plant file gives it */
 	char line[1024];
 	size_t line_length;
 	int quit;
@@ -211,6 +212,11 @@ static void handle_fault(harness_t *h, char **words, int count)
 	for (int i = 0; i < 3; i++)
 		h->peak_pa[i] = h->plant.pressure_pa[i];
 	const char *kind = words[1];
+	if (!strcmp(kind, "clear") && h->avr) {
+		uint32_t nominal_mv = (uint32_t)lround(h->nominal_supply_v * 1000.0);
+		h->avr->vcc = h->avr->avcc = h->avr->aref = nominal_mv;
+		h->plant.params.sensor_supply_v = h->nominal_supply_v;
+	}
 	if (!strcmp(kind, "clear")) {
 		for (int i = 0; i < 3; i++) {
 			h->plant.sensor_cut[i] = 0;
@@ -221,6 +227,11 @@ static void handle_fault(harness_t *h, char **words, int count)
 		h->serial.flip_probability = h->serial.drop_probability = 0;
 	} else if (!strcmp(kind, "sensor_cut") && count == 3 && chamber >= 0) {
 		h->plant.sensor_cut[chamber] = 1;
+	} else if (!strcmp(kind, "supply") && count == 3 && h->avr && !parse_number(words[2], &value) && value >= 2.0
+	           && value <= 5.5) {
+		/* the board's 5 V rail sags: AVcc (the ADC's reference) and the sensors' supply with it */
+		h->avr->vcc = h->avr->avcc = h->avr->aref = (uint32_t)lround(value * 1000.0);
+		h->plant.params.sensor_supply_v = value;
 	} else if (!strcmp(kind, "tube_off") && count == 3 && chamber >= 0) {
 		h->plant.tube_off[chamber] = 1;
 	} else if (!strcmp(kind, "leak") && count == 4 && chamber >= 0 && !parse_number(words[3], &value) && value >= 0) {
@@ -233,7 +244,7 @@ static void handle_fault(harness_t *h, char **words, int count)
 		h->serial.flip_probability = value;
 		h->serial.drop_probability = other;
 	} else {
-		reply("{\"error\": \"bad fault command: use 'fault sensor_cut CH', 'fault tube_off CH', 'fault leak CH M3_PER_S_PER_PA', "
+		reply("{\"error\": \"bad fault command: use 'fault sensor_cut CH', 'fault tube_off CH', 'fault supply VOLTS', 'fault leak CH M3_PER_S_PER_PA', "
 		      "'fault stuck_blower CH LEVEL', 'fault line_noise FLIP_PROB DROP_PROB' or 'fault clear'\"}");
 		return;
 	}
@@ -605,6 +616,7 @@ int main(int argc, char **argv)
 	h->avr->log = 0;
 	h->avr->frequency = h->frequency_hz;
 	h->avr->vcc = h->avr->avcc = h->avr->aref = (uint32_t)lround(params.sensor_supply_v * 1000.0);
+	h->nominal_supply_v = params.sensor_supply_v;
 	h->avr->sleep = no_sleep;
 	avr_load_firmware(h->avr, &firmware);
 	if (bootloader_path) {
