@@ -99,8 +99,8 @@ ISR(TIMER0_COMPA_vect) {
     ++ticks_pending;
 }
 
-// Watchdog interrupt (interrupt-and-reset mode): the main loop has not kicked for 250 ms. Stop the blowers and
-// leave the mark the next start reads (a bootloader clears MCUSR); the hardware resets 250 ms later.
+// Watchdog interrupt (interrupt-and-reset mode): the main loop has not kicked for 120 ms. Stop the blowers and
+// leave the mark the next start reads (a bootloader clears MCUSR); the hardware resets 120 ms later.
 ISR(WDT_vect) {
     for (uint8_t i = 0; i < core::CHAMBERS; ++i) avr_set_drive(i, 0);
     watchdog_mark = WATCHDOG_MARK;
@@ -154,9 +154,10 @@ void avr_hardware_init() {
 // Whether the tick interrupt has latched a tick the loop has not taken yet.
 bool avr_tick_pending() { return ticks_pending != 0; }
 
-// Watchdog in interrupt-and-system-reset mode, 250 ms.
+// Watchdog in interrupt-and-system-reset mode, 120 ms to the interrupt and 120 ms more to the reset: about the
+// 250 ms to a reset of a plain watchdog, with the blowers off after half of it.
 void avr_watchdog_start() {
-    wdt_enable(WDTO_250MS);
+    wdt_enable(WDTO_120MS);
     WDTCSR |= _BV(WDIE);
 }
 

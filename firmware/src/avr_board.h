@@ -21,7 +21,7 @@ uint8_t avr_reset_cause();
 // Blower pins low and disconnected, PWM timers, the tick interrupt and the free-running ADC chain.
 void avr_hardware_init();
 
-// Arm the watchdog: after 250 ms without a kick its interrupt stops the blowers and marks RAM, and 250 ms
+// Arm the watchdog: after 120 ms without a kick its interrupt stops the blowers and marks RAM, and 120 ms
 // later it resets the board.
 void avr_watchdog_start();
 
