@@ -15,8 +15,9 @@ import time
 from phantom.hil import bench
 from phantom.hil.link import BoardLink
 from phantom.hil.sim import SimulatedBoard
+from phantom.protocol.messages import CONSTANTS
 
-TICK_BUDGET_CYCLES = 16_000_000 // 500
+TICK_BUDGET_CYCLES = 16_000_000 // CONSTANTS["TICK_HZ"]
 CPU_TARGET = 0.25
 
 

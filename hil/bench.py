@@ -15,33 +15,37 @@ from pathlib import Path
 import numpy as np
 
 from phantom import PhantomError
-from phantom.hil.link import TEST_HANG_MAGIC, BoardLink, LinkError
+from phantom.hil.link import BoardLink, LinkError
+from phantom.protocol.messages import CONSTANTS
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
-TELEMETRY_PERIOD_MS = 10
+TELEMETRY_PERIOD_MS = CONSTANTS["MIN_TELEMETRY_PERIOD_MS"]
 #: Dead-host deadline the checks configure (ms): the firmware's default.
-HOST_DEADLINE_MS = 500
+HOST_DEADLINE_MS = CONSTANTS["DEFAULT_HOST_DEADLINE_MS"]
 #: Stated time within which the blowers must stop after each fault (s), and why:
 STOP_LIMITS_S = {
     # from the injection: a few bad samples in a row at 500 Hz, plus the tick that acts on it
     "sensor_cut": 0.05,
+    # from the injection: the reading falls to the room's within a few ms, the PID pushes at full drive, and
+    # the firmware's plausibility time (the reading never moves) passes, then one tick
+    "tube_off": CONSTANTS["PLAUSIBLE_TIME_MS"] / 1e3 + 0.05,
     # from the injection: the stuck blower first has to push the pressure over the limit (about 0.5 s on the
     # default plant from 1.5 kPa), then one tick
     "stuck_blower": 2.0,
     # from the host's last byte: the deadline, counted from the tick that saw the last frame (up to one tick
     # later) and compared strictly (one more tick), then the drive update after that tick (under one tick)
     "silent_host": HOST_DEADLINE_MS / 1000 + 0.006,
-    # from the injection: the severe leak first pulls the pressure more than 200 Pa below the setpoint (from
-    # 1.5 kPa with LEAK_SEVERE_ML_PER_S_PER_KPA: about 25 ms on chamber 0, under 10 ms on a lobe, which has a
-    # third of its compliance), then the firmware's 2 s with the blower at its ceiling, then one tick; 0.1 s of
-    # margin for the fall
-    "leak": 2.0 + 0.1 + 0.002,
+    # from the step to 1.5 kPa with the severe leak already there: the blower runs at its ceiling from the first
+    # tick, the chamber rises (the reading responds) but stays far below its setpoint, so the firmware's 2 s at
+    # the ceiling, then one tick; 0.05 s of margin for the command's way to the board. (A severe leak that opens
+    # under a held pressure is the plausibility rule's: the reading falls and never rises, see tube_off.)
+    "leak": CONSTANTS["LEAK_TIME_MS"] / 1e3 + 0.05,
 }
-#: The firmware's leak rule (firmware/src/core/config.h, PROTOCOL.md section 7): LEAK_n latches when the blower
-#: sits at its ceiling while the chamber reads more than this far below its setpoint (kPa) ...
-LEAK_MIN_ERROR_KPA = 0.2
+#: The firmware's leak rule (protocol/spec.toml's constants, PROTOCOL.md section 7): LEAK_n latches when the
+#: blower sits at its ceiling while the chamber reads more than this far below its setpoint (kPa) ...
+LEAK_MIN_ERROR_KPA = CONSTANTS["LEAK_MIN_ERROR_PA"] / 1e3
 #: ... for this long (s).
-LEAK_TIME_S = 2.0
+LEAK_TIME_S = CONSTANTS["LEAK_TIME_MS"] / 1e3
 #: Extra leak (ml/s per kPa) of the severe leak: on the default plant the blower at full drive then holds only
 #: about 0.6 kPa (13.3 ml/s of free flow against 1.8 + 20 ml/s/kPa of leak), far below the 1.5 kPa setpoint.
 LEAK_SEVERE_ML_PER_S_PER_KPA = 20.0
@@ -51,7 +55,9 @@ LEAK_MILD_ML_PER_S_PER_KPA = 5.0
 #: How long the mild leak is watched (s of board time): longer than the leak time limit.
 LEAK_MILD_WATCH_S = LEAK_TIME_S + 1.5
 #: The fault checks of a report, with the chamber each is injected into.
-FAULT_CHECKS = (("sensor_cut", 1), ("stuck_blower", 0), ("leak", 2), ("mild_leak", 2), ("silent_host", None))
+FAULT_CHECKS = (
+    ("sensor_cut", 1), ("tube_off", 0), ("stuck_blower", 0), ("leak", 2), ("mild_leak", 2), ("silent_host", None)
+)
 #: Settling band of the step (fraction of the step).
 SETTLING_BAND = 0.02
 #: Window of the centred moving average the settling time is judged on (s). The 2 % band of a 2 kPa step,
@@ -206,22 +212,23 @@ def vent_and_wait(link: BoardLink, below_kpa: float = 0.05, timeout_s: float = 2
         raise BenchError(f"the chambers did not vent below {below_kpa} kPa within {timeout_s} s")
 
 
-def zero_sensors(link: BoardLink, attempts: int = 5) -> None:
-    """ZERO_SENSORS with the chambers vented; if a zeroing is already running (the board's own at start-up),
-    wait for it to end and ask again, so that the offsets are measured now."""
+def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
+    """ZERO_SENSORS with the chambers vented. The board refuses it (NOT_SETTLED) until every blower has been off
+    and every reading still for ZERO_SETTLE_MS, and answers BUSY while its own start-up zero runs: wait that
+    long on the board's clock and ask again, so that the offsets are measured now."""
     from phantom.protocol.messages import ENUMS
 
-    zeroing, busy = ENUMS["chamber_state"]["ZEROING"], ENUMS["status"]["BUSY"]
+    names = {v: k for k, v in ENUMS["status"].items()}
+    retry = {ENUMS["status"]["BUSY"], ENUMS["status"]["NOT_SETTLED"]}
     for _ in range(attempts):
         # one transmission with a long wait: a late retransmission would start a second zeroing
         answer = link.command("ZERO_SENSORS", timeout_s=2.0, attempts=1, accept_nack=True)
         if answer.name == "ACK":
             return
-        if answer.fields["status"] != busy:
-            names = {v: k for k, v in ENUMS["status"].items()}
+        if answer.fields["status"] not in retry:
             raise BenchError(f"the board refused ZERO_SENSORS: {names.get(answer.fields['status'])}")
-        link.wait_for(lambda m: m.name == "TELEMETRY" and zeroing not in m.fields["state"], 2.0, link.mark())
-    raise BenchError(f"ZERO_SENSORS stayed busy after {attempts} tries")
+        wait_board_time(link, CONSTANTS["ZERO_SETTLE_MS"] / 1e3 / 2)
+    raise BenchError(f"ZERO_SENSORS still refused ({names.get(answer.fields['status'])}) after {attempts} tries")
 
 
 def set_setpoints(link: BoardLink, setpoints_pa: list[int], attempts: int = 5) -> None:
@@ -278,7 +285,7 @@ def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: flo
     if gains is not None:
         kp, ki, kd = (float(g) for g in gains)
         link.command("SET_PID", {"chamber": chamber, "kp_per_kpa": kp, "ki_per_kpa_s": ki, "kd_s_per_kpa": kd,
-                                 "max_pressure_pa": 4000, "max_drive": 65535})
+                                 "max_pressure_pa": CONSTANTS["DEFAULT_MAX_PRESSURE_PA"], "max_drive": 65535})
     vent_and_wait(link)
     zero_sensors(link)
     setpoints = [0, 0, 0]
@@ -291,8 +298,12 @@ def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: flo
     if first is None:
         raise BenchError("the board acknowledged the setpoint but its telemetry never showed it")
     t0_ms = first.message.fields["time_ms"]
+    # on the board's clock: the host-side timeout only catches a board that stopped talking (a loaded machine
+    # runs the simulator slower than asked)
     link.wait_for(
-        lambda m: m.name == "TELEMETRY" and m.fields["time_ms"] - t0_ms >= duration_s * 1e3, duration_s + 2.0, start
+        lambda m: m.name == "TELEMETRY" and m.fields["time_ms"] - t0_ms >= duration_s * 1e3,
+        (5.0 + 10.0 * duration_s) * link.time_scale,
+        start,
     )
     samples = [r.message.fields for r in link.telemetry(start) if r.message.fields["time_ms"] >= t0_ms]
     link.command("VENT")
@@ -336,27 +347,35 @@ def _recover(link: BoardLink, board) -> None:
 
 
 def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) -> dict:
-    """Inject one fault while all chambers hold 1.5 kPa; the latch must trip and every blower stop in time.
+    """Inject one fault while all chambers hold 1.5 kPa (the severe leak: before they are set to 1.5 kPa); the
+    latch must trip and every blower stop in time.
 
-    ``fault`` is ``sensor_cut``, ``stuck_blower``, ``leak`` (a severe leak, LEAK_SEVERE_ML_PER_S_PER_KPA, that
-    the blower cannot overcome), ``mild_leak`` (LEAK_MILD_ML_PER_S_PER_KPA: the PID must compensate it and
-    nothing may latch; these need ``board``, a SimulatedBoard) or ``silent_host``. The stop time is measured in
-    simulated time from the injection (from the host's last byte for a silent host) to the first plant step at
-    which every PWM output is off.
+    ``fault`` is ``sensor_cut``, ``tube_off``, ``stuck_blower``, ``leak`` (a severe leak,
+    LEAK_SEVERE_ML_PER_S_PER_KPA, that the blower cannot overcome), ``mild_leak`` (LEAK_MILD_ML_PER_S_PER_KPA:
+    the PID must compensate it and nothing may latch; these need ``board``, a SimulatedBoard) or
+    ``silent_host``. The stop time is measured in simulated time from the injection (from the step for the
+    severe leak, from the host's last byte for a silent host) to the first plant step at which every PWM output
+    is off.
     """
     if fault == "mild_leak":
         return _check_mild_leak(link, board, chamber)
     bits = fault_bits()
     if board is None and fault != "silent_host":
         return {"fault": fault, "skipped": "needs --sim: faults are injected into the simulated plant"}
-    _regulate(link, 1.5, 1.5)
-    start = link.mark()
-    if fault == "silent_host":
+    if fault == "leak":
+        start_session(link)
+        board.inject(fault, chamber=chamber, conductance_ml_per_s_per_kpa=LEAK_SEVERE_ML_PER_S_PER_KPA)
+        start = link.mark()
+        injected_s = board.plant_state()["time_s"]
+        set_setpoints(link, [1500] * 3)
+    elif fault == "silent_host":
+        _regulate(link, 1.5, 1.5)
+        start = link.mark()
         link.keepalive(False)
         injected_s = None
-    elif fault == "leak":
-        injected_s = board.inject(fault, chamber=chamber, conductance_ml_per_s_per_kpa=LEAK_SEVERE_ML_PER_S_PER_KPA)
     else:
+        _regulate(link, 1.5, 1.5)
+        start = link.mark()
         injected_s = board.inject(fault, chamber=chamber)
     got = wait_on_board_clock(link, lambda m: m.name == "FAULT", max(3.0, 1.0 + STOP_LIMITS_S[fault]), start)
     result = {"fault": fault, "chamber": chamber}
@@ -367,6 +386,9 @@ def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) 
         off_since = state["all_off_since_s"]
         result["stop_time_s"] = None if off_since is None or got is None else off_since - injected_s
         result["pressures_kpa_after"] = [p / 1e3 for p in state["pressures_pa"]]
+        # the highest true pressure each chamber reached from the injection on: at the latch for a fault
+        # that pushes the pressure up (the blowers stop there)
+        result["peak_true_kpa"] = [p / 1e3 for p in state["peak_pressures_pa"]]
     if board is None and fault == "silent_host" and got is not None:
         # on a real board, board time: from the board's clock at the last PING it answered to the latch
         before = [r for r in list(link.received) if r.host_time_s <= got.host_time_s]
@@ -381,6 +403,7 @@ def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) 
         result["latched"] = None
     expected = {
         "sensor_cut": f"SENSOR_{chamber}",
+        "tube_off": f"IMPLAUSIBLE_{chamber}",
         "stuck_blower": f"OVERPRESSURE_{chamber}",
         "leak": f"LEAK_{chamber}",
         "silent_host": "DEAD_HOST",
@@ -472,7 +495,7 @@ def check_watchdog(link: BoardLink, board) -> dict:
 
     start_session(link)
     resets_before = board.plant_state()["resets"] if board is not None else None
-    link.command("TEST_HANG", {"magic": TEST_HANG_MAGIC})
+    link.command("TEST_HANG", {"magic": CONSTANTS["TEST_HANG_MAGIC"]})
     link.keepalive(False)
     link.wait_for(lambda m: False, 0.2, link.mark())
     reply = None

@@ -22,7 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         target.add_argument("--sim", action="store_true", help="run the firmware image in simavr against the plant")
         target.add_argument("--port", help="serial port of a real board, e.g. /dev/ttyACM0")
         parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
-        parser.add_argument("--elf", help="firmware image for --sim (default firmware/build/uno/phantom.elf)")
+        parser.add_argument("--elf", help="firmware image for --sim (default firmware/build/uno-bench/phantom.elf)")
         parser.add_argument("--plant", help="plant parameter file for --sim (default hil/plant.toml)")
         parser.add_argument(
             "--speed", type=float, default=1.0, help="--sim: simulated time per wall-clock time (default 1 = real time)"
@@ -88,7 +88,10 @@ def _fault_line(result: dict) -> str:
         return f"mild_leak: {verdict}, held {result.get('held_kpa')} kPa at drive {result.get('drive_level', 0.0):.2f}"
     stop_time_s = result.get("stop_time_s")
     stopped = "blowers not stopped" if stop_time_s is None else f"blowers off after {stop_time_s:.3f} s"
-    return f"{result['fault']}: {verdict}, latched {result['latched']}, {stopped} (limit {result.get('limit_s')} s)"
+    line = f"{result['fault']}: {verdict}, latched {result['latched']}, {stopped} (limit {result.get('limit_s')} s)"
+    if result.get("chamber") is not None and "peak_true_kpa" in result:
+        line += f", true pressure at most {result['peak_true_kpa'][result['chamber']]:.2f} kPa"
+    return line
 
 
 def _progress(message: str) -> None:

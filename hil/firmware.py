@@ -15,10 +15,11 @@ class FirmwareError(PhantomError):
 
 
 def default_elf() -> Path:
-    """``firmware/build/uno/phantom.elf`` of the source checkout."""
+    """``firmware/build/uno-bench/phantom.elf`` of the source checkout: the Uno image with TEST_HANG (the
+    production image ``build/uno/`` refuses it), so that the bench can check the watchdog."""
     if phantom.SOURCE_ROOT is None:
         raise FirmwareError("no firmware sources in this install: pass the path of a firmware .elf explicitly")
-    return phantom.SOURCE_ROOT / "firmware" / "build" / "uno" / "phantom.elf"
+    return phantom.SOURCE_ROOT / "firmware" / "build" / "uno-bench" / "phantom.elf"
 
 
 def ensure_firmware(elf: str | Path | None = None) -> Path:
@@ -49,6 +50,74 @@ def ensure_firmware(elf: str | Path | None = None) -> Path:
             f"`make -C firmware` did not produce {path}:\n{result.stdout[-2000:]}{result.stderr[-2000:]}"
         )
     return path
+
+
+#: Debian's arduino-core-avr: the bootloaders an Uno (Optiboot 4.4) and a Mega 2560 (stk500v2) ship with.
+ARDUINO_BOOTLOADERS = Path("/usr/share/arduino/hardware/arduino/avr/bootloaders")
+STOCK_BOOTLOADERS = {
+    "atmega328p": ARDUINO_BOOTLOADERS / "optiboot" / "optiboot_atmega328.hex",
+    "atmega2560": ARDUINO_BOOTLOADERS / "stk500v2" / "stk500boot_v2_mega2560.hex",
+}
+#: Optiboot's boot section on the ATmega328P: 512 bytes at the top of flash.
+OPTIBOOT_START, FLASH_END_328P = 0x7E00, 0x8000
+
+
+def hex_extent(path: Path) -> tuple[int, int]:
+    """Lowest and one-past-highest address an Intel HEX file writes (data records only)."""
+    base, low, high = 0, None, 0
+    for line in path.read_text().split():
+        count, address, kind = int(line[1:3], 16), int(line[3:7], 16), int(line[7:9], 16)
+        if kind in (2, 4):
+            base = int(line[9:13], 16) << (4 if kind == 2 else 16)
+        elif kind == 0:
+            low = base + address if low is None else min(low, base + address)
+            high = max(high, base + address + count)
+    return (low or 0), high
+
+
+def stock_bootloader(mcu: str) -> Path:
+    """The stock bootloader image of an MCU's Arduino board, from Debian's arduino-core-avr.
+
+    The Mega's stk500v2 image is used as shipped. Debian's Optiboot image for the Uno is 532 bytes (built from
+    Optiboot 4.4 with a newer avr-gcc): it overflows the 512-byte boot section, so its version word overwrites
+    code and its last function lies past the end of flash; a real Uno cannot run it either. Then the same
+    source, shipped in the package, is built as its Makefile's atmega328 target does but without the LED flashes
+    at start (LED_START_FLASHES=0), which makes it fit (496 bytes); everything else (MCUSR, the 1 s watchdog
+    wait after an external reset) is Optiboot 4.4 unchanged.
+
+    Raises
+    ------
+    FirmwareError
+        When the package or avr-gcc is missing, or the build fails.
+    """
+    path = STOCK_BOOTLOADERS[mcu]
+    if not path.is_file():
+        raise FirmwareError(f"the stock bootloader {path} is missing: install arduino-core-avr (scripts/bootstrap.sh)")
+    if mcu != "atmega328p" or hex_extent(path)[1] <= FLASH_END_328P:
+        return path
+    out = phantom.cache_dir("hil") / "optiboot" / "optiboot_atmega328.hex"
+    source = path.parent / "optiboot.c"
+    if out.is_file() and out.stat().st_mtime >= source.stat().st_mtime:
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    elf = out.with_suffix(".elf")
+    compile_line = [
+        "avr-gcc", "-g", "-Wall", "-Os", "-fno-inline-small-functions", "-fno-split-wide-types", "-mshort-calls",
+        "-mmcu=atmega328p", "-DF_CPU=16000000L", "-DBAUD_RATE=115200", "-DLED_START_FLASHES=0",
+        f"-Wl,--section-start=.text={OPTIBOOT_START:#x}", "-Wl,--section-start=.version=0x7ffe", "-Wl,--relax",
+        "-Wl,--gc-sections", "-nostartfiles", "-nostdlib", "-o", str(elf), str(source),
+    ]
+    objcopy_line = ["avr-objcopy", "-j", ".text", "-j", ".data", "-j", ".version", "--set-section-flags",
+                    ".version=alloc,load", "-O", "ihex", str(elf), str(out)]
+    for line in (compile_line, objcopy_line):
+        if shutil.which(line[0]) is None:
+            raise FirmwareError(f"{line[0]} is not installed (gcc-avr, binutils-avr): run scripts/bootstrap.sh")
+        result = subprocess.run(line, capture_output=True, text=True)
+        if result.returncode != 0:
+            raise FirmwareError(f"building Optiboot from {source} failed:\n{result.stderr[-2000:]}")
+    if hex_extent(out)[1] > FLASH_END_328P:
+        raise FirmwareError(f"Optiboot built from {source} still does not fit its 512-byte boot section")
+    return out
 
 
 def mcu_of(elf: Path) -> str:

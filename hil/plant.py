@@ -2,7 +2,8 @@
 
 The plant itself is integrated inside the simavr harness (``hil/harness/plant.c``), next to the firmware, at
 a fixed step in simulated time. Per chamber i, with gauge pressures p (Pa), air volumes V = V0 + C p (m^3),
-blower inflow Q_in = Q_max u (1 - p / p_blocked) and back-leak Q_out = G p (m^3/s at atmospheric
+blower inflow Q_in = Q_max max(a - p / p_blocked, 0) at driver amplitude a = max(u - u0, 0) / (1 - u0) for a
+drive level u (see :func:`blower_flow_m3_per_s`) and back-leak Q_out = G p (m^3/s at atmospheric
 conditions), the isothermal air content (p_atm + p_i) V_i changes by p_atm (Q_in - Q_out)_i:
 
     sum_j [V_i delta_ij + (p_atm + p_i) C_ij] dp_j/dt = p_atm (Q_in,i - Q_out,i)
@@ -54,6 +55,7 @@ class PlantParameters:
     compliance_m3_per_pa: np.ndarray
     free_flow_m3_per_s: np.ndarray
     blocked_pressure_pa: np.ndarray
+    driver_threshold: np.ndarray
     leak_conductance_m3_per_s_per_pa: np.ndarray
     sensor_supply_v: float
     sensor_gain_per_pa: float
@@ -83,6 +85,7 @@ class PlantParameters:
             "rest_volume_m3",
             "free_flow_m3_per_s",
             "blocked_pressure_pa",
+            "driver_threshold",
             "leak_conductance_m3_per_s_per_pa",
             "sensor_offset_pa",
         ):
@@ -120,6 +123,23 @@ def _per_chamber(section: dict, key: str, where: str, *, positive: bool = False,
     return np.array(
         [_number({key: v}, key, where, positive=positive, allow_zero=allow_zero) for v in values], dtype=float
     )
+
+
+def _driver_threshold(section: dict, where: str) -> np.ndarray:
+    values = _per_chamber(section, "driver_threshold", where, positive=True)
+    if np.any(values >= 1):
+        raise PlantError(f"{where}.driver_threshold: must be below 1 (a drive level), got {values.tolist()}")
+    return values
+
+
+def blower_flow_m3_per_s(plant: PlantParameters, drive, pressure_pa) -> np.ndarray:
+    """Air each blower delivers (m^3/s at atmospheric conditions) at drive levels u in [0, 1] against gauge
+    pressures p: the driver's amplitude a = max(u - u0, 0) / (1 - u0) scales both the free flow and the blocked
+    pressure, Q = Q_max max(a - p / p_blocked, 0). The same law as the harness's plant.c, for tests and benches."""
+    threshold = plant.driver_threshold
+    amplitude = np.clip((np.asarray(drive, dtype=float) - threshold) / (1 - threshold), 0, 1)
+    flow = plant.free_flow_m3_per_s * np.maximum(amplitude - np.asarray(pressure_pa) / plant.blocked_pressure_pa, 0)
+    return np.where(amplitude > 0, flow, 0.0)  # a blower that does not run pumps nothing, even against suction
 
 
 def _compliance(section: dict, where: str) -> np.ndarray:
@@ -184,6 +204,7 @@ def _plant_from_text(text: str, path: Path) -> PlantParameters:
         free_flow_m3_per_s=1e-6 / 60 * _per_chamber(blower, "free_flow_ml_per_min", f"{path} [blower]", positive=True),
         blocked_pressure_pa=1e3
         * _per_chamber(blower, "blocked_pressure_kpa", f"{path} [blower]", positive=True, allow_zero=False),
+        driver_threshold=_driver_threshold(blower, f"{path} [blower]"),
         leak_conductance_m3_per_s_per_pa=1e-6
         / 1e3
         * _per_chamber(blower, "back_leak_ml_per_s_per_kpa", f"{path} [blower]", positive=True),

@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 
 from phantom import PhantomError
-from phantom.hil.firmware import ensure_firmware, function_addresses, mcu_of
+from phantom.hil.firmware import ensure_firmware, function_addresses, mcu_of, stock_bootloader
 from phantom.hil.harness import HarnessProcess
 from phantom.hil.plant import load_plant
 
@@ -28,19 +28,21 @@ PROFILED_FUNCTIONS = {
 }
 #: Interrupt vectors also counted as busy time (vector numbers differ between the two MCUs).
 PROFILED_VECTORS = {
-    "atmega328p": {"adc_isr": 21, "tick_isr": 13, "millis_isr": 16, "uart_rx_isr": 18, "uart_tx_isr": 19},
-    "atmega2560": {"adc_isr": 29, "tick_isr": 20, "millis_isr": 23, "uart_rx_isr": 25, "uart_tx_isr": 26},
+    "atmega328p": {"adc_isr": 21, "tick_isr": 14, "uart_rx_isr": 18, "uart_tx_isr": 19, "watchdog_isr": 6},
+    "atmega2560": {"adc_isr": 29, "tick_isr": 21, "uart_rx_isr": 25, "uart_tx_isr": 26, "watchdog_isr": 12},
 }
 
 #: Faults and their parameters (unit in the name) with defaults.
 FAULTS = {
     "sensor_cut": {},
+    "tube_off": {},
+    "supply": {"volts": 4.0},
     "leak": {"conductance_ml_per_s_per_kpa": 5.0},
     "stuck_blower": {"level": 1.0},
     "line_noise": {"flip_probability": 0.01, "drop_probability": 0.01},
     "clear": {},
 }
-_PER_CHAMBER = {"sensor_cut", "leak", "stuck_blower"}
+_PER_CHAMBER = {"sensor_cut", "tube_off", "leak", "stuck_blower"}
 
 
 class SimulationError(PhantomError):
@@ -69,16 +71,20 @@ class SimulatedBoard:
     Parameters
     ----------
     elf
-        Firmware image; default ``firmware/build/uno/phantom.elf``, built with ``make -C firmware`` if missing.
+        Firmware image; default ``firmware/build/uno-bench/phantom.elf``, built with ``make -C firmware`` if missing.
     plant
         Plant parameter file; default ``hil/plant.toml``.
     speed
         1.0 paces simulated time to the wall clock; > 1 runs faster than real time; 0 as fast as possible.
     seed
         Seed of the sensor noise and the line noise, so a run can be repeated.
+    bootloader
+        False (the default): the image starts at address 0, as on a board flashed over ISP. True: the MCU's
+        stock Arduino bootloader (Optiboot 4.4 on the Uno, stk500v2 on the Mega, from arduino-core-avr) is
+        flashed too and the board starts through it, as a stock board does. A path: that .hex instead.
     """
 
-    def __init__(self, elf=None, plant=None, speed: float = 1.0, seed: int = 0):
+    def __init__(self, elf=None, plant=None, speed: float = 1.0, seed: int = 0, bootloader=False):
         if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed >= 0):
             raise SimulationError(
                 f"speed must be a number >= 0 (1 = real time, 0 = as fast as possible), got {speed!r}"
@@ -87,6 +93,11 @@ class SimulatedBoard:
         self.plant = load_plant(plant)
         self.speed = float(speed)
         self.seed = int(seed)
+        if bootloader is True:
+            bootloader = stock_bootloader(mcu_of(self.elf))
+        elif bootloader is not False and not Path(bootloader).is_file():
+            raise SimulationError(f"the bootloader image {bootloader} does not exist")
+        self.bootloader = Path(bootloader) if bootloader is not False else None
         self._directory = None
         self._harness = None
 
@@ -105,6 +116,8 @@ class SimulatedBoard:
         mcu = mcu_of(self.elf)
         arguments = ["--elf", str(self.elf), "--mcu", mcu, "--link", self.port]
         arguments += ["--speed", repr(self.speed), "--seed", str(self.seed)]
+        if self.bootloader is not None:
+            arguments += ["--bootloader", str(self.bootloader)]
         for role, (address, min_cycles) in _profiled_regions(self.elf, mcu).items():
             arguments += ["--profile", f"{role}={address:#x}:{min_cycles}"]
         try:
@@ -143,13 +156,23 @@ class SimulatedBoard:
         """Plug it back: the port returns at the same path and the board starts from a power-on reset."""
         self._command("replug")
 
+    def reset(self, cause: str = "external") -> float:
+        """Reset the MCU without cutting power: ``"external"`` pulls RESET low as the USB-serial chip's DTR line
+        does when a port opens (the bootloader, if any, then waits for an upload), ``"power"`` as a power cycle.
+        Returns the simulated time (s) of the reset."""
+        if cause not in ("external", "power"):
+            raise SimulationError(f"reset cause must be 'external' or 'power', got {cause!r}")
+        return self._command(f"reset {cause}")["time_s"]
+
     def inject(self, fault: str, chamber: int | None = None, **params) -> float:
         """Inject a fault into the plant or the serial line.
 
         Parameters
         ----------
         fault
-            ``"sensor_cut"`` (the chamber's sensor reads 0 V), ``"leak"`` (extra leak of
+            ``"sensor_cut"`` (the chamber's sensor reads 0 V), ``"tube_off"`` (the sensor's tube came off: it
+            reads the room's pressure while the chamber inflates), ``"supply"`` (the board's 5 V rail, AVcc and
+            the sensors' supply, at ``volts`` in [2, 5.5], default 4.0), ``"leak"`` (extra leak of
             ``conductance_ml_per_s_per_kpa``, default 5), ``"stuck_blower"`` (the chamber's blower runs at
             ``level`` in [0, 1] whatever the firmware commands, default 1), ``"line_noise"`` (each byte in
             either direction is dropped with ``drop_probability`` and has one bit flipped with
@@ -177,17 +200,20 @@ class SimulatedBoard:
         for name, value in values.items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise SimulationError(f"{fault}.{name} must be a number, got {value!r}")
-            limit = 1.0 if name in ("level", "flip_probability", "drop_probability") else math.inf
-            if not 0 <= value <= limit:
-                raise SimulationError(f"{fault}.{name} must be in [0, {limit:g}], got {value!r}")
+            low, limit = (2.0, 5.5) if name == "volts" else (0, 1.0 if name in ("level", "flip_probability",
+                                                                                  "drop_probability") else math.inf)
+            if not low <= value <= limit:
+                raise SimulationError(f"{fault}.{name} must be in [{low:g}, {limit:g}], got {value!r}")
         if fault == "leak":
             line = f"fault leak {chamber} {values['conductance_ml_per_s_per_kpa'] * 1e-9!r}"
         elif fault == "stuck_blower":
             line = f"fault stuck_blower {chamber} {float(values['level'])!r}"
         elif fault == "line_noise":
             line = f"fault line_noise {float(values['flip_probability'])!r} {float(values['drop_probability'])!r}"
-        elif fault == "sensor_cut":
-            line = f"fault sensor_cut {chamber}"
+        elif fault == "supply":
+            line = f"fault supply {float(values['volts'])!r}"
+        elif fault in ("sensor_cut", "tube_off"):
+            line = f"fault {fault} {chamber}"
         else:
             line = "fault clear"
         return self._command(line)["time_s"]
@@ -195,8 +221,12 @@ class SimulatedBoard:
     def plant_state(self) -> dict:
         """The plant now: time_s, pressures_pa, drive_levels (what the firmware's PWM commands, [0, 1]),
         chamber_volumes_ml, plus effective_drive_levels (after a stuck blower), sensor_voltages_v, powered,
-        resets (MCU resets seen, e.g. by the watchdog), max_lag_s (the longest stall behind the wall clock) and
-        lost_s (wall-clock time the simulation could not keep up with, in total)."""
+        resets (MCU resets seen, e.g. by the watchdog), max_lag_s (the longest stall behind the wall clock),
+        lost_s (wall-clock time the simulation could not keep up with, in total), blower_pins (each blower pin's
+        mode: "floating", "pullup", "low", "high" or "pwm"), reset_s (when the core last started from its reset
+        vector), control_since_s (when the control tick first ran after that, None before),
+        floating_before_control_s (how long a blower pin floated in between) and driven_before_control
+        (whether a blower pin was driven high or by PWM in between)."""
         return self._command("state")
 
     def cycle_stats(self, reset: bool = False) -> dict:

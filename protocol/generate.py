@@ -51,6 +51,7 @@ def load_spec(path: Path = SPEC_PATH) -> dict[str, Any]:
         raise ProtocolError("the protocol generator needs Python >= 3.11 (tomllib)") from exc
     spec = tomllib.loads(path.read_text())
     _validate(spec)
+    constants(spec)
     return spec
 
 
@@ -90,6 +91,63 @@ def _table(entries: dict[str, Any]) -> dict[str, int]:
     return {k: v for k, v in entries.items() if k != "doc"}
 
 
+# ---- constants (DECL_CONSTANT style): spec.toml [constants] -> C++ `proto::NAME`, Python `CONSTANTS` ----------
+
+CONSTANT_LIMITS = {"u8": (0, 0xFF), "u16": (0, 0xFFFF), "i16": (-0x8000, 0x7FFF), "u32": (0, 0xFFFFFFFF)}
+
+
+def constants(spec: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """The [constants] table, each checked: a known integer type and a value that fits it."""
+    table: dict[str, dict[str, Any]] = spec.get("constants", {})
+    for name, entry in table.items():
+        if not name.isupper() or not name.replace("_", "").isalnum():
+            raise ProtocolError(f"spec: constant {name} must be UPPER_CASE")
+        if entry.get("type") not in CONSTANT_LIMITS:
+            raise ProtocolError(f"spec: constant {name} type must be one of {sorted(CONSTANT_LIMITS)}")
+        low, high = CONSTANT_LIMITS[entry["type"]]
+        value = entry.get("value")
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            raise ProtocolError(f"spec: constant {name} = {value!r} does not fit {entry['type']}")
+    return table
+
+
+def _constant_values(spec: dict[str, Any]) -> dict[str, int]:
+    """name -> value, for the spec hash and the Python table."""
+    return {name: entry["value"] for name, entry in constants(spec).items()}
+
+
+def _py_constants(spec: dict[str, Any]) -> list[str]:
+    """Python source lines of the CONSTANTS table."""
+    lines = ["CONSTANTS: dict[str, int] = {"]
+    for name, entry in constants(spec).items():
+        value = f"0x{entry['value']:08X}" if entry["type"] == "u32" else str(entry["value"])
+        unit = f"  # {entry['unit']}" if entry.get("unit") else ""
+        lines.append(f"    {name!r}: {value},{unit}")
+    lines.append("}")
+    return lines
+
+
+def _c_constants(spec: dict[str, Any]) -> list[str]:
+    """C++ lines declaring every constant in namespace proto, with its unit and meaning."""
+    c_types = {"u8": "uint8_t", "u16": "uint16_t", "i16": "int16_t", "u32": "uint32_t"}
+    out = []
+    for name, entry in constants(spec).items():
+        value = f"0x{entry['value']:08X}UL" if entry["type"] == "u32" else str(entry["value"])
+        unit = f" [{entry['unit']}]" if entry.get("unit") else ""
+        out.append(f"const {c_types[entry['type']]} {name} = {value};  // {entry.get('doc', '')}{unit}")
+    return out
+
+
+def _doc_constants(spec: dict[str, Any]) -> list[str]:
+    """The constants table of PROTOCOL.md's generated section."""
+    out = ["### Constants", "", "| name | type | value | unit | meaning |", "|---|---|---:|---|---|"]
+    for name, entry in constants(spec).items():
+        value = f"0x{entry['value']:08X}" if entry["type"] == "u32" else str(entry["value"])
+        out.append(f"| `{name}` | {entry['type']} | {value} | {entry.get('unit', '')} | {entry.get('doc', '')} |")
+    out.append("")
+    return out
+
+
 def canonical(spec: dict[str, Any]) -> str:
     """The canonical JSON rendering the spec hash is computed from (no doc strings)."""
     messages = [
@@ -111,6 +169,7 @@ def canonical(spec: dict[str, Any]) -> str:
         "enums": {k: _table(v) for k, v in sorted(spec["enums"].items())},
         "bits": {k: _table(v) for k, v in sorted(spec["bits"].items())},
         "messages": messages,
+        "constants": _constant_values(spec),
     }
     return json.dumps(document, sort_keys=True, separators=(",", ":"))
 
@@ -175,7 +234,9 @@ def render_python(spec: dict[str, Any]) -> str:
         "ENUMS: dict[str, dict[str, int]] = {",
     ]
     lines += _py_tables(spec["enums"])
-    lines += ["}", "", "BITS: dict[str, dict[str, int]] = {"]
+    lines += ["}", ""]
+    lines += _py_constants(spec)
+    lines += ["", "BITS: dict[str, dict[str, int]] = {"]
     lines += _py_tables(spec["bits"])
     lines += ["}", "", "MESSAGES: dict[str, MessageSpec] = {"]
     for m in spec["message"]:
@@ -290,8 +351,9 @@ def render_header(spec: dict[str, Any]) -> str:
         f"const uint8_t MAX_BODY_BYTES = {proto['max_body_bytes']};",
         f"const uint8_t CHAMBER_COUNT = {proto['chamber_count']};",
         "",
-        "enum MsgId : uint8_t {",
     ]
+    out += _c_constants(spec)
+    out += ["", "enum MsgId : uint8_t {"]
     out += [f"    MSG_{m['name']} = 0x{m['id']:02X}," for m in spec["message"]]
     out += ["};", ""]
     for enum_name, entries in spec["enums"].items():
@@ -357,6 +419,7 @@ def render_reference(spec: dict[str, Any]) -> str:
         out += ["| bit | mask | name |", "|---:|---:|---|"]
         out += [f"| {v} | `0x{1 << v:04X}` | `{k}` |" for k, v in _table(entries).items()]
         out.append("")
+    out += _doc_constants(spec)
     out += ["### Messages", "", "| id | name | sent by | acknowledged | payload bytes |", "|---:|---|---|---|---:|"]
     for m in spec["message"]:
         out.append(f"| `0x{m['id']:02X}` | [{m['name']}](#{m['name'].lower()}) | {m['direction']} | "

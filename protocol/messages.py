@@ -33,7 +33,7 @@ class MessageSpec(NamedTuple):
 
 
 PROTOCOL_VERSION = 1
-SPEC_HASH = 0xDB551DA4
+SPEC_HASH = 0x773B91D2
 MAX_BODY_BYTES = 64
 CHAMBER_COUNT = 3
 
@@ -51,6 +51,7 @@ ENUMS: dict[str, dict[str, int]] = {
         'ZERO_OUT_OF_RANGE': 9,
         'BUSY': 10,
         'BAD_MAGIC': 11,
+        'NOT_SETTLED': 12,
     },
     'reset_cause': {
         'UNKNOWN': 0,
@@ -58,6 +59,17 @@ ENUMS: dict[str, dict[str, int]] = {
         'EXTERNAL': 2,
         'BROWN_OUT': 3,
         'WATCHDOG': 4,
+    },
+    'config_source': {
+        'DEFAULTS': 0,
+        'EEPROM': 1,
+        'CORRUPT': 2,
+    },
+    'zero_source': {
+        'NOMINAL': 0,
+        'STORED': 1,
+        'BOOT': 2,
+        'HOST': 3,
     },
     'board': {
         'NATIVE': 0,
@@ -70,6 +82,31 @@ ENUMS: dict[str, dict[str, int]] = {
         'ZEROING': 2,
         'FAULT': 3,
     },
+}
+
+CONSTANTS: dict[str, int] = {
+    'TICK_HZ': 500,  # Hz
+    'PRESSURE_CEILING_PA': 6000,  # Pa
+    'DEFAULT_MAX_PRESSURE_PA': 4000,  # Pa
+    'SENSOR_BAD_TICKS': 5,  # ticks
+    'LEAK_MIN_ERROR_PA': 200,  # Pa
+    'LEAK_TIME_MS': 2000,  # ms
+    'PLAUSIBLE_MIN_DRIVE': 32768,  # 1/65535
+    'PLAUSIBLE_MIN_CHANGE_PA': 150,  # Pa
+    'PLAUSIBLE_TIME_MS': 300,  # ms
+    'ZERO_MAX_OFFSET_PA': 2500,  # Pa
+    'ZERO_STABLE_PA': 110,  # Pa
+    'ZERO_SETTLE_MS': 2000,  # ms
+    'ZERO_TICKS': 64,  # ticks
+    'SUPPLY_MIN_MV': 4300,  # mV
+    'SUPPLY_BAD_TICKS': 25,  # ticks
+    'DEFAULT_TELEMETRY_PERIOD_MS': 20,  # ms
+    'MIN_TELEMETRY_PERIOD_MS': 10,  # ms
+    'MAX_TELEMETRY_PERIOD_MS': 1000,  # ms
+    'DEFAULT_HOST_DEADLINE_MS': 500,  # ms
+    'MIN_HOST_DEADLINE_MS': 50,  # ms
+    'MAX_HOST_DEADLINE_MS': 10000,  # ms
+    'TEST_HANG_MAGIC': 0x48414E47,
 }
 
 BITS: dict[str, dict[str, int]] = {
@@ -85,6 +122,10 @@ BITS: dict[str, dict[str, int]] = {
         'LEAK_0': 8,
         'LEAK_1': 9,
         'LEAK_2': 10,
+        'IMPLAUSIBLE_0': 11,
+        'IMPLAUSIBLE_1': 12,
+        'IMPLAUSIBLE_2': 13,
+        'SUPPLY': 14,
     },
 }
 
@@ -175,6 +216,21 @@ MESSAGES: dict[str, MessageSpec] = {
         8,
         'The answer to PING.',
     ),
+    'BOARD_INFO': MessageSpec(
+        'BOARD_INFO', 0x07, 'board', False,
+        (
+            Field('config_source', 'u8', 1, '', 1.0, 'config_source', None,
+                  'where the persistent settings came from'),
+            Field('zero_source', 'u8', 3, '', 1.0, 'zero_source', None,
+                  "where each sensor's zero came from"),
+            Field('zero_offset_pa', 'i16', 3, 'Pa', 1.0, None, None,
+                  'each zero minus the nominal zero'),
+            Field('supply_mv', 'u16', 1, 'mV', 1.0, None, None,
+                  'supply voltage (0 until measured)'),
+        ),
+        12,
+        'Sent right after every HELLO_REPLY (whose layout never changes): where the settings and zeros came from.',
+    ),
     'SET_SETPOINTS': MessageSpec(
         'SET_SETPOINTS', 0x10, 'host', True,
         (
@@ -233,13 +289,13 @@ MESSAGES: dict[str, MessageSpec] = {
         (
         ),
         0,
-        "Measures each sensor's zero offset over zero_samples ticks; the ACK comes when it is done.",
+        "Measures each sensor's zero over ZERO_TICKS ticks (ACK or NACK when done); see PROTOCOL.md.",
     ),
     'TEST_HANG': MessageSpec(
         'TEST_HANG', 0x16, 'host', True,
         (
             Field('magic', 'u32', 1, '', 1.0, None, None,
-                  'must be 0x48414E47'),
+                  'must be TEST_HANG_MAGIC (0x48414E47); a production build NACKs BAD_MAGIC'),
         ),
         4,
         'Bench only: after its ACK the board turns the blowers off and stops kicking the watchdog.',
@@ -302,6 +358,7 @@ class MsgId(IntEnum):
     NACK = 0x04
     PING = 0x05
     PONG = 0x06
+    BOARD_INFO = 0x07
     SET_SETPOINTS = 0x10
     SET_PID = 0x11
     SET_CONFIG = 0x12
@@ -328,6 +385,7 @@ class Status(IntEnum):
     ZERO_OUT_OF_RANGE = 9
     BUSY = 10
     BAD_MAGIC = 11
+    NOT_SETTLED = 12
 
 
 class ResetCause(IntEnum):
@@ -338,6 +396,23 @@ class ResetCause(IntEnum):
     EXTERNAL = 2
     BROWN_OUT = 3
     WATCHDOG = 4
+
+
+class ConfigSource(IntEnum):
+    """Where the persistent settings (zero offsets, PID gains, pressure limits) came from at start-up."""
+
+    DEFAULTS = 0
+    EEPROM = 1
+    CORRUPT = 2
+
+
+class ZeroSource(IntEnum):
+    """Where a sensor's zero offset came from."""
+
+    NOMINAL = 0
+    STORED = 1
+    BOOT = 2
+    HOST = 3
 
 
 class Board(IntEnum):
@@ -371,3 +446,7 @@ class Fault(IntFlag):
     LEAK_0 = 1 << 8
     LEAK_1 = 1 << 9
     LEAK_2 = 1 << 10
+    IMPLAUSIBLE_0 = 1 << 11
+    IMPLAUSIBLE_1 = 1 << 12
+    IMPLAUSIBLE_2 = 1 << 13
+    SUPPLY = 1 << 14

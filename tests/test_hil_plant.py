@@ -13,6 +13,7 @@ from phantom.hil.plant import (
     CALIBRATED_SCENE_PATH,
     DEFAULT_PLANT_PATH,
     PlantError,
+    blower_flow_m3_per_s,
     chambers_from_scene,
     load_plant,
     main,
@@ -82,6 +83,7 @@ COMPLIANCE_MATRIX = r"^compliance_ml_per_kpa = \[\n(?:.*\n){3}\]$"
         (r"^step_us = .*$", "step_us = 5000.0", "too coarse"),
         (r"^\[integration\]$", "[integrator]", "missing table [integration]"),
         (r"^noise_mv = .*$", "", "missing key 'noise_mv'"),
+        (r"^driver_threshold = .*$", "driver_threshold = [0.1, 1.0, 0.1]", "driver_threshold: must be below 1"),
         (r"^\[gas\]$", "[gas", "not valid TOML"),
     ],
 )
@@ -169,7 +171,8 @@ def test_harness_refuses_bad_commands():
 
 
 def test_driven_chamber_settles_at_the_analytic_equilibrium():
-    """Steady state of Q_max u (1 - p/p_blocked) = G p, with the idle chambers back at 0 through their leak."""
+    """Steady state of Q_max (a - p/p_blocked) = G p at the driver's amplitude a = (u - u0) / (1 - u0), with
+    the idle chambers back at 0 through their leak."""
     plant = load_plant()
     harness = plant_only(plant)
     try:
@@ -180,7 +183,8 @@ def test_driven_chamber_settles_at_the_analytic_equilibrium():
         harness.close()
     q_max, p_blocked = plant.free_flow_m3_per_s[1], plant.blocked_pressure_pa[1]
     leak = plant.leak_conductance_m3_per_s_per_pa[1]
-    expected_pa = q_max * drive / (q_max * drive / p_blocked + leak)
+    amplitude = (drive - plant.driver_threshold[1]) / (1 - plant.driver_threshold[1])
+    expected_pa = q_max * amplitude / (q_max / p_blocked + leak)
     # 30 s is 20 passive time constants (about 1.5 s): the remaining transient is far below 0.1 Pa.
     assert state["pressures_pa"][1] == pytest.approx(expected_pa, abs=0.1)
     assert state["pressures_pa"][0] == pytest.approx(0.0, abs=0.1)
@@ -189,11 +193,28 @@ def test_driven_chamber_settles_at_the_analytic_equilibrium():
     assert state["chamber_volumes_ml"][1] == pytest.approx(volume_ml, rel=1e-4)
 
 
+def test_blower_follows_its_driver_not_the_duty_cycle():
+    """Below the driver's threshold no air; at full drive the datasheet's two points (free flow at 0 kPa, none at
+    the blocked pressure); in between the blocked pressure scales with the amplitude, so the flow is not
+    proportional to the duty cycle."""
+    plant = load_plant()
+    q_max, p_blocked, u0 = plant.free_flow_m3_per_s, plant.blocked_pressure_pa, plant.driver_threshold
+    assert blower_flow_m3_per_s(plant, u0, 0.0) == pytest.approx(0.0)
+    assert blower_flow_m3_per_s(plant, 1.0, 0.0) == pytest.approx(q_max)
+    assert blower_flow_m3_per_s(plant, 1.0, p_blocked) == pytest.approx(0.0)
+    half = (1 + u0) / 2  # half amplitude: half the free flow, and nothing at half the blocked pressure
+    assert blower_flow_m3_per_s(plant, half, 0.0) == pytest.approx(q_max / 2)
+    assert blower_flow_m3_per_s(plant, half, p_blocked / 2) == pytest.approx(0.0, abs=1e-15)
+    assert blower_flow_m3_per_s(plant, 0.5, 0.0)[0] != pytest.approx(0.5 * q_max[0])
+
+
 def reference_rates(plant, drive):
     """dp/dt of the coupled isothermal chambers, written out from physics.md independently of plant.c."""
 
     def rates(_, p):
-        inflow = np.maximum(plant.free_flow_m3_per_s * drive * (1 - p / plant.blocked_pressure_pa), 0)
+        amplitude = np.clip((drive - plant.driver_threshold) / (1 - plant.driver_threshold), 0, 1)
+        pumped = plant.free_flow_m3_per_s * np.maximum(amplitude - p / plant.blocked_pressure_pa, 0)
+        inflow = np.where(amplitude > 0, pumped, 0)
         outflow = plant.leak_conductance_m3_per_s_per_pa * p
         volume = plant.rest_volume_m3 + plant.compliance_m3_per_pa @ p
         matrix = np.diag(volume) + (plant.atmospheric_pressure_pa + p)[:, None] * plant.compliance_m3_per_pa

@@ -2,6 +2,7 @@
 reader, the handshake check, and the generated files' freshness."""
 
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -221,3 +222,24 @@ def test_spec_validation_names_the_problem():
     spec["message"][0]["fields"].append({"name": "big", "type": "u32", "count": 20})
     with pytest.raises(ProtocolError, match="exceeds 64"):
         generate._validate(spec)
+
+
+def test_constants_reach_both_sides_and_the_spec_hash():
+    """The [constants] table is one source: the Python table and the C++ header carry the same values, a changed
+    constant changes the spec hash, and a constant that does not fit its type is refused."""
+    from phantom.protocol.messages import CONSTANTS
+
+    spec = generate.load_spec()
+    assert CONSTANTS == {name: entry["value"] for name, entry in spec["constants"].items()}
+    header = generate.HEADER_OUT.read_text()
+    for name, value in CONSTANTS.items():
+        assert re.search(rf"const \w+ {name} = (0x{value:08X}UL|{value});", header), name
+    spec["constants"]["PRESSURE_CEILING_PA"]["value"] = 6001
+    assert generate.spec_hash(spec) != SPEC_HASH
+    spec["constants"]["PRESSURE_CEILING_PA"]["value"] = 40000
+    with pytest.raises(ProtocolError, match="PRESSURE_CEILING_PA = 40000 does not fit i16"):
+        generate.constants(spec)
+    spec = generate.load_spec()
+    spec["constants"]["TICK_HZ"]["type"] = "f32"
+    with pytest.raises(ProtocolError, match="TICK_HZ type"):
+        generate.constants(spec)

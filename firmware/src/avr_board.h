@@ -1,21 +1,28 @@
 // The thin AVR layer: registers for the PWM timers, the interrupt-driven ADC, the control tick, the
-// watchdog and the reset cause. Everything else lives in core/.
+// watchdog, the reset cause, EEPROM and the status LED. Everything else lives in core/.
 #pragma once
 #include <stdint.h>
 
 #include "core/controller.h"
 
-// Timer1 (mode 14, TOP = ICR1) and Timer2 (8-bit fast PWM) compare values for drive level 1.
-const uint16_t TIMER1_TOP = 1999;  // 16 MHz / 8 / 2000 = 1 kHz PWM; every second overflow is a tick
-const uint8_t TIMER2_TOP = 0xFF;   // 16 MHz / 32 / 256 = 1.95 kHz PWM
+// All three blower channels alike: 8-bit fast PWM at 16 MHz / 256 = 62.5 kHz (Timer1 in mode 14 with
+// TOP = ICR1 = 255, Timer2 in mode 3), far above the RC filter that turns it into the blower driver's amplitude
+// input (docs/hardware.md). Compare value = drive * PWM_TOP / 65535.
+const uint8_t PWM_TOP = 0xFF;
+// The control tick: Timer0 in CTC mode, 16 MHz / 256 / (124 + 1) = 500 Hz (Timer0 is taken from the Arduino
+// core, whose millis() the firmware does not use).
+const uint8_t TICK_TIMER0_TOP = 124;
 
-// The reset cause read from MCUSR (or from Optiboot's copy in r2) before the C runtime started.
+// The reset cause: MCUSR as found before the C runtime started. A stock bootloader (Optiboot 4.4, the Mega's
+// stk500v2) clears MCUSR before the application runs: then it is UNKNOWN, unless the watchdog's interrupt left
+// its mark in RAM just before the watchdog reset the board (WATCHDOG).
 uint8_t avr_reset_cause();
 
 // Blower pins low and disconnected, PWM timers, the tick interrupt and the free-running ADC chain.
 void avr_hardware_init();
 
-// Arm the watchdog (system reset after 250 ms without a kick).
+// Arm the watchdog: after 120 ms without a kick its interrupt stops the blowers and marks RAM, and 120 ms
+// later it resets the board.
 void avr_watchdog_start();
 
 // Kick the watchdog.
@@ -30,8 +37,15 @@ bool avr_take_tick(core::AdcTick& adc, uint16_t& missed_ticks);
 // Set a chamber's drive level (0..65535 = 0..1); 0 disconnects the pin so the output is exactly off.
 void avr_set_drive(uint8_t chamber, uint16_t drive);
 
-// Drive the tick probe pin (high while the control step runs, for cycle counting on a bench).
+// The status LED on D13 (or, in a PHANTOM_PROBE build, the tick probe: high while the control step runs).
+void avr_led(bool on);
 void avr_probe(bool high);
 
-// Blowers off, interrupts off, and spin without kicking the watchdog: TEST_HANG's end.
+// The settings block in EEPROM: read it at start; write a new one a byte at a time, never waiting for the
+// EEPROM (a byte takes 3.4 ms to program), from the main loop.
+void avr_settings_read(uint8_t block[core::SETTINGS_BYTES]);
+void avr_settings_write(const uint8_t block[core::SETTINGS_BYTES]);
+void avr_settings_service();
+
+// Blowers off, and spin without kicking the watchdog (interrupts on, as in a stuck main loop): TEST_HANG's end.
 void avr_hang() __attribute__((noreturn));

@@ -8,6 +8,7 @@
 
 static core::Controller controller;
 static uint16_t applied_drive[core::CHAMBERS];
+static uint16_t saved_generation;
 
 // The core's transport: Serial's TX buffer, never blocking (a frame that does not fit is dropped).
 static bool send_frame(const uint8_t* frame, uint8_t len, void*) {
@@ -41,11 +42,23 @@ static void idle() {
     sei();
 }
 
-// Hardware up with blowers off, then the core, then the watchdog.
+// Hand a changed settings block to the EEPROM writer.
+static void save_settings() {
+    if (controller.settings_generation() == saved_generation) return;
+    saved_generation = controller.settings_generation();
+    uint8_t block[core::SETTINGS_BYTES];
+    controller.settings(block);
+    avr_settings_write(block);
+}
+
+// Hardware up with blowers off, then the core with the stored settings, then the watchdog.
 void setup() {
     avr_hardware_init();
     Serial.begin(115200);
-    controller.init(PHANTOM_BOARD, avr_reset_cause(), send_frame, 0);
+    uint8_t block[core::SETTINGS_BYTES];
+    avr_settings_read(block);
+    controller.init(PHANTOM_BOARD, avr_reset_cause(), send_frame, 0, block);
+    saved_generation = controller.settings_generation();
     avr_watchdog_start();
 }
 
@@ -60,8 +73,11 @@ void loop() {
         controller.tick(adc, missed_ticks);
         avr_probe(false);
         avr_watchdog_kick();
+        avr_led(controller.status_led_on());
+        save_settings();
     }
     apply_drives();
+    avr_settings_service();
     if (controller.hang_requested()) {
         Serial.flush();
         avr_hang();

@@ -68,7 +68,9 @@ static void check_invariants(const core::Controller& c) {
 static void fuzz_controller(const uint8_t* data, size_t size) {
     static core::Controller controller;
     controller = core::Controller();
-    controller.init(proto::BOARD_NATIVE, proto::RESET_CAUSE_POWER_ON, sink, 0);
+    // Odd-length inputs also offer their tail as a stored settings block (decoded, mostly refused as corrupt).
+    const uint8_t* stored = size % 2 && size >= core::SETTINGS_BYTES ? data + size - core::SETTINGS_BYTES : 0;
+    controller.init(proto::BOARD_NATIVE, proto::RESET_CAUSE_POWER_ON, sink, 0, stored);
     proto::Hello hello = {proto::PROTOCOL_VERSION, proto::SPEC_HASH};
     uint8_t payload[proto::Hello::PAYLOAD_SIZE];
     proto::encode(hello, payload);
@@ -82,6 +84,7 @@ static void fuzz_controller(const uint8_t* data, size_t size) {
         adc.sum[i] = (uint16_t)(4 * (size > i ? data[i] * 4 : 512));
         adc.count[i] = 4;
     }
+    adc.bandgap_counts = 225;  // 5.0 V
     for (size_t i = core::CHAMBERS; i < size; ++i) {
         controller.receive(data[i]);
         check_invariants(controller);

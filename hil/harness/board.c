@@ -1,6 +1,7 @@
 #include "board.h"
 
 #include <math.h>
+#include <string.h>
 
 #include "avr_adc.h"
 #include "sim_io.h"
@@ -61,4 +62,39 @@ void board_read_drive_levels(const avr_t *avr, double levels[PLANT_CHAMBERS])
 	levels[0] = pwm_level((data[TCCR1A] >> 6) & 3, data[OCR1AL] | (data[OCR1AL + 1] << 8), top1);
 	levels[1] = pwm_level((data[TCCR1A] >> 4) & 3, data[OCR1BL] | (data[OCR1BL + 1] << 8), top1);
 	levels[2] = pwm_level((data[TCCR2A] >> 4) & 3, data[OCR2B], 0xFF);
+}
+
+const char *const pin_mode_names[] = {"floating", "pullup", "low", "high", "pwm"};
+
+/* Data-space addresses of DDRx (PORTx is the next one) and the bit of each blower pin, and the compare-output
+   mode bits (TCCRnA address, shift) that connect it to its timer. */
+typedef struct pin_location {
+	uint16_t ddr;
+	uint8_t bit;
+	uint16_t tccr;
+	uint8_t com_shift;
+} pin_location_t;
+
+static const pin_location_t uno_pins[PLANT_CHAMBERS] = {
+	{0x24, 1, TCCR1A, 6}, {0x24, 2, TCCR1A, 4}, {0x2A, 3, TCCR2A, 4},  /* PB1, PB2, PD3 */
+};
+static const pin_location_t mega_pins[PLANT_CHAMBERS] = {
+	{0x24, 5, TCCR1A, 6}, {0x24, 6, TCCR1A, 4}, {0x101, 6, TCCR2A, 4},  /* PB5, PB6, PH6 */
+};
+
+void board_blower_pin_modes(const avr_t *avr, pin_mode_t modes[PLANT_CHAMBERS])
+{
+	const pin_location_t *pins = strcmp(avr->mmcu, "atmega2560") ? uno_pins : mega_pins;
+	const uint8_t *data = avr->data;
+	for (int i = 0; i < PLANT_CHAMBERS; i++) {
+		int output = (data[pins[i].ddr] >> pins[i].bit) & 1;
+		int high = (data[pins[i].ddr + 1] >> pins[i].bit) & 1;
+		int connected = (data[pins[i].tccr] >> pins[i].com_shift) & 3;
+		if (!output)
+			modes[i] = high ? PIN_PULLUP : PIN_FLOATING;
+		else if (connected)
+			modes[i] = PIN_PWM;
+		else
+			modes[i] = high ? PIN_HIGH : PIN_LOW;
+	}
 }

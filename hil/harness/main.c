@@ -44,8 +44,17 @@ typedef struct harness {
 	double max_lag_s;             /* the longest stall behind the clock */
 	double lost_s;                /* wall-clock time the simulation could not keep up with, in total */
 	uint64_t resets;
+	uint64_t last_reset_cycle;
 	double all_off_since_s;       /* since when every commanded drive level is 0; < 0 while one is on */
 	double last_host_byte_s;      /* when the UART last received a byte from the host; < 0 before any */
+	uint32_t control_entry;       /* byte address of the control tick (the control_tick profile region), 0 if none */
+	double reset_s;               /* when the core last started from its reset vector */
+	double control_since_s;       /* when the control tick first ran after that; < 0 before */
+	double floating_s;            /* time a blower pin spent floating between that reset and the control tick */
+	int driven_before_control;    /* a blower pin was driven high or connected to PWM before the control tick */
+	int bootloader;               /* a bootloader was loaded: the reset vector is its start */
+	double peak_pa[3];            /* each chamber's highest true pressure since the last `fault` command */
+	double nominal_supply_v;      /* the 5 V rail as the plant file gives it */
 	char line[1024];
 	size_t line_length;
 	int quit;
@@ -105,11 +114,24 @@ static void reply_state(harness_t *h)
 		snprintf(off_since, sizeof(off_since), "%.9f", h->all_off_since_s);
 	if (h->last_host_byte_s >= 0)
 		snprintf(last_byte, sizeof(last_byte), "%.9f", h->last_host_byte_s);
+	char pins[96] = "null", control_since[32] = "null", peaks[96];
+	format_triple(peaks, sizeof(peaks), h->peak_pa, 1.0);
+	if (h->avr) {
+		pin_mode_t modes[3];
+		board_blower_pin_modes(h->avr, modes);
+		snprintf(pins, sizeof(pins), "[\"%s\", \"%s\", \"%s\"]", pin_mode_names[modes[0]], pin_mode_names[modes[1]],
+		         pin_mode_names[modes[2]]);
+	}
+	if (h->control_since_s >= 0)
+		snprintf(control_since, sizeof(control_since), "%.9f", h->control_since_s);
 	reply("{\"time_s\": %.9f, \"all_off_since_s\": %s, \"last_host_byte_s\": %s, \"pressures_pa\": %s, \"drive_levels\": %s, \"effective_drive_levels\": %s, "
 	      "\"chamber_volumes_ml\": %s, \"sensor_voltages_v\": %s, \"powered\": %s, \"halted\": %s, "
-	      "\"resets\": %llu, \"max_lag_s\": %.6f, \"lost_s\": %.6f}",
+	      "\"resets\": %llu, \"max_lag_s\": %.6f, \"lost_s\": %.6f, \"blower_pins\": %s, \"reset_s\": %.9f, "
+	      "\"control_since_s\": %s, \"floating_before_control_s\": %.6f, \"driven_before_control\": %s, "
+	      "\"peak_pressures_pa\": %s}",
 	      simulated_seconds(h), off_since, last_byte, pressures, drives, actual, volumes, sensed, h->powered ? "true" : "false",
-	      h->halted ? "true" : "false", (unsigned long long)h->resets, h->max_lag_s, h->lost_s);
+	      h->halted ? "true" : "false", (unsigned long long)h->resets, h->max_lag_s, h->lost_s, pins, h->reset_s,
+	      control_since, h->floating_s, h->driven_before_control ? "true" : "false", peaks);
 }
 
 /* Answer `stats`: cycle counts of the timed functions and the serial line counters. */
@@ -143,6 +165,20 @@ static void step_plant(harness_t *h)
 	else if (h->avr)
 		h->plant.drive_level[0] = h->plant.drive_level[1] = h->plant.drive_level[2] = 0.0;
 	plant_step(&h->plant, h->plant.params.step_s);
+	if (h->avr && h->powered && !h->halted && h->control_since_s < 0) {
+		pin_mode_t modes[3];
+		board_blower_pin_modes(h->avr, modes);
+		int floating = 0;
+		for (int i = 0; i < 3; i++) {
+			floating |= modes[i] == PIN_FLOATING || modes[i] == PIN_PULLUP;
+			h->driven_before_control |= modes[i] == PIN_HIGH || modes[i] == PIN_PWM;
+		}
+		if (floating)
+			h->floating_s += h->plant.params.step_s;
+	}
+	for (int i = 0; i < 3; i++)
+		if (h->plant.pressure_pa[i] > h->peak_pa[i])
+			h->peak_pa[i] = h->plant.pressure_pa[i];
 	int any_on = h->plant.drive_level[0] > 0 || h->plant.drive_level[1] > 0 || h->plant.drive_level[2] > 0;
 	if (any_on)
 		h->all_off_since_s = -1;
@@ -173,16 +209,31 @@ static void handle_fault(harness_t *h, char **words, int count)
 {
 	double value = 0, other = 0;
 	int chamber = count > 2 ? parse_chamber(words[2]) : -1;
+	for (int i = 0; i < 3; i++)
+		h->peak_pa[i] = h->plant.pressure_pa[i];
 	const char *kind = words[1];
+	if (!strcmp(kind, "clear") && h->avr) {
+		uint32_t nominal_mv = (uint32_t)lround(h->nominal_supply_v * 1000.0);
+		h->avr->vcc = h->avr->avcc = h->avr->aref = nominal_mv;
+		h->plant.params.sensor_supply_v = h->nominal_supply_v;
+	}
 	if (!strcmp(kind, "clear")) {
 		for (int i = 0; i < 3; i++) {
 			h->plant.sensor_cut[i] = 0;
+			h->plant.tube_off[i] = 0;
 			h->plant.fault_leak_m3_per_s_per_pa[i] = 0;
 			h->plant.stuck_drive_level[i] = -1;
 		}
 		h->serial.flip_probability = h->serial.drop_probability = 0;
 	} else if (!strcmp(kind, "sensor_cut") && count == 3 && chamber >= 0) {
 		h->plant.sensor_cut[chamber] = 1;
+	} else if (!strcmp(kind, "supply") && count == 3 && h->avr && !parse_number(words[2], &value) && value >= 2.0
+	           && value <= 5.5) {
+		/* the board's 5 V rail sags: AVcc (the ADC's reference) and the sensors' supply with it */
+		h->avr->vcc = h->avr->avcc = h->avr->aref = (uint32_t)lround(value * 1000.0);
+		h->plant.params.sensor_supply_v = value;
+	} else if (!strcmp(kind, "tube_off") && count == 3 && chamber >= 0) {
+		h->plant.tube_off[chamber] = 1;
 	} else if (!strcmp(kind, "leak") && count == 4 && chamber >= 0 && !parse_number(words[3], &value) && value >= 0) {
 		h->plant.fault_leak_m3_per_s_per_pa[chamber] = value;
 	} else if (!strcmp(kind, "stuck_blower") && count == 4 && chamber >= 0 && !parse_number(words[3], &value)
@@ -193,7 +244,7 @@ static void handle_fault(harness_t *h, char **words, int count)
 		h->serial.flip_probability = value;
 		h->serial.drop_probability = other;
 	} else {
-		reply("{\"error\": \"bad fault command: use 'fault sensor_cut CH', 'fault leak CH M3_PER_S_PER_PA', "
+		reply("{\"error\": \"bad fault command: use 'fault sensor_cut CH', 'fault tube_off CH', 'fault supply VOLTS', 'fault leak CH M3_PER_S_PER_PA', "
 		      "'fault stuck_blower CH LEVEL', 'fault line_noise FLIP_PROB DROP_PROB' or 'fault clear'\"}");
 		return;
 	}
@@ -203,16 +254,86 @@ static void handle_fault(harness_t *h, char **words, int count)
 /* Data-space address of MCUSR (the reset cause), the same on the ATmega328P and the ATmega2560. */
 #define MCUSR_ADDRESS 0x54
 #define MCUSR_POWER_ON 0x01
+#define MCUSR_EXTERNAL 0x02
 
-/* Start the core as a board does when it gets power: reset, with the power-on flag in MCUSR. */
-static void power_on(harness_t *h)
+/* A new start from the reset vector (the bootloader's, if one is loaded): watch the blower pins until the
+   control tick runs. */
+static void note_reset(harness_t *h)
+{
+	h->reset_s = simulated_seconds(h);
+	h->control_since_s = -1;
+	h->floating_s = 0;
+	h->driven_before_control = 0;
+}
+
+/* Start the core with a reset flag in MCUSR: power-on as a board gets power, external as a DTR pulse does
+   (through the USB-serial chip's capacitor into RESET). */
+static void power_on_with(harness_t *h, uint8_t mcusr_flag)
 {
 	avr_reset(h->avr);
-	h->avr->data[MCUSR_ADDRESS] |= MCUSR_POWER_ON;
+	h->avr->data[MCUSR_ADDRESS] |= mcusr_flag;
+	note_reset(h);
 	h->last_core_cycle = h->avr->cycle;
 	h->powered = 1;
 	h->halted = 0;
 	profile_reset(&h->profile, h->cycle);
+}
+
+static void power_on(harness_t *h) { power_on_with(h, MCUSR_POWER_ON); }
+
+/* Load an Intel HEX image into flash (data, end of file, extended segment and linear address records; start
+   address records are ignored: a bootloader runs from the reset vector). The lowest address loaded goes to
+   *start. NULL on success, else what was wrong. (simavr's reader refuses the start segment record that
+   avr-objcopy writes into Optiboot's .hex.) */
+static const char *load_intel_hex(const char *path, uint8_t *flash, uint32_t flash_size, uint32_t *start)
+{
+	FILE *file = fopen(path, "r");
+	if (!file)
+		return strerror(errno);
+	char line[600];
+	uint32_t base = 0, lowest = UINT32_MAX;
+	const char *problem = "no end-of-file record";
+	while (fgets(line, sizeof(line), file)) {
+		unsigned count, address, type, byte, sum = 0;
+		if (line[0] != ':' || sscanf(line + 1, "%2x%4x%2x", &count, &address, &type) != 3) {
+			problem = "a line is not an Intel HEX record";
+			break;
+		}
+		uint8_t data[256];
+		for (unsigned k = 0; k <= count; k++) {
+			if (sscanf(line + 9 + 2 * k, "%2x", &byte) != 1)
+				break;
+			if (k < count)
+				data[k] = (uint8_t)byte;
+			sum += byte;
+		}
+		sum += count + (address >> 8) + (address & 0xFF) + type;
+		if (sum & 0xFF) {
+			problem = "a record's checksum is wrong";
+			break;
+		}
+		if (type == 1) {
+			problem = NULL;
+			break;
+		}
+		if (type == 2 || type == 4) {
+			base = ((uint32_t)data[0] << 8 | data[1]) << (type == 2 ? 4 : 16);
+		} else if (type == 0) {
+			uint32_t at = base + address;
+			if (at + count > flash_size) {
+				problem = "it does not fit this MCU's flash";
+				break;
+			}
+			memcpy(flash + at, data, count);
+			if (at < lowest)
+				lowest = at;
+		}
+	}
+	fclose(file);
+	if (!problem && lowest == UINT32_MAX)
+		problem = "it holds no data";
+	*start = lowest;
+	return problem;
 }
 
 /* Run one stdin command. */
@@ -248,9 +369,16 @@ static void handle_command(harness_t *h, char *line)
 			power_on(h);
 		}
 		reply("{\"ok\": true, \"pty\": \"%s\"}", h->serial.slave_path);
-	} else if (!strcmp(command, "reset") && h->avr) {
-		power_on(h);
-		reply("{\"ok\": true}");
+	} else if (!strcmp(command, "reset") && h->avr && count <= 2) {
+		if (count == 2 && !strcmp(words[1], "external"))
+			power_on_with(h, MCUSR_EXTERNAL);
+		else if (count == 1 || !strcmp(words[1], "power"))
+			power_on(h);
+		else {
+			reply("{\"error\": \"reset takes 'power' (the default) or 'external'\"}");
+			return;
+		}
+		reply("{\"ok\": true, \"time_s\": %.9f}", simulated_seconds(h));
 	} else if (!strcmp(command, "drive") && !h->avr && count == 4) {
 		for (int i = 0; i < 3; i++)
 			if (parse_number(words[i + 1], &h->plant.drive_level[i])) {
@@ -345,11 +473,18 @@ static void run_once(harness_t *h)
 		uint64_t core_cycle = h->avr->cycle;
 		h->cycle += core_cycle - h->last_core_cycle;
 		h->last_core_cycle = core_cycle;
-		if (h->avr->pc == 0) {
+		if (h->avr->pc == h->avr->reset_pc && state != cpu_Sleeping && h->cycle - h->last_reset_cycle > 4) {
 			/* the core restarted (watchdog): a function being timed never returns */
 			h->resets++;
+			h->last_reset_cycle = h->cycle;
 			profile_abort(&h->profile);
+			if (h->control_since_s >= 0)
+				note_reset(h);  /* a reset inside a bootloader's wait belongs to the start being watched */
+		} else if (h->bootloader && h->avr->pc == 0) {
+			profile_abort(&h->profile);  /* the bootloader starts the application */
 		}
+		if (h->control_since_s < 0 && h->control_entry && h->avr->pc == h->control_entry)
+			h->control_since_s = simulated_seconds(h);
 		if (h->profile.count)
 			profile_check(&h->profile, h->avr, h->cycle);
 		if (state == cpu_Done || state == cpu_Crashed) {
@@ -379,7 +514,8 @@ static void usage(const char *message)
 {
 	fprintf(stderr, "phantom-hil: %s\n"
 	        "usage: phantom-hil (--elf FIRMWARE.elf [--mcu atmega328p] [--link PATH] [--baud 115200]\n"
-	        "                    [--speed 1.0] [--profile NAME=0xADDR[:MIN_CYCLES]]... | --no-mcu)\n"
+	        "                    [--speed 1.0] [--profile NAME=0xADDR[:MIN_CYCLES]]... [--bootloader FILE.hex]\n"
+	        "                    | --no-mcu)\n"
 	        "                   [--frequency 16000000] [--seed 0] --param NAME=VALUE...\n", message);
 	exit(2);
 }
@@ -389,7 +525,7 @@ int main(int argc, char **argv)
 {
 	static harness_t harness;
 	harness_t *h = &harness;
-	const char *elf_path = NULL, *mcu = "atmega328p";
+	const char *elf_path = NULL, *mcu = "atmega328p", *bootloader_path = NULL;
 	int no_mcu = 0;
 	unsigned long long seed = 0;
 	double baud = 115200;
@@ -403,7 +539,8 @@ int main(int argc, char **argv)
 		{"link", required_argument, 0, 'l'}, {"baud", required_argument, 0, 'b'},
 		{"speed", required_argument, 0, 's'}, {"profile", required_argument, 0, 'p'},
 		{"no-mcu", no_argument, 0, 'n'}, {"frequency", required_argument, 0, 'f'},
-		{"seed", required_argument, 0, 'r'}, {"param", required_argument, 0, 'k'}, {0, 0, 0, 0},
+		{"seed", required_argument, 0, 'r'}, {"param", required_argument, 0, 'k'},
+		{"bootloader", required_argument, 0, 'B'}, {0, 0, 0, 0},
 	};
 	int option;
 	while ((option = getopt_long(argc, argv, "", options, NULL)) != -1) {
@@ -416,6 +553,7 @@ int main(int argc, char **argv)
 		case 'b': if (parse_number(optarg, &baud) || baud <= 0) usage("--baud takes a positive number"); break;
 		case 's': if (parse_number(optarg, &h->speed) || h->speed < 0) usage("--speed takes a number >= 0"); break;
 		case 'n': no_mcu = 1; break;
+		case 'B': bootloader_path = optarg; break;
 		case 'f': h->frequency_hz = strtoull(optarg, NULL, 0); break;
 		case 'r': seed = strtoull(optarg, NULL, 0); break;
 		case 'p':
@@ -478,8 +616,24 @@ int main(int argc, char **argv)
 	h->avr->log = 0;
 	h->avr->frequency = h->frequency_hz;
 	h->avr->vcc = h->avr->avcc = h->avr->aref = (uint32_t)lround(params.sensor_supply_v * 1000.0);
+	h->nominal_supply_v = params.sensor_supply_v;
 	h->avr->sleep = no_sleep;
 	avr_load_firmware(h->avr, &firmware);
+	if (bootloader_path) {
+		/* Flash the bootloader where its .hex puts it, and start from there (the BOOTRST fuse of an Arduino) */
+		uint32_t start = 0;
+		const char *problem = load_intel_hex(bootloader_path, h->avr->flash, h->avr->flashend + 1, &start);
+		if (problem) {
+			fprintf(stderr, "phantom-hil: cannot load the bootloader %s: %s\n", bootloader_path, problem);
+			return 2;
+		}
+		h->avr->reset_pc = start;
+		h->avr->codeend = h->avr->flashend;
+		h->bootloader = 1;
+	}
+	for (int k = 0; k < h->profile.count; k++)
+		if (!strcmp(h->profile.regions[k].name, "control_tick"))
+			h->control_entry = h->profile.regions[k].entry_address;
 	fflush(stdout);
 	dup2(saved_stdout, STDOUT_FILENO);
 	close(saved_stdout);

@@ -20,6 +20,7 @@ static const param_entry_t param_table[] = {
 	PARAM(compliance_m3_per_pa, 9),
 	PARAM(free_flow_m3_per_s, 3),
 	PARAM(blocked_pressure_pa, 3),
+	PARAM(driver_threshold, 3),
 	PARAM(leak_conductance_m3_per_s_per_pa, 3),
 	PARAM(sensor_supply_v, 1),
 	PARAM(sensor_gain_per_pa, 1),
@@ -89,6 +90,8 @@ const char *plant_check_params(const plant_params_t *params)
 			return "rest_volume_m3 must be positive";
 		if (params->free_flow_m3_per_s[i] < 0 || !(params->blocked_pressure_pa[i] > 0))
 			return "free_flow_m3_per_s must not be negative and blocked_pressure_pa must be positive";
+		if (!(params->driver_threshold[i] >= 0 && params->driver_threshold[i] < 1))
+			return "driver_threshold must be in [0, 1)";
 		if (params->leak_conductance_m3_per_s_per_pa[i] < 0)
 			return "leak_conductance_m3_per_s_per_pa must not be negative";
 		if (!(params->compliance_m3_per_pa[i][i] >= 0))
@@ -136,6 +139,25 @@ double plant_effective_drive(const plant_t *plant, int chamber)
 	return level < 0 ? 0 : (level > 1 ? 1 : level);
 }
 
+/*
+ * The blower through its driver (docs/hardware.md): the 62.5 kHz PWM, RC-filtered (its 1 ms lag is neglected
+ * beside the chambers' time constants of 0.3 s and more), sets the amplitude of the driver's resonant drive,
+ * which starts at driver_threshold: amplitude a = (u - u0) / (1 - u0) in [0, 1]. A piezo diaphragm's stroke
+ * follows its drive amplitude, so both the free flow and the blocked pressure scale with a:
+ * Q = Q_max a (1 - p / (p_blocked a)) = Q_max (a - p / p_blocked), never negative (a valveless blower that
+ * is outpushed leaks back, which the back-leak term carries).
+ */
+double plant_blower_flow_m3_per_s(const plant_t *plant, int chamber, double pressure_pa)
+{
+	const plant_params_t *k = &plant->params;
+	double threshold = k->driver_threshold[chamber];
+	double amplitude = (plant_effective_drive(plant, chamber) - threshold) / (1.0 - threshold);
+	if (amplitude <= 0)
+		return 0.0;
+	double flow_m3_per_s = k->free_flow_m3_per_s[chamber] * (amplitude - pressure_pa / k->blocked_pressure_pa[chamber]);
+	return flow_m3_per_s > 0 ? flow_m3_per_s : 0.0;
+}
+
 /* Solve the 3x3 system a x = b by Gaussian elimination with partial pivoting. */
 static void solve3(double a[3][3], double b[3], double x[3])
 {
@@ -179,10 +201,7 @@ void plant_pressure_rate(const plant_t *plant, const double p_pa[PLANT_CHAMBERS]
 		for (int j = 0; j < PLANT_CHAMBERS; j++)
 			matrix[i][j] = (k->atmospheric_pressure_pa + p_pa[i]) * k->compliance_m3_per_pa[i][j];
 		matrix[i][i] += volume_m3;
-		double blower_m3_per_s = k->free_flow_m3_per_s[i] * plant_effective_drive(plant, i)
-		                         * (1.0 - p_pa[i] / k->blocked_pressure_pa[i]);
-		if (blower_m3_per_s < 0)
-			blower_m3_per_s = 0;
+		double blower_m3_per_s = plant_blower_flow_m3_per_s(plant, i, p_pa[i]);
 		double leak_m3_per_s = (k->leak_conductance_m3_per_s_per_pa[i] + plant->fault_leak_m3_per_s_per_pa[i]) * p_pa[i];
 		rhs[i] = k->atmospheric_pressure_pa * (blower_m3_per_s - leak_m3_per_s);
 	}
@@ -204,7 +223,8 @@ void plant_step(plant_t *plant, double dt_s)
 	double blend = tau_s > 0 ? 1.0 - exp(-dt_s / tau_s) : 1.0;
 	for (int i = 0; i < 3; i++) {
 		plant->pressure_pa[i] += dt_s * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i]) / 6.0;
-		plant->sensed_pressure_pa[i] += blend * (plant->pressure_pa[i] - plant->sensed_pressure_pa[i]);
+		double at_port_pa = plant->tube_off[i] ? 0.0 : plant->pressure_pa[i];
+		plant->sensed_pressure_pa[i] += blend * (at_port_pa - plant->sensed_pressure_pa[i]);
 	}
 	plant->time_s += dt_s;
 }

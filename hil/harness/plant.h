@@ -13,6 +13,7 @@ typedef struct plant_params {
 	double compliance_m3_per_pa[PLANT_CHAMBERS][PLANT_CHAMBERS];
 	double free_flow_m3_per_s[PLANT_CHAMBERS];
 	double blocked_pressure_pa[PLANT_CHAMBERS];
+	double driver_threshold[PLANT_CHAMBERS];     /* drive level below which the blower's driver does not run */
 	double leak_conductance_m3_per_s_per_pa[PLANT_CHAMBERS];
 	double sensor_supply_v;
 	double sensor_gain_per_pa;        /* MPXV7025G: 0.018 per kPa, as a fraction of the supply */
@@ -32,6 +33,7 @@ typedef struct plant {
 	double stuck_drive_level[PLANT_CHAMBERS];    /* < 0: not stuck */
 	double fault_leak_m3_per_s_per_pa[PLANT_CHAMBERS];
 	int sensor_cut[PLANT_CHAMBERS];
+	int tube_off[PLANT_CHAMBERS];                /* the sensor's tube is off: it reads the room, not the chamber */
 	uint64_t rng_state;
 } plant_t;
 
@@ -58,6 +60,9 @@ void plant_chamber_volumes(const plant_t *plant, double volumes_m3[PLANT_CHAMBER
 
 /* The sensor's output voltage (V) for one chamber, with noise, offset and a cut wire. */
 double plant_sensor_voltage(plant_t *plant, int chamber);
+
+/* Air a blower delivers (m^3/s at atmospheric conditions) against a gauge pressure, for its drive level. */
+double plant_blower_flow_m3_per_s(const plant_t *plant, int chamber, double pressure_pa);
 
 /* The drive level the blower actually sees (stuck or commanded). */
 double plant_effective_drive(const plant_t *plant, int chamber);

@@ -6,17 +6,30 @@ namespace core {
 
 using namespace proto;
 
-// Safe start: every chamber off with default gains and the nominal sensor zero.
-void Controller::init(uint8_t board, uint8_t reset_cause, SendFrame send, void* context) {
+// Safe start: every chamber off, with the stored settings when a good block is given, else the defaults and
+// the nominal sensor zero.
+void Controller::init(uint8_t board, uint8_t reset_cause, SendFrame send, void* context, const uint8_t* stored) {
     board_ = board;
     reset_cause_ = reset_cause;
     send_frame_ = send;
     send_context_ = context;
+    Settings settings;
     PidGains gains = {DEFAULT_KP_PER_KPA, DEFAULT_KI_PER_KPA_S, DEFAULT_KD_S_PER_KPA, 65535};
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
-        pid_[i].init(gains);
+        settings.zero_x16[i] = 0;
+        settings.gains[i] = gains;
+        settings.max_pressure_pa[i] = DEFAULT_MAX_PRESSURE_PA;
+    }
+    config_source_ = stored ? settings_decode(stored, settings) : (uint8_t)CONFIG_SOURCE_DEFAULTS;
+    for (uint8_t i = 0; i < CHAMBERS; ++i) {
+        pid_[i].init(settings.gains[i]);
+        max_pressure_pa_[i] = settings.max_pressure_pa[i];
         zero_x16_[i] = NOMINAL_ZERO_X16;
-        counts_x16_[i] = NOMINAL_ZERO_X16;
+        ceiling_zero_x16_[i] = NOMINAL_ZERO_X16 - ZERO_MAX_OFFSET_X16;  // the worst part the datasheet allows
+        zero_source_[i] = ZERO_SOURCE_NOMINAL;
+        if (settings.zero_x16[i]) accept_zero(i, settings.zero_x16[i], ZERO_SOURCE_STORED);
+        counts_x16_[i] = zero_x16_[i];
+        settle_ref_x16_[i] = zero_x16_[i];
     }
     if (reset_cause == RESET_CAUSE_WATCHDOG) latch_fault(FAULT_WATCHDOG_RESET);
 }
@@ -51,6 +64,8 @@ void Controller::handle_frame() {
     }
     if (id == MSG_VENT) return on_vent(seq);
     if (!session_open_) return reply(id, seq, STATUS_NO_SESSION);
+    if (reply_cached_ && id == cached_msg_id_ && seq == cached_seq_) return reply(id, seq, cached_status_);
+    if (zero_ticks_left_ && zero_by_host_ && id == MSG_ZERO_SENSORS && seq == zero_seq_) return;  // ACK comes
     switch (id) {
     case MSG_SET_SETPOINTS: return on_set_setpoints(seq, payload);
     case MSG_SET_PID: return on_set_pid(seq, payload);
@@ -69,6 +84,7 @@ void Controller::on_hello(const uint8_t* payload) {
     decode(hello, payload);
     bool match = hello.spec_hash == SPEC_HASH && hello.protocol_version == PROTOCOL_VERSION;
     session_open_ = match;
+    reply_cached_ = false;  // a new session numbers its commands afresh
     if (!match) vent();
     last_telemetry_ms_ = time_ms_;
     HelloReply reply_msg;
@@ -86,12 +102,27 @@ void Controller::on_hello(const uint8_t* payload) {
     uint8_t out[HelloReply::PAYLOAD_SIZE];
     encode(reply_msg, out);
     send(MSG_HELLO_REPLY, out, sizeof out);
+    if (match) send_board_info();
+}
+
+// What HELLO_REPLY's fixed layout cannot carry: where the settings and the zeros came from, and the supply.
+void Controller::send_board_info() {
+    BoardInfo info;
+    info.config_source = config_source_;
+    for (uint8_t i = 0; i < CHAMBERS; ++i) {
+        info.zero_source[i] = zero_source_[i];
+        info.zero_offset_pa[i] = sensor_x16_to_pa(zero_x16_[i], NOMINAL_ZERO_X16);
+    }
+    info.supply_mv = supply_mv();
+    uint8_t out[BoardInfo::PAYLOAD_SIZE];
+    encode(info, out);
+    send(MSG_BOARD_INFO, out, sizeof out);
 }
 
 // Absolute setpoints for all chambers, all or nothing; a chamber switched on starts its PID from rest.
 void Controller::on_set_setpoints(uint8_t seq, const uint8_t* payload) {
     if (fault_flags_) return reply(MSG_SET_SETPOINTS, seq, STATUS_FAULT_LATCHED);
-    if (zero_ticks_left_) return reply(MSG_SET_SETPOINTS, seq, STATUS_BUSY);
+    if (zero_ticks_left_ && zero_by_host_) return reply(MSG_SET_SETPOINTS, seq, STATUS_BUSY);
     SetSetpoints msg;
     decode(msg, payload);
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
@@ -100,6 +131,10 @@ void Controller::on_set_setpoints(uint8_t seq, const uint8_t* payload) {
     }
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
         if (setpoint_pa_[i] == 0 && msg.setpoint_pa[i] > 0) pid_[i].reset(pressure_pa_[i]);
+        if (msg.setpoint_pa[i] > 0) {
+            boot_zero_pending_ = false;  // the host has taken over the chambers: no zero of its own now
+            zero_ticks_left_ = 0;
+        }
         setpoint_pa_[i] = msg.setpoint_pa[i];
     }
     reply(MSG_SET_SETPOINTS, seq, STATUS_OK);
@@ -116,6 +151,7 @@ void Controller::on_set_pid(uint8_t seq, const uint8_t* payload) {
     if (setpoint_pa_[msg.chamber] > limit) return reply(MSG_SET_PID, seq, STATUS_BAD_VALUE);
     pid_[msg.chamber].set_gains(gains);
     max_pressure_pa_[msg.chamber] = limit;
+    ++settings_generation_;
     reply(MSG_SET_PID, seq, limit == msg.max_pressure_pa ? STATUS_OK : STATUS_CLAMPED);
 }
 
@@ -145,21 +181,34 @@ void Controller::on_vent(uint8_t seq) {
     reply(MSG_VENT, seq, STATUS_OK);
 }
 
-// Start averaging each sensor's zero; the ACK (or NACK) comes when it is done.
+// Start averaging each sensor's zero, but only on chambers that have been vented and still long enough; the
+// ACK (or NACK) comes when it is done.
 void Controller::on_zero_sensors(uint8_t seq) {
     if (fault_flags_) return reply(MSG_ZERO_SENSORS, seq, STATUS_FAULT_LATCHED);
     if (zero_ticks_left_) return reply(MSG_ZERO_SENSORS, seq, STATUS_BUSY);
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
         if (setpoint_pa_[i] != 0 || drive_[i] != 0) return reply(MSG_ZERO_SENSORS, seq, STATUS_NOT_VENTED);
     }
+    if (settled_ticks_ < ZERO_SETTLE_TICKS) return reply(MSG_ZERO_SENSORS, seq, STATUS_NOT_SETTLED);
+    start_zeroing(true, seq);
+}
+
+void Controller::start_zeroing(bool by_host, uint8_t seq) {
+    zero_by_host_ = by_host;
     zero_ticks_left_ = ZERO_TICKS;
     zero_seq_ = seq;
     for (uint8_t i = 0; i < CHAMBERS; ++i) zero_sum_x16_[i] = 0;
 }
 
 // Bench-only hang: acknowledged first, then the AVR layer stops kicking the watchdog.
+// A production build has no TEST_HANG: every magic is a bad one.
 void Controller::on_test_hang(uint8_t seq, const uint8_t* payload) {
-    if (get_u32(payload) != TEST_HANG_MAGIC) return reply(MSG_TEST_HANG, seq, STATUS_BAD_MAGIC);
+#ifdef PHANTOM_BENCH
+    bool bench_build = true;
+#else
+    bool bench_build = false;
+#endif
+    if (!bench_build || get_u32(payload) != TEST_HANG_MAGIC) return reply(MSG_TEST_HANG, seq, STATUS_BAD_MAGIC);
     vent();
     reply(MSG_TEST_HANG, seq, STATUS_OK);
     hang_requested_ = true;
@@ -170,33 +219,69 @@ void Controller::tick(const AdcTick& adc, uint16_t missed_ticks) {
     time_ms_ += (uint32_t)TICK_MS * (1u + missed_ticks);
     tick_overruns_ = (uint16_t)(tick_overruns_ + missed_ticks);
     read_sensors(adc);
+    check_supply(adc.bandgap_counts);
     check_safety();
+    track_settling();
+    if (boot_zero_pending_ && !zero_ticks_left_ && settled_ticks_ >= ZERO_SETTLE_TICKS) start_zeroing(false, 0);
     if (zero_ticks_left_) run_zeroing();
     run_control();
     send_telemetry();
 }
 
-// Average this tick's ADC conversions; a chamber without a new conversion keeps its last reading.
+// Average this tick's ADC conversions; a chamber without a new conversion keeps its last reading, marked
+// stalled (a bad sample: it drives nothing and counts towards SENSOR_n).
 void Controller::read_sensors(const AdcTick& adc) {
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
-        if (adc.count[i] == 0) continue;
+        stalled_[i] = adc.count[i] == 0;
+        if (stalled_[i]) continue;
         counts_x16_[i] = sensor_average_x16(adc.sum[i], adc.count[i]);
         pressure_pa_[i] = sensor_x16_to_pa(counts_x16_[i], zero_x16_[i]);
     }
 }
 
+// The smallest reading above the ceiling zero that sensor_x16_to_pa turns into more than PRESSURE_CEILING_PA:
+// the ceiling compared in counts, without a multiplication per chamber and tick.
+static const int16_t CEILING_X16 =
+    (int16_t)(((int32_t)(PRESSURE_CEILING_PA + 1) * 4096 - 2048 + PA_PER_COUNT_X16_Q12 - 1) / PA_PER_COUNT_X16_Q12);
+
+bool Controller::above_ceiling(uint8_t chamber) const {
+    return counts_x16_[chamber] - ceiling_zero_x16_[chamber] >= CEILING_X16;
+}
+
+// AVcc from the 1.1 V reference read against it (counts = 1100 mV * 1024 / AVcc): the supply is below
+// SUPPLY_MIN_MV when the count is above 1100 * 1024 / SUPPLY_MIN_MV. SUPPLY_BAD_TICKS measured ticks in a row
+// below it latch SUPPLY. A tick without a measurement neither counts nor resets.
+static const uint16_t SUPPLY_MAX_BANDGAP_COUNTS = (uint16_t)(1126400UL / SUPPLY_MIN_MV);
+
+uint16_t Controller::supply_mv() const {
+    return bandgap_counts_ ? (uint16_t)(1126400UL / bandgap_counts_) : 0;
+}
+void Controller::check_supply(uint16_t bandgap_counts) {
+    if (bandgap_counts == 0) return;
+    bandgap_counts_ = bandgap_counts;
+    if (bandgap_counts <= SUPPLY_MAX_BANDGAP_COUNTS) {  // a comparison, not a 32-bit division, every tick
+        supply_low_ticks_ = 0;
+        return;
+    }
+    if (supply_low_ticks_ < SUPPLY_BAD_TICKS) ++supply_low_ticks_;
+    if (supply_low_ticks_ >= SUPPLY_BAD_TICKS) latch_fault(FAULT_SUPPLY);
+}
+
 // Sensor band (several ticks in a row), over-pressure and leak (on a valid reading), the dead-host deadline.
 void Controller::check_safety() {
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
-        if (!sensor_in_range(counts_x16_[i])) {
+        if (stalled_[i] || !sensor_in_range(counts_x16_[i])) {
             if (bad_ticks_[i] < SENSOR_BAD_TICKS) ++bad_ticks_[i];
             if (bad_ticks_[i] >= SENSOR_BAD_TICKS) latch_fault((uint8_t)(FAULT_SENSOR_0 + i));
             leak_ticks_[i] = 0;
+            implausible_ticks_[i] = 0;
             continue;
         }
         bad_ticks_[i] = 0;
-        if (pressure_pa_[i] > max_pressure_pa_[i]) latch_fault((uint8_t)(FAULT_OVERPRESSURE_0 + i));
+        if (pressure_pa_[i] > max_pressure_pa_[i] || above_ceiling(i))
+            latch_fault((uint8_t)(FAULT_OVERPRESSURE_0 + i));
         check_leak(i);
+        check_plausible(i);
     }
     if (session_open_ && time_ms_ - last_rx_ms_ > host_deadline_ms_) latch_fault(FAULT_DEAD_HOST);
 }
@@ -218,7 +303,58 @@ void Controller::check_leak(uint8_t chamber) {
     latch_fault((uint8_t)(FAULT_LEAK_0 + chamber));
 }
 
-// Accumulate the zero readings; at the end store them all, or refuse them all if one is implausible.
+// A chamber whose reading does not respond to its blower: at least PLAUSIBLE_MIN_DRIVE while it reads more than
+// LEAK_MIN_ERROR_PA below its setpoint, and in PLAUSIBLE_TICKS of that the reading never rose
+// PLAUSIBLE_MIN_CHANGE_PA above its lowest since the push began. Its sensor does not see the chamber (a tube off,
+// a stuck sensor), or the chamber is open to the air: either way the blower cannot raise the reading. A push
+// whose reading has risen is left to the leak rule (can rise, cannot reach or hold) until it ends.
+void Controller::check_plausible(uint8_t chamber) {
+    static const uint16_t RESPONDED = 0xFFFF;
+    int16_t setpoint_pa = setpoint_pa_[chamber];
+    int16_t pressure_pa = pressure_pa_[chamber];
+    bool pushing = setpoint_pa > 0 && drive_[chamber] >= PLAUSIBLE_MIN_DRIVE &&
+                   pressure_pa < setpoint_pa - LEAK_MIN_ERROR_PA;
+    uint16_t& ticks = implausible_ticks_[chamber];
+    if (!pushing) {
+        ticks = 0;
+        return;
+    }
+    if (ticks == 0) {
+        implausible_ref_pa_[chamber] = pressure_pa;
+        ticks = 1;
+        return;
+    }
+    if (ticks == RESPONDED) return;
+    if (pressure_pa < implausible_ref_pa_[chamber]) implausible_ref_pa_[chamber] = pressure_pa;
+    if (pressure_pa - implausible_ref_pa_[chamber] >= PLAUSIBLE_MIN_CHANGE_PA) {
+        ticks = RESPONDED;
+        return;
+    }
+    if (++ticks < PLAUSIBLE_TICKS) return;
+    ticks = 0;
+    latch_fault((uint8_t)(FAULT_IMPLAUSIBLE_0 + chamber));
+}
+
+// Count the ticks every blower has been off and every reading within ZERO_STABLE_X16 of where the count began.
+void Controller::track_settling() {
+    bool still = true;
+    for (uint8_t i = 0; i < CHAMBERS; ++i) {
+        int16_t moved = (int16_t)(counts_x16_[i] - settle_ref_x16_[i]);
+        if (drive_[i] != 0 || setpoint_pa_[i] != 0 || bad_ticks_[i] || moved > ZERO_STABLE_X16 ||
+            moved < -ZERO_STABLE_X16)
+            still = false;
+    }
+    if (still) {
+        if (settled_ticks_ < 0xFFFF) ++settled_ticks_;
+        return;
+    }
+    settled_ticks_ = 0;
+    for (uint8_t i = 0; i < CHAMBERS; ++i) settle_ref_x16_[i] = counts_x16_[i];
+    if (zero_ticks_left_) end_zeroing(STATUS_NOT_SETTLED);
+}
+
+// Accumulate the zero readings; at the end store them all, or refuse them all if one is out of the datasheet's
+// offset tolerance.
 void Controller::run_zeroing() {
     for (uint8_t i = 0; i < CHAMBERS; ++i) zero_sum_x16_[i] += counts_x16_[i];
     if (--zero_ticks_left_) return;
@@ -226,14 +362,35 @@ void Controller::run_zeroing() {
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
         zero[i] = (int16_t)((zero_sum_x16_[i] + ZERO_TICKS / 2) / ZERO_TICKS);
         int16_t offset = (int16_t)(zero[i] - NOMINAL_ZERO_X16);
-        if (offset > ZERO_MAX_OFFSET_X16 || offset < -ZERO_MAX_OFFSET_X16)
-            return reply(MSG_ZERO_SENSORS, zero_seq_, STATUS_ZERO_OUT_OF_RANGE);
+        if (offset > ZERO_MAX_OFFSET_X16 || offset < -ZERO_MAX_OFFSET_X16) return end_zeroing(STATUS_ZERO_OUT_OF_RANGE);
     }
-    for (uint8_t i = 0; i < CHAMBERS; ++i) {
-        zero_x16_[i] = zero[i];
-        pressure_pa_[i] = sensor_x16_to_pa(counts_x16_[i], zero_x16_[i]);
-    }
-    reply(MSG_ZERO_SENSORS, zero_seq_, STATUS_OK);
+    uint8_t source = zero_by_host_ ? ZERO_SOURCE_HOST : ZERO_SOURCE_BOOT;
+    for (uint8_t i = 0; i < CHAMBERS; ++i) accept_zero(i, zero[i], source);
+    ++settings_generation_;
+    end_zeroing(STATUS_OK);
+}
+
+// Stop a zero measurement; the host hears how it ended if it asked for it. A boot zero that ends on anything
+// but OK is tried again once the readings settle (unless a setpoint came first).
+void Controller::end_zeroing(uint8_t status) {
+    zero_ticks_left_ = 0;
+    if (status == STATUS_OK) boot_zero_pending_ = false;
+    if (zero_by_host_) reply(MSG_ZERO_SENSORS, zero_seq_, status);
+}
+
+// Use a zero. The over-pressure ceiling is checked against a zero that no later zero can raise: until the board
+// has measured its own zero at start-up (blowers off since reset, readings stable), the lowest the datasheet
+// allows; from then on the lowest of that, the nominal zero and every zero since. A zero taken with air left in a
+// chamber (which reads high) can then only make the ceiling trip earlier, never later.
+void Controller::accept_zero(uint8_t chamber, int16_t zero_x16, uint8_t source) {
+    zero_x16_[chamber] = zero_x16;
+    zero_source_[chamber] = source;
+    int16_t& ceiling_zero = ceiling_zero_x16_[chamber];
+    if (source == ZERO_SOURCE_BOOT && ceiling_zero == NOMINAL_ZERO_X16 - ZERO_MAX_OFFSET_X16)
+        ceiling_zero = zero_x16 < NOMINAL_ZERO_X16 ? zero_x16 : NOMINAL_ZERO_X16;
+    else if (zero_x16 < ceiling_zero)
+        ceiling_zero = zero_x16;
+    pressure_pa_[chamber] = sensor_x16_to_pa(counts_x16_[chamber], zero_x16_[chamber]);
 }
 
 // Run each chamber's PID; a chamber that is off, faulted or has a suspect reading gets no drive.
@@ -280,10 +437,7 @@ void Controller::latch_fault(uint8_t bit) {
     bool new_fault = !(fault_flags_ & mask);
     fault_flags_ |= mask;
     vent();
-    if (zero_ticks_left_) {
-        zero_ticks_left_ = 0;
-        reply(MSG_ZERO_SENSORS, zero_seq_, STATUS_FAULT_LATCHED);
-    }
+    if (zero_ticks_left_) end_zeroing(STATUS_FAULT_LATCHED);
     if (!new_fault) return;
     Fault msg;
     msg.time_ms = time_ms_;
@@ -300,10 +454,10 @@ void Controller::latch_fault(uint8_t bit) {
 // when the host re-inflates).
 bool Controller::fault_cause_present() const {
     for (uint8_t i = 0; i < CHAMBERS; ++i) {
-        if (!sensor_in_range(counts_x16_[i])) return true;
-        if (pressure_pa_[i] > max_pressure_pa_[i]) return true;
+        if (stalled_[i] || !sensor_in_range(counts_x16_[i])) return true;
+        if (pressure_pa_[i] > max_pressure_pa_[i] || above_ceiling(i)) return true;
     }
-    return false;
+    return supply_low_ticks_ != 0;
 }
 
 // Setpoints to 0 and every blower disconnected at once (not waiting for the next tick).
@@ -322,13 +476,61 @@ void Controller::send(uint8_t msg_id, const uint8_t* payload, uint8_t payload_le
     if (!send_frame_ || !send_frame_(frame, len, send_context_)) ++tx_dropped_;
 }
 
-// ACK for OK and CLAMPED, NACK for every other status.
+// ACK for OK and CLAMPED, NACK for every other status; remembered for a retransmission of the same command.
 void Controller::reply(uint8_t ref_msg_id, uint8_t ref_seq, uint8_t status) {
+    reply_cached_ = true;
+    cached_msg_id_ = ref_msg_id;
+    cached_seq_ = ref_seq;
+    cached_status_ = status;
     uint8_t out[Ack::PAYLOAD_SIZE];
     out[0] = ref_msg_id;
     out[1] = ref_seq;
     out[2] = status;
     send(status <= STATUS_CLAMPED ? MSG_ACK : MSG_NACK, out, sizeof out);
+}
+
+}  // namespace core
+
+namespace core {
+
+// The persistent settings as they are now.
+void Controller::settings(uint8_t out[SETTINGS_BYTES]) const {
+    Settings s;
+    for (uint8_t i = 0; i < CHAMBERS; ++i) {
+        s.zero_x16[i] = zero_source_[i] == ZERO_SOURCE_NOMINAL ? 0 : zero_x16_[i];
+        s.gains[i] = pid_[i].gains();
+        s.max_pressure_pa[i] = max_pressure_pa_[i];
+    }
+    settings_encode(s, out);
+}
+
+// Blink codes, counted by a person: 1 over-pressure, 2 sensor, 3 implausible reading, 4 leak, 5 dead host,
+// 6 watchdog reset, 7 supply; the first in this order that is latched.
+uint8_t Controller::fault_blink_code(uint16_t fault_flags) {
+    static const uint16_t groups[] = {
+        (1u << FAULT_OVERPRESSURE_0) | (1u << FAULT_OVERPRESSURE_1) | (1u << FAULT_OVERPRESSURE_2),
+        (1u << FAULT_SENSOR_0) | (1u << FAULT_SENSOR_1) | (1u << FAULT_SENSOR_2),
+        (1u << FAULT_IMPLAUSIBLE_0) | (1u << FAULT_IMPLAUSIBLE_1) | (1u << FAULT_IMPLAUSIBLE_2),
+        (1u << FAULT_LEAK_0) | (1u << FAULT_LEAK_1) | (1u << FAULT_LEAK_2),
+        1u << FAULT_DEAD_HOST,
+        1u << FAULT_WATCHDOG_RESET,
+        1u << FAULT_SUPPLY,
+    };
+    for (uint8_t k = 0; k < sizeof groups / sizeof groups[0]; ++k)
+        if (fault_flags & groups[k]) return (uint8_t)(k + 1);
+    return 0;
+}
+
+// Fault: `code` blinks of 200 ms on / 200 ms off, then dark until the 2.5 s cycle restarts. No fault: on with
+// a session, else a 50 ms blink each second (the firmware runs).
+bool Controller::status_led_on() const {
+    uint8_t code = fault_blink_code(fault_flags_);
+    if (code) {
+        uint16_t phase_ms = (uint16_t)(time_ms_ % 2500u);
+        return phase_ms < 400u * code && phase_ms % 400u < 200u;
+    }
+    if (session_open_) return true;
+    return time_ms_ % 1000u < 50u;
 }
 
 }  // namespace core

@@ -7,23 +7,27 @@
 #include "frame.h"
 #include "pid.h"
 #include "protocol_generated.h"
+#include "settings.h"
 
 namespace core {
 
 // Sends one whole wire frame; returns false when there is no room for it now (the frame is then dropped).
 typedef bool (*SendFrame)(const uint8_t* frame, uint8_t len, void* context);
 
-// ADC readings gathered during one tick: the sum of `count` conversions per chamber.
+// ADC readings gathered during one tick: the sum of `count` conversions per chamber (a count of 0 is a stalled
+// ADC), and one conversion of the internal 1.1 V reference against AVcc (0 when none was taken this tick).
 struct AdcTick {
     uint16_t sum[CHAMBERS];
     uint8_t count[CHAMBERS];
+    uint16_t bandgap_counts;
 };
 
 class Controller {
 public:
-    // Start a freshly constructed controller in the safe state: blowers off, no session, default gains;
-    // a watchdog reset latches its fault at once.
-    void init(uint8_t board, uint8_t reset_cause, SendFrame send, void* context);
+    // Start a freshly constructed controller in the safe state: blowers off, no session, the stored settings
+    // (a block of SETTINGS_BYTES read from EEPROM, or 0 for none) or the defaults; a watchdog reset latches
+    // its fault at once.
+    void init(uint8_t board, uint8_t reset_cause, SendFrame send, void* context, const uint8_t* stored = 0);
 
     // Take one received byte; a completed valid frame is acted on at once.
     void receive(uint8_t byte);
@@ -48,6 +52,17 @@ public:
     const Pid& pid(uint8_t chamber) const { return pid_[chamber]; }
     const FrameReader& reader() const { return reader_; }
     uint16_t tx_dropped() const { return tx_dropped_; }
+    uint8_t config_source() const { return config_source_; }
+    uint8_t zero_source(uint8_t chamber) const { return zero_source_[chamber]; }
+    int16_t ceiling_zero_x16(uint8_t chamber) const { return ceiling_zero_x16_[chamber]; }
+    uint16_t supply_mv() const;
+    // Bumped whenever a persistent setting changes; the AVR layer writes settings() to EEPROM when it moves.
+    uint16_t settings_generation() const { return settings_generation_; }
+    void settings(uint8_t out[SETTINGS_BYTES]) const;
+    // The status LED: a short blink each second when idle, on while a session is open, and with a fault
+    // latched a blink code (fault_blink_code) repeated every 2.5 s.
+    bool status_led_on() const;
+    static uint8_t fault_blink_code(uint16_t fault_flags);
 
 private:
     void handle_frame();
@@ -61,9 +76,17 @@ private:
     void on_test_hang(uint8_t seq, const uint8_t* payload);
 
     void read_sensors(const AdcTick& adc);
+    void check_supply(uint16_t bandgap_counts);
     void check_safety();
     void check_leak(uint8_t chamber);
+    void check_plausible(uint8_t chamber);
+    bool above_ceiling(uint8_t chamber) const;
+    void track_settling();
+    void start_zeroing(bool by_host, uint8_t seq);
     void run_zeroing();
+    void end_zeroing(uint8_t status);
+    void accept_zero(uint8_t chamber, int16_t zero_x16, uint8_t source);
+    void send_board_info();
     void run_control();
     void send_telemetry();
 
@@ -74,6 +97,8 @@ private:
     void reply(uint8_t ref_msg_id, uint8_t ref_seq, uint8_t status);
 
     FrameReader reader_;
+    uint8_t config_source_ = proto::CONFIG_SOURCE_DEFAULTS;
+    uint16_t settings_generation_ = 0;
     Pid pid_[CHAMBERS];
     SendFrame send_frame_ = 0;
     void* send_context_ = 0;
@@ -101,9 +126,30 @@ private:
     uint16_t leak_ticks_[CHAMBERS] = {0, 0, 0};  // ticks in a row at the drive ceiling and far below the setpoint
     uint16_t drive_[CHAMBERS] = {0, 0, 0};
 
-    uint8_t zero_ticks_left_ = 0;  // > 0 while ZERO_SENSORS runs
+    bool stalled_[CHAMBERS] = {false, false, false};  // no conversion in the last tick
+    uint16_t implausible_ticks_[CHAMBERS] = {0, 0, 0};  // ticks in a row under high drive, starved
+    int16_t implausible_ref_pa_[CHAMBERS] = {0, 0, 0};  // the lowest reading since that run began
+    uint16_t bandgap_counts_ = 0;  // the latest measurement of the 1.1 V reference (0: none yet)
+    uint8_t supply_low_ticks_ = 0;
+
+    // Zero: the readings must have stayed within ZERO_STABLE_X16 of settle_ref_x16_ with every blower off for
+    // settled_ticks_; ceiling_zero_x16_ is what the ceiling is checked against (accept_zero).
+    uint16_t settled_ticks_ = 0;
+    int16_t settle_ref_x16_[CHAMBERS] = {0, 0, 0};
+    int16_t ceiling_zero_x16_[CHAMBERS] = {0, 0, 0};
+    uint8_t zero_source_[CHAMBERS] = {0, 0, 0};
+    bool boot_zero_pending_ = true;  // until the first measured zero or the first setpoint
+    bool zero_by_host_ = false;
+    uint8_t zero_ticks_left_ = 0;  // > 0 while a zero is measured
     uint8_t zero_seq_ = 0;
     int32_t zero_sum_x16_[CHAMBERS] = {0, 0, 0};
+
+    // The last acknowledged command's id, seq and status: the same id and seq again is a retransmission,
+    // answered from here and not executed twice.
+    bool reply_cached_ = false;
+    uint8_t cached_msg_id_ = 0;
+    uint8_t cached_seq_ = 0;
+    uint8_t cached_status_ = 0;
 };
 
 }  // namespace core

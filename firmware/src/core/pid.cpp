@@ -51,6 +51,7 @@ void Pid::set_gains(const PidGains& gains) {
     ki_ = scale(gains.ki_per_kpa_s * 1e-3f * sample_time_s);
     kd_ = scale(gains.kd_s_per_kpa * 1e-3f / sample_time_s);
     max_drive_q28_ = (int32_t)gains.max_drive << 12;
+    if (!kd_.gain_q28) derivative_q28_ = 0;  // no derivative gain, no derivative term (else it would freeze)
     int32_t new_proportional = product(kp_, last_error_pa_);
     integral_q28_ = clamp(integral_q28_ + old_proportional - new_proportional, 0, max_drive_q28_);
 }

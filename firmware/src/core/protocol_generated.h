@@ -6,9 +6,32 @@
 namespace proto {
 
 const uint16_t PROTOCOL_VERSION = 1;
-const uint32_t SPEC_HASH = 0xDB551DA4UL;
+const uint32_t SPEC_HASH = 0x773B91D2UL;
 const uint8_t MAX_BODY_BYTES = 64;
 const uint8_t CHAMBER_COUNT = 3;
+
+const uint16_t TICK_HZ = 500;  // control rate [Hz]
+const int16_t PRESSURE_CEILING_PA = 6000;  // over-pressure ceiling the host cannot raise, checked against the lower of the measured and the nominal zero [Pa]
+const int16_t DEFAULT_MAX_PRESSURE_PA = 4000;  // per-chamber over-pressure limit until SET_PID sets another [Pa]
+const uint8_t SENSOR_BAD_TICKS = 5;  // ticks in a row with a reading outside 0.1-4.9 V, or no conversion, that latch SENSOR_n [ticks]
+const int16_t LEAK_MIN_ERROR_PA = 200;  // a chamber this far below its setpoint at its drive ceiling is starved [Pa]
+const uint16_t LEAK_TIME_MS = 2000;  // starved this long in a row latches LEAK_n [ms]
+const uint16_t PLAUSIBLE_MIN_DRIVE = 32768;  // drive level from which a reading must respond [1/65535]
+const int16_t PLAUSIBLE_MIN_CHANGE_PA = 150;  // how far the reading must rise under that drive [Pa]
+const uint16_t PLAUSIBLE_TIME_MS = 300;  // within this time, else IMPLAUSIBLE_n latches [ms]
+const int16_t ZERO_MAX_OFFSET_PA = 2500;  // a zero further than this from the nominal zero is refused (MPXV7025G: 5 % of the 4.5 V span) [Pa]
+const int16_t ZERO_STABLE_PA = 110;  // readings within this of where they were (about 2 ADC counts) count as stable [Pa]
+const uint16_t ZERO_SETTLE_MS = 2000;  // blowers off and readings stable this long before a zero is measured [ms]
+const uint8_t ZERO_TICKS = 64;  // ticks averaged by a zero measurement [ticks]
+const uint16_t SUPPLY_MIN_MV = 4300;  // supply below this (the BOD level) latches SUPPLY [mV]
+const uint8_t SUPPLY_BAD_TICKS = 25;  // ticks in a row below SUPPLY_MIN_MV that latch SUPPLY [ticks]
+const uint16_t DEFAULT_TELEMETRY_PERIOD_MS = 20;  // telemetry period after a HELLO [ms]
+const uint16_t MIN_TELEMETRY_PERIOD_MS = 10;  // shortest period SET_CONFIG accepts (0 = off) [ms]
+const uint16_t MAX_TELEMETRY_PERIOD_MS = 1000;  // longest period SET_CONFIG accepts [ms]
+const uint16_t DEFAULT_HOST_DEADLINE_MS = 500;  // dead-host deadline after a HELLO [ms]
+const uint16_t MIN_HOST_DEADLINE_MS = 50;  // shortest deadline SET_CONFIG accepts [ms]
+const uint16_t MAX_HOST_DEADLINE_MS = 10000;  // longest deadline SET_CONFIG accepts [ms]
+const uint32_t TEST_HANG_MAGIC = 0x48414E47UL;  // TEST_HANG's magic number (compiled into bench builds only)
 
 enum MsgId : uint8_t {
     MSG_HELLO = 0x01,
@@ -17,6 +40,7 @@ enum MsgId : uint8_t {
     MSG_NACK = 0x04,
     MSG_PING = 0x05,
     MSG_PONG = 0x06,
+    MSG_BOARD_INFO = 0x07,
     MSG_SET_SETPOINTS = 0x10,
     MSG_SET_PID = 0x11,
     MSG_SET_CONFIG = 0x12,
@@ -42,6 +66,7 @@ enum Status : uint8_t {
     STATUS_ZERO_OUT_OF_RANGE = 9,
     STATUS_BUSY = 10,
     STATUS_BAD_MAGIC = 11,
+    STATUS_NOT_SETTLED = 12,
 };
 
 // Why the board last started (MCUSR, read before anything else runs).
@@ -51,6 +76,21 @@ enum ResetCause : uint8_t {
     RESET_CAUSE_EXTERNAL = 2,
     RESET_CAUSE_BROWN_OUT = 3,
     RESET_CAUSE_WATCHDOG = 4,
+};
+
+// Where the persistent settings (zero offsets, PID gains, pressure limits) came from at start-up.
+enum ConfigSource : uint8_t {
+    CONFIG_SOURCE_DEFAULTS = 0,
+    CONFIG_SOURCE_EEPROM = 1,
+    CONFIG_SOURCE_CORRUPT = 2,
+};
+
+// Where a sensor's zero offset came from.
+enum ZeroSource : uint8_t {
+    ZERO_SOURCE_NOMINAL = 0,
+    ZERO_SOURCE_STORED = 1,
+    ZERO_SOURCE_BOOT = 2,
+    ZERO_SOURCE_HOST = 3,
 };
 
 // Which board the firmware was built for.
@@ -81,6 +121,10 @@ enum FaultBit : uint8_t {
     FAULT_LEAK_0 = 8,
     FAULT_LEAK_1 = 9,
     FAULT_LEAK_2 = 10,
+    FAULT_IMPLAUSIBLE_0 = 11,
+    FAULT_IMPLAUSIBLE_1 = 12,
+    FAULT_IMPLAUSIBLE_2 = 13,
+    FAULT_SUPPLY = 14,
 };
 
 // Little-endian field access, independent of the host's byte order and alignment.
@@ -223,6 +267,35 @@ inline void decode(Pong& m, const uint8_t* in) {
     m.board_time_ms = get_u32(in + 4);
 }
 
+// BOARD_INFO (board sends; not acked): Sent right after every HELLO_REPLY (whose layout never changes): where the settings and zeros came from.
+struct BoardInfo {
+    enum { ID = 0x07, PAYLOAD_SIZE = 12 };
+    uint8_t config_source;
+    uint8_t zero_source[3];
+    int16_t zero_offset_pa[3]; // Pa
+    uint16_t supply_mv; // mV
+};
+inline void encode(const BoardInfo& m, uint8_t* out) {
+    put_u8(out + 0, m.config_source);
+    put_u8(out + 1, m.zero_source[0]);
+    put_u8(out + 2, m.zero_source[1]);
+    put_u8(out + 3, m.zero_source[2]);
+    put_i16(out + 4, m.zero_offset_pa[0]);
+    put_i16(out + 6, m.zero_offset_pa[1]);
+    put_i16(out + 8, m.zero_offset_pa[2]);
+    put_u16(out + 10, m.supply_mv);
+}
+inline void decode(BoardInfo& m, const uint8_t* in) {
+    m.config_source = get_u8(in + 0);
+    m.zero_source[0] = get_u8(in + 1);
+    m.zero_source[1] = get_u8(in + 2);
+    m.zero_source[2] = get_u8(in + 3);
+    m.zero_offset_pa[0] = get_i16(in + 4);
+    m.zero_offset_pa[1] = get_i16(in + 6);
+    m.zero_offset_pa[2] = get_i16(in + 8);
+    m.supply_mv = get_u16(in + 10);
+}
+
 // SET_SETPOINTS (host sends; acked): Absolute pressure setpoints for all chambers at once. 0 turns a chamber off (blower disconnected).
 struct SetSetpoints {
     enum { ID = 0x10, PAYLOAD_SIZE = 6 };
@@ -303,7 +376,7 @@ inline void decode(Vent& m, const uint8_t* in) {
     (void)m; (void)in;
 }
 
-// ZERO_SENSORS (host sends; acked): Measures each sensor's zero offset over zero_samples ticks; the ACK comes when it is done.
+// ZERO_SENSORS (host sends; acked): Measures each sensor's zero over ZERO_TICKS ticks (ACK or NACK when done); see PROTOCOL.md.
 struct ZeroSensors {
     enum { ID = 0x15, PAYLOAD_SIZE = 0 };
 };
@@ -418,6 +491,7 @@ inline int payload_size(uint8_t msg_id) {
     case MSG_NACK: return 3;
     case MSG_PING: return 4;
     case MSG_PONG: return 8;
+    case MSG_BOARD_INFO: return 12;
     case MSG_SET_SETPOINTS: return 6;
     case MSG_SET_PID: return 17;
     case MSG_SET_CONFIG: return 4;

@@ -3,6 +3,8 @@
 #pragma once
 #include <stdint.h>
 
+#include "protocol_generated.h"
+
 namespace core {
 
 // Sixteenths of an ADC count per count: readings are averaged and kept with 4 fractional bits.
@@ -14,6 +16,10 @@ const int16_t SENSOR_MIN_VALID_X16 = 328;
 const int16_t SENSOR_MAX_VALID_X16 = 16056;
 // Pa per sixteenth of a count, as a fraction over 2^12: 1000 / (0.018 * 1024 * 16) = 3.390842 = 13888.9 / 4096.
 const int32_t PA_PER_COUNT_X16_Q12 = 13889;
+
+// The spec's zero thresholds in sixteenths of a count (1 x16 = 3.39 Pa).
+const int16_t ZERO_MAX_OFFSET_X16 = (int16_t)((int32_t)proto::ZERO_MAX_OFFSET_PA * 4096 / PA_PER_COUNT_X16_Q12);
+const int16_t ZERO_STABLE_X16 = (int16_t)((int32_t)proto::ZERO_STABLE_PA * 4096 / PA_PER_COUNT_X16_Q12);
 
 // Average of `count` 10-bit conversions whose sum is `sum`, in sixteenths of a count (0 if count is 0).
 int16_t sensor_average_x16(uint16_t sum, uint8_t count);
