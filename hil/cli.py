@@ -25,7 +25,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         parser.add_argument("--elf", help="firmware image for --sim (default firmware/build/uno-bench/phantom.elf)")
         parser.add_argument("--plant", help="plant parameter file for --sim (default hil/plant.toml)")
         parser.add_argument(
-            "--speed", type=float, default=1.0, help="--sim: simulated time per wall-clock time (default 1 = real time)"
+            "--sim-speed", dest="speed", type=float, default=1.0,
+            help="--sim: simulated time per wall-clock time (default 1 = real time)",
+        )
+        parser.add_argument(
+            "--boot-delay-s", type=float,
+            help="--port: seconds to stay silent after opening the port while the bootloader runs "
+                 "(default 2, enough for the Uno's Optiboot and the Mega's stk500v2)",
         )
         parser.add_argument("--seed", type=int, default=0, help="--sim: seed of the sensor and line noise")
         parser.add_argument("--json", action="store_true", help="print the result as JSON")
@@ -62,14 +68,19 @@ class _Bench:
     def __enter__(self):
         from phantom.hil.link import BoardLink
         from phantom.hil.sim import SimulatedBoard
+        from phantom.protocol.link import BOOT_DELAY_S
 
         port, scale = self.args.port, 1.0
+        boot_delay_s = self.args.boot_delay_s
+        if boot_delay_s is None:
+            boot_delay_s = max(BOOT_DELAY_S.values())
         if self.args.sim:
             _progress("starting the firmware in simavr")
             self.board = SimulatedBoard(self.args.elf, self.args.plant, speed=self.args.speed, seed=self.args.seed)
             self.board.start()
             port, scale = self.board.port, (self.args.speed or 1.0)
-        self.link = BoardLink(port, baudrate=self.args.baud, time_scale=scale)
+            boot_delay_s = BOOT_DELAY_S["sim"]
+        self.link = BoardLink(port, baudrate=self.args.baud, time_scale=scale, boot_delay_s=boot_delay_s)
         return self
 
     def __exit__(self, *exc_info):

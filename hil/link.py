@@ -31,8 +31,6 @@ from phantom.protocol.link import (
 )
 from phantom.protocol.messages import MsgId
 
-#: The TEST_HANG message's magic number ("HANG").
-TEST_HANG_MAGIC = 0x48414E47
 #: How long one read of the port blocks (s): the longest a deadline of the core can be late.
 _READ_SLICE_S = 0.005
 

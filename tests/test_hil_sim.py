@@ -243,7 +243,7 @@ def check_unplug_and_replug(board):
 def test_cli_step_prints_the_metrics_as_json():
     phantom = Path(sys.executable).with_name("phantom")
     result = subprocess.run(
-        [str(phantom), "hil", "step", "--sim", "--speed", str(SPEED), "--chamber", "2", "--kpa", "1.5",
+        [str(phantom), "hil", "step", "--sim", "--sim-speed", str(SPEED), "--chamber", "2", "--kpa", "1.5",
          "--duration-s", "2", "--json"],
         capture_output=True, text=True, timeout=120,
     )

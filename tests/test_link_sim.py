@@ -11,6 +11,7 @@ import pytest
 
 from phantom.host.session import LinkSession, LinkState, LinkTiming
 from phantom.host.transports import SerialTransport
+from phantom.protocol.messages import CONSTANTS
 
 pytestmark = [pytest.mark.sim]
 
@@ -43,7 +44,7 @@ def test_a_watchdog_reset_behind_an_open_port_is_seen_and_its_cause_reported(boa
             await asyncio.wait_for(session.online_event.wait(), 20)
             assert session.board.reset_cause == "POWER_ON"
             await asyncio.sleep(0.5)  # a second of board time: its clock then visibly goes back at the reset
-            assert await session.command("TEST_HANG", {"magic": 0x48414E47}) == "OK"
+            assert await session.command("TEST_HANG", {"magic": CONSTANTS["TEST_HANG_MAGIC"]}) == "OK"
             await wait_for(lambda: session.stats.reconnects == 1 and session.state is LinkState.ONLINE, 15)
             return session.board, session.stats
         finally:
