@@ -55,8 +55,12 @@ GLAND_SERIES = {"target_ml": ("target", (128, 128, 128, 130), 5.0),
 #: Surfaces: the deformed phantom (tissue pink, opaque enough to shade) and its rest shape (a pale ghost).
 MESH_RGBA = (235, 150, 140, 255)
 REST_GHOST_RGBA = (200, 220, 255, 70)
-#: Batching: flush the SDK's chunk batcher this often (s). The viewer of a live stream lags by at most this.
-FLUSH_TICK_S = 0.5
+#: Batching: flush the SDK's chunk batcher this often (s; None: the SDK's default, a few ms). The viewer of a
+#: live stream lags by at most this.
+FLUSH_TICK_S: float | None = 0.5
+#: Whether the .rrd ends with a footer (an index of its chunks). The file sink keeps that index in memory until
+#: the end, so it grows with the recording: off.
+WRITE_FOOTER = False
 
 
 class RecordingError(PhantomError):
@@ -182,12 +186,12 @@ class Recorder:
         if self.save_path is not None:
             _check_writable(self.save_path)
         self._rr = rr
-        stream = rr.RecordingStream("phantom", batcher_config=rr.ChunkBatcherConfig(
-            flush_tick=timedelta(seconds=FLUSH_TICK_S)))
+        batching = None if FLUSH_TICK_S is None else rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=FLUSH_TICK_S))
+        stream = rr.RecordingStream("phantom", batcher_config=batching)
         blueprint = default_blueprint(self.chamber_names)
         try:
             if self.save_path is not None:
-                stream.save(str(self.save_path), default_blueprint=blueprint, write_footer=False)
+                stream.save(str(self.save_path), default_blueprint=blueprint, write_footer=WRITE_FOOTER)
             else:
                 stream.connect_grpc(self.connect_url, default_blueprint=blueprint)
         except Exception as error:  # rerun raises plain exceptions for bad paths and addresses
