@@ -1,5 +1,6 @@
 """Memory of a process that records, at the daemon's rates, over minutes: the Recorder as it is against its
-earlier configuration (an .rrd footer, the SDK's default batching), both run side by side for the same time.
+earlier configuration (an .rrd footer, the SDK's default batching) and against a footer with the new batching,
+all run side by side for the same time.
 
 Each configuration runs in its own process and logs what the daemon logs, paced by the wall clock (the SDK's
 batcher flushes on wall time, so only real pacing gives the daemon's chunk counts): telemetry 50 Hz (three
@@ -23,6 +24,7 @@ import numpy as np
 
 CONFIGURATIONS = {
     "now": {},
+    "footer, 0.5 s batching": {"WRITE_FOOTER": True},
     "before (footer, default batching)": {"WRITE_FOOTER": True, "FLUSH_TICK_S": None},
 }
 NAMES = ["base", "left lobe", "right lobe"]
@@ -110,7 +112,7 @@ def main() -> None:
     for process in processes.values():
         process.wait()
     names = list(CONFIGURATIONS)
-    print(f"RSS (MB) while recording at the daemon's rates, {args.minutes:g} min, both configurations at once\n")
+    print(f"RSS (MB) while recording at the daemon's rates, {args.minutes:g} min, the configurations side by side\n")
     print("| time min | " + " | ".join(names) + " |")
     print("|---|" + "---|" * len(names))
     for row in zip(*(samples[name] for name in names), strict=False):

@@ -52,9 +52,10 @@ MEASURED_WIDTH = 1.5
 GLAND_SERIES = {"target_ml": ("target", (128, 128, 128, 130), 5.0),
                 "estimated_ml": ("estimate", (204, 121, 167, 255), 1.5),
                 "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5)}
-#: Surfaces: the deformed phantom (tissue pink, opaque enough to shade) and its rest shape (a pale ghost).
-MESH_RGBA = (235, 150, 140, 255)
-REST_GHOST_RGBA = (200, 220, 255, 70)
+#: Surfaces: the deformed phantom (tissue pink, slightly translucent so that the rest shape shows through where
+#: the gland has grown over it) and its rest shape (a pale blue ghost).
+MESH_RGBA = (235, 150, 140, 200)
+REST_GHOST_RGBA = (120, 170, 255, 90)
 #: Batching: flush the SDK's chunk batcher this often (s; None: the SDK's default, a few ms). The viewer of a
 #: live stream lags by at most this.
 FLUSH_TICK_S: float | None = 0.5
@@ -91,26 +92,31 @@ def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def default_blueprint(chamber_names: list[str], camera: tuple[np.ndarray, np.ndarray] | None = None):
     """The layout: plots on the right, one per quantity; the phantom on the left when ``camera`` (eye position,
     look target, mm) is given, that is when meshes are logged; the event log under it."""
+    import rerun as rr
     import rerun.blueprint as rrb
     import rerun.blueprint.encodings as rrbe
 
     parts = [entity_part(name) for name in chamber_names]
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)
+    # the whole recording on the time axis (else, following the latest data, a plot shows only the last minute)
+    whole = rrb.TimeAxis(view_range=rr.TimeRange(start=rr.TimeRangeBoundary.infinite(),
+                                                 end=rr.TimeRangeBoundary.infinite()))
     pressures = rrb.TimeSeriesView(
         name="pressure (kPa): measured (thin), setpoint (wide)", origin="/chamber",
         contents=[f"+ /chamber/{part}/{series}" for part in parts for series in ("setpoint_kpa", "measured_kpa")],
-        plot_legend=legend)
+        plot_legend=legend, axis_x=whole)
     drives = rrb.TimeSeriesView(
         name="drive level (0-1)", origin="/chamber", contents=[f"+ /chamber/{part}/drive_level" for part in parts],
-        axis_y=rrb.ScalarAxis(range=(0.0, 1.05)), plot_legend=legend)
+        axis_y=rrb.ScalarAxis(range=(0.0, 1.05)), plot_legend=legend, axis_x=whole)
     gland = rrb.TimeSeriesView(name="gland volume (ml)", origin="/volume",
-                               contents=[f"+ /volume/{series}" for series in GLAND_SERIES], plot_legend=legend)
+                               contents=[f"+ /volume/{series}" for series in GLAND_SERIES], plot_legend=legend,
+                               axis_x=whole)
     chambers = rrb.Horizontal(*[
         rrb.TimeSeriesView(name=f"{name} (ml)", origin="/volume/chambers", contents=f"+ /volume/chambers/{part}_ml",
-                           plot_legend=rrb.PlotLegend(visible=False))
+                           plot_legend=rrb.PlotLegend(visible=False), axis_x=whole)
         for name, part in zip(chamber_names, parts, strict=True)])
-    diagnostics = rrb.Tabs(rrb.TimeSeriesView(name="link", origin="/link", plot_legend=legend),
-                           rrb.TimeSeriesView(name="solver (ms)", origin="/solver", plot_legend=legend))
+    diagnostics = rrb.Tabs(rrb.TimeSeriesView(name="link", origin="/link", plot_legend=legend, axis_x=whole),
+                           rrb.TimeSeriesView(name="solver (ms)", origin="/solver", plot_legend=legend, axis_x=whole))
     plots = rrb.Vertical(pressures, drives, gland, chambers, diagnostics, row_shares=[3, 2, 2, 2, 2])
     events = rrb.TextLogView(origin="/events", name="events", columns=rrb.TextLogColumns(
         timeline_columns=[rrbe.TimelineColumn("time"), rrbe.TimelineColumn("scene_time")],
@@ -167,6 +173,7 @@ class Recorder:
         self._stream = None
         self._scene_time_s: float | None = None
         self._rest_logged = False
+        self._target_shown = False
 
     @property
     def wants_mesh(self) -> bool:
@@ -217,7 +224,10 @@ class Recorder:
             log(f"volume/chambers/{part}_ml", rr.SeriesLines(colors=[colour], names=[name],
                                                              widths=[MEASURED_WIDTH]), static=True)
         for series, (label, colour, width) in GLAND_SERIES.items():
-            log(f"volume/{series}", rr.SeriesLines(colors=[colour], names=[label], widths=[width]), static=True)
+            # a target holds until the next one: drawn as steps
+            mode = rr.components.InterpolationMode.StepAfter if series == "target_ml" else None
+            log(f"volume/{series}", rr.SeriesLines(colors=[colour], names=[label], widths=[width],
+                                                   interpolation_mode=mode), static=True)
         log("phantom", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     def set_scene_time(self, scene_time_s: float | None) -> None:
@@ -252,7 +262,12 @@ class Recorder:
         if not self.enabled:
             return
         self._at(time_s)
-        self._scalar("volume/target_ml", target_ml)
+        if target_ml is not None:
+            self._scalar("volume/target_ml", target_ml)
+            self._target_shown = True
+        elif self._target_shown:  # vented, or a pressure target without a prediction: break the target's line
+            self._stream.log("volume/target_ml", self._rr.Clear(recursive=False))
+            self._target_shown = False
         self._scalar("volume/estimated_ml", estimated_ml)
         self._scalar("volume/true_ml", true_ml)
         if chamber_ml is not None:
@@ -357,13 +372,15 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list]]:
     """Read an ``.rrd`` back: entity path -> component column -> list of logged values (in ``time`` order).
 
     ``time`` and ``scene_time`` keys hold those timelines in seconds (``scene_time`` None for rows logged while
-    no scene ran). Used by tests and by ``make demo``.
+    no scene ran). Clears (which break a plotted line) are left out. Used by tests and by ``make demo``.
     """
     from rerun.chunk import RrdReader
 
     entities: dict[str, dict[str, list]] = {}
     for chunk in RrdReader(str(path)).stream().collect().stream():
         batch = chunk.to_record_batch()
+        if all(name.startswith("Clear:") for name in batch.column_names if ":" in name):
+            continue  # a Clear (the target dropped) breaks a plotted line; it is no value
         columns = entities.setdefault(str(chunk.entity_path), {})
         before = len(columns.get("time", []))
         for name in batch.column_names:

@@ -190,3 +190,23 @@ def test_open_on_an_unwritable_path_is_one_line(tmp_path, where, reason):
 def test_chamber_names_that_collide_in_paths_are_refused():
     with pytest.raises(PhantomError, match="collide"):
         Recorder(["left lobe", "left_lobe"], save_path="unused.rrd")
+
+
+def test_a_dropped_target_breaks_the_target_line_and_targets_are_drawn_as_steps(tmp_path):
+    from rerun.chunk import RrdReader
+
+    path = tmp_path / "targets.rrd"
+    recorder = Recorder(NAMES, save_path=path)
+    recorder.open()
+    for time_s, target_ml in enumerate([30.0, 31.0, None, None, 32.0]):
+        recorder.log_volumes(time_s, target_ml, 26.0)
+    recorder.close()
+    target = read_rrd(path)["/volume/target_ml"]
+    assert target["time"] == [0.0, 1.0, 4.0] and scalars(target["Scalars:scalars"]) == [30.0, 31.0, 32.0]
+    assert target["SeriesLines:interpolation_mode"] == [[2]]  # StepAfter
+    clears = [chunk.to_record_batch() for chunk in RrdReader(str(path)).stream().collect().stream()
+              if str(chunk.entity_path) == "/volume/target_ml" and "Clear:is_recursive" in chunk.to_record_batch()
+              .column_names]
+    # one Clear, when the target was dropped (not one per call while there is none)
+    assert sum(batch.num_rows for batch in clears) == 1
+    assert clears[0].column("time").cast("int64").to_pylist() == [2_000_000_000]
