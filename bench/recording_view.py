@@ -34,8 +34,8 @@ import numpy as np
 
 TELEMETRY_HZ, VOLUME_HZ, LINK_HZ, MESH_HZ = 50, 10, 2, 1
 #: The scene: (start s on its timeline, gland volume ml; None: vent).
-SCENE_STEPS = ((0.0, 30.0), (20.0, 34.0), (40.0, 38.0), (60.0, 31.0), (80.0, None))
-SCENE_START_S, DURATION_S = 8.0, 100.0
+SCENE_STEPS = ((0.0, 30.0), (15.0, 34.0), (30.0, 38.0), (45.0, 31.0), (55.0, None), (62.0, 38.0))
+SCENE_START_S, DURATION_S = 8.0, 90.0
 #: Pressure lag of each chamber (s): the base is three times as compliant as a lobe.
 LAG_S = (0.45, 0.15, 0.15)
 

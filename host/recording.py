@@ -33,6 +33,7 @@ from __future__ import annotations
 import errno
 import os
 import re
+import warnings
 from datetime import timedelta
 from pathlib import Path
 
@@ -47,8 +48,8 @@ CHAMBER_COLOURS = ((230, 159, 0), (86, 180, 233), (0, 158, 115), (213, 94, 0), (
 SETPOINT_ALPHA = 110
 SETPOINT_WIDTH = 5.0
 MEASURED_WIDTH = 1.5
-#: Gland volume series: target (grey, wide, translucent: readable on the light and the dark theme), estimate
-#: (purple), the simulated plant's true volume (blue); none is a chamber's colour.
+#: Gland volume series: target (grey dots, translucent: readable on the light and the dark theme), estimate
+#: (purple), the simulated plant's true volume (blue); none is a chamber's colour. Widths in points.
 GLAND_SERIES = {"target_ml": ("target", (128, 128, 128, 130), 5.0),
                 "estimated_ml": ("estimate", (204, 121, 167, 255), 1.5),
                 "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5)}
@@ -173,7 +174,6 @@ class Recorder:
         self._stream = None
         self._scene_time_s: float | None = None
         self._rest_logged = False
-        self._target_shown = False
 
     @property
     def wants_mesh(self) -> bool:
@@ -188,6 +188,9 @@ class Recorder:
         """
         if self._stream is not None or not (self.save_path or self.connect_url):
             return
+        # the SDK warns on stderr, at every start, that a file without a footer is slower to seek: that is the
+        # choice made above (WRITE_FOOTER), not news for the daemon's log; a RUST_LOG the user set wins
+        os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
         import rerun as rr
 
         if self.save_path is not None:
@@ -224,10 +227,11 @@ class Recorder:
             log(f"volume/chambers/{part}_ml", rr.SeriesLines(colors=[colour], names=[name],
                                                              widths=[MEASURED_WIDTH]), static=True)
         for series, (label, colour, width) in GLAND_SERIES.items():
-            # a target holds until the next one: drawn as steps
-            mode = rr.components.InterpolationMode.StepAfter if series == "target_ml" else None
-            log(f"volume/{series}", rr.SeriesLines(colors=[colour], names=[label], widths=[width],
-                                                   interpolation_mode=mode), static=True)
+            # the target as dots (10 Hz, dense enough to read as a line): where there is none (vented, or a
+            # pressure target with no prediction) no dots, where a line would bridge the gap
+            style = rr.SeriesPoints(colors=[colour], names=[label], marker_sizes=[width / 2]) if series == (
+                "target_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
+            log(f"volume/{series}", style, static=True)
         log("phantom", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     def set_scene_time(self, scene_time_s: float | None) -> None:
@@ -262,12 +266,7 @@ class Recorder:
         if not self.enabled:
             return
         self._at(time_s)
-        if target_ml is not None:
-            self._scalar("volume/target_ml", target_ml)
-            self._target_shown = True
-        elif self._target_shown:  # vented, or a pressure target without a prediction: break the target's line
-            self._stream.log("volume/target_ml", self._rr.Clear(recursive=False))
-            self._target_shown = False
+        self._scalar("volume/target_ml", target_ml)
         self._scalar("volume/estimated_ml", estimated_ml)
         self._scalar("volume/true_ml", true_ml)
         if chamber_ml is not None:
@@ -372,15 +371,16 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list]]:
     """Read an ``.rrd`` back: entity path -> component column -> list of logged values (in ``time`` order).
 
     ``time`` and ``scene_time`` keys hold those timelines in seconds (``scene_time`` None for rows logged while
-    no scene ran). Clears (which break a plotted line) are left out. Used by tests and by ``make demo``.
+    no scene ran). Used by tests and by ``make demo``.
     """
     from rerun.chunk import RrdReader
 
     entities: dict[str, dict[str, list]] = {}
-    for chunk in RrdReader(str(path)).stream().collect().stream():
+    with warnings.catch_warnings():  # "no footer": the daemon writes none (WRITE_FOOTER); stream() reads it all
+        warnings.filterwarnings("ignore", message="RRD file has no footer")
+        reader = RrdReader(str(path))
+    for chunk in reader.stream().collect().stream():
         batch = chunk.to_record_batch()
-        if all(name.startswith("Clear:") for name in batch.column_names if ":" in name):
-            continue  # a Clear (the target dropped) breaks a plotted line; it is no value
         columns = entities.setdefault(str(chunk.entity_path), {})
         before = len(columns.get("time", []))
         for name in batch.column_names:
