@@ -58,6 +58,7 @@ def recording(tmp_path_factory):
         recorder.log_telemetry(time_s, [0.01 * k, 0.02 * k, 0.03 * k], [1.0, 2.0, 3.0], [0.5, 0.25, 0.125])
         if k % 5 == 0:
             recorder.log_volumes(time_s, 30.0, 26.0 + 0.1 * k, [2.0, 1.1, 1.2], true_ml=27.0 + 0.1 * k)
+    recorder.log_mesh(3.8, rest * 1.05, triangles)
     recorder.log_mesh(3.9, rest * 1.1, triangles)
     recorder.set_scene_time(None)
     recorder.log_event(4.0, "daemon stopped")
@@ -127,6 +128,14 @@ def test_the_mesh_has_outward_unit_normals(recording):
     assert np.min(np.sum(normals * radial, axis=1)) > 0.995
 
 
+def test_a_moving_surface_logs_its_triangles_once(recording):
+    mesh = recording["entities"]["/phantom/mesh"]
+    assert len(mesh["time"]) == 2
+    triangles = mesh["Mesh3D:triangle_indices"]
+    assert np.array_equal(triangles[0], recording["triangles"]) and triangles[1] is None
+    assert np.allclose(mesh["Mesh3D:vertex_positions"][0], recording["rest"] * 1.05, atol=1e-4)
+
+
 def test_vertex_normals_flip_with_the_winding():
     points, triangles = uv_sphere(1.0, rings=8, segments=12)
     outward = vertex_normals(points, triangles)
@@ -141,7 +150,7 @@ def test_the_rest_shape_is_a_static_translucent_ghost(recording):
     assert len(rest["Mesh3D:vertex_normals"][0]) == len(recording["rest"])
     (albedo,), = rest["Mesh3D:albedo_factor"]
     assert 0 < albedo & 0xFF < 128
-    deformed_albedo = recording["entities"]["/phantom/mesh"]["Mesh3D:albedo_factor"][-1][0]
+    deformed_albedo = recording["entities"]["/phantom/mesh"]["Mesh3D:albedo_factor"][0][0]
     assert deformed_albedo & 0xFF > albedo & 0xFF  # the deformed surface is the more opaque
     assert "ViewCoordinates:xyz" in recording["entities"]["/phantom"]
 
