@@ -31,6 +31,7 @@ the file size). ``bench/recording_memory.py`` measures it.
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import re
 import warnings
@@ -40,6 +41,8 @@ from pathlib import Path
 import numpy as np
 
 from phantom import PhantomError
+
+logger = logging.getLogger(__name__)
 
 #: One fixed colour per chamber, in chamber order (Okabe-Ito, distinguishable with the common colour-vision
 #: deficiencies and on the viewer's dark background): orange, sky blue, bluish green, vermillion, blue, purple.
@@ -333,7 +336,11 @@ class Recorder:
     def close(self) -> None:
         """Flush and close the recording (the .rrd is complete and readable afterwards)."""
         if self._stream is not None:
-            self._stream.flush()
+            try:
+                # a file is written out completely; a viewer that is gone must not hold the daemon's shutdown
+                self._stream.flush(timeout_sec=1e9 if self.save_path is not None else 1.0)
+            except Exception as error:  # the SDK raises RuntimeError when a viewer never answered
+                logger.warning("the recording could not be flushed (%s); what was not sent is lost", error)
             self._stream.disconnect()
             self._stream = None
             self.enabled = False

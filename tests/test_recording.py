@@ -215,3 +215,17 @@ def test_the_target_is_drawn_as_dots_so_that_no_line_bridges_a_time_without_one(
     recorder.close()
     target = read_rrd(path)["/volume/target_ml"]
     assert target["time"] == [0.0, 1.0, 4.0] and scalars(target["Scalars:scalars"]) == [30.0, 31.0, 32.0]
+
+
+def test_a_viewer_that_never_answers_neither_fails_open_nor_close():
+    recorder = Recorder(NAMES, connect_url="rerun+http://127.0.0.1:1/proxy")  # nothing listens on port 1
+    recorder.open()
+    recorder.log_telemetry(0.0, [1, 2, 3], [1, 2, 3], [0, 0, 0])
+    recorder.close()
+    assert not recorder.enabled
+
+
+def test_a_bad_viewer_address_is_one_line():
+    with pytest.raises(PhantomError) as caught:
+        Recorder(NAMES, connect_url="not a url").open()
+    assert "\n" not in str(caught.value) and "not a url" in str(caught.value)
