@@ -23,9 +23,10 @@ normals over a translucent rest-shape ghost, anatomical axes (x left, y anterior
 fitted to the rest shape.
 
 Memory stays bounded while recording: the ``.rrd`` is written without a footer (a footer makes the file sink
-keep every chunk's metadata until the end, which grew the daemon by megabytes an hour), and the chunk batcher
-flushes every 0.5 s, so a telemetry series is one chunk per half second rather than one per frame (a tenth of
-the file size). ``bench/recording_memory.py`` measures it.
+keep every chunk's metadata until the end: about 5 MB more per minute at the daemon's rates with the SDK's
+default batching), and the chunk batcher flushes every 0.5 s rather than every few milliseconds, so a telemetry
+series is one chunk per half second rather than one per frame. A moving mesh sends its triangles once.
+``bench/recording_memory.py`` measures it.
 """
 
 from __future__ import annotations

@@ -165,6 +165,19 @@ def test_the_blueprint_is_in_the_file(recording):
     # the layout at open(), and the one with the phantom view once the rest shape was known
     assert len(blueprints) == 2
     assert all(entry.application_id == "phantom" for entry in blueprints)
+    view_names = []
+    for entry in blueprints:
+        names = set()
+        for chunk in reader.stream(store=entry).collect().stream():
+            batch = chunk.to_record_batch()
+            for column in batch.column_names:
+                if column.endswith(":display_name"):
+                    names.update(value for values in batch.column(column).to_pylist() for value in values or [])
+        view_names.append(names)
+    plots = {"pressure (kPa): measured (thin), setpoint (wide)", "drive level (0-1)", "gland volume (ml)",
+             "base (ml)", "left lobe (ml)", "right lobe (ml)", "link", "solver (ms)", "events"}
+    phantom = "phantom (mm): deformed over the rest shape"
+    assert sorted(view_names, key=len) == [plots, plots | {phantom}]
 
 
 def test_nothing_is_recorded_or_opened_without_a_destination(tmp_path):
