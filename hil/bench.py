@@ -525,30 +525,103 @@ def check_watchdog(link: BoardLink, board) -> dict:
     return result
 
 
-def plot_steps(steps: list[dict], path: Path) -> Path:
-    """One PNG with each step response (pressure and drive level against time)."""
+#: Step-response thresholds a report judges each step against (the firmware's gains were chosen to meet them;
+#: hil/README.md): settled within the band in under this long (s) ...
+STEP_SETTLING_LIMIT_S = 1.0
+#: ... overshooting by less than this (% of the target) ...
+STEP_OVERSHOOT_LIMIT_PCT = 5.0
+#: ... with a steady-state error under one ADC count (each step's ``adc_count_kpa``).
+
+
+def step_within_thresholds(step: dict) -> bool:
+    """Whether a step response meets the thresholds above."""
+    settling = step["settling_time_s"]
+    return (settling is not None and settling < STEP_SETTLING_LIMIT_S
+            and step["overshoot_pct"] < STEP_OVERSHOOT_LIMIT_PCT
+            and abs(step["steady_state_error_kpa"]) < step["adc_count_kpa"])
+
+
+def _first_crossing_s(times_s: np.ndarray, pressures_kpa: np.ndarray, level_kpa: float) -> float | None:
+    """When the response first reaches ``level_kpa`` (linear between samples), as step_metrics' rise time counts."""
+    above = np.nonzero(pressures_kpa >= level_kpa)[0]
+    if above.size == 0:
+        return None
+    k = above[0]
+    if k == 0:
+        return float(times_s[0])
+    return float(np.interp(level_kpa, pressures_kpa[k - 1:k + 1], times_s[k - 1:k + 1]))
+
+
+def board_description(board: str | None) -> str:
+    """``simulated board (simavr)`` or ``real board on PORT`` from a report's ``board`` entry."""
+    if board is None:
+        return "board not stated"
+    return "simulated board (simavr)" if board.startswith("simulated") else f"real board on {board}"
+
+
+def plot_steps(steps: list[dict], path: Path, board: str | None = None) -> Path:
+    """One PNG of the step responses: the setpoint, each chamber's pressure with its 10 % and 90 % crossings
+    (rise time), a zoom on the settling band with each settling time, and the drive levels.
+
+    ``board`` is the report's ``board`` entry (``simulated (simavr)`` or the port), named in the title.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    figure, (top, bottom) = plt.subplots(2, 1, figsize=(7, 6), sharex=True)
-    for step in steps:
+    figure, (top, zoom, bottom) = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True,
+                                               gridspec_kw={"height_ratios": [3, 2, 1.4]})
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    targets = sorted({step["target_kpa"] for step in steps})
+    end_s = max((step["trace"]["time_s"][-1] for step in steps), default=1.0)
+    for target in targets:
+        # the setpoint: 0 before the step, the target from t = 0 on
+        top.step([-0.05 * end_s, 0.0, end_s], [0.0, target, target], where="post", color="k", lw=1.2,
+                 ls="--", label=f"setpoint {target:g} kPa")
+        zoom.axhline(target, color="k", lw=1.2, ls="--")
+        low, high = target * (1 - SETTLING_BAND), target * (1 + SETTLING_BAND)
+        zoom.axhspan(low, high, color="0.85", zorder=0,
+                     label=f"settling band ±{100 * SETTLING_BAND:g} % ({1e3 * SETTLING_BAND * target:.0f} Pa)")
+        top.axhspan(low, high, color="0.85", zorder=0)
+    for index, step in enumerate(steps):
+        colour = colours[index % len(colours)]
         trace = step["trace"]
-        top.plot(trace["time_s"], trace["pressure_kpa"], label=f"chamber {step['chamber']}")
-        bottom.plot(trace["time_s"], trace["drive_level"], label=f"chamber {step['chamber']}")
-    if steps:
-        target = steps[0]["target_kpa"]
-        top.axhline(target, color="k", lw=0.8)
-        for edge in (1 - SETTLING_BAND, 1 + SETTLING_BAND):
-            top.axhline(target * edge, color="k", lw=0.5, ls=":")
+        t, p = np.asarray(trace["time_s"]), np.asarray(trace["pressure_kpa"])
+        target = step["target_kpa"]
+        rise, settling = step["rise_time_s"], step["settling_time_s"]
+        label = (f"chamber {step['chamber']}: rise {_fmt(rise)} s, settling {_fmt(settling)} s, "
+                 f"overshoot {_fmt(step['overshoot_pct'], 2)} %")
+        top.plot(t, p, color=colour, lw=1.2, label=label)
+        zoom.plot(t, p, color=colour, lw=1.0)
+        bottom.plot(t, trace["drive_level"], color=colour, lw=1.0)
+        crossings = [_first_crossing_s(t, p, fraction * target) for fraction in (0.1, 0.9)]
+        if None not in crossings:
+            top.plot(crossings, [0.1 * target, 0.9 * target], "o", color=colour, ms=5, mfc="white")
+            height = (0.3 + 0.12 * (index % 4)) * target  # one arrow per chamber, apart
+            top.annotate("", xy=(crossings[1], height), xytext=(crossings[0], height),
+                         arrowprops={"arrowstyle": "<->", "color": colour, "lw": 1.0})
+        if settling is not None:
+            zoom.axvline(settling, color=colour, lw=1.2, ls=":", label=f"chamber {step['chamber']} settled at "
+                         f"{settling:.2f} s")
+    if targets:
+        # the band in the upper part, room for the legend under it
+        zoom.set_ylim(min(targets) * (1 - 8 * SETTLING_BAND), max(targets) * (1 + 4 * SETTLING_BAND))
     top.set_ylabel("pressure (kPa)")
-    bottom.set_ylabel("drive level")
-    bottom.set_xlabel("time since the step (s)")
-    top.legend()
-    top.set_title("Step responses (board telemetry)")
+    zoom.set_ylabel("near the setpoint (kPa)")
+    bottom.set_ylabel("drive level (0-1)")
+    bottom.set_ylim(-0.05, 1.05)
+    bottom.set_xlabel("time since the step (s, board clock)")
+    top.set_xlim(-0.05 * end_s, end_s)
+    top.legend(loc="lower right", fontsize=8)
+    zoom.legend(loc="lower right", fontsize=8)
+    top.set_title(f"Step responses on the {board_description(board)}\n"
+                  "rise time: 10 % to 90 % of the setpoint (circles, arrows); settling: inside the band from then on "
+                  f"({1e3 * SETTLING_SMOOTHING_S:g} ms average)", fontsize=9)
+    for axis in (top, zoom, bottom):
+        axis.grid(alpha=0.3)
     figure.tight_layout()
-    figure.savefig(path, dpi=110)
+    figure.savefig(path, dpi=100)
     plt.close(figure)
     return path
 
@@ -577,7 +650,7 @@ def run_report(link: BoardLink, board, out_dir: Path, target_kpa: float = 2.0) -
     report["watchdog"] = check_watchdog(link, board)
     if board is not None:
         report["cycles"] = board.cycle_stats()
-    plot_steps(report["steps"], out_dir / "steps.png")
+    plot_steps(report["steps"], out_dir / "steps.png", board=report["board"])
     (out_dir / "report.json").write_text(json.dumps(report, indent=1))
     (out_dir / "report.md").write_text(format_report(report))
     return report
@@ -589,23 +662,30 @@ def _fmt(value, digits=3) -> str:
 
 def format_report(report: dict) -> str:
     """The short Markdown report."""
-    lines = [f"# HIL bench report ({report['board']})", ""]
+    lines = [f"# HIL bench report: {board_description(report['board'])}", ""]
     h = report["handshake"]
     lines += [
         f"Handshake: {'PASS' if h['passed'] else 'FAIL'}; firmware {h['firmware_version']} on {h['board']}, "
         f"protocol v{h['protocol_version']} ({h['spec_hash']}), reset cause {h['reset_cause']}.",
         "",
     ]
+    adc_count_kpa = report["steps"][0]["adc_count_kpa"] if report["steps"] else None
     lines += [
         "## Step responses (steps.png)",
         "",
-        "| chamber | target kPa | rise s | overshoot % | settling (2 %) s | steady-state error kPa |",
-        "|---|---|---|---|---|---|",
+        f"Step 0 -> target on one chamber at a time. Rise: 10 % to 90 % of the target. Settling: from then on "
+        f"inside target ±{100 * SETTLING_BAND:g} %, judged on a {1e3 * SETTLING_SMOOTHING_S:g} ms moving average. "
+        f"Thresholds: settling < {STEP_SETTLING_LIMIT_S:g} s, overshoot < {STEP_OVERSHOOT_LIMIT_PCT:g} %, "
+        f"steady-state error < one ADC count ({_fmt(adc_count_kpa)} kPa).",
+        "",
+        "| chamber | target kPa | rise s | overshoot % | settling s | steady-state error kPa | thresholds |",
+        "|---|---|---|---|---|---|---|",
     ]
     for s in report["steps"]:
         lines.append(
             f"| {s['chamber']} | {s['target_kpa']} | {_fmt(s['rise_time_s'])} | {_fmt(s['overshoot_pct'])} | "
-            f"{_fmt(s['settling_time_s'])} | {_fmt(s['steady_state_error_kpa'])} |"
+            f"{_fmt(s['settling_time_s'])} | {_fmt(s['steady_state_error_kpa'])} | "
+            f"{'met' if step_within_thresholds(s) else 'NOT met'} |"
         )
     lines += ["", "## Faults", "", "| fault | latched | stop time s | limit s | result |", "|---|---|---|---|---|"]
     for f in report["faults"]:
