@@ -33,6 +33,7 @@ ERROR_CODES: dict[str, str] = {
     "invalid_params": "the params are missing, of the wrong type or out of range",
     "unreachable": "the target cannot be reached within the pressure limits",
     "link_down": "no board is connected",
+    "starting": "the daemon is still starting (loading its model): try again in a few seconds",
     "rejected": "the board refused the command (e.g. a fault is latched and its cause persists)",
     "internal": "a bug in the daemon: please report it",
 }
@@ -261,6 +262,9 @@ class ApiServer:
                 result = self._subscribe(client, params)
             elif method in self.handlers:
                 result = await self.handlers[method](params)
+            elif not self.handlers:
+                raise ApiError("starting", "the daemon is still starting (loading its model): try again in a few "
+                               "seconds")
             else:
                 known = ", ".join(sorted([*self.handlers, "subscribe"]))
                 raise ApiError("unknown_method", f"unknown method {method!r}; methods: {known}")

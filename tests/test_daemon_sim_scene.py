@@ -7,6 +7,7 @@ criterion); for the raw-pressure step, within 1 % of the inverse's prediction at
 """
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import pytest
 
 from phantom import PhantomError
 from phantom.host.client import DaemonClient
+from phantom.host.recording import read_rrd
 from phantom.host.scenes import example_scene_path
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -27,8 +29,10 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
     sock = tmp_path / "d.sock"
     log = open(tmp_path / "daemon.log", "w+")
+    recording = tmp_path / "lopsided.rrd"
     process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--scene",
-                                str(example_scene_path("lopsided")), "--socket", str(sock)],
+                                str(example_scene_path("lopsided")), "--socket", str(sock), "--rerun-save",
+                                str(recording), "--mesh-hz", "5"],
                                stdout=log, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 60
@@ -53,10 +57,23 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
             status = client.call("status")
         assert status["setpoints_kpa"] == pytest.approx([0.0, 1.5, 0.5], abs=0.001)
         assert status["faults"] == [] and status["link_detail"]["stats"]["commands_failed"] == 0
-        # nothing records or views, so the daemon never asks the model for a shape
-        assert status["model_counts"]["shapes"] == 0 and status["fidelity"] == "updated"
+        # recorded, but the scene says [outputs] shape = false: no shape is computed, no mesh logged
+        assert status["model_counts"]["shapes"] == 0 and status["meshes_logged"] == 0
+        assert status["fidelity"] == "updated"
         # the calibrated linear material's exact answer needs no solve at the "updated" level
         assert status["model_counts"]["full_solves"] == 0 and status["model_counts"]["tangent_solves"] == 0
+        # the daemon's own simulator dies: the daemon says so, starts another and drives it again
+        simulator = simulator_of(process.pid)
+        os.kill(simulator, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while True:
+            with DaemonClient(sock) as client:
+                status = client.call("status")
+            if status["simulated_board"]["restarts"] == 1 and status["link"] == "online" and status[
+                    "board_setpoints_kpa"] == pytest.approx([0.0, 1.5, 0.5], abs=0.001):
+                break
+            assert time.monotonic() < deadline, Path(log.name).read_text()
+            time.sleep(0.2)
     finally:
         process.send_signal(signal.SIGTERM)
         code = process.wait(30)
@@ -64,3 +81,21 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
     text = Path(log.name).read_text()
     assert code == 0 and "vented on shutdown" in text, text
     assert "starting the simulated board" in text
+    assert "the simulated board (simavr) died: restarting it" in text
+    # no mesh in the recording either
+    entities = read_rrd(recording)
+    assert "/volume/estimated_ml" in entities and not any("mesh" in path for path in entities)
+
+
+def simulator_of(pid: int) -> int:
+    """The simavr harness among a process's descendants (the daemon's own simulated board)."""
+    pending = [pid]
+    while pending:
+        parent = pending.pop()
+        for task in Path(f"/proc/{parent}/task").iterdir():
+            for child in (task / "children").read_text().split():
+                command = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+                if b"--elf" in command:
+                    return int(child)
+                pending.append(int(child))
+    raise AssertionError("the daemon runs no simulated board")

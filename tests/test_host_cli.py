@@ -27,7 +27,7 @@ def test_the_shipped_config_file_is_valid_and_uses_known_keys():
 @pytest.mark.parametrize(("text", "message"), [
     ("[daemon]\nprot = '/dev/ttyACM0'\n", "unknown key.*prot"),
     ("[daemon]\nsim = 'yes'\n", "sim must be a bool"),
-    ("[daemon]\nbaudrate = true\n", "baudrate must be a int"),
+    ("[daemon]\nbaud = true\n", "baud must be a int"),
     ("[daemon\n", "not valid TOML"),
 ])
 def test_bad_config_files_are_refused_with_the_key(tmp_path, text, message):

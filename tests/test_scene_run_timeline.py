@@ -114,11 +114,11 @@ def test_missing_or_broken_scene_files_say_so(tmp_path):
 
 @pytest.mark.parametrize("name", ["bph_growth", "lopsided"])
 def test_the_shipped_scenes_use_the_calibrated_material_and_every_target_is_reachable(name):
-    from phantom.host.control import Controller
+    from phantom.host.control import LoadedModel
     from phantom.model import load_scene
     from phantom.model.inverse import UnreachableTargetError
 
-    controller = Controller(str(example_scene_path(name)), report=lambda message: None)
+    controller = LoadedModel(str(example_scene_path(name)), report=lambda message: None)
     assert controller.scene.material == load_scene("builtin:calibrated").material
     # The scene's fidelity ("updated": the linear model's exact answer) answers quickly, with no solve.
     assert controller.estimator.level == "updated"
@@ -139,7 +139,7 @@ def test_the_shipped_scenes_use_the_calibrated_material_and_every_target_is_reac
 
 
 def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tmp_path):
-    from phantom.host.control import Controller
+    from phantom.host.control import LoadedModel
 
     # The calibrated material with 3 kPa everywhere: "rest" is 35 % off on a chamber, "updated" exact. A scene
     # that accepts 50 % gets the cheapest level, "rest"; one that asks for 1 % gets "updated" (no solve).
@@ -149,7 +149,7 @@ def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tm
     for accuracy_pct in (50.0, 1.0):
         scene_path = tmp_path / f"scene_{accuracy_pct:g}.toml"
         scene_path.write_text(text.format(accuracy_pct))
-        controller = Controller(str(scene_path), report=lines.append)
+        controller = LoadedModel(str(scene_path), report=lines.append)
         levels[accuracy_pct] = controller.estimator.level
         assert controller.estimator.accuracy_pct == accuracy_pct
     assert levels == {50.0: "rest", 1.0: "updated"}
