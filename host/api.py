@@ -177,6 +177,7 @@ class ApiServer:
         writer_task = asyncio.create_task(self._drain_client(client, writer))
         self._tasks.add(writer_task)
         this_task = asyncio.current_task()
+        assert this_task is not None  # a client is served in a task of its own
         self._tasks.add(this_task)
         try:
             while True:
@@ -257,6 +258,7 @@ class ApiServer:
         if not isinstance(params, dict):
             self.errors_total += 1
             return _error_line(request_id, "invalid_request", "\"params\" must be a JSON object")
+        result: object
         try:
             if method == "subscribe":
                 result = self._subscribe(client, params)

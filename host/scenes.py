@@ -266,8 +266,9 @@ def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: f
         fidelity = settings.get("fidelity")
     if pressure_max_kpa is None:
         pressure_max_kpa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3))
-    material = dataclasses.asdict(scene.material) if dataclasses.is_dataclass(scene.material) else dict(
-        vars(scene.material))
+    material = scene.material
+    material = dataclasses.asdict(material) if dataclasses.is_dataclass(material) and not isinstance(
+        material, type) else dict(vars(material))
     return {"phantom": {"mesh": scene.mesh, "units": scene.units, "chambers": list(scene.chambers),
                         "fixed": scene.fixed},
             "material": material,
