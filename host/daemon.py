@@ -288,22 +288,36 @@ class Daemon:
     async def zero_quietly(self) -> None:
         """ZERO_SENSORS after connecting to a vented phantom; a refusal is an event, not an error."""
         try:
-            await self.zero_sensors()
-            self.event("zero", "sensors zeroed after connecting (the phantom was vented)")
+            acknowledged = await self.zero_sensors()
+            self.event("zero", "sensors zeroed after connecting (the phantom was vented)"
+                       + ("" if acknowledged else "; the board's ACK was not seen (a retransmission found it busy)"))
         except ApiError as error:
             self.event("zero", f"sensors not zeroed after connecting: {error}", "WARN")
 
-    async def zero_sensors(self) -> None:
-        """ZERO_SENSORS, acknowledged; raises ApiError ``rejected`` saying why the board refused."""
+    async def zero_sensors(self) -> bool:
+        """ZERO_SENSORS; True when acknowledged, False when the board was found zeroing already (its ACK comes
+        after the zeroing, about 128 ms, so a retransmission can meet BUSY while our own request runs: the
+        daemon then waits for the telemetry to leave ZEROING). Raises ApiError ``rejected`` saying why the
+        board refused."""
         from phantom.host.session import CommandRejected, LinkDown
 
-        try:
-            await self.session.command("ZERO_SENSORS")
-        except LinkDown as error:
-            raise ApiError("link_down", str(error)) from error
-        except CommandRejected as error:
-            why = ZERO_REFUSALS.get(error.status, f"the board answered {error.status}")
-            raise ApiError("rejected", f"the board refused to zero its sensors: {error.status} ({why})") from error
+        # the board answers BUSY to setpoints while it zeroes: a target waits for the zeroing instead
+        async with self._setpoint_lock:
+            try:
+                await self.session.command("ZERO_SENSORS")
+                return True
+            except LinkDown as error:
+                raise ApiError("link_down", str(error)) from error
+            except CommandRejected as error:
+                if error.status != "BUSY":
+                    why = ZERO_REFUSALS.get(error.status, f"the board answered {error.status}")
+                    raise ApiError("rejected", f"the board refused to zero its sensors: {error.status} "
+                                   f"({why})") from error
+            for _ in range(40):
+                await asyncio.sleep(0.05)
+                if self.telemetry is not None and "ZEROING" not in self.telemetry.states:
+                    return False
+            raise ApiError("rejected", "the board stayed busy zeroing its sensors for 2 s: try again")
 
     # --- control ----------------------------------------------------------------------------------------
 

@@ -75,9 +75,9 @@ class ApiHandlers:
 
     async def zero(self, params: dict) -> dict:
         """ZERO_SENSORS on request: the board measures each sensor's zero (it must be vented and settled)."""
-        await self.daemon.zero_sensors()
+        acknowledged = await self.daemon.zero_sensors()
         self.daemon.event("zero", "sensors zeroed on request")
-        return {"zeroed": True}
+        return {"zeroed": True, "acknowledged": acknowledged}
 
     async def surface(self, params: dict) -> dict:
         """The deformed outer surface (positions mm, triangles): at ``pressures_kpa`` if given, else at the

@@ -158,6 +158,9 @@ def settled_at(rig, volume_ml: float) -> bool:
 
 
 def test_set_32_ml_reaches_it_within_1_percent_and_holds_the_pressures(rig):
+    # the phantom was vented when the daemon connected: it zeroed the sensors first
+    wait_until(lambda: any("sensors zeroed after connecting" in event["text"] for event in status(rig)["events"]),
+               10, rig, "sensors zeroed after connecting")
     result = phantom_cli(rig, "set", "--volume-ml", "32", "--json")
     assert result.returncode == 0, result.stderr
     answer = json.loads(result.stdout)
@@ -196,6 +199,8 @@ def test_bad_requests_get_clear_errors_and_change_nothing(rig):
     assert short.returncode == 2 and "list of 3 numbers" in short.stderr and "invalid_params" in short.stderr
     not_a_number = phantom_cli(rig, "set", "--pressures-kpa", "1,two,3")
     assert not_a_number.returncode == 2 and "'two' is not a number" in not_a_number.stderr
+    inflated = phantom_cli(rig, "zero")
+    assert inflated.returncode == 2 and "NOT_VENTED" in inflated.stderr and "vent first" in inflated.stderr
     missing = phantom_cli(rig, "run-scene", str(rig["dir"] / "missing.toml"))
     assert missing.returncode == 2 and "does not exist" in missing.stderr
     with DaemonClient(rig["socket"]) as client:
