@@ -200,3 +200,18 @@ def test_only_a_stale_socket_is_replaced_never_a_file_or_folder(tmp_path, kind):
 
     asyncio.run(main())
     assert (path.read_text() == "someone's notes") if kind == "file" else (path / "inside").is_dir()
+
+
+def test_a_daemon_still_loading_its_model_answers_starting(tmp_path):
+    async def main():
+        server = ApiServer(tmp_path / "api.sock", {})
+        await server.start()
+        try:
+            return await exchange(server.socket_path, {"id": 1, "method": "status"},
+                                  {"id": 2, "method": "subscribe", "params": {"topics": ["events"]}})
+        finally:
+            await server.close()
+
+    starting, subscribed = asyncio.run(main())
+    assert starting["error"]["code"] == "starting" and "try again" in starting["error"]["message"]
+    assert subscribed == {"id": 2, "result": {"topics": ["events"]}}
