@@ -181,6 +181,18 @@ def test_set_32_ml_reaches_it_within_1_percent_and_holds_the_pressures(rig):
     assert answer["meshes_logged"] == answer["model_counts"]["shapes"]
     for key in ("pressures_kpa", "setpoints_kpa", "estimated_volume_ml", "target_volume_ml", "faults", "link"):
         assert key in answer
+    # the deformed outer surface on request: the model's outer triangles over its surface nodes, in mm; inflated
+    # to 32 ml the phantom is larger than at rest
+    with DaemonClient(rig["socket"], timeout_s=30) as client:
+        inflated = client.call("surface")
+        rest = client.call("surface", {"pressures_kpa": [0, 0, 0]})
+        with pytest.raises(DaemonError, match="list of 3 numbers"):
+            client.call("surface", {"pressures_kpa": [1, 1]})
+    positions, triangles = np.asarray(inflated["positions_mm"]), np.asarray(inflated["triangles"])
+    assert positions.shape[1] == 3 and triangles.shape[1] == 3 and triangles.max() == len(positions) - 1
+    assert np.asarray(inflated["pressures_kpa"]) == pytest.approx(setpoints_kpa, abs=ONE_ADC_COUNT_KPA)
+    assert np.ptp(positions, axis=0).sum() > np.ptp(np.asarray(rest["positions_mm"]), axis=0).sum()
+    assert rest["triangles"] == inflated["triangles"]
     # the plain-text views name the same numbers
     text = phantom_cli(rig, "status").stdout
     assert "online" in text and "32.00 ml" in text

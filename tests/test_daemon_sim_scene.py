@@ -99,3 +99,20 @@ def simulator_of(pid: int) -> int:
                     return int(child)
                 pending.append(int(child))
     raise AssertionError("the daemon runs no simulated board")
+
+
+def test_sim_board_runs_alone_prints_its_port_and_stops_on_sigterm():
+    board = subprocess.Popen([str(PHANTOM), "sim-board", "--sim-speed", "2", "--json"], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        port = json.loads(board.stdout.readline())["port"]
+        assert os.path.exists(port)
+        # a board like any other: the link answers on that port
+        from phantom.hil.link import BoardLink
+
+        with BoardLink(port) as link:
+            link.hello()                                       # raises when no HELLO_REPLY comes
+    finally:
+        board.send_signal(signal.SIGTERM)
+        assert board.wait(30) == 0, board.stderr.read()
+    assert not os.path.exists(port)
