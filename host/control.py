@@ -192,6 +192,7 @@ class Estimate:
     gland_volume_ml: float
     surface_mm: tuple[np.ndarray, np.ndarray] | None
     counts: dict[str, int]
+    rest_surface_mm: tuple[np.ndarray, np.ndarray] | None = None
 
 
 # --- the model in its own process -------------------------------------------------------------------------
@@ -250,11 +251,12 @@ def _worker_solve(target: TargetSpec) -> Solution:
     return _worker_model_or_fail().solve(target)
 
 
-def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool) -> Estimate:
+def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_surface: bool) -> Estimate:
     model = _worker_model_or_fail()
     chamber_ml, gland_ml = model.estimate(pressures_pa)
     surface = model.outer_surface_mm(pressures_pa) if with_surface else None
-    return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts))
+    rest = model.rest_surface_mm() if with_surface and with_rest_surface else None
+    return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
 
 
 def _worker_surface(pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
@@ -300,9 +302,12 @@ class ModelWorker:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
         return await self._call(_worker_solve, target)
 
-    async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False) -> Estimate:
-        """Volumes at ``pressures_pa`` (Pa), the deformed surface (mm) only when asked."""
-        return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface)
+    async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
+                       with_rest_surface: bool = False) -> Estimate:
+        """Volumes at ``pressures_pa`` (Pa); the deformed surface (mm) only when asked, and with it the rest
+        surface when asked too (the recording's reference, logged once before the first mesh)."""
+        return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface,
+                                with_rest_surface)
 
     async def surface(self, pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
         """The outer surface (positions mm, triangles) at ``pressures_pa`` (Pa), or at rest for None."""

@@ -123,6 +123,7 @@ class Daemon:
         self.scenes = SceneRunner(clock, self.event)
         self.schedule = EstimateSchedule(config.mesh_hz)
         self._stop = asyncio.Event()
+        self._exit_code = 0
         self._link_log_due_s = 0.0
         self._rest_surface_logged = False
         self._setpoint_lock = asyncio.Lock()
@@ -184,6 +185,7 @@ class Daemon:
         loop = asyncio.get_running_loop()
         for signum in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(signum, self.request_stop)
+        loop.set_exception_handler(_log_loop_exception)
         try:
             info = self.model.info
             self.event("startup", "model ready: " + ", ".join(f"{key} {value:.2f} s"
@@ -192,6 +194,8 @@ class Daemon:
                            asyncio.create_task(self._control_loop(), name="control")]
             if self.sim_board is not None:
                 self._tasks.append(asyncio.create_task(self.sim_board.watch(), name="simulated board"))
+            for task in self._tasks:
+                task.add_done_callback(self._task_ended)
             logger.info("ready: API on %s, board on %s", self.config.socket, self.session.transport.description)
             if self.config.run_scene:
                 from phantom.host.scenes import SceneError
@@ -203,7 +207,18 @@ class Daemon:
             await self._stop.wait()
         finally:
             await self._shutdown()
-        return 0
+        return self._exit_code
+
+    def _task_ended(self, task: asyncio.Task[Any]) -> None:
+        """A main task must run until shutdown: one that failed is a bug, logged with its traceback, and the
+        daemon stops (exit status 1; under systemd it is restarted)."""
+        if task.cancelled() or self._stop.is_set():
+            return
+        error = task.exception()
+        logger.error("the %s task ended unexpectedly", task.get_name(), exc_info=error)
+        self.event("internal", f"the {task.get_name()} task ended: {type(error).__name__}: {error}", "ERROR")
+        self._exit_code = 1
+        self.request_stop()
 
     def spawn(self, coroutine: Coroutine[Any, Any, Any]) -> asyncio.Task[Any]:
         """A background task, referenced until it ends (the event loop keeps only weak references)."""
@@ -346,7 +361,8 @@ class Daemon:
         request = self.schedule.due(self.now_s(), self.wants_shape())
         if request is None:
             return
-        task = self.spawn(self.model.estimate(request.pressures_pa, request.with_shape))
+        task = self.spawn(self.model.estimate(request.pressures_pa, request.with_shape,
+                                              not self._rest_surface_logged))
         task.add_done_callback(lambda done: self._estimate_done(done, request))
 
     def _estimate_done(self, done: asyncio.Task[Estimate], request: EstimateRequest) -> None:
@@ -363,19 +379,15 @@ class Daemon:
         self.recorder.log_volumes(request.time_s, self.target_volume_ml(), estimate.gland_volume_ml,
                                   estimate.chamber_volumes_ml, true_ml=self.plant_volume_ml())
         if estimate.surface_mm is not None:
-            if not self._rest_surface_logged:
+            if estimate.rest_surface_mm is not None and not self._rest_surface_logged:
                 self._rest_surface_logged = True
-                self.spawn(self._log_rest_surface())
+                self.recorder.log_rest_surface(*estimate.rest_surface_mm)
             self.recorder.log_mesh(request.time_s, *estimate.surface_mm)
             self.meshes_logged += 1
         solved = self.solution.target if self.solution is not None else None
         self.scenes.observe(estimate.gland_volume_ml,
                             self.solution.predicted_volume_ml if self.solution is not None else None, solved,
                             self.plant_volume_ml())
-
-    async def _log_rest_surface(self) -> None:
-        positions_mm, triangles = await self.model.surface(None)
-        self.recorder.log_rest_surface(positions_mm, triangles)
 
     def plant_volume_ml(self) -> float | None:
         """The simulated plant's true gland volume (ml); None on a real board or before the truth model."""
@@ -528,6 +540,12 @@ class Daemon:
             stats = self.session.status()["stats"]
             self.recorder.log_link(now_s, stats["rtt_ms"], stats["retries"], stats["bad_frames"],
                                    stats["tx_dropped"] + stats["commands_failed"])
+
+
+def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
+    """Errors the event loop catches (a background task's exception nobody awaited) go to the log with their
+    traceback."""
+    logger.error("unexpected error: %s", context.get("message", "in the event loop"), exc_info=context.get("exception"))
 
 
 def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None, on_telemetry: Callable[..., Any],

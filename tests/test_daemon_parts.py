@@ -256,3 +256,148 @@ def test_the_model_package_does_not_import_the_host_package():
     loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                        check=True).stdout)
     assert loaded == []
+
+
+# --- the daemon's wiring, one layer, with stand-ins for the parts it is given ---------------------------------
+
+class PartsStandIn:
+    """Stand-ins for the daemon's parts (a unit test of the wiring alone; end to end they are real)."""
+
+    def __init__(self, scene_shape: bool, refuse_zero_with: str | None = None):
+        from types import SimpleNamespace
+
+        from phantom.host.api import ApiServer
+        from phantom.host.control import ModelInfo
+
+        self.calls: list[tuple] = []
+        info = ModelInfo(CHAMBERS, 26.1, {"total_s": 1.0}, "updated", {}, "scene.toml", 3000.0, scene_shape, {})
+        parts = self
+
+        class Model:
+            def __init__(self):
+                self.info = info
+
+            async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
+                from phantom.host.control import Estimate
+
+                parts.calls.append(("estimate", with_surface))
+                surface = (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])) if with_surface else None
+                rest = surface if with_surface and with_rest_surface else None
+                return Estimate([2.0, 1.1, 1.1], 30.0, surface, {"shapes": sum(
+                    1 for call in parts.calls if call == ("estimate", True))}, rest)
+
+            async def surface(self, pressures_pa):
+                return np.zeros((4, 3)), np.array([[0, 1, 2]])
+
+            def close(self):
+                pass
+
+        class Recorder:
+            def __getattr__(self, name):
+                return lambda *args, **kwargs: parts.calls.append((name, *args[:1]))
+
+        class Session:
+            online = True
+            transport = SimpleNamespace(description="stand-in", close=lambda: None)
+
+            async def command(self, name, fields=None):
+                from phantom.host.session import CommandRejected
+
+                parts.calls.append(("command", name))
+                if name == "ZERO_SENSORS" and refuse_zero_with:
+                    raise CommandRejected(name, refuse_zero_with)
+                return "OK"
+
+            def status(self):
+                return {"state": "online", "stats": {}}
+
+        self.model, self.recorder, self.session = Model(), Recorder(), Session()
+        self.api = ApiServer("/nonexistent/never-started.sock", {})
+
+    def daemon(self, recording: bool, clock):
+        from phantom.host.daemon import Daemon, DaemonConfig
+
+        config = DaemonConfig(sim=True, rerun_save="x.rrd" if recording else None, mesh_hz=2.0)
+        return Daemon(config, self.api, self.model, self.recorder, self.session, None, clock=clock)
+
+
+def frame(board_time_ms: int, kpa: float):
+    from types import SimpleNamespace
+
+    pressures = np.full(3, kpa * 1e3)
+    return SimpleNamespace(board_time_ms=board_time_ms, pressures_pa=pressures, setpoints_pa=pressures,
+                           drive_levels=np.zeros(3), states=["HOLD"] * 3, fault_flags=0)
+
+
+async def run_control(daemon, clock, seconds: float):
+    """Telemetry at 50 Hz and the estimate tick at 10 Hz on the fake clock, with a rising pressure."""
+    import asyncio
+
+    for tick in range(int(seconds * 10)):
+        for sub in range(5):
+            daemon.on_telemetry(frame(tick * 100 + sub * 20, 0.1 * tick))
+        clock.now_s += 0.1
+        daemon._estimate_tick()
+        for _ in range(3):
+            await asyncio.sleep(0)
+
+
+@pytest.mark.parametrize(("scene_shape", "recording", "meshes"), [
+    (False, True, 0), (True, False, 0), (True, True, 20)])
+def test_a_shape_is_computed_and_logged_only_when_the_scene_asks_and_something_records(scene_shape, recording,
+                                                                                        meshes):
+    import asyncio
+
+    parts, clock = PartsStandIn(scene_shape), FakeClock()
+    daemon = parts.daemon(recording, clock)
+    asyncio.run(run_control(daemon, clock, 10.0))
+    shapes_asked = sum(1 for call in parts.calls if call == ("estimate", True))
+    logged = [call for call in parts.calls if call[0] in ("log_mesh", "log_rest_surface")]
+    # at --mesh-hz 2 over 10 s: 20 at most (a tick's float rounding can push one shape to the next tick)
+    assert (15 <= shapes_asked <= meshes) if meshes else shapes_asked == 0
+    assert daemon.meshes_logged == shapes_asked == sum(1 for call in logged if call[0] == "log_mesh")
+    if meshes:
+        # the rest shape once, before the first deformed mesh
+        assert [call[0] for call in logged[:2]] == ["log_rest_surface", "log_mesh"]
+        assert sum(1 for call in logged if call[0] == "log_rest_surface") == 1
+
+
+@pytest.mark.parametrize(("status", "reason"), [
+    ("NOT_VENTED", "vent first"), ("NOT_SETTLED", "not steady"), ("ZERO_OUT_OF_RANGE", "old zero is kept"),
+    ("SOMETHING_NEW", "the board answered SOMETHING_NEW")])
+def test_a_refused_zero_says_why(status, reason):
+    import asyncio
+
+    from phantom.host.api import ApiError
+
+    parts = PartsStandIn(False, refuse_zero_with=status)
+    daemon = parts.daemon(False, FakeClock())
+    with pytest.raises(ApiError, match=f"{status}.*{reason}") as refused:
+        asyncio.run(daemon.zero_sensors())
+    assert refused.value.code == "rejected"
+
+
+def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(caplog):
+    import asyncio
+
+    parts = PartsStandIn(False)
+    daemon = parts.daemon(False, FakeClock())
+
+    async def broken():
+        raise RuntimeError("the link task broke")
+
+    async def scenario():
+        task = asyncio.create_task(broken(), name="link")
+        task.add_done_callback(daemon._task_ended)
+        await asyncio.sleep(0.01)
+
+    phantom_logger = logging.getLogger("phantom")
+    propagate, phantom_logger.propagate = phantom_logger.propagate, True   # so that caplog sees the records
+    try:
+        with caplog.at_level(logging.ERROR, logger="phantom"):
+            asyncio.run(scenario())
+    finally:
+        phantom_logger.propagate = propagate
+    assert daemon._stop.is_set() and daemon._exit_code == 1
+    record = next(record for record in caplog.records if "ended unexpectedly" in record.getMessage())
+    assert record.exc_info and "the link task broke" in str(record.exc_info[1])
