@@ -9,6 +9,7 @@ and returns the process exit status.
 import argparse
 import importlib
 import logging
+import os
 import sys
 
 import phantom
@@ -67,6 +68,11 @@ def main(argv: list[str] | None = None) -> int:
     except phantom.PhantomError as error:
         print(f"phantom {args.command}: error: {error}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # whoever read our output has gone (`phantom ... --json | head`): not an error; stdout goes nowhere now
+        # so that the interpreter's final flush does not raise again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
     except Exception:
         # a bug: logged with its traceback (journald keeps it under systemd), then the usual exit status 1
         logging.getLogger("phantom").exception("phantom %s failed unexpectedly", args.command)
