@@ -115,3 +115,50 @@ def test_sim_board_runs_alone_prints_its_port_and_stops_on_sigterm():
         board.send_signal(signal.SIGTERM)
         assert board.wait(30) == 0, board.stderr.read()
     assert not os.path.exists(port)
+
+
+def test_a_killed_daemon_leaves_no_worker_and_its_board_vents_at_the_dead_host_deadline(tmp_path):
+    from phantom.hil.sim import SimulatedBoard
+
+    sock = tmp_path / "d.sock"
+    with SimulatedBoard(speed=1.0) as board:
+        log = open(tmp_path / "daemon.log", "w+")
+        daemon = subprocess.Popen([str(PHANTOM), "daemon", "--port", board.port, "--socket", str(sock)],
+                                  stdout=log, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                assert daemon.poll() is None, Path(log.name).read_text()
+                try:
+                    with DaemonClient(sock) as client:
+                        if client.call("status")["link"] == "online":
+                            client.call("set_target", {"pressures_kpa": [1.0, 1.0, 1.0]})
+                            break
+                except PhantomError:
+                    pass
+                assert time.monotonic() < deadline, Path(log.name).read_text()
+                time.sleep(0.2)
+            deadline = time.monotonic() + 20
+            while max(board.plant_state()["drive_levels"]) == 0:
+                assert time.monotonic() < deadline, "the blowers never started"
+                time.sleep(0.1)
+            workers = [int(child) for task in Path(f"/proc/{daemon.pid}/task").iterdir()
+                       for child in (task / "children").read_text().split()]
+            assert workers, "the daemon runs its model in a worker process"
+            daemon.send_signal(signal.SIGKILL)
+            daemon.wait(10)
+            # the board stops its blowers once the host has been silent for its deadline (500 ms)
+            deadline = time.monotonic() + 10
+            while max(board.plant_state()["drive_levels"]) > 0:
+                assert time.monotonic() < deadline, "the board kept blowing after its host died"
+                time.sleep(0.1)
+            # and the model worker did not outlive the daemon
+            deadline = time.monotonic() + 10
+            while any(Path(f"/proc/{pid}").exists() and "zombie" not in Path(f"/proc/{pid}/status").read_text()
+                      for pid in workers):
+                assert time.monotonic() < deadline, "the model worker outlived the killed daemon"
+                time.sleep(0.1)
+        finally:
+            if daemon.poll() is None:
+                daemon.kill()
+            log.close()
