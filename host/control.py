@@ -315,5 +315,6 @@ class ModelWorker:
         return await self._call(_worker_surface, pressures)
 
     def close(self) -> None:
-        """Stop the worker process."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop the worker process and wait for it (a pool left running is woken by the interpreter's exit
+        hook through a pipe already closed, which prints an error)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
