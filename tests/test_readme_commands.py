@@ -58,7 +58,9 @@ def readme_command_lines() -> list[tuple[str, str]]:
                 text = text[:-1] + " " + lines[index].strip()
             # a subcommand, not a log line such as "phantom daemon: ready"
             if code and re.match(r"phantom [a-z][a-z-]*( |$)", text):
-                found.append((f"{readme.relative_to(ROOT)}:{index + 1}", text.split(" #")[0].strip()))
+                # the phantom command alone: without its comment, or what a shell pipes or chains after it
+                command = re.split(r" #| \| | && | ; | > ", text)[0].strip()
+                found.append((f"{readme.relative_to(ROOT)}:{index + 1}", command))
             index += 1
     return found
 
