@@ -14,12 +14,16 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import os
+import stat
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from phantom import PhantomError
+
+logger = logging.getLogger(__name__)
 
 #: Error codes a request can get back, with what they mean.
 ERROR_CODES: dict[str, str] = {
@@ -29,6 +33,7 @@ ERROR_CODES: dict[str, str] = {
     "invalid_params": "the params are missing, of the wrong type or out of range",
     "unreachable": "the target cannot be reached within the pressure limits",
     "link_down": "no board is connected",
+    "starting": "the daemon is still starting (loading its model): try again in a few seconds",
     "rejected": "the board refused the command (e.g. a fault is latched and its cause persists)",
     "internal": "a bug in the daemon: please report it",
 }
@@ -105,14 +110,29 @@ class ApiServer:
 
     async def start(self) -> None:
         """Bind and listen; raises PhantomError if another daemon already serves this socket."""
-        self.socket_path.parent.mkdir(parents=True, exist_ok=True)
-        if self.socket_path.exists():
+        try:
+            self.socket_path.parent.mkdir(parents=True, exist_ok=True)
+            existing = os.lstat(self.socket_path)
+        except FileNotFoundError:
+            existing = None
+        except OSError as error:
+            raise PhantomError(f"cannot use the socket path {self.socket_path}: {error.strerror}; pass another "
+                               "--socket") from None
+        if existing is not None:
+            if not stat.S_ISSOCK(existing.st_mode):
+                kind = "a folder" if stat.S_ISDIR(existing.st_mode) else "a file that is not a socket"
+                raise PhantomError(f"{self.socket_path} is {kind}: the daemon replaces only a stale socket; "
+                                   "remove it yourself or pass another --socket")
             if await _socket_is_live(self.socket_path):
                 raise PhantomError(f"a daemon already listens on {self.socket_path}: stop it, or pass another "
                                    "--socket")
-            self.socket_path.unlink()
-        self._server = await asyncio.start_unix_server(self._serve_client, path=str(self.socket_path),
-                                                       limit=MAX_REQUEST_BYTES)
+            self.socket_path.unlink()  # a stale socket left by a daemon that died
+        try:
+            self._server = await asyncio.start_unix_server(self._serve_client, path=str(self.socket_path),
+                                                           limit=MAX_REQUEST_BYTES)
+        except OSError as error:
+            raise PhantomError(f"cannot listen on {self.socket_path}: {error.strerror}; pass another "
+                               "--socket") from None
         os.chmod(self.socket_path, self.mode)
 
     async def close(self) -> None:
@@ -124,11 +144,13 @@ class ApiServer:
         for task in list(self._tasks):
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        if self._server is not None:
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(self._server.wait_closed(), 1.0)
+        if self._server is None:
+            return  # never listened: the path, if any, is another daemon's
+        with contextlib.suppress(Exception):
+            await asyncio.wait_for(self._server.wait_closed(), 1.0)
         with contextlib.suppress(FileNotFoundError):
             self.socket_path.unlink()
+        self._server = None
 
     def publish(self, topic: str, data: dict) -> None:
         """Offer an event to every client subscribed to ``topic``; never blocks, drops where full."""
@@ -155,6 +177,7 @@ class ApiServer:
         writer_task = asyncio.create_task(self._drain_client(client, writer))
         self._tasks.add(writer_task)
         this_task = asyncio.current_task()
+        assert this_task is not None  # a client is served in a task of its own
         self._tasks.add(this_task)
         try:
             while True:
@@ -171,7 +194,12 @@ class ApiServer:
                     break
                 if not line.strip():
                     continue
-                reply = await self._answer(line, client)
+                try:
+                    reply = await self._answer(line, client)
+                except Exception as error:  # a bug here must not end the connection; it is reported and logged
+                    logger.exception("API request from client %d failed", client.number)
+                    self.errors_total += 1
+                    reply = _error_line(None, "internal", f"{type(error).__name__}: {error}")
                 if reply is not None and not client.offer(reply):
                     self.dropped_lines_total += 1
         finally:
@@ -201,15 +229,25 @@ class ApiServer:
         """The reply line to one request line."""
         self.requests_total += 1
         try:
-            request = json.loads(line)
-        except (UnicodeDecodeError, json.JSONDecodeError) as error:
+            request = json.loads(line.decode("utf-8"))
+        except UnicodeDecodeError as error:
             self.errors_total += 1
-            return _error_line(None, "parse_error", f"the request is not valid JSON ({error.msg}): send one JSON "
+            return _error_line(None, "parse_error", f"the request is not UTF-8 (byte {error.start}: "
+                               f"{error.reason}): send one JSON object per line, in UTF-8")
+        except (ValueError, RecursionError) as error:
+            # JSONDecodeError, an integer of too many digits (ValueError), nesting deeper than the parser's stack
+            self.errors_total += 1
+            reason = error.msg if isinstance(error, json.JSONDecodeError) else (
+                "nested too deeply" if isinstance(error, RecursionError) else str(error).split(";")[0])
+            return _error_line(None, "parse_error", f"the request is not valid JSON ({reason}): send one JSON "
                                "object per line")
         if not isinstance(request, dict):
             self.errors_total += 1
             return _error_line(None, "parse_error", 'the request must be a JSON object {"id", "method", "params"}')
         request_id = request.get("id")
+        if not (request_id is None or isinstance(request_id, (str, int, float))) or isinstance(request_id, bool):
+            self.errors_total += 1
+            return _error_line(None, "invalid_request", "\"id\" must be a string, a number or null")
         method = request.get("method")
         params = request.get("params", {})
         if not isinstance(method, str):
@@ -220,11 +258,15 @@ class ApiServer:
         if not isinstance(params, dict):
             self.errors_total += 1
             return _error_line(request_id, "invalid_request", "\"params\" must be a JSON object")
+        result: object
         try:
             if method == "subscribe":
                 result = self._subscribe(client, params)
             elif method in self.handlers:
                 result = await self.handlers[method](params)
+            elif not self.handlers:
+                raise ApiError("starting", "the daemon is still starting (loading its model): try again in a few "
+                               "seconds")
             else:
                 known = ", ".join(sorted([*self.handlers, "subscribe"]))
                 raise ApiError("unknown_method", f"unknown method {method!r}; methods: {known}")
@@ -235,6 +277,7 @@ class ApiServer:
             self.errors_total += 1
             return _error_line(request_id, "invalid_params", str(error))
         except Exception as error:  # a handler bug must not take the daemon down; the client learns of it
+            logger.exception("API method %s failed", method)
             self.errors_total += 1
             return _error_line(request_id, "internal", f"{type(error).__name__}: {error}")
         return _encode({"id": request_id, "result": result})

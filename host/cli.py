@@ -8,10 +8,15 @@ and returns the process exit status.
 
 import argparse
 import importlib
-import math
+import logging
+import os
 import sys
 
 import phantom
+
+# The number-list parsers live in a neutral module (the model's command line uses them too); kept importable
+# from here for the parts that import them from this module.
+from phantom.command_line import parse_growth_ratio, parse_numbers  # noqa: F401
 
 #: Modules that add subcommands, in the order they appear in ``phantom --help``.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -23,44 +28,6 @@ COMMAND_MODULES: tuple[str, ...] = (
 )
 
 
-def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float | None]:
-    """A comma-separated list of finite numbers given to ``option``, e.g. ``1,1.5,0``.
-
-    With ``allow_free``, ``-`` (or an empty item) stands for "no value" and gives ``None``.
-    """
-    values: list[float | None] = []
-    for item in text.split(","):
-        item = item.strip()
-        if allow_free and item in ("-", ""):
-            values.append(None)
-            continue
-        try:
-            value = float(item)
-        except ValueError:
-            free = " or -" if allow_free else ""
-            raise phantom.PhantomError(
-                f"{option} takes comma-separated numbers{free} like 1,1.5,0; {item!r} is not a number"
-            ) from None
-        if not math.isfinite(value):
-            raise phantom.PhantomError(f"{option}: {item!r} is not a finite number")
-        values.append(value)
-    return values
-
-
-def parse_growth_ratio(text: str, option: str = "--growth-ratio") -> dict[str, float]:
-    """Chamber growth weights given as ``NAME=WEIGHT`` pairs, e.g. ``chamber1=2,chamber2=1``.
-
-    A name is a chamber's group name or its index; checking it against the scene's chambers is the caller's.
-    """
-    ratio = {}
-    for pair in text.split(","):
-        name, separator, weight = pair.partition("=")
-        if not separator or not name.strip():
-            raise phantom.PhantomError(f"{option} takes NAME=WEIGHT pairs like chamber1=2,chamber2=1; got {pair!r}")
-        ratio[name.strip()] = parse_numbers(weight, option)[0]
-    return ratio
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The full argument parser, with every part's subcommands registered."""
     parser = argparse.ArgumentParser(
@@ -68,21 +35,49 @@ def build_parser() -> argparse.ArgumentParser:
         description="Drive and model the active prostate phantom. Offline commands need no daemon.",
     )
     parser.add_argument("--version", action="version", version=f"phantom {phantom.__version__}")
+    parser.add_argument("--log-level", choices=("debug", "info", "warning", "error"), default="info",
+                        help="what the log on stderr shows (default info; under systemd, levels are journald "
+                        "priorities)")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module_name in COMMAND_MODULES:
         importlib.import_module(module_name).register(subparsers)
     return parser
 
 
+def join_list_values(argv: list[str]) -> list[str]:
+    """``--option -,3.5,3.5`` as ``--option=-,3.5,3.5``: argparse takes a value that starts with '-' for an
+    option, but a comma-separated list whose first item is free ('-') is a value (no option has a comma)."""
+    joined: list[str] = []
+    for argument in argv:
+        if joined and joined[-1].startswith("--") and "=" not in joined[-1] and argument.startswith("-") and (
+                "," in argument):
+            joined[-1] = f"{joined[-1]}={argument}"
+        else:
+            joined.append(argument)
+    return joined
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``phantom`` console script; returns the exit status."""
+    from phantom.host.logs import configure_logging
+
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(join_list_values(sys.argv[1:] if argv is None else list(argv)))
+    configure_logging(getattr(args, "log_level", "info"))
     try:
         return int(args.run(args) or 0)
     except phantom.PhantomError as error:
         print(f"phantom {args.command}: error: {error}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # whoever read our output has gone (`phantom ... --json | head`): not an error; stdout goes nowhere now
+        # so that the interpreter's final flush does not raise again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
+    except Exception:
+        # a bug: logged with its traceback (journald keeps it under systemd), then the usual exit status 1
+        logging.getLogger("phantom").exception("phantom %s failed unexpectedly", args.command)
+        return 1
     except KeyboardInterrupt:
         print(f"phantom {args.command}: interrupted", file=sys.stderr)
         return 130

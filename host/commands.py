@@ -7,21 +7,23 @@ import argparse
 
 #: Keys of the daemon's config file (``[daemon]`` table, e.g. /etc/phantom/phantomd.toml) and their types.
 CONFIG_KEYS = {"port": str, "sim": bool, "sim_speed": float, "can_channel": str, "can_interface": str,
-               "baudrate": int, "scene": str, "socket": str, "rerun_save": str, "rerun_connect": str,
+               "baud": int, "scene": str, "socket": str, "rerun_save": str, "rerun_connect": str,
                "mesh_hz": float, "host_deadline_ms": int, "telemetry_period_ms": int, "vent_on_exit": bool,
-               "run_scene": bool}
+               "run_scene": bool, "zero_on_connect": bool}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     daemon = subparsers.add_parser("daemon", help="run the host daemon (link, control, scenes, Rerun, local API)",
                                    description="Run the host daemon in the foreground until SIGTERM/SIGINT, "
-                                   "which vent the phantom and close the recording.")
+                                   "which vent the phantom and close the recording. A start-up error (the socket "
+                                   "taken, an unwritable recording) is one line on stderr and exit status 2.")
     board = daemon.add_mutually_exclusive_group()
     board.add_argument("--port", metavar="DEV", help="the board's serial port (e.g. /dev/serial/by-id/usb-...)")
     board.add_argument("--sim", action="store_true", default=None,
                        help="start the simulated board (the real firmware in simavr) and drive it")
     board.add_argument("--can-channel", metavar="CH", help="talk to the board over CAN on this channel")
+    daemon.add_argument("--baud", type=int, metavar="N", help="serial baud rate (default 115200)")
     daemon.add_argument("--can-interface", metavar="NAME", help="python-can interface (default socketcan)")
     daemon.add_argument("--sim-speed", type=float, metavar="X", help="simulated board speed-up (default 1: real time)")
     daemon.add_argument("--scene", metavar="S",
@@ -29,20 +31,35 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     daemon.add_argument("--run-scene", action="store_true", default=None,
                         help="play the scene's [[steps]] as soon as the daemon is ready")
     record = daemon.add_mutually_exclusive_group()
-    record.add_argument("--rerun-save", metavar="FILE", help="record to this .rrd file")
+    record.add_argument("--rerun-save", metavar="FILE", help="record to this .rrd file (its folder is created)")
     record.add_argument("--rerun-connect", metavar="ADDR", help="stream to a Rerun viewer (rerun+http://.../proxy)")
     daemon.add_argument("--mesh-hz", type=float, metavar="HZ",
-                        help="rate of deformed-mesh logging while recording (default 1; 0: none)")
+                        help="rate of deformed-mesh logging while recording a scene with [outputs] shape = true "
+                        "(default 1; 0: none)")
     daemon.add_argument("--config", metavar="FILE", help="a TOML config file with a [daemon] table (flags win)")
     _add_socket(daemon)
     daemon.set_defaults(run=_run_daemon)
 
-    status = subparsers.add_parser("status", help="show the daemon's link, pressures, volumes and faults")
-    status.add_argument("--json", action="store_true", help="print the whole status as JSON")
+    sim_board = subparsers.add_parser(
+        "sim-board", help="run the simulated board alone and print its port",
+        description="Run the simulated board (the real firmware in simavr against the pneumatic plant) on its own "
+        "until SIGTERM/SIGINT, and print its serial port: a daemon started with --port PORT drives it like a "
+        "real board, and can be killed to see the board vent at its dead-host deadline.")
+    sim_board.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
+                           help="speed-up of the simulated time (default 1: real time)")
+    sim_board.add_argument("--json", action="store_true", help="print {\"port\": ...} as JSON")
+    sim_board.set_defaults(run=_run_sim_board)
+
+    status = subparsers.add_parser("status", help="show the daemon's link, pressures, volumes and faults",
+                                   description="Show the daemon's link, control state, pressures and volumes per "
+                                   "chamber, and latched faults.")
+    _add_json(status, "print the whole status as JSON")
     _add_socket(status)
     status.set_defaults(run=_run_status)
 
-    set_target = subparsers.add_parser("set", help="set a target: a volume, chamber volumes or raw pressures")
+    set_target = subparsers.add_parser("set", help="set a target: a volume, chamber volumes or raw pressures",
+                                       description="Set the daemon's target: the gland volume, each chamber's "
+                                       "volume, or raw pressures; the inverse gives the setpoints.")
     target = set_target.add_mutually_exclusive_group(required=True)
     target.add_argument("--volume-ml", type=float, metavar="V", help="the gland's total volume (ml)")
     target.add_argument("--chamber-volumes-ml", metavar="A,B,C",
@@ -50,32 +67,55 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     target.add_argument("--pressures-kpa", metavar="A,B,C", help="raw chamber pressures (kPa)")
     set_target.add_argument("--growth-ratio", metavar="NAME=W,...",
                             help="with --volume-ml: e.g. chamber1=2,chamber2=1 (left lobe grows twice the right)")
-    set_target.add_argument("--json", action="store_true", help="print the answer as JSON")
+    _add_json(set_target, "print the answer as JSON")
     _add_socket(set_target)
     set_target.set_defaults(run=_run_set)
 
-    vent = subparsers.add_parser("vent", help="all blowers off now (every setpoint 0)")
+    vent = subparsers.add_parser("vent", help="all blowers off now (every setpoint 0)",
+                                 description="Vent the phantom: every setpoint 0 now; the target and any scene "
+                                 "are dropped.")
+    _add_json(vent, "print the answer as JSON")
     _add_socket(vent)
     vent.set_defaults(run=_run_simple, method="vent")
 
-    clear = subparsers.add_parser("clear-fault", help="clear the board's latched fault (if its cause is gone)")
+    clear = subparsers.add_parser("clear-fault", help="clear the board's latched fault (if its cause is gone)",
+                                  description="Clear the board's latched faults; the daemon then restores the "
+                                  "current target's setpoints. Refused while a fault's cause persists.")
+    _add_json(clear, "print the answer as JSON")
     _add_socket(clear)
     clear.set_defaults(run=_run_simple, method="clear_fault")
 
-    scene = subparsers.add_parser("run-scene", help="play a scene's [[steps]] timeline on the daemon")
-    scene.add_argument("file", help="the scene TOML file (or the name of a shipped example: bph_growth, lopsided)")
+    zero = subparsers.add_parser("zero", help="zero the pressure sensors (the phantom must be vented)",
+                                 description="Ask the board to measure each pressure sensor's zero offset. The "
+                                 "phantom must be vented and its readings steady; a refusal says why.")
+    _add_json(zero, "print the answer as JSON")
+    _add_socket(zero)
+    zero.set_defaults(run=_run_simple, method="zero")
+
+    scene = subparsers.add_parser("run-scene", help="play a scene's [[steps]] timeline on the daemon",
+                                  description="Play a scene's [[steps]] timeline on the running daemon (the scene "
+                                  "must describe the daemon's phantom, material and model).")
+    scene.add_argument("scene", metavar="SCENE",
+                       help="the scene TOML file (or the name of a shipped example: bph_growth, lopsided)")
     scene.add_argument("--time-scale", type=float, default=1.0, metavar="X",
                        help="play the timeline X times faster (default 1)")
     scene.add_argument("--wait", action="store_true",
                        help="wait for the end and print each step's target, reached volume and time")
-    scene.add_argument("--json", action="store_true", help="with --wait: print the step table as JSON")
+    _add_json(scene, "print the answer (with --wait: the step table) as JSON")
     _add_socket(scene)
     scene.set_defaults(run=_run_scene)
 
-    watch = subparsers.add_parser("watch", help="a live text view of pressures, volumes and events")
+    watch = subparsers.add_parser("watch", help="a live text view of pressures, volumes and events",
+                                  description="Print the daemon's pressures, setpoints and volumes twice a "
+                                  "second, and its events as they happen, until interrupted.")
     watch.add_argument("--count", type=int, metavar="N", help="stop after N status lines")
+    _add_json(watch, "print one JSON object per line (status and events) instead of text")
     _add_socket(watch)
     watch.set_defaults(run=_run_watch)
+
+
+def _add_json(parser: argparse.ArgumentParser, text: str) -> None:
+    parser.add_argument("--json", action="store_true", help=text)
 
 
 def _add_socket(parser: argparse.ArgumentParser) -> None:
@@ -131,7 +171,7 @@ def _run_daemon(args) -> int:
 
     settings = load_config(args.config) if args.config else {}
     flags = {"port": args.port, "sim": args.sim, "sim_speed": args.sim_speed, "can_channel": args.can_channel,
-             "can_interface": args.can_interface, "scene": args.scene, "socket": args.socket,
+             "can_interface": args.can_interface, "baud": args.baud, "scene": args.scene, "socket": args.socket,
              "rerun_save": args.rerun_save, "rerun_connect": args.rerun_connect, "mesh_hz": args.mesh_hz,
              "run_scene": args.run_scene}
     if args.port or args.sim or args.can_channel:
@@ -139,12 +179,37 @@ def _run_daemon(args) -> int:
     if args.rerun_save or args.rerun_connect:
         settings = {key: value for key, value in settings.items() if key not in ("rerun_save", "rerun_connect")}
     settings.update({key: value for key, value in flags.items() if value is not None})
-    config = DaemonConfig()
+    config = DaemonConfig(log_level=args.log_level)
     for key, value in settings.items():
         setattr(config, key, value)
     config.socket = Path(config.socket) if settings.get("socket") else _socket(args)
     config.rerun_save = Path(config.rerun_save) if config.rerun_save else None
     return run_daemon(config)
+
+
+def _run_sim_board(args) -> int:
+    import json
+    import signal
+    import threading
+
+    from phantom.hil.sim import SimulatedBoard
+
+    stop = threading.Event()
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda *_: stop.set())
+    with SimulatedBoard(speed=args.sim_speed) as board:
+        if args.json:
+            print(json.dumps({"port": board.port, "speed": args.sim_speed}), flush=True)
+        else:
+            print(f"simulated board on {board.port} (speed {args.sim_speed:g}); drive it with "
+                  f"`phantom daemon --port {board.port}`; Ctrl-C stops it", flush=True)
+        while not stop.wait(0.5):
+            pass
+    return 0
+
+
+def _labels(status: dict) -> list[str]:
+    return status.get("chamber_labels") or status.get("chambers") or []
 
 
 def _run_status(args) -> int:
@@ -167,23 +232,32 @@ def _ml(value) -> str:
     return "-" if value is None else f"{value:.2f} ml"
 
 
+def _per_chamber(values, digits: int = 3, width: int = 11) -> str:
+    if values is None:
+        return "-"
+    return " ".join(f"{value:>{width}.{digits}f}" if value is not None else f"{'free':>{width}}" for value in values)
+
+
 def format_status(status: dict) -> str:
-    """A few readable lines of a status answer."""
+    """A few readable lines of a status answer, one column per chamber (named as the scene names them)."""
     link = status["link_detail"]
     board = link.get("board") or {}
     stats = link["stats"]
     rtt = "-" if stats.get("rtt_ms_mean") is None else f"{stats['rtt_ms_mean']:.1f} ms"
     error = f": {link['last_error']}" if link.get("last_error") else ""
+    true_volume = f", true {_ml(status['plant_volume_ml'])} (simulated plant)" if "plant_volume_ml" in status else ""
     lines = [
         f"link      {status['link']} ({link['transport']}){error}",
         f"board     {board.get('board', '-')} firmware {board.get('firmware_version', '-')}, reset cause "
         f"{board.get('reset_cause', '-')}; rtt {rtt}, retries {stats['retries']}, bad frames {stats['bad_frames']}, "
         f"reconnects {stats['reconnects']}",
         f"control   {status['control']}" + (f" ({status['target_source']})" if status.get("target_source") else ""),
-        f"pressure  {_kpa(status['pressures_kpa'])} kPa measured",
-        f"setpoint  {_kpa(status['setpoints_kpa'])} kPa",
-        f"volume    {_ml(status['estimated_volume_ml'])} estimated, target {_ml(status['target_volume_ml'])} "
-        f"(rest {status['rest_volume_ml']:.2f} ml)",
+        f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in _labels(status)),
+        f"{'pressure':<9} {_per_chamber(status['pressures_kpa'])}  kPa measured",
+        f"{'setpoint':<9} {_per_chamber(status['setpoints_kpa'])}  kPa",
+        f"{'volume':<9} {_per_chamber(status.get('estimated_chamber_volumes_ml'), 2)}  ml estimated",
+        f"gland     {_ml(status['estimated_volume_ml'])} estimated, target {_ml(status['target_volume_ml'])} "
+        f"(rest {status['rest_volume_ml']:.2f} ml){true_volume}",
         f"faults    {', '.join(status['faults']) or 'none'}",
     ]
     if status.get("scene"):
@@ -197,7 +271,7 @@ def _run_set(args) -> int:
     import json
 
     from phantom import PhantomError
-    from phantom.host.cli import parse_growth_ratio, parse_numbers
+    from phantom.command_line import parse_growth_ratio, parse_numbers
 
     if args.volume_ml is not None:
         params = {"volume_ml": args.volume_ml}
@@ -211,32 +285,51 @@ def _run_set(args) -> int:
         params["growth_ratio"] = parse_growth_ratio(args.growth_ratio)
     with _client(args) as client:
         result = client.call("set_target", params)
+        labels = _labels(client.call("status"))
     if args.json:
         print(json.dumps(result, indent=2))
     else:
-        print(f"setpoints {_kpa(result['pressures_kpa'])} kPa, predicted {result['predicted_volume_ml']:.2f} ml "
-              f"(inverse {result['iterations']} iteration(s), {result['solve_time_s'] * 1e3:.1f} ms)")
+        print(f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in labels))
+        print(f"{'setpoint':<9} {_per_chamber(result['pressures_kpa'])}  kPa")
+        print(f"{'volume':<9} {_per_chamber(result['predicted_chamber_volumes_ml'], 2)}  ml predicted")
+        print(f"gland     {result['predicted_volume_ml']:.2f} ml predicted (inverse {result['iterations']} "
+              f"iteration(s), {result['solve_time_s'] * 1e3:.1f} ms)")
     return 0
+
+
+def format_simple(method: str, result: dict) -> str:
+    """The text answer of vent, clear-fault and zero."""
+    if method == "vent":
+        return "vented: every setpoint is 0; the target and any scene are dropped"
+    if method == "zero":
+        return "sensors zeroed"
+    cleared = ", ".join(result.get("cleared", [])) or "none were latched"
+    restored = "; the target's setpoints restored" if result.get("setpoints_restored") else ""
+    return f"faults cleared: {cleared}{restored}"
 
 
 def _run_simple(args) -> int:
     import json
 
     with _client(args) as client:
-        print(json.dumps(client.call(args.method)))
+        result = client.call(args.method)
+    print(json.dumps(result) if args.json else format_simple(args.method, result))
     return 0
 
 
 def format_steps(steps: list[dict]) -> str:
-    """The table ``make demo`` prints: each step's target, reached volume, error and time to reach it."""
+    """The table ``make demo`` prints: each step's target, reached volume, error and time to reach it; a true
+    (simulated plant) volume column when the steps have one."""
+    with_true = any(step.get("true_volume_ml") is not None for step in steps)
     lines = [f"{'step':>4} {'at (s)':>7} {'target':<34} {'target ml':>9} {'reached ml':>10} {'error %':>8} "
-             f"{'time to 1 % (s)':>15}"]
+             f"{'time to 1 % (s)':>15}" + (f" {'true ml':>8}" if with_true else "")]
     for step in steps:
         def number(value, digits=2):
             return "-" if value is None else f"{value:.{digits}f}"
         lines.append(f"{step['index']:>4} {step['at_s']:>7.1f} {step['target']:<34} "
                      f"{number(step['target_volume_ml']):>9} {number(step['reached_volume_ml']):>10} "
-                     f"{number(step['error_pct']):>8} {number(step['reached_after_s'], 1):>15}")
+                     f"{number(step['error_pct']):>8} {number(step['reached_after_s'], 1):>15}"
+                     + (f" {number(step.get('true_volume_ml')):>8}" if with_true else ""))
     return "\n".join(lines)
 
 
@@ -272,14 +365,16 @@ def _run_scene(args) -> int:
 
     from phantom.host.scenes import example_scene_path
 
-    path = Path(args.file)
-    if not path.exists() and "/" not in args.file and not args.file.endswith(".toml"):
-        path = example_scene_path(args.file)
+    path = Path(args.scene)
+    if not path.exists() and "/" not in args.scene and not args.scene.endswith(".toml"):
+        path = example_scene_path(args.scene)
     with _client(args) as client:
         started = client.call("run_scene", {"path": str(path.resolve()), "time_scale": args.time_scale})
         print(f"scene {started['name']}: {started['steps']} steps, {started['end_s']:g} s of timeline, about "
               f"{started['wall_duration_s']:.0f} s at time scale {args.time_scale:g}", file=sys.stderr)
         if not args.wait:
+            if args.json:
+                print(json.dumps(started))
             return 0
         scene = follow_scene(client, started["name"], args.time_scale)["scene"]
     if args.json:
@@ -289,25 +384,40 @@ def _run_scene(args) -> int:
     return 0
 
 
+def watch_header(labels: list[str]) -> str:
+    """The column names of ``phantom watch``'s status lines."""
+    per_chamber = " ".join(f"{label[:6]:>6}" for label in labels)
+    return (f"{'time (s)':>9}  {'link':<12} p (kPa) {per_chamber}  set (kPa) {per_chamber}  "
+            "gland volume -> target  faults")
+
+
 def _run_watch(args) -> int:
-    import sys
+    import json
 
     printed = 0
     last_s = -1.0
+    header_shown = False
     with _client(args) as client:
         for message in client.events(["status", "events"]):
             if message["event"] == "events":
                 event = message["data"]
-                print(f"{event['time_s']:9.2f}  [{event['level']}] {event['text']}", flush=True)
+                print(json.dumps(message) if args.json else
+                      f"{event['time_s']:9.2f}  [{event['level']}] {event['text']}", flush=True)
                 continue
             status = message["data"]
             if status["uptime_s"] - last_s < 0.5:
                 continue
             last_s = status["uptime_s"]
-            print(f"{status['uptime_s']:9.2f}  {status['link']:<12} p {_kpa(status['pressures_kpa'])} kPa  "
-                  f"set {_kpa(status['setpoints_kpa'])} kPa  V {_ml(status['estimated_volume_ml'])} "
-                  f"-> {_ml(status['target_volume_ml'])}  faults {','.join(status['faults']) or 'none'}",
-                  file=sys.stdout, flush=True)
+            if args.json:
+                print(json.dumps(message), flush=True)
+            else:
+                if not header_shown:
+                    print(watch_header(_labels(status)), flush=True)
+                    header_shown = True
+                print(f"{status['uptime_s']:9.2f}  {status['link']:<12} p (kPa) {_kpa(status['pressures_kpa'])}  "
+                      f"set (kPa) {_kpa(status['setpoints_kpa'])}  {_ml(status['estimated_volume_ml'])} "
+                      f"-> {_ml(status['target_volume_ml'])}  faults {','.join(status['faults']) or 'none'}",
+                      flush=True)
             printed += 1
             if args.count and printed >= args.count:
                 return 0

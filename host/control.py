@@ -1,14 +1,20 @@
 """The daemon's model side: targets -> inverse QP -> pressure setpoints; measured pressures -> volumes (-> shape).
 
-:class:`Controller` loads the scene and its model once, precomputes the compliance (or loads it from the disk
-cache) and times each stage; the daemon runs its calls in a worker thread so the link never waits on them.
+:class:`LoadedModel` loads the scene and its model once, precomputes the compliance (or loads it from the disk
+cache), warms the inverse and times each stage. :class:`ModelWorker` runs it in a process of its own, which
+dies with the daemon, so that the link never waits on the model.
 """
 
 from __future__ import annotations
 
-import sys
+import asyncio
+import logging
+import os
+import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -16,8 +22,11 @@ import phantom
 from phantom import PhantomError
 from phantom.host.scenes import TargetSpec
 
+logger = logging.getLogger(__name__)
+
 ML_PER_M3 = 1e6
 PA_PER_KPA = 1e3
+MM_PER_M = 1e3
 
 
 @dataclass
@@ -39,12 +48,8 @@ class Solution:
                 "solve_time_s": self.solve_time_s, "qp_time_s": self.qp_time_s}
 
 
-def _progress(message: str) -> None:
-    print(f"phantom daemon: {message}", file=sys.stderr, flush=True)
-
-
-class Controller:
-    """The scene's model, its inverse solver and its volume estimator.
+class LoadedModel:
+    """The scene's model, its inverse solver and its volume estimator, built once and warmed up.
 
     Parameters
     ----------
@@ -52,10 +57,10 @@ class Controller:
         ``builtin:calibrated`` (the daemon's default), another built-in name, or a scene TOML path
         (``phantom.model.load_scene``).
     report : callable(str), optional
-        Where start-up progress goes (stderr by default): each stage and how long it took.
+        Where start-up progress goes (the log by default): each stage and how long it took.
     """
 
-    def __init__(self, scene_source: str, report=_progress):
+    def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info):
         from phantom.model import PhantomModel, load_scene
         from phantom.model.inverse import InverseSolver
 
@@ -80,17 +85,43 @@ class Controller:
         self.pressure_max_pa = float(self.solver.pressure_max_pa.max())
         self.estimator = self.solver.estimator
         self.timings_s["inverse_setup_s"] = time.perf_counter() - stage
+        stage = time.perf_counter()
+        self.warm_up()
+        self.timings_s["warm_up_s"] = time.perf_counter() - stage
         self.timings_s["total_s"] = time.perf_counter() - started
         probe = ""
         if self.estimator.probe_errors_pct:
             probe = ", chosen for accuracy_pct {:g} from errors {}".format(self.estimator.accuracy_pct, ", ".join(
                 f"{level} {error:.3g} %" for level, error in self.estimator.probe_errors_pct.items()))
-        report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}{probe}); "
-               f"start-up took {self.timings_s['total_s']:.2f} s")
+        report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}{probe}), "
+               f"warmed up in {self.timings_s['warm_up_s']:.2f} s; start-up took {self.timings_s['total_s']:.2f} s")
         self.chamber_names = list(self.model.chamber_names)
         self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3
-        self.wants_shape = bool(getattr(self.scene.outputs, "shape", False)) if not isinstance(
-            self.scene.outputs, dict) else bool(self.scene.outputs.get("shape", False))
+        self.wants_shape = bool(self.scene.outputs.shape)
+        self._surface_nodes: Any = None
+
+    def warm_up(self) -> None:
+        """Solve one reachable and one unreachable gland target, so that the first request finds the QPs set
+        up and the solvers' modules loaded (the first ``set`` took 0.2-0.6 s, later ones 10-30 ms); the
+        estimator's counters start again from zero."""
+        from phantom.model.inverse import Target, UnreachableTargetError
+
+        rest_m3 = float(self.model.rest_gland_volume_m3)
+        _, highest_m3, _ = self.estimator.evaluate(self.solver.pressure_max_pa)
+        self.solver.solve(Target(gland_volume_m3=rest_m3 + 0.5 * (float(highest_m3) - rest_m3)))
+        try:
+            self.solver.solve(Target(gland_volume_m3=float(highest_m3) + 0.1 * (float(highest_m3) - rest_m3)))
+        except UnreachableTargetError:
+            pass
+        for key in self.estimator.counts:
+            self.estimator.counts[key] = 0
+
+    def effective_model(self) -> dict:
+        """What a scene must match to run on this model (see :func:`phantom.host.scenes.effective_model`)."""
+        from phantom.host.scenes import effective_model
+
+        return effective_model(self.scene, fidelity=self.estimator.level, pressure_max_kpa=self.pressure_max_pa
+                               / PA_PER_KPA)
 
     def solve(self, target: TargetSpec) -> Solution:
         """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
@@ -116,10 +147,52 @@ class Controller:
         chamber_m3, gland_m3 = self.estimator.volumes(np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None))
         return (np.asarray(chamber_m3) * ML_PER_M3).tolist(), float(gland_m3) * ML_PER_M3
 
-    def outer_surface_mm(self, pressures_pa: np.ndarray, used_nodes: np.ndarray) -> np.ndarray:
-        """The deformed outer-surface nodes (mm) at measured pressures (Pa); a shape is computed only here."""
+    def _surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """The outer surface as its own mesh: (used node indices, triangles renumbered into them)."""
+        if self._surface_nodes is None:
+            triangles = np.asarray(self.model.outer_triangles)
+            used = np.unique(triangles)
+            renumber = np.full(len(self.model.nodes_m), -1, dtype=np.int64)
+            renumber[used] = np.arange(len(used))
+            self._surface_nodes = (used, renumber[triangles])
+        return self._surface_nodes
+
+    def rest_surface_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        """The outer surface at rest: positions (mm, (n, 3)) and triangles ((k, 3) indices into them)."""
+        used, triangles = self._surface()
+        return np.asarray(self.model.nodes_m)[used] * MM_PER_M, triangles
+
+    def outer_surface_mm(self, pressures_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The deformed outer surface at pressures (Pa): positions (mm) and triangles; a shape is formed only here."""
+        used, triangles = self._surface()
         positions_m = self.estimator.shape(np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None))
-        return np.asarray(positions_m)[used_nodes] * 1e3
+        return np.asarray(positions_m)[used] * MM_PER_M, triangles
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """What the daemon knows about the model in the worker."""
+
+    chamber_names: list[str]
+    rest_volume_ml: float
+    timings_s: dict[str, float]
+    fidelity: str
+    scene_raw: dict
+    scene_path: str
+    pressure_max_pa: float
+    wants_shape: bool
+    effective_model: dict
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Volumes at measured pressures, the surface when asked, and the estimator's work counters."""
+
+    chamber_volumes_ml: list[float]
+    gland_volume_ml: float
+    surface_mm: tuple[np.ndarray, np.ndarray] | None
+    counts: dict[str, int]
+    rest_surface_mm: tuple[np.ndarray, np.ndarray] | None = None
 
 
 # --- the model in its own process -------------------------------------------------------------------------
@@ -128,73 +201,120 @@ class Controller:
 # an inverse at the "updated" or "full" fidelity). In a thread of the daemon they delayed the event loop enough
 # to miss the board's 500 ms dead-host deadline; in a process of their own they cannot.
 
-_worker_controller: Controller | None = None
+#: Linux prctl option: the signal a process gets when its parent dies (prctl(2)).
+PR_SET_PDEATHSIG = 1
+
+_worker_model: LoadedModel | None = None
 
 
-def _worker_start(scene_source: str) -> dict:
-    """In the worker: build the Controller; return what the daemon needs to know about it."""
-    import signal
+def exit_with_parent(parent_pid: int) -> None:
+    """In a child process: be killed (SIGKILL) when the parent dies, however it dies (SIGKILL included).
 
-    global _worker_controller
+    Linux's PR_SET_PDEATHSIG through libc; if the parent died before this ran, exit now.
+    """
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
+        logger.warning("prctl(PR_SET_PDEATHSIG) failed (errno %d): the model worker may outlive a killed daemon",
+                       ctypes.get_errno())
+    if os.getppid() != parent_pid:
+        os._exit(0)
+
+
+def _worker_init(parent_pid: int, log_level: str) -> None:
+    """In the worker, first: die with the daemon, leave Ctrl-C to it, log like it."""
+    from phantom.host.logs import configure_logging
+
+    exit_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the daemon's to handle; it stops the worker
-    _worker_controller = Controller(scene_source)
-    controller = _worker_controller
-    return {"chamber_names": controller.chamber_names, "rest_volume_ml": controller.rest_volume_ml,
-            "timings_s": controller.timings_s, "fidelity": controller.estimator.level,
-            "scene_raw": controller.scene.raw, "scene_path": str(controller.scene.path),
-            "pressure_max_pa": controller.pressure_max_pa}
+    configure_logging(log_level)
+
+
+def _worker_model_or_fail() -> LoadedModel:
+    if _worker_model is None:
+        raise RuntimeError("the model worker has no model: start() was not called")
+    return _worker_model
+
+
+def _worker_start(scene_source: str) -> ModelInfo:
+    """In the worker: build the model; return what the daemon needs to know about it."""
+    global _worker_model
+    _worker_model = model = LoadedModel(scene_source)
+    return ModelInfo(model.chamber_names, model.rest_volume_ml, model.timings_s, model.estimator.level,
+                     model.scene.raw, str(model.scene.path), model.pressure_max_pa, model.wants_shape,
+                     model.effective_model())
 
 
 def _worker_solve(target: TargetSpec) -> Solution:
-    return _worker_controller.solve(target)
+    return _worker_model_or_fail().solve(target)
 
 
-def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool):
-    """Estimated volumes (ml), the deformed outer surface (mm) with its triangles only when asked, and the
-    estimator's work counters (full solves, tangent solves, shapes formed)."""
-    from phantom.host.recording import surface_mesh
+def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_surface: bool) -> Estimate:
+    model = _worker_model_or_fail()
+    chamber_ml, gland_ml = model.estimate(pressures_pa)
+    surface = model.outer_surface_mm(pressures_pa) if with_surface else None
+    rest = model.rest_surface_mm() if with_surface and with_rest_surface else None
+    return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
 
-    chamber_ml, gland_ml = _worker_controller.estimate(pressures_pa)
-    surface = None
-    if with_surface:
-        model = _worker_controller.model
-        used, triangles = surface_mesh(model.nodes_m, model.outer_triangles)
-        surface = (_worker_controller.outer_surface_mm(pressures_pa, used), triangles)
-    return chamber_ml, gland_ml, surface, dict(_worker_controller.estimator.counts)
+
+def _worker_surface(pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    model = _worker_model_or_fail()
+    return model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
+
+
+def worker_pool(log_level: str = "info") -> Any:
+    """A one-process pool (spawned, not forked: no copy of the daemon's event loop or threads) whose process
+    dies with this one."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_init, initargs=(os.getpid(), log_level))
 
 
 class ModelWorker:
-    """The :class:`Controller` in a worker process, called from the event loop without blocking it.
+    """The :class:`LoadedModel` in a worker process that dies with the daemon, called without blocking the loop.
 
-    Attributes (after :meth:`start`): ``chamber_names``, ``rest_volume_ml``, ``timings_s``, ``fidelity``,
-    ``scene_raw``, ``scene_path``, ``pressure_max_pa``.
+    Build it with :meth:`start`, which returns a worker whose model is ready (``info``).
     """
 
-    def __init__(self, scene_source: str):
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
+    def __init__(self, pool: Any, info: ModelInfo):
+        self._pool = pool
+        self.info = info
 
-        self.scene_source = scene_source
-        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+    @classmethod
+    async def start(cls, scene_source: str, log_level: str = "info") -> ModelWorker:
+        """Start the worker process and build the model in it (its progress is logged from there)."""
+        pool = worker_pool(log_level)
+        try:
+            info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source)
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        return cls(pool, info)
 
-    async def _call(self, function, *arguments):
-        import asyncio
-
+    async def _call(self, function: Callable[..., Any], *arguments: Any) -> Any:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
-
-    async def start(self) -> None:
-        """Build the model in the worker (progress lines go to stderr from there)."""
-        for key, value in (await self._call(_worker_start, self.scene_source)).items():
-            setattr(self, key, value)
 
     async def solve(self, target: TargetSpec) -> Solution:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
         return await self._call(_worker_solve, target)
 
-    async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False):
-        """(chamber volumes ml, gland volume ml, surface (positions mm, triangles) or None, work counters)."""
-        return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface)
+    async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
+                       with_rest_surface: bool = False) -> Estimate:
+        """Volumes at ``pressures_pa`` (Pa); the deformed surface (mm) only when asked, and with it the rest
+        surface when asked too (the recording's reference, logged once before the first mesh)."""
+        return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface,
+                                with_rest_surface)
+
+    async def surface(self, pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+        """The outer surface (positions mm, triangles) at ``pressures_pa`` (Pa), or at rest for None."""
+        pressures = None if pressures_pa is None else np.asarray(pressures_pa, dtype=float)
+        return await self._call(_worker_surface, pressures)
 
     def close(self) -> None:
-        """Stop the worker process."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop the worker process and wait for it (a pool left running is woken by the interpreter's exit
+        hook through a pipe already closed, which prints an error)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)

@@ -8,9 +8,11 @@ linearly from the previous step's over ``ramp_s`` seconds; it then holds until t
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from phantom.model.errors import SceneError
 
@@ -248,3 +250,37 @@ def example_scene_path(name: str) -> Path:
         shipped = sorted(p.stem for p in path.parent.glob("*.toml"))
         raise SceneError(f"no example scene {name!r}; shipped: {', '.join(shipped)}")
     return path
+
+
+def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: float | None = None) -> dict:
+    """What a scene's timeline runs on, as comparable values: the phantom (mesh, units, chambers, fixed group),
+    the material (every parameter, defaults filled in) and the model settings (fidelity, pressure limit).
+
+    For a running model, ``fidelity`` and ``pressure_max_kpa`` are the ones in force; for a scene file they
+    are what it asks for (None: no fidelity named, which any level satisfies).
+    """
+    from phantom.model.fidelity import DEFAULT_PRESSURE_MAX_PA
+
+    settings = scene.raw.get("model", {}) if isinstance(scene.raw.get("model", {}), dict) else {}
+    if fidelity is None:
+        fidelity = settings.get("fidelity")
+    if pressure_max_kpa is None:
+        pressure_max_kpa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3))
+    material = scene.material
+    material = dataclasses.asdict(material) if dataclasses.is_dataclass(material) and not isinstance(
+        material, type) else dict(vars(material))
+    return {"phantom": {"mesh": scene.mesh, "units": scene.units, "chambers": list(scene.chambers),
+                        "fixed": scene.fixed},
+            "material": material,
+            "model": {"fidelity": fidelity, "pressure_max_kpa": float(pressure_max_kpa)}}
+
+
+def model_differences(running: dict, candidate: dict) -> list[str]:
+    """The tables (``phantom``, ``material``, ``model``) in which a scene's effective model differs from the
+    running one's; a scene that names no fidelity accepts the running one."""
+    differing = [table for table in ("phantom", "material") if running[table] != candidate[table]]
+    wanted_fidelity = candidate["model"]["fidelity"]
+    if (wanted_fidelity is not None and wanted_fidelity != running["model"]["fidelity"]) or not math.isclose(
+            running["model"]["pressure_max_kpa"], candidate["model"]["pressure_max_kpa"], rel_tol=1e-9):
+        differing.append("model")
+    return differing

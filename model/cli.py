@@ -64,7 +64,7 @@ def run_forward(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from phantom.host.cli import parse_numbers
+    from phantom.command_line import parse_numbers
     from phantom.model.errors import SolveError
     from phantom.model.fem import PhantomModel
     from phantom.model.scene import load_scene

@@ -40,6 +40,9 @@ ML_PER_M3 = 1e6
 #: Weight of the actuation energy relative to the targets' curvature in the least-squares (closest) QP used
 #: when a target is out of reach, dimensionless: it fixes the null space of a rank-one (total volume) target.
 CLOSEST_REGULARISER_WEIGHT = 1e-3
+#: Largest magnitude of a QP entry in scaled units (entries are of order one): a target past it (1e300 ml) is
+#: out of reach by orders of magnitude and is answered from the reachable range without asking OSQP.
+QP_ENTRY_LIMIT = 1e12
 
 
 class UnreachableTargetError(PhantomError):
@@ -165,17 +168,30 @@ class VolumeQP:
         """
         if constraint_matrix.shape != (self.n_constraint_rows, self.n_chambers):
             raise ValueError(f"constraint matrix shape {constraint_matrix.shape} does not match this QP")
-        if self._problem is None:
-            self._problem = self._osqp.OSQP()
-            self._problem.setup(_dense_csc_pattern(objective_hessian, upper=True), objective_linear,
-                                _dense_csc_pattern(constraint_matrix, upper=False), lower, upper,
-                                verbose=False, warm_starting=True, polishing=True, eps_abs=1e-10, eps_rel=1e-10,
-                                eps_prim_inf=1e-9, eps_dual_inf=1e-9, max_iter=20000)
-        else:
-            self._problem.update(Px=_dense_values(objective_hessian, upper=True),
-                                 Ax=_dense_values(constraint_matrix, upper=False),
-                                 q=objective_linear, l=lower, u=upper)
-        result = self._problem.solve(raise_error=False)
+        for array in (objective_hessian, objective_linear, constraint_matrix, lower, upper):
+            finite = np.asarray(array, dtype=float)[np.isfinite(array)]  # infinite bounds are OSQP's "none"
+            if np.isnan(array).any() or (finite.size and np.abs(finite).max() > QP_ENTRY_LIMIT):
+                # OSQP's setup fails on such data (and used to leave a half-built problem behind)
+                raise UnreachableTargetError("the volume QP's data are out of scale (a target orders of magnitude "
+                                             "out of reach?): check the target and the model")
+        try:
+            if self._problem is None:
+                problem = self._osqp.OSQP()
+                problem.setup(_dense_csc_pattern(objective_hessian, upper=True), objective_linear,
+                              _dense_csc_pattern(constraint_matrix, upper=False), lower, upper,
+                              verbose=False, warm_starting=True, polishing=True, eps_abs=1e-10, eps_rel=1e-10,
+                              eps_prim_inf=1e-9, eps_dual_inf=1e-9, max_iter=20000)
+                self._problem = problem
+            else:
+                self._problem.update(Px=_dense_values(objective_hessian, upper=True),
+                                     Ax=_dense_values(constraint_matrix, upper=False),
+                                     q=objective_linear, l=lower, u=upper)
+            result = self._problem.solve(raise_error=False)
+        except Exception as error:
+            # a problem whose update or solve failed holds partial data: the next call sets it up afresh
+            self._problem = None
+            raise UnreachableTargetError(f"the volume QP could not be solved ({error}): check the target and "
+                                         "the model") from error
         status = self._osqp.SolverStatus(result.info.status_val)
         if status in (self._osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE,
                       self._osqp.SolverStatus.OSQP_PRIMAL_INFEASIBLE_INACCURATE):
@@ -454,6 +470,7 @@ class InverseSolver:
         if target.pressures_pa is not None:
             return self._evaluate_raw_pressures(target, started)
 
+        self._refuse_out_of_scale(target)
         linearisation = self.rest
         pressures_pa = np.zeros(self.n_chambers)
         qp_time_s = 0.0
@@ -483,6 +500,19 @@ class InverseSolver:
             f"the inverse did not converge in {len(history)} linearisations (relative volume errors {errors} %): "
             "the response is too nonlinear here, which happens near the pressure-control limit point; "
             "ask for a smaller volume")
+
+    def _refuse_out_of_scale(self, target: Target) -> None:
+        """A target orders of magnitude out of reach (1e300 ml) is refused with the reachable range before any
+        QP sees it: its scaled entries would overflow OSQP's setup."""
+        rows = self._rows(target, self.rest)
+        targets = rows.objective_targets
+        if np.all(np.isfinite(targets)) and (targets.size == 0 or np.abs(targets).max() <= QP_ENTRY_LIMIT):
+            return
+        with np.errstate(invalid="ignore", over="ignore"):
+            badness = np.nan_to_num(np.abs(targets) / self._row_offsets_scaled(rows), nan=np.inf)
+        worst = rows.objective_names[int(np.argmax(badness))]
+        low_ml, high_ml = self.reachable_range_ml(target, self.rest, worst)
+        raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
 
     def _evaluate(self, pressures_pa: np.ndarray):
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
@@ -522,6 +552,7 @@ class InverseSolver:
     def _unreachable_message(self, target: Target, row_name: str, low_ml: float, high_ml: float) -> str:
         wanted_ml = (target.gland_volume_m3 if row_name == "gland"
                      else target.chamber_volumes_m3[int(row_name.split()[1])]) * ML_PER_M3
+        wanted = f"{wanted_ml:.3f}" if abs(wanted_ml) < 1e9 else f"{wanted_ml:.3g}"
         what = "the gland volume" if row_name == "gland" else f"the volume of {row_name}"
         limits = ", ".join(f"{value / 1e3:g}" for value in self.pressure_max_pa)
         constraints = []
@@ -531,9 +562,9 @@ class InverseSolver:
             constraints.append("growth limits")
         with_constraints = f" with the {' and '.join(constraints)}" if constraints else ""
         if low_ml - 1e-9 <= wanted_ml <= high_ml + 1e-9:
-            return (f"{what} target {wanted_ml:.3f} ml is within the reachable range {low_ml:.3f}-{high_ml:.3f} ml "
+            return (f"{what} target {wanted} ml is within the reachable range {low_ml:.3f}-{high_ml:.3f} ml "
                     f"on its own, but contradicts the other targets{with_constraints}; drop or change one of them")
-        return (f"{what} target {wanted_ml:.3f} ml is unreachable: pressures between 0 and [{limits}] kPa"
+        return (f"{what} target {wanted} ml is unreachable: pressures between 0 and [{limits}] kPa"
                 f"{with_constraints} give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range "
                 "or raise pressure_max")
 

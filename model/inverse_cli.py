@@ -48,7 +48,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _growth_ratio_by_index(text: str, chamber_names: list[str]) -> dict[int, float]:
     """``--growth-ratio`` (``chamber1=2,chamber2=1``, names or indices) as chamber index -> weight."""
     from phantom import PhantomError
-    from phantom.host.cli import parse_growth_ratio
+    from phantom.command_line import parse_growth_ratio
 
     by_index = {}
     for name, weight in parse_growth_ratio(text).items():
@@ -74,7 +74,7 @@ def run_inverse(args) -> int:
     import json
 
     from phantom import PhantomError
-    from phantom.host.cli import parse_numbers
+    from phantom.command_line import chamber_labels, parse_numbers
     from phantom.model.fidelity import scene_model_settings
     from phantom.model.inverse import InverseSolver, Target
 
@@ -113,11 +113,14 @@ def run_inverse(args) -> int:
     if args.json:
         print(json.dumps(report))
     else:
-        pressures = ", ".join(f"{value:.4f}" for value in report["pressures_kpa"])
-        chambers = ", ".join(f"{value:.3f}" for value in report["predicted_chamber_volumes_ml"])
-        print(f"pressures: {pressures} kPa\npredicted gland volume: {report['predicted_volume_ml']:.4f} ml\n"
-              f"predicted chamber volumes: {chambers} ml\niterations: {result.iterations} ({report['fidelity']} "
-              f"model), {result.solve_time_s * 1e3:.1f} ms (QP {result.qp_solve_time_s * 1e6:.0f} us)")
+        labels = chamber_labels(getattr(model.scene, "raw", {}) or {}, list(model.chamber_names))
+        print(f"{'chamber':<26} " + " ".join(f"{label:>11}" for label in labels))
+        print(f"{'pressure (kPa)':<26} " + " ".join(f"{value:11.4f}" for value in report["pressures_kpa"]))
+        print(f"{'predicted volume (ml)':<26} "
+              + " ".join(f"{value:11.3f}" for value in report["predicted_chamber_volumes_ml"]))
+        print(f"predicted gland volume: {report['predicted_volume_ml']:.4f} ml\niterations: {result.iterations} "
+              f"({report['fidelity']} model), {result.solve_time_s * 1e3:.1f} ms "
+              f"(QP {result.qp_solve_time_s * 1e6:.0f} us)")
     return 0
 
 

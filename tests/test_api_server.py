@@ -167,3 +167,51 @@ def test_an_overlong_request_is_refused(tmp_path):
 
     answer = serve(tmp_path, script)
     assert answer["error"]["code"] == "invalid_request" and "longer than" in answer["error"]["message"]
+
+
+@pytest.mark.parametrize(("line", "reason"), [
+    (b'{"id": 1, "method": "echo", "params": {"x": "\xff\xfe"}}\n', "not UTF-8"),
+    (b"[" * 3000 + b"]" * 3000 + b"\n", "nested too deeply"),
+    (b'{"id": 1, "method": "echo", "params": {"n": ' + b"7" * 5000 + b"}}\n", "not valid JSON"),
+    (b'{"id": ' + b"[" * 900 + b"]" * 900 + b', "method": "echo"}\n', "id"),
+])
+def test_input_that_used_to_kill_the_connection_is_answered_and_the_connection_kept(tmp_path, line, reason):
+    async def script(server):
+        return await exchange(server.socket_path, line, {"id": 2, "method": "echo", "params": {"still": "here"}})
+
+    refused, answered = serve(tmp_path, script)
+    assert refused["error"]["code"] in ("parse_error", "invalid_request") and reason in refused["error"]["message"]
+    assert answered == {"id": 2, "result": {"echo": {"still": "here"}}}
+
+
+@pytest.mark.parametrize("kind", ["file", "folder"])
+def test_only_a_stale_socket_is_replaced_never_a_file_or_folder(tmp_path, kind):
+    path = tmp_path / "api.sock"
+    if kind == "file":
+        path.write_text("someone's notes")
+    else:
+        (path / "inside").mkdir(parents=True)
+
+    async def main():
+        server = ApiServer(path, HANDLERS)
+        with pytest.raises(PhantomError, match="replaces only a stale socket"):
+            await server.start()
+        await server.close()
+
+    asyncio.run(main())
+    assert (path.read_text() == "someone's notes") if kind == "file" else (path / "inside").is_dir()
+
+
+def test_a_daemon_still_loading_its_model_answers_starting(tmp_path):
+    async def main():
+        server = ApiServer(tmp_path / "api.sock", {})
+        await server.start()
+        try:
+            return await exchange(server.socket_path, {"id": 1, "method": "status"},
+                                  {"id": 2, "method": "subscribe", "params": {"topics": ["events"]}})
+        finally:
+            await server.close()
+
+    starting, subscribed = asyncio.run(main())
+    assert starting["error"]["code"] == "starting" and "try again" in starting["error"]["message"]
+    assert subscribed == {"id": 2, "result": {"topics": ["events"]}}

@@ -55,7 +55,7 @@ poisson_ratio = 0.45
 
 [outputs]
 volumes = true
-shape = false
+shape = true
 
 [model]
 fidelity = "rest"
@@ -158,6 +158,9 @@ def settled_at(rig, volume_ml: float) -> bool:
 
 
 def test_set_32_ml_reaches_it_within_1_percent_and_holds_the_pressures(rig):
+    # the phantom was vented when the daemon connected: it zeroed the sensors first
+    wait_until(lambda: any("sensors zeroed after connecting" in event["text"] for event in status(rig)["events"]),
+               10, rig, "sensors zeroed after connecting")
     result = phantom_cli(rig, "set", "--volume-ml", "32", "--json")
     assert result.returncode == 0, result.stderr
     answer = json.loads(result.stdout)
@@ -173,10 +176,23 @@ def test_set_32_ml_reaches_it_within_1_percent_and_holds_the_pressures(rig):
     assert answer["estimated_volume_ml"] == pytest.approx(32.0, rel=0.01)
     assert answer["target_volume_ml"] == 32.0 and answer["control"] == "holding"
     assert answer["faults"] == [] and answer["link"] == "online"
-    # recording with --mesh-hz 2: the shape is computed for the mesh, at that modest rate
+    # recording a scene with [outputs] shape = true, --mesh-hz 2: the shape is computed for the mesh, at that rate
     assert 0 < answer["model_counts"]["shapes"] <= 2 * answer["uptime_s"] + 1
+    assert answer["meshes_logged"] == answer["model_counts"]["shapes"]
     for key in ("pressures_kpa", "setpoints_kpa", "estimated_volume_ml", "target_volume_ml", "faults", "link"):
         assert key in answer
+    # the deformed outer surface on request: the model's outer triangles over its surface nodes, in mm; inflated
+    # to 32 ml the phantom is larger than at rest
+    with DaemonClient(rig["socket"], timeout_s=30) as client:
+        inflated = client.call("surface")
+        rest = client.call("surface", {"pressures_kpa": [0, 0, 0]})
+        with pytest.raises(DaemonError, match="list of 3 numbers"):
+            client.call("surface", {"pressures_kpa": [1, 1]})
+    positions, triangles = np.asarray(inflated["positions_mm"]), np.asarray(inflated["triangles"])
+    assert positions.shape[1] == 3 and triangles.shape[1] == 3 and triangles.max() == len(positions) - 1
+    assert np.asarray(inflated["pressures_kpa"]) == pytest.approx(setpoints_kpa, abs=ONE_ADC_COUNT_KPA)
+    assert np.ptp(positions, axis=0).sum() > np.ptp(np.asarray(rest["positions_mm"]), axis=0).sum()
+    assert rest["triangles"] == inflated["triangles"]
     # the plain-text views name the same numbers
     text = phantom_cli(rig, "status").stdout
     assert "online" in text and "32.00 ml" in text
@@ -195,6 +211,8 @@ def test_bad_requests_get_clear_errors_and_change_nothing(rig):
     assert short.returncode == 2 and "list of 3 numbers" in short.stderr and "invalid_params" in short.stderr
     not_a_number = phantom_cli(rig, "set", "--pressures-kpa", "1,two,3")
     assert not_a_number.returncode == 2 and "'two' is not a number" in not_a_number.stderr
+    inflated = phantom_cli(rig, "zero")
+    assert inflated.returncode == 2 and "NOT_VENTED" in inflated.stderr and "vent first" in inflated.stderr
     missing = phantom_cli(rig, "run-scene", str(rig["dir"] / "missing.toml"))
     assert missing.returncode == 2 and "does not exist" in missing.stderr
     with DaemonClient(rig["socket"]) as client:
@@ -270,13 +288,25 @@ def test_a_latched_fault_is_shown_and_cleared_only_on_request(rig):
     # the cause is gone but the fault stays latched until someone asks
     answer = status(rig)
     assert "SENSOR_1" in answer["faults"] and answer["chamber_states"] == ["FAULT"] * 3
-    cleared = phantom_cli(rig, "clear-fault")
+    cleared = phantom_cli(rig, "clear-fault", "--json")
     assert cleared.returncode == 0, cleared.stderr
     assert json.loads(cleared.stdout) == {"cleared": ["SENSOR_1"], "setpoints_restored": True}
     wait_until(lambda: status(rig)["faults"] == [], 5, rig, "faults cleared")
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "volume back at 32 ml after the fault")
     texts = [event["text"] for event in status(rig)["events"]]
     assert any("SENSOR_1" in text and "latched" in text for text in texts)
+
+
+def test_a_second_daemon_on_the_same_socket_refuses_and_leaves_the_first_ones_files_alone(rig):
+    recording = rig["recording"]
+    size_before = recording.stat().st_size
+    second = subprocess.run([str(PHANTOM), "daemon", "--port", rig["board"].port, "--socket", str(rig["socket"]),
+                             "--rerun-save", str(recording)], capture_output=True, text=True, timeout=60)
+    assert second.returncode == 2 and "a daemon already listens on" in second.stderr
+    assert len(second.stderr.strip().splitlines()) == 1, second.stderr
+    # the first daemon's recording was not truncated, and it still serves
+    assert recording.stat().st_size >= size_before > 0
+    assert status(rig)["link"] == "online"
 
 
 def test_sigterm_vents_and_closes_the_recording(rig):
@@ -321,3 +351,15 @@ def test_the_recording_holds_what_was_logged(rig):
     # the mesh is in mm: the gland is a few centimetres across
     assert 20 < np.ptp(positions[:, 0]) < 80
     assert RrdReader(str(rig["recording"])).blueprints()
+
+
+def test_an_unwritable_recording_stops_the_start_with_one_line(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    started = subprocess.run([str(PHANTOM), "daemon", "--port", str(tmp_path / "no-board"), "--socket",
+                              str(tmp_path / "d.sock"), "--rerun-save", str(blocker / "run.rrd")],
+                             capture_output=True, text=True, timeout=120)
+    assert started.returncode == 2
+    errors = [line for line in started.stderr.splitlines() if line.startswith("phantom daemon: error:")]
+    assert errors == [started.stderr.strip().splitlines()[-1]] and "Traceback" not in started.stderr
+    assert not (tmp_path / "d.sock").exists()

@@ -7,6 +7,7 @@ criterion); for the raw-pressure step, within 1 % of the inverse's prediction at
 """
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import pytest
 
 from phantom import PhantomError
 from phantom.host.client import DaemonClient
+from phantom.host.recording import read_rrd
 from phantom.host.scenes import example_scene_path
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
@@ -27,8 +29,10 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
     sock = tmp_path / "d.sock"
     log = open(tmp_path / "daemon.log", "w+")
+    recording = tmp_path / "lopsided.rrd"
     process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--scene",
-                                str(example_scene_path("lopsided")), "--socket", str(sock)],
+                                str(example_scene_path("lopsided")), "--socket", str(sock), "--rerun-save",
+                                str(recording), "--mesh-hz", "5"],
                                stdout=log, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 60
@@ -42,6 +46,17 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
                 pass
             assert time.monotonic() < deadline, Path(log.name).read_text()
             time.sleep(0.2)
+        # the daemon's own simulator dies: the daemon says so, starts another and plays the scene on it
+        simulator = simulator_of(process.pid)
+        os.kill(simulator, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while True:
+            with DaemonClient(sock) as client:
+                status = client.call("status")
+            if status["simulated_board"]["restarts"] == 1 and status["link"] == "online":
+                break
+            assert time.monotonic() < deadline, Path(log.name).read_text()
+            time.sleep(0.2)
         result = subprocess.run([str(PHANTOM), "run-scene", "lopsided", "--time-scale", "4", "--wait", "--json",
                                  "--socket", str(sock)], capture_output=True, text=True, timeout=120)
         assert result.returncode == 0, result.stderr + Path(log.name).read_text()
@@ -53,8 +68,9 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
             status = client.call("status")
         assert status["setpoints_kpa"] == pytest.approx([0.0, 1.5, 0.5], abs=0.001)
         assert status["faults"] == [] and status["link_detail"]["stats"]["commands_failed"] == 0
-        # nothing records or views, so the daemon never asks the model for a shape
-        assert status["model_counts"]["shapes"] == 0 and status["fidelity"] == "updated"
+        # recorded, but the scene says [outputs] shape = false: no shape is computed, no mesh logged
+        assert status["model_counts"]["shapes"] == 0 and status["meshes_logged"] == 0
+        assert status["fidelity"] == "updated"
         # the calibrated linear material's exact answer needs no solve at the "updated" level
         assert status["model_counts"]["full_solves"] == 0 and status["model_counts"]["tangent_solves"] == 0
     finally:
@@ -64,3 +80,85 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path):
     text = Path(log.name).read_text()
     assert code == 0 and "vented on shutdown" in text, text
     assert "starting the simulated board" in text
+    assert "the simulated board (simavr) died: restarting it" in text
+    # no mesh in the recording either
+    entities = read_rrd(recording)
+    assert "/volume/estimated_ml" in entities and not any("mesh" in path for path in entities)
+
+
+def simulator_of(pid: int) -> int:
+    """The simavr harness among a process's descendants (the daemon's own simulated board)."""
+    pending = [pid]
+    while pending:
+        parent = pending.pop()
+        for task in Path(f"/proc/{parent}/task").iterdir():
+            for child in (task / "children").read_text().split():
+                command = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+                if b"--elf" in command:
+                    return int(child)
+                pending.append(int(child))
+    raise AssertionError("the daemon runs no simulated board")
+
+
+def test_sim_board_runs_alone_prints_its_port_and_stops_on_sigterm():
+    board = subprocess.Popen([str(PHANTOM), "sim-board", "--sim-speed", "2", "--json"], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        port = json.loads(board.stdout.readline())["port"]
+        assert os.path.exists(port)
+        # a board like any other: the link answers on that port
+        from phantom.hil.link import BoardLink
+
+        with BoardLink(port) as link:
+            link.hello()                                       # raises when no HELLO_REPLY comes
+    finally:
+        board.send_signal(signal.SIGTERM)
+        assert board.wait(30) == 0, board.stderr.read()
+    assert not os.path.exists(port)
+
+
+def test_a_killed_daemon_leaves_no_worker_and_its_board_vents_at_the_dead_host_deadline(tmp_path):
+    from phantom.hil.sim import SimulatedBoard
+
+    sock = tmp_path / "d.sock"
+    with SimulatedBoard(speed=1.0) as board:
+        log = open(tmp_path / "daemon.log", "w+")
+        daemon = subprocess.Popen([str(PHANTOM), "daemon", "--port", board.port, "--socket", str(sock)],
+                                  stdout=log, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + 60
+            while True:
+                assert daemon.poll() is None, Path(log.name).read_text()
+                try:
+                    with DaemonClient(sock) as client:
+                        if client.call("status")["link"] == "online":
+                            client.call("set_target", {"pressures_kpa": [1.0, 1.0, 1.0]})
+                            break
+                except PhantomError:
+                    pass
+                assert time.monotonic() < deadline, Path(log.name).read_text()
+                time.sleep(0.2)
+            deadline = time.monotonic() + 20
+            while max(board.plant_state()["drive_levels"]) == 0:
+                assert time.monotonic() < deadline, "the blowers never started"
+                time.sleep(0.1)
+            workers = [int(child) for task in Path(f"/proc/{daemon.pid}/task").iterdir()
+                       for child in (task / "children").read_text().split()]
+            assert workers, "the daemon runs its model in a worker process"
+            daemon.send_signal(signal.SIGKILL)
+            daemon.wait(10)
+            # the board stops its blowers once the host has been silent for its deadline (500 ms)
+            deadline = time.monotonic() + 10
+            while max(board.plant_state()["drive_levels"]) > 0:
+                assert time.monotonic() < deadline, "the board kept blowing after its host died"
+                time.sleep(0.1)
+            # and the model worker did not outlive the daemon
+            deadline = time.monotonic() + 10
+            while any(Path(f"/proc/{pid}").exists() and "zombie" not in Path(f"/proc/{pid}/status").read_text()
+                      for pid in workers):
+                assert time.monotonic() < deadline, "the model worker outlived the killed daemon"
+                time.sleep(0.1)
+        finally:
+            if daemon.poll() is None:
+                daemon.kill()
+            log.close()

@@ -27,7 +27,7 @@ def test_the_shipped_config_file_is_valid_and_uses_known_keys():
 @pytest.mark.parametrize(("text", "message"), [
     ("[daemon]\nprot = '/dev/ttyACM0'\n", "unknown key.*prot"),
     ("[daemon]\nsim = 'yes'\n", "sim must be a bool"),
-    ("[daemon]\nbaudrate = true\n", "baudrate must be a int"),
+    ("[daemon]\nbaud = true\n", "baud must be a int"),
     ("[daemon\n", "not valid TOML"),
 ])
 def test_bad_config_files_are_refused_with_the_key(tmp_path, text, message):
@@ -81,3 +81,44 @@ def test_the_step_table_has_a_row_per_step_with_blanks_for_unknowns():
     assert len(table) == 3 and "time to 1 %" in table[0]
     assert table[1].split() == ["0", "0.0", "30.00", "ml", "30.00", "29.98", "-0.07", "1.2"]
     assert table[2].split()[-3:] == ["31.00", "-", "-"]
+
+
+@pytest.mark.parametrize("command", ["set", "inverse"])
+def test_a_list_starting_with_a_free_chamber_is_a_value_not_an_option(command):
+    from phantom.host.cli import build_parser, join_list_values
+
+    args = build_parser().parse_args(join_list_values([command, "--chamber-volumes-ml", "-,3.5,3.5"]))
+    assert args.chamber_volumes_ml == "-,3.5,3.5"
+    assert join_list_values(["set", "--volume-ml", "32", "--json"]) == ["set", "--volume-ml", "32", "--json"]
+
+
+def test_every_host_subcommand_has_a_description_and_json():
+    import argparse
+
+    from phantom.host import commands
+
+    parser = argparse.ArgumentParser()
+    subparsers = parser.add_subparsers()
+    commands.register(subparsers)
+    for name, subparser in subparsers.choices.items():
+        assert subparser.description, name
+        if name != "daemon":
+            assert "--json" in subparser.format_help(), name
+
+
+def test_the_text_answers_of_vent_clear_fault_and_zero():
+    from phantom.host.commands import format_simple, watch_header
+
+    assert format_simple("vent", {"vented": True}).startswith("vented")
+    assert format_simple("clear_fault", {"cleared": ["SENSOR_1"], "setpoints_restored": True}) == (
+        "faults cleared: SENSOR_1; the target's setpoints restored")
+    assert format_simple("zero", {"zeroed": True}) == "sensors zeroed"
+    assert "left l" in watch_header(["base", "left lobe", "right lobe"])
+
+
+def test_format_steps_adds_the_true_volume_only_when_known():
+    step = {"index": 0, "at_s": 0.0, "target": "30.00 ml", "target_volume_ml": 30.0, "reached_volume_ml": 30.1,
+            "error_pct": 0.33, "reached_after_s": 1.0, "true_volume_ml": None}
+    assert "true ml" not in format_steps([step])
+    table = format_steps([{**step, "true_volume_ml": 29.8}])
+    assert "true ml" in table.splitlines()[0] and "29.80" in table.splitlines()[1]

@@ -283,3 +283,29 @@ def test_past_the_limit_point_the_inverse_says_so_instead_of_diverging():
     # ...but 45 ml needs more than 4 kPa in total, where the model has no equilibrium.
     with pytest.raises(LimitPointError, match="limit point"):
         solver.solve(Target(gland_volume_m3=45 * ML))
+
+
+@pytest.mark.parametrize("volume_ml", [1e300, -1e300, 1e200])
+def test_an_absurd_volume_is_unreachable_with_the_range_and_leaves_no_state_behind(volume_ml):
+    model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
+    solver = InverseSolver(model, pressure_max_pa=3 * KPA, fidelity="rest")
+    highest_ml = REST_GLAND_ML + GLAND_H.sum() * 3.0
+    for _ in range(2):
+        with pytest.raises(UnreachableTargetError, match=f"{REST_GLAND_ML:.3f} to {highest_ml:.3f} ml"):
+            solver.solve(Target(gland_volume_m3=volume_ml * ML))
+    # the next targets, of the gland and of a chamber, are solved as on a fresh solver
+    fresh = InverseSolver(model, pressure_max_pa=3 * KPA, fidelity="rest")
+    for target in (Target(gland_volume_m3=30 * ML), Target(chamber_volumes_m3=[2.0 * ML, None, None])):
+        np.testing.assert_allclose(solver.solve(target).pressures_pa, fresh.solve(target).pressures_pa, rtol=1e-9)
+
+
+def test_a_qp_whose_solve_raises_is_set_up_afresh_next_time():
+    from phantom.model.inverse import VolumeQP
+
+    qp = VolumeQP(1, 1)
+    hessian, linear, matrix = np.eye(1), np.zeros(1), np.eye(1)
+    with pytest.raises(UnreachableTargetError, match="out of scale"):
+        qp.solve(hessian, linear, matrix, np.array([1e300]), np.array([1e300]))
+    assert qp._problem is None
+    pressures, _ = qp.solve(hessian, linear, matrix, np.array([0.5]), np.array([0.5]))
+    np.testing.assert_allclose(pressures, [0.5], atol=1e-8)

@@ -114,11 +114,11 @@ def test_missing_or_broken_scene_files_say_so(tmp_path):
 
 @pytest.mark.parametrize("name", ["bph_growth", "lopsided"])
 def test_the_shipped_scenes_use_the_calibrated_material_and_every_target_is_reachable(name):
-    from phantom.host.control import Controller
+    from phantom.host.control import LoadedModel
     from phantom.model import load_scene
     from phantom.model.inverse import UnreachableTargetError
 
-    controller = Controller(str(example_scene_path(name)), report=lambda message: None)
+    controller = LoadedModel(str(example_scene_path(name)), report=lambda message: None)
     assert controller.scene.material == load_scene("builtin:calibrated").material
     # The scene's fidelity ("updated": the linear model's exact answer) answers quickly, with no solve.
     assert controller.estimator.level == "updated"
@@ -139,7 +139,7 @@ def test_the_shipped_scenes_use_the_calibrated_material_and_every_target_is_reac
 
 
 def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tmp_path):
-    from phantom.host.control import Controller
+    from phantom.host.control import LoadedModel
 
     # The calibrated material with 3 kPa everywhere: "rest" is 35 % off on a chamber, "updated" exact. A scene
     # that accepts 50 % gets the cheapest level, "rest"; one that asks for 1 % gets "updated" (no solve).
@@ -149,8 +149,59 @@ def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tm
     for accuracy_pct in (50.0, 1.0):
         scene_path = tmp_path / f"scene_{accuracy_pct:g}.toml"
         scene_path.write_text(text.format(accuracy_pct))
-        controller = Controller(str(scene_path), report=lines.append)
+        controller = LoadedModel(str(scene_path), report=lines.append)
         levels[accuracy_pct] = controller.estimator.level
         assert controller.estimator.accuracy_pct == accuracy_pct
     assert levels == {50.0: "rest", 1.0: "updated"}
     assert "chosen for accuracy_pct 1 from errors" in lines[-1]
+
+
+@pytest.fixture(scope="module")
+def default_model():
+    """The model a daemon started with its defaults loads (builtin:calibrated)."""
+    from phantom.host.control import LoadedModel
+
+    return LoadedModel("builtin:calibrated", report=lambda message: None)
+
+
+@pytest.mark.parametrize("name", ["bph_growth", "lopsided"])
+def test_the_shipped_scenes_run_on_a_daemon_started_with_its_defaults(default_model, name):
+    from phantom.host.scenes import effective_model, model_differences
+    from phantom.model import load_scene
+
+    # their tables differ in text from builtin:calibrated's (a [model] table it lacks), not in effect
+    assert read_scene_toml(example_scene_path(name)).get("model") != default_model.scene.raw.get("model")
+    scene = load_scene(example_scene_path(name))
+    assert model_differences(default_model.effective_model(), effective_model(scene)) == []
+
+
+@pytest.mark.parametrize(("change", "differing"), [
+    (("youngs_modulus_kpa = 2.6301", "youngs_modulus_kpa = 9.0"), ["material"]),
+    (('fidelity = "updated"', 'fidelity = "rest"'), ["model"]),
+    (("pressure_max_kpa = 3.0", "pressure_max_kpa = 2.5"), ["model"]),
+    (('fidelity = "updated"\n', ""), []),
+    (('chambers = ["chamber0", "chamber1", "chamber2"]', 'chambers = ["chamber0", "chamber2", "chamber1"]'),
+     ["phantom"]),
+])
+def test_a_scene_for_another_model_is_told_apart(default_model, tmp_path, change, differing):
+    from phantom.host.scenes import effective_model, model_differences
+    from phantom.model import load_scene
+
+    text = example_scene_path("bph_growth").read_text()
+    assert change[0] in text
+    path = tmp_path / "changed.toml"
+    path.write_text(text.replace(change[0], change[1]))
+    assert model_differences(default_model.effective_model(), effective_model(load_scene(path))) == differing
+
+
+def test_the_inverse_is_warm_after_start_up(default_model):
+    from phantom.model.inverse import UnreachableTargetError
+
+    # the warm-up set up the gland's exact and closest problems: the first request sets up nothing new
+    shapes = set(default_model.solver._problems)
+    assert {shape[0] for shape in shapes} == {"exact", "closest"}
+    default_model.solve(parse_target({"volume_ml": 33}, CHAMBERS))
+    with pytest.raises(UnreachableTargetError, match="unreachable"):
+        default_model.solve(parse_target({"volume_ml": 80}, CHAMBERS))
+    assert set(default_model.solver._problems) == shapes
+    assert default_model.timings_s["warm_up_s"] > 0

@@ -1,0 +1,181 @@
+"""Playing a scene's ``[[steps]]`` timeline: which target is in force now, and how each step went.
+
+The runner reads the time from an injected clock (``time.monotonic`` in the daemon, a plain counter in the
+tests), so that its rules are tested without waiting: a step starts when the scene's time (wall time since
+the start times the time scale) passes its ``at_s``; a step counts as reached when the estimated volume comes
+within :data:`REACHED_TOLERANCE` of its target volume after its ramp; the last estimate before the next step
+is the volume it reached; at ``end_s`` the run finishes and its last target holds.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from phantom.host.scenes import SceneError, TargetSpec, Timeline, parse_timeline
+
+#: A step counts as reached when the estimated volume is within this fraction of its target volume.
+REACHED_TOLERANCE = 0.01
+
+#: What the runner tells people: ``(kind, text, level)``, level INFO, WARN or ERROR.
+EventSink = Callable[[str, str, str], None]
+
+
+@dataclass
+class StepRecord:
+    """How one scene step went: when it started (clock s), its target volume (ml), when the estimate reached it."""
+
+    index: int
+    at_s: float
+    target: str
+    target_volume_ml: float | None
+    started_clock_s: float
+    reached_after_s: float | None = None
+    final_volume_ml: float | None = None
+    true_volume_ml: float | None = None
+
+    def to_json(self) -> dict:
+        error_pct = None
+        if self.target_volume_ml and self.final_volume_ml is not None:
+            error_pct = 100.0 * (self.final_volume_ml - self.target_volume_ml) / self.target_volume_ml
+        return {"index": self.index, "at_s": self.at_s, "target": self.target,
+                "target_volume_ml": self.target_volume_ml, "reached_volume_ml": self.final_volume_ml,
+                "error_pct": error_pct, "reached_after_s": self.reached_after_s,
+                "true_volume_ml": self.true_volume_ml}
+
+
+@dataclass
+class SceneRun:
+    """A scene timeline being played: its clock origin and the record of its steps."""
+
+    name: str
+    timeline: Timeline
+    end_s: float
+    time_scale: float
+    started_clock_s: float
+    wants_shape: bool = False
+    steps: list[StepRecord] = field(default_factory=list)
+    finished: bool = False
+
+    def scene_time_s(self, clock_s: float) -> float:
+        """Seconds of scene time at clock reading ``clock_s`` (s)."""
+        return (clock_s - self.started_clock_s) * self.time_scale
+
+    def to_json(self, clock_s: float) -> dict:
+        return {"name": self.name, "time_s": min(self.scene_time_s(clock_s), self.end_s), "end_s": self.end_s,
+                "time_scale": self.time_scale, "finished": self.finished,
+                "steps": [step.to_json() for step in self.steps]}
+
+
+class SceneRunner:
+    """Plays one scene at a time against a clock; :meth:`tick` says which target is in force.
+
+    Parameters
+    ----------
+    clock : callable() -> float
+        Seconds, monotonic (``time.monotonic`` in the daemon).
+    on_event : callable(kind, text, level)
+        Where step starts, the end and stops are reported.
+    """
+
+    def __init__(self, clock: Callable[[], float], on_event: EventSink):
+        self.clock = clock
+        self.on_event = on_event
+        self.run: SceneRun | None = None
+
+    @property
+    def active(self) -> bool:
+        """Whether a scene is playing (started and not finished or stopped)."""
+        return self.run is not None and not self.run.finished
+
+    def scene_time_s(self) -> float | None:
+        """The playing scene's time (s), or None when none plays."""
+        return min(self.run.scene_time_s(self.clock()), self.run.end_s) if self.active and self.run else None
+
+    def start(self, raw: dict, name: str, chamber_names: list[str], time_scale: float,
+              wants_shape: bool = False) -> dict:
+        """Check a scene's ``[[steps]]`` and ``[timeline]`` against the chambers and start playing it.
+
+        Raises SceneError naming what is wrong; returns ``name``, ``steps``, ``end_s``, ``time_scale``,
+        ``wall_duration_s``.
+        """
+        timeline = parse_timeline(raw.get("steps"), chamber_names, name)
+        if not timeline.steps:
+            raise SceneError(f"{name} has no [[steps]]: nothing to run")
+        settings = raw.get("timeline", {})
+        end_s = settings.get("end_s", timeline.duration_s + 10.0) if isinstance(settings, dict) else None
+        if isinstance(end_s, bool) or not isinstance(end_s, (int, float)) or end_s < timeline.duration_s:
+            raise SceneError(f"{name}: [timeline] end_s must be a number >= {timeline.duration_s:g} s "
+                             "(the end of the last step's ramp)")
+        if not math.isfinite(time_scale) or time_scale <= 0:
+            raise SceneError(f"time_scale must be a positive number, got {time_scale!r}")
+        if self.active and self.run is not None:
+            self.stop(f"replaced by {name}")
+        self.run = SceneRun(name, timeline, float(end_s), float(time_scale), self.clock(), wants_shape)
+        self.on_event("scene", f"scene {name} started: {len(timeline.steps)} steps over {end_s:g} s "
+                      f"(time scale {time_scale:g})", "INFO")
+        return {"name": name, "steps": len(timeline.steps), "end_s": float(end_s), "time_scale": time_scale,
+                "wall_duration_s": float(end_s) / time_scale}
+
+    def stop(self, why: str) -> None:
+        """Stop the playing scene (a new target, vent); its record stays for ``status``."""
+        if self.active and self.run is not None:
+            self.run.finished = True
+            self.on_event("scene", f"scene {self.run.name} stopped: {why}", "INFO")
+
+    def tick(self) -> TargetSpec | None:
+        """Advance to the clock's time: record the steps that started, finish at the end.
+
+        Returns the target in force (interpolated along a ramp), or None before the first step, after the end
+        or when no scene plays.
+        """
+        run = self.run
+        if run is None or run.finished:
+            return None
+        now_s = self.clock()
+        scene_time_s = run.scene_time_s(now_s)
+        index = run.timeline.step_index_at(scene_time_s)
+        if index is not None:
+            for new_index in range(len(run.steps), index + 1):
+                step = run.timeline.steps[new_index]
+                volume_ml = float(step.target.values[0]) if step.target.kind == "volume_ml" else None
+                # the step's own start on the clock, not the tick that noticed it (up to a control period later)
+                started_s = run.started_clock_s + step.at_s / run.time_scale
+                run.steps.append(StepRecord(new_index, step.at_s, step.target.describe(), volume_ml, started_s))
+                self.on_event("scene", f"step {new_index} at {step.at_s:g} s: {step.target.describe()}"
+                              + (f" over {step.ramp_s:g} s" if step.ramp_s else ""), "INFO")
+        if scene_time_s >= run.end_s:
+            run.finished = True
+            self.on_event("scene", f"scene {run.name} finished; holding its last target", "INFO")
+            return None
+        return run.timeline.target_at(scene_time_s)
+
+    def observe(self, estimated_volume_ml: float, predicted_volume_ml: float | None = None,
+                solved_target: TargetSpec | None = None, true_volume_ml: float | None = None) -> None:
+        """Book an estimate against the current step: its latest volume (and the simulated plant's true one,
+        when known), and when it first came within 1 % of the step's target volume after the ramp. A step
+        without a volume target (pressures, chamber volumes) takes the inverse's ``predicted_volume_ml`` for
+        its own ``solved_target``."""
+        run = self.run
+        if run is None or not run.steps:
+            return
+        record = run.steps[-1]
+        if run.finished and record.final_volume_ml is not None:
+            return
+        record.final_volume_ml = estimated_volume_ml
+        record.true_volume_ml = true_volume_ml
+        step = run.timeline.steps[record.index]
+        if record.target_volume_ml is None and predicted_volume_ml is not None and solved_target == step.target:
+            record.target_volume_ml = predicted_volume_ml
+        goal_ml = record.target_volume_ml
+        if goal_ml is None or record.reached_after_s is not None:
+            return
+        now_s = self.clock()
+        ramp_end_s = record.started_clock_s + step.ramp_s / run.time_scale
+        if abs(estimated_volume_ml - goal_ml) <= REACHED_TOLERANCE * goal_ml and now_s >= ramp_end_s:
+            record.reached_after_s = now_s - record.started_clock_s
+
+    def to_json(self) -> dict | None:
+        """The run for ``status`` (None when no scene was started)."""
+        return self.run.to_json(self.clock()) if self.run is not None else None

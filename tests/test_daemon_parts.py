@@ -1,0 +1,403 @@
+"""The daemon's parts on their own: the scene runner on a fake clock, the estimate schedule, the simulated
+board's keeper, the model worker's life, logging levels for journald, the neutral command-line values."""
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from phantom import PhantomError
+from phantom.command_line import chamber_labels, output_file
+from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
+from phantom.host.scene_runner import SceneRunner
+from phantom.host.scenes import SceneError
+
+CHAMBERS = ["chamber0", "chamber1", "chamber2"]
+
+
+class FakeClock:
+    def __init__(self):
+        self.now_s = 100.0
+
+    def __call__(self):
+        return self.now_s
+
+
+def runner_with_events():
+    clock, events = FakeClock(), []
+    return clock, events, SceneRunner(clock, lambda kind, text, level: events.append(text))
+
+
+SCENE = {"timeline": {"end_s": 30}, "steps": [{"at_s": 0, "volume_ml": 30},
+                                              {"at_s": 10, "ramp_s": 4, "volume_ml": 34}]}
+
+
+def test_the_scene_runner_follows_its_clock_scaled_and_finishes_at_the_end():
+    clock, events, runner = runner_with_events()
+    started = runner.start(SCENE, "bph", CHAMBERS, time_scale=2.0)
+    assert started["wall_duration_s"] == 15.0 and runner.active
+    assert runner.tick().values == (30.0,)
+    clock.now_s += 6.0                       # 12 s of scene time: half-way up the ramp
+    assert runner.tick().values == pytest.approx((32.0,))
+    assert [step.index for step in runner.run.steps] == [0, 1]
+    assert runner.scene_time_s() == pytest.approx(12.0)
+    clock.now_s += 9.0                       # 30 s of scene time: the end
+    assert runner.tick() is None and not runner.active and runner.scene_time_s() is None
+    assert any("finished" in text for text in events)
+
+
+def test_a_step_is_reached_only_after_its_ramp_and_within_one_percent():
+    clock, _, runner = runner_with_events()
+    runner.start(SCENE, "bph", CHAMBERS, time_scale=1.0)
+    runner.tick()
+    clock.now_s += 1.0
+    runner.observe(29.0)                     # 3.3 % short: not reached
+    assert runner.run.steps[0].reached_after_s is None
+    clock.now_s += 1.0
+    runner.observe(29.8, true_volume_ml=29.9)
+    first = runner.run.steps[0].to_json()
+    assert first["reached_after_s"] == pytest.approx(2.0) and first["true_volume_ml"] == 29.9
+    clock.now_s = 100.0 + 11.0               # step 1 ramps until 14 s
+    runner.tick()
+    runner.observe(34.0)                     # on target during the ramp: too early to count
+    assert runner.run.steps[1].reached_after_s is None
+    clock.now_s = 100.0 + 14.5
+    runner.observe(33.9)
+    assert runner.run.steps[1].reached_after_s == pytest.approx(4.5)    # from its start at 10 s
+    assert runner.run.steps[1].to_json()["error_pct"] == pytest.approx(100 * (33.9 - 34) / 34)
+
+
+def test_a_stopped_scene_gives_no_target_and_bad_scenes_are_refused():
+    clock, events, runner = runner_with_events()
+    runner.start(SCENE, "bph", CHAMBERS, 1.0)
+    runner.stop("vented")
+    assert runner.tick() is None and "scene bph stopped: vented" in events
+    with pytest.raises(SceneError, match="no \\[\\[steps\\]\\]"):
+        runner.start({}, "empty", CHAMBERS, 1.0)
+    with pytest.raises(SceneError, match="end_s must be a number >= 14"):
+        runner.start({**SCENE, "timeline": {"end_s": 5}}, "short", CHAMBERS, 1.0)
+    with pytest.raises(SceneError, match="time_scale must be a positive"):
+        runner.start(SCENE, "bph", CHAMBERS, float("nan"))
+
+
+def test_the_schedule_estimates_on_change_or_once_a_second_and_shapes_only_when_wanted():
+    schedule = EstimateSchedule(mesh_hz=2.0)
+    assert schedule.due(0.0, wants_shape=False) is None          # no telemetry yet
+    for board_ms in range(0, 1000, 20):
+        schedule.add(board_ms / 1e3, np.array([1000.0, 1000.0, 1000.0]))
+    assert len(schedule.window) == 26                            # the last 0.5 s of board time
+    first = schedule.due(0.0, wants_shape=False)
+    assert first is not None and not first.with_shape
+    assert schedule.due(0.1, wants_shape=False) is None          # one at a time
+    schedule.finished()
+    assert schedule.due(0.2, wants_shape=False) is None          # nothing moved
+    schedule.add(1.0, np.array([1000.0, 1000.0, 1000.0 + 40 * ESTIMATE_CHANGE_PA]))
+    assert schedule.due(0.3, wants_shape=False) is not None      # the mean moved
+    schedule.finished()
+    assert schedule.due(1.4, wants_shape=False) is not None      # a second old
+    schedule.finished()
+    # shapes: never unless wanted; then at mesh_hz
+    shapes = 0
+    for tick in range(100):                                      # 10 s at 10 Hz
+        request = schedule.due(2.0 + tick / 10, wants_shape=True)
+        if request is not None:
+            shapes += request.with_shape
+            schedule.finished()
+    assert shapes == 20
+    schedule.clear()
+    assert schedule.due(20.0, wants_shape=True) is None
+
+
+class DyingBoard:
+    """A stand-in for SimulatedBoard (a unit test of the keeper alone): answers until told to die."""
+
+    made = []
+
+    def __init__(self, speed):
+        self.alive, self.speed = True, speed
+        DyingBoard.made.append(self)
+
+    def start(self):
+        import tempfile
+
+        self.folder = tempfile.mkdtemp()
+        self.port = os.path.join(self.folder, "tty")
+        open(self.port, "w").close()
+
+    def stop(self):
+        self.alive = False
+
+    def plant_state(self):
+        if not self.alive:
+            raise BrokenPipeError("the harness is gone")
+        return {"gland_volume_ml": 31.5}
+
+
+def test_the_keeper_restarts_a_dead_simulator_behind_the_same_port(monkeypatch):
+    import asyncio
+
+    from phantom.host import sim_board
+
+    monkeypatch.setattr(sim_board, "WATCH_PERIOD_S", 0.01)
+    DyingBoard.made.clear()
+    events = []
+    keeper = sim_board.SimulatedBoardKeeper(1.0, lambda kind, text, level: events.append((text, level)),
+                                            board_factory=DyingBoard)
+    keeper.start()
+    first_target = os.readlink(keeper.port)
+
+    async def scenario():
+        watch = asyncio.create_task(keeper.watch())
+        await asyncio.sleep(0.05)
+        assert keeper.plant_volume_ml == 31.5
+        DyingBoard.made[0].alive = False
+        for _ in range(200):
+            await asyncio.sleep(0.01)
+            if keeper.restarts:
+                break
+        watch.cancel()
+
+    asyncio.run(scenario())
+    assert keeper.restarts == 1 and len(DyingBoard.made) == 2
+    assert os.readlink(keeper.port) != first_target and os.readlink(keeper.port) == DyingBoard.made[1].port
+    assert ("the simulated board (simavr) died: restarting it", "ERROR") in events
+    keeper.close()
+    assert not os.path.exists(keeper.port)
+
+
+def test_plant_volume_is_read_only_when_the_plant_reports_it():
+    from phantom.host.sim_board import plant_volume_ml
+
+    assert plant_volume_ml({"gland_volume_ml": 40}) == 40.0
+    assert plant_volume_ml({"pressures_pa": [0, 0, 0]}) is None
+
+
+WORKER_PARENT = """
+import asyncio, os, sys, time
+from phantom.host.control import worker_pool
+pool = worker_pool()
+print(pool.submit(os.getpid).result(), flush=True)
+time.sleep(60)
+"""
+
+
+def test_the_model_worker_dies_with_its_parent_even_on_sigkill():
+    parent = subprocess.Popen([sys.executable, "-c", WORKER_PARENT], stdout=subprocess.PIPE, text=True)
+    try:
+        worker_pid = int(parent.stdout.readline())
+        os.kill(worker_pid, 0)                                  # alive while its parent is
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                os.kill(worker_pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.05)
+        else:
+            os.kill(worker_pid, signal.SIGKILL)
+            pytest.fail("the model worker outlived its killed parent")
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+
+
+def test_under_systemd_levels_are_journald_priorities_on_every_line(capfd, monkeypatch):
+    from phantom.host.logs import configure_logging
+
+    status = os.fstat(sys.stderr.fileno())
+    monkeypatch.setenv("JOURNAL_STREAM", f"{status.st_dev}:{status.st_ino}")
+    configure_logging("info")
+    log = logging.getLogger("phantom.host.daemon")
+    log.debug("not shown")
+    log.info("link up")
+    log.warning("link lost")
+    try:
+        raise ValueError("boom")
+    except ValueError:
+        log.exception("control tick failed")
+    lines = capfd.readouterr().err.splitlines()
+    assert lines[0] == "<6>phantom.host.daemon: link up" and lines[1] == "<4>phantom.host.daemon: link lost"
+    assert lines[2] == "<3>phantom.host.daemon: control tick failed"
+    assert len(lines) > 4 and all(line.startswith("<3>") for line in lines[3:])      # the traceback, as errors
+    assert "ValueError: boom" in lines[-1]
+    monkeypatch.delenv("JOURNAL_STREAM")
+    configure_logging("warning")
+    log.info("quiet")
+    log.error("loud")
+    err = capfd.readouterr().err
+    assert "quiet" not in err and "ERROR phantom.host.daemon: loud" in err and not err.startswith("<")
+    with pytest.raises(ValueError, match="unknown log level"):
+        configure_logging("chatty")
+    configure_logging("info")
+
+
+def test_chamber_labels_and_output_files(tmp_path):
+    assert chamber_labels({}, CHAMBERS) == ["base", "left lobe", "right lobe"]
+    assert chamber_labels({"phantom": {"chamber_labels": ["a", "b", "c"]}}, CHAMBERS) == ["a", "b", "c"]
+    assert chamber_labels({}, ["x", "y"]) == ["x", "y"]
+    assert output_file(tmp_path / "new" / "deeper" / "out.json") == tmp_path / "new" / "deeper" / "out.json"
+    assert (tmp_path / "new" / "deeper").is_dir()
+    (tmp_path / "file").write_text("")
+    with pytest.raises(PhantomError, match="cannot create the folder"):
+        output_file(tmp_path / "file" / "out.json")
+
+
+def test_the_model_package_does_not_import_the_host_package():
+    code = ("import sys, phantom.model.inverse, phantom.model.inverse_cli, phantom.model.cli; "
+            "import json; print(json.dumps(sorted(m for m in sys.modules if m.startswith('phantom.host'))))")
+    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                       check=True).stdout)
+    assert loaded == []
+
+
+# --- the daemon's wiring, one layer, with stand-ins for the parts it is given ---------------------------------
+
+class PartsStandIn:
+    """Stand-ins for the daemon's parts (a unit test of the wiring alone; end to end they are real)."""
+
+    def __init__(self, scene_shape: bool, refuse_zero_with: str | None = None):
+        from types import SimpleNamespace
+
+        from phantom.host.api import ApiServer
+        from phantom.host.control import ModelInfo
+
+        self.calls: list[tuple] = []
+        info = ModelInfo(CHAMBERS, 26.1, {"total_s": 1.0}, "updated", {}, "scene.toml", 3000.0, scene_shape, {})
+        parts = self
+
+        class Model:
+            def __init__(self):
+                self.info = info
+
+            async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
+                from phantom.host.control import Estimate
+
+                parts.calls.append(("estimate", with_surface))
+                surface = (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])) if with_surface else None
+                rest = surface if with_surface and with_rest_surface else None
+                return Estimate([2.0, 1.1, 1.1], 30.0, surface, {"shapes": sum(
+                    1 for call in parts.calls if call == ("estimate", True))}, rest)
+
+            async def surface(self, pressures_pa):
+                return np.zeros((4, 3)), np.array([[0, 1, 2]])
+
+            def close(self):
+                pass
+
+        class Recorder:
+            def __getattr__(self, name):
+                return lambda *args, **kwargs: parts.calls.append((name, *args[:1]))
+
+        class Session:
+            online = True
+            transport = SimpleNamespace(description="stand-in", close=lambda: None)
+
+            async def command(self, name, fields=None):
+                from phantom.host.session import CommandRejected
+
+                parts.calls.append(("command", name))
+                if name == "ZERO_SENSORS" and refuse_zero_with:
+                    raise CommandRejected(name, refuse_zero_with)
+                return "OK"
+
+            def status(self):
+                return {"state": "online", "stats": {}}
+
+        self.model, self.recorder, self.session = Model(), Recorder(), Session()
+        self.api = ApiServer("/nonexistent/never-started.sock", {})
+
+    def daemon(self, recording: bool, clock):
+        from phantom.host.daemon import Daemon, DaemonConfig
+
+        config = DaemonConfig(sim=True, rerun_save="x.rrd" if recording else None, mesh_hz=2.0)
+        return Daemon(config, self.api, self.model, self.recorder, self.session, None, clock=clock)
+
+
+def frame(board_time_ms: int, kpa: float):
+    from types import SimpleNamespace
+
+    pressures = np.full(3, kpa * 1e3)
+    return SimpleNamespace(board_time_ms=board_time_ms, pressures_pa=pressures, setpoints_pa=pressures,
+                           drive_levels=np.zeros(3), states=["HOLD"] * 3, fault_flags=0)
+
+
+async def run_control(daemon, clock, seconds: float):
+    """Telemetry at 50 Hz and the estimate tick at 10 Hz on the fake clock, with a rising pressure."""
+    import asyncio
+
+    for tick in range(int(seconds * 10)):
+        for sub in range(5):
+            daemon.on_telemetry(frame(tick * 100 + sub * 20, 0.1 * tick))
+        clock.now_s += 0.1
+        daemon._estimate_tick()
+        for _ in range(3):
+            await asyncio.sleep(0)
+
+
+@pytest.mark.parametrize(("scene_shape", "recording", "meshes"), [
+    (False, True, 0), (True, False, 0), (True, True, 20)])
+def test_a_shape_is_computed_and_logged_only_when_the_scene_asks_and_something_records(scene_shape, recording,
+                                                                                        meshes):
+    import asyncio
+
+    parts, clock = PartsStandIn(scene_shape), FakeClock()
+    daemon = parts.daemon(recording, clock)
+    asyncio.run(run_control(daemon, clock, 10.0))
+    shapes_asked = sum(1 for call in parts.calls if call == ("estimate", True))
+    logged = [call for call in parts.calls if call[0] in ("log_mesh", "log_rest_surface")]
+    # at --mesh-hz 2 over 10 s: 20 at most (a tick's float rounding can push one shape to the next tick)
+    assert (15 <= shapes_asked <= meshes) if meshes else shapes_asked == 0
+    assert daemon.meshes_logged == shapes_asked == sum(1 for call in logged if call[0] == "log_mesh")
+    if meshes:
+        # the rest shape once, before the first deformed mesh
+        assert [call[0] for call in logged[:2]] == ["log_rest_surface", "log_mesh"]
+        assert sum(1 for call in logged if call[0] == "log_rest_surface") == 1
+
+
+@pytest.mark.parametrize(("status", "reason"), [
+    ("NOT_VENTED", "vent first"), ("NOT_SETTLED", "not steady"), ("ZERO_OUT_OF_RANGE", "old zero is kept"),
+    ("SOMETHING_NEW", "the board answered SOMETHING_NEW")])
+def test_a_refused_zero_says_why(status, reason):
+    import asyncio
+
+    from phantom.host.api import ApiError
+
+    parts = PartsStandIn(False, refuse_zero_with=status)
+    daemon = parts.daemon(False, FakeClock())
+    with pytest.raises(ApiError, match=f"{status}.*{reason}") as refused:
+        asyncio.run(daemon.zero_sensors())
+    assert refused.value.code == "rejected"
+
+
+def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(caplog):
+    import asyncio
+
+    parts = PartsStandIn(False)
+    daemon = parts.daemon(False, FakeClock())
+
+    async def broken():
+        raise RuntimeError("the link task broke")
+
+    async def scenario():
+        task = asyncio.create_task(broken(), name="link")
+        task.add_done_callback(daemon._task_ended)
+        await asyncio.sleep(0.01)
+
+    phantom_logger = logging.getLogger("phantom")
+    propagate, phantom_logger.propagate = phantom_logger.propagate, True   # so that caplog sees the records
+    try:
+        with caplog.at_level(logging.ERROR, logger="phantom"):
+            asyncio.run(scenario())
+    finally:
+        phantom_logger.propagate = propagate
+    assert daemon._stop.is_set() and daemon._exit_code == 1
+    record = next(record for record in caplog.records if "ended unexpectedly" in record.getMessage())
+    assert record.exc_info and "the link task broke" in str(record.exc_info[1])

@@ -1,0 +1,144 @@
+"""Every ``phantom ...`` command line shown in the READMEs works.
+
+The lines are read from the READMEs' code blocks at test time, so that a line added later (by any part) is
+tested too. Each is parsed by the real ``phantom`` parser (a renamed flag, or a value argparse mistakes for an
+option, fails here). The daemon's clients (status, set, vent, zero, clear-fault, run-scene, watch) and the
+offline inverse also run: the clients against a daemon started with its defaults on the simulated board (so
+the shipped example scenes must be accepted by it), the inverse on the calibrated scene. A line "works" when it
+exits 0, or exits 2 with a one-line error (the board may refuse to zero while inflated; a README may show an
+unreachable target on purpose) and never with a usage error or a traceback. The rest (the daemon itself, the
+bench, the model's long computations) is parsed only: a dry run.
+
+Runtime shortcuts, stated here: ``watch`` without ``--count`` gets ``--count 2``; ``run-scene --time-scale X``
+plays at 60 (the timelines last minutes).
+"""
+
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from phantom import PhantomError
+from phantom.host.cli import build_parser, join_list_values
+from phantom.host.client import DaemonClient
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parent.parent
+PHANTOM = Path(sys.executable).with_name("phantom")
+#: Subcommands that talk to a running daemon.
+CLIENTS = {"status", "set", "vent", "zero", "clear-fault", "run-scene", "watch"}
+#: Offline subcommands fast enough to run.
+RUN_OFFLINE = {"inverse"}
+
+
+def readme_command_lines() -> list[tuple[str, str]]:
+    """(where, command line) for every ``phantom SUBCOMMAND ...`` line of the READMEs' code blocks."""
+    found = []
+    for readme in sorted(ROOT.glob("**/README.md")):
+        if any(part.startswith(".") or part in ("node_modules", "build") for part in readme.relative_to(ROOT).parts):
+            continue
+        lines = readme.read_text().splitlines()
+        in_fence = False
+        index = 0
+        while index < len(lines):
+            line = lines[index]
+            if line.strip().startswith("```"):
+                in_fence = not in_fence
+            code = in_fence or line.startswith("    ")
+            text = line.strip().removeprefix("$ ")
+            while text.endswith("\\") and index + 1 < len(lines):
+                index += 1
+                text = text[:-1] + " " + lines[index].strip()
+            # a subcommand, not a log line such as "phantom daemon: ready"
+            if code and re.match(r"phantom [a-z][a-z-]*( |$)", text):
+                # the phantom command alone: without its comment, or what a shell pipes or chains after it
+                command = re.split(r" #| \| | && | ; | > ", text)[0].strip()
+                found.append((f"{readme.relative_to(ROOT)}:{index + 1}", command))
+            index += 1
+    return found
+
+
+def variants(line: str) -> list[list[str]]:
+    """The argument lists a line stands for: without its [optional parts], and with those that hold no
+    placeholder (an upper-case metavar like H or FILE)."""
+    optional = re.findall(r"\[([^\]]*)\]", line)
+    bare = shlex.split(re.sub(r"\s*\[[^\]]*\]", "", line))[1:]
+    forms = [bare]
+    concrete = [part for part in optional if not any(re.fullmatch(r"[A-Z][A-Z_]*", word) for word in part.split())]
+    if concrete:
+        forms.append(bare + shlex.split(" ".join(concrete)))
+    return forms
+
+
+LINES = readme_command_lines()
+
+
+def test_the_readmes_show_command_lines_of_the_host():
+    subcommands = {shlex.split(line)[1] for _, line in LINES}
+    assert {"daemon", "status", "set", "vent", "zero", "run-scene", "watch", "sim-board"} <= subcommands
+
+
+@pytest.mark.parametrize(("where", "line"), LINES, ids=[where for where, _ in LINES])
+def test_every_readme_command_line_parses(where, line):
+    parser = build_parser()
+    for arguments in variants(line):
+        try:
+            parser.parse_args(join_list_values(arguments))
+        except SystemExit as error:
+            pytest.fail(f"{where}: `{line}` does not parse (exit {error.code})")
+
+
+@pytest.fixture(scope="module")
+def default_daemon(tmp_path_factory):
+    """``phantom daemon --sim`` with every default (scene builtin:calibrated), at twice real time."""
+    folder = tmp_path_factory.mktemp("readme")
+    sock = folder / "d.sock"
+    log = open(folder / "daemon.log", "w+")
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
+                               stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 90
+        while True:
+            assert process.poll() is None, Path(log.name).read_text()
+            try:
+                with DaemonClient(sock, timeout_s=10) as client:
+                    if client.call("status")["link"] == "online":
+                        break
+            except PhantomError:
+                pass
+            assert time.monotonic() < deadline, Path(log.name).read_text()
+            time.sleep(0.2)
+        yield sock
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.wait(30)
+        log.close()
+
+
+RUNNABLE = [(where, line) for where, line in LINES if shlex.split(line)[1] in CLIENTS | RUN_OFFLINE]
+
+
+@pytest.mark.parametrize(("where", "line"), RUNNABLE, ids=[where for where, _ in RUNNABLE])
+def test_every_readme_client_and_inverse_line_runs(default_daemon, where, line):
+    environment = {**os.environ, "PHANTOM_SOCKET": str(default_daemon)}
+    for arguments in variants(line):
+        if arguments[0] == "watch" and "--count" not in arguments:
+            arguments = [*arguments, "--count", "2"]
+        if arguments[0] == "run-scene" and "--time-scale" in arguments:
+            position = arguments.index("--time-scale")
+            arguments = [*arguments[:position + 1], "60", *arguments[position + 2:]]
+        result = subprocess.run([str(PHANTOM), *arguments], capture_output=True, text=True, timeout=120, cwd=ROOT,
+                                env=environment)
+        assert "Traceback" not in result.stderr and "usage:" not in result.stderr, f"{where}: {result.stderr}"
+        errors = [text for text in result.stderr.splitlines() if ": error: " in text]
+        assert result.returncode == 0 or (result.returncode == 2 and len(errors) == 1), (
+            f"{where}: `phantom {' '.join(arguments)}` exited {result.returncode}: {result.stderr}")
+        if arguments[0] in CLIENTS and result.returncode == 0:
+            assert result.stdout.strip() or arguments[0] == "run-scene", f"{where}: no output"
