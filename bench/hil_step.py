@@ -15,8 +15,6 @@ from phantom.hil import bench
 from phantom.hil.link import BoardLink
 from phantom.hil.sim import SimulatedBoard
 
-ADC_COUNT_KPA = 5.0 / 1024 / (5.0 * 0.018)
-
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -35,19 +33,18 @@ def main() -> None:
     print("| gains kp, ki, kd | chamber | rise s | overshoot % | settling 2 % s | error kPa | meets targets |")
     print("|---|---|---|---|---|---|---|")
     for s in steps:
-        meets = (s["settling_time_s"] is not None and s["settling_time_s"] < 1.0 and s["overshoot_pct"] < 5
-                 and abs(s["steady_state_error_kpa"]) < ADC_COUNT_KPA)
+        meets = bench.step_within_thresholds(s)
         gains = "firmware default" if s["gains"] is None else ", ".join(f"{g:g}" for g in s["gains"])
         settling = "n/a" if s["settling_time_s"] is None else f"{s['settling_time_s']:.2f}"
         print(f"| {gains} | {s['chamber']} | {s['rise_time_s']:.3f} | {s['overshoot_pct']:.2f} | {settling} | "
               f"{s['steady_state_error_kpa']:+.4f} | {'yes' if meets else 'no'} |")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    bench.plot_steps([s for s in steps if s["gains"] is None], out)
+    bench.plot_steps([s for s in steps if s["gains"] is None], out, board="simulated (simavr)")
     plots = [out]
     if len(gain_sets) > 1:
         plots.append(out.with_name(out.stem + "_other.png"))
-        bench.plot_steps([s for s in steps if s["gains"] is not None], plots[-1])
+        bench.plot_steps([s for s in steps if s["gains"] is not None], plots[-1], board="simulated (simavr)")
     print(f"\nplots: {', '.join(map(str, plots))}")
 
 

@@ -621,6 +621,7 @@ def plot_steps(steps: list[dict], path: Path, board: str | None = None) -> Path:
     for axis in (top, zoom, bottom):
         axis.grid(alpha=0.3)
     figure.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=100)
     plt.close(figure)
     return path

@@ -145,7 +145,7 @@ def _run_step(args) -> int:
         _progress(f"step 0 -> {args.kpa} kPa on chamber {args.chamber}")
         result = bench.check_step(b.link, args.chamber, args.kpa, duration_s=args.duration_s, gains=gains)
     if args.plot:
-        bench.plot_steps([result], Path(args.plot))
+        bench.plot_steps([result], Path(args.plot), board="simulated (simavr)" if args.sim else args.port)
     result.pop("trace")
     lines = [f"{key}: {value:.4g}" if isinstance(value, float) else f"{key}: {value}" for key, value in result.items()]
     return _emit(args, result, lines)
