@@ -47,7 +47,7 @@ def run_mesh(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene)
     if scene.mesh == "builtin:prostate":
-        mesh = builtin_prostate(args.size_mm)
+        mesh = builtin_prostate(args.size_mm, scene.geometry)
     elif args.size_mm is not None:
         raise MeshError(f"--size-mm applies to the built-in mesh only; {scene.mesh} is read as it is")
     else:

@@ -324,7 +324,7 @@ class PhantomModel:
             if scene.units != "mm":
                 raise MeshError(f"the built-in mesh is in millimetres: set [phantom] units = \"mm\" (not "
                                 f"{scene.units!r})")
-            mesh, source = builtin_prostate(mesh_size_mm), "builtin:prostate"
+            mesh, source = builtin_prostate(mesh_size_mm, scene.geometry), "builtin:prostate"
         else:
             if mesh_size_mm is not None:
                 raise MeshError(f"mesh_size_mm applies to the built-in mesh only; {scene.mesh} is read as it is")

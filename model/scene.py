@@ -5,6 +5,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from phantom.model.errors import SceneError
+from phantom.model.geometry import ProstateGeometry, geometry_from_table
 
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
 #: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;
@@ -57,6 +58,9 @@ class Scene:
         The timeline, raw (read by the host).
     raw : dict
         The whole parsed TOML, so that other parts can read their own tables.
+    geometry : ProstateGeometry or None
+        The built-in prostate's chamber sizes and positions and fixation radius (``[geometry]``, defaults
+        when absent); None for a mesh file.
     """
 
     path: Path | None
@@ -68,6 +72,7 @@ class Scene:
     outputs: Outputs
     steps: list[dict] = field(default_factory=list)
     raw: dict = field(default_factory=dict)
+    geometry: ProstateGeometry | None = None
 
     @property
     def length_scale_m(self) -> float:
@@ -117,6 +122,11 @@ def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
         mesh = str(mesh_path.resolve())
     elif mesh != "builtin:prostate":
         raise SceneError(f"{where}: unknown built-in mesh {mesh!r}: the only one is 'builtin:prostate'")
+    geometry = None
+    if mesh == "builtin:prostate":
+        geometry = geometry_from_table(raw.get("geometry", {}), where)
+    elif "geometry" in raw:
+        raise SceneError(f"{where}: [geometry] applies to the built-in prostate only; {mesh} is read as it is")
     units = phantom_table.get("units", "mm")
     if units not in LENGTH_UNITS_M:
         raise SceneError(f"{where}: [phantom] units = {units!r} is not one of {', '.join(LENGTH_UNITS_M)}")
@@ -138,6 +148,7 @@ def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
         outputs=Outputs(**_outputs(raw.get("outputs", {}), where)),
         steps=list(raw.get("steps", [])),
         raw=raw,
+        geometry=geometry,
     )
 
 
