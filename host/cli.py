@@ -17,6 +17,7 @@ import phantom
 COMMAND_MODULES: tuple[str, ...] = (
     "phantom.model.cli",
     "phantom.model.inverse_cli",
+    "phantom.model.calibrate_cli",
     "phantom.hil.cli",
     "phantom.host.commands",
 )
