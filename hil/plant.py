@@ -236,7 +236,9 @@ def chambers_from_scene(scene: str | Path, mesh_size_mm: float | None = None) ->
         )
     compliance_m3_per_pa = model.compliance().chamber_m3_per_pa
     material = loaded.material
-    mesh = "default mesh" if mesh_size_mm is None else f"{mesh_size_mm:g} mm mesh"
+    scene_size_mm = loaded.geometry.mesh_size_mm if loaded.geometry is not None else None
+    size_mm = mesh_size_mm if mesh_size_mm is not None else scene_size_mm
+    mesh = "the mesh file" if size_mm is None else f"{size_mm:g} mm mesh"
     return FemChambers(
         scene=str(scene),
         description=f"{material.model}, E = {material.youngs_modulus_pa / 1e3:.5g} kPa, "
