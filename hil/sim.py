@@ -196,8 +196,13 @@ class SimulatedBoard:
         """The plant now: time_s, pressures_pa, drive_levels (what the firmware's PWM commands, [0, 1]),
         chamber_volumes_ml, plus effective_drive_levels (after a stuck blower), sensor_voltages_v, powered,
         resets (MCU resets seen, e.g. by the watchdog), max_lag_s (the longest stall behind the wall clock) and
-        lost_s (wall-clock time the simulation could not keep up with, in total)."""
-        return self._command("state")
+        lost_s (wall-clock time the simulation could not keep up with, in total); and gland_volume_ml, the
+        truth model's gland volume at these pressures, when the plant has a truth table."""
+        state = self._command("state")
+        gland_volume_ml = self.plant.truth_gland_volume_ml(state["pressures_pa"])
+        if gland_volume_ml is not None:
+            state["gland_volume_ml"] = gland_volume_ml
+        return state
 
     def cycle_stats(self, reset: bool = False) -> dict:
         """CPU cost of the firmware, counted exactly in simavr cycles since start (or the last reset).
