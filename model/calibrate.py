@@ -29,7 +29,7 @@ import copy
 import csv
 import dataclasses
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -217,7 +217,6 @@ class Responses:
     measures: dict
     gent_jm: np.ndarray  # (*grid.shape,) the Jm at each grid point (NaN for other laws)
     material_model: str = "gent"
-    _interpolators: dict = field(default_factory=dict)
 
     @property
     def varying(self) -> list[int]:
@@ -225,18 +224,32 @@ class Responses:
         return [axis for axis, values in enumerate(self.grid.values) if len(values) > 1]
 
     def interpolate(self, name: str, theta: np.ndarray, load_factor: float) -> np.ndarray:
-        """Per-ray value of ``name`` ("gland_m3", "admissible" as 0/1, or a measure) at parameters ``theta``."""
-        from scipy.interpolate import RegularGridInterpolator
-
-        if name not in self._interpolators:
-            values = {"gland_m3": self.gland_m3, "admissible": self.admissible.astype(float)}.get(name)
-            values = self.measures[name] if values is None else values
-            fixed = tuple(slice(None) if axis in self.varying else 0 for axis in range(len(self.grid.names)))
-            axes = [self.grid.values[axis] for axis in self.varying] + [self.load_factors]
-            self._interpolators[name] = RegularGridInterpolator(axes, values[fixed], bounds_error=False,
-                                                                fill_value=np.nan)
-        point = [theta[axis] for axis in self.varying] + [load_factor]
-        return self._interpolators[name](np.array(point))[0]
+        """Per-ray value of ``name`` ("gland_m3", "admissible" as 0/1, or a measure) at parameters ``theta``:
+        multilinear over the varying grid axes and t, NaN outside the grid or where a corner that carries
+        weight is NaN (a corner of zero weight does not count: the value on a cell's face is the face's)."""
+        values = {"gland_m3": self.gland_m3, "admissible": self.admissible}.get(name)
+        values = self.measures[name] if values is None else values
+        axes = [self.grid.values[axis] if axis in self.varying else None for axis in range(len(self.grid.names))]
+        axes.append(self.load_factors)
+        point = [*theta, load_factor]
+        cells, fractions = [], []
+        for axis, coordinate in zip(axes, point, strict=True):
+            if axis is None:
+                cells.append(0)
+                fractions.append(0.0)
+                continue
+            if not axis[0] <= coordinate <= axis[-1]:
+                return np.full(values.shape[-1], np.nan)
+            cell = int(np.clip(np.searchsorted(axis, coordinate, side="right") - 1, 0, len(axis) - 2))
+            cells.append(cell)
+            fractions.append((coordinate - axis[cell]) / (axis[cell + 1] - axis[cell]))
+        result = np.zeros(values.shape[-1])
+        for corner in np.ndindex(*(2,) * len(cells)):
+            weight = float(np.prod([f if c else 1.0 - f for c, f in zip(corner, fractions, strict=True)]))
+            if weight == 0.0:
+                continue
+            result = result + weight * values[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]
+        return result
 
 
 def _fine(trace, load_factors: np.ndarray, values: np.ndarray, monotone: bool) -> np.ndarray:
@@ -332,17 +345,30 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
 
 
 def _binding(responses: Responses, cost: np.ndarray, usable: np.ndarray, rays: list[int]) -> str | None:
-    """The constraint broken at the best traced state, when that state fits better than every admissible one."""
+    """The constraint the fit sits on: broken at a traced state that fits better than every admissible one, or
+    reached (the trace ends or turns inadmissible) at the next load factor above the best admissible state
+    while the cost still falls there."""
     finite = np.where(np.isfinite(cost), cost, np.inf)
+    best_usable = np.unravel_index(np.argmin(np.where(usable, cost, np.inf)), cost.shape)
     best = np.unravel_index(np.argmin(finite), cost.shape)
-    if usable[best] or not finite[best] < np.min(np.where(usable, cost, np.inf)):
-        return None
+    if usable[best] or not finite[best] < cost[best_usable]:
+        following = (*best_usable[:-1], best_usable[-1] + 1)
+        if following[-1] >= cost.shape[-1] or usable[following]:
+            return None
+        falling = np.nan_to_num(np.diff(cost[best_usable[:-1]])[best_usable[-1] - 1], nan=-1.0) < 0
+        if not falling:
+            return None
+        best = following
     jm = responses.gent_jm[best[:-1]]
+    where_t = f"E0/E = {responses.load_factors[best[-1]]:.3g}"
     for ray in rays:
         values = [float(responses.measures[name][best][ray]) for name in
                   ("min_det", "min_stretch", "max_stretch", "max_i1_minus_3")]
-        where = f"ray {ray} at E0/E = {responses.load_factors[best[-1]]:.3g}"
-        reason = violation_reason(responses.material_model, None if np.isnan(jm) else float(jm), where, *values)
+        if not np.all(np.isfinite(values)):
+            return (f"ray {ray} ends at {where_t}, where its trace stopped (the law's limit or a failed solve): "
+                    f"the fit stops below it")
+        reason = violation_reason(responses.material_model, None if np.isnan(jm) else float(jm),
+                                  f"ray {ray} at {where_t}", *values)
         if reason:
             return reason
     return None
