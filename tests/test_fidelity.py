@@ -4,8 +4,6 @@ A coarse built-in mesh (6 mm) keeps this quick; the accuracy of each level again
 bench/model_fidelity.py, not here.
 """
 
-import re
-
 import numpy as np
 import pytest
 from scipy import sparse
@@ -189,9 +187,7 @@ def test_without_a_fidelity_the_scenes_accuracy_picks_the_level(tmp_path):
     # the full solve; with a loose enough accuracy_pct, "rest" is cheapest and kept.
     for accuracy_pct, expected in ((1.0, "updated"), (1e4, "rest")):
         scene_path = tmp_path / f"calibrated_{accuracy_pct:g}.toml"
-        # The previous calibration (small strain, E = 2.6301 kPa); the shipped one is now hyperelastic.
-        text = load_scene("builtin").path.read_text().replace('model = "corotational"', 'model = "linear"')
-        text = re.sub(r"youngs_modulus_kpa = .*", "youngs_modulus_kpa = 2.6301", text)
+        text = load_scene("builtin:calibrated").path.read_text()
         scene_path.write_text(text + f"\n[model]\naccuracy_pct = {accuracy_pct}\npressure_max_kpa = 3.0\n")
         estimator = VolumeEstimator(PhantomModel.from_scene(load_scene(scene_path), mesh_size_mm=COARSE_MM))
         assert estimator.probe_errors_pct["updated"] <= 1e-9

@@ -105,29 +105,26 @@ def test_shipped_chambers_match_the_fem_of_the_calibrated_scene():
     plant = load_plant()
     assert 1e6 * plant.cavity_volume_m3 == pytest.approx(fem.cavity_volume_ml, rel=1e-3)
     np.testing.assert_allclose(1e9 * plant.compliance_m3_per_pa, fem.compliance_ml_per_kpa, rtol=1e-3, atol=1e-4)
-    assert "prostate_calibrated.toml (gent, E = 5.5815 kPa" in DEFAULT_PLANT_PATH.read_text()
+    assert "prostate_calibrated.toml (linear, E = 2.6301 kPa" in DEFAULT_PLANT_PATH.read_text()
 
 
-def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, capsys, tmp_path):
-    """The one-liner on the calibrated scene at E = 50 kPa (same mesh): the rest compliance of an elastic body
-    is proportional to 1/E (every law's tangent at rest is the linear stiffness), so it must be the
-    shipped one times 5.5815/50, and the rest volumes the same; each side is rounded to 5 digits, hence 2e-4.
+def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, capsys):
+    """The one-liner on the built-in scene (E = 50 kPa, same mesh): the rest compliance of a linear elastic body
+    is proportional to 1/E (the co-rotational tangent at rest is the linear stiffness), so it must be the
+    shipped one times 2.6301/50, and the rest volumes the same; each side is rounded to 5 digits, hence 2e-4.
     Everything else in the file, the tubes' dead volume included, stays as it was."""
     path = plant_file()
     before = path.read_text()
-    stiffer = tmp_path / "stiffer.toml"
-    stiffer.write_text(re.sub(r"youngs_modulus_kpa = .*", "youngs_modulus_kpa = 50.0",
-                              CALIBRATED_SCENE_PATH.read_text()))
-    assert main(["--from-scene", str(stiffer), "--plant", str(path)]) == 0
+    assert main(["--from-scene", "builtin", "--plant", str(path)]) == 0
     assert "wrote" in capsys.readouterr().out
     shipped, regenerated = load_plant(), load_plant(path)
-    scale = 5.5815 / 50.0
+    scale = 2.6301 / 50.0
     np.testing.assert_allclose(
         regenerated.compliance_m3_per_pa, scale * shipped.compliance_m3_per_pa, rtol=2e-4, atol=1e-16
     )
     assert regenerated.cavity_volume_m3 == pytest.approx(shipped.cavity_volume_m3, rel=2e-4)
     assert np.array_equal(regenerated.tubing_volume_m3, shipped.tubing_volume_m3)
-    assert f"# FEM source: {stiffer} (gent, E = 50 kPa" in path.read_text()
+    assert "# FEM source: builtin (corotational, E = 50 kPa" in path.read_text()
     changed = {line for line in set(path.read_text().splitlines()) ^ set(before.splitlines())}
     assert all(line.startswith(("# FEM source:", "cavity_volume_ml", "  [")) for line in changed), changed
 

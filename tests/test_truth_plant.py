@@ -31,13 +31,12 @@ def _air_volumes_ml(plant, pressures_pa):
     return 1e6 * (plant.rest_volume_m3 - table[0, 0, 0] + trilinear(table, points_kpa, np.asarray(pressures_pa) / 1e3))
 
 
-def test_the_shipped_truth_is_the_calibrated_model_at_its_offset_modulus():
-    from phantom.hil.plant import CALIBRATED_SCENE_PATH
+def test_the_shipped_truth_is_the_physical_calibration_at_its_offset_modulus():
     from phantom.model import PhantomModel, load_scene
 
     plant = load_plant()
-    assert f"E x {TRUTH_MODULUS_FACTOR:g}" in DEFAULT_PLANT_PATH.read_text()
-    scene = load_scene(CALIBRATED_SCENE_PATH)
+    assert f"prostate_gent.toml with E x {TRUTH_MODULUS_FACTOR:g}" in DEFAULT_PLANT_PATH.read_text()
+    scene = load_scene("builtin:gent")
     truth = PhantomModel.from_scene(scene).with_material(youngs_modulus_pa=scene.material.youngs_modulus_pa
                                                          * TRUTH_MODULUS_FACTOR)
     state = truth.solve([2000.0, 1000.0, 0.0])
