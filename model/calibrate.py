@@ -144,7 +144,8 @@ def parse_grid(items: list[str]) -> Grid:
     """``["gent_jm=3,6,12", "lobe_chamber_scale=1,1.1,1.2"]`` as a Grid; CalibrationError on a bad item."""
     from phantom.model.geometry import ProstateGeometry
 
-    known = set(MATERIAL_PARAMETERS) | {f.name for f in dataclasses.fields(ProstateGeometry)}
+    known = set(MATERIAL_PARAMETERS) | {f.name for f in dataclasses.fields(ProstateGeometry)
+                                        if not isinstance(f.default, tuple)}
     names, values = [], []
     for item in items:
         name, _, text = item.partition("=")
