@@ -224,7 +224,7 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
     if client is None:
         if scheduler:
             try:
-                client = Client(scheduler, timeout="10s")
+                client = Client(scheduler, timeout="5s")
             except (OSError, TimeoutError) as error:
                 raise SweepError(f"no Dask scheduler answers at {scheduler} ({error}): start one "
                                  f"(dask scheduler) or leave --scheduler out for a local cluster") from None
