@@ -38,6 +38,8 @@ CALIBRATED_SCENE_PATH = Path(__file__).resolve().parent.parent / "model" / "scen
 WRITTEN_DIGITS = 5
 
 N_CHAMBERS = 3
+#: Points per pressure axis of the truth table (PLANT_TRUTH_POINTS in plant.h).
+TRUTH_GRID_POINTS = 4
 
 
 class PlantError(PhantomError):
@@ -63,6 +65,19 @@ class PlantParameters:
     sensor_noise_v: float
     sensor_response_time_s: float
     step_s: float
+    #: The truth's pressure-volume table (None: the linear V0 + C p): grid step (Pa), chamber volumes (m^3,
+    #: (n, n, n, 3)) and gland volumes (m^3, (n, n, n)) at pressures (i, j, k) * step.
+    truth_step_pa: float = 0.0
+    truth_chamber_volume_m3: np.ndarray | None = None
+    truth_gland_volume_m3: np.ndarray | None = None
+
+    def truth_gland_volume_ml(self, pressures_pa) -> float | None:
+        """The truth's gland volume (ml) at these pressures, as the harness interpolates the chambers; None
+        without a truth table."""
+        if self.truth_gland_volume_m3 is None:
+            return None
+        points_kpa = self.truth_step_pa / 1e3 * np.arange(self.truth_gland_volume_m3.shape[0])
+        return float(1e6 * trilinear(self.truth_gland_volume_m3, points_kpa, np.asarray(pressures_pa) / 1e3))
 
     @property
     def rest_volume_m3(self) -> np.ndarray:
@@ -93,6 +108,12 @@ class PlantParameters:
                 arguments += ["--param", f"{name}.{chamber}={float(value)!r}"]
         for (row, column), value in np.ndenumerate(self.compliance_m3_per_pa):
             arguments += ["--param", f"compliance_m3_per_pa.{row}.{column}={float(value)!r}"]
+        table = self.truth_chamber_volume_m3
+        if table is None:
+            table = np.zeros((TRUTH_GRID_POINTS,) * 3 + (N_CHAMBERS,))
+        arguments += ["--param", f"truth_step_pa={self.truth_step_pa!r}"]
+        for flat, value in enumerate(table.ravel()):
+            arguments += ["--param", f"truth_volume_m3.{flat}={float(value)!r}"]
         return arguments
 
 
@@ -215,7 +236,31 @@ def _plant_from_text(text: str, path: Path) -> PlantParameters:
         sensor_noise_v=1e-3 * _number(sensor, "noise_mv", f"{path} [sensor]", positive=True),
         sensor_response_time_s=1e-3 * _number(sensor, "response_time_ms", f"{path} [sensor]", positive=True),
         step_s=1e-6 * step_us,
+        **_truth(chambers, f"{path} [chambers]"),
     )
+
+
+def _truth(chambers: dict, where: str) -> dict:
+    """The optional truth table of [chambers] in SI units (empty when the file has none)."""
+    keys = ("truth_step_kpa", "truth_chamber_volume_ml", "truth_gland_volume_ml")
+    present = [key for key in keys if key in chambers]
+    if not present:
+        return {}
+    if len(present) != len(keys):
+        raise PlantError(f"{where}: a truth table needs all of {', '.join(keys)}; regenerate it with "
+                         f"python -m phantom.hil.plant --truth-from-scene SCENE")
+    n = TRUTH_GRID_POINTS
+    step_kpa = _number(chambers, "truth_step_kpa", where, positive=True, allow_zero=False)
+    try:
+        volumes = np.array(chambers["truth_chamber_volume_ml"], dtype=float).reshape(n, n, n, N_CHAMBERS)
+        gland = np.array(chambers["truth_gland_volume_ml"], dtype=float).reshape(n, n, n)
+    except (TypeError, ValueError):
+        raise PlantError(f"{where}: truth_chamber_volume_ml must be {n ** 3} rows of {N_CHAMBERS} volumes and "
+                         f"truth_gland_volume_ml {n ** 3} volumes (ml), i, j, k in C order") from None
+    if not (np.all(np.isfinite(volumes)) and np.all(volumes > 0) and np.all(gland > 0)):
+        raise PlantError(f"{where}: the truth table's volumes must be finite and positive")
+    return {"truth_step_pa": 1e3 * step_kpa, "truth_chamber_volume_m3": 1e-6 * volumes,
+            "truth_gland_volume_m3": 1e-6 * gland}
 
 
 @dataclass(frozen=True)
@@ -257,7 +302,9 @@ def chambers_from_scene(scene: str | Path, mesh_size_mm: float | None = None) ->
         )
     compliance_m3_per_pa = model.compliance().chamber_m3_per_pa
     material = loaded.material
-    mesh = "default mesh" if mesh_size_mm is None else f"{mesh_size_mm:g} mm mesh"
+    scene_size_mm = loaded.geometry.mesh_size_mm if loaded.geometry is not None else None
+    size_mm = mesh_size_mm if mesh_size_mm is not None else scene_size_mm
+    mesh = "the mesh file" if size_mm is None else f"{size_mm:g} mm mesh"
     return FemChambers(
         scene=str(scene),
         description=f"{material.model}, E = {material.youngs_modulus_pa / 1e3:.5g} kPa, "
@@ -318,16 +365,126 @@ def write_chambers(chambers: FemChambers, path: str | Path | None = None) -> Pla
     return plant
 
 
+# ------------------------------------------------------------------------- the truth the plant integrates
+#: Pressures (kPa) of the truth table's grid, the same on each chamber's axis; beyond it the plant extrapolates
+#: the last cell linearly.
+TRUTH_POINTS_KPA = tuple(float(k) for k in range(TRUTH_GRID_POINTS))
+#: The default truth: the calibrated model with its modulus moved by the jackknife spread of its leave-one-out
+#: moduli (0.53 of 5.58 kPa, bench/README.md "Calibration"): a phantom as far from the controller's model as
+#: the calibration's own uncertainty.
+TRUTH_MODULUS_FACTOR = 1.095
+
+
+@dataclass(frozen=True)
+class TruthTable:
+    """Chamber and gland volumes (ml) of a truth model on the grid TRUTH_POINTS_KPA^3 (index i, j, k = the
+    pressures of chambers 0, 1, 2), and what it is."""
+
+    points_kpa: tuple
+    chamber_volume_ml: np.ndarray   # (n, n, n, 3)
+    gland_volume_ml: np.ndarray     # (n, n, n)
+    description: str
+
+
+def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
+                           scheduler: str | None = None, progress=None) -> TruthTable:
+    """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point (Dask tasks,
+    cached: :mod:`phantom.model.sweep`)."""
+    import copy
+
+    from phantom.model import load_scene
+    from phantom.model.sweep import RayTask, run_sweep
+
+    loaded = load_scene(scene)
+    raw = copy.deepcopy(loaded.raw)
+    material = raw.setdefault("material", {})
+    material["youngs_modulus_kpa"] = loaded.material.youngs_modulus_pa / 1e3 * modulus_factor
+    n = len(TRUTH_POINTS_KPA)
+    grid = [(i, j, k) for i in range(n) for j in range(n) for k in range(n)]
+    tasks = [RayTask(raw, tuple(1e3 * TRUTH_POINTS_KPA[m] for m in index), (0.0, 0.5, 1.0)) for index in grid]
+    traces = run_sweep(tasks, scheduler=scheduler, progress=progress)
+    chambers, gland = np.zeros((n, n, n, N_CHAMBERS)), np.zeros((n, n, n))
+    for index, trace in zip(grid, traces, strict=True):
+        if len(trace.load_factors) < 3:
+            raise PlantError(f"the truth model does not solve at {index} kPa: {trace.stopped}")
+        chambers[index] = 1e6 * trace.chamber_m3[-1]
+        gland[index] = 1e6 * trace.gland_m3[-1]
+    description = (f"{scene} with E x {modulus_factor:g} = {material['youngs_modulus_kpa']:.4g} kPa "
+                   f"({loaded.material.model})")
+    return TruthTable(TRUTH_POINTS_KPA, chambers, gland, description)
+
+
+def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParameters:
+    """Put a truth table into a plant file's [chambers] (replacing one that is there), checked before writing."""
+    path = Path(path) if path is not None else DEFAULT_PLANT_PATH
+    text = _read_plant_text(path)
+    text = re.sub(r"^# Truth source: .*\n(?:.*\n)*?truth_gland_volume_ml = \[[^\]]*\]\n", "", text, flags=re.MULTILINE)
+    n = len(table.points_kpa)
+    rows = ",\n".join(f"  {_toml_list(table.chamber_volume_ml[index])}" for index in np.ndindex(n, n, n))
+    block = (f"# Truth source: {table.description}.\n"
+             f"# The simulated board's plant interpolates these chamber volumes over the three pressures (grid step\n"
+             f"# truth_step_kpa, rows i, j, k in C order) instead of V0 + C p above, so it does not share the\n"
+             f"# controller's model. Regenerate: python -m phantom.hil.plant --truth-from-scene SCENE\n"
+             f"truth_step_kpa = {table.points_kpa[1] - table.points_kpa[0]:g}\n"
+             f"truth_chamber_volume_ml = [\n{rows},\n]\n"
+             f"truth_gland_volume_ml = {_toml_list(table.gland_volume_ml.ravel())}\n")
+    text, count = re.subn(r"^(tubing_volume_ml = \[[^\]\n]*\]\n)", lambda m: m.group(1) + block, text,
+                          flags=re.MULTILINE)
+    if count != 1:
+        raise PlantError(f"{path}: expected one tubing_volume_ml line in [chambers] to put the truth after, found "
+                         f"{count}; start from a copy of hil/plant.toml")
+    plant = _plant_from_text(text, path)
+    path.write_text(text)
+    return plant
+
+
+def trilinear(table: np.ndarray, points_kpa, pressures_kpa) -> np.ndarray:
+    """The table (n, n, n, ...) at pressures (kPa, one per chamber), trilinear inside, the edge cell's linear
+    extension outside (as plant.c does)."""
+    points = np.asarray(points_kpa, dtype=float)
+    cells, weights = [], []
+    for pressure in pressures_kpa:
+        cell = int(np.clip(np.searchsorted(points, pressure, side="right") - 1, 0, len(points) - 2))
+        cells.append(cell)
+        weights.append((pressure - points[cell]) / (points[cell + 1] - points[cell]))
+    value = 0.0
+    for corner in np.ndindex(2, 2, 2):
+        weight = np.prod([w if c else 1.0 - w for c, w in zip(corner, weights, strict=True)])
+        value = value + weight * table[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]
+    return np.asarray(value)
+
+
 def main(argv: list[str] | None = None) -> int:
     """``python -m phantom.hil.plant --from-scene SCENE [--plant FILE]``: regenerate a plant file's chambers."""
     parser = argparse.ArgumentParser(
         prog="python -m phantom.hil.plant",
         description="Write the FEM's chamber volumes and compliance (at rest) into a plant parameter file.",
     )
-    parser.add_argument("--from-scene", required=True, help="scene TOML (or 'builtin') whose FEM gives the values")
+    parser.add_argument("--from-scene", help="scene TOML (or 'builtin') whose FEM gives the values")
+    parser.add_argument("--truth-from-scene",
+                        help="scene whose model, with its modulus times --truth-modulus-factor, is the plant's "
+                             "truth (a table of chamber volumes over the three pressures; Dask, cached)")
+    parser.add_argument("--truth-modulus-factor", type=float, default=TRUTH_MODULUS_FACTOR,
+                        help=f"the truth's modulus over the scene's (default {TRUTH_MODULUS_FACTOR})")
+    parser.add_argument("--scheduler", help="--truth-from-scene: a running Dask scheduler (default: local)")
     parser.add_argument("--plant", default=str(DEFAULT_PLANT_PATH), help="plant file (default hil/plant.toml)")
     parser.add_argument("--mesh-size-mm", type=float, help="mesh size of the built-in mesh (default: the model's)")
     args = parser.parse_args(argv)
+    if not args.from_scene and not args.truth_from_scene:
+        parser.error("give --from-scene, --truth-from-scene or both")
+    if args.truth_from_scene:
+        from phantom.model.sweep import stderr_progress
+
+        try:
+            table = truth_table_from_scene(args.truth_from_scene, args.truth_modulus_factor, args.scheduler,
+                                           stderr_progress("truth table"))
+            write_truth(table, args.plant)
+        except PhantomError as error:
+            print(f"phantom.hil.plant: error: {error}", file=sys.stderr)
+            return 2
+        print(f"wrote the truth table into {args.plant}: {table.description}")
+        if not args.from_scene:
+            return 0
     try:
         print(f"phantom.hil.plant: FEM of {args.from_scene} (meshing first if not cached)", file=sys.stderr)
         chambers = chambers_from_scene(args.from_scene, args.mesh_size_mm)

@@ -226,8 +226,13 @@ class SimulatedBoard:
         mode: "floating", "pullup", "low", "high" or "pwm"), reset_s (when the core last started from its reset
         vector), control_since_s (when the control tick first ran after that, None before),
         floating_before_control_s (how long a blower pin floated in between) and driven_before_control
-        (whether a blower pin was driven high or by PWM in between)."""
-        return self._command("state")
+        (whether a blower pin was driven high or by PWM in between); and gland_volume_ml, the truth model's
+        gland volume at these pressures, when the plant has a truth table."""
+        state = self._command("state")
+        gland_volume_ml = self.plant.truth_gland_volume_ml(state["pressures_pa"])
+        if gland_volume_ml is not None:
+            state["gland_volume_ml"] = gland_volume_ml
+        return state
 
     def cycle_stats(self, reset: bool = False) -> dict:
         """CPU cost of the firmware, counted exactly in simavr cycles since start (or the last reset).

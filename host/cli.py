@@ -23,6 +23,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.model.cli",
     "phantom.model.inverse_cli",
     "phantom.model.scan_cli",
+    "phantom.model.calibrate_cli",
     "phantom.hil.cli",
     "phantom.host.commands",
 )

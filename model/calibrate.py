@@ -1,43 +1,58 @@
-"""Calibration of the material to measured gland volumes, with leave-one-out cross-validation.
+"""Calibration of material and geometry to measured gland volumes, with leave-one-out cross-validation.
 
-The model scales exactly with Young's modulus ``E`` (the fixation springs are a multiple of it), so the gland
-volume at pressures ``p`` and modulus ``E`` is the one at ``p E_0 / E`` and the scene's modulus ``E_0``:
+Parameters: Young's modulus E and a grid of others (``NAME=v1,v2,...``): material parameters (``gent_jm``) and
+geometry parameters of the built-in prostate (``base_chamber_scale``, ``lobe_chamber_scale``, any key of
+:class:`phantom.model.geometry.ProstateGeometry`).
 
-    g(p; E) = g(t p; E_0),   t = E_0 / E
+E is a load factor. For every law the model has, at fixed Poisson ratio (the fixation springs are a multiple of
+E too), the state at pressures p and modulus E is the one at ``t p`` and the scene's modulus E0, ``t = E0 / E``.
+So each measured pressure ray is traced once per grid point over ``t`` (:mod:`phantom.model.sweep`: Dask tasks,
+cached on disk), and the volume of every ray is then known at every (grid point, t). The fit is
 
-For each measured pressure combination ``p_j`` the response along its ray, ``G_j(t) = g(t p_j; E_0)``, is
-computed once by continuation (warm-started full solves on a grid of ``t``, up to where the predicted growth
-overshoots the measured one) and interpolated (monotone cubic).
-The fit and every leave-one-out refit are then one-dimensional least-squares problems over ``t`` on those
-curves, with relative residuals ``(G_j(t) - m_j) / m_j`` (the error measure reported):
+    minimise  sum_j ((G_j(theta, t) - m_j) / m_j)^2   over theta in the grid's box and t > 0,
 
-    t* = argmin_t  sum_j ((G_j(t) - m_j) / m_j)^2,    E = E_0 / t*
+with G interpolated: monotone cubic in t along each trace, multilinear in theta between grid points (a search
+over every grid point and t, then a bounded refinement). Leave-one-out refits everything (theta and E) without
+each point and predicts it from the same traces: it solves nothing more.
 
-The errors reported are the mean of ``|m_j - predicted_j| / m_j`` in percent, over the fit (all points) and
-leave-one-out (each point predicted by the fit to the others, E refitted without it). Both material
-formulations are fitted (co-rotational, and small-strain linear whose displacement is exactly proportional to
-``t``); the one with the lower leave-one-out error is kept, and the scene written with it.
+Physical validity is a constraint, not a hope: only measurements at pressures within PRESSURE_LIMIT_PA are
+used, and a (theta, t) is admissible only where, on every fitted ray, no element is inverted (det F > 0), the
+principal stretches stay inside the law's stated range (:data:`LAW_STRETCH_RANGE`) and, for the Gent law,
+``I1 - 3`` stays below GENT_LIMIT_FRACTION of ``Jm``. The fit is then checked by full solves at the fitted
+parameters (a new mesh for a new geometry): the fit errors reported are those solves', and a fit whose solves
+break a constraint is refused with the reason.
 """
 
 from __future__ import annotations
 
+import copy
 import csv
-import sys
-from dataclasses import dataclass, field
+import dataclasses
+import itertools
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from phantom import PhantomError
 
-#: A ray's continuation stops once its gland growth exceeds this multiple of the measured growth.
-OVERSHOOT = 1.6
-#: Continuation steps per linear-estimate load factor (the rest-compliance fit's t).
-STEPS_PER_LINEAR_LOAD_FACTOR = 40
-#: The search for t stops at this multiple of the linear estimate.
+#: Measurements above this gauge pressure (Pa) are outside what the blowers and the model are trusted for.
+PRESSURE_LIMIT_PA = 3000.0
+#: A ray's trace stops once its gland growth exceeds this multiple of the measured growth.
+OVERSHOOT = 1.8
+#: Load-factor steps per rest-compliance estimate of t, and the largest t traced, in those estimates.
+STEPS_PER_LINEAR_LOAD_FACTOR = 4
 MAX_LINEAR_MULTIPLE = 4.0
-#: Formulations fitted; the one with the lowest leave-one-out error is kept.
-FORMULATIONS = ("corotational", "linear")
+#: Points of the fine load-factor grid the traces are interpolated onto.
+FINE_LOAD_FACTOR_POINTS = 300
+#: Principal stretches inside which each law is stated to hold: 10 % strain for the small-strain laws; the
+#: Neo-Hookean law follows silicone rubber to about twice its length; the Gent law's limit is its Jm.
+LAW_STRETCH_RANGE = {"linear": (0.9, 1.1), "corotational": (0.9, 1.1), "neo_hookean": (0.5, 2.0),
+                     "gent": (0.0, float("inf"))}
+#: The Gent law's energy diverges at I1 - 3 = Jm; an admissible state keeps this margin from it.
+GENT_LIMIT_FRACTION = 0.95
+#: Parameters that are material keys (everything else named in a grid is a [geometry] key).
+MATERIAL_PARAMETERS = ("gent_jm", "poisson_ratio")
 
 
 class CalibrationError(PhantomError):
@@ -118,229 +133,483 @@ def relative_abs_errors_pct(predicted_m3: np.ndarray, measured_m3: np.ndarray) -
     return np.abs(np.asarray(measured_m3) - np.asarray(predicted_m3)) / np.asarray(measured_m3) * 100
 
 
+# --------------------------------------------------------------------- the parameter grid
+@dataclass(frozen=True)
+class Grid:
+    """Values of each swept parameter (ascending); the calibration's box is their range."""
+
+    names: tuple[str, ...]
+    values: tuple[np.ndarray, ...]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(len(v) for v in self.values)
+
+    def points(self) -> list[dict]:
+        """Every grid point as {name: value}, in C order of ``shape``."""
+        return [dict(zip(self.names, combination, strict=True))
+                for combination in itertools.product(*(v.tolist() for v in self.values))]
+
+
+def parse_grid(items: list[str]) -> Grid:
+    """``["gent_jm=3,6,12", "lobe_chamber_scale=1,1.1,1.2"]`` as a Grid; CalibrationError on a bad item."""
+    from phantom.model.geometry import ProstateGeometry
+
+    known = set(MATERIAL_PARAMETERS) | {f.name for f in dataclasses.fields(ProstateGeometry)
+                                        if not isinstance(f.default, tuple)}
+    names, values = [], []
+    for item in items:
+        name, _, text = item.partition("=")
+        name = name.strip()
+        if name not in known:
+            raise CalibrationError(f"--grid {item!r}: unknown parameter {name!r}; use one of "
+                                   f"{', '.join(sorted(known))}")
+        if name in names:
+            raise CalibrationError(f"--grid names {name} twice")
+        try:
+            numbers = np.array([float(value) for value in text.split(",")])
+        except ValueError:
+            raise CalibrationError(f"--grid {item!r}: expected NAME=v1,v2,... with numbers") from None
+        if not np.all(np.isfinite(numbers)) or np.any(np.diff(numbers) <= 0):
+            raise CalibrationError(f"--grid {item!r}: values must be finite and strictly increasing")
+        names.append(name)
+        values.append(numbers)
+    return Grid(tuple(names), tuple(values))
+
+
+def scene_with(raw: dict, values: dict) -> dict:
+    """A copy of a scene's TOML dict with parameters set: material keys in [material], others in [geometry]."""
+    document = copy.deepcopy(raw)
+    for name, value in values.items():
+        table = "material" if name in MATERIAL_PARAMETERS else "geometry"
+        document.setdefault(table, {})[name] = float(value)
+    return document
+
+
+# --------------------------------------------------------------------- validity
+def violations(material_model: str, gent_jm: float | None, min_det: np.ndarray, min_stretch: np.ndarray,
+               max_stretch: np.ndarray, max_i1_minus_3: np.ndarray) -> np.ndarray:
+    """Boolean array: where a state breaks a validity constraint (NaN, i.e. not solved, counts as broken)."""
+    low, high = LAW_STRETCH_RANGE[material_model]
+    with np.errstate(invalid="ignore"):
+        broken = ~(min_det > 0) | ~(min_stretch >= low) | ~(max_stretch <= high)
+        if material_model == "gent":
+            broken |= ~(max_i1_minus_3 < GENT_LIMIT_FRACTION * gent_jm)
+    return broken
+
+
+def violation_reason(material_model: str, gent_jm: float | None, where: str, min_det: float, min_stretch: float,
+                     max_stretch: float, max_i1_minus_3: float) -> str | None:
+    """The first broken constraint of one state, in words, or None."""
+    low, high = LAW_STRETCH_RANGE[material_model]
+    if not min_det > 0:
+        return f"{where}: an element is inverted (det F = {min_det:.3g})"
+    if not low <= min_stretch or not max_stretch <= high:
+        return (f"{where}: principal stretches {min_stretch:.3g}-{max_stretch:.3g} leave the {material_model} "
+                f"law's range {low:g}-{high:g}")
+    if material_model == "gent" and not max_i1_minus_3 < GENT_LIMIT_FRACTION * gent_jm:
+        return (f"{where}: I1 - 3 = {max_i1_minus_3:.3g} reaches {GENT_LIMIT_FRACTION:g} Jm "
+                f"(Jm = {gent_jm:.3g}), where the Gent law locks")
+    return None
+
+
+# --------------------------------------------------------------------- traced responses
 @dataclass
-class RayResponses:
-    """Gland volume (m^3) along each measurement's pressure ray, ``G_j(t) = g(t p_j)``, at the scene's modulus.
+class Responses:
+    """The traces of every (grid point, ray) on a fine load-factor grid, NaN where not traced.
 
-    ``load_factors`` is the grid of ``t`` solved; ``volumes_m3`` has shape (rays, len(load_factors)), NaN where
-    not solved; ``ray_limits`` the largest ``t`` solved on each ray, ``max_load_factor`` their minimum.
+    gland_m3 : (*grid.shape, n_fine, n_rays); admissible : same shape, bool (validity of that state);
+    and the validity measures themselves, for reporting.
     """
 
+    grid: Grid
     load_factors: np.ndarray
-    volumes_m3: np.ndarray
-    max_load_factor: float
-    ray_limits: np.ndarray
-    interpolants: list = field(default_factory=list)
+    gland_m3: np.ndarray
+    admissible: np.ndarray
+    measures: dict
+    gent_jm: np.ndarray  # (*grid.shape,) the Jm at each grid point (NaN for other laws)
+    material_model: str = "gent"
 
-    def __post_init__(self):
-        from scipy.interpolate import PchipInterpolator
+    @property
+    def varying(self) -> list[int]:
+        """Axes of the grid with more than one value (the others are fixed)."""
+        return [axis for axis, values in enumerate(self.grid.values) if len(values) > 1]
 
-        self.interpolants = []
-        for volumes in self.volumes_m3:
-            valid = np.isfinite(volumes)
-            if valid.sum() < 2 or np.ptp(volumes[valid]) == 0:
-                constant = float(volumes[valid][0])
-                self.interpolants.append(lambda t, constant=constant: np.full(np.shape(t), constant))
-            else:
-                self.interpolants.append(PchipInterpolator(self.load_factors[valid], volumes[valid],
-                                                           extrapolate=False))
+    def interpolate(self, name: str, theta: np.ndarray, load_factor: float) -> np.ndarray:
+        """Per-ray value of ``name`` ("gland_m3", "admissible" as 0/1, or a measure) at parameters ``theta``:
+        multilinear over the varying grid axes and t, NaN outside the grid or where a corner that carries
+        weight is NaN (a corner of zero weight does not count: the value on a cell's face is the face's)."""
+        values = {"gland_m3": self.gland_m3, "admissible": self.admissible}.get(name)
+        values = self.measures[name] if values is None else values
+        axes = [self.grid.values[axis] if axis in self.varying else None for axis in range(len(self.grid.names))]
+        axes.append(self.load_factors)
+        point = [*theta, load_factor]
+        cells, fractions = [], []
+        for axis, coordinate in zip(axes, point, strict=True):
+            if axis is None:
+                cells.append(0)
+                fractions.append(0.0)
+                continue
+            if not axis[0] <= coordinate <= axis[-1]:
+                return np.full(values.shape[-1], np.nan)
+            cell = int(np.clip(np.searchsorted(axis, coordinate, side="right") - 1, 0, len(axis) - 2))
+            cells.append(cell)
+            fractions.append((coordinate - axis[cell]) / (axis[cell + 1] - axis[cell]))
+        result = np.zeros(values.shape[-1])
+        for corner in np.ndindex(*(2,) * len(cells)):
+            weight = float(np.prod([f if c else 1.0 - f for c, f in zip(corner, fractions, strict=True)]))
+            if weight == 0.0:
+                continue
+            result = result + weight * values[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]
+        return result
 
-    def predict(self, load_factor: float, rays=None) -> np.ndarray:
-        """Gland volumes (m^3) of the chosen rays at one load factor ``t = E_0 / E``."""
-        rays = range(len(self.interpolants)) if rays is None else rays
-        return np.array([float(self.interpolants[ray](load_factor)) for ray in rays])
+
+def _fine(trace, load_factors: np.ndarray, values: np.ndarray, monotone: bool) -> np.ndarray:
+    """A trace's values on the fine grid: monotone cubic (volumes) or linear (measures), NaN beyond it."""
+    from scipy.interpolate import PchipInterpolator
+
+    out = np.full(len(load_factors), np.nan)
+    inside = load_factors <= trace.load_factors[-1] + 1e-12
+    if len(trace.load_factors) < 2:
+        out[inside] = values[0]
+        return out
+    if monotone:
+        out[inside] = PchipInterpolator(trace.load_factors, values)(load_factors[inside])
+    else:
+        out[inside] = np.interp(load_factors[inside], trace.load_factors, values)
+    return out
 
 
-def ray_responses(model, pressures_pa: np.ndarray, measured_m3: np.ndarray, load_factor_step: float,
-                  max_load_factor: float, formulation: str = "corotational", overshoot: float | None = None,
-                  progress=None) -> RayResponses:
-    """The gland volume along each ray ``t p_j``, on the grid ``t = 0, step, 2 step, ... max_load_factor``.
+def assemble_responses(grid: Grid, traces: list, feasible: list[bool], material_model: str, gent_jms: list,
+                       n_rays: int, max_load_factor: float) -> Responses:
+    """Put the traces of ``grid.points()`` x rays (row-major, None for infeasible points) on the fine grid."""
+    load_factors = np.linspace(0.0, max_load_factor, FINE_LOAD_FACTOR_POINTS)
+    shape = (*grid.shape, FINE_LOAD_FACTOR_POINTS, n_rays)
+    gland = np.full(shape, np.nan)
+    names = ("min_det", "min_stretch", "max_stretch", "max_i1_minus_3")
+    measures = {name: np.full(shape, np.nan) for name in names}
+    for flat, index in enumerate(np.ndindex(*grid.shape)):
+        if not feasible[flat]:
+            continue
+        for ray in range(n_rays):
+            trace = traces[flat * n_rays + ray]
+            gland[index][:, ray] = _fine(trace, load_factors, trace.gland_m3, True)
+            for name in names:
+                measures[name][index][:, ray] = _fine(trace, load_factors, getattr(trace, name), False)
+    jm = np.array([np.nan if value is None else value for value in gent_jms]).reshape(grid.shape)
+    jm_full = np.broadcast_to(jm.reshape(*grid.shape, 1, 1), shape)
+    broken = violations(material_model, jm_full, *(measures[name] for name in names))
+    return Responses(grid, load_factors, gland, ~broken, measures, jm, material_model)
 
-    Co-rotational: continuation, each solve warm-started from the previous one. A ray stops once its gland
-    growth exceeds ``overshoot`` times the measured growth (no fit lies beyond: this keeps the solves away from
-    the limit point, where the response runs away) or at its first failed solve (``SolveError``: the limit
-    point). The usable range of ``t`` is where every ray was solved. Linear: one solve per ray, since the
-    displacement is ``t u(p_j)``; the volume of the displaced surface is then evaluated on the grid.
+
+# --------------------------------------------------------------------- fitting
+@dataclass
+class Fit:
+    """One least-squares fit: parameters (grid names), load factor, and per-ray interpolated volumes (m^3)."""
+
+    theta: np.ndarray
+    load_factor: float
+    predicted_m3: np.ndarray
+    cost: float
+    #: The constraint the unconstrained optimum (on the grid) breaks, when it fits better: the fit sits on it.
+    binding: str | None = None
+
+
+def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
+    """The admissible (theta, t) of least relative squared residual on ``rays``: grid search, then refinement.
+
+    Raises CalibrationError when no traced state fits every ray while keeping to the constraints.
     """
-    from phantom.model import SolveError
-
-    overshoot = OVERSHOOT if overshoot is None else overshoot
-    load_factors = np.arange(0.0, max_load_factor + 0.5 * load_factor_step, load_factor_step)
-    volumes = np.full((len(pressures_pa), len(load_factors)), np.nan)
-    volumes[:, 0] = model.rest_gland_volume_m3
-    ray_limits = np.full(len(pressures_pa), float(load_factors[-1]))
-    steps_per_ray = len(load_factors) - 1
-    for ray, pressures in enumerate(pressures_pa):
-        if progress is not None:
-            progress(ray * steps_per_ray, len(pressures_pa) * steps_per_ray)
-        if not np.any(pressures):
-            volumes[ray, :] = model.rest_gland_volume_m3
-            continue
-        if formulation == "linear":
-            displacement_m = model.solve(pressures, formulation="linear").positions_m - model.nodes_m
-            volumes[ray] = [model.volumes(model.nodes_m + factor * displacement_m)[1] for factor in load_factors]
-            continue
-        wanted_growth_m3 = overshoot * max(measured_m3[ray] - model.rest_gland_volume_m3, 0.0)
-        positions_m = None
-        for column in range(1, len(load_factors)):
-            try:
-                state = model.solve(load_factors[column] * pressures, formulation=formulation,
-                                    initial_positions_m=positions_m)
-            except SolveError:
-                ray_limits[ray] = float(load_factors[column - 1])
-                break
-            positions_m = state.positions_m
-            volumes[ray, column] = state.gland_volume_m3
-            if progress is not None:
-                progress(ray * steps_per_ray + column, len(pressures_pa) * steps_per_ray)
-            if state.gland_volume_m3 - model.rest_gland_volume_m3 > wanted_growth_m3:
-                ray_limits[ray] = float(load_factors[column])
-                break
-    if progress is not None:
-        progress(len(pressures_pa) * steps_per_ray, len(pressures_pa) * steps_per_ray)
-    reached = float(ray_limits.min())
-    if reached <= 0:
-        raise CalibrationError("the model fails at the smallest load factor of the calibration: the scene's "
-                               "modulus is far too soft for these pressures; raise youngs_modulus_kpa")
-    return RayResponses(load_factors, volumes, reached, ray_limits)
-
-
-def fit_load_factor(responses: RayResponses, measured_m3: np.ndarray, rays) -> float:
-    """The ``t`` in (0, max_load_factor] minimising the relative squared residuals of ``rays``."""
-    from scipy.optimize import minimize_scalar
+    from scipy.optimize import minimize
 
     rays = list(rays)
     measured = measured_m3[rays]
+    residual = (responses.gland_m3[..., rays] - measured) / measured
+    with np.errstate(invalid="ignore"):
+        cost = np.sum(residual**2, axis=-1)
+    usable = np.all(responses.admissible[..., rays], axis=-1) & np.isfinite(cost)
+    if not usable.any():
+        raise CalibrationError(_no_admissible_state(responses, rays))
+    best = np.unravel_index(np.argmin(np.where(usable, cost, np.inf)), cost.shape)
+    theta0 = np.array([responses.grid.values[axis][best[axis]] for axis in range(len(best) - 1)])
+    t0 = float(responses.load_factors[best[-1]])
+    low = np.array([values[0] for values in responses.grid.values] + [responses.load_factors[1]])
+    high = np.array([values[-1] for values in responses.grid.values] + [responses.load_factors[-1]])
+    span = np.where(high > low, high - low, 1.0)
 
-    def cost(load_factor: float) -> float:
-        residual = (responses.predict(load_factor, rays) - measured) / measured
-        return float(residual @ residual) if np.all(np.isfinite(residual)) else np.inf
+    def objective(scaled: np.ndarray) -> float:
+        point = low + np.clip(scaled, 0, 1) * span
+        theta, load_factor = point[:-1], float(point[-1])
+        volumes = responses.interpolate("gland_m3", theta, load_factor)[rays]
+        if not _admissible_here(responses, theta, load_factor, rays):
+            return np.inf
+        value = float(np.sum(((volumes - measured) / measured) ** 2))
+        return value if np.isfinite(value) else np.inf
 
-    grid = np.linspace(0.0, responses.max_load_factor, 400)[1:]
-    costs = np.array([cost(value) for value in grid])
-    best = int(np.argmin(costs))
-    low, high = grid[max(best - 1, 0)], grid[min(best + 1, len(grid) - 1)]
-    refined = minimize_scalar(cost, bounds=(low, high), method="bounded", options={"xatol": 1e-10})
-    return float(refined.x) if refined.fun <= costs[best] else float(grid[best])
-
-
-@dataclass
-class FormulationFit:
-    """Young's modulus (Pa) fitted for one formulation, with its fit and leave-one-out errors (%)."""
-
-    formulation: str
-    youngs_modulus_pa: float
-    fit_mean_abs_pct_error: float
-    loo_mean_abs_pct_error: float
-    fit_predicted_m3: np.ndarray
-    loo_predicted_m3: np.ndarray
-    loo_youngs_modulus_pa: np.ndarray
-    at_search_limit: bool
-    ray_limit_youngs_modulus_pa: np.ndarray
-
-    def as_json(self) -> dict:
-        """kPa, ml, %."""
-        return {
-            "youngs_modulus_kpa": self.youngs_modulus_pa / 1e3,
-            "fit_mean_abs_pct_error": self.fit_mean_abs_pct_error,
-            "loo_mean_abs_pct_error": self.loo_mean_abs_pct_error,
-            "fit_predicted_ml": (self.fit_predicted_m3 * 1e6).tolist(),
-            "loo_predicted_ml": (self.loo_predicted_m3 * 1e6).tolist(),
-            "loo_youngs_modulus_kpa": (self.loo_youngs_modulus_pa / 1e3).tolist(),
-            "fit_at_search_limit": self.at_search_limit,
-            "softest_solved_kpa_per_ray": (self.ray_limit_youngs_modulus_pa / 1e3).tolist(),
-        }
+    start = (np.append(theta0, t0) - low) / span
+    refined = minimize(objective, start, method="Powell", bounds=[(0, 1)] * len(start),
+                       options={"xtol": 1e-4, "ftol": 1e-10, "maxfev": 3000})
+    scaled = refined.x if np.isfinite(refined.fun) and refined.fun <= objective(start) else start
+    point = low + np.clip(scaled, 0, 1) * span
+    theta, load_factor = point[:-1], float(point[-1])
+    predicted = responses.interpolate("gland_m3", theta, load_factor)
+    return Fit(theta, load_factor, predicted, float(objective(scaled)), _binding(responses, cost, usable, rays))
 
 
-def fit_formulation(model, measurements: Measurements, youngs_modulus_pa: float, formulation: str,
-                    linear_load_factor: float, steps_per_linear_load_factor: int | None = None,
-                    progress=None) -> FormulationFit:
-    """Fit and leave-one-out for one formulation, on the ray responses (see the module docstring)."""
-    measured_m3 = measurements.volumes_m3
-    everyone = range(len(measured_m3))
-    steps_per_linear_load_factor = steps_per_linear_load_factor or STEPS_PER_LINEAR_LOAD_FACTOR
-    # The co-rotational response softens, so its best t lies below the linear estimate's, inside the range.
-    responses = ray_responses(model, measurements.pressures_pa, measured_m3,
-                              linear_load_factor / steps_per_linear_load_factor,
-                              MAX_LINEAR_MULTIPLE * linear_load_factor, formulation=formulation, progress=progress)
-    load_factor = fit_load_factor(responses, measured_m3, everyone)
-    fit_predicted = responses.predict(load_factor)
-    loo_predicted, loo_moduli = [], []
-    for left_out in everyone:
-        factor = fit_load_factor(responses, measured_m3, [index for index in everyone if index != left_out])
-        loo_predicted.append(responses.predict(factor, [left_out])[0])
-        loo_moduli.append(youngs_modulus_pa / factor)
-    loo_predicted = np.array(loo_predicted)
-    return FormulationFit(
-        formulation, youngs_modulus_pa / load_factor,
-        float(relative_abs_errors_pct(fit_predicted, measured_m3).mean()),
-        float(relative_abs_errors_pct(loo_predicted, measured_m3).mean()),
-        fit_predicted, loo_predicted, np.array(loo_moduli),
-        bool(load_factor >= 0.99 * responses.max_load_factor),
-        youngs_modulus_pa / np.maximum(responses.ray_limits, 1e-300))
+def _binding(responses: Responses, cost: np.ndarray, usable: np.ndarray, rays: list[int]) -> str | None:
+    """The constraint the fit sits on: broken at a traced state that fits better than every admissible one, or
+    reached (the trace ends or turns inadmissible) at the next load factor above the best admissible state
+    while the cost still falls there."""
+    finite = np.where(np.isfinite(cost), cost, np.inf)
+    best_usable = np.unravel_index(np.argmin(np.where(usable, cost, np.inf)), cost.shape)
+    best = np.unravel_index(np.argmin(finite), cost.shape)
+    if usable[best] or not finite[best] < cost[best_usable]:
+        following = (*best_usable[:-1], best_usable[-1] + 1)
+        if following[-1] >= cost.shape[-1] or usable[following]:
+            return None
+        falling = np.nan_to_num(np.diff(cost[best_usable[:-1]])[best_usable[-1] - 1], nan=-1.0) < 0
+        if not falling:
+            return None
+        best = following
+    jm = responses.gent_jm[best[:-1]]
+    where_t = f"E0/E = {responses.load_factors[best[-1]]:.3g}"
+    for ray in rays:
+        values = [float(responses.measures[name][best][ray]) for name in
+                  ("min_det", "min_stretch", "max_stretch", "max_i1_minus_3")]
+        if not np.all(np.isfinite(values)):
+            return (f"ray {ray} ends at {where_t}, where its trace stopped (the law's limit or a failed solve): "
+                    f"the fit stops below it")
+        reason = violation_reason(responses.material_model, None if np.isnan(jm) else float(jm),
+                                  f"ray {ray} at {where_t}", *values)
+        if reason:
+            return reason
+    return None
+
+
+def _admissible_here(responses: Responses, theta: np.ndarray, load_factor: float, rays: list[int]) -> bool:
+    """(theta, t) lies in a cell whose traced states are all admissible on ``rays``, and the interpolated
+    validity measures there keep every constraint."""
+    if not np.all(responses.interpolate("admissible", theta, load_factor)[rays] > 1 - 1e-9):
+        return False
+    names = ("min_det", "min_stretch", "max_stretch", "max_i1_minus_3")
+    values = [responses.interpolate(name, theta, load_factor)[rays] for name in names]
+    jm = _gent_jm_at(responses, theta)
+    return not np.any(violations(responses.material_model, jm, *values))
+
+
+def _gent_jm_at(responses: Responses, theta: np.ndarray) -> float | None:
+    if "gent_jm" in responses.grid.names:
+        return float(theta[responses.grid.names.index("gent_jm")])
+    jm = responses.gent_jm.ravel()[0]
+    return None if np.isnan(jm) else float(jm)
+
+
+def _no_admissible_state(responses: Responses, rays: list[int]) -> str:
+    """Why no grid state serves: the constraint broken most often at the states that fit best."""
+    traced = np.all(np.isfinite(responses.gland_m3[..., rays]), axis=-1)
+    if not traced.any():
+        return ("no grid point traced every ray: the solves failed (see the sweep) or the load-factor range is "
+                "too short; widen the grid or change the scene's modulus")
+    return (f"refused: no state on the grid fits the measurements within the constraints (law "
+            f"{responses.material_model}: det F > 0, stretches in {LAW_STRETCH_RANGE[responses.material_model]}"
+            + (f", I1 - 3 < {GENT_LIMIT_FRACTION:g} Jm" if responses.material_model == "gent" else "")
+            + "): every state that reaches the measured volumes breaks one; try a stiffening law (gent) or "
+              "larger chambers")
 
 
 @dataclass
 class CalibrationResult:
-    """The chosen fit (lowest leave-one-out error among the formulations tried) and every candidate."""
+    """The calibration: fitted parameters and modulus, checked by full solves, and leave-one-out."""
 
-    best: FormulationFit
-    candidates: dict
-    linear_compliance_youngs_modulus_pa: float
-
-    @property
-    def youngs_modulus_pa(self) -> float:
-        return self.best.youngs_modulus_pa
+    material_model: str
+    grid: Grid
+    parameters: dict
+    youngs_modulus_pa: float
+    measured_m3: np.ndarray
+    pressures_pa: np.ndarray
+    fit_predicted_m3: np.ndarray          # full solves at the fitted parameters
+    fit_interpolated_m3: np.ndarray       # the traces' interpolation at the same parameters
+    loo_predicted_m3: np.ndarray
+    loo_parameters: list[dict]
+    loo_youngs_modulus_pa: np.ndarray
+    validity: dict
+    tasks: int
+    traces_solved: int
+    binding: str | None = None
 
     @property
     def fit_mean_abs_pct_error(self) -> float:
-        return self.best.fit_mean_abs_pct_error
+        return float(relative_abs_errors_pct(self.fit_predicted_m3, self.measured_m3).mean())
 
     @property
     def loo_mean_abs_pct_error(self) -> float:
-        return self.best.loo_mean_abs_pct_error
+        return float(relative_abs_errors_pct(self.loo_predicted_m3, self.measured_m3).mean())
 
-    def as_json(self, measurements: Measurements) -> dict:
-        """The report's JSON (kPa, ml, %): the chosen fit's figures at the top level, then every candidate."""
-        report = self.best.as_json()
-        report["material_model"] = self.best.formulation
-        report["measured_ml"] = (measurements.volumes_m3 * 1e6).tolist()
-        report["candidates"] = {name: fit.as_json() for name, fit in self.candidates.items()}
-        report["rest_compliance_youngs_modulus_kpa"] = self.linear_compliance_youngs_modulus_pa / 1e3
-        return report
+    def uncertainty(self) -> dict:
+        """Jackknife standard error of each parameter and of E (kPa) from the leave-one-out fits."""
+        n = len(self.loo_parameters)
+        spread = {}
+        for name in self.parameters:
+            values = np.array([fit[name] for fit in self.loo_parameters])
+            spread[name] = float(np.sqrt((n - 1) / n * np.sum((values - values.mean()) ** 2)))
+        moduli = self.loo_youngs_modulus_pa / 1e3
+        spread["youngs_modulus_kpa"] = float(np.sqrt((n - 1) / n * np.sum((moduli - moduli.mean()) ** 2)))
+        return spread
+
+    def as_json(self) -> dict:
+        """kPa, ml, %."""
+        return {
+            "material_model": self.material_model,
+            "youngs_modulus_kpa": self.youngs_modulus_pa / 1e3,
+            "parameters": self.parameters,
+            "fit_mean_abs_pct_error": self.fit_mean_abs_pct_error,
+            "loo_mean_abs_pct_error": self.loo_mean_abs_pct_error,
+            "pressures_kpa": (self.pressures_pa / 1e3).tolist(),
+            "measured_ml": (self.measured_m3 * 1e6).tolist(),
+            "fit_predicted_ml": (self.fit_predicted_m3 * 1e6).tolist(),
+            "fit_interpolated_ml": (self.fit_interpolated_m3 * 1e6).tolist(),
+            "fit_abs_pct_error": relative_abs_errors_pct(self.fit_predicted_m3, self.measured_m3).tolist(),
+            "loo_predicted_ml": (self.loo_predicted_m3 * 1e6).tolist(),
+            "loo_abs_pct_error": relative_abs_errors_pct(self.loo_predicted_m3, self.measured_m3).tolist(),
+            "loo_parameters": self.loo_parameters,
+            "loo_youngs_modulus_kpa": (self.loo_youngs_modulus_pa / 1e3).tolist(),
+            "loo_jackknife_std": self.uncertainty(),
+            "validity": self.validity,
+            "grid": {name: values.tolist() for name, values in zip(self.grid.names, self.grid.values, strict=True)},
+            "traces": self.tasks,
+            "traces_solved_now": self.traces_solved,
+            "binding_constraint": self.binding,
+        }
 
 
-def fit_linear_compliance(rest_gland_m3: float, gland_m3_per_pa: np.ndarray, pressures_pa: np.ndarray,
-                          measured_m3: np.ndarray, rays) -> float:
-    """Closed-form relative least squares of ``g = g_0 + t h . p`` for the load factor ``t`` (rest compliance)."""
-    rays = list(rays)
-    slope = (pressures_pa[rays] @ gland_m3_per_pa) / measured_m3[rays]
-    residual_at_zero = (measured_m3[rays] - rest_gland_m3) / measured_m3[rays]
+def linear_load_factor(model, measurements: Measurements) -> float:
+    """Relative least squares of ``g = g_0 + t h . p`` for t, with the rest gland compliance h (first estimate)."""
+    slope = (measurements.pressures_pa @ np.asarray(model.compliance().gland_m3_per_pa)) / measurements.volumes_m3
+    residual = (measurements.volumes_m3 - model.rest_gland_volume_m3) / measurements.volumes_m3
     denominator = float(slope @ slope)
-    return float(slope @ residual_at_zero / denominator) if denominator > 0 else 1.0
-
-
-def calibrate(model, measurements: Measurements, youngs_modulus_pa: float, formulations=FORMULATIONS,
-              steps_per_linear_load_factor: int | None = None, progress=None) -> CalibrationResult:
-    """Fit Young's modulus to ``measurements`` for each formulation and keep the one with the lowest
-    leave-one-out error; ``youngs_modulus_pa`` is the modulus ``model`` was built with (Pa)."""
-    youngs_modulus_pa = float(youngs_modulus_pa)
-    gland_m3_per_pa = np.asarray(model.compliance().gland_m3_per_pa, dtype=float)
-    linear_load_factor = fit_linear_compliance(model.rest_gland_volume_m3, gland_m3_per_pa,
-                                               measurements.pressures_pa, measurements.volumes_m3,
-                                               range(len(measurements.volumes_m3)))
-    if linear_load_factor <= 0:
+    factor = float(slope @ residual / denominator) if denominator > 0 else 0.0
+    if factor <= 0:
         raise CalibrationError("the measurements do not grow with pressure: no positive modulus fits them")
-    candidates = {}
-    for formulation in formulations:
-        report = None
-        if progress is not None:
-            def report(done, total, formulation=formulation):
-                progress(done, total, formulation)
-        candidates[formulation] = fit_formulation(model, measurements, youngs_modulus_pa, formulation,
-                                                  linear_load_factor, steps_per_linear_load_factor, report)
-    best = min(candidates.values(), key=lambda fit: fit.loo_mean_abs_pct_error)
-    return CalibrationResult(best, candidates, youngs_modulus_pa / linear_load_factor)
+    return factor
+
+
+def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | None = None,
+              n_workers: int | None = None, progress=None, max_load_factor: float | None = None,
+              load_factor_step: float | None = None) -> CalibrationResult:
+    """Fit E and the grid's parameters to ``measurements`` (see the module docstring); refuse an invalid fit.
+
+    ``scene`` gives everything else (material law, Poisson ratio, geometry, mesh size); its modulus is E0.
+    """
+    from phantom.model import PhantomModel
+    from phantom.model.errors import MeshError
+    from phantom.model.geometry import check_walls, geometry_from_table
+    from phantom.model.scene import scene_from_dict
+    from phantom.model.sweep import RayTask, run_sweep
+
+    over = measurements.pressures_pa.max()
+    if over > PRESSURE_LIMIT_PA:
+        raise CalibrationError(f"{measurements.path}: a measurement at {over / 1e3:g} kPa is above the "
+                               f"{PRESSURE_LIMIT_PA / 1e3:g} kPa the phantom is driven to: remove it")
+    law = scene.material.model
+    if "gent_jm" in grid.names and law != "gent":
+        raise CalibrationError(f"--grid gent_jm needs a scene with [material] model = 'gent', not {law!r}")
+    raw = scene.raw
+    if scene.path is not None and not scene.mesh.startswith("builtin:"):
+        raw = copy.deepcopy(raw)
+        raw["phantom"]["mesh"] = scene.mesh  # absolute, so a worker finds it
+    geometry_names = [name for name in grid.names if name not in MATERIAL_PARAMETERS]
+    if geometry_names and scene.geometry is None:
+        raise CalibrationError(f"--grid {', '.join(geometry_names)}: geometry parameters need the built-in mesh")
+    base_model = PhantomModel.from_scene(scene)
+    t_linear = linear_load_factor(base_model, measurements)
+    max_load_factor = max_load_factor or MAX_LINEAR_MULTIPLE * t_linear
+    step = load_factor_step or t_linear / STEPS_PER_LINEAR_LOAD_FACTOR
+    load_factors = tuple(np.arange(0.0, max_load_factor + 0.5 * step, step).tolist())
+    measured = measurements.volumes_m3
+    stop_growth = OVERSHOOT * np.maximum(measured - base_model.rest_gland_volume_m3, 0.2 * measured.max() / 10)
+    points = grid.points()
+    feasible, tasks, gent_jms = [], [], []
+    for values in points:
+        document = scene_with(raw, values)
+        parsed = scene_from_dict(document, scene.path)
+        gent_jms.append(parsed.material.gent_jm)
+        ok = True
+        if parsed.geometry is not None:
+            try:
+                check_walls(geometry_from_table(document.get("geometry", {}), "grid"))
+            except MeshError:
+                ok = False
+        feasible.append(ok)
+        if ok:
+            law_limit = np.inf if law != "gent" else GENT_LIMIT_FRACTION * parsed.material.gent_jm
+            tasks += [RayTask(document, tuple(p.tolist()), load_factors, float(stop_growth[j]),
+                              stop_i1_minus_3=law_limit) for j, p in enumerate(measurements.pressures_pa)]
+    if not any(feasible):
+        raise CalibrationError("every grid point breaks the wall-thickness limit: shrink the geometry grid")
+    from phantom.model.sweep import cached_trace
+
+    solved_now = sum(cached_trace(task) is None for task in tasks)
+    results = iter(run_sweep(tasks, scheduler=scheduler, n_workers=n_workers, progress=progress))
+    n_rays = len(measured)
+    traces = []
+    for ok in feasible:
+        traces += [next(results) for _ in range(n_rays)] if ok else [None] * n_rays
+    responses = assemble_responses(grid, traces, feasible, law, gent_jms, n_rays, float(load_factors[-1]))
+    everyone = list(range(n_rays))
+    full = fit(responses, measured, everyone)
+    loo_predicted, loo_fits = [], []
+    for left_out in everyone:
+        refit = fit(responses, measured, [j for j in everyone if j != left_out])
+        value = refit.predicted_m3[left_out]
+        if not np.isfinite(value):  # beyond the traced range: the trace's end bounds it from below
+            value = np.nanmax(responses.gland_m3[..., left_out])
+        loo_predicted.append(value)
+        loo_fits.append(refit)
+    e0 = scene.material.youngs_modulus_pa
+    parameters = {name: float(full.theta[k]) for k, name in enumerate(grid.names)}
+    verified, validity = _verify(raw, parameters, full.load_factor, measurements, law, scheduler, n_workers,
+                                 progress)
+    return CalibrationResult(
+        law, grid, parameters, e0 / full.load_factor, measured, measurements.pressures_pa, verified,
+        full.predicted_m3, np.array(loo_predicted),
+        [{name: float(f.theta[k]) for k, name in enumerate(grid.names)} for f in loo_fits],
+        np.array([e0 / f.load_factor for f in loo_fits]), validity, len(tasks), solved_now, full.binding)
+
+
+def _verify(raw, parameters, load_factor, measurements, law, scheduler, n_workers, progress):
+    """Full solves of every measurement at the fitted parameters (continuation in four steps to ``t``);
+    returns the gland volumes (m^3) and the validity figures, or raises CalibrationError with the reason."""
+    from phantom.model.sweep import RayTask, run_sweep
+
+    document = scene_with(raw, parameters)
+    jm = document.get("material", {}).get("gent_jm")
+    load_factors = tuple((load_factor * np.array([0.25, 0.5, 0.75, 1.0])).tolist())
+    tasks = [RayTask(document, tuple(p.tolist()), load_factors) for p in measurements.pressures_pa]
+    traces = run_sweep(tasks, scheduler=scheduler, n_workers=n_workers, progress=progress)
+    volumes, reasons = [], []
+    for trace, pressures in zip(traces, measurements.pressures_pa, strict=True):
+        where = f"at ({', '.join(f'{p / 1e3:g}' for p in pressures)}) kPa"
+        if len(trace.load_factors) < len(load_factors) and np.any(pressures):
+            raise CalibrationError(f"refused: the fitted calibration does not solve {where}: {trace.stopped}")
+        volumes.append(trace.gland_m3[-1])
+        reason = violation_reason(law, jm, where, trace.min_det[-1], trace.min_stretch[-1], trace.max_stretch[-1],
+                                  trace.max_i1_minus_3[-1])
+        if reason:
+            reasons.append(reason)
+    if reasons:
+        raise CalibrationError(f"refused: the fitted calibration breaks a constraint {reasons[0]}")
+    validity = {
+        "min_det": float(min(t.min_det.min() for t in traces)),
+        "min_stretch": float(min(t.min_stretch.min() for t in traces)),
+        "max_stretch": float(max(t.max_stretch.max() for t in traces)),
+        "max_i1_minus_3": float(max(t.max_i1_minus_3.max() for t in traces)),
+        "stretch_range": list(LAW_STRETCH_RANGE[law]),
+        "max_pressure_kpa": float(measurements.pressures_pa.max() / 1e3),
+    }
+    if jm is not None:
+        validity["max_i1_minus_3_over_jm"] = validity["max_i1_minus_3"] / jm
+    return np.array(volumes), validity
+
 
 
 # --------------------------------------------------------------------- writing the calibrated scene
@@ -383,36 +652,28 @@ def dump_toml(document: dict, header_comment: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_calibrated_scene(scene, youngs_modulus_pa: float, output_path, header_comment: str = "",
-                           material_model: str | None = None) -> Path:
-    """Write ``scene`` with ``[material] youngs_modulus_kpa`` (and ``model``, if given) replaced, its mesh path
-    made relative to the new file; returns the path written."""
-    import copy
+
+def write_calibrated_scene(scene, result: CalibrationResult, output_path, header_comment: str = "") -> Path:
+    """Write ``scene`` with the calibration's material (law, E, parameters) and geometry, its mesh path made
+    relative to the new file; returns the path written."""
     import os
 
     output_path = Path(output_path)
-    document = copy.deepcopy(scene.raw)
+    document = scene_with(scene.raw, result.parameters)
     phantom_table = document.setdefault("phantom", {})
     mesh = phantom_table.get("mesh", "builtin:prostate")
     if not str(mesh).startswith("builtin"):
         source = (Path(scene.path).parent / mesh).resolve() if scene.path else Path(mesh).resolve()
         phantom_table["mesh"] = os.path.relpath(source, output_path.resolve().parent)
     material = document.setdefault("material", {})
-    material["youngs_modulus_kpa"] = round(youngs_modulus_pa / 1e3, 4)
-    if material_model is not None:
-        material["model"] = material_model
-    output_path.parent.mkdir(parents=True, exist_ok=True)
-    output_path.write_text(dump_toml(document, header_comment))
+    material["model"] = result.material_model
+    material["youngs_modulus_kpa"] = round(result.youngs_modulus_pa / 1e3, 5)
+    for name in result.parameters:
+        table = "material" if name in MATERIAL_PARAMETERS else "geometry"
+        document[table][name] = round(result.parameters[name], 5)
+    try:
+        output_path.parent.mkdir(parents=True, exist_ok=True)
+        output_path.write_text(dump_toml(document, header_comment))
+    except OSError as error:
+        raise CalibrationError(f"cannot write {output_path}: {error.strerror}") from None
     return output_path
-
-
-def stderr_progress(label: str):
-    """A progress callback that redraws ``label (stage) [#####.....] done/total`` on stderr."""
-    def report(done: int, total: int, stage: str = "") -> None:
-        width = 30
-        filled = int(width * done / max(total, 1))
-        sys.stderr.write(f"\r{label} ({stage}) [{'#' * filled}{'.' * (width - filled)}] {done}/{total}  ")
-        if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-    return report

@@ -25,8 +25,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     forward.add_argument("--scene", required=True, help="a scene TOML path, or 'builtin'")
     forward.add_argument("--pressures-kpa", required=True,
                          help="comma-separated gauge pressures in kPa, one per chamber, e.g. 1,1,1")
-    forward.add_argument("--formulation", choices=("corotational", "linear"), default=None,
-                         help="override the scene's material model")
+    forward.add_argument("--formulation", choices=("corotational", "linear", "neo_hookean", "gent"), default=None,
+                         help="override the scene's material model (gent needs the scene's gent_jm)")
     forward.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     forward.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     forward.set_defaults(run=run_forward)
@@ -47,7 +47,7 @@ def run_mesh(args: argparse.Namespace) -> int:
 
     scene = load_scene(args.scene)
     if scene.mesh == "builtin:prostate":
-        mesh = builtin_prostate(args.size_mm)
+        mesh = builtin_prostate(args.size_mm, scene.geometry)
     elif args.size_mm is not None:
         raise MeshError(f"--size-mm applies to the built-in mesh only; {scene.mesh} is read as it is")
     else:

@@ -28,7 +28,7 @@ from phantom.model import kernels
 from phantom.model.errors import MeshError, SolveError
 from phantom.model.linsolve import CholeskyFactor, Factorization
 from phantom.model.mesh import Surfaces, TetMesh, enclosed_volume_m3, prepare_surfaces, volume_gradient_m2
-from phantom.model.scene import Material, Scene
+from phantom.model.scene import HYPERELASTIC_MODELS, MATERIAL_MODELS, Material, Scene
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -55,7 +55,7 @@ KRYLOV_ITERATIONS = 25
 TANGENT_REFRESH_RATIO = 0.25
 #: Bump when the solver's numbers change, so cached compliances are recomputed.
 SOLVER_VERSION = 2
-FORMULATIONS = ("corotational", "linear")
+FORMULATIONS = MATERIAL_MODELS
 
 
 @dataclass
@@ -264,6 +264,12 @@ class PhantomModel:
         if not 0 < material.youngs_modulus_pa < np.inf or not -1.0 < material.poisson_ratio < 0.5:
             raise SolveError(f"material out of range: E = {material.youngs_modulus_pa} Pa (> 0), "
                              f"nu = {material.poisson_ratio} (in (-1, 0.5))")
+        if material.model not in FORMULATIONS:
+            raise SolveError(f"unknown material model {material.model!r}: use one of {', '.join(FORMULATIONS)}")
+        if material.gent_jm is not None and not 0 < material.gent_jm < np.inf:
+            raise SolveError(f"material out of range: gent_jm = {material.gent_jm} (a positive number)")
+        if material.model == "gent" and material.gent_jm is None:
+            raise SolveError("the Gent material needs gent_jm, the locking value of I1 - 3 (e.g. 20)")
         self.mesh = mesh
         self.source = source
         self.scene = scene
@@ -324,7 +330,7 @@ class PhantomModel:
             if scene.units != "mm":
                 raise MeshError(f"the built-in mesh is in millimetres: set [phantom] units = \"mm\" (not "
                                 f"{scene.units!r})")
-            mesh, source = builtin_prostate(mesh_size_mm), "builtin:prostate"
+            mesh, source = builtin_prostate(mesh_size_mm, scene.geometry), "builtin:prostate"
         else:
             if mesh_size_mm is not None:
                 raise MeshError(f"mesh_size_mm applies to the built-in mesh only; {scene.mesh} is read as it is")
@@ -333,12 +339,17 @@ class PhantomModel:
         return cls(mesh, surfaces, scene.chambers, scene.material, source, scene=scene)
 
     def with_material(self, youngs_modulus_pa: float | None = None, poisson_ratio: float | None = None,
-                      model: str | None = None) -> "PhantomModel":
-        """The same mesh, fixation and scene settings with another material (modulus in Pa)."""
+                      model: str | None = None, gent_jm: float | None = None) -> "PhantomModel":
+        """The same mesh, fixation and scene settings with another material (modulus in Pa; ``gent_jm`` for
+        model "gent", kept from the current material when not given)."""
+        model = model or self.material.model
+        if gent_jm is None and model == "gent":
+            gent_jm = self.material.gent_jm
         material = Material(
-            model or self.material.model,
+            model,
             self.material.youngs_modulus_pa if youngs_modulus_pa is None else float(youngs_modulus_pa),
             self.material.poisson_ratio if poisson_ratio is None else float(poisson_ratio),
+            None if model != "gent" or gent_jm is None else float(gent_jm),
         )
         surfaces = Surfaces(self.chamber_triangles, self.outer_triangles, self.fixed_triangles)
         scene = None if self.scene is None else dataclasses.replace(self.scene, material=material)
@@ -358,15 +369,22 @@ class PhantomModel:
 
     # --- assembly --------------------------------------------------------------------------------------------
 
-    def _elastic(self, positions_m: np.ndarray, corotational: bool, matrix: int, constraints: _Constraints,
+    def _elastic(self, positions_m: np.ndarray, formulation: str, matrix: int, constraints: _Constraints,
                  pressures: np.ndarray | None = None):
-        """Elastic + spring forces (3n,), energy (J), smallest det F, and, when ``matrix``, the CSR data of the
-        tangent: 1 = ``R K R^T`` (positive definite), 2 = the exact Hessian, including the pressure's
-        follower-load stiffness when ``pressures`` (Pa) are given."""
+        """Elastic + spring forces (3n,), energy (J, +inf outside a hyperelastic law's domain), smallest det F,
+        and, when ``matrix``, the CSR data of the tangent: 1 = ``R K R^T`` (co-rotational, positive definite),
+        2 = the exact Hessian (co-rotational or hyperelastic), including the pressure's follower-load stiffness
+        when ``pressures`` (Pa) are given; the linear model's is its stiffness either way."""
         data = np.zeros(len(self._pattern.indices)) if matrix else np.zeros(1)
-        forces, energy_j, smallest_det = kernels.internal_forces(
-            positions_m, self.nodes_m, self.tets, self._dm_inverse, self._element_stiffness, corotational,
-            matrix, self._pattern.scatter, data)
+        if formulation in HYPERELASTIC_MODELS:
+            forces, energy_j, smallest_det = kernels.hyperelastic_forces(
+                positions_m, self.tets, self._dm_inverse, self._element_volumes_m3, self.material.lame_mu_pa,
+                self.material.lame_lambda_pa, self._inverse_jm(formulation), 2 if matrix else 0,
+                self._pattern.scatter, data)
+        else:
+            forces, energy_j, smallest_det = kernels.internal_forces(
+                positions_m, self.nodes_m, self.tets, self._dm_inverse, self._element_stiffness,
+                formulation == "corotational", matrix, self._pattern.scatter, data)
         stretch = positions_m[self._fixed_nodes] - self.nodes_m[self._fixed_nodes]
         forces[self._fixed_nodes] += self._spring_n_per_m[:, None] * stretch
         energy_j += 0.5 * float(np.sum(self._spring_n_per_m[:, None] * stretch**2))
@@ -384,6 +402,14 @@ class PhantomModel:
                 data[constraints.entries] = 0.0
                 data[self._pattern.diagonal[constraints.dofs]] = scale
         return forces, energy_j, smallest_det, data
+
+    def _inverse_jm(self, formulation: str) -> float:
+        """1 / Jm of the Gent law (0 for Neo-Hookean)."""
+        if formulation != "gent":
+            return 0.0
+        if self.material.gent_jm is None:
+            raise SolveError("the Gent formulation needs the material's gent_jm (scene [material] gent_jm)")
+        return 1.0 / self.material.gent_jm
 
     def _factorize(self, data: np.ndarray, positive_definite: bool = True) -> Factorization:
         """Factorise a matrix of the model's pattern: ``linear_solver`` (None: the measured default) when it is
@@ -424,7 +450,7 @@ class PhantomModel:
                                           stored["permutation"], scale)
             except (OSError, ValueError, KeyError):
                 path.unlink(missing_ok=True)
-        _, _, _, data = self._elastic(self.nodes_m, False, 1, constraints)
+        _, _, _, data = self._elastic(self.nodes_m, "linear", 1, constraints)
         factorization = self._factorize(data)
         if factorization.method == "cholmod":
             handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
@@ -439,17 +465,16 @@ class PhantomModel:
                          pressures_pa=None, constraints: _Constraints | None = None) -> "scipy.sparse.csr_matrix":
         """The assembled tangent (N/m, CSR; held dofs replaced by scaled identity rows) at ``positions_m``.
 
-        "linear": the small-strain stiffness; "corotational": the exact Hessian of the total energy, with the
-        follower-load stiffness of ``pressures_pa`` when given.
+        "linear": the small-strain stiffness; "corotational", "neo_hookean", "gent": the exact Hessian of the total
+        energy, with the follower-load stiffness of ``pressures_pa`` when given.
         """
         return self._csr(self._tangent_data(positions_m, formulation, pressures_pa, constraints))
 
     def _tangent_data(self, positions_m=None, formulation="linear", pressures_pa=None, constraints=None):
         """The CSR data of :meth:`stiffness_matrix` (same arguments), in the model's pattern."""
         positions_m = self.nodes_m if positions_m is None else positions_m
-        corotational = formulation == "corotational"
         pressures = None if pressures_pa is None else self._check_pressures(pressures_pa)
-        _, _, _, data = self._elastic(positions_m, corotational, 2 if corotational else 1,
+        _, _, _, data = self._elastic(positions_m, formulation, 1 if formulation == "linear" else 2,
                                       constraints or self._rest_constraints, pressures)
         return data
 
@@ -478,7 +503,8 @@ class PhantomModel:
         pressures = self._check_pressures(pressures_pa)
         formulation = formulation or self.formulation
         if formulation not in FORMULATIONS:
-            raise SolveError(f"unknown formulation {formulation!r}: use 'corotational' or 'linear'")
+            raise SolveError(f"unknown formulation {formulation!r}: use one of {', '.join(FORMULATIONS)}")
+        self._inverse_jm(formulation)
         start_m = self.nodes_m.copy() if initial_positions_m is None else np.array(initial_positions_m, float)
         if start_m.shape != self.nodes_m.shape or not np.all(np.isfinite(start_m)):
             raise SolveError(f"initial_positions_m must be a finite array of shape {self.nodes_m.shape}")
@@ -556,9 +582,9 @@ class PhantomModel:
         Converged when the residual is below ``tolerance`` times the load (or times the starting residual when
         ``initial_imbalance``, for a start that is not in equilibrium at zero load, e.g. rotated).
         """
-        corotational = formulation == "corotational"
+        nonlinear = formulation != "linear"
         positions_m = start_positions_m
-        arguments = (pressures, formulation, reference_m, corotational, constraints)
+        arguments = (pressures, formulation, reference_m, constraints)
         residual, energy, _ = self._residual(positions_m, *arguments)
         # Relative to the load, or to the starting imbalance when that is larger (a start far from rest).
         load_scale = max(_norm(_pressure_load(pressures, self.volume_gradients(reference_m))[constraints.free_mask]),
@@ -568,12 +594,12 @@ class PhantomModel:
         # preconditioned with the rest stiffness (factorised once per model: no factorisation per solve);
         # "exact" factorises the Hessian here; "positive" factorises R K R^T (positive definite: a descent
         # direction whenever the Hessian is not). The linear model's rest stiffness is its exact tangent.
-        if not corotational:
+        if not nonlinear:
             kind, factorization = "rest", self.rest_factorization(constraints)
         elif constraints.key == self._rest_constraints.key:
             kind, factorization = "krylov", self.rest_factorization(constraints)
         else:
-            kind, factorization = "exact", self._tangent(positions_m, constraints, pressures, exact=True)
+            kind, factorization = "exact", self._tangent(positions_m, formulation, constraints, pressures, exact=True)
         previous_norm = best_norm = np.inf
         best_iteration = 0
         for iteration in range(1, MAX_ITERATIONS_PER_STEP + 1):
@@ -591,7 +617,7 @@ class PhantomModel:
                              self._rounding_floor_n(positions_m) / load_scale)
             previous_norm = residual_norm
             if kind == "krylov":
-                hessian = self._tangent_data(positions_m, "corotational", pressures, constraints)
+                hessian = self._tangent_data(positions_m, formulation, pressures, constraints)
                 multiply = functools.partial(kernels.csr_multiply, self._pattern.indptr, self._pattern.indices, hessian)
                 direction = _preconditioned_cg(multiply, -residual, factorization, KRYLOV_TOLERANCE, KRYLOV_ITERATIONS)
             else:
@@ -603,22 +629,23 @@ class PhantomModel:
             if slope < 0.0:
                 accepted = self._line_search(positions_m, direction, residual_norm, energy, slope, arguments)
             if accepted is None:
-                if not corotational or kind == "positive":
+                if not nonlinear or kind == "positive":
                     worst = self._worst_element(positions_m + direction)
                     reason = "solve inverted elements" if worst >= 0 else "line search found no descent"
                     return _Step(positions_m, False, iteration, reason, worst)
                 kind = "exact" if kind in ("rest", "krylov") else "positive"
-                factorization = self._tangent(positions_m, constraints, pressures, exact=kind == "exact")
+                factorization = self._tangent(positions_m, formulation, constraints, pressures, exact=kind == "exact")
                 continue
             positions_m, residual, energy = accepted
-            if kind != "krylov" and corotational and _norm(residual) > TANGENT_REFRESH_RATIO * residual_norm:
-                kind, factorization = "exact", self._tangent(positions_m, constraints, pressures, exact=True)
+            if kind != "krylov" and nonlinear and _norm(residual) > TANGENT_REFRESH_RATIO * residual_norm:
+                kind, factorization = "exact", self._tangent(positions_m, formulation, constraints, pressures,
+                                                             exact=True)
         return _Step(positions_m, False, MAX_ITERATIONS_PER_STEP, "solve did not converge in "
                      f"{MAX_ITERATIONS_PER_STEP} iterations", self._worst_element(positions_m))
 
     def _rest_diagonal_n_per_m(self) -> np.ndarray:
         """Diagonal of the small-strain stiffness with the springs (N/m) at the free dofs."""
-        _, _, _, data = self._elastic(self.nodes_m, False, 1, self._rest_constraints)
+        _, _, _, data = self._elastic(self.nodes_m, "linear", 1, self._rest_constraints)
         return data[self._pattern.diagonal][self._rest_constraints.free_mask]
 
     def _rounding_floor_n(self, positions_m: np.ndarray) -> float:
@@ -636,19 +663,22 @@ class PhantomModel:
     def _length_scale_m(self) -> float:
         return float(np.cbrt(self.rest_gland_volume_m3))
 
-    def _tangent(self, positions_m, constraints, pressures, exact: bool) -> Factorization:
-        """Factorised co-rotational tangent: the exact Hessian, or R K R^T (``exact`` False)."""
-        _, _, _, data = self._elastic(positions_m, True, 2 if exact else 1, constraints, pressures)
+    def _tangent(self, positions_m, formulation, constraints, pressures, exact: bool):
+        """Factorised tangent: the exact Hessian, or (``exact`` False) a positive definite stand-in that still
+        gives a descent direction: R K R^T (co-rotational) or the small-strain stiffness (hyperelastic)."""
+        if not exact and formulation in HYPERELASTIC_MODELS:
+            return self.rest_factorization(constraints)
+        _, _, _, data = self._elastic(positions_m, formulation, 2 if exact else 1, constraints, pressures)
         try:
             return self._factorize(data, positive_definite=not exact)
         except (RuntimeError, ArithmeticError):  # an exactly singular Hessian (at a limit point)
             if not exact:
                 raise
-            return self._tangent(positions_m, constraints, pressures, exact=False)
+            return self._tangent(positions_m, formulation, constraints, pressures, exact=False)
 
-    def _residual(self, positions_m, pressures, formulation, reference_m, corotational, constraints):
+    def _residual(self, positions_m, pressures, formulation, reference_m, constraints):
         """Out-of-balance force (3n,), total energy (J) and the smallest det F (inf for the linear model)."""
-        forces, elastic_energy, smallest_det, _ = self._elastic(positions_m, corotational, 0, constraints)
+        forces, elastic_energy, smallest_det, _ = self._elastic(positions_m, formulation, 0, constraints)
         load, load_energy = self._load_and_energy(positions_m, pressures, formulation, reference_m)
         residual = forces - load
         residual[constraints.dofs] = 0.0
@@ -662,8 +692,9 @@ class PhantomModel:
         for _ in range(12):
             trial = positions_m + step * direction
             residual, trial_energy, smallest_det = self._residual(trial, *arguments)
-            if smallest_det > 0 and (trial_energy <= energy + 1e-4 * step * slope + rounding
-                                     or _norm(residual) < residual_norm):
+            admissible = smallest_det > 0 and np.isfinite(trial_energy)
+            if admissible and (trial_energy <= energy + 1e-4 * step * slope + rounding
+                               or _norm(residual) < residual_norm):
                 return trial, residual, trial_energy
             step *= 0.5
         return None
@@ -681,8 +712,8 @@ class PhantomModel:
         for array in (self.nodes_m, self.tets, *self.chamber_triangles, self.outer_triangles, self._fixed_nodes,
                       self._spring_n_per_m, self._rest_constraints.dofs):
             digest.update(np.ascontiguousarray(array).tobytes())
-        digest.update(repr((self.material.youngs_modulus_pa, self.material.poisson_ratio, FIXED_PENALTY,
-                            SOLVER_VERSION)).encode())
+        digest.update(repr((self.material.youngs_modulus_pa, self.material.poisson_ratio, self.material.gent_jm,
+                            FIXED_PENALTY, SOLVER_VERSION)).encode())
         digest.update(extra)
         return digest.hexdigest()[:32]
 

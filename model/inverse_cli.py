@@ -1,4 +1,4 @@
-"""Subcommands of ``phantom``: ``inverse`` (pressures for a wanted volume) and ``calibrate`` (fit the material).
+"""Subcommand of ``phantom``: ``inverse`` (pressures for a wanted volume); ``calibrate`` is in calibrate_cli.
 
 Only argparse is imported at module load; handlers import what they need when they run.
 """
@@ -7,7 +7,7 @@ import argparse
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``inverse`` and ``calibrate`` to the ``phantom`` parser."""
+    """Add ``inverse`` to the ``phantom`` parser."""
     inverse = subparsers.add_parser(
         "inverse", help="chamber pressures that give a wanted volume (offline)",
         description="Solve the inverse problem: the chamber pressures (kPa) that give a wanted gland volume, "
@@ -31,18 +31,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     inverse.add_argument("--size-mm", type=float, help="element size of the built-in mesh (mm)")
     inverse.add_argument("--json", action="store_true", help="print one JSON object")
     inverse.set_defaults(run=run_inverse)
-
-    calibrate = subparsers.add_parser(
-        "calibrate", help="fit Young's modulus to measured volumes (offline)",
-        description="Fit the scene's Young's modulus to measured gland volumes by least squares, report the fit "
-                    "and leave-one-out errors, and write a scene with the fitted value.")
-    calibrate.add_argument("--scene", default="builtin", help="scene TOML path or 'builtin' (default)")
-    calibrate.add_argument("--measurements", required=True,
-                           help="CSV with columns p0_kpa,p1_kpa,...,measured_ml")
-    calibrate.add_argument("--output", help="scene file to write (default: <scene>_calibrated.toml here)")
-    calibrate.add_argument("--size-mm", type=float, help="element size of the built-in mesh (mm)")
-    calibrate.add_argument("--json", action="store_true", help="print one JSON object")
-    calibrate.set_defaults(run=run_calibrate)
 
 
 def _growth_ratio_by_index(text: str, chamber_names: list[str]) -> dict[int, float]:
@@ -121,39 +109,4 @@ def run_inverse(args) -> int:
         print(f"predicted gland volume: {report['predicted_volume_ml']:.4f} ml\niterations: {result.iterations} "
               f"({report['fidelity']} model), {result.solve_time_s * 1e3:.1f} ms "
               f"(QP {result.qp_solve_time_s * 1e6:.0f} us)")
-    return 0
-
-
-def run_calibrate(args) -> int:
-    """Handler of ``phantom calibrate``."""
-    import json
-    from pathlib import Path
-
-    from phantom.model.calibrate import calibrate, load_measurements, stderr_progress, write_calibrated_scene
-
-    scene, model = _load_model(args)
-    measurements = load_measurements(args.measurements, n_chambers=model.n_chambers)
-    result = calibrate(model, measurements, scene.material.youngs_modulus_pa,
-                       progress=stderr_progress("calibrate: solving along the rays"))
-    stem = Path(scene.path).stem if scene.path else "scene"
-    output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
-    best = result.best
-    comment = (f"Calibrated by `phantom calibrate` on {Path(measurements.path).name} ({len(measurements.volumes_m3)} "
-               f"points): {best.formulation} material, E = {best.youngs_modulus_pa / 1e3:.3f} kPa,\n"
-               f"fit mean |error| {best.fit_mean_abs_pct_error:.2f} %, leave-one-out "
-               f"{best.loo_mean_abs_pct_error:.2f} % (the lowest leave-one-out error of: "
-               + ", ".join(f"{name} {fit.loo_mean_abs_pct_error:.2f} %" for name, fit in result.candidates.items())
-               + f").\nSource scene: {args.scene}; mesh size: {args.size_mm or 'default'} mm.")
-    written = write_calibrated_scene(scene, best.youngs_modulus_pa, output, comment, material_model=best.formulation)
-    report = result.as_json(measurements)
-    report["scene_written"] = str(written)
-    if args.json:
-        print(json.dumps(report))
-    else:
-        for name, fit in result.candidates.items():
-            limit = " (at the search limit: the solver reached its limit point first)" if fit.at_search_limit else ""
-            print(f"{name:>13}: E {fit.youngs_modulus_pa / 1e3:8.3f} kPa, fit mean |error| "
-                  f"{fit.fit_mean_abs_pct_error:6.3f} %, leave-one-out {fit.loo_mean_abs_pct_error:6.3f} %{limit}")
-        print(f"kept {best.formulation}: Young's modulus {best.youngs_modulus_pa / 1e3:.3f} kPa, leave-one-out "
-              f"{best.loo_mean_abs_pct_error:.3f} %\nwrote {written}")
     return 0

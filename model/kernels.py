@@ -15,6 +15,10 @@ ten times faster than a LAPACK call per element). Its gradient is ``f_a = R (K_e
 ``R K_ab R^T`` plus the terms from the rotation's derivative: with ``S = R^T F``, ``dR = R [w]x`` where
 ``w = (tr(S) I - S)^-1 sum_b [G_b]x R^T dx_b`` (``G_b`` the shape-function gradients), which gives the
 block ``R Z_a (tr(S) I - S)^-1 [G_b]x R^T`` with ``Z_a = -[(K u)_a]x + sum_c K_ac [R^T x_c]x``.
+
+The hyperelastic laws (:func:`hyperelastic_forces`): Gent, ``W = -(mu Jm/2) ln(1 - (I1 - 3)/Jm) - mu ln J
++ (lambda/2) (ln J)^2`` per unit rest volume, and its limit Jm -> inf, the compressible Neo-Hookean
+``W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``; energy, forces and the exact tangent in one element pass.
 """
 
 import hashlib
@@ -37,6 +41,9 @@ EXPORTS = {
     "internal_forces": (("f8", "f8", "i8", "f8", "f8", None, None, "i8", "out"),
                         "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[:, :, ::1], "
                         "f8[:, :, ::1], b1, i8, i8[:, :, ::1], f8[::1])"),
+    "hyperelastic_forces": (("f8", "i8", "f8", "f8", None, None, None, None, "i8", "out"),
+                            "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], i8[:, ::1], f8[:, :, ::1], f8[::1], f8, f8, "
+                            "f8, i8, i8[:, :, ::1], f8[::1])"),
     "deformation_determinants": (("f8", "i8", "f8"), "f8[::1](f8[:, ::1], i8[:, ::1], f8[:, :, ::1])"),
     "add_pressure_stiffness": (("f8", "i8", None, "i8", "i4", "out"),
                                "void(f8[:, ::1], i8[:, ::1], f8, i8[::1], i4[::1], f8[::1])"),
@@ -444,6 +451,101 @@ def internal_forces(positions_m, rest_positions_m, tets, dm_inverse, stiffness, 
                 for i in range(12):
                     for j in range(12):
                         matrix_data[scatter[e, i, j]] += stiffness[e, i, j]
+    return forces, energy_j, smallest_det
+
+
+@kernel
+def hyperelastic_forces(positions_m, tets, dm_inverse, volumes_m3, lame_mu_pa, lame_lambda_pa, inverse_jm,
+                        want_matrix, scatter, matrix_data):
+    """Nodal forces (N, (n, 3)), energy (J) and the smallest ``det F`` of the Gent law (Neo-Hookean when
+    ``inverse_jm`` = 1 / Jm is 0); optionally its exact tangent added into ``matrix_data`` at ``scatter``.
+
+    ``W = -(mu Jm / 2) ln(1 - (I1 - 3) / Jm) - mu ln J + (lambda / 2) (ln J)^2`` per unit rest volume, which
+    tends to ``mu / 2 (I1 - 3) - mu ln J + lambda / 2 (ln J)^2`` as Jm -> inf. With ``g = 1 - (I1 - 3) / Jm``,
+    ``c = lambda ln J - mu`` and ``H = F^-T``: ``P = (mu / g) F + c H``, node force ``f_a = V P G_a`` (``G_a``
+    the shape-function gradients), and the 3 x 3 tangent block ``K_ab = V [(mu / g) (G_a . G_b) I
+    + (2 mu / (Jm g^2)) (F G_a)(F G_b)^T + lambda (H G_a)(H G_b)^T - c (H G_b)(H G_a)^T]``. An element with
+    ``J <= 0`` or ``g <= 0`` is outside the law's domain: the energy is then +inf (a line search rejects the
+    step) and the element adds no force or stiffness.
+    """
+    n_tets = tets.shape[0]
+    forces = np.zeros(positions_m.shape)
+    energy_j = 0.0
+    smallest_det = np.inf
+    ds = np.empty((3, 3))
+    f = np.empty((3, 3))
+    h = np.empty((3, 3))
+    gradients = np.empty((4, 3))
+    stretched = np.empty((4, 3))
+    pulled = np.empty((4, 3))
+    block = np.empty((12, 12))
+    for e in range(n_tets):
+        for k in range(3):
+            for axis in range(3):
+                ds[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
+        for i in range(3):
+            for j in range(3):
+                f[i, j] = (ds[i, 0] * dm_inverse[e, 0, j] + ds[i, 1] * dm_inverse[e, 1, j]
+                           + ds[i, 2] * dm_inverse[e, 2, j])
+        det = _det3(f)
+        if det < smallest_det:
+            smallest_det = det
+        first_invariant = 0.0
+        for i in range(3):
+            for j in range(3):
+                first_invariant += f[i, j] * f[i, j]
+        stiffening = 1.0 - (first_invariant - 3.0) * inverse_jm
+        if not det > 0.0 or not stiffening > 0.0:
+            energy_j = np.inf
+            continue
+        log_det = np.log(det)
+        if inverse_jm > 0.0:
+            deviatoric = -0.5 * lame_mu_pa / inverse_jm * np.log(stiffening)
+        else:
+            deviatoric = 0.5 * lame_mu_pa * (first_invariant - 3.0)
+        volume = volumes_m3[e]
+        energy_j += volume * (deviatoric - lame_mu_pa * log_det + 0.5 * lame_lambda_pa * log_det * log_det)
+        # H = F^-T = cofactor(F) / det F.
+        h[0, 0] = (f[1, 1] * f[2, 2] - f[1, 2] * f[2, 1]) / det
+        h[0, 1] = (f[1, 2] * f[2, 0] - f[1, 0] * f[2, 2]) / det
+        h[0, 2] = (f[1, 0] * f[2, 1] - f[1, 1] * f[2, 0]) / det
+        h[1, 0] = (f[0, 2] * f[2, 1] - f[0, 1] * f[2, 2]) / det
+        h[1, 1] = (f[0, 0] * f[2, 2] - f[0, 2] * f[2, 0]) / det
+        h[1, 2] = (f[0, 1] * f[2, 0] - f[0, 0] * f[2, 1]) / det
+        h[2, 0] = (f[0, 1] * f[1, 2] - f[0, 2] * f[1, 1]) / det
+        h[2, 1] = (f[0, 2] * f[1, 0] - f[0, 0] * f[1, 2]) / det
+        h[2, 2] = (f[0, 0] * f[1, 1] - f[0, 1] * f[1, 0]) / det
+        shear = lame_mu_pa / stiffening
+        coupling = lame_lambda_pa * log_det - lame_mu_pa
+        for axis in range(3):
+            gradients[1, axis] = dm_inverse[e, 0, axis]
+            gradients[2, axis] = dm_inverse[e, 1, axis]
+            gradients[3, axis] = dm_inverse[e, 2, axis]
+            gradients[0, axis] = -(dm_inverse[e, 0, axis] + dm_inverse[e, 1, axis] + dm_inverse[e, 2, axis])
+        for a in range(4):
+            for i in range(3):
+                stretched[a, i] = f[i, 0] * gradients[a, 0] + f[i, 1] * gradients[a, 1] + f[i, 2] * gradients[a, 2]
+                pulled[a, i] = h[i, 0] * gradients[a, 0] + h[i, 1] * gradients[a, 1] + h[i, 2] * gradients[a, 2]
+            node = tets[e, a]
+            for i in range(3):
+                forces[node, i] += volume * (shear * stretched[a, i] + coupling * pulled[a, i])
+        if want_matrix:
+            stiffening_term = 2.0 * lame_mu_pa * inverse_jm / (stiffening * stiffening)
+            for a in range(4):
+                for b in range(4):
+                    dot = (gradients[a, 0] * gradients[b, 0] + gradients[a, 1] * gradients[b, 1]
+                           + gradients[a, 2] * gradients[b, 2])
+                    for i in range(3):
+                        for k in range(3):
+                            value = (stiffening_term * stretched[a, i] * stretched[b, k]
+                                     + lame_lambda_pa * pulled[a, i] * pulled[b, k]
+                                     - coupling * pulled[b, i] * pulled[a, k])
+                            if i == k:
+                                value += shear * dot
+                            block[3 * a + i, 3 * b + k] = volume * value
+            for i in range(12):
+                for j in range(12):
+                    matrix_data[scatter[e, i, j]] += block[i, j]
     return forces, energy_j, smallest_det
 
 

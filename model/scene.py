@@ -5,26 +5,47 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from phantom.model.errors import SceneError
+from phantom.model.geometry import ProstateGeometry, geometry_from_table
 
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
 #: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;
-#: "builtin:calibrated" is the same mesh with the material `phantom calibrate` fitted to the measurements.
+#: "builtin:calibrated" is the same mesh with the material `phantom calibrate` fitted to the measurements;
+#: "builtin:gent" the physically valid calibration (Gent material and chamber geometry, bench/README.md).
 BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
-                  "builtin:calibrated": "prostate_calibrated.toml"}
+                  "builtin:calibrated": "prostate_calibrated.toml", "builtin:gent": "prostate_gent.toml"}
 
 #: Length units a scene may declare for its mesh, and their size in metres.
 LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
 
-MATERIAL_MODELS = ("corotational", "linear")
+MATERIAL_MODELS = ("corotational", "linear", "neo_hookean", "gent")
+#: The hyperelastic laws (finite strain, an energy that grows without bound as an element collapses).
+HYPERELASTIC_MODELS = ("neo_hookean", "gent")
 
 
 @dataclass(frozen=True)
 class Material:
-    """Isotropic elastic material: ``model`` is "corotational" or "linear"; modulus in Pa."""
+    """Isotropic elastic material; modulus in Pa.
+
+    ``model``: "linear" (small strain), "corotational" (small strain in a rotated frame), "neo_hookean"
+    (``W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``) or "gent" (``W = -(mu Jm/2) ln(1 - (I1 - 3)/Jm)
+    - mu ln J + lambda/2 (ln J)^2``, defined for I1 - 3 < Jm: the chains lock as I1 - 3 approaches
+    ``gent_jm``, dimensionless; Jm -> inf is the Neo-Hookean law). mu and lambda are the Lame constants of E and
+    nu, so every model has the same small-strain stiffness.
+    """
 
     model: str
     youngs_modulus_pa: float
     poisson_ratio: float
+    gent_jm: float | None = None
+
+    @property
+    def lame_mu_pa(self) -> float:
+        return self.youngs_modulus_pa / (2.0 * (1.0 + self.poisson_ratio))
+
+    @property
+    def lame_lambda_pa(self) -> float:
+        nu = self.poisson_ratio
+        return self.youngs_modulus_pa * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
 
 @dataclass(frozen=True)
@@ -57,6 +78,9 @@ class Scene:
         The timeline, raw (read by the host).
     raw : dict
         The whole parsed TOML, so that other parts can read their own tables.
+    geometry : ProstateGeometry or None
+        The built-in prostate's chamber sizes and positions and fixation radius (``[geometry]``, defaults
+        when absent); None for a mesh file.
     """
 
     path: Path | None
@@ -68,6 +92,7 @@ class Scene:
     outputs: Outputs
     steps: list[dict] = field(default_factory=list)
     raw: dict = field(default_factory=dict)
+    geometry: ProstateGeometry | None = None
 
     @property
     def length_scale_m(self) -> float:
@@ -117,6 +142,11 @@ def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
         mesh = str(mesh_path.resolve())
     elif mesh != "builtin:prostate":
         raise SceneError(f"{where}: unknown built-in mesh {mesh!r}: the only one is 'builtin:prostate'")
+    geometry = None
+    if mesh == "builtin:prostate":
+        geometry = geometry_from_table(raw.get("geometry", {}), where)
+    elif "geometry" in raw:
+        raise SceneError(f"{where}: [geometry] applies to the built-in prostate only; {mesh} is read as it is")
     units = phantom_table.get("units", "mm")
     if units not in LENGTH_UNITS_M:
         raise SceneError(f"{where}: [phantom] units = {units!r} is not one of {', '.join(LENGTH_UNITS_M)}")
@@ -138,6 +168,7 @@ def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
         outputs=Outputs(**_outputs(raw.get("outputs", {}), where)),
         steps=list(raw.get("steps", [])),
         raw=raw,
+        geometry=geometry,
     )
 
 
@@ -151,14 +182,23 @@ def _table(raw: dict, key: str, where: str) -> dict:
 def _material(table: dict, where: str) -> Material:
     model = table.get("model", "corotational")
     if model not in MATERIAL_MODELS:
-        raise SceneError(f"{where}: [material] model = {model!r}: use 'corotational' or 'linear'")
+        raise SceneError(f"{where}: [material] model = {model!r}: the hyperelastic laws are 'neo_hookean' and "
+                         f"'gent'; for small strains use 'corotational' or 'linear'")
+    gent_jm = table.get("gent_jm")
+    if model == "gent":
+        if isinstance(gent_jm, bool) or not isinstance(gent_jm, int | float) or not 0 < gent_jm < float("inf"):
+            raise SceneError(f"{where}: [material] model = 'gent' needs gent_jm, the locking value of I1 - 3 "
+                             f"(a positive number, e.g. 20 for silicone), got {gent_jm!r}")
+        gent_jm = float(gent_jm)
+    elif gent_jm is not None:
+        raise SceneError(f"{where}: [material] gent_jm applies to model = 'gent' only, not {model!r}")
     youngs_modulus_kpa = table.get("youngs_modulus_kpa", 50.0)
     poisson_ratio = table.get("poisson_ratio", 0.45)
     if not isinstance(youngs_modulus_kpa, int | float) or not youngs_modulus_kpa > 0:
         raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got {youngs_modulus_kpa}")
     if not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
         raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio}")
-    return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio))
+    return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm)
 
 
 def _outputs(table: dict, where: str) -> dict:

@@ -4,9 +4,10 @@ Geometry (the built-in prostate, millimetres, x to the patient's left, y anterio
 chestnut-like body of revolution about z, profile ``r(z) = R sqrt(1 - t^2) (1 + k t)`` with ``t = z / c``,
 widest toward the base (+z), squeezed front-to-back by ``ANTERIOR_POSTERIOR_RATIO``; ``R`` is set so the
 body encloses ``REST_VOLUME_ML``. Three ellipsoidal cavities are cut from it: chamber 0 at the base, chambers 1
-(+x, left lobe) and 2 (-x, right lobe) mirror images about the mid-sagittal plane x = 0; every wall is at
-least 3.5 mm thick. The ``fixed`` patch is the base surface within ``FIXATION_RADIUS_MM`` of the base pole,
-where the three air tubes enter.
+(+x, left lobe) and 2 (-x, right lobe) mirror images about the mid-sagittal plane x = 0. The ``fixed`` patch is
+the base surface within a fixation radius of the base pole, where the three air tubes enter. Chamber sizes and
+positions and the fixation radius are parameters (:class:`phantom.model.geometry.ProstateGeometry`, a scene's
+``[geometry]`` table); the defaults leave every wall at least 3.5 mm thick, and no wall may be under 2 mm.
 """
 
 import math
@@ -18,6 +19,7 @@ import numpy as np
 
 import phantom
 from phantom.model.errors import MeshError
+from phantom.model.geometry import ProstateGeometry, check_walls
 from phantom.model.mesh import TetMesh, boundary_faces, check_tets, surface_components
 
 #: Bump when the generated geometry changes, so cached meshes are regenerated.
@@ -26,15 +28,10 @@ REST_VOLUME_ML = 26.3
 HALF_LENGTH_MM = 20.0
 TAPER = 0.3
 ANTERIOR_POSTERIOR_RATIO = 0.66
-#: Chamber ellipsoids: centre (x, y, z) and semi-axes (a, b, c), millimetres.
-CHAMBER_ELLIPSOIDS_MM = (
-    ((0.0, 0.0, 11.0), (12.5, 8.5, 4.5)),
-    ((8.7, 0.0, -2.5), (5.7, 7.5, 6.5)),
-    ((-8.7, 0.0, -2.5), (5.7, 7.5, 6.5)),
-)
-FIXATION_RADIUS_MM = 6.0
+#: The default chamber ellipsoids: centre (x, y, z) and semi-axes (a, b, c), millimetres.
+CHAMBER_ELLIPSOIDS_MM = ProstateGeometry().ellipsoids_mm()
 #: Default element size of the built-in mesh (mm): about 3k nodes.
-DEFAULT_SIZE_MM = 2.5
+DEFAULT_SIZE_MM = ProstateGeometry.mesh_size_mm
 #: Elements per 2 pi of curvature, so small cavities keep their volume on coarse meshes.
 CURVATURE_ELEMENTS = 16
 
@@ -49,6 +46,26 @@ def _equator_radius_mm() -> float:
     shape_integral = 4.0 / 3.0 + 4.0 * TAPER**2 / 15.0
     volume_mm3 = REST_VOLUME_ML * 1e3
     return math.sqrt(volume_mm3 / (math.pi * HALF_LENGTH_MM * ANTERIOR_POSTERIOR_RATIO * shape_integral))
+
+
+def body_surface_points_mm(spacing_mm: float = 0.5) -> np.ndarray:
+    """Dense samples of the body's outer surface (mm), for measuring walls."""
+    radius_mm = _equator_radius_mm()
+    n_axial = int(2 * HALF_LENGTH_MM / spacing_mm)
+    n_around = int(2 * math.pi * radius_mm * 1.3 / spacing_mm)
+    t = np.linspace(-1.0, 1.0, n_axial)
+    angle = np.linspace(0.0, 2 * math.pi, n_around, endpoint=False)
+    t, angle = np.meshgrid(t, angle, indexing="ij")
+    r = _profile_radius_mm(t, radius_mm)
+    points = np.stack([r * np.cos(angle), ANTERIOR_POSTERIOR_RATIO * r * np.sin(angle), HALF_LENGTH_MM * t], -1)
+    return points.reshape(-1, 3)
+
+
+def inside_body(points_mm: np.ndarray) -> np.ndarray:
+    """Whether each point (mm) lies inside the body."""
+    t = points_mm[:, 2] / HALF_LENGTH_MM
+    radial = np.hypot(points_mm[:, 0], points_mm[:, 1] / ANTERIOR_POSTERIOR_RATIO)
+    return (np.abs(t) < 1.0) & (radial < _profile_radius_mm(t, _equator_radius_mm()))
 
 
 class _Gmsh:
@@ -109,10 +126,17 @@ def _mirror_about_x(nodes_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray,
     return np.vstack([nodes_mm, reflected]), np.vstack([tets, mirror_tets])
 
 
-def generate_prostate(size_mm: float = DEFAULT_SIZE_MM) -> TetMesh:
-    """Mesh the built-in prostate phantom with gmsh (element size ``size_mm``); nodes in metres."""
+def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeometry | None = None) -> TetMesh:
+    """Mesh the built-in prostate phantom with gmsh (element size ``size_mm``); nodes in metres.
+
+    Raises MeshError, before meshing, when a wall of ``geometry`` (default: the shipped one) is thinner than
+    its ``min_wall_mm``.
+    """
     if not 0.3 <= size_mm <= 10.0:
         raise MeshError(f"mesh size {size_mm} mm is out of range: use 0.3 to 10 mm (default {DEFAULT_SIZE_MM})")
+    geometry = geometry or ProstateGeometry()
+    check_walls(geometry)
+    ellipsoids = geometry.ellipsoids_mm()
     equator_radius_mm = _equator_radius_mm()
     with _Gmsh() as gmsh:
         occ = gmsh.model.occ
@@ -124,7 +148,7 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM) -> TetMesh:
         section = occ.addPlaneSurface([occ.addCurveLoop([profile, axis])])
         body = [d for d in occ.revolve([(2, section)], 0, 0, 0, 0, 0, 1, 2 * math.pi) if d[0] == 3]
         occ.dilate(body, 0.0, 0.0, 0.0, 1.0, ANTERIOR_POSTERIOR_RATIO, 1.0)
-        cavities = [_ellipsoid(occ, centre, axes) for centre, axes in CHAMBER_ELLIPSOIDS_MM]
+        cavities = [_ellipsoid(occ, centre, axes) for centre, axes in ellipsoids]
         solid, _ = occ.cut(body, cavities)
         # Mesh the left half and mirror it, so that chambers 1 and 2 are exact mirror images.
         extent_mm = 4.0 * HALF_LENGTH_MM
@@ -141,14 +165,14 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM) -> TetMesh:
     labels = surface_components(faces)
     groups = {}
     on_cavity = np.zeros(len(faces), bool)
-    for index, (centre, axes) in enumerate(CHAMBER_ELLIPSOIDS_MM):
+    for index, (centre, axes) in enumerate(ellipsoids):
         scaled = np.linalg.norm((centroids - np.asarray(centre)) / np.asarray(axes), axis=1)
         component = labels[np.argmin(scaled)]
         groups[f"chamber{index}"] = faces[labels == component]
         on_cavity |= labels == component
     base_pole_mm = np.array([0.0, 0.0, HALF_LENGTH_MM])
     vertex_distance = np.linalg.norm(nodes_mm[faces] - base_pole_mm, axis=2).max(axis=1)
-    groups["fixed"] = faces[~on_cavity & (vertex_distance < FIXATION_RADIUS_MM)]
+    groups["fixed"] = faces[~on_cavity & (vertex_distance < geometry.fixation_radius_mm)]
     return TetMesh(nodes_mm * 1e-3, tets, groups)
 
 
@@ -170,13 +194,16 @@ def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_
     return TetMesh(nodes_mm * 1e-3, tets, {"cavity": faces[cavity], "outer": faces[~cavity]})
 
 
-def builtin_prostate(size_mm: float | None = None) -> TetMesh:
+def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | None = None) -> TetMesh:
     """The built-in prostate mesh, from the on-disk cache (``phantom.cache_dir("meshes")``) or generated.
 
-    The cache key is the geometry version and the element size.
+    The cache key is the geometry version, the parameter set (:attr:`ProstateGeometry.key`) and the element size
+    (``size_mm``, else the geometry's ``mesh_size_mm``).
     """
-    size_mm = DEFAULT_SIZE_MM if size_mm is None else float(size_mm)
-    cache_path = phantom.cache_dir("meshes") / f"prostate-v{PROSTATE_GEOMETRY_VERSION}-h{size_mm:.6g}mm.npz"
+    geometry = geometry or ProstateGeometry()
+    size_mm = geometry.mesh_size_mm if size_mm is None else float(size_mm)
+    name = f"prostate-v{PROSTATE_GEOMETRY_VERSION}-{geometry.key}-h{size_mm:.6g}mm.npz"
+    cache_path = phantom.cache_dir("meshes") / name
     if cache_path.is_file():
         try:
             with np.load(cache_path) as stored:
@@ -185,7 +212,7 @@ def builtin_prostate(size_mm: float | None = None) -> TetMesh:
         except (OSError, ValueError, KeyError):
             cache_path.unlink(missing_ok=True)
     print(f"phantom: meshing the built-in prostate at {size_mm:g} mm (cached afterwards)...", file=sys.stderr)
-    mesh = generate_prostate(size_mm)
+    mesh = generate_prostate(size_mm, geometry)
     arrays = {"nodes_m": mesh.nodes_m, "tets": mesh.tets}
     arrays.update({f"group_{name}": triangles for name, triangles in mesh.surface_groups.items()})
     handle, temporary = tempfile.mkstemp(dir=cache_path.parent, suffix=".npz")

@@ -1,7 +1,8 @@
-"""Calibration: measurement loading, the one-dimensional fit, leave-one-out, and the scene it writes.
+"""Calibration: measurement loading, the constrained fit, leave-one-out, and the scene it writes.
 
-The end-to-end check uses synthetic measurements made by the real model at a known modulus (independent
-solves at E_true), so the right answer is known; the figures on the real measurements are in bench/README.md.
+The end-to-end checks use synthetic measurements made by the real model at known parameters (independent
+solves at E_true on the true geometry), so the right answer is known; the figures on the real measurements are
+in bench/README.md.
 """
 
 import json
@@ -13,16 +14,27 @@ import pytest
 from phantom.model import PhantomModel, load_scene
 from phantom.model.calibrate import (
     CalibrationError,
-    RayResponses,
+    CalibrationResult,
+    Grid,
+    Responses,
     dump_toml,
-    fit_linear_compliance,
-    fit_load_factor,
+    fit,
     load_measurements,
+    parse_grid,
     write_calibrated_scene,
 )
 
+
+@pytest.fixture(scope="module")
+def dask_scheduler():
+    from phantom.model.sweep import local_cluster
+
+    cluster = local_cluster(2)
+    yield cluster.scheduler_address
+    cluster.close()
+
+
 MEASUREMENTS = Path(__file__).resolve().parent.parent / "model" / "data" / "forward_measurements.csv"
-COARSE_MM = 6.0
 
 
 def test_the_papers_table_loads_in_si_units():
@@ -59,70 +71,138 @@ def test_missing_file_and_chamber_count_mismatch(tmp_path):
         load_measurements(path, n_chambers=3)
 
 
-def test_the_linear_compliance_fit_is_ordinary_relative_least_squares():
-    rng = np.random.default_rng(3)
-    pressures_pa = rng.uniform(0, 3000, size=(7, 3))
-    slope = np.array([2e-9, 1.5e-9, 1e-9])
-    measured = 26e-6 + 1.3 * pressures_pa @ slope + rng.normal(scale=2e-8, size=7)
-    rays = [0, 1, 2, 4, 5, 6]
-    factor = fit_linear_compliance(26e-6, slope, pressures_pa, measured, rays)
-    # The same problem through numpy's least squares: minimise |(26e-6 + t h.p - m) / m|.
-    design = (pressures_pa[rays] @ slope / measured[rays])[:, None]
-    expected, *_ = np.linalg.lstsq(design, (measured[rays] - 26e-6) / measured[rays], rcond=None)
-    assert factor == pytest.approx(expected[0], rel=1e-12)
+def _synthetic_responses(admissible_below_t=np.inf):
+    """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t."""
+    grid = Grid(("gent_jm",), (np.array([0.0, 0.5, 1.0, 1.5]),))
+    load_factors = np.linspace(0, 3, 301)
+    theta = grid.values[0][:, None, None]
+    t = load_factors[None, :, None]
+    gland = _family(theta, t)
+    admissible = np.broadcast_to(t <= admissible_below_t, gland.shape).copy()
+    ones = np.ones_like(gland)
+    measures = {"min_det": ones, "min_stretch": ones, "max_stretch": ones, "max_i1_minus_3": 0 * ones}
+    responses = Responses(grid, load_factors, gland, admissible, measures, np.full(4, 100.0), "gent")
+    return responses
 
 
-def test_the_load_factor_fit_recovers_a_known_curve_minimum():
-    load_factors = np.linspace(0, 4, 41)
-    slopes = np.array([1.0, 2.0, 3.0])[:, None] * 1e-6
-    # G_j(t) = 26 ml + a_j t + 0.2 a_j t^2: smooth, convex, like a softening response.
-    volumes = 26e-6 + slopes * load_factors + 0.2 * slopes * load_factors**2
-    responses = RayResponses(load_factors, volumes, 4.0, np.full(3, 4.0))
-    true_factor = 2.37
-    measured = 26e-6 + slopes[:, 0] * true_factor * (1 + 0.2 * true_factor)
-    assert fit_load_factor(responses, measured, [0, 1, 2]) == pytest.approx(true_factor, rel=1e-4)
-    assert fit_load_factor(responses, measured, [1]) == pytest.approx(true_factor, rel=1e-4)
+def _family(theta, t):
+    slopes, curvatures = np.array([0.0, 1.0, 2.0, 3.0]) * 1e-6, np.array([0.0, 0.6, 0.1, 0.3]) * 1e-6
+    return 26e-6 + slopes * t + curvatures * theta * t**2
 
 
-def test_calibrate_recovers_a_known_modulus_from_the_models_own_measurements(tmp_path, capsys, monkeypatch):
-    scene = load_scene("builtin")
-    model = PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM)
-    youngs_true_pa = 40e3
-    truth = model.with_material(youngs_modulus_pa=youngs_true_pa)
-    pressures_kpa = np.array([[0, 0, 0], [4, 0, 0], [2, 3, 3]], dtype=float)
+def test_the_fit_recovers_known_parameters_and_leave_one_out_uses_the_others():
+    responses = _synthetic_responses()
+    theta_true, t_true = 0.8, 1.7
+    measured = _family(theta_true, t_true)
+    full = fit(responses, measured, [0, 1, 2, 3])
+    # Linear interpolation in theta between grid values 0.5 and 1.0 is exact here (G is linear in theta).
+    assert full.theta[0] == pytest.approx(theta_true, abs=2e-3)
+    assert full.load_factor == pytest.approx(t_true, rel=2e-3)
+    assert full.predicted_m3 == pytest.approx(measured, rel=1e-4)
+    without_last = fit(responses, measured, [0, 1, 2])
+    assert without_last.predicted_m3[3] == pytest.approx(measured[3], rel=1e-3)
+
+
+def test_the_fit_keeps_to_the_constraints_and_refuses_when_nothing_is_valid():
+    responses = _synthetic_responses(admissible_below_t=1.2)
+    measured = _family(0.8, 1.7)
+    constrained = fit(responses, measured, [0, 1, 2, 3])
+    assert constrained.load_factor <= 1.2 + 1e-9
+    # The best admissible answer: the largest theta and t the constraint allows.
+    assert constrained.theta[0] == pytest.approx(1.5, abs=1e-3)
+    nothing = _synthetic_responses(admissible_below_t=-1.0)
+    with pytest.raises(CalibrationError, match="refused: no state on the grid fits"):
+        fit(nothing, measured, [0, 1, 2, 3])
+
+
+@pytest.mark.parametrize("items, message", [
+    (["stiffness=1,2"], "unknown parameter 'stiffness'"),
+    (["gent_jm=3,x"], "with numbers"),
+    (["gent_jm=5,3"], "strictly increasing"),
+    (["gent_jm=3", "gent_jm=4"], "twice"),
+])
+def test_bad_grids_say_what_is_wrong(items, message):
+    with pytest.raises(CalibrationError, match=message):
+        parse_grid(items)
+    assert parse_grid(["lobe_chamber_scale=1,1.1"]).names == ("lobe_chamber_scale",)
+
+
+def _synthetic_csv(tmp_path, scene_path, pressures_kpa):
+    truth = PhantomModel.from_scene(load_scene(scene_path))
     lines = ["p0_kpa,p1_kpa,p2_kpa,measured_ml"]
-    for pressures in pressures_kpa:
+    for pressures in np.asarray(pressures_kpa, dtype=float):
         volume_ml = truth.solve(pressures * 1e3).gland_volume_m3 * 1e6
         lines.append(",".join(f"{value:g}" for value in pressures) + f",{volume_ml!r}")
-    csv_path = tmp_path / "synthetic.csv"
+    csv_path = tmp_path / f"{scene_path.stem}.csv"
     csv_path.write_text("\n".join(lines) + "\n")
+    return csv_path
 
-    import argparse
 
-    from phantom.model import calibrate as calibrate_module
-    from phantom.model import inverse_cli
-
-    parser = argparse.ArgumentParser(prog="phantom")
-    inverse_cli.register(parser.add_subparsers(dest="command", required=True))
-    output = tmp_path / "calibrated.toml"
-    args = parser.parse_args(["calibrate", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--measurements",
-                              str(csv_path), "--output", str(output), "--json"])
-    # A coarse continuation that stops just past the data keeps the test quick.
-    monkeypatch.setattr(calibrate_module, "STEPS_PER_LINEAR_LOAD_FACTOR", 8)
-    monkeypatch.setattr(calibrate_module, "OVERSHOOT", 1.15)
+def test_calibrate_recovers_known_material_and_geometry_on_a_two_worker_cluster(tmp_path, capsys, dask_scheduler):
+    # Synthetic measurements from the model itself (linear law: cheap solves) at E = 100 kPa (strains within
+    # the law's 10 %), lobes scaled 1.1.
+    truth_path = tmp_path / "truth.toml"
+    truth_path.write_text(SCENE_TEXT.format(model="linear", modulus=100.0) + "lobe_chamber_scale = 1.1\n")
+    csv_path = _synthetic_csv(tmp_path, truth_path, [[0, 0, 0], [2, 0, 0], [0, 2, 0], [1, 2, 2], [2, 1, 1]])
+    start_path = tmp_path / "start.toml"
+    start_path.write_text(SCENE_TEXT.format(model="linear", modulus=120.0))
+    output = tmp_path / "out" / "calibrated.toml"
+    argv = ["calibrate", "--scene", str(start_path), "--measurements", str(csv_path), "--grid",
+            "lobe_chamber_scale=1,1.1,1.2", "--scheduler", dask_scheduler, "--output", str(output), "--json"]
+    args = _parse(argv)
     assert args.run(args) == 0
     report = json.loads(capsys.readouterr().out)
-    assert set(report) >= {"youngs_modulus_kpa", "fit_mean_abs_pct_error", "loo_mean_abs_pct_error"}
-    # The co-rotational fit is exact up to the interpolation of the ray responses, and is the one kept.
-    assert report["material_model"] == "corotational"
-    assert report["youngs_modulus_kpa"] == pytest.approx(youngs_true_pa / 1e3, rel=5e-3)
-    assert report["fit_mean_abs_pct_error"] < 0.02
+    assert report["youngs_modulus_kpa"] == pytest.approx(100.0, rel=2e-3)
+    assert report["parameters"]["lobe_chamber_scale"] == pytest.approx(1.1, abs=2e-3)
+    assert report["fit_mean_abs_pct_error"] < 0.01
     assert report["loo_mean_abs_pct_error"] < 0.05
-    assert report["candidates"]["linear"]["loo_mean_abs_pct_error"] > report["loo_mean_abs_pct_error"]
+    assert report["validity"]["min_det"] > 0 and report["validity"]["max_stretch"] <= 1.1
     written = load_scene(output)
-    assert written.material.youngs_modulus_pa == pytest.approx(report["youngs_modulus_kpa"] * 1e3, rel=1e-4)
-    assert written.material.model == "corotational"
-    assert written.mesh == "builtin:prostate"
+    assert written.geometry.lobe_chamber_scale == pytest.approx(1.1, abs=2e-3)
+    assert written.material.youngs_modulus_pa == pytest.approx(100e3, rel=2e-3)
+    # The same calibration again reads every trace from the cache.
+    args = _parse(argv)
+    assert args.run(args) == 0
+    assert json.loads(capsys.readouterr().out)["traces_solved_now"] == 0
+
+
+def test_a_small_strain_law_is_held_to_its_range_and_says_the_constraint_binds(tmp_path, capsys,
+                                                                              dask_scheduler):
+    # Measurements of a soft phantom (8 kPa): fitting them needs strains far beyond the linear law's 10 %.
+    truth_path = tmp_path / "soft.toml"
+    truth_path.write_text(SCENE_TEXT.format(model="linear", modulus=8.0))
+    csv_path = _synthetic_csv(tmp_path, truth_path, [[0, 0, 0], [2, 0, 0], [0, 2, 2]])
+    args = _parse(["calibrate", "--scene", str(truth_path), "--measurements", str(csv_path), "--grid",
+                   "lobe_chamber_scale=1,1.1", "--scheduler", dask_scheduler, "--output", str(tmp_path / "x.toml"),
+                   "--json"])
+    assert args.run(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["validity"]["max_stretch"] <= 1.1
+    assert "leave the linear law's range 0.9-1.1" in report["binding_constraint"]
+    assert report["youngs_modulus_kpa"] > 8.0 * 1.5 and report["fit_mean_abs_pct_error"] > 1.0
+
+
+def test_measurements_above_3_kpa_are_refused(tmp_path):
+    csv_path = tmp_path / "high.csv"
+    csv_path.write_text("p0_kpa,p1_kpa,p2_kpa,measured_ml\n0,0,0,26\n4,0,0,30\n0,1,0,27\n")
+    args = _parse(["calibrate", "--measurements", str(csv_path), "--size-mm", "6"])
+    with pytest.raises(CalibrationError, match="4 kPa is above the 3 kPa"):
+        args.run(args)
+
+
+SCENE_TEXT = ('[phantom]\nmesh = "builtin:prostate"\nchambers = ["chamber0", "chamber1", "chamber2"]\n'
+              'fixed = "fixed"\n[material]\nmodel = "{model}"\nyoungs_modulus_kpa = {modulus}\n'
+              'poisson_ratio = 0.45\n[geometry]\nmesh_size_mm = 6.0\n')
+
+
+def _parse(argv):
+    import argparse
+
+    from phantom.model import calibrate_cli
+
+    parser = argparse.ArgumentParser(prog="phantom")
+    calibrate_cli.register(parser.add_subparsers(dest="command", required=True))
+    return parser.parse_args(argv)
 
 
 def test_the_written_scene_keeps_every_table_and_rebases_a_relative_mesh(tmp_path):
@@ -138,7 +218,9 @@ def test_the_written_scene_keeps_every_table_and_rebases_a_relative_mesh(tmp_pat
         '[[steps]]\nat_s = 5\npressures_kpa = [1.0, 0.5]\nramp_s = 2\n')
     scene = load_scene(scene_path)
     output = tmp_path / "elsewhere" / "calibrated.toml"
-    write_calibrated_scene(scene, 12345.0, output, "a comment\nover two lines", material_model="linear")
+    result = CalibrationResult("linear", Grid((), ()), {}, 12345.0, *([np.zeros(2)] * 4), np.zeros(2), [],
+                               np.zeros(0), {}, 0, 0)
+    write_calibrated_scene(scene, result, output, "a comment\nover two lines")
     written = load_scene(output)
     assert written.material.youngs_modulus_pa == pytest.approx(12345.0)
     assert written.material.model == "linear"

@@ -170,6 +170,10 @@ scatter = np.arange(len(tets) * 144, dtype=np.int64).reshape(-1, 12, 12)
 hessian = np.zeros(scatter.size)
 forces, energy, smallest_det = kernels.internal_forces(moved, nodes, tets, dm_inverse, stiffness, True, 2, scatter,
                                                        hessian)
+hyperelastic_tangent = np.zeros(scatter.size)
+stretched = nodes @ np.array([[1.2, 0.1, 0.0], [0.0, 0.9, 0.2], [0.1, 0.0, 1.1]]).T  # no element inverted
+hyperelastic = kernels.hyperelastic_forces(stretched, tets, dm_inverse, volumes, 17e3, 160e3, 0.05, 2, scatter,
+                                           hyperelastic_tangent)
 triangles = tets[:, :3].copy()
 indptr = np.arange(0, 3 * len(nodes) * 3 * len(nodes) + 1, 3 * len(nodes), dtype=np.int64)
 indices = np.tile(np.arange(3 * len(nodes), dtype=np.int32), 3 * len(nodes))
@@ -183,7 +187,9 @@ factor_indices = np.concatenate(columns).astype(np.int32)
 factor_values = np.concatenate([lower[c, j] for j, c in enumerate(columns)])
 permutation = rng.permutation(8).astype(np.int64)
 np.savez(sys.argv[1], dm_inverse=dm_inverse, volumes=volumes, stiffness=stiffness, forces=forces,
-         energy=energy, smallest_det=smallest_det, hessian=hessian, pressure_stiffness=pressure_stiffness,
+         energy=energy, smallest_det=smallest_det, hessian=hessian, hyperelastic_forces=hyperelastic[0],
+         hyperelastic_energy=hyperelastic[1], hyperelastic_tangent=hyperelastic_tangent,
+         pressure_stiffness=pressure_stiffness,
          product=kernels.csr_multiply(indptr, indices, pressure_stiffness, vector),
          determinants=kernels.deformation_determinants(moved, tets, dm_inverse),
          rotation=kernels.polar_rotation(rng.normal(size=(3, 3))),

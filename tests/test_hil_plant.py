@@ -1,5 +1,6 @@
 """The HIL plant: its parameter file, and the C integrator of the harness against independent solutions."""
 
+import dataclasses
 import re
 import tomllib
 
@@ -41,6 +42,8 @@ def plant_file(tmp_path):
 
 
 def plant_only(plant, seed=0) -> HarnessProcess:
+    """The harness without the MCU on the linear chambers V0 + C p (the truth table: test_truth_plant.py)."""
+    plant = dataclasses.replace(plant, truth_step_pa=0.0, truth_chamber_volume_m3=None, truth_gland_volume_m3=None)
     return HarnessProcess(["--no-mcu", "--seed", str(seed), *plant.harness_arguments()])
 
 

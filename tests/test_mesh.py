@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from phantom.model import MeshError, PhantomModel, load_scene
+from phantom.model import MeshError, PhantomModel, SceneError, load_scene
+from phantom.model.geometry import ProstateGeometry, wall_thicknesses_mm
 from phantom.model.mesh import TetMesh, enclosed_volume_m3, prepare_surfaces, read_mesh, write_mesh
 from phantom.model.shapes import (
     CHAMBER_ELLIPSOIDS_MM,
@@ -228,3 +229,70 @@ def test_mesh_command_writes_a_loadable_file(tmp_path):
 
 def test_default_size_is_documented():
     assert DEFAULT_SIZE_MM == 2.5
+
+
+# --------------------------------------------------------------------- parametric geometry
+def test_wall_measure_matches_the_analytic_gap_between_the_lobes():
+    # Chambers 1 and 2 are mirror images on the x axis: the wall between them is 2 (x_c - a) exactly.
+    geometry = ProstateGeometry()
+    walls = wall_thicknesses_mm(geometry)
+    x_centre, a = geometry.lobe_chamber_centre_mm[0], geometry.lobe_chamber_semi_axes_mm[0]
+    assert walls["chamber1-chamber2"] == pytest.approx(2 * (x_centre - a), abs=0.05)
+    wider = geometry.with_values(lobe_chamber_scale=1.1)
+    assert wall_thicknesses_mm(wider)["chamber1-chamber2"] == pytest.approx(2 * (x_centre - 1.1 * a), abs=0.05)
+    assert min(walls.values()) > 3.0
+
+
+def test_a_scaled_chamber_is_meshed_and_cached_apart(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    geometry = ProstateGeometry(lobe_chamber_scale=1.1, fixation_radius_mm=8.0)
+    mesh = builtin_prostate(6.0, geometry)
+    builtin_prostate(6.0)
+    assert len(list((tmp_path / "meshes").glob("prostate-*6mm.npz"))) == 2
+    surfaces = prepare_surfaces(mesh, CHAMBERS, "fixed", "builtin")
+    axes = geometry.ellipsoids_mm()[1][1]
+    volume_ml = enclosed_volume_m3(mesh.nodes_m, surfaces.chamber_triangles[1]) * 1e6
+    assert volume_ml == pytest.approx(4 / 3 * np.pi * np.prod(axes) * 1e-3, rel=0.06)
+    patch_mm = mesh.nodes_m[np.unique(surfaces.fixed_triangles)] * 1e3
+    assert np.linalg.norm(patch_mm - [0, 0, 20.0], axis=1).max() < 8.0 + 1e-9
+    assert np.linalg.norm(patch_mm - [0, 0, 20.0], axis=1).max() > 6.0
+
+
+def test_the_scene_geometry_table_reaches_the_model(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    path = tmp_path / "scaled.toml"
+    path.write_text('[phantom]\nmesh = "builtin:prostate"\nchambers = ["chamber0", "chamber1", "chamber2"]\n'
+                    'fixed = "fixed"\n[geometry]\nbase_chamber_scale = 0.9\nmesh_size_mm = 6.0\n')
+    scene = load_scene(path)
+    assert scene.geometry.base_chamber_scale == 0.9
+    model = PhantomModel.from_scene(scene)
+    exact_ml = 4 / 3 * np.pi * np.prod(scene.geometry.ellipsoids_mm()[0][1]) * 1e-3
+    assert model.rest_chamber_volumes_m3[0] * 1e6 == pytest.approx(exact_ml, rel=0.06)
+
+
+@pytest.mark.parametrize("table, error, message", [
+    ("min_wall_mm = 1.5", SceneError, r"min_wall_mm = 1.5 is outside \[2, 10\] \(thinner walls cannot be cast\)"),
+    ("lobe_chamber_scale = 1.3", MeshError, "wall chamber[12]-outer is 1.[34]. mm thick, below min_wall_mm = 2"),
+    ("base_chamber_scale = 1.3\nlobe_chamber_scale = 1.3", MeshError, "chamber0-chamber1 overlaps"),
+    ("min_wall_mm = 3.6", MeshError, "below min_wall_mm = 3.6"),
+    ("chamber_scale = 1.0", SceneError, "unknown keys"),
+    ("lobe_chamber_semi_axes_mm = [5.0, -1.0, 2.0]", SceneError, "must be positive"),
+    ("lobe_chamber_centre_mm = [-8.7, 0.0, -2.5]", SceneError, "x > 0"),
+    ("base_chamber_scale = true", SceneError, "must be a number"),
+])
+def test_bad_geometry_gives_a_one_line_error(tmp_path, monkeypatch, table, error, message):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    path = tmp_path / "bad.toml"
+    path.write_text('[phantom]\nmesh = "builtin:prostate"\nchambers = ["chamber0", "chamber1", "chamber2"]\n'
+                    f'[geometry]\nmesh_size_mm = 6.0\n{table}\n')
+    with pytest.raises(error, match=message) as raised:
+        PhantomModel.from_scene(load_scene(path))
+    assert "\n" not in str(raised.value)
+    assert not list((tmp_path / "meshes").glob("*.npz"))
+
+
+def test_geometry_applies_to_the_builtin_mesh_only(tmp_path):
+    path = write_scene(tmp_path, str(tmp_path / "sphere.msh"))
+    path.write_text(path.read_text() + "[geometry]\nbase_chamber_scale = 1.1\n")
+    with pytest.raises(SceneError, match="built-in prostate only"):
+        load_scene(path)

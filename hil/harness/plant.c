@@ -28,6 +28,8 @@ static const param_entry_t param_table[] = {
 	PARAM(sensor_noise_v, 1),
 	PARAM(sensor_response_time_s, 1),
 	PARAM(step_s, 1),
+	PARAM(truth_step_pa, 1),
+	PARAM(truth_volume_m3, PLANT_TRUTH_POINTS * PLANT_TRUTH_POINTS * PLANT_TRUTH_POINTS * PLANT_CHAMBERS),
 };
 #define PARAM_COUNT (sizeof(param_table) / sizeof(param_table[0]))
 
@@ -60,6 +62,13 @@ int plant_set_param(plant_params_t *params, const char *name, double value)
 				continue;
 			index = 3 * (rest[1] - '0') + (rest[3] - '0');
 		}
+		if (entry->count > 9) { /* a table: NAME.FLAT_INDEX (C order) */
+			char *end;
+			long flat = rest[0] == '.' ? strtol(rest + 1, &end, 10) : -1;
+			if (flat < 0 || flat >= entry->count || end == rest + 1 || *end)
+				continue;
+			index = (int)flat;
+		}
 		((double *)((char *)params + entry->offset))[index] = value;
 		return 0;
 	}
@@ -83,6 +92,8 @@ const char *plant_check_params(const plant_params_t *params)
 		return "step_s must be in (0, 1 ms]";
 	if (!(params->sensor_supply_v > 0) || !(params->sensor_gain_per_pa > 0))
 		return "sensor_supply_v and sensor_gain_per_pa must be positive";
+	if (params->truth_step_pa < 0)
+		return "truth_step_pa must not be negative (0: no truth table)";
 	if (params->sensor_noise_v < 0 || params->sensor_response_time_s < 0)
 		return "sensor_noise_v and sensor_response_time_s must not be negative";
 	for (int i = 0; i < PLANT_CHAMBERS; i++) {
@@ -186,6 +197,55 @@ static void solve3(double a[3][3], double b[3], double x[3])
 }
 
 /*
+ * Air volumes V(p) (m^3) and their derivatives dV_i/dp_j (m^3/Pa): the truth table, trilinear in the cell
+ * that holds p (the edge cell extended beyond the grid), or the linear V0 + C p without a table.
+ */
+static void chamber_volumes_and_compliance(const plant_params_t *k, const double p_pa[PLANT_CHAMBERS],
+                                           double volumes_m3[PLANT_CHAMBERS],
+                                           double compliance_m3_per_pa[PLANT_CHAMBERS][PLANT_CHAMBERS])
+{
+	if (!(k->truth_step_pa > 0)) {
+		for (int i = 0; i < PLANT_CHAMBERS; i++) {
+			volumes_m3[i] = k->rest_volume_m3[i];
+			for (int j = 0; j < PLANT_CHAMBERS; j++) {
+				volumes_m3[i] += k->compliance_m3_per_pa[i][j] * p_pa[j];
+				compliance_m3_per_pa[i][j] = k->compliance_m3_per_pa[i][j];
+			}
+		}
+		return;
+	}
+	int cell[3];
+	double fraction[3];
+	for (int a = 0; a < 3; a++) {
+		double x = p_pa[a] / k->truth_step_pa;
+		int c = (int)floor(x);
+		c = c < 0 ? 0 : (c > PLANT_TRUTH_POINTS - 2 ? PLANT_TRUTH_POINTS - 2 : c);
+		cell[a] = c;
+		fraction[a] = x - c;
+	}
+	for (int i = 0; i < PLANT_CHAMBERS; i++) {
+		volumes_m3[i] = k->rest_volume_m3[i] - k->truth_volume_m3[0][0][0][i];
+		for (int j = 0; j < PLANT_CHAMBERS; j++)
+			compliance_m3_per_pa[i][j] = 0;
+	}
+	for (int corner = 0; corner < 8; corner++) {
+		int bit[3] = {corner & 1, (corner >> 1) & 1, (corner >> 2) & 1};
+		double factor[3], slope[3];
+		for (int a = 0; a < 3; a++) {
+			factor[a] = bit[a] ? fraction[a] : 1.0 - fraction[a];
+			slope[a] = (bit[a] ? 1.0 : -1.0) / k->truth_step_pa;
+		}
+		const double *value = k->truth_volume_m3[cell[0] + bit[0]][cell[1] + bit[1]][cell[2] + bit[2]];
+		for (int i = 0; i < PLANT_CHAMBERS; i++) {
+			volumes_m3[i] += factor[0] * factor[1] * factor[2] * value[i];
+			compliance_m3_per_pa[i][0] += slope[0] * factor[1] * factor[2] * value[i];
+			compliance_m3_per_pa[i][1] += factor[0] * slope[1] * factor[2] * value[i];
+			compliance_m3_per_pa[i][2] += factor[0] * factor[1] * slope[2] * value[i];
+		}
+	}
+}
+
+/*
  * Isothermal gas in coupled compliant chambers: the air in chamber i, (p_atm + p_i) V_i with
  * V = V0 + C p, changes by p_atm q_i where q_i is the net inflow at atmospheric conditions, so
  * sum_j [V_i delta_ij + (p_atm + p_i) C_ij] dp_j/dt = p_atm q_i.
@@ -193,14 +253,12 @@ static void solve3(double a[3][3], double b[3], double x[3])
 void plant_pressure_rate(const plant_t *plant, const double p_pa[PLANT_CHAMBERS], double rate_pa_per_s[PLANT_CHAMBERS])
 {
 	const plant_params_t *k = &plant->params;
-	double matrix[3][3], rhs[3];
+	double matrix[3][3], rhs[3], volumes_m3[3], compliance[3][3];
+	chamber_volumes_and_compliance(k, p_pa, volumes_m3, compliance);
 	for (int i = 0; i < PLANT_CHAMBERS; i++) {
-		double volume_m3 = k->rest_volume_m3[i];
 		for (int j = 0; j < PLANT_CHAMBERS; j++)
-			volume_m3 += k->compliance_m3_per_pa[i][j] * p_pa[j];
-		for (int j = 0; j < PLANT_CHAMBERS; j++)
-			matrix[i][j] = (k->atmospheric_pressure_pa + p_pa[i]) * k->compliance_m3_per_pa[i][j];
-		matrix[i][i] += volume_m3;
+			matrix[i][j] = (k->atmospheric_pressure_pa + p_pa[i]) * compliance[i][j];
+		matrix[i][i] += volumes_m3[i];
 		double blower_m3_per_s = plant_blower_flow_m3_per_s(plant, i, p_pa[i]);
 		double leak_m3_per_s = (k->leak_conductance_m3_per_s_per_pa[i] + plant->fault_leak_m3_per_s_per_pa[i]) * p_pa[i];
 		rhs[i] = k->atmospheric_pressure_pa * (blower_m3_per_s - leak_m3_per_s);
@@ -231,11 +289,8 @@ void plant_step(plant_t *plant, double dt_s)
 
 void plant_chamber_volumes(const plant_t *plant, double volumes_m3[PLANT_CHAMBERS])
 {
-	for (int i = 0; i < PLANT_CHAMBERS; i++) {
-		volumes_m3[i] = plant->params.rest_volume_m3[i];
-		for (int j = 0; j < PLANT_CHAMBERS; j++)
-			volumes_m3[i] += plant->params.compliance_m3_per_pa[i][j] * plant->pressure_pa[j];
-	}
+	double compliance[3][3];
+	chamber_volumes_and_compliance(&plant->params, plant->pressure_pa, volumes_m3, compliance);
 }
 
 /* MPXV7025G: Vout = Vs (0.018 P[kPa] + 0.5), clipped to the rails, plus noise; a cut wire reads 0 V. */

@@ -5,6 +5,8 @@
 #include <stdint.h>
 
 #define PLANT_CHAMBERS 3
+/* Points per pressure axis of the truth table (chamber volumes over the three pressures). */
+#define PLANT_TRUTH_POINTS 4
 
 /* Plant parameters, all SI (Pa, m^3, m^3/s, V, s). Filled from hil/plant.toml by the Python side. */
 typedef struct plant_params {
@@ -21,6 +23,11 @@ typedef struct plant_params {
 	double sensor_noise_v;            /* standard deviation of white noise on the output */
 	double sensor_response_time_s;    /* first-order lag of the sensor */
 	double step_s;                    /* fixed integration step */
+	/* The truth's pressure-volume behaviour: each chamber's volume (m^3) at pressures (i, j, k) truth_step_pa on
+	 * a grid, interpolated trilinearly (the edge cells extended beyond it), air volume = rest_volume_m3 +
+	 * truth(p) - truth(0). truth_step_pa = 0: no table, V = rest_volume_m3 + compliance_m3_per_pa p. */
+	double truth_step_pa;
+	double truth_volume_m3[PLANT_TRUTH_POINTS][PLANT_TRUTH_POINTS][PLANT_TRUTH_POINTS][PLANT_CHAMBERS];
 } plant_params_t;
 
 /* Plant state and the faults injected into it. */
@@ -55,7 +62,7 @@ void plant_step(plant_t *plant, double dt_s);
 /* The pressure derivative dp/dt (Pa/s) at pressures p_pa with the current drive and faults. */
 void plant_pressure_rate(const plant_t *plant, const double p_pa[PLANT_CHAMBERS], double rate_pa_per_s[PLANT_CHAMBERS]);
 
-/* Chamber air volumes V0 + C p (m^3). */
+/* Chamber air volumes (m^3): from the truth table, else V0 + C p. */
 void plant_chamber_volumes(const plant_t *plant, double volumes_m3[PLANT_CHAMBERS]);
 
 /* The sensor's output voltage (V) for one chamber, with noise, offset and a cut wire. */

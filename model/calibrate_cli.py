@@ -1,0 +1,270 @@
+"""``phantom calibrate``: fit material and geometry to measured volumes (offline, Dask sweep), and
+``phantom calibrate record``: measure those volumes on a board.
+
+Only argparse is imported at module load; handlers import what they need when they run.
+"""
+
+import argparse
+
+#: The grid swept when none is given, per material law: stiffening (Jm) and the chambers' size.
+#: The pressure combinations of the paper's Table I (kPa), the default list to record.
+TABLE_I_POINTS_KPA = ((0, 0, 0), (1, 1, 1), (2, 2, 2), (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 2, 3), (3, 1, 2))
+#: Longest a combination may take to settle (board time, s) before the recording gives up.
+SETTLE_TIMEOUT_S = 30.0
+DEFAULT_GRIDS = {
+    "gent": ["gent_jm=2.5,5,10", "base_chamber_scale=0.85,1", "lobe_chamber_scale=1,1.1,1.2"],
+    "neo_hookean": ["base_chamber_scale=0.85,1", "lobe_chamber_scale=1,1.1,1.2"],
+    "corotational": ["lobe_chamber_scale=1,1.2"],
+    "linear": ["lobe_chamber_scale=1,1.2"],
+}
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``calibrate`` (and its ``record`` subcommand) to the ``phantom`` parser."""
+    calibrate = subparsers.add_parser(
+        "calibrate", help="fit material and geometry to measured volumes (offline); 'record' measures them",
+        description="Fit the scene's Young's modulus and a grid of material and geometry parameters to measured "
+                    "gland volumes by least squares, with leave-one-out cross-validation and physical validity "
+                    "as a constraint; the forward solves run as Dask tasks (cached). Writes a scene with the fit. "
+                    "'phantom calibrate record' holds pressures on a board and asks for the volume at each.")
+    calibrate.add_argument("--scene", default="builtin", help="scene TOML path or 'builtin' (default)")
+    calibrate.add_argument("--measurements", help="CSV with columns p0_kpa,p1_kpa,...,measured_ml")
+    calibrate.add_argument("--material", choices=("gent", "neo_hookean", "corotational", "linear"),
+                           help="material law to fit (default: the scene's)")
+    calibrate.add_argument("--gent-jm", type=float, help="Gent Jm when --material gent and Jm is not swept")
+    calibrate.add_argument("--grid", action="append", metavar="NAME=V1,V2,...",
+                           help="a swept parameter and its values (repeat; default: a grid per law, see "
+                                "README); names: gent_jm, poisson_ratio, or any [geometry] key")
+    calibrate.add_argument("--size-mm", type=float, help="element size of the built-in mesh (mm; default: the "
+                                                         "scene's [geometry] mesh_size_mm, 2.5)")
+    calibrate.add_argument("--scheduler", help="address of a running Dask scheduler (default: a LocalCluster "
+                                               "on this machine's cores)")
+    calibrate.add_argument("--workers", type=int, help="workers of the LocalCluster (default: the cores)")
+    calibrate.add_argument("--output", help="scene file to write (default: <scene>_calibrated.toml here)")
+    calibrate.add_argument("--json", action="store_true", help="print one JSON object")
+    calibrate.set_defaults(run=run_calibrate)
+
+    actions = calibrate.add_subparsers(dest="calibrate_action", metavar="record")
+    record = actions.add_parser(
+        "record", help="hold pressure combinations on the board and ask for the measured volume at each",
+        description="Hold each pressure combination on the board until it has settled, ask for the gland volume "
+                    "measured there (ml, or a scan file, typed on standard input), vent, and write the "
+                    "measurements CSV that 'phantom calibrate --measurements' reads.")
+    target = record.add_mutually_exclusive_group(required=True)
+    target.add_argument("--port", help="serial port of the board, e.g. /dev/ttyACM0")
+    target.add_argument("--sim", action="store_true", help="the firmware in simavr against the plant")
+    record.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    record.add_argument("--sim-speed", type=float, default=1.0, help="--sim: simulated time per wall time")
+    record.add_argument("--points-kpa", default=";".join(",".join(map(str, p)) for p in TABLE_I_POINTS_KPA),
+                        help="pressure combinations 'a,b,c;a,b,c;...' in kPa, each within 0-3 (default: the "
+                             "paper's eight)")
+    record.add_argument("--settle-s", type=float, default=1.0,
+                        help="board time every chamber must stay within --tolerance-kpa (default 1 s)")
+    record.add_argument("--tolerance-kpa", type=float, default=0.1, help="settled band (default 0.1 kPa)")
+    record.add_argument("--out", required=True, help="measurements CSV to write")
+    record.add_argument("--json", action="store_true", help="print one JSON object")
+    record.set_defaults(run=run_record)
+
+
+def _scene_for(args):
+    """The scene, with --material, --gent-jm and --size-mm applied to its table."""
+    from phantom import PhantomError
+    from phantom.model.calibrate import scene_with
+    from phantom.model.scene import load_scene, scene_from_dict
+
+    scene = load_scene(args.scene)
+    document = scene.raw
+    if args.material:
+        document = scene_with(document, {})
+        document.setdefault("material", {})["model"] = args.material
+        if args.material != "gent":
+            document["material"].pop("gent_jm", None)
+    if args.gent_jm is not None:
+        document = scene_with(document, {"gent_jm": args.gent_jm})
+    if args.size_mm is not None:
+        if scene.geometry is None:
+            raise PhantomError(f"--size-mm applies to the built-in mesh only; {scene.mesh} is read as it is")
+        document = scene_with(document, {"mesh_size_mm": args.size_mm})
+    if document is not scene.raw:
+        material = document.setdefault("material", {})
+        if material.get("model") == "gent" and "gent_jm" not in material:
+            grid_names = [item.partition("=")[0].strip() for item in args.grid or DEFAULT_GRIDS["gent"]]
+            if "gent_jm" not in grid_names:
+                raise PhantomError("--material gent needs --gent-jm VALUE or a --grid gent_jm=V1,V2,...")
+            material["gent_jm"] = 10.0  # a placeholder: the grid sets Jm at every point
+        scene = scene_from_dict(document, scene.path)
+    return scene
+
+
+def run_calibrate(args) -> int:
+    """Handler of ``phantom calibrate``."""
+    import json
+    from pathlib import Path
+
+    from phantom import PhantomError
+    from phantom.model.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
+    from phantom.model.sweep import stderr_progress
+
+    if not args.measurements:
+        raise PhantomError("phantom calibrate needs --measurements CSV (or use 'phantom calibrate record' to "
+                           "make one)")
+    if args.workers is not None and args.workers < 1:
+        raise PhantomError(f"--workers must be at least 1, got {args.workers}")
+    scene = _scene_for(args)
+    measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers))
+    grid = parse_grid(args.grid or DEFAULT_GRIDS[scene.material.model])
+    result = calibrate(scene, measurements, grid, scheduler=args.scheduler, n_workers=args.workers,
+                       progress=stderr_progress("calibrate: tracing the pressure rays"))
+    stem = Path(scene.path).stem if scene.path else "scene"
+    output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
+    parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
+    grid_text = " ".join(f"--grid {name}={','.join(f'{v:g}' for v in values)}"
+                         for name, values in zip(grid.names, grid.values, strict=True))
+    comment = (f"Calibrated by `phantom calibrate --scene {args.scene} --measurements {args.measurements}"
+               f"{' --material ' + args.material if args.material else ''}"
+               f"{f' --size-mm {args.size_mm:g}' if args.size_mm else ''} {grid_text}`\n"
+               f"({len(measurements.volumes_m3)} points): {result.material_model}, E = "
+               f"{result.youngs_modulus_pa / 1e3:.4g} kPa, {parameters};\n"
+               f"fit mean |error| {result.fit_mean_abs_pct_error:.2f} % (full solves), leave-one-out "
+               f"{result.loo_mean_abs_pct_error:.2f} %; largest stretch {result.validity['max_stretch']:.3g}, "
+               f"smallest det F {result.validity['min_det']:.3g}. See bench/README.md (calibration).")
+    written = write_calibrated_scene(scene, result, output, comment)
+    report = result.as_json()
+    report["scene_written"] = str(written)
+    if args.json:
+        print(json.dumps(report))
+        return 0
+    print(f"{result.material_model}: E = {result.youngs_modulus_pa / 1e3:.4g} kPa, {parameters}")
+    print(f"{'pressures kPa':>16} {'measured ml':>12} {'fit ml':>8} {'fit %':>7} {'LOO ml':>8} {'LOO %':>7}")
+    for k in range(len(measurements.volumes_m3)):
+        pressures = ",".join(f"{p:g}" for p in report["pressures_kpa"][k])
+        print(f"{pressures:>16} {report['measured_ml'][k]:12.2f} {report['fit_predicted_ml'][k]:8.2f} "
+              f"{report['fit_abs_pct_error'][k]:7.2f} {report['loo_predicted_ml'][k]:8.2f} "
+              f"{report['loo_abs_pct_error'][k]:7.2f}")
+    print(f"fit mean |error| {result.fit_mean_abs_pct_error:.3f} %, leave-one-out "
+          f"{result.loo_mean_abs_pct_error:.3f} %")
+    validity = result.validity
+    print(f"valid: smallest det F {validity['min_det']:.3g} (> 0), stretches {validity['min_stretch']:.3g}-"
+          f"{validity['max_stretch']:.3g} (law's range {validity['stretch_range'][0]:g}-"
+          f"{validity['stretch_range'][1]:g})"
+          + (f", I1 - 3 at {validity['max_i1_minus_3_over_jm']:.2f} Jm" if "max_i1_minus_3_over_jm" in validity
+             else "") + f", pressures <= {validity['max_pressure_kpa']:g} kPa")
+    if result.binding:
+        print(f"the fit sits on a constraint: the better fit outside it breaks it ({result.binding})")
+    print(f"wrote {written}")
+    return 0
+
+
+def _parse_points(text: str) -> list[list[float]]:
+    from phantom import PhantomError
+    from phantom.host.cli import parse_numbers
+
+    points = [parse_numbers(item, "--points-kpa") for item in text.split(";") if item.strip()]
+    for point in points:
+        if len(point) != 3 or not all(0.0 <= value <= 3.0 for value in point):
+            raise PhantomError(f"--points-kpa: each combination is three pressures within 0-3 kPa, got {point}")
+    if len(points) < 3:
+        raise PhantomError(f"--points-kpa: a calibration with leave-one-out needs at least 3, got {len(points)}")
+    return points
+
+
+def _ask_volume_ml(prompt: str) -> float:
+    """A volume typed on stdin (ml), or the path of a scan file whose volume phantom.model.scan measures."""
+    import math
+    import sys
+    from pathlib import Path
+
+    from phantom import PhantomError
+
+    sys.stderr.write(prompt)
+    sys.stderr.flush()
+    answer = sys.stdin.readline()
+    if not answer:
+        raise PhantomError("no answer on standard input: type the measured volume in ml (or a scan file path)")
+    answer = answer.strip()
+    try:
+        volume_ml = float(answer)
+    except ValueError:
+        if not Path(answer).is_file():
+            raise PhantomError(f"{answer!r} is neither a volume in ml nor a scan file") from None
+        try:
+            from phantom.model.scan import scan_volume_ml
+        except ImportError:
+            raise PhantomError("scan files need phantom.model.scan, which this install lacks: type the volume "
+                               "in ml") from None
+        volume_ml = scan_volume_ml(answer, units="mm")
+    if not (math.isfinite(volume_ml) and volume_ml > 0):
+        raise PhantomError(f"the volume must be a positive number of ml, got {answer!r}")
+    return volume_ml
+
+
+def _hold_until_settled(link, point_kpa: list[float], tolerance_kpa: float, settle_s: float):
+    """Set the pressures and wait (board clock) until every chamber has stayed within the band for
+    ``settle_s``; return the mean pressures (kPa) of five telemetry frames then."""
+    import numpy as np
+
+    from phantom import PhantomError
+    from phantom.hil import bench
+
+    setpoints_pa = [int(round(value * 1e3)) for value in point_kpa]
+    bench.set_setpoints(link, setpoints_pa)
+    last_outside_ms = [bench.latest_telemetry(link)["time_ms"]]
+
+    def settled(fields) -> bool:
+        error_pa = max(abs(p - s) for p, s in zip(fields["pressure_pa"], setpoints_pa, strict=True))
+        if error_pa > tolerance_kpa * 1e3:
+            last_outside_ms[0] = fields["time_ms"]
+        return fields["time_ms"] - last_outside_ms[0] >= settle_s * 1e3
+
+    if bench.wait_board_time(link, SETTLE_TIMEOUT_S, settled) is None:
+        raise PhantomError(f"the pressures ({', '.join(f'{p:g}' for p in point_kpa)}) kPa did not settle within "
+                           f"{tolerance_kpa} kPa in {SETTLE_TIMEOUT_S:g} s of board time: check for leaks")
+    return np.mean([bench.latest_telemetry(link)["pressure_pa"] for _ in range(5)], axis=0) / 1e3
+
+
+def run_record(args) -> int:
+    """Handler of ``phantom calibrate record``."""
+    import json
+    from pathlib import Path
+
+    from phantom import PhantomError
+    from phantom.hil import bench
+    from phantom.hil.link import BoardLink
+
+    points = _parse_points(args.points_kpa)
+    out = Path(args.out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise PhantomError(f"cannot create the folder of {out}: {error.strerror}") from None
+    board = None
+    port, scale = args.port, 1.0
+    if args.sim:
+        from phantom.hil.sim import SimulatedBoard
+
+        board = SimulatedBoard(speed=args.sim_speed).start()
+        port, scale = board.port, args.sim_speed or 1.0
+    rows = []
+    try:
+        with BoardLink(port, baudrate=args.baud, time_scale=scale) as link:
+            bench.start_session(link)
+            bench.zero_sensors(link)  # vented now: the sensors' offsets are measured before any point
+            for point in points:
+                held = _hold_until_settled(link, point, args.tolerance_kpa, args.settle_s)
+                volume_ml = _ask_volume_ml(f"holding {', '.join(f'{p:.2f}' for p in held)} kPa: measured gland "
+                                           f"volume (ml) or scan file? ")
+                rows.append((*point, volume_ml, *held))
+            bench.vent_and_wait(link)
+    finally:
+        if board is not None:
+            board.stop()
+    lines = ["# Measured by `phantom calibrate record`: setpoints (kPa), the gland volume measured at each (ml),",
+             "# and the pressures the board held meanwhile (held_p*_kpa: mean of five telemetry frames).",
+             "p0_kpa,p1_kpa,p2_kpa,measured_ml,held_p0_kpa,held_p1_kpa,held_p2_kpa"]
+    lines += [",".join(f"{value:.4g}" for value in row) for row in rows]
+    out.write_text("\n".join(lines) + "\n")
+    if args.json:
+        print(json.dumps({"out": str(out), "points": len(rows)}))
+    else:
+        print(f"wrote {out}: {len(rows)} points; fit them with phantom calibrate --measurements {out}")
+    return 0

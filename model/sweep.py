@@ -1,0 +1,251 @@
+"""Parameter sweeps of the forward model as independent Dask tasks, cached on disk.
+
+A task (:class:`RayTask`) is one scene (its parsed TOML, so material and geometry are whatever it says) and one
+pressure ray ``t p`` traced by continuation over load factors ``t = 0, dt, 2 dt, ...``: each solve starts from
+the previous one (the small-strain model, whose load is taken on its start, solves each from rest). At each
+``t`` it records the gland and chamber volumes and what physical validity needs: the smallest det F (an
+inverted element has det F <= 0), the extreme principal stretches and the largest ``I1 - 3`` over the elements
+(the Gent law holds only below ``Jm``). The trace stops at the last ``t``, at the first failed solve (a limit
+point), once the gland has grown by ``stop_growth_m3``, or once ``I1 - 3`` passes ``stop_i1_minus_3`` (where
+the law stops holding: nothing beyond can be a valid calibration).
+
+For a hyperelastic law at fixed Poisson ratio the state at (pressures p, modulus E) is the one at
+(p E0 / E, E0), so one trace of a ray gives the response at every modulus: E is the load factor.
+
+:func:`run_sweep` runs the tasks that are not cached on a ``dask.distributed`` cluster (a LocalCluster on the
+machine's cores, or ``scheduler="tcp://host:port"`` for an existing one), shows progress, stores each result
+under ``phantom.cache_dir("sweeps")`` by a hash of the task, and returns them in task order: a second sweep
+over the same tasks (a leave-one-out refit) re-solves nothing.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import os
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from phantom import PhantomError
+
+#: Bump when what a trace computes changes, so cached traces are recomputed.
+SWEEP_VERSION = 1
+
+
+class SweepError(PhantomError):
+    """A sweep that cannot run: no cluster at the address, a task that is malformed."""
+
+
+@dataclass(frozen=True)
+class RayTask:
+    """One pressure ray of one scene: solve at ``load_factors[k] * pressures_pa`` in order.
+
+    scene_raw : the scene's parsed TOML (material and geometry as the scene says); a built-in mesh only, or an
+        absolute mesh path. mesh_size_mm : element size of the built-in mesh (None: the scene's).
+    """
+
+    scene_raw: dict
+    pressures_pa: tuple
+    load_factors: tuple
+    stop_growth_m3: float = float("inf")
+    mesh_size_mm: float | None = None
+    stop_i1_minus_3: float = float("inf")
+
+    @property
+    def key(self) -> str:
+        text = json.dumps([SWEEP_VERSION, self.scene_raw, list(self.pressures_pa), list(self.load_factors),
+                           repr(self.stop_growth_m3), self.mesh_size_mm, repr(self.stop_i1_minus_3)],
+                          sort_keys=True, default=repr)
+        return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+@dataclass
+class RayTrace:
+    """What a ray gave at each solved load factor (arrays of length ``solved``, NaN-free).
+
+    gland_m3 (k,), chamber_m3 (k, n_chambers), min_det (k,), min_stretch (k,), max_stretch (k,),
+    max_i1_minus_3 (k,); ``stopped`` says why the trace ended ("end", "growth", or the solver's message).
+    """
+
+    load_factors: np.ndarray
+    gland_m3: np.ndarray
+    chamber_m3: np.ndarray
+    min_det: np.ndarray
+    min_stretch: np.ndarray
+    max_stretch: np.ndarray
+    max_i1_minus_3: np.ndarray
+    stopped: str
+    solve_time_s: float
+
+    def arrays(self) -> dict:
+        return {name: getattr(self, name) for name in ("load_factors", "gland_m3", "chamber_m3", "min_det",
+                                                       "min_stretch", "max_stretch", "max_i1_minus_3")}
+
+
+def element_stretch_measures(positions_m: np.ndarray, tets: np.ndarray,
+                             rest_edge_inverse: np.ndarray) -> tuple[float, float, float, float]:
+    """Smallest det F, smallest and largest principal stretch and largest ``I1 - 3 = tr(F^T F) - 3`` over the
+    elements of a linear-tetrahedron mesh (``rest_edge_inverse`` = Dm^-1, Dm each element's rest edges as columns)."""
+    edges = positions_m[tets[:, 1:]] - positions_m[tets[:, :1]]
+    deformation = np.einsum("eki,ekj->eij", edges, rest_edge_inverse)
+    right_cauchy_green = np.einsum("eki,ekj->eij", deformation, deformation)
+    squared_stretches = np.linalg.eigvalsh(right_cauchy_green)
+    stretches = np.sqrt(np.clip(squared_stretches, 0.0, None))
+    return (float(np.linalg.det(deformation).min()), float(stretches[:, 0].min()), float(stretches[:, -1].max()),
+            float((squared_stretches.sum(axis=1) - 3.0).max()))
+
+
+@functools.lru_cache(maxsize=4)
+def _model_of(scene_text: str, mesh_size_mm: float | None):
+    """The model of a scene (kept per worker process: the tasks of one grid point share it)."""
+    from phantom.model import PhantomModel
+    from phantom.model.scene import scene_from_dict
+
+    model = PhantomModel.from_scene(scene_from_dict(json.loads(scene_text)), mesh_size_mm=mesh_size_mm)
+    edges = model.nodes_m[model.tets[:, 1:]] - model.nodes_m[model.tets[:, :1]]
+    # Rows of ``edges`` are edge vectors: F = Ds Dm^-1 with Ds, Dm the edge matrices by columns.
+    return model, np.linalg.inv(edges.transpose(0, 2, 1))
+
+
+def trace_ray(task: RayTask) -> RayTrace:
+    """Trace one ray (see the module docstring); runs on a Dask worker or in the calling process."""
+    from phantom.model import SolveError
+
+    started = time.perf_counter()
+    model, rest_edge_inverse = _model_of(json.dumps(task.scene_raw, sort_keys=True), task.mesh_size_mm)
+    pressures = np.asarray(task.pressures_pa, dtype=float)
+    warm_start = model.formulation != "linear"
+    rows, positions_m, stopped = [], None, "end"
+    for load_factor in task.load_factors:
+        if load_factor == 0 or not np.any(pressures):
+            positions_m_here, chambers, gland = model.nodes_m, model.rest_chamber_volumes_m3, model.rest_gland_volume_m3
+        else:
+            try:
+                state = model.solve(load_factor * pressures, initial_positions_m=positions_m if warm_start else None)
+            except SolveError as error:
+                stopped = str(error)
+                break
+            positions_m_here, chambers, gland = state.positions_m, state.chamber_volumes_m3, state.gland_volume_m3
+            positions_m = positions_m_here
+        measures = element_stretch_measures(positions_m_here, model.tets, rest_edge_inverse)
+        rows.append((load_factor, gland, np.asarray(chambers, float), *measures))
+        if gland - model.rest_gland_volume_m3 > task.stop_growth_m3:
+            stopped = "growth"
+            break
+        if measures[3] > task.stop_i1_minus_3:
+            stopped = "law limit"
+            break
+    columns = list(zip(*rows, strict=True))
+    return RayTrace(np.array(columns[0]), np.array(columns[1]), np.array(columns[2]), np.array(columns[3]),
+                    np.array(columns[4]), np.array(columns[5]), np.array(columns[6]), stopped,
+                    time.perf_counter() - started)
+
+
+# ------------------------------------------------------------------------------------------ cache
+def _cache_path(task: RayTask):
+    import phantom
+
+    return phantom.cache_dir("sweeps") / f"{task.key}.npz"
+
+
+def cached_trace(task: RayTask) -> RayTrace | None:
+    """The stored trace of a task, or None."""
+    path = _cache_path(task)
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as stored:
+            return RayTrace(**{name: stored[name] for name in stored.files if name not in ("stopped", "time")},
+                            stopped=str(stored["stopped"]), solve_time_s=float(stored["time"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        path.unlink(missing_ok=True)
+        return None
+
+
+def store_trace(task: RayTask, trace: RayTrace) -> None:
+    path = _cache_path(task)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
+    os.close(handle)
+    np.savez(temporary, stopped=np.array(trace.stopped), time=np.array(trace.solve_time_s), **trace.arrays())
+    os.replace(temporary, path)
+
+
+# ------------------------------------------------------------------------------------------ running
+def stderr_progress(label: str):
+    """A progress callback that redraws ``label [#####.....] done/total elapsed`` on stderr."""
+    started = time.monotonic()
+
+    def report(done: int, total: int) -> None:
+        width = 30
+        filled = int(width * done / max(total, 1))
+        sys.stderr.write(f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total} "
+                         f"{time.monotonic() - started:.0f} s  ")
+        if done >= total:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+    return report
+
+
+def local_cluster(n_workers: int | None = None):
+    """A LocalCluster of single-threaded worker processes (default: one per core), quiet, dashboard on a free port."""
+    import logging
+
+    from dask.distributed import LocalCluster
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    return LocalCluster(n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                        dashboard_address=":0", silence_logs=logging.ERROR)
+
+
+def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int | None = None,
+              progress=None, client=None) -> list[RayTrace]:
+    """Every task's trace, in order: cached ones read from disk, the others computed on Dask and stored.
+
+    ``client`` (a ``dask.distributed.Client``) is used as given; else ``scheduler`` is the address of a
+    running scheduler; else a LocalCluster of ``n_workers`` processes (default: the cores) is started for the
+    sweep and closed after it.
+    """
+    results: list[RayTrace | None] = [cached_trace(task) for task in tasks]
+    missing = [index for index, trace in enumerate(results) if trace is None]
+    total = len(tasks)
+    if progress is not None:
+        progress(total - len(missing), total)
+    if not missing:
+        return results
+    from dask.distributed import Client, as_completed
+
+    cluster = None
+    own_client = client is None
+    if client is None:
+        if scheduler:
+            try:
+                client = Client(scheduler, timeout="5s")
+            except (OSError, TimeoutError) as error:
+                raise SweepError(f"no Dask scheduler answers at {scheduler} ({error}): start one "
+                                 f"(dask scheduler) or leave --scheduler out for a local cluster") from None
+        else:
+            cluster = local_cluster(n_workers)
+            client = Client(cluster)
+    try:
+        futures = {client.submit(trace_ray, tasks[index], key=f"trace-{tasks[index].key}", pure=False): index
+                   for index in missing}
+        done = total - len(missing)
+        for future in as_completed(futures):
+            index = futures[future]
+            trace = future.result()
+            store_trace(tasks[index], trace)
+            results[index] = trace
+            done += 1
+            if progress is not None:
+                progress(done, total)
+    finally:
+        if own_client:
+            client.close()
+        if cluster is not None:
+            cluster.close()
+    return results
