@@ -7,6 +7,7 @@ import json
 import socket
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from phantom import PhantomError
 
@@ -71,7 +72,7 @@ class DaemonClient:
             raise PhantomError(f"the daemon on {self.socket_path} closed the connection")
         return json.loads(line)
 
-    def call(self, method: str, params: dict | None = None) -> object:
+    def call(self, method: str, params: dict | None = None) -> Any:
         """Send one request and return its result; raises DaemonError when it answers an error."""
         request_id = next(self._ids)
         self.send_line((json.dumps({"id": request_id, "method": method, "params": params or {}}) + "\n").encode())

@@ -9,7 +9,7 @@ import argparse
 CONFIG_KEYS = {"port": str, "sim": bool, "sim_speed": float, "can_channel": str, "can_interface": str,
                "baud": int, "scene": str, "socket": str, "rerun_save": str, "rerun_connect": str,
                "mesh_hz": float, "host_deadline_ms": int, "telemetry_period_ms": int, "vent_on_exit": bool,
-               "run_scene": bool, "zero_on_connect": bool}
+               "run_scene": bool, "zero_on_connect": bool, "boot_delay_s": float}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,6 +24,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        help="start the simulated board (the real firmware in simavr) and drive it")
     board.add_argument("--can-channel", metavar="CH", help="talk to the board over CAN on this channel")
     daemon.add_argument("--baud", type=int, metavar="N", help="serial baud rate (default 115200)")
+    daemon.add_argument("--boot-delay-s", type=float, metavar="S",
+                        help="--port: stay silent this long after opening the port, while the board's bootloader "
+                             "runs (default 2: the Uno's Optiboot and the Mega's stk500v2; 0 for an adapter "
+                             "without DTR)")
     daemon.add_argument("--can-interface", metavar="NAME", help="python-can interface (default socketcan)")
     daemon.add_argument("--sim-speed", type=float, metavar="X", help="simulated board speed-up (default 1: real time)")
     daemon.add_argument("--scene", metavar="S",
@@ -173,7 +177,7 @@ def _run_daemon(args) -> int:
     flags = {"port": args.port, "sim": args.sim, "sim_speed": args.sim_speed, "can_channel": args.can_channel,
              "can_interface": args.can_interface, "baud": args.baud, "scene": args.scene, "socket": args.socket,
              "rerun_save": args.rerun_save, "rerun_connect": args.rerun_connect, "mesh_hz": args.mesh_hz,
-             "run_scene": args.run_scene}
+             "run_scene": args.run_scene, "boot_delay_s": args.boot_delay_s}
     if args.port or args.sim or args.can_channel:
         settings = {key: value for key, value in settings.items() if key not in ("port", "sim", "can_channel")}
     if args.rerun_save or args.rerun_connect:

@@ -77,6 +77,8 @@ class DaemonConfig:
     can_channel: str | None = None
     can_interface: str = "socketcan"
     baud: int = 115200
+    #: Silence after opening a serial port (s), while the bootloader runs; None: enough for an Uno or a Mega.
+    boot_delay_s: float | None = None
     scene: str = "builtin:calibrated"
     socket: Path = field(default_factory=default_socket_path)
     socket_mode: int = 0o660
@@ -553,21 +555,27 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None, 
     """The link session over the configured transport."""
     from phantom.host.session import LinkSession, LinkTiming
     from phantom.host.transports import CanTransport, SerialTransport
+    from phantom.protocol.link import BOOT_DELAY_S
 
     transport: Any
+    boot_delay_s = 0.0
     if config.can_channel:
         transport = CanTransport(config.can_channel, config.can_interface)
     elif sim_board is not None:
         transport = SerialTransport(sim_board.port, config.baud)
+        boot_delay_s = BOOT_DELAY_S["sim"]
     else:
+        assert config.port is not None  # Daemon.start checked that exactly one board is given
         transport = SerialTransport(config.port, config.baud)
+        boot_delay_s = max(BOOT_DELAY_S.values()) if config.boot_delay_s is None else config.boot_delay_s
     # a simulated board faster than real time passes its dead-host deadline sooner (speed 0: as fast as it can,
     # about 5x here)
     speed = (config.sim_speed or 10.0) if config.sim else 1.0
     # a HELLO that opened a session on the board but whose reply was lost must be repeated before the board's
     # dead-host deadline passes: HELLOs go out at twice the keepalive period
     timing = LinkTiming(keepalive_s=min(0.1, 0.1 / speed), hello_timeout_s=min(0.2, 0.2 / speed),
-                        telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=config.host_deadline_ms)
+                        telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=config.host_deadline_ms,
+                        boot_delay_s=boot_delay_s)
     return LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event, on_online=on_online)
 
 

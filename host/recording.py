@@ -38,6 +38,7 @@ import re
 import warnings
 from datetime import timedelta
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -175,7 +176,9 @@ class Recorder:
         self.save_path = Path(save_path) if save_path else None
         self.connect_url = connect_url
         self.enabled = False
-        self._stream = None
+        # rerun's module and stream, set by open() (rerun is imported only when recording)
+        self._rr: Any = None
+        self._stream: Any = None
         self._scene_time_s: float | None = None
         self._rest_logged = False
         self._mesh_triangles: np.ndarray | None = None
@@ -220,6 +223,7 @@ class Recorder:
     def _log_styles(self) -> None:
         """Series names, colours and widths, once (static: they hold on every timeline)."""
         rr, log = self._rr, self._stream.log
+        colour: tuple[int, ...]
         for index, (name, part) in enumerate(zip(self.chamber_names, self.parts, strict=True)):
             colour = chamber_colour(index)
             log(f"chamber/{part}/measured_kpa", rr.SeriesLines(colors=[colour], names=[name],
@@ -250,7 +254,7 @@ class Recorder:
         else:
             self._stream.set_time("scene_time", duration=self._scene_time_s)
 
-    def _scalar(self, path: str, value: float) -> None:
+    def _scalar(self, path: str, value: float | None) -> None:
         if value is not None and np.isfinite(value):
             self._stream.log(path, self._rr.Scalars(float(value)))
 
@@ -362,7 +366,7 @@ def _check_writable(path: Path) -> None:
                   errno.EACCES: "permission denied", errno.EPERM: "permission denied",
                   errno.EISDIR: "it is a directory", errno.EROFS: "the file system is read-only",
                   errno.ENOTDIR: "a part of the path is not a directory",
-                  errno.EEXIST: "a part of the path is not a directory"}.get(error.errno, error.strerror)
+                  errno.EEXIST: "a part of the path is not a directory"}.get(error.errno or 0, error.strerror or "")
         remedy = "free some space or give another --rerun-save path" if error.errno in (errno.ENOSPC, errno.EDQUOT) \
             else "give another --rerun-save path"
         raise RecordingError(f"cannot write the recording {path}: {reason}; {remedy}") from None
