@@ -355,6 +355,25 @@ class PhantomModel:
         scene = None if self.scene is None else dataclasses.replace(self.scene, material=material)
         return PhantomModel(self.mesh, surfaces, self.chamber_names, material, self.source, self.linear_solver, scene)
 
+    # --- deformed shapes ---------------------------------------------------------------------------------
+
+    def deformed_mesh(self, state: State) -> TetMesh:
+        """The model's tetrahedral mesh at ``state`` (same node order, tetrahedra and surface groups as the
+        rest mesh; positions in m), e.g. for ``mesh.write_mesh``."""
+        return TetMesh(np.array(state.positions_m, float), self.tets, dict(self.mesh.surface_groups))
+
+    def deformed_surface(self, pressures_pa, formulation: str | None = None,
+                         initial_positions_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The outer surface deformed by gauge pressures (Pa, chamber order): ``(positions_mm, triangles)``,
+        the surface's own nodes (k, 3) in millimetres and its triangles (t, 3) indexing them, normals outward.
+
+        Solves like :meth:`solve` (same arguments and errors). The surface's node order is fixed for a model
+        (``np.unique`` of the outer triangles), so successive calls can be drawn as one changing mesh.
+        """
+        state = self.solve(pressures_pa, formulation=formulation, initial_positions_m=initial_positions_m)
+        surface_nodes, triangles = np.unique(self.outer_triangles, return_inverse=True)
+        return state.positions_m[surface_nodes] * 1e3, triangles.reshape(-1, 3)
+
     # --- volumes and loads -------------------------------------------------------------------------------
 
     def volumes(self, positions_m: np.ndarray) -> tuple[np.ndarray, float]:
@@ -520,25 +539,11 @@ class PhantomModel:
                      time.perf_counter() - started, pressures, formulation, steps, load_positions_m)
 
     def _continuation(self, start_m, pressures, formulation, tolerance, constraints) -> tuple[np.ndarray, int, int]:
-        """Load steps from 0 to the full pressures; a failed step is halved up to MAX_LOAD_BISECTIONS times."""
-        done, increment, iterations, steps, bisections = 0.0, 1.0, 0, 0, 0
-        positions_m = start_m
-        while done < 1.0:
-            target = min(1.0, done + increment)
-            step = self._newton(positions_m, target * pressures, formulation, start_m, tolerance, constraints,
-                                initial_imbalance=steps == 0)
-            iterations += step.iterations
-            if step.converged:
-                positions_m, done, steps = step.positions_m, target, steps + 1
-                increment *= 2.0 if step.iterations < 8 else 1.0
-                continue
-            bisections += 1
-            # A smaller load cannot help a linear model, nor a residual stuck at the rounding floor (the floor
-            # relative to the load only grows as the load shrinks).
-            if bisections > MAX_LOAD_BISECTIONS or formulation == "linear" or step.ill_conditioned:
-                raise self._failure(pressures, target, step)
-            increment /= 2.0
-        return positions_m, iterations, steps
+        """Path following from 0 to the full pressures (``pathfollow``): load steps with a secant predictor,
+        volume control past where a chamber's pressure-volume curve flattens."""
+        from phantom.model.pathfollow import follow_path
+
+        return follow_path(self, start_m, pressures, formulation, tolerance, constraints)
 
     def _failure(self, pressures, target, step: _Step) -> SolveError:
         """A SolveError that names the chamber most likely at fault, the pressure, and what to try; or, when
