@@ -4,13 +4,12 @@ import numpy as np
 import pytest
 
 from phantom.model import kernels
-from phantom.model.fem import PhantomModel
 from phantom.model.felupe_reference import felupe_forces, felupe_solve
+from phantom.model.fem import PhantomModel
 from phantom.model.mesh import prepare_surfaces
 from phantom.model.scene import Material
 from phantom.model.shapes import builtin_prostate, generate_hollow_sphere
 
-pytest.importorskip("felupe")
 YOUNGS_MODULUS_PA = 50e3
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 
