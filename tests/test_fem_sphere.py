@@ -76,8 +76,7 @@ NEO_HOOKEAN_SIZES_MM = (3.5, 2.5, 1.77)
 @pytest.mark.slow
 def test_neo_hookean_sphere_converges_to_the_exact_radial_solution():
     """Cavity pressure p/E = 0.15, nu = 0.3: the exact cavity grows by 58 %. The 3-D volume changes converge to
-    the fine 1-D radial solution at about second order (the full study, bench/fem_sphere.py --hyperelastic, down
-    to 1.25 mm: bench/README.md)."""
+    the fine 1-D radial solution at about second order (figures, and nu = 0.45: model/README.md)."""
     from phantom.model.sphere_reference import volume_changes_m3
 
     poisson_ratio, pressure_pa = 0.3, 0.15 * YOUNGS_MODULUS_PA
