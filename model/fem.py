@@ -590,7 +590,7 @@ class PhantomModel:
         nonlinear = formulation != "linear"
         positions_m = start_positions_m
         arguments = (pressures, formulation, reference_m, constraints)
-        residual, energy, _ = self._residual(positions_m, *arguments)
+        residual, energy, _, hessian = self._residual(positions_m, *arguments)
         # Relative to the load, or to the starting imbalance when that is larger (a start far from rest).
         load_scale = max(_norm(_pressure_load(pressures, self.volume_gradients(reference_m))[constraints.free_mask]),
                          _norm(residual) if initial_imbalance else 0.0,
@@ -622,7 +622,8 @@ class PhantomModel:
                              self._rounding_floor_n(positions_m) / load_scale)
             previous_norm = residual_norm
             if kind == "krylov":
-                hessian = self._tangent_data(positions_m, formulation, pressures, constraints)
+                if hessian is None:
+                    hessian = self._tangent_data(positions_m, formulation, pressures, constraints)
                 multiply = functools.partial(kernels.csr_multiply, self._pattern.indptr, self._pattern.indices, hessian)
                 direction = _preconditioned_cg(multiply, -residual, factorization, KRYLOV_TOLERANCE, KRYLOV_ITERATIONS)
             else:
@@ -632,7 +633,8 @@ class PhantomModel:
                 direction = direction.reshape(-1, 3)
                 slope = _dot(residual, direction.ravel())
             if slope < 0.0:
-                accepted = self._line_search(positions_m, direction, residual_norm, energy, slope, arguments)
+                accepted = self._line_search(positions_m, direction, residual_norm, energy, slope, arguments,
+                                             with_tangent=kind == "krylov")
             if accepted is None:
                 if not nonlinear or kind == "positive":
                     worst = self._worst_element(positions_m + direction)
@@ -641,7 +643,7 @@ class PhantomModel:
                 kind = "exact" if kind in ("rest", "krylov") else "positive"
                 factorization = self._tangent(positions_m, formulation, constraints, pressures, exact=kind == "exact")
                 continue
-            positions_m, residual, energy = accepted
+            positions_m, residual, energy, hessian = accepted
             if kind != "krylov" and nonlinear and _norm(residual) > TANGENT_REFRESH_RATIO * residual_norm:
                 kind, factorization = "exact", self._tangent(positions_m, formulation, constraints, pressures,
                                                              exact=True)
@@ -681,26 +683,31 @@ class PhantomModel:
                 raise
             return self._tangent(positions_m, formulation, constraints, pressures, exact=False)
 
-    def _residual(self, positions_m, pressures, formulation, reference_m, constraints):
-        """Out-of-balance force (3n,), total energy (J) and the smallest det F (inf for the linear model)."""
-        forces, elastic_energy, smallest_det, _ = self._elastic(positions_m, formulation, 0, constraints)
+    def _residual(self, positions_m, pressures, formulation, reference_m, constraints, with_tangent=False):
+        """Out-of-balance force (3n,), total energy (J) and the smallest det F (inf for the linear model); with
+        ``with_tangent``, also the exact tangent's CSR data from the same element pass (else None)."""
+        forces, elastic_energy, smallest_det, tangent = self._elastic(
+            positions_m, formulation, 2 if with_tangent else 0, constraints, pressures if with_tangent else None)
         load, load_energy = self._load_and_energy(positions_m, pressures, formulation, reference_m)
         residual = forces - load
         residual[constraints.dofs] = 0.0
-        return residual, elastic_energy + load_energy, smallest_det
+        return residual, elastic_energy + load_energy, smallest_det, tangent if with_tangent else None
 
-    def _line_search(self, positions_m, direction, residual_norm, energy, slope, arguments):
+    def _line_search(self, positions_m, direction, residual_norm, energy, slope, arguments, with_tangent=False):
         """Backtrack from the full step until the energy decreases (Armijo) or, where energy differences are
-        lost in rounding, the residual does; never accept a step that inverts an element."""
+        lost in rounding, the residual does; never accept a step that inverts an element. With
+        ``with_tangent`` the full step (accepted almost always near convergence) also assembles the tangent in
+        the same element pass, so the next Newton direction needs no second pass over the elements."""
         step = 1.0
         rounding = 1e-13 * (abs(energy) + abs(slope))
-        for _ in range(12):
+        for attempt in range(12):
             trial = positions_m + step * direction
-            residual, trial_energy, smallest_det = self._residual(trial, *arguments)
+            residual, trial_energy, smallest_det, tangent = self._residual(
+                trial, *arguments, with_tangent=with_tangent and attempt == 0)
             admissible = smallest_det > 0 and np.isfinite(trial_energy)
             if admissible and (trial_energy <= energy + 1e-4 * step * slope + rounding
                                or _norm(residual) < residual_norm):
-                return trial, residual, trial_energy
+                return trial, residual, trial_energy, tangent
             step *= 0.5
         return None
 

@@ -351,7 +351,7 @@ class _Path:
     def _volume_residual(self, positions_m, load_factor, target_m3):
         """Out-of-balance force (3n,), constraint gap (m^3), merit (dimensionless) and admissibility (no
         element at det F <= 0, finite energy)."""
-        residual, energy, smallest_det = self.model._residual(positions_m, load_factor * self.pressures,
+        residual, energy, smallest_det, _ = self.model._residual(positions_m, load_factor * self.pressures,
                                                               self.formulation, self.start_m, self.constraints)
         gap = self._control(positions_m) - target_m3
         free = self.constraints.free_mask
