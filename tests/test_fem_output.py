@@ -66,3 +66,19 @@ def test_the_deformed_outer_surface_encloses_the_gland_volume(model):
     rest_mm, rest_triangles = model.deformed_surface([0, 0, 0])
     np.testing.assert_array_equal(rest_triangles, triangles)
     assert enclosed_volume_m3(rest_mm * 1e-3, triangles) == pytest.approx(model.rest_gland_volume_m3, rel=1e-12)
+
+
+@pytest.mark.parametrize("material", ['model = "neo_hookean"', 'model = "gent"\ngent_jm = 20.0'])
+def test_forward_on_a_tagged_mesh_scene_with_a_hyperelastic_material(tmp_path, capsys, material):
+    assert main(["mesh", "--scene", "builtin", *SIZE, "--out", str(tmp_path / "prostate.msh")]) == 0
+    (tmp_path / "scene.toml").write_text(
+        '[phantom]\nmesh = "prostate.msh"\nunits = "mm"\nchambers = ["chamber0", "chamber1", "chamber2"]\n'
+        f'fixed = "fixed"\n\n[material]\n{material}\nyoungs_modulus_kpa = 50.0\npoisson_ratio = 0.45\n')
+    capsys.readouterr()
+    assert main(["forward", "--scene", str(tmp_path / "scene.toml"), "--pressures-kpa", "4,2,2", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    scene = load_scene(tmp_path / "scene.toml")
+    expected = PhantomModel.from_scene(scene).solve([4e3, 2e3, 2e3])
+    assert answer["formulation"] == scene.material.model
+    assert answer["chamber_volumes_ml"] == pytest.approx(list(expected.chamber_volumes_m3 * 1e6), rel=1e-12)
+    assert all(v > r for v, r in zip(answer["chamber_volumes_ml"], answer["rest_chamber_volumes_ml"], strict=True))
