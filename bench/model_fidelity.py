@@ -38,13 +38,15 @@ def displacement_at(points_m, rest_nodes_m, displacement_m):
     return inside
 
 
-def prostate_rows(sizes_mm, reference_mm):
+def prostate_rows(sizes_mm, reference_mm, material="corotational"):
+    """Rows of the built-in prostate's levels for one material model (its full solve on the finest mesh is the
+    reference)."""
     from phantom.model import PhantomModel, load_scene
     from phantom.model.fidelity import VolumeEstimator
 
     scene = load_scene("builtin")
-    progress(f"reference: {reference_mm} mm, full co-rotational")
-    reference_model = PhantomModel.from_scene(scene, mesh_size_mm=reference_mm)
+    progress(f"reference: {reference_mm} mm, full {material}")
+    reference_model = PhantomModel.from_scene(scene, mesh_size_mm=reference_mm).with_material(model=material)
     reference = []
     for pressures_kpa in PRESSURE_COMBINATIONS_KPA:
         state = reference_model.solve(pressures_kpa * 1e3)
@@ -56,7 +58,7 @@ def prostate_rows(sizes_mm, reference_mm):
         for level in LEVELS:
             progress(f"prostate {size_mm} mm, {level}")
             started = time.perf_counter()
-            model = PhantomModel.from_scene(scene, mesh_size_mm=size_mm)
+            model = PhantomModel.from_scene(scene, mesh_size_mm=size_mm).with_material(model=material)
             estimator = VolumeEstimator(model, level=level)
             estimator.volumes(PRESSURE_COMBINATIONS_KPA[0] * 1e3)
             cold_s = time.perf_counter() - started
@@ -73,7 +75,8 @@ def prostate_rows(sizes_mm, reference_mm):
                 displacement = estimator.shape(pressures_kpa * 1e3) - model.nodes_m
                 at_reference = displacement_at(reference_model.nodes_m, model.nodes_m, displacement)
                 shape_errors.append(np.mean(np.linalg.norm(at_reference - displacement_ref, axis=1)) * 1e6)
-            rows.append({"case": "prostate", "size_mm": size_mm, "nodes": len(model.nodes_m), "level": level,
+            case = "prostate" if material == "corotational" else f"prostate {material}"
+            rows.append({"case": case, "size_mm": size_mm, "nodes": len(model.nodes_m), "level": level,
                          "cold_s": cold_s, "warm_s": float(np.median(warm)),
                          "gland_error_pct": float(np.mean(gland_errors)),
                          "chamber_error_pct": float(np.mean(chamber_errors)),
@@ -181,13 +184,16 @@ def plot(rows, path):
 
     figure, axes = plt.subplots(1, 2, figsize=(11, 4.5))
     markers = {"rest": "o", "updated": "s", "full": "^"}
-    for axis, case, title in ((axes[0], "prostate", "built-in prostate vs finest full solve"),
-                              (axes[1], "sphere", "hollow sphere vs Lame")):
-        for level in LEVELS:
+    cases = sorted({row["case"] for row in rows if row["case"].startswith("prostate")})
+    for axis, case_list, title in ((axes[0], cases, "built-in prostate vs finest full solve"),
+                                   (axes[1], ["sphere"], "hollow sphere vs Lame")):
+        for case, level in ((case, level) for case in case_list for level in LEVELS):
             chosen = [row for row in rows if row["case"] == case and row["level"] == level]
             times_ms = [max(row["warm_s"], 1e-6) * 1e3 for row in chosen]
             errors = [max(row["gland_error_pct"], 1e-4) for row in chosen]
-            axis.loglog(times_ms, errors, marker=markers[level], label=level)
+            label = level if case == "sphere" else f"{case.removeprefix('prostate').strip() or 'corotational'} {level}"
+            axis.loglog(times_ms, errors, marker=markers[level], label=label,
+                        linestyle="--" if "neo_hookean" in case else "-")
             for row, time_ms, error in zip(chosen, times_ms, errors, strict=True):
                 axis.annotate(f"{row['size_mm']:g}", (time_ms, error), fontsize=7, xytext=(3, 3),
                               textcoords="offset points")
@@ -207,9 +213,13 @@ def main(argv=None) -> int:
     parser.add_argument("--sphere-sizes-mm", default="6,4,3,2.5")
     parser.add_argument("--inverse-mm", type=float, default=3.0)
     parser.add_argument("--out", default="bench/model_fidelity.png")
+    parser.add_argument("--materials", default="corotational,neo_hookean",
+                        help="material models whose prostate ladder is measured")
     args = parser.parse_args(argv)
     sizes = [float(value) for value in args.sizes_mm.split(",")]
-    rows = prostate_rows(sizes, args.reference_mm)
+    rows = []
+    for material in args.materials.split(","):
+        rows += prostate_rows(sizes, args.reference_mm, material)
     rows += sphere_rows([float(value) for value in args.sphere_sizes_mm.split(",")])
     print_table(rows)
     plot(rows, args.out)

@@ -28,6 +28,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     forward.add_argument("--formulation", choices=("corotational", "linear", "neo_hookean", "gent"), default=None,
                          help="override the scene's material model (gent needs the scene's gent_jm)")
     forward.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
+    forward.add_argument("--out", default=None,
+                         help="also write the deformed tetrahedral mesh (same nodes and groups as `phantom mesh`, "
+                              "in the scene's unit) to this file; the format follows the extension (.msh, .vtu, "
+                              "any meshio format)")
     forward.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     forward.set_defaults(run=run_forward)
 
@@ -78,6 +82,8 @@ def run_forward(args: argparse.Namespace) -> int:
                          f"{model.n_chambers} chambers ({', '.join(model.chamber_names)})")
     state = model.solve([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
     total_s = time.perf_counter() - started
+    if args.out:
+        _write_deformed(model, state, args.out, scene.length_scale_m)
     rest_ml = model.rest_gland_volume_m3 * 1e6
     if args.json:
         print(json.dumps({
@@ -92,6 +98,7 @@ def run_forward(args: argparse.Namespace) -> int:
             "solve_time_s": float(state.solve_time_s),
             "model_time_s": total_s,
             "formulation": state.formulation,
+            "out": args.out,
         }))
         return 0
     print(f"{'chamber':<10} {'pressure kPa':>12} {'rest ml':>9} {'volume ml':>10} {'change ml':>10}")
@@ -103,4 +110,21 @@ def run_forward(args: argparse.Namespace) -> int:
     print(f"{state.formulation} model, {model.nodes_m.shape[0]} nodes, {len(model.tets)} tetrahedra, "
           f"E = {model.material.youngs_modulus_pa / 1e3:g} kPa, nu = {model.material.poisson_ratio:g}: "
           f"{state.iterations} Newton iterations, solve {state.solve_time_s:.3f} s, model total {total_s:.3f} s")
+    if args.out:
+        print(f"wrote the deformed mesh to {args.out}")
     return 0
+
+
+def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
+    """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit."""
+    from pathlib import Path
+
+    from phantom.model.errors import MeshError
+    from phantom.model.mesh import write_mesh
+
+    path = Path(out)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise MeshError(f"cannot create the folder of --out {out}: {error.strerror}") from error
+    write_mesh(model.deformed_mesh(state), path, length_scale_m)

@@ -355,6 +355,25 @@ class PhantomModel:
         scene = None if self.scene is None else dataclasses.replace(self.scene, material=material)
         return PhantomModel(self.mesh, surfaces, self.chamber_names, material, self.source, self.linear_solver, scene)
 
+    # --- deformed shapes ---------------------------------------------------------------------------------
+
+    def deformed_mesh(self, state: State) -> TetMesh:
+        """The model's tetrahedral mesh at ``state`` (same node order, tetrahedra and surface groups as the
+        rest mesh; positions in m), e.g. for ``mesh.write_mesh``."""
+        return TetMesh(np.array(state.positions_m, float), self.tets, dict(self.mesh.surface_groups))
+
+    def deformed_surface(self, pressures_pa, formulation: str | None = None,
+                         initial_positions_m: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The outer surface deformed by gauge pressures (Pa, chamber order): ``(positions_mm, triangles)``,
+        the surface's own nodes (k, 3) in millimetres and its triangles (t, 3) indexing them, normals outward.
+
+        Solves like :meth:`solve` (same arguments and errors). The surface's node order is fixed for a model
+        (``np.unique`` of the outer triangles), so successive calls can be drawn as one changing mesh.
+        """
+        state = self.solve(pressures_pa, formulation=formulation, initial_positions_m=initial_positions_m)
+        surface_nodes, triangles = np.unique(self.outer_triangles, return_inverse=True)
+        return state.positions_m[surface_nodes] * 1e3, triangles.reshape(-1, 3)
+
     # --- volumes and loads -------------------------------------------------------------------------------
 
     def volumes(self, positions_m: np.ndarray) -> tuple[np.ndarray, float]:
@@ -520,25 +539,11 @@ class PhantomModel:
                      time.perf_counter() - started, pressures, formulation, steps, load_positions_m)
 
     def _continuation(self, start_m, pressures, formulation, tolerance, constraints) -> tuple[np.ndarray, int, int]:
-        """Load steps from 0 to the full pressures; a failed step is halved up to MAX_LOAD_BISECTIONS times."""
-        done, increment, iterations, steps, bisections = 0.0, 1.0, 0, 0, 0
-        positions_m = start_m
-        while done < 1.0:
-            target = min(1.0, done + increment)
-            step = self._newton(positions_m, target * pressures, formulation, start_m, tolerance, constraints,
-                                initial_imbalance=steps == 0)
-            iterations += step.iterations
-            if step.converged:
-                positions_m, done, steps = step.positions_m, target, steps + 1
-                increment *= 2.0 if step.iterations < 8 else 1.0
-                continue
-            bisections += 1
-            # A smaller load cannot help a linear model, nor a residual stuck at the rounding floor (the floor
-            # relative to the load only grows as the load shrinks).
-            if bisections > MAX_LOAD_BISECTIONS or formulation == "linear" or step.ill_conditioned:
-                raise self._failure(pressures, target, step)
-            increment /= 2.0
-        return positions_m, iterations, steps
+        """Path following from 0 to the full pressures (``pathfollow``): load steps with a secant predictor,
+        volume control past where a chamber's pressure-volume curve flattens."""
+        from phantom.model.pathfollow import follow_path
+
+        return follow_path(self, start_m, pressures, formulation, tolerance, constraints)
 
     def _failure(self, pressures, target, step: _Step) -> SolveError:
         """A SolveError that names the chamber most likely at fault, the pressure, and what to try; or, when
@@ -585,7 +590,7 @@ class PhantomModel:
         nonlinear = formulation != "linear"
         positions_m = start_positions_m
         arguments = (pressures, formulation, reference_m, constraints)
-        residual, energy, _ = self._residual(positions_m, *arguments)
+        residual, energy, _, hessian = self._residual(positions_m, *arguments)
         # Relative to the load, or to the starting imbalance when that is larger (a start far from rest).
         load_scale = max(_norm(_pressure_load(pressures, self.volume_gradients(reference_m))[constraints.free_mask]),
                          _norm(residual) if initial_imbalance else 0.0,
@@ -617,7 +622,8 @@ class PhantomModel:
                              self._rounding_floor_n(positions_m) / load_scale)
             previous_norm = residual_norm
             if kind == "krylov":
-                hessian = self._tangent_data(positions_m, formulation, pressures, constraints)
+                if hessian is None:
+                    hessian = self._tangent_data(positions_m, formulation, pressures, constraints)
                 multiply = functools.partial(kernels.csr_multiply, self._pattern.indptr, self._pattern.indices, hessian)
                 direction = _preconditioned_cg(multiply, -residual, factorization, KRYLOV_TOLERANCE, KRYLOV_ITERATIONS)
             else:
@@ -627,7 +633,8 @@ class PhantomModel:
                 direction = direction.reshape(-1, 3)
                 slope = _dot(residual, direction.ravel())
             if slope < 0.0:
-                accepted = self._line_search(positions_m, direction, residual_norm, energy, slope, arguments)
+                accepted = self._line_search(positions_m, direction, residual_norm, energy, slope, arguments,
+                                             with_tangent=kind == "krylov")
             if accepted is None:
                 if not nonlinear or kind == "positive":
                     worst = self._worst_element(positions_m + direction)
@@ -636,7 +643,7 @@ class PhantomModel:
                 kind = "exact" if kind in ("rest", "krylov") else "positive"
                 factorization = self._tangent(positions_m, formulation, constraints, pressures, exact=kind == "exact")
                 continue
-            positions_m, residual, energy = accepted
+            positions_m, residual, energy, hessian = accepted
             if kind != "krylov" and nonlinear and _norm(residual) > TANGENT_REFRESH_RATIO * residual_norm:
                 kind, factorization = "exact", self._tangent(positions_m, formulation, constraints, pressures,
                                                              exact=True)
@@ -676,26 +683,31 @@ class PhantomModel:
                 raise
             return self._tangent(positions_m, formulation, constraints, pressures, exact=False)
 
-    def _residual(self, positions_m, pressures, formulation, reference_m, constraints):
-        """Out-of-balance force (3n,), total energy (J) and the smallest det F (inf for the linear model)."""
-        forces, elastic_energy, smallest_det, _ = self._elastic(positions_m, formulation, 0, constraints)
+    def _residual(self, positions_m, pressures, formulation, reference_m, constraints, with_tangent=False):
+        """Out-of-balance force (3n,), total energy (J) and the smallest det F (inf for the linear model); with
+        ``with_tangent``, also the exact tangent's CSR data from the same element pass (else None)."""
+        forces, elastic_energy, smallest_det, tangent = self._elastic(
+            positions_m, formulation, 2 if with_tangent else 0, constraints, pressures if with_tangent else None)
         load, load_energy = self._load_and_energy(positions_m, pressures, formulation, reference_m)
         residual = forces - load
         residual[constraints.dofs] = 0.0
-        return residual, elastic_energy + load_energy, smallest_det
+        return residual, elastic_energy + load_energy, smallest_det, tangent if with_tangent else None
 
-    def _line_search(self, positions_m, direction, residual_norm, energy, slope, arguments):
+    def _line_search(self, positions_m, direction, residual_norm, energy, slope, arguments, with_tangent=False):
         """Backtrack from the full step until the energy decreases (Armijo) or, where energy differences are
-        lost in rounding, the residual does; never accept a step that inverts an element."""
+        lost in rounding, the residual does; never accept a step that inverts an element. With
+        ``with_tangent`` the full step (accepted almost always near convergence) also assembles the tangent in
+        the same element pass, so the next Newton direction needs no second pass over the elements."""
         step = 1.0
         rounding = 1e-13 * (abs(energy) + abs(slope))
-        for _ in range(12):
+        for attempt in range(12):
             trial = positions_m + step * direction
-            residual, trial_energy, smallest_det = self._residual(trial, *arguments)
+            residual, trial_energy, smallest_det, tangent = self._residual(
+                trial, *arguments, with_tangent=with_tangent and attempt == 0)
             admissible = smallest_det > 0 and np.isfinite(trial_energy)
             if admissible and (trial_energy <= energy + 1e-4 * step * slope + rounding
                                or _norm(residual) < residual_norm):
-                return trial, residual, trial_energy
+                return trial, residual, trial_energy, tangent
             step *= 0.5
         return None
 

@@ -36,11 +36,13 @@ DEFAULT_PRESSURE_MAX_PA = 3000.0
 
 def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
     """Node displacement per pascal of each chamber (n_chambers, nodes, 3) at a configuration under pressures:
-    ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the model's exact co-rotational tangent including the follower
-    pressure load's stiffness. Held dofs (rows of ``K_t`` that are a bare diagonal) get no displacement."""
+    ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the model's exact tangent (its hyperelastic law's; otherwise the
+    co-rotational one) including the follower pressure load's stiffness. Held dofs (rows of ``K_t`` that are a
+    bare diagonal) get no displacement."""
     from phantom.model.linsolve import Factorization
 
-    stiffness = model.stiffness_matrix(positions_m, "corotational", pressures_pa=pressures_pa).tocsr()
+    formulation = model.formulation if model.formulation in ("neo_hookean", "gent") else "corotational"
+    stiffness = model.stiffness_matrix(positions_m, formulation, pressures_pa=pressures_pa).tocsr()
     magnitudes = abs(stiffness)
     held = np.asarray(magnitudes.sum(axis=1)).ravel() == magnitudes.diagonal()
     gradients = model.volume_gradients(positions_m)[:-1]

@@ -228,3 +228,17 @@ def test_for_a_small_strain_material_the_updated_level_is_the_full_answer(model)
     np.testing.assert_allclose(chambers, state.chamber_volumes_m3, rtol=1e-9)
     assert gland == pytest.approx(state.gland_volume_m3, rel=1e-9)
     assert updated.counts["tangent_solves"] == 0
+
+
+def test_a_neo_hookean_scene_climbs_the_same_ladder(model):
+    """The hyperelastic levels: rest (the small-strain compliance, the law's own tangent at rest), updated (its
+    exact tangent along the path) and full (the Neo-Hookean solve) approach each other in that order."""
+    neo_hookean = model.with_material(model="neo_hookean")
+    pressures_pa = np.array([3000.0, 2000.0, 1000.0])
+    full = VolumeEstimator(neo_hookean, level="full").volumes(pressures_pa)
+    rest = VolumeEstimator(neo_hookean, level="rest").volumes(pressures_pa)
+    updated = VolumeEstimator(neo_hookean, level="updated", steps=2).volumes(pressures_pa)
+    growth = full[1] - neo_hookean.rest_gland_volume_m3
+    assert rest[1] < full[1]
+    assert abs(updated[1] - full[1]) < 0.5 * abs(rest[1] - full[1])
+    assert abs(updated[1] - full[1]) < 0.01 * growth

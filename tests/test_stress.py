@@ -224,3 +224,64 @@ def test_nan_and_infinite_inputs_raise_clear_errors(tmp_path):
     csv_path.write_text("p0_kpa,measured_ml\n0,26\n1,nan\n2,28\n")
     with pytest.raises(CalibrationError, match="non-finite"):
         load_measurements(csv_path)
+
+
+# --- the hyperelastic materials ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("youngs_modulus_pa", [1.0, 1e6])
+def test_neo_hookean_scales_over_six_decades_of_modulus(youngs_modulus_pa):
+    reference = sphere(size_mm=6.0, model="neo_hookean")
+    scaled = reference.with_material(youngs_modulus_pa=youngs_modulus_pa)
+    expected = reference.solve([0.3 * YOUNGS_MODULUS_PA])
+    state = scaled.solve([0.3 * youngs_modulus_pa])
+    np.testing.assert_allclose(state.positions_m, expected.positions_m, rtol=0, atol=1e-9 * OUTER_MM * 1e-3)
+
+
+def test_neo_hookean_at_poisson_ratio_0_49_converges_and_matches_small_strain():
+    model = sphere(poisson_ratio=0.49, model="neo_hookean")
+    compliance = model.compliance().chamber_m3_per_pa[0, 0]
+    small = model.solve([1e-4 * YOUNGS_MODULUS_PA])
+    change = small.chamber_volumes_m3[0] - model.rest_chamber_volumes_m3[0]
+    assert change == pytest.approx(compliance * 1e-4 * YOUNGS_MODULUS_PA, rel=1e-3)
+    large = model.solve([0.2 * YOUNGS_MODULUS_PA])
+    assert fem.kernels.deformation_determinants(large.positions_m, model.tets, model._dm_inverse).min() > 0
+    assert large.chamber_volumes_m3[0] > 1.1 * model.rest_chamber_volumes_m3[0]  # locked: +15 %
+
+
+@pytest.mark.parametrize("model_name", ["neo_hookean", "gent"])
+def test_a_sliver_tetrahedron_changes_nothing_for_the_hyperelastic_laws(model_name):
+    mesh = generate_hollow_sphere(INNER_MM, OUTER_MM, 6.0)
+    gent_jm = 20.0 if model_name == "gent" else None
+    surfaces = prepare_surfaces(mesh, ["cavity"], None, "stress sphere")
+    model = PhantomModel(mesh, surfaces, ["cavity"], Material(model_name, YOUNGS_MODULUS_PA, 0.45, gent_jm))
+    reference = model.solve([0.2 * YOUNGS_MODULUS_PA])
+    # Add a sliver: a fifth node of an interior tet's face, a hair off it, split into three thin tetrahedra.
+    nodes = mesh.nodes_m
+    tet = mesh.tets[0]
+    a, b, c, d = nodes[tet]
+    normal = np.cross(b - a, c - a)
+    inside = (a + b + c) / 3 + 1e-4 * normal / np.linalg.norm(normal) * np.sign(np.dot(d - a, normal)) * 1e-3
+    new = len(nodes)
+    tets = np.vstack([mesh.tets[1:], [[tet[0], tet[1], new, tet[3]], [tet[1], tet[2], new, tet[3]],
+                                      [tet[2], tet[0], new, tet[3]], [tet[0], tet[2], tet[1], new]]])
+    nodes = np.vstack([nodes, inside])
+    edges = nodes[tets[:, 1:]] - nodes[tets[:, :1]]
+    flipped = np.linalg.det(edges) < 0
+    tets[flipped] = tets[flipped][:, [0, 2, 1, 3]]
+    slivered = TetMesh(nodes, check_tets(nodes, tets, "sliver"), mesh.surface_groups)
+    dets = fem.kernels.element_rest_data(nodes, slivered.tets, YOUNGS_MODULUS_PA, 0.45)[1]
+    assert dets.min() < 1e-4 * np.median(dets)  # a true sliver: 3e-5 of the median volume
+    model_sliver = PhantomModel(slivered, prepare_surfaces(slivered, ["cavity"], None, "sliver"), ["cavity"],
+                                model.material)
+    state = model_sliver.solve([0.2 * YOUNGS_MODULUS_PA])
+    assert state.chamber_volumes_m3[0] == pytest.approx(reference.chamber_volumes_m3[0], rel=1e-3)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -1.0])
+def test_bad_gent_parameters_and_pressures_are_refused(bad):
+    model = sphere(size_mm=6.0, model="neo_hookean")
+    with pytest.raises(SolveError, match="gent_jm"):
+        model.with_material(model="gent", gent_jm=bad)
+    with pytest.raises(SolveError, match="finite"):
+        model.solve([np.nan if not np.isfinite(bad) else np.inf])

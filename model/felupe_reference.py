@@ -1,0 +1,94 @@
+"""The same hyperelastic problem solved with FElupe: the independent reference of the tests and the bench.
+
+FElupe (a test extra, imported only when these functions run) supplies the solid: its linear tetrahedra
+(``RegionTetra``), its compressible Neo-Hookean law (``NeoHookeCompressible``: ``W = mu/2 (tr C - 3) - mu ln J
++ lambda/2 (ln J)^2``, the model's law) and its assembly of forces and tangent. FElupe has no pressure boundary
+for tetrahedra, so the chamber pressure is written here from its definition, independently of the model's
+code: the follower load ``p dV/dx`` and its stiffness ``p d2V/dx2`` of the volume ``V = sum_t x_a . (x_b x
+x_c) / 6`` enclosed by each chamber wall. Newton iterations with load steps and scipy's direct solver; the held
+dofs are the model's (3-2-1, a mesh without a fixed group), so both solve the same discrete problem.
+"""
+
+import numpy as np
+
+
+def _volume_load_and_stiffness(positions_m, triangles, n_dofs):
+    """``dV/dx`` (3n,) and ``d2V/dx2`` (sparse) of the volume enclosed by oriented triangles."""
+    import scipy.sparse as sp
+
+    a, b, c = (positions_m[triangles[:, k]] for k in range(3))
+    gradient = np.zeros((len(positions_m), 3))
+    for corner, (second, third) in enumerate(((b, c), (c, a), (a, b))):
+        np.add.at(gradient, triangles[:, corner], np.cross(second, third) / 6.0)
+    rows, columns, values = [], [], []
+    # d2V / dx_a dx_b = -[x_c]x / 6 for each cyclic order (a, b, c), and its transpose for (b, a).
+    for first, second, third in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
+        x = positions_m[triangles[:, third]]
+        skew = np.zeros((len(triangles), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2] = -x[:, 2], x[:, 1]
+        skew[:, 1, 0], skew[:, 1, 2] = x[:, 2], -x[:, 0]
+        skew[:, 2, 0], skew[:, 2, 1] = -x[:, 1], x[:, 0]
+        block = -skew / 6.0
+        for i in range(3):
+            for j in range(3):
+                for row_node, column_node, value in ((first, second, block[:, i, j]), (second, first, block[:, i, j])):
+                    rows.append(3 * triangles[:, row_node] + (i if row_node == first else j))
+                    columns.append(3 * triangles[:, column_node] + (j if row_node == first else i))
+                    values.append(value)
+    hessian = sp.coo_matrix((np.concatenate(values), (np.concatenate(rows), np.concatenate(columns))),
+                            shape=(n_dofs, n_dofs)).tocsr()
+    return gradient.ravel(), hessian
+
+
+def felupe_solid(model):
+    """FElupe's Neo-Hookean solid on the model's mesh and material: ``(solid, field)``."""
+    import felupe as fem
+
+    mesh = fem.Mesh(model.nodes_m.copy(), model.tets.copy(), "tetra")
+    field = fem.FieldContainer([fem.Field(fem.RegionTetra(mesh), dim=3)])
+    material = model.material
+    umat = fem.NeoHookeCompressible(mu=material.lame_mu_pa, lmbda=material.lame_lambda_pa)
+    return fem.SolidBody(umat, field), field
+
+
+def felupe_forces(model, positions_m) -> np.ndarray:
+    """FElupe's internal nodal forces (N, (n, 3)) of the model's mesh at ``positions_m``."""
+    solid, field = felupe_solid(model)
+    field[0].values[:] = positions_m - model.nodes_m
+    return np.asarray(solid.assemble.vector(field).todense()).reshape(-1, 3)
+
+
+def felupe_solve(model, pressures_pa, load_steps: int = 4, tolerance: float = 1e-10,
+                 max_iterations: int = 30) -> np.ndarray:
+    """Node positions (m, (n, 3)) at equilibrium under the chamber pressures (Pa), solved with FElupe's solid.
+
+    Only for meshes without a fixed group (the model's 3-2-1 held dofs are held here too).
+    """
+    import scipy.sparse.linalg as spla
+
+    if model.fixed_triangles is not None:
+        raise ValueError("felupe_solve compares free meshes (no fixed group): the model's held dofs are used")
+    solid, field = felupe_solid(model)
+    n_dofs = model.nodes_m.size
+    free = np.ones(n_dofs, bool)
+    free[model.held_dofs] = False
+    pressures = np.asarray(pressures_pa, float)
+    for load_factor in np.linspace(0.0, 1.0, load_steps + 1)[1:]:
+        for _ in range(max_iterations):
+            positions_m = model.nodes_m + field[0].values
+            forces = np.asarray(solid.assemble.vector(field).todense()).ravel()
+            stiffness = solid.assemble.matrix(field).tocsr()
+            load = np.zeros(n_dofs)
+            for pressure_pa, triangles in zip(pressures, model.chamber_triangles, strict=True):
+                gradient, hessian = _volume_load_and_stiffness(positions_m, triangles, n_dofs)
+                load += load_factor * pressure_pa * gradient
+                stiffness = stiffness - load_factor * pressure_pa * hessian
+            residual = forces - load
+            if np.linalg.norm(residual[free]) <= tolerance * max(np.linalg.norm(load[free]), 1e-300):
+                break
+            step = np.zeros(n_dofs)
+            step[free] = spla.spsolve(stiffness[free][:, free].tocsc(), -residual[free])
+            field[0].values += step.reshape(-1, 3)
+        else:
+            raise RuntimeError(f"FElupe reference: Newton did not converge at load factor {load_factor:g}")
+    return model.nodes_m + field[0].values

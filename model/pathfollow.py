@@ -1,0 +1,425 @@
+"""Path following for the pressure-controlled solve: load steps with a predictor, then volume control.
+
+The pressures ``p`` are applied as ``lam p`` with the load factor ``lam`` going from 0 to 1; the first step is
+the whole load unless the small-strain estimate grows a chamber by more than ``FIRST_STEP_GROWTH``. While the
+response is stiff, each step is a pressure-controlled Newton solve started from a secant predictor (the last two
+equilibria extrapolated to the new load). Where the pressure-volume curve flattens (the load gained per unit of
+volume falls below ``FLATTENING_RATIO`` of the first step's) or a pressure-controlled step fails, the path
+switches to volume control, as SoftRobots' volume actuation does: the control is the load-weighted chamber
+volume ``c(x) = sum_i w_i V_i(x)`` with ``w = p / max|p|`` (one loaded chamber: exactly its volume), stepped
+forward, and the load factor is the Lagrange multiplier of ``c(x) = c_target``. Each volume-controlled step
+solves the bordered system
+
+    K dx - q dlam = -R,    h . dx = -(c - c_target)
+
+(``K`` the exact tangent with the follower-pressure stiffness, ``q = sum p_i dV_i/dx`` the load per unit lam,
+``h = dc/dx``) by block elimination with one factorisation of K per step (``dx = a + b dlam``, ``K a = -R``,
+``K b = q``), so limit points of the pressure-controlled problem, where K is singular along the volume mode,
+are passed. When lam crosses 1 the crossing is bracketed (Illinois regula falsi on c) and the final state is
+a pressure-controlled equilibrium at the exact pressures.
+
+A target is unreachable when, past its peak, the load factor falls below ``PEAK_DROP`` of it, the control
+volume grows beyond ``MAX_CONTROL_GROWTH`` times its rest value, or a volume step cannot be made without
+inverting an element (or, for Gent, locking its chains) even after halving it ``MAX_VOLUME_BISECTIONS`` times;
+the SolveError then names the chamber, the pressure and volume where the path stopped, and why.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from phantom.model.errors import SolveError
+
+#: Switch to volume control when the secant slope d(lam)/d(c) falls below this fraction of the first step's.
+FLATTENING_RATIO = 0.2
+#: The first load step is cut so that the small-strain estimate grows no chamber by more than this fraction.
+FIRST_STEP_GROWTH = 0.5
+#: Pressure-controlled step failures (each followed by a halved step) before volume control takes over.
+PRESSURE_FAILURES_BEFORE_VOLUME_CONTROL = 1
+MAX_PATH_STEPS = 60
+MAX_VOLUME_BISECTIONS = 8
+#: The smallest volume step (relative to the control's rest value) before the path gives up: the mesh is then
+#: collapsing (an element about to invert, or Gent's chains about to lock), not turning a limit point.
+MIN_CONTROL_STEP = 1e-2
+#: A volume-controlled path stops, unreachable, past a peak of lam when lam falls below this fraction of it...
+PEAK_DROP = 0.5
+#: ... or, for laws without strain stiffening (all but Gent), once lam has fallen on this many volume steps in a
+#: row: their pressure falls for good past the peak (a Neo-Hookean balloon: p ~ 1/lambda - 1/lambda^7), while
+#: Gent's rises again as its chains lock.
+CONFIRMED_FALL_STEPS = 2
+#: ... or when the control volume exceeds this multiple of its rest value.
+MAX_CONTROL_GROWTH = 20.0
+VOLUME_NEWTON_ITERATIONS = 30
+#: Residual of a volume-controlled equilibrium on the path, relative to the full load (the end point is then
+#: solved to the caller's tolerance under pressure control).
+PATH_TOLERANCE = 1e-8
+#: The control volume constraint, relative to the control's rest value.
+CONTROL_TOLERANCE = 1e-11
+#: A volume-controlled step that did not reduce the merit (a squared residual) by this factor refactorises the
+#: tangent.
+REFRESH_RATIO = 1e-2
+CROSSING_ITERATIONS = 30
+#: A volume-controlled Newton solve fails after CRAWL_ITERATIONS steps in a row cut by 2^CRAWL_HALVINGS or more.
+CRAWL_HALVINGS = 4
+CRAWL_ITERATIONS = 2
+VOLUME_KRYLOV_TOLERANCE = 1e-4
+VOLUME_KRYLOV_ITERATIONS = 40
+
+
+@dataclass
+class PathPoint:
+    """An equilibrium on the path: load factor, node positions (m), control volume (m^3)."""
+
+    load_factor: float
+    positions_m: np.ndarray
+    control_m3: float
+
+
+@dataclass
+class _VolumeStep:
+    converged: bool
+    point: PathPoint | None
+    iterations: int
+    reason: str = ""
+    worst_element: int = -1
+
+
+class _Path:
+    """One path-following solve on ``model`` (a PhantomModel) toward ``pressures`` (Pa)."""
+
+    def __init__(self, model, start_m, pressures, formulation, tolerance, constraints):
+        self.model = model
+        self.start_m = start_m
+        self.pressures = pressures
+        self.formulation = formulation
+        self.tolerance = tolerance
+        self.constraints = constraints
+        self.weights = pressures / np.max(np.abs(pressures)) if np.any(pressures) else pressures
+        self.iterations = 0
+        self.steps = 0
+        free = constraints.free_mask
+        self.load_scale = max(float(np.linalg.norm(self._load_vector(start_m)[free])),
+                              1e-12 * model.material.youngs_modulus_pa * model._length_scale_m**2)
+        self.control_rest_m3 = abs(self._control(start_m)) or float(np.max(model.rest_chamber_volumes_m3))
+        self.peak: PathPoint | None = None
+
+    # --- quantities --------------------------------------------------------------------------------------
+
+    def _control(self, positions_m) -> float:
+        chambers, _ = self.model.volumes(positions_m)
+        return float(self.weights @ chambers)
+
+    def _load_vector(self, positions_m) -> np.ndarray:
+        gradients = self.model.volume_gradients(positions_m)[: self.model.n_chambers]
+        load = self.pressures @ gradients
+        load[self.constraints.dofs] = 0.0
+        return load
+
+    def _point(self, load_factor, positions_m) -> PathPoint:
+        return PathPoint(float(load_factor), positions_m, self._control(positions_m))
+
+    def _upright(self, positions_m) -> bool:
+        return self.model._worst_element(positions_m) < 0
+
+    # --- the whole path ----------------------------------------------------------------------------------
+
+    def run(self) -> np.ndarray:
+        points = [self._point(0.0, self.start_m)]
+        if self.formulation == "linear":
+            return self._pressure_controlled(points, allow_switch=False)
+        return self._pressure_controlled(points, allow_switch=True)
+
+    def _predict(self, points, load_factor) -> np.ndarray:
+        """Secant extrapolation of the last two equilibria to ``load_factor`` (the last one when that would
+        invert an element, or with a single point)."""
+        if len(points) < 2:
+            return points[-1].positions_m
+        last, before = points[-1], points[-2]
+        ratio = (load_factor - last.load_factor) / (last.load_factor - before.load_factor)
+        guess = last.positions_m + ratio * (last.positions_m - before.positions_m)
+        return guess if self._upright(guess) else last.positions_m
+
+    def _pressure_controlled(self, points, allow_switch) -> np.ndarray:
+        from phantom.model.fem import MAX_LOAD_BISECTIONS
+
+        increment, failures, first_slope = self._first_increment() if allow_switch else 1.0, 0, None
+        while points[-1].load_factor < 1.0:
+            done = points[-1].load_factor
+            target = min(1.0, done + increment)
+            step = self.model._newton(self._predict(points, target), target * self.pressures, self.formulation,
+                                      self.start_m, self.tolerance, self.constraints,
+                                      initial_imbalance=self.steps == 0)
+            self.iterations += step.iterations
+            if step.converged:
+                points.append(self._point(target, step.positions_m))
+                self.steps += 1
+                increment *= 2.0 if step.iterations < 8 else 1.0
+                slope = self._slope(points[-2], points[-1])
+                first_slope = slope if first_slope is None else first_slope
+                if allow_switch and target < 1.0 and slope < FLATTENING_RATIO * first_slope:
+                    return self._volume_controlled(points)
+                continue
+            failures += 1
+            # A smaller load cannot help a linear model, nor a residual stuck at the rounding floor (the floor
+            # relative to the load only grows as the load shrinks).
+            if not allow_switch or step.ill_conditioned or failures > MAX_LOAD_BISECTIONS:
+                raise self.model._failure(self.pressures, target, step)
+            if failures >= PRESSURE_FAILURES_BEFORE_VOLUME_CONTROL:
+                return self._volume_controlled(points)
+            increment /= 2.0
+        return points[-1].positions_m
+
+    def _first_increment(self) -> float:
+        """The whole load at once, unless the small-strain answer (one back-substitution with the rest factor)
+        grows a chamber by more than FIRST_STEP_GROWTH of its volume: then the share of the load that would."""
+        model = self.model
+        if self.constraints.key != model._rest_constraints.key:
+            return 1.0
+        displacement = model.rest_factorization(self.constraints).solve(self._load_vector(self.start_m))
+        gradients = model.volume_gradients(self.start_m)[: model.n_chambers]
+        chambers, _ = model.volumes(self.start_m)
+        growth = float(np.max(np.abs(gradients @ displacement) / chambers))
+        return 1.0 if growth <= FIRST_STEP_GROWTH else FIRST_STEP_GROWTH / growth
+
+    def _slope(self, before: PathPoint, after: PathPoint) -> float:
+        """d(lam)/d(c), in units of the rest control volume (infinite when the volume did not move)."""
+        change = (after.control_m3 - before.control_m3) / self.control_rest_m3
+        return (after.load_factor - before.load_factor) / change if change > 0 else np.inf
+
+    # --- volume control ----------------------------------------------------------------------------------
+
+    def _tangent_direction(self, point: PathPoint):
+        """d(positions)/d(c) and d(lam)/d(c) at an equilibrium, from ``K b = q``: ``dx/dc = b / (h . b)``."""
+        factor = self.model._tangent(point.positions_m, self.formulation, self.constraints,
+                                     point.load_factor * self.pressures, exact=True)
+        b = factor.solve(self._load_vector(point.positions_m))
+        curvature = float(self._control_gradient(point.positions_m) @ b)
+        if not np.isfinite(curvature) or curvature <= 0:
+            return None, None
+        return b.reshape(-1, 3) / curvature, 1.0 / curvature
+
+    def _control_gradient(self, positions_m) -> np.ndarray:
+        gradients = self.model.volume_gradients(positions_m)[: self.model.n_chambers]
+        gradient = self.weights @ gradients
+        gradient[self.constraints.dofs] = 0.0
+        return gradient
+
+    def _volume_controlled(self, points) -> np.ndarray:
+        point = points[-1]
+        previous = points[-2] if len(points) > 1 else None
+        if previous is not None and point.control_m3 > previous.control_m3:
+            control_step = point.control_m3 - previous.control_m3
+        else:
+            control_step = 0.05 * self.control_rest_m3
+        history = [p for p in (previous, point) if p is not None]
+        bisections = falling = 0
+        self.peak = max(points, key=lambda p: p.load_factor)
+        for _ in range(MAX_PATH_STEPS):
+            target = point.control_m3 + control_step
+            guess_m, guess_factor = self._volume_guess(history, point, target)
+            worst = self.model._worst_element(guess_m)
+            if worst >= 0:  # the predictor itself inverts an element: a shorter step, no Newton spent
+                step = _VolumeStep(False, None, 0, "solve would invert elements", worst)
+            else:
+                step = self._volume_newton(guess_m, guess_factor, target)
+            self.iterations += step.iterations
+            if not step.converged:
+                bisections += 1
+                control_step /= 2.0
+                if bisections > MAX_VOLUME_BISECTIONS or control_step < MIN_CONTROL_STEP * self.control_rest_m3:
+                    raise self._unreachable(point, f"the {step.reason} one volume step further",
+                                            step.worst_element)
+                continue
+            new = step.point
+            self.steps += 1
+            history = [point, new]
+            if new.load_factor >= 1.0:
+                return self._cross(point, new)
+            if new.load_factor > self.peak.load_factor:
+                self.peak = new
+            point = new
+            falling = falling + 1 if new.load_factor < history[0].load_factor else 0
+            if point.load_factor < PEAK_DROP * self.peak.load_factor or (
+                    falling >= CONFIRMED_FALL_STEPS and self.formulation != "gent"):
+                raise self._unreachable(point, "past the limit point")
+            if point.control_m3 > MAX_CONTROL_GROWTH * self.control_rest_m3:
+                raise self._unreachable(point, "the volume grows without the pressure reaching the target")
+            if step.iterations <= 5 and bisections == 0:
+                control_step *= 2.0
+            bisections = 0
+        raise self._unreachable(point, f"the path took more than {MAX_PATH_STEPS} volume steps")
+
+    def _volume_guess(self, history, point, target_m3):
+        """Predictor for a volume step: secant through the last two equilibria, else the tangent at the last
+        (the caller checks that it inverts no element)."""
+        if len(history) == 2 and history[1].control_m3 > history[0].control_m3:
+            before, last = history
+            ratio = (target_m3 - last.control_m3) / (last.control_m3 - before.control_m3)
+            guess = last.positions_m + ratio * (last.positions_m - before.positions_m)
+            factor = last.load_factor + ratio * (last.load_factor - before.load_factor)
+        else:
+            direction, factor_rate = self._tangent_direction(point)
+            if direction is None:
+                return point.positions_m, point.load_factor
+            change = target_m3 - point.control_m3
+            guess = point.positions_m + change * direction
+            factor = point.load_factor + change * factor_rate
+        return guess, factor
+
+    def _volume_newton(self, positions_m, load_factor, target_m3) -> _VolumeStep:
+        """Equilibrium with ``c(x) = target_m3``, the load factor free (bordered Newton, module docstring)."""
+        model, free = self.model, self.constraints.free_mask
+        # Solves with K: conjugate gradients preconditioned by the rest factor while they converge (the
+        # tangent is close to it until the strain is large), then a factorisation of K kept while it helps.
+        factor, fresh, krylov = None, False, True
+        merit_before, crawling = np.inf, 0
+        state = self._volume_residual(positions_m, load_factor, target_m3)
+        for iteration in range(1, VOLUME_NEWTON_ITERATIONS + 1):
+            residual, gap, merit, _ = state
+            if (np.linalg.norm(residual[free]) <= PATH_TOLERANCE * self.load_scale
+                    and abs(gap) <= CONTROL_TOLERANCE * self.control_rest_m3):
+                return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1)
+            load = self._load_vector(positions_m)
+            solutions = self._krylov_solves(positions_m, load_factor, (-residual, load)) if krylov else None
+            if solutions is None:
+                krylov = False
+                if factor is None or merit > REFRESH_RATIO * merit_before and not fresh:
+                    factor = model._tangent(positions_m, self.formulation, self.constraints,
+                                            load_factor * self.pressures, exact=True)
+                    fresh = True
+                solutions = factor.solve(np.column_stack([-residual, load]))
+                solutions = solutions[:, 0], solutions[:, 1]
+            merit_before = merit
+            a, b = solutions
+            h = self._control_gradient(positions_m)
+            denominator = float(h @ b)
+            if not np.isfinite(denominator) or denominator == 0.0:
+                return _VolumeStep(False, None, iteration, "the bordered system is singular")
+            change_factor = (-gap - float(h @ a)) / denominator
+            change = (a + b * change_factor).reshape(-1, 3)
+            accepted = None
+            for halving in range(12):
+                scale = 0.5**halving
+                trial_m = positions_m + scale * change
+                trial = self._volume_residual(trial_m, load_factor + scale * change_factor, target_m3)
+                if trial[3] and trial[2] < merit:
+                    accepted = trial_m, load_factor + scale * change_factor, trial
+                    break
+            if accepted is None:
+                if krylov or not fresh:
+                    krylov, factor = False, None
+                    continue
+                worst = model._worst_element(positions_m + change)
+                reason = "solve would invert elements" if worst >= 0 else "volume-controlled solve found no descent"
+                return _VolumeStep(False, None, iteration, reason, worst)
+            positions_m, load_factor, state = accepted
+            fresh = False
+            # Crawling: tiny admissible steps in a row mean an element is being squeezed flat (or a Gent element
+            # is locking) on the way to the target volume; a smaller volume step is the cure, not more iterations.
+            crawling = crawling + 1 if halving >= CRAWL_HALVINGS else 0
+            if crawling >= CRAWL_ITERATIONS:
+                worst = model._worst_element(positions_m + change)
+                return _VolumeStep(False, None, iteration, "solve would invert elements" if worst >= 0 else
+                                   "volume-controlled solve is crawling", worst)
+        return _VolumeStep(False, None, VOLUME_NEWTON_ITERATIONS, "volume-controlled solve did not converge",
+                           model._worst_element(positions_m))
+
+    def _krylov_solves(self, positions_m, load_factor, right_hand_sides):
+        """``K^-1 v`` for each v by CG on the exact tangent preconditioned with the rest factor, or None when
+        one does not converge in the budget (see fem._preconditioned_cg)."""
+        from phantom.model import fem, kernels
+
+        model = self.model
+        if self.constraints.key != model._rest_constraints.key:
+            return None
+        hessian = model._tangent_data(positions_m, self.formulation, load_factor * self.pressures, self.constraints)
+        pattern = model._pattern
+
+        def multiply(vector):
+            return kernels.csr_multiply(pattern.indptr, pattern.indices, hessian, vector)
+
+        preconditioner = model.rest_factorization(self.constraints)
+        solutions = []
+        for rhs in right_hand_sides:
+            solution = fem._preconditioned_cg(multiply, rhs, preconditioner, VOLUME_KRYLOV_TOLERANCE,
+                                              VOLUME_KRYLOV_ITERATIONS)
+            if solution is None:
+                return None
+            solutions.append(solution)
+        return solutions
+
+    def _volume_residual(self, positions_m, load_factor, target_m3):
+        """Out-of-balance force (3n,), constraint gap (m^3), merit (dimensionless) and admissibility (no
+        element at det F <= 0, finite energy)."""
+        residual, energy, smallest_det, _ = self.model._residual(positions_m, load_factor * self.pressures,
+                                                              self.formulation, self.start_m, self.constraints)
+        gap = self._control(positions_m) - target_m3
+        free = self.constraints.free_mask
+        merit = ((np.linalg.norm(residual[free]) / self.load_scale) ** 2 + (gap / self.control_rest_m3) ** 2)
+        admissible = bool(smallest_det > 0 and np.isfinite(energy))
+        return residual, gap, merit, admissible
+
+    def _cross(self, below: PathPoint, above: PathPoint) -> np.ndarray:
+        """The equilibrium at lam = 1 between two path points: Illinois regula falsi on the control volume,
+        then a pressure-controlled Newton solve at the exact pressures from the bracketed state."""
+        low, high = below, above
+        low_weight = high_weight = 1.0
+        best = above
+        for _ in range(CROSSING_ITERATIONS):
+            if abs(best.load_factor - 1.0) <= 1e-6:
+                break
+            low_gap, high_gap = (low.load_factor - 1.0) * low_weight, (high.load_factor - 1.0) * high_weight
+            target = low.control_m3 + (high.control_m3 - low.control_m3) * low_gap / (low_gap - high_gap)
+            ratio = (target - low.control_m3) / (high.control_m3 - low.control_m3)
+            guess = low.positions_m + ratio * (high.positions_m - low.positions_m)
+            if not self._upright(guess):
+                guess = low.positions_m
+            step = self._volume_newton(guess, low.load_factor + ratio * (high.load_factor - low.load_factor), target)
+            self.iterations += step.iterations
+            if not step.converged:
+                break
+            best = step.point
+            if best.load_factor < 1.0:
+                low, low_weight, high_weight = best, 1.0, high_weight * 0.5
+            else:
+                high, high_weight, low_weight = best, 1.0, low_weight * 0.5
+        final = self.model._newton(best.positions_m, self.pressures, self.formulation, self.start_m, self.tolerance,
+                                   self.constraints)
+        self.iterations += final.iterations
+        if final.converged:
+            self.steps += 1
+            return final.positions_m
+        raise self._unreachable(best, f"the {final.reason} at the exact pressures", final.worst_element)
+
+    def _unreachable(self, point: PathPoint, why: str, worst_element: int = -1) -> SolveError:
+        """The chamber that moved most (weighted), where the path stopped, and why."""
+        model = self.model
+        chambers, _ = model.volumes(point.positions_m)
+        growth = np.abs(self.weights) * (chambers / model.rest_chamber_volumes_m3 - 1.0)
+        chamber = int(np.argmax(growth))
+        name = model.chamber_names[chamber]
+        target_kpa = self.pressures[chamber] / 1e3
+        reached_kpa = point.load_factor * target_kpa
+        peak = self.peak or point
+        peak_volume_ml = model.volumes(peak.positions_m)[0][chamber] * 1e6
+        ratio = abs(self.pressures[chamber]) / model.material.youngs_modulus_pa
+        detail = why
+        if why == "past the limit point":
+            detail = (f"its pressure-volume curve peaks at {peak.load_factor * target_kpa:.4g} kPa "
+                      f"({peak_volume_ml:.4g} ml) and falls beyond (a limit point: a pressure source would burst "
+                      f"it through)")
+        elif worst_element >= 0:
+            detail = f"{why} (element {worst_element} at det F <= 0)"
+        return SolveError(
+            f"chamber {chamber} ({name!r} at {target_kpa:g} kPa, p/E = {ratio:.3g}) is out of reach: {detail}; "
+            f"the path stopped at {reached_kpa:.4g} kPa and {chambers[chamber] * 1e6:.4g} ml (rest "
+            f"{model.rest_chamber_volumes_m3[chamber] * 1e6:.4g} ml, after {self.steps} accepted steps); try a lower "
+            f"pressure in that chamber, a stiffer or strain-stiffening material (gent), or a finer mesh (--size-mm)")
+
+
+def follow_path(model, start_m, pressures, formulation, tolerance, constraints) -> tuple[np.ndarray, int, int]:
+    """Equilibrium of ``model`` at ``pressures`` (Pa) from ``start_m`` by path following (module docstring):
+    returns the positions (m), the Newton iterations and the accepted steps."""
+    path = _Path(model, start_m, np.asarray(pressures, float), formulation, tolerance, constraints)
+    positions_m = path.run()
+    return positions_m, path.iterations, path.steps

@@ -1,0 +1,71 @@
+"""The Neo-Hookean model against FElupe (an independent hyperelastic FEM library) on the same meshes."""
+
+import numpy as np
+import pytest
+
+from phantom.model import kernels
+from phantom.model.felupe_reference import felupe_forces, felupe_solve
+from phantom.model.fem import PhantomModel
+from phantom.model.mesh import prepare_surfaces
+from phantom.model.scene import Material
+from phantom.model.shapes import builtin_prostate, generate_hollow_sphere
+
+YOUNGS_MODULUS_PA = 50e3
+CHAMBERS = ["chamber0", "chamber1", "chamber2"]
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    mesh = generate_hollow_sphere(10.0, 20.0, 6.0)
+    return PhantomModel(mesh, prepare_surfaces(mesh, ["cavity"], None, "sphere"), ["cavity"],
+                        Material("neo_hookean", YOUNGS_MODULUS_PA, 0.45))
+
+
+@pytest.fixture(scope="module")
+def free_prostate():
+    """The built-in prostate at 6 mm without its fixation (3-2-1 held dofs, which the reference holds too)."""
+    mesh = builtin_prostate(6.0)
+    return PhantomModel(mesh, prepare_surfaces(mesh, CHAMBERS, None, "prostate"), CHAMBERS,
+                        Material("neo_hookean", YOUNGS_MODULUS_PA, 0.45))
+
+
+def test_element_forces_equal_felupes(sphere):
+    stretch = np.array([[1.3, 0.2, 0.0], [0.0, 0.8, 0.1], [0.05, 0.0, 1.15]])
+    positions = sphere.nodes_m @ stretch.T + 0.3 * sphere.nodes_m[:, [1, 2, 0]] ** 2
+    material = sphere.material
+    dm_inverse, volumes, _ = kernels.element_rest_data(sphere.nodes_m, sphere.tets, YOUNGS_MODULUS_PA, 0.45)
+    ours, energy, _ = kernels.hyperelastic_forces(positions, sphere.tets, dm_inverse, volumes, material.lame_mu_pa,
+                                                  material.lame_lambda_pa, 0.0, 0, np.zeros((1, 12, 12), np.int64),
+                                                  np.zeros(1))
+    assert np.isfinite(energy)
+    reference = felupe_forces(sphere, positions)
+    assert np.abs(ours - reference).max() < 1e-10 * np.abs(reference).max()
+
+
+def growths(model, positions_m):
+    return model.volumes(positions_m)[0] / model.rest_chamber_volumes_m3 - 1.0
+
+
+@pytest.mark.parametrize("pressure_over_e", [0.1, 0.25])
+def test_sphere_volume_change_matches_felupe_beyond_50_percent_growth(sphere, pressure_over_e):
+    pressures = [pressure_over_e * YOUNGS_MODULUS_PA]
+    ours = growths(sphere, sphere.solve(pressures).positions_m)
+    reference = growths(sphere, felupe_solve(sphere, pressures))
+    if pressure_over_e == 0.25:
+        assert reference[0] > 0.5, reference
+    # Same discrete problem: the two agree to the solvers' tolerances, far inside the 0.5 % asked.
+    assert ours == pytest.approx(reference, rel=1e-6)
+
+
+def test_prostate_volume_changes_match_felupe(free_prostate):
+    pressures = np.array([0.16, 0.08, 0.12]) * YOUNGS_MODULUS_PA
+    state = free_prostate.solve(pressures)
+    reference_m = felupe_solve(free_prostate, pressures, load_steps=2)
+    ours, reference = growths(free_prostate, state.positions_m), growths(free_prostate, reference_m)
+    print(f"\nchamber growths: model {ours}, FElupe {reference}")
+    assert reference[0] > 0.5, reference
+    # The issue asks for 0.5 %; the same discrete problem agrees to the solvers' tolerances.
+    assert ours == pytest.approx(reference, rel=1e-6)
+    rest_m3 = free_prostate.rest_gland_volume_m3
+    gland, reference_gland = (free_prostate.volumes(x)[1] - rest_m3 for x in (state.positions_m, reference_m))
+    assert gland == pytest.approx(reference_gland, rel=1e-6)

@@ -1,0 +1,84 @@
+"""The deformed mesh as output: `phantom forward --out` (read back with meshio) and the deformed outer surface."""
+
+import json
+
+import meshio
+import numpy as np
+import pytest
+
+from phantom.host.cli import main
+from phantom.model import PhantomModel, load_scene
+from phantom.model.mesh import enclosed_volume_m3, read_mesh
+
+SIZE = ["--size-mm", "5"]
+
+
+@pytest.fixture(scope="module")
+def model():
+    return PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=5.0).with_material(model="neo_hookean")
+
+
+def forward_json(capsys, *arguments) -> dict:
+    assert main(["forward", "--scene", "builtin", *SIZE, "--formulation", "neo_hookean", "--json", *arguments]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh", ".vtk"])
+def test_forward_writes_the_deformed_mesh_in_the_format_of_its_extension(tmp_path, capsys, model, suffix):
+    rest_path, out = tmp_path / f"rest{suffix}", tmp_path / "missing" / "folder" / f"deformed{suffix}"
+    assert main(["mesh", "--scene", "builtin", *SIZE, "--out", str(rest_path)]) == 0
+    capsys.readouterr()
+    answer = forward_json(capsys, "--pressures-kpa", "4,2,2", "--out", str(out))
+    assert answer["out"] == str(out)
+    rest, deformed = meshio.read(rest_path), meshio.read(out)
+    # Same nodes in the same order, same tetrahedra and the same groups: only the positions moved (mm).
+    assert deformed.points.shape == rest.points.shape == model.nodes_m.shape
+    np.testing.assert_allclose(rest.points, model.nodes_m * 1e3, atol=1e-9)
+    for kind in ("tetra", "triangle"):
+        np.testing.assert_array_equal(deformed.cells_dict[kind], rest.cells_dict[kind])
+    if suffix != ".vtk":  # legacy VTK keeps no group names; .vtu keeps them as cell data, .msh as groups
+        groups = read_mesh(out, 1e-3).surface_groups
+        assert groups.keys() == model.mesh.surface_groups.keys()
+        for name, triangles in model.mesh.surface_groups.items():
+            np.testing.assert_array_equal(np.sort(groups[name], axis=1), np.sort(triangles, axis=1))
+    state = model.solve([4e3, 2e3, 2e3])
+    np.testing.assert_allclose(deformed.points, state.positions_m * 1e3, atol=1e-9)
+    # The file's own geometry gives back the reported volumes.
+    for triangles, volume_ml in zip(model.chamber_triangles, answer["chamber_volumes_ml"], strict=True):
+        assert enclosed_volume_m3(deformed.points * 1e-3, triangles) * 1e6 == pytest.approx(volume_ml, rel=1e-9)
+
+
+def test_an_unwritable_output_is_a_one_line_error(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    code = main(["forward", "--scene", "builtin", *SIZE, "--pressures-kpa", "1,1,1", "--out",
+                 str(blocker / "x.vtu")])
+    error = capsys.readouterr().err.strip()
+    assert code == 2 and "--out" in error and "\n" not in error
+
+
+def test_the_deformed_outer_surface_encloses_the_gland_volume(model):
+    pressures = np.array([4e3, 2e3, 2e3])
+    positions_mm, triangles = model.deformed_surface(pressures)
+    state = model.solve(pressures)
+    assert triangles.shape[1] == 3 and triangles.max() == len(positions_mm) - 1
+    assert enclosed_volume_m3(positions_mm * 1e-3, triangles) == pytest.approx(state.gland_volume_m3, rel=1e-12)
+    rest_mm, rest_triangles = model.deformed_surface([0, 0, 0])
+    np.testing.assert_array_equal(rest_triangles, triangles)
+    assert enclosed_volume_m3(rest_mm * 1e-3, triangles) == pytest.approx(model.rest_gland_volume_m3, rel=1e-12)
+
+
+@pytest.mark.parametrize("material", ['model = "neo_hookean"', 'model = "gent"\ngent_jm = 20.0'])
+def test_forward_on_a_tagged_mesh_scene_with_a_hyperelastic_material(tmp_path, capsys, material):
+    assert main(["mesh", "--scene", "builtin", *SIZE, "--out", str(tmp_path / "prostate.msh")]) == 0
+    (tmp_path / "scene.toml").write_text(
+        '[phantom]\nmesh = "prostate.msh"\nunits = "mm"\nchambers = ["chamber0", "chamber1", "chamber2"]\n'
+        f'fixed = "fixed"\n\n[material]\n{material}\nyoungs_modulus_kpa = 50.0\npoisson_ratio = 0.45\n')
+    capsys.readouterr()
+    assert main(["forward", "--scene", str(tmp_path / "scene.toml"), "--pressures-kpa", "4,2,2", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    scene = load_scene(tmp_path / "scene.toml")
+    expected = PhantomModel.from_scene(scene).solve([4e3, 2e3, 2e3])
+    assert answer["formulation"] == scene.material.model
+    assert answer["chamber_volumes_ml"] == pytest.approx(list(expected.chamber_volumes_m3 * 1e6), rel=1e-12)
+    assert all(v > r for v, r in zip(answer["chamber_volumes_ml"], answer["rest_chamber_volumes_ml"], strict=True))

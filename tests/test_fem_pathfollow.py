@@ -1,0 +1,78 @@
+"""Path following: limit points are followed (volume control), an unreachable target is named and explained."""
+
+import time
+
+import numpy as np
+import pytest
+
+from phantom.model import SolveError, kernels
+from phantom.model.fem import PhantomModel
+from phantom.model.mesh import prepare_surfaces, volume_gradient_m2
+from phantom.model.scene import Material
+from phantom.model.shapes import generate_hollow_sphere
+
+YOUNGS_MODULUS_PA = 50e3
+
+
+@pytest.fixture(scope="module")
+def sphere_mesh():
+    mesh = generate_hollow_sphere(10.0, 20.0, 6.0)
+    return mesh, prepare_surfaces(mesh, ["cavity"], None, "sphere")
+
+
+def sphere(sphere_mesh, model, gent_jm=None):
+    mesh, surfaces = sphere_mesh
+    return PhantomModel(mesh, surfaces, ["cavity"], Material(model, YOUNGS_MODULUS_PA, 0.45, gent_jm))
+
+
+def assert_equilibrium(model, state, gent_jm=None):
+    """All elements upright and the element forces balancing the follower pressure to 1e-8 of the load."""
+    dm_inverse, volumes, _ = kernels.element_rest_data(model.nodes_m, model.tets, YOUNGS_MODULUS_PA, 0.45)
+    assert kernels.deformation_determinants(state.positions_m, model.tets, dm_inverse).min() > 0
+    material = model.material
+    forces, energy, _ = kernels.hyperelastic_forces(
+        state.positions_m, model.tets, dm_inverse, volumes, material.lame_mu_pa, material.lame_lambda_pa,
+        0.0 if gent_jm is None else 1.0 / gent_jm, 0, np.zeros((1, 12, 12), np.int64), np.zeros(1))
+    load = state.pressures_pa[0] * volume_gradient_m2(state.positions_m, model.chamber_triangles[0])
+    free = np.ones(load.size, bool)
+    free[model.held_dofs] = False
+    assert np.isfinite(energy)
+    assert np.linalg.norm((forces - load).ravel()[free]) < 1e-8 * np.linalg.norm(load)
+
+
+def test_a_flattening_pressure_volume_curve_is_followed_by_volume_control(sphere_mesh):
+    """Gent (Jm = 20) on the thick sphere: the cavity's pressure-volume curve nearly flattens between 4 and 9
+    times the rest volume (p/E 0.43-0.46); the path switches to volume control there and ends in an exact
+    pressure-controlled equilibrium on the far side, about 12 times the rest volume."""
+    model = sphere(sphere_mesh, "gent", 20.0)
+    state = model.solve([0.47 * YOUNGS_MODULUS_PA])
+    assert_equilibrium(model, state, 20.0)
+    growth = state.chamber_volumes_m3[0] / model.rest_chamber_volumes_m3[0]
+    assert 8 < growth < 16, growth
+    assert state.load_steps >= 4
+
+
+def test_just_below_a_limit_point_the_target_is_reached(sphere_mesh):
+    """Neo-Hookean peaks near p/E = 0.41 on this mesh; 0.39 lies on the rising branch close to it, where the
+    curve has flattened to a fifth of its initial slope."""
+    model = sphere(sphere_mesh, "neo_hookean")
+    state = model.solve([0.39 * YOUNGS_MODULUS_PA])
+    assert_equilibrium(model, state)
+
+
+def test_past_a_limit_point_the_error_names_the_chamber_the_peak_and_where_it_stopped(sphere_mesh):
+    model = sphere(sphere_mesh, "neo_hookean")
+    started = time.perf_counter()
+    with pytest.raises(SolveError) as caught:
+        model.solve([0.6 * YOUNGS_MODULUS_PA])
+    message = str(caught.value)
+    print(f"\n{time.perf_counter() - started:.2f} s: {message}")
+    assert message.startswith("chamber 0 ('cavity' at 30 kPa, p/E = 0.6) is out of reach")
+    assert "limit point" in message and "peaks at" in message and "stopped at" in message and "ml" in message
+    peak_kpa = float(message.split("peaks at ")[1].split(" kPa")[0])
+    stopped_kpa = float(message.split("stopped at ")[1].split(" kPa")[0])
+    # The peak lies between what converged under pressure control and the target, the stop just past it.
+    below = model.solve([0.4 * YOUNGS_MODULUS_PA])
+    assert 20.0 < peak_kpa < 30.0 and 0.8 * peak_kpa < stopped_kpa < peak_kpa
+    stopped_ml = float(message.split("stopped at ")[1].split(" and ")[1].split(" ml")[0])
+    assert stopped_ml > below.chamber_volumes_m3[0] * 1e6
