@@ -41,13 +41,13 @@ LAG_S = (0.45, 0.15, 0.15)
 
 
 def record(path: Path, names: list[str]) -> None:
-    from phantom.host.recording import Recorder, surface_mesh
+    from phantom.host.recording import Recorder
     from phantom.model import PhantomModel, load_scene
     from phantom.model.inverse import InverseSolver, Target
 
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
     solver = InverseSolver(model)
-    used, triangles = surface_mesh(model.nodes_m, model.outer_triangles)
+    used, triangles = model.outer_surface()
     recorder = Recorder(names, save_path=path)
     recorder.open()
     recorder.log_rest_surface(model.nodes_m[used] * 1e3, triangles)

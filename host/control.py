@@ -98,7 +98,8 @@ class LoadedModel:
         self.chamber_names = list(self.model.chamber_names)
         self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3
         self.wants_shape = bool(self.scene.outputs.shape)
-        self._surface_nodes: Any = None
+        #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
+        self._outer_surface = self.model.outer_surface()
 
     def warm_up(self) -> None:
         """Solve one reachable and one unreachable gland target, so that the first request finds the QPs set
@@ -147,24 +148,14 @@ class LoadedModel:
         chamber_m3, gland_m3 = self.estimator.volumes(np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None))
         return (np.asarray(chamber_m3) * ML_PER_M3).tolist(), float(gland_m3) * ML_PER_M3
 
-    def _surface(self) -> tuple[np.ndarray, np.ndarray]:
-        """The outer surface as its own mesh: (used node indices, triangles renumbered into them)."""
-        if self._surface_nodes is None:
-            triangles = np.asarray(self.model.outer_triangles)
-            used = np.unique(triangles)
-            renumber = np.full(len(self.model.nodes_m), -1, dtype=np.int64)
-            renumber[used] = np.arange(len(used))
-            self._surface_nodes = (used, renumber[triangles])
-        return self._surface_nodes
-
     def rest_surface_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """The outer surface at rest: positions (mm, (n, 3)) and triangles ((k, 3) indices into them)."""
-        used, triangles = self._surface()
+        used, triangles = self._outer_surface
         return np.asarray(self.model.nodes_m)[used] * MM_PER_M, triangles
 
     def outer_surface_mm(self, pressures_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The deformed outer surface at pressures (Pa): positions (mm) and triangles; a shape is formed only here."""
-        used, triangles = self._surface()
+        used, triangles = self._outer_surface
         positions_m = self.estimator.shape(np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None))
         return np.asarray(positions_m)[used] * MM_PER_M, triangles
 

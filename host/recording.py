@@ -372,17 +372,6 @@ def _check_writable(path: Path) -> None:
         raise RecordingError(f"cannot write the recording {path}: {reason}; {remedy}") from None
 
 
-def surface_mesh(nodes_m: np.ndarray, outer_triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The outer surface as its own small mesh: (used node indices, triangles renumbered into them).
-
-    Logging only the surface nodes keeps each mesh message small (the interior nodes are never drawn).
-    """
-    used = np.unique(outer_triangles)
-    renumber = np.full(len(nodes_m), -1, dtype=np.int64)
-    renumber[used] = np.arange(len(used))
-    return used, renumber[outer_triangles]
-
-
 #: Timelines read_rrd converts to seconds.
 TIMELINES = ("time", "scene_time")
 

@@ -31,7 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     forward.add_argument("--out", default=None,
                          help="also write the deformed tetrahedral mesh (same nodes and groups as `phantom mesh`, "
                               "in the scene's unit) to this file; the format follows the extension (.msh, .vtu, "
-                              "any meshio format)")
+                              "any meshio format); a surface format (.stl, .obj, .ply, .off) gets the deformed "
+                              "outer surface of the gland, which compare-scan and robot planners read")
     forward.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     forward.set_defaults(run=run_forward)
 
@@ -115,8 +116,14 @@ def run_forward(args: argparse.Namespace) -> int:
     return 0
 
 
+#: Formats that hold triangles only: ``--out`` writes the deformed outer surface to them (a tetrahedral mesh's
+#: surface groups alone, the chamber walls and the fixation, would not describe the gland).
+SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
+
+
 def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
-    """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit."""
+    """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit; the outer
+    surface only for a surface format."""
     from pathlib import Path
 
     from phantom.model.errors import MeshError
@@ -127,4 +134,14 @@ def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise MeshError(f"cannot create the folder of --out {out}: {error.strerror}") from error
+    if path.suffix.lower() in SURFACE_FORMATS:
+        import meshio
+
+        surface_nodes, triangles = model.outer_surface()
+        surface = meshio.Mesh(state.positions_m[surface_nodes] / length_scale_m, [("triangle", triangles)])
+        try:
+            surface.write(path)
+        except OSError as error:
+            raise MeshError(f"cannot write {path}: {error.strerror}; give another --out path") from error
+        return
     write_mesh(model.deformed_mesh(state), path, length_scale_m)

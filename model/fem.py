@@ -371,8 +371,15 @@ class PhantomModel:
         (``np.unique`` of the outer triangles), so successive calls can be drawn as one changing mesh.
         """
         state = self.solve(pressures_pa, formulation=formulation, initial_positions_m=initial_positions_m)
+        surface_nodes, triangles = self.outer_surface()
+        return state.positions_m[surface_nodes] * 1e3, triangles
+
+    def outer_surface(self) -> tuple[np.ndarray, np.ndarray]:
+        """The outer surface as a mesh of its own: ``(surface_nodes, triangles)``, the indices of the model's
+        nodes on it (sorted) and the outer triangles renumbered into them. Drawing only these keeps a mesh small.
+        """
         surface_nodes, triangles = np.unique(self.outer_triangles, return_inverse=True)
-        return state.positions_m[surface_nodes] * 1e3, triangles.reshape(-1, 3)
+        return surface_nodes, triangles.reshape(-1, 3)
 
     # --- volumes and loads -------------------------------------------------------------------------------
 

@@ -312,3 +312,20 @@ def test_calibration_measurements_accept_a_scan_file(tmp_path, surface, state):
     measurements = load_measurements(tmp_path / "measurements.csv", n_chambers=3)
     assert measurements.volumes_m3[2] == pytest.approx(state.gland_volume_m3, rel=0.005)
     assert measurements.volumes_m3[0] == pytest.approx(26.3e-6)
+
+
+@pytest.mark.parametrize("suffix", [".stl", ".ply", ".obj"])
+def test_a_surface_written_by_phantom_forward_compares_at_zero_distance(tmp_path, capsys, suffix):
+    """`phantom forward --out` into a surface format writes the gland's deformed outer surface, which compare-scan
+    reads as a scan: same volume as the model's gland, no distance, no repair needed."""
+    pressures = ",".join(map(str, PRESSURES_KPA))
+    written = tmp_path / f"deformed{suffix}"
+    assert cli.main(["forward", "--scene", "builtin:calibrated", "--pressures-kpa", pressures, "--out",
+                     str(written), "--json"]) == 0
+    forward = json.loads(capsys.readouterr().out)
+    assert cli.main(["compare-scan", str(written), "--scene", "builtin:calibrated", "--pressures-kpa", pressures,
+                     "--out", str(tmp_path), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["clean"]["removed_components"] == 0 and report["clean"]["holes_filled"] == 0
+    assert report["scan_volume_ml"] == pytest.approx(forward["total_volume_ml"], rel=1e-6)
+    assert report["distance_mm"]["max"] < 1e-3
