@@ -21,7 +21,7 @@ import enum
 import logging
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Protocol
 
 import numpy as np
@@ -40,6 +40,7 @@ from phantom.protocol.link import (
     HandshakeRefused,
     HandshakeTimedOut,
     HostLink,
+    LinkCounters,
     LinkTiming,
     Nacked,
     Silence,
@@ -115,17 +116,10 @@ class Telemetry:
 
 
 @dataclass
-class LinkStats:
-    """Counters of the link since the daemon started (host side) and the board's last reported ones."""
+class LinkStats(LinkCounters):
+    """Counters of the link since the daemon started: the link core's (frames, retries, round trip), the
+    session's connections and losses, and the board's last reported counters."""
 
-    frames_rx: int = 0
-    frames_tx: int = 0
-    retries: int = 0
-    commands_failed: int = 0
-    nacks: int = 0
-    pings: int = 0
-    rtt_ms: float | None = None
-    rtt_ms_mean: float | None = None
     connects: int = 0
     reconnects: int = 0
     links_lost: int = 0
@@ -265,10 +259,8 @@ class LinkSession:
     @property
     def stats(self) -> LinkStats:
         """The session's counters (connects, losses) with the link core's (frames, retries, round trip)."""
-        counters = self.link.counters
-        for name in ("frames_rx", "frames_tx", "retries", "commands_failed", "nacks", "pings", "rtt_ms",
-                     "rtt_ms_mean"):
-            setattr(self._host_stats, name, getattr(counters, name))
+        for counter in fields(LinkCounters):
+            setattr(self._host_stats, counter.name, getattr(self.link.counters, counter.name))
         return self._host_stats
 
     # --- the connection ---------------------------------------------------------------------------------
