@@ -49,6 +49,12 @@ logger = logging.getLogger(__name__)
 
 PA_PER_KPA = 1e3
 
+#: After connecting, how long the daemon keeps asking a board that answers NOT_SETTLED (s): a board that just
+#: started (or a phantom still deflating) needs its readings steady for about 2 s before it accepts a zero;
+#: targets wait meanwhile, so that their setpoints do not cancel the zero.
+ZERO_SETTLE_WAIT_S = 5.0
+#: How often it asks again (s).
+ZERO_RETRY_S = 0.5
 #: Why the board refuses ZERO_SENSORS, by NACK status (protocol/spec.toml); other statuses are named as such.
 ZERO_REFUSALS: dict[str, str] = {
     "NOT_VENTED": "a setpoint or a blower is on: vent first (phantom vent) and wait for the chambers to empty",
@@ -305,28 +311,35 @@ class Daemon:
     async def zero_quietly(self) -> None:
         """ZERO_SENSORS after connecting to a vented phantom; a refusal is an event, not an error."""
         try:
-            acknowledged = await self.zero_sensors()
+            acknowledged = await self.zero_sensors(settle_wait_s=ZERO_SETTLE_WAIT_S)
             self.event("zero", "sensors zeroed after connecting (the phantom was vented)"
                        + ("" if acknowledged else "; the board's ACK was not seen (a retransmission found it busy)"))
         except ApiError as error:
             self.event("zero", f"sensors not zeroed after connecting: {error}", "WARN")
 
-    async def zero_sensors(self) -> bool:
+    async def zero_sensors(self, settle_wait_s: float = 0.0) -> bool:
         """ZERO_SENSORS; True when acknowledged, False when the board was found zeroing already (its ACK comes
         after the zeroing, about 128 ms, so a retransmission can meet BUSY while our own request runs: the
-        daemon then waits for the telemetry to leave ZEROING). Raises ApiError ``rejected`` saying why the
+        daemon then waits for the telemetry to leave ZEROING). A board that answers NOT_SETTLED is asked again
+        every ``ZERO_RETRY_S`` for up to ``settle_wait_s`` seconds. Raises ApiError ``rejected`` saying why the
         board refused."""
         from phantom.host.session import CommandRejected, LinkDown
 
         # the board answers BUSY to setpoints while it zeroes: a target waits for the zeroing instead
         async with self._setpoint_lock:
-            try:
-                await self.session.command("ZERO_SENSORS")
-                return True
-            except LinkDown as error:
-                raise ApiError("link_down", str(error)) from error
-            except CommandRejected as error:
-                if error.status != "BUSY":
+            give_up_s = time.monotonic() + settle_wait_s
+            while True:
+                try:
+                    await self.session.command("ZERO_SENSORS")
+                    return True
+                except LinkDown as error:
+                    raise ApiError("link_down", str(error)) from error
+                except CommandRejected as error:
+                    if error.status == "BUSY":
+                        break
+                    if error.status == "NOT_SETTLED" and time.monotonic() + ZERO_RETRY_S <= give_up_s:
+                        await asyncio.sleep(ZERO_RETRY_S)
+                        continue
                     why = ZERO_REFUSALS.get(error.status, f"the board answered {error.status}")
                     raise ApiError("rejected", f"the board refused to zero its sensors: {error.status} "
                                    f"({why})") from error
