@@ -263,7 +263,7 @@ def test_the_model_package_does_not_import_the_host_package():
 class PartsStandIn:
     """Stand-ins for the daemon's parts (a unit test of the wiring alone; end to end they are real)."""
 
-    def __init__(self, scene_shape: bool, refuse_zero_with: str | None = None):
+    def __init__(self, scene_shape: bool, refuse_zero_with: str | None = None, refusals: int | None = None):
         from types import SimpleNamespace
 
         from phantom.host.api import ApiServer
@@ -304,7 +304,8 @@ class PartsStandIn:
                 from phantom.host.session import CommandRejected
 
                 parts.calls.append(("command", name))
-                if name == "ZERO_SENSORS" and refuse_zero_with:
+                zero_tries = sum(1 for call in parts.calls if call == ("command", "ZERO_SENSORS"))
+                if name == "ZERO_SENSORS" and refuse_zero_with and (refusals is None or zero_tries <= refusals):
                     raise CommandRejected(name, refuse_zero_with)
                 return "OK"
 
@@ -375,6 +376,26 @@ def test_a_refused_zero_says_why(status, reason):
     with pytest.raises(ApiError, match=f"{status}.*{reason}") as refused:
         asyncio.run(daemon.zero_sensors())
     assert refused.value.code == "rejected"
+
+
+@pytest.mark.parametrize(("refusals", "zeroed"), [(3, True), (None, False)])
+def test_after_connecting_a_board_not_yet_settled_is_asked_again_for_a_while(monkeypatch, refusals, zeroed):
+    import asyncio
+
+    import phantom.host.daemon as daemon_module
+
+    monkeypatch.setattr(daemon_module, "ZERO_RETRY_S", 0.01)
+    monkeypatch.setattr(daemon_module, "ZERO_SETTLE_WAIT_S", 0.2)
+    parts = PartsStandIn(False, refuse_zero_with="NOT_SETTLED", refusals=refusals)
+    daemon = parts.daemon(False, FakeClock())
+    asyncio.run(daemon.zero_quietly())
+    tries = sum(1 for call in parts.calls if call == ("command", "ZERO_SENSORS"))
+    texts = [event["text"] for event in daemon.events]
+    if zeroed:  # three NOT_SETTLED, then the zero is taken
+        assert tries == 4 and any("sensors zeroed after connecting" in text for text in texts)
+    else:  # still not settled when the wait is over: said once, as a warning
+        assert 10 <= tries <= 21 and any("not zeroed after connecting" in text and "NOT_SETTLED" in text
+                                          for text in texts)
 
 
 def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(caplog):
