@@ -16,6 +16,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     mesh.add_argument("--scene", required=True, help="a scene TOML path, or 'builtin'")
     mesh.add_argument("--out", required=True, help="output file (.msh or .vtu)")
     mesh.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
+    mesh.add_argument("--json", action="store_true", help="print one JSON object instead of a line")
     mesh.set_defaults(run=run_mesh)
 
     forward = subparsers.add_parser(
@@ -58,8 +59,14 @@ def run_mesh(args: argparse.Namespace) -> int:
     else:
         mesh = read_mesh(scene.mesh, scene.length_scale_m)
     write_mesh(mesh, args.out, scene.length_scale_m)
-    print(f"wrote {args.out}: {mesh.n_nodes} nodes, {len(mesh.tets)} tetrahedra, groups "
-          f"{', '.join(mesh.surface_groups)}")
+    if args.json:
+        import json
+
+        print(json.dumps({"out": args.out, "nodes": mesh.n_nodes, "tetrahedra": len(mesh.tets),
+                          "groups": list(mesh.surface_groups)}))
+    else:
+        print(f"wrote {args.out}: {mesh.n_nodes} nodes, {len(mesh.tets)} tetrahedra, groups "
+              f"{', '.join(mesh.surface_groups)}")
     return 0
 
 
@@ -124,16 +131,10 @@ SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
 def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
     """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit; the outer
     surface only for a surface format."""
-    from pathlib import Path
-
     from phantom.model.errors import MeshError
-    from phantom.model.mesh import write_mesh
+    from phantom.model.mesh import ensure_folder, write_mesh
 
-    path = Path(out)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise MeshError(f"cannot create the folder of --out {out}: {error.strerror}") from error
+    path = ensure_folder(out)
     if path.suffix.lower() in SURFACE_FORMATS:
         import meshio
 

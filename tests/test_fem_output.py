@@ -82,3 +82,17 @@ def test_forward_on_a_tagged_mesh_scene_with_a_hyperelastic_material(tmp_path, c
     assert answer["formulation"] == scene.material.model
     assert answer["chamber_volumes_ml"] == pytest.approx(list(expected.chamber_volumes_m3 * 1e6), rel=1e-12)
     assert all(v > r for v, r in zip(answer["chamber_volumes_ml"], answer["rest_chamber_volumes_ml"], strict=True))
+
+
+def test_mesh_writes_into_a_missing_folder_and_reports_json(tmp_path, capsys):
+    out = tmp_path / "new" / "folder" / "prostate.vtu"
+    assert main(["mesh", "--scene", "builtin", *SIZE, "--out", str(out), "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    written = meshio.read(out)
+    assert answer["nodes"] == len(written.points) and answer["tetrahedra"] == len(written.cells_dict["tetra"])
+    assert answer["groups"] == ["chamber0", "chamber1", "chamber2", "fixed"]
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["mesh", "--scene", "builtin", *SIZE, "--out", str(blocker / "x.vtu")]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "--out" in error and "\n" not in error
