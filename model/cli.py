@@ -46,6 +46,7 @@ def _single_threaded_blas() -> None:
 
 def run_mesh(args: argparse.Namespace) -> int:
     """Write the scene's mesh to ``--out``."""
+    from phantom.command_line import output_file
     from phantom.model.errors import MeshError
     from phantom.model.mesh import read_mesh, write_mesh
     from phantom.model.scene import load_scene
@@ -58,7 +59,7 @@ def run_mesh(args: argparse.Namespace) -> int:
         raise MeshError(f"--size-mm applies to the built-in mesh only; {scene.mesh} is read as it is")
     else:
         mesh = read_mesh(scene.mesh, scene.length_scale_m)
-    write_mesh(mesh, args.out, scene.length_scale_m)
+    write_mesh(mesh, output_file(args.out), scene.length_scale_m)
     if args.json:
         import json
 
@@ -109,12 +110,15 @@ def run_forward(args: argparse.Namespace) -> int:
             "out": args.out,
         }))
         return 0
-    print(f"{'chamber':<10} {'pressure kPa':>12} {'rest ml':>9} {'volume ml':>10} {'change ml':>10}")
-    for name, pressure, rest, volume in zip(model.chamber_names, args.pressures_kpa, model.rest_chamber_volumes_m3,
-                                            state.chamber_volumes_m3, strict=True):
-        print(f"{name:<10} {pressure:>12.3f} {rest * 1e6:>9.3f} {volume * 1e6:>10.3f} {(volume - rest) * 1e6:>10.3f}")
+    from phantom.command_line import chamber_labels
+
+    labels = chamber_labels(scene.raw, list(model.chamber_names))
+    print(f"{'chamber':<12} {'pressure kPa':>12} {'rest ml':>9} {'volume ml':>10} {'change ml':>10}")
+    for label, pressure, rest, volume in zip(labels, args.pressures_kpa, model.rest_chamber_volumes_m3,
+                                             state.chamber_volumes_m3, strict=True):
+        print(f"{label:<12} {pressure:>12.3f} {rest * 1e6:>9.3f} {volume * 1e6:>10.3f} {(volume - rest) * 1e6:>10.3f}")
     gland_ml = state.gland_volume_m3 * 1e6
-    print(f"{'gland':<10} {'':>12} {rest_ml:>9.3f} {gland_ml:>10.3f} {gland_ml - rest_ml:>10.3f}")
+    print(f"{'gland':<12} {'':>12} {rest_ml:>9.3f} {gland_ml:>10.3f} {gland_ml - rest_ml:>10.3f}")
     print(f"{state.formulation} model, {model.nodes_m.shape[0]} nodes, {len(model.tets)} tetrahedra, "
           f"E = {model.material.youngs_modulus_pa / 1e3:g} kPa, nu = {model.material.poisson_ratio:g}: "
           f"{state.iterations} Newton iterations, solve {state.solve_time_s:.3f} s, model total {total_s:.3f} s")
@@ -131,10 +135,11 @@ SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
 def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
     """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit; the outer
     surface only for a surface format."""
+    from phantom.command_line import output_file
     from phantom.model.errors import MeshError
-    from phantom.model.mesh import ensure_folder, write_mesh
+    from phantom.model.mesh import write_mesh
 
-    path = ensure_folder(out)
+    path = output_file(out)
     if path.suffix.lower() in SURFACE_FORMATS:
         import meshio
 

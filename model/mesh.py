@@ -262,23 +262,13 @@ def _surface_groups(raw) -> dict[str, np.ndarray]:
     return groups
 
 
-def ensure_folder(path: str | Path) -> Path:
-    """``path``, with its folder created when missing; a folder that cannot be made is a one-line MeshError."""
-    path = Path(path)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise MeshError(f"cannot create the folder of {path}: {error.strerror}; give another --out path") from error
-    return path
-
-
 def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) -> None:
     """Write a mesh with its groups; coordinates are divided by ``length_scale_m`` (default: millimetres).
 
     ``.msh`` is written by gmsh as MSH 4.1 with named physical groups (a volume group ``solid`` and one
     surface group per name); any other extension goes through meshio with cell sets.
     """
-    path = ensure_folder(path)
+    path = Path(path)
     coordinates = mesh.nodes_m / length_scale_m
     if path.suffix == ".msh":
         _write_msh41(mesh, coordinates, path)

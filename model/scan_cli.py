@@ -54,7 +54,10 @@ def run_compare_scan(args: argparse.Namespace) -> int:
         state = model.solve([p * 1e3 for p in pressures_kpa])
     result = compare(scan, model_surface(state.positions_m, model.outer_triangles), state.gland_volume_m3 * 1e6,
                      args.units, clock=clock)
-    at = ", ".join(f"{name} {p:g}" for name, p in zip(model.chamber_names, pressures_kpa, strict=True))
+    from phantom.command_line import chamber_labels
+
+    labels = chamber_labels(scene.raw, list(model.chamber_names))
+    at = ", ".join(f"{label} {p:g}" for label, p in zip(labels, pressures_kpa, strict=True))
     distance = result.symmetric_mm
     title = (f"{Path(args.scan).name} against the model at {at} kPa\nmean {distance['mean']:.3f}, "
              f"p95 {distance['p95']:.3f}, max {distance['max']:.3f} mm; volume {result.scan_volume_ml:.2f} ml "

@@ -291,7 +291,7 @@ def test_the_command_reports_in_text_with_chamber_names(tmp_path, capsys, surfac
     lines = capsys.readouterr().out.splitlines()
     assert [line.split()[0] for line in lines] == ["scan", "model", "transform", "volume", "distance", "heatmap"]
     assert "1 stray fragment(s) removed" in lines[0] and "1 hole(s) closed" in lines[0]
-    assert "chamber0 1, chamber1 2, chamber2 0.5 kPa" in lines[1]
+    assert "base 1, left lobe 2, right lobe 0.5 kPa" in lines[1]
     assert (tmp_path / "scan_vs_model.png").is_file()
 
 
