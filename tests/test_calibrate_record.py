@@ -24,6 +24,7 @@ def _parse(argv):
     return parser.parse_args(argv)
 
 
+@pytest.mark.sim
 def test_record_holds_each_combination_and_writes_the_csv_calibrate_reads(tmp_path, monkeypatch, capsys):
     out = tmp_path / "new" / "measured.csv"
     monkeypatch.setattr(sys, "stdin", io.StringIO("26.4\n31.25\n33.0\n"))

@@ -138,6 +138,7 @@ def _synthetic_csv(tmp_path, scene_path, pressures_kpa):
     return csv_path
 
 
+@pytest.mark.slow
 def test_calibrate_recovers_known_material_and_geometry_on_a_two_worker_cluster(tmp_path, capsys, dask_scheduler):
     # Synthetic measurements from the model itself (linear law: cheap solves) at E = 100 kPa (strains within
     # the law's 10 %), lobes scaled 1.1.

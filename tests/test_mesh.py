@@ -243,6 +243,7 @@ def test_wall_measure_matches_the_analytic_gap_between_the_lobes():
     assert min(walls.values()) > 3.0
 
 
+@pytest.mark.slow
 def test_a_scaled_chamber_is_meshed_and_cached_apart(tmp_path, monkeypatch):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     geometry = ProstateGeometry(lobe_chamber_scale=1.1, fixation_radius_mm=8.0)

@@ -230,6 +230,7 @@ def test_the_target_is_drawn_as_dots_so_that_no_line_bridges_a_time_without_one(
     assert target["time"] == [0.0, 1.0, 4.0] and scalars(target["Scalars:scalars"]) == [30.0, 31.0, 32.0]
 
 
+@pytest.mark.slow
 def test_a_viewer_that_never_answers_neither_fails_open_nor_close():
     recorder = Recorder(NAMES, connect_url="rerun+http://127.0.0.1:1/proxy")  # nothing listens on port 1
     recorder.open()

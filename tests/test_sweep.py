@@ -36,6 +36,7 @@ def test_stretch_measures_of_a_homogeneous_deformation_are_exact():
     assert i1_minus_3 == pytest.approx(np.sum(stretches**2) - 3, rel=1e-10)
 
 
+@pytest.mark.slow
 def test_a_sweep_on_two_workers_matches_direct_solves_and_is_cached(tmp_path, monkeypatch, dask_scheduler):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     tasks = [RayTask(SCENE_RAW, pressures, (0.0, 0.5, 1.0)) for pressures in
@@ -57,6 +58,7 @@ def test_a_sweep_on_two_workers_matches_direct_solves_and_is_cached(tmp_path, mo
     np.testing.assert_array_equal(again[0].gland_m3, traces[0].gland_m3)
 
 
+@pytest.mark.slow
 def test_growth_stops_a_trace_and_a_missing_scheduler_is_one_line(tmp_path, monkeypatch, dask_scheduler):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     task = RayTask(SCENE_RAW, (2000.0, 0.0, 0.0), (0.0, 0.5, 1.0, 1.5), stop_growth_m3=1e-9)

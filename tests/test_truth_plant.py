@@ -21,7 +21,7 @@ from phantom.hil.plant import (
 )
 from phantom.hil.sim import SimulatedBoard
 
-pytestmark = [pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.timeout(300), pytest.mark.sim]
 
 
 def _air_volumes_ml(plant, pressures_pa):
