@@ -30,6 +30,8 @@ from phantom import PhantomError
 LEVELS = ("rest", "updated", "full")
 #: Volume accuracy assumed when a scene states none (percent of the volume).
 DEFAULT_ACCURACY_PCT = 1.0
+#: Full-level states kept as warm starts for later answers.
+KEPT_STATES = 16
 #: Pressure used to probe the levels' errors when a scene states no maximum (Pa).
 DEFAULT_PRESSURE_MAX_PA = 3000.0
 
@@ -118,7 +120,7 @@ class VolumeEstimator:
         self.probe_errors_pct: dict[str, float] = {}
         self.probe_times_s: dict[str, float] = {}
         self._rest_compliance = None
-        self._last_state = None
+        self._states: list = []
         level = level if level is not None else settings.get("fidelity")
         if level is None:
             level = self._cheapest_level()
@@ -203,14 +205,18 @@ class VolumeEstimator:
         if self.model.formulation == "linear":
             # A small-strain solve takes its load on the starting configuration: it must start at rest.
             return self.model.solve(pressures_pa)
-        last = self._last_state
-        if last is not None and np.array_equal(pressures_pa, last.pressures_pa):
-            return last
+        # Start from the nearest state solved before (the inverse's iterates, the pressure limit its first
+        # step often reaches), or return it when the pressures are the same.
+        nearest = min(self._states, default=None,
+                      key=lambda state: float(np.max(np.abs(state.pressures_pa - pressures_pa))))
+        if nearest is not None and np.array_equal(pressures_pa, nearest.pressures_pa):
+            return nearest
         if not np.any(pressures_pa):
             state = self.model.solve(pressures_pa)  # the rest shape, no iteration
         else:
-            state = self.model.solve(pressures_pa, initial_positions_m=None if last is None else last.positions_m)
-        self._last_state = state
+            state = self.model.solve(pressures_pa,
+                                     initial_positions_m=None if nearest is None else nearest.positions_m)
+        self._states = [*self._states[-(KEPT_STATES - 1):], state]
         return state
 
     def _cheapest_level(self) -> str:
