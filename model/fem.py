@@ -522,7 +522,9 @@ class PhantomModel:
         ``formulation`` None uses the scene's; "linear" is small-strain elasticity with the pressure load taken
         on the starting configuration (one linear solve); "corotational" follows the walls and is solved by
         Newton iterations with a line search on the total energy, cutting the load into steps when a full
-        step fails. ``initial_positions_m`` starts from another configuration (default: rest).
+        step fails. ``initial_positions_m`` starts from another configuration (default: rest); for a hyperelastic
+        law Newton at the full load is tried from there first (it converges in a few iterations from a nearby
+        equilibrium), path following from zero load when it does not converge.
         Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert.
         """
         started = time.perf_counter()
@@ -538,8 +540,17 @@ class PhantomModel:
         if np.any(pressures) or initial_positions_m is not None:
             # The linear model's stiffness is that of the rest shape: its rigid modes are held in that frame.
             frame_m = self.nodes_m if formulation == "linear" else start_m
-            positions_m, iterations, steps = self._continuation(start_m, pressures, formulation, tolerance,
-                                                                self._constraints_for(frame_m))
+            constraints = self._constraints_for(frame_m)
+            warm = None
+            if initial_positions_m is not None and formulation in HYPERELASTIC_MODELS and np.any(pressures):
+                # From a nearby equilibrium (an iteration's previous answer) Newton at the full load takes a few
+                # iterations; path following would start again from zero load on the inflated shape.
+                warm = self._newton(start_m, pressures, formulation, start_m, tolerance, constraints)
+            if warm is not None and warm.converged:
+                positions_m, iterations, steps = warm.positions_m, warm.iterations, 1
+            else:
+                positions_m, iterations, steps = self._continuation(start_m, pressures, formulation, tolerance,
+                                                                    constraints)
         chamber_volumes_m3, gland_volume_m3 = self.volumes(positions_m)
         load_positions_m = start_m if formulation == "linear" and initial_positions_m is not None else None
         return State(positions_m, chamber_volumes_m3, gland_volume_m3, iterations,
@@ -750,9 +761,16 @@ class PhantomModel:
         ``dV_i/dp_j = H_i(x) . D_j``: the rest displacement, with the volume gradients of the deformed state
         (the volume measure's own nonlinearity). Re-solving from the state would take the load on the deformed
         shape instead, which is another problem. One back-substitution (none from rest), so not cached.
+
+        At a hyperelastic (Neo-Hookean, Gent) state the law's Hessian is exact, follower-load stiffness
+        included, so the tangent is ``D = K_t(x, p)^-1 H(x)^T``, ``dV_i/dp_j = H_i(x) . D_j``: one factorisation,
+        which agrees with the central differences to their truncation error (tested) at a fraction of the cost
+        (six path-following re-solves). Not cached either.
         """
         if state is not None and state.formulation == "linear":
             return self._linear_state_compliance(state)
+        if state is not None and state.formulation in HYPERELASTIC_MODELS:
+            return self._hyperelastic_state_compliance(state)
         extra = b"rest"
         if state is not None:
             extra = (state.formulation.encode() + np.ascontiguousarray(state.pressures_pa).tobytes()
@@ -798,6 +816,13 @@ class PhantomModel:
         else:
             displacement = self._small_strain_displacement(np.asarray(state.load_positions_m, float))
         return self._compliance_of(displacement, state.positions_m)
+
+    def _hyperelastic_state_compliance(self, state: State) -> Compliance:
+        from phantom.model.fidelity import tangent_displacement_m_per_pa
+
+        displacement = tangent_displacement_m_per_pa(self, np.asarray(state.positions_m, float),
+                                                     np.asarray(state.pressures_pa, float), state.formulation)
+        return self._compliance_of(displacement.reshape(self.n_chambers, -1), state.positions_m)
 
     def _state_compliance(self, state: State) -> Compliance:
         step_pa = max(1e-2 * float(np.max(np.abs(state.pressures_pa))), 1e-4 * self.material.youngs_modulus_pa)

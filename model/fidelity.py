@@ -30,24 +30,34 @@ from phantom import PhantomError
 LEVELS = ("rest", "updated", "full")
 #: Volume accuracy assumed when a scene states none (percent of the volume).
 DEFAULT_ACCURACY_PCT = 1.0
+#: Full-level states kept as warm starts for later answers.
+KEPT_STATES = 16
 #: Pressure used to probe the levels' errors when a scene states no maximum (Pa).
 DEFAULT_PRESSURE_MAX_PA = 3000.0
 
 
-def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
+def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: np.ndarray,
+                                  formulation: str | None = None) -> np.ndarray:
     """Node displacement per pascal of each chamber (n_chambers, nodes, 3) at a configuration under pressures:
-    ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the model's exact tangent (its hyperelastic law's; otherwise the
-    co-rotational one) including the follower pressure load's stiffness. Held dofs (rows of ``K_t`` that are a
-    bare diagonal) get no displacement."""
+    ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the exact tangent of ``formulation`` (default the model's) if it is
+    a hyperelastic law, otherwise the co-rotational one, including the follower pressure load's stiffness. Held
+    dofs (rows of ``K_t`` that are a bare diagonal) get no displacement."""
     from phantom.model.linsolve import Factorization
 
-    formulation = model.formulation if model.formulation in ("neo_hookean", "gent") else "corotational"
+    formulation = formulation or model.formulation
+    formulation = formulation if formulation in ("neo_hookean", "gent") else "corotational"
     stiffness = model.stiffness_matrix(positions_m, formulation, pressures_pa=pressures_pa).tocsr()
     magnitudes = abs(stiffness)
     held = np.asarray(magnitudes.sum(axis=1)).ravel() == magnitudes.diagonal()
     gradients = model.volume_gradients(positions_m)[:-1]
     gradients[:, held] = 0.0
-    displacement = Factorization(stiffness).solve(np.ascontiguousarray(gradients.T)).T
+    try:
+        factorization = Factorization(stiffness)
+    except ArithmeticError:
+        # Past a limit point the tangent is indefinite: LU still solves it, and the compliance's negative
+        # eigenvalue then says where the state is.
+        factorization = Factorization(stiffness, method="splu-colamd")
+    displacement = factorization.solve(np.ascontiguousarray(gradients.T)).T
     displacement[:, held] = 0.0
     return displacement.reshape(len(pressures_pa), -1, 3)
 
@@ -110,7 +120,7 @@ class VolumeEstimator:
         self.probe_errors_pct: dict[str, float] = {}
         self.probe_times_s: dict[str, float] = {}
         self._rest_compliance = None
-        self._last_positions_m = None
+        self._states: list = []
         level = level if level is not None else settings.get("fidelity")
         if level is None:
             level = self._cheapest_level()
@@ -195,8 +205,18 @@ class VolumeEstimator:
         if self.model.formulation == "linear":
             # A small-strain solve takes its load on the starting configuration: it must start at rest.
             return self.model.solve(pressures_pa)
-        state = self.model.solve(pressures_pa, initial_positions_m=self._last_positions_m)
-        self._last_positions_m = state.positions_m
+        # Start from the nearest state solved before (the inverse's iterates, the pressure limit its first
+        # step often reaches), or return it when the pressures are the same.
+        nearest = min(self._states, default=None,
+                      key=lambda state: float(np.max(np.abs(state.pressures_pa - pressures_pa))))
+        if nearest is not None and np.array_equal(pressures_pa, nearest.pressures_pa):
+            return nearest
+        if not np.any(pressures_pa):
+            state = self.model.solve(pressures_pa)  # the rest shape, no iteration
+        else:
+            state = self.model.solve(pressures_pa,
+                                     initial_positions_m=None if nearest is None else nearest.positions_m)
+        self._states = [*self._states[-(KEPT_STATES - 1):], state]
         return state
 
     def _cheapest_level(self) -> str:

@@ -45,6 +45,12 @@ CLOSEST_REGULARISER_WEIGHT = 1e-3
 QP_ENTRY_LIMIT = 1e12
 
 
+#: Halvings of an outer step before the least-error trial is taken anyway (the next linearisation is made there).
+STEP_HALVINGS = 6
+#: Armijo fraction: a step of fraction t is taken when it cuts the relative volume error by at least this times t.
+SUFFICIENT_DECREASE = 1e-4
+
+
 class UnreachableTargetError(PhantomError):
     """A target no allowed pressures reach; the message states the reachable range."""
 
@@ -419,7 +425,8 @@ class InverseSolver:
         equality = np.isfinite(rows.constraint_lower) & (rows.constraint_lower == rows.constraint_upper)
         inequality = ~equality
         extremes = []
-        for sign in (1.0, -1.0):
+        # The greatest first: it is usually where the iteration stopped, which the estimator has solved already.
+        for sign in (-1.0, 1.0):
             solution = linprog(sign * rows.objective_rows[index], bounds=bounds,
                                A_eq=rows.constraint_rows[equality] if equality.any() else None,
                                b_eq=rows.constraint_upper[equality] if equality.any() else None,
@@ -432,7 +439,7 @@ class InverseSolver:
             chamber_volumes_m3, gland_volume_m3, _ = self._evaluate(np.asarray(solution.x) / self.pressure_per_pa)
             volume_m3 = gland_volume_m3 if row_name == "gland" else chamber_volumes_m3[int(row_name.split()[1])]
             extremes.append(float(volume_m3) * ML_PER_M3)
-        return extremes[0], extremes[1]
+        return extremes[1], extremes[0]
 
     # ----------------------------------------------------------------- the outer iteration
     def _linearise(self, pressures_pa: np.ndarray, evaluation) -> Linearisation:
@@ -473,33 +480,56 @@ class InverseSolver:
         self._refuse_out_of_scale(target)
         linearisation = self.rest
         pressures_pa = np.zeros(self.n_chambers)
+        error = self._relative_error(target, self.rest.chamber_volumes_m3, self.rest.gland_volume_m3)
         qp_time_s = 0.0
         history = []
-        previous_pressures_pa = None
         for iteration in range(1, self.max_iterations + 1):
-            pressures_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation)
+            candidate_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation)
             qp_time_s += qp_step_s
-            evaluation = self._evaluate(pressures_pa)
-            chamber_volumes_m3, gland_volume_m3, _ = evaluation
-            error = self._relative_error(target, chamber_volumes_m3, gland_volume_m3)
-            history.append({"pressures_pa": pressures_pa.tolist(), "relative_error": error, "reached": reached})
-            settled = previous_pressures_pa is not None and np.allclose(
-                pressures_pa, previous_pressures_pa, rtol=1e-6, atol=1e-6 * float(self.pressure_max_pa.max()))
+            # The linearisation's answer is where it already stands: its best (closest) pressures.
+            settled = iteration > 1 and np.allclose(candidate_pa, pressures_pa, rtol=1e-6,
+                                                    atol=1e-6 * float(self.pressure_max_pa.max()))
             if not reached and (settled or self.estimator.level == "rest"):
-                residual_scaled = rows.objective_rows @ (pressures_pa * self.pressure_per_pa) - rows.objective_targets
+                residual_scaled = rows.objective_rows @ (candidate_pa * self.pressure_per_pa) - rows.objective_targets
                 worst = rows.objective_names[int(np.argmax(np.abs(residual_scaled) / self._row_offsets_scaled(rows)))]
                 low_ml, high_ml = self.reachable_range_ml(target, linearisation, worst)
                 raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
-            if reached and error <= self.tolerance:
+            pressures_pa, evaluation, error, step = self._damped_step(target, pressures_pa, error, candidate_pa)
+            chamber_volumes_m3, gland_volume_m3, _ = evaluation
+            history.append({"pressures_pa": pressures_pa.tolist(), "relative_error": error, "reached": reached,
+                            "step": step})
+            if reached and step == 1.0 and error <= self.tolerance:
                 return InverseResult(pressures_pa, gland_volume_m3, chamber_volumes_m3, iteration,
                                      time.perf_counter() - started, qp_time_s, history)
-            previous_pressures_pa = pressures_pa
             linearisation = self._linearise(pressures_pa, evaluation)
         errors = [round(entry["relative_error"] * 100, 4) for entry in history]
         raise LimitPointError(
             f"the inverse did not converge in {len(history)} linearisations (relative volume errors {errors} %): "
             "the response is too nonlinear here, which happens near the pressure-control limit point; "
             "ask for a smaller volume")
+
+    def _damped_step(self, target: Target, pressures_pa: np.ndarray, error: float, candidate_pa: np.ndarray):
+        """Move from ``pressures_pa`` (relative error ``error``) towards the linearisation's answer
+        ``candidate_pa``: the full step, else halved until the error falls (Armijo, on the relative volume
+        error). An undamped Newton step oscillates where the pressure-volume curve has an inflection (a
+        hyperelastic chamber stiffens again after softening): the tangent at the upper state is flatter than
+        the secant, and the one at the lower state is too, so each step overshoots the other way.
+
+        Returns the pressures (Pa), their evaluation, their relative error and the step fraction taken. The
+        pressures stay within the bounds and linear constraints (a convex combination of two points that
+        satisfy them)."""
+        step = 1.0
+        best = None
+        for _ in range(STEP_HALVINGS + 1):
+            trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
+            evaluation = self._evaluate(trial_pa)
+            trial_error = self._relative_error(target, evaluation[0], evaluation[1])
+            if trial_error <= (1.0 - SUFFICIENT_DECREASE * step) * error or trial_error <= self.tolerance:
+                return trial_pa, evaluation, trial_error, step
+            if best is None or trial_error < best[2]:
+                best = (trial_pa, evaluation, trial_error, step)
+            step *= 0.5
+        return best
 
     def _refuse_out_of_scale(self, target: Target) -> None:
         """A target orders of magnitude out of reach (1e300 ml) is refused with the reachable range before any
