@@ -12,6 +12,9 @@ import pytest
 from phantom.model import PhantomModel, load_scene
 from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
 
+#: a few Gent solves on an 8 mm mesh, about 15 s: left out of make check
+pytestmark = pytest.mark.slow
+
 COARSE_MM = 8.0
 #: The accuracy the daemon needs, relative to the target (0.1 %).
 VOLUME_TOLERANCE = 1e-3
