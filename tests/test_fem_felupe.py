@@ -57,6 +57,7 @@ def test_sphere_volume_change_matches_felupe_beyond_50_percent_growth(sphere, pr
     assert ours == pytest.approx(reference, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_prostate_volume_changes_match_felupe(free_prostate):
     pressures = np.array([0.16, 0.08, 0.12]) * YOUNGS_MODULUS_PA
     state = free_prostate.solve(pressures)

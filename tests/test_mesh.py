@@ -232,6 +232,7 @@ def test_default_size_is_documented():
 
 
 # --------------------------------------------------------------------- parametric geometry
+@pytest.mark.slow
 def test_wall_measure_matches_the_analytic_gap_between_the_lobes():
     # Chambers 1 and 2 are mirror images on the x axis: the wall between them is 2 (x_c - a) exactly.
     geometry = ProstateGeometry()
@@ -259,6 +260,7 @@ def test_a_scaled_chamber_is_meshed_and_cached_apart(tmp_path, monkeypatch):
     assert np.linalg.norm(patch_mm - [0, 0, 20.0], axis=1).max() > 6.0
 
 
+@pytest.mark.slow
 def test_the_scene_geometry_table_reaches_the_model(tmp_path, monkeypatch):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     path = tmp_path / "scaled.toml"

@@ -190,6 +190,7 @@ def run_phantom(*arguments):
     return subprocess.run([str(PHANTOM), *arguments], capture_output=True, text=True, timeout=300)
 
 
+@pytest.mark.slow
 def test_forward_command_json_and_table(model):
     result = run_phantom("forward", "--scene", "builtin", "--pressures-kpa", "1,0.5,0", "--json")
     assert result.returncode == 0, result.stderr

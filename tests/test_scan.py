@@ -99,6 +99,7 @@ def test_a_damaged_moved_scan_of_the_model_is_found_where_it_was_put(surface, st
     assert result.scan_to_model_mm["max"] < 6 * NOISE_MM
 
 
+@pytest.mark.slow
 def test_an_offset_surface_is_measured_at_its_offset(surface, state):
     rng = np.random.default_rng(5)
     offset_mm = 0.4
@@ -118,6 +119,7 @@ def test_an_offset_surface_is_measured_at_its_offset(surface, state):
     assert added_ml == pytest.approx(area_mm2 * offset_mm * 1e-3, rel=0.05)
 
 
+@pytest.mark.slow
 def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface, state):
     """Made from the model with a softer material at the same pressures: its volume is that state's, and its
     distance lies between the volume bound |dV| / area and the distances where it was made (which a best fit
