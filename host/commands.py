@@ -75,26 +75,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_socket(set_target)
     set_target.set_defaults(run=_run_set)
 
-    vent = subparsers.add_parser("vent", help="all blowers off now (every setpoint 0)",
-                                 description="Vent the phantom: every setpoint 0 now; the target and any scene "
-                                 "are dropped.")
-    _add_json(vent, "print the answer as JSON")
-    _add_socket(vent)
-    vent.set_defaults(run=_run_simple, method="vent")
-
-    clear = subparsers.add_parser("clear-fault", help="clear the board's latched fault (if its cause is gone)",
-                                  description="Clear the board's latched faults; the daemon then restores the "
-                                  "current target's setpoints. Refused while a fault's cause persists.")
-    _add_json(clear, "print the answer as JSON")
-    _add_socket(clear)
-    clear.set_defaults(run=_run_simple, method="clear_fault")
-
-    zero = subparsers.add_parser("zero", help="zero the pressure sensors (the phantom must be vented)",
-                                 description="Ask the board to measure each pressure sensor's zero offset. The "
-                                 "phantom must be vented and its readings steady; a refusal says why.")
-    _add_json(zero, "print the answer as JSON")
-    _add_socket(zero)
-    zero.set_defaults(run=_run_simple, method="zero")
+    # the commands that send one method with no parameters and print the answer
+    for name, method, help_text, description in (
+            ("vent", "vent", "all blowers off now (every setpoint 0)",
+             "Vent the phantom: every setpoint 0 now; the target and any scene are dropped."),
+            ("clear-fault", "clear_fault", "clear the board's latched fault (if its cause is gone)",
+             "Clear the board's latched faults; the daemon then restores the current target's setpoints. "
+             "Refused while a fault's cause persists."),
+            ("zero", "zero", "zero the pressure sensors (the phantom must be vented)",
+             "Ask the board to measure each pressure sensor's zero offset. The phantom must be vented and its "
+             "readings steady; a refusal says why.")):
+        simple = subparsers.add_parser(name, help=help_text, description=description)
+        _add_json(simple, "print the answer as JSON")
+        _add_socket(simple)
+        simple.set_defaults(run=_run_simple, method=method)
 
     scene = subparsers.add_parser("run-scene", help="play a scene's [[steps]] timeline on the daemon",
                                   description="Play a scene's [[steps]] timeline on the running daemon (the scene "
