@@ -62,6 +62,7 @@ class LoadedModel:
 
     def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info):
         from phantom.model import PhantomModel, load_scene
+        from phantom.model.fidelity import VolumeEstimator
         from phantom.model.inverse import InverseSolver
 
         self.timings_s: dict[str, float] = {}
@@ -78,10 +79,11 @@ class LoadedModel:
         report(f"compliance ready in {self.timings_s['compliance_s']:.2f} s (computed, or loaded from "
                f"{phantom.cache_dir('compliance')}); inverse solver ...")
         stage = time.perf_counter()
-        # The model keeps its scene: the inverse reads the [model] table (pressure_max_kpa, fidelity) from it, and
-        # without a fidelity probes for the cheapest level within the scene's accuracy_pct (one solve per level
-        # at the pressure limit).
-        self.solver = InverseSolver(self.model)
+        # The model keeps its scene: the estimator reads the [model] table (pressure_max_kpa, fidelity) from it,
+        # and without a fidelity probes for the cheapest level within the scene's accuracy_pct (one solve per
+        # level at the pressure limit); the table level is built here the first time (minutes, with progress).
+        estimator = VolumeEstimator(self.model, progress=build_progress(report))
+        self.solver = InverseSolver(self.model, estimator=estimator)
         self.pressure_max_pa = float(self.solver.pressure_max_pa.max())
         self.estimator = self.solver.estimator
         self.timings_s["inverse_setup_s"] = time.perf_counter() - stage
@@ -93,6 +95,9 @@ class LoadedModel:
         if self.estimator.probe_errors_pct:
             probe = ", chosen for accuracy_pct {:g} from errors {}".format(self.estimator.accuracy_pct, ", ".join(
                 f"{level} {error:.3g} %" for level, error in self.estimator.probe_errors_pct.items()))
+        if self.estimator.table is not None:
+            probe = (f", a {self.estimator.table.points_per_axis}^{self.estimator.table.n_chambers} response table "
+                     f"within {self.estimator.table.check_errors_pct:.2g} % of full solves")
         report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}{probe}), "
                f"warmed up in {self.timings_s['warm_up_s']:.2f} s; start-up took {self.timings_s['total_s']:.2f} s")
         self.chamber_names = list(self.model.chamber_names)
@@ -158,6 +163,24 @@ class LoadedModel:
         used, triangles = self._outer_surface
         positions_m = self.estimator.shape(np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None))
         return np.asarray(positions_m)[used] * MM_PER_M, triangles
+
+
+def build_progress(report: Callable[[str], None], every_s: float = 10.0) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` for a long model build that reports at most every ``every_s`` seconds, and
+    at the end."""
+    started = time.perf_counter()
+    last_s = [started]
+
+    def progress(done: int, total: int) -> None:
+        now = time.perf_counter()
+        if done < total and now - last_s[0] < every_s:
+            return
+        last_s[0] = now
+        elapsed_s = now - started
+        left = f", about {elapsed_s / done * (total - done):.0f} s left" if 0 < done < total else ""
+        report(f"response table: {done}/{total} solves in {elapsed_s:.0f} s{left} (once per model and machine; "
+               "stored in the cache)")
+    return progress
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,13 @@
     one tensor product and a volume measure, milliseconds. The ``rest`` level is then exact in the
     displacements but not in the volumes, which are not linear in the displacements (at p ~ E, tens of %).
 ``full``
-    The full co-rotational solve (``model.solve``).
+    The full solve (``model.solve``) of the model's material law.
+``table``
+    The full solves on a grid over the operating box, solved once (cached on disk) and interpolated by cubic
+    splines (:mod:`phantom.model.response`): volumes, shape and the tangent compliance in a fraction of a
+    millisecond, to the interpolation's error (checked against full solves when the table is built). For a
+    hyperelastic scene a daemon must answer at its control rate; it is never chosen by the probe (its build
+    costs a few minutes once), only named by a scene.
 
 Only what is asked for is computed: :meth:`VolumeEstimator.volumes` never forms nodal positions at the rest
 level, and nothing here builds meshes or stresses. ``counts`` records the work done (full solves, tangent
@@ -27,7 +33,9 @@ import numpy as np
 
 from phantom import PhantomError
 
-LEVELS = ("rest", "updated", "full")
+LEVELS = ("rest", "updated", "full", "table")
+#: The levels the probe compares (``table`` is only ever named: its first build is minutes of solves).
+PROBED_LEVELS = ("rest", "updated", "full")
 #: Volume accuracy assumed when a scene states none (percent of the volume).
 DEFAULT_ACCURACY_PCT = 1.0
 #: Full-level states kept as warm starts for later answers.
@@ -88,7 +96,7 @@ class VolumeEstimator:
     Parameters
     ----------
     model : PhantomModel
-    level : {"rest", "updated", "full"} or None
+    level : {"rest", "updated", "full", "table"} or None
         None: the scene's ``[model] fidelity`` if it names one, else the cheapest level whose volume error
         against the full solve, probed with every chamber at ``pressure_max_pa``, is within the scene's
         ``accuracy_pct`` (default 1 %); cheapest = fastest on that probe. The probe's errors (% of the volume)
@@ -97,12 +105,14 @@ class VolumeEstimator:
         Override the scene's ``[model] accuracy_pct`` (%) and ``pressure_max_kpa`` (given here in Pa).
     steps : int
         Increments of the ``updated`` level.
+    progress : callable(done, total), optional
+        Told how the ``table`` level's build goes (when it is not cached).
 
     The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
     """
 
     def __init__(self, model, level: str | None = None, accuracy_pct: float | None = None,
-                 pressure_max_pa: float | None = None, steps: int = 1):
+                 pressure_max_pa: float | None = None, steps: int = 1, progress=None):
         settings = scene_model_settings(model)
         self.model = model
         self.n_chambers = int(model.n_chambers)
@@ -121,12 +131,25 @@ class VolumeEstimator:
         self.probe_times_s: dict[str, float] = {}
         self._rest_compliance = None
         self._states: list = []
+        self.table = None
         level = level if level is not None else settings.get("fidelity")
         if level is None:
             level = self._cheapest_level()
         if level not in LEVELS:
             raise PhantomError(f"fidelity must be one of {', '.join(LEVELS)}, got {level!r}")
         self.level = level
+        if level == "table":
+            from phantom.model.response import DEFAULT_POINTS_PER_AXIS, response_table
+
+            points = settings.get("table_points", DEFAULT_POINTS_PER_AXIS)
+            if isinstance(points, bool) or not isinstance(points, int) or points < 2:
+                raise PhantomError(f"[model] table_points must be an integer of at least 2, got {points!r}")
+            self.table = response_table(model, self.pressure_max_pa, points, progress=progress)
+            if self.table.check_errors_pct > self.accuracy_pct:
+                raise PhantomError(
+                    f"the response table misses the full solve by {self.table.check_errors_pct:.3g} % of a volume "
+                    f"(accuracy_pct {self.accuracy_pct:g}): raise [model] table_points (now {points}), or use "
+                    "fidelity full")
 
     # ----------------------------------------------------------------- public
     def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
@@ -142,6 +165,8 @@ class VolumeEstimator:
             return self._rest_positions(pressures)
         if self.level == "updated":
             return self._updated_positions(pressures)
+        if self.level == "table":
+            return self.table.positions_m(pressures)
         return self._full_state(pressures).positions_m
 
     def evaluate(self, pressures_pa):
@@ -153,6 +178,9 @@ class VolumeEstimator:
             return (np.asarray(self.model.rest_chamber_volumes_m3, dtype=float) + compliance.chamber_m3_per_pa
                     @ pressures, float(self.model.rest_gland_volume_m3 + compliance.gland_m3_per_pa @ pressures),
                     None)
+        if self.level == "table":
+            chamber_volumes_m3, gland_volume_m3 = self.table.volumes(pressures)
+            return chamber_volumes_m3, gland_volume_m3, None
         if self.level == "updated":
             positions_m = self._updated_positions(pressures)
             chamber_volumes_m3, gland_volume_m3 = self.model.volumes(positions_m)
@@ -228,7 +256,7 @@ class VolumeEstimator:
         self.level = "rest"
         self.evaluate(probe_pa)  # the one-time rest compliance is not part of an answer's cost
         results = {}
-        for level in ("full", "rest", "updated"):
+        for level in ("full", *(level for level in PROBED_LEVELS if level != "full")):
             self.level = level
             started = time.perf_counter()
             chambers, gland, _ = self.evaluate(probe_pa)
@@ -237,5 +265,5 @@ class VolumeEstimator:
         for level, (seconds, volumes) in results.items():
             self.probe_errors_pct[level] = float(np.max(np.abs(volumes - reference) / np.abs(reference)) * 100)
             self.probe_times_s[level] = seconds
-        meeting = [level for level in LEVELS if self.probe_errors_pct[level] <= self.accuracy_pct]
+        meeting = [level for level in PROBED_LEVELS if self.probe_errors_pct[level] <= self.accuracy_pct]
         return min(meeting, key=lambda level: self.probe_times_s[level])

@@ -45,6 +45,16 @@ CLOSEST_REGULARISER_WEIGHT = 1e-3
 QP_ENTRY_LIMIT = 1e12
 
 
+#: The exact QP's least-energy answer slides along the target's level set, which is curved: near 3 kPa on the
+#: calibrated Gent model two tangents a few pascal apart put it 300-800 Pa apart, so the outer iteration bounced
+#: between two branches, every full step refused, and the error stalled at 0.1-1 %. So the QP minimises the
+#: energy of the move from ``theta`` times the current pressures, ``1/2 (x - theta p)^T W_0 (x - theta p)``
+#: (the least energy plus a proximal term of weight theta / (1 - theta); its fixed points are still the
+#: least-energy answers for theta < 1): theta starts at 0 and goes halfway to 1 at every damped step, ...
+PROXIMAL_AFTER_DAMPING = 0.5
+#: ... and is 1 (the least move that meets the linearised targets, which converges like Newton) once the relative
+#: volume error is below this: the answer is then the least-energy one to within what 0.1 % of the volume allows.
+POLISH_RELATIVE_ERROR = 1e-3
 #: Halvings of an outer step before the least-error trial is taken anyway (the next linearisation is made there).
 STEP_HALVINGS = 6
 #: Armijo fraction: a step of fraction t is taken when it cuts the relative volume error by at least this times t.
@@ -230,7 +240,7 @@ class InverseSolver:
     pressure_max_pa : float or sequence of float, or None
         Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the scene's
         ``[model] pressure_max_kpa``, else 3000 Pa.
-    fidelity : {"rest", "updated", "full"} or None
+    fidelity : {"rest", "updated", "full", "table"} or None
         How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.VolumeEstimator`);
         None takes the scene's ``[model] fidelity``, else the cheapest level that meets its ``accuracy_pct``.
     max_growth_m3 : float or sequence of (float or None), optional
@@ -355,15 +365,16 @@ class InverseSolver:
                      np.array(constraint_rows, dtype=float).reshape(-1, n), np.array(lower, dtype=float),
                      np.array(upper, dtype=float))
 
-    def _qp_inputs(self, rows: _Rows, exact: bool):
+    def _qp_inputs(self, rows: _Rows, exact: bool, anchor_scaled: np.ndarray | None = None):
         """OSQP data (scaled units). Exact: the targets are equalities and the objective is the actuation energy
-        ``1/2 x^T W_0 x``. Closest: the targets are least squares ``1/2 |A x - b|^2 + epsilon/2 x^T W_0 x``."""
+        ``1/2 x^T W_0 x`` (of the move from ``anchor_scaled``, ``1/2 (x - a)^T W_0 (x - a)``, when given).
+        Closest: the targets are least squares ``1/2 |A x - b|^2 + epsilon/2 x^T W_0 x``."""
         n = self.n_chambers
         rest_scaled_slope = self.rest.chamber_m3_per_pa * (self.volume_per_m3 / self.pressure_per_pa)
         energy = 0.5 * (rest_scaled_slope + rest_scaled_slope.T)
         bounds_lower, bounds_upper = np.zeros(n), self.pressure_max_pa * self.pressure_per_pa
         if exact:
-            hessian, linear = energy, np.zeros(n)
+            hessian, linear = energy, np.zeros(n) if anchor_scaled is None else -energy @ anchor_scaled
             constraint_matrix = np.vstack([np.eye(n), rows.objective_rows, rows.constraint_rows])
             lower = np.concatenate([bounds_lower, rows.objective_targets, rows.constraint_lower])
             upper = np.concatenate([bounds_upper, rows.objective_targets, rows.constraint_upper])
@@ -387,8 +398,9 @@ class InverseSolver:
             problem = self._problems[shape] = VolumeQP(self.n_chambers, n_constraint_rows)
         return problem
 
-    def solve_linearised(self, target: Target, linearisation: Linearisation):
-        """One QP at ``linearisation``.
+    def solve_linearised(self, target: Target, linearisation: Linearisation, anchor_pa: np.ndarray | None = None):
+        """One QP at ``linearisation``; with ``anchor_pa`` the exact QP's objective is the actuation energy of
+        the move from there (``1/2 (x - a)^T W_0 (x - a)``) instead of from zero (see PROXIMAL_AFTER_DAMPING).
 
         Returns the pressures (Pa), the OSQP time (s), the rows used, and whether the targets are met exactly
         (False: no allowed pressures meet them to first order, and the pressures are the least-squares closest).
@@ -396,7 +408,8 @@ class InverseSolver:
         rows = self._rows(target, linearisation)
         qp_time_s = 0.0
         try:
-            inputs = self._qp_inputs(rows, exact=True)
+            inputs = self._qp_inputs(rows, exact=True,
+                                     anchor_scaled=None if anchor_pa is None else anchor_pa * self.pressure_per_pa)
             pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).solve(*inputs)
             reached = True
         except _Infeasible:
@@ -443,11 +456,14 @@ class InverseSolver:
 
     # ----------------------------------------------------------------- the outer iteration
     def _linearise(self, pressures_pa: np.ndarray, evaluation) -> Linearisation:
-        """The linearisation at an evaluated state: the model's tangent compliance where the estimator has a
-        state (exact, and one back-substitution for a small-strain material), else the rest one (a chord
-        iteration, which converges while the response is mildly nonlinear)."""
+        """The linearisation at an evaluated state: the response table's gradient on the ``table`` level, the
+        model's tangent compliance where the estimator has a state (exact, and one back-substitution for a
+        small-strain material), else the rest one (a chord iteration, which converges while the response is
+        mildly nonlinear)."""
         chamber_volumes_m3, gland_volume_m3, state = evaluation
-        if state is None or not np.any(pressures_pa):
+        if self.estimator.table is not None:
+            slope_chamber, slope_gland = self.estimator.table.compliance(pressures_pa)
+        elif state is None or not np.any(pressures_pa):
             slope_chamber, slope_gland = self.rest.chamber_m3_per_pa, self.rest.gland_m3_per_pa
         else:
             tangent = self.model.compliance(state)
@@ -483,8 +499,12 @@ class InverseSolver:
         error = self._relative_error(target, self.rest.chamber_volumes_m3, self.rest.gland_volume_m3)
         qp_time_s = 0.0
         history = []
+        proximity = 0.0  # theta of PROXIMAL_AFTER_DAMPING
         for iteration in range(1, self.max_iterations + 1):
-            candidate_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation)
+            if error < POLISH_RELATIVE_ERROR:
+                proximity = 1.0
+            candidate_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation,
+                                                                           proximity * pressures_pa)
             qp_time_s += qp_step_s
             # The linearisation's answer is where it already stands: its best (closest) pressures.
             settled = iteration > 1 and np.allclose(candidate_pa, pressures_pa, rtol=1e-6,
@@ -498,6 +518,8 @@ class InverseSolver:
             chamber_volumes_m3, gland_volume_m3, _ = evaluation
             history.append({"pressures_pa": pressures_pa.tolist(), "relative_error": error, "reached": reached,
                             "step": step})
+            if step < 1.0:
+                proximity += PROXIMAL_AFTER_DAMPING * (1.0 - proximity)
             if reached and step == 1.0 and error <= self.tolerance:
                 return InverseResult(pressures_pa, gland_volume_m3, chamber_volumes_m3, iteration,
                                      time.perf_counter() - started, qp_time_s, history)

@@ -182,12 +182,13 @@ def test_the_scene_model_table_picks_the_level(tmp_path):
 
 
 def test_without_a_fidelity_the_scenes_accuracy_picks_the_level(tmp_path):
-    # A calibrated (linear) scene with no fidelity: "rest" linearises the volume measure, which at 3 kPa on
-    # E = 2.6 kPa is far outside 1 %, while "updated" is the linear model's exact answer (error 0), cheaper than
-    # the full solve; with a loose enough accuracy_pct, "rest" is cheapest and kept.
+    # A soft small-strain (linear) scene with no fidelity: "rest" linearises the volume measure, which at 3 kPa
+    # on E = 2.6 kPa is far outside 1 %, while "updated" is the linear model's exact answer (error 0), cheaper
+    # than the full solve; with a loose enough accuracy_pct, "rest" is cheapest and kept.
     for accuracy_pct, expected in ((1.0, "updated"), (1e4, "rest")):
-        scene_path = tmp_path / f"calibrated_{accuracy_pct:g}.toml"
-        text = load_scene("builtin:calibrated").path.read_text()
+        scene_path = tmp_path / f"soft_linear_{accuracy_pct:g}.toml"
+        text = (load_scene("builtin").path.read_text().replace('model = "corotational"', 'model = "linear"')
+                .replace("youngs_modulus_kpa = 50.0", "youngs_modulus_kpa = 2.63"))
         scene_path.write_text(text + f"\n[model]\naccuracy_pct = {accuracy_pct}\npressure_max_kpa = 3.0\n")
         estimator = VolumeEstimator(PhantomModel.from_scene(load_scene(scene_path), mesh_size_mm=COARSE_MM))
         assert estimator.probe_errors_pct["updated"] <= 1e-9

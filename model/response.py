@@ -1,0 +1,221 @@
+"""The model's response over its whole operating box, solved once and interpolated: the ``table`` fidelity.
+
+A hyperelastic model answers "what volumes do these pressures give" with a full solve (0.4-1 s on the
+calibrated 5 mm mesh) and its inverse with several; a daemon that re-solves at every control tick of a ramp
+cannot wait that long. The box of pressures the daemon may ask for is small (0 to ``pressure_max`` in each of
+three chambers) and the response in it is smooth (no limit point below the pressure limit), so it is solved
+once on a grid and interpolated by a tensor-product cubic spline:
+
+- grid: ``n`` evenly spaced pressures from 0 to ``p_max`` on each axis (``n^3`` points);
+- values: chamber and gland volumes (m^3) and every node's position (m), from full solves, each started from
+  its neighbour on the grid (a few Newton iterations);
+- answers: the not-a-knot cubic spline through the grid along each axis, as a contraction of the grid values
+  with each axis's cardinal-spline weights, and its exact gradient (the tangent compliance at the operating
+  point), in a fraction of a millisecond; outside the box, the value at the nearest point of the box plus the
+  gradient there times the distance (an overshoot of a few pascal must not meet a cubic's extrapolation).
+
+Along chamber 0's axis of the calibrated model (its cavity grows 4.5-fold, with an inflection) a spline through
+0.5 kPa steps misses a dense set of full solves by 0.007 ml, a polynomial through 7 Chebyshev nodes by 0.03 ml.
+
+Built tables are stored under ``phantom.cache_dir("response")`` by a hash of the model (mesh, material,
+solver) and the grid, so a daemon pays the build (n^3 solves: 2-3 min for n = 7 on one core) once per model
+and machine. Each build is checked against full solves at :data:`CHECK_FRACTIONS`, points between the nodes.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from phantom import PhantomError
+
+#: Bump when what a table holds or how it is built changes, so stored tables are rebuilt.
+TABLE_VERSION = 1
+#: Grid points per pressure axis: 7^3 = 343 solves (0.5 kPa steps for a 3 kPa limit). On the calibrated model
+#: 5 points miss full solves by up to 3.5 % of a chamber's volume (its cavity's curve has an inflection), 7 by
+#: 0.14 % (bench/README.md, "The daemon on the calibrated model").
+DEFAULT_POINTS_PER_AXIS = 7
+#: Where each build is checked against full solves (fractions of the pressure limit per chamber): points far
+#: from every node, one near each corner region and one inside.
+CHECK_FRACTIONS = ((0.2, 0.6, 0.9), (0.9, 0.2, 0.6), (0.6, 0.9, 0.2), (0.7, 0.7, 0.7))
+
+Progress = Callable[[int, int], None]
+
+
+class ResponseTableError(PhantomError):
+    """A table that cannot be built (a grid point without equilibrium) or that misses the model."""
+
+
+def grid_pa(pressure_max_pa: float, points_per_axis: int) -> np.ndarray:
+    """The grid's pressures on each axis: ``points_per_axis`` evenly spaced from 0 to ``pressure_max_pa`` (Pa)."""
+    return np.linspace(0.0, pressure_max_pa, points_per_axis)
+
+
+@functools.lru_cache(maxsize=8)
+def _cardinal_splines(points_per_axis: int):
+    """The cubic splines (not-a-knot) through the unit vectors on the grid 0, 1, ..., n - 1: row i of their value
+    at x is the weight of grid value i in the spline through any values, so a tensor spline is a contraction."""
+    from scipy.interpolate import CubicSpline
+
+    return CubicSpline(np.arange(points_per_axis, dtype=float), np.eye(points_per_axis))
+
+
+@dataclass(frozen=True)
+class ResponseTable:
+    """A model's volumes and shape over ``[0, pressure_max_pa]^n_chambers``, interpolated (see the module).
+
+    The value arrays (grid values) have one leading axis of length ``points_per_axis`` per chamber, indexed like
+    :func:`grid_pa`, then the quantity's own axes; ``check_errors_pct``
+    is the largest volume error (% of the volume) of the build's check against full solves;
+    ``build_time_s`` what the build took.
+    """
+
+    pressure_max_pa: float
+    chamber_values: np.ndarray
+    gland_values: np.ndarray
+    position_values: np.ndarray
+    check_errors_pct: float
+    build_time_s: float
+
+    @property
+    def n_chambers(self) -> int:
+        return self.gland_values.ndim
+
+    @property
+    def points_per_axis(self) -> int:
+        return self.gland_values.shape[0]
+
+    def _bases(self, pressures_pa: np.ndarray) -> tuple[list, np.ndarray]:
+        """Per chamber: the basis and its slope (per Pa) at the pressure clipped into the box; and the excess
+        of each pressure over the box (Pa), for the linear extension outside."""
+        inside_pa = np.clip(pressures_pa, 0.0, self.pressure_max_pa)
+        bases = []
+        for pressure in inside_pa:
+            x = (self.points_per_axis - 1) * pressure / self.pressure_max_pa
+            weights = _cardinal_splines(self.points_per_axis)
+            bases.append((weights(x), weights(x, 1) * (self.points_per_axis - 1) / self.pressure_max_pa))
+        return bases, pressures_pa - inside_pa
+
+    def _contract(self, values: np.ndarray, vectors: list[np.ndarray]) -> np.ndarray:
+        result = values
+        for vector in vectors:
+            result = np.tensordot(vector, result, axes=(0, 0))
+        return result
+
+    def _value_and_gradient(self, grid_values: np.ndarray, pressures_pa: np.ndarray):
+        bases, excess_pa = self._bases(pressures_pa)
+        value = self._contract(grid_values, [values for values, _ in bases])
+        gradient = np.stack([self._contract(grid_values, [slopes if axis == chamber else values
+                                                           for axis, (values, slopes) in enumerate(bases)])
+                             for chamber in range(self.n_chambers)])
+        return value + np.tensordot(excess_pa, gradient, axes=(0, 0)), gradient
+
+    def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
+        """Chamber volumes (m^3) and the gland volume (m^3) at ``pressures_pa`` (Pa, one per chamber)."""
+        pressures = np.asarray(pressures_pa, dtype=float)
+        chambers, _ = self._value_and_gradient(self.chamber_values, pressures)
+        gland, _ = self._value_and_gradient(self.gland_values, pressures)
+        return chambers, float(gland)
+
+    def compliance(self, pressures_pa) -> tuple[np.ndarray, np.ndarray]:
+        """The tangent compliance at ``pressures_pa``: ``dV_chamber_i/dp_j`` (n, n) and ``dV_gland/dp_j`` (n,),
+        m^3/Pa (the interpolant's exact gradient)."""
+        pressures = np.asarray(pressures_pa, dtype=float)
+        _, chamber_gradient = self._value_and_gradient(self.chamber_values, pressures)
+        _, gland_gradient = self._value_and_gradient(self.gland_values, pressures)
+        return chamber_gradient.T, gland_gradient
+
+    def positions_m(self, pressures_pa) -> np.ndarray:
+        """Every node's position (m, (nodes, 3)) at ``pressures_pa``."""
+        positions, _ = self._value_and_gradient(self.position_values, np.asarray(pressures_pa, dtype=float))
+        return positions
+
+
+def build_response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
+                         progress: Progress | None = None) -> ResponseTable:
+    """Solve ``model`` at every node of the grid (each from its neighbour), then check the interpolant against
+    full solves at :data:`CHECK_FRACTIONS`. Raises ResponseTableError when a grid point has no equilibrium."""
+    from phantom.model.errors import SolveError
+
+    if points_per_axis < 2:
+        raise ResponseTableError(f"a response table needs at least 2 points per axis, got {points_per_axis}")
+    if not np.isfinite(pressure_max_pa) or pressure_max_pa <= 0:
+        raise ResponseTableError(f"the pressure limit must be a positive number of Pa, got {pressure_max_pa}")
+    started = time.perf_counter()
+    n, n_chambers = points_per_axis, int(model.n_chambers)
+    nodes_pa = grid_pa(pressure_max_pa, n)
+    grid = (n,) * n_chambers
+    chambers = np.zeros((*grid, n_chambers))
+    gland = np.zeros(grid)
+    positions = np.zeros((*grid, *np.shape(model.nodes_m)))
+    warm_start = model.formulation != "linear"  # a small-strain solve takes its load on its start: from rest
+    total = int(np.prod(grid)) + len(CHECK_FRACTIONS)
+    # C order: the neighbour one step down the last raised axis has always been solved before.
+    for done, index in enumerate(np.ndindex(*grid), start=1):
+        pressures = nodes_pa[list(index)]
+        if not any(index):
+            positions[index], chambers[index], gland[index] = (model.nodes_m, model.rest_chamber_volumes_m3,
+                                                               model.rest_gland_volume_m3)
+        else:
+            axis = max(a for a in range(n_chambers) if index[a] > 0)
+            neighbour = tuple(i - (a == axis) for a, i in enumerate(index))
+            try:
+                state = model.solve(pressures, initial_positions_m=positions[neighbour] if warm_start else None)
+            except SolveError as error:
+                raise ResponseTableError(
+                    f"the model has no equilibrium at {np.round(nodes_pa[list(index)] / 1e3, 3).tolist()} kPa, "
+                    f"inside the pressure limit ({error}): lower [model] pressure_max_kpa or stiffen the "
+                    "material") from None
+            positions[index], chambers[index], gland[index] = (state.positions_m, state.chamber_volumes_m3,
+                                                               state.gland_volume_m3)
+        if progress is not None:
+            progress(done, total)
+    table = ResponseTable(float(pressure_max_pa), chambers, gland, positions, 0.0, 0.0)
+    worst_pct = 0.0
+    for done, fractions in enumerate(CHECK_FRACTIONS, start=int(np.prod(grid)) + 1):
+        pressures = pressure_max_pa * np.asarray(fractions[:n_chambers], dtype=float)
+        nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
+        state = model.solve(pressures, initial_positions_m=positions[nearest] if warm_start else None)
+        table_chambers, table_gland = table.volumes(pressures)
+        exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
+        worst_pct = max(worst_pct, float(np.max(np.abs(np.append(table_chambers, table_gland) - exact) / exact)) * 100)
+        if progress is not None:
+            progress(done, total)
+    return ResponseTable(table.pressure_max_pa, table.chamber_values, table.gland_values,
+                         table.position_values, worst_pct, time.perf_counter() - started)
+
+
+def _cache_path(model, pressure_max_pa: float, points_per_axis: int):
+    import phantom
+
+    extra = repr(("response", TABLE_VERSION, model.formulation, float(pressure_max_pa), int(points_per_axis)))
+    return phantom.cache_dir("response") / f"{model._cache_key(extra.encode())}.npz"
+
+
+def response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
+                   progress: Progress | None = None) -> ResponseTable:
+    """The model's table: read from the disk cache, else built (:func:`build_response_table`) and stored.
+    ``progress(done, total)`` is told how a build goes (nothing is told for a cached table)."""
+    path = _cache_path(model, pressure_max_pa, points_per_axis)
+    if path.is_file():
+        try:
+            with np.load(path) as stored:
+                return ResponseTable(float(stored["pressure_max_pa"]), stored["chamber"], stored["gland"],
+                                     stored["positions"], float(stored["check_errors_pct"]),
+                                     float(stored["build_time_s"]))
+        except (OSError, ValueError, KeyError):
+            path.unlink(missing_ok=True)
+    table = build_response_table(model, pressure_max_pa, points_per_axis, progress)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
+    os.close(handle)
+    np.savez(temporary, pressure_max_pa=table.pressure_max_pa, chamber=table.chamber_values,
+             gland=table.gland_values, positions=table.position_values,
+             check_errors_pct=table.check_errors_pct, build_time_s=table.build_time_s)
+    os.replace(temporary, path)
+    return table
