@@ -254,7 +254,8 @@ def example_scene_path(name: str) -> Path:
 
 def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: float | None = None) -> dict:
     """What a scene's timeline runs on, as comparable values: the phantom (mesh, units, chambers, fixed group),
-    the material (every parameter, defaults filled in) and the model settings (fidelity, pressure limit).
+    the built-in prostate's geometry (chambers and mesh size; None for a mesh file), the material (every
+    parameter, defaults filled in) and the model settings (fidelity, pressure limit).
 
     For a running model, ``fidelity`` and ``pressure_max_kpa`` are the ones in force; for a scene file they
     are what it asks for (None: no fidelity named, which any level satisfies).
@@ -269,16 +270,18 @@ def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: f
     material = scene.material
     material = dataclasses.asdict(material) if dataclasses.is_dataclass(material) and not isinstance(
         material, type) else dict(vars(material))
+    geometry = getattr(scene, "geometry", None)
     return {"phantom": {"mesh": scene.mesh, "units": scene.units, "chambers": list(scene.chambers),
                         "fixed": scene.fixed},
+            "geometry": geometry.as_table() if geometry is not None else None,
             "material": material,
             "model": {"fidelity": fidelity, "pressure_max_kpa": float(pressure_max_kpa)}}
 
 
 def model_differences(running: dict, candidate: dict) -> list[str]:
-    """The tables (``phantom``, ``material``, ``model``) in which a scene's effective model differs from the
-    running one's; a scene that names no fidelity accepts the running one."""
-    differing = [table for table in ("phantom", "material") if running[table] != candidate[table]]
+    """The tables (``phantom``, ``geometry``, ``material``, ``model``) in which a scene's effective model differs
+    from the running one's; a scene that names no fidelity accepts the running one."""
+    differing = [table for table in ("phantom", "geometry", "material") if running[table] != candidate[table]]
     wanted_fidelity = candidate["model"]["fidelity"]
     if (wanted_fidelity is not None and wanted_fidelity != running["model"]["fidelity"]) or not math.isclose(
             running["model"]["pressure_max_kpa"], candidate["model"]["pressure_max_kpa"], rel_tol=1e-9):

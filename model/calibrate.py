@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from phantom import PhantomError
+from phantom.model.scene import HYPERELASTIC_MODELS
 
 #: Measurements above this gauge pressure (Pa) are outside what the blowers and the model are trusted for.
 PRESSURE_LIMIT_PA = 3000.0
@@ -671,6 +672,9 @@ def write_calibrated_scene(scene, result: CalibrationResult, output_path, header
     for name in result.parameters:
         table = "material" if name in MATERIAL_PARAMETERS else "geometry"
         document[table][name] = round(result.parameters[name], 5)
+    if result.material_model in HYPERELASTIC_MODELS:
+        # A daemon on a finite-strain law answers from the response table (a full solve takes most of a second)
+        document.setdefault("model", {}).setdefault("fidelity", "table")
     try:
         output_path.parent.mkdir(parents=True, exist_ok=True)
         output_path.write_text(dump_toml(document, header_comment))

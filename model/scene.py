@@ -9,10 +9,10 @@ from phantom.model.geometry import ProstateGeometry, geometry_from_table
 
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
 #: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;
-#: "builtin:calibrated" is the same mesh with the material `phantom calibrate` fitted to the measurements;
-#: "builtin:gent" the physically valid calibration (Gent material and chamber geometry, bench/README.md).
+#: "builtin:calibrated" is the physically valid calibration to the measurements (Gent material and chamber
+#: geometry, bench/README.md), the daemon's default.
 BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
-                  "builtin:calibrated": "prostate_calibrated.toml", "builtin:gent": "prostate_gent.toml"}
+                  "builtin:calibrated": "prostate_calibrated.toml"}
 
 #: Length units a scene may declare for its mesh, and their size in metres.
 LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}

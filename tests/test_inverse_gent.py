@@ -1,4 +1,4 @@
-"""The inverse on the physically valid calibration (builtin:gent), checked by independent forward solves.
+"""The inverse on the physically valid calibration (builtin:calibrated), checked by independent forward solves.
 
 The Gent chambers' pressure-volume curve has an inflection (soft, then stiffening as the chains lock): the
 tangent at 3 kPa is flatter than the secant from rest, so an undamped Newton iteration bounced between the
@@ -22,7 +22,7 @@ VOLUME_TOLERANCE = 1e-3
 
 @pytest.fixture(scope="module")
 def model():
-    return PhantomModel.from_scene(load_scene("builtin:gent"), mesh_size_mm=COARSE_MM)
+    return PhantomModel.from_scene(load_scene("builtin:calibrated"), mesh_size_mm=COARSE_MM)
 
 
 def test_gent_tangent_compliance_matches_central_differences_of_forward_solves(model):
@@ -47,7 +47,8 @@ def test_gent_inverse_reaches_bph_volumes_checked_by_a_forward_solve_from_rest(m
     solver = InverseSolver(model, fidelity="full")
     result = solver.solve(Target(gland_volume_m3=volume_ml * 1e-6))
     assert np.all(result.pressures_pa >= 0) and np.all(result.pressures_pa <= 3000.0)
-    forward = PhantomModel.from_scene(load_scene("builtin:gent"), mesh_size_mm=COARSE_MM).solve(result.pressures_pa)
+    forward = PhantomModel.from_scene(load_scene("builtin:calibrated"),
+                                      mesh_size_mm=COARSE_MM).solve(result.pressures_pa)
     assert forward.gland_volume_m3 * 1e6 == pytest.approx(volume_ml, rel=VOLUME_TOLERANCE)
     assert result.predicted_gland_volume_m3 == pytest.approx(forward.gland_volume_m3, rel=VOLUME_TOLERANCE)
 

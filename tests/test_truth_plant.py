@@ -35,8 +35,8 @@ def test_the_shipped_truth_is_the_physical_calibration_at_its_offset_modulus():
     from phantom.model import PhantomModel, load_scene
 
     plant = load_plant()
-    assert f"prostate_gent.toml with E x {TRUTH_MODULUS_FACTOR:g}" in DEFAULT_PLANT_PATH.read_text()
-    scene = load_scene("builtin:gent")
+    assert f"prostate_calibrated.toml with E x {TRUTH_MODULUS_FACTOR:g}" in DEFAULT_PLANT_PATH.read_text()
+    scene = load_scene("builtin:calibrated")
     truth = PhantomModel.from_scene(scene).with_material(youngs_modulus_pa=scene.material.youngs_modulus_pa
                                                          * TRUTH_MODULUS_FACTOR)
     state = truth.solve([2000.0, 1000.0, 0.0])

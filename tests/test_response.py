@@ -1,0 +1,152 @@
+"""The response table (the ``table`` fidelity): full solves on a grid over the operating box, interpolated.
+
+Every check compares the interpolant with full solves it was not built from (off-grid pressures), with the
+tolerance stated where it is used. The small tests use the built-in co-rotational scene on a coarse mesh,
+whose response is mildly nonlinear; the slow ones the shipped calibration the daemon runs on (Gent, 5 mm).
+"""
+
+import numpy as np
+import pytest
+
+from phantom import PhantomError
+from phantom.model import PhantomModel, load_scene
+from phantom.model.fidelity import VolumeEstimator
+from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
+from phantom.model.response import (
+    ResponseTableError,
+    build_response_table,
+    grid_pa,
+    response_table,
+)
+
+COARSE_MM = 8.0
+PRESSURE_MAX_PA = 3000.0
+OFF_GRID_PA = np.array([[300.0, 2700.0, 1300.0], [2200.0, 700.0, 1900.0], [1700.0, 1700.0, 400.0]])
+
+
+@pytest.fixture(scope="module")
+def model():
+    return PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=COARSE_MM)
+
+
+@pytest.fixture(scope="module")
+def table(model):
+    return build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4)
+
+
+def _growth_errors(model, table, pressures_pa):
+    """|table - full solve| / the full solve's growth from rest, gland and each chamber, at one pressure set."""
+    state = model.solve(pressures_pa)
+    chambers, gland = table.volumes(pressures_pa)
+    exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
+    rest = np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3)
+    return np.abs(np.append(chambers, gland) - exact) / np.abs(exact - rest), state
+
+
+def test_the_table_matches_full_solves_between_its_grid_points(model, table):
+    # a cubic spline through 1 kPa steps of a mildly nonlinear response: well under 0.5 % of each growth (a
+    # wrong grid index or spline weight would be off by tens of %)
+    for pressures_pa in OFF_GRID_PA:
+        errors, state = _growth_errors(model, table, pressures_pa)
+        assert errors.max() < 5e-3, (pressures_pa, errors)
+        # the shape too: within 1 % of the largest displacement
+        displacement = np.abs(state.positions_m - model.nodes_m).max()
+        assert np.abs(table.positions_m(pressures_pa) - state.positions_m).max() < 1e-2 * displacement
+    assert 0 < table.check_errors_pct < 0.5 and table.build_time_s > 0
+
+
+def test_the_tables_gradient_is_the_models_tangent_compliance(model, table):
+    pressures_pa = OFF_GRID_PA[1]
+    tangent = model.compliance(model.solve(pressures_pa))
+    chamber, gland = table.compliance(pressures_pa)
+    # the derivative of a cubic spline converges an order slower than its values: 3 % of the largest entry
+    np.testing.assert_allclose(chamber, tangent.chamber_m3_per_pa, atol=3e-2 * np.abs(tangent.chamber_m3_per_pa).max())
+    np.testing.assert_allclose(gland, tangent.gland_m3_per_pa, rtol=3e-2)
+
+
+def test_beyond_the_box_the_table_extends_linearly_not_as_a_cubic(model, table):
+    # an overshoot of 200 Pa above the limit on one chamber: the tangent's extension misses the full solve by the
+    # curvature's second-order term only
+    pressures_pa = np.array([PRESSURE_MAX_PA + 200.0, 1000.0, 500.0])
+    errors, _ = _growth_errors(model, table, pressures_pa)
+    assert errors.max() < 1e-2
+    inside_chambers, _ = table.volumes([PRESSURE_MAX_PA, 1000.0, 500.0])
+    slope, _ = table.compliance([PRESSURE_MAX_PA, 1000.0, 500.0])
+    chambers, _ = table.volumes(pressures_pa)
+    np.testing.assert_allclose(chambers, inside_chambers + 200.0 * slope[:, 0], rtol=1e-12)
+
+
+def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, tmp_path):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    built = response_table(model, PRESSURE_MAX_PA, points_per_axis=2)
+    solves = []
+    original = model.solve
+    monkeypatch.setattr(model, "solve", lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
+    reported = []
+    again = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, progress=lambda *done: reported.append(done))
+    assert solves == [] and reported == []
+    np.testing.assert_array_equal(again.position_values, built.position_values)
+    assert len(list((tmp_path / "response").glob("*.npz"))) == 1
+    # another grid is another table
+    response_table(model, PRESSURE_MAX_PA, points_per_axis=3, progress=lambda *done: reported.append(done))
+    assert reported[-1] == (27 + 4, 27 + 4) and len(solves) == 26 + 4
+
+
+def test_bad_grids_are_refused(model):
+    assert grid_pa(3000.0, 7)[[0, 1, -1]] == pytest.approx([0.0, 500.0, 3000.0])
+    with pytest.raises(ResponseTableError, match="at least 2 points"):
+        build_response_table(model, PRESSURE_MAX_PA, points_per_axis=1)
+    with pytest.raises(ResponseTableError, match="positive number of Pa"):
+        build_response_table(model, -1.0)
+
+
+def test_an_inaccurate_table_is_refused_with_what_to_do(monkeypatch, tmp_path):
+    # two points per axis: trilinear in the pressures, which misses the volume measure's curvature by far more
+    # than the 0.001 % asked for
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    scene_path = tmp_path / "coarse_table.toml"
+    scene_path.write_text(load_scene("builtin").path.read_text()
+                          + '\n[model]\nfidelity = "table"\ntable_points = 2\naccuracy_pct = 0.001\n')
+    coarse = PhantomModel.from_scene(load_scene(scene_path), mesh_size_mm=COARSE_MM)
+    with pytest.raises(PhantomError, match=r"misses the full solve by .* raise \[model\] table_points"):
+        VolumeEstimator(coarse)
+
+
+# --- the daemon's model: the shipped calibration ------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def calibrated():
+    """The daemon's default model and its table (built once per machine: 2-6 min, then read from the cache)."""
+    model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
+    return model, VolumeEstimator(model)
+
+
+@pytest.mark.slow
+def test_the_calibrated_scene_answers_from_its_table_within_a_tenth_of_a_percent(calibrated):
+    model, estimator = calibrated
+    assert estimator.level == "table"
+    rng = np.random.default_rng(12)
+    # Tolerance: 0.5 % of each growth and 0.1 % of the gland volume (the daemon's step tolerance is 1 %).
+    for pressures_pa in rng.uniform(0.0, PRESSURE_MAX_PA, size=(3, 3)):
+        errors, state = _growth_errors(model, estimator.table, pressures_pa)
+        assert errors.max() < 5e-3, (pressures_pa, errors)
+        _, gland = estimator.volumes(pressures_pa)
+        assert gland == pytest.approx(state.gland_volume_m3, rel=1e-3)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("volume_ml", [26.0, 30.0, 33.0, 35.0, 40.0, 42.93, 44.0])
+def test_the_inverse_on_the_table_reaches_the_bph_targets_checked_by_full_solves(calibrated, volume_ml):
+    model, estimator = calibrated
+    result = InverseSolver(model, estimator=estimator).solve(Target(gland_volume_m3=volume_ml * 1e-6))
+    assert np.all(result.pressures_pa >= 0) and np.all(result.pressures_pa <= PRESSURE_MAX_PA)
+    forward = model.solve(result.pressures_pa)
+    # the table's error, 0.1 % of the volume
+    assert forward.gland_volume_m3 * 1e6 == pytest.approx(volume_ml, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_the_paper_s_45_ml_is_out_of_the_calibrated_model_s_reach(calibrated):
+    model, estimator = calibrated
+    with pytest.raises(UnreachableTargetError, match=r"45\.000 ml is unreachable.* give 25\.8\d* to 44\.2\d* ml"):
+        InverseSolver(model, estimator=estimator).solve(Target(gland_volume_m3=45e-6))
