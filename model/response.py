@@ -8,7 +8,7 @@ once on a grid and interpolated by a tensor-product cubic spline:
 
 - grid: ``n`` evenly spaced pressures from 0 to ``p_max`` on each axis (``n^3`` points);
 - values: chamber and gland volumes (m^3) and every node's position (m), from full solves, each started from
-  its neighbour on the grid (a few Newton iterations);
+  its neighbour on the grid (a few Newton iterations), one slab of the first chamber's pressure per process;
 - answers: the not-a-knot cubic spline through the grid along each axis, as a contraction of the grid values
   with each axis's cardinal-spline weights, and its exact gradient (the tangent compliance at the operating
   point), in a fraction of a millisecond; outside the box, the value at the nearest point of the box plus the
@@ -18,8 +18,9 @@ Along chamber 0's axis of the calibrated model (its cavity grows 4.5-fold, with 
 0.5 kPa steps misses a dense set of full solves by 0.007 ml, a polynomial through 7 Chebyshev nodes by 0.03 ml.
 
 Built tables are stored under ``phantom.cache_dir("response")`` by a hash of the model (mesh, material,
-solver) and the grid, so a daemon pays the build (n^3 solves: 2-3 min for n = 7 on one core) once per model
-and machine. Each build is checked against full solves at :data:`CHECK_FRACTIONS`, points between the nodes.
+solver) and the grid, so a daemon pays the build (n^3 solves: 2-3 min for n = 7 on one core, divided by the
+cores up to n) once per model and machine. Each build is checked against full solves at
+:data:`CHECK_FRACTIONS`, points between the grid's.
 """
 
 from __future__ import annotations
@@ -137,12 +138,44 @@ class ResponseTable:
         return positions
 
 
-def build_response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
-                         progress: Progress | None = None) -> ResponseTable:
-    """Solve ``model`` at every node of the grid (each from its neighbour), then check the interpolant against
-    full solves at :data:`CHECK_FRACTIONS`. Raises ResponseTableError when a grid point has no equilibrium."""
+def _solve_slab(model, nodes_pa: np.ndarray, first: int):
+    """The grid points whose first pressure is ``nodes_pa[first]``, in C order, each solved from its neighbour one
+    step down the last raised axis (the slab's first point from rest): chamber volumes, gland volumes and node
+    positions, shaped like the slab. Runs in a worker process of :func:`build_response_table` or in its own."""
     from phantom.model.errors import SolveError
 
+    n, n_chambers = len(nodes_pa), int(model.n_chambers)
+    slab = (n,) * (n_chambers - 1)
+    chambers, gland = np.zeros((*slab, n_chambers)), np.zeros(slab)
+    positions = np.zeros((*slab, *np.shape(model.nodes_m)))
+    warm_start = model.formulation != "linear"  # a small-strain solve takes its load on its start: from rest
+    for index in np.ndindex(*slab):
+        pressures = nodes_pa[[first, *index]]
+        if not np.any(pressures):
+            positions[index], chambers[index], gland[index] = (model.nodes_m, model.rest_chamber_volumes_m3,
+                                                               model.rest_gland_volume_m3)
+            continue
+        start_m = None
+        if warm_start and any(index):
+            axis = max(a for a in range(n_chambers - 1) if index[a] > 0)
+            start_m = positions[tuple(i - (a == axis) for a, i in enumerate(index))]
+        try:
+            state = model.solve(pressures, initial_positions_m=start_m)
+        except SolveError as error:
+            raise ResponseTableError(
+                f"the model has no equilibrium at {np.round(pressures / 1e3, 3).tolist()} kPa, inside the pressure "
+                f"limit ({error}): lower [model] pressure_max_kpa or stiffen the material") from None
+        positions[index], chambers[index], gland[index] = (state.positions_m, state.chamber_volumes_m3,
+                                                           state.gland_volume_m3)
+    return chambers, gland, positions
+
+
+def build_response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
+                         progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
+    """Solve ``model`` at every node of the grid, one slab of the first pressure per task on ``workers``
+    processes (default: the machine's cores, at most one per slab; 1: in this process), then check the
+    interpolant against full solves at :data:`CHECK_FRACTIONS`. Raises ResponseTableError when a grid point has
+    no equilibrium. The slabs' solves do not depend on how they are spread, so neither does the table."""
     if points_per_axis < 2:
         raise ResponseTableError(f"a response table needs at least 2 points per axis, got {points_per_axis}")
     if not np.isfinite(pressure_max_pa) or pressure_max_pa <= 0:
@@ -154,37 +187,39 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     chambers = np.zeros((*grid, n_chambers))
     gland = np.zeros(grid)
     positions = np.zeros((*grid, *np.shape(model.nodes_m)))
-    warm_start = model.formulation != "linear"  # a small-strain solve takes its load on its start: from rest
     total = int(np.prod(grid)) + len(CHECK_FRACTIONS)
-    # C order: the neighbour one step down the last raised axis has always been solved before.
-    for done, index in enumerate(np.ndindex(*grid), start=1):
-        pressures = nodes_pa[list(index)]
-        if not any(index):
-            positions[index], chambers[index], gland[index] = (model.nodes_m, model.rest_chamber_volumes_m3,
-                                                               model.rest_gland_volume_m3)
-        else:
-            axis = max(a for a in range(n_chambers) if index[a] > 0)
-            neighbour = tuple(i - (a == axis) for a, i in enumerate(index))
-            try:
-                state = model.solve(pressures, initial_positions_m=positions[neighbour] if warm_start else None)
-            except SolveError as error:
-                raise ResponseTableError(
-                    f"the model has no equilibrium at {np.round(nodes_pa[list(index)] / 1e3, 3).tolist()} kPa, "
-                    f"inside the pressure limit ({error}): lower [model] pressure_max_kpa or stiffen the "
-                    "material") from None
-            positions[index], chambers[index], gland[index] = (state.positions_m, state.chamber_volumes_m3,
-                                                               state.gland_volume_m3)
-        if progress is not None:
-            progress(done, total)
+    done = 0
+    workers = max(1, min(workers or os.cpu_count() or 1, n))
+    if workers == 1:
+        for first in range(n):
+            chambers[first], gland[first], positions[first] = _solve_slab(model, nodes_pa, first)
+            done += gland[first].size
+            if progress is not None:
+                progress(done, total)
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        # spawned, not forked: a daemon's model worker has threads, and a fork copies only the calling one
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+            slabs = {pool.submit(_solve_slab, model, nodes_pa, first): first for first in range(n)}
+            for finished in as_completed(slabs):
+                first = slabs[finished]
+                chambers[first], gland[first], positions[first] = finished.result()
+                done += gland[first].size
+                if progress is not None:
+                    progress(done, total)
     table = ResponseTable(float(pressure_max_pa), chambers, gland, positions, 0.0, 0.0)
+    warm_start = model.formulation != "linear"
     worst_pct = 0.0
-    for done, fractions in enumerate(CHECK_FRACTIONS, start=int(np.prod(grid)) + 1):
+    for fractions in CHECK_FRACTIONS:
         pressures = pressure_max_pa * np.asarray(fractions[:n_chambers], dtype=float)
         nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
         state = model.solve(pressures, initial_positions_m=positions[nearest] if warm_start else None)
         table_chambers, table_gland = table.volumes(pressures)
         exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
         worst_pct = max(worst_pct, float(np.max(np.abs(np.append(table_chambers, table_gland) - exact) / exact)) * 100)
+        done += 1
         if progress is not None:
             progress(done, total)
     return ResponseTable(table.pressure_max_pa, table.chamber_values, table.gland_values,
@@ -199,7 +234,7 @@ def _cache_path(model, pressure_max_pa: float, points_per_axis: int):
 
 
 def response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
-                   progress: Progress | None = None) -> ResponseTable:
+                   progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
     """The model's table: read from the disk cache, else built (:func:`build_response_table`) and stored.
     ``progress(done, total)`` is told how a build goes (nothing is told for a cached table)."""
     path = _cache_path(model, pressure_max_pa, points_per_axis)
@@ -211,7 +246,7 @@ def response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT
                                      float(stored["build_time_s"]))
         except (OSError, ValueError, KeyError):
             path.unlink(missing_ok=True)
-    table = build_response_table(model, pressure_max_pa, points_per_axis, progress)
+    table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers)
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
     os.close(handle)
     np.savez(temporary, pressure_max_pa=table.pressure_max_pa, chamber=table.chamber_values,

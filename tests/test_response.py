@@ -31,7 +31,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def table(model):
-    return build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4)
+    return build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, workers=1)
 
 
 def _growth_errors(model, table, pressures_pa):
@@ -78,18 +78,26 @@ def test_beyond_the_box_the_table_extends_linearly_not_as_a_cubic(model, table):
 
 def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
-    built = response_table(model, PRESSURE_MAX_PA, points_per_axis=2)
+    built = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
     solves = []
     original = model.solve
     monkeypatch.setattr(model, "solve", lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
     reported = []
-    again = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, progress=lambda *done: reported.append(done))
+    again = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1,
+                           progress=lambda *done: reported.append(done))
     assert solves == [] and reported == []
     np.testing.assert_array_equal(again.position_values, built.position_values)
     assert len(list((tmp_path / "response").glob("*.npz"))) == 1
     # another grid is another table
-    response_table(model, PRESSURE_MAX_PA, points_per_axis=3, progress=lambda *done: reported.append(done))
+    response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1, progress=lambda *done: reported.append(done))
     assert reported[-1] == (27 + 4, 27 + 4) and len(solves) == 26 + 4
+
+
+def test_slabs_on_worker_processes_give_the_same_table(model, table):
+    # each slab's solves are the same wherever it runs (the slab's first point from rest, then neighbours)
+    parallel = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, workers=2)
+    np.testing.assert_allclose(parallel.position_values, table.position_values, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(parallel.gland_values, table.gland_values, rtol=1e-12)
 
 
 def test_bad_grids_are_refused(model):
@@ -100,6 +108,7 @@ def test_bad_grids_are_refused(model):
         build_response_table(model, -1.0)
 
 
+@pytest.mark.slow  # two worker processes start for eight solves
 def test_an_inaccurate_table_is_refused_with_what_to_do(monkeypatch, tmp_path):
     # two points per axis: trilinear in the pressures, which misses the volume measure's curvature by far more
     # than the 0.001 % asked for
@@ -115,8 +124,8 @@ def test_an_inaccurate_table_is_refused_with_what_to_do(monkeypatch, tmp_path):
 # --- the daemon's model: the shipped calibration ------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def calibrated():
-    """The daemon's default model and its table (built once per machine: 2-6 min, then read from the cache)."""
+def calibrated(calibrated_response_table):
+    """The daemon's default model and its estimator, on the table (conftest.py builds it once per machine)."""
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
     return model, VolumeEstimator(model)
 

@@ -114,7 +114,7 @@ def test_missing_or_broken_scene_files_say_so(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["bph_growth", "lopsided"])
-def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachable(name):
+def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachable(name, calibrated_response_table):
     from phantom.host.control import LoadedModel
     from phantom.model import load_scene
     from phantom.model.inverse import UnreachableTargetError
@@ -162,9 +162,8 @@ def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tm
 
 
 @pytest.fixture(scope="module")
-def default_model():
-    """The model a daemon started with its defaults loads (builtin:calibrated; its response table is built once
-    per machine, minutes, then read from the cache)."""
+def default_model(calibrated_response_table):
+    """The model a daemon started with its defaults loads (builtin:calibrated, on its response table)."""
     from phantom.host.control import LoadedModel
 
     return LoadedModel("builtin:calibrated", report=lambda message: None)
