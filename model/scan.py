@@ -42,6 +42,8 @@ FIT_RMS_LIMIT = 0.1
 AMBIGUOUS_RESIDUAL_RATIO = 1.1
 AMBIGUOUS_EXCESS_MM = 0.1
 AMBIGUOUS_ANGLE_DEG = 10.0
+#: Far starts refined in search of a second alignment before the best one is taken as the only one.
+ALTERNATIVE_TRIES = 3
 #: Scan points used by the global start (per candidate) and by the final ICP.
 START_POINTS = 600
 START_ITERATIONS = 8
@@ -736,12 +738,20 @@ def align(scan: Frame, measured_points_mm: np.ndarray, model: TriangleMesh, mode
     exact = exact_correspondence(model_index)
     best = icp(many, exact, *starts[order[0]][:2], ICP_MAX_ITERATIONS)
     # The best start that lies far from that one is refined too: the better of the two is the answer, and the
-    # other's residual says how well the shape pins the rotation (nearly symmetric shapes fit both ways).
+    # other's residual says how well the shape pins the rotation (nearly symmetric shapes fit both ways). A start
+    # that ICP brings back to the best alignment is the same answer, not another one (it was reported as an
+    # "ambiguous" rotation by 0 deg): the next far start is tried, up to ALTERNATIVE_TRIES refinements.
     alternative = None
+    tries = 0
     for index in order[1:]:
-        if rotation_angle_deg(starts[index][0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
-            alternative = icp(many, exact, *starts[index][:2], ICP_MAX_ITERATIONS)
+        if tries == ALTERNATIVE_TRIES:
             break
+        if rotation_angle_deg(starts[index][0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
+            tries += 1
+            refined = icp(many, exact, *starts[index][:2], ICP_MAX_ITERATIONS)
+            if rotation_angle_deg(refined[0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
+                alternative = refined
+                break
     if alternative is not None and alternative[2] < best[2]:
         best, alternative = alternative, best
     rotation, translation, rms, iterations = best

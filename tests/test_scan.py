@@ -19,6 +19,7 @@ from phantom.host import cli
 from phantom.model import PhantomModel, load_scene
 from phantom.model.calibrate import load_measurements
 from phantom.model.scan import (
+    AMBIGUOUS_ANGLE_DEG,
     ScanError,
     SurfaceIndex,
     TriangleMesh,
@@ -145,6 +146,22 @@ def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface
     recomputed = brute_force_distance(surface.vertices_mm, aligned, other.triangles)
     np.testing.assert_allclose(np.abs(result.model_signed_distance_mm), recomputed, atol=1e-6)
     assert result.model_to_scan_mm["max"] == pytest.approx(recomputed.max(), abs=1e-6)
+
+
+@pytest.mark.slow
+def test_a_start_that_ends_at_the_best_alignment_is_not_called_another(tmp_path, capsys, surface, state):
+    # The README's example (python -m phantom.model.scan_synthetic --modulus-factor 0.85, seed 0): a far start's
+    # ICP came back to the best alignment, and the command called the fit "ambiguous: a rotation by 0 deg".
+    from phantom.model import scan_synthetic
+
+    path = tmp_path / "softer_scan.ply"
+    scan_synthetic.main(["--out", str(path), "--modulus-factor", "0.85"])
+    capsys.readouterr()
+    assert cli.main(["compare-scan", str(path), "--scene", "builtin:calibrated", "--pressures-kpa", "1,2,0.5",
+                     "--json"]) == 0
+    transform = json.loads(capsys.readouterr().out)["transform"]
+    assert not transform["ambiguous"]
+    assert transform["alternative_angle_deg"] is None or transform["alternative_angle_deg"] > AMBIGUOUS_ANGLE_DEG
 
 
 def test_closest_points_match_brute_force(surface):
