@@ -5,6 +5,7 @@ solves at E_true on the true geometry), so the right answer is known; the figure
 in bench/README.md.
 """
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -229,5 +230,13 @@ def test_the_written_scene_keeps_every_table_and_rebases_a_relative_mesh(tmp_pat
     assert written.raw["model"] == {"fidelity": "rest", "accuracy_pct": 2.0}
     assert written.steps == scene.steps
     assert output.read_text().startswith("# a comment\n# over two lines\n")
+    # a finite-strain fit gets the response table (a daemon cannot wait for full solves), unless the scene
+    # already names a fidelity
+    gent = dataclasses.replace(result, material_model="gent", parameters={"gent_jm": 3.0})
+    write_calibrated_scene(scene, gent, output)
+    assert load_scene(output).raw["model"]["fidelity"] == "rest"
+    scene_path.write_text(scene_path.read_text().replace('fidelity = "rest"\n', ""))
+    write_calibrated_scene(load_scene(scene_path), gent, output)
+    assert load_scene(output).raw["model"] == {"fidelity": "table", "accuracy_pct": 2.0}
     with pytest.raises(CalibrationError, match="non-finite"):
         dump_toml({"material": {"youngs_modulus_kpa": float("nan")}})
