@@ -154,11 +154,15 @@ class Daemon:
         await api.start()  # first: a second daemon stops here, before it opens anything of the first's
         built: list[Any] = []
         try:
-            model = await ModelWorker.start(config.scene, config.log_level)
-            built.append(model)
-            recorder = Recorder(model.info.chamber_names, config.rerun_save, config.rerun_connect)
+            from phantom.model import load_scene
+
+            # the recording opens before the model is built: a first start may build the model's response table
+            # for minutes, and an unwritable path must not wait for that to be reported
+            recorder = Recorder(list(load_scene(config.scene).chambers), config.rerun_save, config.rerun_connect)
             recorder.open()
             built.append(recorder)
+            model = await ModelWorker.start(config.scene, config.log_level)
+            built.append(model)
             sim_board = None
             if config.sim:
                 sim_board = SimulatedBoardKeeper(config.sim_speed, lambda kind, text, level: None)
