@@ -53,6 +53,9 @@ LAW_STRETCH_RANGE = {"linear": (0.9, 1.1), "corotational": (0.9, 1.1), "neo_hook
 GENT_LIMIT_FRACTION = 0.95
 #: Parameters that are material keys (everything else named in a grid is a [geometry] key).
 MATERIAL_PARAMETERS = ("gent_jm", "poisson_ratio")
+#: The refinement's cost of a state that is inadmissible or beyond the traces: finite (an infinite cost derails
+#: the Powell line searches, which span the whole box) and above any fit's (8 points 100 % off cost 8).
+INADMISSIBLE_COST = 1e6
 
 
 class CalibrationError(PhantomError):
@@ -333,25 +336,37 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
     best = np.unravel_index(np.argmin(np.where(usable, cost, np.inf)), cost.shape)
     theta0 = np.array([responses.grid.values[axis][best[axis]] for axis in range(len(best) - 1)])
     t0 = float(responses.load_factors[best[-1]])
-    low = np.array([values[0] for values in responses.grid.values] + [responses.load_factors[1]])
-    high = np.array([values[-1] for values in responses.grid.values] + [responses.load_factors[-1]])
-    span = np.where(high > low, high - low, 1.0)
+    # The refinement moves the varying axes and t only: a single-valued axis stays at its value.
+    varying = responses.varying
+    low = np.array([responses.grid.values[axis][0] for axis in varying] + [responses.load_factors[1]])
+    high = np.array([responses.grid.values[axis][-1] for axis in varying] + [responses.load_factors[-1]])
+    span = high - low
+
+    def state(scaled: np.ndarray) -> tuple[np.ndarray, float]:
+        free = low + np.clip(scaled, 0, 1) * span
+        theta = theta0.copy()
+        theta[varying] = free[:-1]
+        return theta, float(free[-1])
 
     def objective(scaled: np.ndarray) -> float:
-        point = low + np.clip(scaled, 0, 1) * span
-        theta, load_factor = point[:-1], float(point[-1])
-        volumes = responses.interpolate("gland_m3", theta, load_factor)[rays]
+        theta, load_factor = state(scaled)
         if not _admissible_here(responses, theta, load_factor, rays):
-            return np.inf
+            return INADMISSIBLE_COST
+        volumes = responses.interpolate("gland_m3", theta, load_factor)[rays]
         value = float(np.sum(((volumes - measured) / measured) ** 2))
-        return value if np.isfinite(value) else np.inf
+        return value if np.isfinite(value) else INADMISSIBLE_COST
 
-    start = (np.append(theta0, t0) - low) / span
-    refined = minimize(objective, start, method="Powell", bounds=[(0, 1)] * len(start),
-                       options={"xtol": 1e-4, "ftol": 1e-10, "maxfev": 3000})
-    scaled = refined.x if np.isfinite(refined.fun) and refined.fun <= objective(start) else start
-    point = low + np.clip(scaled, 0, 1) * span
-    theta, load_factor = point[:-1], float(point[-1])
+    start = (np.append(theta0[varying], t0) - low) / span
+    # Nelder-Mead from a simplex of a fifth of a grid cell and two load-factor steps around the grid's best:
+    # it starts where the grid search ended and shrinks away from inadmissible states. (Powell's bounded line
+    # searches start at the golden section of the whole box, beyond the traces' ends, and never came back.)
+    cell_steps = [np.diff(responses.grid.values[axis]).min() / 5 for axis in varying]
+    steps = np.array(cell_steps + [2 * (responses.load_factors[1] - responses.load_factors[0])]) / span
+    simplex = np.vstack([start, start + np.diag(np.where(start + steps <= 1, steps, -steps))])
+    refined = minimize(objective, start, method="Nelder-Mead", bounds=[(0, 1)] * len(start),
+                       options={"initial_simplex": simplex, "xatol": 1e-6, "fatol": 1e-12, "maxfev": 3000})
+    scaled = refined.x if refined.fun <= objective(start) else start
+    theta, load_factor = state(scaled)
     predicted = responses.interpolate("gland_m3", theta, load_factor)
     return Fit(theta, load_factor, predicted, float(objective(scaled)), _binding(responses, cost, usable, rays))
 

@@ -71,18 +71,23 @@ def test_missing_file_and_chamber_count_mismatch(tmp_path):
         load_measurements(path, n_chambers=3)
 
 
-def _synthetic_responses(admissible_below_t=np.inf):
-    """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t."""
-    grid = Grid(("gent_jm",), (np.array([0.0, 0.5, 1.0, 1.5]),))
+def _synthetic_responses(admissible_below_t=np.inf, traced_below_t=np.inf, fixed_lobe_scale=None):
+    """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t; NaN (not
+    traced, as beyond a trace's growth stop) above ``traced_below_t``; with ``fixed_lobe_scale``, a second,
+    single-valued grid axis."""
+    names, values = ("gent_jm",), (np.array([0.0, 0.5, 1.0, 1.5]),)
+    if fixed_lobe_scale is not None:
+        names, values = (*names, "lobe_chamber_scale"), (*values, np.array([fixed_lobe_scale]))
+    grid = Grid(names, values)
     load_factors = np.linspace(0, 3, 301)
-    theta = grid.values[0][:, None, None]
-    t = load_factors[None, :, None]
-    gland = _family(theta, t)
-    admissible = np.broadcast_to(t <= admissible_below_t, gland.shape).copy()
-    ones = np.ones_like(gland)
+    theta = grid.values[0].reshape(-1, *(1,) * (len(names) + 1))
+    t = load_factors[:, None]
+    gland = np.broadcast_to(_family(theta, t), (*grid.shape, len(load_factors), 4)).copy()
+    gland[..., t[:, 0] > traced_below_t, :] = np.nan
+    admissible = np.broadcast_to(t <= admissible_below_t, gland.shape) & np.isfinite(gland)
+    ones = np.where(np.isfinite(gland), 1.0, np.nan)
     measures = {"min_det": ones, "min_stretch": ones, "max_stretch": ones, "max_i1_minus_3": 0 * ones}
-    responses = Responses(grid, load_factors, gland, admissible, measures, np.full(4, 100.0), "gent")
-    return responses
+    return Responses(grid, load_factors, gland, admissible, measures, np.full(grid.shape, 100.0), "gent")
 
 
 def _family(theta, t):
@@ -101,6 +106,21 @@ def test_the_fit_recovers_known_parameters_and_leave_one_out_uses_the_others():
     assert full.predicted_m3 == pytest.approx(measured, rel=1e-4)
     without_last = fit(responses, measured, [0, 1, 2])
     assert without_last.predicted_m3[3] == pytest.approx(measured[3], rel=1e-3)
+
+
+def test_the_fit_refines_between_grid_values_where_traces_end_and_keeps_a_single_valued_axis():
+    # As on the real traces: the fit at an eighth of the load-factor range, every trace stopped (its growth limit)
+    # at twice that; the truth between fine load factors (0.01 apart) and between theta's grid values, and a
+    # second grid axis with one value. The refinement must move off the grid search's point (t within 1/20 of a
+    # fine step) and leave the single-valued axis alone.
+    responses = _synthetic_responses(traced_below_t=0.8, fixed_lobe_scale=1.2)
+    theta_true, t_true = 0.8, 0.4051
+    measured = _family(theta_true, t_true)
+    full = fit(responses, measured, [0, 1, 2, 3])
+    assert full.load_factor == pytest.approx(t_true, abs=5e-4)
+    assert full.theta[0] == pytest.approx(theta_true, abs=2e-3)
+    assert full.theta[1] == 1.2
+    assert full.predicted_m3 == pytest.approx(measured, rel=1e-4)
 
 
 def test_the_fit_keeps_to_the_constraints_and_refuses_when_nothing_is_valid():
