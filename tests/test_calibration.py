@@ -187,6 +187,19 @@ def test_calibrate_recovers_known_material_and_geometry_on_a_two_worker_cluster(
     assert json.loads(capsys.readouterr().out)["traces_solved_now"] == 0
 
 
+@pytest.mark.slow
+def test_the_traces_interpolation_agrees_with_full_solves_at_a_gent_fit(tmp_path, capsys, dask_scheduler):
+    # The leave-one-out predictions are the traces' interpolation, so it must match independent full solves at
+    # the fitted parameters (continuation in four steps straight to the fitted modulus) on the paper's data.
+    args = _parse(["calibrate", "--measurements", str(MEASUREMENTS), "--material", "gent", "--gent-jm", "3",
+                   "--size-mm", "5", "--grid", "lobe_chamber_scale=1.2", "--scheduler", dask_scheduler,
+                   "--output", str(tmp_path / "gent.toml"), "--json"])
+    assert args.run(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    full, interpolated = np.array(report["fit_predicted_ml"]), np.array(report["fit_interpolated_ml"])
+    assert np.max(np.abs(interpolated - full) / full) < 0.01
+
+
 def test_a_small_strain_law_is_held_to_its_range_and_says_the_constraint_binds(tmp_path, capsys,
                                                                               dask_scheduler):
     # Measurements of a soft phantom (8 kPa): fitting them needs strains far beyond the linear law's 10 %.
