@@ -574,14 +574,12 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
     responses = assemble_responses(grid, traces, feasible, law, gent_jms, n_rays, float(load_factors[-1]))
     everyone = list(range(n_rays))
     full = fit(responses, measured, everyone)
-    loo_predicted, loo_fits = [], []
-    for left_out in everyone:
-        refit = fit(responses, measured, [j for j in everyone if j != left_out])
-        value = refit.predicted_m3[left_out]
-        if not np.isfinite(value):  # beyond the traced range: the trace's end bounds it from below
-            value = np.nanmax(responses.gland_m3[..., left_out])
-        loo_predicted.append(value)
-        loo_fits.append(refit)
+    loo_fits = [fit(responses, measured, [j for j in everyone if j != left_out]) for left_out in everyone]
+    loo_predicted = np.array([refit.predicted_m3[left_out] for left_out, refit in enumerate(loo_fits)])
+    beyond = [left_out for left_out in everyone if not np.isfinite(loo_predicted[left_out])]
+    if beyond:  # the left-out ray's trace stopped (OVERSHOOT) below the refit's load: solve it there
+        loo_predicted[beyond] = _solve_left_out(raw, grid, [loo_fits[j] for j in beyond], beyond, measurements,
+                                                scheduler, n_workers, progress)
     e0 = scene.material.youngs_modulus_pa
     parameters = {name: float(full.theta[k]) for k, name in enumerate(grid.names)}
     verified, validity = _verify(raw, parameters, full.load_factor, measurements, law, scheduler, n_workers,
@@ -591,6 +589,20 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
         full.predicted_m3, np.array(loo_predicted),
         [{name: float(f.theta[k]) for k, name in enumerate(grid.names)} for f in loo_fits],
         np.array([e0 / f.load_factor for f in loo_fits]), validity, len(tasks), solved_now, full.binding)
+
+
+def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_workers, progress) -> np.ndarray:
+    """Gland volumes (m^3) of left-out measurements at their refits' parameters, by full solves (continuation in
+    four steps); where the model has no state there (a limit point), the last solved volume, a lower bound."""
+    from phantom.model.sweep import RayTask, run_sweep
+
+    tasks = []
+    for refit, left_out in zip(refits, left_outs, strict=True):
+        document = scene_with(raw, {name: float(refit.theta[k]) for k, name in enumerate(grid.names)})
+        load_factors = tuple((refit.load_factor * np.array([0.25, 0.5, 0.75, 1.0])).tolist())
+        tasks.append(RayTask(document, tuple(measurements.pressures_pa[left_out].tolist()), load_factors))
+    return np.array([trace.gland_m3[-1] for trace in run_sweep(tasks, scheduler=scheduler, n_workers=n_workers,
+                                                               progress=progress)])
 
 
 def _verify(raw, parameters, load_factor, measurements, law, scheduler, n_workers, progress):

@@ -200,6 +200,33 @@ def test_the_traces_interpolation_agrees_with_full_solves_at_a_gent_fit(tmp_path
     assert np.max(np.abs(interpolated - full) / full) < 0.01
 
 
+def test_a_left_out_point_beyond_its_trace_is_predicted_by_a_full_solve(tmp_path, capsys, dask_scheduler):
+    # Exact measurements of a Neo-Hookean model at E = 10 kPa, but the last point's growth divided by 2.5: its
+    # trace stops at 1.8 times that growth, so with it left out the others refit E = 10 kPa, beyond its trace.
+    # Its leave-one-out prediction must be the model's volume at the refit (a solve straight from rest), not a
+    # trace's end.
+    truth_path = tmp_path / "truth.toml"
+    truth_path.write_text(SCENE_TEXT.format(model="neo_hookean", modulus=10.0))
+    points = [[0, 0, 0], [2, 0, 0], [0, 2, 0], [1, 2, 2], [2, 1, 1]]
+    csv_path = _synthetic_csv(tmp_path, truth_path, points)
+    rows = csv_path.read_text().splitlines()
+    rest_ml, truth_ml = float(rows[1].split(",")[-1]), float(rows[-1].split(",")[-1])
+    rows[-1] = "2,1,1," + repr(rest_ml + (truth_ml - rest_ml) / 2.5)
+    csv_path.write_text("\n".join(rows) + "\n")
+    args = _parse(["calibrate", "--scene", str(truth_path), "--measurements", str(csv_path), "--grid",
+                   "lobe_chamber_scale=1", "--scheduler", dask_scheduler, "--output", str(tmp_path / "x.toml"),
+                   "--json"])
+    assert args.run(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    loo_modulus_kpa = report["loo_youngs_modulus_kpa"][-1]
+    assert loo_modulus_kpa == pytest.approx(10.0, rel=0.03)
+    refit_path = tmp_path / "refit.toml"
+    refit_path.write_text(SCENE_TEXT.format(model="neo_hookean", modulus=loo_modulus_kpa))
+    refit_ml = PhantomModel.from_scene(load_scene(refit_path)).solve([2e3, 1e3, 1e3]).gland_volume_m3 * 1e6
+    assert report["loo_predicted_ml"][-1] == pytest.approx(refit_ml, rel=1e-4)
+    assert report["loo_predicted_ml"][-1] == pytest.approx(truth_ml, rel=0.01)
+
+
 def test_a_small_strain_law_is_held_to_its_range_and_says_the_constraint_binds(tmp_path, capsys,
                                                                               dask_scheduler):
     # Measurements of a soft phantom (8 kPa): fitting them needs strains far beyond the linear law's 10 %.
