@@ -41,8 +41,10 @@ from phantom.model.scene import HYPERELASTIC_MODELS
 PRESSURE_LIMIT_PA = 3000.0
 #: A ray's trace stops once its gland growth exceeds this multiple of the measured growth.
 OVERSHOOT = 1.8
-#: Load-factor steps per rest-compliance estimate of t, and the largest t traced, in those estimates.
-STEPS_PER_LINEAR_LOAD_FACTOR = 4
+#: Load-factor steps per rest-compliance estimate of t, and the largest t traced, in those estimates. The
+#: hyperelastic fits land near a third of that estimate (inflation softens), so a quarter of it left one or two
+#: traced steps below the fit and the traces' interpolation there up to 1.3 ml (3 %) off the full solves.
+STEPS_PER_LINEAR_LOAD_FACTOR = 12
 MAX_LINEAR_MULTIPLE = 4.0
 #: Points of the fine load-factor grid the traces are interpolated onto.
 FINE_LOAD_FACTOR_POINTS = 300
@@ -54,6 +56,9 @@ LAW_STRETCH_RANGE = {"linear": (0.9, 1.1), "corotational": (0.9, 1.1), "neo_hook
 GENT_LIMIT_FRACTION = 0.95
 #: Parameters that are material keys (everything else named in a grid is a [geometry] key).
 MATERIAL_PARAMETERS = ("gent_jm", "poisson_ratio")
+#: The refinement's cost of a state that is inadmissible or beyond the traces: finite (an infinite cost derails
+#: the Powell line searches, which span the whole box) and above any fit's (8 points 100 % off cost 8).
+INADMISSIBLE_COST = 1e6
 
 
 class CalibrationError(PhantomError):
@@ -334,25 +339,37 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
     best = np.unravel_index(np.argmin(np.where(usable, cost, np.inf)), cost.shape)
     theta0 = np.array([responses.grid.values[axis][best[axis]] for axis in range(len(best) - 1)])
     t0 = float(responses.load_factors[best[-1]])
-    low = np.array([values[0] for values in responses.grid.values] + [responses.load_factors[1]])
-    high = np.array([values[-1] for values in responses.grid.values] + [responses.load_factors[-1]])
-    span = np.where(high > low, high - low, 1.0)
+    # The refinement moves the varying axes and t only: a single-valued axis stays at its value.
+    varying = responses.varying
+    low = np.array([responses.grid.values[axis][0] for axis in varying] + [responses.load_factors[1]])
+    high = np.array([responses.grid.values[axis][-1] for axis in varying] + [responses.load_factors[-1]])
+    span = high - low
+
+    def state(scaled: np.ndarray) -> tuple[np.ndarray, float]:
+        free = low + np.clip(scaled, 0, 1) * span
+        theta = theta0.copy()
+        theta[varying] = free[:-1]
+        return theta, float(free[-1])
 
     def objective(scaled: np.ndarray) -> float:
-        point = low + np.clip(scaled, 0, 1) * span
-        theta, load_factor = point[:-1], float(point[-1])
-        volumes = responses.interpolate("gland_m3", theta, load_factor)[rays]
+        theta, load_factor = state(scaled)
         if not _admissible_here(responses, theta, load_factor, rays):
-            return np.inf
+            return INADMISSIBLE_COST
+        volumes = responses.interpolate("gland_m3", theta, load_factor)[rays]
         value = float(np.sum(((volumes - measured) / measured) ** 2))
-        return value if np.isfinite(value) else np.inf
+        return value if np.isfinite(value) else INADMISSIBLE_COST
 
-    start = (np.append(theta0, t0) - low) / span
-    refined = minimize(objective, start, method="Powell", bounds=[(0, 1)] * len(start),
-                       options={"xtol": 1e-4, "ftol": 1e-10, "maxfev": 3000})
-    scaled = refined.x if np.isfinite(refined.fun) and refined.fun <= objective(start) else start
-    point = low + np.clip(scaled, 0, 1) * span
-    theta, load_factor = point[:-1], float(point[-1])
+    start = (np.append(theta0[varying], t0) - low) / span
+    # Nelder-Mead from a simplex of a fifth of a grid cell and two load-factor steps around the grid's best:
+    # it starts where the grid search ended and shrinks away from inadmissible states. (Powell's bounded line
+    # searches start at the golden section of the whole box, beyond the traces' ends, and never came back.)
+    cell_steps = [np.diff(responses.grid.values[axis]).min() / 5 for axis in varying]
+    steps = np.array(cell_steps + [2 * (responses.load_factors[1] - responses.load_factors[0])]) / span
+    simplex = np.vstack([start, start + np.diag(np.where(start + steps <= 1, steps, -steps))])
+    refined = minimize(objective, start, method="Nelder-Mead", bounds=[(0, 1)] * len(start),
+                       options={"initial_simplex": simplex, "xatol": 1e-6, "fatol": 1e-12, "maxfev": 3000})
+    scaled = refined.x if refined.fun <= objective(start) else start
+    theta, load_factor = state(scaled)
     predicted = responses.interpolate("gland_m3", theta, load_factor)
     return Fit(theta, load_factor, predicted, float(objective(scaled)), _binding(responses, cost, usable, rays))
 
@@ -558,14 +575,12 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
     responses = assemble_responses(grid, traces, feasible, law, gent_jms, n_rays, float(load_factors[-1]))
     everyone = list(range(n_rays))
     full = fit(responses, measured, everyone)
-    loo_predicted, loo_fits = [], []
-    for left_out in everyone:
-        refit = fit(responses, measured, [j for j in everyone if j != left_out])
-        value = refit.predicted_m3[left_out]
-        if not np.isfinite(value):  # beyond the traced range: the trace's end bounds it from below
-            value = np.nanmax(responses.gland_m3[..., left_out])
-        loo_predicted.append(value)
-        loo_fits.append(refit)
+    loo_fits = [fit(responses, measured, [j for j in everyone if j != left_out]) for left_out in everyone]
+    loo_predicted = np.array([refit.predicted_m3[left_out] for left_out, refit in enumerate(loo_fits)])
+    beyond = [left_out for left_out in everyone if not np.isfinite(loo_predicted[left_out])]
+    if beyond:  # the left-out ray's trace stopped (OVERSHOOT) below the refit's load: solve it there
+        loo_predicted[beyond] = _solve_left_out(raw, grid, [loo_fits[j] for j in beyond], beyond, measurements,
+                                                scheduler, n_workers, progress)
     e0 = scene.material.youngs_modulus_pa
     parameters = {name: float(full.theta[k]) for k, name in enumerate(grid.names)}
     verified, validity = _verify(raw, parameters, full.load_factor, measurements, law, scheduler, n_workers,
@@ -575,6 +590,20 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
         full.predicted_m3, np.array(loo_predicted),
         [{name: float(f.theta[k]) for k, name in enumerate(grid.names)} for f in loo_fits],
         np.array([e0 / f.load_factor for f in loo_fits]), validity, len(tasks), solved_now, full.binding)
+
+
+def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_workers, progress) -> np.ndarray:
+    """Gland volumes (m^3) of left-out measurements at their refits' parameters, by full solves (continuation in
+    four steps); where the model has no state there (a limit point), the last solved volume, a lower bound."""
+    from phantom.model.sweep import RayTask, run_sweep
+
+    tasks = []
+    for refit, left_out in zip(refits, left_outs, strict=True):
+        document = scene_with(raw, {name: float(refit.theta[k]) for k, name in enumerate(grid.names)})
+        load_factors = tuple((refit.load_factor * np.array([0.25, 0.5, 0.75, 1.0])).tolist())
+        tasks.append(RayTask(document, tuple(measurements.pressures_pa[left_out].tolist()), load_factors))
+    return np.array([trace.gland_m3[-1] for trace in run_sweep(tasks, scheduler=scheduler, n_workers=n_workers,
+                                                               progress=progress)])
 
 
 def _verify(raw, parameters, load_factor, measurements, law, scheduler, n_workers, progress):

@@ -72,18 +72,23 @@ def test_missing_file_and_chamber_count_mismatch(tmp_path):
         load_measurements(path, n_chambers=3)
 
 
-def _synthetic_responses(admissible_below_t=np.inf):
-    """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t."""
-    grid = Grid(("gent_jm",), (np.array([0.0, 0.5, 1.0, 1.5]),))
+def _synthetic_responses(admissible_below_t=np.inf, traced_below_t=np.inf, fixed_lobe_scale=None):
+    """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t; NaN (not
+    traced, as beyond a trace's growth stop) above ``traced_below_t``; with ``fixed_lobe_scale``, a second,
+    single-valued grid axis."""
+    names, values = ("gent_jm",), (np.array([0.0, 0.5, 1.0, 1.5]),)
+    if fixed_lobe_scale is not None:
+        names, values = (*names, "lobe_chamber_scale"), (*values, np.array([fixed_lobe_scale]))
+    grid = Grid(names, values)
     load_factors = np.linspace(0, 3, 301)
-    theta = grid.values[0][:, None, None]
-    t = load_factors[None, :, None]
-    gland = _family(theta, t)
-    admissible = np.broadcast_to(t <= admissible_below_t, gland.shape).copy()
-    ones = np.ones_like(gland)
+    theta = grid.values[0].reshape(-1, *(1,) * (len(names) + 1))
+    t = load_factors[:, None]
+    gland = np.broadcast_to(_family(theta, t), (*grid.shape, len(load_factors), 4)).copy()
+    gland[..., t[:, 0] > traced_below_t, :] = np.nan
+    admissible = np.broadcast_to(t <= admissible_below_t, gland.shape) & np.isfinite(gland)
+    ones = np.where(np.isfinite(gland), 1.0, np.nan)
     measures = {"min_det": ones, "min_stretch": ones, "max_stretch": ones, "max_i1_minus_3": 0 * ones}
-    responses = Responses(grid, load_factors, gland, admissible, measures, np.full(4, 100.0), "gent")
-    return responses
+    return Responses(grid, load_factors, gland, admissible, measures, np.full(grid.shape, 100.0), "gent")
 
 
 def _family(theta, t):
@@ -102,6 +107,21 @@ def test_the_fit_recovers_known_parameters_and_leave_one_out_uses_the_others():
     assert full.predicted_m3 == pytest.approx(measured, rel=1e-4)
     without_last = fit(responses, measured, [0, 1, 2])
     assert without_last.predicted_m3[3] == pytest.approx(measured[3], rel=1e-3)
+
+
+def test_the_fit_refines_between_grid_values_where_traces_end_and_keeps_a_single_valued_axis():
+    # As on the real traces: the fit at an eighth of the load-factor range, every trace stopped (its growth limit)
+    # at twice that; the truth between fine load factors (0.01 apart) and between theta's grid values, and a
+    # second grid axis with one value. The refinement must move off the grid search's point (t within 1/20 of a
+    # fine step) and leave the single-valued axis alone.
+    responses = _synthetic_responses(traced_below_t=0.8, fixed_lobe_scale=1.2)
+    theta_true, t_true = 0.8, 0.4051
+    measured = _family(theta_true, t_true)
+    full = fit(responses, measured, [0, 1, 2, 3])
+    assert full.load_factor == pytest.approx(t_true, abs=5e-4)
+    assert full.theta[0] == pytest.approx(theta_true, abs=2e-3)
+    assert full.theta[1] == 1.2
+    assert full.predicted_m3 == pytest.approx(measured, rel=1e-4)
 
 
 def test_the_fit_keeps_to_the_constraints_and_refuses_when_nothing_is_valid():
@@ -166,6 +186,46 @@ def test_calibrate_recovers_known_material_and_geometry_on_a_two_worker_cluster(
     args = _parse(argv)
     assert args.run(args) == 0
     assert json.loads(capsys.readouterr().out)["traces_solved_now"] == 0
+
+
+@pytest.mark.slow
+def test_the_traces_interpolation_agrees_with_full_solves_at_a_gent_fit(tmp_path, capsys, dask_scheduler):
+    # The leave-one-out predictions are the traces' interpolation, so it must match independent full solves at
+    # the fitted parameters (continuation in four steps straight to the fitted modulus) on the paper's data.
+    args = _parse(["calibrate", "--measurements", str(MEASUREMENTS), "--material", "gent", "--gent-jm", "3",
+                   "--size-mm", "5", "--grid", "lobe_chamber_scale=1.2", "--scheduler", dask_scheduler,
+                   "--output", str(tmp_path / "gent.toml"), "--json"])
+    assert args.run(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    full, interpolated = np.array(report["fit_predicted_ml"]), np.array(report["fit_interpolated_ml"])
+    assert np.max(np.abs(interpolated - full) / full) < 0.01
+
+
+def test_a_left_out_point_beyond_its_trace_is_predicted_by_a_full_solve(tmp_path, capsys, dask_scheduler):
+    # Exact measurements of a Neo-Hookean model at E = 10 kPa, but the last point's growth divided by 2.5: its
+    # trace stops at 1.8 times that growth, so with it left out the others refit E = 10 kPa, beyond its trace.
+    # Its leave-one-out prediction must be the model's volume at the refit (a solve straight from rest), not a
+    # trace's end.
+    truth_path = tmp_path / "truth.toml"
+    truth_path.write_text(SCENE_TEXT.format(model="neo_hookean", modulus=10.0))
+    points = [[0, 0, 0], [2, 0, 0], [0, 2, 0], [1, 2, 2], [2, 1, 1]]
+    csv_path = _synthetic_csv(tmp_path, truth_path, points)
+    rows = csv_path.read_text().splitlines()
+    rest_ml, truth_ml = float(rows[1].split(",")[-1]), float(rows[-1].split(",")[-1])
+    rows[-1] = "2,1,1," + repr(rest_ml + (truth_ml - rest_ml) / 2.5)
+    csv_path.write_text("\n".join(rows) + "\n")
+    args = _parse(["calibrate", "--scene", str(truth_path), "--measurements", str(csv_path), "--grid",
+                   "lobe_chamber_scale=1", "--scheduler", dask_scheduler, "--output", str(tmp_path / "x.toml"),
+                   "--json"])
+    assert args.run(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    loo_modulus_kpa = report["loo_youngs_modulus_kpa"][-1]
+    assert loo_modulus_kpa == pytest.approx(10.0, rel=0.03)
+    refit_path = tmp_path / "refit.toml"
+    refit_path.write_text(SCENE_TEXT.format(model="neo_hookean", modulus=loo_modulus_kpa))
+    refit_ml = PhantomModel.from_scene(load_scene(refit_path)).solve([2e3, 1e3, 1e3]).gland_volume_m3 * 1e6
+    assert report["loo_predicted_ml"][-1] == pytest.approx(refit_ml, rel=1e-4)
+    assert report["loo_predicted_ml"][-1] == pytest.approx(truth_ml, rel=0.01)
 
 
 def test_a_small_strain_law_is_held_to_its_range_and_says_the_constraint_binds(tmp_path, capsys,
