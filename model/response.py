@@ -1,7 +1,7 @@
 """The model's response over its whole operating box, solved once and interpolated: the ``table`` fidelity.
 
 A hyperelastic model answers "what volumes do these pressures give" with a full solve (0.4-1 s on the
-calibrated 5 mm mesh) and its inverse with several; a daemon that re-solves at every control tick of a ramp
+calibrated 4 mm mesh) and its inverse with several; a daemon that re-solves at every control tick of a ramp
 cannot wait that long. The box of pressures the daemon may ask for is small (0 to ``pressure_max`` in each of
 three chambers) and the response in it is smooth (no limit point below the pressure limit), so it is solved
 once on a grid and interpolated by a tensor-product cubic spline:
@@ -26,6 +26,7 @@ cores up to n) once per model and machine. Each build is checked against full so
 from __future__ import annotations
 
 import functools
+import logging
 import os
 import tempfile
 import time
@@ -47,6 +48,8 @@ DEFAULT_POINTS_PER_AXIS = 7
 CHECK_FRACTIONS = ((0.2, 0.6, 0.9), (0.9, 0.2, 0.6), (0.6, 0.9, 0.2), (0.7, 0.7, 0.7))
 
 Progress = Callable[[int, int], None]
+
+logger = logging.getLogger(__name__)
 
 
 class ResponseTableError(PhantomError):
@@ -190,25 +193,32 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     total = int(np.prod(grid)) + len(CHECK_FRACTIONS)
     done = 0
     workers = max(1, min(workers or os.cpu_count() or 1, n))
-    if workers == 1:
-        for first in range(n):
-            chambers[first], gland[first], positions[first] = _solve_slab(model, nodes_pa, first)
-            done += gland[first].size
-            if progress is not None:
-                progress(done, total)
-    else:
+    pending = list(range(n))
+    if workers > 1:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures.process import BrokenProcessPool
 
         # spawned, not forked: a daemon's model worker has threads, and a fork copies only the calling one
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-            slabs = {pool.submit(_solve_slab, model, nodes_pa, first): first for first in range(n)}
-            for finished in as_completed(slabs):
-                first = slabs[finished]
-                chambers[first], gland[first], positions[first] = finished.result()
-                done += gland[first].size
-                if progress is not None:
-                    progress(done, total)
+        try:
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+                slabs = {pool.submit(_solve_slab, model, nodes_pa, first): first for first in pending}
+                for finished in as_completed(slabs):
+                    first = slabs[finished]
+                    chambers[first], gland[first], positions[first] = finished.result()
+                    pending.remove(first)
+                    done += gland[first].size
+                    if progress is not None:
+                        progress(done, total)
+        except BrokenProcessPool:
+            # A spawned worker re-runs the calling script: one without ``if __name__ == "__main__":`` kills it
+            logger.warning("the response table's worker processes could not start (does the calling script "
+                           "guard its code with if __name__ == '__main__':?); building the rest in this process")
+    for first in pending:
+        chambers[first], gland[first], positions[first] = _solve_slab(model, nodes_pa, first)
+        done += gland[first].size
+        if progress is not None:
+            progress(done, total)
     table = ResponseTable(float(pressure_max_pa), chambers, gland, positions, 0.0, 0.0)
     warm_start = model.formulation != "linear"
     worst_pct = 0.0
