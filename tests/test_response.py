@@ -100,6 +100,26 @@ def test_slabs_on_worker_processes_give_the_same_table(model, table):
     np.testing.assert_allclose(parallel.gland_values, table.gland_values, rtol=1e-12)
 
 
+@pytest.mark.slow
+def test_a_script_without_a_main_guard_still_gets_its_table(tmp_path):
+    # a spawned worker re-runs the calling script, which then dies trying to spawn its own: the build goes on
+    # in the script's process, and says why
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text("from phantom.model import PhantomModel, load_scene\n"
+                      "from phantom.model.response import build_response_table\n"
+                      f"model = PhantomModel.from_scene(load_scene('builtin'), mesh_size_mm={COARSE_MM})\n"
+                      "table = build_response_table(model, 3000.0, points_per_axis=2, workers=2)\n"
+                      "print('gland at 3 kPa', table.volumes([3000.0] * 3)[1])\n")
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=240,
+                            cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "gland at 3 kPa" in result.stdout
+    assert "worker processes could not start" in result.stderr
+
+
 def test_bad_grids_are_refused(model):
     assert grid_pa(3000.0, 7)[[0, 1, -1]] == pytest.approx([0.0, 500.0, 3000.0])
     with pytest.raises(ResponseTableError, match="at least 2 points"):
@@ -144,7 +164,7 @@ def test_the_calibrated_scene_answers_from_its_table_within_a_tenth_of_a_percent
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("volume_ml", [26.0, 30.0, 33.0, 35.0, 40.0, 42.93, 44.0])
+@pytest.mark.parametrize("volume_ml", [26.0, 30.0, 33.0, 35.0, 40.0, 42.43, 43.0])
 def test_the_inverse_on_the_table_reaches_the_bph_targets_checked_by_full_solves(calibrated, volume_ml):
     model, estimator = calibrated
     result = InverseSolver(model, estimator=estimator).solve(Target(gland_volume_m3=volume_ml * 1e-6))
@@ -157,5 +177,5 @@ def test_the_inverse_on_the_table_reaches_the_bph_targets_checked_by_full_solves
 @pytest.mark.slow
 def test_the_paper_s_45_ml_is_out_of_the_calibrated_model_s_reach(calibrated):
     model, estimator = calibrated
-    with pytest.raises(UnreachableTargetError, match=r"45\.000 ml is unreachable.* give 25\.8\d* to 44\.2\d* ml"):
+    with pytest.raises(UnreachableTargetError, match=r"45\.000 ml is unreachable.* give 25\.9\d* to 43\.7\d* ml"):
         InverseSolver(model, estimator=estimator).solve(Target(gland_volume_m3=45e-6))
