@@ -40,8 +40,8 @@ from phantom import PhantomError
 #: Bump when what a table holds or how it is built changes, so stored tables are rebuilt.
 TABLE_VERSION = 1
 #: Grid points per pressure axis: 7^3 = 343 solves (0.5 kPa steps for a 3 kPa limit). On the calibrated model
-#: 5 points miss full solves by up to 3.5 % of a chamber's volume (its cavity's curve has an inflection), 7 by
-#: 0.14 % (bench/README.md, "The daemon on the calibrated model").
+#: 5 points missed full solves by up to 3.5 % of a chamber's volume (its cavity's curve has an inflection), 7 by
+#: 0.1-0.2 % (bench/README.md, "The daemon on the calibrated model").
 DEFAULT_POINTS_PER_AXIS = 7
 #: Where each build is checked against full solves (fractions of the pressure limit per chamber): points far
 #: from every node, one near each corner region and one inside.

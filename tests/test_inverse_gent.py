@@ -3,7 +3,7 @@
 The Gent chambers' pressure-volume curve has an inflection (soft, then stiffening as the chains lock): the
 tangent at 3 kPa is flatter than the secant from rest, so an undamped Newton iteration bounced between the
 pressure bound and near-rest pressures for ever. A coarse mesh (8 mm) keeps this quick and shows the same
-curve; the figures on the scene's 5 mm mesh are in model/README.md.
+curve; the figures on the scene's 4 mm mesh are in model/README.md.
 """
 
 import numpy as np

@@ -123,7 +123,7 @@ def test_an_offset_surface_is_measured_at_its_offset(surface, state):
 @pytest.mark.slow
 def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface, state):
     """Made from the model with a softer material at the same pressures: its volume is that state's, and its
-    distance lies between the volume bound |dV| / area and the distances where it was made (which a best fit
+    distance lies between (most of) the volume bound |dV| / area and the distances where it was made (which a best fit
     can only reduce). The reported distances equal a brute-force recomputation at the reported transform."""
     softer = model.with_material(youngs_modulus_pa=0.8 * model.material.youngs_modulus_pa)
     other_state = softer.solve([1e3 * p for p in PRESSURES_KPA])
@@ -139,7 +139,9 @@ def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface
     mean_where_made = np.average(where_made, weights=weights)
     area_mm2 = weights.sum()
     volume_bound = abs(other_state.gland_volume_m3 - state.gland_volume_m3) * 1e9 / area_mm2
-    assert 0.9 * volume_bound < result.model_to_scan_mm["mean"] <= 1.02 * mean_where_made
+    # |dV| / area is the mean normal offset; the closest point lies nearer than the normal offset where the
+    # surface is concave (the creases of the 4 mm mesh between the chambers' bulges), hence 0.85 of it
+    assert 0.85 * volume_bound < result.model_to_scan_mm["mean"] <= 1.02 * mean_where_made
     assert mean_where_made > 0.3  # a real difference, far above the noise-free zero
     moved = other.vertices_mm @ synthetic.rotation.T + synthetic.translation_mm
     aligned = result.alignment.apply(moved)

@@ -52,7 +52,7 @@ def test_the_calibrated_builtin_scene_is_a_finite_strain_fit_on_the_built_in_bod
     # physically valid means a law that holds at the phantom's strains, not the small-strain surrogate it replaced
     assert scene.material.model == "gent" and scene.material.poisson_ratio == pytest.approx(0.45)
     # the geometry it was fitted with, meshed at the size it was fitted on, and a daemon answers from its table
-    assert scene.geometry.lobe_chamber_scale > 1.0 and scene.geometry.mesh_size_mm == 5.0
+    assert scene.geometry.lobe_chamber_scale > 1.0 and scene.geometry.mesh_size_mm == 4.0
     assert scene.raw["model"]["fidelity"] == "table"
 
 
