@@ -211,8 +211,10 @@ def violation_reason(material_model: str, gent_jm: float | None, where: str, min
     if not min_det > 0:
         return f"{where}: an element is inverted (det F = {min_det:.3g})"
     if not low <= min_stretch or not max_stretch <= high:
+        hint = (" (a finite-strain law holds there: --material gent --grid gent_jm=2,3)"
+                if material_model in ("linear", "corotational") else "")
         return (f"{where}: principal stretches {min_stretch:.3g}-{max_stretch:.3g} leave the {material_model} "
-                f"law's range {low:g}-{high:g}")
+                f"law's range {low:g}-{high:g}{hint}")
     if material_model == "gent" and not max_i1_minus_3 < GENT_LIMIT_FRACTION * gent_jm:
         return (f"{where}: I1 - 3 = {max_i1_minus_3:.3g} reaches {GENT_LIMIT_FRACTION:g} Jm "
                 f"(Jm = {gent_jm:.3g}), where the Gent law locks")
