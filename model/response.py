@@ -25,6 +25,7 @@ cores up to n) once per model and machine. Each build is checked against full so
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
@@ -112,33 +113,35 @@ class ResponseTable:
             result = np.tensordot(vector, result, axes=(0, 0))
         return result
 
-    def _value_and_gradient(self, grid_values: np.ndarray, pressures_pa: np.ndarray):
+    def _gradient(self, grid_values: np.ndarray, bases: list) -> np.ndarray:
+        """d(value)/dp_chamber (per Pa) for each chamber, stacked on a leading axis."""
+        return np.stack([self._contract(grid_values, [slopes if axis == chamber else values
+                                                      for axis, (values, slopes) in enumerate(bases)])
+                         for chamber in range(self.n_chambers)])
+
+    def _value(self, grid_values: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
+        """The interpolant at ``pressures_pa``; outside the box, its linear extension from the box's edge (the
+        gradient is formed only then: inside, a value is one contraction per axis)."""
         bases, excess_pa = self._bases(pressures_pa)
         value = self._contract(grid_values, [values for values, _ in bases])
-        gradient = np.stack([self._contract(grid_values, [slopes if axis == chamber else values
-                                                           for axis, (values, slopes) in enumerate(bases)])
-                             for chamber in range(self.n_chambers)])
-        return value + np.tensordot(excess_pa, gradient, axes=(0, 0)), gradient
+        if np.any(excess_pa):
+            value = value + np.tensordot(excess_pa, self._gradient(grid_values, bases), axes=(0, 0))
+        return value
 
     def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
         """Chamber volumes (m^3) and the gland volume (m^3) at ``pressures_pa`` (Pa, one per chamber)."""
         pressures = np.asarray(pressures_pa, dtype=float)
-        chambers, _ = self._value_and_gradient(self.chamber_values, pressures)
-        gland, _ = self._value_and_gradient(self.gland_values, pressures)
-        return chambers, float(gland)
+        return self._value(self.chamber_values, pressures), float(self._value(self.gland_values, pressures))
 
     def compliance(self, pressures_pa) -> tuple[np.ndarray, np.ndarray]:
         """The tangent compliance at ``pressures_pa``: ``dV_chamber_i/dp_j`` (n, n) and ``dV_gland/dp_j`` (n,),
-        m^3/Pa (the interpolant's exact gradient)."""
-        pressures = np.asarray(pressures_pa, dtype=float)
-        _, chamber_gradient = self._value_and_gradient(self.chamber_values, pressures)
-        _, gland_gradient = self._value_and_gradient(self.gland_values, pressures)
-        return chamber_gradient.T, gland_gradient
+        m^3/Pa (the interpolant's exact gradient; at the box's edge beyond it)."""
+        bases, _ = self._bases(np.asarray(pressures_pa, dtype=float))
+        return self._gradient(self.chamber_values, bases).T, self._gradient(self.gland_values, bases)
 
     def positions_m(self, pressures_pa) -> np.ndarray:
         """Every node's position (m, (nodes, 3)) at ``pressures_pa``."""
-        positions, _ = self._value_and_gradient(self.position_values, np.asarray(pressures_pa, dtype=float))
-        return positions
+        return self._value(self.position_values, np.asarray(pressures_pa, dtype=float))
 
 
 def _solve_slab(model, nodes_pa: np.ndarray, first: int):
@@ -232,8 +235,7 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
         done += 1
         if progress is not None:
             progress(done, total)
-    return ResponseTable(table.pressure_max_pa, table.chamber_values, table.gland_values,
-                         table.position_values, worst_pct, time.perf_counter() - started)
+    return dataclasses.replace(table, check_errors_pct=worst_pct, build_time_s=time.perf_counter() - started)
 
 
 def _cache_path(model, pressure_max_pa: float, points_per_axis: int):
