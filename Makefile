@@ -11,7 +11,7 @@ setup:
 # The daemon drives the simulated phantom (the firmware image in simavr) through the BPH growth scene.
 demo: setup
 	$(MAKE) -C firmware
-	$(PY) -m phantom.host.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
+	$(PY) -m phantom.cli.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
 
 test: setup lint types protocol-check firmware-test pytest
 
@@ -27,8 +27,8 @@ lint:
 MYPY_TREE := .cache/mypy-src/phantom
 types:
 	@mkdir -p $(MYPY_TREE)
-	@for f in __init__.py __main__.py; do ln -sfn ../../../phantom/$$f $(MYPY_TREE)/$$f; done
-	@for d in protocol host model hil; do ln -sfn ../../../$$d $(MYPY_TREE)/$$d; done
+	@for f in __init__.py __main__.py cli; do ln -sfn ../../../phantom/$$f $(MYPY_TREE)/$$f; done
+	@for d in protocol model scan host hil; do ln -sfn ../../../$$d $(MYPY_TREE)/$$d; done
 	$(VENV)/bin/mypy -p phantom.protocol -p phantom.host
 
 # The generated protocol files (messages.py, protocol_generated.h) must match protocol/spec.toml.

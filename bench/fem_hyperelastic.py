@@ -9,15 +9,19 @@ solves (model built, kernels compiled); FElupe: one solve (its setup included, o
 """
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from phantom.model.felupe_reference import felupe_solve
-from phantom.model.fem import PhantomModel
-from phantom.model.mesh import prepare_surfaces
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import builtin_prostate
+from phantom.model.mesh.tetmesh import prepare_surfaces
 from phantom.model.scene import Material
-from phantom.model.shapes import builtin_prostate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the oracles: tests/reference/
+from reference.felupe_reference import felupe_solve  # noqa: E402
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 YOUNGS_MODULUS_PA = 50e3

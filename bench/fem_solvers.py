@@ -13,8 +13,8 @@ import time
 
 import numpy as np
 
-from phantom.model.fem import PhantomModel
-from phantom.model.linsolve import METHODS, Factorization, default_method
+from phantom.model.fem.linsolve import METHODS, Factorization, default_method
+from phantom.model.fem.model import PhantomModel
 from phantom.model.scene import load_scene
 
 

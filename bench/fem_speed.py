@@ -17,18 +17,21 @@ Run: ``.venv/bin/python bench/fem_speed.py [--repeats 3] [--plot build/bench/fem
 """
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import skfem
 
-from phantom.model.fem import PhantomModel
-from phantom.model.linsolve import Factorization
-from phantom.model.mesh import prepare_surfaces
+from phantom.model.fem.linsolve import Factorization
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import builtin_prostate
+from phantom.model.mesh.tetmesh import prepare_surfaces
 from phantom.model.scene import Material
-from phantom.model.shapes import builtin_prostate
-from phantom.model.skfem_reference import skfem_problem, skfem_stiffness
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the oracles: tests/reference/
+from reference.skfem_reference import skfem_problem, skfem_stiffness  # noqa: E402
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 YOUNGS_MODULUS_PA, POISSON_RATIO = 50e3, 0.45

@@ -42,7 +42,7 @@ def prostate_rows(sizes_mm, reference_mm, material="corotational"):
     """Rows of the built-in prostate's levels for one material model (its full solve on the finest mesh is the
     reference)."""
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.fidelity import VolumeEstimator
+    from phantom.model.fidelity.levels import VolumeEstimator
 
     scene = load_scene("builtin")
     progress(f"reference: {reference_mm} mm, full {material}")
@@ -85,11 +85,11 @@ def prostate_rows(sizes_mm, reference_mm, material="corotational"):
 
 
 def sphere_rows(sizes_mm):
-    from phantom.model.fem import PhantomModel
-    from phantom.model.fidelity import VolumeEstimator
-    from phantom.model.mesh import prepare_surfaces
+    from phantom.model.fem.model import PhantomModel
+    from phantom.model.fidelity.levels import VolumeEstimator
+    from phantom.model.mesh.prostate import generate_hollow_sphere
+    from phantom.model.mesh.tetmesh import prepare_surfaces
     from phantom.model.scene import Material
-    from phantom.model.shapes import generate_hollow_sphere
 
     inner_m, outer_m, youngs_pa, poisson = 10e-3, 20e-3, 50e3, 0.45
     bulk, shear = youngs_pa / (3 * (1 - 2 * poisson)), youngs_pa / (2 * (1 + poisson))

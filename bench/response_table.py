@@ -36,7 +36,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.fidelity import VolumeEstimator
+    from phantom.model.fidelity.levels import VolumeEstimator
     from phantom.model.inverse import InverseSolver, Target
 
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
@@ -80,7 +80,7 @@ def main() -> None:
           f"(median; full / table = {np.median(full_s) / np.median(table_s):.0f})")
 
     if args.build_workers:
-        from phantom.model.response import build_response_table
+        from phantom.model.fidelity.response_table import build_response_table
 
         coarse = PhantomModel.from_scene(load_scene("builtin:calibrated"), mesh_size_mm=args.build_mm)
         print(f"\nbuilding a {args.build_points}^3 table from scratch on a {args.build_mm:g} mm mesh "
@@ -103,7 +103,7 @@ def plot(model, table_estimator, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from phantom.model.response import build_response_table
+    from phantom.model.fidelity.response_table import build_response_table
 
     five = build_response_table(model, 3000.0, 5)
     pressures_kpa = np.linspace(0.0, 3.0, 25)

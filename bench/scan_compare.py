@@ -27,11 +27,11 @@ from pathlib import Path
 import meshio
 import numpy as np
 
-from phantom.host import cli
-from phantom.model.fem import PhantomModel
-from phantom.model.scan import model_surface
-from phantom.model.scan_synthetic import make_scan, random_rotation
+from phantom.cli import main as cli
+from phantom.model.fem.model import PhantomModel
 from phantom.model.scene import load_scene
+from phantom.scan.compare import model_surface
+from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = "1,2,0.5"
 TARGET_S = 5.0

@@ -19,9 +19,10 @@ import time
 
 import numpy as np
 
-from phantom.model.fem import PhantomModel
-from phantom.model.mesh import enclosed_volume_m3, open_edge_count, surface_components
-from phantom.model.scan import (
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.tetmesh import enclosed_volume_m3, open_edge_count, surface_components
+from phantom.model.scene import load_scene
+from phantom.scan.compare import (
     TriangleMesh,
     close_holes,
     compact,
@@ -29,8 +30,7 @@ from phantom.model.scan import (
     model_surface,
     triangle_areas_mm2,
 )
-from phantom.model.scan_synthetic import make_scan
-from phantom.model.scene import load_scene
+from phantom.scan.synthetic import make_scan
 
 
 def trimesh_fill(mesh):

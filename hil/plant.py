@@ -389,11 +389,11 @@ class TruthTable:
 def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
                            scheduler: str | None = None, progress=None) -> TruthTable:
     """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point (Dask tasks,
-    cached: :mod:`phantom.model.sweep`)."""
+    cached: :mod:`phantom.model.calibration.sweep`)."""
     import copy
 
     from phantom.model import load_scene
-    from phantom.model.sweep import RayTask, run_sweep
+    from phantom.model.calibration.sweep import RayTask, run_sweep
 
     loaded = load_scene(scene)
     raw = copy.deepcopy(loaded.raw)
@@ -473,7 +473,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.from_scene and not args.truth_from_scene:
         parser.error("give --from-scene, --truth-from-scene or both")
     if args.truth_from_scene:
-        from phantom.model.sweep import stderr_progress
+        from phantom.model.calibration.sweep import stderr_progress
 
         try:
             table = truth_table_from_scene(args.truth_from_scene, args.truth_modulus_factor, args.scheduler,

@@ -62,7 +62,7 @@ class LoadedModel:
 
     def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info):
         from phantom.model import PhantomModel, load_scene
-        from phantom.model.fidelity import VolumeEstimator
+        from phantom.model.fidelity.levels import VolumeEstimator
         from phantom.model.inverse import InverseSolver
 
         self.timings_s: dict[str, float] = {}

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from phantom import PhantomError
-from phantom.command_line import chamber_labels
+from phantom.cli.common import chamber_labels
 from phantom.host.api import ApiError, ApiServer, default_socket_path
 from phantom.host.control import Estimate, ModelWorker, Solution
 from phantom.host.estimation import EstimateRequest, EstimateSchedule

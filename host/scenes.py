@@ -260,7 +260,7 @@ def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: f
     For a running model, ``fidelity`` and ``pressure_max_kpa`` are the ones in force; for a scene file they
     are what it asks for (None: no fidelity named, which any level satisfies).
     """
-    from phantom.model.fidelity import DEFAULT_PRESSURE_MAX_PA
+    from phantom.model.fidelity.levels import DEFAULT_PRESSURE_MAX_PA
 
     settings = scene.raw.get("model", {}) if isinstance(scene.raw.get("model", {}), dict) else {}
     if fidelity is None:

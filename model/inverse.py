@@ -241,7 +241,7 @@ class InverseSolver:
         Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the scene's
         ``[model] pressure_max_kpa``, else 3000 Pa.
     fidelity : {"rest", "updated", "full", "table"} or None
-        How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.VolumeEstimator`);
+        How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.levels.VolumeEstimator`);
         None takes the scene's ``[model] fidelity``, else the cheapest level that meets its ``accuracy_pct``.
     max_growth_m3 : float or sequence of (float or None), optional
         Upper limit on each chamber's growth above its rest volume (m^3).
@@ -253,14 +253,14 @@ class InverseSolver:
         A ready estimator to share (its level wins over ``fidelity``).
     scene : Scene, optional
         Accepted only as ``model.scene`` itself, for callers written before models kept their scene
-        (model/inverse_cli.py); to be removed with them.
+        (phantom/cli/inverse.py); to be removed with them.
 
     The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
     """
 
     def __init__(self, model, pressure_max_pa=None, fidelity: str | None = None, max_growth_m3=None,
                  tolerance: float = 2e-5, max_iterations: int = 15, estimator=None):
-        from phantom.model.fidelity import DEFAULT_PRESSURE_MAX_PA, VolumeEstimator, scene_model_settings
+        from phantom.model.fidelity.levels import DEFAULT_PRESSURE_MAX_PA, VolumeEstimator, scene_model_settings
 
         self.model = model
         self.n_chambers = int(model.n_chambers)

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from phantom.model.errors import SceneError
-from phantom.model.geometry import ProstateGeometry, geometry_from_table
+from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
 #: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;

@@ -1,5 +1,5 @@
 import sys
 
-from phantom.host.cli import main
+from phantom.cli.main import main
 
 sys.exit(main())

@@ -45,7 +45,7 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
     # so that a user's first `phantom forward` is a warm one (0.6 s instead of 10-15 s). Not fatal: without
     # them numba compiles the kernels and gmsh meshes on first use.
     echo "bootstrap: compiling the model's kernels and meshing the built-in phantom (about 15 s)"
-    if ! { .venv/bin/python -m phantom.model.kernels \
+    if ! { .venv/bin/python -m phantom.model.fem.kernels \
            && .venv/bin/phantom forward --scene builtin --pressures-kpa 1,1,1 --json; } >>"$log" 2>&1; then
         echo "bootstrap: warning: warming the model failed (see $log); it will compile and mesh on first use"
     fi

@@ -9,6 +9,6 @@ def calibrated_response_table():
     example scenes. Built here when the cache has none (a few minutes on two cores, once per machine), so that
     a daemon a test starts does not spend its start-up deadline building it."""
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.fidelity import VolumeEstimator
+    from phantom.model.fidelity.levels import VolumeEstimator
 
     return VolumeEstimator(PhantomModel.from_scene(load_scene("builtin:calibrated"))).table

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from phantom import PhantomError
-from phantom.model.calibrate import load_measurements
+from phantom.model.calibration.calibrate import load_measurements
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 
@@ -17,7 +17,7 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 def _parse(argv):
     import argparse
 
-    from phantom.model import calibrate_cli
+    from phantom.cli import calibrate as calibrate_cli
 
     parser = argparse.ArgumentParser(prog="phantom")
     calibrate_cli.register(parser.add_subparsers(dest="command", required=True))
@@ -53,7 +53,7 @@ def test_bad_points_are_refused_before_the_board_starts(tmp_path, monkeypatch, a
 
 
 def test_a_bad_answer_is_a_one_line_error(monkeypatch):
-    from phantom.model.calibrate_cli import _ask_volume_ml
+    from phantom.cli.calibrate import _ask_volume_ml
 
     for answer, message in (("", "no answer"), ("lots\n", "neither a volume"), ("-3\n", "positive number")):
         monkeypatch.setattr(sys, "stdin", io.StringIO(answer))

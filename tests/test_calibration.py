@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from phantom.model import PhantomModel, load_scene
-from phantom.model.calibrate import (
+from phantom.model.calibration.calibrate import (
     CalibrationError,
     CalibrationResult,
     Grid,
@@ -28,7 +28,7 @@ from phantom.model.calibrate import (
 
 @pytest.fixture(scope="module")
 def dask_scheduler():
-    from phantom.model.sweep import local_cluster
+    from phantom.model.calibration.sweep import local_cluster
 
     cluster = local_cluster(2)
     yield cluster.scheduler_address
@@ -261,7 +261,7 @@ SCENE_TEXT = ('[phantom]\nmesh = "builtin:prostate"\nchambers = ["chamber0", "ch
 def _parse(argv):
     import argparse
 
-    from phantom.model import calibrate_cli
+    from phantom.cli import calibrate as calibrate_cli
 
     parser = argparse.ArgumentParser(prog="phantom")
     calibrate_cli.register(parser.add_subparsers(dest="command", required=True))

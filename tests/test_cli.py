@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 
 import phantom
-from phantom.host import cli
+from phantom.cli import common
+from phantom.cli import main as cli
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 
@@ -52,19 +53,19 @@ def test_cache_dir_honours_the_override(tmp_path, monkeypatch):
 
 
 def test_number_lists_parse_free_entries_and_refuse_bad_items():
-    assert cli.parse_numbers("1, 1.5,0", "--pressures-kpa") == [1.0, 1.5, 0.0]
-    assert cli.parse_numbers("-,3.5,", "--chamber-volumes-ml", allow_free=True) == [None, 3.5, None]
+    assert common.parse_numbers("1, 1.5,0", "--pressures-kpa") == [1.0, 1.5, 0.0]
+    assert common.parse_numbers("-,3.5,", "--chamber-volumes-ml", allow_free=True) == [None, 3.5, None]
     with pytest.raises(phantom.PhantomError, match=r"--pressures-kpa takes comma-separated numbers .* 'x' is not"):
-        cli.parse_numbers("1,x,2", "--pressures-kpa")
+        common.parse_numbers("1,x,2", "--pressures-kpa")
     with pytest.raises(phantom.PhantomError, match="'-' is not a number"):
-        cli.parse_numbers("1,-,2", "--pressures-kpa")
+        common.parse_numbers("1,-,2", "--pressures-kpa")
     with pytest.raises(phantom.PhantomError, match="'nan' is not a finite number"):
-        cli.parse_numbers("1,nan,2", "--pressures-kpa")
+        common.parse_numbers("1,nan,2", "--pressures-kpa")
 
 
 def test_growth_ratios_are_name_weight_pairs():
-    assert cli.parse_growth_ratio("chamber1=2, chamber2=1") == {"chamber1": 2.0, "chamber2": 1.0}
+    assert common.parse_growth_ratio("chamber1=2, chamber2=1") == {"chamber1": 2.0, "chamber2": 1.0}
     with pytest.raises(phantom.PhantomError, match="NAME=WEIGHT pairs"):
-        cli.parse_growth_ratio("1:2,2:1")
+        common.parse_growth_ratio("1:2,2:1")
     with pytest.raises(phantom.PhantomError, match="not a number"):
-        cli.parse_growth_ratio("chamber1=big")
+        common.parse_growth_ratio("chamber1=big")

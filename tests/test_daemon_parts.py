@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from phantom import PhantomError
-from phantom.command_line import chamber_labels, output_file
+from phantom.cli.common import chamber_labels, output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
 from phantom.host.scene_runner import SceneRunner
 from phantom.host.scenes import SceneError
@@ -251,7 +251,7 @@ def test_chamber_labels_and_output_files(tmp_path):
 
 
 def test_the_model_package_does_not_import_the_host_package():
-    code = ("import sys, phantom.model.inverse, phantom.model.inverse_cli, phantom.model.cli; "
+    code = ("import sys, phantom.model.inverse, phantom.cli.inverse, phantom.cli.model; "
             "import json; print(json.dumps(sorted(m for m in sys.modules if m.startswith('phantom.host'))))")
     loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                                        check=True).stdout)

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from phantom.model.fem import PhantomModel
-from phantom.model.mesh import prepare_surfaces
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import builtin_prostate
+from phantom.model.mesh.tetmesh import prepare_surfaces
 from phantom.model.scene import Material
-from phantom.model.shapes import builtin_prostate
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 YOUNGS_MODULUS_PA = 50e3

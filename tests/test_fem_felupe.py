@@ -2,13 +2,13 @@
 
 import numpy as np
 import pytest
+from reference.felupe_reference import felupe_forces, felupe_solve
 
-from phantom.model import kernels
-from phantom.model.felupe_reference import felupe_forces, felupe_solve
-from phantom.model.fem import PhantomModel
-from phantom.model.mesh import prepare_surfaces
+from phantom.model.fem import kernels
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import builtin_prostate, generate_hollow_sphere
+from phantom.model.mesh.tetmesh import prepare_surfaces
 from phantom.model.scene import Material
-from phantom.model.shapes import builtin_prostate, generate_hollow_sphere
 
 YOUNGS_MODULUS_PA = 50e3
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]

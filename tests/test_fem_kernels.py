@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from phantom.model import kernels
-from phantom.model.mesh import enclosed_volume_m3, prepare_surfaces, volume_gradient_m2
-from phantom.model.shapes import generate_hollow_sphere
+from phantom.model.fem import kernels
+from phantom.model.mesh.prostate import generate_hollow_sphere
+from phantom.model.mesh.tetmesh import enclosed_volume_m3, prepare_surfaces, volume_gradient_m2
 
 
 def numpy_polar_rotation(deformation_gradient):
@@ -125,7 +125,7 @@ def test_element_stiffness_is_symmetric_and_annihilates_rigid_motion(sphere):
 
 
 def test_corotational_tangent_is_the_exact_hessian(sphere):
-    from phantom.model.fem import PhantomModel
+    from phantom.model.fem.model import PhantomModel
     from phantom.model.scene import Material
 
     mesh, surfaces = sphere
@@ -157,7 +157,7 @@ KERNEL_OUTPUTS = r"""
 import sys
 import numpy as np
 from scipy.spatial import Delaunay
-from phantom.model import kernels
+from phantom.model.fem import kernels
 
 rng = np.random.default_rng(11)
 nodes = rng.uniform(0.0, 0.02, size=(60, 3))
@@ -212,11 +212,11 @@ def test_ahead_of_time_build_matches_the_jit_kernels_without_loading_numba(tmp_p
     environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / "cache"),
                        NUMBA_CACHE_DIR=str(kernels.phantom.cache_dir("numba")))
     environment.pop("PHANTOM_JIT_KERNELS", None)
-    build = subprocess.run([sys.executable, "-m", "phantom.model.kernels"], env=environment, capture_output=True,
+    build = subprocess.run([sys.executable, "-m", "phantom.model.fem.kernels"], env=environment, capture_output=True,
                            text=True, timeout=240)
     assert build.returncode == 0, build.stderr
     assert "built the kernels ahead of time" in build.stdout
-    again = subprocess.run([sys.executable, "-m", "phantom.model.kernels"], env=environment, capture_output=True,
+    again = subprocess.run([sys.executable, "-m", "phantom.model.fem.kernels"], env=environment, capture_output=True,
                            text=True, timeout=60)
     assert "already built" in again.stdout
     runs = {}

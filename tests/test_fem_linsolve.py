@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from phantom.model.linsolve import Factorization, default_method
+from phantom.model.fem.linsolve import Factorization, default_method
 
 
 def laplacian_3d(n):

@@ -6,9 +6,9 @@ import meshio
 import numpy as np
 import pytest
 
-from phantom.host.cli import main
+from phantom.cli.main import main
 from phantom.model import PhantomModel, load_scene
-from phantom.model.mesh import enclosed_volume_m3, read_mesh
+from phantom.model.mesh.tetmesh import enclosed_volume_m3, read_mesh
 
 SIZE = ["--size-mm", "5"]
 

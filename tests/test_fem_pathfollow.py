@@ -5,11 +5,12 @@ import time
 import numpy as np
 import pytest
 
-from phantom.model import SolveError, kernels
-from phantom.model.fem import PhantomModel
-from phantom.model.mesh import prepare_surfaces, volume_gradient_m2
+from phantom.model import SolveError
+from phantom.model.fem import kernels
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import generate_hollow_sphere
+from phantom.model.mesh.tetmesh import prepare_surfaces, volume_gradient_m2
 from phantom.model.scene import Material
-from phantom.model.shapes import generate_hollow_sphere
 
 YOUNGS_MODULUS_PA = 50e3
 

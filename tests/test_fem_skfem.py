@@ -2,12 +2,12 @@
 
 import numpy as np
 import pytest
+from reference.skfem_reference import skfem_displacement
 
-from phantom.model.fem import PhantomModel
-from phantom.model.mesh import prepare_surfaces
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import builtin_prostate, generate_hollow_sphere
+from phantom.model.mesh.tetmesh import prepare_surfaces
 from phantom.model.scene import Material
-from phantom.model.shapes import builtin_prostate, generate_hollow_sphere
-from phantom.model.skfem_reference import skfem_displacement
 
 
 def unfixed_model(mesh, chambers, poisson_ratio):

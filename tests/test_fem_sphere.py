@@ -8,11 +8,11 @@ because linear tetrahedra are too stiff (more so as nu nears 0.5). The tolerance
 import numpy as np
 import pytest
 
-from phantom.model import kernels
-from phantom.model.fem import PhantomModel
-from phantom.model.mesh import prepare_surfaces, volume_gradient_m2
+from phantom.model.fem import kernels
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import generate_hollow_sphere
+from phantom.model.mesh.tetmesh import prepare_surfaces, volume_gradient_m2
 from phantom.model.scene import Material
-from phantom.model.shapes import generate_hollow_sphere
 
 INNER_MM, OUTER_MM = 10.0, 20.0
 SIZES_MM = (4.0, 2.83, 2.0)
@@ -77,7 +77,7 @@ NEO_HOOKEAN_SIZES_MM = (3.5, 2.5, 1.77)
 def test_neo_hookean_sphere_converges_to_the_exact_radial_solution():
     """Cavity pressure p/E = 0.15, nu = 0.3: the exact cavity grows by 58 %. The 3-D volume changes converge to
     the fine 1-D radial solution at about second order (figures, and nu = 0.45: model/README.md)."""
-    from phantom.model.sphere_reference import volume_changes_m3
+    from reference.sphere_reference import volume_changes_m3
 
     poisson_ratio, pressure_pa = 0.3, 0.15 * YOUNGS_MODULUS_PA
     exact = np.array(volume_changes_m3(INNER_MM * 1e-3, OUTER_MM * 1e-3, pressure_pa, YOUNGS_MODULUS_PA,

@@ -10,9 +10,9 @@ from scipy import sparse
 
 from phantom import PhantomError
 from phantom.model import PhantomModel, load_scene
-from phantom.model.fidelity import VolumeEstimator, tangent_displacement_m_per_pa
+from phantom.model.fidelity.levels import VolumeEstimator, tangent_displacement_m_per_pa
 from phantom.model.inverse import InverseSolver
-from phantom.model.mesh import Surfaces, enclosed_volume_m3, volume_gradient_m2
+from phantom.model.mesh.tetmesh import Surfaces, enclosed_volume_m3, volume_gradient_m2
 
 COARSE_MM = 6.0
 

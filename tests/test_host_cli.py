@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from phantom import PhantomError
-from phantom.host.commands import CONFIG_KEYS, format_steps, load_config
+from phantom.cli.daemon import CONFIG_KEYS, format_steps, load_config
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 HOST = Path(__file__).resolve().parent.parent / "host"
@@ -85,7 +85,7 @@ def test_the_step_table_has_a_row_per_step_with_blanks_for_unknowns():
 
 @pytest.mark.parametrize("command", ["set", "inverse"])
 def test_a_list_starting_with_a_free_chamber_is_a_value_not_an_option(command):
-    from phantom.host.cli import build_parser, join_list_values
+    from phantom.cli.main import build_parser, join_list_values
 
     args = build_parser().parse_args(join_list_values([command, "--chamber-volumes-ml", "-,3.5,3.5"]))
     assert args.chamber_volumes_ml == "-,3.5,3.5"
@@ -95,7 +95,7 @@ def test_a_list_starting_with_a_free_chamber_is_a_value_not_an_option(command):
 def test_every_host_subcommand_has_a_description_and_json():
     import argparse
 
-    from phantom.host import commands
+    from phantom.cli import daemon as commands
 
     parser = argparse.ArgumentParser()
     subparsers = parser.add_subparsers()
@@ -107,7 +107,7 @@ def test_every_host_subcommand_has_a_description_and_json():
 
 
 def test_the_text_answers_of_vent_clear_fault_and_zero():
-    from phantom.host.commands import format_simple, watch_header
+    from phantom.cli.daemon import format_simple, watch_header
 
     assert format_simple("vent", {"vented": True}).startswith("vented")
     assert format_simple("clear_fault", {"cleared": ["SENSOR_1"], "setpoints_restored": True}) == (

@@ -10,7 +10,8 @@ import json
 import numpy as np
 import pytest
 
-from phantom.model import PhantomModel, inverse_cli, load_scene
+from phantom.cli import inverse as inverse_cli
+from phantom.model import PhantomModel, load_scene
 from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
 
 COARSE_MM = 6.0

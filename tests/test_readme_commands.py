@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from phantom import PhantomError
-from phantom.host.cli import build_parser, join_list_values
+from phantom.cli.main import build_parser, join_list_values
 from phantom.host.client import DaemonClient
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]

@@ -10,14 +10,14 @@ import pytest
 
 from phantom import PhantomError
 from phantom.model import PhantomModel, load_scene
-from phantom.model.fidelity import VolumeEstimator
-from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
-from phantom.model.response import (
+from phantom.model.fidelity.levels import VolumeEstimator
+from phantom.model.fidelity.response_table import (
     ResponseTableError,
     build_response_table,
     grid_pa,
     response_table,
 )
+from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
 
 COARSE_MM = 8.0
 PRESSURE_MAX_PA = 3000.0
@@ -109,7 +109,7 @@ def test_a_script_without_a_main_guard_still_gets_its_table(tmp_path):
 
     script = tmp_path / "unguarded.py"
     script.write_text("from phantom.model import PhantomModel, load_scene\n"
-                      "from phantom.model.response import build_response_table\n"
+                      "from phantom.model.fidelity.response_table import build_response_table\n"
                       f"model = PhantomModel.from_scene(load_scene('builtin'), mesh_size_mm={COARSE_MM})\n"
                       "table = build_response_table(model, 3000.0, points_per_axis=2, workers=2)\n"
                       "print('gland at 3 kPa', table.volumes([3000.0] * 3)[1])\n")

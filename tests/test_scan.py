@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 from phantom import PhantomError
-from phantom.host import cli
+from phantom.cli import main as cli
 from phantom.model import PhantomModel, load_scene
-from phantom.model.calibrate import load_measurements
-from phantom.model.scan import (
+from phantom.model.calibration.calibrate import load_measurements
+from phantom.scan.compare import (
     AMBIGUOUS_ANGLE_DEG,
     ScanError,
     SurfaceIndex,
@@ -31,7 +31,7 @@ from phantom.model.scan import (
     surface_volume_ml,
     triangle_areas_mm2,
 )
-from phantom.model.scan_synthetic import make_scan, random_rotation
+from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = (1.0, 2.0, 0.5)
 NOISE_MM = 0.05
@@ -152,9 +152,9 @@ def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface
 
 @pytest.mark.slow
 def test_a_start_that_ends_at_the_best_alignment_is_not_called_another(tmp_path, capsys, surface, state):
-    # The README's example (python -m phantom.model.scan_synthetic --modulus-factor 0.85, seed 0): a far start's
+    # The README's example (python -m phantom.scan.synthetic --modulus-factor 0.85, seed 0): a far start's
     # ICP came back to the best alignment, and the command called the fit "ambiguous: a rotation by 0 deg".
-    from phantom.model import scan_synthetic
+    from phantom.scan import synthetic as scan_synthetic
 
     path = tmp_path / "softer_scan.ply"
     scan_synthetic.main(["--out", str(path), "--modulus-factor", "0.85"])

@@ -9,16 +9,16 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 
-import phantom.model.fem as fem
+import phantom.model.fem.model as fem
 from phantom import PhantomError
 from phantom.model import MeshError, PhantomModel, SolveError, load_scene
-from phantom.model.calibrate import CalibrationError, load_measurements
-from phantom.model.fidelity import VolumeEstimator
+from phantom.model.calibration.calibrate import CalibrationError, load_measurements
+from phantom.model.fem.linsolve import Factorization
+from phantom.model.fidelity.levels import VolumeEstimator
 from phantom.model.inverse import InverseSolver, LimitPointError, Target
-from phantom.model.linsolve import Factorization
-from phantom.model.mesh import TetMesh, check_tets, prepare_surfaces
+from phantom.model.mesh.prostate import generate_hollow_sphere
+from phantom.model.mesh.tetmesh import TetMesh, check_tets, prepare_surfaces
 from phantom.model.scene import Material
-from phantom.model.shapes import generate_hollow_sphere
 
 INNER_MM, OUTER_MM = 10.0, 20.0
 YOUNGS_MODULUS_PA = 50e3

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from phantom.model import PhantomModel
-from phantom.model.sweep import RayTask, SweepError, element_stretch_measures, local_cluster, run_sweep
+from phantom.model.calibration.sweep import RayTask, SweepError, element_stretch_measures, local_cluster, run_sweep
 
 SCENE_RAW = {"phantom": {"mesh": "builtin:prostate", "units": "mm", "chambers": ["chamber0", "chamber1", "chamber2"],
                          "fixed": "fixed"},

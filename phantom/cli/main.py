@@ -14,18 +14,14 @@ import sys
 
 import phantom
 
-# The number-list parsers live in a neutral module (the model's command line uses them too); kept importable
-# from here for the parts that import them from this module.
-from phantom.command_line import parse_growth_ratio, parse_numbers  # noqa: F401
-
 #: Modules that add subcommands, in the order they appear in ``phantom --help``.
 COMMAND_MODULES: tuple[str, ...] = (
-    "phantom.model.cli",
-    "phantom.model.inverse_cli",
-    "phantom.model.scan_cli",
-    "phantom.model.calibrate_cli",
-    "phantom.hil.cli",
-    "phantom.host.commands",
+    "phantom.cli.model",
+    "phantom.cli.inverse",
+    "phantom.cli.scan",
+    "phantom.cli.calibrate",
+    "phantom.cli.hil",
+    "phantom.cli.daemon",
 )
 
 

@@ -1,6 +1,6 @@
 """Element kernels of linear tetrahedra (numba, compiled once and cached on disk).
 
-``python -m phantom.model.kernels`` (run by scripts/bootstrap.sh after an install) also compiles the exported
+``python -m phantom.model.fem.kernels`` (run by scripts/bootstrap.sh after an install) also compiles the exported
 kernels ahead of time with numba.pycc into ``phantom.cache_dir("kernels")``, keyed by this file's source; while
 that build matches, importing this module loads it and never imports numba, which saves a process 0.6 s (numba's
 import and its first-call start). Otherwise (no build, or ``PHANTOM_JIT_KERNELS=1``) numba compiles them on first
@@ -82,7 +82,7 @@ if _COMPILED is None:
     kernel = numba.njit(cache=True)
     if __name__ != "__main__" and not any(phantom.cache_dir("numba").rglob("kernels.internal_forces-*.nbi")):
         print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached; "
-              "`python -m phantom.model.kernels` builds them ahead of time)", file=sys.stderr, flush=True)
+              "`python -m phantom.model.fem.kernels` builds them ahead of time)", file=sys.stderr, flush=True)
 else:
     def kernel(function):
         """Leave the Python source as it is: the ahead-of-time build replaces the exported kernels below."""
@@ -672,7 +672,7 @@ for _name, (_dtypes, _) in EXPORTS.items():
 def build_compiled() -> Path:
     """Compile the exported kernels ahead of time (numba.pycc, for this machine's CPU) to
     :func:`compiled_kernels_path`, which later imports of this module then use. Needs the JIT kernels (run it
-    with ``PHANTOM_JIT_KERNELS=1``, as ``python -m phantom.model.kernels`` does) and a C compiler."""
+    with ``PHANTOM_JIT_KERNELS=1``, as ``python -m phantom.model.fem.kernels`` does) and a C compiler."""
     import warnings
 
     if JIT_KERNELS is None:

@@ -269,7 +269,7 @@ def _run_set(args) -> int:
     import json
 
     from phantom import PhantomError
-    from phantom.command_line import parse_growth_ratio, parse_numbers
+    from phantom.cli.common import parse_growth_ratio, parse_numbers
 
     if args.volume_ml is not None:
         params = {"volume_ml": args.volume_ml}

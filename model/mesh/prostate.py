@@ -6,7 +6,7 @@ widest toward the base (+z), squeezed front-to-back by ``ANTERIOR_POSTERIOR_RATI
 body encloses ``REST_VOLUME_ML``. Three ellipsoidal cavities are cut from it: chamber 0 at the base, chambers 1
 (+x, left lobe) and 2 (-x, right lobe) mirror images about the mid-sagittal plane x = 0. The ``fixed`` patch is
 the base surface within a fixation radius of the base pole, where the three air tubes enter. Chamber sizes and
-positions and the fixation radius are parameters (:class:`phantom.model.geometry.ProstateGeometry`, a scene's
+positions and the fixation radius are parameters (:class:`phantom.model.mesh.geometry.ProstateGeometry`, a scene's
 ``[geometry]`` table); the defaults leave every wall at least 3.5 mm thick, and no wall may be under 2 mm.
 """
 
@@ -19,8 +19,8 @@ import numpy as np
 
 import phantom
 from phantom.model.errors import MeshError
-from phantom.model.geometry import ProstateGeometry, check_walls
-from phantom.model.mesh import TetMesh, boundary_faces, check_tets, surface_components
+from phantom.model.mesh.geometry import ProstateGeometry, check_walls
+from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, surface_components
 
 #: Bump when the generated geometry changes, so cached meshes are regenerated.
 PROSTATE_GEOMETRY_VERSION = 2

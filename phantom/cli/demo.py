@@ -4,7 +4,7 @@ Starts ``phantom daemon --sim`` (the real firmware image in simavr, paced to the
 recording, plays the scene's timeline through the local API, prints a table of each step's target and
 reached volume with the time it took, stops the daemon with SIGTERM (it vents) and reads the recording back.
 
-    python -m phantom.host.demo [--scene host/scenes/bph_growth.toml] [--time-scale 3] [--out out/]
+    python -m phantom.cli.demo [--scene host/scenes/bph_growth.toml] [--time-scale 3] [--out out/]
 """
 
 from __future__ import annotations
@@ -35,12 +35,12 @@ def _wait_online(client_factory, process, timeout_s: float) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from phantom.cli.daemon import follow_scene, format_steps
     from phantom.host.client import DaemonClient
-    from phantom.host.commands import follow_scene, format_steps
     from phantom.host.recording import read_rrd
     from phantom.host.scenes import example_scene_path
 
-    parser = argparse.ArgumentParser(prog="python -m phantom.host.demo", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m phantom.cli.demo", description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default=str(example_scene_path("bph_growth")))
     parser.add_argument("--time-scale", type=float, default=3.0, help="play the timeline this much faster")
     parser.add_argument("--out", default="out", help="folder for the recording, socket and log")

@@ -1,4 +1,4 @@
-"""The closest-point kernel of :mod:`phantom.model.scan` (numba, cached under ``phantom.cache_dir("numba")``).
+"""The closest-point kernel of :mod:`phantom.scan.compare` (numba, cached under ``phantom.cache_dir("numba")``).
 
 Imported only when a scan is compared, so the rest of the model never pays for numba here.
 """

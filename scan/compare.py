@@ -25,7 +25,7 @@ import numpy as np
 
 import phantom
 from phantom import PhantomError
-from phantom.model.mesh import enclosed_volume_m3
+from phantom.model.mesh.tetmesh import enclosed_volume_m3
 
 #: Millimetres per unit of a scan file.
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -524,7 +524,7 @@ def _closest_kernel():
     global _KERNEL
     if _KERNEL is None:
         os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
-        from phantom.model import scan_kernels
+        from phantom.scan import kernels as scan_kernels
 
         _KERNEL = scan_kernels.closest_on_candidates
     return _KERNEL
@@ -585,7 +585,7 @@ class SurfaceIndex:
         triangle = np.empty(n, np.int64)
         pending = np.arange(n)
         if n > 10 * len(self.triangles):
-            from phantom.model import scan_kernels
+            from phantom.scan import kernels as scan_kernels
 
             reach, start, neighbours = self._neighbour_lists()
             nearest_distance, nearest = self.tree.query(points_mm)

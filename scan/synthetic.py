@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phantom.model.scan import TriangleMesh, compact, subdivide, vertex_normals
+from phantom.scan.compare import TriangleMesh, compact, subdivide, vertex_normals
 
 
 @dataclass
@@ -63,14 +63,14 @@ def _with_fragment(mesh: TriangleMesh) -> TriangleMesh:
 
 def main(argv: list[str] | None = None) -> None:
     """Write a synthetic scan of the model, e.g. to try ``phantom compare-scan``:
-    ``python -m phantom.model.scan_synthetic --out scan.ply --modulus-factor 0.8``."""
+    ``python -m phantom.scan.synthetic --out scan.ply --modulus-factor 0.8``."""
     import argparse
 
     import meshio
 
-    from phantom.model.fem import PhantomModel
-    from phantom.model.scan import model_surface
+    from phantom.model.fem.model import PhantomModel
     from phantom.model.scene import load_scene
+    from phantom.scan.compare import model_surface
 
     parser = argparse.ArgumentParser(description="Write a synthetic scan (mm) of the model's deformed surface.")
     parser.add_argument("--out", required=True, help="file to write: .ply, .stl or .obj")

@@ -34,12 +34,12 @@ def run_compare_scan(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from phantom.host.cli import parse_numbers
+    from phantom.cli.common import parse_numbers
     from phantom.model.errors import SolveError
-    from phantom.model.fem import PhantomModel
-    from phantom.model.scan import StageClock, compare, model_surface, read_scan, rotation_axis
-    from phantom.model.scan_render import write_heatmap, write_recording
+    from phantom.model.fem.model import PhantomModel
     from phantom.model.scene import load_scene
+    from phantom.scan.compare import StageClock, compare, model_surface, read_scan, rotation_axis
+    from phantom.scan.heatmap import write_heatmap, write_recording
 
     pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
     clock = StageClock()
@@ -54,7 +54,7 @@ def run_compare_scan(args: argparse.Namespace) -> int:
         state = model.solve([p * 1e3 for p in pressures_kpa])
     result = compare(scan, model_surface(state.positions_m, model.outer_triangles), state.gland_volume_m3 * 1e6,
                      args.units, clock=clock)
-    from phantom.command_line import chamber_labels
+    from phantom.cli.common import chamber_labels
 
     labels = chamber_labels(scene.raw, list(model.chamber_names))
     at = ", ".join(f"{label} {p:g}" for label, p in zip(labels, pressures_kpa, strict=True))

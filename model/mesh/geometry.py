@@ -1,6 +1,6 @@
 """Parameters of the built-in prostate's geometry: a scene's ``[geometry]`` table, checked, and its walls.
 
-The body (a tapered chestnut of 26.3 ml, see :mod:`phantom.model.shapes`) is fixed; what a scene may change is
+The body (a tapered chestnut of 26.3 ml, see :mod:`phantom.model.mesh.prostate`) is fixed; what a scene may change is
 where the three ellipsoidal chambers sit and how large they are, and the fixation patch:
 
     [geometry]
@@ -122,7 +122,7 @@ def wall_thicknesses_mm(geometry: ProstateGeometry) -> dict[str, float]:
     import numpy as np
     from scipy.spatial import cKDTree
 
-    from phantom.model.shapes import body_surface_points_mm, inside_body
+    from phantom.model.mesh.prostate import body_surface_points_mm, inside_body
 
     outer = cKDTree(body_surface_points_mm())
     samples = [_ellipsoid_points_mm(centre, axes) for centre, axes in geometry.ellipsoids_mm()]

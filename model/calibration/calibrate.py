@@ -2,12 +2,13 @@
 
 Parameters: Young's modulus E and a grid of others (``NAME=v1,v2,...``): material parameters (``gent_jm``) and
 geometry parameters of the built-in prostate (``base_chamber_scale``, ``lobe_chamber_scale``, any key of
-:class:`phantom.model.geometry.ProstateGeometry`).
+:class:`phantom.model.mesh.geometry.ProstateGeometry`).
 
 E is a load factor. For every law the model has, at fixed Poisson ratio (the fixation springs are a multiple of
 E too), the state at pressures p and modulus E is the one at ``t p`` and the scene's modulus E0, ``t = E0 / E``.
-So each measured pressure ray is traced once per grid point over ``t`` (:mod:`phantom.model.sweep`: Dask tasks,
-cached on disk), and the volume of every ray is then known at every (grid point, t). The fit is
+So each measured pressure ray is traced once per grid point over ``t``
+(:mod:`phantom.model.calibration.sweep`: Dask tasks, cached on disk), and the volume of every ray is then known
+at every (grid point, t). The fit is
 
     minimise  sum_j ((G_j(theta, t) - m_j) / m_j)^2   over theta in the grid's box and t > 0,
 
@@ -78,7 +79,7 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
     """Read a CSV with columns ``p0_kpa, p1_kpa, ..., measured_ml`` (``#`` lines are comments).
 
     A ``measured_ml`` entry may instead name a scan file (.obj, .ply or .stl, in mm, relative to the CSV's
-    folder): its cleaned, watertight volume is used (``phantom.model.scan.scan_volume_ml``).
+    folder): its cleaned, watertight volume is used (``phantom.scan.compare.scan_volume_ml``).
 
     Raises
     ------
@@ -129,7 +130,7 @@ def _measured_volume_ml(entry: str, folder: Path) -> float:
     text = (entry or "").strip()
     if Path(text).suffix.lower() not in (".obj", ".ply", ".stl"):
         return float(text)
-    from phantom.model.scan import scan_volume_ml
+    from phantom.scan.compare import scan_volume_ml
 
     return scan_volume_ml(folder / text)
 
@@ -159,7 +160,7 @@ class Grid:
 
 def parse_grid(items: list[str]) -> Grid:
     """``["gent_jm=3,6,12", "lobe_chamber_scale=1,1.1,1.2"]`` as a Grid; CalibrationError on a bad item."""
-    from phantom.model.geometry import ProstateGeometry
+    from phantom.model.mesh.geometry import ProstateGeometry
 
     known = set(MATERIAL_PARAMETERS) | {f.name for f in dataclasses.fields(ProstateGeometry)
                                         if not isinstance(f.default, tuple)}
@@ -521,10 +522,10 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
     ``scene`` gives everything else (material law, Poisson ratio, geometry, mesh size); its modulus is E0.
     """
     from phantom.model import PhantomModel
+    from phantom.model.calibration.sweep import RayTask, run_sweep
     from phantom.model.errors import MeshError
-    from phantom.model.geometry import check_walls, geometry_from_table
+    from phantom.model.mesh.geometry import check_walls, geometry_from_table
     from phantom.model.scene import scene_from_dict
-    from phantom.model.sweep import RayTask, run_sweep
 
     over = measurements.pressures_pa.max()
     if over > PRESSURE_LIMIT_PA:
@@ -566,7 +567,7 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
                               stop_i1_minus_3=law_limit) for j, p in enumerate(measurements.pressures_pa)]
     if not any(feasible):
         raise CalibrationError("every grid point breaks the wall-thickness limit: shrink the geometry grid")
-    from phantom.model.sweep import cached_trace
+    from phantom.model.calibration.sweep import cached_trace
 
     solved_now = sum(cached_trace(task) is None for task in tasks)
     results = iter(run_sweep(tasks, scheduler=scheduler, n_workers=n_workers, progress=progress))
@@ -597,7 +598,7 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
 def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_workers, progress) -> np.ndarray:
     """Gland volumes (m^3) of left-out measurements at their refits' parameters, by full solves (continuation in
     four steps); where the model has no state there (a limit point), the last solved volume, a lower bound."""
-    from phantom.model.sweep import RayTask, run_sweep
+    from phantom.model.calibration.sweep import RayTask, run_sweep
 
     tasks = []
     for refit, left_out in zip(refits, left_outs, strict=True):
@@ -611,7 +612,7 @@ def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_wor
 def _verify(raw, parameters, load_factor, measurements, law, scheduler, n_workers, progress):
     """Full solves of every measurement at the fitted parameters (continuation in four steps to ``t``);
     returns the gland volumes (m^3) and the validity figures, or raises CalibrationError with the reason."""
-    from phantom.model.sweep import RayTask, run_sweep
+    from phantom.model.calibration.sweep import RayTask, run_sweep
 
     document = scene_with(raw, parameters)
     jm = document.get("material", {}).get("gent_jm")

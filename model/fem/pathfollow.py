@@ -140,7 +140,7 @@ class _Path:
         return guess if self._upright(guess) else last.positions_m
 
     def _pressure_controlled(self, points, allow_switch) -> np.ndarray:
-        from phantom.model.fem import MAX_LOAD_BISECTIONS
+        from phantom.model.fem.model import MAX_LOAD_BISECTIONS
 
         increment, failures, first_slope = self._first_increment() if allow_switch else 1.0, 0, None
         while points[-1].load_factor < 1.0:
@@ -327,7 +327,8 @@ class _Path:
     def _krylov_solves(self, positions_m, load_factor, right_hand_sides):
         """``K^-1 v`` for each v by CG on the exact tangent preconditioned with the rest factor, or None when
         one does not converge in the budget (see fem._preconditioned_cg)."""
-        from phantom.model import fem, kernels
+        from phantom.model.fem import kernels
+        from phantom.model.fem import model as fem
 
         model = self.model
         if self.constraints.key != model._rest_constraints.key:

@@ -69,7 +69,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _scene_for(args):
     """The scene, with --material, --gent-jm and --size-mm applied to its table."""
     from phantom import PhantomError
-    from phantom.model.calibrate import scene_with
+    from phantom.model.calibration.calibrate import scene_with
     from phantom.model.scene import load_scene, scene_from_dict
 
     scene = load_scene(args.scene)
@@ -102,8 +102,8 @@ def run_calibrate(args) -> int:
     from pathlib import Path
 
     from phantom import PhantomError
-    from phantom.model.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
-    from phantom.model.sweep import stderr_progress
+    from phantom.model.calibration.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
+    from phantom.model.calibration.sweep import stderr_progress
 
     if not args.measurements:
         raise PhantomError("phantom calibrate needs --measurements CSV (or use 'phantom calibrate record' to "
@@ -157,7 +157,7 @@ def run_calibrate(args) -> int:
 
 def _parse_points(text: str) -> list[list[float]]:
     from phantom import PhantomError
-    from phantom.host.cli import parse_numbers
+    from phantom.cli.common import parse_numbers
 
     points = [parse_numbers(item, "--points-kpa") for item in text.split(";") if item.strip()]
     for point in points:
@@ -169,7 +169,7 @@ def _parse_points(text: str) -> list[list[float]]:
 
 
 def _ask_volume_ml(prompt: str) -> float:
-    """A volume typed on stdin (ml), or the path of a scan file whose volume phantom.model.scan measures."""
+    """A volume typed on stdin (ml), or the path of a scan file whose volume phantom.scan.compare measures."""
     import math
     import sys
     from pathlib import Path
@@ -188,9 +188,9 @@ def _ask_volume_ml(prompt: str) -> float:
         if not Path(answer).is_file():
             raise PhantomError(f"{answer!r} is neither a volume in ml nor a scan file") from None
         try:
-            from phantom.model.scan import scan_volume_ml
+            from phantom.scan.compare import scan_volume_ml
         except ImportError:
-            raise PhantomError("scan files need phantom.model.scan, which this install lacks: type the volume "
+            raise PhantomError("scan files need phantom.scan.compare, which this install lacks: type the volume "
                                "in ml") from None
         volume_ml = scan_volume_ml(answer, units="mm")
     if not (math.isfinite(volume_ml) and volume_ml > 0):

@@ -17,7 +17,7 @@
     The full solve (``model.solve``) of the model's material law.
 ``table``
     The full solves on a grid over the operating box, solved once (cached on disk) and interpolated by cubic
-    splines (:mod:`phantom.model.response`): volumes, shape and the tangent compliance in a fraction of a
+    splines (:mod:`phantom.model.fidelity.response_table`): volumes, shape and the tangent compliance in a fraction of a
     millisecond, to the interpolation's error (checked against full solves when the table is built). For a
     hyperelastic scene a daemon must answer at its control rate; it is never chosen by the probe (its build
     costs a few minutes once), only named by a scene.
@@ -50,7 +50,7 @@ def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: 
     ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the exact tangent of ``formulation`` (default the model's) if it is
     a hyperelastic law, otherwise the co-rotational one, including the follower pressure load's stiffness. Held
     dofs (rows of ``K_t`` that are a bare diagonal) get no displacement."""
-    from phantom.model.linsolve import Factorization
+    from phantom.model.fem.linsolve import Factorization
 
     formulation = formulation or model.formulation
     formulation = formulation if formulation in ("neo_hookean", "gent") else "corotational"
@@ -139,7 +139,7 @@ class VolumeEstimator:
             raise PhantomError(f"fidelity must be one of {', '.join(LEVELS)}, got {level!r}")
         self.level = level
         if level == "table":
-            from phantom.model.response import DEFAULT_POINTS_PER_AXIS, response_table
+            from phantom.model.fidelity.response_table import DEFAULT_POINTS_PER_AXIS, response_table
 
             points = settings.get("table_points", DEFAULT_POINTS_PER_AXIS)
             if isinstance(points, bool) or not isinstance(points, int) or points < 2:
@@ -186,7 +186,7 @@ class VolumeEstimator:
             chamber_volumes_m3, gland_volume_m3 = self.model.volumes(positions_m)
             state = None
             if self.model.formulation == "linear":
-                from phantom.model.fem import State
+                from phantom.model.fem.model import State
 
                 state = State(positions_m, chamber_volumes_m3, gland_volume_m3, 0, 0.0, pressures, "linear")
             return np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3), state

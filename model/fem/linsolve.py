@@ -41,7 +41,7 @@ class CholeskyFactor:
         self.scale = scale
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        from phantom.model.kernels import cholesky_solve
+        from phantom.model.fem.kernels import cholesky_solve
 
         solution = cholesky_solve(self.indptr, self.indices, self.values, self.permutation,
                                   np.ascontiguousarray(rhs, dtype=np.float64))

@@ -24,10 +24,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 import phantom
-from phantom.model import kernels
 from phantom.model.errors import MeshError, SolveError
-from phantom.model.linsolve import CholeskyFactor, Factorization
-from phantom.model.mesh import Surfaces, TetMesh, enclosed_volume_m3, prepare_surfaces, volume_gradient_m2
+from phantom.model.fem import kernels
+from phantom.model.fem.linsolve import CholeskyFactor, Factorization
+from phantom.model.mesh.tetmesh import Surfaces, TetMesh, enclosed_volume_m3, prepare_surfaces, volume_gradient_m2
 from phantom.model.scene import HYPERELASTIC_MODELS, MATERIAL_MODELS, Material, Scene
 
 if TYPE_CHECKING:
@@ -323,8 +323,8 @@ class PhantomModel:
     @classmethod
     def from_scene(cls, scene: Scene, mesh_size_mm: float | None = None) -> "PhantomModel":
         """The model of a scene; the built-in mesh comes from the on-disk cache when it was made before."""
-        from phantom.model.mesh import read_mesh
-        from phantom.model.shapes import builtin_prostate
+        from phantom.model.mesh.prostate import builtin_prostate
+        from phantom.model.mesh.tetmesh import read_mesh
 
         if scene.mesh == "builtin:prostate":
             if scene.units != "mm":
@@ -559,7 +559,7 @@ class PhantomModel:
     def _continuation(self, start_m, pressures, formulation, tolerance, constraints) -> tuple[np.ndarray, int, int]:
         """Path following from 0 to the full pressures (``pathfollow``): load steps with a secant predictor,
         volume control past where a chamber's pressure-volume curve flattens."""
-        from phantom.model.pathfollow import follow_path
+        from phantom.model.fem.pathfollow import follow_path
 
         return follow_path(self, start_m, pressures, formulation, tolerance, constraints)
 
@@ -818,7 +818,7 @@ class PhantomModel:
         return self._compliance_of(displacement, state.positions_m)
 
     def _hyperelastic_state_compliance(self, state: State) -> Compliance:
-        from phantom.model.fidelity import tangent_displacement_m_per_pa
+        from phantom.model.fidelity.levels import tangent_displacement_m_per_pa
 
         displacement = tangent_displacement_m_per_pa(self, np.asarray(state.positions_m, float),
                                                      np.asarray(state.pressures_pa, float), state.formulation)

@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _growth_ratio_by_index(text: str, chamber_names: list[str]) -> dict[int, float]:
     """``--growth-ratio`` (``chamber1=2,chamber2=1``, names or indices) as chamber index -> weight."""
     from phantom import PhantomError
-    from phantom.command_line import parse_growth_ratio
+    from phantom.cli.common import parse_growth_ratio
 
     by_index = {}
     for name, weight in parse_growth_ratio(text).items():
@@ -62,8 +62,8 @@ def run_inverse(args) -> int:
     import json
 
     from phantom import PhantomError
-    from phantom.command_line import chamber_labels, parse_numbers
-    from phantom.model.fidelity import scene_model_settings
+    from phantom.cli.common import chamber_labels, parse_numbers
+    from phantom.model.fidelity.levels import scene_model_settings
     from phantom.model.inverse import InverseSolver, Target
 
     if args.growth_ratio and args.volume_ml is None:

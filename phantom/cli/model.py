@@ -46,11 +46,11 @@ def _single_threaded_blas() -> None:
 
 def run_mesh(args: argparse.Namespace) -> int:
     """Write the scene's mesh to ``--out``."""
-    from phantom.command_line import output_file
+    from phantom.cli.common import output_file
     from phantom.model.errors import MeshError
-    from phantom.model.mesh import read_mesh, write_mesh
+    from phantom.model.mesh.prostate import builtin_prostate
+    from phantom.model.mesh.tetmesh import read_mesh, write_mesh
     from phantom.model.scene import load_scene
-    from phantom.model.shapes import builtin_prostate
 
     scene = load_scene(args.scene)
     if scene.mesh == "builtin:prostate":
@@ -77,9 +77,9 @@ def run_forward(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from phantom.command_line import parse_numbers
+    from phantom.cli.common import parse_numbers
     from phantom.model.errors import SolveError
-    from phantom.model.fem import PhantomModel
+    from phantom.model.fem.model import PhantomModel
     from phantom.model.scene import load_scene
 
     args.pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
@@ -110,7 +110,7 @@ def run_forward(args: argparse.Namespace) -> int:
             "out": args.out,
         }))
         return 0
-    from phantom.command_line import chamber_labels
+    from phantom.cli.common import chamber_labels
 
     labels = chamber_labels(scene.raw, list(model.chamber_names))
     print(f"{'chamber':<12} {'pressure kPa':>12} {'rest ml':>9} {'volume ml':>10} {'change ml':>10}")
@@ -135,9 +135,9 @@ SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
 def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
     """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit; the outer
     surface only for a surface format."""
-    from phantom.command_line import output_file
+    from phantom.cli.common import output_file
     from phantom.model.errors import MeshError
-    from phantom.model.mesh import write_mesh
+    from phantom.model.mesh.tetmesh import write_mesh
 
     path = output_file(out)
     if path.suffix.lower() in SURFACE_FORMATS:

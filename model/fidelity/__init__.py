@@ -1,0 +1,1 @@
+"""The fidelity levels of the volume estimate, cheapest first, and the response table."""

@@ -1,0 +1,1 @@
+"""Independent oracles the tests check the model against: scikit-fem, FElupe and closed forms."""
