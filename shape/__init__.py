@@ -1,0 +1,1 @@
+"""The shape analysis (placeholder docstring, rewritten below)."""
