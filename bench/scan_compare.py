@@ -29,8 +29,8 @@ import numpy as np
 
 from phantom.cli import main as cli
 from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.surface import model_surface
 from phantom.model.scene import load_scene
-from phantom.scan.compare import model_surface
 from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = "1,2,0.5"

@@ -20,16 +20,10 @@ import time
 import numpy as np
 
 from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.surface import TriangleMesh, compact, model_surface, triangle_areas_mm2
 from phantom.model.mesh.tetmesh import enclosed_volume_m3, open_edge_count, surface_components
 from phantom.model.scene import load_scene
-from phantom.scan.compare import (
-    TriangleMesh,
-    close_holes,
-    compact,
-    largest_component,
-    model_surface,
-    triangle_areas_mm2,
-)
+from phantom.scan.compare import close_holes, largest_component
 from phantom.scan.synthetic import make_scan
 
 

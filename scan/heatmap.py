@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from phantom.scan.compare import Comparison, ScanError, subdivide
+from phantom.model.mesh.surface import subdivide
+from phantom.scan.compare import Comparison, ScanError
 
 #: Views: name, direction toward the viewer, and the coordinates shown right and up (a sign flips an axis so
 #: that the picture is not mirrored). x is the patient's left, y anterior, z from apex to base.

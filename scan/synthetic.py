@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phantom.scan.compare import TriangleMesh, compact, subdivide, vertex_normals
+from phantom.model.mesh.surface import TriangleMesh, compact, subdivide, vertex_normals
 
 
 @dataclass
@@ -69,8 +69,8 @@ def main(argv: list[str] | None = None) -> None:
     import meshio
 
     from phantom.model.fem.model import PhantomModel
+    from phantom.model.mesh.surface import model_surface
     from phantom.model.scene import load_scene
-    from phantom.scan.compare import model_surface
 
     parser = argparse.ArgumentParser(description="Write a synthetic scan (mm) of the model's deformed surface.")
     parser.add_argument("--out", required=True, help="file to write: .ply, .stl or .obj")

@@ -18,19 +18,16 @@ from phantom import PhantomError
 from phantom.cli import main as cli
 from phantom.model import PhantomModel, load_scene
 from phantom.model.calibration.calibrate import load_measurements
-from phantom.scan.compare import (
+from phantom.model.mesh.surface import (
     AMBIGUOUS_ANGLE_DEG,
-    ScanError,
     SurfaceIndex,
     TriangleMesh,
-    compare,
+    enclosed_volume_ml,
     model_surface,
-    read_scan,
     rotation_angle_deg,
-    scan_volume_ml,
-    surface_volume_ml,
     triangle_areas_mm2,
 )
+from phantom.scan.compare import ScanError, compare, read_scan, scan_volume_ml
 from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = (1.0, 2.0, 0.5)
@@ -232,7 +229,7 @@ def test_a_shape_that_is_not_the_phantom_does_not_fit(surface, state):
                                         [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]]))
     sphere = make_scan(octahedron, np.random.default_rng(0), levels=4).mesh
     sphere.vertices_mm /= np.linalg.norm(sphere.vertices_mm, axis=1, keepdims=True)
-    sphere.vertices_mm *= np.cbrt(state.gland_volume_m3 * 1e9 / surface_volume_ml(sphere) / 1e3)
+    sphere.vertices_mm *= np.cbrt(state.gland_volume_m3 * 1e9 / enclosed_volume_ml(sphere) / 1e3)
     with pytest.raises(ScanError, match="no rigid alignment fits"):
         compare(sphere, surface, state.gland_volume_m3 * 1e6)
 

@@ -37,8 +37,9 @@ def run_compare_scan(args: argparse.Namespace) -> int:
     from phantom.cli.common import parse_numbers
     from phantom.model.errors import SolveError
     from phantom.model.fem.model import PhantomModel
+    from phantom.model.mesh.surface import model_surface, rotation_axis
     from phantom.model.scene import load_scene
-    from phantom.scan.compare import StageClock, compare, model_surface, read_scan, rotation_axis
+    from phantom.scan.compare import StageClock, compare, read_scan
     from phantom.scan.heatmap import write_heatmap, write_recording
 
     pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
