@@ -98,7 +98,7 @@ def main():
     parser.add_argument("--poisson-max-triangles", type=int, default=100000)
     args = parser.parse_args()
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
-    state = model.solve([1e3, 2e3, 0.5e3])
+    state = model.equilibrium([1e3, 2e3, 0.5e3])
     surface = model_surface(state.positions_m, model.outer_triangles)
     truth_ml = enclosed_volume_m3(surface.vertices_mm, surface.triangles) * 1e-3
     for levels in (int(level) for level in args.levels.split(",")):

@@ -5,7 +5,7 @@ Public API (see model/README.md)::
     from phantom.model import load_scene, PhantomModel, MeshError, SolveError
     scene = load_scene("builtin")
     model = PhantomModel.from_scene(scene)
-    state = model.solve([1e3, 1e3, 1e3])
+    state = model.equilibrium([1e3, 1e3, 1e3])
     compliance = model.compliance()
 
 Names are imported lazily so that ``phantom --help`` does not load numpy, scipy or numba.

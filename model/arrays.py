@@ -8,7 +8,9 @@ import numpy.typing as npt
 
 #: Positions, volumes, pressures, forces, matrix entries: float64.
 FloatArray = npt.NDArray[np.float64]
-#: Node and element indices (tetrahedra, triangles, dofs): int64 (a CSR's column indices may be int32).
+#: Node and element indices (tetrahedra, triangles, dofs): int64.
 IntArray = npt.NDArray[np.int64]
+#: A CSR matrix's column indices, stored as int32 (half the memory of a factor on disk).
+Int32Array = npt.NDArray[np.int32]
 #: Masks.
 BoolArray = npt.NDArray[np.bool_]

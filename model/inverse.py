@@ -285,9 +285,9 @@ class VolumeQP:
         self._osqp = osqp
         self._problem = None
 
-    def solve(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
+    def minimise(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
               lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, float]:
-        """Solve the QP; returns the pressures (scaled) and OSQP's own solve time (s).
+        """Minimise the QP; returns the pressures (scaled) and OSQP's own solve time (s).
 
         Raises ``_Infeasible`` when the constraints contradict each other.
         """
@@ -507,7 +507,8 @@ class InverseSolver:
             problem = self._problems[shape] = VolumeQP(self.n_chambers, n_constraint_rows)
         return problem
 
-    def solve_linearised(self, target: Target, linearisation: Linearisation, anchor_pa: np.ndarray | None = None):
+    def pressures_for_linearisation(self, target: Target, linearisation: Linearisation,
+                                    anchor_pa: np.ndarray | None = None):
         """One QP at ``linearisation``; with ``anchor_pa`` the exact QP's objective is the actuation energy of
         the move from there (``1/2 (x - a)^T W_0 (x - a)``) instead of from zero (see PROXIMAL_AFTER_DAMPING).
 
@@ -519,12 +520,12 @@ class InverseSolver:
         try:
             inputs = self._qp_inputs(rows, exact=True,
                                      anchor_scaled=None if anchor_pa is None else anchor_pa * self.pressure_per_pa)
-            pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).solve(*inputs)
+            pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).minimise(*inputs)
             reached = True
         except _Infeasible:
             inputs = self._qp_inputs(rows, exact=False)
             try:
-                pressures_scaled, closest_time_s = self._problem("closest", rows, inputs[2].shape[0]).solve(*inputs)
+                pressures_scaled, closest_time_s = self._problem("closest", rows, inputs[2].shape[0]).minimise(*inputs)
             except _Infeasible:
                 raise UnreachableTargetError(
                     "the constraints contradict each other: no pressures between the bounds satisfy the growth "
@@ -586,7 +587,7 @@ class InverseSolver:
                     "(it would snap through); ask for a smaller volume, or control it by volume")
         return Linearisation(pressures_pa.copy(), chamber_volumes_m3, gland_volume_m3, slope_chamber, slope_gland)
 
-    def solve(self, target: Target) -> InverseResult:
+    def pressures_for(self, target: Target) -> InverseResult:
         """The pressures (Pa) that reach ``target`` with the solver's fidelity level.
 
         Raises
@@ -612,7 +613,7 @@ class InverseSolver:
         for iteration in range(1, self.max_iterations + 1):
             if error < POLISH_RELATIVE_ERROR:
                 proximity = 1.0
-            candidate_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation,
+            candidate_pa, qp_step_s, rows, reached = self.pressures_for_linearisation(target, linearisation,
                                                                            proximity * pressures_pa)
             qp_time_s += qp_step_s
             # The linearisation's answer is where it already stands: its best (closest) pressures.

@@ -86,7 +86,7 @@ def main(argv: list[str] | None = None) -> None:
     model = PhantomModel.from_scene(load_scene(args.scene))
     if args.modulus_factor != 1.0:
         model = model.with_material(youngs_modulus_pa=args.modulus_factor * model.material.youngs_modulus_pa)
-    state = model.solve([float(p) * 1e3 for p in args.pressures_kpa.split(",")])
+    state = model.equilibrium([float(p) * 1e3 for p in args.pressures_kpa.split(",")])
     rng = np.random.default_rng(args.seed)
     scan = make_scan(model_surface(state.positions_m, model.outer_triangles), rng, levels=args.levels,
                      noise_mm=args.noise_mm, holes=args.holes, fragment=True, rotation=random_rotation(rng),

@@ -152,7 +152,7 @@ def _synthetic_csv(tmp_path, scene_path, pressures_kpa):
     truth = PhantomModel.from_scene(load_scene(scene_path))
     lines = ["p0_kpa,p1_kpa,p2_kpa,measured_ml"]
     for pressures in np.asarray(pressures_kpa, dtype=float):
-        volume_ml = truth.solve(pressures * 1e3).gland_volume_m3 * 1e6
+        volume_ml = truth.equilibrium(pressures * 1e3).gland_volume_m3 * 1e6
         lines.append(",".join(f"{value:g}" for value in pressures) + f",{volume_ml!r}")
     csv_path = tmp_path / f"{scene_path.stem}.csv"
     csv_path.write_text("\n".join(lines) + "\n")
@@ -223,7 +223,7 @@ def test_a_left_out_point_beyond_its_trace_is_predicted_by_a_full_solve(tmp_path
     assert loo_modulus_kpa == pytest.approx(10.0, rel=0.03)
     refit_path = tmp_path / "refit.toml"
     refit_path.write_text(SCENE_TEXT.format(model="neo_hookean", modulus=loo_modulus_kpa))
-    refit_ml = PhantomModel.from_scene(load_scene(refit_path)).solve([2e3, 1e3, 1e3]).gland_volume_m3 * 1e6
+    refit_ml = PhantomModel.from_scene(load_scene(refit_path)).equilibrium([2e3, 1e3, 1e3]).gland_volume_m3 * 1e6
     assert report["loo_predicted_ml"][-1] == pytest.approx(refit_ml, rel=1e-4)
     assert report["loo_predicted_ml"][-1] == pytest.approx(truth_ml, rel=0.01)
 

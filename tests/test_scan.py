@@ -41,7 +41,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def state(model):
-    return model.solve([1e3 * p for p in PRESSURES_KPA])
+    return model.equilibrium([1e3 * p for p in PRESSURES_KPA])
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +123,7 @@ def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface
     distance lies between (most of) the volume bound |dV| / area and the distances where it was made (which a best fit
     can only reduce). The reported distances equal a brute-force recomputation at the reported transform."""
     softer = model.with_material(youngs_modulus_pa=0.8 * model.material.youngs_modulus_pa)
-    other_state = softer.solve([1e3 * p for p in PRESSURES_KPA])
+    other_state = softer.equilibrium([1e3 * p for p in PRESSURES_KPA])
     other = model_surface(other_state.positions_m, model.outer_triangles)
     rng = np.random.default_rng(7)
     synthetic = make_scan(other, rng, levels=2, fragment=True, rotation=random_rotation(rng),
@@ -194,7 +194,7 @@ def test_many_points_take_the_neighbour_lists_and_agree(surface):
 
 def test_a_symmetric_state_is_reported_ambiguous(model):
     """With equal lobe pressures the surface is symmetric under a half turn about z: two alignments fit."""
-    state = model.solve([1e3, 1e3, 1e3])
+    state = model.equilibrium([1e3, 1e3, 1e3])
     surface = model_surface(state.positions_m, model.outer_triangles)
     rng = np.random.default_rng(3)
     synthetic = make_scan(surface, rng, levels=1, rotation=random_rotation(rng))

@@ -126,7 +126,8 @@ def trace_ray(task: RayTask) -> RayTrace:
             positions_m_here, chambers, gland = model.nodes_m, model.rest_chamber_volumes_m3, model.rest_gland_volume_m3
         else:
             try:
-                state = model.solve(load_factor * pressures, initial_positions_m=positions_m if warm_start else None)
+                state = model.equilibrium(load_factor * pressures,
+                                          initial_positions_m=positions_m if warm_start else None)
             except SolveError as error:
                 stopped = str(error)
                 break

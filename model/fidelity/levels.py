@@ -14,7 +14,7 @@
     one tensor product and a volume measure, milliseconds. The ``rest`` level is then exact in the
     displacements but not in the volumes, which are not linear in the displacements (at p ~ E, tens of %).
 ``full``
-    The full solve (``model.solve``) of the model's material law.
+    The full solve (``model.equilibrium``) of the model's material law.
 ``table``
     The full solves on a grid over the operating box, solved once (cached on disk) and interpolated by cubic
     splines (:mod:`phantom.model.fidelity.response_table`): volumes, shape and the tangent compliance in a fraction of a
@@ -42,32 +42,6 @@ DEFAULT_ACCURACY_PCT = 1.0
 KEPT_STATES = 16
 #: Pressure used to probe the levels' errors when a scene states no maximum (Pa).
 DEFAULT_PRESSURE_MAX_PA = 3000.0
-
-
-def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: np.ndarray,
-                                  formulation: str | None = None) -> np.ndarray:
-    """Node displacement per pascal of each chamber (n_chambers, nodes, 3) at a configuration under pressures:
-    ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the exact tangent of ``formulation`` (default the model's) if it is
-    a hyperelastic law, otherwise the co-rotational one, including the follower pressure load's stiffness. Held
-    dofs (rows of ``K_t`` that are a bare diagonal) get no displacement."""
-    from phantom.model.fem.linsolve import Factorization
-
-    formulation = formulation or model.formulation
-    formulation = formulation if formulation in ("neo_hookean", "gent") else "corotational"
-    stiffness = model.stiffness_matrix(positions_m, formulation, pressures_pa=pressures_pa).tocsr()
-    magnitudes = abs(stiffness)
-    held = np.asarray(magnitudes.sum(axis=1)).ravel() == magnitudes.diagonal()
-    gradients = model.volume_gradients(positions_m)[:-1]
-    gradients[:, held] = 0.0
-    try:
-        factorization = Factorization(stiffness)
-    except ArithmeticError:
-        # Past a limit point the tangent is indefinite: LU still solves it, and the compliance's negative
-        # eigenvalue then says where the state is.
-        factorization = Factorization(stiffness, method="splu-colamd")
-    displacement = factorization.solve(np.ascontiguousarray(gradients.T)).T
-    displacement[:, held] = 0.0
-    return displacement.reshape(len(pressures_pa), -1, 3)
 
 
 def scene_model_settings(model) -> dict:
@@ -226,13 +200,13 @@ class VolumeEstimator:
 
     def _tangent_displacement(self, positions_m: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
         self.counts["tangent_solves"] += 1
-        return tangent_displacement_m_per_pa(self.model, positions_m, pressures_pa)
+        return self.model.tangent_displacement_m_per_pa(positions_m, pressures_pa)
 
     def _full_state(self, pressures_pa: np.ndarray):
         self.counts["full_solves"] += 1
         if self.model.formulation == "linear":
             # A small-strain solve takes its load on the starting configuration: it must start at rest.
-            return self.model.solve(pressures_pa)
+            return self.model.equilibrium(pressures_pa)
         # Start from the nearest state solved before (the inverse's iterates, the pressure limit its first
         # step often reaches), or return it when the pressures are the same.
         nearest = min(self._states, default=None,
@@ -240,9 +214,9 @@ class VolumeEstimator:
         if nearest is not None and np.array_equal(pressures_pa, nearest.pressures_pa):
             return nearest
         if not np.any(pressures_pa):
-            state = self.model.solve(pressures_pa)  # the rest shape, no iteration
+            state = self.model.equilibrium(pressures_pa)  # the rest shape, no iteration
         else:
-            state = self.model.solve(pressures_pa,
+            state = self.model.equilibrium(pressures_pa,
                                      initial_positions_m=None if nearest is None else nearest.positions_m)
         self._states = [*self._states[-(KEPT_STATES - 1):], state]
         return state

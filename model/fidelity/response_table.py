@@ -166,7 +166,7 @@ def _solve_slab(model, nodes_pa: np.ndarray, first: int):
             axis = max(a for a in range(n_chambers - 1) if index[a] > 0)
             start_m = positions[tuple(i - (a == axis) for a, i in enumerate(index))]
         try:
-            state = model.solve(pressures, initial_positions_m=start_m)
+            state = model.equilibrium(pressures, initial_positions_m=start_m)
         except SolveError as error:
             raise ResponseTableError(
                 f"the model has no equilibrium at {np.round(pressures / 1e3, 3).tolist()} kPa, inside the pressure "
@@ -228,7 +228,7 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     for fractions in CHECK_FRACTIONS:
         pressures = pressure_max_pa * np.asarray(fractions[:n_chambers], dtype=float)
         nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
-        state = model.solve(pressures, initial_positions_m=positions[nearest] if warm_start else None)
+        state = model.equilibrium(pressures, initial_positions_m=positions[nearest] if warm_start else None)
         table_chambers, table_gland = table.volumes(pressures)
         exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
         worst_pct = max(worst_pct, float(np.max(np.abs(np.append(table_chambers, table_gland) - exact) / exact)) * 100)
@@ -242,7 +242,7 @@ def _cache_path(model, pressure_max_pa: float, points_per_axis: int):
     import phantom
 
     extra = repr(("response", TABLE_VERSION, model.formulation, float(pressure_max_pa), int(points_per_axis)))
-    return phantom.cache_dir("response") / f"{model._cache_key(extra.encode())}.npz"
+    return phantom.cache_dir("response") / f"{model.cache_key(extra.encode())}.npz"
 
 
 def response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,

@@ -88,7 +88,7 @@ def run_inverse(args) -> int:
         max_growth_m3 = [None if value is None else value * 1e-6 for value in limits_ml]
     pressure_max_pa = None if args.pressure_max_kpa is None else args.pressure_max_kpa * 1e3
     solver = InverseSolver(model, pressure_max_pa=pressure_max_pa, fidelity=fidelity, max_growth_m3=max_growth_m3)
-    result = solver.solve(target)
+    result = solver.pressures_for(target)
     report = {
         "pressures_kpa": (result.pressures_pa / 1e3).tolist(),
         "predicted_volume_ml": result.predicted_gland_volume_m3 * 1e6,

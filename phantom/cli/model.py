@@ -89,7 +89,7 @@ def run_forward(args: argparse.Namespace) -> int:
     if len(args.pressures_kpa) != model.n_chambers:
         raise SolveError(f"--pressures-kpa has {len(args.pressures_kpa)} values; the scene has "
                          f"{model.n_chambers} chambers ({', '.join(model.chamber_names)})")
-    state = model.solve([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
+    state = model.equilibrium([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
     total_s = time.perf_counter() - started
     if args.out:
         _write_deformed(model, state, args.out, scene.length_scale_m)

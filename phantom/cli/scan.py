@@ -52,7 +52,7 @@ def run_compare_scan(args: argparse.Namespace) -> int:
         if len(pressures_kpa) != model.n_chambers:
             raise SolveError(f"--pressures-kpa has {len(pressures_kpa)} values; the scene has {model.n_chambers} "
                              f"chambers ({', '.join(model.chamber_names)})")
-        state = model.solve([p * 1e3 for p in pressures_kpa])
+        state = model.equilibrium([p * 1e3 for p in pressures_kpa])
     result = compare(scan, model_surface(state.positions_m, model.outer_triangles), state.gland_volume_m3 * 1e6,
                      args.units, clock=clock)
     from phantom.cli.common import chamber_labels
