@@ -36,6 +36,9 @@ from typing import Any
 import numpy as np
 
 from phantom import PhantomError
+from phantom.model.errors import SolveError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.fidelity.levels import VolumeEstimator
 
 #: Millilitres per cubic metre and pascals per kilopascal, for messages and the people's units of to_json.
 ML_PER_M3 = 1e6
@@ -347,8 +350,8 @@ class InverseSolver:
     model : PhantomModel
         The forward model (``phantom.model``).
     pressure_max_pa : float or sequence of float, or None
-        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the scene's
-        ``[model] pressure_max_kpa``, else 3000 Pa.
+        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the model's
+        settings' (the scene's ``[model] pressure_max_kpa``, else PRESSURE_LIMIT_PA).
     fidelity : {"rest", "updated", "full", "table"} or None
         How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.levels.VolumeEstimator`);
         None takes the scene's ``[model] fidelity``, else the cheapest level that meets its ``accuracy_pct``.
@@ -360,22 +363,17 @@ class InverseSolver:
         Linearisations before giving up.
     estimator : VolumeEstimator, optional
         A ready estimator to share (its level wins over ``fidelity``).
-    scene : Scene, optional
-        Accepted only as ``model.scene`` itself, for callers written before models kept their scene
-        (phantom/cli/inverse.py); to be removed with them.
 
-    The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
+    The scene's settings are the model's (:attr:`PhantomModel.model_settings`).
     """
 
-    def __init__(self, model, pressure_max_pa=None, fidelity: str | None = None, max_growth_m3=None,
-                 tolerance: float = 2e-5, max_iterations: int = 15, estimator=None):
-        from phantom.model.fidelity.levels import DEFAULT_PRESSURE_MAX_PA, VolumeEstimator, scene_model_settings
-
+    def __init__(self, model: PhantomModel, pressure_max_pa: float | Sequence[float] | None = None,
+                 fidelity: str | None = None, max_growth_m3: float | Sequence[float | None] | None = None,
+                 tolerance: float = 2e-5, max_iterations: int = 15, estimator: VolumeEstimator | None = None):
         self.model = model
         self.n_chambers = int(model.n_chambers)
-        settings = scene_model_settings(model)
         if pressure_max_pa is None:
-            pressure_max_pa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3)) * 1e3
+            pressure_max_pa = model.model_settings.pressure_max_pa
         self.pressure_max_pa = np.broadcast_to(_finite("pressure_max_pa", pressure_max_pa),
                                                (self.n_chambers,)).astype(float)
         if np.any(self.pressure_max_pa <= 0):
@@ -679,8 +677,6 @@ class InverseSolver:
     def _evaluate(self, pressures_pa: np.ndarray):
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
         past the limit point."""
-        from phantom.model.errors import SolveError
-
         try:
             return self.estimator.evaluate(pressures_pa)
         except SolveError as error:

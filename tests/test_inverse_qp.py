@@ -19,6 +19,7 @@ from phantom.model.inverse import (
     Target,
     UnreachableTargetError,
 )
+from phantom.model.scene import ModelSettings
 
 ML = 1e-6          # m^3 per ml
 KPA = 1e3          # Pa per kPa
@@ -28,9 +29,9 @@ ML_PER_KPA = 1e-9  # (m^3/Pa) per (ml/kPa)
 class LinearStandIn:
     """A forward model that is exactly linear: c = c0 + W p, g = g0 + h . p (given in ml and kPa)."""
 
-    # PhantomModel's attributes that the inverse reads: no scene (so no [model] table), and the general
+    # PhantomModel's attributes that the inverse reads: the default model settings (no scene), and the general
     # (nonlinear, warm-started) formulation, which SofteningStandIn below is.
-    scene = None
+    model_settings = ModelSettings()
     formulation = "corotational"
 
     def __init__(self, chamber_ml_per_kpa, gland_ml_per_kpa, rest_chambers_ml, rest_gland_ml):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from phantom.model import MeshError, PhantomModel, SolveError, load_scene
-from phantom.model.mesh.prostate import REST_VOLUME_ML
+from phantom.model.mesh.shape import REST_VOLUME_ML
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 MIRROR = np.array([-1.0, 1.0, 1.0])

@@ -36,10 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from phantom import PhantomError
-from phantom.model.scene import HYPERELASTIC_MODELS
+from phantom.model.scene import HYPERELASTIC_MODELS, PRESSURE_LIMIT_PA
 
-#: Measurements above this gauge pressure (Pa) are outside what the blowers and the model are trusted for.
-PRESSURE_LIMIT_PA = 3000.0
 #: A ray's trace stops once its gland growth exceeds this multiple of the measured growth.
 OVERSHOOT = 1.8
 #: Load-factor steps per rest-compliance estimate of t, and the largest t traced, in those estimates. The
@@ -524,7 +522,8 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
     from phantom.model import PhantomModel
     from phantom.model.calibration.sweep import RayTask, run_sweep
     from phantom.model.errors import MeshError
-    from phantom.model.mesh.geometry import check_walls, geometry_from_table
+    from phantom.model.mesh.geometry import geometry_from_table
+    from phantom.model.mesh.shape import check_walls
     from phantom.model.scene import scene_from_dict
 
     over = measurements.pressures_pa.max()

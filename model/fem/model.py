@@ -27,7 +27,7 @@ from phantom.model.fem.pathfollow import follow_path
 from phantom.model.fem.problem import EquilibriumProblem
 from phantom.model.mesh.prostate import builtin_prostate
 from phantom.model.mesh.tetmesh import Surfaces, TetMesh, prepare_surfaces, read_mesh
-from phantom.model.scene import HYPERELASTIC_MODELS, MATERIAL_MODELS, Material, Scene
+from phantom.model.scene import HYPERELASTIC_MODELS, MATERIAL_MODELS, Material, ModelSettings, Scene
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -80,8 +80,8 @@ class PhantomModel:
     ``chamber_names``, ``n_chambers``, ``nodes_m`` (n, 3) rest positions, ``tets`` (m, 4), ``outer_triangles``
     (k, 3) outward, ``chamber_triangles`` (list, each oriented out of its cavity), ``fixed_triangles``,
     ``rest_chamber_volumes_m3``, ``rest_gland_volume_m3``, ``material``, ``formulation`` (the scene's),
-    ``scene`` (the Scene it was built from, None for a bare mesh: the inverse and the volume estimator read its
-    model settings).
+    ``scene`` (the Scene it was built from, None for a bare mesh), and its :attr:`model_settings`, which the
+    inverse and the volume estimator read.
     """
 
     def __init__(self, mesh: TetMesh, surfaces: Surfaces, chamber_names: list[str], material: Material,
@@ -134,6 +134,11 @@ class PhantomModel:
         scene = None if self.scene is None else dataclasses.replace(self.scene, material=material)
         return PhantomModel(self.mesh, self.body.surfaces, self.chamber_names, material, self.source,
                             self.linear_solver, scene)
+
+    @property
+    def model_settings(self) -> ModelSettings:
+        """How the scene wants the model to answer (its ``[model]`` table; the defaults without a scene)."""
+        return self.scene.model_settings if self.scene is not None else ModelSettings()
 
     @property
     def held_dofs(self) -> IntArray:

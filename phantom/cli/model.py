@@ -110,9 +110,7 @@ def run_forward(args: argparse.Namespace) -> int:
             "out": args.out,
         }))
         return 0
-    from phantom.cli.common import chamber_labels
-
-    labels = chamber_labels(scene.raw, list(model.chamber_names))
+    labels = scene.chamber_labels
     print(f"{'chamber':<12} {'pressure kPa':>12} {'rest ml':>9} {'volume ml':>10} {'change ml':>10}")
     for label, pressure, rest, volume in zip(labels, args.pressures_kpa, model.rest_chamber_volumes_m3,
                                              state.chamber_volumes_m3, strict=True):

@@ -55,9 +55,7 @@ def run_compare_scan(args: argparse.Namespace) -> int:
         state = model.equilibrium([p * 1e3 for p in pressures_kpa])
     result = compare(scan, model_surface(state.positions_m, model.outer_triangles), state.gland_volume_m3 * 1e6,
                      args.units, clock=clock)
-    from phantom.cli.common import chamber_labels
-
-    labels = chamber_labels(scene.raw, list(model.chamber_names))
+    labels = scene.chamber_labels
     at = ", ".join(f"{label} {p:g}" for label, p in zip(labels, pressures_kpa, strict=True))
     distance = result.symmetric_mm
     title = (f"{Path(args.scan).name} against the model at {at} kPa\nmean {distance['mean']:.3f}, "
