@@ -72,6 +72,19 @@ def test_missing_file_and_chamber_count_mismatch(tmp_path):
         load_measurements(path, n_chambers=3)
 
 
+def test_a_scan_file_entry_is_measured_by_the_callable_given(tmp_path):
+    """The model reads no scans: a measured_ml that names a scan file needs the scan_volume_ml the command line
+    passes (the scan comparison's); without one the row is refused, naming the file."""
+    path = tmp_path / "m.csv"
+    path.write_text("p0_kpa,measured_ml\n0,26\n1,scans/at_1.stl\n2,28\n")
+    measured = []
+    measurements = load_measurements(path, scan_volume_ml=lambda scan: measured.append(scan) or 27.5)
+    assert measured == [tmp_path / "scans" / "at_1.stl"]
+    np.testing.assert_allclose(measurements.volumes_m3, [26e-6, 27.5e-6, 28e-6])
+    with pytest.raises(CalibrationError, match=r"data row 2: scans/at_1.stl is a scan file, and nothing here "):
+        load_measurements(path)
+
+
 def _synthetic_responses(admissible_below_t=np.inf, traced_below_t=np.inf, fixed_lobe_scale=None):
     """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t; NaN (not
     traced, as beyond a trace's growth stop) above ``traced_below_t``; with ``fixed_lobe_scale``, a second,

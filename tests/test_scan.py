@@ -327,7 +327,7 @@ def test_calibration_measurements_accept_a_scan_file(tmp_path, surface, state):
     write_mesh(tmp_path / "scan_at_1_2_0.5.stl", synthetic.mesh)
     (tmp_path / "measurements.csv").write_text(
         "p0_kpa,p1_kpa,p2_kpa,measured_ml\n0,0,0,26.3\n1,1,1,30.0\n1,2,0.5,scan_at_1_2_0.5.stl\n")
-    measurements = load_measurements(tmp_path / "measurements.csv", n_chambers=3)
+    measurements = load_measurements(tmp_path / "measurements.csv", n_chambers=3, scan_volume_ml=scan_volume_ml)
     assert measurements.volumes_m3[2] == pytest.approx(state.gland_volume_m3, rel=0.005)
     assert measurements.volumes_m3[0] == pytest.approx(26.3e-6)
 

@@ -30,6 +30,7 @@ import copy
 import csv
 import dataclasses
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -73,17 +74,26 @@ class Measurements:
     path: str = ""
 
 
-def load_measurements(path, n_chambers: int | None = None) -> Measurements:
+#: The files a ``measured_ml`` entry may name instead of a number: scans of the phantom.
+SCAN_SUFFIXES = (".obj", ".ply", ".stl")
+
+#: The volume (ml) of a scan file (mm): ``phantom.scan.compare.scan_volume_ml``, which the command line passes.
+ScanVolume = Callable[[Path], float]
+
+
+def load_measurements(path: str | Path, n_chambers: int | None = None,
+                      scan_volume_ml: ScanVolume | None = None) -> Measurements:
     """Read a CSV with columns ``p0_kpa, p1_kpa, ..., measured_ml`` (``#`` lines are comments).
 
     A ``measured_ml`` entry may instead name a scan file (.obj, .ply or .stl, in mm, relative to the CSV's
-    folder): its cleaned, watertight volume is used (``phantom.scan.compare.scan_volume_ml``).
+    folder): ``scan_volume_ml(file)`` measures it (``phantom calibrate`` passes the scan comparison's cleaned,
+    watertight volume; the model itself reads no scans).
 
     Raises
     ------
     CalibrationError
         Missing file or columns, non-numeric, non-finite or negative values, a chamber count that does not
-        match the model, or fewer than three rows.
+        match the model, fewer than three rows, or a scan file with no ``scan_volume_ml`` to measure it.
     """
     path = Path(path)
     if not path.is_file():
@@ -108,7 +118,8 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
         row = {key.strip(): value for key, value in row.items() if key is not None}
         try:
             pressures_kpa.append([float(row[name]) for name in pressure_columns])
-            volumes_ml.append(_measured_volume_ml(row["measured_ml"], path.parent))
+            volumes_ml.append(_measured_volume_ml(row["measured_ml"], path.parent, scan_volume_ml,
+                                                  f"{path}, data row {line_number - 1}"))
         except (TypeError, ValueError) as error:
             raise CalibrationError(f"{path}, data row {line_number - 1}: not a number ({error})") from None
     pressures_kpa, volumes_ml = np.array(pressures_kpa), np.array(volumes_ml)
@@ -123,13 +134,14 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
     return Measurements(pressures_kpa * 1e3, volumes_ml * 1e-6, str(path))
 
 
-def _measured_volume_ml(entry: str, folder: Path) -> float:
-    """A ``measured_ml`` entry: a number, or a scan file whose volume is measured."""
+def _measured_volume_ml(entry: str | None, folder: Path, scan_volume_ml: ScanVolume | None, where: str) -> float:
+    """A ``measured_ml`` entry: a number, or a scan file whose volume ``scan_volume_ml`` measures."""
     text = (entry or "").strip()
-    if Path(text).suffix.lower() not in (".obj", ".ply", ".stl"):
+    if Path(text).suffix.lower() not in SCAN_SUFFIXES:
         return float(text)
-    from phantom.scan.compare import scan_volume_ml
-
+    if scan_volume_ml is None:
+        raise CalibrationError(f"{where}: {text} is a scan file, and nothing here measures scans: pass "
+                               "load_measurements a scan_volume_ml (phantom calibrate uses the scan comparison's)")
     return scan_volume_ml(folder / text)
 
 
