@@ -149,18 +149,27 @@ def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface
 
 @pytest.mark.slow
 def test_a_start_that_ends_at_the_best_alignment_is_not_called_another(tmp_path, capsys, surface, state):
-    # The README's example (python -m phantom.scan.synthetic --modulus-factor 0.85, seed 0): a far start's
-    # ICP came back to the best alignment, and the command called the fit "ambiguous: a rotation by 0 deg".
-    from phantom.scan import synthetic as scan_synthetic
-
+    # The README's example (phantom scan synthetic --modulus-factor 0.85, seed 0): a far start's ICP came back
+    # to the best alignment, and the command called the fit "ambiguous: a rotation by 0 deg".
     path = tmp_path / "softer_scan.ply"
-    scan_synthetic.main(["--out", str(path), "--modulus-factor", "0.85"])
-    capsys.readouterr()
+    assert cli.main(["scan", "synthetic", "--out", str(path), "--modulus-factor", "0.85"]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote {path}: ")
     assert cli.main(["compare-scan", str(path), "--scene", "builtin:calibrated", "--pressures-kpa", "1,2,0.5",
                      "--json"]) == 0
     transform = json.loads(capsys.readouterr().out)["transform"]
     assert not transform["ambiguous"]
     assert transform["alternative_angle_deg"] is None or transform["alternative_angle_deg"] > AMBIGUOUS_ANGLE_DEG
+
+
+def test_the_synthetic_scan_command_writes_a_scan_of_the_models_gland(tmp_path, capsys, state):
+    path = tmp_path / "new" / "scan.stl"
+    assert cli.main(["scan", "synthetic", "--out", str(path), "--pressures-kpa", ",".join(map(str, PRESSURES_KPA)),
+                     "--levels", "1", "--holes", "0"]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote {path}: ")
+    # the stray fragment is cleaned away; what is left encloses the gland of the state it was made from
+    assert scan_volume_ml(path) == pytest.approx(state.gland_volume_m3 * 1e6, rel=0.005)
+    assert cli.main(["scan", "synthetic", "--out", str(path), "--levels", "-1"]) == 2
+    assert "not negative" in capsys.readouterr().err
 
 
 def test_closest_points_match_brute_force(surface):
