@@ -248,6 +248,7 @@ def _finite(name: str, values) -> np.ndarray:
 def _dense_csc_pattern(matrix: np.ndarray, upper: bool):
     """A CSC matrix (scipy) holding every entry of ``matrix`` (the upper triangle only when ``upper``),
     zeros included, so that later value updates keep one fixed sparsity pattern."""
+    # scipy.sparse (0.15 s to import) only where a QP is set up
     from scipy import sparse
 
     rows, columns = matrix.shape
@@ -281,6 +282,7 @@ class VolumeQP:
     """
 
     def __init__(self, n_chambers: int, n_constraint_rows: int):
+        # osqp (0.3 s to import, with scipy.sparse) only where a volume target is solved
         import osqp
 
         self.n_chambers = n_chambers
@@ -538,6 +540,7 @@ class InverseSolver:
         at ``linearisation`` (a linear program over the bounds and constraints), the row's volume then evaluated
         at those extreme pressures at the solver's fidelity level (a linearisation made at the pressure limit
         would otherwise extrapolate the low end below the rest volume)."""
+        # scipy.optimize (0.5 s to import) only where an unreachable target's range is reported
         from scipy.optimize import linprog
 
         rows = self._rows(target, linearisation)

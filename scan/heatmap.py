@@ -43,6 +43,7 @@ def shaded_faces(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray
 
 def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
     """The model surface coloured by the signed distance to the scan (mm), front and side views, colour bar."""
+    # matplotlib (0.5 s to import) only where a picture is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -83,6 +84,7 @@ def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
 def write_recording(comparison: Comparison, path: str | Path, max_points: int = 200000) -> Path:
     """A Rerun recording: the model surface coloured per vertex (``model``, rr.Mesh3D) and the aligned scan's
     vertices (``scan``, rr.Points3D), in mm in the model's frame."""
+    # matplotlib (0.5 s) and rerun-sdk (a second) only where a recording is written
     import matplotlib
     import rerun as rr
 

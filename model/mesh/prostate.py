@@ -42,6 +42,7 @@ class _Gmsh:
     """gmsh initialised quietly for one model, finalised on exit."""
 
     def __enter__(self):
+        # gmsh (0.2 s to import, and a native library) only where a mesh is generated: a cached mesh needs none
         import gmsh
 
         gmsh.initialize(interruptible=False)
@@ -50,7 +51,7 @@ class _Gmsh:
         return gmsh
 
     def __exit__(self, *exc):
-        import gmsh
+        import gmsh  # loaded by __enter__ already
 
         gmsh.finalize()
 
