@@ -114,9 +114,9 @@ class LoadedModel:
 
         rest_m3 = float(self.model.rest_gland_volume_m3)
         _, highest_m3, _ = self.estimator.evaluate(self.solver.pressure_max_pa)
-        self.solver.solve(Target(gland_volume_m3=rest_m3 + 0.5 * (float(highest_m3) - rest_m3)))
+        self.solver.pressures_for(Target(gland_volume_m3=rest_m3 + 0.5 * (float(highest_m3) - rest_m3)))
         try:
-            self.solver.solve(Target(gland_volume_m3=float(highest_m3) + 0.1 * (float(highest_m3) - rest_m3)))
+            self.solver.pressures_for(Target(gland_volume_m3=float(highest_m3) + 0.1 * (float(highest_m3) - rest_m3)))
         except UnreachableTargetError:
             pass
         for key in self.estimator.counts:
@@ -142,7 +142,7 @@ class LoadedModel:
             inverse_target = Target(pressures_pa=[v * PA_PER_KPA for v in target.values])
         else:
             raise PhantomError(f"unknown target kind {target.kind!r}")
-        result = self.solver.solve(inverse_target)
+        result = self.solver.pressures_for(inverse_target)
         return Solution(target, np.asarray(result.pressures_pa, dtype=float),
                         float(result.predicted_gland_volume_m3) * ML_PER_M3,
                         (np.asarray(result.predicted_chamber_volumes_m3) * ML_PER_M3).tolist(),

@@ -131,7 +131,7 @@ def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachab
         if step.target.kind == "volume_ml":
             assert solution.predicted_volume_ml == pytest.approx(step.target.values[0], rel=1e-4)
         # The truth: a full Gent solve at the answer's pressures, within the table's 0.1 %.
-        state = controller.model.solve(solution.pressures_pa)
+        state = controller.model.equilibrium(solution.pressures_pa)
         assert state.gland_volume_m3 * 1e6 == pytest.approx(solution.predicted_volume_ml, rel=1e-3)
     assert controller.estimator.counts["full_solves"] == 0 and controller.estimator.counts["tangent_solves"] == 0
     if name == "bph_growth":
