@@ -1,6 +1,6 @@
 """A synthetic population of prostates, written as NIfTI in the pelvic MRI dataset's own layout.
 
-Each case is the phantom's parametric body (:func:`phantom.model.mesh.prostate.inside_body`, the 26.3 ml rest
+Each case is the phantom's parametric body (:func:`phantom.model.mesh.shape.inside_body`, the 26.3 ml rest
 shape) under a random map: an overall size, stretches along the anteroposterior (y) and proximodistal (z) axes,
 a lobe asymmetry (one side larger than the other), and a smooth random deformation of about a millimetre. The
 scale factors are log-normal about 1 and the deformation has zero mean, so the body itself is the population's
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phantom.model.mesh.prostate import inside_body
+from phantom.model.mesh.shape import inside_body
 from phantom.shape.dataset import IMAGE_SUFFIX, MASK_SUFFIX
 from phantom.shape.errors import ShapeError, require
 from phantom.shape.voxels import RAS_FROM_PHANTOM
@@ -207,7 +207,7 @@ def synthesize(out: str | Path, cases: int = 120, seed: int = 0, spec: Populatio
         records.append({"case": uid, "institution": institution + 1, **dataclasses.asdict(case)})
     (out / "institution.txt").write_text("\n".join(lines) + "\n")
     settings = {"seed": seed, "cases": cases, "spec": dataclasses.asdict(spec), "mean_shape": "the phantom's "
-                "parametric body (phantom.model.mesh.prostate.inside_body)", "records": records}
+                "parametric body (phantom.model.mesh.shape.inside_body)", "records": records}
     (out / "synthetic.json").write_text(json.dumps(settings, indent=1))
     return out
 

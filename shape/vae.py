@@ -2,11 +2,13 @@
 
 Encoder: one 3x3x3 convolution of stride 2 per level (channels ``(16, 32, 64)`` by default: 32^3 -> 16^3 -> 8^3
 -> 4^3), each followed by batch normalisation and LeakyReLU; a dense layer gives the mean and log-variance of a
-64-dimensional latent vector. Decoder, the mirror image: a dense layer (batch norm, LeakyReLU) to the coarsest
-grid, then per level a 3x3x3 convolution to eight times the channels and a depth-to-space step that doubles the
-grid (a sub-pixel convolution: the same family of maps as a stride-2 transposed convolution), batch norm and
-LeakyReLU on all but the last, which gives one logit per voxel. Loss: binary cross-entropy of the voxels plus
-``kld_weight`` (0.01) times the Kullback-Leibler divergence from the unit normal.
+64-dimensional latent vector. Decoder, the mirror image: a dense layer (LeakyReLU) to the coarsest grid, then
+per level a 3x3x3 convolution to eight times the channels and a depth-to-space step that doubles the grid (a
+sub-pixel convolution: the same family of maps as a stride-2 transposed convolution), batch norm and LeakyReLU
+on all but the last, which gives one logit per voxel. The dense layers have no batch norm: over a batch of ten
+shapes their statistics are too noisy, and a decoder that learned them decodes badly with the running ones.
+Loss: binary cross-entropy of the voxels plus ``kld_weight`` (0.01) times the Kullback-Leibler divergence from
+the unit normal.
 
 Why these layers and not a library's ``Conv3d``/``ConvTranspose3d``: on the CPU, XLA runs a convolution whose
 input is dilated (the input gradient of a strided convolution, and every transposed convolution) 10-100 times
@@ -132,10 +134,8 @@ def init_parameters(config: VAEConfig, key: jax.Array) -> tuple[Parameters, Para
     flat = config.channels[-1] * config.coarsest_side**3
     params["latent"] = {"weight": _normal(next(keys), (flat, 2 * config.latent_dim), flat, 1.0),
                         "bias": jnp.zeros(2 * config.latent_dim, jnp.float32)}
-    norm, running = _norm_parameters(flat)
     params["expand"] = {"weight": _normal(next(keys), (config.latent_dim, flat), config.latent_dim, leaky_gain),
-                        "bias": jnp.zeros(flat, jnp.float32), **norm}
-    statistics["expand"] = running
+                        "bias": jnp.zeros(flat, jnp.float32)}
     outputs = (*config.channels[::-1][1:], 1)
     for level, (c_in, c_out) in enumerate(zip(config.channels[::-1], outputs, strict=True)):
         last = level == levels - 1
@@ -211,9 +211,7 @@ def encode(params: Parameters, statistics: Parameters, config: VAEConfig, occupa
 def decode_logits(params: Parameters, statistics: Parameters, config: VAEConfig, latent: jax.Array,
                   training: bool = False) -> tuple[jax.Array, Parameters]:
     """Voxel logits ``(N, G, G, G)`` of latent vectors ``(N, latent_dim)``, and the updated decoder statistics."""
-    y = latent @ params["expand"]["weight"] + params["expand"]["bias"]
-    y, expand_running = _batch_norm(y, params["expand"], statistics["expand"], config, training)
-    y = jax.nn.leaky_relu(y, config.negative_slope)
+    y = jax.nn.leaky_relu(latent @ params["expand"]["weight"] + params["expand"]["bias"], config.negative_slope)
     side = config.coarsest_side
     y = y.reshape(-1, side, side, side, config.channels[-1])
     new_statistics = []
@@ -223,7 +221,7 @@ def decode_logits(params: Parameters, statistics: Parameters, config: VAEConfig,
             y, running = _batch_norm(y, layer, statistics["decoder"][level], config, training)
             y = jax.nn.leaky_relu(y, config.negative_slope)
             new_statistics.append(running)
-    return y[..., 0], {**statistics, "expand": expand_running, "decoder": new_statistics}
+    return y[..., 0], {**statistics, "decoder": new_statistics}
 
 
 def loss_terms(params: Parameters, statistics: Parameters, config: VAEConfig, occupancy: jax.Array,
