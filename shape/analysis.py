@@ -19,7 +19,7 @@ from phantom.shape.dataset import PROSTATE_LABELS, find_cases, read_shape, shape
 from phantom.shape.errors import ShapeError
 from phantom.shape.training import RUN_FORMAT, RUN_VERSION
 from phantom.shape.vae import Parameters, VAEConfig
-from phantom.shape.voxels import RAS_FROM_PHANTOM, ClosedSurface, LabelMask, surface_of
+from phantom.shape.voxels import ClosedSurface, LabelMask, surface_of
 
 #: Shapes encoded or decoded per call of the jitted network (a fixed size, so it compiles once).
 CHUNK = 16
@@ -131,10 +131,8 @@ class ShapeModel:
     def decode(self, latent: np.ndarray) -> DecodedShape:
         """One latent vector decoded and surfaced (see the module docstring)."""
         probabilities = self.decode_grids(latent)[0]
-        surface = surface_of(probabilities, self.voxel_mm)
-        vertices = surface.vertices_mm * RAS_FROM_PHANTOM
-        # the reflection into the phantom's frame turns the triangles inside out: reorder them
-        return DecodedShape(np.asarray(latent, float), probabilities, vertices, surface.triangles[:, ::-1],
+        surface = surface_of(probabilities, self.voxel_mm).mirrored_x()
+        return DecodedShape(np.asarray(latent, float), probabilities, surface.vertices_mm, surface.triangles,
                             surface.volume_ml())
 
     def grid_of(self, shape: LabelMask | ClosedSurface, name: str) -> np.ndarray:

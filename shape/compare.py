@@ -27,7 +27,7 @@ from phantom.model.mesh.surface import (
 )
 from phantom.shape.analysis import ShapeModel
 from phantom.shape.errors import ShapeError
-from phantom.shape.voxels import RAS_FROM_PHANTOM, ClosedSurface, LabelMask, surface_of
+from phantom.shape.voxels import ClosedSurface, LabelMask, surface_of
 
 #: Two different shapes align when ICP leaves an RMS distance below this fraction of A's RMS radius (a scan of
 #: the same object is held to 0.1, phantom.model.mesh.surface.FIT_RMS_LIMIT).
@@ -38,7 +38,8 @@ MASK_SURFACE_REFINEMENT = 2
 
 @dataclass
 class ShapeComparison:
-    """The two distances between shapes A and B, and what the alignment did."""
+    """The two distances between shapes A and B, what the alignment did, and the surfaces (RAS mm: A, and B
+    aligned onto it)."""
 
     latent_distance: float
     mean_distance_mm: float
@@ -50,6 +51,8 @@ class ShapeComparison:
     volume_b_ml: float
     latent_a: np.ndarray
     latent_b: np.ndarray
+    surface_a: ClosedSurface
+    aligned_b: ClosedSurface
 
     def to_json(self) -> dict[str, Any]:
         """The comparison as JSON-ready values."""
@@ -67,7 +70,7 @@ def phantom_mesh(mesh: TriangleMesh) -> ClosedSurface:
     open_edges = open_edge_count(np.asarray(mesh.triangles))
     if open_edges:
         raise ShapeError(f"the mesh is not closed ({open_edges} open edges): close its holes first")
-    return ClosedSurface(np.asarray(mesh.vertices_mm, float) * RAS_FROM_PHANTOM, np.asarray(mesh.triangles))
+    return ClosedSurface(np.asarray(mesh.vertices_mm, float), np.asarray(mesh.triangles)).outward().mirrored_x()
 
 
 def closed_surface(model: ShapeModel, shape: LabelMask | ClosedSurface) -> ClosedSurface:
@@ -105,7 +108,7 @@ def compare_shapes(model: ShapeModel, a: LabelMask | ClosedSurface, b: LabelMask
     latents = model.encode_grids(np.stack([model.grid_of(surface_a, names[0]), model.grid_of(moved_b, names[1])]))
     return ShapeComparison(float(np.linalg.norm(latents[0] - latents[1])), 0.5 * (a_to_b + b_to_a), a_to_b,
                            b_to_a, alignment.rotation_angle_deg, alignment.rms_mm, surface_a.volume_ml(),
-                           moved_b.volume_ml(), latents[0], latents[1])
+                           moved_b.volume_ml(), latents[0], latents[1], surface_a, moved_b)
 
 
 def compare_files(model: ShapeModel, a: str | Path, b: str | Path) -> ShapeComparison:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from phantom.shape.errors import ShapeError, require
-from phantom.shape.voxels import RAS_FROM_PHANTOM, SUPERSAMPLE, ClosedSurface, LabelMask
+from phantom.shape.voxels import SUPERSAMPLE, ClosedSurface, LabelMask
 
 #: The dataset's label numbers and names (as its loaders name them).
 LABEL_NAMES: dict[int, str] = {1: "BladderMask", 2: "BoneMask", 3: "ObdInternMask", 4: "TZ", 5: "CG",
@@ -172,7 +172,7 @@ def read_closed_mesh(path: str | Path) -> ClosedSurface:
     if open_edges:
         raise ShapeError(f"{path}: the mesh is not closed ({open_edges} open edges): close its holes first "
                          f"(compare-scan cleans and closes scans)")
-    return ClosedSurface(vertices * RAS_FROM_PHANTOM, triangles)
+    return ClosedSurface(vertices, triangles).outward().mirrored_x()
 
 
 def read_shape(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> LabelMask | ClosedSurface:

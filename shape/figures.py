@@ -61,7 +61,7 @@ def write_heatmap(vertices_mm: np.ndarray, triangles: np.ndarray, distance_mm: n
         axis.set_axis_off()
     mappable = matplotlib.cm.ScalarMappable(norm=norm, cmap=colour_map)
     figure.colorbar(mappable, ax=figure.axes, shrink=0.7, label=colour_bar_label)
-    figure.suptitle(title)
+    figure.suptitle(title, fontsize=10)
     figure.savefig(path, dpi=110)
     plt.close(figure)
     return path

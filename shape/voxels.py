@@ -92,9 +92,23 @@ class ClosedSurface:
     triangles: np.ndarray
 
     def volume_ml(self) -> float:
-        """Enclosed volume (ml), by the divergence theorem (positive for outward triangles)."""
+        """Enclosed volume (ml), by the divergence theorem, whichever way the triangles face."""
+        return abs(self.signed_volume_ml())
+
+    def signed_volume_ml(self) -> float:
+        """Enclosed volume (ml), positive when the triangles face outward."""
         a, b, c = (self.vertices_mm[self.triangles[:, i]] for i in range(3))
-        return float(abs(np.einsum("ij,ij->i", a, np.cross(b, c)).sum()) / 6.0 / 1e3)
+        return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0 / 1e3)
+
+    def outward(self) -> ClosedSurface:
+        """The same surface with its triangles facing outward."""
+        if self.signed_volume_ml() < 0:
+            return ClosedSurface(self.vertices_mm, self.triangles[:, ::-1])
+        return self
+
+    def mirrored_x(self) -> ClosedSurface:
+        """The surface reflected through x = 0 (phantom frame <-> RAS), its triangles still facing the same side."""
+        return ClosedSurface(self.vertices_mm * RAS_FROM_PHANTOM, self.triangles[:, ::-1])
 
     def centroid_mm(self) -> np.ndarray:
         """The centroid (RAS, mm) of the enclosed solid."""
@@ -163,11 +177,7 @@ def surface_of(occupancy: np.ndarray, voxel_mm: float, level: float = 0.5) -> Cl
     padded = np.pad(occupancy.astype(np.float32), 1)
     vertices, triangles, _, _ = measure.marching_cubes(padded, level=level, spacing=(voxel_mm,) * 3)
     vertices = vertices - (occupancy.shape[0] + 1) / 2.0 * voxel_mm
-    surface = ClosedSurface(vertices, triangles.astype(np.int64))
-    a, b, c = (vertices[triangles[:, i]] for i in range(3))
-    if np.einsum("ij,ij->i", a, np.cross(b, c)).sum() < 0:
-        surface = ClosedSurface(vertices, triangles[:, ::-1].astype(np.int64))
-    return surface
+    return ClosedSurface(vertices, triangles.astype(np.int64)).outward()
 
 
 def grid_volume_ml(occupancy: np.ndarray, voxel_mm: float) -> float:

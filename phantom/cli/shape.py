@@ -95,6 +95,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     compare.set_defaults(run=run_compare)
 
 
+    report = commands.add_parser(
+        "report", help="the paper's shape figures for a trained run: average, distances to the model, clusters",
+        description="Write DIR/report.md and report.json: the average shape and its volume, its mean "
+                    "closest-point distance (after ICP) and latent distance to the phantom model's rest shape "
+                    "with a heatmap (Fig. 5), and the k-means clusters' heatmaps (Fig. 6).")
+    report.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
+    report.add_argument("--out", required=True, metavar="DIR", help="folder for the report")
+    report.add_argument("--k", type=int, default=3, help="number of clusters (default 3)")
+    report.set_defaults(run=run_report)
+
+
 def _run_model(path: str):
     from phantom.shape.analysis import ShapeModel
 
@@ -201,4 +212,16 @@ def run_compare(args: argparse.Namespace) -> int:
         print(f"latent distance {result.latent_distance:.3f}; mean closest-point distance "
               f"{result.mean_distance_mm:.3f} mm after ICP (rotation {result.rotation_deg:.1f} deg); "
               f"volumes {result.volume_a_ml:.2f} and {result.volume_b_ml:.2f} ml")
+    return 0
+
+
+def run_report(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape report``."""
+    from phantom.shape.report import write_report
+
+    report = write_report(_run_model(args.run_dir), args.out, k=args.k)
+    versus = report["average_vs_model"]
+    print(f"average {report['average']['volume_ml']:.2f} ml; against the model's rest shape "
+          f"({versus['volume_a_ml']:.2f} ml): mean closest-point distance {versus['mean_distance_mm']:.2f} mm, "
+          f"latent distance {versus['latent_distance']:.2f}; report in {args.out}/report.md")
     return 0
