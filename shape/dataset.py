@@ -162,11 +162,9 @@ def read_closed_mesh(path: str | Path) -> ClosedSurface:
         loaded = trimesh.load(str(path), force="mesh", process=False)
     except Exception as error:  # trimesh raises several kinds for a damaged or foreign file
         raise ShapeError(f"{path}: not a readable mesh ({error})") from None
-    vertices = np.asarray(loaded.vertices, dtype=float)
-    triangles = np.asarray(loaded.faces, dtype=np.int64)
-    if len(triangles) == 0:
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise ShapeError(f"{path}: the mesh has no triangles")
-    merged = trimesh.Trimesh(vertices, triangles, process=True)
+    merged = trimesh.Trimesh(np.asarray(loaded.vertices, np.float64), np.asarray(loaded.faces, np.int64), process=True)
     vertices, triangles = np.asarray(merged.vertices, float), np.asarray(merged.faces, np.int64)
     open_edges = open_edge_count(triangles)
     if open_edges:

@@ -19,3 +19,13 @@ def require(module: str) -> ModuleType:
     except ImportError:
         raise ShapeError(f"the shape analysis needs {module.split('.')[0]}: "
                          f"pip install 'active-prostate-phantom[shape]'") from None
+
+
+#: What the ``[shape]`` extra installs, as modules.
+EXTRA_MODULES = ("jax", "optax", "nibabel", "skimage")
+
+
+def require_extra() -> None:
+    """Raise ShapeError (naming the pip command) unless every module of the ``[shape]`` extra imports."""
+    for module in EXTRA_MODULES:
+        require(module)

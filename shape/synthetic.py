@@ -62,7 +62,7 @@ class Acquisition:
     """One institution's voxel spacing (mm, along the image's axes) and direction cosines (columns: RAS)."""
 
     spacing_mm: tuple[float, float, float]
-    directions: tuple[tuple[float, float, float], ...]
+    directions: tuple[tuple[float, ...], ...]
 
 
 def _rotation(axis: int, degrees: float) -> np.ndarray:
@@ -73,7 +73,7 @@ def _rotation(axis: int, degrees: float) -> np.ndarray:
     return rotation
 
 
-def _directions(matrix: np.ndarray) -> tuple[tuple[float, float, float], ...]:
+def _directions(matrix: np.ndarray) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(v) for v in row) for row in matrix)
 
 
@@ -99,9 +99,9 @@ class CaseParameters:
     anteroposterior: float
     proximodistal: float
     lobe_asymmetry: float
-    wave_vectors_per_mm: tuple[tuple[float, float, float], ...]
+    wave_vectors_per_mm: tuple[tuple[float, ...], ...]
     wave_phases: tuple[float, ...]
-    wave_amplitudes_mm: tuple[tuple[float, float, float], ...]
+    wave_amplitudes_mm: tuple[tuple[float, ...], ...]
     mirrored: bool = False
 
     def reference_points(self, points_mm: np.ndarray) -> np.ndarray:

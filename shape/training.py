@@ -190,7 +190,7 @@ def write_checkpoint(run: Path, params: Parameters, statistics: Parameters) -> P
     """``parameters.npz`` in ``run`` (written whole, then moved into place)."""
     from phantom.shape.vae import flatten
 
-    arrays = {f"params/{path}": value for path, value in flatten(params).items()}
+    arrays: dict[str, Any] = {f"params/{path}": value for path, value in flatten(params).items()}
     arrays.update({f"statistics/{path}": value for path, value in flatten(statistics).items()})
     temporary = run / "parameters.tmp.npz"
     np.savez(temporary, **arrays)
@@ -248,7 +248,7 @@ def write_loss_recording(history: list[EpochRecord], path: Path) -> Path | None:
         stream.log("loss/training", rr.Scalars(record.loss))
         stream.log("loss/bce", rr.Scalars(record.bce))
         stream.log("loss/kld", rr.Scalars(record.kld))
-        if record.validation_loss is not None:
+        if record.validation_loss is not None and record.validation_iou is not None:
             stream.log("loss/held_out", rr.Scalars(record.validation_loss))
             stream.log("held_out_iou", rr.Scalars(record.validation_iou))
     stream.flush()

@@ -242,10 +242,10 @@ def loss_terms(params: Parameters, statistics: Parameters, config: VAEConfig, oc
     return bce + kld_weight * kld, (bce, kld, statistics)
 
 
-def flatten(tree: Parameters, prefix: str = "") -> dict[str, np.ndarray]:
+def flatten(tree: Parameters | list[Any], prefix: str = "") -> dict[str, np.ndarray]:
     """Arrays of a nested dict/list tree keyed by their path (``encoder/0/weight``), as NumPy arrays."""
     items: dict[str, np.ndarray] = {}
-    children = enumerate(tree) if isinstance(tree, list) else tree.items()
+    children: Any = enumerate(tree) if isinstance(tree, list) else tree.items()
     for name, value in children:
         path = f"{prefix}{name}"
         if isinstance(value, dict | list):

@@ -186,3 +186,13 @@ def test_mirroring_keeps_a_surface_outward():
     mirrored = surface.mirrored_x()
     assert mirrored.signed_volume_ml() == pytest.approx(surface.signed_volume_ml())
     assert mirrored.centroid_mm() == pytest.approx([-3.0, 0.0, 0.0], abs=1e-9)
+
+
+def test_a_missing_extra_names_the_pip_command(monkeypatch, tmp_path, capsys):
+    import sys
+
+    from phantom.cli.main import main
+
+    monkeypatch.setitem(sys.modules, "jax", None)  # import jax now raises ImportError
+    assert main(["shape", "average", str(tmp_path), "--out", str(tmp_path / "a.ply")]) == 2
+    assert "pip install 'active-prostate-phantom[shape]'" in capsys.readouterr().err

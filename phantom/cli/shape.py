@@ -107,6 +107,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _run_model(path: str):
+    from phantom.shape.errors import require_extra
+
+    require_extra()
     from phantom.shape.analysis import ShapeModel
 
     return ShapeModel.load(path)
@@ -124,6 +127,9 @@ def _labels(text: str) -> tuple[int, ...]:
 
 def run_synthesize(args: argparse.Namespace) -> int:
     """Handler of ``phantom shape synthesize``."""
+    from phantom.shape.errors import require
+
+    require("nibabel")
     from phantom.shape.synthetic import PopulationSpec, synthesize
 
     spec = PopulationSpec(mirror_pairs=args.symmetric)
@@ -134,6 +140,9 @@ def run_synthesize(args: argparse.Namespace) -> int:
 
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``phantom shape train``."""
+    from phantom.shape.errors import require_extra
+
+    require_extra()
     from phantom.cli.common import parse_numbers
     from phantom.shape.dataset import load_shapes
     from phantom.shape.training import TrainConfig, train
