@@ -54,56 +54,57 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        help="label numbers of the shape in label maps (default 4,5: the prostate's TZ and CG)")
     train.set_defaults(run=run_train)
 
-    average = commands.add_parser(
-        "average", help="decode the mean latent vector: the average shape as a mesh, with its volume",
-        description="Decode the mean of the cases' latent vectors (the paper's average prostate), surface it "
-                    "by marching cubes and write it (.obj, .ply, .stl; mm, the phantom's frame).")
-    average.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
+    average = _run_command(
+        commands, "average", run_average, "decode the mean latent vector: the average shape as a mesh, with its volume",
+        "Decode the mean of the cases' latent vectors (the paper's average prostate), surface it by marching cubes "
+        "and write it (.obj, .ply, .stl; mm, the phantom's frame); the JSON has volume_ml.")
     average.add_argument("--out", required=True, metavar="MESH", help="mesh file to write")
-    average.add_argument("--json", action="store_true", help="print one JSON object (volume_ml ...)")
-    average.set_defaults(run=run_average)
 
-    clusters = commands.add_parser(
-        "clusters", help="k-means of the latent vectors: decoded centres and implicit-distance heatmaps",
-        description="Cluster the cases' latent vectors by k-means, decode each centre (cluster_<i>.ply) and "
-                    "draw the implicit distance between every pair of centres on the first one's surface, "
-                    "front and side, with a colour bar in mm (the paper's Fig. 6).")
-    clusters.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
+    clusters = _run_command(
+        commands, "clusters", run_clusters, "k-means of the latent vectors: decoded centres and implicit-distance "
+        "heatmaps",
+        "Cluster the cases' latent vectors by k-means, decode each centre (cluster_<i>.ply) and draw the implicit "
+        "distance between every pair of centres on the first one's surface, front and side, with a colour bar in "
+        "mm (the paper's Fig. 6).")
     clusters.add_argument("--k", type=int, default=3, help="number of clusters (default 3)")
     clusters.add_argument("--out", required=True, metavar="DIR", help="folder for the meshes and heatmaps")
     clusters.add_argument("--seed", type=int, default=0, help="k-means seed (default 0)")
-    clusters.add_argument("--json", action="store_true", help="print one JSON object")
-    clusters.set_defaults(run=run_clusters)
 
-    encode = commands.add_parser(
-        "encode", help="the latent vector of one shape (mask, label map or closed mesh)",
-        description="Put one shape on the run's grid and print its latent vector (the encoder's mean).")
-    encode.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
-    encode.add_argument("input", metavar="INPUT", help="a NIfTI mask or label map, or a closed mesh (mm, the "
-                                                       "phantom's frame)")
-    encode.add_argument("--json", action="store_true", help="print one JSON object")
-    encode.set_defaults(run=run_encode)
+    encode = _run_command(
+        commands, "encode", run_encode, "the latent vector of one shape (mask, label map or closed mesh)",
+        "Put one shape on the run's grid and print its latent vector (the encoder's mean).")
+    encode.add_argument("input", metavar="INPUT", help=SHAPE_FILE_HELP)
 
-    compare = commands.add_parser(
-        "compare", help="latent distance and mean closest-point distance (after ICP) between two shapes",
-        description="Align B to A rigidly (ICP), then report the mean closest-point distance between their "
-                    "surfaces and the distance between their latent vectors (the paper's Figs. 5 and 9).")
-    compare.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
-    compare.add_argument("a", metavar="A", help="a NIfTI mask or label map, or a closed mesh")
-    compare.add_argument("b", metavar="B", help="the same kinds as A")
-    compare.add_argument("--json", action="store_true", help="print one JSON object")
-    compare.set_defaults(run=run_compare)
+    compare = _run_command(
+        commands, "compare", run_compare, "latent distance and mean closest-point distance (after ICP) between two "
+        "shapes",
+        "Align B to A rigidly (ICP), then report the mean closest-point distance between their surfaces and the "
+        "distance between their latent vectors (the paper's Figs. 5 and 9).")
+    compare.add_argument("a", metavar="A", help=SHAPE_FILE_HELP)
+    compare.add_argument("b", metavar="B", help=SHAPE_FILE_HELP)
 
-
-    report = commands.add_parser(
-        "report", help="the paper's shape figures for a trained run: average, distances to the model, clusters",
-        description="Write DIR/report.md and report.json: the average shape and its volume, its mean "
-                    "closest-point distance (after ICP) and latent distance to the phantom model's rest shape "
-                    "with a heatmap (Fig. 5), and the k-means clusters' heatmaps (Fig. 6).")
-    report.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
+    report = _run_command(
+        commands, "report", run_report, "the paper's shape figures for a trained run: average, distances to the "
+        "model, clusters",
+        "Write DIR/report.md and report.json: the average shape and its volume, its mean closest-point distance "
+        "(after ICP) and latent distance to the phantom model's rest shape with a heatmap (Fig. 5), and the "
+        "k-means clusters' heatmaps (Fig. 6).", with_json=False)
     report.add_argument("--out", required=True, metavar="DIR", help="folder for the report")
     report.add_argument("--k", type=int, default=3, help="number of clusters (default 3)")
-    report.set_defaults(run=run_report)
+
+
+SHAPE_FILE_HELP = "a NIfTI mask or label map (the run's labels), or a closed mesh (mm, the phantom's frame)"
+
+
+def _run_command(commands: argparse._SubParsersAction, name: str, handler, summary: str, description: str,
+                 with_json: bool = True) -> argparse.ArgumentParser:
+    """A subcommand on a trained run: its RUN argument, and --json where it prints a result."""
+    parser = commands.add_parser(name, help=summary, description=description)
+    parser.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
+    if with_json:
+        parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.set_defaults(run=handler)
+    return parser
 
 
 def _run_model(path: str):
