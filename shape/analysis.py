@@ -8,16 +8,17 @@ the shape's grid.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import jax
 import numpy as np
 
+from phantom.shape import vae as network
+from phantom.shape.checkpoint import read_run
 from phantom.shape.dataset import PROSTATE_LABELS, find_cases, read_shape, shape_grid
 from phantom.shape.errors import ShapeError
-from phantom.shape.training import RUN_FORMAT, RUN_VERSION
 from phantom.shape.vae import Parameters, VAEConfig
 from phantom.shape.voxels import ClosedSurface, LabelMask, surface_of
 
@@ -43,6 +44,7 @@ class DecodedShape:
 
 def write_surface(vertices_mm: np.ndarray, triangles: np.ndarray, path: str | Path) -> Path:
     """A triangle surface (mm) written as .obj, .ply or .stl."""
+    # trimesh (0.3 s to import) only where a mesh is written
     import trimesh
 
     path = Path(path)
@@ -57,10 +59,6 @@ class ShapeModel:
     """A trained run, loaded: its network, the grid it works on, and the latent vectors of its cases."""
 
     def __init__(self, run: Path, config: dict[str, Any], params: Parameters, statistics: Parameters):
-        import jax
-
-        from phantom.shape import vae as network
-
         self.run = run
         self.config = config
         self.vae = VAEConfig.from_dict(config["vae"])
@@ -75,29 +73,7 @@ class ShapeModel:
     @classmethod
     def load(cls, run: str | Path) -> ShapeModel:
         """Load a run folder written by :func:`phantom.shape.training.train`."""
-        import jax
-
-        from phantom.shape.vae import init_parameters, unflatten_like
-
-        run = Path(run)
-        if not run.is_dir():
-            raise ShapeError(f"{run}: no such run folder (train one with: phantom shape train DATA --out {run})")
-        config_path, weights_path = run / "config.json", run / "parameters.npz"
-        if not config_path.is_file() or not weights_path.is_file():
-            missing = "config.json" if not config_path.is_file() else "parameters.npz"
-            raise ShapeError(f"{run}: not a trained run (no {missing}): train one with phantom shape train")
-        try:
-            config = json.loads(config_path.read_text())
-        except json.JSONDecodeError as error:
-            raise ShapeError(f"{config_path}: not valid JSON ({error})") from None
-        if config.get("format") != RUN_FORMAT or config.get("version") != RUN_VERSION:
-            raise ShapeError(f"{config_path}: not a {RUN_FORMAT} version {RUN_VERSION} run")
-        vae = VAEConfig.from_dict(config["vae"])
-        template_params, template_statistics = init_parameters(vae, jax.random.PRNGKey(0))
-        with np.load(weights_path) as stored:
-            params = unflatten_like(template_params, _prefixed(stored, "params/"), str(weights_path))
-            statistics = unflatten_like(template_statistics, _prefixed(stored, "statistics/"), str(weights_path))
-        return cls(run, config, params, statistics)
+        return cls(Path(run), *read_run(run))
 
     def encode_grids(self, occupancy: np.ndarray, with_log_variance: bool = False):
         """Latent means ``(N, latent_dim)`` of shape grids ``(N, G, G, G)`` (and log-variances if asked)."""
@@ -172,6 +148,7 @@ class ShapeModel:
 
         Clusters are numbered by size, largest first.
         """
+        # scipy's submodules load on first use
         from scipy.cluster.vq import kmeans2
 
         _, latents = self.case_latents()
@@ -184,10 +161,6 @@ class ShapeModel:
         renumber[order] = np.arange(k)
         centres = centres[order]
         return centres, renumber[assignment], [self.decode(centre) for centre in centres]
-
-
-def _prefixed(stored: Any, prefix: str) -> dict[str, np.ndarray]:
-    return {name[len(prefix):]: stored[name] for name in stored.files if name.startswith(prefix)}
 
 
 def latent_distance_between(a: np.ndarray, b: np.ndarray) -> float:

@@ -25,6 +25,7 @@ from phantom.model.mesh.surface import (
     align,
     vertex_areas_mm2,
 )
+from phantom.model.mesh.tetmesh import open_edge_count
 from phantom.shape.analysis import ShapeModel
 from phantom.shape.errors import ShapeError
 from phantom.shape.voxels import ClosedSurface, LabelMask, surface_of
@@ -65,8 +66,6 @@ class ShapeComparison:
 
 def phantom_mesh(mesh: TriangleMesh) -> ClosedSurface:
     """A closed mesh in the phantom's frame (mm) as a surface in RAS, checked closed."""
-    from phantom.model.mesh.tetmesh import open_edge_count
-
     open_edges = open_edge_count(np.asarray(mesh.triangles))
     if open_edges:
         raise ShapeError(f"the mesh is not closed ({open_edges} open edges): close its holes first")

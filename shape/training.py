@@ -1,4 +1,5 @@
-"""Training the VAE on a shape set, and the run folder it writes (a small, documented checkpoint format).
+"""Training the VAE on a shape set, and the run folder it writes (a small, documented checkpoint format;
+:mod:`phantom.shape.checkpoint` writes and reads its checkpoint and config).
 
 A run folder holds::
 
@@ -25,16 +26,17 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
+import jax
 import numpy as np
+import optax
 
+from phantom.shape import vae as network
+from phantom.shape.analysis import ShapeModel
+from phantom.shape.checkpoint import write_checkpoint, write_config
 from phantom.shape.dataset import ShapeSet
 from phantom.shape.errors import ShapeError
 from phantom.shape.vae import Parameters, VAEConfig
-
-RUN_FORMAT = "phantom-shape-run"
-RUN_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -121,11 +123,6 @@ class Trainer:
     """The jitted training and evaluation steps of one network; a pure-JAX loop around them."""
 
     def __init__(self, vae: VAEConfig, training: TrainConfig):
-        import jax
-        import optax
-
-        from phantom.shape import vae as network
-
         self.vae, self.training = vae, training
         self.optimiser = optax.adam(training.learning_rate)
 
@@ -149,14 +146,10 @@ class Trainer:
     def fit(self, occupancy: np.ndarray, held_out: np.ndarray, on_epoch: Callable[[EpochRecord], None],
             on_checkpoint: Callable[[Parameters, Parameters, int], None]) -> tuple[Parameters, Parameters]:
         """Train on ``occupancy[~held_out]``; report each epoch and checkpoint every ``checkpoint_every``."""
-        import jax
-
-        from phantom.shape.vae import init_parameters
-
         training = self.training
         key = jax.random.PRNGKey(training.seed)
         key, init_key = jax.random.split(key)
-        params, statistics = init_parameters(self.vae, init_key)
+        params, statistics = network.init_parameters(self.vae, init_key)
         optimiser_state = self.optimiser.init(params)
         train = occupancy[~held_out]
         validation = occupancy[held_out]
@@ -186,29 +179,9 @@ class Trainer:
         return params, statistics
 
 
-def write_checkpoint(run: Path, params: Parameters, statistics: Parameters) -> Path:
-    """``parameters.npz`` in ``run`` (written whole, then moved into place)."""
-    from phantom.shape.vae import flatten
-
-    arrays: dict[str, Any] = {f"params/{path}": value for path, value in flatten(params).items()}
-    arrays.update({f"statistics/{path}": value for path, value in flatten(statistics).items()})
-    temporary = run / "parameters.tmp.npz"
-    np.savez(temporary, **arrays)
-    temporary.replace(run / "parameters.npz")
-    return run / "parameters.npz"
-
-
-def write_config(run: Path, vae: VAEConfig, training: TrainConfig, data: dict[str, Any], epochs_done: int,
-                 seconds: float) -> None:
-    """``config.json`` in ``run``."""
-    config = {"format": RUN_FORMAT, "version": RUN_VERSION, "vae": vae.as_dict(),
-              "training": dataclasses.asdict(training), "data": data, "epochs_done": epochs_done,
-              "seconds": round(seconds, 1)}
-    (run / "config.json").write_text(json.dumps(config, indent=1))
-
-
 def write_loss_curves(history: list[EpochRecord], path: Path) -> Path:
     """The loss curves (training loss, its BCE and weighted KLD, held-out loss; held-out IoU) as a PNG."""
+    # matplotlib (0.5 s to import) only where a figure is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -237,6 +210,7 @@ def write_loss_curves(history: list[EpochRecord], path: Path) -> Path:
 
 def write_loss_recording(history: list[EpochRecord], path: Path) -> Path | None:
     """The loss curves as a Rerun recording (timeline ``epoch``); None where rerun-sdk is not installed."""
+    # rerun-sdk is optional (the [record] extra) and slow to import
     try:
         import rerun as rr
     except ImportError:
@@ -283,15 +257,13 @@ def train(shapes: ShapeSet, run: str | Path, vae: VAEConfig | None = None, train
 
     def checkpoint(params: Parameters, statistics: Parameters, epoch: int) -> None:
         write_checkpoint(run, params, statistics)
-        write_config(run, vae, training, data, epoch, time.perf_counter() - started)
+        write_config(run, vae, dataclasses.asdict(training), data, epoch, time.perf_counter() - started)
 
     trainer = Trainer(vae, training)
     params, statistics = trainer.fit(shapes.occupancy, held_out, epoch_done, checkpoint)
     write_checkpoint(run, params, statistics)
-    write_config(run, vae, training, data, training.epochs, time.perf_counter() - started)
+    write_config(run, vae, dataclasses.asdict(training), data, training.epochs, time.perf_counter() - started)
     (run / "history.json").write_text(json.dumps([dataclasses.asdict(r) for r in history], indent=0))
-    from phantom.shape.analysis import ShapeModel
-
     model = ShapeModel.load(run)
     means, log_variances = model.encode_grids(shapes.occupancy, with_log_variance=True)
     np.savez(run / "latents.npz", names=np.array(shapes.names), mean=means, log_variance=log_variances,

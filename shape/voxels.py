@@ -170,6 +170,7 @@ def surface_of(occupancy: np.ndarray, voxel_mm: float, level: float = 0.5) -> Cl
 
     Raises ShapeError when no voxel reaches ``level`` (an empty shape).
     """
+    # scikit-image (the [shape] extra, 0.5 s to import) only where a surface is made
     from skimage import measure
 
     if occupancy.max() < level:

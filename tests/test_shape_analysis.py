@@ -134,5 +134,7 @@ def test_the_commands_refuse_bad_input_in_one_line(run, tmp_path, capsys):
     assert "no such file or folder" in capsys.readouterr().err
     assert main(["shape", "train", str(tmp_path), "--out", str(tmp_path / "run"), "--labels", "4,x"]) == 2
     assert "--labels" in capsys.readouterr().err
+    assert main(["shape", "train", str(tmp_path), "--out", str(tmp_path / "run"), "--channels", "16,2.5"]) == 2
+    assert "--channels takes positive whole numbers" in capsys.readouterr().err
     assert main(["shape", "average", str(run), "--out", str(tmp_path / "average.vtk")]) == 2
     assert "write the mesh as .obj, .ply or .stl" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """The shape data: the dataset's layout written by the synthetic generator and read back by the loader (spacing,
-orientation, label selection, volume through voxelisation and back), meshes voxelised, and bad inputs."""
+orientation, label selection, volume through voxelisation and back), meshes voxelised, and bad inputs. Writing
+and reading NIfTI populations takes seconds: those tests are marked slow."""
 
 import json
 
@@ -33,6 +34,7 @@ def population(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_the_generator_writes_the_datasets_layout(population):
     import nibabel
 
@@ -47,6 +49,7 @@ def test_the_generator_writes_the_datasets_layout(population):
     assert [case.kind for case in find_cases(population)] == ["labels"] * CASES
 
 
+@pytest.mark.slow
 def test_each_grid_is_the_cases_shape_whatever_the_spacing_and_orientation(tmp_path):
     """The grid (RAS axes, centred on the centroid) holds the generator's analytic shape: a loader that ignored
     the affine's orientation (a flip, the sagittal axes, the obliques) would not."""
@@ -75,6 +78,7 @@ def test_each_grid_is_the_cases_shape_whatever_the_spacing_and_orientation(tmp_p
     assert asymmetric == CASES, "a case is not asymmetric enough to show a flipped x"
 
 
+@pytest.mark.slow
 def test_label_selection_and_volume_through_voxelisation_and_back(population):
     shapes = load_shapes(population, grid_size=32)
     transition = load_shapes(population, grid_size=32, labels=(4,), voxel_mm=shapes.voxel_mm)
@@ -93,6 +97,7 @@ def test_label_selection_and_volume_through_voxelisation_and_back(population):
     assert shapes.labels == PROSTATE_LABELS and transition.labels == (4,)
 
 
+@pytest.mark.slow
 def test_a_shape_fills_the_grid_but_its_margin(population):
     shapes = load_shapes(population, grid_size=24, margin_voxels=3)
     occupied = np.argwhere(shapes.occupancy.max(axis=0) > 0)
@@ -107,6 +112,7 @@ def _ellipsoid(semi_axes_mm, subdivisions=4):
     return sphere.vertices * np.asarray(semi_axes_mm), sphere.faces
 
 
+@pytest.mark.slow
 def test_a_closed_mesh_is_voxelised_by_ray_parity_with_its_volume(tmp_path):
     import trimesh
 
@@ -134,6 +140,7 @@ def test_ray_parity_of_a_cube():
     assert np.array_equal(inside, expected)
 
 
+@pytest.mark.slow
 def test_bad_inputs_say_what_is_wrong(tmp_path, population):
     import nibabel
     import trimesh
@@ -168,6 +175,7 @@ def test_bad_inputs_say_what_is_wrong(tmp_path, population):
         find_cases(population / "institution.txt")
 
 
+@pytest.mark.slow
 def test_a_shape_larger_than_the_grid_is_refused(population):
     shapes = load_shapes(population, grid_size=32)
     with pytest.raises(ShapeError, match="larger than the shapes the run was trained on"):

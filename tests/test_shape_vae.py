@@ -29,6 +29,7 @@ from phantom.shape.vae import (  # noqa: E402
 TINY = VAEConfig(grid_size=8, latent_dim=4, channels=(4, 8))
 
 
+@pytest.mark.slow
 def test_the_strided_convolution_is_xlas_stride_2_convolution():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(2, 8, 8, 8, 3)).astype(np.float32)

@@ -141,7 +141,7 @@ def run_synthesize(args: argparse.Namespace) -> int:
 
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``phantom shape train``."""
-    from phantom.shape.errors import require_extra
+    from phantom.shape.errors import ShapeError, require_extra
 
     require_extra()
     from phantom.cli.common import parse_numbers
@@ -149,7 +149,10 @@ def run_train(args: argparse.Namespace) -> int:
     from phantom.shape.training import TrainConfig, train
     from phantom.shape.vae import VAEConfig
 
-    channels = tuple(int(c) for c in parse_numbers(args.channels, "--channels") if c is not None)
+    values = parse_numbers(args.channels, "--channels")
+    if any(v is None or v != int(v) or v < 1 for v in values):
+        raise ShapeError(f"--channels takes positive whole numbers like 16,32,64; got {args.channels!r}")
+    channels = tuple(int(v) for v in values if v is not None)
     vae = VAEConfig(grid_size=args.grid_size, latent_dim=args.latent_dim, channels=channels)
     training = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, learning_rate=args.learning_rate,
                            kld_weight=args.kld_weight, seed=args.seed,
