@@ -161,8 +161,3 @@ class ShapeModel:
         renumber[order] = np.arange(k)
         centres = centres[order]
         return centres, renumber[assignment], [self.decode(centre) for centre in centres]
-
-
-def latent_distance_between(a: np.ndarray, b: np.ndarray) -> float:
-    """The Euclidean distance between two latent vectors (the paper's latent distance)."""
-    return float(np.linalg.norm(np.asarray(a, float) - np.asarray(b, float)))

@@ -31,11 +31,6 @@ def sample_offsets_mm(grid_size: int, voxel_mm: float, supersample: int) -> np.n
     return ((np.arange(count) + 0.5) / supersample - grid_size / 2.0) * voxel_mm
 
 
-def voxel_centres_mm(grid_size: int, voxel_mm: float) -> np.ndarray:
-    """Positions (mm) of the voxel centres along one axis of a grid centred on 0."""
-    return (np.arange(grid_size) - (grid_size - 1) / 2.0) * voxel_mm
-
-
 def _average_blocks(samples: np.ndarray, grid_size: int, supersample: int) -> np.ndarray:
     s = supersample
     blocks = samples.reshape(grid_size, s, grid_size, s, grid_size, s)
@@ -179,8 +174,3 @@ def surface_of(occupancy: np.ndarray, voxel_mm: float, level: float = 0.5) -> Cl
     vertices, triangles, _, _ = measure.marching_cubes(padded, level=level, spacing=(voxel_mm,) * 3)
     vertices = vertices - (occupancy.shape[0] + 1) / 2.0 * voxel_mm
     return ClosedSurface(vertices, triangles.astype(np.int64)).outward()
-
-
-def grid_volume_ml(occupancy: np.ndarray, voxel_mm: float) -> float:
-    """The volume a shape grid holds: its occupancy summed, times the voxel volume (ml)."""
-    return float(occupancy.sum()) * voxel_mm**3 / 1e3
