@@ -64,7 +64,8 @@ def closest_on_triangle(p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArr
     out[0] = a[0] + v * ab0 + w * ac0
     out[1] = a[1] + v * ab1 + w * ac1
     out[2] = a[2] + v * ab2 + w * ac2
-    return (p[0] - out[0]) ** 2 + (p[1] - out[1]) ** 2 + (p[2] - out[2]) ** 2
+    squared: float = (p[0] - out[0]) ** 2 + (p[1] - out[1]) ** 2 + (p[2] - out[2]) ** 2
+    return squared
 
 
 @kernel

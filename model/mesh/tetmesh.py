@@ -7,6 +7,7 @@ group names into oriented chamber walls, the outer boundary and the fixed nodes,
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +49,8 @@ def tet_signed_volumes_m3(nodes_m: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volume of each tetrahedron, ``det[x1-x0, x2-x0, x3-x0] / 6`` (m^3); positive when right-handed."""
     x0 = nodes_m[tets[:, 0]]
     edges = nodes_m[tets[:, 1:]] - x0[:, None, :]
-    return np.linalg.det(edges) / 6.0
+    volumes: np.ndarray = np.linalg.det(edges) / 6.0
+    return volumes
 
 
 def enclosed_volume_m3(positions_m: np.ndarray, triangles: np.ndarray) -> float:
@@ -237,8 +239,8 @@ def read_mesh(path: str | Path, length_scale_m: float) -> TetMesh:
     return TetMesh(nodes_m, tets, _surface_groups(raw))
 
 
-def _surface_groups(raw) -> dict[str, np.ndarray]:
-    """Named triangle groups of a meshio mesh, whichever way the file stored them."""
+def _surface_groups(raw: Any) -> dict[str, np.ndarray]:
+    """Named triangle groups of a meshio mesh (``raw``, a ``meshio.Mesh``), whichever way the file stored them."""
     cell_sets = {name: sets for name, sets in raw.cell_sets.items() if not name.startswith("gmsh:")}
     if not cell_sets and "gmsh:physical" in raw.cell_data:
         cell_sets = {}
