@@ -27,7 +27,7 @@ from phantom.model.mesh.shape import (
     equator_radius_mm,
     profile_radius_mm,
 )
-from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, surface_components
+from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, gmsh_session, surface_components
 
 #: Bump when the generated geometry changes, so cached meshes are regenerated.
 PROSTATE_GEOMETRY_VERSION = 2
@@ -37,24 +37,6 @@ CHAMBER_ELLIPSOIDS_MM = ProstateGeometry().ellipsoids_mm()
 DEFAULT_SIZE_MM = ProstateGeometry.mesh_size_mm
 #: Elements per 2 pi of curvature, so small cavities keep their volume on coarse meshes.
 CURVATURE_ELEMENTS = 16
-
-
-class _Gmsh:
-    """gmsh initialised quietly for one model, finalised on exit."""
-
-    def __enter__(self) -> Any:
-        # gmsh (0.2 s to import, and a native library) only where a mesh is generated: a cached mesh needs none
-        import gmsh
-
-        gmsh.initialize(interruptible=False)
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        return gmsh
-
-    def __exit__(self, *exc: object) -> None:
-        import gmsh  # loaded by __enter__ already
-
-        gmsh.finalize()
 
 
 def _ellipsoid(occ: Any, centre_mm: Vector3, semi_axes_mm: Vector3) -> tuple[int, int]:
@@ -112,7 +94,7 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
     check_walls(geometry)
     ellipsoids = geometry.ellipsoids_mm()
     radius_mm = equator_radius_mm()
-    with _Gmsh() as gmsh:
+    with gmsh_session() as gmsh:
         occ = gmsh.model.occ
         t_values = np.linspace(-1.0, 1.0, 33)
         radii = profile_radius_mm(t_values, radius_mm)
@@ -155,7 +137,7 @@ def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_
 
     Nodes of both spherical surfaces lie on the exact spheres (gmsh places them on the geometry).
     """
-    with _Gmsh() as gmsh:
+    with gmsh_session() as gmsh:
         occ = gmsh.model.occ
         outer = occ.addSphere(0.0, 0.0, 0.0, outer_radius_mm)
         inner = occ.addSphere(0.0, 0.0, 0.0, inner_radius_mm)

@@ -5,6 +5,10 @@ chamber walls, the fixation patch, anything else a file carries. :func:`prepare_
 group names into oriented chamber walls, the outer boundary and the fixed nodes, checking each on the way.
 """
 
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -292,13 +296,32 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) ->
         raise MeshError(f"cannot write {path}: {error}; use .msh or .vtu") from error
 
 
-def _write_msh41(mesh: TetMesh, coordinates: np.ndarray, path: Path) -> None:
-    # gmsh (0.2 s to import, and a native library) only where an .msh is written
+@contextlib.contextmanager
+def gmsh_session() -> Iterator[Any]:
+    """gmsh initialised quietly (no terminal output, one thread) for one model, finalised on exit.
+
+    gmsh's initialize sets SIGPIPE back to the default action (terminate) behind Python's back, which ignores it:
+    a later write to a closed pipe (a dead worker process, ``phantom forward ... | head``) then killed the whole
+    process instead of raising BrokenPipeError. The disposition Python had is set again (from the main thread,
+    the only one that may).
+    """
+    # gmsh (0.2 s to import, and a native library) only where a mesh is generated or an .msh written
     import gmsh
 
+    previous = signal.getsignal(signal.SIGPIPE)
     gmsh.initialize(interruptible=False)
+    if previous is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, previous)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+
+
+def _write_msh41(mesh: TetMesh, coordinates: np.ndarray, path: Path) -> None:
+    with gmsh_session() as gmsh:
         gmsh.model.add("phantom")
         node_tags = np.arange(1, mesh.n_nodes + 1)
         volume = gmsh.model.addDiscreteEntity(3)
@@ -311,5 +334,3 @@ def _write_msh41(mesh: TetMesh, coordinates: np.ndarray, path: Path) -> None:
             gmsh.model.addPhysicalGroup(2, [surface], name=name)
         gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
         gmsh.write(str(path))
-    finally:
-        gmsh.finalize()
