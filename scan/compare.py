@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import phantom
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 from phantom.model.mesh.tetmesh import enclosed_volume_m3
 
 #: Millimetres per unit of a scan file.
@@ -197,7 +197,8 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
         raise ScanError(f"the scan file {path} does not exist: check the path")
     if path.suffix.lower() not in SCAN_SUFFIXES:
         raise ScanError(f"{path}: a scan must be an OBJ, PLY or STL file (not {path.suffix or 'no extension'})")
-    import trimesh
+    with require_extra("scan"):
+        import trimesh
 
     try:
         loaded = trimesh.load(path, process=False)
@@ -366,7 +367,8 @@ def close_holes(mesh: TriangleMesh) -> tuple[TriangleMesh, int]:
 
 
 def _meshfix_fill(patch: TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
-    import pymeshfix
+    with require_extra("scan"):
+        import pymeshfix
 
     surface = pymeshfix.PyTMesh()
     surface.set_quiet(True)

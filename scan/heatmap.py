@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from phantom import require_extra
 from phantom.scan.compare import Comparison, ScanError, subdivide
 
 #: Views: name, direction toward the viewer, and the coordinates shown right and up (a sign flips an axis so
@@ -42,11 +43,12 @@ def shaded_faces(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray
 
 def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
     """The model surface coloured by the signed distance to the scan (mm), front and side views, colour bar."""
-    import matplotlib
+    with require_extra("scan"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import PolyCollection
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from matplotlib.collections import PolyCollection
 
     path = Path(path)
     vertices, triangles, values = subdivide(comparison.model_vertices_mm, comparison.model_triangles,
@@ -82,8 +84,10 @@ def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
 def write_recording(comparison: Comparison, path: str | Path, max_points: int = 200000) -> Path:
     """A Rerun recording: the model surface coloured per vertex (``model``, rr.Mesh3D) and the aligned scan's
     vertices (``scan``, rr.Points3D), in mm in the model's frame."""
-    import matplotlib
-    import rerun as rr
+    with require_extra("scan"):
+        import matplotlib
+    with require_extra("record"):
+        import rerun as rr
 
     path = Path(path)
     limit = colour_limit_mm(comparison.model_signed_distance_mm)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Make this checkout ready to build and test: the Debian packages in scripts/apt-packages.txt and a
-# Python environment in .venv/ with the project installed editable with its test extras.
+# Python environment in .venv/ with the project installed editable with every extra (pyproject.toml).
 # Idempotent: a second run checks, prints one line, and installs nothing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -33,9 +33,9 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
-    echo "bootstrap: installing the project and its test extras into .venv (one to two minutes the first time)"
+    echo "bootstrap: installing the project and every extra into .venv (one to two minutes the first time)"
     log=.venv/install.log
-    if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[test]"; } \
+    if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[all,test]"; } \
         >"$log" 2>&1; then
         cat "$log" >&2
         echo "bootstrap: pip failed (output above, also in $log)" >&2

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 
 #: Bump when what a trace computes changes, so cached traces are recomputed.
 SWEEP_VERSION = 1
@@ -195,7 +195,8 @@ def local_cluster(n_workers: int | None = None):
     """A LocalCluster of single-threaded worker processes (default: one per core), quiet, dashboard on a free port."""
     import logging
 
-    from dask.distributed import LocalCluster
+    with require_extra("calibrate"):
+        from dask.distributed import LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
     return LocalCluster(n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
@@ -217,7 +218,8 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
         progress(total - len(missing), total)
     if not missing:
         return results
-    from dask.distributed import Client, as_completed
+    with require_extra("calibrate"):
+        from dask.distributed import Client, as_completed
 
     cluster = None
     own_client = client is None

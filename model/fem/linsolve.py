@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from phantom import require_extra
+
 if TYPE_CHECKING:
     import scipy.sparse
 
@@ -65,7 +67,8 @@ class Factorization:
         self.method = method or default_method()
         self.matrix = matrix
         if self.method == "cholmod":
-            from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+            with require_extra("cholmod"):
+                from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
 
             try:
                 factor = cholesky(matrix.tocsc(), mode="supernodal")
