@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import ast
 import re
-import textwrap
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -238,12 +237,42 @@ def test_a_part_without_a_rule_is_reported(tmp_path):
     assert [part for part, _ in unknown] == ["motor"]
 
 
+def import_table(text: str) -> dict[str, set[str]]:
+    """docs/architecture.md's table of the parts: part -> the parts its "may import" column names in backticks."""
+    lines = [line for line in text.splitlines() if line.startswith("|")]
+    header = next(index for index, line in enumerate(lines) if "may import" in line)
+    column = [cell.strip() for cell in lines[header].split("|")].index("may import")
+    table = {}
+    for line in lines[header + 2:]:
+        cells = line.split("|")
+        if len(cells) <= column:
+            break
+        table[cells[1].strip()] = set(re.findall(r"`(\w+)`", cells[column]))
+    return table
+
+
 def test_the_contract_is_the_one_the_docs_state():
-    text = (REPO / "docs" / "architecture.md").read_text()
+    table = import_table((REPO / "docs" / "architecture.md").read_text())
     for part, allowed in ALLOWED.items():
-        if part == ROOT:
-            continue
-        row = re.search(rf"^\| {part} \|.*$", text, re.MULTILINE)
-        assert row is not None, f"docs/architecture.md has no row for {part} in its import table"
-        stated = {name for name in re.findall(r"`(\w+)`", row.group(0).split("|")[2])}
-        assert stated == {name for name in allowed if name != ROOT}, textwrap.shorten(row.group(0), 200)
+        assert part in table, f"docs/architecture.md's table of the parts has no row for {part}"
+        assert table[part] == allowed - {ROOT}, f"{part}: the docs say {table[part]}, ALLOWED says {allowed}"
+
+
+#: Paths the architecture page names that the parallel layout work creates (l-host: config.py, model_worker.py;
+#: l-model: the FEM's problem, body and Newton, the triangle surfaces; the shape work: shape/). Each must still be
+#: missing, so that an entry is deleted the moment its file lands; the lead removes them at the merge.
+PENDING = frozenset({"host/config.py", "host/model_worker.py", "model/fem/body.py", "model/fem/problem.py",
+                     "model/fem/newton.py", "model/mesh/surface.py", "shape/"})
+#: A path in the repository as the docs write it: a top-level folder, then names (globs allowed).
+REPO_PATH = re.compile(r"(?<![\w./-])(?:protocol|model|scan|shape|host|hil|phantom|firmware|tests|bench|docs|"
+                       r"scripts)/[\w./*-]*")
+
+
+def test_every_path_the_architecture_page_names_exists():
+    text = (REPO / "docs" / "architecture.md").read_text()
+    named = set(REPO_PATH.findall(text))
+    assert len(named) > 40
+    missing = sorted(path for path in named - PENDING if not any(REPO.glob(path.rstrip("/") or ".")))
+    assert not missing, f"docs/architecture.md names paths that do not exist: {missing}"
+    landed = sorted(path for path in PENDING if any(REPO.glob(path.rstrip("/"))))
+    assert not landed, f"these pending paths exist now: delete them from PENDING in {Path(__file__).name}: {landed}"
