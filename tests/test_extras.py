@@ -9,6 +9,7 @@ import importlib.metadata
 import json
 import os
 import re
+import shutil
 import subprocess
 import sys
 import tomllib
@@ -226,11 +227,19 @@ def test_cholmod_asked_for_without_scikit_sparse(monkeypatch):
     check_message(error, "sksparse", "cholmod")
 
 
+@pytest.fixture
+def fresh_venv(tmp_path):
+    """A new venv folder, removed afterwards (half a gigabyte is not left in pytest's temp folders)."""
+    environment = tmp_path / "venv"
+    yield environment
+    shutil.rmtree(environment, ignore_errors=True)
+
+
 @pytest.mark.slow
-def test_the_base_install_runs_the_model_and_the_daemon(tmp_path):
+def test_the_base_install_runs_the_model_and_the_daemon(tmp_path, fresh_venv):
     """A fresh venv with ``pip install -e .`` and no extra (pip's cache makes it quick) runs ``phantom forward``,
     imports the daemon, and refuses compare-scan in one line naming the extra."""
-    environment = tmp_path / "venv"
+    environment = fresh_venv
     venv.create(environment, with_pip=True)
     python = environment / "bin" / "python"
     env = {**os.environ, "PHANTOM_CACHE_DIR": str(tmp_path / "cache"), "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
