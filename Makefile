@@ -41,14 +41,16 @@ protocol-check:
 firmware-test:
 	$(MAKE) -C firmware test PYTHON=$(abspath $(PY))
 
-# pytest on every core (pytest-xdist); the simavr tests share one worker (tests/conftest.py says why).
-PYTEST := $(PY) -m pytest -q -n auto --dist loadgroup
+# pytest on every core (pytest-xdist). The simavr tests pace the simulated board to the wall clock and fail when
+# another worker takes the CPU from them: make test runs them afterwards in a pytest of their own, one at a time.
+PYTEST := $(PY) -m pytest -q -n auto
 
 pytest-fast:
 	$(PYTEST) -m "not sim and not slow"
 
 pytest:
-	$(PYTEST)
+	$(PYTEST) -m "not sim"
+	$(PY) -m pytest -q -m sim
 
 # Every image the docs show, made again by the commands their captions name (scripts/figures.py; minutes, not part
 # of make test). Installs Debian's chromium first, for the Rerun screenshots.
