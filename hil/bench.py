@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 from phantom.hil.link import BoardLink, LinkError
 from phantom.protocol.messages import CONSTANTS
 
@@ -565,10 +565,11 @@ def plot_steps(steps: list[dict], path: Path, board: str | None = None) -> Path:
 
     ``board`` is the report's ``board`` entry (``simulated (simavr)`` or the port), named in the title.
     """
-    import matplotlib
+    with require_extra("hil"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
     figure, (top, zoom, bottom) = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True,
                                                gridspec_kw={"height_ratios": [3, 2, 1.4]})

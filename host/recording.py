@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 
 logger = logging.getLogger(__name__)
 
@@ -98,9 +98,10 @@ def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def default_blueprint(chamber_names: list[str], camera: tuple[np.ndarray, np.ndarray] | None = None):
     """The layout: plots on the right, one per quantity; the phantom on the left when ``camera`` (eye position,
     look target, mm) is given, that is when meshes are logged; the event log under it."""
-    import rerun as rr
-    import rerun.blueprint as rrb
-    import rerun.blueprint.encodings as rrbe
+    with require_extra("record"):
+        import rerun as rr
+        import rerun.blueprint as rrb
+        import rerun.blueprint.encodings as rrbe
 
     parts = [entity_part(name) for name in chamber_names]
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)
@@ -199,7 +200,8 @@ class Recorder:
         # the SDK warns on stderr, at every start, that a file without a footer is slower to seek: that is the
         # choice made above (WRITE_FOOTER), not news for the daemon's log; a RUST_LOG the user set wins
         os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
-        import rerun as rr
+        with require_extra("record"):
+            import rerun as rr
 
         if self.save_path is not None:
             _check_writable(self.save_path)
@@ -382,7 +384,8 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list]]:
     ``time`` and ``scene_time`` keys hold those timelines in seconds (``scene_time`` None for rows logged while
     no scene ran). Used by tests and by ``make demo``.
     """
-    from rerun.chunk import RrdReader
+    with require_extra("record"):
+        from rerun.chunk import RrdReader
 
     entities: dict[str, dict[str, list]] = {}
     with warnings.catch_warnings():  # "no footer": the daemon writes none (WRITE_FOOTER); stream() reads it all

@@ -28,7 +28,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 
 #: Arbitration-id bases of the CAN mapping.
 CAN_ID_HOST_TO_BOARD = 0x100
@@ -213,7 +213,8 @@ class CanTransport:
 
     async def open(self) -> None:
         """Connect to the bus; raises TransportUnavailable when the interface cannot be opened."""
-        import can
+        with require_extra("can"):
+            import can
 
         try:
             self._bus = can.Bus(interface=self.interface, channel=self.channel, **self.bus_options)
@@ -238,7 +239,8 @@ class CanTransport:
 
     def write(self, frame: bytes) -> None:
         """Send one wire frame as its CAN segments."""
-        import can
+        with require_extra("can"):
+            import can
 
         from phantom.protocol.framing import cobs_decode
 

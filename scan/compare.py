@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 from phantom.model.mesh.surface import (
     Alignment,
     AlignmentError,
@@ -161,8 +161,9 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
         raise ScanError(f"the scan file {path} does not exist: check the path")
     if path.suffix.lower() not in SCAN_SUFFIXES:
         raise ScanError(f"{path}: a scan must be an OBJ, PLY or STL file (not {path.suffix or 'no extension'})")
-    # trimesh (1 s to import) only where a scan file is read
-    import trimesh
+    # trimesh (1 s to import, an optional extra) only where a scan file is read
+    with require_extra("scan"):
+        import trimesh
 
     try:
         loaded = trimesh.load(path, process=False)
@@ -323,8 +324,9 @@ def close_holes(mesh: TriangleMesh) -> tuple[TriangleMesh, int]:
 
 
 def _meshfix_fill(patch: TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
-    # pymeshfix (a native library) only where holes are closed
-    import pymeshfix
+    # pymeshfix (a native library, an optional extra) only where holes are closed
+    with require_extra("scan"):
+        import pymeshfix
 
     surface = pymeshfix.PyTMesh()
     surface.set_quiet(True)

@@ -88,6 +88,7 @@ def test_fixed_patch_is_on_the_base_around_the_pole(prostate):
     assert set(np.unique(surfaces.fixed_triangles).tolist()) <= outer
 
 
+@pytest.mark.slow
 def test_builtin_mesh_is_cached_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     first = builtin_prostate(6.0)

@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 import phantom
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 from phantom.model.errors import SolveError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.scene import scene_from_dict
@@ -200,8 +200,9 @@ def stderr_progress(label: str) -> Callable[[int, int], None]:
 
 def local_cluster(n_workers: int | None = None) -> LocalCluster:
     """A LocalCluster of single-threaded worker processes (default: one per core), quiet, dashboard on a free port."""
-    # dask.distributed (1 s to import) only where a sweep runs
-    from dask.distributed import LocalCluster
+    # dask.distributed (1 s to import, an optional extra) only where a sweep runs
+    with require_extra("calibrate"):
+        from dask.distributed import LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
     return LocalCluster(n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
@@ -223,8 +224,9 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
         progress(total - len(missing), total)
     if not missing:
         return [trace for trace in results if trace is not None]
-    # dask.distributed (1 s to import) only where a sweep has traces to solve
-    from dask.distributed import Client, as_completed
+    # dask.distributed (1 s to import, an optional extra) only where a sweep has traces to solve
+    with require_extra("calibrate"):
+        from dask.distributed import Client, as_completed
 
     cluster = None
     own_client = client is None

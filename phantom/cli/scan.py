@@ -21,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          help="the chamber pressures (kPa, chamber order) the scan was taken at, e.g. 1,1,1")
     compare.add_argument("--units", choices=("mm", "cm", "m"), default="mm",
                          help="unit of the scan's coordinates (default mm)")
-    compare.add_argument("--out", default=".", help="folder for the heatmap PNG (created if missing; default .)")
+    compare.add_argument("--out", default="out", help="folder for the heatmap PNG (created if missing; default out)")
     compare.add_argument("--rerun-save", metavar="FILE", help="also write a Rerun recording (.rrd) of the result")
     compare.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     compare.add_argument("--json", action="store_true", help="print one JSON object instead of text")
