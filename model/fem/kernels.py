@@ -83,11 +83,12 @@ def _load_compiled() -> ModuleType | None:
 
 _COMPILED = _load_compiled()
 if _COMPILED is None:
-    os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
+    # numba's cache is the one in NUMBA_CACHE_DIR when the environment names one (a parent process set it)
+    numba_cache = Path(os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba"))))
     import numba
 
     _jit = numba.njit(cache=True)
-    if __name__ != "__main__" and not any(phantom.cache_dir("numba").rglob("kernels.internal_forces-*.nbi")):
+    if __name__ != "__main__" and not any(numba_cache.rglob("kernels.internal_forces-*.nbi")):
         print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached; "
               "`python -m phantom.model.fem.kernels` builds them ahead of time)", file=sys.stderr, flush=True)
 
