@@ -149,7 +149,7 @@ def spring_stiffness(nodes_m: FloatArray, fixed_triangles: IntArray, youngs_modu
     return fixed_nodes, fixed_penalty * youngs_modulus_pa * node_area_m2[fixed_nodes] / edge_m
 
 
-def pressure_load_n(pressures_pa: FloatArray, chamber_gradients_m2: FloatArray) -> FloatArray:
+def load_from_gradients_n(pressures_pa: FloatArray, chamber_gradients_m2: FloatArray) -> FloatArray:
     """``sum_c p_c dV_c/dx`` (N, (3n,)) from the chamber rows of the volume gradients (m^2, (chambers, 3n))."""
     load: FloatArray = np.einsum("c,cj->j", pressures_pa, chamber_gradients_m2[: len(pressures_pa)])
     return load
