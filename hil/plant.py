@@ -13,15 +13,13 @@ which for one chamber is physics.md's dp/dt = p_atm (Q_in - Q_out) / (V + (p_atm
 The rest volumes V0 (each cavity's air plus its tube's dead volume) and the compliance C come from the FEM at
 rest; :func:`chambers_from_scene` computes them and :func:`write_chambers` puts them into a plant file:
 
-    python -m phantom.hil.plant --from-scene model/scenes/prostate_calibrated.toml [--plant hil/plant.toml]
+    phantom hil plant --from-scene model/scenes/prostate_calibrated.toml [--plant hil/plant.toml]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import re
-import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -248,7 +246,7 @@ def _truth(chambers: dict, where: str) -> dict:
         return {}
     if len(present) != len(keys):
         raise PlantError(f"{where}: a truth table needs all of {', '.join(keys)}; regenerate it with "
-                         f"python -m phantom.hil.plant --truth-from-scene SCENE")
+                         f"phantom hil plant --truth-from-scene SCENE")
     n = TRUTH_GRID_POINTS
     step_kpa = _number(chambers, "truth_step_kpa", where, positive=True, allow_zero=False)
     try:
@@ -314,7 +312,8 @@ def chambers_from_scene(scene: str | Path, mesh_size_mm: float | None = None) ->
     )
 
 
-def _toml_list(values: np.ndarray) -> str:
+def toml_list(values: np.ndarray) -> str:
+    """Numbers as a TOML array, each to :data:`WRITTEN_DIGITS` significant digits."""
     return "[" + ", ".join(f"{value:.{WRITTEN_DIGITS}g}" for value in values) + "]"
 
 
@@ -342,14 +341,14 @@ def write_chambers(chambers: FemChambers, path: str | Path | None = None) -> Pla
     """
     path = Path(path) if path is not None else DEFAULT_PLANT_PATH
     text = _read_plant_text(path)
-    rows = ",\n".join(f"  {_toml_list(row)}" for row in chambers.compliance_ml_per_kpa)
+    rows = ",\n".join(f"  {toml_list(row)}" for row in chambers.compliance_ml_per_kpa)
     text = _replace_once(
         text, r"^# FEM source: .*$", f"# FEM source: {chambers.scene} ({chambers.description})", "'# FEM source:'", path
     )
     text = _replace_once(
         text,
         r"^cavity_volume_ml = \[[^\]\n]*\]$",
-        f"cavity_volume_ml = {_toml_list(chambers.cavity_volume_ml)}",
+        f"cavity_volume_ml = {toml_list(chambers.cavity_volume_ml)}",
         "cavity_volume_ml line",
         path,
     )
@@ -420,14 +419,14 @@ def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParam
     text = _read_plant_text(path)
     text = re.sub(r"^# Truth source: .*\n(?:.*\n)*?truth_gland_volume_ml = \[[^\]]*\]\n", "", text, flags=re.MULTILINE)
     n = len(table.points_kpa)
-    rows = ",\n".join(f"  {_toml_list(table.chamber_volume_ml[index])}" for index in np.ndindex(n, n, n))
+    rows = ",\n".join(f"  {toml_list(table.chamber_volume_ml[index])}" for index in np.ndindex(n, n, n))
     block = (f"# Truth source: {table.description}.\n"
              f"# The simulated board's plant interpolates these chamber volumes over the three pressures (grid step\n"
              f"# truth_step_kpa, rows i, j, k in C order) instead of V0 + C p above, so it does not share the\n"
-             f"# controller's model. Regenerate: python -m phantom.hil.plant --truth-from-scene SCENE\n"
+             f"# controller's model. Regenerate: phantom hil plant --truth-from-scene SCENE\n"
              f"truth_step_kpa = {table.points_kpa[1] - table.points_kpa[0]:g}\n"
              f"truth_chamber_volume_ml = [\n{rows},\n]\n"
-             f"truth_gland_volume_ml = {_toml_list(table.gland_volume_ml.ravel())}\n")
+             f"truth_gland_volume_ml = {toml_list(table.gland_volume_ml.ravel())}\n")
     text, count = re.subn(r"^(tubing_volume_ml = \[[^\]\n]*\]\n)", lambda m: m.group(1) + block, text,
                           flags=re.MULTILINE)
     if count != 1:
@@ -453,52 +452,3 @@ def trilinear(table: np.ndarray, points_kpa, pressures_kpa) -> np.ndarray:
         value = value + weight * table[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]
     return np.asarray(value)
 
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m phantom.hil.plant --from-scene SCENE [--plant FILE]``: regenerate a plant file's chambers."""
-    parser = argparse.ArgumentParser(
-        prog="python -m phantom.hil.plant",
-        description="Write the FEM's chamber volumes and compliance (at rest) into a plant parameter file.",
-    )
-    parser.add_argument("--from-scene", help="scene TOML (or 'builtin') whose FEM gives the values")
-    parser.add_argument("--truth-from-scene",
-                        help="scene whose model, with its modulus times --truth-modulus-factor, is the plant's "
-                             "truth (a table of chamber volumes over the three pressures; Dask, cached)")
-    parser.add_argument("--truth-modulus-factor", type=float, default=TRUTH_MODULUS_FACTOR,
-                        help=f"the truth's modulus over the scene's (default {TRUTH_MODULUS_FACTOR})")
-    parser.add_argument("--scheduler", help="--truth-from-scene: a running Dask scheduler (default: local)")
-    parser.add_argument("--plant", default=str(DEFAULT_PLANT_PATH), help="plant file (default hil/plant.toml)")
-    parser.add_argument("--mesh-size-mm", type=float, help="mesh size of the built-in mesh (default: the model's)")
-    args = parser.parse_args(argv)
-    if not args.from_scene and not args.truth_from_scene:
-        parser.error("give --from-scene, --truth-from-scene or both")
-    if args.truth_from_scene:
-        from phantom.model.calibration.sweep import stderr_progress
-
-        try:
-            table = truth_table_from_scene(args.truth_from_scene, args.truth_modulus_factor, args.scheduler,
-                                           stderr_progress("truth table"))
-            write_truth(table, args.plant)
-        except PhantomError as error:
-            print(f"phantom.hil.plant: error: {error}", file=sys.stderr)
-            return 2
-        print(f"wrote the truth table into {args.plant}: {table.description}")
-        if not args.from_scene:
-            return 0
-    try:
-        print(f"phantom.hil.plant: FEM of {args.from_scene} (meshing first if not cached)", file=sys.stderr)
-        chambers = chambers_from_scene(args.from_scene, args.mesh_size_mm)
-        plant = write_chambers(chambers, args.plant)
-    except PhantomError as error:
-        print(f"phantom.hil.plant: error: {error}", file=sys.stderr)
-        return 2
-    print(f"wrote {plant.path}: {chambers.description}")
-    print(f"cavity_volume_ml = {_toml_list(chambers.cavity_volume_ml)}")
-    print(f"rest air volume (with the tubes) ml = {_toml_list(1e6 * plant.rest_volume_m3)}")
-    for row in chambers.compliance_ml_per_kpa:
-        print(f"compliance_ml_per_kpa row = {_toml_list(row)}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -1,7 +1,8 @@
 """Subcommands of ``phantom``: the hardware-in-the-loop bench: phantom hil ....
 
-The same checks run against the firmware in simavr (``--sim``) or a real board (``--port /dev/ttyACM0``).
-Only argparse is imported at module load; handlers import what they need when they run.
+The same checks run against the firmware in simavr (``--sim``) or a real board (``--port /dev/ttyACM0``);
+``phantom hil plant`` writes the simulated plant's parameters from the model. Only argparse is imported at module
+load; handlers import what they need when they run.
 """
 
 import argparse
@@ -14,7 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="hardware-in-the-loop bench: the firmware in simavr (--sim) or a real board (--port)",
         description="Run bench checks against the firmware image in simavr (--sim) or a board on a serial port.",
     )
-    checks = hil.add_subparsers(dest="check", metavar="CHECK", required=True)
+    checks = hil.add_subparsers(dest="check", metavar="COMMAND", required=True)
 
     def add_check(name: str, help_text: str, handler) -> argparse.ArgumentParser:
         parser = checks.add_parser(name, help=help_text, description=help_text)
@@ -55,6 +56,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cycles.add_argument("--duration-s", type=float, default=5.0, help="measurement time (default 5 s)")
     cycles.add_argument("--telemetry-ms", type=int, default=20, help="telemetry period (default 20 ms = 50 Hz)")
     cycles.add_argument("--kpa", type=float, default=2.0, help="setpoint of all three chambers (default 2)")
+
+    plant = checks.add_parser(
+        "plant", help="write the model's chamber volumes and compliance (and a truth table) into a plant file",
+        description="Regenerate the simulated plant's parameters from a scene's FEM: --from-scene rewrites the "
+        "chambers' rest volumes and compliance (at rest), --truth-from-scene the truth table of chamber volumes "
+        "over the three pressures that the simulated board's plant interpolates (64 solves as Dask tasks, "
+        "cached). Everything else in the file is kept; the result is checked before it is written.")
+    plant.add_argument("--from-scene", metavar="SCENE",
+                       help="scene TOML (or 'builtin', 'builtin:calibrated') whose FEM gives the chambers")
+    plant.add_argument("--truth-from-scene", metavar="SCENE",
+                       help="scene whose model, with its modulus times --truth-modulus-factor, is the plant's truth")
+    plant.add_argument("--truth-modulus-factor", type=float, metavar="X",
+                       help="the truth's modulus over the scene's (default: the calibration's leave-one-out "
+                       "uncertainty, TRUTH_MODULUS_FACTOR in hil/plant.py)")
+    plant.add_argument("--scheduler", metavar="ADDR", help="--truth-from-scene: a running Dask scheduler "
+                       "(default: local)")
+    plant.add_argument("--plant", metavar="FILE", help="the plant file to rewrite (default hil/plant.toml)")
+    plant.add_argument("--mesh-size-mm", type=float, metavar="MM",
+                       help="--from-scene: mesh size of the built-in mesh (default: the model's)")
+    plant.set_defaults(run=_run_plant)
 
 
 class _Bench:
@@ -211,3 +232,30 @@ def _run_cycles(args) -> int:
         result = bench.measure_cycles(b.link, b.board, args.duration_s, args.telemetry_ms, args.kpa)
     lines = [f"{key}: {value:.6g}" if isinstance(value, float) else f"{key}: {value}" for key, value in result.items()]
     return _emit(args, result, lines)
+
+
+def _run_plant(args: argparse.Namespace) -> int:
+    from phantom import PhantomError
+    from phantom.hil import plant
+
+    if not args.from_scene and not args.truth_from_scene:
+        raise PhantomError("give --from-scene, --truth-from-scene or both")
+    path = args.plant or plant.DEFAULT_PLANT_PATH
+    if args.truth_from_scene:
+        from phantom.model.calibration.sweep import stderr_progress
+
+        factor = plant.TRUTH_MODULUS_FACTOR if args.truth_modulus_factor is None else args.truth_modulus_factor
+        table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.scheduler,
+                                             stderr_progress("truth table"))
+        plant.write_truth(table, path)
+        print(f"wrote the truth table into {path}: {table.description}")
+    if args.from_scene:
+        _progress(f"FEM of {args.from_scene} (meshing first if not cached)")
+        chambers = plant.chambers_from_scene(args.from_scene, args.mesh_size_mm)
+        written = plant.write_chambers(chambers, path)
+        print(f"wrote {written.path}: {chambers.description}")
+        print(f"cavity_volume_ml = {plant.toml_list(chambers.cavity_volume_ml)}")
+        print(f"rest air volume (with the tubes) ml = {plant.toml_list(1e6 * written.rest_volume_m3)}")
+        for row in chambers.compliance_ml_per_kpa:
+            print(f"compliance_ml_per_kpa row = {plant.toml_list(row)}")
+    return 0
