@@ -4,7 +4,7 @@ The parts, each built before the daemon runs (:meth:`Daemon.start` builds them i
 
     api        the Unix-socket JSON-lines server (host/api.py): the socket is claimed first, so that a daemon
                that cannot start never touches another daemon's files (its recording included)
-    model      the scene's model, inverse and estimator in a worker process (host/control.py)
+    model      the scene's model, inverse and estimator in a worker process (host/model_worker.py)
     recorder   Rerun logging (host/recording.py), opened once the socket is ours
     board      the link session (host/session.py) over a serial port, CAN, or the daemon's own simulated board
                (host/sim_board.py)
@@ -30,8 +30,6 @@ import signal
 import time
 from collections import deque
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,11 +37,13 @@ import numpy as np
 from phantom import PhantomError
 from phantom.cli.common import chamber_labels
 from phantom.host.api import ApiError, ApiServer, default_socket_path
-from phantom.host.control import Estimate, ModelWorker, Solution
+from phantom.host.config import DaemonConfig
 from phantom.host.estimation import EstimateRequest, EstimateSchedule
+from phantom.host.logs import configured_level
+from phantom.host.model_worker import Estimate, ModelWorker, Solution
 from phantom.host.scene_runner import SceneRunner
 from phantom.host.scenes import TargetSpec
-from phantom.host.sim_board import SimulatedBoardKeeper
+from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
 
 logger = logging.getLogger(__name__)
 
@@ -65,39 +65,17 @@ ZERO_REFUSALS: dict[str, str] = {
 
 LEVELS = {"INFO": logging.INFO, "WARN": logging.WARNING, "ERROR": logging.ERROR}
 
+#: The control loop's rate (Hz): the scene's target, volume estimates and status to subscribers.
+CONTROL_HZ = 10.0
+#: File mode of the API's socket: the owner and the group may drive the phantom.
+SOCKET_MODE = 0o660
+
 
 class ControlState(enum.StrEnum):
     IDLE = "idle"
     HOLDING = "holding"
     SCENE = "scene"
     VENTED = "vented"
-
-
-@dataclass
-class DaemonConfig:
-    """Everything ``phantom daemon`` is told (CLI flags, or the config file of the systemd service)."""
-
-    port: str | None = None
-    sim: bool = False
-    sim_speed: float = 1.0
-    can_channel: str | None = None
-    can_interface: str = "socketcan"
-    baud: int = 115200
-    #: Silence after opening a serial port (s), while the bootloader runs; None: enough for an Uno or a Mega.
-    boot_delay_s: float | None = None
-    scene: str = "builtin:calibrated"
-    socket: Path = field(default_factory=default_socket_path)
-    socket_mode: int = 0o660
-    rerun_save: Path | None = None
-    rerun_connect: str | None = None
-    mesh_hz: float = 1.0
-    control_hz: float = 10.0
-    host_deadline_ms: int = 500
-    telemetry_period_ms: int = 20
-    vent_on_exit: bool = True
-    run_scene: bool = False
-    zero_on_connect: bool = True
-    log_level: str = "info"
 
 
 class Daemon:
@@ -142,15 +120,17 @@ class Daemon:
     # --- building the parts -----------------------------------------------------------------------------
 
     @classmethod
-    async def start(cls, config: DaemonConfig) -> Daemon:
-        """Build every part, in an order that never harms another daemon; raises PhantomError (one line)."""
+    async def start(cls, config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None) -> Daemon:
+        """Build every part, in an order that never harms another daemon; raises PhantomError (one line).
+
+        ``simulated_board`` builds the board of ``config.sim`` (the command line passes the HIL package's).
+        """
         from phantom.host.handlers import ApiHandlers
         from phantom.host.recording import Recorder
 
-        chosen = [bool(config.port), config.sim, bool(config.can_channel)]
-        if sum(chosen) != 1:
-            raise PhantomError("give exactly one board: --port DEV, --sim, or --can-channel CH")
-        api = ApiServer(config.socket, {}, mode=config.socket_mode)
+        if config.sim and simulated_board is None:
+            raise PhantomError("this program cannot simulate a board: start the daemon with `phantom daemon --sim`")
+        api = ApiServer(config.socket or default_socket_path(), {}, mode=SOCKET_MODE)
         await api.start()  # first: a second daemon stops here, before it opens anything of the first's
         built: list[Any] = []
         try:
@@ -161,11 +141,11 @@ class Daemon:
             recorder = Recorder(list(load_scene(config.scene).chambers), config.rerun_save, config.rerun_connect)
             recorder.open()
             built.append(recorder)
-            model = await ModelWorker.start(config.scene, config.log_level)
+            model = await ModelWorker.start(config.scene, configured_level())
             built.append(model)
             sim_board = None
-            if config.sim:
-                sim_board = SimulatedBoardKeeper(config.sim_speed, lambda kind, text, level: None)
+            if simulated_board is not None and config.sim:
+                sim_board = SimulatedBoardKeeper(config.sim_speed, lambda kind, text, level: None, simulated_board)
                 built.append(sim_board)
                 logger.info("starting the simulated board (firmware in simavr, speed %g) ...", config.sim_speed)
                 await asyncio.get_running_loop().run_in_executor(None, sim_board.start)
@@ -208,7 +188,7 @@ class Daemon:
                 self._tasks.append(asyncio.create_task(self.sim_board.watch(), name="simulated board"))
             for task in self._tasks:
                 task.add_done_callback(self._task_ended)
-            logger.info("ready: API on %s, board on %s", self.config.socket, self.session.transport.description)
+            logger.info("ready: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
             if self.config.run_scene:
                 from phantom.host.scenes import SceneError
 
@@ -357,7 +337,7 @@ class Daemon:
 
     async def _control_loop(self) -> None:
         """Every control period: scene target, volume estimate, status, Rerun."""
-        period_s = 1.0 / self.config.control_hz
+        period_s = 1.0 / CONTROL_HZ
         while True:
             started = time.monotonic()
             try:
@@ -428,7 +408,7 @@ class Daemon:
         from phantom.model.inverse import UnreachableTargetError
 
         try:
-            solution = await self.model.solve(target)
+            solution = await self.model.pressures_for(target)
         except UnreachableTargetError as error:
             raise ApiError("unreachable", str(error)) from error
         self.recorder.log_solver(self.now_s(), solution.qp_time_s, solution.solve_time_s)
@@ -596,11 +576,12 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None, 
     return LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event, on_online=on_online)
 
 
-async def _run(config: DaemonConfig) -> int:
-    daemon = await Daemon.start(config)
+async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:
+    daemon = await Daemon.start(config, simulated_board)
     return await daemon.serve()
 
 
-def run_daemon(config: DaemonConfig) -> int:
-    """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status."""
-    return asyncio.run(_run(config))
+def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None) -> int:
+    """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status. ``simulated_board`` builds
+    the board of ``config.sim``."""
+    return asyncio.run(_run(config, simulated_board))

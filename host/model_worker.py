@@ -129,7 +129,7 @@ class LoadedModel:
         return effective_model(self.scene, fidelity=self.estimator.level, pressure_max_kpa=self.pressure_max_pa
                                / PA_PER_KPA)
 
-    def solve(self, target: TargetSpec) -> Solution:
+    def pressures_for(self, target: TargetSpec) -> Solution:
         """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
         from phantom.model.inverse import Target
 
@@ -261,8 +261,8 @@ def _worker_start(scene_source: str) -> ModelInfo:
                      model.effective_model())
 
 
-def _worker_solve(target: TargetSpec) -> Solution:
-    return _worker_model_or_fail().solve(target)
+def _worker_pressures_for(target: TargetSpec) -> Solution:
+    return _worker_model_or_fail().pressures_for(target)
 
 
 def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_surface: bool) -> Estimate:
@@ -312,9 +312,9 @@ class ModelWorker:
     async def _call(self, function: Callable[..., Any], *arguments: Any) -> Any:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
 
-    async def solve(self, target: TargetSpec) -> Solution:
+    async def pressures_for(self, target: TargetSpec) -> Solution:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
-        return await self._call(_worker_solve, target)
+        return await self._call(_worker_pressures_for, target)
 
     async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
                        with_rest_surface: bool = False) -> Estimate:

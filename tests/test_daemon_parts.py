@@ -180,7 +180,7 @@ def test_plant_volume_is_read_only_when_the_plant_reports_it():
 
 WORKER_PARENT = """
 import asyncio, os, sys, time
-from phantom.host.control import worker_pool
+from phantom.host.model_worker import worker_pool
 pool = worker_pool()
 print(pool.submit(os.getpid).result(), flush=True)
 time.sleep(60)
@@ -267,7 +267,7 @@ class PartsStandIn:
         from types import SimpleNamespace
 
         from phantom.host.api import ApiServer
-        from phantom.host.control import ModelInfo
+        from phantom.host.model_worker import ModelInfo
 
         self.calls: list[tuple] = []
         info = ModelInfo(CHAMBERS, 26.1, {"total_s": 1.0}, "updated", {}, "scene.toml", 3000.0, scene_shape, {})
@@ -278,7 +278,7 @@ class PartsStandIn:
                 self.info = info
 
             async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
-                from phantom.host.control import Estimate
+                from phantom.host.model_worker import Estimate
 
                 parts.calls.append(("estimate", with_surface))
                 surface = (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])) if with_surface else None
@@ -316,7 +316,8 @@ class PartsStandIn:
         self.api = ApiServer("/nonexistent/never-started.sock", {})
 
     def daemon(self, recording: bool, clock):
-        from phantom.host.daemon import Daemon, DaemonConfig
+        from phantom.host.config import DaemonConfig
+        from phantom.host.daemon import Daemon
 
         config = DaemonConfig(sim=True, rerun_save="x.rrd" if recording else None, mesh_hz=2.0)
         return Daemon(config, self.api, self.model, self.recorder, self.session, None, clock=clock)

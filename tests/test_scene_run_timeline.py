@@ -115,7 +115,7 @@ def test_missing_or_broken_scene_files_say_so(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["bph_growth", "lopsided"])
 def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachable(name, calibrated_response_table):
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
     from phantom.model import load_scene
     from phantom.model.inverse import UnreachableTargetError
 
@@ -126,7 +126,7 @@ def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachab
     assert controller.estimator.level == "table"
     raw = read_scene_toml(example_scene_path(name))
     for step in parse_timeline(raw["steps"], raw["phantom"]["chambers"], name).steps:
-        solution = controller.solve(step.target)
+        solution = controller.pressures_for(step.target)
         assert np.all(solution.pressures_pa <= controller.pressure_max_pa + 1e-6)
         if step.target.kind == "volume_ml":
             assert solution.predicted_volume_ml == pytest.approx(step.target.values[0], rel=1e-4)
@@ -137,11 +137,11 @@ def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachab
     if name == "bph_growth":
         # 45 ml is out of reach within 3 kPa per chamber, and the error says how far one can go.
         with pytest.raises(UnreachableTargetError, match=r"45.000 ml is unreachable.* to 43\.\d+ ml"):
-            controller.solve(parse_target({"volume_ml": 45}, raw["phantom"]["chambers"], "test"))
+            controller.pressures_for(parse_target({"volume_ml": 45}, raw["phantom"]["chambers"], "test"))
 
 
 def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tmp_path):
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
     from phantom.model import load_scene
 
     # A soft small-strain material with 3 kPa everywhere: "rest" is 35 % off on a chamber, "updated" exact. A
@@ -164,7 +164,7 @@ def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tm
 @pytest.fixture(scope="module")
 def default_model(calibrated_response_table):
     """The model a daemon started with its defaults loads (builtin:calibrated, on its response table)."""
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
 
     return LoadedModel("builtin:calibrated", report=lambda message: None)
 
@@ -207,8 +207,8 @@ def test_the_inverse_is_warm_after_start_up(default_model):
     # the warm-up set up the gland's exact and closest problems: the first request sets up nothing new
     shapes = set(default_model.solver._problems)
     assert {shape[0] for shape in shapes} == {"exact", "closest"}
-    default_model.solve(parse_target({"volume_ml": 33}, CHAMBERS))
+    default_model.pressures_for(parse_target({"volume_ml": 33}, CHAMBERS))
     with pytest.raises(UnreachableTargetError, match="unreachable"):
-        default_model.solve(parse_target({"volume_ml": 80}, CHAMBERS))
+        default_model.pressures_for(parse_target({"volume_ml": 80}, CHAMBERS))
     assert set(default_model.solver._problems) == shapes
     assert default_model.timings_s["warm_up_s"] > 0

@@ -1,15 +1,15 @@
 """Subcommands of ``phantom``: the daemon and its clients: daemon, status, set, vent, clear-fault, run-scene, watch.
 
-Only argparse is imported at module load; handlers import what they need when they run.
+At module load only argparse and the daemon's settings (phantom.host.config, which is light) are imported;
+handlers import what they need when they run. The ``phantom daemon`` flags are built from the settings'
+dataclass, as are the config file's keys, so that the two cannot differ.
 """
 
 import argparse
+from collections.abc import Callable
+from typing import Any
 
-#: Keys of the daemon's config file (``[daemon]`` table, e.g. /etc/phantom/phantomd.toml) and their types.
-CONFIG_KEYS = {"port": str, "sim": bool, "sim_speed": float, "can_channel": str, "can_interface": str,
-               "baud": int, "scene": str, "socket": str, "rerun_save": str, "rerun_connect": str,
-               "mesh_hz": float, "host_deadline_ms": int, "telemetry_period_ms": int, "vent_on_exit": bool,
-               "run_scene": bool, "zero_on_connect": bool, "boot_delay_s": float}
+from phantom.host.config import ConfigError, SettingField, checked, settings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -17,31 +17,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     daemon = subparsers.add_parser("daemon", help="run the host daemon (link, control, scenes, Rerun, local API)",
                                    description="Run the host daemon in the foreground until SIGTERM/SIGINT, "
                                    "which vent the phantom and close the recording. A start-up error (the socket "
-                                   "taken, an unwritable recording) is one line on stderr and exit status 2.")
-    board = daemon.add_mutually_exclusive_group()
-    board.add_argument("--port", metavar="DEV", help="the board's serial port (e.g. /dev/serial/by-id/usb-...)")
-    board.add_argument("--sim", action="store_true", default=None,
-                       help="start the simulated board (the real firmware in simavr) and drive it")
-    board.add_argument("--can-channel", metavar="CH", help="talk to the board over CAN on this channel")
-    daemon.add_argument("--baud", type=int, metavar="N", help="serial baud rate (default 115200)")
-    daemon.add_argument("--boot-delay-s", type=float, metavar="S",
-                        help="--port: stay silent this long after opening the port, while the board's bootloader "
-                             "runs (default 2: the Uno's Optiboot and the Mega's stk500v2; 0 for an adapter "
-                             "without DTR)")
-    daemon.add_argument("--can-interface", metavar="NAME", help="python-can interface (default socketcan)")
-    daemon.add_argument("--sim-speed", type=float, metavar="X", help="simulated board speed-up (default 1: real time)")
-    daemon.add_argument("--scene", metavar="S",
-                        help="scene: 'builtin:calibrated', 'builtin' or a TOML path (default builtin:calibrated)")
-    daemon.add_argument("--run-scene", action="store_true", default=None,
-                        help="play the scene's [[steps]] as soon as the daemon is ready")
-    record = daemon.add_mutually_exclusive_group()
-    record.add_argument("--rerun-save", metavar="FILE", help="record to this .rrd file (its folder is created)")
-    record.add_argument("--rerun-connect", metavar="ADDR", help="stream to a Rerun viewer (rerun+http://.../proxy)")
-    daemon.add_argument("--mesh-hz", type=float, metavar="HZ",
-                        help="rate of deformed-mesh logging while recording a scene with [outputs] shape = true "
-                        "(default 1; 0: none)")
+                                   "taken, an unwritable recording) is one line on stderr and exit status 2. "
+                                   "Every flag is also a key of the config file's [daemon] table (--mesh-hz: "
+                                   "mesh_hz); flags win.")
+    add_setting_flags(daemon)
     daemon.add_argument("--config", metavar="FILE", help="a TOML config file with a [daemon] table (flags win)")
-    _add_socket(daemon)
     daemon.set_defaults(run=_run_daemon)
 
     sim_board = subparsers.add_parser(
@@ -117,9 +97,9 @@ def _add_json(parser: argparse.ArgumentParser, text: str) -> None:
 
 
 def _add_socket(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--socket", metavar="PATH",
-                        help="the daemon's socket (default: $PHANTOM_SOCKET, /run/phantom/phantomd.sock, "
-                        "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID.sock)")
+    """A client's --socket: the daemon's own setting, with its help."""
+    socket = next(item for item in settings() if item.name == "socket")
+    parser.add_argument(socket.flag, metavar=socket.setting.metavar, help=socket.setting.help)
 
 
 def _socket(args):
@@ -136,53 +116,67 @@ def _client(args):
     return DaemonClient(_socket(args))
 
 
-def load_config(path) -> dict:
-    """The ``[daemon]`` table of a config file, checked against :data:`CONFIG_KEYS`."""
-    import tomllib
-    from pathlib import Path
-
-    from phantom import PhantomError
-
-    path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise PhantomError(f"the config file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as error:
-        raise PhantomError(f"the config file {path} is not valid TOML: {error}") from None
-    table = raw.get("daemon", {})
-    unknown = sorted(set(table) - set(CONFIG_KEYS))
-    if unknown:
-        raise PhantomError(f"{path}: unknown key(s) in [daemon]: {', '.join(unknown)}; known: {', '.join(CONFIG_KEYS)}")
-    for key, value in table.items():
-        kind = CONFIG_KEYS[key]
-        numeric = kind is float and isinstance(value, int)
-        if isinstance(value, bool) != (kind is bool) or not (isinstance(value, kind) or numeric):
-            raise PhantomError(f"{path}: [daemon] {key} must be a {kind.__name__}, got {value!r}")
-    return table
+def add_setting_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per setting of the daemon (phantom.host.config): ``--mesh-hz HZ`` for ``mesh_hz``, a switch as
+    ``--vent-on-exit`` / ``--no-vent-on-exit`` (in a group, as the group's choice: ``--sim``); the settings of a
+    group are mutually exclusive. A flag not given is None, so that the config file's value stands."""
+    groups: dict[str, argparse._MutuallyExclusiveGroup] = {}
+    for item in settings():
+        group = item.setting.group
+        if group is not None and group not in groups:
+            groups[group] = parser.add_mutually_exclusive_group()
+        target: Any = parser if group is None else groups[group]
+        if item.kind is bool and group is not None:
+            target.add_argument(item.flag, dest=item.name, action="store_true", default=None, help=_flag_help(item))
+        elif item.kind is bool:
+            target.add_argument(item.flag, dest=item.name, action=argparse.BooleanOptionalAction, default=None,
+                                help=_flag_help(item))
+        else:
+            target.add_argument(item.flag, dest=item.name, type=_flag_value(item), default=None,
+                                metavar=item.setting.metavar, help=_flag_help(item))
 
 
-def _run_daemon(args) -> int:
-    from pathlib import Path
+def _flag_help(item: SettingField) -> str:
+    """A setting's help with its default (unless it is in a group, or has none) and its range."""
+    notes = [item.setting.range_text()]
+    if item.kind is bool and item.setting.group is None:
+        notes.insert(0, f"default {'yes' if item.default else 'no'}")
+    elif item.kind is not bool and item.default is not None:
+        notes.insert(0, f"default {item.default:g}" if isinstance(item.default, (int, float)) else
+                     f"default {item.default}")
+    notes = [note for note in notes if note]
+    return item.setting.help + (f" ({', '.join(notes)})" if notes else "")
 
-    from phantom.host.daemon import DaemonConfig, run_daemon
 
-    settings = load_config(args.config) if args.config else {}
-    flags = {"port": args.port, "sim": args.sim, "sim_speed": args.sim_speed, "can_channel": args.can_channel,
-             "can_interface": args.can_interface, "baud": args.baud, "scene": args.scene, "socket": args.socket,
-             "rerun_save": args.rerun_save, "rerun_connect": args.rerun_connect, "mesh_hz": args.mesh_hz,
-             "run_scene": args.run_scene, "boot_delay_s": args.boot_delay_s}
-    if args.port or args.sim or args.can_channel:
-        settings = {key: value for key, value in settings.items() if key not in ("port", "sim", "can_channel")}
-    if args.rerun_save or args.rerun_connect:
-        settings = {key: value for key, value in settings.items() if key not in ("rerun_save", "rerun_connect")}
-    settings.update({key: value for key, value in flags.items() if value is not None})
-    config = DaemonConfig(log_level=args.log_level)
-    for key, value in settings.items():
-        setattr(config, key, value)
-    config.socket = Path(config.socket) if settings.get("socket") else _socket(args)
-    config.rerun_save = Path(config.rerun_save) if config.rerun_save else None
-    return run_daemon(config)
+def _flag_value(item: SettingField) -> Callable[[str], Any]:
+    """argparse's ``type`` for a setting's flag: the text as the setting's type, checked against its range."""
+    def convert(text: str) -> Any:
+        try:
+            value = item.kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not {'an integer' if item.kind is int else 'a number'}") from None
+        try:
+            return checked(item.name, value, "the value")
+        except ConfigError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    return convert
+
+
+def _run_daemon(args: argparse.Namespace) -> int:
+    from phantom.host.config import load_config, merged_config
+    from phantom.host.daemon import run_daemon
+
+    file_values = load_config(args.config) if args.config else {}
+    config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
+    return run_daemon(config, simulated_board=_simulated_board if config.sim else None)
+
+
+def _simulated_board(speed: float) -> Any:
+    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant."""
+    from phantom.hil.sim import SimulatedBoard
+
+    return SimulatedBoard(speed=speed)
 
 
 def _run_sim_board(args) -> int:
