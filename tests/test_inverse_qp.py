@@ -309,3 +309,54 @@ def test_a_qp_whose_solve_raises_is_set_up_afresh_next_time():
     assert qp._problem is None
     pressures, _ = qp.solve(hessian, linear, matrix, np.array([0.5]), np.array([0.5]))
     np.testing.assert_allclose(pressures, [0.5], atol=1e-8)
+
+
+@pytest.mark.parametrize("target, kind, values, described, as_json", [
+    (Target(gland_volume_m3=32 * ML), "volume", (32 * ML,), "32.00 ml", {"volume_ml": 32.0}),
+    (Target(gland_volume_m3=40 * ML, growth_ratio={2: 1.0, 1: 2.0}), "volume", (40 * ML,),
+     "40.00 ml (growth ratio chamber1:2, chamber2:1)", {"volume_ml": 40.0, "growth_ratio": {"1": 2.0, "2": 1.0}}),
+    (Target(chamber_volumes_m3=[2.1 * ML, None, None]), "chamber_volumes", (2.1 * ML, None, None),
+     "chamber 2.10,free,free ml", {"chamber_volumes_ml": [2.1, None, None]}),
+    (Target(pressures_pa=[1000.0, 0.0, 2500.0]), "pressures", (1000.0, 0.0, 2500.0),
+     "pressures 1.00,0.00,2.50 kPa", {"pressures_kpa": [1.0, 0.0, 2.5]}),
+])
+def test_a_target_says_its_kind_values_and_people_units(target, kind, values, described, as_json):
+    assert target.kind == kind
+    assert target.values == values
+    assert target.describe() == described
+    # ml and kPa read back as they were written (32 ml, not 32.000000000000004)
+    assert target.to_json() == as_json
+    assert Target.of_kind(kind, values, target.growth_ratio) == target
+
+
+def test_a_chamber_volume_target_names_its_free_chambers():
+    assert Target(chamber_volumes_m3=[None, 1.2 * ML, None]).free_chambers == (0, 2)
+    assert Target(gland_volume_m3=30 * ML).free_chambers == ()
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: Target().kind, "gives nothing"),
+    (lambda: Target(gland_volume_m3=30 * ML, chamber_volumes_m3=[None, 1e-6, None]).kind,
+     "volume and chamber_volumes"),
+    (lambda: Target.of_kind("volume_ml", [30 * ML]), "unknown target kind 'volume_ml'"),
+    (lambda: Target.of_kind("pressures", [1e3, 0, 0], {1: 2.0, 2: 1.0}), "goes with a gland volume"),
+    (lambda: Target.of_kind("volume", [30 * ML, 31 * ML]), "one gland volume"),
+    (lambda: Target.of_kind("pressures", [1e3, None, 0]), "a pressure for every chamber"),
+])
+def test_a_target_of_no_single_kind_says_so(make, message):
+    with pytest.raises(PhantomError, match=message):
+        make()
+
+
+def test_the_answer_reports_itself_in_the_units_people_see():
+    model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
+    target = Target(gland_volume_m3=(REST_GLAND_ML + 3.0) * ML)
+    result = InverseSolver(model, fidelity="rest").solve(target)
+    report = result.to_json()
+    assert result.target == target
+    assert report["target"] == {"volume_ml": REST_GLAND_ML + 3.0}
+    np.testing.assert_allclose(report["pressures_kpa"], result.pressures_pa / KPA)
+    assert report["predicted_volume_ml"] == pytest.approx(REST_GLAND_ML + 3.0, rel=1e-6)
+    np.testing.assert_allclose(report["predicted_chamber_volumes_ml"], result.predicted_chamber_volumes_m3 / ML)
+    assert (report["iterations"], report["solve_time_s"], report["qp_time_s"]) == (
+        result.iterations, result.solve_time_s, result.qp_solve_time_s)
