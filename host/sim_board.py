@@ -49,7 +49,7 @@ class SimulatedBoard(Protocol):
 SimulatedBoardFactory = Callable[[float], SimulatedBoard]
 
 
-def plant_volume_ml(plant_state: dict) -> float | None:
+def plant_volume_ml(plant_state: dict[str, Any]) -> float | None:
     """The simulated plant's true gland volume (ml) from ``SimulatedBoard.plant_state()``, when it has one."""
     value = plant_state.get("gland_volume_ml")
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
@@ -130,7 +130,7 @@ class SimulatedBoardKeeper:
         self._stop_board()
         self._folder.cleanup()
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         """For ``status``: the port and the restarts."""
         return {"port": self.port, "restarts": self.restarts}
 

@@ -16,7 +16,7 @@ from phantom import PhantomError
 from phantom.cli.common import chamber_labels, output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
 from phantom.host.scene_runner import SceneRunner
-from phantom.host.scenes import SceneError
+from phantom.model.errors import SceneError
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 
@@ -42,9 +42,9 @@ def test_the_scene_runner_follows_its_clock_scaled_and_finishes_at_the_end():
     clock, events, runner = runner_with_events()
     started = runner.start(SCENE, "bph", CHAMBERS, time_scale=2.0)
     assert started["wall_duration_s"] == 15.0 and runner.active
-    assert runner.tick().values == (30.0,)
+    assert runner.tick().to_json() == {"volume_ml": 30.0}
     clock.now_s += 6.0                       # 12 s of scene time: half-way up the ramp
-    assert runner.tick().values == pytest.approx((32.0,))
+    assert runner.tick().values == pytest.approx((32e-6,))
     assert [step.index for step in runner.run.steps] == [0, 1]
     assert runner.scene_time_s() == pytest.approx(12.0)
     clock.now_s += 9.0                       # 30 s of scene time: the end
