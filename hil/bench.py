@@ -16,7 +16,7 @@ import numpy as np
 
 from phantom import PhantomError
 from phantom.hil.link import BoardLink, LinkError
-from phantom.protocol.messages import CONSTANTS
+from phantom.protocol.messages import BITS, CONSTANTS, ENUMS, PROTOCOL_VERSION, SPEC_HASH
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
 TELEMETRY_PERIOD_MS = CONSTANTS["MIN_TELEMETRY_PERIOD_MS"]
@@ -72,8 +72,6 @@ class BenchError(PhantomError):
 
 
 def fault_bits() -> dict[str, int]:
-    from phantom.protocol.messages import BITS
-
     return BITS["fault"]
 
 
@@ -216,8 +214,6 @@ def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
     """ZERO_SENSORS with the chambers vented. The board refuses it (NOT_SETTLED) until every blower has been off
     and every reading still for ZERO_SETTLE_MS, and answers BUSY while its own start-up zero runs: wait that
     long on the board's clock and ask again, so that the offsets are measured now."""
-    from phantom.protocol.messages import ENUMS
-
     names = {v: k for k, v in ENUMS["status"].items()}
     retry = {ENUMS["status"]["BUSY"], ENUMS["status"]["NOT_SETTLED"]}
     for _ in range(attempts):
@@ -233,8 +229,6 @@ def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
 
 def set_setpoints(link: BoardLink, setpoints_pa: list[int], attempts: int = 5) -> None:
     """SET_SETPOINTS, waiting out a zeroing in progress (NACK BUSY) before trying again."""
-    from phantom.protocol.messages import ENUMS
-
     zeroing = ENUMS["chamber_state"]["ZEROING"]
     for _ in range(attempts):
         answer = link.command("SET_SETPOINTS", {"setpoint_pa": list(setpoints_pa)}, accept_nack=True)
@@ -249,8 +243,6 @@ def set_setpoints(link: BoardLink, setpoints_pa: list[int], attempts: int = 5) -
 
 def check_handshake(link: BoardLink) -> dict:
     """HELLO is answered with the board's identity; a HELLO with another spec hash is refused."""
-    from phantom.protocol.messages import ENUMS, PROTOCOL_VERSION, SPEC_HASH
-
     reply = link.hello().fields
     start = link.mark()
     link.send("HELLO", {"protocol_version": PROTOCOL_VERSION, "spec_hash": SPEC_HASH ^ 0xFFFFFFFF})
@@ -491,8 +483,6 @@ def check_line_noise(
 
 def check_watchdog(link: BoardLink, board) -> dict:
     """TEST_HANG stops the firmware kicking the watchdog: the board resets, and HELLO reports it."""
-    from phantom.protocol.messages import ENUMS
-
     start_session(link)
     resets_before = board.plant_state()["resets"] if board is not None else None
     link.command("TEST_HANG", {"magic": CONSTANTS["TEST_HANG_MAGIC"]})

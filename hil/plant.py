@@ -18,6 +18,7 @@ rest; :func:`chambers_from_scene` computes them and :func:`write_chambers` puts 
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 import tomllib
@@ -289,6 +290,7 @@ def chambers_from_scene(scene: str | Path, mesh_size_mm: float | None = None) ->
     phantom.PhantomError
         From the model, when the scene or its mesh is unusable.
     """
+    # the FEM's stack (scipy, numba) loads only when a plant is regenerated, not when one is read
     from phantom.model import PhantomModel, load_scene
 
     loaded = load_scene(scene)
@@ -389,8 +391,7 @@ def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODU
                            scheduler: str | None = None, progress=None) -> TruthTable:
     """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point (Dask tasks,
     cached: :mod:`phantom.model.calibration.sweep`)."""
-    import copy
-
+    # the FEM's and Dask's stacks load only when a truth table is made, not when a plant is read
     from phantom.model import load_scene
     from phantom.model.calibration.sweep import RayTask, run_sweep
 
