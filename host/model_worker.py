@@ -101,9 +101,9 @@ class LoadedModel:
         estimator's counters start again from zero."""
         rest_m3 = float(self.model.rest_gland_volume_m3)
         _, highest_m3, _ = self.estimator.evaluate(self.solver.pressure_max_pa)
-        self.solver.solve(Target(gland_volume_m3=rest_m3 + 0.5 * (float(highest_m3) - rest_m3)))
+        self.solver.pressures_for(Target(gland_volume_m3=rest_m3 + 0.5 * (float(highest_m3) - rest_m3)))
         try:
-            self.solver.solve(Target(gland_volume_m3=float(highest_m3) + 0.1 * (float(highest_m3) - rest_m3)))
+            self.solver.pressures_for(Target(gland_volume_m3=float(highest_m3) + 0.1 * (float(highest_m3) - rest_m3)))
         except UnreachableTargetError:
             pass
         for key in self.estimator.counts:
@@ -116,7 +116,7 @@ class LoadedModel:
 
     def pressures_for(self, target: Target) -> InverseResult:
         """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
-        return self.solver.solve(target)
+        return self.solver.pressures_for(target)
 
     def estimate(self, pressures_pa: np.ndarray) -> tuple[list[float], float]:
         """Estimated chamber volumes (ml) and gland volume (ml) at measured pressures (Pa, negative -> 0)."""

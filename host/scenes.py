@@ -240,13 +240,11 @@ def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: f
     For a running model, ``fidelity`` and ``pressure_max_kpa`` are the ones in force; for a scene file they
     are what it asks for (None: no fidelity named, which any level satisfies).
     """
-    from phantom.model.fidelity.levels import DEFAULT_PRESSURE_MAX_PA
-
-    settings = scene.raw.get("model", {}) if isinstance(scene.raw.get("model", {}), dict) else {}
+    settings = scene.model_settings
     if fidelity is None:
-        fidelity = settings.get("fidelity")
+        fidelity = settings.fidelity
     if pressure_max_kpa is None:
-        pressure_max_kpa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3))
+        pressure_max_kpa = settings.pressure_max_pa / 1e3
     material = scene.material
     material = dataclasses.asdict(material) if dataclasses.is_dataclass(material) and not isinstance(
         material, type) else dict(vars(material))

@@ -36,6 +36,9 @@ from typing import Any
 import numpy as np
 
 from phantom import PhantomError
+from phantom.model.errors import SolveError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.fidelity.levels import VolumeEstimator
 
 #: Millilitres per cubic metre and pascals per kilopascal, for messages and the people's units of to_json.
 ML_PER_M3 = 1e6
@@ -245,6 +248,7 @@ def _finite(name: str, values) -> np.ndarray:
 def _dense_csc_pattern(matrix: np.ndarray, upper: bool):
     """A CSC matrix (scipy) holding every entry of ``matrix`` (the upper triangle only when ``upper``),
     zeros included, so that later value updates keep one fixed sparsity pattern."""
+    # scipy.sparse (0.15 s to import) only where a QP is set up
     from scipy import sparse
 
     rows, columns = matrix.shape
@@ -278,6 +282,7 @@ class VolumeQP:
     """
 
     def __init__(self, n_chambers: int, n_constraint_rows: int):
+        # osqp (0.3 s to import, with scipy.sparse) only where a volume target is solved
         import osqp
 
         self.n_chambers = n_chambers
@@ -285,9 +290,9 @@ class VolumeQP:
         self._osqp = osqp
         self._problem = None
 
-    def solve(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
+    def minimise(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
               lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, float]:
-        """Solve the QP; returns the pressures (scaled) and OSQP's own solve time (s).
+        """Minimise the QP; returns the pressures (scaled) and OSQP's own solve time (s).
 
         Raises ``_Infeasible`` when the constraints contradict each other.
         """
@@ -347,8 +352,8 @@ class InverseSolver:
     model : PhantomModel
         The forward model (``phantom.model``).
     pressure_max_pa : float or sequence of float, or None
-        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the scene's
-        ``[model] pressure_max_kpa``, else 3000 Pa.
+        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the model's
+        settings' (the scene's ``[model] pressure_max_kpa``, else PRESSURE_LIMIT_PA).
     fidelity : {"rest", "updated", "full", "table"} or None
         How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.levels.VolumeEstimator`);
         None takes the scene's ``[model] fidelity``, else the cheapest level that meets its ``accuracy_pct``.
@@ -360,22 +365,17 @@ class InverseSolver:
         Linearisations before giving up.
     estimator : VolumeEstimator, optional
         A ready estimator to share (its level wins over ``fidelity``).
-    scene : Scene, optional
-        Accepted only as ``model.scene`` itself, for callers written before models kept their scene
-        (phantom/cli/inverse.py); to be removed with them.
 
-    The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
+    The scene's settings are the model's (:attr:`PhantomModel.model_settings`).
     """
 
-    def __init__(self, model, pressure_max_pa=None, fidelity: str | None = None, max_growth_m3=None,
-                 tolerance: float = 2e-5, max_iterations: int = 15, estimator=None):
-        from phantom.model.fidelity.levels import DEFAULT_PRESSURE_MAX_PA, VolumeEstimator, scene_model_settings
-
+    def __init__(self, model: PhantomModel, pressure_max_pa: float | Sequence[float] | None = None,
+                 fidelity: str | None = None, max_growth_m3: float | Sequence[float | None] | None = None,
+                 tolerance: float = 2e-5, max_iterations: int = 15, estimator: VolumeEstimator | None = None):
         self.model = model
         self.n_chambers = int(model.n_chambers)
-        settings = scene_model_settings(model)
         if pressure_max_pa is None:
-            pressure_max_pa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3)) * 1e3
+            pressure_max_pa = model.model_settings.pressure_max_pa
         self.pressure_max_pa = np.broadcast_to(_finite("pressure_max_pa", pressure_max_pa),
                                                (self.n_chambers,)).astype(float)
         if np.any(self.pressure_max_pa <= 0):
@@ -507,7 +507,8 @@ class InverseSolver:
             problem = self._problems[shape] = VolumeQP(self.n_chambers, n_constraint_rows)
         return problem
 
-    def solve_linearised(self, target: Target, linearisation: Linearisation, anchor_pa: np.ndarray | None = None):
+    def pressures_for_linearisation(self, target: Target, linearisation: Linearisation,
+                                    anchor_pa: np.ndarray | None = None):
         """One QP at ``linearisation``; with ``anchor_pa`` the exact QP's objective is the actuation energy of
         the move from there (``1/2 (x - a)^T W_0 (x - a)``) instead of from zero (see PROXIMAL_AFTER_DAMPING).
 
@@ -519,12 +520,12 @@ class InverseSolver:
         try:
             inputs = self._qp_inputs(rows, exact=True,
                                      anchor_scaled=None if anchor_pa is None else anchor_pa * self.pressure_per_pa)
-            pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).solve(*inputs)
+            pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).minimise(*inputs)
             reached = True
         except _Infeasible:
             inputs = self._qp_inputs(rows, exact=False)
             try:
-                pressures_scaled, closest_time_s = self._problem("closest", rows, inputs[2].shape[0]).solve(*inputs)
+                pressures_scaled, closest_time_s = self._problem("closest", rows, inputs[2].shape[0]).minimise(*inputs)
             except _Infeasible:
                 raise UnreachableTargetError(
                     "the constraints contradict each other: no pressures between the bounds satisfy the growth "
@@ -539,6 +540,7 @@ class InverseSolver:
         at ``linearisation`` (a linear program over the bounds and constraints), the row's volume then evaluated
         at those extreme pressures at the solver's fidelity level (a linearisation made at the pressure limit
         would otherwise extrapolate the low end below the rest volume)."""
+        # scipy.optimize (0.5 s to import) only where an unreachable target's range is reported
         from scipy.optimize import linprog
 
         rows = self._rows(target, linearisation)
@@ -586,7 +588,7 @@ class InverseSolver:
                     "(it would snap through); ask for a smaller volume, or control it by volume")
         return Linearisation(pressures_pa.copy(), chamber_volumes_m3, gland_volume_m3, slope_chamber, slope_gland)
 
-    def solve(self, target: Target) -> InverseResult:
+    def pressures_for(self, target: Target) -> InverseResult:
         """The pressures (Pa) that reach ``target`` with the solver's fidelity level.
 
         Raises
@@ -612,7 +614,7 @@ class InverseSolver:
         for iteration in range(1, self.max_iterations + 1):
             if error < POLISH_RELATIVE_ERROR:
                 proximity = 1.0
-            candidate_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation,
+            candidate_pa, qp_step_s, rows, reached = self.pressures_for_linearisation(target, linearisation,
                                                                            proximity * pressures_pa)
             qp_time_s += qp_step_s
             # The linearisation's answer is where it already stands: its best (closest) pressures.
@@ -678,8 +680,6 @@ class InverseSolver:
     def _evaluate(self, pressures_pa: np.ndarray):
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
         past the limit point."""
-        from phantom.model.errors import SolveError
-
         try:
             return self.estimator.evaluate(pressures_pa)
         except SolveError as error:

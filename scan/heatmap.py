@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from phantom.scan.compare import Comparison, ScanError, subdivide
+from phantom.model.mesh.surface import subdivide
+from phantom.scan.compare import Comparison, ScanError
 
 #: Views: name, direction toward the viewer, and the coordinates shown right and up (a sign flips an axis so
 #: that the picture is not mirrored). x is the patient's left, y anterior, z from apex to base.
@@ -42,6 +43,7 @@ def shaded_faces(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray
 
 def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
     """The model surface coloured by the signed distance to the scan (mm), front and side views, colour bar."""
+    # matplotlib (0.5 s to import) only where a picture is drawn
     import matplotlib
 
     matplotlib.use("Agg")
@@ -82,6 +84,7 @@ def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
 def write_recording(comparison: Comparison, path: str | Path, max_points: int = 200000) -> Path:
     """A Rerun recording: the model surface coloured per vertex (``model``, rr.Mesh3D) and the aligned scan's
     vertices (``scan``, rr.Points3D), in mm in the model's frame."""
+    # matplotlib (0.5 s) and rerun-sdk (a second) only where a recording is written
     import matplotlib
     import rerun as rr
 

@@ -10,14 +10,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from phantom.model import MeshError, PhantomModel, SceneError, load_scene
-from phantom.model.mesh.geometry import ProstateGeometry, wall_thicknesses_mm
-from phantom.model.mesh.prostate import (
-    CHAMBER_ELLIPSOIDS_MM,
-    DEFAULT_SIZE_MM,
-    REST_VOLUME_ML,
-    builtin_prostate,
-    generate_hollow_sphere,
-)
+from phantom.model.mesh.geometry import ProstateGeometry
+from phantom.model.mesh.prostate import CHAMBER_ELLIPSOIDS_MM, DEFAULT_SIZE_MM, builtin_prostate, generate_hollow_sphere
+from phantom.model.mesh.shape import REST_VOLUME_ML, wall_thicknesses_mm
 from phantom.model.mesh.tetmesh import TetMesh, enclosed_volume_m3, prepare_surfaces, read_mesh, write_mesh
 
 PHANTOM = Path(sys.executable).with_name("phantom")

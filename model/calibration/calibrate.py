@@ -30,16 +30,21 @@ import copy
 import csv
 import dataclasses
 import itertools
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from phantom import PhantomError
-from phantom.model.scene import HYPERELASTIC_MODELS
+from phantom.model.calibration.sweep import RayTask, cached_trace, run_sweep
+from phantom.model.errors import MeshError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
+from phantom.model.mesh.shape import check_walls
+from phantom.model.scene import HYPERELASTIC_MODELS, PRESSURE_LIMIT_PA, scene_from_dict
 
-#: Measurements above this gauge pressure (Pa) are outside what the blowers and the model are trusted for.
-PRESSURE_LIMIT_PA = 3000.0
 #: A ray's trace stops once its gland growth exceeds this multiple of the measured growth.
 OVERSHOOT = 1.8
 #: Load-factor steps per rest-compliance estimate of t, and the largest t traced, in those estimates. The
@@ -75,17 +80,26 @@ class Measurements:
     path: str = ""
 
 
-def load_measurements(path, n_chambers: int | None = None) -> Measurements:
+#: The files a ``measured_ml`` entry may name instead of a number: scans of the phantom.
+SCAN_SUFFIXES = (".obj", ".ply", ".stl")
+
+#: The volume (ml) of a scan file (mm): ``phantom.scan.compare.scan_volume_ml``, which the command line passes.
+ScanVolume = Callable[[Path], float]
+
+
+def load_measurements(path: str | Path, n_chambers: int | None = None,
+                      scan_volume_ml: ScanVolume | None = None) -> Measurements:
     """Read a CSV with columns ``p0_kpa, p1_kpa, ..., measured_ml`` (``#`` lines are comments).
 
     A ``measured_ml`` entry may instead name a scan file (.obj, .ply or .stl, in mm, relative to the CSV's
-    folder): its cleaned, watertight volume is used (``phantom.scan.compare.scan_volume_ml``).
+    folder): ``scan_volume_ml(file)`` measures it (``phantom calibrate`` passes the scan comparison's cleaned,
+    watertight volume; the model itself reads no scans).
 
     Raises
     ------
     CalibrationError
         Missing file or columns, non-numeric, non-finite or negative values, a chamber count that does not
-        match the model, or fewer than three rows.
+        match the model, fewer than three rows, or a scan file with no ``scan_volume_ml`` to measure it.
     """
     path = Path(path)
     if not path.is_file():
@@ -110,7 +124,8 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
         row = {key.strip(): value for key, value in row.items() if key is not None}
         try:
             pressures_kpa.append([float(row[name]) for name in pressure_columns])
-            volumes_ml.append(_measured_volume_ml(row["measured_ml"], path.parent))
+            volumes_ml.append(_measured_volume_ml(row["measured_ml"], path.parent, scan_volume_ml,
+                                                  f"{path}, data row {line_number - 1}"))
         except (TypeError, ValueError) as error:
             raise CalibrationError(f"{path}, data row {line_number - 1}: not a number ({error})") from None
     pressures_kpa, volumes_ml = np.array(pressures_kpa), np.array(volumes_ml)
@@ -125,13 +140,14 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
     return Measurements(pressures_kpa * 1e3, volumes_ml * 1e-6, str(path))
 
 
-def _measured_volume_ml(entry: str, folder: Path) -> float:
-    """A ``measured_ml`` entry: a number, or a scan file whose volume is measured."""
+def _measured_volume_ml(entry: str | None, folder: Path, scan_volume_ml: ScanVolume | None, where: str) -> float:
+    """A ``measured_ml`` entry: a number, or a scan file whose volume ``scan_volume_ml`` measures."""
     text = (entry or "").strip()
-    if Path(text).suffix.lower() not in (".obj", ".ply", ".stl"):
+    if Path(text).suffix.lower() not in SCAN_SUFFIXES:
         return float(text)
-    from phantom.scan.compare import scan_volume_ml
-
+    if scan_volume_ml is None:
+        raise CalibrationError(f"{where}: {text} is a scan file, and nothing here measures scans: pass "
+                               "load_measurements a scan_volume_ml (phantom calibrate uses the scan comparison's)")
     return scan_volume_ml(folder / text)
 
 
@@ -160,8 +176,6 @@ class Grid:
 
 def parse_grid(items: list[str]) -> Grid:
     """``["gent_jm=3,6,12", "lobe_chamber_scale=1,1.1,1.2"]`` as a Grid; CalibrationError on a bad item."""
-    from phantom.model.mesh.geometry import ProstateGeometry
-
     known = set(MATERIAL_PARAMETERS) | {f.name for f in dataclasses.fields(ProstateGeometry)
                                         if not isinstance(f.default, tuple)}
     names, values = [], []
@@ -275,6 +289,7 @@ class Responses:
 
 def _fine(trace, load_factors: np.ndarray, values: np.ndarray, monotone: bool) -> np.ndarray:
     """A trace's values on the fine grid: monotone cubic (volumes) or linear (measures), NaN beyond it."""
+    # scipy.interpolate (0.5 s to import) only where traces are put on the fine grid
     from scipy.interpolate import PchipInterpolator
 
     out = np.full(len(load_factors), np.nan)
@@ -329,6 +344,7 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
 
     Raises CalibrationError when no traced state fits every ray while keeping to the constraints.
     """
+    # scipy.optimize (0.5 s to import) only where a fit is refined
     from scipy.optimize import minimize
 
     rays = list(rays)
@@ -521,12 +537,6 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
 
     ``scene`` gives everything else (material law, Poisson ratio, geometry, mesh size); its modulus is E0.
     """
-    from phantom.model import PhantomModel
-    from phantom.model.calibration.sweep import RayTask, run_sweep
-    from phantom.model.errors import MeshError
-    from phantom.model.mesh.geometry import check_walls, geometry_from_table
-    from phantom.model.scene import scene_from_dict
-
     over = measurements.pressures_pa.max()
     if over > PRESSURE_LIMIT_PA:
         raise CalibrationError(f"{measurements.path}: a measurement at {over / 1e3:g} kPa is above the "
@@ -567,8 +577,6 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
                               stop_i1_minus_3=law_limit) for j, p in enumerate(measurements.pressures_pa)]
     if not any(feasible):
         raise CalibrationError("every grid point breaks the wall-thickness limit: shrink the geometry grid")
-    from phantom.model.calibration.sweep import cached_trace
-
     solved_now = sum(cached_trace(task) is None for task in tasks)
     results = iter(run_sweep(tasks, scheduler=scheduler, n_workers=n_workers, progress=progress))
     n_rays = len(measured)
@@ -598,8 +606,6 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
 def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_workers, progress) -> np.ndarray:
     """Gland volumes (m^3) of left-out measurements at their refits' parameters, by full solves (continuation in
     four steps); where the model has no state there (a limit point), the last solved volume, a lower bound."""
-    from phantom.model.calibration.sweep import RayTask, run_sweep
-
     tasks = []
     for refit, left_out in zip(refits, left_outs, strict=True):
         document = scene_with(raw, {name: float(refit.theta[k]) for k, name in enumerate(grid.names)})
@@ -612,8 +618,6 @@ def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_wor
 def _verify(raw, parameters, load_factor, measurements, law, scheduler, n_workers, progress):
     """Full solves of every measurement at the fitted parameters (continuation in four steps to ``t``);
     returns the gland volumes (m^3) and the validity figures, or raises CalibrationError with the reason."""
-    from phantom.model.calibration.sweep import RayTask, run_sweep
-
     document = scene_with(raw, parameters)
     jm = document.get("material", {}).get("gent_jm")
     load_factors = tuple((load_factor * np.array([0.25, 0.5, 0.75, 1.0])).tolist())
@@ -689,8 +693,6 @@ def dump_toml(document: dict, header_comment: str = "") -> str:
 def write_calibrated_scene(scene, result: CalibrationResult, output_path, header_comment: str = "") -> Path:
     """Write ``scene`` with the calibration's material (law, E, parameters) and geometry, its mesh path made
     relative to the new file; returns the path written."""
-    import os
-
     output_path = Path(output_path)
     document = scene_with(scene.raw, result.parameters)
     phantom_table = document.setdefault("phantom", {})

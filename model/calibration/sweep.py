@@ -23,15 +23,21 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import logging
 import os
 import sys
 import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+import phantom
 from phantom import PhantomError
+from phantom.model.errors import SolveError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.scene import scene_from_dict
 
 #: Bump when what a trace computes changes, so cached traces are recomputed.
 SWEEP_VERSION = 1
@@ -103,9 +109,6 @@ def element_stretch_measures(positions_m: np.ndarray, tets: np.ndarray,
 @functools.lru_cache(maxsize=4)
 def _model_of(scene_text: str, mesh_size_mm: float | None):
     """The model of a scene (kept per worker process: the tasks of one grid point share it)."""
-    from phantom.model import PhantomModel
-    from phantom.model.scene import scene_from_dict
-
     model = PhantomModel.from_scene(scene_from_dict(json.loads(scene_text)), mesh_size_mm=mesh_size_mm)
     edges = model.nodes_m[model.tets[:, 1:]] - model.nodes_m[model.tets[:, :1]]
     # Rows of ``edges`` are edge vectors: F = Ds Dm^-1 with Ds, Dm the edge matrices by columns.
@@ -114,8 +117,6 @@ def _model_of(scene_text: str, mesh_size_mm: float | None):
 
 def trace_ray(task: RayTask) -> RayTrace:
     """Trace one ray (see the module docstring); runs on a Dask worker or in the calling process."""
-    from phantom.model import SolveError
-
     started = time.perf_counter()
     model, rest_edge_inverse = _model_of(json.dumps(task.scene_raw, sort_keys=True), task.mesh_size_mm)
     pressures = np.asarray(task.pressures_pa, dtype=float)
@@ -126,7 +127,8 @@ def trace_ray(task: RayTask) -> RayTrace:
             positions_m_here, chambers, gland = model.nodes_m, model.rest_chamber_volumes_m3, model.rest_gland_volume_m3
         else:
             try:
-                state = model.solve(load_factor * pressures, initial_positions_m=positions_m if warm_start else None)
+                state = model.equilibrium(load_factor * pressures,
+                                          initial_positions_m=positions_m if warm_start else None)
             except SolveError as error:
                 stopped = str(error)
                 break
@@ -147,9 +149,7 @@ def trace_ray(task: RayTask) -> RayTrace:
 
 
 # ------------------------------------------------------------------------------------------ cache
-def _cache_path(task: RayTask):
-    import phantom
-
+def _cache_path(task: RayTask) -> Path:
     return phantom.cache_dir("sweeps") / f"{task.key}.npz"
 
 
@@ -193,8 +193,7 @@ def stderr_progress(label: str):
 
 def local_cluster(n_workers: int | None = None):
     """A LocalCluster of single-threaded worker processes (default: one per core), quiet, dashboard on a free port."""
-    import logging
-
+    # dask.distributed (1 s to import) only where a sweep runs
     from dask.distributed import LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
@@ -217,6 +216,7 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
         progress(total - len(missing), total)
     if not missing:
         return results
+    # dask.distributed (1 s to import) only where a sweep has traces to solve
     from dask.distributed import Client, as_completed
 
     cluster = None

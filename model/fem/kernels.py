@@ -26,6 +26,7 @@ import importlib.util
 import os
 import sys
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -673,13 +674,11 @@ def build_compiled() -> Path:
     """Compile the exported kernels ahead of time (numba.pycc, for this machine's CPU) to
     :func:`compiled_kernels_path`, which later imports of this module then use. Needs the JIT kernels (run it
     with ``PHANTOM_JIT_KERNELS=1``, as ``python -m phantom.model.fem.kernels`` does) and a C compiler."""
-    import warnings
-
     if JIT_KERNELS is None:
         raise RuntimeError("build_compiled needs the JIT kernels: set PHANTOM_JIT_KERNELS=1")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # numba.pycc announces its future deprecation
-        from numba.pycc import CC
+        from numba.pycc import CC  # the JIT kernels loaded numba already; pycc only for this build
     path = compiled_kernels_path()
     with tempfile.TemporaryDirectory(dir=path.parent) as build_dir:
         compiler = CC(path.name.split(".")[0])

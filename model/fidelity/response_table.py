@@ -28,22 +28,31 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import multiprocessing
 import os
 import tempfile
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+import phantom
 from phantom import PhantomError
+from phantom.model.arrays import FloatArray
+from phantom.model.errors import SolveError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.scene import DEFAULT_TABLE_POINTS
+
+if TYPE_CHECKING:
+    from scipy.interpolate import CubicSpline
 
 #: Bump when what a table holds or how it is built changes, so stored tables are rebuilt.
 TABLE_VERSION = 1
-#: Grid points per pressure axis: 7^3 = 343 solves (0.5 kPa steps for a 3 kPa limit). On the calibrated model
-#: 5 points missed full solves by up to 3.5 % of a chamber's volume (its cavity's curve has an inflection), 7 by
-#: 0.1-0.2 % (bench/README.md, "The daemon on the calibrated model").
-DEFAULT_POINTS_PER_AXIS = 7
 #: Where each build is checked against full solves (fractions of the pressure limit per chamber): points far
 #: from every node, one near each corner region and one inside.
 CHECK_FRACTIONS = ((0.2, 0.6, 0.9), (0.9, 0.2, 0.6), (0.6, 0.9, 0.2), (0.7, 0.7, 0.7))
@@ -63,9 +72,10 @@ def grid_pa(pressure_max_pa: float, points_per_axis: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _cardinal_splines(points_per_axis: int):
+def _cardinal_splines(points_per_axis: int) -> CubicSpline:
     """The cubic splines (not-a-knot) through the unit vectors on the grid 0, 1, ..., n - 1: row i of their value
     at x is the weight of grid value i in the spline through any values, so a tensor spline is a contraction."""
+    # scipy.interpolate (0.2 s to import) only where a table is evaluated
     from scipy.interpolate import CubicSpline
 
     return CubicSpline(np.arange(points_per_axis, dtype=float), np.eye(points_per_axis))
@@ -144,12 +154,10 @@ class ResponseTable:
         return self._value(self.position_values, np.asarray(pressures_pa, dtype=float))
 
 
-def _solve_slab(model, nodes_pa: np.ndarray, first: int):
+def _solve_slab(model: PhantomModel, nodes_pa: FloatArray, first: int) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The grid points whose first pressure is ``nodes_pa[first]``, in C order, each solved from its neighbour one
     step down the last raised axis (the slab's first point from rest): chamber volumes, gland volumes and node
     positions, shaped like the slab. Runs in a worker process of :func:`build_response_table` or in its own."""
-    from phantom.model.errors import SolveError
-
     n, n_chambers = len(nodes_pa), int(model.n_chambers)
     slab = (n,) * (n_chambers - 1)
     chambers, gland = np.zeros((*slab, n_chambers)), np.zeros(slab)
@@ -166,7 +174,7 @@ def _solve_slab(model, nodes_pa: np.ndarray, first: int):
             axis = max(a for a in range(n_chambers - 1) if index[a] > 0)
             start_m = positions[tuple(i - (a == axis) for a, i in enumerate(index))]
         try:
-            state = model.solve(pressures, initial_positions_m=start_m)
+            state = model.equilibrium(pressures, initial_positions_m=start_m)
         except SolveError as error:
             raise ResponseTableError(
                 f"the model has no equilibrium at {np.round(pressures / 1e3, 3).tolist()} kPa, inside the pressure "
@@ -176,7 +184,7 @@ def _solve_slab(model, nodes_pa: np.ndarray, first: int):
     return chambers, gland, positions
 
 
-def build_response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
+def build_response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
                          progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
     """Solve ``model`` at every node of the grid, one slab of the first pressure per task on ``workers``
     processes (default: the machine's cores, at most one per slab; 1: in this process), then check the
@@ -198,10 +206,6 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     workers = max(1, min(workers or os.cpu_count() or 1, n))
     pending = list(range(n))
     if workers > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-        from concurrent.futures.process import BrokenProcessPool
-
         # spawned, not forked: a daemon's model worker has threads, and a fork copies only the calling one
         try:
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -228,7 +232,7 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     for fractions in CHECK_FRACTIONS:
         pressures = pressure_max_pa * np.asarray(fractions[:n_chambers], dtype=float)
         nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
-        state = model.solve(pressures, initial_positions_m=positions[nearest] if warm_start else None)
+        state = model.equilibrium(pressures, initial_positions_m=positions[nearest] if warm_start else None)
         table_chambers, table_gland = table.volumes(pressures)
         exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
         worst_pct = max(worst_pct, float(np.max(np.abs(np.append(table_chambers, table_gland) - exact) / exact)) * 100)
@@ -238,14 +242,12 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     return dataclasses.replace(table, check_errors_pct=worst_pct, build_time_s=time.perf_counter() - started)
 
 
-def _cache_path(model, pressure_max_pa: float, points_per_axis: int):
-    import phantom
-
+def _cache_path(model: PhantomModel, pressure_max_pa: float, points_per_axis: int) -> Path:
     extra = repr(("response", TABLE_VERSION, model.formulation, float(pressure_max_pa), int(points_per_axis)))
-    return phantom.cache_dir("response") / f"{model._cache_key(extra.encode())}.npz"
+    return phantom.cache_dir("response") / f"{model.cache_key(extra.encode())}.npz"
 
 
-def response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
+def response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
                    progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
     """The model's table: read from the disk cache, else built (:func:`build_response_table`) and stored.
     ``progress(done, total)`` is told how a build goes (nothing is told for a cached table)."""

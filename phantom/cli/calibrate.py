@@ -1,10 +1,11 @@
 """``phantom calibrate``: fit material and geometry to measured volumes (offline, Dask sweep), and
 ``phantom calibrate record``: measure those volumes on a board.
 
-Only argparse is imported at module load; handlers import what they need when they run.
+Only the standard library is imported at module load; handlers import what they need when they run.
 """
 
 import argparse
+from pathlib import Path
 
 #: The grid swept when none is given, per material law: stiffening (Jm) and the chambers' size.
 #: The pressure combinations of the paper's Table I (kPa), the default list to record.
@@ -99,7 +100,6 @@ def _scene_for(args):
 def run_calibrate(args) -> int:
     """Handler of ``phantom calibrate``."""
     import json
-    from pathlib import Path
 
     from phantom import PhantomError
     from phantom.model.calibration.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
@@ -111,7 +111,8 @@ def run_calibrate(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise PhantomError(f"--workers must be at least 1, got {args.workers}")
     scene = _scene_for(args)
-    measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers))
+    measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers),
+                                     scan_volume_ml=_scan_volume_ml)
     grid = parse_grid(args.grid or DEFAULT_GRIDS[scene.material.model])
     result = calibrate(scene, measurements, grid, scheduler=args.scheduler, n_workers=args.workers,
                        progress=stderr_progress("calibrate: tracing the pressure rays"))
@@ -155,6 +156,19 @@ def run_calibrate(args) -> int:
     return 0
 
 
+def _scan_volume_ml(path: Path) -> float:
+    """The cleaned, watertight volume (ml) of a scan file in mm: the scan comparison's, for a measurements CSV
+    or an answer that names a scan (the model reads no scans itself)."""
+    from phantom import PhantomError
+
+    try:
+        from phantom.scan.compare import scan_volume_ml
+    except ImportError:
+        raise PhantomError("scan files need phantom.scan.compare, which this install lacks: give the volume "
+                           "in ml") from None
+    return scan_volume_ml(path, units="mm")
+
+
 def _parse_points(text: str) -> list[list[float]]:
     from phantom import PhantomError
     from phantom.cli.common import parse_numbers
@@ -172,7 +186,6 @@ def _ask_volume_ml(prompt: str) -> float:
     """A volume typed on stdin (ml), or the path of a scan file whose volume phantom.scan.compare measures."""
     import math
     import sys
-    from pathlib import Path
 
     from phantom import PhantomError
 
@@ -187,12 +200,7 @@ def _ask_volume_ml(prompt: str) -> float:
     except ValueError:
         if not Path(answer).is_file():
             raise PhantomError(f"{answer!r} is neither a volume in ml nor a scan file") from None
-        try:
-            from phantom.scan.compare import scan_volume_ml
-        except ImportError:
-            raise PhantomError("scan files need phantom.scan.compare, which this install lacks: type the volume "
-                               "in ml") from None
-        volume_ml = scan_volume_ml(answer, units="mm")
+        volume_ml = _scan_volume_ml(Path(answer))
     if not (math.isfinite(volume_ml) and volume_ml > 0):
         raise PhantomError(f"the volume must be a positive number of ml, got {answer!r}")
     return volume_ml
@@ -225,7 +233,6 @@ def _hold_until_settled(link, point_kpa: list[float], tolerance_kpa: float, sett
 def run_record(args) -> int:
     """Handler of ``phantom calibrate record``."""
     import json
-    from pathlib import Path
 
     from phantom import PhantomError
     from phantom.hil import bench

@@ -7,9 +7,7 @@ import math
 from pathlib import Path
 
 from phantom import PhantomError
-
-#: How people name the three chambers when the scene says nothing (``[phantom] chamber_labels``).
-DEFAULT_CHAMBER_LABELS: tuple[str, ...] = ("base", "left lobe", "right lobe")
+from phantom.model.scene import chamber_labels_of
 
 
 def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float | None]:
@@ -53,15 +51,10 @@ def parse_growth_ratio(text: str, option: str = "--growth-ratio") -> dict[str, f
 
 
 def chamber_labels(scene_raw: dict, chamber_names: list[str]) -> list[str]:
-    """The names people see for the chambers: the scene's ``[phantom] chamber_labels``, else base, left lobe,
-    right lobe for three chambers, else the chambers' surface group names."""
+    """The names people see for the chambers of a scene given as its parsed TOML (the daemon's ModelInfo carries
+    that): :func:`phantom.model.scene.chamber_labels_of`, which a loaded Scene holds as ``chamber_labels``."""
     table = scene_raw.get("phantom", {}) if isinstance(scene_raw, dict) else {}
-    labels = table.get("chamber_labels") if isinstance(table, dict) else None
-    if isinstance(labels, list) and len(labels) == len(chamber_names) and all(isinstance(x, str) for x in labels):
-        return list(labels)
-    if len(chamber_names) == len(DEFAULT_CHAMBER_LABELS):
-        return list(DEFAULT_CHAMBER_LABELS)
-    return list(chamber_names)
+    return chamber_labels_of(table if isinstance(table, dict) else {}, chamber_names)
 
 
 def output_file(path: str | Path, option: str = "--out") -> Path:

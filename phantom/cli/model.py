@@ -89,7 +89,7 @@ def run_forward(args: argparse.Namespace) -> int:
     if len(args.pressures_kpa) != model.n_chambers:
         raise SolveError(f"--pressures-kpa has {len(args.pressures_kpa)} values; the scene has "
                          f"{model.n_chambers} chambers ({', '.join(model.chamber_names)})")
-    state = model.solve([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
+    state = model.equilibrium([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
     total_s = time.perf_counter() - started
     if args.out:
         _write_deformed(model, state, args.out, scene.length_scale_m)
@@ -110,9 +110,7 @@ def run_forward(args: argparse.Namespace) -> int:
             "out": args.out,
         }))
         return 0
-    from phantom.cli.common import chamber_labels
-
-    labels = chamber_labels(scene.raw, list(model.chamber_names))
+    labels = scene.chamber_labels
     print(f"{'chamber':<12} {'pressure kPa':>12} {'rest ml':>9} {'volume ml':>10} {'change ml':>10}")
     for label, pressure, rest, volume in zip(labels, args.pressures_kpa, model.rest_chamber_volumes_m3,
                                              state.chamber_volumes_m3, strict=True):
