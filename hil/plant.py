@@ -22,10 +22,13 @@ import copy
 import math
 import re
 import tomllib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from phantom import PhantomError
 
@@ -70,7 +73,7 @@ class PlantParameters:
     truth_chamber_volume_m3: np.ndarray | None = None
     truth_gland_volume_m3: np.ndarray | None = None
 
-    def truth_gland_volume_ml(self, pressures_pa) -> float | None:
+    def truth_gland_volume_ml(self, pressures_pa: ArrayLike) -> float | None:
         """The truth's gland volume (ml) at these pressures, as the harness interpolates the chambers; None
         without a truth table."""
         if self.truth_gland_volume_m3 is None:
@@ -81,7 +84,7 @@ class PlantParameters:
     @property
     def rest_volume_m3(self) -> np.ndarray:
         """Air volume of each chamber at 0 gauge (m^3): the cavity's plus its tube's."""
-        return self.cavity_volume_m3 + self.tubing_volume_m3
+        return np.asarray(self.cavity_volume_m3 + self.tubing_volume_m3)
 
     def harness_arguments(self) -> list[str]:
         """The ``--param NAME=VALUE`` arguments that give the harness this plant (names as in plant.c)."""
@@ -116,14 +119,14 @@ class PlantParameters:
         return arguments
 
 
-def _section(document: dict, name: str, path: Path) -> dict:
+def _section(document: dict[str, Any], name: str, path: Path) -> dict[str, Any]:
     section = document.get(name)
     if not isinstance(section, dict):
         raise PlantError(f"{path}: missing table [{name}]; see hil/plant.toml for the expected layout")
     return section
 
 
-def _number(section: dict, key: str, where: str, *, positive: bool = False, allow_zero: bool = True) -> float:
+def _number(section: dict[str, Any], key: str, where: str, *, positive: bool = False, allow_zero: bool = True) -> float:
     if key not in section:
         raise PlantError(f"{where}: missing key {key!r}; see hil/plant.toml for the expected layout")
     value = section[key]
@@ -134,7 +137,8 @@ def _number(section: dict, key: str, where: str, *, positive: bool = False, allo
     return float(value)
 
 
-def _per_chamber(section: dict, key: str, where: str, *, positive: bool = False, allow_zero: bool = True) -> np.ndarray:
+def _per_chamber(section: dict[str, Any], key: str, where: str, *, positive: bool = False,
+                 allow_zero: bool = True) -> np.ndarray:
     if key not in section:
         raise PlantError(f"{where}: missing key {key!r} (a list of {N_CHAMBERS} numbers, one per chamber)")
     values = section[key]
@@ -145,14 +149,14 @@ def _per_chamber(section: dict, key: str, where: str, *, positive: bool = False,
     )
 
 
-def _driver_threshold(section: dict, where: str) -> np.ndarray:
+def _driver_threshold(section: dict[str, Any], where: str) -> np.ndarray:
     values = _per_chamber(section, "driver_threshold", where, positive=True)
     if np.any(values >= 1):
         raise PlantError(f"{where}.driver_threshold: must be below 1 (a drive level), got {values.tolist()}")
     return values
 
 
-def blower_flow_m3_per_s(plant: PlantParameters, drive, pressure_pa) -> np.ndarray:
+def blower_flow_m3_per_s(plant: PlantParameters, drive: ArrayLike, pressure_pa: ArrayLike) -> np.ndarray:
     """Air each blower delivers (m^3/s at atmospheric conditions) at drive levels u in [0, 1] against gauge
     pressures p: the driver's amplitude a = max(u - u0, 0) / (1 - u0) scales both the free flow and the blocked
     pressure, Q = Q_max max(a - p / p_blocked, 0). The same law as the harness's plant.c, for tests and benches."""
@@ -162,7 +166,7 @@ def blower_flow_m3_per_s(plant: PlantParameters, drive, pressure_pa) -> np.ndarr
     return np.where(amplitude > 0, flow, 0.0)  # a blower that does not run pumps nothing, even against suction
 
 
-def _compliance(section: dict, where: str) -> np.ndarray:
+def _compliance(section: dict[str, Any], where: str) -> np.ndarray:
     key = "compliance_ml_per_kpa"
     rows = section.get(key)
     if (
@@ -239,7 +243,7 @@ def _plant_from_text(text: str, path: Path) -> PlantParameters:
     )
 
 
-def _truth(chambers: dict, where: str) -> dict:
+def _truth(chambers: dict[str, Any], where: str) -> dict[str, Any]:
     """The optional truth table of [chambers] in SI units (empty when the file has none)."""
     keys = ("truth_step_kpa", "truth_chamber_volume_ml", "truth_gland_volume_ml")
     present = [key for key in keys if key in chambers]
@@ -381,14 +385,15 @@ class TruthTable:
     """Chamber and gland volumes (ml) of a truth model on the grid TRUTH_POINTS_KPA^3 (index i, j, k = the
     pressures of chambers 0, 1, 2), and what it is."""
 
-    points_kpa: tuple
+    points_kpa: tuple[float, ...]
     chamber_volume_ml: np.ndarray   # (n, n, n, 3)
     gland_volume_ml: np.ndarray     # (n, n, n)
     description: str
 
 
 def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
-                           scheduler: str | None = None, progress=None) -> TruthTable:
+                           scheduler: str | None = None,
+                           progress: Callable[[int, int], None] | None = None) -> TruthTable:
     """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point (Dask tasks,
     cached: :mod:`phantom.model.calibration.sweep`)."""
     # the FEM's and Dask's stacks load only when a truth table is made, not when a plant is read
@@ -438,7 +443,7 @@ def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParam
     return plant
 
 
-def trilinear(table: np.ndarray, points_kpa, pressures_kpa) -> np.ndarray:
+def trilinear(table: np.ndarray, points_kpa: ArrayLike, pressures_kpa: Sequence[float] | np.ndarray) -> np.ndarray:
     """The table (n, n, n, ...) at pressures (kPa, one per chamber), trilinear inside, the edge cell's linear
     extension outside (as plant.c does)."""
     points = np.asarray(points_kpa, dtype=float)

@@ -34,7 +34,6 @@ from typing import Any
 import numpy as np
 
 from phantom import PhantomError
-from phantom.cli.common import chamber_labels
 from phantom.host.api import ApiError, ApiServer, default_socket_path
 from phantom.host.config import DaemonConfig
 from phantom.host.estimation import EstimateRequest, EstimateSchedule
@@ -104,7 +103,7 @@ class Daemon:
         self.started_s = clock()
         self.recording = bool(config.rerun_save or config.rerun_connect)
         self.chamber_names = list(model.info.chamber_names)
-        self.chamber_labels = chamber_labels(model.info.scene_raw, self.chamber_names)
+        self.chamber_labels = list(model.info.chamber_labels)
         self.control_state = ControlState.IDLE
         self.target: Target | None = None
         self.target_source: str | None = None

@@ -155,9 +155,11 @@ def build_progress(report: Callable[[str], None], every_s: float = 10.0) -> Call
 
 @dataclass(frozen=True)
 class ModelInfo:
-    """What the daemon knows about the model in the worker."""
+    """What the daemon knows about the model in the worker (``scene_raw``: the scene's TOML, whose ``[[steps]]``
+    and ``[timeline]`` the daemon plays)."""
 
     chamber_names: list[str]
+    chamber_labels: list[str]
     rest_volume_ml: float
     timings_s: dict[str, float]
     fidelity: str
@@ -224,9 +226,9 @@ def _worker_start(scene_source: str) -> ModelInfo:
     """In the worker: build the model; return what the daemon needs to know about it."""
     global _worker_model
     _worker_model = model = LoadedModel(scene_source)
-    return ModelInfo(model.chamber_names, model.rest_volume_ml, model.timings_s, model.estimator.level,
-                     model.scene.raw, str(model.scene.path), model.pressure_max_pa, model.wants_shape,
-                     model.effective_model())
+    return ModelInfo(model.chamber_names, list(model.scene.chamber_labels), model.rest_volume_ml, model.timings_s,
+                     model.estimator.level, model.scene.raw, str(model.scene.path), model.pressure_max_pa,
+                     model.wants_shape, model.effective_model())
 
 
 def _worker_pressures_for(target: Target) -> InverseResult:

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from phantom import PhantomError
-from phantom.cli.common import chamber_labels, output_file
+from phantom.cli.common import output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
 from phantom.host.scene_runner import SceneRunner
 from phantom.model.errors import SceneError
@@ -239,10 +239,7 @@ def test_under_systemd_levels_are_journald_priorities_on_every_line(capfd, monke
     configure_logging("info")
 
 
-def test_chamber_labels_and_output_files(tmp_path):
-    assert chamber_labels({}, CHAMBERS) == ["base", "left lobe", "right lobe"]
-    assert chamber_labels({"phantom": {"chamber_labels": ["a", "b", "c"]}}, CHAMBERS) == ["a", "b", "c"]
-    assert chamber_labels({}, ["x", "y"]) == ["x", "y"]
+def test_output_files_get_their_folders(tmp_path):
     assert output_file(tmp_path / "new" / "deeper" / "out.json") == tmp_path / "new" / "deeper" / "out.json"
     assert (tmp_path / "new" / "deeper").is_dir()
     (tmp_path / "file").write_text("")
@@ -270,7 +267,8 @@ class PartsStandIn:
         from phantom.host.model_worker import ModelInfo
 
         self.calls: list[tuple] = []
-        info = ModelInfo(CHAMBERS, 26.1, {"total_s": 1.0}, "updated", {}, "scene.toml", 3000.0, scene_shape, {})
+        info = ModelInfo(CHAMBERS, ["base", "left lobe", "right lobe"], 26.1, {"total_s": 1.0}, "updated", {},
+                         "scene.toml", 3000.0, scene_shape, {})
         parts = self
 
         class Model:

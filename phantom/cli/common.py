@@ -1,5 +1,5 @@
 """Values the ``phantom`` subcommands of every part parse and print the same way: number lists, growth ratios,
-chamber labels, output folders. A neutral module, so that no part imports another's command line."""
+output folders. A neutral module, so that no part imports another's command line."""
 
 from __future__ import annotations
 
@@ -7,7 +7,6 @@ import math
 from pathlib import Path
 
 from phantom import PhantomError
-from phantom.model.scene import chamber_labels_of
 
 
 def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float | None]:
@@ -48,13 +47,6 @@ def parse_growth_ratio(text: str, option: str = "--growth-ratio") -> dict[str, f
         assert value is not None  # allow_free is off
         ratio[name.strip()] = value
     return ratio
-
-
-def chamber_labels(scene_raw: dict, chamber_names: list[str]) -> list[str]:
-    """The names people see for the chambers of a scene given as its parsed TOML (the daemon's ModelInfo carries
-    that): :func:`phantom.model.scene.chamber_labels_of`, which a loaded Scene holds as ``chamber_labels``."""
-    table = scene_raw.get("phantom", {}) if isinstance(scene_raw, dict) else {}
-    return chamber_labels_of(table if isinstance(table, dict) else {}, chamber_names)
 
 
 def output_file(path: str | Path, option: str = "--out") -> Path:

@@ -5,14 +5,20 @@ handlers import what they need when they run. The ``phantom daemon`` flags are b
 dataclass, as are the config file's keys, so that the two cannot differ.
 """
 
+from __future__ import annotations
+
 import argparse
 from collections.abc import Callable
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 from phantom.host.config import ConfigError, SettingField, checked, settings
 
+if TYPE_CHECKING:
+    from phantom.host.client import DaemonClient
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     daemon = subparsers.add_parser("daemon", help="run the host daemon (link, control, scenes, Rerun, local API)",
                                    description="Run the host daemon in the foreground until SIGTERM/SIGINT, "
@@ -102,15 +108,13 @@ def _add_socket(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(socket.flag, metavar=socket.setting.metavar, help=socket.setting.help)
 
 
-def _socket(args):
-    from pathlib import Path
-
+def _socket(args: argparse.Namespace) -> Path:
     from phantom.host.api import default_socket_path
 
     return Path(args.socket) if args.socket else default_socket_path()
 
 
-def _client(args):
+def _client(args: argparse.Namespace) -> DaemonClient:
     from phantom.host.client import DaemonClient
 
     return DaemonClient(_socket(args))
@@ -179,7 +183,7 @@ def _simulated_board(speed: float) -> Any:
     return SimulatedBoard(speed=speed)
 
 
-def _run_sim_board(args) -> int:
+def _run_sim_board(args: argparse.Namespace) -> int:
     import json
     import signal
     import threading
@@ -200,11 +204,11 @@ def _run_sim_board(args) -> int:
     return 0
 
 
-def _labels(status: dict) -> list[str]:
+def _labels(status: dict[str, Any]) -> list[str]:
     return status.get("chamber_labels") or status.get("chambers") or []
 
 
-def _run_status(args) -> int:
+def _run_status(args: argparse.Namespace) -> int:
     import json
 
     with _client(args) as client:
@@ -216,21 +220,21 @@ def _run_status(args) -> int:
     return 0
 
 
-def _kpa(values) -> str:
+def _kpa(values: list[float] | None) -> str:
     return "-" if values is None else " ".join(f"{value:6.3f}" for value in values)
 
 
-def _ml(value) -> str:
+def _ml(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f} ml"
 
 
-def _per_chamber(values, digits: int = 3, width: int = 11) -> str:
+def _per_chamber(values: list[float | None] | None, digits: int = 3, width: int = 11) -> str:
     if values is None:
         return "-"
     return " ".join(f"{value:>{width}.{digits}f}" if value is not None else f"{'free':>{width}}" for value in values)
 
 
-def format_status(status: dict) -> str:
+def format_status(status: dict[str, Any]) -> str:
     """A few readable lines of a status answer, one column per chamber (named as the scene names them)."""
     link = status["link_detail"]
     board = link.get("board") or {}
@@ -259,7 +263,7 @@ def format_status(status: dict) -> str:
     return "\n".join(lines)
 
 
-def _run_set(args) -> int:
+def _run_set(args: argparse.Namespace) -> int:
     import json
 
     from phantom import PhantomError
@@ -289,7 +293,7 @@ def _run_set(args) -> int:
     return 0
 
 
-def format_simple(method: str, result: dict) -> str:
+def format_simple(method: str, result: dict[str, Any]) -> str:
     """The text answer of vent, clear-fault and zero."""
     if method == "vent":
         return "vented: every setpoint is 0; the target and any scene are dropped"
@@ -300,7 +304,7 @@ def format_simple(method: str, result: dict) -> str:
     return f"faults cleared: {cleared}{restored}"
 
 
-def _run_simple(args) -> int:
+def _run_simple(args: argparse.Namespace) -> int:
     import json
 
     with _client(args) as client:
@@ -309,14 +313,14 @@ def _run_simple(args) -> int:
     return 0
 
 
-def format_steps(steps: list[dict]) -> str:
+def format_steps(steps: list[dict[str, Any]]) -> str:
     """The table ``make demo`` prints: each step's target, reached volume, error and time to reach it; a true
     (simulated plant) volume column when the steps have one."""
     with_true = any(step.get("true_volume_ml") is not None for step in steps)
     lines = [f"{'step':>4} {'at (s)':>7} {'target':<34} {'target ml':>9} {'reached ml':>10} {'error %':>8} "
              f"{'time to 1 % (s)':>15}" + (f" {'true ml':>8}" if with_true else "")]
     for step in steps:
-        def number(value, digits=2):
+        def number(value: float | None, digits: int = 2) -> str:
             return "-" if value is None else f"{value:.{digits}f}"
         lines.append(f"{step['index']:>4} {step['at_s']:>7.1f} {step['target']:<34} "
                      f"{number(step['target_volume_ml']):>9} {number(step['reached_volume_ml']):>10} "
@@ -325,7 +329,7 @@ def format_steps(steps: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def follow_scene(client, name: str, time_scale: float, poll_s: float = 0.5) -> dict:
+def follow_scene(client: DaemonClient, name: str, time_scale: float, poll_s: float = 0.5) -> dict[str, Any]:
     """Poll the daemon's status until the scene ``name`` has finished, showing its progress on stderr.
 
     Returns the last status (its ``scene`` holds each step's record). Raises when another request replaced
@@ -337,7 +341,7 @@ def follow_scene(client, name: str, time_scale: float, poll_s: float = 0.5) -> d
     from phantom import PhantomError
 
     while True:
-        status = client.call("status")
+        status: dict[str, Any] = client.call("status")
         scene = status["scene"]
         if scene is None or scene["name"] != name:
             raise PhantomError("the scene was replaced by another request before it finished")
@@ -350,7 +354,7 @@ def follow_scene(client, name: str, time_scale: float, poll_s: float = 0.5) -> d
         time.sleep(poll_s)
 
 
-def _run_scene(args) -> int:
+def _run_scene(args: argparse.Namespace) -> int:
     import json
     import sys
     from pathlib import Path
@@ -383,7 +387,7 @@ def watch_header(labels: list[str]) -> str:
             "gland volume -> target  faults")
 
 
-def _run_watch(args) -> int:
+def _run_watch(args: argparse.Namespace) -> int:
     import json
 
     printed = 0

@@ -5,10 +5,18 @@ The same checks run against the firmware in simavr (``--sim``) or a real board (
 load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from phantom.hil.link import BoardLink
+    from phantom.hil.sim import SimulatedBoard
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     hil = subparsers.add_parser(
         "hil",
@@ -17,7 +25,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     checks = hil.add_subparsers(dest="check", metavar="COMMAND", required=True)
 
-    def add_check(name: str, help_text: str, handler) -> argparse.ArgumentParser:
+    def add_check(name: str, help_text: str, handler: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
         parser = checks.add_parser(name, help=help_text, description=help_text)
         target = parser.add_mutually_exclusive_group(required=True)
         target.add_argument("--sim", action="store_true", help="run the firmware image in simavr against the plant")
@@ -81,12 +89,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 class _Bench:
     """The link (and the simulated board, with --sim) for one command."""
 
-    def __init__(self, args):
+    def __init__(self, args: argparse.Namespace):
         self.args = args
-        self.board = None
-        self.link = None
+        self.board: SimulatedBoard | None = None
+        self._link: BoardLink | None = None
 
-    def __enter__(self):
+    @property
+    def link(self) -> BoardLink:
+        """The link to the board (inside the ``with``)."""
+        if self._link is None:
+            raise RuntimeError("the bench's link is open only inside its with block")
+        return self._link
+
+    def __enter__(self) -> _Bench:
         from phantom.hil.link import BoardLink
         from phantom.hil.sim import SimulatedBoard
         from phantom.protocol.link import BOOT_DELAY_S
@@ -97,21 +112,22 @@ class _Bench:
             boot_delay_s = max(BOOT_DELAY_S.values())
         if self.args.sim:
             _progress("starting the firmware in simavr")
-            self.board = SimulatedBoard(self.args.elf, self.args.plant, speed=self.args.speed, seed=self.args.seed)
-            self.board.start()
-            port, scale = self.board.port, (self.args.speed or 1.0)
+            board = self.board = SimulatedBoard(self.args.elf, self.args.plant, speed=self.args.speed,
+                                                seed=self.args.seed)
+            board.start()
+            port, scale = board.port, (self.args.speed or 1.0)
             boot_delay_s = BOOT_DELAY_S["sim"]
-        self.link = BoardLink(port, baudrate=self.args.baud, time_scale=scale, boot_delay_s=boot_delay_s)
+        self._link = BoardLink(port, baudrate=self.args.baud, time_scale=scale, boot_delay_s=boot_delay_s)
         return self
 
-    def __exit__(self, *exc_info):
-        if self.link is not None:
-            self.link.close()
+    def __exit__(self, *exc_info: object) -> None:
+        if self._link is not None:
+            self._link.close()
         if self.board is not None:
             self.board.stop()
 
 
-def _fault_line(result: dict) -> str:
+def _fault_line(result: dict[str, Any]) -> str:
     """One line of `phantom hil faults` for one fault check's result."""
     if "skipped" in result:
         return f"{result['fault']}: skipped ({result['skipped']})"
@@ -132,14 +148,14 @@ def _progress(message: str) -> None:
     print(f"phantom hil: {message}", file=sys.stderr, flush=True)
 
 
-def _emit(args, result: dict, lines: list[str]) -> int:
+def _emit(args: argparse.Namespace, result: dict[str, Any], lines: list[str]) -> int:
     import json
 
     print(json.dumps(result, indent=1) if args.json else "\n".join(lines))
     return 0 if result.get("passed", True) else 1
 
 
-def _run_handshake(args) -> int:
+def _run_handshake(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     with _Bench(args) as b:
@@ -148,7 +164,7 @@ def _run_handshake(args) -> int:
     return _emit(args, result, lines)
 
 
-def _run_step(args) -> int:
+def _run_step(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from phantom import PhantomError
@@ -172,7 +188,7 @@ def _run_step(args) -> int:
     return _emit(args, result, lines)
 
 
-def _run_faults(args) -> int:
+def _run_faults(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     results = []
@@ -185,7 +201,7 @@ def _run_faults(args) -> int:
     return _emit(args, {"passed": passed, "faults": results}, lines)
 
 
-def _run_noise(args) -> int:
+def _run_noise(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     with _Bench(args) as b:
@@ -193,7 +209,7 @@ def _run_noise(args) -> int:
     return _emit(args, result, [f"{key}: {value}" for key, value in result.items()])
 
 
-def _run_watchdog(args) -> int:
+def _run_watchdog(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     with _Bench(args) as b:
@@ -201,7 +217,7 @@ def _run_watchdog(args) -> int:
     return _emit(args, result, [f"{key}: {value}" for key, value in result.items()])
 
 
-def _run_report(args) -> int:
+def _run_report(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from phantom.hil import bench
@@ -222,7 +238,7 @@ def _run_report(args) -> int:
     return _emit(args, {"passed": passed, **report}, [(out / "report.md").read_text()])
 
 
-def _run_cycles(args) -> int:
+def _run_cycles(args: argparse.Namespace) -> int:
     from phantom import PhantomError
     from phantom.hil import bench
 
