@@ -255,6 +255,27 @@ def test_the_model_package_does_not_import_the_host_package():
     assert loaded == []
 
 
+def test_the_daemon_loads_neither_the_hil_package_nor_the_command_line():
+    """The host is joined to the simulated board by the command line, which passes the board's factory."""
+    code = ("import sys, json, phantom.host.daemon, phantom.host.handlers; "
+            "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('phantom.hil', 'phantom.cli')))))")
+    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                       check=True).stdout)
+    assert loaded == []
+
+
+def test_a_daemon_told_to_simulate_without_a_board_factory_refuses_before_it_takes_the_socket(tmp_path):
+    import asyncio
+
+    from phantom.host.config import DaemonConfig
+    from phantom.host.daemon import Daemon
+
+    config = DaemonConfig(sim=True, socket=tmp_path / "d.sock")
+    with pytest.raises(PhantomError, match="cannot simulate a board: start the daemon with `phantom daemon --sim`"):
+        asyncio.run(Daemon.start(config))
+    assert not (tmp_path / "d.sock").exists()
+
+
 # --- the daemon's wiring, one layer, with stand-ins for the parts it is given ---------------------------------
 
 class PartsStandIn:

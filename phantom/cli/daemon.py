@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 from phantom.host.config import ConfigError, SettingField, checked, settings
 
 if TYPE_CHECKING:
+    from phantom.hil.sim import SimulatedBoard
     from phantom.host.client import DaemonClient
 
 
@@ -176,8 +177,9 @@ def _run_daemon(args: argparse.Namespace) -> int:
     return run_daemon(config, simulated_board=_simulated_board if config.sim else None)
 
 
-def _simulated_board(speed: float) -> Any:
-    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant."""
+def _simulated_board(speed: float) -> SimulatedBoard:
+    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant (mypy checks it
+    against the host's ``SimulatedBoard`` Protocol where it is passed)."""
     from phantom.hil.sim import SimulatedBoard
 
     return SimulatedBoard(speed=speed)
