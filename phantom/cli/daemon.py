@@ -36,8 +36,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Run the simulated board (the real firmware in simavr against the pneumatic plant) on its own "
         "until SIGTERM/SIGINT, and print its serial port: a daemon started with --port PORT drives it like a "
         "real board, and can be killed to see the board vent at its dead-host deadline.")
-    sim_board.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
-                           help="speed-up of the simulated time (default 1: real time)")
+    speed = _setting("sim_speed")  # the daemon's own setting: the same range and help
+    sim_board.add_argument(speed.flag, dest=speed.name, type=_flag_value(speed), default=speed.default,
+                           metavar=speed.setting.metavar, help=_flag_help(speed))
     sim_board.add_argument("--json", action="store_true", help="print {\"port\": ...} as JSON")
     sim_board.set_defaults(run=_run_sim_board)
 
@@ -103,9 +104,13 @@ def _add_json(parser: argparse.ArgumentParser, text: str) -> None:
     parser.add_argument("--json", action="store_true", help=text)
 
 
+def _setting(name: str) -> SettingField:
+    return next(item for item in settings() if item.name == name)
+
+
 def _add_socket(parser: argparse.ArgumentParser) -> None:
     """A client's --socket: the daemon's own setting, with its help."""
-    socket = next(item for item in settings() if item.name == "socket")
+    socket = _setting("socket")
     parser.add_argument(socket.flag, metavar=socket.setting.metavar, help=socket.setting.help)
 
 
