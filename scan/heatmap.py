@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from phantom.model.mesh.surface import subdivide
 from phantom.scan.compare import Comparison, ScanError
+
+if TYPE_CHECKING:
+    from matplotlib.colors import Colormap, Normalize
 
 #: Views: name, direction toward the viewer, and the coordinates shown right and up (a sign flips an axis so
 #: that the picture is not mirrored). x is the patient's left, y anterior, z from apex to base.
@@ -24,7 +28,7 @@ def colour_limit_mm(signed_mm: np.ndarray) -> float:
 
 
 def shaded_faces(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray, toward_viewer: np.ndarray,
-                 colour_map, norm) -> tuple[np.ndarray, np.ndarray]:
+                 colour_map: Colormap, norm: Normalize) -> tuple[np.ndarray, np.ndarray]:
     """The faces that face the viewer, far to near (painter's order), with their colour times a Lambert
     shading (light from the viewer's upper left)."""
     a, b, c = (vertices[triangles[:, k]] for k in range(3))

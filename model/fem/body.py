@@ -19,7 +19,7 @@ import hashlib
 import os
 import tempfile
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -375,7 +375,7 @@ class SolidBody:
         if factorization.cholesky is not None:
             handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
             os.close(handle)
-            arrays = factorization.cholesky.arrays()
+            arrays: dict[str, Any] = factorization.cholesky.arrays()
             arrays["indices"] = arrays["indices"].astype(np.int32)
             np.savez(temporary, youngs_modulus_pa=self.material.youngs_modulus_pa, **arrays)
             os.replace(temporary, path)

@@ -5,11 +5,20 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal, overload
 
 from phantom import PhantomError
 
 
-def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float | None]:
+@overload
+def parse_numbers(text: str, option: str, allow_free: Literal[False] = False) -> list[float]: ...
+
+
+@overload
+def parse_numbers(text: str, option: str, allow_free: bool) -> list[float | None]: ...
+
+
+def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float] | list[float | None]:
     """A comma-separated list of finite numbers given to ``option``, e.g. ``1,1.5,0``.
 
     With ``allow_free``, ``-`` (or an empty item) stands for "no value" and gives ``None``.
@@ -43,9 +52,7 @@ def parse_growth_ratio(text: str, option: str = "--growth-ratio") -> dict[str, f
         name, separator, weight = pair.partition("=")
         if not separator or not name.strip():
             raise PhantomError(f"{option} takes NAME=WEIGHT pairs like chamber1=2,chamber2=1; got {pair!r}")
-        value = parse_numbers(weight, option)[0]
-        assert value is not None  # allow_free is off
-        ratio[name.strip()] = value
+        ratio[name.strip()] = parse_numbers(weight, option)[0]
     return ratio
 
 

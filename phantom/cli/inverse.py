@@ -1,4 +1,4 @@
-"""Subcommand of ``phantom``: ``inverse`` (pressures for a wanted volume); ``calibrate`` is in calibrate_cli.
+"""Subcommand of ``phantom``: ``inverse`` (pressures for a wanted volume); ``calibrate`` is in calibrate.py.
 
 Only argparse is imported at module load; handlers import what they need when they run.
 """

@@ -139,7 +139,7 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
     model = PhantomModel.from_scene(load_scene(args.scene))
     if args.modulus_factor != 1.0:
         model = model.with_material(youngs_modulus_pa=args.modulus_factor * model.material.youngs_modulus_pa)
-    state = model.equilibrium([float(p) * 1e3 for p in pressures_kpa if p is not None])
+    state = model.equilibrium([p * 1e3 for p in pressures_kpa])
     rng = np.random.default_rng(args.seed)
     scan = make_scan(model_surface(state.positions_m, model.outer_triangles), rng, levels=args.levels,
                      noise_mm=args.noise_mm, holes=args.holes, fragment=True, rotation=random_rotation(rng),
