@@ -247,21 +247,21 @@ def test_output_files_get_their_folders(tmp_path):
         output_file(tmp_path / "file" / "out.json")
 
 
+def modules_loaded(imports: str, prefixes: tuple[str, ...]) -> list[str]:
+    """The modules under ``prefixes`` that a fresh interpreter has loaded after ``import <imports>``."""
+    code = (f"import sys, json, {imports}; "
+            f"print(json.dumps(sorted(m for m in sys.modules if m.startswith({prefixes!r}))))")
+    return json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                     check=True).stdout)
+
+
 def test_the_model_package_does_not_import_the_host_package():
-    code = ("import sys, phantom.model.inverse, phantom.cli.inverse, phantom.cli.model; "
-            "import json; print(json.dumps(sorted(m for m in sys.modules if m.startswith('phantom.host'))))")
-    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                       check=True).stdout)
-    assert loaded == []
+    assert modules_loaded("phantom.model.inverse, phantom.cli.inverse, phantom.cli.model", ("phantom.host",)) == []
 
 
 def test_the_daemon_loads_neither_the_hil_package_nor_the_command_line():
     """The host is joined to the simulated board by the command line, which passes the board's factory."""
-    code = ("import sys, json, phantom.host.daemon, phantom.host.handlers; "
-            "print(json.dumps(sorted(m for m in sys.modules if m.startswith(('phantom.hil', 'phantom.cli')))))")
-    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                       check=True).stdout)
-    assert loaded == []
+    assert modules_loaded("phantom.host.daemon, phantom.host.handlers", ("phantom.hil", "phantom.cli")) == []
 
 
 def test_a_daemon_told_to_simulate_without_a_board_factory_refuses_before_it_takes_the_socket(tmp_path):
