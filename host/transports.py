@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from phantom import PhantomError, require_extra
+from phantom.protocol.framing import cobs_decode, cobs_encode
 
 #: Arbitration-id bases of the CAN mapping.
 CAN_ID_HOST_TO_BOARD = 0x100
@@ -197,7 +198,7 @@ class CanTransport:
         bench peers).
     """
 
-    def __init__(self, channel: str, interface: str = "socketcan", role: str = "host", **bus_options):
+    def __init__(self, channel: str, interface: str = "socketcan", role: str = "host", **bus_options: Any):
         if role not in ("host", "board"):
             raise ValueError(f"role must be 'host' or 'board', got {role!r}")
         self.channel = channel
@@ -225,8 +226,6 @@ class CanTransport:
 
     async def read(self) -> bytes:
         """Wire bytes of the next complete message (COBS-encoded, delimited, for the FrameReader)."""
-        from phantom.protocol.framing import cobs_encode
-
         while True:
             if self._reader is None:
                 raise TransportLost(f"{self.description} is closed")
@@ -241,8 +240,6 @@ class CanTransport:
         """Send one wire frame as its CAN segments."""
         with require_extra("can"):
             import can
-
-        from phantom.protocol.framing import cobs_decode
 
         if self._bus is None:
             raise TransportLost(f"{self.description} is closed")

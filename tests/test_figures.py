@@ -13,9 +13,6 @@ from phantom.cli.main import build_parser
 
 REPO = Path(__file__).resolve().parent.parent
 IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s]+\.png)\)")
-#: `phantom` subcommands the figures use that the parallel layout work adds. Each must still be missing; the lead
-#: removes it at the merge.
-PENDING_COMMANDS: frozenset[str] = frozenset()
 
 
 @functools.cache
@@ -55,10 +52,6 @@ def test_each_figure_command_exists():
     for figure in module.FIGURES:
         for command in figure.commands:
             if command[0] == module.PHANTOM:
-                if command[1] in PENDING_COMMANDS:
-                    with pytest.raises(SystemExit):
-                        parser.parse_args(list(command[1:]))
-                    continue
                 parser.parse_args(list(command[1:]))
             elif command[0] == module.PYTHON:
                 assert (REPO / command[1]).is_file(), command

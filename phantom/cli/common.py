@@ -1,5 +1,5 @@
 """Values the ``phantom`` subcommands of every part parse and print the same way: number lists, growth ratios,
-chamber labels, output folders. A neutral module, so that no part imports another's command line."""
+output folders. A neutral module, so that no part imports another's command line."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import Literal, overload
 
 from phantom import PhantomError
-from phantom.model.scene import chamber_labels_of
 
 
 @overload
@@ -55,13 +54,6 @@ def parse_growth_ratio(text: str, option: str = "--growth-ratio") -> dict[str, f
             raise PhantomError(f"{option} takes NAME=WEIGHT pairs like chamber1=2,chamber2=1; got {pair!r}")
         ratio[name.strip()] = parse_numbers(weight, option)[0]
     return ratio
-
-
-def chamber_labels(scene_raw: dict, chamber_names: list[str]) -> list[str]:
-    """The names people see for the chambers of a scene given as its parsed TOML (the daemon's ModelInfo carries
-    that): :func:`phantom.model.scene.chamber_labels_of`, which a loaded Scene holds as ``chamber_labels``."""
-    table = scene_raw.get("phantom", {}) if isinstance(scene_raw, dict) else {}
-    return chamber_labels_of(table if isinstance(table, dict) else {}, chamber_names)
 
 
 def output_file(path: str | Path, option: str = "--out") -> Path:

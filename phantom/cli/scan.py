@@ -4,10 +4,12 @@ synthetic`` (a scan of the model with known damage, to try compare-scan on).
 Only argparse is imported at module load; the handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``compare-scan`` to the ``phantom`` parser."""
     compare = subparsers.add_parser(
         "compare-scan", help="compare a 3D scan (OBJ, PLY, STL) with the model's shape at given pressures",
