@@ -39,7 +39,7 @@ def library_layers_loss(params, statistics, config, occupancy, key, kld_weight):
     x = occupancy[..., None]
     for layer, running in zip(params["encoder"], statistics["encoder"], strict=True):
         x = lax.conv_general_dilated(x, layer["weight"], (2, 2, 2), ((1, 1),) * 3, dimension_numbers=numbers)
-        x, _ = network._batch_norm(x + layer["bias"], layer, running, config, True)
+        x, _ = network.batch_norm(x + layer["bias"], layer, running, config, True)
         x = jax.nn.leaky_relu(x, config.negative_slope)
     h = x.reshape(x.shape[0], -1) @ params["latent"]["weight"] + params["latent"]["bias"]
     mean, log_variance = h[:, :config.latent_dim], h[:, config.latent_dim:]
@@ -53,7 +53,7 @@ def library_layers_loss(params, statistics, config, occupancy, key, kld_weight):
         y = lax.conv_transpose(y, weight, (2, 2, 2), "SAME", dimension_numbers=numbers)
         y = y + layer["bias"][: weight.shape[-1]]
         if level < len(statistics["decoder"]):
-            y, _ = network._batch_norm(y, layer, statistics["decoder"][level], config, True)
+            y, _ = network.batch_norm(y, layer, statistics["decoder"][level], config, True)
             y = jax.nn.leaky_relu(y, config.negative_slope)
     logits = y[..., 0]
     bce = (jnp.maximum(logits, 0) - logits * occupancy + jnp.log1p(jnp.exp(-jnp.abs(logits)))).sum(axis=(1, 2, 3))

@@ -31,14 +31,19 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import pairwise
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from phantom import PhantomError
+from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
 from phantom.model.fem.model import PhantomModel
-from phantom.model.fidelity.levels import VolumeEstimator
+from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
+
+if TYPE_CHECKING:
+    import scipy.sparse
 
 #: Millilitres per cubic metre and pascals per kilopascal, for messages and the people's units of to_json.
 ML_PER_M3 = 1e6
@@ -238,27 +243,29 @@ class Linearisation:
                 float(self.gland_volume_m3 + self.gland_m3_per_pa @ step_pa))
 
 
-def _finite(name: str, values) -> np.ndarray:
+def _finite(name: str, values: ArrayLike) -> FloatArray:
     array = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(array)):
         raise PhantomError(f"{name} must be finite numbers, got {np.asarray(values).tolist()}")
     return array
 
 
-def _dense_csc_pattern(matrix: np.ndarray, upper: bool):
+def _dense_csc_pattern(matrix: FloatArray, upper: bool) -> scipy.sparse.csc_matrix:
     """A CSC matrix (scipy) holding every entry of ``matrix`` (the upper triangle only when ``upper``),
     zeros included, so that later value updates keep one fixed sparsity pattern."""
     # scipy.sparse (0.15 s to import) only where a QP is set up
     from scipy import sparse
 
     rows, columns = matrix.shape
-    data, indices, indptr = [], [], [0]
+    data: list[float] = []
+    indices: list[int] = []
+    indptr = [0]
     for column in range(columns):
         last_row = column + 1 if upper else rows
         indices.extend(range(last_row))
         data.extend(matrix[:last_row, column])
         indptr.append(len(indices))
-    return sparse.csc_matrix((np.array(data, dtype=float), np.array(indices), np.array(indptr)),
+    return sparse.csc_matrix((np.array(data, dtype=np.float64), np.array(indices), np.array(indptr)),
                              shape=(rows, columns))
 
 
@@ -288,7 +295,7 @@ class VolumeQP:
         self.n_chambers = n_chambers
         self.n_constraint_rows = n_constraint_rows
         self._osqp = osqp
-        self._problem = None
+        self._problem: Any = None  # an osqp.OSQP once set up
 
     def minimise(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
               lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, float]:
@@ -338,7 +345,7 @@ class _Rows:
 
     objective_rows: np.ndarray          # (k, n): scaled volume per scaled pressure
     objective_targets: np.ndarray       # (k,): scaled volume
-    objective_names: list
+    objective_names: list[str]
     constraint_rows: np.ndarray         # (m, n), after the n pressure-bound rows
     constraint_lower: np.ndarray
     constraint_upper: np.ndarray
@@ -400,7 +407,7 @@ class InverseSolver:
             raise PhantomError(f"the rest compliance is not positive definite (eigenvalues {eigenvalues.tolist()} "
                                "m^3/Pa): the model is not restrained or not elastic; check the scene")
         self.volume_per_m3 = 1.0 / (float(np.mean(eigenvalues)) / self.pressure_per_pa)
-        self._problems: dict[tuple, VolumeQP] = {}
+        self._problems: dict[tuple[str, int, int], VolumeQP] = {}
 
     # ----------------------------------------------------------------- targets -> rows
     def _check_target(self, target: Target) -> None:
@@ -474,7 +481,8 @@ class InverseSolver:
                      np.array(constraint_rows, dtype=float).reshape(-1, n), np.array(lower, dtype=float),
                      np.array(upper, dtype=float))
 
-    def _qp_inputs(self, rows: _Rows, exact: bool, anchor_scaled: np.ndarray | None = None):
+    def _qp_inputs(self, rows: _Rows, exact: bool, anchor_scaled: FloatArray | None = None
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
         """OSQP data (scaled units). Exact: the targets are equalities and the objective is the actuation energy
         ``1/2 x^T W_0 x`` (of the move from ``anchor_scaled``, ``1/2 (x - a)^T W_0 (x - a)``, when given).
         Closest: the targets are least squares ``1/2 |A x - b|^2 + epsilon/2 x^T W_0 x``."""
@@ -508,7 +516,7 @@ class InverseSolver:
         return problem
 
     def pressures_for_linearisation(self, target: Target, linearisation: Linearisation,
-                                    anchor_pa: np.ndarray | None = None):
+                                    anchor_pa: FloatArray | None = None) -> tuple[FloatArray, float, _Rows, bool]:
         """One QP at ``linearisation``; with ``anchor_pa`` the exact QP's objective is the actuation energy of
         the move from there (``1/2 (x - a)^T W_0 (x - a)``) instead of from zero (see PROXIMAL_AFTER_DAMPING).
 
@@ -566,7 +574,7 @@ class InverseSolver:
         return extremes[1], extremes[0]
 
     # ----------------------------------------------------------------- the outer iteration
-    def _linearise(self, pressures_pa: np.ndarray, evaluation) -> Linearisation:
+    def _linearise(self, pressures_pa: FloatArray, evaluation: Evaluation) -> Linearisation:
         """The linearisation at an evaluated state: the response table's gradient on the ``table`` level, the
         model's tangent compliance where the estimator has a state (exact, and one back-substitution for a
         small-strain material), else the rest one (a chord iteration, which converges while the response is
@@ -602,14 +610,14 @@ class InverseSolver:
         started = time.perf_counter()
         self._check_target(target)
         if target.pressures_pa is not None:
-            return self._evaluate_raw_pressures(target, started)
+            return self._evaluate_raw_pressures(target, target.pressures_pa, started)
 
         self._refuse_out_of_scale(target)
         linearisation = self.rest
         pressures_pa = np.zeros(self.n_chambers)
         error = self._relative_error(target, self.rest.chamber_volumes_m3, self.rest.gland_volume_m3)
         qp_time_s = 0.0
-        history = []
+        history: list[dict[str, Any]] = []
         proximity = 0.0  # theta of PROXIMAL_AFTER_DAMPING
         for iteration in range(1, self.max_iterations + 1):
             if error < POLISH_RELATIVE_ERROR:
@@ -641,7 +649,8 @@ class InverseSolver:
             "the response is too nonlinear here, which happens near the pressure-control limit point; "
             "ask for a smaller volume")
 
-    def _damped_step(self, target: Target, pressures_pa: np.ndarray, error: float, candidate_pa: np.ndarray):
+    def _damped_step(self, target: Target, pressures_pa: FloatArray, error: float,
+                     candidate_pa: FloatArray) -> tuple[FloatArray, Evaluation, float, float]:
         """Move from ``pressures_pa`` (relative error ``error``) towards the linearisation's answer
         ``candidate_pa``: the full step, else halved until the error falls (Armijo, on the relative volume
         error). An undamped Newton step oscillates where the pressure-volume curve has an inflection (a
@@ -652,7 +661,7 @@ class InverseSolver:
         pressures stay within the bounds and linear constraints (a convex combination of two points that
         satisfy them)."""
         step = 1.0
-        best = None
+        best: tuple[FloatArray, Evaluation, float, float] | None = None
         for _ in range(STEP_HALVINGS + 1):
             trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
             evaluation = self._evaluate(trial_pa)
@@ -662,6 +671,7 @@ class InverseSolver:
             if best is None or trial_error < best[2]:
                 best = (trial_pa, evaluation, trial_error, step)
             step *= 0.5
+        assert best is not None  # at least one trial was made
         return best
 
     def _refuse_out_of_scale(self, target: Target) -> None:
@@ -677,7 +687,7 @@ class InverseSolver:
         low_ml, high_ml = self.reachable_range_ml(target, self.rest, worst)
         raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
 
-    def _evaluate(self, pressures_pa: np.ndarray):
+    def _evaluate(self, pressures_pa: FloatArray) -> Evaluation:
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
         past the limit point."""
         try:
@@ -687,7 +697,7 @@ class InverseSolver:
                 f"the forward model has no equilibrium at {np.round(pressures_pa / 1e3, 4).tolist()} kPa ({error}): "
                 "the target lies past the pressure-control limit point; ask for a smaller volume") from error
 
-    def _relative_error(self, target: Target, chamber_volumes_m3, gland_volume_m3) -> float:
+    def _relative_error(self, target: Target, chamber_volumes_m3: FloatArray, gland_volume_m3: float) -> float:
         errors = []
         if target.gland_volume_m3 is not None:
             errors.append(abs(gland_volume_m3 - target.gland_volume_m3) / abs(target.gland_volume_m3))
@@ -711,8 +721,10 @@ class InverseSolver:
         return np.array(offsets)
 
     def _unreachable_message(self, target: Target, row_name: str, low_ml: float, high_ml: float) -> str:
-        wanted_ml = (target.gland_volume_m3 if row_name == "gland"
-                     else target.chamber_volumes_m3[int(row_name.split()[1])]) * ML_PER_M3
+        wanted_m3 = (target.gland_volume_m3 if row_name == "gland"
+                     else (target.chamber_volumes_m3 or [])[int(row_name.split()[1])])
+        assert wanted_m3 is not None  # a row exists only for a wanted volume
+        wanted_ml = wanted_m3 * ML_PER_M3
         wanted = f"{wanted_ml:.3f}" if abs(wanted_ml) < 1e9 else f"{wanted_ml:.3g}"
         what = "the gland volume" if row_name == "gland" else f"the volume of {row_name}"
         limits = ", ".join(f"{value / 1e3:g}" for value in self.pressure_max_pa)
@@ -729,8 +741,8 @@ class InverseSolver:
                 f"{with_constraints} give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range "
                 "or raise pressure_max")
 
-    def _evaluate_raw_pressures(self, target: Target, started: float) -> InverseResult:
-        pressures_pa = _finite("pressures_pa", target.pressures_pa)
+    def _evaluate_raw_pressures(self, target: Target, raw_pa: Sequence[float], started: float) -> InverseResult:
+        pressures_pa = _finite("pressures_pa", raw_pa)
         if pressures_pa.shape != (self.n_chambers,):
             raise PhantomError(f"pressures_pa needs {self.n_chambers} values, got {pressures_pa.size}")
         if np.any(pressures_pa < 0) or np.any(pressures_pa > self.pressure_max_pa):

@@ -163,7 +163,7 @@ def load_scene(source: str | Path) -> Scene:
     return scene_from_dict(read_scene_toml(path), path)
 
 
-def read_scene_toml(path: str | Path) -> dict:
+def read_scene_toml(path: str | Path) -> dict[str, Any]:
     """The parsed TOML of a scene file, with a clear SceneError when it is missing or malformed."""
     path = Path(path)
     if not path.is_file():
@@ -175,7 +175,7 @@ def read_scene_toml(path: str | Path) -> dict:
         raise SceneError(f"the scene file {path} is not valid TOML: {error}") from error
 
 
-def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
+def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     """Build a Scene from a parsed TOML dict; ``path`` anchors relative mesh paths (else the working folder)."""
     where = f"scene {path}" if path else "scene"
     phantom_table = _table(raw, "phantom", where)
@@ -221,14 +221,14 @@ def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
     )
 
 
-def _table(raw: dict, key: str, where: str) -> dict:
+def _table(raw: dict[str, Any], key: str, where: str) -> dict[str, Any]:
     table = raw.get(key)
     if not isinstance(table, dict):
         raise SceneError(f"{where}: the [{key}] table is missing")
     return table
 
 
-def _material(table: dict, where: str) -> Material:
+def _material(table: dict[str, Any], where: str) -> Material:
     model = table.get("model", "corotational")
     if model not in MATERIAL_MODELS:
         raise SceneError(f"{where}: [material] model = {model!r}: the hyperelastic laws are 'neo_hookean' and "
@@ -289,7 +289,7 @@ def _model_settings(table: dict[str, Any], where: str) -> ModelSettings:
                          _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where) * 1e3, points)
 
 
-def _outputs(table: dict, where: str) -> dict:
+def _outputs(table: dict[str, Any], where: str) -> dict[str, bool]:
     unknown = set(table) - {"volumes", "shape"}
     if unknown:
         raise SceneError(f"{where}: [outputs] has unknown keys {sorted(unknown)}: use volumes, shape")

@@ -16,12 +16,14 @@ from __future__ import annotations
 
 import contextlib
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 from phantom.model.mesh.surface import (
     Alignment,
     AlignmentError,
@@ -52,12 +54,13 @@ class StageClock:
     """Wall and CPU seconds per named stage. CPU time (all threads of this process) shows the work itself when
     other processes share the cores and stretch the wall time."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.wall_s: dict[str, float] = {}
         self.cpu_s: dict[str, float] = {}
 
     @contextlib.contextmanager
-    def stage(self, name: str):
+    def stage(self, name: str) -> Iterator[None]:
+        """Time the ``with`` block as stage ``name`` (added to what the stage took before)."""
         wall, cpu = time.perf_counter(), time.process_time()
         try:
             yield
@@ -101,16 +104,17 @@ class Comparison:
     alignment: Alignment
     scan_volume_ml: float
     model_volume_ml: float
-    scan_to_model_mm: dict
-    model_to_scan_mm: dict
-    symmetric_mm: dict
+    scan_to_model_mm: dict[str, float]
+    model_to_scan_mm: dict[str, float]
+    symmetric_mm: dict[str, float]
     model_vertices_mm: np.ndarray
     model_triangles: np.ndarray
     model_signed_distance_mm: np.ndarray
     scan_aligned: TriangleMesh
     clock: StageClock = field(default_factory=StageClock)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
+        """The report as one JSON object (mm, ml, %, s)."""
         alignment = self.alignment
         return {
             "clean": dict(vars(self.clean)),
@@ -157,8 +161,9 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
         raise ScanError(f"the scan file {path} does not exist: check the path")
     if path.suffix.lower() not in SCAN_SUFFIXES:
         raise ScanError(f"{path}: a scan must be an OBJ, PLY or STL file (not {path.suffix or 'no extension'})")
-    # trimesh (1 s to import) only where a scan file is read
-    import trimesh
+    # trimesh (1 s to import, an optional extra) only where a scan file is read
+    with require_extra("scan"):
+        import trimesh
 
     try:
         loaded = trimesh.load(path, process=False)
@@ -168,7 +173,7 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
                             f"export that")
         if isinstance(loaded, trimesh.Scene):
             loaded = trimesh.load(path, force="mesh", process=False)
-        vertices = np.asarray(loaded.vertices, dtype=np.float64)
+        vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
     except ScanError:
         raise
@@ -225,7 +230,8 @@ def drop_degenerate(triangles: np.ndarray, areas_mm2: np.ndarray) -> np.ndarray:
     keep = np.zeros(len(triangles), bool)
     _, first = np.unique(face_keys(triangles, int(triangles.max()) + 1), return_index=True)
     keep[first] = True
-    return keep & distinct
+    kept: np.ndarray = keep & distinct
+    return kept
 
 
 def vertex_components(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
@@ -237,7 +243,8 @@ def vertex_components(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
 
     rows, columns = triangles[:, [0, 1, 2]].ravel(), triangles[:, [1, 2, 0]].ravel()
     graph = coo_matrix((np.ones(len(rows), np.int8), (rows, columns)), shape=(n_vertices, n_vertices))
-    return connected_components(graph, directed=False)[1]
+    labels: np.ndarray = connected_components(graph, directed=False)[1]
+    return labels
 
 
 def largest_component(triangles: np.ndarray, areas_mm2: np.ndarray) -> tuple[np.ndarray, int]:
@@ -254,7 +261,8 @@ def boundary_edges(triangles: np.ndarray) -> np.ndarray:
     n = int(triangles.max()) + 1
     ordered = np.sort(directed, axis=1).astype(np.int64)
     _, inverse, counts = np.unique(ordered[:, 0] * n + ordered[:, 1], return_inverse=True, return_counts=True)
-    return directed[counts[inverse.ravel()] == 1]
+    edges: np.ndarray = directed[counts[inverse.ravel()] == 1]
+    return edges
 
 
 #: Rings of triangles around the holes handed to MeshFix with them.
@@ -316,8 +324,9 @@ def close_holes(mesh: TriangleMesh) -> tuple[TriangleMesh, int]:
 
 
 def _meshfix_fill(patch: TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
-    # pymeshfix (a native library) only where holes are closed
-    import pymeshfix
+    # pymeshfix (a native library, an optional extra) only where holes are closed
+    with require_extra("scan"):
+        import pymeshfix
 
     surface = pymeshfix.PyTMesh()
     surface.set_quiet(True)
@@ -394,7 +403,7 @@ def check_scale(scan: Frame, model: Frame, units: str) -> None:
 # --- distances -------------------------------------------------------------------------------------------------
 
 
-def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict:
+def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict[str, float]:
     """Mean, median, 95th percentile and max of ``values`` with ``weights`` (area shares)."""
     order = np.argsort(values)
     sorted_values = values[order]
@@ -402,7 +411,7 @@ def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict:
     cumulative /= cumulative[-1]
 
     def quantile(q: float) -> float:
-        return float(sorted_values[min(np.searchsorted(cumulative, q), len(values) - 1)])
+        return float(sorted_values[min(int(np.searchsorted(cumulative, q)), len(values) - 1)])
 
     return {"mean": float(np.average(values, weights=weights)), "median": quantile(0.5), "p95": quantile(0.95),
             "max": float(sorted_values[-1])}

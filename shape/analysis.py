@@ -12,15 +12,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
+from phantom import require_extra
 from phantom.shape import vae as network
 from phantom.shape.checkpoint import read_run
 from phantom.shape.dataset import PROSTATE_LABELS, find_cases, read_shape, shape_grid
 from phantom.shape.errors import ShapeError
 from phantom.shape.vae import Parameters, VAEConfig
 from phantom.shape.voxels import ClosedSurface, LabelMask, surface_of
+
+with require_extra("shape"):
+    import jax
 
 #: Shapes encoded or decoded per call of the jitted network (a fixed size, so it compiles once).
 CHUNK = 16
@@ -45,7 +48,8 @@ class DecodedShape:
 def write_surface(vertices_mm: np.ndarray, triangles: np.ndarray, path: str | Path) -> Path:
     """A triangle surface (mm) written as .obj, .ply or .stl."""
     # trimesh (0.3 s to import) only where a mesh is written
-    import trimesh
+    with require_extra("shape"):
+        import trimesh
 
     path = Path(path)
     if path.suffix.lower() not in (".obj", ".ply", ".stl"):
@@ -75,8 +79,12 @@ class ShapeModel:
         """Load a run folder written by :func:`phantom.shape.training.train`."""
         return cls(Path(run), *read_run(run))
 
-    def encode_grids(self, occupancy: np.ndarray, with_log_variance: bool = False):
-        """Latent means ``(N, latent_dim)`` of shape grids ``(N, G, G, G)`` (and log-variances if asked)."""
+    def encode_grids(self, occupancy: np.ndarray) -> np.ndarray:
+        """Latent means ``(N, latent_dim)`` of shape grids ``(N, G, G, G)``."""
+        return self.encode_distributions(occupancy)[0]
+
+    def encode_distributions(self, occupancy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Latent means and log-variances ``(N, latent_dim)`` of shape grids ``(N, G, G, G)``."""
         occupancy = np.asarray(occupancy, np.float32)
         if occupancy.ndim != 4 or occupancy.shape[1:] != (self.grid_size,) * 3:
             raise ShapeError(f"expected grids of {self.grid_size}^3 voxels, got shape {occupancy.shape[1:]}")
@@ -87,10 +95,7 @@ class ShapeModel:
             mean, log_variance = self._encode(self.params, self.statistics, padded)
             means.append(np.asarray(mean)[:len(chunk)])
             log_variances.append(np.asarray(log_variance)[:len(chunk)])
-        mean_all = np.concatenate(means).astype(np.float64)
-        if with_log_variance:
-            return mean_all, np.concatenate(log_variances).astype(np.float64)
-        return mean_all
+        return np.concatenate(means).astype(np.float64), np.concatenate(log_variances).astype(np.float64)
 
     def decode_grids(self, latents: np.ndarray) -> np.ndarray:
         """Voxel probabilities ``(N, G, G, G)`` of latent vectors ``(N, latent_dim)``."""
@@ -124,7 +129,8 @@ class ShapeModel:
 
     def encode_shape(self, shape: LabelMask | ClosedSurface, name: str) -> np.ndarray:
         """The latent vector of one shape."""
-        return self.encode_grids(self.grid_of(shape, name)[None])[0]
+        latent: np.ndarray = self.encode_grids(self.grid_of(shape, name)[None])[0]
+        return latent
 
     def encode_file(self, path: str | Path) -> np.ndarray:
         """The latent vector of one shape file."""

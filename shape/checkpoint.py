@@ -11,11 +11,14 @@ import json
 from pathlib import Path
 from typing import Any
 
-import jax
 import numpy as np
 
+from phantom import require_extra
 from phantom.shape.errors import ShapeError
 from phantom.shape.vae import Parameters, VAEConfig, flatten, init_parameters, unflatten_like
+
+with require_extra("shape"):
+    import jax
 
 RUN_FORMAT = "phantom-shape-run"
 RUN_VERSION = 1

@@ -27,11 +27,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from phantom import require_extra
 from phantom.model.mesh.tetmesh import open_edge_count
-from phantom.shape.errors import ShapeError, require
+from phantom.shape.errors import ShapeError
 from phantom.shape.voxels import SUPERSAMPLE, ClosedSurface, LabelMask
 
 #: The dataset's label numbers and names (as its loaders name them).
@@ -125,9 +127,10 @@ def _label_text(labels: Sequence[int]) -> str:
 
 def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> LabelMask:
     """The shape's mask in a NIfTI file: ``labels`` of a label map, or the voxels above 0 of a binary mask."""
-    nibabel = require("nibabel")
+    with require_extra("shape"):
+        import nibabel
     try:
-        image = nibabel.load(str(case.path))
+        image: Any = nibabel.load(str(case.path))
         values = np.asarray(image.dataobj)
     except Exception as error:  # nibabel raises several kinds for a damaged or foreign file
         raise ShapeError(f"{case.path}: not a readable NIfTI file ({error})") from None
@@ -155,7 +158,8 @@ def read_closed_mesh(path: str | Path) -> ClosedSurface:
     Raises ShapeError when the file cannot be read or the surface is not closed.
     """
     # trimesh (0.3 s to import) only where a mesh is read
-    import trimesh
+    with require_extra("shape"):
+        import trimesh
 
     path = Path(path)
     try:

@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from phantom import require_extra
 from phantom.model.mesh.surface import SurfaceIndex
 from phantom.shape.analysis import DecodedShape, ShapeModel
 from phantom.shape.errors import ShapeError
@@ -34,11 +35,12 @@ def write_heatmap(vertices_mm: np.ndarray, triangles: np.ndarray, distance_mm: n
                   title: str, colour_bar_label: str) -> Path:
     """Surface A (phantom frame, mm) coloured by a value per vertex (mm), front and side, with a colour bar."""
     # matplotlib (0.5 s to import) only where a figure is drawn
-    import matplotlib
+    with require_extra("shape"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -24,12 +24,14 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from phantom import require_extra
 from phantom.model.mesh.shape import inside_body
 from phantom.shape.dataset import IMAGE_SUFFIX, MASK_SUFFIX
-from phantom.shape.errors import ShapeError, require
+from phantom.shape.errors import ShapeError
 from phantom.shape.voxels import RAS_FROM_PHANTOM
 
 #: Field of view of each synthetic image (mm): x, y in plane, z along the body.
@@ -173,7 +175,8 @@ def case_affine(acquisition: Acquisition, centre_ras_mm: np.ndarray) -> tuple[np
 def synthesize(out: str | Path, cases: int = 120, seed: int = 0, spec: PopulationSpec | None = None,
                images: bool = True) -> Path:
     """Write a synthetic population of ``cases`` prostates under ``out`` (see the module docstring)."""
-    nibabel = require("nibabel")
+    with require_extra("shape"):
+        import nibabel
     spec = spec or PopulationSpec()
     if cases < 1:
         raise ShapeError(f"--cases must be at least 1, got {cases}")
@@ -212,7 +215,7 @@ def synthesize(out: str | Path, cases: int = 120, seed: int = 0, spec: Populatio
     return out
 
 
-def _write_nifti(nibabel, path: Path, values: np.ndarray, affine: np.ndarray) -> None:
+def _write_nifti(nibabel: Any, path: Path, values: np.ndarray, affine: np.ndarray) -> None:
     image = nibabel.Nifti1Image(values, affine)
     image.set_qform(affine, code=1)
     image.set_sform(affine, code=1)

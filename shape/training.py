@@ -26,17 +26,21 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-import jax
 import numpy as np
-import optax
 
+from phantom import require_extra
 from phantom.shape import vae as network
 from phantom.shape.analysis import ShapeModel
 from phantom.shape.checkpoint import write_checkpoint, write_config
 from phantom.shape.dataset import ShapeSet
 from phantom.shape.errors import ShapeError
 from phantom.shape.vae import Parameters, VAEConfig
+
+with require_extra("shape"):
+    import jax
+    import optax
 
 
 @dataclass(frozen=True)
@@ -107,7 +111,8 @@ def intersection_over_union(a: np.ndarray, b: np.ndarray, level: float = 0.5) ->
     a, b = a >= level, b >= level
     axes = tuple(range(1, a.ndim))
     union = np.logical_or(a, b).sum(axis=axes)
-    return np.logical_and(a, b).sum(axis=axes) / np.maximum(union, 1)
+    iou: np.ndarray = np.logical_and(a, b).sum(axis=axes) / np.maximum(union, 1)
+    return iou
 
 
 def print_progress(record: EpochRecord, epochs: int, seconds_left: float) -> None:
@@ -126,14 +131,15 @@ class Trainer:
         self.vae, self.training = vae, training
         self.optimiser = optax.adam(training.learning_rate)
 
-        def step(params, statistics, optimiser_state, batch, key):
+        def step(params: Parameters, statistics: Parameters, optimiser_state: Any, batch: Any,
+                 key: Any) -> tuple[Any, ...]:
             grad_fn = jax.value_and_grad(network.loss_terms, has_aux=True)
             (loss, (bce, kld, statistics)), grads = grad_fn(params, statistics, vae, batch, key,
                                                              training.kld_weight)
             updates, optimiser_state = self.optimiser.update(grads, optimiser_state, params)
             return optax.apply_updates(params, updates), statistics, optimiser_state, loss, bce, kld
 
-        def evaluate(params, statistics, batch):
+        def evaluate(params: Parameters, statistics: Parameters, batch: Any) -> tuple[Any, Any]:
             mean, log_variance, _ = network.encode(params, statistics, vae, batch)
             logits, _ = network.decode_logits(params, statistics, vae, mean)
             bce = optax.sigmoid_binary_cross_entropy(logits, batch).sum(axis=(1, 2, 3))
@@ -182,10 +188,11 @@ class Trainer:
 def write_loss_curves(history: list[EpochRecord], path: Path) -> Path:
     """The loss curves (training loss, its BCE and weighted KLD, held-out loss; held-out IoU) as a PNG."""
     # matplotlib (0.5 s to import) only where a figure is drawn
-    import matplotlib
+    with require_extra("shape"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
     epochs = [r.epoch for r in history]
     figure, (losses, iou) = plt.subplots(1, 2, figsize=(10, 4))
@@ -265,7 +272,7 @@ def train(shapes: ShapeSet, run: str | Path, vae: VAEConfig | None = None, train
     write_config(run, vae, dataclasses.asdict(training), data, training.epochs, time.perf_counter() - started)
     (run / "history.json").write_text(json.dumps([dataclasses.asdict(r) for r in history], indent=0))
     model = ShapeModel.load(run)
-    means, log_variances = model.encode_grids(shapes.occupancy, with_log_variance=True)
+    means, log_variances = model.encode_distributions(shapes.occupancy)
     np.savez(run / "latents.npz", names=np.array(shapes.names), mean=means, log_variance=log_variances,
              held_out=held_out, volumes_ml=shapes.volumes_ml)
     write_loss_curves(history, run / "loss.png")

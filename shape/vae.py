@@ -28,12 +28,15 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
+from phantom import require_extra
 from phantom.shape.errors import ShapeError
+
+with require_extra("shape"):
+    import jax
+    import jax.numpy as jnp
+    from jax import lax
 
 Parameters = dict[str, Any]
 """Nested dicts (and lists) of arrays: the trained weights, or the batch-norm running statistics."""
@@ -89,7 +92,7 @@ class VAEConfig:
     @property
     def coarsest_side(self) -> int:
         """Voxels along a side of the coarsest grid (after the encoder's last level)."""
-        return self.grid_size // 2 ** len(self.channels)
+        return int(self.grid_size // 2 ** len(self.channels))
 
     def as_dict(self) -> dict[str, Any]:
         """The config as JSON-ready values."""
@@ -173,7 +176,7 @@ def subpixel_convolution(x: jax.Array, weight: jax.Array, bias: jax.Array) -> ja
     return y.reshape(n, 2 * d, 2 * h, 2 * w, c)
 
 
-def _batch_norm(x: jax.Array, layer: Parameters, running: Parameters, config: VAEConfig,
+def batch_norm(x: jax.Array, layer: Parameters, running: Parameters, config: VAEConfig,
                 training: bool) -> tuple[jax.Array, Parameters]:
     """Normalise over every axis but the last (channels); in training, update the running statistics."""
     if training:
@@ -201,7 +204,7 @@ def encode(params: Parameters, statistics: Parameters, config: VAEConfig, occupa
     new_statistics = []
     for layer, running in zip(params["encoder"], statistics["encoder"], strict=True):
         x = strided_convolution(x, layer["weight"]) + layer["bias"]
-        x, running = _batch_norm(x, layer, running, config, training)
+        x, running = batch_norm(x, layer, running, config, training)
         x = jax.nn.leaky_relu(x, config.negative_slope)
         new_statistics.append(running)
     h = x.reshape(x.shape[0], -1) @ params["latent"]["weight"] + params["latent"]["bias"]
@@ -218,7 +221,7 @@ def decode_logits(params: Parameters, statistics: Parameters, config: VAEConfig,
     for level, layer in enumerate(params["decoder"]):
         y = subpixel_convolution(y, layer["weight"], layer["bias"])
         if level < len(statistics["decoder"]):
-            y, running = _batch_norm(y, layer, statistics["decoder"][level], config, training)
+            y, running = batch_norm(y, layer, statistics["decoder"][level], config, training)
             y = jax.nn.leaky_relu(y, config.negative_slope)
             new_statistics.append(running)
     return y[..., 0], {**statistics, "decoder": new_statistics}
@@ -274,4 +277,5 @@ def unflatten_like(template: Parameters, arrays: dict[str, np.ndarray], what: st
             return {name: rebuild(value, f"{prefix}{name}/") for name, value in tree.items()}
         return jnp.asarray(arrays[prefix[:-1]])
 
-    return rebuild(template, "")
+    rebuilt: Parameters = rebuild(template, "")
+    return rebuilt

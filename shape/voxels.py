@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from phantom import require_extra
 from phantom.shape.errors import ShapeError
 
 #: A point (mm) in the phantom's frame times this diagonal is the same point in RAS, and back.
@@ -34,7 +35,8 @@ def sample_offsets_mm(grid_size: int, voxel_mm: float, supersample: int) -> np.n
 def _average_blocks(samples: np.ndarray, grid_size: int, supersample: int) -> np.ndarray:
     s = supersample
     blocks = samples.reshape(grid_size, s, grid_size, s, grid_size, s)
-    return blocks.mean(axis=(1, 3, 5)).astype(np.float32)
+    averaged: np.ndarray = blocks.mean(axis=(1, 3, 5)).astype(np.float32)
+    return averaged
 
 
 @dataclass(frozen=True)
@@ -52,7 +54,8 @@ class LabelMask:
     def points_mm(self) -> np.ndarray:
         """RAS positions (mm) of the centres of the mask's voxels, ``(N, 3)``."""
         index = np.argwhere(self.mask).astype(float)
-        return index @ self.affine[:3, :3].T + self.affine[:3, 3]
+        points: np.ndarray = index @ self.affine[:3, :3].T + self.affine[:3, 3]
+        return points
 
     def volume_ml(self) -> float:
         """The mask's volume: its voxel count times the voxel volume (ml)."""
@@ -60,7 +63,8 @@ class LabelMask:
 
     def centroid_mm(self) -> np.ndarray:
         """The centroid (RAS, mm) of the mask's voxels."""
-        return self.points_mm().mean(axis=0)
+        centroid: np.ndarray = self.points_mm().mean(axis=0)
+        return centroid
 
     def half_extent_mm(self, centre_mm: np.ndarray) -> float:
         """The largest distance along a world axis from ``centre_mm`` to the mask's edge (mm)."""
@@ -109,7 +113,8 @@ class ClosedSurface:
         """The centroid (RAS, mm) of the enclosed solid."""
         a, b, c = (self.vertices_mm[self.triangles[:, i]] for i in range(3))
         signed = np.einsum("ij,ij->i", a, np.cross(b, c))
-        return (signed[:, None] * (a + b + c)).sum(axis=0) / (4.0 * signed.sum())
+        centroid: np.ndarray = (signed[:, None] * (a + b + c)).sum(axis=0) / (4.0 * signed.sum())
+        return centroid
 
     def half_extent_mm(self, centre_mm: np.ndarray) -> float:
         """The largest distance along a world axis from ``centre_mm`` to a vertex (mm)."""
@@ -165,8 +170,9 @@ def surface_of(occupancy: np.ndarray, voxel_mm: float, level: float = 0.5) -> Cl
 
     Raises ShapeError when no voxel reaches ``level`` (an empty shape).
     """
-    # scikit-image (the [shape] extra, 0.5 s to import) only where a surface is made
-    from skimage import measure
+    # scikit-image (0.5 s to import) only where a surface is made
+    with require_extra("shape"):
+        from skimage import measure
 
     if occupancy.max() < level:
         raise ShapeError(f"the grid holds no shape: no voxel reaches occupancy {level:g}")

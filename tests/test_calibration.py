@@ -214,6 +214,7 @@ def test_the_traces_interpolation_agrees_with_full_solves_at_a_gent_fit(tmp_path
     assert np.max(np.abs(interpolated - full) / full) < 0.01
 
 
+@pytest.mark.slow
 def test_a_left_out_point_beyond_its_trace_is_predicted_by_a_full_solve(tmp_path, capsys, dask_scheduler):
     # Exact measurements of a Neo-Hookean model at E = 10 kPa, but the last point's growth divided by 2.5: its
     # trace stops at 1.8 times that growth, so with it left out the others refit E = 10 kPa, beyond its trace.
@@ -241,6 +242,7 @@ def test_a_left_out_point_beyond_its_trace_is_predicted_by_a_full_solve(tmp_path
     assert report["loo_predicted_ml"][-1] == pytest.approx(truth_ml, rel=0.01)
 
 
+@pytest.mark.slow
 def test_a_small_strain_law_is_held_to_its_range_and_says_the_constraint_binds(tmp_path, capsys,
                                                                               dask_scheduler):
     # Measurements of a soft phantom (8 kPa): fitting them needs strains far beyond the linear law's 10 %.

@@ -43,6 +43,7 @@ def _growth_errors(model, table, pressures_pa):
     return np.abs(np.append(chambers, gland) - exact) / np.abs(exact - rest), state
 
 
+@pytest.mark.slow
 def test_the_table_matches_full_solves_between_its_grid_points(model, table):
     # a cubic spline through 1 kPa steps of a mildly nonlinear response: well under 0.5 % of each growth (a
     # wrong grid index or spline weight would be off by tens of %)
@@ -55,6 +56,7 @@ def test_the_table_matches_full_solves_between_its_grid_points(model, table):
     assert 0 < table.check_errors_pct < 0.5 and table.build_time_s > 0
 
 
+@pytest.mark.slow
 def test_the_tables_gradient_is_the_models_tangent_compliance(model, table):
     pressures_pa = OFF_GRID_PA[1]
     tangent = model.compliance(model.equilibrium(pressures_pa))
@@ -64,6 +66,7 @@ def test_the_tables_gradient_is_the_models_tangent_compliance(model, table):
     np.testing.assert_allclose(gland, tangent.gland_m3_per_pa, rtol=3e-2)
 
 
+@pytest.mark.slow
 def test_beyond_the_box_the_table_extends_linearly_not_as_a_cubic(model, table):
     # an overshoot of 200 Pa above the limit on one chamber: the tangent's extension misses the full solve by the
     # curvature's second-order term only
@@ -76,6 +79,7 @@ def test_beyond_the_box_the_table_extends_linearly_not_as_a_cubic(model, table):
     np.testing.assert_allclose(chambers, inside_chambers + 200.0 * slope[:, 0], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     built = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
@@ -93,6 +97,7 @@ def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, 
     assert reported[-1] == (27 + 4, 27 + 4) and len(solves) == 26 + 4
 
 
+@pytest.mark.slow
 def test_slabs_on_worker_processes_give_the_same_table(model, table):
     # each slab's solves are the same wherever it runs (the slab's first point from rest, then neighbours)
     parallel = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, workers=2)

@@ -309,6 +309,7 @@ def test_the_command_reports_json_and_writes_the_heatmap_and_recording(tmp_path,
     assert np.median(distance) < 3 * NOISE_MM
 
 
+@pytest.mark.slow
 def test_the_command_reports_in_text_with_chamber_names(tmp_path, capsys, surface):
     synthetic = make_scan(surface, np.random.default_rng(10), levels=1, holes=1, fragment=True,
                           rotation=random_rotation(np.random.default_rng(10)))
@@ -341,7 +342,8 @@ def test_calibration_measurements_accept_a_scan_file(tmp_path, surface, state):
     assert measurements.volumes_m3[0] == pytest.approx(26.3e-6)
 
 
-@pytest.mark.parametrize("suffix", [".stl", ".ply", ".obj"])
+@pytest.mark.parametrize("suffix", [pytest.param(".stl", marks=pytest.mark.slow), ".ply",
+                                    pytest.param(".obj", marks=pytest.mark.slow)])
 def test_a_surface_written_by_phantom_forward_compares_at_zero_distance(tmp_path, capsys, suffix):
     """`phantom forward --out` into a surface format writes the gland's deformed outer surface, which compare-scan
     reads as a scan: same volume as the model's gland, no distance, no repair needed."""

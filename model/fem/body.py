@@ -19,7 +19,7 @@ import hashlib
 import os
 import tempfile
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -149,7 +149,7 @@ def spring_stiffness(nodes_m: FloatArray, fixed_triangles: IntArray, youngs_modu
     return fixed_nodes, fixed_penalty * youngs_modulus_pa * node_area_m2[fixed_nodes] / edge_m
 
 
-def pressure_load_n(pressures_pa: FloatArray, chamber_gradients_m2: FloatArray) -> FloatArray:
+def load_from_gradients_n(pressures_pa: FloatArray, chamber_gradients_m2: FloatArray) -> FloatArray:
     """``sum_c p_c dV_c/dx`` (N, (3n,)) from the chamber rows of the volume gradients (m^2, (chambers, 3n))."""
     load: FloatArray = np.einsum("c,cj->j", pressures_pa, chamber_gradients_m2[: len(pressures_pa)])
     return load
@@ -375,7 +375,7 @@ class SolidBody:
         if factorization.cholesky is not None:
             handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
             os.close(handle)
-            arrays = factorization.cholesky.arrays()
+            arrays: dict[str, Any] = factorization.cholesky.arrays()
             arrays["indices"] = arrays["indices"].astype(np.int32)
             np.savez(temporary, youngs_modulus_pa=self.material.youngs_modulus_pa, **arrays)
             os.replace(temporary, path)

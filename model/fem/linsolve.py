@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from phantom import require_extra
 from phantom.model.arrays import FloatArray, Int32Array, IntArray
 from phantom.model.fem import kernels
 
@@ -76,8 +77,9 @@ class Factorization:
         self._lu: Any = None
         self._preconditioner: Any = None
         if self.method == "cholmod":
-            # scikit-sparse is optional and loads SuiteSparse: only the "cholmod" method needs it
-            from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+            # scikit-sparse is an optional extra and loads SuiteSparse: only the "cholmod" method needs it
+            with require_extra("cholmod"):
+                from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
 
             try:
                 factor = cholesky(matrix.tocsc(), mode="supernodal")

@@ -22,8 +22,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from phantom.model.arrays import FloatArray
-from phantom.model.fem.body import EXACT_TANGENT, NO_TANGENT, POSITIVE_TANGENT, Constraints, Factor, SolidBody
-from phantom.model.fem.body import pressure_load_n as body_pressure_load_n
+from phantom.model.fem.body import (
+    EXACT_TANGENT,
+    NO_TANGENT,
+    POSITIVE_TANGENT,
+    Constraints,
+    Factor,
+    SolidBody,
+    load_from_gradients_n,
+)
 from phantom.model.scene import HYPERELASTIC_MODELS
 
 
@@ -82,14 +89,14 @@ class EquilibriumProblem:
     def pressure_load_n(self, positions_m: FloatArray) -> FloatArray:
         """The pressure load ``sum_c p_c dV_c/dx`` (3n,) N at ``positions_m`` (the walls' own configuration; a
         follower load), zero at held dofs."""
-        load = body_pressure_load_n(self.pressures_pa, self.body.volume_gradients(positions_m))
+        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
         load[self.constraints.dofs] = 0.0
         return load
 
     def load_scale_n(self) -> float:
         """The size (N) of the pressure load at the start (free dofs), which tolerances are relative to; at least
         1e-12 E L^2, so that a zero load still has a scale."""
-        load = body_pressure_load_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
+        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
         free = load[self.constraints.free_mask]
         floor = 1e-12 * self.body.material.youngs_modulus_pa * self.body.length_scale_m**2
         return max(float(np.sqrt(np.einsum("i,i->", free, free))), floor)
@@ -98,9 +105,9 @@ class EquilibriumProblem:
         """Pressure load (3n,) and its potential (J): ``sum p dV/dx`` and ``-sum p V`` (follower), or the
         dead load ``sum p dV/dx(start)`` and ``-load . x`` (linear)."""
         if self.formulation == "linear":
-            load = body_pressure_load_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
+            load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
             return load, -float(np.einsum("i,i->", load, positions_m.ravel()))
-        load = body_pressure_load_n(self.pressures_pa, self.body.volume_gradients(positions_m))
+        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
         return load, -float(self.pressures_pa @ self.body.chamber_volumes_m3(positions_m))
 
     # --- residual, energy, tangent ---------------------------------------------------------------------------

@@ -30,9 +30,9 @@ solves, shapes formed) so that tests can show it.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
@@ -49,7 +49,7 @@ KEPT_STATES = 16
 Evaluation = tuple[FloatArray, float, State | None]
 
 
-def _checked_pressures(pressures_pa: FloatArray | Sequence[float], n_chambers: int) -> FloatArray:
+def _checked_pressures(pressures_pa: ArrayLike, n_chambers: int) -> FloatArray:
     pressures = np.asarray(pressures_pa, dtype=float).reshape(-1)
     if pressures.shape != (n_chambers,):
         raise PhantomError(f"give {n_chambers} chamber pressures, got {pressures.size}")
@@ -113,12 +113,12 @@ class VolumeEstimator:
                     "fidelity full")
 
     # ----------------------------------------------------------------- public
-    def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
+    def volumes(self, pressures_pa: ArrayLike) -> tuple[FloatArray, float]:
         """Chamber volumes (m^3, one per chamber) and the gland volume (m^3) at ``pressures_pa``."""
         chamber_volumes_m3, gland_volume_m3, _ = self.evaluate(pressures_pa)
         return chamber_volumes_m3, gland_volume_m3
 
-    def shape(self, pressures_pa) -> np.ndarray:
+    def shape(self, pressures_pa: ArrayLike) -> FloatArray:
         """Nodal positions (m, shape (nodes, 3)) at ``pressures_pa``; computed only when called."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
         self.counts["shapes"] += 1
@@ -126,11 +126,11 @@ class VolumeEstimator:
             return self._rest_positions(pressures)
         if self.level == "updated":
             return self._updated_positions(pressures)
-        if self.level == "table":
+        if self.table is not None:
             return self.table.positions_m(pressures)
         return self._full_state(pressures).positions_m
 
-    def evaluate(self, pressures_pa):
+    def evaluate(self, pressures_pa: ArrayLike) -> Evaluation:
         """Volumes as :meth:`volumes`, plus the solver state where the level has one (else None): ``full``, and
         ``updated`` for a small-strain material, whose positions are exactly the linear solve's."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
@@ -139,32 +139,34 @@ class VolumeEstimator:
             return (np.asarray(self.model.rest_chamber_volumes_m3, dtype=float) + compliance.chamber_m3_per_pa
                     @ pressures, float(self.model.rest_gland_volume_m3 + compliance.gland_m3_per_pa @ pressures),
                     None)
-        if self.level == "table":
-            chamber_volumes_m3, gland_volume_m3 = self.table.volumes(pressures)
-            return chamber_volumes_m3, gland_volume_m3, None
+        if self.table is not None:
+            table_chambers_m3, table_gland_m3 = self.table.volumes(pressures)
+            return table_chambers_m3, table_gland_m3, None
         if self.level == "updated":
             positions_m = self._updated_positions(pressures)
             chamber_volumes_m3, gland_volume_m3 = self.model.volumes(positions_m)
-            state = None
+            state: State | None = None
             if self.model.formulation == "linear":
                 state = State(positions_m, chamber_volumes_m3, gland_volume_m3, 0, 0.0, pressures, "linear")
             return np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3), state
-        state = self._full_state(pressures)
-        return np.asarray(state.chamber_volumes_m3, dtype=float), float(state.gland_volume_m3), state
+        full = self._full_state(pressures)
+        return np.asarray(full.chamber_volumes_m3, dtype=float), float(full.gland_volume_m3), full
 
     @property
-    def rest_compliance(self):
+    def rest_compliance(self) -> Compliance:
         """The model's rest compliance (computed once; the model caches it on disk)."""
         if self._rest_compliance is None:
             self._rest_compliance = self.model.compliance()
         return self._rest_compliance
 
     # ----------------------------------------------------------------- levels
-    def _rest_positions(self, pressures_pa: np.ndarray) -> np.ndarray:
+    def _rest_positions(self, pressures_pa: FloatArray) -> FloatArray:
         displacement = np.asarray(self.rest_compliance.displacement_m_per_pa, dtype=float)
-        return np.asarray(self.model.nodes_m, dtype=float) + np.tensordot(pressures_pa, displacement, axes=1)
+        positions_m: FloatArray = (np.asarray(self.model.nodes_m, dtype=float)
+                                   + np.tensordot(pressures_pa, displacement, axes=1))
+        return positions_m
 
-    def _updated_positions(self, pressures_pa: np.ndarray) -> np.ndarray:
+    def _updated_positions(self, pressures_pa: FloatArray) -> FloatArray:
         """Midpoint-rule path along ``t pressures_pa``: x_{k+1} = x_k + D(x_k + D(x_k) dp/2) dp."""
         if self.model.formulation == "linear":
             # Small-strain material: the displacement is exactly linear in p, only the volume measure is not.
@@ -183,11 +185,11 @@ class VolumeEstimator:
             reached_pa = reached_pa + increment_pa
         return positions_m
 
-    def _tangent_displacement(self, positions_m: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
+    def _tangent_displacement(self, positions_m: FloatArray, pressures_pa: FloatArray) -> FloatArray:
         self.counts["tangent_solves"] += 1
         return self.model.tangent_displacement_m_per_pa(positions_m, pressures_pa)
 
-    def _full_state(self, pressures_pa: np.ndarray):
+    def _full_state(self, pressures_pa: FloatArray) -> State:
         self.counts["full_solves"] += 1
         if self.model.formulation == "linear":
             # A small-strain solve takes its load on the starting configuration: it must start at rest.
@@ -202,7 +204,7 @@ class VolumeEstimator:
             state = self.model.equilibrium(pressures_pa)  # the rest shape, no iteration
         else:
             state = self.model.equilibrium(pressures_pa,
-                                     initial_positions_m=None if nearest is None else nearest.positions_m)
+                                           initial_positions_m=None if nearest is None else nearest.positions_m)
         self._states = [*self._states[-(KEPT_STATES - 1):], state]
         return state
 

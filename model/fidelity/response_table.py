@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 import phantom
 from phantom import PhantomError
@@ -58,6 +59,8 @@ TABLE_VERSION = 1
 CHECK_FRACTIONS = ((0.2, 0.6, 0.9), (0.9, 0.2, 0.6), (0.6, 0.9, 0.2), (0.7, 0.7, 0.7))
 
 Progress = Callable[[int, int], None]
+#: One axis's cardinal-spline weights at a pressure, and their slope per Pa.
+Basis = tuple[FloatArray, FloatArray]
 
 logger = logging.getLogger(__name__)
 
@@ -104,9 +107,9 @@ class ResponseTable:
 
     @property
     def points_per_axis(self) -> int:
-        return self.gland_values.shape[0]
+        return int(self.gland_values.shape[0])
 
-    def _bases(self, pressures_pa: np.ndarray) -> tuple[list, np.ndarray]:
+    def _bases(self, pressures_pa: np.ndarray) -> tuple[list[Basis], np.ndarray]:
         """Per chamber: the basis and its slope (per Pa) at the pressure clipped into the box; and the excess
         of each pressure over the box (Pa), for the linear extension outside."""
         inside_pa = np.clip(pressures_pa, 0.0, self.pressure_max_pa)
@@ -123,7 +126,7 @@ class ResponseTable:
             result = np.tensordot(vector, result, axes=(0, 0))
         return result
 
-    def _gradient(self, grid_values: np.ndarray, bases: list) -> np.ndarray:
+    def _gradient(self, grid_values: np.ndarray, bases: list[Basis]) -> np.ndarray:
         """d(value)/dp_chamber (per Pa) for each chamber, stacked on a leading axis."""
         return np.stack([self._contract(grid_values, [slopes if axis == chamber else values
                                                       for axis, (values, slopes) in enumerate(bases)])
@@ -138,18 +141,18 @@ class ResponseTable:
             value = value + np.tensordot(excess_pa, self._gradient(grid_values, bases), axes=(0, 0))
         return value
 
-    def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
+    def volumes(self, pressures_pa: ArrayLike) -> tuple[np.ndarray, float]:
         """Chamber volumes (m^3) and the gland volume (m^3) at ``pressures_pa`` (Pa, one per chamber)."""
         pressures = np.asarray(pressures_pa, dtype=float)
         return self._value(self.chamber_values, pressures), float(self._value(self.gland_values, pressures))
 
-    def compliance(self, pressures_pa) -> tuple[np.ndarray, np.ndarray]:
+    def compliance(self, pressures_pa: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """The tangent compliance at ``pressures_pa``: ``dV_chamber_i/dp_j`` (n, n) and ``dV_gland/dp_j`` (n,),
         m^3/Pa (the interpolant's exact gradient; at the box's edge beyond it)."""
         bases, _ = self._bases(np.asarray(pressures_pa, dtype=float))
         return self._gradient(self.chamber_values, bases).T, self._gradient(self.gland_values, bases)
 
-    def positions_m(self, pressures_pa) -> np.ndarray:
+    def positions_m(self, pressures_pa: ArrayLike) -> np.ndarray:
         """Every node's position (m, (nodes, 3)) at ``pressures_pa``."""
         return self._value(self.position_values, np.asarray(pressures_pa, dtype=float))
 

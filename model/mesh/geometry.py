@@ -27,11 +27,14 @@ import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass
+from typing import Any
 
 from phantom.model.errors import SceneError
 
 #: The thinnest silicone wall that can be cast and demoulded (mm).
 MANUFACTURABLE_WALL_MM = 2.0
+#: A point or the semi-axes of an ellipsoid (x, y, z), mm.
+Vector3 = tuple[float, float, float]
 #: Bounds of each scalar parameter (mm or dimensionless), beyond which the body cannot hold the chamber.
 SCALE_RANGE = (0.3, 2.5)
 FIXATION_RADIUS_RANGE_MM = (1.0, 15.0)
@@ -51,18 +54,20 @@ class ProstateGeometry:
     min_wall_mm: float = MANUFACTURABLE_WALL_MM
     mesh_size_mm: float = 2.5
 
-    def ellipsoids_mm(self) -> tuple[tuple[tuple, tuple], ...]:
+    def ellipsoids_mm(self) -> tuple[tuple[Vector3, Vector3], ...]:
         """(centre, semi-axes) of chambers 0, 1 (left, x > 0) and 2 (right, the mirror of 1), scales applied."""
-        base_axes = tuple(self.base_chamber_scale * a for a in self.base_chamber_semi_axes_mm)
-        lobe_axes = tuple(self.lobe_chamber_scale * a for a in self.lobe_chamber_semi_axes_mm)
+        a, b, c = self.base_chamber_semi_axes_mm
+        base_axes = (self.base_chamber_scale * a, self.base_chamber_scale * b, self.base_chamber_scale * c)
+        a, b, c = self.lobe_chamber_semi_axes_mm
+        lobe_axes = (self.lobe_chamber_scale * a, self.lobe_chamber_scale * b, self.lobe_chamber_scale * c)
         x, y, z = self.lobe_chamber_centre_mm
-        return ((tuple(self.base_chamber_centre_mm), base_axes), ((x, y, z), lobe_axes), ((-x, y, z), lobe_axes))
+        return ((self.base_chamber_centre_mm, base_axes), ((x, y, z), lobe_axes), ((-x, y, z), lobe_axes))
 
-    def with_values(self, **values) -> ProstateGeometry:
+    def with_values(self, **values: Any) -> ProstateGeometry:
         """A copy with some parameters changed (checked like a scene's table)."""
         return geometry_from_table({**self.as_table(), **values}, "geometry")
 
-    def as_table(self) -> dict:
+    def as_table(self) -> dict[str, Any]:
         """The scene's ``[geometry]`` table for this geometry (lists for the vectors)."""
         return {key: list(value) if isinstance(value, tuple) else value
                 for key, value in dataclasses.asdict(self).items()}
@@ -75,7 +80,7 @@ class ProstateGeometry:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def geometry_from_table(table: dict, where: str) -> ProstateGeometry:
+def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
     """Check a ``[geometry]`` table (types and ranges; the walls are checked by
     :func:`phantom.model.mesh.shape.check_walls`)."""
     if not isinstance(table, dict):
@@ -84,7 +89,7 @@ def geometry_from_table(table: dict, where: str) -> ProstateGeometry:
     unknown = sorted(set(table) - set(fields))
     if unknown:
         raise SceneError(f"{where}: [geometry] has unknown keys {unknown}: use {', '.join(fields)}")
-    values = {}
+    values: dict[str, Any] = {}
     for name, value in table.items():
         if name.endswith("_mm") and isinstance(fields[name].default, tuple):
             if (not isinstance(value, list | tuple) or len(value) != 3
@@ -110,5 +115,5 @@ def geometry_from_table(table: dict, where: str) -> ProstateGeometry:
     return geometry
 
 
-def _finite_number(value) -> bool:
+def _finite_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)

@@ -13,12 +13,13 @@ import math
 import os
 import sys
 import tempfile
+from typing import Any
 
 import numpy as np
 
 import phantom
 from phantom.model.errors import MeshError
-from phantom.model.mesh.geometry import ProstateGeometry
+from phantom.model.mesh.geometry import ProstateGeometry, Vector3
 from phantom.model.mesh.shape import (
     ANTERIOR_POSTERIOR_RATIO,
     HALF_LENGTH_MM,
@@ -26,7 +27,7 @@ from phantom.model.mesh.shape import (
     equator_radius_mm,
     profile_radius_mm,
 )
-from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, surface_components
+from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, gmsh_session, surface_components
 
 #: Bump when the generated geometry changes, so cached meshes are regenerated.
 PROSTATE_GEOMETRY_VERSION = 2
@@ -38,32 +39,16 @@ DEFAULT_SIZE_MM = ProstateGeometry.mesh_size_mm
 CURVATURE_ELEMENTS = 16
 
 
-class _Gmsh:
-    """gmsh initialised quietly for one model, finalised on exit."""
-
-    def __enter__(self):
-        # gmsh (0.2 s to import, and a native library) only where a mesh is generated: a cached mesh needs none
-        import gmsh
-
-        gmsh.initialize(interruptible=False)
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        return gmsh
-
-    def __exit__(self, *exc):
-        import gmsh  # loaded by __enter__ already
-
-        gmsh.finalize()
-
-
-def _ellipsoid(occ, centre_mm, semi_axes_mm) -> tuple[int, int]:
+def _ellipsoid(occ: Any, centre_mm: Vector3, semi_axes_mm: Vector3) -> tuple[int, int]:
+    """An ellipsoid added to gmsh's OpenCASCADE kernel ``occ``: its (dimension, tag)."""
     sphere = occ.addSphere(0.0, 0.0, 0.0, 1.0)
     occ.dilate([(3, sphere)], 0.0, 0.0, 0.0, *semi_axes_mm)
     occ.translate([(3, sphere)], *centre_mm)
     return (3, sphere)
 
 
-def _mesh_solid(gmsh, solid, size_mm: float, curvature_elements: int) -> tuple[np.ndarray, np.ndarray]:
+def _mesh_solid(gmsh: Any, solid: tuple[int, int], size_mm: float,
+                curvature_elements: int) -> tuple[np.ndarray, np.ndarray]:
     """Mesh one solid; return its nodes (mm) and positively oriented tets, numbered from 0 without gaps."""
     gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
     gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / 4.0)
@@ -109,7 +94,7 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
     check_walls(geometry)
     ellipsoids = geometry.ellipsoids_mm()
     radius_mm = equator_radius_mm()
-    with _Gmsh() as gmsh:
+    with gmsh_session() as gmsh:
         occ = gmsh.model.occ
         t_values = np.linspace(-1.0, 1.0, 33)
         radii = profile_radius_mm(t_values, radius_mm)
@@ -152,7 +137,7 @@ def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_
 
     Nodes of both spherical surfaces lie on the exact spheres (gmsh places them on the geometry).
     """
-    with _Gmsh() as gmsh:
+    with gmsh_session() as gmsh:
         occ = gmsh.model.occ
         outer = occ.addSphere(0.0, 0.0, 0.0, outer_radius_mm)
         inner = occ.addSphere(0.0, 0.0, 0.0, inner_radius_mm)
@@ -184,7 +169,7 @@ def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | 
             cache_path.unlink(missing_ok=True)
     print(f"phantom: meshing the built-in prostate at {size_mm:g} mm (cached afterwards)...", file=sys.stderr)
     mesh = generate_prostate(size_mm, geometry)
-    arrays = {"nodes_m": mesh.nodes_m, "tets": mesh.tets}
+    arrays: dict[str, Any] = {"nodes_m": mesh.nodes_m, "tets": mesh.tets}
     arrays.update({f"group_{name}": triangles for name, triangles in mesh.surface_groups.items()})
     handle, temporary = tempfile.mkstemp(dir=cache_path.parent, suffix=".npz")
     os.close(handle)

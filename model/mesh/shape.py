@@ -15,7 +15,7 @@ import numpy as np
 
 from phantom.model.arrays import BoolArray, FloatArray
 from phantom.model.errors import MeshError
-from phantom.model.mesh.geometry import ProstateGeometry
+from phantom.model.mesh.geometry import ProstateGeometry, Vector3
 
 #: The body's volume (ml), half its length along z (mm), its taper toward the apex and its front-to-back squeeze.
 REST_VOLUME_ML = 26.3
@@ -68,21 +68,21 @@ def wall_thicknesses_mm(geometry: ProstateGeometry) -> dict[str, float]:
 
     outer = cKDTree(body_surface_points_mm())
     samples = [_ellipsoid_points_mm(centre, axes) for centre, axes in geometry.ellipsoids_mm()]
-    walls = {}
+    walls: dict[str, float] = {}
     for index, points in enumerate(samples):
-        distance = float(outer.query(points)[0].min())
+        distance = float(np.min(outer.query(points)[0]))
         walls[f"chamber{index}-outer"] = distance if np.all(inside_body(points)) else -distance
     ellipsoids = geometry.ellipsoids_mm()
     for first in range(len(samples)):
         for second in range(first + 1, len(samples)):
-            distance = float(cKDTree(samples[second]).query(samples[first])[0].min())
+            distance = float(np.min(cKDTree(samples[second]).query(samples[first])[0]))
             centre, axes = (np.asarray(value) for value in ellipsoids[first])
             overlapping = np.any(np.sum(((samples[second] - centre) / axes) ** 2, axis=1) < 1)
             walls[f"chamber{first}-chamber{second}"] = -distance if overlapping else distance
     return walls
 
 
-def _ellipsoid_points_mm(centre: tuple[float, ...], axes: tuple[float, ...], spacing_mm: float = 0.5) -> FloatArray:
+def _ellipsoid_points_mm(centre: Vector3, axes: Vector3, spacing_mm: float = 0.5) -> FloatArray:
     """Samples (k, 3) of an ellipsoid's surface, about ``spacing_mm`` apart along its largest axis."""
     largest = max(axes)
     n_polar = max(int(math.pi * largest / spacing_mm), 16)
@@ -91,13 +91,14 @@ def _ellipsoid_points_mm(centre: tuple[float, ...], axes: tuple[float, ...], spa
     azimuth = np.linspace(0.0, 2 * math.pi, n_azimuth, endpoint=False)
     polar, azimuth = np.meshgrid(polar, azimuth, indexing="ij")
     unit = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=-1)
-    return (unit * np.asarray(axes) + np.asarray(centre)).reshape(-1, 3)
+    points: FloatArray = (unit * np.asarray(axes) + np.asarray(centre)).reshape(-1, 3)
+    return points
 
 
 def check_walls(geometry: ProstateGeometry) -> dict[str, float]:
     """The walls (see :func:`wall_thicknesses_mm`), or MeshError naming the thinnest one below ``min_wall_mm``."""
     walls = wall_thicknesses_mm(geometry)
-    name = min(walls, key=walls.get)
+    name = min(walls, key=lambda wall: walls[wall])
     if walls[name] < geometry.min_wall_mm:
         what = "breaks through" if walls[name] < 0 and "outer" in name else "overlaps" if walls[name] < 0 else ""
         detail = f"{what} ({walls[name]:.2f} mm)" if what else f"is {walls[name]:.2f} mm thick"

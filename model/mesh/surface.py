@@ -87,7 +87,9 @@ def triangle_areas_mm2(vertices_mm: FloatArray, triangles: IntArray) -> FloatArr
 def vertex_areas_mm2(vertices_mm: FloatArray, triangles: IntArray) -> FloatArray:
     """A third of the area of each triangle around a vertex (the vertex's share of the surface), (n,) mm^2."""
     areas = triangle_areas_mm2(vertices_mm, triangles)
-    return np.bincount(triangles.ravel(), np.repeat(areas / 3.0, 3), len(vertices_mm))
+    shares: FloatArray = np.asarray(np.bincount(triangles.ravel(), np.repeat(areas / 3.0, 3), len(vertices_mm)),
+                                    dtype=np.float64)
+    return shares
 
 
 def vertex_normals(vertices_mm: FloatArray, triangles: IntArray) -> FloatArray:
@@ -263,6 +265,7 @@ class SurfaceIndex:
         if self._neighbours is None:
             reach = NEIGHBOUR_REACH_RADII * self.radius_max_mm
             lists = self.tree.query_ball_point(self.tree.data, reach)
+            assert isinstance(lists, np.ndarray)  # many query points: an object array of index lists
             start = np.zeros(len(lists) + 1, np.int64)
             start[1:] = np.cumsum([len(entries) for entries in lists])
             self._neighbours = (reach, start, np.concatenate(lists).astype(np.int64))
@@ -288,7 +291,8 @@ class SurfaceIndex:
             reach, start, neighbours = self._neighbour_lists()
             nearest_distance, nearest = self.tree.query(points_mm)
             done: BoolArray = np.zeros(n, np.bool_)
-            kernels.closest_by_neighbours(points_mm, nearest.astype(np.int64), nearest_distance, start, neighbours,
+            kernels.closest_by_neighbours(points_mm, np.asarray(nearest, np.int64),
+                                          np.asarray(nearest_distance, np.float64), start, neighbours,
                                           self.tree.data, self.radius_mm, self.radius_max_mm, reach, self.vertices_mm,
                                           self.triangles, distance, closest, triangle, done)
             pending = pending[~done]
@@ -297,8 +301,8 @@ class SurfaceIndex:
             # Threads pay off only for large batches: starting them costs milliseconds on a busy machine.
             workers = -1 if len(pending) > 50000 else 1
             centroid_distance, candidates = self.tree.query(points_mm[pending], k=k, workers=workers)
-            centroid_distance = np.ascontiguousarray(centroid_distance.reshape(len(pending), -1))
-            candidates = np.ascontiguousarray(candidates.reshape(len(pending), -1), np.int64)
+            centroid_distance = np.ascontiguousarray(np.reshape(centroid_distance, (len(pending), -1)), np.float64)
+            candidates = np.ascontiguousarray(np.reshape(candidates, (len(pending), -1)), np.int64)
             done = np.zeros(len(pending), np.bool_)
             kernels.closest_on_candidates(points_mm, pending, candidates, centroid_distance, self.vertices_mm,
                                           self.triangles, self.radius_mm, self.radius_max_mm,
@@ -381,7 +385,7 @@ def vertex_correspondence(vertices_mm: FloatArray, normals: FloatArray) -> Corre
 
     def correspond(points_mm: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         distance, nearest = tree.query(points_mm)
-        return distance, vertices_mm[nearest], normals[nearest]
+        return np.asarray(distance, np.float64), vertices_mm[nearest], normals[nearest]
     return correspond
 
 
@@ -434,7 +438,11 @@ def align(moving: Frame, moving_points_mm: FloatArray, target: TriangleMesh, tar
     many = moving_points_mm[rng.choice(len(moving_points_mm), min(ICP_POINTS, len(moving_points_mm)),
                                        replace=False)]
     exact = exact_correspondence(target_index)
-    best = icp(many, exact, *starts[order[0]][:2], ICP_MAX_ITERATIONS)
+
+    def refine(start: IcpResult) -> IcpResult:
+        return icp(many, exact, start[0], start[1], ICP_MAX_ITERATIONS)
+
+    best = refine(starts[order[0]])
     # The best start that lies far from that one is refined too: the better of the two is the answer, and the
     # other's residual says how well the shape pins the rotation (nearly symmetric shapes fit both ways). A start
     # that ICP brings back to the best alignment is the same answer, not another one (it was reported as an
@@ -446,7 +454,7 @@ def align(moving: Frame, moving_points_mm: FloatArray, target: TriangleMesh, tar
             break
         if rotation_angle_deg(starts[index][0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
             tries += 1
-            refined = icp(many, exact, *starts[index][:2], ICP_MAX_ITERATIONS)
+            refined = refine(starts[index])
             if rotation_angle_deg(refined[0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
                 alternative = refined
                 break

@@ -64,7 +64,22 @@ def closest_on_triangle(p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArr
     out[0] = a[0] + v * ab0 + w * ac0
     out[1] = a[1] + v * ab1 + w * ac1
     out[2] = a[2] + v * ab2 + w * ac2
-    return (p[0] - out[0]) ** 2 + (p[1] - out[1]) ** 2 + (p[2] - out[2]) ** 2
+    squared: float = (p[0] - out[0]) ** 2 + (p[1] - out[1]) ** 2 + (p[2] - out[2]) ** 2
+    return squared
+
+
+@kernel
+def _record_if_closer(points: FloatArray, i: int, j: int, vertices: FloatArray, triangles: IntArray, best: float,
+                      point_out: FloatArray, closest: FloatArray, triangle: IntArray) -> float:
+    """Point i against triangle j: when it is closer than ``best`` (a squared distance), record the triangle and
+    the closest point for the point; returns the best squared distance."""
+    squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
+                                  vertices[triangles[j, 2]], point_out)
+    if squared >= best:
+        return best
+    triangle[i] = j
+    closest[i, 0], closest[i, 1], closest[i, 2] = point_out[0], point_out[1], point_out[2]
+    return squared
 
 
 @kernel
@@ -97,12 +112,7 @@ def closest_on_candidates(points: FloatArray, pending: IntArray, candidates: Int
                     break
                 if centroid_distance[row, k] - radius[j] > reach:
                     continue
-            squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
-                                          vertices[triangles[j, 2]], point_out)
-            if squared < best:
-                best = squared
-                triangle[i] = j
-                closest[i, 0], closest[i, 1], closest[i, 2] = point_out[0], point_out[1], point_out[2]
+            best = _record_if_closer(points, i, j, vertices, triangles, best, point_out, closest, triangle)
         if finished:
             distance[i] = np.sqrt(best)
             done[row] = True
@@ -129,12 +139,7 @@ def closest_by_neighbours(points: FloatArray, nearest: IntArray, nearest_distanc
                               + (points[i, 2] - centroids[j, 2]) ** 2)
                 if gap - radius[j] > np.sqrt(best):
                     continue
-            squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
-                                          vertices[triangles[j, 2]], point_out)
-            if squared < best:
-                best = squared
-                triangle[i] = j
-                closest[i, 0], closest[i, 1], closest[i, 2] = point_out[0], point_out[1], point_out[2]
+            best = _record_if_closer(points, i, j, vertices, triangles, best, point_out, closest, triangle)
         if np.sqrt(best) + radius_max + nearest_distance[i] <= reach:
             distance[i] = np.sqrt(best)
             done[i] = True

@@ -4,8 +4,17 @@
 Only the standard library is imported at module load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from phantom.hil.link import BoardLink
+    from phantom.model.scene import Scene
 
 #: The grid swept when none is given, per material law: stiffening (Jm) and the chambers' size.
 #: The pressure combinations of the paper's Table I (kPa), the default list to record.
@@ -20,7 +29,7 @@ DEFAULT_GRIDS = {
 }
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``calibrate`` (and its ``record`` subcommand) to the ``phantom`` parser."""
     calibrate = subparsers.add_parser(
         "calibrate", help="fit material and geometry to measured volumes (offline); 'record' measures them",
@@ -67,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     record.set_defaults(run=run_record)
 
 
-def _scene_for(args):
+def _scene_for(args: argparse.Namespace) -> Scene:
     """The scene, with --material, --gent-jm and --size-mm applied to its table."""
     from phantom import PhantomError
     from phantom.model.calibration.calibrate import scene_with
@@ -97,7 +106,7 @@ def _scene_for(args):
     return scene
 
 
-def run_calibrate(args) -> int:
+def run_calibrate(args: argparse.Namespace) -> int:
     """Handler of ``phantom calibrate``."""
     import json
 
@@ -206,7 +215,8 @@ def _ask_volume_ml(prompt: str) -> float:
     return volume_ml
 
 
-def _hold_until_settled(link, point_kpa: list[float], tolerance_kpa: float, settle_s: float):
+def _hold_until_settled(link: BoardLink, point_kpa: list[float], tolerance_kpa: float,
+                        settle_s: float) -> np.ndarray:
     """Set the pressures and wait (board clock) until every chamber has stayed within the band for
     ``settle_s``; return the mean pressures (kPa) of five telemetry frames then."""
     import numpy as np
@@ -218,19 +228,20 @@ def _hold_until_settled(link, point_kpa: list[float], tolerance_kpa: float, sett
     bench.set_setpoints(link, setpoints_pa)
     last_outside_ms = [bench.latest_telemetry(link)["time_ms"]]
 
-    def settled(fields) -> bool:
+    def settled(fields: dict[str, Any]) -> bool:
         error_pa = max(abs(p - s) for p, s in zip(fields["pressure_pa"], setpoints_pa, strict=True))
         if error_pa > tolerance_kpa * 1e3:
             last_outside_ms[0] = fields["time_ms"]
-        return fields["time_ms"] - last_outside_ms[0] >= settle_s * 1e3
+        return bool(fields["time_ms"] - last_outside_ms[0] >= settle_s * 1e3)
 
     if bench.wait_board_time(link, SETTLE_TIMEOUT_S, settled) is None:
         raise PhantomError(f"the pressures ({', '.join(f'{p:g}' for p in point_kpa)}) kPa did not settle within "
                            f"{tolerance_kpa} kPa in {SETTLE_TIMEOUT_S:g} s of board time: check for leaks")
-    return np.mean([bench.latest_telemetry(link)["pressure_pa"] for _ in range(5)], axis=0) / 1e3
+    held_pa: np.ndarray = np.mean([bench.latest_telemetry(link)["pressure_pa"] for _ in range(5)], axis=0)
+    return held_pa / 1e3
 
 
-def run_record(args) -> int:
+def run_record(args: argparse.Namespace) -> int:
     """Handler of ``phantom calibrate record``."""
     import json
 

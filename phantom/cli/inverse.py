@@ -1,12 +1,19 @@
-"""Subcommand of ``phantom``: ``inverse`` (pressures for a wanted volume); ``calibrate`` is in calibrate_cli.
+"""Subcommand of ``phantom``: ``inverse`` (pressures for a wanted volume); ``calibrate`` is in calibrate.py.
 
 Only argparse is imported at module load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from phantom.model.fem.model import PhantomModel
+    from phantom.model.scene import Scene
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``inverse`` to the ``phantom`` parser."""
     inverse = subparsers.add_parser(
         "inverse", help="chamber pressures that give a wanted volume (offline)",
@@ -50,14 +57,14 @@ def _growth_ratio_by_index(text: str, chamber_names: list[str]) -> dict[int, flo
     return by_index
 
 
-def _load_model(args):
+def _load_model(args: argparse.Namespace) -> tuple[Scene, PhantomModel]:
     from phantom.model import PhantomModel, load_scene
 
     scene = load_scene(args.scene)
     return scene, PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
 
 
-def run_inverse(args) -> int:
+def run_inverse(args: argparse.Namespace) -> int:
     """Handler of ``phantom inverse``."""
     import json
 

@@ -3,11 +3,17 @@
 Only argparse is imported at module load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
 import os
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from phantom.model.fem.model import PhantomModel, State
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     mesh = subparsers.add_parser(
         "mesh", help="write a scene's tetrahedral mesh (with its groups) to a file",
@@ -130,7 +136,7 @@ def run_forward(args: argparse.Namespace) -> int:
 SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
 
 
-def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
+def _write_deformed(model: PhantomModel, state: State, out: str, length_scale_m: float) -> None:
     """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit; the outer
     surface only for a surface format."""
     from phantom.cli.common import output_file

@@ -4,10 +4,12 @@ synthetic`` (a scan of the model with known damage, to try compare-scan on).
 Only argparse is imported at module load; the handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``compare-scan`` to the ``phantom`` parser."""
     compare = subparsers.add_parser(
         "compare-scan", help="compare a 3D scan (OBJ, PLY, STL) with the model's shape at given pressures",
@@ -21,7 +23,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          help="the chamber pressures (kPa, chamber order) the scan was taken at, e.g. 1,1,1")
     compare.add_argument("--units", choices=("mm", "cm", "m"), default="mm",
                          help="unit of the scan's coordinates (default mm)")
-    compare.add_argument("--out", default=".", help="folder for the heatmap PNG (created if missing; default .)")
+    compare.add_argument("--out", default="out", help="folder for the heatmap PNG (created if missing; default out)")
     compare.add_argument("--rerun-save", metavar="FILE", help="also write a Rerun recording (.rrd) of the result")
     compare.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     compare.add_argument("--json", action="store_true", help="print one JSON object instead of text")
@@ -139,7 +141,7 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
     model = PhantomModel.from_scene(load_scene(args.scene))
     if args.modulus_factor != 1.0:
         model = model.with_material(youngs_modulus_pa=args.modulus_factor * model.material.youngs_modulus_pa)
-    state = model.equilibrium([float(p) * 1e3 for p in pressures_kpa if p is not None])
+    state = model.equilibrium([p * 1e3 for p in pressures_kpa])
     rng = np.random.default_rng(args.seed)
     scan = make_scan(model_surface(state.positions_m, model.outer_triangles), rng, levels=args.levels,
                      noise_mm=args.noise_mm, holes=args.holes, fragment=True, rotation=random_rotation(rng),

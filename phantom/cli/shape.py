@@ -4,10 +4,19 @@
 imported at module load; each handler imports what it needs when it runs.
 """
 
+from __future__ import annotations
+
 import argparse
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from phantom.shape.analysis import ShapeModel
+
+Subcommands = argparse._SubParsersAction[argparse.ArgumentParser]
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: Subcommands) -> None:
     """Add ``shape`` and its subcommands to the ``phantom`` parser."""
     shape = subparsers.add_parser(
         "shape", help="shape analysis: train a 3D VAE on prostate segmentations, the average shape, clusters, "
@@ -96,10 +105,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 SHAPE_FILE_HELP = "a NIfTI mask or label map (the run's labels), or a closed mesh (mm, the phantom's frame)"
 
 
-def _run_command(commands: argparse._SubParsersAction, name: str, handler, summary: str, description: str,
-                 with_json: bool = True) -> argparse.ArgumentParser:
+def _run_command(commands: Subcommands, name: str, handler: Callable[[argparse.Namespace], int], summary: str,
+                 description: str, with_json: bool = True) -> argparse.ArgumentParser:
     """A subcommand on a trained run: its RUN argument, and --json where it prints a result."""
-    parser = commands.add_parser(name, help=summary, description=description)
+    parser: argparse.ArgumentParser = commands.add_parser(name, help=summary, description=description)
     parser.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
     if with_json:
         parser.add_argument("--json", action="store_true", help="print one JSON object")
@@ -107,10 +116,7 @@ def _run_command(commands: argparse._SubParsersAction, name: str, handler, summa
     return parser
 
 
-def _run_model(path: str):
-    from phantom.shape.errors import require_extra
-
-    require_extra()
+def _run_model(path: str) -> ShapeModel:
     from phantom.shape.analysis import ShapeModel
 
     return ShapeModel.load(path)
@@ -128,9 +134,6 @@ def _labels(text: str) -> tuple[int, ...]:
 
 def run_synthesize(args: argparse.Namespace) -> int:
     """Handler of ``phantom shape synthesize``."""
-    from phantom.shape.errors import require
-
-    require("nibabel")
     from phantom.shape.synthetic import PopulationSpec, synthesize
 
     spec = PopulationSpec(mirror_pairs=args.symmetric)
@@ -141,11 +144,9 @@ def run_synthesize(args: argparse.Namespace) -> int:
 
 def run_train(args: argparse.Namespace) -> int:
     """Handler of ``phantom shape train``."""
-    from phantom.shape.errors import ShapeError, require_extra
-
-    require_extra()
     from phantom.cli.common import parse_numbers
     from phantom.shape.dataset import load_shapes
+    from phantom.shape.errors import ShapeError
     from phantom.shape.training import TrainConfig, train
     from phantom.shape.vae import VAEConfig
 
