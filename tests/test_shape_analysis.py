@@ -138,3 +138,21 @@ def test_the_commands_refuse_bad_input_in_one_line(run, tmp_path, capsys):
     assert "--channels takes positive whole numbers" in capsys.readouterr().err
     assert main(["shape", "average", str(run), "--out", str(tmp_path / "average.vtk")]) == 2
     assert "write the mesh as .obj, .ply or .stl" in capsys.readouterr().err
+
+
+def test_compare_scan_reports_the_latent_distance_given_a_shape_run(run, model, tmp_path, capsys):
+    """The paper's Fig. 9 beside the closest-point distances: a scan of the model at rest against the model."""
+    scan = tmp_path / "scan.ply"
+    assert main(["scan", "synthetic", "--out", str(scan), "--scene", "builtin", "--pressures-kpa", "0,0,0",
+                 "--holes", "1", "--noise-mm", "0.02"]) == 0
+    capsys.readouterr()
+    assert main(["compare-scan", str(scan), "--scene", "builtin", "--pressures-kpa", "0,0,0", "--out",
+                 str(tmp_path), "--shape-run", str(run), "--json"]) == 0
+    report = json.loads(capsys.readouterr().out)
+    _, latents = model.case_latents()
+    spread = np.median(np.linalg.norm(latents[:, None] - latents[None], axis=2)[np.triu_indices(len(latents), 1)])
+    assert 0.0 <= report["latent_distance"] < 0.1 * spread
+    assert report["shape_run"] == str(run) and report["distance_mm"]["mean"] < 0.1
+    assert main(["compare-scan", str(scan), "--scene", "builtin", "--pressures-kpa", "0,0,0", "--out",
+                 str(tmp_path), "--shape-run", str(tmp_path / "no-run")]) == 2
+    assert "no such run folder" in capsys.readouterr().err
