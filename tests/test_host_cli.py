@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from phantom import PhantomError
-from phantom.cli.daemon import format_steps
+from phantom.cli.client import format_steps
 from phantom.host.config import ConfigError, DaemonConfig, load_config, merged_config, settings
 
 PHANTOM = Path(sys.executable).with_name("phantom")
@@ -164,11 +164,12 @@ def test_a_list_starting_with_a_free_chamber_is_a_value_not_an_option(command):
 
 
 def test_every_host_subcommand_has_a_description_and_json():
-    from phantom.cli import daemon as commands
+    from phantom.cli import client, daemon
 
     parser = argparse.ArgumentParser()
     subparsers = parser.add_subparsers()
-    commands.register(subparsers)
+    daemon.register(subparsers)
+    client.register(subparsers)
     for name, subparser in subparsers.choices.items():
         assert subparser.description, name
         if name != "daemon":
@@ -176,7 +177,7 @@ def test_every_host_subcommand_has_a_description_and_json():
 
 
 def test_the_text_answers_of_vent_clear_fault_and_zero():
-    from phantom.cli.daemon import format_simple, watch_header
+    from phantom.cli.client import format_simple, watch_header
 
     assert format_simple("vent", {"vented": True}).startswith("vented")
     assert format_simple("clear_fault", {"cleared": ["SENSOR_1"], "setpoints_restored": True}) == (

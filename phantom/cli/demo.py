@@ -41,7 +41,7 @@ def _wait_online(client_factory: Callable[[], DaemonClient], process: subprocess
 
 
 def main(argv: list[str] | None = None) -> int:
-    from phantom.cli.daemon import follow_scene, format_steps
+    from phantom.cli.client import follow_scene, format_steps
     from phantom.host.client import DaemonClient
     from phantom.host.recording import read_rrd
     from phantom.host.scenes import example_scene_path

@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.calibrate",
     "phantom.cli.hil",
     "phantom.cli.daemon",
+    "phantom.cli.client",
 )
 
 
