@@ -45,14 +45,19 @@ class LoadedModel:
         (``phantom.model.load_scene``).
     report : callable(str), optional
         Where start-up progress goes (the log by default): each stage and how long it took.
+    defer_table : bool
+        When the scene names the ``table`` fidelity and its table is not stored yet, answer on the full solve
+        (what the table approximates, most of a second an answer) and leave the build to the caller
+        (``pending_level`` is then ``"table"``; :meth:`use_level` switches once it is stored). False: build the
+        table here first (minutes, with progress).
     """
 
-    def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info):
+    def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info, defer_table: bool = False):
         # the model's stack (scipy, numba) is loaded where the model is built: in the worker process, not in the
         # daemon that imports this module
         from phantom.model import PhantomModel, load_scene
-        from phantom.model.fidelity.levels import VolumeEstimator
 
+        self.report = report
         self.timings_s: dict[str, float] = {}
         started = time.perf_counter()
         report(f"loading scene {scene_source} ...")
@@ -66,19 +71,45 @@ class LoadedModel:
         self.timings_s["compliance_s"] = time.perf_counter() - stage
         report(f"compliance ready in {self.timings_s['compliance_s']:.2f} s (computed, or loaded from "
                f"{phantom.cache_dir('compliance')}); inverse solver ...")
+        #: the level the scene asks for, once it can be had (None: the one in use is it)
+        self.pending_level: str | None = None
+        level = self.scene.model_settings.fidelity
+        if level == "table" and defer_table and not self.table_stored():
+            level, self.pending_level = "full", "table"
+        self._set_up(level)
+        self.timings_s["total_s"] = time.perf_counter() - started
+        report(f"start-up took {self.timings_s['total_s']:.2f} s")
+        self.chamber_names = list(self.model.chamber_names)
+        self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3
+        self.wants_shape = bool(self.scene.outputs.shape)
+        #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
+        self._outer_surface = self.model.outer_surface()
+
+    def table_stored(self) -> bool:
+        """Whether the scene's response table is in the disk cache (or shipped), so the table level costs no build."""
+        from phantom.model.fidelity.response_table import stored_response_table
+
+        settings = self.model.model_settings
+        return stored_response_table(self.model, settings.pressure_max_pa, settings.table_points) is not None
+
+    def _set_up(self, level: str | None) -> None:
+        """The estimator and the inverse at ``level`` (None: the scene's choice), warmed up where a warm-up is
+        cheap (not on the full solve, where one answer costs more than what warming saves)."""
+        from phantom.model.fidelity.levels import VolumeEstimator
+
         stage = time.perf_counter()
         # The model keeps its scene: the estimator reads the [model] table (pressure_max_kpa, fidelity) from it,
         # and without a fidelity probes for the cheapest level within the scene's accuracy_pct (one solve per
-        # level at the pressure limit); the table level is built here the first time (minutes, with progress).
-        estimator = VolumeEstimator(self.model, progress=build_progress(report))
+        # level at the pressure limit); the table level is built here if it is not stored (minutes, with progress).
+        estimator = VolumeEstimator(self.model, level=level, progress=build_progress(self.report))
         self.solver = InverseSolver(self.model, estimator=estimator)
         self.pressure_max_pa = float(self.solver.pressure_max_pa.max())
         self.estimator = self.solver.estimator
         self.timings_s["inverse_setup_s"] = time.perf_counter() - stage
         stage = time.perf_counter()
-        self.warm_up()
+        if self.estimator.level != "full":
+            self.warm_up()
         self.timings_s["warm_up_s"] = time.perf_counter() - stage
-        self.timings_s["total_s"] = time.perf_counter() - started
         probe = ""
         if self.estimator.probe_errors_pct:
             probe = ", chosen for accuracy_pct {:g} from errors {}".format(self.estimator.accuracy_pct, ", ".join(
@@ -86,13 +117,16 @@ class LoadedModel:
         if self.estimator.table is not None:
             probe = (f", a {self.estimator.table.points_per_axis}^{self.estimator.table.n_chambers} response table "
                      f"within {self.estimator.table.check_errors_pct:.2g} % of full solves")
-        report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}{probe}), "
-               f"warmed up in {self.timings_s['warm_up_s']:.2f} s; start-up took {self.timings_s['total_s']:.2f} s")
-        self.chamber_names = list(self.model.chamber_names)
-        self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3
-        self.wants_shape = bool(self.scene.outputs.shape)
-        #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
-        self._outer_surface = self.model.outer_surface()
+        if self.pending_level is not None:
+            probe = f" until the {self.pending_level} level is built"
+        self.report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}"
+                    f"{probe}), warmed up in {self.timings_s['warm_up_s']:.2f} s")
+
+    def use_level(self, level: str) -> None:
+        """Answer on ``level`` from now on (the pending table, once stored)."""
+        self._set_up(level)
+        if level == self.pending_level:
+            self.pending_level = None
 
     def warm_up(self) -> None:
         """Solve one reachable and one unreachable gland target, so that the first request finds the QPs set
@@ -109,9 +143,10 @@ class LoadedModel:
             self.estimator.counts[key] = 0
 
     def effective_model(self) -> dict[str, Any]:
-        """What a scene must match to run on this model (see :func:`phantom.host.scenes.effective_model`)."""
-        return effective_model(self.scene, fidelity=self.estimator.level, pressure_max_kpa=self.pressure_max_pa
-                               / PA_PER_KPA)
+        """What a scene must match to run on this model (see :func:`phantom.host.scenes.effective_model`): the
+        level it will answer on (the pending table, not the full solve it serves on meanwhile)."""
+        return effective_model(self.scene, fidelity=self.pending_level or self.estimator.level,
+                               pressure_max_kpa=self.pressure_max_pa / PA_PER_KPA)
 
     def pressures_for(self, target: Target) -> InverseResult:
         """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
@@ -167,6 +202,8 @@ class ModelInfo:
     pressure_max_pa: float
     wants_shape: bool
     effective_model: dict[str, Any]
+    #: the level the scene asks for while the worker answers on ``fidelity`` until it is built (None: it is)
+    pending_fidelity: str | None = None
 
 
 @dataclass(frozen=True)
@@ -221,13 +258,23 @@ def _worker_model_or_fail() -> LoadedModel:
     return _worker_model
 
 
-def _worker_start(scene_source: str) -> ModelInfo:
+def _worker_start(scene_source: str, defer_table: bool) -> ModelInfo:
     """In the worker: build the model; return what the daemon needs to know about it."""
     global _worker_model
-    _worker_model = model = LoadedModel(scene_source)
-    return ModelInfo(model.chamber_names, list(model.scene.chamber_labels), model.rest_volume_ml, model.timings_s,
-                     model.estimator.level, model.scene.raw, str(model.scene.path), model.pressure_max_pa,
-                     model.wants_shape, model.effective_model())
+    _worker_model = LoadedModel(scene_source, defer_table=defer_table)
+    return _worker_info()
+
+
+def _worker_info() -> ModelInfo:
+    model = _worker_model_or_fail()
+    return ModelInfo(model.chamber_names, list(model.scene.chamber_labels), model.rest_volume_ml,
+                     dict(model.timings_s), model.estimator.level, model.scene.raw, str(model.scene.path),
+                     model.pressure_max_pa, model.wants_shape, model.effective_model(), model.pending_level)
+
+
+def _worker_use_level(level: str) -> ModelInfo:
+    _worker_model_or_fail().use_level(level)
+    return _worker_info()
 
 
 def _worker_pressures_for(target: Target) -> InverseResult:
@@ -265,11 +312,13 @@ class ModelWorker:
         self.info = info
 
     @classmethod
-    async def start(cls, scene_source: str, log_level: str = "info") -> ModelWorker:
-        """Start the worker process and build the model in it (its progress is logged from there)."""
+    async def start(cls, scene_source: str, log_level: str = "info", defer_table: bool = False) -> ModelWorker:
+        """Start the worker process and build the model in it (its progress is logged from there).
+        ``defer_table``: answer on the full solve while a table that is not stored yet is built elsewhere
+        (``info.pending_fidelity``; :meth:`use_level` once it is stored)."""
         pool = worker_pool(log_level)
         try:
-            info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source)
+            info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source, defer_table)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             raise
@@ -277,6 +326,11 @@ class ModelWorker:
 
     async def _call(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
+
+    async def use_level(self, level: str) -> ModelInfo:
+        """Answer on ``level`` from now on (the pending table, once the build stored it); the new ``info``."""
+        self.info = await self._call(_worker_use_level, level)
+        return self.info
 
     async def pressures_for(self, target: Target) -> InverseResult:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
