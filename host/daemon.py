@@ -220,7 +220,7 @@ class Daemon:
                 self._tasks.append(asyncio.create_task(self.sim_board.watch(), name="simulated board"))
             for task in self._tasks:
                 task.add_done_callback(self._task_ended)
-            logger.info("ready: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
+            logger.info("serving: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
             if self.config.run_scene:
                 try:
                     self.start_scene(info.scene_raw, info.scene_path, 1.0, info.wants_shape)
@@ -338,8 +338,9 @@ class Daemon:
         fidelity = self.model.info.fidelity
         building = f" (the {self.model.info.pending_fidelity} level is being built)" if (
             self.model.info.pending_fidelity) else ""
-        self.event("startup", f"ready in {self.now_s():.1f} s: the model answers on {fidelity}{building}, the "
-                   f"board is online")
+        since_start_s = self.startup.clock() - self.startup.started_s
+        self.event("startup", f"ready {since_start_s:.1f} s after start: the model answers on {fidelity}{building}, "
+                   "the board is online")
         notify_systemd("READY=1", f"STATUS=ready: fidelity {fidelity}{building}")
 
     def when_ready(self, handler: Handler) -> Handler:
@@ -363,13 +364,7 @@ class Daemon:
     def _table_build_readable(self) -> None:
         build = self.table_build
         assert build is not None  # the reader exists only while a build does
-        finished = build.read()
-        now_s = self.now_s()
-        if not finished and now_s - self._build_reported_s >= BUILD_REPORT_S:
-            self._build_reported_s = now_s
-            logger.info("%s (the model answers on full solves until then)", build.progress.text())
-            notify_systemd(f"STATUS={'ready' if self.ready else self.startup.stage}; {build.progress.text()}")
-        if not finished:
+        if not build.read():
             return
         asyncio.get_running_loop().remove_reader(build.fileno())
         if build.error is not None:
@@ -377,6 +372,16 @@ class Daemon:
                        "answering on full solves", "ERROR")
             return
         self.spawn(self._switch_to_table(build))
+
+    def _report_build_tick(self) -> None:
+        """Every BUILD_REPORT_S while the table builds: how far it is, in the log and systemd's status line."""
+        build = self.table_build
+        if build is None or build.finished or self.now_s() - self._build_reported_s < BUILD_REPORT_S:
+            return
+        self._build_reported_s = self.now_s()
+        text = build.text()
+        logger.info("%s (the model answers on full solves until then)", text)
+        notify_systemd(f"STATUS={'ready' if self.ready else self.startup.stage}; {text}")
 
     async def _switch_to_table(self, build: TableBuild) -> None:
         """The table is stored: the worker answers from it; a target held from the API is solved again on it."""
@@ -442,6 +447,7 @@ class Daemon:
                 self.recorder.check()
                 self.recorder.set_scene_time(self.scenes.scene_time_s())
                 self._scene_tick()
+                self._report_build_tick()
                 self._estimate_tick()
                 self._publish_status_tick()
             except Exception as error:  # one bad tick must not end control; it is shown to people and logged
@@ -596,6 +602,10 @@ class Daemon:
             "pressures_kpa": (telemetry.pressures_pa / PA_PER_KPA).tolist() if telemetry is not None else None,
             "setpoints_kpa": (self.setpoints_pa / PA_PER_KPA).tolist() if self.setpoints_pa is not None else None,
             "board_setpoints_kpa": (telemetry.setpoints_pa / PA_PER_KPA).tolist() if telemetry is not None else None,
+            # the measured pressures averaged over the estimate's window (sensor noise averages out): what a client
+            # compares with the setpoints to see them settled
+            "pressures_mean_kpa": (np.mean([frame for _, frame in self.schedule.window], axis=0) / PA_PER_KPA).tolist()
+            if fresh and self.schedule.window else None,
             "drive_levels": telemetry.drive_levels.tolist() if telemetry is not None else None,
             "chamber_states": telemetry.states if telemetry is not None else None,
             "estimated_volume_ml": self.estimated_volume_ml if fresh else None,

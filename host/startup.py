@@ -23,12 +23,15 @@ import socket
 import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import Any
 
 logger = logging.getLogger(__name__)
 
 #: How much lower (nice increment) the table build runs than the daemon, the model worker and the simulated board.
 BUILD_NICENESS = 10
+#: How long (s) a build asked to stop may take before its process group is killed.
+STOP_WAIT_S = 5.0
 
 
 def notify_systemd(*lines: str) -> bool:
@@ -122,6 +125,7 @@ def _build_in_child(scene_source: str, results: Connection, parent_pid: int) -> 
     exit_with_parent(parent_pid)
     os.nice(BUILD_NICENESS)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the daemon's; it ends this process group
+    signal.signal(signal.SIGTERM, _stop_build)
     started_s = time.monotonic()
     try:
         from phantom.model import PhantomModel, load_scene
@@ -137,6 +141,17 @@ def _build_in_child(scene_source: str, results: Connection, parent_pid: int) -> 
         results.send(("failed", f"{type(error).__name__}: {error}"))
     finally:
         results.close()
+
+
+def _stop_build(signum: int, frame: object) -> None:
+    """SIGTERM in the build process: kill the solver processes it started (mid-solve: their work is lost anyway)
+    and exit through Python, whose finalizers release the pool's semaphores (a SIGKILL of the whole group leaves
+    them to the daemon's resource tracker, which warns of leaked semaphores at its exit)."""
+    for task in Path("/proc/self/task").iterdir():
+        for child in (task / "children").read_text().split():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(int(child), signal.SIGKILL)
+    raise SystemExit(0)
 
 
 class TableBuild:
@@ -194,11 +209,24 @@ class TableBuild:
         self._process.join(5.0)
         self._results.close()
 
+    def _now(self) -> Progress:
+        if not self.finished:
+            self.progress.now_s = self.clock()
+        return self.progress
+
+    def text(self) -> str:
+        """``response table solves: 120/347, 61 s so far, about 115 s left``."""
+        return self._now().text()
+
     def to_json(self) -> dict[str, Any]:
-        return {**self.progress.to_json(), "finished": self.finished, "error": self.error}
+        return {**self._now().to_json(), "finished": self.finished, "error": self.error}
 
     def stop(self) -> None:
-        """End the build (its whole process group) if it still runs, and reap it."""
+        """End the build if it still runs: SIGTERM (it kills its solver processes and exits cleanly), then SIGKILL
+        to its whole process group if it has not ended within STOP_WAIT_S; and reap it."""
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(STOP_WAIT_S)
         if self._process.is_alive() and self._process.pid is not None:
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(self._process.pid, signal.SIGKILL)

@@ -206,6 +206,8 @@ def build_response_table(model: PhantomModel, pressure_max_pa: float, points_per
     positions = np.zeros((*grid, *np.shape(model.nodes_m)))
     total = int(np.prod(grid)) + len(CHECK_FRACTIONS)
     done = 0
+    if progress is not None:
+        progress(done, total)  # the size of the work, before the first slab (tens of seconds) is done
     workers = max(1, min(workers or os.cpu_count() or 1, n))
     pending = list(range(n))
     if workers > 1:
