@@ -169,7 +169,8 @@ class Daemon:
             # a response table that is not stored yet is built in the background (serve() starts it) while the
             # worker answers on full solves
             startup.enter(f"loading the model of {config.scene}")
-            model = await ModelWorker.start(config.scene, configured_level(), defer_table=True)
+            model = await ModelWorker.start(config.scene, configured_level(), defer_table=True,
+                                            on_message=startup.tell)
             closers.append(model.close)
             sim_board = None
             if simulated_board is not None and config.sim:

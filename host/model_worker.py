@@ -8,15 +8,19 @@ dies with the daemon, so that the link never waits on the model.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import io
 import logging
 import multiprocessing
 import os
 import signal
+import sys
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, TextIO, TypeVar
 
 import numpy as np
 
@@ -257,11 +261,77 @@ def exit_with_parent(parent_pid: int) -> None:
         os._exit(0)
 
 
-def _worker_init(parent_pid: int, log_level: str) -> None:
-    """In the worker, first: die with the daemon, leave Ctrl-C to it, log like it."""
+def _worker_init(parent_pid: int, log_level: str, messages: Any = None) -> None:
+    """In the worker, first: die with the daemon, leave Ctrl-C to it, log like it; and, given a queue, send what
+    it says (its log lines, and the model's notices on stderr: compiling kernels, meshing) there too."""
     exit_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the daemon's to handle; it stops the worker
     configure_logging(log_level)
+    if messages is not None:
+        logging.getLogger("phantom").addHandler(_MessageHandler(messages))
+        sys.stderr = _NoticeTee(sys.stderr, messages)
+
+
+class _MessageHandler(logging.Handler):
+    """Log records of INFO and above, as their text, onto a queue (never blocking the worker)."""
+
+    def __init__(self, messages: Any):
+        super().__init__(logging.INFO)
+        self.messages = messages
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self.messages.put_nowait(record.getMessage())
+
+
+class _NoticeTee(io.TextIOBase):
+    """stderr that also puts each line the model prints as a notice (``phantom: meshing ...``) onto a queue."""
+
+    def __init__(self, stream: TextIO, messages: Any):
+        self.stream, self.messages, self._line = stream, messages, ""
+
+    def write(self, text: str) -> int:
+        self._line += text
+        *lines, self._line = self._line.split("\n")
+        for line in lines:
+            if line.startswith("phantom: "):
+                with contextlib.suppress(Exception):
+                    self.messages.put_nowait(line.removeprefix("phantom: "))
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def fileno(self) -> int:
+        return self.stream.fileno()
+
+
+class WorkerMessages:
+    """What the model worker says while it works, relayed to ``on_message(text)`` by a thread of the daemon (the
+    start-up's progress: which stage of a cold start it is in)."""
+
+    def __init__(self, on_message: Callable[[str], None]):
+        self.queue: Any = multiprocessing.get_context("spawn").Queue()
+        self._thread = threading.Thread(target=self._relay, args=(on_message,), name="model worker messages",
+                                        daemon=True)
+        self._thread.start()
+
+    def _relay(self, on_message: Callable[[str], None]) -> None:
+        while True:
+            try:
+                text = self.queue.get()
+            except (EOFError, OSError):
+                return
+            if text is None:
+                return
+            on_message(str(text))
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.queue.put(None)
+        self._thread.join(2.0)
+        self.queue.close()
+        self.queue.cancel_join_thread()
 
 
 def _worker_model_or_fail() -> LoadedModel:
@@ -306,11 +376,12 @@ def _worker_surface(pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.nda
     return model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
 
 
-def worker_pool(log_level: str = "info") -> ProcessPoolExecutor:
+def worker_pool(log_level: str = "info", messages: WorkerMessages | None = None) -> ProcessPoolExecutor:
     """A one-process pool (spawned, not forked: no copy of the daemon's event loop or threads) whose process
-    dies with this one."""
+    dies with this one; what it says goes to ``messages`` too."""
     return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_worker_init, initargs=(os.getpid(), log_level))
+                               initializer=_worker_init,
+                               initargs=(os.getpid(), log_level, None if messages is None else messages.queue))
 
 
 class ModelWorker:
@@ -322,19 +393,26 @@ class ModelWorker:
     def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo):
         self._pool = pool
         self.info = info
+        self._messages: WorkerMessages | None = None
 
     @classmethod
-    async def start(cls, scene_source: str, log_level: str = "info", defer_table: bool = False) -> ModelWorker:
-        """Start the worker process and build the model in it (its progress is logged from there).
-        ``defer_table``: answer on the full solve while a table that is not stored yet is built elsewhere
-        (``info.pending_fidelity``; :meth:`use_level` once it is stored)."""
-        pool = worker_pool(log_level)
+    async def start(cls, scene_source: str, log_level: str = "info", defer_table: bool = False,
+                    on_message: Callable[[str], None] | None = None) -> ModelWorker:
+        """Start the worker process and build the model in it (its progress is logged from there, and told to
+        ``on_message`` as it comes). ``defer_table``: answer on the full solve while a table that is not stored
+        yet is built elsewhere (``info.pending_fidelity``; :meth:`use_level` once it is stored)."""
+        messages = WorkerMessages(on_message) if on_message is not None else None
+        pool = worker_pool(log_level, messages)
         try:
             info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source, defer_table)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
+            if messages is not None:
+                messages.close()
             raise
-        return cls(pool, info)
+        worker = cls(pool, info)
+        worker._messages = messages
+        return worker
 
     async def _call(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
@@ -364,3 +442,5 @@ class ModelWorker:
         """Stop the worker process and wait for it (a pool left running is woken by the interpreter's exit
         hook through a pipe already closed, which prints an error)."""
         self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._messages is not None:
+            self._messages.close()

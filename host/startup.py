@@ -96,21 +96,28 @@ class StartupProgress:
         self.started_s = clock()
         self.stage = "starting"
         self.stage_started_s = self.started_s
+        #: the latest thing the stage's worker said (``meshing the built-in prostate at 4 mm``), if any
+        self.detail: str | None = None
 
     def enter(self, stage: str) -> None:
         """A new stage begins (logged, and sent to systemd as the unit's status)."""
-        self.stage, self.stage_started_s = stage, self.clock()
+        self.stage, self.stage_started_s, self.detail = stage, self.clock(), None
         logger.info("start-up: %s", stage)
         notify_systemd(f"STATUS={stage}")
 
+    def tell(self, detail: str) -> None:
+        """What the current stage is doing now (from any thread)."""
+        self.detail = detail.strip()
+
     def text(self) -> str:
-        """The stage and how long it has taken, for a ``starting`` answer."""
+        """The stage, what it is doing now and how long it has taken, for a ``starting`` answer."""
         now_s = self.clock()
-        return (f"{self.stage} ({now_s - self.stage_started_s:.0f} s so far, {now_s - self.started_s:.0f} s since the "
-                "daemon started)")
+        detail = f": {self.detail}" if self.detail else ""
+        return (f"{self.stage}{detail} ({now_s - self.stage_started_s:.0f} s so far, {now_s - self.started_s:.0f} s "
+                "since the daemon started)")
 
     def to_json(self) -> dict[str, Any]:
-        return {"stage": self.stage, "stage_s": round(self.clock() - self.stage_started_s, 1),
+        return {"stage": self.stage, "detail": self.detail, "stage_s": round(self.clock() - self.stage_started_s, 1),
                 "since_start_s": round(self.clock() - self.started_s, 1)}
 
 

@@ -289,16 +289,24 @@ def format_steps(steps: list[dict[str, Any]]) -> str:
 
 
 def scene_progress(time_scale: float) -> Callable[[Status], None]:
-    """Shows a playing scene's progress on stderr, one line rewritten in place."""
+    """Shows a playing scene's progress on stderr: one line rewritten in place on a terminal, else a line every
+    ten seconds of scene time."""
     import sys
+
+    terminal = sys.stderr.isatty()
+    shown_s = [-1e9]
 
     def show(status: Status) -> None:
         scene = status.scene
         if scene is None:
             return
-        print(f"\r  {scene.time_s:6.1f} / {scene.end_s:g} s of scene (x{time_scale:g})   volume "
-              f"{_ml(status.estimated_volume_ml)}   target {_ml(status.target_volume_ml)} ",
-              end="\n" if scene.finished else "", file=sys.stderr, flush=True)
+        line = (f"  {scene.time_s:6.1f} / {scene.end_s:g} s of scene (x{time_scale:g})   volume "
+                f"{_ml(status.estimated_volume_ml)}   target {_ml(status.target_volume_ml)} ")
+        if terminal:
+            print("\r" + line, end="\n" if scene.finished else "", file=sys.stderr, flush=True)
+        elif scene.finished or scene.time_s - shown_s[0] >= 10.0:
+            shown_s[0] = scene.time_s
+            print(line, file=sys.stderr, flush=True)
     return show
 
 

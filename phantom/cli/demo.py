@@ -33,6 +33,8 @@ from phantom import PhantomError
 STAGE_LIMIT_S = 600.0
 #: How long the daemon may take to stop after SIGTERM (it vents and closes the recording) before it is killed (s).
 STOP_LIMIT_S = 60.0
+#: How often the demo repeats what the daemon is doing while a stage lasts (s).
+TELL_EVERY_S = 10.0
 #: A step counts as reached when its estimate ends within this of its target (%).
 STEP_TOLERANCE_PCT = 1.0
 
@@ -67,7 +69,8 @@ def wait_until_ready(socket: Path, process: subprocess.Popen[bytes], log_path: P
     from phantom.host.client import ConnectionLostError, StartingError
 
     started_s = time.monotonic()
-    stage, stage_since_s, told = "starting the daemon process", started_s, ""
+    stage, stage_since_s, told_s = "starting the daemon process", started_s, started_s
+    told: tuple[str, object] = ("", None)
     while True:
         if process.poll() is not None:
             raise PhantomError(f"the daemon exited with status {process.returncode} while {stage}; its log "
@@ -77,18 +80,20 @@ def wait_until_ready(socket: Path, process: subprocess.Popen[bytes], log_path: P
                 status = daemon.status()
             if status.ready:
                 return time.monotonic() - started_s
-            now_stage = str((status.raw.get("starting") or {}).get("stage", "waiting for the board"))
-            text = str((status.raw.get("starting") or {}).get("text", now_stage))
+            starting = status.raw.get("starting") or {}
+            now_stage = str(starting.get("stage", "waiting for the board"))
+            text, detail = str(starting.get("text", now_stage)), starting.get("detail")
         except StartingError as error:
-            now_stage = str(error.data.get("stage", "starting"))
+            now_stage, detail = str(error.data.get("stage", "starting")), error.data.get("detail")
             text = error.message.removeprefix("the daemon is still starting: ")
         except ConnectionLostError:
             now_stage = text = "starting the daemon process"
+            detail = None
         if now_stage != stage:
             stage, stage_since_s = now_stage, time.monotonic()
-        if text != told and time.monotonic() - started_s > 1.0:
+        if (now_stage, detail) != told or time.monotonic() - told_s >= TELL_EVERY_S:
             print(f"  daemon: {text}", file=sys.stderr, flush=True)
-            told = text
+            told, told_s = (now_stage, detail), time.monotonic()
         if time.monotonic() - stage_since_s > stage_limit_s:
             raise PhantomError(f"the daemon has been {stage} for over {stage_limit_s:g} s without moving on; its "
                                f"log ({log_path}) ends:\n{_tail(log_path)}")
