@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+import nbclient
+import nbformat
 import pytest
 
 REPO = Path(__file__).resolve().parent.parent
@@ -52,8 +54,6 @@ def test_the_inverse_targets_script_prints_each_target_with_its_estimate_and_tru
 
 
 def test_the_notebook_runs_and_saves_its_plot_and_surface(sim_daemon, tmp_path):
-    nbformat = pytest.importorskip("nbformat")
-    nbclient = pytest.importorskip("nbclient")
     notebook = nbformat.read(REPO / "examples" / "first_hour.ipynb", as_version=4)
     os.environ["PHANTOM_SOCKET"] = str(sim_daemon["socket"])
     try:
