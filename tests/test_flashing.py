@@ -28,6 +28,9 @@ BOARDS = {"uno": "UNO", "mega": "MEGA2560"}
 def upload(board: SimulatedBoard, board_name: str) -> subprocess.CompletedProcess[str]:
     """`make -C firmware upload` at the simulated board's pty, the board reset just before (the DTR pulse)."""
     firmware = default_elf().parents[2]
+    # the image up to date first, so that make goes straight to avrdude after the reset
+    subprocess.run(["make", "--no-print-directory", "-C", str(firmware), board_name], check=True,
+                   capture_output=True, timeout=600)
     board.reset("external")
     return subprocess.run(["make", "--no-print-directory", "-C", str(firmware), "upload", f"BOARD={board_name}",
                            f"PORT={board.port}"], capture_output=True, text=True, timeout=180)
@@ -35,7 +38,7 @@ def upload(board: SimulatedBoard, board_name: str) -> subprocess.CompletedProces
 
 @pytest.mark.parametrize("board_name", sorted(BOARDS))
 def test_make_upload_flashes_the_phantom_image_through_the_stock_bootloader(board_name):
-    ensure_firmware()  # every image built, so that make goes straight to avrdude after the reset
+    ensure_firmware()  # the bench images the board starts on
     bench_elf = default_elf().parents[1] / f"{board_name}-bench" / "phantom.elf"
     with SimulatedBoard(elf=bench_elf, speed=1.0, bootloader=True) as board:
         time.sleep(0.3)
