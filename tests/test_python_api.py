@@ -18,6 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# the built-in phantom, soft, on the rest-compliance fidelity (cheap answers), on a board at twice real time
+from test_daemon_e2e import SCENE, SPEED
+
 import phantom
 from phantom.host.client import (
     DaemonRestartedError,
@@ -31,30 +34,6 @@ from phantom.host.client import (
 )
 
 PHANTOM = Path(sys.executable).with_name("phantom")
-#: The simulated board's speed-up (as the daemon's end-to-end tests).
-SPEED = 2.0
-
-#: The built-in phantom with a soft modulus and the rest-compliance fidelity: cheap answers, 32 ml at about
-#: 2.5 kPa (as tests/test_daemon_e2e.py).
-SCENE = """
-[phantom]
-mesh = "builtin:prostate"
-units = "mm"
-chambers = ["chamber0", "chamber1", "chamber2"]
-fixed = "fixed"
-
-[material]
-model = "corotational"
-youngs_modulus_kpa = 5.0
-poisson_ratio = 0.45
-
-[outputs]
-volumes = true
-
-[model]
-fidelity = "rest"
-pressure_max_kpa = 3.0
-"""
 
 SHORT_SCENE = SCENE + """
 [timeline]
