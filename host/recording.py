@@ -100,6 +100,8 @@ PAUSE_BELOW_BYTES = 64 * 2**20
 RESUME_ABOVE_BYTES = 128 * 2**20
 #: A file that has not grown for this long (s) while rows were logged lost its writer (an I/O error).
 STALLED_AFTER_S = 15.0
+#: How long a file that seems stalled is given to write out what is queued before it is called stalled (s).
+STALL_FLUSH_TIMEOUT_S = 2.0
 #: How often (s) :meth:`Recorder.check` looks at the disk and the file.
 CHECK_PERIOD_S = 2.0
 #: How long (s) a recording whose writer failed waits before it tries a new file.
@@ -475,7 +477,22 @@ class Recorder:
         if size != self._size:
             self._size, self._grew_s, self._logged_since_growth = size, now_s, False
             return False
-        return self._logged_since_growth and now_s - self._grew_s >= STALLED_AFTER_S
+        if not (self._logged_since_growth and now_s - self._grew_s >= STALLED_AFTER_S):
+            return False
+        # a busy machine's writer may only be late: ask it to write out what is queued before calling it dead
+        if self._stream is not None:
+            try:
+                self._stream.flush(timeout_sec=STALL_FLUSH_TIMEOUT_S)
+            except Exception:  # RuntimeError from the SDK: its writer died
+                return True
+        try:
+            flushed_size = file_size(self.save_path)
+        except OSError:
+            return True
+        if flushed_size == size:
+            return True
+        self._size, self._grew_s, self._logged_since_growth = flushed_size, now_s, False
+        return False
 
     def _pause(self, why: str) -> None:
         self._end_segment(timeout_s=1.0)

@@ -421,6 +421,26 @@ def test_a_file_that_stops_growing_while_data_comes_is_reported(tmp_path, monkey
     recorder.close()
 
 
+def test_a_file_whose_writer_is_only_late_is_not_called_stalled(tmp_path, monkeypatch):
+    """On a busy machine the SDK's writer may not have written for a while: asked to write out what is queued,
+    it does, and the recording goes on."""
+    disk, told = FakeDisk(), []
+    recorder = Recorder(NAMES, save_path=tmp_path / "run.rrd", clock=disk.clock, free_space=disk.free_space,
+                        on_problem=lambda text, level: told.append(text))
+    recorder.open()
+    recorder.check()
+    flushed = []
+    monkeypatch.setattr(recording_module, "file_size", lambda path: 1234 + 100 * len(flushed))
+    stream_flush = recorder._stream.flush
+    monkeypatch.setattr(recorder._stream, "flush", lambda **kwargs: (flushed.append(1), stream_flush(**kwargs)))
+    for k in range(1, 10):
+        disk.now_s = 2.5 * k
+        recorder.log_volumes(disk.now_s, 30.0, 30.0)
+        recorder.check()
+    assert flushed and recorder.state == "recording" and not told
+    recorder.close()
+
+
 def test_a_long_session_is_written_in_segments_each_complete(tmp_path, monkeypatch):
     disk = FakeDisk()
     monkeypatch.setattr(recording_module, "SEGMENT_S", 60.0)
