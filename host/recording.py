@@ -186,10 +186,18 @@ def default_blueprint(chamber_labels: list[str], camera: tuple[np.ndarray, np.nd
     return rrb.Blueprint(layout, time_panel, collapse_panels=True)
 
 
+def axes_origin(positions_mm: np.ndarray) -> np.ndarray:
+    """Where the anatomical axes start: beside the rest shape (mm), at its lowest right corner in front, out of
+    its way (the camera looks from the front: behind the gland the arrows would be hidden)."""
+    low, high = positions_mm.min(axis=0), positions_mm.max(axis=0)
+    return np.array([low[0] - AXIS_MM, high[1] + AXIS_MM, low[2] - AXIS_MM])
+
+
 def fitted_camera(positions_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An eye in front of the phantom (anterior, +y), a little to its left and above, far enough to keep the
-    whole rest shape and its growth in view; and the point it looks at (the rest shape's centre)."""
-    low, high = positions_mm.min(axis=0), positions_mm.max(axis=0)
+    whole rest shape, its growth and the axes beside it in view; and the point it looks at (their centre)."""
+    shown = np.vstack([positions_mm, axes_origin(positions_mm)])
+    low, high = shown.min(axis=0), shown.max(axis=0)
     centre = (low + high) / 2
     radius = float(np.linalg.norm(high - low)) / 2
     direction = np.array([0.55, 1.0, 0.45])
@@ -588,8 +596,7 @@ class Recorder:
         log("phantom/rest", rr.Mesh3D(vertex_positions=positions, triangle_indices=triangles,
                                       vertex_normals=vertex_normals(positions, triangles),
                                       albedo_factor=REST_GHOST_RGBA), static=True)
-        # the axes start beside the rest shape (below its lowest, leftmost, most posterior corner), out of its way
-        corner = positions.min(axis=0) - AXIS_MM
+        corner = axes_origin(positions)
         log("phantom/axes", rr.Arrows3D(
             origins=[corner] * len(ANATOMICAL_AXES),
             vectors=[np.asarray(direction, float) * AXIS_MM for direction, _, _ in ANATOMICAL_AXES],

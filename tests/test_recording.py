@@ -288,9 +288,10 @@ def test_the_phantom_view_has_labelled_anatomical_axes_at_a_stated_scale(recordi
     labels = axes["Arrows3D:labels"][0]
     assert [label.split(":")[0] for label in labels] == ["x", "y", "z"]
     assert all("10 mm" in label for label in labels) and "anterior" in labels[1] and "base" in labels[2]
-    # beside the rest shape, not inside it
+    # beside the rest shape, not inside it, and in front of it (+y, where the camera is), not hidden behind it
     origin = np.asarray(axes["Arrows3D:origins"][0][0])
-    assert np.all(origin < recording["rest"].min(axis=0))
+    low, high = recording["rest"].min(axis=0), recording["rest"].max(axis=0)
+    assert origin[0] < low[0] and origin[1] > high[1] and origin[2] < low[2]
 
 
 def test_rerun_verifies_the_file(recording):
