@@ -14,12 +14,34 @@ class FirmwareError(PhantomError):
     """The firmware image is missing and cannot be built, or is not an AVR image."""
 
 
+#: The image the simulated board runs: the Uno's with TEST_HANG (the production image refuses it), so that the
+#: bench can check the watchdog.
+DEFAULT_IMAGE = "uno-bench"
+#: Where a wheel install keeps the firmware's sources (pyproject.toml maps firmware/ to this package folder).
+PACKAGED_SOURCES = Path(__file__).resolve().parent / "firmware_sources"
+
+
+def firmware_sources() -> Path:
+    """The firmware's sources: ``firmware/`` of the checkout, else the copy a wheel carries."""
+    if phantom.SOURCE_ROOT is not None:
+        return phantom.SOURCE_ROOT / "firmware"
+    if (PACKAGED_SOURCES / "Makefile").is_file():
+        return PACKAGED_SOURCES
+    raise FirmwareError("no firmware sources in this install: pass the path of a firmware .elf explicitly")
+
+
+def build_folder() -> Path:
+    """Where the images are built: ``firmware/build`` of the checkout, else the cache (a wheel's package folder
+    may not be writable)."""
+    if phantom.SOURCE_ROOT is not None:
+        return firmware_sources() / "build"
+    return phantom.cache_dir("firmware")
+
+
 def default_elf() -> Path:
-    """``firmware/build/uno-bench/phantom.elf`` of the source checkout: the Uno image with TEST_HANG (the
-    production image ``build/uno/`` refuses it), so that the bench can check the watchdog."""
-    if phantom.SOURCE_ROOT is None:
-        raise FirmwareError("no firmware sources in this install: pass the path of a firmware .elf explicitly")
-    return phantom.SOURCE_ROOT / "firmware" / "build" / "uno-bench" / "phantom.elf"
+    """``build/uno-bench/phantom.elf`` (see :data:`DEFAULT_IMAGE`) under :func:`build_folder`."""
+    firmware_sources()  # no sources, no image to build: say so here
+    return build_folder() / DEFAULT_IMAGE / "phantom.elf"
 
 
 def ensure_firmware(elf: str | Path | None = None) -> Path:
@@ -44,10 +66,13 @@ def ensure_firmware(elf: str | Path | None = None) -> Path:
             f"the firmware image {path} is missing and the AVR toolchain (avr-gcc, make) is not installed: "
             "run scripts/bootstrap.sh, then `make -C firmware`"
         )
-    result = subprocess.run(["make", "-C", str(path.parents[2])], capture_output=True, text=True)
+    # a checkout builds every image (the tests run the Mega's too); a wheel the one it runs, into the cache
+    command = ["make", "-C", str(firmware_sources())] if phantom.SOURCE_ROOT is not None else [
+        "make", "-C", str(firmware_sources()), f"BUILD={build_folder()}", DEFAULT_IMAGE]
+    result = subprocess.run(command, capture_output=True, text=True)
     if result.returncode != 0 or not path.is_file():
         raise FirmwareError(
-            f"`make -C firmware` did not produce {path}:\n{result.stdout[-2000:]}{result.stderr[-2000:]}"
+            f"`{' '.join(command)}` did not produce {path}:\n{result.stdout[-2000:]}{result.stderr[-2000:]}"
         )
     return path
 

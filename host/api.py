@@ -34,7 +34,8 @@ ERROR_CODES: dict[str, str] = {
     "invalid_params": "the params are missing, of the wrong type or out of range",
     "unreachable": "the target cannot be reached within the pressure limits",
     "link_down": "no board is connected",
-    "starting": "the daemon is still starting (loading its model): try again in a few seconds",
+    "starting": "the daemon is still starting (its model, or the first connection to the board): data says how "
+                "far it is; try again shortly",
     "rejected": "the board refused the command (e.g. a fault is latched and its cause persists)",
     "internal": "a bug in the daemon: please report it",
 }
@@ -50,13 +51,15 @@ MAX_REQUEST_BYTES = 64 * 1024
 
 
 class ApiError(PhantomError):
-    """An error answered to one request, with one of :data:`ERROR_CODES`."""
+    """An error answered to one request, with one of :data:`ERROR_CODES`; ``data`` (optional, JSON) says more
+    for programs (a ``starting`` answer's progress)."""
 
-    def __init__(self, code: str, message: str):
+    def __init__(self, code: str, message: str, data: dict[str, Any] | None = None):
         if code not in ERROR_CODES:
             raise ValueError(f"unknown API error code {code!r}")
         super().__init__(message)
         self.code = code
+        self.data = data
 
 
 Handler = Callable[[dict[str, Any]], Awaitable[object]]
@@ -107,6 +110,9 @@ class ApiServer:
         self.errors_total = 0
         self._server: asyncio.AbstractServer | None = None
         self._next_client = 1
+        #: the answer to a request that comes before the handlers are installed (what the daemon is doing)
+        self.starting: Callable[[], ApiError] = lambda: ApiError(
+            "starting", "the daemon is still starting (loading its model): try again in a few seconds")
         self._tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
@@ -266,14 +272,13 @@ class ApiServer:
             elif method in self.handlers:
                 result = await self.handlers[method](params)
             elif not self.handlers:
-                raise ApiError("starting", "the daemon is still starting (loading its model): try again in a few "
-                               "seconds")
+                raise self.starting()
             else:
                 known = ", ".join(sorted([*self.handlers, "subscribe"]))
                 raise ApiError("unknown_method", f"unknown method {method!r}; methods: {known}")
         except ApiError as error:
             self.errors_total += 1
-            return _error_line(request_id, error.code, str(error))
+            return _error_line(request_id, error.code, str(error), error.data)
         except PhantomError as error:
             self.errors_total += 1
             return _error_line(request_id, "invalid_params", str(error))
@@ -311,8 +316,11 @@ def _finite(value: Any) -> Any:
     return value
 
 
-def _error_line(request_id: object, code: str, message: str) -> bytes:
-    return _encode({"id": request_id, "error": {"code": code, "message": message}})
+def _error_line(request_id: object, code: str, message: str, data: dict[str, Any] | None = None) -> bytes:
+    error: dict[str, Any] = {"code": code, "message": message}
+    if data is not None:
+        error["data"] = data
+    return _encode({"id": request_id, "error": error})
 
 
 async def _socket_is_live(path: Path) -> bool:

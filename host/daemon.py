@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import signal
 import time
 from collections import deque
@@ -34,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from phantom import PhantomError
-from phantom.host.api import ApiError, ApiServer, default_socket_path
+from phantom.host.api import ApiError, ApiServer, Handler, default_socket_path
 from phantom.host.config import DaemonConfig
 from phantom.host.estimation import EstimateRequest, EstimateSchedule
 from phantom.host.handlers import ApiHandlers
@@ -55,6 +56,7 @@ from phantom.host.session import (
     fault_names,
 )
 from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
+from phantom.host.startup import StartupProgress, TableBuild, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model import load_scene
 from phantom.model.errors import SceneError
@@ -86,13 +88,18 @@ LEVELS = {"INFO": logging.INFO, "WARN": logging.WARNING, "ERROR": logging.ERROR}
 CONTROL_HZ = 10.0
 #: File mode of the API's socket: the owner and the group may drive the phantom.
 SOCKET_MODE = 0o660
+#: The methods that need the board: before the daemon is first ready they answer ``starting`` (with its progress).
+BOARD_METHODS = ("set_target", "run_scene", "zero", "clear_fault")
+#: How often (s) the background table build's progress goes to the log and to systemd's status line.
+BUILD_REPORT_S = 10.0
 
 
 class Daemon:
     """The daemon's state and tasks, from parts built by :meth:`start`; :meth:`serve` until asked to stop."""
 
     def __init__(self, config: DaemonConfig, api: ApiServer, model: Model, recorder: Recording, session: BoardSession,
-                 sim_board: SimulatedBoardKeeper | None, clock: Clock = time.monotonic):
+                 sim_board: SimulatedBoardKeeper | None, clock: Clock = time.monotonic,
+                 startup: StartupProgress | None = None):
         self.config = config
         self.api = api
         self.model = model
@@ -127,6 +134,12 @@ class Daemon:
         self._scene_target_pending = False
         self._tasks: list[asyncio.Task[Any]] = []
         self._background: set[asyncio.Task[Any]] = set()
+        #: start-up: what it is doing until ready (the model answers and the board was first online and zeroed)
+        self.startup = startup or StartupProgress(clock)
+        self.ready = False
+        #: the scene's response table being built in the background (the model answers on full solves meanwhile)
+        self.table_build: TableBuild | None = None
+        self._build_reported_s = 0.0
 
     # --- building the parts -----------------------------------------------------------------------------
 
@@ -138,25 +151,33 @@ class Daemon:
         """
         if config.sim and simulated_board is None:
             raise PhantomError("this program cannot simulate a board: start the daemon with `phantom daemon --sim`")
+        startup = StartupProgress()
         api = ApiServer(config.socket or default_socket_path(), {}, mode=SOCKET_MODE)
+        api.starting = lambda: ApiError("starting", f"the daemon is still starting: {startup.text()}",
+                                        startup.to_json())
         await api.start()  # first: a second daemon stops here, before it opens anything of the first's
         closers: list[Callable[[], None]] = []  # of the parts built so far, for a start that fails
         try:
-            # the recording opens before the model is built: a first start may build the model's response table
-            # for minutes, and an unwritable path must not wait for that to be reported
-            recorder = Recorder(list(load_scene(config.scene).chambers), config.rerun_save, config.rerun_connect)
+            # the recording opens before the model is built: a path another daemon records to, or one that
+            # cannot be written, is refused before anything slow
+            wired: dict[str, Daemon] = {}  # the callbacks find the daemon here once it is built
+            startup.enter("opening the recording")
+            recorder = Recorder(load_scene(config.scene).chamber_labels, config.rerun_save, config.rerun_connect,
+                                on_problem=lambda text, level: wired["daemon"].event("recording", text, level))
             recorder.open()
             closers.append(recorder.close)
-            model = await ModelWorker.start(config.scene, configured_level())
+            # a response table that is not stored yet is built in the background (serve() starts it) while the
+            # worker answers on full solves
+            startup.enter(f"loading the model of {config.scene}")
+            model = await ModelWorker.start(config.scene, configured_level(), defer_table=True,
+                                            on_message=startup.tell)
             closers.append(model.close)
             sim_board = None
             if simulated_board is not None and config.sim:
                 sim_board = SimulatedBoardKeeper(config.sim_speed, lambda kind, text, level: None, simulated_board)
                 closers.append(sim_board.close)
-                logger.info("starting the simulated board (firmware in simavr, speed %g) ...", config.sim_speed)
+                startup.enter(f"starting the simulated board (firmware in simavr, speed {config.sim_speed:g})")
                 await asyncio.get_running_loop().run_in_executor(None, sim_board.start)
-            # the session calls the daemon, which is built after it: the callbacks find it here
-            wired: dict[str, Daemon] = {}
             session = _link_session(config, sim_board, on_telemetry=lambda frame: wired["daemon"].on_telemetry(frame),
                                     on_event=lambda kind, text, level: wired["daemon"].event(kind, text, level),
                                     on_online=lambda board, again: wired["daemon"].on_online(board, again))
@@ -166,10 +187,14 @@ class Daemon:
                     close()
             await api.close()
             raise
-        daemon = wired["daemon"] = cls(config, api, model, recorder, session, sim_board)
+        daemon = wired["daemon"] = cls(config, api, model, recorder, session, sim_board, startup=startup)
         if sim_board is not None:
             sim_board.on_event = daemon.event
-        api.handlers.update(ApiHandlers(daemon).table())
+        handlers = ApiHandlers(daemon).table()
+        for name in BOARD_METHODS:
+            handlers[name] = daemon.when_ready(handlers[name])
+        api.handlers.update(handlers)
+        startup.enter("waiting for the board: the first connection")
         return daemon
 
     # --- life cycle -------------------------------------------------------------------------------------
@@ -190,11 +215,13 @@ class Daemon:
                                                              for key, value in info.timings_s.items()))
             self._tasks = [asyncio.create_task(self.session.run(), name="link"),
                            asyncio.create_task(self._control_loop(), name="control")]
+            if info.pending_fidelity is not None:
+                self._start_table_build()
             if self.sim_board is not None:
                 self._tasks.append(asyncio.create_task(self.sim_board.watch(), name="simulated board"))
             for task in self._tasks:
                 task.add_done_callback(self._task_ended)
-            logger.info("ready: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
+            logger.info("serving: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
             if self.config.run_scene:
                 try:
                     self.start_scene(info.scene_raw, info.scene_path, 1.0, info.wants_shape)
@@ -236,7 +263,11 @@ class Daemon:
                 self.event("vent", "vented on shutdown")
             except (TimeoutError, PhantomError) as error:
                 self.event("vent", f"could not vent on shutdown: {error}", "ERROR")
+        notify_systemd("STOPPING=1")
         self.session.stop()
+        if self.table_build is not None:
+            asyncio.get_running_loop().remove_reader(self.table_build.fileno())
+            self.table_build.stop()
         for task in [*self._tasks, *self._background]:
             task.cancel()
         for task in [*self._tasks, *self._background]:
@@ -292,7 +323,80 @@ class Daemon:
                 self.setpoints_pa > 0):
             self.spawn(self.send_setpoints_quietly(self.setpoints_pa, "restored after (re)connection"))
         elif self.config.zero_on_connect:
-            self.spawn(self.zero_quietly())
+            if not self.ready:
+                self.startup.enter("zeroing the pressure sensors (the phantom is vented)")
+            self.spawn(self.zero_quietly()).add_done_callback(lambda _: self._became_ready())
+            return
+        self._became_ready()
+
+    # --- readiness and the background table -------------------------------------------------------------
+
+    def _became_ready(self) -> None:
+        """The model answers and the board is online (and zeroed): tell systemd and the clients, once."""
+        if self.ready or self._stop.is_set():
+            return
+        self.ready = True
+        fidelity = self.model.info.fidelity
+        building = f" (the {self.model.info.pending_fidelity} level is being built)" if (
+            self.model.info.pending_fidelity) else ""
+        since_start_s = self.startup.clock() - self.startup.started_s
+        self.event("startup", f"ready {since_start_s:.1f} s after start: the model answers on {fidelity}{building}, "
+                   "the board is online")
+        notify_systemd("READY=1", f"STATUS=ready: fidelity {fidelity}{building}")
+
+    def when_ready(self, handler: Handler) -> Handler:
+        """``handler``, answering ``starting`` with the start-up's progress until the daemon is first ready."""
+        async def guarded(params: dict[str, Any]) -> object:
+            if not self.ready:
+                link = self.session.state.value
+                raise ApiError("starting", f"the daemon is still starting: {self.startup.text()}; the link is {link}",
+                               {**self.startup.to_json(), "link": link})
+            return await handler(params)
+        return guarded
+
+    def _start_table_build(self) -> None:
+        """Build the scene's response table in the background (a process group of its own, at a lower priority);
+        its progress goes to status, the log and systemd, and the model switches to it when it is stored."""
+        self.table_build = TableBuild(self.config.scene)
+        self.event("model", f"the model answers on full solves (most of a second each) while its response table "
+                   f"is built in the background (process {self.table_build.pid}, once per model and machine)")
+        asyncio.get_running_loop().add_reader(self.table_build.fileno(), self._table_build_readable)
+
+    def _table_build_readable(self) -> None:
+        build = self.table_build
+        assert build is not None  # the reader exists only while a build does
+        if not build.read():
+            return
+        asyncio.get_running_loop().remove_reader(build.fileno())
+        if build.error is not None:
+            self.event("model", f"the response table could not be built ({build.error}): the model keeps "
+                       "answering on full solves", "ERROR")
+            return
+        self.spawn(self._switch_to_table(build))
+
+    def _report_build_tick(self) -> None:
+        """Every BUILD_REPORT_S while the table builds: how far it is, in the log and systemd's status line."""
+        build = self.table_build
+        if build is None or build.finished or self.now_s() - self._build_reported_s < BUILD_REPORT_S:
+            return
+        self._build_reported_s = self.now_s()
+        text = build.text()
+        logger.info("%s (the model answers on full solves until then)", text)
+        notify_systemd(f"STATUS={'ready' if self.ready else self.startup.stage}; {text}")
+
+    async def _switch_to_table(self, build: TableBuild) -> None:
+        """The table is stored: the worker answers from it; a target held from the API is solved again on it."""
+        pending = self.model.info.pending_fidelity or "table"
+        info = await self.model.use_level(pending)
+        self.event("model", f"switched to the {info.fidelity} level: the response table was built in "
+                   f"{build.progress.elapsed_s:.0f} s, within {build.check_errors_pct or 0.0:.2g} % of full solves")
+        notify_systemd(f"STATUS={'ready' if self.ready else self.startup.stage}: fidelity {info.fidelity}")
+        if self.target is not None and self.control_state is ControlState.HOLDING and self.session.online:
+            try:
+                await self.apply_target(self.target, self.target_source or "api")
+            except ApiError as error:
+                self.event("model", f"the target could not be solved again on the {info.fidelity} level: {error}",
+                           "WARN")
 
     async def zero_quietly(self) -> None:
         """ZERO_SENSORS after connecting to a vented phantom; a refusal is an event, not an error."""
@@ -341,8 +445,10 @@ class Daemon:
         while True:
             started = time.monotonic()
             try:
+                self.recorder.check()
                 self.recorder.set_scene_time(self.scenes.scene_time_s())
                 self._scene_tick()
+                self._report_build_tick()
                 self._estimate_tick()
                 self._publish_status_tick()
             except Exception as error:  # one bad tick must not end control; it is shown to people and logged
@@ -497,6 +603,10 @@ class Daemon:
             "pressures_kpa": (telemetry.pressures_pa / PA_PER_KPA).tolist() if telemetry is not None else None,
             "setpoints_kpa": (self.setpoints_pa / PA_PER_KPA).tolist() if self.setpoints_pa is not None else None,
             "board_setpoints_kpa": (telemetry.setpoints_pa / PA_PER_KPA).tolist() if telemetry is not None else None,
+            # the measured pressures averaged over the estimate's window (sensor noise averages out): what a client
+            # compares with the setpoints to see them settled
+            "pressures_mean_kpa": (np.mean([frame for _, frame in self.schedule.window], axis=0) / PA_PER_KPA).tolist()
+            if fresh and self.schedule.window else None,
             "drive_levels": telemetry.drive_levels.tolist() if telemetry is not None else None,
             "chamber_states": telemetry.states if telemetry is not None else None,
             "estimated_volume_ml": self.estimated_volume_ml if fresh else None,
@@ -510,10 +620,15 @@ class Daemon:
             "scene": self.scenes.to_json(),
             "startup_s": info.timings_s,
             "fidelity": info.fidelity,
+            "fidelity_pending": info.pending_fidelity,
+            "model_build": self.table_build.to_json() if self.table_build is not None else None,
+            "ready": self.ready,
+            "starting": None if self.ready else {**self.startup.to_json(), "text": self.startup.text()},
+            "pid": os.getpid(),
             "model_counts": self.model_counts,
             "meshes_logged": self.meshes_logged,
             "api": self.api.stats(),
-            "recording": str(self.config.rerun_save) if self.config.rerun_save else self.config.rerun_connect,
+            "recording": self.recorder.status(),
             "uptime_s": self.now_s(),
             "events": list(self.events)[-10:],
         }

@@ -8,15 +8,19 @@ dies with the daemon, so that the link never waits on the model.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import io
 import logging
 import multiprocessing
 import os
 import signal
+import sys
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, TextIO, TypeVar
 
 import numpy as np
 
@@ -33,6 +37,10 @@ Answer = TypeVar("Answer")
 ML_PER_M3 = 1e6
 PA_PER_KPA = 1e3
 MM_PER_M = 1e3
+#: On the full solve, measured pressures are rounded to this (Pa) before they are solved: a held target's noisy
+#: mean then meets the state solved last instead of costing a new solve (most of a second) each time, which
+#: would also take the CPU from the response table's build. 10 Pa moves a volume by about 0.1 %.
+FULL_SOLVE_QUANTUM_PA = 10.0
 
 
 class LoadedModel:
@@ -45,14 +53,19 @@ class LoadedModel:
         (``phantom.model.load_scene``).
     report : callable(str), optional
         Where start-up progress goes (the log by default): each stage and how long it took.
+    defer_table : bool
+        When the scene names the ``table`` fidelity and its table is not stored yet, answer on the full solve
+        (what the table approximates, most of a second an answer) and leave the build to the caller
+        (``pending_level`` is then ``"table"``; :meth:`use_level` switches once it is stored). False: build the
+        table here first (minutes, with progress).
     """
 
-    def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info):
+    def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info, defer_table: bool = False):
         # the model's stack (scipy, numba) is loaded where the model is built: in the worker process, not in the
         # daemon that imports this module
         from phantom.model import PhantomModel, load_scene
-        from phantom.model.fidelity.levels import VolumeEstimator
 
+        self.report = report
         self.timings_s: dict[str, float] = {}
         started = time.perf_counter()
         report(f"loading scene {scene_source} ...")
@@ -66,19 +79,45 @@ class LoadedModel:
         self.timings_s["compliance_s"] = time.perf_counter() - stage
         report(f"compliance ready in {self.timings_s['compliance_s']:.2f} s (computed, or loaded from "
                f"{phantom.cache_dir('compliance')}); inverse solver ...")
+        #: the level the scene asks for, once it can be had (None: the one in use is it)
+        self.pending_level: str | None = None
+        level = self.scene.model_settings.fidelity
+        if level == "table" and defer_table and not self.table_stored():
+            level, self.pending_level = "full", "table"
+        self._set_up(level)
+        self.timings_s["total_s"] = time.perf_counter() - started
+        report(f"start-up took {self.timings_s['total_s']:.2f} s")
+        self.chamber_names = list(self.model.chamber_names)
+        self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3
+        self.wants_shape = bool(self.scene.outputs.shape)
+        #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
+        self._outer_surface = self.model.outer_surface()
+
+    def table_stored(self) -> bool:
+        """Whether the scene's response table is in the disk cache (or shipped), so the table level costs no build."""
+        from phantom.model.fidelity.response_table import stored_response_table
+
+        settings = self.model.model_settings
+        return stored_response_table(self.model, settings.pressure_max_pa, settings.table_points) is not None
+
+    def _set_up(self, level: str | None) -> None:
+        """The estimator and the inverse at ``level`` (None: the scene's choice), warmed up where a warm-up is
+        cheap (not on the full solve, where one answer costs more than what warming saves)."""
+        from phantom.model.fidelity.levels import VolumeEstimator
+
         stage = time.perf_counter()
         # The model keeps its scene: the estimator reads the [model] table (pressure_max_kpa, fidelity) from it,
         # and without a fidelity probes for the cheapest level within the scene's accuracy_pct (one solve per
-        # level at the pressure limit); the table level is built here the first time (minutes, with progress).
-        estimator = VolumeEstimator(self.model, progress=build_progress(report))
+        # level at the pressure limit); the table level is built here if it is not stored (minutes, with progress).
+        estimator = VolumeEstimator(self.model, level=level, progress=build_progress(self.report))
         self.solver = InverseSolver(self.model, estimator=estimator)
         self.pressure_max_pa = float(self.solver.pressure_max_pa.max())
         self.estimator = self.solver.estimator
         self.timings_s["inverse_setup_s"] = time.perf_counter() - stage
         stage = time.perf_counter()
-        self.warm_up()
+        if self.estimator.level != "full":
+            self.warm_up()
         self.timings_s["warm_up_s"] = time.perf_counter() - stage
-        self.timings_s["total_s"] = time.perf_counter() - started
         probe = ""
         if self.estimator.probe_errors_pct:
             probe = ", chosen for accuracy_pct {:g} from errors {}".format(self.estimator.accuracy_pct, ", ".join(
@@ -86,13 +125,16 @@ class LoadedModel:
         if self.estimator.table is not None:
             probe = (f", a {self.estimator.table.points_per_axis}^{self.estimator.table.n_chambers} response table "
                      f"within {self.estimator.table.check_errors_pct:.2g} % of full solves")
-        report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}{probe}), "
-               f"warmed up in {self.timings_s['warm_up_s']:.2f} s; start-up took {self.timings_s['total_s']:.2f} s")
-        self.chamber_names = list(self.model.chamber_names)
-        self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3
-        self.wants_shape = bool(self.scene.outputs.shape)
-        #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
-        self._outer_surface = self.model.outer_surface()
+        if self.pending_level is not None:
+            probe = f" until the {self.pending_level} level is built"
+        self.report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}"
+                    f"{probe}), warmed up in {self.timings_s['warm_up_s']:.2f} s")
+
+    def use_level(self, level: str) -> None:
+        """Answer on ``level`` from now on (the pending table, once stored)."""
+        self._set_up(level)
+        if level == self.pending_level:
+            self.pending_level = None
 
     def warm_up(self) -> None:
         """Solve one reachable and one unreachable gland target, so that the first request finds the QPs set
@@ -109,17 +151,26 @@ class LoadedModel:
             self.estimator.counts[key] = 0
 
     def effective_model(self) -> dict[str, Any]:
-        """What a scene must match to run on this model (see :func:`phantom.host.scenes.effective_model`)."""
-        return effective_model(self.scene, fidelity=self.estimator.level, pressure_max_kpa=self.pressure_max_pa
-                               / PA_PER_KPA)
+        """What a scene must match to run on this model (see :func:`phantom.host.scenes.effective_model`): the
+        level it will answer on (the pending table, not the full solve it serves on meanwhile)."""
+        return effective_model(self.scene, fidelity=self.pending_level or self.estimator.level,
+                               pressure_max_kpa=self.pressure_max_pa / PA_PER_KPA)
 
     def pressures_for(self, target: Target) -> InverseResult:
         """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
         return self.solver.pressures_for(target)
 
+    def measured(self, pressures_pa: np.ndarray) -> np.ndarray:
+        """Measured pressures (Pa) as the estimator takes them: negative ones 0, and on the full solve rounded to
+        FULL_SOLVE_QUANTUM_PA."""
+        pressures = np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None)
+        if self.estimator.level == "full":
+            pressures = np.round(pressures / FULL_SOLVE_QUANTUM_PA) * FULL_SOLVE_QUANTUM_PA
+        return np.asarray(pressures, dtype=float)
+
     def estimate(self, pressures_pa: np.ndarray) -> tuple[list[float], float]:
         """Estimated chamber volumes (ml) and gland volume (ml) at measured pressures (Pa, negative -> 0)."""
-        chamber_m3, gland_m3 = self.estimator.volumes(np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None))
+        chamber_m3, gland_m3 = self.estimator.volumes(self.measured(pressures_pa))
         return (np.asarray(chamber_m3) * ML_PER_M3).tolist(), float(gland_m3) * ML_PER_M3
 
     def rest_surface_mm(self) -> tuple[np.ndarray, np.ndarray]:
@@ -130,7 +181,7 @@ class LoadedModel:
     def outer_surface_mm(self, pressures_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The deformed outer surface at pressures (Pa): positions (mm) and triangles; a shape is formed only here."""
         used, triangles = self._outer_surface
-        positions_m = self.estimator.shape(np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None))
+        positions_m = self.estimator.shape(self.measured(pressures_pa))
         return np.asarray(positions_m)[used] * MM_PER_M, triangles
 
 
@@ -167,6 +218,8 @@ class ModelInfo:
     pressure_max_pa: float
     wants_shape: bool
     effective_model: dict[str, Any]
+    #: the level the scene asks for while the worker answers on ``fidelity`` until it is built (None: it is)
+    pending_fidelity: str | None = None
 
 
 @dataclass(frozen=True)
@@ -208,11 +261,77 @@ def exit_with_parent(parent_pid: int) -> None:
         os._exit(0)
 
 
-def _worker_init(parent_pid: int, log_level: str) -> None:
-    """In the worker, first: die with the daemon, leave Ctrl-C to it, log like it."""
+def _worker_init(parent_pid: int, log_level: str, messages: Any = None) -> None:
+    """In the worker, first: die with the daemon, leave Ctrl-C to it, log like it; and, given a queue, send what
+    it says (its log lines, and the model's notices on stderr: compiling kernels, meshing) there too."""
     exit_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the daemon's to handle; it stops the worker
     configure_logging(log_level)
+    if messages is not None:
+        logging.getLogger("phantom").addHandler(_MessageHandler(messages))
+        sys.stderr = _NoticeTee(sys.stderr, messages)
+
+
+class _MessageHandler(logging.Handler):
+    """Log records of INFO and above, as their text, onto a queue (never blocking the worker)."""
+
+    def __init__(self, messages: Any):
+        super().__init__(logging.INFO)
+        self.messages = messages
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self.messages.put_nowait(record.getMessage())
+
+
+class _NoticeTee(io.TextIOBase):
+    """stderr that also puts each line the model prints as a notice (``phantom: meshing ...``) onto a queue."""
+
+    def __init__(self, stream: TextIO, messages: Any):
+        self.stream, self.messages, self._line = stream, messages, ""
+
+    def write(self, text: str) -> int:
+        self._line += text
+        *lines, self._line = self._line.split("\n")
+        for line in lines:
+            if line.startswith("phantom: "):
+                with contextlib.suppress(Exception):
+                    self.messages.put_nowait(line.removeprefix("phantom: "))
+        return self.stream.write(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def fileno(self) -> int:
+        return self.stream.fileno()
+
+
+class WorkerMessages:
+    """What the model worker says while it works, relayed to ``on_message(text)`` by a thread of the daemon (the
+    start-up's progress: which stage of a cold start it is in)."""
+
+    def __init__(self, on_message: Callable[[str], None]):
+        self.queue: Any = multiprocessing.get_context("spawn").Queue()
+        self._thread = threading.Thread(target=self._relay, args=(on_message,), name="model worker messages",
+                                        daemon=True)
+        self._thread.start()
+
+    def _relay(self, on_message: Callable[[str], None]) -> None:
+        while True:
+            try:
+                text = self.queue.get()
+            except (EOFError, OSError):
+                return
+            if text is None:
+                return
+            on_message(str(text))
+
+    def close(self) -> None:
+        with contextlib.suppress(Exception):
+            self.queue.put(None)
+        self._thread.join(2.0)
+        self.queue.close()
+        self.queue.cancel_join_thread()
 
 
 def _worker_model_or_fail() -> LoadedModel:
@@ -221,13 +340,23 @@ def _worker_model_or_fail() -> LoadedModel:
     return _worker_model
 
 
-def _worker_start(scene_source: str) -> ModelInfo:
+def _worker_start(scene_source: str, defer_table: bool) -> ModelInfo:
     """In the worker: build the model; return what the daemon needs to know about it."""
     global _worker_model
-    _worker_model = model = LoadedModel(scene_source)
-    return ModelInfo(model.chamber_names, list(model.scene.chamber_labels), model.rest_volume_ml, model.timings_s,
-                     model.estimator.level, model.scene.raw, str(model.scene.path), model.pressure_max_pa,
-                     model.wants_shape, model.effective_model())
+    _worker_model = LoadedModel(scene_source, defer_table=defer_table)
+    return _worker_info()
+
+
+def _worker_info() -> ModelInfo:
+    model = _worker_model_or_fail()
+    return ModelInfo(model.chamber_names, list(model.scene.chamber_labels), model.rest_volume_ml,
+                     dict(model.timings_s), model.estimator.level, model.scene.raw, str(model.scene.path),
+                     model.pressure_max_pa, model.wants_shape, model.effective_model(), model.pending_level)
+
+
+def _worker_use_level(level: str) -> ModelInfo:
+    _worker_model_or_fail().use_level(level)
+    return _worker_info()
 
 
 def _worker_pressures_for(target: Target) -> InverseResult:
@@ -247,11 +376,12 @@ def _worker_surface(pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.nda
     return model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
 
 
-def worker_pool(log_level: str = "info") -> ProcessPoolExecutor:
+def worker_pool(log_level: str = "info", messages: WorkerMessages | None = None) -> ProcessPoolExecutor:
     """A one-process pool (spawned, not forked: no copy of the daemon's event loop or threads) whose process
-    dies with this one."""
+    dies with this one; what it says goes to ``messages`` too."""
     return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
-                               initializer=_worker_init, initargs=(os.getpid(), log_level))
+                               initializer=_worker_init,
+                               initargs=(os.getpid(), log_level, None if messages is None else messages.queue))
 
 
 class ModelWorker:
@@ -263,20 +393,34 @@ class ModelWorker:
     def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo):
         self._pool = pool
         self.info = info
+        self._messages: WorkerMessages | None = None
 
     @classmethod
-    async def start(cls, scene_source: str, log_level: str = "info") -> ModelWorker:
-        """Start the worker process and build the model in it (its progress is logged from there)."""
-        pool = worker_pool(log_level)
+    async def start(cls, scene_source: str, log_level: str = "info", defer_table: bool = False,
+                    on_message: Callable[[str], None] | None = None) -> ModelWorker:
+        """Start the worker process and build the model in it (its progress is logged from there, and told to
+        ``on_message`` as it comes). ``defer_table``: answer on the full solve while a table that is not stored
+        yet is built elsewhere (``info.pending_fidelity``; :meth:`use_level` once it is stored)."""
+        messages = WorkerMessages(on_message) if on_message is not None else None
+        pool = worker_pool(log_level, messages)
         try:
-            info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source)
+            info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source, defer_table)
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
+            if messages is not None:
+                messages.close()
             raise
-        return cls(pool, info)
+        worker = cls(pool, info)
+        worker._messages = messages
+        return worker
 
     async def _call(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
+
+    async def use_level(self, level: str) -> ModelInfo:
+        """Answer on ``level`` from now on (the pending table, once the build stored it); the new ``info``."""
+        self.info = await self._call(_worker_use_level, level)
+        return self.info
 
     async def pressures_for(self, target: Target) -> InverseResult:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
@@ -298,3 +442,5 @@ class ModelWorker:
         """Stop the worker process and wait for it (a pool left running is woken by the interpreter's exit
         hook through a pipe already closed, which prints an error)."""
         self._pool.shutdown(wait=True, cancel_futures=True)
+        if self._messages is not None:
+            self._messages.close()

@@ -1,45 +1,63 @@
 """Rerun logging of what the daemon does: pressures, volumes, link statistics, solver time, events, the mesh.
 
-Entity paths (``<chamber>`` is the chamber's name with anything but letters, digits, ``-`` and ``_`` turned
-into ``_``; the legends show the name itself):
+Chambers are named as people name them (the scene's ``chamber_labels``: base, left lobe, right lobe), in the
+plots' titles and legends and, made path-safe (anything but letters, digits, ``-`` and ``_`` turned into ``_``),
+in the entity paths:
 
-    chamber/<chamber>/measured_kpa, setpoint_kpa, drive_level   per chamber, from telemetry
-    volume/target_ml, volume/estimated_ml, volume/true_ml       the gland (true: the simulated plant's)
+    chamber/<chamber>/commanded_kpa, measured_kpa, drive_level  per chamber, from telemetry (commanded: the setpoint)
+    volume/commanded_ml, volume/estimated_ml, volume/true_ml    the gland: the target, the model's estimate at the
+                                                                measured pressures, the simulated plant's own
     volume/chambers/<chamber>_ml                                estimated chamber volumes
     link/rtt_ms, link/retries, link/bad_frames, link/dropped    link statistics
     solver/qp_time_ms, solver/solve_time_ms                     the inverse
     events                                                      text log: faults, reconnects, targets
-    phantom/mesh, phantom/rest                                  deformed outer surface (mm) and its rest shape
+    phantom/mesh, phantom/rest, phantom/axes                    deformed outer surface (mm), its rest shape, and
+                                                                the anatomical axes as 10 mm arrows
+
+Nothing hides: Rerun draws a plot's series in the order of their entity paths, the last on top, whatever the
+blueprint lists; so what was asked for sorts first (``commanded``, drawn wide and translucent) and what was
+measured or estimated after it (thin and opaque, on top), and each chamber has its own plots (the two lobes often
+hold the same pressure, and one line would hide the other).
 
 Timelines: ``time`` (seconds since the daemon started) on everything, and ``scene_time`` (seconds into the
 running scene's timeline) on what is logged while a scene runs, so that a scene's steps line up with its file.
 The SDK adds ``log_time`` (the wall clock).
 
-The blueprint (the layout the viewer opens with) gives each quantity its own plot with its own scale: pressures
-(measured thin, setpoint wide and translucent, one colour per chamber), drive levels (0-1), the gland volume,
-one small plot per chamber volume, link and solver; legends sit in the top-left corner, where a recording that
-starts vented has no data. The phantom view (only when meshes are logged) shows the deformed surface with
-normals over a translucent rest-shape ghost, anatomical axes (x left, y anterior, z apex to base) and a camera
-fitted to the rest shape.
+The blueprint (the layout the viewer opens with): one column per chamber with its pressure, drive level and
+volume; the gland volume under them; link and solver in tabs; legends in the top-left corner, where a recording
+that starts vented has no data. The phantom view (only when meshes are logged) shows the deformed surface with
+normals over a translucent rest-shape ghost, the anatomical axes (x left, y anterior, z apex to base) as
+labelled 10 mm arrows, a 10 mm grid, and a camera fitted to the rest shape.
 
-Memory stays bounded while recording: the ``.rrd`` is written without a footer (a footer makes the file sink
-keep every chunk's metadata until the end: about 5 MB more per minute at the daemon's rates with the SDK's
-default batching), and the chunk batcher flushes every 0.5 s rather than every few milliseconds, so a telemetry
-series is one chunk per half second rather than one per frame. A moving mesh sends its triangles once.
-``bench/recording_memory.py`` measures it.
+Files: a recording is never overwritten. :meth:`Recorder.open` takes a lock beside the file (another daemon
+recording to the same path is refused), sets an existing file aside under a name stamped with the time it was
+last written (``run.20261124-101500.rrd``), and writes the new session to the path given. Every file ends with
+a footer (its chunk index; ``rerun rrd verify`` accepts it): the SDK keeps that index in memory until the file
+is closed (about 2 MB a minute at the daemon's rates), so a long session is closed and set aside every
+:data:`SEGMENT_S` and goes on in a new file at the same path, with the same recording id (``rerun run*.rrd``
+shows the whole session). A disk that fills up pauses the recording (closed properly while it can be) before
+the SDK's writer fails; it resumes in a new file once there is room, and both are events and in ``status``.
+
+Memory stays bounded otherwise: the chunk batcher flushes every 0.5 s rather than every few milliseconds, so a
+telemetry series is one chunk per half second rather than one per frame, and a moving mesh sends its triangles
+once. ``bench/recording_memory.py`` measures it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import fcntl
 import logging
 import os
 import re
+import time
+import uuid
 import warnings
-from collections.abc import Sequence
-from datetime import timedelta
+from collections.abc import Callable, Sequence
+from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -50,29 +68,51 @@ logger = logging.getLogger(__name__)
 #: One fixed colour per chamber, in chamber order (Okabe-Ito, distinguishable with the common colour-vision
 #: deficiencies and on the viewer's dark background): orange, sky blue, bluish green, vermillion, blue, purple.
 CHAMBER_COLOURS = ((230, 159, 0), (86, 180, 233), (0, 158, 115), (213, 94, 0), (0, 114, 178), (204, 121, 167))
-#: Setpoints: the chamber's colour, translucent and wide, so the measured line shows on top of it.
+#: Setpoints: the chamber's colour, translucent and wide, drawn under the measured line.
 SETPOINT_ALPHA = 110
-SETPOINT_WIDTH = 5.0
+SETPOINT_WIDTH = 6.0
 MEASURED_WIDTH = 1.5
-#: Gland volume series: target (grey dots, translucent: readable on the light and the dark theme), estimate
-#: (purple), the simulated plant's true volume (blue); none is a chamber's colour. Widths in points.
-GLAND_SERIES = {"target_ml": ("target", (128, 128, 128, 130), 5.0),
+#: Gland volume series, in drawing order: target (wide translucent grey dots, under the others; dots so that no
+#: line bridges a time without a target), estimate (purple), the simulated plant's true volume (blue); none is a
+#: chamber's colour. Widths in points.
+GLAND_SERIES = {"commanded_ml": ("target", (128, 128, 128, 120), 7.0),
                 "estimated_ml": ("estimate", (204, 121, 167, 255), 1.5),
                 "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5)}
 #: Surfaces: the deformed phantom (tissue pink, slightly translucent so that the rest shape shows through where
 #: the gland has grown over it) and its rest shape (a pale blue ghost).
 MESH_RGBA = (235, 150, 140, 200)
 REST_GHOST_RGBA = (120, 170, 255, 90)
+#: The anatomical axes drawn in the phantom view: direction, label, colour (x red, y green, z blue, as the viewer's
+#: own axes); each arrow is AXIS_MM long, the scale of the view.
+ANATOMICAL_AXES = (((1, 0, 0), "x: patient's left", (220, 50, 47)), ((0, 1, 0), "y: anterior", (60, 170, 60)),
+                   ((0, 0, 1), "z: apex to base", (50, 110, 220)))
+AXIS_MM = 10.0
 #: Batching: flush the SDK's chunk batcher this often (s; None: the SDK's default, a few ms). The viewer of a
 #: live stream lags by at most this.
 FLUSH_TICK_S: float | None = 0.5
-#: Whether the .rrd ends with a footer (an index of its chunks). The file sink keeps that index in memory until
-#: the end, so it grows with the recording: off.
-WRITE_FOOTER = False
+#: Whether the .rrd ends with a footer (an index of its chunks, which `rerun rrd verify` requires). The file sink
+#: keeps that index in memory until the file is closed, so a long session is written in segments (SEGMENT_S).
+WRITE_FOOTER = True
+#: A session's file is closed (with its footer) and a new one begun at the same path this often (s).
+SEGMENT_S = 20 * 60.0
+#: Free space on the recording's file system (bytes) below which recording pauses, and above which it resumes.
+PAUSE_BELOW_BYTES = 64 * 2**20
+RESUME_ABOVE_BYTES = 128 * 2**20
+#: A file that has not grown for this long (s) while rows were logged lost its writer (an I/O error).
+STALLED_AFTER_S = 15.0
+#: How long a file that seems stalled is given to write out what is queued before it is called stalled (s).
+STALL_FLUSH_TIMEOUT_S = 2.0
+#: How often (s) :meth:`Recorder.check` looks at the disk and the file.
+CHECK_PERIOD_S = 2.0
+#: How long (s) a recording whose writer failed waits before it tries a new file.
+RETRY_AFTER_S = 30.0
+#: How long (s) closing a file may take: the SDK writes what is queued and the footer.
+CLOSE_TIMEOUT_S = 30.0
 
 
 class RecordingError(PhantomError):
-    """The recording could not be opened (unwritable path, full disk, bad viewer address)."""
+    """The recording could not be opened (unwritable path, full disk, a path another daemon records to, bad
+    viewer address)."""
 
 
 def entity_part(name: str) -> str:
@@ -96,36 +136,38 @@ def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
 
 
-def default_blueprint(chamber_names: list[str], camera: tuple[np.ndarray, np.ndarray] | None = None) -> Any:
-    """The layout: plots on the right, one per quantity; the phantom on the left when ``camera`` (eye position,
-    look target, mm) is given, that is when meshes are logged; the event log under it."""
+def default_blueprint(chamber_labels: list[str], camera: tuple[np.ndarray, np.ndarray] | None = None) -> Any:
+    """The layout: one column of plots per chamber and the gland's volume under them; the phantom on the left
+    when ``camera`` (eye position, look target, mm) is given, that is when meshes are logged; the event log."""
     with require_extra("record"):
         import rerun as rr
         import rerun.blueprint as rrb
         import rerun.blueprint.encodings as rrbe
 
-    parts = [entity_part(name) for name in chamber_names]
+    parts = [entity_part(name) for name in chamber_labels]
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)
+    no_legend = rrb.PlotLegend(visible=False)
     # the whole recording on the time axis (else, following the latest data, a plot shows only the last minute)
     whole = rrb.TimeAxis(view_range=rr.TimeRange(start=rr.TimeRangeBoundary.infinite(),
                                                  end=rr.TimeRangeBoundary.infinite()))
-    pressures = rrb.TimeSeriesView(
-        name="pressure (kPa): measured (thin), setpoint (wide)", origin="/chamber",
-        contents=[f"+ /chamber/{part}/{series}" for part in parts for series in ("setpoint_kpa", "measured_kpa")],
-        plot_legend=legend, axis_x=whole)
-    drives = rrb.TimeSeriesView(
-        name="drive level (0-1)", origin="/chamber", contents=[f"+ /chamber/{part}/drive_level" for part in parts],
-        axis_y=rrb.ScalarAxis(range=(0.0, 1.05)), plot_legend=legend, axis_x=whole)
+    columns = []
+    for index, (label, part) in enumerate(zip(chamber_labels, parts, strict=True)):
+        columns.append(rrb.Vertical(
+            rrb.TimeSeriesView(name=f"{label}: pressure (kPa)", origin=f"/chamber/{part}",
+                               contents=[f"+ /chamber/{part}/commanded_kpa", f"+ /chamber/{part}/measured_kpa"],
+                               plot_legend=legend if index == 0 else no_legend, axis_x=whole),
+            rrb.TimeSeriesView(name=f"{label}: drive (0-1)", origin=f"/chamber/{part}",
+                               contents=f"+ /chamber/{part}/drive_level", axis_y=rrb.ScalarAxis(range=(0.0, 1.05)),
+                               plot_legend=no_legend, axis_x=whole),
+            rrb.TimeSeriesView(name=f"{label}: volume (ml)", origin="/volume/chambers",
+                               contents=f"+ /volume/chambers/{part}_ml", plot_legend=no_legend, axis_x=whole),
+            row_shares=[3, 2, 2]))
     gland = rrb.TimeSeriesView(name="gland volume (ml)", origin="/volume",
                                contents=[f"+ /volume/{series}" for series in GLAND_SERIES], plot_legend=legend,
                                axis_x=whole)
-    chambers = rrb.Horizontal(*[
-        rrb.TimeSeriesView(name=f"{name} (ml)", origin="/volume/chambers", contents=f"+ /volume/chambers/{part}_ml",
-                           plot_legend=rrb.PlotLegend(visible=False), axis_x=whole)
-        for name, part in zip(chamber_names, parts, strict=True)])
     diagnostics = rrb.Tabs(rrb.TimeSeriesView(name="link", origin="/link", plot_legend=legend, axis_x=whole),
                            rrb.TimeSeriesView(name="solver (ms)", origin="/solver", plot_legend=legend, axis_x=whole))
-    plots = rrb.Vertical(pressures, drives, gland, chambers, diagnostics, row_shares=[3, 2, 2, 2, 2])
+    plots = rrb.Vertical(rrb.Horizontal(*columns), gland, diagnostics, row_shares=[7, 3, 2])
     events = rrb.TextLogView(origin="/events", name="events", columns=rrb.TextLogColumns(
         timeline_columns=[rrbe.TimelineColumn("time"), rrbe.TimelineColumn("scene_time")],
         text_log_columns=[rrbe.TextLogColumn("loglevel"), rrbe.TextLogColumn("body"),
@@ -135,55 +177,154 @@ def default_blueprint(chamber_names: list[str], camera: tuple[np.ndarray, np.nda
     else:
         eye, target = camera
         phantom = rrb.Spatial3DView(
-            origin="/phantom", name="phantom (mm): deformed over the rest shape",
+            origin="/phantom", name=f"phantom (mm, grid {AXIS_MM:g} mm): deformed over the rest shape",
             eye_controls=rrb.EyeControls3D(position=eye.tolist(), look_target=target.tolist(), eye_up=[0, 0, 1]),
-            line_grid=rrb.LineGrid3D(visible=True, spacing=10.0))
+            line_grid=rrb.LineGrid3D(visible=True, spacing=AXIS_MM))
         layout = rrb.Horizontal(rrb.Vertical(phantom, events, row_shares=[3, 1]), plots, column_shares=[2, 3])
     # following: the view opens at the latest time (the last shape), live or from a file
     time_panel = rrb.TimePanel(timeline="time", state="collapsed", play_state="following")
     return rrb.Blueprint(layout, time_panel, collapse_panels=True)
 
 
+def axes_origin(positions_mm: np.ndarray) -> np.ndarray:
+    """Where the anatomical axes start: beside the rest shape (mm), at its lowest right corner in front, out of
+    its way (the camera looks from the front: behind the gland the arrows would be hidden)."""
+    low, high = positions_mm.min(axis=0), positions_mm.max(axis=0)
+    return np.array([low[0] - AXIS_MM, high[1] + AXIS_MM, low[2] - AXIS_MM])
+
+
 def fitted_camera(positions_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An eye in front of the phantom (anterior, +y), a little to its left and above, far enough to keep the
-    whole rest shape and its growth in view; and the point it looks at (the rest shape's centre)."""
-    low, high = positions_mm.min(axis=0), positions_mm.max(axis=0)
+    whole rest shape, its growth and the axes beside it in view; and the point it looks at (their centre)."""
+    shown = np.vstack([positions_mm, axes_origin(positions_mm)])
+    low, high = shown.min(axis=0), shown.max(axis=0)
     centre = (low + high) / 2
     radius = float(np.linalg.norm(high - low)) / 2
     direction = np.array([0.55, 1.0, 0.45])
     return centre + 2.6 * radius * direction / np.linalg.norm(direction), centre
 
 
+def set_aside(path: Path) -> Path:
+    """Rename an existing recording beside itself, stamped with the time it was last written
+    (``run.rrd`` -> ``run.20261124-101500.rrd``, ``-2`` etc. if that is taken); returns the new path."""
+    stamp = datetime.fromtimestamp(path.stat().st_mtime).strftime("%Y%m%d-%H%M%S")
+    candidate = path.with_name(f"{path.stem}.{stamp}{path.suffix}")
+    number = 2
+    while candidate.exists():
+        candidate = path.with_name(f"{path.stem}.{stamp}-{number}{path.suffix}")
+        number += 1
+    os.rename(path, candidate)
+    return candidate
+
+
+def file_size(path: Path) -> int:
+    """The size of a file in bytes (how far the SDK's writer has come)."""
+    return path.stat().st_size
+
+
+def free_bytes(folder: Path) -> int:
+    """Bytes an unprivileged writer may still use on the file system of ``folder``."""
+    stats = os.statvfs(folder)
+    return stats.f_bavail * stats.f_frsize
+
+
+class PathLock:
+    """An exclusive lock on a recording path, held by one daemon for its whole session: a hidden file beside it
+    (``.run.rrd.lock``) holding the owner's process id, locked with ``flock`` (released by the kernel when the
+    owner dies, however it dies)."""
+
+    def __init__(self, path: Path):
+        self.path = path.with_name(f".{path.name}.lock")
+        self._file: TextIO | None = None
+
+    def acquire(self, recording: Path) -> None:
+        """Take the lock; RecordingError naming the other daemon when it holds it."""
+        while True:
+            handle = open(self.path, "a+")
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                handle.seek(0)
+                owner = handle.read().strip() or "unknown"
+                handle.close()
+                raise RecordingError(f"{recording} is being recorded by another daemon (process {owner}): give "
+                                     "another --rerun-save path, or stop that daemon") from None
+            # the lock is on the file this path names now, not on one its previous owner removed meanwhile
+            with contextlib.suppress(FileNotFoundError):
+                if os.fstat(handle.fileno()).st_ino == os.stat(self.path).st_ino:
+                    break
+            handle.close()
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"{os.getpid()}\n")
+        handle.flush()
+        self._file = handle
+
+    def release(self) -> None:
+        if self._file is None:
+            return
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+        self._file.close()
+        self._file = None
+
+
 class Recorder:
-    """A Rerun recording stream with the daemon's logging calls; every call is a no-op when disabled.
+    """A Rerun recording stream with the daemon's logging calls; every call is a no-op when nothing records.
 
     Nothing is opened until :meth:`open` (so a daemon that refuses to start never touches a file).
 
     Parameters
     ----------
-    chamber_names : list of str
-        Chamber names, shown in legends and plot titles (and, made path-safe, in entity paths).
+    chamber_labels : list of str
+        The chambers as people name them, in chamber order: the plots' titles and legends and, made path-safe,
+        the entity paths.
     save_path : path, optional
-        Write an ``.rrd`` file here.
+        Write ``.rrd`` files here (see the module: an existing file is set aside, never overwritten).
     connect_url : str, optional
         Stream to a viewer (``rerun+http://host:9876/proxy``, as ``rerun`` prints when it starts).
+    on_problem : callable(text, level), optional
+        Told when recording pauses, fails or resumes (the daemon's events); the log by default.
+    clock, free_space : callables, optional
+        Seconds (monotonic), and the free bytes of a folder's file system (:func:`free_bytes`).
     """
 
-    def __init__(self, chamber_names: list[str], save_path: str | Path | None = None, connect_url: str | None = None):
-        self.chamber_names = list(chamber_names)
-        self.parts = [entity_part(name) for name in self.chamber_names]
+    def __init__(self, chamber_labels: Sequence[str], save_path: str | Path | None = None,
+                 connect_url: str | None = None, on_problem: Callable[[str, str], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic, free_space: Callable[[Path], int] = free_bytes):
+        self.chamber_labels = list(chamber_labels)
+        self.parts = [entity_part(name) for name in self.chamber_labels]
         if len(set(self.parts)) != len(self.parts):
-            raise RecordingError(f"chamber names {self.chamber_names} collide in entity paths ({self.parts}): "
+            raise RecordingError(f"chamber names {self.chamber_labels} collide in entity paths ({self.parts}): "
                                  "give the chambers names that differ in letters or digits")
         self.save_path = Path(save_path) if save_path else None
         self.connect_url = connect_url
+        self.on_problem = on_problem or (lambda text, level: logger.log(logging.getLevelName(
+            "WARNING" if level == "WARN" else level), "%s", text))
+        self.clock = clock
+        self.free_space = free_space
         self.enabled = False
+        #: ``off`` (nothing asked), ``recording``, ``paused`` (the disk is full, or the writer failed)
+        self.state = "off"
+        self.problem: str | None = None
+        #: the files this session wrote, in order (the last is ``save_path`` while recording)
+        self.files: list[Path] = []
+        #: files of earlier sessions (or segments) set aside by this session
+        self.set_aside: list[Path] = []
         # rerun's module and stream, set by open() (rerun is imported only when recording)
         self._rr: Any = None
         self._stream: Any = None
+        self._recording_id = ""
+        self._lock: PathLock | None = None
         self._scene_time_s: float | None = None
-        self._rest_logged = False
+        self._rest: tuple[np.ndarray, np.ndarray] | None = None
         self._mesh_triangles: np.ndarray | None = None
+        self._segment_started_s = 0.0
+        self._next_check_s = 0.0
+        self._retry_at_s = 0.0
+        self._size = -1
+        self._grew_s = 0.0
+        self._logged_since_growth = False
 
     @property
     def wants_mesh(self) -> bool:
@@ -191,66 +332,197 @@ class Recorder:
         return self.enabled
 
     def open(self) -> None:
-        """Open the file (truncating it) or connect to the viewer, and write the blueprint and series styles.
+        """Lock the path, set an existing file aside and start writing (or connect to the viewer); the blueprint
+        and the series' styles first.
 
-        Raises RecordingError (one line) when the file cannot be written: missing permission, a directory in the
-        way, a full disk.
+        Raises RecordingError (one line) when the file cannot be written (missing permission, a directory in
+        the way, a full disk) or another daemon records to the same path.
         """
         if self._stream is not None or not (self.save_path or self.connect_url):
             return
-        # the SDK warns on stderr, at every start, that a file without a footer is slower to seek: that is the
-        # choice made above (WRITE_FOOTER), not news for the daemon's log; a RUST_LOG the user set wins
-        os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
         with require_extra("record"):
             import rerun as rr
 
-        if self.save_path is not None:
-            _check_writable(self.save_path)
         self._rr = rr
-        batching = None if FLUSH_TICK_S is None else rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=FLUSH_TICK_S))
-        stream = rr.RecordingStream("phantom", batcher_config=batching)
-        blueprint = default_blueprint(self.chamber_names)
+        self._recording_id = str(uuid.uuid4())
+        if self.save_path is None:
+            self._connect()
+            return
+        lock = PathLock(self.save_path)
         try:
-            if self.save_path is not None:
-                stream.save(str(self.save_path), default_blueprint=blueprint, write_footer=WRITE_FOOTER)
-            else:
-                stream.connect_grpc(self.connect_url, default_blueprint=blueprint)
-        except Exception as error:  # rerun raises plain exceptions for bad paths and addresses
-            target = self.save_path or self.connect_url
-            raise RecordingError(f"cannot record to {target}: {error}; give another --rerun-save path or "
-                                 "--rerun-connect address") from error
-        self._stream = stream
-        self.enabled = True
+            self.save_path.parent.mkdir(parents=True, exist_ok=True)
+            lock.acquire(self.save_path)
+        except OSError as error:
+            raise _unwritable(self.save_path, error) from None
+        self._lock = lock
+        try:
+            self._start_segment()
+        except BaseException:
+            lock.release()
+            self._lock = None
+            raise
+
+    def _stream_for(self) -> Any:
+        rr = self._rr
+        batching = None if FLUSH_TICK_S is None else rr.ChunkBatcherConfig(flush_tick=timedelta(seconds=FLUSH_TICK_S))
+        return rr.RecordingStream("phantom", recording_id=self._recording_id, batcher_config=batching)
+
+    def _connect(self) -> None:
+        stream = self._stream_for()
+        try:
+            stream.connect_grpc(self.connect_url, default_blueprint=default_blueprint(self.chamber_labels))
+        except Exception as error:  # rerun raises plain exceptions for bad addresses
+            raise RecordingError(f"cannot record to {self.connect_url}: {error}; give another --rerun-connect "
+                                 "address") from error
+        self._stream, self.enabled, self.state = stream, True, "recording"
         self._log_styles()
 
+    def _start_segment(self) -> None:
+        """Set the file at the path aside (if any) and begin a new one there; RecordingError if it cannot be
+        written."""
+        assert self.save_path is not None  # only a file has segments
+        path = self.save_path
+        if path.is_file():  # never a device or a folder: writing to those fails below, with the reason
+            aside = set_aside(path)
+            if self.files and self.files[-1] == path:
+                self.files[-1] = aside  # this session's previous segment
+            else:
+                self.set_aside.append(aside)
+        _check_writable(path)
+        stream = self._stream_for()
+        camera = None if self._rest is None else fitted_camera(self._rest[0])
+        try:
+            stream.save(str(path), default_blueprint=default_blueprint(self.chamber_labels, camera),
+                        write_footer=WRITE_FOOTER)
+        except Exception as error:  # rerun raises plain exceptions for bad paths
+            raise RecordingError(f"cannot record to {path}: {error}; give another --rerun-save path") from error
+        self._stream, self.enabled, self.state, self.problem = stream, True, "recording", None
+        self.files.append(path)
+        self._segment_started_s = self._grew_s = self.clock()
+        self._size, self._logged_since_growth = -1, False
+        self._mesh_triangles = None
+        self._log_styles()
+        if self._rest is not None:
+            self._log_rest(*self._rest)
+
+    def _end_segment(self, timeout_s: float) -> None:
+        """Write out what is queued and the footer, and close the file (or the viewer's connection)."""
+        stream, self._stream, self.enabled = self._stream, None, False
+        if stream is None:
+            return
+        try:
+            stream.flush(timeout_sec=timeout_s)
+        except Exception as error:  # RuntimeError from the SDK: its writer died (a full disk), or a viewer is gone
+            logger.warning("the recording could not be written out (%s); what was not written is lost", error)
+        stream.disconnect()
+
     def _log_styles(self) -> None:
-        """Series names, colours and widths, once (static: they hold on every timeline)."""
+        """Series names, colours and widths, once per file (static: they hold on every timeline)."""
         rr, log = self._rr, self._stream.log
         colour: tuple[int, ...]
-        for index, (name, part) in enumerate(zip(self.chamber_names, self.parts, strict=True)):
+        for index, (label, part) in enumerate(zip(self.chamber_labels, self.parts, strict=True)):
             colour = chamber_colour(index)
-            log(f"chamber/{part}/measured_kpa", rr.SeriesLines(colors=[colour], names=[name],
-                                                               widths=[MEASURED_WIDTH]), static=True)
-            log(f"chamber/{part}/setpoint_kpa", rr.SeriesLines(
-                colors=[(*colour, SETPOINT_ALPHA)], names=[f"{name} setpoint"], widths=[SETPOINT_WIDTH],
+            log(f"chamber/{part}/commanded_kpa", rr.SeriesLines(
+                colors=[(*colour, SETPOINT_ALPHA)], names=[f"{label} setpoint"], widths=[SETPOINT_WIDTH],
                 interpolation_mode=rr.components.InterpolationMode.StepAfter), static=True)
-            log(f"chamber/{part}/drive_level", rr.SeriesLines(colors=[colour], names=[name],
+            log(f"chamber/{part}/measured_kpa", rr.SeriesLines(colors=[colour], names=[f"{label} measured"],
+                                                               widths=[MEASURED_WIDTH]), static=True)
+            log(f"chamber/{part}/drive_level", rr.SeriesLines(colors=[colour], names=[label],
                                                               widths=[MEASURED_WIDTH]), static=True)
-            log(f"volume/chambers/{part}_ml", rr.SeriesLines(colors=[colour], names=[name],
+            log(f"volume/chambers/{part}_ml", rr.SeriesLines(colors=[colour], names=[label],
                                                              widths=[MEASURED_WIDTH]), static=True)
         for series, (label, colour, width) in GLAND_SERIES.items():
             # the target as dots (10 Hz, dense enough to read as a line): where there is none (vented, or a
             # pressure target with no prediction) no dots, where a line would bridge the gap
             style = rr.SeriesPoints(colors=[colour], names=[label], marker_sizes=[width / 2]) if series == (
-                "target_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
+                "commanded_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
             log(f"volume/{series}", style, static=True)
         log("phantom", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+
+    # --- health: segments, a full disk, a failed writer -------------------------------------------------
+
+    def check(self) -> None:
+        """Called often (the daemon's control loop); at most every :data:`CHECK_PERIOD_S` it looks at the file:
+        a new segment when this one is old, a pause when the disk fills up or the file stops growing, a resume
+        once there is room again. Each change is told to ``on_problem``."""
+        now_s = self.clock()
+        if self.save_path is None or self._lock is None or now_s < self._next_check_s:
+            return
+        self._next_check_s = now_s + CHECK_PERIOD_S
+        folder = self.save_path.parent
+        try:
+            free = self.free_space(folder)
+        except OSError as error:
+            free, why = 0, f"its folder cannot be read ({error.strerror})"
+        else:
+            why = f"only {free / 2**20:.0f} MB are free on the disk of {self.save_path}"
+        if self.state == "recording":
+            if free < PAUSE_BELOW_BYTES:
+                self._pause(f"{why}; it resumes in a new file once {RESUME_ABOVE_BYTES / 2**20:.0f} MB are free")
+            elif self._stalled(now_s):
+                self._retry_at_s = now_s + RETRY_AFTER_S
+                self._pause(f"{self.save_path} stopped growing for {STALLED_AFTER_S:g} s while data came: its "
+                            f"writer failed (see the daemon's log); a new file is tried in {RETRY_AFTER_S:g} s")
+            elif now_s - self._segment_started_s >= SEGMENT_S:
+                self._end_segment(CLOSE_TIMEOUT_S)
+                self._start_segment()
+        elif self.state == "paused" and free >= RESUME_ABOVE_BYTES and now_s >= self._retry_at_s:
+            try:
+                self._start_segment()
+            except RecordingError as error:
+                self.problem = str(error)
+                return
+            self.on_problem(f"recording resumed in {self.save_path} ({free / 2**20:.0f} MB free)", "INFO")
+
+    def _stalled(self, now_s: float) -> bool:
+        """Whether the file has not grown for STALLED_AFTER_S while rows were logged (the SDK writes in the
+        background: a dead writer only prints an error)."""
+        assert self.save_path is not None  # only a file is checked
+        try:
+            size = file_size(self.save_path)
+        except OSError:
+            return True
+        if size != self._size:
+            self._size, self._grew_s, self._logged_since_growth = size, now_s, False
+            return False
+        if not (self._logged_since_growth and now_s - self._grew_s >= STALLED_AFTER_S):
+            return False
+        # a busy machine's writer may only be late: ask it to write out what is queued before calling it dead
+        if self._stream is not None:
+            try:
+                self._stream.flush(timeout_sec=STALL_FLUSH_TIMEOUT_S)
+            except Exception:  # RuntimeError from the SDK: its writer died
+                return True
+        try:
+            flushed_size = file_size(self.save_path)
+        except OSError:
+            return True
+        if flushed_size == size:
+            return True
+        self._size, self._grew_s, self._logged_since_growth = flushed_size, now_s, False
+        return False
+
+    def _pause(self, why: str) -> None:
+        self._end_segment(timeout_s=1.0)
+        self.state, self.problem = "paused", why
+        self.on_problem(f"recording paused: {why}", "ERROR")
+
+    def status(self) -> dict[str, Any] | None:
+        """What ``phantom status`` shows of the recording (None when nothing records)."""
+        if self.save_path is None and self.connect_url is None:
+            return None
+        return {"path": str(self.save_path) if self.save_path else None, "viewer": self.connect_url,
+                "state": self.state, "problem": self.problem, "files": [str(path) for path in self.files],
+                "set_aside": [str(path) for path in self.set_aside]}
+
+    # --- what is logged ---------------------------------------------------------------------------------
 
     def set_scene_time(self, scene_time_s: float | None) -> None:
         """Seconds into the running scene's timeline (None: no scene runs); stamps later logs on ``scene_time``."""
         self._scene_time_s = None if scene_time_s is None else float(scene_time_s)
 
     def _at(self, time_s: float) -> None:
+        self._logged_since_growth = True
         self._stream.set_time("time", duration=float(time_s))
         if self._scene_time_s is None:
             self._stream.disable_timeline("scene_time")
@@ -268,8 +540,8 @@ class Recorder:
             return
         self._at(time_s)
         for index, part in enumerate(self.parts):
+            self._scalar(f"chamber/{part}/commanded_kpa", setpoint_kpa[index])
             self._scalar(f"chamber/{part}/measured_kpa", measured_kpa[index])
-            self._scalar(f"chamber/{part}/setpoint_kpa", setpoint_kpa[index])
             self._scalar(f"chamber/{part}/drive_level", drive_levels[index])
 
     def log_volumes(self, time_s: float, target_ml: float | None, estimated_ml: float | None,
@@ -279,7 +551,7 @@ class Recorder:
         if not self.enabled:
             return
         self._at(time_s)
-        self._scalar("volume/target_ml", target_ml)
+        self._scalar("volume/commanded_ml", target_ml)
         self._scalar("volume/estimated_ml", estimated_ml)
         self._scalar("volume/true_ml", true_ml)
         if chamber_ml is not None:
@@ -312,17 +584,25 @@ class Recorder:
         self._stream.log("events", self._rr.TextLog(text, level=level))
 
     def log_rest_surface(self, positions_mm: np.ndarray, triangles: np.ndarray) -> None:
-        """The rest shape (mm) as a translucent ghost, once, before the first :meth:`log_mesh`; it also puts the
-        phantom view into the layout with a camera fitted to this shape."""
-        if not self.enabled:
-            return
-        positions = np.asarray(positions_mm, np.float32)
-        triangles = np.asarray(triangles, np.uint32)
-        self._stream.log("phantom/rest", self._rr.Mesh3D(
-            vertex_positions=positions, triangle_indices=triangles, vertex_normals=vertex_normals(positions, triangles),
-            albedo_factor=REST_GHOST_RGBA), static=True)
-        self._stream.send_blueprint(default_blueprint(self.chamber_names, fitted_camera(positions)))
-        self._rest_logged = True
+        """The rest shape (mm) as a translucent ghost, with the anatomical axes beside it, once, before the first
+        :meth:`log_mesh`; it also puts the phantom view into the layout with a camera fitted to this shape (and
+        into every later segment of the session)."""
+        self._rest = (np.asarray(positions_mm, np.float32), np.asarray(triangles, np.uint32))
+        if self.enabled:
+            self._log_rest(*self._rest)
+
+    def _log_rest(self, positions: np.ndarray, triangles: np.ndarray) -> None:
+        rr, log = self._rr, self._stream.log
+        log("phantom/rest", rr.Mesh3D(vertex_positions=positions, triangle_indices=triangles,
+                                      vertex_normals=vertex_normals(positions, triangles),
+                                      albedo_factor=REST_GHOST_RGBA), static=True)
+        corner = axes_origin(positions)
+        log("phantom/axes", rr.Arrows3D(
+            origins=[corner] * len(ANATOMICAL_AXES),
+            vectors=[np.asarray(direction, float) * AXIS_MM for direction, _, _ in ANATOMICAL_AXES],
+            labels=[f"{label} ({AXIS_MM:g} mm)" for _, label, _ in ANATOMICAL_AXES], show_labels=True,
+            colors=[colour for _, _, colour in ANATOMICAL_AXES], radii=0.3), static=True)
+        self._stream.send_blueprint(default_blueprint(self.chamber_labels, fitted_camera(positions)))
 
     def log_mesh(self, time_s: float, positions_mm: np.ndarray, triangles: np.ndarray) -> None:
         """The deformed outer surface: vertex positions (mm, (n, 3)) and triangles ((k, 3) indices)."""
@@ -343,16 +623,27 @@ class Recorder:
                                                          vertex_normals=normals, albedo_factor=MESH_RGBA))
 
     def close(self) -> None:
-        """Flush and close the recording (the .rrd is complete and readable afterwards)."""
+        """Write out and close the recording (the file is complete, with its footer) and release its path."""
         if self._stream is not None:
-            try:
-                # a file is written out completely; a viewer that is gone must not hold the daemon's shutdown
-                self._stream.flush(timeout_sec=1e9 if self.save_path is not None else 1.0)
-            except Exception as error:  # the SDK raises RuntimeError when a viewer never answered
-                logger.warning("the recording could not be flushed (%s); what was not sent is lost", error)
-            self._stream.disconnect()
-            self._stream = None
-            self.enabled = False
+            # a file is written out completely; a viewer that is gone must not hold the daemon's shutdown
+            self._end_segment(CLOSE_TIMEOUT_S if self.save_path is not None else 1.0)
+        if self.state != "off":
+            self.state = "closed"
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+
+def _unwritable(path: Path, error: OSError) -> RecordingError:
+    """A one-line RecordingError for an OSError met writing ``path``: what was wrong and what to do."""
+    reason = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exhausted",
+              errno.EACCES: "permission denied", errno.EPERM: "permission denied",
+              errno.EISDIR: "it is a directory", errno.EROFS: "the file system is read-only",
+              errno.ENOTDIR: "a part of the path is not a directory",
+              errno.EEXIST: "a part of the path is not a directory"}.get(error.errno or 0, error.strerror or "")
+    remedy = "free some space or give another --rerun-save path" if error.errno in (errno.ENOSPC, errno.EDQUOT) \
+        else "give another --rerun-save path"
+    return RecordingError(f"cannot write the recording {path}: {reason}; {remedy}")
 
 
 def _check_writable(path: Path) -> None:
@@ -366,14 +657,7 @@ def _check_writable(path: Path) -> None:
             os.fsync(file.fileno())
             file.truncate(0)
     except OSError as error:
-        reason = {errno.ENOSPC: "the disk is full", errno.EDQUOT: "the disk quota is exhausted",
-                  errno.EACCES: "permission denied", errno.EPERM: "permission denied",
-                  errno.EISDIR: "it is a directory", errno.EROFS: "the file system is read-only",
-                  errno.ENOTDIR: "a part of the path is not a directory",
-                  errno.EEXIST: "a part of the path is not a directory"}.get(error.errno or 0, error.strerror or "")
-        remedy = "free some space or give another --rerun-save path" if error.errno in (errno.ENOSPC, errno.EDQUOT) \
-            else "give another --rerun-save path"
-        raise RecordingError(f"cannot write the recording {path}: {reason}; {remedy}") from None
+        raise _unwritable(path, error) from None
 
 
 #: Timelines read_rrd converts to seconds.
@@ -390,7 +674,7 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
         from rerun.chunk import RrdReader
 
     entities: dict[str, dict[str, list[Any]]] = {}
-    with warnings.catch_warnings():  # "no footer": the daemon writes none (WRITE_FOOTER); stream() reads it all
+    with warnings.catch_warnings():  # "no footer": a crashed session's file has none; stream() reads it all
         warnings.filterwarnings("ignore", message="RRD file has no footer")
         reader = RrdReader(str(path))
     for chunk in reader.stream().collect().stream():

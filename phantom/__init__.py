@@ -6,10 +6,16 @@ The subpackages map to the repository's top-level folders: ``phantom.protocol`` 
 import which.
 """
 
+from __future__ import annotations
+
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from phantom.host.client import AsyncPhantom, Phantom
 
 __version__ = "0.1.0"
 
@@ -69,3 +75,33 @@ def cache_dir(kind: str) -> Path:
     path = Path(root) / kind
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def connect(socket: str | Path | None = None, *, request_timeout_s: float = 60.0, ready_timeout_s: float = 300.0,
+            on_wait: Callable[[str], None] | None = None) -> Phantom:
+    """Connect to the running daemon (``phantom daemon``) and wait until it is ready: the Python API.
+
+    >>> import phantom
+    >>> with phantom.connect() as ph:                    # doctest: +SKIP
+    ...     ph.set_volume(32.0)                          # returns once reached and settled
+    ...     ph.surface().save_stl("phantom.stl")
+
+    ``socket``: the daemon's socket (default: where the daemon listens by default); ``request_timeout_s``: how
+    long one request may take; ``ready_timeout_s``: how long to wait for a daemon still starting (0: not at all);
+    ``on_wait``: told what it is doing meanwhile. See :class:`phantom.host.client.Phantom` for the methods.
+    """
+    # the client is the host's: imported when a script connects, so that every part's import of the root stays
+    # as light as it is
+    from phantom.host.client import connect as connect_to_daemon
+
+    return connect_to_daemon(socket, request_timeout_s=request_timeout_s, ready_timeout_s=ready_timeout_s,
+                             on_wait=on_wait)
+
+
+async def connect_async(socket: str | Path | None = None, *, request_timeout_s: float = 60.0,
+                        ready_timeout_s: float = 300.0, on_wait: Callable[[str], None] | None = None) -> AsyncPhantom:
+    """:func:`connect`'s asyncio twin: ``ph = await phantom.connect_async()``, then ``await ph.set_volume(32)``."""
+    from phantom.host.client import connect_async as connect_to_daemon
+
+    return await connect_to_daemon(socket, request_timeout_s=request_timeout_s, ready_timeout_s=ready_timeout_s,
+                                   on_wait=on_wait)

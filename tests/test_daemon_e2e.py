@@ -328,15 +328,15 @@ def test_the_recording_holds_what_was_logged(rig):
     from rerun.chunk import RrdReader
 
     entities = read_rrd(rig["recording"])
-    for name in ("chamber0", "chamber1", "chamber2"):
-        for series in ("measured_kpa", "setpoint_kpa", "drive_level"):
+    for name in ("base", "left_lobe", "right_lobe"):  # the chambers as people name them (the scene's labels)
+        for series in ("measured_kpa", "commanded_kpa", "drive_level"):
             assert len(entities[f"/chamber/{name}/{series}"]["Scalars:scalars"]) > 100
-    setpoint_kpa = [values[0] for values in entities["/chamber/chamber1/setpoint_kpa"]["Scalars:scalars"]]
+    setpoint_kpa = [values[0] for values in entities["/chamber/left_lobe/commanded_kpa"]["Scalars:scalars"]]
     assert max(setpoint_kpa) == pytest.approx(max(status_setpoints for status_setpoints in setpoint_kpa))
     assert 2.0 < max(setpoint_kpa) < 3.0
     estimated = [values[0] for values in entities["/volume/estimated_ml"]["Scalars:scalars"]]
     assert max(estimated) == pytest.approx(32.0, rel=0.01)
-    targets = {values[0] for values in entities["/volume/target_ml"]["Scalars:scalars"]}
+    targets = {values[0] for values in entities["/volume/commanded_ml"]["Scalars:scalars"]}
     assert {30.0, 32.0} <= targets
     assert len(entities["/link/rtt_ms"]["Scalars:scalars"]) > 5
     assert len(entities["/solver/qp_time_ms"]["Scalars:scalars"]) >= 3

@@ -1,17 +1,37 @@
 """The Rerun recording: a real .rrd written by Recorder and read back with rerun's RrdReader.
 
-What a person sees depends on what is in the file: the entities, the ``scene_time`` timeline, one colour per
-chamber, the mesh's normals, the translucent rest-shape ghost and the blueprint. Errors: a recording that cannot
-be written is a one-line PhantomError from ``open()``, and nothing is touched before ``open()``.
+What a person sees depends on what is in the file: the entities (chambers named as people name them), the
+``scene_time`` timeline, one colour per chamber, a drawing order in which nothing hides, the mesh's normals, the
+translucent rest-shape ghost, the anatomical axes and the blueprint. The files: complete (a footer, which
+``rerun rrd verify`` checks), never overwritten, one daemon per path, segments for long sessions, a pause on a
+full disk and a resume. Errors: a recording that cannot be written is a one-line PhantomError from ``open()``,
+and nothing is touched before ``open()``.
 """
 
 from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from phantom import PhantomError
-from phantom.host.recording import CHAMBER_COLOURS, Recorder, entity_part, read_rrd, vertex_normals
+from phantom.host import recording as recording_module
+from phantom.host.recording import (
+    CHAMBER_COLOURS,
+    GLAND_SERIES,
+    PAUSE_BELOW_BYTES,
+    RESUME_ABOVE_BYTES,
+    Recorder,
+    RecordingError,
+    entity_part,
+    read_rrd,
+    vertex_normals,
+)
+
+RERUN = Path(sys.executable).with_name("rerun")
 
 NAMES = ["base", "left lobe", "right lobe"]
 
@@ -74,14 +94,14 @@ def test_the_entities_are_in_the_file_under_path_safe_chamber_names(recording):
     entities = recording["entities"]
     assert entity_part("left lobe") == "left_lobe"
     for part in ("base", "left_lobe", "right_lobe"):
-        for series in ("measured_kpa", "setpoint_kpa", "drive_level"):
+        for series in ("measured_kpa", "commanded_kpa", "drive_level"):
             assert len(entities[f"/chamber/{part}/{series}"]["Scalars:scalars"]) == 40
         assert scalars(entities[f"/volume/chambers/{part}_ml"]["Scalars:scalars"]) == pytest.approx(
             [{"base": 2.0, "left_lobe": 1.1, "right_lobe": 1.2}[part]] * 8)
     assert scalars(entities["/chamber/right_lobe/measured_kpa"]["Scalars:scalars"]) == pytest.approx(
         [0.03 * k for k in range(40)])
     assert scalars(entities["/volume/true_ml"]["Scalars:scalars"]) == pytest.approx([27.0 + 0.5 * k for k in range(8)])
-    assert scalars(entities["/volume/target_ml"]["Scalars:scalars"]) == [30.0] * 8
+    assert scalars(entities["/volume/commanded_ml"]["Scalars:scalars"]) == [30.0] * 8
     assert scalars(entities["/events"]["TextLog:text"]) == ["daemon stopped"]
 
 
@@ -103,12 +123,13 @@ def test_each_chamber_has_its_own_colour_and_name_in_every_plot(recording):
     seen = set()
     for index, (name, part) in enumerate(zip(NAMES, ("base", "left_lobe", "right_lobe"), strict=True)):
         colour = packed_rgba(CHAMBER_COLOURS[index])
-        for series in ("measured_kpa", "drive_level"):
+        for series, legend in (("measured_kpa", f"{name} measured"), ("drive_level", name)):
             style = entities[f"/chamber/{part}/{series}"]
             assert style["SeriesLines:colors"] == [[colour]]
-            assert style["SeriesLines:names"] == [[name]]
+            assert style["SeriesLines:names"] == [[legend]]
         assert entities[f"/volume/chambers/{part}_ml"]["SeriesLines:colors"] == [[colour]]
-        setpoint = entities[f"/chamber/{part}/setpoint_kpa"]
+        setpoint = entities[f"/chamber/{part}/commanded_kpa"]
+        assert setpoint["SeriesLines:names"] == [[f"{name} setpoint"]]
         (setpoint_colour,), = setpoint["SeriesLines:colors"]
         assert setpoint_colour >> 8 == colour >> 8 and setpoint_colour & 0xFF < 255  # same hue, translucent
         assert setpoint["SeriesLines:widths"][0][0] > style["SeriesLines:widths"][0][0]  # wider than measured
@@ -158,9 +179,7 @@ def test_the_rest_shape_is_a_static_translucent_ghost(recording):
 def test_the_blueprint_is_in_the_file(recording):
     from rerun.chunk import RrdReader
 
-    # written without a footer, whose chunk index the SDK would keep in memory for the whole recording
-    with pytest.warns(Warning, match="no footer"):
-        reader = RrdReader(str(recording["path"]))
+    reader = RrdReader(str(recording["path"]))
     blueprints = reader.blueprints()
     # the layout at open(), and the one with the phantom view once the rest shape was known
     assert len(blueprints) == 2
@@ -174,9 +193,9 @@ def test_the_blueprint_is_in_the_file(recording):
                 if column.endswith(":display_name"):
                     names.update(value for values in batch.column(column).to_pylist() for value in values or [])
         view_names.append(names)
-    plots = {"pressure (kPa): measured (thin), setpoint (wide)", "drive level (0-1)", "gland volume (ml)",
-             "base (ml)", "left lobe (ml)", "right lobe (ml)", "link", "solver (ms)", "events"}
-    phantom = "phantom (mm): deformed over the rest shape"
+    plots = {f"{name}: {quantity}" for name in NAMES for quantity in ("pressure (kPa)", "drive (0-1)", "volume (ml)")}
+    plots |= {"gland volume (ml)", "link", "solver (ms)", "events"}
+    phantom = "phantom (mm, grid 10 mm): deformed over the rest shape"
     assert sorted(view_names, key=len) == [plots, plots | {phantom}]
 
 
@@ -218,7 +237,7 @@ def test_chamber_names_that_collide_in_paths_are_refused():
 
 
 def test_the_target_is_drawn_as_dots_so_that_no_line_bridges_a_time_without_one(recording, tmp_path):
-    style = recording["entities"]["/volume/target_ml"]
+    style = recording["entities"]["/volume/commanded_ml"]
     assert "SeriesPoints:colors" in style and "SeriesLines:colors" not in style
     path = tmp_path / "targets.rrd"
     recorder = Recorder(NAMES, save_path=path)
@@ -226,7 +245,7 @@ def test_the_target_is_drawn_as_dots_so_that_no_line_bridges_a_time_without_one(
     for time_s, target_ml in enumerate([30.0, 31.0, None, None, 32.0]):
         recorder.log_volumes(time_s, target_ml, 26.0)
     recorder.close()
-    target = read_rrd(path)["/volume/target_ml"]
+    target = read_rrd(path)["/volume/commanded_ml"]
     assert target["time"] == [0.0, 1.0, 4.0] and scalars(target["Scalars:scalars"]) == [30.0, 31.0, 32.0]
 
 
@@ -243,3 +262,226 @@ def test_a_bad_viewer_address_is_one_line():
     with pytest.raises(PhantomError) as caught:
         Recorder(NAMES, connect_url="not a url").open()
     assert "\n" not in str(caught.value) and "not a url" in str(caught.value)
+
+
+def test_what_was_asked_for_is_drawn_under_what_was_measured(recording):
+    """Rerun draws a plot's series in the order of their entity paths, the last on top (whatever order the
+    blueprint lists them in): the setpoint and the target must sort before the measured pressure and the
+    estimate, and be the wider, translucent ones, so that both show where they coincide."""
+    entities = recording["entities"]
+    for part in ("base", "left_lobe", "right_lobe"):
+        setpoint, measured = f"/chamber/{part}/commanded_kpa", f"/chamber/{part}/measured_kpa"
+        assert sorted([measured, setpoint]) == [setpoint, measured]
+        assert entities[setpoint]["SeriesLines:widths"][0][0] > 2 * entities[measured]["SeriesLines:widths"][0][0]
+    gland = [f"/volume/{series}" for series in GLAND_SERIES]
+    assert sorted(gland) == gland and gland[0] == "/volume/commanded_ml"
+    target_size = entities["/volume/commanded_ml"]["SeriesPoints:marker_sizes"][0][0]
+    assert target_size > 2 * entities["/volume/estimated_ml"]["SeriesLines:widths"][0][0]
+    (target_colour,), = entities["/volume/commanded_ml"]["SeriesPoints:colors"]
+    assert target_colour & 0xFF < 255
+
+
+def test_the_phantom_view_has_labelled_anatomical_axes_at_a_stated_scale(recording):
+    axes = recording["entities"]["/phantom/axes"]
+    vectors = np.asarray(axes["Arrows3D:vectors"][0])
+    assert np.allclose(vectors, 10.0 * np.eye(3))
+    labels = axes["Arrows3D:labels"][0]
+    assert [label.split(":")[0] for label in labels] == ["x", "y", "z"]
+    assert all("10 mm" in label for label in labels) and "anterior" in labels[1] and "base" in labels[2]
+    # beside the rest shape, not inside it, and in front of it (+y, where the camera is), not hidden behind it
+    origin = np.asarray(axes["Arrows3D:origins"][0][0])
+    low, high = recording["rest"].min(axis=0), recording["rest"].max(axis=0)
+    assert origin[0] < low[0] and origin[1] > high[1] and origin[2] < low[2]
+
+
+def test_rerun_verifies_the_file(recording):
+    result = subprocess.run([str(RERUN), "rrd", "verify", str(recording["path"])], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+
+
+def record_a_little(path: Path, value: float, **options) -> Recorder:
+    recorder = Recorder(NAMES, save_path=path, **options)
+    recorder.open()
+    recorder.log_volumes(0.0, value, value)
+    return recorder
+
+
+def test_an_existing_recording_is_set_aside_never_overwritten(tmp_path):
+    path = tmp_path / "run.rrd"
+    record_a_little(path, 30.0).close()
+    first = path.read_bytes()
+    crashed = tmp_path / "crashed.rrd"
+    crashed.write_bytes(b"a crashed session's recording, without its footer")
+    recorder = record_a_little(path, 31.0)
+    recorder.close()
+    (aside,) = recorder.set_aside
+    assert aside.parent == tmp_path and aside.name.startswith("run.") and aside.suffix == ".rrd"
+    assert aside.read_bytes() == first
+    assert scalars(read_rrd(path)["/volume/estimated_ml"]["Scalars:scalars"]) == [31.0]
+    # a second set-aside in the same second gets its own name
+    again = record_a_little(path, 32.0)
+    again.close()
+    assert len({aside, *again.set_aside}) == 2 and all(p.exists() for p in (aside, *again.set_aside))
+    assert crashed.read_bytes().startswith(b"a crashed")
+
+
+def test_a_path_another_daemon_records_to_is_refused_and_left_alone(tmp_path):
+    path = tmp_path / "run.rrd"
+    live = record_a_little(path, 30.0)
+    try:
+        with pytest.raises(RecordingError) as caught:
+            Recorder(NAMES, save_path=path).open()
+        message = str(caught.value)
+        assert "\n" not in message and "another daemon" in message and str(path) in message
+        assert not list(tmp_path.glob("run.*.rrd")), "the live recording must not be set aside"
+    finally:
+        live.close()
+    assert scalars(read_rrd(path)["/volume/estimated_ml"]["Scalars:scalars"]) == [30.0]
+    record_a_little(path, 31.0).close()  # free again once its daemon has closed it
+
+
+def test_a_second_process_is_refused_while_the_first_holds_the_path(tmp_path):
+    """The lock is the kernel's (flock), so another process sees it, and it goes with the process that held it."""
+    path = tmp_path / "run.rrd"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\n"
+        "from phantom.host.recording import Recorder\n"
+        f"r = Recorder(['a', 'b', 'c'], save_path={str(path)!r}); r.open(); print('open', flush=True)\n"
+        "sys.stdin.readline()\n")], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        with pytest.raises(RecordingError, match=f"process {holder.pid}"):
+            Recorder(NAMES, save_path=path).open()
+    finally:
+        holder.kill()  # dies without closing: the kernel releases its lock
+        holder.wait(10)
+    recorder = record_a_little(path, 30.0)
+    recorder.close()
+    assert len(recorder.set_aside) == 1  # the dead holder's file was kept
+
+
+class FakeDisk:
+    """A clock and a free-space reading that the test moves."""
+
+    def __init__(self):
+        self.now_s = 0.0
+        self.free = 10 * RESUME_ABOVE_BYTES
+
+    def clock(self) -> float:
+        return self.now_s
+
+    def free_space(self, folder: Path) -> int:
+        return self.free
+
+
+def test_a_full_disk_pauses_the_recording_with_an_event_and_it_resumes_in_a_new_file(tmp_path):
+    disk, told = FakeDisk(), []
+    path = tmp_path / "run.rrd"
+    recorder = Recorder(NAMES, save_path=path, clock=disk.clock, free_space=disk.free_space,
+                        on_problem=lambda text, level: told.append((level, text)))
+    recorder.open()
+    recorder.log_volumes(0.0, 30.0, 30.0)
+    disk.now_s, disk.free = 10.0, PAUSE_BELOW_BYTES // 2
+    recorder.check()
+    assert recorder.state == "paused" and not recorder.enabled
+    assert told[-1][0] == "ERROR" and "paused" in told[-1][1] and "MB" in told[-1][1]
+    assert recorder.status()["problem"]
+    recorder.log_volumes(1.0, 31.0, 31.0)  # dropped while paused
+    disk.now_s, disk.free = 20.0, RESUME_ABOVE_BYTES - 1
+    recorder.check()
+    assert recorder.state == "paused"  # not enough yet
+    disk.now_s, disk.free = 30.0, RESUME_ABOVE_BYTES
+    recorder.check()
+    assert recorder.state == "recording" and told[-1] == ("INFO", told[-1][1]) and "resumed" in told[-1][1]
+    recorder.log_volumes(2.0, 32.0, 32.0)
+    recorder.close()
+    first, second = recorder.files
+    assert first != path and second == path
+    assert scalars(read_rrd(first)["/volume/estimated_ml"]["Scalars:scalars"]) == [30.0]
+    assert scalars(read_rrd(second)["/volume/estimated_ml"]["Scalars:scalars"]) == [32.0]
+    for part in (first, second):
+        assert subprocess.run([str(RERUN), "rrd", "verify", str(part)], capture_output=True).returncode == 0
+
+
+def test_a_file_that_stops_growing_while_data_comes_is_reported(tmp_path, monkeypatch):
+    disk, told = FakeDisk(), []
+    recorder = Recorder(NAMES, save_path=tmp_path / "run.rrd", clock=disk.clock, free_space=disk.free_space,
+                        on_problem=lambda text, level: told.append(text))
+    recorder.open()
+    recorder.check()
+    monkeypatch.setattr(recording_module, "file_size", lambda path: 1234)  # the writer has stopped
+    for k in range(1, 10):
+        disk.now_s = 2.5 * k
+        recorder.log_volumes(disk.now_s, 30.0, 30.0)
+        recorder.check()
+    assert recorder.state == "paused" and "stopped growing" in told[-1] and len(told) == 1
+    monkeypatch.undo()
+    disk.now_s += recording_module.RETRY_AFTER_S
+    recorder.check()
+    assert recorder.state == "recording" and "resumed" in told[-1] and len(recorder.files) == 2
+    recorder.close()
+
+
+def test_a_file_whose_writer_is_only_late_is_not_called_stalled(tmp_path, monkeypatch):
+    """On a busy machine the SDK's writer may not have written for a while: asked to write out what is queued,
+    it does, and the recording goes on."""
+    disk, told = FakeDisk(), []
+    recorder = Recorder(NAMES, save_path=tmp_path / "run.rrd", clock=disk.clock, free_space=disk.free_space,
+                        on_problem=lambda text, level: told.append(text))
+    recorder.open()
+    recorder.check()
+    flushed = []
+    monkeypatch.setattr(recording_module, "file_size", lambda path: 1234 + 100 * len(flushed))
+    stream_flush = recorder._stream.flush
+    monkeypatch.setattr(recorder._stream, "flush", lambda **kwargs: (flushed.append(1), stream_flush(**kwargs)))
+    for k in range(1, 10):
+        disk.now_s = 2.5 * k
+        recorder.log_volumes(disk.now_s, 30.0, 30.0)
+        recorder.check()
+    assert flushed and recorder.state == "recording" and not told
+    recorder.close()
+
+
+def test_a_long_session_is_written_in_segments_each_complete(tmp_path, monkeypatch):
+    disk = FakeDisk()
+    monkeypatch.setattr(recording_module, "SEGMENT_S", 60.0)
+    path = tmp_path / "run.rrd"
+    recorder = Recorder(NAMES, save_path=path, clock=disk.clock, free_space=disk.free_space)
+    recorder.open()
+    rest, triangles = uv_sphere(10.0, rings=6, segments=8)
+    recorder.log_rest_surface(rest, triangles)
+    for minute in range(3):
+        disk.now_s = 60.0 * minute + 1.0
+        recorder.check()
+        recorder.log_volumes(disk.now_s, 30.0 + minute, 30.0 + minute)
+        recorder.log_mesh(disk.now_s, rest * 1.01, triangles)
+    recorder.close()
+    assert len(recorder.files) == 3 and recorder.files[-1] == path and not recorder.set_aside
+    for minute, part in enumerate(recorder.files):
+        entities = read_rrd(part)
+        assert scalars(entities["/volume/estimated_ml"]["Scalars:scalars"]) == [30.0 + minute]
+        # each segment stands alone: styles, the rest shape, the axes, the whole mesh
+        assert "/phantom/rest" in entities and "/phantom/axes" in entities
+        assert entities["/phantom/mesh"]["Mesh3D:triangle_indices"][0] is not None
+        assert subprocess.run([str(RERUN), "rrd", "verify", str(part)], capture_output=True).returncode == 0
+
+
+def test_a_real_full_disk_pauses_the_recording(tmp_path):
+    """On a 2 MB tmpfs (where this machine lets the tests mount one): the recording pauses before the SDK's
+    writer fails, and the file it closed is complete."""
+    small = tmp_path / "small"
+    small.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(small)],
+                      capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs here (needs root)")
+    try:
+        told = []
+        recorder = Recorder(NAMES, save_path=small / "run.rrd", on_problem=lambda text, level: told.append(text))
+        recorder.open()  # 64 KiB written and truncated: there is room
+        recorder.check()
+        assert recorder.state == "paused" and "MB are free" in told[-1]
+        recorder.close()
+        assert subprocess.run([str(RERUN), "rrd", "verify", str(small / "run.rrd")],
+                              capture_output=True).returncode == 0
+    finally:
+        subprocess.run(["umount", str(small)], check=True)

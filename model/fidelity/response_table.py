@@ -206,6 +206,8 @@ def build_response_table(model: PhantomModel, pressure_max_pa: float, points_per
     positions = np.zeros((*grid, *np.shape(model.nodes_m)))
     total = int(np.prod(grid)) + len(CHECK_FRACTIONS)
     done = 0
+    if progress is not None:
+        progress(done, total)  # the size of the work, before the first slab (tens of seconds) is done
     workers = max(1, min(workers or os.cpu_count() or 1, n))
     pending = list(range(n))
     if workers > 1:
@@ -250,19 +252,30 @@ def _cache_path(model: PhantomModel, pressure_max_pa: float, points_per_axis: in
     return phantom.cache_dir("response") / f"{model.cache_key(extra.encode())}.npz"
 
 
+def stored_response_table(model: PhantomModel, pressure_max_pa: float,
+                          points_per_axis: int = DEFAULT_TABLE_POINTS) -> ResponseTable | None:
+    """The model's table from the disk cache, or None when none is stored (a damaged entry is removed): whether
+    :func:`response_table` would answer at once or build first (the daemon serves on another level meanwhile)."""
+    path = _cache_path(model, pressure_max_pa, points_per_axis)
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as stored:
+            return ResponseTable(float(stored["pressure_max_pa"]), stored["chamber"], stored["gland"],
+                                 stored["positions"], float(stored["check_errors_pct"]), float(stored["build_time_s"]))
+    except (OSError, ValueError, KeyError):
+        path.unlink(missing_ok=True)
+        return None
+
+
 def response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
                    progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
     """The model's table: read from the disk cache, else built (:func:`build_response_table`) and stored.
     ``progress(done, total)`` is told how a build goes (nothing is told for a cached table)."""
+    stored = stored_response_table(model, pressure_max_pa, points_per_axis)
+    if stored is not None:
+        return stored
     path = _cache_path(model, pressure_max_pa, points_per_axis)
-    if path.is_file():
-        try:
-            with np.load(path) as stored:
-                return ResponseTable(float(stored["pressure_max_pa"]), stored["chamber"], stored["gland"],
-                                     stored["positions"], float(stored["check_errors_pct"]),
-                                     float(stored["build_time_s"]))
-        except (OSError, ValueError, KeyError):
-            path.unlink(missing_ok=True)
     table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers)
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
     os.close(handle)

@@ -1,19 +1,29 @@
 """Subcommands of ``phantom``: the daemon's clients: status, set, vent, clear-fault, zero, run-scene, watch.
 
-Only argparse is imported at module load; handlers import what they need when they run. A client's --socket is
-the daemon's own setting (phantom.host.config), with its help.
+Each is a few lines on the Python API (``phantom.connect``, phantom/host/client.py): one client for scripts,
+notebooks and the command line. A command that finds the daemon still starting waits for it (up to
+READY_TIMEOUT_S), saying on stderr what it is doing. Only argparse is imported at module load; handlers import
+what they need when they run. A client's --socket is the daemon's own setting (phantom.host.config), with its help.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from phantom.cli.daemon import setting_field
 
 if TYPE_CHECKING:
-    from phantom.host.client import DaemonClient
+    from phantom.host.client import Phantom, Status
+
+#: How long a client waits for a daemon that is still starting before it gives up (s): a first start on a busy
+#: machine loads its model in seconds (the response table, if any, is built in the background).
+READY_TIMEOUT_S = 300.0
+#: How often ``phantom watch`` prints (s).
+WATCH_PERIOD_S = 0.5
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -35,6 +45,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     target.add_argument("--pressures-kpa", metavar="A,B,C", help="raw chamber pressures (kPa)")
     set_target.add_argument("--growth-ratio", metavar="NAME=W,...",
                             help="with --volume-ml: e.g. chamber1=2,chamber2=1 (left lobe grows twice the right)")
+    set_target.add_argument("--wait", action="store_true",
+                            help="return once the estimated volume is within --tolerance-pct of the target and the "
+                            "pressures have settled (a fault or --timeout-s is an error)")
+    set_target.add_argument("--tolerance-pct", type=float, default=1.0, metavar="PCT",
+                            help="with --wait: how close the estimate must come (%% of the target, default 1)")
+    set_target.add_argument("--timeout-s", type=float, default=60.0, metavar="S",
+                            help="with --wait: how long to wait (s, default 60)")
     _add_json(set_target, "print the answer as JSON")
     _add_socket(set_target)
     set_target.set_defaults(run=_run_set)
@@ -92,10 +109,16 @@ def _socket(args: argparse.Namespace) -> Path:
     return Path(args.socket) if args.socket else default_socket_path()
 
 
-def _client(args: argparse.Namespace) -> DaemonClient:
-    from phantom.host.client import DaemonClient
+def _connect(args: argparse.Namespace, wait_ready: bool = True) -> Phantom:
+    """The daemon, through the Python API; a daemon still starting is waited for (what it is doing on stderr)."""
+    import sys
 
-    return DaemonClient(_socket(args))
+    import phantom
+
+    def tell(what: str) -> None:
+        print(f"waiting for the daemon: {what}", file=sys.stderr, flush=True)
+
+    return phantom.connect(_socket(args), ready_timeout_s=READY_TIMEOUT_S if wait_ready else 0.0, on_wait=tell)
 
 
 def _labels(status: dict[str, Any]) -> list[str]:
@@ -105,8 +128,15 @@ def _labels(status: dict[str, Any]) -> list[str]:
 def _run_status(args: argparse.Namespace) -> int:
     import json
 
-    with _client(args) as client:
-        status = client.call("status")
+    from phantom.host.client import StartingError
+
+    try:
+        with _connect(args, wait_ready=False) as daemon:
+            status = daemon.status().raw
+    except StartingError as error:  # before its model answers, a daemon has no status but its progress
+        print(json.dumps({"ready": False, "starting": error.data}, indent=2) if args.json
+              else f"starting  {error.message.removeprefix('the daemon is still starting: ')}")
+        return 0
     if args.json:
         print(json.dumps(status, indent=2))
         return 0
@@ -122,7 +152,7 @@ def _ml(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f} ml"
 
 
-def _per_chamber(values: list[float | None] | None, digits: int = 3, width: int = 11) -> str:
+def _per_chamber(values: Sequence[float | None] | None, digits: int = 3, width: int = 11) -> str:
     if values is None:
         return "-"
     return " ".join(f"{value:>{width}.{digits}f}" if value is not None else f"{'free':>{width}}" for value in values)
@@ -136,7 +166,10 @@ def format_status(status: dict[str, Any]) -> str:
     rtt = "-" if stats.get("rtt_ms_mean") is None else f"{stats['rtt_ms_mean']:.1f} ms"
     error = f": {link['last_error']}" if link.get("last_error") else ""
     true_volume = f", true {_ml(status['plant_volume_ml'])} (simulated plant)" if "plant_volume_ml" in status else ""
-    lines = [
+    lines = []
+    if status.get("starting"):
+        lines.append(f"starting  {status['starting']['text']}")
+    lines += [
         f"link      {status['link']} ({link['transport']}){error}",
         f"board     {board.get('board', '-')} firmware {board.get('firmware_version', '-')}, reset cause "
         f"{board.get('reset_cause', '-')}; rtt {rtt}, retries {stats['retries']}, bad frames {stats['bad_frames']}, "
@@ -149,12 +182,31 @@ def format_status(status: dict[str, Any]) -> str:
         f"gland     {_ml(status['estimated_volume_ml'])} estimated, target {_ml(status['target_volume_ml'])} "
         f"(rest {status['rest_volume_ml']:.2f} ml){true_volume}",
         f"faults    {', '.join(status['faults']) or 'none'}",
+        "model     " + format_model(status),
     ]
+    recording = status.get("recording")
+    if recording:
+        where = recording.get("path") or recording.get("viewer")
+        problem = f": {recording['problem']}" if recording.get("problem") else ""
+        lines.append(f"recording {recording['state']} to {where}{problem}")
     if status.get("scene"):
         scene = status["scene"]
         lines.append(f"scene     {scene['name']}: {scene['time_s']:.1f} / {scene['end_s']:g} s"
                      + (" (finished)" if scene["finished"] else ""))
     return "\n".join(lines)
+
+
+def format_model(status: dict[str, Any]) -> str:
+    """The fidelity the model answers on, and the level being built meanwhile with its progress."""
+    from phantom.host.client import Progress
+
+    text = f"fidelity {status.get('fidelity', '-')}"
+    build = status.get("model_build")
+    if status.get("fidelity_pending") and build and not build.get("finished"):
+        text += f" until the {status['fidelity_pending']} level is built ({Progress.from_json(build)})"
+    elif build and build.get("error"):
+        text += f" (the {status.get('fidelity_pending')} level could not be built: {build['error']})"
+    return text
 
 
 def _run_set(args: argparse.Namespace) -> int:
@@ -163,27 +215,32 @@ def _run_set(args: argparse.Namespace) -> int:
     from phantom import PhantomError
     from phantom.cli.common import parse_growth_ratio, parse_numbers
 
-    if args.volume_ml is not None:
-        params = {"volume_ml": args.volume_ml}
-    elif args.chamber_volumes_ml is not None:
-        params = {"chamber_volumes_ml": parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True)}
-    else:
-        params = {"pressures_kpa": parse_numbers(args.pressures_kpa, "--pressures-kpa")}
-    if args.growth_ratio:
-        if args.volume_ml is None:
-            raise PhantomError("--growth-ratio goes with --volume-ml")
-        params["growth_ratio"] = parse_growth_ratio(args.growth_ratio)
-    with _client(args) as client:
-        result = client.call("set_target", params)
-        labels = _labels(client.call("status"))
+    if args.growth_ratio and args.volume_ml is None:
+        raise PhantomError("--growth-ratio goes with --volume-ml")
+    options = {"wait": args.wait, "tolerance_pct": args.tolerance_pct, "timeout_s": args.timeout_s}
+    with _connect(args) as daemon:
+        if args.volume_ml is not None:
+            result = daemon.set_volume(args.volume_ml, growth_ratio=parse_growth_ratio(args.growth_ratio)
+                                       if args.growth_ratio else None, **options)
+        elif args.chamber_volumes_ml is not None:
+            result = daemon.set_chamber_volumes(
+                parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True), **options)
+        else:
+            result = daemon.set_pressures(parse_numbers(args.pressures_kpa, "--pressures-kpa"), **options)
+        labels = daemon.status().chamber_labels
     if args.json:
-        print(json.dumps(result, indent=2))
-    else:
-        print(f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in labels))
-        print(f"{'setpoint':<9} {_per_chamber(result['pressures_kpa'])}  kPa")
-        print(f"{'volume':<9} {_per_chamber(result['predicted_chamber_volumes_ml'], 2)}  ml predicted")
-        print(f"gland     {result['predicted_volume_ml']:.2f} ml predicted (inverse {result['iterations']} "
-              f"iteration(s), {result['solve_time_s'] * 1e3:.1f} ms)")
+        print(json.dumps(dataclasses.asdict(result), indent=2))
+        return 0
+    print(f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in labels))
+    print(f"{'setpoint':<9} {_per_chamber(result.pressures_kpa)}  kPa")
+    print(f"{'volume':<9} {_per_chamber(result.predicted_chamber_volumes_ml, 2)}  ml predicted")
+    print(f"gland     {result.predicted_volume_ml:.2f} ml predicted (inverse {result.iterations} "
+          f"iteration(s), {result.solve_time_s * 1e3:.1f} ms)")
+    if result.waited_s is not None:
+        true_volume = "" if result.true_volume_ml is None else (
+            f", true {result.true_volume_ml:.2f} ml (simulated plant)")
+        print(f"reached   {_ml(result.estimated_volume_ml)} estimated after {result.waited_s:.1f} s, pressures "
+              f"settled{true_volume}")
     return 0
 
 
@@ -201,8 +258,16 @@ def format_simple(method: str, result: dict[str, Any]) -> str:
 def _run_simple(args: argparse.Namespace) -> int:
     import json
 
-    with _client(args) as client:
-        result = client.call(args.method)
+    with _connect(args, wait_ready=args.method != "vent") as daemon:  # vent never waits
+        if args.method == "vent":
+            daemon.vent()
+            result: dict[str, Any] = {"vented": True}
+        elif args.method == "zero":
+            daemon.zero()
+            result = {"zeroed": True}
+        else:
+            cleared = daemon.clear_fault()
+            result = {"cleared": list(cleared.faults), "setpoints_restored": cleared.setpoints_restored}
     print(json.dumps(result) if args.json else format_simple(args.method, result))
     return 0
 
@@ -223,58 +288,51 @@ def format_steps(steps: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def follow_scene(client: DaemonClient, name: str, time_scale: float, poll_s: float = 0.5) -> dict[str, Any]:
-    """Poll the daemon's status until the scene ``name`` has finished, showing its progress on stderr.
-
-    Returns the last status (its ``scene`` holds each step's record). Raises when another request replaced
-    the scene before it finished.
-    """
+def scene_progress(time_scale: float) -> Callable[[Status], None]:
+    """Shows a playing scene's progress on stderr: one line rewritten in place on a terminal, else a line every
+    ten seconds of scene time."""
     import sys
-    import time
 
-    from phantom import PhantomError
+    terminal = sys.stderr.isatty()
+    shown_s = [-1e9]
 
-    while True:
-        status: dict[str, Any] = client.call("status")
-        scene = status["scene"]
-        if scene is None or scene["name"] != name:
-            raise PhantomError("the scene was replaced by another request before it finished")
-        print(f"\r  {scene['time_s']:6.1f} / {scene['end_s']:g} s of scene (x{time_scale:g})   volume "
-              f"{_ml(status['estimated_volume_ml'])}   target {_ml(status['target_volume_ml'])} ",
-              end="", file=sys.stderr, flush=True)
-        if scene["finished"]:
-            print(file=sys.stderr)
-            return status
-        time.sleep(poll_s)
+    def show(status: Status) -> None:
+        scene = status.scene
+        if scene is None:
+            return
+        line = (f"  {scene.time_s:6.1f} / {scene.end_s:g} s of scene (x{time_scale:g})   volume "
+                f"{_ml(status.estimated_volume_ml)}   target {_ml(status.target_volume_ml)} ")
+        if terminal:
+            print("\r" + line, end="\n" if scene.finished else "", file=sys.stderr, flush=True)
+        elif scene.finished or scene.time_s - shown_s[0] >= 10.0:
+            shown_s[0] = scene.time_s
+            print(line, file=sys.stderr, flush=True)
+    return show
 
 
 def _run_scene(args: argparse.Namespace) -> int:
     import json
     import sys
-    from pathlib import Path
 
-    from phantom.host.scenes import example_scene_path
+    from phantom.host.client import SceneRun, resolve_scene
 
-    path = Path(args.scene)
-    if not path.exists() and "/" not in args.scene and not args.scene.endswith(".toml"):
-        path = example_scene_path(args.scene)
-    with _client(args) as client:
-        started = client.call("run_scene", {"path": str(path.resolve()), "time_scale": args.time_scale})
-        print(f"scene {started['name']}: {started['steps']} steps, {started['end_s']:g} s of timeline, about "
-              f"{started['wall_duration_s']:.0f} s at time scale {args.time_scale:g}", file=sys.stderr)
+    path = resolve_scene(args.scene)  # a name that is no shipped scene is refused before connecting
+    with _connect(args) as daemon:
+        started = daemon.run_scene(path, time_scale=args.time_scale)
+        assert isinstance(started, SceneRun)  # without wait
+        print(f"scene {started.name}: {started.steps} steps, {started.end_s:g} s of timeline, about "
+              f"{started.wall_duration_s:.0f} s at time scale {args.time_scale:g}", file=sys.stderr)
         if not args.wait:
             if args.json:
-                print(json.dumps(started))
+                print(json.dumps(dataclasses.asdict(started)))
             return 0
-        scene = follow_scene(client, started["name"], args.time_scale)["scene"]
-    if args.json:
-        print(json.dumps(scene["steps"], indent=2))
-    else:
-        print(format_steps(scene["steps"]))
+        finished = daemon.follow_scene(started, on_progress=scene_progress(args.time_scale))
+    steps = [dataclasses.asdict(step) for step in finished.steps]
+    print(json.dumps(steps, indent=2) if args.json else format_steps(steps))
     return 0
 
 
-def watch_header(labels: list[str]) -> str:
+def watch_header(labels: Sequence[str]) -> str:
     """The column names of ``phantom watch``'s status lines."""
     per_chamber = " ".join(f"{label[:6]:>6}" for label in labels)
     return (f"{'time (s)':>9}  {'link':<12} p (kPa) {per_chamber}  set (kPa) {per_chamber}  "
@@ -282,33 +340,32 @@ def watch_header(labels: list[str]) -> str:
 
 
 def _run_watch(args: argparse.Namespace) -> int:
+    """Twice a second the status, and the events that came since, through the API."""
     import json
+    import time
 
     printed = 0
-    last_s = -1.0
-    header_shown = False
-    with _client(args) as client:
-        for message in client.events(["status", "events"]):
-            if message["event"] == "events":
-                event = message["data"]
-                print(json.dumps(message) if args.json else
+    seen: set[tuple[float, str]] = set()
+    with _connect(args) as daemon:
+        status = daemon.status()
+        seen.update((event["time_s"], event["text"]) for event in status.raw.get("events", []))
+        if not args.json:
+            print(watch_header(status.chamber_labels), flush=True)
+        while True:
+            status = daemon.status()
+            for event in status.raw.get("events", []):
+                if (event["time_s"], event["text"]) in seen:
+                    continue
+                seen.add((event["time_s"], event["text"]))
+                print(json.dumps({"event": "events", "data": event}) if args.json else
                       f"{event['time_s']:9.2f}  [{event['level']}] {event['text']}", flush=True)
-                continue
-            status = message["data"]
-            if status["uptime_s"] - last_s < 0.5:
-                continue
-            last_s = status["uptime_s"]
             if args.json:
-                print(json.dumps(message), flush=True)
+                print(json.dumps({"event": "status", "data": status.raw}), flush=True)
             else:
-                if not header_shown:
-                    print(watch_header(_labels(status)), flush=True)
-                    header_shown = True
-                print(f"{status['uptime_s']:9.2f}  {status['link']:<12} p (kPa) {_kpa(status['pressures_kpa'])}  "
-                      f"set (kPa) {_kpa(status['setpoints_kpa'])}  {_ml(status['estimated_volume_ml'])} "
-                      f"-> {_ml(status['target_volume_ml'])}  faults {','.join(status['faults']) or 'none'}",
-                      flush=True)
+                print(f"{status.uptime_s:9.2f}  {status.link:<12} p (kPa) {_kpa(status.raw['pressures_kpa'])}  "
+                      f"set (kPa) {_kpa(status.raw['setpoints_kpa'])}  {_ml(status.estimated_volume_ml)} "
+                      f"-> {_ml(status.target_volume_ml)}  faults {','.join(status.faults) or 'none'}", flush=True)
             printed += 1
             if args.count and printed >= args.count:
                 return 0
-    return 0
+            time.sleep(WATCH_PERIOD_S)

@@ -1,8 +1,15 @@
 """``make demo``: the daemon on the simulated board runs a BPH growth scene end to end.
 
-Starts ``phantom daemon --sim`` (the real firmware image in simavr, paced to the wall clock) with a
-recording, plays the scene's timeline through the local API, prints a table of each step's target and
-reached volume with the time it took, stops the daemon with SIGTERM (it vents) and reads the recording back.
+Starts ``phantom daemon --sim`` (the real firmware image in simavr, paced to the wall clock) with a recording,
+waits for it to be ready (saying what it is doing: a first start on a machine answers on full solves while the
+response table builds in the background), plays the scene's timeline through the Python API, prints a table of
+each step's target and reached volume with the time it took, stops the daemon with SIGTERM (it vents) and reads
+the recording back.
+
+The recording is written to ``out/demo.running.rrd`` and becomes ``out/demo.rrd`` only when the demo succeeds:
+a failed demo leaves the last good recording alone, and says which part failed (the daemon's start, the board,
+the scene) with the daemon's log. Nothing waits on a fixed wall-clock limit while the daemon makes progress;
+one stage of its start that takes longer than STAGE_LIMIT_S is reported as stuck.
 
     python -m phantom.cli.demo [--scene host/scenes/bph_growth.toml] [--time-scale 3] [--out out/]
 """
@@ -10,39 +17,109 @@ reached volume with the time it took, stops the daemon with SIGTERM (it vents) a
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
+import shutil
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from phantom import PhantomError
 
-if TYPE_CHECKING:
-    from phantom.host.client import DaemonClient
+#: How long one stage of the daemon's start (loading the model, waiting for the board) may take before the demo
+#: calls it stuck (s); the whole start has no limit while its stages move on.
+STAGE_LIMIT_S = 600.0
+#: How long the daemon may take to stop after SIGTERM (it vents and closes the recording) before it is killed (s).
+STOP_LIMIT_S = 60.0
+#: How often the demo repeats what the daemon is doing while a stage lasts (s).
+TELL_EVERY_S = 10.0
+#: A step counts as reached when its estimate ends within this of its target (%).
+STEP_TOLERANCE_PCT = 1.0
 
 
-def _wait_online(client_factory: Callable[[], DaemonClient], process: subprocess.Popen[bytes],
-                 timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+def daemon_command(scene: str, out: Path) -> list[str]:
+    """The daemon ``make demo`` starts: on its own simulated board, recording to ``out/demo.running.rrd``."""
+    phantom = Path(sys.executable).with_name("phantom")
+    return [str(phantom), "daemon", "--sim", "--scene", scene, "--socket", str(out / "demo.sock"),
+            "--rerun-save", str(out / "demo.running.rrd")]
+
+
+def rerun_command(recording: Path) -> str:
+    """How to open a recording from here: ``rerun FILE`` when the ``rerun`` on PATH is this environment's,
+    else the viewer by its path (``.venv/bin/rerun``, relative when it lies below the working folder)."""
+    viewer = Path(sys.executable).with_name("rerun")
+    on_path = shutil.which("rerun")
+    if on_path is not None and Path(on_path).resolve() == viewer.resolve():
+        return f"rerun {recording}"
+    try:
+        shown = viewer.relative_to(Path.cwd())
+    except ValueError:
+        shown = viewer
+    return f"{shown} {recording}"
+
+
+def wait_until_ready(socket: Path, process: subprocess.Popen[bytes], log_path: Path,
+                     stage_limit_s: float = STAGE_LIMIT_S) -> float:
+    """Wait for the daemon to be ready, telling what it does on stderr; the seconds it took. Raises PhantomError
+    naming the cause: the daemon exited (with its log's end), or one stage of its start did not move on within
+    ``stage_limit_s``."""
+    import phantom
+    from phantom.host.client import ConnectionLostError, StartingError
+
+    started_s = time.monotonic()
+    stage, stage_since_s, told_s = "starting the daemon process", started_s, started_s
+    told: tuple[str, object] = ("", None)
+    while True:
         if process.poll() is not None:
-            raise PhantomError(f"the daemon exited with status {process.returncode} (see the log above)")
+            raise PhantomError(f"the daemon exited with status {process.returncode} while {stage}; its log "
+                               f"({log_path}) ends:\n{_tail(log_path)}")
         try:
-            with client_factory() as client:
-                if client.call("status")["link"] == "online":
-                    return
-        except PhantomError:
-            pass
-        time.sleep(0.2)
-    raise PhantomError(f"the daemon did not reach the board within {timeout_s:g} s")
+            with phantom.connect(socket, ready_timeout_s=0) as daemon:
+                status = daemon.status()
+            if status.ready:
+                return time.monotonic() - started_s
+            starting = status.raw.get("starting") or {}
+            now_stage = str(starting.get("stage", "waiting for the board"))
+            text, detail = str(starting.get("text", now_stage)), starting.get("detail")
+        except StartingError as error:
+            now_stage, detail = str(error.data.get("stage", "starting")), error.data.get("detail")
+            text = error.message.removeprefix("the daemon is still starting: ")
+        except ConnectionLostError:
+            now_stage = text = "starting the daemon process"
+            detail = None
+        if now_stage != stage:
+            stage, stage_since_s = now_stage, time.monotonic()
+        if (now_stage, detail) != told or time.monotonic() - told_s >= TELL_EVERY_S:
+            print(f"  daemon: {text}", file=sys.stderr, flush=True)
+            told, told_s = (now_stage, detail), time.monotonic()
+        if time.monotonic() - stage_since_s > stage_limit_s:
+            raise PhantomError(f"the daemon has been {stage} for over {stage_limit_s:g} s without moving on; its "
+                               f"log ({log_path}) ends:\n{_tail(log_path)}")
+        time.sleep(1.0)
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+
+
+def stop_daemon(process: subprocess.Popen[bytes]) -> int:
+    """SIGTERM (the daemon vents and closes its recording), then a kill if it has not ended in STOP_LIMIT_S."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(STOP_LIMIT_S)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+    return int(process.returncode)
 
 
 def main(argv: list[str] | None = None) -> int:
-    from phantom.cli.client import follow_scene, format_steps
-    from phantom.host.client import DaemonClient
+    import phantom
+    from phantom.cli.client import format_steps, scene_progress
+    from phantom.host.client import SceneRun
     from phantom.host.recording import read_rrd
     from phantom.host.scenes import example_scene_path
 
@@ -53,42 +130,51 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sock, recording = out / "demo.sock", out / "demo.rrd"
-    phantom = Path(sys.executable).with_name("phantom")
-    command = [str(phantom), "daemon", "--sim", "--scene", args.scene, "--socket", str(sock),
-               "--rerun-save", str(recording)]
+    running, recording = out / "demo.running.rrd", out / "demo.rrd"
+    command = daemon_command(args.scene, out)
     print("$ " + " ".join(command), file=sys.stderr)
-    started = time.monotonic()
     log_path = out / "daemon.log"
-    log = open(log_path, "w")
-    process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+    with open(log_path, "w") as log:
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+    succeeded = False
     try:
-        _wait_online(lambda: DaemonClient(sock), process, 120)
-        print(f"daemon ready and online in {time.monotonic() - started:.1f} s", file=sys.stderr)
-        with DaemonClient(sock) as client:
-            run = client.call("run_scene", {"path": str(Path(args.scene).resolve()), "time_scale": args.time_scale})
-            print(f"running {run['name']}: {run['steps']} steps, {run['end_s']:g} s of timeline in about "
-                  f"{run['wall_duration_s']:.0f} s", file=sys.stderr)
-            status = follow_scene(client, run["name"], args.time_scale)
-        steps = status["scene"]["steps"]
-        faults = status["faults"]
+        ready_s = wait_until_ready(out / "demo.sock", process, log_path)
+        with phantom.connect(out / "demo.sock") as daemon:
+            status = daemon.status()
+            building = f", the {status.fidelity_pending} level building" if status.fidelity_pending else ""
+            print(f"daemon ready in {ready_s:.1f} s (the model on {status.fidelity}{building}; the board online)",
+                  file=sys.stderr)
+            run = daemon.run_scene(Path(args.scene), time_scale=args.time_scale)
+            assert isinstance(run, SceneRun)  # without wait
+            print(f"running {run.name}: {run.steps} steps, {run.end_s:g} s of timeline in about "
+                  f"{run.wall_duration_s:.0f} s", file=sys.stderr)
+            scene = daemon.follow_scene(run, on_progress=scene_progress(args.time_scale))
+            faults = daemon.status().faults
+        code = stop_daemon(process)
+        steps = [dataclasses.asdict(step) for step in scene.steps]
+        print(f"BPH growth on the simulated board (firmware in simavr), timeline x{args.time_scale:g}; "
+              "'time to 1 %' counts from the step's start (ramp included), in wall seconds:")
+        print(format_steps(steps))
+        entities = read_rrd(running)
+        logged = sum(len(columns.get("time", [])) for columns in entities.values())
+        missed = [step for step in steps if step["error_pct"] is None or abs(step["error_pct"]) > STEP_TOLERANCE_PCT]
+        succeeded = not missed and not faults and code == 0
+        if succeeded:
+            os.replace(running, recording)
+        shown = recording if succeeded else running
+        print(f"\nrecording {shown}: {len(entities)} entities, {logged} logged rows (open it with "
+              f"`{rerun_command(shown)}`); faults: {', '.join(faults) or 'none'}; daemon exit status {code}")
+        if not succeeded:
+            why = [f"step {step['index']} missed its target by {step['error_pct']}" for step in missed]
+            why += [f"faults latched: {', '.join(faults)}"] if faults else []
+            why += [f"the daemon exited with status {code}"] if code else []
+            print(f"make demo: failed: {'; '.join(why)}; the last good recording ({recording}) is kept; the daemon's "
+                  f"log is {log_path}", file=sys.stderr)
+        return 0 if succeeded else 1
     finally:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-            process.wait(30)
-        log.close()
-        print(f"\ndaemon log ({log_path}):", file=sys.stderr)
-        print(log_path.read_text(), file=sys.stderr)
-    print(f"BPH growth on the simulated board (firmware in simavr), timeline x{args.time_scale:g}; "
-          "'time to 1 %' counts from the step's start (ramp included), in wall seconds:")
-    print(format_steps(steps))
-    entities = read_rrd(recording)
-    logged = sum(len(columns.get("time", [])) for columns in entities.values())
-    print(f"\nrecording {recording}: {len(entities)} entities, {logged} logged rows "
-          f"(open it with `rerun {recording}`); faults: {', '.join(faults) or 'none'}; "
-          f"daemon exit status {process.returncode}")
-    missed = [step for step in steps if step["error_pct"] is None or abs(step["error_pct"]) > 1.0]
-    return 1 if missed or process.returncode != 0 else 0
+        stop_daemon(process)
+        if not succeeded:
+            print(f"daemon log ({log_path}), its end:\n{_tail(log_path, 30)}", file=sys.stderr)
 
 
 if __name__ == "__main__":

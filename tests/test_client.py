@@ -1,0 +1,69 @@
+"""The Python API's client side without a board: no daemon at all, a daemon still starting (its API server
+answering ``starting`` with its progress), and the pieces a script sees (errors, results). The API against the
+simulated board is tests/test_python_api.py."""
+
+import asyncio
+import threading
+
+import pytest
+
+import phantom
+from phantom.host.api import ApiError, ApiServer
+from phantom.host.client import ConnectionLostError, StartingError, UnreachableError
+
+
+def test_no_daemon_is_one_line_naming_the_socket(tmp_path):
+    with pytest.raises(ConnectionLostError) as caught:
+        phantom.connect(tmp_path / "none.sock")
+    assert "\n" not in str(caught.value) and "none.sock" in str(caught.value)
+    assert "phantom daemon" in str(caught.value)
+
+
+@pytest.mark.parametrize("ready_timeout_s", [0.0, 1.0])
+def test_a_daemon_still_starting_is_waited_for_then_reported_with_its_progress(tmp_path, ready_timeout_s):
+    """A daemon that has not built its parts answers ``starting`` with what it is doing: connect waits for it
+    (telling ``on_wait``) and gives up with that progress."""
+    async def serve(ready: threading.Event, stop: threading.Event):
+        server = ApiServer(tmp_path / "d.sock", {})
+        server.starting = lambda: ApiError("starting", "the daemon is still starting: loading the model of "
+                                           "builtin:calibrated (12 s so far)", {"stage": "loading the model"})
+        await server.start()
+        ready.set()
+        while not stop.is_set():
+            await asyncio.sleep(0.05)
+        await server.close()
+
+    ready, stop = threading.Event(), threading.Event()
+    thread = threading.Thread(target=asyncio.run, args=(serve(ready, stop),))
+    thread.start()
+    try:
+        ready.wait(10)
+        told = []
+        with pytest.raises(StartingError) as caught:
+            phantom.connect(tmp_path / "d.sock", ready_timeout_s=ready_timeout_s, on_wait=told.append)
+        assert "loading the model of builtin:calibrated" in str(caught.value)
+        assert "\n" not in str(caught.value)
+        if ready_timeout_s:
+            assert "was not ready after 1 s" in str(caught.value) and told
+        else:
+            assert caught.value.data == {"stage": "loading the model"}
+    finally:
+        stop.set()
+        thread.join(10)
+
+
+def test_the_unreachable_range_is_read_from_either_wording():
+    give = UnreachableError("unreachable", "the gland volume target 80.000 ml is unreachable: pressures between 0 "
+                            "and [3, 3, 3] kPa give 25.950 to 43.740 ml; ask for a volume in that range")
+    assert give.range_ml == (25.95, 43.74)
+    within = UnreachableError("unreachable", "the volume of chamber 1 target 3.000 ml is within the reachable "
+                              "range 1.900-4.100 ml on its own, but contradicts the other targets")
+    assert within.range_ml == (1.9, 4.1)
+    assert UnreachableError("unreachable", "the volume QP did not solve").range_ml is None
+
+
+def test_phantom_connect_is_the_hosts_client():
+    from phantom.host import client
+
+    assert phantom.connect.__doc__ and "wait" in phantom.connect.__doc__
+    assert client.Phantom.set_volume.__doc__ and "Raises" in client.Phantom.set_volume.__doc__

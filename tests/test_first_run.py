@@ -1,0 +1,106 @@
+"""A lab's first run: ``make demo``'s daemon started on an empty cache while every core is kept busy must serve at
+once (on the full solve while the response table builds in the background, at a lower priority), say so, and
+reach its scene's first target; stopped meanwhile, it leaves no build process behind.
+
+This is the case that failed before: the daemon built the calibrated model's table (about 200 CPU-seconds) before
+it answered anything, and the demo gave up after a fixed 120 s blaming the board.
+"""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+import phantom
+from phantom.cli.demo import daemon_command, wait_until_ready
+from phantom.host.scenes import example_scene_path
+from phantom.model.scene import load_scene
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(1500)]
+
+#: One busy process per core at normal priority: the artificial load.
+BUSY_LOOP = "while True:\n    pass\n"
+
+
+def descendants(pid: int) -> set[int]:
+    """Every process below ``pid``."""
+    found, pending = set(), [pid]
+    while pending:
+        parent = pending.pop()
+        tasks = Path(f"/proc/{parent}/task")
+        if not tasks.is_dir():
+            continue
+        for task in tasks.iterdir():
+            try:
+                children = [int(child) for child in (task / "children").read_text().split()]
+            except OSError:
+                continue
+            found.update(children)
+            pending.extend(children)
+    return found
+
+
+def test_the_demo_daemon_on_an_empty_cache_under_load_reaches_its_first_target(tmp_path):
+    scene_path = example_scene_path("bph_growth")
+    first_target_ml = float(load_scene(str(scene_path)).steps[0]["volume_ml"])
+    cache = tmp_path / "empty-cache"
+    env = {key: value for key, value in os.environ.items() if key != "NUMBA_CACHE_DIR"}
+    env["PHANTOM_CACHE_DIR"] = str(cache)
+    load = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(os.cpu_count() or 2)]
+    out = tmp_path / "out"
+    out.mkdir()
+    log_path = out / "daemon.log"
+    process = None
+    try:
+        started_s = time.monotonic()
+        with open(log_path, "w") as log:
+            process = subprocess.Popen(daemon_command(str(scene_path), out), stdout=log, stderr=subprocess.STDOUT,
+                                       env=env)
+        ready_s = wait_until_ready(out / "demo.sock", process, log_path)
+        with phantom.connect(out / "demo.sock") as daemon:
+            status = daemon.status()
+            # the table was not there: the model answers on full solves while it builds, and says so
+            assert status.fidelity == "full" and status.fidelity_pending == "table", status.raw
+            assert status.model_build is not None and status.model_build.what.startswith("response table")
+            daemon.run_scene(scene_path, time_scale=0.25)  # step 0 holds 80 s
+            while True:
+                status = daemon.status()
+                assert not status.faults, status.faults
+                assert status.scene is not None and status.scene.time_s < 20.0, (
+                    f"the first target was not reached during the first step; daemon log:\n{log_path.read_text()}")
+                estimate = status.estimated_volume_ml
+                # the inverse (on the full solve) answered, the board holds its setpoints, the estimate agrees
+                if (estimate is not None and status.target_volume_ml == first_target_ml
+                        and status.setpoints_kpa is not None
+                        and abs(estimate - first_target_ml) <= 0.01 * first_target_ml):
+                    break
+                time.sleep(0.5)
+            reached_s = time.monotonic() - started_s
+            # and a real inflation, still on full solves under the load
+            inflated = daemon.set_volume(30.0, timeout_s=600)
+            inflated_s = time.monotonic() - started_s
+        build = status.model_build
+        print(f"empty cache, {len(load)} busy processes: ready {ready_s:.1f} s after start, first target "
+              f"{first_target_ml:g} ml reached (estimate {estimate:.2f} ml) {reached_s:.1f} s after start, 30 ml "
+              f"(estimate {inflated.estimated_volume_ml:.2f} ml) {inflated_s:.1f} s after start; table build {build}")
+        builders = descendants(process.pid)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(60) == 0, log_path.read_text()
+        deadline = time.monotonic() + 15  # processes of a loaded machine take a moment to go
+        while (left := [pid for pid in builders if Path(f"/proc/{pid}").exists()]) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not left, f"processes left running after the daemon stopped: {left}"
+        text = log_path.read_text()
+        assert "response table solves" in text and "the model answers on full solves" in text
+        assert "leaked semaphore" not in text
+    finally:
+        for busy in load:
+            busy.kill()
+            busy.wait()
+        if process is not None and process.poll() is None:
+            process.kill()
+            process.wait()
