@@ -121,6 +121,15 @@ class DaemonConfig:
                                     "falls silent this long", metavar="MS", at_least=50, at_most=10000)
     telemetry_period_ms: int = setting(20, "the board's telemetry period (ms)", metavar="MS", at_least=10,
                                        at_most=1000)
+    kp_per_kpa: float = setting(4.0, "the board's PID proportional gain (drive level per kPa), sent to every chamber "
+                                "with SET_PID at each connection", metavar="K", at_least=0, at_most=100)
+    ki_per_kpa_s: float = setting(15.0, "the board's PID integral gain (drive level per kPa s)", metavar="K",
+                                  at_least=0, at_most=1000)
+    kd_s_per_kpa: float = setting(0.0, "the board's PID derivative gain (drive level per kPa/s)", metavar="K",
+                                  at_least=0, at_most=1)
+    pressure_limit_kpa: float = setting(4.0, "the board's over-pressure limit per chamber (kPa): a chamber above it "
+                                        "latches OVERPRESSURE; at least the scene's pressure_max_kpa", metavar="KPA",
+                                        above=0, at_most=6)
     vent_on_exit: bool = setting(True, "vent the phantom when the daemon stops")
     zero_on_connect: bool = setting(True, "zero the pressure sensors (ZERO_SENSORS) after connecting when the "
                                     "phantom is vented")

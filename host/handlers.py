@@ -8,9 +8,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from phantom.host.api import ApiError, Handler
-from phantom.host.parts import ControlState
 from phantom.host.scenes import effective_model, model_differences, parse_target
-from phantom.host.session import fault_names
 from phantom.model.errors import SceneError
 from phantom.model.scene import load_scene
 
@@ -41,34 +39,14 @@ class ApiHandlers:
             target = parse_target(params, daemon.chamber_names, "set_target")
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
-        if not daemon.session.online:
-            raise ApiError("link_down", f"no board: the link is {daemon.session.state.value}; the target was not set")
-        daemon.scenes.stop("a set_target request")
-        result = await daemon.apply_target(target, "api")
-        daemon.control_state = ControlState.HOLDING
-        return result
+        return await daemon.set_target(target)
 
     async def vent(self, params: dict[str, Any]) -> dict[str, Any]:
-        daemon = self.daemon
-        daemon.scenes.stop("vented")
-        await daemon.board_command("VENT")
-        daemon.control_state = ControlState.VENTED
-        daemon.setpoints_pa = np.zeros(len(daemon.chamber_names))
-        daemon.target, daemon.inverse_result, daemon.target_source = None, None, None
-        daemon.event("vent", "vented on request: every setpoint is 0")
+        await self.daemon.vent("on request: every setpoint is 0")
         return {"vented": True}
 
     async def clear_fault(self, params: dict[str, Any]) -> dict[str, Any]:
-        daemon = self.daemon
-        before = fault_names(daemon.fault_flags)
-        await daemon.board_command("CLEAR_FAULT")
-        daemon.event("fault", f"faults cleared on request (were: {', '.join(before) or 'none'})")
-        restored = False
-        if daemon.setpoints_pa is not None and daemon.control_state is not ControlState.VENTED and np.any(
-                daemon.setpoints_pa > 0):
-            await daemon.send_setpoints(daemon.setpoints_pa)
-            restored = True
-        return {"cleared": before, "setpoints_restored": restored}
+        return await self.daemon.clear_fault()
 
     async def zero(self, params: dict[str, Any]) -> dict[str, Any]:
         """ZERO_SENSORS on request: the board measures each sensor's zero (it must be vented and settled)."""

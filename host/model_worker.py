@@ -93,6 +93,8 @@ class LoadedModel:
         self.wants_shape = bool(self.scene.outputs.shape)
         #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
         self._outer_surface = self.model.outer_surface()
+        #: the inverse's answers for the ends of the ramps played lately (:meth:`pressures_on_ramp`)
+        self._ramp_ends: dict[str, InverseResult] = {}
 
     def warm_up(self) -> None:
         """Solve one reachable and one unreachable gland target, so that the first request finds the QPs set
@@ -116,6 +118,52 @@ class LoadedModel:
     def pressures_for(self, target: Target) -> InverseResult:
         """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
         return self.solver.pressures_for(target)
+
+    def pressures_on_ramp(self, start: Target, end: Target, target: Target) -> InverseResult:
+        """The setpoints for ``target``, a point of a ramp from ``start`` to ``end`` (targets of one kind): on the
+        straight line between the inverse's answers for the two ends, where the line meets the target's volume.
+
+        Solving each point of a ramp on its own gave setpoints that jumped by 0.1-0.2 kPa from one control tick
+        to the next, down then up (the QP's answer is not unique: a volume can be shared between chambers in many
+        ways, and the answer moved between them). On the line every setpoint moves monotonically from its
+        start to its end value as the target moves, and the ramp ends on the inverse's own answer.
+        A pressure ramp is its own line.
+        """
+        if target.kind == "pressures":
+            return self.pressures_for(target)
+        from scipy.optimize import brentq
+
+        started = time.perf_counter()
+        first, last = self._ramp_end(start), self._ramp_end(end)
+        step_pa = np.asarray(last.pressures_pa, dtype=float) - np.asarray(first.pressures_pa, dtype=float)
+        evaluations = [0]
+
+        def volume_m3(fraction: float) -> tuple[np.ndarray, float, float]:
+            """Chamber volumes, gland volume and the target's own measure of volume at a point of the line."""
+            evaluations[0] += 1
+            chambers, gland = self.estimator.volumes(np.asarray(first.pressures_pa, dtype=float) + fraction * step_pa)
+            measure = float(gland) if target.kind == "volume" else float(sum(
+                chambers[index] for index, value in enumerate(target.values) if value is not None))
+            return np.asarray(chambers, dtype=float), float(gland), measure
+
+        goal_m3 = float(sum(value for value in target.values if value is not None))
+        low_m3, high_m3 = volume_m3(0.0)[2], volume_m3(1.0)[2]
+        if (goal_m3 - low_m3) * (goal_m3 - high_m3) >= 0:  # at (or past) an end: that end
+            fraction = 0.0 if abs(goal_m3 - low_m3) <= abs(goal_m3 - high_m3) else 1.0
+        else:
+            fraction = float(brentq(lambda f: volume_m3(f)[2] - goal_m3, 0.0, 1.0, xtol=1e-9))
+        chambers, gland, _ = volume_m3(fraction)
+        return InverseResult(target, np.asarray(first.pressures_pa, dtype=float) + fraction * step_pa, gland,
+                             chambers, evaluations[0], time.perf_counter() - started, 0.0)
+
+    def _ramp_end(self, target: Target) -> InverseResult:
+        """The inverse's answer for a ramp's end, solved once per ramp (the last few are kept)."""
+        key = repr(target)
+        if key not in self._ramp_ends:
+            if len(self._ramp_ends) >= 8:
+                self._ramp_ends.pop(next(iter(self._ramp_ends)))
+            self._ramp_ends[key] = self.pressures_for(target)
+        return self._ramp_ends[key]
 
     def estimate(self, pressures_pa: np.ndarray) -> tuple[list[float], float]:
         """Estimated chamber volumes (ml) and gland volume (ml) at measured pressures (Pa, negative -> 0)."""
@@ -234,6 +282,10 @@ def _worker_pressures_for(target: Target) -> InverseResult:
     return _worker_model_or_fail().pressures_for(target)
 
 
+def _worker_pressures_on_ramp(start: Target, end: Target, target: Target) -> InverseResult:
+    return _worker_model_or_fail().pressures_on_ramp(start, end, target)
+
+
 def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_surface: bool) -> Estimate:
     model = _worker_model_or_fail()
     chamber_ml, gland_ml = model.estimate(pressures_pa)
@@ -281,6 +333,10 @@ class ModelWorker:
     async def pressures_for(self, target: Target) -> InverseResult:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
         return await self._call(_worker_pressures_for, target)
+
+    async def pressures_on_ramp(self, start: Target, end: Target, target: Target) -> InverseResult:
+        """Setpoints for ``target`` on the ramp from ``start`` to ``end`` (:meth:`LoadedModel.pressures_on_ramp`)."""
+        return await self._call(_worker_pressures_on_ramp, start, end, target)
 
     async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
                        with_rest_surface: bool = False) -> Estimate:

@@ -37,6 +37,8 @@ class StepRecord:
     reached_after_s: float | None = None
     final_volume_ml: float | None = None
     true_volume_ml: float | None = None
+    #: when (s after the step's start) the board first acknowledged setpoints for this step; None: not yet
+    applied_after_s: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         error_pct = None
@@ -45,7 +47,7 @@ class StepRecord:
         return {"index": self.index, "at_s": self.at_s, "target": self.target,
                 "target_volume_ml": self.target_volume_ml, "reached_volume_ml": self.final_volume_ml,
                 "error_pct": error_pct, "reached_after_s": self.reached_after_s,
-                "true_volume_ml": self.true_volume_ml}
+                "true_volume_ml": self.true_volume_ml, "applied_after_s": self.applied_after_s}
 
 
 @dataclass
@@ -153,6 +155,26 @@ class SceneRunner:
             self.on_event("scene", f"scene {run.name} finished; holding its last target", "INFO")
             return None
         return run.timeline.target_at(scene_time_s)
+
+    def step_index(self) -> int | None:
+        """The index of the step in force (the last one started), or None when no scene plays or none started."""
+        run = self.run
+        return None if run is None or run.finished or not run.steps else run.steps[-1].index
+
+    def ramp(self) -> tuple[Target, Target] | None:
+        """The two targets the playing scene's ramp moves between now, or None outside a ramp."""
+        run = self.run
+        if run is None or run.finished:
+            return None
+        return run.timeline.ramp_at(run.scene_time_s(self.clock()))
+
+    def applied(self, index: int) -> None:
+        """The board acknowledged setpoints for step ``index``: the first time is the step's ``applied_after_s``."""
+        run = self.run
+        if run is None or index >= len(run.steps) or run.steps[index].applied_after_s is not None:
+            return
+        record = run.steps[index]
+        record.applied_after_s = max(0.0, self.clock() - record.started_clock_s)
 
     def observe(self, estimated_volume_ml: float, predicted_volume_ml: float | None = None,
                 solved_target: Target | None = None, true_volume_ml: float | None = None) -> None:

@@ -75,6 +75,17 @@ class Timeline:
                 index = position
         return index
 
+    def ramp_at(self, time_s: float) -> tuple[Target, Target] | None:
+        """The two targets a ramp at ``time_s`` (s) moves between (the previous step's and its own), or None when
+        no step ramps then."""
+        index = self.step_index_at(time_s)
+        if index is None or index == 0:
+            return None
+        step = self.steps[index]
+        if step.ramp_s <= 0 or time_s >= step.at_s + step.ramp_s:
+            return None
+        return self.steps[index - 1].target, step.target
+
     def target_at(self, time_s: float) -> Target | None:
         """The target at ``time_s`` (s): the step in force, linearly interpolated while it ramps.
 

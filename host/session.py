@@ -36,6 +36,7 @@ from phantom.protocol.link import (
     CommandFailed,
     Event,
     FaultIn,
+    FrameIn,
     HandshakeDone,
     HandshakeRefused,
     HandshakeTimedOut,
@@ -48,7 +49,7 @@ from phantom.protocol.link import (
     enum_name,
     fault_names,
 )
-from phantom.protocol.messages import MESSAGES, ChamberState
+from phantom.protocol.messages import MESSAGES, PROTOCOL_VERSION, ChamberState, ConfigSource, Status, ZeroSource
 
 __all__ = ["BoardInfo", "CommandRejected", "LinkDown", "LinkSession", "LinkState", "LinkStats", "LinkTiming",
            "Telemetry", "fault_names"]
@@ -56,6 +57,13 @@ __all__ = ["BoardInfo", "CommandRejected", "LinkDown", "LinkSession", "LinkState
 logger = logging.getLogger(__name__)
 
 _DRIVE_SCALE = {f.name: f.scale for f in MESSAGES["TELEMETRY"].fields}["drive"]
+
+#: The spec hash of the HELLO that ends a session: no firmware has it, so the board answers SPEC_MISMATCH, which
+#: closes its session and switches every blower off as VENT does (PROTOCOL.md section 4, step 3). A board without
+#: a session has no host deadline, so a daemon that leaves this way does not leave a DEAD_HOST fault behind.
+GOODBYE_SPEC_HASH = 0
+#: How long (s) :meth:`LinkSession.end_session` waits for the board's answer to that HELLO.
+GOODBYE_WAIT_S = 0.5
 
 
 class LinkState(enum.StrEnum):
@@ -169,6 +177,8 @@ class LinkSession:
         self.clock = clock
         self.state = LinkState.DISCONNECTED
         self.board: BoardInfo | None = None
+        #: what the board's BOARD_INFO said after the handshake: where its settings and zeros came from
+        self.board_details: dict[str, Any] | None = None
         self.last_error: str | None = None
         self._host_stats = LinkStats()
         self.link = HostLink(self.timing)
@@ -181,6 +191,7 @@ class LinkSession:
         self._wake = asyncio.Event()
         self._bringing_online: asyncio.Task[None] | None = None
         self._problem: tuple[str, float] | None = None
+        self._goodbye: asyncio.Future[str] | None = None
 
     # --- public -----------------------------------------------------------------------------------------
 
@@ -226,6 +237,25 @@ class LinkSession:
     def online(self) -> bool:
         return self.state is LinkState.ONLINE
 
+    async def end_session(self) -> bool:
+        """End the board's session before the daemon leaves: a HELLO with :data:`GOODBYE_SPEC_HASH`, which the
+        board refuses (closing its session and venting), so that it does not latch DEAD_HOST once the daemon is
+        gone. True when the board answered within :data:`GOODBYE_WAIT_S`."""
+        if not self.online:
+            return False
+        self._goodbye = asyncio.get_running_loop().create_future()
+        try:
+            self.link.send("HELLO", {"protocol_version": PROTOCOL_VERSION, "spec_hash": GOODBYE_SPEC_HASH},
+                           self.clock())
+            self._flush()
+            await asyncio.wait_for(asyncio.shield(self._goodbye), GOODBYE_WAIT_S)
+        except (TimeoutError, TransportLost, ProtocolError):
+            return False
+        finally:
+            self._goodbye = None
+        self.link.keepalive = False  # the board has no session left to keep
+        return True
+
     async def command(self, name: str, fields: dict[str, Any] | None = None) -> str:
         """Send an acknowledged command and wait for its ACK; return the ACK's status name (OK, CLAMPED).
 
@@ -247,6 +277,7 @@ class LinkSession:
             "state": self.state.value,
             "transport": self.transport.description,
             "board": asdict(self.board) if self.board else None,
+            "board_info": self.board_details,
             "last_error": self.last_error,
             "stats": self.stats.as_dict(self.rx_dropped(), getattr(self.transport, "tx_dropped", 0)),
         }
@@ -308,6 +339,8 @@ class LinkSession:
         """Act on one event of the link core."""
         if isinstance(event, TelemetryIn):
             self._on_telemetry_frame(event)
+        elif isinstance(event, FrameIn):
+            self._on_frame(event)
         elif isinstance(event, HandshakeDone):
             self.board = event.board
             self._config_seq = self.link.command("SET_CONFIG", {
@@ -330,6 +363,21 @@ class LinkSession:
                                    f"{event.now_ms} ms)")
         elif isinstance(event, Silence):
             raise _ConnectionEnded(event.reason)
+
+    def _on_frame(self, event: FrameIn) -> None:
+        """The frames the link core hands on without an event of their own: BOARD_INFO, and the board's answer to
+        the goodbye HELLO."""
+        message = event.message
+        if message.name == "BOARD_INFO":
+            fields = message.fields
+            self.board_details = {
+                "config_source": _wire_name(ConfigSource, fields["config_source"]),
+                "zero_source": [_wire_name(ZeroSource, value) for value in fields["zero_source"]],
+                "zero_offset_kpa": [value / 1e3 for value in fields["zero_offset_pa"]],
+                "supply_mv": fields["supply_mv"]}
+        elif (message.name == "HELLO_REPLY" and self._goodbye is not None and not self._goodbye.done()
+              and message.fields["status"] == Status.SPEC_MISMATCH):
+            self._goodbye.set_result("closed")
 
     def _answer(self, event: Acked | Nacked | CommandFailed) -> None:
         """An acknowledged command is answered (or given up): resolve its future, or go online after
@@ -453,6 +501,14 @@ class LinkSession:
         self._futures[seq] = future
         self._wake.set()  # the core has a new deadline
         return await future
+
+
+def _wire_name(table: type[ConfigSource] | type[ZeroSource], value: int) -> str:
+    """The name of a wire value in one of BOARD_INFO's enums, or the number as text if the spec has none."""
+    try:
+        return table(value).name
+    except ValueError:
+        return str(value)
 
 
 def _problem_kind(text: str) -> str:

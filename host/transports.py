@@ -24,7 +24,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import fcntl
 import os
+import termios
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +83,10 @@ class SerialTransport:
             if getattr(error, "errno", None) == errno.EACCES or "Permission denied" in str(error):
                 raise TransportUnavailable(permission_hint(self.path)) from error
             raise TransportUnavailable(f"cannot open {self.path}: {error}") from error
+        # no other process may open the port while the daemon holds it (the kernel's exclusive mode; root is
+        # exempt): a program of the port's group could otherwise drive the board behind the daemon's back
+        with contextlib.suppress(OSError):
+            fcntl.ioctl(self._serial.fileno(), termios.TIOCEXCL)
         self._serial.reset_input_buffer()
         self._queue = asyncio.Queue()
         asyncio.get_running_loop().add_reader(self._serial.fileno(), self._on_readable)
@@ -127,6 +133,8 @@ class SerialTransport:
             return
         with contextlib.suppress(Exception):
             asyncio.get_running_loop().remove_reader(self._serial.fileno())
+        with contextlib.suppress(Exception):
+            fcntl.ioctl(self._serial.fileno(), termios.TIOCNXCL)
         with contextlib.suppress(Exception):
             self._serial.close()
         self._serial = None

@@ -290,7 +290,8 @@ def test_a_latched_fault_is_shown_and_cleared_only_on_request(rig):
     assert "SENSOR_1" in answer["faults"] and answer["chamber_states"] == ["FAULT"] * 3
     cleared = phantom_cli(rig, "clear-fault", "--json")
     assert cleared.returncode == 0, cleared.stderr
-    assert json.loads(cleared.stdout) == {"cleared": ["SENSOR_1"], "setpoints_restored": True}
+    assert json.loads(cleared.stdout) == {"cleared": ["SENSOR_1"], "setpoints_restored": True,
+                                          "target": {"volume_ml": 32.0}}
     wait_until(lambda: status(rig)["faults"] == [], 5, rig, "faults cleared")
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "volume back at 32 ml after the fault")
     texts = [event["text"] for event in status(rig)["events"]]
