@@ -754,7 +754,7 @@ class Daemon:
             "faults": fault_names(self.fault_flags),
             "vented_why": self.vented_why if self.control_state is ControlState.VENTED else None,
             "board_settings": {**self.board_settings.to_json(), "source": self.board_settings_source,
-                               "stored_on_board": (link.get("board_info") or {}).get("config_source")},
+                               "board_config_source": (link.get("board_info") or {}).get("config_source")},
             "zero": {**self.zero_state, "sources": (link.get("board_info") or {}).get("zero_source")},
             "scene": self.scenes.to_json(),
             "startup_s": info.timings_s,

@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import errno
 import fcntl
+import grp
 import os
 import termios
 from pathlib import Path
@@ -49,9 +50,14 @@ class TransportLost(PhantomError):
 
 
 def permission_hint(path: str) -> str:
-    """The message for a serial port this user may not open: on Debian and Ubuntu the group is dialout."""
-    return (f"permission denied on {path}: add your user to the dialout group (sudo usermod -aG dialout $USER), "
-            "then log out and in again")
+    """The message for a serial port this user may not open: join the port's group (phantom with the shipped udev
+    rule, firmware/udev/99-phantom.rules; dialout for a port without it)."""
+    try:
+        group = grp.getgrgid(os.stat(path).st_gid).gr_name
+    except (OSError, KeyError):
+        group = "dialout"
+    return (f"permission denied on {path}: add your user to the {group} group, which owns the port (sudo usermod "
+            f"-aG {group} $USER), then log out and in again")
 
 
 class SerialTransport:

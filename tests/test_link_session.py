@@ -331,14 +331,18 @@ def test_missing_port_is_unavailable_not_a_crash(tmp_path):
     asyncio.run(main())
 
 
-def test_a_port_this_user_may_not_open_names_the_dialout_group(tmp_path, monkeypatch):
+def test_a_port_this_user_may_not_open_names_the_ports_group(tmp_path, monkeypatch):
+    import grp
+
     # the tests run as root, for whom every file is accessible: the permission check is made to fail
     port = tmp_path / "ttyACM0"
     port.touch()
+    group = grp.getgrgid(os.stat(port).st_gid).gr_name
     monkeypatch.setattr(os, "access", lambda path, mode: False)
 
     async def main():
-        with pytest.raises(TransportUnavailable, match="permission denied on .*ttyACM0: add your user to the dialout"):
+        with pytest.raises(TransportUnavailable, match=f"permission denied on .*ttyACM0: add your user to the {group} "
+                           f"group, which owns the port \\(sudo usermod -aG {group} "):
             await SerialTransport(port).open()
 
     asyncio.run(main())
