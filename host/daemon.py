@@ -433,15 +433,19 @@ class Daemon:
         while True:
             started = time.monotonic()
             try:
-                self.recorder.set_scene_time(self.scenes.scene_time_s())
-                self._scene_tick()
-                self._reconcile_tick()
-                self._estimate_tick()
-                self._publish_status_tick()
+                self.control_tick()
             except Exception as error:  # one bad tick must not end control; it is shown to people and logged
                 logger.exception("control tick failed")
                 self.event("internal", f"control tick failed: {type(error).__name__}: {error}", "ERROR")
             await asyncio.sleep(max(0.0, period_s - (time.monotonic() - started)))
+
+    def control_tick(self) -> None:
+        """One control period: the scene's target, what the board holds, an estimate when due, the status."""
+        self.recorder.set_scene_time(self.scenes.scene_time_s())
+        self._scene_tick()
+        self._reconcile_tick()
+        self._estimate_tick()
+        self._publish_status_tick()
 
     def wants_shape(self) -> bool:
         """Whether the deformed shape is worth computing: a recording, and a scene that asks for it."""

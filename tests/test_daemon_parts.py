@@ -329,7 +329,8 @@ class PartsStandIn:
                 return "OK"
 
             def status(self):
-                return {"state": "online", "stats": {}}
+                return {"state": "online", "stats": {"rtt_ms": None, "retries": 0, "bad_frames": 0, "tx_dropped": 0,
+                                                     "commands_failed": 0}}
 
         self.model, self.recorder, self.session = Model(), Recorder(), Session()
         self.api = ApiServer("/nonexistent/never-started.sock", {})
@@ -444,3 +445,65 @@ def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(cap
     assert daemon._stop.is_set() and daemon._exit_code == 1
     record = next(record for record in caplog.records if "ended unexpectedly" in record.getMessage())
     assert record.exc_info and "the link task broke" in str(record.exc_info[1])
+
+
+class ModelInProcess:
+    """The model worker's own functions, called in this process (the worker's answers without its process)."""
+
+    def __init__(self, scene):
+        from phantom.host import model_worker
+
+        self.worker = model_worker
+        self.info = model_worker._worker_start(scene)
+
+    async def pressures_for(self, target):
+        return self.worker._worker_pressures_for(target)
+
+    async def pressures_on_ramp(self, start, end, target):
+        return self.worker._worker_pressures_on_ramp(start, end, target)
+
+    async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
+        return self.worker._worker_estimate(pressures_pa, with_surface, with_rest_surface)
+
+    def close(self):
+        pass
+
+
+@pytest.mark.slow
+def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer(calibrated_response_table):
+    """Each point of a 30 -> 35 ml ramp solved on its own gave chamber 0 setpoints that jumped by up to +0.16 and
+    -0.15 kPa from one control tick to the next, down then up (the QP's answer moved between chambers)."""
+    import asyncio
+
+    from phantom.model.inverse import Target
+
+    parts, clock = PartsStandIn(False), FakeClock()
+    parts.model = ModelInProcess("builtin:calibrated")
+    daemon = parts.daemon(False, clock)
+    sent = []
+
+    async def command(name, fields=None):
+        if name == "SET_SETPOINTS":
+            sent.append(np.asarray(fields["setpoint_pa"], dtype=float) / 1e3)
+        return "OK"
+
+    parts.session.command = command
+
+    async def play():
+        daemon.start_scene({"timeline": {"end_s": 18}, "steps": [{"at_s": 0, "volume_ml": 30.0},
+                                                                 {"at_s": 1, "ramp_s": 15, "volume_ml": 35.0}]},
+                           "ramp", 1.0, False)
+        for _ in range(180):
+            daemon.control_tick()
+            for _ in range(5):
+                await asyncio.sleep(0)
+            clock.now_s += 0.1
+
+    asyncio.run(play())
+    setpoints = np.asarray(sent)
+    steps = np.diff(setpoints, axis=0)
+    assert len(setpoints) > 140                            # a setpoint per tick of the 15 s ramp
+    assert steps.min() >= -0.0015, f"a setpoint fell on the way up: {steps.min(axis=0)} kPa"
+    assert steps.max() <= 0.015, f"a setpoint jumped: {steps.max(axis=0)} kPa in one tick"
+    top = parts.model.worker._worker_pressures_for(Target(gland_volume_m3=35e-6)).pressures_pa / 1e3
+    np.testing.assert_allclose(setpoints[-1], np.round(top, 3), atol=0.0015)
