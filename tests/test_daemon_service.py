@@ -34,7 +34,7 @@ def unit_options() -> dict[str, list[str]]:
 
 def test_the_units_sandbox_scores_3_or_lower_in_systemd_analyze_security():
     analyze = shutil.which("systemd-analyze")
-    assert analyze is not None, "systemd-analyze is missing: install Debian's systemd package (scripts/apt-packages.txt)"
+    assert analyze is not None, "no systemd-analyze: install Debian's systemd package (scripts/apt-packages.txt)"
     result = subprocess.run([analyze, "security", "--offline=yes", "--no-pager", str(UNIT)], capture_output=True,
                             text=True, timeout=60)
     found = re.search(r"Overall exposure level for phantomd\.service: ([0-9.]+)", result.stdout)
