@@ -26,10 +26,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError
+from phantom import PhantomError, read_text
 
 #: The metadata key under which a field keeps its :class:`Setting`.
 SETTING = "setting"
+
+#: The largest config file read (bytes): the shipped one is under 3 KiB.
+MAX_CONFIG_BYTES = 2**20
 
 #: Groups of settings that exclude each other (at most one of a group is given), and whether one is required.
 GROUPS: dict[str, bool] = {"board": True, "recording": False}
@@ -217,14 +220,13 @@ def load_config(path: str | Path) -> dict[str, Any]:
     value of the wrong type or out of range.
     """
     path = Path(path)
+    text = read_text(path, MAX_CONFIG_BYTES, "the config file", ConfigError)
     try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"the config file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"the config file {path} cannot be read: {error}") from None
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"the config file {path} is not valid TOML: {error}") from None
+    except RecursionError:
+        raise ConfigError(f"the config file {path} is not valid TOML: it nests too deeply") from None
     table = raw.get("daemon", {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: daemon must be a table ([daemon])")

@@ -43,19 +43,21 @@ from phantom.host.logs import configured_level
 from phantom.host.model_worker import Estimate, ModelWorker
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.recording import Recorder
-from phantom.host.scene_runner import SceneRunner
+from phantom.host.scene_runner import PreparedRun, SceneRunner, prepare_run
 from phantom.host.scenes import gland_volume_ml
 from phantom.host.session import (
     BoardInfo,
     CommandRejected,
     LinkDown,
     LinkSession,
+    LinkThread,
     LinkTiming,
     Telemetry,
     Transport,
     fault_names,
 )
 from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
+from phantom.host.stalls import LoopStalls
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model import load_scene
 from phantom.model.errors import SceneError
@@ -94,6 +96,7 @@ CONTROL_HZ = 10.0
 SOCKET_MODE = 0o660
 
 
+
 class Daemon:
     """The daemon's state and tasks, from parts built by :meth:`start`; :meth:`serve` until asked to stop."""
 
@@ -122,6 +125,7 @@ class Daemon:
         self.events: deque[dict[str, Any]] = deque(maxlen=100)
         self.fault_flags = 0
         self.model_counts: dict[str, int] = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
+        self._model_restarts_seen = 0
         self.meshes_logged = 0
         self.scenes = SceneRunner(clock, self.event)
         self.schedule = EstimateSchedule(config.mesh_hz)
@@ -133,6 +137,7 @@ class Daemon:
                                             config.pressure_limit_kpa * PA_PER_KPA)
         self.board_settings_source = "not set yet: no board has been connected"
         self.setpoint_watch = SetpointWatch()
+        self.loop_stalls = LoopStalls()
         self.stillness = Stillness()
         self.zero_state: dict[str, Any] = {"state": "not asked", "text": "no zero asked since the daemon started"}
         self._stop = asyncio.Event()
@@ -213,7 +218,8 @@ class Daemon:
             self.event("startup", "model ready: " + ", ".join(f"{key} {value:.2f} s"
                                                              for key, value in info.timings_s.items()))
             self._tasks = [asyncio.create_task(self.session.run(), name="link"),
-                           asyncio.create_task(self._control_loop(), name="control")]
+                           asyncio.create_task(self._control_loop(), name="control"),
+                           asyncio.create_task(self.loop_stalls.probe(), name="event loop probe")]
             if self.sim_board is not None:
                 self._tasks.append(asyncio.create_task(self.sim_board.watch(), name="simulated board"))
             for task in self._tasks:
@@ -221,7 +227,8 @@ class Daemon:
             logger.info("ready: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
             if self.config.run_scene:
                 try:
-                    self.start_scene(info.scene_raw, info.scene_path, 1.0, info.wants_shape)
+                    self.start_scene(prepare_run(info.scene_raw, info.scene_path, self.chamber_names, 1.0,
+                                                 info.wants_shape))
                 except SceneError as error:
                     self.event("scene", f"the scene's [[steps]] were not started: {error}", "ERROR")
             await self._stop.wait()
@@ -272,7 +279,6 @@ class Daemon:
         for task in [*self._tasks, *self._background]:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        self.session.transport.close()
         await self.api.close()
         self.recorder.log_event(self.now_s(), "daemon stopped")
         self.recorder.close()
@@ -468,8 +474,12 @@ class Daemon:
         try:
             estimate = done.result()
         except Exception as error:  # shown, not fatal: the next tick tries again
-            self.event("estimate", f"volume estimate failed: {error}", "WARN")
+            # the last estimate is of pressures no longer measured: status shows none rather than a stale one
+            self.estimated_chamber_ml = self.estimated_volume_ml = None
+            self.event("estimate", f"volume estimate failed ({type(error).__name__}: {error}): no estimate until "
+                       "the next one succeeds", "WARN")
             return
+        self._note_model_restarts()
         self.model_counts = estimate.counts
         self.estimated_chamber_ml, self.estimated_volume_ml = estimate.chamber_volumes_ml, estimate.gland_volume_ml
         self.recorder.log_volumes(request.time_s, self.target_volume_ml(), estimate.gland_volume_ml,
@@ -483,6 +493,13 @@ class Daemon:
         answer = self.inverse_result
         self.scenes.observe(estimate.gland_volume_ml, None if answer is None else _predicted_volume_ml(answer),
                             None if answer is None else answer.target, self.plant_volume_ml())
+
+    def _note_model_restarts(self) -> None:
+        """An event when the model worker was replaced since the last look (it died: the OOM killer?)."""
+        if self.model.restarts != self._model_restarts_seen:
+            self._model_restarts_seen = self.model.restarts
+            self.event("model", f"the model worker died and was replaced ({self.model.restarts} since the daemon "
+                       "started): its model was rebuilt from the cache", "WARN")
 
     def plant_volume_ml(self) -> float | None:
         """The simulated plant's true gland volume (ml); None on a real board or before the truth model."""
@@ -711,9 +728,9 @@ class Daemon:
 
     # --- scenes -----------------------------------------------------------------------------------------
 
-    def start_scene(self, raw: dict[str, Any], name: str, time_scale: float, wants_shape: bool) -> dict[str, Any]:
-        """Check a scene's timeline against the loaded phantom and start playing it (SceneError if bad)."""
-        started = self.scenes.start(raw, name, self.chamber_names, time_scale, wants_shape)
+    def start_scene(self, prepared: PreparedRun) -> dict[str, Any]:
+        """Start playing a checked scene (:func:`phantom.host.scene_runner.prepare_run`)."""
+        started = self.scenes.begin(prepared)
         self.control_state = ControlState.SCENE
         return started
 
@@ -764,8 +781,10 @@ class Daemon:
             "startup_s": info.timings_s,
             "fidelity": info.fidelity,
             "model_counts": self.model_counts,
+            "model_worker_restarts": self.model.restarts,
             "meshes_logged": self.meshes_logged,
             "api": self.api.stats(),
+            "event_loop": self.loop_stalls.to_json(),
             "recording": str(self.config.rerun_save) if self.config.rerun_save else self.config.rerun_connect,
             "uptime_s": self.now_s(),
             "events": list(self.events)[-10:],
@@ -806,8 +825,8 @@ def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]
 
 def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
                   on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
-                  on_online: Callable[[BoardInfo, bool], Awaitable[None]]) -> LinkSession:
-    """The link session over the configured transport."""
+                  on_online: Callable[[BoardInfo, bool], Awaitable[None]]) -> LinkThread:
+    """The link session over the configured transport, in a thread of its own."""
     transport: Transport
     boot_delay_s = 0.0
     if config.can_channel:
@@ -827,7 +846,8 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
     timing = LinkTiming(keepalive_s=min(0.1, 0.1 / speed), hello_timeout_s=min(0.2, 0.2 / speed),
                         telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=config.host_deadline_ms,
                         boot_delay_s=boot_delay_s)
-    return LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event, on_online=on_online)
+    return LinkThread(LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event,
+                                  on_online=on_online), LoopStalls())
 
 
 async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:

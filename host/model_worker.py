@@ -8,6 +8,7 @@ dies with the daemon, so that the link never waits on the model.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import multiprocessing
 import os
@@ -15,6 +16,7 @@ import signal
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
@@ -294,9 +296,11 @@ def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_sur
     return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
 
 
-def _worker_surface(pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _worker_surface_json(pressures_pa: np.ndarray | None) -> str:
     model = _worker_model_or_fail()
-    return model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
+    positions_mm, triangles = model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
+    return json.dumps({"positions_mm": np.round(positions_mm, 4).tolist(),
+                       "triangles": np.asarray(triangles).tolist()}, separators=(",", ":"))
 
 
 def worker_pool(log_level: str = "info") -> ProcessPoolExecutor:
@@ -312,9 +316,14 @@ class ModelWorker:
     Build it with :meth:`start`, which returns a worker whose model is ready (``info``).
     """
 
-    def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo):
+    def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo, scene_source: str = "", log_level: str = "info"):
         self._pool = pool
         self.info = info
+        self._scene_source = scene_source
+        self._log_level = log_level
+        self._replacing = asyncio.Lock()
+        #: workers started again after one died (the OOM killer's SIGKILL): each rebuilt its model from the cache
+        self.restarts = 0
 
     @classmethod
     async def start(cls, scene_source: str, log_level: str = "info") -> ModelWorker:
@@ -325,10 +334,34 @@ class ModelWorker:
         except BaseException:
             pool.shutdown(wait=False, cancel_futures=True)
             raise
-        return cls(pool, info)
+        return cls(pool, info, scene_source, log_level)
 
     async def _call(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
+        """``function(*arguments)`` in the worker; a worker found dead is replaced and the call made once more."""
+        pool = self._pool
+        try:
+            return await asyncio.get_running_loop().run_in_executor(pool, function, *arguments)
+        except BrokenProcessPool:
+            await self._replace(pool)
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
+
+    async def _replace(self, broken: ProcessPoolExecutor) -> None:
+        """Start a new worker in place of ``broken`` (once, whoever found it dead first); its model is rebuilt
+        from the cached response table. A worker that cannot be started again raises, and the caller fails."""
+        async with self._replacing:
+            if self._pool is not broken:
+                return
+            logger.warning("the model worker died (killed, out of memory?): starting a new one")
+            broken.shutdown(wait=False, cancel_futures=True)
+            pool = worker_pool(self._log_level)
+            try:
+                await asyncio.get_running_loop().run_in_executor(pool, _worker_start, self._scene_source)
+            except BaseException:
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise
+            self._pool = pool
+            self.restarts += 1
+            logger.warning("the model worker was replaced (%d since the daemon started)", self.restarts)
 
     async def pressures_for(self, target: Target) -> InverseResult:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
@@ -345,10 +378,12 @@ class ModelWorker:
         return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface,
                                 with_rest_surface)
 
-    async def surface(self, pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """The outer surface (positions mm, triangles) at ``pressures_pa`` (Pa), or at rest for None."""
+    async def surface_json(self, pressures_pa: np.ndarray | None) -> str:
+        """The outer surface at ``pressures_pa`` (Pa), or at rest for None, as the JSON text of an object
+        ``{"positions_mm": [[x, y, z], ...], "triangles": [[i, j, k], ...]}`` (mm; indices into the positions),
+        written in the worker."""
         pressures = None if pressures_pa is None else np.asarray(pressures_pa, dtype=float)
-        return await self._call(_worker_surface, pressures)
+        return await self._call(_worker_surface_json, pressures)
 
     def close(self) -> None:
         """Stop the worker process and wait for it (a pool left running is woken by the interpreter's exit

@@ -69,3 +69,32 @@ def cache_dir(kind: str) -> Path:
     path = Path(root) / kind
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def read_text(path: str | Path, max_bytes: int, what: str, error: type[PhantomError] = PhantomError) -> str:
+    """The text of a file a user named (a scene, a config file, a measurement table): UTF-8, with or without a
+    byte-order mark, at most ``max_bytes`` long. No more than that is read, so that a huge file (or /dev/zero)
+    costs nothing before it is refused.
+
+    Raises ``error`` (a PhantomError) with a one-line message that starts with ``what`` and the path: the file
+    is missing, a folder, unreadable, too large, or not UTF-8 text.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise error(f"{what} {path} does not exist: check the path") from None
+    except IsADirectoryError:
+        raise error(f"{what} {path} is a folder: give a file") from None
+    except OSError as problem:
+        raise error(f"{what} {path} cannot be read: {problem.strerror}") from None
+    if len(data) > max_bytes:
+        raise error(f"{what} {path} is larger than {max_bytes / 2**20:g} MiB: that is not one of ours (give the "
+                    "right file)") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as problem:
+        utf16 = data.startswith((b"\xff\xfe", b"\xfe\xff"))
+        raise error(f"{what} {path} is not UTF-8 text ({'it is UTF-16' if utf16 else f'byte {problem.start}'}): "
+                    "save it as UTF-8") from None

@@ -50,6 +50,7 @@ def test_gains_a_bench_session_left_on_the_board_are_replaced_by_the_daemons(tmp
                 bench.command("SET_PID", {"chamber": chamber, "kp_per_kpa": 0.4, "ki_per_kpa_s": 0.0,
                                           "kd_s_per_kpa": 0.0, "max_pressure_pa": 4000, "max_drive": 65535})
             bench.command("VENT")
+        time.sleep(1.0)                           # the EEPROM writes its block a byte at a time
         board.unplug()                            # the board restarts with its stored settings
         board.replug()
         rig = DaemonRig(tmp_path, board=board)

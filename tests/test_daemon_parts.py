@@ -1,6 +1,7 @@
 """The daemon's parts on their own: the scene runner on a fake clock, the estimate schedule, the simulated
 board's keeper, the model worker's life, logging levels for journald, the neutral command-line values."""
 
+import asyncio
 import json
 import logging
 import os
@@ -15,7 +16,7 @@ import pytest
 from phantom import PhantomError
 from phantom.cli.common import output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
-from phantom.host.scene_runner import SceneRunner
+from phantom.host.scene_runner import SceneRunner, prepare_run
 from phantom.model.errors import SceneError
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
@@ -293,6 +294,8 @@ class PartsStandIn:
         parts = self
 
         class Model:
+            restarts = 0
+
             def __init__(self):
                 self.info = info
 
@@ -305,8 +308,8 @@ class PartsStandIn:
                 return Estimate([2.0, 1.1, 1.1], 30.0, surface, {"shapes": sum(
                     1 for call in parts.calls if call == ("estimate", True))}, rest)
 
-            async def surface(self, pressures_pa):
-                return np.zeros((4, 3)), np.array([[0, 1, 2]])
+            async def surface_json(self, pressures_pa):
+                return '{"positions_mm": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "triangles": [[0, 1, 2]]}'
 
             def close(self):
                 pass
@@ -450,6 +453,8 @@ def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(cap
 class ModelInProcess:
     """The model worker's own functions, called in this process (the worker's answers without its process)."""
 
+    restarts = 0
+
     def __init__(self, scene):
         from phantom.host import model_worker
 
@@ -490,9 +495,8 @@ def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer
     parts.session.command = command
 
     async def play():
-        daemon.start_scene({"timeline": {"end_s": 18}, "steps": [{"at_s": 0, "volume_ml": 30.0},
-                                                                 {"at_s": 1, "ramp_s": 15, "volume_ml": 35.0}]},
-                           "ramp", 1.0, False)
+        daemon.start_scene(prepare_run({"timeline": {"end_s": 18}, "steps": [
+            {"at_s": 0, "volume_ml": 30.0}, {"at_s": 1, "ramp_s": 15, "volume_ml": 35.0}]}, "ramp", CHAMBERS, 1.0))
         for _ in range(180):
             daemon.control_tick()
             for _ in range(5):
@@ -507,3 +511,28 @@ def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer
     assert steps.max() <= 0.015, f"a setpoint jumped: {steps.max(axis=0)} kPa in one tick"
     top = parts.model.worker._worker_pressures_for(Target(gland_volume_m3=35e-6)).pressures_pa / 1e3
     np.testing.assert_allclose(setpoints[-1], np.round(top, 3), atol=0.0015)
+
+
+@pytest.mark.slow
+def test_a_model_worker_killed_like_the_oom_killer_does_is_replaced_and_answers(calibrated_response_table):
+    """Before, every later set_target and surface failed with BrokenProcessPool until the daemon restarted."""
+    from phantom.host.model_worker import ModelWorker
+    from phantom.host.scenes import parse_target
+
+    async def scenario():
+        worker = await ModelWorker.start("builtin:calibrated")
+        try:
+            target = parse_target({"volume_ml": 32.0}, worker.info.chamber_names)
+            before = await worker.pressures_for(target)
+            for pid in list(worker._pool._processes):
+                os.kill(pid, signal.SIGKILL)
+            time.sleep(0.5)
+            after, again = await asyncio.gather(worker.pressures_for(target), worker.pressures_for(target))
+            return before, after, again, worker.restarts
+        finally:
+            worker.close()
+
+    before, after, again, restarts = asyncio.run(scenario())
+    assert restarts == 1                    # two callers found it dead; one replaced it
+    np.testing.assert_allclose(after.pressures_pa, before.pressures_pa)
+    np.testing.assert_allclose(again.pressures_pa, before.pressures_pa)
