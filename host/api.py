@@ -57,8 +57,9 @@ MAX_REQUEST_BYTES = 64 * 1024
 #: log): clients are capped this far below the process's file limit.
 RESERVED_FILES = 64
 
-#: Connections the kernel queues until the daemon accepts them.
-LISTEN_BACKLOG = 64
+#: Connections the kernel queues until the daemon accepts them (one at a time): a burst of clients must fit, for
+#: a client of a full queue (asyncio's, at least) believes it is connected and then finds the connection reset.
+LISTEN_BACKLOG = 1024
 
 
 class ApiError(PhantomError):

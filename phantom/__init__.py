@@ -7,6 +7,7 @@ import which.
 """
 
 import os
+import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -98,3 +99,37 @@ def read_text(path: str | Path, max_bytes: int, what: str, error: type[PhantomEr
         utf16 = data.startswith((b"\xff\xfe", b"\xfe\xff"))
         raise error(f"{what} {path} is not UTF-8 text ({'it is UTF-16' if utf16 else f'byte {problem.start}'}): "
                     "save it as UTF-8") from None
+
+
+@contextmanager
+def written_atomically(path: str | Path, error: type[PhantomError] = PhantomError,
+                       ends_with: bytes | None = None) -> Iterator[Path]:
+    """A temporary file beside ``path`` for the caller to write, which becomes ``path`` only once it is whole.
+
+    After the ``with`` body the file is checked (not empty; ending with ``ends_with`` when given: for writers
+    that do not report a failed write, like gmsh's), flushed to the disk (fsync: a full disk is told here) and
+    renamed over ``path``. On any failure the temporary file is removed, ``path`` is left as it was, and an
+    OSError becomes ``error`` with a one-line message: a full disk never leaves a truncated file said to be
+    written.
+    """
+    path = Path(path)
+    descriptor, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(descriptor)
+    temporary = Path(name)
+    umask = os.umask(0o022)
+    os.umask(umask)
+    os.chmod(temporary, 0o666 & ~umask)  # the mode a plain open() gives, not mkstemp's 0600
+    try:
+        yield temporary
+        with open(temporary, "rb+") as handle:
+            size = handle.seek(0, os.SEEK_END)
+            handle.seek(max(0, size - len(ends_with or b"")))
+            if size == 0 or (ends_with is not None and handle.read() != ends_with):
+                raise error(f"cannot write {path}: the file came out short ({size} bytes; the disk is full?): "
+                            "free space or give another path")
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except OSError as problem:
+        raise error(f"cannot write {path}: {problem.strerror or problem}: free space or give another path") from None
+    finally:
+        temporary.unlink(missing_ok=True)
