@@ -65,3 +65,14 @@ def test_a_mesh_with_a_coordinate_that_is_not_finite_is_not_written(tmp_path):
     with pytest.raises(MeshError, match="node 7 has a coordinate that is not finite"):
         write_mesh(broken, tmp_path / "broken.msh")
     assert not (tmp_path / "broken.msh").exists()
+
+
+@pytest.mark.parametrize("suffix", [".msh", ".stl"])
+def test_a_deformed_mesh_written_to_a_full_disk_is_an_error_and_leaves_no_file(tmp_path, suffix):
+    out = tmp_path / f"deformed{suffix}"
+    result = subprocess.run([str(PHANTOM), "forward", "--scene", "builtin:calibrated", "--pressures-kpa", "1,1,1",
+                             "--out", str(out)], capture_output=True, text=True, timeout=300,
+                            preexec_fn=limited_to(20_000))
+    assert result.returncode == 2, result.stdout + result.stderr
+    assert "cannot write" in result.stderr and "wrote" not in result.stdout
+    assert list(tmp_path.iterdir()) == []

@@ -9,6 +9,8 @@ import argparse
 import os
 from typing import TYPE_CHECKING
 
+from phantom import written_atomically
+
 if TYPE_CHECKING:
     from phantom.model.fem.model import PhantomModel, State
 
