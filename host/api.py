@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from phantom import PhantomError
+from phantom.host.peer import private_folder
 
 logger = logging.getLogger(__name__)
 
@@ -421,7 +422,9 @@ def default_socket_path() -> Path:
     """The socket the daemon listens on and clients call by default.
 
     ``$PHANTOM_SOCKET`` if set; else ``/run/phantom/phantomd.sock`` when that folder exists (the systemd
-    service's RuntimeDirectory); else ``$XDG_RUNTIME_DIR/phantomd.sock``; else ``/tmp/phantomd-<uid>.sock``.
+    service's RuntimeDirectory); else ``$XDG_RUNTIME_DIR/phantomd.sock``; else ``/tmp/phantomd-<uid>/phantomd.sock``
+    in a folder only this user may write (a socket straight in /tmp could be squatted by another user's fake
+    daemon: sudo and cron have no ``$XDG_RUNTIME_DIR``).
     """
     if os.environ.get("PHANTOM_SOCKET"):
         return Path(os.environ["PHANTOM_SOCKET"])
@@ -429,4 +432,4 @@ def default_socket_path() -> Path:
         return Path("/run/phantom/phantomd.sock")
     if os.environ.get("XDG_RUNTIME_DIR"):
         return Path(os.environ["XDG_RUNTIME_DIR"]) / "phantomd.sock"
-    return Path(f"/tmp/phantomd-{os.getuid()}.sock")
+    return private_folder(Path(f"/tmp/phantomd-{os.getuid()}")) / "phantomd.sock"

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from phantom import PhantomError
+from phantom.host.peer import check_daemon_peer
 
 
 class DaemonError(PhantomError):
@@ -44,6 +45,11 @@ class DaemonClient:
         except PermissionError as error:
             self._socket.close()
             raise PhantomError(f"no permission to use {self.socket_path}: join the daemon's group") from error
+        try:
+            check_daemon_peer(self._socket, self.socket_path)
+        except PhantomError:
+            self._socket.close()
+            raise
         self._file = self._socket.makefile("rb")
         self._ids = itertools.count(1)
 

@@ -112,7 +112,7 @@ class DaemonConfig:
     run_scene: bool = setting(False, "play the scene's [[steps]] as soon as the daemon is ready")
     socket: Path | None = setting(
         None, "the API's Unix socket (default: $PHANTOM_SOCKET, /run/phantom/phantomd.sock, "
-        "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID.sock)", metavar="PATH")
+        "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID/phantomd.sock)", metavar="PATH")
     rerun_save: Path | None = setting(None, "record to this .rrd file (its folder is created)", metavar="FILE",
                                       group="recording")
     rerun_connect: str | None = setting(None, "stream to a Rerun viewer (rerun+http://.../proxy)", metavar="ADDR",
