@@ -7,6 +7,8 @@ import which.
 """
 
 import os
+import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -133,3 +135,31 @@ def written_atomically(path: str | Path, error: type[PhantomError] = PhantomErro
         raise error(f"cannot write {path}: {problem.strerror or problem}: free space or give another path") from None
     finally:
         temporary.unlink(missing_ok=True)
+
+
+def process_temporary_folder(prefix: str) -> tempfile.TemporaryDirectory[str]:
+    """A temporary folder named after this process (``<prefix><pid>-XXXXXXXX`` in the temporary folder), removed
+    when the returned object is cleaned up. A process killed with SIGKILL runs no cleanup: the folders of the same
+    prefix that this user's processes left and that no longer run are removed here first."""
+    root = Path(tempfile.gettempdir())
+    for stale in root.glob(f"{prefix}*-*"):
+        owner = stale.name[len(prefix):].split("-", 1)[0]
+        if not owner.isdigit() or _process_runs(int(owner)):
+            continue
+        try:
+            found = stale.lstat()
+        except OSError:
+            continue
+        if stat.S_ISDIR(found.st_mode) and found.st_uid == os.getuid():
+            shutil.rmtree(stale, ignore_errors=True)
+    return tempfile.TemporaryDirectory(prefix=f"{prefix}{os.getpid()}-")
+
+
+def _process_runs(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
