@@ -26,6 +26,9 @@ TARGET_KEYS: dict[str, str] = {"volume_ml": "volume", "chamber_volumes_ml": "cha
 
 ML_PER_M3 = 1e6
 PA_PER_KPA = 1e3
+#: The smallest volume a target may ask for (ml): far below any phantom's, and far above the tiny numbers (5e-324)
+#: that vanish in SI units and divided by zero in the inverse.
+MIN_VOLUME_ML = 1e-3
 #: The most steps a timeline may have: a step every 2 s for over an hour. A 20,000-step scene took 0.57 s to
 #: check, time the daemon's loop cannot give at once.
 MAX_STEPS = 2000
@@ -148,8 +151,8 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
     n_chambers = len(chamber_names)
     if kind == "volume_ml":
         volume_ml = _number(raw[kind], f"{where}: volume_ml")
-        if volume_ml <= 0:
-            raise SceneError(f"{where}: volume_ml must be positive, got {volume_ml:g}")
+        if volume_ml < MIN_VOLUME_ML:
+            raise SceneError(f"{where}: volume_ml must be positive (at least {MIN_VOLUME_ML:g} ml), got {volume_ml:g}")
         values: tuple[float | None, ...] = (volume_ml,)
     else:
         listed = raw[kind]
@@ -166,8 +169,9 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
                            for i, value in enumerate(listed))
             if all(value is None for value in values):
                 raise SceneError(f"{where}: chamber_volumes_ml needs at least one number")
-            if any(value is not None and value <= 0 for value in values):
-                raise SceneError(f"{where}: chamber_volumes_ml must be positive, got {list(values)}")
+            if any(value is not None and value < MIN_VOLUME_ML for value in values):
+                raise SceneError(f"{where}: chamber_volumes_ml must be positive (at least {MIN_VOLUME_ML:g} ml each), got "
+                                 f"{list(values)}")
     growth_ratio = _parse_growth_ratio(raw.get("growth_ratio"), kind, chamber_names, where)
     unknown = set(raw) - set(TARGET_KEYS) - {"growth_ratio", "at_s", "ramp_s"}
     if unknown:
@@ -188,7 +192,7 @@ def _parse_growth_ratio(raw: Any, kind: str, chamber_names: list[str], where: st
     for key, weight in raw.items():
         if key in chamber_names:
             index = chamber_names.index(key)
-        elif str(key).isdigit() and int(key) < len(chamber_names):
+        elif str(key).isascii() and str(key).isdigit() and int(key) < len(chamber_names):
             index = int(key)
         else:
             raise SceneError(f"{where}: growth_ratio names unknown chamber {key!r}; chambers are "

@@ -13,7 +13,7 @@ import pytest
 from phantom.host.api import ApiError
 from phantom.host.config import ConfigError, load_config
 from phantom.host.handlers import HeavyRequests
-from phantom.host.scenes import MAX_STEPS, parse_timeline
+from phantom.host.scenes import MAX_STEPS, parse_target, parse_timeline
 from phantom.model.errors import SceneError
 from phantom.model.scene import read_scene_toml
 
@@ -93,3 +93,13 @@ def test_heavy_requests_beyond_the_queue_are_answered_busy():
 
     answered = asyncio.run(scenario())
     assert sorted(answered) == ["busy"] * 3 + ["done"] * 5
+
+
+@pytest.mark.parametrize("raw, words", [
+    ({"volume_ml": 5e-324}, "at least 0.001 ml"),                      # was ZeroDivisionError: internal
+    ({"chamber_volumes_ml": [5e-324, None, None]}, "at least 0.001 ml"),
+    ({"volume_ml": 30.0, "growth_ratio": {"\u00b2": 1.0}}, "unknown chamber"),   # '²'.isdigit(): was ValueError
+])
+def test_targets_that_gave_an_internal_error_are_refused_with_a_reason(raw, words):
+    with pytest.raises(SceneError, match=words):
+        parse_target(raw, CHAMBERS)
