@@ -24,7 +24,7 @@ import tempfile
 import time
 from pathlib import Path
 
-PHANTOM = Path(sys.executable).with_name("phantom")
+sys.path.append(str(Path(__file__).resolve().parent.parent / "tests"))  # daemon_rig: a daemon on a simulated board
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 PEER = """
@@ -55,47 +55,29 @@ def cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICKS_PER_S
 
 
-def status(socket_path: Path) -> dict:
-    from phantom.host.client import DaemonClient
-
-    with DaemonClient(socket_path, timeout_s=10) as client:
-        answer: dict = client.call("status")
-        return answer
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=20.0)
     args = parser.parse_args()
-    from phantom.hil.sim import SimulatedBoard
+    from daemon_rig import DaemonRig
 
-    with tempfile.TemporaryDirectory(prefix="phantom-idle-") as folder, SimulatedBoard(speed=1.0) as board:
-        socket_path = Path(folder) / "phantomd.sock"
-        daemon = subprocess.Popen([str(PHANTOM), "daemon", "--port", board.port, "--socket", str(socket_path)],
-                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    with tempfile.TemporaryDirectory(prefix="phantom-idle-") as folder:
+        rig = DaemonRig(Path(folder), speed=1.0)
         try:
-            deadline = time.monotonic() + 120
-            while True:
-                try:
-                    if status(socket_path)["link"] == "online":
-                        break
-                except Exception:  # not listening yet
-                    pass
-                if time.monotonic() > deadline or daemon.poll() is not None:
-                    raise SystemExit("the daemon did not come online")
-                time.sleep(0.2)
+            rig.wait_online(120)
             time.sleep(3.0)
-            frames_before = status(socket_path)["link_detail"]["stats"]["frames_rx"]
-            started, cpu_before = time.monotonic(), cpu_s(daemon.pid)
+            frames_before = rig.status()["link_detail"]["stats"]["frames_rx"]
+            started, cpu_before = time.monotonic(), cpu_s(rig.process.pid)
             time.sleep(args.seconds)
             elapsed = time.monotonic() - started
-            daemon_cpu = 100 * (cpu_s(daemon.pid) - cpu_before) / elapsed
-            frames_per_s = (status(socket_path)["link_detail"]["stats"]["frames_rx"] - frames_before) / elapsed
+            daemon_cpu = 100 * (cpu_s(rig.process.pid) - cpu_before) / elapsed
+            frames_per_s = (rig.status()["link_detail"]["stats"]["frames_rx"] - frames_before) / elapsed
+            rig.process.send_signal(signal.SIGKILL)      # the board's session stays open: it keeps streaming
+            rig.process.wait(10)
+            peer = subprocess.run([sys.executable, "-c", PEER, rig.board.port, str(args.seconds)],
+                                  capture_output=True, text=True, timeout=args.seconds + 30, check=True)
         finally:
-            daemon.send_signal(signal.SIGKILL)
-            daemon.wait(10)
-        peer = subprocess.run([sys.executable, "-c", PEER, board.port, str(args.seconds)], capture_output=True,
-                              text=True, timeout=args.seconds + 30, check=True)
+            rig.close()
         peer_cpu, peer_bytes_per_s, peer_wakeups_per_s = map(float, peer.stdout.split())
     print("| process | CPU (% of a core) | ratio to peer | traffic |")
     print("|---|---|---|---|")

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 REPO = Path(__file__).resolve().parent.parent
-PHANTOM = Path(sys.executable).with_name("phantom")
+sys.path.append(str(REPO / "tests"))  # daemon_rig: a daemon process on a simulated board
 
 
 async def call(socket_path: Path, method: str, params: dict[str, Any] | None = None,
@@ -196,32 +196,18 @@ def main() -> None:
     parser.add_argument("--log", type=Path, help="keep the daemon's log in this file")
     parser.add_argument("--phases", help="comma-separated phase numbers to run (default: all)")
     args = parser.parse_args()
-    from phantom.hil.sim import SimulatedBoard
+    from daemon_rig import DaemonRig
 
-    with tempfile.TemporaryDirectory(prefix="phantom-stall-") as folder, SimulatedBoard(speed=1.0) as board:
+    with tempfile.TemporaryDirectory(prefix="phantom-stall-") as folder:
         directory = Path(folder)
-        socket_path = directory / "phantomd.sock"
-        log = open(directory / "daemon.log", "w+")
-        daemon = subprocess.Popen([str(PHANTOM), "daemon", "--port", board.port, "--socket", str(socket_path)],
-                                  stdout=log, stderr=subprocess.STDOUT)
+        rig = DaemonRig(directory, speed=1.0)
         try:
-            deadline = time.monotonic() + 120
-            while True:
-                try:
-                    if asyncio.run(call(socket_path, "status"))["result"]["link"] == "online":
-                        break
-                except (OSError, KeyError):
-                    pass
-                if time.monotonic() > deadline or daemon.poll() is not None:
-                    raise SystemExit("the daemon did not come online:\n" + Path(log.name).read_text())
-                time.sleep(0.2)
-            rows = asyncio.run(main_async(socket_path, directory, args.phases))
+            rig.wait_online(120)
+            rows = asyncio.run(main_async(rig.socket, directory, args.phases))
         finally:
-            daemon.terminate()
-            daemon.wait(30)
-            log.close()
+            rig.close()
             if args.log:
-                args.log.write_text(Path(log.name).read_text())
+                args.log.write_text((directory / "daemon.log").read_text())
     print("| load | seconds | daemon's loop: longest stall (ms) | link's loop (ms) | bare peer process (ms) | "
           "links lost | faults | target held |")
     print("|---|---|---|---|---|---|---|---|")

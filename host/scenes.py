@@ -170,8 +170,8 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
             if all(value is None for value in values):
                 raise SceneError(f"{where}: chamber_volumes_ml needs at least one number")
             if any(value is not None and value < MIN_VOLUME_ML for value in values):
-                raise SceneError(f"{where}: chamber_volumes_ml must be positive (at least {MIN_VOLUME_ML:g} ml each), got "
-                                 f"{list(values)}")
+                raise SceneError(f"{where}: chamber_volumes_ml must be positive (at least {MIN_VOLUME_ML:g} ml "
+                                 f"each), got {list(values)}")
     growth_ratio = _parse_growth_ratio(raw.get("growth_ratio"), kind, chamber_names, where)
     unknown = set(raw) - set(TARGET_KEYS) - {"growth_ratio", "at_s", "ramp_s"}
     if unknown:

@@ -114,3 +114,19 @@ def board_holds_solution(status: dict[str, Any], volume_ml: float) -> bool:
     if solution is None or board is None or solution["target"].get("volume_ml") != volume_ml:
         return False
     return all(abs(b - round(s * 1e3) / 1e3) <= 0.0015 for b, s in zip(board, solution["pressures_kpa"], strict=True))
+
+
+def telemetry_mean_kpa(socket_path: Path, seconds: float) -> tuple[Any, Any]:
+    """Mean measured pressures and the board's last setpoints (kPa) over ``seconds`` of subscribed telemetry."""
+    import numpy as np
+
+    measured, setpoints = [], []
+    with DaemonClient(socket_path, timeout_s=10) as client:
+        started = time.monotonic()
+        for message in client.events(["telemetry"]):
+            measured.append(message["data"]["pressures_kpa"])
+            setpoints.append(message["data"]["setpoints_kpa"])
+            if time.monotonic() - started > seconds:
+                break
+    assert len(measured) > 20 * seconds, "telemetry should stream at 50 Hz of board time"
+    return np.mean(measured, axis=0), np.asarray(setpoints[-1])

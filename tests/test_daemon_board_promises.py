@@ -17,26 +17,11 @@ import time
 
 import numpy as np
 import pytest
-from daemon_rig import ONE_ADC_COUNT_KPA, DaemonRig
+from daemon_rig import ONE_ADC_COUNT_KPA, DaemonRig, telemetry_mean_kpa
 
 from phantom.protocol.codec import encode
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
-
-
-def telemetry_mean_kpa(rig, seconds):
-    """Mean measured pressures and the board's last setpoints (kPa) over ``seconds`` of telemetry."""
-    from phantom.host.client import DaemonClient
-
-    measured, setpoints = [], []
-    with DaemonClient(rig.socket, timeout_s=10) as client:
-        started = time.monotonic()
-        for message in client.events(["telemetry"]):
-            measured.append(message["data"]["pressures_kpa"])
-            setpoints.append(message["data"]["setpoints_kpa"])
-            if time.monotonic() - started > seconds:
-                break
-    return np.mean(measured, axis=0), np.asarray(setpoints[-1])
 
 
 def test_gains_a_bench_session_left_on_the_board_are_replaced_by_the_daemons(tmp_path, calibrated_response_table):
@@ -60,7 +45,7 @@ def test_gains_a_bench_session_left_on_the_board_are_replaced_by_the_daemons(tmp
                 rig.call("clear_fault")
             answer = rig.call("set_target", {"volume_ml": 32.0})
             time.sleep(6.0)
-            measured_kpa, board_setpoints_kpa = telemetry_mean_kpa(rig, 1.0)
+            measured_kpa, board_setpoints_kpa = telemetry_mean_kpa(rig.socket, 1.0)
             np.testing.assert_allclose(board_setpoints_kpa, answer["pressures_kpa"], atol=0.0015)
             # with the bench's gains (no integral) chamber 1 stayed about 40 % short
             np.testing.assert_allclose(measured_kpa, board_setpoints_kpa, atol=ONE_ADC_COUNT_KPA)
