@@ -555,3 +555,43 @@ def test_a_frame_that_arrives_a_byte_at_a_time_wakes_the_session_once(tmp_path):
     assert b"".join(reads) == b"".join(frames)
     assert len(reads) <= len(frames)                          # before: a read per byte or few
     assert handed == noise                                    # bytes without a delimiter are not held for ever
+
+
+def test_the_keepalive_keeps_time_while_the_daemons_loop_is_stalled(tmp_path):
+    """Issue 23, defect 3: work inside the daemon's event loop (a 30 MB scene parsed, 100 surfaces encoded) held
+    the link's timers too, past the board's 500 ms dead-host deadline. The link runs on its own loop in a thread
+    (LinkThread): a 1.5 s stall of the daemon's loop leaves no gap in the board's PINGs, commands still reach the
+    board, and the telemetry that arrived meanwhile is delivered to the daemon afterwards."""
+    from phantom.host.session import LinkThread
+
+    board = ScriptedBoard(tmp_path / "board")
+    telemetry = []
+
+    async def main():
+        link = LinkThread(LinkSession(SerialTransport(tmp_path / "board"), FAST, on_telemetry=telemetry.append,
+                                      on_event=lambda *event: None))
+        task = asyncio.create_task(link.run())
+        try:
+            await wait_for(lambda: link.online)
+            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]}) == "OK"
+            stalled_from = time.monotonic()
+            time.sleep(1.5)                                   # the daemon's loop does nothing else meanwhile
+            stalled_until = time.monotonic()
+            frames_before = len(telemetry)
+            await asyncio.sleep(0.1)
+            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [900, 0, 0]}) == "OK"
+            return stalled_from, stalled_until, len(telemetry) - frames_before
+        finally:
+            link.stop()
+            await asyncio.wait_for(task, 5)
+
+    try:
+        stalled_from, stalled_until, delivered_after = asyncio.run(main())
+    finally:
+        board.unplug()
+    pings = [at for message, at in zip(board.received, board.received_at, strict=True) if message.name == "PING"
+             and stalled_from <= at <= stalled_until]
+    gaps = [later - earlier for earlier, later in zip([stalled_from, *pings], [*pings, stalled_until], strict=True)]
+    assert len(pings) >= 10 and max(gaps) < 0.25, gaps      # FAST's keepalive: a PING every 50 ms
+    assert delivered_after > 20                               # the frames of the stall, handed over after it
+    assert board.setpoints_pa == [900, 0, 0]
