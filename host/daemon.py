@@ -851,7 +851,19 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
 
 
 async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:
-    daemon = await Daemon.start(config, simulated_board)
+    # SIGTERM or SIGINT while the parts are built (a first start builds the response table for minutes) cancels
+    # the build: the parts built so far are closed and the model worker is ended with the processes it started,
+    # which the default action (the process killed at once) left running
+    loop = asyncio.get_running_loop()
+    starting = asyncio.current_task()
+    assert starting is not None
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, starting.cancel)
+    try:
+        daemon = await Daemon.start(config, simulated_board)
+    except asyncio.CancelledError:
+        logger.info("stopped while starting")
+        return 0
     return await daemon.serve()
 
 

@@ -8,6 +8,7 @@ dies with the daemon, so that the link never waits on the model.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import logging
 import multiprocessing
@@ -18,6 +19,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -310,6 +312,36 @@ def worker_pool(log_level: str = "info") -> ProcessPoolExecutor:
                                initializer=_worker_init, initargs=(os.getpid(), log_level))
 
 
+def end_pool(pool: ProcessPoolExecutor) -> None:
+    """Stop a worker pool now, whatever its worker is doing, with every process the worker started: a worker
+    building a response table has a pool of its own, whose processes are not told when their parent dies (left
+    running under PID 1, one spinning, one hung on a pipe, when the daemon stopped during the build)."""
+    workers = list(getattr(pool, "_processes", None) or {})  # the executor keeps its processes by pid
+    for pid in [*(child for worker in workers for child in _descendants(worker)), *workers]:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (children, theirs...), read from /proc; none where /proc cannot say."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(parent, []).append(int(entry.name))
+    found, below = [], [pid]
+    while below:
+        for child in children.get(below.pop(), []):
+            found.append(child)
+            below.append(child)
+    return found
+
+
 class ModelWorker:
     """The :class:`LoadedModel` in a worker process that dies with the daemon, called without blocking the loop.
 
@@ -332,7 +364,7 @@ class ModelWorker:
         try:
             info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source)
         except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
+            end_pool(pool)
             raise
         return cls(pool, info, scene_source, log_level)
 
@@ -357,7 +389,7 @@ class ModelWorker:
             try:
                 await asyncio.get_running_loop().run_in_executor(pool, _worker_start, self._scene_source)
             except BaseException:
-                pool.shutdown(wait=False, cancel_futures=True)
+                end_pool(pool)
                 raise
             self._pool = pool
             self.restarts += 1

@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,6 +17,7 @@ import pytest
 from phantom import PhantomError
 from phantom.cli.common import output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
+from phantom.host.model_worker import _descendants
 from phantom.host.scene_runner import SceneRunner, prepare_run
 from phantom.model.errors import SceneError
 
@@ -536,3 +538,55 @@ def test_a_model_worker_killed_like_the_oom_killer_does_is_replaced_and_answers(
     assert restarts == 1                    # two callers found it dead; one replaced it
     np.testing.assert_allclose(after.pressures_pa, before.pressures_pa)
     np.testing.assert_allclose(again.pressures_pa, before.pressures_pa)
+
+
+@pytest.mark.slow
+def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(tmp_path):
+    """Issue 23, defect 12: SIGTERM during a first start's table build killed the daemon at once; its worker died
+    with it (PR_SET_DEATHSIG), but the build's own pool processes were left under PID 1, one spinning, one hung."""
+    from phantom import cache_dir
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    for kind in cache_dir("meshes").parent.iterdir():           # everything cached but the response tables
+        if kind.name != "response":
+            (cache / kind.name).symlink_to(kind)
+    daemon = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--port",
+                               str(tmp_path / "no-board"), "--socket", str(tmp_path / "d.sock")],
+                              env={**os.environ, "PHANTOM_CACHE_DIR": str(cache)}, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 180
+        while not (builders := [pid for pid in _descendants(daemon.pid) if pid not in _children(daemon.pid)]):
+            assert daemon.poll() is None and time.monotonic() < deadline, "no table build started"
+            time.sleep(0.2)
+        everyone = _descendants(daemon.pid)
+        daemon.send_signal(signal.SIGTERM)
+        assert daemon.wait(30) == 0
+        deadline = time.monotonic() + 10
+        while (alive := [pid for pid in everyone if _runs(pid)]) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert alive == [], f"left running: {alive} (table builders {builders})"
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+            daemon.wait(10)
+
+
+def _children(pid):
+    return [child for child in _descendants(pid) if _parent(child) == pid]
+
+
+def _parent(pid):
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _runs(pid):
+    state = Path(f"/proc/{pid}/stat")
+    try:
+        return state.read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
