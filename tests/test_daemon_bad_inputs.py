@@ -14,6 +14,7 @@ from phantom.host.api import ApiError
 from phantom.host.config import ConfigError, load_config
 from phantom.host.handlers import HeavyRequests
 from phantom.host.scenes import MAX_STEPS, parse_target, parse_timeline
+from phantom.model.calibration.calibrate import CalibrationError, load_measurements
 from phantom.model.errors import SceneError
 from phantom.model.scene import read_scene_toml
 
@@ -103,3 +104,28 @@ def test_heavy_requests_beyond_the_queue_are_answered_busy():
 def test_targets_that_gave_an_internal_error_are_refused_with_a_reason(raw, words):
     with pytest.raises(SceneError, match=words):
         parse_target(raw, CHAMBERS)
+
+
+MEASUREMENTS = "# pressures and volumes, 20 °C\np0_kpa,p1_kpa,p2_kpa,measured_ml\n0,0,0,26.1\n1,1,1,30.2\n2,2,2,34.5\n"
+
+
+@pytest.mark.parametrize("encoding, words", [("latin-1", "not UTF-8 text"), ("utf-16", "it is UTF-16")])
+def test_a_measurement_table_not_in_utf8_says_so(tmp_path, encoding, words):
+    path = tmp_path / "measured.csv"
+    path.write_bytes(MEASUREMENTS.encode(encoding))          # was a UnicodeDecodeError traceback
+    with pytest.raises(CalibrationError, match=words):
+        load_measurements(path, 3)
+
+
+def test_a_measurement_table_with_a_byte_order_mark_is_read(tmp_path):
+    path = tmp_path / "measured.csv"
+    path.write_bytes(MEASUREMENTS.encode("utf-8-sig"))       # was "needs columns p0_kpa...; it has ['\ufeffp0_kpa'"
+    assert len(load_measurements(path, 3).volumes_m3) == 3
+
+
+def test_a_huge_measurement_table_is_refused_by_its_size(tmp_path):
+    huge = tmp_path / "huge.csv"
+    with open(huge, "wb") as handle:
+        handle.truncate(2 * 2**30)
+    with pytest.raises(CalibrationError, match="larger than 1 MiB"):
+        load_measurements(huge, 3)
