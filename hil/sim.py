@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError
+from phantom import PhantomError, process_temporary_folder
 from phantom.hil.firmware import ensure_firmware, function_addresses, mcu_of, stock_bootloader
 from phantom.hil.harness import HarnessProcess
 from phantom.hil.plant import load_plant
@@ -114,7 +114,7 @@ class SimulatedBoard:
         """Start the harness; the port exists when this returns."""
         if self._harness is not None:
             return self
-        directory = self._directory = tempfile.TemporaryDirectory(prefix="phantom-sim-")
+        directory = self._directory = process_temporary_folder("phantom-sim-")
         mcu = mcu_of(self.elf)
         arguments = ["--elf", str(self.elf), "--mcu", mcu, "--link", self.port]
         arguments += ["--speed", repr(self.speed), "--seed", str(self.seed)]

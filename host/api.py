@@ -13,16 +13,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import json
 import logging
 import os
+import resource
+import socket
 import stat
+import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from phantom import PhantomError
+from phantom.host.peer import private_folder
 
 logger = logging.getLogger(__name__)
 
@@ -37,6 +42,7 @@ ERROR_CODES: dict[str, str] = {
     "starting": "the daemon is still starting (its model, or the first connection to the board): data says how "
                 "far it is; try again shortly",
     "rejected": "the board refused the command (e.g. a fault is latched and its cause persists)",
+    "busy": "too many requests of this kind are in progress: try again when they are answered",
     "internal": "a bug in the daemon: please report it",
 }
 
@@ -48,6 +54,19 @@ CLIENT_QUEUE_LINES = 256
 
 #: Longest request line accepted (bytes).
 MAX_REQUEST_BYTES = 64 * 1024
+
+#: File descriptors kept out of the API's reach (the board's port, the model worker's pipes, the recording, the
+#: log): clients are capped this far below the process's file limit.
+RESERVED_FILES = 64
+
+#: Requests started in one turn of the event loop; the rest wait for the next turn. The loop runs every callback
+#: that is ready in a turn before it looks at its timers again: 50 clients' `status` in one turn delayed the
+#: control loop's timers by their sum.
+REQUESTS_PER_TURN = 8
+
+#: Connections the kernel queues until the daemon accepts them (one at a time): a burst of clients must fit, for
+#: a client of a full queue (asyncio's, at least) believes it is connected and then finds the connection reset.
+LISTEN_BACKLOG = 1024
 
 
 class ApiError(PhantomError):
@@ -65,6 +84,10 @@ class ApiError(PhantomError):
 Handler = Callable[[dict[str, Any]], Awaitable[object]]
 
 
+class RawJson(str):
+    """A result already written as JSON text (a large one, made off the event loop): sent as it is."""
+
+
 @dataclass
 class Client:
     """One connected client: its outgoing queue, subscriptions and counters."""
@@ -73,6 +96,10 @@ class Client:
     queue: asyncio.Queue[bytes | None]
     topics: set[str] = field(default_factory=set)
     dropped_lines: int = 0
+    #: when it last sent a request, or connected (monotonic s)
+    active_s: float = field(default_factory=time.monotonic)
+    #: the task that reads its requests (cancelled to close it)
+    task: asyncio.Task[None] | None = None
 
     def offer(self, line: bytes) -> bool:
         """Queue ``line`` if there is room; otherwise drop it and count. Never blocks."""
@@ -96,19 +123,29 @@ class ApiServer:
         with its code. ``subscribe`` is handled here.
     mode : int
         File mode of the socket (0o660: the owner and the group may drive the phantom).
+    max_clients : int, optional
+        Connections served at once; default: the process's file limit less :data:`RESERVED_FILES`. A connection
+        beyond it closes the longest idle one (told why in an error line), so that the client that needs the
+        daemon (to vent) is answered and the port can be reopened: at the file limit itself, accepting fails
+        and asyncio stops listening for a second at a time.
     """
 
     def __init__(self, socket_path: str | Path, handlers: dict[str, Handler], mode: int = 0o660,
-                 queue_lines: int = CLIENT_QUEUE_LINES):
+                 queue_lines: int = CLIENT_QUEUE_LINES, max_clients: int | None = None):
         self.socket_path = Path(socket_path)
         self.handlers = dict(handlers)
         self.mode = mode
         self.queue_lines = queue_lines
+        self.max_clients = max_clients if max_clients is not None else _client_cap()
         self.clients: dict[int, Client] = {}
         self.dropped_lines_total = 0
         self.requests_total = 0
         self.errors_total = 0
-        self._server: asyncio.AbstractServer | None = None
+        self.clients_shed_total = 0
+        self._listener: socket.socket | None = None
+        self._accepting: asyncio.Task[None] | None = None
+        self._files_short = False
+        self._started_this_turn = 0
         self._next_client = 1
         #: the answer to a request that comes before the handlers are installed (what the daemon is doing)
         self.starting: Callable[[], ApiError] = lambda: ApiError(
@@ -134,30 +171,59 @@ class ApiServer:
                 raise PhantomError(f"a daemon already listens on {self.socket_path}: stop it, or pass another "
                                    "--socket")
             self.socket_path.unlink()  # a stale socket left by a daemon that died
+        listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            self._server = await asyncio.start_unix_server(self._serve_client, path=str(self.socket_path),
-                                                           limit=MAX_REQUEST_BYTES)
+            listener.bind(str(self.socket_path))
+            listener.listen(LISTEN_BACKLOG)
         except OSError as error:
+            listener.close()
             raise PhantomError(f"cannot listen on {self.socket_path}: {error.strerror}; pass another "
                                "--socket") from None
+        listener.setblocking(False)
         os.chmod(self.socket_path, self.mode)
+        self._listener = listener
+        self._accepting = asyncio.create_task(self._accept(listener), name="API accept")
 
     async def close(self) -> None:
         """Stop listening, drop every client and remove the socket file."""
-        if self._server is not None:
-            self._server.close()
+        if self._accepting is not None:
+            self._accepting.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._accepting
         for task in list(self._tasks):
             task.cancel()
         for task in list(self._tasks):
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        if self._server is None:
+        if self._listener is None:
             return  # never listened: the path, if any, is another daemon's
-        with contextlib.suppress(Exception):
-            await asyncio.wait_for(self._server.wait_closed(), 1.0)
+        self._listener.close()
         with contextlib.suppress(FileNotFoundError):
             self.socket_path.unlink()
-        self._server = None
+        self._listener = None
+
+    async def _accept(self, listener: socket.socket) -> None:
+        """Accept connections one at a time, each only once there is room for it (the longest idle client is
+        closed to make it); a file limit reached anyway (by other files) is logged once and waited out."""
+        loop = asyncio.get_running_loop()
+        while True:
+            while self.clients and len(self.clients) >= self.max_clients:
+                await self._shed_longest_idle()
+            try:
+                connection, _ = await loop.sock_accept(listener)
+            except OSError as error:
+                if error.errno not in (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM):
+                    raise
+                if not self._files_short:
+                    logger.warning("API connections: no file descriptor left to accept one (%s), with %d "
+                                   "clients: waiting for files to be freed", error.strerror, len(self.clients))
+                self._files_short = True
+                await asyncio.sleep(0.1)
+                continue
+            reader, writer = await asyncio.open_unix_connection(sock=connection, limit=MAX_REQUEST_BYTES)
+            task = asyncio.create_task(self._serve_client(reader, writer))
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
 
     def publish(self, topic: str, data: dict[str, Any]) -> None:
         """Offer an event to every client subscribed to ``topic``; never blocks, drops where full."""
@@ -173,18 +239,35 @@ class ApiServer:
 
     def stats(self) -> dict[str, Any]:
         """Counters for ``status``: clients, requests, errors, lines dropped for slow clients."""
-        return {"clients": len(self.clients), "requests": self.requests_total, "errors": self.errors_total,
+        return {"clients": len(self.clients), "max_clients": self.max_clients,
+                "clients_shed": self.clients_shed_total, "requests": self.requests_total, "errors": self.errors_total,
                 "dropped_lines": self.dropped_lines_total}
+
+    async def _shed_longest_idle(self) -> None:
+        """Close the client idle the longest, with an error line saying why; the first time, log a warning."""
+        idle = min(self.clients.values(), key=lambda client: client.active_s)
+        if self.clients_shed_total == 0:
+            logger.warning("%d API connections, the most served at once (the file limit less %d): the longest "
+                           "idle is closed for each new one from now on (counted in status api.clients_shed)",
+                           self.max_clients, RESERVED_FILES)
+        self.clients_shed_total += 1
+        idle.offer(_error_line(None, "busy", f"the daemon serves at most {self.max_clients} connections: this one, "
+                               "the longest idle, was closed for a new one; reconnect when needed"))
+        self.clients.pop(idle.number, None)
+        if idle.task is not None:
+            idle.task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await idle.task
 
     async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Read requests from one client until it goes; answers go through its queue and writer task."""
-        client = Client(self._next_client, asyncio.Queue(maxsize=self.queue_lines))
+        this_task = asyncio.current_task()
+        assert this_task is not None  # a client is served in a task of its own
+        client = Client(self._next_client, asyncio.Queue(maxsize=self.queue_lines), task=this_task)
         self._next_client += 1
         self.clients[client.number] = client
         writer_task = asyncio.create_task(self._drain_client(client, writer))
         self._tasks.add(writer_task)
-        this_task = asyncio.current_task()
-        assert this_task is not None  # a client is served in a task of its own
         self._tasks.add(this_task)
         try:
             while True:
@@ -201,6 +284,7 @@ class ApiServer:
                     break
                 if not line.strip():
                     continue
+                client.active_s = time.monotonic()
                 try:
                     reply = await self._answer(line, client)
                 except Exception as error:  # a bug here must not end the connection; it is reported and logged
@@ -266,6 +350,7 @@ class ApiServer:
             self.errors_total += 1
             return _error_line(request_id, "invalid_request", "\"params\" must be a JSON object")
         result: object
+        await self._pace()
         try:
             if method == "subscribe":
                 result = self._subscribe(client, params)
@@ -286,7 +371,20 @@ class ApiServer:
             logger.exception("API method %s failed", method)
             self.errors_total += 1
             return _error_line(request_id, "internal", f"{type(error).__name__}: {error}")
+        if isinstance(result, RawJson):
+            return f'{{"id":{json.dumps(request_id)},"result":{result}}}\n'.encode()
         return _encode({"id": request_id, "result": result})
+
+    async def _pace(self) -> None:
+        """Wait for a turn of the event loop in which fewer than :data:`REQUESTS_PER_TURN` requests started."""
+        while self._started_this_turn >= REQUESTS_PER_TURN:
+            await asyncio.sleep(0)
+        if self._started_this_turn == 0:
+            asyncio.get_running_loop().call_soon(self._new_turn)
+        self._started_this_turn += 1
+
+    def _new_turn(self) -> None:
+        self._started_this_turn = 0
 
     def _subscribe(self, client: Client, params: dict[str, Any]) -> dict[str, Any]:
         """Add topics to a client's subscriptions (default: all)."""
@@ -300,9 +398,22 @@ class ApiServer:
         return {"topics": sorted(client.topics)}
 
 
+def _client_cap() -> int:
+    """The most API connections at once: the process's file limit less :data:`RESERVED_FILES` (at least 16)."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        soft = 2**16
+    return max(16, soft - RESERVED_FILES)
+
+
 def _encode(message: dict[str, Any]) -> bytes:
-    """One JSON line; NaN (no value yet) is written as null."""
-    return (json.dumps(_finite(message), separators=(",", ":")) + "\n").encode()
+    """One JSON line; NaN (no value yet) is written as null. The C encoder alone does the common case, a message
+    without NaN (the Python walk that replaces NaN took three times as long)."""
+    try:
+        text = json.dumps(message, separators=(",", ":"), allow_nan=False)
+    except ValueError:
+        text = json.dumps(_finite(message), separators=(",", ":"))
+    return (text + "\n").encode()
 
 
 def _finite(value: Any) -> Any:
@@ -337,7 +448,9 @@ def default_socket_path() -> Path:
     """The socket the daemon listens on and clients call by default.
 
     ``$PHANTOM_SOCKET`` if set; else ``/run/phantom/phantomd.sock`` when that folder exists (the systemd
-    service's RuntimeDirectory); else ``$XDG_RUNTIME_DIR/phantomd.sock``; else ``/tmp/phantomd-<uid>.sock``.
+    service's RuntimeDirectory); else ``$XDG_RUNTIME_DIR/phantomd.sock``; else ``/tmp/phantomd-<uid>/phantomd.sock``
+    in a folder only this user may write (a socket straight in /tmp could be squatted by another user's fake
+    daemon: sudo and cron have no ``$XDG_RUNTIME_DIR``).
     """
     if os.environ.get("PHANTOM_SOCKET"):
         return Path(os.environ["PHANTOM_SOCKET"])
@@ -345,4 +458,4 @@ def default_socket_path() -> Path:
         return Path("/run/phantom/phantomd.sock")
     if os.environ.get("XDG_RUNTIME_DIR"):
         return Path(os.environ["XDG_RUNTIME_DIR"]) / "phantomd.sock"
-    return Path(f"/tmp/phantomd-{os.getuid()}.sock")
+    return private_folder(Path(f"/tmp/phantomd-{os.getuid()}")) / "phantomd.sock"

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 from phantom import PhantomError
 from phantom.host.api import default_socket_path
+from phantom.host.peer import check_daemon_peer
 
 if TYPE_CHECKING:
     import numpy as np
@@ -365,6 +366,11 @@ class Connection:
                                       "daemon` (or pass the right socket)") from error
         except PermissionError as error:
             raise ConnectionLostError("no_daemon", f"no permission to use {path}: join the daemon's group") from error
+        try:
+            check_daemon_peer(writer.get_extra_info("socket"), path)
+        except PhantomError:
+            writer.close()
+            raise
         return cls(path, reader, writer)
 
     async def close(self) -> None:

@@ -26,10 +26,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError
+from phantom import PhantomError, read_text
 
 #: The metadata key under which a field keeps its :class:`Setting`.
 SETTING = "setting"
+
+#: The largest config file read (bytes): the shipped one is under 3 KiB.
+MAX_CONFIG_BYTES = 2**20
 
 #: Groups of settings that exclude each other (at most one of a group is given), and whether one is required.
 GROUPS: dict[str, bool] = {"board": True, "recording": False}
@@ -109,7 +112,7 @@ class DaemonConfig:
     run_scene: bool = setting(False, "play the scene's [[steps]] as soon as the daemon is ready")
     socket: Path | None = setting(
         None, "the API's Unix socket (default: $PHANTOM_SOCKET, /run/phantom/phantomd.sock, "
-        "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID.sock)", metavar="PATH")
+        "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID/phantomd.sock)", metavar="PATH")
     rerun_save: Path | None = setting(None, "record to this .rrd file (its folder is created)", metavar="FILE",
                                       group="recording")
     rerun_connect: str | None = setting(None, "stream to a Rerun viewer (rerun+http://.../proxy)", metavar="ADDR",
@@ -121,6 +124,15 @@ class DaemonConfig:
                                     "falls silent this long", metavar="MS", at_least=50, at_most=10000)
     telemetry_period_ms: int = setting(20, "the board's telemetry period (ms)", metavar="MS", at_least=10,
                                        at_most=1000)
+    kp_per_kpa: float = setting(4.0, "the board's PID proportional gain (drive level per kPa), sent to every chamber "
+                                "with SET_PID at each connection", metavar="K", at_least=0, at_most=100)
+    ki_per_kpa_s: float = setting(15.0, "the board's PID integral gain (drive level per kPa s)", metavar="K",
+                                  at_least=0, at_most=1000)
+    kd_s_per_kpa: float = setting(0.0, "the board's PID derivative gain (drive level per kPa/s)", metavar="K",
+                                  at_least=0, at_most=1)
+    pressure_limit_kpa: float = setting(4.0, "the board's over-pressure limit per chamber (kPa): a chamber above it "
+                                        "latches OVERPRESSURE; at least the scene's pressure_max_kpa", metavar="KPA",
+                                        above=0, at_most=6)
     vent_on_exit: bool = setting(True, "vent the phantom when the daemon stops")
     zero_on_connect: bool = setting(True, "zero the pressure sensors (ZERO_SENSORS) after connecting when the "
                                     "phantom is vented")
@@ -208,14 +220,13 @@ def load_config(path: str | Path) -> dict[str, Any]:
     value of the wrong type or out of range.
     """
     path = Path(path)
+    text = read_text(path, MAX_CONFIG_BYTES, "the config file", ConfigError)
     try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"the config file {path} does not exist") from None
-    except (OSError, UnicodeDecodeError) as error:
-        raise ConfigError(f"the config file {path} cannot be read: {error}") from None
+        raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as error:
         raise ConfigError(f"the config file {path} is not valid TOML: {error}") from None
+    except RecursionError:
+        raise ConfigError(f"the config file {path} is not valid TOML: it nests too deeply") from None
     table = raw.get("daemon", {})
     if not isinstance(table, dict):
         raise ConfigError(f"{path}: daemon must be a table ([daemon])")

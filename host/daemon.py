@@ -36,6 +36,7 @@ import numpy as np
 
 from phantom import PhantomError
 from phantom.host.api import ApiError, ApiServer, Handler, default_socket_path
+from phantom.host.board_watch import BoardSettings, SetpointWatch, Stillness
 from phantom.host.config import DaemonConfig
 from phantom.host.estimation import EstimateRequest, EstimateSchedule
 from phantom.host.handlers import ApiHandlers
@@ -43,19 +44,21 @@ from phantom.host.logs import configured_level
 from phantom.host.model_worker import Estimate, ModelWorker
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.recording import Recorder
-from phantom.host.scene_runner import SceneRunner
+from phantom.host.scene_runner import PreparedRun, SceneRunner, prepare_run
 from phantom.host.scenes import gland_volume_ml
 from phantom.host.session import (
     BoardInfo,
     CommandRejected,
     LinkDown,
     LinkSession,
+    LinkThread,
     LinkTiming,
     Telemetry,
     Transport,
     fault_names,
 )
 from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
+from phantom.host.stalls import LoopStalls
 from phantom.host.startup import StartupProgress, TableBuild, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model import load_scene
@@ -68,12 +71,17 @@ logger = logging.getLogger(__name__)
 PA_PER_KPA = 1e3
 ML_PER_M3 = 1e6
 
-#: After connecting, how long the daemon keeps asking a board that answers NOT_SETTLED (s): a board that just
-#: started (or a phantom still deflating) needs its readings steady for about 2 s before it accepts a zero;
-#: targets wait meanwhile, so that their setpoints do not cancel the zero.
-ZERO_SETTLE_WAIT_S = 5.0
-#: How often it asks again (s).
+#: After connecting, how long the daemon keeps asking a board that answers NOT_SETTLED (s): the board zeroes only
+#: once every reading has been still for 2 s, which a phantom still deflating after a vent or a reset takes a
+#: while to be; the daemon asks again each time the readings have been still that long (its status says how far
+#: they are), and says the zero is missing if they never are. Targets wait meanwhile, so that their setpoints do
+#: not cancel the zero.
+ZERO_SETTLE_LIMIT_S = 60.0
+#: How often the wait looks at the readings (s); the board is asked again at least every four of these.
 ZERO_RETRY_S = 0.5
+#: After a target could not be sent (refused, not acknowledged), how long the control loop waits before it tries
+#: again (s).
+RETRY_S = 0.5
 #: Why the board refuses ZERO_SENSORS, by NACK status (protocol/spec.toml); other statuses are named as such.
 ZERO_REFUSALS: dict[str, str] = {
     "NOT_VENTED": "a setpoint or a blower is on: vent first (phantom vent) and wait for the chambers to empty",
@@ -92,6 +100,7 @@ SOCKET_MODE = 0o660
 BOARD_METHODS = ("set_target", "run_scene", "zero", "clear_fault")
 #: How often (s) the background table build's progress goes to the log and to systemd's status line.
 BUILD_REPORT_S = 10.0
+
 
 
 class Daemon:
@@ -123,15 +132,35 @@ class Daemon:
         self.events: deque[dict[str, Any]] = deque(maxlen=100)
         self.fault_flags = 0
         self.model_counts: dict[str, int] = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
+        self._model_restarts_seen = 0
         self.meshes_logged = 0
         self.scenes = SceneRunner(clock, self.event)
         self.schedule = EstimateSchedule(config.mesh_hz)
+        #: the target the board holds (its setpoints acknowledged and not lost since), and why the current one waits
+        self.applied_target: Target | None = None
+        self.target_pending: str | None = None
+        self.vented_why: str | None = None
+        self.board_settings = BoardSettings(config.kp_per_kpa, config.ki_per_kpa_s, config.kd_s_per_kpa,
+                                            config.pressure_limit_kpa * PA_PER_KPA)
+        self.board_settings_source = "not set yet: no board has been connected"
+        self.setpoint_watch = SetpointWatch()
+        self.loop_stalls = LoopStalls()
+        self.stillness = Stillness()
+        self.zero_state: dict[str, Any] = {"state": "not asked", "text": "no zero asked since the daemon started"}
         self._stop = asyncio.Event()
         self._exit_code = 0
         self._link_log_due_s = 0.0
         self._rest_surface_logged = False
         self._setpoint_lock = asyncio.Lock()
-        self._scene_target_pending = False
+        self._zeroing = False
+        self._zero_done = asyncio.Event()
+        self._applying = False
+        self._was_online = False
+        self._pending_since_s: float | None = None
+        self._retry_after_s = 0.0
+        self._unreachable: Target | None = None
+        self._target_step: int | None = None
+        self._target_ramp: tuple[Target, Target] | None = None
         self._tasks: list[asyncio.Task[Any]] = []
         self._background: set[asyncio.Task[Any]] = set()
         #: start-up: what it is doing until ready (the model answers and the board was first online and zeroed)
@@ -214,7 +243,8 @@ class Daemon:
             self.event("startup", "model ready: " + ", ".join(f"{key} {value:.2f} s"
                                                              for key, value in info.timings_s.items()))
             self._tasks = [asyncio.create_task(self.session.run(), name="link"),
-                           asyncio.create_task(self._control_loop(), name="control")]
+                           asyncio.create_task(self._control_loop(), name="control"),
+                           asyncio.create_task(self.loop_stalls.probe(), name="event loop probe")]
             if info.pending_fidelity is not None:
                 self._start_table_build()
             if self.sim_board is not None:
@@ -224,7 +254,8 @@ class Daemon:
             logger.info("serving: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
             if self.config.run_scene:
                 try:
-                    self.start_scene(info.scene_raw, info.scene_path, 1.0, info.wants_shape)
+                    self.start_scene(prepare_run(info.scene_raw, info.scene_path, self.chamber_names, 1.0,
+                                                 info.wants_shape))
                 except SceneError as error:
                     self.event("scene", f"the scene's [[steps]] were not started: {error}", "ERROR")
             await self._stop.wait()
@@ -263,6 +294,12 @@ class Daemon:
                 self.event("vent", "vented on shutdown")
             except (TimeoutError, PhantomError) as error:
                 self.event("vent", f"could not vent on shutdown: {error}", "ERROR")
+            # and the board's session ends, so that it does not latch DEAD_HOST once the daemon is gone
+            if await self.session.end_session():
+                self.event("link", "session ended: the board is vented and expects no host")
+            else:
+                self.event("link", "the board did not answer the end of its session: it will latch DEAD_HOST",
+                           "WARN")
         notify_systemd("STOPPING=1")
         self.session.stop()
         if self.table_build is not None:
@@ -273,7 +310,6 @@ class Daemon:
         for task in [*self._tasks, *self._background]:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
-        self.session.transport.close()
         await self.api.close()
         self.recorder.log_event(self.now_s(), "daemon stopped")
         self.recorder.close()
@@ -292,15 +328,20 @@ class Daemon:
         logger.log(LEVELS.get(level, logging.INFO), "%s", text)
 
     def on_telemetry(self, telemetry: Telemetry) -> None:
-        """Keep the latest frame and the estimation window; log and publish it."""
+        """Keep the latest frame and the estimation window; check the board's setpoints; log and publish it."""
         self.telemetry = telemetry
         self.schedule.add(telemetry.board_time_ms / 1e3, telemetry.pressures_pa)
+        self.stillness.frame(telemetry.board_time_ms / 1e3, telemetry.pressures_pa)
         if telemetry.fault_flags != self.fault_flags:
             if telemetry.fault_flags and not self.fault_flags:
                 self.event("fault", f"faults latched: {', '.join(fault_names(telemetry.fault_flags))}", "ERROR")
+                # the board set every setpoint to 0 and will refuse setpoints until the fault is cleared
+                self._board_dropped_setpoints(np.zeros(len(self.chamber_names)))
             elif not telemetry.fault_flags:
                 self.event("fault", "faults cleared")
             self.fault_flags = telemetry.fault_flags
+        if not telemetry.fault_flags and self.setpoint_watch.frame(telemetry.setpoints_pa, self.clock()):
+            self._mismatch(telemetry.setpoints_pa)
         now_s = self.now_s()
         self.recorder.log_telemetry(now_s, telemetry.pressures_pa / PA_PER_KPA, telemetry.setpoints_pa / PA_PER_KPA,
                                     telemetry.drive_levels)
@@ -312,21 +353,26 @@ class Daemon:
             "fault_flags": telemetry.fault_flags})
 
     async def on_online(self, board: BoardInfo, reconnected: bool) -> None:
-        """The link came up: zero the sensors if the phantom is vented, else restore the current setpoints
-        (a board that reset starts with none)."""
+        """The link came up: set the board's gains and limits, then apply the current target (a board that reset
+        holds no setpoints), or zero the sensors if the phantom is vented."""
         self.schedule.clear()
+        self.stillness = Stillness()
+        self._board_dropped_setpoints(None)
         if board.chamber_count != len(self.chamber_names):
             self.event("link", f"the board has {board.chamber_count} chambers, the scene "
                        f"{len(self.chamber_names)}: setpoints not sent", "ERROR")
             return
-        if self.setpoints_pa is not None and self.control_state is not ControlState.VENTED and np.any(
-                self.setpoints_pa > 0):
-            self.spawn(self.send_setpoints_quietly(self.setpoints_pa, "restored after (re)connection"))
-        elif self.config.zero_on_connect:
-            if not self.ready:
-                self.startup.enter("zeroing the pressure sensors (the phantom is vented)")
-            self.spawn(self.zero_quietly()).add_done_callback(lambda _: self._became_ready())
-            return
+        await self.send_board_settings("at connection")
+        if self.target is None or self.control_state is ControlState.VENTED:
+            # the daemon drives nothing: setpoints on the board are someone else's
+            self.setpoints_pa = np.zeros(len(self.chamber_names))
+            self.setpoint_watch.expect(self.setpoints_pa, self.clock())
+            if self.config.zero_on_connect:
+                self._zeroing = True  # targets wait for the zero from now on
+                if not self.ready:
+                    self.startup.enter("zeroing the pressure sensors (the phantom is vented)")
+                self.spawn(self.zero_quietly()).add_done_callback(lambda _: self._became_ready())
+                return
         self._became_ready()
 
     # --- readiness and the background table -------------------------------------------------------------
@@ -391,70 +437,127 @@ class Daemon:
         self.event("model", f"switched to the {info.fidelity} level: the response table was built in "
                    f"{build.progress.elapsed_s:.0f} s, within {build.check_errors_pct or 0.0:.2g} % of full solves")
         notify_systemd(f"STATUS={'ready' if self.ready else self.startup.stage}: fidelity {info.fidelity}")
-        if self.target is not None and self.control_state is ControlState.HOLDING and self.session.online:
+        if self.target is not None and self.control_state is not ControlState.VENTED:
+            # the target's setpoints came from a full solve: the control loop solves it again on the new level and
+            # sends them (or says why it cannot)
+            async with self._setpoint_lock:
+                self.inverse_result, self.applied_target = None, None
+
+    async def send_board_settings(self, when: str) -> bool:
+        """SET_PID to every chamber with the daemon's gains and limit; the answer goes to ``board_settings`` in the
+        status. A refusal because a chamber holds a setpoint above the new limit vents first."""
+        for chamber in range(len(self.chamber_names)):
+            fields = self.board_settings.set_pid_fields(chamber)
             try:
-                await self.apply_target(self.target, self.target_source or "api")
-            except ApiError as error:
-                self.event("model", f"the target could not be solved again on the {info.fidelity} level: {error}",
-                           "WARN")
+                try:
+                    await self.session.command("SET_PID", fields)
+                except CommandRejected as error:
+                    if error.status != "BAD_VALUE":
+                        raise
+                    self.event("board", f"the board refused its limits with a setpoint above "
+                               f"{self.board_settings.pressure_limit_pa / PA_PER_KPA:g} kPa: venting first", "WARN")
+                    await self.session.command("VENT")
+                    await self.session.command("SET_PID", fields)
+            except (LinkDown, CommandRejected) as error:
+                self.board_settings_source = f"unknown: SET_PID failed ({error})"
+                self.event("board", f"the board's gains and limits could not be set {when}: {error}", "ERROR")
+                return False
+        self.board_settings_source = f"set by the daemon {when} (SET_PID acknowledged, {time.strftime('%H:%M:%S')})"
+        return True
 
     async def zero_quietly(self) -> None:
-        """ZERO_SENSORS after connecting to a vented phantom; a refusal is an event, not an error."""
+        """ZERO_SENSORS after connecting to a vented phantom, waiting for still readings; a refusal is an event
+        and the status's ``zero`` says the zero is missing."""
         try:
-            acknowledged = await self.zero_sensors(settle_wait_s=ZERO_SETTLE_WAIT_S)
+            acknowledged = await self.zero_sensors(settle_limit_s=ZERO_SETTLE_LIMIT_S)
             self.event("zero", "sensors zeroed after connecting (the phantom was vented)"
                        + ("" if acknowledged else "; the board's ACK was not seen (a retransmission found it busy)"))
         except ApiError as error:
+            self.zero_state = {"state": "missing", "text": f"the sensors were not zeroed after connecting: {error}"}
             self.event("zero", f"sensors not zeroed after connecting: {error}", "WARN")
 
-    async def zero_sensors(self, settle_wait_s: float = 0.0) -> bool:
+    async def zero_sensors(self, settle_limit_s: float = 0.0) -> bool:
         """ZERO_SENSORS; True when acknowledged, False when the board was found zeroing already (its ACK comes
         after the zeroing, about 128 ms, so a retransmission can meet BUSY while our own request runs: the
-        daemon then waits for the telemetry to leave ZEROING). A board that answers NOT_SETTLED is asked again
-        every ``ZERO_RETRY_S`` for up to ``settle_wait_s`` seconds. Raises ApiError ``rejected`` saying why the
+        daemon then waits for the telemetry to leave ZEROING). A board that answers NOT_SETTLED is asked again,
+        for up to ``settle_limit_s`` seconds, each time the readings have been still for as long as the board
+        needs (its own rule, followed on the telemetry; the progress is in the status's ``zero``). Targets wait
+        meanwhile, so that their setpoints do not cancel the zero. Raises ApiError ``rejected`` saying why the
         board refused."""
-        # the board answers BUSY to setpoints while it zeroes: a target waits for the zeroing instead
-        async with self._setpoint_lock:
-            give_up_s = time.monotonic() + settle_wait_s
+        self._zeroing = True
+        self._zero_done.clear()
+        give_up_s = time.monotonic() + settle_limit_s
+        try:
             while True:
-                try:
-                    await self.session.command("ZERO_SENSORS")
-                    return True
-                except LinkDown as error:
-                    raise ApiError("link_down", str(error)) from error
-                except CommandRejected as error:
-                    if error.status == "BUSY":
-                        break
-                    if error.status == "NOT_SETTLED" and time.monotonic() + ZERO_RETRY_S <= give_up_s:
-                        await asyncio.sleep(ZERO_RETRY_S)
-                        continue
-                    why = ZERO_REFUSALS.get(error.status, f"the board answered {error.status}")
-                    raise ApiError("rejected", f"the board refused to zero its sensors: {error.status} "
-                                   f"({why})") from error
-            for _ in range(40):
-                await asyncio.sleep(0.05)
-                if self.telemetry is not None and "ZEROING" not in self.telemetry.states:
-                    return False
-            raise ApiError("rejected", "the board stayed busy zeroing its sensors for 2 s: try again")
+                async with self._setpoint_lock:
+                    try:
+                        await self.session.command("ZERO_SENSORS")
+                        self.zero_state = {"state": "zeroed", "text": f"zeroed at {time.strftime('%H:%M:%S')}"}
+                        return True
+                    except LinkDown as error:
+                        raise ApiError("link_down", str(error)) from error
+                    except CommandRejected as error:
+                        if error.status == "BUSY":
+                            return await self._wait_zeroing_over()
+                        if error.status != "NOT_SETTLED" or time.monotonic() + ZERO_RETRY_S > give_up_s:
+                            why = ZERO_REFUSALS.get(error.status, f"the board answered {error.status}")
+                            raise ApiError("rejected", f"the board refused to zero its sensors: {error.status} "
+                                           f"({why})") from error
+                await self._wait_still(give_up_s)
+        finally:
+            self._zeroing = False
+            self._zero_done.set()
+
+    async def _wait_still(self, give_up_s: float) -> None:
+        """Until the readings have been still for the board's settle time (or the next try is due anyway: the
+        board is the judge), with the progress in the status's ``zero``."""
+        asked_s = time.monotonic()
+        while time.monotonic() < give_up_s:
+            self.zero_state = {"state": "waiting", "text": "waiting for the chambers to be still before zeroing "
+                               f"(still for {self.stillness.still_for_s:.1f} of {self.stillness.needed_s:g} s; "
+                               f"moved {self.stillness.moved_pa:.0f} Pa)",
+                               "still_for_s": self.stillness.still_for_s, "needed_s": self.stillness.needed_s}
+            if self.stillness.still or time.monotonic() - asked_s >= ZERO_RETRY_S * 4:
+                return
+            await asyncio.sleep(ZERO_RETRY_S)
+
+    async def _wait_zeroing_over(self) -> bool:
+        for _ in range(40):
+            await asyncio.sleep(0.05)
+            if self.telemetry is not None and "ZEROING" not in self.telemetry.states:
+                self.zero_state = {"state": "zeroed", "text": f"zeroed at {time.strftime('%H:%M:%S')}"}
+                return False
+        raise ApiError("rejected", "the board stayed busy zeroing its sensors for 2 s: try again")
+
+    async def wait_for_zero(self) -> None:
+        """Wait until a zero in progress is over (a target would cancel it)."""
+        if self._zeroing:
+            await asyncio.wait_for(self._zero_done.wait(), ZERO_SETTLE_LIMIT_S + 5.0)
 
     # --- control ----------------------------------------------------------------------------------------
 
     async def _control_loop(self) -> None:
-        """Every control period: scene target, volume estimate, status, Rerun."""
+        """Every control period: scene target, what the board holds, volume estimate, status, Rerun."""
         period_s = 1.0 / CONTROL_HZ
         while True:
             started = time.monotonic()
             try:
-                self.recorder.check()
-                self.recorder.set_scene_time(self.scenes.scene_time_s())
-                self._scene_tick()
-                self._report_build_tick()
-                self._estimate_tick()
-                self._publish_status_tick()
+                self.control_tick()
             except Exception as error:  # one bad tick must not end control; it is shown to people and logged
                 logger.exception("control tick failed")
                 self.event("internal", f"control tick failed: {type(error).__name__}: {error}", "ERROR")
             await asyncio.sleep(max(0.0, period_s - (time.monotonic() - started)))
+
+    def control_tick(self) -> None:
+        """One control period: the recording's health, the scene's target, what the board holds, the table's build,
+        an estimate when due, the status."""
+        self.recorder.check()
+        self.recorder.set_scene_time(self.scenes.scene_time_s())
+        self._scene_tick()
+        self._reconcile_tick()
+        self._report_build_tick()
+        self._estimate_tick()
+        self._publish_status_tick()
 
     def wants_shape(self) -> bool:
         """Whether the deformed shape is worth computing: a recording, and a scene that asks for it."""
@@ -477,8 +580,12 @@ class Daemon:
         try:
             estimate = done.result()
         except Exception as error:  # shown, not fatal: the next tick tries again
-            self.event("estimate", f"volume estimate failed: {error}", "WARN")
+            # the last estimate is of pressures no longer measured: status shows none rather than a stale one
+            self.estimated_chamber_ml = self.estimated_volume_ml = None
+            self.event("estimate", f"volume estimate failed ({type(error).__name__}: {error}): no estimate until "
+                       "the next one succeeds", "WARN")
             return
+        self._note_model_restarts()
         self.model_counts = estimate.counts
         self.estimated_chamber_ml, self.estimated_volume_ml = estimate.chamber_volumes_ml, estimate.gland_volume_ml
         self.recorder.log_volumes(request.time_s, self.target_volume_ml(), estimate.gland_volume_ml,
@@ -493,6 +600,13 @@ class Daemon:
         self.scenes.observe(estimate.gland_volume_ml, None if answer is None else _predicted_volume_ml(answer),
                             None if answer is None else answer.target, self.plant_volume_ml())
 
+    def _note_model_restarts(self) -> None:
+        """An event when the model worker was replaced since the last look (it died: the OOM killer?)."""
+        if self.model.restarts != self._model_restarts_seen:
+            self._model_restarts_seen = self.model.restarts
+            self.event("model", f"the model worker died and was replaced ({self.model.restarts} since the daemon "
+                       "started): its model was rebuilt from the cache", "WARN")
+
     def plant_volume_ml(self) -> float | None:
         """The simulated plant's true gland volume (ml); None on a real board or before the truth model."""
         return self.sim_board.plant_volume_ml if self.sim_board is not None else None
@@ -505,29 +619,176 @@ class Daemon:
             return gland_volume_ml(self.target)
         return _predicted_volume_ml(self.inverse_result) if self.inverse_result is not None else None
 
-    async def apply_target(self, target: Target, source: str) -> dict[str, Any]:
-        """Find the pressures for ``target`` (the inverse, in the model worker) and send them as setpoints;
-        returns the inverse's answer as JSON.
+    @property
+    def target_applied(self) -> bool:
+        """Whether the board holds the setpoints of the current target (acknowledged, and not lost since)."""
+        return self.target is not None and self.applied_target == self.target and self.session.online
 
-        Raises ApiError ``unreachable`` (with the reachable range), ``link_down`` or ``rejected``.
-        """
+    # What the board holds. ``target`` is what the daemon aims at (a request's, or the scene's step); the board
+    # holds it once it acknowledged the target's setpoints (``applied_target``). A lost link, a latched fault or a
+    # board that reset drops them: the daemon then says why the target waits (``target_pending``) and applies it
+    # again as soon as it can (``_reconcile_tick``), whatever came in between (a scene's next step included).
+
+    def want(self, target: Target, source: str, step_index: int | None = None,
+             ramp: tuple[Target, Target] | None = None) -> None:
+        """Aim at ``target``: the control loop applies it as soon as the board can take it."""
+        if target == self.target and source == self.target_source:
+            return
+        if self._pending_since_s is None:
+            self._pending_since_s = self.clock()
+        self.target, self.target_source = target, source
+        self._target_step, self._target_ramp = step_index, ramp
+        if self.inverse_result is not None and self.inverse_result.target != target:
+            self.inverse_result = None
+
+    def _board_dropped_setpoints(self, setpoints_pa: np.ndarray | None) -> None:
+        """The board no longer holds the daemon's setpoints (a fault set them to 0, a new connection)."""
+        self.applied_target = None
+        self.setpoints_pa = setpoints_pa
+        self.setpoint_watch.expect(setpoints_pa, self.clock())
+        if self.target is not None and self._pending_since_s is None:
+            self._pending_since_s = self.clock()
+
+    def _why_not_now(self) -> str | None:
+        """Why the board cannot take setpoints now, or None."""
+        if not self.session.online:
+            link = self.session.status()
+            return f"the link is {link['state']}" + (f" ({link['last_error']})" if link.get("last_error") else "")
+        if self.fault_flags:
+            return (f"faults latched on the board ({', '.join(fault_names(self.fault_flags))}): clear them "
+                    "(phantom clear-fault)")
+        if self._zeroing:
+            return "the sensors are being zeroed: " + str(self.zero_state.get("text", "waiting for the board"))
+        return None
+
+    def _reconcile_tick(self) -> None:
+        """Make the board hold the current target: apply it when it is not applied and the board can take it, or
+        say why it waits."""
+        online = self.session.online
+        if self._was_online and not online:
+            self._board_dropped_setpoints(None)
+        self._was_online = online
+        target = self.target
+        if target is None or self.control_state is ControlState.VENTED or self._applying:
+            return
+        if self.applied_target == target:
+            return
+        why = self._why_not_now()
+        if why is not None:
+            self._pending(target, why)
+            return
+        if self.clock() < self._retry_after_s or target == self._unreachable:
+            return
+        self._applying = True
+        task = self.spawn(self._apply_quietly(target))
+        task.add_done_callback(lambda _: setattr(self, "_applying", False))
+
+    def _pending(self, target: Target, why: str) -> None:
+        """The target waits: say why, once per reason."""
+        if why != self.target_pending:
+            self.event("target", f"target {target.describe()} not applied: {why}"
+                       + ("" if why.startswith("unreachable") else "; it will be applied as soon as the board can "
+                          "take it"), "WARN")
+        self.target_pending = why
+
+    async def _apply_quietly(self, target: Target) -> None:
+        """Apply a target from the control loop; what goes wrong is said (events, ``target_pending``)."""
         try:
-            answer = await self.model.pressures_for(target)
+            await self.apply(target)
+        except ApiError as error:
+            if error.code == "unreachable":
+                self._unreachable = target
+                self._pending(target, f"unreachable: {error}")
+            else:
+                self._retry_after_s = self.clock() + RETRY_S
+                self._pending(target, f"{error}")
+
+    async def solve(self, target: Target, ramp: tuple[Target, Target] | None = None) -> InverseResult:
+        """The inverse's answer for ``target`` (on its ramp, when it is a point of one); ApiError ``unreachable``."""
+        try:
+            if ramp is not None:
+                return await self.model.pressures_on_ramp(ramp[0], ramp[1], target)
+            return await self.model.pressures_for(target)
         except UnreachableTargetError as error:
             raise ApiError("unreachable", str(error)) from error
+
+    async def apply(self, target: Target) -> None:
+        """Solve ``target`` (unless its answer is known) and send its setpoints, if it is still the current
+        target once the board is free; raises ApiError (``unreachable``, ``link_down``, ``rejected``)."""
+        ramp = self._target_ramp if target == self.target else None
+        answer = self.inverse_result if self.inverse_result is not None and self.inverse_result.target == target \
+            else await self.solve(target, ramp)
         self.recorder.log_solver(self.now_s(), answer.qp_solve_time_s, answer.solve_time_s)
-        if source != "api" and self.control_state is not ControlState.SCENE:
-            # the scene was stopped (vent, a new target) while the inverse ran: its answer is stale
-            return answer.to_json()
-        await self.send_setpoints(answer.pressures_pa)
-        changed = self.target != target
-        self.target, self.target_source, self.inverse_result = target, source, answer
-        if changed and source == "api":
+        async with self._setpoint_lock:
+            if target != self.target or self.applied_target == target or self.control_state is ControlState.VENTED:
+                return  # replaced (a new target, a vent) or applied meanwhile
+            await self._send_setpoints(answer.pressures_pa)
+            self.inverse_result = answer
+            self._applied(target)
+
+    def _applied(self, target: Target) -> None:
+        """The board acknowledged ``target``'s setpoints."""
+        waited = self.target_pending
+        self.applied_target, self.target_pending, self._unreachable = target, None, None
+        if self._target_step is not None:
+            self.scenes.applied(self._target_step)
+        if waited is not None and self._pending_since_s is not None:
+            self.event("target", f"target {target.describe()} applied after {self.clock() - self._pending_since_s:.1f}"
+                       f" s (it waited: {waited})")
+        self._pending_since_s = None
+
+    async def set_target(self, target: Target) -> dict[str, Any]:
+        """A target from the API: solved first, so that an unreachable one changes nothing (a playing scene goes
+        on); then sent, and only once the board has acknowledged it does it replace the scene. Returns the
+        inverse's answer as JSON; raises ApiError (``unreachable``, ``link_down``, ``rejected``)."""
+        if not self.session.online:
+            raise ApiError("link_down", f"no board: the link is {self.session.state.value}; the target was not set")
+        await self.wait_for_zero()
+        answer = await self.solve(target)
+        self.recorder.log_solver(self.now_s(), answer.qp_solve_time_s, answer.solve_time_s)
+        async with self._setpoint_lock:
+            await self._send_setpoints(answer.pressures_pa)
+            changed = self.target != target
+            self.scenes.stop("a set_target request")
+            self.control_state = ControlState.HOLDING
+            self.want(target, "api")
+            self.inverse_result = answer
+            self._applied(target)
+        if changed:
             self.event("target", f"target {target.describe()} -> setpoints "
                        f"{', '.join(f'{p / PA_PER_KPA:.3f}' for p in answer.pressures_pa)} kPa "
                        f"(predicted {_predicted_volume_ml(answer):.2f} ml, "
                        f"inverse {answer.solve_time_s * 1e3:.1f} ms)")
         return answer.to_json()
+
+    async def vent(self, why: str, level: str = "INFO") -> None:
+        """VENT (acknowledged): every setpoint 0, the target and any scene dropped; ``why`` goes to the status's
+        ``vented_why`` and the events. Raises ApiError ``link_down`` when the board cannot be told."""
+        self.scenes.stop("vented")
+        async with self._setpoint_lock:
+            self.setpoint_watch.expect(None, self.clock())
+            await self.board_command("VENT")
+            self.control_state = ControlState.VENTED
+            self.target, self.inverse_result, self.target_source = None, None, None
+            self.applied_target, self.target_pending, self._pending_since_s = None, None, None
+            self.setpoints_pa = np.zeros(len(self.chamber_names))
+            self.setpoint_watch.expect(self.setpoints_pa, self.clock())
+            self.vented_why = why
+        self.event("vent", f"vented: {why}", level)
+
+    async def clear_fault(self) -> dict[str, Any]:
+        """CLEAR_FAULT, then the current target's setpoints again (the board set them to 0 when the fault
+        latched): the target in force now, a scene's step that came while the fault was latched included."""
+        before = fault_names(self.fault_flags)
+        await self.board_command("CLEAR_FAULT")
+        self.event("fault", f"faults cleared on request (were: {', '.join(before) or 'none'})")
+        target = self.target
+        restored = False
+        if target is not None and self.control_state is not ControlState.VENTED:
+            await self.apply(target)
+            restored = self.applied_target == target
+        return {"cleared": before, "setpoints_restored": restored,
+                "target": target.to_json() if target is not None else None}
 
     async def board_command(self, name: str, fields: dict[str, Any] | None = None) -> str:
         """One acknowledged command to the board for an API request; link errors become API errors."""
@@ -538,31 +799,44 @@ class Daemon:
         except CommandRejected as error:
             raise ApiError("rejected", str(error)) from error
 
-    async def send_setpoints(self, pressures_pa: np.ndarray) -> str:
-        """SET_SETPOINTS (acknowledged); translates link errors into API errors."""
-        setpoints = [int(round(min(max(p, 0.0), 32767.0))) for p in pressures_pa]
-        async with self._setpoint_lock:
-            status = await self.board_command("SET_SETPOINTS", {"setpoint_pa": setpoints})
-        self.setpoints_pa = np.asarray(setpoints, dtype=float)
+    async def _send_setpoints(self, pressures_pa: np.ndarray) -> None:
+        """SET_SETPOINTS (acknowledged), with the setpoint lock held; link errors become API errors."""
+        setpoints = np.asarray([int(round(min(max(p, 0.0), 32767.0))) for p in pressures_pa], dtype=float)
+        self.setpoint_watch.expect(None, self.clock())  # in flight: the board may show either
+        try:
+            await self.board_command("SET_SETPOINTS", {"setpoint_pa": [int(p) for p in setpoints]})
+        except ApiError as error:
+            # refused: nothing changed on the board; not delivered: it is unknown what the board holds
+            self.setpoint_watch.expect(self.setpoints_pa if error.code == "rejected" else None, self.clock())
+            raise
+        self.setpoints_pa = setpoints
+        self.setpoint_watch.expect(setpoints, self.clock())
         if self.control_state is ControlState.VENTED or self.control_state is ControlState.IDLE:
             self.control_state = ControlState.HOLDING
-        if status == "CLAMPED":
-            self.event("setpoints", "the board clamped a setpoint to its pressure limit", "WARN")
-        return status
 
-    async def send_setpoints_quietly(self, pressures_pa: np.ndarray, why: str) -> None:
-        """Send setpoints from a background path (reconnection, scene); failures become events, once."""
+    def _mismatch(self, board_setpoints_pa: np.ndarray) -> None:
+        """The board holds setpoints the daemon did not send: vent, and set the gains and limits again."""
+        expected = self.setpoint_watch.expected_pa
+        self.setpoint_watch.expect(None, self.clock())  # once: the vent sets what is expected next
+        text = (f"the board holds setpoints {_kpa(board_setpoints_pa)} kPa that the daemon did not send (it sent "
+                f"{_kpa(expected)} kPa): another program is driving the board (a process on its port?) or the "
+                "board lost its state; the phantom is vented and the target dropped: find what drove it, then "
+                "set a target again")
+        self.event("board", text, "ERROR")
+        self.spawn(self._vent_after_mismatch(text))
+
+    async def _vent_after_mismatch(self, text: str) -> None:
         try:
-            await self.send_setpoints(pressures_pa)
-            self.event("setpoints", f"setpoints {why}")
+            await self.vent(text, "ERROR")
         except ApiError as error:
-            self.event("setpoints", f"setpoints not sent ({why}): {error}", "WARN")
+            self.event("vent", f"could not vent after the board's setpoints changed: {error}", "ERROR")
+        await self.send_board_settings("after the mismatch")
 
     # --- scenes -----------------------------------------------------------------------------------------
 
-    def start_scene(self, raw: dict[str, Any], name: str, time_scale: float, wants_shape: bool) -> dict[str, Any]:
-        """Check a scene's timeline against the loaded phantom and start playing it (SceneError if bad)."""
-        started = self.scenes.start(raw, name, self.chamber_names, time_scale, wants_shape)
+    def start_scene(self, prepared: PreparedRun) -> dict[str, Any]:
+        """Start playing a checked scene (:func:`phantom.host.scene_runner.prepare_run`)."""
+        started = self.scenes.begin(prepared)
         self.control_state = ControlState.SCENE
         return started
 
@@ -573,18 +847,8 @@ class Daemon:
         if was_active and not self.scenes.active and self.control_state is ControlState.SCENE:
             self.control_state = ControlState.HOLDING
         run = self.scenes.run
-        if target is not None and run is not None and target != self.target and not self._scene_target_pending:
-            self._scene_target_pending = True
-            task = self.spawn(self._apply_scene_target(target, run.name))
-            task.add_done_callback(lambda _: setattr(self, "_scene_target_pending", False))
-
-    async def _apply_scene_target(self, target: Target, name: str) -> None:
-        try:
-            await self.apply_target(target, f"scene:{name}")
-        except ApiError as error:
-            if self.target != target:
-                self.event("scene", f"scene target {target.describe()} not applied: {error}", "WARN")
-                self.target = target
+        if target is not None and run is not None and self.control_state is ControlState.SCENE:
+            self.want(target, f"scene:{run.name}", self.scenes.step_index(), self.scenes.ramp())
 
     # --- status -----------------------------------------------------------------------------------------
 
@@ -615,8 +879,14 @@ class Daemon:
             "target_volume_ml": self.target_volume_ml(),
             "target": self.target.to_json() if self.target is not None else None,
             "target_source": self.target_source,
+            "target_applied": self.target_applied,
+            "target_pending": self.target_pending if self.target is not None and not self.target_applied else None,
             "solution": self.inverse_result.to_json() if self.inverse_result is not None else None,
             "faults": fault_names(self.fault_flags),
+            "vented_why": self.vented_why if self.control_state is ControlState.VENTED else None,
+            "board_settings": {**self.board_settings.to_json(), "source": self.board_settings_source,
+                               "board_config_source": (link.get("board_info") or {}).get("config_source")},
+            "zero": {**self.zero_state, "sources": (link.get("board_info") or {}).get("zero_source")},
             "scene": self.scenes.to_json(),
             "startup_s": info.timings_s,
             "fidelity": info.fidelity,
@@ -626,8 +896,10 @@ class Daemon:
             "starting": None if self.ready else {**self.startup.to_json(), "text": self.startup.text()},
             "pid": os.getpid(),
             "model_counts": self.model_counts,
+            "model_worker_restarts": self.model.restarts,
             "meshes_logged": self.meshes_logged,
             "api": self.api.stats(),
+            "event_loop": self.loop_stalls.to_json(),
             "recording": self.recorder.status(),
             "uptime_s": self.now_s(),
             "events": list(self.events)[-10:],
@@ -650,6 +922,11 @@ class Daemon:
                                    stats["tx_dropped"] + stats["commands_failed"])
 
 
+def _kpa(pressures_pa: np.ndarray | None) -> str:
+    """Pressures (Pa) as people read them: ``1.000, 0.500, 0.000`` (kPa)."""
+    return "none" if pressures_pa is None else ", ".join(f"{p / PA_PER_KPA:.3f}" for p in pressures_pa)
+
+
 def _predicted_volume_ml(answer: InverseResult) -> float:
     """The gland volume (ml) the inverse predicts for its pressures."""
     return float(answer.predicted_gland_volume_m3) * ML_PER_M3
@@ -663,8 +940,8 @@ def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]
 
 def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
                   on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
-                  on_online: Callable[[BoardInfo, bool], Awaitable[None]]) -> LinkSession:
-    """The link session over the configured transport."""
+                  on_online: Callable[[BoardInfo, bool], Awaitable[None]]) -> LinkThread:
+    """The link session over the configured transport, in a thread of its own."""
     transport: Transport
     boot_delay_s = 0.0
     if config.can_channel:
@@ -684,11 +961,24 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
     timing = LinkTiming(keepalive_s=min(0.1, 0.1 / speed), hello_timeout_s=min(0.2, 0.2 / speed),
                         telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=config.host_deadline_ms,
                         boot_delay_s=boot_delay_s)
-    return LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event, on_online=on_online)
+    return LinkThread(LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event,
+                                  on_online=on_online), LoopStalls())
 
 
 async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:
-    daemon = await Daemon.start(config, simulated_board)
+    # SIGTERM or SIGINT while the parts are built (a first start builds the response table for minutes) cancels
+    # the build: the parts built so far are closed and the model worker is ended with the processes it started,
+    # which the default action (the process killed at once) left running
+    loop = asyncio.get_running_loop()
+    starting = asyncio.current_task()
+    assert starting is not None
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(signum, starting.cancel)
+    try:
+        daemon = await Daemon.start(config, simulated_board)
+    except asyncio.CancelledError:
+        logger.info("stopped while starting")
+        return 0
     return await daemon.serve()
 
 

@@ -3,14 +3,17 @@ answers JSON-ready data, or raises ``ApiError`` with one of the API's error code
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import json
+from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from phantom.host.api import ApiError, Handler
-from phantom.host.parts import ControlState
+from phantom.host.api import ApiError, Handler, RawJson
+from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import effective_model, model_differences, parse_target
-from phantom.host.session import fault_names
 from phantom.model.errors import SceneError
 from phantom.model.scene import load_scene
 
@@ -25,6 +28,7 @@ class ApiHandlers:
 
     def __init__(self, daemon: Daemon):
         self.daemon = daemon
+        self.heavy = HeavyRequests()
 
     def table(self) -> dict[str, Handler]:
         """Method name -> handler, for :class:`phantom.host.api.ApiServer`."""
@@ -41,34 +45,14 @@ class ApiHandlers:
             target = parse_target(params, daemon.chamber_names, "set_target")
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
-        if not daemon.session.online:
-            raise ApiError("link_down", f"no board: the link is {daemon.session.state.value}; the target was not set")
-        daemon.scenes.stop("a set_target request")
-        result = await daemon.apply_target(target, "api")
-        daemon.control_state = ControlState.HOLDING
-        return result
+        return await daemon.set_target(target)
 
     async def vent(self, params: dict[str, Any]) -> dict[str, Any]:
-        daemon = self.daemon
-        daemon.scenes.stop("vented")
-        await daemon.board_command("VENT")
-        daemon.control_state = ControlState.VENTED
-        daemon.setpoints_pa = np.zeros(len(daemon.chamber_names))
-        daemon.target, daemon.inverse_result, daemon.target_source = None, None, None
-        daemon.event("vent", "vented on request: every setpoint is 0")
+        await self.daemon.vent("on request: every setpoint is 0")
         return {"vented": True}
 
     async def clear_fault(self, params: dict[str, Any]) -> dict[str, Any]:
-        daemon = self.daemon
-        before = fault_names(daemon.fault_flags)
-        await daemon.board_command("CLEAR_FAULT")
-        daemon.event("fault", f"faults cleared on request (were: {', '.join(before) or 'none'})")
-        restored = False
-        if daemon.setpoints_pa is not None and daemon.control_state is not ControlState.VENTED and np.any(
-                daemon.setpoints_pa > 0):
-            await daemon.send_setpoints(daemon.setpoints_pa)
-            restored = True
-        return {"cleared": before, "setpoints_restored": restored}
+        return await self.daemon.clear_fault()
 
     async def zero(self, params: dict[str, Any]) -> dict[str, Any]:
         """ZERO_SENSORS on request: the board measures each sensor's zero (it must be vented and settled)."""
@@ -76,9 +60,10 @@ class ApiHandlers:
         self.daemon.event("zero", "sensors zeroed on request")
         return {"zeroed": True, "acknowledged": acknowledged}
 
-    async def surface(self, params: dict[str, Any]) -> dict[str, Any]:
-        """The deformed outer surface (positions mm, triangles): at ``pressures_kpa`` if given, else at the
-        latest measured pressures (at rest when there are none)."""
+    async def surface(self, params: dict[str, Any]) -> RawJson:
+        """The deformed outer surface (positions mm, triangles): at ``pressures_kpa`` if given (within the model's
+        pressure range), else at the latest measured pressures (at rest when there are none). The model worker
+        writes the JSON: thousands of numbers are not the event loop's work."""
         daemon = self.daemon
         pressures = params.get("pressures_kpa")
         if pressures is not None:
@@ -87,13 +72,18 @@ class ApiHandlers:
             except SceneError as error:
                 raise ApiError("invalid_params", str(error)) from error
             pressures_pa: np.ndarray | None = np.asarray(target.values, dtype=float)
+            highest_kpa = daemon.model.info.pressure_max_pa / PA_PER_KPA
+            if max(pressures) > highest_kpa:
+                raise ApiError("invalid_params", f"surface: pressures_kpa must be between 0 and {highest_kpa:g} kPa "
+                               f"(the model's range), got {list(pressures)}")
         elif daemon.schedule.window:
             pressures_pa = np.mean([frame for _, frame in daemon.schedule.window], axis=0)
         else:
             pressures_pa = None
-        positions_mm, triangles = await daemon.model.surface(pressures_pa)
-        return {"pressures_kpa": None if pressures_pa is None else (pressures_pa / PA_PER_KPA).tolist(),
-                "positions_mm": np.round(positions_mm, 4).tolist(), "triangles": np.asarray(triangles).tolist()}
+        async with self.heavy.slot("surface"):
+            surface_json = await daemon.model.surface_json(pressures_pa)
+        measured = "null" if pressures_pa is None else json.dumps((pressures_pa / PA_PER_KPA).tolist())
+        return RawJson(f'{{"pressures_kpa":{measured},{surface_json[1:]}')
 
     async def run_scene(self, params: dict[str, Any]) -> dict[str, Any]:
         daemon = self.daemon
@@ -104,14 +94,50 @@ class ApiHandlers:
         if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)):
             raise ApiError("invalid_params", f"time_scale must be a number, got {time_scale!r}")
         try:
-            scene = load_scene(path)
-            # the timeline runs on the loaded model: a scene for another phantom, material or model setting needs
-            # its own model, so the daemon must be restarted with it
-            differing = model_differences(daemon.model.info.effective_model, effective_model(scene))
-            if differing:
-                raise SceneError(f"{path} describes another phantom than the running one (its "
-                                 f"[{'], ['.join(differing)}] differ from {daemon.model.info.scene_path}): restart "
-                                 f"the daemon with --scene {path}")
-            return daemon.start_scene(scene.raw, str(path), float(time_scale), bool(scene.outputs.shape))
+            async with self.heavy.slot("run_scene"):
+                prepared = await asyncio.to_thread(prepare_scene, path, float(time_scale), daemon.chamber_names,
+                                                   daemon.model.info.effective_model, daemon.model.info.scene_path)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
+        return daemon.start_scene(prepared)
+
+
+def prepare_scene(path: str, time_scale: float, chamber_names: list[str], running_model: dict[str, Any],
+                  running_scene: str) -> PreparedRun:
+    """Read a scene file and check its timeline against the running model (off the event loop: reading and
+    checking a scene takes time in proportion to its size, which ``load_scene`` and the timeline bound)."""
+    scene = load_scene(path)
+    # the timeline runs on the loaded model: a scene for another phantom, material or model setting needs its own
+    # model, so the daemon must be restarted with it
+    differing = model_differences(running_model, effective_model(scene))
+    if differing:
+        raise SceneError(f"{path} describes another phantom than the running one (its [{'], ['.join(differing)}] "
+                         f"differ from {running_scene}): restart the daemon with --scene {path}")
+    return prepare_run(scene.raw, str(path), chamber_names, time_scale, bool(scene.outputs.shape))
+
+
+class HeavyRequests:
+    """Bounds the requests that cost the daemon real work (a surface, a scene to read): ``in_flight`` of a kind
+    at once, ``waiting`` more queued behind them; beyond that the API answers ``busy``."""
+
+    def __init__(self, in_flight: int = 2, waiting: int = 16):
+        self.in_flight = in_flight
+        self.waiting = waiting
+        self._slots: dict[str, asyncio.Semaphore] = {}
+        self._queued: dict[str, int] = {}
+
+    @contextlib.asynccontextmanager
+    async def slot(self, kind: str) -> AsyncIterator[None]:
+        semaphore = self._slots.setdefault(kind, asyncio.Semaphore(self.in_flight))
+        if semaphore.locked() and self._queued.get(kind, 0) >= self.waiting:
+            raise ApiError("busy", f"{self.in_flight + self.waiting} {kind} requests are already in progress: "
+                           "try again when they are answered")
+        self._queued[kind] = self._queued.get(kind, 0) + 1
+        try:
+            await semaphore.acquire()
+        finally:
+            self._queued[kind] -= 1
+        try:
+            yield
+        finally:
+            semaphore.release()

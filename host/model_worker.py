@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import io
+import json
 import logging
 import multiprocessing
 import os
@@ -19,7 +20,9 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
 import numpy as np
@@ -92,6 +95,8 @@ class LoadedModel:
         self.wants_shape = bool(self.scene.outputs.shape)
         #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
         self._outer_surface = self.model.outer_surface()
+        #: the inverse's answers for the ends of the ramps played lately (:meth:`pressures_on_ramp`)
+        self._ramp_ends: dict[str, InverseResult] = {}
 
     def table_stored(self) -> bool:
         """Whether the scene's response table is in the disk cache (or shipped), so the table level costs no build."""
@@ -167,6 +172,51 @@ class LoadedModel:
         if self.estimator.level == "full":
             pressures = np.round(pressures / FULL_SOLVE_QUANTUM_PA) * FULL_SOLVE_QUANTUM_PA
         return np.asarray(pressures, dtype=float)
+    def pressures_on_ramp(self, start: Target, end: Target, target: Target) -> InverseResult:
+        """The setpoints for ``target``, a point of a ramp from ``start`` to ``end`` (targets of one kind): on the
+        straight line between the inverse's answers for the two ends, where the line meets the target's volume.
+
+        Solving each point of a ramp on its own gave setpoints that jumped by 0.1-0.2 kPa from one control tick
+        to the next, down then up (the QP's answer is not unique: a volume can be shared between chambers in many
+        ways, and the answer moved between them). On the line every setpoint moves monotonically from its
+        start to its end value as the target moves, and the ramp ends on the inverse's own answer.
+        A pressure ramp is its own line.
+        """
+        if target.kind == "pressures":
+            return self.pressures_for(target)
+        from scipy.optimize import brentq
+
+        started = time.perf_counter()
+        first, last = self._ramp_end(start), self._ramp_end(end)
+        step_pa = np.asarray(last.pressures_pa, dtype=float) - np.asarray(first.pressures_pa, dtype=float)
+        evaluations = [0]
+
+        def volume_m3(fraction: float) -> tuple[np.ndarray, float, float]:
+            """Chamber volumes, gland volume and the target's own measure of volume at a point of the line."""
+            evaluations[0] += 1
+            chambers, gland = self.estimator.volumes(np.asarray(first.pressures_pa, dtype=float) + fraction * step_pa)
+            measure = float(gland) if target.kind == "volume" else float(sum(
+                chambers[index] for index, value in enumerate(target.values) if value is not None))
+            return np.asarray(chambers, dtype=float), float(gland), measure
+
+        goal_m3 = float(sum(value for value in target.values if value is not None))
+        low_m3, high_m3 = volume_m3(0.0)[2], volume_m3(1.0)[2]
+        if (goal_m3 - low_m3) * (goal_m3 - high_m3) >= 0:  # at (or past) an end: that end
+            fraction = 0.0 if abs(goal_m3 - low_m3) <= abs(goal_m3 - high_m3) else 1.0
+        else:
+            fraction = float(brentq(lambda f: volume_m3(f)[2] - goal_m3, 0.0, 1.0, xtol=1e-9))
+        chambers, gland, _ = volume_m3(fraction)
+        return InverseResult(target, np.asarray(first.pressures_pa, dtype=float) + fraction * step_pa, gland,
+                             chambers, evaluations[0], time.perf_counter() - started, 0.0)
+
+    def _ramp_end(self, target: Target) -> InverseResult:
+        """The inverse's answer for a ramp's end, solved once per ramp (the last few are kept)."""
+        key = repr(target)
+        if key not in self._ramp_ends:
+            if len(self._ramp_ends) >= 8:
+                self._ramp_ends.pop(next(iter(self._ramp_ends)))
+            self._ramp_ends[key] = self.pressures_for(target)
+        return self._ramp_ends[key]
 
     def estimate(self, pressures_pa: np.ndarray) -> tuple[list[float], float]:
         """Estimated chamber volumes (ml) and gland volume (ml) at measured pressures (Pa, negative -> 0)."""
@@ -363,6 +413,10 @@ def _worker_pressures_for(target: Target) -> InverseResult:
     return _worker_model_or_fail().pressures_for(target)
 
 
+def _worker_pressures_on_ramp(start: Target, end: Target, target: Target) -> InverseResult:
+    return _worker_model_or_fail().pressures_on_ramp(start, end, target)
+
+
 def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_surface: bool) -> Estimate:
     model = _worker_model_or_fail()
     chamber_ml, gland_ml = model.estimate(pressures_pa)
@@ -371,9 +425,11 @@ def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_sur
     return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
 
 
-def _worker_surface(pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+def _worker_surface_json(pressures_pa: np.ndarray | None) -> str:
     model = _worker_model_or_fail()
-    return model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
+    positions_mm, triangles = model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
+    return json.dumps({"positions_mm": np.round(positions_mm, 4).tolist(),
+                       "triangles": np.asarray(triangles).tolist()}, separators=(",", ":"))
 
 
 def worker_pool(log_level: str = "info", messages: WorkerMessages | None = None) -> ProcessPoolExecutor:
@@ -384,16 +440,51 @@ def worker_pool(log_level: str = "info", messages: WorkerMessages | None = None)
                                initargs=(os.getpid(), log_level, None if messages is None else messages.queue))
 
 
+def end_pool(pool: ProcessPoolExecutor) -> None:
+    """Stop a worker pool now, whatever its worker is doing, with every process the worker started: a worker
+    building a response table has a pool of its own, whose processes are not told when their parent dies (left
+    running under PID 1, one spinning, one hung on a pipe, when the daemon stopped during the build)."""
+    workers = list(getattr(pool, "_processes", None) or {})  # the executor keeps its processes by pid
+    for pid in [*(child for worker in workers for child in _descendants(worker)), *workers]:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, signal.SIGKILL)
+    pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (children, theirs...), read from /proc; none where /proc cannot say."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(parent, []).append(int(entry.name))
+    found, below = [], [pid]
+    while below:
+        for child in children.get(below.pop(), []):
+            found.append(child)
+            below.append(child)
+    return found
+
+
 class ModelWorker:
     """The :class:`LoadedModel` in a worker process that dies with the daemon, called without blocking the loop.
 
     Build it with :meth:`start`, which returns a worker whose model is ready (``info``).
     """
 
-    def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo):
+    def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo, scene_source: str = "", log_level: str = "info"):
         self._pool = pool
         self.info = info
         self._messages: WorkerMessages | None = None
+        self._scene_source = scene_source
+        self._log_level = log_level
+        self._replacing = asyncio.Lock()
+        #: workers started again after one died (the OOM killer's SIGKILL): each rebuilt its model from the cache
+        self.restarts = 0
 
     @classmethod
     async def start(cls, scene_source: str, log_level: str = "info", defer_table: bool = False,
@@ -406,15 +497,21 @@ class ModelWorker:
         try:
             info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source, defer_table)
         except BaseException:
-            pool.shutdown(wait=False, cancel_futures=True)
+            end_pool(pool)
             if messages is not None:
                 messages.close()
             raise
-        worker = cls(pool, info)
+        worker = cls(pool, info, scene_source, log_level)
         worker._messages = messages
         return worker
 
     async def _call(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
+        """``function(*arguments)`` in the worker; a worker found dead is replaced and the call made once more."""
+        pool = self._pool
+        try:
+            return await asyncio.get_running_loop().run_in_executor(pool, function, *arguments)
+        except BrokenProcessPool:
+            await self._replace(pool)
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
 
     async def use_level(self, level: str) -> ModelInfo:
@@ -422,9 +519,35 @@ class ModelWorker:
         self.info = await self._call(_worker_use_level, level)
         return self.info
 
+    async def _replace(self, broken: ProcessPoolExecutor) -> None:
+        """Start a new worker in place of ``broken`` (once, whoever found it dead first); its model is rebuilt
+        from the cached response table. A worker that cannot be started again raises, and the caller fails."""
+        async with self._replacing:
+            if self._pool is not broken:
+                return
+            logger.warning("the model worker died (killed, out of memory?): starting a new one")
+            broken.shutdown(wait=False, cancel_futures=True)
+            pool = worker_pool(self._log_level, self._messages)
+            try:
+                # a table that is not stored yet is not built here (minutes): the new worker answers on the full
+                # solve, as the first did, until the daemon's background build switches it
+                info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, self._scene_source,
+                                                                        True)
+            except BaseException:
+                end_pool(pool)
+                raise
+            self._pool = pool
+            self.info = info
+            self.restarts += 1
+            logger.warning("the model worker was replaced (%d since the daemon started)", self.restarts)
+
     async def pressures_for(self, target: Target) -> InverseResult:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
         return await self._call(_worker_pressures_for, target)
+
+    async def pressures_on_ramp(self, start: Target, end: Target, target: Target) -> InverseResult:
+        """Setpoints for ``target`` on the ramp from ``start`` to ``end`` (:meth:`LoadedModel.pressures_on_ramp`)."""
+        return await self._call(_worker_pressures_on_ramp, start, end, target)
 
     async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
                        with_rest_surface: bool = False) -> Estimate:
@@ -433,10 +556,12 @@ class ModelWorker:
         return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface,
                                 with_rest_surface)
 
-    async def surface(self, pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-        """The outer surface (positions mm, triangles) at ``pressures_pa`` (Pa), or at rest for None."""
+    async def surface_json(self, pressures_pa: np.ndarray | None) -> str:
+        """The outer surface at ``pressures_pa`` (Pa), or at rest for None, as the JSON text of an object
+        ``{"positions_mm": [[x, y, z], ...], "triangles": [[i, j, k], ...]}`` (mm; indices into the positions),
+        written in the worker."""
         pressures = None if pressures_pa is None else np.asarray(pressures_pa, dtype=float)
-        return await self._call(_worker_surface, pressures)
+        return await self._call(_worker_surface_json, pressures)
 
     def close(self) -> None:
         """Stop the worker process and wait for it (a pool left running is woken by the interpreter's exit

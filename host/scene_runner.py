@@ -37,6 +37,8 @@ class StepRecord:
     reached_after_s: float | None = None
     final_volume_ml: float | None = None
     true_volume_ml: float | None = None
+    #: when (s after the step's start) the board first acknowledged setpoints for this step; None: not yet
+    applied_after_s: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         error_pct = None
@@ -45,7 +47,7 @@ class StepRecord:
         return {"index": self.index, "at_s": self.at_s, "target": self.target,
                 "target_volume_ml": self.target_volume_ml, "reached_volume_ml": self.final_volume_ml,
                 "error_pct": error_pct, "reached_after_s": self.reached_after_s,
-                "true_volume_ml": self.true_volume_ml}
+                "true_volume_ml": self.true_volume_ml, "applied_after_s": self.applied_after_s}
 
 
 @dataclass
@@ -69,6 +71,36 @@ class SceneRun:
         return {"name": self.name, "time_s": min(self.scene_time_s(clock_s), self.end_s), "end_s": self.end_s,
                 "time_scale": self.time_scale, "finished": self.finished,
                 "steps": [step.to_json() for step in self.steps]}
+
+
+@dataclass(frozen=True)
+class PreparedRun:
+    """A scene's timeline checked and ready to play (:func:`prepare_run`)."""
+
+    name: str
+    timeline: Timeline
+    end_s: float
+    time_scale: float
+    wants_shape: bool
+
+
+def prepare_run(raw: dict[str, Any], name: str, chamber_names: list[str], time_scale: float,
+                wants_shape: bool = False) -> PreparedRun:
+    """Check a scene's ``[[steps]]`` and ``[timeline]`` against the chambers; raises SceneError naming what is
+    wrong. Pure (no clock, no event): the daemon runs it off its event loop."""
+    timeline = parse_timeline(raw.get("steps"), chamber_names, name)
+    if not timeline.steps:
+        raise SceneError(f"{name} has no [[steps]]: nothing to run")
+    settings = raw.get("timeline", {})
+    end_s = settings.get("end_s", timeline.duration_s + 10.0) if isinstance(settings, dict) else None
+    if isinstance(end_s, bool) or not isinstance(end_s, (int, float)) or not math.isfinite(end_s) or (
+            end_s < timeline.duration_s):
+        raise SceneError(f"{name}: [timeline] end_s must be a number >= {timeline.duration_s:g} s "
+                         "(the end of the last step's ramp)")
+    if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)) or not math.isfinite(time_scale) or (
+            time_scale <= 0):
+        raise SceneError(f"time_scale must be a positive number, got {time_scale!r}")
+    return PreparedRun(name, timeline, float(end_s), float(time_scale), wants_shape)
 
 
 class SceneRunner:
@@ -98,28 +130,21 @@ class SceneRunner:
 
     def start(self, raw: dict[str, Any], name: str, chamber_names: list[str], time_scale: float,
               wants_shape: bool = False) -> dict[str, Any]:
-        """Check a scene's ``[[steps]]`` and ``[timeline]`` against the chambers and start playing it.
+        """Check a scene's ``[[steps]]`` and ``[timeline]`` against the chambers and start playing it
+        (:func:`prepare_run`, then :meth:`begin`); raises SceneError naming what is wrong."""
+        return self.begin(prepare_run(raw, name, chamber_names, time_scale, wants_shape))
 
-        Raises SceneError naming what is wrong; returns ``name``, ``steps``, ``end_s``, ``time_scale``,
-        ``wall_duration_s``.
-        """
-        timeline = parse_timeline(raw.get("steps"), chamber_names, name)
-        if not timeline.steps:
-            raise SceneError(f"{name} has no [[steps]]: nothing to run")
-        settings = raw.get("timeline", {})
-        end_s = settings.get("end_s", timeline.duration_s + 10.0) if isinstance(settings, dict) else None
-        if isinstance(end_s, bool) or not isinstance(end_s, (int, float)) or end_s < timeline.duration_s:
-            raise SceneError(f"{name}: [timeline] end_s must be a number >= {timeline.duration_s:g} s "
-                             "(the end of the last step's ramp)")
-        if not math.isfinite(time_scale) or time_scale <= 0:
-            raise SceneError(f"time_scale must be a positive number, got {time_scale!r}")
+    def begin(self, prepared: PreparedRun) -> dict[str, Any]:
+        """Start playing a checked scene (replacing the one playing); returns ``name``, ``steps``, ``end_s``,
+        ``time_scale``, ``wall_duration_s``."""
         if self.active and self.run is not None:
-            self.stop(f"replaced by {name}")
-        self.run = SceneRun(name, timeline, float(end_s), float(time_scale), self.clock(), wants_shape)
-        self.on_event("scene", f"scene {name} started: {len(timeline.steps)} steps over {end_s:g} s "
-                      f"(time scale {time_scale:g})", "INFO")
-        return {"name": name, "steps": len(timeline.steps), "end_s": float(end_s), "time_scale": time_scale,
-                "wall_duration_s": float(end_s) / time_scale}
+            self.stop(f"replaced by {prepared.name}")
+        self.run = SceneRun(prepared.name, prepared.timeline, prepared.end_s, prepared.time_scale, self.clock(),
+                            prepared.wants_shape)
+        self.on_event("scene", f"scene {prepared.name} started: {len(prepared.timeline.steps)} steps over "
+                      f"{prepared.end_s:g} s (time scale {prepared.time_scale:g})", "INFO")
+        return {"name": prepared.name, "steps": len(prepared.timeline.steps), "end_s": prepared.end_s,
+                "time_scale": prepared.time_scale, "wall_duration_s": prepared.end_s / prepared.time_scale}
 
     def stop(self, why: str) -> None:
         """Stop the playing scene (a new target, vent); its record stays for ``status``."""
@@ -153,6 +178,26 @@ class SceneRunner:
             self.on_event("scene", f"scene {run.name} finished; holding its last target", "INFO")
             return None
         return run.timeline.target_at(scene_time_s)
+
+    def step_index(self) -> int | None:
+        """The index of the step in force (the last one started), or None when no scene plays or none started."""
+        run = self.run
+        return None if run is None or run.finished or not run.steps else run.steps[-1].index
+
+    def ramp(self) -> tuple[Target, Target] | None:
+        """The two targets the playing scene's ramp moves between now, or None outside a ramp."""
+        run = self.run
+        if run is None or run.finished:
+            return None
+        return run.timeline.ramp_at(run.scene_time_s(self.clock()))
+
+    def applied(self, index: int) -> None:
+        """The board acknowledged setpoints for step ``index``: the first time is the step's ``applied_after_s``."""
+        run = self.run
+        if run is None or index >= len(run.steps) or run.steps[index].applied_after_s is not None:
+            return
+        record = run.steps[index]
+        record.applied_after_s = max(0.0, self.clock() - record.started_clock_s)
 
     def observe(self, estimated_volume_ml: float, predicted_volume_ml: float | None = None,
                 solved_target: Target | None = None, true_volume_ml: float | None = None) -> None:

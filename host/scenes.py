@@ -8,7 +8,9 @@ linearly from the previous step's over ``ramp_s`` seconds; it then holds until t
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +26,12 @@ TARGET_KEYS: dict[str, str] = {"volume_ml": "volume", "chamber_volumes_ml": "cha
 
 ML_PER_M3 = 1e6
 PA_PER_KPA = 1e3
+#: The smallest volume a target may ask for (ml): far below any phantom's, and far above the tiny numbers (5e-324)
+#: that vanish in SI units and divided by zero in the inverse.
+MIN_VOLUME_ML = 1e-3
+#: The most steps a timeline may have: a step every 2 s for over an hour. A 20,000-step scene took 0.57 s to
+#: check, time the daemon's loop cannot give at once.
+MAX_STEPS = 2000
 
 
 def _to_si(key: str, value: float) -> float:
@@ -67,13 +75,26 @@ class Timeline:
             return 0.0
         return max(step.at_s + step.ramp_s for step in self.steps)
 
+    @functools.cached_property
+    def starts_s(self) -> list[float]:
+        """Each step's ``at_s`` (s), in order."""
+        return [step.at_s for step in self.steps]
+
     def step_index_at(self, time_s: float) -> int | None:
         """Index of the step in force at ``time_s`` (s), or None before the first."""
-        index = None
-        for position, step in enumerate(self.steps):
-            if step.at_s <= time_s:
-                index = position
-        return index
+        index = bisect.bisect_right(self.starts_s, time_s) - 1
+        return index if index >= 0 else None
+
+    def ramp_at(self, time_s: float) -> tuple[Target, Target] | None:
+        """The two targets a ramp at ``time_s`` (s) moves between (the previous step's and its own), or None when
+        no step ramps then."""
+        index = self.step_index_at(time_s)
+        if index is None or index == 0:
+            return None
+        step = self.steps[index]
+        if step.ramp_s <= 0 or time_s >= step.at_s + step.ramp_s:
+            return None
+        return self.steps[index - 1].target, step.target
 
     def target_at(self, time_s: float) -> Target | None:
         """The target at ``time_s`` (s): the step in force, linearly interpolated while it ramps.
@@ -130,8 +151,8 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
     n_chambers = len(chamber_names)
     if kind == "volume_ml":
         volume_ml = _number(raw[kind], f"{where}: volume_ml")
-        if volume_ml <= 0:
-            raise SceneError(f"{where}: volume_ml must be positive, got {volume_ml:g}")
+        if volume_ml < MIN_VOLUME_ML:
+            raise SceneError(f"{where}: volume_ml must be positive (at least {MIN_VOLUME_ML:g} ml), got {volume_ml:g}")
         values: tuple[float | None, ...] = (volume_ml,)
     else:
         listed = raw[kind]
@@ -148,8 +169,9 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
                            for i, value in enumerate(listed))
             if all(value is None for value in values):
                 raise SceneError(f"{where}: chamber_volumes_ml needs at least one number")
-            if any(value is not None and value <= 0 for value in values):
-                raise SceneError(f"{where}: chamber_volumes_ml must be positive, got {list(values)}")
+            if any(value is not None and value < MIN_VOLUME_ML for value in values):
+                raise SceneError(f"{where}: chamber_volumes_ml must be positive (at least {MIN_VOLUME_ML:g} ml "
+                                 f"each), got {list(values)}")
     growth_ratio = _parse_growth_ratio(raw.get("growth_ratio"), kind, chamber_names, where)
     unknown = set(raw) - set(TARGET_KEYS) - {"growth_ratio", "at_s", "ramp_s"}
     if unknown:
@@ -170,7 +192,7 @@ def _parse_growth_ratio(raw: Any, kind: str, chamber_names: list[str], where: st
     for key, weight in raw.items():
         if key in chamber_names:
             index = chamber_names.index(key)
-        elif str(key).isdigit() and int(key) < len(chamber_names):
+        elif str(key).isascii() and str(key).isdigit() and int(key) < len(chamber_names):
             index = int(key)
         else:
             raise SceneError(f"{where}: growth_ratio names unknown chamber {key!r}; chambers are "
@@ -193,6 +215,9 @@ def parse_timeline(raw_steps: object, chamber_names: list[str], name: str = "tim
         return Timeline([], name)
     if not isinstance(raw_steps, list):
         raise SceneError(f"{name}: steps must be an array of tables ([[steps]])")
+    if len(raw_steps) > MAX_STEPS:
+        raise SceneError(f"{name} has {len(raw_steps)} steps; a scene may have at most {MAX_STEPS}: split it into "
+                         "several scenes")
     steps: list[Step] = []
     for position, raw in enumerate(raw_steps):
         where = f"{name}: steps[{position}]"

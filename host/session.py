@@ -19,14 +19,16 @@ import asyncio
 import contextlib
 import enum
 import logging
+import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
 from phantom import PhantomError
+from phantom.host.stalls import LoopStalls
 from phantom.host.transports import TransportLost, TransportUnavailable
 from phantom.protocol import ProtocolError
 from phantom.protocol.link import (
@@ -36,6 +38,7 @@ from phantom.protocol.link import (
     CommandFailed,
     Event,
     FaultIn,
+    FrameIn,
     HandshakeDone,
     HandshakeRefused,
     HandshakeTimedOut,
@@ -48,14 +51,24 @@ from phantom.protocol.link import (
     enum_name,
     fault_names,
 )
-from phantom.protocol.messages import MESSAGES, ChamberState
+from phantom.protocol.messages import MESSAGES, PROTOCOL_VERSION, ChamberState, ConfigSource, Status, ZeroSource
 
-__all__ = ["BoardInfo", "CommandRejected", "LinkDown", "LinkSession", "LinkState", "LinkStats", "LinkTiming",
-           "Telemetry", "fault_names"]
+__all__ = ["BoardInfo", "CommandRejected", "LinkDown", "LinkSession", "LinkState", "LinkStats", "LinkThread",
+           "LinkTiming", "Telemetry", "fault_names"]
 
 logger = logging.getLogger(__name__)
 
+#: What a command run on the link's loop answers.
+Answer = TypeVar("Answer")
+
 _DRIVE_SCALE = {f.name: f.scale for f in MESSAGES["TELEMETRY"].fields}["drive"]
+
+#: The spec hash of the HELLO that ends a session: no firmware has it, so the board answers SPEC_MISMATCH, which
+#: closes its session and switches every blower off as VENT does (PROTOCOL.md section 4, step 3). A board without
+#: a session has no host deadline, so a daemon that leaves this way does not leave a DEAD_HOST fault behind.
+GOODBYE_SPEC_HASH = 0
+#: How long (s) :meth:`LinkSession.end_session` waits for the board's answer to that HELLO.
+GOODBYE_WAIT_S = 0.5
 
 
 class LinkState(enum.StrEnum):
@@ -169,6 +182,8 @@ class LinkSession:
         self.clock = clock
         self.state = LinkState.DISCONNECTED
         self.board: BoardInfo | None = None
+        #: what the board's BOARD_INFO said after the handshake: where its settings and zeros came from
+        self.board_details: dict[str, Any] | None = None
         self.last_error: str | None = None
         self._host_stats = LinkStats()
         self.link = HostLink(self.timing)
@@ -181,6 +196,7 @@ class LinkSession:
         self._wake = asyncio.Event()
         self._bringing_online: asyncio.Task[None] | None = None
         self._problem: tuple[str, float] | None = None
+        self._goodbye: asyncio.Future[str] | None = None
 
     # --- public -----------------------------------------------------------------------------------------
 
@@ -226,6 +242,25 @@ class LinkSession:
     def online(self) -> bool:
         return self.state is LinkState.ONLINE
 
+    async def end_session(self) -> bool:
+        """End the board's session before the daemon leaves: a HELLO with :data:`GOODBYE_SPEC_HASH`, which the
+        board refuses (closing its session and venting), so that it does not latch DEAD_HOST once the daemon is
+        gone. True when the board answered within :data:`GOODBYE_WAIT_S`."""
+        if not self.online:
+            return False
+        self._goodbye = asyncio.get_running_loop().create_future()
+        try:
+            self.link.send("HELLO", {"protocol_version": PROTOCOL_VERSION, "spec_hash": GOODBYE_SPEC_HASH},
+                           self.clock())
+            self._flush()
+            await asyncio.wait_for(asyncio.shield(self._goodbye), GOODBYE_WAIT_S)
+        except (TimeoutError, TransportLost, ProtocolError):
+            return False
+        finally:
+            self._goodbye = None
+        self.link.keepalive = False  # the board has no session left to keep
+        return True
+
     async def command(self, name: str, fields: dict[str, Any] | None = None) -> str:
         """Send an acknowledged command and wait for its ACK; return the ACK's status name (OK, CLAMPED).
 
@@ -247,6 +282,7 @@ class LinkSession:
             "state": self.state.value,
             "transport": self.transport.description,
             "board": asdict(self.board) if self.board else None,
+            "board_info": self.board_details,
             "last_error": self.last_error,
             "stats": self.stats.as_dict(self.rx_dropped(), getattr(self.transport, "tx_dropped", 0)),
         }
@@ -308,6 +344,8 @@ class LinkSession:
         """Act on one event of the link core."""
         if isinstance(event, TelemetryIn):
             self._on_telemetry_frame(event)
+        elif isinstance(event, FrameIn):
+            self._on_frame(event)
         elif isinstance(event, HandshakeDone):
             self.board = event.board
             self._config_seq = self.link.command("SET_CONFIG", {
@@ -330,6 +368,21 @@ class LinkSession:
                                    f"{event.now_ms} ms)")
         elif isinstance(event, Silence):
             raise _ConnectionEnded(event.reason)
+
+    def _on_frame(self, event: FrameIn) -> None:
+        """The frames the link core hands on without an event of their own: BOARD_INFO, and the board's answer to
+        the goodbye HELLO."""
+        message = event.message
+        if message.name == "BOARD_INFO":
+            fields = message.fields
+            self.board_details = {
+                "config_source": _wire_name(ConfigSource, fields["config_source"]),
+                "zero_source": [_wire_name(ZeroSource, value) for value in fields["zero_source"]],
+                "zero_offset_kpa": [value / 1e3 for value in fields["zero_offset_pa"]],
+                "supply_mv": fields["supply_mv"]}
+        elif (message.name == "HELLO_REPLY" and self._goodbye is not None and not self._goodbye.done()
+              and message.fields["status"] == Status.SPEC_MISMATCH):
+            self._goodbye.set_result("closed")
 
     def _answer(self, event: Acked | Nacked | CommandFailed) -> None:
         """An acknowledged command is answered (or given up): resolve its future, or go online after
@@ -455,6 +508,14 @@ class LinkSession:
         return await future
 
 
+def _wire_name(table: type[ConfigSource] | type[ZeroSource], value: int) -> str:
+    """The name of a wire value in one of BOARD_INFO's enums, or the number as text if the spec has none."""
+    try:
+        return table(value).name
+    except ValueError:
+        return str(value)
+
+
 def _problem_kind(text: str) -> str:
     """A short name for a link problem, so that a retry that fails the same way is not logged again."""
     lowered = text.lower()
@@ -464,3 +525,132 @@ def _problem_kind(text: str) -> str:
         if any(word in lowered for word in words):
             return kind
     return lowered.split(":")[0]
+
+
+class LinkThread:
+    """A :class:`LinkSession` run on an event loop of its own, in a thread of its own: the board's keepalive,
+    retransmissions and port I/O keep their timing whatever the daemon's loop is busy with (a burst of API
+    clients delayed every timer of a shared loop by hundreds of milliseconds, past the board's dead-host
+    deadline). The daemon sees the session's interface (:class:`phantom.host.parts.BoardSession`): commands are
+    run on the link's loop and awaited from the daemon's; the session's callbacks are run on the daemon's loop.
+
+    Parameters
+    ----------
+    session : LinkSession
+        Its ``on_telemetry``, ``on_event`` and ``on_online`` are the daemon's; they are called on the loop that
+        awaits :meth:`run`.
+    loop_stalls : LoopStalls, optional
+        Probes the link's loop; its figures are the status's ``event_loop``.
+    """
+
+    def __init__(self, session: LinkSession, loop_stalls: LoopStalls | None = None):
+        self.session = session
+        self.loop_stalls = loop_stalls
+        self._daemon_loop: asyncio.AbstractEventLoop | None = None
+        self._link_loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        on_telemetry, on_event, on_online = session.on_telemetry, session.on_event, session.on_online
+        session.on_telemetry = lambda telemetry: self._to_daemon(on_telemetry, telemetry)
+        session.on_event = lambda kind, text, level: self._to_daemon(on_event, kind, text, level)
+        if on_online is not None:
+            session.on_online = lambda board, again: self._in_daemon(on_online(board, again))
+
+    @property
+    def transport(self) -> Transport:
+        return self.session.transport
+
+    @property
+    def online(self) -> bool:
+        return self.session.online
+
+    @property
+    def state(self) -> LinkState:
+        return self.session.state
+
+    def status(self) -> dict[str, Any]:
+        status = self.session.status()
+        if self.loop_stalls is not None:
+            status["event_loop"] = self.loop_stalls.to_json()
+        return status
+
+    async def run(self) -> None:
+        """Run the session in its thread until :meth:`stop`; raises what the session raised."""
+        self._daemon_loop = asyncio.get_running_loop()
+        finished: asyncio.Future[None] = self._daemon_loop.create_future()
+        self._thread = threading.Thread(target=self._main, args=(finished,), name="board link", daemon=True)
+        self._thread.start()
+        try:
+            await asyncio.shield(finished)
+        except asyncio.CancelledError:
+            self.stop()
+            await asyncio.to_thread(self._thread.join, 5.0)
+            raise
+
+    def stop(self) -> None:
+        """Make :meth:`run` return after the session closed its port."""
+        link_loop = self._link_loop
+        if link_loop is not None and not link_loop.is_closed():
+            with contextlib.suppress(RuntimeError):
+                link_loop.call_soon_threadsafe(self.session.stop)
+
+    async def command(self, name: str, fields: dict[str, Any] | None = None) -> str:
+        """:meth:`LinkSession.command`, run on the link's loop."""
+        return await self._on_link(self.session.command(name, fields))
+
+    async def end_session(self) -> bool:
+        """:meth:`LinkSession.end_session`, run on the link's loop."""
+        return await self._on_link(self.session.end_session())
+
+    # --- between the two loops --------------------------------------------------------------------------
+
+    def _main(self, finished: asyncio.Future[None]) -> None:
+        """The link's thread: its own event loop running the session (and the probe of its loop)."""
+        error: BaseException | None = None
+        try:
+            asyncio.run(self._serve())
+        except BaseException as raised:  # handed to the daemon's loop, which raises it in run()
+            error = raised
+        daemon_loop = self._daemon_loop
+        assert daemon_loop is not None
+        with contextlib.suppress(RuntimeError):  # the daemon's loop may be closed already
+            daemon_loop.call_soon_threadsafe(_settle, finished, error)
+
+    async def _serve(self) -> None:
+        self._link_loop = asyncio.get_running_loop()
+        probe = asyncio.create_task(self.loop_stalls.probe()) if self.loop_stalls is not None else None
+        try:
+            await self.session.run()
+        finally:
+            if probe is not None:
+                probe.cancel()
+            self.session.transport.close()
+            self._link_loop = None
+
+    async def _on_link(self, coroutine: Coroutine[Any, Any, Answer]) -> Answer:
+        link_loop = self._link_loop
+        if link_loop is None:
+            coroutine.close()
+            raise LinkDown("no board: the link is not running")
+        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coroutine, link_loop))
+
+    def _to_daemon(self, function: Callable[..., None], *arguments: Any) -> None:
+        daemon_loop = self._daemon_loop
+        if daemon_loop is not None:
+            with contextlib.suppress(RuntimeError):
+                daemon_loop.call_soon_threadsafe(function, *arguments)
+
+    async def _in_daemon(self, awaitable: Awaitable[None]) -> None:
+        async def await_it() -> None:
+            await awaitable
+        daemon_loop = self._daemon_loop
+        assert daemon_loop is not None
+        await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(await_it(), daemon_loop))
+
+
+def _settle(future: asyncio.Future[None], error: BaseException | None) -> None:
+    if future.done():
+        return
+    if error is None:
+        future.set_result(None)
+    else:
+        future.set_exception(error)

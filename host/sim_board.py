@@ -14,10 +14,11 @@ import asyncio
 import contextlib
 import logging
 import os
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
+
+from phantom import process_temporary_folder
 
 logger = logging.getLogger(__name__)
 
@@ -72,7 +73,7 @@ class SimulatedBoardKeeper:
         self.speed = speed
         self.on_event = on_event
         self._factory = board_factory
-        self._folder = tempfile.TemporaryDirectory(prefix="phantomd-sim-")
+        self._folder = process_temporary_folder("phantomd-sim-")
         self.port = str(Path(self._folder.name) / "board")
         self.board: SimulatedBoard | None = None
         self.restarts = 0

@@ -24,7 +24,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import fcntl
+import grp
 import os
+import termios
 from pathlib import Path
 from typing import Any
 
@@ -47,9 +50,18 @@ class TransportLost(PhantomError):
 
 
 def permission_hint(path: str) -> str:
-    """The message for a serial port this user may not open: on Debian and Ubuntu the group is dialout."""
-    return (f"permission denied on {path}: add your user to the dialout group (sudo usermod -aG dialout $USER), "
-            "then log out and in again")
+    """The message for a serial port this user may not open: join the port's group (phantom with the shipped udev
+    rule, firmware/udev/99-phantom.rules; dialout for a port without it)."""
+    try:
+        group = grp.getgrgid(os.stat(path).st_gid).gr_name
+    except (OSError, KeyError):
+        group = "dialout"
+    return (f"permission denied on {path}: add your user to the {group} group, which owns the port (sudo usermod "
+            f"-aG {group} $USER), then log out and in again")
+
+
+#: Bytes without a frame delimiter kept before they are handed on anyway (a frame is far shorter).
+MAX_PARTIAL_BYTES = 1024
 
 
 class SerialTransport:
@@ -65,6 +77,7 @@ class SerialTransport:
         self.description = f"serial {self.path}"
         self._serial: Any = None  # serial.Serial once open
         self._queue: asyncio.Queue[bytes | TransportLost] = asyncio.Queue()
+        self._partial = b""
         self.tx_dropped = 0
 
     async def open(self) -> None:
@@ -81,12 +94,22 @@ class SerialTransport:
             if getattr(error, "errno", None) == errno.EACCES or "Permission denied" in str(error):
                 raise TransportUnavailable(permission_hint(self.path)) from error
             raise TransportUnavailable(f"cannot open {self.path}: {error}") from error
+        # no other process may open the port while the daemon holds it (the kernel's exclusive mode; root is
+        # exempt): a program of the port's group could otherwise drive the board behind the daemon's back
+        with contextlib.suppress(OSError):
+            fcntl.ioctl(self._serial.fileno(), termios.TIOCEXCL)
         self._serial.reset_input_buffer()
         self._queue = asyncio.Queue()
+        self._partial = b""
         asyncio.get_running_loop().add_reader(self._serial.fileno(), self._on_readable)
 
     def _on_readable(self) -> None:
-        """Move what the port holds into the queue; an empty read or EIO means the device went away."""
+        """Move the whole frames the port holds into the queue; an empty read or EIO means the device went away.
+
+        A port delivers a frame in pieces (a pty fed by the simulated UART, a byte or a few at a time): handing
+        each piece on woke the link session about 900 times a second at 50 Hz telemetry. Bytes are kept until a
+        frame's delimiter (0x00) arrives, or until :data:`MAX_PARTIAL_BYTES` (noise without delimiters, which the
+        frame reader discards), so the session wakes once per frame."""
         item: bytes | TransportLost
         try:
             item = os.read(self._serial.fileno(), 4096)
@@ -98,7 +121,20 @@ class SerialTransport:
             item = TransportLost(f"{self.path} closed (board unplugged or reset)")
         if isinstance(item, TransportLost):
             asyncio.get_running_loop().remove_reader(self._serial.fileno())
-        self._queue.put_nowait(item)
+            if self._partial:
+                self._queue.put_nowait(self._partial)
+                self._partial = b""
+            self._queue.put_nowait(item)
+            return
+        data = self._partial + item
+        end = data.rfind(b"\x00") + 1
+        if end == 0 and len(data) < MAX_PARTIAL_BYTES:
+            self._partial = data
+            return
+        if end == 0:
+            end = len(data)
+        self._partial = data[end:]
+        self._queue.put_nowait(data[:end])
 
     async def read(self) -> bytes:
         """The next bytes from the port; raises TransportLost when the device went away."""
@@ -127,6 +163,8 @@ class SerialTransport:
             return
         with contextlib.suppress(Exception):
             asyncio.get_running_loop().remove_reader(self._serial.fileno())
+        with contextlib.suppress(Exception):
+            fcntl.ioctl(self._serial.fileno(), termios.TIOCNXCL)
         with contextlib.suppress(Exception):
             self._serial.close()
         self._serial = None

@@ -13,8 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from phantom import read_text
 from phantom.model.errors import SceneError
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
+
+#: The largest scene file read (bytes): a scene of the most steps a timeline may have is about 100 KiB.
+MAX_SCENE_BYTES = 2**20
 
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
 #: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;
@@ -166,13 +170,16 @@ def load_scene(source: str | Path) -> Scene:
 def read_scene_toml(path: str | Path) -> dict[str, Any]:
     """The parsed TOML of a scene file, with a clear SceneError when it is missing or malformed."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise SceneError(f"the scene file {path} does not exist: give a TOML path or one of "
                          f"{', '.join(BUILTIN_SCENES)}")
+    text = read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError)
     try:
-        return tomllib.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as error:
         raise SceneError(f"the scene file {path} is not valid TOML: {error}") from error
+    except RecursionError:
+        raise SceneError(f"the scene file {path} is not valid TOML: it nests too deeply") from None
 
 
 def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:

@@ -9,6 +9,9 @@ import which.
 from __future__ import annotations
 
 import os
+import shutil
+import stat
+import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -105,3 +108,92 @@ async def connect_async(socket: str | Path | None = None, *, request_timeout_s: 
 
     return await connect_to_daemon(socket, request_timeout_s=request_timeout_s, ready_timeout_s=ready_timeout_s,
                                    on_wait=on_wait)
+def read_text(path: str | Path, max_bytes: int, what: str, error: type[PhantomError] = PhantomError) -> str:
+    """The text of a file a user named (a scene, a config file, a measurement table): UTF-8, with or without a
+    byte-order mark, at most ``max_bytes`` long. No more than that is read, so that a huge file (or /dev/zero)
+    costs nothing before it is refused.
+
+    Raises ``error`` (a PhantomError) with a one-line message that starts with ``what`` and the path: the file
+    is missing, a folder, unreadable, too large, or not UTF-8 text.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            data = handle.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise error(f"{what} {path} does not exist: check the path") from None
+    except IsADirectoryError:
+        raise error(f"{what} {path} is a folder: give a file") from None
+    except OSError as problem:
+        raise error(f"{what} {path} cannot be read: {problem.strerror}") from None
+    if len(data) > max_bytes:
+        raise error(f"{what} {path} is larger than {max_bytes / 2**20:g} MiB: that is not one of ours (give the "
+                    "right file)") from None
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as problem:
+        utf16 = data.startswith((b"\xff\xfe", b"\xfe\xff"))
+        raise error(f"{what} {path} is not UTF-8 text ({'it is UTF-16' if utf16 else f'byte {problem.start}'}): "
+                    "save it as UTF-8") from None
+
+
+@contextmanager
+def written_atomically(path: str | Path, error: type[PhantomError] = PhantomError,
+                       ends_with: bytes | None = None) -> Iterator[Path]:
+    """A temporary file beside ``path`` for the caller to write, which becomes ``path`` only once it is whole.
+
+    After the ``with`` body the file is checked (not empty; ending with ``ends_with`` when given: for writers
+    that do not report a failed write, like gmsh's), flushed to the disk (fsync: a full disk is told here) and
+    renamed over ``path``. On any failure the temporary file is removed, ``path`` is left as it was, and an
+    OSError becomes ``error`` with a one-line message: a full disk never leaves a truncated file said to be
+    written.
+    """
+    path = Path(path)
+    descriptor, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(descriptor)
+    temporary = Path(name)
+    umask = os.umask(0o022)
+    os.umask(umask)
+    os.chmod(temporary, 0o666 & ~umask)  # the mode a plain open() gives, not mkstemp's 0600
+    try:
+        yield temporary
+        with open(temporary, "rb+") as handle:
+            size = handle.seek(0, os.SEEK_END)
+            handle.seek(max(0, size - len(ends_with or b"")))
+            if size == 0 or (ends_with is not None and handle.read() != ends_with):
+                raise error(f"cannot write {path}: the file came out short ({size} bytes; the disk is full?): "
+                            "free space or give another path")
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except OSError as problem:
+        raise error(f"cannot write {path}: {problem.strerror or problem}: free space or give another path") from None
+    finally:
+        temporary.unlink(missing_ok=True)
+
+
+def process_temporary_folder(prefix: str) -> tempfile.TemporaryDirectory[str]:
+    """A temporary folder named after this process (``<prefix><pid>-XXXXXXXX`` in the temporary folder), removed
+    when the returned object is cleaned up. A process killed with SIGKILL runs no cleanup: the folders of the same
+    prefix that this user's processes left and that no longer run are removed here first."""
+    root = Path(tempfile.gettempdir())
+    for stale in root.glob(f"{prefix}*-*"):
+        owner = stale.name[len(prefix):].split("-", 1)[0]
+        if not owner.isdigit() or _process_runs(int(owner)):
+            continue
+        try:
+            found = stale.lstat()
+        except OSError:
+            continue
+        if stat.S_ISDIR(found.st_mode) and found.st_uid == os.getuid():
+            shutil.rmtree(stale, ignore_errors=True)
+    return tempfile.TemporaryDirectory(prefix=f"{prefix}{os.getpid()}-")
+
+
+def _process_runs(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True

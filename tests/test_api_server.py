@@ -215,3 +215,65 @@ def test_a_daemon_still_loading_its_model_answers_starting(tmp_path):
     starting, subscribed = asyncio.run(main())
     assert starting["error"]["code"] == "starting" and "try again" in starting["error"]["message"]
     assert subscribed == {"id": 2, "result": {"topics": ["events"]}}
+
+
+SERVER_WITH_FEW_FILES = """
+import asyncio, logging, resource, sys
+from phantom.host.api import ApiServer
+from phantom.host.logs import configure_logging
+
+_, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+resource.setrlimit(resource.RLIMIT_NOFILE, (160, hard))
+
+async def status(params):
+    return {"ok": True}
+
+async def main():
+    server = ApiServer(sys.argv[1], {"status": status})
+    await server.start()
+    print("ready", flush=True)
+    await asyncio.sleep(60)
+
+configure_logging("info")
+asyncio.run(main())
+"""
+
+
+def test_connections_beyond_the_file_limit_close_the_longest_idle_and_say_so_once(tmp_path):
+    """At the process's file limit an idle client per new one is closed, so that a client that needs the daemon
+    (to vent) is answered; before, 1100 idle connections at systemd's limit of 1024 made status and vent time out
+    and logged a traceback per refused accept."""
+    import subprocess
+    import sys
+    import time
+
+    path = tmp_path / "api.sock"
+    server = subprocess.Popen([sys.executable, "-c", SERVER_WITH_FEW_FILES, str(path)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+    idle = []
+    try:
+        assert server.stdout.readline().strip() == "ready"
+        for _ in range(300):                    # far more than 160 files
+            connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            connection.connect(str(path))
+            idle.append(connection)
+        time.sleep(0.5)
+        needed = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        needed.settimeout(5.0)
+        needed.connect(str(path))
+        needed.sendall(b'{"id": 1, "method": "status"}\n')
+        assert json.loads(needed.makefile("rb").readline()) == {"id": 1, "result": {"ok": True}}
+        needed.close()
+        # the first idle ones were closed, with a line that says why
+        oldest = idle[0]
+        oldest.settimeout(5.0)
+        farewell = json.loads(oldest.makefile("rb").readline())
+        assert farewell["error"]["code"] == "busy" and "longest idle" in farewell["error"]["message"]
+    finally:
+        for connection in idle:
+            connection.close()
+        server.kill()
+        _, stderr = server.communicate(timeout=10)
+    warnings = [line for line in stderr.splitlines() if "WARNING" in line]
+    assert len(warnings) == 1 and "connections" in warnings[0], stderr[-3000:]
+    assert "Traceback" not in stderr

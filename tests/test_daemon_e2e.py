@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from daemon_rig import telemetry_mean_kpa
 
 from phantom import PhantomError
 from phantom.host.client import DaemonClient, DaemonError
@@ -137,20 +138,6 @@ def phantom_cli(rig, *arguments):
                           text=True, timeout=60)
 
 
-def telemetry_mean_kpa(rig, seconds: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean measured pressures and the board's setpoints (kPa) over ``seconds`` of subscribed telemetry."""
-    measured, setpoints = [], []
-    with DaemonClient(rig["socket"], timeout_s=10) as client:
-        started = time.monotonic()
-        for message in client.events(["telemetry"]):
-            measured.append(message["data"]["pressures_kpa"])
-            setpoints.append(message["data"]["setpoints_kpa"])
-            if time.monotonic() - started > seconds:
-                break
-    assert len(measured) > 20 * seconds, "telemetry should stream at 50 Hz of board time"
-    return np.mean(measured, axis=0), np.asarray(setpoints[-1])
-
-
 def settled_at(rig, volume_ml: float) -> bool:
     answer = status(rig)
     return answer["estimated_volume_ml"] is not None and abs(answer["estimated_volume_ml"] - volume_ml) <= (
@@ -168,7 +155,7 @@ def test_set_32_ml_reaches_it_within_1_percent_and_holds_the_pressures(rig):
     assert answer["predicted_volume_ml"] == pytest.approx(32.0, rel=1e-3)
     assert np.all(setpoints_kpa > 0.5) and np.all(setpoints_kpa <= 3.0)
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "estimated volume near 32 ml")
-    measured_kpa, board_setpoints_kpa = telemetry_mean_kpa(rig, 1.0)
+    measured_kpa, board_setpoints_kpa = telemetry_mean_kpa(rig["socket"], 1.0)
     # the board holds what the daemon sent, to the pascal (int16 Pa on the wire)
     np.testing.assert_allclose(board_setpoints_kpa, setpoints_kpa, atol=0.0015)
     np.testing.assert_allclose(measured_kpa, board_setpoints_kpa, atol=ONE_ADC_COUNT_KPA)
@@ -290,7 +277,8 @@ def test_a_latched_fault_is_shown_and_cleared_only_on_request(rig):
     assert "SENSOR_1" in answer["faults"] and answer["chamber_states"] == ["FAULT"] * 3
     cleared = phantom_cli(rig, "clear-fault", "--json")
     assert cleared.returncode == 0, cleared.stderr
-    assert json.loads(cleared.stdout) == {"cleared": ["SENSOR_1"], "setpoints_restored": True}
+    assert json.loads(cleared.stdout) == {"cleared": ["SENSOR_1"], "setpoints_restored": True,
+                                          "target": {"volume_ml": 32.0}}
     wait_until(lambda: status(rig)["faults"] == [], 5, rig, "faults cleared")
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "volume back at 32 ml after the fault")
     texts = [event["text"] for event in status(rig)["events"]]

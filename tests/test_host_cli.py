@@ -110,13 +110,12 @@ def test_a_config_file_out_of_range_is_one_line_and_exit_2(tmp_path):
                                      "10 and 1000, got 0")
 
 
-def test_systemd_unit_restarts_on_failure_vents_on_sigterm_and_uses_the_serial_group():
+def test_systemd_unit_restarts_on_failure_and_vents_on_sigterm():
     unit = configparser.ConfigParser(strict=False, interpolation=None)
     unit.optionxform = str
     unit.read(HOST / "systemd" / "phantomd.service")
     service = unit["Service"]
     assert service["Restart"] == "on-failure"
-    assert "dialout" in service["SupplementaryGroups"]
     assert service["KillSignal"] == "SIGTERM" and service["KillMode"] == "mixed"
     assert service["ExecStart"].endswith("phantom daemon --config /etc/phantom/phantomd.toml")
     assert service["RuntimeDirectory"] == "phantom"

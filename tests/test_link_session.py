@@ -331,14 +331,18 @@ def test_missing_port_is_unavailable_not_a_crash(tmp_path):
     asyncio.run(main())
 
 
-def test_a_port_this_user_may_not_open_names_the_dialout_group(tmp_path, monkeypatch):
+def test_a_port_this_user_may_not_open_names_the_ports_group(tmp_path, monkeypatch):
+    import grp
+
     # the tests run as root, for whom every file is accessible: the permission check is made to fail
     port = tmp_path / "ttyACM0"
     port.touch()
+    group = grp.getgrgid(os.stat(port).st_gid).gr_name
     monkeypatch.setattr(os, "access", lambda path, mode: False)
 
     async def main():
-        with pytest.raises(TransportUnavailable, match="permission denied on .*ttyACM0: add your user to the dialout"):
+        with pytest.raises(TransportUnavailable, match=f"permission denied on .*ttyACM0: add your user to the {group} "
+                           f"group, which owns the port \\(sudo usermod -aG {group} "):
             await SerialTransport(port).open()
 
     asyncio.run(main())
@@ -509,3 +513,85 @@ def test_board_link_refuses_another_spec_and_waits_out_the_boot_delay(tmp_path):
                 link.hello()
     finally:
         board.unplug()
+
+
+def test_a_frame_that_arrives_a_byte_at_a_time_wakes_the_session_once(tmp_path):
+    """Issue 23, defect 11: a pty delivers the simulated UART's bytes a few at a time, and each piece woke the link
+    session (about 900 times a second, 5-14 % of a core, at 50 Hz telemetry). The transport hands on whole frames."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = tmp_path / "board"
+    os.symlink(os.ttyname(slave), link)
+    frames = [bytes([3, 1, 2, 4, 7, 8, 9, 0]), bytes([2, 5, 1, 6, 0])]
+    noise = bytes(range(1, 256)) * 6                          # 1530 bytes without a delimiter
+
+    def trickle(data):
+        for byte in data:
+            os.write(master, bytes([byte]))
+            time.sleep(0.0005)
+
+    async def script():
+        transport = SerialTransport(link)
+        await transport.open()
+        reads = []
+        try:
+            writer = asyncio.get_running_loop().run_in_executor(None, trickle, b"".join(frames))
+            while sum(map(len, reads)) < sum(map(len, frames)):
+                reads.append(await asyncio.wait_for(transport.read(), 5))
+            await writer
+            os.write(master, noise)
+            handed = b""
+            while len(handed) < len(noise):
+                handed += await asyncio.wait_for(transport.read(), 5)
+        finally:
+            transport.close()
+        return reads, handed
+
+    try:
+        reads, handed = asyncio.run(script())
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert b"".join(reads) == b"".join(frames)
+    assert len(reads) <= len(frames)                          # before: a read per byte or few
+    assert handed == noise                                    # bytes without a delimiter are not held for ever
+
+
+def test_the_keepalive_keeps_time_while_the_daemons_loop_is_stalled(tmp_path):
+    """Issue 23, defect 3: work inside the daemon's event loop (a 30 MB scene parsed, 100 surfaces encoded) held
+    the link's timers too, past the board's 500 ms dead-host deadline. The link runs on its own loop in a thread
+    (LinkThread): a 1.5 s stall of the daemon's loop leaves no gap in the board's PINGs, commands still reach the
+    board, and the telemetry that arrived meanwhile is delivered to the daemon afterwards."""
+    from phantom.host.session import LinkThread
+
+    board = ScriptedBoard(tmp_path / "board")
+    telemetry = []
+
+    async def main():
+        link = LinkThread(LinkSession(SerialTransport(tmp_path / "board"), FAST, on_telemetry=telemetry.append,
+                                      on_event=lambda *event: None))
+        task = asyncio.create_task(link.run())
+        try:
+            await wait_for(lambda: link.online)
+            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]}) == "OK"
+            stalled_from = time.monotonic()
+            time.sleep(1.5)                                   # the daemon's loop does nothing else meanwhile
+            stalled_until = time.monotonic()
+            frames_before = len(telemetry)
+            await asyncio.sleep(0.1)
+            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [900, 0, 0]}) == "OK"
+            return stalled_from, stalled_until, len(telemetry) - frames_before
+        finally:
+            link.stop()
+            await asyncio.wait_for(task, 5)
+
+    try:
+        stalled_from, stalled_until, delivered_after = asyncio.run(main())
+    finally:
+        board.unplug()
+    pings = [at for message, at in zip(board.received, board.received_at, strict=True) if message.name == "PING"
+             and stalled_from <= at <= stalled_until]
+    gaps = [later - earlier for earlier, later in zip([stalled_from, *pings], [*pings, stalled_until], strict=True)]
+    assert len(pings) >= 10 and max(gaps) < 0.25, gaps      # FAST's keepalive: a PING every 50 ms
+    assert delivered_after > 20                               # the frames of the stall, handed over after it
+    assert board.setpoints_pa == [900, 0, 0]

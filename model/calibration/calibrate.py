@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError
+from phantom import PhantomError, read_text
 from phantom.model.arrays import BoolArray, FloatArray
 from phantom.model.calibration.sweep import RayTask, RayTrace, cached_trace, run_sweep
 from phantom.model.errors import MeshError
@@ -47,6 +47,9 @@ from phantom.model.fem.model import PhantomModel
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 from phantom.model.mesh.shape import check_walls
 from phantom.model.scene import HYPERELASTIC_MODELS, PRESSURE_LIMIT_PA, Scene, scene_from_dict
+
+#: The largest measurement file read (bytes): a table of thousands of rows is far smaller.
+MAX_MEASUREMENT_BYTES = 2**20
 
 #: A ray's trace stops once its gland growth exceeds this multiple of the measured growth.
 OVERSHOOT = 1.8
@@ -107,9 +110,8 @@ def load_measurements(path: str | Path, n_chambers: int | None = None,
         match the model, fewer than three rows, or a scan file with no ``scan_volume_ml`` to measure it.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationError(f"the measurement file {path} does not exist: check the path")
-    lines = [line for line in path.read_text().splitlines() if line.strip() and not line.lstrip().startswith("#")]
+    text = read_text(path, MAX_MEASUREMENT_BYTES, "the measurement file", CalibrationError)
+    lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
     if not lines:
         raise CalibrationError(f"{path} holds no data: expected a header p0_kpa,p1_kpa,...,measured_ml and rows")
     reader = csv.DictReader(lines)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from phantom import written_atomically
 from phantom.model.errors import MeshError
 
 #: Faces of a tetrahedron (local vertex numbers), each ordered so its normal points away from the fourth vertex.
@@ -277,8 +278,13 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) ->
     """
     path = Path(path)
     coordinates = mesh.nodes_m / length_scale_m
+    if not np.isfinite(coordinates).all():
+        bad = int(np.flatnonzero(~np.isfinite(coordinates).all(axis=1))[0])
+        raise MeshError(f"cannot write {path}: node {bad} has a coordinate that is not finite "
+                        f"({coordinates[bad].tolist()}): the mesh or its deformation is broken")
     if path.suffix == ".msh":
-        _write_msh41(mesh, coordinates, path)
+        with written_atomically(path, MeshError, ends_with=b"$EndElements\n") as temporary:
+            _write_msh41(mesh, coordinates, temporary)
         return
     # meshio (0.1 s to import) only where a mesh file is read or written
     import meshio
@@ -290,10 +296,13 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) ->
     for k, name in enumerate(names):
         cell_sets[name] = [np.zeros(0, np.int64), np.arange(offsets[k], offsets[k + 1])]
     out = meshio.Mesh(coordinates, [("tetra", mesh.tets), ("triangle", triangles)], cell_sets=cell_sets)
-    try:
-        out.write(path)
-    except Exception as error:  # meshio raises many types for unknown formats
-        raise MeshError(f"cannot write {path}: {error}; use .msh or .vtu") from error
+    with written_atomically(path, MeshError) as temporary:
+        try:
+            out.write(temporary)
+        except OSError:
+            raise
+        except Exception as error:  # meshio raises many types for unknown formats
+            raise MeshError(f"cannot write {path}: {error}; use .msh or .vtu") from error
 
 
 @contextlib.contextmanager

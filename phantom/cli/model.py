@@ -9,6 +9,8 @@ import argparse
 import os
 from typing import TYPE_CHECKING
 
+from phantom import written_atomically
+
 if TYPE_CHECKING:
     from phantom.model.fem.model import PhantomModel, State
 
@@ -149,9 +151,7 @@ def _write_deformed(model: PhantomModel, state: State, out: str, length_scale_m:
 
         surface_nodes, triangles = model.outer_surface()
         surface = meshio.Mesh(state.positions_m[surface_nodes] / length_scale_m, [("triangle", triangles)])
-        try:
-            surface.write(path)
-        except OSError as error:
-            raise MeshError(f"cannot write {path}: {error.strerror}; give another --out path") from error
+        with written_atomically(path, MeshError) as temporary:
+            surface.write(temporary)
         return
     write_mesh(model.deformed_mesh(state), path, length_scale_m)

@@ -1,0 +1,132 @@
+"""A daemon process on a simulated board, for the end-to-end tests of the daemon's promises (test code only).
+
+:class:`DaemonRig` starts ``phantom daemon --port PORT`` as its own process against a
+:class:`phantom.hil.sim.SimulatedBoard` (the real firmware in simavr), and gives the tests its status, the
+``phantom`` CLI, the raw API and its log. :func:`calibrated_scene` writes a scene on the daemon's default model
+(the calibrated Gent phantom, answered from its cached response table) with the given ``[[steps]]``.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from phantom import PhantomError
+from phantom.host.client import DaemonClient
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+REPO = Path(__file__).resolve().parent.parent
+#: One ADC count of the board's sensor (kPa): 5 V / 1024 / (0.018 * 5 V/kPa).
+ONE_ADC_COUNT_KPA = 5.0 / 1024 / (0.018 * 5.0)
+
+
+def calibrated_scene(steps: list[dict[str, Any]], end_s: float) -> str:
+    """A scene file's text: the shipped BPH scene's phantom, material and model (the daemon's default model),
+    with these ``[[steps]]`` and ``[timeline] end_s``."""
+    header = (REPO / "host" / "scenes" / "bph_growth.toml").read_text().split("[timeline]")[0].split("[[steps]]")[0]
+    lines = [header, "[timeline]", f"end_s = {end_s}", ""]
+    for step in steps:
+        lines.append("[[steps]]")
+        lines += [f"{key} = {value!r}".replace("'", '"') for key, value in step.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+class DaemonRig:
+    """A simulated board and a daemon process driving it; :meth:`close` stops both."""
+
+    def __init__(self, directory: Path, *daemon_arguments: str, speed: float = 2.0,
+                 board: Any | None = None):
+        from phantom.hil.sim import SimulatedBoard
+
+        self.directory = directory
+        self.socket = directory / "phantomd.sock"
+        self.own_board = board is None
+        self.board = board if board is not None else SimulatedBoard(speed=speed).start()
+        self.log = open(directory / "daemon.log", "a+")
+        self.process = subprocess.Popen([str(PHANTOM), "daemon", "--port", self.board.port, "--socket",
+                                         str(self.socket), *daemon_arguments],
+                                        stdout=self.log, stderr=subprocess.STDOUT)
+
+    def close(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait(10)
+        if self.own_board:
+            self.board.stop()
+        self.log.close()
+
+    def daemon_log(self) -> str:
+        self.log.flush()
+        return Path(self.log.name).read_text()
+
+    def call(self, method: str, params: dict[str, Any] | None = None, timeout_s: float = 10.0) -> Any:
+        with DaemonClient(self.socket, timeout_s=timeout_s) as client:
+            return client.call(method, params)
+
+    def status(self) -> dict[str, Any]:
+        answer: dict[str, Any] = self.call("status")
+        return answer
+
+    def cli(self, *arguments: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([str(PHANTOM), *arguments, "--socket", str(self.socket)], capture_output=True,
+                              text=True, timeout=60)
+
+    def wait_until(self, predicate: Any, timeout_s: float, what: str = "condition") -> Any:
+        """Poll ``predicate()`` until it gives something true (returned); fail with the daemon's log."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if self.process.poll() is not None:
+                raise AssertionError(f"the daemon exited with {self.process.returncode}:\n{self.daemon_log()}")
+            try:
+                value = predicate()
+                if value:
+                    return value
+            except (OSError, PhantomError, KeyError, TypeError, IndexError):
+                pass
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{what}: not met in {timeout_s} s; daemon log:\n{self.daemon_log()[-6000:]}")
+            time.sleep(0.1)
+
+    def wait_status(self, predicate: Any, timeout_s: float, what: str = "condition") -> dict[str, Any]:
+        """Poll the status until ``predicate(status)`` holds; that status."""
+        def holds() -> dict[str, Any] | None:
+            answer = self.status()
+            return answer if predicate(answer) else None
+        return self.wait_until(holds, timeout_s, what)  # type: ignore[no-any-return]
+
+    def wait_online(self, timeout_s: float = 60.0) -> None:
+        self.wait_until(lambda: self.status()["link"] == "online", timeout_s, "link online")
+
+    def wait_scene_time(self, scene_time_s: float, timeout_s: float = 60.0) -> dict[str, Any]:
+        """Wait until the running scene's time has passed ``scene_time_s``; the status then."""
+        return self.wait_status(lambda answer: answer["scene"]["time_s"] >= scene_time_s, timeout_s,
+                                f"scene time {scene_time_s} s")
+
+
+def board_holds_solution(status: dict[str, Any], volume_ml: float) -> bool:
+    """Whether the board's setpoints are those of the daemon's answer to a ``volume_ml`` target (to the pascal)."""
+    solution = status.get("solution")
+    board = status.get("board_setpoints_kpa")
+    if solution is None or board is None or solution["target"].get("volume_ml") != volume_ml:
+        return False
+    return all(abs(b - round(s * 1e3) / 1e3) <= 0.0015 for b, s in zip(board, solution["pressures_kpa"], strict=True))
+
+
+def telemetry_mean_kpa(socket_path: Path, seconds: float) -> tuple[Any, Any]:
+    """Mean measured pressures and the board's last setpoints (kPa) over ``seconds`` of subscribed telemetry."""
+    import numpy as np
+
+    measured, setpoints = [], []
+    with DaemonClient(socket_path, timeout_s=10) as client:
+        started = time.monotonic()
+        for message in client.events(["telemetry"]):
+            measured.append(message["data"]["pressures_kpa"])
+            setpoints.append(message["data"]["setpoints_kpa"])
+            if time.monotonic() - started > seconds:
+                break
+    assert len(measured) > 20 * seconds, "telemetry should stream at 50 Hz of board time"
+    return np.mean(measured, axis=0), np.asarray(setpoints[-1])
