@@ -283,10 +283,12 @@ class SceneRun:
 
 @dataclass(frozen=True)
 class Cleared:
-    """The faults ``clear_fault`` cleared, and whether the target's setpoints were sent again."""
+    """The faults ``clear_fault`` cleared, whether the target's setpoints were sent again, and that target as the
+    daemon states it (``{"volume_ml": 32.0}``; None when none is in force)."""
 
     faults: tuple[str, ...]
     setpoints_restored: bool
+    target: dict[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -609,7 +611,7 @@ class AsyncPhantom:
 
     async def clear_fault(self) -> Cleared:
         answer = await self.call("clear_fault")
-        return Cleared(tuple(answer.get("cleared", ())), bool(answer.get("setpoints_restored")))
+        return Cleared(tuple(answer.get("cleared", ())), bool(answer.get("setpoints_restored")), answer.get("target"))
 
     async def zero(self) -> None:
         await self.call("zero")

@@ -390,7 +390,7 @@ def _worker_model_or_fail() -> LoadedModel:
     return _worker_model
 
 
-def _worker_start(scene_source: str, defer_table: bool) -> ModelInfo:
+def _worker_start(scene_source: str, defer_table: bool = False) -> ModelInfo:
     """In the worker: build the model; return what the daemon needs to know about it."""
     global _worker_model
     _worker_model = LoadedModel(scene_source, defer_table=defer_table)

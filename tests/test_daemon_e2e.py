@@ -98,7 +98,7 @@ def rig(tmp_path_factory):
                                stdout=log, stderr=subprocess.STDOUT)
     rig = {"board": board, "process": process, "socket": sock, "recording": recording, "dir": directory, "log": log}
     try:
-        wait_until(lambda: status(rig)["link"] == "online", 60, rig)
+        wait_until(lambda: (answer := status(rig))["link"] == "online" and answer["ready"], 60, rig)
         yield rig
     finally:
         if process.poll() is None:

@@ -267,7 +267,8 @@ def _run_simple(args: argparse.Namespace) -> int:
             result = {"zeroed": True}
         else:
             cleared = daemon.clear_fault()
-            result = {"cleared": list(cleared.faults), "setpoints_restored": cleared.setpoints_restored}
+            result = {"cleared": list(cleared.faults), "setpoints_restored": cleared.setpoints_restored,
+                      "target": cleared.target}
     print(json.dumps(result) if args.json else format_simple(args.method, result))
     return 0
 
