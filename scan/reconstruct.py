@@ -31,7 +31,7 @@ from phantom.scan.compare import SCAN_SUFFIXES, ScanError
 from phantom.scan.silhouette import SilhouetteError, silhouette
 
 #: The voxel size (mm) of the finest grid by default.
-VOXEL_MM = 0.25
+VOXEL_MM = 0.3
 #: The carving starts from a cube of this fraction of the camera's distance from the orbit's centre (half side).
 START_FRACTION = 0.35
 #: Threads that read and key the pictures, and carve.

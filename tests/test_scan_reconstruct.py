@@ -1,0 +1,106 @@
+"""The virtual camera and the reconstruction against closed forms: a sphere's picture and hull, a dent the hull
+cannot see, the capture folder's pictures back to a mesh (phantom.scan.render, silhouette, carve, reconstruct)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from phantom.model.mesh.surface import SurfaceIndex, TriangleMesh, enclosed_volume_ml, subdivide
+from phantom.scan.camera import VIRTUAL_CENTRE_MM, Camera, Pose, virtual_rig
+from phantom.scan.capture import CaptureFolder, Plan
+from phantom.scan.silhouette import SilhouetteError, alpha_matte, silhouette
+
+pytest.importorskip("cv2")
+pytest.importorskip("skimage")
+
+from phantom.scan.reconstruct import reconstruct  # noqa: E402
+from phantom.scan.render import Renderer, to_8bit  # noqa: E402
+from phantom.scan.virtual import render_capture  # noqa: E402
+
+
+def sphere(radius_mm: float, centre_mm, levels: int = 4, dent_mm: float = 0.0) -> TriangleMesh:
+    """An icosphere-like sphere (an octahedron subdivided and pushed out), optionally with a round dent of depth
+    dent_mm facing +y (a bowl no line of sight grazes)."""
+    vertices = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    triangles = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    for _ in range(levels):
+        vertices, triangles = subdivide(vertices, triangles)
+        vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
+    angle = np.arccos(np.clip(vertices[:, 1], -1, 1))
+    radius = radius_mm - dent_mm * np.exp(-(angle / 0.25) ** 2)
+    return TriangleMesh(vertices * radius[:, None] + centre_mm, triangles.astype(np.int64))
+
+
+def test_a_spheres_picture_is_the_closed_form_disc():
+    # a sphere of radius r at distance d on the optical axis of a lens without distortion projects to a disc of
+    # radius f r / sqrt(d^2 - r^2)
+    camera = Camera(400, 300, 500.0, 500.0, 199.5, 149.5)
+    distance, radius = 150.0, 12.0
+    pose = Pose(np.eye(3), np.array([0.0, 0.0, distance]))
+    image = to_8bit(Renderer(camera).render_mesh(sphere(radius, np.zeros(3), levels=6), pose), None)
+    area = float(alpha_matte(image).sum())
+    expected = math.pi * (500.0 * radius / math.sqrt(distance ** 2 - radius ** 2)) ** 2
+    assert area == pytest.approx(expected, rel=0.004)
+
+
+def test_the_rasteriser_depth_is_the_ray_sphere_intersection():
+    camera = Camera(200, 150, 300.0, 300.0, 99.5, 74.5, (-0.1, 0.05, 0.0, 0.0, 0.0))
+    renderer = Renderer(camera, supersample=1)
+    distance, radius = 100.0, 10.0
+    depth, face, _ = renderer.mesh_samples(sphere(radius, np.array([0, 0, distance]), levels=6),
+                                           Pose(np.eye(3), np.zeros(3)))
+    hit = face >= 0
+    rays = renderer.rays[hit].astype(float)
+    directions = np.column_stack([rays, np.ones(len(rays))])
+    # |t d - c|^2 = r^2, nearest root; the mesh's facets sit inside the sphere by at most its sagitta
+    a = np.sum(directions ** 2, axis=1)
+    b = -2 * directions[:, 2] * distance
+    c = distance ** 2 - radius ** 2
+    inside = b * b - 4 * a * c > 0
+    t = (-b[inside] - np.sqrt(b[inside] ** 2 - 4 * a[inside] * c)) / (2 * a[inside])
+    assert np.median(np.abs(depth[hit][inside] - t)) < 0.01
+    assert np.count_nonzero(inside) > 0.97 * np.count_nonzero(hit)
+
+
+def test_silhouette_refuses_pictures_without_a_phantom():
+    backdrop = np.zeros((120, 160, 3), np.uint8)
+    backdrop[:] = (40, 150, 60)
+    with pytest.raises(SilhouetteError, match="is the phantom in view"):
+        silhouette(backdrop)
+    with pytest.raises(SilhouetteError, match="black"):
+        silhouette(np.zeros((120, 160, 3), np.uint8))
+    with pytest.raises(SilhouetteError, match="8-bit colour"):
+        silhouette(np.zeros((120, 160), np.uint8))
+
+
+def test_sphere_from_a_rendered_capture(tmp_path):
+    truth = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5)
+    folder = render_capture(truth, virtual_rig(0.5), Plan(12), tmp_path / "capture")
+    again = CaptureFolder.open(folder.path)
+    assert again.status == "complete" and len(again.frames) == 24
+    result = reconstruct(again, voxel_mm=0.4)
+    assert result.volume_ml == pytest.approx(enclosed_volume_ml(truth), rel=0.01)
+    distance, _, _ = SurfaceIndex(truth.vertices_mm, truth.triangles).closest(result.mesh.vertices_mm)
+    assert distance.mean() < 0.1
+    # closed: every edge between exactly two triangles
+    edges = np.sort(result.mesh.triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)
+
+
+@pytest.mark.slow
+def test_the_hull_fills_a_dent_no_camera_grazes(tmp_path):
+    dented = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5, dent_mm=6.0)
+    plain = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5)
+    folder = render_capture(dented, virtual_rig(0.5), Plan(12), tmp_path / "capture")
+    result = reconstruct(folder, voxel_mm=0.4)
+    dent_ml = enclosed_volume_ml(plain) - enclosed_volume_ml(dented)
+    # the bowl's bottom, which curves inwards every way, stays filled; its flanks are seen and carved
+    assert result.volume_ml - enclosed_volume_ml(dented) > 0.4 * dent_ml
+    bottom = VIRTUAL_CENTRE_MM + np.array([0.0, 9.0, 0.0])
+    index = SurfaceIndex(result.mesh.vertices_mm, result.mesh.triangles)
+    assert index.closest(bottom[None])[0][0] > 3.5
+    # away from the dent the hull is the sphere
+    far = dented.vertices_mm[dented.vertices_mm[:, 1] - VIRTUAL_CENTRE_MM[1] < 5.0]
+    assert index.closest(far)[0].mean() < 0.1
