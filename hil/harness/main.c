@@ -557,7 +557,7 @@ int main(int argc, char **argv)
 		case 'f': h->frequency_hz = strtoull(optarg, NULL, 0); break;
 		case 'r': seed = strtoull(optarg, NULL, 0); break;
 		case 'p':
-			if (profile_add(&h->profile, optarg)) usage("--profile takes NAME=0xADDRESS[:MIN_CYCLES] (at most 12)");
+			if (profile_add(&h->profile, optarg)) usage("--profile takes NAME=0xADDRESS[:MIN_CYCLES] (at most 24)");
 			break;
 		case 'k':
 			equals = strchr(optarg, '=');

@@ -6,7 +6,7 @@
 
 #include "sim_avr.h"
 
-#define PROFILE_MAX_REGIONS 12
+#define PROFILE_MAX_REGIONS 24
 
 /* One function: counted from the cycle PC reaches its entry until SP rises above its entry value (return). */
 typedef struct profile_region {
