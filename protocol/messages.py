@@ -393,7 +393,7 @@ MESSAGES: dict[str, MessageSpec] = {
             Field('axis', 'u8', 1, '', 1.0, None, None,
                   '0 (orbit) or 1 (elevation)'),
             Field('steps_per_rev', 'f32', 1, 'steps', 1.0, None, None,
-                  'steps per turn of the axis: motor full steps x microsteps x gear ratio; 0 removes the axis, else 1..MOTION_MAX_STEPS_PER_REV'),
+                  'full steps x microsteps x gear ratio; 0 removes the axis, else 1..MOTION_MAX_STEPS_PER_REV'),
             Field('max_speed_mdeg_s', 'u32', 1, 'deg/s', 0.001, None, None,
                   'speed limit, > 0; its step rate must not exceed MOTION_MAX_STEP_RATE'),
             Field('max_accel_mdeg_s2', 'u32', 1, 'deg/s^2', 0.001, None, None,
@@ -408,7 +408,7 @@ MESSAGES: dict[str, MessageSpec] = {
                   ''),
         ),
         26,
-        'Configures one motion axis: its steps per revolution, speed and acceleration limits, soft limits and homing. NACK BUSY while the axis moves; answered by MOTION_INFO after the ACK.',
+        "One axis's steps per turn, speed and acceleration limits, soft limits and homing; MOTION_INFO follows.",
     ),
     'MOVE_TO': MessageSpec(
         'MOVE_TO', 0x18, 'host', True,
@@ -419,7 +419,7 @@ MESSAGES: dict[str, MessageSpec] = {
                   'target, within the soft limits'),
         ),
         5,
-        'Moves one axis to an absolute angle along a trapezoidal profile within its limits. ACK when accepted; MOTION_STATUS says when it has arrived.',
+        'Moves one axis to an angle within its limits; ACK at once, MOTION_STATUS says when it is there.',
     ),
     'HOME': MessageSpec(
         'HOME', 0x19, 'host', True,
@@ -429,10 +429,10 @@ MESSAGES: dict[str, MessageSpec] = {
             Field('method', 'u8', 1, '', 1.0, 'home_method', None,
                   'HERE, or SWITCH (needs the HOME_SWITCH option)'),
             Field('angle_mdeg', 'i32', 1, 'deg', 0.001, None, None,
-                  "the angle of the position now (HERE) or of the switch's edge (SWITCH), within +-MOTION_ANGLE_LIMIT_MDEG"),
+                  "the angle of the position now (HERE) or of the switch's edge (SWITCH)"),
         ),
         6,
-        "Sets an axis's position: here, or by searching its home switch. ACK when accepted; MOTION_STATUS says HOMED (or SWITCH_NOT_FOUND).",
+        "Sets an axis's position, here or at its home switch; ACK at once, MOTION_STATUS says HOMED.",
     ),
     'MOTION_STOP': MessageSpec(
         'MOTION_STOP', 0x1A, 'host', True,
@@ -464,7 +464,7 @@ MESSAGES: dict[str, MessageSpec] = {
                   'speed of the latest tick, signed'),
         ),
         42,
-        'Where the motion axes are: every MOTION_STATUS_PERIOD_MS while a session is open and an axis is configured, and at once when an axis starts or ends a move, a homing or a stop.',
+        'Where the axes are: every MOTION_STATUS_PERIOD_MS, and at once after a motion command or a change.',
     ),
     'MOTION_INFO': MessageSpec(
         'MOTION_INFO', 0x23, 'board', False,
@@ -487,7 +487,7 @@ MESSAGES: dict[str, MessageSpec] = {
                   ''),
         ),
         26,
-        "An axis's configuration as the board holds it: after the ACK of every MOTION_CONFIG, and after every HELLO_REPLY with status OK for each configured axis.",
+        "An axis's configuration as held: after each MOTION_CONFIG taken, and each configured axis after HELLO.",
     ),
 }
 

@@ -183,7 +183,7 @@ static void step_plant(harness_t *h)
 		if (h->plant.pressure_pa[i] > h->peak_pa[i])
 			h->peak_pa[i] = h->plant.pressure_pa[i];
 	if (h->avr)
-		motion_update_switches(&h->motion);
+		motion_step(&h->motion, simulated_seconds(h));
 	int any_on = h->plant.drive_level[0] > 0 || h->plant.drive_level[1] > 0 || h->plant.drive_level[2] > 0;
 	if (any_on)
 		h->all_off_since_s = -1;

@@ -127,6 +127,7 @@ void motion_attach(motion_t *motion, avr_t *avr, const uint64_t *cycle, const ui
 		axis->home = pins[n][3];
 		axis->log_cycle = malloc(MOTION_LOG_CAPACITY * sizeof(*axis->log_cycle));
 		axis->log_direction = malloc(MOTION_LOG_CAPACITY * sizeof(*axis->log_direction));
+		axis->released_since_s = 0;
 		avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ(axis->step.port), axis->step.bit),
 		                        on_step, axis);
 		avr_irq_register_notify(avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ(axis->dir.port), axis->dir.bit),
@@ -163,11 +164,17 @@ static void drive_home_inputs(motion_t *motion, char port)
 	avr_ioctl(motion->avr, AVR_IOCTL_IOPORT_SET_EXTERNAL(port), &external);
 }
 
-void motion_update_switches(motion_t *motion)
+void motion_step(motion_t *motion, double now_s)
 {
-	for (int n = 0; n < MOTION_AXES; n++)
-		if (motion->axes[n].switch_wired)
-			drive_home_inputs(motion, motion->axes[n].home.port);
+	for (int n = 0; n < MOTION_AXES; n++) {
+		motion_axis_t *axis = &motion->axes[n];
+		if (axis->switch_wired)
+			drive_home_inputs(motion, axis->home.port);
+		if (motion_enabled(axis))
+			axis->released_since_s = -1;
+		else if (axis->released_since_s < 0)
+			axis->released_since_s = now_s;
+	}
 }
 
 void motion_set_switch(motion_axis_t *axis, int wired, double low_deg, double high_deg, int active_high)
@@ -240,8 +247,10 @@ void motion_format_details(const motion_t *motion, char *out, size_t size)
 	size_t used = snprintf(out, size, "{\"axes\": [");
 	for (int n = 0; n < MOTION_AXES && used < size; n++) {
 		const motion_axis_t *axis = &motion->axes[n];
-		char angle[32], high[24], low[24], setup[24], hold[24], interval[24];
+		char angle[32], high[24], low[24], setup[24], hold[24], interval[24], released[32] = "null";
 		format_angle(angle, sizeof(angle), motion_angle_deg(axis));
+		if (axis->released_since_s >= 0)
+			snprintf(released, sizeof(released), "%.9f", axis->released_since_s);
 		format_cycles(high, sizeof(high), axis->min_high);
 		format_cycles(low, sizeof(low), axis->min_low);
 		format_cycles(setup, sizeof(setup), axis->min_setup);
@@ -253,11 +262,11 @@ void motion_format_details(const motion_t *motion, char *out, size_t size)
 		                 "\"enabled\": %s, \"dir_high\": %s, \"pulses\": %llu, \"pulses_while_released\": %llu, "
 		                 "\"logged\": %zu, \"min_high_cycles\": %s, \"min_low_cycles\": %s, "
 		                 "\"min_dir_setup_cycles\": %s, \"min_dir_hold_cycles\": %s, \"min_interval_cycles\": %s, "
-		                 "\"switch_wired\": %s, \"home_input_high\": %s}",
+		                 "\"released_since_s\": %s, \"switch_wired\": %s, \"home_input_high\": %s}",
 		                 n ? ", " : "", (long long)axis->steps, angle, axis->steps_per_rev, axis->start_deg,
 		                 motion_enabled(axis) ? "true" : "false", axis->dir_level ? "true" : "false",
 		                 (unsigned long long)axis->pulses, (unsigned long long)axis->pulses_while_released,
-		                 axis->logged, high, low, setup, hold, interval, axis->switch_wired ? "true" : "false",
+		                 axis->logged, high, low, setup, hold, interval, released, axis->switch_wired ? "true" : "false",
 		                 home ? "true" : "false");
 	}
 	if (used < size)

@@ -35,6 +35,7 @@ typedef struct motion_axis {
 	uint64_t *log_cycle;          /* the logged pulses' rising edges */
 	int8_t *log_direction;        /* and their directions (+1, -1) */
 	size_t logged;
+	double released_since_s;      /* since when the driver is released (EN high or floating); < 0 while enabled */
 	int switch_wired;
 	double switch_low_deg, switch_high_deg;  /* the switch is active while the angle is inside */
 	int switch_active_high;       /* its input's level when active */
@@ -53,8 +54,9 @@ void motion_attach(motion_t *motion, avr_t *avr, const uint64_t *cycle, const ui
 /* Forget the pulse counters, timing minima and logs (the positions stay). */
 void motion_reset_counters(motion_t *motion);
 
-/* Drive each wired home switch's input from its axis's angle now. */
-void motion_update_switches(motion_t *motion);
+/* Every plant step: drive each wired home switch's input from its axis's angle, and note when a driver was
+   released (now_s: simulated time). */
+void motion_step(motion_t *motion, double now_s);
 
 /* The axis's angle (deg), or NAN when its steps per turn are unknown. */
 double motion_angle_deg(const motion_axis_t *axis);

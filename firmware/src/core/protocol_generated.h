@@ -541,7 +541,7 @@ inline void decode(Fault& m, const uint8_t* in) {
     m.pressure_pa[2] = get_i16(in + 11);
 }
 
-// MOTION_CONFIG (host sends; acked): Configures one motion axis: its steps per revolution, speed and acceleration limits, soft limits and homing. NACK BUSY while the axis moves; answered by MOTION_INFO after the ACK.
+// MOTION_CONFIG (host sends; acked): One axis's steps per turn, speed and acceleration limits, soft limits and homing; MOTION_INFO follows.
 struct MotionConfig {
     enum { ID = 0x17, PAYLOAD_SIZE = 26 };
     uint8_t axis;
@@ -574,7 +574,7 @@ inline void decode(MotionConfig& m, const uint8_t* in) {
     m.options = get_u8(in + 25);
 }
 
-// MOVE_TO (host sends; acked): Moves one axis to an absolute angle along a trapezoidal profile within its limits. ACK when accepted; MOTION_STATUS says when it has arrived.
+// MOVE_TO (host sends; acked): Moves one axis to an angle within its limits; ACK at once, MOTION_STATUS says when it is there.
 struct MoveTo {
     enum { ID = 0x18, PAYLOAD_SIZE = 5 };
     uint8_t axis;
@@ -589,7 +589,7 @@ inline void decode(MoveTo& m, const uint8_t* in) {
     m.angle_mdeg = get_i32(in + 1);
 }
 
-// HOME (host sends; acked): Sets an axis's position: here, or by searching its home switch. ACK when accepted; MOTION_STATUS says HOMED (or SWITCH_NOT_FOUND).
+// HOME (host sends; acked): Sets an axis's position, here or at its home switch; ACK at once, MOTION_STATUS says HOMED.
 struct Home {
     enum { ID = 0x19, PAYLOAD_SIZE = 6 };
     uint8_t axis;
@@ -619,7 +619,7 @@ inline void decode(MotionStop& m, const uint8_t* in) {
     m.release = get_u8(in + 0);
 }
 
-// MOTION_STATUS (board sends; not acked): Where the motion axes are: every MOTION_STATUS_PERIOD_MS while a session is open and an axis is configured, and at once when an axis starts or ends a move, a homing or a stop.
+// MOTION_STATUS (board sends; not acked): Where the axes are: every MOTION_STATUS_PERIOD_MS, and at once after a motion command or a change.
 struct MotionStatus {
     enum { ID = 0x22, PAYLOAD_SIZE = 42 };
     uint32_t time_ms; // ms
@@ -666,7 +666,7 @@ inline void decode(MotionStatus& m, const uint8_t* in) {
     m.velocity_mdeg_s[1] = get_i32(in + 38);
 }
 
-// MOTION_INFO (board sends; not acked): An axis's configuration as the board holds it: after the ACK of every MOTION_CONFIG, and after every HELLO_REPLY with status OK for each configured axis.
+// MOTION_INFO (board sends; not acked): An axis's configuration as held: after each MOTION_CONFIG taken, and each configured axis after HELLO.
 struct MotionInfo {
     enum { ID = 0x23, PAYLOAD_SIZE = 26 };
     uint8_t axis;
