@@ -36,15 +36,15 @@ def main() -> None:
             result["simulated_per_wall"] = (args.duration_s + 2.0) / (time.monotonic() - wall)
             rows.append(result)
     print("| orbit steps/s | steps made | CPU use | CPU / target | tick cycles mean | tick cycles max | "
-          "max / budget | step interrupt cycles | ticks missed | sim speed |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+          "max / budget | step interrupt cycles | ticks missed | stack bytes | sim speed |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         isr = "-" if r["step_isr_cycles_mean"] is None else f"{r['step_isr_cycles_mean']:.0f}"
         print(
             f"| {r['step_rate']:g} | {r['steps']} | {100 * r['cpu_use_fraction']:.1f} % | "
             f"{r['cpu_use_fraction'] / CPU_TARGET:.2f} | {r['control_tick_cycles_mean']:.0f} | "
             f"{r['control_tick_cycles_max']} | {r['control_tick_cycles_max'] / r['control_tick_budget_cycles']:.3f} | "
-            f"{isr} | {r['tick_overruns']} | {r['simulated_per_wall']:.2f}x |"
+            f"{isr} | {r['tick_overruns']} | {r['stack_bytes_max']} | {r['simulated_per_wall']:.2f}x |"
         )
 
 

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from phantom import PhantomError
+from phantom.hil import bench
 from phantom.hil.link import BoardLink
 from phantom.protocol.codec import Message
 from phantom.protocol.link import fault_names
@@ -223,9 +224,10 @@ def _statuses_after(link: BoardLink, message: Message) -> int:
 
 
 def _wait_status(link: BoardLink, start: int, done, timeout_s: float, what: str) -> MotionStatus:
-    """The first MOTION_STATUS from index start for which done(status) holds, within timeout_s of board time."""
-    got = link.wait_for(lambda m: m.name == "MOTION_STATUS" and done(MotionStatus.from_message(m)),
-                        timeout_s, start)
+    """The first MOTION_STATUS from index start for which done(status) holds, within timeout_s of board time (on
+    the board's telemetry clock: a simulator running slower than asked still gets its time)."""
+    got = bench.wait_on_board_clock(
+        link, lambda m: m.name == "MOTION_STATUS" and done(MotionStatus.from_message(m)), timeout_s, start)
     if got is None:
         raise MotionError(f"{what} did not end within {timeout_s:g} s (is the session open, the axis configured?)")
     return MotionStatus.from_message(got.message)
@@ -245,8 +247,8 @@ def wait_for_status(link: BoardLink, done, timeout_s: float) -> MotionStatus:
 def configure(link: BoardLink, axis: int, config: AxisConfig, timeout_s: float = 1.0) -> AxisConfig:
     """MOTION_CONFIG; returns the configuration the board then reports (MOTION_INFO)."""
     answer = _command(link, "MOTION_CONFIG", config.fields(axis), axis)
-    got = link.wait_for(lambda m: m.name == "MOTION_INFO" and m.fields["axis"] == axis, timeout_s,
-                        _statuses_after(link, answer))
+    got = bench.wait_on_board_clock(link, lambda m: m.name == "MOTION_INFO" and m.fields["axis"] == axis, timeout_s,
+                                    _statuses_after(link, answer))
     if got is None:
         raise MotionError(f"the board took axis {axis}'s configuration but did not report it (MOTION_INFO)")
     return AxisConfig.from_fields(got.message.fields)
@@ -260,10 +262,7 @@ def move_to(link: BoardLink, axis: int, angle_deg: float, wait: bool = True,
     answer = _command(link, "MOVE_TO", {"axis": axis, "angle_mdeg": _mdeg(angle_deg)}, axis, f"{angle_deg:g} deg")
     if not wait:
         return None
-    final = _wait_status(link, _statuses_after(link, answer), lambda s: s.axes[axis].at_rest, timeout_s,
-                         f"the move of axis {axis} to {angle_deg:g} deg")
-    _require_result(final, axis, "REACHED", f"the move of axis {axis} to {angle_deg:g} deg", link)
-    return final
+    return _at_rest(link, answer, axis, "REACHED", f"the move of axis {axis} to {angle_deg:g} deg", timeout_s)
 
 
 def home(link: BoardLink, axis: int, method: str = "here", angle_deg: float = 0.0, wait: bool = True,
@@ -279,10 +278,7 @@ def home(link: BoardLink, axis: int, method: str = "here", angle_deg: float = 0.
                       f"{angle_deg:g} deg")
     if not wait:
         return None
-    final = _wait_status(link, _statuses_after(link, answer), lambda s: s.axes[axis].at_rest, timeout_s,
-                         f"homing axis {axis}")
-    _require_result(final, axis, "HOMED", f"homing axis {axis} ({method})", link)
-    return final
+    return _at_rest(link, answer, axis, "HOMED", f"homing axis {axis} ({method})", timeout_s)
 
 
 def stop(link: BoardLink, release: bool = False, wait: bool = True, timeout_s: float = 10.0) -> MotionStatus | None:
@@ -295,10 +291,12 @@ def stop(link: BoardLink, release: bool = False, wait: bool = True, timeout_s: f
                         "the stop")
 
 
-def _require_result(final: MotionStatus, axis: int, expected: str, what: str, link: BoardLink) -> None:
+def _at_rest(link: BoardLink, answer: Message, axis: int, expected: str, what: str, timeout_s: float) -> MotionStatus:
+    """The first status after a command's ACK with the axis at rest; MotionError unless it ended as expected."""
+    final = _wait_status(link, _statuses_after(link, answer), lambda s: s.axes[axis].at_rest, timeout_s, what)
     result = final.axes[axis].result
     if result == expected:
-        return
+        return final
     if result == "FAULT":
         faults = [r.message.fields["fault_flags"] for r in link.received if r.message.name == "FAULT"]
         latched = ", ".join(fault_names(faults[-1])) if faults else "a fault"
@@ -399,11 +397,9 @@ def measure_cycles(link: BoardLink, board, step_rate: float, duration_s: float =
 
     The orbit is configured with 64000 steps per turn and a speed of step_rate steps/s, and sent on a move long
     enough to cruise through the measurement (its ramps, a tenth of a second, are over before it starts).
-    Returns bench.measure_cycles's figures plus step_rate, steps (the pulses its driver took meanwhile),
-    step_isr_cycles_mean and tick_overruns (from telemetry).
+    Returns the CPU use, the control tick's cycles (mean, max, budget), step_rate, steps (the pulses its driver
+    took meanwhile), step_isr_cycles_mean, stack_bytes_max and tick_overruns (from telemetry).
     """
-    from phantom.hil import bench
-
     if board is None:
         raise MotionError("cycle counts need the simulator (--sim)")
     if not 0 <= step_rate <= MAX_STEP_RATE:
@@ -443,6 +439,7 @@ def measure_cycles(link: BoardLink, board, step_rate: float, duration_s: float =
         "control_tick_cycles_max": stats["control_tick_cycles_max"],
         "control_tick_budget_cycles": frequency // CONSTANTS["TICK_HZ"],
         "step_isr_cycles_mean": step_isr["total_cycles"] / step_isr["calls"] if step_isr["calls"] else None,
+        "stack_bytes_max": stats["stack_bytes_max"],
         "tick_overruns": (last["tick_overruns"] - first["tick_overruns"]) & 0xFFFF,
         "regions": stats["regions"],
     }
@@ -463,8 +460,6 @@ def check_motion(link: BoardLink, board=None, config: AxisConfig = BENCH_ORBIT, 
     speed and acceleration limits against the pulse times, and homes against a simulated switch. On a real board
     the position is the board's own; watch the axis turn by move_deg and back.
     """
-    from phantom.hil import bench
-
     bench.start_session(link)
     report: dict[str, Any] = {"axis": axis, "config": asdict(configure(link, axis, config))}
     start = status(link).axes[axis]

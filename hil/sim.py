@@ -249,8 +249,8 @@ class SimulatedBoard:
         Returns control_tick_cycles_mean/_max and control_ticks, telemetry_frame_cycles_mean/_max and
         telemetry_frames (None when the firmware has no such function), elapsed_cycles, frequency_hz,
         cpu_use_fraction (cycles inside any timed function or interrupt handler, counted once when they nest,
-        over elapsed cycles), regions (every timed function's calls, total and max cycles) and serial (byte
-        counters of the line).
+        over elapsed cycles), stack_bytes_max (the stack's deepest point, bytes below the top of RAM), regions
+        (every timed function's calls, total and max cycles) and serial (byte counters of the line).
         """
         reply = self._command("stats reset" if reset else "stats")
         stats = {"elapsed_cycles": reply["elapsed_cycles"], "frequency_hz": reply["frequency_hz"]}
@@ -262,6 +262,7 @@ class SimulatedBoard:
             stats[f"{role}_cycles_max"] = region["max_cycles"] if calls else None
         elapsed = reply["elapsed_cycles"]
         stats["cpu_use_fraction"] = reply["busy_cycles"] / elapsed if elapsed else None
+        stats["stack_bytes_max"] = reply["stack_bytes_max"]
         stats["regions"] = reply["regions"]
         stats["serial"] = reply["serial"]
         return stats

@@ -168,3 +168,23 @@ def test_the_link_core_reports_a_motion_status_and_reads_the_board_clock_from_it
     # a status stamped well before the last board time means the board restarted behind the port
     events = link.receive(peer.frame("MOTION_STATUS", {**fields, "time_ms": 1000}), 0.03)
     assert [type(e) for e in events if not isinstance(e, FrameIn)] == [MotionIn, BoardRestarted]
+
+
+def test_the_move_to_worked_example_of_protocol_md_is_built_by_hand():
+    """PROTOCOL.md section 12's bytes, from the definitions: the body, its CRC-16/MCRF4XX (0x3A48, computed
+    bitwise here), COBS blocks ending at each zero."""
+    from pathlib import Path
+
+    body = bytes([0x18, 0x07, 0x00]) + (90000).to_bytes(4, "little", signed=True)
+    crc = 0xFFFF
+    for byte in body:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ 0x8408 if crc & 1 else crc >> 1
+    assert crc == 0x3A48
+    body += crc.to_bytes(2, "little")
+    on_wire = bytes.fromhex("03 18 07 04 90 5f 01 03 48 3a 00")
+    assert body == bytes.fromhex("18 07 00 90 5f 01 00 48 3a")
+    assert encode("MOVE_TO", 7, {"axis": 0, "angle_mdeg": 90000}) == on_wire
+    protocol_md = (Path(__file__).parents[1] / "protocol" / "PROTOCOL.md").read_text()
+    assert "on wire  03 18 07 04 90 5f 01 03 48 3a 00" in protocol_md

@@ -151,10 +151,13 @@ static void reply_stats(harness_t *h)
 		                 (unsigned long long)r->total_cycles, (unsigned long long)r->max_cycles);
 	}
 	serial_pty_t *s = &h->serial;
-	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"frequency_hz\": %llu, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
+	char stack[24] = "null";
+	if (h->avr && h->profile.min_sp != 0xFFFF)
+		snprintf(stack, sizeof(stack), "%d", (int)h->avr->ramend - (int)h->profile.min_sp);
+	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"frequency_hz\": %llu, \"stack_bytes_max\": %s, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
 	      "\"bytes_from_mcu\": %llu, \"bytes_dropped\": %llu, \"bytes_flipped\": %llu, \"bytes_overflowed\": %llu}}",
 	      (unsigned long long)(h->cycle - h->profile.since_cycle), (unsigned long long)h->profile.busy_cycles,
-	      (unsigned long long)h->frequency_hz, regions,
+	      (unsigned long long)h->frequency_hz, stack, regions,
 	      (unsigned long long)s->bytes_to_mcu, (unsigned long long)s->bytes_from_mcu,
 	      (unsigned long long)s->bytes_dropped, (unsigned long long)s->bytes_flipped,
 	      (unsigned long long)s->bytes_overflowed);

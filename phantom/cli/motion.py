@@ -4,10 +4,12 @@
 count every pulse) or a board on a serial port (``--port``); ``move``, ``home`` and ``status`` drive a board by
 hand. The board does not keep an axis's configuration across a reset: every command sends it first (the
 options below, whose defaults are the orbit of docs/scanner-hardware.md).
-Only argparse is imported at module load; handlers import what they need when they run.
+Only argparse is imported at module load; handlers import what they need when they run. The connection is
+``phantom hil``'s (its ``_Bench``), with the same target options.
 """
 
 import argparse
+import contextlib
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,10 +27,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         target = parser.add_mutually_exclusive_group(required=True)
         target.add_argument("--sim", action="store_true", help="run the firmware image in simavr")
         target.add_argument("--port", help="serial port of a real board, e.g. /dev/ttyACM0")
-        parser.add_argument("--elf", help="firmware image for --sim (default firmware/build/uno-bench/phantom.elf)")
-        parser.add_argument("--boot-delay-s", type=float,
-                            help="--port: seconds to stay silent after opening the port while the bootloader runs "
-                                 "(default 2)")
+        parser.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+        parser.add_argument("--boot-delay-s", type=float, help="--port: seconds of silence after opening the port, "
+                                                               "while the bootloader runs (default 2)")
+        parser.add_argument("--elf", help="--sim: firmware image (default firmware/build/uno-bench/phantom.elf)")
+        parser.add_argument("--plant", help="--sim: plant parameter file (default hil/plant.toml)")
+        parser.add_argument("--sim-speed", dest="speed", type=float, default=1.0,
+                            help="--sim: simulated time per wall-clock time (default 1)")
+        parser.add_argument("--seed", type=int, default=0, help="--sim: seed of the sensor and line noise")
         parser.add_argument("--axis", type=int, default=0, choices=(0, 1), help="0 orbit (default), 1 elevation")
         parser.add_argument("--steps-per-rev", type=float, default=28800,
                             help="steps per turn of the axis: full steps x microsteps x gear ratio (default 28800)")
@@ -76,42 +82,23 @@ def _config(args):
     return config
 
 
-class _Board:
-    """The link (and the simulated board, with --sim) for one command, with the axis configured."""
+@contextlib.contextmanager
+def _configured(args, config):
+    """The bench's link (phantom hil's, and the simulated board with --sim), its session open and the axis
+    configured."""
+    from phantom.cli.hil import _Bench
+    from phantom.hil import bench, motion
 
-    def __init__(self, args):
-        self.args = args
-        self.board = None
-        self.link = None
-
-    def __enter__(self):
-        from phantom.hil import bench
-        from phantom.hil.link import BoardLink
-        from phantom.hil.sim import SimulatedBoard
-        from phantom.protocol.link import BOOT_DELAY_S
-
-        port, boot_delay_s = self.args.port, self.args.boot_delay_s
-        if boot_delay_s is None:
-            boot_delay_s = max(BOOT_DELAY_S.values())
-        if self.args.sim:
-            self.board = SimulatedBoard(self.args.elf).start()
-            port, boot_delay_s = self.board.port, BOOT_DELAY_S["sim"]
-        self.link = BoardLink(port, boot_delay_s=boot_delay_s)
-        bench.start_session(self.link)
-        return self
-
-    def __exit__(self, *exc_info):
-        if self.link is not None:
-            self.link.close()
-        if self.board is not None:
-            self.board.stop()
+    with _Bench(args) as b:
+        bench.start_session(b.link)
+        motion.configure(b.link, args.axis, config)
+        yield b
 
 
-def _emit(args, result: dict, lines: list[str]) -> int:
-    import json
+def _report(args, status) -> int:
+    from phantom.cli.hil import _emit
 
-    print(json.dumps(result, indent=1) if args.json else "\n".join(lines))
-    return 0 if result.get("passed", True) else 1
+    return _emit(args, _status_result(status), [_axis_line(n, a) for n, a in enumerate(status.axes)])
 
 
 def _axis_line(n: int, axis) -> str:
@@ -128,10 +115,11 @@ def _status_result(status) -> dict:
 
 
 def _run_check(args) -> int:
+    from phantom.cli.hil import _Bench, _emit
     from phantom.hil import motion
 
     config = _config(args)
-    with _Board(args) as b:
+    with _Bench(args) as b:
         report = motion.check_motion(b.link, b.board, config, move_deg=args.move_deg, axis=args.axis)
     lines = [f"{name}: {'PASS' if ok else 'FAIL'}" for name, ok in report["checks"].items()]
     lines += [f"{key}: {value:.6g}" if isinstance(value, float) else f"{key}: {value}"
@@ -143,27 +131,24 @@ def _run_move(args) -> int:
     from phantom.hil import motion
 
     config = _config(args)
-    with _Board(args) as b:
-        motion.configure(b.link, args.axis, config)
+    with _configured(args, config) as b:
         status = motion.move_to(b.link, args.axis, args.deg)
-    return _emit(args, _status_result(status), [_axis_line(n, a) for n, a in enumerate(status.axes)])
+    return _report(args, status)
 
 
 def _run_home(args) -> int:
     from phantom.hil import motion
 
     config = _config(args)
-    with _Board(args) as b:
-        motion.configure(b.link, args.axis, config)
+    with _configured(args, config) as b:
         status = motion.home(b.link, args.axis, "switch" if args.search else "here", angle_deg=args.deg)
-    return _emit(args, _status_result(status), [_axis_line(n, a) for n, a in enumerate(status.axes)])
+    return _report(args, status)
 
 
 def _run_status(args) -> int:
     from phantom.hil import motion
 
     config = _config(args)
-    with _Board(args) as b:
-        motion.configure(b.link, args.axis, config)
+    with _configured(args, config) as b:
         status = motion.status(b.link)
-    return _emit(args, _status_result(status), [_axis_line(n, a) for n, a in enumerate(status.axes)])
+    return _report(args, status)
