@@ -39,10 +39,13 @@ def link(board):
 
 @pytest.fixture
 def rig(board, link):
-    """The orbit configured from where it is (its position at power-up is zero), the rig's angle the same."""
+    """The orbit configured from where it is (its position at power-up is zero) and referenced there, the rig's
+    angle the same; the chambers vented, no fault latched."""
     simulated = mo.SimulatedRig(board)
+    link.command("VENT")
     link.command("CLEAR_FAULT", accept_nack=True)
     mo.configure(link, mo.ORBIT, ORBIT)
+    mo.home(link, mo.ORBIT, "here", angle_deg=mo.status(link).axes[mo.ORBIT].position_deg)
     here = mo.status(link).axes[mo.ORBIT].position_steps
     simulated.set_axis(mo.ORBIT, STEPS_PER_REV,
                        start_deg=(here - board.motion()["axes"][0]["steps"]) * 360 / STEPS_PER_REV)
@@ -128,12 +131,12 @@ def test_a_latched_fault_halts_the_move_and_releases_the_driver_with_the_blowers
     else:
         link.keepalive(False)
     halted = mo.wait_for_status(link, lambda s: s.axes[mo.ORBIT].result == "FAULT", 10.0)
+    axis = rig.axes()[mo.ORBIT]
+    state = board.plant_state()  # before the keepalive sends again
     link.keepalive(True)
     board.inject("clear")
     orbit = halted.axes[mo.ORBIT]
     assert (orbit.state, orbit.enabled, orbit.referenced) == ("IDLE", False, False)
-    axis = rig.axes()[mo.ORBIT]
-    state = board.plant_state()
     assert not axis["enabled"] and axis["pulses_while_released"] == 0
     released_s = axis["released_since_s"]
     assert released_s == pytest.approx(state["all_off_since_s"], abs=0.0011)  # with the blowers, the same tick
