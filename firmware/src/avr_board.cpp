@@ -61,7 +61,7 @@ static uint8_t adc_done;
 static core::AdcTick latched;
 static core::MotionSample latched_motion;
 // The steppers at the latest tick, for the steps not made yet: the stepping axis's steps left, whether the plan
-// handed over was still waiting (avr_take_tick counts them into latched_motion).
+// handed over was still waiting (avr_take_tick counts them into the sample it gives the loop).
 static uint8_t latched_steps_left, latched_stepping_axis;
 static bool latched_plan_waiting;
 static volatile uint16_t ticks_pending;

@@ -263,8 +263,9 @@ void Controller::on_motion_stop(uint8_t seq, const uint8_t* payload) {
     reply(MSG_MOTION_STOP, seq, STATUS_OK);
 }
 
-// One tick: measure, check every fault, then zero or control, plan the steppers' next tick, then maybe report
-// (at most one frame per tick: telemetry first, then the motion status, then a motion configuration).
+// One tick: measure, check every fault, then zero or control, move the steppers on (planning their next window
+// when one starts), then maybe report: at most one frame a tick, telemetry first, then the motion status, then a
+// motion configuration.
 void Controller::tick(const AdcTick& adc, uint16_t missed_ticks, const MotionSample& motion) {
     time_ms_ += (uint32_t)TICK_MS * (1u + missed_ticks);
     tick_overruns_ = (uint16_t)(tick_overruns_ + missed_ticks);
