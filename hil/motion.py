@@ -345,8 +345,9 @@ class SimulatedRig:
 
     def axes(self) -> list[dict[str, Any]]:
         """Each axis as its driver saw it: steps, angle_deg (None until set_axis), enabled, dir_high, pulses,
-        pulses_while_released (a driver ignores them), and the pulse timing minima in cycles: min_high_cycles,
-        min_low_cycles, min_dir_setup_cycles, min_dir_hold_cycles, min_interval_cycles (None before any)."""
+        pulses_while_released (a driver ignores them), released_since_s (simulated time; None while enabled),
+        home_input_high, and the pulse timing minima in cycles of 16 MHz: min_high_cycles, min_low_cycles,
+        min_dir_setup_cycles, min_dir_hold_cycles, min_interval_cycles (None before any)."""
         axes: list[dict[str, Any]] = self.board.motion()["axes"]
         return axes
 

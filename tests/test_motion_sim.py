@@ -17,15 +17,15 @@ pytestmark = [pytest.mark.sim, pytest.mark.timeout(300)]
 
 SPEED = 2.0
 #: The orbit of docs/scanner-hardware.md: a 200-step motor at 16 microsteps on a 9:1 belt, 30 deg/s, 60 deg/s^2.
+ORBIT = mo.BENCH_ORBIT
 STEPS_PER_REV = 28800
-ORBIT = mo.AxisConfig(steps_per_rev=STEPS_PER_REV, max_speed_deg_s=30.0, max_accel_deg_s2=60.0,
-                      min_angle_deg=-190.0, max_angle_deg=190.0)
 #: 16 MHz: cycles in the pulse timing.
 CYCLES_PER_US = 16
 
 
 @pytest.fixture(scope="module")
 def board():
+    assert ORBIT.steps_per_rev == STEPS_PER_REV
     with SimulatedBoard(speed=SPEED, seed=2) as simulated:
         yield simulated
 
