@@ -3,7 +3,7 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test check lint types protocol-check firmware-test firmware-test-one pytest pytest-fast clean
+.PHONY: setup demo test check lint types protocol-check firmware-test firmware-test-one pytest pytest-fast figures clean
 
 setup:
 	@scripts/bootstrap.sh
@@ -15,21 +15,23 @@ demo: setup
 
 test: setup lint types protocol-check firmware-test pytest
 
-# The contributor's fast loop, under a minute: lint, types, the protocol check and the tests that need no
-# simulator (pytest -m "not sim and not slow"; mark a test that runs simavr with @pytest.mark.sim).
+# The contributor's fast loop, about a minute: lint, types, the protocol check and the tests that need no
+# simulator and take no long numerical case (pytest -m "not sim and not slow"; mark a test that runs simavr with
+# @pytest.mark.sim, one that takes seconds of numerics with @pytest.mark.slow).
 check: setup lint types protocol-check pytest-fast
 
 lint:
 	$(VENV)/bin/ruff check .
 
-# mypy: strict on phantom.protocol, and phantom.host (settings in pyproject.toml). mypy cannot follow the
-# editable install's import hook, so the package's folders are mapped into one tree under .cache/ first.
+# mypy on every package: the root, the CLI and each part (strictness per package in pyproject.toml). mypy cannot
+# follow the editable install's import hook, so the package's folders are mapped into one tree under .cache/ first.
+PARTS := $(wildcard protocol model scan shape host hil)
 MYPY_TREE := .cache/mypy-src/phantom
 types:
 	@mkdir -p $(MYPY_TREE)
 	@for f in __init__.py __main__.py cli; do ln -sfn ../../../phantom/$$f $(MYPY_TREE)/$$f; done
-	@for d in protocol model scan host hil; do ln -sfn ../../../$$d $(MYPY_TREE)/$$d; done
-	$(VENV)/bin/mypy -p phantom.protocol -p phantom.host
+	@for d in $(PARTS); do ln -sfn ../../../$$d $(MYPY_TREE)/$$d; done
+	$(VENV)/bin/mypy -m phantom -m phantom.__main__ -p phantom.cli $(addprefix -p phantom.,$(PARTS))
 
 # The generated protocol files (messages.py, protocol_generated.h) must match protocol/spec.toml.
 protocol-check:
@@ -39,11 +41,22 @@ protocol-check:
 firmware-test:
 	$(MAKE) -C firmware test PYTHON=$(abspath $(PY))
 
+# pytest on every core (pytest-xdist). The simavr tests pace the simulated board to the wall clock and fail when
+# another worker takes the CPU from them: make test runs them afterwards in a pytest of their own, one at a time.
+PYTEST := $(PY) -m pytest -q -n auto
+
 pytest-fast:
-	$(PY) -m pytest -q -m "not sim and not slow"
+	$(PYTEST) -m "not sim and not slow"
 
 pytest:
-	$(PY) -m pytest -q
+	$(PYTEST) -m "not sim"
+	$(PY) -m pytest -q -m sim
+
+# Every image the docs show, made again by the commands their captions name (scripts/figures.py; minutes, not part
+# of make test). Installs Debian's chromium first, for the Rerun screenshots.
+figures:
+	@scripts/bootstrap.sh scripts/apt-packages.txt scripts/apt-packages-figures.txt
+	$(PY) scripts/figures.py
 
 clean:
 	rm -rf firmware/build hil/harness/build .pytest_cache .ruff_cache

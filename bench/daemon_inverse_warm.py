@@ -34,24 +34,25 @@ def timed_ms(solve, volume_ml: float) -> tuple[float, str]:
 
 def cold_solve():
     """The daemon's model side without the warm-up (an InverseSolver straight from the model)."""
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
     from phantom.model import PhantomModel, load_scene
     from phantom.model.inverse import InverseSolver
 
-    model = LoadedModel.__new__(LoadedModel)  # its solve() on a solver that was never warmed
+    model = LoadedModel.__new__(LoadedModel)  # its pressures_for() on a solver that was never warmed
     model.scene = load_scene("builtin:calibrated")
     model.model = PhantomModel.from_scene(model.scene)
     model.solver = InverseSolver(model.model)
     model.estimator = model.solver.estimator
-    return model.solve
+    return model.pressures_for
 
 
 def main() -> None:
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
 
     rows = []
-    for name, solve in (("cold (before)", cold_solve()),
-                        ("warmed at start-up", LoadedModel("builtin:calibrated", report=lambda text: None).solve)):
+    cold = cold_solve()  # first: the warmed model's start-up would load what the cold one must load itself
+    warmed = LoadedModel("builtin:calibrated", report=lambda text: None)
+    for name, solve in (("cold (before)", cold), ("warmed at start-up", warmed.pressures_for)):
         first_ms, _ = timed_ms(solve, TARGETS_ML[0])
         later_ms = [timed_ms(solve, volume)[0] for volume in TARGETS_ML[1:]]
         refusals = [timed_ms(solve, volume) for volume in UNREACHABLE_ML]

@@ -56,11 +56,11 @@ def model_at(size_mm):
 
 def measure(size_mm, repeats):
     mesh, surfaces, model = model_at(size_mm)
-    model.solve(PRESSURES_PA)  # compile and warm every kernel once
+    model.equilibrium(PRESSURES_PA)  # compile and warm every kernel once
     _, stiffness, load, held = skfem_problem(model, PRESSURES_PA)
     row = {"size_mm": size_mm, "nodes": len(mesh.nodes_m), "tets": len(mesh.tets)}
     row["refill_s"] = best_time_s(lambda: model.stiffness_matrix(), repeats)
-    deformed = model.solve(PRESSURES_PA).positions_m
+    deformed = model.equilibrium(PRESSURES_PA).positions_m
     row["tangent_s"] = best_time_s(lambda: model.stiffness_matrix(deformed, "corotational", PRESSURES_PA), repeats)
     row["setup_s"] = best_time_s(lambda: PhantomModel(mesh, surfaces, CHAMBERS, model.material).stiffness_matrix(),
                                  repeats)
@@ -72,7 +72,7 @@ def measure(size_mm, repeats):
     row["skfem_linear_s"] = best_time_s(lambda: skfem.solve(*skfem.condense(stiffness, load, D=held)), repeats)
 
     def fresh_corotational():
-        return PhantomModel(mesh, surfaces, CHAMBERS, model.material).solve(PRESSURES_PA)
+        return PhantomModel(mesh, surfaces, CHAMBERS, model.material).equilibrium(PRESSURES_PA)
 
     row["phantom_full_s"] = best_time_s(fresh_corotational, repeats)
     row["iterations"] = fresh_corotational().iterations

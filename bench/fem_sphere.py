@@ -33,7 +33,7 @@ def main():
         for size in sizes:
             started = time.perf_counter()
             model = sphere_model(size, poisson_ratio)
-            compliance = model._rest_compliance()
+            compliance = model.rest_compliance()
             elapsed = time.perf_counter() - started
             computed = np.array([compliance.chamber_m3_per_pa[0, 0], compliance.gland_m3_per_pa[0]])
             errors = computed / exact - 1

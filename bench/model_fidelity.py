@@ -49,7 +49,7 @@ def prostate_rows(sizes_mm, reference_mm, material="corotational"):
     reference_model = PhantomModel.from_scene(scene, mesh_size_mm=reference_mm).with_material(model=material)
     reference = []
     for pressures_kpa in PRESSURE_COMBINATIONS_KPA:
-        state = reference_model.solve(pressures_kpa * 1e3)
+        state = reference_model.equilibrium(pressures_kpa * 1e3)
         reference.append((state.chamber_volumes_m3 - reference_model.rest_chamber_volumes_m3,
                           state.gland_volume_m3 - reference_model.rest_gland_volume_m3,
                           state.positions_m - reference_model.nodes_m))
@@ -137,7 +137,7 @@ def inverse_rows(size_mm):
     for _ in range(20):
         problem = VolumeQP(model.n_chambers, inputs[2].shape[0])
         started = time.perf_counter()
-        problem.solve(*inputs)
+        problem.minimise(*inputs)
         cold.append(time.perf_counter() - started)
     warm_wall, warm_osqp = [], []
     for repeat in range(400):
@@ -145,19 +145,19 @@ def inverse_rows(size_mm):
         rows = solver._rows(Target(gland_volume_m3=target_ml * 1e-6), solver.rest)
         inputs = solver._qp_inputs(rows, exact=True)
         started = time.perf_counter()
-        _, osqp_s = problem.solve(*inputs)
+        _, osqp_s = problem.minimise(*inputs)
         warm_wall.append(time.perf_counter() - started)
         warm_osqp.append(osqp_s)
     forward = []
     for pressures_kpa in PRESSURE_COMBINATIONS_KPA[:3]:
         started = time.perf_counter()
-        model.solve(pressures_kpa * 1e3)
+        model.equilibrium(pressures_kpa * 1e3)
         forward.append(time.perf_counter() - started)
     inverse = []
     for target_ml in targets_ml:
         progress(f"inverse {size_mm} mm, target {target_ml:.3f} ml")
-        result = solver.solve(Target(gland_volume_m3=target_ml * 1e-6))
-        check = model.solve(result.pressures_pa).gland_volume_m3 * 1e6
+        result = solver.pressures_for(Target(gland_volume_m3=target_ml * 1e-6))
+        check = model.equilibrium(result.pressures_pa).gland_volume_m3 * 1e6
         inverse.append({"target_ml": target_ml, "iterations": result.iterations, "time_s": result.solve_time_s,
                         "qp_time_us": result.qp_solve_time_s * 1e6, "error_pct": abs(check / target_ml - 1) * 100})
     return {"size_mm": size_mm, "qp_cold_us": float(np.median(cold)) * 1e6,

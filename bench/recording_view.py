@@ -68,7 +68,7 @@ def record(path: Path, names: list[str]) -> None:
                 recorder.log_event(time_s, f"scene step {step_index}: vent", "WARN")
             else:
                 started = time.perf_counter()
-                result = solver.solve(Target(gland_volume_m3=target_ml * 1e-6))
+                result = solver.pressures_for(Target(gland_volume_m3=target_ml * 1e-6))
                 setpoint_kpa = np.asarray(result.pressures_pa) / 1e3
                 recorder.log_solver(time_s, result.qp_solve_time_s, time.perf_counter() - started)
                 recorder.log_event(time_s, f"scene step {step_index}: {target_ml:.1f} ml -> setpoints "

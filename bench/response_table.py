@@ -70,9 +70,9 @@ def main() -> None:
     print("|---|---|---|---|---|---|")
     for volume_ml in TARGETS_ML:
         target = Target(gland_volume_m3=volume_ml * 1e-6)
-        table_result, table_inverse_s = timed(table_solver.solve, target)
-        _, full_inverse_s = timed(full_solver.solve, target)
-        check = model.solve(table_result.pressures_pa)
+        table_result, table_inverse_s = timed(table_solver.pressures_for, target)
+        _, full_inverse_s = timed(full_solver.pressures_for, target)
+        check = model.equilibrium(table_result.pressures_pa)
         print(f"| {volume_ml:g} | {', '.join(f'{p / 1e3:.3f}' for p in table_result.pressures_pa)} | "
               f"{table_inverse_s * 1e3:.1f} | {full_inverse_s:.2f} | {full_inverse_s / table_inverse_s:.0f} | "
               f"{check.gland_volume_m3 * 1e6:.3f} |")
@@ -114,7 +114,7 @@ def plot(model, table_estimator, path: str) -> None:
         start_m = None
         for pressure_kpa in pressures_kpa:
             pressures_pa = 1e3 * pressure_kpa * np.asarray(direction)
-            state = model.solve(pressures_pa, initial_positions_m=start_m)
+            state = model.equilibrium(pressures_pa, initial_positions_m=start_m)
             start_m = state.positions_m
             full.append((state.chamber_volumes_m3[0] * 1e6, state.gland_volume_m3 * 1e6))
             chambers, gland = table_estimator.table.volumes(pressures_pa)

@@ -29,8 +29,8 @@ import numpy as np
 
 from phantom.cli import main as cli
 from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.surface import model_surface
 from phantom.model.scene import load_scene
-from phantom.scan.compare import model_surface
 from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = "1,2,0.5"
@@ -39,7 +39,7 @@ TARGET_S = 5.0
 
 def write_scan(folder: Path, levels: int) -> tuple[Path, int]:
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
-    state = model.solve([float(p) * 1e3 for p in PRESSURES_KPA.split(",")])
+    state = model.equilibrium([float(p) * 1e3 for p in PRESSURES_KPA.split(",")])
     rng = np.random.default_rng(2)
     scan = make_scan(model_surface(state.positions_m, model.outer_triangles), rng, levels=levels, noise_mm=0.05,
                      holes=6, hole_radius_mm=3.0, fragment=True, rotation=random_rotation(rng),

@@ -20,16 +20,10 @@ import time
 import numpy as np
 
 from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.surface import TriangleMesh, compact, model_surface, triangle_areas_mm2
 from phantom.model.mesh.tetmesh import enclosed_volume_m3, open_edge_count, surface_components
 from phantom.model.scene import load_scene
-from phantom.scan.compare import (
-    TriangleMesh,
-    close_holes,
-    compact,
-    largest_component,
-    model_surface,
-    triangle_areas_mm2,
-)
+from phantom.scan.compare import close_holes, largest_component
 from phantom.scan.synthetic import make_scan
 
 
@@ -104,7 +98,7 @@ def main():
     parser.add_argument("--poisson-max-triangles", type=int, default=100000)
     args = parser.parse_args()
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
-    state = model.solve([1e3, 2e3, 0.5e3])
+    state = model.equilibrium([1e3, 2e3, 0.5e3])
     surface = model_surface(state.positions_m, model.outer_triangles)
     truth_ml = enclosed_volume_m3(surface.vertices_mm, surface.triangles) * 1e-3
     for levels in (int(level) for level in args.levels.split(",")):

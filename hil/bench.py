@@ -10,13 +10,18 @@ from __future__ import annotations
 
 import json
 import sys
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
-from phantom import PhantomError
-from phantom.hil.link import BoardLink, LinkError
-from phantom.protocol.messages import CONSTANTS
+from phantom import PhantomError, require_extra
+from phantom.hil.link import BoardLink, LinkError, Received
+from phantom.hil.sim import SimulatedBoard
+from phantom.protocol.codec import Message
+from phantom.protocol.messages import BITS, CONSTANTS, ENUMS, PROTOCOL_VERSION, SPEC_HASH
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
 TELEMETRY_PERIOD_MS = CONSTANTS["MIN_TELEMETRY_PERIOD_MS"]
@@ -72,8 +77,6 @@ class BenchError(PhantomError):
 
 
 def fault_bits() -> dict[str, int]:
-    from phantom.protocol.messages import BITS
-
     return BITS["fault"]
 
 
@@ -87,9 +90,8 @@ def _settling_time(t: np.ndarray, p: np.ndarray, target: float, band: float) -> 
     return float(t[outside[-1] + 1])
 
 
-def step_metrics(
-    times_s, pressures_kpa, target_kpa: float, band: float = SETTLING_BAND, smoothing_s: float = SETTLING_SMOOTHING_S
-) -> dict:
+def step_metrics(times_s: ArrayLike, pressures_kpa: ArrayLike, target_kpa: float, band: float = SETTLING_BAND,
+                 smoothing_s: float = SETTLING_SMOOTHING_S) -> dict[str, Any]:
     """Rise time, overshoot, settling time and steady-state error of a step from 0 at t = 0.
 
     Parameters
@@ -144,7 +146,7 @@ def step_metrics(
     }
 
 
-def start_session(link: BoardLink, telemetry_period_ms: int = TELEMETRY_PERIOD_MS) -> dict:
+def start_session(link: BoardLink, telemetry_period_ms: int = TELEMETRY_PERIOD_MS) -> dict[str, Any]:
     """HELLO, configure telemetry and the deadline, start the keepalive, clear a latched fault if any."""
     reply = link.hello()
     link.command("SET_CONFIG", {"telemetry_period_ms": telemetry_period_ms, "host_deadline_ms": HOST_DEADLINE_MS})
@@ -154,7 +156,7 @@ def start_session(link: BoardLink, telemetry_period_ms: int = TELEMETRY_PERIOD_M
     return reply.fields
 
 
-def latest_telemetry(link: BoardLink, timeout_s: float = 1.0):
+def latest_telemetry(link: BoardLink, timeout_s: float = 1.0) -> dict[str, Any]:
     """The next TELEMETRY message to arrive (its fields)."""
     got = link.wait_for(lambda m: m.name == "TELEMETRY", timeout_s, link.mark())
     if got is None:
@@ -162,25 +164,27 @@ def latest_telemetry(link: BoardLink, timeout_s: float = 1.0):
     return got.message.fields
 
 
-def wait_on_board_clock(link: BoardLink, predicate, seconds: float, start: int):
+def wait_on_board_clock(link: BoardLink, predicate: Callable[[Message], bool], seconds: float,
+                        start: int) -> Received | None:
     """The first message from index start satisfying predicate within ``seconds`` of board time (telemetry
     clock), or None. Without telemetry, a generous host-side timeout ends the wait."""
     t0_ms = None
 
-    def done(message) -> bool:
+    def done(message: Message) -> bool:
         nonlocal t0_ms
         if predicate(message):
             return True
         if message.name == "TELEMETRY":
             t0_ms = message.fields["time_ms"] if t0_ms is None else t0_ms
-            return message.fields["time_ms"] - t0_ms > seconds * 1e3
+            return bool(message.fields["time_ms"] - t0_ms > seconds * 1e3)
         return False
 
     got = link.wait_for(done, (5.0 + 10.0 * seconds) * link.time_scale, start)
     return got if got is not None and predicate(got.message) else None
 
 
-def wait_board_time(link: BoardLink, seconds: float, until=None):
+def wait_board_time(link: BoardLink, seconds: float,
+                    until: Callable[[dict[str, Any]], bool] | None = None) -> dict[str, Any] | None:
     """Wait on the board's telemetry clock until ``until(fields)`` holds or ``seconds`` of board time have
     passed; returns the last telemetry fields, or None when the board's clock ran out first.
 
@@ -193,10 +197,11 @@ def wait_board_time(link: BoardLink, seconds: float, until=None):
         raise BenchError("no telemetry from the board: is a session open?")
     t0_ms = first.message.fields["time_ms"]
 
-    def done(message) -> bool:
+    def done(message: Message) -> bool:
         if message.name != "TELEMETRY":
             return False
-        return message.fields["time_ms"] - t0_ms >= seconds * 1e3 or (until is not None and until(message.fields))
+        return bool(message.fields["time_ms"] - t0_ms >= seconds * 1e3
+                    or (until is not None and until(message.fields)))
 
     got = link.wait_for(done, (5.0 + 10.0 * seconds) * link.time_scale, start)
     if got is None:
@@ -216,8 +221,6 @@ def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
     """ZERO_SENSORS with the chambers vented. The board refuses it (NOT_SETTLED) until every blower has been off
     and every reading still for ZERO_SETTLE_MS, and answers BUSY while its own start-up zero runs: wait that
     long on the board's clock and ask again, so that the offsets are measured now."""
-    from phantom.protocol.messages import ENUMS
-
     names = {v: k for k, v in ENUMS["status"].items()}
     retry = {ENUMS["status"]["BUSY"], ENUMS["status"]["NOT_SETTLED"]}
     for _ in range(attempts):
@@ -233,8 +236,6 @@ def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
 
 def set_setpoints(link: BoardLink, setpoints_pa: list[int], attempts: int = 5) -> None:
     """SET_SETPOINTS, waiting out a zeroing in progress (NACK BUSY) before trying again."""
-    from phantom.protocol.messages import ENUMS
-
     zeroing = ENUMS["chamber_state"]["ZEROING"]
     for _ in range(attempts):
         answer = link.command("SET_SETPOINTS", {"setpoint_pa": list(setpoints_pa)}, accept_nack=True)
@@ -247,10 +248,8 @@ def set_setpoints(link: BoardLink, setpoints_pa: list[int], attempts: int = 5) -
     raise LinkError(f"SET_SETPOINTS stayed busy after {attempts} tries")
 
 
-def check_handshake(link: BoardLink) -> dict:
+def check_handshake(link: BoardLink) -> dict[str, Any]:
     """HELLO is answered with the board's identity; a HELLO with another spec hash is refused."""
-    from phantom.protocol.messages import ENUMS, PROTOCOL_VERSION, SPEC_HASH
-
     reply = link.hello().fields
     start = link.mark()
     link.send("HELLO", {"protocol_version": PROTOCOL_VERSION, "spec_hash": SPEC_HASH ^ 0xFFFFFFFF})
@@ -270,7 +269,8 @@ def check_handshake(link: BoardLink) -> dict:
     }
 
 
-def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: float = 3.0, gains=None) -> dict:
+def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: float = 3.0,
+               gains: Sequence[float] | None = None) -> dict[str, Any]:
     """A step 0 -> target_kpa on one chamber (the others off); metrics from the board's own telemetry.
 
     The step time is the board time of the first telemetry sample carrying the new setpoint, so it is late by
@@ -333,7 +333,7 @@ def _regulate(link: BoardLink, kpa: float, settle_s: float) -> None:
     wait_board_time(link, settle_s)
 
 
-def _recover(link: BoardLink, board) -> None:
+def _recover(link: BoardLink, board: SimulatedBoard) -> None:
     """Remove the injected fault, re-open the session and clear the latch (retrying while its cause lasts)."""
     board.inject("clear")
     for _ in range(40):
@@ -346,7 +346,8 @@ def _recover(link: BoardLink, board) -> None:
     vent_and_wait(link)
 
 
-def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) -> dict:
+def check_fault(link: BoardLink, board: SimulatedBoard | None, fault: str,
+                chamber: int | None = None) -> dict[str, Any]:
     """Inject one fault while all chambers hold 1.5 kPa (the severe leak: before they are set to 1.5 kPa); the
     latch must trip and every blower stop in time.
 
@@ -360,25 +361,26 @@ def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) 
     if fault == "mild_leak":
         return _check_mild_leak(link, board, chamber)
     bits = fault_bits()
-    if board is None and fault != "silent_host":
+    injected_s: float | None
+    if fault == "silent_host":
+        _regulate(link, 1.5, 1.5)
+        start = link.mark()
+        link.keepalive(False)
+        injected_s = None
+    elif board is None:
         return {"fault": fault, "skipped": "needs --sim: faults are injected into the simulated plant"}
-    if fault == "leak":
+    elif fault == "leak":
         start_session(link)
         board.inject(fault, chamber=chamber, conductance_ml_per_s_per_kpa=LEAK_SEVERE_ML_PER_S_PER_KPA)
         start = link.mark()
         injected_s = board.plant_state()["time_s"]
         set_setpoints(link, [1500] * 3)
-    elif fault == "silent_host":
-        _regulate(link, 1.5, 1.5)
-        start = link.mark()
-        link.keepalive(False)
-        injected_s = None
     else:
         _regulate(link, 1.5, 1.5)
         start = link.mark()
         injected_s = board.inject(fault, chamber=chamber)
     got = wait_on_board_clock(link, lambda m: m.name == "FAULT", max(3.0, 1.0 + STOP_LIMITS_S[fault]), start)
-    result = {"fault": fault, "chamber": chamber}
+    result: dict[str, Any] = {"fault": fault, "chamber": chamber}
     if board is not None:
         state = board.plant_state()
         if fault == "silent_host":
@@ -422,7 +424,7 @@ def check_fault(link: BoardLink, board, fault: str, chamber: int | None = None) 
     return result
 
 
-def _check_mild_leak(link: BoardLink, board, chamber: int | None) -> dict:
+def _check_mild_leak(link: BoardLink, board: SimulatedBoard | None, chamber: int | None) -> dict[str, Any]:
     """A leak the PID can outpump, while all chambers hold 1.5 kPa: no fault for LEAK_MILD_WATCH_S (longer
     than the leak time limit), the chamber held within 0.1 kPa (two ADC counts) at a higher drive, below the
     ceiling."""
@@ -452,9 +454,8 @@ def _check_mild_leak(link: BoardLink, board, chamber: int | None) -> dict:
     return result
 
 
-def check_line_noise(
-    link: BoardLink, board, commands: int = 30, flip_probability: float = 0.01, drop_probability: float = 0.01
-) -> dict:
+def check_line_noise(link: BoardLink, board: SimulatedBoard | None, commands: int = 30,
+                     flip_probability: float = 0.01, drop_probability: float = 0.01) -> dict[str, Any]:
     """Setpoint commands through a noisy line: every one is acknowledged (retransmission recovers), the board
     never applies a value that was not sent, and its counters show the corrupted frames it dropped."""
     if board is None:
@@ -489,10 +490,8 @@ def check_line_noise(
     }
 
 
-def check_watchdog(link: BoardLink, board) -> dict:
+def check_watchdog(link: BoardLink, board: SimulatedBoard | None) -> dict[str, Any]:
     """TEST_HANG stops the firmware kicking the watchdog: the board resets, and HELLO reports it."""
-    from phantom.protocol.messages import ENUMS
-
     start_session(link)
     resets_before = board.plant_state()["resets"] if board is not None else None
     link.command("TEST_HANG", {"magic": CONSTANTS["TEST_HANG_MAGIC"]})
@@ -506,7 +505,7 @@ def check_watchdog(link: BoardLink, board) -> dict:
             continue
         if reply.fields["reset_cause"] == ENUMS["reset_cause"]["WATCHDOG"]:
             break
-    result = {
+    result: dict[str, Any] = {
         "reset_cause": None
         if reply is None
         else {v: k for k, v in ENUMS["reset_cause"].items()}.get(reply.fields["reset_cause"]),
@@ -533,7 +532,7 @@ STEP_OVERSHOOT_LIMIT_PCT = 5.0
 #: ... with a steady-state error under one ADC count (each step's ``adc_count_kpa``).
 
 
-def step_within_thresholds(step: dict) -> bool:
+def step_within_thresholds(step: dict[str, Any]) -> bool:
     """Whether a step response meets the thresholds above."""
     settling = step["settling_time_s"]
     return (settling is not None and settling < STEP_SETTLING_LIMIT_S
@@ -559,16 +558,17 @@ def board_description(board: str | None) -> str:
     return "simulated board (simavr)" if board.startswith("simulated") else f"real board on {board}"
 
 
-def plot_steps(steps: list[dict], path: Path, board: str | None = None) -> Path:
+def plot_steps(steps: list[dict[str, Any]], path: Path, board: str | None = None) -> Path:
     """One PNG of the step responses: the setpoint, each chamber's pressure with its 10 % and 90 % crossings
     (rise time), a zoom on the settling band with each settling time, and the drive levels.
 
     ``board`` is the report's ``board`` entry (``simulated (simavr)`` or the port), named in the title.
     """
-    import matplotlib
+    with require_extra("hil"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
     figure, (top, zoom, bottom) = plt.subplots(3, 1, figsize=(8, 8.5), sharex=True,
                                                gridspec_kw={"height_ratios": [3, 2, 1.4]})
@@ -631,16 +631,16 @@ def progress(message: str) -> None:
     print(f"phantom hil: {message}", file=sys.stderr, flush=True)
 
 
-def run_report(link: BoardLink, board, out_dir: Path, target_kpa: float = 2.0) -> dict:
+def run_report(link: BoardLink, board: SimulatedBoard | None, out_dir: Path, target_kpa: float = 2.0) -> dict[str, Any]:
     """Every check, then report.json, report.md and steps.png in out_dir."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    report = {"board": "simulated (simavr)" if board is not None else link.port_path}
+    report: dict[str, Any] = {"board": "simulated (simavr)" if board is not None else link.port_path}
     progress("handshake")
     report["handshake"] = check_handshake(link)
     report["steps"] = []
-    for chamber in range(3):
-        progress(f"step response, chamber {chamber}")
-        report["steps"].append(check_step(link, chamber, target_kpa))
+    for stepped in range(3):
+        progress(f"step response, chamber {stepped}")
+        report["steps"].append(check_step(link, stepped, target_kpa))
     report["faults"] = []
     for fault, chamber in FAULT_CHECKS:
         progress(f"fault: {fault}")
@@ -657,11 +657,11 @@ def run_report(link: BoardLink, board, out_dir: Path, target_kpa: float = 2.0) -
     return report
 
 
-def _fmt(value, digits=3) -> str:
+def _fmt(value: object, digits: int = 3) -> str:
     return "n/a" if value is None else f"{value:.{digits}g}" if isinstance(value, float) else str(value)
 
 
-def format_report(report: dict) -> str:
+def format_report(report: dict[str, Any]) -> str:
     """The short Markdown report."""
     lines = [f"# HIL bench report: {board_description(report['board'])}", ""]
     h = report["handshake"]
@@ -734,7 +734,8 @@ def format_report(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def measure_cycles(link: BoardLink, board, duration_s: float, telemetry_period_ms: int, kpa: float) -> dict:
+def measure_cycles(link: BoardLink, board: SimulatedBoard | None, duration_s: float, telemetry_period_ms: int,
+                   kpa: float) -> dict[str, Any]:
     """Cycle counts with all three chambers regulating at ``kpa`` and telemetry every telemetry_period_ms.
 
     The counters are reset once the pressures have settled (2 s), then read after duration_s of board time.

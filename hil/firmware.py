@@ -133,7 +133,7 @@ def function_addresses(elf: Path) -> dict[str, int]:
     result = subprocess.run([nm, "-C", "--defined-only", str(elf)], capture_output=True, text=True)
     if result.returncode != 0:
         raise FirmwareError(f"{elf} is not an AVR image avr-nm can read: {result.stderr.strip()}")
-    addresses = {}
+    addresses: dict[str, int] = {}
     for line in result.stdout.splitlines():
         address, kind, name = line.split(" ", 2)
         if kind in "tTwW":

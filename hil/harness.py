@@ -14,6 +14,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import phantom
 from phantom import PhantomError
@@ -68,6 +69,9 @@ class HarnessProcess:
             stderr=self._stderr,
             start_new_session=True,
         )
+        # both pipes exist: they were asked for above
+        assert self._process.stdin is not None and self._process.stdout is not None
+        self._stdin, self._stdout = self._process.stdin, self._process.stdout
         self._buffer = b""
         self._lock = threading.Lock()
         self.ready = self._read_reply(start_timeout_s, "start")
@@ -76,15 +80,15 @@ class HarnessProcess:
         self._stderr.seek(0)
         return self._stderr.read().decode(errors="replace").strip()
 
-    def _read_reply(self, timeout_s: float, what: str) -> dict:
+    def _read_reply(self, timeout_s: float, what: str) -> dict[str, Any]:
         deadline = time.monotonic() + timeout_s
         while b"\n" not in self._buffer:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise HarnessError(f"the simavr harness did not answer '{what}' within {timeout_s:g} s")
-            readable, _, _ = select.select([self._process.stdout], [], [], remaining)
+            readable, _, _ = select.select([self._stdout], [], [], remaining)
             if readable:
-                chunk = os.read(self._process.stdout.fileno(), 65536)
+                chunk = os.read(self._stdout.fileno(), 65536)
                 if not chunk:
                     self._process.wait(timeout=5)
                     raise HarnessError(
@@ -93,19 +97,19 @@ class HarnessProcess:
                     )
                 self._buffer += chunk
         line, self._buffer = self._buffer.split(b"\n", 1)
-        reply = json.loads(line)
+        reply: dict[str, Any] = json.loads(line)
         if "error" in reply:
             raise HarnessError(f"the simavr harness refused '{what}': {reply['error']}")
         return reply
 
-    def command(self, line: str, timeout_s: float = 30.0) -> dict:
+    def command(self, line: str, timeout_s: float = 30.0) -> dict[str, Any]:
         """Send one command line and return its JSON reply; HarnessError if it failed."""
         with self._lock:
             if self._process.poll() is not None:
                 raise HarnessError(f"the simavr harness is not running (exit status {self._process.returncode})")
             try:
-                self._process.stdin.write(line.encode() + b"\n")
-                self._process.stdin.flush()
+                self._stdin.write(line.encode() + b"\n")
+                self._stdin.flush()
             except BrokenPipeError:
                 raise HarnessError(f"the simavr harness exited: {self._stderr_text() or 'no message'}") from None
             return self._read_reply(timeout_s, line)

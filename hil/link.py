@@ -17,6 +17,7 @@ from typing import Any
 
 from phantom import PhantomError
 from phantom.protocol.codec import FrameReader, Message
+from phantom.protocol.errors import ProtocolError
 from phantom.protocol.link import (
     Acked,
     CommandFailed,
@@ -212,8 +213,6 @@ class BoardLink:
     def hello(self, attempts: int = 10, timeout_s: float = 0.3) -> Message:
         """Open a session: send HELLO every timeout_s board seconds until HELLO_REPLY arrives; returns the reply
         after checking the spec (ProtocolError when the board was built from another one)."""
-        from phantom.protocol.errors import ProtocolError
-
         with self._changed:
             self._handshake = None
             self.link.start_handshake(self._now(), attempts=attempts, interval_s=timeout_s)

@@ -19,15 +19,17 @@ from __future__ import annotations
 
 import math
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, overload
 
 import numpy as np
 
 from phantom import PhantomError
 from phantom.hil import bench
 from phantom.hil.link import BoardLink
+from phantom.hil.sim import SimulatedBoard
 from phantom.protocol.codec import Message
 from phantom.protocol.link import fault_names
 from phantom.protocol.messages import CONSTANTS, MotionFlags, MotionOptions, MotionResult, MotionState, Status
@@ -223,7 +225,8 @@ def _statuses_after(link: BoardLink, message: Message) -> int:
     return link.mark()
 
 
-def _wait_status(link: BoardLink, start: int, done, timeout_s: float, what: str) -> MotionStatus:
+def _wait_status(link: BoardLink, start: int, done: Callable[[MotionStatus], bool], timeout_s: float,
+                 what: str) -> MotionStatus:
     """The first MOTION_STATUS from index start for which done(status) holds, within timeout_s of board time (on
     the board's telemetry clock: a simulator running slower than asked still gets its time)."""
     got = bench.wait_on_board_clock(
@@ -238,7 +241,7 @@ def status(link: BoardLink, timeout_s: float = 1.0) -> MotionStatus:
     return wait_for_status(link, lambda s: True, timeout_s)
 
 
-def wait_for_status(link: BoardLink, done, timeout_s: float) -> MotionStatus:
+def wait_for_status(link: BoardLink, done: Callable[[MotionStatus], bool], timeout_s: float) -> MotionStatus:
     """The first MOTION_STATUS arriving from now on for which done(status) holds, within timeout_s of board
     time (MotionError when none does)."""
     return _wait_status(link, link.mark(), done, timeout_s, "waiting for the motion status asked for")
@@ -254,6 +257,12 @@ def configure(link: BoardLink, axis: int, config: AxisConfig, timeout_s: float =
     return AxisConfig.from_fields(got.message.fields)
 
 
+@overload
+def move_to(link: BoardLink, axis: int, angle_deg: float, wait: Literal[True] = ...,
+            timeout_s: float = ...) -> MotionStatus: ...
+@overload
+def move_to(link: BoardLink, axis: int, angle_deg: float, wait: Literal[False],
+            timeout_s: float = ...) -> None: ...
 def move_to(link: BoardLink, axis: int, angle_deg: float, wait: bool = True,
             timeout_s: float = DEFAULT_WAIT_S) -> MotionStatus | None:
     """MOVE_TO an absolute angle; with wait, the status once the axis is at rest there (MotionError if a stop
@@ -265,6 +274,12 @@ def move_to(link: BoardLink, axis: int, angle_deg: float, wait: bool = True,
     return _at_rest(link, answer, axis, "REACHED", f"the move of axis {axis} to {angle_deg:g} deg", timeout_s)
 
 
+@overload
+def home(link: BoardLink, axis: int, method: str = ..., angle_deg: float = ..., wait: Literal[True] = ...,
+         timeout_s: float = ...) -> MotionStatus: ...
+@overload
+def home(link: BoardLink, axis: int, method: str, angle_deg: float, wait: Literal[False],
+         timeout_s: float = ...) -> None: ...
 def home(link: BoardLink, axis: int, method: str = "here", angle_deg: float = 0.0, wait: bool = True,
          timeout_s: float = DEFAULT_WAIT_S) -> MotionStatus | None:
     """HOME: ``"here"`` makes the position now angle_deg; ``"switch"`` searches the home switch, whose edge is
@@ -281,6 +296,10 @@ def home(link: BoardLink, axis: int, method: str = "here", angle_deg: float = 0.
     return _at_rest(link, answer, axis, "HOMED", f"homing axis {axis} ({method})", timeout_s)
 
 
+@overload
+def stop(link: BoardLink, release: bool = ..., wait: Literal[True] = ..., timeout_s: float = ...) -> MotionStatus: ...
+@overload
+def stop(link: BoardLink, release: bool, wait: Literal[False], timeout_s: float = ...) -> None: ...
 def stop(link: BoardLink, release: bool = False, wait: bool = True, timeout_s: float = 10.0) -> MotionStatus | None:
     """MOTION_STOP: every axis decelerates to rest (and its driver is released if asked); with wait, the status
     once both are at rest."""
@@ -319,7 +338,7 @@ class SimulatedRig:
     from the count, so the simulated orbit turns as the firmware drives it.
     """
 
-    def __init__(self, board) -> None:
+    def __init__(self, board: SimulatedBoard) -> None:
         self.board = board
 
     def set_axis(self, axis: int, steps_per_rev: float, start_deg: float = 0.0) -> None:
@@ -391,7 +410,7 @@ def profile_limits(times_s: np.ndarray, directions: np.ndarray, span_s: float = 
     }
 
 
-def measure_cycles(link: BoardLink, board, step_rate: float, duration_s: float = 4.0,
+def measure_cycles(link: BoardLink, board: SimulatedBoard | None, step_rate: float, duration_s: float = 4.0,
                    telemetry_period_ms: int = 20, kpa: float = 2.0) -> dict[str, Any]:
     """CPU use with all three chambers regulating at ``kpa``, telemetry every telemetry_period_ms, and the orbit
     moving at ``step_rate`` steps/s (0: no axis configured) for duration_s of board time.
@@ -452,8 +471,8 @@ BENCH_ORBIT = AxisConfig(steps_per_rev=28800, max_speed_deg_s=30.0, max_accel_de
                          max_angle_deg=190.0)
 
 
-def check_motion(link: BoardLink, board=None, config: AxisConfig = BENCH_ORBIT, move_deg: float = 90.0,
-                 axis: int = ORBIT) -> dict[str, Any]:
+def check_motion(link: BoardLink, board: SimulatedBoard | None = None, config: AxisConfig = BENCH_ORBIT,
+                 move_deg: float = 90.0, axis: int = ORBIT) -> dict[str, Any]:
     """The bench's motion check of one axis: configure it, move it by move_deg and back, and read its status.
 
     With the simulated board (``board``) it also compares the board's position with the steps its driver took,
@@ -498,7 +517,8 @@ def check_motion(link: BoardLink, board=None, config: AxisConfig = BENCH_ORBIT, 
         homing = replace(config, home_switch=True, home_speed_deg_s=min(10.0, config.max_speed_deg_s))
         configure(link, axis, homing)
         homed = home(link, axis, "switch", angle_deg=switch_deg)
-        error_deg = (homed.axes[axis].position_deg - rig.angle_deg(axis)) if homed else None
+        rig_deg = rig.angle_deg(axis)
+        error_deg = homed.axes[axis].position_deg - rig_deg if homed is not None and rig_deg is not None else None
         report["home_error_deg"] = error_deg
         checks["homed"] = error_deg is not None and abs(error_deg) <= homing.home_speed_deg_s * 0.002 + 2 * 360 / (
             config.steps_per_rev)

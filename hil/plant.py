@@ -13,20 +13,22 @@ which for one chamber is physics.md's dp/dt = p_atm (Q_in - Q_out) / (V + (p_atm
 The rest volumes V0 (each cavity's air plus its tube's dead volume) and the compliance C come from the FEM at
 rest; :func:`chambers_from_scene` computes them and :func:`write_chambers` puts them into a plant file:
 
-    python -m phantom.hil.plant --from-scene model/scenes/prostate_calibrated.toml [--plant hil/plant.toml]
+    phantom hil plant --from-scene model/scenes/prostate_calibrated.toml [--plant hil/plant.toml]
 """
 
 from __future__ import annotations
 
-import argparse
+import copy
 import math
 import re
-import sys
 import tomllib
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from phantom import PhantomError
 
@@ -71,7 +73,7 @@ class PlantParameters:
     truth_chamber_volume_m3: np.ndarray | None = None
     truth_gland_volume_m3: np.ndarray | None = None
 
-    def truth_gland_volume_ml(self, pressures_pa) -> float | None:
+    def truth_gland_volume_ml(self, pressures_pa: ArrayLike) -> float | None:
         """The truth's gland volume (ml) at these pressures, as the harness interpolates the chambers; None
         without a truth table."""
         if self.truth_gland_volume_m3 is None:
@@ -82,7 +84,7 @@ class PlantParameters:
     @property
     def rest_volume_m3(self) -> np.ndarray:
         """Air volume of each chamber at 0 gauge (m^3): the cavity's plus its tube's."""
-        return self.cavity_volume_m3 + self.tubing_volume_m3
+        return np.asarray(self.cavity_volume_m3 + self.tubing_volume_m3)
 
     def harness_arguments(self) -> list[str]:
         """The ``--param NAME=VALUE`` arguments that give the harness this plant (names as in plant.c)."""
@@ -117,14 +119,14 @@ class PlantParameters:
         return arguments
 
 
-def _section(document: dict, name: str, path: Path) -> dict:
+def _section(document: dict[str, Any], name: str, path: Path) -> dict[str, Any]:
     section = document.get(name)
     if not isinstance(section, dict):
         raise PlantError(f"{path}: missing table [{name}]; see hil/plant.toml for the expected layout")
     return section
 
 
-def _number(section: dict, key: str, where: str, *, positive: bool = False, allow_zero: bool = True) -> float:
+def _number(section: dict[str, Any], key: str, where: str, *, positive: bool = False, allow_zero: bool = True) -> float:
     if key not in section:
         raise PlantError(f"{where}: missing key {key!r}; see hil/plant.toml for the expected layout")
     value = section[key]
@@ -135,7 +137,8 @@ def _number(section: dict, key: str, where: str, *, positive: bool = False, allo
     return float(value)
 
 
-def _per_chamber(section: dict, key: str, where: str, *, positive: bool = False, allow_zero: bool = True) -> np.ndarray:
+def _per_chamber(section: dict[str, Any], key: str, where: str, *, positive: bool = False,
+                 allow_zero: bool = True) -> np.ndarray:
     if key not in section:
         raise PlantError(f"{where}: missing key {key!r} (a list of {N_CHAMBERS} numbers, one per chamber)")
     values = section[key]
@@ -146,14 +149,14 @@ def _per_chamber(section: dict, key: str, where: str, *, positive: bool = False,
     )
 
 
-def _driver_threshold(section: dict, where: str) -> np.ndarray:
+def _driver_threshold(section: dict[str, Any], where: str) -> np.ndarray:
     values = _per_chamber(section, "driver_threshold", where, positive=True)
     if np.any(values >= 1):
         raise PlantError(f"{where}.driver_threshold: must be below 1 (a drive level), got {values.tolist()}")
     return values
 
 
-def blower_flow_m3_per_s(plant: PlantParameters, drive, pressure_pa) -> np.ndarray:
+def blower_flow_m3_per_s(plant: PlantParameters, drive: ArrayLike, pressure_pa: ArrayLike) -> np.ndarray:
     """Air each blower delivers (m^3/s at atmospheric conditions) at drive levels u in [0, 1] against gauge
     pressures p: the driver's amplitude a = max(u - u0, 0) / (1 - u0) scales both the free flow and the blocked
     pressure, Q = Q_max max(a - p / p_blocked, 0). The same law as the harness's plant.c, for tests and benches."""
@@ -163,7 +166,7 @@ def blower_flow_m3_per_s(plant: PlantParameters, drive, pressure_pa) -> np.ndarr
     return np.where(amplitude > 0, flow, 0.0)  # a blower that does not run pumps nothing, even against suction
 
 
-def _compliance(section: dict, where: str) -> np.ndarray:
+def _compliance(section: dict[str, Any], where: str) -> np.ndarray:
     key = "compliance_ml_per_kpa"
     rows = section.get(key)
     if (
@@ -240,7 +243,7 @@ def _plant_from_text(text: str, path: Path) -> PlantParameters:
     )
 
 
-def _truth(chambers: dict, where: str) -> dict:
+def _truth(chambers: dict[str, Any], where: str) -> dict[str, Any]:
     """The optional truth table of [chambers] in SI units (empty when the file has none)."""
     keys = ("truth_step_kpa", "truth_chamber_volume_ml", "truth_gland_volume_ml")
     present = [key for key in keys if key in chambers]
@@ -248,7 +251,7 @@ def _truth(chambers: dict, where: str) -> dict:
         return {}
     if len(present) != len(keys):
         raise PlantError(f"{where}: a truth table needs all of {', '.join(keys)}; regenerate it with "
-                         f"python -m phantom.hil.plant --truth-from-scene SCENE")
+                         f"phantom hil plant --truth-from-scene SCENE")
     n = TRUTH_GRID_POINTS
     step_kpa = _number(chambers, "truth_step_kpa", where, positive=True, allow_zero=False)
     try:
@@ -291,6 +294,7 @@ def chambers_from_scene(scene: str | Path, mesh_size_mm: float | None = None) ->
     phantom.PhantomError
         From the model, when the scene or its mesh is unusable.
     """
+    # the FEM's stack (scipy, numba) loads only when a plant is regenerated, not when one is read
     from phantom.model import PhantomModel, load_scene
 
     loaded = load_scene(scene)
@@ -314,7 +318,8 @@ def chambers_from_scene(scene: str | Path, mesh_size_mm: float | None = None) ->
     )
 
 
-def _toml_list(values: np.ndarray) -> str:
+def toml_list(values: np.ndarray) -> str:
+    """Numbers as a TOML array, each to :data:`WRITTEN_DIGITS` significant digits."""
     return "[" + ", ".join(f"{value:.{WRITTEN_DIGITS}g}" for value in values) + "]"
 
 
@@ -342,14 +347,14 @@ def write_chambers(chambers: FemChambers, path: str | Path | None = None) -> Pla
     """
     path = Path(path) if path is not None else DEFAULT_PLANT_PATH
     text = _read_plant_text(path)
-    rows = ",\n".join(f"  {_toml_list(row)}" for row in chambers.compliance_ml_per_kpa)
+    rows = ",\n".join(f"  {toml_list(row)}" for row in chambers.compliance_ml_per_kpa)
     text = _replace_once(
         text, r"^# FEM source: .*$", f"# FEM source: {chambers.scene} ({chambers.description})", "'# FEM source:'", path
     )
     text = _replace_once(
         text,
         r"^cavity_volume_ml = \[[^\]\n]*\]$",
-        f"cavity_volume_ml = {_toml_list(chambers.cavity_volume_ml)}",
+        f"cavity_volume_ml = {toml_list(chambers.cavity_volume_ml)}",
         "cavity_volume_ml line",
         path,
     )
@@ -380,18 +385,18 @@ class TruthTable:
     """Chamber and gland volumes (ml) of a truth model on the grid TRUTH_POINTS_KPA^3 (index i, j, k = the
     pressures of chambers 0, 1, 2), and what it is."""
 
-    points_kpa: tuple
+    points_kpa: tuple[float, ...]
     chamber_volume_ml: np.ndarray   # (n, n, n, 3)
     gland_volume_ml: np.ndarray     # (n, n, n)
     description: str
 
 
 def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
-                           scheduler: str | None = None, progress=None) -> TruthTable:
+                           scheduler: str | None = None,
+                           progress: Callable[[int, int], None] | None = None) -> TruthTable:
     """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point (Dask tasks,
     cached: :mod:`phantom.model.calibration.sweep`)."""
-    import copy
-
+    # the FEM's and Dask's stacks load only when a truth table is made, not when a plant is read
     from phantom.model import load_scene
     from phantom.model.calibration.sweep import RayTask, run_sweep
 
@@ -420,14 +425,14 @@ def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParam
     text = _read_plant_text(path)
     text = re.sub(r"^# Truth source: .*\n(?:.*\n)*?truth_gland_volume_ml = \[[^\]]*\]\n", "", text, flags=re.MULTILINE)
     n = len(table.points_kpa)
-    rows = ",\n".join(f"  {_toml_list(table.chamber_volume_ml[index])}" for index in np.ndindex(n, n, n))
+    rows = ",\n".join(f"  {toml_list(table.chamber_volume_ml[index])}" for index in np.ndindex(n, n, n))
     block = (f"# Truth source: {table.description}.\n"
              f"# The simulated board's plant interpolates these chamber volumes over the three pressures (grid step\n"
              f"# truth_step_kpa, rows i, j, k in C order) instead of V0 + C p above, so it does not share the\n"
-             f"# controller's model. Regenerate: python -m phantom.hil.plant --truth-from-scene SCENE\n"
+             f"# controller's model. Regenerate: phantom hil plant --truth-from-scene SCENE\n"
              f"truth_step_kpa = {table.points_kpa[1] - table.points_kpa[0]:g}\n"
              f"truth_chamber_volume_ml = [\n{rows},\n]\n"
-             f"truth_gland_volume_ml = {_toml_list(table.gland_volume_ml.ravel())}\n")
+             f"truth_gland_volume_ml = {toml_list(table.gland_volume_ml.ravel())}\n")
     text, count = re.subn(r"^(tubing_volume_ml = \[[^\]\n]*\]\n)", lambda m: m.group(1) + block, text,
                           flags=re.MULTILINE)
     if count != 1:
@@ -438,7 +443,7 @@ def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParam
     return plant
 
 
-def trilinear(table: np.ndarray, points_kpa, pressures_kpa) -> np.ndarray:
+def trilinear(table: np.ndarray, points_kpa: ArrayLike, pressures_kpa: Sequence[float] | np.ndarray) -> np.ndarray:
     """The table (n, n, n, ...) at pressures (kPa, one per chamber), trilinear inside, the edge cell's linear
     extension outside (as plant.c does)."""
     points = np.asarray(points_kpa, dtype=float)
@@ -453,52 +458,3 @@ def trilinear(table: np.ndarray, points_kpa, pressures_kpa) -> np.ndarray:
         value = value + weight * table[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]
     return np.asarray(value)
 
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m phantom.hil.plant --from-scene SCENE [--plant FILE]``: regenerate a plant file's chambers."""
-    parser = argparse.ArgumentParser(
-        prog="python -m phantom.hil.plant",
-        description="Write the FEM's chamber volumes and compliance (at rest) into a plant parameter file.",
-    )
-    parser.add_argument("--from-scene", help="scene TOML (or 'builtin') whose FEM gives the values")
-    parser.add_argument("--truth-from-scene",
-                        help="scene whose model, with its modulus times --truth-modulus-factor, is the plant's "
-                             "truth (a table of chamber volumes over the three pressures; Dask, cached)")
-    parser.add_argument("--truth-modulus-factor", type=float, default=TRUTH_MODULUS_FACTOR,
-                        help=f"the truth's modulus over the scene's (default {TRUTH_MODULUS_FACTOR})")
-    parser.add_argument("--scheduler", help="--truth-from-scene: a running Dask scheduler (default: local)")
-    parser.add_argument("--plant", default=str(DEFAULT_PLANT_PATH), help="plant file (default hil/plant.toml)")
-    parser.add_argument("--mesh-size-mm", type=float, help="mesh size of the built-in mesh (default: the model's)")
-    args = parser.parse_args(argv)
-    if not args.from_scene and not args.truth_from_scene:
-        parser.error("give --from-scene, --truth-from-scene or both")
-    if args.truth_from_scene:
-        from phantom.model.calibration.sweep import stderr_progress
-
-        try:
-            table = truth_table_from_scene(args.truth_from_scene, args.truth_modulus_factor, args.scheduler,
-                                           stderr_progress("truth table"))
-            write_truth(table, args.plant)
-        except PhantomError as error:
-            print(f"phantom.hil.plant: error: {error}", file=sys.stderr)
-            return 2
-        print(f"wrote the truth table into {args.plant}: {table.description}")
-        if not args.from_scene:
-            return 0
-    try:
-        print(f"phantom.hil.plant: FEM of {args.from_scene} (meshing first if not cached)", file=sys.stderr)
-        chambers = chambers_from_scene(args.from_scene, args.mesh_size_mm)
-        plant = write_chambers(chambers, args.plant)
-    except PhantomError as error:
-        print(f"phantom.hil.plant: error: {error}", file=sys.stderr)
-        return 2
-    print(f"wrote {plant.path}: {chambers.description}")
-    print(f"cavity_volume_ml = {_toml_list(chambers.cavity_volume_ml)}")
-    print(f"rest air volume (with the tubes) ml = {_toml_list(1e6 * plant.rest_volume_m3)}")
-    for row in chambers.compliance_ml_per_kpa:
-        print(f"compliance_ml_per_kpa row = {_toml_list(row)}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from phantom import PhantomError
 from phantom.hil.firmware import ensure_firmware, function_addresses, mcu_of, stock_bootloader
@@ -87,7 +88,8 @@ class SimulatedBoard:
         flashed too and the board starts through it, as a stock board does. A path: that .hex instead.
     """
 
-    def __init__(self, elf=None, plant=None, speed: float = 1.0, seed: int = 0, bootloader=False):
+    def __init__(self, elf: str | Path | None = None, plant: str | Path | None = None, speed: float = 1.0,
+                 seed: int = 0, bootloader: bool | str | Path = False):
         if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed >= 0):
             raise SimulationError(
                 f"speed must be a number >= 0 (1 = real time, 0 = as fast as possible), got {speed!r}"
@@ -100,9 +102,9 @@ class SimulatedBoard:
             bootloader = stock_bootloader(mcu_of(self.elf))
         elif bootloader is not False and not Path(bootloader).is_file():
             raise SimulationError(f"the bootloader image {bootloader} does not exist")
-        self.bootloader = Path(bootloader) if bootloader is not False else None
-        self._directory = None
-        self._harness = None
+        self.bootloader = None if bootloader is False else Path(bootloader)
+        self._directory: tempfile.TemporaryDirectory[str] | None = None
+        self._harness: HarnessProcess | None = None
 
     @property
     def port(self) -> str:
@@ -115,7 +117,7 @@ class SimulatedBoard:
         """Start the harness; the port exists when this returns."""
         if self._harness is not None:
             return self
-        self._directory = tempfile.TemporaryDirectory(prefix="phantom-sim-")
+        directory = self._directory = tempfile.TemporaryDirectory(prefix="phantom-sim-")
         mcu = mcu_of(self.elf)
         arguments = ["--elf", str(self.elf), "--mcu", mcu, "--link", self.port]
         arguments += ["--speed", repr(self.speed), "--seed", str(self.seed)]
@@ -126,7 +128,7 @@ class SimulatedBoard:
         try:
             self._harness = HarnessProcess(arguments + self.plant.harness_arguments())
         except BaseException:
-            self._directory.cleanup()
+            directory.cleanup()
             self._directory = None
             raise
         return self
@@ -143,10 +145,10 @@ class SimulatedBoard:
     def __enter__(self) -> SimulatedBoard:
         return self.start()
 
-    def __exit__(self, *exc_info) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.stop()
 
-    def _command(self, line: str) -> dict:
+    def _command(self, line: str) -> dict[str, Any]:
         if self._harness is None:
             raise SimulationError("the simulated board is not started: use it as a context manager or call start()")
         return self._harness.command(line)
@@ -165,9 +167,9 @@ class SimulatedBoard:
         Returns the simulated time (s) of the reset."""
         if cause not in ("external", "power"):
             raise SimulationError(f"reset cause must be 'external' or 'power', got {cause!r}")
-        return self._command(f"reset {cause}")["time_s"]
+        return float(self._command(f"reset {cause}")["time_s"])
 
-    def inject(self, fault: str, chamber: int | None = None, **params) -> float:
+    def inject(self, fault: str, chamber: int | None = None, **params: float) -> float:
         """Inject a fault into the plant or the serial line.
 
         Parameters
@@ -219,9 +221,9 @@ class SimulatedBoard:
             line = f"fault {fault} {chamber}"
         else:
             line = "fault clear"
-        return self._command(line)["time_s"]
+        return float(self._command(line)["time_s"])
 
-    def plant_state(self) -> dict:
+    def plant_state(self) -> dict[str, Any]:
         """The plant now: time_s, pressures_pa, drive_levels (what the firmware's PWM commands, [0, 1]),
         chamber_volumes_ml, plus effective_drive_levels (after a stuck blower), sensor_voltages_v, powered,
         resets (MCU resets seen, e.g. by the watchdog), max_lag_s (the longest stall behind the wall clock),
@@ -238,12 +240,12 @@ class SimulatedBoard:
             state["gland_volume_ml"] = gland_volume_ml
         return state
 
-    def motion(self, command: str = "") -> dict:
+    def motion(self, command: str = "") -> dict[str, Any]:
         """Send ``motion [COMMAND]`` to the harness: the stepper axes as the simulated drivers see them
         (``phantom.hil.motion`` wraps it)."""
         return self._command(f"motion {command}".strip())
 
-    def cycle_stats(self, reset: bool = False) -> dict:
+    def cycle_stats(self, reset: bool = False) -> dict[str, Any]:
         """CPU cost of the firmware, counted exactly in simavr cycles since start (or the last reset).
 
         Returns control_tick_cycles_mean/_max and control_ticks, telemetry_frame_cycles_mean/_max and
@@ -253,7 +255,7 @@ class SimulatedBoard:
         (every timed function's calls, total and max cycles) and serial (byte counters of the line).
         """
         reply = self._command("stats reset" if reset else "stats")
-        stats = {"elapsed_cycles": reply["elapsed_cycles"], "frequency_hz": reply["frequency_hz"]}
+        stats: dict[str, Any] = {"elapsed_cycles": reply["elapsed_cycles"], "frequency_hz": reply["frequency_hz"]}
         for role, plural in (("control_tick", "control_ticks"), ("telemetry_frame", "telemetry_frames")):
             region = reply["regions"].get(role)
             calls = region["calls"] if region else 0

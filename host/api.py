@@ -20,6 +20,7 @@ import stat
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from phantom import PhantomError
 
@@ -58,7 +59,7 @@ class ApiError(PhantomError):
         self.code = code
 
 
-Handler = Callable[[dict], Awaitable[object]]
+Handler = Callable[[dict[str, Any]], Awaitable[object]]
 
 
 @dataclass
@@ -66,7 +67,7 @@ class Client:
     """One connected client: its outgoing queue, subscriptions and counters."""
 
     number: int
-    queue: asyncio.Queue
+    queue: asyncio.Queue[bytes | None]
     topics: set[str] = field(default_factory=set)
     dropped_lines: int = 0
 
@@ -106,7 +107,7 @@ class ApiServer:
         self.errors_total = 0
         self._server: asyncio.AbstractServer | None = None
         self._next_client = 1
-        self._tasks: set[asyncio.Task] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
 
     async def start(self) -> None:
         """Bind and listen; raises PhantomError if another daemon already serves this socket."""
@@ -152,7 +153,7 @@ class ApiServer:
             self.socket_path.unlink()
         self._server = None
 
-    def publish(self, topic: str, data: dict) -> None:
+    def publish(self, topic: str, data: dict[str, Any]) -> None:
         """Offer an event to every client subscribed to ``topic``; never blocks, drops where full."""
         if topic not in TOPICS:
             raise ValueError(f"unknown topic {topic!r}")
@@ -164,7 +165,7 @@ class ApiServer:
             if not client.offer(line):
                 self.dropped_lines_total += 1
 
-    def stats(self) -> dict:
+    def stats(self) -> dict[str, Any]:
         """Counters for ``status``: clients, requests, errors, lines dropped for slow clients."""
         return {"clients": len(self.clients), "requests": self.requests_total, "errors": self.errors_total,
                 "dropped_lines": self.dropped_lines_total}
@@ -282,7 +283,7 @@ class ApiServer:
             return _error_line(request_id, "internal", f"{type(error).__name__}: {error}")
         return _encode({"id": request_id, "result": result})
 
-    def _subscribe(self, client: Client, params: dict) -> dict:
+    def _subscribe(self, client: Client, params: dict[str, Any]) -> dict[str, Any]:
         """Add topics to a client's subscriptions (default: all)."""
         topics = params.get("topics", list(TOPICS))
         if not isinstance(topics, list) or not all(isinstance(topic, str) for topic in topics):
@@ -294,12 +295,12 @@ class ApiServer:
         return {"topics": sorted(client.topics)}
 
 
-def _encode(message: dict) -> bytes:
+def _encode(message: dict[str, Any]) -> bytes:
     """One JSON line; NaN (no value yet) is written as null."""
     return (json.dumps(_finite(message), separators=(",", ":")) + "\n").encode()
 
 
-def _finite(value):
+def _finite(value: Any) -> Any:
     """``value`` with every non-finite float replaced by None (JSON has no NaN)."""
     if isinstance(value, float):
         return value if value == value and value not in (float("inf"), float("-inf")) else None
@@ -310,7 +311,7 @@ def _finite(value):
     return value
 
 
-def _error_line(request_id, code: str, message: str) -> bytes:
+def _error_line(request_id: object, code: str, message: str) -> bytes:
     return _encode({"id": request_id, "error": {"code": code, "message": message}})
 
 

@@ -50,7 +50,7 @@ class DaemonClient:
     def __enter__(self) -> DaemonClient:
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def close(self) -> None:
@@ -62,7 +62,7 @@ class DaemonClient:
         """Send raw bytes (tests use this to send malformed requests)."""
         self._socket.sendall(line)
 
-    def read_message(self) -> dict:
+    def read_message(self) -> dict[str, Any]:
         """The next JSON line from the daemon (a reply or an event)."""
         try:
             line = self._file.readline()
@@ -70,9 +70,10 @@ class DaemonClient:
             raise PhantomError(f"the daemon on {self.socket_path} did not answer in time") from error
         if not line:
             raise PhantomError(f"the daemon on {self.socket_path} closed the connection")
-        return json.loads(line)
+        message: dict[str, Any] = json.loads(line)
+        return message
 
-    def call(self, method: str, params: dict | None = None) -> Any:
+    def call(self, method: str, params: dict[str, Any] | None = None) -> Any:
         """Send one request and return its result; raises DaemonError when it answers an error."""
         request_id = next(self._ids)
         self.send_line((json.dumps({"id": request_id, "method": method, "params": params or {}}) + "\n").encode())
@@ -84,7 +85,7 @@ class DaemonClient:
             raise DaemonError(message["error"]["code"], message["error"]["message"])
         return message["result"]
 
-    def events(self, topics: list[str] | None = None) -> Iterator[dict]:
+    def events(self, topics: list[str] | None = None) -> Iterator[dict[str, Any]]:
         """Subscribe and yield ``{"event", "data"}`` messages as they come."""
         self.call("subscribe", {"topics": topics} if topics else {})
         while True:

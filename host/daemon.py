@@ -4,7 +4,7 @@ The parts, each built before the daemon runs (:meth:`Daemon.start` builds them i
 
     api        the Unix-socket JSON-lines server (host/api.py): the socket is claimed first, so that a daemon
                that cannot start never touches another daemon's files (its recording included)
-    model      the scene's model, inverse and estimator in a worker process (host/control.py)
+    model      the scene's model, inverse and estimator in a worker process (host/model_worker.py)
     recorder   Rerun logging (host/recording.py), opened once the socket is ours
     board      the link session (host/session.py) over a serial port, CAN, or the daemon's own simulated board
                (host/sim_board.py)
@@ -24,30 +24,47 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import enum
 import logging
 import signal
 import time
 from collections import deque
-from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field
-from pathlib import Path
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
 
 import numpy as np
 
 from phantom import PhantomError
-from phantom.cli.common import chamber_labels
 from phantom.host.api import ApiError, ApiServer, default_socket_path
-from phantom.host.control import Estimate, ModelWorker, Solution
+from phantom.host.config import DaemonConfig
 from phantom.host.estimation import EstimateRequest, EstimateSchedule
+from phantom.host.handlers import ApiHandlers
+from phantom.host.logs import configured_level
+from phantom.host.model_worker import Estimate, ModelWorker
+from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
+from phantom.host.recording import Recorder
 from phantom.host.scene_runner import SceneRunner
-from phantom.host.scenes import TargetSpec
-from phantom.host.sim_board import SimulatedBoardKeeper
+from phantom.host.scenes import gland_volume_ml
+from phantom.host.session import (
+    BoardInfo,
+    CommandRejected,
+    LinkDown,
+    LinkSession,
+    LinkTiming,
+    Telemetry,
+    Transport,
+    fault_names,
+)
+from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
+from phantom.host.transports import CanTransport, SerialTransport
+from phantom.model import load_scene
+from phantom.model.errors import SceneError
+from phantom.model.inverse import InverseResult, Target, UnreachableTargetError
+from phantom.protocol.link import BOOT_DELAY_S
 
 logger = logging.getLogger(__name__)
 
 PA_PER_KPA = 1e3
+ML_PER_M3 = 1e6
 
 #: After connecting, how long the daemon keeps asking a board that answers NOT_SETTLED (s): a board that just
 #: started (or a phantom still deflating) needs its readings steady for about 2 s before it accepts a zero;
@@ -65,46 +82,17 @@ ZERO_REFUSALS: dict[str, str] = {
 
 LEVELS = {"INFO": logging.INFO, "WARN": logging.WARNING, "ERROR": logging.ERROR}
 
-
-class ControlState(enum.StrEnum):
-    IDLE = "idle"
-    HOLDING = "holding"
-    SCENE = "scene"
-    VENTED = "vented"
-
-
-@dataclass
-class DaemonConfig:
-    """Everything ``phantom daemon`` is told (CLI flags, or the config file of the systemd service)."""
-
-    port: str | None = None
-    sim: bool = False
-    sim_speed: float = 1.0
-    can_channel: str | None = None
-    can_interface: str = "socketcan"
-    baud: int = 115200
-    #: Silence after opening a serial port (s), while the bootloader runs; None: enough for an Uno or a Mega.
-    boot_delay_s: float | None = None
-    scene: str = "builtin:calibrated"
-    socket: Path = field(default_factory=default_socket_path)
-    socket_mode: int = 0o660
-    rerun_save: Path | None = None
-    rerun_connect: str | None = None
-    mesh_hz: float = 1.0
-    control_hz: float = 10.0
-    host_deadline_ms: int = 500
-    telemetry_period_ms: int = 20
-    vent_on_exit: bool = True
-    run_scene: bool = False
-    zero_on_connect: bool = True
-    log_level: str = "info"
+#: The control loop's rate (Hz): the scene's target, volume estimates and status to subscribers.
+CONTROL_HZ = 10.0
+#: File mode of the API's socket: the owner and the group may drive the phantom.
+SOCKET_MODE = 0o660
 
 
 class Daemon:
     """The daemon's state and tasks, from parts built by :meth:`start`; :meth:`serve` until asked to stop."""
 
-    def __init__(self, config: DaemonConfig, api: ApiServer, model: ModelWorker, recorder: Any, session: Any,
-                 sim_board: SimulatedBoardKeeper | None, clock: Any = time.monotonic):
+    def __init__(self, config: DaemonConfig, api: ApiServer, model: Model, recorder: Recording, session: BoardSession,
+                 sim_board: SimulatedBoardKeeper | None, clock: Clock = time.monotonic):
         self.config = config
         self.api = api
         self.model = model
@@ -115,16 +103,17 @@ class Daemon:
         self.started_s = clock()
         self.recording = bool(config.rerun_save or config.rerun_connect)
         self.chamber_names = list(model.info.chamber_names)
-        self.chamber_labels = chamber_labels(model.info.scene_raw, self.chamber_names)
+        self.chamber_labels = list(model.info.chamber_labels)
         self.control_state = ControlState.IDLE
-        self.target: TargetSpec | None = None
+        self.target: Target | None = None
         self.target_source: str | None = None
-        self.solution: Solution | None = None
+        #: the inverse's answer to the current target
+        self.inverse_result: InverseResult | None = None
         self.setpoints_pa: np.ndarray | None = None
-        self.telemetry: Any = None
+        self.telemetry: Telemetry | None = None
         self.estimated_chamber_ml: list[float] | None = None
         self.estimated_volume_ml: float | None = None
-        self.events: deque[dict] = deque(maxlen=100)
+        self.events: deque[dict[str, Any]] = deque(maxlen=100)
         self.fault_flags = 0
         self.model_counts: dict[str, int] = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
         self.meshes_logged = 0
@@ -135,38 +124,35 @@ class Daemon:
         self._link_log_due_s = 0.0
         self._rest_surface_logged = False
         self._setpoint_lock = asyncio.Lock()
-        self._scene_solving = False
+        self._scene_target_pending = False
         self._tasks: list[asyncio.Task[Any]] = []
         self._background: set[asyncio.Task[Any]] = set()
 
     # --- building the parts -----------------------------------------------------------------------------
 
     @classmethod
-    async def start(cls, config: DaemonConfig) -> Daemon:
-        """Build every part, in an order that never harms another daemon; raises PhantomError (one line)."""
-        from phantom.host.handlers import ApiHandlers
-        from phantom.host.recording import Recorder
+    async def start(cls, config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None) -> Daemon:
+        """Build every part, in an order that never harms another daemon; raises PhantomError (one line).
 
-        chosen = [bool(config.port), config.sim, bool(config.can_channel)]
-        if sum(chosen) != 1:
-            raise PhantomError("give exactly one board: --port DEV, --sim, or --can-channel CH")
-        api = ApiServer(config.socket, {}, mode=config.socket_mode)
+        ``simulated_board`` builds the board of ``config.sim`` (the command line passes the HIL package's).
+        """
+        if config.sim and simulated_board is None:
+            raise PhantomError("this program cannot simulate a board: start the daemon with `phantom daemon --sim`")
+        api = ApiServer(config.socket or default_socket_path(), {}, mode=SOCKET_MODE)
         await api.start()  # first: a second daemon stops here, before it opens anything of the first's
-        built: list[Any] = []
+        closers: list[Callable[[], None]] = []  # of the parts built so far, for a start that fails
         try:
-            from phantom.model import load_scene
-
             # the recording opens before the model is built: a first start may build the model's response table
             # for minutes, and an unwritable path must not wait for that to be reported
             recorder = Recorder(list(load_scene(config.scene).chambers), config.rerun_save, config.rerun_connect)
             recorder.open()
-            built.append(recorder)
-            model = await ModelWorker.start(config.scene, config.log_level)
-            built.append(model)
+            closers.append(recorder.close)
+            model = await ModelWorker.start(config.scene, configured_level())
+            closers.append(model.close)
             sim_board = None
-            if config.sim:
-                sim_board = SimulatedBoardKeeper(config.sim_speed, lambda kind, text, level: None)
-                built.append(sim_board)
+            if simulated_board is not None and config.sim:
+                sim_board = SimulatedBoardKeeper(config.sim_speed, lambda kind, text, level: None, simulated_board)
+                closers.append(sim_board.close)
                 logger.info("starting the simulated board (firmware in simavr, speed %g) ...", config.sim_speed)
                 await asyncio.get_running_loop().run_in_executor(None, sim_board.start)
             # the session calls the daemon, which is built after it: the callbacks find it here
@@ -175,9 +161,9 @@ class Daemon:
                                     on_event=lambda kind, text, level: wired["daemon"].event(kind, text, level),
                                     on_online=lambda board, again: wired["daemon"].on_online(board, again))
         except BaseException:
-            for part in reversed(built):
+            for close in reversed(closers):
                 with contextlib.suppress(Exception):
-                    part.close()
+                    close()
             await api.close()
             raise
         daemon = wired["daemon"] = cls(config, api, model, recorder, session, sim_board)
@@ -208,10 +194,8 @@ class Daemon:
                 self._tasks.append(asyncio.create_task(self.sim_board.watch(), name="simulated board"))
             for task in self._tasks:
                 task.add_done_callback(self._task_ended)
-            logger.info("ready: API on %s, board on %s", self.config.socket, self.session.transport.description)
+            logger.info("ready: API on %s, board on %s", self.api.socket_path, self.session.transport.description)
             if self.config.run_scene:
-                from phantom.host.scenes import SceneError
-
                 try:
                     self.start_scene(info.scene_raw, info.scene_path, 1.0, info.wants_shape)
                 except SceneError as error:
@@ -276,13 +260,11 @@ class Daemon:
         self.api.publish("events", entry)
         logger.log(LEVELS.get(level, logging.INFO), "%s", text)
 
-    def on_telemetry(self, telemetry: Any) -> None:
+    def on_telemetry(self, telemetry: Telemetry) -> None:
         """Keep the latest frame and the estimation window; log and publish it."""
         self.telemetry = telemetry
         self.schedule.add(telemetry.board_time_ms / 1e3, telemetry.pressures_pa)
         if telemetry.fault_flags != self.fault_flags:
-            from phantom.host.session import fault_names
-
             if telemetry.fault_flags and not self.fault_flags:
                 self.event("fault", f"faults latched: {', '.join(fault_names(telemetry.fault_flags))}", "ERROR")
             elif not telemetry.fault_flags:
@@ -298,7 +280,7 @@ class Daemon:
             "drive_levels": telemetry.drive_levels.tolist(), "states": telemetry.states,
             "fault_flags": telemetry.fault_flags})
 
-    async def on_online(self, board: Any, reconnected: bool) -> None:
+    async def on_online(self, board: BoardInfo, reconnected: bool) -> None:
         """The link came up: zero the sensors if the phantom is vented, else restore the current setpoints
         (a board that reset starts with none)."""
         self.schedule.clear()
@@ -327,8 +309,6 @@ class Daemon:
         daemon then waits for the telemetry to leave ZEROING). A board that answers NOT_SETTLED is asked again
         every ``ZERO_RETRY_S`` for up to ``settle_wait_s`` seconds. Raises ApiError ``rejected`` saying why the
         board refused."""
-        from phantom.host.session import CommandRejected, LinkDown
-
         # the board answers BUSY to setpoints while it zeroes: a target waits for the zeroing instead
         async with self._setpoint_lock:
             give_up_s = time.monotonic() + settle_wait_s
@@ -357,7 +337,7 @@ class Daemon:
 
     async def _control_loop(self) -> None:
         """Every control period: scene target, volume estimate, status, Rerun."""
-        period_s = 1.0 / self.config.control_hz
+        period_s = 1.0 / CONTROL_HZ
         while True:
             started = time.monotonic()
             try:
@@ -403,10 +383,9 @@ class Daemon:
                 self.recorder.log_rest_surface(*estimate.rest_surface_mm)
             self.recorder.log_mesh(request.time_s, *estimate.surface_mm)
             self.meshes_logged += 1
-        solved = self.solution.target if self.solution is not None else None
-        self.scenes.observe(estimate.gland_volume_ml,
-                            self.solution.predicted_volume_ml if self.solution is not None else None, solved,
-                            self.plant_volume_ml())
+        answer = self.inverse_result
+        self.scenes.observe(estimate.gland_volume_ml, None if answer is None else _predicted_volume_ml(answer),
+                            None if answer is None else answer.target, self.plant_volume_ml())
 
     def plant_volume_ml(self) -> float | None:
         """The simulated plant's true gland volume (ml); None on a real board or before the truth model."""
@@ -416,39 +395,36 @@ class Daemon:
         """The gland volume aimed at (ml): the target's for a volume target, else the inverse's prediction."""
         if self.target is None or self.control_state is ControlState.VENTED:
             return None
-        if self.target.kind == "volume_ml":
-            return float(self.target.values[0])
-        return self.solution.predicted_volume_ml if self.solution is not None else None
+        if self.target.kind == "volume":
+            return gland_volume_ml(self.target)
+        return _predicted_volume_ml(self.inverse_result) if self.inverse_result is not None else None
 
-    async def apply_target(self, target: TargetSpec, source: str) -> dict:
-        """Solve the inverse for ``target`` and send the setpoints; returns the solution as JSON.
+    async def apply_target(self, target: Target, source: str) -> dict[str, Any]:
+        """Find the pressures for ``target`` (the inverse, in the model worker) and send them as setpoints;
+        returns the inverse's answer as JSON.
 
         Raises ApiError ``unreachable`` (with the reachable range), ``link_down`` or ``rejected``.
         """
-        from phantom.model.inverse import UnreachableTargetError
-
         try:
-            solution = await self.model.solve(target)
+            answer = await self.model.pressures_for(target)
         except UnreachableTargetError as error:
             raise ApiError("unreachable", str(error)) from error
-        self.recorder.log_solver(self.now_s(), solution.qp_time_s, solution.solve_time_s)
+        self.recorder.log_solver(self.now_s(), answer.qp_solve_time_s, answer.solve_time_s)
         if source != "api" and self.control_state is not ControlState.SCENE:
-            # the scene was stopped (vent, a new target) while this solve ran: its answer is stale
-            return solution.to_json()
-        await self.send_setpoints(solution.pressures_pa)
+            # the scene was stopped (vent, a new target) while the inverse ran: its answer is stale
+            return answer.to_json()
+        await self.send_setpoints(answer.pressures_pa)
         changed = self.target != target
-        self.target, self.target_source, self.solution = target, source, solution
+        self.target, self.target_source, self.inverse_result = target, source, answer
         if changed and source == "api":
             self.event("target", f"target {target.describe()} -> setpoints "
-                       f"{', '.join(f'{p / PA_PER_KPA:.3f}' for p in solution.pressures_pa)} kPa "
-                       f"(predicted {solution.predicted_volume_ml:.2f} ml, "
-                       f"solve {solution.solve_time_s * 1e3:.1f} ms)")
-        return solution.to_json()
+                       f"{', '.join(f'{p / PA_PER_KPA:.3f}' for p in answer.pressures_pa)} kPa "
+                       f"(predicted {_predicted_volume_ml(answer):.2f} ml, "
+                       f"inverse {answer.solve_time_s * 1e3:.1f} ms)")
+        return answer.to_json()
 
-    async def board_command(self, name: str, fields: dict | None = None) -> str:
+    async def board_command(self, name: str, fields: dict[str, Any] | None = None) -> str:
         """One acknowledged command to the board for an API request; link errors become API errors."""
-        from phantom.host.session import CommandRejected, LinkDown
-
         try:
             return str(await self.session.command(name, fields))
         except LinkDown as error:
@@ -478,7 +454,7 @@ class Daemon:
 
     # --- scenes -----------------------------------------------------------------------------------------
 
-    def start_scene(self, raw: dict, name: str, time_scale: float, wants_shape: bool) -> dict:
+    def start_scene(self, raw: dict[str, Any], name: str, time_scale: float, wants_shape: bool) -> dict[str, Any]:
         """Check a scene's timeline against the loaded phantom and start playing it (SceneError if bad)."""
         started = self.scenes.start(raw, name, self.chamber_names, time_scale, wants_shape)
         self.control_state = ControlState.SCENE
@@ -491,12 +467,12 @@ class Daemon:
         if was_active and not self.scenes.active and self.control_state is ControlState.SCENE:
             self.control_state = ControlState.HOLDING
         run = self.scenes.run
-        if target is not None and run is not None and target != self.target and not self._scene_solving:
-            self._scene_solving = True
+        if target is not None and run is not None and target != self.target and not self._scene_target_pending:
+            self._scene_target_pending = True
             task = self.spawn(self._apply_scene_target(target, run.name))
-            task.add_done_callback(lambda _: setattr(self, "_scene_solving", False))
+            task.add_done_callback(lambda _: setattr(self, "_scene_target_pending", False))
 
-    async def _apply_scene_target(self, target: TargetSpec, name: str) -> None:
+    async def _apply_scene_target(self, target: Target, name: str) -> None:
         try:
             await self.apply_target(target, f"scene:{name}")
         except ApiError as error:
@@ -506,12 +482,10 @@ class Daemon:
 
     # --- status -----------------------------------------------------------------------------------------
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         """Everything ``phantom status --json`` shows."""
-        from phantom.host.session import fault_names
-
-        telemetry = self.telemetry
-        fresh = telemetry is not None and self.session.online
+        telemetry = self.telemetry if self.session.online else None  # a stale frame is not shown
+        fresh = telemetry is not None
         link = self.session.status()
         info = self.model.info
         status = {
@@ -520,18 +494,18 @@ class Daemon:
             "control": self.control_state.value,
             "chambers": self.chamber_names,
             "chamber_labels": self.chamber_labels,
-            "pressures_kpa": (telemetry.pressures_pa / PA_PER_KPA).tolist() if fresh else None,
+            "pressures_kpa": (telemetry.pressures_pa / PA_PER_KPA).tolist() if telemetry is not None else None,
             "setpoints_kpa": (self.setpoints_pa / PA_PER_KPA).tolist() if self.setpoints_pa is not None else None,
-            "board_setpoints_kpa": (telemetry.setpoints_pa / PA_PER_KPA).tolist() if fresh else None,
-            "drive_levels": telemetry.drive_levels.tolist() if fresh else None,
-            "chamber_states": telemetry.states if fresh else None,
+            "board_setpoints_kpa": (telemetry.setpoints_pa / PA_PER_KPA).tolist() if telemetry is not None else None,
+            "drive_levels": telemetry.drive_levels.tolist() if telemetry is not None else None,
+            "chamber_states": telemetry.states if telemetry is not None else None,
             "estimated_volume_ml": self.estimated_volume_ml if fresh else None,
             "estimated_chamber_volumes_ml": self.estimated_chamber_ml if fresh else None,
             "rest_volume_ml": info.rest_volume_ml,
             "target_volume_ml": self.target_volume_ml(),
             "target": self.target.to_json() if self.target is not None else None,
             "target_source": self.target_source,
-            "solution": self.solution.to_json() if self.solution is not None else None,
+            "solution": self.inverse_result.to_json() if self.inverse_result is not None else None,
             "faults": fault_names(self.fault_flags),
             "scene": self.scenes.to_json(),
             "startup_s": info.timings_s,
@@ -561,20 +535,22 @@ class Daemon:
                                    stats["tx_dropped"] + stats["commands_failed"])
 
 
+def _predicted_volume_ml(answer: InverseResult) -> float:
+    """The gland volume (ml) the inverse predicts for its pressures."""
+    return float(answer.predicted_gland_volume_m3) * ML_PER_M3
+
+
 def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]) -> None:
     """Errors the event loop catches (a background task's exception nobody awaited) go to the log with their
     traceback."""
     logger.error("unexpected error: %s", context.get("message", "in the event loop"), exc_info=context.get("exception"))
 
 
-def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None, on_telemetry: Callable[..., Any],
-                  on_event: Callable[..., Any], on_online: Callable[..., Any]) -> Any:
+def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
+                  on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
+                  on_online: Callable[[BoardInfo, bool], Awaitable[None]]) -> LinkSession:
     """The link session over the configured transport."""
-    from phantom.host.session import LinkSession, LinkTiming
-    from phantom.host.transports import CanTransport, SerialTransport
-    from phantom.protocol.link import BOOT_DELAY_S
-
-    transport: Any
+    transport: Transport
     boot_delay_s = 0.0
     if config.can_channel:
         transport = CanTransport(config.can_channel, config.can_interface)
@@ -582,7 +558,7 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None, 
         transport = SerialTransport(sim_board.port, config.baud)
         boot_delay_s = BOOT_DELAY_S["sim"]
     else:
-        assert config.port is not None  # Daemon.start checked that exactly one board is given
+        assert config.port is not None  # a DaemonConfig has exactly one board
         transport = SerialTransport(config.port, config.baud)
         boot_delay_s = max(BOOT_DELAY_S.values()) if config.boot_delay_s is None else config.boot_delay_s
     # a simulated board faster than real time passes its dead-host deadline sooner (speed 0: as fast as it can,
@@ -596,11 +572,12 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None, 
     return LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event, on_online=on_online)
 
 
-async def _run(config: DaemonConfig) -> int:
-    daemon = await Daemon.start(config)
+async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:
+    daemon = await Daemon.start(config, simulated_board)
     return await daemon.serve()
 
 
-def run_daemon(config: DaemonConfig) -> int:
-    """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status."""
-    return asyncio.run(_run(config))
+def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None) -> int:
+    """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status. ``simulated_board`` builds
+    the board of ``config.sim``."""
+    return asyncio.run(_run(config, simulated_board))

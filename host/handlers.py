@@ -8,7 +8,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from phantom.host.api import ApiError, Handler
-from phantom.host.scenes import SceneError, effective_model, model_differences, parse_target
+from phantom.host.parts import ControlState
+from phantom.host.scenes import effective_model, model_differences, parse_target
+from phantom.host.session import fault_names
+from phantom.model.errors import SceneError
+from phantom.model.scene import load_scene
 
 if TYPE_CHECKING:
     from phantom.host.daemon import Daemon
@@ -28,12 +32,10 @@ class ApiHandlers:
                 "clear_fault": self.clear_fault, "run_scene": self.run_scene, "zero": self.zero,
                 "surface": self.surface}
 
-    async def status(self, params: dict) -> dict:
+    async def status(self, params: dict[str, Any]) -> dict[str, Any]:
         return self.daemon.status()
 
-    async def set_target(self, params: dict) -> dict:
-        from phantom.host.daemon import ControlState
-
+    async def set_target(self, params: dict[str, Any]) -> dict[str, Any]:
         daemon = self.daemon
         try:
             target = parse_target(params, daemon.chamber_names, "set_target")
@@ -46,22 +48,17 @@ class ApiHandlers:
         daemon.control_state = ControlState.HOLDING
         return result
 
-    async def vent(self, params: dict) -> dict:
-        from phantom.host.daemon import ControlState
-
+    async def vent(self, params: dict[str, Any]) -> dict[str, Any]:
         daemon = self.daemon
         daemon.scenes.stop("vented")
         await daemon.board_command("VENT")
         daemon.control_state = ControlState.VENTED
         daemon.setpoints_pa = np.zeros(len(daemon.chamber_names))
-        daemon.target, daemon.solution, daemon.target_source = None, None, None
+        daemon.target, daemon.inverse_result, daemon.target_source = None, None, None
         daemon.event("vent", "vented on request: every setpoint is 0")
         return {"vented": True}
 
-    async def clear_fault(self, params: dict) -> dict:
-        from phantom.host.daemon import ControlState
-        from phantom.host.session import fault_names
-
+    async def clear_fault(self, params: dict[str, Any]) -> dict[str, Any]:
         daemon = self.daemon
         before = fault_names(daemon.fault_flags)
         await daemon.board_command("CLEAR_FAULT")
@@ -73,13 +70,13 @@ class ApiHandlers:
             restored = True
         return {"cleared": before, "setpoints_restored": restored}
 
-    async def zero(self, params: dict) -> dict:
+    async def zero(self, params: dict[str, Any]) -> dict[str, Any]:
         """ZERO_SENSORS on request: the board measures each sensor's zero (it must be vented and settled)."""
         acknowledged = await self.daemon.zero_sensors()
         self.daemon.event("zero", "sensors zeroed on request")
         return {"zeroed": True, "acknowledged": acknowledged}
 
-    async def surface(self, params: dict) -> dict:
+    async def surface(self, params: dict[str, Any]) -> dict[str, Any]:
         """The deformed outer surface (positions mm, triangles): at ``pressures_kpa`` if given, else at the
         latest measured pressures (at rest when there are none)."""
         daemon = self.daemon
@@ -89,7 +86,7 @@ class ApiHandlers:
                 target = parse_target({"pressures_kpa": pressures}, daemon.chamber_names, "surface")
             except SceneError as error:
                 raise ApiError("invalid_params", str(error)) from error
-            pressures_pa: np.ndarray | None = np.asarray(target.values, dtype=float) * PA_PER_KPA
+            pressures_pa: np.ndarray | None = np.asarray(target.values, dtype=float)
         elif daemon.schedule.window:
             pressures_pa = np.mean([frame for _, frame in daemon.schedule.window], axis=0)
         else:
@@ -98,9 +95,7 @@ class ApiHandlers:
         return {"pressures_kpa": None if pressures_pa is None else (pressures_pa / PA_PER_KPA).tolist(),
                 "positions_mm": np.round(positions_mm, 4).tolist(), "triangles": np.asarray(triangles).tolist()}
 
-    async def run_scene(self, params: dict) -> dict:
-        from phantom.model.scene import load_scene
-
+    async def run_scene(self, params: dict[str, Any]) -> dict[str, Any]:
         daemon = self.daemon
         path = params.get("path")
         time_scale: Any = params.get("time_scale", 1.0)

@@ -68,3 +68,10 @@ def configure_logging(level: str = "info") -> None:
     logger.addHandler(handler)
     logger.setLevel(LEVELS[name])
     logger.propagate = False
+
+
+def configured_level() -> str:
+    """The level name :func:`configure_logging` set last (``info`` before it ran): a worker process started by
+    this one logs like it."""
+    level = logging.getLogger("phantom").level
+    return next((name for name, value in LEVELS.items() if value == level), "info")

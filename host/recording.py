@@ -36,13 +36,14 @@ import logging
 import os
 import re
 import warnings
+from collections.abc import Sequence
 from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 
 logger = logging.getLogger(__name__)
 
@@ -95,12 +96,13 @@ def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return (normals / np.where(length > 0, length, 1.0)).astype(np.float32)
 
 
-def default_blueprint(chamber_names: list[str], camera: tuple[np.ndarray, np.ndarray] | None = None):
+def default_blueprint(chamber_names: list[str], camera: tuple[np.ndarray, np.ndarray] | None = None) -> Any:
     """The layout: plots on the right, one per quantity; the phantom on the left when ``camera`` (eye position,
     look target, mm) is given, that is when meshes are logged; the event log under it."""
-    import rerun as rr
-    import rerun.blueprint as rrb
-    import rerun.blueprint.encodings as rrbe
+    with require_extra("record"):
+        import rerun as rr
+        import rerun.blueprint as rrb
+        import rerun.blueprint.encodings as rrbe
 
     parts = [entity_part(name) for name in chamber_names]
     legend = rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)
@@ -199,7 +201,8 @@ class Recorder:
         # the SDK warns on stderr, at every start, that a file without a footer is slower to seek: that is the
         # choice made above (WRITE_FOOTER), not news for the daemon's log; a RUST_LOG the user set wins
         os.environ.setdefault("RUST_LOG", "warn,re_log_encoding::rrd::file_sink=error")
-        import rerun as rr
+        with require_extra("record"):
+            import rerun as rr
 
         if self.save_path is not None:
             _check_writable(self.save_path)
@@ -258,7 +261,8 @@ class Recorder:
         if value is not None and np.isfinite(value):
             self._stream.log(path, self._rr.Scalars(float(value)))
 
-    def log_telemetry(self, time_s: float, measured_kpa, setpoint_kpa, drive_levels) -> None:
+    def log_telemetry(self, time_s: float, measured_kpa: np.ndarray, setpoint_kpa: np.ndarray,
+                      drive_levels: np.ndarray) -> None:
         """Per chamber: measured and set pressure (kPa) and drive level (0..1)."""
         if not self.enabled:
             return
@@ -269,7 +273,7 @@ class Recorder:
             self._scalar(f"chamber/{part}/drive_level", drive_levels[index])
 
     def log_volumes(self, time_s: float, target_ml: float | None, estimated_ml: float | None,
-                    chamber_ml=None, true_ml: float | None = None) -> None:
+                    chamber_ml: Sequence[float] | None = None, true_ml: float | None = None) -> None:
         """Target and estimated gland volume, the true one when a simulated plant knows it, and the estimated
         chamber volumes (all ml)."""
         if not self.enabled:
@@ -376,15 +380,16 @@ def _check_writable(path: Path) -> None:
 TIMELINES = ("time", "scene_time")
 
 
-def read_rrd(path: str | Path) -> dict[str, dict[str, list]]:
+def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
     """Read an ``.rrd`` back: entity path -> component column -> list of logged values (in ``time`` order).
 
     ``time`` and ``scene_time`` keys hold those timelines in seconds (``scene_time`` None for rows logged while
     no scene ran). Used by tests and by ``make demo``.
     """
-    from rerun.chunk import RrdReader
+    with require_extra("record"):
+        from rerun.chunk import RrdReader
 
-    entities: dict[str, dict[str, list]] = {}
+    entities: dict[str, dict[str, list[Any]]] = {}
     with warnings.catch_warnings():  # "no footer": the daemon writes none (WRITE_FOOTER); stream() reads it all
         warnings.filterwarnings("ignore", message="RRD file has no footer")
         reader = RrdReader(str(path))

@@ -12,8 +12,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
-from phantom.host.scenes import SceneError, TargetSpec, Timeline, parse_timeline
+from phantom.host.scenes import Timeline, gland_volume_ml, parse_timeline
+from phantom.model.errors import SceneError
+from phantom.model.inverse import Target
 
 #: A step counts as reached when the estimated volume is within this fraction of its target volume.
 REACHED_TOLERANCE = 0.01
@@ -35,7 +38,7 @@ class StepRecord:
     final_volume_ml: float | None = None
     true_volume_ml: float | None = None
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
         error_pct = None
         if self.target_volume_ml and self.final_volume_ml is not None:
             error_pct = 100.0 * (self.final_volume_ml - self.target_volume_ml) / self.target_volume_ml
@@ -62,7 +65,7 @@ class SceneRun:
         """Seconds of scene time at clock reading ``clock_s`` (s)."""
         return (clock_s - self.started_clock_s) * self.time_scale
 
-    def to_json(self, clock_s: float) -> dict:
+    def to_json(self, clock_s: float) -> dict[str, Any]:
         return {"name": self.name, "time_s": min(self.scene_time_s(clock_s), self.end_s), "end_s": self.end_s,
                 "time_scale": self.time_scale, "finished": self.finished,
                 "steps": [step.to_json() for step in self.steps]}
@@ -93,8 +96,8 @@ class SceneRunner:
         """The playing scene's time (s), or None when none plays."""
         return min(self.run.scene_time_s(self.clock()), self.run.end_s) if self.active and self.run else None
 
-    def start(self, raw: dict, name: str, chamber_names: list[str], time_scale: float,
-              wants_shape: bool = False) -> dict:
+    def start(self, raw: dict[str, Any], name: str, chamber_names: list[str], time_scale: float,
+              wants_shape: bool = False) -> dict[str, Any]:
         """Check a scene's ``[[steps]]`` and ``[timeline]`` against the chambers and start playing it.
 
         Raises SceneError naming what is wrong; returns ``name``, ``steps``, ``end_s``, ``time_scale``,
@@ -124,7 +127,7 @@ class SceneRunner:
             self.run.finished = True
             self.on_event("scene", f"scene {self.run.name} stopped: {why}", "INFO")
 
-    def tick(self) -> TargetSpec | None:
+    def tick(self) -> Target | None:
         """Advance to the clock's time: record the steps that started, finish at the end.
 
         Returns the target in force (interpolated along a ramp), or None before the first step, after the end
@@ -139,7 +142,7 @@ class SceneRunner:
         if index is not None:
             for new_index in range(len(run.steps), index + 1):
                 step = run.timeline.steps[new_index]
-                volume_ml = float(step.target.values[0]) if step.target.kind == "volume_ml" else None
+                volume_ml = gland_volume_ml(step.target)
                 # the step's own start on the clock, not the tick that noticed it (up to a control period later)
                 started_s = run.started_clock_s + step.at_s / run.time_scale
                 run.steps.append(StepRecord(new_index, step.at_s, step.target.describe(), volume_ml, started_s))
@@ -152,7 +155,7 @@ class SceneRunner:
         return run.timeline.target_at(scene_time_s)
 
     def observe(self, estimated_volume_ml: float, predicted_volume_ml: float | None = None,
-                solved_target: TargetSpec | None = None, true_volume_ml: float | None = None) -> None:
+                solved_target: Target | None = None, true_volume_ml: float | None = None) -> None:
         """Book an estimate against the current step: its latest volume (and the simulated plant's true one,
         when known), and when it first came within 1 % of the step's target volume after the ramp. A step
         without a volume target (pressures, chamber volumes) takes the inverse's ``predicted_volume_ml`` for
@@ -176,6 +179,6 @@ class SceneRunner:
         if abs(estimated_volume_ml - goal_ml) <= REACHED_TOLERANCE * goal_ml and now_s >= ramp_end_s:
             record.reached_after_s = now_s - record.started_clock_s
 
-    def to_json(self) -> dict | None:
+    def to_json(self) -> dict[str, Any] | None:
         """The run for ``status`` (None when no scene was started)."""
         return self.run.to_json(self.clock()) if self.run is not None else None

@@ -15,46 +15,25 @@ from pathlib import Path
 from typing import Any
 
 from phantom.model.errors import SceneError
+from phantom.model.inverse import Target
 
-#: The target forms a step may have, in the units people see.
-TARGET_KINDS: tuple[str, ...] = ("volume_ml", "chamber_volumes_ml", "pressures_kpa")
+#: A target's keys as a scene's step or the API's ``set_target`` states it (the units people see), each with the
+#: inverse's target kind (:data:`phantom.model.inverse.TARGET_KINDS`).
+TARGET_KEYS: dict[str, str] = {"volume_ml": "volume", "chamber_volumes_ml": "chamber_volumes",
+                               "pressures_kpa": "pressures"}
+
+ML_PER_M3 = 1e6
+PA_PER_KPA = 1e3
 
 
-@dataclass(frozen=True)
-class TargetSpec:
-    """One target as a person states it.
+def _to_si(key: str, value: float) -> float:
+    """A number of a target key (ml or kPa) in SI units (m^3 or Pa)."""
+    return value * PA_PER_KPA if key == "pressures_kpa" else value / ML_PER_M3
 
-    Attributes
-    ----------
-    kind : str
-        ``"volume_ml"`` (gland volume, ml), ``"chamber_volumes_ml"`` (ml per chamber, ``None`` = free) or
-        ``"pressures_kpa"`` (kPa per chamber).
-    values : tuple
-        One number for ``volume_ml``; one per chamber otherwise (ml or kPa as ``kind`` says).
-    growth_ratio : tuple of (int, float), optional
-        With ``volume_ml``: chamber index and weight; the named chambers' growths keep these proportions.
-    """
 
-    kind: str
-    values: tuple
-    growth_ratio: tuple = ()
-
-    def describe(self) -> str:
-        """A short human-readable form, e.g. ``32.0 ml`` or ``pressures 1.00,1.00,1.00 kPa``."""
-        if self.kind == "volume_ml":
-            ratio = "" if not self.growth_ratio else " (growth ratio " + ", ".join(
-                f"chamber{index}:{weight:g}" for index, weight in self.growth_ratio) + ")"
-            return f"{self.values[0]:.2f} ml{ratio}"
-        unit = "ml" if self.kind == "chamber_volumes_ml" else "kPa"
-        numbers = ",".join("free" if value is None else f"{value:.2f}" for value in self.values)
-        return f"{self.kind.split('_')[0]} {numbers} {unit}"
-
-    def to_json(self) -> dict:
-        """The target as a JSON-ready dict (the API's ``set_target`` params form)."""
-        result = {self.kind: self.values[0] if self.kind == "volume_ml" else list(self.values)}
-        if self.growth_ratio:
-            result["growth_ratio"] = {str(index): weight for index, weight in self.growth_ratio}
-        return result
+def gland_volume_ml(target: Target) -> float | None:
+    """The gland volume (ml) a volume target asks for, as people stated it; None for the other kinds."""
+    return target.to_json()["volume_ml"] if target.kind == "volume" else None
 
 
 @dataclass(frozen=True)
@@ -62,7 +41,7 @@ class Step:
     """One timeline step: from ``at_s`` (s) the target moves to ``target`` over ``ramp_s`` (s), then holds."""
 
     at_s: float
-    target: TargetSpec
+    target: Target
     ramp_s: float = 0.0
 
 
@@ -96,7 +75,7 @@ class Timeline:
                 index = position
         return index
 
-    def target_at(self, time_s: float) -> TargetSpec | None:
+    def target_at(self, time_s: float) -> Target | None:
         """The target at ``time_s`` (s): the step in force, linearly interpolated while it ramps.
 
         During a ramp of step k from ``at_s`` over ``ramp_s`` the values are
@@ -111,13 +90,13 @@ class Timeline:
         previous = self.steps[index - 1].target
         fraction = (time_s - step.at_s) / step.ramp_s
         values = tuple(
-            None if new is None else old + fraction * (new - old)
+            None if new is None or old is None else old + fraction * (new - old)
             for old, new in zip(previous.values, step.target.values, strict=True)
         )
-        return TargetSpec(step.target.kind, values, step.target.growth_ratio)
+        return Target.of_kind(step.target.kind, values, step.target.growth_ratio)
 
 
-def _number(value, what: str) -> float:
+def _number(value: object, what: str) -> float:
     """A finite float from a TOML/JSON value, or a SceneError naming ``what``."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SceneError(f"{what} must be a number, got {value!r}")
@@ -126,7 +105,7 @@ def _number(value, what: str) -> float:
     return float(value)
 
 
-def parse_target(raw: dict, chamber_names: list[str], where: str = "target") -> TargetSpec:
+def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "target") -> Target:
     """Check and convert one target given as a dict (a scene step or the API's ``set_target`` params).
 
     Parameters
@@ -142,27 +121,28 @@ def parse_target(raw: dict, chamber_names: list[str], where: str = "target") -> 
     """
     if not isinstance(raw, dict):
         raise SceneError(f"{where}: a target must be a table/object, got {type(raw).__name__}")
-    kinds = [kind for kind in TARGET_KINDS if kind in raw]
-    if len(kinds) != 1:
+    keys = [key for key in TARGET_KEYS if key in raw]
+    if len(keys) != 1:
         raise SceneError(
-            f"{where}: give exactly one of {', '.join(TARGET_KINDS)}; got "
-            f"{', '.join(kinds) if kinds else 'none'}")
-    kind = kinds[0]
+            f"{where}: give exactly one of {', '.join(TARGET_KEYS)}; got "
+            f"{', '.join(keys) if keys else 'none'}")
+    kind = keys[0]
     n_chambers = len(chamber_names)
     if kind == "volume_ml":
         volume_ml = _number(raw[kind], f"{where}: volume_ml")
         if volume_ml <= 0:
             raise SceneError(f"{where}: volume_ml must be positive, got {volume_ml:g}")
-        values: tuple = (volume_ml,)
+        values: tuple[float | None, ...] = (volume_ml,)
     else:
         listed = raw[kind]
         if not isinstance(listed, (list, tuple)) or len(listed) != n_chambers:
             raise SceneError(f"{where}: {kind} must be a list of {n_chambers} numbers (one per chamber: "
                              f"{', '.join(chamber_names)}), got {listed!r}")
         if kind == "pressures_kpa":
-            values = tuple(_number(value, f"{where}: pressures_kpa[{i}]") for i, value in enumerate(listed))
-            if min(values) < 0:
-                raise SceneError(f"{where}: pressures_kpa must be >= 0 (the blowers only push), got {list(values)}")
+            pressures = [_number(value, f"{where}: pressures_kpa[{i}]") for i, value in enumerate(listed)]
+            if min(pressures) < 0:
+                raise SceneError(f"{where}: pressures_kpa must be >= 0 (the blowers only push), got {pressures}")
+            values = tuple(pressures)
         else:
             values = tuple(None if value is None else _number(value, f"{where}: chamber_volumes_ml[{i}]")
                            for i, value in enumerate(listed))
@@ -171,21 +151,22 @@ def parse_target(raw: dict, chamber_names: list[str], where: str = "target") -> 
             if any(value is not None and value <= 0 for value in values):
                 raise SceneError(f"{where}: chamber_volumes_ml must be positive, got {list(values)}")
     growth_ratio = _parse_growth_ratio(raw.get("growth_ratio"), kind, chamber_names, where)
-    unknown = set(raw) - set(TARGET_KINDS) - {"growth_ratio", "at_s", "ramp_s"}
+    unknown = set(raw) - set(TARGET_KEYS) - {"growth_ratio", "at_s", "ramp_s"}
     if unknown:
         raise SceneError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
-    return TargetSpec(kind, values, growth_ratio)
+    return Target.of_kind(TARGET_KEYS[kind], [None if value is None else _to_si(kind, value) for value in values],
+                          growth_ratio)
 
 
-def _parse_growth_ratio(raw, kind: str, chamber_names: list[str], where: str) -> tuple:
-    """The growth ratio as sorted (chamber index, weight) pairs; keys are chamber names or indices."""
+def _parse_growth_ratio(raw: Any, kind: str, chamber_names: list[str], where: str) -> dict[int, float] | None:
+    """The growth ratio as chamber index -> weight; keys are chamber names or indices."""
     if raw is None:
-        return ()
+        return None
     if kind != "volume_ml":
         raise SceneError(f"{where}: growth_ratio goes with volume_ml only")
     if not isinstance(raw, dict) or not raw:
         raise SceneError(f"{where}: growth_ratio must be a table like {{ chamber1 = 2.0, chamber2 = 1.0 }}")
-    pairs = []
+    ratio: dict[int, float] = {}
     for key, weight in raw.items():
         if key in chamber_names:
             index = chamber_names.index(key)
@@ -197,11 +178,11 @@ def _parse_growth_ratio(raw, kind: str, chamber_names: list[str], where: str) ->
         weight = _number(weight, f"{where}: growth_ratio[{key}]")
         if weight <= 0:
             raise SceneError(f"{where}: growth_ratio weights must be positive, got {key} = {weight:g}")
-        pairs.append((index, weight))
-    return tuple(sorted(pairs))
+        ratio[index] = weight
+    return ratio
 
 
-def parse_timeline(raw_steps, chamber_names: list[str], name: str = "timeline") -> Timeline:
+def parse_timeline(raw_steps: object, chamber_names: list[str], name: str = "timeline") -> Timeline:
     """Check and convert a scene's ``[[steps]]`` list into a :class:`Timeline`.
 
     Steps must be in increasing ``at_s`` (s, >= 0); a step with ``ramp_s`` (s, >= 0) > 0 must follow a
@@ -236,8 +217,7 @@ def parse_timeline(raw_steps, chamber_names: list[str], name: str = "timeline") 
             if previous_target.kind != target.kind:
                 raise SceneError(f"{where}: a ramp needs the previous step to have the same target form "
                                  f"({previous_target.kind} -> {target.kind})")
-            if target.kind == "chamber_volumes_ml" and [v is None for v in previous_target.values] != [
-                    v is None for v in target.values]:
+            if previous_target.free_chambers != target.free_chambers:
                 raise SceneError(f"{where}: a chamber-volume ramp needs the same free chambers in both steps")
         steps.append(Step(at_s, target, ramp_s))
     return Timeline(steps, name)
@@ -252,7 +232,7 @@ def example_scene_path(name: str) -> Path:
     return path
 
 
-def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: float | None = None) -> dict:
+def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: float | None = None) -> dict[str, Any]:
     """What a scene's timeline runs on, as comparable values: the phantom (mesh, units, chambers, fixed group),
     the built-in prostate's geometry (chambers and mesh size; None for a mesh file), the material (every
     parameter, defaults filled in) and the model settings (fidelity, pressure limit).
@@ -260,13 +240,11 @@ def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: f
     For a running model, ``fidelity`` and ``pressure_max_kpa`` are the ones in force; for a scene file they
     are what it asks for (None: no fidelity named, which any level satisfies).
     """
-    from phantom.model.fidelity.levels import DEFAULT_PRESSURE_MAX_PA
-
-    settings = scene.raw.get("model", {}) if isinstance(scene.raw.get("model", {}), dict) else {}
+    settings = scene.model_settings
     if fidelity is None:
-        fidelity = settings.get("fidelity")
+        fidelity = settings.fidelity
     if pressure_max_kpa is None:
-        pressure_max_kpa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3))
+        pressure_max_kpa = settings.pressure_max_pa / 1e3
     material = scene.material
     material = dataclasses.asdict(material) if dataclasses.is_dataclass(material) and not isinstance(
         material, type) else dict(vars(material))
@@ -278,7 +256,7 @@ def effective_model(scene: Any, fidelity: str | None = None, pressure_max_kpa: f
             "model": {"fidelity": fidelity, "pressure_max_kpa": float(pressure_max_kpa)}}
 
 
-def model_differences(running: dict, candidate: dict) -> list[str]:
+def model_differences(running: dict[str, Any], candidate: dict[str, Any]) -> list[str]:
     """The tables (``phantom``, ``geometry``, ``material``, ``model``) in which a scene's effective model differs
     from the running one's; a scene that names no fidelity accepts the running one."""
     differing = [table for table in ("phantom", "geometry", "material") if running[table] != candidate[table]]

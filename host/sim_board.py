@@ -1,8 +1,9 @@
 """The daemon's own simulated board (``phantom daemon --sim``), kept alive, behind a port path that never changes.
 
-The simulated board (the real firmware in simavr, ``phantom.hil.sim.SimulatedBoard``) lives in a temporary
-folder that changes each time it starts; the daemon's serial transport opens a symlink of ours instead, which
-is pointed at the current board. A watch polls the board's plant: its true gland volume feeds ``status``
+The simulated board comes from a factory the daemon is given (the command line passes the HIL package's
+``SimulatedBoard``: the real firmware in simavr; the host does not import the HIL package). It lives in a
+temporary folder that changes each time it starts; the daemon's serial transport opens a symlink of ours
+instead, which is pointed at the current board. A watch polls the board's plant: its true gland volume feeds ``status``
 (``plant_volume_ml``); if the simulator died, the daemon says so and starts a new one behind the same path
 (the link session reconnects by itself, and the daemon restores its setpoints).
 """
@@ -16,7 +17,7 @@ import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 logger = logging.getLogger(__name__)
 
@@ -27,7 +28,28 @@ WATCH_PERIOD_S = 0.5
 EventSink = Callable[[str, str, str], None]
 
 
-def plant_volume_ml(plant_state: dict) -> float | None:
+class SimulatedBoard(Protocol):
+    """What the keeper needs of a simulated board (``phantom.hil.sim.SimulatedBoard`` is one)."""
+
+    @property
+    def port(self) -> str:
+        """The serial port (a pseudo-terminal) of the running board."""
+
+    def start(self) -> object:
+        """Start the board (blocking)."""
+
+    def stop(self) -> None:
+        """Stop the board (blocking)."""
+
+    def plant_state(self) -> dict[str, Any]:
+        """The simulated plant's state; raises when the simulator is gone."""
+
+
+#: Builds a simulated board running at a speed-up (1: real time).
+SimulatedBoardFactory = Callable[[float], SimulatedBoard]
+
+
+def plant_volume_ml(plant_state: dict[str, Any]) -> float | None:
     """The simulated plant's true gland volume (ml) from ``SimulatedBoard.plant_state()``, when it has one."""
     value = plant_state.get("gland_volume_ml")
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
@@ -42,17 +64,17 @@ class SimulatedBoardKeeper:
         The board's speed-up (1: real time).
     on_event : callable(kind, text, level)
         Where a death and a restart are reported.
-    board_factory : callable(speed) -> board, optional
-        Builds a board with ``start()``, ``stop()``, ``port`` and ``plant_state()`` (default SimulatedBoard).
+    board_factory : callable(speed) -> SimulatedBoard
+        Builds a board.
     """
 
-    def __init__(self, speed: float, on_event: EventSink, board_factory: Callable[[float], Any] | None = None):
+    def __init__(self, speed: float, on_event: EventSink, board_factory: SimulatedBoardFactory):
         self.speed = speed
         self.on_event = on_event
-        self._factory = board_factory or _simulated_board
+        self._factory = board_factory
         self._folder = tempfile.TemporaryDirectory(prefix="phantomd-sim-")
         self.port = str(Path(self._folder.name) / "board")
-        self.board: Any = None
+        self.board: SimulatedBoard | None = None
         self.restarts = 0
         self.plant_volume_ml: float | None = None
 
@@ -69,6 +91,8 @@ class SimulatedBoardKeeper:
 
     def poll(self) -> bool:
         """Read the plant once (blocking); False when the simulator does not answer."""
+        if self.board is None:
+            return False
         try:
             state = self.board.plant_state()
         except Exception as error:  # any failure of the harness's pipe means the simulator is gone
@@ -106,12 +130,7 @@ class SimulatedBoardKeeper:
         self._stop_board()
         self._folder.cleanup()
 
-    def status(self) -> dict:
+    def status(self) -> dict[str, Any]:
         """For ``status``: the port and the restarts."""
         return {"port": self.port, "restarts": self.restarts}
 
-
-def _simulated_board(speed: float) -> Any:
-    from phantom.hil.sim import SimulatedBoard
-
-    return SimulatedBoard(speed=speed)

@@ -28,7 +28,8 @@ import os
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
+from phantom.protocol.framing import cobs_decode, cobs_encode
 
 #: Arbitration-id bases of the CAN mapping.
 CAN_ID_HOST_TO_BOARD = 0x100
@@ -197,7 +198,7 @@ class CanTransport:
         bench peers).
     """
 
-    def __init__(self, channel: str, interface: str = "socketcan", role: str = "host", **bus_options):
+    def __init__(self, channel: str, interface: str = "socketcan", role: str = "host", **bus_options: Any):
         if role not in ("host", "board"):
             raise ValueError(f"role must be 'host' or 'board', got {role!r}")
         self.channel = channel
@@ -213,7 +214,8 @@ class CanTransport:
 
     async def open(self) -> None:
         """Connect to the bus; raises TransportUnavailable when the interface cannot be opened."""
-        import can
+        with require_extra("can"):
+            import can
 
         try:
             self._bus = can.Bus(interface=self.interface, channel=self.channel, **self.bus_options)
@@ -224,8 +226,6 @@ class CanTransport:
 
     async def read(self) -> bytes:
         """Wire bytes of the next complete message (COBS-encoded, delimited, for the FrameReader)."""
-        from phantom.protocol.framing import cobs_encode
-
         while True:
             if self._reader is None:
                 raise TransportLost(f"{self.description} is closed")
@@ -238,9 +238,8 @@ class CanTransport:
 
     def write(self, frame: bytes) -> None:
         """Send one wire frame as its CAN segments."""
-        import can
-
-        from phantom.protocol.framing import cobs_decode
+        with require_extra("can"):
+            import can
 
         if self._bus is None:
             raise TransportLost(f"{self.description} is closed")

@@ -5,11 +5,14 @@ Public API (see model/README.md)::
     from phantom.model import load_scene, PhantomModel, MeshError, SolveError
     scene = load_scene("builtin")
     model = PhantomModel.from_scene(scene)
-    state = model.solve([1e3, 1e3, 1e3])
+    state = model.equilibrium([1e3, 1e3, 1e3])
     compliance = model.compliance()
 
 Names are imported lazily so that ``phantom --help`` does not load numpy, scipy or numba.
 """
+
+import importlib
+from typing import Any
 
 _EXPORTS = {
     "load_scene": "phantom.model.scene",
@@ -26,9 +29,7 @@ _EXPORTS = {
 __all__ = sorted(_EXPORTS)
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     if name in _EXPORTS:
-        import importlib
-
         return getattr(importlib.import_module(_EXPORTS[name]), name)
     raise AttributeError(f"module 'phantom.model' has no attribute {name!r}")

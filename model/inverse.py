@@ -28,15 +28,26 @@ target. Inside, the QP's pressures and volumes are scaled so that its entries ar
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import pairwise
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from phantom import PhantomError
+from phantom.model.arrays import FloatArray
+from phantom.model.errors import SolveError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
 
-#: Millilitres per cubic metre, for messages.
+if TYPE_CHECKING:
+    import scipy.sparse
+
+#: Millilitres per cubic metre and pascals per kilopascal, for messages and the people's units of to_json.
 ML_PER_M3 = 1e6
+PA_PER_KPA = 1e3
 #: Weight of the actuation energy relative to the targets' curvature in the least-squares (closest) QP used
 #: when a target is out of reach, dimensionless: it fixes the null space of a rank-one (total volume) target.
 CLOSEST_REGULARISER_WEIGHT = 1e-3
@@ -69,44 +80,150 @@ class LimitPointError(UnreachableTargetError):
     """The target lies at or past the pressure-control limit point, where the chamber snaps through."""
 
 
+#: The forms a target takes (:attr:`Target.kind`): the gland's volume, one volume per chamber, raw pressures.
+TARGET_KINDS = ("volume", "chamber_volumes", "pressures")
+#: Significant digits of the people's units (ml, kPa) in :meth:`Target.to_json`: a target given as 32 ml and
+#: stored as 3.2e-05 m^3 reads back as 32, not 32.000000000000004.
+JSON_DIGITS = 12
+
+
+def _people_units(value_si: float, per_si: float) -> float:
+    """``value_si * per_si`` rounded to JSON_DIGITS significant digits."""
+    return float(f"{value_si * per_si:.{JSON_DIGITS}g}")
+
+
 @dataclass(frozen=True)
 class Target:
-    """What the inverse should reach (SI units).
+    """What the inverse should reach (SI units): the one shape of a target from the scene or the API to the QP.
 
     Attributes
     ----------
     gland_volume_m3 : float or None
         The gland's total volume (m^3), the paper's case.
-    chamber_volumes_m3 : list of (float or None), or None
+    chamber_volumes_m3 : sequence of (float or None), or None
         One entry per chamber: its wanted volume (m^3), or None to leave it free.
-    growth_ratio : dict of int to float, or None
+    growth_ratio : mapping of int to float, or None
         Chamber index -> weight: the growths (volume above rest) of the named chambers keep these proportions;
         ``{1: 2.0, 2: 1.0}`` = the left lobe grows twice as much as the right. Weights must be positive.
-    pressures_pa : list of float, or None
+    pressures_pa : sequence of float, or None
         Raw chamber pressures (Pa): no QP, only checked against the bounds.
+
+    A target normally gives one of the three forms (its :attr:`kind`); the inverse also accepts a gland volume
+    together with chamber volumes, and checks every target against the model (:meth:`InverseSolver.pressures_for`).
     """
 
     gland_volume_m3: float | None = None
-    chamber_volumes_m3: list | None = None
-    growth_ratio: dict | None = None
-    pressures_pa: list | None = None
+    chamber_volumes_m3: Sequence[float | None] | None = None
+    growth_ratio: Mapping[int, float] | None = None
+    pressures_pa: Sequence[float] | None = None
+
+    @classmethod
+    def of_kind(cls, kind: str, values: Sequence[float | None],
+                growth_ratio: Mapping[int, float] | None = None) -> Target:
+        """The target of ``kind`` (one of :data:`TARGET_KINDS`) with ``values`` in SI units: one gland volume
+        (m^3) for "volume", one volume (m^3, or None for a free chamber) per chamber for "chamber_volumes", one
+        pressure (Pa) per chamber for "pressures". ``growth_ratio`` goes with "volume" only."""
+        if kind not in TARGET_KINDS:
+            raise PhantomError(f"unknown target kind {kind!r}: use one of {', '.join(TARGET_KINDS)}")
+        if growth_ratio and kind != "volume":
+            raise PhantomError(f"a growth ratio goes with a gland volume target, not with {kind}")
+        if kind == "volume":
+            if len(values) != 1 or values[0] is None:
+                raise PhantomError(f"a volume target has one gland volume, got {list(values)}")
+            return cls(gland_volume_m3=float(values[0]), growth_ratio=dict(growth_ratio) if growth_ratio else None)
+        if kind == "chamber_volumes":
+            return cls(chamber_volumes_m3=[None if value is None else float(value) for value in values])
+        if any(value is None for value in values):
+            raise PhantomError(f"a pressure target has a pressure for every chamber, got {list(values)}")
+        return cls(pressures_pa=[float(value) for value in values if value is not None])
+
+    @property
+    def kind(self) -> str:
+        """Which form the target gives: "volume", "chamber_volumes" or "pressures" (:data:`TARGET_KINDS`);
+        PhantomError for a target that gives none or more than one."""
+        forms = [kind for kind, value in zip(TARGET_KINDS, (self.gland_volume_m3, self.chamber_volumes_m3,
+                                                            self.pressures_pa), strict=True) if value is not None]
+        if len(forms) != 1:
+            raise PhantomError(f"the target gives {' and '.join(forms) or 'nothing'}: a target of one kind gives "
+                               f"exactly one of {', '.join(TARGET_KINDS)}")
+        return forms[0]
+
+    @property
+    def values(self) -> tuple[float | None, ...]:
+        """The target's numbers in SI units, as :meth:`of_kind` takes them (m^3, or Pa for "pressures")."""
+        kind = self.kind
+        if kind == "volume":
+            return (self.gland_volume_m3,)
+        if kind == "chamber_volumes":
+            return tuple(self.chamber_volumes_m3 or ())
+        return tuple(self.pressures_pa or ())
+
+    @property
+    def free_chambers(self) -> tuple[int, ...]:
+        """The chambers a chamber-volume target leaves free (None); none for the other kinds."""
+        return tuple(index for index, value in enumerate(self.chamber_volumes_m3 or ()) if value is None)
+
+    def describe(self) -> str:
+        """A short form in the units people see, e.g. ``32.00 ml``, ``chamber 2.00,free,free ml``,
+        ``pressures 1.00,1.00,1.00 kPa``."""
+        kind = self.kind
+        if kind == "volume":
+            assert self.gland_volume_m3 is not None  # the kind says so
+            ratio = "" if not self.growth_ratio else " (growth ratio " + ", ".join(
+                f"chamber{index}:{weight:g}" for index, weight in sorted(self.growth_ratio.items())) + ")"
+            return f"{self.gland_volume_m3 * ML_PER_M3:.2f} ml{ratio}"
+        per_si, unit = (ML_PER_M3, "ml") if kind == "chamber_volumes" else (1 / PA_PER_KPA, "kPa")
+        numbers = ",".join("free" if value is None else f"{value * per_si:.2f}" for value in self.values)
+        return f"{kind.split('_')[0]} {numbers} {unit}"
+
+    def to_json(self) -> dict[str, Any]:
+        """The target as the daemon's API and a scene's step state it: ``{"volume_ml": 32.0, "growth_ratio":
+        {"1": 2.0, "2": 1.0}}``, ``{"chamber_volumes_ml": [2.0, None, None]}`` or ``{"pressures_kpa": [1, 1, 1]}``
+        (ml and kPa, to JSON_DIGITS significant digits)."""
+        kind = self.kind
+        if kind == "volume":
+            assert self.gland_volume_m3 is not None  # the kind says so
+            result: dict[str, Any] = {"volume_ml": _people_units(self.gland_volume_m3, ML_PER_M3)}
+            if self.growth_ratio:
+                result["growth_ratio"] = {str(index): float(weight)
+                                          for index, weight in sorted(self.growth_ratio.items())}
+            return result
+        if kind == "chamber_volumes":
+            return {"chamber_volumes_ml": [None if value is None else _people_units(value, ML_PER_M3)
+                                           for value in self.values]}
+        return {"pressures_kpa": [_people_units(value, 1 / PA_PER_KPA) for value in self.pressures_pa or ()]}
 
 
 @dataclass
 class InverseResult:
-    """The answer of :meth:`InverseSolver.solve` (SI units).
+    """The answer of :meth:`InverseSolver.pressures_for` (SI units): the pressures for ``target`` and the
+    volumes they give at the solver's fidelity level.
 
     ``iterations`` counts linearisations (QP solves); ``solve_time_s`` is the whole inverse, including the
-    forward evaluations; ``qp_solve_time_s`` the OSQP time summed over the iterations.
+    forward evaluations; ``qp_solve_time_s`` the OSQP time summed over the iterations; ``history`` has one
+    entry per linearisation (pressures, relative error, whether the QP met the target, the step taken).
     """
 
+    target: Target
     pressures_pa: np.ndarray
     predicted_gland_volume_m3: float
     predicted_chamber_volumes_m3: np.ndarray
     iterations: int
     solve_time_s: float
     qp_solve_time_s: float
-    history: list = field(default_factory=list)
+    history: list[dict[str, Any]] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        """The answer as the daemon's API reports it: the target (:meth:`Target.to_json`), ``pressures_kpa``,
+        ``predicted_volume_ml``, ``predicted_chamber_volumes_ml``, ``iterations``, ``solve_time_s`` and
+        ``qp_time_s``."""
+        return {"target": self.target.to_json(),
+                "pressures_kpa": (np.asarray(self.pressures_pa, dtype=float) / PA_PER_KPA).tolist(),
+                "predicted_volume_ml": float(self.predicted_gland_volume_m3) * ML_PER_M3,
+                "predicted_chamber_volumes_ml": (np.asarray(self.predicted_chamber_volumes_m3, dtype=float)
+                                                 * ML_PER_M3).tolist(),
+                "iterations": int(self.iterations), "solve_time_s": float(self.solve_time_s),
+                "qp_time_s": float(self.qp_solve_time_s)}
 
 
 @dataclass(frozen=True)
@@ -126,26 +243,29 @@ class Linearisation:
                 float(self.gland_volume_m3 + self.gland_m3_per_pa @ step_pa))
 
 
-def _finite(name: str, values) -> np.ndarray:
+def _finite(name: str, values: ArrayLike) -> FloatArray:
     array = np.asarray(values, dtype=float)
     if not np.all(np.isfinite(array)):
         raise PhantomError(f"{name} must be finite numbers, got {np.asarray(values).tolist()}")
     return array
 
 
-def _dense_csc_pattern(matrix: np.ndarray, upper: bool):
+def _dense_csc_pattern(matrix: FloatArray, upper: bool) -> scipy.sparse.csc_matrix:
     """A CSC matrix (scipy) holding every entry of ``matrix`` (the upper triangle only when ``upper``),
     zeros included, so that later value updates keep one fixed sparsity pattern."""
+    # scipy.sparse (0.15 s to import) only where a QP is set up
     from scipy import sparse
 
     rows, columns = matrix.shape
-    data, indices, indptr = [], [], [0]
+    data: list[float] = []
+    indices: list[int] = []
+    indptr = [0]
     for column in range(columns):
         last_row = column + 1 if upper else rows
         indices.extend(range(last_row))
         data.extend(matrix[:last_row, column])
         indptr.append(len(indices))
-    return sparse.csc_matrix((np.array(data, dtype=float), np.array(indices), np.array(indptr)),
+    return sparse.csc_matrix((np.array(data, dtype=np.float64), np.array(indices), np.array(indptr)),
                              shape=(rows, columns))
 
 
@@ -169,16 +289,17 @@ class VolumeQP:
     """
 
     def __init__(self, n_chambers: int, n_constraint_rows: int):
+        # osqp (0.3 s to import, with scipy.sparse) only where a volume target is solved
         import osqp
 
         self.n_chambers = n_chambers
         self.n_constraint_rows = n_constraint_rows
         self._osqp = osqp
-        self._problem = None
+        self._problem: Any = None  # an osqp.OSQP once set up
 
-    def solve(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
+    def minimise(self, objective_hessian: np.ndarray, objective_linear: np.ndarray, constraint_matrix: np.ndarray,
               lower: np.ndarray, upper: np.ndarray) -> tuple[np.ndarray, float]:
-        """Solve the QP; returns the pressures (scaled) and OSQP's own solve time (s).
+        """Minimise the QP; returns the pressures (scaled) and OSQP's own solve time (s).
 
         Raises ``_Infeasible`` when the constraints contradict each other.
         """
@@ -224,7 +345,7 @@ class _Rows:
 
     objective_rows: np.ndarray          # (k, n): scaled volume per scaled pressure
     objective_targets: np.ndarray       # (k,): scaled volume
-    objective_names: list
+    objective_names: list[str]
     constraint_rows: np.ndarray         # (m, n), after the n pressure-bound rows
     constraint_lower: np.ndarray
     constraint_upper: np.ndarray
@@ -238,8 +359,8 @@ class InverseSolver:
     model : PhantomModel
         The forward model (``phantom.model``).
     pressure_max_pa : float or sequence of float, or None
-        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the scene's
-        ``[model] pressure_max_kpa``, else 3000 Pa.
+        Upper pressure bound per chamber (Pa); the lower bound is 0 (the blowers only push). None: the model's
+        settings' (the scene's ``[model] pressure_max_kpa``, else PRESSURE_LIMIT_PA).
     fidelity : {"rest", "updated", "full", "table"} or None
         How the volumes at a candidate answer are computed (:class:`phantom.model.fidelity.levels.VolumeEstimator`);
         None takes the scene's ``[model] fidelity``, else the cheapest level that meets its ``accuracy_pct``.
@@ -251,22 +372,17 @@ class InverseSolver:
         Linearisations before giving up.
     estimator : VolumeEstimator, optional
         A ready estimator to share (its level wins over ``fidelity``).
-    scene : Scene, optional
-        Accepted only as ``model.scene`` itself, for callers written before models kept their scene
-        (phantom/cli/inverse.py); to be removed with them.
 
-    The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
+    The scene's settings are the model's (:attr:`PhantomModel.model_settings`).
     """
 
-    def __init__(self, model, pressure_max_pa=None, fidelity: str | None = None, max_growth_m3=None,
-                 tolerance: float = 2e-5, max_iterations: int = 15, estimator=None):
-        from phantom.model.fidelity.levels import DEFAULT_PRESSURE_MAX_PA, VolumeEstimator, scene_model_settings
-
+    def __init__(self, model: PhantomModel, pressure_max_pa: float | Sequence[float] | None = None,
+                 fidelity: str | None = None, max_growth_m3: float | Sequence[float | None] | None = None,
+                 tolerance: float = 2e-5, max_iterations: int = 15, estimator: VolumeEstimator | None = None):
         self.model = model
         self.n_chambers = int(model.n_chambers)
-        settings = scene_model_settings(model)
         if pressure_max_pa is None:
-            pressure_max_pa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3)) * 1e3
+            pressure_max_pa = model.model_settings.pressure_max_pa
         self.pressure_max_pa = np.broadcast_to(_finite("pressure_max_pa", pressure_max_pa),
                                                (self.n_chambers,)).astype(float)
         if np.any(self.pressure_max_pa <= 0):
@@ -291,7 +407,7 @@ class InverseSolver:
             raise PhantomError(f"the rest compliance is not positive definite (eigenvalues {eigenvalues.tolist()} "
                                "m^3/Pa): the model is not restrained or not elastic; check the scene")
         self.volume_per_m3 = 1.0 / (float(np.mean(eigenvalues)) / self.pressure_per_pa)
-        self._problems: dict[tuple, VolumeQP] = {}
+        self._problems: dict[tuple[str, int, int], VolumeQP] = {}
 
     # ----------------------------------------------------------------- targets -> rows
     def _check_target(self, target: Target) -> None:
@@ -365,7 +481,8 @@ class InverseSolver:
                      np.array(constraint_rows, dtype=float).reshape(-1, n), np.array(lower, dtype=float),
                      np.array(upper, dtype=float))
 
-    def _qp_inputs(self, rows: _Rows, exact: bool, anchor_scaled: np.ndarray | None = None):
+    def _qp_inputs(self, rows: _Rows, exact: bool, anchor_scaled: FloatArray | None = None
+                   ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
         """OSQP data (scaled units). Exact: the targets are equalities and the objective is the actuation energy
         ``1/2 x^T W_0 x`` (of the move from ``anchor_scaled``, ``1/2 (x - a)^T W_0 (x - a)``, when given).
         Closest: the targets are least squares ``1/2 |A x - b|^2 + epsilon/2 x^T W_0 x``."""
@@ -398,7 +515,8 @@ class InverseSolver:
             problem = self._problems[shape] = VolumeQP(self.n_chambers, n_constraint_rows)
         return problem
 
-    def solve_linearised(self, target: Target, linearisation: Linearisation, anchor_pa: np.ndarray | None = None):
+    def pressures_for_linearisation(self, target: Target, linearisation: Linearisation,
+                                    anchor_pa: FloatArray | None = None) -> tuple[FloatArray, float, _Rows, bool]:
         """One QP at ``linearisation``; with ``anchor_pa`` the exact QP's objective is the actuation energy of
         the move from there (``1/2 (x - a)^T W_0 (x - a)``) instead of from zero (see PROXIMAL_AFTER_DAMPING).
 
@@ -410,12 +528,12 @@ class InverseSolver:
         try:
             inputs = self._qp_inputs(rows, exact=True,
                                      anchor_scaled=None if anchor_pa is None else anchor_pa * self.pressure_per_pa)
-            pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).solve(*inputs)
+            pressures_scaled, qp_time_s = self._problem("exact", rows, inputs[2].shape[0]).minimise(*inputs)
             reached = True
         except _Infeasible:
             inputs = self._qp_inputs(rows, exact=False)
             try:
-                pressures_scaled, closest_time_s = self._problem("closest", rows, inputs[2].shape[0]).solve(*inputs)
+                pressures_scaled, closest_time_s = self._problem("closest", rows, inputs[2].shape[0]).minimise(*inputs)
             except _Infeasible:
                 raise UnreachableTargetError(
                     "the constraints contradict each other: no pressures between the bounds satisfy the growth "
@@ -430,6 +548,7 @@ class InverseSolver:
         at ``linearisation`` (a linear program over the bounds and constraints), the row's volume then evaluated
         at those extreme pressures at the solver's fidelity level (a linearisation made at the pressure limit
         would otherwise extrapolate the low end below the rest volume)."""
+        # scipy.optimize (0.5 s to import) only where an unreachable target's range is reported
         from scipy.optimize import linprog
 
         rows = self._rows(target, linearisation)
@@ -455,7 +574,7 @@ class InverseSolver:
         return extremes[1], extremes[0]
 
     # ----------------------------------------------------------------- the outer iteration
-    def _linearise(self, pressures_pa: np.ndarray, evaluation) -> Linearisation:
+    def _linearise(self, pressures_pa: FloatArray, evaluation: Evaluation) -> Linearisation:
         """The linearisation at an evaluated state: the response table's gradient on the ``table`` level, the
         model's tangent compliance where the estimator has a state (exact, and one back-substitution for a
         small-strain material), else the rest one (a chord iteration, which converges while the response is
@@ -477,7 +596,7 @@ class InverseSolver:
                     "(it would snap through); ask for a smaller volume, or control it by volume")
         return Linearisation(pressures_pa.copy(), chamber_volumes_m3, gland_volume_m3, slope_chamber, slope_gland)
 
-    def solve(self, target: Target) -> InverseResult:
+    def pressures_for(self, target: Target) -> InverseResult:
         """The pressures (Pa) that reach ``target`` with the solver's fidelity level.
 
         Raises
@@ -491,19 +610,19 @@ class InverseSolver:
         started = time.perf_counter()
         self._check_target(target)
         if target.pressures_pa is not None:
-            return self._evaluate_raw_pressures(target, started)
+            return self._evaluate_raw_pressures(target, target.pressures_pa, started)
 
         self._refuse_out_of_scale(target)
         linearisation = self.rest
         pressures_pa = np.zeros(self.n_chambers)
         error = self._relative_error(target, self.rest.chamber_volumes_m3, self.rest.gland_volume_m3)
         qp_time_s = 0.0
-        history = []
+        history: list[dict[str, Any]] = []
         proximity = 0.0  # theta of PROXIMAL_AFTER_DAMPING
         for iteration in range(1, self.max_iterations + 1):
             if error < POLISH_RELATIVE_ERROR:
                 proximity = 1.0
-            candidate_pa, qp_step_s, rows, reached = self.solve_linearised(target, linearisation,
+            candidate_pa, qp_step_s, rows, reached = self.pressures_for_linearisation(target, linearisation,
                                                                            proximity * pressures_pa)
             qp_time_s += qp_step_s
             # The linearisation's answer is where it already stands: its best (closest) pressures.
@@ -521,7 +640,7 @@ class InverseSolver:
             if step < 1.0:
                 proximity += PROXIMAL_AFTER_DAMPING * (1.0 - proximity)
             if reached and step == 1.0 and error <= self.tolerance:
-                return InverseResult(pressures_pa, gland_volume_m3, chamber_volumes_m3, iteration,
+                return InverseResult(target, pressures_pa, gland_volume_m3, chamber_volumes_m3, iteration,
                                      time.perf_counter() - started, qp_time_s, history)
             linearisation = self._linearise(pressures_pa, evaluation)
         errors = [round(entry["relative_error"] * 100, 4) for entry in history]
@@ -530,7 +649,8 @@ class InverseSolver:
             "the response is too nonlinear here, which happens near the pressure-control limit point; "
             "ask for a smaller volume")
 
-    def _damped_step(self, target: Target, pressures_pa: np.ndarray, error: float, candidate_pa: np.ndarray):
+    def _damped_step(self, target: Target, pressures_pa: FloatArray, error: float,
+                     candidate_pa: FloatArray) -> tuple[FloatArray, Evaluation, float, float]:
         """Move from ``pressures_pa`` (relative error ``error``) towards the linearisation's answer
         ``candidate_pa``: the full step, else halved until the error falls (Armijo, on the relative volume
         error). An undamped Newton step oscillates where the pressure-volume curve has an inflection (a
@@ -541,7 +661,7 @@ class InverseSolver:
         pressures stay within the bounds and linear constraints (a convex combination of two points that
         satisfy them)."""
         step = 1.0
-        best = None
+        best: tuple[FloatArray, Evaluation, float, float] | None = None
         for _ in range(STEP_HALVINGS + 1):
             trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
             evaluation = self._evaluate(trial_pa)
@@ -551,6 +671,7 @@ class InverseSolver:
             if best is None or trial_error < best[2]:
                 best = (trial_pa, evaluation, trial_error, step)
             step *= 0.5
+        assert best is not None  # at least one trial was made
         return best
 
     def _refuse_out_of_scale(self, target: Target) -> None:
@@ -566,11 +687,9 @@ class InverseSolver:
         low_ml, high_ml = self.reachable_range_ml(target, self.rest, worst)
         raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
 
-    def _evaluate(self, pressures_pa: np.ndarray):
+    def _evaluate(self, pressures_pa: FloatArray) -> Evaluation:
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
         past the limit point."""
-        from phantom.model.errors import SolveError
-
         try:
             return self.estimator.evaluate(pressures_pa)
         except SolveError as error:
@@ -578,7 +697,7 @@ class InverseSolver:
                 f"the forward model has no equilibrium at {np.round(pressures_pa / 1e3, 4).tolist()} kPa ({error}): "
                 "the target lies past the pressure-control limit point; ask for a smaller volume") from error
 
-    def _relative_error(self, target: Target, chamber_volumes_m3, gland_volume_m3) -> float:
+    def _relative_error(self, target: Target, chamber_volumes_m3: FloatArray, gland_volume_m3: float) -> float:
         errors = []
         if target.gland_volume_m3 is not None:
             errors.append(abs(gland_volume_m3 - target.gland_volume_m3) / abs(target.gland_volume_m3))
@@ -602,8 +721,10 @@ class InverseSolver:
         return np.array(offsets)
 
     def _unreachable_message(self, target: Target, row_name: str, low_ml: float, high_ml: float) -> str:
-        wanted_ml = (target.gland_volume_m3 if row_name == "gland"
-                     else target.chamber_volumes_m3[int(row_name.split()[1])]) * ML_PER_M3
+        wanted_m3 = (target.gland_volume_m3 if row_name == "gland"
+                     else (target.chamber_volumes_m3 or [])[int(row_name.split()[1])])
+        assert wanted_m3 is not None  # a row exists only for a wanted volume
+        wanted_ml = wanted_m3 * ML_PER_M3
         wanted = f"{wanted_ml:.3f}" if abs(wanted_ml) < 1e9 else f"{wanted_ml:.3g}"
         what = "the gland volume" if row_name == "gland" else f"the volume of {row_name}"
         limits = ", ".join(f"{value / 1e3:g}" for value in self.pressure_max_pa)
@@ -620,8 +741,8 @@ class InverseSolver:
                 f"{with_constraints} give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range "
                 "or raise pressure_max")
 
-    def _evaluate_raw_pressures(self, target: Target, started: float) -> InverseResult:
-        pressures_pa = _finite("pressures_pa", target.pressures_pa)
+    def _evaluate_raw_pressures(self, target: Target, raw_pa: Sequence[float], started: float) -> InverseResult:
+        pressures_pa = _finite("pressures_pa", raw_pa)
         if pressures_pa.shape != (self.n_chambers,):
             raise PhantomError(f"pressures_pa needs {self.n_chambers} values, got {pressures_pa.size}")
         if np.any(pressures_pa < 0) or np.any(pressures_pa > self.pressure_max_pa):
@@ -630,5 +751,5 @@ class InverseSolver:
                 f"{(self.pressure_max_pa / 1e3).tolist()} kPa: the blowers only push, and the limit protects the "
                 "phantom")
         chamber_volumes_m3, gland_volume_m3, _ = self.estimator.evaluate(pressures_pa)
-        return InverseResult(pressures_pa, gland_volume_m3, chamber_volumes_m3, 0, time.perf_counter() - started,
-                             0.0, [])
+        return InverseResult(target, pressures_pa, gland_volume_m3, chamber_volumes_m3, 0,
+                             time.perf_counter() - started, 0.0, [])

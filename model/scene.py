@@ -1,8 +1,17 @@
-"""Scene files (TOML): which phantom, which material, what to compute (architecture.md, "The scene file")."""
+"""Scene files (TOML): which phantom, which material, what to compute (architecture.md, "The scene file").
 
+A scene is parsed once, here, into types: the phantom (mesh, units, chambers and their labels, fixed group), the
+built-in prostate's ``[geometry]``, the ``[material]``, the ``[model]`` settings (:class:`ModelSettings`) and the
+``[outputs]``; anything missing or out of range is a SceneError naming the key and the file. Other parts read
+these fields; the parsed TOML (``Scene.raw``) is kept only to write a scene back out (a calibrated scene, the
+simulated board's truth) and for the tables other parts own (``[[steps]]``, ``[host]``).
+"""
+
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from phantom.model.errors import SceneError
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
@@ -20,6 +29,21 @@ LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
 MATERIAL_MODELS = ("corotational", "linear", "neo_hookean", "gent")
 #: The hyperelastic laws (finite strain, an energy that grows without bound as an element collapses).
 HYPERELASTIC_MODELS = ("neo_hookean", "gent")
+
+#: The gauge pressure (Pa) the phantom is driven to at most (what its blowers give and the model is trusted
+#: for): a scene's default ``[model] pressure_max_kpa``, and the highest pressure a calibration measurement may
+#: have.
+PRESSURE_LIMIT_PA = 3000.0
+#: The ways the model answers "what volumes do these pressures give" (:mod:`phantom.model.fidelity.levels`).
+FIDELITY_LEVELS = ("rest", "updated", "full", "table")
+#: Volume accuracy assumed when a scene states none (percent of the volume).
+DEFAULT_ACCURACY_PCT = 1.0
+#: Grid points per pressure axis of a response table: 7^3 = 343 solves (0.5 kPa steps for a 3 kPa limit). On
+#: the calibrated model 5 points missed full solves by up to 3.5 % of a chamber's volume (its cavity's curve has
+#: an inflection), 7 by 0.1-0.2 % (bench/README.md, "The daemon on the calibrated model").
+DEFAULT_TABLE_POINTS = 7
+#: How people name the three chambers when the scene says nothing (``[phantom] chamber_labels``).
+DEFAULT_CHAMBER_LABELS = ("base", "left lobe", "right lobe")
 
 
 @dataclass(frozen=True)
@@ -49,6 +73,22 @@ class Material:
 
 
 @dataclass(frozen=True)
+class ModelSettings:
+    """A scene's ``[model]`` table, checked: how the model answers (every key optional).
+
+    fidelity : one of FIDELITY_LEVELS, or None to let the volume estimator pick the cheapest level within
+        ``accuracy_pct``; accuracy_pct : the volume accuracy wanted (% of the volume, > 0); pressure_max_pa :
+        the highest chamber pressure (Pa; the file's ``pressure_max_kpa``, default PRESSURE_LIMIT_PA);
+        table_points : grid points per pressure axis of the ``table`` level (an integer >= 2).
+    """
+
+    fidelity: str | None = None
+    accuracy_pct: float = DEFAULT_ACCURACY_PCT
+    pressure_max_pa: float = PRESSURE_LIMIT_PA
+    table_points: int = DEFAULT_TABLE_POINTS
+
+
+@dataclass(frozen=True)
 class Outputs:
     """What a scene asks the model to compute."""
 
@@ -70,14 +110,19 @@ class Scene:
         Length unit of the mesh file's coordinates (a key of ``LENGTH_UNITS_M``).
     chambers : list of str
         Surface group names of the chamber walls, in chamber order.
+    chamber_labels : list of str
+        The names people see for the chambers (``[phantom] chamber_labels``, else base, left lobe, right lobe
+        for three chambers, else the group names), one per chamber.
     fixed : str or None
         Surface group held by penalty springs; None removes rigid-body motion only.
     material : Material
     outputs : Outputs
+    model_settings : ModelSettings
+        The ``[model]`` table (defaults when absent).
     steps : list of dict
         The timeline, raw (read by the host).
     raw : dict
-        The whole parsed TOML, so that other parts can read their own tables.
+        The whole parsed TOML: for writing a scene back out, and for the tables other parts own.
     geometry : ProstateGeometry or None
         The built-in prostate's chamber sizes and positions and fixation radius (``[geometry]``, defaults
         when absent); None for a mesh file.
@@ -90,8 +135,10 @@ class Scene:
     fixed: str | None
     material: Material
     outputs: Outputs
-    steps: list[dict] = field(default_factory=list)
-    raw: dict = field(default_factory=dict)
+    chamber_labels: list[str] = field(default_factory=list)
+    model_settings: ModelSettings = field(default_factory=ModelSettings)
+    steps: list[dict[str, Any]] = field(default_factory=list)
+    raw: dict[str, Any] = field(default_factory=dict)
     geometry: ProstateGeometry | None = None
 
     @property
@@ -116,7 +163,7 @@ def load_scene(source: str | Path) -> Scene:
     return scene_from_dict(read_scene_toml(path), path)
 
 
-def read_scene_toml(path: str | Path) -> dict:
+def read_scene_toml(path: str | Path) -> dict[str, Any]:
     """The parsed TOML of a scene file, with a clear SceneError when it is missing or malformed."""
     path = Path(path)
     if not path.is_file():
@@ -128,7 +175,7 @@ def read_scene_toml(path: str | Path) -> dict:
         raise SceneError(f"the scene file {path} is not valid TOML: {error}") from error
 
 
-def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
+def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     """Build a Scene from a parsed TOML dict; ``path`` anchors relative mesh paths (else the working folder)."""
     where = f"scene {path}" if path else "scene"
     phantom_table = _table(raw, "phantom", where)
@@ -166,20 +213,22 @@ def scene_from_dict(raw: dict, path: Path | None = None) -> Scene:
         fixed=fixed,
         material=_material(raw.get("material", {}), where),
         outputs=Outputs(**_outputs(raw.get("outputs", {}), where)),
+        chamber_labels=chamber_labels_of(phantom_table, chambers, where),
+        model_settings=_model_settings(raw.get("model", {}), where),
         steps=list(raw.get("steps", [])),
         raw=raw,
         geometry=geometry,
     )
 
 
-def _table(raw: dict, key: str, where: str) -> dict:
+def _table(raw: dict[str, Any], key: str, where: str) -> dict[str, Any]:
     table = raw.get(key)
     if not isinstance(table, dict):
         raise SceneError(f"{where}: the [{key}] table is missing")
     return table
 
 
-def _material(table: dict, where: str) -> Material:
+def _material(table: dict[str, Any], where: str) -> Material:
     model = table.get("model", "corotational")
     if model not in MATERIAL_MODELS:
         raise SceneError(f"{where}: [material] model = {model!r}: the hyperelastic laws are 'neo_hookean' and "
@@ -201,7 +250,46 @@ def _material(table: dict, where: str) -> Material:
     return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm)
 
 
-def _outputs(table: dict, where: str) -> dict:
+def chamber_labels_of(phantom_table: dict[str, Any], chamber_names: list[str], where: str = "scene") -> list[str]:
+    """The names people see for the chambers: ``[phantom] chamber_labels`` (one string per chamber; SceneError
+    otherwise), else base, left lobe, right lobe for three chambers, else the chambers' surface group names."""
+    labels = phantom_table.get("chamber_labels")
+    if labels is None:
+        three = len(chamber_names) == len(DEFAULT_CHAMBER_LABELS)
+        return list(DEFAULT_CHAMBER_LABELS) if three else list(chamber_names)
+    if not isinstance(labels, list) or len(labels) != len(chamber_names) or not all(
+            isinstance(label, str) and label for label in labels):
+        raise SceneError(f"{where}: [phantom] chamber_labels must name each of the {len(chamber_names)} chambers "
+                         f"({', '.join(chamber_names)}) with a string, got {labels!r}")
+    return list(labels)
+
+
+def _positive_number(table: dict[str, Any], key: str, default: float, where: str) -> float:
+    value = table.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
+        raise SceneError(f"{where}: [model] {key} must be a positive number, got {value!r}")
+    return float(value)
+
+
+def _model_settings(table: dict[str, Any], where: str) -> ModelSettings:
+    if not isinstance(table, dict):
+        raise SceneError(f"{where}: [model] must be a table with fidelity, accuracy_pct, pressure_max_kpa, "
+                         "table_points")
+    unknown = set(table) - {"fidelity", "accuracy_pct", "pressure_max_kpa", "table_points"}
+    if unknown:
+        raise SceneError(f"{where}: [model] has unknown keys {sorted(unknown)}: use fidelity, accuracy_pct, "
+                         "pressure_max_kpa, table_points")
+    fidelity = table.get("fidelity")
+    if fidelity is not None and fidelity not in FIDELITY_LEVELS:
+        raise SceneError(f"{where}: [model] fidelity must be one of {', '.join(FIDELITY_LEVELS)}, got {fidelity!r}")
+    points = table.get("table_points", DEFAULT_TABLE_POINTS)
+    if isinstance(points, bool) or not isinstance(points, int) or points < 2:
+        raise SceneError(f"{where}: [model] table_points must be an integer of at least 2, got {points!r}")
+    return ModelSettings(fidelity, _positive_number(table, "accuracy_pct", DEFAULT_ACCURACY_PCT, where),
+                         _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where) * 1e3, points)
+
+
+def _outputs(table: dict[str, Any], where: str) -> dict[str, bool]:
     unknown = set(table) - {"volumes", "shape"}
     if unknown:
         raise SceneError(f"{where}: [outputs] has unknown keys {sorted(unknown)}: use volumes, shape")

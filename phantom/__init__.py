@@ -1,10 +1,14 @@
 """Control stack for an active three-chamber prostate phantom.
 
-The subpackages map to the repository's top-level folders: ``phantom.model`` (``model/``),
-``phantom.protocol`` (``protocol/``), ``phantom.host`` (``host/``) and ``phantom.hil`` (``hil/``).
+The subpackages map to the repository's top-level folders: ``phantom.protocol`` (``protocol/``),
+``phantom.model`` (``model/``), ``phantom.scan`` (``scan/``), ``phantom.host`` (``host/``) and
+``phantom.hil`` (``hil/``); ``phantom.cli`` holds every command line. docs/architecture.md says which may
+import which.
 """
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 __version__ = "0.1.0"
@@ -19,6 +23,39 @@ class PhantomError(Exception):
 
     The CLI prints these without a traceback and exits with status 2; anything else is a bug.
     """
+
+
+class MissingExtraError(PhantomError):
+    """A feature needs an optional dependency that is not installed; the message names the pip command."""
+
+
+def install_command(extra: str) -> str:
+    """The pip command that installs the optional dependencies ``extra`` (pyproject.toml's
+    ``[project.optional-dependencies]``) into this installation: editable from a checkout, else by name."""
+    if SOURCE_ROOT is not None:
+        return f"pip install -e '{SOURCE_ROOT}[{extra}]'"
+    return f"pip install 'active-prostate-phantom[{extra}]'"
+
+
+@contextmanager
+def require_extra(extra: str) -> Iterator[None]:
+    """Imports inside this block come from the optional dependencies ``extra``: a missing one raises
+    :class:`MissingExtraError` naming the package and the pip command that installs it.
+
+    Examples
+    --------
+    >>> with require_extra("scan"):
+    ...     import trimesh  # doctest: +SKIP
+    """
+    try:
+        yield
+    except ImportError as error:
+        if error.name is None:  # installed, but it failed to load (a shared library, a broken install)
+            raise MissingExtraError(f"an optional dependency failed to import ({error}); reinstall the optional "
+                                    f"dependencies '{extra}': {install_command(extra)}") from error
+        package = error.name.partition(".")[0]  # rerun, not rerun.chunk: the package a user would install
+        raise MissingExtraError(f"{package} is not installed; it comes with the optional dependencies "
+                                f"'{extra}': {install_command(extra)}") from error
 
 
 def cache_dir(kind: str) -> Path:

@@ -2,30 +2,41 @@
 
 A scan (OBJ, PLY or STL from photogrammetry or a structured-light scanner) is read in the unit it was exported
 in, cleaned (largest connected piece kept, stray fragments dropped, holes closed by MeshFix so that its volume
-is defined), and aligned rigidly to the model's deformed outer surface: a global start from the principal axes
-of both surfaces, trying all 24 axis-to-axis candidates (a principal axis' sign, and the order of two axes of
-similar extent, are not defined by the shape), then point-to-plane ICP on exact closest points. The result
-says how far the surfaces are apart (closest-point distances both ways, area-weighted) and, per model vertex,
-the signed distance to the scan (positive where the scan lies outside the model).
+is defined), and aligned rigidly to the model's deformed outer surface (:func:`phantom.model.mesh.surface.align`:
+principal axes, the 24 axis-to-axis candidates, point-to-plane ICP on exact closest points). The result says how
+far the surfaces are apart (closest-point distances both ways, area-weighted) and, per model vertex, the signed
+distance to the scan (positive where the scan lies outside the model).
 
-Distances use an exact closest-point query: candidate triangles come from a k-d tree of triangle centroids and
-are examined nearest first until the centroid distance minus the largest triangle radius exceeds the best
-distance found; the point-triangle kernel is numba (cached on disk).
+The surface geometry itself (areas, normals, volumes, closest points, ICP) is the model's
+(:mod:`phantom.model.mesh.surface`); what is here is about scans: reading their files, cleaning them, closing
+their holes, and the comparison's report.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-import phantom
-from phantom import PhantomError
-from phantom.model.mesh.tetmesh import enclosed_volume_m3
+from phantom import PhantomError, require_extra
+from phantom.model.mesh.surface import (
+    Alignment,
+    AlignmentError,
+    Frame,
+    SurfaceIndex,
+    TriangleMesh,
+    align,
+    compact,
+    enclosed_volume_ml,
+    triangle_areas_mm2,
+    vertex_areas_mm2,
+    vertex_normals,
+)
 
 #: Millimetres per unit of a scan file.
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -33,22 +44,6 @@ SCAN_SUFFIXES = (".obj", ".ply", ".stl")
 #: A scan whose size (area-weighted RMS radius) differs from the model's by more than this factor is not
 #: aligned: its unit is wrong, or it is not this phantom.
 SCALE_TOLERANCE = 1.5
-#: No alignment fits when the RMS scan-to-model distance exceeds this fraction of the model's RMS radius.
-FIT_RMS_LIMIT = 0.1
-#: A second alignment (rotated by more than AMBIGUOUS_ANGLE_DEG from the best) whose RMS residual exceeds the
-#: best's by less than 10 % of it, or by less than AMBIGUOUS_EXCESS_MM (a scanner's accuracy: a mesh's own
-#: discretisation makes an exactly symmetric shape fit its mirror turn 0.06 mm worse), makes the alignment
-#: ambiguous: the surface is close to symmetric under that rotation.
-AMBIGUOUS_RESIDUAL_RATIO = 1.1
-AMBIGUOUS_EXCESS_MM = 0.1
-AMBIGUOUS_ANGLE_DEG = 10.0
-#: Far starts refined in search of a second alignment before the best one is taken as the only one.
-ALTERNATIVE_TRIES = 3
-#: Scan points used by the global start (per candidate) and by the final ICP.
-START_POINTS = 600
-START_ITERATIONS = 8
-ICP_POINTS = 5000
-ICP_MAX_ITERATIONS = 50
 
 
 class ScanError(PhantomError):
@@ -59,26 +54,19 @@ class StageClock:
     """Wall and CPU seconds per named stage. CPU time (all threads of this process) shows the work itself when
     other processes share the cores and stretch the wall time."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.wall_s: dict[str, float] = {}
         self.cpu_s: dict[str, float] = {}
 
     @contextlib.contextmanager
-    def stage(self, name: str):
+    def stage(self, name: str) -> Iterator[None]:
+        """Time the ``with`` block as stage ``name`` (added to what the stage took before)."""
         wall, cpu = time.perf_counter(), time.process_time()
         try:
             yield
         finally:
             self.wall_s[name] = self.wall_s.get(name, 0.0) + time.perf_counter() - wall
             self.cpu_s[name] = self.cpu_s.get(name, 0.0) + time.process_time() - cpu
-
-
-@dataclass
-class TriangleMesh:
-    """A triangle surface: vertices (n, 3) in mm and triangles (k, 3) vertex indices."""
-
-    vertices_mm: np.ndarray
-    triangles: np.ndarray
 
 
 @dataclass
@@ -109,31 +97,6 @@ class CleanReport:
 
 
 @dataclass
-class Alignment:
-    """``x_model = rotation @ x_scan + translation_mm``, and how well it fits."""
-
-    rotation: np.ndarray
-    translation_mm: np.ndarray
-    rms_mm: float
-    iterations: int
-    #: The best alignment that differs by more than AMBIGUOUS_ANGLE_DEG, its angle from this one and residual.
-    alternative_angle_deg: float
-    alternative_rms_mm: float
-
-    @property
-    def rotation_angle_deg(self) -> float:
-        return rotation_angle_deg(self.rotation)
-
-    @property
-    def ambiguous(self) -> bool:
-        excess_mm = self.alternative_rms_mm - self.rms_mm
-        return excess_mm <= max((AMBIGUOUS_RESIDUAL_RATIO - 1.0) * self.rms_mm, AMBIGUOUS_EXCESS_MM)
-
-    def apply(self, points_mm: np.ndarray) -> np.ndarray:
-        return points_mm @ self.rotation.T + self.translation_mm
-
-
-@dataclass
 class Comparison:
     """Everything ``compare-scan`` reports; distances in mm, volumes in ml."""
 
@@ -141,16 +104,17 @@ class Comparison:
     alignment: Alignment
     scan_volume_ml: float
     model_volume_ml: float
-    scan_to_model_mm: dict
-    model_to_scan_mm: dict
-    symmetric_mm: dict
+    scan_to_model_mm: dict[str, float]
+    model_to_scan_mm: dict[str, float]
+    symmetric_mm: dict[str, float]
     model_vertices_mm: np.ndarray
     model_triangles: np.ndarray
     model_signed_distance_mm: np.ndarray
     scan_aligned: TriangleMesh
     clock: StageClock = field(default_factory=StageClock)
 
-    def to_json(self) -> dict:
+    def to_json(self) -> dict[str, Any]:
+        """The report as one JSON object (mm, ml, %, s)."""
         alignment = self.alignment
         return {
             "clean": dict(vars(self.clean)),
@@ -197,7 +161,9 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
         raise ScanError(f"the scan file {path} does not exist: check the path")
     if path.suffix.lower() not in SCAN_SUFFIXES:
         raise ScanError(f"{path}: a scan must be an OBJ, PLY or STL file (not {path.suffix or 'no extension'})")
-    import trimesh
+    # trimesh (1 s to import, an optional extra) only where a scan file is read
+    with require_extra("scan"):
+        import trimesh
 
     try:
         loaded = trimesh.load(path, process=False)
@@ -207,7 +173,7 @@ def read_scan(path: str | Path, units: str = "mm") -> TriangleMesh:
                             f"export that")
         if isinstance(loaded, trimesh.Scene):
             loaded = trimesh.load(path, force="mesh", process=False)
-        vertices = np.asarray(loaded.vertices, dtype=np.float64)
+        vertices = np.asarray(getattr(loaded, "vertices", np.zeros((0, 3))), dtype=np.float64)
         faces = np.asarray(getattr(loaded, "faces", np.zeros((0, 3))), dtype=np.int64)
     except ScanError:
         raise
@@ -251,11 +217,6 @@ def merge_coincident_vertices(vertices: np.ndarray, triangles: np.ndarray) -> tu
 # --- cleaning --------------------------------------------------------------------------------------------------
 
 
-def triangle_areas_mm2(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    a, b, c = (vertices_mm[triangles[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-
 def face_keys(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
     """One integer per triangle, equal for the same three vertices in any order."""
     ordered = np.sort(triangles, axis=1).astype(np.int64)
@@ -269,18 +230,21 @@ def drop_degenerate(triangles: np.ndarray, areas_mm2: np.ndarray) -> np.ndarray:
     keep = np.zeros(len(triangles), bool)
     _, first = np.unique(face_keys(triangles, int(triangles.max()) + 1), return_index=True)
     keep[first] = True
-    return keep & distinct
+    kept: np.ndarray = keep & distinct
+    return kept
 
 
 def vertex_components(triangles: np.ndarray, n_vertices: int) -> np.ndarray:
     """Label of the connected piece of each vertex (vertices joined by triangle edges); scipy's graph search is
     about ten times faster than the model's edge-based union-find on a scan's half a million triangles."""
+    # scipy.sparse (0.15 s to import) only where a scan is cleaned
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
     rows, columns = triangles[:, [0, 1, 2]].ravel(), triangles[:, [1, 2, 0]].ravel()
     graph = coo_matrix((np.ones(len(rows), np.int8), (rows, columns)), shape=(n_vertices, n_vertices))
-    return connected_components(graph, directed=False)[1]
+    labels: np.ndarray = connected_components(graph, directed=False)[1]
+    return labels
 
 
 def largest_component(triangles: np.ndarray, areas_mm2: np.ndarray) -> tuple[np.ndarray, int]:
@@ -291,20 +255,14 @@ def largest_component(triangles: np.ndarray, areas_mm2: np.ndarray) -> tuple[np.
     return labels == int(np.argmax(piece_area)), len(piece_area)
 
 
-def compact(vertices_mm: np.ndarray, triangles: np.ndarray) -> TriangleMesh:
-    """Drop the vertices no triangle uses and renumber."""
-    used = np.bincount(triangles.ravel(), minlength=len(vertices_mm)) > 0
-    renumber = np.cumsum(used) - 1
-    return TriangleMesh(vertices_mm[used], renumber[triangles].astype(np.int64))
-
-
 def boundary_edges(triangles: np.ndarray) -> np.ndarray:
     """Directed edges (k, 2) that belong to one triangle only, as that triangle runs them."""
     directed = triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2)
     n = int(triangles.max()) + 1
     ordered = np.sort(directed, axis=1).astype(np.int64)
     _, inverse, counts = np.unique(ordered[:, 0] * n + ordered[:, 1], return_inverse=True, return_counts=True)
-    return directed[counts[inverse.ravel()] == 1]
+    edges: np.ndarray = directed[counts[inverse.ravel()] == 1]
+    return edges
 
 
 #: Rings of triangles around the holes handed to MeshFix with them.
@@ -366,7 +324,9 @@ def close_holes(mesh: TriangleMesh) -> tuple[TriangleMesh, int]:
 
 
 def _meshfix_fill(patch: TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
-    import pymeshfix
+    # pymeshfix (a native library, an optional extra) only where holes are closed
+    with require_extra("scan"):
+        import pymeshfix
 
     surface = pymeshfix.PyTMesh()
     surface.set_quiet(True)
@@ -408,7 +368,7 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
     in_largest, pieces = largest_component(triangles, areas)
     measured = compact(mesh.vertices_mm, triangles[in_largest])
     closed, holes = close_holes(measured)
-    reoriented = enclosed_volume_m3(closed.vertices_mm, closed.triangles) < 0
+    reoriented = enclosed_volume_ml(closed) < 0
     if reoriented:
         closed.triangles = closed.triangles[:, ::-1].copy()
         measured.triangles = measured.triangles[:, ::-1].copy()
@@ -421,286 +381,10 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
     return closed, measured, report
 
 
-def surface_volume_ml(mesh: TriangleMesh) -> float:
-    """Volume enclosed by a closed, outward-oriented surface in mm (ml)."""
-    return enclosed_volume_m3(mesh.vertices_mm, mesh.triangles) * 1e-3
-
-
 def scan_volume_ml(path: str | Path, units: str = "mm") -> float:
     """The volume (ml) of a scan file after cleaning: its largest piece, holes closed."""
     closed, _, _ = clean_scan(read_scan(path, units))
-    return surface_volume_ml(closed)
-
-
-# --- geometry --------------------------------------------------------------------------------------------------
-
-
-def vertex_areas_mm2(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """A third of the area of each triangle around a vertex (the vertex's share of the surface)."""
-    areas = triangle_areas_mm2(vertices_mm, triangles)
-    return np.bincount(triangles.ravel(), np.repeat(areas / 3.0, 3), len(vertices_mm))
-
-
-def vertex_normals(vertices_mm: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals (outward for an outward-oriented surface)."""
-    a, b, c = (vertices_mm[triangles[:, k]] for k in range(3))
-    face = np.cross(b - a, c - a)
-    normals = np.zeros_like(vertices_mm)
-    for k in range(3):
-        np.add.at(normals, triangles[:, k], face)
-    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-
-
-def principal_frame(points_mm: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted centroid, principal axes (columns, largest spread first, right-handed) and variances (mm^2)."""
-    weights = weights / weights.sum()
-    centroid = weights @ points_mm
-    offsets = points_mm - centroid
-    variances, axes = np.linalg.eigh((offsets * weights[:, None]).T @ offsets)
-    variances, axes = variances[::-1], axes[:, ::-1]
-    if np.linalg.det(axes) < 0:
-        axes[:, 2] *= -1
-    return centroid, axes, variances
-
-
-def axis_candidates() -> np.ndarray:
-    """The 24 proper rotations that map coordinate axes onto coordinate axes (signed permutations, det +1)."""
-    candidates = []
-    for order in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
-        for signs in np.array(np.meshgrid([1, -1], [1, -1], [1, -1])).T.reshape(-1, 3):
-            matrix = np.zeros((3, 3))
-            matrix[np.arange(3), order] = signs
-            if np.linalg.det(matrix) > 0:
-                candidates.append(matrix)
-    return np.array(candidates)
-
-
-def rotation_angle_deg(rotation: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def rotation_axis(rotation: np.ndarray) -> np.ndarray:
-    """Unit axis of a rotation (right-handed with :func:`rotation_angle_deg`); any unit vector for none."""
-    values, vectors = np.linalg.eig(rotation)
-    axis = np.real(vectors[:, np.argmin(np.abs(values - 1.0))])
-    skew = np.array([rotation[2, 1] - rotation[1, 2], rotation[0, 2] - rotation[2, 0],
-                     rotation[1, 0] - rotation[0, 1]])
-    return -axis if axis @ skew < 0 else axis
-
-
-def rotation_from_vector(omega: np.ndarray) -> np.ndarray:
-    """Rodrigues: the rotation by ``|omega|`` radians about ``omega``."""
-    angle = float(np.linalg.norm(omega))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = omega / angle
-    cross = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * cross @ cross
-
-
-def subdivide(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray | None = None):
-    """Split each triangle into four at its edge midpoints (the surface is unchanged); per-vertex ``values``
-    are interpolated linearly. Returns (vertices, triangles) or (vertices, triangles, values)."""
-    edges = np.sort(triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
-    unique_edges, edge_of = np.unique(edges, axis=0, return_inverse=True)
-    midpoint = len(vertices) + edge_of.reshape(-1, 3)
-    new_vertices = np.vstack([vertices, 0.5 * (vertices[unique_edges[:, 0]] + vertices[unique_edges[:, 1]])])
-    a, b, c = triangles.T
-    ab, bc, ca = midpoint.T
-    new_triangles = np.vstack([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
-    if values is None:
-        return new_vertices, new_triangles
-    new_values = np.concatenate([values, 0.5 * (values[unique_edges[:, 0]] + values[unique_edges[:, 1]])])
-    return new_vertices, new_triangles, new_values
-
-
-# --- closest points --------------------------------------------------------------------------------------------
-
-_KERNEL = None
-
-
-def _closest_kernel():
-    """The numba closest-point kernel, compiled once per process (and cached on disk)."""
-    global _KERNEL
-    if _KERNEL is None:
-        os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
-        from phantom.scan import kernels as scan_kernels
-
-        _KERNEL = scan_kernels.closest_on_candidates
-    return _KERNEL
-
-
-#: Neighbour lists reach this many times the largest triangle radius (see SurfaceIndex.closest).
-NEIGHBOUR_REACH_RADII = 2.5
-
-
-class SurfaceIndex:
-    """Exact closest points on a triangle surface (mm) for many query points."""
-
-    def __init__(self, vertices_mm: np.ndarray, triangles: np.ndarray):
-        from scipy.spatial import cKDTree
-
-        self.vertices_mm = np.ascontiguousarray(vertices_mm, np.float64)
-        self.triangles = np.ascontiguousarray(triangles, np.int64)
-        corners = self.vertices_mm[self.triangles]
-        centroids = corners.mean(axis=1)
-        self.radius_mm = np.sqrt(np.max(np.sum((corners - centroids[:, None, :]) ** 2, axis=2), axis=1))
-        self.radius_max_mm = float(self.radius_mm.max())
-        self.tree = cKDTree(centroids, balanced_tree=False, compact_nodes=False)
-        self._face_normals = None
-        self._neighbours = None
-
-    @property
-    def face_normals(self) -> np.ndarray:
-        """Unit normals of the triangles (made when first asked for: the model-to-scan query does not)."""
-        if self._face_normals is None:
-            a, b, c = (self.vertices_mm[self.triangles[:, k]] for k in range(3))
-            normals = np.cross(b - a, c - a)
-            self._face_normals = normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-300)
-        return self._face_normals
-
-    def _neighbour_lists(self):
-        """For each triangle, the triangles whose centroids lie within NEIGHBOUR_REACH_RADII * radius_max of its
-        centroid (CSR: start offsets and indices); made once, for many queries on a small surface."""
-        if self._neighbours is None:
-            reach = NEIGHBOUR_REACH_RADII * self.radius_max_mm
-            lists = self.tree.query_ball_point(self.tree.data, reach)
-            start = np.zeros(len(lists) + 1, np.int64)
-            start[1:] = np.cumsum([len(entries) for entries in lists])
-            self._neighbours = (reach, start, np.concatenate(lists).astype(np.int64))
-        return self._neighbours
-
-    def closest(self, points_mm: np.ndarray, first_k: int = 16) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Distance (mm), closest point (mm) and triangle of each query point.
-
-        Many points on a small surface (a scan against the model) first try the nearest centroid's neighbour
-        list (one nearest-neighbour query each); the rest, and few points on a large surface, query the k
-        nearest centroids, more until the answer is exact.
-        """
-        kernel = _closest_kernel()
-        points_mm = np.ascontiguousarray(points_mm, np.float64)
-        n = len(points_mm)
-        distance = np.empty(n)
-        closest = np.empty((n, 3))
-        triangle = np.empty(n, np.int64)
-        pending = np.arange(n)
-        if n > 10 * len(self.triangles):
-            from phantom.scan import kernels as scan_kernels
-
-            reach, start, neighbours = self._neighbour_lists()
-            nearest_distance, nearest = self.tree.query(points_mm)
-            done = np.zeros(n, np.bool_)
-            scan_kernels.closest_by_neighbours(points_mm, nearest.astype(np.int64), nearest_distance, start,
-                                               neighbours, self.tree.data, self.radius_mm, self.radius_max_mm,
-                                               reach, self.vertices_mm, self.triangles, distance, closest,
-                                               triangle, done)
-            pending = pending[~done]
-        k = min(first_k, len(self.triangles))
-        while len(pending):
-            # Threads pay off only for large batches: starting them costs milliseconds on a busy machine.
-            workers = -1 if len(pending) > 50000 else 1
-            centroid_distance, candidates = self.tree.query(points_mm[pending], k=k, workers=workers)
-            centroid_distance = np.ascontiguousarray(centroid_distance.reshape(len(pending), -1))
-            candidates = np.ascontiguousarray(candidates.reshape(len(pending), -1), np.int64)
-            done = np.zeros(len(pending), np.bool_)
-            kernel(points_mm, pending, candidates, centroid_distance, self.vertices_mm, self.triangles,
-                   self.radius_mm, self.radius_max_mm, k >= len(self.triangles), distance, closest, triangle, done)
-            pending = pending[~done]
-            k = min(4 * k, len(self.triangles))
-        return distance, closest, triangle
-
-
-# --- alignment -------------------------------------------------------------------------------------------------
-
-
-def point_to_plane_step(points: np.ndarray, targets: np.ndarray, normals: np.ndarray,
-                        weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The small rotation vector and translation that minimise ``sum w ((R p + t - q) . n)^2`` (linearised)."""
-    jacobian = np.hstack([np.cross(points, normals), normals])
-    residual = np.einsum("ij,ij->i", points - targets, normals)
-    weighted = jacobian * weights[:, None]
-    solution = np.linalg.lstsq(weighted.T @ jacobian, -weighted.T @ residual, rcond=None)[0]
-    return solution[:3], solution[3:]
-
-
-def icp(points_mm: np.ndarray, correspond, rotation: np.ndarray, translation_mm: np.ndarray,
-        max_iterations: int, tolerance_mm: float = 1e-3) -> tuple[np.ndarray, np.ndarray, float, int]:
-    """Point-to-plane ICP of ``points_mm`` from a start; ``correspond(points)`` gives each point's distance,
-    target point and target normal. Pairs farther than three times the median distance are left out (stray
-    points, unfilled parts). Each Gauss-Newton step is halved until the (trimmed) sum of squared distances
-    decreases: where the distances do not go to zero (a scan that differs from the model) the linearisation
-    leaves out the surface's curvature and a full step can overshoot along a weakly constrained rotation.
-    Stops when a step moves no point by more than ``tolerance_mm``. Returns rotation, translation, RMS distance
-    (mm, all points, at the result) and iterations."""
-    moved = points_mm @ rotation.T + translation_mm
-    radius = float(np.max(np.linalg.norm(moved - moved.mean(axis=0), axis=1)))
-    distance, targets, normals = correspond(moved)
-    iterations = 0
-    while iterations < max_iterations:
-        iterations += 1
-        limit = 3.0 * np.median(distance) + 1e-9
-        inlier = distance <= limit
-        cost = np.sum(np.minimum(distance, limit) ** 2)
-        omega, shift = point_to_plane_step(moved[inlier], targets[inlier], normals[inlier],
-                                           np.ones(np.count_nonzero(inlier)))
-        for _ in range(8):
-            step = rotation_from_vector(omega)
-            trial = moved @ step.T + shift
-            trial_correspondence = correspond(trial)
-            if np.sum(np.minimum(trial_correspondence[0], limit) ** 2) <= cost:
-                break
-            omega, shift = 0.5 * omega, 0.5 * shift
-        else:
-            break
-        rotation, translation_mm = step @ rotation, step @ translation_mm + shift
-        moved = trial
-        distance, targets, normals = trial_correspondence
-        if np.linalg.norm(omega) * radius + np.linalg.norm(shift) < tolerance_mm:
-            break
-    return rotation, translation_mm, float(np.sqrt(np.mean(distance**2))), iterations
-
-
-def exact_correspondence(index: SurfaceIndex):
-    """Closest points on the surface, with the direction from there to the point (the distance's gradient);
-    the face normal for points on the surface. A face normal alone would be wrong where the closest point is on
-    an edge or a corner (an offset surface mostly is): ICP would then minimise another objective and drift."""
-    def correspond(points_mm):
-        distance, closest, triangle = index.closest(points_mm)
-        normals = index.face_normals[triangle]
-        away = distance > 1e-9
-        normals[away] = (points_mm[away] - closest[away]) / distance[away, None]
-        return distance, closest, normals
-    return correspond
-
-
-def vertex_correspondence(vertices_mm: np.ndarray, normals: np.ndarray):
-    """Nearest surface vertex and its normal: cheap, for the global start's many candidates."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(vertices_mm)
-
-    def correspond(points_mm):
-        distance, nearest = tree.query(points_mm)
-        return distance, vertices_mm[nearest], normals[nearest]
-    return correspond
-
-
-@dataclass
-class Frame:
-    """A surface's area-weighted centroid (mm), principal axes (columns) and variances along them (mm^2)."""
-
-    centroid_mm: np.ndarray
-    axes: np.ndarray
-    variances_mm2: np.ndarray
-
-    @classmethod
-    def of(cls, mesh: TriangleMesh) -> Frame:
-        return cls(*principal_frame(mesh.vertices_mm, vertex_areas_mm2(mesh.vertices_mm, mesh.triangles)))
-
-    @property
-    def rms_radius_mm(self) -> float:
-        """RMS distance of the surface from its centroid: its size, whatever its pose."""
-        return float(np.sqrt(self.variances_mm2.sum()))
+    return enclosed_volume_ml(closed)
 
 
 def check_scale(scan: Frame, model: Frame, units: str) -> None:
@@ -716,60 +400,10 @@ def check_scale(scan: Frame, model: Frame, units: str) -> None:
                     f"{hint}")
 
 
-def align(scan: Frame, measured_points_mm: np.ndarray, model: TriangleMesh, model_frame: Frame,
-          model_index: SurfaceIndex, rng: np.random.Generator) -> Alignment:
-    """Rigid alignment of the scan onto the model surface: principal-axes candidates, each refined briefly by
-    ICP on a few hundred points against the model's vertices; the best, and the best that lies more than
-    AMBIGUOUS_ANGLE_DEG from it, refined on up to ICP_POINTS points against the exact surface, the better kept.
-    Raises ScanError when even that leaves an RMS distance above FIT_RMS_LIMIT of the model's size."""
-    scan_centroid, scan_axes = scan.centroid_mm, scan.axes
-    model_centroid, model_axes = model_frame.centroid_mm, model_frame.axes
-    few = measured_points_mm[rng.choice(len(measured_points_mm), min(START_POINTS, len(measured_points_mm)),
-                                        replace=False)]
-    coarse = vertex_correspondence(model.vertices_mm, vertex_normals(model.vertices_mm, model.triangles))
-    starts = []
-    for swap in axis_candidates():
-        rotation = model_axes @ swap @ scan_axes.T
-        translation = model_centroid - rotation @ scan_centroid
-        starts.append(icp(few, coarse, rotation, translation, START_ITERATIONS))
-    order = np.argsort([rms for _, _, rms, _ in starts])
-    many = measured_points_mm[rng.choice(len(measured_points_mm), min(ICP_POINTS, len(measured_points_mm)),
-                                         replace=False)]
-    exact = exact_correspondence(model_index)
-    best = icp(many, exact, *starts[order[0]][:2], ICP_MAX_ITERATIONS)
-    # The best start that lies far from that one is refined too: the better of the two is the answer, and the
-    # other's residual says how well the shape pins the rotation (nearly symmetric shapes fit both ways). A start
-    # that ICP brings back to the best alignment is the same answer, not another one (it was reported as an
-    # "ambiguous" rotation by 0 deg): the next far start is tried, up to ALTERNATIVE_TRIES refinements.
-    alternative = None
-    tries = 0
-    for index in order[1:]:
-        if tries == ALTERNATIVE_TRIES:
-            break
-        if rotation_angle_deg(starts[index][0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
-            tries += 1
-            refined = icp(many, exact, *starts[index][:2], ICP_MAX_ITERATIONS)
-            if rotation_angle_deg(refined[0] @ best[0].T) > AMBIGUOUS_ANGLE_DEG:
-                alternative = refined
-                break
-    if alternative is not None and alternative[2] < best[2]:
-        best, alternative = alternative, best
-    rotation, translation, rms, iterations = best
-    alternative_angle, alternative_rms = 180.0, np.inf
-    if alternative is not None:
-        alternative_angle, alternative_rms = rotation_angle_deg(alternative[0] @ rotation.T), alternative[2]
-    size_mm = model_frame.rms_radius_mm
-    if rms > FIT_RMS_LIMIT * size_mm:
-        raise ScanError(f"no rigid alignment fits the scan to the model: the best leaves an RMS distance of "
-                        f"{rms:.2f} mm ({100 * rms / size_mm:.0f} % of the model's size): is it this phantom, "
-                        f"at these pressures?")
-    return Alignment(rotation, translation, rms, iterations, alternative_angle, float(alternative_rms))
-
-
 # --- distances -------------------------------------------------------------------------------------------------
 
 
-def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict:
+def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict[str, float]:
     """Mean, median, 95th percentile and max of ``values`` with ``weights`` (area shares)."""
     order = np.argsort(values)
     sorted_values = values[order]
@@ -777,15 +411,10 @@ def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict:
     cumulative /= cumulative[-1]
 
     def quantile(q: float) -> float:
-        return float(sorted_values[min(np.searchsorted(cumulative, q), len(values) - 1)])
+        return float(sorted_values[min(int(np.searchsorted(cumulative, q)), len(values) - 1)])
 
     return {"mean": float(np.average(values, weights=weights)), "median": quantile(0.5), "p95": quantile(0.95),
             "max": float(sorted_values[-1])}
-
-
-def model_surface(positions_m: np.ndarray, outer_triangles: np.ndarray) -> TriangleMesh:
-    """The model's outer surface as its own mesh in mm (only the nodes on it)."""
-    return compact(np.asarray(positions_m) * 1e3, np.asarray(outer_triangles, np.int64))
 
 
 def compare(scan: TriangleMesh, model: TriangleMesh, model_volume_ml: float, units: str = "mm", seed: int = 0,
@@ -798,8 +427,13 @@ def compare(scan: TriangleMesh, model: TriangleMesh, model_volume_ml: float, uni
         scan_frame, model_frame = Frame.of(closed), Frame.of(model)
         check_scale(scan_frame, model_frame, units)
         model_index = SurfaceIndex(model.vertices_mm, model.triangles)
-        alignment = align(scan_frame, measured.vertices_mm, model, model_frame, model_index,
-                          np.random.default_rng(seed))
+        try:
+            alignment = align(scan_frame, measured.vertices_mm, model, model_frame, model_index,
+                              np.random.default_rng(seed))
+        except AlignmentError as error:
+            raise ScanError(f"no rigid alignment fits the scan to the model: the best leaves an RMS distance of "
+                            f"{error.rms_mm:.2f} mm ({100 * error.rms_mm / error.size_mm:.0f} % of the model's "
+                            f"size): is it this phantom, at these pressures?") from None
     with clock.stage("distances"):
         aligned = TriangleMesh(alignment.apply(closed.vertices_mm), closed.triangles)
         scan_distance, _, _ = model_index.closest(alignment.apply(measured.vertices_mm))
@@ -814,7 +448,7 @@ def compare(scan: TriangleMesh, model: TriangleMesh, model_volume_ml: float, uni
         symmetric = weighted_statistics(np.concatenate([scan_distance, model_distance]),
                                         np.concatenate([scan_weights / scan_weights.sum(),
                                                         model_weights / model_weights.sum()]))
-    return Comparison(report, alignment, surface_volume_ml(closed), model_volume_ml,
+    return Comparison(report, alignment, enclosed_volume_ml(closed), model_volume_ml,
                       weighted_statistics(scan_distance, scan_weights),
                       weighted_statistics(model_distance, model_weights), symmetric, model.vertices_mm,
                       model.triangles, signed, aligned, clock)

@@ -3,10 +3,16 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from phantom.scan.compare import Comparison, ScanError, subdivide
+from phantom import require_extra
+from phantom.model.mesh.surface import subdivide
+from phantom.scan.compare import Comparison, ScanError
+
+if TYPE_CHECKING:
+    from matplotlib.colors import Colormap, Normalize
 
 #: Views: name, direction toward the viewer, and the coordinates shown right and up (a sign flips an axis so
 #: that the picture is not mirrored). x is the patient's left, y anterior, z from apex to base.
@@ -23,7 +29,7 @@ def colour_limit_mm(signed_mm: np.ndarray) -> float:
 
 
 def shaded_faces(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray, toward_viewer: np.ndarray,
-                 colour_map, norm) -> tuple[np.ndarray, np.ndarray]:
+                 colour_map: Colormap, norm: Normalize) -> tuple[np.ndarray, np.ndarray]:
     """The faces that face the viewer, far to near (painter's order), with their colour times a Lambert
     shading (light from the viewer's upper left)."""
     a, b, c = (vertices[triangles[:, k]] for k in range(3))
@@ -42,11 +48,13 @@ def shaded_faces(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray
 
 def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
     """The model surface coloured by the signed distance to the scan (mm), front and side views, colour bar."""
-    import matplotlib
+    # matplotlib (0.5 s to import, an optional extra) only where a picture is drawn
+    with require_extra("scan"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.collections import PolyCollection
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+        from matplotlib.collections import PolyCollection
 
     path = Path(path)
     vertices, triangles, values = subdivide(comparison.model_vertices_mm, comparison.model_triangles,
@@ -82,8 +90,11 @@ def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
 def write_recording(comparison: Comparison, path: str | Path, max_points: int = 200000) -> Path:
     """A Rerun recording: the model surface coloured per vertex (``model``, rr.Mesh3D) and the aligned scan's
     vertices (``scan``, rr.Points3D), in mm in the model's frame."""
-    import matplotlib
-    import rerun as rr
+    # matplotlib (0.5 s) and rerun-sdk (a second), optional extras, only where a recording is written
+    with require_extra("scan"):
+        import matplotlib
+    with require_extra("record"):
+        import rerun as rr
 
     path = Path(path)
     limit = colour_limit_mm(comparison.model_signed_distance_mm)

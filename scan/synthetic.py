@@ -1,4 +1,5 @@
-"""Synthetic scans made from a surface with known damage: used by the tests and bench/scan_*.py.
+"""Synthetic scans made from a surface with known damage: used by the tests, bench/scan_*.py and
+``phantom scan synthetic``.
 
 A synthetic scan is the surface subdivided (midpoints: the same surface, more vertices), its vertices moved
 along their normals by Gaussian noise (and optionally a constant offset), with holes cut out, a stray fragment
@@ -9,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phantom.scan.compare import TriangleMesh, compact, subdivide, vertex_normals
+from phantom.model.mesh.surface import TriangleMesh, compact, subdivide, vertex_normals
 
 
 @dataclass
@@ -59,41 +60,3 @@ def _with_fragment(mesh: TriangleMesh) -> TriangleMesh:
     blob = corner + 3.0 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]) + len(mesh.vertices_mm)
     return TriangleMesh(np.vstack([mesh.vertices_mm, blob]), np.vstack([mesh.triangles, faces]))
-
-
-def main(argv: list[str] | None = None) -> None:
-    """Write a synthetic scan of the model, e.g. to try ``phantom compare-scan``:
-    ``python -m phantom.scan.synthetic --out scan.ply --modulus-factor 0.8``."""
-    import argparse
-
-    import meshio
-
-    from phantom.model.fem.model import PhantomModel
-    from phantom.model.scene import load_scene
-    from phantom.scan.compare import model_surface
-
-    parser = argparse.ArgumentParser(description="Write a synthetic scan (mm) of the model's deformed surface.")
-    parser.add_argument("--out", required=True, help="file to write: .ply, .stl or .obj")
-    parser.add_argument("--scene", default="builtin:calibrated")
-    parser.add_argument("--pressures-kpa", default="1,2,0.5")
-    parser.add_argument("--modulus-factor", type=float, default=1.0,
-                        help="make the scan from the model with E times this (another material)")
-    parser.add_argument("--noise-mm", type=float, default=0.05)
-    parser.add_argument("--holes", type=int, default=3)
-    parser.add_argument("--levels", type=int, default=2, help="midpoint subdivisions (4: about 250k vertices)")
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    model = PhantomModel.from_scene(load_scene(args.scene))
-    if args.modulus_factor != 1.0:
-        model = model.with_material(youngs_modulus_pa=args.modulus_factor * model.material.youngs_modulus_pa)
-    state = model.solve([float(p) * 1e3 for p in args.pressures_kpa.split(",")])
-    rng = np.random.default_rng(args.seed)
-    scan = make_scan(model_surface(state.positions_m, model.outer_triangles), rng, levels=args.levels,
-                     noise_mm=args.noise_mm, holes=args.holes, fragment=True, rotation=random_rotation(rng),
-                     translation_mm=rng.uniform(-50.0, 50.0, 3))
-    meshio.write_points_cells(args.out, scan.mesh.vertices_mm, [("triangle", scan.mesh.triangles.astype(np.int32))])
-    print(f"wrote {args.out}: {len(scan.mesh.vertices_mm)} vertices, gland {state.gland_volume_m3 * 1e6:.3f} ml")
-
-
-if __name__ == "__main__":
-    main()

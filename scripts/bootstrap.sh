@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
-# Make this checkout ready to build and test: the Debian packages in scripts/apt-packages.txt and a
-# Python environment in .venv/ with the project installed editable with its test extras.
+# Make this checkout ready to build and test: the Debian packages in scripts/apt-packages.txt (or in the lists
+# given as arguments) and a Python environment in .venv/ with the project installed editable with every extra
+# (pyproject.toml).
 # Idempotent: a second run checks, prints one line, and installs nothing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-packages=$(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' scripts/apt-packages.txt)
+# The package lists to install: the arguments (e.g. scripts/apt-packages-figures.txt as well), else the one for
+# building and testing.
+lists=("${@:-scripts/apt-packages.txt}")
+packages=$(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' "${lists[@]}")
 missing=""
 for package in $packages; do
     dpkg-query -W -f='${Status}' "$package" 2>/dev/null | grep -q "install ok installed" || missing="$missing $package"
@@ -33,9 +37,9 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
-    echo "bootstrap: installing the project and its test extras into .venv (one to two minutes the first time)"
+    echo "bootstrap: installing the project and every extra into .venv (one to two minutes the first time)"
     log=.venv/install.log
-    if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[test]"; } \
+    if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[all,test]"; } \
         >"$log" 2>&1; then
         cat "$log" >&2
         echo "bootstrap: pip failed (output above, also in $log)" >&2

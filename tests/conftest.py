@@ -1,14 +1,42 @@
-"""Fixtures shared by several test files."""
+"""Fixtures shared by several test files, and what running on several processes (pytest-xdist) needs.
+
+`make check` and `make test` run pytest on every core (``-n auto``). Each worker is its own process with its own
+session fixtures; the on-disk caches (``phantom.cache_dir``) are shared, and every cache entry is written to a
+temporary file and renamed into place, so a reader never sees half of one. What is expensive to build is built
+under :func:`machine_lock`, so that two workers do not build it twice at once. The tests that run simavr (marked
+``sim``) pace the simulated board to the wall clock: with another worker busy beside them, the daemon's end-to-end
+tests missed events and acknowledgements on two cores, so `make test` runs them in a pytest of their own without
+xdist.
+"""
+
+import fcntl
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import pytest
+
+import phantom
+
+
+@contextmanager
+def machine_lock(name: str) -> Iterator[None]:
+    """Hold an exclusive lock named ``name`` (a file under ``phantom.cache_dir("locks")``) across processes."""
+    with open(phantom.cache_dir("locks") / f"{name}.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 @pytest.fixture(scope="session")
 def calibrated_response_table():
     """The response table of ``builtin:calibrated``, the model of a daemon started with its defaults and of the
     example scenes. Built here when the cache has none (a few minutes on two cores, once per machine), so that
-    a daemon a test starts does not spend its start-up deadline building it."""
+    a daemon a test starts does not spend its start-up deadline building it; the other workers wait for it and
+    read it from the cache."""
     from phantom.model import PhantomModel, load_scene
     from phantom.model.fidelity.levels import VolumeEstimator
 
-    return VolumeEstimator(PhantomModel.from_scene(load_scene("builtin:calibrated"))).table
+    with machine_lock("calibrated-response-table"):
+        return VolumeEstimator(PhantomModel.from_scene(load_scene("builtin:calibrated"))).table

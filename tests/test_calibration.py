@@ -72,6 +72,19 @@ def test_missing_file_and_chamber_count_mismatch(tmp_path):
         load_measurements(path, n_chambers=3)
 
 
+def test_a_scan_file_entry_is_measured_by_the_callable_given(tmp_path):
+    """The model reads no scans: a measured_ml that names a scan file needs the scan_volume_ml the command line
+    passes (the scan comparison's); without one the row is refused, naming the file."""
+    path = tmp_path / "m.csv"
+    path.write_text("p0_kpa,measured_ml\n0,26\n1,scans/at_1.stl\n2,28\n")
+    measured = []
+    measurements = load_measurements(path, scan_volume_ml=lambda scan: measured.append(scan) or 27.5)
+    assert measured == [tmp_path / "scans" / "at_1.stl"]
+    np.testing.assert_allclose(measurements.volumes_m3, [26e-6, 27.5e-6, 28e-6])
+    with pytest.raises(CalibrationError, match=r"data row 2: scans/at_1.stl is a scan file, and nothing here "):
+        load_measurements(path)
+
+
 def _synthetic_responses(admissible_below_t=np.inf, traced_below_t=np.inf, fixed_lobe_scale=None):
     """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t; NaN (not
     traced, as beyond a trace's growth stop) above ``traced_below_t``; with ``fixed_lobe_scale``, a second,
@@ -152,7 +165,7 @@ def _synthetic_csv(tmp_path, scene_path, pressures_kpa):
     truth = PhantomModel.from_scene(load_scene(scene_path))
     lines = ["p0_kpa,p1_kpa,p2_kpa,measured_ml"]
     for pressures in np.asarray(pressures_kpa, dtype=float):
-        volume_ml = truth.solve(pressures * 1e3).gland_volume_m3 * 1e6
+        volume_ml = truth.equilibrium(pressures * 1e3).gland_volume_m3 * 1e6
         lines.append(",".join(f"{value:g}" for value in pressures) + f",{volume_ml!r}")
     csv_path = tmp_path / f"{scene_path.stem}.csv"
     csv_path.write_text("\n".join(lines) + "\n")
@@ -201,6 +214,7 @@ def test_the_traces_interpolation_agrees_with_full_solves_at_a_gent_fit(tmp_path
     assert np.max(np.abs(interpolated - full) / full) < 0.01
 
 
+@pytest.mark.slow
 def test_a_left_out_point_beyond_its_trace_is_predicted_by_a_full_solve(tmp_path, capsys, dask_scheduler):
     # Exact measurements of a Neo-Hookean model at E = 10 kPa, but the last point's growth divided by 2.5: its
     # trace stops at 1.8 times that growth, so with it left out the others refit E = 10 kPa, beyond its trace.
@@ -223,11 +237,12 @@ def test_a_left_out_point_beyond_its_trace_is_predicted_by_a_full_solve(tmp_path
     assert loo_modulus_kpa == pytest.approx(10.0, rel=0.03)
     refit_path = tmp_path / "refit.toml"
     refit_path.write_text(SCENE_TEXT.format(model="neo_hookean", modulus=loo_modulus_kpa))
-    refit_ml = PhantomModel.from_scene(load_scene(refit_path)).solve([2e3, 1e3, 1e3]).gland_volume_m3 * 1e6
+    refit_ml = PhantomModel.from_scene(load_scene(refit_path)).equilibrium([2e3, 1e3, 1e3]).gland_volume_m3 * 1e6
     assert report["loo_predicted_ml"][-1] == pytest.approx(refit_ml, rel=1e-4)
     assert report["loo_predicted_ml"][-1] == pytest.approx(truth_ml, rel=0.01)
 
 
+@pytest.mark.slow
 def test_a_small_strain_law_is_held_to_its_range_and_says_the_constraint_binds(tmp_path, capsys,
                                                                               dask_scheduler):
     # Measurements of a soft phantom (8 kPa): fitting them needs strains far beyond the linear law's 10 %.

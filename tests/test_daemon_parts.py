@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 from phantom import PhantomError
-from phantom.cli.common import chamber_labels, output_file
+from phantom.cli.common import output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
 from phantom.host.scene_runner import SceneRunner
-from phantom.host.scenes import SceneError
+from phantom.model.errors import SceneError
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 
@@ -42,9 +42,9 @@ def test_the_scene_runner_follows_its_clock_scaled_and_finishes_at_the_end():
     clock, events, runner = runner_with_events()
     started = runner.start(SCENE, "bph", CHAMBERS, time_scale=2.0)
     assert started["wall_duration_s"] == 15.0 and runner.active
-    assert runner.tick().values == (30.0,)
+    assert runner.tick().to_json() == {"volume_ml": 30.0}
     clock.now_s += 6.0                       # 12 s of scene time: half-way up the ramp
-    assert runner.tick().values == pytest.approx((32.0,))
+    assert runner.tick().values == pytest.approx((32e-6,))
     assert [step.index for step in runner.run.steps] == [0, 1]
     assert runner.scene_time_s() == pytest.approx(12.0)
     clock.now_s += 9.0                       # 30 s of scene time: the end
@@ -180,7 +180,7 @@ def test_plant_volume_is_read_only_when_the_plant_reports_it():
 
 WORKER_PARENT = """
 import asyncio, os, sys, time
-from phantom.host.control import worker_pool
+from phantom.host.model_worker import worker_pool
 pool = worker_pool()
 print(pool.submit(os.getpid).result(), flush=True)
 time.sleep(60)
@@ -239,10 +239,7 @@ def test_under_systemd_levels_are_journald_priorities_on_every_line(capfd, monke
     configure_logging("info")
 
 
-def test_chamber_labels_and_output_files(tmp_path):
-    assert chamber_labels({}, CHAMBERS) == ["base", "left lobe", "right lobe"]
-    assert chamber_labels({"phantom": {"chamber_labels": ["a", "b", "c"]}}, CHAMBERS) == ["a", "b", "c"]
-    assert chamber_labels({}, ["x", "y"]) == ["x", "y"]
+def test_output_files_get_their_folders(tmp_path):
     assert output_file(tmp_path / "new" / "deeper" / "out.json") == tmp_path / "new" / "deeper" / "out.json"
     assert (tmp_path / "new" / "deeper").is_dir()
     (tmp_path / "file").write_text("")
@@ -250,12 +247,33 @@ def test_chamber_labels_and_output_files(tmp_path):
         output_file(tmp_path / "file" / "out.json")
 
 
+def modules_loaded(imports: str, prefixes: tuple[str, ...]) -> list[str]:
+    """The modules under ``prefixes`` that a fresh interpreter has loaded after ``import <imports>``."""
+    code = (f"import sys, json, {imports}; "
+            f"print(json.dumps(sorted(m for m in sys.modules if m.startswith({prefixes!r}))))")
+    return json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                                     check=True).stdout)
+
+
 def test_the_model_package_does_not_import_the_host_package():
-    code = ("import sys, phantom.model.inverse, phantom.cli.inverse, phantom.cli.model; "
-            "import json; print(json.dumps(sorted(m for m in sys.modules if m.startswith('phantom.host'))))")
-    loaded = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                                       check=True).stdout)
-    assert loaded == []
+    assert modules_loaded("phantom.model.inverse, phantom.cli.inverse, phantom.cli.model", ("phantom.host",)) == []
+
+
+def test_the_daemon_loads_neither_the_hil_package_nor_the_command_line():
+    """The host is joined to the simulated board by the command line, which passes the board's factory."""
+    assert modules_loaded("phantom.host.daemon, phantom.host.handlers", ("phantom.hil", "phantom.cli")) == []
+
+
+def test_a_daemon_told_to_simulate_without_a_board_factory_refuses_before_it_takes_the_socket(tmp_path):
+    import asyncio
+
+    from phantom.host.config import DaemonConfig
+    from phantom.host.daemon import Daemon
+
+    config = DaemonConfig(sim=True, socket=tmp_path / "d.sock")
+    with pytest.raises(PhantomError, match="cannot simulate a board: start the daemon with `phantom daemon --sim`"):
+        asyncio.run(Daemon.start(config))
+    assert not (tmp_path / "d.sock").exists()
 
 
 # --- the daemon's wiring, one layer, with stand-ins for the parts it is given ---------------------------------
@@ -267,10 +285,11 @@ class PartsStandIn:
         from types import SimpleNamespace
 
         from phantom.host.api import ApiServer
-        from phantom.host.control import ModelInfo
+        from phantom.host.model_worker import ModelInfo
 
         self.calls: list[tuple] = []
-        info = ModelInfo(CHAMBERS, 26.1, {"total_s": 1.0}, "updated", {}, "scene.toml", 3000.0, scene_shape, {})
+        info = ModelInfo(CHAMBERS, ["base", "left lobe", "right lobe"], 26.1, {"total_s": 1.0}, "updated", {},
+                         "scene.toml", 3000.0, scene_shape, {})
         parts = self
 
         class Model:
@@ -278,7 +297,7 @@ class PartsStandIn:
                 self.info = info
 
             async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
-                from phantom.host.control import Estimate
+                from phantom.host.model_worker import Estimate
 
                 parts.calls.append(("estimate", with_surface))
                 surface = (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])) if with_surface else None
@@ -316,7 +335,8 @@ class PartsStandIn:
         self.api = ApiServer("/nonexistent/never-started.sock", {})
 
     def daemon(self, recording: bool, clock):
-        from phantom.host.daemon import Daemon, DaemonConfig
+        from phantom.host.config import DaemonConfig
+        from phantom.host.daemon import Daemon
 
         config = DaemonConfig(sim=True, rerun_save="x.rrd" if recording else None, mesh_hz=2.0)
         return Daemon(config, self.api, self.model, self.recorder, self.session, None, clock=clock)

@@ -31,8 +31,8 @@ def test_equal_to_linear_at_small_pressure(free_prostate):
     differences = []
     for pressure_pa in (5.0, 50.0):
         pressures = LOAD_SHAPE * pressure_pa
-        corotational = volume_changes(model, model.solve(pressures))
-        linear = volume_changes(model, model.solve(pressures, formulation="linear"))
+        corotational = volume_changes(model, model.equilibrium(pressures))
+        linear = volume_changes(model, model.equilibrium(pressures, formulation="linear"))
         differences.append(np.abs(corotational / linear - 1).max())
     # The models differ by geometric nonlinearity, O(p/E): 1e-4 of relative size at p/E = 1e-4, and ten times
     # more at ten times the pressure (a first-order difference, not a bias).
@@ -50,13 +50,13 @@ def test_only_the_corotational_answer_is_invariant_to_a_rigid_rotation(free_pros
     model = free_prostate
     pressures = LOAD_SHAPE * 0.1 * YOUNGS_MODULUS_PA  # large: p/E = 0.1
     start = rotated_90_degrees(model.nodes_m)
-    upright = model.solve(pressures)
-    turned = model.solve(pressures, initial_positions_m=start)
+    upright = model.equilibrium(pressures)
+    turned = model.equilibrium(pressures, initial_positions_m=start)
     # Same equilibrium, rotated: volumes agree to the Newton tolerance (1e-9 of the load).
     np.testing.assert_allclose(volume_changes(model, turned), volume_changes(model, upright), rtol=1e-6)
     assert abs(volume_changes(model, upright)[-1]) > 1e-7  # a large load: over 0.1 ml of growth
-    upright_linear = model.solve(pressures, formulation="linear")
-    turned_linear = model.solve(pressures, formulation="linear", initial_positions_m=start)
+    upright_linear = model.equilibrium(pressures, formulation="linear")
+    turned_linear = model.equilibrium(pressures, formulation="linear", initial_positions_m=start)
     # Small strain sees a rotation as a huge strain: its answer changes completely.
     assert np.abs(volume_changes(model, turned_linear) / volume_changes(model, upright_linear) - 1).max() > 1.0
     # At this load the co-rotational and linear answers differ by geometric nonlinearity, about 10 %.

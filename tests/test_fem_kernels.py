@@ -232,3 +232,35 @@ def test_ahead_of_time_build_matches_the_jit_kernels_without_loading_numba(tmp_p
             scale = max(np.abs(jit_value).max(), 1e-300)
             assert np.abs(runs["aot"][name] - jit_value).max() <= 1e-12 * scale, name
             assert np.any(jit_value != 0), name
+
+
+#: One element's forces: compiles (or loads from numba's cache) the kernels the message is about.
+ONE_ELEMENT_FORCES = """
+import numpy as np
+from phantom.model.fem import kernels
+nodes = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+tets = np.array([[0, 1, 2, 3]])
+dm_inverse, _, stiffness = kernels.element_rest_data(nodes, tets, 1e3, 0.3)
+kernels.internal_forces(nodes, nodes, tets, dm_inverse, stiffness, True, 0, np.zeros((1, 12, 12), np.int64),
+                        np.zeros(1))
+"""
+
+
+@pytest.mark.slow
+def test_the_compiling_message_is_printed_only_when_numba_compiles(tmp_path):
+    """With no build ahead of time, importing the kernels says numba will compile them unless numba's cache has
+    them: the cache NUMBA_CACHE_DIR names when a parent process set it (pytest, a daemon), not the phantom cache's
+    own folder, else a second process announced a compilation that never came (a stray second line on stderr)."""
+    import os
+    import subprocess
+    import sys
+
+    numba_cache = tmp_path / "numba"
+    message = "compiling the model's kernels with numba"
+    for run in ("first", "second"):
+        environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / run), NUMBA_CACHE_DIR=str(numba_cache),
+                           PHANTOM_JIT_KERNELS="1")
+        imported = subprocess.run([sys.executable, "-c", ONE_ELEMENT_FORCES], env=environment, capture_output=True,
+                                  text=True, timeout=240)
+        assert imported.returncode == 0, imported.stderr
+        assert (message in imported.stderr) == (run == "first"), (run, imported.stderr)

@@ -41,7 +41,7 @@ def test_forward_writes_the_deformed_mesh_in_the_format_of_its_extension(tmp_pat
         assert groups.keys() == model.mesh.surface_groups.keys()
         for name, triangles in model.mesh.surface_groups.items():
             np.testing.assert_array_equal(np.sort(groups[name], axis=1), np.sort(triangles, axis=1))
-    state = model.solve([4e3, 2e3, 2e3])
+    state = model.equilibrium([4e3, 2e3, 2e3])
     np.testing.assert_allclose(deformed.points, state.positions_m * 1e3, atol=1e-9)
     # The file's own geometry gives back the reported volumes.
     for triangles, volume_ml in zip(model.chamber_triangles, answer["chamber_volumes_ml"], strict=True):
@@ -60,7 +60,7 @@ def test_an_unwritable_output_is_a_one_line_error(tmp_path, capsys):
 def test_the_deformed_outer_surface_encloses_the_gland_volume(model):
     pressures = np.array([4e3, 2e3, 2e3])
     positions_mm, triangles = model.deformed_surface(pressures)
-    state = model.solve(pressures)
+    state = model.equilibrium(pressures)
     assert triangles.shape[1] == 3 and triangles.max() == len(positions_mm) - 1
     assert enclosed_volume_m3(positions_mm * 1e-3, triangles) == pytest.approx(state.gland_volume_m3, rel=1e-12)
     rest_mm, rest_triangles = model.deformed_surface([0, 0, 0])
@@ -78,7 +78,7 @@ def test_forward_on_a_tagged_mesh_scene_with_a_hyperelastic_material(tmp_path, c
     assert main(["forward", "--scene", str(tmp_path / "scene.toml"), "--pressures-kpa", "4,2,2", "--json"]) == 0
     answer = json.loads(capsys.readouterr().out)
     scene = load_scene(tmp_path / "scene.toml")
-    expected = PhantomModel.from_scene(scene).solve([4e3, 2e3, 2e3])
+    expected = PhantomModel.from_scene(scene).equilibrium([4e3, 2e3, 2e3])
     assert answer["formulation"] == scene.material.model
     assert answer["chamber_volumes_ml"] == pytest.approx(list(expected.chamber_volumes_m3 * 1e6), rel=1e-12)
     assert all(v > r for v, r in zip(answer["chamber_volumes_ml"], answer["rest_chamber_volumes_ml"], strict=True))

@@ -46,7 +46,7 @@ def test_a_flattening_pressure_volume_curve_is_followed_by_volume_control(sphere
     times the rest volume (p/E 0.43-0.46); the path switches to volume control there and ends in an exact
     pressure-controlled equilibrium on the far side, about 12 times the rest volume."""
     model = sphere(sphere_mesh, "gent", 20.0)
-    state = model.solve([0.47 * YOUNGS_MODULUS_PA])
+    state = model.equilibrium([0.47 * YOUNGS_MODULUS_PA])
     assert_equilibrium(model, state, 20.0)
     growth = state.chamber_volumes_m3[0] / model.rest_chamber_volumes_m3[0]
     assert 8 < growth < 16, growth
@@ -57,7 +57,7 @@ def test_just_below_a_limit_point_the_target_is_reached(sphere_mesh):
     """Neo-Hookean peaks near p/E = 0.41 on this mesh; 0.39 lies on the rising branch close to it, where the
     curve has flattened to a fifth of its initial slope."""
     model = sphere(sphere_mesh, "neo_hookean")
-    state = model.solve([0.39 * YOUNGS_MODULUS_PA])
+    state = model.equilibrium([0.39 * YOUNGS_MODULUS_PA])
     assert_equilibrium(model, state)
 
 
@@ -65,7 +65,7 @@ def test_past_a_limit_point_the_error_names_the_chamber_the_peak_and_where_it_st
     model = sphere(sphere_mesh, "neo_hookean")
     started = time.perf_counter()
     with pytest.raises(SolveError) as caught:
-        model.solve([0.6 * YOUNGS_MODULUS_PA])
+        model.equilibrium([0.6 * YOUNGS_MODULUS_PA])
     message = str(caught.value)
     print(f"\n{time.perf_counter() - started:.2f} s: {message}")
     assert message.startswith("chamber 0 ('cavity' at 30 kPa, p/E = 0.6) is out of reach")
@@ -73,7 +73,7 @@ def test_past_a_limit_point_the_error_names_the_chamber_the_peak_and_where_it_st
     peak_kpa = float(message.split("peaks at ")[1].split(" kPa")[0])
     stopped_kpa = float(message.split("stopped at ")[1].split(" kPa")[0])
     # The peak lies between what converged under pressure control and the target, the stop just past it.
-    below = model.solve([0.4 * YOUNGS_MODULUS_PA])
+    below = model.equilibrium([0.4 * YOUNGS_MODULUS_PA])
     assert 20.0 < peak_kpa < 30.0 and 0.8 * peak_kpa < stopped_kpa < peak_kpa
     stopped_ml = float(message.split("stopped at ")[1].split(" and ")[1].split(" ml")[0])
     assert stopped_ml > below.chamber_volumes_m3[0] * 1e6

@@ -9,6 +9,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from phantom import PhantomError
+from phantom.cli.main import main
 from phantom.hil.harness import HarnessError, HarnessProcess
 from phantom.hil.plant import (
     CALIBRATED_SCENE_PATH,
@@ -17,7 +18,6 @@ from phantom.hil.plant import (
     blower_flow_m3_per_s,
     chambers_from_scene,
     load_plant,
-    main,
     write_chambers,
 )
 
@@ -120,7 +120,7 @@ def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, tmp
                                                                  "youngs_modulus_kpa = 12.08366"))
     path = plant_file()
     before = path.read_text()
-    assert main(["--from-scene", str(stiffer), "--plant", str(path)]) == 0
+    assert main(["hil", "plant", "--from-scene", str(stiffer), "--plant", str(path)]) == 0
     assert "wrote" in capsys.readouterr().out
     shipped, regenerated = load_plant(), load_plant(path)
     np.testing.assert_allclose(
@@ -134,8 +134,10 @@ def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, tmp
 
 
 def test_regeneration_refuses_bad_input(plant_file, tmp_path, capsys):
-    assert main(["--from-scene", str(tmp_path / "none.toml"), "--plant", str(plant_file())]) == 2
+    assert main(["hil", "plant", "--from-scene", str(tmp_path / "none.toml"), "--plant", str(plant_file())]) == 2
     assert "does not exist" in capsys.readouterr().err
+    assert main(["hil", "plant", "--plant", str(plant_file())]) == 2
+    assert capsys.readouterr().err.strip() == "phantom hil: error: give --from-scene, --truth-from-scene or both"
     # a file without the generated keys in the expected layout is not rewritten blindly
     path = plant_file(r"^cavity_volume_ml = .*$", "")
     fem = chambers_from_scene("builtin")

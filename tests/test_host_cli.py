@@ -1,5 +1,6 @@
 """The daemon's command line, its config file and the systemd unit, without a board."""
 
+import argparse
 import configparser
 import subprocess
 import sys
@@ -8,7 +9,8 @@ from pathlib import Path
 import pytest
 
 from phantom import PhantomError
-from phantom.cli.daemon import CONFIG_KEYS, format_steps, load_config
+from phantom.cli.daemon import format_steps
+from phantom.host.config import ConfigError, DaemonConfig, load_config, merged_config, settings
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 HOST = Path(__file__).resolve().parent.parent / "host"
@@ -18,25 +20,94 @@ def run_phantom(*arguments, env=None):
     return subprocess.run([str(PHANTOM), *arguments], capture_output=True, text=True, timeout=120, env=env)
 
 
-def test_the_shipped_config_file_is_valid_and_uses_known_keys():
-    table = load_config(HOST / "systemd" / "phantomd.toml")
-    assert set(table) <= set(CONFIG_KEYS)
-    assert table["socket"] == "/run/phantom/phantomd.sock" and table["port"].startswith("/dev/serial/by-id/")
+def test_the_shipped_config_file_is_valid_and_names_every_setting():
+    path = HOST / "systemd" / "phantomd.toml"
+    table = load_config(path)
+    assert table["socket"] == Path("/run/phantom/phantomd.sock") and table["port"].startswith("/dev/serial/by-id/")
+    # every key is there, set or in a comment, so that the file a lab edits shows what it may set
+    text = path.read_text()
+    missing = [item.name for item in settings() if f"{item.name} = " not in text]
+    assert missing == []
 
 
 @pytest.mark.parametrize(("text", "message"), [
     ("[daemon]\nprot = '/dev/ttyACM0'\n", "unknown key.*prot"),
-    ("[daemon]\nsim = 'yes'\n", "sim must be a bool"),
-    ("[daemon]\nbaud = true\n", "baud must be a int"),
+    ("[daemon]\nsim = 'yes'\n", "\\[daemon\\] sim must be true or false, got 'yes'"),
+    ("[daemon]\nbaud = true\n", "\\[daemon\\] baud must be an integer, got True"),
+    ("[daemon]\nbaud = 9600.5\n", "baud must be an integer"),
+    ("[daemon]\nmesh_hz = nan\n", "mesh_hz must be between 0 and 10, got nan"),
+    ("[daemon]\nhost_deadline_ms = 5\n", "host_deadline_ms must be between 50 and 10000, got 5"),
+    ("[daemon]\ntelemetry_period_ms = 0\n", "telemetry_period_ms must be between 10 and 1000, got 0"),
+    ("[daemon]\nboot_delay_s = -1\n", "boot_delay_s must be between 0 and 60"),
+    ("[daemon]\nscene = 3\n", "scene must be a string"),
+    ("daemon = 3\n", "daemon must be a table"),
     ("[daemon\n", "not valid TOML"),
 ])
 def test_bad_config_files_are_refused_with_the_key(tmp_path, text, message):
     path = tmp_path / "phantomd.toml"
     path.write_text(text)
-    with pytest.raises(PhantomError, match=message):
+    with pytest.raises(ConfigError, match=message) as refused:
         load_config(path)
+    assert "\n" not in str(refused.value) and str(path) in str(refused.value)
     with pytest.raises(PhantomError, match="does not exist"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_a_config_takes_the_file_then_the_flags_and_a_flagged_group_replaces_the_files():
+    from_file = {"port": "/dev/ttyACM0", "mesh_hz": 2.0, "rerun_save": Path("a.rrd"), "vent_on_exit": False}
+    config = merged_config(from_file, {"mesh_hz": 3.0, "vent_on_exit": None, "port": None})
+    assert (config.port, config.mesh_hz, config.rerun_save, config.vent_on_exit) == ("/dev/ttyACM0", 3.0,
+                                                                                      Path("a.rrd"), False)
+    # --sim on the command line replaces the file's board; --rerun-connect its recording
+    config = merged_config(from_file, {"sim": True, "rerun_connect": "rerun+http://127.0.0.1:9876/proxy"})
+    assert config.sim and config.port is None and config.rerun_save is None and config.rerun_connect
+    assert config.socket is None and config.baud == 115200 and config.zero_on_connect
+
+
+def test_a_config_needs_one_board_and_values_in_range():
+    with pytest.raises(ConfigError, match="^give exactly one board: --port DEV, --sim, or --can-channel CH$"):
+        DaemonConfig()
+    with pytest.raises(ConfigError, match="give exactly one board"):
+        DaemonConfig(sim=True, port="/dev/ttyACM0")
+    with pytest.raises(ConfigError, match="give at most one recording: --rerun-save FILE, or --rerun-connect ADDR"):
+        merged_config({"sim": True, "rerun_save": "a.rrd", "rerun_connect": "rerun+http://x/proxy"}, {})
+    with pytest.raises(ConfigError, match="sim_speed must be between 0 and 100, got -1"):
+        DaemonConfig(sim=True, sim_speed=-1)
+    assert DaemonConfig(sim=True, rerun_save="x.rrd").rerun_save == Path("x.rrd")
+
+
+def test_every_setting_is_a_daemon_flag_with_its_help_and_range():
+    from phantom.cli import daemon as commands
+
+    parser = argparse.ArgumentParser()
+    commands.register(parser.add_subparsers())
+    daemon_help = run_phantom("daemon", "--help").stdout
+    for item in settings():
+        assert item.flag in daemon_help and item.setting.help[:30] in " ".join(daemon_help.split()), item.name
+    args = parser.parse_args(["daemon", "--sim", "--mesh-hz", "2.5", "--no-vent-on-exit", "--host-deadline-ms",
+                              "800", "--rerun-save", "out/x.rrd"])
+    assert (args.sim, args.mesh_hz, args.vent_on_exit, args.host_deadline_ms, args.rerun_save) == (
+        True, 2.5, False, 800, Path("out/x.rrd"))
+    assert args.port is None and args.zero_on_connect is None     # not given: the config file's value stands
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--mesh-hz", "nan"], "argument --mesh-hz: the value must be between 0 and 10, got nan"),
+    (["--host-deadline-ms", "5"], "argument --host-deadline-ms: the value must be between 50 and 10000, got 5"),
+    (["--baud", "fast"], "argument --baud: 'fast' is not an integer"),
+])
+def test_daemon_flags_out_of_range_are_usage_errors(tmp_path, flags, message):
+    result = run_phantom("daemon", "--sim", "--socket", str(tmp_path / "d.sock"), *flags)
+    assert result.returncode == 2 and result.stderr.strip().splitlines()[-1] == f"phantom daemon: error: {message}"
+
+
+def test_a_config_file_out_of_range_is_one_line_and_exit_2(tmp_path):
+    path = tmp_path / "phantomd.toml"
+    path.write_text("[daemon]\nsim = true\ntelemetry_period_ms = 0\n")
+    result = run_phantom("daemon", "--config", str(path), "--socket", str(tmp_path / "d.sock"))
+    assert result.returncode == 2
+    assert result.stderr.strip() == (f"phantom daemon: error: {path}: [daemon] telemetry_period_ms must be between "
+                                     "10 and 1000, got 0")
 
 
 def test_systemd_unit_restarts_on_failure_vents_on_sigterm_and_uses_the_serial_group():
@@ -93,8 +164,6 @@ def test_a_list_starting_with_a_free_chamber_is_a_value_not_an_option(command):
 
 
 def test_every_host_subcommand_has_a_description_and_json():
-    import argparse
-
     from phantom.cli import daemon as commands
 
     parser = argparse.ArgumentParser()

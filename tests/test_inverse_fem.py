@@ -37,7 +37,7 @@ def test_the_cli_answer_meets_the_target_on_the_full_model_within_0_1_percent(mo
     report = json.loads(capsys.readouterr().out)
     assert set(report) >= {"pressures_kpa", "predicted_volume_ml", "iterations", "solve_time_s"}
     # The forward model, solved afresh at the answer, is the independent check.
-    check = model.solve(np.array(report["pressures_kpa"]) * 1e3)
+    check = model.equilibrium(np.array(report["pressures_kpa"]) * 1e3)
     assert check.gland_volume_m3 * 1e6 == pytest.approx(target_ml, rel=1e-3)
     assert report["predicted_volume_ml"] == pytest.approx(target_ml, rel=1e-4)
     # The co-rotational response is not linear: the rest compliance alone is not enough, the tangent is updated.
@@ -48,8 +48,8 @@ def test_the_cli_answer_meets_the_target_on_the_full_model_within_0_1_percent(mo
 def test_a_growth_ratio_holds_on_the_full_model(model):
     solver = InverseSolver(model, pressure_max_pa=20e3, fidelity="full")
     target_m3 = model.rest_gland_volume_m3 + 0.6e-6
-    result = solver.solve(Target(gland_volume_m3=target_m3, growth_ratio={1: 2.0, 2: 1.0}))
-    check = model.solve(result.pressures_pa)
+    result = solver.pressures_for(Target(gland_volume_m3=target_m3, growth_ratio={1: 2.0, 2: 1.0}))
+    check = model.equilibrium(result.pressures_pa)
     growth_m3 = check.chamber_volumes_m3 - model.rest_chamber_volumes_m3
     assert growth_m3[1] == pytest.approx(2.0 * growth_m3[2], rel=1e-3)
     assert check.gland_volume_m3 == pytest.approx(target_m3, rel=1e-4)
@@ -64,7 +64,7 @@ def test_an_unreachable_volume_states_the_range_the_full_model_reaches(model, ca
     message = str(caught.value)
     assert "45.000 ml is unreachable" in message and "between 0 and [3, 3, 3] kPa" in message
     lowest_ml, highest_ml = (float(value) for value in message.split(" give ")[1].split(" ml")[0].split(" to "))
-    at_limit = model.solve([3e3, 3e3, 3e3])
+    at_limit = model.equilibrium([3e3, 3e3, 3e3])
     assert highest_ml == pytest.approx(at_limit.gland_volume_m3 * 1e6, rel=1e-3)
     # The low end is the model at zero pressure, not the linearisation at the limit extrapolated down to zero.
     assert lowest_ml == pytest.approx(model.rest_gland_volume_m3 * 1e6, abs=5e-4)  # printed to 0.001 ml

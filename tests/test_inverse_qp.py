@@ -19,6 +19,7 @@ from phantom.model.inverse import (
     Target,
     UnreachableTargetError,
 )
+from phantom.model.scene import ModelSettings
 
 ML = 1e-6          # m^3 per ml
 KPA = 1e3          # Pa per kPa
@@ -28,9 +29,9 @@ ML_PER_KPA = 1e-9  # (m^3/Pa) per (ml/kPa)
 class LinearStandIn:
     """A forward model that is exactly linear: c = c0 + W p, g = g0 + h . p (given in ml and kPa)."""
 
-    # PhantomModel's attributes that the inverse reads: no scene (so no [model] table), and the general
+    # PhantomModel's attributes that the inverse reads: the default model settings (no scene), and the general
     # (nonlinear, warm-started) formulation, which SofteningStandIn below is.
-    scene = None
+    model_settings = ModelSettings()
     formulation = "corotational"
 
     def __init__(self, chamber_ml_per_kpa, gland_ml_per_kpa, rest_chambers_ml, rest_gland_ml):
@@ -64,7 +65,7 @@ class SofteningStandIn(LinearStandIn):
         return (self.rest_chamber_volumes_m3 / ML + chamber_change * (1 + chamber_change / self.scale_ml),
                 self.rest_gland_volume_m3 / ML + gland_change * (1 + gland_change / self.scale_ml))
 
-    def solve(self, pressures_pa, formulation=None, initial_positions_m=None):
+    def equilibrium(self, pressures_pa, formulation=None, initial_positions_m=None):
         self.solves += 1
         pressures_kpa = np.asarray(pressures_pa) / KPA
         if pressures_kpa.sum() > self.limit_kpa:
@@ -106,7 +107,8 @@ def test_total_volume_with_diagonal_compliance_matches_the_closed_form():
     compliance = np.diag([1.5, 1.0, 0.5])
     model = LinearStandIn(compliance, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     growth_ml = 8.0
-    result = InverseSolver(model, fidelity="rest").solve(Target(gland_volume_m3=(REST_GLAND_ML + growth_ml) * ML))
+    target = Target(gland_volume_m3=(REST_GLAND_ML + growth_ml) * ML)
+    result = InverseSolver(model, fidelity="rest").pressures_for(target)
     # Lagrange: W x = lambda h and h . x = b give x = b W^-1 h / (h^T W^-1 h).
     inverse_h = GLAND_H / np.diag(compliance)
     expected_kpa = growth_ml * inverse_h / (GLAND_H @ inverse_h)
@@ -118,7 +120,7 @@ def test_total_volume_with_diagonal_compliance_matches_the_closed_form():
 
 def test_the_answer_is_the_small_epsilon_limit_of_the_regularised_least_squares():
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
-    result = InverseSolver(model, fidelity="rest").solve(Target(gland_volume_m3=(REST_GLAND_ML + 7.0) * ML))
+    result = InverseSolver(model, fidelity="rest").pressures_for(Target(gland_volume_m3=(REST_GLAND_ML + 7.0) * ML))
     for epsilon in (1e-4, 1e-6):
         # Unconstrained minimiser of 1/2 (h.x - b)^2 + eps/2 x^T W x, in closed form.
         regularised = np.linalg.solve(np.outer(GLAND_H, GLAND_H) + epsilon * COUPLED_W, GLAND_H * 7.0)
@@ -131,7 +133,8 @@ def test_chamber_targets_with_an_active_bound_match_scipy():
     # Chamber 0 asks for more than p0 <= 1.5 kPa gives alone, so chamber 1 and 2 pressures must help it.
     targets_ml = [REST_CHAMBERS_ML[0] + 2.8, None, REST_CHAMBERS_ML[2] + 0.9]
     solver = InverseSolver(model, pressure_max_pa=pressure_max_kpa * KPA, fidelity="rest")
-    result = solver.solve(Target(chamber_volumes_m3=[None if value is None else value * ML for value in targets_ml]))
+    target = Target(chamber_volumes_m3=[None if value is None else value * ML for value in targets_ml])
+    result = solver.pressures_for(target)
     truth = least_energy_with_scipy(COUPLED_W, [(COUPLED_W[0], 2.8), (COUPLED_W[2], 0.9)],
                                     [(0, pressure_max_kpa)] * 3)
     assert np.isclose(truth, pressure_max_kpa).any(), "the case must have an active bound"
@@ -143,7 +146,7 @@ def test_chamber_targets_with_an_active_bound_match_scipy():
 def test_growth_ratio_shares_the_volume_as_asked_and_matches_scipy():
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     target = Target(gland_volume_m3=(REST_GLAND_ML + 6.0) * ML, growth_ratio={1: 2.0, 2: 1.0})
-    result = InverseSolver(model, fidelity="rest").solve(target)
+    result = InverseSolver(model, fidelity="rest").pressures_for(target)
     growth_ml = result.predicted_chamber_volumes_m3 / ML - REST_CHAMBERS_ML
     assert growth_ml[1] == pytest.approx(2.0 * growth_ml[2], rel=1e-7)
     assert result.predicted_gland_volume_m3 / ML == pytest.approx(REST_GLAND_ML + 6.0, rel=1e-9)
@@ -156,7 +159,7 @@ def test_a_gland_volume_beyond_the_pressure_limit_states_the_reachable_range():
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     highest_ml = REST_GLAND_ML + GLAND_H.sum() * 3.0
     with pytest.raises(UnreachableTargetError) as caught:
-        InverseSolver(model, pressure_max_pa=3 * KPA, fidelity="rest").solve(Target(gland_volume_m3=60 * ML))
+        InverseSolver(model, pressure_max_pa=3 * KPA, fidelity="rest").pressures_for(Target(gland_volume_m3=60 * ML))
     message = str(caught.value)
     assert "60.000 ml is unreachable" in message
     assert f"{REST_GLAND_ML:.3f} to {highest_ml:.3f} ml" in message
@@ -165,7 +168,7 @@ def test_a_gland_volume_beyond_the_pressure_limit_states_the_reachable_range():
 def test_a_gland_volume_below_rest_is_unreachable():
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     with pytest.raises(UnreachableTargetError, match=f"{REST_GLAND_ML:.3f} to"):
-        InverseSolver(model, fidelity="rest").solve(Target(gland_volume_m3=20 * ML))
+        InverseSolver(model, fidelity="rest").pressures_for(Target(gland_volume_m3=20 * ML))
 
 
 def test_contradictory_chamber_targets_are_named_not_averaged():
@@ -174,14 +177,14 @@ def test_contradictory_chamber_targets_are_named_not_averaged():
     # at rest + 0.05 ml although that value is reachable on its own.
     target = Target(chamber_volumes_m3=[(REST_CHAMBERS_ML[0] + 4.7) * ML, None, (REST_CHAMBERS_ML[2] + 0.05) * ML])
     with pytest.raises(UnreachableTargetError, match="contradicts the other targets"):
-        InverseSolver(model, fidelity="rest").solve(target)
+        InverseSolver(model, fidelity="rest").pressures_for(target)
 
 
 @pytest.mark.parametrize("weight", [-1.0, 0.0, float("nan")])
 def test_a_growth_ratio_that_asks_a_chamber_to_shrink_is_refused(weight):
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     with pytest.raises(UnreachableTargetError, match="weights must be positive"):
-        InverseSolver(model, fidelity="rest").solve(Target(gland_volume_m3=30 * ML, growth_ratio={1: 1.0,
+        InverseSolver(model, fidelity="rest").pressures_for(Target(gland_volume_m3=30 * ML, growth_ratio={1: 1.0,
                                                                                                    2: weight}))
 
 
@@ -189,11 +192,11 @@ def test_growth_limits_bound_the_answer():
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     limits_ml = [1.0, None, None]
     solver = InverseSolver(model, fidelity="rest", max_growth_m3=[None if v is None else v * ML for v in limits_ml])
-    result = solver.solve(Target(gland_volume_m3=(REST_GLAND_ML + 5.0) * ML))
+    result = solver.pressures_for(Target(gland_volume_m3=(REST_GLAND_ML + 5.0) * ML))
     assert result.predicted_chamber_volumes_m3[0] / ML - REST_CHAMBERS_ML[0] <= 1.0 + 1e-6
     assert result.predicted_gland_volume_m3 / ML == pytest.approx(REST_GLAND_ML + 5.0, rel=1e-5)
     with pytest.raises(UnreachableTargetError, match="growth limits"):
-        solver.solve(Target(gland_volume_m3=(REST_GLAND_ML + 14.0) * ML))
+        solver.pressures_for(Target(gland_volume_m3=(REST_GLAND_ML + 14.0) * ML))
 
 
 @pytest.mark.parametrize("target, message", [
@@ -210,18 +213,18 @@ def test_growth_limits_bound_the_answer():
 def test_bad_targets_say_what_is_wrong(target, message):
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     with pytest.raises(PhantomError, match=message):
-        InverseSolver(model, fidelity="rest").solve(target)
+        InverseSolver(model, fidelity="rest").pressures_for(target)
 
 
 def test_raw_pressures_are_only_bounds_checked():
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     solver = InverseSolver(model, pressure_max_pa=3 * KPA, fidelity="rest")
-    result = solver.solve(Target(pressures_pa=[1000.0, 0.0, 2000.0]))
+    result = solver.pressures_for(Target(pressures_pa=[1000.0, 0.0, 2000.0]))
     np.testing.assert_array_equal(result.pressures_pa, [1000.0, 0.0, 2000.0])
     assert result.predicted_gland_volume_m3 / ML == pytest.approx(REST_GLAND_ML + GLAND_H @ [1.0, 0.0, 2.0])
     for pressures in ([-1.0, 0.0, 0.0], [0.0, 3001.0, 0.0]):
         with pytest.raises(UnreachableTargetError, match="outside the allowed"):
-            solver.solve(Target(pressures_pa=pressures))
+            solver.pressures_for(Target(pressures_pa=pressures))
 
 
 def test_bad_solver_settings_are_refused():
@@ -238,15 +241,16 @@ def test_bad_solver_settings_are_refused():
 def test_one_problem_per_shape_is_set_up_and_reused_warm(capfd):
     model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
     solver = InverseSolver(model, fidelity="rest")
-    answers = [solver.solve(Target(gland_volume_m3=(REST_GLAND_ML + growth) * ML)) for growth in (3.0, 6.0, 9.0)]
+    answers = [solver.pressures_for(Target(gland_volume_m3=(REST_GLAND_ML + growth) * ML))
+               for growth in (3.0, 6.0, 9.0)]
     assert len(solver._problems) == 1
     # Linear and unconstrained inside the bounds: the answer scales with the wanted growth.
     np.testing.assert_allclose(answers[2].pressures_pa, 3 * answers[0].pressures_pa, rtol=1e-6)
     # One target row again (a chamber instead of the gland): the same shape, the same problem, new values.
-    chamber = solver.solve(Target(chamber_volumes_m3=[(REST_CHAMBERS_ML[0] + 1.0) * ML, None, None]))
+    chamber = solver.pressures_for(Target(chamber_volumes_m3=[(REST_CHAMBERS_ML[0] + 1.0) * ML, None, None]))
     assert len(solver._problems) == 1
     assert chamber.predicted_chamber_volumes_m3[0] / ML == pytest.approx(REST_CHAMBERS_ML[0] + 1.0, rel=1e-9)
-    solver.solve(Target(gland_volume_m3=30 * ML, growth_ratio={0: 1.0, 1: 1.0}))
+    solver.pressures_for(Target(gland_volume_m3=30 * ML, growth_ratio={0: 1.0, 1: 1.0}))
     assert len(solver._problems) == 2
     # OSQP stays silent: the CLI's --json output is stdout.
     assert capfd.readouterr().out == ""
@@ -255,8 +259,8 @@ def test_one_problem_per_shape_is_set_up_and_reused_warm(capfd):
 def test_the_outer_iteration_meets_the_nonlinear_model_and_reports_its_iterations():
     model = SofteningStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML, scale_ml=10.0)
     solver = InverseSolver(model, fidelity="full")
-    result = solver.solve(Target(gland_volume_m3=40 * ML))
-    check = model.solve(result.pressures_pa)
+    result = solver.pressures_for(Target(gland_volume_m3=40 * ML))
+    check = model.equilibrium(result.pressures_pa)
     assert check.gland_volume_m3 / ML == pytest.approx(40.0, rel=2e-5)
     # The first, rest-compliance answer misses by the nonlinearity; Newton on the exact tangent then converges in
     # a few steps (quadratically), not the max.
@@ -267,8 +271,9 @@ def test_the_outer_iteration_meets_the_nonlinear_model_and_reports_its_iteration
 
 def test_the_outer_iteration_keeps_growth_ratios_on_the_nonlinear_model():
     model = SofteningStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML, scale_ml=10.0)
-    result = InverseSolver(model, fidelity="full").solve(Target(gland_volume_m3=36 * ML, growth_ratio={1: 2, 2: 1}))
-    check = model.solve(result.pressures_pa)
+    target = Target(gland_volume_m3=36 * ML, growth_ratio={1: 2, 2: 1})
+    result = InverseSolver(model, fidelity="full").pressures_for(target)
+    check = model.equilibrium(result.pressures_pa)
     growth_ml = check.chamber_volumes_m3 / ML - REST_CHAMBERS_ML
     assert growth_ml[1] == pytest.approx(2 * growth_ml[2], rel=1e-4)
     assert check.gland_volume_m3 / ML == pytest.approx(36.0, rel=2e-5)
@@ -278,11 +283,11 @@ def test_past_the_limit_point_the_inverse_says_so_instead_of_diverging():
     model = SofteningStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML, scale_ml=10.0, limit_kpa=4.0)
     solver = InverseSolver(model, fidelity="full")
     # Reachable below the limit point...
-    below = solver.solve(Target(gland_volume_m3=32 * ML))
-    assert model.solve(below.pressures_pa).gland_volume_m3 / ML == pytest.approx(32.0, rel=2e-5)
+    below = solver.pressures_for(Target(gland_volume_m3=32 * ML))
+    assert model.equilibrium(below.pressures_pa).gland_volume_m3 / ML == pytest.approx(32.0, rel=2e-5)
     # ...but 45 ml needs more than 4 kPa in total, where the model has no equilibrium.
     with pytest.raises(LimitPointError, match="limit point"):
-        solver.solve(Target(gland_volume_m3=45 * ML))
+        solver.pressures_for(Target(gland_volume_m3=45 * ML))
 
 
 @pytest.mark.parametrize("volume_ml", [1e300, -1e300, 1e200])
@@ -292,11 +297,12 @@ def test_an_absurd_volume_is_unreachable_with_the_range_and_leaves_no_state_behi
     highest_ml = REST_GLAND_ML + GLAND_H.sum() * 3.0
     for _ in range(2):
         with pytest.raises(UnreachableTargetError, match=f"{REST_GLAND_ML:.3f} to {highest_ml:.3f} ml"):
-            solver.solve(Target(gland_volume_m3=volume_ml * ML))
+            solver.pressures_for(Target(gland_volume_m3=volume_ml * ML))
     # the next targets, of the gland and of a chamber, are solved as on a fresh solver
     fresh = InverseSolver(model, pressure_max_pa=3 * KPA, fidelity="rest")
     for target in (Target(gland_volume_m3=30 * ML), Target(chamber_volumes_m3=[2.0 * ML, None, None])):
-        np.testing.assert_allclose(solver.solve(target).pressures_pa, fresh.solve(target).pressures_pa, rtol=1e-9)
+        np.testing.assert_allclose(solver.pressures_for(target).pressures_pa, fresh.pressures_for(target).pressures_pa,
+                                   rtol=1e-9)
 
 
 def test_a_qp_whose_solve_raises_is_set_up_afresh_next_time():
@@ -305,7 +311,58 @@ def test_a_qp_whose_solve_raises_is_set_up_afresh_next_time():
     qp = VolumeQP(1, 1)
     hessian, linear, matrix = np.eye(1), np.zeros(1), np.eye(1)
     with pytest.raises(UnreachableTargetError, match="out of scale"):
-        qp.solve(hessian, linear, matrix, np.array([1e300]), np.array([1e300]))
+        qp.minimise(hessian, linear, matrix, np.array([1e300]), np.array([1e300]))
     assert qp._problem is None
-    pressures, _ = qp.solve(hessian, linear, matrix, np.array([0.5]), np.array([0.5]))
+    pressures, _ = qp.minimise(hessian, linear, matrix, np.array([0.5]), np.array([0.5]))
     np.testing.assert_allclose(pressures, [0.5], atol=1e-8)
+
+
+@pytest.mark.parametrize("target, kind, values, described, as_json", [
+    (Target(gland_volume_m3=32 * ML), "volume", (32 * ML,), "32.00 ml", {"volume_ml": 32.0}),
+    (Target(gland_volume_m3=40 * ML, growth_ratio={2: 1.0, 1: 2.0}), "volume", (40 * ML,),
+     "40.00 ml (growth ratio chamber1:2, chamber2:1)", {"volume_ml": 40.0, "growth_ratio": {"1": 2.0, "2": 1.0}}),
+    (Target(chamber_volumes_m3=[2.1 * ML, None, None]), "chamber_volumes", (2.1 * ML, None, None),
+     "chamber 2.10,free,free ml", {"chamber_volumes_ml": [2.1, None, None]}),
+    (Target(pressures_pa=[1000.0, 0.0, 2500.0]), "pressures", (1000.0, 0.0, 2500.0),
+     "pressures 1.00,0.00,2.50 kPa", {"pressures_kpa": [1.0, 0.0, 2.5]}),
+])
+def test_a_target_says_its_kind_values_and_people_units(target, kind, values, described, as_json):
+    assert target.kind == kind
+    assert target.values == values
+    assert target.describe() == described
+    # ml and kPa read back as they were written (32 ml, not 32.000000000000004)
+    assert target.to_json() == as_json
+    assert Target.of_kind(kind, values, target.growth_ratio) == target
+
+
+def test_a_chamber_volume_target_names_its_free_chambers():
+    assert Target(chamber_volumes_m3=[None, 1.2 * ML, None]).free_chambers == (0, 2)
+    assert Target(gland_volume_m3=30 * ML).free_chambers == ()
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda: Target().kind, "gives nothing"),
+    (lambda: Target(gland_volume_m3=30 * ML, chamber_volumes_m3=[None, 1e-6, None]).kind,
+     "volume and chamber_volumes"),
+    (lambda: Target.of_kind("volume_ml", [30 * ML]), "unknown target kind 'volume_ml'"),
+    (lambda: Target.of_kind("pressures", [1e3, 0, 0], {1: 2.0, 2: 1.0}), "goes with a gland volume"),
+    (lambda: Target.of_kind("volume", [30 * ML, 31 * ML]), "one gland volume"),
+    (lambda: Target.of_kind("pressures", [1e3, None, 0]), "a pressure for every chamber"),
+])
+def test_a_target_of_no_single_kind_says_so(make, message):
+    with pytest.raises(PhantomError, match=message):
+        make()
+
+
+def test_the_answer_reports_itself_in_the_units_people_see():
+    model = LinearStandIn(COUPLED_W, GLAND_H, REST_CHAMBERS_ML, REST_GLAND_ML)
+    target = Target(gland_volume_m3=(REST_GLAND_ML + 3.0) * ML)
+    result = InverseSolver(model, fidelity="rest").pressures_for(target)
+    report = result.to_json()
+    assert result.target == target
+    assert report["target"] == {"volume_ml": REST_GLAND_ML + 3.0}
+    np.testing.assert_allclose(report["pressures_kpa"], result.pressures_pa / KPA)
+    assert report["predicted_volume_ml"] == pytest.approx(REST_GLAND_ML + 3.0, rel=1e-6)
+    np.testing.assert_allclose(report["predicted_chamber_volumes_ml"], result.predicted_chamber_volumes_m3 / ML)
+    assert (report["iterations"], report["solve_time_s"], report["qp_time_s"]) == (
+        result.iterations, result.solve_time_s, result.qp_solve_time_s)

@@ -10,14 +10,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from phantom.model import MeshError, PhantomModel, SceneError, load_scene
-from phantom.model.mesh.geometry import ProstateGeometry, wall_thicknesses_mm
-from phantom.model.mesh.prostate import (
-    CHAMBER_ELLIPSOIDS_MM,
-    DEFAULT_SIZE_MM,
-    REST_VOLUME_ML,
-    builtin_prostate,
-    generate_hollow_sphere,
-)
+from phantom.model.mesh.geometry import ProstateGeometry
+from phantom.model.mesh.prostate import CHAMBER_ELLIPSOIDS_MM, DEFAULT_SIZE_MM, builtin_prostate, generate_hollow_sphere
+from phantom.model.mesh.shape import REST_VOLUME_ML, wall_thicknesses_mm
 from phantom.model.mesh.tetmesh import TetMesh, enclosed_volume_m3, prepare_surfaces, read_mesh, write_mesh
 
 PHANTOM = Path(sys.executable).with_name("phantom")
@@ -93,6 +88,7 @@ def test_fixed_patch_is_on_the_base_around_the_pole(prostate):
     assert set(np.unique(surfaces.fixed_triangles).tolist()) <= outer
 
 
+@pytest.mark.slow
 def test_builtin_mesh_is_cached_on_disk(tmp_path, monkeypatch):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     first = builtin_prostate(6.0)
@@ -299,3 +295,26 @@ def test_geometry_applies_to_the_builtin_mesh_only(tmp_path):
     path.write_text(path.read_text() + "[geometry]\nbase_chamber_scale = 1.1\n")
     with pytest.raises(SceneError, match="built-in prostate only"):
         load_scene(path)
+
+
+@pytest.mark.parametrize("gmsh_call", [
+    "generate_hollow_sphere(10.0, 20.0, 8.0)",
+    "write_mesh(generate_hollow_sphere(10.0, 20.0, 8.0), 'sphere.msh')",
+])
+def test_after_gmsh_a_closed_pipe_raises_instead_of_killing_the_process(tmp_path, gmsh_call):
+    """gmsh's initialize sets SIGPIPE back to the default action behind Python's back: a write to a closed pipe
+    afterwards (a response-table worker that died, `phantom forward | head`) killed the process (status -13)
+    instead of raising BrokenPipeError, which the response table and the CLI handle."""
+    script = ("import os\n"
+              "from phantom.model.mesh.prostate import generate_hollow_sphere\n"
+              "from phantom.model.mesh.tetmesh import write_mesh\n"
+              f"{gmsh_call}\n"
+              "reader, writer = os.pipe()\n"
+              "os.close(reader)\n"
+              "try:\n"
+              "    os.write(writer, b'x')\n"
+              "except BrokenPipeError:\n"
+              "    print('BrokenPipeError')\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                            timeout=120)
+    assert result.returncode == 0 and result.stdout == "BrokenPipeError\n", (result.returncode, result.stderr)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from phantom.model import MeshError, PhantomModel, SolveError, load_scene
-from phantom.model.mesh.prostate import REST_VOLUME_ML
+from phantom.model.mesh.shape import REST_VOLUME_ML
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 MIRROR = np.array([-1.0, 1.0, 1.0])
@@ -36,7 +36,7 @@ def test_public_attributes(model):
 
 
 def test_each_chamber_inflates_and_the_lobes_mirror_each_other(model):
-    states = [model.solve(1e3 * np.eye(3)[k]) for k in range(3)]
+    states = [model.equilibrium(1e3 * np.eye(3)[k]) for k in range(3)]
     for k, state in enumerate(states):
         growth = state.chamber_volumes_m3 - model.rest_chamber_volumes_m3
         assert growth[k] > 0 and growth[k] == growth.max()
@@ -67,8 +67,8 @@ def _mirror_map(nodes_m):
 def test_solution_scales_exactly_with_youngs_modulus(coarse):
     stiffer = coarse.with_material(youngs_modulus_pa=4 * coarse.material.youngs_modulus_pa)
     pressures = np.array([2e3, 1e3, 3e3])
-    reference = coarse.solve(pressures)
-    scaled = stiffer.solve(4 * pressures)
+    reference = coarse.equilibrium(pressures)
+    scaled = stiffer.equilibrium(4 * pressures)
     # Springs are a multiple of E, so (p, E) and (4p, 4E) are the same problem: equal to the Newton tolerance.
     displacement = reference.positions_m - coarse.nodes_m
     assert np.abs(scaled.positions_m - reference.positions_m).max() < 1e-7 * np.abs(displacement).max()
@@ -84,11 +84,11 @@ def test_rest_compliance_predicts_small_inflations(coarse, tmp_path, monkeypatch
     assert np.abs(w - w.T).max() < 1e-9 * np.abs(w).max()
     assert np.all(np.linalg.eigvalsh(0.5 * (w + w.T)) > 0)
     pressures = np.array([1.0, 3.0, 2.0])  # p/E ~ 5e-5: the nonlinear answer is linear to that size
-    state = coarse.solve(pressures)
+    state = coarse.equilibrium(pressures)
     np.testing.assert_allclose(state.chamber_volumes_m3 - coarse.rest_chamber_volumes_m3, w @ pressures, rtol=2e-4)
     assert state.gland_volume_m3 - coarse.rest_gland_volume_m3 == pytest.approx(
         compliance.gland_m3_per_pa @ pressures, rel=2e-4)
-    linear = coarse.solve(pressures, formulation="linear")
+    linear = coarse.equilibrium(pressures, formulation="linear")
     shape = coarse.nodes_m + np.tensordot(pressures, compliance.displacement_m_per_pa, axes=1)
     assert np.abs(shape - linear.positions_m).max() < 1e-9 * np.abs(linear.positions_m - coarse.nodes_m).max()
     again = coarse.compliance()
@@ -101,7 +101,7 @@ def test_rest_compliance_predicts_small_inflations(coarse, tmp_path, monkeypatch
 def test_tangent_compliance_at_an_inflated_state(coarse, tmp_path, monkeypatch):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     rest = coarse.compliance().chamber_m3_per_pa
-    state = coarse.solve(np.array([4e3, 4e3, 4e3]))
+    state = coarse.equilibrium(np.array([4e3, 4e3, 4e3]))
     tangent = coarse.compliance(state)
     w = tangent.chamber_m3_per_pa
     # Central differences of full nonlinear solves: symmetric only if the model is conservative and the
@@ -109,7 +109,7 @@ def test_tangent_compliance_at_an_inflated_state(coarse, tmp_path, monkeypatch):
     assert np.abs(w - w.T).max() < 1e-3 * np.abs(w).max()
     assert np.abs(w / rest - 1)[np.diag_indices(3)].min() > 0.05  # inflated, the phantom's response has changed
     step = 40.0
-    plus = coarse.solve(state.pressures_pa + [step, 0, 0], initial_positions_m=state.positions_m)
+    plus = coarse.equilibrium(state.pressures_pa + [step, 0, 0], initial_positions_m=state.positions_m)
     secant = (plus.chamber_volumes_m3 - state.chamber_volumes_m3) / step
     np.testing.assert_allclose(secant, w[:, 0], rtol=2e-2)
 
@@ -133,12 +133,12 @@ def test_tangent_compliance_of_a_linear_state_matches_finite_differences_of_full
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     linear = coarse.with_material(youngs_modulus_pa=2630.1, model="linear")
     pressures_pa = np.array([2500.0, 1500.0, 2000.0])
-    state = linear.solve(pressures_pa)
+    state = linear.equilibrium(pressures_pa)
     tangent = linear.compliance(state)
     # The truth: central differences of full linear solves from rest. The volumes are cubic in the pressures, so
     # the difference error is O(step^2 * d3V/dp3): at a 5 Pa step about 1e-7 of the entries, and the solves
     # converge to 1e-9 of the load; 1e-5 leaves room for both and is 4 orders below the error being fixed.
-    chamber, gland = central_differences(linear.solve, pressures_pa, 5.0)
+    chamber, gland = central_differences(linear.equilibrium, pressures_pa, 5.0)
     scale = np.abs(chamber).max()
     assert np.abs(tangent.chamber_m3_per_pa - chamber).max() <= 1e-5 * scale
     np.testing.assert_allclose(tangent.gland_m3_per_pa, gland, rtol=1e-5)
@@ -148,34 +148,34 @@ def test_tangent_compliance_of_a_linear_state_matches_finite_differences_of_full
     np.testing.assert_array_equal(tangent.displacement_m_per_pa, linear.compliance().displacement_m_per_pa)
     # A linear solve started elsewhere takes its load on that start; its tangent follows (same truth).
     start_m = state.positions_m
-    moved = linear.solve(pressures_pa, initial_positions_m=start_m)
+    moved = linear.equilibrium(pressures_pa, initial_positions_m=start_m)
     np.testing.assert_array_equal(moved.load_positions_m, start_m)
-    chamber, _ = central_differences(lambda p: linear.solve(p, initial_positions_m=start_m), pressures_pa, 5.0)
+    chamber, _ = central_differences(lambda p: linear.equilibrium(p, initial_positions_m=start_m), pressures_pa, 5.0)
     assert np.abs(linear.compliance(moved).chamber_m3_per_pa - chamber).max() <= 1e-5 * np.abs(chamber).max()
 
 
 def test_bad_pressures_and_options_are_refused(coarse):
     with pytest.raises(SolveError, match="expected 3 chamber pressures"):
-        coarse.solve([1e3, 1e3])
+        coarse.equilibrium([1e3, 1e3])
     with pytest.raises(SolveError, match="finite"):
-        coarse.solve([1e3, float("nan"), 0])
+        coarse.equilibrium([1e3, float("nan"), 0])
     with pytest.raises(SolveError, match="unknown formulation"):
-        coarse.solve([0, 0, 0], formulation="hyperelastic")
+        coarse.equilibrium([0, 0, 0], formulation="hyperelastic")
     with pytest.raises(SolveError, match="initial_positions_m"):
-        coarse.solve([0, 0, 0], initial_positions_m=np.zeros((3, 3)))
+        coarse.equilibrium([0, 0, 0], initial_positions_m=np.zeros((3, 3)))
 
 
 @pytest.mark.slow
 def test_a_pressure_beyond_the_limit_point_names_the_chamber(coarse):
     pressure_pa = 2.0 * coarse.material.youngs_modulus_pa
     with pytest.raises(SolveError) as error:
-        coarse.solve([0, pressure_pa, 0])
+        coarse.equilibrium([0, pressure_pa, 0])
     message = str(error.value)
     assert "'chamber1' at 100 kPa" in message and "try a lower pressure" in message
 
 
 def test_zero_pressure_is_the_rest_state(coarse):
-    state = coarse.solve([0, 0, 0])
+    state = coarse.equilibrium([0, 0, 0])
     np.testing.assert_array_equal(state.positions_m, coarse.nodes_m)
     assert state.iterations == 0
 
@@ -195,7 +195,7 @@ def test_forward_command_json_and_table(model):
     result = run_phantom("forward", "--scene", "builtin", "--pressures-kpa", "1,0.5,0", "--json")
     assert result.returncode == 0, result.stderr
     answer = json.loads(result.stdout)
-    state = model.solve([1e3, 0.5e3, 0])
+    state = model.equilibrium([1e3, 0.5e3, 0])
     assert answer["chamber_volumes_ml"] == pytest.approx(list(state.chamber_volumes_m3 * 1e6), rel=1e-12)
     assert answer["total_volume_ml"] == pytest.approx(state.gland_volume_m3 * 1e6, rel=1e-12)
     assert answer["iterations"] == state.iterations and answer["solve_time_s"] > 0

@@ -36,13 +36,14 @@ def table(model):
 
 def _growth_errors(model, table, pressures_pa):
     """|table - full solve| / the full solve's growth from rest, gland and each chamber, at one pressure set."""
-    state = model.solve(pressures_pa)
+    state = model.equilibrium(pressures_pa)
     chambers, gland = table.volumes(pressures_pa)
     exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
     rest = np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3)
     return np.abs(np.append(chambers, gland) - exact) / np.abs(exact - rest), state
 
 
+@pytest.mark.slow
 def test_the_table_matches_full_solves_between_its_grid_points(model, table):
     # a cubic spline through 1 kPa steps of a mildly nonlinear response: well under 0.5 % of each growth (a
     # wrong grid index or spline weight would be off by tens of %)
@@ -55,15 +56,17 @@ def test_the_table_matches_full_solves_between_its_grid_points(model, table):
     assert 0 < table.check_errors_pct < 0.5 and table.build_time_s > 0
 
 
+@pytest.mark.slow
 def test_the_tables_gradient_is_the_models_tangent_compliance(model, table):
     pressures_pa = OFF_GRID_PA[1]
-    tangent = model.compliance(model.solve(pressures_pa))
+    tangent = model.compliance(model.equilibrium(pressures_pa))
     chamber, gland = table.compliance(pressures_pa)
     # the derivative of a cubic spline converges an order slower than its values: 3 % of the largest entry
     np.testing.assert_allclose(chamber, tangent.chamber_m3_per_pa, atol=3e-2 * np.abs(tangent.chamber_m3_per_pa).max())
     np.testing.assert_allclose(gland, tangent.gland_m3_per_pa, rtol=3e-2)
 
 
+@pytest.mark.slow
 def test_beyond_the_box_the_table_extends_linearly_not_as_a_cubic(model, table):
     # an overshoot of 200 Pa above the limit on one chamber: the tangent's extension misses the full solve by the
     # curvature's second-order term only
@@ -76,12 +79,13 @@ def test_beyond_the_box_the_table_extends_linearly_not_as_a_cubic(model, table):
     np.testing.assert_allclose(chambers, inside_chambers + 200.0 * slope[:, 0], rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     built = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
     solves = []
-    original = model.solve
-    monkeypatch.setattr(model, "solve", lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
+    original = model.equilibrium
+    monkeypatch.setattr(model, "equilibrium", lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
     reported = []
     again = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1,
                            progress=lambda *done: reported.append(done))
@@ -93,6 +97,7 @@ def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, 
     assert reported[-1] == (27 + 4, 27 + 4) and len(solves) == 26 + 4
 
 
+@pytest.mark.slow
 def test_slabs_on_worker_processes_give_the_same_table(model, table):
     # each slab's solves are the same wherever it runs (the slab's first point from rest, then neighbours)
     parallel = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, workers=2)
@@ -167,9 +172,9 @@ def test_the_calibrated_scene_answers_from_its_table_within_a_tenth_of_a_percent
 @pytest.mark.parametrize("volume_ml", [26.0, 30.0, 33.0, 35.0, 40.0, 42.43, 43.0])
 def test_the_inverse_on_the_table_reaches_the_bph_targets_checked_by_full_solves(calibrated, volume_ml):
     model, estimator = calibrated
-    result = InverseSolver(model, estimator=estimator).solve(Target(gland_volume_m3=volume_ml * 1e-6))
+    result = InverseSolver(model, estimator=estimator).pressures_for(Target(gland_volume_m3=volume_ml * 1e-6))
     assert np.all(result.pressures_pa >= 0) and np.all(result.pressures_pa <= PRESSURE_MAX_PA)
-    forward = model.solve(result.pressures_pa)
+    forward = model.equilibrium(result.pressures_pa)
     # the table's error, 0.1 % of the volume
     assert forward.gland_volume_m3 * 1e6 == pytest.approx(volume_ml, rel=1e-3)
 
@@ -178,4 +183,4 @@ def test_the_inverse_on_the_table_reaches_the_bph_targets_checked_by_full_solves
 def test_the_paper_s_45_ml_is_out_of_the_calibrated_model_s_reach(calibrated):
     model, estimator = calibrated
     with pytest.raises(UnreachableTargetError, match=r"45\.000 ml is unreachable.* give 25\.9\d* to 43\.7\d* ml"):
-        InverseSolver(model, estimator=estimator).solve(Target(gland_volume_m3=45e-6))
+        InverseSolver(model, estimator=estimator).pressures_for(Target(gland_volume_m3=45e-6))

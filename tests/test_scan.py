@@ -18,19 +18,16 @@ from phantom import PhantomError
 from phantom.cli import main as cli
 from phantom.model import PhantomModel, load_scene
 from phantom.model.calibration.calibrate import load_measurements
-from phantom.scan.compare import (
+from phantom.model.mesh.surface import (
     AMBIGUOUS_ANGLE_DEG,
-    ScanError,
     SurfaceIndex,
     TriangleMesh,
-    compare,
+    enclosed_volume_ml,
     model_surface,
-    read_scan,
     rotation_angle_deg,
-    scan_volume_ml,
-    surface_volume_ml,
     triangle_areas_mm2,
 )
+from phantom.scan.compare import ScanError, compare, read_scan, scan_volume_ml
 from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = (1.0, 2.0, 0.5)
@@ -44,7 +41,7 @@ def model():
 
 @pytest.fixture(scope="module")
 def state(model):
-    return model.solve([1e3 * p for p in PRESSURES_KPA])
+    return model.equilibrium([1e3 * p for p in PRESSURES_KPA])
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +123,7 @@ def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface
     distance lies between (most of) the volume bound |dV| / area and the distances where it was made (which a best fit
     can only reduce). The reported distances equal a brute-force recomputation at the reported transform."""
     softer = model.with_material(youngs_modulus_pa=0.8 * model.material.youngs_modulus_pa)
-    other_state = softer.solve([1e3 * p for p in PRESSURES_KPA])
+    other_state = softer.equilibrium([1e3 * p for p in PRESSURES_KPA])
     other = model_surface(other_state.positions_m, model.outer_triangles)
     rng = np.random.default_rng(7)
     synthetic = make_scan(other, rng, levels=2, fragment=True, rotation=random_rotation(rng),
@@ -152,18 +149,27 @@ def test_a_scan_of_another_material_lies_between_the_known_bounds(model, surface
 
 @pytest.mark.slow
 def test_a_start_that_ends_at_the_best_alignment_is_not_called_another(tmp_path, capsys, surface, state):
-    # The README's example (python -m phantom.scan.synthetic --modulus-factor 0.85, seed 0): a far start's
-    # ICP came back to the best alignment, and the command called the fit "ambiguous: a rotation by 0 deg".
-    from phantom.scan import synthetic as scan_synthetic
-
+    # The README's example (phantom scan synthetic --modulus-factor 0.85, seed 0): a far start's ICP came back
+    # to the best alignment, and the command called the fit "ambiguous: a rotation by 0 deg".
     path = tmp_path / "softer_scan.ply"
-    scan_synthetic.main(["--out", str(path), "--modulus-factor", "0.85"])
-    capsys.readouterr()
+    assert cli.main(["scan", "synthetic", "--out", str(path), "--modulus-factor", "0.85"]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote {path}: ")
     assert cli.main(["compare-scan", str(path), "--scene", "builtin:calibrated", "--pressures-kpa", "1,2,0.5",
                      "--json"]) == 0
     transform = json.loads(capsys.readouterr().out)["transform"]
     assert not transform["ambiguous"]
     assert transform["alternative_angle_deg"] is None or transform["alternative_angle_deg"] > AMBIGUOUS_ANGLE_DEG
+
+
+def test_the_synthetic_scan_command_writes_a_scan_of_the_models_gland(tmp_path, capsys, state):
+    path = tmp_path / "new" / "scan.stl"
+    assert cli.main(["scan", "synthetic", "--out", str(path), "--pressures-kpa", ",".join(map(str, PRESSURES_KPA)),
+                     "--levels", "1", "--holes", "0"]) == 0
+    assert capsys.readouterr().out.startswith(f"wrote {path}: ")
+    # the stray fragment is cleaned away; what is left encloses the gland of the state it was made from
+    assert scan_volume_ml(path) == pytest.approx(state.gland_volume_m3 * 1e6, rel=0.005)
+    assert cli.main(["scan", "synthetic", "--out", str(path), "--levels", "-1"]) == 2
+    assert "not negative" in capsys.readouterr().err
 
 
 def test_closest_points_match_brute_force(surface):
@@ -197,7 +203,7 @@ def test_many_points_take_the_neighbour_lists_and_agree(surface):
 
 def test_a_symmetric_state_is_reported_ambiguous(model):
     """With equal lobe pressures the surface is symmetric under a half turn about z: two alignments fit."""
-    state = model.solve([1e3, 1e3, 1e3])
+    state = model.equilibrium([1e3, 1e3, 1e3])
     surface = model_surface(state.positions_m, model.outer_triangles)
     rng = np.random.default_rng(3)
     synthetic = make_scan(surface, rng, levels=1, rotation=random_rotation(rng))
@@ -232,7 +238,7 @@ def test_a_shape_that_is_not_the_phantom_does_not_fit(surface, state):
                                         [1, 0, 5], [3, 1, 5], [4, 3, 5], [0, 4, 5]]))
     sphere = make_scan(octahedron, np.random.default_rng(0), levels=4).mesh
     sphere.vertices_mm /= np.linalg.norm(sphere.vertices_mm, axis=1, keepdims=True)
-    sphere.vertices_mm *= np.cbrt(state.gland_volume_m3 * 1e9 / surface_volume_ml(sphere) / 1e3)
+    sphere.vertices_mm *= np.cbrt(state.gland_volume_m3 * 1e9 / enclosed_volume_ml(sphere) / 1e3)
     with pytest.raises(ScanError, match="no rigid alignment fits"):
         compare(sphere, surface, state.gland_volume_m3 * 1e6)
 
@@ -303,6 +309,7 @@ def test_the_command_reports_json_and_writes_the_heatmap_and_recording(tmp_path,
     assert np.median(distance) < 3 * NOISE_MM
 
 
+@pytest.mark.slow
 def test_the_command_reports_in_text_with_chamber_names(tmp_path, capsys, surface):
     synthetic = make_scan(surface, np.random.default_rng(10), levels=1, holes=1, fragment=True,
                           rotation=random_rotation(np.random.default_rng(10)))
@@ -330,12 +337,13 @@ def test_calibration_measurements_accept_a_scan_file(tmp_path, surface, state):
     write_mesh(tmp_path / "scan_at_1_2_0.5.stl", synthetic.mesh)
     (tmp_path / "measurements.csv").write_text(
         "p0_kpa,p1_kpa,p2_kpa,measured_ml\n0,0,0,26.3\n1,1,1,30.0\n1,2,0.5,scan_at_1_2_0.5.stl\n")
-    measurements = load_measurements(tmp_path / "measurements.csv", n_chambers=3)
+    measurements = load_measurements(tmp_path / "measurements.csv", n_chambers=3, scan_volume_ml=scan_volume_ml)
     assert measurements.volumes_m3[2] == pytest.approx(state.gland_volume_m3, rel=0.005)
     assert measurements.volumes_m3[0] == pytest.approx(26.3e-6)
 
 
-@pytest.mark.parametrize("suffix", [".stl", ".ply", ".obj"])
+@pytest.mark.parametrize("suffix", [pytest.param(".stl", marks=pytest.mark.slow), ".ply",
+                                    pytest.param(".obj", marks=pytest.mark.slow)])
 def test_a_surface_written_by_phantom_forward_compares_at_zero_distance(tmp_path, capsys, suffix):
     """`phantom forward --out` into a surface format writes the gland's deformed outer surface, which compare-scan
     reads as a scan: same volume as the model's gland, no distance, no repair needed."""

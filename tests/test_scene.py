@@ -4,7 +4,7 @@ import pytest
 
 from phantom import PhantomError
 from phantom.model import SceneError, load_scene
-from phantom.model.scene import builtin_scene_path
+from phantom.model.scene import PRESSURE_LIMIT_PA, ModelSettings, builtin_scene_path
 
 
 def write_scene(tmp_path, text):
@@ -53,7 +53,7 @@ def test_the_calibrated_builtin_scene_is_a_finite_strain_fit_on_the_built_in_bod
     assert scene.material.model == "gent" and scene.material.poisson_ratio == pytest.approx(0.45)
     # the geometry it was fitted with, meshed at the size it was fitted on, and a daemon answers from its table
     assert scene.geometry.lobe_chamber_scale > 1.0 and scene.geometry.mesh_size_mm == 4.0
-    assert scene.raw["model"]["fidelity"] == "table"
+    assert scene.model_settings == ModelSettings(fidelity="table", accuracy_pct=1.0, pressure_max_pa=3000.0)
 
 
 def test_an_unknown_builtin_name_lists_the_shipped_ones():
@@ -70,6 +70,42 @@ def test_a_scene_file_is_read_with_its_mesh_relative_to_it(tmp_path):
     assert scene.steps == [{"at_s": 0, "volume_ml": 30}]
     assert scene.raw["host"] == {"rate_hz": 50}
     assert scene.outputs.volumes and not scene.outputs.shape
+    # no [model] table: the defaults; two chambers: their group names are their labels
+    assert scene.model_settings == ModelSettings(None, 1.0, PRESSURE_LIMIT_PA, 7)
+    assert scene.chamber_labels == ["a", "b"]
+
+
+def test_the_model_settings_and_chamber_labels_are_read_into_types(tmp_path):
+    text = GOOD.replace('chambers = ["a", "b"]', 'chambers = ["a", "b"]\nchamber_labels = ["front", "back"]')
+    text += '[model]\nfidelity = "updated"\naccuracy_pct = 2\npressure_max_kpa = 2.5\ntable_points = 5\n'
+    scene = load_scene(write_scene(tmp_path, text))
+    assert scene.model_settings == ModelSettings("updated", 2.0, 2500.0, 5)
+    assert isinstance(scene.model_settings.accuracy_pct, float)
+    assert scene.chamber_labels == ["front", "back"]
+    assert load_scene("builtin").chamber_labels == ["base", "left lobe", "right lobe"]
+
+
+@pytest.mark.parametrize(("table", "message"), [
+    ('fidelity = "medium"', "[model] fidelity must be one of rest, updated, full, table, got 'medium'"),
+    ("accuracy_pct = 0", "[model] accuracy_pct must be a positive number, got 0"),
+    ("accuracy_pct = nan", "[model] accuracy_pct must be a positive number, got nan"),
+    ('pressure_max_kpa = "3"', "[model] pressure_max_kpa must be a positive number, got '3'"),
+    ("pressure_max_kpa = -3.0", "[model] pressure_max_kpa must be a positive number, got -3.0"),
+    ("table_points = 1", "[model] table_points must be an integer of at least 2, got 1"),
+    ("table_points = 7.0", "[model] table_points must be an integer of at least 2, got 7.0"),
+    ("table_point = 7", "[model] has unknown keys ['table_point']"),
+])
+def test_bad_model_settings_are_refused_when_the_scene_loads(tmp_path, table, message):
+    with pytest.raises(SceneError) as error:
+        load_scene(write_scene(tmp_path, GOOD + f"[model]\n{table}\n"))
+    assert message in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("labels", ['["front"]', '["front", 2]', '"front, back"', '["front", ""]'])
+def test_chamber_labels_name_every_chamber(tmp_path, labels):
+    text = GOOD.replace('chambers = ["a", "b"]', f'chambers = ["a", "b"]\nchamber_labels = {labels}')
+    with pytest.raises(SceneError, match=r"chamber_labels must name each of the 2 chambers \(a, b\)"):
+        load_scene(write_scene(tmp_path, text))
 
 
 @pytest.mark.parametrize(

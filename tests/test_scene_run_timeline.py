@@ -4,12 +4,13 @@ import numpy as np
 import pytest
 
 from phantom.host.scenes import (
-    SceneError,
-    TargetSpec,
     example_scene_path,
+    gland_volume_ml,
     parse_target,
     parse_timeline,
 )
+from phantom.model.errors import SceneError
+from phantom.model.inverse import Target
 from phantom.model.scene import read_scene_toml
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
@@ -22,10 +23,10 @@ def timeline(*steps):
 def test_a_step_holds_until_the_next_and_nothing_before_the_first():
     line = timeline({"at_s": 2, "volume_ml": 30}, {"at_s": 10, "volume_ml": 35})
     assert line.target_at(1.999) is None
-    assert line.target_at(2).values == (30.0,)
-    assert line.target_at(9.99).values == (30.0,)
-    assert line.target_at(10).values == (35.0,)
-    assert line.target_at(1e6).values == (35.0,)
+    assert line.target_at(2).to_json() == {"volume_ml": 30.0}
+    assert line.target_at(9.99).to_json() == {"volume_ml": 30.0}
+    assert line.target_at(10).to_json() == {"volume_ml": 35.0}
+    assert line.target_at(1e6) == Target(gland_volume_m3=35e-6)
 
 
 def test_a_ramp_is_linear_from_the_previous_target_then_holds():
@@ -33,21 +34,22 @@ def test_a_ramp_is_linear_from_the_previous_target_then_holds():
     for time_s in (10, 11, 12.5, 13.9):
         fraction = (time_s - 10) / 4
         expected = [0 + 2 * fraction, 1, 2 - 2 * fraction]
-        assert line.target_at(time_s).values == pytest.approx(expected, abs=1e-12)
-    assert line.target_at(14).values == (2.0, 1.0, 0.0)
+        assert line.target_at(time_s).values == pytest.approx([1e3 * kpa for kpa in expected], abs=1e-9)
+    assert line.target_at(14).to_json() == {"pressures_kpa": [2.0, 1.0, 0.0]}
     assert line.duration_s == 14
 
 
 def test_a_chamber_volume_ramp_keeps_free_chambers_free():
     line = timeline({"at_s": 0, "chamber_volumes_ml": [None, 4, 4]},
                     {"at_s": 5, "ramp_s": 10, "chamber_volumes_ml": [None, 6, 5]})
-    assert line.target_at(10).values == (None, 5.0, 4.5)
+    assert line.target_at(10).to_json() == {"chamber_volumes_ml": [None, 5.0, 4.5]}
+    assert line.target_at(10).free_chambers == (0,)
 
 
 def test_growth_ratio_takes_chamber_names_or_indices():
     named = parse_target({"volume_ml": 40, "growth_ratio": {"chamber1": 2.0, "chamber2": 1}}, CHAMBERS)
     indexed = parse_target({"volume_ml": 40, "growth_ratio": {"2": 1, "1": 2.0}}, CHAMBERS)
-    assert named == indexed == TargetSpec("volume_ml", (40.0,), ((1, 2.0), (2, 1.0)))
+    assert named == indexed == Target(gland_volume_m3=40e-6, growth_ratio={1: 2.0, 2: 1.0})
     assert named.to_json() == {"volume_ml": 40.0, "growth_ratio": {"1": 2.0, "2": 1.0}}
 
 
@@ -88,7 +90,7 @@ def test_the_shipped_bph_scene_goes_through_the_papers_targets_over_minutes():
     # 43 ml, not the paper's 45: the most the calibrated model reaches within 3 kPa is 43.7 ml (see below).
     raw = read_scene_toml(example_scene_path("bph_growth"))
     line = parse_timeline(raw["steps"], raw["phantom"]["chambers"], "bph_growth")
-    volumes = [step.target.values[0] for step in line.steps]
+    volumes = [gland_volume_ml(step.target) for step in line.steps]
     assert volumes == [26, 30, 35, 40, 43]
     assert any(step.ramp_s > 0 for step in line.steps)
     assert 120 <= raw["timeline"]["end_s"] <= 600 and raw["timeline"]["end_s"] >= line.duration_s
@@ -115,7 +117,7 @@ def test_missing_or_broken_scene_files_say_so(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["bph_growth", "lopsided"])
 def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachable(name, calibrated_response_table):
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
     from phantom.model import load_scene
     from phantom.model.inverse import UnreachableTargetError
 
@@ -126,22 +128,22 @@ def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachab
     assert controller.estimator.level == "table"
     raw = read_scene_toml(example_scene_path(name))
     for step in parse_timeline(raw["steps"], raw["phantom"]["chambers"], name).steps:
-        solution = controller.solve(step.target)
-        assert np.all(solution.pressures_pa <= controller.pressure_max_pa + 1e-6)
-        if step.target.kind == "volume_ml":
-            assert solution.predicted_volume_ml == pytest.approx(step.target.values[0], rel=1e-4)
+        answer = controller.pressures_for(step.target)
+        assert np.all(answer.pressures_pa <= controller.pressure_max_pa + 1e-6)
+        if step.target.kind == "volume":
+            assert answer.predicted_gland_volume_m3 == pytest.approx(step.target.gland_volume_m3, rel=1e-4)
         # The truth: a full Gent solve at the answer's pressures, within the table's 0.1 %.
-        state = controller.model.solve(solution.pressures_pa)
-        assert state.gland_volume_m3 * 1e6 == pytest.approx(solution.predicted_volume_ml, rel=1e-3)
+        state = controller.model.equilibrium(answer.pressures_pa)
+        assert state.gland_volume_m3 == pytest.approx(answer.predicted_gland_volume_m3, rel=1e-3)
     assert controller.estimator.counts["full_solves"] == 0 and controller.estimator.counts["tangent_solves"] == 0
     if name == "bph_growth":
         # 45 ml is out of reach within 3 kPa per chamber, and the error says how far one can go.
         with pytest.raises(UnreachableTargetError, match=r"45.000 ml is unreachable.* to 43\.\d+ ml"):
-            controller.solve(parse_target({"volume_ml": 45}, raw["phantom"]["chambers"], "test"))
+            controller.pressures_for(parse_target({"volume_ml": 45}, raw["phantom"]["chambers"], "test"))
 
 
 def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tmp_path):
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
     from phantom.model import load_scene
 
     # A soft small-strain material with 3 kPa everywhere: "rest" is 35 % off on a chamber, "updated" exact. A
@@ -164,7 +166,7 @@ def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tm
 @pytest.fixture(scope="module")
 def default_model(calibrated_response_table):
     """The model a daemon started with its defaults loads (builtin:calibrated, on its response table)."""
-    from phantom.host.control import LoadedModel
+    from phantom.host.model_worker import LoadedModel
 
     return LoadedModel("builtin:calibrated", report=lambda message: None)
 
@@ -207,8 +209,8 @@ def test_the_inverse_is_warm_after_start_up(default_model):
     # the warm-up set up the gland's exact and closest problems: the first request sets up nothing new
     shapes = set(default_model.solver._problems)
     assert {shape[0] for shape in shapes} == {"exact", "closest"}
-    default_model.solve(parse_target({"volume_ml": 33}, CHAMBERS))
+    default_model.pressures_for(parse_target({"volume_ml": 33}, CHAMBERS))
     with pytest.raises(UnreachableTargetError, match="unreachable"):
-        default_model.solve(parse_target({"volume_ml": 80}, CHAMBERS))
+        default_model.pressures_for(parse_target({"volume_ml": 80}, CHAMBERS))
     assert set(default_model.solver._problems) == shapes
     assert default_model.timings_s["warm_up_s"] > 0

@@ -39,7 +39,7 @@ def test_the_shipped_truth_is_the_physical_calibration_at_its_offset_modulus():
     scene = load_scene("builtin:calibrated")
     truth = PhantomModel.from_scene(scene).with_material(youngs_modulus_pa=scene.material.youngs_modulus_pa
                                                          * TRUTH_MODULUS_FACTOR)
-    state = truth.solve([2000.0, 1000.0, 0.0])
+    state = truth.equilibrium([2000.0, 1000.0, 0.0])
     # Written to 5 significant digits.
     np.testing.assert_allclose(1e6 * plant.truth_chamber_volume_m3[2, 1, 0], 1e6 * state.chamber_volumes_m3,
                                rtol=1e-4)

@@ -30,16 +30,24 @@ import copy
 import csv
 import dataclasses
 import itertools
+import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from phantom import PhantomError
-from phantom.model.scene import HYPERELASTIC_MODELS
+from phantom.model.arrays import BoolArray, FloatArray
+from phantom.model.calibration.sweep import RayTask, RayTrace, cached_trace, run_sweep
+from phantom.model.errors import MeshError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
+from phantom.model.mesh.shape import check_walls
+from phantom.model.scene import HYPERELASTIC_MODELS, PRESSURE_LIMIT_PA, Scene, scene_from_dict
 
-#: Measurements above this gauge pressure (Pa) are outside what the blowers and the model are trusted for.
-PRESSURE_LIMIT_PA = 3000.0
 #: A ray's trace stops once its gland growth exceeds this multiple of the measured growth.
 OVERSHOOT = 1.8
 #: Load-factor steps per rest-compliance estimate of t, and the largest t traced, in those estimates. The
@@ -75,17 +83,28 @@ class Measurements:
     path: str = ""
 
 
-def load_measurements(path, n_chambers: int | None = None) -> Measurements:
+#: The files a ``measured_ml`` entry may name instead of a number: scans of the phantom.
+SCAN_SUFFIXES = (".obj", ".ply", ".stl")
+
+#: The volume (ml) of a scan file (mm): ``phantom.scan.compare.scan_volume_ml``, which the command line passes.
+ScanVolume = Callable[[Path], float]
+#: ``progress(done, total)``: how a sweep goes.
+Progress = Callable[[int, int], None]
+
+
+def load_measurements(path: str | Path, n_chambers: int | None = None,
+                      scan_volume_ml: ScanVolume | None = None) -> Measurements:
     """Read a CSV with columns ``p0_kpa, p1_kpa, ..., measured_ml`` (``#`` lines are comments).
 
     A ``measured_ml`` entry may instead name a scan file (.obj, .ply or .stl, in mm, relative to the CSV's
-    folder): its cleaned, watertight volume is used (``phantom.scan.compare.scan_volume_ml``).
+    folder): ``scan_volume_ml(file)`` measures it (``phantom calibrate`` passes the scan comparison's cleaned,
+    watertight volume; the model itself reads no scans).
 
     Raises
     ------
     CalibrationError
         Missing file or columns, non-numeric, non-finite or negative values, a chamber count that does not
-        match the model, or fewer than three rows.
+        match the model, fewer than three rows, or a scan file with no ``scan_volume_ml`` to measure it.
     """
     path = Path(path)
     if not path.is_file():
@@ -105,15 +124,17 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
     if n_chambers is not None and len(pressure_columns) != n_chambers:
         raise CalibrationError(f"{path} has {len(pressure_columns)} pressure columns but the model has "
                                f"{n_chambers} chambers")
-    pressures_kpa, volumes_ml = [], []
+    rows_kpa: list[list[float]] = []
+    rows_ml: list[float] = []
     for line_number, row in enumerate(reader, start=2):
         row = {key.strip(): value for key, value in row.items() if key is not None}
         try:
-            pressures_kpa.append([float(row[name]) for name in pressure_columns])
-            volumes_ml.append(_measured_volume_ml(row["measured_ml"], path.parent))
+            rows_kpa.append([float(row[name]) for name in pressure_columns])
+            rows_ml.append(_measured_volume_ml(row["measured_ml"], path.parent, scan_volume_ml,
+                                               f"{path}, data row {line_number - 1}"))
         except (TypeError, ValueError) as error:
             raise CalibrationError(f"{path}, data row {line_number - 1}: not a number ({error})") from None
-    pressures_kpa, volumes_ml = np.array(pressures_kpa), np.array(volumes_ml)
+    pressures_kpa, volumes_ml = np.array(rows_kpa), np.array(rows_ml)
     if not (np.all(np.isfinite(pressures_kpa)) and np.all(np.isfinite(volumes_ml))):
         raise CalibrationError(f"{path} holds non-finite values (nan or inf): fix the measurements")
     if np.any(pressures_kpa < 0):
@@ -125,19 +146,22 @@ def load_measurements(path, n_chambers: int | None = None) -> Measurements:
     return Measurements(pressures_kpa * 1e3, volumes_ml * 1e-6, str(path))
 
 
-def _measured_volume_ml(entry: str, folder: Path) -> float:
-    """A ``measured_ml`` entry: a number, or a scan file whose volume is measured."""
+def _measured_volume_ml(entry: str | None, folder: Path, scan_volume_ml: ScanVolume | None, where: str) -> float:
+    """A ``measured_ml`` entry: a number, or a scan file whose volume ``scan_volume_ml`` measures."""
     text = (entry or "").strip()
-    if Path(text).suffix.lower() not in (".obj", ".ply", ".stl"):
+    if Path(text).suffix.lower() not in SCAN_SUFFIXES:
         return float(text)
-    from phantom.scan.compare import scan_volume_ml
-
+    if scan_volume_ml is None:
+        raise CalibrationError(f"{where}: {text} is a scan file, and nothing here measures scans: pass "
+                               "load_measurements a scan_volume_ml (phantom calibrate uses the scan comparison's)")
     return scan_volume_ml(folder / text)
 
 
-def relative_abs_errors_pct(predicted_m3: np.ndarray, measured_m3: np.ndarray) -> np.ndarray:
+def relative_abs_errors_pct(predicted_m3: ArrayLike, measured_m3: ArrayLike) -> FloatArray:
     """``|measured - predicted| / measured`` in percent, per point."""
-    return np.abs(np.asarray(measured_m3) - np.asarray(predicted_m3)) / np.asarray(measured_m3) * 100
+    measured = np.asarray(measured_m3, dtype=float)
+    errors: FloatArray = np.abs(measured - np.asarray(predicted_m3, dtype=float)) / measured * 100
+    return errors
 
 
 # --------------------------------------------------------------------- the parameter grid
@@ -152,7 +176,7 @@ class Grid:
     def shape(self) -> tuple[int, ...]:
         return tuple(len(v) for v in self.values)
 
-    def points(self) -> list[dict]:
+    def points(self) -> list[dict[str, float]]:
         """Every grid point as {name: value}, in C order of ``shape``."""
         return [dict(zip(self.names, combination, strict=True))
                 for combination in itertools.product(*(v.tolist() for v in self.values))]
@@ -160,8 +184,6 @@ class Grid:
 
 def parse_grid(items: list[str]) -> Grid:
     """``["gent_jm=3,6,12", "lobe_chamber_scale=1,1.1,1.2"]`` as a Grid; CalibrationError on a bad item."""
-    from phantom.model.mesh.geometry import ProstateGeometry
-
     known = set(MATERIAL_PARAMETERS) | {f.name for f in dataclasses.fields(ProstateGeometry)
                                         if not isinstance(f.default, tuple)}
     names, values = [], []
@@ -184,7 +206,7 @@ def parse_grid(items: list[str]) -> Grid:
     return Grid(tuple(names), tuple(values))
 
 
-def scene_with(raw: dict, values: dict) -> dict:
+def scene_with(raw: dict[str, Any], values: dict[str, float]) -> dict[str, Any]:
     """A copy of a scene's TOML dict with parameters set: material keys in [material], others in [geometry]."""
     document = copy.deepcopy(raw)
     for name, value in values.items():
@@ -194,13 +216,15 @@ def scene_with(raw: dict, values: dict) -> dict:
 
 
 # --------------------------------------------------------------------- validity
-def violations(material_model: str, gent_jm: float | None, min_det: np.ndarray, min_stretch: np.ndarray,
-               max_stretch: np.ndarray, max_i1_minus_3: np.ndarray) -> np.ndarray:
-    """Boolean array: where a state breaks a validity constraint (NaN, i.e. not solved, counts as broken)."""
+def violations(material_model: str, gent_jm: float | FloatArray | None, min_det: FloatArray,
+               min_stretch: FloatArray, max_stretch: FloatArray, max_i1_minus_3: FloatArray) -> BoolArray:
+    """Boolean array: where a state breaks a validity constraint (NaN, i.e. not solved, counts as broken);
+    ``gent_jm`` (one, or one per state) for the Gent law."""
     low, high = LAW_STRETCH_RANGE[material_model]
     with np.errstate(invalid="ignore"):
-        broken = ~(min_det > 0) | ~(min_stretch >= low) | ~(max_stretch <= high)
+        broken: BoolArray = ~(min_det > 0) | ~(min_stretch >= low) | ~(max_stretch <= high)
         if material_model == "gent":
+            assert gent_jm is not None  # the Gent law has its Jm
             broken |= ~(max_i1_minus_3 < GENT_LIMIT_FRACTION * gent_jm)
     return broken
 
@@ -216,7 +240,7 @@ def violation_reason(material_model: str, gent_jm: float | None, where: str, min
                 if material_model in ("linear", "corotational") else "")
         return (f"{where}: principal stretches {min_stretch:.3g}-{max_stretch:.3g} leave the {material_model} "
                 f"law's range {low:g}-{high:g}{hint}")
-    if material_model == "gent" and not max_i1_minus_3 < GENT_LIMIT_FRACTION * gent_jm:
+    if material_model == "gent" and gent_jm is not None and not max_i1_minus_3 < GENT_LIMIT_FRACTION * gent_jm:
         return (f"{where}: I1 - 3 = {max_i1_minus_3:.3g} reaches {GENT_LIMIT_FRACTION:g} Jm "
                 f"(Jm = {gent_jm:.3g}), where the Gent law locks")
     return None
@@ -235,7 +259,7 @@ class Responses:
     load_factors: np.ndarray
     gland_m3: np.ndarray
     admissible: np.ndarray
-    measures: dict
+    measures: dict[str, FloatArray]
     gent_jm: np.ndarray  # (*grid.shape,) the Jm at each grid point (NaN for other laws)
     material_model: str = "gent"
 
@@ -273,8 +297,9 @@ class Responses:
         return result
 
 
-def _fine(trace, load_factors: np.ndarray, values: np.ndarray, monotone: bool) -> np.ndarray:
+def _fine(trace: RayTrace, load_factors: FloatArray, values: FloatArray, monotone: bool) -> FloatArray:
     """A trace's values on the fine grid: monotone cubic (volumes) or linear (measures), NaN beyond it."""
+    # scipy.interpolate (0.5 s to import) only where traces are put on the fine grid
     from scipy.interpolate import PchipInterpolator
 
     out = np.full(len(load_factors), np.nan)
@@ -289,8 +314,8 @@ def _fine(trace, load_factors: np.ndarray, values: np.ndarray, monotone: bool) -
     return out
 
 
-def assemble_responses(grid: Grid, traces: list, feasible: list[bool], material_model: str, gent_jms: list,
-                       n_rays: int, max_load_factor: float) -> Responses:
+def assemble_responses(grid: Grid, traces: list[RayTrace | None], feasible: list[bool], material_model: str,
+                       gent_jms: list[float | None], n_rays: int, max_load_factor: float) -> Responses:
     """Put the traces of ``grid.points()`` x rays (row-major, None for infeasible points) on the fine grid."""
     load_factors = np.linspace(0.0, max_load_factor, FINE_LOAD_FACTOR_POINTS)
     shape = (*grid.shape, FINE_LOAD_FACTOR_POINTS, n_rays)
@@ -302,6 +327,7 @@ def assemble_responses(grid: Grid, traces: list, feasible: list[bool], material_
             continue
         for ray in range(n_rays):
             trace = traces[flat * n_rays + ray]
+            assert trace is not None  # a feasible grid point has its traces
             gland[index][:, ray] = _fine(trace, load_factors, trace.gland_m3, True)
             for name in names:
                 measures[name][index][:, ray] = _fine(trace, load_factors, getattr(trace, name), False)
@@ -329,6 +355,7 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
 
     Raises CalibrationError when no traced state fits every ray while keeping to the constraints.
     """
+    # scipy.optimize (0.5 s to import) only where a fit is refined
     from scipy.optimize import minimize
 
     rays = list(rays)
@@ -444,16 +471,16 @@ class CalibrationResult:
 
     material_model: str
     grid: Grid
-    parameters: dict
+    parameters: dict[str, float]
     youngs_modulus_pa: float
     measured_m3: np.ndarray
     pressures_pa: np.ndarray
     fit_predicted_m3: np.ndarray          # full solves at the fitted parameters
     fit_interpolated_m3: np.ndarray       # the traces' interpolation at the same parameters
     loo_predicted_m3: np.ndarray
-    loo_parameters: list[dict]
+    loo_parameters: list[dict[str, float]]
     loo_youngs_modulus_pa: np.ndarray
-    validity: dict
+    validity: dict[str, Any]
     tasks: int
     traces_solved: int
     binding: str | None = None
@@ -466,7 +493,7 @@ class CalibrationResult:
     def loo_mean_abs_pct_error(self) -> float:
         return float(relative_abs_errors_pct(self.loo_predicted_m3, self.measured_m3).mean())
 
-    def uncertainty(self) -> dict:
+    def uncertainty(self) -> dict[str, float]:
         """Jackknife standard error of each parameter and of E (kPa) from the leave-one-out fits."""
         n = len(self.loo_parameters)
         spread = {}
@@ -477,7 +504,7 @@ class CalibrationResult:
         spread["youngs_modulus_kpa"] = float(np.sqrt((n - 1) / n * np.sum((moduli - moduli.mean()) ** 2)))
         return spread
 
-    def as_json(self) -> dict:
+    def as_json(self) -> dict[str, Any]:
         """kPa, ml, %."""
         return {
             "material_model": self.material_model,
@@ -503,7 +530,7 @@ class CalibrationResult:
         }
 
 
-def linear_load_factor(model, measurements: Measurements) -> float:
+def linear_load_factor(model: PhantomModel, measurements: Measurements) -> float:
     """Relative least squares of ``g = g_0 + t h . p`` for t, with the rest gland compliance h (first estimate)."""
     slope = (measurements.pressures_pa @ np.asarray(model.compliance().gland_m3_per_pa)) / measurements.volumes_m3
     residual = (measurements.volumes_m3 - model.rest_gland_volume_m3) / measurements.volumes_m3
@@ -514,19 +541,13 @@ def linear_load_factor(model, measurements: Measurements) -> float:
     return factor
 
 
-def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | None = None,
-              n_workers: int | None = None, progress=None, max_load_factor: float | None = None,
+def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: str | None = None,
+              n_workers: int | None = None, progress: Progress | None = None, max_load_factor: float | None = None,
               load_factor_step: float | None = None) -> CalibrationResult:
     """Fit E and the grid's parameters to ``measurements`` (see the module docstring); refuse an invalid fit.
 
     ``scene`` gives everything else (material law, Poisson ratio, geometry, mesh size); its modulus is E0.
     """
-    from phantom.model import PhantomModel
-    from phantom.model.calibration.sweep import RayTask, run_sweep
-    from phantom.model.errors import MeshError
-    from phantom.model.mesh.geometry import check_walls, geometry_from_table
-    from phantom.model.scene import scene_from_dict
-
     over = measurements.pressures_pa.max()
     if over > PRESSURE_LIMIT_PA:
         raise CalibrationError(f"{measurements.path}: a measurement at {over / 1e3:g} kPa is above the "
@@ -562,17 +583,16 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
                 ok = False
         feasible.append(ok)
         if ok:
-            law_limit = np.inf if law != "gent" else GENT_LIMIT_FRACTION * parsed.material.gent_jm
+            jm = parsed.material.gent_jm
+            law_limit = GENT_LIMIT_FRACTION * jm if law == "gent" and jm is not None else np.inf
             tasks += [RayTask(document, tuple(p.tolist()), load_factors, float(stop_growth[j]),
                               stop_i1_minus_3=law_limit) for j, p in enumerate(measurements.pressures_pa)]
     if not any(feasible):
         raise CalibrationError("every grid point breaks the wall-thickness limit: shrink the geometry grid")
-    from phantom.model.calibration.sweep import cached_trace
-
     solved_now = sum(cached_trace(task) is None for task in tasks)
     results = iter(run_sweep(tasks, scheduler=scheduler, n_workers=n_workers, progress=progress))
     n_rays = len(measured)
-    traces = []
+    traces: list[RayTrace | None] = []
     for ok in feasible:
         traces += [next(results) for _ in range(n_rays)] if ok else [None] * n_rays
     responses = assemble_responses(grid, traces, feasible, law, gent_jms, n_rays, float(load_factors[-1]))
@@ -595,11 +615,11 @@ def calibrate(scene, measurements: Measurements, grid: Grid, scheduler: str | No
         np.array([e0 / f.load_factor for f in loo_fits]), validity, len(tasks), solved_now, full.binding)
 
 
-def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_workers, progress) -> np.ndarray:
+def _solve_left_out(raw: dict[str, Any], grid: Grid, refits: list[Fit], left_outs: list[int],
+                    measurements: Measurements, scheduler: str | None, n_workers: int | None,
+                    progress: Progress | None) -> FloatArray:
     """Gland volumes (m^3) of left-out measurements at their refits' parameters, by full solves (continuation in
     four steps); where the model has no state there (a limit point), the last solved volume, a lower bound."""
-    from phantom.model.calibration.sweep import RayTask, run_sweep
-
     tasks = []
     for refit, left_out in zip(refits, left_outs, strict=True):
         document = scene_with(raw, {name: float(refit.theta[k]) for k, name in enumerate(grid.names)})
@@ -609,11 +629,11 @@ def _solve_left_out(raw, grid, refits, left_outs, measurements, scheduler, n_wor
                                                                progress=progress)])
 
 
-def _verify(raw, parameters, load_factor, measurements, law, scheduler, n_workers, progress):
+def _verify(raw: dict[str, Any], parameters: dict[str, float], load_factor: float, measurements: Measurements,
+            law: str, scheduler: str | None, n_workers: int | None,
+            progress: Progress | None) -> tuple[FloatArray, dict[str, Any]]:
     """Full solves of every measurement at the fitted parameters (continuation in four steps to ``t``);
     returns the gland volumes (m^3) and the validity figures, or raises CalibrationError with the reason."""
-    from phantom.model.calibration.sweep import RayTask, run_sweep
-
     document = scene_with(raw, parameters)
     jm = document.get("material", {}).get("gent_jm")
     load_factors = tuple((load_factor * np.array([0.25, 0.5, 0.75, 1.0])).tolist())
@@ -646,7 +666,7 @@ def _verify(raw, parameters, load_factor, measurements, law, scheduler, n_worker
 
 
 # --------------------------------------------------------------------- writing the calibrated scene
-def _toml_value(value) -> str:
+def _toml_value(value: object) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, (int, np.integer)):
@@ -664,7 +684,7 @@ def _toml_value(value) -> str:
     raise CalibrationError(f"cannot write a {type(value).__name__} to a scene")
 
 
-def dump_toml(document: dict, header_comment: str = "") -> str:
+def dump_toml(document: dict[str, Any], header_comment: str = "") -> str:
     """TOML text for a scene dictionary: top-level tables of scalars, lists and inline tables, and arrays of
     tables (``[[steps]]``)."""
     lines = [f"# {line}" if line else "#" for line in header_comment.splitlines()]
@@ -686,11 +706,10 @@ def dump_toml(document: dict, header_comment: str = "") -> str:
 
 
 
-def write_calibrated_scene(scene, result: CalibrationResult, output_path, header_comment: str = "") -> Path:
+def write_calibrated_scene(scene: Scene, result: CalibrationResult, output_path: str | Path,
+                           header_comment: str = "") -> Path:
     """Write ``scene`` with the calibration's material (law, E, parameters) and geometry, its mesh path made
     relative to the new file; returns the path written."""
-    import os
-
     output_path = Path(output_path)
     document = scene_with(scene.raw, result.parameters)
     phantom_table = document.setdefault("phantom", {})

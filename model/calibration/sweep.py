@@ -23,15 +23,26 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import logging
 import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from phantom import PhantomError
+import phantom
+from phantom import PhantomError, require_extra
+from phantom.model.errors import SolveError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.scene import scene_from_dict
+
+if TYPE_CHECKING:
+    from dask.distributed import Client, LocalCluster
 
 #: Bump when what a trace computes changes, so cached traces are recomputed.
 SWEEP_VERSION = 1
@@ -49,15 +60,16 @@ class RayTask:
         absolute mesh path. mesh_size_mm : element size of the built-in mesh (None: the scene's).
     """
 
-    scene_raw: dict
-    pressures_pa: tuple
-    load_factors: tuple
+    scene_raw: dict[str, Any]
+    pressures_pa: tuple[float, ...]
+    load_factors: tuple[float, ...]
     stop_growth_m3: float = float("inf")
     mesh_size_mm: float | None = None
     stop_i1_minus_3: float = float("inf")
 
     @property
     def key(self) -> str:
+        """A hash of everything the trace depends on: the name it is stored under."""
         text = json.dumps([SWEEP_VERSION, self.scene_raw, list(self.pressures_pa), list(self.load_factors),
                            repr(self.stop_growth_m3), self.mesh_size_mm, repr(self.stop_i1_minus_3)],
                           sort_keys=True, default=repr)
@@ -82,7 +94,8 @@ class RayTrace:
     stopped: str
     solve_time_s: float
 
-    def arrays(self) -> dict:
+    def arrays(self) -> dict[str, Any]:
+        """The trace's arrays by name (for storing)."""
         return {name: getattr(self, name) for name in ("load_factors", "gland_m3", "chamber_m3", "min_det",
                                                        "min_stretch", "max_stretch", "max_i1_minus_3")}
 
@@ -101,11 +114,8 @@ def element_stretch_measures(positions_m: np.ndarray, tets: np.ndarray,
 
 
 @functools.lru_cache(maxsize=4)
-def _model_of(scene_text: str, mesh_size_mm: float | None):
+def _model_of(scene_text: str, mesh_size_mm: float | None) -> tuple[PhantomModel, np.ndarray]:
     """The model of a scene (kept per worker process: the tasks of one grid point share it)."""
-    from phantom.model import PhantomModel
-    from phantom.model.scene import scene_from_dict
-
     model = PhantomModel.from_scene(scene_from_dict(json.loads(scene_text)), mesh_size_mm=mesh_size_mm)
     edges = model.nodes_m[model.tets[:, 1:]] - model.nodes_m[model.tets[:, :1]]
     # Rows of ``edges`` are edge vectors: F = Ds Dm^-1 with Ds, Dm the edge matrices by columns.
@@ -114,8 +124,6 @@ def _model_of(scene_text: str, mesh_size_mm: float | None):
 
 def trace_ray(task: RayTask) -> RayTrace:
     """Trace one ray (see the module docstring); runs on a Dask worker or in the calling process."""
-    from phantom.model import SolveError
-
     started = time.perf_counter()
     model, rest_edge_inverse = _model_of(json.dumps(task.scene_raw, sort_keys=True), task.mesh_size_mm)
     pressures = np.asarray(task.pressures_pa, dtype=float)
@@ -126,7 +134,8 @@ def trace_ray(task: RayTask) -> RayTrace:
             positions_m_here, chambers, gland = model.nodes_m, model.rest_chamber_volumes_m3, model.rest_gland_volume_m3
         else:
             try:
-                state = model.solve(load_factor * pressures, initial_positions_m=positions_m if warm_start else None)
+                state = model.equilibrium(load_factor * pressures,
+                                          initial_positions_m=positions_m if warm_start else None)
             except SolveError as error:
                 stopped = str(error)
                 break
@@ -147,9 +156,7 @@ def trace_ray(task: RayTask) -> RayTrace:
 
 
 # ------------------------------------------------------------------------------------------ cache
-def _cache_path(task: RayTask):
-    import phantom
-
+def _cache_path(task: RayTask) -> Path:
     return phantom.cache_dir("sweeps") / f"{task.key}.npz"
 
 
@@ -176,7 +183,7 @@ def store_trace(task: RayTask, trace: RayTrace) -> None:
 
 
 # ------------------------------------------------------------------------------------------ running
-def stderr_progress(label: str):
+def stderr_progress(label: str) -> Callable[[int, int], None]:
     """A progress callback that redraws ``label [#####.....] done/total elapsed`` on stderr."""
     started = time.monotonic()
 
@@ -191,11 +198,11 @@ def stderr_progress(label: str):
     return report
 
 
-def local_cluster(n_workers: int | None = None):
+def local_cluster(n_workers: int | None = None) -> LocalCluster:
     """A LocalCluster of single-threaded worker processes (default: one per core), quiet, dashboard on a free port."""
-    import logging
-
-    from dask.distributed import LocalCluster
+    # dask.distributed (1 s to import, an optional extra) only where a sweep runs
+    with require_extra("calibrate"):
+        from dask.distributed import LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
     return LocalCluster(n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
@@ -203,7 +210,7 @@ def local_cluster(n_workers: int | None = None):
 
 
 def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int | None = None,
-              progress=None, client=None) -> list[RayTrace]:
+              progress: Callable[[int, int], None] | None = None, client: Client | None = None) -> list[RayTrace]:
     """Every task's trace, in order: cached ones read from disk, the others computed on Dask and stored.
 
     ``client`` (a ``dask.distributed.Client``) is used as given; else ``scheduler`` is the address of a
@@ -216,8 +223,10 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
     if progress is not None:
         progress(total - len(missing), total)
     if not missing:
-        return results
-    from dask.distributed import Client, as_completed
+        return [trace for trace in results if trace is not None]
+    # dask.distributed (1 s to import, an optional extra) only where a sweep has traces to solve
+    with require_extra("calibrate"):
+        from dask.distributed import Client, as_completed
 
     cluster = None
     own_client = client is None
@@ -248,4 +257,4 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
             client.close()
         if cluster is not None:
             cluster.close()
-    return results
+    return [trace for trace in results if trace is not None]  # every task has its trace by now

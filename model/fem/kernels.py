@@ -26,11 +26,16 @@ import importlib.util
 import os
 import sys
 import tempfile
+import warnings
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
+from typing import Any, TypeVar, cast
 
 import numpy as np
 
 import phantom
+from phantom.model.arrays import FloatArray, Int32Array, IntArray
 
 #: The kernels the model calls, with their argument dtypes (None: a scalar; "out": a float64 C array written in
 #: place) and the signature of their ahead-of-time build (all arrays C-contiguous).
@@ -59,13 +64,15 @@ def compiled_kernels_path() -> Path:
     return phantom.cache_dir("kernels") / f"phantom_kernels_{digest.hexdigest()[:16]}.so"
 
 
-def _load_compiled():
+def _load_compiled() -> ModuleType | None:
     """The ahead-of-time build of these kernels when it exists for this source (else None): calling it needs
     neither numba's import (0.2 s) nor its first-call start (0.4 s), which a CLI call would otherwise pay."""
     path = compiled_kernels_path()
     if os.environ.get("PHANTOM_JIT_KERNELS") or not path.is_file():
         return None
     spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
+    if spec is None or spec.loader is None:
+        return None
     try:
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
@@ -76,21 +83,27 @@ def _load_compiled():
 
 _COMPILED = _load_compiled()
 if _COMPILED is None:
-    os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
+    # numba's cache is the one in NUMBA_CACHE_DIR when the environment names one (a parent process set it)
+    numba_cache = Path(os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba"))))
     import numba
 
-    kernel = numba.njit(cache=True)
-    if __name__ != "__main__" and not any(phantom.cache_dir("numba").rglob("kernels.internal_forces-*.nbi")):
+    _jit = numba.njit(cache=True)
+    if __name__ != "__main__" and not any(numba_cache.rglob("kernels.internal_forces-*.nbi")):
         print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached; "
               "`python -m phantom.model.fem.kernels` builds them ahead of time)", file=sys.stderr, flush=True)
-else:
-    def kernel(function):
-        """Leave the Python source as it is: the ahead-of-time build replaces the exported kernels below."""
-        return function
+
+Kernel = TypeVar("Kernel", bound=Callable[..., Any])
+
+
+def kernel(function: Kernel) -> Kernel:
+    """numba's JIT of ``function`` (cached on disk); with the ahead-of-time build loaded, the Python source as it
+    is (the build replaces the exported kernels below). Either way the kernel takes the same arguments."""
+    return function if _COMPILED is not None else cast(Kernel, _jit(function))
 
 
 @kernel
-def element_rest_data(rest_positions_m, tets, youngs_modulus_pa, poisson_ratio):
+def element_rest_data(rest_positions_m: FloatArray, tets: IntArray, youngs_modulus_pa: float,
+                      poisson_ratio: float) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Inverse shape matrices ``Dm^-1`` (m, 3, 3), rest volumes (m^3) and linear stiffness matrices ``K_e``.
 
     ``K_e = V B^T D B`` (N/m, 12 x 12 per element, node-major dof order x0 y0 z0 x1 ...), with the strain
@@ -153,7 +166,7 @@ def element_rest_data(rest_positions_m, tets, youngs_modulus_pa, poisson_ratio):
 
 
 @kernel
-def _jacobi_rotate(a, vectors, p, q):
+def _jacobi_rotate(a: FloatArray, vectors: FloatArray, p: int, q: int) -> None:
     """Zero ``a[p, q]`` of the symmetric matrix by one Jacobi rotation, accumulated into ``vectors``."""
     if a[p, q] == 0.0:
         return
@@ -178,7 +191,7 @@ def _jacobi_rotate(a, vectors, p, q):
 
 
 @kernel
-def symmetric_eigen_into(a, vectors, values):
+def symmetric_eigen_into(a: FloatArray, vectors: FloatArray, values: FloatArray) -> None:
     """Eigen decomposition of a symmetric 3 x 3 matrix ``a`` (overwritten) into ``values`` (descending) and
     ``vectors`` (orthonormal columns, det +1).
 
@@ -209,14 +222,16 @@ def symmetric_eigen_into(a, vectors, values):
 
 
 @kernel
-def _det3(m):
-    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
-            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
-            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+def _det3(m: FloatArray) -> float:
+    det: float = (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+                  - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+                  + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+    return det
 
 
 @kernel
-def polar_rotation_into(f, rotation, work, v, values):
+def polar_rotation_into(f: FloatArray, rotation: FloatArray, work: FloatArray, v: FloatArray,
+                        values: FloatArray) -> None:
     """Rotation R of the polar decomposition ``F = R S``, from the SVD ``F = U Sigma V^T``: ``R = U V^T``.
 
     V and the singular values come from the eigen decomposition of ``F^T F``; ``u_i = F v_i / sigma_i`` for
@@ -265,7 +280,7 @@ def polar_rotation_into(f, rotation, work, v, values):
 
 
 @kernel
-def polar_rotation(deformation_gradient):
+def polar_rotation(deformation_gradient: FloatArray) -> FloatArray:
     """The proper rotation of the polar decomposition of one 3 x 3 ``F`` (see :func:`polar_rotation_into`)."""
     rotation = np.empty((3, 3))
     polar_rotation_into(deformation_gradient, rotation, np.empty((3, 3)), np.empty((3, 3)), np.empty(3))
@@ -273,7 +288,7 @@ def polar_rotation(deformation_gradient):
 
 
 @kernel
-def _rotate_blocks(element_stiffness, rotation, work, out):
+def _rotate_blocks(element_stiffness: FloatArray, rotation: FloatArray, work: FloatArray, out: FloatArray) -> None:
     """``out = diag(R) K_e diag(R)^T``: each 3 x 3 block K_ab becomes ``R K_ab R^T``."""
     for a in range(4):
         for b in range(4):
@@ -292,7 +307,7 @@ def _rotate_blocks(element_stiffness, rotation, work, out):
 
 
 @kernel
-def _skew(vector, out):
+def _skew(vector: FloatArray, out: FloatArray) -> None:
     """``out = [v]x``, the matrix of the cross product ``v x .``."""
     out[0, 0], out[0, 1], out[0, 2] = 0.0, -vector[2], vector[1]
     out[1, 0], out[1, 1], out[1, 2] = vector[2], 0.0, -vector[0]
@@ -300,14 +315,14 @@ def _skew(vector, out):
 
 
 @kernel
-def _matmul3(a, b, out):
+def _matmul3(a: FloatArray, b: FloatArray, out: FloatArray) -> None:
     for i in range(3):
         for j in range(3):
             out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
 
 
 @kernel
-def _inverse3(m, out):
+def _inverse3(m: FloatArray, out: FloatArray) -> float:
     """``out = m^-1`` by the adjugate; returns det m."""
     det = _det3(m)
     out[0, 0] = (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]) / det
@@ -323,8 +338,9 @@ def _inverse3(m, out):
 
 
 @kernel
-def _add_rotation_stiffness(element_stiffness, rotation, deformation_gradient, dm_inverse, local_force,
-                            unrotated_m, out, scratch):
+def _add_rotation_stiffness(element_stiffness: FloatArray, rotation: FloatArray, deformation_gradient: FloatArray,
+                            dm_inverse: FloatArray, local_force: FloatArray, unrotated_m: FloatArray, out: FloatArray,
+                            scratch: FloatArray) -> None:
     """Add the Hessian terms from the rotation's derivative (module docstring) to the 12 x 12 ``out``.
 
     ``scratch`` is (14, 3, 3) work space: no allocation per element.
@@ -376,8 +392,9 @@ def _add_rotation_stiffness(element_stiffness, rotation, deformation_gradient, d
 
 
 @kernel
-def internal_forces(positions_m, rest_positions_m, tets, dm_inverse, stiffness, corotational,
-                    want_matrix, scatter, matrix_data):
+def internal_forces(positions_m: FloatArray, rest_positions_m: FloatArray, tets: IntArray, dm_inverse: FloatArray,
+                    stiffness: FloatArray, corotational: bool, want_matrix: int, scatter: IntArray,
+                    matrix_data: FloatArray) -> tuple[FloatArray, float, float]:
     """Elastic nodal forces (N, (n, 3)), elastic energy (J), smallest ``det F``; optionally the tangent.
 
     Corotational: ``f = R K_e (R^T x - X)``; linear: ``f = K_e (x - X)``. When ``want_matrix`` is 1, the
@@ -455,8 +472,9 @@ def internal_forces(positions_m, rest_positions_m, tets, dm_inverse, stiffness, 
 
 
 @kernel
-def hyperelastic_forces(positions_m, tets, dm_inverse, volumes_m3, lame_mu_pa, lame_lambda_pa, inverse_jm,
-                        want_matrix, scatter, matrix_data):
+def hyperelastic_forces(positions_m: FloatArray, tets: IntArray, dm_inverse: FloatArray, volumes_m3: FloatArray,
+                        lame_mu_pa: float, lame_lambda_pa: float, inverse_jm: float, want_matrix: int,
+                        scatter: IntArray, matrix_data: FloatArray) -> tuple[FloatArray, float, float]:
     """Nodal forces (N, (n, 3)), energy (J) and the smallest ``det F`` of the Gent law (Neo-Hookean when
     ``inverse_jm`` = 1 / Jm is 0); optionally its exact tangent added into ``matrix_data`` at ``scatter``.
 
@@ -550,7 +568,7 @@ def hyperelastic_forces(positions_m, tets, dm_inverse, volumes_m3, lame_mu_pa, l
 
 
 @kernel
-def deformation_determinants(positions_m, tets, dm_inverse):
+def deformation_determinants(positions_m: FloatArray, tets: IntArray, dm_inverse: FloatArray) -> FloatArray:
     """``det F_e`` of each element (volume ratio current / rest)."""
     dets = np.empty(tets.shape[0])
     ds = np.empty((3, 3))
@@ -563,7 +581,8 @@ def deformation_determinants(positions_m, tets, dm_inverse):
 
 
 @kernel
-def add_pressure_stiffness(positions_m, triangles, pressure_pa, indptr, indices, matrix_data):
+def add_pressure_stiffness(positions_m: FloatArray, triangles: IntArray, pressure_pa: float, indptr: IntArray,
+                           indices: Int32Array, matrix_data: FloatArray) -> None:
     """Add ``-p d2V/dx2`` of one chamber (oriented triangles) to a CSR tangent's data (N/m).
 
     With ``V = sum_t x_a . (x_b x x_c) / 6``, the block ``d2V / dx_a dx_b = -[x_c]x / 6`` for each cyclic
@@ -589,8 +608,9 @@ def add_pressure_stiffness(positions_m, triangles, pressure_pa, indptr, indices,
 
 
 @kernel
-def _csr_position(indptr, indices, row, column):
-    low, high = indptr[row], indptr[row + 1]
+def _csr_position(indptr: IntArray, indices: Int32Array, row: int, column: int) -> int:
+    low: int = indptr[row]
+    high: int = indptr[row + 1]
     while low < high:
         middle = (low + high) // 2
         if indices[middle] < column:
@@ -601,7 +621,7 @@ def _csr_position(indptr, indices, row, column):
 
 
 @kernel
-def csr_multiply(indptr, indices, data, vector):
+def csr_multiply(indptr: IntArray, indices: Int32Array, data: FloatArray, vector: FloatArray) -> FloatArray:
     """``A v`` for the CSR matrix ``A = (data, indices, indptr)`` (square, n = len(indptr) - 1)."""
     n = indptr.shape[0] - 1
     product = np.empty(n)
@@ -614,7 +634,8 @@ def csr_multiply(indptr, indices, data, vector):
 
 
 @kernel
-def cholesky_solve(indptr, indices, values, permutation, rhs):
+def cholesky_solve(indptr: IntArray, indices: Int32Array, values: FloatArray, permutation: IntArray,
+                   rhs: FloatArray) -> FloatArray:
     """Solve ``A x = b`` from ``A[P][:, P] = L L^T`` (L lower triangular, CSC, diagonal first in each column).
 
     ``x[P] = L^-T L^-1 b[P]``: a forward substitution by columns, then a backward one with L's columns as the
@@ -642,10 +663,11 @@ def cholesky_solve(indptr, indices, values, permutation, rhs):
     return solution
 
 
-def _exported(name, implementation, argument_dtypes):
+def _exported(name: str, implementation: Callable[..., Any],
+              argument_dtypes: tuple[str | None, ...]) -> Callable[..., Any]:
     """``name`` with its array arguments made C-contiguous of the dtypes the build was typed for."""
 
-    def call(*arguments):
+    def call(*arguments: Any) -> Any:
         converted = []
         for argument, dtype in zip(arguments, argument_dtypes, strict=True):
             if dtype == "out":
@@ -664,7 +686,7 @@ def _exported(name, implementation, argument_dtypes):
 
 
 #: The JIT dispatchers of the exported kernels (None when the ahead-of-time build is in use).
-JIT_KERNELS = None if _COMPILED is not None else {name: globals()[name] for name in EXPORTS}
+JIT_KERNELS: dict[str, Any] | None = None if _COMPILED is not None else {name: globals()[name] for name in EXPORTS}
 for _name, (_dtypes, _) in EXPORTS.items():
     globals()[_name] = _exported(_name, getattr(_COMPILED, _name) if _COMPILED else globals()[_name], _dtypes)
 
@@ -673,13 +695,11 @@ def build_compiled() -> Path:
     """Compile the exported kernels ahead of time (numba.pycc, for this machine's CPU) to
     :func:`compiled_kernels_path`, which later imports of this module then use. Needs the JIT kernels (run it
     with ``PHANTOM_JIT_KERNELS=1``, as ``python -m phantom.model.fem.kernels`` does) and a C compiler."""
-    import warnings
-
     if JIT_KERNELS is None:
         raise RuntimeError("build_compiled needs the JIT kernels: set PHANTOM_JIT_KERNELS=1")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # numba.pycc announces its future deprecation
-        from numba.pycc import CC
+        from numba.pycc import CC  # the JIT kernels loaded numba already; pycc only for this build
     path = compiled_kernels_path()
     with tempfile.TemporaryDirectory(dir=path.parent) as build_dir:
         compiler = CC(path.name.split(".")[0])

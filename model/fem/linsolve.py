@@ -7,9 +7,15 @@ times faster than SuperLU here) when it is installed, else SuperLU; a co-rotatio
 indefinite and is always factorised by SuperLU ("splu-mmd").
 """
 
-from typing import TYPE_CHECKING
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+from phantom import require_extra
+from phantom.model.arrays import FloatArray, Int32Array, IntArray
+from phantom.model.fem import kernels
 
 if TYPE_CHECKING:
     import scipy.sparse
@@ -19,6 +25,7 @@ METHODS = ("cholmod", "splu-mmd", "splu-colamd", "cg-ilu")
 
 def default_method() -> str:
     """"cholmod" when scikit-sparse imports, else "splu-mmd"."""
+    # scikit-sparse is optional (it needs SuiteSparse): its absence is what this asks
     try:
         import sksparse.cholmod  # noqa: F401
     except ImportError:
@@ -33,21 +40,22 @@ class CholeskyFactor:
     ``scale`` multiplies every solution (``(c A)^-1 = A^-1 / c``).
     """
 
-    def __init__(self, indptr, indices, values, permutation, scale: float = 1.0):
+    def __init__(self, indptr: IntArray, indices: Int32Array, values: FloatArray, permutation: IntArray,
+                 scale: float = 1.0):
         self.indptr = np.ascontiguousarray(indptr, dtype=np.int64)
         self.indices = np.ascontiguousarray(indices, dtype=np.int32)  # as stored: no 17 MB conversion per load
         self.values = np.ascontiguousarray(values, dtype=np.float64)
         self.permutation = np.ascontiguousarray(permutation, dtype=np.int64)
         self.scale = scale
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
-        from phantom.model.fem.kernels import cholesky_solve
-
-        solution = cholesky_solve(self.indptr, self.indices, self.values, self.permutation,
-                                  np.ascontiguousarray(rhs, dtype=np.float64))
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """``A^-1 rhs`` for one right-hand side (n,) or several (n, k)."""
+        solution = kernels.cholesky_solve(self.indptr, self.indices, self.values, self.permutation,
+                                          np.ascontiguousarray(rhs, dtype=np.float64))
         return solution * self.scale if self.scale != 1.0 else solution
 
-    def arrays(self) -> dict:
+    def arrays(self) -> dict[str, FloatArray | IntArray | Int32Array]:
+        """The factor's arrays by name, as :meth:`__init__` takes them (for storing)."""
         return {"indptr": self.indptr, "indices": self.indices, "values": self.values,
                 "permutation": self.permutation}
 
@@ -58,14 +66,20 @@ class Factorization:
     Raises ``ArithmeticError`` when "cholmod" finds the matrix not positive definite.
     """
 
-    def __init__(self, matrix: "scipy.sparse.csr_matrix", method: str | None = None):
+    def __init__(self, matrix: scipy.sparse.csr_matrix, method: str | None = None):
         # scipy.sparse.linalg costs a tenth of a second to import: only the factorising paths pay for it.
         import scipy.sparse.linalg as spla
 
         self.method = method or default_method()
         self.matrix = matrix
+        #: The Cholesky factor ("cholmod"), which a caller may store; None for the other methods.
+        self.cholesky: CholeskyFactor | None = None
+        self._lu: Any = None
+        self._preconditioner: Any = None
         if self.method == "cholmod":
-            from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+            # scikit-sparse is an optional extra and loads SuiteSparse: only the "cholmod" method needs it
+            with require_extra("cholmod"):
+                from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
 
             try:
                 factor = cholesky(matrix.tocsc(), mode="supernodal")
@@ -81,19 +95,21 @@ class Factorization:
             self._lu = spla.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                  options={"SymmetricMode": True})
         elif self.method == "cg-ilu":
-            self._ilu = spla.spilu(matrix.tocsc(), drop_tol=1e-4, fill_factor=10)
-            self._preconditioner = spla.LinearOperator(matrix.shape, self._ilu.solve)
+            incomplete = spla.spilu(matrix.tocsc(), drop_tol=1e-4, fill_factor=10)
+            self._preconditioner = spla.LinearOperator(matrix.shape, incomplete.solve)
         else:
             raise ValueError(f"unknown linear solver {self.method!r}: use one of {METHODS}")
 
-    def solve(self, rhs: np.ndarray) -> np.ndarray:
+    def solve(self, rhs: FloatArray) -> FloatArray:
         """``K^-1 rhs`` for one right-hand side (n,) or several (n, k)."""
-        if self.method == "cholmod":
+        if self.cholesky is not None:
             return self.cholesky.solve(rhs)
         if self.method.startswith("splu"):
-            return self._lu.solve(rhs)
+            solution: FloatArray = self._lu.solve(rhs)
+            return solution
         if rhs.ndim == 2:
             return np.column_stack([self.solve(column) for column in rhs.T])
+        # scipy.sparse.linalg (0.1 s to import): loaded by __init__ already, named here for CG
         import scipy.sparse.linalg as spla
 
         solution, info = spla.cg(self.matrix, rhs, rtol=1e-12, atol=0.0, M=self._preconditioner, maxiter=2000)

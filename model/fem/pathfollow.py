@@ -24,11 +24,17 @@ inverting an element (or, for Gent, locking its chains) even after halving it ``
 the SolveError then names the chamber, the pressure and volume where the path stopped, and why.
 """
 
+from __future__ import annotations
+
 from dataclasses import dataclass
 
 import numpy as np
 
+from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
+from phantom.model.fem.body import Factor
+from phantom.model.fem.newton import newton, preconditioned_cg
+from phantom.model.fem.problem import EquilibriumProblem
 
 #: Switch to volume control when the secant slope d(lam)/d(c) falls below this fraction of the first step's.
 FLATTENING_RATIO = 0.2
@@ -36,6 +42,8 @@ FLATTENING_RATIO = 0.2
 FIRST_STEP_GROWTH = 0.5
 #: Pressure-controlled step failures (each followed by a halved step) before volume control takes over.
 PRESSURE_FAILURES_BEFORE_VOLUME_CONTROL = 1
+#: A pressure-controlled path gives up after this many failed load steps.
+MAX_LOAD_BISECTIONS = 6
 MAX_PATH_STEPS = 60
 MAX_VOLUME_BISECTIONS = 8
 #: The smallest volume step (relative to the control's rest value) before the path gives up: the mesh is then
@@ -68,11 +76,33 @@ VOLUME_KRYLOV_ITERATIONS = 40
 
 @dataclass
 class PathPoint:
-    """An equilibrium on the path: load factor, node positions (m), control volume (m^3)."""
+    """An equilibrium on the path: load factor, node positions (n, 3) m, control volume (m^3)."""
 
     load_factor: float
-    positions_m: np.ndarray
+    positions_m: FloatArray
     control_m3: float
+
+
+@dataclass
+class PathResult:
+    """The equilibrium at the full pressures: node positions (n, 3) m, the Newton iterations spent on the way and
+    the accepted steps."""
+
+    positions_m: FloatArray
+    iterations: int
+    steps: int
+
+
+@dataclass(frozen=True)
+class _VolumeState:
+    """The bordered system at one (positions, load factor): out-of-balance force ``residual_n`` (3n,), control
+    volume gap (m^3), merit (dimensionless: the squared residual relative to the load plus the squared gap
+    relative to the control's rest volume) and admissibility (no element at det F <= 0, finite energy)."""
+
+    residual_n: FloatArray
+    gap_m3: float
+    merit: float
+    admissible: bool
 
 
 @dataclass
@@ -85,51 +115,42 @@ class _VolumeStep:
 
 
 class _Path:
-    """One path-following solve on ``model`` (a PhantomModel) toward ``pressures`` (Pa)."""
+    """One path-following solve of ``problem`` from its start."""
 
-    def __init__(self, model, start_m, pressures, formulation, tolerance, constraints):
-        self.model = model
-        self.start_m = start_m
-        self.pressures = pressures
-        self.formulation = formulation
+    def __init__(self, problem: EquilibriumProblem, tolerance: float):
+        self.problem = problem
+        self.body = problem.body
+        self.start_m = problem.start_m
+        self.pressures = problem.pressures_pa
+        self.formulation = problem.formulation
         self.tolerance = tolerance
-        self.constraints = constraints
-        self.weights = pressures / np.max(np.abs(pressures)) if np.any(pressures) else pressures
+        self.constraints = problem.constraints
+        self.weights = self.pressures / np.max(np.abs(self.pressures)) if np.any(self.pressures) else self.pressures
         self.iterations = 0
         self.steps = 0
-        free = constraints.free_mask
-        self.load_scale = max(float(np.linalg.norm(self._load_vector(start_m)[free])),
-                              1e-12 * model.material.youngs_modulus_pa * model._length_scale_m**2)
-        self.control_rest_m3 = abs(self._control(start_m)) or float(np.max(model.rest_chamber_volumes_m3))
+        self.load_scale = problem.load_scale_n()
+        self.control_rest_m3 = (abs(self._control(self.start_m))
+                                or float(np.max(self.body.rest_chamber_volumes_m3)))
         self.peak: PathPoint | None = None
 
     # --- quantities --------------------------------------------------------------------------------------
 
-    def _control(self, positions_m) -> float:
-        chambers, _ = self.model.volumes(positions_m)
-        return float(self.weights @ chambers)
+    def _control(self, positions_m: FloatArray) -> float:
+        return float(self.weights @ self.body.chamber_volumes_m3(positions_m))
 
-    def _load_vector(self, positions_m) -> np.ndarray:
-        gradients = self.model.volume_gradients(positions_m)[: self.model.n_chambers]
-        load = self.pressures @ gradients
-        load[self.constraints.dofs] = 0.0
-        return load
-
-    def _point(self, load_factor, positions_m) -> PathPoint:
+    def _point(self, load_factor: float, positions_m: FloatArray) -> PathPoint:
         return PathPoint(float(load_factor), positions_m, self._control(positions_m))
 
-    def _upright(self, positions_m) -> bool:
-        return self.model._worst_element(positions_m) < 0
+    def _upright(self, positions_m: FloatArray) -> bool:
+        return self.problem.worst_element(positions_m) < 0
 
     # --- the whole path ----------------------------------------------------------------------------------
 
-    def run(self) -> np.ndarray:
+    def run(self) -> FloatArray:
         points = [self._point(0.0, self.start_m)]
-        if self.formulation == "linear":
-            return self._pressure_controlled(points, allow_switch=False)
-        return self._pressure_controlled(points, allow_switch=True)
+        return self._pressure_controlled(points, allow_switch=self.problem.nonlinear)
 
-    def _predict(self, points, load_factor) -> np.ndarray:
+    def _predict(self, points: list[PathPoint], load_factor: float) -> FloatArray:
         """Secant extrapolation of the last two equilibria to ``load_factor`` (the last one when that would
         invert an element, or with a single point)."""
         if len(points) < 2:
@@ -139,16 +160,14 @@ class _Path:
         guess = last.positions_m + ratio * (last.positions_m - before.positions_m)
         return guess if self._upright(guess) else last.positions_m
 
-    def _pressure_controlled(self, points, allow_switch) -> np.ndarray:
-        from phantom.model.fem.model import MAX_LOAD_BISECTIONS
-
-        increment, failures, first_slope = self._first_increment() if allow_switch else 1.0, 0, None
+    def _pressure_controlled(self, points: list[PathPoint], allow_switch: bool) -> FloatArray:
+        increment, failures = self._first_increment() if allow_switch else 1.0, 0
+        first_slope: float | None = None
         while points[-1].load_factor < 1.0:
             done = points[-1].load_factor
             target = min(1.0, done + increment)
-            step = self.model._newton(self._predict(points, target), target * self.pressures, self.formulation,
-                                      self.start_m, self.tolerance, self.constraints,
-                                      initial_imbalance=self.steps == 0)
+            step = newton(self.problem.at_load_factor(target), self._predict(points, target), self.tolerance,
+                          initial_imbalance=self.steps == 0)
             self.iterations += step.iterations
             if step.converged:
                 points.append(self._point(target, step.positions_m))
@@ -163,7 +182,7 @@ class _Path:
             # A smaller load cannot help a linear model, nor a residual stuck at the rounding floor (the floor
             # relative to the load only grows as the load shrinks).
             if not allow_switch or step.ill_conditioned or failures > MAX_LOAD_BISECTIONS:
-                raise self.model._failure(self.pressures, target, step)
+                raise step.error(self.problem, target)
             if failures >= PRESSURE_FAILURES_BEFORE_VOLUME_CONTROL:
                 return self._volume_controlled(points)
             increment /= 2.0
@@ -172,12 +191,11 @@ class _Path:
     def _first_increment(self) -> float:
         """The whole load at once, unless the small-strain answer (one back-substitution with the rest factor)
         grows a chamber by more than FIRST_STEP_GROWTH of its volume: then the share of the load that would."""
-        model = self.model
-        if self.constraints.key != model._rest_constraints.key:
+        if not self.problem.preconditioned:
             return 1.0
-        displacement = model.rest_factorization(self.constraints).solve(self._load_vector(self.start_m))
-        gradients = model.volume_gradients(self.start_m)[: model.n_chambers]
-        chambers, _ = model.volumes(self.start_m)
+        displacement = self.problem.rest_factorization().solve(self.problem.pressure_load_n(self.start_m))
+        gradients = self.body.volume_gradients(self.start_m)[: self.body.n_chambers]
+        chambers = self.body.chamber_volumes_m3(self.start_m)
         growth = float(np.max(np.abs(gradients @ displacement) / chambers))
         return 1.0 if growth <= FIRST_STEP_GROWTH else FIRST_STEP_GROWTH / growth
 
@@ -188,23 +206,23 @@ class _Path:
 
     # --- volume control ----------------------------------------------------------------------------------
 
-    def _tangent_direction(self, point: PathPoint):
-        """d(positions)/d(c) and d(lam)/d(c) at an equilibrium, from ``K b = q``: ``dx/dc = b / (h . b)``."""
-        factor = self.model._tangent(point.positions_m, self.formulation, self.constraints,
-                                     point.load_factor * self.pressures, exact=True)
-        b = factor.solve(self._load_vector(point.positions_m))
+    def _tangent_direction(self, point: PathPoint) -> tuple[FloatArray, float] | None:
+        """d(positions)/d(c) and d(lam)/d(c) at an equilibrium, from ``K b = q``: ``dx/dc = b / (h . b)``; None
+        where the tangent gives no forward direction."""
+        factor = self.problem.at_load_factor(point.load_factor).tangent(point.positions_m, exact=True)
+        b = factor.solve(self.problem.pressure_load_n(point.positions_m))
         curvature = float(self._control_gradient(point.positions_m) @ b)
         if not np.isfinite(curvature) or curvature <= 0:
-            return None, None
+            return None
         return b.reshape(-1, 3) / curvature, 1.0 / curvature
 
-    def _control_gradient(self, positions_m) -> np.ndarray:
-        gradients = self.model.volume_gradients(positions_m)[: self.model.n_chambers]
-        gradient = self.weights @ gradients
+    def _control_gradient(self, positions_m: FloatArray) -> FloatArray:
+        gradients = self.body.volume_gradients(positions_m)[: self.body.n_chambers]
+        gradient: FloatArray = self.weights @ gradients
         gradient[self.constraints.dofs] = 0.0
         return gradient
 
-    def _volume_controlled(self, points) -> np.ndarray:
+    def _volume_controlled(self, points: list[PathPoint]) -> FloatArray:
         point = points[-1]
         previous = points[-2] if len(points) > 1 else None
         if previous is not None and point.control_m3 > previous.control_m3:
@@ -213,11 +231,11 @@ class _Path:
             control_step = 0.05 * self.control_rest_m3
         history = [p for p in (previous, point) if p is not None]
         bisections = falling = 0
-        self.peak = max(points, key=lambda p: p.load_factor)
+        peak = self.peak = max(points, key=lambda p: p.load_factor)
         for _ in range(MAX_PATH_STEPS):
             target = point.control_m3 + control_step
             guess_m, guess_factor = self._volume_guess(history, point, target)
-            worst = self.model._worst_element(guess_m)
+            worst = self.problem.worst_element(guess_m)
             if worst >= 0:  # the predictor itself inverts an element: a shorter step, no Newton spent
                 step = _VolumeStep(False, None, 0, "solve would invert elements", worst)
             else:
@@ -231,15 +249,16 @@ class _Path:
                                             step.worst_element)
                 continue
             new = step.point
+            assert new is not None  # a converged step has its point
             self.steps += 1
             history = [point, new]
             if new.load_factor >= 1.0:
                 return self._cross(point, new)
-            if new.load_factor > self.peak.load_factor:
-                self.peak = new
+            if new.load_factor > peak.load_factor:
+                peak = self.peak = new
             point = new
             falling = falling + 1 if new.load_factor < history[0].load_factor else 0
-            if point.load_factor < PEAK_DROP * self.peak.load_factor or (
+            if point.load_factor < PEAK_DROP * peak.load_factor or (
                     falling >= CONFIRMED_FALL_STEPS and self.formulation != "gent"):
                 raise self._unreachable(point, "past the limit point")
             if point.control_m3 > MAX_CONTROL_GROWTH * self.control_rest_m3:
@@ -249,7 +268,8 @@ class _Path:
             bisections = 0
         raise self._unreachable(point, f"the path took more than {MAX_PATH_STEPS} volume steps")
 
-    def _volume_guess(self, history, point, target_m3):
+    def _volume_guess(self, history: list[PathPoint], point: PathPoint,
+                      target_m3: float) -> tuple[FloatArray, float]:
         """Predictor for a volume step: secant through the last two equilibria, else the tangent at the last
         (the caller checks that it inverts no element)."""
         if len(history) == 2 and history[1].control_m3 > history[0].control_m3:
@@ -258,37 +278,38 @@ class _Path:
             guess = last.positions_m + ratio * (last.positions_m - before.positions_m)
             factor = last.load_factor + ratio * (last.load_factor - before.load_factor)
         else:
-            direction, factor_rate = self._tangent_direction(point)
-            if direction is None:
+            tangent = self._tangent_direction(point)
+            if tangent is None:
                 return point.positions_m, point.load_factor
+            direction, factor_rate = tangent
             change = target_m3 - point.control_m3
             guess = point.positions_m + change * direction
             factor = point.load_factor + change * factor_rate
         return guess, factor
 
-    def _volume_newton(self, positions_m, load_factor, target_m3) -> _VolumeStep:
+    def _volume_newton(self, positions_m: FloatArray, load_factor: float, target_m3: float) -> _VolumeStep:
         """Equilibrium with ``c(x) = target_m3``, the load factor free (bordered Newton, module docstring)."""
-        model, free = self.model, self.constraints.free_mask
+        free = self.constraints.free_mask
         # Solves with K: conjugate gradients preconditioned by the rest factor while they converge (the
         # tangent is close to it until the strain is large), then a factorisation of K kept while it helps.
-        factor, fresh, krylov = None, False, True
+        factor: Factor | None = None
+        fresh, krylov = False, True
         merit_before, crawling = np.inf, 0
         state = self._volume_residual(positions_m, load_factor, target_m3)
         for iteration in range(1, VOLUME_NEWTON_ITERATIONS + 1):
-            residual, gap, merit, _ = state
+            residual, gap, merit = state.residual_n, state.gap_m3, state.merit
             if (np.linalg.norm(residual[free]) <= PATH_TOLERANCE * self.load_scale
                     and abs(gap) <= CONTROL_TOLERANCE * self.control_rest_m3):
                 return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1)
-            load = self._load_vector(positions_m)
+            load = self.problem.pressure_load_n(positions_m)
             solutions = self._krylov_solves(positions_m, load_factor, (-residual, load)) if krylov else None
             if solutions is None:
                 krylov = False
                 if factor is None or merit > REFRESH_RATIO * merit_before and not fresh:
-                    factor = model._tangent(positions_m, self.formulation, self.constraints,
-                                            load_factor * self.pressures, exact=True)
+                    factor = self.problem.at_load_factor(load_factor).tangent(positions_m, exact=True)
                     fresh = True
-                solutions = factor.solve(np.column_stack([-residual, load]))
-                solutions = solutions[:, 0], solutions[:, 1]
+                both = factor.solve(np.column_stack([-residual, load]))
+                solutions = [both[:, 0], both[:, 1]]
             merit_before = merit
             a, b = solutions
             h = self._control_gradient(positions_m)
@@ -297,19 +318,20 @@ class _Path:
                 return _VolumeStep(False, None, iteration, "the bordered system is singular")
             change_factor = (-gap - float(h @ a)) / denominator
             change = (a + b * change_factor).reshape(-1, 3)
-            accepted = None
+            accepted: tuple[FloatArray, float, _VolumeState] | None = None
+            halving = 0
             for halving in range(12):
                 scale = 0.5**halving
                 trial_m = positions_m + scale * change
                 trial = self._volume_residual(trial_m, load_factor + scale * change_factor, target_m3)
-                if trial[3] and trial[2] < merit:
+                if trial.admissible and trial.merit < merit:
                     accepted = trial_m, load_factor + scale * change_factor, trial
                     break
             if accepted is None:
                 if krylov or not fresh:
                     krylov, factor = False, None
                     continue
-                worst = model._worst_element(positions_m + change)
+                worst = self.problem.worst_element(positions_m + change)
                 reason = "solve would invert elements" if worst >= 0 else "volume-controlled solve found no descent"
                 return _VolumeStep(False, None, iteration, reason, worst)
             positions_m, load_factor, state = accepted
@@ -318,49 +340,40 @@ class _Path:
             # is locking) on the way to the target volume; a smaller volume step is the cure, not more iterations.
             crawling = crawling + 1 if halving >= CRAWL_HALVINGS else 0
             if crawling >= CRAWL_ITERATIONS:
-                worst = model._worst_element(positions_m + change)
+                worst = self.problem.worst_element(positions_m + change)
                 return _VolumeStep(False, None, iteration, "solve would invert elements" if worst >= 0 else
                                    "volume-controlled solve is crawling", worst)
         return _VolumeStep(False, None, VOLUME_NEWTON_ITERATIONS, "volume-controlled solve did not converge",
-                           model._worst_element(positions_m))
+                           self.problem.worst_element(positions_m))
 
-    def _krylov_solves(self, positions_m, load_factor, right_hand_sides):
+    def _krylov_solves(self, positions_m: FloatArray, load_factor: float,
+                       right_hand_sides: tuple[FloatArray, ...]) -> list[FloatArray] | None:
         """``K^-1 v`` for each v by CG on the exact tangent preconditioned with the rest factor, or None when
-        one does not converge in the budget (see fem._preconditioned_cg)."""
-        from phantom.model.fem import kernels
-        from phantom.model.fem import model as fem
-
-        model = self.model
-        if self.constraints.key != model._rest_constraints.key:
+        one does not converge in the budget (see :func:`phantom.model.fem.newton.preconditioned_cg`)."""
+        if not self.problem.preconditioned:
             return None
-        hessian = model._tangent_data(positions_m, self.formulation, load_factor * self.pressures, self.constraints)
-        pattern = model._pattern
-
-        def multiply(vector):
-            return kernels.csr_multiply(pattern.indptr, pattern.indices, hessian, vector)
-
-        preconditioner = model.rest_factorization(self.constraints)
+        loaded = self.problem.at_load_factor(load_factor)
+        multiply = loaded.multiply(loaded.tangent_data(positions_m))
+        preconditioner = self.problem.rest_factorization()
         solutions = []
         for rhs in right_hand_sides:
-            solution = fem._preconditioned_cg(multiply, rhs, preconditioner, VOLUME_KRYLOV_TOLERANCE,
-                                              VOLUME_KRYLOV_ITERATIONS)
+            solution = preconditioned_cg(multiply, rhs, preconditioner, VOLUME_KRYLOV_TOLERANCE,
+                                         VOLUME_KRYLOV_ITERATIONS)
             if solution is None:
                 return None
             solutions.append(solution)
         return solutions
 
-    def _volume_residual(self, positions_m, load_factor, target_m3):
-        """Out-of-balance force (3n,), constraint gap (m^3), merit (dimensionless) and admissibility (no
-        element at det F <= 0, finite energy)."""
-        residual, energy, smallest_det, _ = self.model._residual(positions_m, load_factor * self.pressures,
-                                                              self.formulation, self.start_m, self.constraints)
+    def _volume_residual(self, positions_m: FloatArray, load_factor: float, target_m3: float) -> _VolumeState:
+        """The bordered system's residual at ``positions_m`` and ``load_factor`` (see :class:`_VolumeState`)."""
+        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m)
         gap = self._control(positions_m) - target_m3
         free = self.constraints.free_mask
-        merit = ((np.linalg.norm(residual[free]) / self.load_scale) ** 2 + (gap / self.control_rest_m3) ** 2)
-        admissible = bool(smallest_det > 0 and np.isfinite(energy))
-        return residual, gap, merit, admissible
+        merit = float((np.linalg.norm(evaluation.residual_n[free]) / self.load_scale) ** 2
+                      + (gap / self.control_rest_m3) ** 2)
+        return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible)
 
-    def _cross(self, below: PathPoint, above: PathPoint) -> np.ndarray:
+    def _cross(self, below: PathPoint, above: PathPoint) -> FloatArray:
         """The equilibrium at lam = 1 between two path points: Illinois regula falsi on the control volume,
         then a pressure-controlled Newton solve at the exact pressures from the bracketed state."""
         low, high = below, above
@@ -379,13 +392,13 @@ class _Path:
             self.iterations += step.iterations
             if not step.converged:
                 break
+            assert step.point is not None  # a converged step has its point
             best = step.point
             if best.load_factor < 1.0:
                 low, low_weight, high_weight = best, 1.0, high_weight * 0.5
             else:
                 high, high_weight, low_weight = best, 1.0, low_weight * 0.5
-        final = self.model._newton(best.positions_m, self.pressures, self.formulation, self.start_m, self.tolerance,
-                                   self.constraints)
+        final = newton(self.problem, best.positions_m, self.tolerance)
         self.iterations += final.iterations
         if final.converged:
             self.steps += 1
@@ -394,16 +407,16 @@ class _Path:
 
     def _unreachable(self, point: PathPoint, why: str, worst_element: int = -1) -> SolveError:
         """The chamber that moved most (weighted), where the path stopped, and why."""
-        model = self.model
-        chambers, _ = model.volumes(point.positions_m)
-        growth = np.abs(self.weights) * (chambers / model.rest_chamber_volumes_m3 - 1.0)
+        body = self.body
+        chambers = body.chamber_volumes_m3(point.positions_m)
+        growth = np.abs(self.weights) * (chambers / body.rest_chamber_volumes_m3 - 1.0)
         chamber = int(np.argmax(growth))
-        name = model.chamber_names[chamber]
+        name = body.chamber_names[chamber]
         target_kpa = self.pressures[chamber] / 1e3
         reached_kpa = point.load_factor * target_kpa
         peak = self.peak or point
-        peak_volume_ml = model.volumes(peak.positions_m)[0][chamber] * 1e6
-        ratio = abs(self.pressures[chamber]) / model.material.youngs_modulus_pa
+        peak_volume_ml = body.chamber_volumes_m3(peak.positions_m)[chamber] * 1e6
+        ratio = abs(self.pressures[chamber]) / body.material.youngs_modulus_pa
         detail = why
         if why == "past the limit point":
             detail = (f"its pressure-volume curve peaks at {peak.load_factor * target_kpa:.4g} kPa "
@@ -414,13 +427,14 @@ class _Path:
         return SolveError(
             f"chamber {chamber} ({name!r} at {target_kpa:g} kPa, p/E = {ratio:.3g}) is out of reach: {detail}; "
             f"the path stopped at {reached_kpa:.4g} kPa and {chambers[chamber] * 1e6:.4g} ml (rest "
-            f"{model.rest_chamber_volumes_m3[chamber] * 1e6:.4g} ml, after {self.steps} accepted steps); try a lower "
+            f"{body.rest_chamber_volumes_m3[chamber] * 1e6:.4g} ml, after {self.steps} accepted steps); try a lower "
             f"pressure in that chamber, a stiffer or strain-stiffening material (gent), or a finer mesh (--size-mm)")
 
 
-def follow_path(model, start_m, pressures, formulation, tolerance, constraints) -> tuple[np.ndarray, int, int]:
-    """Equilibrium of ``model`` at ``pressures`` (Pa) from ``start_m`` by path following (module docstring):
-    returns the positions (m), the Newton iterations and the accepted steps."""
-    path = _Path(model, start_m, np.asarray(pressures, float), formulation, tolerance, constraints)
+def follow_path(problem: EquilibriumProblem, tolerance: float) -> PathResult:
+    """The equilibrium of ``problem`` at its full pressures, from its start by path following (module
+    docstring), to the Newton ``tolerance`` (relative to the load). Raises SolveError naming the chamber out of
+    reach and why."""
+    path = _Path(problem, tolerance)
     positions_m = path.run()
-    return positions_m, path.iterations, path.steps
+    return PathResult(positions_m, path.iterations, path.steps)

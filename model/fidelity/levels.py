@@ -14,7 +14,7 @@
     one tensor product and a volume measure, milliseconds. The ``rest`` level is then exact in the
     displacements but not in the volumes, which are not linear in the displacements (at p ~ E, tens of %).
 ``full``
-    The full solve (``model.solve``) of the model's material law.
+    The full solve (``model.equilibrium``) of the model's material law.
 ``table``
     The full solves on a grid over the operating box, solved once (cached on disk) and interpolated by cubic
     splines (:mod:`phantom.model.fidelity.response_table`): volumes, shape and the tangent compliance in a fraction of a
@@ -29,59 +29,27 @@ solves, shapes formed) so that tests can show it.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
+from numpy.typing import ArrayLike
 
 from phantom import PhantomError
+from phantom.model.arrays import FloatArray
+from phantom.model.fem.model import Compliance, PhantomModel, State
+from phantom.model.fidelity.response_table import Progress, ResponseTable, response_table
+from phantom.model.scene import FIDELITY_LEVELS
 
-LEVELS = ("rest", "updated", "full", "table")
 #: The levels the probe compares (``table`` is only ever named: its first build is minutes of solves).
 PROBED_LEVELS = ("rest", "updated", "full")
-#: Volume accuracy assumed when a scene states none (percent of the volume).
-DEFAULT_ACCURACY_PCT = 1.0
 #: Full-level states kept as warm starts for later answers.
 KEPT_STATES = 16
-#: Pressure used to probe the levels' errors when a scene states no maximum (Pa).
-DEFAULT_PRESSURE_MAX_PA = 3000.0
+
+#: Chamber volumes (m^3), the gland volume (m^3) and the solver's state where the level has one.
+Evaluation = tuple[FloatArray, float, State | None]
 
 
-def tangent_displacement_m_per_pa(model, positions_m: np.ndarray, pressures_pa: np.ndarray,
-                                  formulation: str | None = None) -> np.ndarray:
-    """Node displacement per pascal of each chamber (n_chambers, nodes, 3) at a configuration under pressures:
-    ``D = K_t(x, p)^-1 H(x)^T``, with ``K_t`` the exact tangent of ``formulation`` (default the model's) if it is
-    a hyperelastic law, otherwise the co-rotational one, including the follower pressure load's stiffness. Held
-    dofs (rows of ``K_t`` that are a bare diagonal) get no displacement."""
-    from phantom.model.fem.linsolve import Factorization
-
-    formulation = formulation or model.formulation
-    formulation = formulation if formulation in ("neo_hookean", "gent") else "corotational"
-    stiffness = model.stiffness_matrix(positions_m, formulation, pressures_pa=pressures_pa).tocsr()
-    magnitudes = abs(stiffness)
-    held = np.asarray(magnitudes.sum(axis=1)).ravel() == magnitudes.diagonal()
-    gradients = model.volume_gradients(positions_m)[:-1]
-    gradients[:, held] = 0.0
-    try:
-        factorization = Factorization(stiffness)
-    except ArithmeticError:
-        # Past a limit point the tangent is indefinite: LU still solves it, and the compliance's negative
-        # eigenvalue then says where the state is.
-        factorization = Factorization(stiffness, method="splu-colamd")
-    displacement = factorization.solve(np.ascontiguousarray(gradients.T)).T
-    displacement[:, held] = 0.0
-    return displacement.reshape(len(pressures_pa), -1, 3)
-
-
-def scene_model_settings(model) -> dict:
-    """The optional ``[model]`` table (fidelity, accuracy_pct, pressure_max_kpa) of the scene the model was
-    built from (``model.scene``), or {} for a model without a scene or a scene without the table.
-    """
-    raw = getattr(model.scene, "raw", None) or {}
-    settings = raw.get("model", {})
-    if not isinstance(settings, dict):
-        raise PhantomError("the scene's [model] must be a table with fidelity, accuracy_pct, pressure_max_kpa")
-    return settings
-
-
-def _checked_pressures(pressures_pa, n_chambers: int) -> np.ndarray:
+def _checked_pressures(pressures_pa: ArrayLike, n_chambers: int) -> FloatArray:
     pressures = np.asarray(pressures_pa, dtype=float).reshape(-1)
     if pressures.shape != (n_chambers,):
         raise PhantomError(f"give {n_chambers} chamber pressures, got {pressures.size}")
@@ -102,48 +70,41 @@ class VolumeEstimator:
         ``accuracy_pct`` (default 1 %); cheapest = fastest on that probe. The probe's errors (% of the volume)
         and times (s) are kept in ``probe_errors_pct`` and ``probe_times_s``.
     accuracy_pct, pressure_max_pa : float, optional
-        Override the scene's ``[model] accuracy_pct`` (%) and ``pressure_max_kpa`` (given here in Pa).
+        Override the scene's model settings (:class:`phantom.model.scene.ModelSettings`: %, and Pa).
     steps : int
         Increments of the ``updated`` level.
     progress : callable(done, total), optional
         Told how the ``table`` level's build goes (when it is not cached).
 
-    The scene's ``[model]`` table is read from ``model.scene`` (see ``PhantomModel.from_scene``).
+    The scene's settings are the model's (:attr:`PhantomModel.model_settings`).
     """
 
-    def __init__(self, model, level: str | None = None, accuracy_pct: float | None = None,
-                 pressure_max_pa: float | None = None, steps: int = 1, progress=None):
-        settings = scene_model_settings(model)
+    def __init__(self, model: PhantomModel, level: str | None = None, accuracy_pct: float | None = None,
+                 pressure_max_pa: float | None = None, steps: int = 1, progress: Progress | None = None):
+        settings = model.model_settings
         self.model = model
         self.n_chambers = int(model.n_chambers)
         self.steps = int(steps)
         if self.steps < 1:
             raise PhantomError(f"steps must be at least 1, got {steps}")
-        self.accuracy_pct = float(accuracy_pct if accuracy_pct is not None
-                                  else settings.get("accuracy_pct", DEFAULT_ACCURACY_PCT))
+        self.accuracy_pct = float(accuracy_pct if accuracy_pct is not None else settings.accuracy_pct)
         if not np.isfinite(self.accuracy_pct) or self.accuracy_pct <= 0:
             raise PhantomError(f"accuracy_pct must be a positive percentage, got {self.accuracy_pct}")
-        if pressure_max_pa is None:
-            pressure_max_pa = float(settings.get("pressure_max_kpa", DEFAULT_PRESSURE_MAX_PA / 1e3)) * 1e3
-        self.pressure_max_pa = float(pressure_max_pa)
+        self.pressure_max_pa = float(settings.pressure_max_pa if pressure_max_pa is None else pressure_max_pa)
         self.counts = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
         self.probe_errors_pct: dict[str, float] = {}
         self.probe_times_s: dict[str, float] = {}
-        self._rest_compliance = None
-        self._states: list = []
-        self.table = None
-        level = level if level is not None else settings.get("fidelity")
+        self._rest_compliance: Compliance | None = None
+        self._states: list[State] = []
+        self.table: ResponseTable | None = None
+        level = level if level is not None else settings.fidelity
         if level is None:
             level = self._cheapest_level()
-        if level not in LEVELS:
-            raise PhantomError(f"fidelity must be one of {', '.join(LEVELS)}, got {level!r}")
+        if level not in FIDELITY_LEVELS:
+            raise PhantomError(f"fidelity must be one of {', '.join(FIDELITY_LEVELS)}, got {level!r}")
         self.level = level
         if level == "table":
-            from phantom.model.fidelity.response_table import DEFAULT_POINTS_PER_AXIS, response_table
-
-            points = settings.get("table_points", DEFAULT_POINTS_PER_AXIS)
-            if isinstance(points, bool) or not isinstance(points, int) or points < 2:
-                raise PhantomError(f"[model] table_points must be an integer of at least 2, got {points!r}")
+            points = settings.table_points
             self.table = response_table(model, self.pressure_max_pa, points, progress=progress)
             if self.table.check_errors_pct > self.accuracy_pct:
                 raise PhantomError(
@@ -152,12 +113,12 @@ class VolumeEstimator:
                     "fidelity full")
 
     # ----------------------------------------------------------------- public
-    def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
+    def volumes(self, pressures_pa: ArrayLike) -> tuple[FloatArray, float]:
         """Chamber volumes (m^3, one per chamber) and the gland volume (m^3) at ``pressures_pa``."""
         chamber_volumes_m3, gland_volume_m3, _ = self.evaluate(pressures_pa)
         return chamber_volumes_m3, gland_volume_m3
 
-    def shape(self, pressures_pa) -> np.ndarray:
+    def shape(self, pressures_pa: ArrayLike) -> FloatArray:
         """Nodal positions (m, shape (nodes, 3)) at ``pressures_pa``; computed only when called."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
         self.counts["shapes"] += 1
@@ -165,11 +126,11 @@ class VolumeEstimator:
             return self._rest_positions(pressures)
         if self.level == "updated":
             return self._updated_positions(pressures)
-        if self.level == "table":
+        if self.table is not None:
             return self.table.positions_m(pressures)
         return self._full_state(pressures).positions_m
 
-    def evaluate(self, pressures_pa):
+    def evaluate(self, pressures_pa: ArrayLike) -> Evaluation:
         """Volumes as :meth:`volumes`, plus the solver state where the level has one (else None): ``full``, and
         ``updated`` for a small-strain material, whose positions are exactly the linear solve's."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
@@ -178,34 +139,34 @@ class VolumeEstimator:
             return (np.asarray(self.model.rest_chamber_volumes_m3, dtype=float) + compliance.chamber_m3_per_pa
                     @ pressures, float(self.model.rest_gland_volume_m3 + compliance.gland_m3_per_pa @ pressures),
                     None)
-        if self.level == "table":
-            chamber_volumes_m3, gland_volume_m3 = self.table.volumes(pressures)
-            return chamber_volumes_m3, gland_volume_m3, None
+        if self.table is not None:
+            table_chambers_m3, table_gland_m3 = self.table.volumes(pressures)
+            return table_chambers_m3, table_gland_m3, None
         if self.level == "updated":
             positions_m = self._updated_positions(pressures)
             chamber_volumes_m3, gland_volume_m3 = self.model.volumes(positions_m)
-            state = None
+            state: State | None = None
             if self.model.formulation == "linear":
-                from phantom.model.fem.model import State
-
                 state = State(positions_m, chamber_volumes_m3, gland_volume_m3, 0, 0.0, pressures, "linear")
             return np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3), state
-        state = self._full_state(pressures)
-        return np.asarray(state.chamber_volumes_m3, dtype=float), float(state.gland_volume_m3), state
+        full = self._full_state(pressures)
+        return np.asarray(full.chamber_volumes_m3, dtype=float), float(full.gland_volume_m3), full
 
     @property
-    def rest_compliance(self):
+    def rest_compliance(self) -> Compliance:
         """The model's rest compliance (computed once; the model caches it on disk)."""
         if self._rest_compliance is None:
             self._rest_compliance = self.model.compliance()
         return self._rest_compliance
 
     # ----------------------------------------------------------------- levels
-    def _rest_positions(self, pressures_pa: np.ndarray) -> np.ndarray:
+    def _rest_positions(self, pressures_pa: FloatArray) -> FloatArray:
         displacement = np.asarray(self.rest_compliance.displacement_m_per_pa, dtype=float)
-        return np.asarray(self.model.nodes_m, dtype=float) + np.tensordot(pressures_pa, displacement, axes=1)
+        positions_m: FloatArray = (np.asarray(self.model.nodes_m, dtype=float)
+                                   + np.tensordot(pressures_pa, displacement, axes=1))
+        return positions_m
 
-    def _updated_positions(self, pressures_pa: np.ndarray) -> np.ndarray:
+    def _updated_positions(self, pressures_pa: FloatArray) -> FloatArray:
         """Midpoint-rule path along ``t pressures_pa``: x_{k+1} = x_k + D(x_k + D(x_k) dp/2) dp."""
         if self.model.formulation == "linear":
             # Small-strain material: the displacement is exactly linear in p, only the volume measure is not.
@@ -224,15 +185,15 @@ class VolumeEstimator:
             reached_pa = reached_pa + increment_pa
         return positions_m
 
-    def _tangent_displacement(self, positions_m: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
+    def _tangent_displacement(self, positions_m: FloatArray, pressures_pa: FloatArray) -> FloatArray:
         self.counts["tangent_solves"] += 1
-        return tangent_displacement_m_per_pa(self.model, positions_m, pressures_pa)
+        return self.model.tangent_displacement_m_per_pa(positions_m, pressures_pa)
 
-    def _full_state(self, pressures_pa: np.ndarray):
+    def _full_state(self, pressures_pa: FloatArray) -> State:
         self.counts["full_solves"] += 1
         if self.model.formulation == "linear":
             # A small-strain solve takes its load on the starting configuration: it must start at rest.
-            return self.model.solve(pressures_pa)
+            return self.model.equilibrium(pressures_pa)
         # Start from the nearest state solved before (the inverse's iterates, the pressure limit its first
         # step often reaches), or return it when the pressures are the same.
         nearest = min(self._states, default=None,
@@ -240,18 +201,16 @@ class VolumeEstimator:
         if nearest is not None and np.array_equal(pressures_pa, nearest.pressures_pa):
             return nearest
         if not np.any(pressures_pa):
-            state = self.model.solve(pressures_pa)  # the rest shape, no iteration
+            state = self.model.equilibrium(pressures_pa)  # the rest shape, no iteration
         else:
-            state = self.model.solve(pressures_pa,
-                                     initial_positions_m=None if nearest is None else nearest.positions_m)
+            state = self.model.equilibrium(pressures_pa,
+                                           initial_positions_m=None if nearest is None else nearest.positions_m)
         self._states = [*self._states[-(KEPT_STATES - 1):], state]
         return state
 
     def _cheapest_level(self) -> str:
         """Probe each level against the full solve with every chamber at the pressure limit; keep the fastest
         (measured on the probe) whose volume error is within the stated accuracy. The full level always is."""
-        import time
-
         probe_pa = np.full(self.n_chambers, self.pressure_max_pa)
         self.level = "rest"
         self.evaluate(probe_pa)  # the one-time rest compliance is not part of an answer's cost

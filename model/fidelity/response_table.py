@@ -28,27 +28,39 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import multiprocessing
 import os
 import tempfile
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+import phantom
 from phantom import PhantomError
+from phantom.model.arrays import FloatArray
+from phantom.model.errors import SolveError
+from phantom.model.fem.model import PhantomModel
+from phantom.model.scene import DEFAULT_TABLE_POINTS
+
+if TYPE_CHECKING:
+    from scipy.interpolate import CubicSpline
 
 #: Bump when what a table holds or how it is built changes, so stored tables are rebuilt.
 TABLE_VERSION = 1
-#: Grid points per pressure axis: 7^3 = 343 solves (0.5 kPa steps for a 3 kPa limit). On the calibrated model
-#: 5 points missed full solves by up to 3.5 % of a chamber's volume (its cavity's curve has an inflection), 7 by
-#: 0.1-0.2 % (bench/README.md, "The daemon on the calibrated model").
-DEFAULT_POINTS_PER_AXIS = 7
 #: Where each build is checked against full solves (fractions of the pressure limit per chamber): points far
 #: from every node, one near each corner region and one inside.
 CHECK_FRACTIONS = ((0.2, 0.6, 0.9), (0.9, 0.2, 0.6), (0.6, 0.9, 0.2), (0.7, 0.7, 0.7))
 
 Progress = Callable[[int, int], None]
+#: One axis's cardinal-spline weights at a pressure, and their slope per Pa.
+Basis = tuple[FloatArray, FloatArray]
 
 logger = logging.getLogger(__name__)
 
@@ -63,9 +75,10 @@ def grid_pa(pressure_max_pa: float, points_per_axis: int) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _cardinal_splines(points_per_axis: int):
+def _cardinal_splines(points_per_axis: int) -> CubicSpline:
     """The cubic splines (not-a-knot) through the unit vectors on the grid 0, 1, ..., n - 1: row i of their value
     at x is the weight of grid value i in the spline through any values, so a tensor spline is a contraction."""
+    # scipy.interpolate (0.2 s to import) only where a table is evaluated
     from scipy.interpolate import CubicSpline
 
     return CubicSpline(np.arange(points_per_axis, dtype=float), np.eye(points_per_axis))
@@ -94,9 +107,9 @@ class ResponseTable:
 
     @property
     def points_per_axis(self) -> int:
-        return self.gland_values.shape[0]
+        return int(self.gland_values.shape[0])
 
-    def _bases(self, pressures_pa: np.ndarray) -> tuple[list, np.ndarray]:
+    def _bases(self, pressures_pa: np.ndarray) -> tuple[list[Basis], np.ndarray]:
         """Per chamber: the basis and its slope (per Pa) at the pressure clipped into the box; and the excess
         of each pressure over the box (Pa), for the linear extension outside."""
         inside_pa = np.clip(pressures_pa, 0.0, self.pressure_max_pa)
@@ -113,7 +126,7 @@ class ResponseTable:
             result = np.tensordot(vector, result, axes=(0, 0))
         return result
 
-    def _gradient(self, grid_values: np.ndarray, bases: list) -> np.ndarray:
+    def _gradient(self, grid_values: np.ndarray, bases: list[Basis]) -> np.ndarray:
         """d(value)/dp_chamber (per Pa) for each chamber, stacked on a leading axis."""
         return np.stack([self._contract(grid_values, [slopes if axis == chamber else values
                                                       for axis, (values, slopes) in enumerate(bases)])
@@ -128,28 +141,26 @@ class ResponseTable:
             value = value + np.tensordot(excess_pa, self._gradient(grid_values, bases), axes=(0, 0))
         return value
 
-    def volumes(self, pressures_pa) -> tuple[np.ndarray, float]:
+    def volumes(self, pressures_pa: ArrayLike) -> tuple[np.ndarray, float]:
         """Chamber volumes (m^3) and the gland volume (m^3) at ``pressures_pa`` (Pa, one per chamber)."""
         pressures = np.asarray(pressures_pa, dtype=float)
         return self._value(self.chamber_values, pressures), float(self._value(self.gland_values, pressures))
 
-    def compliance(self, pressures_pa) -> tuple[np.ndarray, np.ndarray]:
+    def compliance(self, pressures_pa: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """The tangent compliance at ``pressures_pa``: ``dV_chamber_i/dp_j`` (n, n) and ``dV_gland/dp_j`` (n,),
         m^3/Pa (the interpolant's exact gradient; at the box's edge beyond it)."""
         bases, _ = self._bases(np.asarray(pressures_pa, dtype=float))
         return self._gradient(self.chamber_values, bases).T, self._gradient(self.gland_values, bases)
 
-    def positions_m(self, pressures_pa) -> np.ndarray:
+    def positions_m(self, pressures_pa: ArrayLike) -> np.ndarray:
         """Every node's position (m, (nodes, 3)) at ``pressures_pa``."""
         return self._value(self.position_values, np.asarray(pressures_pa, dtype=float))
 
 
-def _solve_slab(model, nodes_pa: np.ndarray, first: int):
+def _solve_slab(model: PhantomModel, nodes_pa: FloatArray, first: int) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The grid points whose first pressure is ``nodes_pa[first]``, in C order, each solved from its neighbour one
     step down the last raised axis (the slab's first point from rest): chamber volumes, gland volumes and node
     positions, shaped like the slab. Runs in a worker process of :func:`build_response_table` or in its own."""
-    from phantom.model.errors import SolveError
-
     n, n_chambers = len(nodes_pa), int(model.n_chambers)
     slab = (n,) * (n_chambers - 1)
     chambers, gland = np.zeros((*slab, n_chambers)), np.zeros(slab)
@@ -166,7 +177,7 @@ def _solve_slab(model, nodes_pa: np.ndarray, first: int):
             axis = max(a for a in range(n_chambers - 1) if index[a] > 0)
             start_m = positions[tuple(i - (a == axis) for a, i in enumerate(index))]
         try:
-            state = model.solve(pressures, initial_positions_m=start_m)
+            state = model.equilibrium(pressures, initial_positions_m=start_m)
         except SolveError as error:
             raise ResponseTableError(
                 f"the model has no equilibrium at {np.round(pressures / 1e3, 3).tolist()} kPa, inside the pressure "
@@ -176,7 +187,7 @@ def _solve_slab(model, nodes_pa: np.ndarray, first: int):
     return chambers, gland, positions
 
 
-def build_response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
+def build_response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
                          progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
     """Solve ``model`` at every node of the grid, one slab of the first pressure per task on ``workers``
     processes (default: the machine's cores, at most one per slab; 1: in this process), then check the
@@ -198,10 +209,6 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     workers = max(1, min(workers or os.cpu_count() or 1, n))
     pending = list(range(n))
     if workers > 1:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-        from concurrent.futures.process import BrokenProcessPool
-
         # spawned, not forked: a daemon's model worker has threads, and a fork copies only the calling one
         try:
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -228,7 +235,7 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     for fractions in CHECK_FRACTIONS:
         pressures = pressure_max_pa * np.asarray(fractions[:n_chambers], dtype=float)
         nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
-        state = model.solve(pressures, initial_positions_m=positions[nearest] if warm_start else None)
+        state = model.equilibrium(pressures, initial_positions_m=positions[nearest] if warm_start else None)
         table_chambers, table_gland = table.volumes(pressures)
         exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
         worst_pct = max(worst_pct, float(np.max(np.abs(np.append(table_chambers, table_gland) - exact) / exact)) * 100)
@@ -238,14 +245,12 @@ def build_response_table(model, pressure_max_pa: float, points_per_axis: int = D
     return dataclasses.replace(table, check_errors_pct=worst_pct, build_time_s=time.perf_counter() - started)
 
 
-def _cache_path(model, pressure_max_pa: float, points_per_axis: int):
-    import phantom
-
+def _cache_path(model: PhantomModel, pressure_max_pa: float, points_per_axis: int) -> Path:
     extra = repr(("response", TABLE_VERSION, model.formulation, float(pressure_max_pa), int(points_per_axis)))
-    return phantom.cache_dir("response") / f"{model._cache_key(extra.encode())}.npz"
+    return phantom.cache_dir("response") / f"{model.cache_key(extra.encode())}.npz"
 
 
-def response_table(model, pressure_max_pa: float, points_per_axis: int = DEFAULT_POINTS_PER_AXIS,
+def response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
                    progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
     """The model's table: read from the disk cache, else built (:func:`build_response_table`) and stored.
     ``progress(done, total)`` is told how a build goes (nothing is told for a cached table)."""

@@ -1,6 +1,6 @@
 """Parameters of the built-in prostate's geometry: a scene's ``[geometry]`` table, checked, and its walls.
 
-The body (a tapered chestnut of 26.3 ml, see :mod:`phantom.model.mesh.prostate`) is fixed; what a scene may change is
+The body (a tapered chestnut of 26.3 ml, see :mod:`phantom.model.mesh.shape`) is fixed; what a scene may change is
 where the three ellipsoidal chambers sit and how large they are, and the fixation patch:
 
     [geometry]
@@ -16,8 +16,9 @@ where the three ellipsoidal chambers sit and how large they are, and the fixatio
 
 Every wall (chamber to outer surface, chamber to chamber) must be at least ``min_wall_mm`` thick, itself at
 least :data:`MANUFACTURABLE_WALL_MM`: a cast silicone wall thinner than that tears on demoulding. Walls are
-measured on samples of the surfaces (to about 0.05 mm) before meshing, so bad parameters give a one-line
-``MeshError`` instead of a broken mesh. Only the standard library is imported at module load.
+measured on samples of the surfaces (to about 0.05 mm) before meshing (:func:`phantom.model.mesh.shape.check_walls`),
+so bad parameters give a one-line ``MeshError`` instead of a broken mesh. Only the standard library is imported at
+module load: a scene is parsed without numpy.
 """
 
 from __future__ import annotations
@@ -26,11 +27,14 @@ import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass
+from typing import Any
 
-from phantom.model.errors import MeshError, SceneError
+from phantom.model.errors import SceneError
 
 #: The thinnest silicone wall that can be cast and demoulded (mm).
 MANUFACTURABLE_WALL_MM = 2.0
+#: A point or the semi-axes of an ellipsoid (x, y, z), mm.
+Vector3 = tuple[float, float, float]
 #: Bounds of each scalar parameter (mm or dimensionless), beyond which the body cannot hold the chamber.
 SCALE_RANGE = (0.3, 2.5)
 FIXATION_RADIUS_RANGE_MM = (1.0, 15.0)
@@ -50,18 +54,20 @@ class ProstateGeometry:
     min_wall_mm: float = MANUFACTURABLE_WALL_MM
     mesh_size_mm: float = 2.5
 
-    def ellipsoids_mm(self) -> tuple[tuple[tuple, tuple], ...]:
+    def ellipsoids_mm(self) -> tuple[tuple[Vector3, Vector3], ...]:
         """(centre, semi-axes) of chambers 0, 1 (left, x > 0) and 2 (right, the mirror of 1), scales applied."""
-        base_axes = tuple(self.base_chamber_scale * a for a in self.base_chamber_semi_axes_mm)
-        lobe_axes = tuple(self.lobe_chamber_scale * a for a in self.lobe_chamber_semi_axes_mm)
+        a, b, c = self.base_chamber_semi_axes_mm
+        base_axes = (self.base_chamber_scale * a, self.base_chamber_scale * b, self.base_chamber_scale * c)
+        a, b, c = self.lobe_chamber_semi_axes_mm
+        lobe_axes = (self.lobe_chamber_scale * a, self.lobe_chamber_scale * b, self.lobe_chamber_scale * c)
         x, y, z = self.lobe_chamber_centre_mm
-        return ((tuple(self.base_chamber_centre_mm), base_axes), ((x, y, z), lobe_axes), ((-x, y, z), lobe_axes))
+        return ((self.base_chamber_centre_mm, base_axes), ((x, y, z), lobe_axes), ((-x, y, z), lobe_axes))
 
-    def with_values(self, **values) -> ProstateGeometry:
+    def with_values(self, **values: Any) -> ProstateGeometry:
         """A copy with some parameters changed (checked like a scene's table)."""
         return geometry_from_table({**self.as_table(), **values}, "geometry")
 
-    def as_table(self) -> dict:
+    def as_table(self) -> dict[str, Any]:
         """The scene's ``[geometry]`` table for this geometry (lists for the vectors)."""
         return {key: list(value) if isinstance(value, tuple) else value
                 for key, value in dataclasses.asdict(self).items()}
@@ -74,15 +80,16 @@ class ProstateGeometry:
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def geometry_from_table(table: dict, where: str) -> ProstateGeometry:
-    """Check a ``[geometry]`` table (types and ranges; the walls are checked by :func:`check_walls`)."""
+def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
+    """Check a ``[geometry]`` table (types and ranges; the walls are checked by
+    :func:`phantom.model.mesh.shape.check_walls`)."""
     if not isinstance(table, dict):
         raise SceneError(f"{where}: [geometry] must be a table of the built-in prostate's parameters")
     fields = {f.name: f for f in dataclasses.fields(ProstateGeometry)}
     unknown = sorted(set(table) - set(fields))
     if unknown:
         raise SceneError(f"{where}: [geometry] has unknown keys {unknown}: use {', '.join(fields)}")
-    values = {}
+    values: dict[str, Any] = {}
     for name, value in table.items():
         if name.endswith("_mm") and isinstance(fields[name].default, tuple):
             if (not isinstance(value, list | tuple) or len(value) != 3
@@ -108,58 +115,5 @@ def geometry_from_table(table: dict, where: str) -> ProstateGeometry:
     return geometry
 
 
-def _finite_number(value) -> bool:
+def _finite_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def wall_thicknesses_mm(geometry: ProstateGeometry) -> dict[str, float]:
-    """The thinnest wall between each chamber and the outer surface, and between chambers (mm).
-
-    Negative when a chamber breaks through the surface or two chambers overlap. Measured between samples of the
-    surfaces 0.5 mm apart: the nearest sample lies within 0.35 mm of the nearest point along the surface, which
-    overestimates a wall of 2 mm or more by under 0.05 mm.
-    """
-    import numpy as np
-    from scipy.spatial import cKDTree
-
-    from phantom.model.mesh.prostate import body_surface_points_mm, inside_body
-
-    outer = cKDTree(body_surface_points_mm())
-    samples = [_ellipsoid_points_mm(centre, axes) for centre, axes in geometry.ellipsoids_mm()]
-    walls = {}
-    for index, points in enumerate(samples):
-        distance = float(outer.query(points)[0].min())
-        walls[f"chamber{index}-outer"] = distance if np.all(inside_body(points)) else -distance
-    ellipsoids = geometry.ellipsoids_mm()
-    for first in range(len(samples)):
-        for second in range(first + 1, len(samples)):
-            distance = float(cKDTree(samples[second]).query(samples[first])[0].min())
-            centre, axes = (np.asarray(value) for value in ellipsoids[first])
-            overlapping = np.any(np.sum(((samples[second] - centre) / axes) ** 2, axis=1) < 1)
-            walls[f"chamber{first}-chamber{second}"] = -distance if overlapping else distance
-    return walls
-
-
-def _ellipsoid_points_mm(centre, axes, spacing_mm: float = 0.5):
-    import numpy as np
-
-    largest = max(axes)
-    n_polar = max(int(math.pi * largest / spacing_mm), 16)
-    n_azimuth = 2 * n_polar
-    polar = np.linspace(0.0, math.pi, n_polar)
-    azimuth = np.linspace(0.0, 2 * math.pi, n_azimuth, endpoint=False)
-    polar, azimuth = np.meshgrid(polar, azimuth, indexing="ij")
-    unit = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=-1)
-    return (unit * np.asarray(axes) + np.asarray(centre)).reshape(-1, 3)
-
-
-def check_walls(geometry: ProstateGeometry) -> dict[str, float]:
-    """The walls (see :func:`wall_thicknesses_mm`), or MeshError naming the thinnest one below ``min_wall_mm``."""
-    walls = wall_thicknesses_mm(geometry)
-    name = min(walls, key=walls.get)
-    if walls[name] < geometry.min_wall_mm:
-        what = "breaks through" if walls[name] < 0 and "outer" in name else "overlaps" if walls[name] < 0 else ""
-        detail = f"{what} ({walls[name]:.2f} mm)" if what else f"is {walls[name]:.2f} mm thick"
-        raise MeshError(f"geometry: the wall {name} {detail}, below min_wall_mm = {geometry.min_wall_mm:g} mm: "
-                        f"shrink or move the chambers")
-    return walls

@@ -1,33 +1,36 @@
 """Meshes generated with gmsh: the built-in prostate phantom and the thick hollow sphere used for verification.
 
-Geometry (the built-in prostate, millimetres, x to the patient's left, y anterior, z from apex to base): a
-chestnut-like body of revolution about z, profile ``r(z) = R sqrt(1 - t^2) (1 + k t)`` with ``t = z / c``,
-widest toward the base (+z), squeezed front-to-back by ``ANTERIOR_POSTERIOR_RATIO``; ``R`` is set so the
-body encloses ``REST_VOLUME_ML``. Three ellipsoidal cavities are cut from it: chamber 0 at the base, chambers 1
-(+x, left lobe) and 2 (-x, right lobe) mirror images about the mid-sagittal plane x = 0. The ``fixed`` patch is
-the base surface within a fixation radius of the base pole, where the three air tubes enter. Chamber sizes and
-positions and the fixation radius are parameters (:class:`phantom.model.mesh.geometry.ProstateGeometry`, a scene's
-``[geometry]`` table); the defaults leave every wall at least 3.5 mm thick, and no wall may be under 2 mm.
+The built-in prostate (millimetres, x to the patient's left, y anterior, z from apex to base) is the body of
+revolution of :mod:`phantom.model.mesh.shape` with three ellipsoidal cavities cut from it: chamber 0 at the base,
+chambers 1 (+x, left lobe) and 2 (-x, right lobe) mirror images about the mid-sagittal plane x = 0. The ``fixed``
+patch is the base surface within a fixation radius of the base pole, where the three air tubes enter. Chamber
+sizes and positions and the fixation radius are parameters (:class:`phantom.model.mesh.geometry.ProstateGeometry`,
+a scene's ``[geometry]`` table); the defaults leave every wall at least 3.5 mm thick, and no wall may be under
+2 mm.
 """
 
 import math
 import os
 import sys
 import tempfile
+from typing import Any
 
 import numpy as np
 
 import phantom
 from phantom.model.errors import MeshError
-from phantom.model.mesh.geometry import ProstateGeometry, check_walls
-from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, surface_components
+from phantom.model.mesh.geometry import ProstateGeometry, Vector3
+from phantom.model.mesh.shape import (
+    ANTERIOR_POSTERIOR_RATIO,
+    HALF_LENGTH_MM,
+    check_walls,
+    equator_radius_mm,
+    profile_radius_mm,
+)
+from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, gmsh_session, surface_components
 
 #: Bump when the generated geometry changes, so cached meshes are regenerated.
 PROSTATE_GEOMETRY_VERSION = 2
-REST_VOLUME_ML = 26.3
-HALF_LENGTH_MM = 20.0
-TAPER = 0.3
-ANTERIOR_POSTERIOR_RATIO = 0.66
 #: The default chamber ellipsoids: centre (x, y, z) and semi-axes (a, b, c), millimetres.
 CHAMBER_ELLIPSOIDS_MM = ProstateGeometry().ellipsoids_mm()
 #: Default element size of the built-in mesh (mm): about 3k nodes.
@@ -36,63 +39,16 @@ DEFAULT_SIZE_MM = ProstateGeometry.mesh_size_mm
 CURVATURE_ELEMENTS = 16
 
 
-def _profile_radius_mm(t: np.ndarray, equator_radius_mm: float) -> np.ndarray:
-    """Radius of the body of revolution at ``z = t * HALF_LENGTH_MM`` (mm)."""
-    return equator_radius_mm * np.sqrt(np.clip(1.0 - t * t, 0.0, None)) * (1.0 + TAPER * t)
-
-
-def _equator_radius_mm() -> float:
-    """``R`` such that the body's volume is REST_VOLUME_ML: ``V = pi R^2 c q (4/3 + 4 k^2 / 15)``."""
-    shape_integral = 4.0 / 3.0 + 4.0 * TAPER**2 / 15.0
-    volume_mm3 = REST_VOLUME_ML * 1e3
-    return math.sqrt(volume_mm3 / (math.pi * HALF_LENGTH_MM * ANTERIOR_POSTERIOR_RATIO * shape_integral))
-
-
-def body_surface_points_mm(spacing_mm: float = 0.5) -> np.ndarray:
-    """Dense samples of the body's outer surface (mm), for measuring walls."""
-    radius_mm = _equator_radius_mm()
-    n_axial = int(2 * HALF_LENGTH_MM / spacing_mm)
-    n_around = int(2 * math.pi * radius_mm * 1.3 / spacing_mm)
-    t = np.linspace(-1.0, 1.0, n_axial)
-    angle = np.linspace(0.0, 2 * math.pi, n_around, endpoint=False)
-    t, angle = np.meshgrid(t, angle, indexing="ij")
-    r = _profile_radius_mm(t, radius_mm)
-    points = np.stack([r * np.cos(angle), ANTERIOR_POSTERIOR_RATIO * r * np.sin(angle), HALF_LENGTH_MM * t], -1)
-    return points.reshape(-1, 3)
-
-
-def inside_body(points_mm: np.ndarray) -> np.ndarray:
-    """Whether each point (mm) lies inside the body."""
-    t = points_mm[:, 2] / HALF_LENGTH_MM
-    radial = np.hypot(points_mm[:, 0], points_mm[:, 1] / ANTERIOR_POSTERIOR_RATIO)
-    return (np.abs(t) < 1.0) & (radial < _profile_radius_mm(t, _equator_radius_mm()))
-
-
-class _Gmsh:
-    """gmsh initialised quietly for one model, finalised on exit."""
-
-    def __enter__(self):
-        import gmsh
-
-        gmsh.initialize(interruptible=False)
-        gmsh.option.setNumber("General.Terminal", 0)
-        gmsh.option.setNumber("General.NumThreads", 1)
-        return gmsh
-
-    def __exit__(self, *exc):
-        import gmsh
-
-        gmsh.finalize()
-
-
-def _ellipsoid(occ, centre_mm, semi_axes_mm) -> tuple[int, int]:
+def _ellipsoid(occ: Any, centre_mm: Vector3, semi_axes_mm: Vector3) -> tuple[int, int]:
+    """An ellipsoid added to gmsh's OpenCASCADE kernel ``occ``: its (dimension, tag)."""
     sphere = occ.addSphere(0.0, 0.0, 0.0, 1.0)
     occ.dilate([(3, sphere)], 0.0, 0.0, 0.0, *semi_axes_mm)
     occ.translate([(3, sphere)], *centre_mm)
     return (3, sphere)
 
 
-def _mesh_solid(gmsh, solid, size_mm: float, curvature_elements: int) -> tuple[np.ndarray, np.ndarray]:
+def _mesh_solid(gmsh: Any, solid: tuple[int, int], size_mm: float,
+                curvature_elements: int) -> tuple[np.ndarray, np.ndarray]:
     """Mesh one solid; return its nodes (mm) and positively oriented tets, numbered from 0 without gaps."""
     gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
     gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / 4.0)
@@ -137,11 +93,11 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
     geometry = geometry or ProstateGeometry()
     check_walls(geometry)
     ellipsoids = geometry.ellipsoids_mm()
-    equator_radius_mm = _equator_radius_mm()
-    with _Gmsh() as gmsh:
+    radius_mm = equator_radius_mm()
+    with gmsh_session() as gmsh:
         occ = gmsh.model.occ
         t_values = np.linspace(-1.0, 1.0, 33)
-        radii = _profile_radius_mm(t_values, equator_radius_mm)
+        radii = profile_radius_mm(t_values, radius_mm)
         points = [occ.addPoint(r, 0.0, HALF_LENGTH_MM * t) for r, t in zip(radii, t_values, strict=True)]
         profile = occ.addSpline(points)
         axis = occ.addLine(points[-1], points[0])
@@ -181,7 +137,7 @@ def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_
 
     Nodes of both spherical surfaces lie on the exact spheres (gmsh places them on the geometry).
     """
-    with _Gmsh() as gmsh:
+    with gmsh_session() as gmsh:
         occ = gmsh.model.occ
         outer = occ.addSphere(0.0, 0.0, 0.0, outer_radius_mm)
         inner = occ.addSphere(0.0, 0.0, 0.0, inner_radius_mm)
@@ -213,7 +169,7 @@ def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | 
             cache_path.unlink(missing_ok=True)
     print(f"phantom: meshing the built-in prostate at {size_mm:g} mm (cached afterwards)...", file=sys.stderr)
     mesh = generate_prostate(size_mm, geometry)
-    arrays = {"nodes_m": mesh.nodes_m, "tets": mesh.tets}
+    arrays: dict[str, Any] = {"nodes_m": mesh.nodes_m, "tets": mesh.tets}
     arrays.update({f"group_{name}": triangles for name, triangles in mesh.surface_groups.items()})
     handle, temporary = tempfile.mkstemp(dir=cache_path.parent, suffix=".npz")
     os.close(handle)

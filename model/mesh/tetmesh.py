@@ -5,8 +5,13 @@ chamber walls, the fixation patch, anything else a file carries. :func:`prepare_
 group names into oriented chamber walls, the outer boundary and the fixed nodes, checking each on the way.
 """
 
+import contextlib
+import signal
+import threading
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -48,7 +53,8 @@ def tet_signed_volumes_m3(nodes_m: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volume of each tetrahedron, ``det[x1-x0, x2-x0, x3-x0] / 6`` (m^3); positive when right-handed."""
     x0 = nodes_m[tets[:, 0]]
     edges = nodes_m[tets[:, 1:]] - x0[:, None, :]
-    return np.linalg.det(edges) / 6.0
+    volumes: np.ndarray = np.linalg.det(edges) / 6.0
+    return volumes
 
 
 def enclosed_volume_m3(positions_m: np.ndarray, triangles: np.ndarray) -> float:
@@ -219,6 +225,7 @@ def read_mesh(path: str | Path, length_scale_m: float) -> TetMesh:
     Groups come from named cell sets (MSH 4.1), from ``gmsh:physical`` tags and their names (MSH 2.2), or
     from integer cell data that meshio wrote for cell sets (VTU).
     """
+    # meshio (0.1 s to import) only where a mesh file is read or written
     import meshio
 
     path = Path(path)
@@ -236,8 +243,8 @@ def read_mesh(path: str | Path, length_scale_m: float) -> TetMesh:
     return TetMesh(nodes_m, tets, _surface_groups(raw))
 
 
-def _surface_groups(raw) -> dict[str, np.ndarray]:
-    """Named triangle groups of a meshio mesh, whichever way the file stored them."""
+def _surface_groups(raw: Any) -> dict[str, np.ndarray]:
+    """Named triangle groups of a meshio mesh (``raw``, a ``meshio.Mesh``), whichever way the file stored them."""
     cell_sets = {name: sets for name, sets in raw.cell_sets.items() if not name.startswith("gmsh:")}
     if not cell_sets and "gmsh:physical" in raw.cell_data:
         cell_sets = {}
@@ -273,6 +280,7 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) ->
     if path.suffix == ".msh":
         _write_msh41(mesh, coordinates, path)
         return
+    # meshio (0.1 s to import) only where a mesh file is read or written
     import meshio
 
     names = list(mesh.surface_groups)
@@ -288,12 +296,32 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) ->
         raise MeshError(f"cannot write {path}: {error}; use .msh or .vtu") from error
 
 
-def _write_msh41(mesh: TetMesh, coordinates: np.ndarray, path: Path) -> None:
+@contextlib.contextmanager
+def gmsh_session() -> Iterator[Any]:
+    """gmsh initialised quietly (no terminal output, one thread) for one model, finalised on exit.
+
+    gmsh's initialize sets SIGPIPE back to the default action (terminate) behind Python's back, which ignores it:
+    a later write to a closed pipe (a dead worker process, ``phantom forward ... | head``) then killed the whole
+    process instead of raising BrokenPipeError. The disposition Python had is set again (from the main thread,
+    the only one that may).
+    """
+    # gmsh (0.2 s to import, and a native library) only where a mesh is generated or an .msh written
     import gmsh
 
+    previous = signal.getsignal(signal.SIGPIPE)
     gmsh.initialize(interruptible=False)
+    if previous is not None and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, previous)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        yield gmsh
+    finally:
+        gmsh.finalize()
+
+
+def _write_msh41(mesh: TetMesh, coordinates: np.ndarray, path: Path) -> None:
+    with gmsh_session() as gmsh:
         gmsh.model.add("phantom")
         node_tags = np.arange(1, mesh.n_nodes + 1)
         volume = gmsh.model.addDiscreteEntity(3)
@@ -306,5 +334,3 @@ def _write_msh41(mesh: TetMesh, coordinates: np.ndarray, path: Path) -> None:
             gmsh.model.addPhysicalGroup(2, [surface], name=name)
         gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
         gmsh.write(str(path))
-    finally:
-        gmsh.finalize()

@@ -1,10 +1,20 @@
 """``phantom calibrate``: fit material and geometry to measured volumes (offline, Dask sweep), and
 ``phantom calibrate record``: measure those volumes on a board.
 
-Only argparse is imported at module load; handlers import what they need when they run.
+Only the standard library is imported at module load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from phantom.hil.link import BoardLink
+    from phantom.model.scene import Scene
 
 #: The grid swept when none is given, per material law: stiffening (Jm) and the chambers' size.
 #: The pressure combinations of the paper's Table I (kPa), the default list to record.
@@ -19,7 +29,7 @@ DEFAULT_GRIDS = {
 }
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``calibrate`` (and its ``record`` subcommand) to the ``phantom`` parser."""
     calibrate = subparsers.add_parser(
         "calibrate", help="fit material and geometry to measured volumes (offline); 'record' measures them",
@@ -66,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     record.set_defaults(run=run_record)
 
 
-def _scene_for(args):
+def _scene_for(args: argparse.Namespace) -> Scene:
     """The scene, with --material, --gent-jm and --size-mm applied to its table."""
     from phantom import PhantomError
     from phantom.model.calibration.calibrate import scene_with
@@ -96,10 +106,9 @@ def _scene_for(args):
     return scene
 
 
-def run_calibrate(args) -> int:
+def run_calibrate(args: argparse.Namespace) -> int:
     """Handler of ``phantom calibrate``."""
     import json
-    from pathlib import Path
 
     from phantom import PhantomError
     from phantom.model.calibration.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
@@ -111,7 +120,8 @@ def run_calibrate(args) -> int:
     if args.workers is not None and args.workers < 1:
         raise PhantomError(f"--workers must be at least 1, got {args.workers}")
     scene = _scene_for(args)
-    measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers))
+    measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers),
+                                     scan_volume_ml=_scan_volume_ml)
     grid = parse_grid(args.grid or DEFAULT_GRIDS[scene.material.model])
     result = calibrate(scene, measurements, grid, scheduler=args.scheduler, n_workers=args.workers,
                        progress=stderr_progress("calibrate: tracing the pressure rays"))
@@ -155,6 +165,19 @@ def run_calibrate(args) -> int:
     return 0
 
 
+def _scan_volume_ml(path: Path) -> float:
+    """The cleaned, watertight volume (ml) of a scan file in mm: the scan comparison's, for a measurements CSV
+    or an answer that names a scan (the model reads no scans itself)."""
+    from phantom import PhantomError
+
+    try:
+        from phantom.scan.compare import scan_volume_ml
+    except ImportError:
+        raise PhantomError("scan files need phantom.scan.compare, which this install lacks: give the volume "
+                           "in ml") from None
+    return scan_volume_ml(path, units="mm")
+
+
 def _parse_points(text: str) -> list[list[float]]:
     from phantom import PhantomError
     from phantom.cli.common import parse_numbers
@@ -172,7 +195,6 @@ def _ask_volume_ml(prompt: str) -> float:
     """A volume typed on stdin (ml), or the path of a scan file whose volume phantom.scan.compare measures."""
     import math
     import sys
-    from pathlib import Path
 
     from phantom import PhantomError
 
@@ -187,18 +209,14 @@ def _ask_volume_ml(prompt: str) -> float:
     except ValueError:
         if not Path(answer).is_file():
             raise PhantomError(f"{answer!r} is neither a volume in ml nor a scan file") from None
-        try:
-            from phantom.scan.compare import scan_volume_ml
-        except ImportError:
-            raise PhantomError("scan files need phantom.scan.compare, which this install lacks: type the volume "
-                               "in ml") from None
-        volume_ml = scan_volume_ml(answer, units="mm")
+        volume_ml = _scan_volume_ml(Path(answer))
     if not (math.isfinite(volume_ml) and volume_ml > 0):
         raise PhantomError(f"the volume must be a positive number of ml, got {answer!r}")
     return volume_ml
 
 
-def _hold_until_settled(link, point_kpa: list[float], tolerance_kpa: float, settle_s: float):
+def _hold_until_settled(link: BoardLink, point_kpa: list[float], tolerance_kpa: float,
+                        settle_s: float) -> np.ndarray:
     """Set the pressures and wait (board clock) until every chamber has stayed within the band for
     ``settle_s``; return the mean pressures (kPa) of five telemetry frames then."""
     import numpy as np
@@ -210,22 +228,22 @@ def _hold_until_settled(link, point_kpa: list[float], tolerance_kpa: float, sett
     bench.set_setpoints(link, setpoints_pa)
     last_outside_ms = [bench.latest_telemetry(link)["time_ms"]]
 
-    def settled(fields) -> bool:
+    def settled(fields: dict[str, Any]) -> bool:
         error_pa = max(abs(p - s) for p, s in zip(fields["pressure_pa"], setpoints_pa, strict=True))
         if error_pa > tolerance_kpa * 1e3:
             last_outside_ms[0] = fields["time_ms"]
-        return fields["time_ms"] - last_outside_ms[0] >= settle_s * 1e3
+        return bool(fields["time_ms"] - last_outside_ms[0] >= settle_s * 1e3)
 
     if bench.wait_board_time(link, SETTLE_TIMEOUT_S, settled) is None:
         raise PhantomError(f"the pressures ({', '.join(f'{p:g}' for p in point_kpa)}) kPa did not settle within "
                            f"{tolerance_kpa} kPa in {SETTLE_TIMEOUT_S:g} s of board time: check for leaks")
-    return np.mean([bench.latest_telemetry(link)["pressure_pa"] for _ in range(5)], axis=0) / 1e3
+    held_pa: np.ndarray = np.mean([bench.latest_telemetry(link)["pressure_pa"] for _ in range(5)], axis=0)
+    return held_pa / 1e3
 
 
-def run_record(args) -> int:
+def run_record(args: argparse.Namespace) -> int:
     """Handler of ``phantom calibrate record``."""
     import json
-    from pathlib import Path
 
     from phantom import PhantomError
     from phantom.hil import bench

@@ -1,18 +1,24 @@
 """Values the ``phantom`` subcommands of every part parse and print the same way: number lists, growth ratios,
-chamber labels, output folders. A neutral module, so that no part imports another's command line."""
+output folders. A neutral module, so that no part imports another's command line."""
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal, overload
 
 from phantom import PhantomError
 
-#: How people name the three chambers when the scene says nothing (``[phantom] chamber_labels``).
-DEFAULT_CHAMBER_LABELS: tuple[str, ...] = ("base", "left lobe", "right lobe")
+
+@overload
+def parse_numbers(text: str, option: str, allow_free: Literal[False] = False) -> list[float]: ...
 
 
-def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float | None]:
+@overload
+def parse_numbers(text: str, option: str, allow_free: bool) -> list[float | None]: ...
+
+
+def parse_numbers(text: str, option: str, allow_free: bool = False) -> list[float] | list[float | None]:
     """A comma-separated list of finite numbers given to ``option``, e.g. ``1,1.5,0``.
 
     With ``allow_free``, ``-`` (or an empty item) stands for "no value" and gives ``None``.
@@ -46,22 +52,8 @@ def parse_growth_ratio(text: str, option: str = "--growth-ratio") -> dict[str, f
         name, separator, weight = pair.partition("=")
         if not separator or not name.strip():
             raise PhantomError(f"{option} takes NAME=WEIGHT pairs like chamber1=2,chamber2=1; got {pair!r}")
-        value = parse_numbers(weight, option)[0]
-        assert value is not None  # allow_free is off
-        ratio[name.strip()] = value
+        ratio[name.strip()] = parse_numbers(weight, option)[0]
     return ratio
-
-
-def chamber_labels(scene_raw: dict, chamber_names: list[str]) -> list[str]:
-    """The names people see for the chambers: the scene's ``[phantom] chamber_labels``, else base, left lobe,
-    right lobe for three chambers, else the chambers' surface group names."""
-    table = scene_raw.get("phantom", {}) if isinstance(scene_raw, dict) else {}
-    labels = table.get("chamber_labels") if isinstance(table, dict) else None
-    if isinstance(labels, list) and len(labels) == len(chamber_names) and all(isinstance(x, str) for x in labels):
-        return list(labels)
-    if len(chamber_names) == len(DEFAULT_CHAMBER_LABELS):
-        return list(DEFAULT_CHAMBER_LABELS)
-    return list(chamber_names)
 
 
 def output_file(path: str | Path, option: str = "--out") -> Path:

@@ -1,47 +1,34 @@
 """Subcommands of ``phantom``: the daemon and its clients: daemon, status, set, vent, clear-fault, run-scene, watch.
 
-Only argparse is imported at module load; handlers import what they need when they run.
+At module load only argparse and the daemon's settings (phantom.host.config, which is light) are imported;
+handlers import what they need when they run. The ``phantom daemon`` flags are built from the settings'
+dataclass, as are the config file's keys, so that the two cannot differ.
 """
 
+from __future__ import annotations
+
 import argparse
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-#: Keys of the daemon's config file (``[daemon]`` table, e.g. /etc/phantom/phantomd.toml) and their types.
-CONFIG_KEYS = {"port": str, "sim": bool, "sim_speed": float, "can_channel": str, "can_interface": str,
-               "baud": int, "scene": str, "socket": str, "rerun_save": str, "rerun_connect": str,
-               "mesh_hz": float, "host_deadline_ms": int, "telemetry_period_ms": int, "vent_on_exit": bool,
-               "run_scene": bool, "zero_on_connect": bool, "boot_delay_s": float}
+from phantom.host.config import ConfigError, SettingField, checked, settings
+
+if TYPE_CHECKING:
+    from phantom.hil.sim import SimulatedBoard
+    from phantom.host.client import DaemonClient
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     daemon = subparsers.add_parser("daemon", help="run the host daemon (link, control, scenes, Rerun, local API)",
                                    description="Run the host daemon in the foreground until SIGTERM/SIGINT, "
                                    "which vent the phantom and close the recording. A start-up error (the socket "
-                                   "taken, an unwritable recording) is one line on stderr and exit status 2.")
-    board = daemon.add_mutually_exclusive_group()
-    board.add_argument("--port", metavar="DEV", help="the board's serial port (e.g. /dev/serial/by-id/usb-...)")
-    board.add_argument("--sim", action="store_true", default=None,
-                       help="start the simulated board (the real firmware in simavr) and drive it")
-    board.add_argument("--can-channel", metavar="CH", help="talk to the board over CAN on this channel")
-    daemon.add_argument("--baud", type=int, metavar="N", help="serial baud rate (default 115200)")
-    daemon.add_argument("--boot-delay-s", type=float, metavar="S",
-                        help="--port: stay silent this long after opening the port, while the board's bootloader "
-                             "runs (default 2: the Uno's Optiboot and the Mega's stk500v2; 0 for an adapter "
-                             "without DTR)")
-    daemon.add_argument("--can-interface", metavar="NAME", help="python-can interface (default socketcan)")
-    daemon.add_argument("--sim-speed", type=float, metavar="X", help="simulated board speed-up (default 1: real time)")
-    daemon.add_argument("--scene", metavar="S",
-                        help="scene: 'builtin:calibrated', 'builtin' or a TOML path (default builtin:calibrated)")
-    daemon.add_argument("--run-scene", action="store_true", default=None,
-                        help="play the scene's [[steps]] as soon as the daemon is ready")
-    record = daemon.add_mutually_exclusive_group()
-    record.add_argument("--rerun-save", metavar="FILE", help="record to this .rrd file (its folder is created)")
-    record.add_argument("--rerun-connect", metavar="ADDR", help="stream to a Rerun viewer (rerun+http://.../proxy)")
-    daemon.add_argument("--mesh-hz", type=float, metavar="HZ",
-                        help="rate of deformed-mesh logging while recording a scene with [outputs] shape = true "
-                        "(default 1; 0: none)")
+                                   "taken, an unwritable recording) is one line on stderr and exit status 2. "
+                                   "Every flag is also a key of the config file's [daemon] table (--mesh-hz: "
+                                   "mesh_hz); flags win.")
+    add_setting_flags(daemon)
     daemon.add_argument("--config", metavar="FILE", help="a TOML config file with a [daemon] table (flags win)")
-    _add_socket(daemon)
     daemon.set_defaults(run=_run_daemon)
 
     sim_board = subparsers.add_parser(
@@ -49,8 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Run the simulated board (the real firmware in simavr against the pneumatic plant) on its own "
         "until SIGTERM/SIGINT, and print its serial port: a daemon started with --port PORT drives it like a "
         "real board, and can be killed to see the board vent at its dead-host deadline.")
-    sim_board.add_argument("--sim-speed", type=float, default=1.0, metavar="X",
-                           help="speed-up of the simulated time (default 1: real time)")
+    speed = _setting("sim_speed")  # the daemon's own setting: the same range and help
+    sim_board.add_argument(speed.flag, dest=speed.name, type=_flag_value(speed), default=speed.default,
+                           metavar=speed.setting.metavar, help=_flag_help(speed))
     sim_board.add_argument("--json", action="store_true", help="print {\"port\": ...} as JSON")
     sim_board.set_defaults(run=_run_sim_board)
 
@@ -116,76 +104,93 @@ def _add_json(parser: argparse.ArgumentParser, text: str) -> None:
     parser.add_argument("--json", action="store_true", help=text)
 
 
+def _setting(name: str) -> SettingField:
+    return next(item for item in settings() if item.name == name)
+
+
 def _add_socket(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--socket", metavar="PATH",
-                        help="the daemon's socket (default: $PHANTOM_SOCKET, /run/phantom/phantomd.sock, "
-                        "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID.sock)")
+    """A client's --socket: the daemon's own setting, with its help."""
+    socket = _setting("socket")
+    parser.add_argument(socket.flag, metavar=socket.setting.metavar, help=socket.setting.help)
 
 
-def _socket(args):
-    from pathlib import Path
-
+def _socket(args: argparse.Namespace) -> Path:
     from phantom.host.api import default_socket_path
 
     return Path(args.socket) if args.socket else default_socket_path()
 
 
-def _client(args):
+def _client(args: argparse.Namespace) -> DaemonClient:
     from phantom.host.client import DaemonClient
 
     return DaemonClient(_socket(args))
 
 
-def load_config(path) -> dict:
-    """The ``[daemon]`` table of a config file, checked against :data:`CONFIG_KEYS`."""
-    import tomllib
-    from pathlib import Path
-
-    from phantom import PhantomError
-
-    path = Path(path)
-    try:
-        raw = tomllib.loads(path.read_text())
-    except FileNotFoundError:
-        raise PhantomError(f"the config file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as error:
-        raise PhantomError(f"the config file {path} is not valid TOML: {error}") from None
-    table = raw.get("daemon", {})
-    unknown = sorted(set(table) - set(CONFIG_KEYS))
-    if unknown:
-        raise PhantomError(f"{path}: unknown key(s) in [daemon]: {', '.join(unknown)}; known: {', '.join(CONFIG_KEYS)}")
-    for key, value in table.items():
-        kind = CONFIG_KEYS[key]
-        numeric = kind is float and isinstance(value, int)
-        if isinstance(value, bool) != (kind is bool) or not (isinstance(value, kind) or numeric):
-            raise PhantomError(f"{path}: [daemon] {key} must be a {kind.__name__}, got {value!r}")
-    return table
+def add_setting_flags(parser: argparse.ArgumentParser) -> None:
+    """One flag per setting of the daemon (phantom.host.config): ``--mesh-hz HZ`` for ``mesh_hz``, a switch as
+    ``--vent-on-exit`` / ``--no-vent-on-exit`` (in a group, as the group's choice: ``--sim``); the settings of a
+    group are mutually exclusive. A flag not given is None, so that the config file's value stands."""
+    groups: dict[str, argparse._MutuallyExclusiveGroup] = {}
+    for item in settings():
+        group = item.setting.group
+        if group is not None and group not in groups:
+            groups[group] = parser.add_mutually_exclusive_group()
+        target: Any = parser if group is None else groups[group]
+        if item.kind is bool and group is not None:
+            target.add_argument(item.flag, dest=item.name, action="store_true", default=None, help=_flag_help(item))
+        elif item.kind is bool:
+            target.add_argument(item.flag, dest=item.name, action=argparse.BooleanOptionalAction, default=None,
+                                help=_flag_help(item))
+        else:
+            target.add_argument(item.flag, dest=item.name, type=_flag_value(item), default=None,
+                                metavar=item.setting.metavar, help=_flag_help(item))
 
 
-def _run_daemon(args) -> int:
-    from pathlib import Path
-
-    from phantom.host.daemon import DaemonConfig, run_daemon
-
-    settings = load_config(args.config) if args.config else {}
-    flags = {"port": args.port, "sim": args.sim, "sim_speed": args.sim_speed, "can_channel": args.can_channel,
-             "can_interface": args.can_interface, "baud": args.baud, "scene": args.scene, "socket": args.socket,
-             "rerun_save": args.rerun_save, "rerun_connect": args.rerun_connect, "mesh_hz": args.mesh_hz,
-             "run_scene": args.run_scene, "boot_delay_s": args.boot_delay_s}
-    if args.port or args.sim or args.can_channel:
-        settings = {key: value for key, value in settings.items() if key not in ("port", "sim", "can_channel")}
-    if args.rerun_save or args.rerun_connect:
-        settings = {key: value for key, value in settings.items() if key not in ("rerun_save", "rerun_connect")}
-    settings.update({key: value for key, value in flags.items() if value is not None})
-    config = DaemonConfig(log_level=args.log_level)
-    for key, value in settings.items():
-        setattr(config, key, value)
-    config.socket = Path(config.socket) if settings.get("socket") else _socket(args)
-    config.rerun_save = Path(config.rerun_save) if config.rerun_save else None
-    return run_daemon(config)
+def _flag_help(item: SettingField) -> str:
+    """A setting's help with its default (unless it is in a group, or has none) and its range."""
+    notes = [item.setting.range_text()]
+    if item.kind is bool and item.setting.group is None:
+        notes.insert(0, f"default {'yes' if item.default else 'no'}")
+    elif item.kind is not bool and item.default is not None:
+        notes.insert(0, f"default {item.default:g}" if isinstance(item.default, (int, float)) else
+                     f"default {item.default}")
+    notes = [note for note in notes if note]
+    return item.setting.help + (f" ({', '.join(notes)})" if notes else "")
 
 
-def _run_sim_board(args) -> int:
+def _flag_value(item: SettingField) -> Callable[[str], Any]:
+    """argparse's ``type`` for a setting's flag: the text as the setting's type, checked against its range."""
+    def convert(text: str) -> Any:
+        try:
+            value = item.kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r} is not {'an integer' if item.kind is int else 'a number'}") from None
+        try:
+            return checked(item.name, value, "the value")
+        except ConfigError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+    return convert
+
+
+def _run_daemon(args: argparse.Namespace) -> int:
+    from phantom.host.config import load_config, merged_config
+    from phantom.host.daemon import run_daemon
+
+    file_values = load_config(args.config) if args.config else {}
+    config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
+    return run_daemon(config, simulated_board=_simulated_board if config.sim else None)
+
+
+def _simulated_board(speed: float) -> SimulatedBoard:
+    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant (mypy checks it
+    against the host's ``SimulatedBoard`` Protocol where it is passed)."""
+    from phantom.hil.sim import SimulatedBoard
+
+    return SimulatedBoard(speed=speed)
+
+
+def _run_sim_board(args: argparse.Namespace) -> int:
     import json
     import signal
     import threading
@@ -206,11 +211,11 @@ def _run_sim_board(args) -> int:
     return 0
 
 
-def _labels(status: dict) -> list[str]:
+def _labels(status: dict[str, Any]) -> list[str]:
     return status.get("chamber_labels") or status.get("chambers") or []
 
 
-def _run_status(args) -> int:
+def _run_status(args: argparse.Namespace) -> int:
     import json
 
     with _client(args) as client:
@@ -222,21 +227,21 @@ def _run_status(args) -> int:
     return 0
 
 
-def _kpa(values) -> str:
+def _kpa(values: list[float] | None) -> str:
     return "-" if values is None else " ".join(f"{value:6.3f}" for value in values)
 
 
-def _ml(value) -> str:
+def _ml(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f} ml"
 
 
-def _per_chamber(values, digits: int = 3, width: int = 11) -> str:
+def _per_chamber(values: list[float | None] | None, digits: int = 3, width: int = 11) -> str:
     if values is None:
         return "-"
     return " ".join(f"{value:>{width}.{digits}f}" if value is not None else f"{'free':>{width}}" for value in values)
 
 
-def format_status(status: dict) -> str:
+def format_status(status: dict[str, Any]) -> str:
     """A few readable lines of a status answer, one column per chamber (named as the scene names them)."""
     link = status["link_detail"]
     board = link.get("board") or {}
@@ -265,7 +270,7 @@ def format_status(status: dict) -> str:
     return "\n".join(lines)
 
 
-def _run_set(args) -> int:
+def _run_set(args: argparse.Namespace) -> int:
     import json
 
     from phantom import PhantomError
@@ -295,7 +300,7 @@ def _run_set(args) -> int:
     return 0
 
 
-def format_simple(method: str, result: dict) -> str:
+def format_simple(method: str, result: dict[str, Any]) -> str:
     """The text answer of vent, clear-fault and zero."""
     if method == "vent":
         return "vented: every setpoint is 0; the target and any scene are dropped"
@@ -306,7 +311,7 @@ def format_simple(method: str, result: dict) -> str:
     return f"faults cleared: {cleared}{restored}"
 
 
-def _run_simple(args) -> int:
+def _run_simple(args: argparse.Namespace) -> int:
     import json
 
     with _client(args) as client:
@@ -315,14 +320,14 @@ def _run_simple(args) -> int:
     return 0
 
 
-def format_steps(steps: list[dict]) -> str:
+def format_steps(steps: list[dict[str, Any]]) -> str:
     """The table ``make demo`` prints: each step's target, reached volume, error and time to reach it; a true
     (simulated plant) volume column when the steps have one."""
     with_true = any(step.get("true_volume_ml") is not None for step in steps)
     lines = [f"{'step':>4} {'at (s)':>7} {'target':<34} {'target ml':>9} {'reached ml':>10} {'error %':>8} "
              f"{'time to 1 % (s)':>15}" + (f" {'true ml':>8}" if with_true else "")]
     for step in steps:
-        def number(value, digits=2):
+        def number(value: float | None, digits: int = 2) -> str:
             return "-" if value is None else f"{value:.{digits}f}"
         lines.append(f"{step['index']:>4} {step['at_s']:>7.1f} {step['target']:<34} "
                      f"{number(step['target_volume_ml']):>9} {number(step['reached_volume_ml']):>10} "
@@ -331,7 +336,7 @@ def format_steps(steps: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def follow_scene(client, name: str, time_scale: float, poll_s: float = 0.5) -> dict:
+def follow_scene(client: DaemonClient, name: str, time_scale: float, poll_s: float = 0.5) -> dict[str, Any]:
     """Poll the daemon's status until the scene ``name`` has finished, showing its progress on stderr.
 
     Returns the last status (its ``scene`` holds each step's record). Raises when another request replaced
@@ -343,7 +348,7 @@ def follow_scene(client, name: str, time_scale: float, poll_s: float = 0.5) -> d
     from phantom import PhantomError
 
     while True:
-        status = client.call("status")
+        status: dict[str, Any] = client.call("status")
         scene = status["scene"]
         if scene is None or scene["name"] != name:
             raise PhantomError("the scene was replaced by another request before it finished")
@@ -356,7 +361,7 @@ def follow_scene(client, name: str, time_scale: float, poll_s: float = 0.5) -> d
         time.sleep(poll_s)
 
 
-def _run_scene(args) -> int:
+def _run_scene(args: argparse.Namespace) -> int:
     import json
     import sys
     from pathlib import Path
@@ -389,7 +394,7 @@ def watch_header(labels: list[str]) -> str:
             "gland volume -> target  faults")
 
 
-def _run_watch(args) -> int:
+def _run_watch(args: argparse.Namespace) -> int:
     import json
 
     printed = 0

@@ -14,12 +14,18 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from phantom import PhantomError
 
+if TYPE_CHECKING:
+    from phantom.host.client import DaemonClient
 
-def _wait_online(client_factory, process, timeout_s: float) -> None:
+
+def _wait_online(client_factory: Callable[[], DaemonClient], process: subprocess.Popen[bytes],
+                 timeout_s: float) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if process.poll() is not None:

@@ -1,22 +1,31 @@
 """Subcommands of ``phantom``: the hardware-in-the-loop bench: phantom hil ....
 
-The same checks run against the firmware in simavr (``--sim``) or a real board (``--port /dev/ttyACM0``).
-Only argparse is imported at module load; handlers import what they need when they run.
+The same checks run against the firmware in simavr (``--sim``) or a real board (``--port /dev/ttyACM0``);
+``phantom hil plant`` writes the simulated plant's parameters from the model. Only argparse is imported at module
+load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from phantom.hil.link import BoardLink
+    from phantom.hil.sim import SimulatedBoard
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     hil = subparsers.add_parser(
         "hil",
         help="hardware-in-the-loop bench: the firmware in simavr (--sim) or a real board (--port)",
         description="Run bench checks against the firmware image in simavr (--sim) or a board on a serial port.",
     )
-    checks = hil.add_subparsers(dest="check", metavar="CHECK", required=True)
+    checks = hil.add_subparsers(dest="check", metavar="COMMAND", required=True)
 
-    def add_check(name: str, help_text: str, handler) -> argparse.ArgumentParser:
+    def add_check(name: str, help_text: str, handler: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
         parser = checks.add_parser(name, help=help_text, description=help_text)
         target = parser.add_mutually_exclusive_group(required=True)
         target.add_argument("--sim", action="store_true", help="run the firmware image in simavr against the plant")
@@ -56,16 +65,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cycles.add_argument("--telemetry-ms", type=int, default=20, help="telemetry period (default 20 ms = 50 Hz)")
     cycles.add_argument("--kpa", type=float, default=2.0, help="setpoint of all three chambers (default 2)")
 
+    plant = checks.add_parser(
+        "plant", help="write the model's chamber volumes and compliance (and a truth table) into a plant file",
+        description="Regenerate the simulated plant's parameters from a scene's FEM: --from-scene rewrites the "
+        "chambers' rest volumes and compliance (at rest), --truth-from-scene the truth table of chamber volumes "
+        "over the three pressures that the simulated board's plant interpolates (64 solves as Dask tasks, "
+        "cached). Everything else in the file is kept; the result is checked before it is written.")
+    plant.add_argument("--from-scene", metavar="SCENE",
+                       help="scene TOML (or 'builtin', 'builtin:calibrated') whose FEM gives the chambers")
+    plant.add_argument("--truth-from-scene", metavar="SCENE",
+                       help="scene whose model, with its modulus times --truth-modulus-factor, is the plant's truth")
+    plant.add_argument("--truth-modulus-factor", type=float, metavar="X",
+                       help="the truth's modulus over the scene's (default: the calibration's leave-one-out "
+                       "uncertainty, TRUTH_MODULUS_FACTOR in hil/plant.py)")
+    plant.add_argument("--scheduler", metavar="ADDR", help="--truth-from-scene: a running Dask scheduler "
+                       "(default: local)")
+    plant.add_argument("--plant", metavar="FILE", help="the plant file to rewrite (default hil/plant.toml)")
+    plant.add_argument("--mesh-size-mm", type=float, metavar="MM",
+                       help="--from-scene: mesh size of the built-in mesh (default: the model's)")
+    plant.set_defaults(run=_run_plant)
+
 
 class _Bench:
     """The link (and the simulated board, with --sim) for one command."""
 
-    def __init__(self, args):
+    def __init__(self, args: argparse.Namespace):
         self.args = args
-        self.board = None
-        self.link = None
+        self.board: SimulatedBoard | None = None
+        self._link: BoardLink | None = None
 
-    def __enter__(self):
+    @property
+    def link(self) -> BoardLink:
+        """The link to the board (inside the ``with``)."""
+        if self._link is None:
+            raise RuntimeError("the bench's link is open only inside its with block")
+        return self._link
+
+    def __enter__(self) -> _Bench:
         from phantom.hil.link import BoardLink
         from phantom.hil.sim import SimulatedBoard
         from phantom.protocol.link import BOOT_DELAY_S
@@ -76,21 +112,22 @@ class _Bench:
             boot_delay_s = max(BOOT_DELAY_S.values())
         if self.args.sim:
             _progress("starting the firmware in simavr")
-            self.board = SimulatedBoard(self.args.elf, self.args.plant, speed=self.args.speed, seed=self.args.seed)
-            self.board.start()
-            port, scale = self.board.port, (self.args.speed or 1.0)
+            board = self.board = SimulatedBoard(self.args.elf, self.args.plant, speed=self.args.speed,
+                                                seed=self.args.seed)
+            board.start()
+            port, scale = board.port, (self.args.speed or 1.0)
             boot_delay_s = BOOT_DELAY_S["sim"]
-        self.link = BoardLink(port, baudrate=self.args.baud, time_scale=scale, boot_delay_s=boot_delay_s)
+        self._link = BoardLink(port, baudrate=self.args.baud, time_scale=scale, boot_delay_s=boot_delay_s)
         return self
 
-    def __exit__(self, *exc_info):
-        if self.link is not None:
-            self.link.close()
+    def __exit__(self, *exc_info: object) -> None:
+        if self._link is not None:
+            self._link.close()
         if self.board is not None:
             self.board.stop()
 
 
-def _fault_line(result: dict) -> str:
+def _fault_line(result: dict[str, Any]) -> str:
     """One line of `phantom hil faults` for one fault check's result."""
     if "skipped" in result:
         return f"{result['fault']}: skipped ({result['skipped']})"
@@ -111,14 +148,14 @@ def _progress(message: str) -> None:
     print(f"phantom hil: {message}", file=sys.stderr, flush=True)
 
 
-def _emit(args, result: dict, lines: list[str]) -> int:
+def _emit(args: argparse.Namespace, result: dict[str, Any], lines: list[str]) -> int:
     import json
 
     print(json.dumps(result, indent=1) if args.json else "\n".join(lines))
     return 0 if result.get("passed", True) else 1
 
 
-def _run_handshake(args) -> int:
+def _run_handshake(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     with _Bench(args) as b:
@@ -127,7 +164,7 @@ def _run_handshake(args) -> int:
     return _emit(args, result, lines)
 
 
-def _run_step(args) -> int:
+def _run_step(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from phantom import PhantomError
@@ -151,7 +188,7 @@ def _run_step(args) -> int:
     return _emit(args, result, lines)
 
 
-def _run_faults(args) -> int:
+def _run_faults(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     results = []
@@ -164,7 +201,7 @@ def _run_faults(args) -> int:
     return _emit(args, {"passed": passed, "faults": results}, lines)
 
 
-def _run_noise(args) -> int:
+def _run_noise(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     with _Bench(args) as b:
@@ -172,7 +209,7 @@ def _run_noise(args) -> int:
     return _emit(args, result, [f"{key}: {value}" for key, value in result.items()])
 
 
-def _run_watchdog(args) -> int:
+def _run_watchdog(args: argparse.Namespace) -> int:
     from phantom.hil import bench
 
     with _Bench(args) as b:
@@ -180,7 +217,7 @@ def _run_watchdog(args) -> int:
     return _emit(args, result, [f"{key}: {value}" for key, value in result.items()])
 
 
-def _run_report(args) -> int:
+def _run_report(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from phantom.hil import bench
@@ -201,7 +238,7 @@ def _run_report(args) -> int:
     return _emit(args, {"passed": passed, **report}, [(out / "report.md").read_text()])
 
 
-def _run_cycles(args) -> int:
+def _run_cycles(args: argparse.Namespace) -> int:
     from phantom import PhantomError
     from phantom.hil import bench
 
@@ -211,3 +248,30 @@ def _run_cycles(args) -> int:
         result = bench.measure_cycles(b.link, b.board, args.duration_s, args.telemetry_ms, args.kpa)
     lines = [f"{key}: {value:.6g}" if isinstance(value, float) else f"{key}: {value}" for key, value in result.items()]
     return _emit(args, result, lines)
+
+
+def _run_plant(args: argparse.Namespace) -> int:
+    from phantom import PhantomError
+    from phantom.hil import plant
+
+    if not args.from_scene and not args.truth_from_scene:
+        raise PhantomError("give --from-scene, --truth-from-scene or both")
+    path = args.plant or plant.DEFAULT_PLANT_PATH
+    if args.truth_from_scene:
+        from phantom.model.calibration.sweep import stderr_progress
+
+        factor = plant.TRUTH_MODULUS_FACTOR if args.truth_modulus_factor is None else args.truth_modulus_factor
+        table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.scheduler,
+                                             stderr_progress("truth table"))
+        plant.write_truth(table, path)
+        print(f"wrote the truth table into {path}: {table.description}")
+    if args.from_scene:
+        _progress(f"FEM of {args.from_scene} (meshing first if not cached)")
+        chambers = plant.chambers_from_scene(args.from_scene, args.mesh_size_mm)
+        written = plant.write_chambers(chambers, path)
+        print(f"wrote {written.path}: {chambers.description}")
+        print(f"cavity_volume_ml = {plant.toml_list(chambers.cavity_volume_ml)}")
+        print(f"rest air volume (with the tubes) ml = {plant.toml_list(1e6 * written.rest_volume_m3)}")
+        for row in chambers.compliance_ml_per_kpa:
+            print(f"compliance_ml_per_kpa row = {plant.toml_list(row)}")
+    return 0

@@ -1,12 +1,19 @@
-"""Subcommand of ``phantom``: ``inverse`` (pressures for a wanted volume); ``calibrate`` is in calibrate_cli.
+"""Subcommand of ``phantom``: ``inverse`` (pressures for a wanted volume); ``calibrate`` is in calibrate.py.
 
 Only argparse is imported at module load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from phantom.model.fem.model import PhantomModel
+    from phantom.model.scene import Scene
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``inverse`` to the ``phantom`` parser."""
     inverse = subparsers.add_parser(
         "inverse", help="chamber pressures that give a wanted volume (offline)",
@@ -50,27 +57,25 @@ def _growth_ratio_by_index(text: str, chamber_names: list[str]) -> dict[int, flo
     return by_index
 
 
-def _load_model(args):
+def _load_model(args: argparse.Namespace) -> tuple[Scene, PhantomModel]:
     from phantom.model import PhantomModel, load_scene
 
     scene = load_scene(args.scene)
     return scene, PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
 
 
-def run_inverse(args) -> int:
+def run_inverse(args: argparse.Namespace) -> int:
     """Handler of ``phantom inverse``."""
     import json
 
     from phantom import PhantomError
-    from phantom.cli.common import chamber_labels, parse_numbers
-    from phantom.model.fidelity.levels import scene_model_settings
+    from phantom.cli.common import parse_numbers
     from phantom.model.inverse import InverseSolver, Target
 
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml (the gland volume it shares out)")
-    _, model = _load_model(args)
-    settings = scene_model_settings(model)
-    fidelity = args.fidelity or settings.get("fidelity", "full")
+    scene, model = _load_model(args)
+    fidelity = args.fidelity or model.model_settings.fidelity or "full"
     if args.volume_ml is not None:
         target = Target(gland_volume_m3=args.volume_ml * 1e-6,
                         growth_ratio=_growth_ratio_by_index(args.growth_ratio, model.chamber_names)
@@ -88,7 +93,7 @@ def run_inverse(args) -> int:
         max_growth_m3 = [None if value is None else value * 1e-6 for value in limits_ml]
     pressure_max_pa = None if args.pressure_max_kpa is None else args.pressure_max_kpa * 1e3
     solver = InverseSolver(model, pressure_max_pa=pressure_max_pa, fidelity=fidelity, max_growth_m3=max_growth_m3)
-    result = solver.solve(target)
+    result = solver.pressures_for(target)
     report = {
         "pressures_kpa": (result.pressures_pa / 1e3).tolist(),
         "predicted_volume_ml": result.predicted_gland_volume_m3 * 1e6,
@@ -101,7 +106,7 @@ def run_inverse(args) -> int:
     if args.json:
         print(json.dumps(report))
     else:
-        labels = chamber_labels(getattr(model.scene, "raw", {}) or {}, list(model.chamber_names))
+        labels = scene.chamber_labels
         print(f"{'chamber':<26} " + " ".join(f"{label:>11}" for label in labels))
         print(f"{'pressure (kPa)':<26} " + " ".join(f"{value:11.4f}" for value in report["pressures_kpa"]))
         print(f"{'predicted volume (ml)':<26} "

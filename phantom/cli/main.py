@@ -6,6 +6,8 @@ Each part of the stack registers its own subcommands from a ``cli`` module with 
 and returns the process exit status.
 """
 
+from __future__ import annotations
+
 import argparse
 import importlib
 import logging

@@ -3,11 +3,17 @@
 Only argparse is imported at module load; handlers import what they need when they run.
 """
 
+from __future__ import annotations
+
 import argparse
 import os
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from phantom.model.fem.model import PhantomModel, State
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     mesh = subparsers.add_parser(
         "mesh", help="write a scene's tetrahedral mesh (with its groups) to a file",
@@ -89,7 +95,7 @@ def run_forward(args: argparse.Namespace) -> int:
     if len(args.pressures_kpa) != model.n_chambers:
         raise SolveError(f"--pressures-kpa has {len(args.pressures_kpa)} values; the scene has "
                          f"{model.n_chambers} chambers ({', '.join(model.chamber_names)})")
-    state = model.solve([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
+    state = model.equilibrium([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
     total_s = time.perf_counter() - started
     if args.out:
         _write_deformed(model, state, args.out, scene.length_scale_m)
@@ -110,9 +116,7 @@ def run_forward(args: argparse.Namespace) -> int:
             "out": args.out,
         }))
         return 0
-    from phantom.cli.common import chamber_labels
-
-    labels = chamber_labels(scene.raw, list(model.chamber_names))
+    labels = scene.chamber_labels
     print(f"{'chamber':<12} {'pressure kPa':>12} {'rest ml':>9} {'volume ml':>10} {'change ml':>10}")
     for label, pressure, rest, volume in zip(labels, args.pressures_kpa, model.rest_chamber_volumes_m3,
                                              state.chamber_volumes_m3, strict=True):
@@ -132,7 +136,7 @@ def run_forward(args: argparse.Namespace) -> int:
 SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
 
 
-def _write_deformed(model, state, out: str, length_scale_m: float) -> None:
+def _write_deformed(model: PhantomModel, state: State, out: str, length_scale_m: float) -> None:
     """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit; the outer
     surface only for a surface format."""
     from phantom.cli.common import output_file

@@ -8,11 +8,19 @@ Only argparse is imported at module load; handlers import what they need when th
 ``phantom hil``'s (its ``_Bench``), with the same target options.
 """
 
+from __future__ import annotations
+
 import argparse
 import contextlib
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from phantom.cli.hil import _Bench
+    from phantom.hil.motion import AxisConfig, MotionStatus
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add this part's subcommands to the ``phantom`` parser."""
     motion = subparsers.add_parser(
         "motion",
@@ -22,8 +30,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     commands = motion.add_subparsers(dest="motion_command", metavar="COMMAND", required=True)
 
-    def add(name: str, help_text: str, handler) -> argparse.ArgumentParser:
-        parser = commands.add_parser(name, help=help_text, description=help_text)
+    def add(name: str, help_text: str, handler: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
+        parser: argparse.ArgumentParser = commands.add_parser(name, help=help_text, description=help_text)
         target = parser.add_mutually_exclusive_group(required=True)
         target.add_argument("--sim", action="store_true", help="run the firmware image in simavr")
         target.add_argument("--port", help="serial port of a real board, e.g. /dev/ttyACM0")
@@ -63,7 +71,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add("status", "print where each axis is", _run_status)
 
 
-def _config(args):
+def _config(args: argparse.Namespace) -> AxisConfig:
     from phantom.cli.common import parse_numbers
     from phantom.hil.motion import AxisConfig, MotionError
 
@@ -83,7 +91,7 @@ def _config(args):
 
 
 @contextlib.contextmanager
-def _configured(args, config):
+def _configured(args: argparse.Namespace, config: AxisConfig) -> Iterator[_Bench]:
     """The bench's link (phantom hil's, and the simulated board with --sim), its session open and the axis
     configured."""
     from phantom.cli.hil import _Bench
@@ -95,26 +103,26 @@ def _configured(args, config):
         yield b
 
 
-def _report(args, status) -> int:
+def _report(args: argparse.Namespace, status: MotionStatus) -> int:
     from phantom.cli.hil import _emit
 
     return _emit(args, _status_result(status), [_axis_line(n, a) for n, a in enumerate(status.axes)])
 
 
-def _axis_line(n: int, axis) -> str:
+def _axis_line(n: int, axis: Any) -> str:
     return (f"axis {n}: {axis.state} ({axis.result}) at {axis.position_deg:g} deg ({axis.position_steps} steps), "
             f"target {axis.target_deg:g} deg, {axis.velocity_deg_s:g} deg/s, driver "
             f"{'enabled' if axis.enabled else 'released'}, position {'known' if axis.referenced else 'lost'}"
             f"{', home switch active' if axis.switch_active else ''}")
 
 
-def _status_result(status) -> dict:
+def _status_result(status: MotionStatus) -> dict[str, Any]:
     from dataclasses import asdict
 
     return {"board_time_s": status.board_time_s, "axes": [asdict(axis) for axis in status.axes]}
 
 
-def _run_check(args) -> int:
+def _run_check(args: argparse.Namespace) -> int:
     from phantom.cli.hil import _Bench, _emit
     from phantom.hil import motion
 
@@ -127,7 +135,7 @@ def _run_check(args) -> int:
     return _emit(args, report, lines)
 
 
-def _run_move(args) -> int:
+def _run_move(args: argparse.Namespace) -> int:
     from phantom.hil import motion
 
     config = _config(args)
@@ -136,7 +144,7 @@ def _run_move(args) -> int:
     return _report(args, status)
 
 
-def _run_home(args) -> int:
+def _run_home(args: argparse.Namespace) -> int:
     from phantom.hil import motion
 
     config = _config(args)
@@ -145,7 +153,7 @@ def _run_home(args) -> int:
     return _report(args, status)
 
 
-def _run_status(args) -> int:
+def _run_status(args: argparse.Namespace) -> int:
     from phantom.hil import motion
 
     config = _config(args)

@@ -1,20 +1,33 @@
-"""The closest-point kernel of :mod:`phantom.scan.compare` (numba, cached under ``phantom.cache_dir("numba")``).
+"""The closest-point kernels of :class:`phantom.model.mesh.surface.SurfaceIndex` (numba, cached under
+``phantom.cache_dir("numba")``).
 
-Imported only when a scan is compared, so the rest of the model never pays for numba here.
+Imported only when closest points are first asked for, so the rest of the model never pays for numba here.
+Arrays as :class:`~phantom.model.mesh.surface.SurfaceIndex` holds them: C-contiguous float64 positions (mm) and
+int64 indices; the outputs are written in place.
 """
 
 import os
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
 
 import numpy as np
 
 import phantom
+from phantom.model.arrays import BoolArray, FloatArray, IntArray
 
 os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba")))
 import numba  # noqa: E402  (the cache location must be set first)
 
+Kernel = TypeVar("Kernel", bound=Callable[..., Any])
 
-@numba.njit(cache=True)
-def closest_on_triangle(p, a, b, c, out):
+
+def kernel(function: Kernel) -> Kernel:
+    """Compile ``function`` with numba (cached on disk); the compiled kernel takes the same arguments."""
+    return cast(Kernel, numba.njit(cache=True)(function))
+
+
+@kernel
+def closest_on_triangle(p: FloatArray, a: FloatArray, b: FloatArray, c: FloatArray, out: FloatArray) -> float:
     """Closest point to ``p`` on triangle ``abc`` (written to ``out``) by its Voronoi region: vertex, edge or
     face (the classic barycentric case analysis); returns the squared distance."""
     ab0, ab1, ab2 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
@@ -51,12 +64,29 @@ def closest_on_triangle(p, a, b, c, out):
     out[0] = a[0] + v * ab0 + w * ac0
     out[1] = a[1] + v * ab1 + w * ac1
     out[2] = a[2] + v * ab2 + w * ac2
-    return (p[0] - out[0]) ** 2 + (p[1] - out[1]) ** 2 + (p[2] - out[2]) ** 2
+    squared: float = (p[0] - out[0]) ** 2 + (p[1] - out[1]) ** 2 + (p[2] - out[2]) ** 2
+    return squared
 
 
-@numba.njit(cache=True)
-def closest_on_candidates(points, pending, candidates, centroid_distance, vertices, triangles, radius,
-                          radius_max, all_candidates, distance, closest, triangle, done):
+@kernel
+def _record_if_closer(points: FloatArray, i: int, j: int, vertices: FloatArray, triangles: IntArray, best: float,
+                      point_out: FloatArray, closest: FloatArray, triangle: IntArray) -> float:
+    """Point i against triangle j: when it is closer than ``best`` (a squared distance), record the triangle and
+    the closest point for the point; returns the best squared distance."""
+    squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
+                                  vertices[triangles[j, 2]], point_out)
+    if squared >= best:
+        return best
+    triangle[i] = j
+    closest[i, 0], closest[i, 1], closest[i, 2] = point_out[0], point_out[1], point_out[2]
+    return squared
+
+
+@kernel
+def closest_on_candidates(points: FloatArray, pending: IntArray, candidates: IntArray, centroid_distance: FloatArray,
+                          vertices: FloatArray, triangles: IntArray, radius: FloatArray, radius_max: float,
+                          all_candidates: bool, distance: FloatArray, closest: FloatArray, triangle: IntArray,
+                          done: BoolArray) -> None:
     """For each pending point, the closest point over its candidate triangles (nearest centroid first).
 
     Triangle j lies at least ``|p - centroid_j| - radius_j`` from p (``radius_j``: its farthest corner from its
@@ -82,20 +112,17 @@ def closest_on_candidates(points, pending, candidates, centroid_distance, vertic
                     break
                 if centroid_distance[row, k] - radius[j] > reach:
                     continue
-            squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
-                                          vertices[triangles[j, 2]], point_out)
-            if squared < best:
-                best = squared
-                triangle[i] = j
-                closest[i, 0], closest[i, 1], closest[i, 2] = point_out[0], point_out[1], point_out[2]
+            best = _record_if_closer(points, i, j, vertices, triangles, best, point_out, closest, triangle)
         if finished:
             distance[i] = np.sqrt(best)
             done[row] = True
 
 
-@numba.njit(cache=True)
-def closest_by_neighbours(points, nearest, nearest_distance, neighbour_start, neighbours, centroids, radius,
-                          radius_max, reach, vertices, triangles, distance, closest, triangle, done):
+@kernel
+def closest_by_neighbours(points: FloatArray, nearest: IntArray, nearest_distance: FloatArray,
+                          neighbour_start: IntArray, neighbours: IntArray, centroids: FloatArray, radius: FloatArray,
+                          radius_max: float, reach: float, vertices: FloatArray, triangles: IntArray,
+                          distance: FloatArray, closest: FloatArray, triangle: IntArray, done: BoolArray) -> None:
     """Closest points for many queries on a small surface: each point checks the triangles whose centroids lie
     within ``reach`` of its nearest centroid (a precomputed list). Every triangle that could be closer than the
     best found has its centroid within ``best + radius_max`` of the point, hence within
@@ -112,12 +139,7 @@ def closest_by_neighbours(points, nearest, nearest_distance, neighbour_start, ne
                               + (points[i, 2] - centroids[j, 2]) ** 2)
                 if gap - radius[j] > np.sqrt(best):
                     continue
-            squared = closest_on_triangle(points[i], vertices[triangles[j, 0]], vertices[triangles[j, 1]],
-                                          vertices[triangles[j, 2]], point_out)
-            if squared < best:
-                best = squared
-                triangle[i] = j
-                closest[i, 0], closest[i, 1], closest[i, 2] = point_out[0], point_out[1], point_out[2]
+            best = _record_if_closer(points, i, j, vertices, triangles, best, point_out, closest, triangle)
         if np.sqrt(best) + radius_max + nearest_distance[i] <= reach:
             distance[i] = np.sqrt(best)
             done[i] = True

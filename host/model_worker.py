@@ -9,43 +9,30 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import multiprocessing
 import os
 import signal
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 import phantom
-from phantom import PhantomError
-from phantom.host.scenes import TargetSpec
+from phantom.host.logs import configure_logging
+from phantom.host.scenes import effective_model
+from phantom.model.inverse import InverseResult, InverseSolver, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
+
+#: What a function run in the worker answers.
+Answer = TypeVar("Answer")
 
 ML_PER_M3 = 1e6
 PA_PER_KPA = 1e3
 MM_PER_M = 1e3
-
-
-@dataclass
-class Solution:
-    """The inverse's answer to one target, in the units people see, with its cost."""
-
-    target: TargetSpec
-    pressures_pa: np.ndarray
-    predicted_volume_ml: float
-    predicted_chamber_volumes_ml: list[float]
-    iterations: int
-    solve_time_s: float
-    qp_time_s: float
-
-    def to_json(self) -> dict:
-        return {"target": self.target.to_json(), "pressures_kpa": (self.pressures_pa / PA_PER_KPA).tolist(),
-                "predicted_volume_ml": self.predicted_volume_ml,
-                "predicted_chamber_volumes_ml": self.predicted_chamber_volumes_ml, "iterations": self.iterations,
-                "solve_time_s": self.solve_time_s, "qp_time_s": self.qp_time_s}
 
 
 class LoadedModel:
@@ -61,9 +48,10 @@ class LoadedModel:
     """
 
     def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info):
+        # the model's stack (scipy, numba) is loaded where the model is built: in the worker process, not in the
+        # daemon that imports this module
         from phantom.model import PhantomModel, load_scene
         from phantom.model.fidelity.levels import VolumeEstimator
-        from phantom.model.inverse import InverseSolver
 
         self.timings_s: dict[str, float] = {}
         started = time.perf_counter()
@@ -110,43 +98,24 @@ class LoadedModel:
         """Solve one reachable and one unreachable gland target, so that the first request finds the QPs set
         up and the solvers' modules loaded (the first ``set`` took 0.2-0.6 s, later ones 10-30 ms); the
         estimator's counters start again from zero."""
-        from phantom.model.inverse import Target, UnreachableTargetError
-
         rest_m3 = float(self.model.rest_gland_volume_m3)
         _, highest_m3, _ = self.estimator.evaluate(self.solver.pressure_max_pa)
-        self.solver.solve(Target(gland_volume_m3=rest_m3 + 0.5 * (float(highest_m3) - rest_m3)))
+        self.solver.pressures_for(Target(gland_volume_m3=rest_m3 + 0.5 * (float(highest_m3) - rest_m3)))
         try:
-            self.solver.solve(Target(gland_volume_m3=float(highest_m3) + 0.1 * (float(highest_m3) - rest_m3)))
+            self.solver.pressures_for(Target(gland_volume_m3=float(highest_m3) + 0.1 * (float(highest_m3) - rest_m3)))
         except UnreachableTargetError:
             pass
         for key in self.estimator.counts:
             self.estimator.counts[key] = 0
 
-    def effective_model(self) -> dict:
+    def effective_model(self) -> dict[str, Any]:
         """What a scene must match to run on this model (see :func:`phantom.host.scenes.effective_model`)."""
-        from phantom.host.scenes import effective_model
-
         return effective_model(self.scene, fidelity=self.estimator.level, pressure_max_kpa=self.pressure_max_pa
                                / PA_PER_KPA)
 
-    def solve(self, target: TargetSpec) -> Solution:
+    def pressures_for(self, target: Target) -> InverseResult:
         """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
-        from phantom.model.inverse import Target
-
-        if target.kind == "volume_ml":
-            inverse_target = Target(gland_volume_m3=target.values[0] / ML_PER_M3,
-                                    growth_ratio=dict(target.growth_ratio) or None)
-        elif target.kind == "chamber_volumes_ml":
-            inverse_target = Target(chamber_volumes_m3=[None if v is None else v / ML_PER_M3 for v in target.values])
-        elif target.kind == "pressures_kpa":
-            inverse_target = Target(pressures_pa=[v * PA_PER_KPA for v in target.values])
-        else:
-            raise PhantomError(f"unknown target kind {target.kind!r}")
-        result = self.solver.solve(inverse_target)
-        return Solution(target, np.asarray(result.pressures_pa, dtype=float),
-                        float(result.predicted_gland_volume_m3) * ML_PER_M3,
-                        (np.asarray(result.predicted_chamber_volumes_m3) * ML_PER_M3).tolist(),
-                        int(result.iterations), float(result.solve_time_s), float(result.qp_solve_time_s))
+        return self.solver.pressures_for(target)
 
     def estimate(self, pressures_pa: np.ndarray) -> tuple[list[float], float]:
         """Estimated chamber volumes (ml) and gland volume (ml) at measured pressures (Pa, negative -> 0)."""
@@ -185,17 +154,19 @@ def build_progress(report: Callable[[str], None], every_s: float = 10.0) -> Call
 
 @dataclass(frozen=True)
 class ModelInfo:
-    """What the daemon knows about the model in the worker."""
+    """What the daemon knows about the model in the worker (``scene_raw``: the scene's TOML, whose ``[[steps]]``
+    and ``[timeline]`` the daemon plays)."""
 
     chamber_names: list[str]
+    chamber_labels: list[str]
     rest_volume_ml: float
     timings_s: dict[str, float]
     fidelity: str
-    scene_raw: dict
+    scene_raw: dict[str, Any]
     scene_path: str
     pressure_max_pa: float
     wants_shape: bool
-    effective_model: dict
+    effective_model: dict[str, Any]
 
 
 @dataclass(frozen=True)
@@ -239,8 +210,6 @@ def exit_with_parent(parent_pid: int) -> None:
 
 def _worker_init(parent_pid: int, log_level: str) -> None:
     """In the worker, first: die with the daemon, leave Ctrl-C to it, log like it."""
-    from phantom.host.logs import configure_logging
-
     exit_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the daemon's to handle; it stops the worker
     configure_logging(log_level)
@@ -256,13 +225,13 @@ def _worker_start(scene_source: str) -> ModelInfo:
     """In the worker: build the model; return what the daemon needs to know about it."""
     global _worker_model
     _worker_model = model = LoadedModel(scene_source)
-    return ModelInfo(model.chamber_names, model.rest_volume_ml, model.timings_s, model.estimator.level,
-                     model.scene.raw, str(model.scene.path), model.pressure_max_pa, model.wants_shape,
-                     model.effective_model())
+    return ModelInfo(model.chamber_names, list(model.scene.chamber_labels), model.rest_volume_ml, model.timings_s,
+                     model.estimator.level, model.scene.raw, str(model.scene.path), model.pressure_max_pa,
+                     model.wants_shape, model.effective_model())
 
 
-def _worker_solve(target: TargetSpec) -> Solution:
-    return _worker_model_or_fail().solve(target)
+def _worker_pressures_for(target: Target) -> InverseResult:
+    return _worker_model_or_fail().pressures_for(target)
 
 
 def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_surface: bool) -> Estimate:
@@ -278,12 +247,9 @@ def _worker_surface(pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.nda
     return model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
 
 
-def worker_pool(log_level: str = "info") -> Any:
+def worker_pool(log_level: str = "info") -> ProcessPoolExecutor:
     """A one-process pool (spawned, not forked: no copy of the daemon's event loop or threads) whose process
     dies with this one."""
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
-
     return ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
                                initializer=_worker_init, initargs=(os.getpid(), log_level))
 
@@ -294,7 +260,7 @@ class ModelWorker:
     Build it with :meth:`start`, which returns a worker whose model is ready (``info``).
     """
 
-    def __init__(self, pool: Any, info: ModelInfo):
+    def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo):
         self._pool = pool
         self.info = info
 
@@ -309,12 +275,12 @@ class ModelWorker:
             raise
         return cls(pool, info)
 
-    async def _call(self, function: Callable[..., Any], *arguments: Any) -> Any:
+    async def _call(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
 
-    async def solve(self, target: TargetSpec) -> Solution:
+    async def pressures_for(self, target: Target) -> InverseResult:
         """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
-        return await self._call(_worker_solve, target)
+        return await self._call(_worker_pressures_for, target)
 
     async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
                        with_rest_surface: bool = False) -> Estimate:

@@ -1,0 +1,95 @@
+"""What the daemon needs of each of its parts, as Protocols (the recording, the board's link session, the model),
+and its control state, which the API's handlers move too.
+
+The daemon is built from real parts (:class:`phantom.host.recording.Recorder`,
+:class:`phantom.host.session.LinkSession`, :class:`phantom.host.model_worker.ModelWorker`); a unit test of its
+wiring may give it stand-ins with these methods. mypy checks that the real parts satisfy them where the daemon
+is built.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from phantom.host.model_worker import Estimate, ModelInfo
+    from phantom.host.session import LinkState, Transport
+    from phantom.model.inverse import InverseResult, Target
+
+class ControlState(enum.StrEnum):
+    """What drives the setpoints: nothing (``idle``), a target from the API (``holding``), a scene's timeline
+    (``scene``), or nothing since a vent (``vented``); the value is what ``status`` shows."""
+
+    IDLE = "idle"
+    HOLDING = "holding"
+    SCENE = "scene"
+    VENTED = "vented"
+
+
+#: Seconds on a monotonic clock (``time.monotonic``; a counter in tests).
+Clock = Callable[[], float]
+
+
+class Recording(Protocol):
+    """Where the daemon logs what it does (Rerun; every call a no-op when nothing records)."""
+
+    def set_scene_time(self, scene_time_s: float | None) -> None: ...
+
+    def log_telemetry(self, time_s: float, measured_kpa: np.ndarray, setpoint_kpa: np.ndarray,
+                      drive_levels: np.ndarray) -> None: ...
+
+    def log_volumes(self, time_s: float, target_ml: float | None, estimated_ml: float | None,
+                    chamber_ml: Sequence[float] | None = None, true_ml: float | None = None) -> None: ...
+
+    def log_link(self, time_s: float, rtt_ms: float | None, retries: int, bad_frames: int, dropped: int) -> None: ...
+
+    def log_solver(self, time_s: float, qp_time_s: float, solve_time_s: float) -> None: ...
+
+    def log_event(self, time_s: float, text: str, level: str = "INFO") -> None: ...
+
+    def log_rest_surface(self, positions_mm: np.ndarray, triangles: np.ndarray) -> None: ...
+
+    def log_mesh(self, time_s: float, positions_mm: np.ndarray, triangles: np.ndarray) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class BoardSession(Protocol):
+    """The link to the board (:class:`phantom.host.session.LinkSession`)."""
+
+    @property
+    def transport(self) -> Transport: ...
+
+    @property
+    def online(self) -> bool: ...
+
+    @property
+    def state(self) -> LinkState: ...
+
+    async def run(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    async def command(self, name: str, fields: dict[str, Any] | None = None) -> str: ...
+
+    def status(self) -> dict[str, Any]: ...
+
+
+class Model(Protocol):
+    """The scene's model, inverse and estimator (:class:`phantom.host.model_worker.ModelWorker`)."""
+
+    @property
+    def info(self) -> ModelInfo: ...
+
+    async def pressures_for(self, target: Target) -> InverseResult: ...
+
+    async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
+                       with_rest_surface: bool = False) -> Estimate: ...
+
+    async def surface(self, pressures_pa: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]: ...
+
+    def close(self) -> None: ...

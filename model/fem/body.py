@@ -1,0 +1,414 @@
+"""The phantom's discretised solid: its mesh, material, fixation and chamber walls, and what it assembles.
+
+A :class:`SolidBody` knows the element rest data, the sparsity of the stiffness (:class:`SparsePattern`), the
+springs that hold the fixation and the held dofs that remove rigid motion without one (:class:`Constraints`).
+It assembles, at any node positions, the elastic and spring forces, their energy and a tangent (the positive
+definite stand-in or the exact Hessian, with the follower-pressure stiffness), and measures the chambers'
+volumes and their gradients. It solves nothing: an :class:`phantom.model.fem.problem.EquilibriumProblem` binds
+it to pressures, and Newton (:mod:`phantom.model.fem.newton`) and path following solve that.
+
+Springs have stiffness ``k_i = FIXED_PENALTY * E * A_i / h`` (A_i the node's share of the fixed area, h the
+patch's mean edge length), a dimensionless multiple of E: the solution at (p, E) equals the one at
+(p E0 / E, E0). Without a fixed group, a 3-2-1 set of displacement constraints removes rigid motion only (the
+pressure load is self-equilibrated, so these carry no force).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+import phantom
+from phantom.model.arrays import BoolArray, FloatArray, Int32Array, IntArray
+from phantom.model.errors import MeshError, SolveError
+from phantom.model.fem import kernels
+from phantom.model.fem.linsolve import CholeskyFactor, Factorization
+from phantom.model.mesh.tetmesh import Surfaces, TetMesh, enclosed_volume_m3, volume_gradient_m2
+from phantom.model.scene import HYPERELASTIC_MODELS, MATERIAL_MODELS, Material
+
+if TYPE_CHECKING:
+    import scipy.sparse
+
+#: Spring stiffness at the fixation as a multiple of E * area / edge length (dimensionless).
+FIXED_PENALTY = 1.0e3
+#: Bump when the solver's numbers change, so cached compliances and factors are recomputed.
+SOLVER_VERSION = 2
+#: What :meth:`SolidBody.elastic` assembles besides forces and energy: no matrix, the positive definite
+#: stand-in of the tangent (``R K R^T`` co-rotational; the small-strain stiffness for "linear"), or the exact
+#: Hessian of the energy.
+NO_TANGENT, POSITIVE_TANGENT, EXACT_TANGENT = 0, 1, 2
+
+#: A factorised matrix: ``solve(rhs)`` is ``K^-1 rhs``.
+Factor = Factorization | CholeskyFactor
+
+
+@dataclass(frozen=True)
+class SparsePattern:
+    """The CSR sparsity of the stiffness (3 dofs per node) and where each element entry and each diagonal entry
+    goes in its data array: ``indptr`` (3n + 1,), ``indices`` (nnz,) int32, ``scatter`` (elements, 12, 12) the data
+    index of element e's entry (i, j), ``diagonal`` (3n,)."""
+
+    indptr: IntArray
+    indices: Int32Array
+    scatter: IntArray
+    diagonal: IntArray
+
+
+@dataclass(frozen=True)
+class Constraints:
+    """Held dofs (3-2-1, removing rigid motion; none when springs hold a fixed patch): ``dofs`` (k,), ``free_mask``
+    (3n,) True where a dof is free, and ``entries``, the CSR data entries in the held rows and columns."""
+
+    dofs: IntArray
+    free_mask: BoolArray
+    entries: IntArray
+
+    @property
+    def key(self) -> tuple[int, ...]:
+        """The held dofs as a tuple: equal keys, equal constraints."""
+        return tuple(self.dofs.tolist())
+
+
+@dataclass(frozen=True)
+class ElasticEvaluation:
+    """What :meth:`SolidBody.elastic` assembles at one configuration: elastic and spring forces ``forces_n``
+    (3n,) N with the held dofs zeroed, their energy ``energy_j`` (J; +inf outside a hyperelastic law's domain),
+    the smallest det F over the elements, and ``tangent_data``, the CSR data of the tangent in the body's
+    pattern (N/m; a single zero when none was asked for)."""
+
+    forces_n: FloatArray
+    energy_j: float
+    smallest_det: float
+    tangent_data: FloatArray
+
+
+def sparse_pattern(tets: IntArray, n_nodes: int) -> SparsePattern:
+    """Build the CSR pattern once; ``scatter[e, i, j]`` is the data index of element e's entry (i, j).
+
+    Built from the node graph (16 pairs per element instead of 144 dof pairs): node i's neighbours j (sorted,
+    itself included) give dof row ``3 i + a`` the columns ``3 j + b`` in that order, so the row starts at
+    ``9 nnz_before(i) + 3 a degree(i)`` and the pair's k-th neighbour entry sits ``3 k + b`` further on.
+    """
+    n_tets = len(tets)
+    tets = tets.astype(np.int64)
+    pair_keys = (tets[:, :, None] * n_nodes + tets[:, None, :]).ravel()
+    node_pairs, pair_of = np.unique(pair_keys, return_inverse=True)
+    pair_rows, pair_columns = np.divmod(node_pairs, n_nodes)
+    degree = np.bincount(pair_rows, minlength=n_nodes)
+    node_indptr = np.concatenate([[0], np.cumsum(degree)])
+    rank_in_row = np.arange(len(node_pairs)) - node_indptr[pair_rows]
+    row_start = 9 * node_indptr[:-1, None] + 3 * degree[:, None] * np.arange(3)
+    indptr = np.append(row_start.ravel(), 9 * len(node_pairs)).astype(np.int64)
+    axis = np.arange(3)
+    entries = row_start[pair_rows][:, :, None] + 3 * rank_in_row[:, None, None] + axis
+    indices = np.empty(9 * len(node_pairs), np.int32)
+    indices[entries] = np.broadcast_to((3 * pair_columns[:, None, None] + axis), entries.shape)
+    rank = rank_in_row[pair_of].reshape(n_tets, 4, 4)
+    scatter = (row_start[tets][:, :, :, None, None] + 3 * rank[:, :, None, :, None] + axis)
+    self_rank = np.zeros(n_nodes, np.int64)
+    on_diagonal = pair_rows == pair_columns
+    self_rank[pair_rows[on_diagonal]] = rank_in_row[on_diagonal]
+    diagonal = (row_start + 3 * self_rank[:, None] + axis).ravel()
+    return SparsePattern(indptr, indices, scatter.reshape(n_tets, 12, 12), diagonal)
+
+
+def rigid_constraints(nodes_m: FloatArray) -> IntArray:
+    """Six dofs (3-2-1) whose fixing removes rigid motion only: all of A, two of B, one of C.
+
+    A and B are the extreme nodes along x; C is the node farthest from line AB. B keeps its dof along AB's
+    dominant axis, C is held along the axis in which a rotation about AB moves it most.
+    """
+    node_a, node_b = int(np.argmin(nodes_m[:, 0])), int(np.argmax(nodes_m[:, 0]))
+    axis_ab = nodes_m[node_b] - nodes_m[node_a]
+    axis_ab /= np.linalg.norm(axis_ab)
+    offsets = nodes_m - nodes_m[node_a]
+    perpendicular = offsets - np.outer(offsets @ axis_ab, axis_ab)
+    node_c = int(np.argmax(np.linalg.norm(perpendicular, axis=1)))
+    free_b = int(np.argmax(np.abs(axis_ab)))
+    swing = np.cross(axis_ab, perpendicular[node_c])
+    held_c = int(np.argmax(np.abs(swing)))
+    dofs = [3 * node_a, 3 * node_a + 1, 3 * node_a + 2]
+    dofs += [3 * node_b + k for k in range(3) if k != free_b]
+    dofs.append(3 * node_c + held_c)
+    return np.array(dofs, np.int64)
+
+
+def spring_stiffness(nodes_m: FloatArray, fixed_triangles: IntArray, youngs_modulus_pa: float,
+                     fixed_penalty: float) -> tuple[IntArray, FloatArray]:
+    """Fixed nodes and their spring stiffness ``fixed_penalty * E * A_i / h`` (N/m)."""
+    x0, x1, x2 = (nodes_m[fixed_triangles[:, k]] for k in range(3))
+    areas_m2 = 0.5 * np.linalg.norm(np.cross(x1 - x0, x2 - x0), axis=1)
+    edge_m = np.mean(np.linalg.norm(np.stack([x1 - x0, x2 - x1, x0 - x2]), axis=2))
+    node_area_m2 = np.bincount(fixed_triangles.ravel(), np.repeat(areas_m2 / 3.0, 3), len(nodes_m))
+    fixed_nodes = np.unique(fixed_triangles).astype(np.int64)
+    return fixed_nodes, fixed_penalty * youngs_modulus_pa * node_area_m2[fixed_nodes] / edge_m
+
+
+def load_from_gradients_n(pressures_pa: FloatArray, chamber_gradients_m2: FloatArray) -> FloatArray:
+    """``sum_c p_c dV_c/dx`` (N, (3n,)) from the chamber rows of the volume gradients (m^2, (chambers, 3n))."""
+    load: FloatArray = np.einsum("c,cj->j", pressures_pa, chamber_gradients_m2[: len(pressures_pa)])
+    return load
+
+
+class SolidBody:
+    """The discretised solid (see the module docstring): checked material, element rest data, sparsity, springs.
+
+    Parameters
+    ----------
+    mesh : TetMesh
+        Nodes (m) and positively oriented tetrahedra.
+    surfaces : Surfaces
+        Chamber walls (oriented out of their cavities), the outer boundary (outward) and the fixed patch.
+    chamber_names : list of str
+        One name per chamber wall, for messages.
+    material : Material
+    source : str
+        Where the mesh came from, for messages.
+    linear_solver : str or None
+        The factorisation of positive definite matrices (:data:`phantom.model.fem.linsolve.METHODS`; None: the
+        measured default).
+
+    Raises SolveError for a material out of range and MeshError for a chamber that encloses no volume.
+    Attributes (read them, do not change them): ``nodes_m`` (n, 3), ``tets`` (m, 4), ``chamber_triangles``,
+    ``outer_triangles``, ``fixed_triangles``, ``n_chambers``, ``rest_chamber_volumes_m3`` (chambers,),
+    ``rest_gland_volume_m3``, ``dm_inverse`` (m, 3, 3) each element's inverse rest edge matrix,
+    ``element_volumes_m3`` (m,), ``pattern``, ``fixed_nodes`` and ``spring_n_per_m`` (the springs),
+    ``fixed_penalty`` (FIXED_PENALTY when the body was made), ``rest_constraints``.
+    """
+
+    def __init__(self, mesh: TetMesh, surfaces: Surfaces, chamber_names: list[str], material: Material,
+                 source: str = "mesh", linear_solver: str | None = None):
+        if not 0 < material.youngs_modulus_pa < np.inf or not -1.0 < material.poisson_ratio < 0.5:
+            raise SolveError(f"material out of range: E = {material.youngs_modulus_pa} Pa (> 0), "
+                             f"nu = {material.poisson_ratio} (in (-1, 0.5))")
+        if material.model not in MATERIAL_MODELS:
+            raise SolveError(f"unknown material model {material.model!r}: use one of {', '.join(MATERIAL_MODELS)}")
+        if material.gent_jm is not None and not 0 < material.gent_jm < np.inf:
+            raise SolveError(f"material out of range: gent_jm = {material.gent_jm} (a positive number)")
+        if material.model == "gent" and material.gent_jm is None:
+            raise SolveError("the Gent material needs gent_jm, the locking value of I1 - 3 (e.g. 20)")
+        self.mesh = mesh
+        self.surfaces = surfaces
+        self.source = source
+        self.nodes_m = mesh.nodes_m
+        self.tets = mesh.tets
+        self.chamber_names = list(chamber_names)
+        self.n_chambers = len(chamber_names)
+        self.chamber_triangles = surfaces.chamber_triangles
+        self.outer_triangles = surfaces.outer_triangles
+        self.fixed_triangles = surfaces.fixed_triangles
+        self.material = material
+        self.linear_solver = linear_solver
+        self.rest_chamber_volumes_m3, self.rest_gland_volume_m3 = self.volumes(self.nodes_m)
+        for name, volume in zip(self.chamber_names, self.rest_chamber_volumes_m3, strict=True):
+            if volume <= 0:
+                raise MeshError(f"{source}: chamber {name!r} encloses no volume ({volume:.3g} m^3)")
+        self.dm_inverse, self.element_volumes_m3, self.element_stiffness = kernels.element_rest_data(
+            self.nodes_m, self.tets, material.youngs_modulus_pa, material.poisson_ratio)
+        self.pattern = sparse_pattern(self.tets, len(self.nodes_m))
+        self.fixed_penalty = FIXED_PENALTY
+        self.fixed_nodes: IntArray = np.zeros(0, np.int64)
+        self.spring_n_per_m: FloatArray = np.zeros(0)
+        if self.fixed_triangles is not None:
+            self.fixed_nodes, self.spring_n_per_m = spring_stiffness(
+                self.nodes_m, self.fixed_triangles, material.youngs_modulus_pa, self.fixed_penalty)
+        self._factorizations: dict[tuple[int, ...], Factor] = {}
+        self._constraint_sets: dict[tuple[int, ...], Constraints] = {}
+        self.rest_constraints = self.constraints_for(self.nodes_m)
+
+    @property
+    def length_scale_m(self) -> float:
+        """The body's size: the cube root of its rest volume (m)."""
+        return float(np.cbrt(self.rest_gland_volume_m3))
+
+    def constraints_for(self, positions_m: FloatArray) -> Constraints:
+        """No held dofs when springs hold the fixation; else a 3-2-1 set chosen in this configuration's frame
+        (so that a rigidly rotated start is held as the rest shape would be)."""
+        n_dofs = 3 * len(self.nodes_m)
+        dofs = np.zeros(0, np.int64) if self.fixed_triangles is not None else rigid_constraints(positions_m)
+        key = tuple(dofs.tolist())
+        if key not in self._constraint_sets:
+            free_mask = np.ones(n_dofs, bool)
+            free_mask[dofs] = False
+            entries = dofs
+            if len(dofs):
+                rows = np.repeat(np.arange(n_dofs), np.diff(self.pattern.indptr))
+                entries = np.flatnonzero(~free_mask[rows] | ~free_mask[self.pattern.indices])
+            self._constraint_sets[key] = Constraints(dofs, free_mask, entries)
+        return self._constraint_sets[key]
+
+    # --- volumes ---------------------------------------------------------------------------------------------
+
+    def chamber_volumes_m3(self, positions_m: FloatArray) -> FloatArray:
+        """Each chamber's volume (m^3, chamber order) at node positions (n, 3) m."""
+        return np.array([enclosed_volume_m3(positions_m, triangles) for triangles in self.chamber_triangles])
+
+    def volumes(self, positions_m: FloatArray) -> tuple[FloatArray, float]:
+        """Chamber volumes (m^3, chamber order) and the gland volume (m^3, inside the outer boundary)."""
+        return self.chamber_volumes_m3(positions_m), enclosed_volume_m3(positions_m, self.outer_triangles)
+
+    def volume_gradients(self, positions_m: FloatArray) -> FloatArray:
+        """``H``: (n_chambers + 1, 3 n) gradients of each chamber's volume and of the gland's (m^2)."""
+        surfaces = [*self.chamber_triangles, self.outer_triangles]
+        return np.stack([volume_gradient_m2(positions_m, triangles).ravel() for triangles in surfaces])
+
+    # --- elements --------------------------------------------------------------------------------------------
+
+    def deformation_determinants(self, positions_m: FloatArray) -> FloatArray:
+        """det F of every element (m,) at node positions (n, 3) m."""
+        return kernels.deformation_determinants(positions_m, self.tets, self.dm_inverse)
+
+    def worst_element(self, positions_m: FloatArray) -> int:
+        """The element with the smallest det F if any is flat or inverted, else -1."""
+        dets = self.deformation_determinants(positions_m)
+        worst = int(np.argmin(dets))
+        return worst if dets[worst] <= 0 else -1
+
+    def inverse_jm(self, formulation: str) -> float:
+        """1 / Jm of the Gent law (0 for Neo-Hookean)."""
+        if formulation != "gent":
+            return 0.0
+        if self.material.gent_jm is None:
+            raise SolveError("the Gent formulation needs the material's gent_jm (scene [material] gent_jm)")
+        return 1.0 / self.material.gent_jm
+
+    # --- assembly --------------------------------------------------------------------------------------------
+
+    def elastic(self, positions_m: FloatArray, formulation: str, matrix: int, constraints: Constraints,
+                pressures_pa: FloatArray | None = None) -> ElasticEvaluation:
+        """Elastic + spring forces, energy and smallest det F at node positions (n, 3) m, and the tangent's CSR
+        data when ``matrix`` is POSITIVE_TANGENT (``R K R^T``, co-rotational, positive definite) or
+        EXACT_TANGENT (the exact Hessian, co-rotational or hyperelastic), including the pressure's follower-load
+        stiffness when ``pressures_pa`` (chambers,) are given; the linear model's is its stiffness either way."""
+        data = np.zeros(len(self.pattern.indices)) if matrix else np.zeros(1)
+        if formulation in HYPERELASTIC_MODELS:
+            forces, energy_j, smallest_det = kernels.hyperelastic_forces(
+                positions_m, self.tets, self.dm_inverse, self.element_volumes_m3, self.material.lame_mu_pa,
+                self.material.lame_lambda_pa, self.inverse_jm(formulation), EXACT_TANGENT if matrix else NO_TANGENT,
+                self.pattern.scatter, data)
+        else:
+            forces, energy_j, smallest_det = kernels.internal_forces(
+                positions_m, self.nodes_m, self.tets, self.dm_inverse, self.element_stiffness,
+                formulation == "corotational", matrix, self.pattern.scatter, data)
+        stretch = positions_m[self.fixed_nodes] - self.nodes_m[self.fixed_nodes]
+        forces[self.fixed_nodes] += self.spring_n_per_m[:, None] * stretch
+        energy_j += 0.5 * float(np.sum(self.spring_n_per_m[:, None] * stretch**2))
+        forces = forces.ravel()
+        forces[constraints.dofs] = 0.0
+        if matrix:
+            if matrix == EXACT_TANGENT and pressures_pa is not None:
+                for pressure_pa, triangles in zip(pressures_pa, self.chamber_triangles, strict=True):
+                    kernels.add_pressure_stiffness(positions_m, triangles, pressure_pa, self.pattern.indptr,
+                                                   self.pattern.indices, data)
+            spring_dofs = (3 * self.fixed_nodes[:, None] + np.arange(3)).ravel()
+            data[self.pattern.diagonal[spring_dofs]] += np.repeat(self.spring_n_per_m, 3)
+            if len(constraints.dofs):
+                scale = float(np.mean(data[self.pattern.diagonal]))
+                data[constraints.entries] = 0.0
+                data[self.pattern.diagonal[constraints.dofs]] = scale
+        return ElasticEvaluation(forces, float(energy_j), float(smallest_det), data)
+
+    def tangent_data(self, positions_m: FloatArray | None = None, formulation: str = "linear",
+                     pressures_pa: FloatArray | None = None, constraints: Constraints | None = None) -> FloatArray:
+        """The CSR data (N/m, in :attr:`pattern`) of the assembled tangent at ``positions_m`` (default: rest):
+        "linear": the small-strain stiffness; "corotational", "neo_hookean", "gent": the exact Hessian of the
+        total energy, with the follower-load stiffness of ``pressures_pa`` when given. Held dofs (default: the
+        rest constraints) get scaled identity rows."""
+        positions_m = self.nodes_m if positions_m is None else positions_m
+        matrix = POSITIVE_TANGENT if formulation == "linear" else EXACT_TANGENT
+        return self.elastic(positions_m, formulation, matrix, constraints or self.rest_constraints,
+                            pressures_pa).tangent_data
+
+    def csr(self, data: FloatArray) -> scipy.sparse.csr_matrix:
+        """The scipy CSR matrix of the body's pattern with entries ``data``."""
+        # scipy.sparse (0.15 s to import) only where a matrix is factorised or handed out: a warm solve
+        # multiplies the tangent with its own kernel and back-substitutes a stored factor.
+        import scipy.sparse as sp
+
+        n_dofs = 3 * len(self.nodes_m)
+        return sp.csr_matrix((data, self.pattern.indices, self.pattern.indptr), shape=(n_dofs, n_dofs))
+
+    def multiply(self, data: FloatArray, vector: FloatArray) -> FloatArray:
+        """``A v`` for the matrix of the body's pattern with entries ``data`` and a vector (3n,)."""
+        return kernels.csr_multiply(self.pattern.indptr, self.pattern.indices, data, vector)
+
+    def factorize(self, data: FloatArray, positive_definite: bool = True) -> Factorization:
+        """Factorise a matrix of the body's pattern: ``linear_solver`` (None: the measured default) when it is
+        positive definite, SuperLU when it may not be."""
+        return Factorization(self.csr(data), self.linear_solver if positive_definite else "splu-mmd")
+
+    def rest_factorization(self, constraints: Constraints | None = None) -> Factor:
+        """The factorised small-strain stiffness (elastic + springs + ``constraints``, default the rest ones),
+        made once per body.
+
+        A Cholesky factor is also kept on disk (``phantom.cache_dir("factorizations")``), keyed by everything
+        but E: the stiffness is proportional to E, so one factor serves every modulus (rescaled), and a new
+        process or a calibration loop does not factorise again.
+        """
+        constraints = constraints or self.rest_constraints
+        if constraints.key not in self._factorizations:
+            self._factorizations[constraints.key] = self._stored_rest_factorization(constraints)
+        return self._factorizations[constraints.key]
+
+    def _stored_rest_factorization(self, constraints: Constraints) -> Factor:
+        digest = hashlib.sha256()
+        springs_per_pa = self.spring_n_per_m / self.material.youngs_modulus_pa
+        for array in (self.nodes_m, self.tets, self.fixed_nodes, springs_per_pa, constraints.dofs):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        digest.update(repr((self.material.poisson_ratio, self.fixed_penalty, SOLVER_VERSION)).encode())
+        path = phantom.cache_dir("factorizations") / f"{digest.hexdigest()[:32]}.npz"
+        if path.is_file():
+            try:
+                with np.load(path) as stored:
+                    scale = float(stored["youngs_modulus_pa"]) / self.material.youngs_modulus_pa
+                    return CholeskyFactor(stored["indptr"], stored["indices"], stored["values"],
+                                          stored["permutation"], scale)
+            except (OSError, ValueError, KeyError):
+                path.unlink(missing_ok=True)
+        factorization = self.factorize(self.elastic(self.nodes_m, "linear", POSITIVE_TANGENT,
+                                                    constraints).tangent_data)
+        if factorization.cholesky is not None:
+            handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
+            os.close(handle)
+            arrays: dict[str, Any] = factorization.cholesky.arrays()
+            arrays["indices"] = arrays["indices"].astype(np.int32)
+            np.savez(temporary, youngs_modulus_pa=self.material.youngs_modulus_pa, **arrays)
+            os.replace(temporary, path)
+        return factorization
+
+    # --- conditioning ----------------------------------------------------------------------------------------
+
+    def rest_diagonal_n_per_m(self) -> FloatArray:
+        """Diagonal of the small-strain stiffness with the springs (N/m) at the free dofs."""
+        data = self.elastic(self.nodes_m, "linear", POSITIVE_TANGENT, self.rest_constraints).tangent_data
+        diagonal: FloatArray = data[self.pattern.diagonal][self.rest_constraints.free_mask]
+        return diagonal
+
+    def rounding_floor_n(self, positions_m: FloatArray) -> float:
+        """The residual (N) that rounding the positions to double precision alone produces: each force is a
+        stiffness times a position known to ``eps |x|``, so ``eps |diag(K) |x||`` is as low as Newton can go."""
+        free = self.rest_constraints.free_mask
+        product = self.rest_diagonal_n_per_m() * np.abs(positions_m.ravel()[free])
+        return float(np.finfo(float).eps * np.sqrt(np.einsum("i,i->", product, product)))
+
+    def diagonal_ratio(self) -> float:
+        """Largest over smallest stiffness diagonal entry: a lower bound of the condition number."""
+        diagonal = self.rest_diagonal_n_per_m()
+        return float(diagonal.max() / diagonal.min())
+
+    def cache_key(self, extra: bytes = b"") -> str:
+        """A hash of everything the body's answers depend on (mesh, groups, springs, material, penalty, solver
+        version) and ``extra``: the name of a file that stores one of them."""
+        digest = hashlib.sha256()
+        for array in (self.nodes_m, self.tets, *self.chamber_triangles, self.outer_triangles, self.fixed_nodes,
+                      self.spring_n_per_m, self.rest_constraints.dofs):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        digest.update(repr((self.material.youngs_modulus_pa, self.material.poisson_ratio, self.material.gent_jm,
+                            self.fixed_penalty, SOLVER_VERSION)).encode())
+        digest.update(extra)
+        return digest.hexdigest()[:32]

@@ -1,0 +1,170 @@
+"""The equilibrium problem at given chamber pressures: what Newton and path following solve.
+
+Equilibrium minimises the total energy
+
+    Pi(x) = E_elastic(x) + 1/2 sum_fixed k_i |x_i - X_i|^2 - sum_c p_c V_c(x)
+
+over node positions x (m): co-rotational (or small-strain linear, or hyperelastic) elasticity on linear
+tetrahedra, penalty springs on the fixation, and a constant pressure p_c (Pa) in each closed chamber, whose load
+``p_c dV_c/dx`` follows the walls (the linear formulation takes it, dead, on the starting configuration instead).
+An :class:`EquilibriumProblem` gives, at any x, the out-of-balance force (the energy's gradient), the energy and
+the smallest det F in one element pass (:meth:`EquilibriumProblem.evaluate`), the tangent (its data, its product
+with a vector, or a factorisation), and the worst element: the callables a Newton iteration needs, as FElupe's
+``newtonraphson`` takes them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from phantom.model.arrays import FloatArray
+from phantom.model.fem.body import (
+    EXACT_TANGENT,
+    NO_TANGENT,
+    POSITIVE_TANGENT,
+    Constraints,
+    Factor,
+    SolidBody,
+    load_from_gradients_n,
+)
+from phantom.model.scene import HYPERELASTIC_MODELS
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """The problem at one configuration: ``residual_n`` (3n,) the out-of-balance force (N, zero at held dofs),
+    ``energy_j`` the total energy (J; +inf outside a hyperelastic law's domain), ``smallest_det`` the smallest
+    det F (inf for the linear formulation), and ``tangent_data`` the exact tangent's CSR data from the same
+    element pass when it was asked for (else None)."""
+
+    residual_n: FloatArray
+    energy_j: float
+    smallest_det: float
+    tangent_data: FloatArray | None = None
+
+    @property
+    def admissible(self) -> bool:
+        """No element at det F <= 0 and a finite energy: a state a solve may accept."""
+        return bool(self.smallest_det > 0 and np.isfinite(self.energy_j))
+
+
+@dataclass(frozen=True)
+class EquilibriumProblem:
+    """Equilibrium of ``body`` under chamber pressures (see the module docstring).
+
+    Attributes
+    ----------
+    body : SolidBody
+    pressures_pa : (n_chambers,) float array
+        Gauge pressures (Pa), chamber order.
+    formulation : str
+        "linear", "corotational", "neo_hookean" or "gent".
+    start_m : (n, 3) float array
+        The configuration the solve starts from; the linear formulation takes its (dead) pressure load there.
+    constraints : Constraints
+        The held dofs (none with a fixed patch).
+    """
+
+    body: SolidBody
+    pressures_pa: FloatArray
+    formulation: str
+    start_m: FloatArray
+    constraints: Constraints
+
+    @property
+    def nonlinear(self) -> bool:
+        """The tangent depends on the configuration (every formulation but "linear")."""
+        return self.formulation != "linear"
+
+    def at_load_factor(self, load_factor: float) -> EquilibriumProblem:
+        """The same problem with the pressures scaled by ``load_factor``."""
+        return dataclasses.replace(self, pressures_pa=load_factor * self.pressures_pa)
+
+    # --- the pressure load -----------------------------------------------------------------------------------
+
+    def pressure_load_n(self, positions_m: FloatArray) -> FloatArray:
+        """The pressure load ``sum_c p_c dV_c/dx`` (3n,) N at ``positions_m`` (the walls' own configuration; a
+        follower load), zero at held dofs."""
+        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
+        load[self.constraints.dofs] = 0.0
+        return load
+
+    def load_scale_n(self) -> float:
+        """The size (N) of the pressure load at the start (free dofs), which tolerances are relative to; at least
+        1e-12 E L^2, so that a zero load still has a scale."""
+        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
+        free = load[self.constraints.free_mask]
+        floor = 1e-12 * self.body.material.youngs_modulus_pa * self.body.length_scale_m**2
+        return max(float(np.sqrt(np.einsum("i,i->", free, free))), floor)
+
+    def _load_and_energy(self, positions_m: FloatArray) -> tuple[FloatArray, float]:
+        """Pressure load (3n,) and its potential (J): ``sum p dV/dx`` and ``-sum p V`` (follower), or the
+        dead load ``sum p dV/dx(start)`` and ``-load . x`` (linear)."""
+        if self.formulation == "linear":
+            load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
+            return load, -float(np.einsum("i,i->", load, positions_m.ravel()))
+        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
+        return load, -float(self.pressures_pa @ self.body.chamber_volumes_m3(positions_m))
+
+    # --- residual, energy, tangent ---------------------------------------------------------------------------
+
+    def evaluate(self, positions_m: FloatArray, with_tangent: bool = False) -> Evaluation:
+        """Out-of-balance force, total energy and smallest det F at ``positions_m`` (n, 3); with
+        ``with_tangent``, also the exact tangent's CSR data from the same element pass."""
+        elastic = self.body.elastic(positions_m, self.formulation, EXACT_TANGENT if with_tangent else NO_TANGENT,
+                                    self.constraints, self.pressures_pa if with_tangent else None)
+        load, load_energy = self._load_and_energy(positions_m)
+        residual = elastic.forces_n - load
+        residual[self.constraints.dofs] = 0.0
+        return Evaluation(residual, elastic.energy_j + load_energy, elastic.smallest_det,
+                          elastic.tangent_data if with_tangent else None)
+
+    def tangent_data(self, positions_m: FloatArray) -> FloatArray:
+        """The exact tangent's CSR data (N/m) at ``positions_m``, with the follower-pressure stiffness."""
+        return self.body.tangent_data(positions_m, self.formulation, self.pressures_pa, self.constraints)
+
+    def multiply(self, tangent_data: FloatArray) -> Callable[[FloatArray], FloatArray]:
+        """``v -> K v`` for the tangent with CSR data ``tangent_data`` (from :meth:`tangent_data`)."""
+        def product(vector: FloatArray) -> FloatArray:
+            return self.body.multiply(tangent_data, vector)
+        return product
+
+    def tangent(self, positions_m: FloatArray, exact: bool = True) -> Factor:
+        """The factorised tangent at ``positions_m``: the exact Hessian, or (``exact`` False) a positive definite
+        stand-in that still gives a descent direction: ``R K R^T`` (co-rotational) or the small-strain stiffness
+        (hyperelastic). An exactly singular Hessian (at a limit point) gives the stand-in."""
+        if not exact and self.formulation in HYPERELASTIC_MODELS:
+            return self.body.rest_factorization(self.constraints)
+        matrix = EXACT_TANGENT if exact else POSITIVE_TANGENT
+        data = self.body.elastic(positions_m, self.formulation, matrix, self.constraints,
+                                 self.pressures_pa).tangent_data
+        try:
+            return self.body.factorize(data, positive_definite=not exact)
+        except (RuntimeError, ArithmeticError):
+            if not exact:
+                raise
+            return self.tangent(positions_m, exact=False)
+
+    def rest_factorization(self) -> Factor:
+        """The factorised small-strain stiffness under the problem's constraints (kept by the body)."""
+        return self.body.rest_factorization(self.constraints)
+
+    @property
+    def preconditioned(self) -> bool:
+        """The rest stiffness is factorised for these constraints (those of the rest shape), so conjugate
+        gradients preconditioned with it can stand in for a factorisation of the tangent."""
+        return self.constraints.key == self.body.rest_constraints.key
+
+    # --- admissibility and conditioning ----------------------------------------------------------------------
+
+    def worst_element(self, positions_m: FloatArray) -> int:
+        """The element with the smallest det F if any is flat or inverted at ``positions_m``, else -1."""
+        return self.body.worst_element(positions_m)
+
+    def rounding_floor_n(self, positions_m: FloatArray) -> float:
+        """The residual (N) that rounding ``positions_m`` to double precision alone leaves."""
+        return self.body.rounding_floor_n(positions_m)
