@@ -23,6 +23,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.scan",
     "phantom.cli.calibrate",
     "phantom.cli.hil",
+    "phantom.cli.motion",
     "phantom.cli.daemon",
     "phantom.cli.client",
 )
