@@ -40,6 +40,7 @@ from phantom.host.estimation import EstimateRequest, EstimateSchedule
 from phantom.host.handlers import ApiHandlers
 from phantom.host.logs import configured_level
 from phantom.host.model_worker import Estimate, ModelWorker
+from phantom.host.motion import Orbit, simulated_truth
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.recording import Recorder
 from phantom.host.scene_runner import SceneRunner
@@ -59,6 +60,7 @@ from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model import load_scene
 from phantom.model.errors import SceneError
 from phantom.model.inverse import InverseResult, Target, UnreachableTargetError
+from phantom.protocol.codec import Message
 from phantom.protocol.link import BOOT_DELAY_S
 
 logger = logging.getLogger(__name__)
@@ -127,6 +129,8 @@ class Daemon:
         self._scene_target_pending = False
         self._tasks: list[asyncio.Task[Any]] = []
         self._background: set[asyncio.Task[Any]] = set()
+        #: the scanner's axes (host/motion.py)
+        self.motion = Orbit(self.board_command, self.event, simulated_truth(sim_board) if sim_board else None)
 
     # --- building the parts -----------------------------------------------------------------------------
 
@@ -159,7 +163,8 @@ class Daemon:
             wired: dict[str, Daemon] = {}
             session = _link_session(config, sim_board, on_telemetry=lambda frame: wired["daemon"].on_telemetry(frame),
                                     on_event=lambda kind, text, level: wired["daemon"].event(kind, text, level),
-                                    on_online=lambda board, again: wired["daemon"].on_online(board, again))
+                                    on_online=lambda board, again: wired["daemon"].on_online(board, again),
+                                    on_motion=lambda message: wired["daemon"].motion.on_message(message))
         except BaseException:
             for close in reversed(closers):
                 with contextlib.suppress(Exception):
@@ -170,6 +175,7 @@ class Daemon:
         if sim_board is not None:
             sim_board.on_event = daemon.event
         api.handlers.update(ApiHandlers(daemon).table())
+        api.handlers.update(daemon.motion.api_methods())
         return daemon
 
     # --- life cycle -------------------------------------------------------------------------------------
@@ -284,6 +290,7 @@ class Daemon:
         """The link came up: zero the sensors if the phantom is vented, else restore the current setpoints
         (a board that reset starts with none)."""
         self.schedule.clear()
+        self.spawn(self.motion.restore())
         if board.chamber_count != len(self.chamber_names):
             self.event("link", f"the board has {board.chamber_count} chambers, the scene "
                        f"{len(self.chamber_names)}: setpoints not sent", "ERROR")
@@ -516,6 +523,7 @@ class Daemon:
             "recording": str(self.config.rerun_save) if self.config.rerun_save else self.config.rerun_connect,
             "uptime_s": self.now_s(),
             "events": list(self.events)[-10:],
+            "motion": self.motion.status(),
         }
         if self.sim_board is not None:
             status["simulated_board"] = self.sim_board.status()
@@ -548,7 +556,8 @@ def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]
 
 def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
                   on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
-                  on_online: Callable[[BoardInfo, bool], Awaitable[None]]) -> LinkSession:
+                  on_online: Callable[[BoardInfo, bool], Awaitable[None]],
+                  on_motion: Callable[[Message], None]) -> LinkSession:
     """The link session over the configured transport."""
     transport: Transport
     boot_delay_s = 0.0
@@ -569,7 +578,8 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
     timing = LinkTiming(keepalive_s=min(0.1, 0.1 / speed), hello_timeout_s=min(0.2, 0.2 / speed),
                         telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=config.host_deadline_ms,
                         boot_delay_s=boot_delay_s)
-    return LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event, on_online=on_online)
+    return LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event, on_online=on_online,
+                       on_motion=on_motion)
 
 
 async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:

@@ -193,7 +193,7 @@ def calibrate_rig(views: Sequence[TargetView], width: int, height: int, fit_k3: 
     rms, matrix, distortion, rvecs, tvecs = cv2.calibrateCamera(
         [view.object_mm.astype(np.float32) for view in used], [view.pixels.astype(np.float32) for view in used],
         (width, height), None, None, flags=0 if fit_k3 else cv2.CALIB_FIX_K3)
-    k1, k2, p1, p2, k3 = (list(np.ravel(distortion)) + [0.0] * 5)[:5]
+    k1, k2, p1, p2, k3 = (float(value) for value in (list(np.ravel(distortion)) + [0.0] * 5)[:5])
     camera = Camera(width, height, matrix[0, 0], matrix[1, 1], matrix[0, 2], matrix[1, 2], (k1, k2, p1, p2, k3))
     seen = [Pose(rotation_matrix(np.ravel(r)), np.ravel(t).astype(float)) for r, t in zip(rvecs, tvecs, strict=True)]
     # 2. the orbit in the first placement's target frame, from its first elevation's pictures

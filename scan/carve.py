@@ -19,6 +19,7 @@ import concurrent.futures
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any, cast
 
 import numpy as np
 
@@ -167,7 +168,8 @@ def surface(grid: Grid) -> TriangleMesh:
     padded = np.pad(grid.values, 1, constant_values=pad)
     if not np.any(padded < 0):
         raise CarveError("nothing is inside every silhouette: the poses do not match the pictures")
-    vertices, faces, _, _ = marching_cubes(padded, level=0.0, spacing=(grid.spacing_mm,) * 3)
+    # scikit-image's function is not annotated
+    vertices, faces, _, _ = cast(Any, marching_cubes)(padded, level=0.0, spacing=(grid.spacing_mm,) * 3)
     vertices = vertices + grid.origin_mm - grid.spacing_mm
     mesh = largest_piece(TriangleMesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64)))
     if enclosed_volume_ml(mesh) < 0:

@@ -59,7 +59,7 @@ def rig_centre(poses: Sequence[FloatArray], forwards: Sequence[FloatArray]) -> F
         across = np.eye(3) - np.outer(forward, forward)
         system += across
         right += across @ centre
-    point: FloatArray = np.linalg.solve(system, right)
+    point: FloatArray = np.asarray(np.linalg.solve(system, right), dtype=np.float64)
     return point
 
 

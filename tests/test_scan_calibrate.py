@@ -66,7 +66,8 @@ def test_colmap_export_projects_as_the_rig(calibrated, tmp_path):
         u, v = x / z, y / z
         r2 = u * u + v * v
         radial = 1 + k1 * r2 + k2 * r2 * r2
-        du, dv = u * radial + 2 * p1 * u * v + p2 * (r2 + 2 * u * u), v * radial + 2 * p2 * u * v + p1 * (r2 + 2 * v * v)
+        du = u * radial + 2 * p1 * u * v + p2 * (r2 + 2 * u * u)
+        dv = v * radial + 2 * p2 * u * v + p1 * (r2 + 2 * v * v)
         colmap_pixel = np.array([fx * du + cx, fy * dv + cy])
         ours = rig.camera.project(rig.pose(frame.orbit_deg, frame.elevation_deg).apply(point[None]))[0]
         assert np.allclose(colmap_pixel - 0.5, ours, atol=1e-6)

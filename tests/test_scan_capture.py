@@ -14,9 +14,10 @@ from phantom.scan.capture import CameraLost, CaptureError, CaptureFolder, Plan, 
 cv2 = pytest.importorskip("cv2")
 pytest.importorskip("skimage")
 
+from test_scan_reconstruct import sphere  # noqa: E402
+
 from phantom.scan.reconstruct import reconstruct  # noqa: E402
 from phantom.scan.render import Renderer, to_8bit  # noqa: E402
-from test_scan_reconstruct import sphere  # noqa: E402
 
 
 class RecordingOrbit:

@@ -103,11 +103,12 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
 
 def _simulated_board(speed: float) -> SimulatedBoard:
-    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant (mypy checks it
-    against the host's ``SimulatedBoard`` Protocol where it is passed)."""
-    from phantom.hil.sim import SimulatedBoard
+    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant, its stepper
+    drivers turning the scanner's simulated mechanism (mypy checks it against the host's ``SimulatedBoard``
+    Protocol where it is passed)."""
+    from phantom.hil.truth_shape import ScannerBoard
 
-    return SimulatedBoard(speed=speed)
+    return ScannerBoard(speed=speed)
 
 
 def _run_sim_board(args: argparse.Namespace) -> int:
