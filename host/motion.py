@@ -15,6 +15,7 @@ the rig's true angles from the pulses its drivers took, the plant's pressures), 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import Awaitable, Callable
 from dataclasses import asdict, fields
 from typing import Any
@@ -39,6 +40,8 @@ AXIS_NAMES = {ORBIT: "orbit", ELEVATION: "elevation"}
 MOVE_SLACK_S = 5.0
 #: How long a configuration may take to be reported (MOTION_INFO).
 INFO_WAIT_S = 2.0
+#: A wait ends after its time on the board's clock, or this many times it on the wall clock (a stalled simulator).
+WALL_FACTOR = 10.0
 
 #: Sends one acknowledged command to the board: ``(name, fields) -> ACK status``; raises ApiError
 #: (``link_down``, ``rejected``) as :meth:`phantom.host.daemon.Daemon.board_command` does.
@@ -81,12 +84,20 @@ class Orbit:
             self._changed.notify_all()
 
     async def _wait(self, done: Callable[[], bool], timeout_s: float, what: str) -> None:
-        try:
-            async with self._changed:
-                await asyncio.wait_for(self._changed.wait_for(done), timeout_s)
-        except TimeoutError:
-            raise ApiError("rejected", f"{what} did not end within {timeout_s:.0f} s (is the axis configured and the "
-                                       f"link up?)") from None
+        """Until ``done()``, within ``timeout_s`` of the board's time (a simulated board slower than the wall
+        clock still gets its time), and at most WALL_FACTOR times that on the wall clock."""
+        started_board_s = self.latest.board_time_s if self.latest is not None else None
+        deadline = asyncio.get_running_loop().time() + WALL_FACTOR * timeout_s + INFO_WAIT_S
+        async with self._changed:
+            while not done():
+                left = deadline - asyncio.get_running_loop().time()
+                board_s = self.latest.board_time_s if self.latest is not None else None
+                late = started_board_s is not None and board_s is not None and board_s - started_board_s > timeout_s
+                if left <= 0 or late:
+                    raise ApiError("rejected", f"{what} did not end within {timeout_s:.0f} s (is the axis configured "
+                                               f"and the link up?)")
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._changed.wait(), min(left, 1.0))
 
     async def restore(self) -> None:
         """After the link came (back) up: send the axes' configurations again (the board forgets them)."""

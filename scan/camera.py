@@ -287,6 +287,11 @@ VIRTUAL_AXIS_TILT_DEG = 0.3
 VIRTUAL_ELEVATIONS_DEG = (0.0, 30.0)
 
 
+def virtual_pose(orbit_deg: float, elevation_deg: float, scale: float = 1.0) -> Pose:
+    """The virtual rig's true camera pose at any orbit angle and elevation (deg)."""
+    return virtual_rig(scale, (elevation_deg,)).pose(orbit_deg, elevation_deg)
+
+
 def virtual_rig(scale: float = 1.0, elevations_deg: tuple[float, ...] = VIRTUAL_ELEVATIONS_DEG) -> Rig:
     """The simulated scanner's true geometry (the phantom's frame: z up, the phantom hanging from z = 20 mm):
     :data:`VIRTUAL_CAMERA` read out at ``scale`` times 1280x960, orbiting :data:`VIRTUAL_RADIUS_MM` from a

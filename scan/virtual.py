@@ -15,7 +15,7 @@ import math
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -30,12 +30,18 @@ from phantom.scan.render import DEFAULT_LOOK, SUPERSAMPLE, CharucoTarget, Look, 
 SceneNow = Callable[[], tuple[TriangleMesh, float, float]]
 
 
+#: The camera's true pose at an orbit angle and elevation (deg).
+PoseAt = Callable[[float, float], Pose]
+
+
 class VirtualCamera:
-    """A webcam on the rig, rendered (see the module docstring); ``seed`` makes the noise repeatable."""
+    """A webcam on the rig, rendered (see the module docstring); ``seed`` makes the noise repeatable. The rig gives
+    the camera; ``pose_at`` the true pose at any angles (default the rig's own poses)."""
 
     def __init__(self, rig: Rig, scene: SceneNow, seed: int = 0, supersample: int = SUPERSAMPLE,
-                 look: Look = DEFAULT_LOOK):
+                 look: Look = DEFAULT_LOOK, pose_at: PoseAt | None = None):
         self.rig = rig
+        self.pose_at: PoseAt = pose_at or rig.pose
         self.scene = scene
         self.renderer = Renderer(rig.camera, supersample, look)
         self.rng = np.random.default_rng(seed)
@@ -46,7 +52,7 @@ class VirtualCamera:
         mesh, orbit_deg, elevation_deg = self.scene()
         if self._normals is None or self._normals[0] is not mesh:
             self._normals = (mesh, vertex_normals(mesh.vertices_mm, mesh.triangles))
-        linear = self.renderer.render_mesh(mesh, self.rig.pose(orbit_deg, elevation_deg), self._normals[1])
+        linear = self.renderer.render_mesh(mesh, self.pose_at(orbit_deg, elevation_deg), self._normals[1])
         return to_8bit(linear, self.rng, self.renderer.look)
 
     def describe(self) -> dict[str, Any]:
@@ -89,15 +95,29 @@ def render_capture(mesh: TriangleMesh, rig: Rig, plan: Plan, out: str | Path, se
     return capture(orbit, camera, FixedPhantom(), replace(plan, settle_s=0.0), folder, progress)
 
 
-class TargetCamera(VirtualCamera):
-    """The virtual camera's pictures of the calibration target where ``target_pose`` (target to world) puts it."""
+class Angles(Protocol):
+    """Where the rig is (deg): a VirtualOrbit's angles, or the simulated rig's true ones."""
 
-    def __init__(self, rig: Rig, target: CharucoTarget, target_pose: Pose, orbit: VirtualOrbit, seed: int = 0):
-        super().__init__(rig, lambda: (TriangleMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64)), 0.0, 0.0), seed)
+    @property
+    def orbit_deg(self) -> float: ...
+
+    @property
+    def elevation_deg(self) -> float: ...
+
+
+class TargetCamera(VirtualCamera):
+    """The virtual camera's pictures of the calibration target where ``target_pose`` (target to world) puts it,
+    from where ``orbit`` says the rig is."""
+
+    def __init__(self, rig: Rig, target: CharucoTarget, target_pose: Pose, orbit: Angles, seed: int = 0,
+                 pose_at: PoseAt | None = None):
+        super().__init__(rig, lambda: (TriangleMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64)), 0.0, 0.0), seed,
+                         pose_at=pose_at)
         self.target, self.target_pose, self.orbit = target, target_pose, orbit
 
     def grab(self) -> np.ndarray:
-        pose = self.rig.pose(self.orbit.orbit_deg, self.orbit.elevation_deg)
+        orbit = self.orbit
+        pose = self.pose_at(orbit.orbit_deg, orbit.elevation_deg)
         return to_8bit(self.renderer.render_target(self.target, self.target_pose, pose), self.rng, self.renderer.look)
 
     def describe(self) -> dict[str, Any]:

@@ -120,6 +120,77 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
     imported.add_argument("--units", choices=("mm", "cm", "m"), default="mm", help="the mesh's unit (default mm)")
     imported.set_defaults(run=run_import)
 
+    capture = actions.add_parser(
+        "capture", help="turn the orbit through a running daemon and take a picture at each stop",
+        description="With the daemon holding the pressures, configure the scanner's axes, then at each stop of "
+                    "the plan move there, settle and take a picture (a webcam, or on the simulated board the "
+                    "virtual camera), and save it with its angles, pressures and time in a capture folder. A "
+                    "fault, a lost camera or Ctrl-C stops it with the motors released and the pictures kept.")
+    capture.add_argument("--out", required=True, help="the capture folder to make")
+    _add_plan_options(capture)
+    capture.add_argument("--start-deg", type=float, default=0.0, help="the first orbit angle (deg, default 0)")
+    capture.add_argument("--span-deg", type=float, default=360.0,
+                         help="the orbit's span: 360 (default) a whole turn, less from --start-deg to its end")
+    capture.add_argument("--settle-s", type=float, default=0.3, help="wait after each move (s, default 0.3)")
+    capture.add_argument("--camera", default="virtual",
+                         help="'virtual' (the simulated board's virtual camera, default), a device number (0 for "
+                              "/dev/video0), or a video file or image sequence (frames/%%04d.png)")
+    capture.add_argument("--width", type=int, help="webcam: picture width (px)")
+    capture.add_argument("--height", type=int, help="webcam: picture height (px)")
+    capture.add_argument("--exposure", type=float, help="webcam: fixed exposure (the driver's units)")
+    capture.add_argument("--focus", type=float, help="webcam: fixed focus (the driver's units)")
+    capture.add_argument("--rig", help="keep this rig calibration (rig.json) beside the pictures")
+    capture.add_argument("--target", action="store_true",
+                         help="pictures of the calibration target (the virtual camera renders it)")
+    capture.add_argument("--placement", type=int, default=0, help="virtual --target: the target's placement")
+    capture.add_argument("--scale", type=float, default=1.0, help="virtual camera: picture size, of 1280x960")
+    capture.add_argument("--seed", type=int, default=0, help="virtual camera: seed of the sensor noise")
+    capture.add_argument("--socket", help="the daemon's API socket (default: as phantom status)")
+    capture.set_defaults(run=run_capture)
+
+    validate = actions.add_parser(
+        "validate", help="the paper's validation by scanning, on the simulated rig (--sim)",
+        description="Start the daemon on the simulated board with the BPH scene and, at each of its target "
+                    "volumes: set the target (the inverse's pressures), scan it with the orbit and the virtual "
+                    "camera, reconstruct, and compare with the target, the model and the simulated phantom's truth; "
+                    "write a report (markdown, the paper's Figs. 9 and 10 as PNGs) and a Rerun recording.")
+    validate.add_argument("--sim", action="store_true", help="on the simulated board (required)")
+    validate.add_argument("--out", default="out/scan-validation", help="folder for everything (default "
+                                                                        "out/scan-validation)")
+    validate.add_argument("--scene", help="the scene (default the BPH growth example)")
+    validate.add_argument("--targets", help="target volumes (ml; default the scene's steps)")
+    validate.add_argument("--views", type=int, default=60, help="pictures per turn (default 60: 120 in two passes)")
+    validate.add_argument("--elevations", default="0,30", help="the passes' elevations (deg, default 0,30)")
+    validate.add_argument("--scale", type=float, default=1.0, help="picture size, of 1280x960 (default 1)")
+    validate.add_argument("--voxel-mm", type=float, help="the finest voxel (mm, default 0.3)")
+    validate.add_argument("--settle-s", type=float, default=0.3, help="wait after each move (s)")
+    validate.add_argument("--target-views", type=int, default=11, help="calibration pictures per placement and pass")
+    validate.add_argument("--rig", help="a rig calibration to use instead of calibrating first")
+    validate.add_argument("--sim-speed", type=float, default=1.0, help="the simulated board's speed-up")
+    validate.add_argument("--daemon-timeout-s", type=float, default=600.0,
+                          help="how long the daemon may take to start (its first start builds the response table)")
+    validate.add_argument("--no-rerun", dest="rerun", action="store_false", help="no Rerun recording")
+    validate.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    validate.add_argument("--json", action="store_true", help="print one JSON object")
+    validate.set_defaults(run=run_validate)
+
+
+def run_capture(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan capture`` (phantom/cli/scan_rig.py)."""
+    from phantom.cli.scan_rig import run_capture as handler
+
+    return handler(args)
+
+
+def run_validate(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan validate`` (phantom/cli/scan_rig.py)."""
+    import sys
+
+    from phantom.cli.scan_rig import run_validate as handler
+
+    args.argv_tail = sys.argv[3:] if len(sys.argv) > 3 else []
+    return handler(args)
+
 
 def _add_plan_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--views", type=int, default=60, help="pictures per turn of the orbit (default 60)")
