@@ -104,7 +104,7 @@ def main() -> None:
                 folder = CaptureFolder.open(folder.path)
                 for views in view_counts:
                     step = 60 // views
-                    frames = [frame for frame in folder.frames if round(frame.orbit_deg / 6.0) % step == 0]
+                    frames = [frame for frame in folder.frames if round((frame.orbit_deg + 180.0) / 6.0) % step == 0]
                     result = reconstruct(folder, rig, args.voxel_mm, frames)
                     scanned = TriangleMesh(to_truth.apply(result.mesh.vertices_mm), result.mesh.triangles)
                     distance = truth_distances(scanned, shape)

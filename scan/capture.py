@@ -90,7 +90,8 @@ class Plan:
 
     views: int
     elevations_deg: tuple[float, ...] = (0.0, 30.0)
-    start_deg: float = 0.0
+    #: a whole turn from -180 deg stays within the orbit's soft limits (+-190 deg: its cable allows little more)
+    start_deg: float = -180.0
     settle_s: float = 0.3
     span_deg: float = 360.0
 

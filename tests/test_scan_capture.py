@@ -78,7 +78,7 @@ def test_recorded_frames_through_the_webcam_path_make_the_sphere(recording, tmp_
     assert data["format"] == "phantom-capture/1" and data["status"] == "complete" and data["rig"] == "rig.json"
     first = data["frames"][0]
     assert first["image"] == "images/0000.png" and first["pressures_kpa"] == [1.0, 1.5, 0.5]
-    assert first["orbit_deg"] == pytest.approx(0.004) and "time_utc" in first and first["time_s"] >= 0
+    assert first["orbit_deg"] == pytest.approx(-180.0 + 0.004) and "time_utc" in first and first["time_s"] >= 0
     assert (tmp_path / "capture" / "images" / "0019.png").is_file()
     result = reconstruct(CaptureFolder.open(tmp_path / "capture"), voxel_mm=0.4)
     assert result.volume_ml == pytest.approx(enclosed_volume_ml(mesh), rel=0.015)
@@ -134,7 +134,7 @@ def test_capture_folder_errors(tmp_path):
 
 
 def test_plan_runs_every_other_pass_backwards():
-    stops = Plan(4, (0.0, 30.0)).stops()
+    stops = Plan(4, (0.0, 30.0), start_deg=0.0).stops()
     assert stops == [(0.0, 0.0), (90.0, 0.0), (180.0, 0.0), (270.0, 0.0),
                      (270.0, 30.0), (180.0, 30.0), (90.0, 30.0), (0.0, 30.0)]
     assert Plan(3, (0.0,), start_deg=-50.0, span_deg=100.0).stops() == [(-50.0, 0.0), (0.0, 0.0), (50.0, 0.0)]

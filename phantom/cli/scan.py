@@ -128,7 +128,8 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
                     "fault, a lost camera or Ctrl-C stops it with the motors released and the pictures kept.")
     capture.add_argument("--out", required=True, help="the capture folder to make")
     _add_plan_options(capture)
-    capture.add_argument("--start-deg", type=float, default=0.0, help="the first orbit angle (deg, default 0)")
+    capture.add_argument("--start-deg", type=float, default=-180.0,
+                         help="the first orbit angle (deg, default -180: a turn within the +-190 deg soft limits)")
     capture.add_argument("--span-deg", type=float, default=360.0,
                          help="the orbit's span: 360 (default) a whole turn, less from --start-deg to its end")
     capture.add_argument("--settle-s", type=float, default=0.3, help="wait after each move (s, default 0.3)")
