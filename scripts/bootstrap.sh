@@ -53,6 +53,12 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
            && .venv/bin/phantom forward --scene builtin --pressures-kpa 1,1,1 --json; } >>"$log" 2>&1; then
         echo "bootstrap: warning: warming the model failed (see $log); it will compile and mesh on first use"
     fi
+    # The daemon's default model answers from its response table: solve it now (once per machine, cached) rather
+    # than in a first `phantom daemon` or a test's fixture, where it would count against a start-up deadline.
+    echo "bootstrap: solving the calibrated model's response table, the daemon's default (1-5 minutes, once)"
+    if ! .venv/bin/phantom inverse --scene builtin:calibrated --volume-ml 30 --json >>"$log" 2>&1; then
+        echo "bootstrap: warning: building the response table failed (see $log); the daemon builds it on first use"
+    fi
     echo "$wanted" > "$stamp"
 fi
 echo "bootstrap: ready (Debian packages present, .venv up to date)"
