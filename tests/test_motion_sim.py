@@ -16,7 +16,7 @@ from phantom.hil.sim import SimulatedBoard
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(300)]
 
 SPEED = 2.0
-#: The orbit of docs/scanner-hardware.md: a 200-step motor at 16 microsteps on a 9:1 belt, 30 deg/s, 60 deg/s^2.
+#: The orbit of docs/hardware.md: a 200-step motor at 16 microsteps on a 9:1 belt, 30 deg/s, 60 deg/s^2.
 ORBIT = mo.BENCH_ORBIT
 STEPS_PER_REV = 28800
 #: 16 MHz: cycles in the pulse timing.

@@ -318,7 +318,7 @@ ISR(WDT_vect) {
 
 // Pins, timers and ADC. The blower pins were inputs from reset until here: the pull-downs of
 // docs/hardware.md hold the drivers off meanwhile (through a bootloader's wait too), as the EN pull-ups of
-// docs/scanner-hardware.md hold the stepper drivers released.
+// docs/hardware.md hold the stepper drivers released.
 void avr_hardware_init() {
     BLOWER0_PORT &= ~_BV(BLOWER0_BIT);
     BLOWER1_PORT &= ~_BV(BLOWER1_BIT);

@@ -3,7 +3,7 @@
 ``check`` runs the bench's motion check against the firmware in simavr (``--sim``, where the simulated drivers
 count every pulse) or a board on a serial port (``--port``); ``move``, ``home`` and ``status`` drive a board by
 hand. The board does not keep an axis's configuration across a reset: every command sends it first (the
-options below, whose defaults are the orbit of docs/scanner-hardware.md).
+options below, whose defaults are the orbit of docs/hardware.md).
 Only argparse is imported at module load; handlers import what they need when they run. The connection is
 ``phantom hil``'s (its ``_Bench``), with the same target options.
 """
