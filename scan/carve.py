@@ -28,7 +28,7 @@ from phantom.model.arrays import FloatArray, IntArray
 from phantom.model.mesh.surface import TriangleMesh, compact, enclosed_volume_ml, triangle_areas_mm2
 from phantom.scan import kernels
 from phantom.scan.camera import Camera, Pose
-from phantom.scan.compare import largest_component
+from phantom.scan.compare import drop_degenerate, largest_component, merge_coincident_vertices
 from phantom.scan.silhouette import Silhouette
 
 #: Points across the coarsest grid's cube (at least).
@@ -171,7 +171,11 @@ def surface(grid: Grid) -> TriangleMesh:
     # scikit-image's function is not annotated
     vertices, faces, _, _ = cast(Any, marching_cubes)(padded, level=0.0, spacing=(grid.spacing_mm,) * 3)
     vertices = vertices + grid.origin_mm - grid.spacing_mm
-    mesh = largest_piece(TriangleMesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64)))
+    # where the zero level passes through a grid point, marching cubes puts several vertices on it: merged, the
+    # triangles between them collapse and are dropped (a zero-length edge breaks closest-point queries)
+    vertices, faces = merge_coincident_vertices(np.asarray(vertices, np.float64), np.asarray(faces, np.int64))
+    faces = faces[drop_degenerate(faces, triangle_areas_mm2(vertices, faces))]
+    mesh = largest_piece(TriangleMesh(vertices, faces))
     if enclosed_volume_ml(mesh) < 0:
         mesh = TriangleMesh(mesh.vertices_mm, mesh.triangles[:, ::-1].copy())
     return mesh

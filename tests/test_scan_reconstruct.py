@@ -104,3 +104,23 @@ def test_the_hull_fills_a_dent_no_camera_grazes(tmp_path):
     # away from the dent the hull is the sphere
     far = dented.vertices_mm[dented.vertices_mm[:, 1] - VIRTUAL_CENTRE_MM[1] < 5.0]
     assert index.closest(far)[0].mean() < 0.1
+
+
+def test_a_zero_level_through_grid_points_gives_a_closed_surface_without_repeated_vertices():
+    """A field that is exactly 0 at grid points (here a box's faces on grid planes) makes marching cubes put
+    several vertices on one point; the surface merges them: no zero-length edge (it broke closest-point
+    queries in bench/scan_accuracy.py), every edge between two triangles, the box's volume."""
+    from phantom.scan.carve import Grid, surface
+
+    spacing = 0.5
+    points = np.indices((21, 21, 21)).transpose(1, 2, 3, 0) * spacing - 5.0
+    values = (np.abs(points).max(axis=3) - 3.0).astype(np.float32)  # 0 exactly on the faces of a 6 mm cube
+    assert np.count_nonzero(values == 0.0) > 0
+    mesh = surface(Grid(np.array([-5.0, -5.0, -5.0]), spacing, values))
+    assert len(np.unique(mesh.vertices_mm, axis=0)) == len(mesh.vertices_mm)
+    edges = np.sort(mesh.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)
+    assert enclosed_volume_ml(mesh) == pytest.approx(0.216, rel=1e-6)
+    distance, _, _ = SurfaceIndex(mesh.vertices_mm, mesh.triangles).closest(np.array([[0.0, 0.0, 9.0]]))
+    assert distance[0] == pytest.approx(6.0)
