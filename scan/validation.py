@@ -166,8 +166,9 @@ def write_report(results: list[TargetResult], out: Path, meta: dict[str, Any]) -
 
 def write_recording(results: list[TargetResult], rig: Rig, captures: list[Any], models: list[tuple[TriangleMesh,
                     np.ndarray]], path: Path, picture_scale: float = 0.25) -> Path:
-    """A Rerun recording: per target (the ``target_ml`` timeline) the reconstruction (``scan/reconstruction``),
-    the model's surface coloured by its signed distance to the scan (``scan/model``), and every picture with its
+    """A Rerun recording, in the calibrated rig's frame (mm): per target (the ``target_ml`` timeline) the
+    reconstruction (``scan/reconstruction``), the model's surface aligned to it and coloured by its signed
+    distance to the scan (``scan/model``: ``models`` are given in the rig's frame), and every picture with its
     camera's pose (``scan/cameras/NNN``: a pinhole with the rig's intrinsics, the picture at ``picture_scale``)."""
     with require_extra("record"):
         import rerun as rr

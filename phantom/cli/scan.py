@@ -189,7 +189,7 @@ def run_validate(args: argparse.Namespace) -> int:
 
     from phantom.cli.scan_rig import run_validate as handler
 
-    args.argv_tail = sys.argv[3:] if len(sys.argv) > 3 else []
+    args.argv = sys.argv[1:]
     return handler(args)
 
 

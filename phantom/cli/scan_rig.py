@@ -335,8 +335,10 @@ def run_validate(args: Any) -> int:
                     truth_distances(scanned, true_surface), str(folder.path), str(mesh_path), str(heatmap),
                     len(folder.frames), [rig.camera.width, rig.camera.height], result.stage_s))
                 captures.append(folder.path)
-                models.append((TriangleMesh(comparison.model_vertices_mm, comparison.model_triangles),
-                               comparison.model_signed_distance_mm))
+                # the model into the rig's frame, where the reconstruction and the cameras are (x_model = R x + t)
+                alignment = comparison.alignment
+                in_rig_mm = (comparison.model_vertices_mm - alignment.translation_mm) @ alignment.rotation
+                models.append((TriangleMesh(in_rig_mm, comparison.model_triangles), comparison.model_signed_distance_mm))
                 last = results[-1]
                 say(f"{target_ml:g} ml: scan {last.scan_ml:.2f} ml ({last.scan_vs_target_pct:+.2f} % of the target, "
                     f"{last.scan_vs_model_pct:+.2f} % of the model, {last.scan_vs_truth_pct:+.2f} % of the truth); "
@@ -348,7 +350,7 @@ def run_validate(args: Any) -> int:
             process.send_signal(signal.SIGTERM)
             process.wait(30)
         log.close()
-    meta = {"command": "phantom scan validate --sim " + " ".join(args.argv_tail), "scene": scene,
+    meta = {"command": shlex.join(["phantom", *args.argv]), "scene": scene,
             "truth": truth.description, "rig": rig.calibration, "elapsed_s": time.monotonic() - started}
     report = write_report(results, out, meta)
     recording = write_recording(results, rig, captures, models, out / "validation.rrd") if args.rerun else None
