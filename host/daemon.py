@@ -40,7 +40,7 @@ from phantom.host.estimation import EstimateRequest, EstimateSchedule
 from phantom.host.handlers import ApiHandlers
 from phantom.host.logs import configured_level
 from phantom.host.model_worker import Estimate, ModelWorker
-from phantom.host.motion import Orbit, simulated_truth
+from phantom.host.motion import Orbit, Scanner, scan_method, simulated_truth
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.recording import Recorder
 from phantom.host.scene_runner import SceneRunner
@@ -582,12 +582,16 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
                        on_motion=on_motion)
 
 
-async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:
+async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None,
+               scanner: Scanner | None = None) -> int:
     daemon = await Daemon.start(config, simulated_board)
+    if scanner is not None:
+        daemon.api.handlers.update(scan_method(daemon.motion, scanner, daemon.status))
     return await daemon.serve()
 
 
-def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None) -> int:
+def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None,
+               scanner: Scanner | None = None) -> int:
     """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status. ``simulated_board`` builds
-    the board of ``config.sim``."""
-    return asyncio.run(_run(config, simulated_board))
+    the board of ``config.sim``; ``scanner`` takes the ``scan`` API method's captures (host/motion.py)."""
+    return asyncio.run(_run(config, simulated_board, scanner))

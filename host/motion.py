@@ -10,6 +10,10 @@ position is then the board's power-up zero: home the axis before scanning).
 API methods (host/README.md): ``motion_config``, ``motion_move``, ``motion_home``, ``motion_stop``,
 ``motion_status``. On the simulated board, ``motion_status`` also reports the simulation's truth (``simulated``:
 the rig's true angles from the pulses its drivers took, the plant's pressures), for the virtual camera.
+
+``scan`` (only when the command line gives the daemon a :class:`Scanner`, as ``phantom daemon`` does): a whole
+capture at the pressures the daemon holds, run in a worker thread that drives the axes and reads the daemon's
+state through the daemon's loop (:class:`ThreadRig`); the host imports nothing of the scanner's code.
 """
 
 from __future__ import annotations
@@ -18,8 +22,9 @@ import asyncio
 import contextlib
 from collections.abc import Awaitable, Callable
 from dataclasses import asdict, fields
-from typing import Any
+from typing import Any, Protocol, TypeVar
 
+from phantom import PhantomError
 from phantom.host.api import ApiError, Handler
 from phantom.host.session import CommandRejected
 from phantom.host.sim_board import SimulatedBoardKeeper
@@ -50,6 +55,10 @@ BoardCommand = Callable[[str, dict[str, Any]], Awaitable[str]]
 SimulatedTruth = Callable[[], Awaitable[dict[str, Any] | None]]
 #: Where events go: ``(kind, text, level)``.
 EventSink = Callable[[str, str, str], None]
+#: The daemon's status (``Daemon.status``), called on the daemon's loop.
+DaemonState = Callable[[], dict[str, Any]]
+
+Result = TypeVar("Result")
 
 
 class Orbit:
@@ -282,3 +291,73 @@ def simulated_truth(keeper: SimulatedBoardKeeper) -> SimulatedTruth:
         return {"rig_deg": state.get("rig_deg"), "pressures_kpa": [p / 1e3 for p in state["pressures_pa"]],
                 "gland_volume_ml": state.get("gland_volume_ml"), "time_s": state.get("time_s")}
     return read
+
+
+class ThreadRig:
+    """The daemon's axes and state for a capture running in a worker thread: a ``phantom.scan.capture`` Orbit
+    (``move_to``, ``release``) and PhantomState (``pressures_kpa``), and the simulated board's truth
+    (``simulated``). Each call runs on the daemon's event loop and waits for its answer."""
+
+    def __init__(self, orbit: Orbit, loop: asyncio.AbstractEventLoop, state: DaemonState):
+        self._orbit = orbit
+        self._loop = loop
+        self._state = state
+
+    def _run(self, coroutine: Awaitable[Result]) -> Result:
+        async def wrapped() -> Result:
+            return await coroutine
+        try:
+            return asyncio.run_coroutine_threadsafe(wrapped(), self._loop).result()
+        except ApiError as error:
+            raise PhantomError(str(error)) from None
+
+    def configure(self, configs: tuple[AxisConfig, ...]) -> None:
+        """Send each axis its configuration (axis 0 the first)."""
+        for axis, config in enumerate(configs):
+            self._run(self._orbit.configure(axis, config))
+
+    def move_to(self, orbit_deg: float, elevation_deg: float) -> tuple[float, float]:
+        status = self._run(self._orbit.move({ELEVATION: elevation_deg, ORBIT: orbit_deg}))
+        return status.axes[ORBIT].position_deg, status.axes[ELEVATION].position_deg
+
+    def release(self) -> None:
+        self._run(self._orbit.stop(True))
+
+    def pressures_kpa(self) -> list[float] | None:
+        async def read() -> dict[str, Any]:
+            return self._state()
+        status = self._run(read())
+        if status["faults"]:
+            raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
+        if status["link"] != "online":
+            raise PhantomError(f"the board's link is {status['link']}")
+        pressures = status["pressures_kpa"]
+        return None if pressures is None else [float(p) for p in pressures]
+
+    def simulated(self) -> dict[str, Any] | None:
+        """The simulated board's truth now (``motion_status``'s ``simulated``), None on a real board."""
+        return self._run(self._orbit.full_status()).get("simulated")
+
+
+class Scanner(Protocol):
+    """A whole capture for the ``scan`` API method (``phantom.cli.scan_rig.DaemonScanner``): blocking, run in a
+    worker thread; ``params`` are the request's; returns the JSON answer; a PhantomError is the request's error."""
+
+    def __call__(self, params: dict[str, Any], rig: ThreadRig) -> dict[str, Any]: ...
+
+
+def scan_method(orbit: Orbit, scanner: Scanner, state: DaemonState) -> dict[str, Handler]:
+    """The ``scan`` API method: ``scanner`` run in a worker thread with the daemon's axes (one scan at a time)."""
+    running = asyncio.Lock()
+
+    async def scan(params: dict[str, Any]) -> dict[str, Any]:
+        if running.locked():
+            raise ApiError("rejected", "a scan is running already: wait for it, or stop it with motion_stop")
+        async with running:
+            rig = ThreadRig(orbit, asyncio.get_running_loop(), state)
+            try:
+                return await asyncio.to_thread(scanner, params, rig)
+            except PhantomError as error:
+                raise ApiError("rejected", f"the scan stopped: {error}") from None
+    return {"scan": scan}
+

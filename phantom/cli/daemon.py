@@ -99,7 +99,9 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
-    return run_daemon(config, simulated_board=_simulated_board if config.sim else None)
+    from phantom.cli.scan_rig import DaemonScanner
+
+    return run_daemon(config, simulated_board=_simulated_board if config.sim else None, scanner=DaemonScanner())
 
 
 def _simulated_board(speed: float) -> SimulatedBoard:

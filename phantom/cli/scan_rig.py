@@ -78,8 +78,15 @@ def _call(client: DaemonClient, method: str, params: dict[str, Any] | None = Non
 def simulated_scene(client: DaemonClient, truth: TruthShape) -> Callable[[], tuple[TriangleMesh, float, float]]:
     """What the virtual camera sees on the simulated board now: the truth model's surface at the plant's true
     pressures and the rig's true angles."""
+    return truth_scene(lambda: _call(client, "motion_status").get("simulated"), truth)
+
+
+def truth_scene(read: Callable[[], dict[str, Any] | None],
+                truth: TruthShape) -> Callable[[], tuple[TriangleMesh, float, float]]:
+    """The virtual camera's scene from the simulated board's truth as ``read`` returns it (``motion_status``'s
+    ``simulated`` part)."""
     def now() -> tuple[TriangleMesh, float, float]:
-        simulated = _call(client, "motion_status").get("simulated")
+        simulated = read()
         if not simulated or simulated.get("rig_deg") is None or None in simulated["rig_deg"]:
             raise PhantomError("the daemon does not report a simulated rig: the virtual camera needs `phantom "
                                "daemon --sim`; with a real board give --camera N (a webcam)")
@@ -121,6 +128,59 @@ def capture_through_daemon(client: DaemonClient, camera: FrameSource, plan: Plan
     orbit = DaemonOrbit(client)
     orbit.configure()
     return capture(orbit, camera, DaemonPhantom(client), plan, folder, progress)
+
+
+class DaemonScanner:
+    """The daemon's ``scan`` API method (a ``phantom.host.motion.Scanner``, given to the daemon by ``phantom
+    daemon``): the capture loop in the daemon's process, with its axes and state (``ThreadRig``).
+
+    Params: ``out`` (the capture folder to make, required), ``views`` (per turn, default 60), ``elevations_deg``
+    (default [0, 30]), ``start_deg`` (-180), ``span_deg`` (360), ``settle_s`` (0.3), ``camera`` ("virtual", the
+    default, on the simulated board; a device number or a video path for a webcam), ``scale`` (the virtual
+    picture's size of 1280x960), ``seed``, ``width``, ``height``, ``exposure``, ``focus``, ``rig`` (a rig.json to
+    keep beside the pictures). Answers the folder, its status and the number of pictures."""
+
+    def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
+        from phantom.protocol.motion import SCANNER_AXES
+        from phantom.scan.camera import Rig
+        from phantom.scan.capture import CaptureFolder, Plan, capture
+
+        known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
+                 "width", "height", "exposure", "focus", "rig"}
+        unknown = sorted(set(params) - known)
+        if unknown or not isinstance(params.get("out"), str):
+            raise PhantomError(f"scan takes out (a folder, required) and {', '.join(sorted(known - {'out'}))}"
+                               + (f"; not {', '.join(unknown)}" if unknown else ""))
+        try:
+            elevations = tuple(float(e) for e in params.get("elevations_deg", (0.0, 30.0)))
+            plan = Plan(int(params.get("views", 60)), elevations, float(params.get("start_deg", -180.0)),
+                        float(params.get("settle_s", 0.3)), float(params.get("span_deg", 360.0)))
+            scale = float(params.get("scale", 1.0))
+        except (TypeError, ValueError) as error:
+            raise PhantomError(f"scan: a parameter is not a number: {error}") from None
+        if plan.views < 1:
+            raise PhantomError(f"scan: views must be at least 1, got {plan.views}")
+        camera = self._camera(params, rig, elevations, scale)
+        kept = Rig.load(params["rig"]) if params.get("rig") else None
+        folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
+        rig.configure(SCANNER_AXES)
+        capture(rig, camera, rig, plan, folder)
+        return {"folder": str(folder.path), "status": folder.status, "pictures": len(folder.frames)}
+
+    @staticmethod
+    def _camera(params: dict[str, Any], rig: Any, elevations: tuple[float, ...], scale: float) -> FrameSource:
+        from phantom.scan.camera import virtual_rig
+        from phantom.scan.capture import Webcam
+
+        camera = params.get("camera", "virtual")
+        if camera == "virtual":
+            from phantom.hil.truth_shape import TruthShape
+            from phantom.scan.virtual import VirtualCamera
+
+            return VirtualCamera(virtual_rig(scale, elevations), truth_scene(rig.simulated, TruthShape()),
+                                 int(params.get("seed", 0)), pose_at=_scaled_pose(scale))
+        source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
+        return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"))
 
 
 def run_capture(args: Any) -> int:
@@ -338,7 +398,8 @@ def run_validate(args: Any) -> int:
                 # the model into the rig's frame, where the reconstruction and the cameras are (x_model = R x + t)
                 alignment = comparison.alignment
                 in_rig_mm = (comparison.model_vertices_mm - alignment.translation_mm) @ alignment.rotation
-                models.append((TriangleMesh(in_rig_mm, comparison.model_triangles), comparison.model_signed_distance_mm))
+                models.append((TriangleMesh(in_rig_mm, comparison.model_triangles),
+                               comparison.model_signed_distance_mm))
                 last = results[-1]
                 say(f"{target_ml:g} ml: scan {last.scan_ml:.2f} ml ({last.scan_vs_target_pct:+.2f} % of the target, "
                     f"{last.scan_vs_model_pct:+.2f} % of the model, {last.scan_vs_truth_pct:+.2f} % of the truth); "
