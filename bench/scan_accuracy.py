@@ -32,27 +32,16 @@ import numpy as np  # noqa: E402
 from phantom.hil.truth_shape import TruthShape  # noqa: E402
 from phantom.model import PhantomModel, load_scene  # noqa: E402
 from phantom.model.inverse import InverseSolver, Target  # noqa: E402
-from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml, subdivide  # noqa: E402
+from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml  # noqa: E402
 from phantom.scan.calibrate import calibrate_rig, target_views  # noqa: E402
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, virtual_rig  # noqa: E402
 from phantom.scan.capture import CaptureFolder, Plan  # noqa: E402
 from phantom.scan.reconstruct import VOXEL_MM, reconstruct  # noqa: E402
+from phantom.scan.synthetic import sphere  # noqa: E402
 from phantom.scan.validation import frame_map, truth_distances  # noqa: E402
 from phantom.scan.virtual import render_capture, render_target_captures  # noqa: E402
 
 BPH_SCENE = Path(__file__).resolve().parent.parent / "host" / "scenes" / "bph_growth.toml"
-
-
-def dented_sphere(radius_mm: float = 15.0, dent_mm: float = 6.0, levels: int = 5) -> TriangleMesh:
-    """A sphere about the virtual rig's centre with a round dent facing +y (as in tests/test_scan_reconstruct)."""
-    vertices = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
-    triangles = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
-    for _ in range(levels):
-        vertices, triangles = subdivide(vertices, triangles)
-        vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
-    angle = np.arccos(np.clip(vertices[:, 1], -1, 1))
-    radius = radius_mm - dent_mm * np.exp(-(angle / 0.25) ** 2)
-    return TriangleMesh(vertices * radius[:, None] + VIRTUAL_CENTRE_MM, triangles.astype(np.int64))
 
 
 def section(mesh: TriangleMesh, z_mm: float) -> list[np.ndarray]:
@@ -140,11 +129,11 @@ def main() -> None:
         plt.close(figure)
 
         # the concavity
-        dented = dented_sphere()
+        dented = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5, dent_mm=6.0)
         true_rig = virtual_rig(0.5)
         folder = render_capture(dented, true_rig, Plan(60), Path(scratch) / "dent")
         result = reconstruct(CaptureFolder.open(folder.path), true_rig, args.voxel_mm)
-        plain_ml = enclosed_volume_ml(dented_sphere(dent_mm=0.0))
+        plain_ml = enclosed_volume_ml(sphere(15.0, VIRTUAL_CENTRE_MM, levels=5))
         dent_ml = plain_ml - enclosed_volume_ml(dented)
         filled = result.volume_ml - enclosed_volume_ml(dented)
         print(f"\nconcavity: a 6 mm dent in a 15 mm sphere holds {dent_ml * 1000:.0f} mm^3; the hull from 120 views "

@@ -326,17 +326,22 @@ class ThreadRig:
     def pressures_kpa(self) -> list[float] | None:
         async def read() -> dict[str, Any]:
             return self._state()
-        status = self._run(read())
-        if status["faults"]:
-            raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
-        if status["link"] != "online":
-            raise PhantomError(f"the board's link is {status['link']}")
-        pressures = status["pressures_kpa"]
-        return None if pressures is None else [float(p) for p in pressures]
+        return scannable_pressures_kpa(self._run(read()))
 
     def simulated(self) -> dict[str, Any] | None:
         """The simulated board's truth now (``motion_status``'s ``simulated``), None on a real board."""
         return self._run(self._orbit.full_status()).get("simulated")
+
+
+def scannable_pressures_kpa(status: dict[str, Any]) -> list[float] | None:
+    """The measured pressures (kPa) in a daemon status (``Daemon.status``, the API's ``status``), for a picture;
+    PhantomError when the phantom cannot be scanned: a fault latched, or the link not online."""
+    if status["faults"]:
+        raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
+    if status["link"] != "online":
+        raise PhantomError(f"the board's link is {status['link']}")
+    pressures = status["pressures_kpa"]
+    return None if pressures is None else [float(p) for p in pressures]
 
 
 class Scanner(Protocol):

@@ -10,11 +10,10 @@ from phantom import PhantomError
 from phantom.model.mesh.surface import enclosed_volume_ml
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, virtual_rig
 from phantom.scan.capture import CameraLost, CaptureError, CaptureFolder, Plan, Webcam, capture
+from phantom.scan.synthetic import sphere
 
 cv2 = pytest.importorskip("cv2")
 pytest.importorskip("skimage")
-
-from test_scan_reconstruct import sphere  # noqa: E402
 
 from phantom.scan.reconstruct import reconstruct  # noqa: E402
 from phantom.scan.render import Renderer, to_8bit  # noqa: E402

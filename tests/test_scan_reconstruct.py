@@ -6,10 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from phantom.model.mesh.surface import SurfaceIndex, TriangleMesh, enclosed_volume_ml, subdivide
+from phantom.model.mesh.surface import SurfaceIndex, enclosed_volume_ml
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, Camera, Pose, virtual_rig
 from phantom.scan.capture import CaptureFolder, Plan
 from phantom.scan.silhouette import SilhouetteError, alpha_matte, silhouette
+from phantom.scan.synthetic import sphere
 
 pytest.importorskip("cv2")
 pytest.importorskip("skimage")
@@ -17,19 +18,6 @@ pytest.importorskip("skimage")
 from phantom.scan.reconstruct import reconstruct  # noqa: E402
 from phantom.scan.render import Renderer, to_8bit  # noqa: E402
 from phantom.scan.virtual import render_capture  # noqa: E402
-
-
-def sphere(radius_mm: float, centre_mm, levels: int = 4, dent_mm: float = 0.0) -> TriangleMesh:
-    """An icosphere-like sphere (an octahedron subdivided and pushed out), optionally with a round dent of depth
-    dent_mm facing +y (a bowl no line of sight grazes)."""
-    vertices = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
-    triangles = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
-    for _ in range(levels):
-        vertices, triangles = subdivide(vertices, triangles)
-        vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
-    angle = np.arccos(np.clip(vertices[:, 1], -1, 1))
-    radius = radius_mm - dent_mm * np.exp(-(angle / 0.25) ** 2)
-    return TriangleMesh(vertices * radius[:, None] + centre_mm, triangles.astype(np.int64))
 
 
 def test_a_spheres_picture_is_the_closed_form_disc():

@@ -57,13 +57,9 @@ class DaemonPhantom:
         self.client = client
 
     def pressures_kpa(self) -> list[float] | None:
-        status = _call(self.client, "status")
-        if status["faults"]:
-            raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
-        if status["link"] != "online":
-            raise PhantomError(f"the board's link is {status['link']}")
-        pressures = status["pressures_kpa"]
-        return None if pressures is None else [float(p) for p in pressures]
+        from phantom.host.motion import scannable_pressures_kpa
+
+        return scannable_pressures_kpa(_call(self.client, "status"))
 
 
 def _call(client: DaemonClient, method: str, params: dict[str, Any] | None = None) -> Any:
