@@ -179,66 +179,6 @@ def main() -> None:
                   f"{seconds:.1f} s |")
         plot_accuracy(rows, out / "scan_accuracy.png")
         concavity(out, args.voxel_mm, Path(scratch))
-        return
-
-    scene = load_scene(str(BPH_SCENE))
-    top_ml = max(step["volume_ml"] for step in scene.raw["steps"])
-    pressures_kpa = InverseSolver(PhantomModel.from_scene(scene), fidelity="full").pressures_for(
-        Target(gland_volume_m3=top_ml * 1e-6)).pressures_pa / 1e3
-    truth = TruthShape()
-    shapes = {"rest": truth.surface([0.0, 0.0, 0.0]), f"{top_ml:g} ml target": truth.surface(pressures_kpa)}
-    print(f"truth: {truth.description}; the {top_ml:g} ml target's pressures {np.round(pressures_kpa, 3).tolist()} "
-          f"kPa give the truth {enclosed_volume_ml(shapes[f'{top_ml:g} ml target']):.3f} ml")
-    rows = []
-    with tempfile.TemporaryDirectory(prefix="scan-accuracy-") as scratch:
-        for scale in scales:
-            true_rig = virtual_rig(scale)
-            started = time.perf_counter()
-            folders = render_target_captures(true_rig, Path(scratch) / f"target{scale:g}")
-            rig = calibrate_rig(target_views(folders), true_rig.camera.width, true_rig.camera.height)
-            to_truth = frame_map(rig, true_rig, 0.0)
-            print(f"scale {scale:g} ({true_rig.camera.width}x{true_rig.camera.height}): calibrated in "
-                  f"{time.perf_counter() - started:.0f} s, RMS {rig.calibration['rms_px']:.3f} px")
-            for name, shape in shapes.items():
-                folder = render_capture(shape, true_rig, Plan(60), Path(scratch) / f"{name}{scale:g}")
-                folder = CaptureFolder.open(folder.path)
-                for views in view_counts:
-                    step = 60 // views
-                    frames = [frame for frame in folder.frames if round((frame.orbit_deg + 180.0) / 6.0) % step == 0]
-                    result = reconstruct(folder, rig, args.voxel_mm, frames)
-                    scanned = TriangleMesh(to_truth.apply(result.mesh.vertices_mm), result.mesh.triangles)
-                    distance = truth_distances(scanned, shape)
-                    volume_pct = 100 * (result.volume_ml / enclosed_volume_ml(shape) - 1)
-                    rows.append((name, scale, true_rig.camera.width, true_rig.camera.height, 2 * views, volume_pct,
-                                 distance["mean"], distance["p95"], sum(result.stage_s.values())))
-                    print(f"  {name:>16} {2 * views:4d} views: volume {volume_pct:+.3f} %, mean {distance['mean']:.4f} "
-                          f"mm, p95 {distance['p95']:.4f} mm, reconstruction {rows[-1][-1]:.1f} s", flush=True)
-        print("\n| shape | picture | views | volume vs truth | mean distance | p95 distance | reconstruction |")
-        print("|---|---|---|---|---|---|---|")
-        for name, _, width, height, views, volume_pct, mean, p95, seconds in rows:
-            print(f"| {name} | {width}x{height} | {views} | {volume_pct:+.3f} % | {mean:.3f} mm | {p95:.3f} mm | "
-                  f"{seconds:.1f} s |")
-        figure, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
-        for name in shapes:
-            for scale in scales:
-                chosen = [row for row in rows if row[0] == name and row[1] == scale]
-                label = f"{name}, {chosen[0][2]}x{chosen[0][3]}"
-                left.plot([row[4] for row in chosen], [abs(row[5]) for row in chosen], "o-", label=label)
-                right.plot([row[4] for row in chosen], [row[6] for row in chosen], "o-", label=label)
-        for axes, what in ((left, "|volume error| (%)"), (right, "mean closest-point distance (mm)")):
-            axes.set_xscale("log")
-            axes.set_yscale("log")
-            axes.set_xlabel("views (two elevations)")
-            axes.set_ylabel(what)
-            axes.grid(alpha=0.3, which="both")
-        left.axhline(1.0, color="red", linewidth=0.8)
-        right.axhline(0.3, color="red", linewidth=0.8)
-        right.legend(fontsize=7)
-        figure.suptitle("The scanner's own error on the simulated rig (red: the goals)")
-        figure.tight_layout()
-        figure.savefig(out / "scan_accuracy.png", dpi=110)
-        plt.close(figure)
-        concavity(out, args.voxel_mm, Path(scratch))
 
 
 if __name__ == "__main__":
