@@ -21,7 +21,8 @@ from phantom.hil.plant import load_plant
 #: Firmware functions timed by the cycle counter: role -> (demangled name or its start, min cycles). A call
 #: shorter than min cycles is an early return (no telemetry frame due: its prologue and epilogue alone take a
 #: few hundred cycles, more if an interrupt hits) and is counted apart; a frame takes several thousand. The
-#: control tick covers the three sensors, the safety checks, the PIDs and the telemetry frame when one is due.
+#: control tick covers the three sensors, the safety checks, the PIDs, the steppers' planning and the telemetry
+#: frame when one is due.
 PROFILED_FUNCTIONS = {
     "control_tick": ("core::Controller::tick(", 0),
     "telemetry_frame": ("core::Controller::send_telemetry(", 1500),
@@ -29,8 +30,10 @@ PROFILED_FUNCTIONS = {
 }
 #: Interrupt vectors also counted as busy time (vector numbers differ between the two MCUs).
 PROFILED_VECTORS = {
-    "atmega328p": {"adc_isr": 21, "tick_isr": 14, "uart_rx_isr": 18, "uart_tx_isr": 19, "watchdog_isr": 6},
-    "atmega2560": {"adc_isr": 29, "tick_isr": 21, "uart_rx_isr": 25, "uart_tx_isr": 26, "watchdog_isr": 12},
+    "atmega328p": {"adc_isr": 21, "tick_isr": 14, "step_isr": 15, "uart_rx_isr": 18, "uart_tx_isr": 19,
+                   "watchdog_isr": 6},
+    "atmega2560": {"adc_isr": 29, "tick_isr": 21, "step_isr": 22, "uart_rx_isr": 25, "uart_tx_isr": 26,
+                   "watchdog_isr": 12},
 }
 
 #: Faults and their parameters (unit in the name) with defaults.
@@ -228,13 +231,19 @@ class SimulatedBoard:
         mode: "floating", "pullup", "low", "high" or "pwm"), reset_s (when the core last started from its reset
         vector), control_since_s (when the control tick first ran after that, None before),
         floating_before_control_s (how long a blower pin floated in between) and driven_before_control
-        (whether a blower pin was driven high or by PWM in between); and gland_volume_ml, the truth model's
-        gland volume at these pressures, when the plant has a truth table."""
+        (whether a blower pin was driven high or by PWM in between); motion, one entry per stepper axis as its
+        driver turned it (steps, angle_deg: None until the mechanism's steps per turn are set, enabled); and
+        gland_volume_ml, the truth model's gland volume at these pressures, when the plant has a truth table."""
         state = self._command("state")
         gland_volume_ml = self.plant.truth_gland_volume_ml(state["pressures_pa"])
         if gland_volume_ml is not None:
             state["gland_volume_ml"] = gland_volume_ml
         return state
+
+    def motion(self, command: str = "") -> dict[str, Any]:
+        """Send ``motion [COMMAND]`` to the harness: the stepper axes as the simulated drivers see them
+        (``phantom.hil.motion`` wraps it)."""
+        return self._command(f"motion {command}".strip())
 
     def cycle_stats(self, reset: bool = False) -> dict[str, Any]:
         """CPU cost of the firmware, counted exactly in simavr cycles since start (or the last reset).
@@ -242,8 +251,8 @@ class SimulatedBoard:
         Returns control_tick_cycles_mean/_max and control_ticks, telemetry_frame_cycles_mean/_max and
         telemetry_frames (None when the firmware has no such function), elapsed_cycles, frequency_hz,
         cpu_use_fraction (cycles inside any timed function or interrupt handler, counted once when they nest,
-        over elapsed cycles), regions (every timed function's calls, total and max cycles) and serial (byte
-        counters of the line).
+        over elapsed cycles), stack_bytes_max (the stack's deepest point, bytes below the top of RAM), regions
+        (every timed function's calls, total and max cycles) and serial (byte counters of the line).
         """
         reply = self._command("stats reset" if reset else "stats")
         stats: dict[str, Any] = {"elapsed_cycles": reply["elapsed_cycles"], "frequency_hz": reply["frequency_hz"]}
@@ -255,6 +264,7 @@ class SimulatedBoard:
             stats[f"{role}_cycles_max"] = region["max_cycles"] if calls else None
         elapsed = reply["elapsed_cycles"]
         stats["cpu_use_fraction"] = reply["busy_cycles"] / elapsed if elapsed else None
+        stats["stack_bytes_max"] = reply["stack_bytes_max"]
         stats["regions"] = reply["regions"]
         stats["serial"] = reply["serial"]
         return stats

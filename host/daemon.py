@@ -42,6 +42,7 @@ from phantom.host.estimation import EstimateRequest, EstimateSchedule
 from phantom.host.handlers import ApiHandlers
 from phantom.host.logs import configured_level
 from phantom.host.model_worker import Estimate, ModelWorker
+from phantom.host.motion import Orbit, Scanner, scan_method, simulated_truth
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.recording import Recorder
 from phantom.host.scene_runner import PreparedRun, SceneRunner, prepare_run
@@ -64,6 +65,7 @@ from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model import load_scene
 from phantom.model.errors import SceneError
 from phantom.model.inverse import InverseResult, Target, UnreachableTargetError
+from phantom.protocol.codec import Message
 from phantom.protocol.link import BOOT_DELAY_S
 
 logger = logging.getLogger(__name__)
@@ -169,6 +171,8 @@ class Daemon:
         #: the scene's response table being built in the background (the model answers on full solves meanwhile)
         self.table_build: TableBuild | None = None
         self._build_reported_s = 0.0
+        #: the scanner's axes (host/motion.py)
+        self.motion = Orbit(self.board_command, self.event, simulated_truth(sim_board) if sim_board else None)
 
     # --- building the parts -----------------------------------------------------------------------------
 
@@ -209,7 +213,8 @@ class Daemon:
                 await asyncio.get_running_loop().run_in_executor(None, sim_board.start)
             session = _link_session(config, sim_board, on_telemetry=lambda frame: wired["daemon"].on_telemetry(frame),
                                     on_event=lambda kind, text, level: wired["daemon"].event(kind, text, level),
-                                    on_online=lambda board, again: wired["daemon"].on_online(board, again))
+                                    on_online=lambda board, again: wired["daemon"].on_online(board, again),
+                                    on_motion=lambda message: wired["daemon"].motion.on_message(message))
         except BaseException:
             for close in reversed(closers):
                 with contextlib.suppress(Exception):
@@ -223,6 +228,7 @@ class Daemon:
         for name in BOARD_METHODS:
             handlers[name] = daemon.when_ready(handlers[name])
         api.handlers.update(handlers)
+        api.handlers.update(daemon.motion.api_methods())
         startup.enter("waiting for the board: the first connection")
         return daemon
 
@@ -358,6 +364,7 @@ class Daemon:
         self.schedule.clear()
         self.stillness = Stillness()
         self._board_dropped_setpoints(None)
+        self.spawn(self.motion.restore())
         if board.chamber_count != len(self.chamber_names):
             self.event("link", f"the board has {board.chamber_count} chambers, the scene "
                        f"{len(self.chamber_names)}: setpoints not sent", "ERROR")
@@ -903,6 +910,7 @@ class Daemon:
             "recording": self.recorder.status(),
             "uptime_s": self.now_s(),
             "events": list(self.events)[-10:],
+            "motion": self.motion.status(),
         }
         if self.sim_board is not None:
             status["simulated_board"] = self.sim_board.status()
@@ -940,7 +948,8 @@ def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]
 
 def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
                   on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
-                  on_online: Callable[[BoardInfo, bool], Awaitable[None]]) -> LinkThread:
+                  on_online: Callable[[BoardInfo, bool], Awaitable[None]],
+                  on_motion: Callable[[Message], None]) -> LinkThread:
     """The link session over the configured transport, in a thread of its own."""
     transport: Transport
     boot_delay_s = 0.0
@@ -962,10 +971,11 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None,
                         telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=config.host_deadline_ms,
                         boot_delay_s=boot_delay_s)
     return LinkThread(LinkSession(transport, timing, on_telemetry=on_telemetry, on_event=on_event,
-                                  on_online=on_online), LoopStalls())
+                                  on_online=on_online, on_motion=on_motion), LoopStalls())
 
 
-async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None) -> int:
+async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None,
+               scanner: Scanner | None = None) -> int:
     # SIGTERM or SIGINT while the parts are built (a first start builds the response table for minutes) cancels
     # the build: the parts built so far are closed and the model worker is ended with the processes it started,
     # which the default action (the process killed at once) left running
@@ -979,10 +989,13 @@ async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | No
     except asyncio.CancelledError:
         logger.info("stopped while starting")
         return 0
+    if scanner is not None:
+        daemon.api.handlers.update(scan_method(daemon.motion, scanner, daemon.status))
     return await daemon.serve()
 
 
-def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None) -> int:
+def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None,
+               scanner: Scanner | None = None) -> int:
     """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status. ``simulated_board`` builds
-    the board of ``config.sim``."""
-    return asyncio.run(_run(config, simulated_board))
+    the board of ``config.sim``; ``scanner`` takes the ``scan`` API method's captures (host/motion.py)."""
+    return asyncio.run(_run(config, simulated_board, scanner))

@@ -31,6 +31,7 @@ from phantom import PhantomError
 from phantom.host.stalls import LoopStalls
 from phantom.host.transports import TransportLost, TransportUnavailable
 from phantom.protocol import ProtocolError
+from phantom.protocol.codec import Message
 from phantom.protocol.link import (
     Acked,
     BoardInfo,
@@ -167,18 +168,22 @@ class LinkSession:
         Awaited each time the link comes up (the daemon restores its setpoints); ``online_event`` is set after.
     clock : callable() -> float, optional
         The monotonic clock in seconds (``time.monotonic``).
+    on_motion : callable(Message), optional
+        Called for every MOTION_STATUS and MOTION_INFO frame (the scanner's axes).
     """
 
     def __init__(self, transport: Transport, timing: LinkTiming | None = None,
                  on_telemetry: Callable[[Telemetry], None] | None = None,
                  on_event: Callable[[str, str, str], None] | None = None,
                  on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None = None,
-                 clock: Callable[[], float] = time.monotonic):
+                 clock: Callable[[], float] = time.monotonic,
+                 on_motion: Callable[[Message], None] | None = None):
         self.transport = transport
         self.timing = timing or LinkTiming()
         self.on_telemetry: Callable[[Telemetry], None] = on_telemetry or (lambda telemetry: None)
         self.on_event: Callable[[str, str, str], None] = on_event or (lambda kind, text, level: None)
         self.on_online = on_online
+        self.on_motion: Callable[[Message], None] = on_motion or (lambda message: None)
         self.clock = clock
         self.state = LinkState.DISCONNECTED
         self.board: BoardInfo | None = None
@@ -342,7 +347,9 @@ class LinkSession:
 
     def _handle(self, event: Event) -> None:
         """Act on one event of the link core."""
-        if isinstance(event, TelemetryIn):
+        if isinstance(event, FrameIn) and event.message.name in ("MOTION_STATUS", "MOTION_INFO"):
+            self.on_motion(event.message)
+        elif isinstance(event, TelemetryIn):
             self._on_telemetry_frame(event)
         elif isinstance(event, FrameIn):
             self._on_frame(event)
@@ -554,6 +561,8 @@ class LinkThread:
         session.on_event = lambda kind, text, level: self._to_daemon(on_event, kind, text, level)
         if on_online is not None:
             session.on_online = lambda board, again: self._in_daemon(on_online(board, again))
+        on_motion = session.on_motion
+        session.on_motion = lambda message: self._to_daemon(on_motion, message)
 
     @property
     def transport(self) -> Transport:

@@ -397,6 +397,12 @@ def render_header(spec: dict[str, Any]) -> str:
     return "\n".join(out)
 
 
+def _bits_type(spec: dict[str, Any], bits_name: str) -> str:
+    """The wire type of the fields that carry a bit set (u16 when no field does)."""
+    types = {f["type"] for m in spec["message"] for f in m["fields"] if f.get("bits") == bits_name}
+    return "/".join(sorted(types)) or "u16"
+
+
 def render_reference(spec: dict[str, Any]) -> str:
     """The message reference section of PROTOCOL.md: enums, bit sets and every message's byte layout."""
     out = [
@@ -414,7 +420,7 @@ def render_reference(spec: dict[str, Any]) -> str:
         out += [f"| {v} | `{k}` |" for k, v in _table(entries).items()]
         out.append("")
     for name, entries in spec["bits"].items():
-        out.append(f"**{name}** (u16 bit set): {entries.get('doc', '')}")
+        out.append(f"**{name}** ({_bits_type(spec, name)} bit set): {entries.get('doc', '')}")
         out.append("")
         out += ["| bit | mask | name |", "|---:|---:|---|"]
         out += [f"| {v} | `0x{1 << v:04X}` | `{k}` |" for k, v in _table(entries).items()]

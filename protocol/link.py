@@ -192,6 +192,13 @@ class TelemetryIn:
 
 
 @dataclass(frozen=True)
+class MotionIn:
+    """One MOTION_STATUS frame: where the scanner's stepper axes are."""
+
+    message: Message
+
+
+@dataclass(frozen=True)
 class FaultIn:
     """The board latched a fault (a FAULT frame)."""
 
@@ -225,7 +232,7 @@ class Silence:
 
 
 Event = (FrameIn | HandshakeDone | HandshakeRefused | HandshakeTimedOut | Acked | Nacked | CommandFailed
-         | TelemetryIn | FaultIn | Pong | BoardRestarted | Silence)
+         | TelemetryIn | MotionIn | FaultIn | Pong | BoardRestarted | Silence)
 
 
 @dataclass
@@ -530,6 +537,8 @@ class HostLink:
         if name == "TELEMETRY":
             self._last_telemetry = now
             return [TelemetryIn(message), *self._board_clock(fields["time_ms"])]
+        if name == "MOTION_STATUS":
+            return [MotionIn(message), *self._board_clock(fields["time_ms"])]
         if name == "FAULT":
             bit = fields["fault_bit"]
             bit_name = fault_names(1 << bit)[0] if 0 <= bit < 16 else str(bit)

@@ -33,7 +33,7 @@ class MessageSpec(NamedTuple):
 
 
 PROTOCOL_VERSION = 1
-SPEC_HASH = 0x773B91D2
+SPEC_HASH = 0x5810A65C
 MAX_BODY_BYTES = 64
 CHAMBER_COUNT = 3
 
@@ -52,6 +52,9 @@ ENUMS: dict[str, dict[str, int]] = {
         'BUSY': 10,
         'BAD_MAGIC': 11,
         'NOT_SETTLED': 12,
+        'OUT_OF_LIMITS': 13,
+        'NO_AXIS': 14,
+        'NOT_REFERENCED': 15,
     },
     'reset_cause': {
         'UNKNOWN': 0,
@@ -82,6 +85,25 @@ ENUMS: dict[str, dict[str, int]] = {
         'ZEROING': 2,
         'FAULT': 3,
     },
+    'motion_state': {
+        'ABSENT': 0,
+        'IDLE': 1,
+        'MOVING': 2,
+        'HOMING': 3,
+        'STOPPING': 4,
+    },
+    'motion_result': {
+        'NONE': 0,
+        'REACHED': 1,
+        'STOPPED': 2,
+        'HOMED': 3,
+        'SWITCH_NOT_FOUND': 4,
+        'FAULT': 5,
+    },
+    'home_method': {
+        'HERE': 0,
+        'SWITCH': 1,
+    },
 }
 
 CONSTANTS: dict[str, int] = {
@@ -107,6 +129,14 @@ CONSTANTS: dict[str, int] = {
     'MIN_HOST_DEADLINE_MS': 50,  # ms
     'MAX_HOST_DEADLINE_MS': 10000,  # ms
     'TEST_HANG_MAGIC': 0x48414E47,
+    'MOTION_AXES': 2,
+    'MOTION_MAX_STEP_RATE': 2500,  # steps/s
+    'MOTION_MAX_STEPS_PER_REV': 0x000F4240,  # steps
+    'MOTION_ANGLE_LIMIT_MDEG': 0x000AFC80,  # mdeg
+    'MOTION_ENABLE_DELAY_MS': 10,  # ms
+    'MOTION_IDLE_RELEASE_MS': 1000,  # ms
+    'MOTION_STATUS_PERIOD_MS': 100,  # ms
+    'MOTION_HOME_SEARCH_PERCENT': 110,  # %
 }
 
 BITS: dict[str, dict[str, int]] = {
@@ -126,6 +156,19 @@ BITS: dict[str, dict[str, int]] = {
         'IMPLAUSIBLE_1': 12,
         'IMPLAUSIBLE_2': 13,
         'SUPPLY': 14,
+    },
+    'motion_flags': {
+        'ENABLED': 0,
+        'REFERENCED': 1,
+        'SWITCH_HOMED': 2,
+        'SWITCH_ACTIVE': 3,
+    },
+    'motion_options': {
+        'REVERSE': 0,
+        'HOME_SWITCH': 1,
+        'SWITCH_ACTIVE_LOW': 2,
+        'HOME_POSITIVE': 3,
+        'RELEASE_WHEN_IDLE': 4,
     },
 }
 
@@ -344,6 +387,108 @@ MESSAGES: dict[str, MessageSpec] = {
         13,
         'Sent once when a fault latches.',
     ),
+    'MOTION_CONFIG': MessageSpec(
+        'MOTION_CONFIG', 0x17, 'host', True,
+        (
+            Field('axis', 'u8', 1, '', 1.0, None, None,
+                  '0 (orbit) or 1 (elevation)'),
+            Field('steps_per_rev', 'f32', 1, 'steps', 1.0, None, None,
+                  'full steps x microsteps x gear ratio; 0 removes the axis, else 1..MOTION_MAX_STEPS_PER_REV'),
+            Field('max_speed_mdeg_s', 'u32', 1, 'deg/s', 0.001, None, None,
+                  'speed limit, > 0; its step rate must not exceed MOTION_MAX_STEP_RATE'),
+            Field('max_accel_mdeg_s2', 'u32', 1, 'deg/s^2', 0.001, None, None,
+                  'acceleration limit, > 0; at most MOTION_MAX_STEP_RATE steps/s gained per tick'),
+            Field('min_angle_mdeg', 'i32', 1, 'deg', 0.001, None, None,
+                  'lower soft limit, >= -MOTION_ANGLE_LIMIT_MDEG'),
+            Field('max_angle_mdeg', 'i32', 1, 'deg', 0.001, None, None,
+                  'upper soft limit, > min_angle, <= MOTION_ANGLE_LIMIT_MDEG'),
+            Field('home_speed_mdeg_s', 'u32', 1, 'deg/s', 0.001, None, None,
+                  'switch search speed, 0 < home_speed <= max_speed with HOME_SWITCH (else ignored)'),
+            Field('options', 'u8', 1, '', 1.0, None, 'motion_options',
+                  ''),
+        ),
+        26,
+        "One axis's steps per turn, speed and acceleration limits, soft limits and homing; MOTION_INFO follows.",
+    ),
+    'MOVE_TO': MessageSpec(
+        'MOVE_TO', 0x18, 'host', True,
+        (
+            Field('axis', 'u8', 1, '', 1.0, None, None,
+                  '0 (orbit) or 1 (elevation)'),
+            Field('angle_mdeg', 'i32', 1, 'deg', 0.001, None, None,
+                  'target, within the soft limits'),
+        ),
+        5,
+        'Moves one axis to an angle within its limits; ACK at once, MOTION_STATUS says when it is there.',
+    ),
+    'HOME': MessageSpec(
+        'HOME', 0x19, 'host', True,
+        (
+            Field('axis', 'u8', 1, '', 1.0, None, None,
+                  '0 (orbit) or 1 (elevation)'),
+            Field('method', 'u8', 1, '', 1.0, 'home_method', None,
+                  'HERE, or SWITCH (needs the HOME_SWITCH option)'),
+            Field('angle_mdeg', 'i32', 1, 'deg', 0.001, None, None,
+                  "the angle of the position now (HERE) or of the switch's edge (SWITCH)"),
+        ),
+        6,
+        "Sets an axis's position, here or at its home switch; ACK at once, MOTION_STATUS says HOMED.",
+    ),
+    'MOTION_STOP': MessageSpec(
+        'MOTION_STOP', 0x1A, 'host', True,
+        (
+            Field('release', 'u8', 1, '', 1.0, None, None,
+                  '1: release every driver (EN off) once at rest; 0: keep holding'),
+        ),
+        1,
+        'Brings every moving axis to rest at its acceleration limit (a homing too).',
+    ),
+    'MOTION_STATUS': MessageSpec(
+        'MOTION_STATUS', 0x22, 'board', False,
+        (
+            Field('time_ms', 'u32', 1, 'ms', 1.0, None, None,
+                  'board time of the control tick'),
+            Field('state', 'u8', 2, '', 1.0, 'motion_state', None,
+                  ''),
+            Field('flags', 'u8', 2, '', 1.0, None, 'motion_flags',
+                  ''),
+            Field('result', 'u8', 2, '', 1.0, 'motion_result', None,
+                  'how the last move, homing or stop ended'),
+            Field('position_steps', 'i32', 2, 'steps', 1.0, None, None,
+                  "steps from the axis's zero, once the steps handed to the timer this tick are out"),
+            Field('position_mdeg', 'i32', 2, 'deg', 0.001, None, None,
+                  'the same as an angle: position_steps x 360000 / steps_per_rev'),
+            Field('target_mdeg', 'i32', 2, 'deg', 0.001, None, None,
+                  'where the axis is going (its position when at rest)'),
+            Field('velocity_mdeg_s', 'i32', 2, 'deg/s', 0.001, None, None,
+                  'speed of the latest tick, signed'),
+        ),
+        42,
+        'Where the axes are: every MOTION_STATUS_PERIOD_MS, and at once after a motion command or a change.',
+    ),
+    'MOTION_INFO': MessageSpec(
+        'MOTION_INFO', 0x23, 'board', False,
+        (
+            Field('axis', 'u8', 1, '', 1.0, None, None,
+                  ''),
+            Field('steps_per_rev', 'f32', 1, 'steps', 1.0, None, None,
+                  ''),
+            Field('max_speed_mdeg_s', 'u32', 1, 'deg/s', 0.001, None, None,
+                  ''),
+            Field('max_accel_mdeg_s2', 'u32', 1, 'deg/s^2', 0.001, None, None,
+                  ''),
+            Field('min_angle_mdeg', 'i32', 1, 'deg', 0.001, None, None,
+                  ''),
+            Field('max_angle_mdeg', 'i32', 1, 'deg', 0.001, None, None,
+                  ''),
+            Field('home_speed_mdeg_s', 'u32', 1, 'deg/s', 0.001, None, None,
+                  ''),
+            Field('options', 'u8', 1, '', 1.0, None, 'motion_options',
+                  ''),
+        ),
+        26,
+        "An axis's configuration as held: after each MOTION_CONFIG taken, and each configured axis after HELLO.",
+    ),
 }
 
 MESSAGES_BY_ID: dict[int, MessageSpec] = {m.msg_id: m for m in MESSAGES.values()}
@@ -368,6 +513,12 @@ class MsgId(IntEnum):
     TEST_HANG = 0x16
     TELEMETRY = 0x20
     FAULT = 0x21
+    MOTION_CONFIG = 0x17
+    MOVE_TO = 0x18
+    HOME = 0x19
+    MOTION_STOP = 0x1A
+    MOTION_STATUS = 0x22
+    MOTION_INFO = 0x23
 
 
 class Status(IntEnum):
@@ -386,6 +537,9 @@ class Status(IntEnum):
     BUSY = 10
     BAD_MAGIC = 11
     NOT_SETTLED = 12
+    OUT_OF_LIMITS = 13
+    NO_AXIS = 14
+    NOT_REFERENCED = 15
 
 
 class ResetCause(IntEnum):
@@ -432,6 +586,34 @@ class ChamberState(IntEnum):
     FAULT = 3
 
 
+class MotionState(IntEnum):
+    """What a motion axis is doing."""
+
+    ABSENT = 0
+    IDLE = 1
+    MOVING = 2
+    HOMING = 3
+    STOPPING = 4
+
+
+class MotionResult(IntEnum):
+    """How an axis's last move, homing or stop ended."""
+
+    NONE = 0
+    REACHED = 1
+    STOPPED = 2
+    HOMED = 3
+    SWITCH_NOT_FOUND = 4
+    FAULT = 5
+
+
+class HomeMethod(IntEnum):
+    """How HOME sets an axis's position."""
+
+    HERE = 0
+    SWITCH = 1
+
+
 class Fault(IntFlag):
     """Latched fault flags (bit numbers). Any set bit stops every blower until CLEAR_FAULT."""
 
@@ -450,3 +632,22 @@ class Fault(IntFlag):
     IMPLAUSIBLE_1 = 1 << 12
     IMPLAUSIBLE_2 = 1 << 13
     SUPPLY = 1 << 14
+
+
+class MotionFlags(IntFlag):
+    """State of one motion axis (bit numbers)."""
+
+    ENABLED = 1 << 0
+    REFERENCED = 1 << 1
+    SWITCH_HOMED = 1 << 2
+    SWITCH_ACTIVE = 1 << 3
+
+
+class MotionOptions(IntFlag):
+    """Options of one motion axis (bit numbers), set by MOTION_CONFIG."""
+
+    REVERSE = 1 << 0
+    HOME_SWITCH = 1 << 1
+    SWITCH_ACTIVE_LOW = 1 << 2
+    HOME_POSITIVE = 1 << 3
+    RELEASE_WHEN_IDLE = 1 << 4

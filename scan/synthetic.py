@@ -60,3 +60,17 @@ def _with_fragment(mesh: TriangleMesh) -> TriangleMesh:
     blob = corner + 3.0 * np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     faces = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]) + len(mesh.vertices_mm)
     return TriangleMesh(np.vstack([mesh.vertices_mm, blob]), np.vstack([mesh.triangles, faces]))
+
+
+def sphere(radius_mm: float, centre_mm: np.ndarray, levels: int = 4, dent_mm: float = 0.0) -> TriangleMesh:
+    """A closed sphere (mm): an octahedron subdivided ``levels`` times and pushed out, optionally with a round
+    dent of depth ``dent_mm`` facing +y (a bowl no line of sight grazes: what a visual hull cannot see)."""
+    vertices = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
+    triangles = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]])
+    for _ in range(levels):
+        vertices, triangles = subdivide(vertices, triangles)
+        vertices /= np.linalg.norm(vertices, axis=1, keepdims=True)
+    angle = np.arccos(np.clip(vertices[:, 1], -1, 1))
+    radius = radius_mm - dent_mm * np.exp(-(angle / 0.25) ** 2)
+    return TriangleMesh(vertices * radius[:, None] + np.asarray(centre_mm, float), triangles.astype(np.int64))
+

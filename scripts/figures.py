@@ -77,6 +77,12 @@ FIGURES = (
            "run time against error of the fidelity levels and mesh sizes, built-in scene and the Lame sphere",
            ((PYTHON, "bench/model_fidelity.py", "--sizes-mm", "6,5,4,3", "--reference-mm", "2.5",
              "--sphere-sizes-mm", "6,4,3,2.5", "--inverse-mm", "3", "--out", "bench/model_fidelity.png"),)),
+    Figure("bench/scan_accuracy.png",
+           "the scanner's volume error and mean distance on the simulated rig against views and picture size",
+           ((PYTHON, "bench/scan_accuracy.py", "--out", "bench"),)),
+    Figure("bench/scan_concavity.png",
+           "a cut through a dented sphere and its visual hull (what the silhouettes cannot show)",
+           ((PYTHON, "bench/scan_accuracy.py", "--concavity-only", "--out", "bench"),)),
 )
 
 

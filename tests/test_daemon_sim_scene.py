@@ -41,7 +41,7 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path, calibrated_response_table
             assert process.poll() is None, Path(log.name).read_text()
             try:
                 with DaemonClient(sock) as client:
-                    if client.call("status")["link"] == "online":
+                    if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
                         break
             except PhantomError:
                 pass
@@ -132,7 +132,7 @@ def test_a_killed_daemon_leaves_no_worker_and_its_board_vents_at_the_dead_host_d
                 assert daemon.poll() is None, Path(log.name).read_text()
                 try:
                     with DaemonClient(sock) as client:
-                        if client.call("status")["link"] == "online":
+                        if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
                             client.call("set_target", {"pressures_kpa": [1.0, 1.0, 1.0]})
                             break
                 except PhantomError:

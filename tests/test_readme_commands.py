@@ -109,7 +109,7 @@ def default_daemon(tmp_path_factory, calibrated_response_table):
             assert process.poll() is None, Path(log.name).read_text()
             try:
                 with DaemonClient(sock, timeout_s=10) as client:
-                    if client.call("status")["link"] == "online":
+                    if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
                         break
             except PhantomError:
                 pass

@@ -1,5 +1,5 @@
-// The thin AVR layer: registers for the PWM timers, the interrupt-driven ADC, the control tick, the
-// watchdog, the reset cause, EEPROM and the status LED. Everything else lives in core/.
+// The thin AVR layer: registers for the PWM timers, the interrupt-driven ADC, the control tick, the stepper
+// outputs, the watchdog, the reset cause, EEPROM and the status LED. Everything else lives in core/.
 #pragma once
 #include <stdint.h>
 
@@ -18,7 +18,8 @@ const uint8_t TICK_TIMER0_TOP = 124;
 // its mark in RAM just before the watchdog reset the board (WATCHDOG).
 uint8_t avr_reset_cause();
 
-// Blower pins low and disconnected, PWM timers, the tick interrupt and the free-running ADC chain.
+// Blower pins low and disconnected, stepper drivers released, PWM timers, the tick interrupt and the
+// free-running ADC chain.
 void avr_hardware_init();
 
 // Arm the watchdog: after 120 ms without a kick its interrupt stops the blowers and marks RAM, and 120 ms
@@ -31,8 +32,18 @@ void avr_watchdog_kick();
 // Whether a control tick is waiting (call with interrupts off to decide whether to sleep).
 bool avr_tick_pending();
 
-// Take the ADC sums of the latest tick if one is pending; missed_ticks counts ticks nobody took.
-bool avr_take_tick(core::AdcTick& adc, uint16_t& missed_ticks);
+// Take the ADC sums and the motion inputs of the latest tick if one is pending; missed_ticks counts ticks nobody
+// took.
+bool avr_take_tick(core::AdcTick& adc, uint16_t& missed_ticks, core::MotionSample& motion);
+
+// Hand over the steps of the next window (the plan must stay intact until that window has ended): Timer0's
+// compare B interrupt puts each on its STEP pin in its slot (16 us), after the tick interrupt that starts the
+// window has set the DIR pins. Call after the control tick that started a window (MotionSample.window_start).
+void avr_motion_load(const core::StepPlan& plan);
+
+// Enable the stepper drivers of the axes in the mask (EN low) and release the others (EN high); a released
+// axis gets no further STEP pulse.
+void avr_motion_enable(uint8_t axes_mask);
 
 // Set a chamber's drive level (0..65535 = 0..1); 0 disconnects the pin so the output is exactly off.
 void avr_set_drive(uint8_t chamber, uint16_t drive);
@@ -47,5 +58,15 @@ void avr_settings_read(uint8_t block[core::SETTINGS_BYTES]);
 void avr_settings_write(const uint8_t block[core::SETTINGS_BYTES]);
 void avr_settings_service();
 
-// Blowers off, and spin without kicking the watchdog (interrupts on, as in a stuck main loop): TEST_HANG's end.
+// The serial link: USART0 at 115200 8N1 (as the Arduino core's Serial sets it: U2X, UBRR 16), received and sent
+// bytes each in a 128-byte ring served by its interrupt. avr_serial_send queues a whole frame or nothing (false:
+// no room now); avr_serial_flush waits until every queued byte has left the transmitter.
+void avr_serial_begin();
+uint8_t avr_serial_available();
+uint8_t avr_serial_read();
+bool avr_serial_send(const uint8_t* bytes, uint8_t len);
+void avr_serial_flush();
+
+// Blowers off, stepper drivers released, and spin without kicking the watchdog (interrupts on, as in a stuck
+// main loop): TEST_HANG's end.
 void avr_hang() __attribute__((noreturn));

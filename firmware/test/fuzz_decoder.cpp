@@ -1,6 +1,7 @@
 // libFuzzer target for the firmware's frame reader and the controller behind it. Checks, on any input:
 // no crash or out-of-bounds access (ASan, UBSan); every accepted frame has a correct CRC by an independent
-// bitwise CRC and the exact payload length of its id; and the controller's safety invariants hold.
+// bitwise CRC and the exact payload length of its id; and the controller's safety invariants hold, the steppers'
+// too (released and still while a fault is latched, within their speed limit, every step inside its window).
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -62,6 +63,26 @@ static void check_invariants(const core::Controller& c) {
         if (c.fault_flags() || c.setpoint_pa(i) == 0) require(c.drive(i) == 0);
         require(c.drive(i) <= c.pid(i).gains().max_drive);
     }
+    if (c.fault_flags()) require(c.motion_enabled_mask() == 0);
+    for (uint8_t n = 0; n < core::AXES; ++n) {
+        const core::Axis& axis = c.motion().axis(n);
+        require(axis.velocity_q24() <= axis.max_velocity_q24());
+        if (!axis.configured()) require(axis.state() == proto::MOTION_STATE_ABSENT && !axis.enabled());
+    }
+}
+
+// The next window's steps: none while a fault is latched, one axis at most, at most MAX_STEPS_PER_WINDOW, inside
+// the window.
+static void check_plan(const core::Controller& c) {
+    const core::StepPlan& plan = c.step_plan();
+    require(!(plan.axis[0].count && plan.axis[1].count));
+    for (uint8_t n = 0; n < core::AXES; ++n) {
+        const core::AxisSteps& steps = plan.axis[n];
+        if (c.fault_flags()) require(steps.count == 0);
+        require(steps.count <= core::MAX_STEPS_PER_WINDOW);
+        if (steps.count) require(steps.first_q6 >= 64 && steps.first_q6 < core::WINDOW_Q6);
+        if (steps.count > 1) require((uint32_t)steps.first_q6 + (steps.count - 1UL) * steps.interval_q6 < core::WINDOW_Q6 * 1.01);
+    }
 }
 
 // The first bytes choose the ADC readings; the rest is the received stream, with a tick after every 8 bytes.
@@ -89,8 +110,10 @@ static void fuzz_controller(const uint8_t* data, size_t size) {
         controller.receive(data[i]);
         check_invariants(controller);
         if (i % 8 == 0) {
-            controller.tick(adc, data[i] % 3);
+            core::MotionSample sample = {(uint8_t)(data[i] >> 6), data[i] % 5 == 0, {0, 0}};
+            controller.tick(adc, data[i] % 3, sample);
             check_invariants(controller);
+            check_plan(controller);
         }
     }
 }

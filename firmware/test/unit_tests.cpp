@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "check.h"
+#include "controller_bench.h"
 #include "core/cobs.h"
 #include "core/controller.h"
 #include "core/crc16.h"
@@ -53,12 +54,6 @@ TEST(cobs_matches_published_examples) {
     uint8_t out[8];
     CHECK_EQ(cobs_decode(past_end, sizeof past_end, out), -1);
     CHECK_EQ(cobs_decode(zero_inside, sizeof zero_inside, out), -1);
-}
-
-static std::vector<uint8_t> frame_of(uint8_t id, uint8_t seq, const uint8_t* payload, uint8_t len) {
-    uint8_t out[MAX_FRAME_BYTES];
-    uint8_t n = frame_encode(id, seq, payload, len, out);
-    return std::vector<uint8_t>(out, out + n);
 }
 
 TEST(reader_takes_frames_split_anywhere_with_garbage_between) {
@@ -323,107 +318,6 @@ TEST(pid_rejects_invalid_gains) {
 }
 
 // ---- controller ------------------------------------------------------------------------------------
-
-// A controller wired to a captured transport and a sensor model; frames the board sends are decoded.
-struct Bench {
-    struct Sent {
-        uint8_t id, seq;
-        std::vector<uint8_t> payload;
-    };
-    Controller controller;
-    FrameReader board_frames{true};
-    std::vector<Sent> sent;
-    uint16_t counts[CHAMBERS] = {512, 512, 512};
-    uint8_t conversions[CHAMBERS] = {4, 4, 4};  // 0: a stalled ADC
-    uint16_t bandgap_counts = 225;              // 1.1 V against a 5.0 V supply
-    uint8_t host_seq = 0;
-    bool transport_full = false;
-
-    static bool capture(const uint8_t* frame, uint8_t len, void* context) {
-        Bench* bench = static_cast<Bench*>(context);
-        if (bench->transport_full) return false;
-        for (uint8_t i = 0; i < len; ++i) {
-            if (bench->board_frames.feed(frame[i])) {
-                const FrameReader& r = bench->board_frames;
-                bench->sent.push_back(Sent{r.msg_id(), r.seq(), std::vector<uint8_t>(r.payload(), r.payload() + r.payload_len())});
-            }
-        }
-        return true;
-    }
-
-    explicit Bench(uint8_t reset_cause = RESET_CAUSE_POWER_ON, const uint8_t* stored = 0) {
-        controller.init(BOARD_NATIVE, reset_cause, capture, this, stored);
-    }
-
-    void feed(const std::vector<uint8_t>& bytes) {
-        for (uint8_t b : bytes) controller.receive(b);
-    }
-    uint8_t command(uint8_t id, const uint8_t* payload, uint8_t len) {
-        uint8_t seq = host_seq++;
-        feed(frame_of(id, seq, payload, len));
-        return seq;
-    }
-    void hello(uint32_t hash = SPEC_HASH) {
-        uint8_t p[Hello::PAYLOAD_SIZE];
-        Hello h = {PROTOCOL_VERSION, hash};
-        encode(h, p);
-        command(MSG_HELLO, p, sizeof p);
-    }
-    uint8_t setpoints(int16_t a, int16_t b, int16_t c) {
-        SetSetpoints m = {{a, b, c}};
-        uint8_t p[SetSetpoints::PAYLOAD_SIZE];
-        encode(m, p);
-        return command(MSG_SET_SETPOINTS, p, sizeof p);
-    }
-    uint8_t simple(uint8_t id) { return command(id, 0, 0); }
-    uint8_t config(uint16_t period_ms, uint16_t deadline_ms) {
-        SetConfig m = {period_ms, deadline_ms};
-        uint8_t p[SetConfig::PAYLOAD_SIZE];
-        encode(m, p);
-        return command(MSG_SET_CONFIG, p, sizeof p);
-    }
-    uint8_t set_pid(uint8_t chamber, float kp, float ki, float kd, int16_t max_pa, uint16_t max_drive) {
-        SetPid m = {chamber, kp, ki, kd, max_pa, max_drive};
-        uint8_t p[SetPid::PAYLOAD_SIZE];
-        encode(m, p);
-        return command(MSG_SET_PID, p, sizeof p);
-    }
-    void set_pressure(uint8_t chamber, double pressure_pa) { counts[chamber] = plant::adc_counts(pressure_pa); }
-    // Run until the start-up zero is measured (the readings are still from the start).
-    void boot() { ticks(ZERO_SETTLE_TICKS + ZERO_TICKS + 1); }
-    void ticks(int n) {
-        for (int i = 0; i < n; ++i) {
-            AdcTick adc;
-            for (uint8_t c = 0; c < CHAMBERS; ++c) {
-                adc.sum[c] = (uint16_t)(conversions[c] * counts[c]);
-                adc.count[c] = conversions[c];
-            }
-            adc.bandgap_counts = bandgap_counts;
-            controller.tick(adc, 0);
-        }
-    }
-    // The status of the last ACK/NACK for a command seq (-1 if none); is_ack tells which kind.
-    int reply_status(uint8_t seq, bool* is_ack = 0) const {
-        for (size_t i = sent.size(); i-- > 0;) {
-            const Sent& s = sent[i];
-            if ((s.id == MSG_ACK || s.id == MSG_NACK) && s.payload[1] == seq) {
-                if (is_ack) *is_ack = s.id == MSG_ACK;
-                return s.payload[2];
-            }
-        }
-        return -1;
-    }
-    int count(uint8_t id) const {
-        int n = 0;
-        for (const Sent& s : sent) n += s.id == id;
-        return n;
-    }
-    const Sent* last(uint8_t id) const {
-        for (size_t i = sent.size(); i-- > 0;)
-            if (sent[i].id == id) return &sent[i];
-        return 0;
-    }
-};
 
 static void check_all_off(const Bench& b) {
     for (uint8_t c = 0; c < CHAMBERS; ++c) {

@@ -20,6 +20,7 @@
 #include <unistd.h>
 
 #include "board.h"
+#include "motion.h"
 #include "plant.h"
 #include "profile.h"
 #include "serial_pty.h"
@@ -31,6 +32,7 @@ typedef struct harness {
 	plant_t plant;
 	serial_pty_t serial;
 	profile_t profile;
+	motion_t motion;              /* the stepper drivers' pins */
 	int powered;                  /* the board has power (USB plugged in) and a running core */
 	int halted;                   /* the core stopped by itself (crash or sleep with interrupts off) */
 	double speed;                 /* 1 = wall clock, > 1 faster, 0 = as fast as possible */
@@ -114,9 +116,10 @@ static void reply_state(harness_t *h)
 		snprintf(off_since, sizeof(off_since), "%.9f", h->all_off_since_s);
 	if (h->last_host_byte_s >= 0)
 		snprintf(last_byte, sizeof(last_byte), "%.9f", h->last_host_byte_s);
-	char pins[96] = "null", control_since[32] = "null", peaks[96];
+	char pins[96] = "null", control_since[32] = "null", peaks[96], motion[256] = "null";
 	format_triple(peaks, sizeof(peaks), h->peak_pa, 1.0);
 	if (h->avr) {
+		motion_format_positions(&h->motion, motion, sizeof(motion));
 		pin_mode_t modes[3];
 		board_blower_pin_modes(h->avr, modes);
 		snprintf(pins, sizeof(pins), "[\"%s\", \"%s\", \"%s\"]", pin_mode_names[modes[0]], pin_mode_names[modes[1]],
@@ -128,10 +131,10 @@ static void reply_state(harness_t *h)
 	      "\"chamber_volumes_ml\": %s, \"sensor_voltages_v\": %s, \"powered\": %s, \"halted\": %s, "
 	      "\"resets\": %llu, \"max_lag_s\": %.6f, \"lost_s\": %.6f, \"blower_pins\": %s, \"reset_s\": %.9f, "
 	      "\"control_since_s\": %s, \"floating_before_control_s\": %.6f, \"driven_before_control\": %s, "
-	      "\"peak_pressures_pa\": %s}",
+	      "\"peak_pressures_pa\": %s, \"motion\": %s}",
 	      simulated_seconds(h), off_since, last_byte, pressures, drives, actual, volumes, sensed, h->powered ? "true" : "false",
 	      h->halted ? "true" : "false", (unsigned long long)h->resets, h->max_lag_s, h->lost_s, pins, h->reset_s,
-	      control_since, h->floating_s, h->driven_before_control ? "true" : "false", peaks);
+	      control_since, h->floating_s, h->driven_before_control ? "true" : "false", peaks, motion);
 }
 
 /* Answer `stats`: cycle counts of the timed functions and the serial line counters. */
@@ -148,10 +151,13 @@ static void reply_stats(harness_t *h)
 		                 (unsigned long long)r->total_cycles, (unsigned long long)r->max_cycles);
 	}
 	serial_pty_t *s = &h->serial;
-	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"frequency_hz\": %llu, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
+	char stack[24] = "null";
+	if (h->avr && h->profile.min_sp != 0xFFFF)
+		snprintf(stack, sizeof(stack), "%d", (int)h->avr->ramend - (int)h->profile.min_sp);
+	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"frequency_hz\": %llu, \"stack_bytes_max\": %s, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
 	      "\"bytes_from_mcu\": %llu, \"bytes_dropped\": %llu, \"bytes_flipped\": %llu, \"bytes_overflowed\": %llu}}",
 	      (unsigned long long)(h->cycle - h->profile.since_cycle), (unsigned long long)h->profile.busy_cycles,
-	      (unsigned long long)h->frequency_hz, regions,
+	      (unsigned long long)h->frequency_hz, stack, regions,
 	      (unsigned long long)s->bytes_to_mcu, (unsigned long long)s->bytes_from_mcu,
 	      (unsigned long long)s->bytes_dropped, (unsigned long long)s->bytes_flipped,
 	      (unsigned long long)s->bytes_overflowed);
@@ -179,6 +185,8 @@ static void step_plant(harness_t *h)
 	for (int i = 0; i < 3; i++)
 		if (h->plant.pressure_pa[i] > h->peak_pa[i])
 			h->peak_pa[i] = h->plant.pressure_pa[i];
+	if (h->avr)
+		motion_step(&h->motion, simulated_seconds(h));
 	int any_on = h->plant.drive_level[0] > 0 || h->plant.drive_level[1] > 0 || h->plant.drive_level[2] > 0;
 	if (any_on)
 		h->all_off_since_s = -1;
@@ -246,6 +254,55 @@ static void handle_fault(harness_t *h, char **words, int count)
 	} else {
 		reply("{\"error\": \"bad fault command: use 'fault sensor_cut CH', 'fault tube_off CH', 'fault supply VOLTS', 'fault leak CH M3_PER_S_PER_PA', "
 		      "'fault stuck_blower CH LEVEL', 'fault line_noise FLIP_PROB DROP_PROB' or 'fault clear'\"}");
+		return;
+	}
+	reply("{\"ok\": true, \"time_s\": %.9f}", simulated_seconds(h));
+}
+
+/* Parse an axis index argument; -1 if invalid. */
+static int parse_axis(const char *text)
+{
+	if (!text || text[1] || text[0] < '0' || text[0] >= '0' + MOTION_AXES)
+		return -1;
+	return text[0] - '0';
+}
+
+/* Run a `motion ...` command: report the stepper axes, set the simulated mechanism or home switch, write a pulse
+   log, or reset the counters. */
+static void handle_motion(harness_t *h, char **words, int count)
+{
+	double steps_per_rev = 0, start_deg = 0, low = 0, high = 0, level = 0;
+	int axis = count > 2 ? parse_axis(words[2]) : -1;
+	const char *what = count > 1 ? words[1] : "";
+	if (count == 1) {
+		char details[2048];
+		motion_format_details(&h->motion, details, sizeof(details));
+		reply("%s", details);
+		return;
+	}
+	if (!strcmp(what, "reset") && count == 2) {
+		motion_reset_counters(&h->motion);
+	} else if (!strcmp(what, "axis") && count == 5 && axis >= 0 && !parse_number(words[3], &steps_per_rev)
+	           && steps_per_rev >= 0 && !parse_number(words[4], &start_deg)) {
+		h->motion.axes[axis].steps_per_rev = steps_per_rev;
+		h->motion.axes[axis].start_deg = start_deg;
+	} else if (!strcmp(what, "switch") && count == 4 && axis >= 0 && !strcmp(words[3], "off")) {
+		motion_set_switch(&h->motion.axes[axis], 0, 0, 0, 1);
+	} else if (!strcmp(what, "switch") && count == 6 && axis >= 0 && !parse_number(words[3], &low)
+	           && !parse_number(words[4], &high) && low <= high && !parse_number(words[5], &level)
+	           && (level == 0 || level == 1)) {
+		motion_set_switch(&h->motion.axes[axis], 1, low, high, (int)level);
+	} else if (!strcmp(what, "log") && count == 4 && axis >= 0) {
+		long written = motion_write_log(&h->motion.axes[axis], words[3]);
+		if (written < 0)
+			reply("{\"error\": \"cannot write the pulse log to %s: %s\"}", words[3], strerror(errno));
+		else
+			reply("{\"ok\": true, \"count\": %ld}", written);
+		return;
+	} else {
+		reply("{\"error\": \"bad motion command: use 'motion', 'motion reset', 'motion axis AXIS STEPS_PER_REV "
+		      "START_DEG', 'motion switch AXIS LOW_DEG HIGH_DEG ACTIVE_LEVEL', 'motion switch AXIS off' or "
+		      "'motion log AXIS PATH'\"}");
 		return;
 	}
 	reply("{\"ok\": true, \"time_s\": %.9f}", simulated_seconds(h));
@@ -355,6 +412,8 @@ static void handle_command(harness_t *h, char *line)
 			profile_reset(&h->profile, h->cycle);
 	} else if (!strcmp(command, "fault") && count >= 2) {
 		handle_fault(h, words, count);
+	} else if (!strcmp(command, "motion") && h->avr) {
+		handle_motion(h, words, count);
 	} else if (!strcmp(command, "unplug") && h->avr) {
 		if (h->powered)
 			serial_pty_close(&h->serial);
@@ -397,7 +456,7 @@ static void handle_command(harness_t *h, char *line)
 		h->quit = 1;
 		reply("{\"ok\": true}");
 	} else {
-		reply("{\"error\": \"unknown command '%s': use state, stats [reset], fault ..., unplug, replug, reset, quit%s\"}",
+		reply("{\"error\": \"unknown command '%s': use state, stats [reset], fault ..., motion ..., unplug, replug, reset, quit%s\"}",
 		      command, h->avr ? "" : ", drive U0 U1 U2, advance SECONDS");
 	}
 }
@@ -557,7 +616,7 @@ int main(int argc, char **argv)
 		case 'f': h->frequency_hz = strtoull(optarg, NULL, 0); break;
 		case 'r': seed = strtoull(optarg, NULL, 0); break;
 		case 'p':
-			if (profile_add(&h->profile, optarg)) usage("--profile takes NAME=0xADDRESS[:MIN_CYCLES] (at most 12)");
+			if (profile_add(&h->profile, optarg)) usage("--profile takes NAME=0xADDRESS[:MIN_CYCLES] (at most 24)");
 			break;
 		case 'k':
 			equals = strchr(optarg, '=');
@@ -638,6 +697,7 @@ int main(int argc, char **argv)
 	dup2(saved_stdout, STDOUT_FILENO);
 	close(saved_stdout);
 	board_attach_adc(h->avr, &h->plant);
+	motion_attach(&h->motion, h->avr, &h->cycle, &h->last_core_cycle);
 	serial_pty_attach(&h->serial, h->avr, seed);
 	if (serial_pty_open(&h->serial) < 0) {
 		fprintf(stderr, "phantom-hil: cannot create the pty or its link: %s\n", strerror(errno));

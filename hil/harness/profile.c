@@ -35,6 +35,8 @@ int profile_add(profile_t *profile, const char *spec)
 void profile_check(profile_t *profile, avr_t *avr, uint64_t cycle)
 {
 	uint16_t sp = (uint16_t)(avr->data[R_SPL] | (avr->data[R_SPH] << 8));
+	if (sp < profile->min_sp)
+		profile->min_sp = sp;
 	if (profile->any_active)
 		profile->busy_cycles += cycle - profile->last_cycle;
 	profile->last_cycle = cycle;
@@ -74,6 +76,7 @@ void profile_reset(profile_t *profile, uint64_t cycle)
 	profile->since_cycle = profile->last_cycle = cycle;
 	profile->busy_cycles = 0;
 	profile->any_active = 0;
+	profile->min_sp = 0xFFFF;
 }
 
 void profile_abort(profile_t *profile)

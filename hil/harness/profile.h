@@ -6,7 +6,7 @@
 
 #include "sim_avr.h"
 
-#define PROFILE_MAX_REGIONS 12
+#define PROFILE_MAX_REGIONS 24
 
 /* One function: counted from the cycle PC reaches its entry until SP rises above its entry value (return). */
 typedef struct profile_region {
@@ -26,6 +26,7 @@ typedef struct profile {
 	uint64_t busy_cycles;         /* cycles during which at least one region was active (their union) */
 	uint64_t last_cycle;
 	int any_active;
+	uint16_t min_sp;              /* the lowest stack pointer seen (the stack's deepest point) */
 } profile_t;
 
 /* Add a region from "name=0xADDRESS" or "name=0xADDRESS:MIN_CYCLES"; 0 on success. */

@@ -99,15 +99,18 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
-    return run_daemon(config, simulated_board=_simulated_board if config.sim else None)
+    from phantom.cli.scan_rig import DaemonScanner
+
+    return run_daemon(config, simulated_board=_simulated_board if config.sim else None, scanner=DaemonScanner())
 
 
 def _simulated_board(speed: float) -> SimulatedBoard:
-    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant (mypy checks it
-    against the host's ``SimulatedBoard`` Protocol where it is passed)."""
-    from phantom.hil.sim import SimulatedBoard
+    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant, its stepper
+    drivers turning the scanner's simulated mechanism (mypy checks it against the host's ``SimulatedBoard``
+    Protocol where it is passed)."""
+    from phantom.hil.truth_shape import ScannerBoard
 
-    return SimulatedBoard(speed=speed)
+    return ScannerBoard(speed=speed)
 
 
 def _run_sim_board(args: argparse.Namespace) -> int:

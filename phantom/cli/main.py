@@ -24,6 +24,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.shape",
     "phantom.cli.calibrate",
     "phantom.cli.hil",
+    "phantom.cli.motion",
     "phantom.cli.daemon",
     "phantom.cli.client",
 )

@@ -1,5 +1,6 @@
-"""Subcommands of ``phantom``: ``compare-scan`` (a 3D scan of the phantom against the model) and ``scan
-synthetic`` (a scan of the model with known damage, to try compare-scan on).
+"""Subcommands of ``phantom``: ``compare-scan`` (a 3D scan of the phantom against the model) and ``scan ...``:
+the scanner (``render``, ``capture``, ``calibrate``, ``reconstruct``, ``export``, ``import``, ``validate``) and
+``synthetic`` (a scan of the model with known damage, to try compare-scan on).
 
 Only argparse is imported at module load; the handlers import what they need when they run.
 """
@@ -7,6 +8,7 @@ Only argparse is imported at module load; the handlers import what they need whe
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -32,10 +34,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                               "between the scan and the model's shape (the paper's Fig. 9)")
     compare.set_defaults(run=run_compare_scan)
 
-    scan = subparsers.add_parser("scan", help="scans of the phantom: 'synthetic' writes one made from the model",
-                                 description="Scans of the phantom. 'phantom scan synthetic' writes a scan made "
-                                             "from the model's deformed surface, with known damage.")
-    actions = scan.add_subparsers(dest="scan_action", metavar="synthetic", required=True)
+    scan = subparsers.add_parser(
+        "scan", help="the scanner: render, capture, calibrate, reconstruct, export, import, validate; synthetic",
+        description="The phantom's scanner (scan/README.md): a camera orbiting the hanging phantom, its calibration, "
+                    "the reconstruction of a capture folder, the validation in simulation; and synthetic scans.")
+    actions = scan.add_subparsers(dest="scan_action", metavar="ACTION", required=True)
+    register_scanner(actions)
     synthetic = actions.add_parser(
         "synthetic", help="write a synthetic scan (mm) of the model's deformed surface, e.g. for compare-scan",
         description="Solve the scene's model at the given pressures and write its deformed outer surface as a scan "
@@ -53,6 +57,332 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     synthetic.add_argument("--levels", type=int, default=2, help="midpoint subdivisions (4: about 250k vertices)")
     synthetic.add_argument("--seed", type=int, default=0, help="seed of the noise, holes and motion")
     synthetic.set_defaults(run=run_synthetic_scan)
+
+
+def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """The scanner's actions of ``phantom scan``."""
+    render = actions.add_parser(
+        "render", help="render the virtual rig's pictures of a closed mesh (mm) into a capture folder",
+        description="Render what the simulated scanner's webcam sees of a closed mesh (OBJ, PLY, STL, in mm, in the "
+                    "phantom's frame: z up, hanging from z = 20 mm) as the orbit turns, into a capture folder with "
+                    "the virtual rig's true geometry beside it (or --rig's), for phantom scan reconstruct.")
+    render.add_argument("mesh", metavar="MESH", help="the mesh: .obj, .ply or .stl")
+    render.add_argument("--out", required=True, help="the capture folder to make")
+    _add_plan_options(render)
+    render.add_argument("--scale", type=float, default=1.0, help="picture size as a fraction of 1280x960 (default 1)")
+    render.add_argument("--units", choices=("mm", "cm", "m"), default="mm", help="the mesh's unit (default mm)")
+    render.add_argument("--rig", help="keep this rig calibration (rig.json) beside the pictures instead of the true "
+                                      "rig, e.g. one from phantom scan calibrate --sim")
+    render.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    render.set_defaults(run=run_render)
+
+    reconstruct = actions.add_parser(
+        "reconstruct", help="carve a capture folder's silhouettes into a closed mesh (mm)",
+        description="Find the phantom's silhouette against the backdrop in each picture, carve the visual hull on a "
+                    "voxel grid with the rig's poses (coarse to fine) and write its smooth closed surface in mm, in "
+                    "the rig's frame; phantom compare-scan reads it like any scan.")
+    reconstruct.add_argument("capture", metavar="DIR", help="a capture folder (capture.json, images/)")
+    reconstruct.add_argument("--out", required=True, help="the mesh to write: .ply, .stl or .obj")
+    reconstruct.add_argument("--rig", help="the rig calibration (rig.json; default the one in the folder)")
+    reconstruct.add_argument("--voxel-mm", type=float, default=None, help="the finest voxel (mm, default 0.3)")
+    reconstruct.add_argument("--json", action="store_true", help="print one JSON object")
+    reconstruct.set_defaults(run=run_reconstruct)
+
+    calibrate = actions.add_parser(
+        "calibrate", help="calibrate the rig (lens, orbit axis and radius) from pictures of the ChArUco target",
+        description="Find the ChArUco target's corners in capture folders of it (one folder per placement of the "
+                    "target, from phantom scan capture --target) and fit the camera's intrinsics and distortion, "
+                    "the orbit's axis and radius and the camera's pose at each elevation; write rig.json. --sim "
+                    "renders the virtual rig's target pictures first and compares the result with its truth.")
+    calibrate.add_argument("captures", metavar="DIR", nargs="*", help="capture folders of the target")
+    calibrate.add_argument("--sim", action="store_true", help="calibrate the virtual rig from rendered pictures")
+    calibrate.add_argument("--out", required=True, help="the rig file to write (rig.json)")
+    calibrate.add_argument("--views", type=int, default=11, help="with --sim: pictures per placement and elevation")
+    calibrate.add_argument("--scale", type=float, default=1.0, help="with --sim: picture size, a fraction of 1280x960")
+    calibrate.add_argument("--keep", help="with --sim: keep the target's capture folders here")
+    calibrate.add_argument("--fit-k3", action="store_true", help="fit the sixth-order distortion term too")
+    calibrate.add_argument("--json", action="store_true", help="print one JSON object")
+    calibrate.set_defaults(run=run_calibrate)
+
+    export = actions.add_parser(
+        "export", help="a capture folder with its known camera poses for COLMAP or Meshroom",
+        description="Write the capture's camera model and every picture's pose from the rig's calibration as a "
+                    "COLMAP text model (cameras.txt, images.txt, points3D.txt) and/or Meshroom's cameras.sfm.")
+    export.add_argument("capture", metavar="DIR", help="a capture folder")
+    export.add_argument("--colmap", metavar="FOLDER", help="write the COLMAP text model into this folder")
+    export.add_argument("--meshroom", metavar="FILE", help="write Meshroom's SfMData (cameras.sfm) here")
+    export.add_argument("--rig", help="the rig calibration (default the one in the folder)")
+    export.set_defaults(run=run_export)
+
+    imported = actions.add_parser(
+        "import", help="a photogrammetry tool's mesh, cleaned and closed, as a scan in mm",
+        description="Read the mesh COLMAP or Meshroom made from an export (in the rig's frame), keep its largest "
+                    "piece, close its holes and write it in mm.")
+    imported.add_argument("mesh", metavar="MESH", help="the tool's mesh: .obj, .ply or .stl")
+    imported.add_argument("--out", required=True, help="the mesh to write: .ply, .stl or .obj")
+    imported.add_argument("--units", choices=("mm", "cm", "m"), default="mm", help="the mesh's unit (default mm)")
+    imported.set_defaults(run=run_import)
+
+    capture = actions.add_parser(
+        "capture", help="turn the orbit through a running daemon and take a picture at each stop",
+        description="With the daemon holding the pressures, configure the scanner's axes, then at each stop of "
+                    "the plan move there, settle and take a picture (a webcam, or on the simulated board the "
+                    "virtual camera), and save it with its angles, pressures and time in a capture folder. A "
+                    "fault, a lost camera or Ctrl-C stops it with the motors released and the pictures kept.")
+    capture.add_argument("--out", required=True, help="the capture folder to make")
+    _add_plan_options(capture)
+    capture.add_argument("--start-deg", type=float, default=-180.0,
+                         help="the first orbit angle (deg, default -180: a turn within the +-190 deg soft limits)")
+    capture.add_argument("--span-deg", type=float, default=360.0,
+                         help="the orbit's span: 360 (default) a whole turn, less from --start-deg to its end")
+    capture.add_argument("--settle-s", type=float, default=0.3, help="wait after each move (s, default 0.3)")
+    capture.add_argument("--camera", default="virtual",
+                         help="'virtual' (the simulated board's virtual camera, default), a device number (0 for "
+                              "/dev/video0), or a video file or image sequence (frames/%%04d.png)")
+    capture.add_argument("--width", type=int, help="webcam: picture width (px)")
+    capture.add_argument("--height", type=int, help="webcam: picture height (px)")
+    capture.add_argument("--exposure", type=float, help="webcam: fixed exposure (the driver's units)")
+    capture.add_argument("--focus", type=float, help="webcam: fixed focus (the driver's units)")
+    capture.add_argument("--rig", help="keep this rig calibration (rig.json) beside the pictures")
+    capture.add_argument("--target", action="store_true",
+                         help="pictures of the calibration target (the virtual camera renders it)")
+    capture.add_argument("--placement", type=int, default=0, help="virtual --target: the target's placement")
+    capture.add_argument("--scale", type=float, default=1.0, help="virtual camera: picture size, of 1280x960")
+    capture.add_argument("--seed", type=int, default=0, help="virtual camera: seed of the sensor noise")
+    capture.add_argument("--socket", help="the daemon's API socket (default: as phantom status)")
+    capture.set_defaults(run=run_capture)
+
+    validate = actions.add_parser(
+        "validate", help="the paper's validation by scanning, on the simulated rig (--sim)",
+        description="Start the daemon on the simulated board with the BPH scene and, at each of its target "
+                    "volumes: set the target (the inverse's pressures), scan it with the orbit and the virtual "
+                    "camera, reconstruct, and compare with the target, the model and the simulated phantom's truth; "
+                    "write a report (markdown, the paper's Figs. 9 and 10 as PNGs) and a Rerun recording.")
+    validate.add_argument("--sim", action="store_true", help="on the simulated board (required)")
+    validate.add_argument("--out", default="out/scan-validation", help="folder for everything (default "
+                                                                        "out/scan-validation)")
+    validate.add_argument("--scene", help="the scene (default the BPH growth example)")
+    validate.add_argument("--targets", help="target volumes (ml; default the scene's steps)")
+    validate.add_argument("--views", type=int, default=60, help="pictures per turn (default 60: 120 in two passes)")
+    validate.add_argument("--elevations", default="0,30", help="the passes' elevations (deg, default 0,30)")
+    validate.add_argument("--scale", type=float, default=1.0, help="picture size, of 1280x960 (default 1)")
+    validate.add_argument("--voxel-mm", type=float, help="the finest voxel (mm, default 0.3)")
+    validate.add_argument("--settle-s", type=float, default=0.3, help="wait after each move (s)")
+    validate.add_argument("--target-views", type=int, default=11, help="calibration pictures per placement and pass")
+    validate.add_argument("--rig", help="a rig calibration to use instead of calibrating first")
+    validate.add_argument("--sim-speed", type=float, default=1.0, help="the simulated board's speed-up")
+    validate.add_argument("--daemon-timeout-s", type=float, default=600.0,
+                          help="how long one stage of the daemon's start may go without moving on (s)")
+    validate.add_argument("--no-rerun", dest="rerun", action="store_false", help="no Rerun recording")
+    validate.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    validate.add_argument("--json", action="store_true", help="print one JSON object")
+    validate.set_defaults(run=run_validate)
+
+
+def run_capture(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan capture`` (phantom/cli/scan_rig.py)."""
+    from phantom.cli.scan_rig import run_capture as handler
+
+    return handler(args)
+
+
+def run_validate(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan validate`` (phantom/cli/scan_rig.py)."""
+    import sys
+
+    from phantom.cli.scan_rig import run_validate as handler
+
+    args.argv = sys.argv[1:]
+    return handler(args)
+
+
+def _add_plan_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--views", type=int, default=60, help="pictures per turn of the orbit (default 60)")
+    parser.add_argument("--elevations", default="0,30", help="the elevations (deg) of the passes (default 0,30)")
+
+
+def _plan(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
+    from phantom.cli.common import parse_numbers
+    from phantom.scan.capture import CaptureError, Plan
+
+    if args.views < 1:
+        raise CaptureError(f"--views must be at least 1, got {args.views}")
+    return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
+
+
+def _scale(value: float) -> float:
+    from phantom.scan.capture import CaptureError
+
+    if not 0.05 <= value <= 4.0:
+        raise CaptureError(f"--scale must be between 0.05 and 4 (a fraction of 1280x960), got {value:g}")
+    return value
+
+
+def _progress(what: str) -> Any:
+    """A progress line on stderr, rewritten in place: ``what 12/120``."""
+    import sys
+
+    def show(done: int, total: int, frame: Any) -> None:
+        end = "\n" if done == total else ""
+        print(f"\r{what} {done}/{total} (orbit {frame.orbit_deg:7.2f} deg, elevation {frame.elevation_deg:g} deg)",
+              end=end, file=sys.stderr, flush=True)
+
+    return show
+
+
+def run_render(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan render``."""
+    from phantom.scan.camera import Rig, virtual_rig
+    from phantom.scan.compare import read_scan
+    from phantom.scan.virtual import render_capture
+
+    plan = _plan(args)
+    true_rig = virtual_rig(_scale(args.scale), plan.elevations_deg)
+    kept = Rig.load(args.rig) if args.rig else true_rig
+    mesh = read_scan(args.mesh, args.units)
+    conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true"}
+    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, _progress("rendered"))
+    if kept is not true_rig:
+        kept.save(folder.path / "rig.json")
+    print(f"wrote {len(folder.frames)} pictures of {args.mesh} ({true_rig.camera.width}x{true_rig.camera.height}) "
+          f"into {folder.path}; reconstruct it with `phantom scan reconstruct {folder.path} --out scan.ply`")
+    return 0
+
+
+def run_reconstruct(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan reconstruct``."""
+    import json
+    import sys
+
+    from phantom.scan.camera import Rig
+    from phantom.scan.capture import CaptureFolder
+    from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
+
+    folder = CaptureFolder.open(args.capture)
+    rig = Rig.load(args.rig) if args.rig else None
+    voxel_mm = VOXEL_MM if args.voxel_mm is None else args.voxel_mm
+    result = reconstruct(folder, rig, voxel_mm, progress=None if args.json else lambda text: print(
+        text, file=sys.stderr))
+    path = write_mesh(result.mesh, args.out)
+    summary = {"capture": str(folder.path), "mesh": str(path), "views": result.views, "voxel_mm": result.voxel_mm,
+               "volume_ml": result.volume_ml, "vertices": len(result.mesh.vertices_mm),
+               "triangles": len(result.mesh.triangles), "stage_s": result.stage_s,
+               "silhouettes_touching_edge": result.touching_edge}
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    print(f"wrote {path}: {result.volume_ml:.3f} ml, {len(result.mesh.triangles)} triangles, closed; carved from "
+          f"{result.views} pictures at {result.voxel_mm:g} mm in "
+          + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in result.stage_s.items()))
+    if result.touching_edge:
+        print(f"warning: the silhouette touches the picture's edge in {result.touching_edge} picture(s): the "
+              f"phantom was not whole in view there, and what was cut off is missing", file=sys.stderr)
+    return 0
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan calibrate``."""
+    import json
+    import tempfile
+
+    from phantom.scan.calibrate import CalibrationError, calibrate_rig, target_views
+    from phantom.scan.camera import virtual_rig
+    from phantom.scan.capture import CaptureFolder
+    from phantom.scan.virtual import render_target_captures
+
+    if args.sim == bool(args.captures):
+        raise CalibrationError("give the target's capture folders, or --sim for the virtual rig (not both)")
+    truth = None
+    with tempfile.TemporaryDirectory(prefix="phantom-target-") as scratch:
+        if args.sim:
+            truth = virtual_rig(_scale(args.scale))
+            folders = render_target_captures(truth, args.keep or scratch, args.views,
+                                             progress=_progress("target pictures"))
+        else:
+            folders = [CaptureFolder.open(path) for path in args.captures]
+        first = folders[0].image(folders[0].frames[0]) if folders[0].frames else None
+        if first is None:
+            raise CalibrationError(f"{folders[0].path} holds no pictures")
+        height, width = first.shape[:2]
+        rig = calibrate_rig(target_views(folders), width, height, args.fit_k3)
+    path = rig.save(args.out)
+    summary = {"rig": str(path), **rig.to_json()}
+    if truth is not None:
+        summary["against_truth"] = rig_against_truth(rig, truth)
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    report, camera = rig.calibration, rig.camera
+    print(f"wrote {path}: {report['pictures_used']} of {report['pictures']} pictures, {report['corners']} corners, "
+          f"reprojection RMS {report['rms_px']:.3f} px (worst picture {report['worst_picture_rms_px']:.3f} px)")
+    print(f"camera     {camera.width}x{camera.height}, f {camera.fx:.2f}, {camera.fy:.2f} px, centre {camera.cx:.2f}, "
+          f"{camera.cy:.2f} px, k1 {camera.distortion[0]:.4f}, k2 {camera.distortion[1]:.4f}, "
+          f"p1 {camera.distortion[2]:.5f}, p2 {camera.distortion[3]:.5f}, k3 {camera.distortion[4]:.4f}")
+    for entry in rig.elevations:
+        print(f"orbit      elevation {entry.elevation_deg:g} deg: radius {rig.radius_mm(entry.elevation_deg):.2f} mm")
+    if truth is not None:
+        print("truth      " + ", ".join(f"{key} {value:.4g}" for key, value in summary["against_truth"].items()))
+    return 0
+
+
+def rig_against_truth(rig: Any, truth: Any) -> dict[str, float]:
+    """How far a calibrated rig is from the true one, in quantities that do not depend on the world frame each
+    chose: the intrinsics, the axis in the camera's frame at orbit 0 and the first elevation (its direction's
+    angle, its distance at the camera's point of view), each elevation's radius."""
+    import math
+
+    import numpy as np
+
+    first = rig.elevations[0].elevation_deg
+
+    def axis_in_camera(of: Any) -> tuple[Any, Any]:
+        pose = of.pose(0.0, first)
+        return pose.apply(of.axis_point_mm[None])[0], pose.rotation @ of.axis_direction
+
+    point, direction = axis_in_camera(rig)
+    true_point, true_direction = axis_in_camera(truth)
+    offset = point - true_point
+    result = {
+        "fx_pct": 100 * (rig.camera.fx / truth.camera.fx - 1), "fy_pct": 100 * (rig.camera.fy / truth.camera.fy - 1),
+        "cx_px": rig.camera.cx - truth.camera.cx, "cy_px": rig.camera.cy - truth.camera.cy,
+        "k1": rig.camera.distortion[0] - truth.camera.distortion[0],
+        "axis_angle_deg": math.degrees(math.acos(min(1.0, abs(float(direction @ true_direction))))),
+        "axis_offset_mm": float(np.linalg.norm(offset - (offset @ true_direction) * true_direction)),
+    }
+    for entry in rig.elevations:
+        result[f"radius_{entry.elevation_deg:g}_mm"] = (rig.radius_mm(entry.elevation_deg)
+                                                       - truth.radius_mm(entry.elevation_deg))
+    return result
+
+
+def run_export(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan export``."""
+    from phantom.scan.camera import Rig
+    from phantom.scan.capture import CaptureError, CaptureFolder
+    from phantom.scan.export import export_colmap, export_meshroom
+
+    if not (args.colmap or args.meshroom):
+        raise CaptureError("say what to write: --colmap FOLDER and/or --meshroom FILE")
+    folder = CaptureFolder.open(args.capture)
+    rig = Rig.load(args.rig) if args.rig else None
+    if args.colmap:
+        print(f"wrote the COLMAP model of {len(folder.frames)} pictures into {export_colmap(folder, args.colmap, rig)} "
+              f"(images: {folder.path / 'images'})")
+    if args.meshroom:
+        print(f"wrote {export_meshroom(folder, args.meshroom, rig)} ({len(folder.frames)} views)")
+    return 0
+
+
+def run_import(args: argparse.Namespace) -> int:
+    """Handler of ``phantom scan import``."""
+    from phantom.model.mesh.surface import enclosed_volume_ml
+    from phantom.scan.export import import_mesh
+    from phantom.scan.reconstruct import write_mesh
+
+    mesh = import_mesh(args.mesh, args.units)
+    path = write_mesh(mesh, args.out)
+    print(f"wrote {path}: {enclosed_volume_ml(mesh):.3f} ml, {len(mesh.triangles)} triangles, closed")
+    return 0
 
 
 def run_compare_scan(args: argparse.Namespace) -> int:

@@ -8,7 +8,7 @@
 namespace core {
 
 const uint8_t FIRMWARE_MAJOR = 0;
-const uint8_t FIRMWARE_MINOR = 3;
+const uint8_t FIRMWARE_MINOR = 4;
 const uint8_t FIRMWARE_PATCH = 0;
 
 const uint8_t CHAMBERS = 3;

@@ -73,19 +73,27 @@ void Controller::handle_frame() {
     case MSG_CLEAR_FAULT: return on_clear_fault(seq);
     case MSG_ZERO_SENSORS: return on_zero_sensors(seq);
     case MSG_TEST_HANG: return on_test_hang(seq, payload);
+    case MSG_MOTION_CONFIG: return on_motion_config(seq, payload);
+    case MSG_MOVE_TO: return on_move_to(seq, payload);
+    case MSG_HOME: return on_home(seq, payload);
+    case MSG_MOTION_STOP: return on_motion_stop(seq, payload);
     default: return;
     }
 }
 
 // Answer HELLO with who we are; open the session only if both sides were built from the same spec. A refused
-// HELLO also vents: without a session nothing supervises the blowers (no host deadline).
+// HELLO also vents and halts the motion: without a session nothing supervises the blowers or the steppers (no
+// host deadline).
 void Controller::on_hello(const uint8_t* payload) {
     Hello hello;
     decode(hello, payload);
     bool match = hello.spec_hash == SPEC_HASH && hello.protocol_version == PROTOCOL_VERSION;
     session_open_ = match;
     reply_cached_ = false;  // a new session numbers its commands afresh
-    if (!match) vent();
+    if (!match) {
+        vent();
+        motion_.halt();
+    }
     last_telemetry_ms_ = time_ms_;
     HelloReply reply_msg;
     reply_msg.protocol_version = PROTOCOL_VERSION;
@@ -102,7 +110,10 @@ void Controller::on_hello(const uint8_t* payload) {
     uint8_t out[HelloReply::PAYLOAD_SIZE];
     encode(reply_msg, out);
     send(MSG_HELLO_REPLY, out, sizeof out);
-    if (match) send_board_info();
+    if (!match) return;
+    send_board_info();
+    for (uint8_t n = 0; n < AXES; ++n)
+        if (motion_.axis(n).configured()) motion_info_pending_ |= (uint8_t)(1u << n);
 }
 
 // What HELLO_REPLY's fixed layout cannot carry: where the settings and the zeros came from, and the supply.
@@ -210,12 +221,52 @@ void Controller::on_test_hang(uint8_t seq, const uint8_t* payload) {
 #endif
     if (!bench_build || get_u32(payload) != TEST_HANG_MAGIC) return reply(MSG_TEST_HANG, seq, STATUS_BAD_MAGIC);
     vent();
+    motion_.halt();
     reply(MSG_TEST_HANG, seq, STATUS_OK);
     hang_requested_ = true;
 }
 
-// One tick: measure, check every fault, then zero or control, then maybe report.
-void Controller::tick(const AdcTick& adc, uint16_t missed_ticks) {
+// One axis's configuration; the board answers with MOTION_INFO (in a later tick) once it is taken.
+void Controller::on_motion_config(uint8_t seq, const uint8_t* payload) {
+    MotionConfig msg;
+    decode(msg, payload);
+    if (msg.axis >= AXES) return reply(MSG_MOTION_CONFIG, seq, STATUS_BAD_VALUE);
+    AxisConfig config = {msg.steps_per_rev,  msg.max_speed_mdeg_s, msg.max_accel_mdeg_s2, msg.min_angle_mdeg,
+                         msg.max_angle_mdeg, msg.home_speed_mdeg_s, msg.options};
+    uint8_t status = motion_.axis(msg.axis).configure(config);
+    if (status == STATUS_OK) motion_info_pending_ |= (uint8_t)(1u << msg.axis);
+    reply(MSG_MOTION_CONFIG, seq, status);
+}
+
+// Motion commands are refused while a fault is latched (it has halted every axis), except MOTION_STOP.
+void Controller::on_move_to(uint8_t seq, const uint8_t* payload) {
+    MoveTo msg;
+    decode(msg, payload);
+    if (msg.axis >= AXES) return reply(MSG_MOVE_TO, seq, STATUS_BAD_VALUE);
+    if (fault_flags_) return reply(MSG_MOVE_TO, seq, STATUS_FAULT_LATCHED);
+    reply(MSG_MOVE_TO, seq, motion_.move_to(msg.axis, msg.angle_mdeg));
+}
+
+void Controller::on_home(uint8_t seq, const uint8_t* payload) {
+    Home msg;
+    decode(msg, payload);
+    if (msg.axis >= AXES) return reply(MSG_HOME, seq, STATUS_BAD_VALUE);
+    if (fault_flags_) return reply(MSG_HOME, seq, STATUS_FAULT_LATCHED);
+    reply(MSG_HOME, seq, motion_.home(msg.axis, msg.method, msg.angle_mdeg));
+}
+
+void Controller::on_motion_stop(uint8_t seq, const uint8_t* payload) {
+    MotionStop msg;
+    decode(msg, payload);
+    if (msg.release > 1) return reply(MSG_MOTION_STOP, seq, STATUS_BAD_VALUE);
+    motion_.stop(msg.release == 1);
+    reply(MSG_MOTION_STOP, seq, STATUS_OK);
+}
+
+// One tick: measure, check every fault, then zero or control, move the steppers on (planning their next window
+// when one starts), then maybe report: at most one frame a tick, telemetry first, then the motion status, then a
+// motion configuration.
+void Controller::tick(const AdcTick& adc, uint16_t missed_ticks, const MotionSample& motion) {
     time_ms_ += (uint32_t)TICK_MS * (1u + missed_ticks);
     tick_overruns_ = (uint16_t)(tick_overruns_ + missed_ticks);
     read_sensors(adc);
@@ -225,7 +276,8 @@ void Controller::tick(const AdcTick& adc, uint16_t missed_ticks) {
     if (boot_zero_pending_ && !zero_ticks_left_ && settled_ticks_ >= ZERO_SETTLE_TICKS) start_zeroing(false, 0);
     if (zero_ticks_left_) run_zeroing();
     run_control();
-    send_telemetry();
+    motion_.tick(motion);
+    if (!send_telemetry() && !send_motion_status()) send_motion_info();
 }
 
 // Average this tick's ADC conversions; a chamber without a new conversion keeps its last reading, marked
@@ -406,10 +458,10 @@ void Controller::run_control() {
     }
 }
 
-// Stream one TELEMETRY frame per period while a session is open.
-void Controller::send_telemetry() {
-    if (!session_open_ || telemetry_period_ms_ == 0) return;
-    if (time_ms_ - last_telemetry_ms_ < telemetry_period_ms_) return;
+// Stream one TELEMETRY frame per period while a session is open; whether one was sent.
+bool Controller::send_telemetry() {
+    if (!session_open_ || telemetry_period_ms_ == 0) return false;
+    if (time_ms_ - last_telemetry_ms_ < telemetry_period_ms_) return false;
     last_telemetry_ms_ = time_ms_;
     Telemetry msg;
     msg.time_ms = time_ms_;
@@ -428,15 +480,60 @@ void Controller::send_telemetry() {
     uint8_t out[Telemetry::PAYLOAD_SIZE];
     encode(msg, out);
     send(MSG_TELEMETRY, out, sizeof out);
+    return true;
 }
 
-// The one fault path: every blower off, setpoints to 0, a zero calibration aborted, the bit latched, and
-// a FAULT frame sent the first time this bit latches.
+// MOTION_STATUS every MOTION_STATUS_PERIOD_MS while a session is open and an axis is configured, and at once
+// after a command or a change of state; whether one was sent.
+bool Controller::send_motion_status() {
+    if (!session_open_ || !motion_.any_configured()) return false;
+    if (!motion_.changed() && time_ms_ - last_motion_status_ms_ < MOTION_STATUS_PERIOD_MS) return false;
+    last_motion_status_ms_ = time_ms_;
+    motion_.clear_changed();
+    MotionStatus msg;
+    msg.time_ms = time_ms_;
+    for (uint8_t n = 0; n < AXES; ++n) {
+        const Axis& axis = motion_.axis(n);
+        msg.state[n] = axis.state();
+        msg.flags[n] = axis.flags();
+        msg.result[n] = axis.result();
+        msg.position_steps[n] = axis.position_steps();
+        msg.position_mdeg[n] = axis.position_mdeg();
+        msg.target_mdeg[n] = axis.target_mdeg();
+        msg.velocity_mdeg_s[n] = axis.velocity_mdeg_s();
+    }
+    uint8_t out[MotionStatus::PAYLOAD_SIZE];
+    encode(msg, out);
+    send(MSG_MOTION_STATUS, out, sizeof out);
+    return true;
+}
+
+// One pending MOTION_INFO (an axis's configuration as held), lowest axis first; whether one was sent.
+bool Controller::send_motion_info() {
+    if (!motion_info_pending_) return false;
+    if (!session_open_) motion_info_pending_ = 0;
+    for (uint8_t n = 0; n < AXES; ++n) {
+        if (!(motion_info_pending_ & (1u << n))) continue;
+        motion_info_pending_ &= (uint8_t)~(1u << n);
+        const AxisConfig& c = motion_.axis(n).config();
+        MotionInfo msg = {n, c.steps_per_rev, c.max_speed_mdeg_s, c.max_accel_mdeg_s2, c.min_angle_mdeg,
+                          c.max_angle_mdeg, c.home_speed_mdeg_s, c.options};
+        uint8_t out[MotionInfo::PAYLOAD_SIZE];
+        encode(msg, out);
+        send(MSG_MOTION_INFO, out, sizeof out);
+        return true;
+    }
+    return false;
+}
+
+// The one fault path: every blower off, setpoints to 0, a zero calibration aborted, every stepper halted and its
+// driver released, the bit latched, and a FAULT frame sent the first time this bit latches.
 void Controller::latch_fault(uint8_t bit) {
     uint16_t mask = (uint16_t)1 << bit;
     bool new_fault = !(fault_flags_ & mask);
     fault_flags_ |= mask;
     vent();
+    motion_.halt();
     if (zero_ticks_left_) end_zeroing(STATUS_FAULT_LATCHED);
     if (!new_fault) return;
     Fault msg;

@@ -5,6 +5,7 @@
 
 #include "config.h"
 #include "frame.h"
+#include "motion.h"
 #include "pid.h"
 #include "protocol_generated.h"
 #include "settings.h"
@@ -32,11 +33,17 @@ public:
     // Take one received byte; a completed valid frame is acted on at once.
     void receive(uint8_t byte);
 
-    // One control step with this tick's ADC readings; missed_ticks says how many ticks the loop skipped.
-    void tick(const AdcTick& adc, uint16_t missed_ticks);
+    // One control step with this tick's ADC readings and motion inputs; missed_ticks says how many ticks the loop
+    // skipped. At a window's start (motion.window_start) step_plan() is then the stepper outputs of the next one.
+    void tick(const AdcTick& adc, uint16_t missed_ticks, const MotionSample& motion);
 
     // Drive level of a chamber, 0..65535 for 0..1; 0 means the blower pin is disconnected.
     uint16_t drive(uint8_t chamber) const { return drive_[chamber]; }
+    // The steps of the next tick, and which stepper drivers are enabled now (bit n: axis n; applied at once, so
+    // that a fault or a refused HELLO releases them without waiting for a tick).
+    const StepPlan& step_plan() const { return motion_.plan(); }
+    uint8_t motion_enabled_mask() const { return motion_.enabled_mask(); }
+    const Motion& motion() const { return motion_; }
     // Set by TEST_HANG after its ACK: the AVR layer stops the blowers and stops kicking the watchdog.
     bool hang_requested() const { return hang_requested_; }
     uint32_t time_ms() const { return time_ms_; }
@@ -74,6 +81,10 @@ private:
     void on_vent(uint8_t seq);
     void on_zero_sensors(uint8_t seq);
     void on_test_hang(uint8_t seq, const uint8_t* payload);
+    void on_motion_config(uint8_t seq, const uint8_t* payload);
+    void on_move_to(uint8_t seq, const uint8_t* payload);
+    void on_home(uint8_t seq, const uint8_t* payload);
+    void on_motion_stop(uint8_t seq, const uint8_t* payload);
 
     void read_sensors(const AdcTick& adc);
     void check_supply(uint16_t bandgap_counts);
@@ -88,7 +99,9 @@ private:
     void accept_zero(uint8_t chamber, int16_t zero_x16, uint8_t source);
     void send_board_info();
     void run_control();
-    void send_telemetry();
+    bool send_telemetry();
+    bool send_motion_status();
+    bool send_motion_info();
 
     void latch_fault(uint8_t bit);
     bool fault_cause_present() const;
@@ -150,6 +163,12 @@ private:
     uint8_t cached_msg_id_ = 0;
     uint8_t cached_seq_ = 0;
     uint8_t cached_status_ = 0;
+
+    // The scanner's stepper axes; their status is sent every MOTION_STATUS_PERIOD_MS and on a change, their
+    // configuration (MOTION_INFO) once for each bit of motion_info_pending_, each in a tick without telemetry.
+    Motion motion_;
+    uint32_t last_motion_status_ms_ = 0;
+    uint8_t motion_info_pending_ = 0;
 };
 
 }  // namespace core

@@ -6,7 +6,7 @@
 namespace proto {
 
 const uint16_t PROTOCOL_VERSION = 1;
-const uint32_t SPEC_HASH = 0x773B91D2UL;
+const uint32_t SPEC_HASH = 0x5810A65CUL;
 const uint8_t MAX_BODY_BYTES = 64;
 const uint8_t CHAMBER_COUNT = 3;
 
@@ -32,6 +32,14 @@ const uint16_t DEFAULT_HOST_DEADLINE_MS = 500;  // dead-host deadline after a HE
 const uint16_t MIN_HOST_DEADLINE_MS = 50;  // shortest deadline SET_CONFIG accepts [ms]
 const uint16_t MAX_HOST_DEADLINE_MS = 10000;  // longest deadline SET_CONFIG accepts [ms]
 const uint32_t TEST_HANG_MAGIC = 0x48414E47UL;  // TEST_HANG's magic number (compiled into bench builds only)
+const uint8_t MOTION_AXES = 2;  // stepper axes of the scanner: 0 the camera's orbit, 1 its elevation
+const uint16_t MOTION_MAX_STEP_RATE = 2500;  // fastest step rate of an axis: max_speed times steps_per_rev / 360 must not exceed it (the CPU budget, firmware/README.md) [steps/s]
+const uint32_t MOTION_MAX_STEPS_PER_REV = 0x000F4240UL;  // largest steps_per_rev MOTION_CONFIG accepts [steps]
+const uint32_t MOTION_ANGLE_LIMIT_MDEG = 0x000AFC80UL;  // soft limits, targets and home angles lie within +- this (two turns) [mdeg]
+const uint16_t MOTION_ENABLE_DELAY_MS = 10;  // a released driver is enabled this long before its first step [ms]
+const uint16_t MOTION_IDLE_RELEASE_MS = 1000;  // with RELEASE_WHEN_IDLE, a driver at rest this long is released (EN off) [ms]
+const uint16_t MOTION_STATUS_PERIOD_MS = 100;  // MOTION_STATUS period while a session is open and an axis is configured [ms]
+const uint8_t MOTION_HOME_SEARCH_PERCENT = 110;  // a switch search gives up after this share of the soft range (max_angle - min_angle) [%]
 
 enum MsgId : uint8_t {
     MSG_HELLO = 0x01,
@@ -50,6 +58,12 @@ enum MsgId : uint8_t {
     MSG_TEST_HANG = 0x16,
     MSG_TELEMETRY = 0x20,
     MSG_FAULT = 0x21,
+    MSG_MOTION_CONFIG = 0x17,
+    MSG_MOVE_TO = 0x18,
+    MSG_HOME = 0x19,
+    MSG_MOTION_STOP = 0x1A,
+    MSG_MOTION_STATUS = 0x22,
+    MSG_MOTION_INFO = 0x23,
 };
 
 // Status code of an ACK (OK or CLAMPED) or a NACK (every other value).
@@ -67,6 +81,9 @@ enum Status : uint8_t {
     STATUS_BUSY = 10,
     STATUS_BAD_MAGIC = 11,
     STATUS_NOT_SETTLED = 12,
+    STATUS_OUT_OF_LIMITS = 13,
+    STATUS_NO_AXIS = 14,
+    STATUS_NOT_REFERENCED = 15,
 };
 
 // Why the board last started (MCUSR, read before anything else runs).
@@ -108,6 +125,31 @@ enum ChamberState : uint8_t {
     CHAMBER_STATE_FAULT = 3,
 };
 
+// What a motion axis is doing.
+enum MotionState : uint8_t {
+    MOTION_STATE_ABSENT = 0,
+    MOTION_STATE_IDLE = 1,
+    MOTION_STATE_MOVING = 2,
+    MOTION_STATE_HOMING = 3,
+    MOTION_STATE_STOPPING = 4,
+};
+
+// How an axis's last move, homing or stop ended.
+enum MotionResult : uint8_t {
+    MOTION_RESULT_NONE = 0,
+    MOTION_RESULT_REACHED = 1,
+    MOTION_RESULT_STOPPED = 2,
+    MOTION_RESULT_HOMED = 3,
+    MOTION_RESULT_SWITCH_NOT_FOUND = 4,
+    MOTION_RESULT_FAULT = 5,
+};
+
+// How HOME sets an axis's position.
+enum HomeMethod : uint8_t {
+    HOME_METHOD_HERE = 0,
+    HOME_METHOD_SWITCH = 1,
+};
+
 // Latched fault flags (bit numbers). Any set bit stops every blower until CLEAR_FAULT.
 enum FaultBit : uint8_t {
     FAULT_OVERPRESSURE_0 = 0,
@@ -125,6 +167,23 @@ enum FaultBit : uint8_t {
     FAULT_IMPLAUSIBLE_1 = 12,
     FAULT_IMPLAUSIBLE_2 = 13,
     FAULT_SUPPLY = 14,
+};
+
+// State of one motion axis (bit numbers).
+enum MotionFlagsBit : uint8_t {
+    MOTION_FLAGS_ENABLED = 0,
+    MOTION_FLAGS_REFERENCED = 1,
+    MOTION_FLAGS_SWITCH_HOMED = 2,
+    MOTION_FLAGS_SWITCH_ACTIVE = 3,
+};
+
+// Options of one motion axis (bit numbers), set by MOTION_CONFIG.
+enum MotionOptionsBit : uint8_t {
+    MOTION_OPTIONS_REVERSE = 0,
+    MOTION_OPTIONS_HOME_SWITCH = 1,
+    MOTION_OPTIONS_SWITCH_ACTIVE_LOW = 2,
+    MOTION_OPTIONS_HOME_POSITIVE = 3,
+    MOTION_OPTIONS_RELEASE_WHEN_IDLE = 4,
 };
 
 // Little-endian field access, independent of the host's byte order and alignment.
@@ -482,6 +541,164 @@ inline void decode(Fault& m, const uint8_t* in) {
     m.pressure_pa[2] = get_i16(in + 11);
 }
 
+// MOTION_CONFIG (host sends; acked): One axis's steps per turn, speed and acceleration limits, soft limits and homing; MOTION_INFO follows.
+struct MotionConfig {
+    enum { ID = 0x17, PAYLOAD_SIZE = 26 };
+    uint8_t axis;
+    float steps_per_rev; // steps
+    uint32_t max_speed_mdeg_s; // deg/s
+    uint32_t max_accel_mdeg_s2; // deg/s^2
+    int32_t min_angle_mdeg; // deg
+    int32_t max_angle_mdeg; // deg
+    uint32_t home_speed_mdeg_s; // deg/s
+    uint8_t options;
+};
+inline void encode(const MotionConfig& m, uint8_t* out) {
+    put_u8(out + 0, m.axis);
+    put_f32(out + 1, m.steps_per_rev);
+    put_u32(out + 5, m.max_speed_mdeg_s);
+    put_u32(out + 9, m.max_accel_mdeg_s2);
+    put_i32(out + 13, m.min_angle_mdeg);
+    put_i32(out + 17, m.max_angle_mdeg);
+    put_u32(out + 21, m.home_speed_mdeg_s);
+    put_u8(out + 25, m.options);
+}
+inline void decode(MotionConfig& m, const uint8_t* in) {
+    m.axis = get_u8(in + 0);
+    m.steps_per_rev = get_f32(in + 1);
+    m.max_speed_mdeg_s = get_u32(in + 5);
+    m.max_accel_mdeg_s2 = get_u32(in + 9);
+    m.min_angle_mdeg = get_i32(in + 13);
+    m.max_angle_mdeg = get_i32(in + 17);
+    m.home_speed_mdeg_s = get_u32(in + 21);
+    m.options = get_u8(in + 25);
+}
+
+// MOVE_TO (host sends; acked): Moves one axis to an angle within its limits; ACK at once, MOTION_STATUS says when it is there.
+struct MoveTo {
+    enum { ID = 0x18, PAYLOAD_SIZE = 5 };
+    uint8_t axis;
+    int32_t angle_mdeg; // deg
+};
+inline void encode(const MoveTo& m, uint8_t* out) {
+    put_u8(out + 0, m.axis);
+    put_i32(out + 1, m.angle_mdeg);
+}
+inline void decode(MoveTo& m, const uint8_t* in) {
+    m.axis = get_u8(in + 0);
+    m.angle_mdeg = get_i32(in + 1);
+}
+
+// HOME (host sends; acked): Sets an axis's position, here or at its home switch; ACK at once, MOTION_STATUS says HOMED.
+struct Home {
+    enum { ID = 0x19, PAYLOAD_SIZE = 6 };
+    uint8_t axis;
+    uint8_t method;
+    int32_t angle_mdeg; // deg
+};
+inline void encode(const Home& m, uint8_t* out) {
+    put_u8(out + 0, m.axis);
+    put_u8(out + 1, m.method);
+    put_i32(out + 2, m.angle_mdeg);
+}
+inline void decode(Home& m, const uint8_t* in) {
+    m.axis = get_u8(in + 0);
+    m.method = get_u8(in + 1);
+    m.angle_mdeg = get_i32(in + 2);
+}
+
+// MOTION_STOP (host sends; acked): Brings every moving axis to rest at its acceleration limit (a homing too).
+struct MotionStop {
+    enum { ID = 0x1A, PAYLOAD_SIZE = 1 };
+    uint8_t release;
+};
+inline void encode(const MotionStop& m, uint8_t* out) {
+    put_u8(out + 0, m.release);
+}
+inline void decode(MotionStop& m, const uint8_t* in) {
+    m.release = get_u8(in + 0);
+}
+
+// MOTION_STATUS (board sends; not acked): Where the axes are: every MOTION_STATUS_PERIOD_MS, and at once after a motion command or a change.
+struct MotionStatus {
+    enum { ID = 0x22, PAYLOAD_SIZE = 42 };
+    uint32_t time_ms; // ms
+    uint8_t state[2];
+    uint8_t flags[2];
+    uint8_t result[2];
+    int32_t position_steps[2]; // steps
+    int32_t position_mdeg[2]; // deg
+    int32_t target_mdeg[2]; // deg
+    int32_t velocity_mdeg_s[2]; // deg/s
+};
+inline void encode(const MotionStatus& m, uint8_t* out) {
+    put_u32(out + 0, m.time_ms);
+    put_u8(out + 4, m.state[0]);
+    put_u8(out + 5, m.state[1]);
+    put_u8(out + 6, m.flags[0]);
+    put_u8(out + 7, m.flags[1]);
+    put_u8(out + 8, m.result[0]);
+    put_u8(out + 9, m.result[1]);
+    put_i32(out + 10, m.position_steps[0]);
+    put_i32(out + 14, m.position_steps[1]);
+    put_i32(out + 18, m.position_mdeg[0]);
+    put_i32(out + 22, m.position_mdeg[1]);
+    put_i32(out + 26, m.target_mdeg[0]);
+    put_i32(out + 30, m.target_mdeg[1]);
+    put_i32(out + 34, m.velocity_mdeg_s[0]);
+    put_i32(out + 38, m.velocity_mdeg_s[1]);
+}
+inline void decode(MotionStatus& m, const uint8_t* in) {
+    m.time_ms = get_u32(in + 0);
+    m.state[0] = get_u8(in + 4);
+    m.state[1] = get_u8(in + 5);
+    m.flags[0] = get_u8(in + 6);
+    m.flags[1] = get_u8(in + 7);
+    m.result[0] = get_u8(in + 8);
+    m.result[1] = get_u8(in + 9);
+    m.position_steps[0] = get_i32(in + 10);
+    m.position_steps[1] = get_i32(in + 14);
+    m.position_mdeg[0] = get_i32(in + 18);
+    m.position_mdeg[1] = get_i32(in + 22);
+    m.target_mdeg[0] = get_i32(in + 26);
+    m.target_mdeg[1] = get_i32(in + 30);
+    m.velocity_mdeg_s[0] = get_i32(in + 34);
+    m.velocity_mdeg_s[1] = get_i32(in + 38);
+}
+
+// MOTION_INFO (board sends; not acked): An axis's configuration as held: after each MOTION_CONFIG taken, and each configured axis after HELLO.
+struct MotionInfo {
+    enum { ID = 0x23, PAYLOAD_SIZE = 26 };
+    uint8_t axis;
+    float steps_per_rev; // steps
+    uint32_t max_speed_mdeg_s; // deg/s
+    uint32_t max_accel_mdeg_s2; // deg/s^2
+    int32_t min_angle_mdeg; // deg
+    int32_t max_angle_mdeg; // deg
+    uint32_t home_speed_mdeg_s; // deg/s
+    uint8_t options;
+};
+inline void encode(const MotionInfo& m, uint8_t* out) {
+    put_u8(out + 0, m.axis);
+    put_f32(out + 1, m.steps_per_rev);
+    put_u32(out + 5, m.max_speed_mdeg_s);
+    put_u32(out + 9, m.max_accel_mdeg_s2);
+    put_i32(out + 13, m.min_angle_mdeg);
+    put_i32(out + 17, m.max_angle_mdeg);
+    put_u32(out + 21, m.home_speed_mdeg_s);
+    put_u8(out + 25, m.options);
+}
+inline void decode(MotionInfo& m, const uint8_t* in) {
+    m.axis = get_u8(in + 0);
+    m.steps_per_rev = get_f32(in + 1);
+    m.max_speed_mdeg_s = get_u32(in + 5);
+    m.max_accel_mdeg_s2 = get_u32(in + 9);
+    m.min_angle_mdeg = get_i32(in + 13);
+    m.max_angle_mdeg = get_i32(in + 17);
+    m.home_speed_mdeg_s = get_u32(in + 21);
+    m.options = get_u8(in + 25);
+}
+
 // Payload size of a message id, or -1 for an unknown id.
 inline int payload_size(uint8_t msg_id) {
     switch (msg_id) {
@@ -501,6 +718,12 @@ inline int payload_size(uint8_t msg_id) {
     case MSG_TEST_HANG: return 4;
     case MSG_TELEMETRY: return 37;
     case MSG_FAULT: return 13;
+    case MSG_MOTION_CONFIG: return 26;
+    case MSG_MOVE_TO: return 5;
+    case MSG_HOME: return 6;
+    case MSG_MOTION_STOP: return 1;
+    case MSG_MOTION_STATUS: return 42;
+    case MSG_MOTION_INFO: return 26;
     default: return -1;
     }
 }
@@ -517,6 +740,10 @@ inline bool sent_by_host(uint8_t msg_id) {
     case MSG_VENT:
     case MSG_ZERO_SENSORS:
     case MSG_TEST_HANG:
+    case MSG_MOTION_CONFIG:
+    case MSG_MOVE_TO:
+    case MSG_HOME:
+    case MSG_MOTION_STOP:
         return true;
     default:
         return false;

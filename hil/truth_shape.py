@@ -1,0 +1,79 @@
+"""The simulated phantom's true shape, and the simulated board with the scanner's mechanism.
+
+The simulated plant's chambers follow a truth model the controller does not share (hil/plant.py: the calibrated
+scene with its modulus times ``TRUTH_MODULUS_FACTOR``, tabulated in hil/plant.toml). :class:`TruthShape` solves
+that same model for its deformed outer surface at the pressures the plant holds, which the virtual camera
+photographs; so a simulated scan sees the phantom as it is, not as the controller's model predicts it.
+
+:class:`ScannerBoard` is the simulated board (:class:`phantom.hil.sim.SimulatedBoard`) whose stepper drivers
+turn the scanner of ``phantom.protocol.motion.SCANNER_AXES`` (its steps per turn set in the harness at start),
+and whose ``plant_state`` also says where the rig truly is (``rig_deg``: orbit and elevation from the pulses the
+drivers took).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from phantom.hil.motion import SimulatedRig
+from phantom.hil.plant import CALIBRATED_SCENE_PATH, TRUTH_MODULUS_FACTOR
+from phantom.hil.sim import SimulatedBoard
+from phantom.model.mesh.surface import TriangleMesh
+from phantom.protocol.motion import AXES, SCANNER_AXES
+
+#: Pressures closer than this (kPa, every chamber) to the last solved ones reuse its shape.
+REUSE_KPA = 0.01
+
+
+class TruthShape:
+    """The truth model's outer surface (mm, the phantom's frame) at chamber pressures."""
+
+    def __init__(self, scene: str | Path = CALIBRATED_SCENE_PATH, modulus_factor: float = TRUTH_MODULUS_FACTOR,
+                 mesh_size_mm: float | None = None):
+        # the FEM's stack loads only when a truth shape is wanted
+        from phantom.model import PhantomModel, load_scene
+
+        model = PhantomModel.from_scene(load_scene(scene), mesh_size_mm=mesh_size_mm)
+        self.model = model.with_material(youngs_modulus_pa=model.material.youngs_modulus_pa * modulus_factor)
+        self.description = f"{scene} with E x {modulus_factor:g}"
+        self.surface_nodes, self.triangles = self.model.outer_surface()
+        self._last: tuple[np.ndarray, np.ndarray, TriangleMesh] | None = None
+        self.solves = 0
+
+    def surface(self, pressures_kpa: list[float] | np.ndarray) -> TriangleMesh:
+        """The surface at these pressures (kPa, chamber order); warm-started from the last solve, which is
+        reused when every pressure is within REUSE_KPA of it."""
+        pressures = np.asarray(pressures_kpa, dtype=float)
+        if self._last is not None and np.all(np.abs(self._last[0] - pressures) <= REUSE_KPA):
+            return self._last[2]
+        start = None if self._last is None else self._last[1]
+        state = self.model.equilibrium(pressures * 1e3, initial_positions_m=start)
+        self.solves += 1
+        mesh = TriangleMesh(state.positions_m[self.surface_nodes] * 1e3, self.triangles.astype(np.int64))
+        self._last = (pressures, state.positions_m, mesh)
+        return mesh
+
+    def gland_volume_ml(self, pressures_kpa: list[float] | np.ndarray) -> float:
+        """The gland volume (ml) of the surface at these pressures."""
+        from phantom.model.mesh.surface import enclosed_volume_ml
+
+        return enclosed_volume_ml(self.surface(pressures_kpa))
+
+
+class ScannerBoard(SimulatedBoard):
+    """The simulated board driving the scanner's simulated mechanism (see the module docstring)."""
+
+    def start(self) -> ScannerBoard:
+        super().start()
+        rig = SimulatedRig(self)
+        for axis in range(AXES):
+            rig.set_axis(axis, SCANNER_AXES[axis].steps_per_rev)
+        return self
+
+    def plant_state(self) -> dict[str, Any]:
+        state = super().plant_state()
+        state["rig_deg"] = [entry["angle_deg"] for entry in SimulatedRig(self).axes()]
+        return state

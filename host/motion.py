@@ -1,0 +1,368 @@
+"""The daemon's side of the scanner's orbit: configure, move, home, stop and report its two stepper axes (0 the
+orbit, 1 the elevation) through the board, fed by the board's MOTION_STATUS and MOTION_INFO frames.
+
+The board moves one axis at a time, so a move of both goes the elevation first, then the orbit; each ends when
+the first MOTION_STATUS received after the command's ACK shows the axis at rest (PROTOCOL.md, section 12): its
+result must be REACHED (HOMED for a homing), else the request fails with what happened. The board does not keep
+an axis's configuration across a reset: the daemon sends the last one again when the link comes back (the
+position is then the board's power-up zero: home the axis before scanning).
+
+API methods (host/README.md): ``motion_config``, ``motion_move``, ``motion_home``, ``motion_stop``,
+``motion_status``. On the simulated board, ``motion_status`` also reports the simulation's truth (``simulated``:
+the rig's true angles from the pulses its drivers took, the plant's pressures), for the virtual camera.
+
+``scan`` (only when the command line gives the daemon a :class:`Scanner`, as ``phantom daemon`` does): a whole
+capture at the pressures the daemon holds, run in a worker thread that drives the axes and reads the daemon's
+state through the daemon's loop (:class:`ThreadRig`); the host imports nothing of the scanner's code.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Awaitable, Callable
+from dataclasses import asdict, fields
+from typing import Any, Protocol, TypeVar
+
+from phantom import PhantomError
+from phantom.host.api import ApiError, Handler
+from phantom.host.session import CommandRejected
+from phantom.host.sim_board import SimulatedBoardKeeper
+from phantom.protocol.codec import Message
+from phantom.protocol.motion import (
+    AXES,
+    ELEVATION,
+    ORBIT,
+    REFUSALS,
+    AxisConfig,
+    MotionError,
+    MotionStatus,
+)
+
+#: Names of the axes in the API.
+AXIS_NAMES = {ORBIT: "orbit", ELEVATION: "elevation"}
+#: The slack (s) a move gets beyond its ideal duration before the daemon gives up on it.
+MOVE_SLACK_S = 5.0
+#: How long a configuration may take to be reported (MOTION_INFO).
+INFO_WAIT_S = 2.0
+#: A wait ends after its time on the board's clock, or this many times it on the wall clock (a stalled simulator).
+WALL_FACTOR = 10.0
+
+#: Sends one acknowledged command to the board: ``(name, fields) -> ACK status``; raises ApiError
+#: (``link_down``, ``rejected``) as :meth:`phantom.host.daemon.Daemon.board_command` does.
+BoardCommand = Callable[[str, dict[str, Any]], Awaitable[str]]
+#: The simulated board's truth now (its rig's angles and its plant), None on a real board.
+SimulatedTruth = Callable[[], Awaitable[dict[str, Any] | None]]
+#: Where events go: ``(kind, text, level)``.
+EventSink = Callable[[str, str, str], None]
+#: The daemon's status (``Daemon.status``), called on the daemon's loop.
+DaemonState = Callable[[], dict[str, Any]]
+
+Result = TypeVar("Result")
+
+
+class Orbit:
+    """The scanner's axes as the daemon drives them (see the module docstring)."""
+
+    def __init__(self, command: BoardCommand, event: EventSink, simulated: SimulatedTruth | None = None):
+        self._command = command
+        self._event = event
+        self._simulated = simulated
+        self.configs: dict[int, AxisConfig] = {}
+        self.reported: dict[int, AxisConfig] = {}
+        self.latest: MotionStatus | None = None
+        self._statuses = 0
+        self._changed = asyncio.Condition()
+        self._lock = asyncio.Lock()
+
+    # --- frames from the board ------------------------------------------------------------------------------
+
+    def on_message(self, message: Message) -> None:
+        """A MOTION_STATUS or MOTION_INFO frame (the link session passes them)."""
+        if message.name == "MOTION_STATUS":
+            self.latest = MotionStatus.from_message(message)
+            self._statuses += 1
+        elif message.name == "MOTION_INFO":
+            self.reported[int(message.fields["axis"])] = AxisConfig.from_fields(message.fields)
+        else:
+            return
+        asyncio.get_running_loop().create_task(self._notify())
+
+    async def _notify(self) -> None:
+        async with self._changed:
+            self._changed.notify_all()
+
+    async def _wait(self, done: Callable[[], bool], timeout_s: float, what: str) -> None:
+        """Until ``done()``, within ``timeout_s`` of the board's time (a simulated board slower than the wall
+        clock still gets its time), and at most WALL_FACTOR times that on the wall clock."""
+        started_board_s = self.latest.board_time_s if self.latest is not None else None
+        deadline = asyncio.get_running_loop().time() + WALL_FACTOR * timeout_s + INFO_WAIT_S
+        async with self._changed:
+            while not done():
+                left = deadline - asyncio.get_running_loop().time()
+                board_s = self.latest.board_time_s if self.latest is not None else None
+                late = started_board_s is not None and board_s is not None and board_s - started_board_s > timeout_s
+                if left <= 0 or late:
+                    raise ApiError("rejected", f"{what} did not end within {timeout_s:.0f} s (is the axis configured "
+                                               f"and the link up?)")
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._changed.wait(), min(left, 1.0))
+
+    async def restore(self) -> None:
+        """After the link came (back) up: send the axes' configurations again (the board forgets them)."""
+        for axis, config in sorted(self.configs.items()):
+            try:
+                await self._command("MOTION_CONFIG", config.fields(axis))
+            except ApiError as error:
+                self._event("motion", f"the {AXIS_NAMES[axis]}'s configuration was not restored: {error}", "WARN")
+                return
+        if self.configs:
+            self._event("motion", "the scanner's axes were configured again after the link came up: home them if "
+                                  "the board restarted (its position is its power-up zero)", "INFO")
+
+    # --- commands -------------------------------------------------------------------------------------------
+
+    async def configure(self, axis: int, config: AxisConfig) -> AxisConfig:
+        """MOTION_CONFIG; the configuration the board then reports."""
+        try:
+            fields_ = config.fields(axis)
+        except MotionError as error:
+            raise ApiError("invalid_params", str(error)) from None
+        async with self._lock:
+            self.reported.pop(axis, None)
+            await self._checked("MOTION_CONFIG", fields_, axis)
+            await self._wait(lambda: axis in self.reported, INFO_WAIT_S, f"the {AXIS_NAMES[axis]}'s configuration")
+            self.configs[axis] = config
+            return self.reported[axis]
+
+    async def move(self, targets: dict[int, float]) -> MotionStatus:
+        """Move the axes to these angles (deg), the elevation first; the status once the last is at rest there."""
+        status = self.latest
+        async with self._lock:
+            for axis in sorted(targets, reverse=True):  # the elevation (1) before the orbit (0)
+                angle = float(targets[axis])
+                config = self.configs.get(axis)
+                if config is None:
+                    raise ApiError("invalid_params", f"the {AXIS_NAMES[axis]} is not configured: send motion_config "
+                                                     "first")
+                start = self.latest.axes[axis].position_deg if self.latest is not None else angle
+                duration_s = abs(angle - start) / config.max_speed_deg_s + config.max_speed_deg_s / max(
+                    config.max_accel_deg_s2, 1e-9)
+                status = await self._until_rest("MOVE_TO", {"axis": axis, "angle_mdeg": round(angle * 1e3)}, axis,
+                                                "REACHED", f"the {AXIS_NAMES[axis]}'s move to {angle:g} deg",
+                                                duration_s + MOVE_SLACK_S, f"{angle:g} deg")
+        assert status is not None
+        return status
+
+    async def home(self, axis: int, method: str, angle_deg: float) -> MotionStatus:
+        """HOME: ``here`` names the position now ``angle_deg``; ``switch`` searches the home switch."""
+        methods = {"here": 0, "switch": 1}
+        if method not in methods:
+            raise ApiError("invalid_params", f"method must be 'here' or 'switch', got {method!r}")
+        config = self.configs.get(axis)
+        if config is None:
+            raise ApiError("invalid_params", f"the {AXIS_NAMES[axis]} is not configured: send motion_config first")
+        search_s = 1.1 * (config.max_angle_deg - config.min_angle_deg) / max(config.home_speed_deg_s, 1e-3)
+        async with self._lock:
+            return await self._until_rest("HOME", {"axis": axis, "method": methods[method],
+                                                   "angle_mdeg": round(angle_deg * 1e3)}, axis, "HOMED",
+                                          f"homing the {AXIS_NAMES[axis]} ({method})",
+                                          (search_s if method == "switch" else 0.0) + MOVE_SLACK_S, f"{angle_deg:g}")
+
+    async def stop(self, release: bool) -> dict[str, Any]:
+        """MOTION_STOP: every axis to rest (its driver released if asked). Not behind a running move's lock: a
+        stop interrupts it (the move then fails as STOPPED)."""
+        await self._command("MOTION_STOP", {"release": int(release)})
+        seen = self._statuses
+        await self._wait(lambda: self._statuses > seen and self.latest is not None and all(
+            axis.at_rest for axis in self.latest.axes), MOVE_SLACK_S, "the stop")
+        return self.status()
+
+    async def _checked(self, name: str, fields_: dict[str, Any], axis: int, angle: str = "") -> None:
+        """A motion command whose NACK becomes an API error saying what to do."""
+        try:
+            await self._command(name, fields_)
+        except ApiError as error:
+            status = error.__cause__.status if isinstance(error.__cause__, CommandRejected) else ""
+            if status in REFUSALS:
+                raise ApiError("rejected", REFUSALS[status].format(axis=axis, angle=angle, name=name, status=status,
+                                                                   detail=f"{name} {fields_}")) from None
+            raise
+
+    async def _until_rest(self, name: str, fields_: dict[str, Any], axis: int, expected: str, what: str,
+                          timeout_s: float, angle: str) -> MotionStatus:
+        await self._checked(name, fields_, axis, angle)
+        seen = self._statuses
+        await self._wait(lambda: self._statuses > seen and self.latest is not None
+                         and self.latest.axes[axis].at_rest, timeout_s, what)
+        assert self.latest is not None
+        result = self.latest.axes[axis].result
+        if result != expected:
+            raise ApiError("rejected", f"{what} ended {result} at {self.latest.axes[axis].position_deg:g} deg"
+                           + (" (a fault halted it: clear it, and home the axis if its position was lost)"
+                              if result == "FAULT" else ""))
+        return self.latest
+
+    # --- reporting ------------------------------------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        """The axes as the board last reported them (JSON-ready), with the configurations sent."""
+        axes = []
+        for axis in range(AXES):
+            entry: dict[str, Any] = {"axis": axis, "name": AXIS_NAMES[axis],
+                                     "config": asdict(self.configs[axis]) if axis in self.configs else None}
+            if self.latest is not None:
+                entry.update(asdict(self.latest.axes[axis]))
+            axes.append(entry)
+        return {"board_time_s": None if self.latest is None else self.latest.board_time_s, "axes": axes}
+
+    async def full_status(self) -> dict[str, Any]:
+        """:meth:`status`, and on the simulated board its truth (``simulated``)."""
+        status = self.status()
+        if self._simulated is not None:
+            status["simulated"] = await self._simulated()
+        return status
+
+    # --- the API --------------------------------------------------------------------------------------------
+
+    def api_methods(self) -> dict[str, Handler]:
+        """The motion methods of the daemon's API."""
+        return {"motion_config": self._api_config, "motion_move": self._api_move, "motion_home": self._api_home,
+                "motion_stop": self._api_stop, "motion_status": self._api_status}
+
+    async def _api_config(self, params: dict[str, Any]) -> dict[str, Any]:
+        axis = _axis(params)
+        names = {field.name for field in fields(AxisConfig)}
+        unknown = sorted(set(params) - names - {"axis"})
+        if unknown:
+            raise ApiError("invalid_params", f"motion_config takes axis and {', '.join(sorted(names))}; not "
+                                             f"{', '.join(unknown)}")
+        try:
+            config = AxisConfig(**{key: value for key, value in params.items() if key != "axis"})
+        except TypeError as error:
+            raise ApiError("invalid_params", f"motion_config: {error}") from None
+        return {"axis": axis, "config": asdict(await self.configure(axis, config))}
+
+    async def _api_move(self, params: dict[str, Any]) -> dict[str, Any]:
+        targets = {}
+        for axis, name in AXIS_NAMES.items():
+            value = params.get(f"{name}_deg")
+            if value is not None:
+                if isinstance(value, bool) or not isinstance(value, (int, float)):
+                    raise ApiError("invalid_params", f"{name}_deg must be a number of degrees, got {value!r}")
+                targets[axis] = float(value)
+        if not targets:
+            raise ApiError("invalid_params", "motion_move needs orbit_deg and/or elevation_deg")
+        await self.move(targets)
+        return self.status()
+
+    async def _api_home(self, params: dict[str, Any]) -> dict[str, Any]:
+        angle = params.get("angle_deg", 0.0)
+        if isinstance(angle, bool) or not isinstance(angle, (int, float)):
+            raise ApiError("invalid_params", f"angle_deg must be a number, got {angle!r}")
+        await self.home(_axis(params), str(params.get("method", "here")), float(angle))
+        return self.status()
+
+    async def _api_stop(self, params: dict[str, Any]) -> dict[str, Any]:
+        return await self.stop(bool(params.get("release", False)))
+
+    async def _api_status(self, params: dict[str, Any]) -> dict[str, Any]:
+        return await self.full_status()
+
+
+def _axis(params: dict[str, Any]) -> int:
+    axis = params.get("axis")
+    if axis not in AXIS_NAMES or isinstance(axis, bool):
+        raise ApiError("invalid_params", f"axis must be {ORBIT} (orbit) or {ELEVATION} (elevation), got {axis!r}")
+    return int(axis)
+
+
+def simulated_truth(keeper: SimulatedBoardKeeper) -> SimulatedTruth:
+    """The simulated board's truth, read when asked: the rig's true angles (deg, from the pulses its drivers took;
+    None for an axis whose mechanism is not set) and the plant's pressures (kPa) and gland volume (ml)."""
+    async def read() -> dict[str, Any] | None:
+        board = keeper.board
+        if board is None:
+            return None
+        try:
+            state = await asyncio.get_running_loop().run_in_executor(None, board.plant_state)
+        except Exception:  # the simulator died: the keeper's watch restarts it
+            return None
+        return {"rig_deg": state.get("rig_deg"), "pressures_kpa": [p / 1e3 for p in state["pressures_pa"]],
+                "gland_volume_ml": state.get("gland_volume_ml"), "time_s": state.get("time_s")}
+    return read
+
+
+class ThreadRig:
+    """The daemon's axes and state for a capture running in a worker thread: a ``phantom.scan.capture`` Orbit
+    (``move_to``, ``release``) and PhantomState (``pressures_kpa``), and the simulated board's truth
+    (``simulated``). Each call runs on the daemon's event loop and waits for its answer."""
+
+    def __init__(self, orbit: Orbit, loop: asyncio.AbstractEventLoop, state: DaemonState):
+        self._orbit = orbit
+        self._loop = loop
+        self._state = state
+
+    def _run(self, coroutine: Awaitable[Result]) -> Result:
+        async def wrapped() -> Result:
+            return await coroutine
+        try:
+            return asyncio.run_coroutine_threadsafe(wrapped(), self._loop).result()
+        except ApiError as error:
+            raise PhantomError(str(error)) from None
+
+    def configure(self, configs: tuple[AxisConfig, ...]) -> None:
+        """Send each axis its configuration (axis 0 the first)."""
+        for axis, config in enumerate(configs):
+            self._run(self._orbit.configure(axis, config))
+
+    def move_to(self, orbit_deg: float, elevation_deg: float) -> tuple[float, float]:
+        status = self._run(self._orbit.move({ELEVATION: elevation_deg, ORBIT: orbit_deg}))
+        return status.axes[ORBIT].position_deg, status.axes[ELEVATION].position_deg
+
+    def release(self) -> None:
+        self._run(self._orbit.stop(True))
+
+    def pressures_kpa(self) -> list[float] | None:
+        async def read() -> dict[str, Any]:
+            return self._state()
+        return scannable_pressures_kpa(self._run(read()))
+
+    def simulated(self) -> dict[str, Any] | None:
+        """The simulated board's truth now (``motion_status``'s ``simulated``), None on a real board."""
+        return self._run(self._orbit.full_status()).get("simulated")
+
+
+def scannable_pressures_kpa(status: dict[str, Any]) -> list[float] | None:
+    """The measured pressures (kPa) in a daemon status (``Daemon.status``, the API's ``status``), for a picture;
+    PhantomError when the phantom cannot be scanned: a fault latched, or the link not online."""
+    if status["faults"]:
+        raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
+    if status["link"] != "online":
+        raise PhantomError(f"the board's link is {status['link']}")
+    pressures = status["pressures_kpa"]
+    return None if pressures is None else [float(p) for p in pressures]
+
+
+class Scanner(Protocol):
+    """A whole capture for the ``scan`` API method (``phantom.cli.scan_rig.DaemonScanner``): blocking, run in a
+    worker thread; ``params`` are the request's; returns the JSON answer; a PhantomError is the request's error."""
+
+    def __call__(self, params: dict[str, Any], rig: ThreadRig) -> dict[str, Any]: ...
+
+
+def scan_method(orbit: Orbit, scanner: Scanner, state: DaemonState) -> dict[str, Handler]:
+    """The ``scan`` API method: ``scanner`` run in a worker thread with the daemon's axes (one scan at a time)."""
+    running = asyncio.Lock()
+
+    async def scan(params: dict[str, Any]) -> dict[str, Any]:
+        if running.locked():
+            raise ApiError("rejected", "a scan is running already: wait for it, or stop it with motion_stop")
+        async with running:
+            rig = ThreadRig(orbit, asyncio.get_running_loop(), state)
+            try:
+                return await asyncio.to_thread(scanner, params, rig)
+            except PhantomError as error:
+                raise ApiError("rejected", f"the scan stopped: {error}") from None
+    return {"scan": scan}
+

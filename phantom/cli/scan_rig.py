@@ -1,0 +1,420 @@
+"""The scanner driven through a running daemon: ``phantom scan capture`` and ``phantom scan validate --sim``.
+
+This module joins the parts: the daemon's API client (host), the capture loop, the cameras and the
+reconstruction (scan), and on the simulated board the truth shape (hil). The capture loop's Protocols are met
+here by adapters over the API:
+
+- :class:`DaemonOrbit` (``scan.capture.Orbit``): ``motion_move`` and ``motion_stop`` with the drivers released;
+- :class:`DaemonPhantom` (``scan.capture.PhantomState``): the measured pressures from ``status``; a latched
+  fault or a lost link stops the capture;
+- :func:`simulated_scene`: for the virtual camera, the simulated rig's true angles and the truth model's surface
+  at the plant's true pressures (``motion_status``'s ``simulated`` part).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
+
+from phantom import PhantomError
+
+if TYPE_CHECKING:
+    from phantom.hil.truth_shape import TruthShape
+    from phantom.host.client import DaemonClient
+    from phantom.model.mesh.surface import TriangleMesh
+    from phantom.scan.capture import CaptureFolder, FrameSource, Plan, Progress
+
+
+class DaemonOrbit:
+    """The scanner's axes through the daemon's API (a ``phantom.scan.capture.Orbit``)."""
+
+    def __init__(self, client: DaemonClient):
+        self.client = client
+
+    def move_to(self, orbit_deg: float, elevation_deg: float) -> tuple[float, float]:
+        status = _call(self.client, "motion_move", {"orbit_deg": orbit_deg, "elevation_deg": elevation_deg})
+        axes = status["axes"]
+        return float(axes[0]["position_deg"]), float(axes[1]["position_deg"])
+
+    def release(self) -> None:
+        _call(self.client, "motion_stop", {"release": True})
+
+    def configure(self) -> None:
+        """Send the scanner's axes (``phantom.protocol.motion.SCANNER_AXES``) to the board."""
+        from dataclasses import asdict
+
+        from phantom.protocol.motion import SCANNER_AXES
+
+        for axis, config in enumerate(SCANNER_AXES):
+            _call(self.client, "motion_config", {"axis": axis, **asdict(config)})
+
+
+class DaemonPhantom:
+    """The phantom's state through the daemon's API (a ``phantom.scan.capture.PhantomState``)."""
+
+    def __init__(self, client: DaemonClient):
+        self.client = client
+
+    def pressures_kpa(self) -> list[float] | None:
+        from phantom.host.motion import scannable_pressures_kpa
+
+        return scannable_pressures_kpa(_call(self.client, "status"))
+
+
+def _call(client: DaemonClient, method: str, params: dict[str, Any] | None = None) -> Any:
+    from phantom.host.client import DaemonError
+
+    try:
+        return client.call(method, params)
+    except DaemonError as error:
+        raise PhantomError(f"the daemon refused {method}: {error}") from None
+
+
+def simulated_scene(client: DaemonClient, truth: TruthShape) -> Callable[[], tuple[TriangleMesh, float, float]]:
+    """What the virtual camera sees on the simulated board now: the truth model's surface at the plant's true
+    pressures and the rig's true angles."""
+    return truth_scene(lambda: _call(client, "motion_status").get("simulated"), truth)
+
+
+def truth_scene(read: Callable[[], dict[str, Any] | None],
+                truth: TruthShape) -> Callable[[], tuple[TriangleMesh, float, float]]:
+    """The virtual camera's scene from the simulated board's truth as ``read`` returns it (``motion_status``'s
+    ``simulated`` part)."""
+    def now() -> tuple[TriangleMesh, float, float]:
+        simulated = read()
+        if not simulated or simulated.get("rig_deg") is None or None in simulated["rig_deg"]:
+            raise PhantomError("the daemon does not report a simulated rig: the virtual camera needs `phantom "
+                               "daemon --sim`; with a real board give --camera N (a webcam)")
+        orbit_deg, elevation_deg = simulated["rig_deg"]
+        return truth.surface(simulated["pressures_kpa"]), float(orbit_deg), float(elevation_deg)
+    return now
+
+
+def wait_settled(client: DaemonClient, tolerance_kpa: float = 0.03, hold_s: float = 1.0,
+                 timeout_s: float = 60.0) -> list[float]:
+    """Wait until every measured pressure has stayed within ``tolerance_kpa`` of its setpoint for ``hold_s``;
+    the pressures then (kPa). PhantomError on a fault or after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    steady_since: float | None = None
+    while time.monotonic() < deadline:
+        status = _call(client, "status")
+        if status["faults"]:
+            raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
+        measured, wanted = status["pressures_kpa"], status["setpoints_kpa"]
+        close = measured is not None and wanted is not None and all(
+            abs(m - w) <= tolerance_kpa for m, w in zip(measured, wanted, strict=True))
+        now = time.monotonic()
+        if not close:
+            steady_since = None
+        elif steady_since is None:
+            steady_since = now
+        elif now - steady_since >= hold_s:
+            return [float(p) for p in measured]
+        time.sleep(0.1)
+    raise PhantomError(f"the pressures did not settle at their setpoints within {timeout_s:g} s")
+
+
+def capture_through_daemon(client: DaemonClient, camera: FrameSource, plan: Plan, folder: CaptureFolder,
+                           progress: Progress | None = None) -> CaptureFolder:
+    """Configure the axes and take the plan's pictures through the daemon (the capture loop of
+    ``phantom.scan.capture``)."""
+    from phantom.scan.capture import capture
+
+    orbit = DaemonOrbit(client)
+    orbit.configure()
+    return capture(orbit, camera, DaemonPhantom(client), plan, folder, progress)
+
+
+class DaemonScanner:
+    """The daemon's ``scan`` API method (a ``phantom.host.motion.Scanner``, given to the daemon by ``phantom
+    daemon``): the capture loop in the daemon's process, with its axes and state (``ThreadRig``).
+
+    Params: ``out`` (the capture folder to make, required), ``views`` (per turn, default 60), ``elevations_deg``
+    (default [0, 30]), ``start_deg`` (-180), ``span_deg`` (360), ``settle_s`` (0.3), ``camera`` ("virtual", the
+    default, on the simulated board; a device number or a video path for a webcam), ``scale`` (the virtual
+    picture's size of 1280x960), ``seed``, ``width``, ``height``, ``exposure``, ``focus``, ``rig`` (a rig.json to
+    keep beside the pictures). Answers the folder, its status and the number of pictures."""
+
+    def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
+        from phantom.protocol.motion import SCANNER_AXES
+        from phantom.scan.camera import Rig
+        from phantom.scan.capture import CaptureFolder, Plan, capture
+
+        known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
+                 "width", "height", "exposure", "focus", "rig"}
+        unknown = sorted(set(params) - known)
+        if unknown or not isinstance(params.get("out"), str):
+            raise PhantomError(f"scan takes out (a folder, required) and {', '.join(sorted(known - {'out'}))}"
+                               + (f"; not {', '.join(unknown)}" if unknown else ""))
+        try:
+            elevations = tuple(float(e) for e in params.get("elevations_deg", (0.0, 30.0)))
+            plan = Plan(int(params.get("views", 60)), elevations, float(params.get("start_deg", -180.0)),
+                        float(params.get("settle_s", 0.3)), float(params.get("span_deg", 360.0)))
+            scale = float(params.get("scale", 1.0))
+        except (TypeError, ValueError) as error:
+            raise PhantomError(f"scan: a parameter is not a number: {error}") from None
+        if plan.views < 1:
+            raise PhantomError(f"scan: views must be at least 1, got {plan.views}")
+        camera = self._camera(params, rig, elevations, scale)
+        kept = Rig.load(params["rig"]) if params.get("rig") else None
+        folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
+        rig.configure(SCANNER_AXES)
+        capture(rig, camera, rig, plan, folder)
+        return {"folder": str(folder.path), "status": folder.status, "pictures": len(folder.frames)}
+
+    @staticmethod
+    def _camera(params: dict[str, Any], rig: Any, elevations: tuple[float, ...], scale: float) -> FrameSource:
+        from phantom.scan.camera import virtual_rig
+        from phantom.scan.capture import Webcam
+
+        camera = params.get("camera", "virtual")
+        if camera == "virtual":
+            from phantom.hil.truth_shape import TruthShape
+            from phantom.scan.virtual import VirtualCamera
+
+            return VirtualCamera(virtual_rig(scale, elevations), truth_scene(rig.simulated, TruthShape()),
+                                 int(params.get("seed", 0)), pose_at=_scaled_pose(scale))
+        source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
+        return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"))
+
+
+def run_capture(args: Any) -> int:
+    """Handler of ``phantom scan capture``."""
+    import sys
+
+    from phantom.cli.common import parse_numbers
+    from phantom.host.api import default_socket_path
+    from phantom.host.client import DaemonClient
+    from phantom.scan.camera import Rig, virtual_rig
+    from phantom.scan.capture import CaptureError, CaptureFolder, Plan, Webcam
+    from phantom.scan.render import CharucoTarget
+
+    if args.views < 1:
+        raise CaptureError(f"--views must be at least 1, got {args.views}")
+    elevations = tuple(parse_numbers(args.elevations, "--elevations"))
+    plan = Plan(args.views, elevations, args.start_deg, args.settle_s, args.span_deg)
+    rig = Rig.load(args.rig) if args.rig else None
+    camera: FrameSource
+    with DaemonClient(args.socket or default_socket_path()) as client:
+        if args.camera == "virtual":
+            from phantom.hil.truth_shape import TruthShape
+            from phantom.scan.virtual import TargetCamera, VirtualCamera
+
+            true_rig = virtual_rig(args.scale, elevations)
+            pose_at = _scaled_pose(args.scale)
+            if args.target:
+                camera = TargetCamera(true_rig, CharucoTarget(), _placement(args.placement), _FollowingOrbit(client),
+                                      args.seed, pose_at)
+            else:
+                camera = VirtualCamera(true_rig, simulated_scene(client, TruthShape()), args.seed, pose_at=pose_at)
+        else:
+            source: int | str = int(args.camera) if args.camera.isdigit() else args.camera
+            camera = Webcam(source, args.width, args.height, args.exposure, args.focus)
+        conditions: dict[str, Any] = {"socket": str(args.socket or default_socket_path())}
+        if args.target:
+            conditions["target"] = CharucoTarget().to_json()
+        folder = CaptureFolder.create(args.out, camera.describe(), plan.to_json(), conditions, rig)
+        progress = _progress_printer("captured")
+        capture_through_daemon(client, camera, plan, folder, progress)
+    print(f"captured {len(folder.frames)} pictures into {folder.path}", file=sys.stderr)
+    return 0
+
+
+class _FollowingOrbit:
+    """The simulated rig's true angles, read when the target camera renders (it has the attributes the
+    TargetCamera reads)."""
+
+    def __init__(self, client: DaemonClient):
+        self.client = client
+
+    @property
+    def orbit_deg(self) -> float:
+        return float(self._angles()[0])
+
+    @property
+    def elevation_deg(self) -> float:
+        return float(self._angles()[1])
+
+    def _angles(self) -> list[float]:
+        simulated = _call(self.client, "motion_status").get("simulated") or {}
+        angles = simulated.get("rig_deg")
+        if angles is None or None in angles:
+            raise PhantomError("the daemon does not report a simulated rig: the virtual camera needs `phantom "
+                               "daemon --sim`")
+        return [float(a) for a in angles]
+
+
+def _scaled_pose(scale: float) -> Callable[[float, float], Any]:
+    from phantom.scan.camera import virtual_pose
+
+    return lambda orbit_deg, elevation_deg: virtual_pose(orbit_deg, elevation_deg, scale)
+
+
+def _placement(number: int) -> Any:
+    from phantom.scan.render import CharucoTarget
+    from phantom.scan.virtual import VIRTUAL_PLACEMENTS, target_pose_facing
+
+    if not 0 <= number < len(VIRTUAL_PLACEMENTS):
+        raise PhantomError(f"--placement is 0..{len(VIRTUAL_PLACEMENTS) - 1} on the virtual rig, got {number}")
+    return target_pose_facing(*VIRTUAL_PLACEMENTS[number], CharucoTarget())
+
+
+def _progress_printer(what: str) -> Progress:
+    import sys
+
+    tty = sys.stderr.isatty()
+
+    def show(done: int, total: int, frame: Any) -> None:
+        line = f"{what} {done}/{total} (orbit {frame.orbit_deg:7.2f} deg, elevation {frame.elevation_deg:g} deg)"
+        if tty:
+            print("\r" + line, end="\n" if done == total else "", file=sys.stderr, flush=True)
+        elif done == total or done % max(1, total // 10) == 0:
+            print(line, file=sys.stderr, flush=True)
+
+    return show
+
+
+def scene_targets_ml(scene_path: str) -> list[float]:
+    """The gland volumes (ml) a scene's [[steps]] go through, in order, each once."""
+    import tomllib
+
+    try:
+        steps = tomllib.loads(open(scene_path).read()).get("steps", [])
+    except (OSError, tomllib.TOMLDecodeError) as error:
+        raise PhantomError(f"cannot read the scene {scene_path}: {error}") from None
+    volumes: list[float] = []
+    for step in steps:
+        volume = step.get("volume_ml")
+        if isinstance(volume, (int, float)) and volume not in volumes:
+            volumes.append(float(volume))
+    if not volumes:
+        raise PhantomError(f"the scene {scene_path} has no [[steps]] with volume_ml: give --targets")
+    return volumes
+
+
+def run_validate(args: Any) -> int:
+    """Handler of ``phantom scan validate --sim``: the paper's validation on the simulated rig."""
+    import json
+    import shlex
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    from phantom.cli.common import parse_numbers
+    from phantom.cli.demo import wait_until_ready
+    from phantom.hil.truth_shape import TruthShape
+    from phantom.host.client import DaemonClient
+    from phantom.host.scenes import example_scene_path
+    from phantom.model import PhantomModel, load_scene
+    from phantom.model.mesh.surface import TriangleMesh, model_surface
+    from phantom.scan.calibrate import calibrate_rig, target_views
+    from phantom.scan.camera import Rig, virtual_rig
+    from phantom.scan.capture import CaptureFolder, Plan
+    from phantom.scan.compare import compare, read_scan
+    from phantom.scan.heatmap import write_heatmap
+    from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
+    from phantom.scan.validation import TargetResult, frame_map, truth_distances, write_recording, write_report
+    from phantom.scan.virtual import VirtualCamera, render_target_captures
+
+    if not args.sim:
+        raise PhantomError("validate runs on the simulated rig: give --sim (with a real board, scan with `phantom "
+                           "scan capture`, `reconstruct` and `compare-scan`)")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    scene = args.scene or str(example_scene_path("bph_growth"))
+    targets = parse_numbers(args.targets, "--targets") if args.targets else scene_targets_ml(scene)
+    elevations = tuple(parse_numbers(args.elevations, "--elevations"))
+    plan = Plan(args.views, elevations, settle_s=args.settle_s)
+    true_rig = virtual_rig(args.scale, elevations)
+    started = time.monotonic()
+
+    def say(text: str) -> None:
+        print(f"[{time.monotonic() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
+
+    # the rig's calibration, from rendered pictures of the target, as a real rig's from photographs of it
+    if args.rig:
+        rig = Rig.load(args.rig)
+    else:
+        say("calibrating the virtual rig from pictures of the ChArUco target ...")
+        folders = render_target_captures(true_rig, out / "target", args.target_views)
+        rig = calibrate_rig(target_views(folders), true_rig.camera.width, true_rig.camera.height)
+        rig.save(out / "rig.json")
+        say(f"rig calibrated: reprojection RMS {rig.calibration['rms_px']:.3f} px")
+    to_truth = frame_map(rig, true_rig, elevations[0])
+    truth = TruthShape()
+    controller = PhantomModel.from_scene(load_scene(scene))
+    socket = out / "daemon.sock"
+    command = [str(Path(sys.executable).with_name("phantom")), "daemon", "--sim", "--scene", scene, "--socket",
+               str(socket), "--sim-speed", f"{args.sim_speed:g}"]
+    say("$ " + shlex.join(command))
+    log = open(out / "daemon.log", "w")
+    process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+    results: list[TargetResult] = []
+    captures: list[Path] = []
+    models: list[tuple[TriangleMesh, np.ndarray]] = []
+    try:
+        wait_until_ready(socket, process, out / "daemon.log", stage_limit_s=args.daemon_timeout_s)
+        say("daemon ready")
+        with DaemonClient(socket) as client:
+            for target_ml in targets:
+                answer = _call(client, "set_target", {"volume_ml": target_ml})
+                measured = wait_settled(client)
+                say(f"{target_ml:g} ml: inverse {', '.join(f'{p:.3f}' for p in answer['pressures_kpa'])} kPa, "
+                    f"held at {', '.join(f'{p:.3f}' for p in measured)} kPa; capturing {len(plan.stops())} pictures")
+                folder = CaptureFolder.create(out / f"capture_{target_ml:g}ml", {}, plan.to_json(), {
+                    "scene": scene, "target_ml": target_ml, "inverse": answer}, rig)
+                camera = VirtualCamera(true_rig, simulated_scene(client, truth), args.seed,
+                                       pose_at=_scaled_pose(args.scale))
+                folder.camera = camera.describe()
+                capture_through_daemon(client, camera, plan, folder, _progress_printer(f"  {target_ml:g} ml"))
+                frame_pressures = np.array([frame.pressures_kpa for frame in folder.frames], dtype=float)
+                pressures = frame_pressures.mean(axis=0)
+                result = reconstruct(folder, rig, args.voxel_mm or VOXEL_MM)
+                mesh_path = write_mesh(result.mesh, out / f"scan_{target_ml:g}ml.ply")
+                state = controller.equilibrium(pressures * 1e3)
+                model = model_surface(state.positions_m, controller.outer_triangles)
+                comparison = compare(read_scan(mesh_path), model, state.gland_volume_m3 * 1e6)
+                heatmap = write_heatmap(comparison, out / f"heatmap_{target_ml:g}ml.png",
+                                        f"scan against the model at the {target_ml:g} ml target\nmean "
+                                        f"{comparison.symmetric_mm['mean']:.3f} mm, volume {result.volume_ml:.2f} ml "
+                                        f"(model {state.gland_volume_m3 * 1e6:.2f} ml)")
+                scanned = TriangleMesh(to_truth.apply(result.mesh.vertices_mm), result.mesh.triangles)
+                true_surface = truth.surface(pressures)
+                results.append(TargetResult(
+                    target_ml, [float(p) for p in answer["pressures_kpa"]], pressures.tolist(),
+                    float(answer["predicted_volume_ml"]), state.gland_volume_m3 * 1e6,
+                    truth.gland_volume_ml(pressures), result.volume_ml, comparison.symmetric_mm,
+                    truth_distances(scanned, true_surface), str(folder.path), str(mesh_path), str(heatmap),
+                    len(folder.frames), [rig.camera.width, rig.camera.height], result.stage_s))
+                captures.append(folder.path)
+                # the model into the rig's frame, where the reconstruction and the cameras are (x_model = R x + t)
+                alignment = comparison.alignment
+                in_rig_mm = (comparison.model_vertices_mm - alignment.translation_mm) @ alignment.rotation
+                models.append((TriangleMesh(in_rig_mm, comparison.model_triangles),
+                               comparison.model_signed_distance_mm))
+                last = results[-1]
+                say(f"{target_ml:g} ml: scan {last.scan_ml:.2f} ml ({last.scan_vs_target_pct:+.2f} % of the target, "
+                    f"{last.scan_vs_model_pct:+.2f} % of the model, {last.scan_vs_truth_pct:+.2f} % of the truth); "
+                    f"mean distance to the model {last.model_distance_mm['mean']:.3f} mm, to the truth "
+                    f"{last.truth_distance_mm['mean']:.3f} mm")
+            _call(client, "vent")
+    finally:
+        if process.poll() is None:
+            process.send_signal(signal.SIGTERM)
+            process.wait(30)
+        log.close()
+    meta = {"command": shlex.join(["phantom", *args.argv]), "scene": scene,
+            "truth": truth.description, "rig": rig.calibration, "elapsed_s": time.monotonic() - started}
+    report = write_report(results, out, meta)
+    recording = write_recording(results, rig, captures, models, out / "validation.rrd") if args.rerun else None
+    if args.json:
+        print(json.dumps({"report": str(report), "recording": None if recording is None else str(recording),
+                          "targets": [r.to_json() for r in results]}))
+    else:
+        print(report.read_text())
+        print(f"report {report}" + (f", recording {recording}" if recording else ""))
+    return 0

@@ -1,0 +1,308 @@
+"""The scanner's camera model and the orbit's geometry, in millimetres (numpy only).
+
+A pinhole camera with Brown-Conrady lens distortion, as OpenCV models it (``k1, k2, p1, p2, k3``): a point
+``(x, y, z)`` in the camera's frame (x right, y down, z forward) goes to ``x' = x / z``, ``y' = y / z``, then
+``r^2 = x'^2 + y'^2`` and
+
+    x'' = x' (1 + k1 r^2 + k2 r^4 + k3 r^6) + 2 p1 x' y' + p2 (r^2 + 2 x'^2)
+    y'' = y' (1 + k1 r^2 + k2 r^4 + k3 r^6) + p1 (r^2 + 2 y'^2) + 2 p2 x' y'
+    u = fx x'' + cx,   v = fy y'' + cy
+
+in pixels, pixel (0, 0)'s centre at (0, 0). A pose maps the world into the camera: ``x_cam = R x_world + t``.
+
+The orbit (:class:`Rig`) turns the camera about one axis (the orbit axis, through ``axis_point_mm`` along
+``axis_direction``): the camera's pose at orbit angle theta is its pose at angle 0 turned by theta about the
+axis. The camera's pose at angle 0 is known for each elevation the rig was calibrated at (the elevation axis
+tilts the camera between passes). A rig's calibration (``phantom scan calibrate``) writes one as ``rig.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from phantom import PhantomError
+from phantom.model.arrays import FloatArray
+
+#: The version of rig.json's layout.
+RIG_FORMAT = "phantom-rig/1"
+#: Two elevations closer than this (deg) are the same pass.
+ELEVATION_MATCH_DEG = 0.05
+
+
+class RigError(PhantomError):
+    """A rig file that cannot be read, or an angle the rig was not calibrated for."""
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Intrinsics: image size (px), focal lengths and principal point (px), distortion ``(k1, k2, p1, p2, k3)``."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def matrix(self) -> FloatArray:
+        """The 3x3 camera matrix K (OpenCV's cameraMatrix)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, factor: float) -> Camera:
+        """The same lens on a sensor read out at ``factor`` times the resolution (a 1280x960 camera at 0.5 is
+        640x480): focal lengths and principal point scale (pixel centres stay pixel centres)."""
+        width, height = round(self.width * factor), round(self.height * factor)
+        sx, sy = width / self.width, height / self.height
+        return Camera(width, height, self.fx * sx, self.fy * sy, (self.cx + 0.5) * sx - 0.5,
+                      (self.cy + 0.5) * sy - 0.5, self.distortion)
+
+    def distort(self, normalized: FloatArray) -> FloatArray:
+        """Ideal normalized coordinates (..., 2) (x/z, y/z) to distorted normalized coordinates (..., 2)."""
+        k1, k2, p1, p2, k3 = self.distortion
+        x, y = normalized[..., 0], normalized[..., 1]
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        distorted: FloatArray = np.stack([xd, yd], axis=-1)
+        return distorted
+
+    def undistort(self, distorted: FloatArray, iterations: int = 20) -> FloatArray:
+        """Distorted normalized coordinates (..., 2) to ideal ones: Newton's method on :meth:`distort` (its
+        Jacobian by central differences), started from the distorted point; converges to 1e-12 within the
+        image for a lens whose distortion is monotonic there."""
+        target = np.asarray(distorted, dtype=float)
+        guess = target.copy()
+        step = 1e-7
+        for _ in range(iterations):
+            residual = self.distort(guess) - target
+            if np.max(np.abs(residual), initial=0.0) < 1e-13:
+                break
+            dx = (self.distort(guess + [step, 0.0]) - self.distort(guess - [step, 0.0])) / (2 * step)
+            dy = (self.distort(guess + [0.0, step]) - self.distort(guess - [0.0, step])) / (2 * step)
+            a, b, c, d = dx[..., 0], dy[..., 0], dx[..., 1], dy[..., 1]
+            determinant = a * d - b * c
+            guess = guess - np.stack([(d * residual[..., 0] - b * residual[..., 1]) / determinant,
+                                      (a * residual[..., 1] - c * residual[..., 0]) / determinant], axis=-1)
+        return guess
+
+    def project(self, points_camera_mm: FloatArray) -> FloatArray:
+        """Points in the camera's frame (n, 3) to pixels (n, 2), distortion included."""
+        normalized = points_camera_mm[:, :2] / points_camera_mm[:, 2:3]
+        distorted = self.distort(normalized)
+        pixels: FloatArray = np.column_stack([self.fx * distorted[:, 0] + self.cx,
+                                              self.fy * distorted[:, 1] + self.cy])
+        return pixels
+
+    def normalized_rays(self, pixels: FloatArray) -> FloatArray:
+        """Pixels (..., 2) to the ideal normalized coordinates (..., 2) of the rays through them."""
+        distorted = np.stack([(pixels[..., 0] - self.cx) / self.fx, (pixels[..., 1] - self.cy) / self.fy], axis=-1)
+        return self.undistort(distorted)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy, "cx": self.cx,
+                "cy": self.cy, "distortion_k1_k2_p1_p2_k3": list(self.distortion)}
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Camera:
+        k1, k2, p1, p2, k3 = (float(value) for value in data["distortion_k1_k2_p1_p2_k3"])
+        return cls(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]), float(data["cx"]),
+                   float(data["cy"]), (k1, k2, p1, p2, k3))
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid map from the world into the camera's frame: ``x_cam = rotation @ x_world + translation_mm``."""
+
+    rotation: FloatArray
+    translation_mm: FloatArray
+
+    @property
+    def centre_mm(self) -> FloatArray:
+        """The camera's centre in the world (mm)."""
+        centre: FloatArray = -self.rotation.T @ self.translation_mm
+        return centre
+
+    @property
+    def forward(self) -> FloatArray:
+        """The optical axis (the camera's +z) in the world."""
+        forward: FloatArray = self.rotation[2].copy()
+        return forward
+
+    def apply(self, points_world_mm: FloatArray) -> FloatArray:
+        """World points (n, 3) into the camera's frame."""
+        points: FloatArray = points_world_mm @ self.rotation.T + self.translation_mm
+        return points
+
+    def matrix(self) -> FloatArray:
+        """The 4x4 homogeneous matrix of the map."""
+        matrix = np.eye(4)
+        matrix[:3, :3], matrix[:3, 3] = self.rotation, self.translation_mm
+        return matrix
+
+    @classmethod
+    def from_matrix(cls, matrix: FloatArray) -> Pose:
+        return cls(np.array(matrix[:3, :3], dtype=float), np.array(matrix[:3, 3], dtype=float))
+
+    @classmethod
+    def look_at(cls, centre_mm: FloatArray, target_mm: FloatArray, up: FloatArray) -> Pose:
+        """The pose of a camera at ``centre_mm`` looking at ``target_mm`` with the world's ``up`` towards the
+        top of its pictures."""
+        forward = np.asarray(target_mm, float) - np.asarray(centre_mm, float)
+        forward /= np.linalg.norm(forward)
+        right = np.cross(forward, up)
+        right /= np.linalg.norm(right)
+        down = np.cross(forward, right)
+        rotation = np.vstack([right, down, forward])
+        return cls(rotation, -rotation @ np.asarray(centre_mm, float))
+
+
+def axis_rotation(direction: FloatArray, angle_deg: float) -> FloatArray:
+    """The rotation by ``angle_deg`` about a unit ``direction`` (right hand), 3x3."""
+    axis = np.asarray(direction, float) / np.linalg.norm(direction)
+    angle = math.radians(angle_deg)
+    cross = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    rotation: FloatArray = np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
+    return rotation
+
+
+@dataclass(frozen=True)
+class Elevation:
+    """One pass of the orbit: the elevation axis's angle (deg, as the board reports it) and the camera's pose at
+    orbit angle 0 there."""
+
+    elevation_deg: float
+    pose: Pose
+
+
+@dataclass(frozen=True)
+class Rig:
+    """The scanner: its camera, the orbit axis (a point on it and its unit direction, in the world, mm) and the
+    camera's pose at orbit angle 0 at each calibrated elevation. ``calibration`` holds how it was found
+    (reprojection errors, views); empty for a rig given by hand (the virtual rig's truth)."""
+
+    camera: Camera
+    axis_point_mm: FloatArray
+    axis_direction: FloatArray
+    elevations: tuple[Elevation, ...]
+    calibration: dict[str, Any] = field(default_factory=dict)
+
+    def elevation(self, elevation_deg: float) -> Elevation:
+        """The calibrated pass at this elevation; RigError naming the calibrated ones if there is none."""
+        for entry in self.elevations:
+            if abs(entry.elevation_deg - elevation_deg) <= ELEVATION_MATCH_DEG:
+                return entry
+        known = ", ".join(f"{entry.elevation_deg:g}" for entry in self.elevations)
+        raise RigError(f"the rig is calibrated at elevation(s) {known} deg, not {elevation_deg:g} deg: calibrate "
+                       f"it there too (phantom scan calibrate) or capture at a calibrated elevation")
+
+    def pose(self, orbit_deg: float, elevation_deg: float) -> Pose:
+        """The camera's pose at an orbit angle and an elevation (deg): the pose at orbit 0 turned about the axis.
+        A point x of the camera at orbit 0 goes to ``p + Q (x - p)`` (Q the turn, p on the axis), so the map
+        ``R x + t`` becomes ``R Q^T x + t + R p - R Q^T p``."""
+        base = self.elevation(elevation_deg).pose
+        turn = axis_rotation(self.axis_direction, orbit_deg)
+        rotation = base.rotation @ turn.T
+        translation = base.translation_mm + base.rotation @ self.axis_point_mm - rotation @ self.axis_point_mm
+        return Pose(rotation, translation)
+
+    def radius_mm(self, elevation_deg: float) -> float:
+        """The camera centre's distance from the orbit axis at an elevation (mm)."""
+        offset = self.elevation(elevation_deg).pose.centre_mm - self.axis_point_mm
+        along = float(offset @ self.axis_direction)
+        return float(np.linalg.norm(offset - along * self.axis_direction))
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "format": RIG_FORMAT,
+            "units": "mm, deg, px",
+            "camera": self.camera.to_json(),
+            "axis": {"point_mm": self.axis_point_mm.tolist(), "direction": self.axis_direction.tolist()},
+            "elevations": [{"elevation_deg": entry.elevation_deg, "rotation": entry.pose.rotation.tolist(),
+                            "translation_mm": entry.pose.translation_mm.tolist(),
+                            "orbit_radius_mm": self.radius_mm(entry.elevation_deg)} for entry in self.elevations],
+            "calibration": self.calibration,
+        }
+
+    @classmethod
+    def from_json(cls, data: dict[str, Any]) -> Rig:
+        if data.get("format") != RIG_FORMAT:
+            raise RigError(f"not a rig file of this version (format {data.get('format')!r}, expected "
+                           f"{RIG_FORMAT!r}): calibrate the rig again with phantom scan calibrate")
+        try:
+            elevations = tuple(Elevation(float(entry["elevation_deg"]),
+                                         Pose(np.array(entry["rotation"], dtype=float),
+                                              np.array(entry["translation_mm"], dtype=float)))
+                               for entry in data["elevations"])
+            direction = np.array(data["axis"]["direction"], dtype=float)
+            return cls(Camera.from_json(data["camera"]), np.array(data["axis"]["point_mm"], dtype=float),
+                       direction / np.linalg.norm(direction), elevations, dict(data.get("calibration", {})))
+        except (KeyError, TypeError, ValueError) as error:
+            raise RigError(f"the rig file is damaged ({type(error).__name__}: {error}): calibrate again") from None
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        except OSError as error:
+            raise RigError(f"cannot write the rig file {path}: {error.strerror or error}") from None
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> Rig:
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise RigError(f"the rig file {path} does not exist: calibrate the rig first (phantom scan calibrate) "
+                           f"or give --rig") from None
+        except (OSError, json.JSONDecodeError) as error:
+            raise RigError(f"cannot read the rig file {path}: {error}") from None
+        if not isinstance(data, dict):
+            raise RigError(f"the rig file {path} is not a JSON object: calibrate again")
+        return cls.from_json(data)
+
+
+# --- the virtual rig ---------------------------------------------------------------------------------------------
+
+#: The virtual camera: a 1280x960 sensor behind a lens of about 49 degrees across, with a webcam's barrel
+#: distortion and a principal point off the centre.
+VIRTUAL_CAMERA = Camera(1280, 960, 1400.0, 1400.0, 647.3, 474.1, (-0.12, 0.09, 6e-4, -4e-4, 0.0))
+#: The virtual orbit: the camera 200 mm from the axis, looking at a point 4 mm below the origin (the middle of
+#: the hanging phantom); the axis is neither through the phantom's origin nor quite vertical, as a real one.
+VIRTUAL_RADIUS_MM = 200.0
+VIRTUAL_CENTRE_MM = np.array([0.0, 0.0, -4.0])
+VIRTUAL_AXIS_POINT_MM = np.array([0.9, -0.6, 0.0])
+VIRTUAL_AXIS_TILT_DEG = 0.3
+#: The elevations of the virtual rig's two passes (deg): level with the phantom and 30 deg above it.
+VIRTUAL_ELEVATIONS_DEG = (0.0, 30.0)
+
+
+def virtual_pose(orbit_deg: float, elevation_deg: float, scale: float = 1.0) -> Pose:
+    """The virtual rig's true camera pose at any orbit angle and elevation (deg)."""
+    return virtual_rig(scale, (elevation_deg,)).pose(orbit_deg, elevation_deg)
+
+
+def virtual_rig(scale: float = 1.0, elevations_deg: tuple[float, ...] = VIRTUAL_ELEVATIONS_DEG) -> Rig:
+    """The simulated scanner's true geometry (the phantom's frame: z up, the phantom hanging from z = 20 mm):
+    :data:`VIRTUAL_CAMERA` read out at ``scale`` times 1280x960, orbiting :data:`VIRTUAL_RADIUS_MM` from a
+    slightly tilted axis, at each elevation of ``elevations_deg`` (the camera swung up on an arc about the
+    phantom's middle)."""
+    tilt = math.radians(VIRTUAL_AXIS_TILT_DEG)
+    direction = np.array([math.sin(tilt), 0.0, math.cos(tilt)])
+    elevations = []
+    for elevation_deg in elevations_deg:
+        e = math.radians(elevation_deg)
+        centre = VIRTUAL_CENTRE_MM + VIRTUAL_RADIUS_MM * np.array([math.cos(e), 0.0, math.sin(e)])
+        elevations.append(Elevation(float(elevation_deg), Pose.look_at(centre, VIRTUAL_CENTRE_MM, direction)))
+    camera = VIRTUAL_CAMERA if scale == 1.0 else VIRTUAL_CAMERA.scaled(scale)
+    return Rig(camera, VIRTUAL_AXIS_POINT_MM.copy(), direction, tuple(elevations))

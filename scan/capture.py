@@ -1,0 +1,350 @@
+"""Capture: turn the orbit, let it settle, take a picture at each stop, and keep everything in a capture folder.
+
+The capture loop (:func:`capture`) drives three things it is given, each typed by a Protocol so that the loop
+imports nothing of the daemon or the simulator: an :class:`Orbit` (move to an orbit angle and an elevation and
+say where it stopped; release the motors), a :class:`FrameSource` (a webcam through OpenCV's ``VideoCapture``, or
+the virtual camera) and a :class:`PhantomState` (the chamber pressures now; it raises when the phantom cannot be
+scanned: a latched fault, a lost link). On a fault, a lost camera or Ctrl-C the loop stops the orbit with its
+motors released, marks the folder ``aborted`` with the reason, and keeps the pictures taken.
+
+A capture folder, readable by any tool::
+
+    capture.json        {"format": "phantom-capture/1", "status": "running" | "complete" | "aborted",
+                         "reason", "started_utc", "finished_utc", "camera": {...}, "plan": {...},
+                         "conditions": {...}, "rig": "rig.json" or null,
+                         "frames": [{"index", "image", "orbit_deg", "elevation_deg", "pressures_kpa",
+                                     "time_utc", "time_s"}, ...]}
+    rig.json            the rig's calibration (phantom.scan.camera.Rig), when one is known
+    images/0000.png     the pictures, 8-bit sRGB, in the order taken
+
+``orbit_deg`` and ``elevation_deg`` are the angles the board reported once the axes were at rest; ``time_s`` is
+seconds since the capture started (``time_utc`` the wall clock); capture.json is rewritten (atomically) after
+every picture, so an aborted capture is readable too.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import json
+import os
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from phantom import PhantomError, require_extra
+from phantom.scan.camera import Rig
+
+CAPTURE_FORMAT = "phantom-capture/1"
+CAPTURE_FILE = "capture.json"
+RIG_FILE = "rig.json"
+IMAGES = "images"
+
+
+class CaptureError(PhantomError):
+    """A capture that stopped (the reason and where the pictures taken are kept), or a capture folder that
+    cannot be read."""
+
+
+class CameraLost(PhantomError):
+    """The camera gave no picture (unplugged, closed, the end of a recording)."""
+
+
+class Orbit(Protocol):
+    """The scanner's axes as the capture needs them."""
+
+    def move_to(self, orbit_deg: float, elevation_deg: float) -> tuple[float, float]:
+        """Move both axes there and wait until they are at rest; return the angles reached (deg)."""
+
+    def release(self) -> None:
+        """Stop any motion and release the motors' drivers."""
+
+
+class FrameSource(Protocol):
+    """A camera."""
+
+    def grab(self) -> np.ndarray:
+        """A picture taken now: 8-bit RGB (height, width, 3); CameraLost if there is none."""
+
+    def describe(self) -> dict[str, Any]:
+        """What the camera is and how it is set, for capture.json."""
+
+
+class PhantomState(Protocol):
+    """The phantom being scanned."""
+
+    def pressures_kpa(self) -> list[float] | None:
+        """The chamber pressures now (kPa), None if unknown; raises PhantomError when the phantom cannot be
+        scanned (a latched fault, the board's link lost)."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Where to take pictures: ``views`` orbit stops per elevation from ``start_deg``, evenly over a whole turn
+    (``span_deg`` 360, the last stop one step short of the first) or over ``span_deg`` (both ends included), at
+    each elevation (deg) in order; ``settle_s`` after each move before the picture."""
+
+    views: int
+    elevations_deg: tuple[float, ...] = (0.0, 30.0)
+    #: a whole turn from -180 deg stays within the orbit's soft limits (+-190 deg: its cable allows little more)
+    start_deg: float = -180.0
+    settle_s: float = 0.3
+    span_deg: float = 360.0
+
+    def stops(self) -> list[tuple[float, float]]:
+        """The (orbit, elevation) stops in the order taken: every other pass runs backwards, so the orbit never
+        travels back a whole turn between passes."""
+        if self.views < 1 or not self.elevations_deg:
+            raise CaptureError(f"a capture needs at least one view and one elevation, got {self.views} views at "
+                               f"{list(self.elevations_deg)}")
+        if self.span_deg >= 360.0:
+            angles = [self.start_deg + 360.0 * k / self.views for k in range(self.views)]
+        else:
+            angles = [self.start_deg + self.span_deg * k / max(self.views - 1, 1) for k in range(self.views)]
+        stops = []
+        for number, elevation in enumerate(self.elevations_deg):
+            stops += [(angle, elevation) for angle in (angles if number % 2 == 0 else angles[::-1])]
+        return stops
+
+    def to_json(self) -> dict[str, Any]:
+        return {"views_per_elevation": self.views, "elevations_deg": list(self.elevations_deg),
+                "start_deg": self.start_deg, "span_deg": self.span_deg, "settle_s": self.settle_s}
+
+
+@dataclass
+class Frame:
+    """One picture's record in capture.json."""
+
+    index: int
+    image: str
+    orbit_deg: float
+    elevation_deg: float
+    pressures_kpa: list[float] | None
+    time_utc: str
+    time_s: float
+
+
+@dataclass
+class CaptureFolder:
+    """A capture folder (see the module docstring)."""
+
+    path: Path
+    camera: dict[str, Any]
+    plan: dict[str, Any]
+    conditions: dict[str, Any] = field(default_factory=dict)
+    frames: list[Frame] = field(default_factory=list)
+    status: str = "running"
+    reason: str | None = None
+    started_utc: str = ""
+    finished_utc: str | None = None
+    rig_file: str | None = None
+
+    @classmethod
+    def create(cls, path: str | Path, camera: dict[str, Any], plan: dict[str, Any],
+               conditions: dict[str, Any] | None = None, rig: Rig | None = None) -> CaptureFolder:
+        """A new, empty capture folder (CaptureError if it holds a capture already)."""
+        path = Path(path)
+        if (path / CAPTURE_FILE).exists():
+            raise CaptureError(f"{path} already holds a capture: give another --out folder")
+        try:
+            (path / IMAGES).mkdir(parents=True, exist_ok=True)
+        except OSError as error:
+            raise CaptureError(f"cannot make the capture folder {path}: {error.strerror or error}") from None
+        folder = cls(path, camera, plan, dict(conditions or {}), started_utc=_utc_now())
+        if rig is not None:
+            rig.save(path / RIG_FILE)
+            folder.rig_file = RIG_FILE
+        folder.write()
+        return folder
+
+    def add(self, image: np.ndarray, orbit_deg: float, elevation_deg: float, pressures_kpa: list[float] | None,
+            time_s: float) -> Frame:
+        """Write one picture (RGB) and its record."""
+        with require_extra("scan"):
+            import cv2
+
+        index = len(self.frames)
+        name = f"{IMAGES}/{index:04d}.png"
+        if not cv2.imwrite(str(self.path / name), np.ascontiguousarray(image[:, :, ::-1])):
+            raise CaptureError(f"cannot write {self.path / name}: is the disk full?")
+        frame = Frame(index, name, float(orbit_deg), float(elevation_deg),
+                      None if pressures_kpa is None else [float(p) for p in pressures_kpa], _utc_now(), float(time_s))
+        self.frames.append(frame)
+        self.write()
+        return frame
+
+    def finish(self, status: str, reason: str | None = None) -> None:
+        self.status, self.reason, self.finished_utc = status, reason, _utc_now()
+        self.write()
+
+    def to_json(self) -> dict[str, Any]:
+        return {"format": CAPTURE_FORMAT, "status": self.status, "reason": self.reason,
+                "started_utc": self.started_utc, "finished_utc": self.finished_utc, "camera": self.camera,
+                "plan": self.plan, "conditions": self.conditions, "rig": self.rig_file,
+                "frames": [asdict(frame) for frame in self.frames]}
+
+    def write(self) -> None:
+        """capture.json, replaced atomically (a reader never sees half of it)."""
+        temporary = self.path / (CAPTURE_FILE + ".new")
+        try:
+            temporary.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+            os.replace(temporary, self.path / CAPTURE_FILE)
+        except OSError as error:
+            raise CaptureError(f"cannot write {self.path / CAPTURE_FILE}: {error.strerror or error}") from None
+
+    @classmethod
+    def open(cls, path: str | Path) -> CaptureFolder:
+        """Read a capture folder; CaptureError if it is not one."""
+        path = Path(path)
+        try:
+            data = json.loads((path / CAPTURE_FILE).read_text())
+        except FileNotFoundError:
+            raise CaptureError(f"{path} is not a capture folder (no {CAPTURE_FILE}): give the folder that phantom "
+                               f"scan capture or render wrote") from None
+        except (OSError, json.JSONDecodeError) as error:
+            raise CaptureError(f"cannot read {path / CAPTURE_FILE}: {error}") from None
+        if not isinstance(data, dict) or data.get("format") != CAPTURE_FORMAT:
+            raise CaptureError(f"{path / CAPTURE_FILE} is not a {CAPTURE_FORMAT} capture")
+        try:
+            frames = [Frame(int(f["index"]), str(f["image"]), float(f["orbit_deg"]), float(f["elevation_deg"]),
+                            f.get("pressures_kpa"), str(f.get("time_utc", "")), float(f.get("time_s", 0.0)))
+                      for f in data["frames"]]
+            return cls(path, dict(data.get("camera", {})), dict(data.get("plan", {})),
+                       dict(data.get("conditions", {})), frames, str(data.get("status", "complete")),
+                       data.get("reason"), str(data.get("started_utc", "")), data.get("finished_utc"), data.get("rig"))
+        except (KeyError, TypeError, ValueError) as error:
+            raise CaptureError(f"{path / CAPTURE_FILE} is damaged ({type(error).__name__}: {error})") from None
+
+    def rig(self) -> Rig | None:
+        """The rig's calibration kept beside the pictures, if any."""
+        return Rig.load(self.path / self.rig_file) if self.rig_file else None
+
+    def image(self, frame: Frame) -> np.ndarray:
+        """A picture as 8-bit RGB."""
+        with require_extra("scan"):
+            import cv2
+
+        picture = cv2.imread(str(self.path / frame.image), cv2.IMREAD_COLOR)
+        if picture is None:
+            raise CaptureError(f"cannot read the picture {self.path / frame.image}: missing or damaged")
+        rgb: np.ndarray = np.ascontiguousarray(picture[:, :, ::-1])
+        return rgb
+
+
+def _utc_now() -> str:
+    return datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
+
+
+Progress = Callable[[int, int, Frame], None]
+
+
+def capture(orbit: Orbit, camera: FrameSource, phantom: PhantomState, plan: Plan, folder: CaptureFolder,
+            progress: Progress | None = None, sleep: Callable[[float], None] = time.sleep) -> CaptureFolder:
+    """Take the plan's pictures into ``folder``; on any failure or Ctrl-C release the orbit, mark the folder
+    aborted (pictures kept) and raise CaptureError (KeyboardInterrupt for Ctrl-C)."""
+    stops = plan.stops()
+    started = time.monotonic()
+    with _abort_cleanly(orbit, folder, len(stops)):
+        for orbit_deg, elevation_deg in stops:
+            reached = orbit.move_to(orbit_deg, elevation_deg)
+            sleep(plan.settle_s)
+            pressures = phantom.pressures_kpa()
+            picture = camera.grab()
+            frame = folder.add(picture, reached[0], reached[1], pressures, time.monotonic() - started)
+            if progress is not None:
+                progress(len(folder.frames), len(stops), frame)
+        folder.finish("complete")
+    return folder
+
+
+@contextlib.contextmanager
+def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int) -> Iterator[None]:
+    try:
+        yield
+    except (PhantomError, OSError, KeyboardInterrupt) as error:
+        reason = "interrupted (Ctrl-C)" if isinstance(error, KeyboardInterrupt) else str(error)
+        released = _release(orbit)
+        folder.finish("aborted", reason + ("" if released is None else f"; the motors could not be released: "
+                                                                       f"{released}"))
+        if isinstance(error, KeyboardInterrupt):
+            raise
+        raise CaptureError(f"capture aborted after {len(folder.frames)} of {total} pictures: {reason}; the motors "
+                           f"are {'released' if released is None else 'NOT released (' + released + ')'} and the "
+                           f"pictures taken are kept in {folder.path}") from error
+
+
+def _release(orbit: Orbit) -> str | None:
+    """Release the orbit; the reason it failed, if it did."""
+    try:
+        orbit.release()
+    except (PhantomError, OSError) as error:
+        return str(error)
+    return None
+
+
+# --- a webcam ---------------------------------------------------------------------------------------------------
+
+
+class Webcam:
+    """A camera through OpenCV's ``VideoCapture``: a device number (``0``: /dev/video0), or a video file or an
+    image sequence (``frames/%04d.png``), which VideoCapture reads through the same API, so a recording can
+    stand in for the webcam in a test.
+
+    A device is set to the picture size asked for, with automatic exposure, focus and white balance off and
+    ``exposure``/``focus`` fixed when given (in the driver's units); what the driver accepted is in
+    :meth:`describe`. Each :meth:`grab` first drops ``flush`` buffered frames, so the picture is taken after the
+    orbit stopped, not before.
+    """
+
+    def __init__(self, source: int | str, width: int | None = None, height: int | None = None,
+                 exposure: float | None = None, focus: float | None = None, flush: int = 4):
+        with require_extra("scan"):
+            import cv2
+
+        self._cv2 = cv2
+        self.source = source
+        self.flush = flush if isinstance(source, int) else 0
+        self.capture = cv2.VideoCapture(source)
+        if not self.capture.isOpened():
+            raise CameraLost(f"cannot open the camera {source!r}: is it plugged in (ls /dev/video*), or the path "
+                             f"right?")
+        self.settings: dict[str, Any] = {}
+        if isinstance(source, int):
+            wanted: list[tuple[str, float | None]] = [
+                ("CAP_PROP_FRAME_WIDTH", width), ("CAP_PROP_FRAME_HEIGHT", height), ("CAP_PROP_BUFFERSIZE", 1),
+                ("CAP_PROP_AUTO_EXPOSURE", 0.25 if exposure is not None else None),  # V4L2: 0.25 = manual
+                ("CAP_PROP_EXPOSURE", exposure), ("CAP_PROP_AUTOFOCUS", 0), ("CAP_PROP_FOCUS", focus),
+                ("CAP_PROP_AUTO_WB", 0)]
+            for name, value in wanted:
+                if value is not None:
+                    self.settings[name] = {"asked": value,
+                                           "accepted": bool(self.capture.set(getattr(cv2, name), value))}
+
+    def grab(self) -> np.ndarray:
+        for _ in range(self.flush):
+            self.capture.grab()
+        ok, picture = self.capture.read()
+        if not ok or picture is None:
+            raise CameraLost(f"the camera {self.source!r} gave no picture (unplugged, or the recording ended)")
+        if picture.ndim == 2:
+            picture = self._cv2.cvtColor(picture, self._cv2.COLOR_GRAY2BGR)
+        rgb: np.ndarray = np.ascontiguousarray(picture[:, :, ::-1])
+        return rgb
+
+    def describe(self) -> dict[str, Any]:
+        return {"kind": "webcam", "source": self.source, "settings": self.settings}
+
+    def close(self) -> None:
+        self.capture.release()
+
+
+def frames_at(folder: CaptureFolder, elevations_deg: Sequence[float] | None = None) -> list[Frame]:
+    """The folder's frames, those at the given elevations only when asked."""
+    if elevations_deg is None:
+        return list(folder.frames)
+    return [frame for frame in folder.frames
+            if any(abs(frame.elevation_deg - elevation) < 0.05 for elevation in elevations_deg)]

@@ -1,0 +1,125 @@
+"""A capture folder to a mesh: the silhouettes, the poses from the rig's calibration, carving, the surface.
+
+:func:`reconstruct` reads each picture, finds the phantom's silhouette (:mod:`phantom.scan.silhouette`), takes
+the camera's pose at the frame's orbit angle and elevation from the rig (:class:`phantom.scan.camera.Rig`),
+carves the visual hull coarse to fine and returns its smooth, closed surface in mm in the rig's frame (the orbit
+axis along z through the origin, for a calibrated rig). The pictures are read and keyed on two threads (OpenCV
+and the kernels release the interpreter's lock), and so is the carving.
+
+The visual hull is the largest shape consistent with the silhouettes: it holds the phantom and touches it wherever
+a camera sees its outline. A dent that no line of sight grazes (a concavity: the surface curving inwards in every
+direction) is filled in; :mod:`bench/scan_accuracy.py` shows how much on a shape with one.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import meshio
+import numpy as np
+
+from phantom.model.arrays import FloatArray
+from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml
+from phantom.scan.camera import Rig
+from phantom.scan.capture import CaptureError, CaptureFolder, Frame
+from phantom.scan.carve import Carver, View, carve, surface
+from phantom.scan.compare import SCAN_SUFFIXES, ScanError
+from phantom.scan.silhouette import SilhouetteError, silhouette
+
+#: The voxel size (mm) of the finest grid by default.
+VOXEL_MM = 0.3
+#: The carving starts from a cube of this fraction of the camera's distance from the orbit's centre (half side).
+START_FRACTION = 0.35
+#: Threads that read and key the pictures, and carve.
+THREADS = 2
+
+
+@dataclass
+class Reconstruction:
+    """The surface (mm, the rig's frame), its volume, and what it took."""
+
+    mesh: TriangleMesh
+    volume_ml: float
+    voxel_mm: float
+    views: int
+    centre_mm: FloatArray
+    stage_s: dict[str, float] = field(default_factory=dict)
+    projections: int = 0
+    touching_edge: int = 0
+
+
+def rig_centre(poses: Sequence[FloatArray], forwards: Sequence[FloatArray]) -> FloatArray:
+    """The point nearest to every camera's optical axis (least squares): what the orbit looks at."""
+    system, right = np.zeros((3, 3)), np.zeros(3)
+    for centre, forward in zip(poses, forwards, strict=True):
+        across = np.eye(3) - np.outer(forward, forward)
+        system += across
+        right += across @ centre
+    point: FloatArray = np.asarray(np.linalg.solve(system, right), dtype=np.float64)
+    return point
+
+
+def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float = VOXEL_MM,
+                frames: Sequence[Frame] | None = None, progress: Callable[[str], None] | None = None) -> Reconstruction:
+    """The carved surface of a capture folder's pictures (all, or ``frames``), posed by ``rig`` (default: the rig
+    kept in the folder). CaptureError for a folder without pictures or a rig, or pictures of another size than
+    the rig's camera; SilhouetteError for a picture without a silhouette; CarveError if nothing is left."""
+    rig = rig if rig is not None else folder.rig()
+    if rig is None:
+        raise CaptureError(f"{folder.path} keeps no rig calibration (rig.json): give the rig's (--rig RIG.json, "
+                           f"from phantom scan calibrate)")
+    frames = list(folder.frames if frames is None else frames)
+    if len(frames) < 2:
+        raise CaptureError(f"{folder.path} has {len(frames)} picture(s): carving needs pictures from several sides")
+    if not voxel_mm > 0:
+        raise CaptureError(f"the voxel size must be positive, got {voxel_mm!r} mm")
+    stage_s: dict[str, float] = {}
+    started = time.perf_counter()
+    poses = [rig.pose(frame.orbit_deg, frame.elevation_deg) for frame in frames]
+
+    def key(frame: Frame) -> tuple[Frame, object]:
+        image = folder.image(frame)
+        if image.shape[:2] != (rig.camera.height, rig.camera.width):
+            raise CaptureError(f"{frame.image} is {image.shape[1]}x{image.shape[0]}, the rig's camera "
+                               f"{rig.camera.width}x{rig.camera.height}: calibrate the rig at this picture size")
+        try:
+            return frame, silhouette(image)
+        except SilhouetteError as error:
+            raise SilhouetteError(f"{frame.image}: {error}") from None
+
+    with concurrent.futures.ThreadPoolExecutor(THREADS) as pool:
+        keyed = list(pool.map(key, frames))
+    views = [View(pose, found) for pose, (_, found) in zip(poses, keyed, strict=True)]  # type: ignore[arg-type]
+    stage_s["silhouettes"] = time.perf_counter() - started
+    if progress is not None:
+        progress(f"{len(views)} silhouettes in {stage_s['silhouettes']:.1f} s")
+    centre = rig_centre([pose.centre_mm for pose in poses], [pose.forward for pose in poses])
+    distance = float(np.median([np.linalg.norm(pose.centre_mm - centre) for pose in poses]))
+    carver = Carver(rig.camera, views, threads=THREADS)
+    started = time.perf_counter()
+    grid = carve(carver, centre, START_FRACTION * distance, voxel_mm, progress)
+    stage_s["carve"] = time.perf_counter() - started
+    started = time.perf_counter()
+    mesh = surface(grid)
+    stage_s["surface"] = time.perf_counter() - started
+    touching = sum(1 for view in views if view.silhouette.touches_edge)
+    return Reconstruction(mesh, enclosed_volume_ml(mesh), voxel_mm, len(views), centre, stage_s, carver.projections,
+                          touching)
+
+
+def write_mesh(mesh: TriangleMesh, path: str | Path) -> Path:
+    """Write a surface (mm) as PLY, STL or OBJ (by the suffix)."""
+    path = Path(path)
+    if path.suffix.lower() not in SCAN_SUFFIXES:
+        raise ScanError(f"{path}: write the mesh as .ply, .stl or .obj")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        meshio.write_points_cells(path, mesh.vertices_mm, [("triangle", mesh.triangles.astype(np.int32))])
+    except (OSError, meshio.WriteError) as error:
+        raise ScanError(f"cannot write {path}: {error}") from None
+    return path
+

@@ -1,0 +1,139 @@
+"""The capture loop and folder (phantom.scan.capture): a webcam's path fed with recorded frames through OpenCV's
+VideoCapture, the folder another tool reads, and clean aborts (motors released, pictures kept)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from phantom import PhantomError
+from phantom.model.mesh.surface import enclosed_volume_ml
+from phantom.scan.camera import VIRTUAL_CENTRE_MM, virtual_rig
+from phantom.scan.capture import CameraLost, CaptureError, CaptureFolder, Plan, Webcam, capture
+from phantom.scan.synthetic import sphere
+
+cv2 = pytest.importorskip("cv2")
+pytest.importorskip("skimage")
+
+from phantom.scan.reconstruct import reconstruct  # noqa: E402
+from phantom.scan.render import Renderer, to_8bit  # noqa: E402
+
+
+class RecordingOrbit:
+    """An orbit for one layer's test: it is where it is told and logs what it was told (a real one is
+    tested through the daemon and simavr)."""
+
+    def __init__(self, interrupt_at: int | None = None):
+        self.moves: list[tuple[float, float]] = []
+        self.released = 0
+        self.interrupt_at = interrupt_at
+
+    def move_to(self, orbit_deg, elevation_deg):
+        if self.interrupt_at is not None and len(self.moves) == self.interrupt_at:
+            raise KeyboardInterrupt
+        self.moves.append((orbit_deg, elevation_deg))
+        return orbit_deg + 0.004, elevation_deg  # the board reports the step it stopped on
+
+    def release(self):
+        self.released += 1
+
+
+class Phantom:
+    def __init__(self, fault_at: int | None = None):
+        self.calls = 0
+        self.fault_at = fault_at
+
+    def pressures_kpa(self):
+        self.calls += 1
+        if self.fault_at is not None and self.calls > self.fault_at:
+            raise PhantomError("faults latched: OVERPRESSURE")
+        return [1.0, 1.5, 0.5]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """A webcam's recording of a sphere on the virtual rig: one picture per stop of a 2 x 10 plan, as an image
+    sequence (what VideoCapture reads like a device)."""
+    folder = tmp_path_factory.mktemp("recording")
+    rig, plan = virtual_rig(0.4), Plan(10, settle_s=0.0)
+    renderer, rng = Renderer(rig.camera), np.random.default_rng(3)
+    mesh = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5)
+    for number, (orbit, elevation) in enumerate(plan.stops()):
+        picture = to_8bit(renderer.render_mesh(mesh, rig.pose(orbit, elevation)), rng)
+        assert cv2.imwrite(str(folder / f"{number:04d}.png"), picture[:, :, ::-1])
+    return folder, rig, plan, mesh
+
+
+def test_recorded_frames_through_the_webcam_path_make_the_sphere(recording, tmp_path):
+    frames, rig, plan, mesh = recording
+    camera = Webcam(str(frames / "%04d.png"))
+    orbit = RecordingOrbit()
+    folder = CaptureFolder.create(tmp_path / "capture", camera.describe(), plan.to_json(), {"test": 1}, rig)
+    shown = []
+    capture(orbit, camera, Phantom(), plan, folder, lambda done, total, frame: shown.append((done, total)))
+    camera.close()
+    assert orbit.moves == plan.stops() and shown[-1] == (20, 20)
+    data = json.loads((tmp_path / "capture" / "capture.json").read_text())
+    assert data["format"] == "phantom-capture/1" and data["status"] == "complete" and data["rig"] == "rig.json"
+    first = data["frames"][0]
+    assert first["image"] == "images/0000.png" and first["pressures_kpa"] == [1.0, 1.5, 0.5]
+    assert first["orbit_deg"] == pytest.approx(-180.0 + 0.004) and "time_utc" in first and first["time_s"] >= 0
+    assert (tmp_path / "capture" / "images" / "0019.png").is_file()
+    result = reconstruct(CaptureFolder.open(tmp_path / "capture"), voxel_mm=0.4)
+    assert result.volume_ml == pytest.approx(enclosed_volume_ml(mesh), rel=0.015)
+
+
+def test_a_lost_camera_aborts_with_the_motors_released_and_the_pictures_kept(recording, tmp_path):
+    frames, rig, _, _ = recording
+    plan = Plan(15, settle_s=0.0)  # 30 stops, the recording has 20
+    orbit = RecordingOrbit()
+    folder = CaptureFolder.create(tmp_path / "capture", {"kind": "webcam"}, plan.to_json())
+    with pytest.raises(CaptureError, match=r"aborted after 20 of 30 pictures: .*gave no picture.*motors are "
+                                           r"released.*kept in"):
+        capture(orbit, Webcam(str(frames / "%04d.png")), Phantom(), plan, folder)
+    assert orbit.released == 1
+    again = CaptureFolder.open(tmp_path / "capture")
+    assert again.status == "aborted" and "gave no picture" in again.reason and len(again.frames) == 20
+
+
+def test_a_fault_aborts_the_capture(recording, tmp_path):
+    frames, _, plan, _ = recording
+    orbit = RecordingOrbit()
+    folder = CaptureFolder.create(tmp_path / "capture", {"kind": "webcam"}, plan.to_json())
+    with pytest.raises(CaptureError, match="aborted after 3 of 20 pictures: faults latched: OVERPRESSURE"):
+        capture(orbit, Webcam(str(frames / "%04d.png")), Phantom(fault_at=3), plan, folder)
+    assert orbit.released == 1 and CaptureFolder.open(folder.path).status == "aborted"
+
+
+def test_ctrl_c_aborts_the_capture(recording, tmp_path):
+    frames, _, plan, _ = recording
+    orbit = RecordingOrbit(interrupt_at=2)
+    folder = CaptureFolder.create(tmp_path / "capture", {"kind": "webcam"}, plan.to_json())
+    with pytest.raises(KeyboardInterrupt):
+        capture(orbit, Webcam(str(frames / "%04d.png")), Phantom(), plan, folder)
+    again = CaptureFolder.open(folder.path)
+    assert orbit.released == 1 and again.status == "aborted" and again.reason.startswith("interrupted")
+    assert len(again.frames) == 2
+
+
+def test_capture_folder_errors(tmp_path):
+    CaptureFolder.create(tmp_path / "one", {}, {})
+    with pytest.raises(CaptureError, match="already holds a capture"):
+        CaptureFolder.create(tmp_path / "one", {}, {})
+    with pytest.raises(CaptureError, match="not a capture folder"):
+        CaptureFolder.open(tmp_path)
+    (tmp_path / "two").mkdir()
+    (tmp_path / "two" / "capture.json").write_text("{\"format\": \"phantom-capture/1\", \"frames\": [{}]}")
+    with pytest.raises(CaptureError, match="damaged"):
+        CaptureFolder.open(tmp_path / "two")
+    with pytest.raises(CameraLost, match="cannot open the camera"):
+        Webcam(str(tmp_path / "nothing" / "%04d.png"))
+    with pytest.raises(CaptureError, match="at least one view"):
+        Plan(0).stops()
+
+
+def test_plan_runs_every_other_pass_backwards():
+    stops = Plan(4, (0.0, 30.0), start_deg=0.0).stops()
+    assert stops == [(0.0, 0.0), (90.0, 0.0), (180.0, 0.0), (270.0, 0.0),
+                     (270.0, 30.0), (180.0, 30.0), (90.0, 30.0), (0.0, 30.0)]
+    assert Plan(3, (0.0,), start_deg=-50.0, span_deg=100.0).stops() == [(-50.0, 0.0), (0.0, 0.0), (50.0, 0.0)]

@@ -1,0 +1,61 @@
+"""The daemon's ``scan`` API method (host/motion.py, the capture given by ``phantom daemon``: phantom/cli/scan_rig.py)
+on the simulated board: the firmware's steppers turn the orbit in simavr, the virtual camera renders the truth
+phantom at the rig's counted angles, and the pictures land in a capture folder; bad requests are refused."""
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from phantom import PhantomError
+from phantom.host.client import DaemonClient, DaemonError
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+
+pytestmark = [pytest.mark.sim, pytest.mark.slow]
+
+
+@pytest.mark.timeout(600)
+def test_the_daemon_scans_through_its_api(tmp_path, calibrated_response_table):
+    pytest.importorskip("cv2")
+    sock = tmp_path / "d.sock"
+    log = open(tmp_path / "daemon.log", "w+")
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
+                               stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            assert process.poll() is None, Path(log.name).read_text()
+            try:
+                with DaemonClient(sock) as client:
+                    if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
+                        break
+            except PhantomError:
+                pass
+            assert time.monotonic() < deadline, Path(log.name).read_text()
+            time.sleep(0.2)
+        with DaemonClient(sock, timeout_s=300) as client:
+            with pytest.raises(DaemonError, match=r"scan takes out .*not colour"):
+                client.call("scan", {"out": str(tmp_path / "x"), "colour": "red"})
+            with pytest.raises(DaemonError, match="views must be at least 1"):
+                client.call("scan", {"out": str(tmp_path / "y"), "views": 0})
+            out = tmp_path / "capture"
+            answer = client.call("scan", {"out": str(out), "views": 4, "elevations_deg": [0, 30], "scale": 0.2,
+                                          "settle_s": 0.05})
+            assert answer == {"folder": str(out), "status": "complete", "pictures": 8}
+            status = client.call("motion_status")
+        data = json.loads((out / "capture.json").read_text())
+        stops = [angle for f in data["frames"] for angle in (f["orbit_deg"], f["elevation_deg"])]
+        wanted = [-180.0, 0.0, -90.0, 0.0, 0.0, 0.0, 90.0, 0.0, 90.0, 30.0, 0.0, 30.0, -90.0, 30.0, -180.0, 30.0]
+        assert stops == pytest.approx(wanted, abs=0.01)
+        assert all(len(f["pressures_kpa"]) == 3 for f in data["frames"])
+        assert data["camera"]["kind"] == "virtual" and (out / "images" / "0007.png").is_file()
+        # the simulated rig's true angle (the pulses counted by simavr) is where the board says the orbit is
+        assert status["simulated"]["rig_deg"] == pytest.approx([-180.0, 30.0], abs=0.01)
+    finally:
+        process.terminate()
+        process.wait(30)
+        log.close()

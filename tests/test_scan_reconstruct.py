@@ -1,0 +1,114 @@
+"""The virtual camera and the reconstruction against closed forms: a sphere's picture and hull, a dent the hull
+cannot see, the capture folder's pictures back to a mesh (phantom.scan.render, silhouette, carve, reconstruct)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from phantom.model.mesh.surface import SurfaceIndex, enclosed_volume_ml
+from phantom.scan.camera import VIRTUAL_CENTRE_MM, Camera, Pose, virtual_rig
+from phantom.scan.capture import CaptureFolder, Plan
+from phantom.scan.silhouette import SilhouetteError, alpha_matte, silhouette
+from phantom.scan.synthetic import sphere
+
+pytest.importorskip("cv2")
+pytest.importorskip("skimage")
+
+from phantom.scan.reconstruct import reconstruct  # noqa: E402
+from phantom.scan.render import Renderer, to_8bit  # noqa: E402
+from phantom.scan.virtual import render_capture  # noqa: E402
+
+
+def test_a_spheres_picture_is_the_closed_form_disc():
+    # a sphere of radius r at distance d on the optical axis of a lens without distortion projects to a disc of
+    # radius f r / sqrt(d^2 - r^2)
+    camera = Camera(400, 300, 500.0, 500.0, 199.5, 149.5)
+    distance, radius = 150.0, 12.0
+    pose = Pose(np.eye(3), np.array([0.0, 0.0, distance]))
+    image = to_8bit(Renderer(camera).render_mesh(sphere(radius, np.zeros(3), levels=6), pose), None)
+    area = float(alpha_matte(image).sum())
+    expected = math.pi * (500.0 * radius / math.sqrt(distance ** 2 - radius ** 2)) ** 2
+    assert area == pytest.approx(expected, rel=0.004)
+
+
+def test_the_rasteriser_depth_is_the_ray_sphere_intersection():
+    camera = Camera(200, 150, 300.0, 300.0, 99.5, 74.5, (-0.1, 0.05, 0.0, 0.0, 0.0))
+    renderer = Renderer(camera, supersample=1)
+    distance, radius = 100.0, 10.0
+    depth, face, _ = renderer.mesh_samples(sphere(radius, np.array([0, 0, distance]), levels=6),
+                                           Pose(np.eye(3), np.zeros(3)))
+    hit = face >= 0
+    rays = renderer.rays[hit].astype(float)
+    directions = np.column_stack([rays, np.ones(len(rays))])
+    # |t d - c|^2 = r^2, nearest root; the mesh's facets sit inside the sphere by at most its sagitta
+    a = np.sum(directions ** 2, axis=1)
+    b = -2 * directions[:, 2] * distance
+    c = distance ** 2 - radius ** 2
+    inside = b * b - 4 * a * c > 0
+    t = (-b[inside] - np.sqrt(b[inside] ** 2 - 4 * a[inside] * c)) / (2 * a[inside])
+    assert np.median(np.abs(depth[hit][inside] - t)) < 0.01
+    assert np.count_nonzero(inside) > 0.97 * np.count_nonzero(hit)
+
+
+def test_silhouette_refuses_pictures_without_a_phantom():
+    backdrop = np.zeros((120, 160, 3), np.uint8)
+    backdrop[:] = (40, 150, 60)
+    with pytest.raises(SilhouetteError, match="is the phantom in view"):
+        silhouette(backdrop)
+    with pytest.raises(SilhouetteError, match="black"):
+        silhouette(np.zeros((120, 160, 3), np.uint8))
+    with pytest.raises(SilhouetteError, match="8-bit colour"):
+        silhouette(np.zeros((120, 160), np.uint8))
+
+
+def test_sphere_from_a_rendered_capture(tmp_path):
+    truth = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5)
+    folder = render_capture(truth, virtual_rig(0.5), Plan(12), tmp_path / "capture")
+    again = CaptureFolder.open(folder.path)
+    assert again.status == "complete" and len(again.frames) == 24
+    result = reconstruct(again, voxel_mm=0.4)
+    assert result.volume_ml == pytest.approx(enclosed_volume_ml(truth), rel=0.01)
+    distance, _, _ = SurfaceIndex(truth.vertices_mm, truth.triangles).closest(result.mesh.vertices_mm)
+    assert distance.mean() < 0.1
+    # closed: every edge between exactly two triangles
+    edges = np.sort(result.mesh.triangles[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)
+
+
+@pytest.mark.slow
+def test_the_hull_fills_a_dent_no_camera_grazes(tmp_path):
+    dented = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5, dent_mm=6.0)
+    plain = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5)
+    folder = render_capture(dented, virtual_rig(0.5), Plan(12), tmp_path / "capture")
+    result = reconstruct(folder, voxel_mm=0.4)
+    dent_ml = enclosed_volume_ml(plain) - enclosed_volume_ml(dented)
+    # the bowl's bottom, which curves inwards every way, stays filled; its flanks are seen and carved
+    assert result.volume_ml - enclosed_volume_ml(dented) > 0.4 * dent_ml
+    bottom = VIRTUAL_CENTRE_MM + np.array([0.0, 9.0, 0.0])
+    index = SurfaceIndex(result.mesh.vertices_mm, result.mesh.triangles)
+    assert index.closest(bottom[None])[0][0] > 3.5
+    # away from the dent the hull is the sphere
+    far = dented.vertices_mm[dented.vertices_mm[:, 1] - VIRTUAL_CENTRE_MM[1] < 5.0]
+    assert index.closest(far)[0].mean() < 0.1
+
+
+def test_a_zero_level_through_grid_points_gives_a_closed_surface_without_repeated_vertices():
+    """A field that is exactly 0 at grid points (here a box's faces on grid planes) makes marching cubes put
+    several vertices on one point; the surface merges them: no zero-length edge (it broke closest-point
+    queries in bench/scan_accuracy.py), every edge between two triangles, the box's volume."""
+    from phantom.scan.carve import Grid, surface
+
+    spacing = 0.5
+    points = np.indices((21, 21, 21)).transpose(1, 2, 3, 0) * spacing - 5.0
+    values = (np.abs(points).max(axis=3) - 3.0).astype(np.float32)  # 0 exactly on the faces of a 6 mm cube
+    assert np.count_nonzero(values == 0.0) > 0
+    mesh = surface(Grid(np.array([-5.0, -5.0, -5.0]), spacing, values))
+    assert len(np.unique(mesh.vertices_mm, axis=0)) == len(mesh.vertices_mm)
+    edges = np.sort(mesh.triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert np.all(counts == 2)
+    assert enclosed_volume_ml(mesh) == pytest.approx(0.216, rel=1e-6)
+    distance, _, _ = SurfaceIndex(mesh.vertices_mm, mesh.triangles).closest(np.array([[0.0, 0.0, 9.0]]))
+    assert distance[0] == pytest.approx(6.0)
