@@ -58,7 +58,7 @@ from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model import load_scene
 from phantom.model.errors import SceneError
-from phantom.model.inverse import InverseResult, Target, UnreachableTargetError
+from phantom.model.target import InverseResult, Target, UnreachableTargetError
 from phantom.protocol.link import BOOT_DELAY_S
 
 logger = logging.getLogger(__name__)

@@ -23,7 +23,7 @@ import numpy as np
 import phantom
 from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
-from phantom.model.inverse import InverseResult, InverseSolver, Target, UnreachableTargetError
+from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
 
@@ -52,6 +52,7 @@ class LoadedModel:
         # daemon that imports this module
         from phantom.model import PhantomModel, load_scene
         from phantom.model.fidelity.levels import VolumeEstimator
+        from phantom.model.inverse import InverseSolver
 
         self.timings_s: dict[str, float] = {}
         started = time.perf_counter()
