@@ -359,6 +359,16 @@ class SolidBody:
                                               data.volume_derivatives, data.volume_weights)
         return kernels.deformation_determinants(positions_m, self.tets, self.dm_inverse)
 
+    def element_volume_ratios(self, positions_m: FloatArray) -> FloatArray:
+        """Each element's current over rest volume (m,): det F of a 4-node element; for a 10-node one its exact
+        volume ratio (the degree-3 rule), the dilatation ``Jbar`` the mixed formulation holds near 1."""
+        if self.quadratic is None:
+            return self.deformation_determinants(positions_m)
+        data = self.quadratic
+        jacobians = np.einsum("eai,qak->eqik", positions_m[self.tets], data.volume_derivatives)
+        ratios: FloatArray = np.linalg.det(jacobians) @ data.volume_weights / data.volumes_m3
+        return ratios
+
     def worst_element(self, positions_m: FloatArray) -> int:
         """The element with the smallest det F if any is flat or inverted, else -1."""
         dets = self.deformation_determinants(positions_m)
