@@ -117,3 +117,23 @@ def test_an_unknown_element_order_is_a_one_line_scene_error(order):
            "geometry": {"element_order": order}}
     with pytest.raises(SceneError, match="element_order must be 1"):
         scene_from_dict(raw)
+
+
+def test_curved_chamber_load_and_its_stiffness_are_the_volumes_derivatives(meshes):
+    """On 6-node faces the pressure load is ``p dV/dx`` and the follower stiffness its derivative: the problem's
+    residual and exact tangent (elastic and pressure parts) against central differences of its energy and
+    residual."""
+    model = sphere_model(meshes[2], "neo_hookean", 0.45)
+    problem = model.problem([0.2 * YOUNGS_MODULUS_PA])
+    positions = deformed(model.nodes_m)
+    evaluation = problem.evaluate(positions, with_tangent=True)
+    direction = np.random.default_rng(7).normal(size=positions.shape) * 1e-4
+    direction.reshape(-1)[problem.constraints.dofs] = 0.0
+    step = 1e-3
+    plus, minus = (problem.evaluate(positions + sign * step * direction) for sign in (1.0, -1.0))
+    assert (plus.energy_j - minus.energy_j) / (2 * step) == pytest.approx(
+        np.sum(evaluation.residual_n.ravel() * direction.ravel()), rel=1e-6)
+    change = (plus.residual_n - minus.residual_n).ravel() / (2 * step)
+    product = problem.multiply(evaluation.tangent_data)(direction.ravel())
+    free = problem.constraints.free_mask
+    assert np.linalg.norm(product[free] - change[free]) < 1e-6 * np.linalg.norm(change[free])
