@@ -137,3 +137,21 @@ def test_curved_chamber_load_and_its_stiffness_are_the_volumes_derivatives(meshe
     product = problem.multiply(evaluation.tangent_data)(direction.ravel())
     free = problem.constraints.free_mask
     assert np.linalg.norm(product[free] - change[free]) < 1e-6 * np.linalg.norm(change[free])
+
+
+def test_a_folded_curved_element_is_straightened():
+    """A mid-edge node pushed across its element folds it; the mesher's repair puts it back on its edge."""
+    from phantom.model.mesh.elements import TET10_EDGES
+    from phantom.model.mesh.prostate import _straighten_folded
+    from phantom.model.mesh.tetmesh import curved_jacobian_determinants
+
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    middles = np.array([(vertices[a] + vertices[b]) / 2 for a, b in TET10_EDGES.tolist()])
+    nodes = np.vstack([vertices, middles])
+    tets = np.arange(10)[None, :]
+    nodes[4] += [0.0, 0.0, 0.9]  # the (0, 1) edge's middle pushed past the opposite face's side
+    assert curved_jacobian_determinants(nodes, tets).min() <= 0
+    repaired = _straighten_folded(nodes, tets)
+    assert curved_jacobian_determinants(repaired, tets).min() > 0
+    np.testing.assert_allclose(repaired[4], [0.5, 0.0, 0.0])
+    np.testing.assert_array_equal(repaired[:4], vertices)

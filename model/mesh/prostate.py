@@ -26,7 +26,7 @@ import numpy as np
 
 import phantom
 from phantom.model.errors import MeshError
-from phantom.model.mesh.elements import GMSH_TET10_ORDER, TET10_REFLECTED, face_vertices
+from phantom.model.mesh.elements import GMSH_TET10_ORDER, TET10_EDGES, TET10_REFLECTED, face_vertices
 from phantom.model.mesh.geometry import ProstateGeometry, Vector3
 from phantom.model.mesh.shape import (
     ANTERIOR_POSTERIOR_RATIO,
@@ -37,7 +37,15 @@ from phantom.model.mesh.shape import (
     profile_radius_mm,
     wall_field,
 )
-from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, gmsh_session, surface_components
+from phantom.model.mesh.tetmesh import (
+    TetMesh,
+    boundary_faces,
+    check_tets,
+    curved_jacobian_determinants,
+    gmsh_session,
+    surface_components,
+    tet_signed_volumes_m3,
+)
 
 #: Bump when the generated geometry changes, so cached meshes are regenerated.
 PROSTATE_GEOMETRY_VERSION = 2
@@ -88,8 +96,27 @@ def _mesh_solid(gmsh: Any, solid: tuple[int, int], size_mm: float, curvature_ele
     used = np.unique(tets)
     renumber = np.full(len(node_tags), -1)
     renumber[used] = np.arange(len(used))
-    nodes_mm = coordinates[used]
-    return nodes_mm, check_tets(nodes_mm, renumber[tets], "gmsh")
+    nodes_mm, tets = coordinates[used], renumber[tets]
+    if element_order == 2:
+        nodes_mm = _straighten_folded(nodes_mm, tets)
+    return nodes_mm, check_tets(nodes_mm, tets, "gmsh")
+
+
+def _straighten_folded(nodes_mm: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Move the mid-edge nodes of every curved 10-node tetrahedron that folds over itself (gmsh places them on
+    the curved surfaces, which can fold a thin element in a thin wall) to their edges' midpoints, which makes
+    it straight and valid; repeated, since a moved node changes its neighbours. The nodes so moved leave the
+    exact surface by a fraction of the element size."""
+    nodes_mm = nodes_mm.copy()
+    straight = np.sign(tet_signed_volumes_m3(nodes_mm, tets[:, :4]))
+    for _ in range(4):
+        folded = np.flatnonzero((curved_jacobian_determinants(nodes_mm, tets) * straight[:, None]).min(axis=1) <= 0)
+        if len(folded) == 0:
+            break
+        for local, (first, second) in enumerate(TET10_EDGES.tolist()):
+            middle = tets[folded, 4 + local]
+            nodes_mm[middle] = 0.5 * (nodes_mm[tets[folded, first]] + nodes_mm[tets[folded, second]])
+    return nodes_mm
 
 
 def _mirror_about_x(nodes_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
