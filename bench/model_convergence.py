@@ -11,7 +11,8 @@ each mesh's error against ``g*``. ``h`` is the effective element size ``nodes^(-
 ``mesh_size_mm``: gmsh's curvature sizing keeps the built-in mesh from refining in proportion to it (4 mm to
 2.5 mm nominal is 1671 to 2896 nodes, a ratio of 1.2 in effective size, not 1.6). The smallest and largest
 element volume ratio of each solve (det F; for 10-node elements the element's dilatation, which the mixed
-formulation holds near 1) show how far the material compresses. Solves run one at a time (one core); progress goes to stderr, the tables to stdout as markdown.
+formulation holds near 1) show how far the material compresses. Solves run one at a time (one core); progress
+goes to stderr, the tables to stdout as markdown.
 """
 
 import argparse
