@@ -419,12 +419,13 @@ class Alignment:
 
 
 def align(moving: Frame, moving_points_mm: FloatArray, target: TriangleMesh, target_frame: Frame,
-          target_index: SurfaceIndex, rng: np.random.Generator) -> Alignment:
+          target_index: SurfaceIndex, rng: np.random.Generator, fit_rms_limit: float = FIT_RMS_LIMIT) -> Alignment:
     """Rigid alignment of a surface (its frame ``moving`` and points ``moving_points_mm`` (n, 3)) onto
     ``target``: principal-axes candidates, each refined briefly by ICP on a few hundred points against the
     target's vertices; the best, and the best that lies more than AMBIGUOUS_ANGLE_DEG from it, refined on up to
     ICP_POINTS points against the exact surface, the better kept. Raises AlignmentError when even that leaves an
-    RMS distance above FIT_RMS_LIMIT of the target's size."""
+    RMS distance above ``fit_rms_limit`` (default FIT_RMS_LIMIT) of the target's size: two different shapes (a
+    shape analysis) may take a larger one."""
     few = moving_points_mm[rng.choice(len(moving_points_mm), min(START_POINTS, len(moving_points_mm)),
                                       replace=False)]
     coarse = vertex_correspondence(target.vertices_mm, vertex_normals(target.vertices_mm, target.triangles))
@@ -464,6 +465,6 @@ def align(moving: Frame, moving_points_mm: FloatArray, target: TriangleMesh, tar
     if alternative is not None:
         alternative_angle, alternative_rms = rotation_angle_deg(alternative[0] @ rotation.T), alternative[2]
     size_mm = target_frame.rms_radius_mm
-    if rms > FIT_RMS_LIMIT * size_mm:
+    if rms > fit_rms_limit * size_mm:
         raise AlignmentError(rms, size_mm)
     return Alignment(rotation, translation, rms, iterations, alternative_angle, float(alternative_rms))

@@ -21,6 +21,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.model",
     "phantom.cli.inverse",
     "phantom.cli.scan",
+    "phantom.cli.shape",
     "phantom.cli.calibrate",
     "phantom.cli.hil",
     "phantom.cli.daemon",

@@ -27,6 +27,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     compare.add_argument("--rerun-save", metavar="FILE", help="also write a Rerun recording (.rrd) of the result")
     compare.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     compare.add_argument("--json", action="store_true", help="print one JSON object instead of text")
+    compare.add_argument("--shape-run", metavar="RUN",
+                         help="a trained shape analysis run (phantom shape train): also report the latent distance "
+                              "between the scan and the model's shape (the paper's Fig. 9)")
     compare.set_defaults(run=run_compare_scan)
 
     scan = subparsers.add_parser("scan", help="scans of the phantom: 'synthetic' writes one made from the model",
@@ -78,8 +81,14 @@ def run_compare_scan(args: argparse.Namespace) -> int:
             raise SolveError(f"--pressures-kpa has {len(pressures_kpa)} values; the scene has {model.n_chambers} "
                              f"chambers ({', '.join(model.chamber_names)})")
         state = model.equilibrium([p * 1e3 for p in pressures_kpa])
-    result = compare(scan, model_surface(state.positions_m, model.outer_triangles), state.gland_volume_m3 * 1e6,
-                     args.units, clock=clock)
+    model_mesh = model_surface(state.positions_m, model.outer_triangles)
+    result = compare(scan, model_mesh, state.gland_volume_m3 * 1e6, args.units, clock=clock)
+    shape_latent_distance = None
+    if args.shape_run:
+        from phantom.shape.compare import latent_distance
+
+        with clock.stage("shape"):
+            shape_latent_distance = latent_distance(args.shape_run, model_mesh, result.scan_aligned)
     labels = scene.chamber_labels
     at = ", ".join(f"{label} {p:g}" for label, p in zip(labels, pressures_kpa, strict=True))
     distance = result.symmetric_mm
@@ -97,7 +106,8 @@ def run_compare_scan(args: argparse.Namespace) -> int:
         summary = result.to_json()
         summary.update({"scan": str(args.scan), "units": args.units, "scene": args.scene,
                         "chamber_names": model.chamber_names, "pressures_kpa": [float(p) for p in pressures_kpa],
-                        "heatmap": str(heatmap), "recording": None if recording is None else str(recording)})
+                        "heatmap": str(heatmap), "recording": None if recording is None else str(recording),
+                        "latent_distance": shape_latent_distance, "shape_run": args.shape_run})
         summary["transform"]["rotation_axis"] = rotation_axis(alignment.rotation).tolist()
         print(json.dumps(summary))
         return 0
@@ -117,6 +127,8 @@ def run_compare_scan(args: argparse.Namespace) -> int:
     print(f"distance   mean {distance['mean']:.3f}, median {distance['median']:.3f}, p95 {distance['p95']:.3f}, "
           f"max {distance['max']:.3f} mm (both ways; scan to model mean {scan_to_model['mean']:.3f}, "
           f"model to scan mean {model_to_scan['mean']:.3f})")
+    if shape_latent_distance is not None:
+        print(f"shape      latent distance {shape_latent_distance:.3f} (run {args.shape_run})")
     print(f"heatmap    {heatmap}")
     if recording is not None:
         print(f"recording  {recording}")

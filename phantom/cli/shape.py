@@ -1,0 +1,241 @@
+"""Subcommands of ``phantom``: ``shape ...``, the paper's shape analysis (a 3D VAE of prostate shapes).
+
+``phantom shape synthesize | train | average | clusters | encode | compare | report``. Only argparse is
+imported at module load; each handler imports what it needs when it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from phantom.shape.analysis import ShapeModel
+
+    Subcommands = argparse._SubParsersAction[argparse.ArgumentParser]
+
+
+def register(subparsers: Subcommands) -> None:
+    """Add ``shape`` and its subcommands to the ``phantom`` parser."""
+    shape = subparsers.add_parser(
+        "shape", help="shape analysis: train a 3D VAE on prostate segmentations, the average shape, clusters, "
+                      "latent distances",
+        description="The paper's shape analysis. Train a 3D convolutional VAE on labelled pelvic MRI (the "
+                    "Cross-institution Male Pelvic Structures layout: DATA/data/<id>_mask.nii), a folder of "
+                    "masks or of closed meshes; then decode the average shape, cluster the latent space and "
+                    "measure how far a mesh (the phantom's model, a scan) is from another.")
+    commands = shape.add_subparsers(dest="shape_command", metavar="SUBCOMMAND", required=True)
+
+    synthesize = commands.add_parser(
+        "synthesize", help="write a synthetic population of prostates as NIfTI in the dataset's layout",
+        description="Write OUT/data/<id>_img.nii and <id>_mask.nii (labels as in the real dataset: 4 TZ, 5 CG, "
+                    "1 bladder, 6 rectum, 7 seminal vesicles) and OUT/institution.txt: the phantom's body "
+                    "varied in size, anteroposterior and proximodistal length, lobe asymmetry and smooth random "
+                    "deformations, imaged with seven institutions' spacings and orientations.")
+    synthesize.add_argument("--out", required=True, help="folder to write (created)")
+    synthesize.add_argument("--cases", type=int, default=120, help="number of cases (default 120)")
+    synthesize.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    synthesize.add_argument("--no-images", action="store_true", help="write only the label maps")
+    synthesize.add_argument("--symmetric", action="store_true",
+                            help="every second case the mirror image of the one before (a symmetric population)")
+    synthesize.set_defaults(run=run_synthesize)
+
+    train = commands.add_parser(
+        "train", help="train the VAE on a dataset, a folder of masks or a folder of meshes",
+        description="Voxelise every shape in DATA onto one grid (isotropic, centred on its centroid, one scale "
+                    "for the set) and train the VAE; write the run folder RUN (checkpoint, latents, loss curves).")
+    train.add_argument("data", metavar="DATA", help="the dataset folder (with data/), or a folder of masks or "
+                                                    "closed meshes")
+    train.add_argument("--out", required=True, metavar="RUN", help="run folder to write")
+    train.add_argument("--epochs", type=int, default=500, help="training epochs (default 500, as the paper)")
+    train.add_argument("--seed", type=int, default=0, help="seed of weights, split and batches (default 0)")
+    train.add_argument("--batch-size", type=int, default=10, help="cases per step (default 10)")
+    train.add_argument("--learning-rate", type=float, default=1e-3, help="Adam's step size (default 1e-3)")
+    train.add_argument("--kld-weight", type=float, default=0.01, help="weight of the KL term (default 0.01)")
+    train.add_argument("--latent-dim", type=int, default=64, help="latent dimensions (default 64)")
+    train.add_argument("--grid-size", type=int, default=32, help="voxels per grid side (default 32)")
+    train.add_argument("--channels", default="16,32,64",
+                       help="encoder channels per level, each level halving the grid (default 16,32,64)")
+    train.add_argument("--validation-fraction", type=float, default=0.1,
+                       help="share of the cases held out to measure reconstruction (default 0.1)")
+    train.add_argument("--labels", default="4,5",
+                       help="label numbers of the shape in label maps (default 4,5: the prostate's TZ and CG)")
+    train.set_defaults(run=run_train)
+
+    average = _run_command(
+        commands, "average", run_average, "decode the mean latent vector: the average shape as a mesh, with its volume",
+        "Decode the mean of the cases' latent vectors (the paper's average prostate), surface it by marching cubes "
+        "and write it (.obj, .ply, .stl; mm, the phantom's frame); the JSON has volume_ml.")
+    average.add_argument("--out", required=True, metavar="MESH", help="mesh file to write")
+
+    clusters = _run_command(
+        commands, "clusters", run_clusters, "k-means of the latent vectors: decoded centres and implicit-distance "
+        "heatmaps",
+        "Cluster the cases' latent vectors by k-means, decode each centre (cluster_<i>.ply) and draw the implicit "
+        "distance between every pair of centres on the first one's surface, front and side, with a colour bar in "
+        "mm (the paper's Fig. 6).")
+    clusters.add_argument("--k", type=int, default=3, help="number of clusters (default 3)")
+    clusters.add_argument("--out", required=True, metavar="DIR", help="folder for the meshes and heatmaps")
+    clusters.add_argument("--seed", type=int, default=0, help="k-means seed (default 0)")
+
+    encode = _run_command(
+        commands, "encode", run_encode, "the latent vector of one shape (mask, label map or closed mesh)",
+        "Put one shape on the run's grid and print its latent vector (the encoder's mean).")
+    encode.add_argument("input", metavar="INPUT", help=SHAPE_FILE_HELP)
+
+    compare = _run_command(
+        commands, "compare", run_compare, "latent distance and mean closest-point distance (after ICP) between two "
+        "shapes",
+        "Align B to A rigidly (ICP), then report the mean closest-point distance between their surfaces and the "
+        "distance between their latent vectors (the paper's Figs. 5 and 9).")
+    compare.add_argument("a", metavar="A", help=SHAPE_FILE_HELP)
+    compare.add_argument("b", metavar="B", help=SHAPE_FILE_HELP)
+
+    report = _run_command(
+        commands, "report", run_report, "the paper's shape figures for a trained run: average, distances to the "
+        "model, clusters",
+        "Write DIR/report.md and report.json: the average shape and its volume, its mean closest-point distance "
+        "(after ICP) and latent distance to the phantom model's rest shape with a heatmap (Fig. 5), and the "
+        "k-means clusters' heatmaps (Fig. 6).", with_json=False)
+    report.add_argument("--out", required=True, metavar="DIR", help="folder for the report")
+    report.add_argument("--k", type=int, default=3, help="number of clusters (default 3)")
+
+
+SHAPE_FILE_HELP = "a NIfTI mask or label map (the run's labels), or a closed mesh (mm, the phantom's frame)"
+
+
+def _run_command(commands: Subcommands, name: str, handler: Callable[[argparse.Namespace], int], summary: str,
+                 description: str, with_json: bool = True) -> argparse.ArgumentParser:
+    """A subcommand on a trained run: its RUN argument, and --json where it prints a result."""
+    parser: argparse.ArgumentParser = commands.add_parser(name, help=summary, description=description)
+    parser.add_argument("run_dir", metavar="RUN", help="a run folder written by phantom shape train")
+    if with_json:
+        parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.set_defaults(run=handler)
+    return parser
+
+
+def _run_model(path: str) -> ShapeModel:
+    from phantom.shape.analysis import ShapeModel
+
+    return ShapeModel.load(path)
+
+
+def _labels(text: str) -> tuple[int, ...]:
+    from phantom.cli.common import parse_numbers
+    from phantom.shape.errors import ShapeError
+
+    values = parse_numbers(text, "--labels")
+    if not values or any(v is None or v != int(v) or v < 1 for v in values):
+        raise ShapeError(f"--labels takes positive label numbers like 4,5; got {text!r}")
+    return tuple(int(v) for v in values if v is not None)
+
+
+def run_synthesize(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape synthesize``."""
+    from phantom.shape.synthetic import PopulationSpec, synthesize
+
+    spec = PopulationSpec(mirror_pairs=args.symmetric)
+    out = synthesize(args.out, cases=args.cases, seed=args.seed, spec=spec, images=not args.no_images)
+    print(f"wrote {args.cases} synthetic cases under {out} (data/<id>_mask.nii, institution.txt)")
+    return 0
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape train``."""
+    from phantom.cli.common import parse_numbers
+    from phantom.shape.dataset import load_shapes
+    from phantom.shape.errors import ShapeError
+    from phantom.shape.training import TrainConfig, train
+    from phantom.shape.vae import VAEConfig
+
+    values = parse_numbers(args.channels, "--channels")
+    if any(v is None or v != int(v) or v < 1 for v in values):
+        raise ShapeError(f"--channels takes positive whole numbers like 16,32,64; got {args.channels!r}")
+    channels = tuple(int(v) for v in values if v is not None)
+    vae = VAEConfig(grid_size=args.grid_size, latent_dim=args.latent_dim, channels=channels)
+    training = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, learning_rate=args.learning_rate,
+                           kld_weight=args.kld_weight, seed=args.seed,
+                           validation_fraction=args.validation_fraction)
+    shapes = load_shapes(args.data, grid_size=args.grid_size, labels=_labels(args.labels), progress=True)
+    print(f"shape: {len(shapes.names)} shapes on a {args.grid_size}^3 grid of {shapes.voxel_mm:.3f} mm voxels; "
+          f"training {args.epochs} epochs", flush=True)
+    run = train(shapes, args.out, vae, training, source=str(args.data))
+    print(f"wrote the run {run} (parameters.npz, config.json, latents.npz, loss.png)")
+    return 0
+
+
+def run_average(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape average``."""
+    import json
+
+    model = _run_model(args.run_dir)
+    average = model.average()
+    path = average.write(args.out)
+    if args.json:
+        print(json.dumps({"run": args.run_dir, "mesh": str(path), "volume_ml": round(average.volume_ml, 4),
+                          "latent": [round(float(v), 6) for v in average.latent]}))
+    else:
+        print(f"average shape: {average.volume_ml:.2f} ml, written to {path}")
+    return 0
+
+
+def run_clusters(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape clusters``."""
+    import json
+
+    from phantom.shape.figures import cluster_figures
+
+    summary = cluster_figures(_run_model(args.run_dir), args.k, args.out, seed=args.seed)
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    for cluster in summary["clusters"]:
+        print(f"cluster {cluster['cluster']}: {cluster['cases']} cases, {cluster['volume_ml']:.2f} ml "
+              f"({cluster['mesh']})")
+    for pair in summary["pairs"]:
+        print(f"cluster {pair['a']} vs {pair['b']}: implicit distance {pair['min_mm']:+.2f} to "
+              f"{pair['max_mm']:+.2f} mm, mean |d| {pair['mean_abs_mm']:.2f} mm ({pair['heatmap']})")
+    return 0
+
+
+def run_encode(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape encode``."""
+    import json
+
+    latent = _run_model(args.run_dir).encode_file(args.input)
+    values = [round(float(v), 6) for v in latent]
+    if args.json:
+        print(json.dumps({"input": args.input, "latent": values}))
+    else:
+        print(" ".join(f"{v:.6g}" for v in values))
+    return 0
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape compare``."""
+    import json
+
+    from phantom.shape.compare import compare_files
+
+    result = compare_files(_run_model(args.run_dir), args.a, args.b)
+    if args.json:
+        print(json.dumps(result.to_json()))
+    else:
+        print(f"latent distance {result.latent_distance:.3f}; mean closest-point distance "
+              f"{result.mean_distance_mm:.3f} mm after ICP (rotation {result.rotation_deg:.1f} deg); "
+              f"volumes {result.volume_a_ml:.2f} and {result.volume_b_ml:.2f} ml")
+    return 0
+
+
+def run_report(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape report``."""
+    from phantom.shape.report import write_report
+
+    report = write_report(_run_model(args.run_dir), args.out, k=args.k)
+    versus = report["average_vs_model"]
+    print(f"average {report['average']['volume_ml']:.2f} ml; against the model's rest shape "
+          f"({versus['volume_a_ml']:.2f} ml): mean closest-point distance {versus['mean_distance_mm']:.2f} mm, "
+          f"latent distance {versus['latent_distance']:.2f}; report in {args.out}/report.md")
+    return 0

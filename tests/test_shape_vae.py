@@ -1,0 +1,163 @@
+"""The VAE's layers against XLA's own convolution, its parameters' round trip through a checkpoint, and short
+trainings: reproducible with a seed, the run folder readable (the loss curves' .rrd read back), bad runs refused."""
+
+import json
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+pytest.importorskip("optax")
+
+from jax import lax  # noqa: E402
+
+from phantom.shape.analysis import ShapeModel  # noqa: E402
+from phantom.shape.dataset import ShapeSet  # noqa: E402
+from phantom.shape.errors import ShapeError  # noqa: E402
+from phantom.shape.training import TrainConfig, intersection_over_union, split_cases, train  # noqa: E402
+from phantom.shape.vae import (  # noqa: E402
+    VAEConfig,
+    decode_logits,
+    encode,
+    flatten,
+    init_parameters,
+    strided_convolution,
+    subpixel_convolution,
+    unflatten_like,
+)
+
+TINY = VAEConfig(grid_size=8, latent_dim=4, channels=(4, 8))
+
+
+@pytest.mark.slow
+def test_the_strided_convolution_is_xlas_stride_2_convolution():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(2, 8, 8, 8, 3)).astype(np.float32)
+    for k in (3, 5):
+        weight = rng.normal(size=(k, k, k, 3, 5)).astype(np.float32)
+        pad = (k - 1) // 2
+        expected = lax.conv_general_dilated(x, weight, (2, 2, 2), ((pad, pad),) * 3,
+                                            dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+        np.testing.assert_allclose(strided_convolution(x, weight), expected, rtol=1e-4, atol=1e-4)
+
+
+def test_the_subpixel_convolution_puts_each_channel_group_at_its_offset():
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(1, 3, 3, 3, 2)).astype(np.float32)
+    weight = np.zeros((3, 3, 3, 2, 8 * 4), np.float32)
+    mixing = rng.normal(size=(2, 8 * 4)).astype(np.float32)
+    weight[1, 1, 1] = mixing  # the centre tap only: each output voxel sees its own input voxel
+    bias = rng.normal(size=8 * 4).astype(np.float32)
+    y = np.asarray(subpixel_convolution(x, weight, bias))
+    assert y.shape == (1, 6, 6, 6, 4)
+    for a in range(2):
+        for b in range(2):
+            for c in range(2):
+                group = (a * 2 + b) * 2 + c
+                expected = x[0] @ mixing[:, group * 4:(group + 1) * 4] + bias[group * 4:(group + 1) * 4]
+                np.testing.assert_allclose(y[0, a::2, b::2, c::2], expected, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_encode_and_decode_shapes_and_a_checkpoints_round_trip():
+    params, statistics = init_parameters(TINY, jax.random.PRNGKey(0))
+    occupancy = np.random.default_rng(2).uniform(size=(3, 8, 8, 8)).astype(np.float32)
+    mean, log_variance, _ = encode(params, statistics, TINY, occupancy)
+    logits, _ = decode_logits(params, statistics, TINY, mean)
+    assert mean.shape == log_variance.shape == (3, 4) and logits.shape == (3, 8, 8, 8)
+    arrays = flatten(params)
+    assert "encoder/0/weight" in arrays and arrays["encoder/0/weight"].shape == (3, 3, 3, 1, 4)
+    restored = unflatten_like(init_parameters(TINY, jax.random.PRNGKey(9))[0], arrays, "test")
+    for path, value in flatten(restored).items():
+        np.testing.assert_array_equal(value, arrays[path])
+    wider = init_parameters(VAEConfig(grid_size=8, latent_dim=4, channels=(4, 16)), jax.random.PRNGKey(0))[0]
+    with pytest.raises(ShapeError, match="has shape"):
+        unflatten_like(wider, arrays, "test")
+    with pytest.raises(ShapeError, match="another architecture"):
+        unflatten_like(init_parameters(VAEConfig(grid_size=8, channels=(4,)), jax.random.PRNGKey(0))[0] | {
+            "extra": np.zeros(1)}, arrays, "test")
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ShapeError, match="multiple of 2\\^3"):
+        VAEConfig(grid_size=20)
+    with pytest.raises(ShapeError, match="odd"):
+        VAEConfig(kernel_size=4)
+    with pytest.raises(ShapeError, match="unknown VAE settings"):
+        VAEConfig.from_dict({"depth": 3})
+    with pytest.raises(ShapeError, match="validation_fraction"):
+        TrainConfig(validation_fraction=1.0)
+    with pytest.raises(ShapeError, match="leave 1 to train on"):
+        split_cases(3, 0.5, 0)
+
+
+def _ellipsoids(count, seed):
+    """Occupancy grids of random axis-aligned ellipsoids on an 8^3 grid."""
+    rng = np.random.default_rng(seed)
+    axis = np.arange(8) - 3.5
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    grids = [((x / a) ** 2 + (y / b) ** 2 + (z / c) ** 2 < 1).astype(np.float32)
+             for a, b, c in rng.uniform(1.5, 3.5, (count, 3))]
+    return ShapeSet([f"e{i}" for i in range(count)], np.stack(grids), 2.0, np.ones(count), (1,))
+
+
+@pytest.mark.slow
+def test_a_seed_makes_training_reproducible_and_the_run_loads(tmp_path):
+    shapes = _ellipsoids(6, 0)
+    runs = [train(shapes, tmp_path / name, TINY, TrainConfig(epochs=3, batch_size=2, seed=seed,
+                                                             validation_fraction=0.3, checkpoint_every=2),
+                  on_epoch=None)
+            for name, seed in (("a", 7), ("b", 7), ("c", 8))]
+    stored = [dict(np.load(run / "parameters.npz")) for run in runs]
+    for name in stored[0]:
+        np.testing.assert_array_equal(stored[0][name], stored[1][name])
+    assert any(not np.array_equal(stored[0][name], stored[2][name]) for name in stored[0])
+    config = json.loads((runs[0] / "config.json").read_text())
+    assert config["format"] == "phantom-shape-run" and config["epochs_done"] == 3
+    assert config["data"]["voxel_mm"] == 2.0 and len(config["data"]["held_out"]) == 2
+    history = json.loads((runs[0] / "history.json").read_text())
+    assert [entry["epoch"] for entry in history] == [1, 2, 3]
+    assert all(0.0 <= entry["validation_iou"] <= 1.0 for entry in history)
+    assert (runs[0] / "loss.png").stat().st_size > 1000
+    model = ShapeModel.load(runs[0])
+    names, latents = model.case_latents()
+    assert names == shapes.names and latents.shape == (6, 4)
+    np.testing.assert_allclose(model.encode_grids(shapes.occupancy), latents, rtol=1e-5, atol=1e-5)
+    assert model.decode_grids(latents).shape == (6, 8, 8, 8)
+    _the_loss_recording_reads_back(runs[0] / "loss.rrd", epochs=3)
+    (runs[2] / "parameters.npz").unlink()
+    with pytest.raises(ShapeError, match="no parameters.npz"):
+        ShapeModel.load(runs[2])
+
+
+def _the_loss_recording_reads_back(path, epochs):
+    pytest.importorskip("rerun")
+    from rerun.chunk import RrdReader
+
+    rows = {}
+    for chunk in RrdReader(str(path)).stream().collect().stream():
+        batch = chunk.to_record_batch()
+        entity = batch.schema.metadata.get(b"rerun:entity_path", b"").decode()
+        rows[entity] = rows.get(entity, 0) + batch.num_rows
+    assert rows.get("/loss/training") == epochs and rows.get("/held_out_iou") == epochs
+
+
+def test_a_run_folder_that_is_not_a_run_is_refused(tmp_path):
+    with pytest.raises(ShapeError, match="no such run folder"):
+        ShapeModel.load(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ShapeError, match="not a trained run \\(no config.json\\)"):
+        ShapeModel.load(tmp_path / "empty")
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "config.json").write_text('{"format": "something else"}')
+    np.savez(tmp_path / "other" / "parameters.npz", x=np.zeros(1))
+    with pytest.raises(ShapeError, match="not a phantom-shape-run"):
+        ShapeModel.load(tmp_path / "other")
+
+
+def test_intersection_over_union():
+    a = np.zeros((1, 4, 4, 4))
+    b = np.zeros((1, 4, 4, 4))
+    a[0, :2] = 1.0
+    b[0, 1:3] = 0.9
+    assert intersection_over_union(a, b)[0] == pytest.approx(1 / 3)
