@@ -37,7 +37,8 @@ def main() -> None:
 
     from phantom.model import PhantomModel, load_scene
     from phantom.model.fidelity.levels import VolumeEstimator
-    from phantom.model.inverse import InverseSolver, Target
+    from phantom.model.inverse import InverseSolver
+    from phantom.model.target import Target
 
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
     table_estimator, load_s = timed(VolumeEstimator, model)

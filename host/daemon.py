@@ -64,7 +64,7 @@ from phantom.host.startup import StartupProgress, TableBuild, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model import load_scene
 from phantom.model.errors import SceneError
-from phantom.model.inverse import InverseResult, Target, UnreachableTargetError
+from phantom.model.target import InverseResult, Target, UnreachableTargetError
 from phantom.protocol.codec import Message
 from phantom.protocol.link import BOOT_DELAY_S
 

@@ -30,7 +30,7 @@ import numpy as np
 import phantom
 from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
-from phantom.model.inverse import InverseResult, InverseSolver, Target, UnreachableTargetError
+from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
 
@@ -109,6 +109,7 @@ class LoadedModel:
         """The estimator and the inverse at ``level`` (None: the scene's choice), warmed up where a warm-up is
         cheap (not on the full solve, where one answer costs more than what warming saves)."""
         from phantom.model.fidelity.levels import VolumeEstimator
+        from phantom.model.inverse import InverseSolver
 
         stage = time.perf_counter()
         # The model keeps its scene: the estimator reads the [model] table (pressure_max_kpa, fidelity) from it,

@@ -18,7 +18,7 @@ import numpy as np
 if TYPE_CHECKING:
     from phantom.host.model_worker import Estimate, ModelInfo
     from phantom.host.session import LinkState, Transport
-    from phantom.model.inverse import InverseResult, Target
+    from phantom.model.target import InverseResult, Target
 
 class ControlState(enum.StrEnum):
     """What drives the setpoints: nothing (``idle``), a target from the API (``holding``), a scene's timeline

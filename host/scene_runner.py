@@ -16,7 +16,7 @@ from typing import Any
 
 from phantom.host.scenes import Timeline, gland_volume_ml, parse_timeline
 from phantom.model.errors import SceneError
-from phantom.model.inverse import Target
+from phantom.model.target import Target
 
 #: A step counts as reached when the estimated volume is within this fraction of its target volume.
 REACHED_TOLERANCE = 0.01

@@ -17,10 +17,10 @@ from pathlib import Path
 from typing import Any
 
 from phantom.model.errors import SceneError
-from phantom.model.inverse import Target
+from phantom.model.target import Target
 
 #: A target's keys as a scene's step or the API's ``set_target`` states it (the units people see), each with the
-#: inverse's target kind (:data:`phantom.model.inverse.TARGET_KINDS`).
+#: inverse's target kind (:data:`phantom.model.target.TARGET_KINDS`).
 TARGET_KEYS: dict[str, str] = {"volume_ml": "volume", "chamber_volumes_ml": "chamber_volumes",
                                "pressures_kpa": "pressures"}
 

@@ -46,6 +46,15 @@ DEFAULT_ACCURACY_PCT = 1.0
 #: the calibrated model 5 points missed full solves by up to 3.5 % of a chamber's volume (its cavity's curve has
 #: an inflection), 7 by 0.1-0.2 % (bench/README.md, "The daemon on the calibrated model").
 DEFAULT_TABLE_POINTS = 7
+#: Ecoflex 00-10's density (kg/m^3), the default of a scene's ``[load] density_kg_m3``.
+SILICONE_DENSITY_KG_M3 = 1040.0
+#: Water's density (kg/m^3): a phantom measured in water feels only its density's excess over it.
+WATER_DENSITY_KG_M3 = 998.0
+#: Standard gravity (m/s^2).
+STANDARD_GRAVITY_M_S2 = 9.80665
+#: Where a measurement was taken (the measurements CSV's ``medium`` column): hanging in air from the tube
+#: junction (the default), or in water.
+MEDIA = ("air", "water")
 #: How people name the three chambers when the scene says nothing (``[phantom] chamber_labels``).
 DEFAULT_CHAMBER_LABELS = ("base", "left lobe", "right lobe")
 
@@ -75,6 +84,12 @@ class Material:
         nu = self.poisson_ratio
         return self.youngs_modulus_pa * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
+    @property
+    def bulk_modulus_pa(self) -> float:
+        """``K = E / (3 (1 - 2 nu))``, the modulus of the volumetric energy ``K/2 (J - 1)^2`` of the mixed
+        (10-node) formulation; ``K / mu = 2 (1 + nu) / (3 (1 - 2 nu))`` (1000 at nu = 0.4995, 5000 at 0.4999)."""
+        return self.youngs_modulus_pa / (3.0 * (1.0 - 2.0 * self.poisson_ratio))
+
 
 @dataclass(frozen=True)
 class ModelSettings:
@@ -90,6 +105,26 @@ class ModelSettings:
     accuracy_pct: float = DEFAULT_ACCURACY_PCT
     pressure_max_pa: float = PRESSURE_LIMIT_PA
     table_points: int = DEFAULT_TABLE_POINTS
+
+
+@dataclass(frozen=True)
+class Load:
+    """A scene's ``[load]`` table: the silicone's density (kg/m^3) and the gravitational acceleration (m/s^2,
+    a vector in the mesh's frame; the built-in prostate hangs from its tube junction at the base, +z, so
+    ``[0, 0, -9.81]``). No table: no gravity."""
+
+    density_kg_m3: float = SILICONE_DENSITY_KG_M3
+    gravity_m_s2: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def body_force_n_per_m3(self, medium: str = "air") -> tuple[float, float, float]:
+        """The body force per unit volume (N/m^3) hanging in ``medium``: the density times g in air, only the
+        density's excess over water's in water (the water's buoyancy; the hydrostatic pressure's gradient on the
+        chambers' air is left out)."""
+        if medium not in MEDIA:
+            raise SceneError(f"unknown medium {medium!r}: a measurement is taken in one of {', '.join(MEDIA)}")
+        density = self.density_kg_m3 - (WATER_DENSITY_KG_M3 if medium == "water" else 0.0)
+        x, y, z = self.gravity_m_s2
+        return (density * x, density * y, density * z)
 
 
 @dataclass(frozen=True)
@@ -123,6 +158,8 @@ class Scene:
     outputs : Outputs
     model_settings : ModelSettings
         The ``[model]`` table (defaults when absent).
+    load : Load
+        The ``[load]`` table: density and gravity (no gravity without one).
     steps : list of dict
         The timeline, raw (read by the host).
     raw : dict
@@ -141,6 +178,7 @@ class Scene:
     outputs: Outputs
     chamber_labels: list[str] = field(default_factory=list)
     model_settings: ModelSettings = field(default_factory=ModelSettings)
+    load: Load = field(default_factory=Load)
     steps: list[dict[str, Any]] = field(default_factory=list)
     raw: dict[str, Any] = field(default_factory=dict)
     geometry: ProstateGeometry | None = None
@@ -222,6 +260,7 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
         outputs=Outputs(**_outputs(raw.get("outputs", {}), where)),
         chamber_labels=chamber_labels_of(phantom_table, chambers, where),
         model_settings=_model_settings(raw.get("model", {}), where),
+        load=_load(raw.get("load"), where),
         steps=list(raw.get("steps", [])),
         raw=raw,
         geometry=geometry,
@@ -294,6 +333,28 @@ def _model_settings(table: dict[str, Any], where: str) -> ModelSettings:
         raise SceneError(f"{where}: [model] table_points must be an integer of at least 2, got {points!r}")
     return ModelSettings(fidelity, _positive_number(table, "accuracy_pct", DEFAULT_ACCURACY_PCT, where),
                          _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where) * 1e3, points)
+
+
+def _load(table: Any, where: str) -> Load:
+    if table is None:
+        return Load()
+    if not isinstance(table, dict):
+        raise SceneError(f"{where}: [load] must be a table with density_kg_m3 and gravity_m_s2")
+    unknown = set(table) - {"density_kg_m3", "gravity_m_s2"}
+    if unknown:
+        raise SceneError(f"{where}: [load] has unknown keys {sorted(unknown)}: use density_kg_m3, gravity_m_s2")
+    density = table.get("density_kg_m3", SILICONE_DENSITY_KG_M3)
+    if isinstance(density, bool) or not isinstance(density, int | float) or not 0 < density < 1e5:
+        raise SceneError(f"{where}: [load] density_kg_m3 must be a positive number (Ecoflex 00-10: 1040), got "
+                         f"{density!r}")
+    gravity = table.get("gravity_m_s2", [0.0, 0.0, -STANDARD_GRAVITY_M_S2])
+    if (not isinstance(gravity, list) or len(gravity) != 3 or not all(
+            isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+            for value in gravity)):
+        raise SceneError(f"{where}: [load] gravity_m_s2 must be three numbers (m/s^2, e.g. [0, 0, -9.81] for the "
+                         f"built-in prostate hanging from its base), got {gravity!r}")
+    x, y, z = (float(value) for value in gravity)
+    return Load(float(density), (x, y, z))
 
 
 def _outputs(table: dict[str, Any], where: str) -> dict[str, bool]:

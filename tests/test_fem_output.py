@@ -96,3 +96,34 @@ def test_mesh_writes_into_a_missing_folder_and_reports_json(tmp_path, capsys):
     assert main(["mesh", "--scene", "builtin", *SIZE, "--out", str(blocker / "x.vtu")]) == 2
     error = capsys.readouterr().err.strip()
     assert "--out" in error and "\n" not in error
+
+
+
+@pytest.mark.slow
+def test_a_quadratic_scene_writes_tetra10_in_the_rest_meshs_node_order(tmp_path, capsys):
+    """`forward --out` of a 10-node scene (the thick sphere written as tetra10, bulk/shear 1000) at 3 kPa: meshio
+    tetra10 with the nodes, in the order, of `phantom mesh --out`, and every element's volume ratio within
+    1 +/- 0.01."""
+    from phantom.model.mesh.prostate import generate_hollow_sphere
+    from phantom.model.mesh.tetmesh import write_mesh
+
+    write_mesh(generate_hollow_sphere(10.0, 20.0, 8.0, element_order=2), tmp_path / "sphere.vtu")
+    (tmp_path / "quadratic.toml").write_text(
+        '[phantom]\nmesh = "sphere.vtu"\nunits = "mm"\nchambers = ["cavity"]\n\n[material]\n'
+        'model = "neo_hookean"\nyoungs_modulus_kpa = 50.0\npoisson_ratio = 0.4995\n')
+    scene = str(tmp_path / "quadratic.toml")
+    assert main(["mesh", "--scene", scene, "--out", str(tmp_path / "rest.vtu")]) == 0
+    capsys.readouterr()
+    assert main(["forward", "--scene", scene, "--pressures-kpa", "3", "--out", str(tmp_path / "x.vtu"),
+                 "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["element_order"] == 2
+    assert answer["chamber_volumes_ml"][0] > 1.05 * answer["rest_chamber_volumes_ml"][0]
+    low, high = answer["element_volume_ratio_range"]
+    assert 0.99 < low <= high < 1.01
+    rest, deformed = meshio.read(tmp_path / "rest.vtu"), meshio.read(tmp_path / "x.vtu")
+    rest_tets = [block.data for block in rest.cells if block.type == "tetra10"]
+    deformed_tets = [block.data for block in deformed.cells if block.type == "tetra10"]
+    assert rest_tets and np.array_equal(rest_tets[0], deformed_tets[0])
+    assert len(rest.points) == len(deformed.points)
+    assert 0 < np.linalg.norm(deformed.points - rest.points, axis=1).max() < 5.0

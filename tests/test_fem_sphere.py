@@ -117,3 +117,51 @@ def test_corotational_model_leaves_the_neo_hookean_one_at_large_strain():
     assert abs(small) < 0.005
     assert -0.06 < moderate < -0.01
     assert large < -0.06
+
+
+QUADRATIC_SIZES_MM = (6.0, 4.5)
+
+
+def quadratic_sphere_model(size_mm, poisson_ratio):
+    mesh = generate_hollow_sphere(INNER_MM, OUTER_MM, size_mm, element_order=2)
+    surfaces = prepare_surfaces(mesh, ["cavity"], None, "sphere")
+    return PhantomModel(mesh, surfaces, ["cavity"], Material("neo_hookean", YOUNGS_MODULUS_PA, poisson_ratio))
+
+
+def test_closed_form_of_the_incompressible_sphere_is_the_integral_it_states():
+    """The reference's closed form against a numerical quadrature of ``w'(l) / (l^3 - 1)`` (a check of the
+    oracle itself, independent of the model)."""
+    from reference.sphere_reference import incompressible_neo_hookean_pressure_pa
+    from scipy.integrate import quad
+
+    a, b, mu, stretch = INNER_MM * 1e-3, OUTER_MM * 1e-3, 1.0, 1.3
+    outer_stretch = np.cbrt(1 + a**3 * (stretch**3 - 1) / b**3)
+    integral, _ = quad(lambda s: mu * (2 * s - 2 * s**-5) / (s**3 - 1), outer_stretch, stretch)
+    assert incompressible_neo_hookean_pressure_pa(a, b, stretch, mu) == pytest.approx(integral, rel=1e-12)
+
+
+@pytest.mark.slow
+def test_quadratic_mixed_sphere_converges_to_the_exact_incompressible_solution():
+    """10-node mixed elements, bulk/shear 5000 (nu = 0.4999), p = 0.3 mu (the cavity grows by 35 %): the growth
+    converges to the incompressible closed form at about second order (measured: -1.7 % at h = 6 mm, -0.9 % at
+    4.5 mm, order 2.2 at nu = 0.4995), and every element keeps its volume (the condensed dilatation, J within
+    1 +/- 0.01)."""
+    from reference.sphere_reference import incompressible_neo_hookean_growth
+
+    poisson_ratio = 0.4999
+    errors = []
+    for size_mm in QUADRATIC_SIZES_MM:
+        model = quadratic_sphere_model(size_mm, poisson_ratio)
+        assert model.order == 2
+        pressure_pa = 0.3 * model.material.lame_mu_pa
+        exact = incompressible_neo_hookean_growth(INNER_MM * 1e-3, OUTER_MM * 1e-3, pressure_pa,
+                                                  model.material.lame_mu_pa)
+        state = model.equilibrium([pressure_pa])
+        growth = state.chamber_volumes_m3[0] / model.rest_chamber_volumes_m3[0] - 1
+        errors.append(growth / exact - 1)
+        assert np.abs(model.body.element_volume_ratios(state.positions_m) - 1).max() < 0.01
+    order = np.log(abs(errors[0] / errors[1])) / np.log(QUADRATIC_SIZES_MM[0] / QUADRATIC_SIZES_MM[1])
+    print(f"\nquadratic mixed sphere, h = {QUADRATIC_SIZES_MM} mm: errors {errors}, observed order {order:.2f}")
+    assert abs(errors[0]) < 0.025 and abs(errors[1]) < 0.012
+    assert abs(errors[1]) < abs(errors[0])
+    assert order > 1.5

@@ -12,7 +12,8 @@ import pytest
 
 from phantom.cli import inverse as inverse_cli
 from phantom.model import PhantomModel, load_scene
-from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
+from phantom.model.inverse import InverseSolver
+from phantom.model.target import Target, UnreachableTargetError
 
 COARSE_MM = 6.0
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from phantom.model import PhantomModel, load_scene
-from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
+from phantom.model.inverse import InverseSolver
+from phantom.model.target import Target, UnreachableTargetError
 
 #: a few Gent solves on an 8 mm mesh, about 15 s: left out of make check
 pytestmark = pytest.mark.slow

@@ -366,3 +366,16 @@ def test_the_answer_reports_itself_in_the_units_people_see():
     np.testing.assert_allclose(report["predicted_chamber_volumes_ml"], result.predicted_chamber_volumes_m3 / ML)
     assert (report["iterations"], report["solve_time_s"], report["qp_time_s"]) == (
         result.iterations, result.solve_time_s, result.qp_solve_time_s)
+
+
+def test_targets_and_the_daemon_load_no_finite_element_model():
+    """Target and InverseResult live in a light module: the daemon states targets and reads answers without
+    importing scipy, numba or the FEM (its worker process builds the model)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, phantom.model.target, phantom.host.daemon; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'numba') "
+            "or m.startswith(('phantom.model.fem', 'phantom.model.inverse'))))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert loaded.strip() == "[]"

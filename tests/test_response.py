@@ -17,7 +17,8 @@ from phantom.model.fidelity.response_table import (
     grid_pa,
     response_table,
 )
-from phantom.model.inverse import InverseSolver, Target, UnreachableTargetError
+from phantom.model.inverse import InverseSolver
+from phantom.model.target import Target, UnreachableTargetError
 
 COARSE_MM = 8.0
 PRESSURE_MAX_PA = 3000.0

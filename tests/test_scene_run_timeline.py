@@ -10,8 +10,8 @@ from phantom.host.scenes import (
     parse_timeline,
 )
 from phantom.model.errors import SceneError
-from phantom.model.inverse import Target
 from phantom.model.scene import read_scene_toml
+from phantom.model.target import Target
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 
@@ -119,7 +119,7 @@ def test_missing_or_broken_scene_files_say_so(tmp_path):
 def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachable(name, calibrated_response_table):
     from phantom.host.model_worker import LoadedModel
     from phantom.model import load_scene
-    from phantom.model.inverse import UnreachableTargetError
+    from phantom.model.target import UnreachableTargetError
 
     controller = LoadedModel(str(example_scene_path(name)), report=lambda message: None)
     calibrated = load_scene("builtin:calibrated")
@@ -205,7 +205,7 @@ def test_a_scene_for_another_model_is_told_apart(default_model, tmp_path, change
 
 @pytest.mark.slow
 def test_the_inverse_is_warm_after_start_up(default_model):
-    from phantom.model.inverse import UnreachableTargetError
+    from phantom.model.target import UnreachableTargetError
 
     # the warm-up set up the gland's exact and closest problems: the first request sets up nothing new
     shapes = set(default_model.solver._problems)

@@ -4,7 +4,10 @@ A :class:`SolidBody` knows the element rest data, the sparsity of the stiffness 
 springs that hold the fixation and the held dofs that remove rigid motion without one (:class:`Constraints`).
 It assembles, at any node positions, the elastic and spring forces, their energy and a tangent (the positive
 definite stand-in or the exact Hessian, with the follower-pressure stiffness), and measures the chambers'
-volumes and their gradients. It solves nothing: an :class:`phantom.model.fem.problem.EquilibriumProblem` binds
+volumes and their gradients. Its elements are 4-node tetrahedra (every law) or 10-node quadratic ones, for the
+hyperelastic laws in the mixed (u, p, J) formulation of a nearly incompressible solid, condensed per element
+(:func:`phantom.model.fem.kernels.mixed_forces`), and for "linear" their small-strain stiffness (the mixed
+tangent at rest). It solves nothing: an :class:`phantom.model.fem.problem.EquilibriumProblem` binds
 it to pressures, and Newton (:mod:`phantom.model.fem.newton`) and path following solve that.
 
 Springs have stiffness ``k_i = FIXED_PENALTY * E * A_i / h`` (A_i the node's share of the fixed area, h the
@@ -28,6 +31,17 @@ from phantom.model.arrays import BoolArray, FloatArray, Int32Array, IntArray
 from phantom.model.errors import MeshError, SolveError
 from phantom.model.fem import kernels
 from phantom.model.fem.linsolve import CholeskyFactor, Factorization
+from phantom.model.mesh.elements import (
+    TET_DEGREE2_POINTS,
+    TET_DEGREE2_WEIGHTS,
+    TET_DEGREE3_POINTS,
+    TET_DEGREE3_WEIGHTS,
+    TRIANGLE_DEGREE4_POINTS,
+    TRIANGLE_DEGREE4_WEIGHTS,
+    split_triangles,
+    tet10_shape,
+    triangle6_shape,
+)
 from phantom.model.mesh.tetmesh import Surfaces, TetMesh, enclosed_volume_m3, volume_gradient_m2
 from phantom.model.scene import HYPERELASTIC_MODELS, MATERIAL_MODELS, Material
 
@@ -45,18 +59,24 @@ NO_TANGENT, POSITIVE_TANGENT, EXACT_TANGENT = 0, 1, 2
 
 #: A factorised matrix: ``solve(rhs)`` is ``K^-1 rhs``.
 Factor = Factorization | CholeskyFactor
+#: The 6-node triangle's shape functions and derivatives at the points of its degree-4 rule.
+_FACE_SHAPE, _FACE_DERIVATIVES = triangle6_shape(TRIANGLE_DEGREE4_POINTS)
 
 
 @dataclass(frozen=True)
 class SparsePattern:
     """The CSR sparsity of the stiffness (3 dofs per node) and where each element entry and each diagonal entry
-    goes in its data array: ``indptr`` (3n + 1,), ``indices`` (nnz,) int32, ``scatter`` (elements, 12, 12) the data
-    index of element e's entry (i, j), ``diagonal`` (3n,)."""
+    goes in its data array: ``indptr`` (3n + 1,), ``indices`` (nnz,) int32, ``diagonal`` (3n,); ``block_start``
+    (elements, k, k) and ``degree`` (n,): element e's entry (3 A + i, 3 B + j) (A, B its local nodes) is at
+    ``block_start[e, A, B] + 3 i degree[node A] + j``; ``scatter`` (elements, 12, 12) spells that out for 4-node
+    elements (empty for 10-node ones, where it would take 7 kB per element)."""
 
     indptr: IntArray
     indices: Int32Array
     scatter: IntArray
     diagonal: IntArray
+    block_start: IntArray
+    degree: IntArray
 
 
 @dataclass(frozen=True)
@@ -88,13 +108,13 @@ class ElasticEvaluation:
 
 
 def sparse_pattern(tets: IntArray, n_nodes: int) -> SparsePattern:
-    """Build the CSR pattern once; ``scatter[e, i, j]`` is the data index of element e's entry (i, j).
+    """Build the CSR pattern once (see :class:`SparsePattern`) for elements of any number of nodes.
 
-    Built from the node graph (16 pairs per element instead of 144 dof pairs): node i's neighbours j (sorted,
+    Built from the node graph (k^2 pairs per element instead of 9 k^2 dof pairs): node i's neighbours j (sorted,
     itself included) give dof row ``3 i + a`` the columns ``3 j + b`` in that order, so the row starts at
     ``9 nnz_before(i) + 3 a degree(i)`` and the pair's k-th neighbour entry sits ``3 k + b`` further on.
     """
-    n_tets = len(tets)
+    n_tets, per_element = tets.shape
     tets = tets.astype(np.int64)
     pair_keys = (tets[:, :, None] * n_nodes + tets[:, None, :]).ravel()
     node_pairs, pair_of = np.unique(pair_keys, return_inverse=True)
@@ -108,13 +128,69 @@ def sparse_pattern(tets: IntArray, n_nodes: int) -> SparsePattern:
     entries = row_start[pair_rows][:, :, None] + 3 * rank_in_row[:, None, None] + axis
     indices = np.empty(9 * len(node_pairs), np.int32)
     indices[entries] = np.broadcast_to((3 * pair_columns[:, None, None] + axis), entries.shape)
-    rank = rank_in_row[pair_of].reshape(n_tets, 4, 4)
-    scatter = (row_start[tets][:, :, :, None, None] + 3 * rank[:, :, None, :, None] + axis)
+    rank = rank_in_row[pair_of].reshape(n_tets, per_element, per_element)
+    block_start = 9 * node_indptr[:-1][tets][:, :, None] + 3 * rank
+    scatter = np.zeros((0, 12, 12), np.int64)
+    if per_element == 4:
+        scatter = (row_start[tets][:, :, :, None, None] + 3 * rank[:, :, None, :, None] + axis
+                   ).reshape(n_tets, 12, 12)
     self_rank = np.zeros(n_nodes, np.int64)
     on_diagonal = pair_rows == pair_columns
     self_rank[pair_rows[on_diagonal]] = rank_in_row[on_diagonal]
     diagonal = (row_start + 3 * self_rank[:, None] + axis).ravel()
-    return SparsePattern(indptr, indices, scatter.reshape(n_tets, 12, 12), diagonal)
+    return SparsePattern(indptr, indices, scatter, diagonal, block_start, degree.astype(np.int64))
+
+
+@dataclass(frozen=True)
+class QuadraticRestData:
+    """What the 10-node elements' kernels need at rest: ``gradients`` (m, 4, 10, 3) the shape functions' rest
+    gradients (1/m) at the degree-2 points, ``weights`` (m, 4) the rest volume each point stands for (m^3),
+    ``volumes_m3`` (m,) each element's exact rest volume, and the reference derivatives (5, 10, 3) and weights (5,)
+    of the degree-3 rule, which measures element volumes exactly."""
+
+    gradients: FloatArray
+    weights: FloatArray
+    volumes_m3: FloatArray
+    volume_derivatives: FloatArray
+    volume_weights: FloatArray
+
+
+def quadratic_rest_data(nodes_m: FloatArray, tets: IntArray) -> QuadraticRestData:
+    """The rest data of 10-node tetrahedra (:class:`QuadraticRestData`); curved elements included (their Jacobian
+    varies inside)."""
+    _, derivatives = tet10_shape(TET_DEGREE2_POINTS)
+    corners = nodes_m[tets]                                                 # (m, 10, 3)
+    jacobians = np.einsum("eai,qak->eqik", corners, derivatives)            # dX/dxi
+    inverse = np.linalg.inv(jacobians)
+    gradients = np.ascontiguousarray(np.einsum("eqki,qak->eqai", inverse, derivatives))
+    weights = np.linalg.det(jacobians) * TET_DEGREE2_WEIGHTS
+    _, volume_derivatives = tet10_shape(TET_DEGREE3_POINTS)
+    volume_jacobians = np.einsum("eai,qak->eqik", corners, volume_derivatives)
+    volumes = np.linalg.det(volume_jacobians) @ TET_DEGREE3_WEIGHTS
+    return QuadraticRestData(gradients, np.ascontiguousarray(weights), volumes,
+                             np.ascontiguousarray(volume_derivatives), TET_DEGREE3_WEIGHTS.copy())
+
+
+def node_rest_volumes_m3(nodes_m: FloatArray, tets: IntArray,
+                         quadratic: QuadraticRestData | None) -> FloatArray:
+    """``integral N_a dV`` over the rest body for each node a (m^3, (n,)): a body force ``b`` (N/m^3) gives node a
+    the consistent load ``b`` times this (a quarter of each element's volume for 4-node elements; for 10-node ones
+    the vertices' share is negative and the mid-edge nodes' positive, as the shape functions integrate)."""
+    if quadratic is None:
+        volumes = tet_volumes_m3(nodes_m, tets)
+        shares: FloatArray = np.repeat(volumes / 4.0, 4)
+    else:
+        shape, _ = tet10_shape(TET_DEGREE2_POINTS)
+        shares = np.einsum("eq,qa->ea", quadratic.weights, shape).ravel()
+    node_volumes: FloatArray = np.bincount(tets.ravel(), shares, len(nodes_m)).astype(np.float64)
+    return node_volumes
+
+
+def tet_volumes_m3(nodes_m: FloatArray, tets: IntArray) -> FloatArray:
+    """Rest volumes of 4-node tetrahedra (m^3)."""
+    edges = nodes_m[tets[:, 1:4]] - nodes_m[tets[:, :1]]
+    volumes: FloatArray = np.linalg.det(edges) / 6.0
+    return volumes
 
 
 def rigid_constraints(nodes_m: FloatArray) -> IntArray:
@@ -138,9 +214,11 @@ def rigid_constraints(nodes_m: FloatArray) -> IntArray:
     return np.array(dofs, np.int64)
 
 
-def spring_stiffness(nodes_m: FloatArray, fixed_triangles: IntArray, youngs_modulus_pa: float,
+def spring_stiffness(nodes_m: FloatArray, fixed_faces: IntArray, youngs_modulus_pa: float,
                      fixed_penalty: float) -> tuple[IntArray, FloatArray]:
-    """Fixed nodes and their spring stiffness ``fixed_penalty * E * A_i / h`` (N/m)."""
+    """Fixed nodes and their spring stiffness ``fixed_penalty * E * A_i / h`` (N/m); a 6-node face is split into
+    its four triangles, so every node of it gets a share of its area."""
+    fixed_triangles = split_triangles(fixed_faces)
     x0, x1, x2 = (nodes_m[fixed_triangles[:, k]] for k in range(3))
     areas_m2 = 0.5 * np.linalg.norm(np.cross(x1 - x0, x2 - x0), axis=1)
     edge_m = np.mean(np.linalg.norm(np.stack([x1 - x0, x2 - x1, x0 - x2]), axis=2))
@@ -174,11 +252,13 @@ class SolidBody:
         measured default).
 
     Raises SolveError for a material out of range and MeshError for a chamber that encloses no volume.
-    Attributes (read them, do not change them): ``nodes_m`` (n, 3), ``tets`` (m, 4), ``chamber_triangles``,
-    ``outer_triangles``, ``fixed_triangles``, ``n_chambers``, ``rest_chamber_volumes_m3`` (chambers,),
-    ``rest_gland_volume_m3``, ``dm_inverse`` (m, 3, 3) each element's inverse rest edge matrix,
-    ``element_volumes_m3`` (m,), ``pattern``, ``fixed_nodes`` and ``spring_n_per_m`` (the springs),
-    ``fixed_penalty`` (FIXED_PENALTY when the body was made), ``rest_constraints``.
+    Attributes (read them, do not change them): ``nodes_m`` (n, 3), ``tets`` (m, 4 or 10), ``order`` (1 or 2),
+    ``chamber_faces``, ``outer_faces``, ``fixed_faces`` (3- or 6-node faces), ``n_chambers``,
+    ``rest_chamber_volumes_m3`` (chambers,), ``rest_gland_volume_m3``, ``element_volumes_m3`` (m,); for 4-node
+    elements ``dm_inverse`` (m, 3, 3) each element's inverse rest edge matrix and ``element_stiffness``, for
+    10-node ones ``quadratic`` (:class:`QuadraticRestData`); ``node_volumes_m3`` (n,) each node's share of the
+    volume (the consistent body-force load per N/m^3); ``pattern``, ``fixed_nodes`` and ``spring_n_per_m`` (the
+    springs), ``fixed_penalty`` (FIXED_PENALTY when the body was made), ``rest_constraints``.
     """
 
     def __init__(self, mesh: TetMesh, surfaces: Surfaces, chamber_names: list[str], material: Material,
@@ -199,24 +279,35 @@ class SolidBody:
         self.tets = mesh.tets
         self.chamber_names = list(chamber_names)
         self.n_chambers = len(chamber_names)
-        self.chamber_triangles = surfaces.chamber_triangles
-        self.outer_triangles = surfaces.outer_triangles
-        self.fixed_triangles = surfaces.fixed_triangles
+        self.order = mesh.order
+        self.chamber_faces = surfaces.chamber_faces
+        self.outer_faces = surfaces.outer_faces
+        self.fixed_faces = surfaces.fixed_faces
         self.material = material
         self.linear_solver = linear_solver
         self.rest_chamber_volumes_m3, self.rest_gland_volume_m3 = self.volumes(self.nodes_m)
         for name, volume in zip(self.chamber_names, self.rest_chamber_volumes_m3, strict=True):
             if volume <= 0:
                 raise MeshError(f"{source}: chamber {name!r} encloses no volume ({volume:.3g} m^3)")
-        self.dm_inverse, self.element_volumes_m3, self.element_stiffness = kernels.element_rest_data(
-            self.nodes_m, self.tets, material.youngs_modulus_pa, material.poisson_ratio)
+        self.quadratic: QuadraticRestData | None = None
+        if self.order == 2:
+            if material.model == "corotational":
+                raise SolveError("the co-rotational law is for 4-node tetrahedra: use neo_hookean or gent (or "
+                                 "linear) with 10-node ones, or [geometry] element_order = 1")
+            self.quadratic = quadratic_rest_data(self.nodes_m, self.tets)
+            self.element_volumes_m3 = self.quadratic.volumes_m3
+        else:
+            self.dm_inverse, self.element_volumes_m3, self.element_stiffness = kernels.element_rest_data(
+                self.nodes_m, self.tets, material.youngs_modulus_pa, material.poisson_ratio)
+        self.node_volumes_m3 = node_rest_volumes_m3(self.nodes_m, self.tets, self.quadratic)
         self.pattern = sparse_pattern(self.tets, len(self.nodes_m))
         self.fixed_penalty = FIXED_PENALTY
         self.fixed_nodes: IntArray = np.zeros(0, np.int64)
         self.spring_n_per_m: FloatArray = np.zeros(0)
-        if self.fixed_triangles is not None:
+        if self.fixed_faces is not None:
             self.fixed_nodes, self.spring_n_per_m = spring_stiffness(
-                self.nodes_m, self.fixed_triangles, material.youngs_modulus_pa, self.fixed_penalty)
+                self.nodes_m, self.fixed_faces, material.youngs_modulus_pa, self.fixed_penalty)
+        self._rest_tangent: FloatArray | None = None
         self._factorizations: dict[tuple[int, ...], Factor] = {}
         self._constraint_sets: dict[tuple[int, ...], Constraints] = {}
         self.rest_constraints = self.constraints_for(self.nodes_m)
@@ -230,7 +321,7 @@ class SolidBody:
         """No held dofs when springs hold the fixation; else a 3-2-1 set chosen in this configuration's frame
         (so that a rigidly rotated start is held as the rest shape would be)."""
         n_dofs = 3 * len(self.nodes_m)
-        dofs = np.zeros(0, np.int64) if self.fixed_triangles is not None else rigid_constraints(positions_m)
+        dofs = np.zeros(0, np.int64) if self.fixed_faces is not None else rigid_constraints(positions_m)
         key = tuple(dofs.tolist())
         if key not in self._constraint_sets:
             free_mask = np.ones(n_dofs, bool)
@@ -246,22 +337,37 @@ class SolidBody:
 
     def chamber_volumes_m3(self, positions_m: FloatArray) -> FloatArray:
         """Each chamber's volume (m^3, chamber order) at node positions (n, 3) m."""
-        return np.array([enclosed_volume_m3(positions_m, triangles) for triangles in self.chamber_triangles])
+        return np.array([enclosed_volume_m3(positions_m, faces) for faces in self.chamber_faces])
 
     def volumes(self, positions_m: FloatArray) -> tuple[FloatArray, float]:
         """Chamber volumes (m^3, chamber order) and the gland volume (m^3, inside the outer boundary)."""
-        return self.chamber_volumes_m3(positions_m), enclosed_volume_m3(positions_m, self.outer_triangles)
+        return self.chamber_volumes_m3(positions_m), enclosed_volume_m3(positions_m, self.outer_faces)
 
     def volume_gradients(self, positions_m: FloatArray) -> FloatArray:
         """``H``: (n_chambers + 1, 3 n) gradients of each chamber's volume and of the gland's (m^2)."""
-        surfaces = [*self.chamber_triangles, self.outer_triangles]
-        return np.stack([volume_gradient_m2(positions_m, triangles).ravel() for triangles in surfaces])
+        surfaces = [*self.chamber_faces, self.outer_faces]
+        return np.stack([volume_gradient_m2(positions_m, faces).ravel() for faces in surfaces])
 
     # --- elements --------------------------------------------------------------------------------------------
 
     def deformation_determinants(self, positions_m: FloatArray) -> FloatArray:
-        """det F of every element (m,) at node positions (n, 3) m."""
+        """det F of every element (m,) at node positions (n, 3) m; for a 10-node element the least of its volume
+        ratio and det F at its quadrature points."""
+        if self.quadratic is not None:
+            data = self.quadratic
+            return kernels.mixed_determinants(positions_m, self.tets, data.gradients, data.volumes_m3,
+                                              data.volume_derivatives, data.volume_weights)
         return kernels.deformation_determinants(positions_m, self.tets, self.dm_inverse)
+
+    def element_volume_ratios(self, positions_m: FloatArray) -> FloatArray:
+        """Each element's current over rest volume (m,): det F of a 4-node element; for a 10-node one its exact
+        volume ratio (the degree-3 rule), the dilatation ``Jbar`` the mixed formulation holds near 1."""
+        if self.quadratic is None:
+            return self.deformation_determinants(positions_m)
+        data = self.quadratic
+        jacobians = np.einsum("eai,qak->eqik", positions_m[self.tets], data.volume_derivatives)
+        ratios: FloatArray = np.linalg.det(jacobians) @ data.volume_weights / data.volumes_m3
+        return ratios
 
     def worst_element(self, positions_m: FloatArray) -> int:
         """The element with the smallest det F if any is flat or inverted, else -1."""
@@ -286,7 +392,9 @@ class SolidBody:
         EXACT_TANGENT (the exact Hessian, co-rotational or hyperelastic), including the pressure's follower-load
         stiffness when ``pressures_pa`` (chambers,) are given; the linear model's is its stiffness either way."""
         data = np.zeros(len(self.pattern.indices)) if matrix else np.zeros(1)
-        if formulation in HYPERELASTIC_MODELS:
+        if self.quadratic is not None:
+            forces, energy_j, smallest_det = self._quadratic_elastic(positions_m, formulation, matrix, data)
+        elif formulation in HYPERELASTIC_MODELS:
             forces, energy_j, smallest_det = kernels.hyperelastic_forces(
                 positions_m, self.tets, self.dm_inverse, self.element_volumes_m3, self.material.lame_mu_pa,
                 self.material.lame_lambda_pa, self.inverse_jm(formulation), EXACT_TANGENT if matrix else NO_TANGENT,
@@ -302,9 +410,14 @@ class SolidBody:
         forces[constraints.dofs] = 0.0
         if matrix:
             if matrix == EXACT_TANGENT and pressures_pa is not None:
-                for pressure_pa, triangles in zip(pressures_pa, self.chamber_triangles, strict=True):
-                    kernels.add_pressure_stiffness(positions_m, triangles, pressure_pa, self.pattern.indptr,
-                                                   self.pattern.indices, data)
+                for pressure_pa, faces in zip(pressures_pa, self.chamber_faces, strict=True):
+                    if faces.shape[1] == 6:
+                        kernels.add_quadratic_pressure_stiffness(
+                            positions_m, faces, pressure_pa, _FACE_SHAPE, _FACE_DERIVATIVES, TRIANGLE_DEGREE4_WEIGHTS,
+                            self.pattern.indptr, self.pattern.indices, data)
+                    else:
+                        kernels.add_pressure_stiffness(positions_m, faces, pressure_pa, self.pattern.indptr,
+                                                       self.pattern.indices, data)
             spring_dofs = (3 * self.fixed_nodes[:, None] + np.arange(3)).ravel()
             data[self.pattern.diagonal[spring_dofs]] += np.repeat(self.spring_n_per_m, 3)
             if len(constraints.dofs):
@@ -312,6 +425,43 @@ class SolidBody:
                 data[constraints.entries] = 0.0
                 data[self.pattern.diagonal[constraints.dofs]] = scale
         return ElasticEvaluation(forces, float(energy_j), float(smallest_det), data)
+
+    def _quadratic_elastic(self, positions_m: FloatArray, formulation: str, matrix: int,
+                           data: FloatArray) -> tuple[FloatArray, float, float]:
+        """The 10-node elements' forces (n, 3), energy and smallest volume ratio, their tangent added to ``data``:
+        the mixed hyperelastic kernel, or for "linear" the small-strain stiffness (its tangent at rest)."""
+        assert self.quadratic is not None  # only 10-node bodies come here
+        if formulation == "linear":
+            stiffness = self.rest_tangent_data()
+            displacement = (positions_m - self.nodes_m).ravel()
+            forces = self.multiply(stiffness, displacement)
+            if matrix:
+                data += stiffness
+            return forces.reshape(-1, 3), 0.5 * float(np.einsum("i,i->", forces, displacement)), np.inf
+        if formulation not in HYPERELASTIC_MODELS:
+            raise SolveError(f"the {formulation} law is for 4-node tetrahedra: use neo_hookean, gent or linear with "
+                             "10-node ones")
+        rest = self.quadratic
+        forces, energy_j, smallest = kernels.mixed_forces(
+            positions_m, self.tets, rest.gradients, rest.weights, rest.volumes_m3, rest.volume_derivatives,
+            rest.volume_weights, self.material.lame_mu_pa, self.material.bulk_modulus_pa,
+            self.inverse_jm(formulation), EXACT_TANGENT if matrix else NO_TANGENT, self.pattern.block_start,
+            self.pattern.degree, data)
+        return forces, float(energy_j), float(smallest)
+
+    def rest_tangent_data(self) -> FloatArray:
+        """A 10-node body's small-strain stiffness (CSR data, N/m, elements only): the mixed Neo-Hookean tangent
+        at rest, which both hyperelastic laws share there (made once)."""
+        if self._rest_tangent is None:
+            assert self.quadratic is not None  # only 10-node bodies come here
+            rest = self.quadratic
+            data = np.zeros(len(self.pattern.indices))
+            kernels.mixed_forces(self.nodes_m, self.tets, rest.gradients, rest.weights, rest.volumes_m3,
+                                 rest.volume_derivatives, rest.volume_weights, self.material.lame_mu_pa,
+                                 self.material.bulk_modulus_pa, 0.0, EXACT_TANGENT, self.pattern.block_start,
+                                 self.pattern.degree, data)
+            self._rest_tangent = data
+        return self._rest_tangent
 
     def tangent_data(self, positions_m: FloatArray | None = None, formulation: str = "linear",
                      pressures_pa: FloatArray | None = None, constraints: Constraints | None = None) -> FloatArray:
@@ -405,7 +555,7 @@ class SolidBody:
         """A hash of everything the body's answers depend on (mesh, groups, springs, material, penalty, solver
         version) and ``extra``: the name of a file that stores one of them."""
         digest = hashlib.sha256()
-        for array in (self.nodes_m, self.tets, *self.chamber_triangles, self.outer_triangles, self.fixed_nodes,
+        for array in (self.nodes_m, self.tets, *self.chamber_faces, self.outer_faces, self.fixed_nodes,
                       self.spring_n_per_m, self.rest_constraints.dofs):
             digest.update(np.ascontiguousarray(array).tobytes())
         digest.update(repr((self.material.youngs_modulus_pa, self.material.poisson_ratio, self.material.gent_jm,

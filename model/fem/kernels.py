@@ -1,4 +1,4 @@
-"""Element kernels of linear tetrahedra (numba, compiled once and cached on disk).
+"""Element kernels of linear and quadratic tetrahedra (numba, compiled once and cached on disk).
 
 ``python -m phantom.model.fem.kernels`` (run by scripts/bootstrap.sh after an install) also compiles the exported
 kernels ahead of time with numba.pycc into ``phantom.cache_dir("kernels")``, keyed by this file's source; while
@@ -54,6 +54,14 @@ EXPORTS = {
                                "void(f8[:, ::1], i8[:, ::1], f8, i8[::1], i4[::1], f8[::1])"),
     "csr_multiply": (("i8", "i4", "f8", "f8"), "f8[::1](i8[::1], i4[::1], f8[::1], f8[::1])"),
     "cholesky_solve": (("i8", "i4", "f8", "i8", "f8"), "f8[:, ::1](i8[::1], i4[::1], f8[::1], i8[::1], f8[:, ::1])"),
+    "mixed_forces": (("f8", "i8", "f8", "f8", "f8", "f8", "f8", None, None, None, None, "i8", "i8", "out"),
+                     "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], i8[:, ::1], f8[:, :, :, ::1], f8[:, ::1], f8[::1], "
+                     "f8[:, :, ::1], f8[::1], f8, f8, f8, i8, i8[:, :, ::1], i8[::1], f8[::1])"),
+    "mixed_determinants": (("f8", "i8", "f8", "f8", "f8", "f8"),
+                           "f8[::1](f8[:, ::1], i8[:, ::1], f8[:, :, :, ::1], f8[::1], f8[:, :, ::1], f8[::1])"),
+    "add_quadratic_pressure_stiffness": (("f8", "i8", None, "f8", "f8", "f8", "i8", "i4", "out"),
+                                         "void(f8[:, ::1], i8[:, ::1], f8, f8[:, ::1], f8[:, :, ::1], f8[::1], "
+                                         "i8[::1], i4[::1], f8[::1])"),
 }
 
 
@@ -578,6 +586,287 @@ def deformation_determinants(positions_m: FloatArray, tets: IntArray, dm_inverse
                 ds[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
         dets[e] = _det3(ds) * _det3(dm_inverse[e])
     return dets
+
+
+@kernel
+def _cofactor3(m: FloatArray, out: FloatArray) -> float:
+    """``out = cof(m) = det(m) m^-T`` (no division: defined for a singular m); returns det m."""
+    out[0, 0] = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+    out[0, 1] = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+    out[0, 2] = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+    out[1, 0] = m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]
+    out[1, 1] = m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]
+    out[1, 2] = m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]
+    out[2, 0] = m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]
+    out[2, 1] = m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]
+    out[2, 2] = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    det: float = m[0, 0] * out[0, 0] + m[0, 1] * out[0, 1] + m[0, 2] * out[0, 2]
+    return det
+
+
+@kernel
+def _element_volume(x: FloatArray, volume_derivatives: FloatArray, volume_weights: FloatArray,
+                    jacobians: FloatArray, volume_gradient: FloatArray) -> float:
+    """Current volume (m^3) of one 10-node element at node positions ``x`` (10, 3), exact (the degree-3 rule
+    integrates ``det(dx/dxi)``, a cubic); its gradient into ``volume_gradient`` (10, 3) and ``dx/dxi`` at each
+    point into ``jacobians`` (q, 3, 3)."""
+    cofactor = np.empty((3, 3))
+    volume = 0.0
+    for a in range(10):
+        for i in range(3):
+            volume_gradient[a, i] = 0.0
+    for q in range(volume_weights.shape[0]):
+        for i in range(3):
+            for k in range(3):
+                total = 0.0
+                for a in range(10):
+                    total += x[a, i] * volume_derivatives[q, a, k]
+                jacobians[q, i, k] = total
+        det = _cofactor3(jacobians[q], cofactor)
+        volume += volume_weights[q] * det
+        for a in range(10):
+            for i in range(3):
+                volume_gradient[a, i] += volume_weights[q] * (
+                    cofactor[i, 0] * volume_derivatives[q, a, 0] + cofactor[i, 1] * volume_derivatives[q, a, 1]
+                    + cofactor[i, 2] * volume_derivatives[q, a, 2])
+    return volume
+
+
+@kernel
+def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray, weights: FloatArray,
+                 rest_volumes_m3: FloatArray, volume_derivatives: FloatArray, volume_weights: FloatArray,
+                 lame_mu_pa: float, bulk_modulus_pa: float, inverse_jm: float, want_matrix: int,
+                 block_start: IntArray, degree: IntArray, matrix_data: FloatArray) -> tuple[FloatArray, float, float]:
+    """Nodal forces (N, (n, 3)), energy (J) and the smallest volume ratio of 10-node tetrahedra in the mixed
+    (displacement, pressure, dilatation) formulation condensed element by element; optionally its exact tangent.
+
+    Per element, with a constant pressure and dilatation (P2/P0): ``Pi_e = integral W_iso(I1bar) dV + V_e U(Jbar)``,
+    ``Jbar = v_e / V_e`` the element's current over rest volume (exact), ``U = K/2 (Jbar - 1)^2``, its pressure
+    ``p = K (Jbar - 1)``; ``I1bar = J^(-2/3) I1`` at each quadrature point (``gradients`` (m, q, 10, 3) the shape
+    functions' rest gradients there, ``weights`` (m, q) the rest volume they stand for). ``W_iso`` is Gent's
+    ``-(mu Jm/2) ln(1 - (I1bar - 3)/Jm)``, Neo-Hookean's ``mu/2 (I1bar - 3)`` when ``inverse_jm`` = 1/Jm is 0.
+    With ``A = dI1bar/dF = 2 J^(-2/3) F - (2/3) I1bar F^-T``, ``psi' = dW/dI1bar``: ``P = psi' A``. The tangent's
+    deviatoric block is ``psi'' (A G_a)(A G_b)^T + psi' [2 J^(-2/3) (G_a . G_b) I - (4/3) J^(-2/3) ((F G_a)(H G_b)^T
+    + (H G_a)(F G_b)^T) + (4/9) I1bar (H G_a)(H G_b)^T + (2/3) I1bar (H G_b)(H G_a)^T]`` (``H = F^-T``), its
+    volumetric one ``(K / V_e) dv_a dv_b^T + p d2v/dx_a dx_b`` with ``d2 det(D)/dx_ai dx_bk = eps_ikm (D (g_a x
+    g_b))_m`` at each volume point. An element at ``J <= 0`` (at a point), ``Jbar <= 0`` or past Gent's lock has
+    infinite energy and adds no force or stiffness. The tangent goes into ``matrix_data`` at ``block_start[e, A,
+    B] + 3 a degree[node A] + b`` (the body's CSR layout).
+    """
+    n_tets = tets.shape[0]
+    n_points = gradients.shape[1]
+    forces = np.zeros(positions_m.shape)
+    energy_j = 0.0
+    smallest_det = np.inf
+    x = np.empty((10, 3))
+    f = np.empty((3, 3))
+    cofactor = np.empty((3, 3))
+    jacobians = np.empty((volume_weights.shape[0], 3, 3))
+    volume_gradient = np.empty((10, 3))
+    local_force = np.empty((10, 3))
+    stretched = np.empty((10, 3))
+    pulled = np.empty((10, 3))
+    directional = np.empty((10, 3))
+    block = np.empty((30, 30))
+    axial = np.empty(3)
+    for e in range(n_tets):
+        for a in range(10):
+            node = tets[e, a]
+            for i in range(3):
+                x[a, i] = positions_m[node, i]
+        rest_volume = rest_volumes_m3[e]
+        volume_ratio = _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient) / rest_volume
+        if volume_ratio < smallest_det:
+            smallest_det = volume_ratio
+        if not volume_ratio > 0.0:
+            energy_j = np.inf
+            continue
+        pressure = bulk_modulus_pa * (volume_ratio - 1.0)
+        element_energy = 0.5 * bulk_modulus_pa * rest_volume * (volume_ratio - 1.0) ** 2
+        for a in range(10):
+            for i in range(3):
+                local_force[a, i] = pressure * volume_gradient[a, i]
+        if want_matrix:
+            for i in range(30):
+                for j in range(30):
+                    block[i, j] = 0.0
+        admissible = True
+        for q in range(n_points):
+            for i in range(3):
+                for j in range(3):
+                    total = 0.0
+                    for a in range(10):
+                        total += x[a, i] * gradients[e, q, a, j]
+                    f[i, j] = total
+            det = _cofactor3(f, cofactor)
+            if det < smallest_det:
+                smallest_det = det
+            first_invariant = 0.0
+            for i in range(3):
+                for j in range(3):
+                    first_invariant += f[i, j] * f[i, j]
+            if not det > 0.0:
+                admissible = False
+                break
+            scale = det ** (-2.0 / 3.0)
+            isochoric = scale * first_invariant
+            stiffening = 1.0 - (isochoric - 3.0) * inverse_jm
+            if not stiffening > 0.0:
+                admissible = False
+                break
+            if inverse_jm > 0.0:
+                element_energy += weights[e, q] * (-0.5 * lame_mu_pa / inverse_jm * np.log(stiffening))
+            else:
+                element_energy += weights[e, q] * 0.5 * lame_mu_pa * (isochoric - 3.0)
+            first = 0.5 * lame_mu_pa / stiffening
+            second = 0.5 * lame_mu_pa * inverse_jm / (stiffening * stiffening)
+            for a in range(10):
+                for i in range(3):
+                    stretched[a, i] = (f[i, 0] * gradients[e, q, a, 0] + f[i, 1] * gradients[e, q, a, 1]
+                                       + f[i, 2] * gradients[e, q, a, 2])
+                    pulled[a, i] = (cofactor[i, 0] * gradients[e, q, a, 0] + cofactor[i, 1] * gradients[e, q, a, 1]
+                                    + cofactor[i, 2] * gradients[e, q, a, 2]) / det
+                    directional[a, i] = 2.0 * scale * stretched[a, i] - (2.0 / 3.0) * isochoric * pulled[a, i]
+                    local_force[a, i] += weights[e, q] * first * directional[a, i]
+            if want_matrix:
+                weight = weights[e, q]
+                for a in range(10):
+                    for b in range(a, 10):
+                        dot = (gradients[e, q, a, 0] * gradients[e, q, b, 0] + gradients[e, q, a, 1]
+                               * gradients[e, q, b, 1] + gradients[e, q, a, 2] * gradients[e, q, b, 2])
+                        for i in range(3):
+                            for k in range(3):
+                                value = (second * directional[a, i] * directional[b, k] + first * (
+                                    -(4.0 / 3.0) * scale * (stretched[a, i] * pulled[b, k]
+                                                            + pulled[a, i] * stretched[b, k])
+                                    + (4.0 / 9.0) * isochoric * pulled[a, i] * pulled[b, k]
+                                    + (2.0 / 3.0) * isochoric * pulled[b, i] * pulled[a, k]))
+                                if i == k:
+                                    value += first * 2.0 * scale * dot
+                                block[3 * a + i, 3 * b + k] += weight * value
+        if not admissible:
+            energy_j = np.inf
+            continue
+        energy_j += element_energy
+        for a in range(10):
+            node = tets[e, a]
+            for i in range(3):
+                forces[node, i] += local_force[a, i]
+        if not want_matrix:
+            continue
+        stiffness = bulk_modulus_pa / rest_volume
+        for a in range(10):
+            for b in range(a, 10):
+                for i in range(3):
+                    for k in range(3):
+                        block[3 * a + i, 3 * b + k] += stiffness * volume_gradient[a, i] * volume_gradient[b, k]
+                for q in range(volume_weights.shape[0]):
+                    # d2 det(D) / dx_ai dx_bk = eps_ikm (D (g_a x g_b))_m
+                    ga0, ga1, ga2 = (volume_derivatives[q, a, 0], volume_derivatives[q, a, 1],
+                                     volume_derivatives[q, a, 2])
+                    gb0, gb1, gb2 = (volume_derivatives[q, b, 0], volume_derivatives[q, b, 1],
+                                     volume_derivatives[q, b, 2])
+                    c0, c1, c2 = ga1 * gb2 - ga2 * gb1, ga2 * gb0 - ga0 * gb2, ga0 * gb1 - ga1 * gb0
+                    for m in range(3):
+                        axial[m] = (jacobians[q, m, 0] * c0 + jacobians[q, m, 1] * c1
+                                    + jacobians[q, m, 2] * c2) * pressure * volume_weights[q]
+                    block[3 * a + 0, 3 * b + 1] += axial[2]
+                    block[3 * a + 1, 3 * b + 0] -= axial[2]
+                    block[3 * a + 1, 3 * b + 2] += axial[0]
+                    block[3 * a + 2, 3 * b + 1] -= axial[0]
+                    block[3 * a + 2, 3 * b + 0] += axial[1]
+                    block[3 * a + 0, 3 * b + 2] -= axial[1]
+        for a in range(10):
+            row_node = tets[e, a]
+            for b in range(10):
+                start = block_start[e, a, b]
+                stride = 3 * degree[row_node]
+                for i in range(3):
+                    for k in range(3):
+                        value = block[3 * a + i, 3 * b + k] if b >= a else block[3 * b + k, 3 * a + i]
+                        matrix_data[start + stride * i + k] += value
+    return forces, energy_j, smallest_det
+
+
+@kernel
+def mixed_determinants(positions_m: FloatArray, tets: IntArray, gradients: FloatArray, rest_volumes_m3: FloatArray,
+                       volume_derivatives: FloatArray, volume_weights: FloatArray) -> FloatArray:
+    """The smallest volume ratio of each 10-node element: its ``Jbar`` (current over rest volume) or ``det F`` at
+    one of its quadrature points, whichever is less (m,)."""
+    n_tets = tets.shape[0]
+    smallest = np.empty(n_tets)
+    x = np.empty((10, 3))
+    f = np.empty((3, 3))
+    jacobians = np.empty((volume_weights.shape[0], 3, 3))
+    volume_gradient = np.empty((10, 3))
+    for e in range(n_tets):
+        for a in range(10):
+            for i in range(3):
+                x[a, i] = positions_m[tets[e, a], i]
+        least = _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient) / rest_volumes_m3[e]
+        for q in range(gradients.shape[1]):
+            for i in range(3):
+                for j in range(3):
+                    total = 0.0
+                    for a in range(10):
+                        total += x[a, i] * gradients[e, q, a, j]
+                    f[i, j] = total
+            det = _det3(f)
+            if det < least:
+                least = det
+        smallest[e] = least
+    return smallest
+
+
+@kernel
+def add_quadratic_pressure_stiffness(positions_m: FloatArray, faces: IntArray, pressure_pa: float,
+                                     shape: FloatArray, derivatives: FloatArray, face_weights: FloatArray,
+                                     indptr: IntArray, indices: Int32Array, matrix_data: FloatArray) -> None:
+    """Add ``-p d2V/dx2`` of one chamber of 6-node faces to a CSR tangent's data (N/m).
+
+    ``dV/dx_a = integral N_a (x_xi x x_eta)`` over each face, whose derivative by ``x_b`` is the block
+    ``M_ab = integral N_a (dN_b/deta [x_xi]x - dN_b/dxi [x_eta]x)`` (degree 4: exact with the 6-point rule,
+    ``shape`` (q, 6), ``derivatives`` (q, 6, 2), ``face_weights`` (q,)); summed over a closed wall it is symmetric,
+    so each face adds ``-p (M + M^T) / 2``.
+    """
+    along_xi = np.empty(3)
+    along_eta = np.empty(3)
+    block = np.empty((18, 18))
+    for t in range(faces.shape[0]):
+        for i in range(18):
+            for j in range(18):
+                block[i, j] = 0.0
+        for q in range(face_weights.shape[0]):
+            for i in range(3):
+                total_xi = 0.0
+                total_eta = 0.0
+                for a in range(6):
+                    total_xi += derivatives[q, a, 0] * positions_m[faces[t, a], i]
+                    total_eta += derivatives[q, a, 1] * positions_m[faces[t, a], i]
+                along_xi[i] = total_xi
+                along_eta[i] = total_eta
+            for a in range(6):
+                for b in range(6):
+                    weight = face_weights[q] * shape[q, a]
+                    s_eta = weight * derivatives[q, b, 1]
+                    s_xi = weight * derivatives[q, b, 0]
+                    # s_eta [x_xi]x - s_xi [x_eta]x, a skew matrix with axial vector s_eta x_xi - s_xi x_eta
+                    w0 = s_eta * along_xi[0] - s_xi * along_eta[0]
+                    w1 = s_eta * along_xi[1] - s_xi * along_eta[1]
+                    w2 = s_eta * along_xi[2] - s_xi * along_eta[2]
+                    block[3 * a + 0, 3 * b + 1] -= w2
+                    block[3 * a + 0, 3 * b + 2] += w1
+                    block[3 * a + 1, 3 * b + 0] += w2
+                    block[3 * a + 1, 3 * b + 2] -= w0
+                    block[3 * a + 2, 3 * b + 0] -= w1
+                    block[3 * a + 2, 3 * b + 1] += w0
+        for a in range(6):
+            for b in range(6):
+                for i in range(3):
+                    for k in range(3):
+                        value = -0.5 * pressure_pa * (block[3 * a + i, 3 * b + k] + block[3 * b + k, 3 * a + i])
+                        position = _csr_position(indptr, indices, 3 * faces[t, a] + i, 3 * faces[t, b] + k)
+                        matrix_data[position] += value
 
 
 @kernel

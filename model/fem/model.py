@@ -45,7 +45,7 @@ class State:
     pressures_pa : (n_chambers,) the gauge pressures solved for; formulation : "corotational", "linear",
     "neo_hookean" or "gent"; load_steps : the accepted load (or volume) steps; load_positions_m : (n, 3) or None,
     for the linear formulation the configuration its (dead) pressure load was taken on when that was not the
-    rest shape (None: rest).
+    rest shape (None: rest); body_force_n_per_m3 : (3,) the body force (gravity) it was solved under (N/m^3).
     """
 
     positions_m: FloatArray
@@ -57,6 +57,7 @@ class State:
     formulation: str = "corotational"
     load_steps: int = 1
     load_positions_m: FloatArray | None = None
+    body_force_n_per_m3: FloatArray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
 
 @dataclass
@@ -77,8 +78,11 @@ class PhantomModel:
     """The phantom's finite-element model (mesh, material, fixation); see the module docstring.
 
     Build with :meth:`from_scene`. Attributes: ``body`` (the :class:`SolidBody`: assembly, springs, held dofs),
-    ``chamber_names``, ``n_chambers``, ``nodes_m`` (n, 3) rest positions, ``tets`` (m, 4), ``outer_triangles``
-    (k, 3) outward, ``chamber_triangles`` (list, each oriented out of its cavity), ``fixed_triangles``,
+    ``chamber_names``, ``n_chambers``, ``nodes_m`` (n, 3) rest positions, ``tets`` (m, 4 or 10), ``order`` (1 or
+    2), ``outer_triangles`` (k, 3) outward, ``chamber_triangles`` (list, each oriented out of its cavity),
+    ``fixed_triangles`` (3-node triangles, for drawing: a 6-node face is split in four at its mid-edge nodes),
+    ``outer_faces``, ``chamber_faces``, ``fixed_faces`` (the same surfaces as the model's own 3- or 6-node faces,
+    whose curved volumes the model measures),
     ``rest_chamber_volumes_m3``, ``rest_gland_volume_m3``, ``material``, ``formulation`` (the scene's),
     ``scene`` (the Scene it was built from, None for a bare mesh), and its :attr:`model_settings`, which the
     inverse and the volume estimator read.
@@ -97,11 +101,17 @@ class PhantomModel:
         self.tets = self.body.tets
         self.chamber_names = self.body.chamber_names
         self.n_chambers = self.body.n_chambers
-        self.chamber_triangles = self.body.chamber_triangles
-        self.outer_triangles = self.body.outer_triangles
-        self.fixed_triangles = self.body.fixed_triangles
+        self.order = self.body.order
+        self.chamber_faces = self.body.chamber_faces
+        self.outer_faces = self.body.outer_faces
+        self.fixed_faces = self.body.fixed_faces
+        self.chamber_triangles = surfaces.chamber_triangles
+        self.outer_triangles = surfaces.outer_triangles
+        self.fixed_triangles = surfaces.fixed_triangles
         self.rest_chamber_volumes_m3 = self.body.rest_chamber_volumes_m3
         self.rest_gland_volume_m3 = self.body.rest_gland_volume_m3
+        #: The body force of the scene's ``[load]`` hanging in air (N/m^3): what a solve applies unless told.
+        self.body_force_n_per_m3 = np.array(scene.load.body_force_n_per_m3() if scene is not None else (0.0,) * 3)
 
     @classmethod
     def from_scene(cls, scene: Scene, mesh_size_mm: float | None = None) -> PhantomModel:
@@ -216,11 +226,17 @@ class PhantomModel:
         return pressures
 
     def problem(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
-                start_m: FloatArray | None = None) -> EquilibriumProblem:
+                start_m: FloatArray | None = None,
+                body_force_n_per_m3: FloatArray | list[float] | None = None) -> EquilibriumProblem:
         """The equilibrium problem at gauge pressures (Pa, chamber order) from ``start_m`` (default: rest), in
-        ``formulation`` (None: the scene's). Its held dofs (without a fixed group) are chosen in the frame of the
-        start (of the rest shape for "linear", whose stiffness is the rest shape's)."""
+        ``formulation`` (None: the scene's), under ``body_force_n_per_m3`` (None: the scene's gravity in air). Its
+        held dofs (without a fixed group) are chosen in the frame of the start (of the rest shape for "linear",
+        whose stiffness is the rest shape's)."""
         pressures = self._check_pressures(pressures_pa)
+        body_force = (self.body_force_n_per_m3 if body_force_n_per_m3 is None
+                      else np.asarray(body_force_n_per_m3, dtype=float).reshape(-1))
+        if body_force.shape != (3,) or not np.all(np.isfinite(body_force)):
+            raise SolveError(f"the body force must be three finite numbers (N/m^3), got {body_force.tolist()}")
         formulation = formulation or self.formulation
         if formulation not in FORMULATIONS:
             raise SolveError(f"unknown formulation {formulation!r}: use one of {', '.join(FORMULATIONS)}")
@@ -229,11 +245,14 @@ class PhantomModel:
         if start.shape != self.nodes_m.shape or not np.all(np.isfinite(start)):
             raise SolveError(f"initial_positions_m must be a finite array of shape {self.nodes_m.shape}")
         frame_m = self.nodes_m if formulation == "linear" else start
-        return EquilibriumProblem(self.body, pressures, formulation, start, self.body.constraints_for(frame_m))
+        return EquilibriumProblem(self.body, pressures, formulation, start, self.body.constraints_for(frame_m),
+                                  body_force.copy())
 
     def equilibrium(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
-                    initial_positions_m: FloatArray | None = None, tolerance: float = RELATIVE_TOLERANCE) -> State:
-        """The equilibrium under gauge pressures (Pa, chamber order).
+                    initial_positions_m: FloatArray | None = None, tolerance: float = RELATIVE_TOLERANCE,
+                    body_force_n_per_m3: FloatArray | list[float] | None = None) -> State:
+        """The equilibrium under gauge pressures (Pa, chamber order) and a body force (N/m^3; None: the scene's
+        gravity hanging in air, :attr:`body_force_n_per_m3`).
 
         ``formulation`` None uses the scene's; "linear" is small-strain elasticity with the pressure load taken
         on the starting configuration (one linear solve); "corotational" follows the walls and is solved by
@@ -244,12 +263,11 @@ class PhantomModel:
         Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert.
         """
         started = time.perf_counter()
-        problem = self.problem(pressures_pa, formulation, initial_positions_m)
+        problem = self.problem(pressures_pa, formulation, initial_positions_m, body_force_n_per_m3)
         positions_m, iterations, steps = problem.start_m, 0, 0
-        if np.any(problem.pressures_pa) or initial_positions_m is not None:
+        if problem.loaded or initial_positions_m is not None:
             warm = None
-            if (initial_positions_m is not None and problem.formulation in HYPERELASTIC_MODELS
-                    and np.any(problem.pressures_pa)):
+            if initial_positions_m is not None and problem.formulation in HYPERELASTIC_MODELS and problem.loaded:
                 # From a nearby equilibrium (an iteration's previous answer) Newton at the full load takes a few
                 # iterations; path following would start again from zero load on the inflated shape.
                 warm = newton(problem, problem.start_m, tolerance)
@@ -262,7 +280,8 @@ class PhantomModel:
         load_positions_m = (problem.start_m if problem.formulation == "linear" and initial_positions_m is not None
                             else None)
         return State(positions_m, chamber_volumes_m3, gland_volume_m3, iterations, time.perf_counter() - started,
-                     problem.pressures_pa, problem.formulation, steps, load_positions_m)
+                     problem.pressures_pa, problem.formulation, steps, load_positions_m,
+                     problem.body_force_n_per_m3)
 
     # --- compliance ----------------------------------------------------------------------------------------
 
@@ -376,7 +395,7 @@ class PhantomModel:
             for sign in (1.0, -1.0):
                 pressures = state.pressures_pa.copy()
                 pressures[j] += sign * step_pa
-                problem = self.problem(pressures, state.formulation, state.positions_m)
+                problem = self.problem(pressures, state.formulation, state.positions_m, state.body_force_n_per_m3)
                 solutions.append(follow_path(problem, 1e-11).positions_m)
             displacement[j] = (solutions[0] - solutions[1]) / (2 * step_pa)
             plus, minus = self.volumes(solutions[0]), self.volumes(solutions[1])

@@ -89,7 +89,7 @@ class NewtonResult:
         if self.worst_element >= 0:
             centroid = body.nodes_m[body.tets[self.worst_element]].mean(axis=0)
             distances = [np.min(np.linalg.norm(body.nodes_m[np.unique(t)] - centroid, axis=1))
-                         for t in body.chamber_triangles]
+                         for t in body.chamber_faces]
             chamber = int(np.argmin(distances))
         ratio = abs(pressures[chamber]) / body.material.youngs_modulus_pa
         return SolveError(

@@ -148,7 +148,8 @@ class _Path:
 
     def run(self) -> FloatArray:
         points = [self._point(0.0, self.start_m)]
-        return self._pressure_controlled(points, allow_switch=self.problem.nonlinear)
+        # volume control needs a chamber to control: under a body force alone the path is pressure controlled
+        return self._pressure_controlled(points, allow_switch=self.problem.nonlinear and bool(np.any(self.pressures)))
 
     def _predict(self, points: list[PathPoint], load_factor: float) -> FloatArray:
         """Secant extrapolation of the last two equilibria to ``load_factor`` (the last one when that would
@@ -193,7 +194,7 @@ class _Path:
         grows a chamber by more than FIRST_STEP_GROWTH of its volume: then the share of the load that would."""
         if not self.problem.preconditioned:
             return 1.0
-        displacement = self.problem.rest_factorization().solve(self.problem.pressure_load_n(self.start_m))
+        displacement = self.problem.rest_factorization().solve(self.problem.load_n(self.start_m))
         gradients = self.body.volume_gradients(self.start_m)[: self.body.n_chambers]
         chambers = self.body.chamber_volumes_m3(self.start_m)
         growth = float(np.max(np.abs(gradients @ displacement) / chambers))
@@ -210,7 +211,7 @@ class _Path:
         """d(positions)/d(c) and d(lam)/d(c) at an equilibrium, from ``K b = q``: ``dx/dc = b / (h . b)``; None
         where the tangent gives no forward direction."""
         factor = self.problem.at_load_factor(point.load_factor).tangent(point.positions_m, exact=True)
-        b = factor.solve(self.problem.pressure_load_n(point.positions_m))
+        b = factor.solve(self.problem.load_n(point.positions_m))
         curvature = float(self._control_gradient(point.positions_m) @ b)
         if not np.isfinite(curvature) or curvature <= 0:
             return None
@@ -301,7 +302,7 @@ class _Path:
             if (np.linalg.norm(residual[free]) <= PATH_TOLERANCE * self.load_scale
                     and abs(gap) <= CONTROL_TOLERANCE * self.control_rest_m3):
                 return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1)
-            load = self.problem.pressure_load_n(positions_m)
+            load = self.problem.load_n(positions_m)
             solutions = self._krylov_solves(positions_m, load_factor, (-residual, load)) if krylov else None
             if solutions is None:
                 krylov = False

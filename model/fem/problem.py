@@ -2,11 +2,15 @@
 
 Equilibrium minimises the total energy
 
-    Pi(x) = E_elastic(x) + 1/2 sum_fixed k_i |x_i - X_i|^2 - sum_c p_c V_c(x)
+    Pi(x) = E_elastic(x) + 1/2 sum_fixed k_i |x_i - X_i|^2 - sum_c p_c V_c(x) - f_b . x
 
-over node positions x (m): co-rotational (or small-strain linear, or hyperelastic) elasticity on linear
-tetrahedra, penalty springs on the fixation, and a constant pressure p_c (Pa) in each closed chamber, whose load
-``p_c dV_c/dx`` follows the walls (the linear formulation takes it, dead, on the starting configuration instead).
+over node positions x (m): co-rotational (or small-strain linear, or hyperelastic) elasticity on 4-node
+tetrahedra, or hyperelastic (or small-strain) elasticity on 10-node ones in the mixed formulation, penalty springs
+on the fixation, a constant pressure p_c (Pa) in each closed chamber, whose load ``p_c dV_c/dx`` follows the
+walls (the linear formulation takes it, dead, on the starting configuration instead), and a body force ``b``
+(N/m^3, gravity: density times g) whose consistent nodal load ``f_b = b integral N_a dV`` is dead (it acts on
+the rest volume, which a body force per unit mass does). A load factor scales the pressures and the body force
+together.
 An :class:`EquilibriumProblem` gives, at any x, the out-of-balance force (the energy's gradient), the energy and
 the smallest det F in one element pass (:meth:`EquilibriumProblem.evaluate`), the tangent (its data, its product
 with a vector, or a factorisation), and the worst element: the callables a Newton iteration needs, as FElupe's
@@ -67,6 +71,9 @@ class EquilibriumProblem:
         The configuration the solve starts from; the linear formulation takes its (dead) pressure load there.
     constraints : Constraints
         The held dofs (none with a fixed patch).
+    body_force_n_per_m3 : (3,) float array
+        The body force per unit rest volume (N/m^3): density (or, in water, its excess over water's) times the
+        gravitational acceleration; zeros for none.
     """
 
     body: SolidBody
@@ -74,6 +81,7 @@ class EquilibriumProblem:
     formulation: str
     start_m: FloatArray
     constraints: Constraints
+    body_force_n_per_m3: FloatArray = dataclasses.field(default_factory=lambda: np.zeros(3))
 
     @property
     def nonlinear(self) -> bool:
@@ -81,34 +89,48 @@ class EquilibriumProblem:
         return self.formulation != "linear"
 
     def at_load_factor(self, load_factor: float) -> EquilibriumProblem:
-        """The same problem with the pressures scaled by ``load_factor``."""
-        return dataclasses.replace(self, pressures_pa=load_factor * self.pressures_pa)
+        """The same problem with the pressures and the body force scaled by ``load_factor``."""
+        return dataclasses.replace(self, pressures_pa=load_factor * self.pressures_pa,
+                                   body_force_n_per_m3=load_factor * self.body_force_n_per_m3)
 
-    # --- the pressure load -----------------------------------------------------------------------------------
+    @property
+    def loaded(self) -> bool:
+        """Some pressure or body force acts (else the rest shape is the equilibrium)."""
+        return bool(np.any(self.pressures_pa) or np.any(self.body_force_n_per_m3))
 
-    def pressure_load_n(self, positions_m: FloatArray) -> FloatArray:
-        """The pressure load ``sum_c p_c dV_c/dx`` (3n,) N at ``positions_m`` (the walls' own configuration; a
-        follower load), zero at held dofs."""
+    # --- the load --------------------------------------------------------------------------------------------
+
+    def body_force_load_n(self) -> FloatArray:
+        """The body force's consistent nodal load ``b integral N_a dV`` (3n,) N (dead: the rest volume's)."""
+        load: FloatArray = np.outer(self.body.node_volumes_m3, self.body_force_n_per_m3).ravel()
+        return load
+
+    def load_n(self, positions_m: FloatArray) -> FloatArray:
+        """The load per unit load factor at ``positions_m`` (3n,) N: the pressures' ``sum_c p_c dV_c/dx`` (the
+        walls' own configuration; a follower load) and the body force's, zero at held dofs."""
         load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
+        load += self.body_force_load_n()
         load[self.constraints.dofs] = 0.0
         return load
 
     def load_scale_n(self) -> float:
-        """The size (N) of the pressure load at the start (free dofs), which tolerances are relative to; at least
+        """The size (N) of the load at the start (free dofs), which tolerances are relative to; at least
         1e-12 E L^2, so that a zero load still has a scale."""
-        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
+        load = self.load_n(self.start_m)
         free = load[self.constraints.free_mask]
         floor = 1e-12 * self.body.material.youngs_modulus_pa * self.body.length_scale_m**2
         return max(float(np.sqrt(np.einsum("i,i->", free, free))), floor)
 
     def _load_and_energy(self, positions_m: FloatArray) -> tuple[FloatArray, float]:
-        """Pressure load (3n,) and its potential (J): ``sum p dV/dx`` and ``-sum p V`` (follower), or the
-        dead load ``sum p dV/dx(start)`` and ``-load . x`` (linear)."""
+        """Load (3n,) and its potential (J): ``sum p dV/dx + f_b`` and ``-sum p V - f_b . x`` (follower pressure),
+        or the dead load ``sum p dV/dx(start) + f_b`` and ``-load . x`` (linear)."""
+        gravity = self.body_force_load_n()
         if self.formulation == "linear":
-            load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m))
+            load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m)) + gravity
             return load, -float(np.einsum("i,i->", load, positions_m.ravel()))
-        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
-        return load, -float(self.pressures_pa @ self.body.chamber_volumes_m3(positions_m))
+        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m)) + gravity
+        return load, -float(self.pressures_pa @ self.body.chamber_volumes_m3(positions_m)
+                            + np.einsum("i,i->", gravity, positions_m.ravel()))
 
     # --- residual, energy, tangent ---------------------------------------------------------------------------
 

@@ -12,7 +12,8 @@ where the three ellipsoidal chambers sit and how large they are, and the fixatio
     lobe_chamber_scale = 1.0                        # multiplies both lobe chambers' semi-axes
     fixation_radius_mm = 6.0                        # the fixed patch around the base pole
     min_wall_mm = 2.0                               # the thinnest wall allowed (manufacturable: >= 2 mm)
-    mesh_size_mm = 2.5                              # element size (a calibration holds at its mesh size)
+    mesh_size_mm = 2.5                              # element size, the one knob that refines the whole mesh
+    element_order = 1                               # 1: 4-node tetrahedra; 2: 10-node (quadratic) ones
 
 Every wall (chamber to outer surface, chamber to chamber) must be at least ``min_wall_mm`` thick, itself at
 least :data:`MANUFACTURABLE_WALL_MM`: a cast silicone wall thinner than that tears on demoulding. Walls are
@@ -33,6 +34,8 @@ from phantom.model.errors import SceneError
 
 #: The thinnest silicone wall that can be cast and demoulded (mm).
 MANUFACTURABLE_WALL_MM = 2.0
+#: The element orders of the built-in mesh: 4-node and 10-node tetrahedra.
+ELEMENT_ORDERS = (1, 2)
 #: A point or the semi-axes of an ellipsoid (x, y, z), mm.
 Vector3 = tuple[float, float, float]
 #: Bounds of each scalar parameter (mm or dimensionless), beyond which the body cannot hold the chamber.
@@ -53,6 +56,7 @@ class ProstateGeometry:
     fixation_radius_mm: float = 6.0
     min_wall_mm: float = MANUFACTURABLE_WALL_MM
     mesh_size_mm: float = 2.5
+    element_order: int = 1
 
     def ellipsoids_mm(self) -> tuple[tuple[Vector3, Vector3], ...]:
         """(centre, semi-axes) of chambers 0, 1 (left, x > 0) and 2 (right, the mirror of 1), scales applied."""
@@ -74,8 +78,9 @@ class ProstateGeometry:
 
     @property
     def key(self) -> str:
-        """A short hash of the shape's parameters (not the element size): the mesh cache's name for it."""
-        shape = {key: value for key, value in dataclasses.asdict(self).items() if key != "mesh_size_mm"}
+        """A short hash of the shape's parameters (not the element size or order): the mesh cache's name for it."""
+        shape = {key: value for key, value in dataclasses.asdict(self).items()
+                 if key not in ("mesh_size_mm", "element_order")}
         text = repr(sorted((key, repr(value)) for key, value in shape.items()))
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -98,6 +103,12 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
             if "semi_axes" in name and min(value) <= 0:
                 raise SceneError(f"{where}: [geometry] {name} must be positive, got {value!r}")
             values[name] = tuple(float(item) for item in value)
+            continue
+        if name == "element_order":
+            if value not in ELEMENT_ORDERS or isinstance(value, bool) or not float(value).is_integer():
+                raise SceneError(f"{where}: [geometry] element_order must be 1 (4-node tetrahedra) or 2 (10-node, "
+                                 f"quadratic), got {value!r}")
+            values[name] = int(value)
             continue
         if not _finite_number(value):
             raise SceneError(f"{where}: [geometry] {name} must be a number, got {value!r}")

@@ -7,6 +7,13 @@ patch is the base surface within a fixation radius of the base pole, where the t
 sizes and positions and the fixation radius are parameters (:class:`phantom.model.mesh.geometry.ProstateGeometry`,
 a scene's ``[geometry]`` table); the defaults leave every wall at least 3.5 mm thick, and no wall may be under
 2 mm.
+
+The 10-node mesh is graded where walls are thin: the element size at a point is ``min(h, h w / WALL_SPAN_MM)``
+with ``h`` the scene's ``mesh_size_mm`` and ``w`` the local wall thickness
+(:func:`phantom.model.mesh.shape.wall_field`), so ``WALL_SPAN_MM / h`` elements span every wall thinner than
+WALL_SPAN_MM (two at 4 mm), and ``mesh_size_mm`` stays the one knob: halving it halves every size. Order 2 adds
+gmsh's mid-edge nodes, placed on the curved surfaces (10-node tetrahedra), to the same elements. The 4-node mesh
+is not graded (the shipped calibration holds on it as it is).
 """
 
 import math
@@ -19,18 +26,32 @@ import numpy as np
 
 import phantom
 from phantom.model.errors import MeshError
+from phantom.model.mesh.elements import GMSH_TET10_ORDER, TET10_EDGES, TET10_REFLECTED, face_vertices
 from phantom.model.mesh.geometry import ProstateGeometry, Vector3
 from phantom.model.mesh.shape import (
     ANTERIOR_POSTERIOR_RATIO,
     HALF_LENGTH_MM,
+    WallField,
     check_walls,
     equator_radius_mm,
     profile_radius_mm,
+    wall_field,
 )
-from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, check_tets, gmsh_session, surface_components
+from phantom.model.mesh.tetmesh import (
+    TetMesh,
+    boundary_faces,
+    check_tets,
+    curved_jacobian_determinants,
+    gmsh_session,
+    surface_components,
+    tet_signed_volumes_m3,
+)
 
 #: Bump when the generated geometry changes, so cached meshes are regenerated.
 PROSTATE_GEOMETRY_VERSION = 2
+#: Walls thinner than this (mm) are graded: ``WALL_SPAN_MM / mesh_size_mm`` elements through each (module
+#: docstring); 8 mm puts two through every wall at a 4 mm mesh size.
+WALL_SPAN_MM = 8.0
 #: The default chamber ellipsoids: centre (x, y, z) and semi-axes (a, b, c), millimetres.
 CHAMBER_ELLIPSOIDS_MM = ProstateGeometry().ellipsoids_mm()
 #: Default element size of the built-in mesh (mm): about 3k nodes.
@@ -47,25 +68,55 @@ def _ellipsoid(occ: Any, centre_mm: Vector3, semi_axes_mm: Vector3) -> tuple[int
     return (3, sphere)
 
 
-def _mesh_solid(gmsh: Any, solid: tuple[int, int], size_mm: float,
-                curvature_elements: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh one solid; return its nodes (mm) and positively oriented tets, numbered from 0 without gaps."""
+def _mesh_solid(gmsh: Any, solid: tuple[int, int], size_mm: float, curvature_elements: int, element_order: int,
+                walls: WallField | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh one solid (graded by ``walls`` when given, see the module docstring) at ``element_order``; return its
+    nodes (mm) and positively oriented tets (4 or 10 nodes, meshio's order), numbered from 0 without gaps."""
     gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
-    gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / 4.0)
+    gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / (16.0 if walls is not None else 4.0))
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", curvature_elements)
     gmsh.option.setNumber("Mesh.Optimize", 1)
+    if walls is not None:
+        def graded_size(dim: int, tag: int, x: float, y: float, z: float, size: float) -> float:
+            return min(size, size_mm * walls.at(x, y, z) / WALL_SPAN_MM)
+        gmsh.model.mesh.setSizeCallback(graded_size)
     gmsh.model.addPhysicalGroup(3, [solid[1]], name="solid")
     gmsh.model.mesh.generate(3)
+    if element_order == 2:
+        gmsh.model.mesh.setOrder(2)
     node_tags, coordinates, _ = gmsh.model.mesh.getNodes()
     order = np.argsort(node_tags)
     node_tags, coordinates = node_tags[order], coordinates.reshape(-1, 3)[order]
-    _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
-    tets = np.searchsorted(node_tags, tet_nodes.reshape(-1, 4))
+    if element_order == 2:
+        _, tet_nodes = gmsh.model.mesh.getElementsByType(11)
+        tets = np.searchsorted(node_tags, tet_nodes.reshape(-1, 10)[:, GMSH_TET10_ORDER])
+    else:
+        _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
+        tets = np.searchsorted(node_tags, tet_nodes.reshape(-1, 4))
     used = np.unique(tets)
     renumber = np.full(len(node_tags), -1)
     renumber[used] = np.arange(len(used))
-    nodes_mm = coordinates[used]
-    return nodes_mm, check_tets(nodes_mm, renumber[tets], "gmsh")
+    nodes_mm, tets = coordinates[used], renumber[tets]
+    if element_order == 2:
+        nodes_mm = _straighten_folded(nodes_mm, tets)
+    return nodes_mm, check_tets(nodes_mm, tets, "gmsh")
+
+
+def _straighten_folded(nodes_mm: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Move the mid-edge nodes of every curved 10-node tetrahedron that folds over itself (gmsh places them on
+    the curved surfaces, which can fold a thin element in a thin wall) to their edges' midpoints, which makes
+    it straight and valid; repeated, since a moved node changes its neighbours. The nodes so moved leave the
+    exact surface by a fraction of the element size."""
+    nodes_mm = nodes_mm.copy()
+    straight = np.sign(tet_signed_volumes_m3(nodes_mm, tets[:, :4]))
+    for _ in range(4):
+        folded = np.flatnonzero((curved_jacobian_determinants(nodes_mm, tets) * straight[:, None]).min(axis=1) <= 0)
+        if len(folded) == 0:
+            break
+        for local, (first, second) in enumerate(TET10_EDGES.tolist()):
+            middle = tets[folded, 4 + local]
+            nodes_mm[middle] = 0.5 * (nodes_mm[tets[folded, first]] + nodes_mm[tets[folded, second]])
+    return nodes_mm
 
 
 def _mirror_about_x(nodes_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -77,13 +128,15 @@ def _mirror_about_x(nodes_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray,
     nodes_mm = nodes_mm.copy()
     nodes_mm[on_plane, 0] = 0.0
     reflected = nodes_mm[mirrored] * np.array([-1.0, 1.0, 1.0])
-    # A reflection reverses orientation: swap two vertices to keep the volumes positive.
-    mirror_tets = image[tets][:, [0, 2, 1, 3]]
+    # A reflection reverses orientation: swap two vertices (and their mid-edge nodes) to keep volumes positive.
+    mirror_tets = image[tets][:, [0, 2, 1, 3] if tets.shape[1] == 4 else TET10_REFLECTED]
     return np.vstack([nodes_mm, reflected]), np.vstack([tets, mirror_tets])
 
 
-def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeometry | None = None) -> TetMesh:
-    """Mesh the built-in prostate phantom with gmsh (element size ``size_mm``); nodes in metres.
+def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeometry | None = None,
+                      element_order: int | None = None) -> TetMesh:
+    """Mesh the built-in prostate phantom with gmsh (element size ``size_mm``, graded where walls are thin,
+    ``element_order`` 1 or 2, default the geometry's); nodes in metres.
 
     Raises MeshError, before meshing, when a wall of ``geometry`` (default: the shipped one) is thinner than
     its ``min_wall_mm``.
@@ -91,7 +144,10 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
     if not 0.3 <= size_mm <= 10.0:
         raise MeshError(f"mesh size {size_mm} mm is out of range: use 0.3 to 10 mm (default {DEFAULT_SIZE_MM})")
     geometry = geometry or ProstateGeometry()
+    element_order = geometry.element_order if element_order is None else element_order
     check_walls(geometry)
+    # the 4-node mesh stays ungraded: the shipped calibration holds on it as it is
+    walls = wall_field(geometry) if element_order == 2 else None
     ellipsoids = geometry.ellipsoids_mm()
     radius_mm = equator_radius_mm()
     with gmsh_session() as gmsh:
@@ -113,10 +169,11 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
         occ.synchronize()
         if len(half) != 1:
             raise MeshError(f"gmsh produced {len(half)} volumes for the prostate instead of one")
-        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half[0], size_mm, CURVATURE_ELEMENTS))
+        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half[0], size_mm, CURVATURE_ELEMENTS, element_order,
+                                                      walls))
     tets = check_tets(nodes_mm, tets, "mirrored prostate mesh")
     faces, _ = boundary_faces(tets)
-    centroids = nodes_mm[faces].mean(axis=1)
+    centroids = nodes_mm[face_vertices(faces)].mean(axis=1)
     # Each cavity wall is one connected component of the boundary; name it by the nearest chamber centre.
     labels = surface_components(faces)
     groups = {}
@@ -127,15 +184,18 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
         groups[f"chamber{index}"] = faces[labels == component]
         on_cavity |= labels == component
     base_pole_mm = np.array([0.0, 0.0, HALF_LENGTH_MM])
-    vertex_distance = np.linalg.norm(nodes_mm[faces] - base_pole_mm, axis=2).max(axis=1)
+    vertex_distance = np.linalg.norm(nodes_mm[face_vertices(faces)] - base_pole_mm, axis=2).max(axis=1)
     groups["fixed"] = faces[~on_cavity & (vertex_distance < geometry.fixation_radius_mm)]
     return TetMesh(nodes_mm * 1e-3, tets, groups)
 
 
-def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_mm: float) -> TetMesh:
-    """Mesh a thick hollow sphere (centre at the origin); groups ``cavity`` and ``outer``; nodes in metres.
+def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_mm: float,
+                           element_order: int = 1) -> TetMesh:
+    """Mesh a thick hollow sphere (centre at the origin) with 4- or 10-node tetrahedra (``element_order``);
+    groups ``cavity`` and ``outer``; nodes in metres.
 
-    Nodes of both spherical surfaces lie on the exact spheres (gmsh places them on the geometry).
+    Nodes of both spherical surfaces (mid-edge ones included) lie on the exact spheres (gmsh places them on the
+    geometry).
     """
     with gmsh_session() as gmsh:
         occ = gmsh.model.occ
@@ -143,22 +203,27 @@ def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_
         inner = occ.addSphere(0.0, 0.0, 0.0, inner_radius_mm)
         solid, _ = occ.cut([(3, outer)], [(3, inner)])
         occ.synchronize()
-        nodes_mm, tets = _mesh_solid(gmsh, solid[0], size_mm, 0)
+        nodes_mm, tets = _mesh_solid(gmsh, solid[0], size_mm, 0, element_order)
     faces, _ = boundary_faces(tets)
-    radius = np.linalg.norm(nodes_mm[faces].mean(axis=1), axis=1)
+    radius = np.linalg.norm(nodes_mm[face_vertices(faces)].mean(axis=1), axis=1)
     cavity = radius < 0.5 * (inner_radius_mm + outer_radius_mm)
     return TetMesh(nodes_mm * 1e-3, tets, {"cavity": faces[cavity], "outer": faces[~cavity]})
 
 
-def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | None = None) -> TetMesh:
+def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | None = None,
+                     element_order: int | None = None) -> TetMesh:
     """The built-in prostate mesh, from the on-disk cache (``phantom.cache_dir("meshes")``) or generated.
 
-    The cache key is the geometry version, the parameter set (:attr:`ProstateGeometry.key`) and the element size
-    (``size_mm``, else the geometry's ``mesh_size_mm``).
+    The cache key is the geometry version, the parameter set (:attr:`ProstateGeometry.key`), the element size
+    (``size_mm``, else the geometry's ``mesh_size_mm``) and the element order (``element_order``, else the
+    geometry's).
     """
     geometry = geometry or ProstateGeometry()
     size_mm = geometry.mesh_size_mm if size_mm is None else float(size_mm)
-    name = f"prostate-v{PROSTATE_GEOMETRY_VERSION}-{geometry.key}-h{size_mm:.6g}mm.npz"
+    element_order = geometry.element_order if element_order is None else int(element_order)
+    # the 4-node mesh keeps the name it had before 10-node ones existed, so existing caches stay valid
+    order_tag = "" if element_order == 1 else f"-p{element_order}"
+    name = f"prostate-v{PROSTATE_GEOMETRY_VERSION}-{geometry.key}-h{size_mm:.6g}mm{order_tag}.npz"
     cache_path = phantom.cache_dir("meshes") / name
     if cache_path.is_file():
         try:
@@ -167,8 +232,9 @@ def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | 
                 return TetMesh(stored["nodes_m"], stored["tets"], groups)
         except (OSError, ValueError, KeyError):
             cache_path.unlink(missing_ok=True)
-    print(f"phantom: meshing the built-in prostate at {size_mm:g} mm (cached afterwards)...", file=sys.stderr)
-    mesh = generate_prostate(size_mm, geometry)
+    print(f"phantom: meshing the built-in prostate at {size_mm:g} mm, order {element_order} (cached "
+          "afterwards)...", file=sys.stderr)
+    mesh = generate_prostate(size_mm, geometry, element_order)
     arrays: dict[str, Any] = {"nodes_m": mesh.nodes_m, "tets": mesh.tets}
     arrays.update({f"group_{name}": triangles for name, triangles in mesh.surface_groups.items()})
     handle, temporary = tempfile.mkstemp(dir=cache_path.parent, suffix=".npz")

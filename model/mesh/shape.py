@@ -10,6 +10,7 @@ surface is measured here before :mod:`phantom.model.mesh.prostate` meshes the bo
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -93,6 +94,52 @@ def _ellipsoid_points_mm(centre: Vector3, axes: Vector3, spacing_mm: float = 0.5
     unit = np.stack([np.sin(polar) * np.cos(azimuth), np.sin(polar) * np.sin(azimuth), np.cos(polar)], axis=-1)
     points: FloatArray = (unit * np.asarray(axes) + np.asarray(centre)).reshape(-1, 3)
     return points
+
+
+@dataclass(frozen=True)
+class WallField:
+    """The local wall thickness on a regular grid (mm): at a point of the solid, the thickness of the wall it lies
+    in, ``min over pairs of surfaces (d_a + d_b)`` with ``d`` the distance to each surface (the outer one and every
+    chamber's); deep in the body it is large, inside a thin wall it is that wall's thickness. ``origin_mm`` is the
+    grid's first point, ``spacing_mm`` its step, ``thickness_mm`` (nx, ny, nz) the values."""
+
+    origin_mm: FloatArray
+    spacing_mm: float
+    thickness_mm: FloatArray
+
+    def at(self, x: float, y: float, z: float) -> float:
+        """The thickness (mm) at a point, trilinear between the grid's points (the nearest edge value outside)."""
+        shape = self.thickness_mm.shape
+        position = [(value - origin) / self.spacing_mm for value, origin in zip((x, y, z), self.origin_mm,
+                                                                               strict=True)]
+        cells = [min(max(int(math.floor(p)), 0), n - 2) for p, n in zip(position, shape, strict=True)]
+        weights = [min(max(p - c, 0.0), 1.0) for p, c in zip(position, cells, strict=True)]
+        i, j, k = cells
+        u, v, w = weights
+        block = self.thickness_mm[i:i + 2, j:j + 2, k:k + 2]
+        along_x = block[0] * (1.0 - u) + block[1] * u
+        along_y = along_x[0] * (1.0 - v) + along_x[1] * v
+        return float(along_y[0] * (1.0 - w) + along_y[1] * w)
+
+
+def wall_field(geometry: ProstateGeometry, spacing_mm: float = 1.0) -> WallField:
+    """The local wall thickness (:class:`WallField`) of the built-in body with ``geometry``'s chambers, on a grid
+    of ``spacing_mm`` over the body's bounding box; distances to surface samples 0.5 mm apart."""
+    # scipy.spatial (0.1 s to import) only where walls are measured
+    from scipy.spatial import cKDTree
+
+    surfaces = [body_surface_points_mm()] + [_ellipsoid_points_mm(centre, axes)
+                                            for centre, axes in geometry.ellipsoids_mm()]
+    radius_mm = equator_radius_mm() * (1.0 + TAPER) + spacing_mm
+    low = np.array([-radius_mm, -ANTERIOR_POSTERIOR_RATIO * radius_mm, -HALF_LENGTH_MM - spacing_mm])
+    axes = [np.arange(start, -start + 0.5 * spacing_mm, spacing_mm) for start in low]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    distances = [cKDTree(samples).query(points)[0] for samples in surfaces]
+    thickness = np.full(len(points), np.inf)
+    for first in range(len(distances)):
+        for second in range(first + 1, len(distances)):
+            thickness = np.minimum(thickness, distances[first] + distances[second])
+    return WallField(low, spacing_mm, thickness.reshape([len(axis) for axis in axes]))
 
 
 def check_walls(geometry: ProstateGeometry) -> dict[str, float]:

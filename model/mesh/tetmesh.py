@@ -1,8 +1,10 @@
 """Tagged tetrahedral meshes: reading, checking, writing, and the surfaces the solver needs.
 
-A mesh is a set of nodes (m), positively oriented linear tetrahedra, and named surface groups (triangles):
-chamber walls, the fixation patch, anything else a file carries. :func:`prepare_surfaces` turns a scene's
-group names into oriented chamber walls, the outer boundary and the fixed nodes, checking each on the way.
+A mesh is a set of nodes (m), positively oriented tetrahedra (4-node, or 10-node quadratic ones in meshio's node
+order, :mod:`phantom.model.mesh.elements`), and named surface groups (faces of 3 or 6 nodes): chamber walls, the
+fixation patch, anything else a file carries. :func:`prepare_surfaces` turns a scene's group names into oriented
+chamber walls, the outer boundary and the fixed nodes, checking each on the way. Volumes enclosed by 6-node
+faces are those of the curved (quadratic) surface, exactly.
 """
 
 import contextlib
@@ -17,9 +19,23 @@ import numpy as np
 
 from phantom import written_atomically
 from phantom.model.errors import MeshError
+from phantom.model.mesh.elements import (
+    GMSH_TET10_ORDER,
+    TET10_FACES,
+    TET10_REFLECTED,
+    TET_DEGREE2_POINTS,
+    TET_DEGREE3_POINTS,
+    TET_FACES,
+    TRIANGLE_DEGREE4_POINTS,
+    TRIANGLE_DEGREE4_WEIGHTS,
+    face_vertices,
+    split_triangles,
+    tet10_shape,
+    triangle6_shape,
+)
 
-#: Faces of a tetrahedron (local vertex numbers), each ordered so its normal points away from the fourth vertex.
-TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+#: A 6-node face with its orientation reversed (vertices 2, 1, 0 and their mid-edge nodes).
+REVERSED_TRIANGLE6 = np.array([2, 1, 0, 4, 3, 5])
 
 
 @dataclass
@@ -34,35 +50,77 @@ class TetMesh:
     def n_nodes(self) -> int:
         return len(self.nodes_m)
 
+    @property
+    def order(self) -> int:
+        """1 for 4-node tetrahedra, 2 for 10-node (quadratic) ones."""
+        return 1 if self.tets.shape[1] == 4 else 2
+
 
 @dataclass
 class Surfaces:
-    """The surfaces a scene uses, oriented and checked.
+    """The surfaces a scene uses, oriented and checked: faces of the mesh's order (3 or 6 nodes).
 
-    chamber_triangles : list of (k_i, 3) int arrays, each wall oriented with normals out of its cavity, so
+    chamber_faces : list of (k_i, 3 or 6) int arrays, each wall oriented with normals out of its cavity, so
         the volume it encloses is positive.
-    outer_triangles : (k, 3) int array, the outer boundary with outward normals (encloses the gland).
-    fixed_triangles : (k, 3) int array or None, the fixation patch.
+    outer_faces : (k, 3 or 6) int array, the outer boundary with outward normals (encloses the gland).
+    fixed_faces : (k, 3 or 6) int array or None, the fixation patch.
+
+    The ``*_triangles`` properties give the same surfaces as 3-node triangles (a 6-node face split in four at its
+    mid-edge nodes), for drawing and for whatever wants flat facets.
     """
 
-    chamber_triangles: list[np.ndarray]
-    outer_triangles: np.ndarray
-    fixed_triangles: np.ndarray | None
+    chamber_faces: list[np.ndarray]
+    outer_faces: np.ndarray
+    fixed_faces: np.ndarray | None
+
+    @property
+    def chamber_triangles(self) -> list[np.ndarray]:
+        return [split_triangles(faces) for faces in self.chamber_faces]
+
+    @property
+    def outer_triangles(self) -> np.ndarray:
+        return split_triangles(self.outer_faces)
+
+    @property
+    def fixed_triangles(self) -> np.ndarray | None:
+        return None if self.fixed_faces is None else split_triangles(self.fixed_faces)
 
 
 def tet_signed_volumes_m3(nodes_m: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volume of each tetrahedron, ``det[x1-x0, x2-x0, x3-x0] / 6`` (m^3); positive when right-handed."""
+    """Signed volume of each tetrahedron's vertices, ``det[x1-x0, x2-x0, x3-x0] / 6`` (m^3); positive when
+    right-handed (for a 10-node tetrahedron, the straight one through its vertices)."""
     x0 = nodes_m[tets[:, 0]]
-    edges = nodes_m[tets[:, 1:]] - x0[:, None, :]
+    edges = nodes_m[tets[:, 1:4]] - x0[:, None, :]
     volumes: np.ndarray = np.linalg.det(edges) / 6.0
     return volumes
 
 
-def enclosed_volume_m3(positions_m: np.ndarray, triangles: np.ndarray) -> float:
-    """Volume enclosed by a closed, consistently oriented triangle surface (m^3).
+#: The 6-node triangle's shape functions and derivatives at the degree-4 points (the quadratic faces' rule).
+_FACE_SHAPE, _FACE_DERIVATIVES = triangle6_shape(TRIANGLE_DEGREE4_POINTS)
 
-    By the divergence theorem, ``V = sum_t x0 . (x1 x x2) / 6`` over the triangles (normals outward).
+
+def quadratic_face_frames(positions_m: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray,
+                                                                                 np.ndarray]:
+    """At each degree-4 point of each 6-node face: its position ``x`` (k, q, 3) and the tangents ``x_xi``,
+    ``x_eta`` (k, q, 3) (their cross product is the normal scaled by the area per unit reference area)."""
+    corners = positions_m[faces]                       # (k, 6, 3)
+    points = np.einsum("qa,kai->kqi", _FACE_SHAPE, corners)
+    along_xi = np.einsum("qa,kai->kqi", _FACE_DERIVATIVES[:, :, 0], corners)
+    along_eta = np.einsum("qa,kai->kqi", _FACE_DERIVATIVES[:, :, 1], corners)
+    return points, along_xi, along_eta
+
+
+def enclosed_volume_m3(positions_m: np.ndarray, triangles: np.ndarray) -> float:
+    """Volume enclosed by a closed, consistently oriented surface of 3- or 6-node faces (m^3).
+
+    By the divergence theorem, ``V = 1/3 integral x . n dA``: ``sum_t x0 . (x1 x x2) / 6`` over flat triangles
+    (normals outward); over 6-node faces the integrand ``x . (x_xi x x_eta)`` is a polynomial of degree 4,
+    integrated exactly by the degree-4 rule, so the volume is that of the curved surface.
     """
+    if triangles.shape[1] == 6:
+        points, along_xi, along_eta = quadratic_face_frames(positions_m, triangles)
+        integrand = np.einsum("kqi,kqi->kq", points, np.cross(along_xi, along_eta))
+        return float(np.einsum("kq,q->", integrand, TRIANGLE_DEGREE4_WEIGHTS) / 3.0)
     x0, x1, x2 = (positions_m[triangles[:, k]] for k in range(3))
     return float(np.einsum("ij,ij->", x0, np.cross(x1, x2)) / 6.0)
 
@@ -70,24 +128,43 @@ def enclosed_volume_m3(positions_m: np.ndarray, triangles: np.ndarray) -> float:
 def volume_gradient_m2(positions_m: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """Gradient of the enclosed volume with respect to each node position, (n, 3) in m^2.
 
-    Each triangle gives ``a_t n_t / 3`` to each of its vertices; on a closed surface this sum is the exact
-    derivative of :func:`enclosed_volume_m3`, and ``p`` times it is the nodal pressure force.
+    Flat triangles: each gives ``a_t n_t / 3`` to each of its vertices. 6-node faces: node a gets
+    ``integral N_a n dA`` (degree 4, exact). On a closed surface either is the exact derivative of
+    :func:`enclosed_volume_m3`, and ``p`` times it is the nodal pressure force.
     """
+    gradient = np.zeros((len(positions_m), 3))
+    if triangles.shape[1] == 6:
+        _, along_xi, along_eta = quadratic_face_frames(positions_m, triangles)
+        normals = np.cross(along_xi, along_eta) * TRIANGLE_DEGREE4_WEIGHTS[:, None]
+        shares = np.einsum("qa,kqi->kai", _FACE_SHAPE, normals)
+        for k in range(6):
+            for axis in range(3):
+                gradient[:, axis] += np.bincount(triangles[:, k], shares[:, k, axis], len(positions_m))
+        return gradient
     x0, x1, x2 = (positions_m[triangles[:, k]] for k in range(3))
     third_area_normal = np.cross(x1 - x0, x2 - x0) / 6.0
-    gradient = np.zeros((len(positions_m), 3))
     for k in range(3):
         for axis in range(3):
             gradient[:, axis] += np.bincount(triangles[:, k], third_area_normal[:, axis], len(positions_m))
     return gradient
 
 
+def curved_jacobian_determinants(nodes_m: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """det(dX/dxi) of each 10-node tetrahedron at its quadrature points (m, 9): the degree-2 points, then the
+    degree-3 ones (a curved element folds over itself where one is not positive)."""
+    _, derivatives = tet10_shape(np.vstack([TET_DEGREE2_POINTS, TET_DEGREE3_POINTS]))
+    jacobians = np.einsum("eai,qaj->eqij", nodes_m[tets], derivatives)
+    determinants: np.ndarray = np.linalg.det(jacobians)
+    return determinants
+
+
 def check_tets(nodes_m: np.ndarray, tets: np.ndarray, source: str) -> np.ndarray:
-    """Check tetrahedra and return them positively oriented.
+    """Check tetrahedra (4- or 10-node) and return them positively oriented.
 
     Raises MeshError when there are none, when an index is out of range, when a node belongs to no
-    tetrahedron, when some are degenerate (volume below 1e-9 of a cube of the mean edge length), or when
-    orientations are mixed (some inverted). A mesh whose tetrahedra are all negatively oriented follows the
+    tetrahedron, when some are degenerate (volume below 1e-9 of a cube of the mean edge length), when
+    orientations are mixed (some inverted), or when a curved 10-node element folds over itself (its Jacobian
+    is not positive at a quadrature point). A mesh whose tetrahedra are all negatively oriented follows the
     other convention and is flipped.
     """
     if len(tets) == 0:
@@ -101,7 +178,7 @@ def check_tets(nodes_m: np.ndarray, tets: np.ndarray, source: str) -> np.ndarray
             f"{nodes_m[unused[0]].tolist()}): remove unused nodes (gmsh: do not set Mesh.SaveAll)"
         )
     volumes = tet_signed_volumes_m3(nodes_m, tets)
-    edge_m = np.mean(np.linalg.norm(nodes_m[tets[:, 1:]] - nodes_m[tets[:, :1]], axis=2))
+    edge_m = np.mean(np.linalg.norm(nodes_m[tets[:, 1:4]] - nodes_m[tets[:, :1]], axis=2))
     degenerate = np.flatnonzero(np.abs(volumes) < 1e-9 * edge_m**3)
     if len(degenerate):
         raise MeshError(
@@ -110,26 +187,36 @@ def check_tets(nodes_m: np.ndarray, tets: np.ndarray, source: str) -> np.ndarray
         )
     inverted = np.flatnonzero(volumes < 0)
     if len(inverted) == len(tets):
-        return tets[:, [0, 2, 1, 3]]
-    if len(inverted):
+        tets = tets[:, [0, 2, 1, 3]] if tets.shape[1] == 4 else tets[:, TET10_REFLECTED]
+    elif len(inverted):
         raise MeshError(
             f"{source}: {len(inverted)} of {len(tets)} tetrahedra are inverted (negative volume), first: tet "
             f"{inverted[0]} with nodes {tets[inverted[0]].tolist()}: remesh or fix their node order"
         )
+    if tets.shape[1] == 10:
+        folded = np.flatnonzero(curved_jacobian_determinants(nodes_m, tets).min(axis=1) <= 0)
+        if len(folded):
+            raise MeshError(
+                f"{source}: {len(folded)} curved 10-node tetrahedra fold over themselves (Jacobian <= 0 inside), "
+                f"first: tet {folded[0]} with nodes {tets[folded[0]].tolist()}: remesh (gmsh: "
+                f"Mesh.HighOrderOptimize) or straighten their mid-edge nodes"
+            )
     return tets
 
 
 def boundary_faces(tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Faces that belong to one tetrahedron only, with outward normals, and the tetrahedron of each."""
-    faces = tets[:, TET_FACES].reshape(-1, 3)
+    """Faces that belong to one tetrahedron only, with outward normals (3-node faces of 4-node tetrahedra, 6-node
+    faces of 10-node ones), and the tetrahedron of each."""
+    local = TET_FACES if tets.shape[1] == 4 else TET10_FACES
+    faces = tets[:, local].reshape(-1, local.shape[1])
     _, first, counts = np.unique(_face_keys(faces, tets.max() + 1), return_index=True, return_counts=True)
     single = first[counts == 1]
     return faces[single], single // 4
 
 
 def _face_keys(faces: np.ndarray, n_nodes: int) -> np.ndarray:
-    """One integer per face, equal for the same three nodes in any order (a fast key for np.unique)."""
-    ordered = np.sort(faces, axis=1).astype(np.int64)
+    """One integer per face, equal for the same three vertices in any order (a fast key for np.unique)."""
+    ordered = np.sort(face_vertices(faces), axis=1).astype(np.int64)
     return (ordered[:, 0] * n_nodes + ordered[:, 1]) * n_nodes + ordered[:, 2]
 
 
@@ -140,21 +227,24 @@ def _edge_keys(triangles: np.ndarray) -> np.ndarray:
 
 
 def _face_lookup(faces: np.ndarray) -> dict[tuple[int, int, int], int]:
-    return {tuple(key): row for row, key in enumerate(np.sort(faces, axis=1).tolist())}
+    return {tuple(key): row for row, key in enumerate(np.sort(face_vertices(faces), axis=1).tolist())}
 
 
 def open_edge_count(triangles: np.ndarray) -> int:
-    """Number of edges of a triangle surface not shared by exactly two triangles (0 for a closed surface)."""
-    _, counts = np.unique(_edge_keys(triangles), return_counts=True)
+    """Number of edges of a triangle surface (3- or 6-node faces) not shared by exactly two faces (0 for a closed
+    surface)."""
+    _, counts = np.unique(_edge_keys(face_vertices(triangles)), return_counts=True)
     return int(np.count_nonzero(counts != 2))
 
 
 def surface_components(triangles: np.ndarray) -> np.ndarray:
-    """Label of the edge-connected component of each triangle (0, 1, ... in the order of their first triangle).
+    """Label of the edge-connected component of each triangle (3- or 6-node faces; 0, 1, ... in the order of
+    their first triangle).
 
     Union-find over the triangles that share an edge, vectorised: each round hooks every pair's larger root under
     the smaller one and then compresses the paths, so components merge in a logarithmic number of rounds.
     """
+    triangles = face_vertices(triangles)
     edge_ids = np.unique(_edge_keys(triangles), return_inverse=True)[1].ravel()
     triangle_of_edge = np.repeat(np.arange(len(triangles)), 3)
     order = np.argsort(edge_ids, kind="stable")
@@ -181,43 +271,52 @@ def prepare_surfaces(mesh: TetMesh, chambers: list[str], fixed: str | None, sour
     """Orient and check the chamber walls, find the outer boundary and the fixation patch.
 
     Each chamber wall must be a closed surface made of boundary faces of the tetrahedra; it is oriented by its
-    tetrahedra (normals into the solid, i.e. out of the cavity). The outer boundary is the component of the
+    tetrahedra (normals into the solid, i.e. out of the cavity) and made of their faces (6-node faces for
+    10-node tetrahedra, whatever the group's triangles list). The outer boundary is the component of the
     boundary that encloses a positive volume with outward normals. Raises MeshError naming what is wrong.
     """
     faces, _ = boundary_faces(mesh.tets)
     lookup = _face_lookup(faces)
     available = ", ".join(sorted(mesh.surface_groups)) or "none"
-    chamber_triangles = []
+    chamber_faces = []
     for name in chambers:
         if name not in mesh.surface_groups:
             raise MeshError(f"{source}: the chamber group {name!r} is missing; the mesh has: {available}")
         triangles = mesh.surface_groups[name]
-        rows = [lookup.get(tuple(key)) for key in np.sort(triangles, axis=1).tolist()]
+        rows = [lookup.get(tuple(key)) for key in np.sort(face_vertices(triangles), axis=1).tolist()]
         off_boundary = [i for i, row in enumerate(rows) if row is None]
         if off_boundary:
             raise MeshError(
                 f"{source}: {len(off_boundary)} triangle(s) of chamber {name!r} are not on the boundary of the "
                 f"tetrahedra (first: nodes {triangles[off_boundary[0]].tolist()}): the wall must bound a cavity"
             )
-        oriented = faces[np.array(rows)][:, ::-1]
+        reverse = np.array([2, 1, 0]) if faces.shape[1] == 3 else REVERSED_TRIANGLE6
+        oriented = faces[np.array(rows)][:, reverse]
         open_edges = open_edge_count(oriented)
         if open_edges:
             raise MeshError(
                 f"{source}: the wall of chamber {name!r} is not closed ({open_edges} open edges): a chamber "
                 f"must be a closed cavity"
             )
-        chamber_triangles.append(oriented)
+        chamber_faces.append(oriented)
     labels = surface_components(faces)
     enclosed = np.array([enclosed_volume_m3(mesh.nodes_m, faces[labels == k]) for k in range(labels.max() + 1)])
     if np.count_nonzero(enclosed > 0) != 1:
         raise MeshError(f"{source}: the mesh is not one body ({np.count_nonzero(enclosed > 0)} outer boundaries)")
-    outer_triangles = faces[labels == int(np.argmax(enclosed))]
-    fixed_triangles = None
+    outer_faces = faces[labels == int(np.argmax(enclosed))]
+    fixed_faces = None
     if fixed is not None:
         if fixed not in mesh.surface_groups:
             raise MeshError(f"{source}: the fixed group {fixed!r} is missing; the mesh has: {available}")
-        fixed_triangles = mesh.surface_groups[fixed]
-    return Surfaces(chamber_triangles, outer_triangles, fixed_triangles)
+        fixed_faces = mesh.surface_groups[fixed]
+        if fixed_faces.shape[1] != faces.shape[1]:
+            # a 10-node mesh whose file lists the patch by its vertices: take the faces of the tetrahedra
+            rows = [lookup.get(tuple(key)) for key in np.sort(face_vertices(fixed_faces), axis=1).tolist()]
+            if any(row is None for row in rows):
+                raise MeshError(f"{source}: the fixed group {fixed!r} has triangles that are not faces of the "
+                                "boundary: the patch must lie on the surface")
+            fixed_faces = faces[np.array(rows)]
+    return Surfaces(chamber_faces, outer_faces, fixed_faces)
 
 
 def read_mesh(path: str | Path, length_scale_m: float) -> TetMesh:
@@ -237,7 +336,10 @@ def read_mesh(path: str | Path, length_scale_m: float) -> TetMesh:
     except Exception as error:  # meshio raises many types for unreadable files
         raise MeshError(f"meshio cannot read {path}: {error}") from error
     source = str(path)
-    tet_blocks = [block.data for block in raw.cells if block.type == "tetra"]
+    kinds = {block.type for block in raw.cells} & {"tetra", "tetra10"}
+    if len(kinds) > 1:
+        raise MeshError(f"{source}: the mesh mixes 4-node and 10-node tetrahedra: use one element order")
+    tet_blocks = [block.data for block in raw.cells if block.type in kinds]
     tets = np.concatenate(tet_blocks).astype(np.int64) if tet_blocks else np.zeros((0, 4), np.int64)
     nodes_m = np.asarray(raw.points, dtype=np.float64)[:, :3] * length_scale_m
     tets = check_tets(nodes_m, tets, source)
@@ -264,7 +366,7 @@ def _surface_groups(raw: Any) -> dict[str, np.ndarray]:
     for name, per_block in cell_sets.items():
         triangles = [block.data[np.asarray(ids, dtype=np.int64)]
                      for block, ids in zip(raw.cells, per_block, strict=False)
-                     if block.type == "triangle" and ids is not None and len(ids)]
+                     if block.type in ("triangle", "triangle6") and ids is not None and len(ids)]
         if triangles:
             groups[name] = np.concatenate(triangles).astype(np.int64)
     return groups
@@ -290,12 +392,15 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) ->
     import meshio
 
     names = list(mesh.surface_groups)
-    triangles = np.concatenate([mesh.surface_groups[n] for n in names]) if names else np.zeros((0, 3), np.int64)
+    width = 3 if mesh.order == 1 else 6
+    triangles = (np.concatenate([mesh.surface_groups[n] for n in names]) if names
+                 else np.zeros((0, width), np.int64))
     offsets = np.cumsum([0] + [len(mesh.surface_groups[n]) for n in names])
     cell_sets = {"solid": [np.arange(len(mesh.tets)), np.zeros(0, np.int64)]}
     for k, name in enumerate(names):
         cell_sets[name] = [np.zeros(0, np.int64), np.arange(offsets[k], offsets[k + 1])]
-    out = meshio.Mesh(coordinates, [("tetra", mesh.tets), ("triangle", triangles)], cell_sets=cell_sets)
+    kinds = ("tetra", "triangle") if mesh.order == 1 else ("tetra10", "triangle6")
+    out = meshio.Mesh(coordinates, [(kinds[0], mesh.tets), (kinds[1], triangles)], cell_sets=cell_sets)
     with written_atomically(path, MeshError) as temporary:
         try:
             out.write(temporary)
@@ -335,11 +440,14 @@ def _write_msh41(mesh: TetMesh, coordinates: np.ndarray, path: Path) -> None:
         node_tags = np.arange(1, mesh.n_nodes + 1)
         volume = gmsh.model.addDiscreteEntity(3)
         gmsh.model.mesh.addNodes(3, volume, node_tags, coordinates.ravel())
-        gmsh.model.mesh.addElementsByType(volume, 4, [], (mesh.tets + 1).ravel())
+        # gmsh's element types: 4-node tetrahedron 4, 10-node 11 (its own node order), 3-node triangle 2, 6-node 9
+        tets = mesh.tets if mesh.order == 1 else mesh.tets[:, GMSH_TET10_ORDER]
+        gmsh.model.mesh.addElementsByType(volume, 4 if mesh.order == 1 else 11, [], (tets + 1).ravel())
         gmsh.model.addPhysicalGroup(3, [volume], name="solid")
         for name, triangles in mesh.surface_groups.items():
             surface = gmsh.model.addDiscreteEntity(2)
-            gmsh.model.mesh.addElementsByType(surface, 2, [], (triangles + 1).ravel())
+            gmsh.model.mesh.addElementsByType(surface, 2 if triangles.shape[1] == 3 else 9, [],
+                                              (triangles + 1).ravel())
             gmsh.model.addPhysicalGroup(2, [surface], name=name)
         gmsh.option.setNumber("Mesh.MshFileVersion", 4.1)
         gmsh.write(str(path))

@@ -70,7 +70,8 @@ def run_inverse(args: argparse.Namespace) -> int:
 
     from phantom import PhantomError
     from phantom.cli.common import parse_numbers
-    from phantom.model.inverse import InverseSolver, Target
+    from phantom.model.inverse import InverseSolver
+    from phantom.model.target import Target
 
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml (the gland volume it shares out)")

@@ -102,6 +102,8 @@ def run_forward(args: argparse.Namespace) -> int:
     if args.out:
         _write_deformed(model, state, args.out, scene.length_scale_m)
     rest_ml = model.rest_gland_volume_m3 * 1e6
+    # how far the material compressed or swelled: det F per 4-node element, the dilatation per 10-node one
+    volume_ratios = model.body.element_volume_ratios(state.positions_m)
     if args.json:
         print(json.dumps({
             "chamber_names": model.chamber_names,
@@ -115,6 +117,8 @@ def run_forward(args: argparse.Namespace) -> int:
             "solve_time_s": float(state.solve_time_s),
             "model_time_s": total_s,
             "formulation": state.formulation,
+            "element_order": model.order,
+            "element_volume_ratio_range": [float(volume_ratios.min()), float(volume_ratios.max())],
             "out": args.out,
         }))
         return 0
@@ -127,7 +131,8 @@ def run_forward(args: argparse.Namespace) -> int:
     print(f"{'gland':<12} {'':>12} {rest_ml:>9.3f} {gland_ml:>10.3f} {gland_ml - rest_ml:>10.3f}")
     print(f"{state.formulation} model, {model.nodes_m.shape[0]} nodes, {len(model.tets)} tetrahedra, "
           f"E = {model.material.youngs_modulus_pa / 1e3:g} kPa, nu = {model.material.poisson_ratio:g}: "
-          f"{state.iterations} Newton iterations, solve {state.solve_time_s:.3f} s, model total {total_s:.3f} s")
+          f"{state.iterations} Newton iterations, solve {state.solve_time_s:.3f} s, model total {total_s:.3f} s; "
+          f"element volume ratios {volume_ratios.min():.4f} to {volume_ratios.max():.4f}")
     if args.out:
         print(f"wrote the deformed mesh to {args.out}")
     return 0

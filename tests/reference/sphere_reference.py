@@ -104,3 +104,39 @@ def volume_changes_m3(inner_radius_m, outer_radius_m, pressure_pa, youngs_modulu
                                                   poisson_ratio)
     sphere = 4.0 / 3.0 * np.pi
     return sphere * (cavity_m**3 - inner_radius_m**3), sphere * (outer_m**3 - outer_radius_m**3)
+
+
+def incompressible_neo_hookean_pressure_pa(inner_radius_m, outer_radius_m, cavity_stretch, shear_modulus_pa):
+    """The cavity pressure (Pa) of an incompressible Neo-Hookean thick sphere whose cavity radius is stretched by
+    ``cavity_stretch``, in closed form.
+
+    Incompressibility gives the deformation outright: ``r^3 - R^3 = a^3 (l_a^3 - 1)`` for every R, so the hoop
+    stretch ``l = r / R`` runs from ``l_a`` at the cavity to ``l_b`` at the outer surface. With the strain energy
+    ``w(l) = mu/2 (2 l^2 + l^-4 - 3)`` of the hoop stretch, equilibrium integrates to
+    ``p = integral_{l_b}^{l_a} w'(l) / (l^3 - 1) dl = integral 2 mu (l^-2 + l^-5) dl``, that is
+    ``p = 2 mu (1/l_b - 1/l_a) + mu/2 (1/l_b^4 - 1/l_a^4)``.
+    """
+    a, b = inner_radius_m, outer_radius_m
+    outer_stretch = np.cbrt(1.0 + a**3 * (cavity_stretch**3 - 1.0) / b**3)
+    mu = shear_modulus_pa
+    return (2.0 * mu * (1.0 / outer_stretch - 1.0 / cavity_stretch)
+            + 0.5 * mu * (outer_stretch**-4 - cavity_stretch**-4))
+
+
+def incompressible_neo_hookean_growth(inner_radius_m, outer_radius_m, pressure_pa, shear_modulus_pa):
+    """The cavity's relative volume growth ``l_a^3 - 1`` under ``pressure_pa`` on the rising branch of the
+    closed form (:func:`incompressible_neo_hookean_pressure_pa`); ValueError past its peak."""
+    from scipy.optimize import brentq
+
+    def gap(stretch):
+        return incompressible_neo_hookean_pressure_pa(inner_radius_m, outer_radius_m, stretch,
+                                                      shear_modulus_pa) - pressure_pa
+
+    # the pressure rises from 0 at l_a = 1 to a peak and falls after it: bracket the first crossing
+    high = 1.0
+    while gap(high) < 0:
+        if high > 10.0:
+            raise ValueError(f"{pressure_pa:g} Pa is past the peak of the pressure-volume curve")
+        high += 0.01
+    stretch = brentq(gap, 1.0, high, xtol=1e-15, rtol=1e-15)
+    return stretch**3 - 1.0

@@ -1,0 +1,138 @@
+"""Convergence of the built-in prostate's growths under mesh refinement, 4-node and 10-node tetrahedra.
+
+Usage: .venv/bin/python bench/model_convergence.py [--scene builtin:calibrated] [--linear-sizes-mm 4,3,2.5]
+       [--quadratic-sizes-mm 8,6,4] [--poisson-ratio 0.45] [--json bench-out.json]
+
+For each element order and mesh size (the scene's ``mesh_size_mm`` overridden; the 10-node mesh is graded where
+walls are thin), full solves at the issue's five pressure points (kPa): the gland's growth and each chamber's
+(ml). Then, per order and point, Richardson extrapolation from the three meshes, ``g(h) = g* + C h^q`` solved
+for the converged growth ``g*`` and the observed order ``q`` (the sizes need not be in a constant ratio), and
+each mesh's error against ``g*``. ``h`` is the effective element size ``nodes^(-1/3)``, not the nominal
+``mesh_size_mm``: gmsh's curvature sizing keeps the built-in mesh from refining in proportion to it (4 mm to
+2.5 mm nominal is 1671 to 2896 nodes, a ratio of 1.2 in effective size, not 1.6). The smallest and largest
+element volume ratio of each solve (det F; for 10-node elements the element's dilatation, which the mixed
+formulation holds near 1) show how far the material compresses. Solves run one at a time (one core); progress
+goes to stderr, the tables to stdout as markdown.
+"""
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+
+import numpy as np
+
+PRESSURE_POINTS_KPA = ((1.0, 1.0, 1.0), (2.0, 2.0, 2.0), (2.0, 0.0, 0.0), (1.0, 2.0, 3.0), (3.0, 1.0, 2.0))
+
+
+def progress(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+
+
+def richardson(sizes_mm: list[float], values: list[float]) -> tuple[float, float]:
+    """``(g*, q)`` with ``g(h) = g* + C h^q`` through three (size, value) pairs; NaN when the values do not
+    approach a limit monotonically (the differences change sign)."""
+    from scipy.optimize import brentq
+
+    (h1, h2, h3), (g1, g2, g3) = sizes_mm[-3:], values[-3:]
+    ratio = (g1 - g2) / (g2 - g3) if g2 != g3 else np.nan
+    if not np.isfinite(ratio) or ratio <= 0:
+        return np.nan, np.nan
+
+    def gap(order: float) -> float:
+        return (h1**order - h2**order) / (h2**order - h3**order) - ratio
+
+    try:
+        order = brentq(gap, 0.05, 12.0)
+    except ValueError:
+        return np.nan, np.nan
+    coefficient = (g1 - g2) / (h1**order - h2**order)
+    return g3 - coefficient * h3**order, order
+
+
+def solve_row(scene, order: int, size_mm: float, poisson_ratio: float | None) -> list[dict]:
+    from phantom.model import PhantomModel
+
+    geometry = dataclasses.replace(scene.geometry, element_order=order)
+    scene = dataclasses.replace(scene, geometry=geometry)
+    started = time.perf_counter()
+    model = PhantomModel.from_scene(scene, mesh_size_mm=size_mm)
+    if poisson_ratio is not None:
+        model = model.with_material(poisson_ratio=poisson_ratio)
+    setup_s = time.perf_counter() - started
+    progress(f"order {order}, {size_mm} mm: {len(model.nodes_m)} nodes, {len(model.tets)} elements "
+             f"({setup_s:.1f} s to mesh and set up)")
+    rows = []
+    for pressures_kpa in PRESSURE_POINTS_KPA:
+        started = time.perf_counter()
+        state = model.equilibrium(np.array(pressures_kpa) * 1e3)
+        solve_s = time.perf_counter() - started
+        ratios = model.body.element_volume_ratios(state.positions_m)
+        row = {"order": order, "size_mm": size_mm, "nodes": len(model.nodes_m), "pressures_kpa": pressures_kpa,
+               "gland_growth_ml": (state.gland_volume_m3 - model.rest_gland_volume_m3) * 1e6,
+               "chamber_growths_ml": ((state.chamber_volumes_m3 - model.rest_chamber_volumes_m3) * 1e6).tolist(),
+               "volume_ratio_min": float(ratios.min()), "volume_ratio_max": float(ratios.max()),
+               "iterations": state.iterations, "solve_s": solve_s}
+        progress(f"  {pressures_kpa} kPa: gland +{row['gland_growth_ml']:.4f} ml, J in "
+                 f"[{row['volume_ratio_min']:.3f}, {row['volume_ratio_max']:.3f}], {state.iterations} iterations, "
+                 f"{solve_s:.1f} s")
+        rows.append(row)
+    return rows
+
+
+def table(rows: list[dict], order: int) -> str:
+    """The markdown table of one element order: growth per size, g*, q, and each size's error."""
+    sizes = sorted({row["size_mm"] for row in rows if row["order"] == order}, reverse=True)
+    if not sizes:
+        return ""
+    nodes = {row["size_mm"]: row["nodes"] for row in rows if row["order"] == order}
+    header = (["pressures (kPa)"] + [f"{size:g} mm ({nodes[size]} nodes)" for size in sizes]
+              + ["extrapolated", "order"] + [f"error {size:g} mm" for size in sizes] + ["J range (finest)"])
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for point in PRESSURE_POINTS_KPA:
+        by_size = {row["size_mm"]: row for row in rows
+                   if row["order"] == order and tuple(row["pressures_kpa"]) == point}
+        growths = [by_size[size]["gland_growth_ml"] if size in by_size else np.nan for size in sizes]
+        effective = [nodes[size] ** (-1.0 / 3.0) for size in sizes]
+        converged, observed = (richardson(effective, growths) if len(sizes) >= 3 and not np.isnan(growths).any()
+                               else (np.nan, np.nan))
+        errors = [f"{100 * (growth / converged - 1):+.2f} %" if np.isfinite(converged) else "-"
+                  for growth in growths]
+        finest = by_size.get(sizes[-1])
+        j_range = f"{finest['volume_ratio_min']:.3f}-{finest['volume_ratio_max']:.3f}" if finest else "-"
+        lines.append("| " + " | ".join([",".join(f"{p:g}" for p in point)] + [f"{g:.3f}" for g in growths]
+                                       + [f"{converged:.3f}", f"{observed:.2f}"] + errors + [j_range]) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", default="builtin:calibrated")
+    parser.add_argument("--linear-sizes-mm", default="4,3,2.5", help="4-node mesh sizes, coarse to fine ('' none)")
+    parser.add_argument("--quadratic-sizes-mm", default="8,6,4", help="10-node mesh sizes, coarse to fine")
+    parser.add_argument("--poisson-ratio", type=float, default=None, help="override the scene's (e.g. 0.4995)")
+    parser.add_argument("--json", default=None, help="also write every solve's row to this JSON file")
+    args = parser.parse_args()
+    from phantom.model import load_scene
+
+    scene = load_scene(args.scene)
+    rows: list[dict] = []
+    for order, sizes in ((1, args.linear_sizes_mm), (2, args.quadratic_sizes_mm)):
+        for size_mm in [float(size) for size in sizes.split(",") if size]:
+            rows.extend(solve_row(scene, order, size_mm, args.poisson_ratio))
+            if args.json:
+                with open(args.json, "w") as handle:
+                    json.dump(rows, handle, indent=1)
+    material = scene.material
+    poisson = args.poisson_ratio if args.poisson_ratio is not None else material.poisson_ratio
+    print(f"\n{args.scene}: {material.model}, E {material.youngs_modulus_pa / 1e3:.3f} kPa, nu {poisson}; "
+          "gland growth (ml)\n")
+    for order, name in ((1, "4-node tetrahedra"), (2, "10-node tetrahedra, mixed (u, p, J)")):
+        text = table(rows, order)
+        if text:
+            print(f"{name}:\n\n{text}\n")
+
+
+if __name__ == "__main__":
+    main()

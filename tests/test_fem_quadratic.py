@@ -1,0 +1,157 @@
+"""10-node tetrahedra in the mixed formulation: the curved faces' volumes, the kernel's forces and tangent against
+its energy, the body force's consistent load, the meshes written and read back, and the scene's element order.
+
+The convergence to the exact incompressible sphere is in test_fem_sphere.py (slow)."""
+
+import numpy as np
+import pytest
+
+from phantom.model.errors import SceneError
+from phantom.model.fem.body import EXACT_TANGENT
+from phantom.model.fem.model import PhantomModel
+from phantom.model.mesh.prostate import generate_hollow_sphere
+from phantom.model.mesh.tetmesh import prepare_surfaces, read_mesh, write_mesh
+from phantom.model.scene import Material, scene_from_dict
+
+INNER_MM, OUTER_MM, SIZE_MM = 10.0, 20.0, 8.0
+YOUNGS_MODULUS_PA = 50e3
+
+
+@pytest.fixture(scope="module")
+def meshes():
+    return {order: generate_hollow_sphere(INNER_MM, OUTER_MM, SIZE_MM, element_order=order) for order in (1, 2)}
+
+
+def sphere_model(mesh, law="neo_hookean", poisson_ratio=0.4995, gent_jm=None):
+    surfaces = prepare_surfaces(mesh, ["cavity"], None, "sphere")
+    return PhantomModel(mesh, surfaces, ["cavity"], Material(law, YOUNGS_MODULUS_PA, poisson_ratio, gent_jm))
+
+
+def test_curved_faces_measure_the_sphere_far_better_than_flat_ones(meshes):
+    exact_cavity = 4 / 3 * np.pi * (INNER_MM * 1e-3) ** 3
+    errors = {}
+    for order, mesh in meshes.items():
+        model = sphere_model(mesh)
+        errors[order] = abs(model.rest_chamber_volumes_m3[0] / exact_cavity - 1)
+    assert meshes[2].tets.shape[1] == 10 and meshes[1].tets.shape[1] == 4
+    # measured at 8 mm: 13.8 % (flat faces), 0.27 % (6-node faces)
+    assert errors[2] < 5e-3 and errors[2] < errors[1] / 20, errors
+
+
+def test_element_volumes_and_node_shares_add_up_to_the_body(meshes):
+    model = sphere_model(meshes[2])
+    solid_m3 = model.rest_gland_volume_m3 - model.rest_chamber_volumes_m3[0]
+    assert model.body.element_volumes_m3.sum() == pytest.approx(solid_m3, rel=1e-10)
+    # the consistent body-force load: each node's share integral N_a dV, vertices negative, mid-edge positive
+    # (on the degree-2 points, which integrate a curved element's Jacobian to about 1e-7)
+    assert model.body.node_volumes_m3.sum() == pytest.approx(solid_m3, rel=1e-5)
+    vertices = np.unique(model.tets[:, :4])
+    assert np.all(model.body.node_volumes_m3[vertices] < 0)
+    assert np.all(model.body.element_volume_ratios(model.nodes_m) == pytest.approx(1.0, abs=1e-12))
+
+
+def deformed(nodes_m, seed=3):
+    """A large smooth deformation with a rotation and a little noise, no element inverted."""
+    rng = np.random.default_rng(seed)
+    angle = 0.7
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    stretched = nodes_m * np.array([1.15, 0.92, 1.03]) + 0.05 * nodes_m[:, [1, 2, 0]] ** 2 / 0.02
+    return stretched @ rotation.T + 2e-6 * rng.normal(size=nodes_m.shape)
+
+
+@pytest.mark.parametrize(("law", "gent_jm"), [("neo_hookean", None), ("gent", 3.0)])
+def test_mixed_forces_and_tangent_are_the_energys_derivatives(meshes, law, gent_jm):
+    model = sphere_model(meshes[2], law, 0.45, gent_jm)
+    body, constraints = model.body, model.body.rest_constraints
+    positions = deformed(model.nodes_m)
+    evaluation = body.elastic(positions, law, EXACT_TANGENT, constraints)
+    assert np.isfinite(evaluation.energy_j) and evaluation.smallest_det > 0
+    direction = np.random.default_rng(5).normal(size=positions.shape) * 1e-4
+    direction.reshape(-1)[constraints.dofs] = 0.0
+    step = 1e-3
+    plus, minus = (body.elastic(positions + sign * step * direction, law, EXACT_TANGENT, constraints)
+                   for sign in (1.0, -1.0))
+    assert (plus.energy_j - minus.energy_j) / (2 * step) == pytest.approx(
+        np.sum(evaluation.forces_n.ravel() * direction.ravel()), rel=1e-6)
+    change = (plus.forces_n - minus.forces_n).ravel() / (2 * step)
+    product = body.multiply(evaluation.tangent_data, direction.ravel())
+    free = constraints.free_mask
+    assert np.linalg.norm(product[free] - change[free]) < 1e-6 * np.linalg.norm(change[free])
+
+
+def test_small_pressure_follows_the_small_strain_answer(meshes):
+    """At p/E = 1e-4 the mixed Neo-Hookean growth equals the 10-node small-strain ("linear") one to first order."""
+    model = sphere_model(meshes[2])
+    pressure = [1e-4 * YOUNGS_MODULUS_PA]
+    growths = [model.equilibrium(pressure, formulation).chamber_volumes_m3[0] / model.rest_chamber_volumes_m3[0] - 1
+               for formulation in ("neo_hookean", "linear")]
+    assert growths[0] > 0
+    assert growths[0] == pytest.approx(growths[1], rel=2e-3)
+
+
+def test_the_corotational_law_is_refused_on_10_node_elements(meshes):
+    with pytest.raises(Exception, match="4-node tetrahedra"):
+        sphere_model(meshes[2], "corotational")
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh"])
+def test_a_10_node_mesh_is_written_and_read_back_node_for_node(meshes, tmp_path, suffix):
+    mesh = meshes[2]
+    path = tmp_path / f"sphere{suffix}"
+    write_mesh(mesh, path, 1e-3)
+    if suffix == ".vtu":
+        import meshio
+
+        assert {block.type for block in meshio.read(path).cells} >= {"tetra10", "triangle6"}
+    back = read_mesh(path, 1e-3)
+    assert back.order == 2
+    np.testing.assert_allclose(back.nodes_m, mesh.nodes_m, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(back.tets, mesh.tets)
+    for name, faces in mesh.surface_groups.items():
+        np.testing.assert_array_equal(back.surface_groups[name], faces)
+
+
+@pytest.mark.parametrize("order", [0, 3, 1.5, True, "2"])
+def test_an_unknown_element_order_is_a_one_line_scene_error(order):
+    raw = {"phantom": {"mesh": "builtin:prostate", "chambers": ["chamber0", "chamber1", "chamber2"]},
+           "geometry": {"element_order": order}}
+    with pytest.raises(SceneError, match="element_order must be 1"):
+        scene_from_dict(raw)
+
+
+def test_curved_chamber_load_and_its_stiffness_are_the_volumes_derivatives(meshes):
+    """On 6-node faces the pressure load is ``p dV/dx`` and the follower stiffness its derivative: the problem's
+    residual and exact tangent (elastic and pressure parts) against central differences of its energy and
+    residual."""
+    model = sphere_model(meshes[2], "neo_hookean", 0.45)
+    problem = model.problem([0.2 * YOUNGS_MODULUS_PA])
+    positions = deformed(model.nodes_m)
+    evaluation = problem.evaluate(positions, with_tangent=True)
+    direction = np.random.default_rng(7).normal(size=positions.shape) * 1e-4
+    direction.reshape(-1)[problem.constraints.dofs] = 0.0
+    step = 1e-3
+    plus, minus = (problem.evaluate(positions + sign * step * direction) for sign in (1.0, -1.0))
+    assert (plus.energy_j - minus.energy_j) / (2 * step) == pytest.approx(
+        np.sum(evaluation.residual_n.ravel() * direction.ravel()), rel=1e-6)
+    change = (plus.residual_n - minus.residual_n).ravel() / (2 * step)
+    product = problem.multiply(evaluation.tangent_data)(direction.ravel())
+    free = problem.constraints.free_mask
+    assert np.linalg.norm(product[free] - change[free]) < 1e-6 * np.linalg.norm(change[free])
+
+
+def test_a_folded_curved_element_is_straightened():
+    """A mid-edge node pushed across its element folds it; the mesher's repair puts it back on its edge."""
+    from phantom.model.mesh.elements import TET10_EDGES
+    from phantom.model.mesh.prostate import _straighten_folded
+    from phantom.model.mesh.tetmesh import curved_jacobian_determinants
+
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    middles = np.array([(vertices[a] + vertices[b]) / 2 for a, b in TET10_EDGES.tolist()])
+    nodes = np.vstack([vertices, middles])
+    tets = np.arange(10)[None, :]
+    nodes[4] += [0.0, 0.0, 0.9]  # the (0, 1) edge's middle pushed past the opposite face's side
+    assert curved_jacobian_determinants(nodes, tets).min() <= 0
+    repaired = _straighten_folded(nodes, tets)
+    assert curved_jacobian_determinants(repaired, tets).min() > 0
+    np.testing.assert_allclose(repaired[4], [0.5, 0.0, 0.0])
+    np.testing.assert_array_equal(repaired[:4], vertices)
