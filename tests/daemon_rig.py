@@ -35,6 +35,22 @@ def calibrated_scene(steps: list[dict[str, Any]], end_s: float) -> str:
     return "\n".join(lines)
 
 
+def wait_ready(socket: Path, process: subprocess.Popen[Any], log_path: Path, timeout_s: float) -> None:
+    """Wait until the daemon ``process`` on ``socket`` has its link online and is ready (model answering, sensors
+    zeroed; before that requests are answered ``starting``); fail with its log if it exits or takes too long."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        assert process.poll() is None, log_path.read_text()
+        try:
+            with DaemonClient(socket, timeout_s=10) as client:
+                if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
+                    return
+        except PhantomError:
+            pass
+        assert time.monotonic() < deadline, log_path.read_text()
+        time.sleep(0.2)
+
+
 class DaemonRig:
     """A simulated board and a daemon process driving it; :meth:`close` stops both."""
 

@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from daemon_rig import wait_ready
 
 from phantom import PhantomError
 from phantom.host.client import DaemonClient
@@ -36,17 +37,7 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path, calibrated_response_table
                                 str(recording), "--mesh-hz", "5"],
                                stdout=log, stderr=subprocess.STDOUT)
     try:
-        deadline = time.monotonic() + 60
-        while True:
-            assert process.poll() is None, Path(log.name).read_text()
-            try:
-                with DaemonClient(sock) as client:
-                    if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
-                        break
-            except PhantomError:
-                pass
-            assert time.monotonic() < deadline, Path(log.name).read_text()
-            time.sleep(0.2)
+        wait_ready(sock, process, Path(log.name), 60)
         # the daemon's own simulator dies: the daemon says so, starts another and plays the scene on it
         simulator = simulator_of(process.pid)
         os.kill(simulator, signal.SIGKILL)

@@ -19,14 +19,12 @@ import shlex
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from daemon_rig import wait_ready
 
-from phantom import PhantomError
 from phantom.cli.main import build_parser, join_list_values
-from phantom.host.client import DaemonClient
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
@@ -104,17 +102,7 @@ def default_daemon(tmp_path_factory, calibrated_response_table):
     process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
                                stdout=log, stderr=subprocess.STDOUT)
     try:
-        deadline = time.monotonic() + 90
-        while True:
-            assert process.poll() is None, Path(log.name).read_text()
-            try:
-                with DaemonClient(sock, timeout_s=10) as client:
-                    if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
-                        break
-            except PhantomError:
-                pass
-            assert time.monotonic() < deadline, Path(log.name).read_text()
-            time.sleep(0.2)
+        wait_ready(sock, process, Path(log.name), 90)
         yield sock
     finally:
         process.send_signal(signal.SIGTERM)

@@ -5,12 +5,11 @@ phantom at the rig's counted angles, and the pictures land in a capture folder; 
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from daemon_rig import wait_ready
 
-from phantom import PhantomError
 from phantom.host.client import DaemonClient, DaemonError
 
 PHANTOM = Path(sys.executable).with_name("phantom")
@@ -26,17 +25,7 @@ def test_the_daemon_scans_through_its_api(tmp_path, calibrated_response_table):
     process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
                                stdout=log, stderr=subprocess.STDOUT)
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            assert process.poll() is None, Path(log.name).read_text()
-            try:
-                with DaemonClient(sock) as client:
-                    if (answer := client.call("status"))["link"] == "online" and answer["ready"]:
-                        break
-            except PhantomError:
-                pass
-            assert time.monotonic() < deadline, Path(log.name).read_text()
-            time.sleep(0.2)
+        wait_ready(sock, process, Path(log.name), 120)
         with DaemonClient(sock, timeout_s=300) as client:
             with pytest.raises(DaemonError, match=r"scan takes out .*not colour"):
                 client.call("scan", {"out": str(tmp_path / "x"), "colour": "red"})
