@@ -59,7 +59,7 @@ def ensure_firmware(elf: str | Path | None = None) -> Path:
             raise FirmwareError(f"the firmware image {path} does not exist: build it with `make -C firmware`")
         return path
     path = default_elf()
-    if path.is_file():
+    if path.is_file() and not _older_than_its_sources(path):
         return path
     if shutil.which("avr-gcc") is None or shutil.which("make") is None:
         raise FirmwareError(
@@ -75,6 +75,16 @@ def ensure_firmware(elf: str | Path | None = None) -> Path:
             f"`{' '.join(command)}` did not produce {path}:\n{result.stdout[-2000:]}{result.stderr[-2000:]}"
         )
     return path
+
+
+def _older_than_its_sources(elf: Path) -> bool:
+    """Whether a checkout's image is older than a firmware source it is built from (a pull brought new sources or
+    a new protocol spec: the stale image would answer in the old protocol); an installed wheel's never is."""
+    if phantom.SOURCE_ROOT is None:
+        return False
+    built_s = elf.stat().st_mtime
+    sources = [*firmware_sources().joinpath("src").rglob("*.*"), phantom.SOURCE_ROOT / "protocol" / "spec.toml"]
+    return any(source.stat().st_mtime > built_s for source in sources if source.is_file())
 
 
 #: Debian's arduino-core-avr: the bootloaders an Uno (Optiboot 4.4) and a Mega 2560 (stk500v2) ship with.
