@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -21,15 +20,17 @@ from phantom.model.mesh.tetmesh import read_mesh, write_mesh
 PHANTOM = Path(sys.executable).with_name("phantom")
 
 
-def limited_to(size_bytes: int):
-    return lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (size_bytes, size_bytes))
+def limited_to(size_bytes: int) -> list[str]:
+    """The command prefix that runs a command with RLIMIT_FSIZE at ``size_bytes`` (util-linux's prlimit: a
+    ``preexec_fn`` would fork this process, which may hold JAX's threads from another test)."""
+    return ["prlimit", f"--fsize={size_bytes}"]
 
 
 @pytest.mark.parametrize("suffix", [".msh", ".vtu"])
 def test_a_mesh_written_to_a_full_disk_is_an_error_and_leaves_no_file(tmp_path, suffix):
     out = tmp_path / f"mesh{suffix}"
-    result = subprocess.run([str(PHANTOM), "mesh", "--scene", "builtin:calibrated", "--out", str(out)],
-                            capture_output=True, text=True, timeout=120, preexec_fn=limited_to(20_000))
+    result = subprocess.run([*limited_to(20_000), str(PHANTOM), "mesh", "--scene", "builtin:calibrated", "--out",
+                             str(out)], capture_output=True, text=True, timeout=120)
     assert result.returncode == 2, result.stdout + result.stderr
     assert "cannot write" in result.stderr and "wrote" not in result.stdout
     assert list(tmp_path.iterdir()) == []                       # no truncated file, no temporary left
@@ -41,8 +42,8 @@ def test_a_mesh_overwritten_on_a_full_disk_keeps_its_old_content(tmp_path):
                            capture_output=True, text=True, timeout=120)
     assert first.returncode == 0 and "wrote" in first.stdout
     whole = out.read_bytes()
-    again = subprocess.run([str(PHANTOM), "mesh", "--scene", "builtin:calibrated", "--out", str(out)],
-                           capture_output=True, text=True, timeout=120, preexec_fn=limited_to(20_000))
+    again = subprocess.run([*limited_to(20_000), str(PHANTOM), "mesh", "--scene", "builtin:calibrated", "--out",
+                            str(out)], capture_output=True, text=True, timeout=120)
     assert again.returncode == 2
     assert out.read_bytes() == whole
     assert oct(out.stat().st_mode & 0o777) == oct(0o666 & ~current_umask())
@@ -70,9 +71,9 @@ def test_a_mesh_with_a_coordinate_that_is_not_finite_is_not_written(tmp_path):
 @pytest.mark.parametrize("suffix", [".msh", ".stl"])
 def test_a_deformed_mesh_written_to_a_full_disk_is_an_error_and_leaves_no_file(tmp_path, suffix):
     out = tmp_path / f"deformed{suffix}"
-    result = subprocess.run([str(PHANTOM), "forward", "--scene", "builtin:calibrated", "--pressures-kpa", "1,1,1",
-                             "--out", str(out)], capture_output=True, text=True, timeout=300,
-                            preexec_fn=limited_to(20_000))
+    result = subprocess.run([*limited_to(20_000), str(PHANTOM), "forward", "--scene", "builtin:calibrated",
+                             "--pressures-kpa", "1,1,1", "--out", str(out)], capture_output=True, text=True,
+                            timeout=300)
     assert result.returncode == 2, result.stdout + result.stderr
     assert "cannot write" in result.stderr and "wrote" not in result.stdout
     assert list(tmp_path.iterdir()) == []
