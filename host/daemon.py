@@ -81,6 +81,8 @@ ML_PER_M3 = 1e6
 ZERO_SETTLE_LIMIT_S = 60.0
 #: How often the wait looks at the readings (s); the board is asked again at least every four of these.
 ZERO_RETRY_S = 0.5
+#: How long clear_fault waits, once the board acknowledged it, for a telemetry frame without the fault (s).
+CLEARED_IN_TELEMETRY_S = 1.0
 #: After a target could not be sent (refused, not acknowledged), how long the control loop waits before it tries
 #: again (s).
 RETRY_S = 0.5
@@ -788,6 +790,13 @@ class Daemon:
         latched): the target in force now, a scene's step that came while the fault was latched included."""
         before = fault_names(self.fault_flags)
         await self.board_command("CLEAR_FAULT")
+        # acknowledged: the board cleared its latch (it refuses while a cause lasts); the answer waits for the board's
+        # telemetry to say so too, so that the status read next is not the latched one (a client that set a target
+        # at once saw the fault in a frame sent before the clear, and gave up)
+        loop = asyncio.get_running_loop()
+        deadline_s = loop.time() + CLEARED_IN_TELEMETRY_S
+        while self.fault_flags and loop.time() < deadline_s:
+            await asyncio.sleep(0.01)
         self.event("fault", f"faults cleared on request (were: {', '.join(before) or 'none'})")
         target = self.target
         restored = False
