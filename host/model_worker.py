@@ -471,6 +471,19 @@ def _descendants(pid: int) -> list[int]:
     return found
 
 
+async def _started_pool(scene_source: str, log_level: str, defer_table: bool,
+                        messages: WorkerMessages | None) -> tuple[ProcessPoolExecutor, ModelInfo]:
+    """A worker pool whose process has built the model (:func:`_worker_start`), and the model's info; a pool
+    whose start failed is ended with every process it started."""
+    pool = worker_pool(log_level, messages)
+    try:
+        info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source, defer_table)
+    except BaseException:
+        end_pool(pool)
+        raise
+    return pool, info
+
+
 class ModelWorker:
     """The :class:`LoadedModel` in a worker process that dies with the daemon, called without blocking the loop.
 
@@ -494,11 +507,9 @@ class ModelWorker:
         ``on_message`` as it comes). ``defer_table``: answer on the full solve while a table that is not stored
         yet is built elsewhere (``info.pending_fidelity``; :meth:`use_level` once it is stored)."""
         messages = WorkerMessages(on_message) if on_message is not None else None
-        pool = worker_pool(log_level, messages)
         try:
-            info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, scene_source, defer_table)
+            pool, info = await _started_pool(scene_source, log_level, defer_table, messages)
         except BaseException:
-            end_pool(pool)
             if messages is not None:
                 messages.close()
             raise
@@ -528,15 +539,9 @@ class ModelWorker:
                 return
             logger.warning("the model worker died (killed, out of memory?): starting a new one")
             broken.shutdown(wait=False, cancel_futures=True)
-            pool = worker_pool(self._log_level, self._messages)
-            try:
-                # a table that is not stored yet is not built here (minutes): the new worker answers on the full
-                # solve, as the first did, until the daemon's background build switches it
-                info = await asyncio.get_running_loop().run_in_executor(pool, _worker_start, self._scene_source,
-                                                                        True)
-            except BaseException:
-                end_pool(pool)
-                raise
+            # a table that is not stored yet is not built here (minutes): the new worker answers on the full
+            # solve, as the first did, until the daemon's background build switches it
+            pool, info = await _started_pool(self._scene_source, self._log_level, True, self._messages)
             self._pool = pool
             self.info = info
             self.restarts += 1

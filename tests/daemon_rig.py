@@ -117,8 +117,7 @@ class DaemonRig:
     def wait_online(self, timeout_s: float = 60.0) -> None:
         """Wait until the link is online and the daemon ready (model answering, sensors zeroed): before that
         requests are answered ``starting``."""
-        self.wait_until(lambda: (answer := self.status())["link"] == "online" and answer["ready"], timeout_s,
-                        "link online and the daemon ready")
+        wait_ready(self.socket, self.process, Path(self.log.name), timeout_s)
 
     def wait_scene_time(self, scene_time_s: float, timeout_s: float = 60.0) -> dict[str, Any]:
         """Wait until the running scene's time has passed ``scene_time_s``; the status then."""
