@@ -59,14 +59,15 @@ def test_make_upload_flashes_the_phantom_image_through_the_stock_bootloader(boar
 
 @pytest.mark.slow
 def test_make_upload_at_a_board_not_in_its_bootloader_fails_and_says_so():
-    """Without the reset the application holds the port and ignores the programmer: avrdude gives up (after its
-    ten sync attempts, about a minute), and the upload fails rather than claiming a flash."""
+    """Without the reset the application holds the port and ignores the programmer: avrdude gives up (after two
+    sync attempts here, as AVRDUDE_FLAGS asks; its default ten take about a minute), and the upload fails rather
+    than claiming a flash."""
     ensure_firmware()
     with SimulatedBoard(elf=default_elf(), speed=1.0, bootloader=True) as board:
         time.sleep(2.0)  # past the bootloader's wait: the application runs
         firmware = default_elf().parents[2]
         result = subprocess.run(["make", "--no-print-directory", "-C", str(firmware), "upload", "BOARD=uno",
-                                 f"PORT={board.port}"], capture_output=True, text=True, timeout=180)
+                                 f"PORT={board.port}", "AVRDUDE_FLAGS=-xattempts=2"], capture_output=True, text=True, timeout=180)
         assert result.returncode != 0
         assert "not in sync" in result.stderr or "not responding" in result.stderr, result.stderr
         assert "bytes of flash written" not in result.stderr
