@@ -67,7 +67,8 @@ def test_make_upload_at_a_board_not_in_its_bootloader_fails_and_says_so():
         time.sleep(2.0)  # past the bootloader's wait: the application runs
         firmware = default_elf().parents[2]
         result = subprocess.run(["make", "--no-print-directory", "-C", str(firmware), "upload", "BOARD=uno",
-                                 f"PORT={board.port}", "AVRDUDE_FLAGS=-xattempts=2"], capture_output=True, text=True, timeout=180)
+                                 f"PORT={board.port}", "AVRDUDE_FLAGS=-xattempts=2"],
+                                capture_output=True, text=True, timeout=180)
         assert result.returncode != 0
         assert "not in sync" in result.stderr or "not responding" in result.stderr, result.stderr
         assert "bytes of flash written" not in result.stderr
