@@ -187,7 +187,8 @@ def worst(rounds: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
     return rows
 
 
-async def main_async(socket_path: Path, directory: Path, chosen: str | None, rounds: int) -> list[dict[str, Any]]:
+async def main_async(socket_path: Path, directory: Path, chosen: str | None,
+                     rounds: int = 1) -> list[dict[str, Any]]:
     answer = await call(socket_path, "set_target", {"volume_ml": 32.0})
     assert "result" in answer, answer
     await asyncio.sleep(3.0)
