@@ -34,6 +34,7 @@ from typing import Any
 from phantom import PhantomError, require_extra
 from phantom.protocol.codec import MAX_FRAME_BYTES
 from phantom.protocol.framing import cobs_decode, cobs_encode
+from phantom.protocol.messages import MESSAGES
 
 #: Arbitration-id bases of the CAN mapping.
 CAN_ID_HOST_TO_BOARD = 0x100
@@ -65,6 +66,19 @@ def permission_hint(path: str) -> str:
 MAX_PARTIAL_BYTES = 1024
 #: Bits on the wire per byte of a serial port (8N1: a start bit, 8 data bits, a stop bit).
 BITS_PER_BYTE = 10
+
+
+#: The wire length of each message the board sends, by id: payload, id, seq, CRC, COBS's code byte, delimiter.
+BOARD_FRAME_BYTES = {spec.msg_id: spec.payload_size + 6 for spec in MESSAGES.values() if spec.direction == "board"}
+
+
+def frame_bytes(partial: bytes) -> int:
+    """How long the frame that ``partial`` begins is on the wire: its message's length once its id is there (the
+    byte after COBS's first code byte, when that code is over 1), the shortest a board sends before that, and the
+    longest frame for an id no board message has."""
+    if len(partial) < 2:
+        return min(BOARD_FRAME_BYTES.values())
+    return BOARD_FRAME_BYTES.get(partial[1], MAX_FRAME_BYTES) if partial[0] > 1 else MAX_FRAME_BYTES
 
 
 class SerialTransport:
@@ -116,9 +130,9 @@ class SerialTransport:
         87 us at 115200 baud): reading each piece woke the link's thread about 1300 times a second at 50 Hz
         telemetry, 7 % of a core. Bytes are kept until a frame's delimiter (0x00) arrives, or until
         :data:`MAX_PARTIAL_BYTES` (noise without delimiters, which the frame reader discards), so the session
-        wakes once per frame; and while a frame is partly there the port is not watched for as long as the rest
-        of the longest frame takes to arrive at the port's baud rate (:meth:`_wait_for_rest`), so reading it
-        costs about two wake-ups, not one per byte."""
+        wakes once per frame; and while a frame is partly there the port is not watched for as long as its rest
+        takes to arrive at the port's baud rate (:meth:`_wait_for_rest`), so reading it costs two or three
+        wake-ups, not one per byte."""
         self.reads += 1
         item: bytes | TransportLost
         try:
@@ -147,12 +161,14 @@ class SerialTransport:
             self._wait_for_rest()
 
     def _wait_for_rest(self) -> None:
-        """Stop watching the port until the rest of the frame begun in ``_partial`` should be there: the time the
-        longest frame's remaining bytes take at the baud rate (10 bits a byte; 5.7 ms at 115200). A shorter frame
-        is handed on that much later at most (an ACK's round trip grows by as much)."""
+        """Stop watching the port until the rest of the frame begun in ``_partial`` should be there at the baud
+        rate (10 bits a byte): :func:`frame_bytes` long. A telemetry frame is read in three reads, an ACK in two;
+        waiting for the longest frame's bytes (5.7 ms at 115200) read every frame in two, but made an ACK's round
+        trip 2.5 ms longer."""
         loop = asyncio.get_running_loop()
         loop.remove_reader(self._serial.fileno())
-        rest_bytes = max(1, MAX_FRAME_BYTES - len(self._partial))
+        expected = frame_bytes(self._partial)
+        rest_bytes = max(1, (expected if expected > len(self._partial) else MAX_FRAME_BYTES) - len(self._partial))
         self._resume = loop.call_later(rest_bytes * BITS_PER_BYTE / self.baudrate, self._watch)
 
     def _watch(self) -> None:
