@@ -18,7 +18,9 @@ as the peer measured in the same run, of the same probe in a bare process that d
 machine's scheduler alone costs: on a shared two-core machine it is not zero); and whether the link was lost
 or a fault latched (the board stops its blowers when the daemon is silent for 500 ms).
 
-    .venv/bin/python bench/daemon_stall.py                # about 2 minutes
+    .venv/bin/python bench/daemon_stall.py [--rounds 3]   # about 1 minute a round
+
+With ``--rounds``, each phase is played that many times and the worst of each column is shown.
 
 Prints a Markdown table (bench/README.md, "The daemon under load").
 """
@@ -169,7 +171,24 @@ async def measure(socket_path: Path, name: str, load: Callable[[], Awaitable[Non
             "faults": after["faults"], "held": after["target_applied"] if "target_applied" in after else None}
 
 
-async def main_async(socket_path: Path, directory: Path, chosen: str | None) -> list[dict[str, Any]]:
+def worst(rounds: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """Per phase, the worst of several rounds: the longest stalls of each loop and of the peer, the links lost
+    added up, every fault, and whether the target was held in all of them."""
+    rows = []
+    for runs in zip(*rounds, strict=True):
+        row = dict(runs[0])
+        for key in ("seconds", "peer_ms", "loop_ms", "link_ms"):
+            values = [run[key] for run in runs if run[key] is not None]
+            row[key] = max(values) if values else None
+        row["links_lost"] = sum(run["links_lost"] for run in runs)
+        row["faults"] = sorted({fault for run in runs for fault in run["faults"]})
+        row["held"] = all(run["held"] for run in runs)
+        rows.append(row)
+    return rows
+
+
+async def main_async(socket_path: Path, directory: Path, chosen: str | None,
+                     rounds: int = 1) -> list[dict[str, Any]]:
     answer = await call(socket_path, "set_target", {"volume_ml": 32.0})
     assert "result" in answer, answer
     await asyncio.sleep(3.0)
@@ -186,7 +205,8 @@ async def main_async(socket_path: Path, directory: Path, chosen: str | None) -> 
         phases = [phases[int(number)] for number in chosen.split(",")]
     peer = PeerProbe()
     try:
-        return [await measure(socket_path, name, load, peer) for name, load in phases]
+        return worst([[await measure(socket_path, name, load, peer) for name, load in phases]
+                      for _ in range(rounds)])
     finally:
         peer.close()
 
@@ -195,6 +215,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--log", type=Path, help="keep the daemon's log in this file")
     parser.add_argument("--phases", help="comma-separated phase numbers to run (default: all)")
+    parser.add_argument("--rounds", type=int, default=1, help="play the phases this many times; the worst is shown")
     args = parser.parse_args()
     from daemon_rig import DaemonRig
 
@@ -203,7 +224,7 @@ def main() -> None:
         rig = DaemonRig(directory, speed=1.0)
         try:
             rig.wait_online(120)
-            rows = asyncio.run(main_async(rig.socket, directory, args.phases))
+            rows = asyncio.run(main_async(rig.socket, directory, args.phases, args.rounds))
         finally:
             rig.close()
             if args.log:

@@ -11,11 +11,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from phantom import read_text
 from phantom.host.api import ApiError, Handler, RawJson
 from phantom.host.scene_runner import PreparedRun, prepare_run
-from phantom.host.scenes import effective_model, model_differences, parse_target
+from phantom.host.scenes import check_step_count, effective_model, model_differences, parse_target
 from phantom.model.errors import SceneError
-from phantom.model.scene import load_scene
+from phantom.model.scene import MAX_SCENE_BYTES, load_scene
 
 if TYPE_CHECKING:
     from phantom.host.daemon import Daemon
@@ -105,7 +106,9 @@ class ApiHandlers:
 def prepare_scene(path: str, time_scale: float, chamber_names: list[str], running_model: dict[str, Any],
                   running_scene: str) -> PreparedRun:
     """Read a scene file and check its timeline against the running model (off the event loop: reading and
-    checking a scene takes time in proportion to its size, which ``load_scene`` and the timeline bound)."""
+    checking a scene takes time in proportion to its size, which ``load_scene`` and the timeline bound; a scene of
+    too many steps is refused before it is parsed)."""
+    check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), path)
     scene = load_scene(path)
     # the timeline runs on the loaded model: a scene for another phantom, material or model setting needs its own
     # model, so the daemon must be restarted with it

@@ -296,8 +296,9 @@ PR_SET_PDEATHSIG = 1
 _worker_model: LoadedModel | None = None
 
 
-def exit_with_parent(parent_pid: int) -> None:
-    """In a child process: be killed (SIGKILL) when the parent dies, however it dies (SIGKILL included).
+def exit_with_parent(parent_pid: int, signum: signal.Signals = signal.SIGKILL) -> None:
+    """In a child process: get ``signum`` (SIGKILL: be killed) when the parent dies, however it dies (SIGKILL
+    included).
 
     Linux's PR_SET_PDEATHSIG through libc; if the parent died before this ran, exit now.
     """
@@ -305,7 +306,7 @@ def exit_with_parent(parent_pid: int) -> None:
     import ctypes.util
 
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0) != 0:
+    if libc.prctl(PR_SET_PDEATHSIG, int(signum), 0, 0, 0) != 0:
         logger.warning("prctl(PR_SET_PDEATHSIG) failed (errno %d): the model worker may outlive a killed daemon",
                        ctypes.get_errno())
     if os.getppid() != parent_pid:

@@ -132,18 +132,21 @@ class Telemetry:
 @dataclass
 class LinkStats(LinkCounters):
     """Counters of the link since the daemon started: the link core's (frames, retries, round trip), the
-    session's connections and losses, and the board's last reported counters."""
+    session's connections and losses, and the board's last reported counters. :meth:`as_dict` adds the
+    transport's: frames it dropped, and how often it read the port (``port_reads``: each a wake-up of the link's
+    thread; None for a transport that does not count them)."""
 
     connects: int = 0
     reconnects: int = 0
     links_lost: int = 0
     board_counters: dict[str, int] = field(default_factory=dict)
 
-    def as_dict(self, rx_dropped: dict[str, int], tx_dropped: int) -> dict[str, Any]:
+    def as_dict(self, rx_dropped: dict[str, int], tx_dropped: int, port_reads: int | None) -> dict[str, Any]:
         result = asdict(self)
         result["rx_dropped"] = dict(rx_dropped)
         result["bad_frames"] = sum(result["rx_dropped"].values())
         result["tx_dropped"] = tx_dropped
+        result["port_reads"] = port_reads
         return result
 
 
@@ -199,6 +202,8 @@ class LinkSession:
         self._lost_at: float | None = None
         self._serving: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
+        #: the link core's deadline :meth:`_serve` sleeps until (None: none)
+        self._sleeping_until: float | None = None
         self._bringing_online: asyncio.Task[None] | None = None
         self._problem: tuple[str, float] | None = None
         self._goodbye: asyncio.Future[str] | None = None
@@ -289,7 +294,8 @@ class LinkSession:
             "board": asdict(self.board) if self.board else None,
             "board_info": self.board_details,
             "last_error": self.last_error,
-            "stats": self.stats.as_dict(self.rx_dropped(), getattr(self.transport, "tx_dropped", 0)),
+            "stats": self.stats.as_dict(self.rx_dropped(), getattr(self.transport, "tx_dropped", 0),
+                                        getattr(self.transport, "reads", None)),
         }
 
     def rx_dropped(self) -> dict[str, int]:
@@ -307,39 +313,51 @@ class LinkSession:
     # --- the connection ---------------------------------------------------------------------------------
 
     async def _serve(self) -> None:
-        """One connection: boot delay, handshake, configure, then pass bytes and time until it ends."""
+        """One connection: boot delay, handshake, configure, then pass bytes and time until it ends.
+
+        The board's bytes are handled as they arrive, by :meth:`_receive`; this loop wakes for the link core's
+        deadlines (keepalive, retransmission, silence) and new commands only. (A task and an ``asyncio.wait`` per
+        read cost about five turns of the loop for every frame.)"""
         self._set_state(LinkState.HANDSHAKE, None)
         self.link.open(self.clock())
-        reading: asyncio.Task[bytes] | None = None
+        receiving = asyncio.create_task(self._receive())
         waking: asyncio.Task[bool] | None = None
         try:
             while True:
                 self._flush()
-                if reading is None:
-                    reading = asyncio.create_task(self.transport.read())
                 if waking is None:
                     self._wake.clear()
                     waking = asyncio.create_task(self._wake.wait())
-                deadline = self.link.next_deadline()
-                timeout_s = None if deadline is None else max(0.0, deadline - self.clock())
-                done, _ = await asyncio.wait({reading, waking}, timeout=timeout_s,
+                self._sleeping_until = self.link.next_deadline()
+                timeout_s = None if self._sleeping_until is None else max(0.0, self._sleeping_until - self.clock())
+                done, _ = await asyncio.wait({receiving, waking}, timeout=timeout_s,
                                              return_when=asyncio.FIRST_COMPLETED)
-                events: list[Event] = []
-                if reading in done:
-                    data = reading.result()  # raises TransportLost when the port went away
-                    reading = None
-                    events += self.link.receive(data, self.clock())
+                if receiving in done:
+                    receiving.result()  # raises what ended the connection (TransportLost when the port went away)
                 if waking in done:
                     waking = None
-                events += self.link.poll(self.clock())
-                for event in events:
+                for event in self.link.poll(self.clock()):
                     self._handle(event)
         finally:
-            for task in (reading, waking, self._bringing_online):
+            for task in (receiving, waking, self._bringing_online):
                 if task is not None and not task.done():
                     task.cancel()
                     with contextlib.suppress(asyncio.CancelledError, Exception):
                         await task
+
+    async def _receive(self) -> None:
+        """Hand the board's bytes to the link core as they arrive, act on its events and send its answers; wake
+        :meth:`_serve` when the core's next deadline came earlier than the one it sleeps until (a command to
+        acknowledge after the handshake, the keepalive once online). Runs until the connection ends: it raises
+        what ended it."""
+        while True:
+            data = await self.transport.read()
+            for event in self.link.receive(data, self.clock()):
+                self._handle(event)
+            self._flush()
+            deadline = self.link.next_deadline()
+            if deadline is not None and (self._sleeping_until is None or deadline < self._sleeping_until):
+                self._wake.set()
 
     def _flush(self) -> None:
         for frame in self.link.take_output():

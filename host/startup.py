@@ -125,14 +125,19 @@ class StartupProgress:
 
 def _build_in_child(scene_source: str, results: Connection, parent_pid: int) -> None:
     """In the build process: its own process group (so that the daemon can end it and the solver processes it
-    starts in one call), a lower priority, death with the daemon; then the table, with progress on ``results``."""
+    starts in one call), a lower priority, death with the daemon; then the table, with progress on ``results``.
+
+    The daemon's death sends it SIGTERM, which ends its solver processes too (:func:`_stop_build`). With SIGKILL,
+    a daemon killed during the build (the OOM killer, systemd's last resort) left the solver processes running
+    under PID 1 and the semaphores of their pool in /dev/shm: the resource tracker that removes them waits until
+    every process holding its pipe has ended."""
     from phantom.host.model_worker import exit_with_parent
 
     os.setpgid(0, 0)
-    exit_with_parent(parent_pid)
-    os.nice(BUILD_NICENESS)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the daemon's; it ends this process group
     signal.signal(signal.SIGTERM, _stop_build)
+    exit_with_parent(parent_pid, signal.SIGTERM)
+    os.nice(BUILD_NICENESS)
     started_s = time.monotonic()
     try:
         from phantom.model import PhantomModel, load_scene

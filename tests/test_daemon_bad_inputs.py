@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import resource
 import time
+from pathlib import Path
 
 import pytest
 
@@ -19,6 +20,7 @@ from phantom.model.errors import SceneError
 from phantom.model.scene import read_scene_toml
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
+REPO = Path(__file__).resolve().parent.parent
 
 
 def peak_rss_mb() -> float:
@@ -70,6 +72,29 @@ def test_a_timeline_of_too_many_steps_is_refused_before_it_is_checked():
     with pytest.raises(SceneError, match=f"at most {MAX_STEPS}"):
         parse_timeline(steps, CHAMBERS, "many")
     assert len(parse_timeline(steps[:MAX_STEPS], CHAMBERS, "enough").steps) == MAX_STEPS
+
+
+def test_a_scene_file_of_too_many_steps_is_refused_before_it_is_parsed(tmp_path, monkeypatch):
+    """Issue 23, defect 3: a 20,000-step scene (0.6 MB, under the size limit) was parsed whole by tomllib in a
+    worker thread before its steps were counted, holding the GIL the daemon's loop and the link's loop need (56
+    and 72 ms stalls in bench/daemon_stall.py). ``run_scene`` counts its ``[[steps]]`` headers first."""
+    from phantom.host import handlers
+
+    header = (REPO / "host" / "scenes" / "bph_growth.toml").read_text().split("[timeline]")[0].split("[[steps]]")[0]
+    path = tmp_path / "many.toml"
+    path.write_text(header + "[timeline]\nend_s = 20010\n" + "".join(
+        f"[[steps]]\nat_s = {index}\nvolume_ml = 30.0\n" for index in range(20000)))
+
+    def parsed(source):
+        raise AssertionError(f"{source} was parsed")
+    monkeypatch.setattr(handlers, "load_scene", parsed)
+    with pytest.raises(SceneError, match=f"has 20000 steps; a scene may have at most {MAX_STEPS}"):
+        handlers.prepare_scene(str(path), 1.0, CHAMBERS, {}, "running.toml")
+    fine = tmp_path / "fine.toml"
+    fine.write_text(header + "[timeline]\nend_s = 10\n[[steps]]\nat_s = 0\nvolume_ml = 30.0\n"
+                    + "# [[steps]] in a comment is not a step\n" * (MAX_STEPS + 1))
+    with pytest.raises(AssertionError, match="was parsed"):   # a scene within the limit goes on to be parsed
+        handlers.prepare_scene(str(fine), 1.0, CHAMBERS, {}, "running.toml")
 
 
 def test_heavy_requests_beyond_the_queue_are_answered_busy():

@@ -541,9 +541,11 @@ def test_a_model_worker_killed_like_the_oom_killer_does_is_replaced_and_answers(
 
 
 @pytest.mark.slow
-def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(tmp_path):
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGKILL])
+def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(tmp_path, signum):
     """Issue 23, defect 12: SIGTERM during a first start's table build killed the daemon at once; its worker died
-    with it (PR_SET_DEATHSIG), but the build's own pool processes were left under PID 1, one spinning, one hung."""
+    with it (PR_SET_DEATHSIG), but the build's own pool processes were left under PID 1, one spinning, one hung.
+    A SIGKILL (the OOM killer, systemd's last resort) left them too, with their pool's semaphores in /dev/shm."""
     from phantom import cache_dir
 
     cache = tmp_path / "cache"
@@ -551,6 +553,7 @@ def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(t
     for kind in cache_dir("meshes").parent.iterdir():           # everything cached but the response tables
         if kind.name != "response":
             (cache / kind.name).symlink_to(kind)
+    semaphores_before = set(Path("/dev/shm").glob("sem.*"))
     daemon = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--port",
                                str(tmp_path / "no-board"), "--socket", str(tmp_path / "d.sock")],
                               env={**os.environ, "PHANTOM_CACHE_DIR": str(cache)}, stdout=subprocess.DEVNULL,
@@ -560,13 +563,17 @@ def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(t
         while not (builders := [pid for pid in _descendants(daemon.pid) if pid not in _children(daemon.pid)]):
             assert daemon.poll() is None and time.monotonic() < deadline, "no table build started"
             time.sleep(0.2)
+        time.sleep(1.0)                                        # the build's pool has made its semaphores
         everyone = _descendants(daemon.pid)
-        daemon.send_signal(signal.SIGTERM)
-        assert daemon.wait(30) == 0
+        semaphores = set(Path("/dev/shm").glob("sem.*")) - semaphores_before
+        daemon.send_signal(signum)
+        assert daemon.wait(30) == (0 if signum == signal.SIGTERM else -signal.SIGKILL)
         deadline = time.monotonic() + 10
-        while (alive := [pid for pid in everyone if _runs(pid)]) and time.monotonic() < deadline:
+        while ((alive := [pid for pid in everyone if _runs(pid)]) or any(path.exists() for path in semaphores)) \
+                and time.monotonic() < deadline:
             time.sleep(0.1)
         assert alive == [], f"left running: {alive} (table builders {builders})"
+        assert semaphores and not [path for path in semaphores if path.exists()]
     finally:
         if daemon.poll() is None:
             daemon.kill()

@@ -26,8 +26,9 @@ from phantom.host.transports import (
     TransportLost,
     TransportUnavailable,
     can_frames,
+    frame_bytes,
 )
-from phantom.protocol.codec import FrameReader, encode
+from phantom.protocol.codec import MAX_FRAME_BYTES, FrameReader, encode
 from phantom.protocol.link import BoardPeer
 from phantom.protocol.messages import MESSAGES, SPEC_HASH, ChamberState, Fault
 
@@ -555,6 +556,62 @@ def test_a_frame_that_arrives_a_byte_at_a_time_wakes_the_session_once(tmp_path):
     assert b"".join(reads) == b"".join(frames)
     assert len(reads) <= len(frames)                          # before: a read per byte or few
     assert handed == noise                                    # bytes without a delimiter are not held for ever
+
+
+def test_a_frame_that_arrives_at_the_ports_baud_rate_costs_a_few_reads_not_one_per_byte(tmp_path):
+    """Issue 23, defect 11: handing on whole frames left the link's thread waking for every byte the pty
+    delivered (strace of the idle daemon: 1300 one-byte reads a second, 7 % of a core in that thread). A frame
+    begun is read again once its rest could have arrived at the port's baud rate."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link = tmp_path / "board"
+    os.symlink(os.ttyname(slave), link)
+    baudrate = 9600
+    byte_s = 10 / baudrate                                    # 8N1: 1.04 ms a byte
+    frames = [bytes([30, *range(1, 30), 0])] * 3              # 31 bytes each, 32 ms at 9600 baud
+
+    def uart():
+        started = time.monotonic()
+        for index, byte in enumerate(b"".join(frames)):
+            gap_s = 0.1 * (index // len(frames[0]))           # the frames 100 ms apart, as telemetry is
+            time.sleep(max(0.0, started + gap_s + index * byte_s - time.monotonic()))
+            os.write(master, bytes([byte]))
+
+    async def script():
+        transport = SerialTransport(link, baudrate)
+        await transport.open()
+        handed = b""
+        try:
+            writer = asyncio.get_running_loop().run_in_executor(None, uart)
+            while len(handed) < sum(map(len, frames)):
+                handed += await asyncio.wait_for(transport.read(), 5)
+            await writer
+        finally:
+            transport.close()
+        return handed, transport.reads
+
+    try:
+        handed, reads = asyncio.run(script())
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert handed == b"".join(frames)
+    assert reads <= 3 * len(frames), reads                    # before: about one per byte, 93
+
+
+def test_the_transport_knows_a_board_frames_length_from_its_first_two_bytes():
+    """The wait for the rest of a frame is its own message's length once the id is there, so that an ACK is not
+    held as long as the longest frame (the ACK's round trip through simavr grew from 5.7 to 7.9 ms)."""
+    frames = [encode("ACK", 7, {"ref_msg_id": 6, "ref_seq": 7, "status": 0}),
+              encode("PONG", 1, {"host_time_ms": 1, "board_time_ms": 2}),
+              encode("TELEMETRY", 3, {"time_ms": 1, "pressure_pa": [1, 2, 3], "setpoint_pa": [0, 0, 0],
+                                      "drive": [0, 0, 0], "state": [0, 0, 0], "fault_flags": 0, "rx_bad_crc": 0,
+                                      "rx_overflow": 0, "rx_bad_frame": 0, "tx_dropped": 0, "tick_overruns": 0})]
+    for frame in frames:
+        assert frame_bytes(frame[:2]) == frame_bytes(frame[:-1]) == len(frame)
+        assert frame_bytes(frame[:1]) <= len(frame)                # before the id: the shortest a board sends
+    hello = encode("HELLO", 1, {"protocol_version": 1, "spec_hash": 5})   # the host's: not a board's frame
+    assert frame_bytes(hello[:2]) == MAX_FRAME_BYTES
 
 
 def test_the_keepalive_keeps_time_while_the_daemons_loop_is_stalled(tmp_path):

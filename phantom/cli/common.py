@@ -1,9 +1,10 @@
 """Values the ``phantom`` subcommands of every part parse and print the same way: number lists, growth ratios,
-output folders. A neutral module, so that no part imports another's command line."""
+output folders, input files' sizes. A neutral module, so that no part imports another's command line."""
 
 from __future__ import annotations
 
 import math
+import stat
 from pathlib import Path
 from typing import Literal, overload
 
@@ -66,3 +67,36 @@ def output_file(path: str | Path, option: str = "--out") -> Path:
     if path.is_dir():
         raise PhantomError(f"{option} {path} is a folder: give a file name")
     return path
+
+
+#: The largest mesh file a command reads (a scene's mesh, a scan, a photogrammetry tool's mesh): a binary STL of
+#: about 5 million triangles. The readers (meshio, trimesh) hold a whole file and several copies of its arrays.
+MAX_MESH_BYTES = 256 * 2**20
+#: What to do with a mesh over :data:`MAX_MESH_BYTES`.
+MESH_TOO_LARGE = "decimate it first (e.g. MeshLab's Quadric Edge Collapse Decimation, to under a million triangles)"
+#: The largest picture of a capture folder read (a 1280x960 PNG is about 2 MB).
+MAX_PICTURE_BYTES = 64 * 2**20
+#: The largest JSON file of ours read (a rig calibration, a capture folder's capture.json of thousands of frames).
+MAX_JSON_BYTES = 16 * 2**20
+
+
+def check_input_size(path: str | Path, max_bytes: int, what: str, error: type[PhantomError] = PhantomError,
+                     hint: str = "that is not one of ours (give the right file)") -> None:
+    """Refuse, before a library reads it whole, a file a user named that is larger than ``max_bytes`` (a 2 GB
+    sparse file took 4-6 GB of memory to refuse) or not a file at all (/dev/zero, a pipe: endless).
+
+    A missing file, or a folder, is left to the reader, whose message says what to do. Raises ``error`` with a
+    one-line message that starts with ``what`` and the path, and ends with ``hint`` for a file too large.
+    """
+    path = Path(path)
+    try:
+        info = path.stat()
+    except OSError:
+        return
+    if stat.S_ISDIR(info.st_mode):
+        return
+    if not stat.S_ISREG(info.st_mode):
+        raise error(f"{what} {path} is not a regular file (a device or a pipe): give a file")
+    if info.st_size > max_bytes:
+        raise error(f"{what} {path} is {info.st_size / 2**20:.0f} MiB, more than the {max_bytes / 2**20:g} MiB "
+                    f"read: {hint}")

@@ -54,7 +54,7 @@ def _single_threaded_blas() -> None:
 
 def run_mesh(args: argparse.Namespace) -> int:
     """Write the scene's mesh to ``--out``."""
-    from phantom.cli.common import output_file
+    from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size, output_file
     from phantom.model.errors import MeshError
     from phantom.model.mesh.prostate import builtin_prostate
     from phantom.model.mesh.tetmesh import read_mesh, write_mesh
@@ -66,6 +66,7 @@ def run_mesh(args: argparse.Namespace) -> int:
     elif args.size_mm is not None:
         raise MeshError(f"--size-mm applies to the built-in mesh only; {scene.mesh} is read as it is")
     else:
+        check_input_size(scene.mesh, MAX_MESH_BYTES, "the scene's mesh file", MeshError, MESH_TOO_LARGE)
         mesh = read_mesh(scene.mesh, scene.length_scale_m)
     write_mesh(mesh, output_file(args.out), scene.length_scale_m)
     if args.json:
@@ -85,14 +86,15 @@ def run_forward(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from phantom.cli.common import parse_numbers
-    from phantom.model.errors import SolveError
+    from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size, parse_numbers
+    from phantom.model.errors import MeshError, SolveError
     from phantom.model.fem.model import PhantomModel
     from phantom.model.scene import load_scene
 
     args.pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
     started = time.perf_counter()
     scene = load_scene(args.scene)
+    check_input_size(scene.mesh, MAX_MESH_BYTES, "the scene's mesh file", MeshError, MESH_TOO_LARGE)
     model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
     if len(args.pressures_kpa) != model.n_chambers:
         raise SolveError(f"--pressures-kpa has {len(args.pressures_kpa)} values; the scene has "

@@ -230,16 +230,57 @@ def _progress(what: str) -> Any:
     return show
 
 
+def _checked_mesh(path: str) -> str:
+    """A mesh file's path, refused (ScanError) before a reader holds it whole when it is over the size read."""
+    from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size
+    from phantom.scan.compare import ScanError
+
+    check_input_size(path, MAX_MESH_BYTES, "the mesh", ScanError, MESH_TOO_LARGE)
+    return path
+
+
+def _read_mesh(path: str, units: str) -> Any:
+    """A scan or mesh file (OBJ, PLY, STL) as a TriangleMesh in mm, its size checked before it is read."""
+    from phantom.scan.compare import read_scan
+
+    return read_scan(_checked_mesh(path), units)
+
+
+def load_rig(path: str) -> Any:
+    """A rig calibration file (rig.json), its size checked before it is read."""
+    from phantom.cli.common import MAX_JSON_BYTES, check_input_size
+    from phantom.scan.camera import Rig, RigError
+
+    check_input_size(path, MAX_JSON_BYTES, "the rig file", RigError)
+    return Rig.load(path)
+
+
+def _open_capture(path: str) -> Any:
+    """A capture folder, the sizes of its capture.json, rig file and pictures checked before any is read."""
+    from pathlib import Path
+
+    from phantom.cli.common import MAX_JSON_BYTES, MAX_PICTURE_BYTES, check_input_size
+    from phantom.scan.capture import CAPTURE_FILE, CaptureError, CaptureFolder
+
+    check_input_size(Path(path) / CAPTURE_FILE, MAX_JSON_BYTES, "the capture file", CaptureError)
+    folder = CaptureFolder.open(path)
+    if folder.rig_file:
+        check_input_size(folder.path / folder.rig_file, MAX_JSON_BYTES, "the capture's rig file", CaptureError)
+    for frame in folder.frames:
+        check_input_size(folder.path / frame.image, MAX_PICTURE_BYTES, "the picture", CaptureError,
+                         "a capture's pictures are camera frames of a few MB")
+    return folder
+
+
 def run_render(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan render``."""
-    from phantom.scan.camera import Rig, virtual_rig
-    from phantom.scan.compare import read_scan
+    from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_capture
 
     plan = _plan(args)
     true_rig = virtual_rig(_scale(args.scale), plan.elevations_deg)
-    kept = Rig.load(args.rig) if args.rig else true_rig
-    mesh = read_scan(args.mesh, args.units)
+    kept = load_rig(args.rig) if args.rig else true_rig
+    mesh = _read_mesh(args.mesh, args.units)
     conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true"}
     folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, _progress("rendered"))
     if kept is not true_rig:
@@ -254,12 +295,10 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     import json
     import sys
 
-    from phantom.scan.camera import Rig
-    from phantom.scan.capture import CaptureFolder
     from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
 
-    folder = CaptureFolder.open(args.capture)
-    rig = Rig.load(args.rig) if args.rig else None
+    folder = _open_capture(args.capture)
+    rig = load_rig(args.rig) if args.rig else None
     voxel_mm = VOXEL_MM if args.voxel_mm is None else args.voxel_mm
     result = reconstruct(folder, rig, voxel_mm, progress=None if args.json else lambda text: print(
         text, file=sys.stderr))
@@ -287,7 +326,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     from phantom.scan.calibrate import CalibrationError, calibrate_rig, target_views
     from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureFolder
     from phantom.scan.virtual import render_target_captures
 
     if args.sim == bool(args.captures):
@@ -299,7 +337,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             folders = render_target_captures(truth, args.keep or scratch, args.views,
                                              progress=_progress("target pictures"))
         else:
-            folders = [CaptureFolder.open(path) for path in args.captures]
+            folders = [_open_capture(path) for path in args.captures]
         first = folders[0].image(folders[0].frames[0]) if folders[0].frames else None
         if first is None:
             raise CalibrationError(f"{folders[0].path} holds no pictures")
@@ -357,14 +395,13 @@ def rig_against_truth(rig: Any, truth: Any) -> dict[str, float]:
 
 def run_export(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan export``."""
-    from phantom.scan.camera import Rig
-    from phantom.scan.capture import CaptureError, CaptureFolder
+    from phantom.scan.capture import CaptureError
     from phantom.scan.export import export_colmap, export_meshroom
 
     if not (args.colmap or args.meshroom):
         raise CaptureError("say what to write: --colmap FOLDER and/or --meshroom FILE")
-    folder = CaptureFolder.open(args.capture)
-    rig = Rig.load(args.rig) if args.rig else None
+    folder = _open_capture(args.capture)
+    rig = load_rig(args.rig) if args.rig else None
     if args.colmap:
         print(f"wrote the COLMAP model of {len(folder.frames)} pictures into {export_colmap(folder, args.colmap, rig)} "
               f"(images: {folder.path / 'images'})")
@@ -379,7 +416,7 @@ def run_import(args: argparse.Namespace) -> int:
     from phantom.scan.export import import_mesh
     from phantom.scan.reconstruct import write_mesh
 
-    mesh = import_mesh(args.mesh, args.units)
+    mesh = import_mesh(_checked_mesh(args.mesh), args.units)
     path = write_mesh(mesh, args.out)
     print(f"wrote {path}: {enclosed_volume_ml(mesh):.3f} ml, {len(mesh.triangles)} triangles, closed")
     return 0
@@ -397,15 +434,16 @@ def run_compare_scan(args: argparse.Namespace) -> int:
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.surface import model_surface, rotation_axis
     from phantom.model.scene import load_scene
-    from phantom.scan.compare import StageClock, compare, read_scan
+    from phantom.scan.compare import StageClock, compare
     from phantom.scan.heatmap import write_heatmap, write_recording
 
     pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
     clock = StageClock()
     with clock.stage("read"):
-        scan = read_scan(args.scan, args.units)
+        scan = _read_mesh(args.scan, args.units)
     with clock.stage("model"):
         scene = load_scene(args.scene)
+        _checked_mesh(scene.mesh)
         model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
         if len(pressures_kpa) != model.n_chambers:
             raise SolveError(f"--pressures-kpa has {len(pressures_kpa)} values; the scene has {model.n_chambers} "

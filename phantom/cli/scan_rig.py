@@ -137,8 +137,8 @@ class DaemonScanner:
     keep beside the pictures). Answers the folder, its status and the number of pictures."""
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
+        from phantom.cli.scan import load_rig
         from phantom.protocol.motion import SCANNER_AXES
-        from phantom.scan.camera import Rig
         from phantom.scan.capture import CaptureFolder, Plan, capture
 
         known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
@@ -157,7 +157,7 @@ class DaemonScanner:
         if plan.views < 1:
             raise PhantomError(f"scan: views must be at least 1, got {plan.views}")
         camera = self._camera(params, rig, elevations, scale)
-        kept = Rig.load(params["rig"]) if params.get("rig") else None
+        kept = load_rig(params["rig"]) if params.get("rig") else None
         folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
         rig.configure(SCANNER_AXES)
         capture(rig, camera, rig, plan, folder)
@@ -184,9 +184,10 @@ def run_capture(args: Any) -> int:
     import sys
 
     from phantom.cli.common import parse_numbers
+    from phantom.cli.scan import load_rig
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
-    from phantom.scan.camera import Rig, virtual_rig
+    from phantom.scan.camera import virtual_rig
     from phantom.scan.capture import CaptureError, CaptureFolder, Plan, Webcam
     from phantom.scan.render import CharucoTarget
 
@@ -194,7 +195,7 @@ def run_capture(args: Any) -> int:
         raise CaptureError(f"--views must be at least 1, got {args.views}")
     elevations = tuple(parse_numbers(args.elevations, "--elevations"))
     plan = Plan(args.views, elevations, args.start_deg, args.settle_s, args.span_deg)
-    rig = Rig.load(args.rig) if args.rig else None
+    rig = load_rig(args.rig) if args.rig else None
     camera: FrameSource
     with DaemonClient(args.socket or default_socket_path()) as client:
         if args.camera == "virtual":
@@ -279,9 +280,12 @@ def scene_targets_ml(scene_path: str) -> list[float]:
     """The gland volumes (ml) a scene's [[steps]] go through, in order, each once."""
     import tomllib
 
+    from phantom import read_text
+    from phantom.model.scene import MAX_SCENE_BYTES
+
     try:
-        steps = tomllib.loads(open(scene_path).read()).get("steps", [])
-    except (OSError, tomllib.TOMLDecodeError) as error:
+        steps = tomllib.loads(read_text(scene_path, MAX_SCENE_BYTES, "the scene")).get("steps", [])
+    except tomllib.TOMLDecodeError as error:
         raise PhantomError(f"cannot read the scene {scene_path}: {error}") from None
     volumes: list[float] = []
     for step in steps:
@@ -306,13 +310,14 @@ def run_validate(args: Any) -> int:
 
     from phantom.cli.common import parse_numbers
     from phantom.cli.demo import wait_until_ready
+    from phantom.cli.scan import load_rig
     from phantom.hil.truth_shape import TruthShape
     from phantom.host.client import DaemonClient
     from phantom.host.scenes import example_scene_path
     from phantom.model import PhantomModel, load_scene
     from phantom.model.mesh.surface import TriangleMesh, model_surface
     from phantom.scan.calibrate import calibrate_rig, target_views
-    from phantom.scan.camera import Rig, virtual_rig
+    from phantom.scan.camera import virtual_rig
     from phantom.scan.capture import CaptureFolder, Plan
     from phantom.scan.compare import compare, read_scan
     from phantom.scan.heatmap import write_heatmap
@@ -337,7 +342,7 @@ def run_validate(args: Any) -> int:
 
     # the rig's calibration, from rendered pictures of the target, as a real rig's from photographs of it
     if args.rig:
-        rig = Rig.load(args.rig)
+        rig = load_rig(args.rig)
     else:
         say("calibrating the virtual rig from pictures of the ChArUco target ...")
         folders = render_target_captures(true_rig, out / "target", args.target_views)
