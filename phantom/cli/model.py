@@ -159,4 +159,6 @@ def _write_deformed(model: PhantomModel, state: State, out: str, length_scale_m:
         with written_atomically(path, MeshError) as temporary:
             surface.write(temporary)
         return
-    write_mesh(model.deformed_mesh(state), path, length_scale_m)
+    # each element's volume ratio (det F; a 10-node element's dilatation) travels with a meshio format
+    write_mesh(model.deformed_mesh(state), path, length_scale_m,
+               {"volume_ratio": model.body.element_volume_ratios(state.positions_m)})
