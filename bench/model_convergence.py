@@ -1,7 +1,8 @@
 """Convergence of the built-in prostate's growths under mesh refinement, 4-node and 10-node tetrahedra.
 
 Usage: .venv/bin/python bench/model_convergence.py [--scene builtin:calibrated] [--linear-sizes-mm 4,3,2.5]
-       [--quadratic-sizes-mm 8,6,4] [--poisson-ratio 0.45] [--json bench-out.json]
+       [--quadratic-sizes-mm 8,6,4] [--poisson-ratio 0.45] [--youngs-modulus-kpa 50]
+       [--json bench-out.json]
 
 For each element order and mesh size (the scene's ``mesh_size_mm`` overridden; the 10-node mesh is graded where
 walls are thin), full solves at the issue's five pressure points (kPa): the gland's growth and each chamber's
@@ -51,15 +52,17 @@ def richardson(sizes_mm: list[float], values: list[float]) -> tuple[float, float
     return g3 - coefficient * h3**order, order
 
 
-def solve_row(scene, order: int, size_mm: float, poisson_ratio: float | None) -> list[dict]:
+def solve_row(scene, order: int, size_mm: float, poisson_ratio: float | None,
+              youngs_modulus_kpa: float | None = None) -> list[dict]:
     from phantom.model import PhantomModel
 
     geometry = dataclasses.replace(scene.geometry, element_order=order)
     scene = dataclasses.replace(scene, geometry=geometry)
     started = time.perf_counter()
     model = PhantomModel.from_scene(scene, mesh_size_mm=size_mm)
-    if poisson_ratio is not None:
-        model = model.with_material(poisson_ratio=poisson_ratio)
+    if poisson_ratio is not None or youngs_modulus_kpa is not None:
+        model = model.with_material(youngs_modulus_pa=None if youngs_modulus_kpa is None else youngs_modulus_kpa * 1e3,
+                                    poisson_ratio=poisson_ratio)
     setup_s = time.perf_counter() - started
     progress(f"order {order}, {size_mm} mm: {len(model.nodes_m)} nodes, {len(model.tets)} elements "
              f"({setup_s:.1f} s to mesh and set up)")
@@ -112,6 +115,7 @@ def main() -> None:
     parser.add_argument("--linear-sizes-mm", default="4,3,2.5", help="4-node mesh sizes, coarse to fine ('' none)")
     parser.add_argument("--quadratic-sizes-mm", default="8,6,4", help="10-node mesh sizes, coarse to fine")
     parser.add_argument("--poisson-ratio", type=float, default=None, help="override the scene's (e.g. 0.4995)")
+    parser.add_argument("--youngs-modulus-kpa", type=float, default=None, help="override the scene's (e.g. 50)")
     parser.add_argument("--json", default=None, help="also write every solve's row to this JSON file")
     args = parser.parse_args()
     from phantom.model import load_scene
@@ -120,13 +124,14 @@ def main() -> None:
     rows: list[dict] = []
     for order, sizes in ((1, args.linear_sizes_mm), (2, args.quadratic_sizes_mm)):
         for size_mm in [float(size) for size in sizes.split(",") if size]:
-            rows.extend(solve_row(scene, order, size_mm, args.poisson_ratio))
+            rows.extend(solve_row(scene, order, size_mm, args.poisson_ratio, args.youngs_modulus_kpa))
             if args.json:
                 with open(args.json, "w") as handle:
                     json.dump(rows, handle, indent=1)
     material = scene.material
     poisson = args.poisson_ratio if args.poisson_ratio is not None else material.poisson_ratio
-    print(f"\n{args.scene}: {material.model}, E {material.youngs_modulus_pa / 1e3:.3f} kPa, nu {poisson}; "
+    youngs_kpa = args.youngs_modulus_kpa or material.youngs_modulus_pa / 1e3
+    print(f"\n{args.scene}: {material.model}, E {youngs_kpa:.3f} kPa, nu {poisson}; "
           "gland growth (ml)\n")
     for order, name in ((1, "4-node tetrahedra"), (2, "10-node tetrahedra, mixed (u, p, J)")):
         text = table(rows, order)

@@ -220,6 +220,11 @@ def read_scene_toml(path: str | Path) -> dict[str, Any]:
         raise SceneError(f"the scene file {path} is not valid TOML: it nests too deeply") from None
 
 
+#: Poisson's ratio of a 10-node (mixed) scene that names none: silicone is nearly incompressible (nu about
+#: 0.4999); 0.4996 makes the bulk modulus 1250 times the shear modulus.
+QUADRATIC_POISSON_RATIO = 0.4996
+
+
 def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     """Build a Scene from a parsed TOML dict; ``path`` anchors relative mesh paths (else the working folder)."""
     where = f"scene {path}" if path else "scene"
@@ -256,7 +261,7 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
         units=units,
         chambers=list(chambers),
         fixed=fixed,
-        material=_material(raw.get("material", {}), where),
+        material=_material(raw.get("material", {}), where, geometry is not None and geometry.element_order == 2),
         outputs=Outputs(**_outputs(raw.get("outputs", {}), where)),
         chamber_labels=chamber_labels_of(phantom_table, chambers, where),
         model_settings=_model_settings(raw.get("model", {}), where),
@@ -274,7 +279,10 @@ def _table(raw: dict[str, Any], key: str, where: str) -> dict[str, Any]:
     return table
 
 
-def _material(table: dict[str, Any], where: str) -> Material:
+def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Material:
+    """The [material] table; Poisson's ratio defaults to 0.45 on 4-node elements (which lock near 0.5) and to
+    QUADRATIC_POISSON_RATIO, the nearly incompressible silicone, on the built-in mesh's 10-node mixed ones
+    (``quadratic``; a mesh file's element order is known only once it is read: such a scene names its ratio)."""
     model = table.get("model", "corotational")
     if model not in MATERIAL_MODELS:
         raise SceneError(f"{where}: [material] model = {model!r}: the hyperelastic laws are 'neo_hookean' and "
@@ -288,7 +296,7 @@ def _material(table: dict[str, Any], where: str) -> Material:
     elif gent_jm is not None:
         raise SceneError(f"{where}: [material] gent_jm applies to model = 'gent' only, not {model!r}")
     youngs_modulus_kpa = table.get("youngs_modulus_kpa", 50.0)
-    poisson_ratio = table.get("poisson_ratio", 0.45)
+    poisson_ratio = table.get("poisson_ratio", QUADRATIC_POISSON_RATIO if quadratic else 0.45)
     if not isinstance(youngs_modulus_kpa, int | float) or not youngs_modulus_kpa > 0:
         raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got {youngs_modulus_kpa}")
     if not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:

@@ -155,3 +155,22 @@ def test_a_folded_curved_element_is_straightened():
     assert curved_jacobian_determinants(repaired, tets).min() > 0
     np.testing.assert_allclose(repaired[4], [0.5, 0.0, 0.0])
     np.testing.assert_array_equal(repaired[:4], vertices)
+
+
+def test_newtons_tangent_off_equilibrium_is_damped_until_cholmod_factorises_it(meshes):
+    """Far from equilibrium (the full pressure on the rest shape) the exact Hessian is indefinite: CHOLMOD refuses
+    it, path following gets SuperLU's factor of it as it is, and Newton gets ``K + tau |diag K|``, whose direction
+    descends."""
+    model = sphere_model(meshes[2], "gent", 0.45, 3.0)
+    problem = model.problem([2.0 * YOUNGS_MODULUS_PA])
+    positions = deformed(model.nodes_m)
+    data = problem.body.elastic(positions, "gent", EXACT_TANGENT, problem.constraints,
+                                problem.pressures_pa).tangent_data
+    with pytest.raises(ArithmeticError, match="not positive definite"):
+        problem.body.factorize(data, positive_definite=True)
+    assert problem.tangent(positions, exact=True).method == "splu-mmd"
+    damped = problem.tangent(positions, exact=True, damped=True)
+    assert damped.method == "cholmod"
+    residual = problem.evaluate(positions).residual_n
+    direction = -damped.solve(residual)
+    assert np.dot(residual, direction) < 0

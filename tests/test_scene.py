@@ -134,3 +134,17 @@ def test_missing_and_unparsable_scene_files(tmp_path):
         load_scene(tmp_path / "nope.toml")
     with pytest.raises(SceneError, match="not valid TOML"):
         load_scene(write_scene(tmp_path, "[phantom\nmesh = 1"))
+
+
+def test_a_10_node_builtin_scene_is_nearly_incompressible_unless_it_says_otherwise(tmp_path):
+    """Poisson's ratio defaults to 0.45 on 4-node elements (they lock near 0.5) and to bulk/shear >= 1000 on the
+    built-in 10-node mesh; a ratio the scene names is kept."""
+    from phantom.model.scene import QUADRATIC_POISSON_RATIO
+
+    base = '[phantom]\nmesh = "builtin:prostate"\nchambers = ["chamber0"]\n\n[material]\nmodel = "gent"\ngent_jm = 3\n'
+    linear = load_scene(write_scene(tmp_path, base)).material
+    quadratic = load_scene(write_scene(tmp_path, base + "\n[geometry]\nelement_order = 2\n")).material
+    named = load_scene(write_scene(tmp_path, base + "poisson_ratio = 0.45\n[geometry]\nelement_order = 2\n")).material
+    assert linear.poisson_ratio == 0.45 and named.poisson_ratio == 0.45
+    assert quadratic.poisson_ratio == QUADRATIC_POISSON_RATIO
+    assert quadratic.bulk_modulus_pa >= 1000 * quadratic.lame_mu_pa

@@ -34,6 +34,11 @@ def test_stretch_measures_of_a_homogeneous_deformation_are_exact():
     assert min_det == pytest.approx(np.prod(stretches), rel=1e-10)
     assert (low, high) == pytest.approx((0.7, 1.9), rel=1e-10)
     assert i1_minus_3 == pytest.approx(np.sum(stretches**2) - 3, rel=1e-10)
+    # 10-node elements (a calibration of a 10-node scene crashed here): their corners, the first four nodes, carry
+    # the affine part of the deformation
+    quadratic_tets = np.column_stack([tets, np.arange(12, 30).reshape(3, 6)])
+    assert element_stretch_measures(deformed, quadratic_tets, rest_edge_inverse) == pytest.approx(
+        (min_det, low, high, i1_minus_3), rel=1e-12)
 
 
 @pytest.mark.slow

@@ -103,8 +103,9 @@ class RayTrace:
 def element_stretch_measures(positions_m: np.ndarray, tets: np.ndarray,
                              rest_edge_inverse: np.ndarray) -> tuple[float, float, float, float]:
     """Smallest det F, smallest and largest principal stretch and largest ``I1 - 3 = tr(F^T F) - 3`` over the
-    elements of a linear-tetrahedron mesh (``rest_edge_inverse`` = Dm^-1, Dm each element's rest edges as columns)."""
-    edges = positions_m[tets[:, 1:]] - positions_m[tets[:, :1]]
+    elements of a linear-tetrahedron mesh (``rest_edge_inverse`` = Dm^-1, Dm each element's rest edges as columns);
+    for 10-node elements, of the affine deformation of each element's corner tetrahedron (its first four nodes)."""
+    edges = positions_m[tets[:, 1:4]] - positions_m[tets[:, :1]]
     deformation = np.einsum("eki,ekj->eij", edges, rest_edge_inverse)
     right_cauchy_green = np.einsum("eki,ekj->eij", deformation, deformation)
     squared_stretches = np.linalg.eigvalsh(right_cauchy_green)
@@ -117,8 +118,9 @@ def element_stretch_measures(positions_m: np.ndarray, tets: np.ndarray,
 def _model_of(scene_text: str, mesh_size_mm: float | None) -> tuple[PhantomModel, np.ndarray]:
     """The model of a scene (kept per worker process: the tasks of one grid point share it)."""
     model = PhantomModel.from_scene(scene_from_dict(json.loads(scene_text)), mesh_size_mm=mesh_size_mm)
-    edges = model.nodes_m[model.tets[:, 1:]] - model.nodes_m[model.tets[:, :1]]
-    # Rows of ``edges`` are edge vectors: F = Ds Dm^-1 with Ds, Dm the edge matrices by columns.
+    edges = model.nodes_m[model.tets[:, 1:4]] - model.nodes_m[model.tets[:, :1]]
+    # Rows of ``edges`` are edge vectors: F = Ds Dm^-1 with Ds, Dm the edge matrices by columns (a 10-node
+    # element's corners: its mid-edge nodes follow them).
     return model, np.linalg.inv(edges.transpose(0, 2, 1))
 
 
@@ -142,6 +144,8 @@ def trace_ray(task: RayTask) -> RayTrace:
             positions_m_here, chambers, gland = state.positions_m, state.chamber_volumes_m3, state.gland_volume_m3
             positions_m = positions_m_here
         measures = element_stretch_measures(positions_m_here, model.tets, rest_edge_inverse)
+        if model.order == 2:  # det F at the quadrature points and each element's volume ratio, not the corners'
+            measures = (float(model.body.deformation_determinants(positions_m_here).min()), *measures[1:])
         rows.append((load_factor, gland, np.asarray(chambers, float), *measures))
         if gland - model.rest_gland_volume_m3 > task.stop_growth_m3:
             stopped = "growth"

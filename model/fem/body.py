@@ -30,7 +30,7 @@ import phantom
 from phantom.model.arrays import BoolArray, FloatArray, Int32Array, IntArray
 from phantom.model.errors import MeshError, SolveError
 from phantom.model.fem import kernels
-from phantom.model.fem.linsolve import CholeskyFactor, Factorization
+from phantom.model.fem.linsolve import CholeskyFactor, Factorization, default_method
 from phantom.model.mesh.elements import (
     TET_DEGREE2_POINTS,
     TET_DEGREE2_WEIGHTS,
@@ -309,6 +309,7 @@ class SolidBody:
                 self.nodes_m, self.fixed_faces, material.youngs_modulus_pa, self.fixed_penalty)
         self._rest_tangent: FloatArray | None = None
         self._factorizations: dict[tuple[int, ...], Factor] = {}
+        self._cholmod_analysis: Any = None
         self._constraint_sets: dict[tuple[int, ...], Constraints] = {}
         self.rest_constraints = self.constraints_for(self.nodes_m)
 
@@ -487,10 +488,31 @@ class SolidBody:
         """``A v`` for the matrix of the body's pattern with entries ``data`` and a vector (3n,)."""
         return kernels.csr_multiply(self.pattern.indptr, self.pattern.indices, data, vector)
 
+    @property
+    def detects_indefinite(self) -> bool:
+        """The body's solver (CHOLMOD) refuses a matrix that is not positive definite (SuperLU factorises it)."""
+        return (self.linear_solver or default_method()) == "cholmod"
+
     def factorize(self, data: FloatArray, positive_definite: bool = True) -> Factorization:
-        """Factorise a matrix of the body's pattern: ``linear_solver`` (None: the measured default) when it is
-        positive definite, SuperLU when it may not be."""
-        return Factorization(self.csr(data), self.linear_solver if positive_definite else "splu-mmd")
+        """Factorise a matrix of the body's pattern with ``linear_solver`` (None: the measured default). One that
+        may be indefinite (the exact tangent: positive definite on the stable path, not past a limit point) goes
+        to CHOLMOD first, when that is the solver, and to SuperLU when CHOLMOD finds it is not positive definite
+        (or when the solver is not CHOLMOD). CHOLMOD's symbolic analysis of the pattern is made once per body.
+
+        Raises ArithmeticError when a matrix said to be positive definite is not (CHOLMOD).
+        """
+        matrix = self.csr(data)
+        method = self.linear_solver or default_method()
+        if method != "cholmod":
+            return Factorization(matrix, method if positive_definite else "splu-mmd")
+        try:
+            factorization = Factorization(matrix, method, self._cholmod_analysis)
+        except ArithmeticError:
+            if positive_definite:
+                raise
+            return Factorization(matrix, "splu-mmd")
+        self._cholmod_analysis = factorization.analysis
+        return factorization
 
     def rest_factorization(self, constraints: Constraints | None = None) -> Factor:
         """The factorised small-strain stiffness (elastic + springs + ``constraints``, default the rest ones),
@@ -522,10 +544,11 @@ class SolidBody:
                 path.unlink(missing_ok=True)
         factorization = self.factorize(self.elastic(self.nodes_m, "linear", POSITIVE_TANGENT,
                                                     constraints).tangent_data)
-        if factorization.cholesky is not None:
+        factor_arrays = factorization.cholesky_factor()
+        if factor_arrays is not None:
             handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
             os.close(handle)
-            arrays: dict[str, Any] = factorization.cholesky.arrays()
+            arrays: dict[str, Any] = factor_arrays.arrays()
             arrays["indices"] = arrays["indices"].astype(np.int32)
             np.savez(temporary, youngs_modulus_pa=self.material.youngs_modulus_pa, **arrays)
             os.replace(temporary, path)

@@ -2,9 +2,13 @@
 
 ``Factorization(matrix, method)`` factorises once; ``solve(rhs)`` applies the inverse to one or several
 right-hand sides, as often as needed while the matrix does not change. For symmetric positive definite
-matrices (the rest stiffness, R K R^T) the default is CHOLMOD's supernodal Cholesky (scikit-sparse, 2.5 to 3.5
-times faster than SuperLU here) when it is installed, else SuperLU; a co-rotational Hessian may be
-indefinite and is always factorised by SuperLU ("splu-mmd").
+matrices (the rest stiffness, R K R^T, and the exact hyperelastic tangent on the stable path) the default is
+CHOLMOD's supernodal Cholesky (scikit-sparse, 2.5 to 7 times faster than SuperLU here) when it is installed, else
+SuperLU; CHOLMOD reports a matrix that is not positive definite (a tangent past a limit point), which the caller
+then hands to SuperLU ("splu-mmd"). A CHOLMOD factorisation solves with CHOLMOD's own substitutions and may reuse
+the symbolic analysis (fill-reducing ordering, supernodes) of an earlier matrix of the same pattern; its factor
+can be taken out as arrays (:class:`CholeskyFactor`) to be stored, and a stored one is solved by numba
+substitutions.
 """
 
 from __future__ import annotations
@@ -66,28 +70,29 @@ class Factorization:
     Raises ``ArithmeticError`` when "cholmod" finds the matrix not positive definite.
     """
 
-    def __init__(self, matrix: scipy.sparse.csr_matrix, method: str | None = None):
+    def __init__(self, matrix: scipy.sparse.csr_matrix, method: str | None = None, analysis: Any = None):
         # scipy.sparse.linalg costs a tenth of a second to import: only the factorising paths pay for it.
         import scipy.sparse.linalg as spla
 
         self.method = method or default_method()
         self.matrix = matrix
-        #: The Cholesky factor ("cholmod"), which a caller may store; None for the other methods.
-        self.cholesky: CholeskyFactor | None = None
+        #: CHOLMOD's symbolic analysis of the matrix's pattern ("cholmod"): pass it as ``analysis`` to factorise
+        #: another matrix of the same pattern without ordering it again. None for the other methods.
+        self.analysis: Any = None
+        self._cholmod: Any = None
         self._lu: Any = None
         self._preconditioner: Any = None
         if self.method == "cholmod":
             # scikit-sparse is an optional extra and loads SuiteSparse: only the "cholmod" method needs it
             with require_extra("cholmod"):
-                from sksparse.cholmod import CholmodNotPositiveDefiniteError, cholesky
+                from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
+            columns = matrix.tocsc()
+            self.analysis = analysis if analysis is not None else analyze(columns, mode="supernodal")
             try:
-                factor = cholesky(matrix.tocsc(), mode="supernodal")
+                self._cholmod = self.analysis.cholesky(columns)
             except CholmodNotPositiveDefiniteError as error:
                 raise ArithmeticError(f"CHOLMOD: the matrix is not positive definite ({error})") from error
-            lower = factor.L()
-            lower.sort_indices()
-            self.cholesky = CholeskyFactor(lower.indptr, lower.indices, lower.data, factor.P())
         elif self.method == "splu-colamd":
             self._lu = spla.splu(matrix.tocsc(), permc_spec="COLAMD")
         elif self.method == "splu-mmd":
@@ -102,10 +107,11 @@ class Factorization:
 
     def solve(self, rhs: FloatArray) -> FloatArray:
         """``K^-1 rhs`` for one right-hand side (n,) or several (n, k)."""
-        if self.cholesky is not None:
-            return self.cholesky.solve(rhs)
+        if self._cholmod is not None:
+            solution: FloatArray = self._cholmod(rhs)
+            return solution
         if self.method.startswith("splu"):
-            solution: FloatArray = self._lu.solve(rhs)
+            solution = self._lu.solve(rhs)
             return solution
         if rhs.ndim == 2:
             return np.column_stack([self.solve(column) for column in rhs.T])
@@ -116,3 +122,11 @@ class Factorization:
         if info != 0:
             raise ArithmeticError(f"preconditioned CG did not converge ({info})")
         return solution
+
+    def cholesky_factor(self) -> CholeskyFactor | None:
+        """The Cholesky factor as arrays, to be stored ("cholmod"; None for the other methods)."""
+        if self._cholmod is None:
+            return None
+        lower = self._cholmod.L()
+        lower.sort_indices()
+        return CholeskyFactor(lower.indptr, lower.indices, lower.data, self._cholmod.P())

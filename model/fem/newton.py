@@ -1,9 +1,10 @@
 """Newton's method with a line search on the total energy, for an :class:`EquilibriumProblem` at one load.
 
 Directions, cheapest first: "krylov" solves with the exact Hessian by conjugate gradients preconditioned with the
-rest stiffness (factorised once per body: no factorisation per solve); "exact" factorises the Hessian; "positive"
-factorises a positive definite stand-in (``R K R^T``, or the small-strain stiffness), which gives a descent
-direction whenever the Hessian does not. The linear formulation's rest stiffness is its exact tangent. Each step
+rest stiffness (factorised once per body: no factorisation per solve); "exact" factorises the Hessian (a
+hyperelastic one shifted towards positive definite where it is not: Levenberg-Marquardt); "positive" factorises
+a positive definite stand-in (``R K R^T``, or the small-strain stiffness), which gives a descent direction
+whenever the Hessian does not. The linear formulation's rest stiffness is its exact tangent. Each step
 is backtracked until the energy decreases (Armijo) or, where energy differences are lost in rounding, the
 residual does; no accepted step inverts an element.
 """
@@ -168,7 +169,7 @@ def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: floa
     elif problem.preconditioned:
         kind, factorization = "krylov", problem.rest_factorization()
     else:
-        kind, factorization = "exact", problem.tangent(positions_m, exact=True)
+        kind, factorization = "exact", problem.tangent(positions_m, exact=True, damped=True)
     hessian = evaluation.tangent_data
     previous_norm = best_norm = np.inf
     best_iteration = 0
@@ -206,12 +207,12 @@ def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: floa
                 reason = "solve inverted elements" if worst >= 0 else "line search found no descent"
                 return NewtonResult(positions_m, False, iteration, reason, worst)
             kind = "exact" if kind in ("rest", "krylov") else "positive"
-            factorization = problem.tangent(positions_m, exact=kind == "exact")
+            factorization = problem.tangent(positions_m, exact=kind == "exact", damped=True)
             continue
         positions_m, evaluation = accepted
         hessian = evaluation.tangent_data
         refresh = norm(evaluation.residual_n) > TANGENT_REFRESH_RATIO * residual_norm
         if kind != "krylov" and problem.nonlinear and refresh:
-            kind, factorization = "exact", problem.tangent(positions_m, exact=True)
+            kind, factorization = "exact", problem.tangent(positions_m, exact=True, damped=True)
     return NewtonResult(positions_m, False, MAX_ITERATIONS_PER_STEP, "solve did not converge in "
                         f"{MAX_ITERATIONS_PER_STEP} iterations", problem.worst_element(positions_m))

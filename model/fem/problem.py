@@ -37,6 +37,11 @@ from phantom.model.fem.body import (
 )
 from phantom.model.scene import HYPERELASTIC_MODELS
 
+#: Diagonal shifts (relative to each diagonal entry) tried in turn on a hyperelastic Hessian that is not positive
+#: definite in Newton's minimisation (:meth:`EquilibriumProblem.tangent`); measured on 10-node elements at
+#: (1, 1, 1) kPa, 1e-4 to 1e-2 sufficed.
+DAMPING_SHIFTS = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
+
 
 @dataclass(frozen=True)
 class Evaluation:
@@ -155,21 +160,49 @@ class EquilibriumProblem:
             return self.body.multiply(tangent_data, vector)
         return product
 
-    def tangent(self, positions_m: FloatArray, exact: bool = True) -> Factor:
+    def tangent(self, positions_m: FloatArray, exact: bool = True, damped: bool = False) -> Factor:
         """The factorised tangent at ``positions_m``: the exact Hessian, or (``exact`` False) a positive definite
         stand-in that still gives a descent direction: ``R K R^T`` (co-rotational) or the small-strain stiffness
-        (hyperelastic). An exactly singular Hessian (at a limit point) gives the stand-in."""
+        (hyperelastic). An exactly singular Hessian (at a limit point) gives the stand-in.
+
+        The exact Hessian goes to CHOLMOD first (where it is the solver) and to SuperLU when it is not positive
+        definite (past a limit point, which path following needs as it is). With ``damped`` (Newton's
+        minimisation at fixed pressures), a hyperelastic Hessian that is not positive definite (off equilibrium:
+        an iterate far from its answer) is shifted instead, ``K + tau |diag K|`` with the first ``tau`` of
+        DAMPING_SHIFTS that CHOLMOD factorises: a Levenberg-Marquardt step, a descent direction, at a CHOLMOD
+        factorisation's cost (SuperLU's costs 5-8 times more on 10-node elements; the small-strain stiffness as
+        the stand-in makes Newton crawl there). See bench/README.md, "The 10-node solve's speed"."""
         if not exact and self.formulation in HYPERELASTIC_MODELS:
             return self.body.rest_factorization(self.constraints)
         matrix = EXACT_TANGENT if exact else POSITIVE_TANGENT
         data = self.body.elastic(positions_m, self.formulation, matrix, self.constraints,
                                  self.pressures_pa).tangent_data
+        if exact and damped and self.formulation in HYPERELASTIC_MODELS and self.body.detects_indefinite:
+            damped_factor = self._damped_factorization(data)
+            if damped_factor is not None:
+                return damped_factor
         try:
             return self.body.factorize(data, positive_definite=not exact)
         except (RuntimeError, ArithmeticError):
             if not exact:
                 raise
             return self.tangent(positions_m, exact=False)
+
+    def _damped_factorization(self, tangent_data: FloatArray) -> Factor | None:
+        """CHOLMOD's factor of ``K + tau |diag K|`` for the first ``tau`` in (0, *DAMPING_SHIFTS) that is positive
+        definite; None if none is."""
+        diagonal = self.body.pattern.diagonal
+        magnitudes = np.abs(tangent_data[diagonal])
+        for shift in (0.0, *DAMPING_SHIFTS):
+            shifted = tangent_data
+            if shift:
+                shifted = tangent_data.copy()
+                shifted[diagonal] += shift * magnitudes
+            try:
+                return self.body.factorize(shifted, positive_definite=True)
+            except ArithmeticError:
+                continue
+        return None
 
     def rest_factorization(self) -> Factor:
         """The factorised small-strain stiffness under the problem's constraints (kept by the body)."""

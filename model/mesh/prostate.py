@@ -11,7 +11,9 @@ a scene's ``[geometry]`` table); the defaults leave every wall at least 3.5 mm t
 The 10-node mesh is graded where walls are thin: the element size at a point is ``min(h, h w / WALL_SPAN_MM)``
 with ``h`` the scene's ``mesh_size_mm`` and ``w`` the local wall thickness
 (:func:`phantom.model.mesh.shape.wall_field`), so ``WALL_SPAN_MM / h`` elements span every wall thinner than
-WALL_SPAN_MM (two at 4 mm), and ``mesh_size_mm`` stays the one knob: halving it halves every size. Order 2 adds
+WALL_SPAN_MM (two at 4 mm), and ``mesh_size_mm`` stays the one knob: halving it halves every size, the
+curvature sizing's included (``CURVATURE_ELEMENTS * QUADRATIC_CURVATURE_SIZE_MM / h`` elements per 2 pi of
+curvature; the curved faces keep a cavity's volume with few). Order 2 adds
 gmsh's mid-edge nodes, placed on the curved surfaces (10-node tetrahedra), to the same elements. The 4-node mesh
 is not graded (the shipped calibration holds on it as it is).
 """
@@ -58,6 +60,9 @@ CHAMBER_ELLIPSOIDS_MM = ProstateGeometry().ellipsoids_mm()
 DEFAULT_SIZE_MM = ProstateGeometry.mesh_size_mm
 #: Elements per 2 pi of curvature, so small cavities keep their volume on coarse meshes.
 CURVATURE_ELEMENTS = 16
+#: The 10-node mesh size (mm) at which it has CURVATURE_ELEMENTS per 2 pi; the number scales as 1 / size, so that
+#: ``mesh_size_mm`` refines the whole 10-node mesh (with a fixed number, 10 -> 8 mm was 10983 -> 11218 nodes).
+QUADRATIC_CURVATURE_SIZE_MM = 4.0
 
 
 def _ellipsoid(occ: Any, centre_mm: Vector3, semi_axes_mm: Vector3) -> tuple[int, int]:
@@ -169,7 +174,10 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
         occ.synchronize()
         if len(half) != 1:
             raise MeshError(f"gmsh produced {len(half)} volumes for the prostate instead of one")
-        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half[0], size_mm, CURVATURE_ELEMENTS, element_order,
+        curvature_elements = CURVATURE_ELEMENTS
+        if element_order == 2:
+            curvature_elements = max(4, round(CURVATURE_ELEMENTS * QUADRATIC_CURVATURE_SIZE_MM / size_mm))
+        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half[0], size_mm, curvature_elements, element_order,
                                                       walls))
     tets = check_tets(nodes_mm, tets, "mirrored prostate mesh")
     faces, _ = boundary_faces(tets)
@@ -222,7 +230,8 @@ def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | 
     size_mm = geometry.mesh_size_mm if size_mm is None else float(size_mm)
     element_order = geometry.element_order if element_order is None else int(element_order)
     # the 4-node mesh keeps the name it had before 10-node ones existed, so existing caches stay valid
-    order_tag = "" if element_order == 1 else f"-p{element_order}"
+    # (the 10-node mesh's curvature sizing scales with its size since "c": older 10-node caches are not read)
+    order_tag = "" if element_order == 1 else f"-p{element_order}c"
     name = f"prostate-v{PROSTATE_GEOMETRY_VERSION}-{geometry.key}-h{size_mm:.6g}mm{order_tag}.npz"
     cache_path = phantom.cache_dir("meshes") / name
     if cache_path.is_file():

@@ -356,7 +356,9 @@ def _surface_groups(raw: Any) -> dict[str, np.ndarray]:
                 cell_sets[name] = [np.flatnonzero(tags == tag) for tags in raw.cell_data["gmsh:physical"]]
     if not cell_sets:
         for key in list(raw.cell_data):
-            if not key.startswith("gmsh:"):
+            # cell sets come back as integer cell data; float data (a written volume ratio) is no group
+            integer = all(np.issubdtype(np.asarray(block).dtype, np.integer) for block in raw.cell_data[key])
+            if integer and not key.startswith("gmsh:"):
                 try:
                     raw.cell_data_to_sets(key)
                 except (ValueError, KeyError, TypeError):
@@ -372,11 +374,13 @@ def _surface_groups(raw: Any) -> dict[str, np.ndarray]:
     return groups
 
 
-def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) -> None:
+def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3,
+               element_data: dict[str, np.ndarray] | None = None) -> None:
     """Write a mesh with its groups; coordinates are divided by ``length_scale_m`` (default: millimetres).
 
     ``.msh`` is written by gmsh as MSH 4.1 with named physical groups (a volume group ``solid`` and one
-    surface group per name); any other extension goes through meshio with cell sets.
+    surface group per name); any other extension goes through meshio with cell sets, and with
+    ``element_data`` (name: one value per tetrahedron) as cell data (the surface cells get NaN).
     """
     path = Path(path)
     coordinates = mesh.nodes_m / length_scale_m
@@ -400,7 +404,10 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3) ->
     for k, name in enumerate(names):
         cell_sets[name] = [np.zeros(0, np.int64), np.arange(offsets[k], offsets[k + 1])]
     kinds = ("tetra", "triangle") if mesh.order == 1 else ("tetra10", "triangle6")
-    out = meshio.Mesh(coordinates, [(kinds[0], mesh.tets), (kinds[1], triangles)], cell_sets=cell_sets)
+    cell_data = {name: [np.asarray(values, float), np.full(len(triangles), np.nan)]
+                 for name, values in (element_data or {}).items()}
+    out = meshio.Mesh(coordinates, [(kinds[0], mesh.tets), (kinds[1], triangles)], cell_sets=cell_sets,
+                      cell_data=cell_data)
     with written_atomically(path, MeshError) as temporary:
         try:
             out.write(temporary)

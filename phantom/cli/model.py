@@ -40,7 +40,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     forward.add_argument("--out", default=None,
                          help="also write the deformed tetrahedral mesh (same nodes and groups as `phantom mesh`, "
                               "in the scene's unit) to this file; the format follows the extension (.msh, .vtu, "
-                              "any meshio format); a surface format (.stl, .obj, .ply, .off) gets the deformed "
+                              "any meshio format, which also carries each element's volume ratio as cell data "
+                              "'volume_ratio'); a surface format (.stl, .obj, .ply, .off) gets the deformed "
                               "outer surface of the gland, which compare-scan and robot planners read")
     forward.add_argument("--json", action="store_true", help="print one JSON object instead of a table")
     forward.set_defaults(run=run_forward)
@@ -161,4 +162,6 @@ def _write_deformed(model: PhantomModel, state: State, out: str, length_scale_m:
         with written_atomically(path, MeshError) as temporary:
             surface.write(temporary)
         return
-    write_mesh(model.deformed_mesh(state), path, length_scale_m)
+    # each element's volume ratio (det F; a 10-node element's dilatation) travels with a meshio format
+    write_mesh(model.deformed_mesh(state), path, length_scale_m,
+               {"volume_ratio": model.body.element_volume_ratios(state.positions_m)})
