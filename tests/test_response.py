@@ -81,6 +81,30 @@ def test_beyond_the_box_the_table_extends_linearly_not_as_a_cubic(model, table):
 
 
 @pytest.mark.slow
+def test_a_lookup_forms_each_chambers_weights_once_and_they_are_the_tensor_splines(table):
+    # The weights and slopes of one lookup, from the splines' coefficients, are scipy's value and derivative of
+    # the same tensor spline, on the grid's points, between them and at the box's top edge.
+    from scipy.interpolate import CubicSpline
+
+    points = table.points_per_axis
+    splines = CubicSpline(np.arange(points, dtype=float), np.eye(points))
+    for pressures_pa in ([0.0, 1000.0, 3000.0], [299.0, 2999.9, 1500.5], [3000.0, 3000.0, 0.0]):
+        bases, excess = table._bases(np.array(pressures_pa))
+        assert not np.any(excess)
+        for (weights, slopes), pressure in zip(bases, pressures_pa, strict=True):
+            x = (points - 1) * pressure / PRESSURE_MAX_PA
+            np.testing.assert_allclose(weights, splines(x), atol=1e-12)
+            np.testing.assert_allclose(slopes, splines(x, 1) * (points - 1) / PRESSURE_MAX_PA, atol=1e-15)
+    calls = []
+    original = table._bases
+    try:
+        object.__setattr__(table, "_bases", lambda pressures: calls.append(1) or original(pressures))
+        table.volumes(OFF_GRID_PA[0])
+    finally:
+        object.__delattr__(table, "_bases")
+    assert len(calls) == 1  # both quantities from one set of weights
+
+
 def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     built = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)

@@ -113,11 +113,17 @@ class ResponseTable:
         """Per chamber: the basis and its slope (per Pa) at the pressure clipped into the box; and the excess
         of each pressure over the box (Pa), for the linear extension outside."""
         inside_pa = np.clip(pressures_pa, 0.0, self.pressure_max_pa)
+        # One piece of the splines' coefficients per chamber gives both the weights and their slopes (scipy's
+        # CubicSpline evaluates the two separately, and a lookup needed them for every chamber and quantity).
+        coefficients = _cardinal_splines(self.points_per_axis).c        # (4, n - 1, n), highest power first
+        per_pa = (self.points_per_axis - 1) / self.pressure_max_pa
         bases = []
         for pressure in inside_pa:
-            x = (self.points_per_axis - 1) * pressure / self.pressure_max_pa
-            weights = _cardinal_splines(self.points_per_axis)
-            bases.append((weights(x), weights(x, 1) * (self.points_per_axis - 1) / self.pressure_max_pa))
+            x = pressure * per_pa
+            piece = min(int(x), self.points_per_axis - 2)
+            dx = x - piece
+            a, b, c, d = coefficients[:, piece]
+            bases.append((((a * dx + b) * dx + c) * dx + d, ((3.0 * a * dx + 2.0 * b) * dx + c) * per_pa))
         return bases, pressures_pa - inside_pa
 
     def _contract(self, values: np.ndarray, vectors: list[np.ndarray]) -> np.ndarray:
@@ -132,19 +138,23 @@ class ResponseTable:
                                                       for axis, (values, slopes) in enumerate(bases)])
                          for chamber in range(self.n_chambers)])
 
-    def _value(self, grid_values: np.ndarray, pressures_pa: np.ndarray) -> np.ndarray:
-        """The interpolant at ``pressures_pa``; outside the box, its linear extension from the box's edge (the
-        gradient is formed only then: inside, a value is one contraction per axis)."""
-        bases, excess_pa = self._bases(pressures_pa)
-        value = self._contract(grid_values, [values for values, _ in bases])
+    def _value(self, grid_values: np.ndarray, pressures_pa: np.ndarray,
+               bases: tuple[list[Basis], np.ndarray] | None = None) -> np.ndarray:
+        """The interpolant at ``pressures_pa`` (``bases``: theirs, when already formed); outside the box, its
+        linear extension from the box's edge (the gradient is formed only then: inside, a value is one
+        contraction per axis)."""
+        bases_here, excess_pa = bases or self._bases(pressures_pa)
+        value = self._contract(grid_values, [values for values, _ in bases_here])
         if np.any(excess_pa):
-            value = value + np.tensordot(excess_pa, self._gradient(grid_values, bases), axes=(0, 0))
+            value = value + np.tensordot(excess_pa, self._gradient(grid_values, bases_here), axes=(0, 0))
         return value
 
     def volumes(self, pressures_pa: ArrayLike) -> tuple[np.ndarray, float]:
         """Chamber volumes (m^3) and the gland volume (m^3) at ``pressures_pa`` (Pa, one per chamber)."""
         pressures = np.asarray(pressures_pa, dtype=float)
-        return self._value(self.chamber_values, pressures), float(self._value(self.gland_values, pressures))
+        bases = self._bases(pressures)
+        return (self._value(self.chamber_values, pressures, bases),
+                float(self._value(self.gland_values, pressures, bases)))
 
     def compliance(self, pressures_pa: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
         """The tangent compliance at ``pressures_pa``: ``dV_chamber_i/dp_j`` (n, n) and ``dV_gland/dp_j`` (n,),
