@@ -22,23 +22,40 @@ def dask_scheduler():
 
 def test_stretch_measures_of_a_homogeneous_deformation_are_exact():
     rng = np.random.default_rng(0)
-    nodes = rng.uniform(size=(40, 3))
-    tets = np.array([[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10, 11]])
-    edges = nodes[tets[:, 1:]] - nodes[tets[:, :1]]
-    rest_edge_inverse = np.linalg.inv(edges.transpose(0, 2, 1))
     rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
     rotation *= np.sign(np.linalg.det(rotation))
     stretches = np.array([0.7, 1.2, 1.9])
-    deformed = nodes @ (rotation @ np.diag(stretches)).T
-    min_det, low, high, i1_minus_3 = element_stretch_measures(deformed, tets, rest_edge_inverse)
+    deformation = np.broadcast_to(rotation @ np.diag(stretches), (5, 4, 3, 3))
+    min_det, low, high, i1_minus_3 = element_stretch_measures(deformation)
     assert min_det == pytest.approx(np.prod(stretches), rel=1e-10)
     assert (low, high) == pytest.approx((0.7, 1.9), rel=1e-10)
     assert i1_minus_3 == pytest.approx(np.sum(stretches**2) - 3, rel=1e-10)
-    # 10-node elements (a calibration of a 10-node scene crashed here): their corners, the first four nodes, carry
-    # the affine part of the deformation
-    quadratic_tets = np.column_stack([tets, np.arange(12, 30).reshape(3, 6)])
-    assert element_stretch_measures(deformed, quadratic_tets, rest_edge_inverse) == pytest.approx(
-        (min_det, low, high, i1_minus_3), rel=1e-12)
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_the_measures_see_the_strain_where_the_law_is_evaluated(order):
+    # A homogeneous stretch is seen by both element orders; a 10-node element bent by its mid-edge nodes alone
+    # is strained at its quadrature points while its corners have not moved (the measures of a 10-node
+    # calibration were its corners' until they let a Gent fit lock unseen, or refused one for a corner's strain).
+    from phantom.model.fem.model import PhantomModel
+    from phantom.model.mesh.prostate import generate_hollow_sphere
+    from phantom.model.mesh.tetmesh import prepare_surfaces
+    from phantom.model.scene import Material
+
+    mesh = generate_hollow_sphere(10.0, 20.0, 8.0, element_order=order)
+    model = PhantomModel(mesh, prepare_surfaces(mesh, ["cavity"], None, "sphere"), ["cavity"],
+                         Material("neo_hookean", 50e3, 0.45))
+    stretched = model.nodes_m * np.array([1.3, 1.0, 1 / 1.3])
+    assert element_stretch_measures(model.body.deformation_gradients(stretched)) == pytest.approx(
+        (1.0, 1 / 1.3, 1.3, 1.3**2 + 1.3**-2 - 2), rel=1e-9)
+    if order == 2:
+        bent = model.nodes_m.copy()
+        mid_edge = np.unique(model.tets[:, 4:])
+        bent[mid_edge] += np.array([0.0, 0.0, 0.5e-3])
+        gradients = model.body.deformation_gradients(bent)
+        assert gradients.shape == (len(model.tets), 4, 3, 3)
+        low, high = element_stretch_measures(gradients)[1:3]
+        assert high > 1.05 and low < 0.95
 
 
 @pytest.mark.slow

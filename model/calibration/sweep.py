@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from dask.distributed import Client, LocalCluster
 
 #: Bump when what a trace computes changes, so cached traces are recomputed.
-SWEEP_VERSION = 1
+SWEEP_VERSION = 2
 
 
 class SweepError(PhantomError):
@@ -100,13 +100,11 @@ class RayTrace:
                                                        "min_stretch", "max_stretch", "max_i1_minus_3")}
 
 
-def element_stretch_measures(positions_m: np.ndarray, tets: np.ndarray,
-                             rest_edge_inverse: np.ndarray) -> tuple[float, float, float, float]:
-    """Smallest det F, smallest and largest principal stretch and largest ``I1 - 3 = tr(F^T F) - 3`` over the
-    elements of a linear-tetrahedron mesh (``rest_edge_inverse`` = Dm^-1, Dm each element's rest edges as columns);
-    for 10-node elements, of the affine deformation of each element's corner tetrahedron (its first four nodes)."""
-    edges = positions_m[tets[:, 1:4]] - positions_m[tets[:, :1]]
-    deformation = np.einsum("eki,ekj->eij", edges, rest_edge_inverse)
+def element_stretch_measures(deformation: np.ndarray) -> tuple[float, float, float, float]:
+    """Smallest det F, smallest and largest principal stretch and largest ``I1 - 3 = tr(F^T F) - 3`` over
+    deformation gradients ``(..., 3, 3)`` (:meth:`~phantom.model.fem.body.Body.deformation_gradients`: every
+    point where the law is evaluated)."""
+    deformation = deformation.reshape(-1, 3, 3)
     right_cauchy_green = np.einsum("eki,ekj->eij", deformation, deformation)
     squared_stretches = np.linalg.eigvalsh(right_cauchy_green)
     stretches = np.sqrt(np.clip(squared_stretches, 0.0, None))
@@ -115,19 +113,15 @@ def element_stretch_measures(positions_m: np.ndarray, tets: np.ndarray,
 
 
 @functools.lru_cache(maxsize=4)
-def _model_of(scene_text: str, mesh_size_mm: float | None) -> tuple[PhantomModel, np.ndarray]:
+def _model_of(scene_text: str, mesh_size_mm: float | None) -> PhantomModel:
     """The model of a scene (kept per worker process: the tasks of one grid point share it)."""
-    model = PhantomModel.from_scene(scene_from_dict(json.loads(scene_text)), mesh_size_mm=mesh_size_mm)
-    edges = model.nodes_m[model.tets[:, 1:4]] - model.nodes_m[model.tets[:, :1]]
-    # Rows of ``edges`` are edge vectors: F = Ds Dm^-1 with Ds, Dm the edge matrices by columns (a 10-node
-    # element's corners: its mid-edge nodes follow them).
-    return model, np.linalg.inv(edges.transpose(0, 2, 1))
+    return PhantomModel.from_scene(scene_from_dict(json.loads(scene_text)), mesh_size_mm=mesh_size_mm)
 
 
 def trace_ray(task: RayTask) -> RayTrace:
     """Trace one ray (see the module docstring); runs on a Dask worker or in the calling process."""
     started = time.perf_counter()
-    model, rest_edge_inverse = _model_of(json.dumps(task.scene_raw, sort_keys=True), task.mesh_size_mm)
+    model = _model_of(json.dumps(task.scene_raw, sort_keys=True), task.mesh_size_mm)
     pressures = np.asarray(task.pressures_pa, dtype=float)
     warm_start = model.formulation != "linear"
     rows, positions_m, stopped = [], None, "end"
@@ -143,7 +137,7 @@ def trace_ray(task: RayTask) -> RayTrace:
                 break
             positions_m_here, chambers, gland = state.positions_m, state.chamber_volumes_m3, state.gland_volume_m3
             positions_m = positions_m_here
-        measures = element_stretch_measures(positions_m_here, model.tets, rest_edge_inverse)
+        measures = element_stretch_measures(model.body.deformation_gradients(positions_m_here))
         if model.order == 2:  # det F at the quadrature points and each element's volume ratio, not the corners'
             measures = (float(model.body.deformation_determinants(positions_m_here).min()), *measures[1:])
         rows.append((load_factor, gland, np.asarray(chambers, float), *measures))

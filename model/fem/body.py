@@ -360,6 +360,16 @@ class SolidBody:
                                               data.volume_derivatives, data.volume_weights)
         return kernels.deformation_determinants(positions_m, self.tets, self.dm_inverse)
 
+    def deformation_gradients(self, positions_m: FloatArray) -> FloatArray:
+        """F at every point where the law is evaluated (m, q, 3, 3): a 4-node element's one F (q = 1), a 10-node
+        element's F at each of its quadrature points (its corners alone miss its bending)."""
+        if self.quadratic is not None:
+            gradients: FloatArray = np.einsum("eai,eqaj->eqij", positions_m[self.tets], self.quadratic.gradients)
+            return gradients
+        edges = positions_m[self.tets[:, 1:4]] - positions_m[self.tets[:, :1]]
+        corners: FloatArray = np.einsum("eki,ekj->eij", edges, self.dm_inverse)[:, None]
+        return corners
+
     def element_volume_ratios(self, positions_m: FloatArray) -> FloatArray:
         """Each element's current over rest volume (m,): det F of a 4-node element; for a 10-node one its exact
         volume ratio (the degree-3 rule), the dilatation ``Jbar`` the mixed formulation holds near 1."""
