@@ -17,7 +17,9 @@ from phantom.model.calibration.calibrate import (
     CalibrationError,
     CalibrationResult,
     Grid,
+    Measurements,
     Responses,
+    calibrate,
     dump_toml,
     fit,
     load_measurements,
@@ -147,6 +149,45 @@ def test_the_fit_keeps_to_the_constraints_and_refuses_when_nothing_is_valid():
     nothing = _synthetic_responses(admissible_below_t=-1.0)
     with pytest.raises(CalibrationError, match="refused: no state on the grid fits"):
         fit(nothing, measured, [0, 1, 2, 3])
+
+
+def test_a_modulus_band_holds_the_fit_and_says_which_edge_it_sits_on():
+    # The truth at t = 1.7 (E = E0 / 1.7); a band of t in [0.5, 1.2] (E from E0 / 1.2 to 2 E0, stiffer than the
+    # truth) must hold the fit at its soft edge, t = 1.2, and say so; a band around the truth leaves it free.
+    responses = _synthetic_responses()
+    measured = _family(0.8, 1.7)
+    held = fit(responses, measured, [0, 1, 2, 3], load_factor_range=(0.5, 1.2))
+    assert held.load_factor == pytest.approx(1.2, abs=1e-6)
+    assert "lower edge" in held.binding and "softer" in held.binding
+    stiff = fit(responses, _family(0.8, 0.3), [0, 1, 2, 3], load_factor_range=(0.5, 1.2))
+    assert stiff.load_factor == pytest.approx(0.5, abs=1e-6)
+    assert "upper edge" in stiff.binding
+    free = fit(responses, measured, [0, 1, 2, 3], load_factor_range=(1.0, 2.5))
+    assert free.load_factor == pytest.approx(1.7, rel=2e-3)
+    assert free.binding is None
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--modulus-band-pct", "100"], r"--modulus-band-pct must be within \(0, 100\), got 100"),
+    (["--modulus-band-pct", "-5"], r"--modulus-band-pct must be within \(0, 100\), got -5"),
+    (["--youngs-modulus-kpa", "0"], "--youngs-modulus-kpa must be a positive number, got 0"),
+    (["--youngs-modulus-kpa", "nan"], "--youngs-modulus-kpa must be a positive number, got nan"),
+])
+def test_bad_modulus_options_say_what_is_wrong(tmp_path, argv, message):
+    from phantom import PhantomError
+
+    csv_path = tmp_path / "m.csv"
+    csv_path.write_text("p0_kpa,p1_kpa,p2_kpa,measured_ml\n0,0,0,26\n1,0,0,27\n0,1,0,27\n")
+    args = _parse(["calibrate", "--measurements", str(csv_path), "--size-mm", "6", *argv])
+    with pytest.raises(PhantomError, match=message):
+        args.run(args)
+
+
+def test_a_band_that_misses_the_scenes_modulus_is_refused():
+    scene = load_scene("builtin")
+    measurements = Measurements(np.array([[0.0, 0, 0], [1e3, 0, 0], [0, 1e3, 0]]), np.array([26e-6, 27e-6, 27e-6]))
+    with pytest.raises(CalibrationError, match="must hold the scene's modulus"):
+        calibrate(scene, measurements, parse_grid(["lobe_chamber_scale=1"]), modulus_band_pa=(60e3, 80e3))
 
 
 @pytest.mark.parametrize("items, message", [
@@ -316,3 +357,11 @@ def test_the_written_scene_keeps_every_table_and_rebases_a_relative_mesh(tmp_pat
     assert load_scene(output).raw["model"] == {"fidelity": "table", "accuracy_pct": 2.0}
     with pytest.raises(CalibrationError, match="non-finite"):
         dump_toml({"material": {"youngs_modulus_kpa": float("nan")}})
+
+
+def test_the_material_anchored_calibrations_scene_is_the_cast_silicone_on_10_node_elements():
+    # bench/README.md's material-anchored calibration starts from this scene: the published modulus, nearly
+    # incompressible 10-node elements, walls down to a lost-wax cast's 1 mm.
+    scene = load_scene(Path(__file__).resolve().parents[1] / "bench" / "calibration_ecoflex.toml")
+    assert scene.material.youngs_modulus_pa == 50e3 and scene.material.poisson_ratio >= 0.4995
+    assert scene.geometry.element_order == 2 and scene.geometry.min_wall_mm == 1.0

@@ -16,6 +16,11 @@ with G interpolated: monotone cubic in t along each trace, multilinear in theta 
 over every grid point and t, then a bounded refinement). Leave-one-out refits everything (theta and E) without
 each point and predicts it from the same traces: it solves nothing more.
 
+A calibration anchored on the material gives E a band (``modulus_band_pa``: the silicone's published modulus
+and its spread, e.g. Ecoflex 00-10's 50 kPa +/- 40 %): t is then bounded to ``[E0 / E_high, E0 / E_low]`` in the
+fit and in every leave-one-out refit, the geometry takes up what the band cannot, and a fit held at an edge of
+the band says so (``binding``): the data ask for a material outside it.
+
 Physical validity is a constraint, not a hope: only measurements at pressures within PRESSURE_LIMIT_PA are
 used, and a (theta, t) is admissible only where, on every fitted ray, no element is inverted (det F > 0), the
 principal stretches stay inside the law's stated range (:data:`LAW_STRETCH_RANGE`) and, for the Gent law,
@@ -352,9 +357,11 @@ class Fit:
     binding: str | None = None
 
 
-def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
+def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int],
+        load_factor_range: tuple[float, float] | None = None) -> Fit:
     """The admissible (theta, t) of least relative squared residual on ``rays``: grid search, then refinement.
 
+    ``load_factor_range``: the t (E0/E) the fit may take, from a modulus band; None: any traced t.
     Raises CalibrationError when no traced state fits every ray while keeping to the constraints.
     """
     # scipy.optimize (0.5 s to import) only where a fit is refined
@@ -366,6 +373,10 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
     with np.errstate(invalid="ignore"):
         cost = np.sum(residual**2, axis=-1)
     usable = np.all(responses.admissible[..., rays], axis=-1) & np.isfinite(cost)
+    t_low, t_high = load_factor_range or (responses.load_factors[1], responses.load_factors[-1])
+    t_low, t_high = max(t_low, responses.load_factors[1]), min(t_high, responses.load_factors[-1])
+    in_band = (responses.load_factors >= t_low - 1e-12) & (responses.load_factors <= t_high + 1e-12)
+    usable &= in_band
     if not usable.any():
         raise CalibrationError(_no_admissible_state(responses, rays))
     best = np.unravel_index(np.argmin(np.where(usable, cost, np.inf)), cost.shape)
@@ -373,8 +384,8 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
     t0 = float(responses.load_factors[best[-1]])
     # The refinement moves the varying axes and t only: a single-valued axis stays at its value.
     varying = responses.varying
-    low = np.array([responses.grid.values[axis][0] for axis in varying] + [responses.load_factors[1]])
-    high = np.array([responses.grid.values[axis][-1] for axis in varying] + [responses.load_factors[-1]])
+    low = np.array([responses.grid.values[axis][0] for axis in varying] + [t_low])
+    high = np.array([responses.grid.values[axis][-1] for axis in varying] + [t_high])
     span = high - low
 
     def state(scaled: np.ndarray) -> tuple[np.ndarray, float]:
@@ -403,7 +414,20 @@ def fit(responses: Responses, measured_m3: np.ndarray, rays: list[int]) -> Fit:
     scaled = refined.x if refined.fun <= objective(start) else start
     theta, load_factor = state(scaled)
     predicted = responses.interpolate("gland_m3", theta, load_factor)
-    return Fit(theta, load_factor, predicted, float(objective(scaled)), _binding(responses, cost, usable, rays))
+    binding = _binding(responses, cost, usable, rays)
+    if load_factor_range is not None and binding is None:
+        binding = _band_edge(load_factor, (t_low, t_high))
+    return Fit(theta, load_factor, predicted, float(objective(scaled)), binding)
+
+
+def _band_edge(load_factor: float, band: tuple[float, float]) -> str | None:
+    """Which edge of the modulus band the fit sits on (t = E0/E: the band's high t is its low E), if any."""
+    tolerance = 1e-3 * (band[1] - band[0])
+    if load_factor >= band[1] - tolerance:
+        return "the modulus band's lower edge: the measurements ask for a softer material than the band allows"
+    if load_factor <= band[0] + tolerance:
+        return "the modulus band's upper edge: the measurements ask for a stiffer material than the band allows"
+    return None
 
 
 def _binding(responses: Responses, cost: np.ndarray, usable: np.ndarray, rays: list[int]) -> str | None:
@@ -486,6 +510,7 @@ class CalibrationResult:
     tasks: int
     traces_solved: int
     binding: str | None = None
+    modulus_band_pa: tuple[float, float] | None = None
 
     @property
     def fit_mean_abs_pct_error(self) -> float:
@@ -529,6 +554,8 @@ class CalibrationResult:
             "traces": self.tasks,
             "traces_solved_now": self.traces_solved,
             "binding_constraint": self.binding,
+            "youngs_modulus_band_kpa": (None if self.modulus_band_pa is None
+                                        else [value / 1e3 for value in self.modulus_band_pa]),
         }
 
 
@@ -545,11 +572,22 @@ def linear_load_factor(model: PhantomModel, measurements: Measurements) -> float
 
 def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: str | None = None,
               n_workers: int | None = None, progress: Progress | None = None, max_load_factor: float | None = None,
-              load_factor_step: float | None = None) -> CalibrationResult:
+              load_factor_step: float | None = None,
+              modulus_band_pa: tuple[float, float] | None = None) -> CalibrationResult:
     """Fit E and the grid's parameters to ``measurements`` (see the module docstring); refuse an invalid fit.
 
     ``scene`` gives everything else (material law, Poisson ratio, geometry, mesh size); its modulus is E0.
+    ``modulus_band_pa``: (lowest, highest) E the fit and every leave-one-out refit may take (the material's
+    published modulus and its uncertainty); None lets E go wherever the traces reach.
     """
+    e0 = scene.material.youngs_modulus_pa
+    band_t: tuple[float, float] | None = None
+    if modulus_band_pa is not None:
+        low_pa, high_pa = modulus_band_pa
+        if not 0 < low_pa <= e0 <= high_pa:
+            raise CalibrationError(f"the modulus band {low_pa / 1e3:g}-{high_pa / 1e3:g} kPa must hold the "
+                                   f"scene's modulus ({e0 / 1e3:g} kPa) and be positive")
+        band_t = (e0 / high_pa, e0 / low_pa)
     over = measurements.pressures_pa.max()
     if over > PRESSURE_LIMIT_PA:
         raise CalibrationError(f"{measurements.path}: a measurement at {over / 1e3:g} kPa is above the "
@@ -566,8 +604,13 @@ def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: s
         raise CalibrationError(f"--grid {', '.join(geometry_names)}: geometry parameters need the built-in mesh")
     base_model = PhantomModel.from_scene(scene)
     t_linear = linear_load_factor(base_model, measurements)
-    max_load_factor = max_load_factor or MAX_LINEAR_MULTIPLE * t_linear
-    step = load_factor_step or t_linear / STEPS_PER_LINEAR_LOAD_FACTOR
+    if band_t is not None:
+        # The traces need to reach the band's softest E only; the steps are as fine as they are over 4 t_linear.
+        max_load_factor = max_load_factor or band_t[1]
+        step = load_factor_step or max_load_factor / (STEPS_PER_LINEAR_LOAD_FACTOR * MAX_LINEAR_MULTIPLE)
+    else:
+        max_load_factor = max_load_factor or MAX_LINEAR_MULTIPLE * t_linear
+        step = load_factor_step or t_linear / STEPS_PER_LINEAR_LOAD_FACTOR
     load_factors = tuple(np.arange(0.0, max_load_factor + 0.5 * step, step).tolist())
     measured = measurements.volumes_m3
     stop_growth = OVERSHOOT * np.maximum(measured - base_model.rest_gland_volume_m3, 0.2 * measured.max() / 10)
@@ -599,14 +642,13 @@ def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: s
         traces += [next(results) for _ in range(n_rays)] if ok else [None] * n_rays
     responses = assemble_responses(grid, traces, feasible, law, gent_jms, n_rays, float(load_factors[-1]))
     everyone = list(range(n_rays))
-    full = fit(responses, measured, everyone)
-    loo_fits = [fit(responses, measured, [j for j in everyone if j != left_out]) for left_out in everyone]
+    full = fit(responses, measured, everyone, band_t)
+    loo_fits = [fit(responses, measured, [j for j in everyone if j != left_out], band_t) for left_out in everyone]
     loo_predicted = np.array([refit.predicted_m3[left_out] for left_out, refit in enumerate(loo_fits)])
     beyond = [left_out for left_out in everyone if not np.isfinite(loo_predicted[left_out])]
     if beyond:  # the left-out ray's trace stopped (OVERSHOOT) below the refit's load: solve it there
         loo_predicted[beyond] = _solve_left_out(raw, grid, [loo_fits[j] for j in beyond], beyond, measurements,
                                                 scheduler, n_workers, progress)
-    e0 = scene.material.youngs_modulus_pa
     parameters = {name: float(full.theta[k]) for k, name in enumerate(grid.names)}
     verified, validity = _verify(raw, parameters, full.load_factor, measurements, law, scheduler, n_workers,
                                  progress)
@@ -614,7 +656,8 @@ def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: s
         law, grid, parameters, e0 / full.load_factor, measured, measurements.pressures_pa, verified,
         full.predicted_m3, np.array(loo_predicted),
         [{name: float(f.theta[k]) for k, name in enumerate(grid.names)} for f in loo_fits],
-        np.array([e0 / f.load_factor for f in loo_fits]), validity, len(tasks), solved_now, full.binding)
+        np.array([e0 / f.load_factor for f in loo_fits]), validity, len(tasks), solved_now, full.binding,
+        modulus_band_pa)
 
 
 def _solve_left_out(raw: dict[str, Any], grid: Grid, refits: list[Fit], left_outs: list[int],

@@ -11,12 +11,14 @@ where the three ellipsoidal chambers sit and how large they are, and the fixatio
     base_chamber_scale = 1.0                        # multiplies the base chamber's semi-axes
     lobe_chamber_scale = 1.0                        # multiplies both lobe chambers' semi-axes
     fixation_radius_mm = 6.0                        # the fixed patch around the base pole
-    min_wall_mm = 2.0                               # the thinnest wall allowed (manufacturable: >= 2 mm)
+    min_wall_mm = 2.0                               # the thinnest wall allowed (a lost-wax cast makes 1 mm)
     mesh_size_mm = 2.5                              # element size, the one knob that refines the whole mesh
     element_order = 1                               # 1: 4-node tetrahedra; 2: 10-node (quadratic) ones
 
 Every wall (chamber to outer surface, chamber to chamber) must be at least ``min_wall_mm`` thick, itself at
-least :data:`MANUFACTURABLE_WALL_MM`: a cast silicone wall thinner than that tears on demoulding. Walls are
+least :data:`MANUFACTURABLE_WALL_MM`: the thinnest wall a lost-wax cast makes (the wax core melts out, so
+nothing is pulled through the wall); the design default of 2 mm leaves margin for a cast that is off by a
+millimetre. Walls are
 measured on samples of the surfaces (to about 0.05 mm) before meshing (:func:`phantom.model.mesh.shape.check_walls`),
 so bad parameters give a one-line ``MeshError`` instead of a broken mesh. Only the standard library is imported at
 module load: a scene is parsed without numpy.
@@ -32,8 +34,8 @@ from typing import Any
 
 from phantom.model.errors import SceneError
 
-#: The thinnest silicone wall that can be cast and demoulded (mm).
-MANUFACTURABLE_WALL_MM = 2.0
+#: The thinnest silicone wall a lost-wax cast makes (mm).
+MANUFACTURABLE_WALL_MM = 1.0
 #: The element orders of the built-in mesh: 4-node and 10-node tetrahedra.
 ELEMENT_ORDERS = (1, 2)
 #: A point or the semi-axes of an ellipsoid (x, y, z), mm.
@@ -54,7 +56,7 @@ class ProstateGeometry:
     base_chamber_scale: float = 1.0
     lobe_chamber_scale: float = 1.0
     fixation_radius_mm: float = 6.0
-    min_wall_mm: float = MANUFACTURABLE_WALL_MM
+    min_wall_mm: float = 2.0
     mesh_size_mm: float = 2.5
     element_order: int = 1
 

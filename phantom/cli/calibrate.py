@@ -42,6 +42,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     calibrate.add_argument("--material", choices=("gent", "neo_hookean", "corotational", "linear"),
                            help="material law to fit (default: the scene's)")
     calibrate.add_argument("--gent-jm", type=float, help="Gent Jm when --material gent and Jm is not swept")
+    calibrate.add_argument("--youngs-modulus-kpa", type=float,
+                           help="the material's published modulus E0 (kPa; default: the scene's)")
+    calibrate.add_argument("--modulus-band-pct", type=float,
+                           help="E may move at most this many %% from E0 (e.g. 40: the silicone's spread); "
+                                "default: E is free")
     calibrate.add_argument("--grid", action="append", metavar="NAME=V1,V2,...",
                            help="a swept parameter and its values (repeat; default: a grid per law, see "
                                 "README); names: gent_jm, poisson_ratio, or any [geometry] key")
@@ -77,7 +82,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _scene_for(args: argparse.Namespace) -> Scene:
-    """The scene, with --material, --gent-jm and --size-mm applied to its table."""
+    """The scene, with --material, --gent-jm, --youngs-modulus-kpa and --size-mm applied to its table."""
+    import math
+
     from phantom import PhantomError
     from phantom.model.calibration.calibrate import scene_with
     from phantom.model.scene import load_scene, scene_from_dict
@@ -91,6 +98,11 @@ def _scene_for(args: argparse.Namespace) -> Scene:
             document["material"].pop("gent_jm", None)
     if args.gent_jm is not None:
         document = scene_with(document, {"gent_jm": args.gent_jm})
+    if args.youngs_modulus_kpa is not None:
+        if not (math.isfinite(args.youngs_modulus_kpa) and args.youngs_modulus_kpa > 0):
+            raise PhantomError(f"--youngs-modulus-kpa must be a positive number, got {args.youngs_modulus_kpa}")
+        document = scene_with(document, {})
+        document.setdefault("material", {})["youngs_modulus_kpa"] = args.youngs_modulus_kpa
     if args.size_mm is not None:
         if scene.geometry is None:
             raise PhantomError(f"--size-mm applies to the built-in mesh only; {scene.mesh} is read as it is")
@@ -123,8 +135,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
     measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers),
                                      scan_volume_ml=_scan_volume_ml)
     grid = parse_grid(args.grid or DEFAULT_GRIDS[scene.material.model])
+    band = None
+    if args.modulus_band_pct is not None:
+        if not 0 < args.modulus_band_pct < 100:
+            raise PhantomError(f"--modulus-band-pct must be within (0, 100), got {args.modulus_band_pct}")
+        e0 = scene.material.youngs_modulus_pa
+        band = (e0 * (1 - args.modulus_band_pct / 100), e0 * (1 + args.modulus_band_pct / 100))
     result = calibrate(scene, measurements, grid, scheduler=args.scheduler, n_workers=args.workers,
-                       progress=stderr_progress("calibrate: tracing the pressure rays"))
+                       progress=stderr_progress("calibrate: tracing the pressure rays"), modulus_band_pa=band)
     stem = Path(scene.path).stem if scene.path else "scene"
     output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
     parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
