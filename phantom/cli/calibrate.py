@@ -150,7 +150,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
                          for name, values in zip(grid.names, grid.values, strict=True))
     comment = (f"Calibrated by `phantom calibrate --scene {args.scene} --measurements {args.measurements}"
                f"{' --material ' + args.material if args.material else ''}"
-               f"{f' --size-mm {args.size_mm:g}' if args.size_mm else ''} {grid_text}`\n"
+               f"{f' --size-mm {args.size_mm:g}' if args.size_mm else ''}"
+               f"{f' --youngs-modulus-kpa {args.youngs_modulus_kpa:g}' if args.youngs_modulus_kpa else ''}"
+               f"{f' --modulus-band-pct {args.modulus_band_pct:g}' if args.modulus_band_pct else ''} {grid_text}`\n"
                f"({len(measurements.volumes_m3)} points): {result.material_model}, E = "
                f"{result.youngs_modulus_pa / 1e3:.4g} kPa, {parameters};\n"
                f"fit mean |error| {result.fit_mean_abs_pct_error:.2f} % (full solves), leave-one-out "
