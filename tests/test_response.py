@@ -122,6 +122,19 @@ def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, 
     assert reported[-1] == (27 + 4, 27 + 4) and len(solves) == 26 + 4
 
 
+def test_a_model_that_has_factorised_with_cholmod_still_goes_to_a_worker_process(model):
+    # The table sends its model to worker processes; CHOLMOD's symbolic analysis, which the body keeps after its
+    # first factorisation, cannot be pickled (the slab test below failed on it).
+    import pickle
+
+    solved = model.equilibrium(np.array([1500.0, 1000.0, 500.0]))
+    model.body.factorize(model.body.tangent_data())  # as a Newton step on the exact tangent does
+    assert model.body._cholmod_analysis is not None
+    copy = pickle.loads(pickle.dumps(model))
+    again = copy.equilibrium(np.array([1500.0, 1000.0, 500.0]))
+    assert again.chamber_volumes_m3 == pytest.approx(solved.chamber_volumes_m3, rel=1e-9)
+
+
 @pytest.mark.slow
 def test_slabs_on_worker_processes_give_the_same_table(model, table):
     # each slab's solves are the same wherever it runs (the slab's first point from rest, then neighbours)

@@ -360,6 +360,13 @@ class SolidBody:
                                               data.volume_derivatives, data.volume_weights)
         return kernels.deformation_determinants(positions_m, self.tets, self.dm_inverse)
 
+    def __getstate__(self) -> dict[str, Any]:
+        """A body goes to worker processes (the response table's slabs) without its CHOLMOD analysis, which
+        cannot be pickled: a worker analyses the pattern again at its first factorisation."""
+        state = self.__dict__.copy()
+        state["_cholmod_analysis"] = None
+        return state
+
     def deformation_gradients(self, positions_m: FloatArray) -> FloatArray:
         """F at every point where the law is evaluated (m, q, 3, 3): a 4-node element's one F (q = 1), a 10-node
         element's F at each of its quadrature points (its corners alone miss its bending)."""
