@@ -122,11 +122,14 @@ def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, 
     assert reported[-1] == (27 + 4, 27 + 4) and len(solves) == 26 + 4
 
 
-def test_a_model_that_has_factorised_with_cholmod_still_goes_to_a_worker_process(model):
+def test_a_model_that_has_factorised_with_cholmod_still_goes_to_a_worker_process(model, monkeypatch, tmp_path):
     # The table sends its model to worker processes; CHOLMOD's symbolic analysis, which the body keeps after its
-    # first factorisation, cannot be pickled (the slab test below failed on it).
+    # first factorisation, and a rest factor made in this process (an empty cache, as on a fresh machine) cannot
+    # be pickled (the slab test below failed on a clean clone).
     import pickle
 
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    model.body._factorizations.clear()
     solved = model.equilibrium(np.array([1500.0, 1000.0, 500.0]))
     model.body.factorize(model.body.tangent_data())  # as a Newton step on the exact tangent does
     assert model.body._cholmod_analysis is not None

@@ -361,10 +361,17 @@ class SolidBody:
         return kernels.deformation_determinants(positions_m, self.tets, self.dm_inverse)
 
     def __getstate__(self) -> dict[str, Any]:
-        """A body goes to worker processes (the response table's slabs) without its CHOLMOD analysis, which
-        cannot be pickled: a worker analyses the pattern again at its first factorisation."""
+        """A body goes to worker processes (the response table's slabs) without CHOLMOD's objects, which cannot
+        be pickled: its symbolic analysis is made again at the worker's first factorisation, and a rest factor
+        made in this process travels as its arrays (as the disk cache stores it; SuperLU's is made again)."""
         state = self.__dict__.copy()
         state["_cholmod_analysis"] = None
+        factors: dict[tuple[int, ...], Factor] = {}
+        for key, factor in self._factorizations.items():
+            arrays = factor.cholesky_factor() if isinstance(factor, Factorization) else factor
+            if arrays is not None:
+                factors[key] = arrays
+        state["_factorizations"] = factors
         return state
 
     def deformation_gradients(self, positions_m: FloatArray) -> FloatArray:
