@@ -138,7 +138,7 @@ def trace_ray(task: RayTask) -> RayTrace:
             positions_m_here, chambers, gland = state.positions_m, state.chamber_volumes_m3, state.gland_volume_m3
             positions_m = positions_m_here
         measures = element_stretch_measures(model.body.deformation_gradients(positions_m_here))
-        if model.order == 2:  # det F at the quadrature points and each element's volume ratio, not the corners'
+        if model.order == 2:  # the least of det F at the quadrature points and each element's volume ratio (Jbar)
             measures = (float(model.body.deformation_determinants(positions_m_here).min()), *measures[1:])
         rows.append((load_factor, gland, np.asarray(chambers, float), *measures))
         if gland - model.rest_gland_volume_m3 > task.stop_growth_m3:
