@@ -365,3 +365,40 @@ def test_the_material_anchored_calibrations_scene_is_the_cast_silicone_on_10_nod
     scene = load_scene(Path(__file__).resolve().parents[1] / "bench" / "calibration_ecoflex.toml")
     assert scene.material.youngs_modulus_pa == 50e3 and scene.material.poisson_ratio >= 0.4995
     assert scene.geometry.element_order == 2 and scene.geometry.min_wall_mm == 1.0
+
+
+def test_a_measurements_medium_column_says_where_each_point_hung(tmp_path):
+    path = tmp_path / "m.csv"
+    path.write_text("p0_kpa,measured_ml,medium\n0,26,air\n1,27, Water \n2,28,\n")
+    assert load_measurements(path).media == ("air", "water", "air")  # blank: hanging in air, the default
+    assert load_measurements(MEASUREMENTS).media == ("air",) * 8  # no column: every point in air
+    path.write_text("p0_kpa,measured_ml,medium\n0,26,air\n1,27,oil\n2,28,air\n")
+    with pytest.raises(CalibrationError, match=r"data row 2: medium 'oil' is not one of air, water"):
+        load_measurements(path)
+
+
+@pytest.mark.parametrize("medium", ["air", "water"])
+def test_a_ray_traced_under_gravity_is_the_full_solve_at_the_modulus_its_load_factor_stands_for(medium):
+    """E is a load factor only if the body force scales with it too: the state at pressures p, weight b and
+    modulus E0 / t is the one at (t p, t b) and E0. Checked against independent full solves at E0 / t."""
+    from phantom.model.calibration.calibrate import ray_task
+    from phantom.model.calibration.sweep import trace_ray
+    from phantom.model.scene import Load
+
+    scene = dataclasses.replace(load_scene("builtin:calibrated"), load=Load(gravity_m_s2=(0.0, 0.0, -9.80665)))
+    raw = {**scene.raw, "load": {"gravity_m_s2": [0.0, 0.0, -9.80665]}}
+    raw["geometry"] = {**raw["geometry"], "mesh_size_mm": 6.0}
+    measurements = Measurements(np.array([[0.0, 0, 0], [1e3, 0, 0]]), np.array([26e-6, 27e-6]), media=(medium,) * 2)
+    model = PhantomModel.from_scene(scene, mesh_size_mm=6.0)
+    for row in range(2):
+        task = ray_task(scene, raw, measurements, row, (0.0, 0.5, 2.0))
+        trace = trace_ray(task)
+        assert trace.stopped == "end"
+        assert trace.gland_m3[0] == model.rest_gland_volume_m3  # t = 0: an infinitely stiff silicone
+        for k, load_factor in enumerate(task.load_factors[1:], start=1):
+            softer = model.with_material(youngs_modulus_pa=scene.material.youngs_modulus_pa / load_factor)
+            state = softer.equilibrium(measurements.pressures_pa[row],
+                                       body_force_n_per_m3=list(scene.load.body_force_n_per_m3(medium)))
+            assert trace.gland_m3[k] == pytest.approx(state.gland_volume_m3, rel=1e-7)
+            np.testing.assert_allclose(trace.chamber_m3[k], state.chamber_volumes_m3, rtol=1e-6)
+        assert trace.gland_m3[-1] != trace.gland_m3[0]  # the weight alone moves the zero-pressure row too

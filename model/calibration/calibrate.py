@@ -51,7 +51,7 @@ from phantom.model.errors import MeshError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 from phantom.model.mesh.shape import check_walls
-from phantom.model.scene import HYPERELASTIC_MODELS, PRESSURE_LIMIT_PA, Scene, scene_from_dict
+from phantom.model.scene import HYPERELASTIC_MODELS, MEDIA, PRESSURE_LIMIT_PA, Scene, scene_from_dict
 
 #: The largest measurement file read (bytes): a table of thousands of rows is far smaller.
 MAX_MEASUREMENT_BYTES = 2**20
@@ -84,11 +84,17 @@ class CalibrationError(PhantomError):
 
 @dataclass(frozen=True)
 class Measurements:
-    """Measured gland volumes (m^3) at chamber pressures (Pa), one row per experiment."""
+    """Measured gland volumes (m^3) at chamber pressures (Pa), one row per experiment, and where each was
+    measured (``media``: one of :data:`~phantom.model.scene.MEDIA` per row; empty means every row in air)."""
 
     pressures_pa: np.ndarray       # (k, n_chambers)
     volumes_m3: np.ndarray         # (k,)
     path: str = ""
+    media: tuple[str, ...] = ()
+
+    def medium(self, row: int) -> str:
+        """Where row ``row`` was measured: hanging in air from the tube junction (the default) or in water."""
+        return self.media[row] if self.media else "air"
 
 
 #: The files a ``measured_ml`` entry may name instead of a number: scans of the phantom.
@@ -102,7 +108,9 @@ Progress = Callable[[int, int], None]
 
 def load_measurements(path: str | Path, n_chambers: int | None = None,
                       scan_volume_ml: ScanVolume | None = None) -> Measurements:
-    """Read a CSV with columns ``p0_kpa, p1_kpa, ..., measured_ml`` (``#`` lines are comments).
+    """Read a CSV with columns ``p0_kpa, p1_kpa, ..., measured_ml`` (``#`` lines are comments), and optionally
+    ``medium``: where the phantom hung when it was measured, ``air`` (the default, also for a blank entry) or
+    ``water`` (which leaves only the silicone's density excess over water's as its weight).
 
     A ``measured_ml`` entry may instead name a scan file (.obj, .ply or .stl, in mm, relative to the CSV's
     folder): ``scan_volume_ml(file)`` measures it (``phantom calibrate`` passes the scan comparison's cleaned,
@@ -133,8 +141,14 @@ def load_measurements(path: str | Path, n_chambers: int | None = None,
                                f"{n_chambers} chambers")
     rows_kpa: list[list[float]] = []
     rows_ml: list[float] = []
+    media: list[str] = []
     for line_number, row in enumerate(reader, start=2):
         row = {key.strip(): value for key, value in row.items() if key is not None}
+        medium = (row.get("medium") or "").strip().lower() or "air"
+        if medium not in MEDIA:
+            raise CalibrationError(f"{path}, data row {line_number - 1}: medium {medium!r} is not one of "
+                                   f"{', '.join(MEDIA)} (where the phantom hung when it was measured; blank: air)")
+        media.append(medium)
         try:
             rows_kpa.append([float(row[name]) for name in pressure_columns])
             rows_ml.append(_measured_volume_ml(row["measured_ml"], path.parent, scan_volume_ml,
@@ -150,7 +164,7 @@ def load_measurements(path: str | Path, n_chambers: int | None = None,
         raise CalibrationError(f"{path} holds volumes <= 0 ml: fix the measurements")
     if len(volumes_ml) < 3:
         raise CalibrationError(f"{path} has {len(volumes_ml)} rows: a fit with leave-one-out needs at least 3")
-    return Measurements(pressures_kpa * 1e3, volumes_ml * 1e-6, str(path))
+    return Measurements(pressures_kpa * 1e3, volumes_ml * 1e-6, str(path), tuple(media))
 
 
 def _measured_volume_ml(entry: str | None, folder: Path, scan_volume_ml: ScanVolume | None, where: str) -> float:
@@ -570,6 +584,17 @@ def linear_load_factor(model: PhantomModel, measurements: Measurements) -> float
     return factor
 
 
+def ray_task(parsed: Scene, document: dict[str, Any], measurements: Measurements, row: int,
+             load_factors: tuple[float, ...], stop_growth_m3: float = float("inf"),
+             stop_i1_minus_3: float = float("inf")) -> RayTask:
+    """The sweep task of measurement ``row`` in the scene ``document`` (``parsed`` is it parsed): its pressure
+    ray, with the weight of the medium it was measured in (the scene's ``[load]``; none without one), both
+    scaled by the load factor."""
+    body_force = parsed.load.body_force_n_per_m3(measurements.medium(row))
+    return RayTask(document, tuple(measurements.pressures_pa[row].tolist()), load_factors, stop_growth_m3,
+                   stop_i1_minus_3=stop_i1_minus_3, body_force_n_per_m3=body_force)
+
+
 def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: str | None = None,
               n_workers: int | None = None, progress: Progress | None = None, max_load_factor: float | None = None,
               load_factor_step: float | None = None,
@@ -630,8 +655,8 @@ def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: s
         if ok:
             jm = parsed.material.gent_jm
             law_limit = GENT_LIMIT_FRACTION * jm if law == "gent" and jm is not None else np.inf
-            tasks += [RayTask(document, tuple(p.tolist()), load_factors, float(stop_growth[j]),
-                              stop_i1_minus_3=law_limit) for j, p in enumerate(measurements.pressures_pa)]
+            tasks += [ray_task(parsed, document, measurements, j, load_factors, float(stop_growth[j]), law_limit)
+                      for j in range(len(measured))]
     if not any(feasible):
         raise CalibrationError("every grid point breaks the wall-thickness limit: shrink the geometry grid")
     solved_now = sum(cached_trace(task) is None for task in tasks)
@@ -669,7 +694,7 @@ def _solve_left_out(raw: dict[str, Any], grid: Grid, refits: list[Fit], left_out
     for refit, left_out in zip(refits, left_outs, strict=True):
         document = scene_with(raw, {name: float(refit.theta[k]) for k, name in enumerate(grid.names)})
         load_factors = tuple((refit.load_factor * np.array([0.25, 0.5, 0.75, 1.0])).tolist())
-        tasks.append(RayTask(document, tuple(measurements.pressures_pa[left_out].tolist()), load_factors))
+        tasks.append(ray_task(scene_from_dict(document), document, measurements, left_out, load_factors))
     return np.array([trace.gland_m3[-1] for trace in run_sweep(tasks, scheduler=scheduler, n_workers=n_workers,
                                                                progress=progress)])
 
@@ -682,7 +707,8 @@ def _verify(raw: dict[str, Any], parameters: dict[str, float], load_factor: floa
     document = scene_with(raw, parameters)
     jm = document.get("material", {}).get("gent_jm")
     load_factors = tuple((load_factor * np.array([0.25, 0.5, 0.75, 1.0])).tolist())
-    tasks = [RayTask(document, tuple(p.tolist()), load_factors) for p in measurements.pressures_pa]
+    parsed = scene_from_dict(document)
+    tasks = [ray_task(parsed, document, measurements, row, load_factors) for row in range(len(measurements.volumes_m3))]
     traces = run_sweep(tasks, scheduler=scheduler, n_workers=n_workers, progress=progress)
     volumes, reasons = [], []
     for trace, pressures in zip(traces, measurements.pressures_pa, strict=True):

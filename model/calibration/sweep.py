@@ -58,6 +58,8 @@ class RayTask:
 
     scene_raw : the scene's parsed TOML (material and geometry as the scene says); a built-in mesh only, or an
         absolute mesh path. mesh_size_mm : element size of the built-in mesh (None: the scene's).
+    body_force_n_per_m3 : the weight per volume (N/m^3) in the medium the ray was measured in; it is scaled by
+        the load factor with the pressures, because the load factor stands for the modulus (E0 / t).
     """
 
     scene_raw: dict[str, Any]
@@ -66,13 +68,16 @@ class RayTask:
     stop_growth_m3: float = float("inf")
     mesh_size_mm: float | None = None
     stop_i1_minus_3: float = float("inf")
+    body_force_n_per_m3: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def key(self) -> str:
         """A hash of everything the trace depends on: the name it is stored under."""
-        text = json.dumps([SWEEP_VERSION, self.scene_raw, list(self.pressures_pa), list(self.load_factors),
-                           repr(self.stop_growth_m3), self.mesh_size_mm, repr(self.stop_i1_minus_3)],
-                          sort_keys=True, default=repr)
+        parts = [SWEEP_VERSION, self.scene_raw, list(self.pressures_pa), list(self.load_factors),
+                 repr(self.stop_growth_m3), self.mesh_size_mm, repr(self.stop_i1_minus_3)]
+        if any(self.body_force_n_per_m3):  # weightless rays keep the names their traces were stored under
+            parts.append([repr(value) for value in self.body_force_n_per_m3])
+        text = json.dumps(parts, sort_keys=True, default=repr)
         return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
@@ -123,15 +128,17 @@ def trace_ray(task: RayTask) -> RayTrace:
     started = time.perf_counter()
     model = _model_of(json.dumps(task.scene_raw, sort_keys=True), task.mesh_size_mm)
     pressures = np.asarray(task.pressures_pa, dtype=float)
+    body_force = np.asarray(task.body_force_n_per_m3, dtype=float)
     warm_start = model.formulation != "linear"
     rows, positions_m, stopped = [], None, "end"
     for load_factor in task.load_factors:
-        if load_factor == 0 or not np.any(pressures):
+        if load_factor == 0 or not (np.any(pressures) or np.any(body_force)):
             positions_m_here, chambers, gland = model.nodes_m, model.rest_chamber_volumes_m3, model.rest_gland_volume_m3
         else:
             try:
                 state = model.equilibrium(load_factor * pressures,
-                                          initial_positions_m=positions_m if warm_start else None)
+                                          initial_positions_m=positions_m if warm_start else None,
+                                          body_force_n_per_m3=load_factor * body_force)
             except SolveError as error:
                 stopped = str(error)
                 break

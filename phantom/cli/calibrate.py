@@ -38,7 +38,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                     "as a constraint; the forward solves run as Dask tasks (cached). Writes a scene with the fit. "
                     "'phantom calibrate record' holds pressures on a board and asks for the volume at each.")
     calibrate.add_argument("--scene", default="builtin", help="scene TOML path or 'builtin' (default)")
-    calibrate.add_argument("--measurements", help="CSV with columns p0_kpa,p1_kpa,...,measured_ml")
+    calibrate.add_argument("--measurements",
+                           help="CSV with columns p0_kpa,p1_kpa,...,measured_ml and optionally medium (air or water: "
+                                "where each point hung, for a scene with [load]; default air)")
     calibrate.add_argument("--material", choices=("gent", "neo_hookean", "corotational", "linear"),
                            help="material law to fit (default: the scene's)")
     calibrate.add_argument("--gent-jm", type=float, help="Gent Jm when --material gent and Jm is not swept")
