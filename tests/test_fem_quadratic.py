@@ -3,6 +3,8 @@ its energy, the body force's consistent load, the meshes written and read back, 
 
 The convergence to the exact incompressible sphere is in test_fem_sphere.py (slow)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -77,6 +79,65 @@ def test_mixed_forces_and_tangent_are_the_energys_derivatives(meshes, law, gent_
     product = body.multiply(evaluation.tangent_data, direction.ravel())
     free = constraints.free_mask
     assert np.linalg.norm(product[free] - change[free]) < 1e-6 * np.linalg.norm(change[free])
+
+
+def test_carried_element_pressures_are_the_perturbed_lagrangians_derivatives(meshes):
+    """With the pressures as an independent field, forces and tangent are the derivatives of ``W_iso + V_e (p (Jbar
+    - 1) - p^2 / 2K)`` at fixed p, and p = K (Jbar - 1) gives back the eliminated evaluation."""
+    model = sphere_model(meshes[2], "gent", 0.4995, 3.0)
+    body, constraints = model.body, model.body.rest_constraints
+    positions = deformed(model.nodes_m)
+    ratios = body.element_volume_ratios(positions)
+    bulk = model.material.bulk_modulus_pa
+    eliminated = body.elastic(positions, "gent", EXACT_TANGENT, constraints)
+    same = body.elastic(positions, "gent", EXACT_TANGENT, constraints, element_pressures_pa=bulk * (ratios - 1))
+    np.testing.assert_allclose(same.forces_n, eliminated.forces_n, rtol=1e-12,
+                               atol=1e-12 * abs(eliminated.forces_n).max())
+    assert same.energy_j == pytest.approx(eliminated.energy_j, rel=1e-12)
+    # away from the constraint: another pressure field, held fixed while the nodes move
+    pressures = bulk * (ratios - 1) * 0.3 + 50.0 * np.random.default_rng(7).normal(size=ratios.shape)
+    evaluation = body.elastic(positions, "gent", EXACT_TANGENT, constraints, element_pressures_pa=pressures)
+    assert np.linalg.norm(evaluation.forces_n - eliminated.forces_n) > 1e-3 * np.linalg.norm(eliminated.forces_n)
+    direction = np.random.default_rng(5).normal(size=positions.shape) * 1e-4
+    direction.reshape(-1)[constraints.dofs] = 0.0
+    step = 1e-3
+    plus, minus = (body.elastic(positions + sign * step * direction, "gent", EXACT_TANGENT, constraints,
+                                element_pressures_pa=pressures) for sign in (1.0, -1.0))
+    assert (plus.energy_j - minus.energy_j) / (2 * step) == pytest.approx(
+        np.sum(evaluation.forces_n.ravel() * direction.ravel()), rel=1e-6)
+    # the volume ratios' rates are their directional derivatives
+    rates = body.element_volume_ratio_rates(positions, direction)
+    differences = (body.element_volume_ratios(positions + step * direction)
+                   - body.element_volume_ratios(positions - step * direction)) / (2 * step)
+    np.testing.assert_allclose(rates, differences, rtol=1e-5, atol=1e-9 * np.abs(differences).max())
+    # the tangent is the condensed one Newton solves with: the forces' change as the nodes move and each
+    # pressure takes its linearised update K dJbar
+    plus, minus = (body.elastic(positions + sign * step * direction, "gent", EXACT_TANGENT, constraints,
+                                element_pressures_pa=pressures + sign * step * bulk * rates) for sign in (1.0, -1.0))
+    change = (plus.forces_n - minus.forces_n).ravel() / (2 * step)
+    product = body.multiply(evaluation.tangent_data, direction.ravel())
+    free = constraints.free_mask
+    assert np.linalg.norm(product[free] - change[free]) < 1e-6 * np.linalg.norm(change[free])
+
+
+def test_the_mixed_newton_solves_the_nearly_incompressible_prostate_in_a_handful_of_iterations():
+    """Eliminating each element's pressure made a 10-node solve at bulk/shear 1250 crawl: (2,0,0) kPa at E 50 kPa
+    took 58 iterations (26 s) on the 10 mm prostate. With the pressures carried as unknowns it takes 6; the
+    answer is an equilibrium of the eliminated system to the solver's tolerance."""
+    from phantom.model import load_scene
+    from phantom.model.fem.newton import RELATIVE_TOLERANCE
+
+    scene = load_scene("builtin:calibrated")
+    scene = dataclasses.replace(scene, geometry=dataclasses.replace(scene.geometry, element_order=2))
+    model = PhantomModel.from_scene(scene, mesh_size_mm=10.0).with_material(youngs_modulus_pa=50e3,
+                                                                             poisson_ratio=0.4996)
+    pressures = np.array([2000.0, 0.0, 0.0])
+    state = model.equilibrium(pressures)
+    assert state.iterations <= 10
+    problem = model.problem(pressures)
+    residual = problem.evaluate(state.positions_m).residual_n
+    assert np.linalg.norm(residual) <= RELATIVE_TOLERANCE * problem.load_scale_n()
+    assert state.gland_volume_m3 - model.rest_gland_volume_m3 == pytest.approx(0.384e-6, rel=2e-3)
 
 
 def test_small_pressure_follows_the_small_strain_answer(meshes):

@@ -61,6 +61,8 @@ NO_TANGENT, POSITIVE_TANGENT, EXACT_TANGENT = 0, 1, 2
 Factor = Factorization | CholeskyFactor
 #: The 6-node triangle's shape functions and derivatives at the points of its degree-4 rule.
 _FACE_SHAPE, _FACE_DERIVATIVES = triangle6_shape(TRIANGLE_DEGREE4_POINTS)
+#: The mixed kernel's "no independent pressures": each element's is then ``K (Jbar - 1)``.
+_NO_PRESSURES = np.zeros(0)
 
 
 @dataclass(frozen=True)
@@ -394,6 +396,17 @@ class SolidBody:
         ratios: FloatArray = np.linalg.det(jacobians) @ data.volume_weights / data.volumes_m3
         return ratios
 
+    def element_volume_ratio_rates(self, positions_m: FloatArray, direction_m: FloatArray) -> FloatArray:
+        """A 10-node body's ``d Jbar / ds`` of each element (m,) at ``positions_m`` moving along ``direction_m``
+        (n, 3): ``sum_q w_q det(J_q) tr(J_q^-1 dJ_q) / V_e``, the linearised change of its volume ratio."""
+        assert self.quadratic is not None  # only 10-node bodies have the mixed pressure field
+        data = self.quadratic
+        jacobians = np.einsum("eai,qak->eqik", positions_m[self.tets], data.volume_derivatives)
+        changes = np.einsum("eai,qak->eqik", direction_m[self.tets], data.volume_derivatives)
+        traces = np.einsum("eqij,eqji->eq", np.linalg.inv(jacobians), changes)
+        rates: FloatArray = (np.linalg.det(jacobians) * traces) @ data.volume_weights / data.volumes_m3
+        return rates
+
     def worst_element(self, positions_m: FloatArray) -> int:
         """The element with the smallest det F if any is flat or inverted, else -1."""
         dets = self.deformation_determinants(positions_m)
@@ -411,14 +424,18 @@ class SolidBody:
     # --- assembly --------------------------------------------------------------------------------------------
 
     def elastic(self, positions_m: FloatArray, formulation: str, matrix: int, constraints: Constraints,
-                pressures_pa: FloatArray | None = None) -> ElasticEvaluation:
+                pressures_pa: FloatArray | None = None,
+                element_pressures_pa: FloatArray | None = None) -> ElasticEvaluation:
         """Elastic + spring forces, energy and smallest det F at node positions (n, 3) m, and the tangent's CSR
         data when ``matrix`` is POSITIVE_TANGENT (``R K R^T``, co-rotational, positive definite) or
         EXACT_TANGENT (the exact Hessian, co-rotational or hyperelastic), including the pressure's follower-load
-        stiffness when ``pressures_pa`` (chambers,) are given; the linear model's is its stiffness either way."""
+        stiffness when ``pressures_pa`` (chambers,) are given; the linear model's is its stiffness either way.
+        ``element_pressures_pa`` (m,): a 10-node body's pressure field as Newton's independent unknown (see
+        :func:`phantom.model.fem.kernels.mixed_forces`); None: each element's ``K (Jbar - 1)``."""
         data = np.zeros(len(self.pattern.indices)) if matrix else np.zeros(1)
         if self.quadratic is not None:
-            forces, energy_j, smallest_det = self._quadratic_elastic(positions_m, formulation, matrix, data)
+            forces, energy_j, smallest_det = self._quadratic_elastic(positions_m, formulation, matrix, data,
+                                                                     element_pressures_pa)
         elif formulation in HYPERELASTIC_MODELS:
             forces, energy_j, smallest_det = kernels.hyperelastic_forces(
                 positions_m, self.tets, self.dm_inverse, self.element_volumes_m3, self.material.lame_mu_pa,
@@ -451,8 +468,8 @@ class SolidBody:
                 data[self.pattern.diagonal[constraints.dofs]] = scale
         return ElasticEvaluation(forces, float(energy_j), float(smallest_det), data)
 
-    def _quadratic_elastic(self, positions_m: FloatArray, formulation: str, matrix: int,
-                           data: FloatArray) -> tuple[FloatArray, float, float]:
+    def _quadratic_elastic(self, positions_m: FloatArray, formulation: str, matrix: int, data: FloatArray,
+                           element_pressures_pa: FloatArray | None = None) -> tuple[FloatArray, float, float]:
         """The 10-node elements' forces (n, 3), energy and smallest volume ratio, their tangent added to ``data``:
         the mixed hyperelastic kernel, or for "linear" the small-strain stiffness (its tangent at rest)."""
         assert self.quadratic is not None  # only 10-node bodies come here
@@ -471,7 +488,7 @@ class SolidBody:
             positions_m, self.tets, rest.gradients, rest.weights, rest.volumes_m3, rest.volume_derivatives,
             rest.volume_weights, self.material.lame_mu_pa, self.material.bulk_modulus_pa,
             self.inverse_jm(formulation), EXACT_TANGENT if matrix else NO_TANGENT, self.pattern.block_start,
-            self.pattern.degree, data)
+            self.pattern.degree, data, _NO_PRESSURES if element_pressures_pa is None else element_pressures_pa)
         return forces, float(energy_j), float(smallest)
 
     def rest_tangent_data(self) -> FloatArray:
@@ -484,7 +501,7 @@ class SolidBody:
             kernels.mixed_forces(self.nodes_m, self.tets, rest.gradients, rest.weights, rest.volumes_m3,
                                  rest.volume_derivatives, rest.volume_weights, self.material.lame_mu_pa,
                                  self.material.bulk_modulus_pa, 0.0, EXACT_TANGENT, self.pattern.block_start,
-                                 self.pattern.degree, data)
+                                 self.pattern.degree, data, _NO_PRESSURES)
             self._rest_tangent = data
         return self._rest_tangent
 

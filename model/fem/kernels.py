@@ -54,9 +54,9 @@ EXPORTS = {
                                "void(f8[:, ::1], i8[:, ::1], f8, i8[::1], i4[::1], f8[::1])"),
     "csr_multiply": (("i8", "i4", "f8", "f8"), "f8[::1](i8[::1], i4[::1], f8[::1], f8[::1])"),
     "cholesky_solve": (("i8", "i4", "f8", "i8", "f8"), "f8[:, ::1](i8[::1], i4[::1], f8[::1], i8[::1], f8[:, ::1])"),
-    "mixed_forces": (("f8", "i8", "f8", "f8", "f8", "f8", "f8", None, None, None, None, "i8", "i8", "out"),
+    "mixed_forces": (("f8", "i8", "f8", "f8", "f8", "f8", "f8", None, None, None, None, "i8", "i8", "out", "f8"),
                      "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], i8[:, ::1], f8[:, :, :, ::1], f8[:, ::1], f8[::1], "
-                     "f8[:, :, ::1], f8[::1], f8, f8, f8, i8, i8[:, :, ::1], i8[::1], f8[::1])"),
+                     "f8[:, :, ::1], f8[::1], f8, f8, f8, i8, i8[:, :, ::1], i8[::1], f8[::1], f8[::1])"),
     "mixed_determinants": (("f8", "i8", "f8", "f8", "f8", "f8"),
                            "f8[::1](f8[:, ::1], i8[:, ::1], f8[:, :, :, ::1], f8[::1], f8[:, :, ::1], f8[::1])"),
     "add_quadratic_pressure_stiffness": (("f8", "i8", None, "f8", "f8", "f8", "i8", "i4", "out"),
@@ -636,7 +636,8 @@ def _element_volume(x: FloatArray, volume_derivatives: FloatArray, volume_weight
 def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray, weights: FloatArray,
                  rest_volumes_m3: FloatArray, volume_derivatives: FloatArray, volume_weights: FloatArray,
                  lame_mu_pa: float, bulk_modulus_pa: float, inverse_jm: float, want_matrix: int,
-                 block_start: IntArray, degree: IntArray, matrix_data: FloatArray) -> tuple[FloatArray, float, float]:
+                 block_start: IntArray, degree: IntArray, matrix_data: FloatArray,
+                 element_pressures_pa: FloatArray) -> tuple[FloatArray, float, float]:
     """Nodal forces (N, (n, 3)), energy (J) and the smallest volume ratio of 10-node tetrahedra in the mixed
     (displacement, pressure, dilatation) formulation condensed element by element; optionally its exact tangent.
 
@@ -652,7 +653,13 @@ def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray,
     g_b))_m`` at each volume point. An element at ``J <= 0`` (at a point), ``Jbar <= 0`` or past Gent's lock has
     infinite energy and adds no force or stiffness. The tangent goes into ``matrix_data`` at ``block_start[e, A,
     B] + 3 a degree[node A] + b`` (the body's CSR layout).
+
+    ``element_pressures_pa`` (m,), when not empty, are the pressures as an independent field (Newton's iterate of
+    the mixed system, :func:`phantom.model.fem.newton.newton`): they replace ``K (Jbar - 1)`` in the forces and
+    the tangent's ``p d2v`` term, and the volumetric energy is the perturbed Lagrangian's ``V_e (p (Jbar - 1) -
+    p^2 / 2K)``, which equals ``V_e U(Jbar)`` where ``p = K (Jbar - 1)``.
     """
+    given_pressures = element_pressures_pa.shape[0] == tets.shape[0]
     n_tets = tets.shape[0]
     n_points = gradients.shape[1]
     forces = np.zeros(positions_m.shape)
@@ -681,8 +688,13 @@ def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray,
         if not volume_ratio > 0.0:
             energy_j = np.inf
             continue
-        pressure = bulk_modulus_pa * (volume_ratio - 1.0)
-        element_energy = 0.5 * bulk_modulus_pa * rest_volume * (volume_ratio - 1.0) ** 2
+        if given_pressures:
+            pressure = element_pressures_pa[e]
+            element_energy = rest_volume * (pressure * (volume_ratio - 1.0) - 0.5 * pressure * pressure
+                                            / bulk_modulus_pa)
+        else:
+            pressure = bulk_modulus_pa * (volume_ratio - 1.0)
+            element_energy = 0.5 * bulk_modulus_pa * rest_volume * (volume_ratio - 1.0) ** 2
         for a in range(10):
             for i in range(3):
                 local_force[a, i] = pressure * volume_gradient[a, i]

@@ -99,6 +99,11 @@ class EquilibriumProblem:
                                    body_force_n_per_m3=load_factor * self.body_force_n_per_m3)
 
     @property
+    def mixed(self) -> bool:
+        """A 10-node hyperelastic body: its element pressures can be Newton's independent unknowns."""
+        return self.body.quadratic is not None and self.formulation in HYPERELASTIC_MODELS
+
+    @property
     def loaded(self) -> bool:
         """Some pressure or body force acts (else the rest shape is the equilibrium)."""
         return bool(np.any(self.pressures_pa) or np.any(self.body_force_n_per_m3))
@@ -139,11 +144,14 @@ class EquilibriumProblem:
 
     # --- residual, energy, tangent ---------------------------------------------------------------------------
 
-    def evaluate(self, positions_m: FloatArray, with_tangent: bool = False) -> Evaluation:
+    def evaluate(self, positions_m: FloatArray, with_tangent: bool = False,
+                 element_pressures_pa: FloatArray | None = None) -> Evaluation:
         """Out-of-balance force, total energy and smallest det F at ``positions_m`` (n, 3); with
-        ``with_tangent``, also the exact tangent's CSR data from the same element pass."""
+        ``with_tangent``, also the exact tangent's CSR data from the same element pass. ``element_pressures_pa``:
+        a 10-node body's pressure field as an independent unknown (None: eliminated, ``K (Jbar - 1)``)."""
         elastic = self.body.elastic(positions_m, self.formulation, EXACT_TANGENT if with_tangent else NO_TANGENT,
-                                    self.constraints, self.pressures_pa if with_tangent else None)
+                                    self.constraints, self.pressures_pa if with_tangent else None,
+                                    element_pressures_pa)
         load, load_energy = self._load_and_energy(positions_m)
         residual = elastic.forces_n - load
         residual[self.constraints.dofs] = 0.0
@@ -160,7 +168,8 @@ class EquilibriumProblem:
             return self.body.multiply(tangent_data, vector)
         return product
 
-    def tangent(self, positions_m: FloatArray, exact: bool = True, damped: bool = False) -> Factor:
+    def tangent(self, positions_m: FloatArray, exact: bool = True, damped: bool = False,
+                element_pressures_pa: FloatArray | None = None) -> Factor:
         """The factorised tangent at ``positions_m``: the exact Hessian, or (``exact`` False) a positive definite
         stand-in that still gives a descent direction: ``R K R^T`` (co-rotational) or the small-strain stiffness
         (hyperelastic). An exactly singular Hessian (at a limit point) gives the stand-in.
@@ -175,8 +184,8 @@ class EquilibriumProblem:
         if not exact and self.formulation in HYPERELASTIC_MODELS:
             return self.body.rest_factorization(self.constraints)
         matrix = EXACT_TANGENT if exact else POSITIVE_TANGENT
-        data = self.body.elastic(positions_m, self.formulation, matrix, self.constraints,
-                                 self.pressures_pa).tangent_data
+        data = self.body.elastic(positions_m, self.formulation, matrix, self.constraints, self.pressures_pa,
+                                 element_pressures_pa).tangent_data
         if exact and damped and self.formulation in HYPERELASTIC_MODELS and self.body.detects_indefinite:
             damped_factor = self._damped_factorization(data)
             if damped_factor is not None:
