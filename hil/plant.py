@@ -406,7 +406,10 @@ def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODU
     material["youngs_modulus_kpa"] = loaded.material.youngs_modulus_pa / 1e3 * modulus_factor
     n = len(TRUTH_POINTS_KPA)
     grid = [(i, j, k) for i in range(n) for j in range(n) for k in range(n)]
-    tasks = [RayTask(raw, tuple(1e3 * TRUTH_POINTS_KPA[m] for m in index), (0.0, 0.5, 1.0)) for index in grid]
+    # the scene's weight in air, if it has a [load] table: a task's weight is explicit (scaled with its pressures)
+    weight = loaded.load.body_force_n_per_m3()
+    tasks = [RayTask(raw, tuple(1e3 * TRUTH_POINTS_KPA[m] for m in index), (0.0, 0.5, 1.0), body_force_n_per_m3=weight)
+             for index in grid]
     traces = run_sweep(tasks, scheduler=scheduler, progress=progress)
     chambers, gland = np.zeros((n, n, n, N_CHAMBERS)), np.zeros((n, n, n))
     for index, trace in zip(grid, traces, strict=True):

@@ -6,6 +6,7 @@ independent full solve of the truth model, and both against the controller's lin
 """
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -77,3 +78,28 @@ def test_a_partial_truth_table_is_refused(tmp_path):
                            flags=re.MULTILINE))
     with pytest.raises(PlantError, match="64 volumes"):
         load_plant(path)
+
+
+def test_a_truth_of_a_scene_with_a_load_table_hangs_it_in_air(tmp_path, monkeypatch):
+    """The truth's rays carry the scene's weight (in air) like the scene's own solves; a sweep task's weight is
+    explicit, so a truth built without it would drop the scene's gravity. The sweep is stopped at its tasks."""
+    from phantom.hil.plant import truth_table_from_scene
+    from phantom.model import load_scene
+    from phantom.model.calibration import sweep
+
+    scene = tmp_path / "hanging.toml"
+    shipped = load_scene("builtin:calibrated").path
+    assert shipped is not None
+    scene.write_text(Path(shipped).read_text() + '\n[load]\ngravity_m_s2 = [0, 0, -9.81]\n')
+    weight = load_scene(scene).load.body_force_n_per_m3()
+    assert weight[2] < 0
+    seen = []
+
+    def stop(tasks, **_):
+        seen.extend(tasks)
+        raise RuntimeError("tasks seen")
+
+    monkeypatch.setattr(sweep, "run_sweep", stop)
+    with pytest.raises(RuntimeError, match="tasks seen"):
+        truth_table_from_scene(scene)
+    assert seen and all(task.body_force_n_per_m3 == weight for task in seen)
