@@ -168,7 +168,7 @@ def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: floa
     load_scale = max(problem.load_scale_n(), norm(evaluation.residual_n) if initial_imbalance else 0.0)
     spent = 0
     if problem.mixed:
-        mixed = mixed_newton(problem, positions_m, tolerance, load_scale)
+        mixed = mixed_newton(problem, positions_m, evaluation, tolerance, load_scale)
         if mixed.converged:
             return mixed
         positions_m, spent = mixed.positions_m, mixed.iterations
@@ -178,7 +178,7 @@ def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: floa
     return result
 
 
-def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: float,
+def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluation: Evaluation, tolerance: float,
                  load_scale: float) -> NewtonResult:
     """Newton on the mixed (displacement, element pressure) system of a 10-node body, the pressures condensed in
     each linear solve but carried from one iterate to the next.
@@ -195,14 +195,14 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance
     ``|r(x, p)|^2 + sum (mu V_e^(2/3) (Jbar - 1 - p/K))^2`` (the constraint's error weighed at the shear modulus,
     not the bulk). Converged when the residual at eliminated pressures meets ``tolerance`` (as
     :func:`newton`'s), so the answer is the same state; returns unconverged (not raising) when no step lowers
-    the merit or it stalls."""
+    the merit or it stalls. ``evaluation`` is the problem's at ``positions_m`` (pressures eliminated)."""
     body = problem.body
     assert body.quadratic is not None  # only 10-node bodies have the mixed pressure field
     bulk_pa = body.material.bulk_modulus_pa
     constraint_weight_n = body.material.lame_mu_pa * body.quadratic.volumes_m3 ** (2.0 / 3.0)
     ratios = body.element_volume_ratios(positions_m)
     pressures_pa = bulk_pa * (ratios - 1.0)
-    eliminated = problem.evaluate(positions_m)
+    eliminated = evaluation
     merit = norm(eliminated.residual_n)
     best_merit, best_iteration, previous_norm = np.inf, 0, np.inf
     for iteration in range(1, MAX_ITERATIONS_PER_STEP + 1):
