@@ -21,6 +21,7 @@ from phantom import PhantomError, require_extra
 from phantom.hil.link import BoardLink, LinkError, Received
 from phantom.hil.sim import SimulatedBoard
 from phantom.protocol.codec import Message
+from phantom.protocol.link import fault_names
 from phantom.protocol.messages import BITS, CONSTANTS, ENUMS, PROTOCOL_VERSION, SPEC_HASH
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
@@ -229,7 +230,10 @@ def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
         if answer.name == "ACK":
             return
         if answer.fields["status"] not in retry:
-            raise BenchError(f"the board refused ZERO_SENSORS: {names.get(answer.fields['status'])}")
+            reason = names.get(answer.fields["status"])
+            if answer.fields["status"] == ENUMS["status"]["FAULT_LATCHED"]:
+                reason += f" ({', '.join(fault_names(latest_telemetry(link)['fault_flags']))})"
+            raise BenchError(f"the board refused ZERO_SENSORS: {reason}")
         wait_board_time(link, CONSTANTS["ZERO_SETTLE_MS"] / 1e3 / 2)
     raise BenchError(f"ZERO_SENSORS still refused ({names.get(answer.fields['status'])}) after {attempts} tries")
 
@@ -321,7 +325,8 @@ def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: flo
         final_drive_level=float(drives[-20:].mean()),
         other_chambers_max_kpa=float(others.max()),
         tick_overruns=samples[-1]["tick_overruns"] - samples[0]["tick_overruns"],
-        fault_flags=int(np.bitwise_or.reduce([s["fault_flags"] for s in samples])),
+        fault_flags=(fault_flags := int(np.bitwise_or.reduce([s["fault_flags"] for s in samples]))),
+        faults=fault_names(fault_flags),
         trace={"time_s": times_s.tolist(), "pressure_kpa": pressures_kpa.tolist(), "drive_level": drives.tolist()},
     )
     return metrics

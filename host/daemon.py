@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import os
 import signal
 import time
@@ -172,7 +173,9 @@ class Daemon:
         self.ready = False
         #: the scene's response table being built in the background (the model answers on full solves meanwhile)
         self.table_build: TableBuild | None = None
-        self._build_reported_s = 0.0
+        #: when the build's progress was last logged: never, so the first control tick of a build logs it (a
+        #: session shorter than BUILD_REPORT_S still says the build ran)
+        self._build_reported_s = -math.inf
         #: the scanner's axes (host/motion.py)
         self.motion = Orbit(self.board_command, self.event, simulated_truth(sim_board) if sim_board else None)
 

@@ -10,6 +10,7 @@ xdist.
 """
 
 import fcntl
+import gc
 from collections.abc import Iterator
 from contextlib import contextmanager
 
@@ -27,6 +28,18 @@ def machine_lock(name: str) -> Iterator[None]:
             yield
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+@pytest.fixture(autouse=True)
+def _no_long_collections_during_a_simulated_board(request: pytest.FixtureRequest) -> None:
+    """Before a test that runs simavr: collect, then freeze what survives, so that no full garbage collection
+    scans it again. The sim tests share one long pytest process whose heap grows with every test before them;
+    its full collections held the GIL for 150-180 ms, long enough, with a loaded machine, for the link's
+    keepalive to miss the board's host deadline (500 ms of board time, 250 ms of wall time at speed 2) and for
+    the board to latch DEAD_HOST mid-test. A 350 ms collection latches it every time."""
+    if request.node.get_closest_marker("sim") is not None:
+        gc.collect()
+        gc.freeze()
 
 
 @pytest.fixture(scope="session")

@@ -597,3 +597,23 @@ def _runs(pid):
         return state.read_text().rsplit(")", 1)[1].split()[0] != "Z"
     except OSError:
         return False
+
+
+def test_the_table_builds_progress_is_logged_at_once_and_then_every_report_period(caplog):
+    """The log says how far the build is from its first control tick (a build that started with the daemon and a
+    session that ends in a few seconds still leave a line saying it ran), then every BUILD_REPORT_S."""
+    from types import SimpleNamespace
+
+    from phantom.host.daemon import BUILD_REPORT_S
+
+    parts, clock = PartsStandIn(False), FakeClock()
+    daemon = parts.daemon(False, clock)
+    daemon.table_build = SimpleNamespace(finished=False,
+                                         text=lambda: f"response table solves: {daemon.now_s():.1f} s so far")
+    with caplog.at_level(logging.INFO, logger="phantom.host.daemon"):
+        for _ in range(int(2.5 * BUILD_REPORT_S / 0.5) + 1):  # 2.5 report periods of 0.5 s control ticks
+            daemon._report_build_tick()
+            clock.now_s += 0.5
+        logged = [record.getMessage() for record in caplog.records if "response table solves" in record.getMessage()]
+    assert [message.split(" (")[0] for message in logged] == [
+        f"response table solves: {seconds:.1f} s so far" for seconds in (0.0, BUILD_REPORT_S, 2 * BUILD_REPORT_S)]

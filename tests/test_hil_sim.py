@@ -289,9 +289,23 @@ def test_mega_image_runs_with_its_own_pins_and_vectors():
     with SimulatedBoard(elf=mega, speed=SPEED) as board, BoardLink(board.port, time_scale=SPEED) as session:
         assert bench.check_handshake(session)["board"] == "MEGA2560"
         result = bench.check_step(session, 2, 1.5, duration_s=1.5)
+        assert not result["faults"], f"a fault latched during the step: {result['faults']}"
         assert abs(result["steady_state_error_kpa"]) < ADC_COUNT_KPA
         stats = board.cycle_stats()
         assert stats["control_ticks"] > 0 and stats["regions"]["adc_isr"]["calls"] > 0
+
+
+def test_a_zero_refused_for_a_latched_fault_names_the_fault(link):
+    """A silent host latches DEAD_HOST; the zero the bench then asks for is refused, and the error names the fault
+    (a lab reading "FAULT_LATCHED" alone cannot tell a host too slow from a tube off)."""
+    bench.start_session(link)
+    bench.vent_and_wait(link)
+    link.keepalive(False)
+    bench.wait_board_time(link, 2 * HOST_DEADLINE_S, until=lambda fields: fields["fault_flags"] != 0)
+    with pytest.raises(bench.BenchError, match=r"FAULT_LATCHED \(DEAD_HOST\)"):
+        bench.zero_sensors(link)
+    bench.start_session(link)  # keepalive on, the latch cleared: as the other tests expect the board
+    assert bench.latest_telemetry(link)["fault_flags"] == 0
 
 
 def test_bench_against_a_port_runs_what_a_real_board_allows():
