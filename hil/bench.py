@@ -230,7 +230,7 @@ def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
         if answer.name == "ACK":
             return
         if answer.fields["status"] not in retry:
-            reason = names.get(answer.fields["status"])
+            reason = names.get(answer.fields["status"], str(answer.fields["status"]))
             if answer.fields["status"] == ENUMS["status"]["FAULT_LATCHED"]:
                 reason += f" ({', '.join(fault_names(latest_telemetry(link)['fault_flags']))})"
             raise BenchError(f"the board refused ZERO_SENSORS: {reason}")
