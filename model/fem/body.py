@@ -506,15 +506,17 @@ class SolidBody:
         return self._rest_tangent
 
     def tangent_data(self, positions_m: FloatArray | None = None, formulation: str = "linear",
-                     pressures_pa: FloatArray | None = None, constraints: Constraints | None = None) -> FloatArray:
+                     pressures_pa: FloatArray | None = None, constraints: Constraints | None = None,
+                     element_pressures_pa: FloatArray | None = None) -> FloatArray:
         """The CSR data (N/m, in :attr:`pattern`) of the assembled tangent at ``positions_m`` (default: rest):
         "linear": the small-strain stiffness; "corotational", "neo_hookean", "gent": the exact Hessian of the
-        total energy, with the follower-load stiffness of ``pressures_pa`` when given. Held dofs (default: the
-        rest constraints) get scaled identity rows."""
+        total energy, with the follower-load stiffness of ``pressures_pa`` when given (and a 10-node body's
+        carried element pressures, as :meth:`elastic`'s). Held dofs (default: the rest constraints) get scaled
+        identity rows."""
         positions_m = self.nodes_m if positions_m is None else positions_m
         matrix = POSITIVE_TANGENT if formulation == "linear" else EXACT_TANGENT
         return self.elastic(positions_m, formulation, matrix, constraints or self.rest_constraints,
-                            pressures_pa).tangent_data
+                            pressures_pa, element_pressures_pa).tangent_data
 
     def csr(self, data: FloatArray) -> scipy.sparse.csr_matrix:
         """The scipy CSR matrix of the body's pattern with entries ``data``."""

@@ -26,6 +26,7 @@ the SolveError then names the chamber, the pressure and volume where the path st
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -97,12 +98,17 @@ class PathResult:
 class _VolumeState:
     """The bordered system at one (positions, load factor): out-of-balance force ``residual_n`` (3n,), control
     volume gap (m^3), merit (dimensionless: the squared residual relative to the load plus the squared gap
-    relative to the control's rest volume) and admissibility (no element at det F <= 0, finite energy)."""
+    relative to the control's rest volume, plus a 10-node body's squared constraint error when its pressures
+    are carried) and admissibility (no element at det F <= 0, finite energy). ``eliminated_n``: the residual at
+    eliminated element pressures (``residual_n`` itself unless they are carried); ``volume_ratios``: the
+    elements' Jbar where they are carried."""
 
     residual_n: FloatArray
     gap_m3: float
     merit: float
     admissible: bool
+    eliminated_n: FloatArray
+    volume_ratios: FloatArray | None = None
 
 
 @dataclass
@@ -289,25 +295,36 @@ class _Path:
         return guess, factor
 
     def _volume_newton(self, positions_m: FloatArray, load_factor: float, target_m3: float) -> _VolumeStep:
-        """Equilibrium with ``c(x) = target_m3``, the load factor free (bordered Newton, module docstring)."""
+        """Equilibrium with ``c(x) = target_m3``, the load factor free (bordered Newton, module docstring).
+
+        A 10-node body carries its element pressures from one iterate to the next, as
+        :func:`phantom.model.fem.newton.mixed_newton` does and for the same reason (eliminated, ``K (Jbar - 1)``,
+        they make a nearly incompressible body's residual K times the volume ratios' second-order error, and the
+        line search crawls): the linear solves are the same condensed ones with the carried pressures in the
+        tangent, each pressure takes its linearised update, and the merit weighs the constraint's error at the
+        shear modulus. Convergence is judged at eliminated pressures, so the answer is the same state."""
         free = self.constraints.free_mask
+        body = self.body
+        carried = self._eliminated_pressures(positions_m) if self.problem.mixed else None
         # Solves with K: conjugate gradients preconditioned by the rest factor while they converge (the
         # tangent is close to it until the strain is large), then a factorisation of K kept while it helps.
         factor: Factor | None = None
         fresh, krylov = False, True
         merit_before, crawling = np.inf, 0
-        state = self._volume_residual(positions_m, load_factor, target_m3)
+        state = self._volume_residual(positions_m, load_factor, target_m3, carried)
         for iteration in range(1, VOLUME_NEWTON_ITERATIONS + 1):
-            residual, gap, merit = state.residual_n, state.gap_m3, state.merit
+            residual, gap, merit = state.eliminated_n, state.gap_m3, state.merit
             if (np.linalg.norm(residual[free]) <= PATH_TOLERANCE * self.load_scale
                     and abs(gap) <= CONTROL_TOLERANCE * self.control_rest_m3):
                 return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1)
             load = self.problem.load_n(positions_m)
-            solutions = self._krylov_solves(positions_m, load_factor, (-residual, load)) if krylov else None
+            solutions = (self._krylov_solves(positions_m, load_factor, (-residual, load), carried) if krylov
+                         else None)
             if solutions is None:
                 krylov = False
                 if factor is None or merit > REFRESH_RATIO * merit_before and not fresh:
-                    factor = self.problem.at_load_factor(load_factor).tangent(positions_m, exact=True)
+                    factor = self.problem.at_load_factor(load_factor).tangent(positions_m, exact=True,
+                                                                              element_pressures_pa=carried)
                     fresh = True
                 both = factor.solve(np.column_stack([-residual, load]))
                 solutions = [both[:, 0], both[:, 1]]
@@ -319,14 +336,21 @@ class _Path:
                 return _VolumeStep(False, None, iteration, "the bordered system is singular")
             change_factor = (-gap - float(h @ a)) / denominator
             change = (a + b * change_factor).reshape(-1, 3)
-            accepted: tuple[FloatArray, float, _VolumeState] | None = None
+            pressure_step = None
+            if carried is not None:
+                assert state.volume_ratios is not None  # a state at carried pressures has its volume ratios
+                bulk_pa = body.material.bulk_modulus_pa
+                pressure_step = bulk_pa * (state.volume_ratios - 1.0
+                                           + body.element_volume_ratio_rates(positions_m, change)) - carried
+            accepted: tuple[FloatArray, float, FloatArray | None, _VolumeState] | None = None
             halving = 0
             for halving in range(12):
                 scale = 0.5**halving
                 trial_m = positions_m + scale * change
-                trial = self._volume_residual(trial_m, load_factor + scale * change_factor, target_m3)
+                trial_pa = None if carried is None or pressure_step is None else carried + scale * pressure_step
+                trial = self._volume_residual(trial_m, load_factor + scale * change_factor, target_m3, trial_pa)
                 if trial.admissible and trial.merit < merit:
-                    accepted = trial_m, load_factor + scale * change_factor, trial
+                    accepted = trial_m, load_factor + scale * change_factor, trial_pa, trial
                     break
             if accepted is None:
                 if krylov or not fresh:
@@ -335,7 +359,9 @@ class _Path:
                 worst = self.problem.worst_element(positions_m + change)
                 reason = "solve would invert elements" if worst >= 0 else "volume-controlled solve found no descent"
                 return _VolumeStep(False, None, iteration, reason, worst)
-            positions_m, load_factor, state = accepted
+            positions_m, load_factor, carried, state = accepted
+            if carried is not None:  # the convergence test and the next right-hand side: eliminated pressures
+                state = self._with_eliminated(state, positions_m, load_factor)
             fresh = False
             # Crawling: tiny admissible steps in a row mean an element is being squeezed flat (or a Gent element
             # is locking) on the way to the target volume; a smaller volume step is the cure, not more iterations.
@@ -347,14 +373,15 @@ class _Path:
         return _VolumeStep(False, None, VOLUME_NEWTON_ITERATIONS, "volume-controlled solve did not converge",
                            self.problem.worst_element(positions_m))
 
-    def _krylov_solves(self, positions_m: FloatArray, load_factor: float,
-                       right_hand_sides: tuple[FloatArray, ...]) -> list[FloatArray] | None:
-        """``K^-1 v`` for each v by CG on the exact tangent preconditioned with the rest factor, or None when
-        one does not converge in the budget (see :func:`phantom.model.fem.newton.preconditioned_cg`)."""
+    def _krylov_solves(self, positions_m: FloatArray, load_factor: float, right_hand_sides: tuple[FloatArray, ...],
+                       element_pressures_pa: FloatArray | None = None) -> list[FloatArray] | None:
+        """``K^-1 v`` for each v by CG on the exact tangent (at the carried element pressures, if given)
+        preconditioned with the rest factor, or None when one does not converge in the budget (see
+        :func:`phantom.model.fem.newton.preconditioned_cg`)."""
         if not self.problem.preconditioned:
             return None
         loaded = self.problem.at_load_factor(load_factor)
-        multiply = loaded.multiply(loaded.tangent_data(positions_m))
+        multiply = loaded.multiply(loaded.tangent_data(positions_m, element_pressures_pa))
         preconditioner = self.problem.rest_factorization()
         solutions = []
         for rhs in right_hand_sides:
@@ -365,14 +392,35 @@ class _Path:
             solutions.append(solution)
         return solutions
 
-    def _volume_residual(self, positions_m: FloatArray, load_factor: float, target_m3: float) -> _VolumeState:
-        """The bordered system's residual at ``positions_m`` and ``load_factor`` (see :class:`_VolumeState`)."""
-        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m)
+    def _volume_residual(self, positions_m: FloatArray, load_factor: float, target_m3: float,
+                         element_pressures_pa: FloatArray | None = None) -> _VolumeState:
+        """The bordered system's residual at ``positions_m`` and ``load_factor`` (see :class:`_VolumeState`), at
+        carried element pressures when given (their constraint's error then joins the merit)."""
+        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m,
+                                                                        element_pressures_pa=element_pressures_pa)
         gap = self._control(positions_m) - target_m3
         free = self.constraints.free_mask
         merit = float((np.linalg.norm(evaluation.residual_n[free]) / self.load_scale) ** 2
                       + (gap / self.control_rest_m3) ** 2)
-        return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible)
+        if element_pressures_pa is None:
+            return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n)
+        body = self.body
+        assert body.quadratic is not None  # only 10-node bodies carry element pressures
+        ratios = body.element_volume_ratios(positions_m)
+        constraint_n = (body.material.lame_mu_pa * body.quadratic.volumes_m3 ** (2.0 / 3.0)
+                        * (ratios - 1.0 - element_pressures_pa / body.material.bulk_modulus_pa))
+        merit += float(constraint_n @ constraint_n) / self.load_scale**2
+        return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n, ratios)
+
+    def _with_eliminated(self, state: _VolumeState, positions_m: FloatArray, load_factor: float) -> _VolumeState:
+        """``state`` with its residual at eliminated pressures (the convergence test's and Newton's right-hand
+        side)."""
+        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m)
+        return dataclasses.replace(state, eliminated_n=evaluation.residual_n)
+
+    def _eliminated_pressures(self, positions_m: FloatArray) -> FloatArray:
+        """A 10-node body's element pressures eliminated at ``positions_m``: ``K (Jbar - 1)``."""
+        return self.body.material.bulk_modulus_pa * (self.body.element_volume_ratios(positions_m) - 1.0)
 
     def _cross(self, below: PathPoint, above: PathPoint) -> FloatArray:
         """The equilibrium at lam = 1 between two path points: Illinois regula falsi on the control volume,

@@ -158,9 +158,11 @@ class EquilibriumProblem:
         return Evaluation(residual, elastic.energy_j + load_energy, elastic.smallest_det,
                           elastic.tangent_data if with_tangent else None)
 
-    def tangent_data(self, positions_m: FloatArray) -> FloatArray:
-        """The exact tangent's CSR data (N/m) at ``positions_m``, with the follower-pressure stiffness."""
-        return self.body.tangent_data(positions_m, self.formulation, self.pressures_pa, self.constraints)
+    def tangent_data(self, positions_m: FloatArray, element_pressures_pa: FloatArray | None = None) -> FloatArray:
+        """The exact tangent's CSR data (N/m) at ``positions_m``, with the follower-pressure stiffness (and a
+        10-node body's carried element pressures in its ``p d2v`` term, if given)."""
+        return self.body.tangent_data(positions_m, self.formulation, self.pressures_pa, self.constraints,
+                                      element_pressures_pa)
 
     def multiply(self, tangent_data: FloatArray) -> Callable[[FloatArray], FloatArray]:
         """``v -> K v`` for the tangent with CSR data ``tangent_data`` (from :meth:`tangent_data`)."""
