@@ -14,6 +14,13 @@ each mesh's error against ``g*``. ``h`` is the effective element size ``nodes^(-
 element volume ratio of each solve (det F; for 10-node elements the element's dilatation, which the mixed
 formulation holds near 1) show how far the material compresses. Solves run one at a time (one core); progress
 goes to stderr, the tables to stdout as markdown.
+
+The ladder (run time against error): every (element order, mesh size) at two fidelity levels, the full solve
+from rest and the rest compliance (``c_0 + W_0 p``, one 3x3 product per answer once the compliance is made), each
+with its worst error over the five points against the *converged* gland growth (the extrapolation of the
+order whose three meshes give one at every point, 10-node first), both as % of the growth and as % of the
+gland's volume (what a scene's ``accuracy_pct`` states), with its set-up time and its time per answer.
+``--plot`` draws it.
 """
 
 import argparse
@@ -66,17 +73,26 @@ def solve_row(scene, order: int, size_mm: float, poisson_ratio: float | None,
     setup_s = time.perf_counter() - started
     progress(f"order {order}, {size_mm} mm: {len(model.nodes_m)} nodes, {len(model.tets)} elements "
              f"({setup_s:.1f} s to mesh and set up)")
+    started = time.perf_counter()
+    compliance = model.compliance()
+    compliance_s = time.perf_counter() - started
     rows = []
     for pressures_kpa in PRESSURE_POINTS_KPA:
+        pressures_pa = np.array(pressures_kpa) * 1e3
         started = time.perf_counter()
-        state = model.equilibrium(np.array(pressures_kpa) * 1e3)
+        rest_level_growth_ml = float(compliance.gland_m3_per_pa @ pressures_pa) * 1e6
+        rest_level_s = time.perf_counter() - started
+        started = time.perf_counter()
+        state = model.equilibrium(pressures_pa)
         solve_s = time.perf_counter() - started
         ratios = model.body.element_volume_ratios(state.positions_m)
         row = {"order": order, "size_mm": size_mm, "nodes": len(model.nodes_m), "pressures_kpa": pressures_kpa,
                "gland_growth_ml": (state.gland_volume_m3 - model.rest_gland_volume_m3) * 1e6,
                "chamber_growths_ml": ((state.chamber_volumes_m3 - model.rest_chamber_volumes_m3) * 1e6).tolist(),
                "volume_ratio_min": float(ratios.min()), "volume_ratio_max": float(ratios.max()),
-               "iterations": state.iterations, "solve_s": solve_s}
+               "iterations": state.iterations, "solve_s": solve_s, "setup_s": setup_s,
+               "rest_gland_volume_ml": model.rest_gland_volume_m3 * 1e6, "rest_level_growth_ml": rest_level_growth_ml,
+               "rest_level_s": rest_level_s, "compliance_s": compliance_s}
         progress(f"  {pressures_kpa} kPa: gland +{row['gland_growth_ml']:.4f} ml, J in "
                  f"[{row['volume_ratio_min']:.3f}, {row['volume_ratio_max']:.3f}], {state.iterations} iterations, "
                  f"{solve_s:.1f} s")
@@ -109,6 +125,110 @@ def table(rows: list[dict], order: int) -> str:
     return "\n".join(lines)
 
 
+def converged_growths(rows: list[dict]) -> tuple[int, dict[tuple, float]]:
+    """The element order whose finest three meshes extrapolate at every point (10-node first), and its ``g*`` per
+    point; ``(0, {})`` when neither does."""
+    for order in (2, 1):
+        sizes = sorted({row["size_mm"] for row in rows if row["order"] == order}, reverse=True)
+        if len(sizes) < 3:
+            continue
+        nodes = {row["size_mm"]: row["nodes"] for row in rows if row["order"] == order}
+        converged = {}
+        for point in PRESSURE_POINTS_KPA:
+            growth = {row["size_mm"]: row["gland_growth_ml"] for row in rows
+                      if row["order"] == order and tuple(row["pressures_kpa"]) == point}
+            if not all(size in growth for size in sizes):
+                break
+            value, _ = richardson([nodes[size] ** (-1.0 / 3.0) for size in sizes], [growth[size] for size in sizes])
+            if not np.isfinite(value):
+                break
+            converged[point] = value
+        else:
+            return order, converged
+    return 0, {}
+
+
+def ladder(rows: list[dict]) -> list[dict]:
+    """Each (order, size, level) with its set-up time, median time per answer and worst errors against the
+    converged growths: % of the growth, and % of the gland's volume."""
+    reference_order, converged = converged_growths(rows)
+    if not converged:
+        return []
+    rungs = []
+    for order, size_mm in sorted({(row["order"], row["size_mm"]) for row in rows}, key=lambda key: (key[0], -key[1])):
+        level_rows = [row for row in rows if row["order"] == order and row["size_mm"] == size_mm]
+        for level, growth_key, time_key, setup in (
+                ("full", "gland_growth_ml", "solve_s", lambda row: row["setup_s"]),
+                ("rest", "rest_level_growth_ml", "rest_level_s", lambda row: row["setup_s"] + row["compliance_s"])):
+            growth_errors = [abs(row[growth_key] / converged[tuple(row["pressures_kpa"])] - 1) * 100
+                             for row in level_rows]
+            volume_errors = [abs(row[growth_key] - converged[tuple(row["pressures_kpa"])])
+                             / (row["rest_gland_volume_ml"] + converged[tuple(row["pressures_kpa"])]) * 100
+                             for row in level_rows]
+            rungs.append({"order": order, "size_mm": size_mm, "nodes": level_rows[0]["nodes"], "level": level,
+                          "setup_s": setup(level_rows[0]),
+                          "answer_s": float(np.median([row[time_key] for row in level_rows])),
+                          "growth_error_pct": max(growth_errors), "volume_error_pct": max(volume_errors),
+                          "reference_order": reference_order})
+    return rungs
+
+
+def ladder_table(rungs: list[dict], accuracy_pct: float) -> str:
+    """The ladder as markdown, cheapest answer first, and the cheapest rung within ``accuracy_pct`` (of the
+    growth, and of the volume)."""
+    header = ["elements", "mesh (mm)", "nodes", "level", "set-up (s)", "per answer (s)",
+              "worst error (% of growth)", "worst error (% of volume)"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for rung in sorted(rungs, key=lambda rung: rung["answer_s"]):
+        lines.append(f"| {4 if rung['order'] == 1 else 10}-node | {rung['size_mm']:g} | {rung['nodes']} | "
+                     f"{rung['level']} | {rung['setup_s']:.1f} | {rung['answer_s']:.3g} | "
+                     f"{rung['growth_error_pct']:.2f} | {rung['volume_error_pct']:.3f} |")
+    for key, what in (("growth_error_pct", "of the growth"), ("volume_error_pct", "of the volume")):
+        meeting = [rung for rung in rungs if rung[key] <= accuracy_pct]
+        cheapest = None
+        if meeting:
+            # answers within a factor 2 of the quickest cost the same (the rest level's 3x3 product takes a few
+            # microseconds on any mesh): of those, the one quickest to set up
+            quickest_s = min(rung["answer_s"] for rung in meeting)
+            cheapest = min((rung for rung in meeting if rung["answer_s"] <= 2 * quickest_s),
+                           key=lambda rung: rung["setup_s"])
+        lines.append("")
+        lines.append(f"Cheapest within {accuracy_pct:g} % {what}: " + (
+            f"{4 if cheapest['order'] == 1 else 10}-node, {cheapest['size_mm']:g} mm, {cheapest['level']} "
+            f"({cheapest['answer_s']:.3g} s per answer, {cheapest['setup_s']:.1f} s to set up)" if cheapest
+            else "none of these"))
+    return "\n".join(lines)
+
+
+def plot_ladder(rungs: list[dict], accuracy_pct: float, path: str) -> None:
+    """Time per answer against worst error (% of the growth), one marker per rung, 1 % drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(figsize=(7, 4.5))
+    for order, colour in ((1, "tab:blue"), (2, "tab:red")):
+        for level, marker in (("full", "o"), ("rest", "s")):
+            chosen = [rung for rung in rungs if rung["order"] == order and rung["level"] == level]
+            if not chosen:
+                continue
+            axes.scatter([rung["answer_s"] for rung in chosen], [rung["growth_error_pct"] for rung in chosen],
+                         color=colour, marker=marker, label=f"{4 if order == 1 else 10}-node, {level}")
+            for index, rung in enumerate(chosen):  # stacked: a group's rungs often sit on one spot
+                axes.annotate(f"{rung['size_mm']:g} mm", (rung["answer_s"], rung["growth_error_pct"]),
+                              textcoords="offset points", xytext=(6, 4 - 9 * index), fontsize=8)
+    axes.axhline(accuracy_pct, color="grey", linestyle="--", linewidth=1)
+    axes.set_xscale("log")
+    axes.set_yscale("log")
+    axes.set_xlabel("time per answer (s)")
+    axes.set_ylabel("worst gland growth error against converged (%)")
+    axes.set_title("The prostate's fidelity ladder: run time against error")
+    axes.legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default="builtin:calibrated")
@@ -117,13 +237,19 @@ def main() -> None:
     parser.add_argument("--poisson-ratio", type=float, default=None, help="override the scene's (e.g. 0.4995)")
     parser.add_argument("--youngs-modulus-kpa", type=float, default=None, help="override the scene's (e.g. 50)")
     parser.add_argument("--json", default=None, help="also write every solve's row to this JSON file")
+    parser.add_argument("--from-json", default=None, help="tabulate the rows of an earlier --json run, solve nothing")
+    parser.add_argument("--accuracy-pct", type=float, default=1.0, help="the ladder's line: the cheapest rung within")
+    parser.add_argument("--plot", default=None, help="draw the ladder into this PNG")
     args = parser.parse_args()
     from phantom.model import load_scene
 
     scene = load_scene(args.scene)
     rows: list[dict] = []
+    if args.from_json:
+        with open(args.from_json) as handle:
+            rows = json.load(handle)
     for order, sizes in ((1, args.linear_sizes_mm), (2, args.quadratic_sizes_mm)):
-        for size_mm in [float(size) for size in sizes.split(",") if size]:
+        for size_mm in [] if args.from_json else [float(size) for size in sizes.split(",") if size]:
             rows.extend(solve_row(scene, order, size_mm, args.poisson_ratio, args.youngs_modulus_kpa))
             if args.json:
                 with open(args.json, "w") as handle:
@@ -137,6 +263,14 @@ def main() -> None:
         text = table(rows, order)
         if text:
             print(f"{name}:\n\n{text}\n")
+    rungs = ladder(rows)
+    if not rungs:
+        print("No ladder: neither element order has three meshes that extrapolate at every point.")
+        return
+    print(f"The ladder, errors against the {4 if rungs[0]['reference_order'] == 1 else 10}-node extrapolation:\n")
+    print(ladder_table(rungs, args.accuracy_pct))
+    if args.plot:
+        plot_ladder(rungs, args.accuracy_pct, args.plot)
 
 
 if __name__ == "__main__":
