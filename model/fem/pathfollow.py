@@ -435,6 +435,7 @@ class _Path:
         low_weight = high_weight = 1.0
         best = above
         bracket_failed = False
+        newton_from: PathPoint | None = None
         for load_tolerance in CROSSING_LOAD_TOLERANCES:
             for _ in range(CROSSING_ITERATIONS):
                 if abs(best.load_factor - 1.0) <= load_tolerance or bracket_failed:
@@ -457,6 +458,9 @@ class _Path:
                     low, low_weight, high_weight = best, 1.0, high_weight * 0.5
                 else:
                     high, high_weight, low_weight = best, 1.0, low_weight * 0.5
+            if best is newton_from:  # the bracket came no closer: Newton would fail from the same state again
+                break
+            newton_from = best
             final = newton(self.problem, best.positions_m, self.tolerance)
             self.iterations += final.iterations
             if final.converged:
