@@ -75,6 +75,10 @@ CROSSING_LOAD_TOLERANCES = (1e-3, 1e-6)
 #: A volume-controlled Newton solve fails after CRAWL_ITERATIONS steps in a row cut by 2^CRAWL_HALVINGS or more.
 CRAWL_HALVINGS = 4
 CRAWL_ITERATIONS = 2
+#: A volume-controlled step on a kept (stale) factorisation is halved at most this many times before the tangent
+#: is factorised afresh: the second iterate of a volume step, on the factor made at its predictor, was usually
+#: useless, and its twelve halvings cost twelve element passes before the factor was made again anyway.
+STALE_FACTOR_HALVINGS = 2
 VOLUME_KRYLOV_TOLERANCE = 1e-4
 VOLUME_KRYLOV_ITERATIONS = 40
 
@@ -348,7 +352,8 @@ class _Path:
                                            + body.element_volume_ratio_rates(positions_m, change)) - carried
             accepted: tuple[FloatArray, float, FloatArray | None, _VolumeState] | None = None
             halving = 0
-            for halving in range(12):
+            stale = not krylov and not fresh
+            for halving in range(STALE_FACTOR_HALVINGS + 1 if stale else 12):
                 scale = 0.5**halving
                 trial_m = positions_m + scale * change
                 trial_pa = None if carried is None or pressure_step is None else carried + scale * pressure_step
