@@ -232,7 +232,10 @@ def zero_sensors(link: BoardLink, attempts: int = 10) -> None:
         if answer.fields["status"] not in retry:
             reason = names.get(answer.fields["status"], str(answer.fields["status"]))
             if answer.fields["status"] == ENUMS["status"]["FAULT_LATCHED"]:
-                reason += f" ({', '.join(fault_names(latest_telemetry(link)['fault_flags']))})"
+                try:  # which fault: telemetry carries the latch (a session without telemetry gets the status alone)
+                    reason += f" ({', '.join(fault_names(latest_telemetry(link)['fault_flags']))})"
+                except LinkError:
+                    pass
             raise BenchError(f"the board refused ZERO_SENSORS: {reason}")
         wait_board_time(link, CONSTANTS["ZERO_SETTLE_MS"] / 1e3 / 2)
     raise BenchError(f"ZERO_SENSORS still refused ({names.get(answer.fields['status'])}) after {attempts} tries")
