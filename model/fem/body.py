@@ -407,6 +407,24 @@ class SolidBody:
         rates: FloatArray = (np.linalg.det(jacobians) * traces) @ data.volume_weights / data.volumes_m3
         return rates
 
+    def eliminated_pressures_pa(self, volume_ratios: FloatArray,
+                                volume_ratio_changes: FloatArray | float = 0.0) -> FloatArray:
+        """A 10-node body's element pressures (m,) eliminated at its volume ratios ``Jbar``: ``K (Jbar - 1)``; with
+        ``volume_ratio_changes`` (a step's linearised ``dJbar``), the pressures' linearised update
+        ``K (Jbar - 1 + dJbar)`` (the mixed Newton's, :func:`phantom.model.fem.newton.mixed_newton`)."""
+        pressures_pa: FloatArray = self.material.bulk_modulus_pa * (volume_ratios - 1.0 + volume_ratio_changes)
+        return pressures_pa
+
+    def volume_constraint_error_n(self, volume_ratios: FloatArray, element_pressures_pa: FloatArray) -> FloatArray:
+        """How far carried element pressures (m,) are from the volume ratios' ``K (Jbar - 1)``, as a force (N):
+        ``mu V_e^(2/3) (Jbar - 1 - p / K)``, the constraint's error weighed at the shear modulus, not the bulk (the
+        mixed Newton's merit: a strain error, not K times one)."""
+        assert self.quadratic is not None  # only 10-node bodies have the mixed pressure field
+        material = self.material
+        error_n: FloatArray = (material.lame_mu_pa * self.quadratic.volumes_m3 ** (2.0 / 3.0)
+                               * (volume_ratios - 1.0 - element_pressures_pa / material.bulk_modulus_pa))
+        return error_n
+
     def worst_element(self, positions_m: FloatArray) -> int:
         """The element with the smallest det F if any is flat or inverted, else -1."""
         dets = self.deformation_determinants(positions_m)

@@ -198,10 +198,8 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
     the merit or it stalls. ``evaluation`` is the problem's at ``positions_m`` (pressures eliminated)."""
     body = problem.body
     assert body.quadratic is not None  # only 10-node bodies have the mixed pressure field
-    bulk_pa = body.material.bulk_modulus_pa
-    constraint_weight_n = body.material.lame_mu_pa * body.quadratic.volumes_m3 ** (2.0 / 3.0)
     ratios = body.element_volume_ratios(positions_m)
-    pressures_pa = bulk_pa * (ratios - 1.0)
+    pressures_pa = body.eliminated_pressures_pa(ratios)
     eliminated = evaluation
     merit = norm(eliminated.residual_n)
     best_merit, best_iteration, previous_norm = np.inf, 0, np.inf
@@ -217,7 +215,7 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
             return NewtonResult(positions_m, False, iteration - 1, "mixed solve stalled")
         factorization = problem.tangent(positions_m, exact=True, damped=True, element_pressures_pa=pressures_pa)
         direction = -factorization.solve(eliminated.residual_n).reshape(-1, 3)
-        pressure_step = bulk_pa * (ratios - 1.0 + body.element_volume_ratio_rates(positions_m, direction)) \
+        pressure_step = body.eliminated_pressures_pa(ratios, body.element_volume_ratio_rates(positions_m, direction)) \
             - pressures_pa
         accepted = None
         scale = 1.0
@@ -226,7 +224,7 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
             trial = problem.evaluate(trial_m, element_pressures_pa=trial_pa)
             if trial.admissible:
                 trial_ratios = body.element_volume_ratios(trial_m)
-                constraint = constraint_weight_n * (trial_ratios - 1.0 - trial_pa / bulk_pa)
+                constraint = body.volume_constraint_error_n(trial_ratios, trial_pa)
                 trial_merit = float(np.sqrt(norm(trial.residual_n) ** 2 + dot(constraint, constraint)))
                 if trial_merit < merit:
                     accepted = trial_m, trial_pa, trial_ratios, trial_merit

@@ -313,7 +313,7 @@ class _Path:
         shear modulus. Convergence is judged at eliminated pressures, so the answer is the same state."""
         free = self.constraints.free_mask
         body = self.body
-        carried = self._eliminated_pressures(positions_m) if self.problem.mixed else None
+        carried = body.eliminated_pressures_pa(body.element_volume_ratios(positions_m)) if self.problem.mixed else None
         # Solves with K: conjugate gradients preconditioned by the rest factor while they converge (the
         # tangent is close to it until the strain is large), then a factorisation of K kept while it helps.
         factor: Factor | None = None
@@ -347,9 +347,8 @@ class _Path:
             pressure_step = None
             if carried is not None:
                 assert state.volume_ratios is not None  # a state at carried pressures has its volume ratios
-                bulk_pa = body.material.bulk_modulus_pa
-                pressure_step = bulk_pa * (state.volume_ratios - 1.0
-                                           + body.element_volume_ratio_rates(positions_m, change)) - carried
+                pressure_step = body.eliminated_pressures_pa(
+                    state.volume_ratios, body.element_volume_ratio_rates(positions_m, change)) - carried
             accepted: tuple[FloatArray, float, FloatArray | None, _VolumeState] | None = None
             halving = 0
             stale = not krylov and not fresh
@@ -413,11 +412,8 @@ class _Path:
                       + (gap / self.control_rest_m3) ** 2)
         if element_pressures_pa is None:
             return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n)
-        body = self.body
-        assert body.quadratic is not None  # only 10-node bodies carry element pressures
-        ratios = body.element_volume_ratios(positions_m)
-        constraint_n = (body.material.lame_mu_pa * body.quadratic.volumes_m3 ** (2.0 / 3.0)
-                        * (ratios - 1.0 - element_pressures_pa / body.material.bulk_modulus_pa))
+        ratios = self.body.element_volume_ratios(positions_m)
+        constraint_n = self.body.volume_constraint_error_n(ratios, element_pressures_pa)
         merit += float(constraint_n @ constraint_n) / self.load_scale**2
         return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n, ratios)
 
@@ -426,10 +422,6 @@ class _Path:
         side)."""
         evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m)
         return dataclasses.replace(state, eliminated_n=evaluation.residual_n)
-
-    def _eliminated_pressures(self, positions_m: FloatArray) -> FloatArray:
-        """A 10-node body's element pressures eliminated at ``positions_m``: ``K (Jbar - 1)``."""
-        return self.body.material.bulk_modulus_pa * (self.body.element_volume_ratios(positions_m) - 1.0)
 
     def _cross(self, below: PathPoint, above: PathPoint) -> FloatArray:
         """The equilibrium at lam = 1 between two path points: Illinois regula falsi on the control volume,
