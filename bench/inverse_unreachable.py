@@ -64,7 +64,6 @@ def main() -> None:
                 raise SystemExit(f"{args.volume_ml} ml was reached: pass an unreachable --volume-ml")
             times.append(time.perf_counter() - started)
     peer, cold, warm = (statistics.median(values) for values in (peer_s, cold_s, warm_s))
-    model = fresh_model(args)
     print(f"{args.scene}: {len(model.nodes_m)} nodes, {model.material.model}, E "
           f"{model.material.youngs_modulus_pa / 1e3:.3g} kPa, nu {model.material.poisson_ratio}; "
           f"median of {args.runs}\n\nrefused: {message}\n")

@@ -100,6 +100,20 @@ def solve_row(scene, order: int, size_mm: float, poisson_ratio: float | None,
     return rows
 
 
+def extrapolations(rows: list[dict], order: int) -> dict[tuple, tuple[float, float]]:
+    """Per point, ``(g*, q)`` of one element order's finest three meshes (NaN where a mesh lacks the point, fewer
+    than three meshes ran, or the growths approach no limit)."""
+    sizes = sorted({row["size_mm"] for row in rows if row["order"] == order}, reverse=True)
+    nodes = {row["size_mm"]: row["nodes"] for row in rows if row["order"] == order}
+    result = {}
+    for point in PRESSURE_POINTS_KPA:
+        growth = {row["size_mm"]: row["gland_growth_ml"] for row in rows
+                  if row["order"] == order and tuple(row["pressures_kpa"]) == point}
+        result[point] = (richardson([nodes[size] ** (-1.0 / 3.0) for size in sizes], [growth[size] for size in sizes])
+                         if len(sizes) >= 3 and all(size in growth for size in sizes) else (np.nan, np.nan))
+    return result
+
+
 def table(rows: list[dict], order: int) -> str:
     """The markdown table of one element order: growth per size, g*, q, and each size's error."""
     sizes = sorted({row["size_mm"] for row in rows if row["order"] == order}, reverse=True)
@@ -109,13 +123,10 @@ def table(rows: list[dict], order: int) -> str:
     header = (["pressures (kPa)"] + [f"{size:g} mm ({nodes[size]} nodes)" for size in sizes]
               + ["extrapolated", "order"] + [f"error {size:g} mm" for size in sizes] + ["J range (finest)"])
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for point in PRESSURE_POINTS_KPA:
+    for point, (converged, observed) in extrapolations(rows, order).items():
         by_size = {row["size_mm"]: row for row in rows
                    if row["order"] == order and tuple(row["pressures_kpa"]) == point}
         growths = [by_size[size]["gland_growth_ml"] if size in by_size else np.nan for size in sizes]
-        effective = [nodes[size] ** (-1.0 / 3.0) for size in sizes]
-        converged, observed = (richardson(effective, growths) if len(sizes) >= 3 and not np.isnan(growths).any()
-                               else (np.nan, np.nan))
         errors = [f"{100 * (growth / converged - 1):+.2f} %" if np.isfinite(converged) else "-"
                   for growth in growths]
         finest = by_size.get(sizes[-1])
@@ -129,21 +140,8 @@ def converged_growths(rows: list[dict]) -> tuple[int, dict[tuple, float]]:
     """The element order whose finest three meshes extrapolate at every point (10-node first), and its ``g*`` per
     point; ``(0, {})`` when neither does."""
     for order in (2, 1):
-        sizes = sorted({row["size_mm"] for row in rows if row["order"] == order}, reverse=True)
-        if len(sizes) < 3:
-            continue
-        nodes = {row["size_mm"]: row["nodes"] for row in rows if row["order"] == order}
-        converged = {}
-        for point in PRESSURE_POINTS_KPA:
-            growth = {row["size_mm"]: row["gland_growth_ml"] for row in rows
-                      if row["order"] == order and tuple(row["pressures_kpa"]) == point}
-            if not all(size in growth for size in sizes):
-                break
-            value, _ = richardson([nodes[size] ** (-1.0 / 3.0) for size in sizes], [growth[size] for size in sizes])
-            if not np.isfinite(value):
-                break
-            converged[point] = value
-        else:
+        converged = {point: value for point, (value, _) in extrapolations(rows, order).items()}
+        if all(np.isfinite(value) for value in converged.values()):
             return order, converged
     return 0, {}
 
