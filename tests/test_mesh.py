@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 from phantom.model import MeshError, PhantomModel, SceneError, load_scene
 from phantom.model.mesh.geometry import ProstateGeometry
 from phantom.model.mesh.prostate import CHAMBER_ELLIPSOIDS_MM, DEFAULT_SIZE_MM, builtin_prostate, generate_hollow_sphere
-from phantom.model.mesh.shape import REST_VOLUME_ML, wall_thicknesses_mm
+from phantom.model.mesh.shape import HALF_LENGTH_MM, REST_VOLUME_ML, wall_thicknesses_mm
 from phantom.model.mesh.tetmesh import TetMesh, enclosed_volume_m3, prepare_surfaces, read_mesh, write_mesh
 
 PHANTOM = Path(sys.executable).with_name("phantom")
@@ -86,6 +86,29 @@ def test_fixed_patch_is_on_the_base_around_the_pole(prostate):
     assert patch_m[:, 2].min() > 0.015
     outer = set(np.unique(surfaces.outer_triangles).tolist())
     assert set(np.unique(surfaces.fixed_triangles).tolist()) <= outer
+
+
+@pytest.mark.parametrize("size_mm", [10.0, 7.0])
+def test_the_10_node_fixation_patch_ends_on_its_radius_so_refining_does_not_move_its_edge(size_mm):
+    """The patch's edge is a line of the 10-node mesh on the sphere of the fixation radius about the base pole; it
+    once was the jagged outline of whichever faces fell inside it (80, 88, 82 mm^2 at 10, 7, 5 mm), which kept the
+    base chamber's growth from converging."""
+    geometry = ProstateGeometry(lobe_chamber_scale=1.2, element_order=2)
+    mesh = builtin_prostate(size_mm, geometry)
+    surfaces = prepare_surfaces(mesh, CHAMBERS, "fixed", "builtin")
+    patch = surfaces.fixed_triangles[:, :3]
+    edges = np.sort(np.concatenate([patch[:, [0, 1]], patch[:, [1, 2]], patch[:, [2, 0]]]), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    rim = np.unique(unique[counts == 1])
+    pole_m = np.array([0.0, 0.0, HALF_LENGTH_MM * 1e-3])
+    rim_radius_mm = np.linalg.norm(mesh.nodes_m[rim] - pole_m, axis=1) * 1e3
+    assert len(rim) >= 8
+    np.testing.assert_allclose(rim_radius_mm, geometry.fixation_radius_mm, atol=1e-6)
+    corners_mm = mesh.nodes_m[patch] * 1e3
+    area_mm2 = 0.5 * np.linalg.norm(np.cross(corners_mm[:, 1] - corners_mm[:, 0], corners_mm[:, 2] - corners_mm[:, 0]),
+                                    axis=1).sum()
+    # the cap of the outer surface inside 6 mm is about 111 mm^2; straight-sided faces cut its chords
+    assert 100.0 < area_mm2 < 112.0
 
 
 @pytest.mark.slow

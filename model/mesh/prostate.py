@@ -73,10 +73,11 @@ def _ellipsoid(occ: Any, centre_mm: Vector3, semi_axes_mm: Vector3) -> tuple[int
     return (3, sphere)
 
 
-def _mesh_solid(gmsh: Any, solid: tuple[int, int], size_mm: float, curvature_elements: int, element_order: int,
-                walls: WallField | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh one solid (graded by ``walls`` when given, see the module docstring) at ``element_order``; return its
-    nodes (mm) and positively oriented tets (4 or 10 nodes, meshio's order), numbered from 0 without gaps."""
+def _mesh_solid(gmsh: Any, volumes: list[tuple[int, int]], size_mm: float, curvature_elements: int,
+                element_order: int, walls: WallField | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh one solid, made of ``volumes`` that share their faces, (graded by ``walls`` when given, see the module
+    docstring) at ``element_order``; return its nodes (mm) and positively oriented tets (4 or 10 nodes, meshio's
+    order), numbered from 0 without gaps."""
     gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
     gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / (16.0 if walls is not None else 4.0))
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", curvature_elements)
@@ -85,7 +86,7 @@ def _mesh_solid(gmsh: Any, solid: tuple[int, int], size_mm: float, curvature_ele
         def graded_size(dim: int, tag: int, x: float, y: float, z: float, size: float) -> float:
             return min(size, size_mm * walls.at(x, y, z) / WALL_SPAN_MM)
         gmsh.model.mesh.setSizeCallback(graded_size)
-    gmsh.model.addPhysicalGroup(3, [solid[1]], name="solid")
+    gmsh.model.addPhysicalGroup(3, [tag for _, tag in volumes], name="solid")
     gmsh.model.mesh.generate(3)
     if element_order == 2:
         gmsh.model.mesh.setOrder(2)
@@ -122,6 +123,20 @@ def _straighten_folded(nodes_mm: np.ndarray, tets: np.ndarray) -> np.ndarray:
             middle = tets[folded, 4 + local]
             nodes_mm[middle] = 0.5 * (nodes_mm[tets[folded, first]] + nodes_mm[tets[folded, second]])
     return nodes_mm
+
+
+def _imprint_fixation(occ: Any, solid: list[tuple[int, int]], radius_mm: float) -> list[tuple[int, int]]:
+    """Split ``solid`` by the sphere of ``radius_mm`` about the base pole, so that the fixation patch's edge (where
+    that sphere meets the outer surface) is a line the mesh follows: a patch made of whichever faces fall inside
+    the radius changes its area by several % from one mesh to the next (80, 88 and 82 mm^2 at 10, 7 and 5 mm),
+    and a clamped edge, where the stress is singular, would move with it. Returns the solid's pieces, which
+    share their faces."""
+    sphere = occ.addSphere(0.0, 0.0, HALF_LENGTH_MM, radius_mm)
+    _, children = occ.fragment(solid, [(3, sphere)])
+    pieces = [piece for parent in children[:len(solid)] for piece in parent]
+    occ.remove([piece for piece in children[len(solid)] if piece not in pieces], recursive=True)
+    occ.synchronize()
+    return pieces
 
 
 def _mirror_about_x(nodes_mm: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,10 +189,12 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
         occ.synchronize()
         if len(half) != 1:
             raise MeshError(f"gmsh produced {len(half)} volumes for the prostate instead of one")
+        if element_order == 2:
+            half = _imprint_fixation(occ, half, geometry.fixation_radius_mm)
         curvature_elements = CURVATURE_ELEMENTS
         if element_order == 2:
             curvature_elements = max(4, round(CURVATURE_ELEMENTS * QUADRATIC_CURVATURE_SIZE_MM / size_mm))
-        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half[0], size_mm, curvature_elements, element_order,
+        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half, size_mm, curvature_elements, element_order,
                                                       walls))
     tets = check_tets(nodes_mm, tets, "mirrored prostate mesh")
     faces, _ = boundary_faces(tets)
@@ -192,8 +209,14 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
         groups[f"chamber{index}"] = faces[labels == component]
         on_cavity |= labels == component
     base_pole_mm = np.array([0.0, 0.0, HALF_LENGTH_MM])
-    vertex_distance = np.linalg.norm(nodes_mm[face_vertices(faces)] - base_pole_mm, axis=2).max(axis=1)
-    groups["fixed"] = faces[~on_cavity & (vertex_distance < geometry.fixation_radius_mm)]
+    if element_order == 2:
+        # the patch's edge is a line of the mesh (_imprint_fixation): a face is in it or out of it whole
+        inside = np.linalg.norm(centroids - base_pole_mm, axis=1) < geometry.fixation_radius_mm
+    else:
+        # the 4-node mesh keeps the faces whose corners all lie within the radius (its calibration was fitted so)
+        inside = np.linalg.norm(nodes_mm[face_vertices(faces)] - base_pole_mm, axis=2).max(axis=1) < \
+            geometry.fixation_radius_mm
+    groups["fixed"] = faces[~on_cavity & inside]
     return TetMesh(nodes_mm * 1e-3, tets, groups)
 
 
@@ -211,7 +234,7 @@ def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_
         inner = occ.addSphere(0.0, 0.0, 0.0, inner_radius_mm)
         solid, _ = occ.cut([(3, outer)], [(3, inner)])
         occ.synchronize()
-        nodes_mm, tets = _mesh_solid(gmsh, solid[0], size_mm, 0, element_order)
+        nodes_mm, tets = _mesh_solid(gmsh, solid, size_mm, 0, element_order)
     faces, _ = boundary_faces(tets)
     radius = np.linalg.norm(nodes_mm[face_vertices(faces)].mean(axis=1), axis=1)
     cavity = radius < 0.5 * (inner_radius_mm + outer_radius_mm)
@@ -230,8 +253,9 @@ def builtin_prostate(size_mm: float | None = None, geometry: ProstateGeometry | 
     size_mm = geometry.mesh_size_mm if size_mm is None else float(size_mm)
     element_order = geometry.element_order if element_order is None else int(element_order)
     # the 4-node mesh keeps the name it had before 10-node ones existed, so existing caches stay valid
-    # (the 10-node mesh's curvature sizing scales with its size since "c": older 10-node caches are not read)
-    order_tag = "" if element_order == 1 else f"-p{element_order}c"
+    # (the 10-node mesh's curvature sizing scales with its size since "c", its fixation patch's edge is a mesh
+    # line since "d": older 10-node caches are not read)
+    order_tag = "" if element_order == 1 else f"-p{element_order}d"
     name = f"prostate-v{PROSTATE_GEOMETRY_VERSION}-{geometry.key}-h{size_mm:.6g}mm{order_tag}.npz"
     cache_path = phantom.cache_dir("meshes") / name
     if cache_path.is_file():
