@@ -128,6 +128,9 @@ class LoadedModel:
         if self.estimator.probe_errors_pct:
             probe = ", chosen for accuracy_pct {:g} from errors {}".format(self.estimator.accuracy_pct, ", ".join(
                 f"{level} {error:.3g} %" for level, error in self.estimator.probe_errors_pct.items()))
+            discretisation = self.estimator.discretisation_error_pct
+            probe += (" against the full solve on its own mesh (a mesh file is not refined here)" if discretisation
+                      is None else f" against the converged answer (the mesh's own error {discretisation:.2g} %)")
         if self.estimator.table is not None:
             probe = (f", a {self.estimator.table.points_per_axis}^{self.estimator.table.n_chambers} response table "
                      f"within {self.estimator.table.check_errors_pct:.2g} % of full solves")

@@ -180,8 +180,8 @@ def test_an_inaccurate_table_is_refused_with_what_to_do(monkeypatch, tmp_path):
     # than the 0.001 % asked for
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     scene_path = tmp_path / "coarse_table.toml"
-    scene_path.write_text(load_scene("builtin").path.read_text()
-                          + '\n[model]\nfidelity = "table"\ntable_points = 2\naccuracy_pct = 0.001\n')
+    scene_path.write_text(load_scene("builtin").path.read_text().replace(
+        "accuracy_pct = 10.0", 'fidelity = "table"\ntable_points = 2\naccuracy_pct = 0.001'))
     coarse = PhantomModel.from_scene(load_scene(scene_path), mesh_size_mm=COARSE_MM)
     with pytest.raises(PhantomError, match=r"misses the full solve by .* raise \[model\] table_points"):
         VolumeEstimator(coarse)

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+from phantom import PhantomError
 from phantom.host.scenes import (
     example_scene_path,
     gland_volume_ml,
@@ -146,22 +147,31 @@ def test_the_controller_honours_the_scenes_accuracy_when_it_names_no_fidelity(tm
     from phantom.host.model_worker import LoadedModel
     from phantom.model import load_scene
 
-    # A soft small-strain material with 3 kPa everywhere: "rest" is 35 % off on a chamber, "updated" exact. A
-    # scene that accepts 50 % gets the cheapest level, "rest"; one that asks for 1 % gets "updated" (no solve).
+    # A soft small-strain material with 3 kPa everywhere (displacements as large as the gland, which a small-
+    # strain law allows): "updated" is exact on the mesh, which is itself an estimated 47 % of a chamber's volume
+    # from the converged answer (the probe refines it once to see), and "rest" 82 %. A scene that accepts 100 %
+    # gets the cheapest level, "rest"; one that asks for 60 % gets "updated" (no solve); one that asks for 1 % is
+    # refused, saying what would meet it.
     text = (load_scene("builtin").path.read_text().replace('model = "corotational"', 'model = "linear"')
             .replace("youngs_modulus_kpa = 50.0", "youngs_modulus_kpa = 2.63")
-            + "\n[model]\npressure_max_kpa = 3.0\naccuracy_pct = {}\n")
+            .replace("accuracy_pct = 10.0", "pressure_max_kpa = 3.0\naccuracy_pct = {}"))
     levels, lines = {}, []
-    for accuracy_pct in (50.0, 1.0):
+    for accuracy_pct in (100.0, 60.0):
         scene_path = tmp_path / f"scene_{accuracy_pct:g}.toml"
         scene_path.write_text(text.format(accuracy_pct))
         controller = LoadedModel(str(scene_path), report=lines.append)
         assert controller.scene.material.model == "linear"
         levels[accuracy_pct] = controller.estimator.level
         assert controller.estimator.accuracy_pct == accuracy_pct
-    assert levels == {50.0: "rest", 1.0: "updated"}
+    assert levels == {100.0: "rest", 60.0: "updated"}
     # the second scene's "inverse ready" line (the start-up's total follows it)
-    assert any("chosen for accuracy_pct 1 from errors" in line for line in lines), lines
+    assert any("chosen for accuracy_pct 60 from errors" in line and "against the converged answer (the mesh's own "
+               "error" in line for line in lines), lines
+    scene_path = tmp_path / "scene_1.toml"
+    scene_path.write_text(text.format(1.0))
+    with pytest.raises(PhantomError, match=r"no level meets accuracy_pct 1: the full solve on this mesh is an "
+                       r"estimated 4\d % of a volume from the converged answer .* element_order = 2"):
+        LoadedModel(str(scene_path), report=lines.append)
 
 
 @pytest.fixture(scope="module")

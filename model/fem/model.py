@@ -25,6 +25,7 @@ from phantom.model.fem.linsolve import Factorization
 from phantom.model.fem.newton import RELATIVE_TOLERANCE, newton
 from phantom.model.fem.pathfollow import follow_path
 from phantom.model.fem.problem import EquilibriumProblem
+from phantom.model.mesh.geometry import ProstateGeometry
 from phantom.model.mesh.prostate import builtin_prostate
 from phantom.model.mesh.tetmesh import Surfaces, TetMesh, prepare_surfaces, read_mesh
 from phantom.model.scene import HYPERELASTIC_MODELS, MATERIAL_MODELS, Material, ModelSettings, Scene
@@ -85,13 +86,16 @@ class PhantomModel:
     whose curved volumes the model measures),
     ``rest_chamber_volumes_m3``, ``rest_gland_volume_m3``, ``material``, ``formulation`` (the scene's),
     ``scene`` (the Scene it was built from, None for a bare mesh), and its :attr:`model_settings`, which the
-    inverse and the volume estimator read.
+    inverse and the volume estimator read; ``mesh_size_mm``, the built-in mesh's element size (None for a mesh
+    read from a file, which cannot be refined here).
     """
 
     def __init__(self, mesh: TetMesh, surfaces: Surfaces, chamber_names: list[str], material: Material,
-                 source: str = "mesh", linear_solver: str | None = None, scene: Scene | None = None):
+                 source: str = "mesh", linear_solver: str | None = None, scene: Scene | None = None,
+                 mesh_size_mm: float | None = None):
         self.body = SolidBody(mesh, surfaces, chamber_names, material, source, linear_solver)
         self.scene = scene
+        self.mesh_size_mm = mesh_size_mm
         self.mesh = mesh
         self.source = source
         self.linear_solver = linear_solver
@@ -120,13 +124,15 @@ class PhantomModel:
             if scene.units != "mm":
                 raise MeshError(f"the built-in mesh is in millimetres: set [phantom] units = \"mm\" (not "
                                 f"{scene.units!r})")
+            geometry = scene.geometry or ProstateGeometry()
+            mesh_size_mm = geometry.mesh_size_mm if mesh_size_mm is None else float(mesh_size_mm)
             mesh, source = builtin_prostate(mesh_size_mm, scene.geometry), "builtin:prostate"
         else:
             if mesh_size_mm is not None:
                 raise MeshError(f"mesh_size_mm applies to the built-in mesh only; {scene.mesh} is read as it is")
             mesh, source = read_mesh(scene.mesh, scene.length_scale_m), scene.mesh
         surfaces = prepare_surfaces(mesh, scene.chambers, scene.fixed, source)
-        return cls(mesh, surfaces, scene.chambers, scene.material, source, scene=scene)
+        return cls(mesh, surfaces, scene.chambers, scene.material, source, scene=scene, mesh_size_mm=mesh_size_mm)
 
     def with_material(self, youngs_modulus_pa: float | None = None, poisson_ratio: float | None = None,
                       model: str | None = None, gent_jm: float | None = None) -> PhantomModel:
@@ -143,7 +149,7 @@ class PhantomModel:
         )
         scene = None if self.scene is None else dataclasses.replace(self.scene, material=material)
         return PhantomModel(self.mesh, self.body.surfaces, self.chamber_names, material, self.source,
-                            self.linear_solver, scene)
+                            self.linear_solver, scene, self.mesh_size_mm)
 
     @property
     def model_settings(self) -> ModelSettings:

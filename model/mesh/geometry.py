@@ -43,6 +43,8 @@ Vector3 = tuple[float, float, float]
 #: Bounds of each scalar parameter (mm or dimensionless), beyond which the body cannot hold the chamber.
 SCALE_RANGE = (0.3, 2.5)
 FIXATION_RADIUS_RANGE_MM = (1.0, 15.0)
+#: The element sizes (mm) the built-in mesh is made at.
+MESH_SIZE_RANGE_MM = (0.3, 10.0)
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,7 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
             raise SceneError(f"{where}: [geometry] {name} must be a number, got {value!r}")
         low, high = {"base_chamber_scale": SCALE_RANGE, "lobe_chamber_scale": SCALE_RANGE,
                      "fixation_radius_mm": FIXATION_RADIUS_RANGE_MM,
-                     "min_wall_mm": (MANUFACTURABLE_WALL_MM, 10.0), "mesh_size_mm": (0.3, 10.0)}[name]
+                     "min_wall_mm": (MANUFACTURABLE_WALL_MM, 10.0), "mesh_size_mm": MESH_SIZE_RANGE_MM}[name]
         if not low <= value <= high:
             why = " (thinner walls cannot be cast)" if name == "min_wall_mm" else ""
             raise SceneError(f"{where}: [geometry] {name} = {value} is outside [{low:g}, {high:g}]{why}")

@@ -29,7 +29,7 @@ import numpy as np
 import phantom
 from phantom.model.errors import MeshError
 from phantom.model.mesh.elements import GMSH_TET10_ORDER, TET10_EDGES, TET10_REFLECTED, face_vertices
-from phantom.model.mesh.geometry import ProstateGeometry, Vector3
+from phantom.model.mesh.geometry import MESH_SIZE_RANGE_MM, ProstateGeometry, Vector3
 from phantom.model.mesh.shape import (
     ANTERIOR_POSTERIOR_RATIO,
     HALF_LENGTH_MM,
@@ -161,8 +161,9 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
     Raises MeshError, before meshing, when a wall of ``geometry`` (default: the shipped one) is thinner than
     its ``min_wall_mm``.
     """
-    if not 0.3 <= size_mm <= 10.0:
-        raise MeshError(f"mesh size {size_mm} mm is out of range: use 0.3 to 10 mm (default {DEFAULT_SIZE_MM})")
+    if not MESH_SIZE_RANGE_MM[0] <= size_mm <= MESH_SIZE_RANGE_MM[1]:
+        raise MeshError(f"mesh size {size_mm} mm is out of range: use {MESH_SIZE_RANGE_MM[0]:g} to "
+                        f"{MESH_SIZE_RANGE_MM[1]:g} mm (default {DEFAULT_SIZE_MM})")
     geometry = geometry or ProstateGeometry()
     element_order = geometry.element_order if element_order is None else element_order
     check_walls(geometry)
