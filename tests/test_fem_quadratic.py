@@ -137,7 +137,8 @@ def test_the_mixed_newton_solves_the_nearly_incompressible_prostate_in_a_handful
     problem = model.problem(pressures)
     residual = problem.evaluate(state.positions_m).residual_n
     assert np.linalg.norm(residual) <= RELATIVE_TOLERANCE * problem.load_scale_n()
-    assert state.gland_volume_m3 - model.rest_gland_volume_m3 == pytest.approx(0.384e-6, rel=2e-3)
+    # the convergence table's 10 mm figure (bench/README.md; the fixation patch ending on its radius since 72e9ebb)
+    assert state.gland_volume_m3 - model.rest_gland_volume_m3 == pytest.approx(0.3741e-6, rel=2e-3)
 
 
 def test_small_pressure_follows_the_small_strain_answer(meshes):

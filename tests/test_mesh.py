@@ -107,8 +107,9 @@ def test_the_10_node_fixation_patch_ends_on_its_radius_so_refining_does_not_move
     corners_mm = mesh.nodes_m[patch] * 1e3
     area_mm2 = 0.5 * np.linalg.norm(np.cross(corners_mm[:, 1] - corners_mm[:, 0], corners_mm[:, 2] - corners_mm[:, 0]),
                                     axis=1).sum()
-    # the cap of the outer surface inside 6 mm is about 111 mm^2; straight-sided faces cut its chords
-    assert 100.0 < area_mm2 < 112.0
+    # the cap of the outer surface inside 6 mm is 113 mm^2 (integrated on the body's profile); the faces' straight
+    # sides cut its chords
+    assert 100.0 < area_mm2 < 113.5
 
 
 @pytest.mark.slow
