@@ -94,21 +94,11 @@ def felupe_solve(model, pressures_pa, load_steps: int = 4, tolerance: float = 1e
     return model.nodes_m + field[0].values
 
 
-def felupe_mixed_sphere(model, cavity_stretches, inner_radius_m, tolerance=1e-10, max_iterations=30):
-    """FElupe's mixed P2/P1 solution of the model's 10-node hollow sphere with its cavity wall held at the given
-    stretches (each node of the wall moved radially, ``x = stretch X``; the outer surface free): a list of
-    (cavity pressure Pa, node positions (n, 3) m in the model's node order) per stretch.
-
-    FElupe's ``FieldsMixed`` on ``RegionQuadraticTetra`` is a continuous quadratic displacement with continuous
-    linear pressure and dilatation fields (P2/P1, Hu-Washizu through ``ThreeFieldVariation``), a different
-    discretisation of the same continuum than the model's (pressure and dilatation constant per element): the two
-    agree only as both converge. Its law is ``NeoHooke(mu, bulk)``, ``W = mu/2 (J^(-2/3) tr C - 3) + U(J)``. The
-    pressure is the wall's reaction: the sum of the radial reaction forces over the deformed wall's area (a
-    uniform pressure on a sphere). FElupe's dual mesh takes the first points as the corners, so the corners are
-    numbered first here. Newton on the whole mixed system, the wall's displacement prescribed.
-    """
+def _mixed_solid(model):
+    """FElupe's P2/P1 mixed Neo-Hookean solid on the model's 10-node mesh: ``(solid, field, nodes, renumbered)``,
+    the nodes (m) in FElupe's order (its dual mesh takes the first points as the corners, so the corners are
+    numbered first) and ``renumbered``, each model node's index in it."""
     import felupe as fem
-    import scipy.sparse.linalg as spla
 
     nodes_m, tets = model.nodes_m, model.tets
     corners = np.unique(tets[:, :4])
@@ -121,26 +111,69 @@ def felupe_mixed_sphere(model, cavity_stretches, inner_radius_m, tolerance=1e-10
     material = model.material
     solid = fem.SolidBody(fem.ThreeFieldVariation(fem.NeoHooke(mu=material.lame_mu_pa, bulk=material.bulk_modulus_pa)),
                           field)
-    wall = np.abs(np.linalg.norm(nodes, axis=1) - inner_radius_m) < 1e-6 * inner_radius_m
+    return solid, field, nodes, renumbered
+
+
+def _mixed_newton(solid, field, held, external, tolerance, max_iterations, what):
+    """Newton on FElupe's whole mixed system with the dofs ``held`` (mask over all fields) fixed and the dead
+    nodal load ``external`` (over all fields; zero beyond the displacement's); returns the last residual."""
+    import scipy.sparse.linalg as spla
+
     sizes = [f.values.size for f in field.fields]
-    held = np.zeros(sum(sizes), bool)
+    for _ in range(max_iterations):
+        residual = np.asarray(solid.assemble.vector(field).todense()).ravel() - external
+        scale = max(np.linalg.norm(residual[held]), np.linalg.norm(external))
+        if np.linalg.norm(residual[~held]) <= tolerance * scale:
+            return residual
+        tangent = solid.assemble.matrix(field).tocsr()[~held][:, ~held]
+        step = np.zeros(len(held))
+        step[~held] = spla.spsolve(tangent.tocsc(), -residual[~held])
+        field += np.split(step, np.cumsum(sizes)[:-1])
+    raise RuntimeError(f"FElupe mixed: Newton did not converge {what}")
+
+
+def felupe_mixed_sphere(model, cavity_stretches, inner_radius_m, tolerance=1e-10, max_iterations=30):
+    """FElupe's mixed P2/P1 solution of the model's 10-node hollow sphere with its cavity wall held at the given
+    stretches (each node of the wall moved radially, ``x = stretch X``; the outer surface free): a list of
+    (cavity pressure Pa, node positions (n, 3) m in the model's node order) per stretch.
+
+    FElupe's ``FieldsMixed`` on ``RegionQuadraticTetra`` is a continuous quadratic displacement with continuous
+    linear pressure and dilatation fields (P2/P1, Hu-Washizu through ``ThreeFieldVariation``), a different
+    discretisation of the same continuum than the model's (pressure and dilatation constant per element): the two
+    agree only as both converge. Its law is ``NeoHooke(mu, bulk)``, ``W = mu/2 (J^(-2/3) tr C - 3) + U(J)``. The
+    pressure is the wall's reaction: the sum of the radial reaction forces over the deformed wall's area (a
+    uniform pressure on a sphere). Newton on the whole mixed system, the wall's displacement prescribed.
+    """
+    solid, field, nodes, renumbered = _mixed_solid(model)
+    wall = np.abs(np.linalg.norm(nodes, axis=1) - inner_radius_m) < 1e-6 * inner_radius_m
+    held = np.zeros(sum(f.values.size for f in field.fields), bool)
     held[: nodes.size] = np.repeat(wall, 3)
     answers = []
     for stretch in cavity_stretches:
         field[0].values[wall] = nodes[wall] * (stretch - 1.0)
-        for _ in range(max_iterations):
-            residual = np.asarray(solid.assemble.vector(field).todense()).ravel()
-            if np.linalg.norm(residual[~held]) <= tolerance * np.linalg.norm(residual[held]):
-                break
-            tangent = solid.assemble.matrix(field).tocsr()[~held][:, ~held]
-            step = np.zeros(len(held))
-            step[~held] = spla.spsolve(tangent.tocsc(), -residual[~held])
-            field += np.split(step, np.cumsum(sizes)[:-1])
-        else:
-            raise RuntimeError(f"FElupe mixed sphere: Newton did not converge at cavity stretch {stretch:g}")
+        residual = _mixed_newton(solid, field, held, np.zeros(len(held)), tolerance, max_iterations,
+                                 f"at cavity stretch {stretch:g}")
         positions = nodes + field[0].values
         forces = residual[: nodes.size].reshape(-1, 3)
         normals = positions[wall] / np.linalg.norm(positions[wall], axis=1)[:, None]
         pressure_pa = float(np.einsum("ij,ij->", forces[wall], normals)) / (4 * np.pi * (stretch * inner_radius_m) ** 2)
         answers.append((pressure_pa, positions[renumbered]))
     return answers
+
+
+def felupe_mixed_dead_load(model, forces_n, load_steps=4, tolerance=1e-10, max_iterations=30):
+    """FElupe's mixed P2/P1 solution of the model's 10-node mesh under the dead nodal load ``forces_n`` (N, (n, 3)
+    in the model's node order), the nodes of the model's fixed faces held: node positions (m, (n, 3)), in the
+    model's order. The load is ramped over ``load_steps`` equal steps, each solved by Newton (as
+    :func:`felupe_mixed_sphere`)."""
+    solid, field, nodes, renumbered = _mixed_solid(model)
+    fixed = np.zeros(len(nodes), bool)
+    fixed[renumbered[np.unique(model.fixed_faces)]] = True
+    held = np.zeros(sum(f.values.size for f in field.fields), bool)
+    held[: nodes.size] = np.repeat(fixed, 3)
+    load = np.zeros(len(held))
+    load[: nodes.size] = np.asarray(forces_n)[np.argsort(renumbered)].ravel()
+    for load_factor in np.linspace(0.0, 1.0, load_steps + 1)[1:]:
+        _mixed_newton(solid, field, held, load_factor * load, tolerance, max_iterations,
+                      f"at load factor {load_factor:g}")
+    return (nodes + field[0].values)[renumbered]
