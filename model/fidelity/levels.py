@@ -101,7 +101,7 @@ class VolumeEstimator:
         self.probe_errors_pct: dict[str, float] = {}
         self.probe_times_s: dict[str, float] = {}
         #: the probe's full solve against the converged answer (% of a volume) and the finer mesh (mm) that
-        #: measured it; None when no probe ran or the mesh cannot be refined (:func:`discretisation_error_pct`)
+        #: measured it; None when no probe ran or the mesh cannot be refined (:func:`discretisation_error`)
         self.discretisation_error_pct: float | None = None
         self.refined_mesh_size_mm: float | None = None
         self._rest_compliance: Compliance | None = None
@@ -221,7 +221,7 @@ class VolumeEstimator:
     def _cheapest_level(self) -> str:
         """Probe each level with every chamber at the pressure limit and keep the fastest (measured on the probe)
         whose volume error against the converged answer is within the stated accuracy: its error against the
-        full solve on this mesh plus that solve's own discretisation error (:func:`discretisation_error_pct`;
+        full solve on this mesh plus that solve's own discretisation error (:func:`discretisation_error`;
         none where the mesh cannot be refined here). Raises PhantomError, saying what would meet it, when no
         level does."""
         probe_pa = np.full(self.n_chambers, self.pressure_max_pa)
@@ -278,13 +278,14 @@ class Discretisation:
     finer_mesh_size_mm: float
     #: how much smaller the finer mesh's effective element size (``nodes^(-1/3)``) is
     effective_ratio: float
-    order: int
+    #: ``q`` of :func:`assumed_convergence_order`
+    convergence_order: int
 
     def mesh_size_for_mm(self, error_pct: float) -> float:
         """The ``mesh_size_mm`` estimated to bring the error to ``error_pct``: the effective size scales as the
         nominal one to the power these two meshes showed (gmsh's curvature sizing keeps it from scaling 1:1)."""
         power = math.log(self.effective_ratio) / math.log(self.mesh_size_mm / self.finer_mesh_size_mm)
-        return float(self.mesh_size_mm * (error_pct / self.error_pct) ** (1.0 / (self.order * power)))
+        return float(self.mesh_size_mm * (error_pct / self.error_pct) ** (1.0 / (self.convergence_order * power)))
 
 
 def discretisation_error(model: PhantomModel, pressures_pa: FloatArray,
@@ -298,12 +299,12 @@ def discretisation_error(model: PhantomModel, pressures_pa: FloatArray,
     if model.scene is None or size_mm is None or size_mm / REFINEMENT_RATIO < MESH_SIZE_RANGE_MM[0]:
         return None
     finer = PhantomModel.from_scene(model.scene, mesh_size_mm=size_mm / REFINEMENT_RATIO)
-    state = finer.equilibrium(pressures_pa)
-    finer_m3 = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
-    change = float(np.max(np.abs(volumes_m3 - finer_m3) / np.abs(finer_m3)))
     ratio = (len(finer.nodes_m) / len(model.nodes_m)) ** (1.0 / 3.0)
     if ratio <= 1.0:
         return None
+    state = finer.equilibrium(pressures_pa)
+    finer_m3 = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
+    change = float(np.max(np.abs(volumes_m3 - finer_m3) / np.abs(finer_m3)))
     order = assumed_convergence_order(model.order)
     refined = ratio ** order
     return Discretisation(100.0 * change * refined / (refined - 1.0), size_mm, size_mm / REFINEMENT_RATIO, ratio,

@@ -14,8 +14,10 @@ with ``h`` the scene's ``mesh_size_mm`` and ``w`` the local wall thickness
 WALL_SPAN_MM (two at 4 mm), and ``mesh_size_mm`` stays the one knob: halving it halves every size, the
 curvature sizing's included (``CURVATURE_ELEMENTS * QUADRATIC_CURVATURE_SIZE_MM / h`` elements per 2 pi of
 curvature; the curved faces keep a cavity's volume with few). Order 2 adds
-gmsh's mid-edge nodes, placed on the curved surfaces (10-node tetrahedra), to the same elements. The 4-node mesh
-is not graded (the shipped calibration holds on it as it is).
+gmsh's mid-edge nodes, placed on the curved surfaces (10-node tetrahedra), to the same elements. The 10-node
+mesh's fixed patch ends exactly on the fixation radius (the solid is split by that sphere before meshing), so a
+finer mesh does not move the clamped edge. The 4-node mesh is neither graded nor split (the shipped calibration
+holds on it as it is).
 """
 
 import math
