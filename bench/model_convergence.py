@@ -18,8 +18,9 @@ goes to stderr, the tables to stdout as markdown.
 The ladder (run time against error): every (element order, mesh size) at two fidelity levels, the full solve
 from rest and the rest compliance (``c_0 + W_0 p``, one 3x3 product per answer once the compliance is made), each
 with its worst error over the five points against the *converged* gland growth (the extrapolation of the
-order whose three meshes give one at every point, 10-node first), both as % of the growth and as % of the
-gland's volume (what a scene's ``accuracy_pct`` states), with its set-up time and its time per answer.
+order whose three finest meshes give one at every point, 10-node first; where none does, the finest 10-node
+mesh's growth, and the errors are lower bounds), both as % of the growth and as % of the gland's volume (what a
+scene's ``accuracy_pct`` states), with its set-up time and its time per answer.
 ``--plot`` draws it.
 """
 

@@ -10,7 +10,7 @@ from scipy import sparse
 
 from phantom import PhantomError
 from phantom.model import PhantomModel, load_scene
-from phantom.model.fidelity.levels import VolumeEstimator
+from phantom.model.fidelity.levels import Discretisation, VolumeEstimator
 from phantom.model.inverse import InverseSolver
 from phantom.model.mesh.tetmesh import Surfaces, enclosed_volume_m3, volume_gradient_m2
 
@@ -173,12 +173,21 @@ def test_a_mesh_too_coarse_for_the_stated_accuracy_is_refused_with_what_would_me
     assert VolumeEstimator(model, accuracy_pct=stated, pressure_max_pa=3000.0).level in ("rest", "updated", "full")
 
 
-def test_the_discretisation_estimate_shrinks_on_the_finer_mesh_and_predicts_its_size(model):
+def test_the_discretisation_estimate_shrinks_on_the_finer_mesh(model):
     coarse = VolumeEstimator(model, accuracy_pct=100.0, pressure_max_pa=3000.0)
     finer_model = PhantomModel.from_scene(model.scene, mesh_size_mm=COARSE_MM / 1.4)
     assert finer_model.mesh_size_mm == pytest.approx(COARSE_MM / 1.4)
     finer = VolumeEstimator(finer_model, accuracy_pct=100.0, pressure_max_pa=3000.0)
     assert 0.0 < finer.discretisation_error_pct < coarse.discretisation_error_pct
+
+
+@pytest.mark.parametrize("effective_power, expected_mm", [(1.0, 1.0), (0.5, 0.5)])
+def test_the_mesh_size_asked_for_follows_the_assumed_order_and_how_the_mesh_refined(effective_power, expected_mm):
+    # 4 % at 2 mm, error ~ h^2: 1 % needs h halved; a mesh whose effective size shrank only as the square root of
+    # its nominal one (gmsh's curvature sizing) needs the nominal size quartered
+    estimate = Discretisation(error_pct=4.0, mesh_size_mm=2.0, finer_mesh_size_mm=2.0 / 1.4,
+                              effective_ratio=1.4**effective_power, convergence_order=2)
+    assert estimate.mesh_size_for_mm(1.0) == pytest.approx(expected_mm)
 
 
 def test_the_scene_model_table_picks_the_level(tmp_path):
@@ -214,6 +223,7 @@ def test_without_a_fidelity_the_scenes_accuracy_picks_the_level(tmp_path):
     # picks "updated"; a loose enough one "rest".
     text = (load_scene("builtin").path.read_text().replace('model = "corotational"', 'model = "linear"')
             .replace("youngs_modulus_kpa = 50.0", "youngs_modulus_kpa = 2.63"))
+
     def probed(accuracy_pct):
         scene_path = tmp_path / f"soft_linear_{accuracy_pct:g}.toml"
         # (the built-in scene's [model] table states its accuracy: this one's replaces it)
@@ -226,8 +236,7 @@ def test_without_a_fidelity_the_scenes_accuracy_picks_the_level(tmp_path):
 
     loose = probed(1e4)
     between = probed(0.5 * (loose.probe_errors_pct["updated"] + loose.probe_errors_pct["rest"]))
-    levels = {True: loose.level, False: between.level}
-    assert levels == {True: "rest", False: "updated"}
+    assert (loose.level, between.level) == ("rest", "updated")
 
 
 @pytest.mark.parametrize("arguments, message", [
