@@ -139,31 +139,28 @@ def table(rows: list[dict], order: int) -> str:
     return "\n".join(lines)
 
 
-def converged_growths(rows: list[dict]) -> tuple[int, dict[tuple, float], str]:
-    """The reference growth per point, its element order and what it is: the extrapolation of the order whose
-    finest three meshes extrapolate at every point (10-node first); else the finest 10-node mesh's growth (the
-    errors against it are then lower bounds); ``(0, {}, "")`` without a 10-node mesh at every point."""
+def converged_growths(rows: list[dict]) -> tuple[dict[tuple, float], str]:
+    """The reference growth per point and what it is: the extrapolation of the element order whose finest three
+    meshes extrapolate at every point (10-node first); else the finest 10-node mesh's growth (the errors against
+    it are then lower bounds); ``({}, "")`` without a 10-node mesh at every point."""
     for order in (2, 1):
         converged = {point: value for point, (value, _) in extrapolations(rows, order).items()}
         if all(np.isfinite(value) for value in converged.values()):
-            return order, converged, f"the {4 if order == 1 else 10}-node extrapolation"
+            return converged, f"the {4 if order == 1 else 10}-node extrapolation"
     quadratic = [row for row in rows if row["order"] == 2]
     if not quadratic:
-        return 0, {}, ""
+        return {}, ""
     finest_mm = min(row["size_mm"] for row in quadratic)
     finest = {tuple(row["pressures_kpa"]): row["gland_growth_ml"] for row in quadratic if row["size_mm"] == finest_mm}
     if set(finest) != set(PRESSURE_POINTS_KPA):
-        return 0, {}, ""
-    return 2, finest, (f"the finest 10-node mesh ({finest_mm:g} mm); no extrapolation: the growths do not approach "
+        return {}, ""
+    return finest, (f"the finest 10-node mesh ({finest_mm:g} mm); no extrapolation: the growths do not approach "
                        "a limit steadily, so each error is a lower bound")
 
 
-def ladder(rows: list[dict]) -> list[dict]:
+def ladder(rows: list[dict], converged: dict[tuple, float]) -> list[dict]:
     """Each (order, size, level) with its set-up time, median time per answer and worst errors against the
-    converged growths: % of the growth, and % of the gland's volume."""
-    reference_order, converged, _ = converged_growths(rows)
-    if not converged:
-        return []
+    ``converged`` growths (:func:`converged_growths`): % of the growth, and % of the gland's volume."""
     rungs = []
     for order, size_mm in sorted({(row["order"], row["size_mm"]) for row in rows}, key=lambda key: (key[0], -key[1])):
         level_rows = [row for row in rows if row["order"] == order and row["size_mm"] == size_mm]
@@ -180,8 +177,7 @@ def ladder(rows: list[dict]) -> list[dict]:
             rungs.append({"order": order, "size_mm": size_mm, "nodes": level_rows[0]["nodes"], "level": level,
                           "setup_s": setup(level_rows[0]),
                           "answer_s": float(np.median([row[time_key] for row in level_rows])),
-                          "growth_error_pct": max(growth_errors), "volume_error_pct": max(volume_errors),
-                          "reference_order": reference_order})
+                          "growth_error_pct": max(growth_errors), "volume_error_pct": max(volume_errors)})
     return rungs
 
 
@@ -277,12 +273,12 @@ def main() -> None:
         text = table(rows, order)
         if text:
             print(f"{name}:\n\n{text}\n")
-    rungs = ladder(rows)
+    converged, reference = converged_growths(rows)
+    rungs = ladder(rows, converged) if converged else []
     if not rungs:
         print("No ladder: neither element order has three meshes that extrapolate at every point, nor a 10-node "
               "mesh every point.")
         return
-    reference = converged_growths(rows)[2]
     print(f"The ladder, errors against {reference}:\n")
     print(ladder_table(rungs, args.accuracy_pct))
     if args.plot:

@@ -79,7 +79,7 @@ FIGURES = (
              "--sphere-sizes-mm", "6,4,3,2.5", "--inverse-mm", "3", "--out", "bench/model_fidelity.png"),)),
     Figure("bench/model_ladder.png",
            "the prostate's fidelity ladder: time per answer against error from the converged growth, 4- and 10-node",
-           ((PYTHON, "bench/model_convergence.py", "--linear-sizes-mm", "4,3,2.5", "--quadratic-sizes-mm", "10,7,5",
+           ((PYTHON, "bench/model_convergence.py", "--linear-sizes-mm", "4,3,2.5", "--quadratic-sizes-mm", "10,7,5,4",
              "--youngs-modulus-kpa", "50", "--poisson-ratio", "0.4996", "--plot", "bench/model_ladder.png"),)),
     Figure("bench/scan_accuracy.png",
            "the scanner's volume error and mean distance on the simulated rig against views and picture size",

@@ -100,10 +100,9 @@ class VolumeEstimator:
         self.counts = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
         self.probe_errors_pct: dict[str, float] = {}
         self.probe_times_s: dict[str, float] = {}
-        #: the probe's full solve against the converged answer (% of a volume) and the finer mesh (mm) that
-        #: measured it; None when no probe ran or the mesh cannot be refined (:func:`discretisation_error`)
-        self.discretisation_error_pct: float | None = None
-        self.refined_mesh_size_mm: float | None = None
+        #: the probe's full solve against the converged answer; None when no probe ran or the mesh cannot be
+        #: refined (:func:`discretisation_error`)
+        self.discretisation: Discretisation | None = None
         self._rest_compliance: Compliance | None = None
         self._states: list[State] = []
         self.table: ResponseTable | None = None
@@ -123,6 +122,11 @@ class VolumeEstimator:
                     "fidelity full")
 
     # ----------------------------------------------------------------- public
+    @property
+    def discretisation_error_pct(self) -> float | None:
+        """The probe's full solve against the converged answer, % of a volume (:attr:`discretisation`)."""
+        return None if self.discretisation is None else self.discretisation.error_pct
+
     def volumes(self, pressures_pa: ArrayLike) -> tuple[FloatArray, float]:
         """Chamber volumes (m^3, one per chamber) and the gland volume (m^3) at ``pressures_pa``."""
         chamber_volumes_m3, gland_volume_m3, _ = self.evaluate(pressures_pa)
@@ -234,9 +238,7 @@ class VolumeEstimator:
             chambers, gland, _ = self.evaluate(probe_pa)
             results[level] = (time.perf_counter() - started, np.append(chambers, gland))
         reference = results["full"][1]
-        discretisation = discretisation_error(self.model, probe_pa, reference)
-        self.discretisation_error_pct = None if discretisation is None else discretisation.error_pct
-        self.refined_mesh_size_mm = None if discretisation is None else discretisation.finer_mesh_size_mm
+        self.discretisation = discretisation = discretisation_error(self.model, probe_pa, reference)
         for level, (seconds, volumes) in results.items():
             self.probe_errors_pct[level] = (float(np.max(np.abs(volumes - reference) / np.abs(reference)) * 100)
                                             + (self.discretisation_error_pct or 0.0))
