@@ -23,9 +23,10 @@ MAX_SCENE_BYTES = 2**20
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
 #: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;
 #: "builtin:calibrated" is the physically valid calibration to the measurements (Gent material and chamber
-#: geometry, bench/README.md), the daemon's default.
+#: geometry, bench/README.md), the daemon's default; "builtin:converged" is the same calibration on 10-node,
+#: nearly incompressible elements on a mesh converged to under 1 % (slower: seconds to minutes a solve).
 BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
-                  "builtin:calibrated": "prostate_calibrated.toml"}
+                  "builtin:calibrated": "prostate_calibrated.toml", "builtin:converged": "prostate_converged.toml"}
 
 #: Length units a scene may declare for its mesh, and their size in metres.
 LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
@@ -195,7 +196,8 @@ def builtin_scene_path(name: str) -> Path:
 
 
 def load_scene(source: str | Path) -> Scene:
-    """Read a scene: ``"builtin"``/``"builtin:prostate"``, ``"builtin:calibrated"`` or the path of a TOML file.
+    """Read a scene: ``"builtin"``/``"builtin:prostate"``, ``"builtin:calibrated"``, ``"builtin:converged"`` or the
+    path of a TOML file.
 
     A mesh path in the file is taken relative to the scene file. Raises SceneError on anything missing or
     out of range, naming the key and the file.

@@ -1,8 +1,11 @@
 """Scene files: the built-in scene, relative mesh paths, and clear errors for bad scenes."""
 
+import json
+
 import pytest
 
 from phantom import PhantomError
+from phantom.cli.main import main
 from phantom.model import SceneError, load_scene
 from phantom.model.scene import PRESSURE_LIMIT_PA, ModelSettings, builtin_scene_path
 
@@ -56,8 +59,23 @@ def test_the_calibrated_builtin_scene_is_a_finite_strain_fit_on_the_built_in_bod
     assert scene.model_settings == ModelSettings(fidelity="table", accuracy_pct=1.0, pressure_max_pa=3000.0)
 
 
+@pytest.mark.slow
+def test_the_converged_builtin_scene_reproduces_its_calibration_and_keeps_its_elements_volume(capsys):
+    """``builtin:converged`` is the calibration made on the 7 mm 10-node mesh: ``phantom forward`` on it gives, at
+    (1, 1, 1) kPa, the gland volume the calibration's own verification solve gave (29.2389 ml, a continuation along
+    the ray where this is a solve from rest), and no element changes its volume by 1 %."""
+    scene = load_scene("builtin:converged")
+    assert scene.geometry is not None and scene.geometry.element_order == 2 and scene.geometry.mesh_size_mm == 7.0
+    assert scene.material.model == "gent" and scene.material.bulk_modulus_pa >= 1000 * scene.material.lame_mu_pa
+    assert main(["forward", "--scene", "builtin:converged", "--pressures-kpa", "1,1,1", "--json"]) == 0
+    answer = json.loads(capsys.readouterr().out)
+    assert answer["total_volume_ml"] == pytest.approx(29.2389, abs=2e-3)
+    low, high = answer["element_volume_ratio_range"]
+    assert 0.99 < low <= high < 1.01
+
+
 def test_an_unknown_builtin_name_lists_the_shipped_ones():
-    with pytest.raises(SceneError, match="builtin, builtin:prostate, builtin:calibrated"):
+    with pytest.raises(SceneError, match="builtin, builtin:prostate, builtin:calibrated, builtin:converged"):
         load_scene("builtin:liver")
 
 

@@ -20,7 +20,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         description="Solve the inverse problem: the chamber pressures (kPa) that give a wanted gland volume, "
                     "chamber volumes, or a gland volume with a growth ratio between chambers.")
     inverse.add_argument("--scene", default="builtin:calibrated",
-                         help="scene TOML path, 'builtin' or 'builtin:calibrated' (default: the phantom as measured)")
+                         help="scene TOML path, 'builtin', 'builtin:calibrated' (default: the phantom as measured) or "
+                              "'builtin:converged'")
     target = inverse.add_mutually_exclusive_group(required=True)
     target.add_argument("--volume-ml", type=float, help="the gland's total volume (ml)")
     target.add_argument("--chamber-volumes-ml",
