@@ -525,6 +525,8 @@ class CalibrationResult:
     traces_solved: int
     binding: str | None = None
     modulus_band_pa: tuple[float, float] | None = None
+    #: the traces the fit was made on: the model's response at any modulus (E0 / load factor) and grid point
+    responses: Responses | None = None
 
     @property
     def fit_mean_abs_pct_error(self) -> float:
@@ -682,7 +684,7 @@ def calibrate(scene: Scene, measurements: Measurements, grid: Grid, scheduler: s
         full.predicted_m3, np.array(loo_predicted),
         [{name: float(f.theta[k]) for k, name in enumerate(grid.names)} for f in loo_fits],
         np.array([e0 / f.load_factor for f in loo_fits]), validity, len(tasks), solved_now, full.binding,
-        modulus_band_pa)
+        modulus_band_pa, responses)
 
 
 def _solve_left_out(raw: dict[str, Any], grid: Grid, refits: list[Fit], left_outs: list[int],
