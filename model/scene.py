@@ -99,13 +99,17 @@ class ModelSettings:
     fidelity : one of FIDELITY_LEVELS, or None to let the volume estimator pick the cheapest level within
         ``accuracy_pct``; accuracy_pct : the volume accuracy wanted (% of the volume, > 0); pressure_max_pa :
         the highest chamber pressure (Pa; the file's ``pressure_max_kpa``, default PRESSURE_LIMIT_PA);
-        table_points : grid points per pressure axis of the ``table`` level (an integer >= 2).
+        table_points : grid points per pressure axis of the ``table`` level (an integer >= 2);
+        table_volumes : the file's ``table_volumes``, resolved beside the scene: the ``table`` level's volumes,
+        shipped with the scene so that no machine must build them (``phantom.model.fidelity.response_table``
+        checks that they belong to this model), or None.
     """
 
     fidelity: str | None = None
     accuracy_pct: float = DEFAULT_ACCURACY_PCT
     pressure_max_pa: float = PRESSURE_LIMIT_PA
     table_points: int = DEFAULT_TABLE_POINTS
+    table_volumes: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -266,7 +270,7 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
         material=_material(raw.get("material", {}), where, geometry is not None and geometry.element_order == 2),
         outputs=Outputs(**_outputs(raw.get("outputs", {}), where)),
         chamber_labels=chamber_labels_of(phantom_table, chambers, where),
-        model_settings=_model_settings(raw.get("model", {}), where),
+        model_settings=_model_settings(raw.get("model", {}), where, path),
         load=_load(raw.get("load"), where),
         steps=list(raw.get("steps", [])),
         raw=raw,
@@ -327,22 +331,34 @@ def _positive_number(table: dict[str, Any], key: str, default: float, where: str
     return float(value)
 
 
-def _model_settings(table: dict[str, Any], where: str) -> ModelSettings:
+def _model_settings(table: dict[str, Any], where: str, path: Path | None = None) -> ModelSettings:
     if not isinstance(table, dict):
         raise SceneError(f"{where}: [model] must be a table with fidelity, accuracy_pct, pressure_max_kpa, "
-                         "table_points")
-    unknown = set(table) - {"fidelity", "accuracy_pct", "pressure_max_kpa", "table_points"}
+                         "table_points, table_volumes")
+    unknown = set(table) - {"fidelity", "accuracy_pct", "pressure_max_kpa", "table_points", "table_volumes"}
     if unknown:
         raise SceneError(f"{where}: [model] has unknown keys {sorted(unknown)}: use fidelity, accuracy_pct, "
-                         "pressure_max_kpa, table_points")
+                         "pressure_max_kpa, table_points, table_volumes")
     fidelity = table.get("fidelity")
     if fidelity is not None and fidelity not in FIDELITY_LEVELS:
         raise SceneError(f"{where}: [model] fidelity must be one of {', '.join(FIDELITY_LEVELS)}, got {fidelity!r}")
     points = table.get("table_points", DEFAULT_TABLE_POINTS)
     if isinstance(points, bool) or not isinstance(points, int) or points < 2:
         raise SceneError(f"{where}: [model] table_points must be an integer of at least 2, got {points!r}")
+    volumes = table.get("table_volumes")
+    volumes_path = None
+    if volumes is not None:
+        if not isinstance(volumes, str) or not volumes:
+            raise SceneError(f"{where}: [model] table_volumes must be a file path (a .npz that "
+                             f"response_table.write_table_volumes wrote), got {volumes!r}")
+        volumes_path = Path(volumes) if Path(volumes).is_absolute() else (
+            (path.parent if path else Path.cwd()) / volumes)
+        if not volumes_path.is_file():
+            raise SceneError(f"{where}: [model] table_volumes names {volumes_path}, which is not a file: restore "
+                             "it, or remove the key (the table is then built once per machine)")
     return ModelSettings(fidelity, _positive_number(table, "accuracy_pct", DEFAULT_ACCURACY_PCT, where),
-                         _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where) * 1e3, points)
+                         _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where) * 1e3, points,
+                         volumes_path)
 
 
 def _load(table: Any, where: str) -> Load:

@@ -16,6 +16,7 @@ from phantom.model.fidelity.response_table import (
     build_response_table,
     grid_pa,
     response_table,
+    write_table_volumes,
 )
 from phantom.model.inverse import InverseSolver
 from phantom.model.target import Target, UnreachableTargetError
@@ -225,3 +226,69 @@ def test_the_paper_s_45_ml_is_out_of_the_calibrated_model_s_reach(calibrated):
     model, estimator = calibrated
     with pytest.raises(UnreachableTargetError, match=r"45\.000 ml is unreachable.* give 25\.9\d* to 43\.7\d* ml"):
         InverseSolver(model, estimator=estimator).pressures_for(Target(gland_volume_m3=45e-6))
+
+
+# --- table volumes shipped with a scene -----------------------------------------------------------------------
+
+def _shipping_scene(tmp_path, built, model, volumes_name="volumes.npz", material_line="youngs_modulus_kpa = 50.0"):
+    """A copy of the built-in scene on the table level that ships ``built``'s volumes (written for ``model``)."""
+    write_table_volumes(built, model, tmp_path / volumes_name)
+    scene_path = tmp_path / "shipping.toml"
+    scene_path.write_text(load_scene("builtin").path.read_text().replace(
+        "youngs_modulus_kpa = 50.0", material_line).replace(
+        "accuracy_pct = 10.0", f'fidelity = "table"\ntable_points = 2\naccuracy_pct = 50\n'
+                               f'table_volumes = "{volumes_name}"'))
+    return scene_path
+
+
+def test_shipped_table_volumes_answer_without_a_build_and_their_shapes_are_solved(model, monkeypatch, tmp_path):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    built = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
+    shipping = PhantomModel.from_scene(load_scene(_shipping_scene(tmp_path, built, model)), mesh_size_mm=COARSE_MM)
+    solves = []
+    original = shipping.equilibrium
+    monkeypatch.setattr(shipping, "equilibrium",
+                        lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
+    estimator = VolumeEstimator(shipping)
+    assert solves == [] and not list((tmp_path / "cache").glob("response/*"))  # nothing built, nothing stored
+    assert estimator.level == "table" and estimator.table.position_values is None
+    assert estimator.table.check_errors_pct == built.check_errors_pct
+    for pressures_pa in OFF_GRID_PA:
+        chambers, gland = estimator.volumes(pressures_pa)
+        assert gland == pytest.approx(built.volumes(pressures_pa)[1], rel=1e-12)
+        np.testing.assert_allclose(chambers, built.volumes(pressures_pa)[0], rtol=1e-12)
+    # no positions are shipped: a shape is a full solve
+    with pytest.raises(ResponseTableError, match="volumes only"):
+        estimator.table.positions_m(OFF_GRID_PA[0])
+    shape = estimator.shape(OFF_GRID_PA[0])
+    assert len(solves) == 1 and estimator.counts["full_solves"] == 1
+    np.testing.assert_allclose(shape, model.equilibrium(OFF_GRID_PA[0]).positions_m, rtol=0, atol=1e-12)
+
+
+def test_shipped_table_volumes_of_another_model_are_refused_with_what_differs(model, monkeypatch, tmp_path):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    built = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
+    remedy = r"remove \[model\] table_volumes from the scene"
+    # another modulus in the scene that names them
+    stiffer = load_scene(_shipping_scene(tmp_path, built, model, material_line="youngs_modulus_kpa = 60.0"))
+    with pytest.raises(ResponseTableError, match=r"belong to another model \(material: made for .*'youngs_modulus_pa':"
+                                                 r" 50000.0.* this model has .*60000.0.*" + remedy):
+        VolumeEstimator(PhantomModel.from_scene(stiffer, mesh_size_mm=COARSE_MM))
+    # another mesh size
+    scene = load_scene(_shipping_scene(tmp_path, built, model))
+    with pytest.raises(ResponseTableError, match=r"geometry: made for .*'mesh_size_mm': 8.0"):
+        VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=10.0))
+    # another table size
+    with pytest.raises(ResponseTableError, match=r"points_per_axis: made for 2, this model has 3"):
+        response_table(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM), PRESSURE_MAX_PA, points_per_axis=3)
+    # the same settings meshed otherwise: rest volumes 1 % apart
+    path = tmp_path / "volumes.npz"
+    with np.load(path) as stored:
+        fields = dict(stored)
+    np.savez(path, **{**fields, "rest_volumes_m3": fields["rest_volumes_m3"] * 1.01})
+    with pytest.raises(ResponseTableError, match=r"rest volumes are up to 0.99 % from this one's .* the mesher made "
+                                                 r"another mesh"):
+        VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
+    path.write_bytes(b"not an npz")
+    with pytest.raises(ResponseTableError, match=r"volumes.npz \(\[model\] table_volumes\) cannot be read .*" + remedy):
+        VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))

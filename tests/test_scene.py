@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pytest
 
 from phantom import PhantomError
@@ -63,7 +64,11 @@ def test_the_calibrated_builtin_scene_is_a_finite_strain_fit_on_the_built_in_bod
 def test_the_converged_builtin_scene_reproduces_its_calibration_and_keeps_its_elements_volume(capsys):
     """``builtin:converged`` is the calibration made on the 7 mm 10-node mesh: ``phantom forward`` on it gives, at
     (1, 1, 1) kPa, the gland volume the calibration's own verification solve gave (29.2389 ml, a continuation along
-    the ray where this is a solve from rest), and no element changes its volume by 1 %."""
+    the ray where this is a solve from rest), and no element changes its volume by 1 %. Its shipped table volumes
+    are those of this mesh and model: (1, 1, 1) kPa is a point of their 7^3 grid."""
+    from phantom.model import PhantomModel
+    from phantom.model.fidelity.response_table import shipped_table_volumes
+
     scene = load_scene("builtin:converged")
     assert scene.geometry is not None and scene.geometry.element_order == 2 and scene.geometry.mesh_size_mm == 7.0
     assert scene.material.model == "gent" and scene.material.bulk_modulus_pa >= 1000 * scene.material.lame_mu_pa
@@ -72,6 +77,29 @@ def test_the_converged_builtin_scene_reproduces_its_calibration_and_keeps_its_el
     assert answer["total_volume_ml"] == pytest.approx(29.2389, abs=2e-3)
     low, high = answer["element_volume_ratio_range"]
     assert 0.99 < low <= high < 1.01
+    # (the model is checked against the file's: same material, mesh size, solver, and rest volumes within 0.05 %)
+    model = PhantomModel.from_scene(scene)
+    shipped = shipped_table_volumes(model, scene.model_settings.pressure_max_pa, scene.model_settings.table_points)
+    assert shipped is not None and shipped.position_values is None and shipped.check_errors_pct < 0.2
+    assert float(shipped.gland_values[2, 2, 2]) * 1e6 == pytest.approx(answer["total_volume_ml"], abs=2e-3)
+    assert (np.asarray(shipped.chamber_values[2, 2, 2]) * 1e6 == pytest.approx(answer["chamber_volumes_ml"],
+                                                                             abs=2e-3))
+
+
+def test_table_volumes_are_a_file_beside_the_scene_and_a_calibration_drops_them(tmp_path):
+    from phantom.model.calibration.calibrate import scene_with
+
+    (tmp_path / "volumes.npz").write_bytes(b"")
+    scene = load_scene(write_scene(tmp_path, GOOD + '[model]\nfidelity = "table"\ntable_volumes = "volumes.npz"\n'))
+    assert scene.model_settings.table_volumes == tmp_path / "volumes.npz"
+    with pytest.raises(SceneError, match=r"table_volumes names .*absent.npz, which is not a file: restore it, or "
+                                         r"remove the key"):
+        load_scene(write_scene(tmp_path, GOOD + '[model]\ntable_volumes = "absent.npz"\n'))
+    with pytest.raises(SceneError, match=r"table_volumes must be a file path .* got 3"):
+        load_scene(write_scene(tmp_path, GOOD + "[model]\ntable_volumes = 3\n"))
+    # the volumes belong to the scene's own parameters: a copy with others set (a calibration's) names none
+    copied = scene_with(load_scene("builtin:converged").raw, {"youngs_modulus_kpa": 20.0})
+    assert "table_volumes" not in copied["model"] and "table_volumes" in load_scene("builtin:converged").raw["model"]
 
 
 def test_an_unknown_builtin_name_lists_the_shipped_ones():

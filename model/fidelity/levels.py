@@ -20,7 +20,8 @@
     splines (:mod:`phantom.model.fidelity.response_table`): volumes, shape and the tangent compliance in a fraction of a
     millisecond, to the interpolation's error (checked against full solves when the table is built). For a
     hyperelastic scene a daemon must answer at its control rate; it is never chosen by the probe (its build
-    costs a few minutes once), only named by a scene.
+    costs a few minutes once), only named by a scene. A table whose volumes ship with the scene has no shapes:
+    its shapes are full solves.
 
 Only what is asked for is computed: :meth:`VolumeEstimator.volumes` never forms nodal positions at the rest
 level, and nothing here builds meshes or stresses. ``counts`` records the work done (full solves, tangent
@@ -140,8 +141,9 @@ class VolumeEstimator:
             return self._rest_positions(pressures)
         if self.level == "updated":
             return self._updated_positions(pressures)
-        if self.table is not None:
+        if self.table is not None and self.table.position_values is not None:
             return self.table.positions_m(pressures)
+        # (a table shipped with its scene has volumes only: its shapes are solved, from the nearest one solved)
         return self._full_state(pressures).positions_m
 
     def evaluate(self, pressures_pa: ArrayLike) -> Evaluation:

@@ -21,12 +21,22 @@ Built tables are stored under ``phantom.cache_dir("response")`` by a hash of the
 solver) and the grid, so a daemon pays the build (n^3 solves: 2-3 min for n = 7 on one core, divided by the
 cores up to n) once per model and machine. Each build is checked against full solves at
 :data:`CHECK_FRACTIONS`, points between the grid's.
+
+A scene whose build costs most of an hour (the 10-node ``builtin:converged``) ships its table's volumes beside
+it (``[model] table_volumes``, :func:`write_table_volumes`: 9 kB compressed, where the nodes' positions take
+67 MB). Such a table answers volumes and compliances at once on a fresh machine; it has no shapes, so
+``VolumeEstimator.shape`` solves them. It is used only for the model it was made for: the file states the
+model (material, mesh size, geometry, load, solver, grid) and its rest volumes, and a model that differs is
+refused with what differs. The rest volumes (within :data:`SHIPPED_REST_TOLERANCE_PCT`) stand for the nodes'
+coordinates, so that a mesh another gmsh release makes from the same settings is accepted when its volumes
+agree.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import json
 import logging
 import multiprocessing
 import os
@@ -37,7 +47,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -46,6 +56,7 @@ import phantom
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
+from phantom.model.fem.body import SOLVER_VERSION
 from phantom.model.fem.model import PhantomModel
 from phantom.model.scene import DEFAULT_TABLE_POINTS
 
@@ -57,6 +68,8 @@ TABLE_VERSION = 1
 #: Where each build is checked against full solves (fractions of the pressure limit per chamber): points far
 #: from every node, one near each corner region and one inside.
 CHECK_FRACTIONS = ((0.2, 0.6, 0.9), (0.9, 0.2, 0.6), (0.6, 0.9, 0.2), (0.7, 0.7, 0.7))
+#: How far (% of a rest volume) the model's rest volumes may be from those a shipped table was made on.
+SHIPPED_REST_TOLERANCE_PCT = 0.05
 
 Progress = Callable[[int, int], None]
 #: One axis's cardinal-spline weights at a pressure, and their slope per Pa.
@@ -91,13 +104,14 @@ class ResponseTable:
     The value arrays (grid values) have one leading axis of length ``points_per_axis`` per chamber, indexed like
     :func:`grid_pa`, then the quantity's own axes; ``check_errors_pct``
     is the largest volume error (% of the volume) of the build's check against full solves;
-    ``build_time_s`` what the build took.
+    ``build_time_s`` what the build took. ``position_values`` is None for a table of volumes only (shipped with
+    its scene, :func:`shipped_table_volumes`).
     """
 
     pressure_max_pa: float
     chamber_values: np.ndarray
     gland_values: np.ndarray
-    position_values: np.ndarray
+    position_values: np.ndarray | None
     check_errors_pct: float
     build_time_s: float
 
@@ -163,7 +177,11 @@ class ResponseTable:
         return self._gradient(self.chamber_values, bases).T, self._gradient(self.gland_values, bases)
 
     def positions_m(self, pressures_pa: ArrayLike) -> np.ndarray:
-        """Every node's position (m, (nodes, 3)) at ``pressures_pa``."""
+        """Every node's position (m, (nodes, 3)) at ``pressures_pa``; ResponseTableError for a table of volumes
+        only."""
+        if self.position_values is None:
+            raise ResponseTableError("this response table holds volumes only (shipped with its scene): solve the "
+                                     "shape (VolumeEstimator.shape does)")
         return self._value(self.position_values, np.asarray(pressures_pa, dtype=float))
 
 
@@ -262,31 +280,96 @@ def _cache_path(model: PhantomModel, pressure_max_pa: float, points_per_axis: in
     return phantom.cache_dir("response") / f"{model.cache_key(extra.encode())}.npz"
 
 
+def table_provenance(model: PhantomModel, pressure_max_pa: float, points_per_axis: int) -> dict[str, Any]:
+    """What a table's volumes depend on besides the mesh's node coordinates, as JSON values: the model a shipped
+    table was made for (:func:`write_table_volumes`). The nodes are stood for by the rest volumes (checked
+    within a tolerance), so that a mesh from another gmsh release with the same settings still matches."""
+    scene = model.scene
+    geometry = None if scene is None or scene.geometry is None else dataclasses.asdict(scene.geometry)
+    if geometry is not None:
+        geometry["mesh_size_mm"] = model.mesh_size_mm
+    provenance = {
+        "table_version": TABLE_VERSION, "solver_version": SOLVER_VERSION, "formulation": model.formulation,
+        "material": dataclasses.asdict(model.material), "mesh": Path(model.source).name, "geometry": geometry,
+        "chambers": list(model.chamber_names), "fixed": None if scene is None else scene.fixed,
+        "fixed_penalty": float(model.body.fixed_penalty),
+        "body_force_n_per_m3": [float(value) for value in model.body_force_n_per_m3],
+        "pressure_max_pa": float(pressure_max_pa), "points_per_axis": int(points_per_axis)}
+    return dict(json.loads(json.dumps(provenance)))  # tuples as lists, as they read back
+
+
+def write_table_volumes(table: ResponseTable, model: PhantomModel, path: str | Path) -> None:
+    """Write ``table``'s volumes (not its positions) for shipping with ``model``'s scene, with the model they
+    belong to (:func:`table_provenance`) and its rest volumes; ``[model] table_volumes`` names the file."""
+    np.savez_compressed(
+        path, chamber=table.chamber_values, gland=table.gland_values, check_errors_pct=table.check_errors_pct,
+        build_time_s=table.build_time_s,
+        provenance=json.dumps(table_provenance(model, table.pressure_max_pa, table.points_per_axis)),
+        rest_volumes_m3=np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3))
+
+
+def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
+                          points_per_axis: int = DEFAULT_TABLE_POINTS) -> ResponseTable | None:
+    """The volumes shipped with the model's scene (``[model] table_volumes``) as a table without positions, or
+    None when the scene ships none. Raises ResponseTableError, saying what differs, when the file was made for
+    another model or grid, or cannot be read."""
+    path = model.model_settings.table_volumes
+    if path is None:
+        return None
+    where = f"the table volumes {path} ([model] table_volumes)"
+    remedy = ("remove [model] table_volumes from the scene (the table is then built once per machine), or write "
+              "the file again for this model (response_table.write_table_volumes)")
+    try:
+        with np.load(path) as stored:
+            provenance = json.loads(str(stored["provenance"]))
+            chamber, gland = np.asarray(stored["chamber"], float), np.asarray(stored["gland"], float)
+            rest_m3 = np.asarray(stored["rest_volumes_m3"], float)
+            check_pct, build_s = float(stored["check_errors_pct"]), float(stored["build_time_s"])
+    except (OSError, ValueError, KeyError) as error:
+        raise ResponseTableError(f"{where} cannot be read ({error}): {remedy}") from error
+    wanted = table_provenance(model, pressure_max_pa, points_per_axis)
+    differing = sorted(key for key in set(wanted) | set(provenance) if wanted.get(key) != provenance.get(key))
+    if differing:
+        shown = "; ".join(f"{key}: made for {provenance.get(key)!r}, this model has {wanted.get(key)!r}"
+                          for key in differing)
+        raise ResponseTableError(f"{where} belong to another model ({shown}): {remedy}")
+    model_rest_m3 = np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3)
+    off_pct = float(np.max(np.abs(model_rest_m3 - rest_m3) / rest_m3)) * 100
+    if off_pct > SHIPPED_REST_TOLERANCE_PCT:
+        raise ResponseTableError(
+            f"{where} were made on a mesh whose rest volumes are up to {off_pct:.2g} % from this one's (more than "
+            f"{SHIPPED_REST_TOLERANCE_PCT:g} %: the mesher made another mesh from the same settings): {remedy}")
+    return ResponseTable(float(pressure_max_pa), chamber, gland, None, check_pct, build_s)
+
+
 def stored_response_table(model: PhantomModel, pressure_max_pa: float,
                           points_per_axis: int = DEFAULT_TABLE_POINTS) -> ResponseTable | None:
-    """The model's table from the disk cache, or None when none is stored (a damaged entry is removed): whether
-    :func:`response_table` would answer at once or build first (the daemon serves on another level meanwhile)."""
+    """The model's table from the disk cache, else the volumes shipped with its scene, or None when neither is
+    there (a damaged cache entry is removed): whether :func:`response_table` would answer at once or build
+    first (the daemon serves on another level meanwhile)."""
     path = _cache_path(model, pressure_max_pa, points_per_axis)
     if not path.is_file():
-        return None
+        return shipped_table_volumes(model, pressure_max_pa, points_per_axis)
     try:
         with np.load(path) as stored:
             return ResponseTable(float(stored["pressure_max_pa"]), stored["chamber"], stored["gland"],
                                  stored["positions"], float(stored["check_errors_pct"]), float(stored["build_time_s"]))
     except (OSError, ValueError, KeyError):
         path.unlink(missing_ok=True)
-        return None
+        return shipped_table_volumes(model, pressure_max_pa, points_per_axis)
 
 
 def response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
                    progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
-    """The model's table: read from the disk cache, else built (:func:`build_response_table`) and stored.
-    ``progress(done, total)`` is told how a build goes (nothing is told for a cached table)."""
+    """The model's table: read from the disk cache or shipped with its scene (:func:`stored_response_table`),
+    else built (:func:`build_response_table`) and stored. ``progress(done, total)`` is told how a build goes
+    (nothing is told for a stored table)."""
     stored = stored_response_table(model, pressure_max_pa, points_per_axis)
     if stored is not None:
         return stored
     path = _cache_path(model, pressure_max_pa, points_per_axis)
     table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers)
+    assert table.position_values is not None  # a build solves every shape
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
     os.close(handle)
     np.savez(temporary, pressure_max_pa=table.pressure_max_pa, chamber=table.chamber_values,
