@@ -73,6 +73,7 @@ class LoadedModel:
         started = time.perf_counter()
         report(f"loading scene {scene_source} ...")
         self.scene = load_scene(scene_source)
+        self.wants_shape = bool(self.scene.outputs.shape)
         self.model = PhantomModel.from_scene(self.scene)
         self.timings_s["model_s"] = time.perf_counter() - started
         report(f"model ready in {self.timings_s['model_s']:.2f} s ({len(self.model.nodes_m)} nodes, "
@@ -92,7 +93,6 @@ class LoadedModel:
         report(f"start-up took {self.timings_s['total_s']:.2f} s")
         self.chamber_names = list(self.model.chamber_names)
         self.rest_volume_ml = float(self.model.rest_gland_volume_m3) * ML_PER_M3
-        self.wants_shape = bool(self.scene.outputs.shape)
         #: the outer surface as its own mesh (model node indices, triangles into them), for shapes and the rest ghost
         self._outer_surface = self.model.outer_surface()
         #: the inverse's answers for the ends of the ramps played lately (:meth:`pressures_on_ramp`)
@@ -134,6 +134,10 @@ class LoadedModel:
         if self.estimator.table is not None:
             probe = (f", a {self.estimator.table.points_per_axis}^{self.estimator.table.n_chambers} response table "
                      f"within {self.estimator.table.check_errors_pct:.2g} % of full solves")
+            if self.estimator.table.position_values is None:
+                probe += (", its volumes shipped with the scene" + (
+                    " (no shapes: each is a full solve, seconds from a near one, tens of seconds from rest)"
+                    if self.wants_shape else ""))
         if self.pending_level is not None:
             probe = f" until the {self.pending_level} level is built"
         self.report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}"

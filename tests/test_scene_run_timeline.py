@@ -225,3 +225,33 @@ def test_the_inverse_is_warm_after_start_up(default_model):
         default_model.pressures_for(parse_target({"volume_ml": 80}, CHAMBERS))
     assert set(default_model.solver._problems) == shapes
     assert default_model.timings_s["warm_up_s"] > 0
+
+
+@pytest.mark.slow
+def test_a_daemon_on_the_converged_scene_starts_on_its_shipped_volumes_and_solves_its_shapes(monkeypatch, tmp_path):
+    """``builtin:converged``'s table takes most of an hour to build; its volumes ship with it, so a daemon's model
+    starts on the table at once (no build deferred to the background) and solves the shapes it is asked for."""
+    from phantom.host.model_worker import LoadedModel
+    from phantom.model.fidelity import response_table
+    from phantom.model.scene import builtin_scene_path
+
+    # as on a fresh machine: no full table stored (this machine may have built one)
+    monkeypatch.setattr(response_table, "_cache_path", lambda *args: tmp_path / "no-table.npz")
+    source = builtin_scene_path("builtin:converged")
+    scene_path = tmp_path / "converged_with_shapes.toml"
+    scene_path.write_text(source.read_text().replace("shape = false", "shape = true").replace(
+        'table_volumes = "prostate_converged.volumes.npz"',
+        f'table_volumes = "{source.parent / "prostate_converged.volumes.npz"}"'))
+    lines = []
+    controller = LoadedModel(str(scene_path), report=lines.append, defer_table=True)
+    assert controller.pending_level is None and controller.estimator.level == "table"
+    assert any("its volumes shipped with the scene (no shapes: each is a full solve" in line for line in lines), lines
+    # (1, 1, 1) kPa is a grid point: the calibration's own solve there gave 29.2389 ml
+    _, gland_ml = controller.estimate(np.full(3, 1000.0))
+    assert gland_ml == pytest.approx(29.2389, abs=2e-3)
+    assert controller.estimator.counts["full_solves"] == 0
+    rest_mm, triangles = controller.rest_surface_mm()
+    shape_mm, shape_triangles = controller.outer_surface_mm(np.array([500.0, 0.0, 0.0]))
+    assert controller.estimator.counts["full_solves"] == 1
+    assert shape_mm.shape == rest_mm.shape and np.array_equal(shape_triangles, triangles)
+    assert 0.1 < np.abs(shape_mm - rest_mm).max() < 5.0  # mm: the base chamber at half a kPa
