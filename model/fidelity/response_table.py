@@ -298,6 +298,17 @@ def table_provenance(model: PhantomModel, pressure_max_pa: float, points_per_axi
     return dict(json.loads(json.dumps(provenance)))  # tuples as lists, as they read back
 
 
+def _flat(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested tables as one level of dotted keys (``geometry.mesh_size_mm``), to name what differs."""
+    flat: dict[str, Any] = {}
+    for key, value in values.items():
+        if isinstance(value, dict):
+            flat.update(_flat(value, f"{prefix}{key}."))
+        else:
+            flat[f"{prefix}{key}"] = value
+    return flat
+
+
 def write_table_volumes(table: ResponseTable, model: PhantomModel, path: str | Path) -> None:
     """Write ``table``'s volumes (not its positions) for shipping with ``model``'s scene, with the model they
     belong to (:func:`table_provenance`) and its rest volumes; ``[model] table_volumes`` names the file."""
@@ -317,8 +328,9 @@ def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
     if path is None:
         return None
     where = f"the table volumes {path} ([model] table_volumes)"
-    remedy = ("remove [model] table_volumes from the scene (the table is then built once per machine), or write "
-              "the file again for this model (response_table.write_table_volumes)")
+    remedy = ("use a copy of the scene without [model] table_volumes (the table is then built once per machine: "
+              "53 min on one core for builtin:converged), another level ([model] fidelity; phantom inverse "
+              "--fidelity), or write the file again for this model (scripts/table_volumes.py)")
     try:
         with np.load(path) as stored:
             provenance = json.loads(str(stored["provenance"]))
@@ -327,10 +339,10 @@ def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
             check_pct, build_s = float(stored["check_errors_pct"]), float(stored["build_time_s"])
     except (OSError, ValueError, KeyError) as error:
         raise ResponseTableError(f"{where} cannot be read ({error}): {remedy}") from error
-    wanted = table_provenance(model, pressure_max_pa, points_per_axis)
-    differing = sorted(key for key in set(wanted) | set(provenance) if wanted.get(key) != provenance.get(key))
+    wanted, made = _flat(table_provenance(model, pressure_max_pa, points_per_axis)), _flat(provenance)
+    differing = sorted(key for key in set(wanted) | set(made) if wanted.get(key) != made.get(key))
     if differing:
-        shown = "; ".join(f"{key}: made for {provenance.get(key)!r}, this model has {wanted.get(key)!r}"
+        shown = "; ".join(f"{key}: made for {made.get(key)!r}, this model has {wanted.get(key)!r}"
                           for key in differing)
         raise ResponseTableError(f"{where} belong to another model ({shown}): {remedy}")
     model_rest_m3 = np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3)
