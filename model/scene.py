@@ -239,10 +239,7 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     if not isinstance(mesh, str) or not mesh:
         raise SceneError(f"{where}: [phantom] mesh must be 'builtin:prostate' or a mesh file path")
     if not mesh.startswith("builtin:"):
-        mesh_path = Path(mesh)
-        if not mesh_path.is_absolute():
-            mesh_path = (path.parent if path else Path.cwd()) / mesh_path
-        mesh = str(mesh_path.resolve())
+        mesh = str(_beside(mesh, path))
     elif mesh != "builtin:prostate":
         raise SceneError(f"{where}: unknown built-in mesh {mesh!r}: the only one is 'builtin:prostate'")
     geometry = None
@@ -276,6 +273,15 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
         raw=raw,
         geometry=geometry,
     )
+
+
+def _beside(file: str, scene_path: Path | None) -> Path:
+    """A file a scene names, absolute: a relative path is taken from the scene file's folder (else the working
+    folder)."""
+    named = Path(file)
+    if not named.is_absolute():
+        named = (scene_path.parent if scene_path else Path.cwd()) / named
+    return named.resolve()
 
 
 def _table(raw: dict[str, Any], key: str, where: str) -> dict[str, Any]:
@@ -351,8 +357,7 @@ def _model_settings(table: dict[str, Any], where: str, path: Path | None = None)
         if not isinstance(volumes, str) or not volumes:
             raise SceneError(f"{where}: [model] table_volumes must be a file path (a .npz that "
                              f"response_table.write_table_volumes wrote), got {volumes!r}")
-        volumes_path = Path(volumes) if Path(volumes).is_absolute() else (
-            (path.parent if path else Path.cwd()) / volumes)
+        volumes_path = _beside(volumes, path)
         if not volumes_path.is_file():
             raise SceneError(f"{where}: [model] table_volumes names {volumes_path}, which is not a file: restore "
                              "it, or remove the key (the table is then built once per machine)")

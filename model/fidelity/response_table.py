@@ -360,15 +360,15 @@ def stored_response_table(model: PhantomModel, pressure_max_pa: float,
     there (a damaged cache entry is removed): whether :func:`response_table` would answer at once or build
     first (the daemon serves on another level meanwhile)."""
     path = _cache_path(model, pressure_max_pa, points_per_axis)
-    if not path.is_file():
-        return shipped_table_volumes(model, pressure_max_pa, points_per_axis)
-    try:
-        with np.load(path) as stored:
-            return ResponseTable(float(stored["pressure_max_pa"]), stored["chamber"], stored["gland"],
-                                 stored["positions"], float(stored["check_errors_pct"]), float(stored["build_time_s"]))
-    except (OSError, ValueError, KeyError):
-        path.unlink(missing_ok=True)
-        return shipped_table_volumes(model, pressure_max_pa, points_per_axis)
+    if path.is_file():
+        try:
+            with np.load(path) as stored:
+                return ResponseTable(float(stored["pressure_max_pa"]), stored["chamber"], stored["gland"],
+                                     stored["positions"], float(stored["check_errors_pct"]),
+                                     float(stored["build_time_s"]))
+        except (OSError, ValueError, KeyError):
+            path.unlink(missing_ok=True)
+    return shipped_table_volumes(model, pressure_max_pa, points_per_axis)
 
 
 def response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
