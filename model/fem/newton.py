@@ -156,19 +156,20 @@ def line_search(problem: EquilibriumProblem, positions_m: FloatArray, direction:
 
 
 def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: float = RELATIVE_TOLERANCE,
-           initial_imbalance: bool = False) -> NewtonResult:
+           initial_imbalance: bool = False, element_pressures_pa: FloatArray | None = None) -> NewtonResult:
     """Newton iterations from ``positions_m`` (n, 3) with a backtracking line search on the total energy.
 
     Converged when the residual is below ``tolerance`` times the load (or times the starting residual when
     ``initial_imbalance`` and that is larger, for a start that is not in equilibrium at zero load, e.g. rotated).
-    A 10-node hyperelastic body first iterates on the mixed system (:func:`mixed_newton`); where that finds no
-    step, the iterations go on from where it stopped with the pressures eliminated.
+    A 10-node hyperelastic body first iterates on the mixed system (:func:`mixed_newton`), from
+    ``element_pressures_pa`` when given (a path's extrapolated ones) else those eliminated at ``positions_m``;
+    where that finds no step, the iterations go on from where it stopped with the pressures eliminated.
     """
     evaluation = problem.evaluate(positions_m)
     load_scale = max(problem.load_scale_n(), norm(evaluation.residual_n) if initial_imbalance else 0.0)
     spent = 0
     if problem.mixed:
-        mixed = mixed_newton(problem, positions_m, evaluation, tolerance, load_scale)
+        mixed = mixed_newton(problem, positions_m, evaluation, tolerance, load_scale, element_pressures_pa)
         if mixed.converged:
             return mixed
         positions_m, spent = mixed.positions_m, mixed.iterations
@@ -179,7 +180,7 @@ def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: floa
 
 
 def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluation: Evaluation, tolerance: float,
-                 load_scale: float) -> NewtonResult:
+                 load_scale: float, element_pressures_pa: FloatArray | None = None) -> NewtonResult:
     """Newton on the mixed (displacement, element pressure) system of a 10-node body, the pressures condensed in
     each linear solve but carried from one iterate to the next.
 
@@ -195,13 +196,18 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
     ``|r(x, p)|^2 + sum (mu V_e^(2/3) (Jbar - 1 - p/K))^2`` (the constraint's error weighed at the shear modulus,
     not the bulk). Converged when the residual at eliminated pressures meets ``tolerance`` (as
     :func:`newton`'s), so the answer is the same state; returns unconverged (not raising) when no step lowers
-    the merit or it stalls. ``evaluation`` is the problem's at ``positions_m`` (pressures eliminated)."""
+    the merit or it stalls. ``evaluation`` is the problem's at ``positions_m`` (pressures eliminated);
+    ``element_pressures_pa`` the pressures to start from (None: eliminated at ``positions_m``)."""
     body = problem.body
     assert body.quadratic is not None  # only 10-node bodies have the mixed pressure field
     ratios = body.element_volume_ratios(positions_m)
-    pressures_pa = body.eliminated_pressures_pa(ratios)
+    pressures_pa = body.eliminated_pressures_pa(ratios) if element_pressures_pa is None else element_pressures_pa
     eliminated = evaluation
     merit = norm(eliminated.residual_n)
+    if element_pressures_pa is not None:
+        carried = problem.evaluate(positions_m, element_pressures_pa=pressures_pa)
+        constraint = body.volume_constraint_error_n(ratios, pressures_pa)
+        merit = float(np.sqrt(norm(carried.residual_n) ** 2 + dot(constraint, constraint)))
     best_merit, best_iteration, previous_norm = np.inf, 0, np.inf
     for iteration in range(1, MAX_ITERATIONS_PER_STEP + 1):
         residual_norm = norm(eliminated.residual_n)
