@@ -189,7 +189,7 @@ class _Path:
         (at an equilibrium they are the eliminated ones): the predictor's own eliminated pressures, ``K (Jbar -
         1)``, carry K times the secant's second-order error in the volume ratios, and gave an indefinite tangent
         at nearly every volume step of a 7 mm prostate solve (a SuperLU factorisation, 4 s, instead of CHOLMOD's
-        0.3 s) and 6-8 iterations instead of 4-5. None for a 4-node body."""
+        0.3 s) and 6-8 iterations a step instead of 4-6. None for a 4-node body."""
         if not self.problem.mixed:
             return None
         last_pa, before_pa = (self.body.eliminated_pressures_pa(self.body.element_volume_ratios(p.positions_m))
@@ -309,7 +309,8 @@ class _Path:
     def _volume_guess(self, history: list[PathPoint], point: PathPoint,
                       target_m3: float) -> tuple[FloatArray, float, FloatArray | None]:
         """Predictor for a volume step: secant through the last two equilibria, else the tangent at the last
-        (the caller checks that it inverts no element)."""
+        (the caller checks that it inverts no element): positions, load factor, and a 10-node body's element
+        pressures on the secant (None: eliminated at the guess)."""
         if len(history) == 2 and history[1].control_m3 > history[0].control_m3:
             before, last = history
             ratio = (target_m3 - last.control_m3) / (last.control_m3 - before.control_m3)
@@ -336,7 +337,9 @@ class _Path:
         they make a nearly incompressible body's residual K times the volume ratios' second-order error, and the
         line search crawls): the linear solves are the same condensed ones with the carried pressures in the
         tangent, each pressure takes its linearised update, and the merit weighs the constraint's error at the
-        shear modulus. Convergence is judged at eliminated pressures, so the answer is the same state."""
+        shear modulus. Convergence is judged at eliminated pressures, so the answer is the same state. The
+        carried pressures start at ``element_pressures_pa`` when given (the predictor's), else eliminated at
+        ``positions_m``."""
         free = self.constraints.free_mask
         body = self.body
         carried = None
