@@ -18,7 +18,7 @@ import numpy as np
 
 from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
-from phantom.model.fem.body import Factor
+from phantom.model.fem.body import Factor, SolidBody
 from phantom.model.fem.problem import EquilibriumProblem, Evaluation
 
 #: Newton stops when |residual| <= RELATIVE_TOLERANCE * |pressure load|.
@@ -203,11 +203,9 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
     ratios = body.element_volume_ratios(positions_m)
     pressures_pa = body.eliminated_pressures_pa(ratios) if element_pressures_pa is None else element_pressures_pa
     eliminated = evaluation
-    merit = norm(eliminated.residual_n)
-    if element_pressures_pa is not None:
-        carried = problem.evaluate(positions_m, element_pressures_pa=pressures_pa)
-        constraint = body.volume_constraint_error_n(ratios, pressures_pa)
-        merit = float(np.sqrt(norm(carried.residual_n) ** 2 + dot(constraint, constraint)))
+    carried = evaluation if element_pressures_pa is None else problem.evaluate(positions_m,
+                                                                                element_pressures_pa=pressures_pa)
+    merit = _mixed_merit(body, carried.residual_n, ratios, pressures_pa)
     best_merit, best_iteration, previous_norm = np.inf, 0, np.inf
     for iteration in range(1, MAX_ITERATIONS_PER_STEP + 1):
         residual_norm = norm(eliminated.residual_n)
@@ -230,8 +228,7 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
             trial = problem.evaluate(trial_m, element_pressures_pa=trial_pa)
             if trial.admissible:
                 trial_ratios = body.element_volume_ratios(trial_m)
-                constraint = body.volume_constraint_error_n(trial_ratios, trial_pa)
-                trial_merit = float(np.sqrt(norm(trial.residual_n) ** 2 + dot(constraint, constraint)))
+                trial_merit = _mixed_merit(body, trial.residual_n, trial_ratios, trial_pa)
                 if trial_merit < merit:
                     accepted = trial_m, trial_pa, trial_ratios, trial_merit
                     break
@@ -241,6 +238,14 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
         positions_m, pressures_pa, ratios, merit = accepted
         eliminated = problem.evaluate(positions_m)
     return NewtonResult(positions_m, False, MAX_ITERATIONS_PER_STEP, "mixed solve did not converge")
+
+
+def _mixed_merit(body: SolidBody, residual_n: FloatArray, volume_ratios: FloatArray,
+                 element_pressures_pa: FloatArray) -> float:
+    """:func:`mixed_newton`'s merit: ``sqrt(|r(x, p)|^2 + |constraint error|^2)`` (N), the residual at the carried
+    pressures and their volume constraint's error weighed at the shear modulus (zero at eliminated ones)."""
+    constraint = body.volume_constraint_error_n(volume_ratios, element_pressures_pa)
+    return float(np.sqrt(norm(residual_n) ** 2 + dot(constraint, constraint)))
 
 
 def _eliminated_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluation: Evaluation,

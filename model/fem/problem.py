@@ -177,12 +177,13 @@ class EquilibriumProblem:
         (hyperelastic). An exactly singular Hessian (at a limit point) gives the stand-in.
 
         The exact Hessian goes to CHOLMOD first (where it is the solver) and to SuperLU when it is not positive
-        definite (past a limit point, which path following needs as it is). With ``damped`` (Newton's
-        minimisation at fixed pressures), a hyperelastic Hessian that is not positive definite (off equilibrium:
-        an iterate far from its answer) is shifted instead, ``K + tau |diag K|`` with the first ``tau`` of
-        DAMPING_SHIFTS that CHOLMOD factorises: a Levenberg-Marquardt step, a descent direction, at a CHOLMOD
-        factorisation's cost (SuperLU's costs 5-8 times more on 10-node elements; the small-strain stiffness as
-        the stand-in makes Newton crawl there). See bench/README.md, "The 10-node solve's speed"."""
+        definite (past a limit point, which the path's tangent direction needs as it is). With ``damped``
+        (Newton's minimisation at fixed pressures, and a path's volume-controlled steps), a hyperelastic Hessian
+        that is not positive definite (off equilibrium: an iterate far from its answer) is shifted instead,
+        ``K + tau |diag K|`` with the first ``tau`` of DAMPING_SHIFTS that CHOLMOD factorises: a
+        Levenberg-Marquardt step, a descent direction, at a CHOLMOD factorisation's cost (SuperLU's costs 5-8
+        times more on 10-node elements; the small-strain stiffness as the stand-in makes Newton crawl there). See
+        bench/README.md, "The 10-node solve's speed"."""
         if not exact and self.formulation in HYPERELASTIC_MODELS:
             return self.body.rest_factorization(self.constraints)
         matrix = EXACT_TANGENT if exact else POSITIVE_TANGENT
