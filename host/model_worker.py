@@ -52,7 +52,7 @@ class LoadedModel:
     Parameters
     ----------
     scene_source : str
-        ``builtin:calibrated`` (the daemon's default), another built-in name, or a scene TOML path
+        ``builtin:converged`` (the daemon's default), another built-in name, or a scene TOML path
         (``phantom.model.load_scene``).
     report : callable(str), optional
         Where start-up progress goes (the log by default): each stage and how long it took.
@@ -135,9 +135,15 @@ class LoadedModel:
             probe = (f", a {self.estimator.table.points_per_axis}^{self.estimator.table.n_chambers} response table "
                      f"within {self.estimator.table.check_errors_pct:.2g} % of full solves")
             if self.estimator.table.position_values is None:
-                probe += (", its volumes shipped with the scene" + (
-                    " (no shapes: each is a full solve, seconds from a near one, tens of seconds from rest)"
-                    if self.wants_shape else ""))
+                probe += ", its volumes shipped with the scene"
+                if self.wants_shape and self.estimator.shapes is not None:
+                    shapes = self.estimator.shapes
+                    probe += (f", its outer surface's shapes too ({shapes.table.points_per_axis}^"
+                              f"{shapes.table.n_chambers} points, within {shapes.check_error_m * MM_PER_M:.2g} mm "
+                              "of full solves at their checks)")
+                elif self.wants_shape:
+                    probe += " (no shapes: each is a full solve, seconds from a near one, tens of seconds from rest)"
+
         if self.pending_level is not None:
             probe = f" until the {self.pending_level} level is built"
         self.report(f"inverse ready in {self.timings_s['inverse_setup_s']:.2f} s (fidelity {self.estimator.level}"
@@ -239,8 +245,7 @@ class LoadedModel:
     def outer_surface_mm(self, pressures_pa: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The deformed outer surface at pressures (Pa): positions (mm) and triangles; a shape is formed only here."""
         used, triangles = self._outer_surface
-        positions_m = self.estimator.shape(self.measured(pressures_pa))
-        return np.asarray(positions_m)[used] * MM_PER_M, triangles
+        return np.asarray(self.estimator.shape(self.measured(pressures_pa), nodes=used)) * MM_PER_M, triangles
 
 
 def build_progress(report: Callable[[str], None], every_s: float = 10.0) -> Callable[[int, int], None]:

@@ -22,9 +22,10 @@ MAX_SCENE_BYTES = 2**20
 
 #: Names of the shipped scenes, as accepted by :func:`load_scene`.
 #: "builtin" and "builtin:prostate" are the physical model (Ecoflex modulus, co-rotational) the FEM tests use;
-#: "builtin:calibrated" is the physically valid calibration to the measurements (Gent material and chamber
-#: geometry, bench/README.md), the daemon's default; "builtin:converged" is the same calibration on 10-node,
-#: nearly incompressible elements on a mesh converged to under 1 % (slower: seconds to minutes a solve).
+#: "builtin:converged" is the calibration to the measurements (Gent material) on 10-node, nearly incompressible
+#: elements on a mesh converged to under 1 %, the daemon's default (seconds to a minute a full solve; its table's
+#: volumes and its surface's shapes ship with it); "builtin:calibrated" is the earlier fit on 4-node,
+#: compressible elements on a coarse 4 mm mesh (fast, but 7-39 % from its own converged growth, bench/README.md).
 BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
                   "builtin:calibrated": "prostate_calibrated.toml", "builtin:converged": "prostate_converged.toml"}
 
@@ -102,7 +103,8 @@ class ModelSettings:
         table_points : grid points per pressure axis of the ``table`` level (an integer >= 2);
         table_volumes : the file's ``table_volumes``, resolved beside the scene: the ``table`` level's volumes,
         shipped with the scene so that no machine must build them (``phantom.model.fidelity.response_table``
-        checks that they belong to this model), or None.
+        checks that they belong to this model), or None; table_shapes : likewise the outer surface's shapes
+        over the box (on a coarser grid), or None (each shape is then a full solve).
     """
 
     fidelity: str | None = None
@@ -110,6 +112,7 @@ class ModelSettings:
     pressure_max_pa: float = PRESSURE_LIMIT_PA
     table_points: int = DEFAULT_TABLE_POINTS
     table_volumes: Path | None = None
+    table_shapes: Path | None = None
 
 
 @dataclass(frozen=True)
@@ -337,33 +340,51 @@ def _positive_number(table: dict[str, Any], key: str, default: float, where: str
     return float(value)
 
 
+#: The keys of a scene's [model] table.
+MODEL_KEYS = ("fidelity", "accuracy_pct", "pressure_max_kpa", "table_points", "table_volumes", "table_shapes")
+
+
+#: A ``[model] table_volumes`` or ``table_shapes`` value that starts with this names a file the package ships
+#: beside its built-in scenes, wherever the scene that names it lies (a copy of an example scene keeps working).
+SHIPPED_FILE_PREFIX = "builtin:"
+
+
+def _shipped_file(table: dict[str, Any], key: str, where: str, path: Path | None) -> Path | None:
+    """``[model] key``: a file that response_table wrote (``table_volumes``, ``table_shapes``): beside the scene,
+    or ``builtin:NAME``, beside the built-in scenes."""
+    value = table.get(key)
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.removeprefix(SHIPPED_FILE_PREFIX):
+        raise SceneError(f"{where}: [model] {key} must be a file path (a .npz that response_table.write_{key} "
+                         f"wrote, or builtin:NAME for one beside the built-in scenes), got {value!r}")
+    if value.startswith(SHIPPED_FILE_PREFIX):
+        resolved = Path(__file__).resolve().parent / "scenes" / value.removeprefix(SHIPPED_FILE_PREFIX)
+    else:
+        resolved = _beside(value, path)
+    if not resolved.is_file():
+        built = "the table is then built once per machine" if key == "table_volumes" else "each shape is then solved"
+        raise SceneError(f"{where}: [model] {key} names {resolved}, which is not a file: restore it, or remove the "
+                         f"key ({built})")
+    return resolved
+
+
 def _model_settings(table: dict[str, Any], where: str, path: Path | None = None) -> ModelSettings:
     if not isinstance(table, dict):
-        raise SceneError(f"{where}: [model] must be a table with fidelity, accuracy_pct, pressure_max_kpa, "
-                         "table_points, table_volumes")
-    unknown = set(table) - {"fidelity", "accuracy_pct", "pressure_max_kpa", "table_points", "table_volumes"}
+        raise SceneError(f"{where}: [model] must be a table with {', '.join(MODEL_KEYS)}")
+    unknown = set(table) - set(MODEL_KEYS)
     if unknown:
-        raise SceneError(f"{where}: [model] has unknown keys {sorted(unknown)}: use fidelity, accuracy_pct, "
-                         "pressure_max_kpa, table_points, table_volumes")
+        raise SceneError(f"{where}: [model] has unknown keys {sorted(unknown)}: use {', '.join(MODEL_KEYS)}")
     fidelity = table.get("fidelity")
     if fidelity is not None and fidelity not in FIDELITY_LEVELS:
         raise SceneError(f"{where}: [model] fidelity must be one of {', '.join(FIDELITY_LEVELS)}, got {fidelity!r}")
     points = table.get("table_points", DEFAULT_TABLE_POINTS)
     if isinstance(points, bool) or not isinstance(points, int) or points < 2:
         raise SceneError(f"{where}: [model] table_points must be an integer of at least 2, got {points!r}")
-    volumes = table.get("table_volumes")
-    volumes_path = None
-    if volumes is not None:
-        if not isinstance(volumes, str) or not volumes:
-            raise SceneError(f"{where}: [model] table_volumes must be a file path (a .npz that "
-                             f"response_table.write_table_volumes wrote), got {volumes!r}")
-        volumes_path = _beside(volumes, path)
-        if not volumes_path.is_file():
-            raise SceneError(f"{where}: [model] table_volumes names {volumes_path}, which is not a file: restore "
-                             "it, or remove the key (the table is then built once per machine)")
     return ModelSettings(fidelity, _positive_number(table, "accuracy_pct", DEFAULT_ACCURACY_PCT, where),
                          _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where) * 1e3, points,
-                         volumes_path)
+                         _shipped_file(table, "table_volumes", where, path),
+                         _shipped_file(table, "table_shapes", where, path))
 
 
 def _load(table: Any, where: str) -> Load:

@@ -12,10 +12,14 @@ from phantom import PhantomError
 from phantom.model import PhantomModel, load_scene
 from phantom.model.fidelity.levels import VolumeEstimator
 from phantom.model.fidelity.response_table import (
+    SHIPPED_MODES_TOLERANCE_M,
+    SHIPPED_NODE_TOLERANCE_M,
     ResponseTableError,
     build_response_table,
+    build_table_shapes,
     grid_pa,
     response_table,
+    write_table_shapes,
     write_table_volumes,
 )
 from phantom.model.inverse import InverseSolver
@@ -291,4 +295,81 @@ def test_shipped_table_volumes_of_another_model_are_refused_with_what_differs(mo
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
     path.write_bytes(b"not an npz")
     with pytest.raises(ResponseTableError, match=r"volumes.npz \(\[model\] table_volumes\) cannot be read .*" + remedy):
+        VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
+
+
+# --- the outer surface's shapes shipped with a scene ----------------------------------------------------------
+
+def _shapes_scene(tmp_path, model, shapes):
+    """A copy of the built-in scene on the table level that ships a 2-point table's volumes and ``shapes``."""
+    write_table_shapes(shapes, model, tmp_path / "shapes.npz")
+    scene_path = _shipping_scene(tmp_path, build_response_table(model, PRESSURE_MAX_PA, 2, workers=1), model)
+    scene_path.write_text(scene_path.read_text().replace('table_volumes = "volumes.npz"',
+                                                         'table_volumes = "volumes.npz"\ntable_shapes = "shapes.npz"'))
+    return scene_path
+
+
+def test_shipped_shapes_answer_the_outer_surface_without_a_solve_and_other_nodes_are_solved(model, monkeypatch,
+                                                                                               tmp_path):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    shapes = build_table_shapes(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1)
+    surface, _ = model.outer_surface()
+    np.testing.assert_array_equal(shapes.nodes, surface)
+    # the build's check: interpolated between 1.5 kPa steps, a full solve's surface is a little elsewhere
+    assert 0 < shapes.check_error_m < 0.05 * np.abs(model.equilibrium(
+        [PRESSURE_MAX_PA] * 3).positions_m - model.nodes_m).max()
+    shipping = PhantomModel.from_scene(load_scene(_shapes_scene(tmp_path, model, shapes)), mesh_size_mm=COARSE_MM)
+    solves = []
+    original = shipping.equilibrium
+    monkeypatch.setattr(shipping, "equilibrium",
+                        lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
+    estimator = VolumeEstimator(shipping)
+    # the check error written bounds the modes' error too
+    assert estimator.shapes is not None
+    assert shapes.check_error_m <= estimator.shapes.check_error_m <= shapes.check_error_m + SHIPPED_MODES_TOLERANCE_M
+    for pressures_pa in OFF_GRID_PA:
+        # the shipped displacements are their leading singular modes, within their tolerance at the grid points
+        np.testing.assert_allclose(estimator.shape(pressures_pa, nodes=surface),
+                                   shapes.table.positions_m(pressures_pa), rtol=0, atol=SHIPPED_MODES_TOLERANCE_M)
+        # a subset of the surface is the same nodes' rows
+        np.testing.assert_allclose(estimator.shape(pressures_pa, nodes=surface[::7]),
+                                   estimator.shape(pressures_pa, nodes=surface)[::7], rtol=0, atol=1e-15)
+    assert solves == [] and estimator.counts["full_solves"] == 0
+    # against a full solve between the grid's points: within a few times the check error written (the build's
+    # and the modes')
+    state = model.equilibrium(OFF_GRID_PA[1])
+    off_m = np.linalg.norm(estimator.shape(OFF_GRID_PA[1], nodes=surface) - state.positions_m[surface], axis=1)
+    assert off_m.max() < 3 * estimator.shapes.check_error_m
+    # a node inside the body, or every node, is not shipped: a full solve
+    inside = np.setdiff1d(np.arange(len(model.nodes_m)), surface)[:5]
+    np.testing.assert_allclose(estimator.shape(OFF_GRID_PA[0], nodes=inside),
+                               model.equilibrium(OFF_GRID_PA[0]).positions_m[inside], rtol=0, atol=1e-12)
+    assert len(solves) == 1
+    assert estimator.shape(OFF_GRID_PA[0]).shape == model.nodes_m.shape and len(solves) == 1  # the state kept
+
+
+def test_shipped_shapes_of_another_mesh_or_model_are_refused_with_what_to_do(model, monkeypatch, tmp_path):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    shapes = build_table_shapes(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
+    scene = load_scene(_shapes_scene(tmp_path, model, shapes))
+    remedy = r"use a copy of the scene without \[model\] table_shapes \(each shape is then a full solve\)"
+    path = tmp_path / "shapes.npz"
+    with np.load(path) as stored:
+        fields = dict(stored)
+    # the same settings meshed otherwise: the same volumes, the nodes elsewhere
+    moved = fields["rest_positions_m"].copy()
+    moved[3] += 10 * SHIPPED_NODE_TOLERANCE_M
+    np.savez(path, **{**fields, "rest_positions_m": moved})
+    with pytest.raises(ResponseTableError, match=r"shapes.npz \(\[model\] table_shapes\) name nodes this mesh does "
+                                                 r"not have where they were .*" + remedy):
+        VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
+    # made for another pressure box
+    provenance = str(fields["provenance"]).replace('"pressure_max_pa": 3000.0', '"pressure_max_pa": 2000.0')
+    np.savez(path, **{**fields, "provenance": provenance})
+    with pytest.raises(ResponseTableError, match=r"table shapes .* belong to another model \(pressure_max_pa: made "
+                                                 r"for 2000.0, this model has 3000.0\): " + remedy):
+        VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
+    # a file without the shapes' arrays
+    np.savez(path, **{key: value for key, value in fields.items() if key != "modes_m"})
+    with pytest.raises(ResponseTableError, match=r"cannot be read \(no 'modes_m'\)"):
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))

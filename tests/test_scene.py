@@ -86,20 +86,30 @@ def test_the_converged_builtin_scene_reproduces_its_calibration_and_keeps_its_el
                                                                              abs=2e-3))
 
 
-def test_table_volumes_are_a_file_beside_the_scene_and_a_calibration_drops_them(tmp_path):
+@pytest.mark.parametrize(("key", "without"), [("table_volumes", "the table is then built once per machine"),
+                                              ("table_shapes", "each shape is then solved")])
+def test_table_files_are_files_beside_the_scene_and_a_calibration_drops_them(tmp_path, key, without):
     from phantom.model.calibration.calibrate import scene_with
 
-    (tmp_path / "volumes.npz").write_bytes(b"")
-    scene = load_scene(write_scene(tmp_path, GOOD + '[model]\nfidelity = "table"\ntable_volumes = "volumes.npz"\n'))
-    assert scene.model_settings.table_volumes == tmp_path / "volumes.npz"
-    with pytest.raises(SceneError, match=r"table_volumes names .*absent.npz, which is not a file: restore it, or "
-                                         r"remove the key"):
-        load_scene(write_scene(tmp_path, GOOD + '[model]\ntable_volumes = "absent.npz"\n'))
-    with pytest.raises(SceneError, match=r"table_volumes must be a file path .* got 3"):
-        load_scene(write_scene(tmp_path, GOOD + "[model]\ntable_volumes = 3\n"))
-    # the volumes belong to the scene's own parameters: a copy with others set (a calibration's) names none
-    copied = scene_with(load_scene("builtin:converged").raw, {"youngs_modulus_kpa": 20.0})
-    assert "table_volumes" not in copied["model"] and "table_volumes" in load_scene("builtin:converged").raw["model"]
+    (tmp_path / "table.npz").write_bytes(b"")
+    scene = load_scene(write_scene(tmp_path, GOOD + f'[model]\nfidelity = "table"\n{key} = "table.npz"\n'))
+    assert getattr(scene.model_settings, key) == tmp_path / "table.npz"
+    with pytest.raises(SceneError, match=rf"{key} names .*absent.npz, which is not a file: restore it, or remove "
+                                         rf"the key \({without}\)"):
+        load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "absent.npz"\n'))
+    for wrong in ("3", '"builtin:"'):
+        with pytest.raises(SceneError, match=rf"{key} must be a file path \(a .npz that response_table.write_{key} "
+                                             rf"wrote, or builtin:NAME for one beside the built-in scenes\), got "):
+            load_scene(write_scene(tmp_path, GOOD + f"[model]\n{key} = {wrong}\n"))
+    # builtin:NAME is the file beside the built-in scenes, wherever the scene lies (a copy of an example scene)
+    shipped = f"prostate_converged.{key.removeprefix('table_')}.npz"
+    scene = load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:{shipped}"\n'))
+    assert getattr(scene.model_settings, key) == load_scene("builtin:converged").path.parent / shipped
+    with pytest.raises(SceneError, match=rf"{key} names .*model/scenes/absent.npz, which is not a file"):
+        load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:absent.npz"\n'))
+    # the files belong to the scene's own parameters: a copy with others set (a calibration's) names none
+    copied = scene_with(load_scene("builtin:converged").raw, {"gent_jm": 20.0})
+    assert key not in copied["model"] and key in load_scene("builtin:converged").raw["model"]
 
 
 def test_an_unknown_builtin_name_lists_the_shipped_ones():

@@ -229,9 +229,11 @@ def parse_grid(items: list[str]) -> Grid:
 
 def scene_with(raw: dict[str, Any], values: dict[str, float]) -> dict[str, Any]:
     """A copy of a scene's TOML dict with parameters set: material keys in [material], others in [geometry];
-    without the scene's shipped table volumes (``[model] table_volumes``), which belong to its own parameters."""
+    without the scene's shipped table volumes and shapes (``[model] table_volumes``, ``table_shapes``), which
+    belong to its own parameters."""
     document = copy.deepcopy(raw)
-    document.get("model", {}).pop("table_volumes", None)
+    for shipped in ("table_volumes", "table_shapes"):
+        document.get("model", {}).pop(shipped, None)
     for name, value in values.items():
         table = "material" if name in MATERIAL_PARAMETERS else "geometry"
         document.setdefault(table, {})[name] = float(value)

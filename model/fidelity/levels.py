@@ -21,7 +21,8 @@
     millisecond, to the interpolation's error (checked against full solves when the table is built). For a
     hyperelastic scene a daemon must answer at its control rate; it is never chosen by the probe (its build
     costs a few minutes once), only named by a scene. A table whose volumes ship with the scene has no shapes:
-    its shapes are full solves.
+    its outer surface's shapes come from the shapes the scene ships beside them (``[model] table_shapes``, a
+    coarser grid), other shapes are full solves.
 
 Only what is asked for is computed: :meth:`VolumeEstimator.volumes` never forms nodal positions at the rest
 level, and nothing here builds meshes or stresses. ``counts`` records the work done (full solves, tangent
@@ -40,7 +41,13 @@ from numpy.typing import ArrayLike
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
 from phantom.model.fem.model import Compliance, PhantomModel, State
-from phantom.model.fidelity.response_table import Progress, ResponseTable, response_table
+from phantom.model.fidelity.response_table import (
+    Progress,
+    ResponseTable,
+    SurfaceShapes,
+    response_table,
+    shipped_table_shapes,
+)
 from phantom.model.mesh.geometry import MESH_SIZE_RANGE_MM
 from phantom.model.scene import FIDELITY_LEVELS
 
@@ -107,6 +114,8 @@ class VolumeEstimator:
         self._rest_compliance: Compliance | None = None
         self._states: list[State] = []
         self.table: ResponseTable | None = None
+        #: the outer surface's shapes shipped with a table of volumes only (``[model] table_shapes``), or None
+        self.shapes: SurfaceShapes | None = None
         level = level if level is not None else settings.fidelity
         if level is None:
             level = self._cheapest_level()
@@ -121,6 +130,8 @@ class VolumeEstimator:
                     f"the response table misses the full solve by {self.table.check_errors_pct:.3g} % of a volume "
                     f"(accuracy_pct {self.accuracy_pct:g}): raise [model] table_points (now {points}), or use "
                     "fidelity full")
+            if self.table.position_values is None:
+                self.shapes = shipped_table_shapes(model, self.pressure_max_pa)
 
     # ----------------------------------------------------------------- public
     @property
@@ -133,18 +144,26 @@ class VolumeEstimator:
         chamber_volumes_m3, gland_volume_m3, _ = self.evaluate(pressures_pa)
         return chamber_volumes_m3, gland_volume_m3
 
-    def shape(self, pressures_pa: ArrayLike) -> FloatArray:
-        """Nodal positions (m, shape (nodes, 3)) at ``pressures_pa``; computed only when called."""
+    def shape(self, pressures_pa: ArrayLike, nodes: ArrayLike | None = None) -> FloatArray:
+        """Nodal positions (m, shape (nodes, 3)) at ``pressures_pa``: of every node, or of ``nodes`` (indices)
+        when given; computed only when called."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
         self.counts["shapes"] += 1
+        if self.shapes is not None and nodes is not None:
+            surface_m = self.shapes.positions_m(pressures, nodes)
+            if surface_m is not None:
+                return surface_m
         if self.level == "rest":
-            return self._rest_positions(pressures)
-        if self.level == "updated":
-            return self._updated_positions(pressures)
-        if self.table is not None and self.table.position_values is not None:
-            return self.table.positions_m(pressures)
-        # (a table shipped with its scene has volumes only: its shapes are solved, from the nearest one solved)
-        return self._full_state(pressures).positions_m
+            positions_m = self._rest_positions(pressures)
+        elif self.level == "updated":
+            positions_m = self._updated_positions(pressures)
+        elif self.table is not None and self.table.position_values is not None:
+            positions_m = self.table.positions_m(pressures)
+        else:
+            # (a table shipped with its scene has volumes only: a shape its shipped shapes do not hold is solved,
+            # from the nearest one solved)
+            positions_m = self._full_state(pressures).positions_m
+        return positions_m if nodes is None else positions_m[np.asarray(nodes)]
 
     def evaluate(self, pressures_pa: ArrayLike) -> Evaluation:
         """Volumes as :meth:`volumes`, plus the solver state where the level has one (else None): ``full``, and

@@ -24,12 +24,15 @@ cores up to n) once per model and machine. Each build is checked against full so
 
 A scene whose build costs most of an hour (the 10-node ``builtin:converged``) ships its table's volumes beside
 it (``[model] table_volumes``, :func:`write_table_volumes`: 9 kB compressed, where the nodes' positions take
-67 MB). Such a table answers volumes and compliances at once on a fresh machine; it has no shapes, so
-``VolumeEstimator.shape`` solves them. It is used only for the model it was made for: the file states the
-model (material, mesh size, geometry, load, solver, grid) and its rest volumes, and a model that differs is
-refused with what differs. The rest volumes (within :data:`SHIPPED_REST_TOLERANCE_PCT`) stand for the nodes'
-coordinates, so that a mesh another gmsh release makes from the same settings is accepted when its volumes
-agree.
+67 MB). Such a table answers volumes and compliances at once on a fresh machine; it has no shapes. The scene
+may ship its outer surface's shapes too (``[model] table_shapes``, :func:`write_table_shapes`): the surface
+nodes' displacements on a coarser grid (:data:`SHIPPED_SHAPE_POINTS` per axis, as their leading singular modes),
+interpolated the same way; without them ``VolumeEstimator.shape`` solves each shape. A shipped file is used only
+for the model it was made for: it states the model (material, mesh size, geometry, load, solver, grid) and its
+rest volumes, and a model that differs is refused with what differs. The rest volumes (within
+:data:`SHIPPED_REST_TOLERANCE_PCT`) stand for the nodes' coordinates, so that a mesh another gmsh release makes
+from the same settings is accepted for its volumes when they agree; shapes, which name nodes, need the same
+surface nodes at the same places (within :data:`SHIPPED_NODE_TOLERANCE_M`).
 """
 
 from __future__ import annotations
@@ -70,6 +73,12 @@ TABLE_VERSION = 1
 CHECK_FRACTIONS = ((0.2, 0.6, 0.9), (0.9, 0.2, 0.6), (0.6, 0.9, 0.2), (0.7, 0.7, 0.7))
 #: How far (% of a rest volume) the model's rest volumes may be from those a shipped table was made on.
 SHIPPED_REST_TOLERANCE_PCT = 0.05
+#: Grid points per axis of the shapes a scene ships (1 kPa steps on a 3 kPa box: 64 solves).
+SHIPPED_SHAPE_POINTS = 4
+#: How far (m) a surface node of the model may be from where a shipped shape table has it at rest.
+SHIPPED_NODE_TOLERANCE_M = 1e-9
+#: How far (m) the singular modes a shape table ships may put a node from its solved position at a grid point.
+SHIPPED_MODES_TOLERANCE_M = 2e-5
 
 Progress = Callable[[int, int], None]
 #: One axis's cardinal-spline weights at a pressure, and their slope per Pa.
@@ -309,6 +318,84 @@ def _flat(values: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return flat
 
 
+@dataclass(frozen=True)
+class SurfaceShapes:
+    """Some nodes' positions over the box, interpolated: the outer surface's shapes a scene ships
+    (``[model] table_shapes``, :func:`shipped_table_shapes`).
+
+    ``table`` holds the positions of ``nodes`` only (model node indices, sorted); ``check_error_m`` is the
+    largest distance (m) of one of them from a full solve's, at the build's checks (:data:`CHECK_FRACTIONS`).
+    """
+
+    table: ResponseTable
+    nodes: np.ndarray
+    check_error_m: float
+
+    def positions_m(self, pressures_pa: ArrayLike, nodes: ArrayLike) -> np.ndarray | None:
+        """The positions (m, (len(nodes), 3)) of ``nodes`` at ``pressures_pa``; None when the table does not
+        hold every one of them."""
+        wanted = np.asarray(nodes)
+        where = np.minimum(np.searchsorted(self.nodes, wanted), len(self.nodes) - 1)
+        if not np.array_equal(self.nodes[where], wanted):
+            return None
+        return self.table.positions_m(pressures_pa)[where]
+
+
+def build_table_shapes(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = SHIPPED_SHAPE_POINTS,
+                       progress: Progress | None = None, workers: int | None = None) -> SurfaceShapes:
+    """The outer surface's shapes on a ``points_per_axis`` grid (:func:`build_response_table`), checked against
+    full solves at :data:`CHECK_FRACTIONS`: what :func:`write_table_shapes` ships."""
+    table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers)
+    assert table.position_values is not None  # a build solves every shape
+    nodes, _ = model.outer_surface()
+    return SurfaceShapes(dataclasses.replace(table, position_values=table.position_values[..., nodes, :]),
+                         np.asarray(nodes), shape_check_error_m(model, table, nodes))
+
+
+def shape_check_error_m(model: PhantomModel, table: ResponseTable, nodes: np.ndarray) -> float:
+    """The largest distance (m) of one of ``nodes`` interpolated by ``table`` (which holds every node's position)
+    from a full solve's, at :data:`CHECK_FRACTIONS`; each solve starts from the nearest grid point's state (an
+    interpolated shape is no equilibrium: started there, a nearly incompressible body's Newton took minutes)."""
+    assert table.position_values is not None
+    nodes_pa = grid_pa(table.pressure_max_pa, table.points_per_axis)
+    worst_m = 0.0
+    for fractions in CHECK_FRACTIONS:
+        pressures = table.pressure_max_pa * np.asarray(fractions[:model.n_chambers], dtype=float)
+        nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
+        state = model.equilibrium(pressures, initial_positions_m=table.position_values[nearest])
+        off_m = np.linalg.norm(table.positions_m(pressures)[nodes] - state.positions_m[nodes], axis=1)
+        worst_m = max(worst_m, float(off_m.max()))
+    return worst_m
+
+
+def write_table_shapes(shapes: SurfaceShapes, model: PhantomModel, path: str | Path) -> None:
+    """Write ``shapes`` for shipping with ``model``'s scene (``[model] table_shapes``): the nodes' displacements
+    from rest as the fewest singular modes that keep every grid point within :data:`SHIPPED_MODES_TOLERANCE_M` (20
+    modes, 0.4 MB, for builtin:converged's 1718 surface nodes on 4^3 points, where the displacements themselves
+    take 1.3 MB), as float32; the model they belong to (:func:`table_provenance`), its rest volumes and the nodes'
+    rest positions. The check error written is the build's plus the modes' own (a bound on their sum)."""
+    table = shapes.table
+    assert table.position_values is not None
+    rest_m = np.asarray(model.nodes_m, dtype=float)[shapes.nodes]
+    grid = table.position_values.shape[:-2]
+    displacement = (table.position_values - rest_m).reshape(int(np.prod(grid)), -1)
+    left, singular, right = np.linalg.svd(displacement, full_matrices=False)
+    for count in range(1, len(singular) + 1):
+        coefficients = (left[:, :count] * singular[:count]).astype(np.float32)
+        modes = right[:count].astype(np.float32)
+        off_m = np.linalg.norm((coefficients.astype(float) @ modes.astype(float) - displacement).reshape(
+            len(displacement), -1, 3), axis=2).max()
+        if off_m <= SHIPPED_MODES_TOLERANCE_M:
+            break
+    np.savez_compressed(
+        path, coefficients=coefficients.reshape(*grid, -1), modes_m=modes.reshape(-1, len(shapes.nodes), 3),
+        nodes=shapes.nodes.astype(np.int32), rest_positions_m=rest_m, chamber=table.chamber_values,
+        gland=table.gland_values, check_error_m=shapes.check_error_m + off_m,
+        check_errors_pct=table.check_errors_pct, build_time_s=table.build_time_s,
+        provenance=json.dumps(table_provenance(model, table.pressure_max_pa, table.points_per_axis)),
+        rest_volumes_m3=np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3))
+
+
 def write_table_volumes(table: ResponseTable, model: PhantomModel, path: str | Path) -> None:
     """Write ``table``'s volumes (not its positions) for shipping with ``model``'s scene, with the model they
     belong to (:func:`table_provenance`) and its rest volumes; ``[model] table_volumes`` names the file."""
@@ -319,26 +406,21 @@ def write_table_volumes(table: ResponseTable, model: PhantomModel, path: str | P
         rest_volumes_m3=np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3))
 
 
-def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
-                          points_per_axis: int = DEFAULT_TABLE_POINTS) -> ResponseTable | None:
-    """The volumes shipped with the model's scene (``[model] table_volumes``) as a table without positions, or
-    None when the scene ships none. Raises ResponseTableError, saying what differs, when the file was made for
-    another model or grid, or cannot be read."""
-    path = model.model_settings.table_volumes
-    if path is None:
-        return None
-    where = f"the table volumes {path} ([model] table_volumes)"
-    remedy = ("use a copy of the scene without [model] table_volumes (the table is then built once per machine: "
-              "53 min on one core for builtin:converged), another level ([model] fidelity; phantom inverse "
-              "--fidelity), or write the file again for this model (scripts/table_volumes.py)")
+def _read_shipped(model: PhantomModel, key: str, path: Path, pressure_max_pa: float, points_per_axis: int | None,
+                  remedy: str) -> dict[str, np.ndarray]:
+    """The arrays of the file a scene ships under ``[model] key``, once it is shown to belong to ``model`` and
+    the grid (its provenance, and its rest volumes within :data:`SHIPPED_REST_TOLERANCE_PCT`; None
+    ``points_per_axis``: the file's own); ResponseTableError, saying what differs and ``remedy``, otherwise."""
+    where = f"the table {key.removeprefix('table_')} {path} ([model] {key})"
     try:
         with np.load(path) as stored:
-            provenance = json.loads(str(stored["provenance"]))
-            chamber, gland = np.asarray(stored["chamber"], float), np.asarray(stored["gland"], float)
-            rest_m3 = np.asarray(stored["rest_volumes_m3"], float)
-            check_pct, build_s = float(stored["check_errors_pct"]), float(stored["build_time_s"])
+            arrays = dict(stored)
+        provenance = json.loads(str(arrays["provenance"]))
+        rest_m3 = np.asarray(arrays["rest_volumes_m3"], float)
     except (OSError, ValueError, KeyError) as error:
         raise ResponseTableError(f"{where} cannot be read ({error}): {remedy}") from error
+    if points_per_axis is None:
+        points_per_axis = int(provenance.get("points_per_axis", 0))
     wanted, made = _flat(table_provenance(model, pressure_max_pa, points_per_axis)), _flat(provenance)
     differing = sorted(key for key in set(wanted) | set(made) if wanted.get(key) != made.get(key))
     if differing:
@@ -351,7 +433,55 @@ def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
         raise ResponseTableError(
             f"{where} were made on a mesh whose rest volumes are up to {off_pct:.2g} % from this one's (more than "
             f"{SHIPPED_REST_TOLERANCE_PCT:g} %: the mesher made another mesh from the same settings): {remedy}")
-    return ResponseTable(float(pressure_max_pa), chamber, gland, None, check_pct, build_s)
+    return arrays
+
+
+def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
+                          points_per_axis: int = DEFAULT_TABLE_POINTS) -> ResponseTable | None:
+    """The volumes shipped with the model's scene (``[model] table_volumes``) as a table without positions, or
+    None when the scene ships none. Raises ResponseTableError, saying what differs, when the file was made for
+    another model or grid, or cannot be read."""
+    path = model.model_settings.table_volumes
+    if path is None:
+        return None
+    remedy = ("use a copy of the scene without [model] table_volumes (the table is then built once per machine: "
+              "53 min on one core for builtin:converged), another level ([model] fidelity; phantom inverse "
+              "--fidelity), or write the file again for this model (scripts/table_volumes.py)")
+    stored = _read_shipped(model, "table_volumes", path, pressure_max_pa, points_per_axis, remedy)
+    return ResponseTable(float(pressure_max_pa), np.asarray(stored["chamber"], float),
+                         np.asarray(stored["gland"], float), None, float(stored["check_errors_pct"]),
+                         float(stored["build_time_s"]))
+
+
+def shipped_table_shapes(model: PhantomModel, pressure_max_pa: float) -> SurfaceShapes | None:
+    """The outer surface's shapes shipped with the model's scene (``[model] table_shapes``, on the file's own
+    grid), or None when it ships none. Raises ResponseTableError, saying what differs, when the file was made
+    for another model, pressure box or mesh (its nodes elsewhere), or cannot be read."""
+    path = model.model_settings.table_shapes
+    if path is None:
+        return None
+    remedy = ("use a copy of the scene without [model] table_shapes (each shape is then a full solve), or write "
+              "the file again for this model (scripts/table_volumes.py --shapes-out)")
+    stored = _read_shipped(model, "table_shapes", path, pressure_max_pa, None, remedy)
+    try:
+        nodes = np.asarray(stored["nodes"], dtype=np.int64)
+        rest_m = np.asarray(stored["rest_positions_m"], dtype=float)
+        coefficients = np.asarray(stored["coefficients"], dtype=float)
+        modes_m = np.asarray(stored["modes_m"], dtype=float)
+        check_error_m = float(stored["check_error_m"])
+    except KeyError as error:
+        raise ResponseTableError(f"the table shapes {path} ([model] table_shapes) cannot be read (no {error}): "
+                                 f"{remedy}") from error
+    model_nodes_m = np.asarray(model.nodes_m, dtype=float)
+    if (nodes.size == 0 or nodes.max() >= len(model_nodes_m)
+            or np.abs(model_nodes_m[nodes] - rest_m).max() > SHIPPED_NODE_TOLERANCE_M):
+        raise ResponseTableError(f"the table shapes {path} ([model] table_shapes) name nodes this mesh does not "
+                                 f"have where they were (the mesher numbered or placed them otherwise): {remedy}")
+    displacement_m = np.tensordot(coefficients, modes_m, axes=(-1, 0))
+    table = ResponseTable(float(pressure_max_pa), np.asarray(stored["chamber"], float),
+                          np.asarray(stored["gland"], float), rest_m + displacement_m,
+                          float(stored["check_errors_pct"]), float(stored["build_time_s"]))
+    return SurfaceShapes(table, nodes, check_error_m)
 
 
 def stored_response_table(model: PhantomModel, pressure_max_pa: float,
