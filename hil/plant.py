@@ -13,12 +13,11 @@ which for one chamber is physics.md's dp/dt = p_atm (Q_in - Q_out) / (V + (p_atm
 The rest volumes V0 (each cavity's air plus its tube's dead volume) and the compliance C come from the FEM at
 rest; :func:`chambers_from_scene` computes them and :func:`write_chambers` puts them into a plant file:
 
-    phantom hil plant --from-scene model/scenes/prostate_calibrated.toml [--plant hil/plant.toml]
+    phantom hil plant --from-scene model/scenes/prostate_converged.toml [--plant hil/plant.toml]
 """
 
 from __future__ import annotations
 
-import copy
 import math
 import re
 import tomllib
@@ -35,7 +34,7 @@ from phantom import PhantomError
 #: The shipped plant parameter file.
 DEFAULT_PLANT_PATH = Path(__file__).resolve().parent / "plant.toml"
 #: The scene whose FEM gives the shipped plant's chamber volumes and compliance.
-CALIBRATED_SCENE_PATH = Path(__file__).resolve().parent.parent / "model" / "scenes" / "prostate_calibrated.toml"
+CALIBRATED_SCENE_PATH = Path(__file__).resolve().parent.parent / "model" / "scenes" / "prostate_converged.toml"
 #: Significant digits written for volumes (ml) and compliances (ml/kPa): rounding moves a value by <= 5e-5 of it.
 WRITTEN_DIGITS = 5
 
@@ -375,9 +374,10 @@ def write_chambers(chambers: FemChambers, path: str | Path | None = None) -> Pla
 #: the last cell linearly.
 TRUTH_POINTS_KPA = tuple(float(k) for k in range(TRUTH_GRID_POINTS))
 #: The default truth: the calibrated model with its modulus moved by the jackknife standard error of its
-#: leave-one-out moduli (0.676 of 6.042 kPa, bench/README.md "Calibration"): a phantom as far from the
-#: controller's model as the calibration's own uncertainty.
-TRUTH_MODULUS_FACTOR = 1.112
+#: leave-one-out moduli (0.646 of 10.81 kPa on the 10 mm mesh, whose fit is 0.4 % from the 7 mm one's;
+#: bench/README.md "A calibration anchored on the material"): a phantom as far from the controller's model as the
+#: calibration's own uncertainty.
+TRUTH_MODULUS_FACTOR = 1.06
 
 
 @dataclass(frozen=True)
@@ -392,34 +392,28 @@ class TruthTable:
 
 
 def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
-                           scheduler: str | None = None,
+                           workers: int | None = None,
                            progress: Callable[[int, int], None] | None = None) -> TruthTable:
-    """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point (Dask tasks,
-    cached: :mod:`phantom.model.calibration.sweep`)."""
-    # the FEM's and Dask's stacks load only when a truth table is made, not when a plant is read
-    from phantom.model import load_scene
-    from phantom.model.calibration.sweep import RayTask, run_sweep
+    """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point: the response
+    table's build (:func:`phantom.model.fidelity.response_table.build_response_table`, each point started from its
+    neighbour, one slab per worker process), whose grid over 0-3 kPa is the truth's."""
+    # the FEM's stack loads only when a truth table is made, not when a plant is read
+    from phantom.model import PhantomModel, load_scene
+    from phantom.model.fidelity.response_table import ResponseTableError, build_response_table
+    from phantom.model.scene import scene_from_dict, without_shipped_tables
 
     loaded = load_scene(scene)
-    raw = copy.deepcopy(loaded.raw)
-    material = raw.setdefault("material", {})
-    material["youngs_modulus_kpa"] = loaded.material.youngs_modulus_pa / 1e3 * modulus_factor
+    modulus_kpa = loaded.material.youngs_modulus_pa / 1e3 * modulus_factor
+    raw = without_shipped_tables(loaded.raw)
+    raw["material"]["youngs_modulus_kpa"] = modulus_kpa
+    truth = PhantomModel.from_scene(scene_from_dict(raw, loaded.path))
     n = len(TRUTH_POINTS_KPA)
-    grid = [(i, j, k) for i in range(n) for j in range(n) for k in range(n)]
-    # the scene's weight in air, if it has a [load] table: a task's weight is explicit (scaled with its pressures)
-    weight = loaded.load.body_force_n_per_m3()
-    tasks = [RayTask(raw, tuple(1e3 * TRUTH_POINTS_KPA[m] for m in index), (0.0, 0.5, 1.0), body_force_n_per_m3=weight)
-             for index in grid]
-    traces = run_sweep(tasks, scheduler=scheduler, progress=progress)
-    chambers, gland = np.zeros((n, n, n, N_CHAMBERS)), np.zeros((n, n, n))
-    for index, trace in zip(grid, traces, strict=True):
-        if len(trace.load_factors) < 3:
-            raise PlantError(f"the truth model does not solve at {index} kPa: {trace.stopped}")
-        chambers[index] = 1e6 * trace.chamber_m3[-1]
-        gland[index] = 1e6 * trace.gland_m3[-1]
-    description = (f"{scene} with E x {modulus_factor:g} = {material['youngs_modulus_kpa']:.4g} kPa "
-                   f"({loaded.material.model})")
-    return TruthTable(TRUTH_POINTS_KPA, chambers, gland, description)
+    try:
+        table = build_response_table(truth, 1e3 * TRUTH_POINTS_KPA[-1], n, progress, workers)
+    except ResponseTableError as error:
+        raise PlantError(f"the truth model does not solve: {error}") from None
+    description = f"{scene} with E x {modulus_factor:g} = {modulus_kpa:.4g} kPa ({loaded.material.model})"
+    return TruthTable(TRUTH_POINTS_KPA, 1e6 * table.chamber_values, 1e6 * table.gland_values, description)
 
 
 def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParameters:

@@ -107,7 +107,8 @@ class DaemonConfig:
     can_interface: str = setting("socketcan", "python-can interface", metavar="NAME")
     sim_speed: float = setting(1.0, "simulated board speed-up: 1 real time, 0 as fast as it can", metavar="X",
                                at_least=0, at_most=100)
-    scene: str = setting("builtin:calibrated", "scene: 'builtin:calibrated', 'builtin' or a TOML path",
+    scene: str = setting("builtin:converged", "scene: 'builtin:converged' (the calibrated, converged phantom), "
+                         "'builtin:calibrated' (its coarse 4-node fit), 'builtin' or a TOML path",
                          metavar="S")
     run_scene: bool = setting(False, "play the scene's [[steps]] as soon as the daemon is ready")
     socket: Path | None = setting(

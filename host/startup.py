@@ -88,7 +88,7 @@ class Progress:
 class StartupProgress:
     """What the daemon is doing before it is ready, for the API's ``starting`` answers and systemd's status line.
 
-    ``stage`` is one line (``loading the model of builtin:calibrated``); ``work`` the progress of a long stage.
+    ``stage`` is one line (``loading the model of builtin:converged``); ``work`` the progress of a long stage.
     """
 
     def __init__(self, clock: Any = time.monotonic):

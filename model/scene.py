@@ -7,6 +7,7 @@ these fields; the parsed TOML (``Scene.raw``) is kept only to write a scene back
 simulated board's truth) and for the tables other parts own (``[[steps]]``, ``[host]``).
 """
 
+import copy
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -367,6 +368,16 @@ def _shipped_file(table: dict[str, Any], key: str, where: str, path: Path | None
         raise SceneError(f"{where}: [model] {key} names {resolved}, which is not a file: restore it, or remove the "
                          f"key ({built})")
     return resolved
+
+
+def without_shipped_tables(raw: dict[str, Any]) -> dict[str, Any]:
+    """A copy of a scene's TOML dict without the table files it ships (``[model] table_volumes``,
+    ``table_shapes``), which belong to its own parameters: for a scene made from it with others (a calibration's,
+    a truth at another modulus), or for the build that writes them."""
+    document = copy.deepcopy(raw)
+    for key in ("table_volumes", "table_shapes"):
+        document.get("model", {}).pop(key, None)
+    return document
 
 
 def _model_settings(table: dict[str, Any], where: str, path: Path | None = None) -> ModelSettings:

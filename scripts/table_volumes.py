@@ -32,14 +32,19 @@ def main() -> int:
 
     from phantom import PhantomError
     from phantom.model import PhantomModel
-    from phantom.model.calibration.calibrate import scene_with
     from phantom.model.fidelity.response_table import (
         build_table_shapes,
         response_table,
         write_table_shapes,
         write_table_volumes,
     )
-    from phantom.model.scene import BUILTIN_SCENES, builtin_scene_path, read_scene_toml, scene_from_dict
+    from phantom.model.scene import (
+        BUILTIN_SCENES,
+        builtin_scene_path,
+        read_scene_toml,
+        scene_from_dict,
+        without_shipped_tables,
+    )
 
     started = time.perf_counter()
 
@@ -49,7 +54,7 @@ def main() -> int:
     try:
         path = builtin_scene_path(args.scene) if args.scene in BUILTIN_SCENES else Path(args.scene)
         # the full table, not what the scene may ship already (or names before it is written)
-        model = PhantomModel.from_scene(scene_from_dict(scene_with(read_scene_toml(path), {}), path))
+        model = PhantomModel.from_scene(scene_from_dict(without_shipped_tables(read_scene_toml(path)), path))
         settings = model.model_settings
         if args.out:
             table = response_table(model, settings.pressure_max_pa, settings.table_points, progress=progress)

@@ -44,12 +44,25 @@ def _no_long_collections_during_a_simulated_board(request: pytest.FixtureRequest
 
 @pytest.fixture(scope="session")
 def calibrated_response_table():
-    """The response table of ``builtin:calibrated``, the model of a daemon started with its defaults and of the
-    example scenes. Built here when the cache has none (a few minutes on two cores, once per machine), so that
-    a daemon a test starts does not spend its start-up deadline building it; the other workers wait for it and
-    read it from the cache."""
+    """The response table of ``builtin:calibrated`` (the coarse 4-node fit), for the tests that run on it. Built
+    here when the cache has none (a minute or two on two cores, once per machine); the other workers wait for it
+    and read it from the cache."""
     from phantom.model import PhantomModel, load_scene
     from phantom.model.fidelity.levels import VolumeEstimator
 
     with machine_lock("calibrated-response-table"):
         return VolumeEstimator(PhantomModel.from_scene(load_scene("builtin:calibrated"))).table
+
+
+@pytest.fixture(scope="session")
+def default_model_cached():
+    """The model of a daemon started with its defaults and of the example scenes (``builtin:converged``), meshed
+    and its rest compliance computed into the disk cache, so that a daemon a test starts does not spend its
+    start-up deadline meshing (tens of seconds the first time on a machine); its table's volumes and shapes ship
+    with it. The other workers wait for it and read it from the cache."""
+    from phantom.model import PhantomModel, load_scene
+
+    with machine_lock("default-model"):
+        model = PhantomModel.from_scene(load_scene("builtin:converged"))
+        model.compliance()
+        return model

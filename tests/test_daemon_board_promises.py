@@ -24,7 +24,7 @@ from phantom.protocol.codec import encode
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
 
-def test_gains_a_bench_session_left_on_the_board_are_replaced_by_the_daemons(tmp_path, calibrated_response_table):
+def test_gains_a_bench_session_left_on_the_board_are_replaced_by_the_daemons(tmp_path, default_model_cached):
     from phantom.hil.link import BoardLink
     from phantom.hil.sim import SimulatedBoard
 
@@ -66,7 +66,7 @@ def open_without_root_privileges(port: str) -> subprocess.CompletedProcess:
 
 
 def test_a_program_beside_the_daemon_cannot_open_the_port_and_its_setpoints_are_vented(
-        tmp_path, calibrated_response_table):
+        tmp_path, default_model_cached):
     import errno
 
     rig = DaemonRig(tmp_path)
@@ -96,7 +96,7 @@ def test_a_program_beside_the_daemon_cannot_open_the_port_and_its_setpoints_are_
         rig.close()
 
 
-def test_a_still_deflating_phantom_is_zeroed_once_it_is_still(tmp_path, calibrated_response_table):
+def test_a_still_deflating_phantom_is_zeroed_once_it_is_still(tmp_path, default_model_cached):
     # half real time: the chambers take about 13 s of wall time to be still after 3 kPa
     rig = DaemonRig(tmp_path, speed=0.5)
 
@@ -124,7 +124,7 @@ def test_a_still_deflating_phantom_is_zeroed_once_it_is_still(tmp_path, calibrat
 
 
 def test_sigterm_ends_the_boards_session_so_that_it_latches_no_dead_host_fault(tmp_path,
-                                                                               calibrated_response_table):
+                                                                               default_model_cached):
     from phantom.hil.link import BoardLink
 
     rig = DaemonRig(tmp_path)

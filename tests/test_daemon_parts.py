@@ -554,8 +554,10 @@ def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(t
         if kind.name != "response":
             (cache / kind.name).symlink_to(kind)
     semaphores_before = set(Path("/dev/shm").glob("sem.*"))
+    # (the 4-node scene: the default model ships its table, so a daemon on it builds none)
     daemon = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--port",
-                               str(tmp_path / "no-board"), "--socket", str(tmp_path / "d.sock")],
+                               str(tmp_path / "no-board"), "--socket", str(tmp_path / "d.sock"), "--scene",
+                               "builtin:calibrated"],
                               env={**os.environ, "PHANTOM_CACHE_DIR": str(cache)}, stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True)
     try:

@@ -19,7 +19,7 @@ STEPS = [{"at_s": 0, "volume_ml": 30.0}, {"at_s": 12, "volume_ml": 38.0}, {"at_s
 
 
 @pytest.fixture(scope="module")
-def rig(tmp_path_factory, calibrated_response_table):
+def rig(tmp_path_factory, default_model_cached):
     directory = tmp_path_factory.mktemp("scene-promises")
     scene = directory / "steps.toml"
     scene.write_text(calibrated_scene(STEPS, end_s=44))

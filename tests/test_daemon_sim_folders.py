@@ -51,7 +51,7 @@ def test_folders_of_killed_processes_are_swept_and_those_of_live_ones_kept(tmp_p
 
 @pytest.mark.sim
 @pytest.mark.slow
-def test_a_sigkilled_sim_daemon_leaves_no_folder_behind_its_successor(tmp_path, calibrated_response_table):
+def test_a_sigkilled_sim_daemon_leaves_no_folder_behind_its_successor(tmp_path, default_model_cached):
     phantom = Path(sys.executable).with_name("phantom")
     temporary = tmp_path / "tmp"
     temporary.mkdir()

@@ -28,7 +28,7 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 
 
 @pytest.mark.timeout(900)  # the first user of the calibrated model's response table may build it
-def test_sim_daemon_plays_the_lopsided_scene(tmp_path, calibrated_response_table):
+def test_sim_daemon_plays_the_lopsided_scene(tmp_path, default_model_cached):
     sock = tmp_path / "d.sock"
     log = open(tmp_path / "daemon.log", "w+")
     recording = tmp_path / "lopsided.rrd"

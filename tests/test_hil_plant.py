@@ -107,7 +107,7 @@ def test_shipped_chambers_match_the_fem_of_the_calibrated_scene():
     plant = load_plant()
     assert 1e6 * plant.cavity_volume_m3 == pytest.approx(fem.cavity_volume_ml, rel=1e-3)
     np.testing.assert_allclose(1e9 * plant.compliance_m3_per_pa, fem.compliance_ml_per_kpa, rtol=1e-3, atol=1e-4)
-    assert "prostate_calibrated.toml (gent, E = 6.0418 kPa" in DEFAULT_PLANT_PATH.read_text()
+    assert "prostate_converged.toml (gent, E = 10.856 kPa, nu = 0.4996, 7 mm mesh)" in DEFAULT_PLANT_PATH.read_text()
 
 
 def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, tmp_path, capsys):
@@ -116,8 +116,8 @@ def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, tmp
     one halved, and the rest volumes the same; each side is rounded to 5 digits, hence 2e-4. Everything else in
     the file, the tubes' dead volume included, stays as it was."""
     stiffer = tmp_path / "stiffer.toml"
-    stiffer.write_text(CALIBRATED_SCENE_PATH.read_text().replace("youngs_modulus_kpa = 6.04183",
-                                                                 "youngs_modulus_kpa = 12.08366"))
+    stiffer.write_text(CALIBRATED_SCENE_PATH.read_text().replace("youngs_modulus_kpa = 10.85573",
+                                                                 "youngs_modulus_kpa = 21.71146"))
     path = plant_file()
     before = path.read_text()
     assert main(["hil", "plant", "--from-scene", str(stiffer), "--plant", str(path)]) == 0
@@ -128,7 +128,7 @@ def test_regenerating_from_another_scene_scales_with_its_modulus(plant_file, tmp
     )
     assert regenerated.cavity_volume_m3 == pytest.approx(shipped.cavity_volume_m3, rel=2e-4)
     assert np.array_equal(regenerated.tubing_volume_m3, shipped.tubing_volume_m3)
-    assert f"# FEM source: {stiffer} (gent, E = 12.084 kPa" in path.read_text()
+    assert f"# FEM source: {stiffer} (gent, E = 21.711 kPa" in path.read_text()
     changed = {line for line in set(path.read_text().splitlines()) ^ set(before.splitlines())}
     assert all(line.startswith(("# FEM source:", "cavity_volume_ml", "  [")) for line in changed), changed
 

@@ -45,9 +45,23 @@ def test_the_wheel_carries_the_firmware_sources_the_harness_and_the_scenes(insta
     expected = {"phantom/hil/firmware_sources/Makefile", "phantom/hil/firmware_sources/src/phantom.ino",
                 "phantom/hil/firmware_sources/src/core/controller.cpp", "phantom/hil/harness/main.c",
                 "phantom/hil/harness/Makefile", "phantom/model/scenes/prostate_calibrated.toml",
+                "phantom/model/scenes/prostate_converged.volumes.npz",
+                "phantom/model/scenes/prostate_converged.shapes.npz",
                 "phantom/host/scenes/bph_growth.toml", "phantom/protocol/spec.toml"}
     assert expected <= names, sorted(expected - names)
     assert not any("/build/" in name or name.endswith((".o", ".elf", ".hex")) for name in names)
+
+
+def test_the_installed_example_scenes_find_the_table_files_they_name(installed):
+    # (the host's scenes name the model's shipped table files by a path relative to themselves)
+    root = installed["root"]
+    output = run([str(root / "venv" / "bin" / "python"), "-c",
+                  "from phantom.host.scenes import example_scene_path\n"
+                  "from phantom.model import load_scene\n"
+                  "settings = load_scene(example_scene_path('bph_growth')).model_settings\n"
+                  "print(settings.table_volumes.is_file(), settings.table_shapes.is_file(), settings.table_shapes)"],
+                 cwd=root, env=user_env(root))
+    assert output.split()[:2] == ["True", "True"] and "site-packages/phantom/model/scenes" in output, output
 
 
 def test_the_installed_package_solves_a_forward_case_outside_the_repository(installed):

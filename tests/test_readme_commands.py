@@ -94,7 +94,7 @@ def test_every_readme_command_line_parses(where, line):
 
 
 @pytest.fixture(scope="module")
-def default_daemon(tmp_path_factory, calibrated_response_table):
+def default_daemon(tmp_path_factory, default_model_cached):
     """``phantom daemon --sim`` with every default (scene builtin:calibrated), at twice real time."""
     folder = tmp_path_factory.mktemp("readme")
     sock = folder / "d.sock"

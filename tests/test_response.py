@@ -234,6 +234,14 @@ def test_the_paper_s_45_ml_is_out_of_the_calibrated_model_s_reach(calibrated):
 
 # --- table volumes shipped with a scene -----------------------------------------------------------------------
 
+def counted_solves(model, monkeypatch):
+    """A list that gets the arguments of each of ``model``'s full solves from now on."""
+    solves = []
+    original = model.equilibrium
+    monkeypatch.setattr(model, "equilibrium", lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
+    return solves
+
+
 def _shipping_scene(tmp_path, built, model, volumes_name="volumes.npz", material_line="youngs_modulus_kpa = 50.0"):
     """A copy of the built-in scene on the table level that ships ``built``'s volumes (written for ``model``)."""
     write_table_volumes(built, model, tmp_path / volumes_name)
@@ -249,10 +257,7 @@ def test_shipped_table_volumes_answer_without_a_build_and_their_shapes_are_solve
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
     built = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
     shipping = PhantomModel.from_scene(load_scene(_shipping_scene(tmp_path, built, model)), mesh_size_mm=COARSE_MM)
-    solves = []
-    original = shipping.equilibrium
-    monkeypatch.setattr(shipping, "equilibrium",
-                        lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
+    solves = counted_solves(shipping, monkeypatch)
     estimator = VolumeEstimator(shipping)
     assert solves == [] and not list((tmp_path / "cache").glob("response/*"))  # nothing built, nothing stored
     assert estimator.level == "table" and estimator.table.position_values is None
@@ -319,10 +324,7 @@ def test_shipped_shapes_answer_the_outer_surface_without_a_solve_and_other_nodes
     assert 0 < shapes.check_error_m < 0.05 * np.abs(model.equilibrium(
         [PRESSURE_MAX_PA] * 3).positions_m - model.nodes_m).max()
     shipping = PhantomModel.from_scene(load_scene(_shapes_scene(tmp_path, model, shapes)), mesh_size_mm=COARSE_MM)
-    solves = []
-    original = shipping.equilibrium
-    monkeypatch.setattr(shipping, "equilibrium",
-                        lambda *args, **kwargs: solves.append(args) or original(*args, **kwargs))
+    solves = counted_solves(shipping, monkeypatch)
     estimator = VolumeEstimator(shipping)
     # the check error written bounds the modes' error too
     assert estimator.shapes is not None

@@ -18,7 +18,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
 
 @pytest.mark.timeout(600)
-def test_the_daemon_scans_through_its_api(tmp_path, calibrated_response_table):
+def test_the_daemon_scans_through_its_api(tmp_path, default_model_cached):
     pytest.importorskip("cv2")
     sock = tmp_path / "d.sock"
     log = open(tmp_path / "daemon.log", "w+")

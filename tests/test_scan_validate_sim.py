@@ -16,7 +16,7 @@ import pytest
 from phantom.cli import main as cli
 
 PHANTOM = Path(sys.executable).with_name("phantom")
-TARGETS_ML = (26.0, 35.0)
+TARGETS_ML = (27.0, 35.0)
 VIEWS = 6  # per pass, two passes
 
 
@@ -25,10 +25,18 @@ def test_validate_needs_the_simulated_rig(capsys):
     assert "give --sim" in capsys.readouterr().err
 
 
+def surface_centroid_mm(entity: dict) -> np.ndarray:
+    """The area-weighted centroid of a recorded mesh's last surface (mm)."""
+    vertices = np.asarray(entity["Mesh3D:vertex_positions"][-1], dtype=float)
+    corners = vertices[np.asarray(entity["Mesh3D:triangle_indices"][-1], dtype=int).reshape(-1, 3)]
+    areas = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1)
+    return np.asarray((areas[:, None] * corners.mean(axis=1)).sum(axis=0) / areas.sum())
+
+
 @pytest.mark.sim
 @pytest.mark.slow
 @pytest.mark.timeout(900)  # the first user of the calibrated model's response table may build it
-def test_the_simulated_scan_of_two_bph_targets(tmp_path, calibrated_response_table):
+def test_the_simulated_scan_of_two_bph_targets(tmp_path, default_model_cached):
     pytest.importorskip("cv2")
     pytest.importorskip("skimage")
     try:
@@ -65,7 +73,7 @@ def test_the_simulated_scan_of_two_bph_targets(tmp_path, calibrated_response_tab
     assert large["true_ml"] < large["model_ml"] * 0.99
     assert large["scan_ml"] < large["model_ml"]
     report = Path(answer["report"]).read_text()
-    assert "| 26 |" in report and "| 35 |" in report and "![Fig. 9](fig9.png)" in report
+    assert "| 27 |" in report and "| 35 |" in report and "![Fig. 9](fig9.png)" in report
     assert (out / "fig9.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert json.loads((out / "results.json").read_text())["targets"] == results
     if recording:
@@ -75,7 +83,8 @@ def test_the_simulated_scan_of_two_bph_targets(tmp_path, calibrated_response_tab
         assert len(entities["/scan/reconstruction"]["Mesh3D:vertex_positions"]) == len(TARGETS_ML)
         cameras = [name for name in entities if name.startswith("/scan/cameras/") and name.endswith("/picture")]
         assert len(cameras) == 2 * VIEWS
-        # the model, aligned into the rig's frame, lies on the reconstruction
-        model = np.asarray(entities["/scan/model"]["Mesh3D:vertex_positions"][-1], dtype=float)
-        scan = np.asarray(entities["/scan/reconstruction"]["Mesh3D:vertex_positions"][-1], dtype=float)
-        assert np.linalg.norm(model.mean(axis=0) - scan.mean(axis=0)) < 1.0
+        # the model, aligned into the rig's frame, lies on the reconstruction: their surfaces' centroids (area
+        # weighted: the model's graded mesh has its vertices densest near the chambers, which moved the mean of
+        # its vertices 2 mm from the surface's centroid)
+        model, scan = (surface_centroid_mm(entities[name]) for name in ("/scan/model", "/scan/reconstruction"))
+        assert np.linalg.norm(model - scan) < 1.0, (model, scan)

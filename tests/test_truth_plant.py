@@ -36,15 +36,15 @@ def test_the_shipped_truth_is_the_physical_calibration_at_its_offset_modulus():
     from phantom.model import PhantomModel, load_scene
 
     plant = load_plant()
-    assert f"prostate_calibrated.toml with E x {TRUTH_MODULUS_FACTOR:g}" in DEFAULT_PLANT_PATH.read_text()
-    scene = load_scene("builtin:calibrated")
+    assert f"prostate_converged.toml with E x {TRUTH_MODULUS_FACTOR:g}" in DEFAULT_PLANT_PATH.read_text()
+    scene = load_scene("builtin:converged")
     truth = PhantomModel.from_scene(scene).with_material(youngs_modulus_pa=scene.material.youngs_modulus_pa
                                                          * TRUTH_MODULUS_FACTOR)
-    state = truth.equilibrium([2000.0, 1000.0, 0.0])
-    # Written to 5 significant digits.
-    np.testing.assert_allclose(1e6 * plant.truth_chamber_volume_m3[2, 1, 0], 1e6 * state.chamber_volumes_m3,
+    state = truth.equilibrium([1000.0, 1000.0, 0.0])
+    # Written to 5 significant digits; the table's solves are Newton's to its tolerance from another start.
+    np.testing.assert_allclose(1e6 * plant.truth_chamber_volume_m3[1, 1, 0], 1e6 * state.chamber_volumes_m3,
                                rtol=1e-4)
-    assert 1e6 * plant.truth_gland_volume_m3[2, 1, 0] == pytest.approx(1e6 * state.gland_volume_m3, rel=1e-4)
+    assert 1e6 * plant.truth_gland_volume_m3[1, 1, 0] == pytest.approx(1e6 * state.gland_volume_m3, rel=1e-4)
 
 
 def test_the_board_plant_follows_the_truth_not_the_controllers_linear_model():
@@ -81,11 +81,11 @@ def test_a_partial_truth_table_is_refused(tmp_path):
 
 
 def test_a_truth_of_a_scene_with_a_load_table_hangs_it_in_air(tmp_path, monkeypatch):
-    """The truth's rays carry the scene's weight (in air) like the scene's own solves; a sweep task's weight is
-    explicit, so a truth built without it would drop the scene's gravity. The sweep is stopped at its tasks."""
+    """The truth model carries the scene's weight (in air) like the scene's own solves, at the truth's modulus;
+    the build is stopped at the model it is given."""
     from phantom.hil.plant import truth_table_from_scene
     from phantom.model import load_scene
-    from phantom.model.calibration import sweep
+    from phantom.model.fidelity import response_table
 
     scene = tmp_path / "hanging.toml"
     shipped = load_scene("builtin:calibrated").path
@@ -95,11 +95,13 @@ def test_a_truth_of_a_scene_with_a_load_table_hangs_it_in_air(tmp_path, monkeypa
     assert weight[2] < 0
     seen = []
 
-    def stop(tasks, **_):
-        seen.extend(tasks)
-        raise RuntimeError("tasks seen")
+    def stop(model, *_, **__):
+        seen.append(model)
+        raise RuntimeError("model seen")
 
-    monkeypatch.setattr(sweep, "run_sweep", stop)
-    with pytest.raises(RuntimeError, match="tasks seen"):
-        truth_table_from_scene(scene)
-    assert seen and all(task.body_force_n_per_m3 == weight for task in seen)
+    monkeypatch.setattr(response_table, "build_response_table", stop)
+    with pytest.raises(RuntimeError, match="model seen"):
+        truth_table_from_scene(scene, modulus_factor=1.5)
+    (model,) = seen
+    np.testing.assert_array_equal(model.body_force_n_per_m3, weight)
+    assert model.material.youngs_modulus_pa == pytest.approx(1.5 * load_scene(scene).material.youngs_modulus_pa)

@@ -51,7 +51,14 @@ from phantom.model.errors import MeshError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 from phantom.model.mesh.shape import check_walls
-from phantom.model.scene import HYPERELASTIC_MODELS, MEDIA, PRESSURE_LIMIT_PA, Scene, scene_from_dict
+from phantom.model.scene import (
+    HYPERELASTIC_MODELS,
+    MEDIA,
+    PRESSURE_LIMIT_PA,
+    Scene,
+    scene_from_dict,
+    without_shipped_tables,
+)
 
 #: The largest measurement file read (bytes): a table of thousands of rows is far smaller.
 MAX_MEASUREMENT_BYTES = 2**20
@@ -229,11 +236,8 @@ def parse_grid(items: list[str]) -> Grid:
 
 def scene_with(raw: dict[str, Any], values: dict[str, float]) -> dict[str, Any]:
     """A copy of a scene's TOML dict with parameters set: material keys in [material], others in [geometry];
-    without the scene's shipped table volumes and shapes (``[model] table_volumes``, ``table_shapes``), which
-    belong to its own parameters."""
-    document = copy.deepcopy(raw)
-    for shipped in ("table_volumes", "table_shapes"):
-        document.get("model", {}).pop(shipped, None)
+    without the table files the scene ships (:func:`phantom.model.scene.without_shipped_tables`)."""
+    document = without_shipped_tables(raw)
     for name, value in values.items():
         table = "material" if name in MATERIAL_PARAMETERS else "geometry"
         document.setdefault(table, {})[name] = float(value)

@@ -69,17 +69,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "plant", help="write the model's chamber volumes and compliance (and a truth table) into a plant file",
         description="Regenerate the simulated plant's parameters from a scene's FEM: --from-scene rewrites the "
         "chambers' rest volumes and compliance (at rest), --truth-from-scene the truth table of chamber volumes "
-        "over the three pressures that the simulated board's plant interpolates (64 solves as Dask tasks, "
-        "cached). Everything else in the file is kept; the result is checked before it is written.")
+        "over the three pressures that the simulated board's plant interpolates (64 full solves, each from its "
+        "grid neighbour, on every core). Everything else in the file is kept; the result is checked before it is "
+        "written.")
     plant.add_argument("--from-scene", metavar="SCENE",
-                       help="scene TOML (or 'builtin', 'builtin:calibrated') whose FEM gives the chambers")
+                       help="scene TOML (or 'builtin', 'builtin:converged') whose FEM gives the chambers")
     plant.add_argument("--truth-from-scene", metavar="SCENE",
                        help="scene whose model, with its modulus times --truth-modulus-factor, is the plant's truth")
     plant.add_argument("--truth-modulus-factor", type=float, metavar="X",
                        help="the truth's modulus over the scene's (default: the calibration's leave-one-out "
                        "uncertainty, TRUTH_MODULUS_FACTOR in hil/plant.py)")
-    plant.add_argument("--scheduler", metavar="ADDR", help="--truth-from-scene: a running Dask scheduler "
-                       "(default: local)")
+    plant.add_argument("--workers", type=int, metavar="N", help="--truth-from-scene: worker processes "
+                       "(default: one per core, at most 4)")
     plant.add_argument("--plant", metavar="FILE", help="the plant file to rewrite (default hil/plant.toml)")
     plant.add_argument("--mesh-size-mm", type=float, metavar="MM",
                        help="--from-scene: mesh size of the built-in mesh (default: the model's)")
@@ -261,7 +262,7 @@ def _run_plant(args: argparse.Namespace) -> int:
         from phantom.model.calibration.sweep import stderr_progress
 
         factor = plant.TRUTH_MODULUS_FACTOR if args.truth_modulus_factor is None else args.truth_modulus_factor
-        table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.scheduler,
+        table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.workers,
                                              stderr_progress("truth table"))
         plant.write_truth(table, path)
         print(f"wrote the truth table into {path}: {table.description}")

@@ -19,9 +19,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "inverse", help="chamber pressures that give a wanted volume (offline)",
         description="Solve the inverse problem: the chamber pressures (kPa) that give a wanted gland volume, "
                     "chamber volumes, or a gland volume with a growth ratio between chambers.")
-    inverse.add_argument("--scene", default="builtin:calibrated",
-                         help="scene TOML path, 'builtin', 'builtin:calibrated' (default: the phantom as measured) or "
-                              "'builtin:converged'")
+    inverse.add_argument("--scene", default="builtin:converged",
+                         help="scene TOML path, 'builtin', 'builtin:converged' (default: the phantom as measured, on "
+                              "a converged mesh) or 'builtin:calibrated' (its coarse 4-node fit)")
     target = inverse.add_mutually_exclusive_group(required=True)
     target.add_argument("--volume-ml", type=float, help="the gland's total volume (ml)")
     target.add_argument("--chamber-volumes-ml",
