@@ -35,16 +35,19 @@ from phantom.host.client import (
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 
+#: Two steps, each held 6 s of scene time (3 s at the test's time scale 2). Held 4 s, a step once ended more than
+#: 1 % from its target in a full run (it passed alone) after the simulated plant became the converged model's
+#: truth, whose base chamber takes up to 3.8 ml of air per kPa above 2 kPa (the 4-node one's 2.6).
 SHORT_SCENE = SCENE + """
 [timeline]
-end_s = 8
+end_s = 12
 
 [[steps]]
 at_s = 0
 volume_ml = 29
 
 [[steps]]
-at_s = 4
+at_s = 6
 volume_ml = 31
 """
 
@@ -212,7 +215,7 @@ def test_a_scene_played_with_wait_reports_each_step(rig):
         scene = ph.run_scene(rig["dir"] / "short.toml", wait=True, time_scale=2.0)
     assert isinstance(scene, SceneState) and scene.finished
     assert [step.target_volume_ml for step in scene.steps] == [29.0, 31.0]
-    assert all(abs(step.error_pct) < 1.0 for step in scene.steps)
+    assert all(abs(step.error_pct) < 1.0 for step in scene.steps), scene.steps
 
 
 def test_the_asyncio_twin(rig):
