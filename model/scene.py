@@ -27,6 +27,8 @@ MAX_SCENE_BYTES = 2**20
 #: elements on a mesh converged to under 1 %, the daemon's default (seconds to a minute a full solve; its table's
 #: volumes and its surface's shapes ship with it); "builtin:calibrated" is the earlier fit on 4-node,
 #: compressible elements on a coarse 4 mm mesh (fast, but 7-39 % from its own converged growth, bench/README.md).
+#: The folder of the built-in scenes and the table files they ship.
+SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
                   "builtin:calibrated": "prostate_calibrated.toml", "builtin:converged": "prostate_converged.toml"}
 
@@ -200,7 +202,7 @@ class Scene:
 
 def builtin_scene_path(name: str) -> Path:
     """The TOML file of a shipped scene (a key of ``BUILTIN_SCENES``)."""
-    return Path(__file__).resolve().parent / "scenes" / BUILTIN_SCENES[name]
+    return SCENES_DIR / BUILTIN_SCENES[name]
 
 
 def load_scene(source: str | Path) -> Scene:
@@ -360,7 +362,7 @@ def _shipped_file(table: dict[str, Any], key: str, where: str, path: Path | None
         raise SceneError(f"{where}: [model] {key} must be a file path (a .npz that response_table.write_{key} "
                          f"wrote, or builtin:NAME for one beside the built-in scenes), got {value!r}")
     if value.startswith(SHIPPED_FILE_PREFIX):
-        resolved = Path(__file__).resolve().parent / "scenes" / value.removeprefix(SHIPPED_FILE_PREFIX)
+        resolved = SCENES_DIR / value.removeprefix(SHIPPED_FILE_PREFIX)
     else:
         resolved = _beside(value, path)
     if not resolved.is_file():
