@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import itertools
 import json
 import math
@@ -49,12 +50,6 @@ REQUEST_TIMEOUT_S = 60.0
 #: How long :func:`connect` waits for a daemon that is still starting (its model, the first connection to the
 #: board) before it raises StartingError (s).
 READY_TIMEOUT_S = 300.0
-#: How often a wait polls the daemon's status (s).
-POLL_S = 0.1
-#: A chamber's pressure has settled when it stays within this of its setpoint (kPa: two ADC counts of the
-#: MPXV7025G) for SETTLED_FOR_S.
-SETTLED_KPA = 0.1
-SETTLED_FOR_S = 1.0
 
 Result = TypeVar("Result")
 
@@ -544,43 +539,75 @@ class AsyncPhantom:
             raise PhantomError(f"tolerance_pct must be a positive number, got {tolerance_pct!r}")
         if not (timeout_s > 0 and math.isfinite(timeout_s)):
             raise PhantomError(f"timeout_s must be a positive number of seconds, got {timeout_s!r}")
-        result = TargetResult.from_json(await self.call("set_target", params))
         if not wait:
-            return result
-        return await self._wait_reached(result, tolerance_pct, timeout_s)
+            return TargetResult.from_json(await self.call("set_target", {**params, "tolerance_pct": tolerance_pct}))
+        # subscribed before the target is set: its outcome cannot come before the client listens
+        outcomes = await self._subscribed("events")
+        try:
+            result = TargetResult.from_json(await self.call("set_target", {**params, "tolerance_pct": tolerance_pct}))
+        except BaseException:
+            await outcomes.close()
+            raise
+        return await self._wait_reached(result, outcomes, timeout_s)
 
-    async def _wait_reached(self, result: TargetResult, tolerance_pct: float, timeout_s: float) -> TargetResult:
-        """Poll the status until the estimate is within ``tolerance_pct`` of the target and every pressure has
-        stayed within SETTLED_KPA of its setpoint for SETTLED_FOR_S; raise on a fault, a replaced target, a
-        restarted daemon or the timeout."""
+    async def _subscribed(self, topic: str) -> Connection:
+        """A connection of its own subscribed to ``topic``'s events."""
+        connection = await Connection.open(self.socket_path)
+        try:
+            await connection.call("subscribe", {"topics": [topic]})
+        except BaseException:
+            await connection.close()
+            raise
+        return connection
+
+    async def _wait_reached(self, result: TargetResult, outcomes: Connection, timeout_s: float) -> TargetResult:
+        """Wait for the daemon's word on the target (an event with its ``outcome``: the daemon's one rule of
+        reached, host/control.py): return once reached; raise on a fault, a replaced target, a restarted daemon
+        or the timeout. Closes ``outcomes``, the events subscription."""
+        try:
+            return await self._outcome(result, outcomes, timeout_s)
+        finally:
+            await outcomes.close()
+
+    async def _outcome(self, result: TargetResult, outcomes: Connection, timeout_s: float) -> TargetResult:
         started_s = time.monotonic()
-        settled_since_s: float | None = None
         wanted = _describe(result.target)
         while True:
-            status = await self._status_across_restarts(result, wanted, started_s + timeout_s)
-            if status.faults:
-                raise FaultError(status.faults, f"waiting for {wanted}")
-            if status.target != result.target or status.control not in ("holding", "scene"):
-                raise TargetReplacedError("replaced", f"the target {wanted} was replaced while waiting for it "
-                                          f"(control is now {status.control}, target {_describe(status.target)})")
-            now_s = time.monotonic()
-            if _pressures_settled(status):
-                settled_since_s = now_s if settled_since_s is None else settled_since_s
-            else:
-                settled_since_s = None
-            if (settled_since_s is not None and now_s - settled_since_s >= SETTLED_FOR_S
-                    and _estimate_within(status, result, tolerance_pct)):
-                return TargetResult(result.target, result.pressures_kpa, result.predicted_volume_ml,
-                                    result.predicted_chamber_volumes_ml, result.iterations, result.solve_time_s,
-                                    status.estimated_volume_ml, status.estimated_chamber_volumes_ml,
-                                    status.pressures_kpa, status.true_volume_ml, now_s - started_s)
-            if now_s - started_s >= timeout_s:
+            left_s = started_s + timeout_s - time.monotonic()
+            try:
+                message = await asyncio.wait_for(outcomes.next_event(), max(left_s, 0.0))
+            except TimeoutError:
+                status = await self._status_across_restarts(result, wanted, started_s + timeout_s)
                 raise WaitTimeoutError(
                     f"{wanted} was not reached within {timeout_s:g} s: estimate "
                     f"{_ml(status.estimated_volume_ml)}, pressures {_kpa(status.pressures_kpa)} against setpoints "
                     f"{_kpa(status.setpoints_kpa)} kPa, link {status.link}; wait longer (timeout_s), or check the "
-                    "tubes and the blowers", status)
-            await asyncio.sleep(POLL_S)
+                    "tubes and the blowers", status) from None
+            except ConnectionLostError:
+                # raises unless the same daemon answers again; its outcome may have come meanwhile: the status says
+                # whether the target is still held, and the wait goes on until its outcome or the timeout
+                await self._status_across_restarts(result, wanted, started_s + timeout_s)
+                await outcomes.close()
+                outcomes = await self._subscribed("events")
+                continue
+            data = message.get("data") or {}
+            if data.get("source") != "api" or data.get("target") != result.target or "outcome" not in data:
+                continue
+            outcome = data["outcome"]
+            if outcome == "reached":
+                status = await self.status()
+                return dataclasses.replace(
+                    result, estimated_volume_ml=data.get("estimated_volume_ml"),
+                    estimated_chamber_volumes_ml=_floats(data.get("estimated_chamber_volumes_ml")),
+                    measured_pressures_kpa=_floats(data.get("measured_pressures_kpa")),
+                    true_volume_ml=status.true_volume_ml, waited_s=time.monotonic() - started_s)
+            if outcome == "faulted":
+                status = await self.status()
+                raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}")
+            if outcome == "unreachable":
+                raise UnreachableError("unreachable", str(data.get("text", f"{wanted} is unreachable")))
+            raise TargetReplacedError("replaced", f"the target {wanted} was replaced while waiting for it: "
+                                      f"{message['data'].get('text', outcome)}")
 
     async def _status_across_restarts(self, result: TargetResult, wanted: str, deadline_s: float) -> Status:
         """The status; when the connection is lost, connect again (the daemon may be restarting) until the
@@ -666,9 +693,8 @@ class AsyncPhantom:
 
     async def _subscription(self, topic: str) -> AsyncIterator[dict[str, Any]]:
         """The data of one topic's events, on a connection of their own (requests are not held up by them)."""
-        connection = await Connection.open(self.socket_path)
+        connection = await self._subscribed(topic)
         try:
-            await connection.call("subscribe", {"topics": [topic]})
             while True:
                 message = await connection.next_event()
                 if message["event"] == topic:
@@ -694,29 +720,6 @@ def _ml(value: float | None) -> str:
 
 def _kpa(values: Sequence[float] | None) -> str:
     return "-" if values is None else ", ".join(f"{value:.3f}" for value in values)
-
-
-def _pressures_settled(status: Status) -> bool:
-    """Every chamber's measured pressure (averaged over half a second) within SETTLED_KPA of its setpoint."""
-    measured_kpa = status.pressures_mean_kpa or status.pressures_kpa
-    if measured_kpa is None or status.setpoints_kpa is None or status.link != "online":
-        return False
-    return all(abs(measured - set_kpa) <= SETTLED_KPA
-               for measured, set_kpa in zip(measured_kpa, status.setpoints_kpa, strict=True))
-
-
-def _estimate_within(status: Status, result: TargetResult, tolerance_pct: float) -> bool:
-    """The estimate within ``tolerance_pct`` of what was asked: the gland volume, each given chamber volume, or
-    for raw pressures the volume the inverse predicts at them."""
-    if status.estimated_volume_ml is None:
-        return False
-    target = result.target
-    if "chamber_volumes_ml" in target:
-        estimated = status.estimated_chamber_volumes_ml or ()
-        return all(wanted is None or abs(got - wanted) <= tolerance_pct / 100 * abs(wanted)
-                   for got, wanted in zip(estimated, target["chamber_volumes_ml"], strict=True))
-    wanted_ml = float(target["volume_ml"]) if "volume_ml" in target else result.predicted_volume_ml
-    return abs(status.estimated_volume_ml - wanted_ml) <= tolerance_pct / 100 * wanted_ml
 
 
 # --- the blocking API ---------------------------------------------------------------------------------------

@@ -134,6 +134,11 @@ class DaemonConfig:
     pressure_limit_kpa: float = setting(4.0, "the board's over-pressure limit per chamber (kPa): a chamber above it "
                                         "latches OVERPRESSURE; at least the scene's pressure_max_kpa", metavar="KPA",
                                         above=0, at_most=6)
+    settled_kpa: float = setting(0.1, "a target is reached once every chamber's pressure has stayed within this of "
+                                 "its setpoint (kPa) for --settled-for-s and the estimate is within the target's "
+                                 "tolerance", metavar="KPA", above=0, at_most=1)
+    settled_for_s: float = setting(1.0, "how long the pressures must stay settled for a target to be reached (s)",
+                                   metavar="S", at_least=0, at_most=60)
     vent_on_exit: bool = setting(True, "vent the phantom when the daemon stops")
     zero_on_connect: bool = setting(True, "zero the pressure sensors (ZERO_SENSORS) after connecting when the "
                                     "phantom is vented")

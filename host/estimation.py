@@ -9,10 +9,17 @@ scene's ``[outputs] shape`` and a recording), at ``mesh_hz``.
 
 from __future__ import annotations
 
+import asyncio
 from collections import deque
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from phantom.host.model_worker import Estimate
+    from phantom.host.parts import Model, Recording
 
 #: Estimates average the measured pressures over this window (s of board time).
 ESTIMATE_WINDOW_S = 0.5
@@ -79,3 +86,63 @@ class EstimateSchedule:
     def finished(self) -> None:
         """The estimate in flight has ended (answered or failed): the next may start."""
         self.in_flight = False
+
+
+class VolumeEstimates:
+    """The daemon's estimates: the model is asked when :class:`EstimateSchedule` says one is due; the latest is
+    kept for the status, logged to the recording (with the shape when one was asked), and handed to
+    ``on_estimate(asked_s, estimate)`` (the control core's reached, the scene runner's record).
+
+    ``logged_volumes()`` gives the target's and the simulated plant's volumes (ml or None) logged beside it.
+    """
+
+    def __init__(self, schedule: EstimateSchedule, model: Model, recorder: Recording,
+                 event: Callable[[str, str, str], None], on_estimate: Callable[[float, Estimate], None],
+                 logged_volumes: Callable[[], tuple[float | None, float | None]]):
+        self.schedule, self.model, self.recorder, self.event = schedule, model, recorder, event
+        self.on_estimate, self.logged_volumes = on_estimate, logged_volumes
+        self.gland_ml: float | None = None
+        self.chamber_ml: list[float] | None = None
+        self.model_counts: dict[str, int] = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
+        self.meshes_logged = 0
+        self._rest_surface_logged = False
+        self._restarts_seen = 0
+
+    def tick(self, now_s: float, asked_s: float, wants_shape: bool,
+             spawn: Callable[[Coroutine[Any, Any, Estimate]], asyncio.Task[Estimate]]) -> None:
+        """Ask for an estimate when one is due (``now_s`` on the recording's time line, ``asked_s`` on the
+        daemon's clock)."""
+        request = self.schedule.due(now_s, wants_shape)
+        if request is None:
+            return
+        task = spawn(self.model.estimate(request.pressures_pa, request.with_shape, not self._rest_surface_logged))
+        task.add_done_callback(lambda done: self._done(done, request, asked_s))
+
+    def _done(self, done: asyncio.Task[Estimate], request: EstimateRequest, asked_s: float) -> None:
+        self.schedule.finished()
+        if done.cancelled():
+            return
+        try:
+            estimate = done.result()
+        except Exception as error:  # shown, not fatal: the next tick tries again
+            # the last estimate is of pressures no longer measured: status shows none rather than a stale one
+            self.chamber_ml = self.gland_ml = None
+            self.event("estimate", f"volume estimate failed ({type(error).__name__}: {error}): no estimate until "
+                       "the next one succeeds", "WARN")
+            return
+        if self.model.restarts != self._restarts_seen:
+            self._restarts_seen = self.model.restarts
+            self.event("model", f"the model worker died and was replaced ({self.model.restarts} since the daemon "
+                       "started): its model was rebuilt from the cache", "WARN")
+        self.model_counts = estimate.counts
+        self.chamber_ml, self.gland_ml = estimate.chamber_volumes_ml, estimate.gland_volume_ml
+        self.on_estimate(asked_s, estimate)
+        target_ml, true_ml = self.logged_volumes()
+        self.recorder.log_volumes(request.time_s, target_ml, estimate.gland_volume_ml, estimate.chamber_volumes_ml,
+                                  true_ml=true_ml)
+        if estimate.surface_mm is not None:
+            if estimate.rest_surface_mm is not None and not self._rest_surface_logged:
+                self._rest_surface_logged = True
+                self.recorder.log_rest_surface(*estimate.rest_surface_mm)
+            self.recorder.log_mesh(request.time_s, *estimate.surface_mm)
+            self.meshes_logged += 1

@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import time
 from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING, Any
 
@@ -15,6 +16,7 @@ from phantom import read_text
 from phantom.host.api import ApiError, Handler, RawJson
 from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import check_step_count, effective_model, model_differences, parse_target
+from phantom.host.session import fault_names
 from phantom.model.errors import SceneError
 from phantom.model.scene import MAX_SCENE_BYTES, load_scene
 
@@ -22,6 +24,10 @@ if TYPE_CHECKING:
     from phantom.host.daemon import Daemon
 
 PA_PER_KPA = 1e3
+#: How long clear_fault waits, once the board acknowledged it, for telemetry without the fault (s) ...
+CLEARED_IN_TELEMETRY_S = 1.0
+#: ... then for the target's setpoints to be held again (s): a solve on full solves takes seconds.
+RESTORED_S = 10.0
 
 
 class ApiHandlers:
@@ -42,22 +48,44 @@ class ApiHandlers:
 
     async def set_target(self, params: dict[str, Any]) -> dict[str, Any]:
         daemon = self.daemon
+        params = dict(params)
+        tolerance_pct = params.pop("tolerance_pct", None)
+        if tolerance_pct is not None and (isinstance(tolerance_pct, bool) or not isinstance(tolerance_pct, (int, float))
+                                          or not 0 < tolerance_pct <= 100):
+            raise ApiError("invalid_params", f"set_target: tolerance_pct (how close the estimate must come for the "
+                           f"target to be reached, %) must be a number in (0, 100], got {tolerance_pct!r}")
         try:
             target = parse_target(params, daemon.chamber_names, "set_target")
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
-        return await daemon.set_target(target)
+        return await daemon.set_target(target, None if tolerance_pct is None else float(tolerance_pct))
 
     async def vent(self, params: dict[str, Any]) -> dict[str, Any]:
         await self.daemon.vent("on request: every setpoint is 0")
         return {"vented": True}
 
     async def clear_fault(self, params: dict[str, Any]) -> dict[str, Any]:
-        return await self.daemon.clear_fault()
+        """CLEAR_FAULT; once the telemetry shows it cleared, the control core applies the target in force again
+        (the board set its setpoints to 0 when the fault latched), a scene's step that came meanwhile included."""
+        daemon, core = self.daemon, self.daemon.core
+        before = fault_names(daemon.fault_flags)
+        await daemon.board_command("CLEAR_FAULT")
+        # the answer waits for the board's telemetry to say so too, so that the status read next is not the
+        # latched one (a client that set a target at once saw the fault in a frame sent before the clear)
+        deadline_s = time.monotonic() + CLEARED_IN_TELEMETRY_S
+        while daemon.fault_flags and time.monotonic() < deadline_s:
+            await asyncio.sleep(0.01)
+        daemon.event("fault", f"faults cleared on request (were: {', '.join(before) or 'none'})")
+        deadline_s = time.monotonic() + RESTORED_S
+        while (core.busy or core.solving) and not core.target_applied and time.monotonic() < deadline_s:
+            await asyncio.sleep(0.01)
+        target = core.target
+        return {"cleared": before, "setpoints_restored": core.target_applied,
+                "target": target.to_json() if target is not None else None}
 
     async def zero(self, params: dict[str, Any]) -> dict[str, Any]:
         """ZERO_SENSORS on request: the board measures each sensor's zero (it must be vented and settled)."""
-        acknowledged = await self.daemon.zero_sensors()
+        acknowledged = await self.daemon.zero.sensors()
         self.daemon.event("zero", "sensors zeroed on request")
         return {"zeroed": True, "acknowledged": acknowledged}
 

@@ -2,9 +2,9 @@
 
 The runner reads the time from an injected clock (``time.monotonic`` in the daemon, a plain counter in the
 tests), so that its rules are tested without waiting: a step starts when the scene's time (wall time since
-the start times the time scale) passes its ``at_s``; a step counts as reached when the estimated volume comes
-within :data:`REACHED_TOLERANCE` of its target volume after its ramp; the last estimate before the next step
-is the volume it reached; at ``end_s`` the run finishes and its last target holds.
+the start times the time scale) passes its ``at_s``; a step is reached when the control core says so
+(host/control.py, its one rule, once the step's ramp has ended); the last estimate before the next step is the
+volume it reached; at ``end_s`` the run finishes and its last target holds.
 """
 
 from __future__ import annotations
@@ -17,9 +17,6 @@ from typing import Any
 from phantom.host.scenes import Timeline, gland_volume_ml, parse_timeline
 from phantom.model.errors import SceneError
 from phantom.model.target import Target
-
-#: A step counts as reached when the estimated volume is within this fraction of its target volume.
-REACHED_TOLERANCE = 0.01
 
 #: What the runner tells people: ``(kind, text, level)``, level INFO, WARN or ERROR.
 EventSink = Callable[[str, str, str], None]
@@ -199,12 +196,19 @@ class SceneRunner:
         record = run.steps[index]
         record.applied_after_s = max(0.0, self.clock() - record.started_clock_s)
 
+    def reached(self, index: int) -> None:
+        """Step ``index`` was reached (the control core's rule): the first time is its ``reached_after_s``."""
+        run = self.run
+        if run is None or index >= len(run.steps) or run.steps[index].reached_after_s is not None:
+            return
+        record = run.steps[index]
+        record.reached_after_s = max(0.0, self.clock() - record.started_clock_s)
+
     def observe(self, estimated_volume_ml: float, predicted_volume_ml: float | None = None,
                 solved_target: Target | None = None, true_volume_ml: float | None = None) -> None:
         """Book an estimate against the current step: its latest volume (and the simulated plant's true one,
-        when known), and when it first came within 1 % of the step's target volume after the ramp. A step
-        without a volume target (pressures, chamber volumes) takes the inverse's ``predicted_volume_ml`` for
-        its own ``solved_target``."""
+        when known). A step without a volume target (pressures, chamber volumes) takes the inverse's
+        ``predicted_volume_ml`` for its own ``solved_target``."""
         run = self.run
         if run is None or not run.steps:
             return
@@ -216,13 +220,6 @@ class SceneRunner:
         step = run.timeline.steps[record.index]
         if record.target_volume_ml is None and predicted_volume_ml is not None and solved_target == step.target:
             record.target_volume_ml = predicted_volume_ml
-        goal_ml = record.target_volume_ml
-        if goal_ml is None or record.reached_after_s is not None:
-            return
-        now_s = self.clock()
-        ramp_end_s = record.started_clock_s + step.ramp_s / run.time_scale
-        if abs(estimated_volume_ml - goal_ml) <= REACHED_TOLERANCE * goal_ml and now_s >= ramp_end_s:
-            record.reached_after_s = now_s - record.started_clock_s
 
     def to_json(self) -> dict[str, Any] | None:
         """The run for ``status`` (None when no scene was started)."""

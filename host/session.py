@@ -574,12 +574,17 @@ class LinkThread:
         self._daemon_loop: asyncio.AbstractEventLoop | None = None
         self._link_loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
-        on_telemetry, on_event, on_online = session.on_telemetry, session.on_event, session.on_online
+        self.attach(session.on_telemetry, session.on_event, session.on_online, session.on_motion)
+
+    def attach(self, on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
+               on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None,
+               on_motion: Callable[[Message], None]) -> None:
+        """The session's callbacks, run on the loop that awaits :meth:`run` (the daemon's, built after its link)."""
+        session = self.session
         session.on_telemetry = lambda telemetry: self._to_daemon(on_telemetry, telemetry)
         session.on_event = lambda kind, text, level: self._to_daemon(on_event, kind, text, level)
         if on_online is not None:
             session.on_online = lambda board, again: self._in_daemon(on_online(board, again))
-        on_motion = session.on_motion
         session.on_motion = lambda message: self._to_daemon(on_motion, message)
 
     @property

@@ -14,8 +14,10 @@ solves) before it answered anything, and clients got "still starting" for minute
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
+import math
 import multiprocessing
 import os
 import signal
@@ -24,7 +26,12 @@ import time
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    from phantom.host.parts import Model
 
 logger = logging.getLogger(__name__)
 
@@ -32,6 +39,8 @@ logger = logging.getLogger(__name__)
 BUILD_NICENESS = 10
 #: How long (s) a build asked to stop may take before its process group is killed.
 STOP_WAIT_S = 5.0
+#: How often (s) the background table build's progress goes to the log and to systemd's status line.
+BUILD_REPORT_S = 10.0
 
 
 def notify_systemd(*lines: str) -> bool:
@@ -246,3 +255,65 @@ class TableBuild:
         self._process.join(5.0)
         if not self._results.closed:
             self._results.close()
+
+
+class BackgroundTable:
+    """The daemon's side of a :class:`TableBuild`: started when the scene's table is not stored, read on the
+    event loop, its progress told every BUILD_REPORT_S, and the model switched to the table once it is stored
+    (``on_switched``: the held target is solved again on it)."""
+
+    def __init__(self, scene_source: str, model: Model, event: Callable[[str, str, str], None],
+                 ready: Callable[[], bool], startup: StartupProgress, on_switched: Callable[[], None]):
+        self.scene_source, self.model, self.event, self.ready = scene_source, model, event, ready
+        self.startup, self.on_switched = startup, on_switched
+        self.build: TableBuild | None = None
+        #: when the progress was last logged: never, so that the first tick of a build logs it
+        self._reported_s = -math.inf
+        self._switching: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        self.build = TableBuild(self.scene_source)
+        self.event("model", f"the model answers on full solves (most of a second each) while its response table "
+                   f"is built in the background (process {self.build.pid}, once per model and machine)", "INFO")
+        asyncio.get_running_loop().add_reader(self.build.fileno(), self._readable)
+
+    def _readable(self) -> None:
+        build = self.build
+        assert build is not None  # the reader exists only while a build does
+        if not build.read():
+            return
+        asyncio.get_running_loop().remove_reader(build.fileno())
+        if build.error is not None:
+            self.event("model", f"the response table could not be built ({build.error}): the model keeps "
+                       "answering on full solves", "ERROR")
+            return
+        self._switching = asyncio.get_running_loop().create_task(self._switch(build))
+
+    async def _switch(self, build: TableBuild) -> None:
+        info = await self.model.use_level(self.model.info.pending_fidelity or "table")
+        self.event("model", f"switched to the {info.fidelity} level: the response table was built in "
+                   f"{build.progress.elapsed_s:.0f} s, within {build.check_errors_pct or 0.0:.2g} % of full solves",
+                   "INFO")
+        notify_systemd(f"STATUS={'ready' if self.ready() else self.startup.stage}: fidelity {info.fidelity}")
+        self.on_switched()
+
+    def report_tick(self, now_s: float) -> None:
+        """Every BUILD_REPORT_S while the table builds: how far it is, in the log and systemd's status line."""
+        build = self.build
+        if build is None or build.finished or now_s - self._reported_s < BUILD_REPORT_S:
+            return
+        self._reported_s = now_s
+        text = build.text()
+        logger.info("%s (the model answers on full solves until then)", text)
+        notify_systemd(f"STATUS={'ready' if self.ready() else self.startup.stage}; {text}")
+
+    def to_json(self) -> dict[str, Any] | None:
+        return self.build.to_json() if self.build is not None else None
+
+    def stop(self) -> None:
+        if self.build is not None:
+            with contextlib.suppress(ValueError, OSError):
+                asyncio.get_running_loop().remove_reader(self.build.fileno())
+            self.build.stop()
+        if self._switching is not None:
+            self._switching.cancel()

@@ -55,25 +55,21 @@ def test_the_scene_runner_follows_its_clock_scaled_and_finishes_at_the_end():
     assert any("finished" in text for text in events)
 
 
-def test_a_step_is_reached_only_after_its_ramp_and_within_one_percent():
+def test_a_step_records_when_the_core_said_it_was_reached_once_and_the_last_estimate():
+    """When a step is reached is the control core's rule (tests/test_control_core.py); the runner books it."""
     clock, _, runner = runner_with_events()
     runner.start(SCENE, "bph", CHAMBERS, time_scale=1.0)
     runner.tick()
-    clock.now_s += 1.0
-    runner.observe(29.0)                     # 3.3 % short: not reached
-    assert runner.run.steps[0].reached_after_s is None
-    clock.now_s += 1.0
+    clock.now_s += 2.0
     runner.observe(29.8, true_volume_ml=29.9)
+    runner.reached(0)
+    clock.now_s += 1.0
+    runner.reached(0)                        # told again (the board came back): the first time stays
     first = runner.run.steps[0].to_json()
     assert first["reached_after_s"] == pytest.approx(2.0) and first["true_volume_ml"] == 29.9
-    clock.now_s = 100.0 + 11.0               # step 1 ramps until 14 s
-    runner.tick()
-    runner.observe(34.0)                     # on target during the ramp: too early to count
-    assert runner.run.steps[1].reached_after_s is None
-    clock.now_s = 100.0 + 14.5
-    runner.observe(33.9)
-    assert runner.run.steps[1].reached_after_s == pytest.approx(4.5)    # from its start at 10 s
-    assert runner.run.steps[1].to_json()["error_pct"] == pytest.approx(100 * (33.9 - 34) / 34)
+    assert first["error_pct"] == pytest.approx(100 * (29.8 - 30) / 30)
+    runner.reached(5)                        # no such step: nothing
+    assert runner.run.steps[0].reached_after_s == pytest.approx(2.0)
 
 
 def test_a_stopped_scene_gives_no_target_and_bad_scenes_are_refused():
@@ -264,18 +260,18 @@ def test_the_model_package_does_not_import_the_host_package():
 
 def test_the_daemon_loads_neither_the_hil_package_nor_the_command_line():
     """The host is joined to the simulated board by the command line, which passes the board's factory."""
-    assert modules_loaded("phantom.host.daemon, phantom.host.handlers", ("phantom.hil", "phantom.cli")) == []
+    assert modules_loaded("phantom.host.service, phantom.host.handlers", ("phantom.hil", "phantom.cli")) == []
 
 
 def test_a_daemon_told_to_simulate_without_a_board_factory_refuses_before_it_takes_the_socket(tmp_path):
     import asyncio
 
     from phantom.host.config import DaemonConfig
-    from phantom.host.daemon import Daemon
+    from phantom.host.service import start_daemon
 
     config = DaemonConfig(sim=True, socket=tmp_path / "d.sock")
     with pytest.raises(PhantomError, match="cannot simulate a board: start the daemon with `phantom daemon --sim`"):
-        asyncio.run(Daemon.start(config))
+        asyncio.run(start_daemon(config))
     assert not (tmp_path / "d.sock").exists()
 
 
@@ -364,7 +360,7 @@ async def run_control(daemon, clock, seconds: float):
         for sub in range(5):
             daemon.on_telemetry(frame(tick * 100 + sub * 20, 0.1 * tick))
         clock.now_s += 0.1
-        daemon._estimate_tick()
+        daemon.estimates.tick(daemon.now_s(), clock(), daemon.wants_shape(), daemon.spawn)
         for _ in range(3):
             await asyncio.sleep(0)
 
@@ -382,7 +378,7 @@ def test_a_shape_is_computed_and_logged_only_when_the_scene_asks_and_something_r
     logged = [call for call in parts.calls if call[0] in ("log_mesh", "log_rest_surface")]
     # at --mesh-hz 2 over 10 s: 20 at most (a tick's float rounding can push one shape to the next tick)
     assert (15 <= shapes_asked <= meshes) if meshes else shapes_asked == 0
-    assert daemon.meshes_logged == shapes_asked == sum(1 for call in logged if call[0] == "log_mesh")
+    assert daemon.estimates.meshes_logged == shapes_asked == sum(1 for call in logged if call[0] == "log_mesh")
     if meshes:
         # the rest shape once, before the first deformed mesh
         assert [call[0] for call in logged[:2]] == ["log_rest_surface", "log_mesh"]
@@ -400,7 +396,7 @@ def test_a_refused_zero_says_why(status, reason):
     parts = PartsStandIn(False, refuse_zero_with=status)
     daemon = parts.daemon(False, FakeClock())
     with pytest.raises(ApiError, match=f"{status}.*{reason}") as refused:
-        asyncio.run(daemon.zero_sensors())
+        asyncio.run(daemon.zero.sensors())
     assert refused.value.code == "rejected"
 
 
@@ -408,13 +404,13 @@ def test_a_refused_zero_says_why(status, reason):
 def test_after_connecting_a_board_not_yet_settled_is_asked_again_until_the_limit(monkeypatch, refusals, zeroed):
     import asyncio
 
-    import phantom.host.daemon as daemon_module
+    import phantom.host.zeroing as zeroing
 
-    monkeypatch.setattr(daemon_module, "ZERO_RETRY_S", 0.01)
-    monkeypatch.setattr(daemon_module, "ZERO_SETTLE_LIMIT_S", 0.4)
+    monkeypatch.setattr(zeroing, "ZERO_RETRY_S", 0.01)
+    monkeypatch.setattr(zeroing, "ZERO_SETTLE_LIMIT_S", 0.4)
     parts = PartsStandIn(False, refuse_zero_with="NOT_SETTLED", refusals=refusals)
     daemon = parts.daemon(False, FakeClock())
-    asyncio.run(daemon.zero_quietly())
+    asyncio.run(daemon.zero.after_connecting())
     tries = sum(1 for call in parts.calls if call == ("command", "ZERO_SENSORS"))
     texts = [event["text"] for event in daemon.events]
     if zeroed:  # three NOT_SETTLED, then the zero is taken
@@ -428,6 +424,9 @@ def test_after_connecting_a_board_not_yet_settled_is_asked_again_until_the_limit
 
 def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(caplog):
     import asyncio
+    import functools
+
+    from phantom.host import service
 
     parts = PartsStandIn(False)
     daemon = parts.daemon(False, FakeClock())
@@ -437,7 +436,7 @@ def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(cap
 
     async def scenario():
         task = asyncio.create_task(broken(), name="link")
-        task.add_done_callback(daemon._task_ended)
+        task.add_done_callback(functools.partial(service._task_ended, daemon))
         await asyncio.sleep(0.01)
 
     phantom_logger = logging.getLogger("phantom")
@@ -447,7 +446,7 @@ def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(cap
             asyncio.run(scenario())
     finally:
         phantom_logger.propagate = propagate
-    assert daemon._stop.is_set() and daemon._exit_code == 1
+    assert daemon.stopping.is_set() and daemon.exit_code == 1
     record = next(record for record in caplog.records if "ended unexpectedly" in record.getMessage())
     assert record.exc_info and "the link task broke" in str(record.exc_info[1])
 
@@ -606,15 +605,15 @@ def test_the_table_builds_progress_is_logged_at_once_and_then_every_report_perio
     session that ends in a few seconds still leave a line saying it ran), then every BUILD_REPORT_S."""
     from types import SimpleNamespace
 
-    from phantom.host.daemon import BUILD_REPORT_S
+    from phantom.host.startup import BUILD_REPORT_S
 
     parts, clock = PartsStandIn(False), FakeClock()
     daemon = parts.daemon(False, clock)
-    daemon.table_build = SimpleNamespace(finished=False,
+    daemon.table.build = SimpleNamespace(finished=False,
                                          text=lambda: f"response table solves: {daemon.now_s():.1f} s so far")
-    with caplog.at_level(logging.INFO, logger="phantom.host.daemon"):
+    with caplog.at_level(logging.INFO, logger="phantom.host.startup"):
         for _ in range(int(2.5 * BUILD_REPORT_S / 0.5) + 1):  # 2.5 report periods of 0.5 s control ticks
-            daemon._report_build_tick()
+            daemon.table.report_tick(daemon.now_s())
             clock.now_s += 0.5
         logged = [record.getMessage() for record in caplog.records if "response table solves" in record.getMessage()]
     assert [message.split(" (")[0] for message in logged] == [

@@ -75,9 +75,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     record.add_argument("--points-kpa", default=";".join(",".join(map(str, p)) for p in TABLE_I_POINTS_KPA),
                         help="pressure combinations 'a,b,c;a,b,c;...' in kPa, each within 0-3 (default: the "
                              "paper's eight)")
-    record.add_argument("--settle-s", type=float, default=1.0,
-                        help="board time every chamber must stay within --tolerance-kpa (default 1 s)")
-    record.add_argument("--tolerance-kpa", type=float, default=0.1, help="settled band (default 0.1 kPa)")
+    # unset: the daemon's rule of settled pressures (host/control.py, ReachRule), here on the board's clock
+    record.add_argument("--settle-s", type=float,
+                        help="board time every chamber must stay within --tolerance-kpa (default: the daemon's, 1 s)")
+    record.add_argument("--tolerance-kpa", type=float, help="settled band (default: the daemon's, 0.1 kPa)")
     record.add_argument("--out", required=True, help="measurements CSV to write")
     record.add_argument("--json", action="store_true", help="print one JSON object")
     record.set_defaults(run=run_record)
@@ -237,24 +238,28 @@ def _ask_volume_ml(prompt: str) -> float:
     return volume_ml
 
 
-def _hold_until_settled(link: BoardLink, point_kpa: list[float], tolerance_kpa: float,
-                        settle_s: float) -> np.ndarray:
+def _hold_until_settled(link: BoardLink, point_kpa: list[float], tolerance_kpa: float | None,
+                        settle_s: float | None) -> np.ndarray:
     """Set the pressures and wait (board clock) until every chamber has stayed within the band for
-    ``settle_s``; return the mean pressures (kPa) of five telemetry frames then."""
+    ``settle_s`` (the daemon's settled rule where None); return the mean pressures (kPa) of five telemetry
+    frames then."""
     import numpy as np
 
     from phantom import PhantomError
     from phantom.hil import bench
+    from phantom.host.control import ReachRule, Settling
 
+    rule = ReachRule()
+    rule = ReachRule(settled_kpa=rule.settled_kpa if tolerance_kpa is None else tolerance_kpa,
+                     settled_for_s=rule.settled_for_s if settle_s is None else settle_s)
+    tolerance_kpa = rule.settled_kpa
     setpoints_pa = [int(round(value * 1e3)) for value in point_kpa]
     bench.set_setpoints(link, setpoints_pa)
-    last_outside_ms = [bench.latest_telemetry(link)["time_ms"]]
+    settling = Settling(rule)
 
     def settled(fields: dict[str, Any]) -> bool:
-        error_pa = max(abs(p - s) for p, s in zip(fields["pressure_pa"], setpoints_pa, strict=True))
-        if error_pa > tolerance_kpa * 1e3:
-            last_outside_ms[0] = fields["time_ms"]
-        return bool(fields["time_ms"] - last_outside_ms[0] >= settle_s * 1e3)
+        return settling.settled(fields["time_ms"] / 1e3, np.asarray(fields["pressure_pa"], dtype=float),
+                                np.asarray(setpoints_pa, dtype=float))
 
     if bench.wait_board_time(link, SETTLE_TIMEOUT_S, settled) is None:
         raise PhantomError(f"the pressures ({', '.join(f'{p:g}' for p in point_kpa)}) kPa did not settle within "

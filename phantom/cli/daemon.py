@@ -95,7 +95,7 @@ def _flag_value(item: SettingField) -> Callable[[str], Any]:
 
 def _run_daemon(args: argparse.Namespace) -> int:
     from phantom.host.config import load_config, merged_config
-    from phantom.host.daemon import run_daemon
+    from phantom.host.service import run_daemon
 
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})

@@ -1,0 +1,634 @@
+"""The daemon's control without I/O: what the board should hold, when to solve, send, vent, and when a target
+is reached. Shaped like :mod:`phantom.protocol.link`: it never reads a clock, sleeps or touches the board or the
+model. The driver (host/daemon.py) feeds it events with their time and performs the actions it takes out.
+
+Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
+
+    offer(request, target, answer, tolerance_pct)   an API target, already solved: sent, and only once the board
+                                                    has acknowledged it does it replace what was held
+    want(target, source, step, ramp)                a scene's target in force (a step, or a point of its ramp)
+    solved / solve_failed                           the inverse's answer to a Solve action
+    sent / send_failed                              the board's answer to a SendSetpoints action
+    vent / vent_done                                a vent decided (a request, a mismatch, a refusal); its answer
+    board(ready, why)                               whether the board can take setpoints (online and configured)
+    faults(names)                                   the latched faults the telemetry shows
+    zeroing(why)                                    a zero of the sensors in progress (setpoints would cancel it)
+    board_setpoints(setpoints_pa)                   the setpoints a telemetry frame says the board holds
+    measured(pressures_pa) / estimated(gland, chambers)   what reached is judged on
+    scene_started / scene_ended                     the scene runner's state
+    model_changed                                   the model answers on another level: solve again
+    tick                                            retries and what waits
+
+Actions (:meth:`ControlCore.take_actions`): :class:`Solve`, :class:`SendSetpoints`, :class:`SendVent`,
+:class:`Tell` (an event for people, with an ``outcome`` for the targets clients wait on), :class:`StepApplied`,
+:class:`StepReached`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the reply to an API
+request).
+
+Setpoints on the board that the daemon did not send (another program on the port, a board that lost its state)
+are a mismatch (:class:`phantom.host.board_watch.SetpointWatch`): the core vents and has the board's gains and
+limits set again.
+
+One send at a time: a vent decided while setpoints are in flight goes out when they are answered. One definition
+of reached (:class:`ReachRule`): the pressures within ``settled_kpa`` of the setpoints for ``settled_for_s``, and
+the estimate within ``tolerance_pct`` of what was asked.
+
+The scan loop (issue 36) builds on this core: a verified target is a ``Reached`` outcome followed by a check of
+the estimate against a measurement (the place is :meth:`ControlCore._reach_tick`), and a scan owns the rig by
+offering its targets like the API does.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from phantom.host.board_watch import SetpointWatch
+from phantom.host.parts import ControlState
+from phantom.model.target import InverseResult, Target
+
+PA_PER_KPA = 1e3
+ML_PER_M3 = 1e6
+#: After a target could not be sent (refused, not acknowledged), how long the core waits before it tries again (s).
+RETRY_S = 0.5
+#: The highest setpoint the wire carries (Pa, i16).
+MAX_SETPOINT_PA = 32767.0
+
+
+@dataclass(frozen=True)
+class ReachRule:
+    """When a target counts as reached: every chamber's measured pressure (averaged over the estimate's window)
+    within ``settled_kpa`` of its setpoint for ``settled_for_s``, and the estimate within ``tolerance_pct`` of the
+    target (the gland volume, each given chamber volume, or for pressures the volume the inverse predicts). The
+    settled band is two ADC counts of the MPXV7025G."""
+
+    settled_kpa: float = 0.1
+    settled_for_s: float = 1.0
+    tolerance_pct: float = 1.0
+
+
+class Settling:
+    """The pressures settled, by a :class:`ReachRule`: every chamber within ``settled_kpa`` of its setpoint, for
+    ``settled_for_s`` on the clock of the frames fed (the daemon's, or the board's for ``calibrate record``)."""
+
+    def __init__(self, rule: ReachRule):
+        self.rule = rule
+        self.since_s: float | None = None
+
+    def frame(self, time_s: float, measured_pa: np.ndarray, setpoints_pa: np.ndarray) -> float:
+        """Feed one measurement; how long (s) the pressures have been settled up to it (0 when they are not)."""
+        error_pa = np.abs(np.asarray(measured_pa, dtype=float) - np.asarray(setpoints_pa, dtype=float))
+        if not np.all(error_pa <= self.rule.settled_kpa * PA_PER_KPA):
+            self.since_s = None
+            return 0.0
+        if self.since_s is None:
+            self.since_s = time_s
+        return time_s - self.since_s
+
+    def settled(self, time_s: float, measured_pa: np.ndarray, setpoints_pa: np.ndarray) -> bool:
+        """:meth:`frame`, and whether that is long enough."""
+        return self.frame(time_s, measured_pa, setpoints_pa) >= self.rule.settled_for_s
+
+
+# --- actions ----------------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Solve:
+    """Ask the model for ``target``'s pressures (on ``ramp``, for a point of a scene's ramp)."""
+
+    target: Target
+    ramp: tuple[Target, Target] | None
+
+
+@dataclass(frozen=True)
+class SendSetpoints:
+    """SET_SETPOINTS, acknowledged: ``setpoints_pa`` (whole Pa, 0..32767) for ``target``."""
+
+    target: Target
+    setpoints_pa: np.ndarray = field(compare=False)
+
+
+@dataclass(frozen=True)
+class SendVent:
+    """VENT, acknowledged; ``request`` is the API request waiting on it (None: the daemon's own decision)."""
+
+    why: str
+    level: str
+    request: int | None
+
+
+@dataclass(frozen=True)
+class Tell:
+    """An event for people (status, Rerun, subscribers, the log); ``data`` carries a target's ``outcome``
+    (reached, replaced, unreachable, faulted), its ``target`` and ``source``, for the clients that wait on it."""
+
+    kind: str
+    text: str
+    level: str = "INFO"
+    data: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class StepApplied:
+    """The board acknowledged setpoints for scene step ``index``."""
+
+    index: int
+
+
+@dataclass(frozen=True)
+class StepReached:
+    """Scene step ``index`` was reached (:class:`ReachRule`)."""
+
+    index: int
+
+
+@dataclass(frozen=True)
+class StopScene:
+    why: str
+
+
+@dataclass(frozen=True)
+class ConfigureBoard:
+    """Set the board's gains and limits again (SET_PID), ``when`` says after what."""
+
+    when: str
+
+
+@dataclass(frozen=True)
+class Answer:
+    """The reply to API request ``request``: the inverse's answer, or an API error ``(code, text)``."""
+
+    request: int
+    result: InverseResult | None = None
+    error: tuple[str, str] | None = None
+
+
+Action = Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
+
+
+@dataclass
+class _Offer:
+    request: int
+    answer: InverseResult
+    tolerance_pct: float | None
+
+
+@dataclass
+class _Reach:
+    """Progress of the target held towards reached."""
+
+    target: Target
+    source: str
+    step: int | None
+    tolerance_pct: float
+    applied_s: float
+    settling: Settling
+    estimate: tuple[float, tuple[float, ...] | None] | None = None
+
+
+def setpoints_for(pressures_pa: np.ndarray) -> np.ndarray:
+    """The inverse's pressures (Pa) as the wire carries them: whole Pa within 0..32767."""
+    return np.asarray([round(min(max(float(p), 0.0), MAX_SETPOINT_PA)) for p in pressures_pa], dtype=float)
+
+
+def predicted_volume_ml(answer: InverseResult) -> float:
+    """The gland volume (ml) the inverse predicts for its pressures."""
+    return float(answer.predicted_gland_volume_m3) * ML_PER_M3
+
+
+def estimate_within(target: Target, answer: InverseResult | None, gland_ml: float,
+                    chamber_ml: tuple[float, ...] | None, tolerance_pct: float) -> bool:
+    """The estimate within ``tolerance_pct`` of what was asked: the gland volume, each given chamber volume, or
+    for raw pressures the volume the inverse predicts at them."""
+    share = tolerance_pct / 100.0
+    if target.kind == "chamber_volumes":
+        if chamber_ml is None:
+            return False
+        return all(wanted_m3 is None or abs(got - wanted_m3 * ML_PER_M3) <= share * wanted_m3 * ML_PER_M3
+                   for got, wanted_m3 in zip(chamber_ml, target.values, strict=True))
+    if target.gland_volume_m3 is not None:
+        wanted_ml = target.gland_volume_m3 * ML_PER_M3
+    elif answer is not None:
+        wanted_ml = predicted_volume_ml(answer)
+    else:
+        return False
+    return abs(gland_ml - wanted_ml) <= share * wanted_ml
+
+
+class ControlCore:
+    """The target, its answer, what the board holds and why a target waits (module docstring)."""
+
+    def __init__(self, chamber_count: int, rule: ReachRule | None = None, retry_s: float = RETRY_S):
+        self.chamber_count = chamber_count
+        self.rule = rule or ReachRule()
+        self.retry_s = retry_s
+        self.state = ControlState.IDLE
+        self.target: Target | None = None
+        self.source: str | None = None
+        self.step: int | None = None
+        self.ramp: tuple[Target, Target] | None = None
+        #: the reached tolerance asked with the current target (%), None: the rule's
+        self.tolerance_pct: float | None = None
+        #: the inverse's answer to the current target (None until solved)
+        self.answer: InverseResult | None = None
+        #: the target whose setpoints the board acknowledged and holds (None: unknown or none)
+        self.applied: Target | None = None
+        #: the setpoints the board holds as far as the daemon knows (Pa); None: unknown
+        self.setpoints_pa: np.ndarray | None = None
+        #: why the current target waits (None: it does not)
+        self.pending: str | None = None
+        self.vented_why: str | None = None
+        self.board_ready = False
+        self.board_why = "no board has been connected yet"
+        self.fault_names: tuple[str, ...] = ()
+        self.zeroing_why: str | None = None
+        self.watch = SetpointWatch()
+        self._pending_since_s: float | None = None
+        self._retry_after_s = -np.inf
+        self._unreachable: Target | None = None
+        self._solving: Target | None = None
+        self._sending: SendSetpoints | None = None
+        self._offer: _Offer | None = None
+        self._offer_sent: _Offer | None = None
+        self._vent: SendVent | None = None
+        self._venting = False
+        self._reach: _Reach | None = None
+        #: the target last told reached (not told again when the board takes it again)
+        self._reached: Target | None = None
+        self._measured: tuple[float, np.ndarray] | None = None
+        self._actions: list[Action] = []
+
+    # --- what the driver reads ----------------------------------------------------------------------------
+
+    def take_actions(self) -> list[Action]:
+        """The actions decided since the last call, in order."""
+        actions, self._actions = self._actions, []
+        return actions
+
+    def next_deadline(self) -> float | None:
+        """When :meth:`tick` has something to do at the latest (a retry), or None."""
+        if self.target is not None and self.applied != self.target and self._retry_after_s > -np.inf:
+            return float(self._retry_after_s)
+        return None
+
+    @property
+    def busy(self) -> bool:
+        """Whether a command to the board is in flight."""
+        return self._sending is not None or self._venting
+
+    @property
+    def solving(self) -> bool:
+        """Whether a solve for the core is in flight."""
+        return self._solving is not None
+
+    @property
+    def target_applied(self) -> bool:
+        """Whether the board holds the current target's setpoints (acknowledged, not lost since)."""
+        return self.target is not None and self.applied == self.target and self.board_ready
+
+    # --- inputs -------------------------------------------------------------------------------------------
+
+    def offer(self, now: float, request: int, answer: InverseResult, tolerance_pct: float | None = None) -> None:
+        """An API target, solved: sent when the board is free; on its ACK it replaces the target (and any scene);
+        the request is answered then, or with the error that stopped it (nothing changed then)."""
+        if not self.board_ready:
+            self._actions.append(Answer(request, error=("link_down", f"no board: {self.board_why}; the target was "
+                                                        "not set")))
+            return
+        self._drop_offer("replaced by a newer set_target before it was sent")
+        self._offer = _Offer(request, answer, tolerance_pct)
+        self._next(now)
+
+    def want(self, now: float, target: Target, source: str, step: int | None = None,
+             ramp: tuple[Target, Target] | None = None) -> None:
+        """Aim at ``target`` (a scene's, while the state is ``scene``): applied as soon as the board can take it."""
+        if target == self.target and source == self.source:
+            self.step, self.ramp = step, ramp
+            if self.applied == target:
+                self._start_reach(now)  # a ramp that ends on the point it last sent
+            return
+        self._set_target(now, target, source, step, ramp, None)
+        self._next(now)
+
+    def solved(self, now: float, target: Target, answer: InverseResult) -> None:
+        if self._solving == target:
+            self._solving = None
+        if target == self.target:
+            self.answer = answer
+        self._next(now)
+
+    def solve_failed(self, now: float, target: Target, unreachable: bool, text: str) -> None:
+        if self._solving == target:
+            self._solving = None
+        if target == self.target:
+            if unreachable:
+                self._unreachable = target
+                self._wait(f"unreachable: {text}")
+                self._outcome("unreachable", f"target {target.describe()} is unreachable: {text}", "WARN")
+            else:
+                self._retry_after_s = now + self.retry_s
+                self._wait(text)
+        self._next(now)
+
+    def sent(self, now: float, target: Target) -> None:
+        """The board acknowledged the setpoints in flight (those of ``target``)."""
+        sending, self._sending = self._sending, None
+        if sending is None:
+            return
+        self.setpoints_pa, self.applied = sending.setpoints_pa, target
+        self.watch.expect(self.setpoints_pa, now)
+        offer, self._offer_sent = self._offer_sent, None
+        if offer is not None and offer.answer.target == target:
+            self.scene_ended(now, "a set_target request", stop=True)
+            self.state = ControlState.HOLDING
+            changed = target != self.target
+            self._set_target(now, target, "api", None, None, offer.tolerance_pct)
+            self._reached = None  # asked again: told again
+            self.answer = offer.answer
+            if changed:
+                pressures = ", ".join(f"{p / PA_PER_KPA:.3f}" for p in offer.answer.pressures_pa)
+                self._tell("target", f"target {target.describe()} -> setpoints {pressures} kPa (predicted "
+                           f"{predicted_volume_ml(offer.answer):.2f} ml, inverse "
+                           f"{offer.answer.solve_time_s * 1e3:.1f} ms)")
+            self._actions.append(Answer(offer.request, result=offer.answer))
+        if target == self.target and self.state is not ControlState.VENTED:
+            self._applied(now, target)
+        self._next(now)
+
+    def send_failed(self, now: float, target: Target, rejected: bool, text: str) -> None:
+        """The setpoints in flight were refused (``rejected``: the board holds what it held) or not delivered
+        (it is unknown what the board holds)."""
+        sending, self._sending = self._sending, None
+        if not rejected:
+            self.setpoints_pa, self.applied = None, None
+        self.watch.expect(self.setpoints_pa, now)
+        offer, self._offer_sent = self._offer_sent, None
+        if offer is not None and sending is not None and offer.answer.target == sending.target:
+            self._actions.append(Answer(offer.request, error=("rejected" if rejected else "link_down", text)))
+        elif target == self.target:
+            self._retry_after_s = now + self.retry_s
+            self._wait(text)
+        self._next(now)
+
+    def vent(self, now: float, why: str, level: str = "INFO", request: int | None = None) -> None:
+        """Blowers off: every setpoint 0, the target and any scene dropped (the VENT goes when the board is free)."""
+        self.scene_ended(now, "vented", stop=True)
+        self._drop_offer("a vent came before it was sent")
+        if self._offer_sent is not None:  # in flight: the vent goes after it and wins
+            self._actions.append(Answer(self._offer_sent.request, error=("replaced", "a vent came before the board "
+                                                                         "acknowledged it")))
+            self._offer_sent = None
+        self._replaced(f"vented: {why}")
+        self.state = ControlState.VENTED
+        self.target = self.source = self.answer = self.step = self.ramp = None
+        self.pending, self._pending_since_s, self._unreachable = None, None, None
+        self.vented_why = why
+        if self._vent is not None and self._vent.request is not None:
+            self._actions.append(Answer(self._vent.request))  # the VENT still to go answers both
+        self._vent = SendVent(why, level, request)
+        self._next(now)
+
+    def vent_done(self, now: float, error: str | None) -> None:
+        """The VENT's answer: acknowledged (``error`` None), or why the board could not be told."""
+        vent, self._vent, self._venting = self._vent, None, False
+        self.applied = None
+        self.setpoints_pa = np.zeros(self.chamber_count) if error is None else None
+        self.watch.expect(self.setpoints_pa, now)
+        if vent is not None:
+            if error is None:
+                self._tell("vent", f"vented: {vent.why}", vent.level)
+            else:
+                self._tell("vent", f"could not vent ({vent.why}): {error}", "ERROR")
+            if vent.request is not None:
+                self._actions.append(Answer(vent.request, error=None if error is None else ("link_down", error)))
+        self._next(now)
+
+    def board(self, now: float, ready: bool, why: str = "") -> None:
+        """Whether the board can take setpoints (online, its gains and limits set); ``why`` it cannot. A board
+        that comes back holds none of ours (it may have reset): the target is applied again; with none, the
+        board must hold nothing."""
+        if ready != self.board_ready:
+            self.applied = None
+            idle = self.target is None or self.state is ControlState.VENTED
+            self.setpoints_pa = np.zeros(self.chamber_count) if ready and idle else None
+            self.watch.expect(self.setpoints_pa, now)
+            if self.target is not None and self._pending_since_s is None:
+                self._pending_since_s = now
+        self.board_ready, self.board_why = ready, why
+        self._next(now)
+
+    def faults(self, now: float, names: tuple[str, ...]) -> None:
+        """The faults latched on the board now: a new one set every setpoint to 0 and refuses setpoints until
+        cleared; the target is applied again once cleared."""
+        if names == self.fault_names:
+            return
+        if names and not self.fault_names:
+            self._tell("fault", f"faults latched: {', '.join(names)}", "ERROR")
+            self.applied, self.setpoints_pa = None, np.zeros(self.chamber_count)
+            self.watch.expect(self.setpoints_pa, now)
+            if self.target is not None and self._pending_since_s is None:
+                self._pending_since_s = now
+            if self._reach is not None:
+                self._outcome("faulted", f"target {self._reach.target.describe()} not reached: faults latched "
+                              f"({', '.join(names)})", "ERROR")
+        elif not names:
+            self._tell("fault", "faults cleared")
+        self.fault_names = names
+        self._next(now)
+
+    def zeroing(self, now: float, why: str | None) -> None:
+        """A zero in progress (``why`` says how far), or over (None): setpoints wait meanwhile."""
+        self.zeroing_why = why
+        self._next(now)
+
+    def board_setpoints(self, now: float, setpoints_pa: np.ndarray) -> None:
+        """The setpoints a telemetry frame reports: ones the daemon did not send vent the phantom."""
+        if self.fault_names or self.busy or not self.watch.frame(setpoints_pa, now):
+            return
+        expected = self.watch.expected_pa
+        self.watch.expect(None, now)  # once: the vent sets what is expected next
+        text = (f"the board holds setpoints {_kpa(setpoints_pa)} kPa that the daemon did not send (it sent "
+                f"{_kpa(expected)} kPa): another program is driving the board (a process on its port?) or the "
+                "board lost its state; the phantom is vented and the target dropped: find what drove it, then "
+                "set a target again")
+        self._tell("board", text, "ERROR")
+        self.vent(now, text, "ERROR")
+        self._actions.append(ConfigureBoard("after the mismatch"))
+
+    def measured(self, now: float, pressures_pa: np.ndarray) -> None:
+        """The measured pressures, averaged over the estimate's window (Pa)."""
+        self._measured = (now, np.asarray(pressures_pa, dtype=float))
+        self._reach_tick(now)
+
+    def estimated(self, now: float, gland_ml: float, chamber_ml: tuple[float, ...] | None) -> None:
+        """An estimate of pressures measured at ``now`` or later."""
+        reach = self._reach
+        if reach is not None and now >= reach.applied_s:
+            reach.estimate = (gland_ml, chamber_ml)
+        self._reach_tick(now)
+
+    def model_changed(self, now: float) -> None:
+        """The model answers on another level: the target is solved again on it and its setpoints sent."""
+        if self.target is not None and self.state is not ControlState.VENTED:
+            self.answer, self.applied = None, None
+        self._next(now)
+
+    def scene_started(self, now: float) -> None:
+        self.state = ControlState.SCENE
+        self._drop_offer("replaced by a scene before it was sent")
+
+    def scene_ended(self, now: float, why: str, stop: bool = False) -> None:
+        """The scene finished (its last target holds) or, with ``stop``, is stopped (``why``)."""
+        if self.state is ControlState.SCENE:
+            self.state = ControlState.HOLDING
+            if stop:
+                self._actions.append(StopScene(why))
+
+    def tick(self, now: float) -> None:
+        """What is due: a retry, a target to apply, what waits, reached."""
+        self._next(now)
+        self._reach_tick(now)
+
+    # --- the rules ----------------------------------------------------------------------------------------
+
+    def _why_not_now(self) -> str | None:
+        if not self.board_ready:
+            return self.board_why
+        if self.fault_names:
+            return f"faults latched on the board ({', '.join(self.fault_names)}): clear them (phantom clear-fault)"
+        if self.zeroing_why is not None:
+            return f"the sensors are being zeroed: {self.zeroing_why}"
+        return None
+
+    def _next(self, now: float) -> None:
+        """The one place that decides the next command to the board, or the next solve."""
+        if self.busy:
+            return
+        if self._vent is not None:
+            self._venting = True
+            self.watch.expect(None, now)  # in flight: the board may show either
+            self._actions.append(self._vent)
+            return
+        offer = self._offer
+        if offer is not None:
+            self._offer, self._offer_sent = None, offer
+            self._send(now, offer.answer.target, offer.answer)
+            return
+        target = self.target
+        if target is None or self.state is ControlState.VENTED or self.applied == target:
+            return
+        why = self._why_not_now()
+        if why is not None:
+            self._wait(why)
+            return
+        if now < self._retry_after_s or target == self._unreachable or self._solving is not None:
+            return
+        answer = self.answer
+        if answer is not None and answer.target == target:
+            self._send(now, target, answer)
+        else:
+            self._solving = target
+            self._actions.append(Solve(target, self.ramp))
+
+    def _send(self, now: float, target: Target, answer: InverseResult) -> None:
+        self._sending = SendSetpoints(target, setpoints_for(answer.pressures_pa))
+        self.watch.expect(None, now)  # in flight: the board may show either
+        self._actions.append(self._sending)
+
+    def _drop_offer(self, why: str) -> None:
+        if self._offer is not None:
+            self._actions.append(Answer(self._offer.request, error=("replaced", why)))
+        self._offer = None
+
+    def _set_target(self, now: float, target: Target, source: str, step: int | None,
+                    ramp: tuple[Target, Target] | None, tolerance_pct: float | None) -> None:
+        if target != self.target or source != self.source:
+            self._replaced(f"replaced by {target.describe()} ({source})")
+            self._reached = None
+        if self._pending_since_s is None:
+            self._pending_since_s = now
+        if self.answer is not None and self.answer.target != target:
+            self.answer = None
+        self.target, self.source, self.step, self.ramp = target, source, step, ramp
+        self.tolerance_pct = tolerance_pct
+        self._retry_after_s = -np.inf
+
+    def _applied(self, now: float, target: Target) -> None:
+        waited = self.pending
+        self.pending, self._unreachable, self._retry_after_s = None, None, -np.inf
+        if self.step is not None:
+            self._actions.append(StepApplied(self.step))
+        if waited is not None and self._pending_since_s is not None:
+            self._tell("target", f"target {target.describe()} applied after {now - self._pending_since_s:.1f} s "
+                       f"(it waited: {waited})")
+        self._pending_since_s = None
+        self._start_reach(now)
+
+    def _start_reach(self, now: float) -> None:
+        """Judge reached from now on (a scene's ramp points are not waited on: its step is, once the ramp ends)."""
+        target = self.target
+        if target is None or self.ramp is not None or target == self._reached:
+            return
+        if self._reach is not None and self._reach.target == target:
+            self._reach.applied_s, self._reach.settling, self._reach.estimate = now, Settling(self.rule), None
+            return
+        self._reach = _Reach(target, self.source or "", self.step, self.tolerance_pct or self.rule.tolerance_pct, now,
+                             Settling(self.rule))
+
+    def _wait(self, why: str) -> None:
+        """The target waits: said once per reason."""
+        if why != self.pending and self.target is not None:
+            self._tell("target", f"target {self.target.describe()} not applied: {why}"
+                       + ("" if why.startswith("unreachable") else "; it will be applied as soon as the board can "
+                          "take it"), "WARN")
+        self.pending = why
+
+    def _reach_tick(self, now: float) -> None:
+        """Reached: the one definition (:class:`ReachRule`). A scan's verified target adds its check after it."""
+        reach = self._reach
+        if (reach is None or reach.target != self.applied or not self.board_ready or self.fault_names
+                or self._measured is None or self.setpoints_pa is None):
+            return
+        measured_s, measured_pa = self._measured
+        if measured_s < reach.applied_s:
+            return
+        reach.settling.frame(measured_s, measured_pa, self.setpoints_pa)
+        since_s = reach.settling.since_s
+        settled_s = 0.0 if since_s is None else now - since_s
+        if settled_s < self.rule.settled_for_s or reach.estimate is None:
+            return
+        gland_ml, chamber_ml = reach.estimate
+        if not estimate_within(reach.target, self.answer, gland_ml, chamber_ml, reach.tolerance_pct):
+            return
+        if reach.step is not None:
+            self._actions.append(StepReached(reach.step))
+        self._reached = reach.target
+        self._outcome("reached", f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, pressures "
+                      f"settled for {settled_s:.1f} s",
+                      extra={"estimated_volume_ml": gland_ml,
+                             "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
+                             "measured_pressures_kpa": [float(p) / PA_PER_KPA for p in measured_pa],
+                             "after_s": now - reach.applied_s})
+
+    def _replaced(self, why: str) -> None:
+        if self._reach is not None:
+            self._outcome("replaced", f"target {self._reach.target.describe()} not reached: {why}")
+
+    def _outcome(self, outcome: str, text: str, level: str = "INFO", extra: dict[str, Any] | None = None) -> None:
+        """An outcome of the target waited on (reached, replaced, unreachable, faulted): told once, with data."""
+        reach, self._reach = self._reach, None
+        target = reach.target if reach is not None else self.target
+        if target is None:
+            return
+        source = reach.source if reach is not None else self.source
+        self._tell("target", text, level, {"outcome": outcome, "target": target.to_json(), "source": source,
+                                           **(extra or {})})
+
+    def _tell(self, kind: str, text: str, level: str = "INFO", data: dict[str, Any] | None = None) -> None:
+        self._actions.append(Tell(kind, text, level, data))
+
+
+def _kpa(pressures_pa: np.ndarray | None) -> str:
+    """Pressures (Pa) as people read them: ``1.000, 0.500, 0.000`` (kPa)."""
+    return "none" if pressures_pa is None else ", ".join(f"{p / PA_PER_KPA:.3f}" for p in pressures_pa)
