@@ -31,7 +31,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from phantom.hil.truth_shape import TruthShape  # noqa: E402
-from phantom.model import PhantomModel, load_scene  # noqa: E402
+from phantom.host.scenes import load_timeline_scene  # noqa: E402
+from phantom.model import PhantomModel  # noqa: E402
 from phantom.model.inverse import InverseSolver, Target  # noqa: E402
 from phantom.model.mesh.surface import SurfaceIndex, TriangleMesh, enclosed_volume_ml  # noqa: E402
 from phantom.scan.calibrate import calibrate_rig, target_views  # noqa: E402
@@ -140,7 +141,7 @@ def main() -> None:
             concavity(out, args.voxel_mm, Path(scratch))
         return
 
-    scene = load_scene(str(BPH_SCENE))
+    scene = load_timeline_scene(str(BPH_SCENE))
     top_ml = max(step["volume_ml"] for step in scene.raw["steps"])
     pressures_kpa = InverseSolver(PhantomModel.from_scene(scene), fidelity="full").pressures_for(
         Target(gland_volume_m3=top_ml * 1e-6)).pressures_pa / 1e3

@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from phantom.host.board_watch import SetpointWatch
+from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
 from phantom.model.target import InverseResult, Target
 
@@ -60,12 +61,17 @@ MAX_SETPOINT_PA = 32767.0
 class ReachRule:
     """When a target counts as reached: every chamber's measured pressure (averaged over the estimate's window)
     within ``settled_kpa`` of its setpoint for ``settled_for_s``, and the estimate within ``tolerance_pct`` of the
-    target (the gland volume, each given chamber volume, or for pressures the volume the inverse predicts). The
-    settled band is two ADC counts of the MPXV7025G."""
+    target (the gland volume, each given chamber volume, or for pressures the volume the inverse predicts)."""
 
-    settled_kpa: float = 0.1
-    settled_for_s: float = 1.0
+    settled_kpa: float
+    settled_for_s: float
     tolerance_pct: float = 1.0
+
+
+#: The one rule of settled pressures and reached targets, from the daemon's settings' defaults (host/config.py:
+#: the settled band is two ADC counts of the MPXV7025G); --settled-kpa, --settled-for-s and a target's own
+#: tolerance_pct replace its values.
+SETTLED = ReachRule(DaemonConfig.settled_kpa, DaemonConfig.settled_for_s)
 
 
 class Settling:
@@ -221,7 +227,7 @@ class ControlCore:
 
     def __init__(self, chamber_count: int, rule: ReachRule | None = None, retry_s: float = RETRY_S):
         self.chamber_count = chamber_count
-        self.rule = rule or ReachRule()
+        self.rule = rule or SETTLED
         self.retry_s = retry_s
         self.state = ControlState.IDLE
         self.target: Target | None = None

@@ -15,10 +15,16 @@ import numpy as np
 from phantom import read_text
 from phantom.host.api import ApiError, Handler, RawJson
 from phantom.host.scene_runner import PreparedRun, prepare_run
-from phantom.host.scenes import check_step_count, effective_model, model_differences, parse_target
+from phantom.host.scenes import (
+    check_step_count,
+    effective_model,
+    load_timeline_scene,
+    model_differences,
+    parse_target,
+)
 from phantom.host.session import fault_names
 from phantom.model.errors import SceneError
-from phantom.model.scene import MAX_SCENE_BYTES, load_scene
+from phantom.model.scene import MAX_SCENE_BYTES
 
 if TYPE_CHECKING:
     from phantom.host.daemon import Daemon
@@ -134,10 +140,10 @@ class ApiHandlers:
 def prepare_scene(path: str, time_scale: float, chamber_names: list[str], running_model: dict[str, Any],
                   running_scene: str) -> PreparedRun:
     """Read a scene file and check its timeline against the running model (off the event loop: reading and
-    checking a scene takes time in proportion to its size, which ``load_scene`` and the timeline bound; a scene of
-    too many steps is refused before it is parsed)."""
+    checking a scene takes time in proportion to its size, which the scene reader and the timeline bound; a
+    scene of too many steps is refused before it is parsed)."""
     check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), path)
-    scene = load_scene(path)
+    scene = load_timeline_scene(path)
     # the timeline runs on the loaded model: a scene for another phantom, material or model setting needs its own
     # model, so the daemon must be restarted with it
     differing = model_differences(running_model, effective_model(scene))

@@ -52,8 +52,8 @@ class LoadedModel:
     Parameters
     ----------
     scene_source : str
-        ``builtin:converged`` (the daemon's default), another built-in name, or a scene TOML path
-        (``phantom.model.load_scene``).
+        ``builtin:converged`` (the daemon's default), another built-in name, or a scene TOML path, a timeline
+        scene naming its model included (:func:`phantom.host.scenes.read_timeline_scene`).
     report : callable(str), optional
         Where start-up progress goes (the log by default): each stage and how long it took.
     defer_table : bool
@@ -66,13 +66,14 @@ class LoadedModel:
     def __init__(self, scene_source: str, report: Callable[[str], None] = logger.info, defer_table: bool = False):
         # the model's stack (scipy, numba) is loaded where the model is built: in the worker process, not in the
         # daemon that imports this module
-        from phantom.model import PhantomModel, load_scene
+        from phantom.host.scenes import load_timeline_scene
+        from phantom.model import PhantomModel
 
         self.report = report
         self.timings_s: dict[str, float] = {}
         started = time.perf_counter()
         report(f"loading scene {scene_source} ...")
-        self.scene = load_scene(scene_source)
+        self.scene = load_timeline_scene(scene_source)
         self.wants_shape = bool(self.scene.outputs.shape)
         self.model = PhantomModel.from_scene(self.scene)
         self.timings_s["model_s"] = time.perf_counter() - started

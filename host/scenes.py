@@ -1,4 +1,11 @@
-"""Scene timelines: the ``[[steps]]`` of a scene file as targets over time, with holds and ramps.
+"""Scene timelines: the ``[[steps]]`` of a scene file as targets over time, with holds and ramps; and timeline
+scenes that name their model.
+
+A timeline scene names the model it plays on, ``model = "builtin:converged"`` (or the path of a whole scene,
+taken from the scene's folder), and carries only what differs from it on purpose (``[outputs] shape = true``),
+besides its ``[timeline]`` and ``[[steps]]``: :func:`read_timeline_scene` lays its tables over the model's,
+key by key, and lists what it overrides (``phantom daemon`` says so when it starts). Recalibrating the model
+edits no timeline. A whole scene (``[phantom]``, ``[material]``, ...) with steps still loads as it is.
 
 A step starts at ``at_s`` (seconds from the start of the run) with exactly one target form:
 ``volume_ml`` (the gland's total volume, optionally with ``growth_ratio``), ``chamber_volumes_ml`` (one
@@ -18,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from phantom.model.errors import SceneError
+from phantom.model.scene import BUILTIN_SCENES, Scene, builtin_scene_path, read_scene_toml, scene_from_dict
 from phantom.model.target import Target
 
 #: A target's keys as a scene's step or the API's ``set_target`` states it (the units people see), each with the
@@ -307,3 +315,80 @@ def model_differences(running: dict[str, Any], candidate: dict[str, Any]) -> lis
             running["model"]["pressure_max_kpa"], candidate["model"]["pressure_max_kpa"], rel_tol=1e-9):
         differing.append("model")
     return differing
+
+
+#: The tables of a timeline scene that are its own, not laid over its model's.
+TIMELINE_TABLES = ("model", "timeline", "steps")
+
+
+@dataclass(frozen=True)
+class TimelineScene:
+    """A scene as the daemon plays it: ``scene`` (the model with what the file overrides, its steps and
+    timeline), ``model`` (what the file's ``model =`` names; None for a whole scene) and ``overrides`` (each
+    value the file sets that differs from its model's, ``outputs.shape = true (the model's: false)``)."""
+
+    scene: Scene
+    model: str | None
+    overrides: list[str]
+
+    def describe(self, source: str) -> str:
+        """What the daemon's start line says of the scene."""
+        if self.model is None:
+            return f"the scene {source} (a whole scene: its own model)"
+        said = "; it overrides " + ", ".join(self.overrides) if self.overrides else ", overriding nothing"
+        return f"the scene {source} on its model {self.model}{said}"
+
+
+def read_timeline_scene(source: str | Path) -> TimelineScene:
+    """Read a scene for the daemon: a built-in name, a whole scene file, or a timeline scene naming its model
+    (module docstring). Raises SceneError naming what is wrong."""
+    name = str(source)
+    if name in BUILTIN_SCENES:
+        path = builtin_scene_path(name)
+        return TimelineScene(scene_from_dict(read_scene_toml(path), path), None, [])
+    path = Path(name)
+    raw = read_scene_toml(path)
+    named = raw.get("model")
+    if not isinstance(named, str):
+        return TimelineScene(scene_from_dict(raw, path), None, [])
+    model_path = builtin_scene_path(named) if named in BUILTIN_SCENES else (path.parent / named).resolve()
+    model_raw = read_scene_toml(model_path)
+    if isinstance(model_raw.get("model"), str):
+        raise SceneError(f"{path}: its model {named} names a model itself; name a whole scene (builtin:converged, "
+                         "or a file with [phantom] and [material])")
+    overrides: list[str] = []
+    merged = _laid_over(model_raw, {key: value for key, value in raw.items() if key != "model"}, "", overrides)
+    try:
+        scene = scene_from_dict(merged, model_path)
+    except SceneError as error:
+        raise SceneError(f"{path} on its model {named}: {error}") from error
+    return TimelineScene(dataclasses.replace(scene, path=path), named, overrides)
+
+
+def _laid_over(model: dict[str, Any], scene: dict[str, Any], prefix: str, overrides: list[str]) -> dict[str, Any]:
+    """``scene``'s tables laid over ``model``'s, key by key; each value that differs goes to ``overrides``."""
+    merged = dict(model)
+    for key, value in scene.items():
+        dotted = f"{prefix}{key}"
+        old = model.get(key)
+        if isinstance(value, dict) and isinstance(old, dict):
+            merged[key] = _laid_over(old, value, f"{dotted}.", overrides)
+            continue
+        merged[key] = value
+        if not prefix and key in TIMELINE_TABLES:
+            continue
+        if old != value:
+            overrides.append(f"{dotted} = {_toml_value(value)} (the model's: "
+                             f"{'unset' if key not in model else _toml_value(old)})")
+    return merged
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return repr(value).replace("'", '"')
+
+
+def load_timeline_scene(source: str | Path) -> Scene:
+    """:func:`read_timeline_scene`'s scene."""
+    return read_timeline_scene(source).scene

@@ -27,12 +27,12 @@ from phantom.host.model_worker import ModelWorker
 from phantom.host.motion import Scanner, scan_method
 from phantom.host.recording import Recorder
 from phantom.host.scene_runner import prepare_run
+from phantom.host.scenes import read_timeline_scene
 from phantom.host.session import LinkSession, LinkThread, LinkTiming, Transport
 from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
 from phantom.host.stalls import LoopStalls
 from phantom.host.startup import StartupProgress, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
-from phantom.model import load_scene
 from phantom.model.errors import SceneError
 from phantom.protocol.link import BOOT_DELAY_S
 
@@ -60,7 +60,9 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
         # the recording opens before the model is built: a path another daemon records to, or one that
         # cannot be written, is refused before anything slow
         startup.enter("opening the recording")
-        recorder = Recorder(load_scene(config.scene).chamber_labels, config.rerun_save, config.rerun_connect,
+        timeline = read_timeline_scene(config.scene)
+        early.append(("startup", f"playing {timeline.describe(config.scene)}", "INFO"))
+        recorder = Recorder(timeline.scene.chamber_labels, config.rerun_save, config.rerun_connect,
                             on_problem=lambda text, level: early.append(("recording", text, level)))
         recorder.open()
         closers.append(recorder.close)

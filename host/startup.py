@@ -149,10 +149,11 @@ def _build_in_child(scene_source: str, results: Connection, parent_pid: int) -> 
     os.nice(BUILD_NICENESS)
     started_s = time.monotonic()
     try:
-        from phantom.model import PhantomModel, load_scene
+        from phantom.host.scenes import load_timeline_scene
+        from phantom.model import PhantomModel
         from phantom.model.fidelity.response_table import response_table
 
-        model = PhantomModel.from_scene(load_scene(scene_source))
+        model = PhantomModel.from_scene(load_timeline_scene(scene_source))
         settings = model.model_settings
         table = response_table(model, settings.pressure_max_pa, settings.table_points,
                                progress=lambda done, total: results.send(("progress", done, total)))

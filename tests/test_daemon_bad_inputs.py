@@ -87,7 +87,7 @@ def test_a_scene_file_of_too_many_steps_is_refused_before_it_is_parsed(tmp_path,
 
     def parsed(source):
         raise AssertionError(f"{source} was parsed")
-    monkeypatch.setattr(handlers, "load_scene", parsed)
+    monkeypatch.setattr(handlers, "load_timeline_scene", parsed)
     with pytest.raises(SceneError, match=f"has 20000 steps; a scene may have at most {MAX_STEPS}"):
         handlers.prepare_scene(str(path), 1.0, CHAMBERS, {}, "running.toml")
     fine = tmp_path / "fine.toml"

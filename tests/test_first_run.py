@@ -22,7 +22,7 @@ import pytest
 import phantom
 from phantom.cli.demo import daemon_command, wait_until_ready
 from phantom.host.client import Phantom
-from phantom.host.scenes import example_scene_path
+from phantom.host.scenes import example_scene_path, load_timeline_scene
 from phantom.model.scene import load_scene
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(1500)]
@@ -96,7 +96,7 @@ def play_to_the_first_target(daemon: Phantom, scene_path: Path, first_target_ml:
 
 def test_the_demo_daemon_on_an_empty_cache_under_load_serves_on_its_shipped_table(tmp_path):
     scene_path = example_scene_path("bph_growth")
-    first_target_ml = float(load_scene(str(scene_path)).steps[0]["volume_ml"])
+    first_target_ml = float(load_timeline_scene(scene_path).steps[0]["volume_ml"])
     with demo_daemon_on_an_empty_cache_under_load(tmp_path, scene_path) as (process, log_path, started_s, ready_s):
         with phantom.connect(log_path.parent / "demo.sock") as daemon:
             status = daemon.status()

@@ -57,8 +57,8 @@ def test_the_installed_example_scenes_find_the_table_files_they_name(installed):
     root = installed["root"]
     output = run([str(root / "venv" / "bin" / "python"), "-c",
                   "from phantom.host.scenes import example_scene_path\n"
-                  "from phantom.model import load_scene\n"
-                  "settings = load_scene(example_scene_path('bph_growth')).model_settings\n"
+                  "from phantom.host.scenes import load_timeline_scene\n"
+                  "settings = load_timeline_scene(example_scene_path('bph_growth')).model_settings\n"
                   "print(settings.table_volumes.is_file(), settings.table_shapes.is_file(), settings.table_shapes)"],
                  cwd=root, env=user_env(root))
     assert output.split()[:2] == ["True", "True"] and "site-packages/phantom/model/scenes" in output, output

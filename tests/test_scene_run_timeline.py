@@ -7,11 +7,13 @@ from phantom import PhantomError
 from phantom.host.scenes import (
     example_scene_path,
     gland_volume_ml,
+    load_timeline_scene,
     parse_target,
     parse_timeline,
+    read_timeline_scene,
 )
 from phantom.model.errors import SceneError
-from phantom.model.scene import read_scene_toml
+from phantom.model.scene import builtin_scene_path, read_scene_toml
 from phantom.model.target import Target
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
@@ -89,7 +91,7 @@ def test_steps_must_be_an_array_of_tables():
 
 def test_the_shipped_bph_scene_goes_through_the_papers_targets_over_minutes():
     # the paper's targets, the first just above the model's rest volume (26.30 ml) instead of 26 ml
-    raw = read_scene_toml(example_scene_path("bph_growth"))
+    raw = load_timeline_scene(example_scene_path("bph_growth")).raw
     line = parse_timeline(raw["steps"], raw["phantom"]["chambers"], "bph_growth")
     volumes = [gland_volume_ml(step.target) for step in line.steps]
     assert volumes == [26.5, 30, 35, 40, 45]
@@ -98,10 +100,59 @@ def test_the_shipped_bph_scene_goes_through_the_papers_targets_over_minutes():
 
 
 def test_the_shipped_lopsided_scene_grows_one_lobe_more():
-    raw = read_scene_toml(example_scene_path("lopsided"))
+    raw = load_timeline_scene(example_scene_path("lopsided")).raw
     line = parse_timeline(raw["steps"], raw["phantom"]["chambers"], "lopsided")
     ratios = [dict(step.target.growth_ratio) for step in line.steps if step.target.growth_ratio]
     assert ratios[0][1] == 2 * ratios[0][2]
+
+
+def test_the_example_scenes_name_their_model_and_hold_no_material_or_geometry():
+    """Issue 35: the example scenes copied the model's E, geometry and tables, so every recalibration edited the
+    timelines. Now they name their model; recalibrating builtin:converged edits no timeline."""
+    from pathlib import Path
+
+    from phantom import host
+
+    scenes = sorted((Path(host.__file__).parent / "scenes").glob("*.toml"))
+    assert [path.stem for path in scenes] == ["bph_growth", "lopsided"]
+    for path in scenes:
+        raw = read_scene_toml(path)
+        assert raw["model"] == "builtin:converged", path
+        assert not {"phantom", "material", "geometry", "load"} & raw.keys(), path
+        scene = read_timeline_scene(path)
+        assert scene.scene.material == load_timeline_scene("builtin:converged").material
+        assert scene.overrides == (["outputs.shape = true (the model's: false)"] if path.stem == "bph_growth"
+                                   else [])
+
+
+def test_a_timeline_scene_lays_its_tables_over_its_model_and_says_what_it_overrides(tmp_path):
+    (tmp_path / "models").mkdir()
+    model_path = tmp_path / "models" / "stiff.toml"
+    model_path.write_text(builtin_scene_path("builtin:converged").read_text().replace(
+        "youngs_modulus_kpa = 10.85573", "youngs_modulus_kpa = 12.0"))
+    path = tmp_path / "grow.toml"
+    path.write_text('model = "models/stiff.toml"\n[material]\ngent_jm = 4.0\nyoungs_modulus_kpa = 12.0\n'
+                    "[timeline]\nend_s = 5\n[[steps]]\nat_s = 0\nvolume_ml = 30\n")
+    read = read_timeline_scene(path)
+    assert read.model == "models/stiff.toml" and read.scene.path == path
+    assert read.scene.material.gent_jm == 4.0 and read.scene.material.youngs_modulus_pa == pytest.approx(12e3)
+    assert read.overrides == ["material.gent_jm = 4.0 (the model's: 5.0)"]    # the same E is no override
+    assert read.scene.geometry == load_timeline_scene("builtin:converged").geometry
+    assert read.scene.steps == [{"at_s": 0, "volume_ml": 30}]
+    assert "on its model models/stiff.toml; it overrides material.gent_jm = 4.0" in read.describe("grow.toml")
+
+
+def test_a_timeline_scene_whose_model_is_missing_or_names_a_model_is_refused(tmp_path):
+    path = tmp_path / "grow.toml"
+    path.write_text('model = "nowhere.toml"\n[[steps]]\nat_s = 0\nvolume_ml = 30\n')
+    with pytest.raises(SceneError, match="nowhere.toml does not exist"):
+        read_timeline_scene(path)
+    (tmp_path / "nowhere.toml").write_text('model = "builtin:converged"\n')
+    with pytest.raises(SceneError, match="names a model itself; name a whole scene"):
+        read_timeline_scene(path)
+    (tmp_path / "nowhere.toml").write_text("[material]\nmodel = 'gent'\n")
+    with pytest.raises(SceneError, match=r"grow.toml on its model nowhere.toml: .*\[phantom\] table is missing"):
+        read_timeline_scene(path)
 
 
 def test_missing_or_broken_scene_files_say_so(tmp_path):
@@ -128,7 +179,7 @@ def test_the_shipped_scenes_use_the_calibrated_model_and_every_target_is_reachab
     # The scene's fidelity ("table": the Gent model's response, solved on a grid, its volumes shipped with the
     # model) answers with no solve.
     assert controller.estimator.level == "table"
-    raw = read_scene_toml(example_scene_path(name))
+    raw = controller.scene.raw
     answers = []
     for step in parse_timeline(raw["steps"], raw["phantom"]["chambers"], name).steps:
         answer = controller.pressures_for(step.target)
@@ -192,9 +243,8 @@ def default_model(default_model_cached):
 @pytest.mark.parametrize("name", ["bph_growth", "lopsided"])
 def test_the_shipped_scenes_run_on_a_daemon_started_with_its_defaults(default_model, name):
     from phantom.host.scenes import effective_model, model_differences
-    from phantom.model import load_scene
 
-    scene = load_scene(example_scene_path(name))
+    scene = load_timeline_scene(example_scene_path(name))
     assert model_differences(default_model.effective_model(), effective_model(scene)) == []
 
 
@@ -212,11 +262,13 @@ def test_a_scene_for_another_model_is_told_apart(default_model, tmp_path, change
     from phantom.host.scenes import effective_model, model_differences
     from phantom.model import load_scene
 
-    text = example_scene_path("bph_growth").read_text()
+    # a whole scene that copies the model's values (as the example scenes did) still loads, and is told apart
+    timeline = "[timeline]" + example_scene_path("bph_growth").read_text().split("[timeline]", 1)[1]
+    text = load_scene("builtin:converged").path.read_text() + "\n" + timeline
     assert change[0] in text
     path = tmp_path / "changed.toml"
     path.write_text(text.replace(change[0], change[1]))
-    assert model_differences(default_model.effective_model(), effective_model(load_scene(path))) == differing
+    assert model_differences(default_model.effective_model(), effective_model(load_timeline_scene(path))) == differing
 
 
 @pytest.mark.slow

@@ -247,12 +247,10 @@ def _hold_until_settled(link: BoardLink, point_kpa: list[float], tolerance_kpa: 
 
     from phantom import PhantomError
     from phantom.hil import bench
-    from phantom.host.control import ReachRule, Settling
+    from phantom.host.control import SETTLED, ReachRule, Settling
 
-    rule = ReachRule()
-    rule = ReachRule(settled_kpa=rule.settled_kpa if tolerance_kpa is None else tolerance_kpa,
-                     settled_for_s=rule.settled_for_s if settle_s is None else settle_s)
-    tolerance_kpa = rule.settled_kpa
+    rule = ReachRule(settled_kpa=SETTLED.settled_kpa if tolerance_kpa is None else tolerance_kpa,
+                     settled_for_s=SETTLED.settled_for_s if settle_s is None else settle_s)
     setpoints_pa = [int(round(value * 1e3)) for value in point_kpa]
     bench.set_setpoints(link, setpoints_pa)
     settling = Settling(rule)
@@ -263,7 +261,7 @@ def _hold_until_settled(link: BoardLink, point_kpa: list[float], tolerance_kpa: 
 
     if bench.wait_board_time(link, SETTLE_TIMEOUT_S, settled) is None:
         raise PhantomError(f"the pressures ({', '.join(f'{p:g}' for p in point_kpa)}) kPa did not settle within "
-                           f"{tolerance_kpa} kPa in {SETTLE_TIMEOUT_S:g} s of board time: check for leaks")
+                           f"{rule.settled_kpa:g} kPa in {SETTLE_TIMEOUT_S:g} s of board time: check for leaks")
     held_pa: np.ndarray = np.mean([bench.latest_telemetry(link)["pressure_pa"] for _ in range(5)], axis=0)
     return held_pa / 1e3
 

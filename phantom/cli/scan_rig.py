@@ -313,8 +313,8 @@ def run_validate(args: Any) -> int:
     from phantom.cli.scan import load_rig
     from phantom.hil.truth_shape import TruthShape
     from phantom.host.client import DaemonClient
-    from phantom.host.scenes import example_scene_path
-    from phantom.model import PhantomModel, load_scene
+    from phantom.host.scenes import example_scene_path, load_timeline_scene
+    from phantom.model import PhantomModel
     from phantom.model.mesh.surface import TriangleMesh, model_surface
     from phantom.scan.calibrate import calibrate_rig, target_views
     from phantom.scan.camera import virtual_rig
@@ -351,7 +351,7 @@ def run_validate(args: Any) -> int:
         say(f"rig calibrated: reprojection RMS {rig.calibration['rms_px']:.3f} px")
     to_truth = frame_map(rig, true_rig, elevations[0])
     truth = TruthShape()
-    controller = PhantomModel.from_scene(load_scene(scene))
+    controller = PhantomModel.from_scene(load_timeline_scene(scene))
     socket = out / "daemon.sock"
     command = [str(Path(sys.executable).with_name("phantom")), "daemon", "--sim", "--scene", scene, "--socket",
                str(socket), "--sim-speed", f"{args.sim_speed:g}"]
