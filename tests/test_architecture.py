@@ -269,3 +269,110 @@ def test_every_path_the_architecture_page_names_exists():
     assert not missing, f"docs/architecture.md names paths that do not exist: {missing}"
     landed = sorted(path for path in PENDING if any(REPO.glob(path.rstrip("/"))))
     assert not landed, f"these pending paths exist now: delete them from PENDING in {Path(__file__).name}: {landed}"
+
+
+# --- the page names every module, and the functions its data path cites exist ---------------------------------
+
+#: The folders of the parts' Python modules (the root's and the CLI's are phantom/).
+MODULE_FOLDERS = ("phantom", "protocol", "model", "scan", "shape", "host", "hil")
+#: A function, class or module the page cites: a dotted name in backticks under ``phantom.``.
+CITED = re.compile(r"`(phantom(?:\.\w+)+)`")
+
+
+def modules_of(repo: Path) -> list[str]:
+    """Every Python module of the parts, as the page writes it (``host/control.py``); a package's
+    ``__init__.py`` only for the root."""
+    found = []
+    for folder in MODULE_FOLDERS:
+        for path in sorted((repo / folder).rglob("*.py")):
+            relative = path.relative_to(repo).as_posix()
+            if "__pycache__" in path.parts or (path.name == "__init__.py" and relative != "phantom/__init__.py"):
+                continue
+            found.append(relative)
+    return found
+
+
+def modules_without_a_line(text: str, modules: list[str]) -> list[str]:
+    """The modules the page's "The modules" tables give no row (a row starts with the module in backticks)."""
+    rows = set(re.findall(r"^\| `([\w/.]+\.py)` \|", text, re.MULTILINE))
+    return [module for module in modules if module not in rows]
+
+
+def source_of(dotted: str, repo: Path) -> tuple[Path, list[str]] | None:
+    """The file a dotted name under ``phantom.`` lives in and the names left inside it (``phantom.host.control.
+    ControlCore.offer`` -> host/control.py, [ControlCore, offer]); None when no module matches."""
+    names = dotted.split(".")[1:]
+    folders = {"cli": repo / "phantom" / "cli"} | {part: repo / part for part in MODULE_FOLDERS if part != "phantom"}
+    if not names or names[0] not in folders:
+        return (repo / "phantom" / "__init__.py", names)
+    base = folders[names[0]]
+    for split in range(len(names), 0, -1):
+        folder = base.joinpath(*names[1:split])
+        for candidate in ([folder.with_suffix(".py")] if split > 1 else []) + [folder / "__init__.py"]:
+            if candidate.is_file():
+                return (candidate, names[split:])
+    return None
+
+
+def _defines(body: list[ast.stmt], name: str) -> ast.stmt | None:
+    for node in body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)) and node.name == name:
+            return node
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(
+            node, ast.AnnAssign) else []
+        if any(isinstance(target, ast.Name) and target.id == name for target in targets):
+            return node
+    return None
+
+
+def unresolved(text: str, repo: Path) -> list[str]:
+    """The names the page cites in backticks (``phantom.x.y.Name.attr``) that name no module, function, class,
+    method or module-level value in the source (read with ``ast``: nothing is imported)."""
+    missing = []
+    for dotted in sorted(set(CITED.findall(text))):
+        found = source_of(dotted, repo)
+        if found is None:
+            missing.append(dotted)
+            continue
+        path, names = found
+        body: list[ast.stmt] = ast.parse(path.read_text()).body
+        for name in names:
+            node = _defines(body, name)
+            if node is None:
+                missing.append(dotted)
+                break
+            body = node.body if isinstance(node, ast.ClassDef) else []
+    return missing
+
+
+def test_the_architecture_page_names_every_module():
+    missing = modules_without_a_line((REPO / "docs" / "architecture.md").read_text(), modules_of(REPO))
+    assert not missing, ("docs/architecture.md has no line for these modules: add a row `| `PATH` | what it holds |` "
+                         f"to its part's table under \"The modules\": {missing}")
+
+
+def test_a_module_left_out_of_the_page_is_named(tmp_path):
+    (tmp_path / "host").mkdir()
+    for name in ("__init__.py", "control.py", "corrections.py"):
+        (tmp_path / "host" / name).write_text('"""x"""\n')
+    page = "| host | what it holds |\n|---|---|\n| `host/control.py` | the control core |\n"
+    assert modules_of(tmp_path) == ["host/control.py", "host/corrections.py"]
+    assert modules_without_a_line(page, modules_of(tmp_path)) == ["host/corrections.py"]
+
+
+def test_every_function_the_architecture_page_cites_exists():
+    text = (REPO / "docs" / "architecture.md").read_text()
+    assert len(set(CITED.findall(text))) >= 20
+    missing = unresolved(text, REPO)
+    assert not missing, f"docs/architecture.md cites names the source does not define: {missing}"
+
+
+def test_a_cited_function_that_does_not_exist_is_named(tmp_path):
+    (tmp_path / "host").mkdir()
+    (tmp_path / "host" / "daemon.py").write_text(
+        "LIMIT = 1\n\nclass Daemon:\n    ready: bool\n\n    async def set_target(self):\n        pass\n")
+    page = ("`phantom.host.daemon.Daemon.set_target` `phantom.host.daemon.Daemon.ready` `phantom.host.daemon.LIMIT` "
+            "`phantom.host.daemon.Daemon.apply_target` `phantom.host.daemon` `phantom.host.nothing.f` "
+            "`phantom.host.daemon.Daemon.set_target.inner`")
+    assert unresolved(page, tmp_path) == ["phantom.host.daemon.Daemon.apply_target",
+                                          "phantom.host.daemon.Daemon.set_target.inner", "phantom.host.nothing.f"]
