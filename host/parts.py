@@ -1,5 +1,5 @@
 """What the daemon needs of each of its parts, as Protocols (the recording, the board's link session, the model),
-and its control state, which the API's handlers move too.
+and the control state, which the control core (host/control.py) holds.
 
 The daemon is built from real parts (:class:`phantom.host.recording.Recorder`,
 :class:`phantom.host.session.LinkSession`, :class:`phantom.host.model_worker.ModelWorker`); a unit test of its

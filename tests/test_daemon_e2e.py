@@ -303,7 +303,7 @@ def test_sigterm_vents_and_closes_the_recording(rig):
     process.send_signal(signal.SIGTERM)
     assert process.wait(20) == 0
     log = daemon_log(rig)
-    assert "vented on shutdown" in log
+    assert "vented: on shutdown" in log
     time.sleep(1.0)
     plant = board.plant_state()
     assert plant["drive_levels"] == [0, 0, 0]
@@ -330,7 +330,7 @@ def test_the_recording_holds_what_was_logged(rig):
     assert len(entities["/solver/qp_time_ms"]["Scalars:scalars"]) >= 3
     texts = [values[0] for values in entities["/events"]["TextLog:text"]]
     for expected in ("link up", "link lost", "link restored", "scene", "SENSOR_1", "faults cleared on request",
-                     "vented on shutdown", "daemon stopped"):
+                     "vented: on shutdown", "daemon stopped"):
         assert any(expected in text for text in texts), expected
     assert texts[-1] == "daemon stopped"
     mesh = entities["/phantom/mesh"]

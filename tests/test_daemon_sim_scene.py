@@ -70,7 +70,7 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path, default_model_cached):
         code = process.wait(30)
         log.close()
     text = Path(log.name).read_text()
-    assert code == 0 and "vented on shutdown" in text, text
+    assert code == 0 and "vented: on shutdown" in text, text
     assert "starting the simulated board" in text
     assert "the simulated board (simavr) died: restarting it" in text
     # no mesh in the recording either
