@@ -43,7 +43,7 @@ from phantom.host.sim_board import SimulatedBoardKeeper
 from phantom.host.stalls import LoopStalls
 from phantom.host.startup import BackgroundTable, StartupProgress, notify_systemd
 from phantom.host.status import daemon_status
-from phantom.host.zeroing import SensorZero
+from phantom.host.zeroing import ZEROING_WHY, SensorZero
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
@@ -291,7 +291,8 @@ class Daemon:
         if idle and self.config.zero_on_connect:
             if not self.ready:
                 self.startup.enter("zeroing the pressure sensors (the phantom is vented)")
-            self._feed(self.core.zeroing, "waiting for the board")  # targets wait for the zero from now on
+            # targets wait for the zero from now on
+            self._feed(self.core.zeroing, ZEROING_WHY)
             self.spawn(self.zero.after_connecting()).add_done_callback(lambda _: self._became_ready())
             return
         self._became_ready()

@@ -23,6 +23,9 @@ from phantom.host.session import CommandRejected, LinkDown, Telemetry
 ZERO_SETTLE_LIMIT_S = 60.0
 #: How often the wait looks at the readings (s); the board is asked again at least every four of these.
 ZERO_RETRY_S = 0.5
+#: Why targets wait while a zero is in progress (one reason for the whole zero: the targets that wait say it once;
+#: its progress is the status's ``zero``).
+ZEROING_WHY = "ZERO_SENSORS once the readings are still (phantom status shows how far)"
 #: Why the board refuses ZERO_SENSORS, by NACK status (protocol/spec.toml); other statuses are named as such.
 ZERO_REFUSALS: dict[str, str] = {
     "NOT_VENTED": "a setpoint or a blower is on: vent first (phantom vent) and wait for the chambers to empty",
@@ -66,7 +69,7 @@ class SensorZero:
         to ``settle_limit_s`` seconds, each time the readings have been still for as long as the board needs.
         Raises ApiError ``rejected`` saying why the board refused, ``link_down`` without a board."""
         self._done.clear()
-        self._on_zeroing("waiting for the board")
+        self._on_zeroing(ZEROING_WHY)
         give_up_s = time.monotonic() + settle_limit_s
         try:
             while True:
@@ -97,7 +100,6 @@ class SensorZero:
             self.state = {"state": "waiting", "text": "waiting for the chambers to be still before zeroing "
                           f"(still for {still.still_for_s:.1f} of {still.needed_s:g} s; moved {still.moved_pa:.0f} Pa)",
                           "still_for_s": still.still_for_s, "needed_s": still.needed_s}
-            self._on_zeroing(str(self.state["text"]))
             if still.still or time.monotonic() - asked_s >= ZERO_RETRY_S * 4:
                 return
             await asyncio.sleep(ZERO_RETRY_S)

@@ -63,16 +63,18 @@ fidelity = "rest"
 pressure_max_kpa = 3.0
 """
 
+#: Each step is held long enough to be reached by the daemon's rule (host/control.py: the pressures settled for
+#: 1 s, then the estimate within 1 %) at the test's time scale 1.5.
 SHORT_SCENE = SCENE + """
 [timeline]
-end_s = 12
+end_s = 15
 
 [[steps]]
 at_s = 0
 volume_ml = 30
 
 [[steps]]
-at_s = 5
+at_s = 7
 ramp_s = 2
 volume_ml = 32
 """
