@@ -273,10 +273,11 @@ class ControlCore:
         return actions
 
     def next_deadline(self) -> float | None:
-        """When :meth:`tick` has something to do at the latest (a retry), or None."""
-        if self.target is not None and self.applied != self.target and self._retry_after_s > -np.inf:
-            return float(self._retry_after_s)
-        return None
+        """When :meth:`tick` has something to do (a retry that nothing else holds back), or None."""
+        if (self.target is None or self.applied == self.target or self._retry_after_s == -np.inf or self.busy
+                or self.solving or self._why_not_now() is not None):
+            return None
+        return float(self._retry_after_s)
 
     @property
     def busy(self) -> bool:
@@ -530,6 +531,7 @@ class ControlCore:
             return
         if now < self._retry_after_s or target == self._unreachable or self._solving is not None:
             return
+        self._retry_after_s = -np.inf  # due: tried now
         answer = self.answer
         if answer is not None and answer.target == target:
             self._send(now, target, answer)

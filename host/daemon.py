@@ -320,7 +320,12 @@ class Daemon:
             except Exception as error:  # one bad tick must not end control; it is shown to people and logged
                 logger.exception("control tick failed")
                 self.event("internal", f"control tick failed: {type(error).__name__}: {error}", "ERROR")
-            await asyncio.sleep(max(0.0, period_s - (time.monotonic() - started)))
+            # the next period, or sooner when the core has something due (a retry)
+            deadline_s = self.core.next_deadline()
+            wait_s = period_s - (time.monotonic() - started)
+            if deadline_s is not None:
+                wait_s = min(wait_s, deadline_s - self.clock())
+            await asyncio.sleep(max(0.0, wait_s))
 
     def control_tick(self) -> None:
         """One control period: the recording's health, the board's state and the scene's target to the core, its

@@ -259,7 +259,10 @@ def test_a_send_that_failed_is_tried_again_after_the_retry_time(core):
     assert core.take_actions() == []
     core.tick(0.7)
     assert [type(action) for action in core.take_actions()] == [control.SendSetpoints]
-
+    assert core.next_deadline() is None                     # tried: nothing due until it is answered
+    core.send_failed(0.8, target, False, "no ACK after 5 sends")
+    core.board(0.9, False, "the link is silent")
+    assert core.next_deadline() is None                     # the board holds it back, not the clock
 
 def test_a_solve_that_failed_is_tried_again_after_the_retry_time(core):
     core.scene_started(0.0)
