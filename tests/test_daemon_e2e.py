@@ -64,17 +64,18 @@ pressure_max_kpa = 3.0
 """
 
 #: Each step is held long enough to be reached by the daemon's rule (host/control.py: the pressures settled for
-#: 1 s, then the estimate within 1 %) at the test's time scale 1.5.
+#: 1 s, then the estimate within 1 %) at the test's time scale 1.5: step 0 deflates from the 32 ml the earlier
+#: tests held, and a chamber's pressure falls to its setpoint more slowly than the blowers raise it.
 SHORT_SCENE = SCENE + """
 [timeline]
-end_s = 15
+end_s = 18
 
 [[steps]]
 at_s = 0
 volume_ml = 30
 
 [[steps]]
-at_s = 7
+at_s = 10
 ramp_s = 2
 volume_ml = 32
 """
