@@ -311,8 +311,9 @@ class ControlCore:
              ramp: tuple[Target, Target] | None = None) -> None:
         """Aim at ``target`` (a scene's, while the state is ``scene``): applied as soon as the board can take it."""
         if target == self.target and source == self.source:
+            ramp_ended = self.ramp is not None and ramp is None
             self.step, self.ramp = step, ramp
-            if self.applied == target:
+            if ramp_ended and self.applied == target:
                 self._start_reach(now)  # a ramp that ends on the point it last sent
             return
         self._set_target(now, target, source, step, ramp, None)

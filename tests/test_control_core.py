@@ -205,7 +205,10 @@ def test_a_scene_target_is_solved_then_sent_and_its_step_applied_and_reached(cor
     assert isinstance(send, control.SendSetpoints)
     core.sent(0.3, target)
     assert control.StepApplied(0) in core.take_actions()
-    actions = settle(core, 0.3, 1.1, estimate_ml=30.1)
+    actions = []
+    for now in np.arange(0.3, 1.45, 0.1):  # the driver gives the step in force at every control tick
+        core.want(float(now), target, "scene:s", step=0)
+        actions += settle(core, float(now), 0.0, estimate_ml=30.1)
     assert control.StepReached(0) in actions and outcomes(actions) == ["reached"]
 
 
