@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError
+from phantom.model.corrections import trilinear
 
 #: The shipped plant parameter file.
 DEFAULT_PLANT_PATH = Path(__file__).resolve().parent / "plant.toml"
@@ -418,55 +419,11 @@ def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODU
 
 #: The physical phantom's measured gland volumes (the paper's Table I), which the shipped truth passes through.
 MEASURED_VOLUMES_PATH = Path(__file__).resolve().parent.parent / "model" / "data" / "forward_measurements.csv"
-#: Through the measurements, each chamber keeps at least this fraction of the model's own growth per kPa, and the
-#: gland this fraction of the model's: the phantom stays a phantom that swells with every pressure (the
-#: pneumatic plant needs each chamber's compliance positive), however the residual bends.
-MIN_GROWTH_FRACTION = 0.3
-
-
-def _axis_differences(n: int, axis: int, order: int) -> Any:
-    """The sparse operator of forward differences (``order`` 1 or 2) along ``axis`` of an (n, n, n) grid in C
-    order."""
-    import scipy.sparse as sparse
-
-    index = np.arange(n ** 3).reshape(n, n, n)
-    coefficients = (-1.0, 1.0) if order == 1 else (1.0, -2.0, 1.0)
-    rows, columns, values = [], [], []
-    row = 0
-    for cell in np.ndindex(n, n, n):
-        if cell[axis] + order >= n:
-            continue
-        for step, value in enumerate(coefficients):
-            shifted = list(cell)
-            shifted[axis] += step
-            rows.append(row)
-            columns.append(index[tuple(shifted)])
-            values.append(value)
-        row += 1
-    return sparse.csr_matrix((values, (rows, columns)), shape=(row, n ** 3))
-
-
-def _trilinear_weights(points_kpa: np.ndarray, pressures_kpa: np.ndarray) -> np.ndarray:
-    """The weights of the (n, n, n) grid's values (C order) whose sum is :func:`trilinear` at the pressures."""
-    n = len(points_kpa)
-    weights = np.zeros(n ** 3)
-    for flat in range(n ** 3):
-        unit = np.zeros(n ** 3)
-        unit[flat] = 1.0
-        weights[flat] = float(trilinear(unit.reshape(n, n, n), points_kpa, pressures_kpa))
-    return weights
-
-
 def truth_through_measurements(table: TruthTable, pressures_kpa: ArrayLike, volumes_ml: ArrayLike,
                                source: str = "the measurements") -> TruthTable:
-    """The truth table plus the smoothest residual that takes its gland volume through measured volumes.
-
-    Each chamber's air volume gets its own residual on the table's grid, zero while that chamber is not inflated
-    (the measured excess of a chamber's growth is that chamber's), and the gland's residual is their sum plus one
-    constant (the rest volume's difference: silicone, not air). Among the residuals whose gland volume, as the
-    plant interpolates it, equals every measurement and that keep each chamber's and the gland's growth along
-    every pressure at least MIN_GROWTH_FRACTION of the model's, the one with the least squared second (and,
-    lightly, first) differences along every axis: a quadratic programme (OSQP).
+    """The truth table plus the smoothest residual field that takes its gland volume, as the plant interpolates
+    it, through measured volumes (:func:`phantom.model.corrections.smoothest_residual`: per chamber, zero while
+    the chamber is not inflated, every chamber's and the gland's growth kept positive).
 
     Raises
     ------
@@ -474,65 +431,57 @@ def truth_through_measurements(table: TruthTable, pressures_kpa: ArrayLike, volu
         When the measurements cannot be met so (two that contradict the growth's sign), or a pressure is
         negative or beyond the table's grid.
     """
-    import osqp
-    import scipy.sparse as sparse
+    from phantom.model.corrections import CorrectionError, smoothest_residual
 
     points = np.asarray(table.points_kpa, dtype=float)
     pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
     measured = np.asarray(volumes_ml, dtype=float).ravel()
-    if pressures.shape != (len(measured), N_CHAMBERS) or not np.all(np.isfinite(pressures)):
-        raise PlantError(f"the truth's measurements need {N_CHAMBERS} finite pressures per volume, got "
-                         f"{pressures.shape[0]} rows of {pressures.shape[1]} for {len(measured)} volumes")
-    if np.any(pressures < 0) or np.any(pressures > points[-1]):
-        raise PlantError(f"the truth's measurements must lie on the truth table's grid, 0-{points[-1]:g} kPa")
-    n = len(points)
-    cells = n ** 3
-    size = N_CHAMBERS * cells + 1            # each chamber's residual, then the rest volume's constant
-
-    def on_chamber(chamber: int, operator: Any) -> Any:
-        blocks = [sparse.csr_matrix((operator.shape[0], cells)) for _ in range(N_CHAMBERS)]
-        blocks[chamber] = operator
-        return sparse.hstack([*blocks, sparse.csr_matrix((operator.shape[0], 1))])
-
-    roughness = sparse.vstack([on_chamber(chamber, weight * _axis_differences(n, axis, order))
-                               for chamber in range(N_CHAMBERS) for axis in range(N_CHAMBERS)
-                               for order, weight in ((2, 1.0), (1, 0.3))])
-    rows, lower, upper = [], [], []
-    grid = np.stack(np.meshgrid(*[np.arange(n)] * N_CHAMBERS, indexing="ij"), -1).reshape(-1, N_CHAMBERS)
-    for chamber in range(N_CHAMBERS):
-        uninflated = np.flatnonzero(grid[:, chamber] == 0)
-        rows.append(on_chamber(chamber, sparse.identity(cells, format="csr")[uninflated]))
-        lower += [0.0] * len(uninflated)
-        upper += [0.0] * len(uninflated)
-    for pressure, volume in zip(pressures, measured, strict=True):
-        weights = _trilinear_weights(points, pressure)
-        rows.append(sparse.csr_matrix(np.concatenate([np.tile(weights, N_CHAMBERS), [1.0]])))
-        gap = volume - float(weights @ table.gland_volume_ml.ravel())
-        lower.append(gap)
-        upper.append(gap)
-    for axis in range(N_CHAMBERS):
-        difference = _axis_differences(n, axis, 1)
-        own_growth = difference @ table.chamber_volume_ml[..., axis].ravel()
-        rows.append(on_chamber(axis, difference))
-        lower += list(-(1 - MIN_GROWTH_FRACTION) * own_growth)
-        upper += [np.inf] * len(own_growth)
-        gland_growth = difference @ table.gland_volume_ml.ravel()
-        rows.append(sparse.hstack([difference] * N_CHAMBERS + [sparse.csr_matrix((difference.shape[0], 1))]))
-        lower += list(-(1 - MIN_GROWTH_FRACTION) * gland_growth)
-        upper += [np.inf] * len(gland_growth)
-    solver = osqp.OSQP()
-    solver.setup((roughness.T @ roughness + 1e-9 * sparse.identity(size)).tocsc(), np.zeros(size),
-                 sparse.vstack(rows).tocsc(), np.array(lower), np.array(upper), verbose=False, eps_abs=1e-8,
-                 eps_rel=1e-8, max_iter=100000, polishing=True)
-    result = solver.solve(raise_error=False)
-    if result.info.status not in ("solved", "solved inaccurate") or result.x is None:
-        raise PlantError(f"no residual takes the truth through the volumes of {source} while every chamber and "
-                         f"the gland keep growing with their pressures ({result.info.status}): check the measurements")
-    residual = np.stack([result.x[c * cells:(c + 1) * cells].reshape(n, n, n) for c in range(N_CHAMBERS)], -1)
-    return TruthTable(table.points_kpa, table.chamber_volume_ml + residual,
-                      table.gland_volume_ml + residual.sum(axis=-1) + result.x[-1],
+    if pressures.shape != (len(measured), N_CHAMBERS):
+        raise PlantError(f"the truth's measurements need {N_CHAMBERS} pressures per volume, got {pressures.shape[0]} "
+                         f"rows of {pressures.shape[1]} for {len(measured)} volumes")
+    try:
+        gaps = [volume - float(trilinear(table.gland_volume_ml, points, pressure))
+                for pressure, volume in zip(pressures, measured, strict=True)]
+        residual = smoothest_residual(points, table.chamber_volume_ml, table.gland_volume_ml, pressures, gaps,
+                                      f"the truth's measurements ({source})")
+    except CorrectionError as error:
+        raise PlantError(str(error)) from None
+    return TruthTable(table.points_kpa, table.chamber_volume_ml + residual.chamber_ml,
+                      table.gland_volume_ml + residual.gland_ml,
                       f"{table.description}, plus the smoothest residual through {len(measured)} measured volumes "
                       f"of {source}")
+
+
+#: Bumped when what a cached truth plant holds changes.
+TRUTH_PLANT_VERSION = 1
+
+
+def truth_plant_path(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR, workers: int | None = None,
+                     progress: Callable[[int, int], None] | None = None) -> Path:
+    """A plant file whose simulated phantom is ``scene`` at ``modulus_factor`` x its modulus: the shipped plant
+    with the scene's chambers at rest (:func:`chambers_from_scene`) and its truth table
+    (:func:`truth_table_from_scene`, 64 solves, told to ``progress``), built on first use and cached (keyed by
+    the scene's content, the factor and the shipped plant) in the cache folder ``truth-plants``."""
+    import hashlib
+    import json
+
+    from phantom import cache_dir, written_atomically
+    from phantom.model import load_scene
+
+    if not (math.isfinite(modulus_factor) and 0.1 <= modulus_factor <= 10):
+        raise PlantError(f"the truth's modulus factor must be a number from 0.1 to 10, got {modulus_factor!r}")
+    loaded = load_scene(scene)
+    key = hashlib.sha256(json.dumps({"scene": loaded.raw, "modulus_factor": modulus_factor,
+                                     "plant": DEFAULT_PLANT_PATH.read_text(), "version": TRUTH_PLANT_VERSION},
+                                    sort_keys=True, default=str).encode()).hexdigest()[:20]
+    path = cache_dir("truth-plants") / f"{key}.toml"
+    if path.exists():
+        return path
+    with written_atomically(path, PlantError) as temporary:
+        temporary.write_text(DEFAULT_PLANT_PATH.read_text())
+        write_chambers(chambers_from_scene(scene), temporary)
+        write_truth(truth_table_from_scene(scene, modulus_factor, workers, progress), temporary)
+    return path
 
 
 def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParameters:
@@ -557,20 +506,3 @@ def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParam
     plant = _plant_from_text(text, path)
     path.write_text(text)
     return plant
-
-
-def trilinear(table: np.ndarray, points_kpa: ArrayLike, pressures_kpa: Sequence[float] | np.ndarray) -> np.ndarray:
-    """The table (n, n, n, ...) at pressures (kPa, one per chamber), trilinear inside, the edge cell's linear
-    extension outside (as plant.c does)."""
-    points = np.asarray(points_kpa, dtype=float)
-    cells, weights = [], []
-    for pressure in pressures_kpa:
-        cell = int(np.clip(np.searchsorted(points, pressure, side="right") - 1, 0, len(points) - 2))
-        cells.append(cell)
-        weights.append((pressure - points[cell]) / (points[cell + 1] - points[cell]))
-    value = 0.0
-    for corner in np.ndindex(2, 2, 2):
-        weight = np.prod([w if c else 1.0 - w for c, w in zip(corner, weights, strict=True)])
-        value = value + weight * table[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]
-    return np.asarray(value)
-
