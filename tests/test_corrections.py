@@ -215,3 +215,16 @@ def test_the_command_line_lists_adds_exports_and_clears(store, tmp_path, capsys)
     assert store.entries() == []
     assert main(["corrections", "add", "--pressures-kpa", "1,1", "--volume-ml", "-3"]) == 2
     assert "measured volume must be a finite number of ml above 0" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_corrections_fit_reports_each_candidates_leave_one_out(store, capsys):
+    for pressures, volume in (((1, 1, 1), 29.96), ((2, 0, 0), 32.36), ((0, 0, 2), 31.20)):
+        store.add(Measurement.now(pressures, volume))
+    assert main(["corrections", "fit", "--phantom", "bench-phantom"]) == 0
+    out = capsys.readouterr().out
+    assert "3 measurement(s) of phantom 'bench-phantom'; the model builtin:converged misses them by" in out
+    assert "leave-one-out (mean abs error of the volume left out): offset" in out
+    assert "correction in force: offset" in out   # three points: the offset leaves the others out best
+    assert main(["corrections", "fit", "--phantom", "nobody"]) == 2
+    assert "no measurements to correct the model with: scan the phantom first" in capsys.readouterr().err
