@@ -21,7 +21,7 @@ from __future__ import annotations
 import math
 import re
 import tomllib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError
+from phantom.model.corrections import trilinear
 
 #: The shipped plant parameter file.
 DEFAULT_PLANT_PATH = Path(__file__).resolve().parent / "plant.toml"
@@ -416,6 +417,73 @@ def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODU
     return TruthTable(TRUTH_POINTS_KPA, 1e6 * table.chamber_values, 1e6 * table.gland_values, description)
 
 
+#: The physical phantom's measured gland volumes (the paper's Table I), which the shipped truth passes through.
+MEASURED_VOLUMES_PATH = Path(__file__).resolve().parent.parent / "model" / "data" / "forward_measurements.csv"
+def truth_through_measurements(table: TruthTable, pressures_kpa: ArrayLike, volumes_ml: ArrayLike,
+                               source: str = "the measurements") -> TruthTable:
+    """The truth table plus the smoothest residual field that takes its gland volume, as the plant interpolates
+    it, through measured volumes (:func:`phantom.model.corrections.smoothest_residual`: per chamber, zero while
+    the chamber is not inflated, every chamber's and the gland's growth kept positive).
+
+    Raises
+    ------
+    PlantError
+        When the measurements cannot be met so (two that contradict the growth's sign), or a pressure is
+        negative or beyond the table's grid.
+    """
+    from phantom.model.corrections import CorrectionError, smoothest_residual
+
+    points = np.asarray(table.points_kpa, dtype=float)
+    pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
+    measured = np.asarray(volumes_ml, dtype=float).ravel()
+    if pressures.shape != (len(measured), N_CHAMBERS):
+        raise PlantError(f"the truth's measurements need {N_CHAMBERS} pressures per volume, got {pressures.shape[0]} "
+                         f"rows of {pressures.shape[1]} for {len(measured)} volumes")
+    try:
+        gaps = [volume - float(trilinear(table.gland_volume_ml, points, pressure))
+                for pressure, volume in zip(pressures, measured, strict=True)]
+        residual = smoothest_residual(points, table.chamber_volume_ml, table.gland_volume_ml, pressures, gaps,
+                                      f"the truth's measurements ({source})")
+    except CorrectionError as error:
+        raise PlantError(str(error)) from None
+    return TruthTable(table.points_kpa, table.chamber_volume_ml + residual.chamber_ml,
+                      table.gland_volume_ml + residual.gland_ml,
+                      f"{table.description}, plus the smoothest residual through {len(measured)} measured volumes "
+                      f"of {source}")
+
+
+#: Bumped when what a cached truth plant holds changes.
+TRUTH_PLANT_VERSION = 1
+
+
+def truth_plant_path(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR, workers: int | None = None,
+                     progress: Callable[[int, int], None] | None = None) -> Path:
+    """A plant file whose simulated phantom is ``scene`` at ``modulus_factor`` x its modulus: the shipped plant
+    with the scene's chambers at rest (:func:`chambers_from_scene`) and its truth table
+    (:func:`truth_table_from_scene`, 64 solves, told to ``progress``), built on first use and cached (keyed by
+    the scene's content, the factor and the shipped plant) in the cache folder ``truth-plants``."""
+    import hashlib
+    import json
+
+    from phantom import cache_dir, written_atomically
+    from phantom.model import load_scene
+
+    if not (math.isfinite(modulus_factor) and 0.1 <= modulus_factor <= 10):
+        raise PlantError(f"the truth's modulus factor must be a number from 0.1 to 10, got {modulus_factor!r}")
+    loaded = load_scene(scene)
+    key = hashlib.sha256(json.dumps({"scene": loaded.raw, "modulus_factor": modulus_factor,
+                                     "plant": DEFAULT_PLANT_PATH.read_text(), "version": TRUTH_PLANT_VERSION},
+                                    sort_keys=True, default=str).encode()).hexdigest()[:20]
+    path = cache_dir("truth-plants") / f"{key}.toml"
+    if path.exists():
+        return path
+    with written_atomically(path, PlantError) as temporary:
+        temporary.write_text(DEFAULT_PLANT_PATH.read_text())
+        write_chambers(chambers_from_scene(scene), temporary)
+        write_truth(truth_table_from_scene(scene, modulus_factor, workers, progress), temporary)
+    return path
+
+
 def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParameters:
     """Put a truth table into a plant file's [chambers] (replacing one that is there), checked before writing."""
     path = Path(path) if path is not None else DEFAULT_PLANT_PATH
@@ -426,7 +494,7 @@ def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParam
     block = (f"# Truth source: {table.description}.\n"
              f"# The simulated board's plant interpolates these chamber volumes over the three pressures (grid step\n"
              f"# truth_step_kpa, rows i, j, k in C order) instead of V0 + C p above, so it does not share the\n"
-             f"# controller's model. Regenerate: phantom hil plant --truth-from-scene SCENE\n"
+             f"# controller's model. Regenerate: phantom hil plant --truth-from-scene SCENE [--truth-through CSV]\n"
              f"truth_step_kpa = {table.points_kpa[1] - table.points_kpa[0]:g}\n"
              f"truth_chamber_volume_ml = [\n{rows},\n]\n"
              f"truth_gland_volume_ml = {toml_list(table.gland_volume_ml.ravel())}\n")
@@ -438,20 +506,3 @@ def write_truth(table: TruthTable, path: str | Path | None = None) -> PlantParam
     plant = _plant_from_text(text, path)
     path.write_text(text)
     return plant
-
-
-def trilinear(table: np.ndarray, points_kpa: ArrayLike, pressures_kpa: Sequence[float] | np.ndarray) -> np.ndarray:
-    """The table (n, n, n, ...) at pressures (kPa, one per chamber), trilinear inside, the edge cell's linear
-    extension outside (as plant.c does)."""
-    points = np.asarray(points_kpa, dtype=float)
-    cells, weights = [], []
-    for pressure in pressures_kpa:
-        cell = int(np.clip(np.searchsorted(points, pressure, side="right") - 1, 0, len(points) - 2))
-        cells.append(cell)
-        weights.append((pressure - points[cell]) / (points[cell + 1] - points[cell]))
-    value = 0.0
-    for corner in np.ndindex(2, 2, 2):
-        weight = np.prod([w if c else 1.0 - w for c, w in zip(corner, weights, strict=True)])
-        value = value + weight * table[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]
-    return np.asarray(value)
-

@@ -1,9 +1,11 @@
 """The simulated phantom's true shape, and the simulated board with the scanner's mechanism.
 
-The simulated plant's chambers follow a truth model the controller does not share (hil/plant.py: the calibrated
-scene with its modulus times ``TRUTH_MODULUS_FACTOR``, tabulated in hil/plant.toml). :class:`TruthShape` solves
-that same model for its deformed outer surface at the pressures the plant holds, which the virtual camera
-photographs; so a simulated scan sees the phantom as it is, not as the controller's model predicts it.
+The simulated plant's chambers follow a truth the controller does not share (hil/plant.py: the calibrated
+scene with its modulus times ``TRUTH_MODULUS_FACTOR`` plus the residual that takes it through the measured
+phantom's volumes, tabulated in hil/plant.toml). :class:`TruthShape` solves that same model for its deformed outer
+surface at the pressures the plant holds and scales it about its centre to the plant's gland volume there (the
+residual has a volume, not a shape: the model's shape is the best guess of where it goes), which the virtual
+camera photographs; so a simulated scan sees the phantom as it is, not as the controller's model predicts it.
 
 :class:`ScannerBoard` is the simulated board (:class:`phantom.hil.sim.SimulatedBoard`) whose stepper drivers
 turn the scanner of ``phantom.protocol.motion.SCANNER_AXES`` (its steps per turn set in the harness at start),
@@ -19,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from phantom.hil.motion import SimulatedRig
-from phantom.hil.plant import CALIBRATED_SCENE_PATH, TRUTH_MODULUS_FACTOR
+from phantom.hil.plant import CALIBRATED_SCENE_PATH, DEFAULT_PLANT_PATH, TRUTH_MODULUS_FACTOR, load_plant
 from phantom.hil.sim import SimulatedBoard
 from phantom.model.mesh.surface import TriangleMesh
 from phantom.protocol.motion import AXES, SCANNER_AXES
@@ -32,13 +34,17 @@ class TruthShape:
     """The truth model's outer surface (mm, the phantom's frame) at chamber pressures."""
 
     def __init__(self, scene: str | Path = CALIBRATED_SCENE_PATH, modulus_factor: float = TRUTH_MODULUS_FACTOR,
-                 mesh_size_mm: float | None = None):
+                 mesh_size_mm: float | None = None, plant_path: str | Path | None = DEFAULT_PLANT_PATH):
+        """``plant_path``: the plant file whose truth table's gland volume the surface is scaled to (None: the
+        FEM's own volume, unscaled)."""
         # the FEM's stack loads only when a truth shape is wanted
         from phantom.model import PhantomModel, load_scene
 
         model = PhantomModel.from_scene(load_scene(scene), mesh_size_mm=mesh_size_mm)
         self.model = model.with_material(youngs_modulus_pa=model.material.youngs_modulus_pa * modulus_factor)
-        self.description = f"{scene} with E x {modulus_factor:g}"
+        self.plant = None if plant_path is None else load_plant(plant_path)
+        self.description = f"{scene} with E x {modulus_factor:g}" + (
+            "" if self.plant is None else f", scaled to the gland volume of {self.plant.path}")
         self.surface_nodes, self.triangles = self.model.outer_surface()
         self._last: tuple[np.ndarray, np.ndarray, TriangleMesh] | None = None
         self.solves = 0
@@ -53,6 +59,9 @@ class TruthShape:
         state = self.model.equilibrium(pressures * 1e3, initial_positions_m=start)
         self.solves += 1
         mesh = TriangleMesh(state.positions_m[self.surface_nodes] * 1e3, self.triangles.astype(np.int64))
+        wanted_ml = None if self.plant is None else self.plant.truth_gland_volume_ml(pressures * 1e3)
+        if wanted_ml is not None:
+            mesh = scaled_to_volume(mesh, wanted_ml)
         self._last = (pressures, state.positions_m, mesh)
         return mesh
 
@@ -61,6 +70,16 @@ class TruthShape:
         from phantom.model.mesh.surface import enclosed_volume_ml
 
         return enclosed_volume_ml(self.surface(pressures_kpa))
+
+
+def scaled_to_volume(mesh: TriangleMesh, volume_ml: float) -> TriangleMesh:
+    """The closed surface scaled about its area-weighted centre so that it encloses ``volume_ml``."""
+    from phantom.model.mesh.surface import enclosed_volume_ml, vertex_areas_mm2
+
+    areas = vertex_areas_mm2(mesh.vertices_mm, mesh.triangles)
+    centre = areas @ mesh.vertices_mm / areas.sum()
+    factor = (volume_ml / enclosed_volume_ml(mesh)) ** (1.0 / 3.0)
+    return TriangleMesh(centre + factor * (mesh.vertices_mm - centre), mesh.triangles)
 
 
 class ScannerBoard(SimulatedBoard):

@@ -292,11 +292,21 @@ def virtual_pose(orbit_deg: float, elevation_deg: float, scale: float = 1.0) -> 
     return virtual_rig(scale, (elevation_deg,)).pose(orbit_deg, elevation_deg)
 
 
+#: The virtual camera's picture sizes (fractions of 1280x960): below, the phantom is a few pixels; above, one
+#: picture's buffers take gigabytes (scale 6 grew the daemon to 5 GB) where scale 1 already measures the volume
+#: to 0.14 % (bench/README.md, "Scanner").
+VIRTUAL_SCALE_RANGE = (0.05, 2.0)
+
+
 def virtual_rig(scale: float = 1.0, elevations_deg: tuple[float, ...] = VIRTUAL_ELEVATIONS_DEG) -> Rig:
     """The simulated scanner's true geometry (the phantom's frame: z up, the phantom hanging from z = 20 mm):
     :data:`VIRTUAL_CAMERA` read out at ``scale`` times 1280x960, orbiting :data:`VIRTUAL_RADIUS_MM` from a
     slightly tilted axis, at each elevation of ``elevations_deg`` (the camera swung up on an arc about the
-    phantom's middle)."""
+    phantom's middle). RigError for a scale outside :data:`VIRTUAL_SCALE_RANGE`."""
+    low, high = VIRTUAL_SCALE_RANGE
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not low <= scale <= high:
+        raise RigError(f"the virtual camera's scale must be a number from {low:g} to {high:g} (a fraction of "
+                       f"1280x960 pixels), got {scale!r}")
     tilt = math.radians(VIRTUAL_AXIS_TILT_DEG)
     direction = np.array([math.sin(tilt), 0.0, math.cos(tilt)])
     elevations = []

@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import datetime
 import json
+import math
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -82,11 +83,36 @@ class PhantomState(Protocol):
         scanned (a latched fault, the board's link lost)."""
 
 
+#: The most orbit stops per elevation (0.5 deg apart on a whole turn): beyond it the pictures overlap and a scan
+#: only grows the daemon's memory and time.
+MAX_VIEWS = 720
+#: The most elevations (passes) of one plan.
+MAX_ELEVATIONS = 8
+#: The longest wait after a move (s): a rig that needs longer to stop swinging needs fixing, not waiting, and a
+#: longer wait holds the rig (and the scan's lock) for hours on a whole plan.
+MAX_SETTLE_S = 10.0
+#: The angles a plan may name (deg): the orbit's start and the elevations; the board's soft limits refuse the
+#: moves the mechanism cannot make.
+MAX_ANGLE_DEG = 360.0
+
+
+def _finite(name: str, value: object, low: float, high: float, unit: str, why: str) -> float:
+    """``value`` as a float within [low, high], or CaptureError saying which parameter and why."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise CaptureError(f"{name} must be a finite number of {unit}, got {value!r}")
+    if not low <= value <= high:
+        raise CaptureError(f"{name} must be between {low:g} and {high:g} {unit} ({why}), got {value:g}")
+    return float(value)
+
+
 @dataclass(frozen=True)
 class Plan:
     """Where to take pictures: ``views`` orbit stops per elevation from ``start_deg``, evenly over a whole turn
     (``span_deg`` 360, the last stop one step short of the first) or over ``span_deg`` (both ends included), at
-    each elevation (deg) in order; ``settle_s`` after each move before the picture."""
+    each elevation (deg) in order; ``settle_s`` after each move before the picture.
+
+    Every parameter is checked when the plan is made (CaptureError says which and why), before any move: a
+    NaN or negative wait, a million views or a wait of days are refused, not started."""
 
     views: int
     elevations_deg: tuple[float, ...] = (0.0, 30.0)
@@ -95,12 +121,28 @@ class Plan:
     settle_s: float = 0.3
     span_deg: float = 360.0
 
+    def __post_init__(self) -> None:
+        if isinstance(self.views, bool) or not isinstance(self.views, int):
+            raise CaptureError(f"views must be a whole number from 1 to {MAX_VIEWS}, got {self.views!r}")
+        if self.views < 1:
+            raise CaptureError(f"views must be at least 1 (a capture needs at least one view), got {self.views}")
+        if self.views > MAX_VIEWS:
+            raise CaptureError(f"views must be at most {MAX_VIEWS} per elevation (0.5 deg apart on a turn), got "
+                               f"{self.views}")
+        if not 1 <= len(self.elevations_deg) <= MAX_ELEVATIONS:
+            raise CaptureError(f"a capture needs one to {MAX_ELEVATIONS} elevations, got "
+                               f"{list(self.elevations_deg)}")
+        for elevation in self.elevations_deg:
+            _finite("an elevation", elevation, -90.0, 90.0, "deg", "the camera's arc")
+        _finite("start_deg", self.start_deg, -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg", "one turn either way")
+        _finite("span_deg", self.span_deg, 0.0, 360.0, "deg", "at most a whole turn")
+        if self.span_deg == 0:
+            raise CaptureError("span_deg must be above 0 deg (360: a whole turn), got 0")
+        _finite("settle_s", self.settle_s, 0.0, MAX_SETTLE_S, "s", "the wait after each move")
+
     def stops(self) -> list[tuple[float, float]]:
         """The (orbit, elevation) stops in the order taken: every other pass runs backwards, so the orbit never
         travels back a whole turn between passes."""
-        if self.views < 1 or not self.elevations_deg:
-            raise CaptureError(f"a capture needs at least one view and one elevation, got {self.views} views at "
-                               f"{list(self.elevations_deg)}")
         if self.span_deg >= 360.0:
             angles = [self.start_deg + 360.0 * k / self.views for k in range(self.views)]
         else:

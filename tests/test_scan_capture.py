@@ -137,3 +137,52 @@ def test_plan_runs_every_other_pass_backwards():
     assert stops == [(0.0, 0.0), (90.0, 0.0), (180.0, 0.0), (270.0, 0.0),
                      (270.0, 30.0), (180.0, 30.0), (90.0, 30.0), (0.0, 30.0)]
     assert Plan(3, (0.0,), start_deg=-50.0, span_deg=100.0).stops() == [(-50.0, 0.0), (0.0, 0.0), (50.0, 0.0)]
+
+
+@pytest.mark.parametrize(("plan", "message"), [
+    (dict(views=0), "views must be at least 1"),
+    (dict(views=100_000_000), "views must be at most 720"),
+    (dict(views=1e8), "views must be a whole number"),
+    (dict(views=12, settle_s=float("nan")), "settle_s must be a finite number"),
+    (dict(views=12, settle_s=-1.0), r"settle_s must be between 0 and 10 s .*got -1"),
+    (dict(views=12, settle_s=1e6), r"settle_s must be between 0 and 10 s"),
+    (dict(views=12, elevations_deg=()), "one to 8 elevations"),
+    (dict(views=12, elevations_deg=(0.0, float("inf"))), "an elevation must be a finite number"),
+    (dict(views=12, start_deg=float("nan")), "start_deg must be a finite number"),
+    (dict(views=12, span_deg=0.0), "span_deg must be above 0"),
+    (dict(views=12, span_deg=720.0), "span_deg must be between 0 and 360"),
+])
+def test_a_plan_out_of_bounds_is_refused_before_any_move(plan, message):
+    with pytest.raises(CaptureError, match=message):
+        Plan(**plan)
+
+
+@pytest.mark.parametrize("scale", [6.0, 0.0, float("nan"), -1.0, True])
+def test_a_virtual_camera_scale_out_of_bounds_is_refused(scale):
+    from phantom.scan.camera import RigError
+
+    with pytest.raises(RigError, match="scale must be a number from 0.05 to 2"):
+        virtual_rig(scale)
+
+
+@pytest.mark.parametrize(("params", "message"), [
+    ({"settle_s": float("nan")}, "settle_s must be a finite number"),
+    ({"settle_s": -0.5}, "settle_s must be between 0 and 10 s"),
+    ({"settle_s": 1e6}, "settle_s must be between 0 and 10 s"),
+    ({"views": 1e8}, "views must be a whole number"),
+    ({"views": 100_000_000}, "views must be at most 720"),
+    ({"views": "60"}, "views must be a whole number"),
+    ({"scale": 6}, "scale must be a number from 0.05 to 2"),
+    ({"elevations_deg": 30}, "elevations_deg must be a list"),
+    ({"elevations_deg": ["up"]}, "an elevation must be a finite number"),
+    ({"seed": -1}, "seed must be a whole number"),
+])
+def test_the_daemons_scan_refuses_bad_parameters_before_it_makes_a_folder_or_moves(tmp_path, params, message):
+    """The red team's cases (settle_s NaN, negative or 1e6, views 1e8, scale 6): refused with why by the daemon's
+    scan handler before the capture folder exists and before the rig is touched (rig=None would fail on use)."""
+    from phantom.cli.scan_rig import DaemonScanner
+
+    out = tmp_path / "capture"
+    with pytest.raises(PhantomError, match=f"scan: .*{message}"):
+        DaemonScanner()({"out": str(out), **params}, None)
+    assert not out.exists()

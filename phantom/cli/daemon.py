@@ -14,6 +14,9 @@ from typing import TYPE_CHECKING, Any
 from phantom.host.config import ConfigError, SettingField, checked, settings
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
+    from phantom.cli.scan_rig import SimulatedTruth
     from phantom.hil.sim import SimulatedBoard
 
 
@@ -27,6 +30,12 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                                    "mesh_hz); flags win.")
     add_setting_flags(daemon)
     daemon.add_argument("--config", metavar="FILE", help="a TOML config file with a [daemon] table (flags win)")
+    daemon.add_argument("--sim-truth", metavar="SCENE",
+                        help="with --sim: the simulated phantom is this scene (another geometry, material or mesh) "
+                        "instead of the shipped one (the measured phantom); its plant is built on first use (the "
+                        "scene's chambers and 64 solves, with progress) and cached")
+    daemon.add_argument("--sim-truth-modulus-factor", type=float, metavar="F", default=1.0,
+                        help="with --sim-truth: the simulated phantom's modulus over the scene's (default 1)")
     daemon.set_defaults(run=_run_daemon)
 
     sim_board = subparsers.add_parser(
@@ -94,23 +103,49 @@ def _flag_value(item: SettingField) -> Callable[[str], Any]:
 
 
 def _run_daemon(args: argparse.Namespace) -> int:
+    import functools
+
+    from phantom import PhantomError
     from phantom.host.config import load_config, merged_config
     from phantom.host.service import run_daemon
 
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
-    from phantom.cli.scan_rig import DaemonScanner
+    from phantom.cli.scan_rig import DaemonScanner, SimulatedTruth
 
-    return run_daemon(config, simulated_board=_simulated_board if config.sim else None, scanner=DaemonScanner())
+    truth = SimulatedTruth()
+    if args.sim_truth is not None:
+        if not config.sim:
+            raise PhantomError("--sim-truth sets the simulated phantom: give --sim too")
+        truth = _simulated_truth(args.sim_truth, args.sim_truth_modulus_factor)
+    elif args.sim_truth_modulus_factor != 1.0:
+        raise PhantomError("--sim-truth-modulus-factor is the --sim-truth scene's: give --sim-truth SCENE too")
+    return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
+                      if config.sim else None, scanner=DaemonScanner(truth))
 
 
-def _simulated_board(speed: float) -> SimulatedBoard:
-    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant, its stepper
-    drivers turning the scanner's simulated mechanism (mypy checks it against the host's ``SimulatedBoard``
-    Protocol where it is passed)."""
+def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:
+    """The simulated phantom of ``--sim-truth``: its plant built (with progress on stderr) or found in the cache."""
+    import sys
+
+    from phantom.cli.scan_rig import SimulatedTruth
+    from phantom.hil.plant import truth_plant_path
+    from phantom.model.calibration.sweep import stderr_progress
+
+    print(f"the simulated phantom: {scene} with E x {modulus_factor:g} (its plant is built once: the scene's "
+          f"chambers and 64 solves, then cached)", file=sys.stderr, flush=True)
+    path = truth_plant_path(scene, modulus_factor, progress=stderr_progress("simulated phantom's truth"))
+    print(f"the simulated phantom's plant: {path}", file=sys.stderr, flush=True)
+    return SimulatedTruth(scene, modulus_factor, path)
+
+
+def _simulated_board(speed: float, plant: Path | None = None) -> SimulatedBoard:
+    """The daemon's simulated board (``--sim``): the firmware image in simavr against the plant (the shipped
+    one, or ``--sim-truth``'s), its stepper drivers turning the scanner's simulated mechanism (mypy checks it
+    against the host's ``SimulatedBoard`` Protocol where it is passed)."""
     from phantom.hil.truth_shape import ScannerBoard
 
-    return ScannerBoard(speed=speed)
+    return ScannerBoard(speed=speed, plant=plant)
 
 
 def _run_sim_board(args: argparse.Namespace) -> int:

@@ -79,6 +79,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     plant.add_argument("--truth-modulus-factor", type=float, metavar="X",
                        help="the truth's modulus over the scene's (default: the calibration's leave-one-out "
                        "uncertainty, TRUTH_MODULUS_FACTOR in hil/plant.py)")
+    plant.add_argument("--truth-through", metavar="CSV",
+                       help="--truth-from-scene: add the smoothest residual that takes the truth's gland volume "
+                       "through these measured volumes (the shipped truth: model/data/forward_measurements.csv, "
+                       "the paper's Table I)")
     plant.add_argument("--workers", type=int, metavar="N", help="--truth-from-scene: worker processes "
                        "(default: one per core, at most 4)")
     plant.add_argument("--plant", metavar="FILE", help="the plant file to rewrite (default hil/plant.toml)")
@@ -255,6 +259,8 @@ def _run_plant(args: argparse.Namespace) -> int:
     from phantom import PhantomError
     from phantom.hil import plant
 
+    if args.truth_through and not args.truth_from_scene:
+        raise PhantomError("--truth-through adds a residual to a truth table: give --truth-from-scene SCENE too")
     if not args.from_scene and not args.truth_from_scene:
         raise PhantomError("give --from-scene, --truth-from-scene or both")
     path = args.plant or plant.DEFAULT_PLANT_PATH
@@ -264,6 +270,12 @@ def _run_plant(args: argparse.Namespace) -> int:
         factor = plant.TRUTH_MODULUS_FACTOR if args.truth_modulus_factor is None else args.truth_modulus_factor
         table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.workers,
                                              stderr_progress("truth table"))
+        if args.truth_through:
+            from phantom.model.calibration.calibrate import load_measurements
+
+            measured = load_measurements(args.truth_through, plant.N_CHAMBERS)
+            table = plant.truth_through_measurements(table, measured.pressures_pa / 1e3, measured.volumes_m3 * 1e6,
+                                                     str(args.truth_through))
         plant.write_truth(table, path)
         print(f"wrote the truth table into {path}: {table.description}")
     if args.from_scene:

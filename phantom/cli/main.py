@@ -23,6 +23,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.scan",
     "phantom.cli.shape",
     "phantom.cli.calibrate",
+    "phantom.cli.corrections",
     "phantom.cli.hil",
     "phantom.cli.motion",
     "phantom.cli.daemon",

@@ -203,19 +203,9 @@ def _add_plan_options(parser: argparse.ArgumentParser) -> None:
 
 def _plan(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
     from phantom.cli.common import parse_numbers
-    from phantom.scan.capture import CaptureError, Plan
+    from phantom.scan.capture import Plan
 
-    if args.views < 1:
-        raise CaptureError(f"--views must be at least 1, got {args.views}")
     return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
-
-
-def _scale(value: float) -> float:
-    from phantom.scan.capture import CaptureError
-
-    if not 0.05 <= value <= 4.0:
-        raise CaptureError(f"--scale must be between 0.05 and 4 (a fraction of 1280x960), got {value:g}")
-    return value
 
 
 def _progress(what: str) -> Any:
@@ -278,7 +268,7 @@ def run_render(args: argparse.Namespace) -> int:
     from phantom.scan.virtual import render_capture
 
     plan = _plan(args)
-    true_rig = virtual_rig(_scale(args.scale), plan.elevations_deg)
+    true_rig = virtual_rig(args.scale, plan.elevations_deg)
     kept = load_rig(args.rig) if args.rig else true_rig
     mesh = _read_mesh(args.mesh, args.units)
     conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true"}
@@ -333,7 +323,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     truth = None
     with tempfile.TemporaryDirectory(prefix="phantom-target-") as scratch:
         if args.sim:
-            truth = virtual_rig(_scale(args.scale))
+            truth = virtual_rig(args.scale)
             folders = render_target_captures(truth, args.keep or scratch, args.views,
                                              progress=_progress("target pictures"))
         else:

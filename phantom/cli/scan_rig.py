@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from phantom import PhantomError
@@ -126,6 +128,23 @@ def capture_through_daemon(client: DaemonClient, camera: FrameSource, plan: Plan
     return capture(orbit, camera, DaemonPhantom(client), plan, folder, progress)
 
 
+@dataclass(frozen=True)
+class SimulatedTruth:
+    """The simulated phantom a virtual camera photographs: the scene, its modulus factor and the plant whose
+    gland volume its shape is scaled to (the defaults: the shipped truth, hil/truth_shape.py)."""
+
+    scene: str | Path | None = None
+    modulus_factor: float | None = None
+    plant_path: Path | None = None
+
+    def shape(self) -> TruthShape:
+        from phantom.hil.plant import CALIBRATED_SCENE_PATH, DEFAULT_PLANT_PATH, TRUTH_MODULUS_FACTOR
+        from phantom.hil.truth_shape import TruthShape
+
+        return TruthShape(self.scene or CALIBRATED_SCENE_PATH, self.modulus_factor or TRUTH_MODULUS_FACTOR,
+                          plant_path=self.plant_path or DEFAULT_PLANT_PATH)
+
+
 class DaemonScanner:
     """The daemon's ``scan`` API method (a ``phantom.host.motion.Scanner``, given to the daemon by ``phantom
     daemon``): the capture loop in the daemon's process, with its axes and state (``ThreadRig``).
@@ -134,7 +153,12 @@ class DaemonScanner:
     (default [0, 30]), ``start_deg`` (-180), ``span_deg`` (360), ``settle_s`` (0.3), ``camera`` ("virtual", the
     default, on the simulated board; a device number or a video path for a webcam), ``scale`` (the virtual
     picture's size of 1280x960), ``seed``, ``width``, ``height``, ``exposure``, ``focus``, ``rig`` (a rig.json to
-    keep beside the pictures). Answers the folder, its status and the number of pictures."""
+    keep beside the pictures). Answers the folder, its status and the number of pictures. The virtual camera
+    photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon --sim-truth`` said another)."""
+
+    def __init__(self, truth: SimulatedTruth | None = None):
+        self.truth = truth or SimulatedTruth()
+        self._shape: TruthShape | None = None
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
         from phantom.cli.scan import load_rig
@@ -147,34 +171,42 @@ class DaemonScanner:
         if unknown or not isinstance(params.get("out"), str):
             raise PhantomError(f"scan takes out (a folder, required) and {', '.join(sorted(known - {'out'}))}"
                                + (f"; not {', '.join(unknown)}" if unknown else ""))
+        elevations = params.get("elevations_deg", [0.0, 30.0])
+        if not isinstance(elevations, list):
+            raise PhantomError(f"scan: elevations_deg must be a list of angles (deg), got {elevations!r}")
+        seed = params.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
+            raise PhantomError(f"scan: seed must be a whole number from 0 to 2^32 - 1, got {seed!r}")
+        # the plan and the virtual rig check their own numbers (NaN, negative, too many, too big) before any move
         try:
-            elevations = tuple(float(e) for e in params.get("elevations_deg", (0.0, 30.0)))
-            plan = Plan(int(params.get("views", 60)), elevations, float(params.get("start_deg", -180.0)),
-                        float(params.get("settle_s", 0.3)), float(params.get("span_deg", 360.0)))
-            scale = float(params.get("scale", 1.0))
-        except (TypeError, ValueError) as error:
-            raise PhantomError(f"scan: a parameter is not a number: {error}") from None
-        if plan.views < 1:
-            raise PhantomError(f"scan: views must be at least 1, got {plan.views}")
-        camera = self._camera(params, rig, elevations, scale)
+            plan = Plan(params.get("views", 60), tuple(elevations), params.get("start_deg", -180.0),
+                        params.get("settle_s", 0.3), params.get("span_deg", 360.0))
+        except PhantomError as error:
+            raise PhantomError(f"scan: {error}") from None
+        camera = self._camera(params, rig, plan.elevations_deg, params.get("scale", 1.0), seed)
         kept = load_rig(params["rig"]) if params.get("rig") else None
         folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
         rig.configure(SCANNER_AXES)
         capture(rig, camera, rig, plan, folder)
         return {"folder": str(folder.path), "status": folder.status, "pictures": len(folder.frames)}
 
-    @staticmethod
-    def _camera(params: dict[str, Any], rig: Any, elevations: tuple[float, ...], scale: float) -> FrameSource:
+    def _camera(self, params: dict[str, Any], rig: Any, elevations: tuple[float, ...], scale: Any,
+                seed: int) -> FrameSource:
         from phantom.scan.camera import virtual_rig
         from phantom.scan.capture import Webcam
 
         camera = params.get("camera", "virtual")
         if camera == "virtual":
-            from phantom.hil.truth_shape import TruthShape
             from phantom.scan.virtual import VirtualCamera
 
-            return VirtualCamera(virtual_rig(scale, elevations), truth_scene(rig.simulated, TruthShape()),
-                                 int(params.get("seed", 0)), pose_at=_scaled_pose(scale))
+            try:
+                true_rig = virtual_rig(scale, elevations)
+            except PhantomError as error:
+                raise PhantomError(f"scan: {error}") from None
+            if self._shape is None:
+                self._shape = self.truth.shape()
+            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed,
+                                 pose_at=_scaled_pose(scale))
         source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
         return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"))
 
@@ -188,11 +220,9 @@ def run_capture(args: Any) -> int:
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
     from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureError, CaptureFolder, Plan, Webcam
+    from phantom.scan.capture import CaptureFolder, Plan, Webcam
     from phantom.scan.render import CharucoTarget
 
-    if args.views < 1:
-        raise CaptureError(f"--views must be at least 1, got {args.views}")
     elevations = tuple(parse_numbers(args.elevations, "--elevations"))
     plan = Plan(args.views, elevations, args.start_deg, args.settle_s, args.span_deg)
     rig = load_rig(args.rig) if args.rig else None

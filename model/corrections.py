@@ -1,0 +1,496 @@
+"""Measured volumes that correct the model: the store per phantom, and the correction fitted to them.
+
+Every scan of the phantom at a known pressure state (and every water-displacement measurement) is a measurement
+of the gland volume the model predicts there. :class:`CorrectionStore` keeps them, one JSON file per phantom in the
+user's data directory (``$PHANTOM_DATA_DIR``, else ``$XDG_DATA_HOME/phantom``, else ``~/.local/share/phantom``;
+``corrections/NAME.json``), written atomically so that a kill or a full disk never leaves half a file, and
+exports them as the measurements CSV ``phantom calibrate`` reads.
+
+:func:`fit_correction` turns them into a residual over the pressures that the model's answers are corrected
+with, everywhere in the pressure box, not only at the points measured. The candidates, each fitted by least
+squares to the measured minus the model's volumes:
+
+- ``offset``: one constant (the rest volume's error: silicone, not air);
+- ``growth``: a constant plus a multiple of the model's own growth above rest, what a refit of the modulus does
+  to first order (the growth goes as 1/E);
+- ``field``: the smoothest residual on a grid over the pressures (:func:`smoothest_residual`) that meets every
+  measurement, each chamber's part zero while the chamber is not inflated, every growth kept positive;
+- ``growth+field``: the growth's fit, and the field through what it leaves.
+
+The one with the least mean leave-one-out error over the stored measurements is used (with fewer than two,
+the offset: there is nothing to leave out), and the leave-one-out errors of all are kept to be reported.
+:class:`CorrectedModel` applies it to a model's estimate and inverse. The module reads no scans (a scan's volume
+comes from ``phantom.scan``, passed in by the command line or the daemon).
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime
+import io
+import json
+import math
+import os
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from phantom import PhantomError, read_text, written_atomically
+
+#: The store's file format.
+FORMAT = "phantom-corrections/1"
+#: How a stored volume was measured.
+METHODS = ("scan", "water_displacement")
+#: The largest store read (bytes): thousands of measurements are far smaller.
+MAX_STORE_BYTES = 16 * 2**20
+#: A phantom's name in the store: a file name's safe characters.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+#: The field keeps each chamber's and the gland's growth per kPa at least this fraction of the model's (a phantom
+#: that swells with every pressure; a pneumatic plant needs positive compliances).
+MIN_GROWTH_FRACTION = 0.3
+#: The weight (kPa) of the field's slope beside its curvature in its roughness: a little, so that where no
+#: measurement holds it the field levels off rather than sweeping on.
+FIRST_DIFFERENCE_WEIGHT = 0.3
+#: The candidate corrections, from the fewest parameters.
+KINDS = ("offset", "growth", "field", "growth+field")
+
+
+class CorrectionError(PhantomError):
+    """A bad measurement, a damaged store, or a correction the measurements cannot support."""
+
+
+def data_dir() -> Path:
+    """The user's data directory for the phantom (not a cache: nothing in it can be rebuilt)."""
+    root = os.environ.get("PHANTOM_DATA_DIR")
+    if root is None:
+        root = os.path.join(os.environ.get("XDG_DATA_HOME", os.path.expanduser("~/.local/share")), "phantom")
+    return Path(root)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """One measured gland volume: when (UTC, ISO 8601), at which chamber pressures (kPa), how (``scan`` or
+    ``water_displacement``), from which scan file, and the model it corrected with that model's volume there."""
+
+    pressures_kpa: tuple[float, ...]
+    volume_ml: float
+    method: str = "scan"
+    time_utc: str = ""
+    scan_file: str | None = None
+    model: str | None = None
+    model_volume_ml: float | None = None
+
+    def __post_init__(self) -> None:
+        pressures = self.pressures_kpa
+        if not pressures or not all(_is_number(p) and p >= 0 for p in pressures):
+            raise CorrectionError(f"a measurement's pressures must be finite numbers >= 0 kPa (gauge; the blowers "
+                                  f"only push), got {list(pressures)}")
+        if not (_is_number(self.volume_ml) and self.volume_ml > 0):
+            raise CorrectionError(f"a measured volume must be a finite number of ml above 0, got {self.volume_ml!r}")
+        if self.method not in METHODS:
+            raise CorrectionError(f"a measurement's method is one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.model_volume_ml is not None and not (_is_number(self.model_volume_ml) and self.model_volume_ml > 0):
+            raise CorrectionError(f"the model's volume must be a finite number of ml above 0, got "
+                                  f"{self.model_volume_ml!r}")
+
+    @classmethod
+    def now(cls, pressures_kpa: ArrayLike, volume_ml: float, method: str = "scan", scan_file: str | None = None,
+            model: str | None = None, model_volume_ml: float | None = None) -> Measurement:
+        """A measurement taken now."""
+        time_utc = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+        return cls(tuple(float(p) for p in np.asarray(pressures_kpa, dtype=float).ravel()), float(volume_ml), method,
+                   time_utc, scan_file, model, None if model_volume_ml is None else float(model_volume_ml))
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+class CorrectionStore:
+    """The measurements of one phantom, in ``path`` (see the module docstring)."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+
+    @classmethod
+    def for_phantom(cls, name: str = "default", root: str | Path | None = None) -> CorrectionStore:
+        """The store of the phantom called ``name`` under ``root`` (default :func:`data_dir`)."""
+        if not NAME_PATTERN.fullmatch(name):
+            raise CorrectionError(f"a phantom's name is 1-64 letters, digits, '.', '_' or '-', starting with a letter "
+                                  f"or digit, got {name!r}")
+        return cls(Path(root if root is not None else data_dir()) / "corrections" / f"{name}.json")
+
+    def entries(self) -> list[Measurement]:
+        """The stored measurements, oldest first ([] when there are none)."""
+        if not self.path.exists():
+            return []
+        text = read_text(self.path, MAX_STORE_BYTES, "the correction store", CorrectionError)
+        try:
+            document = json.loads(text)
+            if document.get("format") != FORMAT:
+                raise ValueError(f"format {document.get('format')!r}, not {FORMAT!r}")
+            return [Measurement(**{**entry, "pressures_kpa": tuple(entry["pressures_kpa"])})
+                    for entry in document["measurements"]]
+        except (ValueError, TypeError, KeyError, AttributeError, CorrectionError) as error:
+            raise CorrectionError(f"the correction store {self.path} is damaged ({error}): move it aside (the "
+                                  f"measurements in it are then no longer used) or restore it from a copy") from None
+
+    def add(self, measurement: Measurement) -> int:
+        """Store one more measurement (atomically); the number stored."""
+        entries = self.entries()
+        if entries and len(entries[0].pressures_kpa) != len(measurement.pressures_kpa):
+            raise CorrectionError(f"this phantom's measurements have {len(entries[0].pressures_kpa)} pressures, this "
+                                  f"one {len(measurement.pressures_kpa)}: is it another phantom? give another name")
+        entries.append(measurement)
+        self._write(entries)
+        return len(entries)
+
+    def clear(self) -> int:
+        """Remove every measurement; how many there were."""
+        count = len(self.entries())
+        if self.path.exists():
+            self._write([])
+        return count
+
+    def _write(self, entries: list[Measurement]) -> None:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        document = {"format": FORMAT, "measurements": [asdict(entry) | {"pressures_kpa": list(entry.pressures_kpa)}
+                                                       for entry in entries]}
+        with written_atomically(self.path, CorrectionError) as temporary:
+            temporary.write_text(json.dumps(document, indent=1) + "\n")
+
+    def to_csv(self) -> str:
+        """The measurements as the CSV ``phantom calibrate`` reads (``p0_kpa, ..., measured_ml``, ``medium``: a
+        water displacement's phantom hung in water), with ``method``, ``time_utc``, ``scan_file`` and
+        ``model_ml`` (the model's volume there when stored) beside, which it ignores."""
+        entries = self.entries()
+        if not entries:
+            raise CorrectionError(f"no measurements stored in {self.path}: nothing to export")
+        out = io.StringIO()
+        writer = csv.writer(out, lineterminator="\n")
+        chambers = len(entries[0].pressures_kpa)
+        writer.writerow([*(f"p{i}_kpa" for i in range(chambers)), "measured_ml", "medium", "method", "time_utc",
+                         "scan_file", "model_ml"])
+        for entry in entries:
+            writer.writerow([*(f"{p:.6g}" for p in entry.pressures_kpa), f"{entry.volume_ml:.6g}",
+                             "water" if entry.method == "water_displacement" else "air", entry.method,
+                             entry.time_utc, entry.scan_file or "",
+                             "" if entry.model_volume_ml is None else f"{entry.model_volume_ml:.6g}"])
+        return out.getvalue()
+
+
+# ----------------------------------------------------------------------------- the residual field on a grid
+def trilinear(table: np.ndarray, points_kpa: ArrayLike, pressures_kpa: Sequence[float] | np.ndarray) -> np.ndarray:
+    """The table (n, n, n, ...) at pressures (kPa, one per chamber), trilinear inside, the edge cell's linear
+    extension outside (as the simulated board's plant.c does)."""
+    n = table.shape[0]
+    weights = _trilinear_weights(np.asarray(points_kpa, dtype=float), np.asarray(pressures_kpa, dtype=float))
+    return np.asarray(np.tensordot(weights, table.reshape(n ** 3, *table.shape[3:]), axes=1))
+
+
+def _axis_differences(n: int, axis: int, order: int) -> Any:
+    """The sparse operator of forward differences (``order`` 1 or 2) along ``axis`` of an (n, n, n) grid in C
+    order."""
+    import scipy.sparse as sparse
+
+    index = np.arange(n ** 3).reshape(n, n, n)
+    coefficients = (-1.0, 1.0) if order == 1 else (1.0, -2.0, 1.0)
+    rows, columns, values = [], [], []
+    row = 0
+    for cell in np.ndindex(n, n, n):
+        if cell[axis] + order >= n:
+            continue
+        for step, value in enumerate(coefficients):
+            shifted = list(cell)
+            shifted[axis] += step
+            rows.append(row)
+            columns.append(index[tuple(shifted)])
+            values.append(value)
+        row += 1
+    return sparse.csr_matrix((values, (rows, columns)), shape=(row, n ** 3))
+
+
+def _trilinear_weights(points_kpa: np.ndarray, pressures_kpa: np.ndarray) -> np.ndarray:
+    """The weights of the (n, n, n) grid's values (C order) whose sum is :func:`trilinear` at the pressures."""
+    n = len(points_kpa)
+    index = np.arange(n ** 3).reshape(n, n, n)
+    weights = np.zeros(n ** 3)
+    # the eight corners of the pressures' cell (the edge cell beyond the grid), each weighted by the product of
+    # its fractions along the axes
+    cells, fractions = [], []
+    for pressure in pressures_kpa:
+        cell = int(np.clip(np.searchsorted(points_kpa, pressure, side="right") - 1, 0, n - 2))
+        cells.append(cell)
+        fractions.append((pressure - points_kpa[cell]) / (points_kpa[cell + 1] - points_kpa[cell]))
+    for corner in np.ndindex(2, 2, 2):
+        weight = np.prod([f if c else 1.0 - f for c, f in zip(corner, fractions, strict=True)])
+        weights[index[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]] += weight
+    return weights
+
+
+@dataclass(frozen=True)
+class ResidualField:
+    """Per chamber a residual on the grid ``points_kpa``^3 (ml, (n, n, n, 3)) and one constant (ml): the gland's
+    residual is their sum plus the constant, interpolated trilinearly."""
+
+    points_kpa: np.ndarray
+    chamber_ml: np.ndarray
+    constant_ml: float
+
+    @property
+    def gland_ml(self) -> np.ndarray:
+        return np.asarray(self.chamber_ml.sum(axis=-1) + self.constant_ml)
+
+    def gland_at_ml(self, pressures_kpa: ArrayLike) -> float:
+        return float(trilinear(self.gland_ml, self.points_kpa, np.asarray(pressures_kpa, dtype=float)))
+
+
+def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: np.ndarray, pressures_kpa: ArrayLike,
+                       gaps_ml: ArrayLike, what: str = "the measurements",
+                       min_growth_fraction: float = MIN_GROWTH_FRACTION) -> ResidualField:
+    """The smoothest residual field over the grid that adds ``gaps_ml`` to the tabled volumes at the pressures.
+
+    ``chamber_ml`` (n, n, n, 3) and ``gland_ml`` (n, n, n) are a model's volumes on the grid ``points_kpa`` in
+    every axis. Each chamber gets its own residual, zero while that chamber is not inflated (the excess of a
+    chamber's growth is that chamber's), and the gland's is their sum plus one constant. Among the residuals whose
+    gland part, interpolated trilinearly, is ``gaps_ml`` at the pressures and that keep each chamber's own growth
+    and the gland's growth along every pressure at least ``min_growth_fraction`` of the tabled ones, the one with
+    the least squared second (and, lightly, first) differences along every axis: a quadratic programme (OSQP).
+
+    Raises
+    ------
+    CorrectionError
+        A pressure outside the grid or not finite, or measurements no growing phantom passes through.
+    """
+    import osqp
+    import scipy.sparse as sparse
+
+    points = np.asarray(points_kpa, dtype=float)
+    pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
+    gaps = np.asarray(gaps_ml, dtype=float).ravel()
+    chambers = chamber_ml.shape[-1]
+    if pressures.shape != (len(gaps), chambers) or not np.all(np.isfinite(pressures)):
+        raise CorrectionError(f"{what}: {chambers} finite pressures per volume are needed, got {pressures.shape[0]} "
+                              f"rows of {pressures.shape[1]} for {len(gaps)} volumes")
+    if np.any(pressures < 0) or np.any(pressures > points[-1]):
+        raise CorrectionError(f"{what} must lie on the grid, 0-{points[-1]:g} kPa")
+    n = len(points)
+    cells = n ** 3
+    size = chambers * cells + 1            # each chamber's residual, then the constant
+
+    def on_chamber(chamber: int, operator: Any) -> Any:
+        blocks = [sparse.csr_matrix((operator.shape[0], cells)) for _ in range(chambers)]
+        blocks[chamber] = operator
+        return sparse.hstack([*blocks, sparse.csr_matrix((operator.shape[0], 1))])
+
+    # the same functional on any grid: second differences / h^2 and first / h, squared, times the cell h^3
+    # (h in kPa), so a finer grid refines the field instead of changing it
+    spacing = float(points[1] - points[0])
+    weights = ((2, spacing ** -0.5), (1, FIRST_DIFFERENCE_WEIGHT * spacing ** 0.5))
+    roughness = sparse.vstack([on_chamber(chamber, weight * _axis_differences(n, axis, order))
+                               for chamber in range(chambers) for axis in range(chambers) for order, weight in weights])
+    rows, lower, upper = [], [], []
+    grid = np.stack(np.meshgrid(*[np.arange(n)] * chambers, indexing="ij"), -1).reshape(-1, chambers)
+    for chamber in range(chambers):
+        uninflated = np.flatnonzero(grid[:, chamber] == 0)
+        rows.append(on_chamber(chamber, sparse.identity(cells, format="csr")[uninflated]))
+        lower += [0.0] * len(uninflated)
+        upper += [0.0] * len(uninflated)
+    for pressure, gap in zip(pressures, gaps, strict=True):
+        rows.append(sparse.csr_matrix(np.concatenate([np.tile(_trilinear_weights(points, pressure), chambers), [1.0]])))
+        lower.append(gap)
+        upper.append(gap)
+    for axis in range(chambers):
+        difference = _axis_differences(n, axis, 1)
+        own_growth = difference @ chamber_ml[..., axis].ravel()
+        rows.append(on_chamber(axis, difference))
+        lower += list(-(1 - min_growth_fraction) * own_growth)
+        upper += [np.inf] * len(own_growth)
+        gland_growth = difference @ gland_ml.ravel()
+        rows.append(sparse.hstack([difference] * chambers + [sparse.csr_matrix((difference.shape[0], 1))]))
+        lower += list(-(1 - min_growth_fraction) * gland_growth)
+        upper += [np.inf] * len(gland_growth)
+    solver = osqp.OSQP()
+    solver.setup((roughness.T @ roughness + 1e-9 * sparse.identity(size)).tocsc(), np.zeros(size),
+                 sparse.vstack(rows).tocsc(), np.array(lower), np.array(upper), verbose=False, eps_abs=1e-8,
+                 eps_rel=1e-8, max_iter=100000, polishing=True)
+    result = solver.solve(raise_error=False)
+    if result.info.status not in ("solved", "solved inaccurate") or result.x is None:
+        raise CorrectionError(f"no residual field passes through the volumes of {what} while every chamber and the "
+                              f"gland keep growing with their pressures ({result.info.status}): check the "
+                              f"measurements")
+    residual = np.stack([result.x[c * cells:(c + 1) * cells].reshape(n, n, n) for c in range(chambers)], -1)
+    return ResidualField(points, residual, float(result.x[-1]))
+
+
+# ----------------------------------------------------------------------------- the correction
+@dataclass(frozen=True)
+class ModelGrid:
+    """A model's volumes (ml) on a grid of pressures (kPa, the same on every axis), where a field lives, and its
+    gland volume anywhere (``gland_ml(pressures_kpa)``: the model's own estimate, e.g. its VolumeEstimator)."""
+
+    points_kpa: np.ndarray
+    chamber_ml: np.ndarray     # (n, n, n, 3)
+    gland_grid_ml: np.ndarray  # (n, n, n)
+    gland_ml: Callable[[np.ndarray], float]
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class Correction:
+    """A residual over the pressures (see the module docstring): ``kind``, fitted to ``count`` measurements,
+    ``offset_ml`` + ``growth_factor`` x the model's growth above rest + ``residual_field`` (a field kind's);
+    ``leave_one_out_pct``: the mean leave-one-out error (% of the volume) of each candidate that had enough
+    measurements for it; ``uncorrected_pct``: the model's own mean error on them (%)."""
+
+    kind: str
+    count: int
+    offset_ml: float = 0.0
+    growth_factor: float = 0.0
+    residual_field: ResidualField | None = None
+    leave_one_out_pct: dict[str, float] = field(default_factory=dict)
+    uncorrected_pct: float = 0.0
+
+    def residual_ml(self, pressures_kpa: ArrayLike, model_growth_ml: float) -> float:
+        """What to add to the model's gland volume at these pressures, where the model grew ``model_growth_ml``
+        above its rest."""
+        value = self.offset_ml + self.growth_factor * model_growth_ml
+        if self.residual_field is not None:
+            value += self.residual_field.gland_at_ml(pressures_kpa)
+        return float(value)
+
+    def size_ml(self, grid: ModelGrid) -> float:
+        """The correction's largest magnitude over the grid's box (ml): how far the model was from the
+        measurements anywhere."""
+        rest = float(grid.gland_grid_ml[0, 0, 0])
+        n = len(grid.points_kpa)
+        return max(abs(self.residual_ml(grid.points_kpa[list(index)], float(grid.gland_grid_ml[index]) - rest))
+                   for index in np.ndindex(n, n, n))
+
+    def to_json(self) -> dict[str, Any]:
+        """For the daemon's status and the report: the kind, from how many measurements, the leave-one-out."""
+        return {"kind": self.kind, "measurements": self.count, "offset_ml": self.offset_ml,
+                "growth_factor": self.growth_factor, "field": self.residual_field is not None,
+                "leave_one_out_pct": dict(self.leave_one_out_pct), "uncorrected_pct": self.uncorrected_pct}
+
+
+#: The fewest measurements each kind is fitted to (its leave-one-out needs one more).
+MIN_MEASUREMENTS = {"offset": 1, "growth": 2, "field": 1, "growth+field": 2}
+
+
+def _fit_kind(kind: str, pressures_kpa: np.ndarray, volumes_ml: np.ndarray, model_ml: np.ndarray, rest_ml: float,
+              grid: ModelGrid, what: str) -> Correction:
+    gaps = volumes_ml - model_ml
+    growth = model_ml - rest_ml
+    offset, factor = float(np.mean(gaps)), 0.0
+    if kind in ("growth", "growth+field"):
+        (offset, factor), *_ = np.linalg.lstsq(np.column_stack([np.ones_like(growth), growth]), gaps, rcond=None)
+    if kind == "field":
+        offset = 0.0
+    residual_field = None
+    if kind in ("field", "growth+field"):
+        left = gaps - offset - factor * growth
+        residual_field = smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, pressures_kpa, left,
+                                            what)
+    return Correction(kind, len(volumes_ml), float(offset), float(factor), residual_field)
+
+
+def fit_correction(measurements: Sequence[Measurement], grid: ModelGrid,
+                   kinds: Sequence[str] = KINDS) -> Correction:
+    """The correction of the model (``grid``) by the measurements: of ``kinds``, the one with the least mean
+    leave-one-out error (see the module docstring). CorrectionError when there are none."""
+    if not measurements:
+        raise CorrectionError("no measurements to correct the model with: scan the phantom first")
+    unknown = sorted(set(kinds) - set(KINDS))
+    if unknown:
+        raise CorrectionError(f"unknown correction kinds {unknown}: choose from {', '.join(KINDS)}")
+    pressures = np.array([m.pressures_kpa for m in measurements], dtype=float)
+    if pressures.shape[1] != grid.chamber_ml.shape[-1]:
+        raise CorrectionError(f"the measurements have {pressures.shape[1]} pressures, the model "
+                              f"{grid.chamber_ml.shape[-1]} chambers: they are of another phantom")
+    volumes = np.array([m.volume_ml for m in measurements], dtype=float)
+    model_ml = np.array([grid.gland_ml(p) for p in pressures])
+    rest_ml = grid.gland_ml(np.zeros(pressures.shape[1]))
+    what = f"{len(volumes)} measurements"
+    leave_one_out: dict[str, float] = {}
+    count = len(volumes)
+    for kind in kinds:
+        if count < MIN_MEASUREMENTS[kind] + 1:
+            continue
+        errors = []
+        for left_out in range(count):
+            keep = np.arange(count) != left_out
+            fitted = _fit_kind(kind, pressures[keep], volumes[keep], model_ml[keep], rest_ml, grid, what)
+            predicted = model_ml[left_out] + fitted.residual_ml(pressures[left_out], model_ml[left_out] - rest_ml)
+            errors.append(abs(predicted - volumes[left_out]) / volumes[left_out] * 100)
+        leave_one_out[kind] = float(np.mean(errors))
+    fitted_kinds = [kind for kind in kinds if count >= MIN_MEASUREMENTS[kind]]
+    if not fitted_kinds:
+        raise CorrectionError(f"{count} measurement(s) fit none of {', '.join(kinds)}: store more")
+    best = min(leave_one_out, key=lambda kind: leave_one_out[kind]) if leave_one_out else fitted_kinds[0]
+    correction = _fit_kind(best, pressures, volumes, model_ml, rest_ml, grid, what)
+    uncorrected = float(np.mean(np.abs(volumes - model_ml) / volumes * 100))
+    return Correction(correction.kind, count, correction.offset_ml, correction.growth_factor,
+                      correction.residual_field, leave_one_out, uncorrected)
+
+
+class CorrectedModel:
+    """A model's gland volume and inverse with a correction applied (the daemon's model can wrap its own).
+
+    ``grid.gland_ml`` is the model's estimate; ``pressures_for_ml`` wraps any inverse (``inverse(volume_ml)`` ->
+    pressures in kPa) by asking it for another volume, moved by secant steps, until the corrected volume at its
+    answer meets the target: the correction is smooth and small beside the growth, so this converges in a few
+    rounds."""
+
+    def __init__(self, grid: ModelGrid, correction: Correction):
+        self.grid = grid
+        self.correction = correction
+        self.rest_ml = grid.gland_ml(np.zeros(grid.chamber_ml.shape[-1]))
+
+    def gland_ml(self, pressures_kpa: ArrayLike) -> float:
+        """The corrected gland volume (ml) at these pressures (kPa)."""
+        pressures = np.asarray(pressures_kpa, dtype=float)
+        model_ml = self.grid.gland_ml(pressures)
+        return model_ml + self.correction.residual_ml(pressures, model_ml - self.rest_ml)
+
+    def pressures_for_ml(self, volume_ml: float, inverse: Callable[[float], np.ndarray],
+                         tolerance_ml: float = 1e-3, max_rounds: int = 10) -> tuple[np.ndarray, float, int]:
+        """Pressures (kPa) whose corrected gland volume is ``volume_ml``, that volume, and the inverse's rounds.
+        CorrectionError when they do not converge (the target at the edge of the reachable range)."""
+        asked = float(volume_ml)
+        previous: tuple[float, float] | None = None
+        for rounds in range(1, max_rounds + 1):
+            pressures = np.asarray(inverse(asked), dtype=float)
+            corrected = self.gland_ml(pressures)
+            if abs(corrected - volume_ml) <= tolerance_ml:
+                return pressures, corrected, rounds
+            # secant steps: the corrected volume's slope in the asked one (1 at first: a constant correction)
+            slope = 1.0
+            if previous is not None and previous[0] != asked:
+                slope = float(np.clip((corrected - previous[1]) / (asked - previous[0]), 0.2, 5.0))
+            previous = (asked, corrected)
+            asked += (volume_ml - corrected) / slope
+        raise CorrectionError(f"the corrected inverse did not meet {volume_ml:g} ml in {max_rounds} rounds (last "
+                              f"{corrected:.3f} ml): the target is at the edge of what the phantom reaches")
+
+
+def model_grid(estimator: Any, description: str = "") -> ModelGrid:
+    """A model's grid from its estimator (``phantom.model.fidelity.levels.VolumeEstimator``): the grid of its
+    response table (the table level's own, else the model's table, built and cached on first use), and the
+    estimator's gland volume anywhere."""
+    from phantom.model.fidelity.response_table import grid_pa, response_table
+
+    table = estimator.table if estimator.table is not None else response_table(estimator.model,
+                                                                               estimator.pressure_max_pa)
+    points_kpa = grid_pa(table.pressure_max_pa, table.gland_values.shape[0]) / 1e3
+
+    def gland_ml(pressures_kpa: np.ndarray) -> float:
+        return float(estimator.volumes(np.asarray(pressures_kpa, dtype=float) * 1e3)[1] * 1e6)
+
+    return ModelGrid(points_kpa, 1e6 * np.asarray(table.chamber_values), 1e6 * np.asarray(table.gland_values),
+                     gland_ml, description)

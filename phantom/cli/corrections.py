@@ -1,0 +1,130 @@
+"""Subcommand of ``phantom``: ``corrections`` (the measured volumes that correct a phantom's model).
+
+``list``, ``add`` (a water-displacement or other measurement by hand), ``clear``, ``export`` (the CSV ``phantom
+calibrate --measurements`` reads) and ``fit`` (the correction they give a scene's model, with every candidate's
+leave-one-out error). The store is ``phantom.model.corrections``; only argparse is imported at module load.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    """Add ``corrections`` to the ``phantom`` parser."""
+    corrections = subparsers.add_parser(
+        "corrections", help="the scans and measurements that correct a phantom's model (list, add, clear, export, "
+        "fit)",
+        description="Each scan of the phantom at known pressures is a measured gland volume that corrects the "
+        "model; they are kept per phantom in the user's data directory ($PHANTOM_DATA_DIR, else "
+        "$XDG_DATA_HOME/phantom, else ~/.local/share/phantom: corrections/NAME.json).")
+    actions = corrections.add_subparsers(dest="action", metavar="ACTION", required=True)
+    listing = actions.add_parser("list", help="the stored measurements, oldest first")
+    add = actions.add_parser("add", help="store a measured volume by hand (a water displacement, a scan measured "
+                             "elsewhere)")
+    add.add_argument("--pressures-kpa", required=True, help="the chamber pressures (kPa), comma-separated")
+    add.add_argument("--volume-ml", type=float, required=True, help="the measured gland volume (ml)")
+    add.add_argument("--method", choices=("scan", "water_displacement"), default="water_displacement",
+                     help="how it was measured (default water_displacement)")
+    add.add_argument("--scan-file", help="the scan's file (kept as a reference)")
+    clear = actions.add_parser("clear", help="remove every stored measurement of the phantom")
+    clear.add_argument("--yes", action="store_true", help="do it (without --yes: say how many would go)")
+    export = actions.add_parser("export", help="write the measurements as the CSV `phantom calibrate` reads")
+    export.add_argument("--out", help="the CSV file to write (default: stdout)")
+    fit = actions.add_parser("fit", help="the correction the measurements give a scene's model, and each "
+                             "candidate's leave-one-out error")
+    fit.add_argument("--scene", default="builtin:converged", help="the model's scene (default builtin:converged)")
+    for parser in (listing, add, clear, export, fit):
+        parser.add_argument("--phantom", default="default", metavar="NAME",
+                            help="which phantom's measurements (default 'default')")
+        parser.add_argument("--json", action="store_true", help="print JSON")
+    corrections.set_defaults(run=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from phantom.model.corrections import CorrectionStore
+
+    store = CorrectionStore.for_phantom(args.phantom)
+    handler = {"list": _list, "add": _add, "clear": _clear, "export": _export, "fit": _fit}[args.action]
+    return handler(store, args)
+
+
+def _print(args: argparse.Namespace, data: Any, text: str) -> int:
+    import json
+
+    print(json.dumps(data) if args.json else text)
+    return 0
+
+
+def _list(store: Any, args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    entries = store.entries()
+    lines = [f"{len(entries)} measurement(s) of phantom {args.phantom!r} in {store.path}"]
+    for number, entry in enumerate(entries, start=1):
+        pressures = ", ".join(f"{p:.3f}" for p in entry.pressures_kpa)
+        model = "" if entry.model_volume_ml is None else (
+            f", model {entry.model_volume_ml:.3f} ml ({(entry.model_volume_ml / entry.volume_ml - 1) * 100:+.2f} %)")
+        lines.append(f"{number:3d}  {entry.time_utc or '-':25s}  {pressures} kPa  {entry.volume_ml:.3f} ml "
+                     f"({entry.method}){model}" + (f"  {entry.scan_file}" if entry.scan_file else ""))
+    return _print(args, {"path": str(store.path), "measurements": [asdict(e) for e in entries]}, "\n".join(lines))
+
+
+def _add(store: Any, args: argparse.Namespace) -> int:
+    from phantom.cli.common import parse_numbers
+    from phantom.model.corrections import Measurement
+
+    measurement = Measurement.now(parse_numbers(args.pressures_kpa, "--pressures-kpa"), args.volume_ml, args.method,
+                                  args.scan_file)
+    count = store.add(measurement)
+    return _print(args, {"path": str(store.path), "measurements": count},
+                  f"stored ({count} measurement(s) of phantom {args.phantom!r} in {store.path})")
+
+
+def _clear(store: Any, args: argparse.Namespace) -> int:
+    if not args.yes:
+        count = len(store.entries())
+        return _print(args, {"path": str(store.path), "would_remove": count},
+                      f"{count} measurement(s) of phantom {args.phantom!r} would be removed: add --yes to do it "
+                      f"(`phantom corrections export --out FILE` keeps a copy)")
+    removed = store.clear()
+    return _print(args, {"path": str(store.path), "removed": removed},
+                  f"removed {removed} measurement(s) of phantom {args.phantom!r}")
+
+
+def _export(store: Any, args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from phantom import written_atomically
+    from phantom.model.corrections import CorrectionError
+
+    text = store.to_csv()
+    if args.out is None:
+        print(text, end="")
+        return 0
+    with written_atomically(Path(args.out), CorrectionError) as temporary:
+        temporary.write_text(text)
+    return _print(args, {"out": args.out, "measurements": text.count("\n") - 1},
+                  f"wrote {text.count(chr(10)) - 1} measurement(s) to {args.out} (`phantom calibrate --measurements "
+                  f"{args.out}` reads it)")
+
+
+def _fit(store: Any, args: argparse.Namespace) -> int:
+    from phantom.model import PhantomModel, load_scene
+    from phantom.model.corrections import fit_correction, model_grid
+    from phantom.model.fidelity.levels import VolumeEstimator
+
+    entries = store.entries()
+    model = PhantomModel.from_scene(load_scene(args.scene))
+    grid = model_grid(VolumeEstimator(model), args.scene)
+    correction = fit_correction(entries, grid)
+    lines = [f"{correction.count} measurement(s) of phantom {args.phantom!r}; the model {args.scene} misses them by "
+             f"{correction.uncorrected_pct:.2f} % on average",
+             "leave-one-out (mean abs error of the volume left out): "
+             + (", ".join(f"{kind} {error:.2f} %" for kind, error in correction.leave_one_out_pct.items())
+                or "none (fewer than two measurements)"),
+             f"correction in force: {correction.kind} (offset {correction.offset_ml:+.3f} ml, growth x "
+             f"{1 + correction.growth_factor:.4f}{', and a residual field' if correction.residual_field else ''}); "
+             f"its largest size over the pressure box {correction.size_ml(grid):.3f} ml"]
+    return _print(args, correction.to_json() | {"size_ml": correction.size_ml(grid)}, "\n".join(lines))

@@ -1,0 +1,230 @@
+"""The measured volumes that correct a phantom's model (phantom.model.corrections, ``phantom corrections``): the
+store survives restarts and kills, refuses bad input with why, exports what ``phantom calibrate`` reads; the
+correction is chosen by leave-one-out and corrects the model away from the points measured."""
+
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from phantom.cli.main import main
+from phantom.model.calibration.calibrate import load_measurements
+from phantom.model.corrections import (
+    CorrectedModel,
+    CorrectionError,
+    CorrectionStore,
+    Measurement,
+    ModelGrid,
+    fit_correction,
+    trilinear,
+)
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHANTOM_DATA_DIR", str(tmp_path / "data"))
+    return CorrectionStore.for_phantom("bench-phantom")
+
+
+def test_the_store_keeps_measurements_across_a_restart_and_exports_what_calibrate_reads(store, tmp_path):
+    assert store.entries() == []
+    store.add(Measurement.now([1, 1, 1], 29.96, "scan", "scan_1.ply", "builtin:converged", 29.24))
+    store.add(Measurement.now([2, 0, 0], 32.36, "water_displacement"))
+    assert store.path == tmp_path / "data" / "corrections" / "bench-phantom.json"
+    again = CorrectionStore.for_phantom("bench-phantom")          # a new process would see this
+    entries = again.entries()
+    assert [(e.pressures_kpa, e.volume_ml, e.method) for e in entries] == [
+        ((1.0, 1.0, 1.0), 29.96, "scan"), ((2.0, 0.0, 0.0), 32.36, "water_displacement")]
+    assert entries[0].scan_file == "scan_1.ply" and entries[0].model_volume_ml == 29.24 and entries[0].time_utc
+    csv_path = tmp_path / "measured.csv"
+    csv_path.write_text(again.to_csv() + "0,0,0,26.43,air,scan,,,\n")   # calibrate needs three rows
+    measured = load_measurements(csv_path, 3)
+    np.testing.assert_allclose(measured.pressures_pa[:2], [[1000, 1000, 1000], [2000, 0, 0]])
+    np.testing.assert_allclose(measured.volumes_m3[:2] * 1e6, [29.96, 32.36])
+    assert measured.media[:2] == ("air", "water")
+    assert "method" in csv_path.read_text().splitlines()[0]
+    assert again.clear() == 2 and again.entries() == []
+
+
+@pytest.mark.parametrize(("make", "message"), [
+    (lambda: Measurement((1.0, -0.5, 0.0), 30.0), "pressures must be finite numbers >= 0"),
+    (lambda: Measurement((1.0, float("nan"), 0.0), 30.0), "pressures must be finite numbers >= 0"),
+    (lambda: Measurement((1.0, 1.0, 1.0), float("inf")), "measured volume must be a finite number"),
+    (lambda: Measurement((1.0, 1.0, 1.0), 0.0), "measured volume must be a finite number of ml above 0"),
+    (lambda: Measurement((1.0, 1.0, 1.0), 30.0, "guess"), "method is one of scan, water_displacement"),
+    (lambda: CorrectionStore.for_phantom("../etc/passwd"), "a phantom's name is 1-64 letters"),
+])
+def test_bad_measurements_and_names_are_refused(make, message):
+    with pytest.raises(CorrectionError, match=message):
+        make()
+
+
+def test_a_damaged_store_is_refused_with_what_to_do_and_another_phantoms_point_is_not_mixed_in(store):
+    store.add(Measurement.now([1, 1, 1], 30.0))
+    with pytest.raises(CorrectionError, match="3 pressures, this one 4: is it another phantom"):
+        store.add(Measurement.now([1, 1, 1, 1], 30.0))
+    store.path.write_text('{"format": "phantom-corrections/1", "measurements": [{"pressures_kpa": [1, 1')
+    with pytest.raises(CorrectionError, match="is damaged .*move it aside"):
+        store.entries()
+    with pytest.raises(CorrectionError, match="nothing to export"):
+        CorrectionStore.for_phantom("empty").to_csv()
+
+
+KILLER = """
+import sys
+from phantom.model.corrections import CorrectionStore, Measurement
+store = CorrectionStore(sys.argv[1])
+start = len(store.entries())
+for number in range(start, 100000):
+    store.add(Measurement.now([1, 1, 1], 30.0 + number * 1e-3))
+    print(number + 1, flush=True)
+"""
+
+
+def test_the_store_survives_a_kill_in_the_middle_of_writing(tmp_path):
+    """SIGKILL a writer many times mid-stream: the file is always whole, with every measurement it said it
+    stored (atomic writes: a temporary file renamed over the store)."""
+    path = tmp_path / "store.json"
+    stored = 0
+    for attempt in range(3):
+        writer = subprocess.Popen([sys.executable, "-c", KILLER, str(path)], stdout=subprocess.PIPE, text=True)
+        assert writer.stdout is not None
+        said = 0
+        while said < stored + 5 + 3 * attempt:
+            said = int(writer.stdout.readline())
+        os.kill(writer.pid, signal.SIGKILL)
+        writer.wait()
+        entries = CorrectionStore(path).entries()
+        assert len(entries) >= said
+        stored = len(entries)
+        np.testing.assert_allclose([e.volume_ml for e in entries], 30.0 + np.arange(stored) * 1e-3)
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".store")], "no temporary file left behind"
+
+
+def _linear_grid(growth_ml_per_kpa=2.0, rest_ml=20.0):
+    """A model whose chambers grow 2 ml/kPa each, on a 0.5 kPa grid over 0-3 kPa."""
+    points = np.linspace(0, 3, 7)
+    pressures = np.stack(np.meshgrid(points, points, points, indexing="ij"), -1)
+    chamber = 2.0 + growth_ml_per_kpa * pressures
+    gland = rest_ml + growth_ml_per_kpa * pressures.sum(axis=-1)
+    return ModelGrid(points, chamber, gland, lambda p: float(rest_ml + growth_ml_per_kpa * np.sum(p)), "linear")
+
+
+def test_a_stiffer_phantom_is_corrected_by_its_growth_and_the_inverse_then_hits_the_truth():
+    """The truth grows 10 % less than the model and sits 0.3 ml higher: the growth correction wins the
+    leave-one-out and is exact everywhere; the corrected inverse meets the truth."""
+    grid = _linear_grid()
+
+    def truth(p):
+        return 20.3 + 1.8 * float(np.sum(p))
+
+    rng = np.random.default_rng(4)
+    scanned = rng.uniform(0, 3, (6, 3))
+    correction = fit_correction([Measurement(tuple(p), truth(p)) for p in scanned], grid)
+    assert correction.kind == "growth"
+    assert correction.leave_one_out_pct["growth"] < 1e-6 < correction.leave_one_out_pct["offset"]
+    assert correction.growth_factor == pytest.approx(-0.1) and correction.offset_ml == pytest.approx(0.3)
+    corrected = CorrectedModel(grid, correction)
+    for p in rng.uniform(0, 3, (5, 3)):
+        assert corrected.gland_ml(p) == pytest.approx(truth(p), rel=1e-9)
+
+    def inverse(volume_ml):  # the model's own inverse: equal pressures
+        return np.full(3, (volume_ml - 20.0) / 6.0)
+
+    pressures, volume, rounds = corrected.pressures_for_ml(35.0, inverse)
+    assert truth(pressures) == pytest.approx(35.0, abs=1e-3) and volume == pytest.approx(35.0, abs=1e-3)
+    assert rounds <= 3
+    with pytest.raises(CorrectionError, match="no measurements"):
+        fit_correction([], grid)
+
+
+def test_one_scan_gives_an_offset_and_a_field_meets_a_bump_the_growth_cannot():
+    grid = _linear_grid()
+    one = fit_correction([Measurement((1.0, 1.0, 1.0), 26.5)], grid)
+    assert one.kind == "offset" and one.offset_ml == pytest.approx(0.5) and one.leave_one_out_pct == {}
+
+    def truth(p):  # chamber 0 softer past 1.5 kPa than any scale of the model's growth says
+        return 20.0 + 2.0 * float(np.sum(p)) + 1.5 * max(p[0] - 1.5, 0.0) ** 2
+
+    points = np.array(list(np.ndindex(3, 3, 3)), dtype=float) * 1.5
+    correction = fit_correction([Measurement(tuple(p), truth(p)) for p in points], grid)
+    assert correction.kind in ("field", "growth+field")
+    assert correction.leave_one_out_pct[correction.kind] < correction.leave_one_out_pct["growth"]
+    corrected = CorrectedModel(grid, correction)
+    for p in points:
+        assert corrected.gland_ml(p) == pytest.approx(truth(p), abs=1e-3)
+    rng = np.random.default_rng(5)
+    held_out = rng.uniform(0, 3, (20, 3))
+    errors = [abs(corrected.gland_ml(p) - truth(p)) / truth(p) * 100 for p in held_out]
+    model_errors = [abs(grid.gland_ml(p) - truth(p)) / truth(p) * 100 for p in held_out]
+    # 1.06 % against the model's 2.02 % (2026-11-27): a kink between the scanned points is smoothed over
+    assert np.mean(errors) < 0.6 * np.mean(model_errors)
+
+
+@pytest.mark.slow
+def test_table_one_scanned_corrects_the_model_towards_the_simulated_phantom():
+    """The eight Table I points stored as scans of the shipped simulated phantom (its truth passes through
+    them): the corrections' leave-one-out is reported, and each kind's error at held-out points measured against
+    the truth. Figures (2026-11-27): leave-one-out picks the offset (4.6 %; growth 5.1, field 5.5,
+    growth+field 6.7: eight irregular points leave each other out badly); at 30 random held-out points the mean
+    error is 2.69 % uncorrected and 1.24 % with the field: better, and short of the issue's 0.5 %."""
+    from phantom.hil.plant import MEASURED_VOLUMES_PATH, load_plant
+    from phantom.model import PhantomModel, load_scene
+    from phantom.model.corrections import model_grid
+    from phantom.model.fidelity.levels import VolumeEstimator
+
+    plant = load_plant()
+    rows = np.loadtxt(MEASURED_VOLUMES_PATH, delimiter=",", comments="#", skiprows=4)
+    grid = model_grid(VolumeEstimator(PhantomModel.from_scene(load_scene("builtin:converged")), level="table"))
+    scans = [Measurement(tuple(row[:3]), row[3]) for row in rows]
+    chosen = fit_correction(scans, grid)
+    assert set(chosen.leave_one_out_pct) == {"offset", "growth", "field", "growth+field"}
+    assert chosen.leave_one_out_pct[chosen.kind] == min(chosen.leave_one_out_pct.values())
+    held_out = np.random.default_rng(1).uniform(0, 3, (30, 3))
+    truth = np.array([plant.truth_gland_volume_ml(1e3 * p) for p in held_out])
+
+    def mean_error_pct(model):
+        return float(np.mean([abs(model(p) - t) / t * 100 for p, t in zip(held_out, truth, strict=True)]))
+
+    uncorrected = mean_error_pct(grid.gland_ml)
+    field = CorrectedModel(grid, fit_correction(scans, grid, ["field"]))
+    assert mean_error_pct(CorrectedModel(grid, chosen).gland_ml) < uncorrected
+    assert mean_error_pct(field.gland_ml) < 0.5 * uncorrected
+    # through the eight points themselves the field is exact (to the file's 5 digits)
+    for row in rows:
+        assert field.gland_ml(row[:3]) == pytest.approx(row[3], abs=0.01)
+    assert float(trilinear(plant.truth_gland_volume_m3 * 1e6, np.arange(4.0), rows[2, :3])) == pytest.approx(34.80,
+                                                                                                        abs=0.005)
+
+
+def test_the_command_line_lists_adds_exports_and_clears(store, tmp_path, capsys):
+    assert main(["corrections", "add", "--phantom", "bench-phantom", "--pressures-kpa", "1,1,1",
+                 "--volume-ml", "29.96"]) == 0
+    assert main(["corrections", "list", "--phantom", "bench-phantom"]) == 0
+    assert "1.000, 1.000, 1.000 kPa  29.960 ml (water_displacement)" in capsys.readouterr().out
+    out = tmp_path / "exported.csv"
+    assert main(["corrections", "export", "--phantom", "bench-phantom", "--out", str(out)]) == 0
+    assert out.read_text().startswith("p0_kpa,p1_kpa,p2_kpa,measured_ml,medium,method")
+    assert main(["corrections", "clear", "--phantom", "bench-phantom"]) == 0
+    assert "1 measurement(s) of phantom 'bench-phantom' would be removed: add --yes" in capsys.readouterr().out
+    assert len(store.entries()) == 1
+    assert main(["corrections", "clear", "--phantom", "bench-phantom", "--yes"]) == 0
+    assert store.entries() == []
+    assert main(["corrections", "add", "--pressures-kpa", "1,1", "--volume-ml", "-3"]) == 2
+    assert "measured volume must be a finite number of ml above 0" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_corrections_fit_reports_each_candidates_leave_one_out(store, capsys):
+    for pressures, volume in (((1, 1, 1), 29.96), ((2, 0, 0), 32.36), ((0, 0, 2), 31.20)):
+        store.add(Measurement.now(pressures, volume))
+    assert main(["corrections", "fit", "--phantom", "bench-phantom"]) == 0
+    out = capsys.readouterr().out
+    assert "3 measurement(s) of phantom 'bench-phantom'; the model builtin:converged misses them by" in out
+    assert "leave-one-out (mean abs error of the volume left out): offset" in out
+    assert "correction in force: offset" in out   # three points: the offset leaves the others out best
+    assert main(["corrections", "fit", "--phantom", "nobody"]) == 2
+    assert "no measurements to correct the model with: scan the phantom first" in capsys.readouterr().err
