@@ -149,7 +149,7 @@ def test_the_model_settings_and_chamber_labels_are_read_into_types(tmp_path):
     ("pressure_max_kpa = -3.0", "[model] pressure_max_kpa must be a positive number, got -3.0"),
     ("table_points = 1", "[model] table_points must be an integer of at least 2, got 1"),
     ("table_points = 7.0", "[model] table_points must be an integer of at least 2, got 7.0"),
-    ("table_point = 7", "[model] has unknown keys ['table_point']"),
+    ("table_point = 7", "[model] has unknown key 'table_point' (did you mean 'table_points'?)"),
 ])
 def test_bad_model_settings_are_refused_when_the_scene_loads(tmp_path, table, message):
     with pytest.raises(SceneError) as error:
@@ -174,7 +174,13 @@ def test_chamber_labels_name_every_chamber(tmp_path, labels):
         ("poisson_ratio = 0.3", "poisson_ratio = 0.5", "poisson_ratio must lie in (-1, 0.5)"),
         ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = -1", "youngs_modulus_kpa must be a positive"),
         ('mesh = "meshes/p.msh"', 'mesh = "builtin:liver"', "unknown built-in mesh"),
-        ("[phantom]", "[phantom_]", "the [phantom] table is missing"),
+        ("[phantom]", "[phantom_]", "the file has unknown key 'phantom_' (did you mean 'phantom'?)"),
+        ("[host]", "[materials]", "the file has unknown key 'materials' (did you mean 'material'?)"),
+        ('units = "cm"', 'unit = "cm"', "[phantom] has unknown key 'unit' (did you mean 'units'?)"),
+        ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = inf", "youngs_modulus_kpa must be a positive"),
+        ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = true", "youngs_modulus_kpa must be a positive"),
+        ("[host]", "[outputs]\nshape = 1\n[host]", "[outputs] shape must be true or false, got 1"),
+        ("[phantom]", 'outputs = "all"\n[phantom]', "outputs must be a table ([outputs]), got 'all'"),
     ],
 )
 def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
@@ -183,6 +189,26 @@ def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
         load_scene(write_scene(tmp_path, GOOD.replace(replace, by)))
     assert message in str(error.value)
     assert isinstance(error.value, PhantomError)
+
+
+@pytest.mark.parametrize(("replace", "by", "message"), [
+    ("youngs_modulus_kpa = 50.0", "youngs_modulus_kPa = 20.0",
+     "[material] has unknown key 'youngs_modulus_kPa' (did you mean 'youngs_modulus_kpa'?)"),
+    ("poisson_ratio = 0.45", "poisson_ration = 0.45",
+     "[material] has unknown key 'poisson_ration' (did you mean 'poisson_ratio'?)"),
+    ("accuracy_pct = 10.0", "accuracy = 10.0", "[model] has unknown key 'accuracy' (did you mean 'accuracy_pct'?)"),
+    ("shape = false", "shapes = false", "[outputs] has unknown key 'shapes' (did you mean 'shape'?)"),
+    ('fixed = "fixed"', 'fixed_group = "fixed"', "[phantom] has unknown key 'fixed_group' (did you mean 'fixed'?)"),
+])
+def test_a_misspelt_key_in_a_copy_of_the_builtin_scene_is_named_with_the_nearest_known_one(tmp_path, replace, by,
+                                                                                          message):
+    """A misspelt key was ignored and its default used in silence (E = 50 kPa for youngs_modulus_kPa = 20)."""
+    text = builtin_scene_path("builtin").read_text()
+    assert replace in text
+    with pytest.raises(SceneError) as error:
+        load_scene(write_scene(tmp_path, text.replace(replace, by)))
+    assert message in str(error.value) and "\n" not in str(error.value)
+    assert "the known ones are" in str(error.value)
 
 
 def test_missing_and_unparsable_scene_files(tmp_path):
