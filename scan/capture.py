@@ -37,12 +37,17 @@ from typing import Any, Protocol
 import numpy as np
 
 from phantom import PhantomError, require_extra
-from phantom.scan.camera import Rig
+from phantom.scan.camera import Rig, checked_array
 
 CAPTURE_FORMAT = "phantom-capture/1"
 CAPTURE_FILE = "capture.json"
 RIG_FILE = "rig.json"
 IMAGES = "images"
+#: The most pictures a capture folder may hold (360 per turn in five passes is 1800): each is carved with, and
+#: a capture.json naming more is not ours.
+MAX_FRAMES = 2000
+#: The largest orbit and elevation angles (deg) a frame may have: the orbit's soft limits are +-190 deg.
+MAX_FRAME_ANGLE_DEG = 360.0
 
 
 class CaptureError(PhantomError):
@@ -209,10 +214,19 @@ class CaptureFolder:
             raise CaptureError(f"cannot read {path / CAPTURE_FILE}: {error}") from None
         if not isinstance(data, dict) or data.get("format") != CAPTURE_FORMAT:
             raise CaptureError(f"{path / CAPTURE_FILE} is not a {CAPTURE_FORMAT} capture")
+        records = data.get("frames")
+        if not isinstance(records, list) or len(records) > MAX_FRAMES:
+            count = len(records) if isinstance(records, list) else records
+            raise CaptureError(f"{path / CAPTURE_FILE}: frames must be a list of at most {MAX_FRAMES} pictures, got "
+                               f"{count!r:.80}: that is not a capture of ours")
+        frames = [_checked_frame(record, f"{path / CAPTURE_FILE}: frame {number}")
+                  for number, record in enumerate(records)]
+        images = [frame.image for frame in frames]
+        if len(set(images)) != len(images):
+            twice = next(image for image in images if images.count(image) > 1)
+            raise CaptureError(f"{path / CAPTURE_FILE} names the picture {twice} for more than one frame: each frame "
+                               f"is its own picture (a damaged or hand-made capture.json)")
         try:
-            frames = [Frame(int(f["index"]), str(f["image"]), float(f["orbit_deg"]), float(f["elevation_deg"]),
-                            f.get("pressures_kpa"), str(f.get("time_utc", "")), float(f.get("time_s", 0.0)))
-                      for f in data["frames"]]
             return cls(path, dict(data.get("camera", {})), dict(data.get("plan", {})),
                        dict(data.get("conditions", {})), frames, str(data.get("status", "complete")),
                        data.get("reason"), str(data.get("started_utc", "")), data.get("finished_utc"), data.get("rig"))
@@ -233,6 +247,26 @@ class CaptureFolder:
             raise CaptureError(f"cannot read the picture {self.path / frame.image}: missing or damaged")
         rgb: np.ndarray = np.ascontiguousarray(picture[:, :, ::-1])
         return rgb
+
+
+def _checked_frame(record: Any, where: str) -> Frame:
+    """One frame's record of capture.json, checked: finite angles within a turn or two, a picture inside the
+    folder, pressures numbers or null; CaptureError naming the field otherwise (a NaN angle was a traceback)."""
+    if not isinstance(record, dict):
+        raise CaptureError(f"{where} must be an object, got {record!r:.80}")
+    image, index = record.get("image"), record.get("index")
+    if not isinstance(image, str) or not image or Path(image).is_absolute() or ".." in Path(image).parts:
+        raise CaptureError(f"{where}: image must be a picture's path inside the folder, got {image!r:.80}")
+    if isinstance(index, bool) or not isinstance(index, int):
+        raise CaptureError(f"{where}: index must be a whole number, got {index!r:.80}")
+    orbit_deg, elevation_deg = (float(checked_array(record.get(key), (), f"{where}: {key}", CaptureError,
+                                                    MAX_FRAME_ANGLE_DEG)) for key in ("orbit_deg", "elevation_deg"))
+    pressures = record.get("pressures_kpa")
+    if pressures is not None:
+        pressures = checked_array(pressures, (len(pressures),) if isinstance(pressures, list) else (-1,),
+                                  f"{where}: pressures_kpa", CaptureError).tolist()
+    time_s = float(checked_array(record.get("time_s", 0.0), (), f"{where}: time_s", CaptureError))
+    return Frame(index, image, orbit_deg, elevation_deg, pressures, str(record.get("time_utc", "")), time_s)
 
 
 def _utc_now() -> str:

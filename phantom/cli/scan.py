@@ -203,11 +203,13 @@ def _add_plan_options(parser: argparse.ArgumentParser) -> None:
 
 def _plan(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
     from phantom.cli.common import parse_numbers
-    from phantom.scan.capture import CaptureError, Plan
+    from phantom.scan.capture import MAX_FRAMES, CaptureError, Plan
 
-    if args.views < 1:
-        raise CaptureError(f"--views must be at least 1, got {args.views}")
-    return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
+    elevations = tuple(parse_numbers(args.elevations, "--elevations"))
+    if not 1 <= args.views * len(elevations) <= MAX_FRAMES:
+        raise CaptureError(f"--views {args.views} at {len(elevations)} elevation(s) is {args.views * len(elevations)} "
+                           f"pictures: give from 1 to {MAX_FRAMES} in all")
+    return Plan(args.views, elevations, settle_s=settle_s)
 
 
 def _scale(value: float) -> float:
