@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from phantom import PhantomError
 from phantom.model.errors import SceneError
 
 #: The largest table file read, and the largest array in one (bytes, uncompressed): a shipped volumes file is
@@ -63,16 +64,29 @@ def read_provenance(path: Path, where: str, remedy: str) -> dict[str, Any]:
     return provenance
 
 
-def read_members(path: Path, members: dict[str, Member], where: str, remedy: str) -> dict[str, np.ndarray]:
-    """The arrays ``members`` names from the ``.npz`` at ``path``, each checked against its :class:`Member`
-    before (shape, dtype, size from the headers) and after (finiteness) its data is read; SceneError otherwise."""
+def read_members(path: Path, members: dict[str, Member], where: str, remedy: str,
+                 error: type[PhantomError] = SceneError,
+                 max_file_bytes: int = MAX_TABLE_FILE_BYTES) -> dict[str, np.ndarray]:
+    """The arrays ``members`` names from the ``.npz`` at ``path`` (at most ``max_file_bytes``), each checked
+    against its :class:`Member` before (shape, dtype, size from the headers) and after (finiteness) its data is
+    read; ``error`` otherwise. (Other parts read their own archives of arrays with it: a shape run's checkpoint.)"""
+    try:
+        return _read_members(path, members, where, remedy, max_file_bytes)
+    except SceneError as refusal:
+        if error is SceneError:
+            raise
+        raise error(str(refusal)) from None
+
+
+def _read_members(path: Path, members: dict[str, Member], where: str, remedy: str,
+                  max_file_bytes: int) -> dict[str, np.ndarray]:
     try:
         info = path.stat()
     except OSError as error:
         raise SceneError(f"{where} cannot be read ({error.strerror}): {remedy}") from None
-    if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_TABLE_FILE_BYTES:
-        raise SceneError(f"{where} is not a table file (a regular file of at most {MAX_TABLE_FILE_BYTES // 2**20} "
-                         f"MiB): {remedy}")
+    if not stat.S_ISREG(info.st_mode) or info.st_size > max_file_bytes:
+        raise SceneError(f"{where} is not one of ours (a regular file of at most {max_file_bytes // 2**20} MiB): "
+                         f"{remedy}")
     try:
         with zipfile.ZipFile(path) as archive:
             return {name: _member(archive, name, member, where, remedy) for name, member in members.items()}
