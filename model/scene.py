@@ -376,7 +376,12 @@ def _shipped_file(table: dict[str, Any], key: str, where: str, path: Path | None
         raise SceneError(f"{where}: [model] {key} must be a file path (a .npz that response_table.write_{key} "
                          f"wrote, or builtin:NAME for one beside the built-in scenes), got {value!r}")
     if value.startswith(SHIPPED_FILE_PREFIX):
-        resolved = SCENES_DIR / value.removeprefix(SHIPPED_FILE_PREFIX)
+        name = value.removeprefix(SHIPPED_FILE_PREFIX)
+        shipped = sorted(path.name for path in SCENES_DIR.glob("*.npz"))
+        if Path(name).name != name:
+            raise SceneError(f"{where}: [model] {key} = {value!r}: builtin:NAME names a file in the built-in scenes' "
+                             f"folder ({', '.join(shipped)}), not a path; give a path for any other file")
+        resolved = SCENES_DIR / name
     else:
         resolved = _beside(value, path)
     if not resolved.is_file():

@@ -107,6 +107,10 @@ def test_table_files_are_files_beside_the_scene_and_a_calibration_drops_them(tmp
     assert getattr(scene.model_settings, key) == load_scene("builtin:converged").path.parent / shipped
     with pytest.raises(SceneError, match=rf"{key} names .*model/scenes/absent.npz, which is not a file"):
         load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:absent.npz"\n'))
+    for escaping in ("../../x.npz", "sub/x.npz", "/etc/x.npz"):
+        with pytest.raises(SceneError, match=r"builtin:NAME names a file in the built-in scenes' folder "
+                                             r"\(prostate_converged.shapes.npz, prostate_converged.volumes.npz\)"):
+            load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:{escaping}"\n'))
     # the files belong to the scene's own parameters: a copy with others set (a calibration's) names none
     copied = scene_with(load_scene("builtin:converged").raw, {"gent_jm": 20.0})
     assert key not in copied["model"] and key in load_scene("builtin:converged").raw["model"]
