@@ -37,7 +37,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from phantom import PhantomError, require_extra
-from phantom.scan.camera import Rig, checked_array
+from phantom.scan.camera import MAX_PICTURE_SIDE_PX, Rig, checked_array
 
 CAPTURE_FORMAT = "phantom-capture/1"
 CAPTURE_FILE = "capture.json"
@@ -242,11 +242,28 @@ class CaptureFolder:
         with require_extra("scan"):
             import cv2
 
+        width, height = png_size(self.path / frame.image)
+        if max(width, height) > MAX_PICTURE_SIDE_PX:
+            raise CaptureError(f"{self.path / frame.image} is {width}x{height}, larger than any camera's "
+                               f"({MAX_PICTURE_SIDE_PX} px a side): not a picture of this capture")
         picture = cv2.imread(str(self.path / frame.image), cv2.IMREAD_COLOR)
         if picture is None:
             raise CaptureError(f"cannot read the picture {self.path / frame.image}: missing or damaged")
         rgb: np.ndarray = np.ascontiguousarray(picture[:, :, ::-1])
         return rgb
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """A PNG's width and height (px) from its header, before its pixels are read; (0, 0) for a file that is not
+    a PNG (the reader then says what it is)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(24)
+    except OSError:
+        return 0, 0
+    if len(head) < 24 or not head.startswith(b"\x89PNG\r\n\x1a\n") or head[12:16] != b"IHDR":
+        return 0, 0
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
 
 
 def _checked_frame(record: Any, where: str) -> Frame:

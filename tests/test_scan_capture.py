@@ -180,3 +180,19 @@ def test_plan_runs_every_other_pass_backwards():
     assert stops == [(0.0, 0.0), (90.0, 0.0), (180.0, 0.0), (270.0, 0.0),
                      (270.0, 30.0), (180.0, 30.0), (90.0, 30.0), (0.0, 30.0)]
     assert Plan(3, (0.0,), start_deg=-50.0, span_deg=100.0).stops() == [(-50.0, 0.0), (0.0, 0.0), (50.0, 0.0)]
+
+
+def test_a_picture_larger_than_any_camera_is_refused_from_its_header(tmp_path):
+    """A 16000^2 PNG took 1.6 GB before the size error: its header says how large it is."""
+    import zlib
+
+    def chunk(kind, data):
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+    header = (16000).to_bytes(4, "big") * 2 + bytes([8, 2, 0, 0, 0])
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "0000.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header))
+    (tmp_path / "capture.json").write_text(json.dumps({"format": "phantom-capture/1", "frames": _frames(1)}))
+    folder = CaptureFolder.open(tmp_path)
+    with pytest.raises(CaptureError, match="0000.png is 16000x16000, larger than any camera's"):
+        folder.image(folder.frames[0])
