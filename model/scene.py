@@ -8,6 +8,7 @@ simulated board's truth) and for the tables other parts own (``[[steps]]``, ``[h
 """
 
 import copy
+import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -209,6 +210,35 @@ class Scene:
     def length_scale_m(self) -> float:
         """Metres per mesh-file length unit."""
         return LENGTH_UNITS_M[self.units]
+
+
+def resolved_scene(scene: Scene) -> list[tuple[str, str, Any, bool]]:
+    """Every value of the tables this module reads, as the model uses it, with whether the file gave it (else it
+    is the default): ``(section, key, value, from_file)`` in the order of the known keys (``phantom scene check``).
+    A key with no typed field here is shown as the file has it."""
+    material, settings, load = scene.material, scene.model_settings, scene.load
+    typed: dict[str, dict[str, Any]] = {
+        "phantom": {"mesh": scene.mesh, "units": scene.units, "chambers": scene.chambers,
+                    "chamber_labels": scene.chamber_labels, "fixed": scene.fixed},
+        "geometry": dataclasses.asdict(scene.geometry) if scene.geometry is not None else {},
+        "material": {"model": material.model, "youngs_modulus_kpa": material.youngs_modulus_pa / 1e3,
+                     "poisson_ratio": material.poisson_ratio, "gent_jm": material.gent_jm},
+        "model": {"fidelity": settings.fidelity, "accuracy_pct": settings.accuracy_pct,
+                  "pressure_max_kpa": settings.pressure_max_pa / 1e3, "table_points": settings.table_points,
+                  "table_volumes": settings.table_volumes and str(settings.table_volumes),
+                  "table_shapes": settings.table_shapes and str(settings.table_shapes)},
+        "load": {"density_kg_m3": load.density_kg_m3, "gravity_m_s2": list(load.gravity_m_s2)},
+        "outputs": dataclasses.asdict(scene.outputs),
+    }
+    known = {"phantom": PHANTOM_KEYS, "geometry": tuple(typed["geometry"]), "material": MATERIAL_KEYS,
+             "model": MODEL_KEYS, "load": LOAD_KEYS, "outputs": OUTPUT_KEYS}
+    rows = []
+    for section in MODEL_SECTIONS:
+        given = scene.raw.get(section, {})
+        for key in known[section]:
+            value = typed[section].get(key, given.get(key))
+            rows.append((section, key, list(value) if isinstance(value, tuple) else value, key in given))
+    return rows
 
 
 def builtin_scene_path(name: str) -> Path:

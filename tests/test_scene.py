@@ -234,3 +234,27 @@ def test_a_10_node_builtin_scene_is_nearly_incompressible_unless_it_says_otherwi
     assert linear.poisson_ratio == 0.45 and named.poisson_ratio == 0.45
     assert quadratic.poisson_ratio == QUADRATIC_POISSON_RATIO
     assert quadratic.bulk_modulus_pa >= 1000 * quadratic.lame_mu_pa
+
+
+def test_scene_check_prints_every_resolved_value_and_where_it_came_from(tmp_path, capsys):
+    from phantom.model.scene import LOAD_KEYS, MATERIAL_KEYS, MODEL_KEYS, OUTPUT_KEYS, PHANTOM_KEYS
+
+    path = write_scene(tmp_path, GOOD + "[model]\naccuracy_pct = 2\n")
+    assert main(["scene", "check", str(path), "--json"]) == 0
+    resolved = json.loads(capsys.readouterr().out)["resolved"]
+    for section, keys in (("phantom", PHANTOM_KEYS), ("material", MATERIAL_KEYS), ("model", MODEL_KEYS),
+                          ("load", LOAD_KEYS), ("outputs", OUTPUT_KEYS)):
+        assert list(resolved[section]) == list(keys)
+    assert resolved["material"]["youngs_modulus_kpa"] == {"value": 20.0, "from": "file"}
+    assert resolved["model"]["accuracy_pct"] == {"value": 2.0, "from": "file"}
+    assert resolved["model"]["pressure_max_kpa"] == {"value": PRESSURE_LIMIT_PA / 1e3, "from": "default"}
+    assert resolved["phantom"]["chamber_labels"] == {"value": ["a", "b"], "from": "default"}
+    assert main(["scene", "check", "builtin:converged"]) == 0
+    table = capsys.readouterr().out
+    assert "[geometry]" in table and "element_order = 2" in table and "# file" in table and "# default" in table
+
+
+def test_scene_check_refuses_a_misspelt_key_with_exit_2(tmp_path, capsys):
+    path = write_scene(tmp_path, GOOD.replace("youngs_modulus_kpa", "youngs_modulus_kPa"))
+    assert main(["scene", "check", str(path)]) == 2
+    assert "unknown key 'youngs_modulus_kPa' (did you mean 'youngs_modulus_kpa'?)" in capsys.readouterr().err
