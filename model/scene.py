@@ -300,7 +300,7 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     elif "geometry" in raw:
         raise SceneError(f"{where}: [geometry] applies to the built-in prostate only; {mesh} is read as it is")
     units = phantom_table.get("units", "mm")
-    if units not in LENGTH_UNITS_M:
+    if not isinstance(units, str) or units not in LENGTH_UNITS_M:
         raise SceneError(f"{where}: [phantom] units = {units!r} is not one of {', '.join(LENGTH_UNITS_M)}")
     chambers = phantom_table.get("chambers")
     if not isinstance(chambers, list) or not chambers or not all(isinstance(c, str) for c in chambers):

@@ -53,7 +53,10 @@ def checked_array(value: Any, shape: tuple[int, ...], name: str, error: type[Pha
                   limit: float = math.inf) -> FloatArray:
     """``value`` (from a JSON file) as a float array of ``shape``, every element a finite number (not a bool, not
     a string) of magnitude at most ``limit``; ``error`` naming ``name``, the value and the shape otherwise."""
-    array = np.asarray(value) if isinstance(value, list | tuple | int | float) else None
+    try:
+        array = np.asarray(value) if isinstance(value, list | tuple | int | float) else None
+    except (ValueError, OverflowError):  # ragged nesting, an integer beyond any dtype
+        array = None
     if array is None or array.dtype.kind not in "iuf" or array.shape != shape:
         raise error(f"{name} must be {'a number' if not shape else f'numbers of shape {shape}'}, got {value!r:.80}")
     numbers: FloatArray = array.astype(float)

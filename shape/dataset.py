@@ -139,7 +139,7 @@ def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> Labe
         image: Any = nibabel.load(str(case.path))
         shape = tuple(int(side) for side in image.shape)
     except Exception as error:  # nibabel raises several kinds for a damaged or foreign file
-        raise ShapeError(f"{case.path}: not a readable NIfTI file ({error})") from None
+        raise ShapeError(f"{case.path}: not a readable NIfTI file ({' '.join(str(error).split())})") from None
     if len(shape) == 4 and shape[3] == 1:
         shape = shape[:3]
     if len(shape) != 3:
@@ -151,7 +151,7 @@ def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> Labe
     try:
         values = np.asanyarray(image.dataobj).reshape(shape)
     except Exception as error:  # a file shorter than its header says, or damaged compression
-        raise ShapeError(f"{case.path}: not a readable NIfTI file ({error})") from None
+        raise ShapeError(f"{case.path}: not a readable NIfTI file ({' '.join(str(error).split())})") from None
     if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
         raise ShapeError(f"{case.path}: the mask holds NaN or infinite values: a mask is labels or 0/1")
     if values.dtype.kind not in "iufb":

@@ -118,6 +118,7 @@ def _set(path, value):
     (("camera", "width"), 0, "width must be a whole number of pixels from 16 to 8192, got 0"),
     (("camera", "height"), 120.5, "height must be a whole number of pixels"),
     (("camera", "distortion_k1_k2_p1_p2_k3"), [0.1, 0.0], r"distortion_k1_k2_p1_p2_k3 must be numbers of shape \(5,\)"),
+    (("camera", "distortion_k1_k2_p1_p2_k3"), [[], 0.1, 0.0, 0.0, 0.0], "distortion_k1_k2_p1_p2_k3 must be numbers"),
     (("axis", "direction"), [0.0, 0.0, 0.0], "the rig's axis direction .* has no length"),
     (("axis", "direction"), [float("nan"), 0.0, 1.0], "the rig's axis direction must be finite"),
     (("axis", "point_mm"), ["0", 0, 0], r"the rig's axis point_mm must be numbers of shape \(3,\)"),

@@ -181,6 +181,7 @@ def test_chamber_labels_name_every_chamber(tmp_path, labels):
         ("[phantom]", "[phantom_]", "the file has unknown key 'phantom_' (did you mean 'phantom'?)"),
         ("[host]", "[materials]", "the file has unknown key 'materials' (did you mean 'material'?)"),
         ('units = "cm"', 'unit = "cm"', "[phantom] has unknown key 'unit' (did you mean 'units'?)"),
+        ('units = "cm"', "units = []", "units = [] is not one of"),
         ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = inf", "youngs_modulus_kpa must be a positive"),
         ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = true", "youngs_modulus_kpa must be a positive"),
         ("[host]", "[outputs]\nshape = 1\n[host]", "[outputs] shape must be true or false, got 1"),

@@ -14,6 +14,7 @@ import json
 import math
 import stat
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -90,8 +91,10 @@ def _read_members(path: Path, members: dict[str, Member], where: str, remedy: st
     try:
         with zipfile.ZipFile(path) as archive:
             return {name: _member(archive, name, member, where, remedy) for name, member in members.items()}
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, EOFError, ValueError, NotImplementedError) as error:
-        raise SceneError(f"{where} is damaged ({type(error).__name__}: {error}): {remedy}") from None
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, OSError, EOFError, ValueError, NotImplementedError,
+            SyntaxError) as error:  # a damaged directory, stream, CRC or .npy header (parsed as a Python literal)
+        text = " ".join(str(error).split())
+        raise SceneError(f"{where} is damaged ({type(error).__name__}: {text}): {remedy}") from None
 
 
 def _member(archive: zipfile.ZipFile, name: str, member: Member, where: str, remedy: str) -> np.ndarray:
