@@ -196,3 +196,11 @@ def test_a_picture_larger_than_any_camera_is_refused_from_its_header(tmp_path):
     folder = CaptureFolder.open(tmp_path)
     with pytest.raises(CaptureError, match="0000.png is 16000x16000, larger than any camera's"):
         folder.image(folder.frames[0])
+
+
+def test_capture_refuses_more_pictures_than_a_capture_holds_before_it_calls_the_daemon(tmp_path, capsys):
+    from phantom.cli.main import main
+
+    assert main(["scan", "capture", "--out", str(tmp_path / "capture"), "--views", "3000", "--socket",
+                 str(tmp_path / "no-daemon.sock")]) == 2
+    assert "give from 1 to 2000 in all" in capsys.readouterr().err and not (tmp_path / "capture").exists()

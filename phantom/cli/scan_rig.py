@@ -13,6 +13,7 @@ here by adapters over the API:
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
@@ -183,18 +184,14 @@ def run_capture(args: Any) -> int:
     """Handler of ``phantom scan capture``."""
     import sys
 
-    from phantom.cli.common import parse_numbers
-    from phantom.cli.scan import load_rig
+    from phantom.cli.scan import load_rig, plan_of
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
     from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureError, CaptureFolder, Plan, Webcam
+    from phantom.scan.capture import CaptureFolder, Webcam
     from phantom.scan.render import CharucoTarget
 
-    if args.views < 1:
-        raise CaptureError(f"--views must be at least 1, got {args.views}")
-    elevations = tuple(parse_numbers(args.elevations, "--elevations"))
-    plan = Plan(args.views, elevations, args.start_deg, args.settle_s, args.span_deg)
+    plan = dataclasses.replace(plan_of(args, args.settle_s), start_deg=args.start_deg, span_deg=args.span_deg)
     rig = load_rig(args.rig) if args.rig else None
     camera: FrameSource
     with DaemonClient(args.socket or default_socket_path()) as client:
@@ -202,7 +199,7 @@ def run_capture(args: Any) -> int:
             from phantom.hil.truth_shape import TruthShape
             from phantom.scan.virtual import TargetCamera, VirtualCamera
 
-            true_rig = virtual_rig(args.scale, elevations)
+            true_rig = virtual_rig(args.scale, plan.elevations_deg)
             pose_at = _scaled_pose(args.scale)
             if args.target:
                 camera = TargetCamera(true_rig, CharucoTarget(), _placement(args.placement), _FollowingOrbit(client),
