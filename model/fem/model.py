@@ -234,8 +234,7 @@ class PhantomModel:
                              f"got {pressures.size}")
         if not np.all(np.isfinite(pressures)):
             raise SolveError(f"chamber pressures must be finite numbers, got {pressures.tolist()} Pa")
-        resolved: FloatArray = np.where(np.abs(pressures) < PRESSURE_RESOLUTION_PA, 0.0, pressures)
-        return resolved
+        return pressures
 
     def problem(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
                 start_m: FloatArray | None = None,
@@ -272,10 +271,13 @@ class PhantomModel:
         step fails. ``initial_positions_m`` starts from another configuration (default: rest); for a hyperelastic
         law Newton at the full load is tried from there first (it converges in a few iterations from a nearby
         equilibrium), path following from zero load when it does not converge.
-        Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert.
+        Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert. A pressure
+        under :data:`PRESSURE_RESOLUTION_PA` in magnitude is zero.
         """
         started = time.perf_counter()
-        problem = self.problem(pressures_pa, formulation, initial_positions_m, body_force_n_per_m3)
+        pressures = self._check_pressures(pressures_pa)
+        resolved = np.where(np.abs(pressures) < PRESSURE_RESOLUTION_PA, 0.0, pressures)
+        problem = self.problem(resolved, formulation, initial_positions_m, body_force_n_per_m3)
         positions_m, iterations, steps = problem.start_m, 0, 0
         if problem.loaded or initial_positions_m is not None:
             warm = None
