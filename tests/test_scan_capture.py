@@ -204,3 +204,10 @@ def test_capture_refuses_more_pictures_than_a_capture_holds_before_it_calls_the_
     assert main(["scan", "capture", "--out", str(tmp_path / "capture"), "--views", "3000", "--socket",
                  str(tmp_path / "no-daemon.sock")]) == 2
     assert "give from 1 to 2000 in all" in capsys.readouterr().err and not (tmp_path / "capture").exists()
+
+
+def test_validate_refuses_more_pictures_than_a_capture_holds_before_writing(tmp_path, capsys):
+    from phantom.cli.main import main
+
+    assert main(["scan", "validate", "--sim", "--out", str(tmp_path / "out"), "--views", "1500"]) == 2
+    assert "give from 1 to 2000 in all" in capsys.readouterr().err and not (tmp_path / "out").exists()

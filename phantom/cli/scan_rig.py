@@ -307,7 +307,7 @@ def run_validate(args: Any) -> int:
 
     from phantom.cli.common import parse_numbers
     from phantom.cli.demo import wait_until_ready
-    from phantom.cli.scan import load_rig
+    from phantom.cli.scan import load_rig, plan_of
     from phantom.hil.truth_shape import TruthShape
     from phantom.host.client import DaemonClient
     from phantom.host.scenes import example_scene_path
@@ -315,7 +315,7 @@ def run_validate(args: Any) -> int:
     from phantom.model.mesh.surface import TriangleMesh, model_surface
     from phantom.scan.calibrate import calibrate_rig, target_views
     from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureFolder, Plan
+    from phantom.scan.capture import CaptureFolder
     from phantom.scan.compare import compare, read_scan
     from phantom.scan.heatmap import write_heatmap
     from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
@@ -325,12 +325,12 @@ def run_validate(args: Any) -> int:
     if not args.sim:
         raise PhantomError("validate runs on the simulated rig: give --sim (with a real board, scan with `phantom "
                            "scan capture`, `reconstruct` and `compare-scan`)")
+    plan = plan_of(args, args.settle_s)
+    elevations = plan.elevations_deg
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = args.scene or str(example_scene_path("bph_growth"))
     targets = parse_numbers(args.targets, "--targets") if args.targets else scene_targets_ml(scene)
-    elevations = tuple(parse_numbers(args.elevations, "--elevations"))
-    plan = Plan(args.views, elevations, settle_s=args.settle_s)
     true_rig = virtual_rig(args.scale, elevations)
     started = time.monotonic()
 
