@@ -259,3 +259,17 @@ def test_scene_check_refuses_a_misspelt_key_with_exit_2(tmp_path, capsys):
     path = write_scene(tmp_path, GOOD.replace("youngs_modulus_kpa", "youngs_modulus_kPa"))
     assert main(["scene", "check", str(path)]) == 2
     assert "unknown key 'youngs_modulus_kPa' (did you mean 'youngs_modulus_kpa'?)" in capsys.readouterr().err
+
+
+def test_run_scene_names_a_misspelt_key_instead_of_another_phantom(tmp_path):
+    """A misspelt key in a copy of an example scene: run-scene said the scene "describes another phantom than the
+    running one" (the default modulus differed), not which key was wrong."""
+    from phantom.host.handlers import prepare_scene
+    from phantom.host.scenes import example_scene_path
+
+    text = example_scene_path("bph_growth").read_text()
+    assert "youngs_modulus_kpa = 10.85573" in text
+    path = write_scene(tmp_path, text.replace("youngs_modulus_kpa = 10.85573", "youngs_modulus_kPa = 10.85573"))
+    with pytest.raises(SceneError, match=r"\[material\] has unknown key 'youngs_modulus_kPa' \(did you mean "
+                                         r"'youngs_modulus_kpa'\?\)"):
+        prepare_scene(str(path), 1.0, ["chamber0", "chamber1", "chamber2"], {}, "running.toml")
