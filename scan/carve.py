@@ -81,6 +81,10 @@ class Carver:
     def __init__(self, camera: Camera, views: Sequence[View], threads: int = 1):
         if not views:
             raise CarveError("no pictures to carve with")
+        intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy, *camera.distortion])
+        if not (np.all(np.isfinite(intrinsics)) and camera.fx > 0 and camera.fy > 0):
+            raise CarveError(f"the camera's intrinsics (fx, fy, cx, cy, distortion) {intrinsics.tolist()} are not "
+                             f"finite with positive focal lengths: calibrate the rig again")
         order = spread_order(len(views))
         self.views = [views[index] for index in order]
         self.camera = camera

@@ -148,3 +148,25 @@ def test_reconstruct_refuses_more_pictures_than_memory_allows_with_its_estimate(
     with pytest.raises(CaptureError, match=r"12 pictures of 320x240 need about 0.0 GiB to carve, more than the 0.0 "
                                            r"GiB this machine has to spare"):
         reconstruct(sphere_capture, voxel_mm=0.4)
+
+
+def test_a_camera_whose_projection_is_nan_is_refused_and_the_kernel_reads_nothing_out_of_bounds(sphere_capture):
+    """fx = NaN (now refused when a rig file is read) passed the kernel's bounds check and indexed out of bounds:
+    SIGSEGV. The carver refuses such a camera; the kernel treats a NaN projection as outside the picture."""
+    from phantom.scan import kernels
+    from phantom.scan.carve import CarveError, Carver, View
+
+    rig = virtual_rig(0.25)
+    camera = Camera(rig.camera.width, rig.camera.height, float("nan"), rig.camera.fy, rig.camera.cx, rig.camera.cy,
+                    rig.camera.distortion)
+    views = [View(rig.pose(frame.orbit_deg, frame.elevation_deg), silhouette(sphere_capture.image(frame)))
+             for frame in sphere_capture.frames[:2]]
+    with pytest.raises(CarveError, match="are not finite with positive focal lengths: calibrate the rig again"):
+        Carver(camera, views)
+    good = Carver(rig.camera, views)
+    points = np.array([VIRTUAL_CENTRE_MM, VIRTUAL_CENTRE_MM + 1.0])
+    out = np.empty(2, np.float32)
+    kernels.hull_distance(points, good.rotations, good.translations, float("nan"), camera.fy, camera.cx, camera.cy,
+                          np.array(camera.distortion), good.max_radius2, good.distances, good.offsets, good.crops,
+                          good.truncation_px, 10.0, out)
+    assert out.shape == (2,)  # reached: no read outside the silhouettes
