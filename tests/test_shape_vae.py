@@ -219,3 +219,20 @@ def test_a_checkpoint_that_is_a_pickle_or_holds_nan_is_refused(tmp_path):
         ShapeModel.load(run)
     np.savez(run / "parameters.npz", **good)
     assert ShapeModel.load(run).vae == TINY
+
+
+def test_a_damaged_latents_file_is_refused(tmp_path):
+    """latents.npz was read with np.load whole: a pickle was a ValueError traceback, a missing array a KeyError."""
+    run = _run_folder(tmp_path / "run")
+    model = ShapeModel.load(run)
+    (run / "latents.npz").write_bytes(b"\x80\x04not an npz")
+    with pytest.raises(ShapeError, match="is damaged .*train the run again"):
+        model.case_latents()
+    np.savez(run / "latents.npz", names=np.array(["a", "b"]))
+    with pytest.raises(ShapeError, match="it has no array 'mean'"):
+        model.case_latents()
+    np.savez(run / "latents.npz", names=np.array(["a", "b"]), mean=np.zeros((3, 4)))
+    with pytest.raises(ShapeError, match="name 2 cases for 3 latent vectors"):
+        model.case_latents()
+    np.savez(run / "latents.npz", names=np.array(["a", "b"]), mean=np.ones((2, 4)))
+    assert model.case_latents()[0] == ["a", "b"]
