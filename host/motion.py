@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 from collections.abc import Awaitable, Callable
 from dataclasses import asdict, fields
 from typing import Any, Protocol, TypeVar
@@ -30,6 +31,7 @@ from phantom.host.session import CommandRejected
 from phantom.host.sim_board import SimulatedBoardKeeper
 from phantom.protocol.codec import Message
 from phantom.protocol.motion import (
+    ANGLE_LIMIT_DEG,
     AXES,
     ELEVATION,
     ORBIT,
@@ -237,6 +239,17 @@ class Orbit:
         if unknown:
             raise ApiError("invalid_params", f"motion_config takes axis and {', '.join(sorted(names))}; not "
                                              f"{', '.join(unknown)}")
+        for field in fields(AxisConfig):
+            if field.name not in params:
+                continue
+            value = params[field.name]
+            if isinstance(field.default, bool):
+                if not isinstance(value, bool):
+                    raise ApiError("invalid_params", f"motion_config: {field.name} must be true or false, got "
+                                                     f"{value!r:.60}")
+            elif isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ApiError("invalid_params", f"motion_config: {field.name} must be a finite number, got "
+                                                 f"{value!r:.60}")
         try:
             config = AxisConfig(**{key: value for key, value in params.items() if key != "axis"})
         except TypeError as error:
@@ -246,28 +259,43 @@ class Orbit:
     async def _api_move(self, params: dict[str, Any]) -> dict[str, Any]:
         targets = {}
         for axis, name in AXIS_NAMES.items():
-            value = params.get(f"{name}_deg")
+            value = _angle_deg(params, f"{name}_deg")
             if value is not None:
-                if isinstance(value, bool) or not isinstance(value, (int, float)):
-                    raise ApiError("invalid_params", f"{name}_deg must be a number of degrees, got {value!r}")
-                targets[axis] = float(value)
+                targets[axis] = value
         if not targets:
             raise ApiError("invalid_params", "motion_move needs orbit_deg and/or elevation_deg")
         await self.move(targets)
         return self.status()
 
     async def _api_home(self, params: dict[str, Any]) -> dict[str, Any]:
-        angle = params.get("angle_deg", 0.0)
-        if isinstance(angle, bool) or not isinstance(angle, (int, float)):
-            raise ApiError("invalid_params", f"angle_deg must be a number, got {angle!r}")
-        await self.home(_axis(params), str(params.get("method", "here")), float(angle))
+        angle = _angle_deg(params, "angle_deg", 0.0)
+        assert angle is not None  # it has a default
+        method = params.get("method", "here")
+        if not isinstance(method, str):
+            raise ApiError("invalid_params", f"method must be 'here' or 'switch', got {method!r:.60}")
+        await self.home(_axis(params), method, angle)
         return self.status()
 
     async def _api_stop(self, params: dict[str, Any]) -> dict[str, Any]:
-        return await self.stop(bool(params.get("release", False)))
+        release = params.get("release", False)
+        if not isinstance(release, bool):
+            raise ApiError("invalid_params", f"release must be true or false, got {release!r:.60}")
+        return await self.stop(release)
 
     async def _api_status(self, params: dict[str, Any]) -> dict[str, Any]:
         return await self.full_status()
+
+
+def _angle_deg(params: dict[str, Any], key: str, default: float | None = None) -> float | None:
+    """``params[key]`` (else ``default``): a finite number of degrees within the board's angle range; ApiError
+    invalid_params otherwise (Python's json reads NaN and Infinity, which were internal errors)."""
+    value = params.get(key, default)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not abs(value) <= ANGLE_LIMIT_DEG:
+        raise ApiError("invalid_params", f"{key} must be a finite number of degrees within +-{ANGLE_LIMIT_DEG:g}, "
+                                         f"got {value!r:.60}")
+    return float(value)
 
 
 def _axis(params: dict[str, Any]) -> int:

@@ -8,6 +8,7 @@ simulated board's truth) and for the tables other parts own (``[[steps]]``, ``[h
 """
 
 import copy
+import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -15,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from phantom import read_text
-from phantom.model.errors import SceneError
+from phantom.model.errors import SceneError, check_known_keys
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 
 #: The largest scene file read (bytes): a scene of the most steps a timeline may have is about 100 KiB.
@@ -31,6 +32,17 @@ MAX_SCENE_BYTES = 2**20
 SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
                   "builtin:calibrated": "prostate_calibrated.toml", "builtin:converged": "prostate_converged.toml"}
+
+#: The keys each table of a scene may hold; any other is refused with the nearest known key (a misspelt key would
+#: otherwise be ignored and its default used in silence). ``[geometry]``'s are ProstateGeometry's fields.
+PHANTOM_KEYS = ("mesh", "units", "chambers", "chamber_labels", "fixed")
+MATERIAL_KEYS = ("model", "youngs_modulus_kpa", "poisson_ratio", "gent_jm")
+MODEL_KEYS = ("fidelity", "accuracy_pct", "pressure_max_kpa", "table_points", "table_volumes", "table_shapes")
+LOAD_KEYS = ("density_kg_m3", "gravity_m_s2")
+OUTPUT_KEYS = ("volumes", "shape")
+#: The tables of a scene this module reads, and those the host reads and checks itself (the timeline).
+MODEL_SECTIONS = ("phantom", "geometry", "material", "model", "load", "outputs")
+HOST_SECTIONS = ("steps", "timeline", "host")
 
 #: Length units a scene may declare for its mesh, and their size in metres.
 LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
@@ -200,6 +212,35 @@ class Scene:
         return LENGTH_UNITS_M[self.units]
 
 
+def resolved_scene(scene: Scene) -> list[tuple[str, str, Any, bool]]:
+    """Every value of the tables this module reads, as the model uses it, with whether the file gave it (else it
+    is the default): ``(section, key, value, from_file)`` in the order of the known keys (``phantom scene check``).
+    A key with no typed field here is shown as the file has it."""
+    material, settings, load = scene.material, scene.model_settings, scene.load
+    typed: dict[str, dict[str, Any]] = {
+        "phantom": {"mesh": scene.mesh, "units": scene.units, "chambers": scene.chambers,
+                    "chamber_labels": scene.chamber_labels, "fixed": scene.fixed},
+        "geometry": dataclasses.asdict(scene.geometry) if scene.geometry is not None else {},
+        "material": {"model": material.model, "youngs_modulus_kpa": material.youngs_modulus_pa / 1e3,
+                     "poisson_ratio": material.poisson_ratio, "gent_jm": material.gent_jm},
+        "model": {"fidelity": settings.fidelity, "accuracy_pct": settings.accuracy_pct,
+                  "pressure_max_kpa": settings.pressure_max_pa / 1e3, "table_points": settings.table_points,
+                  "table_volumes": settings.table_volumes and str(settings.table_volumes),
+                  "table_shapes": settings.table_shapes and str(settings.table_shapes)},
+        "load": {"density_kg_m3": load.density_kg_m3, "gravity_m_s2": list(load.gravity_m_s2)},
+        "outputs": dataclasses.asdict(scene.outputs),
+    }
+    known = {"phantom": PHANTOM_KEYS, "geometry": tuple(typed["geometry"]), "material": MATERIAL_KEYS,
+             "model": MODEL_KEYS, "load": LOAD_KEYS, "outputs": OUTPUT_KEYS}
+    rows = []
+    for section in MODEL_SECTIONS:
+        given = scene.raw.get(section, {})
+        for key in known[section]:
+            value = typed[section].get(key, given.get(key))
+            rows.append((section, key, list(value) if isinstance(value, tuple) else value, key in given))
+    return rows
+
+
 def builtin_scene_path(name: str) -> Path:
     """The TOML file of a shipped scene (a key of ``BUILTIN_SCENES``)."""
     return SCENES_DIR / BUILTIN_SCENES[name]
@@ -240,7 +281,12 @@ QUADRATIC_POISSON_RATIO = 0.4996
 def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     """Build a Scene from a parsed TOML dict; ``path`` anchors relative mesh paths (else the working folder)."""
     where = f"scene {path}" if path else "scene"
+    check_known_keys(raw, MODEL_SECTIONS + HOST_SECTIONS, "the file", where)
+    for section in MODEL_SECTIONS:
+        if section in raw and not isinstance(raw[section], dict):
+            raise SceneError(f"{where}: {section} must be a table ([{section}]), got {raw[section]!r}")
     phantom_table = _table(raw, "phantom", where)
+    check_known_keys(phantom_table, PHANTOM_KEYS, "[phantom]", where)
     mesh = phantom_table.get("mesh")
     if not isinstance(mesh, str) or not mesh:
         raise SceneError(f"{where}: [phantom] mesh must be 'builtin:prostate' or a mesh file path")
@@ -254,7 +300,7 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     elif "geometry" in raw:
         raise SceneError(f"{where}: [geometry] applies to the built-in prostate only; {mesh} is read as it is")
     units = phantom_table.get("units", "mm")
-    if units not in LENGTH_UNITS_M:
+    if not isinstance(units, str) or units not in LENGTH_UNITS_M:
         raise SceneError(f"{where}: [phantom] units = {units!r} is not one of {', '.join(LENGTH_UNITS_M)}")
     chambers = phantom_table.get("chambers")
     if not isinstance(chambers, list) or not chambers or not all(isinstance(c, str) for c in chambers):
@@ -301,6 +347,7 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
     """The [material] table; Poisson's ratio defaults to 0.45 on 4-node elements (which lock near 0.5) and to
     QUADRATIC_POISSON_RATIO, the nearly incompressible silicone, on the built-in mesh's 10-node mixed ones
     (``quadratic``; a mesh file's element order is known only once it is read: such a scene names its ratio)."""
+    check_known_keys(table, MATERIAL_KEYS, "[material]", where)
     model = table.get("model", "corotational")
     if model not in MATERIAL_MODELS:
         raise SceneError(f"{where}: [material] model = {model!r}: the hyperelastic laws are 'neo_hookean' and "
@@ -315,9 +362,10 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
         raise SceneError(f"{where}: [material] gent_jm applies to model = 'gent' only, not {model!r}")
     youngs_modulus_kpa = table.get("youngs_modulus_kpa", 50.0)
     poisson_ratio = table.get("poisson_ratio", QUADRATIC_POISSON_RATIO if quadratic else 0.45)
-    if not isinstance(youngs_modulus_kpa, int | float) or not youngs_modulus_kpa > 0:
+    if (isinstance(youngs_modulus_kpa, bool) or not isinstance(youngs_modulus_kpa, int | float)
+            or not 0 < youngs_modulus_kpa < math.inf):
         raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got {youngs_modulus_kpa}")
-    if not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
+    if isinstance(poisson_ratio, bool) or not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
         raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio}")
     return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm)
 
@@ -343,10 +391,6 @@ def _positive_number(table: dict[str, Any], key: str, default: float, where: str
     return float(value)
 
 
-#: The keys of a scene's [model] table.
-MODEL_KEYS = ("fidelity", "accuracy_pct", "pressure_max_kpa", "table_points", "table_volumes", "table_shapes")
-
-
 #: A ``[model] table_volumes`` or ``table_shapes`` value that starts with this names a file the package ships
 #: beside its built-in scenes, wherever the scene that names it lies (a copy of an example scene keeps working).
 SHIPPED_FILE_PREFIX = "builtin:"
@@ -362,7 +406,12 @@ def _shipped_file(table: dict[str, Any], key: str, where: str, path: Path | None
         raise SceneError(f"{where}: [model] {key} must be a file path (a .npz that response_table.write_{key} "
                          f"wrote, or builtin:NAME for one beside the built-in scenes), got {value!r}")
     if value.startswith(SHIPPED_FILE_PREFIX):
-        resolved = SCENES_DIR / value.removeprefix(SHIPPED_FILE_PREFIX)
+        name = value.removeprefix(SHIPPED_FILE_PREFIX)
+        shipped = sorted(path.name for path in SCENES_DIR.glob("*.npz"))
+        if Path(name).name != name:
+            raise SceneError(f"{where}: [model] {key} = {value!r}: builtin:NAME names a file in the built-in scenes' "
+                             f"folder ({', '.join(shipped)}), not a path; give a path for any other file")
+        resolved = SCENES_DIR / name
     else:
         resolved = _beside(value, path)
     if not resolved.is_file():
@@ -385,9 +434,7 @@ def without_shipped_tables(raw: dict[str, Any]) -> dict[str, Any]:
 def _model_settings(table: dict[str, Any], where: str, path: Path | None = None) -> ModelSettings:
     if not isinstance(table, dict):
         raise SceneError(f"{where}: [model] must be a table with {', '.join(MODEL_KEYS)}")
-    unknown = set(table) - set(MODEL_KEYS)
-    if unknown:
-        raise SceneError(f"{where}: [model] has unknown keys {sorted(unknown)}: use {', '.join(MODEL_KEYS)}")
+    check_known_keys(table, MODEL_KEYS, "[model]", where)
     fidelity = table.get("fidelity")
     if fidelity is not None and fidelity not in FIDELITY_LEVELS:
         raise SceneError(f"{where}: [model] fidelity must be one of {', '.join(FIDELITY_LEVELS)}, got {fidelity!r}")
@@ -405,9 +452,7 @@ def _load(table: Any, where: str) -> Load:
         return Load()
     if not isinstance(table, dict):
         raise SceneError(f"{where}: [load] must be a table with density_kg_m3 and gravity_m_s2")
-    unknown = set(table) - {"density_kg_m3", "gravity_m_s2"}
-    if unknown:
-        raise SceneError(f"{where}: [load] has unknown keys {sorted(unknown)}: use density_kg_m3, gravity_m_s2")
+    check_known_keys(table, LOAD_KEYS, "[load]", where)
     density = table.get("density_kg_m3", SILICONE_DENSITY_KG_M3)
     if isinstance(density, bool) or not isinstance(density, int | float) or not 0 < density < 1e5:
         raise SceneError(f"{where}: [load] density_kg_m3 must be a positive number (Ecoflex 00-10: 1040), got "
@@ -423,7 +468,8 @@ def _load(table: Any, where: str) -> Load:
 
 
 def _outputs(table: dict[str, Any], where: str) -> dict[str, bool]:
-    unknown = set(table) - {"volumes", "shape"}
-    if unknown:
-        raise SceneError(f"{where}: [outputs] has unknown keys {sorted(unknown)}: use volumes, shape")
-    return {key: bool(value) for key, value in table.items()}
+    check_known_keys(table, OUTPUT_KEYS, "[outputs]", where)
+    for key, value in table.items():
+        if not isinstance(value, bool):
+            raise SceneError(f"{where}: [outputs] {key} must be true or false, got {value!r}")
+    return dict(table)

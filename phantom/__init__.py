@@ -108,6 +108,24 @@ async def connect_async(socket: str | Path | None = None, *, request_timeout_s: 
 
     return await connect_to_daemon(socket, request_timeout_s=request_timeout_s, ready_timeout_s=ready_timeout_s,
                                    on_wait=on_wait)
+#: The share of the memory available now that one command may plan to use for its arrays.
+MEMORY_SHARE = 0.5
+
+
+def memory_budget_bytes() -> int:
+    """How much memory a command may plan to allocate: :data:`MEMORY_SHARE` of what the machine has available
+    now (Linux's MemAvailable; the physical memory elsewhere). A command that would need more refuses before
+    allocating, with its estimate, instead of swapping the machine to a halt."""
+    try:
+        with open("/proc/meminfo") as handle:
+            for line in handle:
+                if line.startswith("MemAvailable:"):
+                    return int(MEMORY_SHARE * int(line.split()[1]) * 1024)
+    except (OSError, ValueError, IndexError):
+        pass
+    return int(MEMORY_SHARE * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
 def read_text(path: str | Path, max_bytes: int, what: str, error: type[PhantomError] = PhantomError) -> str:
     """The text of a file a user named (a scene, a config file, a measurement table): UTF-8, with or without a
     byte-order mark, at most ``max_bytes`` long. No more than that is read, so that a huge file (or /dev/zero)

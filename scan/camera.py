@@ -35,8 +35,35 @@ RIG_FORMAT = "phantom-rig/1"
 ELEVATION_MATCH_DEG = 0.05
 
 
+#: The largest picture side (px) a rig's camera may have: an 8K sensor. A picture of 8192x8192 RGB is 200 MB.
+MAX_PICTURE_SIDE_PX = 8192
+#: The smallest: a silhouette needs pixels to be a shape.
+MIN_PICTURE_SIDE_PX = 16
+#: A rotation read from a file is a rotation when ``R^T R`` is within this of the identity and ``det R > 0``.
+ROTATION_TOLERANCE = 1e-6
+#: The largest distance (mm) a rig's camera or axis may be from the world's origin: 10 m.
+MAX_RIG_DISTANCE_MM = 1e4
+
+
 class RigError(PhantomError):
     """A rig file that cannot be read, or an angle the rig was not calibrated for."""
+
+
+def checked_array(value: Any, shape: tuple[int, ...], name: str, error: type[PhantomError] = PhantomError,
+                  limit: float = math.inf) -> FloatArray:
+    """``value`` (from a JSON file) as a float array of ``shape``, every element a finite number (not a bool, not
+    a string) of magnitude at most ``limit``; ``error`` naming ``name``, the value and the shape otherwise."""
+    try:
+        array = np.asarray(value) if isinstance(value, list | tuple | int | float) else None
+    except (ValueError, OverflowError):  # ragged nesting, an integer beyond any dtype
+        array = None
+    if array is None or array.dtype.kind not in "iuf" or array.shape != shape:
+        raise error(f"{name} must be {'a number' if not shape else f'numbers of shape {shape}'}, got {value!r:.80}")
+    numbers: FloatArray = array.astype(float)
+    if not np.all(np.isfinite(numbers)) or np.any(np.abs(numbers) > limit):
+        raise error(f"{name} must be finite{f' and within +-{limit:g}' if limit < math.inf else ''}, got "
+                    f"{value!r:.80}")
+    return numbers
 
 
 @dataclass(frozen=True)
@@ -112,10 +139,29 @@ class Camera:
                 "cy": self.cy, "distortion_k1_k2_p1_p2_k3": list(self.distortion)}
 
     @classmethod
-    def from_json(cls, data: dict[str, Any]) -> Camera:
-        k1, k2, p1, p2, k3 = (float(value) for value in data["distortion_k1_k2_p1_p2_k3"])
-        return cls(int(data["width"]), int(data["height"]), float(data["fx"]), float(data["fy"]), float(data["cx"]),
-                   float(data["cy"]), (k1, k2, p1, p2, k3))
+    def from_json(cls, data: Any) -> Camera:
+        """The camera of a rig file, checked: RigError naming the field, its value and what it must be (a zero
+        focal length carved a sphere of 24 ml into 55 ml; a NaN one crashed the carving)."""
+        if not isinstance(data, dict):
+            raise RigError(f"the rig's camera must be an object of width, height, fx, fy, cx, cy, got {data!r:.80}")
+        sides = []
+        for key in ("width", "height"):
+            side = data.get(key)
+            if isinstance(side, bool) or not isinstance(side, int) or not (
+                    MIN_PICTURE_SIDE_PX <= side <= MAX_PICTURE_SIDE_PX):
+                raise RigError(f"the rig's camera {key} must be a whole number of pixels from {MIN_PICTURE_SIDE_PX} "
+                               f"to {MAX_PICTURE_SIDE_PX}, got {side!r}: calibrate the rig again")
+            sides.append(side)
+        width, height = sides
+        focal = [float(checked_array(data.get(key), (), f"the rig's camera {key}", RigError)) for key in ("fx", "fy")]
+        if min(focal) <= 0 or max(focal) > 100 * max(width, height):
+            raise RigError(f"the rig's camera focal lengths (fx, fy) = {focal} px must be positive and under 100 "
+                           f"times the picture's size: calibrate the rig again")
+        cx, cy = (float(checked_array(data.get(key), (), f"the rig's camera {key}", RigError, 2.0 * side))
+                  for key, side in (("cx", width), ("cy", height)))
+        k1, k2, p1, p2, k3 = checked_array(data.get("distortion_k1_k2_p1_p2_k3"), (5,),
+                                           "the rig's camera distortion_k1_k2_p1_p2_k3", RigError, 1e3).tolist()
+        return cls(width, height, focal[0], focal[1], cx, cy, (k1, k2, p1, p2, k3))
 
 
 @dataclass(frozen=True)
@@ -237,16 +283,23 @@ class Rig:
         if data.get("format") != RIG_FORMAT:
             raise RigError(f"not a rig file of this version (format {data.get('format')!r}, expected "
                            f"{RIG_FORMAT!r}): calibrate the rig again with phantom scan calibrate")
-        try:
-            elevations = tuple(Elevation(float(entry["elevation_deg"]),
-                                         Pose(np.array(entry["rotation"], dtype=float),
-                                              np.array(entry["translation_mm"], dtype=float)))
-                               for entry in data["elevations"])
-            direction = np.array(data["axis"]["direction"], dtype=float)
-            return cls(Camera.from_json(data["camera"]), np.array(data["axis"]["point_mm"], dtype=float),
-                       direction / np.linalg.norm(direction), elevations, dict(data.get("calibration", {})))
-        except (KeyError, TypeError, ValueError) as error:
-            raise RigError(f"the rig file is damaged ({type(error).__name__}: {error}): calibrate again") from None
+        entries, axis, calibration = data.get("elevations"), data.get("axis"), data.get("calibration", {})
+        if not isinstance(entries, list) or not entries or not all(isinstance(entry, dict) for entry in entries):
+            raise RigError(f"the rig file is damaged: elevations must be a non-empty list of passes, got "
+                           f"{entries!r:.80}: calibrate again")
+        if not isinstance(axis, dict) or not isinstance(calibration, dict):
+            raise RigError("the rig file is damaged: axis (point_mm, direction) and calibration must be objects: "
+                           "calibrate again")
+        elevations = tuple(Elevation(float(checked_array(entry.get("elevation_deg"), (), "a pass's elevation_deg",
+                                                         RigError, 180.0)),
+                                     _checked_pose(entry.get("rotation"), entry.get("translation_mm")))
+                           for entry in entries)
+        direction = checked_array(axis.get("direction"), (3,), "the rig's axis direction", RigError)
+        length = float(np.linalg.norm(direction))
+        if not length > 1e-9:
+            raise RigError(f"the rig's axis direction {direction.tolist()} has no length: calibrate again")
+        point = checked_array(axis.get("point_mm"), (3,), "the rig's axis point_mm", RigError, MAX_RIG_DISTANCE_MM)
+        return cls(Camera.from_json(data.get("camera")), point, direction / length, elevations, dict(calibration))
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
@@ -270,6 +323,15 @@ class Rig:
         if not isinstance(data, dict):
             raise RigError(f"the rig file {path} is not a JSON object: calibrate again")
         return cls.from_json(data)
+
+
+def _checked_pose(rotation: Any, translation_mm: Any) -> Pose:
+    """A pass's pose from a rig file: a proper rotation (orthonormal, det +1) and a finite translation."""
+    matrix = checked_array(rotation, (3, 3), "a pass's rotation", RigError)
+    if not (np.max(np.abs(matrix.T @ matrix - np.eye(3))) <= ROTATION_TOLERANCE and np.linalg.det(matrix) > 0):
+        raise RigError(f"a pass's rotation {matrix.tolist()} is not a rotation (orthonormal, determinant +1): "
+                       f"calibrate again")
+    return Pose(matrix, checked_array(translation_mm, (3,), "a pass's translation_mm", RigError, MAX_RIG_DISTANCE_MM))
 
 
 # --- the virtual rig ---------------------------------------------------------------------------------------------

@@ -38,12 +38,17 @@ from typing import Any, Protocol
 import numpy as np
 
 from phantom import PhantomError, require_extra
-from phantom.scan.camera import Rig
+from phantom.scan.camera import MAX_PICTURE_SIDE_PX, Rig, checked_array
 
 CAPTURE_FORMAT = "phantom-capture/1"
 CAPTURE_FILE = "capture.json"
 RIG_FILE = "rig.json"
 IMAGES = "images"
+#: The most pictures a capture folder may hold (360 per turn in five passes is 1800): each is carved with, and
+#: a capture.json naming more is not ours.
+MAX_FRAMES = 2000
+#: The largest orbit and elevation angles (deg) a frame may have: the orbit's soft limits are +-190 deg.
+MAX_FRAME_ANGLE_DEG = 360.0
 
 
 class CaptureError(PhantomError):
@@ -134,6 +139,10 @@ class Plan:
                                f"{list(self.elevations_deg)}")
         for elevation in self.elevations_deg:
             _finite("an elevation", elevation, -90.0, 90.0, "deg", "the camera's arc")
+        pictures = self.views * len(self.elevations_deg)
+        if pictures > MAX_FRAMES:
+            raise CaptureError(f"views {self.views} at {len(self.elevations_deg)} elevation(s) is {pictures} pictures: "
+                               f"give from 1 to {MAX_FRAMES} in all")
         _finite("start_deg", self.start_deg, -MAX_ANGLE_DEG, MAX_ANGLE_DEG, "deg", "one turn either way")
         _finite("span_deg", self.span_deg, 0.0, 360.0, "deg", "at most a whole turn")
         if self.span_deg == 0:
@@ -251,10 +260,19 @@ class CaptureFolder:
             raise CaptureError(f"cannot read {path / CAPTURE_FILE}: {error}") from None
         if not isinstance(data, dict) or data.get("format") != CAPTURE_FORMAT:
             raise CaptureError(f"{path / CAPTURE_FILE} is not a {CAPTURE_FORMAT} capture")
+        records = data.get("frames")
+        if not isinstance(records, list) or len(records) > MAX_FRAMES:
+            count = len(records) if isinstance(records, list) else records
+            raise CaptureError(f"{path / CAPTURE_FILE}: frames must be a list of at most {MAX_FRAMES} pictures, got "
+                               f"{count!r:.80}: that is not a capture of ours")
+        frames = [_checked_frame(record, f"{path / CAPTURE_FILE}: frame {number}")
+                  for number, record in enumerate(records)]
+        images = [frame.image for frame in frames]
+        if len(set(images)) != len(images):
+            twice = next(image for image in images if images.count(image) > 1)
+            raise CaptureError(f"{path / CAPTURE_FILE} names the picture {twice} for more than one frame: each frame "
+                               f"is its own picture (a damaged or hand-made capture.json)")
         try:
-            frames = [Frame(int(f["index"]), str(f["image"]), float(f["orbit_deg"]), float(f["elevation_deg"]),
-                            f.get("pressures_kpa"), str(f.get("time_utc", "")), float(f.get("time_s", 0.0)))
-                      for f in data["frames"]]
             return cls(path, dict(data.get("camera", {})), dict(data.get("plan", {})),
                        dict(data.get("conditions", {})), frames, str(data.get("status", "complete")),
                        data.get("reason"), str(data.get("started_utc", "")), data.get("finished_utc"), data.get("rig"))
@@ -270,11 +288,48 @@ class CaptureFolder:
         with require_extra("scan"):
             import cv2
 
+        width, height = png_size(self.path / frame.image)
+        if max(width, height) > MAX_PICTURE_SIDE_PX:
+            raise CaptureError(f"{self.path / frame.image} is {width}x{height}, larger than any camera's "
+                               f"({MAX_PICTURE_SIDE_PX} px a side): not a picture of this capture")
         picture = cv2.imread(str(self.path / frame.image), cv2.IMREAD_COLOR)
         if picture is None:
             raise CaptureError(f"cannot read the picture {self.path / frame.image}: missing or damaged")
         rgb: np.ndarray = np.ascontiguousarray(picture[:, :, ::-1])
         return rgb
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    """A PNG's width and height (px) from its header, before its pixels are read; (0, 0) for a file that is not
+    a PNG (the reader then says what it is)."""
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(24)
+    except OSError:
+        return 0, 0
+    if len(head) < 24 or not head.startswith(b"\x89PNG\r\n\x1a\n") or head[12:16] != b"IHDR":
+        return 0, 0
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def _checked_frame(record: Any, where: str) -> Frame:
+    """One frame's record of capture.json, checked: finite angles within a turn or two, a picture inside the
+    folder, pressures numbers or null; CaptureError naming the field otherwise (a NaN angle was a traceback)."""
+    if not isinstance(record, dict):
+        raise CaptureError(f"{where} must be an object, got {record!r:.80}")
+    image, index = record.get("image"), record.get("index")
+    if not isinstance(image, str) or not image or Path(image).is_absolute() or ".." in Path(image).parts:
+        raise CaptureError(f"{where}: image must be a picture's path inside the folder, got {image!r:.80}")
+    if isinstance(index, bool) or not isinstance(index, int):
+        raise CaptureError(f"{where}: index must be a whole number, got {index!r:.80}")
+    orbit_deg, elevation_deg = (float(checked_array(record.get(key), (), f"{where}: {key}", CaptureError,
+                                                    MAX_FRAME_ANGLE_DEG)) for key in ("orbit_deg", "elevation_deg"))
+    pressures = record.get("pressures_kpa")
+    if pressures is not None:
+        pressures = checked_array(pressures, (len(pressures),) if isinstance(pressures, list) else (-1,),
+                                  f"{where}: pressures_kpa", CaptureError).tolist()
+    time_s = float(checked_array(record.get("time_s", 0.0), (), f"{where}: time_s", CaptureError))
+    return Frame(index, image, orbit_deg, elevation_deg, pressures, str(record.get("time_utc", "")), time_s)
 
 
 def _utc_now() -> str:

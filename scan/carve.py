@@ -23,7 +23,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from phantom import PhantomError, require_extra
+from phantom import PhantomError, memory_budget_bytes, require_extra
 from phantom.model.arrays import FloatArray, IntArray
 from phantom.model.mesh.surface import TriangleMesh, compact, enclosed_volume_ml, triangle_areas_mm2
 from phantom.scan import kernels
@@ -35,6 +35,10 @@ from phantom.scan.silhouette import Silhouette
 COARSE_POINTS = 32
 #: A finer level computes F where the coarser one had |F| below this many of its spacings.
 BAND_SPACINGS = 2.0
+#: Bytes a level holds per point of its box while it is carved (each point's index and its parent's, int64 x 3
+#: each, the parent's value, the mask, the value and the points computed): the estimate checked before a level
+#: is allocated.
+BYTES_PER_GRID_POINT = 72
 
 
 class CarveError(PhantomError):
@@ -77,6 +81,10 @@ class Carver:
     def __init__(self, camera: Camera, views: Sequence[View], threads: int = 1):
         if not views:
             raise CarveError("no pictures to carve with")
+        intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy, *camera.distortion])
+        if not (np.all(np.isfinite(intrinsics)) and camera.fx > 0 and camera.fy > 0):
+            raise CarveError(f"the camera's intrinsics (fx, fy, cx, cy, distortion) {intrinsics.tolist()} are not "
+                             f"finite with positive focal lengths: calibrate the rig again")
         order = spread_order(len(views))
         self.views = [views[index] for index in order]
         self.camera = camera
@@ -123,9 +131,12 @@ def _grid_points(origin: FloatArray, spacing: float, shape: tuple[int, int, int]
 
 
 def carve(carver: Carver, centre_mm: FloatArray, half_size_mm: float, voxel_mm: float,
-          progress: Callable[[str], None] | None = None) -> Grid:
+          progress: Callable[[str], None] | None = None, max_bytes: int | None = None) -> Grid:
     """F on a grid of spacing ``voxel_mm`` around the hull, carved coarse to fine from a cube of half side
-    ``half_size_mm`` about ``centre_mm`` (see the module docstring)."""
+    ``half_size_mm`` about ``centre_mm`` (see the module docstring). CarveError, before the finer levels are
+    allocated, when the finest one's box would need more than ``max_bytes`` (default: what the machine has to
+    spare, :func:`phantom.memory_budget_bytes`)."""
+    budget = memory_budget_bytes() if max_bytes is None else max_bytes
     levels = max(0, math.ceil(math.log2(2.0 * half_size_mm / (COARSE_POINTS * voxel_mm))))
     spacing = voxel_mm * 2 ** levels
     count = int(math.ceil(2.0 * half_size_mm / spacing)) + 1
@@ -144,6 +155,13 @@ def carve(carver: Carver, centre_mm: FloatArray, half_size_mm: float, voxel_mm: 
         index = np.argwhere(near)
         low, high = index.min(axis=0) - 1, index.max(axis=0) + 1
         low, high = np.maximum(low, 0), np.minimum(high, np.array(values.shape) - 1)
+        finest = np.prod((high - low) * spacing / voxel_mm + 1.0)
+        if finest * BYTES_PER_GRID_POINT > budget:
+            box_mm = " x ".join(f"{side:.0f}" for side in (high - low) * spacing)
+            needed_gib = finest * BYTES_PER_GRID_POINT / 2**30
+            raise CarveError(f"carving the hull's box ({box_mm} mm) at {voxel_mm:g} mm needs about {needed_gib:.1f} "
+                             f"GiB, more than the {budget / 2**30:.1f} GiB this machine has to spare: give a "
+                             f"coarser voxel (--voxel-mm)")
         fine_origin = origin + low * spacing
         fine_shape = tuple(int(2 * (h - lo) + 1) for lo, h in zip(low, high, strict=True))
         fine_spacing = spacing / 2.0

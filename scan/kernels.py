@@ -157,7 +157,7 @@ def cast_plane(rays: np.ndarray, origin: FloatArray, axis_u: FloatArray, axis_v:
             hx, hy, hz = rx * t - origin[0], ry * t - origin[1], t - origin[2]
             u = (hx * axis_u[0] + hy * axis_u[1] + hz * axis_u[2]) * pixels_per_mm - 0.5
             v = (hx * axis_v[0] + hy * axis_v[1] + hz * axis_v[2]) * pixels_per_mm - 0.5
-            if u < -0.5 or v < -0.5 or u > width - 0.5 or v > height - 0.5:
+            if not (-0.5 <= u <= width - 0.5 and -0.5 <= v <= height - 0.5):  # NaN too: it would index anywhere
                 continue
             u = min(max(u, 0.0), width - 1.0)
             v = min(max(v, 0.0), height - 1.0)
@@ -272,7 +272,7 @@ def hull_distance(points: FloatArray, rotations: FloatArray, translations: Float
                 u = fx * dx + cx - crops[v, 0]
                 w = fy * dy + cy - crops[v, 1]
                 width, height = crops[v, 2], crops[v, 3]
-                if u < 0.0 or w < 0.0 or u > width - 1.0 or w > height - 1.0:
+                if not (0.0 <= u <= width - 1.0 and 0.0 <= w <= height - 1.0):  # NaN too: it would index anywhere
                     d = truncation_px
                 else:
                     iu, iw = min(int(u), width - 2), min(int(w), height - 2)

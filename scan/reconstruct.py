@@ -22,6 +22,7 @@ from pathlib import Path
 import meshio
 import numpy as np
 
+from phantom import memory_budget_bytes
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml
 from phantom.scan.camera import Rig
@@ -36,6 +37,15 @@ VOXEL_MM = 0.3
 START_FRACTION = 0.35
 #: Threads that read and key the pictures, and carve.
 THREADS = 2
+#: The finest voxel (mm) carving goes to: the virtual camera's pixel is 0.14 mm at the phantom, so a finer grid
+#: only resolves the carving's own noise.
+MIN_VOXEL_MM = 0.05
+#: The coarsest: a voxel of the phantom's wall thickness.
+MAX_VOXEL_MM = 5.0
+#: Bytes the carving keeps per pixel of a picture (a silhouette's signed distance, float32, at most the whole
+#: picture), and holds per picture being read and keyed (the picture, its float copies and its alpha).
+SILHOUETTE_BYTES_PER_PX = 4
+KEYING_BYTES_PER_PX = 40
 
 
 @dataclass
@@ -75,8 +85,16 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     frames = list(folder.frames if frames is None else frames)
     if len(frames) < 2:
         raise CaptureError(f"{folder.path} has {len(frames)} picture(s): carving needs pictures from several sides")
-    if not voxel_mm > 0:
-        raise CaptureError(f"the voxel size must be positive, got {voxel_mm!r} mm")
+    if not MIN_VOXEL_MM <= voxel_mm <= MAX_VOXEL_MM:
+        raise CaptureError(f"the voxel size must be from {MIN_VOXEL_MM:g} to {MAX_VOXEL_MM:g} mm, got {voxel_mm!r} "
+                           f"mm: a finer grid resolves less than a pixel (give --voxel-mm within the range)")
+    pixels = rig.camera.width * rig.camera.height
+    needed = pixels * (len(frames) * SILHOUETTE_BYTES_PER_PX + THREADS * KEYING_BYTES_PER_PX)
+    budget = memory_budget_bytes()
+    if needed > budget:
+        raise CaptureError(f"{len(frames)} pictures of {rig.camera.width}x{rig.camera.height} need about "
+                           f"{needed / 2**30:.1f} GiB to carve, more than the {budget / 2**30:.1f} GiB this machine "
+                           f"has to spare: reconstruct from fewer frames or smaller pictures")
     stage_s: dict[str, float] = {}
     started = time.perf_counter()
     poses = [rig.pose(frame.orbit_deg, frame.elevation_deg) for frame in frames]

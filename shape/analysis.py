@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from phantom import require_extra
+from phantom.model.fidelity.table_files import Member, read_members
 from phantom.shape import vae as network
 from phantom.shape.checkpoint import read_run
 from phantom.shape.dataset import PROSTATE_LABELS, find_cases, read_shape, shape_grid
@@ -141,8 +142,12 @@ class ShapeModel:
         path = self.run / "latents.npz"
         if not path.is_file():
             raise ShapeError(f"{self.run}: no latents.npz (the run did not finish): train it again")
-        with np.load(path) as stored:
-            return [str(name) for name in stored["names"]], np.asarray(stored["mean"], float)
+        stored = read_members(path, {"names": Member((None,), "U"), "mean": Member((None, self.vae.latent_dim))},
+                              f"the latents {path}", "train the run again (phantom shape train)", ShapeError)
+        if len(stored["names"]) != len(stored["mean"]):
+            raise ShapeError(f"the latents {path} name {len(stored['names'])} cases for {len(stored['mean'])} "
+                             f"latent vectors: train the run again (phantom shape train)")
+        return [str(name) for name in stored["names"]], np.asarray(stored["mean"], float)
 
     def average(self) -> DecodedShape:
         """The average shape: the mean of every case's latent vector, decoded (the paper's average prostate)."""

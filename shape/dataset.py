@@ -24,6 +24,7 @@ whole set (:attr:`ShapeSet.voxel_mm`, recorded with a trained run so that volume
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +48,11 @@ NIFTI_EXTENSIONS = (".nii", ".nii.gz")
 MESH_EXTENSIONS = (".obj", ".ply", ".stl")
 #: Empty voxels kept between a set's largest shape and the grid's faces.
 MARGIN_VOXELS = 2
+#: The voxel sizes (mm) a mask's affine may give: MRI and CT voxels are 0.1 to 10 mm; a micrometre voxel (a
+#: header in metres, or a missing scale) would put the prostate in a speck.
+MASK_VOXEL_RANGE_MM = (0.05, 20.0)
+#: The most voxels a mask may have (a 512 x 512 x 512 volume), checked from its header before it is read.
+MAX_MASK_VOXELS = 512**3
 
 
 def nifti_stem(path: Path) -> str | None:
@@ -131,13 +137,25 @@ def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> Labe
         import nibabel
     try:
         image: Any = nibabel.load(str(case.path))
-        values = np.asarray(image.dataobj)
+        shape = tuple(int(side) for side in image.shape)
     except Exception as error:  # nibabel raises several kinds for a damaged or foreign file
-        raise ShapeError(f"{case.path}: not a readable NIfTI file ({error})") from None
-    if values.ndim == 4 and values.shape[3] == 1:
-        values = values[..., 0]
-    if values.ndim != 3:
-        raise ShapeError(f"{case.path}: expected a 3D volume, got shape {values.shape}")
+        raise ShapeError(f"{case.path}: not a readable NIfTI file ({' '.join(str(error).split())})") from None
+    if len(shape) == 4 and shape[3] == 1:
+        shape = shape[:3]
+    if len(shape) != 3:
+        raise ShapeError(f"{case.path}: expected a 3D volume, got shape {shape}")
+    if math.prod(shape) > MAX_MASK_VOXELS:
+        raise ShapeError(f"{case.path}: the header declares {' x '.join(map(str, shape))} voxels, more than the "
+                         f"{MAX_MASK_VOXELS} of a 512^3 mask: crop or resample it to the prostate's region first")
+    affine = checked_affine(image.affine, case.path)
+    try:
+        values = np.asanyarray(image.dataobj).reshape(shape)
+    except Exception as error:  # a file shorter than its header says, or damaged compression
+        raise ShapeError(f"{case.path}: not a readable NIfTI file ({' '.join(str(error).split())})") from None
+    if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
+        raise ShapeError(f"{case.path}: the mask holds NaN or infinite values: a mask is labels or 0/1")
+    if values.dtype.kind not in "iufb":
+        raise ShapeError(f"{case.path}: the mask's voxels are {values.dtype}, not numbers: a mask is labels or 0/1")
     is_label_map = case.kind == "labels" or values.max(initial=0) > 1
     if is_label_map:
         mask = np.isin(values, np.asarray(labels))
@@ -149,7 +167,25 @@ def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> Labe
         mask = values > 0
         if not mask.any():
             raise ShapeError(f"{case.path}: the mask is empty (no voxel above 0)")
-    return LabelMask(mask, np.asarray(image.affine, dtype=float))
+    return LabelMask(mask.astype(bool, copy=False), affine)
+
+
+def checked_affine(affine: Any, path: Path) -> np.ndarray:
+    """A NIfTI file's voxel-to-RAS affine, checked: finite, invertible, each voxel side within
+    :data:`MASK_VOXEL_RANGE_MM` (a NaN affine or micrometre voxels encoded as the empty grid, exit 0)."""
+    matrix = np.asarray(affine, dtype=float)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ShapeError(f"{path}: the affine (voxel to RAS mm) is not finite: fix the header's qform/sform")
+    sides_mm = np.linalg.norm(matrix[:3, :3], axis=0)
+    low, high = MASK_VOXEL_RANGE_MM
+    if not np.all((sides_mm >= low) & (sides_mm <= high)):
+        raise ShapeError(f"{path}: the voxel sides are {', '.join(f'{side:.3g}' for side in sides_mm)} mm, outside "
+                         f"[{low:g}, {high:g}] mm: the header's units or spacing are wrong (fix its pixdim, qform or "
+                         f"sform)")
+    if abs(np.linalg.det(matrix[:3, :3])) < 1e-6 * float(np.prod(sides_mm)):
+        raise ShapeError(f"{path}: the affine (voxel to RAS mm) is singular (its axes are not independent): fix the "
+                         f"header's qform/sform")
+    return matrix
 
 
 def read_closed_mesh(path: str | Path) -> ClosedSurface:
@@ -227,11 +263,15 @@ def shape_grid(shape: LabelMask | ClosedSurface, voxel_mm: float, grid_size: int
     centre = shape.centroid_mm()
     half_extent = shape.half_extent_mm(centre)
     room = grid_size / 2.0 * voxel_mm
-    if half_extent > room:
+    if not half_extent <= room:
         raise ShapeError(f"{name} reaches {half_extent:.1f} mm from its centroid, beyond the grid's "
                          f"{room:.1f} mm ({grid_size} voxels of {voxel_mm:.3f} mm): it is larger than the shapes "
                          f"the run was trained on")
-    return shape.occupancy(centre, voxel_mm, grid_size, supersample)
+    grid = shape.occupancy(centre, voxel_mm, grid_size, supersample)
+    if not grid.any():
+        raise ShapeError(f"{name} comes out empty on the grid ({grid_size} voxels of {voxel_mm:.3f} mm): it is "
+                         f"smaller than a voxel; check its units")
+    return grid
 
 
 def load_shapes(path: str | Path, grid_size: int = 32, labels: Sequence[int] = PROSTATE_LABELS,

@@ -44,6 +44,11 @@ Parameters = dict[str, Any]
 _CHANNELS_LAST = ("NDHWC", "DHWIO", "NDHWC")
 
 
+#: The largest settings a run's config may have (a 256^3 grid, 4096 latents, 1024 channels in eight levels, a
+#: 9^3 kernel): beyond them the network would not fit a machine, and the file is not a run of ours.
+VAE_LIMITS = {"grid_size": 256, "latent_dim": 4096, "channels": 1024, "levels": 8, "kernel_size": 9}
+
+
 @dataclass(frozen=True)
 class VAEConfig:
     """The network's architecture (the paper's defaults; every field may be changed).
@@ -101,13 +106,32 @@ class VAEConfig:
         return values
 
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> VAEConfig:
-        """The config written by :meth:`as_dict` (unknown keys are an error)."""
+    def from_dict(cls, values: Any) -> VAEConfig:
+        """The config written by :meth:`as_dict`, checked before any network is built: unknown keys, a value of
+        the wrong type and sizes beyond :data:`VAE_LIMITS` are ShapeErrors (``latent_dim`` 1e9 took 7.9 GB and
+        ended in a JAX abort)."""
+        if not isinstance(values, dict):
+            raise ShapeError(f"the VAE settings must be a JSON object, got {values!r:.80}")
         names = {field.name for field in dataclasses.fields(cls)}
         unknown = sorted(set(values) - names)
         if unknown:
             raise ShapeError(f"unknown VAE settings {unknown}: known are {sorted(names)}")
-        return cls(**{**values, "channels": tuple(values.get("channels", cls.channels))})
+        channels = values.get("channels", list(cls.channels))
+        if not isinstance(channels, list) or not channels:
+            raise ShapeError(f"channels must be a list of whole numbers, got {channels!r:.80}")
+        for name, value in [*((key, values[key]) for key in values if key != "channels"),
+                            *(("channels", count) for count in channels)]:
+            whole = name == "channels" or isinstance(getattr(cls, name), int)
+            kind = (int,) if whole else (int, float)
+            if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value):
+                raise ShapeError(f"{name} must be {'a whole number' if whole else 'a finite number'}, got "
+                                 f"{value!r:.80}")
+            if name in VAE_LIMITS and not value <= VAE_LIMITS[name]:
+                raise ShapeError(f"{name} = {value} is more than the {VAE_LIMITS[name]} a shape network has: not a "
+                                 f"run of ours")
+        if len(channels) > VAE_LIMITS["levels"]:
+            raise ShapeError(f"channels has {len(channels)} levels, more than {VAE_LIMITS['levels']}")
+        return cls(**{**values, "channels": tuple(channels)})
 
 
 def _normal(key: jax.Array, shape: tuple[int, ...], fan_in: int, gain: float) -> jax.Array:
@@ -245,22 +269,28 @@ def loss_terms(params: Parameters, statistics: Parameters, config: VAEConfig, oc
     return bce + kld_weight * kld, (bce, kld, statistics)
 
 
-def flatten(tree: Parameters | list[Any], prefix: str = "") -> dict[str, np.ndarray]:
-    """Arrays of a nested dict/list tree keyed by their path (``encoder/0/weight``), as NumPy arrays."""
-    items: dict[str, np.ndarray] = {}
+def tree_leaves(tree: Parameters | list[Any], prefix: str = "") -> dict[str, Any]:
+    """The leaves of a nested dict/list tree keyed by their path (``encoder/0/weight``), as they are (arrays, or
+    the shapes ``jax.eval_shape`` gives)."""
+    items: dict[str, Any] = {}
     children: Any = enumerate(tree) if isinstance(tree, list) else tree.items()
     for name, value in children:
         path = f"{prefix}{name}"
         if isinstance(value, dict | list):
-            items.update(flatten(value, path + "/"))
+            items.update(tree_leaves(value, path + "/"))
         else:
-            items[path] = np.asarray(value)
+            items[path] = value
     return items
+
+
+def flatten(tree: Parameters | list[Any], prefix: str = "") -> dict[str, np.ndarray]:
+    """Arrays of a nested dict/list tree keyed by their path (``encoder/0/weight``), as NumPy arrays."""
+    return {path: np.asarray(value) for path, value in tree_leaves(tree, prefix).items()}
 
 
 def unflatten_like(template: Parameters, arrays: dict[str, np.ndarray], what: str) -> Parameters:
     """``template``'s tree with its arrays replaced by ``arrays[path]``; shapes must match."""
-    expected = flatten(template)
+    expected = tree_leaves(template)
     missing = sorted(set(expected) - set(arrays))
     if missing:
         raise ShapeError(f"{what} lacks {len(missing)} arrays of this network ({missing[0]} ...): "

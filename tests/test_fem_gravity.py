@@ -28,7 +28,7 @@ def test_no_load_table_means_no_gravity_and_a_table_hangs_the_phantom_in_air():
     ({"density_kg_m3": True}, "density_kg_m3 must be a positive number"),
     ({"gravity_m_s2": [0, -9.81]}, "gravity_m_s2 must be three numbers"),
     ({"gravity_m_s2": [0, 0, float("nan")]}, "gravity_m_s2 must be three numbers"),
-    ({"gravity": [0, 0, -9.81]}, "unknown keys"),
+    ({"gravity": [0, 0, -9.81]}, "unknown key .gravity. .did you mean .gravity_m_s2."),
 ])
 def test_a_bad_load_table_is_a_one_line_scene_error(table, message):
     with pytest.raises(SceneError, match=message) as raised:

@@ -298,7 +298,7 @@ def test_the_scene_geometry_table_reaches_the_model(tmp_path, monkeypatch):
     ("lobe_chamber_scale = 1.3", MeshError, "wall chamber[12]-outer is 1.[34]. mm thick, below min_wall_mm = 2"),
     ("base_chamber_scale = 1.3\nlobe_chamber_scale = 1.3", MeshError, "chamber0-chamber1 overlaps"),
     ("min_wall_mm = 3.6", MeshError, "below min_wall_mm = 3.6"),
-    ("chamber_scale = 1.0", SceneError, "unknown keys"),
+    ("chamber_scale = 1.0", SceneError, "unknown key .chamber_scale. .did you mean .lobe_chamber_scale."),
     ("lobe_chamber_semi_axes_mm = [5.0, -1.0, 2.0]", SceneError, "must be positive"),
     ("lobe_chamber_centre_mm = [-8.7, 0.0, -2.5]", SceneError, "x > 0"),
     ("base_chamber_scale = true", SceneError, "must be a number"),

@@ -215,3 +215,19 @@ def test_forward_command_reports_a_missing_scene(tmp_path):
     result = run_phantom("forward", "--scene", str(tmp_path / "none.toml"), "--pressures-kpa", "1")
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0 and "does not exist" in result.stderr
+
+
+@pytest.mark.parametrize("pressures_kpa", ["1e-6,0,0", "2e-12,-2e-12,0"])
+def test_pressures_below_the_resolution_answer_the_rest_shape(model, pressures_kpa):
+    """phantom forward --pressures-kpa 1e-6,0,0 failed "the stiffness is ill-conditioned" (Newton's tolerance is
+    relative to the load); the simulated plant reads 2e-12 kPa after a vent."""
+    from phantom.model.fem.model import PRESSURE_RESOLUTION_PA
+
+    result = run_phantom("forward", "--scene", "builtin", "--pressures-kpa", pressures_kpa, "--json")
+    assert result.returncode == 0, result.stderr
+    answer = json.loads(result.stdout)
+    assert answer["chamber_volumes_ml"] == pytest.approx(list(model.rest_chamber_volumes_m3 * 1e6), rel=1e-12)
+    assert answer["iterations"] == 0
+    # at the resolution the load is solved, and gives a larger chamber
+    state = model.equilibrium([PRESSURE_RESOLUTION_PA, 0.0, 0.0])
+    assert state.iterations > 0 and state.chamber_volumes_m3[0] > model.rest_chamber_volumes_m3[0]

@@ -188,3 +188,45 @@ def test_the_move_to_worked_example_of_protocol_md_is_built_by_hand():
     assert encode("MOVE_TO", 7, {"axis": 0, "angle_mdeg": 90000}) == on_wire
     protocol_md = (Path(__file__).parents[1] / "protocol" / "PROTOCOL.md").read_text()
     assert "on wire  03 18 07 04 90 5f 01 03 48 3a 00" in protocol_md
+
+
+@pytest.mark.parametrize(("method", "params", "message"), [
+    ("motion_move", {"orbit_deg": math.nan}, "orbit_deg must be a finite number of degrees within"),
+    ("motion_move", {"elevation_deg": math.inf}, "elevation_deg must be a finite number of degrees within"),
+    ("motion_move", {"orbit_deg": -math.inf}, "orbit_deg must be a finite number"),
+    ("motion_move", {"orbit_deg": 1e12}, "orbit_deg must be a finite number of degrees within"),
+    ("motion_move", {"orbit_deg": "90"}, "orbit_deg must be a finite number of degrees within"),
+    ("motion_home", {"axis": 0, "angle_deg": math.nan}, "angle_deg must be a finite number"),
+    ("motion_home", {"axis": 0, "angle_deg": math.inf}, "angle_deg must be a finite number"),
+    ("motion_home", {"axis": 0, "method": ["here"]}, "method must be 'here' or 'switch'"),
+    ("motion_config", {"axis": 0, "steps_per_rev": "28800", "max_speed_deg_s": 30, "max_accel_deg_s2": 60,
+                       "min_angle_deg": -190, "max_angle_deg": 190}, "steps_per_rev must be a finite number"),
+    ("motion_config", {"axis": 0, "steps_per_rev": [28800], "max_speed_deg_s": 30, "max_accel_deg_s2": 60,
+                       "min_angle_deg": -190, "max_angle_deg": 190}, "steps_per_rev must be a finite number"),
+    ("motion_config", {"axis": 0, "steps_per_rev": 28800, "max_speed_deg_s": math.nan, "max_accel_deg_s2": 60,
+                       "min_angle_deg": -190, "max_angle_deg": 190}, "max_speed_deg_s must be a finite number"),
+    ("motion_config", {"axis": 0, "steps_per_rev": 28800, "max_speed_deg_s": 30, "max_accel_deg_s2": 60,
+                       "min_angle_deg": -190, "max_angle_deg": 190, "reverse": "yes"}, "reverse must be true or false"),
+    ("motion_stop", {"release": "no"}, "release must be true or false"),
+])
+def test_motion_api_refuses_non_finite_and_mistyped_parameters_before_the_board(method, params, message):
+    """NaN or Infinity (Python's json accepts them) and a string or list in motion_config were `internal` errors
+    with tracebacks."""
+    import asyncio
+
+    from phantom.host.api import ApiError
+    from phantom.host.motion import Orbit
+
+    sent = []
+
+    async def command(name, fields):
+        sent.append(name)
+        return 0
+
+    async def call():
+        orbit = Orbit(command, lambda *event: None)
+        await orbit.api_methods()[method](params)
+
+    with pytest.raises(ApiError, match=message) as raised:
+        asyncio.run(call())
+    assert raised.value.code == "invalid_params" and sent == []

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from phantom import PhantomError
-from phantom.model import PhantomModel, load_scene
+from phantom.model import PhantomModel, SceneError, load_scene
 from phantom.model.fidelity.levels import VolumeEstimator
 from phantom.model.fidelity.response_table import (
     SHIPPED_MODES_TOLERANCE_M,
@@ -301,7 +301,7 @@ def test_shipped_table_volumes_of_another_model_are_refused_with_what_differs(mo
                                                  r"another mesh"):
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
     path.write_bytes(b"not an npz")
-    with pytest.raises(ResponseTableError, match=r"volumes.npz \(\[model\] table_volumes\) cannot be read .*" + remedy):
+    with pytest.raises(SceneError, match=r"volumes.npz \(\[model\] table_volumes\) is damaged .*" + remedy):
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
 
 
@@ -379,5 +379,5 @@ def test_shipped_shapes_of_another_mesh_are_solved_and_of_another_model_refused(
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
     # a file without the shapes' arrays
     np.savez(path, **{key: value for key, value in fields.items() if key != "modes_m"})
-    with pytest.raises(ResponseTableError, match=r"cannot be read \(no 'modes_m'\)"):
+    with pytest.raises(SceneError, match=r"is damaged \(it has no array 'modes_m'\)"):
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))

@@ -89,3 +89,63 @@ def test_camera_json_round_trip():
     camera = Camera(320, 240, 300.0, 301.0, 160.2, 119.7, (-0.1, 0.02, 0.001, -0.002, 0.0))
     assert Camera.from_json(json.loads(json.dumps(camera.to_json()))) == camera
     assert math.isclose(camera.matrix[0, 0], 300.0)
+
+
+def _tampered(tmp_path, change):
+    """The virtual rig's file with one field changed by ``change(data)``."""
+    data = virtual_rig(0.25).to_json()
+    change(data)
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def _set(path, value):
+    def change(data):
+        *parents, last = path
+        for key in parents:
+            data = data[key]
+        data[last] = value
+    return change
+
+
+@pytest.mark.parametrize(("path", "value", "message"), [
+    (("camera", "fx"), 0.0, r"focal lengths \(fx, fy\) = \[0.0, .*\] px must be positive"),
+    (("camera", "fx"), float("nan"), "the rig's camera fx must be finite, got nan"),
+    (("camera", "fy"), -350.0, "must be positive"),
+    (("camera", "fx"), True, "the rig's camera fx must be a number, got True"),
+    (("camera", "cx"), float("inf"), "the rig's camera cx must be finite"),
+    (("camera", "width"), 0, "width must be a whole number of pixels from 16 to 8192, got 0"),
+    (("camera", "height"), 120.5, "height must be a whole number of pixels"),
+    (("camera", "distortion_k1_k2_p1_p2_k3"), [0.1, 0.0], r"distortion_k1_k2_p1_p2_k3 must be numbers of shape \(5,\)"),
+    (("camera", "distortion_k1_k2_p1_p2_k3"), [[], 0.1, 0.0, 0.0, 0.0], "distortion_k1_k2_p1_p2_k3 must be numbers"),
+    (("axis", "direction"), [0.0, 0.0, 0.0], "the rig's axis direction .* has no length"),
+    (("axis", "direction"), [float("nan"), 0.0, 1.0], "the rig's axis direction must be finite"),
+    (("axis", "point_mm"), ["0", 0, 0], r"the rig's axis point_mm must be numbers of shape \(3,\)"),
+    (("elevations", 0, "translation_mm"), [float("nan"), 0.0, 200.0], "a pass's translation_mm must be finite"),
+    (("elevations", 0, "rotation"), [[1.0, 0.0], [0.0, 1.0]], r"a pass's rotation must be numbers of shape \(3, 3\)"),
+    (("elevations", 0, "rotation"), [[2.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], "is not a rotation"),
+    (("elevations", 0, "rotation"), [[-1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]], "is not a rotation"),
+    (("elevations", 0, "elevation_deg"), float("inf"), "a pass's elevation_deg must be finite"),
+    (("elevations",), [], "elevations must be a non-empty list"),
+    (("camera",), [], "the rig's camera must be an object"),
+])
+def test_a_rig_file_with_an_impossible_value_is_refused_naming_the_field(tmp_path, path, value, message):
+    """fx = 0 carved a 24.2 ml sphere into 54.9 ml, exit 0; fx = NaN crashed the carving (SIGSEGV); the rest were
+    tracebacks."""
+    with pytest.raises(RigError, match=message) as raised:
+        Rig.load(_tampered(tmp_path, _set(path, value)))
+    assert "\n" not in str(raised.value)
+
+
+def test_a_rig_file_refusal_is_exit_2_from_reconstruct(tmp_path, capsys):
+    from phantom.cli.main import main
+
+    path = _tampered(tmp_path, _set(("camera", "fx"), 0.0))
+    (tmp_path / "capture").mkdir()
+    frames = [{"index": k, "image": f"images/{k:04d}.png", "orbit_deg": 90.0 * k, "elevation_deg": 0.0}
+              for k in range(4)]
+    (tmp_path / "capture" / "capture.json").write_text(json.dumps({"format": "phantom-capture/1", "frames": frames}))
+    assert main(["scan", "reconstruct", str(tmp_path / "capture"), "--rig", str(path), "--out",
+                 str(tmp_path / "out.ply")]) == 2
+    assert "fx, fy" in capsys.readouterr().err and not (tmp_path / "out.ply").exists()

@@ -124,12 +124,60 @@ def test_capture_folder_errors(tmp_path):
         CaptureFolder.open(tmp_path)
     (tmp_path / "two").mkdir()
     (tmp_path / "two" / "capture.json").write_text("{\"format\": \"phantom-capture/1\", \"frames\": [{}]}")
-    with pytest.raises(CaptureError, match="damaged"):
+    with pytest.raises(CaptureError, match="frame 0: image must be a picture's path inside the folder"):
         CaptureFolder.open(tmp_path / "two")
     with pytest.raises(CameraLost, match="cannot open the camera"):
         Webcam(str(tmp_path / "nothing" / "%04d.png"))
     with pytest.raises(CaptureError, match="at least one view"):
         Plan(0).stops()
+
+
+def _frames(count, **change):
+    return [{"index": k, "image": f"images/{k:04d}.png", "orbit_deg": 6.0 * k, "elevation_deg": 0.0,
+             "pressures_kpa": [1.0, 1.0, 1.0], "time_s": 0.1 * k, **change} for k in range(count)]
+
+
+@pytest.mark.parametrize(("frames", "message"), [
+    (_frames(2, orbit_deg=float("nan")), "frame 0: orbit_deg must be finite and within"),
+    (_frames(2, orbit_deg=float("inf")), "frame 0: orbit_deg must be finite and within"),
+    (_frames(2, elevation_deg="30"), "frame 0: elevation_deg must be a number, got '30'"),
+    (_frames(2, elevation_deg=1e9), r"frame 0: elevation_deg must be finite and within \+-360"),
+    (_frames(2, pressures_kpa=[1.0, None]), "frame 0: pressures_kpa must be"),
+    (_frames(2, time_s=float("nan")), "frame 0: time_s must be finite"),
+    (_frames(2, index=True), "frame 0: index must be a whole number"),
+    (_frames(2, image="../../etc/passwd"), "frame 0: image must be a picture's path inside the folder"),
+    (_frames(2, image="/etc/passwd"), "frame 0: image must be a picture's path inside the folder"),
+    (_frames(5000, image="images/0000.png"), "frames must be a list of at most 2000 pictures, got 5000"),
+    (_frames(3, image="images/0000.png"), "names the picture images/0000.png for more than one frame"),
+    ({"0": {}}, "frames must be a list of at most 2000 pictures"),
+    ([3], "frame 0 must be an object, got 3"),
+])
+def test_a_capture_file_with_an_impossible_frame_is_refused_naming_it(tmp_path, frames, message):
+    """orbit_deg NaN or Infinity was a traceback; 5000 frames naming one picture took 1.4 GB and over 120 s."""
+    (tmp_path / "capture.json").write_text(json.dumps({"format": "phantom-capture/1", "frames": frames}))
+    with pytest.raises(CaptureError, match=message) as raised:
+        CaptureFolder.open(tmp_path)
+    assert "\n" not in str(raised.value)
+
+
+@pytest.mark.parametrize(("views", "elevations", "message"), [
+    ("100000000", "0", "views must be at most 720"),
+    ("600", "0,10,20,30", "is 2400 pictures: give from 1 to 2000 in all"),
+    ("0", "0", "views must be at least 1"),
+])
+def test_render_refuses_more_pictures_than_a_capture_holds_before_rendering(tmp_path, capsys, views, elevations,
+                                                                             message):
+    """phantom scan render --views 1e8 took over 3.4 GB and was still running."""
+    from phantom.cli.main import main
+
+    truth = sphere(15.0, VIRTUAL_CENTRE_MM, levels=2)
+    import meshio
+
+    meshio.write_points_cells(tmp_path / "sphere.ply", truth.vertices_mm, [("triangle", truth.triangles)])
+    assert main(["scan", "render", str(tmp_path / "sphere.ply"), "--out", str(tmp_path / "capture"), "--views", views,
+                 "--elevations", elevations]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "capture").exists()
 
 
 def test_plan_runs_every_other_pass_backwards():
@@ -186,3 +234,35 @@ def test_the_daemons_scan_refuses_bad_parameters_before_it_makes_a_folder_or_mov
     with pytest.raises(PhantomError, match=f"scan: .*{message}"):
         DaemonScanner()({"out": str(out), **params}, None)
     assert not out.exists()
+
+
+def test_a_picture_larger_than_any_camera_is_refused_from_its_header(tmp_path):
+    """A 16000^2 PNG took 1.6 GB before the size error: its header says how large it is."""
+    import zlib
+
+    def chunk(kind, data):
+        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(kind + data).to_bytes(4, "big")
+
+    header = (16000).to_bytes(4, "big") * 2 + bytes([8, 2, 0, 0, 0])
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images" / "0000.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header))
+    (tmp_path / "capture.json").write_text(json.dumps({"format": "phantom-capture/1", "frames": _frames(1)}))
+    folder = CaptureFolder.open(tmp_path)
+    with pytest.raises(CaptureError, match="0000.png is 16000x16000, larger than any camera's"):
+        folder.image(folder.frames[0])
+
+
+def test_capture_refuses_more_pictures_than_a_capture_holds_before_it_calls_the_daemon(tmp_path, capsys):
+    from phantom.cli.main import main
+
+    assert main(["scan", "capture", "--out", str(tmp_path / "capture"), "--views", "600", "--elevations",
+                 "0,10,20,30", "--socket", str(tmp_path / "no-daemon.sock")]) == 2
+    assert "give from 1 to 2000 in all" in capsys.readouterr().err and not (tmp_path / "capture").exists()
+
+
+def test_validate_refuses_more_pictures_than_a_capture_holds_before_writing(tmp_path, capsys):
+    from phantom.cli.main import main
+
+    assert main(["scan", "validate", "--sim", "--out", str(tmp_path / "out"), "--views", "700",
+                 "--elevations", "0,10,20"]) == 2
+    assert "give from 1 to 2000 in all" in capsys.readouterr().err and not (tmp_path / "out").exists()

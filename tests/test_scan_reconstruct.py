@@ -112,3 +112,61 @@ def test_a_zero_level_through_grid_points_gives_a_closed_surface_without_repeate
     assert enclosed_volume_ml(mesh) == pytest.approx(0.216, rel=1e-6)
     distance, _, _ = SurfaceIndex(mesh.vertices_mm, mesh.triangles).closest(np.array([[0.0, 0.0, 9.0]]))
     assert distance[0] == pytest.approx(6.0)
+
+
+@pytest.fixture(scope="module")
+def sphere_capture(tmp_path_factory):
+    truth = sphere(15.0, VIRTUAL_CENTRE_MM, levels=4)
+    return render_capture(truth, virtual_rig(0.25), Plan(6), tmp_path_factory.mktemp("sphere") / "capture")
+
+
+@pytest.mark.parametrize("voxel_mm", [0.02, 0.0, float("nan"), float("inf"), 50.0])
+def test_a_voxel_outside_the_carving_range_is_refused_before_anything_is_read(sphere_capture, voxel_mm):
+    """--voxel-mm 0.02 took over 5 GB before it was stopped."""
+    from phantom.scan.capture import CaptureError
+
+    with pytest.raises(CaptureError, match=r"the voxel size must be from 0.05 to 5 mm, got"):
+        reconstruct(sphere_capture, voxel_mm=voxel_mm)
+
+
+def test_carving_refuses_a_grid_over_the_memory_budget_with_its_estimate(sphere_capture):
+    from phantom.scan.carve import CarveError, Carver, View, carve
+
+    rig = virtual_rig(0.25)
+    views = [View(rig.pose(frame.orbit_deg, frame.elevation_deg), silhouette(sphere_capture.image(frame)))
+             for frame in sphere_capture.frames]
+    with pytest.raises(CarveError, match=r"at 0.05 mm needs about [0-9.]+ GiB, more than the 0.0 GiB this machine "
+                                         r"has to spare: give a coarser voxel \(--voxel-mm\)"):
+        carve(Carver(rig.camera, views), VIRTUAL_CENTRE_MM, 70.0, 0.05, max_bytes=2**20)
+
+
+def test_reconstruct_refuses_more_pictures_than_memory_allows_with_its_estimate(sphere_capture, monkeypatch):
+    from phantom.scan import reconstruct as module
+    from phantom.scan.capture import CaptureError
+
+    monkeypatch.setattr(module, "memory_budget_bytes", lambda: 2**20)
+    with pytest.raises(CaptureError, match=r"12 pictures of 320x240 need about 0.0 GiB to carve, more than the 0.0 "
+                                           r"GiB this machine has to spare"):
+        reconstruct(sphere_capture, voxel_mm=0.4)
+
+
+def test_a_camera_whose_projection_is_nan_is_refused_and_the_kernel_reads_nothing_out_of_bounds(sphere_capture):
+    """fx = NaN (now refused when a rig file is read) passed the kernel's bounds check and indexed out of bounds:
+    SIGSEGV. The carver refuses such a camera; the kernel treats a NaN projection as outside the picture."""
+    from phantom.scan import kernels
+    from phantom.scan.carve import CarveError, Carver, View
+
+    rig = virtual_rig(0.25)
+    camera = Camera(rig.camera.width, rig.camera.height, float("nan"), rig.camera.fy, rig.camera.cx, rig.camera.cy,
+                    rig.camera.distortion)
+    views = [View(rig.pose(frame.orbit_deg, frame.elevation_deg), silhouette(sphere_capture.image(frame)))
+             for frame in sphere_capture.frames[:2]]
+    with pytest.raises(CarveError, match="are not finite with positive focal lengths: calibrate the rig again"):
+        Carver(camera, views)
+    good = Carver(rig.camera, views)
+    points = np.array([VIRTUAL_CENTRE_MM, VIRTUAL_CENTRE_MM + 1.0])
+    out = np.empty(2, np.float32)
+    kernels.hull_distance(points, good.rotations, good.translations, float("nan"), camera.fy, camera.cx, camera.cy,
+                          np.array(camera.distortion), good.max_radius2, good.distances, good.offsets, good.crops,
+                          good.truncation_px, 10.0, out)
+    assert out.shape == (2,)  # reached: no read outside the silhouettes

@@ -107,6 +107,10 @@ def test_table_files_are_files_beside_the_scene_and_a_calibration_drops_them(tmp
     assert getattr(scene.model_settings, key) == load_scene("builtin:converged").path.parent / shipped
     with pytest.raises(SceneError, match=rf"{key} names .*model/scenes/absent.npz, which is not a file"):
         load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:absent.npz"\n'))
+    for escaping in ("../../x.npz", "sub/x.npz", "/etc/x.npz"):
+        with pytest.raises(SceneError, match=r"builtin:NAME names a file in the built-in scenes' folder "
+                                             r"\(prostate_converged.shapes.npz, prostate_converged.volumes.npz\)"):
+            load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:{escaping}"\n'))
     # the files belong to the scene's own parameters: a copy with others set (a calibration's) names none
     copied = scene_with(load_scene("builtin:converged").raw, {"gent_jm": 20.0})
     assert key not in copied["model"] and key in load_scene("builtin:converged").raw["model"]
@@ -149,7 +153,7 @@ def test_the_model_settings_and_chamber_labels_are_read_into_types(tmp_path):
     ("pressure_max_kpa = -3.0", "[model] pressure_max_kpa must be a positive number, got -3.0"),
     ("table_points = 1", "[model] table_points must be an integer of at least 2, got 1"),
     ("table_points = 7.0", "[model] table_points must be an integer of at least 2, got 7.0"),
-    ("table_point = 7", "[model] has unknown keys ['table_point']"),
+    ("table_point = 7", "[model] has unknown key 'table_point' (did you mean 'table_points'?)"),
 ])
 def test_bad_model_settings_are_refused_when_the_scene_loads(tmp_path, table, message):
     with pytest.raises(SceneError) as error:
@@ -174,7 +178,14 @@ def test_chamber_labels_name_every_chamber(tmp_path, labels):
         ("poisson_ratio = 0.3", "poisson_ratio = 0.5", "poisson_ratio must lie in (-1, 0.5)"),
         ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = -1", "youngs_modulus_kpa must be a positive"),
         ('mesh = "meshes/p.msh"', 'mesh = "builtin:liver"', "unknown built-in mesh"),
-        ("[phantom]", "[phantom_]", "the [phantom] table is missing"),
+        ("[phantom]", "[phantom_]", "the file has unknown key 'phantom_' (did you mean 'phantom'?)"),
+        ("[host]", "[materials]", "the file has unknown key 'materials' (did you mean 'material'?)"),
+        ('units = "cm"', 'unit = "cm"', "[phantom] has unknown key 'unit' (did you mean 'units'?)"),
+        ('units = "cm"', "units = []", "units = [] is not one of"),
+        ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = inf", "youngs_modulus_kpa must be a positive"),
+        ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = true", "youngs_modulus_kpa must be a positive"),
+        ("[host]", "[outputs]\nshape = 1\n[host]", "[outputs] shape must be true or false, got 1"),
+        ("[phantom]", 'outputs = "all"\n[phantom]', "outputs must be a table ([outputs]), got 'all'"),
     ],
 )
 def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
@@ -183,6 +194,26 @@ def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
         load_scene(write_scene(tmp_path, GOOD.replace(replace, by)))
     assert message in str(error.value)
     assert isinstance(error.value, PhantomError)
+
+
+@pytest.mark.parametrize(("replace", "by", "message"), [
+    ("youngs_modulus_kpa = 50.0", "youngs_modulus_kPa = 20.0",
+     "[material] has unknown key 'youngs_modulus_kPa' (did you mean 'youngs_modulus_kpa'?)"),
+    ("poisson_ratio = 0.45", "poisson_ration = 0.45",
+     "[material] has unknown key 'poisson_ration' (did you mean 'poisson_ratio'?)"),
+    ("accuracy_pct = 10.0", "accuracy = 10.0", "[model] has unknown key 'accuracy' (did you mean 'accuracy_pct'?)"),
+    ("shape = false", "shapes = false", "[outputs] has unknown key 'shapes' (did you mean 'shape'?)"),
+    ('fixed = "fixed"', 'fixed_group = "fixed"', "[phantom] has unknown key 'fixed_group' (did you mean 'fixed'?)"),
+])
+def test_a_misspelt_key_in_a_copy_of_the_builtin_scene_is_named_with_the_nearest_known_one(tmp_path, replace, by,
+                                                                                          message):
+    """A misspelt key was ignored and its default used in silence (E = 50 kPa for youngs_modulus_kPa = 20)."""
+    text = builtin_scene_path("builtin").read_text()
+    assert replace in text
+    with pytest.raises(SceneError) as error:
+        load_scene(write_scene(tmp_path, text.replace(replace, by)))
+    assert message in str(error.value) and "\n" not in str(error.value)
+    assert "the known ones are" in str(error.value)
 
 
 def test_missing_and_unparsable_scene_files(tmp_path):
@@ -204,3 +235,41 @@ def test_a_10_node_builtin_scene_is_nearly_incompressible_unless_it_says_otherwi
     assert linear.poisson_ratio == 0.45 and named.poisson_ratio == 0.45
     assert quadratic.poisson_ratio == QUADRATIC_POISSON_RATIO
     assert quadratic.bulk_modulus_pa >= 1000 * quadratic.lame_mu_pa
+
+
+def test_scene_check_prints_every_resolved_value_and_where_it_came_from(tmp_path, capsys):
+    from phantom.model.scene import LOAD_KEYS, MATERIAL_KEYS, MODEL_KEYS, OUTPUT_KEYS, PHANTOM_KEYS
+
+    path = write_scene(tmp_path, GOOD + "[model]\naccuracy_pct = 2\n")
+    assert main(["scene", "check", str(path), "--json"]) == 0
+    resolved = json.loads(capsys.readouterr().out)["resolved"]
+    for section, keys in (("phantom", PHANTOM_KEYS), ("material", MATERIAL_KEYS), ("model", MODEL_KEYS),
+                          ("load", LOAD_KEYS), ("outputs", OUTPUT_KEYS)):
+        assert list(resolved[section]) == list(keys)
+    assert resolved["material"]["youngs_modulus_kpa"] == {"value": 20.0, "from": "file"}
+    assert resolved["model"]["accuracy_pct"] == {"value": 2.0, "from": "file"}
+    assert resolved["model"]["pressure_max_kpa"] == {"value": PRESSURE_LIMIT_PA / 1e3, "from": "default"}
+    assert resolved["phantom"]["chamber_labels"] == {"value": ["a", "b"], "from": "default"}
+    assert main(["scene", "check", "builtin:converged"]) == 0
+    table = capsys.readouterr().out
+    assert "[geometry]" in table and "element_order = 2" in table and "# file" in table and "# default" in table
+
+
+def test_scene_check_refuses_a_misspelt_key_with_exit_2(tmp_path, capsys):
+    path = write_scene(tmp_path, GOOD.replace("youngs_modulus_kpa", "youngs_modulus_kPa"))
+    assert main(["scene", "check", str(path)]) == 2
+    assert "unknown key 'youngs_modulus_kPa' (did you mean 'youngs_modulus_kpa'?)" in capsys.readouterr().err
+
+
+def test_run_scene_names_a_misspelt_key_instead_of_another_phantom(tmp_path):
+    """A misspelt key in a copy of an example scene: run-scene said the scene "describes another phantom than the
+    running one" (the default modulus differed), not which key was wrong."""
+    from phantom.host.handlers import prepare_scene
+    from phantom.host.scenes import example_scene_path
+
+    text = example_scene_path("bph_growth").read_text()
+    assert "youngs_modulus_kpa = 10.85573" in text
+    path = write_scene(tmp_path, text.replace("youngs_modulus_kpa = 10.85573", "youngs_modulus_kPa = 10.85573"))
+    with pytest.raises(SceneError, match=r"\[material\] has unknown key 'youngs_modulus_kPa' \(did you mean "
+                                         r"'youngs_modulus_kpa'\?\)"):
+        prepare_scene(str(path), 1.0, ["chamber0", "chamber1", "chamber2"], {}, "running.toml")

@@ -209,3 +209,79 @@ def test_a_missing_extra_names_the_pip_command(monkeypatch, tmp_path, capsys):
     error = capsys.readouterr().err
     assert "jax is not installed; it comes with the optional dependencies 'shape'" in error
     assert "[shape]'" in error and len(error.strip().splitlines()) == 1
+
+
+def _ball_mask(path, affine, side=20, radius=6.0):
+    import nibabel
+
+    index = np.indices((side, side, side)) - side / 2.0
+    ball = (np.sqrt((index**2).sum(axis=0)) < radius).astype(np.uint8)
+    nibabel.save(nibabel.Nifti1Image(ball, affine), str(path))
+    return path
+
+
+def _affine(diagonal, translation=(0.0, 0.0, 0.0)):
+    affine = np.diag([*diagonal, 1.0])
+    affine[:3, 3] = translation
+    return affine
+
+
+@pytest.mark.parametrize(("affine", "message"), [
+    (_affine((1.0, 1.0, 1.0), (np.nan, 0.0, 0.0)), r"the affine \(voxel to RAS mm\) is not finite"),
+    (_affine((0.001, 0.001, 0.001)), r"the voxel sides are 0.001, 0.001, 0.001 mm, outside \[0.05, 20\] mm"),
+    (_affine((1000.0, 1.0, 1.0)), "the voxel sides are 1e\\+03, 1, 1 mm, outside"),
+    (np.array([[1.0, 1.0, 0, 0], [0, 0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]), "singular"),
+])
+def test_a_mask_whose_affine_is_not_a_voxel_grid_in_mm_is_refused(tmp_path, affine, message):
+    """A NaN affine or micrometre voxels encoded as the empty grid (the same latent for both, exit 0); a singular
+    affine was a LinAlgError traceback."""
+    path = _ball_mask(tmp_path / "ball.nii.gz", affine)
+    with pytest.raises(ShapeError, match=message) as raised:
+        load_shapes(path, grid_size=16, voxel_mm=2.0)
+    assert "\n" not in str(raised.value)
+
+
+def test_a_mask_is_read_as_booleans_and_a_good_one_encodes(tmp_path):
+    path = _ball_mask(tmp_path / "ball.nii.gz", _affine((1.0, 1.0, 1.0)))
+    mask = read_label_mask(find_cases(path)[0])
+    assert mask.mask.dtype == bool
+    shapes = load_shapes(path, grid_size=16, voxel_mm=2.0)
+    assert shapes.occupancy.sum() * 8.0 / 1e3 == pytest.approx(4 / 3 * np.pi * 6.0**3 / 1e3, rel=0.15)
+
+
+def test_a_mask_that_comes_out_empty_on_the_grid_is_an_error_not_a_latent(tmp_path):
+    path = _ball_mask(tmp_path / "ball.nii.gz", _affine((0.05, 0.05, 0.05)), radius=1.0)
+    with pytest.raises(ShapeError, match="comes out empty on the grid .* smaller than a voxel; check its units"):
+        load_shapes(path, grid_size=16, voxel_mm=5.0)
+
+
+def test_a_mask_header_of_too_many_voxels_is_refused_before_its_data_is_read(tmp_path):
+    """A 1000^3 .nii.gz of 4.5 MB took 2.2 GB (cast to float32); the header alone says how large it is."""
+    import nibabel
+
+    header = nibabel.Nifti1Header()
+    header.set_data_shape((1000, 1000, 1000))
+    header.set_data_dtype(np.uint8)
+    header.set_sform(np.eye(4), code=1)
+    path = tmp_path / "huge_mask.nii"
+    path.write_bytes(header.binaryblock + b"\0" * (352 - len(header.binaryblock)) + b"\1" * 4096)
+    with pytest.raises(ShapeError, match=r"declares 1000 x 1000 x 1000 voxels, more than the 134217728 of a 512\^3 "
+                                         r"mask: crop or resample it"):
+        read_label_mask(find_cases(path)[0])
+
+
+def test_a_mask_shorter_than_its_header_or_with_nan_values_is_refused(tmp_path):
+    import nibabel
+
+    header = nibabel.Nifti1Header()
+    header.set_data_shape((64, 64, 64))
+    header.set_data_dtype(np.uint8)
+    short = tmp_path / "short_mask.nii"
+    short.write_bytes(header.binaryblock + b"\0" * (352 - len(header.binaryblock)) + b"\1" * 4096)
+    with pytest.raises(ShapeError, match="not a readable NIfTI file"):
+        read_label_mask(find_cases(short)[0])
+    values = np.zeros((8, 8, 8), np.float32)
+    values[2:5, 2:5, 2:5], values[0, 0, 0] = 1.0, np.nan
+    nibabel.save(nibabel.Nifti1Image(values, np.eye(4)), str(tmp_path / "nan_mask.nii"))
+    with pytest.raises(ShapeError, match="the mask holds NaN or infinite values"):
+        read_label_mask(find_cases(tmp_path / "nan_mask.nii")[0])

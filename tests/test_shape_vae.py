@@ -161,3 +161,78 @@ def test_intersection_over_union():
     a[0, :2] = 1.0
     b[0, 1:3] = 0.9
     assert intersection_over_union(a, b)[0] == pytest.approx(1 / 3)
+
+
+def _run_folder(path, network=TINY, **config_changes):
+    """A run folder of ``network``'s initial weights, as training writes one, with ``config_changes`` made."""
+    from phantom.shape.checkpoint import write_checkpoint, write_config
+
+    path.mkdir()
+    params, statistics = init_parameters(network, jax.random.PRNGKey(0))
+    write_checkpoint(path, params, statistics)
+    write_config(path, network, {}, {"voxel_mm": 2.0, "grid_size": network.grid_size, "labels": [1], "names": [],
+                                     "held_out": []}, 1, 1.0)
+    config = json.loads((path / "config.json").read_text())
+    for key, value in config_changes.items():
+        if key.startswith("vae."):
+            config["vae"][key[4:]] = value
+        elif value is None:
+            del config[key]
+        else:
+            config[key] = value
+    (path / "config.json").write_text(json.dumps(config))
+    return path
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"vae": None}, "the run's config has no vae settings"),
+    ({"vae": [1, 2]}, "the VAE settings must be a JSON object"),
+    ({"vae.latent_dim": 10**9}, "latent_dim = 1000000000 is more than the 4096 a shape network has"),
+    ({"vae.latent_dim": 4.5}, "latent_dim must be a whole number, got 4.5"),
+    ({"vae.grid_size": "8"}, "grid_size must be a whole number, got '8'"),
+    ({"vae.channels": [4, 10**6]}, "channels = 1000000 is more than the 1024"),
+    ({"vae.channels": "4,8"}, "channels must be a list of whole numbers"),
+    ({"vae.negative_slope": None}, "negative_slope must be a finite number, got None"),
+    ({"vae.latent_dim": 5}, "its array 'params/expand/weight' is float32 of shape (4, 64), not 5 x 64"),
+    ({"data": {"voxel_mm": float("nan"), "grid_size": 8}}, "the run's data settings must hold voxel_mm"),
+    ({"data": {"voxel_mm": 2.0, "grid_size": 16}}, "grid_size (8, the network's)"),
+])
+def test_a_foreign_run_config_is_refused_before_any_network_is_built(tmp_path, changes, message):
+    """A config.json without vae was a KeyError; latent_dim 1e9 took 7.9 GB, then a JAX abort."""
+    run = _run_folder(tmp_path / "run", **changes)
+    with pytest.raises(ShapeError, match=message.replace("(", r"\(").replace(")", r"\)")) as raised:
+        ShapeModel.load(run)
+    assert "\n" not in str(raised.value)
+
+
+def test_a_checkpoint_that_is_a_pickle_or_holds_nan_is_refused(tmp_path):
+    """A pickle as parameters.npz was a ValueError traceback."""
+    import pickle
+
+    run = _run_folder(tmp_path / "run")
+    good = dict(np.load(run / "parameters.npz"))
+    (run / "parameters.npz").write_bytes(pickle.dumps({"params/latent/weight": [1.0]}))
+    with pytest.raises(ShapeError, match="is damaged .*train the run again"):
+        ShapeModel.load(run)
+    np.savez(run / "parameters.npz", **{**good, "params/latent/bias": np.full(8, np.nan, np.float32)})
+    with pytest.raises(ShapeError, match="'params/latent/bias' holds NaN"):
+        ShapeModel.load(run)
+    np.savez(run / "parameters.npz", **good)
+    assert ShapeModel.load(run).vae == TINY
+
+
+def test_a_damaged_latents_file_is_refused(tmp_path):
+    """latents.npz was read with np.load whole: a pickle was a ValueError traceback, a missing array a KeyError."""
+    run = _run_folder(tmp_path / "run")
+    model = ShapeModel.load(run)
+    (run / "latents.npz").write_bytes(b"\x80\x04not an npz")
+    with pytest.raises(ShapeError, match="is damaged .*train the run again"):
+        model.case_latents()
+    np.savez(run / "latents.npz", names=np.array(["a", "b"]))
+    with pytest.raises(ShapeError, match="it has no array 'mean'"):
+        model.case_latents()
+    np.savez(run / "latents.npz", names=np.array(["a", "b"]), mean=np.zeros((3, 4)))
+    with pytest.raises(ShapeError, match="name 2 cases for 3 latent vectors"):
+        model.case_latents()
+    np.savez(run / "latents.npz", names=np.array(["a", "b"]), mean=np.ones((2, 4)))
+    assert model.case_latents()[0] == ["a", "b"]

@@ -58,9 +58,10 @@ from numpy.typing import ArrayLike
 import phantom
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
-from phantom.model.errors import SolveError
+from phantom.model.errors import SceneError, SolveError
 from phantom.model.fem.body import SOLVER_VERSION
 from phantom.model.fem.model import PhantomModel
+from phantom.model.fidelity.table_files import check_shape_nodes, read_members, read_provenance, table_members
 from phantom.model.scene import DEFAULT_TABLE_POINTS
 
 if TYPE_CHECKING:
@@ -410,26 +411,27 @@ def _read_shipped(model: PhantomModel, key: str, path: Path, pressure_max_pa: fl
                   remedy: str) -> dict[str, np.ndarray]:
     """The arrays of the file a scene ships under ``[model] key``, once it is shown to belong to ``model`` and
     the grid (its provenance, and its rest volumes within :data:`SHIPPED_REST_TOLERANCE_PCT`; None
-    ``points_per_axis``: the file's own); ResponseTableError, saying what differs and ``remedy``, otherwise."""
+    ``points_per_axis``: the file's own); ResponseTableError, saying what differs and ``remedy``, otherwise, and
+    a SceneError for a file that is not such a table (:mod:`phantom.model.fidelity.table_files`)."""
     where = f"the table {key.removeprefix('table_')} {path} ([model] {key})"
-    try:
-        with np.load(path) as stored:
-            arrays = dict(stored)
-        provenance = json.loads(str(arrays["provenance"]))
-        rest_m3 = np.asarray(arrays["rest_volumes_m3"], float)
-    except (OSError, ValueError, KeyError) as error:
-        raise ResponseTableError(f"{where} cannot be read ({error}): {remedy}") from error
+    provenance = read_provenance(path, where, remedy)
     if points_per_axis is None:
-        points_per_axis = int(provenance.get("points_per_axis", 0))
+        points_per_axis = provenance.get("points_per_axis")
+        if isinstance(points_per_axis, bool) or not isinstance(points_per_axis, int) or not (
+                2 <= points_per_axis <= 64):
+            raise SceneError(f"{where} is damaged (its points_per_axis is {points_per_axis!r}): {remedy}")
     wanted, made = _flat(table_provenance(model, pressure_max_pa, points_per_axis)), _flat(provenance)
     differing = sorted(key for key in set(wanted) | set(made) if wanted.get(key) != made.get(key))
     if differing:
         shown = "; ".join(f"{key}: made for {made.get(key)!r}, this model has {wanted.get(key)!r}"
                           for key in differing)
         raise ResponseTableError(f"{where} belong to another model ({shown}): {remedy}")
+    arrays = read_members(path, table_members(model.n_chambers, points_per_axis, key == "table_shapes"), where, remedy)
+    rest_m3 = arrays["rest_volumes_m3"]
     model_rest_m3 = np.append(model.rest_chamber_volumes_m3, model.rest_gland_volume_m3)
-    off_pct = float(np.max(np.abs(model_rest_m3 - rest_m3) / rest_m3)) * 100
-    if off_pct > SHIPPED_REST_TOLERANCE_PCT:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        off_pct = float(np.max(np.abs(model_rest_m3 - rest_m3) / rest_m3)) * 100
+    if not off_pct <= SHIPPED_REST_TOLERANCE_PCT:
         raise ResponseTableError(
             f"{where} were made on a mesh whose rest volumes are up to {off_pct:.2g} % from this one's (more than "
             f"{SHIPPED_REST_TOLERANCE_PCT:g} %: the mesher made another mesh from the same settings): {remedy}")
@@ -464,15 +466,12 @@ def shipped_table_shapes(model: PhantomModel, pressure_max_pa: float) -> Surface
     remedy = ("use a copy of the scene without [model] table_shapes (each shape is then a full solve), or write "
               "the file again for this model (scripts/table_volumes.py --shapes-out)")
     stored = _read_shipped(model, "table_shapes", path, pressure_max_pa, None, remedy)
-    try:
-        nodes = np.asarray(stored["nodes"], dtype=np.int64)
-        rest_m = np.asarray(stored["rest_positions_m"], dtype=float)
-        coefficients = np.asarray(stored["coefficients"], dtype=float)
-        modes_m = np.asarray(stored["modes_m"], dtype=float)
-        check_error_m = float(stored["check_error_m"])
-    except KeyError as error:
-        raise ResponseTableError(f"the table shapes {path} ([model] table_shapes) cannot be read (no {error}): "
-                                 f"{remedy}") from error
+    check_shape_nodes(stored, f"the table shapes {path} ([model] table_shapes)", remedy)
+    nodes = np.asarray(stored["nodes"], dtype=np.int64)
+    rest_m = np.asarray(stored["rest_positions_m"], dtype=float)
+    coefficients = np.asarray(stored["coefficients"], dtype=float)
+    modes_m = np.asarray(stored["modes_m"], dtype=float)
+    check_error_m = float(stored["check_error_m"])
     model_nodes_m = np.asarray(model.nodes_m, dtype=float)
     if (nodes.size == 0 or nodes.max() >= len(model_nodes_m)
             or np.abs(model_nodes_m[nodes] - rest_m).max() > SHIPPED_NODE_TOLERANCE_M):

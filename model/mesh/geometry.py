@@ -32,7 +32,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from phantom.model.errors import SceneError
+from phantom.model.errors import SceneError, check_known_keys
 
 #: The thinnest silicone wall a lost-wax cast makes (mm).
 MANUFACTURABLE_WALL_MM = 1.0
@@ -95,9 +95,7 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
     if not isinstance(table, dict):
         raise SceneError(f"{where}: [geometry] must be a table of the built-in prostate's parameters")
     fields = {f.name: f for f in dataclasses.fields(ProstateGeometry)}
-    unknown = sorted(set(table) - set(fields))
-    if unknown:
-        raise SceneError(f"{where}: [geometry] has unknown keys {unknown}: use {', '.join(fields)}")
+    check_known_keys(table, fields, "[geometry]", where)
     values: dict[str, Any] = {}
     for name, value in table.items():
         if name.endswith("_mm") and isinstance(fields[name].default, tuple):

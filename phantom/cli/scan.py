@@ -201,7 +201,8 @@ def _add_plan_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--elevations", default="0,30", help="the elevations (deg) of the passes (default 0,30)")
 
 
-def _plan(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
+def plan_of(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
+    """The plan of ``--views`` and ``--elevations``, at most MAX_FRAMES pictures in all."""
     from phantom.cli.common import parse_numbers
     from phantom.scan.capture import Plan
 
@@ -267,7 +268,7 @@ def run_render(args: argparse.Namespace) -> int:
     from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_capture
 
-    plan = _plan(args)
+    plan = plan_of(args)
     true_rig = virtual_rig(args.scale, plan.elevations_deg)
     kept = load_rig(args.rig) if args.rig else true_rig
     mesh = _read_mesh(args.mesh, args.units)

@@ -13,6 +13,7 @@ here by adapters over the API:
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -215,16 +216,14 @@ def run_capture(args: Any) -> int:
     """Handler of ``phantom scan capture``."""
     import sys
 
-    from phantom.cli.common import parse_numbers
-    from phantom.cli.scan import load_rig
+    from phantom.cli.scan import load_rig, plan_of
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
     from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureFolder, Plan, Webcam
+    from phantom.scan.capture import CaptureFolder, Webcam
     from phantom.scan.render import CharucoTarget
 
-    elevations = tuple(parse_numbers(args.elevations, "--elevations"))
-    plan = Plan(args.views, elevations, args.start_deg, args.settle_s, args.span_deg)
+    plan = dataclasses.replace(plan_of(args, args.settle_s), start_deg=args.start_deg, span_deg=args.span_deg)
     rig = load_rig(args.rig) if args.rig else None
     camera: FrameSource
     with DaemonClient(args.socket or default_socket_path()) as client:
@@ -232,7 +231,7 @@ def run_capture(args: Any) -> int:
             from phantom.hil.truth_shape import TruthShape
             from phantom.scan.virtual import TargetCamera, VirtualCamera
 
-            true_rig = virtual_rig(args.scale, elevations)
+            true_rig = virtual_rig(args.scale, plan.elevations_deg)
             pose_at = _scaled_pose(args.scale)
             if args.target:
                 camera = TargetCamera(true_rig, CharucoTarget(), _placement(args.placement), _FollowingOrbit(client),
@@ -340,7 +339,7 @@ def run_validate(args: Any) -> int:
 
     from phantom.cli.common import parse_numbers
     from phantom.cli.demo import wait_until_ready
-    from phantom.cli.scan import load_rig
+    from phantom.cli.scan import load_rig, plan_of
     from phantom.hil.truth_shape import TruthShape
     from phantom.host.client import DaemonClient
     from phantom.host.scenes import example_scene_path, load_timeline_scene
@@ -348,7 +347,7 @@ def run_validate(args: Any) -> int:
     from phantom.model.mesh.surface import TriangleMesh, model_surface
     from phantom.scan.calibrate import calibrate_rig, target_views
     from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureFolder, Plan
+    from phantom.scan.capture import CaptureFolder
     from phantom.scan.compare import compare, read_scan
     from phantom.scan.heatmap import write_heatmap
     from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
@@ -358,12 +357,12 @@ def run_validate(args: Any) -> int:
     if not args.sim:
         raise PhantomError("validate runs on the simulated rig: give --sim (with a real board, scan with `phantom "
                            "scan capture`, `reconstruct` and `compare-scan`)")
+    plan = plan_of(args, args.settle_s)
+    elevations = plan.elevations_deg
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scene = args.scene or str(example_scene_path("bph_growth"))
     targets = parse_numbers(args.targets, "--targets") if args.targets else scene_targets_ml(scene)
-    elevations = tuple(parse_numbers(args.elevations, "--elevations"))
-    plan = Plan(args.views, elevations, settle_s=args.settle_s)
     true_rig = virtual_rig(args.scale, elevations)
     started = time.monotonic()
 
