@@ -16,7 +16,7 @@ from phantom.host.api import ApiError, Handler, RawJson
 from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import check_step_count, effective_model, model_differences, parse_target
 from phantom.model.errors import SceneError
-from phantom.model.scene import MAX_SCENE_BYTES, load_scene
+from phantom.model.scene import MAX_SCENE_BYTES, load_scene, pressure_limit_error
 
 if TYPE_CHECKING:
     from phantom.host.daemon import Daemon
@@ -43,7 +43,7 @@ class ApiHandlers:
     async def set_target(self, params: dict[str, Any]) -> dict[str, Any]:
         daemon = self.daemon
         try:
-            target = parse_target(params, daemon.chamber_names, "set_target")
+            target = parse_target(params, daemon.chamber_names, "set_target", daemon.chamber_labels)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
         return await daemon.set_target(target)
@@ -69,14 +69,15 @@ class ApiHandlers:
         pressures = params.get("pressures_kpa")
         if pressures is not None:
             try:
-                target = parse_target({"pressures_kpa": pressures}, daemon.chamber_names, "surface")
+                target = parse_target({"pressures_kpa": pressures}, daemon.chamber_names, "surface",
+                                      daemon.chamber_labels)
             except SceneError as error:
                 raise ApiError("invalid_params", str(error)) from error
             pressures_pa: np.ndarray | None = np.asarray(target.values, dtype=float)
-            highest_kpa = daemon.model.info.pressure_max_pa / PA_PER_KPA
-            if max(pressures) > highest_kpa:
-                raise ApiError("invalid_params", f"surface: pressures_kpa must be between 0 and {highest_kpa:g} kPa "
-                               f"(the model's range), got {list(pressures)}")
+            refused = pressure_limit_error(pressures, daemon.chamber_labels,
+                                           daemon.model.info.pressure_max_pa / PA_PER_KPA)
+            if refused:
+                raise ApiError("invalid_params", f"surface: {refused}")
         elif daemon.schedule.window:
             pressures_pa = np.mean([frame for _, frame in daemon.schedule.window], axis=0)
         else:

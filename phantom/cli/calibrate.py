@@ -203,11 +203,16 @@ def _scan_volume_ml(path: Path) -> float:
 def _parse_points(text: str) -> list[list[float]]:
     from phantom import PhantomError
     from phantom.cli.common import parse_numbers
+    from phantom.model.scene import DEFAULT_CHAMBER_LABELS, PRESSURE_LIMIT_PA, describe_chambers, pressure_limit_error
 
     points = [parse_numbers(item, "--points-kpa") for item in text.split(";") if item.strip()]
     for point in points:
-        if len(point) != 3 or not all(0.0 <= value <= 3.0 for value in point):
-            raise PhantomError(f"--points-kpa: each combination is three pressures within 0-3 kPa, got {point}")
+        if len(point) != len(DEFAULT_CHAMBER_LABELS):
+            raise PhantomError(f"--points-kpa: each combination is one pressure per chamber "
+                               f"({describe_chambers(DEFAULT_CHAMBER_LABELS)}), got {point}")
+        refused = pressure_limit_error(point, DEFAULT_CHAMBER_LABELS, PRESSURE_LIMIT_PA / 1e3)
+        if refused:
+            raise PhantomError(f"--points-kpa {','.join(f'{p:g}' for p in point)}: {refused}")
     if len(points) < 3:
         raise PhantomError(f"--points-kpa: a calibration with leave-one-out needs at least 3, got {len(points)}")
     return points

@@ -6,9 +6,12 @@ from __future__ import annotations
 import math
 import stat
 from pathlib import Path
-from typing import Literal, overload
+from typing import TYPE_CHECKING, Literal, overload
 
 from phantom import PhantomError
+
+if TYPE_CHECKING:
+    from phantom.model.scene import Scene
 
 
 @overload
@@ -100,3 +103,19 @@ def check_input_size(path: str | Path, max_bytes: int, what: str, error: type[Ph
     if info.st_size > max_bytes:
         raise error(f"{what} {path} is {info.st_size / 2**20:.0f} MiB, more than the {max_bytes / 2**20:g} MiB "
                     f"read: {hint}")
+
+
+def scene_pressures_kpa(text: str, scene: Scene, option: str = "--pressures-kpa") -> list[float]:
+    """Chamber pressures (kPa) given for a scene on the command line: one per chamber, each within what the daemon
+    allows, refused in its words (:func:`phantom.model.scene.pressure_limit_error`), before any model is built."""
+    from phantom.model.scene import describe_chambers, pressure_limit_error
+
+    pressures = parse_numbers(text, option)
+    labels = scene.chamber_labels
+    if len(pressures) != len(labels):
+        raise PhantomError(f"{option} has {len(pressures)} values; the scene has {len(labels)} chambers "
+                           f"({describe_chambers(labels)}): give one pressure per chamber, in that order")
+    refused = pressure_limit_error(pressures, labels, scene.model_settings.pressure_max_pa / 1e3)
+    if refused:
+        raise PhantomError(f"{option}: {refused}")
+    return pressures

@@ -429,25 +429,21 @@ def run_compare_scan(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from phantom.cli.common import parse_numbers
-    from phantom.model.errors import SolveError
+    from phantom.cli.common import scene_pressures_kpa
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.surface import model_surface, rotation_axis
     from phantom.model.scene import load_scene
     from phantom.scan.compare import StageClock, compare
     from phantom.scan.heatmap import write_heatmap, write_recording
 
-    pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
+    scene = load_scene(args.scene)
+    pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
     clock = StageClock()
     with clock.stage("read"):
         scan = _read_mesh(args.scan, args.units)
     with clock.stage("model"):
-        scene = load_scene(args.scene)
         _checked_mesh(scene.mesh)
         model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
-        if len(pressures_kpa) != model.n_chambers:
-            raise SolveError(f"--pressures-kpa has {len(pressures_kpa)} values; the scene has {model.n_chambers} "
-                             f"chambers ({', '.join(model.chamber_names)})")
         state = model.equilibrium([p * 1e3 for p in pressures_kpa])
     model_mesh = model_surface(state.positions_m, model.outer_triangles)
     result = compare(scan, model_mesh, state.gland_volume_m3 * 1e6, args.units, clock=clock)
@@ -509,7 +505,7 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
     import numpy as np
 
     from phantom import PhantomError
-    from phantom.cli.common import output_file, parse_numbers
+    from phantom.cli.common import output_file, scene_pressures_kpa
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.surface import model_surface
     from phantom.model.scene import load_scene
@@ -517,8 +513,9 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
 
     if not args.modulus_factor > 0 or args.noise_mm < 0 or args.holes < 0 or args.levels < 0:
         raise PhantomError("--modulus-factor must be positive, and --noise-mm, --holes and --levels not negative")
-    pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
-    model = PhantomModel.from_scene(load_scene(args.scene))
+    scene = load_scene(args.scene)
+    pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
+    model = PhantomModel.from_scene(scene)
     if args.modulus_factor != 1.0:
         model = model.with_material(youngs_modulus_pa=args.modulus_factor * model.material.youngs_modulus_pa)
     state = model.equilibrium([p * 1e3 for p in pressures_kpa])
