@@ -108,3 +108,39 @@ def test_offline_commands_refuse_what_the_daemon_refuses_in_its_words(tmp_path, 
         assert result.returncode == 2 and result.stderr.strip().endswith(f"--pressures-kpa: {daemon_words}"), (
             command, result.stderr)
 
+
+
+def test_progress_in_a_log_is_lines_with_the_time_left_not_carriage_returns(capsys, monkeypatch):
+    """Progress written with carriage returns made a log file one line; off a terminal it is a line every so
+    often and at the end, and its time left counts from the first report (not the set-up before it)."""
+    clock = iter([100.0, 110.0, 130.0, 150.0])
+    monkeypatch.setattr("time.monotonic", lambda: next(clock))
+    report = common.progress_reporter("calibrate: stage 1:", every_s=15.0)
+    for done in (2, 4, 6, 10):
+        report(done, 10)
+    lines = capsys.readouterr().err.split("\n")
+    assert "\r" not in "".join(lines)
+    assert lines[:3] == ["calibrate: stage 1: 2/10, 0 s", "calibrate: stage 1: 6/10, 30 s, about 30 s left",
+                         "calibrate: stage 1: 10/10, 50 s"]
+
+
+def test_the_fit_names_its_stages():
+    from phantom.cli.calibrate import fit_progress
+
+    shown = []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(common, "progress_reporter", lambda label: lambda done, total: shown.append((label, done)))
+        report = fit_progress(n_measurements=8)
+        for done, total in ((0, 48), (48, 48), (0, 2), (2, 2), (0, 8), (8, 8)):
+            report(done, total)
+    stages = list(dict.fromkeys(label for label, _ in shown))
+    assert [label.split(",")[0] for label in stages] == ["calibrate: stage 1", "calibrate: stage 2",
+                                                         "calibrate: stage 3"]
+    assert "pressure rays" in stages[0] and "left-out" in stages[1] and "verifying the fit" in stages[2]
+
+
+def test_calibrate_record_recommends_the_fit_the_readme_recommends():
+    from phantom.cli.calibrate import recommended_fit
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text().replace("\\\n", " ")
+    assert " ".join(recommended_fit("my_phantom.csv").split()) in " ".join(readme.split())

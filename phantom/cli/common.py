@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import stat
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal, overload
 
@@ -119,3 +120,47 @@ def scene_pressures_kpa(text: str, scene: Scene, option: str = "--pressures-kpa"
     if refused:
         raise PhantomError(f"{option}: {refused}")
     return pressures
+
+
+def progress_reporter(label: str, every_s: float = 10.0) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback that shows ``label done/total, elapsed, time left`` on stderr: one
+    line rewritten in place on a terminal; on a file or a pipe a line every ``every_s`` and at the end, so that a
+    log holds lines (carriage returns made a log one line). The time left is from the rate since the first call,
+    so set-up before it (imports, compiling, starting workers) does not count; unknown until something is done.
+    """
+    import sys
+    import time
+
+    terminal = sys.stderr.isatty()
+    first: list[tuple[float, int]] = []
+    shown_s = [-math.inf]
+
+    def report(done: int, total: int) -> None:
+        now = time.monotonic()
+        if not first:
+            first.append((now, done))
+        started_s, done_at_start = first[0]
+        elapsed_s = now - started_s
+        rate = (done - done_at_start) / elapsed_s if elapsed_s > 0 and done > done_at_start else 0.0
+        left = f", about {format_duration((total - done) / rate)} left" if rate > 0 and done < total else ""
+        line = f"{label} {done}/{total}, {format_duration(elapsed_s)}{left}"
+        finished = done >= total
+        if terminal:
+            sys.stderr.write(f"\r{line}   " + ("\n" if finished else ""))
+        elif finished or now - shown_s[0] >= every_s:
+            sys.stderr.write(line + "\n")
+            shown_s[0] = now
+        sys.stderr.flush()
+    return report
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``3 min 05 s``, ``2 h 10 min``: a duration as people read it."""
+    seconds = max(0, int(round(seconds)))
+    if seconds < 60:
+        return f"{seconds} s"
+    minutes, seconds = divmod(seconds, 60)
+    if minutes < 60:
+        return f"{minutes} min {seconds:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
