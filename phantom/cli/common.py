@@ -164,3 +164,12 @@ def format_duration(seconds: float) -> str:
         return f"{minutes} min {seconds:02d} s"
     hours, minutes = divmod(minutes, 60)
     return f"{hours} h {minutes:02d} min"
+
+
+def frame_progress(what: str) -> Callable[[int, int, object], None]:
+    """:func:`progress_reporter` for a capture's ``progress(done, total, frame)`` callbacks (the frame unused)."""
+    report = progress_reporter(what)
+
+    def show(done: int, total: int, frame: object) -> None:
+        report(done, total)
+    return show

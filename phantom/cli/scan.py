@@ -218,18 +218,6 @@ def _scale(value: float) -> float:
     return value
 
 
-def _progress(what: str) -> Any:
-    """A progress line on stderr, rewritten in place: ``what 12/120``."""
-    import sys
-
-    def show(done: int, total: int, frame: Any) -> None:
-        end = "\n" if done == total else ""
-        print(f"\r{what} {done}/{total} (orbit {frame.orbit_deg:7.2f} deg, elevation {frame.elevation_deg:g} deg)",
-              end=end, file=sys.stderr, flush=True)
-
-    return show
-
-
 def _checked_mesh(path: str) -> str:
     """A mesh file's path, refused (ScanError) before a reader holds it whole when it is over the size read."""
     from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size
@@ -274,6 +262,7 @@ def _open_capture(path: str) -> Any:
 
 def run_render(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan render``."""
+    from phantom.cli.common import frame_progress
     from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_capture
 
@@ -282,7 +271,7 @@ def run_render(args: argparse.Namespace) -> int:
     kept = load_rig(args.rig) if args.rig else true_rig
     mesh = _read_mesh(args.mesh, args.units)
     conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true"}
-    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, _progress("rendered"))
+    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, frame_progress("rendered"))
     if kept is not true_rig:
         kept.save(folder.path / "rig.json")
     print(f"wrote {len(folder.frames)} pictures of {args.mesh} ({true_rig.camera.width}x{true_rig.camera.height}) "
@@ -324,6 +313,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     import json
     import tempfile
 
+    from phantom.cli.common import frame_progress
     from phantom.scan.calibrate import CalibrationError, calibrate_rig, target_views
     from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_target_captures
@@ -335,7 +325,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if args.sim:
             truth = virtual_rig(_scale(args.scale))
             folders = render_target_captures(truth, args.keep or scratch, args.views,
-                                             progress=_progress("target pictures"))
+                                             progress=frame_progress("target pictures"))
         else:
             folders = [_open_capture(path) for path in args.captures]
         first = folders[0].image(folders[0].frames[0]) if folders[0].frames else None
