@@ -57,10 +57,10 @@ def test_the_demo_prints_the_true_error_and_writes_its_report(tmp_path, capsys):
     errors = []
     for row in rows:  # step, at, target, "ml", estimate, true, true error %, time
         target, true, error = float(row[2]), float(row[5]), float(row[6])
-        assert error == pytest.approx((true - target) / target * 100, abs=0.01)
+        assert error == pytest.approx((true - target) / target * 100, abs=0.05)  # true ml printed to 0.01 ml
         errors.append(abs(error))
     mean = re.search(r"mean \|true error\| ([\d.]+) %", printed)
-    assert mean and float(mean.group(1)) == pytest.approx(sum(errors) / len(errors), abs=0.01)
+    assert mean and float(mean.group(1)) == pytest.approx(sum(errors) / len(errors), abs=0.02)
     report = (out / "demo.html").read_text()
     reported = re.search(r"Mean \|true error\| ([\d.]+) %", report)  # from the recording, read back
     assert (out / "demo.rrd").is_file() and reported
