@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
+    from dask.distributed import LocalCluster
 
     from phantom.hil.link import BoardLink
     from phantom.model.scene import Scene
@@ -143,8 +144,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise PhantomError(f"--modulus-band-pct must be within (0, 100), got {args.modulus_band_pct}")
         e0 = scene.material.youngs_modulus_pa
         band = (e0 * (1 - args.modulus_band_pct / 100), e0 * (1 + args.modulus_band_pct / 100))
-    result = calibrate(scene, measurements, grid, scheduler=args.scheduler, n_workers=args.workers,
-                       progress=fit_progress(len(measurements.volumes_m3)), modulus_band_pa=band)
+    cluster = None if args.scheduler else local_cluster_deaf_to_ctrl_c(args.workers)
+    scheduler = args.scheduler if cluster is None else cluster.scheduler_address
+    try:
+        result = calibrate(scene, measurements, grid, scheduler=scheduler,
+                           n_workers=args.workers, progress=fit_progress(len(measurements.volumes_m3)),
+                           modulus_band_pa=band)
+    finally:
+        if cluster is not None:
+            cluster.close()
     stem = Path(scene.path).stem if scene.path else "scene"
     output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
     parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
@@ -185,6 +193,22 @@ def run_calibrate(args: argparse.Namespace) -> int:
         print(f"the fit sits on a constraint: the better fit outside it breaks it ({result.binding})")
     print(f"wrote {written}")
     return 0
+
+
+def local_cluster_deaf_to_ctrl_c(n_workers: int | None) -> LocalCluster:
+    """The fit's Dask cluster on this machine (one for all its sweeps), whose worker processes ignore SIGINT: a
+    Ctrl-C in the terminal reaches every process of its group, and workers it killed mid-solve left "12 leaked
+    semaphore objects" warnings; now only this process gets it and closes the cluster in order. The workers
+    inherit the ignored signal (Python keeps SIGINT ignored when it starts with it ignored)."""
+    import signal
+
+    from phantom.model.calibration.sweep import local_cluster
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        return local_cluster(n_workers)
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def fit_progress(n_measurements: int) -> Callable[[int, int], None]:
