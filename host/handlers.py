@@ -24,7 +24,7 @@ from phantom.host.scenes import (
 )
 from phantom.host.session import fault_names
 from phantom.model.errors import SceneError
-from phantom.model.scene import MAX_SCENE_BYTES
+from phantom.model.scene import MAX_SCENE_BYTES, pressure_limit_error
 
 if TYPE_CHECKING:
     from phantom.host.daemon import Daemon
@@ -61,7 +61,7 @@ class ApiHandlers:
             raise ApiError("invalid_params", f"set_target: tolerance_pct (how close the estimate must come for the "
                            f"target to be reached, %) must be a number in (0, 100], got {tolerance_pct!r}")
         try:
-            target = parse_target(params, daemon.chamber_names, "set_target")
+            target = parse_target(params, daemon.chamber_names, "set_target", daemon.chamber_labels)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
         return await daemon.set_target(target, None if tolerance_pct is None else float(tolerance_pct))
@@ -103,14 +103,15 @@ class ApiHandlers:
         pressures = params.get("pressures_kpa")
         if pressures is not None:
             try:
-                target = parse_target({"pressures_kpa": pressures}, daemon.chamber_names, "surface")
+                target = parse_target({"pressures_kpa": pressures}, daemon.chamber_names, "surface",
+                                      daemon.chamber_labels)
             except SceneError as error:
                 raise ApiError("invalid_params", str(error)) from error
             pressures_pa: np.ndarray | None = np.asarray(target.values, dtype=float)
-            highest_kpa = daemon.model.info.pressure_max_pa / PA_PER_KPA
-            if max(pressures) > highest_kpa:
-                raise ApiError("invalid_params", f"surface: pressures_kpa must be between 0 and {highest_kpa:g} kPa "
-                               f"(the model's range), got {list(pressures)}")
+            refused = pressure_limit_error(pressures, daemon.chamber_labels,
+                                           daemon.model.info.pressure_max_pa / PA_PER_KPA)
+            if refused:
+                raise ApiError("invalid_params", f"surface: {refused}")
         elif daemon.schedule.window:
             pressures_pa = np.mean([frame for _, frame in daemon.schedule.window], axis=0)
         else:

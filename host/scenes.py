@@ -20,12 +20,22 @@ import dataclasses
 import functools
 import math
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from phantom.model.errors import SceneError
-from phantom.model.scene import BUILTIN_SCENES, Scene, builtin_scene_path, read_scene_toml, scene_from_dict
+from phantom.model.scene import (
+    BUILTIN_SCENES,
+    Scene,
+    builtin_scene_path,
+    chamber_labels_of,
+    describe_chambers,
+    pressure_limit_error,
+    read_scene_toml,
+    scene_from_dict,
+)
 from phantom.model.target import Target
 
 #: A target's keys as a scene's step or the API's ``set_target`` states it (the units people see), each with the
@@ -153,7 +163,8 @@ def _number(value: object, what: str) -> float:
     return float(value)
 
 
-def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "target") -> Target:
+def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "target",
+                 chamber_labels: Sequence[str] | None = None) -> Target:
     """Check and convert one target given as a dict (a scene step or the API's ``set_target`` params).
 
     Parameters
@@ -166,6 +177,8 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
         The phantom's chambers, in order: lengths and growth-ratio keys are checked against them.
     where : str
         Names the target in error messages (e.g. ``"steps[2]"``).
+    chamber_labels : list of str, optional
+        How messages name the chambers (``phantom status``'s names; default: the scene's default labels).
     """
     if not isinstance(raw, dict):
         raise SceneError(f"{where}: a target must be a table/object, got {type(raw).__name__}")
@@ -176,6 +189,7 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
             f"{', '.join(keys) if keys else 'none'}")
     kind = keys[0]
     n_chambers = len(chamber_names)
+    labels = list(chamber_labels) if chamber_labels is not None else chamber_labels_of({}, chamber_names)
     if kind == "volume_ml":
         volume_ml = _number(raw[kind], f"{where}: volume_ml")
         if volume_ml < MIN_VOLUME_ML:
@@ -185,11 +199,12 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
         listed = raw[kind]
         if not isinstance(listed, (list, tuple)) or len(listed) != n_chambers:
             raise SceneError(f"{where}: {kind} must be a list of {n_chambers} numbers (one per chamber: "
-                             f"{', '.join(chamber_names)}), got {listed!r}")
+                             f"{describe_chambers(labels)}), got {listed!r}")
         if kind == "pressures_kpa":
             pressures = [_number(value, f"{where}: pressures_kpa[{i}]") for i, value in enumerate(listed)]
-            if min(pressures) < 0:
-                raise SceneError(f"{where}: pressures_kpa must be >= 0 (the blowers only push), got {pressures}")
+            refused = pressure_limit_error(pressures, labels)  # the upper limit is the model's: the inverse's
+            if refused:
+                raise SceneError(f"{where}: {refused}")
             values = tuple(pressures)
         else:
             values = tuple(None if value is None else _number(value, f"{where}: chamber_volumes_ml[{i}]")

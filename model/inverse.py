@@ -41,6 +41,7 @@ from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
+from phantom.model.scene import chamber_labels_of, pressure_limit_error
 from phantom.model.target import ML_PER_M3, InverseResult, Target, UnreachableTargetError
 
 if TYPE_CHECKING:
@@ -593,11 +594,12 @@ class InverseSolver:
         pressures_pa = _finite("pressures_pa", raw_pa)
         if pressures_pa.shape != (self.n_chambers,):
             raise PhantomError(f"pressures_pa needs {self.n_chambers} values, got {pressures_pa.size}")
-        if np.any(pressures_pa < 0) or np.any(pressures_pa > self.pressure_max_pa):
-            raise UnreachableTargetError(
-                f"pressures {(pressures_pa / 1e3).tolist()} kPa are outside the allowed 0 to "
-                f"{(self.pressure_max_pa / 1e3).tolist()} kPa: the blowers only push, and the limit protects the "
-                "phantom")
+        scene = getattr(self.model, "scene", None)  # a model built without a scene names its chambers by default
+        labels = scene.chamber_labels if scene is not None else chamber_labels_of({}, [
+            f"chamber{index}" for index in range(self.n_chambers)])
+        refused = pressure_limit_error((pressures_pa / 1e3).tolist(), labels, (self.pressure_max_pa / 1e3).tolist())
+        if refused:
+            raise UnreachableTargetError(refused)
         chamber_volumes_m3, gland_volume_m3, _ = self.estimator.evaluate(pressures_pa)
         return InverseResult(target, pressures_pa, gland_volume_m3, chamber_volumes_m3, 0,
                              time.perf_counter() - started, 0.0, [])

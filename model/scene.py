@@ -11,6 +11,7 @@ import copy
 import dataclasses
 import math
 import tomllib
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -382,6 +383,40 @@ def chamber_labels_of(phantom_table: dict[str, Any], chamber_names: list[str], w
         raise SceneError(f"{where}: [phantom] chamber_labels must name each of the {len(chamber_names)} chambers "
                          f"({', '.join(chamber_names)}) with a string, got {labels!r}")
     return list(labels)
+
+
+def chamber_label(labels: Sequence[str], index: int) -> str:
+    """One chamber as every message names it: as ``phantom status`` does, with its index (``left lobe (chamber
+    1)``), so that a list of kPa given in chamber order can be matched to it."""
+    return f"{labels[index]} (chamber {index})"
+
+
+def describe_chambers(labels: Sequence[str]) -> str:
+    """The chambers in order, as messages list them: ``0 base, 1 left lobe, 2 right lobe``."""
+    return ", ".join(f"{index} {label}" for index, label in enumerate(labels))
+
+
+def pressure_limit_error(pressures_kpa: Sequence[float], labels: Sequence[str],
+                         pressure_max_kpa: float | Sequence[float] | None = None) -> str | None:
+    """Why chamber pressures (kPa, gauge, in chamber order) are refused, or None when they are not: below 0 (the
+    blowers only push) or above ``pressure_max_kpa`` (one or one per chamber; None: checked later, e.g. by the
+    inverse against its model's limit). The words the daemon and every command refuse them with."""
+    limits: list[float | None]
+    if pressure_max_kpa is None or isinstance(pressure_max_kpa, int | float):
+        limits = [None if pressure_max_kpa is None else float(pressure_max_kpa)] * len(labels)
+    else:
+        limits = [float(limit) for limit in pressure_max_kpa]
+    problems = []
+    for index, (pressure, limit) in enumerate(zip(pressures_kpa, limits, strict=True)):
+        if pressure < 0:
+            problems.append(f"{chamber_label(labels, index)} at {pressure:g} kPa is below 0 kPa: the blowers only "
+                            "push")
+        elif limit is not None and pressure > limit:
+            problems.append(f"{chamber_label(labels, index)} at {pressure:g} kPa is above the {limit:g} kPa "
+                            "limit, which protects the phantom")
+    if not problems:
+        return None
+    return "; ".join(problems) + " (gauge pressures from 0 to the scene's [model] pressure_max_kpa, 3 by default)"
 
 
 def _positive_number(table: dict[str, Any], key: str, default: float, where: str) -> float:

@@ -45,19 +45,16 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
         echo "bootstrap: pip failed (output above, also in $log)" >&2
         exit 1
     fi
-    # Once per install: compile the model's kernels ahead of time, then mesh and factorise the built-in scene,
-    # so that a user's first `phantom forward` is a warm one (0.6 s instead of 10-15 s). Not fatal: without
-    # them numba compiles the kernels and gmsh meshes on first use.
-    echo "bootstrap: compiling the model's kernels and meshing the built-in phantom (about 15 s)"
+    # Once per install: what the daemon's default model (builtin:converged) needs that does not ship with it,
+    # so that a first `phantom daemon` or `make demo` starts in seconds: the model's kernels compiled ahead of
+    # time, its 10-node mesh, its rest compliance and factorisation (cached per machine). Its response table
+    # (volumes and shapes) ships with it: nothing to solve. Not fatal: without them the daemon compiles and
+    # meshes on its first start.
+    echo "bootstrap: preparing the daemon's default model (builtin:converged): compiling the kernels, meshing" \
+        "it and factorising its stiffness (one to two minutes, once; its response table ships with it)"
     if ! { .venv/bin/python -m phantom.model.fem.kernels \
-           && .venv/bin/phantom forward --scene builtin --pressures-kpa 1,1,1 --json; } >>"$log" 2>&1; then
-        echo "bootstrap: warning: warming the model failed (see $log); it will compile and mesh on first use"
-    fi
-    # The daemon's default model answers from its response table: solve it now (once per machine, cached) rather
-    # than in a first `phantom daemon` or a test's fixture, where it would count against a start-up deadline.
-    echo "bootstrap: solving the calibrated model's response table, the daemon's default (1-5 minutes, once)"
-    if ! .venv/bin/phantom inverse --scene builtin:calibrated --volume-ml 30 --json >>"$log" 2>&1; then
-        echo "bootstrap: warning: building the response table failed (see $log); the daemon builds it on first use"
+           && .venv/bin/phantom inverse --scene builtin:converged --volume-ml 30 --json; } >>"$log" 2>&1; then
+        echo "bootstrap: warning: preparing the model failed (see $log); the daemon prepares it on first use"
     fi
     echo "$wanted" > "$stamp"
 fi

@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -173,8 +174,9 @@ def case_affine(acquisition: Acquisition, centre_ras_mm: np.ndarray) -> tuple[np
 
 
 def synthesize(out: str | Path, cases: int = 120, seed: int = 0, spec: PopulationSpec | None = None,
-               images: bool = True) -> Path:
-    """Write a synthetic population of ``cases`` prostates under ``out`` (see the module docstring)."""
+               images: bool = True, progress: Callable[[int, int], None] | None = None) -> Path:
+    """Write a synthetic population of ``cases`` prostates under ``out`` (see the module docstring);
+    ``progress(done, cases)`` is called after each case."""
     with require_extra("shape"):
         import nibabel
     spec = spec or PopulationSpec()
@@ -208,6 +210,8 @@ def synthesize(out: str | Path, cases: int = 120, seed: int = 0, spec: Populatio
                          affine)
         lines.append(f"{uid} {institution + 1}")
         records.append({"case": uid, "institution": institution + 1, **dataclasses.asdict(case)})
+        if progress is not None:
+            progress(number + 1, cases)
     (out / "institution.txt").write_text("\n".join(lines) + "\n")
     settings = {"seed": seed, "cases": cases, "spec": dataclasses.asdict(spec), "mean_shape": "the phantom's "
                 "parametric body (phantom.model.mesh.shape.inside_body)", "records": records}

@@ -42,7 +42,9 @@ def test_record_holds_each_combination_and_writes_the_csv_calibrate_reads(tmp_pa
 
 
 @pytest.mark.parametrize("argv, answers, message", [
-    (["--points-kpa", "0,0,0;4,0,0;1,1,1"], "", "within 0-3 kPa"),
+    (["--points-kpa", "0,0,0;4,0,0;1,1,1"], "", r"base \(chamber 0\) at 4 kPa is above the 3 kPa limit"),
+    (["--points-kpa", "0,0,0;0,-1,0;1,1,1"], "", r"left lobe \(chamber 1\) at -1 kPa is below 0 kPa: the blowers"),
+    (["--points-kpa", "0,0,0;1,1;1,1,1"], "", r"one pressure per chamber \(0 base, 1 left lobe, 2 right lobe\)"),
     (["--points-kpa", "0,0,0;1,1,1"], "", "at least 3"),
 ])
 def test_bad_points_are_refused_before_the_board_starts(tmp_path, monkeypatch, argv, answers, message):

@@ -1,5 +1,6 @@
 """The ``phantom`` console script as a user meets it: installed, on PATH, with clear usage errors."""
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -69,3 +70,77 @@ def test_growth_ratios_are_name_weight_pairs():
         common.parse_growth_ratio("1:2,2:1")
     with pytest.raises(phantom.PhantomError, match="not a number"):
         common.parse_growth_ratio("chamber1=big")
+
+
+@pytest.mark.parametrize("pressures, words", [
+    ("-1,0,0", r"base \(chamber 0\) at -1 kPa is below 0 kPa: the blowers only push"),
+    ("1,3.5,0", r"left lobe \(chamber 1\) at 3.5 kPa is above the 3 kPa limit, which protects the phantom"),
+])
+def test_offline_commands_refuse_what_the_daemon_refuses_in_its_words(tmp_path, pressures, words):
+    """phantom forward computed a suction result for -1 kPa, which the daemon refuses; every command now refuses
+    pressures the daemon would, with the same message, before building the model."""
+    from phantom.host.scenes import parse_target
+    from phantom.model.errors import SceneError
+    from phantom.model.fem.model import PhantomModel
+    from phantom.model.inverse import InverseSolver
+    from phantom.model.scene import load_scene
+    from phantom.model.target import Target, UnreachableTargetError
+
+    scene = load_scene("builtin:converged")
+    values = [float(value) for value in pressures.split(",")]
+    if min(values) < 0:  # the daemon's set_target refuses it when it parses the target
+        with pytest.raises(SceneError) as refused:
+            parse_target({"pressures_kpa": values}, scene.chambers, "set_target", scene.chamber_labels)
+        daemon_words = str(refused.value).removeprefix("set_target: ")
+    else:  # above the limit: its inverse refuses it against the model's limit
+        solver = InverseSolver(PhantomModel.from_scene(scene), fidelity="rest")
+        with pytest.raises(UnreachableTargetError) as refused:
+            solver.pressures_for(Target(pressures_pa=[value * 1e3 for value in values]))
+        daemon_words = str(refused.value)
+    assert re.search(words, daemon_words)
+    commands = [("forward", "--scene", "builtin:converged", "--pressures-kpa", pressures),
+                ("scan", "synthetic", "--scene", "builtin:converged", "--out", str(tmp_path / "s.ply"),
+                 "--pressures-kpa", pressures),
+                ("compare-scan", str(tmp_path / "none.ply"), "--scene", "builtin:converged", "--pressures-kpa",
+                 pressures)]
+    for command in commands:
+        result = run_phantom(*command)
+        assert result.returncode == 2 and result.stderr.strip().endswith(f"--pressures-kpa: {daemon_words}"), (
+            command, result.stderr)
+
+
+
+def test_progress_in_a_log_is_lines_with_the_time_left_not_carriage_returns(capsys, monkeypatch):
+    """Progress written with carriage returns made a log file one line; off a terminal it is a line every so
+    often and at the end, and its time left counts from the first report (not the set-up before it)."""
+    clock = iter([100.0, 110.0, 130.0, 150.0])
+    monkeypatch.setattr("time.monotonic", lambda: next(clock))
+    report = common.progress_reporter("calibrate: stage 1:", every_s=15.0)
+    for done in (2, 4, 6, 10):
+        report(done, 10)
+    lines = capsys.readouterr().err.split("\n")
+    assert "\r" not in "".join(lines)
+    assert lines[:3] == ["calibrate: stage 1: 2/10, 0 s", "calibrate: stage 1: 6/10, 30 s, about 30 s left",
+                         "calibrate: stage 1: 10/10, 50 s"]
+
+
+def test_the_fit_names_its_stages():
+    from phantom.cli.calibrate import fit_progress
+
+    shown = []
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(common, "progress_reporter", lambda label: lambda done, total: shown.append((label, done)))
+        report = fit_progress(n_measurements=8)
+        for done, total in ((0, 48), (48, 48), (0, 2), (2, 2), (0, 8), (8, 8)):
+            report(done, total)
+    stages = list(dict.fromkeys(label for label, _ in shown))
+    assert [label.split(",")[0] for label in stages] == ["calibrate: stage 1", "calibrate: stage 2",
+                                                         "calibrate: stage 3"]
+    assert "pressure rays" in stages[0] and "left-out" in stages[1] and "verifying the fit" in stages[2]
+
+
+def test_calibrate_record_recommends_the_fit_the_readme_recommends():
+    from phantom.cli.calibrate import recommended_fit
+
+    readme = (Path(__file__).parents[1] / "README.md").read_text().replace("\\\n", " ")
+    assert " ".join(recommended_fit("my_phantom.csv").split()) in " ".join(readme.split())

@@ -36,3 +36,33 @@ def test_the_viewer_command_names_the_environments_rerun_when_it_is_not_on_path(
 def test_the_viewer_command_is_plain_rerun_when_path_finds_this_environments(monkeypatch):
     monkeypatch.setenv("PATH", f"{VIEWER.parent}{os.pathsep}/usr/bin:/bin")
     assert demo.rerun_command(Path("out/demo.rrd")) == "rerun out/demo.rrd"
+
+
+@pytest.mark.sim
+@pytest.mark.slow  # the daemon on the simulated board plays the BPH scene as make demo does (about 90 s)
+def test_the_demo_prints_the_true_error_and_writes_its_report(tmp_path, capsys):
+    """What `make demo` promises: the table's true volume and its error against each target with their mean, read
+    from what the simulated plant reported (not hard-coded), and the recording's HTML report beside it."""
+    import re
+
+    from phantom.host.scenes import example_scene_path
+
+    out = tmp_path / "out"
+    assert demo.main(["--scene", str(example_scene_path("bph_growth")), "--time-scale", "3", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    header = next(line for line in printed.splitlines() if line.startswith("step"))
+    assert "true ml" in header and "true error %" in header and "reached" not in header
+    rows = [line.split() for line in printed.splitlines() if re.match(r"\s+\d+\s+\d", line)]
+    assert len(rows) == 5
+    errors = []
+    for row in rows:  # step, at, target, "ml", estimate, true, true error %, time
+        target, true, error = float(row[2]), float(row[5]), float(row[6])
+        assert error == pytest.approx((true - target) / target * 100, abs=0.05)  # true ml printed to 0.01 ml
+        errors.append(abs(error))
+    mean = re.search(r"mean \|true error\| ([\d.]+) %", printed)
+    assert mean and float(mean.group(1)) == pytest.approx(sum(errors) / len(errors), abs=0.02)
+    report = (out / "demo.html").read_text()
+    reported = re.search(r"Mean \|true error\| ([\d.]+) %", report)  # from the recording, read back
+    assert (out / "demo.rrd").is_file() and reported
+    assert float(reported.group(1)) == pytest.approx(float(mean.group(1)), abs=0.1)
+    assert "out/demo.html" in printed or str(out / "demo.html") in printed

@@ -72,3 +72,17 @@ def test_make_upload_at_a_board_not_in_its_bootloader_fails_and_says_so():
         assert result.returncode != 0
         assert "not in sync" in result.stderr or "not responding" in result.stderr, result.stderr
         assert "bytes of flash written" not in result.stderr
+
+
+def test_the_upload_a_user_types_rehearses_on_the_simulated_board_with_port_sim():
+    """`make -C firmware upload BOARD=uno PORT=sim`: the user's own command, at a simulated board in its stock
+    bootloader; avrdude writes and verifies the phantom image, which then answers as an Uno."""
+    firmware = default_elf().parents[2]
+    result = subprocess.run(["make", "--no-print-directory", "-C", str(firmware), "upload", "BOARD=uno", "PORT=sim"],
+                            capture_output=True, text=True, timeout=200)
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output
+    written = re.search(r"(\d+) bytes of flash written", output)
+    verified = re.search(r"(\d+) bytes of flash verified", output)
+    assert written and verified and written.group(1) == verified.group(1), output
+    assert "answers as UNO" in output

@@ -149,8 +149,8 @@ def test_the_step_table_has_a_row_per_step_with_blanks_for_unknowns():
          "reached_volume_ml": 31.0, "error_pct": None, "reached_after_s": None},
     ]).splitlines()
     assert len(table) == 3 and "time to 1 %" in table[0]
-    assert table[1].split() == ["0", "0.0", "30.00", "ml", "30.00", "29.98", "-0.07", "1.2"]
-    assert table[2].split()[-3:] == ["31.00", "-", "-"]
+    assert table[1].split() == ["0", "0.0", "30.00", "ml", "29.98", "1.2"]
+    assert table[2].split()[2:] == ["pressures", "1.00,1.00,1.00", "kPa", "31.00", "-"]
 
 
 @pytest.mark.parametrize("command", ["set", "inverse"])
@@ -188,6 +188,21 @@ def test_the_text_answers_of_vent_clear_fault_and_zero():
 def test_format_steps_adds_the_true_volume_only_when_known():
     step = {"index": 0, "at_s": 0.0, "target": "30.00 ml", "target_volume_ml": 30.0, "reached_volume_ml": 30.1,
             "error_pct": 0.33, "reached_after_s": 1.0, "true_volume_ml": None}
-    assert "true ml" not in format_steps([step])
+    assert "true" not in format_steps([step])
     table = format_steps([{**step, "true_volume_ml": 29.8}])
     assert "true ml" in table.splitlines()[0] and "29.80" in table.splitlines()[1]
+
+
+def test_the_step_table_shows_the_true_error_and_its_mean_not_the_estimates():
+    """The estimate is what the controller drives to the target (within hundredths of a percent); the true
+    volume's error against the target is the figure that tells how accurate the phantom was."""
+    steps = [{"index": k, "at_s": 10.0 * k, "target": f"{target:.2f} ml", "target_volume_ml": target,
+              "reached_volume_ml": target + 0.01, "error_pct": 0.03, "reached_after_s": 2.0, "true_volume_ml": true}
+             for k, (target, true) in enumerate([(30.0, 30.3), (40.0, 38.8), (45.0, None)])]
+    table = format_steps(steps).splitlines()
+    assert table[0].split()[:6] == ["step", "at", "(s)", "target", "estimate", "ml"]
+    assert "true error %" in table[0] and "error %" not in table[0].replace("true error %", "")
+    assert table[1].split()[:7] == ["0", "0.0", "30.00", "ml", "30.01", "30.30", "+1.00"]
+    assert table[2].split()[5:7] == ["38.80", "-3.00"]
+    assert table[3].split()[5:7] == ["-", "-"]
+    assert table[4].startswith("mean |true error| 2.00 % (largest 3.00 %)")

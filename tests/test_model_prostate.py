@@ -204,7 +204,8 @@ def test_forward_command_json_and_table(model):
     assert "gland" in table.stdout and "Newton iterations" in table.stdout
 
 
-@pytest.mark.parametrize(("pressures", "message"), [("1,1", "has 2 values; the scene has 3 chambers"),
+@pytest.mark.parametrize(("pressures", "message"), [("1,1", "has 2 values; the scene has 3 chambers (0 base, 1 left "
+                                                                      "lobe, 2 right lobe)"),
                                                     ("1,x,1", "'x' is not a number")])
 def test_forward_command_refuses_bad_pressures(pressures, message):
     result = run_phantom("forward", "--scene", "builtin", "--pressures-kpa", pressures)

@@ -64,7 +64,7 @@ def test_growth_ratio_takes_chamber_names_or_indices():
     ([{"at_s": 0, "volume_ml": "big"}], "volume_ml must be a number"),
     ([{"at_s": 0, "volume_ml": float("nan")}], "must be finite"),
     ([{"at_s": 0, "pressures_kpa": [1, 1]}], "list of 3 numbers"),
-    ([{"at_s": 0, "pressures_kpa": [1, -1, 1]}], "must be >= 0"),
+    ([{"at_s": 0, "pressures_kpa": [1, -1, 1]}], r"left lobe \(chamber 1\) at -1 kPa is below 0 kPa"),
     ([{"at_s": 0, "chamber_volumes_ml": [None, None, None]}], "at least one number"),
     ([{"at_s": 0, "pressures_kpa": [1, 1, 1], "growth_ratio": {"chamber1": 1}}], "goes with volume_ml only"),
     ([{"at_s": 0, "volume_ml": 30, "growth_ratio": {"lobe": 1}}], "unknown chamber 'lobe'"),

@@ -236,3 +236,36 @@ def test_a_damaged_latents_file_is_refused(tmp_path):
         model.case_latents()
     np.savez(run / "latents.npz", names=np.array(["a", "b"]), mean=np.ones((2, 4)))
     assert model.case_latents()[0] == ["a", "b"]
+
+
+@pytest.mark.slow
+def test_time_left_leaves_out_the_compiling_first_epoch_and_a_short_run_is_warned_about(tmp_path, capsys):
+    """The first epoch compiles the network (4:26 was predicted for a 55 s run); the time left is the mean of the
+    epochs after it. A run whose held-out IoU is under the threshold gets a warning from train, average and
+    compare, saying what it means."""
+    from phantom.cli.shape import _warn_if_undertrained
+    from phantom.shape.training import IOU_WARNING_BELOW, run_held_out_iou
+
+    seen = []
+    run = train(_ellipsoids(6, 0), tmp_path / "run", TINY, TrainConfig(epochs=3, batch_size=2,
+                                                                         validation_fraction=0.3),
+                on_epoch=lambda record, epochs, left: seen.append((record.seconds, left)))
+    assert np.isnan(seen[0][1])
+    assert seen[1][1] == pytest.approx(seen[1][0] * 1) and seen[2][1] == 0.0
+    iou, epochs = run_held_out_iou(run)
+    history = json.loads((run / "history.json").read_text())
+    assert (iou, epochs) == (history[-1]["validation_iou"], 3)
+    assert iou < IOU_WARNING_BELOW  # three epochs of a tiny network reconstruct little
+    _warn_if_undertrained(run)
+    warning = capsys.readouterr().err
+    assert f"held-out reconstruction IoU is {iou:.2f} after 3 epochs, below {IOU_WARNING_BELOW:g}" in warning
+    assert "train more epochs" in warning
+
+
+def test_the_iou_warning_threshold():
+    from phantom.shape.training import IOU_WARNING_BELOW, held_out_iou_warning, run_held_out_iou
+
+    assert held_out_iou_warning(IOU_WARNING_BELOW, 100) is None
+    assert held_out_iou_warning(None, 100) is None  # nothing held out: nothing measured, nothing claimed
+    assert "0.51 after 6 epochs" in held_out_iou_warning(0.51, 6)
+    assert run_held_out_iou("/nonexistent/run") == (None, 0)

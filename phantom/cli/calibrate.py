@@ -7,11 +7,13 @@ Only the standard library is imported at module load; handlers import what they 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
+    from dask.distributed import LocalCluster
 
     from phantom.hil.link import BoardLink
     from phantom.model.scene import Scene
@@ -127,7 +129,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     from phantom import PhantomError
     from phantom.model.calibration.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
-    from phantom.model.calibration.sweep import stderr_progress
 
     if not args.measurements:
         raise PhantomError("phantom calibrate needs --measurements CSV (or use 'phantom calibrate record' to "
@@ -144,8 +145,15 @@ def run_calibrate(args: argparse.Namespace) -> int:
             raise PhantomError(f"--modulus-band-pct must be within (0, 100), got {args.modulus_band_pct}")
         e0 = scene.material.youngs_modulus_pa
         band = (e0 * (1 - args.modulus_band_pct / 100), e0 * (1 + args.modulus_band_pct / 100))
-    result = calibrate(scene, measurements, grid, scheduler=args.scheduler, n_workers=args.workers,
-                       progress=stderr_progress("calibrate: tracing the pressure rays"), modulus_band_pa=band)
+    cluster = None if args.scheduler else local_cluster_deaf_to_ctrl_c(args.workers)
+    scheduler = args.scheduler if cluster is None else cluster.scheduler_address
+    try:
+        result = calibrate(scene, measurements, grid, scheduler=scheduler,
+                           n_workers=args.workers, progress=fit_progress(len(measurements.volumes_m3)),
+                           modulus_band_pa=band)
+    finally:
+        if cluster is not None:
+            cluster.close()
     stem = Path(scene.path).stem if scene.path else "scene"
     output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
     parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
@@ -188,6 +196,54 @@ def run_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def local_cluster_deaf_to_ctrl_c(n_workers: int | None) -> LocalCluster:
+    """The fit's Dask cluster on this machine (one for all its sweeps), whose worker processes ignore SIGINT: a
+    Ctrl-C in the terminal reaches every process of its group, and workers it killed mid-solve left "12 leaked
+    semaphore objects" warnings; now only this process gets it and closes the cluster in order. The workers
+    inherit the ignored signal (Python keeps SIGINT ignored when it starts with it ignored)."""
+    import signal
+
+    from phantom.model.calibration.sweep import local_cluster
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        return local_cluster(n_workers)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def fit_progress(n_measurements: int) -> Callable[[int, int], None]:
+    """The fit's progress on stderr by stage, each with its time left. The calibration runs up to three sweeps
+    of forward solves, each reporting ``(done, total)`` from its own start: the grid's pressure rays (most of the
+    time), the left-out points at their refits (only where a refit reaches past its ray), and the fit verified
+    by full solves, one per measurement. A new sweep is one whose count starts again or changes its total."""
+    from phantom.cli.common import progress_reporter
+
+    stage: list[Any] = [0, None, None]  # number, the last (done, total), the stage's reporter
+
+    def report(done: int, total: int) -> None:
+        last = stage[1]
+        if last is None or done < last[0] or total != last[1] or last[0] >= last[1]:
+            stage[0] += 1
+            if stage[0] == 1:
+                name = "tracing the pressure rays of every grid point (the long part)"
+            elif total == n_measurements:
+                name = "verifying the fit by full solves at each measurement"
+            else:
+                name = "solving left-out points at their refits"
+            stage[2] = progress_reporter(f"calibrate: stage {stage[0]}, {name}:")
+        stage[1] = (done, total)
+        stage[2](done, total)
+    return report
+
+
+def recommended_fit(measurements: str | Path, output: str = "my_phantom.toml") -> str:
+    """The fit command the README recommends, for a measurements CSV: the shipped model's kind (builtin:converged:
+    Gent on 10-node elements), not the co-rotational default, whose leave-one-out error is about 20 %."""
+    return (f"phantom calibrate --scene bench/calibration_ecoflex.toml --measurements {measurements} --size-mm 7 "
+            f"--grid gent_jm=5 --grid base_chamber_scale=1 --grid lobe_chamber_scale=1.2 --output {output}")
+
+
 def _scan_volume_ml(path: Path) -> float:
     """The cleaned, watertight volume (ml) of a scan file in mm: the scan comparison's, for a measurements CSV
     or an answer that names a scan (the model reads no scans itself)."""
@@ -204,11 +260,16 @@ def _scan_volume_ml(path: Path) -> float:
 def _parse_points(text: str) -> list[list[float]]:
     from phantom import PhantomError
     from phantom.cli.common import parse_numbers
+    from phantom.model.scene import DEFAULT_CHAMBER_LABELS, PRESSURE_LIMIT_PA, describe_chambers, pressure_limit_error
 
     points = [parse_numbers(item, "--points-kpa") for item in text.split(";") if item.strip()]
     for point in points:
-        if len(point) != 3 or not all(0.0 <= value <= 3.0 for value in point):
-            raise PhantomError(f"--points-kpa: each combination is three pressures within 0-3 kPa, got {point}")
+        if len(point) != len(DEFAULT_CHAMBER_LABELS):
+            raise PhantomError(f"--points-kpa: each combination is one pressure per chamber "
+                               f"({describe_chambers(DEFAULT_CHAMBER_LABELS)}), got {point}")
+        refused = pressure_limit_error(point, DEFAULT_CHAMBER_LABELS, PRESSURE_LIMIT_PA / 1e3)
+        if refused:
+            raise PhantomError(f"--points-kpa {','.join(f'{p:g}' for p in point)}: {refused}")
     if len(points) < 3:
         raise PhantomError(f"--points-kpa: a calibration with leave-one-out needs at least 3, got {len(points)}")
     return points
@@ -309,5 +370,6 @@ def run_record(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps({"out": str(out), "points": len(rows)}))
     else:
-        print(f"wrote {out}: {len(rows)} points; fit them with phantom calibrate --measurements {out}")
+        print(f"wrote {out}: {len(rows)} points. Fit them as the shipped model was fitted (Gent law, 10-node "
+              f"elements; about 15 minutes on two cores), from the clone:\n  {recommended_fit(out)}")
     return 0

@@ -274,18 +274,29 @@ def _run_simple(args: argparse.Namespace) -> int:
 
 
 def format_steps(steps: list[dict[str, Any]]) -> str:
-    """The table ``make demo`` prints: each step's target, reached volume, error and time to reach it; a true
-    (simulated plant) volume column when the steps have one."""
+    """The table ``make demo`` and ``run-scene --wait`` print: each step's target, the estimate at the end of its
+    hold and the time it took to come within 1 %; where the steps have a true volume (the simulated plant's),
+    that volume, its error against the target and, under the table, the mean of those errors. The estimate's own
+    error is left out: it is what the controller drives to zero, and it hid how far off the phantom was."""
+    def number(value: float | None, digits: int = 2, signed: bool = False) -> str:
+        return "-" if value is None else f"{value:{'+' if signed else ''}.{digits}f}"
+
+    def true_error_pct(step: dict[str, Any]) -> float | None:
+        target, true = step["target_volume_ml"], step.get("true_volume_ml")
+        return None if target is None or true is None else (true - target) / target * 100.0
+
     with_true = any(step.get("true_volume_ml") is not None for step in steps)
-    lines = [f"{'step':>4} {'at (s)':>7} {'target':<34} {'target ml':>9} {'reached ml':>10} {'error %':>8} "
-             f"{'time to 1 % (s)':>15}" + (f" {'true ml':>8}" if with_true else "")]
+    lines = [f"{'step':>4} {'at (s)':>7} {'target':<28} {'estimate ml':>11}"
+             + (f" {'true ml':>8} {'true error %':>12}" if with_true else "") + f" {'time to 1 % (s)':>15}"]
     for step in steps:
-        def number(value: float | None, digits: int = 2) -> str:
-            return "-" if value is None else f"{value:.{digits}f}"
-        lines.append(f"{step['index']:>4} {step['at_s']:>7.1f} {step['target']:<34} "
-                     f"{number(step['target_volume_ml']):>9} {number(step['reached_volume_ml']):>10} "
-                     f"{number(step['error_pct']):>8} {number(step['reached_after_s'], 1):>15}"
-                     + (f" {number(step.get('true_volume_ml')):>8}" if with_true else ""))
+        target = step["target"] if step["target_volume_ml"] is None else f"{step['target_volume_ml']:.2f} ml"
+        lines.append(f"{step['index']:>4} {step['at_s']:>7.1f} {target:<28} {number(step['reached_volume_ml']):>11}"
+                     + (f" {number(step.get('true_volume_ml')):>8} {number(true_error_pct(step), signed=True):>12}"
+                        if with_true else "") + f" {number(step['reached_after_s'], 1):>15}")
+    errors = [abs(error) for step in steps if (error := true_error_pct(step)) is not None]
+    if errors:
+        lines.append(f"mean |true error| {sum(errors) / len(errors):.2f} % (largest {max(errors):.2f} %): the "
+                     "phantom's own volume against the target, which the estimate cannot see")
     return "\n".join(lines)
 
 

@@ -5,10 +5,14 @@ from __future__ import annotations
 
 import math
 import stat
+from collections.abc import Callable
 from pathlib import Path
-from typing import Literal, overload
+from typing import TYPE_CHECKING, Literal, overload
 
 from phantom import PhantomError
+
+if TYPE_CHECKING:
+    from phantom.model.scene import Scene
 
 
 @overload
@@ -100,3 +104,72 @@ def check_input_size(path: str | Path, max_bytes: int, what: str, error: type[Ph
     if info.st_size > max_bytes:
         raise error(f"{what} {path} is {info.st_size / 2**20:.0f} MiB, more than the {max_bytes / 2**20:g} MiB "
                     f"read: {hint}")
+
+
+def scene_pressures_kpa(text: str, scene: Scene, option: str = "--pressures-kpa") -> list[float]:
+    """Chamber pressures (kPa) given for a scene on the command line: one per chamber, each within what the daemon
+    allows, refused in its words (:func:`phantom.model.scene.pressure_limit_error`), before any model is built."""
+    from phantom.model.scene import describe_chambers, pressure_limit_error
+
+    pressures = parse_numbers(text, option)
+    labels = scene.chamber_labels
+    if len(pressures) != len(labels):
+        raise PhantomError(f"{option} has {len(pressures)} values; the scene has {len(labels)} chambers "
+                           f"({describe_chambers(labels)}): give one pressure per chamber, in that order")
+    refused = pressure_limit_error(pressures, labels, scene.model_settings.pressure_max_pa / 1e3)
+    if refused:
+        raise PhantomError(f"{option}: {refused}")
+    return pressures
+
+
+def progress_reporter(label: str, every_s: float = 10.0) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback that shows ``label done/total, elapsed, time left`` on stderr: one
+    line rewritten in place on a terminal; on a file or a pipe a line every ``every_s`` and at the end, so that a
+    log holds lines (carriage returns made a log one line). The time left is from the rate since the first call,
+    so set-up before it (imports, compiling, starting workers) does not count; unknown until something is done.
+    """
+    import sys
+    import time
+
+    terminal = sys.stderr.isatty()
+    first: list[tuple[float, int]] = []
+    shown_s = [-math.inf]
+
+    def report(done: int, total: int) -> None:
+        now = time.monotonic()
+        if not first:
+            first.append((now, done))
+        started_s, done_at_start = first[0]
+        elapsed_s = now - started_s
+        rate = (done - done_at_start) / elapsed_s if elapsed_s > 0 and done > done_at_start else 0.0
+        left = f", about {format_duration((total - done) / rate)} left" if rate > 0 and done < total else ""
+        line = f"{label} {done}/{total}, {format_duration(elapsed_s)}{left}"
+        finished = done >= total
+        if terminal:
+            sys.stderr.write(f"\r{line}   " + ("\n" if finished else ""))
+        elif finished or now - shown_s[0] >= every_s:
+            sys.stderr.write(line + "\n")
+            shown_s[0] = now
+        sys.stderr.flush()
+    return report
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``3 min 05 s``, ``2 h 10 min``: a duration as people read it."""
+    seconds = max(0, int(round(seconds)))
+    if seconds < 60:
+        return f"{seconds} s"
+    minutes, seconds = divmod(seconds, 60)
+    if minutes < 60:
+        return f"{minutes} min {seconds:02d} s"
+    hours, minutes = divmod(minutes, 60)
+    return f"{hours} h {minutes:02d} min"
+
+
+def frame_progress(what: str) -> Callable[[int, int, object], None]:
+    """:func:`progress_reporter` for a capture's ``progress(done, total, frame)`` callbacks (the frame unused)."""
+    report = progress_reporter(what)
+
+    def show(done: int, total: int, frame: object) -> None:
+        report(done, total)
+    return show

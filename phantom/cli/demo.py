@@ -3,8 +3,9 @@
 Starts ``phantom daemon --sim`` (the real firmware image in simavr, paced to the wall clock) with a recording,
 waits for it to be ready (saying what it is doing: a first start on a machine answers on full solves while the
 response table builds in the background), plays the scene's timeline through the Python API, prints a table of
-each step's target and reached volume with the time it took, stops the daemon with SIGTERM (it vents) and reads
-the recording back.
+each step's target, estimate, true volume (the simulated plant's) and its error, with the time it took, stops the
+daemon with SIGTERM (it vents), reads the recording back and writes its static report (``phantom report``) beside
+it: ``out/demo.html``.
 
 The recording is written to ``out/demo.running.rrd`` and becomes ``out/demo.rrd`` only when the demo succeeds:
 a failed demo leaves the last good recording alone, and says which part failed (the daemon's start, the board,
@@ -119,6 +120,7 @@ def stop_daemon(process: subprocess.Popen[bytes]) -> int:
 def main(argv: list[str] | None = None) -> int:
     import phantom
     from phantom.cli.client import format_steps, scene_progress
+    from phantom.cli.report import write_report
     from phantom.host.client import SceneRun
     from phantom.host.recording import read_rrd
     from phantom.host.scenes import example_scene_path
@@ -162,8 +164,13 @@ def main(argv: list[str] | None = None) -> int:
         if succeeded:
             os.replace(running, recording)
         shown = recording if succeeded else running
-        print(f"\nrecording {shown}: {len(entities)} entities, {logged} logged rows (open it with "
-              f"`{rerun_command(shown)}`); faults: {', '.join(faults) or 'none'}; daemon exit status {code}")
+        report = write_report(shown, shown.with_suffix(".html"))
+        print(f"\nrecording {shown}: {len(entities)} entities, {logged} logged rows; faults: "
+              f"{', '.join(faults) or 'none'}; daemon exit status {code}\n"
+              f"report {report}: plots, steps and pictures of the gland in one HTML file (any browser, mailable)\n"
+              f"open the recording with `{rerun_command(shown)}` on a display; without one (over SSH) "
+              f"`{rerun_command(shown)} --serve-web --bind 127.0.0.1` serves it to a browser (README.md, "
+              "\"Viewing a recording\")")
         if not succeeded:
             why = [f"step {step['index']} missed its target by {step['error_pct']}" for step in missed]
             why += [f"faults latched: {', '.join(faults)}"] if faults else []

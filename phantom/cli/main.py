@@ -28,6 +28,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.motion",
     "phantom.cli.daemon",
     "phantom.cli.client",
+    "phantom.cli.report",
 )
 
 

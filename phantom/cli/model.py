@@ -102,19 +102,16 @@ def run_forward(args: argparse.Namespace) -> int:
     import json
     import time
 
-    from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size, parse_numbers
-    from phantom.model.errors import MeshError, SolveError
+    from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size, scene_pressures_kpa
+    from phantom.model.errors import MeshError
     from phantom.model.fem.model import PhantomModel
     from phantom.model.scene import load_scene
 
-    args.pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
     started = time.perf_counter()
     scene = load_scene(args.scene)
+    args.pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
     check_input_size(scene.mesh, MAX_MESH_BYTES, "the scene's mesh file", MeshError, MESH_TOO_LARGE)
     model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
-    if len(args.pressures_kpa) != model.n_chambers:
-        raise SolveError(f"--pressures-kpa has {len(args.pressures_kpa)} values; the scene has "
-                         f"{model.n_chambers} chambers ({', '.join(model.chamber_names)})")
     state = model.equilibrium([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
     total_s = time.perf_counter() - started
     if args.out:

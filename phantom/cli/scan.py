@@ -209,16 +209,6 @@ def plan_of(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
     return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
 
 
-def _progress(what: str) -> Any:
-    """A progress line on stderr, rewritten in place: ``what 12/120``."""
-    import sys
-
-    def show(done: int, total: int, frame: Any) -> None:
-        end = "\n" if done == total else ""
-        print(f"\r{what} {done}/{total} (orbit {frame.orbit_deg:7.2f} deg, elevation {frame.elevation_deg:g} deg)",
-              end=end, file=sys.stderr, flush=True)
-
-    return show
 
 
 def _checked_mesh(path: str) -> str:
@@ -265,6 +255,7 @@ def _open_capture(path: str) -> Any:
 
 def run_render(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan render``."""
+    from phantom.cli.common import frame_progress
     from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_capture
 
@@ -273,7 +264,7 @@ def run_render(args: argparse.Namespace) -> int:
     kept = load_rig(args.rig) if args.rig else true_rig
     mesh = _read_mesh(args.mesh, args.units)
     conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true"}
-    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, _progress("rendered"))
+    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, frame_progress("rendered"))
     if kept is not true_rig:
         kept.save(folder.path / "rig.json")
     print(f"wrote {len(folder.frames)} pictures of {args.mesh} ({true_rig.camera.width}x{true_rig.camera.height}) "
@@ -315,6 +306,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     import json
     import tempfile
 
+    from phantom.cli.common import frame_progress
     from phantom.scan.calibrate import CalibrationError, calibrate_rig, target_views
     from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_target_captures
@@ -326,7 +318,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         if args.sim:
             truth = virtual_rig(args.scale)
             folders = render_target_captures(truth, args.keep or scratch, args.views,
-                                             progress=_progress("target pictures"))
+                                             progress=frame_progress("target pictures"))
         else:
             folders = [_open_capture(path) for path in args.captures]
         first = folders[0].image(folders[0].frames[0]) if folders[0].frames else None
@@ -420,25 +412,21 @@ def run_compare_scan(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from phantom.cli.common import parse_numbers
-    from phantom.model.errors import SolveError
+    from phantom.cli.common import scene_pressures_kpa
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.surface import model_surface, rotation_axis
     from phantom.model.scene import load_scene
     from phantom.scan.compare import StageClock, compare
     from phantom.scan.heatmap import write_heatmap, write_recording
 
-    pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
+    scene = load_scene(args.scene)
+    pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
     clock = StageClock()
     with clock.stage("read"):
         scan = _read_mesh(args.scan, args.units)
     with clock.stage("model"):
-        scene = load_scene(args.scene)
         _checked_mesh(scene.mesh)
         model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
-        if len(pressures_kpa) != model.n_chambers:
-            raise SolveError(f"--pressures-kpa has {len(pressures_kpa)} values; the scene has {model.n_chambers} "
-                             f"chambers ({', '.join(model.chamber_names)})")
         state = model.equilibrium([p * 1e3 for p in pressures_kpa])
     model_mesh = model_surface(state.positions_m, model.outer_triangles)
     result = compare(scan, model_mesh, state.gland_volume_m3 * 1e6, args.units, clock=clock)
@@ -500,7 +488,7 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
     import numpy as np
 
     from phantom import PhantomError
-    from phantom.cli.common import output_file, parse_numbers
+    from phantom.cli.common import output_file, scene_pressures_kpa
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.surface import model_surface
     from phantom.model.scene import load_scene
@@ -508,8 +496,9 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
 
     if not args.modulus_factor > 0 or args.noise_mm < 0 or args.holes < 0 or args.levels < 0:
         raise PhantomError("--modulus-factor must be positive, and --noise-mm, --holes and --levels not negative")
-    pressures_kpa = parse_numbers(args.pressures_kpa, "--pressures-kpa")
-    model = PhantomModel.from_scene(load_scene(args.scene))
+    scene = load_scene(args.scene)
+    pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
+    model = PhantomModel.from_scene(scene)
     if args.modulus_factor != 1.0:
         model = model.with_material(youngs_modulus_pa=args.modulus_factor * model.material.youngs_modulus_pa)
     state = model.equilibrium([p * 1e3 for p in pressures_kpa])

@@ -216,6 +216,7 @@ def run_capture(args: Any) -> int:
     """Handler of ``phantom scan capture``."""
     import sys
 
+    from phantom.cli.common import frame_progress
     from phantom.cli.scan import load_rig, plan_of
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
@@ -245,7 +246,7 @@ def run_capture(args: Any) -> int:
         if args.target:
             conditions["target"] = CharucoTarget().to_json()
         folder = CaptureFolder.create(args.out, camera.describe(), plan.to_json(), conditions, rig)
-        progress = _progress_printer("captured")
+        progress = frame_progress("captured")
         capture_through_daemon(client, camera, plan, folder, progress)
     print(f"captured {len(folder.frames)} pictures into {folder.path}", file=sys.stderr)
     return 0
@@ -290,21 +291,6 @@ def _placement(number: int) -> Any:
     return target_pose_facing(*VIRTUAL_PLACEMENTS[number], CharucoTarget())
 
 
-def _progress_printer(what: str) -> Progress:
-    import sys
-
-    tty = sys.stderr.isatty()
-
-    def show(done: int, total: int, frame: Any) -> None:
-        line = f"{what} {done}/{total} (orbit {frame.orbit_deg:7.2f} deg, elevation {frame.elevation_deg:g} deg)"
-        if tty:
-            print("\r" + line, end="\n" if done == total else "", file=sys.stderr, flush=True)
-        elif done == total or done % max(1, total // 10) == 0:
-            print(line, file=sys.stderr, flush=True)
-
-    return show
-
-
 def scene_targets_ml(scene_path: str) -> list[float]:
     """The gland volumes (ml) a scene's [[steps]] go through, in order, each once."""
     import tomllib
@@ -337,7 +323,7 @@ def run_validate(args: Any) -> int:
 
     import numpy as np
 
-    from phantom.cli.common import parse_numbers
+    from phantom.cli.common import frame_progress, parse_numbers
     from phantom.cli.demo import wait_until_ready
     from phantom.cli.scan import load_rig, plan_of
     from phantom.hil.truth_shape import TruthShape
@@ -404,7 +390,7 @@ def run_validate(args: Any) -> int:
                 camera = VirtualCamera(true_rig, simulated_scene(client, truth), args.seed,
                                        pose_at=_scaled_pose(args.scale))
                 folder.camera = camera.describe()
-                capture_through_daemon(client, camera, plan, folder, _progress_printer(f"  {target_ml:g} ml"))
+                capture_through_daemon(client, camera, plan, folder, frame_progress(f"  {target_ml:g} ml"))
                 frame_pressures = np.array([frame.pressures_kpa for frame in folder.frames], dtype=float)
                 pressures = frame_pressures.mean(axis=0)
                 result = reconstruct(folder, rig, args.voxel_mm or VOXEL_MM)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -134,10 +135,12 @@ def _labels(text: str) -> tuple[int, ...]:
 
 def run_synthesize(args: argparse.Namespace) -> int:
     """Handler of ``phantom shape synthesize``."""
+    from phantom.cli.common import progress_reporter
     from phantom.shape.synthetic import PopulationSpec, synthesize
 
     spec = PopulationSpec(mirror_pairs=args.symmetric)
-    out = synthesize(args.out, cases=args.cases, seed=args.seed, spec=spec, images=not args.no_images)
+    out = synthesize(args.out, cases=args.cases, seed=args.seed, spec=spec, images=not args.no_images,
+                     progress=progress_reporter("shape synthesize: cases written"))
     print(f"wrote {args.cases} synthetic cases under {out} (data/<id>_mask.nii, institution.txt)")
     return 0
 
@@ -163,7 +166,19 @@ def run_train(args: argparse.Namespace) -> int:
           f"training {args.epochs} epochs", flush=True)
     run = train(shapes, args.out, vae, training, source=str(args.data))
     print(f"wrote the run {run} (parameters.npz, config.json, latents.npz, loss.png)")
+    _warn_if_undertrained(run)
     return 0
+
+
+def _warn_if_undertrained(run: str | Path) -> None:
+    """A warning on stderr when the run's held-out IoU is below the threshold (phantom.shape.training)."""
+    import sys
+
+    from phantom.shape.training import held_out_iou_warning, run_held_out_iou
+
+    warning = held_out_iou_warning(*run_held_out_iou(run))
+    if warning:
+        print(f"phantom shape: warning: {run}: {warning}", file=sys.stderr, flush=True)
 
 
 def run_average(args: argparse.Namespace) -> int:
@@ -171,6 +186,7 @@ def run_average(args: argparse.Namespace) -> int:
     import json
 
     model = _run_model(args.run_dir)
+    _warn_if_undertrained(args.run_dir)
     average = model.average()
     path = average.write(args.out)
     if args.json:
@@ -220,6 +236,7 @@ def run_compare(args: argparse.Namespace) -> int:
     from phantom.shape.compare import compare_files
 
     result = compare_files(_run_model(args.run_dir), args.a, args.b)
+    _warn_if_undertrained(args.run_dir)
     if args.json:
         print(json.dumps(result.to_json()))
     else:
