@@ -76,8 +76,9 @@ def best_times_s(calls, repeats):
     """The least CPU seconds of each call, the calls interleaved ``repeats`` times (CPU time and the least: on a
     shared machine the other load only ever adds, to wall time most)."""
     seconds = [[] for _ in calls]
-    for _ in range(repeats):
-        for call, times in zip(calls, seconds, strict=True):
+    for repeat in range(repeats):
+        order = list(zip(calls, seconds, strict=True))
+        for call, times in order if repeat % 2 else order[::-1]:  # each first as often: caches favour neither
             started = time.process_time()
             call()
             times.append(time.process_time() - started)

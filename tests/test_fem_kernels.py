@@ -270,3 +270,34 @@ def test_the_compiling_message_is_printed_only_when_numba_compiles(tmp_path):
                                   text=True, timeout=240)
         assert imported.returncode == 0, imported.stderr
         assert (message in imported.stderr) == (run == "first"), (run, imported.stderr)
+
+
+@pytest.mark.slow
+def test_numba_forgets_the_kernels_it_compiled_when_the_laws_they_inline_change(tmp_path):
+    """numba keys a kernel's cache by the kernel's own file, but the kernels compile in the laws of materials.py:
+    a stamp of both files' digest beside numba's cache says whose code it holds, and when it is another's (an
+    edited materials.py) the kernels' cache is emptied and compiled again (the message says so), and the stamp
+    renewed."""
+    import os
+    import subprocess
+    import sys
+
+    from phantom.model.fem.jit import sources_digest
+
+    numba_cache = tmp_path / "numba"
+    environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / "cache"), NUMBA_CACHE_DIR=str(numba_cache),
+                       PHANTOM_JIT_KERNELS="1")
+    message = "compiling the model's kernels with numba"
+
+    def announced():
+        run = subprocess.run([sys.executable, "-c", ONE_ELEMENT_FORCES], env=environment, capture_output=True,
+                             text=True, timeout=240)
+        assert run.returncode == 0, run.stderr
+        return message in run.stderr
+
+    assert announced() and not announced()
+    (stamp,) = numba_cache.glob("phantom_fem_sources_*.sha256")
+    assert stamp.read_text() == sources_digest()
+    stamp.write_text("the digest of an older materials.py")
+    assert announced()
+    assert stamp.read_text() == sources_digest() and not announced()

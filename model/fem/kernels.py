@@ -501,9 +501,10 @@ def hyperelastic_forces(positions_m: FloatArray, tets: IntArray, dm_inverse: Flo
         log_det = np.log(det)
         volume = volumes_m3[e]
         energy_j += volume * (deviatoric - lame_mu_pa * log_det + 0.5 * lame_lambda_pa * log_det * log_det)
+        inverse_det = 1.0 / det  # H = cof(F) / det F: one division, not nine
         for i in range(3):
             for j in range(3):
-                h[i, j] /= det
+                h[i, j] *= inverse_det
         shear = 2.0 * first
         coupling = lame_lambda_pa * log_det - lame_mu_pa
         for axis in range(3):

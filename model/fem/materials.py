@@ -51,8 +51,9 @@ def gent(shifted: float, parameters: FloatArray) -> tuple[float, float, float]:
     stiffening = 1.0 - shifted * inverse_jm
     if not stiffening > 0.0:
         return np.inf, 0.0, 0.0
-    first = 0.5 * mu / stiffening
-    return -0.5 * mu / inverse_jm * np.log(stiffening), first, first * inverse_jm / stiffening
+    reciprocal = 1.0 / stiffening  # one division for both derivatives: the force pass is this law's hot path
+    first = 0.5 * mu * reciprocal
+    return -0.5 * mu / inverse_jm * np.log(stiffening), first, first * inverse_jm * reciprocal
 
 
 @inline_kernel
