@@ -528,7 +528,7 @@ class SolidBody:
                      pressures_pa: FloatArray | None = None, constraints: Constraints | None = None,
                      element_pressures_pa: FloatArray | None = None) -> FloatArray:
         """The CSR data (N/m, in :attr:`pattern`) of the assembled tangent at ``positions_m`` (default: rest):
-        "linear": the small-strain stiffness; "corotational", "neo_hookean", "gent": the exact Hessian of the
+        "linear": the small-strain stiffness; "corotational" and the hyperelastic laws: the exact Hessian of the
         total energy, with the follower-load stiffness of ``pressures_pa`` when given (and a 10-node body's
         carried element pressures, as :meth:`elastic`'s). Held dofs (default: the rest constraints) get scaled
         identity rows."""

@@ -44,9 +44,9 @@ class State:
     positions_m : (n, 3) node positions; chamber_volumes_m3 : (n_chambers,); gland_volume_m3 : volume enclosed
     by the outer boundary; iterations : Newton iterations over all load steps; solve_time_s : wall time;
     pressures_pa : (n_chambers,) the gauge pressures solved for; formulation : "corotational", "linear",
-    "neo_hookean" or "gent"; load_steps : the accepted load (or volume) steps; load_positions_m : (n, 3) or None,
-    for the linear formulation the configuration its (dead) pressure load was taken on when that was not the
-    rest shape (None: rest); body_force_n_per_m3 : (3,) the body force (gravity) it was solved under (N/m^3).
+    "neo_hookean", "gent" or "yeoh"; load_steps : the accepted load (or volume) steps; load_positions_m : (n, 3)
+    or None, for the linear formulation the configuration its (dead) pressure load was taken on when that was not
+    the rest shape (None: rest); body_force_n_per_m3 : (3,) the body force (gravity) it was solved under (N/m^3).
     """
 
     positions_m: FloatArray
@@ -219,7 +219,7 @@ class PhantomModel:
         """The assembled tangent (N/m, CSR; held dofs replaced by scaled identity rows) at ``positions_m``
         (default: rest).
 
-        "linear": the small-strain stiffness; "corotational", "neo_hookean", "gent": the exact Hessian of the total
+        "linear": the small-strain stiffness; "corotational" and the hyperelastic laws: the exact Hessian of the total
         energy, with the follower-load stiffness of ``pressures_pa`` when given.
         """
         pressures = None if pressures_pa is None else self._check_pressures(pressures_pa)
