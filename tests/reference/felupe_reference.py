@@ -40,15 +40,34 @@ def _volume_load_and_stiffness(positions_m, triangles, n_dofs):
     return gradient.ravel(), hessian
 
 
-def felupe_solid(model):
-    """FElupe's Neo-Hookean solid on the model's mesh and material: ``(solid, field)``."""
+def felupe_solid(model, umat=None):
+    """FElupe's solid on the model's 4-node mesh: ``(solid, field)``; its law ``umat``, by default FElupe's
+    Neo-Hookean of the model's material."""
     import felupe as fem
 
     mesh = fem.Mesh(model.nodes_m.copy(), model.tets.copy(), "tetra")
     field = fem.FieldContainer([fem.Field(fem.RegionTetra(mesh), dim=3)])
     material = model.material
-    umat = fem.NeoHookeCompressible(mu=material.lame_mu_pa, lmbda=material.lame_lambda_pa)
+    if umat is None:
+        umat = fem.NeoHookeCompressible(mu=material.lame_mu_pa, lmbda=material.lame_lambda_pa)
     return fem.SolidBody(umat, field), field
+
+
+def felupe_compressible_yeoh(material):
+    """The model's 4-node Yeoh law, ``W = C10 (I1 - 3) + C20 (I1 - 3)^2 + C30 (I1 - 3)^3 - mu ln J + lambda/2
+    (ln J)^2`` (``I1 = tr C``, not FElupe's isochoric one), as a FElupe material whose stress and elasticity
+    tensortrax differentiates automatically from this energy alone."""
+    import felupe.constitution.tensortrax as mat
+    import tensortrax.math as tm
+
+    def energy(C, C10, C20, C30, mu, lmbda):
+        shifted = tm.trace(C) - 3
+        log_j = tm.log(tm.linalg.det(C)) / 2
+        return C10 * shifted + C20 * shifted**2 + C30 * shifted**3 - mu * log_j + lmbda / 2 * log_j**2
+
+    c10 = material.lame_mu_pa / 2
+    return mat.Hyperelastic(energy, C10=c10, C20=material.yeoh_c20_over_c10 * c10,
+                            C30=material.yeoh_c30_over_c10 * c10, mu=material.lame_mu_pa, lmbda=material.lame_lambda_pa)
 
 
 def felupe_forces(model, positions_m) -> np.ndarray:
