@@ -48,9 +48,11 @@ HOST_SECTIONS = ("steps", "timeline", "host")
 #: Length units a scene may declare for its mesh, and their size in metres.
 LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
 
-MATERIAL_MODELS = ("corotational", "linear", "neo_hookean", "gent")
+MATERIAL_MODELS = ("corotational", "linear", "neo_hookean", "gent", "yeoh")
 #: The hyperelastic laws (finite strain, an energy that grows without bound as an element collapses).
-HYPERELASTIC_MODELS = ("neo_hookean", "gent")
+HYPERELASTIC_MODELS = ("neo_hookean", "gent", "yeoh")
+#: The Yeoh law's coefficients in a scene's [material]: C20 and C30 as multiples of C10 = mu/2 (dimensionless).
+YEOH_KEYS = ("yeoh_c20_over_c10", "yeoh_c30_over_c10")
 
 #: The gauge pressure (Pa) the phantom is driven to at most (what its blowers give and the model is trusted
 #: for): a scene's default ``[model] pressure_max_kpa``, and the highest pressure a calibration measurement may
@@ -84,14 +86,19 @@ class Material:
     ``model``: "linear" (small strain), "corotational" (small strain in a rotated frame), "neo_hookean"
     (``W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``) or "gent" (``W = -(mu Jm/2) ln(1 - (I1 - 3)/Jm)
     - mu ln J + lambda/2 (ln J)^2``, defined for I1 - 3 < Jm: the chains lock as I1 - 3 approaches
-    ``gent_jm``, dimensionless; Jm -> inf is the Neo-Hookean law). mu and lambda are the Lame constants of E and
-    nu, so every model has the same small-strain stiffness.
+    ``gent_jm``, dimensionless; Jm -> inf is the Neo-Hookean law) or "yeoh" (``W = C10 (I1 - 3) + C20 (I1 - 3)^2
+    + C30 (I1 - 3)^3 - mu ln J + lambda/2 (ln J)^2`` with ``C10 = mu/2``, ``C20 = yeoh_c20_over_c10 C10``,
+    ``C30 = yeoh_c30_over_c10 C10``). mu and lambda are the Lame constants of E and nu, so every model has the
+    same small-strain stiffness. On 10-node elements the hyperelastic laws take the isochoric ``J^(-2/3) I1`` and
+    a volumetric ``K/2 (J - 1)^2`` (:mod:`phantom.model.fem.materials`).
     """
 
     model: str
     youngs_modulus_pa: float
     poisson_ratio: float
     gent_jm: float | None = None
+    yeoh_c20_over_c10: float | None = None
+    yeoh_c30_over_c10: float | None = None
 
     @property
     def lame_mu_pa(self) -> float:
@@ -351,8 +358,8 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
     check_known_keys(table, MATERIAL_KEYS, "[material]", where)
     model = table.get("model", "corotational")
     if model not in MATERIAL_MODELS:
-        raise SceneError(f"{where}: [material] model = {model!r}: the hyperelastic laws are 'neo_hookean' and "
-                         f"'gent'; for small strains use 'corotational' or 'linear'")
+        raise SceneError(f"{where}: [material] model = {model!r}: the hyperelastic laws are 'neo_hookean', "
+                         f"'gent' and 'yeoh'; for small strains use 'corotational' or 'linear'")
     gent_jm = table.get("gent_jm")
     if model == "gent":
         if isinstance(gent_jm, bool) or not isinstance(gent_jm, int | float) or not 0 < gent_jm < float("inf"):
@@ -361,6 +368,16 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
         gent_jm = float(gent_jm)
     elif gent_jm is not None:
         raise SceneError(f"{where}: [material] gent_jm applies to model = 'gent' only, not {model!r}")
+    yeoh = [table.get(key) for key in YEOH_KEYS]
+    if model == "yeoh":
+        for key, value in zip(YEOH_KEYS, yeoh, strict=True):
+            if isinstance(value, bool) or not isinstance(value, int | float) or not abs(value) < float("inf"):
+                raise SceneError(f"{where}: [material] model = 'yeoh' needs {' and '.join(YEOH_KEYS)}, its C20 and "
+                                 f"C30 as multiples of C10 = mu/2 (numbers, e.g. 0.05 and 0.001), got {key} = "
+                                 f"{value!r}")
+    elif any(value is not None for value in yeoh):
+        raise SceneError(f"{where}: [material] {' and '.join(YEOH_KEYS)} apply to model = 'yeoh' only, not "
+                         f"{model!r}")
     youngs_modulus_kpa = table.get("youngs_modulus_kpa", 50.0)
     poisson_ratio = table.get("poisson_ratio", QUADRATIC_POISSON_RATIO if quadratic else 0.45)
     if (isinstance(youngs_modulus_kpa, bool) or not isinstance(youngs_modulus_kpa, int | float)
@@ -368,7 +385,8 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
         raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got {youngs_modulus_kpa}")
     if isinstance(poisson_ratio, bool) or not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
         raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio}")
-    return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm)
+    return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm,
+                    *(None if value is None else float(value) for value in yeoh))
 
 
 def chamber_labels_of(phantom_table: dict[str, Any], chamber_names: list[str], where: str = "scene") -> list[str]:

@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import phantom
 from phantom.model.fem import kernels
 from phantom.model.mesh.prostate import generate_hollow_sphere
 from phantom.model.mesh.tetmesh import enclosed_volume_m3, prepare_surfaces, volume_gradient_m2
@@ -172,8 +173,12 @@ forces, energy, smallest_det = kernels.internal_forces(moved, nodes, tets, dm_in
                                                        hessian)
 hyperelastic_tangent = np.zeros(scatter.size)
 stretched = nodes @ np.array([[1.2, 0.1, 0.0], [0.0, 0.9, 0.2], [0.1, 0.0, 1.1]]).T  # no element inverted
-hyperelastic = kernels.hyperelastic_forces(stretched, tets, dm_inverse, volumes, 17e3, 160e3, 0.05, 2, scatter,
+gent = (1, np.array([17e3, 0.05]))  # law number and parameters (phantom.model.fem.materials)
+hyperelastic = kernels.hyperelastic_forces(stretched, tets, dm_inverse, volumes, *gent, 17e3, 160e3, 2, scatter,
                                            hyperelastic_tangent)
+yeoh_tangent = np.zeros(scatter.size)
+yeoh = kernels.hyperelastic_forces(stretched, tets, dm_inverse, volumes, 2, np.array([8.5e3, 900.0, 40.0]), 17e3,
+                                   160e3, 2, scatter, yeoh_tangent)
 triangles = tets[:, :3].copy()
 indptr = np.arange(0, 3 * len(nodes) * 3 * len(nodes) + 1, 3 * len(nodes), dtype=np.int64)
 indices = np.tile(np.arange(3 * len(nodes), dtype=np.int32), 3 * len(nodes))
@@ -188,7 +193,8 @@ factor_values = np.concatenate([lower[c, j] for j, c in enumerate(columns)])
 permutation = rng.permutation(8).astype(np.int64)
 np.savez(sys.argv[1], dm_inverse=dm_inverse, volumes=volumes, stiffness=stiffness, forces=forces,
          energy=energy, smallest_det=smallest_det, hessian=hessian, hyperelastic_forces=hyperelastic[0],
-         hyperelastic_energy=hyperelastic[1], hyperelastic_tangent=hyperelastic_tangent,
+         hyperelastic_energy=hyperelastic[1], hyperelastic_tangent=hyperelastic_tangent, yeoh_forces=yeoh[0],
+         yeoh_tangent=yeoh_tangent,
          pressure_stiffness=pressure_stiffness,
          product=kernels.csr_multiply(indptr, indices, pressure_stiffness, vector),
          determinants=kernels.deformation_determinants(moved, tets, dm_inverse),
@@ -210,7 +216,7 @@ def test_ahead_of_time_build_matches_the_jit_kernels_without_loading_numba(tmp_p
     import sys
 
     environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / "cache"),
-                       NUMBA_CACHE_DIR=str(kernels.phantom.cache_dir("numba")))
+                       NUMBA_CACHE_DIR=str(phantom.cache_dir("numba")))
     environment.pop("PHANTOM_JIT_KERNELS", None)
     build = subprocess.run([sys.executable, "-m", "phantom.model.fem.kernels"], env=environment, capture_output=True,
                            text=True, timeout=240)
@@ -264,3 +270,34 @@ def test_the_compiling_message_is_printed_only_when_numba_compiles(tmp_path):
                                   text=True, timeout=240)
         assert imported.returncode == 0, imported.stderr
         assert (message in imported.stderr) == (run == "first"), (run, imported.stderr)
+
+
+@pytest.mark.slow
+def test_numba_forgets_the_kernels_it_compiled_when_the_laws_they_inline_change(tmp_path):
+    """numba keys a kernel's cache by the kernel's own file, but the kernels compile in the laws of materials.py:
+    a stamp of both files' digest beside numba's cache says whose code it holds, and when it is another's (an
+    edited materials.py) the kernels' cache is emptied and compiled again (the message says so), and the stamp
+    renewed."""
+    import os
+    import subprocess
+    import sys
+
+    from phantom.model.fem.jit import sources_digest
+
+    numba_cache = tmp_path / "numba"
+    environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / "cache"), NUMBA_CACHE_DIR=str(numba_cache),
+                       PHANTOM_JIT_KERNELS="1")
+    message = "compiling the model's kernels with numba"
+
+    def announced():
+        run = subprocess.run([sys.executable, "-c", ONE_ELEMENT_FORCES], env=environment, capture_output=True,
+                             text=True, timeout=240)
+        assert run.returncode == 0, run.stderr
+        return message in run.stderr
+
+    assert announced() and not announced()
+    (stamp,) = numba_cache.glob("phantom_fem_sources_*.sha256")
+    assert stamp.read_text() == sources_digest()
+    stamp.write_text("the digest of an older materials.py")
+    assert announced()
+    assert stamp.read_text() == sources_digest() and not announced()

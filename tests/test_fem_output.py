@@ -68,7 +68,8 @@ def test_the_deformed_outer_surface_encloses_the_gland_volume(model):
     assert enclosed_volume_m3(rest_mm * 1e-3, triangles) == pytest.approx(model.rest_gland_volume_m3, rel=1e-12)
 
 
-@pytest.mark.parametrize("material", ['model = "neo_hookean"', 'model = "gent"\ngent_jm = 20.0'])
+@pytest.mark.parametrize("material", ['model = "neo_hookean"', 'model = "gent"\ngent_jm = 20.0',
+                                      'model = "yeoh"\nyeoh_c20_over_c10 = 0.2\nyeoh_c30_over_c10 = 0.02'])
 def test_forward_on_a_tagged_mesh_scene_with_a_hyperelastic_material(tmp_path, capsys, material):
     assert main(["mesh", "--scene", "builtin", *SIZE, "--out", str(tmp_path / "prostate.msh")]) == 0
     (tmp_path / "scene.toml").write_text(
@@ -82,6 +83,14 @@ def test_forward_on_a_tagged_mesh_scene_with_a_hyperelastic_material(tmp_path, c
     assert answer["formulation"] == scene.material.model
     assert answer["chamber_volumes_ml"] == pytest.approx(list(expected.chamber_volumes_m3 * 1e6), rel=1e-12)
     assert all(v > r for v, r in zip(answer["chamber_volumes_ml"], answer["rest_chamber_volumes_ml"], strict=True))
+    if scene.material.model != "neo_hookean":  # the law reached the solve: it stiffens, less growth than Neo-Hookean
+        neo_hookean = PhantomModel.from_scene(scene).with_material(model="neo_hookean").equilibrium([4e3, 2e3, 2e3])
+        assert all(np.array(answer["chamber_volumes_ml"]) < neo_hookean.chamber_volumes_m3 * 1e6)
+
+
+def test_forward_with_a_law_whose_coefficients_the_scene_lacks_says_which(capsys):
+    assert main(["forward", "--scene", "builtin", *SIZE, "--formulation", "yeoh", "--pressures-kpa", "1,1,1"]) != 0
+    assert "yeoh_c20_over_c10 and yeoh_c30_over_c10" in capsys.readouterr().err
 
 
 def test_mesh_writes_into_a_missing_folder_and_reports_json(tmp_path, capsys):

@@ -7,6 +7,7 @@ import pytest
 
 from phantom.model import SolveError
 from phantom.model.fem import kernels
+from phantom.model.fem.materials import law_parameters
 from phantom.model.fem.model import PhantomModel
 from phantom.model.mesh.prostate import generate_hollow_sphere
 from phantom.model.mesh.tetmesh import prepare_surfaces, volume_gradient_m2
@@ -32,8 +33,8 @@ def assert_equilibrium(model, state, gent_jm=None):
     assert kernels.deformation_determinants(state.positions_m, model.tets, dm_inverse).min() > 0
     material = model.material
     forces, energy, _ = kernels.hyperelastic_forces(
-        state.positions_m, model.tets, dm_inverse, volumes, material.lame_mu_pa, material.lame_lambda_pa,
-        0.0 if gent_jm is None else 1.0 / gent_jm, 0, np.zeros((1, 12, 12), np.int64), np.zeros(1))
+        state.positions_m, model.tets, dm_inverse, volumes, *law_parameters(material.model, material),
+        material.lame_mu_pa, material.lame_lambda_pa, 0, np.zeros((1, 12, 12), np.int64), np.zeros(1))
     load = state.pressures_pa[0] * volume_gradient_m2(state.positions_m, model.chamber_triangles[0])
     free = np.ones(load.size, bool)
     free[model.held_dofs] = False

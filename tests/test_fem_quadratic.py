@@ -24,9 +24,10 @@ def meshes():
     return {order: generate_hollow_sphere(INNER_MM, OUTER_MM, SIZE_MM, element_order=order) for order in (1, 2)}
 
 
-def sphere_model(mesh, law="neo_hookean", poisson_ratio=0.4995, gent_jm=None):
+def sphere_model(mesh, law="neo_hookean", poisson_ratio=0.4995, gent_jm=None, **coefficients):
     surfaces = prepare_surfaces(mesh, ["cavity"], None, "sphere")
-    return PhantomModel(mesh, surfaces, ["cavity"], Material(law, YOUNGS_MODULUS_PA, poisson_ratio, gent_jm))
+    return PhantomModel(mesh, surfaces, ["cavity"], Material(law, YOUNGS_MODULUS_PA, poisson_ratio, gent_jm,
+                                                             **coefficients))
 
 
 def test_curved_faces_measure_the_sphere_far_better_than_flat_ones(meshes):
@@ -61,9 +62,10 @@ def deformed(nodes_m, seed=3):
     return stretched @ rotation.T + 2e-6 * rng.normal(size=nodes_m.shape)
 
 
-@pytest.mark.parametrize(("law", "gent_jm"), [("neo_hookean", None), ("gent", 3.0)])
-def test_mixed_forces_and_tangent_are_the_energys_derivatives(meshes, law, gent_jm):
-    model = sphere_model(meshes[2], law, 0.45, gent_jm)
+@pytest.mark.parametrize(("law", "coefficients"), [
+    ("neo_hookean", {}), ("gent", {"gent_jm": 3.0}), ("yeoh", {"yeoh_c20_over_c10": -0.1, "yeoh_c30_over_c10": 0.05})])
+def test_mixed_forces_and_tangent_are_the_energys_derivatives(meshes, law, coefficients):
+    model = sphere_model(meshes[2], law, 0.45, **coefficients)
     body, constraints = model.body, model.body.rest_constraints
     positions = deformed(model.nodes_m)
     evaluation = body.elastic(positions, law, EXACT_TANGENT, constraints)

@@ -73,9 +73,10 @@ MAX_LINEAR_MULTIPLE = 4.0
 #: Points of the fine load-factor grid the traces are interpolated onto.
 FINE_LOAD_FACTOR_POINTS = 300
 #: Principal stretches inside which each law is stated to hold: 10 % strain for the small-strain laws; the
-#: Neo-Hookean law follows silicone rubber to about twice its length; the Gent law's limit is its Jm.
+#: Neo-Hookean law follows silicone rubber to about twice its length; the Gent law's limit is its Jm; a Yeoh
+#: law holds over the stretches its coefficients were fitted to, taken here as Neo-Hookean's.
 LAW_STRETCH_RANGE = {"linear": (0.9, 1.1), "corotational": (0.9, 1.1), "neo_hookean": (0.5, 2.0),
-                     "gent": (0.0, float("inf"))}
+                     "gent": (0.0, float("inf")), "yeoh": (0.5, 2.0)}
 #: The Gent law's energy diverges at I1 - 3 = Jm; an admissible state keeps this margin from it.
 GENT_LIMIT_FRACTION = 0.95
 #: Parameters that are material keys (everything else named in a grid is a [geometry] key).

@@ -31,6 +31,7 @@ from phantom.model.arrays import BoolArray, FloatArray, Int32Array, IntArray
 from phantom.model.errors import MeshError, SolveError
 from phantom.model.fem import kernels
 from phantom.model.fem.linsolve import CholeskyFactor, Factorization, default_method
+from phantom.model.fem.materials import law_parameters
 from phantom.model.mesh.elements import (
     TET_DEGREE2_POINTS,
     TET_DEGREE2_WEIGHTS,
@@ -274,6 +275,8 @@ class SolidBody:
             raise SolveError(f"material out of range: gent_jm = {material.gent_jm} (a positive number)")
         if material.model == "gent" and material.gent_jm is None:
             raise SolveError("the Gent material needs gent_jm, the locking value of I1 - 3 (e.g. 20)")
+        if material.model in HYPERELASTIC_MODELS:
+            law_parameters(material.model, material)  # SolveError for a law without its coefficients
         self.mesh = mesh
         self.surfaces = surfaces
         self.source = source
@@ -294,8 +297,9 @@ class SolidBody:
         self.quadratic: QuadraticRestData | None = None
         if self.order == 2:
             if material.model == "corotational":
-                raise SolveError("the co-rotational law is for 4-node tetrahedra: use neo_hookean or gent (or "
-                                 "linear) with 10-node ones, or [geometry] element_order = 1")
+                raise SolveError(f"the co-rotational law is for 4-node tetrahedra: use "
+                                 f"{', '.join(HYPERELASTIC_MODELS)} (or linear) with 10-node ones, or [geometry] "
+                                 "element_order = 1")
             self.quadratic = quadratic_rest_data(self.nodes_m, self.tets)
             self.element_volumes_m3 = self.quadratic.volumes_m3
         else:
@@ -431,13 +435,10 @@ class SolidBody:
         worst = int(np.argmin(dets))
         return worst if dets[worst] <= 0 else -1
 
-    def inverse_jm(self, formulation: str) -> float:
-        """1 / Jm of the Gent law (0 for Neo-Hookean)."""
-        if formulation != "gent":
-            return 0.0
-        if self.material.gent_jm is None:
-            raise SolveError("the Gent formulation needs the material's gent_jm (scene [material] gent_jm)")
-        return 1.0 / self.material.gent_jm
+    def law(self, formulation: str) -> tuple[int, FloatArray]:
+        """The hyperelastic law ``formulation`` of the body's material as the kernels take it: its number and
+        parameters (:func:`phantom.model.fem.materials.law_parameters`; SolveError without its coefficients)."""
+        return law_parameters(formulation, self.material)
 
     # --- assembly --------------------------------------------------------------------------------------------
 
@@ -456,8 +457,8 @@ class SolidBody:
                                                                      element_pressures_pa)
         elif formulation in HYPERELASTIC_MODELS:
             forces, energy_j, smallest_det = kernels.hyperelastic_forces(
-                positions_m, self.tets, self.dm_inverse, self.element_volumes_m3, self.material.lame_mu_pa,
-                self.material.lame_lambda_pa, self.inverse_jm(formulation), EXACT_TANGENT if matrix else NO_TANGENT,
+                positions_m, self.tets, self.dm_inverse, self.element_volumes_m3, *self.law(formulation),
+                self.material.lame_mu_pa, self.material.lame_lambda_pa, EXACT_TANGENT if matrix else NO_TANGENT,
                 self.pattern.scatter, data)
         else:
             forces, energy_j, smallest_det = kernels.internal_forces(
@@ -499,26 +500,26 @@ class SolidBody:
                 data += stiffness
             return forces.reshape(-1, 3), 0.5 * float(np.einsum("i,i->", forces, displacement)), np.inf
         if formulation not in HYPERELASTIC_MODELS:
-            raise SolveError(f"the {formulation} law is for 4-node tetrahedra: use neo_hookean, gent or linear with "
-                             "10-node ones")
+            raise SolveError(f"the {formulation} law is for 4-node tetrahedra: use {', '.join(HYPERELASTIC_MODELS)} "
+                             "or linear with 10-node ones")
         rest = self.quadratic
         forces, energy_j, smallest = kernels.mixed_forces(
             positions_m, self.tets, rest.gradients, rest.weights, rest.volumes_m3, rest.volume_derivatives,
-            rest.volume_weights, self.material.lame_mu_pa, self.material.bulk_modulus_pa,
-            self.inverse_jm(formulation), EXACT_TANGENT if matrix else NO_TANGENT, self.pattern.block_start,
+            rest.volume_weights, *self.law(formulation), self.material.bulk_modulus_pa,
+            EXACT_TANGENT if matrix else NO_TANGENT, self.pattern.block_start,
             self.pattern.degree, data, _NO_PRESSURES if element_pressures_pa is None else element_pressures_pa)
         return forces, float(energy_j), float(smallest)
 
     def rest_tangent_data(self) -> FloatArray:
         """A 10-node body's small-strain stiffness (CSR data, N/m, elements only): the mixed Neo-Hookean tangent
-        at rest, which both hyperelastic laws share there (made once)."""
+        at rest, which every hyperelastic law shares there (made once)."""
         if self._rest_tangent is None:
             assert self.quadratic is not None  # only 10-node bodies come here
             rest = self.quadratic
             data = np.zeros(len(self.pattern.indices))
             kernels.mixed_forces(self.nodes_m, self.tets, rest.gradients, rest.weights, rest.volumes_m3,
-                                 rest.volume_derivatives, rest.volume_weights, self.material.lame_mu_pa,
-                                 self.material.bulk_modulus_pa, 0.0, EXACT_TANGENT, self.pattern.block_start,
+                                 rest.volume_derivatives, rest.volume_weights, *self.law("neo_hookean"),
+                                 self.material.bulk_modulus_pa, EXACT_TANGENT, self.pattern.block_start,
                                  self.pattern.degree, data, _NO_PRESSURES)
             self._rest_tangent = data
         return self._rest_tangent
@@ -527,7 +528,7 @@ class SolidBody:
                      pressures_pa: FloatArray | None = None, constraints: Constraints | None = None,
                      element_pressures_pa: FloatArray | None = None) -> FloatArray:
         """The CSR data (N/m, in :attr:`pattern`) of the assembled tangent at ``positions_m`` (default: rest):
-        "linear": the small-strain stiffness; "corotational", "neo_hookean", "gent": the exact Hessian of the
+        "linear": the small-strain stiffness; "corotational" and the hyperelastic laws: the exact Hessian of the
         total energy, with the follower-load stiffness of ``pressures_pa`` when given (and a 10-node body's
         carried element pressures, as :meth:`elastic`'s). Held dofs (default: the rest constraints) get scaled
         identity rows."""
@@ -644,5 +645,7 @@ class SolidBody:
             digest.update(np.ascontiguousarray(array).tobytes())
         digest.update(repr((self.material.youngs_modulus_pa, self.material.poisson_ratio, self.material.gent_jm,
                             self.fixed_penalty, SOLVER_VERSION)).encode())
+        if self.material.model == "yeoh":  # only then: the other laws' keys stay those of the shipped tables
+            digest.update(repr((self.material.yeoh_c20_over_c10, self.material.yeoh_c30_over_c10)).encode())
         digest.update(extra)
         return digest.hexdigest()[:32]

@@ -1,10 +1,9 @@
 """Element kernels of linear and quadratic tetrahedra (numba, compiled once and cached on disk).
 
-``python -m phantom.model.fem.kernels`` (run by scripts/bootstrap.sh after an install) also compiles the exported
-kernels ahead of time with numba.pycc into ``phantom.cache_dir("kernels")``, keyed by this file's source; while
-that build matches, importing this module loads it and never imports numba, which saves a process 0.6 s (numba's
-import and its first-call start). Otherwise (no build, or ``PHANTOM_JIT_KERNELS=1``) numba compiles them on first
-use. Either way the callers get the same functions, which take any array dtypes and convert them.
+:mod:`phantom.model.fem.jit` compiles them: ``python -m phantom.model.fem.kernels`` (run by scripts/bootstrap.sh
+after an install) builds the exported kernels ahead of time with numba.pycc, which later imports load without
+importing numba; otherwise numba compiles them on first use. Either way the callers get the same functions, which
+take any array dtypes and convert them.
 
 Notation per element: rest positions ``X_a``, current positions ``x_a`` (a = 0..3), ``Dm = [X1-X0, X2-X0,
 X3-X0]``, deformation gradient ``F = Ds Dm^-1``. The co-rotational energy is ``1/2 u^T K_e u`` with the
@@ -16,26 +15,29 @@ ten times faster than a LAPACK call per element). Its gradient is ``f_a = R (K_e
 ``w = (tr(S) I - S)^-1 sum_b [G_b]x R^T dx_b`` (``G_b`` the shape-function gradients), which gives the
 block ``R Z_a (tr(S) I - S)^-1 [G_b]x R^T`` with ``Z_a = -[(K u)_a]x + sum_c K_ac [R^T x_c]x``.
 
-The hyperelastic laws (:func:`hyperelastic_forces`): Gent, ``W = -(mu Jm/2) ln(1 - (I1 - 3)/Jm) - mu ln J
-+ (lambda/2) (ln J)^2`` per unit rest volume, and its limit Jm -> inf, the compressible Neo-Hookean
-``W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``; energy, forces and the exact tangent in one element pass.
+The hyperelastic laws are :mod:`phantom.model.fem.materials`' functions of the first invariant; one generic kernel
+per element order applies any of them (a law number and its parameters): :func:`hyperelastic_forces` (4-node,
+energy, forces and the exact tangent in one element pass) and :func:`mixed_forces` (10-node, mixed).
 """
 
-import hashlib
-import importlib.util
 import os
-import sys
 import tempfile
 import warnings
 from collections.abc import Callable
 from pathlib import Path
-from types import ModuleType
-from typing import Any, TypeVar, cast
+from typing import Any
 
 import numpy as np
 
-import phantom
 from phantom.model.arrays import FloatArray, Int32Array, IntArray
+from phantom.model.fem.jit import (
+    COMPILED,
+    compiled_kernels_path,
+    forget_stale_jit_cache,
+    inline_kernel,
+    kernel,
+)
+from phantom.model.fem.materials import law_energy
 
 #: The kernels the model calls, with their argument dtypes (None: a scalar; "out": a float64 C array written in
 #: place) and the signature of their ahead-of-time build (all arrays C-contiguous).
@@ -46,67 +48,23 @@ EXPORTS = {
     "internal_forces": (("f8", "f8", "i8", "f8", "f8", None, None, "i8", "out"),
                         "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[:, :, ::1], "
                         "f8[:, :, ::1], b1, i8, i8[:, :, ::1], f8[::1])"),
-    "hyperelastic_forces": (("f8", "i8", "f8", "f8", None, None, None, None, "i8", "out"),
-                            "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], i8[:, ::1], f8[:, :, ::1], f8[::1], f8, f8, "
-                            "f8, i8, i8[:, :, ::1], f8[::1])"),
+    "hyperelastic_forces": (("f8", "i8", "f8", "f8", None, "f8", None, None, None, "i8", "out"),
+                            "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], i8[:, ::1], f8[:, :, ::1], f8[::1], i8, f8[::1], "
+                            "f8, f8, i8, i8[:, :, ::1], f8[::1])"),
     "deformation_determinants": (("f8", "i8", "f8"), "f8[::1](f8[:, ::1], i8[:, ::1], f8[:, :, ::1])"),
     "add_pressure_stiffness": (("f8", "i8", None, "i8", "i4", "out"),
                                "void(f8[:, ::1], i8[:, ::1], f8, i8[::1], i4[::1], f8[::1])"),
     "csr_multiply": (("i8", "i4", "f8", "f8"), "f8[::1](i8[::1], i4[::1], f8[::1], f8[::1])"),
     "cholesky_solve": (("i8", "i4", "f8", "i8", "f8"), "f8[:, ::1](i8[::1], i4[::1], f8[::1], i8[::1], f8[:, ::1])"),
-    "mixed_forces": (("f8", "i8", "f8", "f8", "f8", "f8", "f8", None, None, None, None, "i8", "i8", "out", "f8"),
+    "mixed_forces": (("f8", "i8", "f8", "f8", "f8", "f8", "f8", None, "f8", None, None, "i8", "i8", "out", "f8"),
                      "Tuple((f8[:, ::1], f8, f8))(f8[:, ::1], i8[:, ::1], f8[:, :, :, ::1], f8[:, ::1], f8[::1], "
-                     "f8[:, :, ::1], f8[::1], f8, f8, f8, i8, i8[:, :, ::1], i8[::1], f8[::1], f8[::1])"),
+                     "f8[:, :, ::1], f8[::1], i8, f8[::1], f8, i8, i8[:, :, ::1], i8[::1], f8[::1], f8[::1])"),
     "mixed_determinants": (("f8", "i8", "f8", "f8", "f8", "f8"),
                            "f8[::1](f8[:, ::1], i8[:, ::1], f8[:, :, :, ::1], f8[::1], f8[:, :, ::1], f8[::1])"),
     "add_quadratic_pressure_stiffness": (("f8", "i8", None, "f8", "f8", "f8", "i8", "i4", "out"),
                                          "void(f8[:, ::1], i8[:, ::1], f8, f8[:, ::1], f8[:, :, ::1], f8[::1], "
                                          "i8[::1], i4[::1], f8[::1])"),
 }
-
-
-def compiled_kernels_path() -> Path:
-    """Where the ahead-of-time build of this module goes: keyed by its source, numpy's and Python's versions."""
-    digest = hashlib.sha256(Path(__file__).read_bytes())
-    digest.update(f"{np.__version__} {sys.version} {sys.platform}".encode())
-    return phantom.cache_dir("kernels") / f"phantom_kernels_{digest.hexdigest()[:16]}.so"
-
-
-def _load_compiled() -> ModuleType | None:
-    """The ahead-of-time build of these kernels when it exists for this source (else None): calling it needs
-    neither numba's import (0.2 s) nor its first-call start (0.4 s), which a CLI call would otherwise pay."""
-    path = compiled_kernels_path()
-    if os.environ.get("PHANTOM_JIT_KERNELS") or not path.is_file():
-        return None
-    spec = importlib.util.spec_from_file_location(path.name.split(".")[0], path)
-    if spec is None or spec.loader is None:
-        return None
-    try:
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    except (ImportError, OSError):
-        return None
-    return module
-
-
-_COMPILED = _load_compiled()
-if _COMPILED is None:
-    # numba's cache is the one in NUMBA_CACHE_DIR when the environment names one (a parent process set it)
-    numba_cache = Path(os.environ.setdefault("NUMBA_CACHE_DIR", str(phantom.cache_dir("numba"))))
-    import numba
-
-    _jit = numba.njit(cache=True)
-    if __name__ != "__main__" and not any(numba_cache.rglob("kernels.internal_forces-*.nbi")):
-        print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached; "
-              "`python -m phantom.model.fem.kernels` builds them ahead of time)", file=sys.stderr, flush=True)
-
-Kernel = TypeVar("Kernel", bound=Callable[..., Any])
-
-
-def kernel(function: Kernel) -> Kernel:
-    """numba's JIT of ``function`` (cached on disk); with the ahead-of-time build loaded, the Python source as it
-    is (the build replaces the exported kernels below). Either way the kernel takes the same arguments."""
-    return function if _COMPILED is not None else cast(Kernel, _jit(function))
 
 
 @kernel
@@ -133,9 +91,7 @@ def element_rest_data(rest_positions_m: FloatArray, tets: IntArray, youngs_modul
     dm = np.empty((3, 3))
     stress_of_dof = np.empty((6, 12))
     for e in range(n_tets):
-        for k in range(3):
-            for axis in range(3):
-                dm[axis, k] = rest_positions_m[tets[e, k + 1], axis] - rest_positions_m[tets[e, 0], axis]
+        _edge_matrix(rest_positions_m, tets, e, dm)
         inverse = dm_inverse[e]
         volumes_m3[e] = _inverse3(dm, inverse) / 6.0
         gradients = np.empty((4, 3))
@@ -345,6 +301,37 @@ def _inverse3(m: FloatArray, out: FloatArray) -> float:
     return det
 
 
+@inline_kernel
+def _edge_matrix(positions_m: FloatArray, tets: IntArray, e: int, out: FloatArray) -> None:
+    """``out = [x1 - x0, x2 - x0, x3 - x0]`` (columns) of element ``e``'s corners ``tets[e, :4]``."""
+    for k in range(3):
+        for axis in range(3):
+            out[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
+
+
+@inline_kernel
+def _deformation_gradient(positions_m: FloatArray, tets: IntArray, e: int, dm_inverse: FloatArray, ds: FloatArray,
+                          out: FloatArray) -> None:
+    """``out = F = Ds Dm^-1`` of 4-node element ``e`` at node positions ``positions_m`` (``ds``: 3 x 3 scratch)."""
+    _edge_matrix(positions_m, tets, e, ds)
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = (ds[i, 0] * dm_inverse[e, 0, j] + ds[i, 1] * dm_inverse[e, 1, j]
+                         + ds[i, 2] * dm_inverse[e, 2, j])
+
+
+@inline_kernel
+def _quadratic_deformation_gradient(x: FloatArray, point_gradients: FloatArray, out: FloatArray) -> None:
+    """``out = F = sum_a x_a G_a^T`` of a 10-node element with node positions ``x`` (10, 3) at a point where the
+    shape functions' rest gradients are ``point_gradients`` (10, 3)."""
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for a in range(10):
+                total += x[a, i] * point_gradients[a, j]
+            out[i, j] = total
+
+
 @kernel
 def _add_rotation_stiffness(element_stiffness: FloatArray, rotation: FloatArray, deformation_gradient: FloatArray,
                             dm_inverse: FloatArray, local_force: FloatArray, unrotated_m: FloatArray, out: FloatArray,
@@ -427,13 +414,7 @@ def internal_forces(positions_m: FloatArray, rest_positions_m: FloatArray, tets:
     scratch = np.empty((14, 3, 3))
     for e in range(n_tets):
         if corotational:
-            for k in range(3):
-                for axis in range(3):
-                    ds[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
-            for i in range(3):
-                for j in range(3):
-                    deformation_gradient[i, j] = (ds[i, 0] * dm_inverse[e, 0, j] + ds[i, 1] * dm_inverse[e, 1, j]
-                                                  + ds[i, 2] * dm_inverse[e, 2, j])
+            _deformation_gradient(positions_m, tets, e, dm_inverse, ds, deformation_gradient)
             det = _det3(deformation_gradient)
             if det < smallest_det:
                 smallest_det = det
@@ -481,18 +462,17 @@ def internal_forces(positions_m: FloatArray, rest_positions_m: FloatArray, tets:
 
 @kernel
 def hyperelastic_forces(positions_m: FloatArray, tets: IntArray, dm_inverse: FloatArray, volumes_m3: FloatArray,
-                        lame_mu_pa: float, lame_lambda_pa: float, inverse_jm: float, want_matrix: int,
+                        law: int, parameters: FloatArray, lame_mu_pa: float, lame_lambda_pa: float, want_matrix: int,
                         scatter: IntArray, matrix_data: FloatArray) -> tuple[FloatArray, float, float]:
-    """Nodal forces (N, (n, 3)), energy (J) and the smallest ``det F`` of the Gent law (Neo-Hookean when
-    ``inverse_jm`` = 1 / Jm is 0); optionally its exact tangent added into ``matrix_data`` at ``scatter``.
+    """Nodal forces (N, (n, 3)), energy (J) and the smallest ``det F`` of 4-node elements of a hyperelastic law;
+    optionally its exact tangent added into ``matrix_data`` at ``scatter``.
 
-    ``W = -(mu Jm / 2) ln(1 - (I1 - 3) / Jm) - mu ln J + (lambda / 2) (ln J)^2`` per unit rest volume, which
-    tends to ``mu / 2 (I1 - 3) - mu ln J + lambda / 2 (ln J)^2`` as Jm -> inf. With ``g = 1 - (I1 - 3) / Jm``,
-    ``c = lambda ln J - mu`` and ``H = F^-T``: ``P = (mu / g) F + c H``, node force ``f_a = V P G_a`` (``G_a``
-    the shape-function gradients), and the 3 x 3 tangent block ``K_ab = V [(mu / g) (G_a . G_b) I
-    + (2 mu / (Jm g^2)) (F G_a)(F G_b)^T + lambda (H G_a)(H G_b)^T - c (H G_b)(H G_a)^T]``. An element with
-    ``J <= 0`` or ``g <= 0`` is outside the law's domain: the energy is then +inf (a line search rejects the
-    step) and the element adds no force or stiffness.
+    ``W = W_law(I1) - mu ln J + (lambda / 2) (ln J)^2`` per unit rest volume, ``W_law`` the law number ``law``
+    with ``parameters`` (:mod:`phantom.model.fem.materials`). With ``W' = dW_law/dI1``, ``W''``, ``c = lambda ln J
+    - mu`` and ``H = F^-T``: ``P = 2 W' F + c H``, node force ``f_a = V P G_a`` (``G_a`` the shape-function
+    gradients), and the 3 x 3 tangent block ``K_ab = V [2 W' (G_a . G_b) I + 4 W'' (F G_a)(F G_b)^T
+    + lambda (H G_a)(H G_b)^T - c (H G_b)(H G_a)^T]``. An element with ``J <= 0`` or outside the law's domain
+    (Gent's lock) has +inf energy (a line search rejects the step) and adds no force or stiffness.
     """
     n_tets = tets.shape[0]
     forces = np.zeros(positions_m.shape)
@@ -506,42 +486,26 @@ def hyperelastic_forces(positions_m: FloatArray, tets: IntArray, dm_inverse: Flo
     pulled = np.empty((4, 3))
     block = np.empty((12, 12))
     for e in range(n_tets):
-        for k in range(3):
-            for axis in range(3):
-                ds[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
-        for i in range(3):
-            for j in range(3):
-                f[i, j] = (ds[i, 0] * dm_inverse[e, 0, j] + ds[i, 1] * dm_inverse[e, 1, j]
-                           + ds[i, 2] * dm_inverse[e, 2, j])
-        det = _det3(f)
+        _deformation_gradient(positions_m, tets, e, dm_inverse, ds, f)
+        det = _cofactor3(f, h)
         if det < smallest_det:
             smallest_det = det
         first_invariant = 0.0
         for i in range(3):
             for j in range(3):
                 first_invariant += f[i, j] * f[i, j]
-        stiffening = 1.0 - (first_invariant - 3.0) * inverse_jm
-        if not det > 0.0 or not stiffening > 0.0:
+        deviatoric, first, second = law_energy(law, first_invariant - 3.0, parameters)
+        if not det > 0.0 or not deviatoric < np.inf:
             energy_j = np.inf
             continue
         log_det = np.log(det)
-        if inverse_jm > 0.0:
-            deviatoric = -0.5 * lame_mu_pa / inverse_jm * np.log(stiffening)
-        else:
-            deviatoric = 0.5 * lame_mu_pa * (first_invariant - 3.0)
         volume = volumes_m3[e]
         energy_j += volume * (deviatoric - lame_mu_pa * log_det + 0.5 * lame_lambda_pa * log_det * log_det)
-        # H = F^-T = cofactor(F) / det F.
-        h[0, 0] = (f[1, 1] * f[2, 2] - f[1, 2] * f[2, 1]) / det
-        h[0, 1] = (f[1, 2] * f[2, 0] - f[1, 0] * f[2, 2]) / det
-        h[0, 2] = (f[1, 0] * f[2, 1] - f[1, 1] * f[2, 0]) / det
-        h[1, 0] = (f[0, 2] * f[2, 1] - f[0, 1] * f[2, 2]) / det
-        h[1, 1] = (f[0, 0] * f[2, 2] - f[0, 2] * f[2, 0]) / det
-        h[1, 2] = (f[0, 1] * f[2, 0] - f[0, 0] * f[2, 1]) / det
-        h[2, 0] = (f[0, 1] * f[1, 2] - f[0, 2] * f[1, 1]) / det
-        h[2, 1] = (f[0, 2] * f[1, 0] - f[0, 0] * f[1, 2]) / det
-        h[2, 2] = (f[0, 0] * f[1, 1] - f[0, 1] * f[1, 0]) / det
-        shear = lame_mu_pa / stiffening
+        inverse_det = 1.0 / det  # H = cof(F) / det F: one division, not nine
+        for i in range(3):
+            for j in range(3):
+                h[i, j] *= inverse_det
+        shear = 2.0 * first
         coupling = lame_lambda_pa * log_det - lame_mu_pa
         for axis in range(3):
             gradients[1, axis] = dm_inverse[e, 0, axis]
@@ -556,7 +520,7 @@ def hyperelastic_forces(positions_m: FloatArray, tets: IntArray, dm_inverse: Flo
             for i in range(3):
                 forces[node, i] += volume * (shear * stretched[a, i] + coupling * pulled[a, i])
         if want_matrix:
-            stiffening_term = 2.0 * lame_mu_pa * inverse_jm / (stiffening * stiffening)
+            stiffening_term = 4.0 * second
             for a in range(4):
                 for b in range(4):
                     dot = (gradients[a, 0] * gradients[b, 0] + gradients[a, 1] * gradients[b, 1]
@@ -581,9 +545,7 @@ def deformation_determinants(positions_m: FloatArray, tets: IntArray, dm_inverse
     dets = np.empty(tets.shape[0])
     ds = np.empty((3, 3))
     for e in range(tets.shape[0]):
-        for k in range(3):
-            for axis in range(3):
-                ds[axis, k] = positions_m[tets[e, k + 1], axis] - positions_m[tets[e, 0], axis]
+        _edge_matrix(positions_m, tets, e, ds)
         dets[e] = _det3(ds) * _det3(dm_inverse[e])
     return dets
 
@@ -635,8 +597,8 @@ def _element_volume(x: FloatArray, volume_derivatives: FloatArray, volume_weight
 @kernel
 def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray, weights: FloatArray,
                  rest_volumes_m3: FloatArray, volume_derivatives: FloatArray, volume_weights: FloatArray,
-                 lame_mu_pa: float, bulk_modulus_pa: float, inverse_jm: float, want_matrix: int,
-                 block_start: IntArray, degree: IntArray, matrix_data: FloatArray,
+                 law: int, parameters: FloatArray, bulk_modulus_pa: float, want_matrix: int, block_start: IntArray,
+                 degree: IntArray, matrix_data: FloatArray,
                  element_pressures_pa: FloatArray) -> tuple[FloatArray, float, float]:
     """Nodal forces (N, (n, 3)), energy (J) and the smallest volume ratio of 10-node tetrahedra in the mixed
     (displacement, pressure, dilatation) formulation condensed element by element; optionally its exact tangent.
@@ -644,15 +606,15 @@ def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray,
     Per element, with a constant pressure and dilatation (P2/P0): ``Pi_e = integral W_iso(I1bar) dV + V_e U(Jbar)``,
     ``Jbar = v_e / V_e`` the element's current over rest volume (exact), ``U = K/2 (Jbar - 1)^2``, its pressure
     ``p = K (Jbar - 1)``; ``I1bar = J^(-2/3) I1`` at each quadrature point (``gradients`` (m, q, 10, 3) the shape
-    functions' rest gradients there, ``weights`` (m, q) the rest volume they stand for). ``W_iso`` is Gent's
-    ``-(mu Jm/2) ln(1 - (I1bar - 3)/Jm)``, Neo-Hookean's ``mu/2 (I1bar - 3)`` when ``inverse_jm`` = 1/Jm is 0.
-    With ``A = dI1bar/dF = 2 J^(-2/3) F - (2/3) I1bar F^-T``, ``psi' = dW/dI1bar``: ``P = psi' A``. The tangent's
-    deviatoric block is ``psi'' (A G_a)(A G_b)^T + psi' [2 J^(-2/3) (G_a . G_b) I - (4/3) J^(-2/3) ((F G_a)(H G_b)^T
-    + (H G_a)(F G_b)^T) + (4/9) I1bar (H G_a)(H G_b)^T + (2/3) I1bar (H G_b)(H G_a)^T]`` (``H = F^-T``), its
-    volumetric one ``(K / V_e) dv_a dv_b^T + p d2v/dx_a dx_b`` with ``d2 det(D)/dx_ai dx_bk = eps_ikm (D (g_a x
-    g_b))_m`` at each volume point. An element at ``J <= 0`` (at a point), ``Jbar <= 0`` or past Gent's lock has
-    infinite energy and adds no force or stiffness. The tangent goes into ``matrix_data`` at ``block_start[e, A,
-    B] + 3 a degree[node A] + b`` (the body's CSR layout).
+    functions' rest gradients there, ``weights`` (m, q) the rest volume they stand for). ``W_iso`` is the law
+    number ``law`` with ``parameters`` (:mod:`phantom.model.fem.materials`) of ``I = I1bar``. With ``A =
+    dI1bar/dF = 2 J^(-2/3) F - (2/3) I1bar F^-T``, ``psi' = dW/dI1bar``: ``P = psi' A``. The tangent's deviatoric
+    block is ``psi'' (A G_a)(A G_b)^T + psi' [2 J^(-2/3) (G_a . G_b) I - (4/3) J^(-2/3) ((F G_a)(H G_b)^T + (H
+    G_a)(F G_b)^T) + (4/9) I1bar (H G_a)(H G_b)^T + (2/3) I1bar (H G_b)(H G_a)^T]`` (``H = F^-T``), its volumetric
+    one ``(K / V_e) dv_a dv_b^T + p d2v/dx_a dx_b`` with ``d2 det(D)/dx_ai dx_bk = eps_ikm (D (g_a x g_b))_m`` at
+    each volume point. An element at ``J <= 0`` (at a point), ``Jbar <= 0`` or outside the law's domain (Gent's
+    lock) has infinite energy and adds no force or stiffness. The tangent goes into ``matrix_data`` at
+    ``block_start[e, A, B] + 3 a degree[node A] + b`` (the body's CSR layout).
 
     ``element_pressures_pa`` (m,), when not empty, are the pressures as an independent field (Newton's iterate of
     the mixed system, :func:`phantom.model.fem.newton.newton`): they replace ``K (Jbar - 1)`` in the forces and
@@ -704,12 +666,7 @@ def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray,
                     block[i, j] = 0.0
         admissible = True
         for q in range(n_points):
-            for i in range(3):
-                for j in range(3):
-                    total = 0.0
-                    for a in range(10):
-                        total += x[a, i] * gradients[e, q, a, j]
-                    f[i, j] = total
+            _quadratic_deformation_gradient(x, gradients[e, q], f)
             det = _cofactor3(f, cofactor)
             if det < smallest_det:
                 smallest_det = det
@@ -722,16 +679,11 @@ def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray,
                 break
             scale = det ** (-2.0 / 3.0)
             isochoric = scale * first_invariant
-            stiffening = 1.0 - (isochoric - 3.0) * inverse_jm
-            if not stiffening > 0.0:
+            distortional, first, second = law_energy(law, isochoric - 3.0, parameters)
+            if not distortional < np.inf:
                 admissible = False
                 break
-            if inverse_jm > 0.0:
-                element_energy += weights[e, q] * (-0.5 * lame_mu_pa / inverse_jm * np.log(stiffening))
-            else:
-                element_energy += weights[e, q] * 0.5 * lame_mu_pa * (isochoric - 3.0)
-            first = 0.5 * lame_mu_pa / stiffening
-            second = 0.5 * lame_mu_pa * inverse_jm / (stiffening * stiffening)
+            element_energy += weights[e, q] * distortional
             for a in range(10):
                 for i in range(3):
                     stretched[a, i] = (f[i, 0] * gradients[e, q, a, 0] + f[i, 1] * gradients[e, q, a, 1]
@@ -817,12 +769,7 @@ def mixed_determinants(positions_m: FloatArray, tets: IntArray, gradients: Float
                 x[a, i] = positions_m[tets[e, a], i]
         least = _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient) / rest_volumes_m3[e]
         for q in range(gradients.shape[1]):
-            for i in range(3):
-                for j in range(3):
-                    total = 0.0
-                    for a in range(10):
-                        total += x[a, i] * gradients[e, q, a, j]
-                    f[i, j] = total
+            _quadratic_deformation_gradient(x, gradients[e, q], f)
             det = _det3(f)
             if det < least:
                 least = det
@@ -987,9 +934,10 @@ def _exported(name: str, implementation: Callable[..., Any],
 
 
 #: The JIT dispatchers of the exported kernels (None when the ahead-of-time build is in use).
-JIT_KERNELS: dict[str, Any] | None = None if _COMPILED is not None else {name: globals()[name] for name in EXPORTS}
+JIT_KERNELS: dict[str, Any] | None = None if COMPILED is not None else {name: globals()[name] for name in EXPORTS}
+forget_stale_jit_cache()
 for _name, (_dtypes, _) in EXPORTS.items():
-    globals()[_name] = _exported(_name, getattr(_COMPILED, _name) if _COMPILED else globals()[_name], _dtypes)
+    globals()[_name] = _exported(_name, getattr(COMPILED, _name) if COMPILED else globals()[_name], _dtypes)
 
 
 def build_compiled() -> Path:

@@ -49,9 +49,9 @@ class State:
     positions_m : (n, 3) node positions; chamber_volumes_m3 : (n_chambers,); gland_volume_m3 : volume enclosed
     by the outer boundary; iterations : Newton iterations over all load steps; solve_time_s : wall time;
     pressures_pa : (n_chambers,) the gauge pressures solved for; formulation : "corotational", "linear",
-    "neo_hookean" or "gent"; load_steps : the accepted load (or volume) steps; load_positions_m : (n, 3) or None,
-    for the linear formulation the configuration its (dead) pressure load was taken on when that was not the
-    rest shape (None: rest); body_force_n_per_m3 : (3,) the body force (gravity) it was solved under (N/m^3).
+    "neo_hookean", "gent" or "yeoh"; load_steps : the accepted load (or volume) steps; load_positions_m : (n, 3)
+    or None, for the linear formulation the configuration its (dead) pressure load was taken on when that was not
+    the rest shape (None: rest); body_force_n_per_m3 : (3,) the body force (gravity) it was solved under (N/m^3).
     """
 
     positions_m: FloatArray
@@ -140,17 +140,22 @@ class PhantomModel:
         return cls(mesh, surfaces, scene.chambers, scene.material, source, scene=scene, mesh_size_mm=mesh_size_mm)
 
     def with_material(self, youngs_modulus_pa: float | None = None, poisson_ratio: float | None = None,
-                      model: str | None = None, gent_jm: float | None = None) -> PhantomModel:
+                      model: str | None = None, gent_jm: float | None = None,
+                      yeoh_c20_over_c10: float | None = None, yeoh_c30_over_c10: float | None = None) -> PhantomModel:
         """The same mesh, fixation and scene settings with another material (modulus in Pa; ``gent_jm`` for
-        model "gent", kept from the current material when not given)."""
+        model "gent", the ``yeoh_*`` coefficients for "yeoh", each kept from the current material when not
+        given)."""
         model = model or self.material.model
         if gent_jm is None and model == "gent":
             gent_jm = self.material.gent_jm
+        yeoh = (self.material.yeoh_c20_over_c10 if yeoh_c20_over_c10 is None else float(yeoh_c20_over_c10),
+                self.material.yeoh_c30_over_c10 if yeoh_c30_over_c10 is None else float(yeoh_c30_over_c10))
         material = Material(
             model,
             self.material.youngs_modulus_pa if youngs_modulus_pa is None else float(youngs_modulus_pa),
             self.material.poisson_ratio if poisson_ratio is None else float(poisson_ratio),
             None if model != "gent" or gent_jm is None else float(gent_jm),
+            *(yeoh if model == "yeoh" else (None, None)),
         )
         scene = None if self.scene is None else dataclasses.replace(self.scene, material=material)
         return PhantomModel(self.mesh, self.body.surfaces, self.chamber_names, material, self.source,
@@ -219,7 +224,7 @@ class PhantomModel:
         """The assembled tangent (N/m, CSR; held dofs replaced by scaled identity rows) at ``positions_m``
         (default: rest).
 
-        "linear": the small-strain stiffness; "corotational", "neo_hookean", "gent": the exact Hessian of the total
+        "linear": the small-strain stiffness; "corotational" and the hyperelastic laws: the exact Hessian of the total
         energy, with the follower-load stiffness of ``pressures_pa`` when given.
         """
         pressures = None if pressures_pa is None else self._check_pressures(pressures_pa)
@@ -251,7 +256,8 @@ class PhantomModel:
         formulation = formulation or self.formulation
         if formulation not in FORMULATIONS:
             raise SolveError(f"unknown formulation {formulation!r}: use one of {', '.join(FORMULATIONS)}")
-        self.body.inverse_jm(formulation)
+        if formulation in HYPERELASTIC_MODELS:
+            self.body.law(formulation)  # SolveError for a law whose coefficients the material lacks
         start = self.nodes_m.copy() if start_m is None else np.array(start_m, float)
         if start.shape != self.nodes_m.shape or not np.all(np.isfinite(start)):
             raise SolveError(f"initial_positions_m must be a finite array of shape {self.nodes_m.shape}")

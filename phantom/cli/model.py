@@ -37,8 +37,11 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                               "converged: the deformed mesh to take into planning)")
     forward.add_argument("--pressures-kpa", required=True,
                          help="comma-separated gauge pressures in kPa, one per chamber, e.g. 1,1,1")
-    forward.add_argument("--formulation", choices=("corotational", "linear", "neo_hookean", "gent"), default=None,
-                         help="override the scene's material model (gent needs the scene's gent_jm)")
+    # phantom.model.scene.MATERIAL_MODELS spelled out: importing the model for the parser would cost every CLI call
+    forward.add_argument("--formulation", choices=("corotational", "linear", "neo_hookean", "gent", "yeoh"),
+                         default=None,
+                         help="override the scene's material model (gent needs the scene's gent_jm, yeoh its "
+                              "yeoh_c20_over_c10 and yeoh_c30_over_c10)")
     forward.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     forward.add_argument("--out", default=None,
                          help="also write the deformed tetrahedral mesh (same nodes and groups as `phantom mesh`, "

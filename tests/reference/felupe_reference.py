@@ -40,15 +40,34 @@ def _volume_load_and_stiffness(positions_m, triangles, n_dofs):
     return gradient.ravel(), hessian
 
 
-def felupe_solid(model):
-    """FElupe's Neo-Hookean solid on the model's mesh and material: ``(solid, field)``."""
+def felupe_solid(model, umat=None):
+    """FElupe's solid on the model's 4-node mesh: ``(solid, field)``; its law ``umat``, by default FElupe's
+    Neo-Hookean of the model's material."""
     import felupe as fem
 
     mesh = fem.Mesh(model.nodes_m.copy(), model.tets.copy(), "tetra")
     field = fem.FieldContainer([fem.Field(fem.RegionTetra(mesh), dim=3)])
     material = model.material
-    umat = fem.NeoHookeCompressible(mu=material.lame_mu_pa, lmbda=material.lame_lambda_pa)
+    if umat is None:
+        umat = fem.NeoHookeCompressible(mu=material.lame_mu_pa, lmbda=material.lame_lambda_pa)
     return fem.SolidBody(umat, field), field
+
+
+def felupe_compressible_yeoh(material):
+    """The model's 4-node Yeoh law, ``W = C10 (I1 - 3) + C20 (I1 - 3)^2 + C30 (I1 - 3)^3 - mu ln J + lambda/2
+    (ln J)^2`` (``I1 = tr C``, not FElupe's isochoric one), as a FElupe material whose stress and elasticity
+    tensortrax differentiates automatically from this energy alone."""
+    import felupe.constitution.tensortrax as mat
+    import tensortrax.math as tm
+
+    def energy(C, C10, C20, C30, mu, lmbda):
+        shifted = tm.trace(C) - 3
+        log_j = tm.log(tm.linalg.det(C)) / 2
+        return C10 * shifted + C20 * shifted**2 + C30 * shifted**3 - mu * log_j + lmbda / 2 * log_j**2
+
+    c10 = material.lame_mu_pa / 2
+    return mat.Hyperelastic(energy, C10=c10, C20=material.yeoh_c20_over_c10 * c10,
+                            C30=material.yeoh_c30_over_c10 * c10, mu=material.lame_mu_pa, lmbda=material.lame_lambda_pa)
 
 
 def felupe_forces(model, positions_m) -> np.ndarray:
@@ -94,10 +113,10 @@ def felupe_solve(model, pressures_pa, load_steps: int = 4, tolerance: float = 1e
     return model.nodes_m + field[0].values
 
 
-def _mixed_solid(model):
-    """FElupe's P2/P1 mixed Neo-Hookean solid on the model's 10-node mesh: ``(solid, field, nodes, renumbered)``,
-    the nodes (m) in FElupe's order (its dual mesh takes the first points as the corners, so the corners are
-    numbered first) and ``renumbered``, each model node's index in it."""
+def _tetra10_mesh(model):
+    """The model's 10-node mesh as FElupe's: ``(mesh, nodes, renumbered)``, the nodes (m) in FElupe's order (its
+    dual mesh takes the first points as the corners, so the corners are numbered first) and ``renumbered``, each
+    model node's index in it."""
     import felupe as fem
 
     nodes_m, tets = model.nodes_m, model.tets
@@ -106,7 +125,15 @@ def _mixed_solid(model):
     renumbered = np.empty(len(nodes_m), np.int64)
     renumbered[order] = np.arange(len(nodes_m))
     nodes = nodes_m[order]
-    mesh = fem.Mesh(nodes.copy(), renumbered[tets], "tetra10")
+    return fem.Mesh(nodes.copy(), renumbered[tets], "tetra10"), nodes, renumbered
+
+
+def _mixed_solid(model):
+    """FElupe's P2/P1 mixed Neo-Hookean solid on the model's 10-node mesh: ``(solid, field, nodes, renumbered)``
+    (see :func:`_tetra10_mesh`)."""
+    import felupe as fem
+
+    mesh, nodes, renumbered = _tetra10_mesh(model)
     field = fem.FieldsMixed(fem.RegionQuadraticTetra(mesh), n=3)
     material = model.material
     solid = fem.SolidBody(fem.ThreeFieldVariation(fem.NeoHooke(mu=material.lame_mu_pa, bulk=material.bulk_modulus_pa)),
@@ -177,3 +204,40 @@ def felupe_mixed_dead_load(model, forces_n, load_steps=4, tolerance=1e-10, max_i
         _mixed_newton(solid, field, held, load_factor * load, tolerance, max_iterations,
                       f"at load factor {load_factor:g}")
     return (nodes + field[0].values)[renumbered]
+
+
+def felupe_yeoh(material):
+    """FElupe's own Yeoh law (``felupe.constitution.tensortrax.models.hyperelastic.yeoh``, ``W = C10 (I1bar - 3)
+    + C20 (I1bar - 3)^2 + C30 (I1bar - 3)^3``, derivatives by tensortrax's automatic differentiation) with the
+    model material's coefficients: ``C10 = mu / 2`` and its C20 / C10, C30 / C10."""
+    import felupe.constitution.tensortrax as mat
+
+    c10 = material.lame_mu_pa / 2
+    return mat.Hyperelastic(mat.models.hyperelastic.yeoh, C10=c10, C20=material.yeoh_c20_over_c10 * c10,
+                            C30=material.yeoh_c30_over_c10 * c10)
+
+
+def felupe_nearly_incompressible_equilibrium(model, umat, forces_n, start_m, tolerance=1e-10, max_iterations=30):
+    """FElupe's equilibrium of the model's 10-node mesh under the dead nodal load ``forces_n`` (N, (n, 3), the
+    model's node order), the model's held dofs held: ``(positions (n, 3) m in the model's order, the relative
+    residual at start_m)``.
+
+    The solid is FElupe's ``SolidBodyNearlyIncompressible``: the distortional energy of ``umat`` and ``K/2 (Jbar -
+    1)^2`` on cell-wise constant pressure and volume ratio ``Jbar = v / V`` (the model's P2/P0 mixed formulation,
+    written independently; FElupe's quadrature of ``v`` is its degree-2 rule, the model's the exact degree-3 one).
+    Newton on FElupe's assembly starts from ``start_m`` (its Newton has no line search: from rest it does not
+    reach large strains) and stops at ``tolerance`` of the load.
+    """
+    import felupe as fem
+
+    mesh, nodes, renumbered = _tetra10_mesh(model)
+    field = fem.FieldContainer([fem.Field(fem.RegionQuadraticTetra(mesh), dim=3)])
+    solid = fem.SolidBodyNearlyIncompressible(umat, field, bulk=model.material.bulk_modulus_pa)
+    held_dofs = np.asarray(model.held_dofs)
+    held = np.zeros(nodes.size, bool)
+    held[3 * renumbered[held_dofs // 3] + held_dofs % 3] = True
+    load = np.asarray(forces_n)[np.argsort(renumbered)].ravel()
+    field[0].values[:] = np.asarray(start_m)[np.argsort(renumbered)] - nodes
+    start_residual = np.asarray(solid.assemble.vector(field).todense()).ravel() - load
+    _mixed_newton(solid, field, held, load, tolerance, max_iterations, "from the start given")
+    return (nodes + field[0].values)[renumbered], np.linalg.norm(start_residual[~held]) / np.linalg.norm(load)
