@@ -17,6 +17,7 @@ from phantom.model.fidelity.response_table import (
     SHIPPED_MODES_TOLERANCE_M,
     SHIPPED_NODE_TOLERANCE_M,
     ResponseTableError,
+    _predecessor,
     build_response_table,
     build_table_shapes,
     grid_pa,
@@ -132,7 +133,7 @@ def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, 
 def test_a_model_that_has_factorised_with_cholmod_still_goes_to_a_worker_process(model, monkeypatch, tmp_path):
     # The table sends its model to worker processes; CHOLMOD's symbolic analysis, which the body keeps after its
     # first factorisation, and a rest factor made in this process (an empty cache, as on a fresh machine) cannot
-    # be pickled (the slab test below failed on a clean clone).
+    # be pickled (the Dask test below failed on a clean clone).
     import pickle
 
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
@@ -146,11 +147,81 @@ def test_a_model_that_has_factorised_with_cholmod_still_goes_to_a_worker_process
 
 
 @pytest.mark.slow
-def test_slabs_on_worker_processes_give_the_same_table(model, table):
-    # each slab's solves are the same wherever it runs (the slab's first point from rest, then neighbours)
-    parallel = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, workers=2)
-    np.testing.assert_allclose(parallel.position_values, table.position_values, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(parallel.gland_values, table.gland_values, rtol=1e-12)
+def test_points_as_dask_tasks_give_the_same_table(model, table, dask_scheduler, monkeypatch, tmp_path):
+    # each point is solved from the same neighbour wherever it runs: the same table as in this process
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    spread = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, scheduler=dask_scheduler)
+    np.testing.assert_allclose(spread.position_values, table.position_values, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(spread.gland_values, table.gland_values, rtol=1e-12)
+    assert spread.check_errors_pct == pytest.approx(table.check_errors_pct, rel=1e-9)
+    assert not list(tmp_path.glob("response/*.points"))  # the solved points are dropped once the table is whole
+
+
+def test_each_point_starts_from_a_neighbour_one_step_down_its_grid_line():
+    assert _predecessor((0, 0, 0)) is None
+    assert _predecessor((2, 0, 0)) == (1, 0, 0)
+    assert _predecessor((2, 3, 0)) == (2, 2, 0)
+    assert _predecessor((2, 3, 1)) == (2, 3, 0)
+    assert _predecessor((0, 0, 4)) == (0, 0, 3)
+    # every point reaches the origin, in at most n_chambers (n - 1) steps: the build's critical path
+    for index in np.ndindex(5, 5, 5):
+        steps = 0
+        while index is not None:
+            index, steps = _predecessor(index), steps + 1
+        assert steps - 1 <= 3 * 4
+
+
+class _Killed(Exception):
+    pass
+
+
+def test_a_killed_build_resumes_from_the_points_it_solved(model, monkeypatch, tmp_path):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    whole = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1)
+
+    def kill_at_ten(done, total):
+        if done == 10:
+            raise _Killed
+
+    with pytest.raises(_Killed):
+        build_response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1, progress=kill_at_ten)
+    folder, = (tmp_path / "response").glob("*.points")
+    assert len(list(folder.glob("point-*.npz"))) == 9  # the origin is the model at rest: no file, no solve
+    (folder / "point-0-0-2.npz").write_bytes(b"half a file")  # damaged: solved again
+    solves = counted_solves(model, monkeypatch)
+    reported = []
+    resumed = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1,
+                                   progress=lambda *done: reported.append(done))
+    assert reported[0] == (9, 27 + 4) and reported[-1] == (27 + 4, 27 + 4)
+    assert len(solves) == 27 - 9 + 4  # the points not stored (one damaged), and the checks
+    np.testing.assert_allclose(resumed.position_values, whole.position_values, rtol=0, atol=1e-12)
+    assert not folder.exists()
+
+
+@pytest.mark.slow
+def test_a_worker_lost_mid_build_is_retried_not_fatal(model, table, monkeypatch, tmp_path):
+    import os
+    import signal
+
+    from phantom.model.cluster import local_cluster
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    cluster = local_cluster(2)
+    killed = []
+
+    def kill_a_worker(done, total):
+        if done == 8 and not killed:  # the grid lines have branched: both workers hold tasks and results
+            process = next(iter(cluster.workers.values())).process.process
+            killed.append(process.pid)
+            os.kill(process.pid, signal.SIGKILL)
+
+    try:
+        rebuilt = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, progress=kill_a_worker,
+                                       scheduler=cluster.scheduler_address)
+    finally:
+        cluster.close()
+    assert killed
+    np.testing.assert_allclose(rebuilt.position_values, table.position_values, rtol=0, atol=1e-12)
 
 
 @pytest.mark.slow

@@ -126,7 +126,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     from phantom import PhantomError
     from phantom.model.calibration.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
-    from phantom.model.calibration.sweep import stderr_progress
+    from phantom.model.cluster import stderr_progress
 
     if not args.measurements:
         raise PhantomError("phantom calibrate needs --measurements CSV (or use 'phantom calibrate record' to "

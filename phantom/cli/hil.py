@@ -259,7 +259,7 @@ def _run_plant(args: argparse.Namespace) -> int:
         raise PhantomError("give --from-scene, --truth-from-scene or both")
     path = args.plant or plant.DEFAULT_PLANT_PATH
     if args.truth_from_scene:
-        from phantom.model.calibration.sweep import stderr_progress
+        from phantom.model.cluster import stderr_progress
 
         factor = plant.TRUTH_MODULUS_FACTOR if args.truth_modulus_factor is None else args.truth_modulus_factor
         table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.workers,
