@@ -452,3 +452,73 @@ def test_shipped_shapes_of_another_mesh_are_solved_and_of_another_model_refused(
     np.savez(path, **{key: value for key, value in fields.items() if key != "modes_m"})
     with pytest.raises(ResponseTableError, match=r"cannot be read \(no 'modes_m'\)"):
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
+
+
+# --- the build as a command, and the truth plant's build, on a LocalCluster ------------------------------------
+
+def _coarse_scene(tmp_path, table_points):
+    """The built-in scene on the coarse mesh with a ``table_points`` grid, as a file."""
+    scene_path = tmp_path / "coarse.toml"
+    scene_path.write_text(load_scene("builtin").path.read_text().replace(
+        "accuracy_pct = 10.0", f"table_points = {table_points}\naccuracy_pct = 10.0")
+        + f"\n[geometry]\nmesh_size_mm = {COARSE_MM}\n")
+    return scene_path
+
+
+@pytest.mark.slow
+def test_phantom_model_table_writes_the_volumes_and_the_shapes_of_one_pass_on_a_cluster(tmp_path, monkeypatch,
+                                                                                      dask_scheduler, capsys):
+    from phantom.cli import main as cli
+    from phantom.model.fidelity.response_table import shipped_table_shapes, shipped_table_volumes
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    scene_path = _coarse_scene(tmp_path, 4)  # 4 points per axis: the shipped shapes' grid is the table's
+    assert cli.main(["model", "table", str(scene_path), "--out", str(tmp_path / "out" / "volumes.npz"),
+                     "--shapes-out", str(tmp_path / "out" / "shapes.npz"), "--scheduler", dask_scheduler]) == 0
+    printed = capsys.readouterr()
+    assert "wrote" in printed.out and "4^3 points" in printed.out
+    # one build: the table's 64 points and checks; the shapes only their checks, which no bar counts
+    assert "shapes: full solves" not in printed.err and "68/68" in printed.err.replace("\r", "\n")
+    shipping = tmp_path / "shipping.toml"
+    shipping.write_text(scene_path.read_text().replace(
+        "table_points = 4", 'table_points = 4\ntable_volumes = "out/volumes.npz"\ntable_shapes = "out/shapes.npz"'))
+    model = PhantomModel.from_scene(load_scene(shipping))
+    volumes = shipped_table_volumes(model, PRESSURE_MAX_PA, 4)
+    shapes = shipped_table_shapes(model, PRESSURE_MAX_PA)
+    assert volumes is not None and shapes is not None and shapes.table.points_per_axis == 4
+    state = model.equilibrium(OFF_GRID_PA[0])
+    assert volumes.volumes(OFF_GRID_PA[0])[1] == pytest.approx(state.gland_volume_m3, rel=5e-3)
+    np.testing.assert_allclose(shapes.table.gland_values, volumes.gland_values, rtol=1e-12)  # the same solves
+
+
+def test_phantom_model_table_refuses_a_command_that_writes_nothing_or_has_no_worker(tmp_path, capsys):
+    from phantom.cli import main as cli
+
+    assert cli.main(["model", "table", "builtin"]) == 2
+    assert "needs --out, --shapes-out or both" in capsys.readouterr().err
+    assert cli.main(["model", "table", "builtin", "--out", str(tmp_path / "v.npz"), "--workers", "0"]) == 2
+    assert "--workers must be at least 1, got 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: one of the two
+        cli.main(["model", "table", "builtin", "--out", "v.npz", "--workers", "2", "--scheduler", "tcp://x:1"])
+
+
+@pytest.mark.slow
+def test_the_truth_plants_table_is_built_on_the_configured_cluster(tmp_path, monkeypatch, dask_scheduler):
+    import dask
+    from dask.distributed import Client, get_task_stream
+
+    from phantom.hil.plant import TRUTH_POINTS_KPA, truth_table_from_scene
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    scene_path = _coarse_scene(tmp_path, 4)
+    with (Client(dask_scheduler) as client, get_task_stream(client) as tasks,
+          dask.config.set({"scheduler-address": dask_scheduler})):
+        truth = truth_table_from_scene(scene_path, modulus_factor=1.5)
+    n = len(TRUTH_POINTS_KPA)
+    assert sum(str(task["key"]).startswith("table-point") for task in tasks.data) >= n**3 - 1  # retries count too
+    pressures_kpa = np.array([TRUTH_POINTS_KPA[-1], TRUTH_POINTS_KPA[1], TRUTH_POINTS_KPA[2]])
+    scaled = PhantomModel.from_scene(load_scene(scene_path))
+    # the truth is the scene at 1.5 x E: its state at p is the scene's at p / 1.5 (the stiffness scales with E)
+    state = scaled.equilibrium(1e3 * pressures_kpa / 1.5)
+    index = (n - 1, 1, 2)
+    assert truth.gland_volume_ml[index] == pytest.approx(1e6 * state.gland_volume_m3, rel=1e-6)
