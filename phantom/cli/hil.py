@@ -81,6 +81,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                        "uncertainty, TRUTH_MODULUS_FACTOR in hil/plant.py)")
     plant.add_argument("--workers", type=int, metavar="N", help="--truth-from-scene: worker processes "
                        "(default: one per core, at most 4)")
+    plant.add_argument("--scheduler", metavar="ADDRESS", help="--truth-from-scene: address of a running Dask "
+                       "scheduler (tcp://HOST:8786) to run the solves on, instead of --workers on this machine")
     plant.add_argument("--plant", metavar="FILE", help="the plant file to rewrite (default hil/plant.toml)")
     plant.add_argument("--mesh-size-mm", type=float, metavar="MM",
                        help="--from-scene: mesh size of the built-in mesh (default: the model's)")
@@ -252,12 +254,20 @@ def _run_cycles(args: argparse.Namespace) -> int:
 
 
 def _run_plant(args: argparse.Namespace) -> int:
-    from phantom import PhantomError
+    from phantom import PhantomError, require_extra
     from phantom.hil import plant
 
     if not args.from_scene and not args.truth_from_scene:
         raise PhantomError("give --from-scene, --truth-from-scene or both")
     path = args.plant or plant.DEFAULT_PLANT_PATH
+    if args.scheduler:
+        if args.workers is not None:
+            raise PhantomError("give --workers (this machine) or --scheduler (a cluster), not both")
+        with require_extra("calibrate"):
+            import dask
+
+        # the truth's build (the response table's) runs where Dask's scheduler-address says
+        dask.config.set({"scheduler-address": args.scheduler})
     if args.truth_from_scene:
         from phantom.model.cluster import stderr_progress
 
