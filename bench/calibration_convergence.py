@@ -42,7 +42,7 @@ def main() -> int:
     args = parser.parse_args()
 
     from phantom.model.calibration.calibrate import calibrate, load_measurements, parse_grid, scene_with
-    from phantom.model.calibration.sweep import stderr_progress
+    from phantom.model.cluster import stderr_progress
     from phantom.model.fem.model import PhantomModel
     from phantom.model.scene import load_scene, scene_from_dict
 

@@ -27,7 +27,8 @@ def main() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     import phantom
     from phantom.model import PhantomModel
-    from phantom.model.calibration.sweep import RayTask, local_cluster, run_sweep, trace_ray
+    from phantom.model.calibration.sweep import RayTask, run_sweep, trace_ray
+    from phantom.model.cluster import local_cluster
     from phantom.model.scene import scene_from_dict
 
     raw = {"phantom": {"mesh": "builtin:prostate", "units": "mm", "chambers": ["chamber0", "chamber1", "chamber2"],

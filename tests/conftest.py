@@ -43,6 +43,17 @@ def _no_long_collections_during_a_simulated_board(request: pytest.FixtureRequest
 
 
 @pytest.fixture(scope="session")
+def dask_scheduler() -> Iterator[str]:
+    """The address of a two-worker LocalCluster, shared by the tests that spread solves on Dask (starting one
+    takes seconds)."""
+    from phantom.model.cluster import local_cluster
+
+    cluster = local_cluster(2)
+    yield cluster.scheduler_address
+    cluster.close()
+
+
+@pytest.fixture(scope="session")
 def calibrated_response_table():
     """The response table of ``builtin:calibrated`` (the coarse 4-node fit), for the tests that run on it. Built
     here when the cache has none (a minute or two on two cores, once per machine); the other workers wait for it

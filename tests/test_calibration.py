@@ -27,16 +27,6 @@ from phantom.model.calibration.calibrate import (
     write_calibrated_scene,
 )
 
-
-@pytest.fixture(scope="module")
-def dask_scheduler():
-    from phantom.model.calibration.sweep import local_cluster
-
-    cluster = local_cluster(2)
-    yield cluster.scheduler_address
-    cluster.close()
-
-
 MEASUREMENTS = Path(__file__).resolve().parent.parent / "model" / "data" / "forward_measurements.csv"
 
 

@@ -198,7 +198,7 @@ def test_a_scan_without_trimesh(monkeypatch, tmp_path):
 
 
 def test_a_sweep_without_dask(monkeypatch):
-    from phantom.model.calibration.sweep import local_cluster
+    from phantom.model.cluster import local_cluster
 
     hide(monkeypatch, "dask")
     with pytest.raises(MissingExtraError) as error:

@@ -17,6 +17,7 @@ from phantom.model.fidelity.response_table import (
     SHIPPED_MODES_TOLERANCE_M,
     SHIPPED_NODE_TOLERANCE_M,
     ResponseTableError,
+    _predecessor,
     build_response_table,
     build_table_shapes,
     grid_pa,
@@ -132,7 +133,7 @@ def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, 
 def test_a_model_that_has_factorised_with_cholmod_still_goes_to_a_worker_process(model, monkeypatch, tmp_path):
     # The table sends its model to worker processes; CHOLMOD's symbolic analysis, which the body keeps after its
     # first factorisation, and a rest factor made in this process (an empty cache, as on a fresh machine) cannot
-    # be pickled (the slab test below failed on a clean clone).
+    # be pickled (the Dask test below failed on a clean clone).
     import pickle
 
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
@@ -146,11 +147,81 @@ def test_a_model_that_has_factorised_with_cholmod_still_goes_to_a_worker_process
 
 
 @pytest.mark.slow
-def test_slabs_on_worker_processes_give_the_same_table(model, table):
-    # each slab's solves are the same wherever it runs (the slab's first point from rest, then neighbours)
-    parallel = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, workers=2)
-    np.testing.assert_allclose(parallel.position_values, table.position_values, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(parallel.gland_values, table.gland_values, rtol=1e-12)
+def test_points_as_dask_tasks_give_the_same_table(model, table, dask_scheduler, monkeypatch, tmp_path):
+    # each point is solved from the same neighbour wherever it runs: the same table as in this process
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    spread = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, scheduler=dask_scheduler)
+    np.testing.assert_allclose(spread.position_values, table.position_values, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(spread.gland_values, table.gland_values, rtol=1e-12)
+    assert spread.check_errors_pct == pytest.approx(table.check_errors_pct, rel=1e-9)
+    assert not list(tmp_path.glob("response/*.points"))  # the solved points are dropped once the table is whole
+
+
+def test_each_point_starts_from_a_neighbour_one_step_down_its_grid_line():
+    assert _predecessor((0, 0, 0)) is None
+    assert _predecessor((2, 0, 0)) == (1, 0, 0)
+    assert _predecessor((2, 3, 0)) == (2, 2, 0)
+    assert _predecessor((2, 3, 1)) == (2, 3, 0)
+    assert _predecessor((0, 0, 4)) == (0, 0, 3)
+    # every point reaches the origin, in at most n_chambers (n - 1) steps: the build's critical path
+    for index in np.ndindex(5, 5, 5):
+        steps = 0
+        while index is not None:
+            index, steps = _predecessor(index), steps + 1
+        assert steps - 1 <= 3 * 4
+
+
+class _Killed(Exception):
+    pass
+
+
+def test_a_killed_build_resumes_from_the_points_it_solved(model, monkeypatch, tmp_path):
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    whole = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1)
+
+    def kill_at_ten(done, total):
+        if done == 10:
+            raise _Killed
+
+    with pytest.raises(_Killed):
+        build_response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1, progress=kill_at_ten)
+    folder, = (tmp_path / "response").glob("*.points")
+    assert len(list(folder.glob("point-*.npz"))) == 9  # the origin is the model at rest: no file, no solve
+    (folder / "point-0-0-2.npz").write_bytes(b"half a file")  # damaged: solved again
+    solves = counted_solves(model, monkeypatch)
+    reported = []
+    resumed = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1,
+                                   progress=lambda *done: reported.append(done))
+    assert reported[0] == (9, 27 + 4) and reported[-1] == (27 + 4, 27 + 4)
+    assert len(solves) == 27 - 9 + 4  # the points not stored (one damaged), and the checks
+    np.testing.assert_allclose(resumed.position_values, whole.position_values, rtol=0, atol=1e-12)
+    assert not folder.exists()
+
+
+@pytest.mark.slow
+def test_a_worker_lost_mid_build_is_retried_not_fatal(model, table, monkeypatch, tmp_path):
+    import os
+    import signal
+
+    from phantom.model.cluster import local_cluster
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    cluster = local_cluster(2)
+    killed = []
+
+    def kill_a_worker(done, total):
+        if done == 8 and not killed:  # the grid lines have branched: both workers hold tasks and results
+            process = next(iter(cluster.workers.values())).process.process
+            killed.append(process.pid)
+            os.kill(process.pid, signal.SIGKILL)
+
+    try:
+        rebuilt = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=4, progress=kill_a_worker,
+                                       scheduler=cluster.scheduler_address)
+    finally:
+        cluster.close()
+    assert killed
+    np.testing.assert_allclose(rebuilt.position_values, table.position_values, rtol=0, atol=1e-12)
 
 
 @pytest.mark.slow
@@ -381,3 +452,84 @@ def test_shipped_shapes_of_another_mesh_are_solved_and_of_another_model_refused(
     np.savez(path, **{key: value for key, value in fields.items() if key != "modes_m"})
     with pytest.raises(SceneError, match=r"is damaged \(it has no array 'modes_m'\)"):
         VolumeEstimator(PhantomModel.from_scene(scene, mesh_size_mm=COARSE_MM))
+
+
+# --- the build as a command, and the truth plant's build, on a LocalCluster ------------------------------------
+
+def _coarse_scene(tmp_path, table_points):
+    """The built-in scene on the coarse mesh with a ``table_points`` grid, as a file."""
+    scene_path = tmp_path / "coarse.toml"
+    scene_path.write_text(load_scene("builtin").path.read_text().replace(
+        "accuracy_pct = 10.0", f"table_points = {table_points}\naccuracy_pct = 10.0")
+        + f"\n[geometry]\nmesh_size_mm = {COARSE_MM}\n")
+    return scene_path
+
+
+@pytest.mark.slow
+def test_phantom_model_table_writes_the_volumes_and_the_shapes_of_one_pass_on_a_cluster(tmp_path, monkeypatch,
+                                                                                      dask_scheduler, capsys):
+    from phantom.cli import main as cli
+    from phantom.model.fidelity.response_table import shipped_table_shapes, shipped_table_volumes
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    scene_path = _coarse_scene(tmp_path, 4)  # 4 points per axis: the shipped shapes' grid is the table's
+    assert cli.main(["model", "table", str(scene_path), "--out", str(tmp_path / "out" / "volumes.npz"),
+                     "--shapes-out", str(tmp_path / "out" / "shapes.npz"), "--scheduler", dask_scheduler]) == 0
+    printed = capsys.readouterr()
+    assert "wrote" in printed.out and "4^3 points" in printed.out
+    # one build: the table's 64 points and checks; the shapes only their checks, which no bar counts
+    assert "shapes: full solves" not in printed.err and "68/68" in printed.err.replace("\r", "\n")
+    shipping = tmp_path / "shipping.toml"
+    shipping.write_text(scene_path.read_text().replace(
+        "table_points = 4", 'table_points = 4\ntable_volumes = "out/volumes.npz"\ntable_shapes = "out/shapes.npz"'))
+    model = PhantomModel.from_scene(load_scene(shipping))
+    volumes = shipped_table_volumes(model, PRESSURE_MAX_PA, 4)
+    shapes = shipped_table_shapes(model, PRESSURE_MAX_PA)
+    assert volumes is not None and shapes is not None and shapes.table.points_per_axis == 4
+    state = model.equilibrium(OFF_GRID_PA[0])
+    assert volumes.volumes(OFF_GRID_PA[0])[1] == pytest.approx(state.gland_volume_m3, rel=5e-3)
+    np.testing.assert_allclose(shapes.table.gland_values, volumes.gland_values, rtol=1e-12)  # the same solves
+
+
+def test_phantom_model_table_refuses_a_command_that_writes_nothing_or_has_no_worker(tmp_path, capsys):
+    from phantom.cli import main as cli
+
+    assert cli.main(["model", "table", "builtin"]) == 2
+    assert "needs --out, --shapes-out or both" in capsys.readouterr().err
+    assert cli.main(["model", "table", "builtin", "--out", str(tmp_path / "v.npz"), "--workers", "0"]) == 2
+    assert "--workers must be at least 1, got 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # argparse: one of the two
+        cli.main(["model", "table", "builtin", "--out", "v.npz", "--workers", "2", "--scheduler", "tcp://x:1"])
+
+
+@pytest.mark.slow
+def test_phantom_hil_plant_builds_the_truth_on_the_cluster_at_scheduler(tmp_path, monkeypatch, dask_scheduler):
+    import shutil
+
+    import dask
+    from dask.distributed import Client, get_task_stream
+
+    from phantom.cli import main as cli
+    from phantom.hil.plant import DEFAULT_PLANT_PATH, TRUTH_POINTS_KPA, WRITTEN_DIGITS, load_plant
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+    scene_path = _coarse_scene(tmp_path, 4)
+    plant_path = tmp_path / "plant.toml"
+    shutil.copy(DEFAULT_PLANT_PATH, plant_path)
+    assert cli.main(["hil", "plant", "--truth-from-scene", str(scene_path), "--truth-modulus-factor", "1.5",
+                     "--scheduler", "tcp://x:1", "--workers", "2", "--plant", str(plant_path)]) == 2
+    # the command sets Dask's scheduler-address for its process; here it is put back after
+    with (Client(dask_scheduler) as client, get_task_stream(client) as tasks,
+          dask.config.set({"scheduler-address": None})):
+        assert cli.main(["hil", "plant", "--truth-from-scene", str(scene_path), "--truth-modulus-factor", "1.5",
+                         "--scheduler", dask_scheduler, "--plant", str(plant_path)]) == 0
+    n = len(TRUTH_POINTS_KPA)
+    assert sum(str(task["key"]).startswith("table-point") for task in tasks.data) >= n**3 - 1  # retries count too
+    truth = load_plant(plant_path)
+    # the truth is the scene at 1.5 x E: its state at p is the scene's at p / 1.5 (the stiffness scales with E)
+    pressures_kpa = np.array([TRUTH_POINTS_KPA[-1], TRUTH_POINTS_KPA[1], TRUTH_POINTS_KPA[2]])
+    state = PhantomModel.from_scene(load_scene(scene_path)).equilibrium(1e3 * pressures_kpa / 1.5)
+    assert truth.truth_gland_volume_m3 is not None
+    # to the digits the plant file keeps (WRITTEN_DIGITS significant: half a unit of the last one)
+    assert truth.truth_gland_volume_m3[n - 1, 1, 2] == pytest.approx(state.gland_volume_m3,
+                                                                    rel=0.5 * 10.0 ** (1 - WRITTEN_DIGITS))

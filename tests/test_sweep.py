@@ -5,19 +5,13 @@ import numpy as np
 import pytest
 
 from phantom.model import PhantomModel
-from phantom.model.calibration.sweep import RayTask, SweepError, element_stretch_measures, local_cluster, run_sweep
+from phantom.model.calibration.sweep import RayTask, element_stretch_measures, run_sweep
+from phantom.model.cluster import ClusterError
 
 SCENE_RAW = {"phantom": {"mesh": "builtin:prostate", "units": "mm", "chambers": ["chamber0", "chamber1", "chamber2"],
                          "fixed": "fixed"},
              "material": {"model": "neo_hookean", "youngs_modulus_kpa": 20.0, "poisson_ratio": 0.45},
              "geometry": {"mesh_size_mm": 6.0}}
-
-
-@pytest.fixture(scope="module")
-def dask_scheduler():
-    cluster = local_cluster(2)
-    yield cluster.scheduler_address
-    cluster.close()
 
 
 def test_stretch_measures_of_a_homogeneous_deformation_are_exact():
@@ -87,7 +81,7 @@ def test_growth_stops_a_trace_and_a_missing_scheduler_is_one_line(tmp_path, monk
     trace, = run_sweep([task], scheduler=dask_scheduler)
     assert trace.stopped == "growth" and len(trace.load_factors) == 2
     other = RayTask(SCENE_RAW, (1000.0, 0.0, 0.0), (0.0, 1.0))
-    with pytest.raises(SweepError, match="no Dask scheduler answers at tcp://127.0.0.1:9") as raised:
+    with pytest.raises(ClusterError, match="no Dask scheduler answers at tcp://127.0.0.1:9") as raised:
         run_sweep([other], scheduler="tcp://127.0.0.1:9")
     assert "\n" not in str(raised.value)
 

@@ -20,15 +20,13 @@ over the same tasks (a leave-one-out refit) re-solves nothing.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
-import logging
 import os
-import sys
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -36,20 +34,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 import phantom
-from phantom import PhantomError, require_extra
+from phantom import require_extra
+from phantom.model.cluster import Progress, dask_client
 from phantom.model.errors import SolveError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.scene import scene_from_dict
 
 if TYPE_CHECKING:
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client
 
 #: Bump when what a trace computes changes, so cached traces are recomputed.
 SWEEP_VERSION = 2
-
-
-class SweepError(PhantomError):
-    """A sweep that cannot run: no cluster at the address, a task that is malformed."""
 
 
 @dataclass(frozen=True)
@@ -188,34 +183,8 @@ def store_trace(task: RayTask, trace: RayTrace) -> None:
 
 
 # ------------------------------------------------------------------------------------------ running
-def stderr_progress(label: str) -> Callable[[int, int], None]:
-    """A progress callback that redraws ``label [#####.....] done/total elapsed`` on stderr."""
-    started = time.monotonic()
-
-    def report(done: int, total: int) -> None:
-        width = 30
-        filled = int(width * done / max(total, 1))
-        sys.stderr.write(f"\r{label} [{'#' * filled}{'.' * (width - filled)}] {done}/{total} "
-                         f"{time.monotonic() - started:.0f} s  ")
-        if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
-    return report
-
-
-def local_cluster(n_workers: int | None = None) -> LocalCluster:
-    """A LocalCluster of single-threaded worker processes (default: one per core), quiet, dashboard on a free port."""
-    # dask.distributed (1 s to import, an optional extra) only where a sweep runs
-    with require_extra("calibrate"):
-        from dask.distributed import LocalCluster
-
-    logging.getLogger("distributed").setLevel(logging.ERROR)
-    return LocalCluster(n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                        dashboard_address=":0", silence_logs=logging.ERROR)
-
-
 def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int | None = None,
-              progress: Callable[[int, int], None] | None = None, client: Client | None = None) -> list[RayTrace]:
+              progress: Progress | None = None, client: Client | None = None) -> list[RayTrace]:
     """Every task's trace, in order: cached ones read from disk, the others computed on Dask and stored.
 
     ``client`` (a ``dask.distributed.Client``) is used as given; else ``scheduler`` is the address of a
@@ -231,21 +200,11 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
         return [trace for trace in results if trace is not None]
     # dask.distributed (1 s to import, an optional extra) only where a sweep has traces to solve
     with require_extra("calibrate"):
-        from dask.distributed import Client, as_completed
+        from dask.distributed import as_completed
 
-    cluster = None
-    own_client = client is None
-    if client is None:
-        if scheduler:
-            try:
-                client = Client(scheduler, timeout="5s")
-            except (OSError, TimeoutError) as error:
-                raise SweepError(f"no Dask scheduler answers at {scheduler} ({error}): start one "
-                                 f"(dask scheduler) or leave --scheduler out for a local cluster") from None
-        else:
-            cluster = local_cluster(n_workers)
-            client = Client(cluster)
-    try:
+    with contextlib.ExitStack() as stack:
+        if client is None:
+            client = stack.enter_context(dask_client(scheduler, n_workers))
         futures = {client.submit(trace_ray, tasks[index], key=f"trace-{tasks[index].key}", pure=False): index
                    for index in missing}
         done = total - len(missing)
@@ -257,9 +216,4 @@ def run_sweep(tasks: list[RayTask], scheduler: str | None = None, n_workers: int
             done += 1
             if progress is not None:
                 progress(done, total)
-    finally:
-        if own_client:
-            client.close()
-        if cluster is not None:
-            cluster.close()
     return [trace for trace in results if trace is not None]  # every task has its trace by now

@@ -8,7 +8,8 @@ once on a grid and interpolated by a tensor-product cubic spline:
 
 - grid: ``n`` evenly spaced pressures from 0 to ``p_max`` on each axis (``n^3`` points);
 - values: chamber and gland volumes (m^3) and every node's position (m), from full solves, each started from
-  its neighbour on the grid (a few Newton iterations), one slab of the first chamber's pressure per process;
+  a solved neighbour one step down a grid line (a few Newton iterations), each point a Dask task
+  (:mod:`phantom.model.cluster`) that starts when its neighbour is solved;
 - answers: the not-a-knot cubic spline through the grid along each axis, as a contraction of the grid values
   with each axis's cardinal-spline weights, and its exact gradient (the tangent compliance at the operating
   point), in a fraction of a millisecond; outside the box, the value at the nearest point of the box plus the
@@ -18,9 +19,10 @@ Along chamber 0's axis of the calibrated model (its cavity grows 4.5-fold, with 
 0.5 kPa steps misses a dense set of full solves by 0.007 ml, a polynomial through 7 Chebyshev nodes by 0.03 ml.
 
 Built tables are stored under ``phantom.cache_dir("response")`` by a hash of the model (mesh, material,
-solver) and the grid, so a daemon pays the build (n^3 solves: 2-3 min for n = 7 on one core, divided by the
-cores up to n) once per model and machine. Each build is checked against full solves at
-:data:`CHECK_FRACTIONS`, points between the grid's.
+solver) and the grid, so a daemon pays the build (n^3 solves: 2-3 min for n = 7 on one core for the 4-node
+calibration, divided by the workers down to the longest chain of solves, ``3 (n - 1)``) once per model and
+machine; a build that is killed resumes from the points it solved (kept on disk until the table is whole). Each
+build is checked against full solves at :data:`CHECK_FRACTIONS`, points between the grid's.
 
 A scene whose build costs most of an hour (the 10-node ``builtin:converged``) ships its table's volumes beside
 it (``[model] table_volumes``, :func:`write_table_volumes`: 9 kB compressed, where the nodes' positions take
@@ -39,15 +41,15 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import importlib.util
 import json
 import logging
-import multiprocessing
 import os
+import shutil
 import tempfile
 import time
+import uuid
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -56,8 +58,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 import phantom
-from phantom import PhantomError
+from phantom import PhantomError, require_extra
 from phantom.model.arrays import FloatArray
+from phantom.model.cluster import LocalWorkersError, dask_client
 from phantom.model.errors import SceneError, SolveError
 from phantom.model.fem.body import SOLVER_VERSION
 from phantom.model.fem.model import PhantomModel
@@ -195,94 +198,223 @@ class ResponseTable:
         return self._value(self.position_values, np.asarray(pressures_pa, dtype=float))
 
 
-def _solve_slab(model: PhantomModel, nodes_pa: FloatArray, first: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """The grid points whose first pressure is ``nodes_pa[first]``, in C order, each solved from its neighbour one
-    step down the last raised axis (the slab's first point from rest): chamber volumes, gland volumes and node
-    positions, shaped like the slab. Runs in a worker process of :func:`build_response_table` or in its own."""
-    n, n_chambers = len(nodes_pa), int(model.n_chambers)
-    slab = (n,) * (n_chambers - 1)
-    chambers, gland = np.zeros((*slab, n_chambers)), np.zeros(slab)
-    positions = np.zeros((*slab, *np.shape(model.nodes_m)))
-    warm_start = model.formulation != "linear"  # a small-strain solve takes its load on its start: from rest
-    for index in np.ndindex(*slab):
-        pressures = nodes_pa[[first, *index]]
-        if not np.any(pressures):
-            positions[index], chambers[index], gland[index] = (model.nodes_m, model.rest_chamber_volumes_m3,
-                                                               model.rest_gland_volume_m3)
+def _predecessor(index: tuple[int, ...]) -> tuple[int, ...] | None:
+    """The grid point a point's solve starts from: one step down the last raised axis (None at the origin), so
+    that the grid is walked along its lines, (i, 0, 0) from (i - 1, 0, 0), (i, j, 0) from (i, j - 1, 0) and
+    (i, j, k) from (i, j, k - 1): a tree whose longest branch is ``n_chambers (n - 1)`` solves."""
+    raised = [axis for axis, position in enumerate(index) if position > 0]
+    if not raised:
+        return None
+    return tuple(position - (axis == raised[-1]) for axis, position in enumerate(index))
+
+
+#: One grid point's answer: chamber volumes (m^3), gland volume (m^3), every node's position (m), and the CPU
+#: time its solve took (s; NaN for a point stored by a build that did not record it).
+PointResult = tuple[FloatArray, float, FloatArray, float]
+
+
+def _solve_point(model: PhantomModel, pressures_pa: FloatArray, previous: PointResult | None) -> PointResult:
+    """The equilibrium at ``pressures_pa``, started from ``previous`` (a neighbour's answer; None: from rest; a
+    small-strain solve takes its load on its start, so it always starts from rest). Runs on a Dask worker or
+    in the calling process."""
+    started_cpu_s = time.process_time()
+    warm = previous is not None and model.formulation != "linear"
+    try:
+        state = model.equilibrium(pressures_pa, initial_positions_m=previous[2] if warm and previous else None)
+    except SolveError as error:
+        raise ResponseTableError(
+            f"the model has no equilibrium at {np.round(pressures_pa / 1e3, 3).tolist()} kPa, inside the pressure "
+            f"limit ({error}): lower [model] pressure_max_kpa or stiffen the material") from None
+    return (np.asarray(state.chamber_volumes_m3, float), float(state.gland_volume_m3), state.positions_m,
+            time.process_time() - started_cpu_s)
+
+
+def _points_folder(model: PhantomModel, pressure_max_pa: float, points_per_axis: int) -> Path:
+    """Where a build keeps each solved grid point until the table is whole (what a killed build resumes from)."""
+    return _cache_path(model, pressure_max_pa, points_per_axis).with_suffix(".points")
+
+
+def _point_path(folder: Path, index: tuple[int, ...]) -> Path:
+    return folder / f"point-{'-'.join(str(position) for position in index)}.npz"
+
+
+def _store_point(folder: Path, index: tuple[int, ...], result: PointResult) -> None:
+    """One grid point's answer, written whole or not at all (a kill mid-write leaves no half file)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=folder, suffix=".npz")
+    os.close(handle)
+    np.savez(temporary, chambers=result[0], gland=result[1], positions=result[2], cpu_s=result[3])
+    os.replace(temporary, _point_path(folder, index))
+
+
+def _stored_points(folder: Path, grid: tuple[int, ...], n_nodes: int) -> dict[tuple[int, ...], PointResult]:
+    """The grid points an earlier build of the same table solved (a damaged file is removed and solved again)."""
+    stored: dict[tuple[int, ...], PointResult] = {}
+    for index in np.ndindex(*grid):
+        path = _point_path(folder, index)
+        if not path.is_file():
             continue
-        start_m = None
-        if warm_start and any(index):
-            axis = max(a for a in range(n_chambers - 1) if index[a] > 0)
-            start_m = positions[tuple(i - (a == axis) for a, i in enumerate(index))]
         try:
-            state = model.equilibrium(pressures, initial_positions_m=start_m)
-        except SolveError as error:
-            raise ResponseTableError(
-                f"the model has no equilibrium at {np.round(pressures / 1e3, 3).tolist()} kPa, inside the pressure "
-                f"limit ({error}): lower [model] pressure_max_kpa or stiffen the material") from None
-        positions[index], chambers[index], gland[index] = (state.positions_m, state.chamber_volumes_m3,
-                                                           state.gland_volume_m3)
-    return chambers, gland, positions
+            with np.load(path) as point:
+                result = (np.asarray(point["chambers"], float), float(point["gland"]),
+                          np.asarray(point["positions"], float),
+                          float(point["cpu_s"]) if "cpu_s" in point.files else float("nan"))
+        except (OSError, ValueError, KeyError):
+            path.unlink(missing_ok=True)
+            continue
+        if result[2].shape == (n_nodes, 3):
+            stored[index] = result
+    return stored
+
+
+def _solve_grid(model: PhantomModel, nodes_pa: FloatArray, known: dict[tuple[int, ...], PointResult],
+                folder: Path, progress: Callable[[], None], workers: int, scheduler: str | None) -> None:
+    """Solve every grid point not in ``known`` (which holds the origin), each from its :func:`_predecessor`,
+    storing each in ``folder`` and adding it to ``known`` as it comes; in this process for one worker and no
+    scheduler, else as one Dask task per point (:func:`phantom.model.cluster.dask_client`)."""
+    grid = (len(nodes_pa),) * int(model.n_chambers)
+    origin = (0,) * len(grid)  # from rest: a start at rest would spend a Newton attempt at the full load
+    missing = [index for index in np.ndindex(*grid) if index not in known]  # C order: predecessors first
+    if not missing:
+        return
+    if workers == 1 and scheduler is None:
+        for index in missing:
+            before = _predecessor(index)
+            assert before is not None  # the origin is known: the model at rest
+            known[index] = _solve_point(model, nodes_pa[list(index)], None if before == origin else known[before])
+            _store_point(folder, index, known[index])
+            progress()
+        return
+    try:
+        _solve_on_dask(model, nodes_pa, known, missing, folder, progress, workers, scheduler)
+    except LocalWorkersError as error:
+        logger.warning("%s; building the rest of the response table in this process", error)
+        _solve_grid(model, nodes_pa, known, folder, progress, 1, None)
+
+
+def _solve_on_dask(model: PhantomModel, nodes_pa: FloatArray, known: dict[tuple[int, ...], PointResult],
+                   missing: list[tuple[int, ...]], folder: Path, progress: Callable[[], None], workers: int,
+                   scheduler: str | None) -> None:
+    """:func:`_solve_grid`'s points as Dask tasks, each depending on its predecessor's task (or given its stored
+    answer), stored as they come in whatever order they finish."""
+    # dask.distributed (1 s to import, an optional extra) only where a build is spread
+    with require_extra("calibrate"):
+        from dask.distributed import as_completed
+
+    origin = (0,) * int(model.n_chambers)
+    with dask_client(scheduler, workers) as client:
+        # the model (17 MB pickled, with its factorisations) goes to each worker once, not with every task
+        [model_on_workers] = client.scatter([model], broadcast=True, hash=False)
+        futures: dict[tuple[int, ...], Any] = {}
+        build = uuid.uuid4().hex[:12]  # keys of this build's tasks only, on a cluster that may run others
+        for index in missing:
+            before = _predecessor(index)
+            assert before is not None
+            previous = None if before == origin else futures.get(before, known.get(before))
+            futures[index] = client.submit(_solve_point, model_on_workers, nodes_pa[list(index)], previous,
+                                           key=f"table-point-{build}-{'-'.join(map(str, index))}")
+        points = {future.key: index for index, future in futures.items()}
+        for future in as_completed(list(futures.values())):
+            index = points[future.key]
+            known[index] = future.result()
+            _store_point(folder, index, known[index])
+            progress()
+
+
+def _cost_of_grid(cpu_s: dict[tuple[int, ...], float]) -> str:
+    """What the grid's solves cost, in words: their CPU time in all, and along the longest chain of solves that
+    start from each other (:func:`_predecessor`), which no number of workers shortens. Points stored by an
+    earlier build without a recorded time count at the mean of the others."""
+    measured = [value for index, value in cpu_s.items() if any(index) and np.isfinite(value)]
+    if not measured:
+        return "the grid's points were all stored by an earlier build"
+    mean_s = float(np.mean(measured))
+    chain_s: dict[tuple[int, ...], float] = {}
+    for index in sorted(cpu_s):  # lexicographic: a predecessor before its successors
+        before = _predecessor(index)
+        own_s = cpu_s[index] if np.isfinite(cpu_s[index]) else mean_s
+        chain_s[index] = own_s + (0.0 if before is None else chain_s[before])
+    total_s = float(np.sum(measured)) + mean_s * (len(cpu_s) - 1 - len(measured))
+    return (f"the grid's {len(cpu_s) - 1} solves: {total_s:.0f} s of CPU ({mean_s:.1f} s a point, measured on "
+            f"{len(measured)}), the longest chain of solves {max(chain_s.values()):.0f} s; on W idle workers the "
+            f"grid takes at least the larger of {total_s:.0f} s / W and the chain")
 
 
 def build_response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
-                         progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
-    """Solve ``model`` at every node of the grid, one slab of the first pressure per task on ``workers``
-    processes (default: the machine's cores, at most one per slab; 1: in this process), then check the
-    interpolant against full solves at :data:`CHECK_FRACTIONS`. Raises ResponseTableError when a grid point has
-    no equilibrium. The slabs' solves do not depend on how they are spread, so neither does the table."""
+                         progress: Progress | None = None, workers: int | None = None,
+                         scheduler: str | None = None) -> ResponseTable:
+    """Solve ``model`` at every point of the grid, each from a solved neighbour (:func:`_predecessor`), then check
+    the interpolant against full solves at :data:`CHECK_FRACTIONS`. The points are Dask tasks on the cluster at
+    ``scheduler``, else on a LocalCluster of ``workers`` processes (default: the cores; without the ``calibrate``
+    extra, in this process); ``workers=1``: in this process. Each solved point is kept on disk until the table
+    is whole, so a build that was killed resumes where it stopped. Raises ResponseTableError when a grid point
+    has no equilibrium. A point's solve does not depend on where it runs, so neither does the table."""
     if points_per_axis < 2:
         raise ResponseTableError(f"a response table needs at least 2 points per axis, got {points_per_axis}")
     if not np.isfinite(pressure_max_pa) or pressure_max_pa <= 0:
         raise ResponseTableError(f"the pressure limit must be a positive number of Pa, got {pressure_max_pa}")
+    if workers is not None and workers < 1:
+        raise ResponseTableError(f"a build needs at least one worker, got {workers}")
     started = time.perf_counter()
     n, n_chambers = points_per_axis, int(model.n_chambers)
     nodes_pa = grid_pa(pressure_max_pa, n)
     grid = (n,) * n_chambers
-    chambers = np.zeros((*grid, n_chambers))
-    gland = np.zeros(grid)
-    positions = np.zeros((*grid, *np.shape(model.nodes_m)))
+    folder = _points_folder(model, pressure_max_pa, n)
+    known = _stored_points(folder, grid, len(model.nodes_m))
+    known[(0,) * n_chambers] = (np.asarray(model.rest_chamber_volumes_m3, float), float(model.rest_gland_volume_m3),
+                                np.asarray(model.nodes_m, float), 0.0)
     total = int(np.prod(grid)) + len(CHECK_FRACTIONS)
-    done = 0
-    if progress is not None:
-        progress(done, total)  # the size of the work, before the first slab (tens of seconds) is done
-    workers = max(1, min(workers or os.cpu_count() or 1, n))
-    pending = list(range(n))
-    if workers > 1:
-        # spawned, not forked: a daemon's model worker has threads, and a fork copies only the calling one
-        try:
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-                slabs = {pool.submit(_solve_slab, model, nodes_pa, first): first for first in pending}
-                for finished in as_completed(slabs):
-                    first = slabs[finished]
-                    chambers[first], gland[first], positions[first] = finished.result()
-                    pending.remove(first)
-                    done += gland[first].size
-                    if progress is not None:
-                        progress(done, total)
-        except BrokenProcessPool:
-            # A spawned worker re-runs the calling script: one without ``if __name__ == "__main__":`` kills it
-            logger.warning("the response table's worker processes could not start (does the calling script "
-                           "guard its code with if __name__ == '__main__':?); building the rest in this process")
-    for first in pending:
-        chambers[first], gland[first], positions[first] = _solve_slab(model, nodes_pa, first)
-        done += gland[first].size
+    done = [len(known)]
+
+    def tell() -> None:
         if progress is not None:
-            progress(done, total)
+            progress(done[0], total)
+
+    def one_more() -> None:
+        done[0] += 1
+        tell()
+
+    tell()  # the size of the work (and what an earlier build did), before the first solve is done
+    if workers is None and scheduler is None and importlib.util.find_spec("distributed") is None:
+        logger.info("dask.distributed is not installed (the 'calibrate' extra): the response table is built in "
+                    "this process")
+        workers = 1
+    workers = workers or os.cpu_count() or 1
+    _solve_grid(model, nodes_pa, known, folder, one_more, workers, scheduler)
+    logger.info("%s", _cost_of_grid({index: result[3] for index, result in known.items()}))
+    chambers = np.stack([known[index][0] for index in np.ndindex(*grid)]).reshape(*grid, n_chambers)
+    gland = np.array([known[index][1] for index in np.ndindex(*grid)]).reshape(grid)
+    positions = np.stack([known[index][2] for index in np.ndindex(*grid)]).reshape(*grid, *np.shape(model.nodes_m))
     table = ResponseTable(float(pressure_max_pa), chambers, gland, positions, 0.0, 0.0)
+    worst_pct, _ = check_errors(model, table, after_each=one_more)
+    shutil.rmtree(folder, ignore_errors=True)
+    return dataclasses.replace(table, check_errors_pct=worst_pct, build_time_s=time.perf_counter() - started)
+
+
+def check_errors(model: PhantomModel, table: ResponseTable, nodes: np.ndarray | None = None,
+                 after_each: Callable[[], None] | None = None) -> tuple[float, float]:
+    """How far ``table`` (which holds every node's position) is from full solves at :data:`CHECK_FRACTIONS`: the
+    largest volume error (% of the volume) and the largest distance (m) of one of ``nodes`` (0 without them).
+    Each solve starts from the nearest grid point's state (an interpolated shape is no equilibrium: started
+    there, a nearly incompressible body's Newton took minutes); ``after_each()`` is called after each."""
+    assert table.position_values is not None
+    nodes_pa = grid_pa(table.pressure_max_pa, table.points_per_axis)
     warm_start = model.formulation != "linear"
-    worst_pct = 0.0
+    worst_pct, worst_m = 0.0, 0.0
     for fractions in CHECK_FRACTIONS:
-        pressures = pressure_max_pa * np.asarray(fractions[:n_chambers], dtype=float)
+        pressures = table.pressure_max_pa * np.asarray(fractions[:model.n_chambers], dtype=float)
         nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
-        state = model.equilibrium(pressures, initial_positions_m=positions[nearest] if warm_start else None)
+        state = model.equilibrium(pressures,
+                                  initial_positions_m=table.position_values[nearest] if warm_start else None)
         table_chambers, table_gland = table.volumes(pressures)
         exact = np.append(state.chamber_volumes_m3, state.gland_volume_m3)
         worst_pct = max(worst_pct, float(np.max(np.abs(np.append(table_chambers, table_gland) - exact) / exact)) * 100)
-        done += 1
-        if progress is not None:
-            progress(done, total)
-    return dataclasses.replace(table, check_errors_pct=worst_pct, build_time_s=time.perf_counter() - started)
+        if nodes is not None:
+            off_m = np.linalg.norm(table.positions_m(pressures)[nodes] - state.positions_m[nodes], axis=1)
+            worst_m = max(worst_m, float(off_m.max()))
+        if after_each is not None:
+            after_each()
+    return worst_pct, worst_m
 
 
 def _cache_path(model: PhantomModel, pressure_max_pa: float, points_per_axis: int) -> Path:
@@ -343,30 +475,30 @@ class SurfaceShapes:
 
 
 def build_table_shapes(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = SHIPPED_SHAPE_POINTS,
-                       progress: Progress | None = None, workers: int | None = None) -> SurfaceShapes:
-    """The outer surface's shapes on a ``points_per_axis`` grid (:func:`build_response_table`), checked against
-    full solves at :data:`CHECK_FRACTIONS`: what :func:`write_table_shapes` ships."""
-    table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers)
-    assert table.position_values is not None  # a build solves every shape
+                       progress: Progress | None = None, workers: int | None = None, scheduler: str | None = None,
+                       table: ResponseTable | None = None) -> SurfaceShapes:
+    """The outer surface's shapes on a ``points_per_axis`` grid, checked against full solves at
+    :data:`CHECK_FRACTIONS` (volumes and shapes from the same solves): what :func:`write_table_shapes` ships.
+    Taken from ``table``'s positions where its grid holds every point of this one (7 points per axis hold the 4
+    shipped: a table and its shapes in one pass), else built (:func:`build_response_table`)."""
+    if points_per_axis < 2:
+        raise ResponseTableError(f"a shape table needs at least 2 points per axis, got {points_per_axis}")
+    stride = 0
+    if (table is not None and table.position_values is not None and table.pressure_max_pa == pressure_max_pa
+            and (table.points_per_axis - 1) % (points_per_axis - 1) == 0):
+        stride = (table.points_per_axis - 1) // (points_per_axis - 1)
+    if table is not None and table.position_values is not None and stride:
+        every = (slice(None, None, stride),) * table.n_chambers
+        assert table.position_values is not None
+        grid_table = ResponseTable(table.pressure_max_pa, table.chamber_values[every], table.gland_values[every],
+                                   table.position_values[every], 0.0, table.build_time_s)
+    else:
+        grid_table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers, scheduler)
+    assert grid_table.position_values is not None  # a build solves every shape
     nodes, _ = model.outer_surface()
-    return SurfaceShapes(dataclasses.replace(table, position_values=table.position_values[..., nodes, :]),
-                         np.asarray(nodes), shape_check_error_m(model, table, nodes))
-
-
-def shape_check_error_m(model: PhantomModel, table: ResponseTable, nodes: np.ndarray) -> float:
-    """The largest distance (m) of one of ``nodes`` interpolated by ``table`` (which holds every node's position)
-    from a full solve's, at :data:`CHECK_FRACTIONS`; each solve starts from the nearest grid point's state (an
-    interpolated shape is no equilibrium: started there, a nearly incompressible body's Newton took minutes)."""
-    assert table.position_values is not None
-    nodes_pa = grid_pa(table.pressure_max_pa, table.points_per_axis)
-    worst_m = 0.0
-    for fractions in CHECK_FRACTIONS:
-        pressures = table.pressure_max_pa * np.asarray(fractions[:model.n_chambers], dtype=float)
-        nearest = tuple(int(np.argmin(np.abs(nodes_pa - p))) for p in pressures)
-        state = model.equilibrium(pressures, initial_positions_m=table.position_values[nearest])
-        off_m = np.linalg.norm(table.positions_m(pressures)[nodes] - state.positions_m[nodes], axis=1)
-        worst_m = max(worst_m, float(off_m.max()))
-    return worst_m
+    volumes_pct, shapes_m = check_errors(model, grid_table, np.asarray(nodes))
+    return SurfaceShapes(dataclasses.replace(grid_table, position_values=grid_table.position_values[..., nodes, :],
+                                             check_errors_pct=volumes_pct), np.asarray(nodes), shapes_m)
 
 
 def write_table_shapes(shapes: SurfaceShapes, model: PhantomModel, path: str | Path) -> None:
@@ -448,7 +580,7 @@ def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
         return None
     remedy = ("use a copy of the scene without [model] table_volumes (the table is then built once per machine: "
               "53 min on one core for builtin:converged), another level ([model] fidelity; phantom inverse "
-              "--fidelity), or write the file again for this model (scripts/table_volumes.py)")
+              "--fidelity), or write the file again for this model (phantom model table SCENE --out FILE)")
     stored = _read_shipped(model, "table_volumes", path, pressure_max_pa, points_per_axis, remedy)
     return ResponseTable(float(pressure_max_pa), np.asarray(stored["chamber"], float),
                          np.asarray(stored["gland"], float), None, float(stored["check_errors_pct"]),
@@ -464,7 +596,7 @@ def shipped_table_shapes(model: PhantomModel, pressure_max_pa: float) -> Surface
     if path is None:
         return None
     remedy = ("use a copy of the scene without [model] table_shapes (each shape is then a full solve), or write "
-              "the file again for this model (scripts/table_volumes.py --shapes-out)")
+              "the file again for this model (phantom model table SCENE --shapes-out FILE)")
     stored = _read_shipped(model, "table_shapes", path, pressure_max_pa, None, remedy)
     check_shape_nodes(stored, f"the table shapes {path} ([model] table_shapes)", remedy)
     nodes = np.asarray(stored["nodes"], dtype=np.int64)
@@ -479,7 +611,7 @@ def shipped_table_shapes(model: PhantomModel, pressure_max_pa: float) -> Surface
         # volumes still agree): the model is the same, only its shapes must be solved.
         logger.warning("the table shapes %s ([model] table_shapes) name nodes this mesh does not have where they "
                        "were (the mesher numbered or placed them otherwise): each shape is a full solve; write the "
-                       "file again for this mesh (scripts/table_volumes.py --shapes-out)", path)
+                       "file again for this mesh (phantom model table SCENE --shapes-out FILE)", path)
         return None
     displacement_m = np.tensordot(coefficients, modes_m, axes=(-1, 0))
     table = ResponseTable(float(pressure_max_pa), np.asarray(stored["chamber"], float),
@@ -506,7 +638,8 @@ def stored_response_table(model: PhantomModel, pressure_max_pa: float,
 
 
 def response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis: int = DEFAULT_TABLE_POINTS,
-                   progress: Progress | None = None, workers: int | None = None) -> ResponseTable:
+                   progress: Progress | None = None, workers: int | None = None,
+                   scheduler: str | None = None) -> ResponseTable:
     """The model's table: read from the disk cache or shipped with its scene (:func:`stored_response_table`),
     else built (:func:`build_response_table`) and stored. ``progress(done, total)`` is told how a build goes
     (nothing is told for a stored table)."""
@@ -514,7 +647,7 @@ def response_table(model: PhantomModel, pressure_max_pa: float, points_per_axis:
     if stored is not None:
         return stored
     path = _cache_path(model, pressure_max_pa, points_per_axis)
-    table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers)
+    table = build_response_table(model, pressure_max_pa, points_per_axis, progress, workers, scheduler)
     assert table.position_values is not None  # a build solves every shape
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npz")
     os.close(handle)

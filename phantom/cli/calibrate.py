@@ -203,7 +203,7 @@ def local_cluster_deaf_to_ctrl_c(n_workers: int | None) -> LocalCluster:
     inherit the ignored signal (Python keeps SIGINT ignored when it starts with it ignored)."""
     import signal
 
-    from phantom.model.calibration.sweep import local_cluster
+    from phantom.model.cluster import local_cluster
 
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:

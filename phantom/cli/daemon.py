@@ -130,7 +130,7 @@ def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:
 
     from phantom.cli.scan_rig import SimulatedTruth
     from phantom.hil.plant import truth_plant_path
-    from phantom.model.calibration.sweep import stderr_progress
+    from phantom.model.cluster import stderr_progress
 
     print(f"the simulated phantom: {scene} with E x {modulus_factor:g} (its plant is built once: the scene's "
           f"chambers and 64 solves, then cached)", file=sys.stderr, flush=True)

@@ -85,6 +85,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                        "the paper's Table I)")
     plant.add_argument("--workers", type=int, metavar="N", help="--truth-from-scene: worker processes "
                        "(default: one per core, at most 4)")
+    plant.add_argument("--scheduler", metavar="ADDRESS", help="--truth-from-scene: address of a running Dask "
+                       "scheduler (tcp://HOST:8786) to run the solves on, instead of --workers on this machine")
     plant.add_argument("--plant", metavar="FILE", help="the plant file to rewrite (default hil/plant.toml)")
     plant.add_argument("--mesh-size-mm", type=float, metavar="MM",
                        help="--from-scene: mesh size of the built-in mesh (default: the model's)")
@@ -256,7 +258,7 @@ def _run_cycles(args: argparse.Namespace) -> int:
 
 
 def _run_plant(args: argparse.Namespace) -> int:
-    from phantom import PhantomError
+    from phantom import PhantomError, require_extra
     from phantom.hil import plant
 
     if args.truth_through and not args.truth_from_scene:
@@ -264,8 +266,16 @@ def _run_plant(args: argparse.Namespace) -> int:
     if not args.from_scene and not args.truth_from_scene:
         raise PhantomError("give --from-scene, --truth-from-scene or both")
     path = args.plant or plant.DEFAULT_PLANT_PATH
+    if args.scheduler:
+        if args.workers is not None:
+            raise PhantomError("give --workers (this machine) or --scheduler (a cluster), not both")
+        with require_extra("calibrate"):
+            import dask
+
+        # the truth's build (the response table's) runs where Dask's scheduler-address says
+        dask.config.set({"scheduler-address": args.scheduler})
     if args.truth_from_scene:
-        from phantom.model.calibration.sweep import stderr_progress
+        from phantom.model.cluster import stderr_progress
 
         factor = plant.TRUTH_MODULUS_FACTOR if args.truth_modulus_factor is None else args.truth_modulus_factor
         table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.workers,

@@ -1,4 +1,5 @@
-"""Subcommands of ``phantom``: offline model commands: mesh, forward, inverse, calibrate.
+"""Subcommands of ``phantom``: offline model commands: mesh, forward, model table (inverse and calibrate have
+their own modules).
 
 Only argparse is imported at module load; handlers import what they need when they run.
 """
@@ -63,6 +64,28 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                                                      "'builtin:converged'")
     check.add_argument("--json", action="store_true", help="print one JSON object")
     check.set_defaults(run=run_scene_check)
+
+    model = subparsers.add_parser("model", help="build what a scene ships with its model: model table",
+                                  description="Offline builds of a scene's model.")
+    actions = model.add_subparsers(dest="model_action", metavar="ACTION", required=True)
+    table = actions.add_parser(
+        "table", help="build a scene's response table and its shapes, and write what the scene ships of them",
+        description="Solve the scene's model on its response table's grid ([model] table_points per axis over "
+                    "0 to pressure_max_kpa), each point started from a solved neighbour, and write its volumes "
+                    "(the scene's [model] table_volumes) and its outer surface's shapes on the coarser shipped "
+                    "grid, taken from the same solves (its [model] table_shapes). The solves run as Dask tasks "
+                    "on this machine's cores or an existing cluster; each solved point is kept on disk, so the "
+                    "same command after a kill resumes where it stopped. A table already in the cache is read.")
+    table.add_argument("scene", metavar="SCENE", help="a scene TOML path, or 'builtin', 'builtin:calibrated', "
+                                                      "'builtin:converged'")
+    table.add_argument("--out", help="the volumes' .npz to write (the scene's [model] table_volumes)")
+    table.add_argument("--shapes-out", help="the outer surface's shapes' .npz to write ([model] table_shapes)")
+    where = table.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, metavar="N",
+                       help="worker processes of the LocalCluster (default: the cores; 1: in this process)")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="address of a running Dask scheduler (tcp://HOST:8786) to run the solves on")
+    table.set_defaults(run=run_table)
 
 
 def _single_threaded_blas() -> None:
@@ -153,6 +176,49 @@ def run_forward(args: argparse.Namespace) -> int:
           f"element volume ratios {volume_ratios.min():.4f} to {volume_ratios.max():.4f}")
     if args.out:
         print(f"wrote the deformed mesh to {args.out}")
+    return 0
+
+
+def run_table(args: argparse.Namespace) -> int:
+    """Build (or read from the cache) the scene's response table and write its volumes and shapes."""
+    _single_threaded_blas()
+    from phantom import PhantomError
+    from phantom.cli.common import output_file
+    from phantom.model.cluster import stderr_progress
+    from phantom.model.fem.model import PhantomModel
+    from phantom.model.fidelity.response_table import (
+        build_table_shapes,
+        response_table,
+        write_table_shapes,
+        write_table_volumes,
+    )
+    from phantom.model.scene import load_scene, scene_from_dict, without_shipped_tables
+
+    if not args.out and not args.shapes_out:
+        raise PhantomError("phantom model table needs --out, --shapes-out or both: the files to write")
+    if args.workers is not None and args.workers < 1:
+        raise PhantomError(f"--workers must be at least 1, got {args.workers}")
+    # the files' folders before the build (which may take an hour), not after
+    out = output_file(args.out) if args.out else None
+    shapes_out = output_file(args.shapes_out, "--shapes-out") if args.shapes_out else None
+    loaded = load_scene(args.scene)
+    # the full table, not what the scene may ship already (or names before it is written)
+    model = PhantomModel.from_scene(scene_from_dict(without_shipped_tables(loaded.raw), loaded.path))
+    settings = model.model_settings
+    table = None
+    if out:
+        table = response_table(model, settings.pressure_max_pa, settings.table_points,
+                               stderr_progress("table: full solves"), args.workers, args.scheduler)
+        write_table_volumes(table, model, out)
+        print(f"wrote {args.out}: {table.points_per_axis}^{table.n_chambers} points, within "
+              f"{table.check_errors_pct:.2g} % of full solves at its checks (built in {table.build_time_s:.0f} s)")
+    if shapes_out:
+        shapes = build_table_shapes(model, settings.pressure_max_pa, progress=stderr_progress("shapes: full solves"),
+                                    workers=args.workers, scheduler=args.scheduler, table=table)
+        write_table_shapes(shapes, model, shapes_out)
+        print(f"wrote {args.shapes_out}: {len(shapes.nodes)} outer-surface nodes on "
+              f"{shapes.table.points_per_axis}^{shapes.table.n_chambers} points, within "
+              f"{shapes.check_error_m * 1e3:.3g} mm of full solves at its checks")
     return 0
 
 
