@@ -163,9 +163,11 @@ def make_cast(surface: Surface, chambers: list[Chamber], min_wall_mm: float, ste
     channels = [_rod(np.array([0.0, split_y, low[2] + 1.0]), np.array([0.0, split_y, block_low[2] - 1.0]),
                      SPOUT_DIAMETER_MM)]
     for side in (1.0, -1.0):
-        top = _lowest_point(surface, side)
-        channels.append(_rod(top + np.array([0.0, 0.0, 0.5]), np.array([top[0], top[1], block_low[2] - 1.0]),
-                             VENT_DIAMETER_MM))
+        top = _lowest_point(surface, side, split_y)
+        # nudged off the vertex: a marching-cubes surface has flats on its grid's planes, which a rod through the
+        # vertex's own coordinates touches along a line (a non-manifold edge in the STL)
+        start = top + np.array([0.113, 0.171, 0.5])
+        channels.append(_rod(start, np.array([start[0], start[1], block_low[2] - 1.0]), VENT_DIAMETER_MM))
     mould = block - gland
     for solid in stems + channels:
         mould = mould - solid
@@ -191,11 +193,14 @@ def _length_to_leave_box(start: FloatArray, direction: FloatArray, low: FloatArr
     return float(limits.min())
 
 
-def _lowest_point(surface: Surface, side: float) -> FloatArray:
+def _lowest_point(surface: Surface, side: float, split_y: float) -> FloatArray:
     """The surface's lowest vertex (the apex end, the top when the mould is poured apex up) on one side of the
-    mid-sagittal plane (``side`` +1: left, x > 0), away from the spout."""
+    mid-sagittal plane (``side`` +1: left, x > 0), far enough from the spout that the vent does not touch it."""
     vertices = surface.vertices_mm
-    half = vertices[(side * vertices[:, 0] > 0.25 * np.abs(vertices[:, 0]).max())]
+    clear = np.hypot(vertices[:, 0], vertices[:, 1] - split_y) > SPOUT_DIAMETER_MM / 2 + VENT_DIAMETER_MM / 2 + 2.0
+    half = vertices[(side * vertices[:, 0] > 0.25 * np.abs(vertices[:, 0]).max()) & clear]
+    if len(half) == 0:
+        raise DesignError("the gland is too narrow for a vent beside the pour spout: design it larger")
     lowest: FloatArray = half[np.argmin(half[:, 2])]
     return lowest
 
