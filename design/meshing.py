@@ -147,8 +147,9 @@ def _solid_from_shells(gmsh: Any, shells: list[Surface], chambers: list[Chamber]
 
 
 def write_scene(mesh_path: Path, scene_path: Path, element_order: int) -> None:
-    """A scene naming the designed mesh (beside it), with the built-in prostate's material and model settings, so
-    that ``phantom forward``, ``inverse``, ``calibrate`` and the daemon take it as they take the built-in one."""
+    """A scene naming the designed mesh (beside it), with the built-in prostate's material and model settings (on
+    10-node elements its modulus in the Neo-Hookean law), so that ``phantom forward``, ``inverse``, ``calibrate``
+    and the daemon take it as they take the built-in one."""
     from phantom import written_atomically
     from phantom.model.calibration.calibrate import dump_toml
     from phantom.model.scene import QUADRATIC_POISSON_RATIO
@@ -157,7 +158,9 @@ def write_scene(mesh_path: Path, scene_path: Path, element_order: int) -> None:
     document["phantom"] = {"mesh": mesh_path.name, "units": "mm", "chambers": list(CHAMBER_NAMES),
                            "chamber_labels": list(CHAMBER_LABELS), "fixed": "fixed"}
     if element_order == 2:
-        document["material"]["poisson_ratio"] = QUADRATIC_POISSON_RATIO
+        # 10-node elements take a hyperelastic law, nearly incompressible like silicone (the co-rotational one is
+        # for 4-node elements)
+        document["material"].update(model="neo_hookean", poisson_ratio=QUADRATIC_POISSON_RATIO)
         document.get("model", {}).pop("accuracy_pct", None)
     header = ("A phantom designed by phantom design: the gland's mesh beside this file, the built-in prostate's\n"
               "material (calibrate it against the cast phantom's measurements with phantom calibrate).")
