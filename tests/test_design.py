@@ -234,3 +234,21 @@ def test_a_shape_written_as_the_shape_analysis_writes_its_average_designs(tmp_pa
     summary = json.loads(printed)
     assert summary["growth"]["gland_volumes_ml"][0] > summary["rest_volume_ml"]
     assert min(summary["walls_mm"].values()) >= 2.0
+
+
+@pytest.mark.slow
+def test_a_10_node_design_solves_and_says_what_it_wrote(tmp_path, capsys):
+    from phantom.model.mesh.shape import body_surface_mesh_mm
+
+    vertices, triangles = body_surface_mesh_mm(1.5)
+    source = tmp_path / "body.obj"
+    trimesh.Trimesh(vertices, triangles, process=False).export(str(source))
+    out = tmp_path / "d"
+    status, printed, err = run(capsys, "design", str(source), "--out", str(out), "--size-mm", "5",
+                               "--element-order", "2", "--growth-kpa", "1")
+    assert status == 0, err
+    assert f"wrote {out}/scene.toml" in printed and "thinnest wall" in printed
+    summary = json.loads((out / "design.json").read_text())
+    assert summary["growth"]["gland_volumes_ml"][0] > summary["rest_volume_ml"] + 0.1
+    report = (out / "report.md").read_text()
+    assert "thinnest wall" in report and (out / "report.png").stat().st_size > 10_000
