@@ -143,10 +143,16 @@ def _mask_surface(case: Case, labels: Sequence[int] | None, notes: list[str]) ->
         from scipy import ndimage
         from skimage import measure
 
-    if labels is None and case.kind == "mask":
-        image: Any = nibabel.load(str(case.path))
-        present = sorted(int(value) for value in np.unique(np.asarray(image.dataobj)) if value != 0)
-        if len(present) > 1:
+    if labels is None:
+        try:
+            image: Any = nibabel.load(str(case.path))
+            present = sorted(int(value) for value in np.unique(np.asarray(image.dataobj)) if value != 0)
+        except Exception:  # nibabel raises several kinds for a damaged file: read_label_mask says it plainly
+            present = []
+        if present == [1]:
+            # a binary mask, whatever its name says (a data set's *_mask.nii is a label map otherwise)
+            case = Case(case.name, case.path, "mask")
+        elif len(present) > 1 and case.kind == "mask":
             raise DesignError(f"{case.path} holds several labels ({', '.join(map(str, present))}): say which are "
                               f"the gland with --labels (the pelvic MRI dataset's prostate is 4,5)")
     mask = read_label_mask(case, PROSTATE_LABELS if labels is None else labels)

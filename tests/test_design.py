@@ -139,6 +139,23 @@ def test_labels_pick_the_gland_from_a_label_map(tmp_path):
     assert picked.source_volume_ml == pytest.approx(plain.source_volume_ml, rel=0.02)
 
 
+def test_a_binary_mask_named_as_a_data_set_label_map_is_read_as_binary(tmp_path):
+    from phantom.design.surface import read_gland
+
+    named = read_gland(write_mask(tmp_path / "case_mask.nii.gz", asymmetric_gland), 26.3)
+    plain = read_gland(write_mask(tmp_path / "gland.nii.gz", asymmetric_gland), 26.3)
+    assert named.source_volume_ml == pytest.approx(plain.source_volume_ml, rel=1e-9)
+
+
+def test_a_data_set_label_map_defaults_to_the_prostate_labels(tmp_path):
+    from phantom.design.surface import read_gland
+
+    label_map = write_mask(tmp_path / "case_mask.nii.gz", asymmetric_gland, values=4,
+                           extra=lambda points: np.linalg.norm(points - [0, 0, 30], axis=1) < 6)
+    plain = read_gland(write_mask(tmp_path / "gland.nii.gz", asymmetric_gland), 26.3)
+    assert read_gland(label_map, 26.3).source_volume_ml == pytest.approx(plain.source_volume_ml, rel=1e-9)
+
+
 def test_bad_labels_are_refused(tmp_path, capsys):
     mask = write_mask(tmp_path / "gland.nii", asymmetric_gland)
     status, _, err = run(capsys, "design", str(mask), "--out", str(tmp_path / "d"), "--labels", "0,x")
