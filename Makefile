@@ -25,7 +25,7 @@ lint:
 
 # mypy on every package: the root, the CLI and each part (strictness per package in pyproject.toml). mypy cannot
 # follow the editable install's import hook, so the package's folders are mapped into one tree under .cache/ first.
-PARTS := $(wildcard protocol model scan shape host hil)
+PARTS := $(wildcard protocol model scan shape host hil design)
 MYPY_TREE := .cache/mypy-src/phantom
 types:
 	@mkdir -p $(MYPY_TREE)

@@ -32,6 +32,7 @@ ALLOWED: dict[str, frozenset[str]] = {
     "shape": frozenset({ROOT, "protocol", "model"}),
     "host": frozenset({ROOT, "protocol", "model"}),
     "hil": frozenset({ROOT, "protocol", "model"}),
+    "design": frozenset({ROOT, "protocol", "model", "shape"}),
 }
 
 #: The one thing the root hands out from a part: ``phantom.connect()`` gives the host's client (the Python API of

@@ -26,7 +26,7 @@ REPO = Path(__file__).resolve().parent.parent
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
 EXTRAS: dict[str, list[str]] = PYPROJECT["project"]["optional-dependencies"]
 #: The folders of the installed parts (tests/, bench/ and examples/ run with every extra installed).
-PART_FOLDERS = ("phantom", "protocol", "model", "scan", "shape", "host", "hil")
+PART_FOLDERS = ("phantom", "protocol", "model", "scan", "shape", "host", "hil", "design")
 
 
 def canonical(name: str) -> str:

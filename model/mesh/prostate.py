@@ -24,6 +24,7 @@ import math
 import os
 import sys
 import tempfile
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -75,18 +76,22 @@ def _ellipsoid(occ: Any, centre_mm: Vector3, semi_axes_mm: Vector3) -> tuple[int
     return (3, sphere)
 
 
-def _mesh_solid(gmsh: Any, volumes: list[tuple[int, int]], size_mm: float, curvature_elements: int,
-                element_order: int, walls: WallField | None = None) -> tuple[np.ndarray, np.ndarray]:
+def mesh_solid(gmsh: Any, volumes: list[tuple[int, int]], size_mm: float, curvature_elements: int,
+               element_order: int, walls: WallField | None = None,
+               size_at: Callable[[float, float, float], float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mesh one solid, made of ``volumes`` that share their faces, (graded by ``walls`` when given, see the module
-    docstring) at ``element_order``; return its nodes (mm) and positively oriented tets (4 or 10 nodes, meshio's
-    order), numbered from 0 without gaps."""
+    docstring, and no larger than ``size_at(x, y, z)`` mm when given) at ``element_order``; return its nodes (mm)
+    and positively oriented tets (4 or 10 nodes, meshio's order), numbered from 0 without gaps."""
+    graded = walls is not None or size_at is not None
     gmsh.option.setNumber("Mesh.MeshSizeMax", size_mm)
-    gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / (16.0 if walls is not None else 4.0))
+    gmsh.option.setNumber("Mesh.MeshSizeMin", size_mm / (16.0 if graded else 4.0))
     gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", curvature_elements)
     gmsh.option.setNumber("Mesh.Optimize", 1)
-    if walls is not None:
+    if graded:
         def graded_size(dim: int, tag: int, x: float, y: float, z: float, size: float) -> float:
-            return min(size, size_mm * walls.at(x, y, z) / WALL_SPAN_MM)
+            if walls is not None:
+                size = min(size, size_mm * walls.at(x, y, z) / WALL_SPAN_MM)
+            return size if size_at is None else min(size, size_at(x, y, z))
         gmsh.model.mesh.setSizeCallback(graded_size)
     gmsh.model.addPhysicalGroup(3, [tag for _, tag in volumes], name="solid")
     gmsh.model.mesh.generate(3)
@@ -197,12 +202,23 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
         curvature_elements = CURVATURE_ELEMENTS
         if element_order == 2:
             curvature_elements = max(4, round(CURVATURE_ELEMENTS * QUADRATIC_CURVATURE_SIZE_MM / size_mm))
-        nodes_mm, tets = _mirror_about_x(*_mesh_solid(gmsh, half, size_mm, curvature_elements, element_order,
-                                                      walls))
+        nodes_mm, tets = _mirror_about_x(*mesh_solid(gmsh, half, size_mm, curvature_elements, element_order,
+                                                     walls))
     tets = check_tets(nodes_mm, tets, "mirrored prostate mesh")
+    groups = tag_surfaces(nodes_mm, tets, ellipsoids, (0.0, 0.0, HALF_LENGTH_MM), geometry.fixation_radius_mm,
+                          patch_edge_meshed=element_order == 2)
+    return TetMesh(nodes_mm * 1e-3, tets, groups)
+
+
+def tag_surfaces(nodes_mm: np.ndarray, tets: np.ndarray, ellipsoids: tuple[tuple[Vector3, Vector3], ...],
+                 base_pole_mm: Vector3, fixation_radius_mm: float, patch_edge_meshed: bool) -> dict[str, np.ndarray]:
+    """The surface groups of a meshed body with ellipsoidal cavities: ``chamber<i>`` (the boundary component of
+    the cavity nearest ``ellipsoids[i]``'s centre, in its own semi-axes) and ``fixed`` (the outer faces within
+    ``fixation_radius_mm`` of ``base_pole_mm``: those whose centroid lies within it when the patch's edge is a
+    line of the mesh, ``patch_edge_meshed``, so that a face is in it or out of it whole; else those whose corners
+    all do)."""
     faces, _ = boundary_faces(tets)
     centroids = nodes_mm[face_vertices(faces)].mean(axis=1)
-    # Each cavity wall is one connected component of the boundary; name it by the nearest chamber centre.
     labels = surface_components(faces)
     groups = {}
     on_cavity = np.zeros(len(faces), bool)
@@ -211,16 +227,14 @@ def generate_prostate(size_mm: float = DEFAULT_SIZE_MM, geometry: ProstateGeomet
         component = labels[np.argmin(scaled)]
         groups[f"chamber{index}"] = faces[labels == component]
         on_cavity |= labels == component
-    base_pole_mm = np.array([0.0, 0.0, HALF_LENGTH_MM])
-    if element_order == 2:
-        # the patch's edge is a line of the mesh (_imprint_fixation): a face is in it or out of it whole
-        inside = np.linalg.norm(centroids - base_pole_mm, axis=1) < geometry.fixation_radius_mm
+    pole = np.asarray(base_pole_mm)
+    if patch_edge_meshed:
+        inside = np.linalg.norm(centroids - pole, axis=1) < fixation_radius_mm
     else:
-        # the 4-node mesh keeps the faces whose corners all lie within the radius (its calibration was fitted so)
-        inside = np.linalg.norm(nodes_mm[face_vertices(faces)] - base_pole_mm, axis=2).max(axis=1) < \
-            geometry.fixation_radius_mm
+        # the built-in 4-node mesh's calibration was fitted with this rule
+        inside = np.linalg.norm(nodes_mm[face_vertices(faces)] - pole, axis=2).max(axis=1) < fixation_radius_mm
     groups["fixed"] = faces[~on_cavity & inside]
-    return TetMesh(nodes_mm * 1e-3, tets, groups)
+    return groups
 
 
 def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_mm: float,
@@ -237,7 +251,7 @@ def generate_hollow_sphere(inner_radius_mm: float, outer_radius_mm: float, size_
         inner = occ.addSphere(0.0, 0.0, 0.0, inner_radius_mm)
         solid, _ = occ.cut([(3, outer)], [(3, inner)])
         occ.synchronize()
-        nodes_mm, tets = _mesh_solid(gmsh, solid, size_mm, 0, element_order)
+        nodes_mm, tets = mesh_solid(gmsh, solid, size_mm, 0, element_order)
     faces, _ = boundary_faces(tets)
     radius = np.linalg.norm(nodes_mm[face_vertices(faces)].mean(axis=1), axis=1)
     cavity = radius < 0.5 * (inner_radius_mm + outer_radius_mm)

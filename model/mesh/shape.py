@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from phantom.model.arrays import BoolArray, FloatArray
+from phantom.model.arrays import BoolArray, FloatArray, IntArray
 from phantom.model.errors import MeshError
 from phantom.model.mesh.geometry import ProstateGeometry, Vector3
 
@@ -50,6 +50,32 @@ def body_surface_points_mm(spacing_mm: float = 0.5) -> FloatArray:
     return points.reshape(-1, 3)
 
 
+def body_surface_mesh_mm(spacing_mm: float = 0.5) -> tuple[FloatArray, IntArray]:
+    """The body's outer surface as a closed triangle mesh (mm): vertices (V, 3) and outward triangles (T, 3), rings
+    about ``spacing_mm`` apart (the polar angle ``t = -cos(theta)`` keeps them even near the poles)."""
+    radius_mm = equator_radius_mm()
+    n_rings = max(int(math.pi * HALF_LENGTH_MM / spacing_mm), 8)
+    n_around = max(int(2 * math.pi * radius_mm * 1.3 / spacing_mm), 12)
+    t = -np.cos(np.linspace(0.0, math.pi, n_rings + 1)[1:-1])
+    angle = np.linspace(0.0, 2 * math.pi, n_around, endpoint=False)
+    t_grid, angle_grid = np.meshgrid(t, angle, indexing="ij")
+    r = profile_radius_mm(t_grid, radius_mm)
+    rings = np.stack([r * np.cos(angle_grid), ANTERIOR_POSTERIOR_RATIO * r * np.sin(angle_grid),
+                      HALF_LENGTH_MM * t_grid], -1).reshape(-1, 3)
+    vertices = np.vstack([rings, [[0.0, 0.0, -HALF_LENGTH_MM], [0.0, 0.0, HALF_LENGTH_MM]]])
+    apex, base = len(rings), len(rings) + 1
+    ring, step = np.meshgrid(np.arange(len(t) - 1), np.arange(n_around), indexing="ij")
+    a = ring * n_around + step
+    b = ring * n_around + (step + 1) % n_around
+    c, d = a + n_around, b + n_around
+    quads = np.concatenate([np.stack([a, b, d], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    around = np.arange(n_around)
+    last = (len(t) - 1) * n_around
+    caps = np.concatenate([np.stack([np.full(n_around, apex), (around + 1) % n_around, around], -1),
+                           np.stack([np.full(n_around, base), last + around, last + (around + 1) % n_around], -1)])
+    return vertices, np.concatenate([quads, caps]).astype(np.int64)
+
+
 def inside_body(points_mm: FloatArray) -> BoolArray:
     """Whether each point (mm) lies inside the body."""
     t = points_mm[:, 2] / HALF_LENGTH_MM
@@ -68,7 +94,7 @@ def wall_thicknesses_mm(geometry: ProstateGeometry) -> dict[str, float]:
     from scipy.spatial import cKDTree
 
     outer = cKDTree(body_surface_points_mm())
-    samples = [_ellipsoid_points_mm(centre, axes) for centre, axes in geometry.ellipsoids_mm()]
+    samples = [ellipsoid_points_mm(centre, axes) for centre, axes in geometry.ellipsoids_mm()]
     walls: dict[str, float] = {}
     for index, points in enumerate(samples):
         distance = float(np.min(outer.query(points)[0]))
@@ -83,7 +109,7 @@ def wall_thicknesses_mm(geometry: ProstateGeometry) -> dict[str, float]:
     return walls
 
 
-def _ellipsoid_points_mm(centre: Vector3, axes: Vector3, spacing_mm: float = 0.5) -> FloatArray:
+def ellipsoid_points_mm(centre: Vector3, axes: Vector3, spacing_mm: float = 0.5) -> FloatArray:
     """Samples (k, 3) of an ellipsoid's surface, about ``spacing_mm`` apart along its largest axis."""
     largest = max(axes)
     n_polar = max(int(math.pi * largest / spacing_mm), 16)
@@ -125,21 +151,33 @@ class WallField:
 def wall_field(geometry: ProstateGeometry, spacing_mm: float = 1.0) -> WallField:
     """The local wall thickness (:class:`WallField`) of the built-in body with ``geometry``'s chambers, on a grid
     of ``spacing_mm`` over the body's bounding box; distances to surface samples 0.5 mm apart."""
-    # scipy.spatial (0.1 s to import) only where walls are measured
-    from scipy.spatial import cKDTree
-
-    surfaces = [body_surface_points_mm()] + [_ellipsoid_points_mm(centre, axes)
+    surfaces = [body_surface_points_mm()] + [ellipsoid_points_mm(centre, axes)
                                             for centre, axes in geometry.ellipsoids_mm()]
     radius_mm = equator_radius_mm() * (1.0 + TAPER) + spacing_mm
     low = np.array([-radius_mm, -ANTERIOR_POSTERIOR_RATIO * radius_mm, -HALF_LENGTH_MM - spacing_mm])
-    axes = [np.arange(start, -start + 0.5 * spacing_mm, spacing_mm) for start in low]
+    return wall_field_of(surfaces, low, -low, spacing_mm)
+
+
+def wall_field_of(surfaces: list[FloatArray], low_mm: FloatArray, high_mm: FloatArray, spacing_mm: float = 1.0,
+                  within_mm: float = math.inf) -> WallField:
+    """The local wall thickness (:class:`WallField`) between surfaces given by dense samples (each (k, 3), mm; the
+    outer one and every chamber's), on a grid of ``spacing_mm`` from ``low_mm`` to ``high_mm``; walls thicker than
+    ``within_mm`` read as infinite (a nearest-sample search deep inside a hollow set of samples visits most of
+    them: the bound keeps it to the walls that matter)."""
+    # scipy.spatial (0.1 s to import) only where walls are measured
+    from scipy.spatial import cKDTree
+
+    axes = [np.arange(start, stop + 0.5 * spacing_mm, spacing_mm) for start, stop in zip(low_mm, high_mm,
+                                                                                         strict=True)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    distances = [cKDTree(samples).query(points)[0] for samples in surfaces]
+    distances = [cKDTree(samples).query(points, distance_upper_bound=within_mm)[0] for samples in surfaces]
     thickness = np.full(len(points), np.inf)
     for first in range(len(distances)):
         for second in range(first + 1, len(distances)):
             thickness = np.minimum(thickness, distances[first] + distances[second])
-    return WallField(low, spacing_mm, thickness.reshape([len(axis) for axis in axes]))
+    # finite, so that interpolating next to an unbounded wall gives a large number, not inf * 0
+    thickness = np.minimum(thickness, 1e6)
+    return WallField(np.asarray(low_mm, float), spacing_mm, thickness.reshape([len(axis) for axis in axes]))
 
 
 def check_walls(geometry: ProstateGeometry) -> dict[str, float]:

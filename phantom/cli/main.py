@@ -22,6 +22,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.inverse",
     "phantom.cli.scan",
     "phantom.cli.shape",
+    "phantom.cli.design",
     "phantom.cli.calibrate",
     "phantom.cli.corrections",
     "phantom.cli.hil",

@@ -1,0 +1,187 @@
+"""The three chambers, placed in the gland's own anatomy and sized as the walls allow (mm, the phantom's frame).
+
+The built-in prostate's chambers are the template: a flat base chamber on the mid-sagittal plane toward the base
+and one chamber in each lateral lobe. Each template ellipsoid's centre and semi-axes are taken as fractions of the
+built-in body's half-extents and laid into the gland's: along each axis, the extent on the side the centre lies
+(the left lobe's chamber takes the gland's extent to the left of the mid-sagittal plane, the right one the
+extent to the right, the base chamber the extent toward the base), so an asymmetric gland gets asymmetric
+chambers and the built-in body gets its own chambers back. ``chamber_scale`` multiplies every semi-axis; then
+every chamber whose wall (to the outer surface, or to another chamber) is below ``min_wall_mm`` shrinks about
+its centre until none is. A chamber that must shrink below :data:`SMALLEST_SCALE` of its template leaves no
+room: the gland is too small for three chambers at that wall.
+
+Walls are measured between dense samples of the surfaces (0.5 mm apart, as the built-in geometry's check does).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from phantom import require_extra
+from phantom.design.errors import DesignError
+from phantom.design.surface import Surface
+from phantom.model.arrays import FloatArray
+from phantom.model.mesh.geometry import ProstateGeometry, Vector3
+from phantom.model.mesh.shape import (
+    ANTERIOR_POSTERIOR_RATIO,
+    HALF_LENGTH_MM,
+    ellipsoid_points_mm,
+    equator_radius_mm,
+    profile_radius_mm,
+)
+
+#: The chambers' names in a designed mesh, and the names people see.
+CHAMBER_NAMES = ("chamber0", "chamber1", "chamber2")
+CHAMBER_LABELS = ("base", "left lobe", "right lobe")
+#: A chamber may shrink to this fraction of its template's semi-axes (an eighth of its volume) before the gland is
+#: said too small for three.
+SMALLEST_SCALE = 0.5
+#: Each step of the shrinking multiplies a chamber's semi-axes by this.
+SHRINK_STEP = 0.98
+#: Spacing of the surface samples walls are measured on (mm).
+SAMPLE_SPACING_MM = 0.5
+
+
+@dataclass(frozen=True)
+class Chamber:
+    """An ellipsoidal chamber: centre and semi-axes (mm, the phantom's frame, axis-aligned)."""
+
+    centre_mm: Vector3
+    semi_axes_mm: Vector3
+
+    @property
+    def volume_ml(self) -> float:
+        a, b, c = self.semi_axes_mm
+        return float(4.0 / 3.0 * np.pi * a * b * c / 1e3)
+
+    def scaled(self, factor: float) -> Chamber:
+        a, b, c = self.semi_axes_mm
+        return Chamber(self.centre_mm, (a * factor, b * factor, c * factor))
+
+
+def builtin_half_extents_mm() -> FloatArray:
+    """The built-in body's half-extents along x, y, z (mm): it is symmetric about its bounding box's centre, 0."""
+    t = np.linspace(-1.0, 1.0, 4001)
+    widest = float(profile_radius_mm(t, equator_radius_mm()).max())
+    return np.array([widest, ANTERIOR_POSTERIOR_RATIO * widest, HALF_LENGTH_MM])
+
+
+def template_chambers(surface: Surface, chamber_scale: float = 1.0) -> list[Chamber]:
+    """The built-in chambers laid into ``surface``'s extents (see the module docstring), semi-axes times
+    ``chamber_scale``. ``surface`` is centred as :func:`~phantom.design.surface.read_gland` leaves it (its
+    mid-sagittal plane x = 0)."""
+    reference = builtin_half_extents_mm()
+    plus = surface.vertices_mm.max(axis=0)
+    minus = -surface.vertices_mm.min(axis=0)
+    chambers = []
+    for centre, axes in ProstateGeometry().ellipsoids_mm():
+        fraction = np.asarray(centre) / reference
+        side = np.where(fraction > 1e-9, plus, np.where(fraction < -1e-9, minus, 0.5 * (plus + minus)))
+        placed = fraction * side
+        semi_axes = np.asarray(axes) / reference * side * chamber_scale
+        chambers.append(Chamber(_vector(placed), _vector(semi_axes)))
+    return chambers
+
+
+def _mm(point: Vector3) -> str:
+    return ", ".join(f"{value:.1f}" for value in point) + " mm"
+
+
+def _vector(values: FloatArray) -> Vector3:
+    return (float(values[0]), float(values[1]), float(values[2]))
+
+
+def surface_samples_mm(surface: Surface) -> FloatArray:
+    """Points of ``surface`` no more than SAMPLE_SPACING_MM apart (its vertices, subdivided), mm."""
+    with require_extra("design"):
+        from trimesh import remesh
+
+    vertices, _ = remesh.subdivide_to_size(surface.vertices_mm, surface.triangles, max_edge=SAMPLE_SPACING_MM,
+                                           max_iter=20)
+    return np.asarray(vertices, float)
+
+
+def ellipsoid_distance_mm(points_mm: FloatArray, chamber: Chamber) -> FloatArray:
+    """Each point's distance to the chamber's ellipsoidal surface (mm), negative inside it.
+
+    The closest point ``x_i = a_i^2 y_i / (t + a_i^2)`` (``y`` the point about the centre) has the root ``t`` of
+    ``sum (a_i y_i / (t + a_i^2))^2 = 1``, found by bisection (the sum falls monotonically in ``t`` above
+    ``-min a_i^2``; Eberly's method): exact, where nearest samples would need a dense cloud and a slow search.
+    """
+    axes = np.asarray(chamber.semi_axes_mm)
+    offset = np.abs(points_mm - np.asarray(chamber.centre_mm))
+    squared = axes**2
+    low = np.full(len(points_mm), -squared.min())
+    high = axes.max() * np.linalg.norm(offset, axis=1) + 1e-9
+    for _ in range(48):
+        middle = 0.5 * (low + high)
+        level = np.sum((axes * offset / (middle[:, None] + squared)) ** 2, axis=1)
+        above = level > 1.0
+        low = np.where(above, middle, low)
+        high = np.where(above, high, middle)
+    t = 0.5 * (low + high)
+    closest = squared * offset / (t[:, None] + squared)
+    distance = np.linalg.norm(closest - offset, axis=1)
+    inside = np.sum((offset / axes) ** 2, axis=1) < 1.0
+    result: FloatArray = np.where(inside, -distance, distance)
+    return result
+
+
+def measure_walls(outer_samples_mm: FloatArray, chambers: list[Chamber]) -> dict[str, float]:
+    """The thinnest wall between each chamber and the outer surface (``outer_samples_mm``: dense samples of it),
+    and between chambers (mm); negative where a chamber breaks through the surface or two chambers overlap."""
+    walls: dict[str, float] = {}
+    for index, chamber in enumerate(chambers):
+        walls[f"{CHAMBER_NAMES[index]}-outer"] = float(ellipsoid_distance_mm(outer_samples_mm, chamber).min())
+    for first in range(len(chambers)):
+        points = ellipsoid_points_mm(chambers[first].centre_mm, chambers[first].semi_axes_mm, SAMPLE_SPACING_MM)
+        for second in range(first + 1, len(chambers)):
+            distance = float(ellipsoid_distance_mm(points, chambers[second]).min())
+            walls[f"{CHAMBER_NAMES[first]}-{CHAMBER_NAMES[second]}"] = distance
+    return walls
+
+
+@dataclass(frozen=True)
+class ChamberDesign:
+    """The placed chambers, their walls (mm, see :func:`measure_walls`) and each one's scale of its template."""
+
+    chambers: list[Chamber]
+    walls_mm: dict[str, float]
+    scales: list[float]
+
+
+def place_chambers(surface: Surface, min_wall_mm: float, chamber_scale: float = 1.0,
+                   samples_mm: FloatArray | None = None) -> ChamberDesign:
+    """The template's chambers in ``surface`` (see the module docstring), each shrunk until every wall is at least
+    ``min_wall_mm``; DesignError when one must shrink below SMALLEST_SCALE of its template."""
+    if not 0.3 <= chamber_scale <= 2.5:
+        raise DesignError(f"--chamber-scale {chamber_scale:g} is out of range: use 0.3 to 2.5 (1: the built-in "
+                          f"prostate's proportions)")
+    samples_mm = surface_samples_mm(surface) if samples_mm is None else samples_mm
+    template = template_chambers(surface, chamber_scale)
+    for index, chamber in enumerate(template):
+        if not surface.contains(np.asarray(chamber.centre_mm)):
+            raise DesignError(f"the {CHAMBER_LABELS[index]} chamber's place ({_mm(chamber.centre_mm)}) lies outside "
+                              f"the gland: its shape is too far from a prostate's for the built-in chambers' layout")
+    scales = [chamber_scale] * len(template)
+    chambers = list(template)
+    while True:
+        walls = measure_walls(samples_mm, chambers)
+        thin = [name for name, value in walls.items() if value < min_wall_mm]
+        if not thin:
+            return ChamberDesign(chambers, walls, scales)
+        for index in range(len(chambers)):
+            deficits = [min_wall_mm - walls[name] for name in thin if CHAMBER_NAMES[index] in name.split("-")]
+            if deficits:
+                # shrink by about the missing thickness over the longest semi-axis, at least by SHRINK_STEP
+                factor = 1.0 - (max(deficits) + 0.02) / max(chambers[index].semi_axes_mm)
+                scales[index] *= min(SHRINK_STEP, max(factor, 0.8))
+                chambers[index] = template[index].scaled(scales[index] / chamber_scale)
+        if min(scales) < SMALLEST_SCALE:
+            index = int(np.argmin(scales))
+            raise DesignError(
+                f"the gland leaves no room for three chambers with walls of {min_wall_mm:g} mm: the "
+                f"{CHAMBER_LABELS[index]} chamber would shrink to {scales[index]:.2f} of the built-in's proportions "
+                f"(thinnest wall {', '.join(thin)}); design at a larger --volume-ml or a smaller --min-wall-mm")

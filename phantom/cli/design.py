@@ -1,0 +1,90 @@
+"""Subcommand of ``phantom``: ``design``, a phantom from a patient's shape (:mod:`phantom.design`).
+
+Only argparse is imported at module load; the handler imports what it needs when it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    Subcommands = argparse._SubParsersAction[argparse.ArgumentParser]
+
+
+def register(subparsers: Subcommands) -> None:
+    """Add ``design`` to the ``phantom`` parser."""
+    parser = subparsers.add_parser(
+        "design", help="a phantom from a patient's shape: MRI mask or closed mesh to a model, a scene and a cast",
+        description="The paper's design step. From FROM (a NIfTI label mask in the pelvic MRI dataset's layout, or "
+                    "a closed mesh in mm in the phantom's frame, e.g. what phantom shape average writes): the "
+                    "gland's surface (largest component, smoothed without shrinking, base up, scaled to "
+                    "--volume-ml), the built-in prostate's three chambers laid into its anatomy and shrunk until "
+                    "every wall is at least --min-wall-mm, a tagged tetrahedral mesh and a scene that phantom "
+                    "forward, inverse, calibrate and the daemon accept, the cast's STLs (two mould halves, a wax "
+                    "core per chamber) and report.md. Minutes at the default mesh size.")
+    parser.add_argument("source", metavar="FROM", help="a NIfTI mask or label map (.nii, .nii.gz), or a closed "
+                                                       "mesh (.stl, .obj, .ply; mm, the phantom's frame)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="folder to write (created)")
+    parser.add_argument("--volume-ml", type=float, default=26.3,
+                        help="the gland's volume to scale to (default 26.3, the paper's average prostate)")
+    parser.add_argument("--min-wall-mm", type=float, default=2.0,
+                        help="the thinnest wall, chamber to surface and chamber to chamber (default 2)")
+    parser.add_argument("--chamber-scale", type=float, default=1.0,
+                        help="the chambers' size, times the built-in prostate's proportions (default 1; walls "
+                             "below the minimum shrink them further)")
+    parser.add_argument("--labels", default=None,
+                        help="the gland's label numbers in a label map (a dataset *_mask.nii defaults to 4,5)")
+    parser.add_argument("--size-mm", type=float, default=2.5, help="element size of the mesh (default 2.5)")
+    parser.add_argument("--element-order", type=int, choices=(1, 2), default=1,
+                        help="1: 4-node tetrahedra (default), 2: 10-node")
+    parser.add_argument("--fixation-radius-mm", type=float, default=6.0,
+                        help="the fixed patch's radius about the base pole, the tube junction (default 6)")
+    parser.add_argument("--stem-diameter-mm", type=float, default=3.0,
+                        help="the tube channels' diameter, each core's stem (default 3)")
+    parser.add_argument("--smooth-iterations", type=int, default=None,
+                        help="Taubin smoothing passes (default 20 for a mask, 0 for a mesh)")
+    parser.add_argument("--growth-kpa", default="0.5,1,1.5,2,2.5,3",
+                        help="pressures of the predicted growth curve, kPa (default 0.5,1,...,3; 'none' skips "
+                             "the solves)")
+    parser.add_argument("--json", action="store_true", help="print the design's figures as one JSON object")
+    parser.set_defaults(run=run_design)
+
+
+def run_design(args: argparse.Namespace) -> int:
+    """Handler of ``phantom design``."""
+    import json
+
+    from phantom.cli.common import parse_numbers
+    from phantom.design.errors import DesignError
+    from phantom.design.pipeline import DesignOptions, design, design_summary
+
+    labels = None
+    if args.labels is not None:
+        values = parse_numbers(args.labels, "--labels")
+        if not values or any(value != int(value) or value < 1 for value in values):
+            raise DesignError(f"--labels takes positive label numbers like 4,5; got {args.labels!r}")
+        labels = tuple(int(value) for value in values)
+    growth: tuple[float, ...] = ()
+    if args.growth_kpa.strip().lower() != "none":
+        growth = tuple(parse_numbers(args.growth_kpa, "--growth-kpa"))
+        if any(not 0 < value <= 3.0 for value in growth):
+            raise DesignError(f"--growth-kpa takes pressures above 0 and up to 3 kPa (the phantom's limit); got "
+                              f"{args.growth_kpa!r}")
+    options = DesignOptions(args.volume_ml, args.min_wall_mm, args.chamber_scale, args.size_mm, args.element_order,
+                            args.fixation_radius_mm, args.stem_diameter_mm, labels, args.smooth_iterations, growth)
+    result = design(args.source, args.out, options,
+                    progress=(lambda line: None) if args.json else (lambda line: print(line, flush=True)))
+    if args.json:
+        print(json.dumps(design_summary(result)))
+        return 0
+    name, thinnest = result.thinnest_wall
+    print(f"gland {result.gland_volume_ml:.2f} ml; chambers "
+          + ", ".join(f"{volume:.2f}" for volume in result.chamber_volumes_ml)
+          + f" ml; thinnest wall {thinnest:.2f} mm ({name}); outer surface {result.surface_distance_mm:.3f} mm from "
+          f"the source's; silicone {result.cast.silicone_ml:.1f} ml")
+    for note in result.notes:
+        print(f"note: {note}")
+    print(f"wrote {result.out}/scene.toml (try: phantom forward --scene {result.out}/scene.toml --pressures-kpa "
+          f"1,1,1) and report.md")
+    return 0
