@@ -275,7 +275,7 @@ def test_every_path_the_architecture_page_names_exists():
 # --- the page names every module, and the functions its data path cites exist ---------------------------------
 
 #: The folders of the parts' Python modules (the root's and the CLI's are phantom/).
-MODULE_FOLDERS = ("phantom", "protocol", "model", "scan", "shape", "host", "hil")
+MODULE_FOLDERS = ("phantom", "protocol", "model", "scan", "shape", "design", "host", "hil")
 #: A function, class or module the page cites: a dotted name in backticks under ``phantom.``.
 CITED = re.compile(r"`(phantom(?:\.\w+)+)`")
 
