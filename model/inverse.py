@@ -41,7 +41,7 @@ from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
-from phantom.model.fidelity.response_table import stored_response_table
+from phantom.model.fidelity.response_table import ResponseTableError, stored_response_table
 from phantom.model.target import ML_PER_M3, InverseResult, Target, UnreachableTargetError
 
 if TYPE_CHECKING:
@@ -541,10 +541,13 @@ class InverseSolver:
     def solved_range_m3(self) -> tuple[FloatArray, FloatArray] | None:
         """The least and greatest chamber volumes then gland volume (m^3, each (n_chambers + 1,)) that full solves
         over the pressure box give, read from the model's response table where one is at hand (the estimator's,
-        the disk cache's or the one its scene ships: no solve), or None without one, or for a box other than the
-        table's. Kept after the first call."""
+        the disk cache's or the one its scene ships: no solve), or None without one (or with one made for another
+        model), or for a box other than the table's. Kept after the first call."""
         if self._solved_range is None:
-            table = self.estimator.table or stored_response_table(self.model, float(self.pressure_max_pa.max()))
+            try:
+                table = self.estimator.table or stored_response_table(self.model, float(self.pressure_max_pa.max()))
+            except ResponseTableError:  # a shipped table made for another model (another modulus, mesh): none
+                return None
             if table is None or not np.all(self.pressure_max_pa == table.pressure_max_pa):
                 return None
             chambers = np.asarray(table.chamber_values, dtype=float).reshape(-1, self.n_chambers)

@@ -134,3 +134,13 @@ def test_a_volume_beyond_the_tables_solves_is_refused_on_every_fidelity_without_
     if fidelity == "rest":
         result = solver.pressures_for(Target(gland_volume_m3=30e-6))
         assert result.predicted_gland_volume_m3 == pytest.approx(30e-6, rel=1e-4)
+
+
+def test_a_table_shipped_for_another_model_gives_no_bound_and_refuses_nothing(converged):
+    """The same scene at another modulus ships no table for itself: the inverse bounds nothing from the scene's
+    (made for the fitted modulus), and answers as before (here the rest level: no solve)."""
+    stiffer = converged.with_material(youngs_modulus_pa=2.0 * converged.material.youngs_modulus_pa)
+    solver = InverseSolver(stiffer, fidelity="rest")
+    assert solver.solved_range_m3() is None
+    result = solver.pressures_for(Target(gland_volume_m3=28e-6))
+    assert result.predicted_gland_volume_m3 == pytest.approx(28e-6, rel=1e-4)
