@@ -544,8 +544,10 @@ class InverseSolver:
         the disk cache's or the one its scene ships: no solve), or None without one (or with one made for another
         model), or for a box other than the table's. Kept after the first call."""
         if self._solved_range is None:
+            table = self.estimator.table
             try:
-                table = self.estimator.table or stored_response_table(self.model, float(self.pressure_max_pa.max()))
+                if table is None and isinstance(self.model, PhantomModel):  # (a stand-in model has no cache)
+                    table = stored_response_table(self.model, float(self.pressure_max_pa.max()))
             except ResponseTableError:  # a shipped table made for another model (another modulus, mesh): none
                 return None
             if table is None or not np.all(self.pressure_max_pa == table.pressure_max_pa):
