@@ -41,6 +41,7 @@ from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
+from phantom.model.fidelity.response_table import ResponseTableError, stored_response_table
 from phantom.model.scene import chamber_labels_of, pressure_limit_error
 from phantom.model.target import ML_PER_M3, InverseResult, Target, UnreachableTargetError
 
@@ -257,6 +258,7 @@ class InverseSolver:
                                "m^3/Pa): the model is not restrained or not elastic; check the scene")
         self.volume_per_m3 = 1.0 / (float(np.mean(eigenvalues)) / self.pressure_per_pa)
         self._problems: dict[tuple[str, int, int], VolumeQP] = {}
+        self._solved_range: tuple[FloatArray, FloatArray] | None = None
 
     # ----------------------------------------------------------------- targets -> rows
     def _check_target(self, target: Target) -> None:
@@ -462,6 +464,7 @@ class InverseSolver:
             return self._evaluate_raw_pressures(target, target.pressures_pa, started)
 
         self._refuse_out_of_scale(target)
+        self._refuse_outside_solved_range(target)
         linearisation = self.rest
         pressures_pa = np.zeros(self.n_chambers)
         error = self._relative_error(target, self.rest.chamber_volumes_m3, self.rest.gland_volume_m3)
@@ -536,6 +539,43 @@ class InverseSolver:
         low_ml, high_ml = self.reachable_range_ml(target, self.rest, worst)
         raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
 
+    def solved_range_m3(self) -> tuple[FloatArray, FloatArray] | None:
+        """The least and greatest chamber volumes then gland volume (m^3, each (n_chambers + 1,)) that full solves
+        over the pressure box give, read from the model's response table where one is at hand (the estimator's,
+        the disk cache's or the one its scene ships: no solve), or None without one (or with one made for another
+        model), or for a box other than the table's. Kept after the first call."""
+        if self._solved_range is None:
+            table = self.estimator.table
+            try:
+                if table is None and isinstance(self.model, PhantomModel):  # (a stand-in model has no cache)
+                    table = stored_response_table(self.model, float(self.pressure_max_pa.max()))
+            except ResponseTableError:  # a shipped table made for another model (another modulus, mesh): none
+                return None
+            if table is None or not np.all(self.pressure_max_pa == table.pressure_max_pa):
+                return None
+            chambers = np.asarray(table.chamber_values, dtype=float).reshape(-1, self.n_chambers)
+            volumes = np.column_stack([chambers, np.asarray(table.gland_values, dtype=float).reshape(-1)])
+            self._solved_range = volumes.min(axis=0), volumes.max(axis=0)
+        return self._solved_range
+
+    def _refuse_outside_solved_range(self, target: Target) -> None:
+        """A volume beyond what the full solves over the pressure box give (:meth:`solved_range_m3`, by more than
+        the tolerance) is refused with that range at once, whatever the fidelity: no solve, no QP. (The growth
+        ratio and growth limits only narrow the range: a target outside the box's is out of reach with them.)"""
+        solved = self.solved_range_m3()
+        if solved is None:
+            return
+        low_m3, high_m3 = solved
+        wanted = [("gland", self.n_chambers, target.gland_volume_m3)]
+        wanted += [(f"chamber {index}", index, volume) for index, volume in enumerate(target.chamber_volumes_m3 or [])]
+        for row_name, column, volume_m3 in wanted:
+            if volume_m3 is None:
+                continue
+            margin_m3 = self.tolerance * abs(volume_m3)
+            if not low_m3[column] - margin_m3 <= volume_m3 <= high_m3[column] + margin_m3:
+                raise UnreachableTargetError(self._unreachable_message(
+                    target, row_name, low_m3[column] * ML_PER_M3, high_m3[column] * ML_PER_M3, constrained=False))
+
     def _evaluate(self, pressures_pa: FloatArray) -> Evaluation:
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
         past the limit point."""
@@ -569,7 +609,10 @@ class InverseSolver:
                 offsets.append(self.rest.chamber_volumes_m3[int(name.split()[1])] * self.volume_per_m3)
         return np.array(offsets)
 
-    def _unreachable_message(self, target: Target, row_name: str, low_ml: float, high_ml: float) -> str:
+    def _unreachable_message(self, target: Target, row_name: str, low_ml: float, high_ml: float,
+                             constrained: bool = True) -> str:
+        """Why a row is out of reach, with its range (ml) over the pressure box (and, ``constrained``, under the
+        target's growth ratio and the growth limits)."""
         wanted_m3 = (target.gland_volume_m3 if row_name == "gland"
                      else (target.chamber_volumes_m3 or [])[int(row_name.split()[1])])
         assert wanted_m3 is not None  # a row exists only for a wanted volume
@@ -578,9 +621,9 @@ class InverseSolver:
         what = "the gland volume" if row_name == "gland" else f"the volume of {row_name}"
         limits = ", ".join(f"{value / 1e3:g}" for value in self.pressure_max_pa)
         constraints = []
-        if target.growth_ratio:
+        if target.growth_ratio and constrained:
             constraints.append(f"growth ratio {dict(target.growth_ratio)}")
-        if any(limit is not None for limit in self.max_growth_m3):
+        if any(limit is not None for limit in self.max_growth_m3) and constrained:
             constraints.append("growth limits")
         with_constraints = f" with the {' and '.join(constraints)}" if constraints else ""
         if low_ml - 1e-9 <= wanted_ml <= high_ml + 1e-9:

@@ -105,3 +105,42 @@ def test_cli_input_errors_say_what_to_do(arguments, message):
 
     with pytest.raises(PhantomError, match=message):
         run_cli("inverse", "--scene", "builtin", "--size-mm", str(COARSE_MM), "--fidelity", "rest", *arguments)
+
+
+@pytest.fixture(scope="module")
+def converged():
+    return PhantomModel.from_scene(load_scene("builtin:converged"))
+
+
+@pytest.mark.parametrize("fidelity", ["rest", "updated", "full", "table"])
+def test_a_volume_beyond_the_tables_solves_is_refused_on_every_fidelity_without_a_solve(converged, fidelity):
+    """The converged scene ships the full solves over its pressure box (its response table): a target beyond
+    their range is refused with it at once on every level, the full one included (a full solve at the limit
+    took a minute before), with no solve and no tangent."""
+    from phantom.model.fidelity.response_table import stored_response_table
+
+    table = stored_response_table(converged, 3000.0)
+    assert table is not None
+    solver = InverseSolver(converged, fidelity=fidelity)
+    for target, values in ((Target(gland_volume_m3=60e-6), table.gland_values),
+                           (Target(chamber_volumes_m3=[1e-6, None, None]), table.chamber_values[..., 0])):
+        with pytest.raises(UnreachableTargetError) as caught:
+            solver.pressures_for(target)
+        message = str(caught.value)
+        assert "is unreachable: pressures between 0 and [3, 3, 3] kPa give" in message, message
+        assert f"give {values.min() * 1e6:.3f} to {values.max() * 1e6:.3f} ml" in message, message
+    assert solver.estimator.counts == {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
+    # a target within the range is not refused by the bound (the rest level answers it here: no solve)
+    if fidelity == "rest":
+        result = solver.pressures_for(Target(gland_volume_m3=30e-6))
+        assert result.predicted_gland_volume_m3 == pytest.approx(30e-6, rel=1e-4)
+
+
+def test_a_table_shipped_for_another_model_gives_no_bound_and_refuses_nothing(converged):
+    """The same scene at another modulus ships no table for itself: the inverse bounds nothing from the scene's
+    (made for the fitted modulus), and answers as before (here the rest level: no solve)."""
+    stiffer = converged.with_material(youngs_modulus_pa=2.0 * converged.material.youngs_modulus_pa)
+    solver = InverseSolver(stiffer, fidelity="rest")
+    assert solver.solved_range_m3() is None
+    result = solver.pressures_for(Target(gland_volume_m3=28e-6))
+    assert result.predicted_gland_volume_m3 == pytest.approx(28e-6, rel=1e-4)

@@ -30,7 +30,7 @@ import phantom
 from phantom.model.arrays import BoolArray, FloatArray, Int32Array, IntArray
 from phantom.model.errors import MeshError, SolveError
 from phantom.model.fem import kernels
-from phantom.model.fem.linsolve import CholeskyFactor, Factorization, default_method
+from phantom.model.fem.linsolve import CholeskyFactor, Factorization, default_method, indefinite_method
 from phantom.model.fem.materials import law_parameters
 from phantom.model.mesh.elements import (
     TET_DEGREE2_POINTS,
@@ -316,6 +316,7 @@ class SolidBody:
         self._rest_tangent: FloatArray | None = None
         self._factorizations: dict[tuple[int, ...], Factor] = {}
         self._cholmod_analysis: Any = None
+        self._ldl_analysis: Any = None
         self._constraint_sets: dict[tuple[int, ...], Constraints] = {}
         self.rest_constraints = self.constraints_for(self.nodes_m)
 
@@ -371,7 +372,7 @@ class SolidBody:
         be pickled: its symbolic analysis is made again at the worker's first factorisation, and a rest factor
         made in this process travels as its arrays (as the disk cache stores it; SuperLU's is made again)."""
         state = self.__dict__.copy()
-        state["_cholmod_analysis"] = None
+        state["_cholmod_analysis"] = state["_ldl_analysis"] = None
         factors: dict[tuple[int, ...], Factor] = {}
         for key, factor in self._factorizations.items():
             arrays = factor.cholesky_factor() if isinstance(factor, Factorization) else factor
@@ -558,10 +559,12 @@ class SolidBody:
     def factorize(self, data: FloatArray, positive_definite: bool = True) -> Factorization:
         """Factorise a matrix of the body's pattern with ``linear_solver`` (None: the measured default). One that
         may be indefinite (the exact tangent: positive definite on the stable path, not past a limit point) goes
-        to CHOLMOD first, when that is the solver, and to SuperLU when CHOLMOD finds it is not positive definite
-        (or when the solver is not CHOLMOD). CHOLMOD's symbolic analysis of the pattern is made once per body.
+        to CHOLMOD's Cholesky first, when that is the solver, and to :func:`indefinite_method` (CHOLMOD's LDL')
+        when CHOLMOD finds it is not positive definite (SuperLU when the solver is not CHOLMOD). CHOLMOD's
+        symbolic analysis of the pattern is made once per body and mode.
 
-        Raises ArithmeticError when a matrix said to be positive definite is not (CHOLMOD).
+        Raises ArithmeticError when a matrix said to be positive definite is not (CHOLMOD), or an indefinite one
+        is singular (a zero pivot in LDL').
         """
         matrix = self.csr(data)
         method = self.linear_solver or default_method()
@@ -572,7 +575,9 @@ class SolidBody:
         except ArithmeticError:
             if positive_definite:
                 raise
-            return Factorization(matrix, "splu-mmd")
+            factorization = Factorization(matrix, indefinite_method(), self._ldl_analysis)
+            self._ldl_analysis = factorization.analysis
+            return factorization
         self._cholmod_analysis = factorization.analysis
         return factorization
 

@@ -5,10 +5,14 @@ right-hand sides, as often as needed while the matrix does not change. For symme
 matrices (the rest stiffness, R K R^T, and the exact hyperelastic tangent on the stable path) the default is
 CHOLMOD's supernodal Cholesky (scikit-sparse, 2.5 to 7 times faster than SuperLU here) when it is installed, else
 SuperLU; CHOLMOD reports a matrix that is not positive definite (a tangent past a limit point), which the caller
-then hands to SuperLU ("splu-mmd"). A CHOLMOD factorisation solves with CHOLMOD's own substitutions and may reuse
-the symbolic analysis (fill-reducing ordering, supernodes) of an earlier matrix of the same pattern; its factor
-can be taken out as arrays (:class:`CholeskyFactor`) to be stored, and a stored one is solved by numba
-substitutions.
+then hands to :func:`indefinite_method`: CHOLMOD's simplicial LDL' ("cholmod-ldl"), which factorises a symmetric
+indefinite matrix as it is (no pivoting: only an exactly zero pivot stops it), or SuperLU without CHOLMOD.
+SuperLU's symmetric-mode LU ("splu-mmd": no partial pivoting) of such a tangent printed "On entry to DTRSV
+parameter number 6 had an illegal value" from its C code during volume-controlled steps (bench/README.md): with
+CHOLMOD installed no solve goes through SuperLU any more. A CHOLMOD factorisation solves with CHOLMOD's own
+substitutions and may reuse the symbolic analysis (fill-reducing ordering, supernodes) of an earlier matrix of
+the same pattern and mode; a Cholesky factor can be taken out as arrays (:class:`CholeskyFactor`) to be stored,
+and a stored one is solved by numba substitutions.
 """
 
 from __future__ import annotations
@@ -24,7 +28,7 @@ from phantom.model.fem import kernels
 if TYPE_CHECKING:
     import scipy.sparse
 
-METHODS = ("cholmod", "splu-mmd", "splu-colamd", "cg-ilu")
+METHODS = ("cholmod", "cholmod-ldl", "splu-mmd", "splu-colamd", "cg-ilu")
 
 
 def default_method() -> str:
@@ -35,6 +39,12 @@ def default_method() -> str:
     except ImportError:
         return "splu-mmd"
     return "cholmod"
+
+
+def indefinite_method() -> str:
+    """The factorisation for a symmetric matrix that may be indefinite (a tangent past a limit point):
+    CHOLMOD's LDL' ("cholmod-ldl") when scikit-sparse imports, else SuperLU ("splu-mmd")."""
+    return "cholmod-ldl" if default_method() == "cholmod" else "splu-mmd"
 
 
 class CholeskyFactor:
@@ -67,32 +77,41 @@ class CholeskyFactor:
 class Factorization:
     """A reusable solver for ``K y = b``; ``method`` is one of METHODS (None: :func:`default_method`).
 
-    Raises ``ArithmeticError`` when "cholmod" finds the matrix not positive definite.
+    Raises ``ArithmeticError`` when "cholmod" finds the matrix not positive definite, or "cholmod-ldl" meets a
+    zero pivot.
     """
 
     def __init__(self, matrix: scipy.sparse.csr_matrix, method: str | None = None, analysis: Any = None):
         # scipy.sparse.linalg costs a tenth of a second to import: only the factorising paths pay for it.
+        import scipy.sparse
         import scipy.sparse.linalg as spla
 
         self.method = method or default_method()
         self.matrix = matrix
-        #: CHOLMOD's symbolic analysis of the matrix's pattern ("cholmod"): pass it as ``analysis`` to factorise
-        #: another matrix of the same pattern without ordering it again. None for the other methods.
+        #: CHOLMOD's symbolic analysis of the matrix's pattern (the CHOLMOD methods): pass it as ``analysis`` to
+        #: factorise another matrix of the same pattern by the same method without ordering it again. None for the
+        #: others.
         self.analysis: Any = None
         self._cholmod: Any = None
         self._lu: Any = None
         self._preconditioner: Any = None
-        if self.method == "cholmod":
-            # scikit-sparse is an optional extra and loads SuiteSparse: only the "cholmod" method needs it
+        if self.method in ("cholmod", "cholmod-ldl"):
+            # scikit-sparse is an optional extra and loads SuiteSparse: only the CHOLMOD methods need it
             with require_extra("cholmod"):
                 from sksparse.cholmod import CholmodNotPositiveDefiniteError, analyze
 
-            columns = matrix.tocsc()
-            self.analysis = analysis if analysis is not None else analyze(columns, mode="supernodal")
+            # CHOLMOD reads one triangle of a symmetric matrix: a CSR matrix's arrays, read as CSC, are its
+            # transpose, the same matrix, without scipy's conversion (0.15 s a factorisation on the 7 mm prostate)
+            columns = (scipy.sparse.csc_matrix((matrix.data, matrix.indices, matrix.indptr), shape=matrix.shape)
+                       if scipy.sparse.isspmatrix_csr(matrix) else matrix.tocsc())
+            # supernodal: LL' (positive definite only); simplicial: LDL', which takes a negative pivot as it comes
+            mode = "supernodal" if self.method == "cholmod" else "simplicial"
+            self.analysis = analysis if analysis is not None else analyze(columns, mode=mode)
             try:
                 self._cholmod = self.analysis.cholesky(columns)
             except CholmodNotPositiveDefiniteError as error:
-                raise ArithmeticError(f"CHOLMOD: the matrix is not positive definite ({error})") from error
+                what = "not positive definite" if self.method == "cholmod" else "singular (a zero pivot in LDL')"
+                raise ArithmeticError(f"CHOLMOD: the matrix is {what} ({error})") from error
         elif self.method == "splu-colamd":
             self._lu = spla.splu(matrix.tocsc(), permc_spec="COLAMD")
         elif self.method == "splu-mmd":
@@ -125,7 +144,7 @@ class Factorization:
 
     def cholesky_factor(self) -> CholeskyFactor | None:
         """The Cholesky factor as arrays, to be stored ("cholmod"; None for the other methods)."""
-        if self._cholmod is None:
+        if self._cholmod is None or self.method != "cholmod":
             return None
         lower = self._cholmod.L()
         lower.sort_indices()

@@ -21,7 +21,7 @@ import phantom
 from phantom.model.arrays import FloatArray, IntArray
 from phantom.model.errors import MeshError, SolveError
 from phantom.model.fem.body import Factor, SolidBody
-from phantom.model.fem.linsolve import Factorization
+from phantom.model.fem.linsolve import Factorization, indefinite_method
 from phantom.model.fem.newton import RELATIVE_TOLERANCE, newton
 from phantom.model.fem.pathfollow import follow_path
 from phantom.model.fem.problem import EquilibriumProblem
@@ -370,9 +370,9 @@ class PhantomModel:
         try:
             factorization = Factorization(stiffness)
         except ArithmeticError:
-            # Past a limit point the tangent is indefinite: LU still solves it, and the compliance's negative
+            # Past a limit point the tangent is indefinite: LDL' still solves it, and the compliance's negative
             # eigenvalue then says where the state is.
-            factorization = Factorization(stiffness, method="splu-colamd")
+            factorization = Factorization(stiffness, method=indefinite_method())
         displacement = factorization.solve(np.ascontiguousarray(gradients.T)).T
         displacement[:, held] = 0.0
         return displacement.reshape(len(pressures_pa), -1, 3)

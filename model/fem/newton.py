@@ -156,31 +156,35 @@ def line_search(problem: EquilibriumProblem, positions_m: FloatArray, direction:
 
 
 def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: float = RELATIVE_TOLERANCE,
-           initial_imbalance: bool = False, element_pressures_pa: FloatArray | None = None) -> NewtonResult:
+           initial_imbalance: bool = False, element_pressures_pa: FloatArray | None = None,
+           max_iterations: int = MAX_ITERATIONS_PER_STEP) -> NewtonResult:
     """Newton iterations from ``positions_m`` (n, 3) with a backtracking line search on the total energy.
 
     Converged when the residual is below ``tolerance`` times the load (or times the starting residual when
     ``initial_imbalance`` and that is larger, for a start that is not in equilibrium at zero load, e.g. rotated).
     A 10-node hyperelastic body first iterates on the mixed system (:func:`mixed_newton`), from
     ``element_pressures_pa`` when given (a path's extrapolated ones) else those eliminated at ``positions_m``;
-    where that finds no step, the iterations go on from where it stopped with the pressures eliminated.
+    where that finds no step, the iterations go on from where it stopped with the pressures eliminated. At most
+    ``max_iterations`` in all (a path's attempt at the full load from a predictor gives up early and steps on).
     """
     evaluation = problem.evaluate(positions_m)
     load_scale = max(problem.load_scale_n(), norm(evaluation.residual_n) if initial_imbalance else 0.0)
     spent = 0
     if problem.mixed:
-        mixed = mixed_newton(problem, positions_m, evaluation, tolerance, load_scale, element_pressures_pa)
-        if mixed.converged:
+        mixed = mixed_newton(problem, positions_m, evaluation, tolerance, load_scale, element_pressures_pa,
+                             max_iterations)
+        if mixed.converged or mixed.iterations >= max_iterations:
             return mixed
         positions_m, spent = mixed.positions_m, mixed.iterations
         evaluation = problem.evaluate(positions_m)
-    result = _eliminated_newton(problem, positions_m, evaluation, tolerance, load_scale)
+    result = _eliminated_newton(problem, positions_m, evaluation, tolerance, load_scale, max_iterations - spent)
     result.iterations += spent
     return result
 
 
 def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluation: Evaluation, tolerance: float,
-                 load_scale: float, element_pressures_pa: FloatArray | None = None) -> NewtonResult:
+                 load_scale: float, element_pressures_pa: FloatArray | None = None,
+                 max_iterations: int = MAX_ITERATIONS_PER_STEP) -> NewtonResult:
     """Newton on the mixed (displacement, element pressure) system of a 10-node body, the pressures condensed in
     each linear solve but carried from one iterate to the next.
 
@@ -207,7 +211,8 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
                                                                                 element_pressures_pa=pressures_pa)
     merit = _mixed_merit(body, carried.residual_n, ratios, pressures_pa)
     best_merit, best_iteration, previous_norm = np.inf, 0, np.inf
-    for iteration in range(1, MAX_ITERATIONS_PER_STEP + 1):
+    tangent_data = None  # the exact tangent at the iterate, where the line search's element pass made it
+    for iteration in range(1, max_iterations + 1):
         residual_norm = norm(eliminated.residual_n)
         stalled = residual_norm > 0.5 * previous_norm and residual_norm <= ROUNDING_TOLERANCE * load_scale
         if residual_norm <= tolerance * load_scale or stalled:
@@ -217,27 +222,29 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
             best_merit, best_iteration = merit, iteration
         elif iteration - best_iteration >= STALLED_ITERATIONS:
             return NewtonResult(positions_m, False, iteration - 1, "mixed solve stalled")
-        factorization = problem.tangent(positions_m, exact=True, damped=True, element_pressures_pa=pressures_pa)
+        factorization = problem.tangent(positions_m, exact=True, damped=True, element_pressures_pa=pressures_pa,
+                                        tangent_data=tangent_data)
         direction = -factorization.solve(eliminated.residual_n).reshape(-1, 3)
         pressure_step = body.eliminated_pressures_pa(ratios, body.element_volume_ratio_rates(positions_m, direction)) \
             - pressures_pa
         accepted = None
         scale = 1.0
-        for _ in range(LINE_SEARCH_HALVINGS):
+        for halving in range(LINE_SEARCH_HALVINGS):
             trial_m, trial_pa = positions_m + scale * direction, pressures_pa + scale * pressure_step
-            trial = problem.evaluate(trial_m, element_pressures_pa=trial_pa)
+            # (the full step, accepted almost always near convergence, assembles the next tangent in its pass)
+            trial = problem.evaluate(trial_m, with_tangent=halving == 0, element_pressures_pa=trial_pa)
             if trial.admissible:
                 trial_ratios = body.element_volume_ratios(trial_m)
                 trial_merit = _mixed_merit(body, trial.residual_n, trial_ratios, trial_pa)
                 if trial_merit < merit:
-                    accepted = trial_m, trial_pa, trial_ratios, trial_merit
+                    accepted = trial_m, trial_pa, trial_ratios, trial_merit, trial.tangent_data
                     break
             scale *= 0.5
         if accepted is None:
             return NewtonResult(positions_m, False, iteration, "mixed step found no descent")
-        positions_m, pressures_pa, ratios, merit = accepted
+        positions_m, pressures_pa, ratios, merit, tangent_data = accepted
         eliminated = problem.evaluate(positions_m)
-    return NewtonResult(positions_m, False, MAX_ITERATIONS_PER_STEP, "mixed solve did not converge")
+    return NewtonResult(positions_m, False, max_iterations, "mixed solve did not converge")
 
 
 def _mixed_merit(body: SolidBody, residual_n: FloatArray, volume_ratios: FloatArray,
@@ -249,7 +256,8 @@ def _mixed_merit(body: SolidBody, residual_n: FloatArray, volume_ratios: FloatAr
 
 
 def _eliminated_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluation: Evaluation,
-                       tolerance: float, load_scale: float) -> NewtonResult:
+                       tolerance: float, load_scale: float,
+                       max_iterations: int = MAX_ITERATIONS_PER_STEP) -> NewtonResult:
     """:func:`newton`'s iterations on the residual with any element pressures eliminated, from ``positions_m``
     (whose ``evaluation`` is given)."""
     if not problem.nonlinear:
@@ -261,7 +269,7 @@ def _eliminated_newton(problem: EquilibriumProblem, positions_m: FloatArray, eva
     hessian = evaluation.tangent_data
     previous_norm = best_norm = np.inf
     best_iteration = 0
-    for iteration in range(1, MAX_ITERATIONS_PER_STEP + 1):
+    for iteration in range(1, max_iterations + 1):
         residual = evaluation.residual_n
         residual_norm = norm(residual)
         # Converged at the tolerance, or where rounding stops progress (tiny loads: forces are computed
@@ -302,5 +310,5 @@ def _eliminated_newton(problem: EquilibriumProblem, positions_m: FloatArray, eva
         refresh = norm(evaluation.residual_n) > TANGENT_REFRESH_RATIO * residual_norm
         if kind != "krylov" and problem.nonlinear and refresh:
             kind, factorization = "exact", problem.tangent(positions_m, exact=True, damped=True)
-    return NewtonResult(positions_m, False, MAX_ITERATIONS_PER_STEP, "solve did not converge in "
-                        f"{MAX_ITERATIONS_PER_STEP} iterations", problem.worst_element(positions_m))
+    return NewtonResult(positions_m, False, max_iterations, f"solve did not converge in {max_iterations} "
+                        "iterations", problem.worst_element(positions_m))

@@ -1,26 +1,31 @@
-"""Path following for the pressure-controlled solve: load steps with a predictor, then volume control.
+"""Path following for the pressure-controlled solve: load steps with a predictor, or volume control.
 
-The pressures ``p`` are applied as ``lam p`` with the load factor ``lam`` going from 0 to 1; the first step is
-the whole load unless the small-strain estimate grows a chamber by more than ``FIRST_STEP_GROWTH``. While the
-response is stiff, each step is a pressure-controlled Newton solve started from a secant predictor (the last two
-equilibria extrapolated to the new load). Where the pressure-volume curve flattens (the load gained per unit of
-volume falls below ``FLATTENING_RATIO`` of the first step's) or a pressure-controlled step fails, the path
-switches to volume control, as SoftRobots' volume actuation does: the control is the load-weighted chamber
-volume ``c(x) = sum_i w_i V_i(x)`` with ``w = p / max|p|`` (one loaded chamber: exactly its volume), stepped
-forward, and the load factor is the Lagrange multiplier of ``c(x) = c_target``. Each volume-controlled step
-solves the bordered system
+The pressures ``p`` are applied as ``lam p`` with the load factor ``lam`` going from 0 to 1. Where the small-strain
+estimate grows no chamber by more than ``FIRST_STEP_GROWTH`` the whole load is one pressure-controlled Newton
+solve (else the share of it that would), then steps started from a secant predictor (the last two equilibria
+extrapolated to the new load); where the pressure-volume curve flattens (the load gained per unit of volume falls below
+``FLATTENING_RATIO`` of the first step's) or a pressure-controlled step fails, the path switches to volume
+control. Where the estimate grows a chamber by more than that under a load on several chambers, the path is
+volume controlled from rest: a pressure step there failed after 21 iterations (bench/README.md, "Through the
+limit points"; one chamber alone takes fewer iterations under pressure control). Volume control is
+SoftRobots' volume actuation: the control is the load-weighted chamber volume ``c(x) = sum_i w_i V_i(x)`` with
+``w = p / max|p|`` (one loaded chamber: exactly its volume), stepped forward, and the load factor is the
+Lagrange multiplier of ``c(x) = c_target``. Each volume-controlled step solves the bordered system
 
     K dx - q dlam = -R,    h . dx = -(c - c_target)
 
 (``K`` the exact tangent with the follower-pressure stiffness, ``q = sum p_i dV_i/dx`` the load per unit lam,
-``h = dc/dx``) by block elimination with one factorisation of K per step (``dx = a + b dlam``, ``K a = -R``,
-``K b = q``), so limit points of the pressure-controlled problem, where K is singular along the volume mode,
-are passed. K is factorised as Newton's is: CHOLMOD, shifted towards positive definite where it is not (a
-predictor off the path can be indefinite; SuperLU's exact factor of it took 4 s against CHOLMOD's 0.3 s on the
-7 mm prostate). A shifted K gives a damped step, not Newton's, which the merit's line search accepts or refuses
-and the next iterate's factor replaces. A 10-node body's element pressures start each step extrapolated from
-the last two equilibria, as the positions are. When lam crosses 1 the crossing is bracketed (Illinois regula
-falsi on c) and the final state is a pressure-controlled equilibrium at the exact pressures.
+``h = dc/dx``) by block elimination (``dx = a + b dlam``, ``K a = -R``, ``K b = q``) with CG preconditioned by
+the rest factor while it converges, else K factorised at every iterate, so limit points of the
+pressure-controlled problem, where K is singular along the volume mode, are passed. K is factorised as Newton's
+is: CHOLMOD, shifted towards positive definite where it is not (a predictor off the path can be indefinite). A
+shifted K gives a damped step, not Newton's, which the merit's line search accepts or refuses. Each step starts
+from a quadratic through the last three equilibria in the control volume (a secant through two, the tangent
+from one), a 10-node body's element pressures extrapolated as the positions are. When the next step is predicted
+to carry lam past 1, Newton at the exact pressures starts from the predictor where lam reaches 1 (at most
+FINAL_NEWTON_ITERATIONS); where it does not converge the path steps on, and a step past lam = 1 is bracketed
+(Newton from the interpolation between the two, then Illinois regula falsi on c) until the final state is a
+pressure-controlled equilibrium at the exact pressures.
 
 A target is unreachable when, past its peak, the load factor falls below ``PEAK_DROP`` of it, the control
 volume grows beyond ``MAX_CONTROL_GROWTH`` times its rest value, or a volume step cannot be made without
@@ -37,8 +42,7 @@ import numpy as np
 
 from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
-from phantom.model.fem.body import Factor
-from phantom.model.fem.newton import newton, preconditioned_cg
+from phantom.model.fem.newton import LINE_SEARCH_HALVINGS, newton, preconditioned_cg
 from phantom.model.fem.problem import EquilibriumProblem
 
 #: Switch to volume control when the secant slope d(lam)/d(c) falls below this fraction of the first step's.
@@ -70,9 +74,6 @@ VOLUME_NEWTON_ITERATIONS = 30
 PATH_TOLERANCE = 1e-8
 #: The control volume constraint, relative to the control's rest value.
 CONTROL_TOLERANCE = 1e-11
-#: A volume-controlled step that did not reduce the merit (a squared residual) by this factor refactorises the
-#: tangent.
-REFRESH_RATIO = 1e-2
 CROSSING_ITERATIONS = 30
 #: How close to lam = 1 the crossing's bracket comes before the pressure-controlled Newton at the exact pressures
 #: takes over: first near (that Newton converges in two or three iterations from there), then, if it fails,
@@ -81,10 +82,10 @@ CROSSING_LOAD_TOLERANCES = (1e-3, 1e-6)
 #: A volume-controlled Newton solve fails after CRAWL_ITERATIONS steps in a row cut by 2^CRAWL_HALVINGS or more.
 CRAWL_HALVINGS = 4
 CRAWL_ITERATIONS = 2
-#: A volume-controlled step on a kept (stale) factorisation is halved at most this many times before the tangent
-#: is factorised afresh: the second iterate of a volume step, on the factor made at its predictor, was usually
-#: useless, and its twelve halvings cost twelve element passes before the factor was made again anyway.
-STALE_FACTOR_HALVINGS = 2
+#: Equilibria the volume step's predictor extrapolates (a polynomial of one degree less in the control volume).
+PREDICTOR_POINTS = 3
+#: Newton iterations at the exact pressures from a predictor near lam = 1 before the path steps on instead.
+FINAL_NEWTON_ITERATIONS = 8
 VOLUME_KRYLOV_TOLERANCE = 1e-4
 VOLUME_KRYLOV_ITERATIONS = 40
 
@@ -115,7 +116,8 @@ class _VolumeState:
     relative to the control's rest volume, plus a 10-node body's squared constraint error when its pressures
     are carried) and admissibility (no element at det F <= 0, finite energy). ``eliminated_n``: the residual at
     eliminated element pressures (``residual_n`` itself unless they are carried); ``volume_ratios``: the
-    elements' Jbar where they are carried."""
+    elements' Jbar where they are carried; ``tangent_data``: the exact tangent's data at this state where the
+    same element pass made it (else None)."""
 
     residual_n: FloatArray
     gap_m3: float
@@ -123,6 +125,7 @@ class _VolumeState:
     admissible: bool
     eliminated_n: FloatArray
     volume_ratios: FloatArray | None = None
+    tangent_data: FloatArray | None = None
 
 
 @dataclass
@@ -152,6 +155,8 @@ class _Path:
         self.control_rest_m3 = (abs(self._control(self.start_m))
                                 or float(np.max(self.body.rest_chamber_volumes_m3)))
         self.peak: PathPoint | None = None
+        #: conjugate gradients on a volume step's tangent failed once: later steps factorise it straight away
+        self.krylov_failed = False
 
     # --- quantities --------------------------------------------------------------------------------------
 
@@ -169,7 +174,17 @@ class _Path:
     def run(self) -> FloatArray:
         points = [self._point(0.0, self.start_m)]
         # volume control needs a chamber to control: under a body force alone the path is pressure controlled
-        return self._pressure_controlled(points, allow_switch=self.problem.nonlinear and bool(np.any(self.pressures)))
+        allow_switch = self.problem.nonlinear and bool(np.any(self.pressures))
+        increment = self._first_increment() if allow_switch else 1.0
+        at_rest = np.array_equal(self.start_m, self.body.nodes_m)  # (an equilibrium at lam = 0, as a path's points)
+        if increment < 1.0 and np.count_nonzero(self.pressures) > 1 and at_rest:
+            # The small-strain answer grows a chamber by more than FIRST_STEP_GROWTH under a load on several
+            # chambers: on builtin:converged their pressure steps from rest failed after 21 iterations (2,2,2) or
+            # took 14 a step (3,1,2), where volume control from the start takes 29 in all; one chamber alone
+            # took 15-18 in two pressure steps at 2 kPa, and 26-30 under volume control (bench/README.md,
+            # "Through the limit points"). A measured rule, not a law: the load-weighted control follows either.
+            return self._volume_controlled(points)
+        return self._pressure_controlled(points, allow_switch, increment)
 
     def _predict(self, points: list[PathPoint], load_factor: float) -> tuple[FloatArray, FloatArray | None]:
         """Secant extrapolation of the last two equilibria to ``load_factor`` (the last one when that would
@@ -190,15 +205,10 @@ class _Path:
         1)``, carry K times the secant's second-order error in the volume ratios, and gave an indefinite tangent
         at nearly every volume step of a 7 mm prostate solve (a SuperLU factorisation, 4 s, instead of CHOLMOD's
         0.3 s) and 6-8 iterations a step instead of 4-6. None for a 4-node body."""
-        if not self.problem.mixed:
-            return None
-        last_pa, before_pa = (self.body.eliminated_pressures_pa(self.body.element_volume_ratios(p.positions_m))
-                              for p in (last, before))
-        extrapolated: FloatArray = last_pa + ratio * (last_pa - before_pa)
-        return extrapolated
+        return self._combined_pressures([before, last], np.array([-ratio, 1.0 + ratio]))
 
-    def _pressure_controlled(self, points: list[PathPoint], allow_switch: bool) -> FloatArray:
-        increment, failures = self._first_increment() if allow_switch else 1.0, 0
+    def _pressure_controlled(self, points: list[PathPoint], allow_switch: bool, increment: float) -> FloatArray:
+        failures = 0
         first_slope: float | None = None
         while points[-1].load_factor < 1.0:
             done = points[-1].load_factor
@@ -273,6 +283,10 @@ class _Path:
         for _ in range(MAX_PATH_STEPS):
             target = point.control_m3 + control_step
             guess_m, guess_factor, guess_pa = self._volume_guess(history, point, target)
+            if guess_factor >= 1.0 and len(history) >= 2 and bisections == 0:
+                final = self._final_from_prediction(history, point, target, guess_factor)
+                if final is not None:
+                    return final
             worst = self.problem.worst_element(guess_m)
             if worst >= 0:  # the predictor itself inverts an element: a shorter step, no Newton spent
                 step = _VolumeStep(False, None, 0, "solve would invert elements", worst)
@@ -289,13 +303,13 @@ class _Path:
             new = step.point
             assert new is not None  # a converged step has its point
             self.steps += 1
-            history = [point, new]
+            history = [*history[-(PREDICTOR_POINTS - 1):], new]
             if new.load_factor >= 1.0:
                 return self._cross(point, new)
             if new.load_factor > peak.load_factor:
                 peak = self.peak = new
+            falling = falling + 1 if new.load_factor < point.load_factor else 0
             point = new
-            falling = falling + 1 if new.load_factor < history[0].load_factor else 0
             if point.load_factor < PEAK_DROP * peak.load_factor or (
                     falling >= CONFIRMED_FALL_STEPS and self.formulation != "gent"):
                 raise self._unreachable(point, "past the limit point")
@@ -308,25 +322,70 @@ class _Path:
 
     def _volume_guess(self, history: list[PathPoint], point: PathPoint,
                       target_m3: float) -> tuple[FloatArray, float, FloatArray | None]:
-        """Predictor for a volume step: secant through the last two equilibria, else the tangent at the last
-        (the caller checks that it inverts no element): positions, load factor, and a 10-node body's element
-        pressures on the secant (None: eliminated at the guess)."""
-        if len(history) == 2 and history[1].control_m3 > history[0].control_m3:
-            before, last = history
-            ratio = (target_m3 - last.control_m3) / (last.control_m3 - before.control_m3)
-            guess = last.positions_m + ratio * (last.positions_m - before.positions_m)
-            factor = last.load_factor + ratio * (last.load_factor - before.load_factor)
-            pressures = self._extrapolated_pressures(before, last, ratio)
-        else:
-            tangent = self._tangent_direction(point)
-            if tangent is None:
-                return point.positions_m, point.load_factor, None
-            direction, factor_rate = tangent
-            change = target_m3 - point.control_m3
-            guess = point.positions_m + change * direction
-            factor = point.load_factor + change * factor_rate
-            pressures = None
-        return guess, factor, pressures
+        """Predictor for a volume step: the last equilibria (up to PREDICTOR_POINTS: a quadratic through three,
+        whose error at a doubled step is a third of the secant's order) extrapolated in the control volume, else
+        the tangent at the last (the caller checks that it inverts no element): positions, load factor, and a
+        10-node body's element pressures extrapolated alike (None: eliminated at the guess). A quadratic guess
+        that would invert an element gives way to the secant's."""
+        if len(history) >= 2 and np.all(np.diff([p.control_m3 for p in history]) > 0):
+            for count in range(len(history), 1, -1):
+                guess, factor, pressures = self._extrapolated(history[-count:], target_m3)
+                if count == 2 or self._upright(guess):
+                    return guess, factor, pressures
+        tangent = self._tangent_direction(point)
+        if tangent is None:
+            return point.positions_m, point.load_factor, None
+        direction, factor_rate = tangent
+        change = target_m3 - point.control_m3
+        return point.positions_m + change * direction, point.load_factor + change * factor_rate, None
+
+    def _extrapolated(self, points: list[PathPoint], target_m3: float) -> tuple[FloatArray, float, FloatArray | None]:
+        """The Lagrange polynomial through ``points`` (in the control volume) at ``target_m3``: positions, load
+        factor and a 10-node body's element pressures (eliminated at each point; None for a 4-node body)."""
+        controls = np.array([p.control_m3 for p in points])
+        weights = np.array([np.prod([(target_m3 - other) / (own - other) for other in np.delete(controls, j)])
+                            for j, own in enumerate(controls)])
+        guess: FloatArray = np.tensordot(weights, np.stack([p.positions_m for p in points]), axes=1)
+        factor = float(weights @ np.array([p.load_factor for p in points]))
+        return guess, factor, self._combined_pressures(points, weights)
+
+    def _combined_pressures(self, points: list[PathPoint], weights: FloatArray) -> FloatArray | None:
+        """``sum w_j p_j`` of a 10-node body's element pressures eliminated at each of ``points`` (at an
+        equilibrium they are the carried ones); None for a 4-node body. Extrapolated from the path, not eliminated
+        at the predictor: eliminated there, ``K (Jbar - 1)`` carries K times the predictor's error in the volume
+        ratios (see :meth:`_extrapolated_pressures`)."""
+        if not self.problem.mixed:
+            return None
+        eliminated = np.stack([self.body.eliminated_pressures_pa(self.body.element_volume_ratios(p.positions_m))
+                               for p in points])
+        combined: FloatArray = np.asarray(weights) @ eliminated
+        return combined
+
+    def _final_from_prediction(self, history: list[PathPoint], point: PathPoint, target_m3: float,
+                               guess_factor: float) -> FloatArray | None:
+        """The next volume step is predicted to carry the load factor past 1: Newton at the exact pressures from
+        the predictor where it reaches 1 (the control volume where the line from ``point`` to the prediction at
+        ``target_m3`` crosses lam = 1), at most FINAL_NEWTON_ITERATIONS; the equilibrium, or None (no iteration
+        is lost to the path: it steps on, and a step past lam = 1 is bracketed by :meth:`_cross`)."""
+        if guess_factor <= point.load_factor:
+            return None
+        crossing_m3 = point.control_m3 + (1.0 - point.load_factor) / (guess_factor - point.load_factor) * (
+            target_m3 - point.control_m3)
+        guess_m, _, guess_pa = self._volume_guess(history, point, crossing_m3)
+        return self._final_newton(guess_m, guess_pa)
+
+    def _final_newton(self, guess_m: FloatArray, guess_pa: FloatArray | None) -> FloatArray | None:
+        """Newton at the exact pressures from a guess near lam = 1, at most FINAL_NEWTON_ITERATIONS: the
+        equilibrium (one more accepted step), or None."""
+        if not self._upright(guess_m):
+            return None
+        final = newton(self.problem, guess_m, self.tolerance, element_pressures_pa=guess_pa,
+                       max_iterations=FINAL_NEWTON_ITERATIONS)
+        self.iterations += final.iterations
+        if not final.converged:
+            return None
+        self.steps += 1
+        return final.positions_m
 
     def _volume_newton(self, positions_m: FloatArray, load_factor: float, target_m3: float,
                        element_pressures_pa: FloatArray | None = None) -> _VolumeStep:
@@ -346,12 +405,15 @@ class _Path:
         if self.problem.mixed:
             carried = (element_pressures_pa if element_pressures_pa is not None
                        else body.eliminated_pressures_pa(body.element_volume_ratios(positions_m)))
-        # Solves with K: conjugate gradients preconditioned by the rest factor while they converge (the
-        # tangent is close to it until the strain is large), then a factorisation of K kept while it helps.
-        factor: Factor | None = None
-        fresh, krylov = False, True
-        merit_before, crawling = np.inf, 0
-        state = self._volume_residual(positions_m, load_factor, target_m3, carried)
+        # Solves with K: conjugate gradients preconditioned by the rest factor while they converge (the tangent
+        # is close to it until the strain is large; once they fail on the path they are not tried again, as the
+        # strain only grows: a failed try cost 40 CG iterations, a third of a 7 mm step; on a nearly
+        # incompressible 10-node body they failed on every volume step of the 7 mm prostate, and are not tried),
+        # else K factorised at every iterate. A factor kept from the iterate before was refused by the line
+        # search on nearly every 7 mm step (three element passes) and then made anyway.
+        krylov = not self.krylov_failed and self.problem.preconditioned and not self.problem.mixed
+        crawling = 0
+        state = self._volume_residual(positions_m, load_factor, target_m3, carried, with_tangent=not krylov)
         if element_pressures_pa is not None:
             state = self._with_eliminated(state, positions_m, load_factor)
         for iteration in range(1, VOLUME_NEWTON_ITERATIONS + 1):
@@ -363,14 +425,13 @@ class _Path:
             solutions = (self._krylov_solves(positions_m, load_factor, (-residual, load), carried) if krylov
                          else None)
             if solutions is None:
+                self.krylov_failed = self.krylov_failed or krylov
                 krylov = False
-                if factor is None or merit > REFRESH_RATIO * merit_before and not fresh:
-                    factor = self.problem.at_load_factor(load_factor).tangent(positions_m, exact=True, damped=True,
-                                                                              element_pressures_pa=carried)
-                    fresh = True
+                factor = self.problem.at_load_factor(load_factor).tangent(positions_m, exact=True, damped=True,
+                                                                          element_pressures_pa=carried,
+                                                                          tangent_data=state.tangent_data)
                 both = factor.solve(np.column_stack([-residual, load]))
                 solutions = [both[:, 0], both[:, 1]]
-            merit_before = merit
             a, b = solutions
             h = self._control_gradient(positions_m)
             denominator = float(h @ b)
@@ -385,18 +446,20 @@ class _Path:
                     state.volume_ratios, body.element_volume_ratio_rates(positions_m, change)) - carried
             accepted: tuple[FloatArray, float, FloatArray | None, _VolumeState] | None = None
             halving = 0
-            stale = not krylov and not fresh
-            for halving in range(STALE_FACTOR_HALVINGS + 1 if stale else 12):
+            for halving in range(LINE_SEARCH_HALVINGS):
                 scale = 0.5**halving
                 trial_m = positions_m + scale * change
                 trial_pa = None if carried is None or pressure_step is None else carried + scale * pressure_step
-                trial = self._volume_residual(trial_m, load_factor + scale * change_factor, target_m3, trial_pa)
+                # (the full step, accepted almost always near convergence, assembles the next iterate's tangent in
+                # the same element pass)
+                trial = self._volume_residual(trial_m, load_factor + scale * change_factor, target_m3, trial_pa,
+                                              with_tangent=halving == 0 and not krylov)
                 if trial.admissible and trial.merit < merit:
                     accepted = trial_m, load_factor + scale * change_factor, trial_pa, trial
                     break
             if accepted is None:
-                if krylov or not fresh:
-                    krylov, factor = False, None
+                if krylov:
+                    krylov = False
                     continue
                 worst = self.problem.worst_element(positions_m + change)
                 reason = "solve would invert elements" if worst >= 0 else "volume-controlled solve found no descent"
@@ -404,7 +467,6 @@ class _Path:
             positions_m, load_factor, carried, state = accepted
             if carried is not None:  # the convergence test and the next right-hand side: eliminated pressures
                 state = self._with_eliminated(state, positions_m, load_factor)
-            fresh = False
             # Crawling: tiny admissible steps in a row mean an element is being squeezed flat (or a Gent element
             # is locking) on the way to the target volume; a smaller volume step is the cure, not more iterations.
             crawling = crawling + 1 if halving >= CRAWL_HALVINGS else 0
@@ -435,21 +497,24 @@ class _Path:
         return solutions
 
     def _volume_residual(self, positions_m: FloatArray, load_factor: float, target_m3: float,
-                         element_pressures_pa: FloatArray | None = None) -> _VolumeState:
+                         element_pressures_pa: FloatArray | None = None, with_tangent: bool = False) -> _VolumeState:
         """The bordered system's residual at ``positions_m`` and ``load_factor`` (see :class:`_VolumeState`), at
-        carried element pressures when given (their constraint's error then joins the merit)."""
-        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m,
+        carried element pressures when given (their constraint's error then joins the merit); with
+        ``with_tangent``, the exact tangent's data from the same element pass."""
+        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m, with_tangent=with_tangent,
                                                                         element_pressures_pa=element_pressures_pa)
         gap = self._control(positions_m) - target_m3
         free = self.constraints.free_mask
         merit = float((np.linalg.norm(evaluation.residual_n[free]) / self.load_scale) ** 2
                       + (gap / self.control_rest_m3) ** 2)
         if element_pressures_pa is None:
-            return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n)
+            return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n,
+                                tangent_data=evaluation.tangent_data)
         ratios = self.body.element_volume_ratios(positions_m)
         constraint_n = self.body.volume_constraint_error_n(ratios, element_pressures_pa)
         merit += float(constraint_n @ constraint_n) / self.load_scale**2
-        return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n, ratios)
+        return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n, ratios,
+                            evaluation.tangent_data)
 
     def _with_eliminated(self, state: _VolumeState, positions_m: FloatArray, load_factor: float) -> _VolumeState:
         """``state`` with its residual at eliminated pressures (the convergence test's and Newton's right-hand
@@ -462,6 +527,13 @@ class _Path:
         then a pressure-controlled Newton solve at the exact pressures from the bracketed state (first from within
         CROSSING_LOAD_TOLERANCES[0] of lam = 1; where that fails, the bracket closes further and Newton tries
         again: closing it to 1e-6 took ten more volume solves of a shipped-scene solve's 46 iterations)."""
+        # Between two equilibria that close on lam = 1, the line through them there is usually within Newton's
+        # reach at the exact pressures (two to four iterations); where not, the bracket closes first.
+        ratio = (1.0 - below.load_factor) / (above.load_factor - below.load_factor)
+        interpolated = self._final_newton(below.positions_m + ratio * (above.positions_m - below.positions_m),
+                                          self._combined_pressures([below, above], np.array([1.0 - ratio, ratio])))
+        if interpolated is not None:
+            return interpolated
         low, high = below, above
         low_weight = high_weight = 1.0
         best = above

@@ -171,7 +171,7 @@ class EquilibriumProblem:
         return product
 
     def tangent(self, positions_m: FloatArray, exact: bool = True, damped: bool = False,
-                element_pressures_pa: FloatArray | None = None) -> Factor:
+                element_pressures_pa: FloatArray | None = None, tangent_data: FloatArray | None = None) -> Factor:
         """The factorised tangent at ``positions_m``: the exact Hessian, or (``exact`` False) a positive definite
         stand-in that still gives a descent direction: ``R K R^T`` (co-rotational) or the small-strain stiffness
         (hyperelastic). An exactly singular Hessian (at a limit point) gives the stand-in.
@@ -183,12 +183,15 @@ class EquilibriumProblem:
         ``K + tau |diag K|`` with the first ``tau`` of DAMPING_SHIFTS that CHOLMOD factorises: a
         Levenberg-Marquardt step, a descent direction, at a CHOLMOD factorisation's cost (SuperLU's costs 5-8
         times more on 10-node elements; the small-strain stiffness as the stand-in makes Newton crawl there). See
-        bench/README.md, "The 10-node solve's speed"."""
+        bench/README.md, "The 10-node solve's speed". ``tangent_data``: the exact tangent's data where an
+        evaluation at the same state made it already (:meth:`evaluate` with ``with_tangent``; no element pass
+        then)."""
         if not exact and self.formulation in HYPERELASTIC_MODELS:
             return self.body.rest_factorization(self.constraints)
         matrix = EXACT_TANGENT if exact else POSITIVE_TANGENT
-        data = self.body.elastic(positions_m, self.formulation, matrix, self.constraints, self.pressures_pa,
-                                 element_pressures_pa).tangent_data
+        data = tangent_data if exact and tangent_data is not None else self.body.elastic(
+            positions_m, self.formulation, matrix, self.constraints, self.pressures_pa,
+            element_pressures_pa).tangent_data
         if exact and damped and self.formulation in HYPERELASTIC_MODELS and self.body.detects_indefinite:
             damped_factor = self._damped_factorization(data)
             if damped_factor is not None:

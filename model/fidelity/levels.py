@@ -78,11 +78,13 @@ class VolumeEstimator:
     level : {"rest", "updated", "full", "table"} or None
         None: the scene's ``[model] fidelity`` if it names one, else the cheapest level whose volume error
         against the converged answer, probed with every chamber at ``pressure_max_pa``, is within the scene's
-        ``accuracy_pct`` (default 1 %); cheapest = fastest on that probe. The error is the level's against the
-        full solve on the model's mesh plus that solve's discretisation error, estimated on a finer mesh (a
-        built-in mesh only; ``discretisation_error_pct``). The probe's errors (% of the volume) and times (s) are
-        kept in ``probe_errors_pct`` and ``probe_times_s``; when no level meets the accuracy, PhantomError says
-        what mesh size would.
+        ``accuracy_pct`` (default 1 %); cheapest = the least work counted on that probe (``probe_costs``: linear
+        systems solved anew), never its clock time, so that the choice does not depend on the machine or its
+        load. The error is the level's against the full solve on the model's mesh plus that solve's
+        discretisation error, estimated on a finer mesh (a built-in mesh only; ``discretisation_error_pct``).
+        The probe's errors (% of the volume), costs and times (s; shown, not used) are kept in
+        ``probe_errors_pct``, ``probe_costs`` and ``probe_times_s``; when no level meets the accuracy,
+        PhantomError says what mesh size would.
     accuracy_pct, pressure_max_pa : float, optional
         Override the scene's model settings (:class:`phantom.model.scene.ModelSettings`: %, and Pa).
     steps : int
@@ -108,6 +110,9 @@ class VolumeEstimator:
         self.counts = {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
         self.probe_errors_pct: dict[str, float] = {}
         self.probe_times_s: dict[str, float] = {}
+        #: the probe's work per level, which ranks them: linear systems solved anew (tangent factorisations, Newton
+        #: iterations; the rest level's 3x3 product and the one-time rest compliance count nothing)
+        self.probe_costs: dict[str, int] = {}
         #: the probe's full solve against the converged answer; None when no probe ran or the mesh cannot be
         #: refined (:func:`discretisation_error`)
         self.discretisation: Discretisation | None = None
@@ -244,26 +249,29 @@ class VolumeEstimator:
         return state
 
     def _cheapest_level(self) -> str:
-        """Probe each level with every chamber at the pressure limit and keep the fastest (measured on the probe)
-        whose volume error against the converged answer is within the stated accuracy: its error against the
-        full solve on this mesh plus that solve's own discretisation error (:func:`discretisation_error`;
-        none where the mesh cannot be refined here). Raises PhantomError, saying what would meet it, when no
-        level does."""
+        """Probe each level with every chamber at the pressure limit and keep the cheapest (:attr:`probe_costs`,
+        counted on the probe, not timed: the same scene gets the same level on any machine under any load) whose
+        volume error against the converged answer is within the stated accuracy: its error against the full
+        solve on this mesh plus that solve's own discretisation error (:func:`discretisation_error`; none where
+        the mesh cannot be refined here). Raises PhantomError, saying what would meet it, when no level does."""
         probe_pa = np.full(self.n_chambers, self.pressure_max_pa)
         self.level = "rest"
         self.evaluate(probe_pa)  # the one-time rest compliance is not part of an answer's cost
         results = {}
         for level in ("full", "rest", "updated"):
             self.level = level
+            tangent_solves = self.counts["tangent_solves"]
             started = time.perf_counter()
-            chambers, gland, _ = self.evaluate(probe_pa)
-            results[level] = (time.perf_counter() - started, np.append(chambers, gland))
-        reference = results["full"][1]
+            chambers, gland, state = self.evaluate(probe_pa)
+            self.probe_times_s[level] = time.perf_counter() - started
+            self.probe_costs[level] = (self.counts["tangent_solves"] - tangent_solves if level == "updated"
+                                       else 0 if level == "rest" else max(1, 0 if state is None else state.iterations))
+            results[level] = np.append(chambers, gland)
+        reference = results["full"]
         self.discretisation = discretisation = discretisation_error(self.model, probe_pa, reference)
-        for level, (seconds, volumes) in results.items():
+        for level, volumes in results.items():
             self.probe_errors_pct[level] = (float(np.max(np.abs(volumes - reference) / np.abs(reference)) * 100)
                                             + (self.discretisation_error_pct or 0.0))
-            self.probe_times_s[level] = seconds
         meeting = [level for level in PROBED_LEVELS if self.probe_errors_pct[level] <= self.accuracy_pct]
         if not meeting and discretisation is not None:
             # (the full level's error is the discretisation's alone: it misses only where that was measured)
@@ -277,7 +285,9 @@ class VolumeEstimator:
                 f"Refine the mesh ({refine}{'; or element_order = 2' if self.model.order == 1 else ''}), state the "
                 f"accuracy this mesh has ([model] accuracy_pct = {1.05 * discretisation.error_pct:.2g}), or name a "
                 "level ([model] fidelity)")
-        return min(meeting, key=lambda level: self.probe_times_s[level])
+        # (a tie, e.g. a small-strain material's "updated" and "full" at one linear solve or none, goes to the
+        # level listed first in PROBED_LEVELS)
+        return min(meeting, key=lambda level: (self.probe_costs[level], PROBED_LEVELS.index(level)))
 
 
 #: How much finer (in ``mesh_size_mm``) the mesh that measures a mesh's discretisation error is.
