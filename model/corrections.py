@@ -25,14 +25,16 @@ comes from ``phantom.scan``, passed in by the command line or the daemon).
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import datetime
+import fcntl
 import io
 import json
 import math
 import os
 import re
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -142,6 +144,10 @@ class CorrectionStore:
 
     def add(self, measurement: Measurement) -> int:
         """Store one more measurement (atomically); the number stored."""
+        with self._locked():
+            return self._add(measurement)
+
+    def _add(self, measurement: Measurement) -> int:
         entries = self.entries()
         if entries and len(entries[0].pressures_kpa) != len(measurement.pressures_kpa):
             raise CorrectionError(f"this phantom's measurements have {len(entries[0].pressures_kpa)} pressures, this "
@@ -152,10 +158,23 @@ class CorrectionStore:
 
     def clear(self) -> int:
         """Remove every measurement; how many there were."""
-        count = len(self.entries())
-        if self.path.exists():
-            self._write([])
-        return count
+        with self._locked():
+            count = len(self.entries())
+            if self.path.exists():
+                self._write([])
+            return count
+
+    @contextlib.contextmanager
+    def _locked(self) -> Iterator[None]:
+        """One writer at a time (the daemon and a `phantom corrections` command may both add: each reads, appends
+        and writes the whole file, so two at once would lose one's measurement). Under the lock no other writer is
+        mid-write, so a temporary file beside the store is one a killed writer left: it is removed."""
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        with open(self.path.with_name(self.path.name + ".lock"), "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            for stale in self.path.parent.glob(f".{self.path.stem}.*{self.path.suffix}"):
+                stale.unlink(missing_ok=True)
+            yield
 
     def _write(self, entries: list[Measurement]) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)

@@ -101,6 +101,9 @@ def test_the_store_survives_a_kill_in_the_middle_of_writing(tmp_path):
         assert len(entries) >= said
         stored = len(entries)
         np.testing.assert_allclose([e.volume_ml for e in entries], 30.0 + np.arange(stored) * 1e-3)
+    # a kill between the temporary file's creation and its rename leaves it; the next writer removes it
+    CorrectionStore(path).add(Measurement.now([1, 1, 1], 30.0 + stored * 1e-3))
+    assert len(CorrectionStore(path).entries()) == stored + 1
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".store")], "no temporary file left behind"
 
 

@@ -62,9 +62,9 @@ FIRST_VOLUME_STEP = 0.1
 MIN_CONTROL_STEP = 1e-2
 #: A volume-controlled path stops, unreachable, past a peak of lam when lam falls below this fraction of it...
 PEAK_DROP = 0.5
-#: ... or, for laws without strain stiffening (all but Gent), once lam has fallen on this many volume steps in a
+#: ... or, for laws without strain stiffening (all but Gent and Yeoh), once lam has fallen on this many volume steps in a
 #: row: their pressure falls for good past the peak (a Neo-Hookean balloon: p ~ 1/lambda - 1/lambda^7), while
-#: Gent's rises again as its chains lock.
+#: Gent's rises again as its chains lock, and Yeoh's as its higher terms grow.
 CONFIRMED_FALL_STEPS = 2
 #: ... or when the control volume exceeds this multiple of its rest value.
 MAX_CONTROL_GROWTH = 20.0
@@ -311,7 +311,7 @@ class _Path:
             falling = falling + 1 if new.load_factor < point.load_factor else 0
             point = new
             if point.load_factor < PEAK_DROP * peak.load_factor or (
-                    falling >= CONFIRMED_FALL_STEPS and self.formulation != "gent"):
+                    falling >= CONFIRMED_FALL_STEPS and self.formulation not in ("gent", "yeoh")):
                 raise self._unreachable(point, "past the limit point")
             if point.control_m3 > MAX_CONTROL_GROWTH * self.control_rest_m3:
                 raise self._unreachable(point, "the volume grows without the pressure reaching the target")
