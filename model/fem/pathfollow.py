@@ -62,8 +62,8 @@ FIRST_VOLUME_STEP = 0.1
 MIN_CONTROL_STEP = 1e-2
 #: A volume-controlled path stops, unreachable, past a peak of lam when lam falls below this fraction of it...
 PEAK_DROP = 0.5
-#: ... or, for laws without strain stiffening (all but Gent and Yeoh), once lam has fallen on this many volume steps in a
-#: row: their pressure falls for good past the peak (a Neo-Hookean balloon: p ~ 1/lambda - 1/lambda^7), while
+#: ... or, for laws without strain stiffening (all but Gent and Yeoh), once lam has fallen on this many volume steps
+#: in a row: their pressure falls for good past the peak (a Neo-Hookean balloon: p ~ 1/lambda - 1/lambda^7), while
 #: Gent's rises again as its chains lock, and Yeoh's as its higher terms grow.
 CONFIRMED_FALL_STEPS = 2
 #: ... or when the control volume exceeds this multiple of its rest value.
