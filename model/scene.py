@@ -34,10 +34,12 @@ SCENES_DIR = Path(__file__).resolve().parent / "scenes"
 BUILTIN_SCENES = {"builtin": "prostate.toml", "builtin:prostate": "prostate.toml",
                   "builtin:calibrated": "prostate_calibrated.toml", "builtin:converged": "prostate_converged.toml"}
 
+#: The Yeoh law's coefficients in a scene's [material]: C20 and C30 as multiples of C10 = mu/2 (dimensionless).
+YEOH_KEYS = ("yeoh_c20_over_c10", "yeoh_c30_over_c10")
 #: The keys each table of a scene may hold; any other is refused with the nearest known key (a misspelt key would
 #: otherwise be ignored and its default used in silence). ``[geometry]``'s are ProstateGeometry's fields.
 PHANTOM_KEYS = ("mesh", "units", "chambers", "chamber_labels", "fixed")
-MATERIAL_KEYS = ("model", "youngs_modulus_kpa", "poisson_ratio", "gent_jm")
+MATERIAL_KEYS = ("model", "youngs_modulus_kpa", "poisson_ratio", "gent_jm", *YEOH_KEYS)
 MODEL_KEYS = ("fidelity", "accuracy_pct", "pressure_max_kpa", "table_points", "table_volumes", "table_shapes")
 LOAD_KEYS = ("density_kg_m3", "gravity_m_s2")
 OUTPUT_KEYS = ("volumes", "shape")
@@ -51,8 +53,6 @@ LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
 MATERIAL_MODELS = ("corotational", "linear", "neo_hookean", "gent", "yeoh")
 #: The hyperelastic laws (finite strain, an energy that grows without bound as an element collapses).
 HYPERELASTIC_MODELS = ("neo_hookean", "gent", "yeoh")
-#: The Yeoh law's coefficients in a scene's [material]: C20 and C30 as multiples of C10 = mu/2 (dimensionless).
-YEOH_KEYS = ("yeoh_c20_over_c10", "yeoh_c30_over_c10")
 
 #: The gauge pressure (Pa) the phantom is driven to at most (what its blowers give and the model is trusted
 #: for): a scene's default ``[model] pressure_max_kpa``, and the highest pressure a calibration measurement may

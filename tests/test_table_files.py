@@ -88,7 +88,7 @@ def test_a_damaged_volumes_file_is_exit_2_naming_it_and_how_to_make_it_again(tmp
     result = _inverse(_scene(tmp_path, volumes=path))
     assert result.returncode == 2, result.stderr
     assert message in result.stderr and "Traceback" not in result.stderr
-    assert "write the file again for this model (scripts/table_volumes.py)" in result.stderr
+    assert "write the file again for this model (phantom model table SCENE --out FILE)" in result.stderr
 
 
 @pytest.mark.parametrize(("change", "message"), [

@@ -35,11 +35,13 @@ if TYPE_CHECKING:
 
 #: The formulations a solve may use: the material laws.
 FORMULATIONS = MATERIAL_MODELS
-#: A chamber pressure (Pa) of smaller magnitude is zero: half the board's 1 Pa step (the wire protocol's
-#: pressures are whole pascals). Newton's tolerance is relative to the load, and at a load of 1e-3 Pa (the
-#: simulated plant reads 2e-9 Pa after a vent) rounding in the node positions alone exceeds it; the 10-node
-#: converged model solves 0.1 Pa and fails at 0.01 Pa, so below this the rest shape is the answer.
-PRESSURE_RESOLUTION_PA = 0.5
+#: A chamber pressure smaller in magnitude than this fraction of the Young's modulus is zero. Newton's tolerance is
+#: relative to the load, and at a load of 1e-3 Pa (the simulated plant reads 2e-9 Pa after a vent) rounding in the
+#: node positions alone exceeds it; the 10-node converged model (E 10.86 kPa) solves 0.1 Pa and fails at 0.01 Pa.
+#: 1e-5 E is 0.11 Pa there and 0.5 Pa on the built-in 50 kPa scene, under the board's 1 Pa step (the wire
+#: protocol's pressures are whole pascals); a fraction of E, not pascals, so that the same p/E gives the same
+#: shape at any modulus.
+PRESSURE_RESOLUTION_OF_MODULUS = 1e-5
 
 
 @dataclass
@@ -138,6 +140,11 @@ class PhantomModel:
             mesh, source = read_mesh(scene.mesh, scene.length_scale_m), scene.mesh
         surfaces = prepare_surfaces(mesh, scene.chambers, scene.fixed, source)
         return cls(mesh, surfaces, scene.chambers, scene.material, source, scene=scene, mesh_size_mm=mesh_size_mm)
+
+    @property
+    def pressure_resolution_pa(self) -> float:
+        """The smallest chamber pressure (Pa) a solve tells from zero (:data:`PRESSURE_RESOLUTION_OF_MODULUS`)."""
+        return PRESSURE_RESOLUTION_OF_MODULUS * self.material.youngs_modulus_pa
 
     def with_material(self, youngs_modulus_pa: float | None = None, poisson_ratio: float | None = None,
                       model: str | None = None, gent_jm: float | None = None,
@@ -278,11 +285,11 @@ class PhantomModel:
         law Newton at the full load is tried from there first (it converges in a few iterations from a nearby
         equilibrium), path following from zero load when it does not converge.
         Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert. A pressure
-        under :data:`PRESSURE_RESOLUTION_PA` in magnitude is zero.
+        under :attr:`pressure_resolution_pa` in magnitude is zero.
         """
         started = time.perf_counter()
         pressures = self._check_pressures(pressures_pa)
-        resolved = np.where(np.abs(pressures) < PRESSURE_RESOLUTION_PA, 0.0, pressures)
+        resolved = np.where(np.abs(pressures) < self.pressure_resolution_pa, 0.0, pressures)
         problem = self.problem(resolved, formulation, initial_positions_m, body_force_n_per_m3)
         positions_m, iterations, steps = problem.start_m, 0, 0
         if problem.loaded or initial_positions_m is not None:
