@@ -494,6 +494,7 @@ def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer
         return "OK"
 
     parts.session.command = command
+    daemon._feed(daemon.core.board, True)  # the board connected and configured (where Daemon.on_online ends)
 
     async def play():
         daemon.start_scene(prepare_run({"timeline": {"end_s": 18}, "steps": [

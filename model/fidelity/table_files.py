@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 import stat
+import tokenize
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -92,7 +93,8 @@ def _read_members(path: Path, members: dict[str, Member], where: str, remedy: st
         with zipfile.ZipFile(path) as archive:
             return {name: _member(archive, name, member, where, remedy) for name, member in members.items()}
     except (zipfile.BadZipFile, zipfile.LargeZipFile, zlib.error, OSError, EOFError, ValueError, NotImplementedError,
-            SyntaxError) as error:  # a damaged directory, stream, CRC or .npy header (parsed as a Python literal)
+            SyntaxError, tokenize.TokenError) as error:  # a damaged directory, stream, CRC or .npy header (parsed
+        # as a Python literal: numpy tokenizes an old header first, whose unclosed bracket is a TokenError)
         text = " ".join(str(error).split())
         raise SceneError(f"{where} is damaged ({type(error).__name__}: {text}): {remedy}") from None
 
