@@ -394,10 +394,12 @@ class TruthTable:
 
 def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
                            workers: int | None = None,
-                           progress: Callable[[int, int], None] | None = None) -> TruthTable:
+                           progress: Callable[[int, int], None] | None = None,
+                           scheduler: str | None = None) -> TruthTable:
     """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point: the response
-    table's build (:func:`phantom.model.fidelity.response_table.build_response_table`, each point started from its
-    neighbour, one slab per worker process), whose grid over 0-3 kPa is the truth's."""
+    table's build (:func:`phantom.model.fidelity.response_table.build_response_table`, each point started from a
+    solved neighbour, as Dask tasks on ``workers`` local processes or the cluster at ``scheduler``), whose grid
+    over 0-3 kPa is the truth's."""
     # the FEM's stack loads only when a truth table is made, not when a plant is read
     from phantom.model import PhantomModel, load_scene
     from phantom.model.fidelity.response_table import ResponseTableError, build_response_table
@@ -410,7 +412,7 @@ def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODU
     truth = PhantomModel.from_scene(scene_from_dict(raw, loaded.path))
     n = len(TRUTH_POINTS_KPA)
     try:
-        table = build_response_table(truth, 1e3 * TRUTH_POINTS_KPA[-1], n, progress, workers)
+        table = build_response_table(truth, 1e3 * TRUTH_POINTS_KPA[-1], n, progress, workers, scheduler)
     except ResponseTableError as error:
         raise PlantError(f"the truth model does not solve: {error}") from None
     description = f"{scene} with E x {modulus_factor:g} = {modulus_kpa:.4g} kPa ({loaded.material.model})"

@@ -49,8 +49,10 @@ def test_the_inverse_targets_script_prints_each_target_with_its_estimate_and_tru
     for target in ("30.00", "35.00", "40.00", "45.00"):
         estimate, error_pct, true_ml = float(rows[target][1]), float(rows[target][2]), float(rows[target][3])
         assert abs(error_pct) <= 1.0 and estimate == pytest.approx(float(target), rel=0.01)
-        # the simulated plant is stiffer than the model the controller uses: it holds a little less
-        assert 0.9 * float(target) < true_ml <= float(target) * 1.01
+        # the simulated phantom is the measured one (its volume through the paper's Table I), which the model
+        # misses by up to 9 % at a measured point (5.6 % at 45 ml in make demo): the true volume is printed
+        # beside the estimate and is not the estimate
+        assert abs(true_ml - float(target)) < 0.08 * float(target) and true_ml != estimate
     # below the model's rest volume (26.30 ml; the phantom measured 26.43): said so, with the range it reaches
     assert re.search(r"unreachable: .* reaches 26\.\d+-51\.\d+", " ".join(rows["26.00"])), rows["26.00"]
 

@@ -518,9 +518,9 @@ def test_phantom_hil_plant_builds_the_truth_on_the_cluster_at_scheduler(tmp_path
     shutil.copy(DEFAULT_PLANT_PATH, plant_path)
     assert cli.main(["hil", "plant", "--truth-from-scene", str(scene_path), "--truth-modulus-factor", "1.5",
                      "--scheduler", "tcp://x:1", "--workers", "2", "--plant", str(plant_path)]) == 2
-    # the command sets Dask's scheduler-address for its process; here it is put back after
-    with (Client(dask_scheduler) as client, get_task_stream(client) as tasks,
-          dask.config.set({"scheduler-address": None})):
+    # the command leaves Dask's configuration as it was (it set scheduler-address for the whole process)
+    assert dask.config.get("scheduler-address", None) is None
+    with Client(dask_scheduler) as client, get_task_stream(client) as tasks:
         assert cli.main(["hil", "plant", "--truth-from-scene", str(scene_path), "--truth-modulus-factor", "1.5",
                          "--scheduler", dask_scheduler, "--plant", str(plant_path)]) == 0
     n = len(TRUTH_POINTS_KPA)

@@ -368,7 +368,7 @@ class SolidBody:
         return kernels.deformation_determinants(positions_m, self.tets, self.dm_inverse)
 
     def __getstate__(self) -> dict[str, Any]:
-        """A body goes to worker processes (the response table's slabs) without CHOLMOD's objects, which cannot
+        """A body goes to worker processes (the response table's Dask tasks) without CHOLMOD's objects, which cannot
         be pickled: its symbolic analysis is made again at the worker's first factorisation, and a rest factor
         made in this process travels as its arrays (as the disk cache stores it; SuperLU's is made again)."""
         state = self.__dict__.copy()

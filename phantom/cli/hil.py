@@ -258,7 +258,7 @@ def _run_cycles(args: argparse.Namespace) -> int:
 
 
 def _run_plant(args: argparse.Namespace) -> int:
-    from phantom import PhantomError, require_extra
+    from phantom import PhantomError
     from phantom.hil import plant
 
     if args.truth_through and not args.truth_from_scene:
@@ -266,20 +266,14 @@ def _run_plant(args: argparse.Namespace) -> int:
     if not args.from_scene and not args.truth_from_scene:
         raise PhantomError("give --from-scene, --truth-from-scene or both")
     path = args.plant or plant.DEFAULT_PLANT_PATH
-    if args.scheduler:
-        if args.workers is not None:
-            raise PhantomError("give --workers (this machine) or --scheduler (a cluster), not both")
-        with require_extra("calibrate"):
-            import dask
-
-        # the truth's build (the response table's) runs where Dask's scheduler-address says
-        dask.config.set({"scheduler-address": args.scheduler})
+    if args.scheduler and args.workers is not None:
+        raise PhantomError("give --workers (this machine) or --scheduler (a cluster), not both")
     if args.truth_from_scene:
         from phantom.model.cluster import stderr_progress
 
         factor = plant.TRUTH_MODULUS_FACTOR if args.truth_modulus_factor is None else args.truth_modulus_factor
         table = plant.truth_table_from_scene(args.truth_from_scene, factor, args.workers,
-                                             stderr_progress("truth table"))
+                                             stderr_progress("truth table"), args.scheduler)
         if args.truth_through:
             from phantom.model.calibration.calibrate import load_measurements
 
