@@ -45,8 +45,28 @@ def local_cluster(n_workers: int | None = None) -> LocalCluster:
         from dask.distributed import LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.ERROR)
+    # each worker process runs this module's dask_setup first: it dies with the process that made the cluster
     return LocalCluster(n_workers=n_workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                        dashboard_address=":0", silence_logs=logging.ERROR)
+                        dashboard_address=":0", silence_logs=logging.ERROR, preload=[__name__])
+
+
+#: Linux prctl option: the signal a process gets when its parent dies (prctl(2)).
+_PR_SET_PDEATHSIG = 1
+
+
+def dask_setup(worker: object) -> None:
+    """Dask's preload hook, in each worker process of :func:`local_cluster`: be killed when the process that made
+    the cluster (a daemon's model worker, ``phantom model table``) dies, however it dies. Its nannies live in that
+    process and the workers are its children, so a SIGKILLed builder left them running, solving for nobody."""
+    import ctypes
+    import ctypes.util
+    import signal
+
+    parent = os.getppid()
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+    if os.getppid() != parent:  # the parent died before the hook was set
+        os._exit(0)
 
 
 @contextlib.contextmanager
