@@ -14,13 +14,25 @@ the rig's true angles from the pulses its drivers took, the plant's pressures), 
 ``scan`` (only when the command line gives the daemon a :class:`Scanner`, as ``phantom daemon`` does): a whole
 capture at the pressures the daemon holds, run in a worker thread that drives the axes and reads the daemon's
 state through the daemon's loop (:class:`ThreadRig`); the host imports nothing of the scanner's code.
+
+While a scan runs it owns the rig (:attr:`Orbit.scan`): another client's ``motion_move``, ``motion_home`` and
+``motion_config`` are refused with why, not queued (a queued move would turn the rig minutes later, when its
+client may no longer expect it, and the client is better told now); ``motion_status`` answers as ever.
+``motion_stop`` (and the daemon stopping) stops the scan: the capture sees the request before each move, during
+its settle wait and after each picture, releases the drivers (whatever ``release`` says) and marks its folder
+``stopped``; a move under way
+is interrupted by the board's MOTION_STOP. ``motion_stop`` answers once the scan has ended, so the next scan can
+start at once.
 """
 
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import contextlib
+import datetime
 import math
+import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import asdict, fields
 from typing import Any, Protocol, TypeVar
@@ -49,6 +61,8 @@ MOVE_SLACK_S = 5.0
 INFO_WAIT_S = 2.0
 #: A wait ends after its time on the board's clock, or this many times it on the wall clock (a stalled simulator).
 WALL_FACTOR = 10.0
+#: How long a stop waits for a running scan to end (s): its capture sees the request within a picture's time.
+SCAN_END_WAIT_S = 10.0
 
 #: Sends one acknowledged command to the board: ``(name, fields) -> ACK status``; raises ApiError
 #: (``link_down``, ``rejected``) as :meth:`phantom.host.daemon.Daemon.board_command` does.
@@ -61,6 +75,26 @@ EventSink = Callable[[str, str, str], None]
 DaemonState = Callable[[], dict[str, Any]]
 
 Result = TypeVar("Result")
+
+
+class ScanRun:
+    """A scan that owns the rig: when it started, and the stop request its capture thread checks."""
+
+    def __init__(self) -> None:
+        self.started_utc = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
+        self.ended = asyncio.Event()
+        self._stop = threading.Event()
+        self._reason = ""
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the capture to stop (from the daemon's loop); the first reason is kept."""
+        if not self._stop.is_set():
+            self._reason = reason
+            self._stop.set()
+
+    def stop_requested(self, wait_s: float = 0.0) -> str | None:
+        """Why the capture must stop, or None; waits up to ``wait_s`` for a request (from the capture's thread)."""
+        return self._reason if self._stop.wait(wait_s) else None
 
 
 class Orbit:
@@ -76,6 +110,8 @@ class Orbit:
         self._statuses = 0
         self._changed = asyncio.Condition()
         self._lock = asyncio.Lock()
+        #: the scan that owns the rig, None when none runs
+        self.scan: ScanRun | None = None
 
     # --- frames from the board ------------------------------------------------------------------------------
 
@@ -176,9 +212,37 @@ class Orbit:
         stop interrupts it (the move then fails as STOPPED)."""
         await self._command("MOTION_STOP", {"release": int(release)})
         seen = self._statuses
+        # the board releases a driver in its first planning window after the axis is at rest, which a status may
+        # precede: a release is waited for until it is reported
         await self._wait(lambda: self._statuses > seen and self.latest is not None and all(
-            axis.at_rest for axis in self.latest.axes), MOVE_SLACK_S, "the stop")
+            axis.at_rest and not (release and axis.enabled) for axis in self.latest.axes), MOVE_SLACK_S, "the stop")
         return self.status()
+
+    async def stop_scan(self, reason: str) -> bool:
+        """Stop the running scan, if any: the capture is asked to stop, a move under way is interrupted
+        (MOTION_STOP with the drivers released, as the capture's own release does: one holding them would race
+        it), and this returns once the scan has ended (or after SCAN_END_WAIT_S); whether a scan was running."""
+        run = self.scan
+        if run is None:
+            return False
+        started = asyncio.get_running_loop().time()
+        run.request_stop(reason)
+        with contextlib.suppress(ApiError):  # the link is down: the capture's own release says so
+            await self.stop(True)
+        try:
+            await asyncio.wait_for(run.ended.wait(), SCAN_END_WAIT_S)
+        except TimeoutError:
+            self._event("motion", f"the scan did not end within {SCAN_END_WAIT_S:g} s of the stop", "WARN")
+        else:
+            self._event("motion", f"the scan stopped ({reason}) in {asyncio.get_running_loop().time() - started:.1f} s",
+                        "INFO")
+        return True
+
+    def _refuse_while_scanning(self, method: str) -> None:
+        """ApiError when a scan owns the rig: its pictures must be taken where it moved the rig."""
+        if self.scan is not None:
+            raise ApiError("rejected", f"{method} refused: a scan is running (started {self.scan.started_utc}) and "
+                                       f"owns the rig: wait for it, or stop it with motion_stop")
 
     async def _checked(self, name: str, fields_: dict[str, Any], axis: int, angle: str = "") -> None:
         """A motion command whose NACK becomes an API error saying what to do."""
@@ -233,6 +297,7 @@ class Orbit:
                 "motion_stop": self._api_stop, "motion_status": self._api_status}
 
     async def _api_config(self, params: dict[str, Any]) -> dict[str, Any]:
+        self._refuse_while_scanning("motion_config")
         axis = _axis(params)
         names = {field.name for field in fields(AxisConfig)}
         unknown = sorted(set(params) - names - {"axis"})
@@ -257,6 +322,7 @@ class Orbit:
         return {"axis": axis, "config": asdict(await self.configure(axis, config))}
 
     async def _api_move(self, params: dict[str, Any]) -> dict[str, Any]:
+        self._refuse_while_scanning("motion_move")
         targets = {}
         for axis, name in AXIS_NAMES.items():
             value = _angle_deg(params, f"{name}_deg")
@@ -268,6 +334,7 @@ class Orbit:
         return self.status()
 
     async def _api_home(self, params: dict[str, Any]) -> dict[str, Any]:
+        self._refuse_while_scanning("motion_home")
         angle = _angle_deg(params, "angle_deg", 0.0)
         assert angle is not None  # it has a default
         method = params.get("method", "here")
@@ -280,6 +347,8 @@ class Orbit:
         release = params.get("release", False)
         if not isinstance(release, bool):
             raise ApiError("invalid_params", f"release must be true or false, got {release!r:.60}")
+        if await self.stop_scan("stopped by motion_stop"):  # the drivers released, whatever release says
+            return {**self.status(), "scan_stopped": True}
         return await self.stop(release)
 
     async def _api_status(self, params: dict[str, Any]) -> dict[str, Any]:
@@ -305,6 +374,18 @@ def _axis(params: dict[str, Any]) -> int:
     return int(axis)
 
 
+def rig_position_deg(status: dict[str, Any]) -> tuple[float, float]:
+    """Where the orbit and the elevation are (deg) in a ``motion_status`` answer: the simulated rig's true angles
+    when it has them, else the angles the board last reported; PhantomError when there are none."""
+    angles = (status.get("simulated") or {}).get("rig_deg")
+    if angles is not None and None not in angles:
+        return float(angles[ORBIT]), float(angles[ELEVATION])
+    axes = status["axes"]
+    if any("position_deg" not in axis for axis in axes):
+        raise PhantomError("the board has not reported the axes' positions (no MOTION_STATUS yet): is the link up?")
+    return float(axes[ORBIT]["position_deg"]), float(axes[ELEVATION]["position_deg"])
+
+
 def simulated_truth(keeper: SimulatedBoardKeeper) -> SimulatedTruth:
     """The simulated board's truth, read when asked: the rig's true angles (deg, from the pulses its drivers took;
     None for an axis whose mechanism is not set) and the plant's pressures (kPa) and gland volume (ml)."""
@@ -323,21 +404,34 @@ def simulated_truth(keeper: SimulatedBoardKeeper) -> SimulatedTruth:
 
 class ThreadRig:
     """The daemon's axes and state for a capture running in a worker thread: a ``phantom.scan.capture`` Orbit
-    (``move_to``, ``release``) and PhantomState (``pressures_kpa``), and the simulated board's truth
-    (``simulated``). Each call runs on the daemon's event loop and waits for its answer."""
+    (``move_to``, ``position_deg``, ``release``), PhantomState (``pressures_kpa``) and StopFlag
+    (``stop_requested``: the scan's :class:`ScanRun`), and the simulated board's truth (``simulated``). Each call
+    runs on the daemon's event loop and waits for its answer (a PhantomError once the loop has stopped)."""
 
-    def __init__(self, orbit: Orbit, loop: asyncio.AbstractEventLoop, state: DaemonState):
+    def __init__(self, orbit: Orbit, loop: asyncio.AbstractEventLoop, state: DaemonState, run: ScanRun):
         self._orbit = orbit
         self._loop = loop
         self._state = state
+        self._scan = run
 
     def _run(self, coroutine: Awaitable[Result]) -> Result:
         async def wrapped() -> Result:
             return await coroutine
         try:
-            return asyncio.run_coroutine_threadsafe(wrapped(), self._loop).result()
-        except ApiError as error:
-            raise PhantomError(str(error)) from None
+            future = asyncio.run_coroutine_threadsafe(wrapped(), self._loop)
+        except RuntimeError:  # the loop is closed
+            raise PhantomError("the daemon stopped") from None
+        while True:
+            try:
+                return future.result(0.5)
+            except ApiError as error:
+                raise PhantomError(str(error)) from None
+            except concurrent.futures.CancelledError:
+                raise PhantomError("the daemon is stopping") from None
+            except concurrent.futures.TimeoutError:
+                if not self._loop.is_running():  # the daemon ended with the request not run: do not wait for ever
+                    future.cancel()
+                    raise PhantomError("the daemon stopped") from None
 
     def configure(self, configs: tuple[AxisConfig, ...]) -> None:
         """Send each axis its configuration (axis 0 the first)."""
@@ -348,8 +442,15 @@ class ThreadRig:
         status = self._run(self._orbit.move({ELEVATION: elevation_deg, ORBIT: orbit_deg}))
         return status.axes[ORBIT].position_deg, status.axes[ELEVATION].position_deg
 
+    def position_deg(self) -> tuple[float, float]:
+        """The simulated rig's true angles, else the axes' positions in the board's last MOTION_STATUS."""
+        return rig_position_deg(self._run(self._orbit.full_status()))
+
     def release(self) -> None:
         self._run(self._orbit.stop(True))
+
+    def stop_requested(self, wait_s: float = 0.0) -> str | None:
+        return self._scan.stop_requested(wait_s)
 
     def pressures_kpa(self) -> list[float] | None:
         async def read() -> dict[str, Any]:
@@ -374,23 +475,36 @@ def scannable_pressures_kpa(status: dict[str, Any]) -> list[float] | None:
 
 class Scanner(Protocol):
     """A whole capture for the ``scan`` API method (``phantom.cli.scan_rig.DaemonScanner``): blocking, run in a
-    worker thread; ``params`` are the request's; returns the JSON answer; a PhantomError is the request's error."""
+    worker thread; ``params`` are the request's; returns the JSON answer (``folder``, ``status``, ``pictures``,
+    and ``reason`` when the status is not ``complete``); a PhantomError is the request's error."""
 
     def __call__(self, params: dict[str, Any], rig: ThreadRig) -> dict[str, Any]: ...
 
 
 def scan_method(orbit: Orbit, scanner: Scanner, state: DaemonState) -> dict[str, Handler]:
-    """The ``scan`` API method: ``scanner`` run in a worker thread with the daemon's axes (one scan at a time)."""
-    running = asyncio.Lock()
-
+    """The ``scan`` API method: ``scanner`` run in a worker thread with the daemon's axes, which it owns until it
+    ends (one scan at a time). A capture that did not complete (stopped, aborted) is an ApiError ``rejected``
+    whose data is the scanner's answer."""
     async def scan(params: dict[str, Any]) -> dict[str, Any]:
-        if running.locked():
-            raise ApiError("rejected", "a scan is running already: wait for it, or stop it with motion_stop")
-        async with running:
-            rig = ThreadRig(orbit, asyncio.get_running_loop(), state)
-            try:
-                return await asyncio.to_thread(scanner, params, rig)
-            except PhantomError as error:
-                raise ApiError("rejected", f"the scan stopped: {error}") from None
-    return {"scan": scan}
+        if orbit.scan is not None:
+            raise ApiError("rejected", f"a scan is running (started {orbit.scan.started_utc}): wait for it, or stop "
+                                       f"it with motion_stop")
+        run = orbit.scan = ScanRun()
 
+        def ended(_: object) -> None:  # when the thread has ended, not when this request was cancelled
+            orbit.scan = None
+            run.ended.set()
+        work = asyncio.ensure_future(asyncio.to_thread(scanner, params, ThreadRig(orbit, asyncio.get_running_loop(),
+                                                                                  state, run)))
+        work.add_done_callback(ended)
+        try:
+            answer = await asyncio.shield(work)
+        except asyncio.CancelledError:
+            run.request_stop("the daemon is stopping")
+            raise
+        except PhantomError as error:
+            raise ApiError("rejected", f"the scan stopped: {error}") from None
+        if answer.get("status") != "complete":
+            raise ApiError("rejected", f"the scan was {answer.get('status')}: {answer.get('reason')}", answer)
+        return answer
+    return {"scan": scan}

@@ -181,6 +181,7 @@ def _task_ended(daemon: Daemon, task: asyncio.Task[Any]) -> None:
 async def _shutdown(daemon: Daemon) -> None:
     """Vent the phantom (if the board is there), close the recording, the API, the link and the model."""
     logger.info("stopping: venting and closing")
+    await daemon.motion.stop_scan("the daemon is stopping")  # its capture ends, marked stopped, drivers released
     if daemon.config.vent_on_exit and daemon.session.online:
         with contextlib.suppress(TimeoutError, ApiError):  # the core's event says why
             await asyncio.wait_for(daemon.vent("on shutdown"), 2.0)

@@ -5,11 +5,14 @@ imports nothing of the daemon or the simulator: an :class:`Orbit` (move to an or
 say where it stopped; release the motors), a :class:`FrameSource` (a webcam through OpenCV's ``VideoCapture``, or
 the virtual camera) and a :class:`PhantomState` (the chamber pressures now; it raises when the phantom cannot be
 scanned: a latched fault, a lost link). On a fault, a lost camera or Ctrl-C the loop stops the orbit with its
-motors released, marks the folder ``aborted`` with the reason, and keeps the pictures taken.
+motors released, marks the folder ``aborted`` with the reason, and keeps the pictures taken. A
+:class:`StopFlag` (the daemon's scan: ``motion_stop``, SIGTERM) is checked before each move, during the settle
+wait and after each picture: the loop then releases the motors and marks the folder ``stopped``.
 
 A capture folder, readable by any tool::
 
-    capture.json        {"format": "phantom-capture/1", "status": "running" | "complete" | "aborted",
+    capture.json        {"format": "phantom-capture/1",
+                         "status": "running" | "complete" | "aborted" | "stopped",
                          "reason", "started_utc", "finished_utc", "camera": {...}, "plan": {...},
                          "conditions": {...}, "rig": "rig.json" or null,
                          "frames": [{"index", "image", "orbit_deg", "elevation_deg", "pressures_kpa",
@@ -17,9 +20,12 @@ A capture folder, readable by any tool::
     rig.json            the rig's calibration (phantom.scan.camera.Rig), when one is known
     images/0000.png     the pictures, 8-bit sRGB, in the order taken
 
-``orbit_deg`` and ``elevation_deg`` are the angles the board reported once the axes were at rest; ``time_s`` is
-seconds since the capture started (``time_utc`` the wall clock); capture.json is rewritten (atomically) after
-every picture, so an aborted capture is readable too.
+``orbit_deg`` and ``elevation_deg`` are the angles the rig reported when the picture was taken (read just
+before and just after it, the mean of the two), not the planned ones: a frame whose reported angles differ from
+the plan's by more than MAX_ANGLE_ERROR_DEG (the rig moved by someone else, or still moving) is refused and the
+capture aborted, rather than recorded at a wrong angle. ``time_s`` is seconds since the capture started
+(``time_utc`` the wall clock); capture.json is rewritten (atomically) after every picture, so an aborted or
+stopped capture is readable too.
 """
 
 from __future__ import annotations
@@ -49,11 +55,19 @@ IMAGES = "images"
 MAX_FRAMES = 2000
 #: The largest orbit and elevation angles (deg) a frame may have: the orbit's soft limits are +-190 deg.
 MAX_FRAME_ANGLE_DEG = 360.0
+#: How far (deg) the angles the rig reports at a picture may be from the plan's: eight of the orbit's steps
+#: (80 a degree), 0.04 mm at the gland's surface 25 mm from the axis, far below a voxel; a rig that is further off
+#: was moved by someone else or is still moving.
+MAX_ANGLE_ERROR_DEG = 0.1
 
 
 class CaptureError(PhantomError):
     """A capture that stopped (the reason and where the pictures taken are kept), or a capture folder that
     cannot be read."""
+
+
+class CaptureStopped(CaptureError):
+    """A capture stopped on request (``motion_stop``, the daemon stopping): the folder is marked ``stopped``."""
 
 
 class CameraLost(PhantomError):
@@ -66,8 +80,18 @@ class Orbit(Protocol):
     def move_to(self, orbit_deg: float, elevation_deg: float) -> tuple[float, float]:
         """Move both axes there and wait until they are at rest; return the angles reached (deg)."""
 
+    def position_deg(self) -> tuple[float, float]:
+        """Where the axes are now (deg), as the rig reports them (on the simulated board its true angles)."""
+
     def release(self) -> None:
         """Stop any motion and release the motors' drivers."""
+
+
+class StopFlag(Protocol):
+    """A request to stop the capture from another thread (``phantom.host.motion.ThreadRig``)."""
+
+    def stop_requested(self, wait_s: float = 0.0) -> str | None:
+        """Why the capture must stop, or None to go on; waits up to ``wait_s`` for a request (the settle wait)."""
 
 
 class FrameSource(Protocol):
@@ -340,38 +364,73 @@ Progress = Callable[[int, int, Frame], None]
 
 
 def capture(orbit: Orbit, camera: FrameSource, phantom: PhantomState, plan: Plan, folder: CaptureFolder,
-            progress: Progress | None = None, sleep: Callable[[float], None] = time.sleep) -> CaptureFolder:
+            progress: Progress | None = None, stop: StopFlag | None = None) -> CaptureFolder:
     """Take the plan's pictures into ``folder``; on any failure or Ctrl-C release the orbit, mark the folder
-    aborted (pictures kept) and raise CaptureError (KeyboardInterrupt for Ctrl-C)."""
+    aborted (pictures kept) and raise CaptureError (KeyboardInterrupt for Ctrl-C); on a ``stop`` request release
+    it, mark the folder stopped and raise CaptureStopped."""
     stops = plan.stops()
     started = time.monotonic()
-    with _abort_cleanly(orbit, folder, len(stops)):
+    with _abort_cleanly(orbit, folder, len(stops), stop):
         for orbit_deg, elevation_deg in stops:
-            reached = orbit.move_to(orbit_deg, elevation_deg)
-            sleep(plan.settle_s)
+            _check_stop(stop)
+            orbit.move_to(orbit_deg, elevation_deg)
+            _check_stop(stop, plan.settle_s)
             pressures = phantom.pressures_kpa()
+            before = orbit.position_deg()
             picture = camera.grab()
-            frame = folder.add(picture, reached[0], reached[1], pressures, time.monotonic() - started)
+            after = orbit.position_deg()
+            _check_stop(stop)
+            reported = _reported_angles((orbit_deg, elevation_deg), before, after, len(folder.frames))
+            frame = folder.add(picture, *reported, pressures, time.monotonic() - started)
             if progress is not None:
                 progress(len(folder.frames), len(stops), frame)
         folder.finish("complete")
     return folder
 
 
+def _check_stop(stop: StopFlag | None, wait_s: float = 0.0) -> None:
+    """CaptureStopped if a stop is requested now or within ``wait_s`` (which passes otherwise)."""
+    if stop is None:
+        time.sleep(wait_s)
+        return
+    reason = stop.stop_requested(wait_s)
+    if reason is not None:
+        raise CaptureStopped(reason)
+
+
+def _reported_angles(planned: tuple[float, float], before: tuple[float, float], after: tuple[float, float],
+                     index: int) -> tuple[float, float]:
+    """The angles to record for a picture: the mean of those the rig reported just before and after it; a
+    CaptureError when either is further than MAX_ANGLE_ERROR_DEG from the plan's (the picture is not kept)."""
+    for name, axis in (("orbit", 0), ("elevation", 1)):
+        off = max(abs(before[axis] - planned[axis]), abs(after[axis] - planned[axis]))
+        if not off <= MAX_ANGLE_ERROR_DEG:
+            raise CaptureError(f"picture {index}: the rig reported the {name} at {before[axis]:.2f} deg before it "
+                               f"and {after[axis]:.2f} deg after it, planned {planned[axis]:.2f} deg (more than "
+                               f"{MAX_ANGLE_ERROR_DEG:g} deg off: was the rig moved during the scan?); the picture "
+                               f"is not kept")
+    return (before[0] + after[0]) / 2, (before[1] + after[1]) / 2
+
+
 @contextlib.contextmanager
-def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int) -> Iterator[None]:
+def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int, stop: StopFlag | None) -> Iterator[None]:
     try:
         yield
     except (PhantomError, OSError, KeyboardInterrupt) as error:
-        reason = "interrupted (Ctrl-C)" if isinstance(error, KeyboardInterrupt) else str(error)
+        # a move that a stop interrupted fails (ended STOPPED): that capture was stopped, not aborted
+        requested = stop.stop_requested() if stop is not None else None
+        stopped = isinstance(error, CaptureStopped) or requested is not None
+        reason = ("interrupted (Ctrl-C)" if isinstance(error, KeyboardInterrupt)
+                  else requested if requested is not None else str(error))
         released = _release(orbit)
-        folder.finish("aborted", reason + ("" if released is None else f"; the motors could not be released: "
-                                                                       f"{released}"))
+        folder.finish("stopped" if stopped else "aborted",
+                      reason + ("" if released is None else f"; the motors could not be released: {released}"))
         if isinstance(error, KeyboardInterrupt):
             raise
-        raise CaptureError(f"capture aborted after {len(folder.frames)} of {total} pictures: {reason}; the motors "
-                           f"are {'released' if released is None else 'NOT released (' + released + ')'} and the "
-                           f"pictures taken are kept in {folder.path}") from error
+        kind = CaptureStopped if stopped else CaptureError
+        raise kind(f"capture {'stopped' if stopped else 'aborted'} after {len(folder.frames)} of {total} pictures: "
+                   f"{reason}; the motors are {'released' if released is None else 'NOT released (' + released + ')'}"
+                   f" and the pictures taken are kept in {folder.path}") from error
 
 
 def _release(orbit: Orbit) -> str | None:

@@ -73,6 +73,9 @@ class VirtualOrbit:
         self.orbit_deg, self.elevation_deg, self.released = orbit_deg, elevation_deg, False
         return orbit_deg, elevation_deg
 
+    def position_deg(self) -> tuple[float, float]:
+        return self.orbit_deg, self.elevation_deg
+
     def release(self) -> None:
         self.released = True
 

@@ -32,6 +32,10 @@ class RecordingOrbit:
         if self.interrupt_at is not None and len(self.moves) == self.interrupt_at:
             raise KeyboardInterrupt
         self.moves.append((orbit_deg, elevation_deg))
+        return self.position_deg()
+
+    def position_deg(self):
+        orbit_deg, elevation_deg = self.moves[-1]
         return orbit_deg + 0.004, elevation_deg  # the board reports the step it stopped on
 
     def release(self):

@@ -40,6 +40,12 @@ class DaemonOrbit:
         axes = status["axes"]
         return float(axes[0]["position_deg"]), float(axes[1]["position_deg"])
 
+    def position_deg(self) -> tuple[float, float]:
+        """The simulated rig's true angles (``motion_status``'s ``simulated``), else those the board reports."""
+        from phantom.host.motion import rig_position_deg
+
+        return rig_position_deg(_call(self.client, "motion_status"))
+
     def release(self) -> None:
         _call(self.client, "motion_stop", {"release": True})
 
@@ -154,7 +160,8 @@ class DaemonScanner:
     (default [0, 30]), ``start_deg`` (-180), ``span_deg`` (360), ``settle_s`` (0.3), ``camera`` ("virtual", the
     default, on the simulated board; a device number or a video path for a webcam), ``scale`` (the virtual
     picture's size of 1280x960), ``seed``, ``width``, ``height``, ``exposure``, ``focus``, ``rig`` (a rig.json to
-    keep beside the pictures). Answers the folder, its status and the number of pictures. The virtual camera
+    keep beside the pictures). Answers the folder, its status (``complete``, ``stopped`` by a stop request,
+``aborted``) and the number of pictures, and for a capture that did not complete the ``reason``. The virtual camera
     photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon --sim-truth`` said another)."""
 
     def __init__(self, truth: SimulatedTruth | None = None):
@@ -164,7 +171,7 @@ class DaemonScanner:
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
         from phantom.cli.scan import load_rig
         from phantom.protocol.motion import SCANNER_AXES
-        from phantom.scan.capture import CaptureFolder, Plan, capture
+        from phantom.scan.capture import CaptureError, CaptureFolder, Plan, capture
 
         known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
                  "width", "height", "exposure", "focus", "rig"}
@@ -188,8 +195,12 @@ class DaemonScanner:
         kept = load_rig(params["rig"]) if params.get("rig") else None
         folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
         rig.configure(SCANNER_AXES)
-        capture(rig, camera, rig, plan, folder)
-        return {"folder": str(folder.path), "status": folder.status, "pictures": len(folder.frames)}
+        answer: dict[str, Any] = {"folder": str(folder.path)}
+        try:
+            capture(rig, camera, rig, plan, folder, stop=rig)
+        except CaptureError as error:  # stopped or aborted: the folder says which, the error why
+            answer["reason"] = str(error)
+        return {**answer, "status": folder.status, "pictures": len(folder.frames)}
 
     def _camera(self, params: dict[str, Any], rig: Any, elevations: tuple[float, ...], scale: Any,
                 seed: int) -> FrameSource:
