@@ -22,8 +22,8 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
-#: two stops at elevation 0 (-180 and 0 deg), pictures a tenth of 1280x960
-PLAN = {"views": 2, "elevations_deg": [0], "scale": 0.1}
+#: two stops at elevation 0, -20 and 20 deg (the rig powers up at 0: short moves), pictures a tenth of 1280x960
+PLAN = {"views": 2, "elevations_deg": [0], "start_deg": -20.0, "span_deg": 40.0, "scale": 0.1}
 
 
 @pytest.fixture(scope="module")
@@ -64,12 +64,12 @@ class ScanInThread:
 
 
 def wait_settling(client, out, timeout_s=120):
-    """Until the scan's first stop: the orbit at rest at -180 deg with no picture taken yet (the settle wait)."""
+    """Until the scan's first stop: the orbit at rest at -20 deg with no picture taken yet (the settle wait)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         orbit = client.call("motion_status")["axes"][0]
         if (out / "capture.json").is_file() and orbit.get("state") == "IDLE" and orbit.get("result") == "REACHED" \
-                and abs(orbit["position_deg"] + 180.0) < 0.05:
+                and abs(orbit["position_deg"] + 20.0) < 0.05:
             assert json.loads((out / "capture.json").read_text())["frames"] == []
             return
         time.sleep(0.1)
@@ -83,7 +83,7 @@ def test_another_clients_motion_during_the_settle_is_refused_and_the_frames_stay
     scan = ScanInThread(sock, {**PLAN, "out": str(out), "settle_s": 6.0})
     with DaemonClient(sock, timeout_s=60) as other:
         wait_settling(other, out)
-        for method, params in (("motion_move", {"orbit_deg": -145.4}), ("motion_home", {"axis": 0}),
+        for method, params in (("motion_move", {"orbit_deg": 14.6}), ("motion_home", {"axis": 0}),
                                ("motion_config", {"axis": 0, "max_speed_deg_s": 5.0})):
             with pytest.raises(DaemonError, match=rf"{method} refused: a scan is running \(started .*\) and owns the "
                                                   r"rig: wait for it, or stop it with motion_stop"):
@@ -91,13 +91,13 @@ def test_another_clients_motion_during_the_settle_is_refused_and_the_frames_stay
         with pytest.raises(DaemonError, match=r"a scan is running \(started .*\): wait for it, or stop it with "
                                               r"motion_stop"):
             other.call("scan", {**PLAN, "out": str(tmp_path / "second")})
-        assert other.call("motion_status")["axes"][0]["position_deg"] == pytest.approx(-180.0, abs=0.05)
+        assert other.call("motion_status")["axes"][0]["position_deg"] == pytest.approx(-20.0, abs=0.05)
     scan.join(120)
     assert scan.error is None and scan.answer == {"folder": str(out), "status": "complete", "pictures": 2}
     record = json.loads((out / "capture.json").read_text())
     # the angles the simulated rig had at each picture (its drivers' pulses counted by simavr)
     assert [(f["orbit_deg"], f["elevation_deg"]) for f in record["frames"]] == [
-        pytest.approx((-180.0, 0.0), abs=0.02), pytest.approx((0.0, 0.0), abs=0.02)]
+        pytest.approx((-20.0, 0.0), abs=0.02), pytest.approx((20.0, 0.0), abs=0.02)]
 
 
 @pytest.mark.timeout(600)
@@ -119,9 +119,10 @@ def test_motion_stop_during_the_settle_stops_the_scan_and_the_next_one_runs(daem
         assert record["status"] == "stopped" and record["reason"] == "stopped by motion_stop"
         assert record["frames"] == []
         # the orbit stayed where the stop found it
-        assert other.call("motion_status")["axes"][0]["position_deg"] == pytest.approx(-180.0, abs=0.05)
+        assert other.call("motion_status")["axes"][0]["position_deg"] == pytest.approx(-20.0, abs=0.05)
         # and the next scan starts at once and completes
-        again = other.call("scan", {**PLAN, "out": str(tmp_path / "again"), "views": 1, "settle_s": 0.0})
+        again = other.call("scan", {**PLAN, "out": str(tmp_path / "again"), "views": 1, "start_deg": 20.0,
+                                    "settle_s": 0.0})
         assert again["status"] == "complete" and again["pictures"] == 1
 
 
