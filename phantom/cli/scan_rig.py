@@ -4,7 +4,8 @@ This module joins the parts: the daemon's API client (host), the capture loop, t
 reconstruction (scan), and on the simulated board the truth shape (hil). The capture loop's Protocols are met
 here by adapters over the API:
 
-- :class:`DaemonOrbit` (``scan.capture.Orbit``): ``motion_move`` and ``motion_stop`` with the drivers released;
+- :class:`DaemonOrbit` (``scan.capture.Orbit``): ``motion_move``, ``motion_status`` for where the rig is at a
+  picture (the simulated rig's true angles on the simulated board), and ``motion_stop`` with the drivers released;
 - :class:`DaemonPhantom` (``scan.capture.PhantomState``): the measured pressures from ``status``; a latched
   fault or a lost link stops the capture;
 - :func:`simulated_scene`: for the virtual camera, the simulated rig's true angles and the truth model's surface
