@@ -127,6 +127,15 @@ class CorrectionStore:
                                   f"or digit, got {name!r}")
         return cls(Path(root if root is not None else data_dir()) / "corrections" / f"{name}.json")
 
+    def signature(self) -> tuple[int, int, int] | None:
+        """The file's modification time (ns), size and inode, None while there is none: a cheap check (one stat)
+        of whether any writer changed the store since it was last read (every write replaces the file)."""
+        try:
+            stat = self.path.stat()
+        except FileNotFoundError:
+            return None
+        return stat.st_mtime_ns, stat.st_size, stat.st_ino
+
     def entries(self) -> list[Measurement]:
         """The stored measurements, oldest first ([] when there are none)."""
         if not self.path.exists():
@@ -397,6 +406,11 @@ class Correction:
                 "growth_factor": self.growth_factor, "field": self.residual_field is not None,
                 "leave_one_out_pct": dict(self.leave_one_out_pct), "uncorrected_pct": self.uncorrected_pct}
 
+    def summary(self, grid: ModelGrid) -> dict[str, Any]:
+        """:meth:`to_json` with the correction's size over the grid's box (``size_ml``, :meth:`size_ml`) and the
+        number of measurements (``count``): what the daemon reports of the correction in force."""
+        return self.to_json() | {"size_ml": self.size_ml(grid), "count": self.count}
+
 
 #: The fewest measurements each kind is fitted to (its leave-one-out needs one more).
 MIN_MEASUREMENTS = {"offset": 1, "growth": 2, "field": 1, "growth+field": 2}
@@ -474,8 +488,12 @@ class CorrectedModel:
     def gland_ml(self, pressures_kpa: ArrayLike) -> float:
         """The corrected gland volume (ml) at these pressures (kPa)."""
         pressures = np.asarray(pressures_kpa, dtype=float)
-        model_ml = self.grid.gland_ml(pressures)
-        return model_ml + self.correction.residual_ml(pressures, model_ml - self.rest_ml)
+        return self.corrected_ml(pressures, self.grid.gland_ml(pressures))
+
+    def corrected_ml(self, pressures_kpa: ArrayLike, model_ml: float) -> float:
+        """The corrected gland volume (ml) at these pressures (kPa), where the model's own is ``model_ml`` (a caller
+        that has it already spares the model a second evaluation)."""
+        return float(model_ml) + self.correction.residual_ml(pressures_kpa, float(model_ml) - self.rest_ml)
 
     def pressures_for_ml(self, volume_ml: float, inverse: Callable[[float], np.ndarray],
                          tolerance_ml: float = 1e-3, max_rounds: int = 10) -> tuple[np.ndarray, float, int]:
