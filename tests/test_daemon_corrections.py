@@ -201,3 +201,55 @@ def test_a_phantom_name_no_store_can_have_is_refused_before_anything_starts():
 
     with pytest.raises(CorrectionError, match="a phantom's name is 1-64 letters"):
         run(ModelWorker.start("builtin:converged", phantom="../etc"))
+
+
+@pytest.mark.sim
+def test_a_daemon_on_the_simulated_board_answers_with_the_stored_scans_follows_the_store_and_keeps_it_over_a_restart(
+        tmp_path, data_dir, loaded, default_model_cached):
+    """End to end: `phantom daemon --phantom scanned` on the simulated board with three stored scans (stand-ins:
+    the simulated phantom's true volumes) sets a 35 ml target on other pressures than the model alone would, its
+    status and `phantom status` show the correction, a scan added by another writer is in force at the next
+    estimate, the recording holds the correction's series and the model's own estimate beside the corrected one,
+    and a daemon started again on the same board answers with all four."""
+    from daemon_rig import DaemonRig
+
+    from phantom.host.recording import read_rrd
+
+    store = CorrectionStore.for_phantom("scanned")
+    for pressures in ((0, 0, 0), (2, 0, 0), (0, 2, 0)):
+        store.add(Measurement(tuple(map(float, pressures)), true_ml(pressures)))
+    plain_kpa = loaded.pressures_for(Target(gland_volume_m3=35 * ML)).pressures_pa / 1e3
+    first = tmp_path / "first"
+    first.mkdir()
+    rig = DaemonRig(first, "--phantom", "scanned", "--rerun-save", str(first / "run.rrd"))
+    board = rig.board
+    rig.own_board = False
+    try:
+        rig.wait_online()
+        status = rig.status()
+        assert status["correction"]["in_force"] and status["correction"]["correction"]["count"] == 3
+        assert status["correction"]["phantom"] == "scanned"
+        answer = rig.call("set_target", {"volume_ml": 35.0})
+        solution = rig.wait_status(lambda s: s["solution"] is not None, 10, "a solution")["solution"]
+        assert solution["predicted_volume_ml"] == pytest.approx(35, abs=0.01), answer
+        assert np.max(np.abs(np.array(solution["pressures_kpa"]) - plain_kpa)) > 0.05
+        shown = rig.cli("status")
+        assert "corrected yes: " in shown.stdout and "from 3 measurement(s) of phantom 'scanned'" in shown.stdout
+        store.add(Measurement((1.0, 1.0, 1.0), true_ml((1, 1, 1))))
+        rig.wait_status(lambda s: (s["correction"]["correction"] or {}).get("count") == 4, 60, "the 4th scan")
+        rig.wait_status(lambda s: s["estimated_volume_ml"] is not None, 10, "an estimate")
+        rig.process.send_signal(signal.SIGTERM)
+        rig.process.wait(30)
+    finally:
+        rig.close()
+    recording = read_rrd(first / "run.rrd")
+    assert recording["/correction/measurements"] and recording["/volume/uncorrected_ml"], sorted(recording)
+    second = tmp_path / "second"
+    second.mkdir()
+    rig = DaemonRig(second, "--phantom", "scanned", board=board)
+    try:
+        rig.wait_online()
+        assert rig.status()["correction"]["correction"]["count"] == 4
+    finally:
+        rig.close()
+        board.stop()
