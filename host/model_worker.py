@@ -167,8 +167,10 @@ class LoadedModel:
         """Correct the gland volumes of the answers from now on (None: answer with the model's own)."""
         from phantom.model.corrections import model_grid
 
-        self.corrected = None if correction is None else CorrectedModel(model_grid(self.estimator), correction)
-        self.correction_size_ml = None if self.corrected is None else correction.size_ml(self.corrected.grid)
+        self.corrected = self.correction_size_ml = None
+        if correction is not None:
+            self.corrected = CorrectedModel(model_grid(self.estimator), correction)
+            self.correction_size_ml = correction.size_ml(self.corrected.grid)
         self._ramp_ends.clear()  # the ends were solved with the correction before
 
     def gland_ml(self, pressures_pa: np.ndarray, model_gland_m3: float) -> float:
