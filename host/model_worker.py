@@ -731,7 +731,9 @@ class ModelWorker:
         self._fitting.add_done_callback(_log_failed_fit)
 
     async def _fit_and_apply(self) -> FitAnswer:
-        if self.info.pending_fidelity is not None:
+        if self.store.signature() is None:  # nothing measured: no fitter process, no second model in memory
+            answer = FitAnswer(None, None, None, None, 0, 0.0)
+        elif self.info.pending_fidelity is not None:
             answer = FitAnswer(None, None, f"the model answers on the {self.info.fidelity} level until the "
                                f"{self.info.pending_fidelity} level is built: the correction is fitted then",
                                self.store.signature(), 0, 0.0)
