@@ -253,3 +253,15 @@ def test_a_daemon_on_the_simulated_board_answers_with_the_stored_scans_follows_t
     finally:
         rig.close()
         board.stop()
+
+
+def test_phantom_daemon_with_a_bad_phantom_name_stops_its_start_with_one_line(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    result = subprocess.run([str(Path(sys.executable).with_name("phantom")), "daemon", "--port",
+                             str(tmp_path / "no-board"), "--socket", str(tmp_path / "d.sock"), "--phantom", "../x"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert "phantom daemon: error: a phantom's name is 1-64 letters" in result.stderr and "'../x'" in result.stderr
