@@ -572,7 +572,7 @@ def _fitter_grid(scene_source: str, level: str) -> Any:
 
 def _fitter_fit(scene_source: str, level: str, store_path: str) -> FitAnswer:
     """In the fitter: the correction of the model by the store's measurements, or why there is none."""
-    from phantom.model.corrections import fit_correction
+    from phantom.model.corrections import cached_fit
 
     started = time.perf_counter()
     store = CorrectionStore(store_path)
@@ -584,7 +584,7 @@ def _fitter_fit(scene_source: str, level: str, store_path: str) -> FitAnswer:
         if not entries:
             return FitAnswer(None, None, None, signature, 0, 0.0)
         grid = _fitter_grid(scene_source, level)
-        correction = fit_correction(entries, grid)
+        correction = cached_fit(entries, grid)
         return FitAnswer(correction, correction.summary(grid), None, signature, stored,
                          time.perf_counter() - started)
     except (CorrectionError, ValueError, ArithmeticError) as error:  # numpy's LinAlgError is a ValueError
