@@ -139,10 +139,11 @@ def test_the_worker_fits_the_store_at_start_follows_it_refuses_another_phantoms_
             assert estimate.gland_volume_ml == pytest.approx(35, abs=0.01)
             assert estimate.model_gland_volume_ml != pytest.approx(35, abs=0.1)
             # another writer (`phantom corrections add`) changes the store under the running worker
+            fit_before = worker._fitting
             store.add(Measurement((1.0, 1.0, 1.0), true_ml((1, 1, 1))))
             await worker.estimate(answer.pressures_pa)          # the check before an answer starts a fit
-            assert worker.correction_status()["fitting"]
-            await worker.refit()
+            assert worker._fitting is not fit_before
+            await worker._fitting
             assert worker.correction_status()["correction"]["count"] == 4
             recorded = await worker.record_measurement([1.5, 0.5, 0.0], true_ml((1.5, 0.5, 0)), scan_file="s.ply")
             assert recorded["count"] == 5 and recorded["size_ml"] > 0 and "leave_one_out_pct" in recorded
