@@ -112,13 +112,13 @@ def _export(store: Any, args: argparse.Namespace) -> int:
 
 def _fit(store: Any, args: argparse.Namespace) -> int:
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.corrections import fit_correction, model_grid
+    from phantom.model.corrections import cached_fit, model_grid
     from phantom.model.fidelity.levels import VolumeEstimator
 
     entries = store.entries()
     model = PhantomModel.from_scene(load_scene(args.scene))
     grid = model_grid(VolumeEstimator(model), args.scene)
-    correction = fit_correction(entries, grid)
+    correction = cached_fit(entries, grid)
     summary = correction.summary(grid)
     lines = [f"{correction.count} measurement(s) of phantom {args.phantom!r}; the model {args.scene} misses them by "
              f"{correction.uncorrected_pct:.2f} % on average",
