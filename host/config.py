@@ -111,6 +111,8 @@ class DaemonConfig:
                          "'builtin:calibrated' (its coarse 4-node fit), 'builtin' or a TOML path",
                          metavar="S")
     run_scene: bool = setting(False, "play the scene's [[steps]] as soon as the daemon is ready")
+    phantom: str = setting("default", "the phantom's name: its measured volumes (`phantom corrections --phantom NAME`, "
+                           "in the user's data directory) correct the model's answers", metavar="NAME")
     socket: Path | None = setting(
         None, "the API's Unix socket (default: $PHANTOM_SOCKET, /run/phantom/phantomd.sock, "
         "$XDG_RUNTIME_DIR/phantomd.sock or /tmp/phantomd-UID/phantomd.sock)", metavar="PATH")

@@ -107,6 +107,7 @@ class VolumeEstimates:
         self.meshes_logged = 0
         self._rest_surface_logged = False
         self._restarts_seen = 0
+        self._correction_logged: tuple[float | None, int] = (None, 0)
 
     def tick(self, now_s: float, asked_s: float, wants_shape: bool,
              spawn: Callable[[Coroutine[Any, Any, Estimate]], asyncio.Task[Estimate]]) -> None:
@@ -139,7 +140,11 @@ class VolumeEstimates:
         self.on_estimate(asked_s, estimate)
         target_ml, true_ml = self.logged_volumes()
         self.recorder.log_volumes(request.time_s, target_ml, estimate.gland_volume_ml, estimate.chamber_volumes_ml,
-                                  true_ml=true_ml)
+                                  true_ml=true_ml, model_ml=estimate.model_gland_volume_ml)
+        correction = (estimate.correction_size_ml, estimate.correction_count)
+        if correction != self._correction_logged:  # the correction in force changed (logged once per change)
+            self._correction_logged = correction
+            self.recorder.log_correction(request.time_s, *correction)
         if estimate.surface_mm is not None:
             if estimate.rest_surface_mm is not None and not self._rest_surface_logged:
                 self._rest_surface_logged = True

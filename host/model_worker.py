@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
@@ -30,6 +30,7 @@ import numpy as np
 import phantom
 from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
+from phantom.model.corrections import CorrectedModel, Correction, CorrectionError, CorrectionStore, Measurement
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
@@ -98,6 +99,10 @@ class LoadedModel:
         self._outer_surface = self.model.outer_surface()
         #: the inverse's answers for the ends of the ramps played lately (:meth:`pressures_on_ramp`)
         self._ramp_ends: dict[str, InverseResult] = {}
+        #: the correction by the phantom's measured volumes in force (:meth:`set_correction`; None: none), and
+        #: its size (ml)
+        self.corrected: CorrectedModel | None = None
+        self.correction_size_ml: float | None = None
 
     def table_stored(self) -> bool:
         """Whether the scene's response table is in the disk cache (or shipped), so the table level costs no build."""
@@ -151,10 +156,30 @@ class LoadedModel:
                     f"{probe}), warmed up in {self.timings_s['warm_up_s']:.2f} s")
 
     def use_level(self, level: str) -> None:
-        """Answer on ``level`` from now on (the pending table, once stored)."""
+        """Answer on ``level`` from now on (the pending table, once stored); the correction is dropped (it was
+        fitted to the level before: the daemon fits it again)."""
         self._set_up(level)
         if level == self.pending_level:
             self.pending_level = None
+        self.set_correction(None)
+
+    def set_correction(self, correction: Correction | None) -> None:
+        """Correct the gland volumes of the answers from now on (None: answer with the model's own)."""
+        from phantom.model.corrections import model_grid
+
+        self.corrected = self.correction_size_ml = None
+        if correction is not None:
+            self.corrected = CorrectedModel(model_grid(self.estimator), correction)
+            self.correction_size_ml = correction.size_ml(self.corrected.grid)
+        self._ramp_ends.clear()  # the ends were solved with the correction before
+
+    def gland_ml(self, pressures_pa: np.ndarray, model_gland_m3: float) -> float:
+        """The gland volume (ml) at pressures (Pa) where the model's own is ``model_gland_m3``: corrected when a
+        correction is in force."""
+        model_ml = float(model_gland_m3) * ML_PER_M3
+        if self.corrected is None:
+            return model_ml
+        return self.corrected.corrected_ml(np.asarray(pressures_pa, dtype=float) / PA_PER_KPA, model_ml)
 
     def warm_up(self) -> None:
         """Solve one reachable and one unreachable gland target, so that the first request finds the QPs set
@@ -177,8 +202,38 @@ class LoadedModel:
                                pressure_max_kpa=self.pressure_max_pa / PA_PER_KPA)
 
     def pressures_for(self, target: Target) -> InverseResult:
-        """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range."""
-        return self.solver.pressures_for(target)
+        """The setpoints (Pa) for ``target``; raises UnreachableTargetError (a PhantomError) with the range.
+
+        With a correction in force, a gland volume target is met by the corrected volume: the inverse is asked
+        for the model's volumes that the correction takes to the target (:meth:`CorrectedModel.pressures_for_ml`,
+        a few inverses), and the answer's predicted gland volume is the corrected one. Chamber volume and
+        pressure targets are the model's own (the measurements are of the gland)."""
+        if self.corrected is None or target.kind != "volume":
+            return self.solver.pressures_for(target)
+        assert target.gland_volume_m3 is not None  # the kind says so
+        target_ml = target.gland_volume_m3 * ML_PER_M3
+        answers: list[InverseResult] = []
+
+        def inverse_kpa(volume_ml: float) -> np.ndarray:
+            try:
+                answers.append(self.solver.pressures_for(replace(target, gland_volume_m3=volume_ml / ML_PER_M3)))
+            except UnreachableTargetError as error:
+                raise UnreachableTargetError(
+                    f"{target_ml:.2f} ml with the correction in force ({self._correction_words()}) is the model's "
+                    f"{volume_ml:.2f} ml: {error}") from None
+            return np.asarray(answers[-1].pressures_pa, dtype=float) / PA_PER_KPA
+
+        _, corrected_ml, _ = self.corrected.pressures_for_ml(target_ml, inverse_kpa)
+        last = answers[-1]
+        return InverseResult(target, last.pressures_pa, corrected_ml / ML_PER_M3, last.predicted_chamber_volumes_m3,
+                             sum(answer.iterations for answer in answers),
+                             sum(answer.solve_time_s for answer in answers),
+                             sum(answer.qp_solve_time_s for answer in answers),
+                             [entry for answer in answers for entry in answer.history])
+
+    def _correction_words(self) -> str:
+        correction = self.corrected.correction if self.corrected is not None else None
+        return "none" if correction is None else f"{correction.kind} from {correction.count} measurement(s)"
 
     def measured(self, pressures_pa: np.ndarray) -> np.ndarray:
         """Measured pressures (Pa) as the estimator takes them: negative ones 0, and on the full solve rounded to
@@ -209,7 +264,9 @@ class LoadedModel:
         def volume_m3(fraction: float) -> tuple[np.ndarray, float, float]:
             """Chamber volumes, gland volume and the target's own measure of volume at a point of the line."""
             evaluations[0] += 1
-            chambers, gland = self.estimator.volumes(np.asarray(first.pressures_pa, dtype=float) + fraction * step_pa)
+            pressures_pa = np.asarray(first.pressures_pa, dtype=float) + fraction * step_pa
+            chambers, model_gland = self.estimator.volumes(pressures_pa)
+            gland = self.gland_ml(pressures_pa, float(model_gland)) / ML_PER_M3
             measure = float(gland) if target.kind == "volume" else float(sum(
                 chambers[index] for index, value in enumerate(target.values) if value is not None))
             return np.asarray(chambers, dtype=float), float(gland), measure
@@ -233,10 +290,17 @@ class LoadedModel:
             self._ramp_ends[key] = self.pressures_for(target)
         return self._ramp_ends[key]
 
-    def estimate(self, pressures_pa: np.ndarray) -> tuple[list[float], float]:
-        """Estimated chamber volumes (ml) and gland volume (ml) at measured pressures (Pa, negative -> 0)."""
-        chamber_m3, gland_m3 = self.estimator.volumes(self.measured(pressures_pa))
-        return (np.asarray(chamber_m3) * ML_PER_M3).tolist(), float(gland_m3) * ML_PER_M3
+    def estimate(self, pressures_pa: np.ndarray) -> tuple[list[float], float, float]:
+        """Estimated chamber volumes (ml), gland volume (ml, corrected when a correction is in force) and the
+        model's own gland volume (ml) at measured pressures (Pa, negative -> 0).
+
+        The chambers' air volumes are the model's: a scan measures the gland's outer surface, which says how much
+        the gland grew but not how the air inside it is shared between the chambers (the correction's split per
+        chamber is its smoothness, not a measurement)."""
+        measured = self.measured(pressures_pa)
+        chamber_m3, gland_m3 = self.estimator.volumes(measured)
+        return ((np.asarray(chamber_m3) * ML_PER_M3).tolist(), self.gland_ml(measured, float(gland_m3)),
+                float(gland_m3) * ML_PER_M3)
 
     def rest_surface_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """The outer surface at rest: positions (mm, (n, 3)) and triangles ((k, 3) indices into them)."""
@@ -295,6 +359,12 @@ class Estimate:
     surface_mm: tuple[np.ndarray, np.ndarray] | None
     counts: dict[str, int]
     rest_surface_mm: tuple[np.ndarray, np.ndarray] | None = None
+    #: the model's own gland volume (ml), before the correction in force (None without one)
+    model_gland_volume_ml: float | None = None
+    #: the correction in force: its size (largest magnitude over the pressure box, ml) and from how many
+    #: measurements (None and 0 without one)
+    correction_size_ml: float | None = None
+    correction_count: int = 0
 
 
 # --- the model in its own process -------------------------------------------------------------------------
@@ -434,10 +504,18 @@ def _worker_pressures_on_ramp(start: Target, end: Target, target: Target) -> Inv
 
 def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_surface: bool) -> Estimate:
     model = _worker_model_or_fail()
-    chamber_ml, gland_ml = model.estimate(pressures_pa)
+    chamber_ml, gland_ml, model_gland_ml = model.estimate(pressures_pa)
     surface = model.outer_surface_mm(pressures_pa) if with_surface else None
     rest = model.rest_surface_mm() if with_surface and with_rest_surface else None
-    return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
+    corrected = model.corrected
+    if corrected is None:
+        return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
+    return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest, model_gland_ml,
+                    model.correction_size_ml, corrected.correction.count)
+
+
+def _worker_set_correction(correction: Correction | None) -> None:
+    _worker_model_or_fail().set_correction(correction)
 
 
 def _worker_surface_json(pressures_pa: np.ndarray | None) -> str:
@@ -445,6 +523,90 @@ def _worker_surface_json(pressures_pa: np.ndarray | None) -> str:
     positions_mm, triangles = model.rest_surface_mm() if pressures_pa is None else model.outer_surface_mm(pressures_pa)
     return json.dumps({"positions_mm": np.round(positions_mm, 4).tolist(),
                        "triangles": np.asarray(triangles).tolist()}, separators=(",", ":"))
+
+
+# --- the correction's fit, in a process of its own ------------------------------------------------------------
+#
+# A fit takes seconds (4.5 s for 8 measurements, 17 s for 27 on the converged model on this two-core machine:
+# every candidate's leave-one-out is a quadratic programme per measurement left out). In the model worker it
+# would hold every inverse and estimate for that long; in a process of its own the worker answers with the
+# correction in force until the new one is set.
+
+_fitter_grids: dict[tuple[str, str], Any] = {}
+
+
+@dataclass(frozen=True)
+class FitAnswer:
+    """A fit of the store's measurements: the correction (None: no measurements, or ``error`` says why none),
+    what the status shows of it (``summary``: :meth:`Correction.summary`), the store's signature when it was
+    read, how many measurements it held, and how long the fit took."""
+
+    correction: Correction | None
+    summary: dict[str, Any] | None
+    error: str | None
+    signature: tuple[int, int, int] | None
+    stored: int
+    fit_s: float
+
+
+def _fitter_grid(scene_source: str, level: str) -> Any:
+    """The scene's model on ``level`` as the correction sees it (:func:`phantom.model.corrections.model_grid`),
+    made once per process. CorrectionError while the model's response table is not stored (the grid is its):
+    it is not built here."""
+    key = (scene_source, level)
+    if key not in _fitter_grids:
+        from phantom.host.scenes import load_timeline_scene
+        from phantom.model import PhantomModel
+        from phantom.model.corrections import model_grid
+        from phantom.model.fidelity.levels import VolumeEstimator
+        from phantom.model.fidelity.response_table import stored_response_table
+
+        model = PhantomModel.from_scene(load_timeline_scene(scene_source))
+        settings = model.model_settings
+        if stored_response_table(model, settings.pressure_max_pa, settings.table_points) is None:
+            raise CorrectionError("the model's response table is not built yet: the correction is fitted on its "
+                                  "grid once it is")
+        _fitter_grids[key] = model_grid(VolumeEstimator(model, level=level), scene_source)
+    return _fitter_grids[key]
+
+
+def _fitter_fit(scene_source: str, level: str, store_path: str) -> FitAnswer:
+    """In the fitter: the correction of the model by the store's measurements, or why there is none."""
+    from phantom.model.corrections import cached_fit
+
+    started = time.perf_counter()
+    store = CorrectionStore(store_path)
+    signature = store.signature()
+    stored = 0
+    try:
+        entries = store.entries()
+        stored = len(entries)
+        if not entries:
+            return FitAnswer(None, None, None, signature, 0, 0.0)
+        grid = _fitter_grid(scene_source, level)
+        correction = cached_fit(entries, grid)
+        return FitAnswer(correction, correction.summary(grid), None, signature, stored,
+                         time.perf_counter() - started)
+    except (CorrectionError, ValueError, ArithmeticError) as error:  # numpy's LinAlgError is a ValueError
+        return FitAnswer(None, None, str(error), signature, stored, time.perf_counter() - started)
+
+
+def _fitter_record(scene_source: str, level: str, store_path: str, measurement: Measurement) -> FitAnswer:
+    """In the fitter: store ``measurement`` (with the model's own volume there) and fit again. CorrectionError,
+    and nothing stored, for a measurement this model cannot take (another chamber count, a pressure beyond its
+    grid)."""
+    grid = _fitter_grid(scene_source, level)
+    pressures = np.asarray(measurement.pressures_kpa, dtype=float)
+    chambers = grid.chamber_ml.shape[-1]
+    if len(pressures) != chambers:
+        raise CorrectionError(f"a measurement of this phantom has {chambers} pressures (one per chamber), got "
+                              f"{len(pressures)}: is it of another phantom?")
+    if np.any(pressures > grid.points_kpa[-1]):
+        raise CorrectionError(f"a measurement's pressures must lie in the model's box, 0-{grid.points_kpa[-1]:g} "
+                              f"kPa, got {pressures.tolist()}")
+    CorrectionStore(store_path).add(replace(measurement, model=scene_source,
+                                            model_volume_ml=grid.gland_ml(pressures)))
+    return _fitter_fit(scene_source, level, store_path)
 
 
 def worker_pool(log_level: str = "info", messages: WorkerMessages | None = None) -> ProcessPoolExecutor:
@@ -504,7 +666,8 @@ class ModelWorker:
     Build it with :meth:`start`, which returns a worker whose model is ready (``info``).
     """
 
-    def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo, scene_source: str = "", log_level: str = "info"):
+    def __init__(self, pool: ProcessPoolExecutor, info: ModelInfo, scene_source: str = "", log_level: str = "info",
+                 phantom: str = "default"):
         self._pool = pool
         self.info = info
         self._messages: WorkerMessages | None = None
@@ -513,13 +676,24 @@ class ModelWorker:
         self._replacing = asyncio.Lock()
         #: workers started again after one died (the OOM killer's SIGKILL): each rebuilt its model from the cache
         self.restarts = 0
+        #: the phantom whose measured volumes correct the model's answers, and their store
+        self.phantom = phantom
+        self.store = CorrectionStore.for_phantom(phantom)
+        #: the last fit of the store (what is in force), the process fits run in, and the fit running now
+        self.fit: FitAnswer | None = None
+        self._fitter: ProcessPoolExecutor | None = None
+        self._fitting: asyncio.Task[FitAnswer] | None = None
 
     @classmethod
     async def start(cls, scene_source: str, log_level: str = "info", defer_table: bool = False,
-                    on_message: Callable[[str], None] | None = None) -> ModelWorker:
+                    on_message: Callable[[str], None] | None = None, phantom: str = "default") -> ModelWorker:
         """Start the worker process and build the model in it (its progress is logged from there, and told to
         ``on_message`` as it comes). ``defer_table``: answer on the full solve while a table that is not stored
-        yet is built elsewhere (``info.pending_fidelity``; :meth:`use_level` once it is stored)."""
+        yet is built elsewhere (``info.pending_fidelity``; :meth:`use_level` once it is stored). The answers are
+        corrected by the measured volumes of ``phantom`` (its :class:`CorrectionStore`): the first fit is made
+        before this returns (seconds with many measurements), so that the first answer is corrected already.
+        CorrectionError for a name no store can have."""
+        CorrectionStore.for_phantom(phantom)  # a bad name fails before anything is started
         messages = WorkerMessages(on_message) if on_message is not None else None
         try:
             pool, info = await _started_pool(scene_source, log_level, defer_table, messages)
@@ -527,9 +701,113 @@ class ModelWorker:
             if messages is not None:
                 messages.close()
             raise
-        worker = cls(pool, info, scene_source, log_level)
+        worker = cls(pool, info, scene_source, log_level, phantom)
         worker._messages = messages
+        try:
+            if on_message is not None and worker.store.signature() is not None:
+                on_message(f"fitting the correction to phantom {phantom!r}'s measurements ({worker.store.path})")
+            await worker.refit()
+        except BaseException:
+            worker.close()
+            raise
         return worker
+
+    # --- the correction in force --------------------------------------------------------------------------
+    async def refit(self) -> FitAnswer:
+        """Fit the correction to the store now (in the fitter process) and put it in force; the fit. A fit
+        already running is waited for instead when the store has not changed since it started."""
+        if self._fitting is None or self._fitting.done():
+            self._fitting = asyncio.ensure_future(self._fit_and_apply())
+        return await asyncio.shield(self._fitting)
+
+    def check_store(self) -> None:
+        """Start a fit when the store changed since the last one (one stat: cheap enough before every answer);
+        the answers keep the correction in force until the new one is set."""
+        if self._fitting is not None and not self._fitting.done():
+            return
+        if self.fit is not None and self.store.signature() == self.fit.signature:
+            return
+        self._fitting = asyncio.ensure_future(self._fit_and_apply())
+        self._fitting.add_done_callback(_log_failed_fit)
+
+    async def _fit_and_apply(self) -> FitAnswer:
+        if self.store.signature() is None:  # nothing measured: no fitter process, no second model in memory
+            answer = FitAnswer(None, None, None, None, 0, 0.0)
+        elif self.info.pending_fidelity is not None:
+            answer = FitAnswer(None, None, f"the model answers on the {self.info.fidelity} level until the "
+                               f"{self.info.pending_fidelity} level is built: the correction is fitted then",
+                               self.store.signature(), 0, 0.0)
+        else:
+            answer = await self._in_fitter(_fitter_fit, self._scene_source, self.info.fidelity, str(self.store.path))
+        await self._call(_worker_set_correction, answer.correction)
+        self._put_in_force(answer)
+        return answer
+
+    async def _in_fitter(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
+        """``function(*arguments)`` in the fitter process (started on first use; started again when it died)."""
+        if self._fitter is None:
+            self._fitter = worker_pool(self._log_level)
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self._fitter, function, *arguments)
+        except BrokenProcessPool:
+            end_pool(self._fitter)
+            self._fitter = worker_pool(self._log_level)
+        return await asyncio.get_running_loop().run_in_executor(self._fitter, function, *arguments)
+
+    def _put_in_force(self, answer: FitAnswer) -> None:
+        self.fit = answer
+        _, text, level = self.correction_event()
+        logger.log(logging.WARNING if level == "WARN" else logging.INFO, "%s", text)
+
+    async def record_measurement(self, pressures_kpa: list[float], volume_ml: float, method: str = "scan",
+                                 scan_file: str | None = None) -> dict[str, Any]:
+        """Store a measured gland volume of the phantom at these pressures (kPa) and fit the correction again;
+        the correction now in force (:meth:`Correction.summary`: its kind, ``count``, ``size_ml``, the
+        leave-one-out). CorrectionError for a bad measurement (nothing stored), or when the measurements give no
+        correction (the measurement is stored; the error says why)."""
+        if self.info.pending_fidelity is not None:
+            raise CorrectionError(f"the model answers on the {self.info.fidelity} level until the "
+                                  f"{self.info.pending_fidelity} level is built: measurements are taken after")
+        measurement = Measurement.now(pressures_kpa, volume_ml, method, scan_file)
+        while self._fitting is not None and not self._fitting.done():  # one fit at a time, the latest last
+            await asyncio.shield(self._fitting)
+        self._fitting = asyncio.ensure_future(self._record_and_apply(measurement))
+        answer = await asyncio.shield(self._fitting)
+        if answer.summary is None:
+            raise CorrectionError(f"the measurement was stored in {self.store.path}, but no correction is in force: "
+                                  f"{answer.error}")
+        return answer.summary
+
+    async def _record_and_apply(self, measurement: Measurement) -> FitAnswer:
+        answer = await self._in_fitter(_fitter_record, self._scene_source, self.info.fidelity, str(self.store.path),
+                                       measurement)
+        await self._call(_worker_set_correction, answer.correction)
+        self._put_in_force(answer)
+        return answer
+
+    def correction_event(self) -> tuple[str, str, str]:
+        """The correction in force, or why there is none, as an event (kind, text, level) for the daemon's log."""
+        fit, name = self.fit, f"phantom {self.phantom!r}"
+        if fit is None or (fit.summary is None and fit.error is None):
+            return "correction", f"no measured volumes of {name} in {self.store.path}: the model's answers are its " \
+                "own", "INFO"
+        if fit.summary is None:
+            return "correction", f"no correction of {name} in force: {fit.error}", "WARN"
+        summary = fit.summary
+        return "correction", (f"correction of {name} in force: {summary['kind']} from {summary['count']} "
+                              f"measurement(s), up to {summary['size_ml']:.3f} ml over the pressure box, "
+                              f"leave-one-out {_leave_one_out_words(summary)} (fitted in {fit.fit_s:.1f} s)"), "INFO"
+
+    def correction_status(self) -> dict[str, Any]:
+        """What the status shows of the correction: the phantom, its store, whether one is in force (then its
+        :meth:`Correction.summary`), why none is, and whether a fit is running."""
+        fit = self.fit
+        return {"phantom": self.phantom, "store": str(self.store.path),
+                "in_force": fit is not None and fit.summary is not None,
+                "correction": None if fit is None else fit.summary,
+                "error": None if fit is None else fit.error, "stored": 0 if fit is None else fit.stored,
+                "fit_s": None if fit is None else round(fit.fit_s, 3),
+                "fitting": self._fitting is not None and not self._fitting.done()}
 
     async def _call(self, function: Callable[..., Answer], *arguments: Any) -> Answer:
         """``function(*arguments)`` in the worker; a worker found dead is replaced and the call made once more."""
@@ -541,8 +819,10 @@ class ModelWorker:
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
 
     async def use_level(self, level: str) -> ModelInfo:
-        """Answer on ``level`` from now on (the pending table, once the build stored it); the new ``info``."""
+        """Answer on ``level`` from now on (the pending table, once the build stored it); the new ``info``. The
+        correction is fitted again on it."""
         self.info = await self._call(_worker_use_level, level)
+        await self.refit()
         return self.info
 
     async def _replace(self, broken: ProcessPoolExecutor) -> None:
@@ -556,23 +836,32 @@ class ModelWorker:
             # a table that is not stored yet is not built here (minutes): the new worker answers on the full
             # solve, as the first did, until the daemon's background build switches it
             pool, info = await _started_pool(self._scene_source, self._log_level, True, self._messages)
+            # the new worker answers with the correction in force, and the store is read again at the next answer
+            if self.fit is not None and self.fit.correction is not None and info.pending_fidelity is None:
+                await asyncio.get_running_loop().run_in_executor(pool, _worker_set_correction, self.fit.correction)
+            self.fit = None if self.fit is None else replace(self.fit, signature=None)
             self._pool = pool
             self.info = info
             self.restarts += 1
             logger.warning("the model worker was replaced (%d since the daemon started)", self.restarts)
 
     async def pressures_for(self, target: Target) -> InverseResult:
-        """Setpoints for ``target``; raises the inverse's UnreachableTargetError with its reachable range."""
+        """Setpoints for ``target`` (a gland volume with the correction in force); raises the inverse's
+        UnreachableTargetError with its reachable range."""
+        self.check_store()
         return await self._call(_worker_pressures_for, target)
 
     async def pressures_on_ramp(self, start: Target, end: Target, target: Target) -> InverseResult:
         """Setpoints for ``target`` on the ramp from ``start`` to ``end`` (:meth:`LoadedModel.pressures_on_ramp`)."""
+        self.check_store()
         return await self._call(_worker_pressures_on_ramp, start, end, target)
 
     async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,
                        with_rest_surface: bool = False) -> Estimate:
-        """Volumes at ``pressures_pa`` (Pa); the deformed surface (mm) only when asked, and with it the rest
-        surface when asked too (the recording's reference, logged once before the first mesh)."""
+        """Volumes at ``pressures_pa`` (Pa; the gland's corrected, the model's own beside it); the deformed
+        surface (mm) only when asked, and with it the rest surface when asked too (the recording's reference,
+        logged once before the first mesh)."""
+        self.check_store()
         return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface,
                                 with_rest_surface)
 
@@ -586,6 +875,23 @@ class ModelWorker:
     def close(self) -> None:
         """Stop the worker process and wait for it (a pool left running is woken by the interpreter's exit
         hook through a pipe already closed, which prints an error)."""
+        if self._fitting is not None:
+            self._fitting.cancel()
+        if self._fitter is not None:
+            end_pool(self._fitter)  # a fit is seconds of OSQP: not waited for
         self._pool.shutdown(wait=True, cancel_futures=True)
         if self._messages is not None:
             self._messages.close()
+
+
+def _leave_one_out_words(summary: dict[str, Any]) -> str:
+    errors = summary.get("leave_one_out_pct") or {}
+    return ", ".join(f"{kind} {error:.2f} %" for kind, error in errors.items()) or "none (one measurement)"
+
+
+def _log_failed_fit(task: asyncio.Task[FitAnswer]) -> None:
+    """A fit started in the background that failed (its process died twice, the worker could not take it):
+    logged; the correction before stays in force and the next answer tries again."""
+    if not task.cancelled() and task.exception() is not None:
+        logger.warning("fitting the correction failed (%s: %s): the one before stays in force",
+                       type(task.exception()).__name__, task.exception())

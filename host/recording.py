@@ -77,7 +77,8 @@ MEASURED_WIDTH = 1.5
 #: chamber's colour. Widths in points.
 GLAND_SERIES = {"commanded_ml": ("target", (128, 128, 128, 120), 7.0),
                 "estimated_ml": ("estimate", (204, 121, 167, 255), 1.5),
-                "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5)}
+                "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5),
+                "uncorrected_ml": ("model's own, before the correction by measured volumes", (230, 159, 0, 200), 1.0)}
 #: Surfaces: the deformed phantom (tissue pink, slightly translucent so that the rest shape shows through where
 #: the gland has grown over it) and its rest shape (a pale blue ghost).
 MESH_RGBA = (235, 150, 140, 200)
@@ -166,7 +167,9 @@ def default_blueprint(chamber_labels: list[str], camera: tuple[np.ndarray, np.nd
                                contents=[f"+ /volume/{series}" for series in GLAND_SERIES], plot_legend=legend,
                                axis_x=whole)
     diagnostics = rrb.Tabs(rrb.TimeSeriesView(name="link", origin="/link", plot_legend=legend, axis_x=whole),
-                           rrb.TimeSeriesView(name="solver (ms)", origin="/solver", plot_legend=legend, axis_x=whole))
+                           rrb.TimeSeriesView(name="solver (ms)", origin="/solver", plot_legend=legend, axis_x=whole),
+                           rrb.TimeSeriesView(name="correction (ml; measurements)", origin="/correction",
+                                              plot_legend=legend, axis_x=whole))
     plots = rrb.Vertical(rrb.Horizontal(*columns), gland, diagnostics, row_shares=[7, 3, 2])
     events = rrb.TextLogView(origin="/events", name="events", columns=rrb.TextLogColumns(
         timeline_columns=[rrbe.TimelineColumn("time"), rrbe.TimelineColumn("scene_time")],
@@ -437,6 +440,8 @@ class Recorder:
             style = rr.SeriesPoints(colors=[colour], names=[label], marker_sizes=[width / 2]) if series == (
                 "commanded_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
             log(f"volume/{series}", style, static=True)
+        for series, label in (("size_ml", "correction's size (ml)"), ("measurements", "measurements")):
+            log(f"correction/{series}", rr.SeriesLines(names=[label], widths=[MEASURED_WIDTH]), static=True)
         log("phantom", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     # --- health: segments, a full disk, a failed writer -------------------------------------------------
@@ -545,18 +550,29 @@ class Recorder:
             self._scalar(f"chamber/{part}/drive_level", drive_levels[index])
 
     def log_volumes(self, time_s: float, target_ml: float | None, estimated_ml: float | None,
-                    chamber_ml: Sequence[float] | None = None, true_ml: float | None = None) -> None:
-        """Target and estimated gland volume, the true one when a simulated plant knows it, and the estimated
-        chamber volumes (all ml)."""
+                    chamber_ml: Sequence[float] | None = None, true_ml: float | None = None,
+                    model_ml: float | None = None) -> None:
+        """Target and estimated gland volume, the true one when a simulated plant knows it, the model's own
+        (uncorrected) estimate while a correction is in force, and the estimated chamber volumes (all ml)."""
         if not self.enabled:
             return
         self._at(time_s)
         self._scalar("volume/commanded_ml", target_ml)
         self._scalar("volume/estimated_ml", estimated_ml)
         self._scalar("volume/true_ml", true_ml)
+        self._scalar("volume/uncorrected_ml", model_ml)
         if chamber_ml is not None:
             for part, volume_ml in zip(self.parts, chamber_ml, strict=True):
                 self._scalar(f"volume/chambers/{part}_ml", volume_ml)
+
+    def log_correction(self, time_s: float, size_ml: float | None, count: int) -> None:
+        """The correction in force by the phantom's measured volumes: its size (its largest magnitude over the
+        pressure box, ml; 0 without one) and from how many measurements."""
+        if not self.enabled:
+            return
+        self._at(time_s)
+        self._scalar("correction/size_ml", 0.0 if size_ml is None else size_ml)
+        self._scalar("correction/measurements", float(count))
 
     def log_link(self, time_s: float, rtt_ms: float | None, retries: int, bad_frames: int, dropped: int) -> None:
         """Round-trip time (ms) and the link's cumulative counters."""

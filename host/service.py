@@ -67,9 +67,10 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
         recorder.open()
         closers.append(recorder.close)
         startup.enter(f"loading the model of {config.scene}")
-        model = await ModelWorker.start(config.scene, configured_level(), defer_table=True,
+        model = await ModelWorker.start(config.scene, configured_level(), defer_table=True, phantom=config.phantom,
                                         on_message=startup.tell)
         closers.append(model.close)
+        early.append(model.correction_event())
         sim_board = None
         if simulated_board is not None and config.sim:
             sim_board = SimulatedBoardKeeper(config.sim_speed, lambda *said: early.append(said), simulated_board)

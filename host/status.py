@@ -51,7 +51,10 @@ def daemon_status(daemon: Daemon) -> dict[str, Any]:
         "fidelity_pending": info.pending_fidelity, "model_build": daemon.table.to_json(), "ready": daemon.ready,
         "starting": None if daemon.ready else {**daemon.startup.to_json(), "text": daemon.startup.text()},
         "pid": os.getpid(), "model_counts": daemon.estimates.model_counts,
-        "model_worker_restarts": daemon.model.restarts, "meshes_logged": daemon.estimates.meshes_logged,
+        "model_worker_restarts": daemon.model.restarts,
+        # the correction by the phantom's measured volumes in force, or why there is none
+        "correction": daemon.model.correction_status(),
+        "meshes_logged": daemon.estimates.meshes_logged,
         "api": daemon.api.stats(), "event_loop": daemon.loop_stalls.to_json(),
         "recording": daemon.recorder.status(), "uptime_s": daemon.now_s(), "events": list(daemon.events)[-10:],
         "motion": daemon.motion.status(),

@@ -30,6 +30,16 @@ def machine_lock(name: str) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def _measured_volumes_of_the_session_only(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """The user's data directory (the stored measurements every daemon corrects its model with) is one of the
+    session's: a daemon a test starts neither reads the measurements a person stored on this machine nor adds to
+    them. A test of its own store sets PHANTOM_DATA_DIR again."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PHANTOM_DATA_DIR", str(tmp_path_factory.mktemp("phantom-data")))
+        yield
+
+
 @pytest.fixture(autouse=True)
 def _no_long_collections_during_a_simulated_board(request: pytest.FixtureRequest) -> None:
     """Before a test that runs simavr: collect, then freeze what survives, so that no full garbage collection

@@ -2,6 +2,7 @@
 store survives restarts and kills, refuses bad input with why, exports what ``phantom calibrate`` reads; the
 correction is chosen by leave-one-out and corrects the model away from the points measured."""
 
+import json
 import os
 import signal
 import subprocess
@@ -14,6 +15,7 @@ from phantom.cli.main import main
 from phantom.model.calibration.calibrate import load_measurements
 from phantom.model.corrections import (
     CorrectedModel,
+    Correction,
     CorrectionError,
     CorrectionStore,
     Measurement,
@@ -231,3 +233,30 @@ def test_corrections_fit_reports_each_candidates_leave_one_out(store, capsys):
     assert "correction in force: offset" in out   # three points: the offset leaves the others out best
     assert main(["corrections", "fit", "--phantom", "nobody"]) == 2
     assert "no measurements to correct the model with: scan the phantom first" in capsys.readouterr().err
+
+
+def test_a_fit_is_kept_in_the_cache_and_read_back_the_same_and_a_damaged_one_is_fitted_again(tmp_path, monkeypatch):
+    """A daemon started again with many stored scans (27: 17-28 s to fit here) reads its fit back instead."""
+    from phantom.model.corrections import cached_fit
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    points = np.array([0.0, 1.5, 3.0])
+    chamber = np.stack(np.meshgrid(points, points, points, indexing="ij"), -1) + 2.0
+    gland = 26.0 + 2.0 * chamber.sum(-1)
+    grid = ModelGrid(points, chamber, gland, lambda p: 26.0 + 2.0 * float(np.sum(np.asarray(p) + 2.0)))
+    scans = [Measurement((0.0, 0.0, 0.0), 38.2), Measurement((1.0, 0.0, 0.0), 40.6),
+             Measurement((0.0, 2.0, 1.0), 45.5)]
+    fitted = cached_fit(scans, grid)
+    [stored] = (tmp_path / "cache" / "corrections").iterdir()
+    again = cached_fit(scans, grid)
+    assert again.to_document() == fitted.to_document() and again.kind == fitted.kind
+    assert again.residual_ml((0.5, 1.0, 2.0), 3.0) == fitted.residual_ml((0.5, 1.0, 2.0), 3.0)
+    stored.write_text("{damaged")
+    assert cached_fit(scans, grid).to_document() == fitted.to_document()
+    assert json.loads(stored.read_text())["kind"] == fitted.kind
+    assert cached_fit(scans[:2], grid).count == 2  # other measurements: another entry
+    field_only = fit_correction(scans, grid, ("field",))
+    read_back = Correction.from_document(json.loads(json.dumps(field_only.to_document())))
+    assert read_back.residual_field is not None and np.array_equal(read_back.residual_field.chamber_ml,
+                                                                   field_only.residual_field.chamber_ml)
+    assert read_back.residual_ml((0.5, 1.0, 2.0), 3.0) == field_only.residual_ml((0.5, 1.0, 2.0), 3.0)

@@ -309,6 +309,9 @@ class PartsStandIn:
             async def surface_json(self, pressures_pa):
                 return '{"positions_mm": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "triangles": [[0, 1, 2]]}'
 
+            def correction_status(self):
+                return {"in_force": False, "correction": None}
+
             def close(self):
                 pass
 
@@ -470,6 +473,9 @@ class ModelInProcess:
 
     async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
         return self.worker._worker_estimate(pressures_pa, with_surface, with_rest_surface)
+
+    def correction_status(self):
+        return {"in_force": False, "correction": None}
 
     def close(self):
         pass

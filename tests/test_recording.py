@@ -194,7 +194,7 @@ def test_the_blueprint_is_in_the_file(recording):
                     names.update(value for values in batch.column(column).to_pylist() for value in values or [])
         view_names.append(names)
     plots = {f"{name}: {quantity}" for name in NAMES for quantity in ("pressure (kPa)", "drive (0-1)", "volume (ml)")}
-    plots |= {"gland volume (ml)", "link", "solver (ms)", "events"}
+    plots |= {"gland volume (ml)", "link", "solver (ms)", "correction (ml; measurements)", "events"}
     phantom = "phantom (mm, grid 10 mm): deformed over the rest shape"
     assert sorted(view_names, key=len) == [plots, plots | {phantom}]
 

@@ -301,7 +301,7 @@ def test_a_daemon_on_the_demo_scene_starts_on_its_shipped_volumes_and_shapes(mon
     assert any("its volumes shipped with the scene, its outer surface's shapes too (4^3 points, within" in line
                for line in lines), lines
     # (1, 1, 1) kPa is a grid point: the calibration's own solve there gave 29.2389 ml
-    _, gland_ml = controller.estimate(np.full(3, 1000.0))
+    _, gland_ml, _ = controller.estimate(np.full(3, 1000.0))
     assert gland_ml == pytest.approx(29.2389, abs=2e-3)
     rest_mm, triangles = controller.rest_surface_mm()
     pressures_pa = np.array([500.0, 1200.0, 300.0])

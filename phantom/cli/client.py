@@ -184,6 +184,8 @@ def format_status(status: dict[str, Any]) -> str:
         f"faults    {', '.join(status['faults']) or 'none'}",
         "model     " + format_model(status),
     ]
+    if status.get("correction"):
+        lines.append("corrected " + format_correction(status["correction"]))
     recording = status.get("recording")
     if recording:
         where = recording.get("path") or recording.get("viewer")
@@ -194,6 +196,19 @@ def format_status(status: dict[str, Any]) -> str:
         lines.append(f"scene     {scene['name']}: {scene['time_s']:.1f} / {scene['end_s']:g} s"
                      + (" (finished)" if scene["finished"] else ""))
     return "\n".join(lines)
+
+
+def format_correction(correction: dict[str, Any]) -> str:
+    """The correction of the model by the phantom's measured volumes in force, or why there is none."""
+    name = f"phantom {correction['phantom']!r}"
+    fitting = " (fitting again)" if correction.get("fitting") else ""
+    fitted = correction.get("correction")
+    if fitted is None:
+        why = correction.get("error") or f"no measured volumes in {correction['store']}"
+        return f"no ({name}: {why}){fitting}"
+    errors = ", ".join(f"{kind} {error:.2f} %" for kind, error in fitted["leave_one_out_pct"].items()) or "none"
+    return (f"yes: {fitted['kind']} from {fitted['count']} measurement(s) of {name}, up to {fitted['size_ml']:.3f} "
+            f"ml over the pressure box; leave-one-out {errors}{fitting}")
 
 
 def format_model(status: dict[str, Any]) -> str:

@@ -112,13 +112,14 @@ def _export(store: Any, args: argparse.Namespace) -> int:
 
 def _fit(store: Any, args: argparse.Namespace) -> int:
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.corrections import fit_correction, model_grid
+    from phantom.model.corrections import cached_fit, model_grid
     from phantom.model.fidelity.levels import VolumeEstimator
 
     entries = store.entries()
     model = PhantomModel.from_scene(load_scene(args.scene))
     grid = model_grid(VolumeEstimator(model), args.scene)
-    correction = fit_correction(entries, grid)
+    correction = cached_fit(entries, grid)
+    summary = correction.summary(grid)
     lines = [f"{correction.count} measurement(s) of phantom {args.phantom!r}; the model {args.scene} misses them by "
              f"{correction.uncorrected_pct:.2f} % on average",
              "leave-one-out (mean abs error of the volume left out): "
@@ -126,5 +127,5 @@ def _fit(store: Any, args: argparse.Namespace) -> int:
                 or "none (fewer than two measurements)"),
              f"correction in force: {correction.kind} (offset {correction.offset_ml:+.3f} ml, growth x "
              f"{1 + correction.growth_factor:.4f}{', and a residual field' if correction.residual_field else ''}); "
-             f"its largest size over the pressure box {correction.size_ml(grid):.3f} ml"]
-    return _print(args, correction.to_json() | {"size_ml": correction.size_ml(grid)}, "\n".join(lines))
+             f"its largest size over the pressure box {summary['size_ml']:.3f} ml"]
+    return _print(args, summary, "\n".join(lines))

@@ -1,0 +1,58 @@
+"""The daemon's correction by measured volumes: how long a fit takes, and how far it misses held-out volumes.
+
+On the daemon's default model (builtin:converged, its shipped response table) and the shipped simulated phantom
+(hil/plant.toml's truth: the paper's phantom as measured), the "scans" are the truth's gland volumes at the
+pressures (stand-ins for scans, which measure to 0.03-0.14 %). For Table I's eight pressure states and for the
+27-point grid 0, 1.5, 3 kPa: the fit's time (all four candidates' leave-one-out and the chosen one), the kind
+chosen, its leave-one-out, and the mean and largest error against the truth at 200 random pressure states in the
+box, beside the model's own (uncorrected) error at the same states.
+
+    nice -n 10 .venv/bin/python bench/correction_fit.py
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+
+TABLE_ONE_KPA = [(0, 0, 0), (1, 1, 1), (2, 2, 2), (2, 0, 0), (0, 2, 0), (0, 0, 2), (1, 2, 3), (3, 1, 2)]
+GRID_KPA = list(itertools.product((0.0, 1.5, 3.0), repeat=3))
+HELD_OUT = 200
+
+
+def main() -> None:
+    from phantom.hil.plant import load_plant
+    from phantom.host.scenes import load_timeline_scene
+    from phantom.model import PhantomModel
+    from phantom.model.corrections import CorrectedModel, Measurement, fit_correction, model_grid
+    from phantom.model.fidelity.levels import VolumeEstimator
+
+    plant = load_plant()
+
+    def true_ml(pressures_kpa: np.ndarray) -> float:
+        volume = plant.truth_gland_volume_ml(np.asarray(pressures_kpa, dtype=float) * 1e3)
+        assert volume is not None
+        return volume
+
+    grid = model_grid(VolumeEstimator(PhantomModel.from_scene(load_timeline_scene("builtin:converged"))))
+    held_out = np.random.default_rng(0).uniform(0, 3, (HELD_OUT, 3))
+    truth = np.array([true_ml(p) for p in held_out])
+    model_pct = np.abs(np.array([grid.gland_ml(p) for p in held_out]) / truth - 1) * 100
+    print("| scans | fit (s) | kind | leave-one-out (%) | held-out error, mean / max (%) "
+          "| model's own, mean / max (%) |")
+    print("|---|---|---|---|---|---|")
+    for name, points in (("Table I's 8", TABLE_ONE_KPA), ("grid 0, 1.5, 3 kPa: 27", GRID_KPA)):
+        scans = [Measurement(tuple(map(float, p)), true_ml(np.array(p, dtype=float))) for p in points]
+        started = time.perf_counter()
+        correction = fit_correction(scans, grid)
+        fit_s = time.perf_counter() - started
+        corrected = CorrectedModel(grid, correction)
+        error_pct = np.abs(np.array([corrected.gland_ml(p) for p in held_out]) / truth - 1) * 100
+        print(f"| {name} | {fit_s:.1f} | {correction.kind} | {correction.leave_one_out_pct[correction.kind]:.2f} | "
+              f"{error_pct.mean():.2f} / {error_pct.max():.2f} | {model_pct.mean():.2f} / {model_pct.max():.2f} |")
+
+
+if __name__ == "__main__":
+    main()

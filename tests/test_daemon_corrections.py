@@ -1,0 +1,268 @@
+"""The daemon's model answers with the correction by the phantom's measured volumes (issue 36, item 3).
+
+The model worker's own functions in this process (:class:`LoadedModel`), the worker and its fitter in processes of
+their own (:class:`ModelWorker`), and one daemon on the simulated board end to end. The "scans" here are the
+simulated phantom's true volumes at the pressures (hil/plant.py's truth, what a scan measures to 0.03-0.14 %):
+stand-ins for scans, said so where they are used.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+
+import numpy as np
+import pytest
+
+from phantom.model.corrections import Correction, CorrectionError, CorrectionStore, Measurement
+from phantom.model.target import Target
+
+ML = 1e-6
+
+
+@pytest.fixture
+def data_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHANTOM_DATA_DIR", str(tmp_path / "data"))
+    return tmp_path / "data"
+
+
+@pytest.fixture(scope="module")
+def loaded():
+    from phantom.host.model_worker import LoadedModel
+
+    return LoadedModel("builtin:converged", report=lambda text: None)
+
+
+def true_ml(pressures_kpa):
+    """The simulated phantom's gland volume (ml) at these pressures: what a scan there measures."""
+    from phantom.hil.plant import load_plant
+
+    return load_plant().truth_gland_volume_ml(np.asarray(pressures_kpa, dtype=float) * 1e3)
+
+
+def test_a_correction_moves_the_inverse_and_corrects_the_estimates_gland_not_its_chambers(loaded):
+    target = Target(gland_volume_m3=35 * ML)
+    pressures = np.full(3, 1500.0)
+    plain = loaded.pressures_for(target)
+    chambers, gland, model_gland = loaded.estimate(pressures)
+    assert gland == model_gland
+    try:
+        loaded.set_correction(Correction("offset", 1, offset_ml=1.5))
+        corrected = loaded.pressures_for(target)
+        assert np.max(np.abs(corrected.pressures_pa - plain.pressures_pa)) > 50  # Pa: another answer
+        assert corrected.predicted_gland_volume_m3 / ML == pytest.approx(35, abs=2e-3)
+        # the model's own volume there is 1.5 ml less: the correction says the phantom holds 1.5 ml more
+        assert loaded.estimate(corrected.pressures_pa)[2] == pytest.approx(33.5, abs=2e-3)
+        chambers_after, gland_after, model_after = loaded.estimate(pressures)
+        assert (gland_after, model_after, chambers_after) == (pytest.approx(model_gland + 1.5), model_gland,
+                                                              chambers)
+        ramp = loaded.pressures_on_ramp(Target(gland_volume_m3=30 * ML), target, Target(gland_volume_m3=33 * ML))
+        assert ramp.predicted_gland_volume_m3 / ML == pytest.approx(33, abs=1e-3)
+        with pytest.raises(Exception, match="with the correction in force .offset from 1 measurement"):
+            loaded.pressures_for(Target(gland_volume_m3=80 * ML))
+        pressure_target = Target(pressures_pa=[1000.0, 1000.0, 1000.0])
+        assert list(loaded.pressures_for(pressure_target).pressures_pa) == [1000.0, 1000.0, 1000.0]
+    finally:
+        loaded.set_correction(None)
+    assert np.allclose(loaded.pressures_for(target).pressures_pa, plain.pressures_pa)
+
+
+@pytest.mark.slow
+def test_after_a_few_scans_of_verified_targets_unverified_targets_between_them_land_within_half_a_percent(loaded):
+    """Item 3's "after a few scans a target is hit on the first round", on the shipped simulated phantom (the
+    measured phantom's truth, Table I shaped). The scans are stand-ins: the truth's volume at the pressures the
+    daemon applied. Verified targets of 30, 35, 40 and 44 ml (scan, correct, re-apply until within 0.3 %) store
+    their scans; then targets between them, never scanned, are applied once and land within 0.5 % of the truth,
+    where the uncorrected model misses them by up to 4 %."""
+    from phantom.model.corrections import fit_correction, model_grid
+
+    grid = model_grid(loaded.estimator)
+    unverified = (32.5, 37.5, 42.5)
+
+    def error_pct(volume_ml):
+        pressures_kpa = loaded.pressures_for(Target(gland_volume_m3=volume_ml * ML)).pressures_pa / 1e3
+        return pressures_kpa, (true_ml(pressures_kpa) / volume_ml - 1) * 100
+
+    before = [error_pct(volume)[1] for volume in unverified]
+    scans = []
+    try:
+        for volume in (30.0, 35.0, 40.0, 44.0):
+            for _ in range(4):
+                pressures_kpa, error = error_pct(volume)
+                if abs(error) <= 0.3:
+                    break
+                scans.append(Measurement(tuple(pressures_kpa), true_ml(pressures_kpa)))
+                loaded.set_correction(fit_correction(scans, grid))
+            assert abs(error) <= 0.3, f"{volume} ml verified: {error:+.2f} %"
+        after = [error_pct(volume)[1] for volume in unverified]
+    finally:
+        loaded.set_correction(None)
+    print(f"{len(scans)} scans; unverified {unverified} ml: before {np.round(before, 2)} %, after "
+          f"{np.round(after, 2)} %")
+    assert max(abs(error) for error in before) > 1.5
+    assert max(abs(error) for error in after) <= 0.5
+
+
+def run(coroutine):
+    return asyncio.run(coroutine)
+
+
+@pytest.mark.slow
+def test_the_worker_fits_the_store_at_start_follows_it_refuses_another_phantoms_and_survives_a_kill(data_dir):
+    """A worker started with measurements stored answers a volume target with other pressures than one started
+    without; a measurement added by another writer is picked up before an answer; record_measurement stores and
+    refits; a measurement of another phantom (four pressures) is refused and nothing stored; a worker killed is
+    replaced with the correction in force."""
+    from phantom.host.model_worker import ModelWorker
+
+    target = Target(gland_volume_m3=35 * ML)
+
+    async def scenario():
+        plain = await ModelWorker.start("builtin:converged", phantom="plain")
+        try:
+            assert plain.correction_status()["in_force"] is False and plain.fit.error is None
+            plain_answer = await plain.pressures_for(target)
+        finally:
+            plain.close()
+        store = CorrectionStore.for_phantom("scanned")
+        for pressures in ((0, 0, 0), (2, 0, 0), (0, 2, 0)):
+            store.add(Measurement(tuple(map(float, pressures)), true_ml(pressures)))
+        worker = await ModelWorker.start("builtin:converged", phantom="scanned")
+        try:
+            status = worker.correction_status()
+            assert status["in_force"] and status["correction"]["count"] == 3, status
+            answer = await worker.pressures_for(target)
+            assert np.max(np.abs(answer.pressures_pa - plain_answer.pressures_pa)) > 50
+            estimate = await worker.estimate(answer.pressures_pa)
+            assert estimate.gland_volume_ml == pytest.approx(35, abs=0.01)
+            assert estimate.model_gland_volume_ml != pytest.approx(35, abs=0.1)
+            # another writer (`phantom corrections add`) changes the store under the running worker
+            fit_before = worker._fitting
+            store.add(Measurement((1.0, 1.0, 1.0), true_ml((1, 1, 1))))
+            await worker.estimate(answer.pressures_pa)          # the check before an answer starts a fit
+            assert worker._fitting is not fit_before
+            await worker._fitting
+            assert worker.correction_status()["correction"]["count"] == 4
+            recorded = await worker.record_measurement([1.5, 0.5, 0.0], true_ml((1.5, 0.5, 0)), scan_file="s.ply")
+            assert recorded["count"] == 5 and recorded["size_ml"] > 0 and "leave_one_out_pct" in recorded
+            assert store.entries()[-1].model == "builtin:converged" and store.entries()[-1].scan_file == "s.ply"
+            with pytest.raises(CorrectionError, match="has 3 pressures.*got 4: is it of another phantom"):
+                await worker.record_measurement([1.0, 1.0, 1.0, 1.0], 30.0)
+            with pytest.raises(CorrectionError, match="box, 0-3 kPa"):
+                await worker.record_measurement([1.0, 1.0, 5.0], 30.0)
+            assert len(store.entries()) == 5
+            corrected = await worker.pressures_for(target)
+            os.kill(next(iter(worker._pool._processes)), signal.SIGKILL)  # the OOM killer
+            again = await worker.pressures_for(target)
+            assert worker.restarts == 1 and np.allclose(again.pressures_pa, corrected.pressures_pa, atol=1.0)
+            await worker.refit()  # the replaced worker reads the store again
+            assert worker.correction_status()["correction"]["count"] == 5
+        finally:
+            worker.close()
+
+    run(scenario())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("content, why", [
+    ("{not json", "is damaged"),
+    (json.dumps({"format": "phantom-corrections/1", "measurements": [
+        {"pressures_kpa": [1, 1, 1, 1], "volume_ml": 30.0}, {"pressures_kpa": [2, 2, 2, 2], "volume_ml": 33.0}]}),
+     "4 pressures, the model 3 chambers: they are of another phantom"),
+])
+def test_a_damaged_store_or_another_phantoms_starts_the_worker_without_a_correction_and_says_why(data_dir, content,
+                                                                                               why):
+    """The daemon starts (it must still hold and vent the phantom) with the model's own answers, and its status,
+    log and events say why no correction is in force; recording a measurement is refused."""
+    from phantom.host.model_worker import ModelWorker
+
+    store = CorrectionStore.for_phantom("bad")
+    store.path.parent.mkdir(parents=True)
+    store.path.write_text(content)
+
+    async def scenario():
+        worker = await ModelWorker.start("builtin:converged", phantom="bad")
+        try:
+            status = worker.correction_status()
+            assert not status["in_force"] and why in status["error"]
+            kind, text, level = worker.correction_event()
+            assert level == "WARN" and why in text and "'bad'" in text
+            with pytest.raises(CorrectionError):
+                await worker.record_measurement([1.0, 1.0, 1.0], 30.0)
+        finally:
+            worker.close()
+
+    run(scenario())
+
+
+def test_a_phantom_name_no_store_can_have_is_refused_before_anything_starts():
+    from phantom.host.model_worker import ModelWorker
+
+    with pytest.raises(CorrectionError, match="a phantom's name is 1-64 letters"):
+        run(ModelWorker.start("builtin:converged", phantom="../etc"))
+
+
+@pytest.mark.sim
+def test_a_daemon_on_the_simulated_board_answers_with_the_stored_scans_follows_the_store_and_keeps_it_over_a_restart(
+        tmp_path, data_dir, loaded, default_model_cached):
+    """End to end: `phantom daemon --phantom scanned` on the simulated board with three stored scans (stand-ins:
+    the simulated phantom's true volumes) sets a 35 ml target on other pressures than the model alone would, its
+    status and `phantom status` show the correction, a scan added by another writer is in force at the next
+    estimate, the recording holds the correction's series and the model's own estimate beside the corrected one,
+    and a daemon started again on the same board answers with all four."""
+    from daemon_rig import DaemonRig
+
+    from phantom.host.recording import read_rrd
+
+    store = CorrectionStore.for_phantom("scanned")
+    for pressures in ((0, 0, 0), (2, 0, 0), (0, 2, 0)):
+        store.add(Measurement(tuple(map(float, pressures)), true_ml(pressures)))
+    plain_kpa = loaded.pressures_for(Target(gland_volume_m3=35 * ML)).pressures_pa / 1e3
+    first = tmp_path / "first"
+    first.mkdir()
+    rig = DaemonRig(first, "--phantom", "scanned", "--rerun-save", str(first / "run.rrd"))
+    board = rig.board
+    rig.own_board = False
+    try:
+        rig.wait_online()
+        status = rig.status()
+        assert status["correction"]["in_force"] and status["correction"]["correction"]["count"] == 3
+        assert status["correction"]["phantom"] == "scanned"
+        answer = rig.call("set_target", {"volume_ml": 35.0})
+        solution = rig.wait_status(lambda s: s["solution"] is not None, 10, "a solution")["solution"]
+        assert solution["predicted_volume_ml"] == pytest.approx(35, abs=0.01), answer
+        assert np.max(np.abs(np.array(solution["pressures_kpa"]) - plain_kpa)) > 0.05
+        shown = rig.cli("status")
+        assert "corrected yes: " in shown.stdout and "from 3 measurement(s) of phantom 'scanned'" in shown.stdout
+        store.add(Measurement((1.0, 1.0, 1.0), true_ml((1, 1, 1))))
+        rig.wait_status(lambda s: (s["correction"]["correction"] or {}).get("count") == 4, 60, "the 4th scan")
+        rig.wait_status(lambda s: s["estimated_volume_ml"] is not None, 10, "an estimate")
+        rig.process.send_signal(signal.SIGTERM)
+        rig.process.wait(30)
+    finally:
+        rig.close()
+    recording = read_rrd(first / "run.rrd")
+    assert recording["/correction/measurements"] and recording["/volume/uncorrected_ml"], sorted(recording)
+    second = tmp_path / "second"
+    second.mkdir()
+    rig = DaemonRig(second, "--phantom", "scanned", board=board)
+    try:
+        rig.wait_online()
+        assert rig.status()["correction"]["correction"]["count"] == 4
+    finally:
+        rig.close()
+        board.stop()
+
+
+def test_phantom_daemon_with_a_bad_phantom_name_stops_its_start_with_one_line(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    result = subprocess.run([str(Path(sys.executable).with_name("phantom")), "daemon", "--port",
+                             str(tmp_path / "no-board"), "--socket", str(tmp_path / "d.sock"), "--phantom", "../x"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert "phantom daemon: error: a phantom's name is 1-64 letters" in result.stderr and "'../x'" in result.stderr
