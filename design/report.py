@@ -87,9 +87,10 @@ def growth_target_lines(result: Design) -> list[str]:
     if sizing is None:
         return lines + ["The chambers' scale was given (--chamber-scale), not searched."]
     limit = " (the largest the walls allow)" if sizing.at_walls_limit else ""
-    lines += ["", f"Sizing: the chambers at {sizing.scale:.3f} of the template{limit}, searched by bisection on a "
-              f"coarse {sizing.coarse_size_mm:g} mm mesh with small-strain solves:", "",
-              "| scale of the template | gland ml at the target pressure (coarse, linear) |", "|---|---|"]
+    lines += ["", f"Sizing: the chambers at {sizing.scale:.3f} of the template{limit}, searched (the largest "
+              f"first, then secant steps in log-log) on a coarse {sizing.coarse_size_mm:g} mm mesh with small-strain "
+              f"solves:", "", "| scale of the template | gland ml at the target pressure (the coarse model's growth) |",
+              "|---|---|"]
     return lines + [f"| {scale:.3f} | {volume:.3f} |" for scale, volume in sizing.steps]
 
 
