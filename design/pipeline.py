@@ -21,7 +21,14 @@ from phantom.design.chambers import place_chambers, surface_samples_mm
 from phantom.design.errors import DesignError
 from phantom.design.latent import LatentDistance, latent_distance
 from phantom.design.meshing import mesh_design, write_scene
-from phantom.design.sizing import PAPER_VOLUME_ML, GrowthTarget, Sizing, growth_target, size_chambers
+from phantom.design.sizing import (
+    PAPER_VOLUME_ML,
+    GrowthTarget,
+    Sizing,
+    growth_target,
+    size_chambers,
+    target_reached,
+)
 from phantom.design.surface import Surface, read_gland
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, enclosed_volume_m3, surface_components, write_mesh
@@ -75,8 +82,9 @@ class Design:
     growth_kpa: list[float]
     growth_volumes_ml: list[float]
     target: GrowthTarget
-    #: the designed gland's volume at the target's pressure (ml): its volume plus the designed model's growth
-    target_reached_ml: float
+    #: the designed gland's volume at the target's pressure (ml): its volume plus the designed model's growth (None:
+    #: not solved, the chambers' scale given and the growth curve without the target's pressure)
+    target_reached_ml: float | None
     sizing: Sizing | None
     latent: LatentDistance | None
     notes: list[str]
@@ -141,13 +149,18 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
     progress("design: the cast (mould halves, cores)")
     cast = make_cast(gland.surface, chambers.chambers, options.min_wall_mm, options.stem_diameter_mm, out)
     stage("cast")
-    # the curve, and the target's pressure once more when the curve does not hold it (the sizing's confirmation)
-    pressures = list(dict.fromkeys([*options.growth_pressures_kpa, target.pressure_kpa]))
+    # the curve, and the target's pressure once more when the sizing needs it confirmed and the curve lacks it
+    pressures = list(options.growth_pressures_kpa)
+    if sizing is not None and target.pressure_kpa not in pressures:
+        pressures.append(target.pressure_kpa)
     rest_ml, volumes_ml = _growth(out / "scene.toml", pressures, progress)
     stage("growth")
-    # the model's growth on the designed gland's volume (the mesh's own rest volume is its discretised surface's)
-    target_reached_ml = gland.surface.volume_ml() + volumes_ml[pressures.index(target.pressure_kpa)] - rest_ml
-    warnings = growth_warnings(out / "scene.toml", target, target_reached_ml, sizing, options.min_wall_mm)
+    target_reached_ml = None
+    if target.pressure_kpa in pressures:
+        # the model's growth on the designed gland's volume (the mesh's own rest volume is its discretised surface's)
+        target_reached_ml = gland.surface.volume_ml() + volumes_ml[pressures.index(target.pressure_kpa)] - rest_ml
+    warnings = growth_warnings(out / "scene.toml", gland.surface.volume_ml(), target, target_reached_ml, sizing,
+                               options.min_wall_mm)
     warnings += undercut_warnings(cast.split, cast.coronal_undercut_mm2)
     result = Design(out, gland.surface.volume_ml(), gland.source_volume_ml, gland.smoothing_change_pct,
                     gland.scale, [chamber.label for chamber in chambers.chambers],
@@ -190,13 +203,14 @@ def _growth(scene_path: Path, pressures_kpa: Sequence[float],
     return float(model.rest_gland_volume_m3) * 1e6, volumes
 
 
-def growth_warnings(scene_path: Path, target: GrowthTarget, reached_ml: float, sizing: Sizing | None,
-                    min_wall_mm: float) -> list[str]:
-    """What a user must know about the growth target: nothing when the designed model reaches it, else how far
-    it falls short and why (the walls' limit, the coarse search's error, or chambers fixed by --chamber-scale)."""
+def growth_warnings(scene_path: Path, gland_volume_ml: float, target: GrowthTarget, reached_ml: float | None,
+                    sizing: Sizing | None, min_wall_mm: float) -> list[str]:
+    """What a user must know about the growth target: nothing when the designed model reaches it (or was not solved
+    at its pressure), else how far it falls short and why (the walls' limit, the coarse search's error, or chambers
+    fixed by --chamber-scale)."""
     from phantom.model.scene import load_scene
 
-    if reached_ml >= target.volume_ml:
+    if reached_ml is None or target_reached(gland_volume_ml, target, reached_ml):
         return []
     material = load_scene(scene_path).material
     short = (f"the growth target ({target.volume_ml:.1f} ml at {target.pressure_kpa:g} kPa) is not reached: the "
@@ -264,7 +278,7 @@ def design_summary(result: Design) -> dict[str, Any]:
                            for part in result.cast.parts]},
         "growth_target": {"volume_ml": result.target.volume_ml, "pressure_kpa": result.target.pressure_kpa,
                           "designed_volume_ml": result.target_reached_ml,
-                          "reached": result.target_reached_ml >= result.target.volume_ml,
+                          "reached": target_reached(result.gland_volume_ml, result.target, result.target_reached_ml),
                           "sizing": None if result.sizing is None else {
                               "scale_of_template": result.sizing.scale, "coarse_reached": result.sizing.reached,
                               "at_walls_limit": result.sizing.at_walls_limit,

@@ -11,6 +11,7 @@ import numpy as np
 from phantom import require_extra, written_atomically
 from phantom.design.chambers import BASE, ChamberDesign
 from phantom.design.errors import DesignError
+from phantom.design.sizing import GROWTH_TOLERANCE, target_reached
 from phantom.design.surface import Gland
 
 if TYPE_CHECKING:
@@ -80,9 +81,14 @@ def latent_lines(result: Design) -> list[str]:
 def growth_target_lines(result: Design) -> list[str]:
     """The growth target, whether the designed model reaches it, and the sizing search's steps."""
     target = result.target
-    reached = "reaches it" if result.target_reached_ml >= target.volume_ml else "falls short"
-    lines = [f"Growth target: {target.volume_ml:.2f} ml at {target.pressure_kpa:g} kPa in every chamber; the designed "
-             f"model grows the gland to {result.target_reached_ml:.2f} ml there ({reached})."]
+    wanted = f"Growth target: {target.volume_ml:.2f} ml at {target.pressure_kpa:g} kPa in every chamber"
+    if result.target_reached_ml is None:
+        lines = [f"{wanted}; not solved (the chambers' scale given, the growth curve without that pressure)."]
+    else:
+        reached = (f"reaches it, to {GROWTH_TOLERANCE:.0%} of the growth"
+                   if target_reached(result.gland_volume_ml, target, result.target_reached_ml) else "falls short")
+        lines = [f"{wanted}; the designed model grows the gland to {result.target_reached_ml:.2f} ml there "
+                 f"({reached})."]
     sizing = result.sizing
     if sizing is None:
         return lines + ["The chambers' scale was given (--chamber-scale), not searched."]
@@ -135,7 +141,9 @@ def _write_figure(result: Design, gland: Gland, chambers: ChamberDesign) -> None
     if result.growth_kpa:
         axes[2].plot([0.0] + result.growth_kpa, [result.rest_volume_ml] + result.growth_volumes_ml, "o-",
                      label="designed model")
-    axes[2].plot([result.target.pressure_kpa], [result.target.volume_ml], "r*", markersize=10, label="target")
+    # the target's growth on the model's own rest volume, as the curve is
+    axes[2].plot([result.target.pressure_kpa], [result.rest_volume_ml + result.target.volume_ml
+                                                - result.gland_volume_ml], "r*", markersize=10, label="target growth")
     axes[2].legend(fontsize=8)
     axes[2].set_xlabel("pressure in every chamber, kPa")
     axes[2].set_ylabel("gland volume, ml")

@@ -72,6 +72,14 @@ def growth_target(gland_volume_ml: float, volume_ml: float | None = None,
     return GrowthTarget(float(volume_ml), float(pressure_kpa))
 
 
+def target_reached(gland_volume_ml: float, target: GrowthTarget, reached_ml: float | None) -> bool | None:
+    """Whether the designed gland grows to the target, to within the search's tolerance of the growth wanted (None:
+    not solved)."""
+    if reached_ml is None:
+        return None
+    return reached_ml - gland_volume_ml >= (1.0 - GROWTH_TOLERANCE) * (target.volume_ml - gland_volume_ml)
+
+
 @dataclass
 class Sizing:
     """What the search found: the chambers' scale of the template, whether the coarse model reached the target,

@@ -51,13 +51,14 @@ def test_absurd_growth_targets_are_refused(tmp_path, capsys, options, says):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # three meshes and solves: about 3 minutes at a load average of 15 on 2 cores
 def test_the_chambers_are_sized_to_a_target_the_walls_allow(tmp_path, capsys):
     """A modest target (0.3 ml of growth at 3 kPa; the largest chambers the walls allow give about twice that): the
     search lands between the smallest and the largest scale, and the designed mesh confirms the target to the
     coarse linear search's accuracy."""
-    mask = write_mask(tmp_path / "gland.nii.gz", asymmetric_gland)
     out = tmp_path / "d"
-    status, printed, err = run(capsys, "design", str(mask), "--out", str(out), "--size-mm", "5", "--growth-kpa",
+    status, printed, err = run(capsys, "design", str(small_mask(tmp_path)), "--out", str(out), "--size-mm", "5",
+                               "--growth-kpa",
                                "none", "--growth-target-ml", "26.6", "--json")
     assert status == 0, err
     summary = json.loads(printed)
@@ -125,14 +126,15 @@ def test_a_two_chamber_design_runs_forward_and_inverse(tmp_path, capsys):
     state = json.loads(printed)
     assert len(state["chamber_volumes_ml"]) == 2 and state["volume_change_ml"] > 0.02
     status, _, err = run(capsys, "forward", "--scene", str(out / "scene.toml"), "--pressures-kpa", "1,1,1")
-    assert status == 2 and "2" in err
+    assert status == 2 and "the scene has 2 chambers (0 left lobe, 1 right lobe)" in err, err
     wanted = state["total_volume_ml"]
     status, printed, err = run(capsys, "inverse", "--scene", str(out / "scene.toml"), "--volume-ml",
                                f"{wanted:.4f}", "--json")
     assert status == 0, err
     answer = json.loads(printed)
     assert len(answer["pressures_kpa"]) == 2
-    assert answer["total_volume_ml"] == pytest.approx(wanted, abs=0.01)
+    assert answer["predicted_volume_ml"] == pytest.approx(wanted, abs=0.01)
+    assert all(0 < pressure <= 3 for pressure in answer["pressures_kpa"])
 
 
 # ------------------------------------------------------------------------------------------ the split plane
