@@ -137,7 +137,16 @@ def _write_figure(result: Design, gland: Gland, chambers: ChamberDesign) -> None
         axis.set_title(title.format(height))
         axis.set_xlabel(u_label)
         axis.set_ylabel(v_label)
+    # the mould's split plane where it crosses the axial section: n_x x + n_y y = offset - n_z z
+    n_x, n_y, n_z = result.cast.split.normal
+    x = np.array(axes[1].get_xlim())
+    axes[1].plot(x, (result.cast.split.offset_mm - n_z * heights[1] - n_x * x) / n_y, "k--", lw=0.8,
+                 label="mould split")
     axes[0].legend(fontsize=8, loc="lower right")
+    axes[1].legend(fontsize=8, loc="lower right")
+    if result.target_reached_ml is not None:
+        axes[2].plot([result.target.pressure_kpa], [result.rest_volume_ml + result.target_reached_ml
+                                                    - result.gland_volume_ml], "ko", label="designed, at the target")
     if result.growth_kpa:
         axes[2].plot([0.0] + result.growth_kpa, [result.rest_volume_ml] + result.growth_volumes_ml, "o-",
                      label="designed model")
