@@ -66,10 +66,10 @@ def test_the_chambers_are_sized_to_a_target_the_walls_allow(tmp_path, capsys):
     sizing = target["sizing"]
     assert 0.3 < sizing["scale_of_template"] < 2.5 and sizing["coarse_reached"]
     steps = sizing["steps"]
-    # the largest chambers first, then the search: a few solves (two measured), the chosen one within 5 % of the
-    # growth wanted
+    # the largest chambers first, then the search: a few solves (two to four measured, of at most six), the chosen
+    # one within 5 % of the growth wanted
     assert steps[0]["scale_of_template"] == 2.5 and steps[0]["coarse_linear_volume_ml"] > 26.6
-    assert len(steps) <= 4
+    assert len(steps) <= 5
     chosen = [step for step in steps if step["scale_of_template"] == sizing["scale_of_template"]][0]
     assert chosen["coarse_linear_volume_ml"] - 26.3 == pytest.approx(0.3, rel=0.05)
     # the designed mesh's growth (0.31 ml measured), on the designed gland's volume
