@@ -1,14 +1,15 @@
-"""The three chambers, placed in the gland's own anatomy and sized as the walls allow (mm, the phantom's frame).
+"""The chambers, placed in the gland's own anatomy and sized as the walls allow (mm, the phantom's frame).
 
-The built-in prostate's chambers are the template: a flat base chamber on the mid-sagittal plane toward the base
-and one chamber in each lateral lobe. Each template ellipsoid's centre and semi-axes are taken as fractions of the
-built-in body's half-extents and laid into the gland's: along each axis, the extent on the side the centre lies
-(the left lobe's chamber takes the gland's extent to the left of the mid-sagittal plane, the right one the
-extent to the right, the base chamber the extent toward the base), so an asymmetric gland gets asymmetric
-chambers and the built-in body gets its own chambers back. ``chamber_scale`` multiplies every semi-axis; then
-every chamber whose wall (to the outer surface, or to another chamber) is below ``min_wall_mm`` shrinks about
-its centre until none is. A chamber that must shrink below :data:`SMALLEST_SCALE` of its template leaves no
-room: the gland is too small for three chambers at that wall.
+The built-in prostate's chambers are the template: a flat base chamber on the mid-sagittal plane toward the base and
+one chamber in each lateral lobe; a design takes any non-empty subset of them (``--chambers``), named ``chamber0,
+chamber1, ...`` in the order given. Each template ellipsoid's centre and semi-axes are taken as fractions of the
+built-in body's half-extents and laid into the gland's: along each axis, the extent on the side the centre lies (the
+left lobe's chamber takes the gland's extent to the left of the mid-sagittal plane, the right one the extent to the
+right, the base chamber the extent toward the base), so an asymmetric gland gets asymmetric chambers and the
+built-in body gets its own chambers back. ``chamber_scale`` multiplies every semi-axis; then every chamber whose wall
+(to the outer surface, or to another chamber) is below ``min_wall_mm`` shrinks about its centre until none is. A chamber
+that must shrink below :data:`SMALLEST_SCALE` of its template leaves no room: the gland is too small for its
+chambers at that wall.
 
 Walls are measured between dense samples of the surfaces (0.5 mm apart, as the built-in geometry's check does).
 """
@@ -32,12 +33,16 @@ from phantom.model.mesh.shape import (
     profile_radius_mm,
 )
 
-#: The chambers' names in a designed mesh, and the names people see.
-CHAMBER_NAMES = ("chamber0", "chamber1", "chamber2")
+#: The template's chambers: the names ``--chambers`` takes, and the names people see, in the template's order.
+CHAMBER_KINDS = ("base", "left", "right")
 CHAMBER_LABELS = ("base", "left lobe", "right lobe")
+#: The template's index of the base chamber (its stem goes straight up; the others' tilt outward).
+BASE = 0
 #: A chamber may shrink to this fraction of its template's semi-axes (an eighth of its volume) before the gland is
-#: said too small for three.
+#: said too small for its chambers.
 SMALLEST_SCALE = 0.5
+#: The range of ``--chamber-scale`` (times the template's semi-axes); the sizing searches it.
+CHAMBER_SCALE_RANGE = (0.3, 2.5)
 #: Each step of the shrinking multiplies a chamber's semi-axes by this.
 SHRINK_STEP = 0.98
 #: Spacing of the surface samples walls are measured on (mm).
@@ -46,10 +51,16 @@ SAMPLE_SPACING_MM = 0.5
 
 @dataclass(frozen=True)
 class Chamber:
-    """An ellipsoidal chamber: centre and semi-axes (mm, the phantom's frame, axis-aligned)."""
+    """An ellipsoidal chamber: centre and semi-axes (mm, the phantom's frame, axis-aligned), and which of the
+    template's chambers it is (``kind``: an index into CHAMBER_KINDS)."""
 
     centre_mm: Vector3
     semi_axes_mm: Vector3
+    kind: int = BASE
+
+    @property
+    def label(self) -> str:
+        return CHAMBER_LABELS[self.kind]
 
     @property
     def volume_ml(self) -> float:
@@ -58,7 +69,25 @@ class Chamber:
 
     def scaled(self, factor: float) -> Chamber:
         a, b, c = self.semi_axes_mm
-        return Chamber(self.centre_mm, (a * factor, b * factor, c * factor))
+        return Chamber(self.centre_mm, (a * factor, b * factor, c * factor), self.kind)
+
+
+def chamber_name(index: int) -> str:
+    """The mesh's and the scene's name of a design's ``index``-th chamber."""
+    return f"chamber{index}"
+
+
+def parse_chamber_kinds(text: str) -> tuple[int, ...]:
+    """``--chambers``: comma-separated names of CHAMBER_KINDS, each at most once, at least one; their indices."""
+    names = [name.strip().lower() for name in text.split(",")]
+    unknown = [name for name in names if name not in CHAMBER_KINDS]
+    if not text.strip() or unknown:
+        raise DesignError(f"--chambers takes one or more of {','.join(CHAMBER_KINDS)} (comma-separated); got "
+                          f"{text!r}" + (f": {', '.join(repr(name) for name in unknown)} is not one" if text.strip()
+                                         else ""))
+    if len(set(names)) != len(names):
+        raise DesignError(f"--chambers names a chamber twice: {text!r}; give each once")
+    return tuple(CHAMBER_KINDS.index(name) for name in names)
 
 
 def builtin_half_extents_mm() -> FloatArray:
@@ -68,20 +97,23 @@ def builtin_half_extents_mm() -> FloatArray:
     return np.array([widest, ANTERIOR_POSTERIOR_RATIO * widest, HALF_LENGTH_MM])
 
 
-def template_chambers(surface: Surface, chamber_scale: float = 1.0) -> list[Chamber]:
-    """The built-in chambers laid into ``surface``'s extents (see the module docstring), semi-axes times
+def template_chambers(surface: Surface, chamber_scale: float = 1.0,
+                      kinds: tuple[int, ...] = (0, 1, 2)) -> list[Chamber]:
+    """The built-in chambers ``kinds`` laid into ``surface``'s extents (see the module docstring), semi-axes times
     ``chamber_scale``. ``surface`` is centred as :func:`~phantom.design.surface.read_gland` leaves it (its
     mid-sagittal plane x = 0)."""
     reference = builtin_half_extents_mm()
     plus = surface.vertices_mm.max(axis=0)
     minus = -surface.vertices_mm.min(axis=0)
     chambers = []
-    for centre, axes in ProstateGeometry().ellipsoids_mm():
+    template = ProstateGeometry().ellipsoids_mm()
+    for kind in kinds:
+        centre, axes = template[kind]
         fraction = np.asarray(centre) / reference
         side = np.where(fraction > 1e-9, plus, np.where(fraction < -1e-9, minus, 0.5 * (plus + minus)))
         placed = fraction * side
         semi_axes = np.asarray(axes) / reference * side * chamber_scale
-        chambers.append(Chamber(_vector(placed), _vector(semi_axes)))
+        chambers.append(Chamber(_vector(placed), _vector(semi_axes), kind))
     return chambers
 
 
@@ -134,12 +166,12 @@ def measure_walls(outer_samples_mm: FloatArray, chambers: list[Chamber]) -> dict
     and between chambers (mm); negative where a chamber breaks through the surface or two chambers overlap."""
     walls: dict[str, float] = {}
     for index, chamber in enumerate(chambers):
-        walls[f"{CHAMBER_NAMES[index]}-outer"] = float(ellipsoid_distance_mm(outer_samples_mm, chamber).min())
+        walls[f"{chamber_name(index)}-outer"] = float(ellipsoid_distance_mm(outer_samples_mm, chamber).min())
     for first in range(len(chambers)):
         points = ellipsoid_points_mm(chambers[first].centre_mm, chambers[first].semi_axes_mm, SAMPLE_SPACING_MM)
         for second in range(first + 1, len(chambers)):
             distance = float(ellipsoid_distance_mm(points, chambers[second]).min())
-            walls[f"{CHAMBER_NAMES[first]}-{CHAMBER_NAMES[second]}"] = distance
+            walls[f"{chamber_name(first)}-{chamber_name(second)}"] = distance
     return walls
 
 
@@ -153,17 +185,17 @@ class ChamberDesign:
 
 
 def place_chambers(surface: Surface, min_wall_mm: float, chamber_scale: float = 1.0,
-                   samples_mm: FloatArray | None = None) -> ChamberDesign:
-    """The template's chambers in ``surface`` (see the module docstring), each shrunk until every wall is at least
-    ``min_wall_mm``; DesignError when one must shrink below SMALLEST_SCALE of its template."""
-    if not 0.3 <= chamber_scale <= 2.5:
+                   samples_mm: FloatArray | None = None, kinds: tuple[int, ...] = (0, 1, 2)) -> ChamberDesign:
+    """The template's chambers ``kinds`` in ``surface`` (see the module docstring), each shrunk until every wall
+    is at least ``min_wall_mm``; DesignError when one must shrink below SMALLEST_SCALE of its template."""
+    if not CHAMBER_SCALE_RANGE[0] <= chamber_scale <= CHAMBER_SCALE_RANGE[1]:
         raise DesignError(f"--chamber-scale {chamber_scale:g} is out of range: use 0.3 to 2.5 (1: the built-in "
                           f"prostate's proportions)")
     samples_mm = surface_samples_mm(surface) if samples_mm is None else samples_mm
-    template = template_chambers(surface, chamber_scale)
-    for index, chamber in enumerate(template):
+    template = template_chambers(surface, chamber_scale, kinds)
+    for chamber in template:
         if not surface.contains(np.asarray(chamber.centre_mm)):
-            raise DesignError(f"the {CHAMBER_LABELS[index]} chamber's place ({_mm(chamber.centre_mm)}) lies outside "
+            raise DesignError(f"the {chamber.label} chamber's place ({_mm(chamber.centre_mm)}) lies outside "
                               f"the gland: its shape is too far from a prostate's for the built-in chambers' layout")
     scales = [chamber_scale] * len(template)
     chambers = list(template)
@@ -173,7 +205,7 @@ def place_chambers(surface: Surface, min_wall_mm: float, chamber_scale: float = 
         if not thin:
             return ChamberDesign(chambers, walls, scales)
         for index in range(len(chambers)):
-            deficits = [min_wall_mm - walls[name] for name in thin if CHAMBER_NAMES[index] in name.split("-")]
+            deficits = [min_wall_mm - walls[name] for name in thin if chamber_name(index) in name.split("-")]
             if deficits:
                 # shrink by about the missing thickness over the longest semi-axis, at least by SHRINK_STEP
                 factor = 1.0 - (max(deficits) + 0.02) / max(chambers[index].semi_axes_mm)
@@ -182,6 +214,10 @@ def place_chambers(surface: Surface, min_wall_mm: float, chamber_scale: float = 
         if min(scales) < SMALLEST_SCALE:
             index = int(np.argmin(scales))
             raise DesignError(
-                f"the gland leaves no room for three chambers with walls of {min_wall_mm:g} mm: the "
-                f"{CHAMBER_LABELS[index]} chamber would shrink to {scales[index]:.2f} of the built-in's proportions "
+                f"the gland leaves no room for {_count(len(chambers))} with walls of {min_wall_mm:g} mm: the "
+                f"{chambers[index].label} chamber would shrink to {scales[index]:.2f} of the built-in's proportions "
                 f"(thinnest wall {', '.join(thin)}); design at a larger --volume-ml or a smaller --min-wall-mm")
+
+
+def _count(chambers: int) -> str:
+    return {1: "one chamber", 2: "two chambers", 3: "three chambers"}[chambers]

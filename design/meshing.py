@@ -1,15 +1,15 @@
 """The designed model's tetrahedral mesh (gmsh) and its scene.
 
-The gland's surface and the chambers' ellipsoids go to gmsh as discrete surfaces; gmsh classifies and
-reparametrises them (``classifySurfaces``, ``createGeometry``), so it remeshes them at the element size, and
-meshes the solid between them with :func:`phantom.model.mesh.prostate.mesh_solid`, the built-in prostate's own
-mesher. The size at a point is the least of the scene's ``size_mm``, half the local wall (so two elements span
-every wall: :func:`phantom.model.mesh.shape.wall_field_of`) and, on a chamber, ``2 pi rho / CURVATURE_ELEMENTS``
-with ``rho`` its ellipsoid's mean radius of curvature there (the built-in mesh gets the same from OpenCASCADE's
-exact surfaces; gmsh's estimate on a reparametrised triangulation refines a cavity ten times too much). The
-surface groups are the built-in's: ``chamber0..2`` and ``fixed``, the outer faces within the fixation radius of the
-base pole (where the ray up the gland's axis leaves it). The tube channels are the cast's, not the model's: like
-the built-in model, the designed one has closed chambers.
+The gland's surface and the chambers' ellipsoids go to gmsh as discrete surfaces; gmsh classifies and reparametrises
+them (``classifySurfaces``, ``createGeometry``), so it remeshes them at the element size, and meshes the solid
+between them with :func:`phantom.model.mesh.prostate.mesh_solid`, the built-in prostate's own mesher. The size at a
+point is the least of the scene's ``size_mm``, half the local wall (so two elements span every wall:
+:func:`phantom.model.mesh.shape.wall_field_of`) and, on a chamber, ``2 pi rho / CURVATURE_ELEMENTS`` with ``rho``
+its ellipsoid's mean radius of curvature there (the built-in mesh gets the same from OpenCASCADE's exact surfaces;
+gmsh's estimate on a reparametrised triangulation refines a cavity ten times too much). The surface groups are the
+built-in's: ``chamber0, chamber1, ...`` (one per designed chamber) and ``fixed``, the outer faces within the
+fixation radius of the base pole (where the ray up the gland's axis leaves it). The tube channels are the cast's,
+not the model's: like the built-in model, the designed one has closed chambers.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from phantom import require_extra
-from phantom.design.chambers import CHAMBER_LABELS, CHAMBER_NAMES, Chamber
+from phantom.design.chambers import BASE, Chamber, chamber_name
 from phantom.design.errors import DesignError
 from phantom.design.surface import Surface
 from phantom.model.arrays import FloatArray
@@ -38,12 +38,16 @@ ELEMENTS_PER_WALL = 2
 
 
 def base_pole_mm(surface: Surface, chambers: list[Chamber]) -> Vector3:
-    """Where the gland's axis (the vertical through the base chamber's centre) leaves it at the base: the tube
-    junction, the centre of the fixed patch."""
-    x, y, _ = chambers[0].centre_mm
-    crossings = surface.crossings_above_mm(np.array(chambers[0].centre_mm))
+    """Where the gland's axis (the vertical through the base chamber's centre; without a base chamber, through the
+    mid-sagittal plane at the chambers' mean depth) leaves it at the base: the tube junction, the centre of the
+    fixed patch."""
+    base = [chamber for chamber in chambers if chamber.kind == BASE]
+    centres = np.array([chamber.centre_mm for chamber in chambers])
+    start = np.array(base[0].centre_mm) if base else np.array([0.0, centres[:, 1].mean(), centres[:, 2].mean()])
+    x, y, _ = start
+    crossings = surface.crossings_above_mm(start)
     if len(crossings) == 0:
-        raise DesignError("the base chamber's vertical does not leave the gland at the base: the mask is not a gland")
+        raise DesignError("the gland's axis does not leave the gland at the base: the mask is not a gland")
     return (x, y, float(crossings[-1]))
 
 
@@ -75,9 +79,10 @@ def _curvature_size_mm(point: FloatArray, chamber: Chamber, elements: float) -> 
 
 
 def mesh_design(surface: Surface, chambers: list[Chamber], size_mm: float, element_order: int,
-                fixation_radius_mm: float, outer_samples_mm: FloatArray) -> TetMesh:
+                fixation_radius_mm: float, outer_samples_mm: FloatArray,
+                elements_per_wall: int = ELEMENTS_PER_WALL) -> TetMesh:
     """The tagged tetrahedral mesh (nodes in metres) of the gland with the chambers cut out; see the module
-    docstring."""
+    docstring (``elements_per_wall``: fewer for a coarse mesh)."""
     if not MESH_SIZE_RANGE_MM[0] <= size_mm <= MESH_SIZE_RANGE_MM[1]:
         raise DesignError(f"--size-mm {size_mm:g} is out of range: use {MESH_SIZE_RANGE_MM[0]:g} to "
                           f"{MESH_SIZE_RANGE_MM[1]:g} mm")
@@ -94,7 +99,7 @@ def mesh_design(surface: Surface, chambers: list[Chamber], size_mm: float, eleme
 
     def size_at(x: float, y: float, z: float) -> float:
         point = np.array([x, y, z])
-        size = walls.at(x, y, z) / ELEMENTS_PER_WALL
+        size = walls.at(x, y, z) / elements_per_wall
         for chamber in chambers:
             size = min(size, _curvature_size_mm(point, chamber, elements))
         return size
@@ -106,9 +111,10 @@ def mesh_design(surface: Surface, chambers: list[Chamber], size_mm: float, eleme
     ellipsoids = tuple((chamber.centre_mm, chamber.semi_axes_mm) for chamber in chambers)
     groups = tag_surfaces(nodes_mm, tets, ellipsoids, base_pole_mm(surface, chambers), fixation_radius_mm,
                           patch_edge_meshed=False)
-    for name, label in zip(CHAMBER_NAMES, CHAMBER_LABELS, strict=True):
-        if len(groups[name]) == 0:
-            raise DesignError(f"the {label} chamber's wall is missing from the mesh: gmsh merged it; report this")
+    for index, chamber in enumerate(chambers):
+        if len(groups[chamber_name(index)]) == 0:
+            raise DesignError(f"the {chamber.label} chamber's wall is missing from the mesh: gmsh merged it; "
+                              f"report this")
     if len(groups["fixed"]) == 0:
         raise DesignError(f"no outer face lies within --fixation-radius-mm {fixation_radius_mm:g} of the base "
                           f"pole: give a larger radius")
@@ -146,17 +152,18 @@ def _solid_from_shells(gmsh: Any, shells: list[Surface], chambers: list[Chamber]
     return volume
 
 
-def write_scene(mesh_path: Path, scene_path: Path, element_order: int) -> None:
-    """A scene naming the designed mesh (beside it), with the built-in prostate's material and model settings (on
-    10-node elements its modulus in the Neo-Hookean law), so that ``phantom forward``, ``inverse``, ``calibrate``
-    and the daemon take it as they take the built-in one."""
+def write_scene(mesh_path: Path, scene_path: Path, element_order: int, chambers: list[Chamber]) -> None:
+    """A scene naming the designed mesh (beside it) and its ``chambers``, with the built-in prostate's material and
+    model settings (on 10-node elements its modulus in the Neo-Hookean law), so that ``phantom forward``,
+    ``inverse``, ``calibrate`` and the daemon take it as they take the built-in one."""
     from phantom import written_atomically
     from phantom.model.calibration.calibrate import dump_toml
     from phantom.model.scene import QUADRATIC_POISSON_RATIO
 
     document = read_scene_toml(builtin_scene_path("builtin:prostate"))
-    document["phantom"] = {"mesh": mesh_path.name, "units": "mm", "chambers": list(CHAMBER_NAMES),
-                           "chamber_labels": list(CHAMBER_LABELS), "fixed": "fixed"}
+    document["phantom"] = {"mesh": mesh_path.name, "units": "mm",
+                           "chambers": [chamber_name(index) for index in range(len(chambers))],
+                           "chamber_labels": [chamber.label for chamber in chambers], "fixed": "fixed"}
     if element_order == 2:
         # 10-node elements take a hyperelastic law, nearly incompressible like silicone (the co-rotational one is
         # for 4-node elements)

@@ -16,18 +16,23 @@ from typing import Any
 import numpy as np
 
 from phantom import require_extra, written_atomically
-from phantom.design.cast import Cast, make_cast
-from phantom.design.chambers import CHAMBER_LABELS, place_chambers, surface_samples_mm
+from phantom.design.cast import Cast, make_cast, undercut_warnings
+from phantom.design.chambers import place_chambers, surface_samples_mm
 from phantom.design.errors import DesignError
+from phantom.design.latent import LatentDistance, latent_distance
 from phantom.design.meshing import mesh_design, write_scene
+from phantom.design.sizing import (
+    PAPER_VOLUME_ML,
+    GrowthTarget,
+    Sizing,
+    growth_target,
+    size_chambers,
+    target_reached,
+)
 from phantom.design.surface import Surface, read_gland
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, enclosed_volume_m3, surface_components, write_mesh
 
-#: The paper's targets: the average gland's volume (ml) and the growth its phantom reaches (to 45 ml) within 3 kPa.
-PAPER_VOLUME_ML = 26.3
-PAPER_GROWN_VOLUME_ML = 45.0
-PAPER_PRESSURE_KPA = 3.0
 #: The pressures (kPa, all three chambers alike) of the predicted growth curve.
 GROWTH_PRESSURES_KPA = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
 
@@ -38,7 +43,8 @@ class DesignOptions:
 
     volume_ml: float = PAPER_VOLUME_ML
     min_wall_mm: float = 2.0
-    chamber_scale: float = 1.0
+    #: None: sized to the growth target (see :mod:`phantom.design.sizing`); a number: the template's times it
+    chamber_scale: float | None = None
     size_mm: float = 2.5
     element_order: int = 1
     fixation_radius_mm: float = 6.0
@@ -46,6 +52,13 @@ class DesignOptions:
     labels: tuple[int, ...] | None = None
     smoothing_iterations: int | None = None
     growth_pressures_kpa: tuple[float, ...] = GROWTH_PRESSURES_KPA
+    #: the grown gland's volume (None: the paper's 45 ml from 26.3, scaled to --volume-ml) at this pressure
+    growth_target_ml: float | None = None
+    growth_target_kpa: float = 3.0
+    #: the template's chambers to design (indices into CHAMBER_KINDS)
+    chambers: tuple[int, ...] = (0, 1, 2)
+    #: a trained shape run (``phantom shape train``): the source's latent distance to its population's average
+    shape_run: str | None = None
 
 
 @dataclass
@@ -57,6 +70,7 @@ class Design:
     source_volume_ml: float
     smoothing_change_pct: float
     scale: float
+    chamber_labels: list[str]
     chamber_volumes_ml: list[float]
     chamber_scales: list[float]
     walls_mm: dict[str, float]
@@ -67,7 +81,15 @@ class Design:
     cast: Cast
     growth_kpa: list[float]
     growth_volumes_ml: list[float]
+    target: GrowthTarget
+    #: the designed gland's volume at the target's pressure (ml): its volume plus the designed model's growth (None:
+    #: not solved, the chambers' scale given and the growth curve without the target's pressure)
+    target_reached_ml: float | None
+    sizing: Sizing | None
+    latent: LatentDistance | None
     notes: list[str]
+    #: what a user must know: printed on stderr as well as in the report
+    warnings: list[str] = field(default_factory=list)
     stage_times_s: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -85,6 +107,8 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
         raise DesignError(f"--min-wall-mm {options.min_wall_mm:g} is thinner than a lost-wax cast makes (1 mm)")
     if not 1.0 <= options.stem_diameter_mm <= 8.0:
         raise DesignError(f"--stem-diameter-mm {options.stem_diameter_mm:g} is out of range: use 1 to 8 mm")
+    if not options.chambers:
+        raise DesignError("--chambers is empty: give one or more of base,left,right")
     times: dict[str, float] = {}
     started = time.perf_counter()
 
@@ -97,29 +121,55 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
 
     progress(f"design: reading {source}")
     gland = read_gland(source, options.volume_ml, options.labels, options.smoothing_iterations)
+    target = growth_target(options.volume_ml, options.growth_target_ml, options.growth_target_kpa)
     stage("surface")
+    latent = None
+    if options.shape_run is not None:
+        progress(f"design: encoding the source with the shape run {options.shape_run}")
+        latent = latent_distance(source, options.shape_run)
+        stage("latent")
     samples = surface_samples_mm(gland.surface)
-    chambers = place_chambers(gland.surface, options.min_wall_mm, options.chamber_scale, samples)
+    sizing = None
+    if options.chamber_scale is None:
+        progress(f"design: sizing the chambers to grow the gland to {target.volume_ml:.1f} ml at "
+                 f"{target.pressure_kpa:g} kPa")
+        chambers, sizing = size_chambers(gland.surface, samples, options.chambers, options.min_wall_mm, target,
+                                         options.size_mm, options.fixation_radius_mm, progress)
+    else:
+        chambers = place_chambers(gland.surface, options.min_wall_mm, options.chamber_scale, samples,
+                                  options.chambers)
     stage("chambers")
     out.mkdir(parents=True, exist_ok=True)
     mesh = mesh_design(gland.surface, chambers.chambers, options.size_mm, options.element_order,
                        options.fixation_radius_mm, samples)
     write_mesh(mesh, out / "gland.msh")
-    write_scene(out / "gland.msh", out / "scene.toml", options.element_order)
+    write_scene(out / "gland.msh", out / "scene.toml", options.element_order, chambers.chambers)
     _write_stl(gland.surface, out / "gland.stl")
     stage("mesh")
     progress("design: the cast (mould halves, cores)")
     cast = make_cast(gland.surface, chambers.chambers, options.min_wall_mm, options.stem_diameter_mm, out)
     stage("cast")
-    rest_ml, volumes_ml = _growth(out / "scene.toml", options.growth_pressures_kpa, progress)
+    # the curve, and the target's pressure once more when the sizing needs it confirmed and the curve lacks it
+    pressures = list(options.growth_pressures_kpa)
+    if sizing is not None and target.pressure_kpa not in pressures:
+        pressures.append(target.pressure_kpa)
+    rest_ml, volumes_ml = _growth(out / "scene.toml", pressures, progress)
     stage("growth")
+    target_reached_ml = None
+    if target.pressure_kpa in pressures:
+        # the model's growth on the designed gland's volume (the mesh's own rest volume is its discretised surface's)
+        target_reached_ml = gland.surface.volume_ml() + volumes_ml[pressures.index(target.pressure_kpa)] - rest_ml
+    warnings = growth_warnings(out / "scene.toml", gland.surface.volume_ml(), target, target_reached_ml, sizing,
+                               options.min_wall_mm)
+    warnings += undercut_warnings(cast.split, cast.coronal_undercut_mm2)
     result = Design(out, gland.surface.volume_ml(), gland.source_volume_ml, gland.smoothing_change_pct,
-                    gland.scale, [chamber.volume_ml for chamber in chambers.chambers], chambers.scales,
+                    gland.scale, [chamber.label for chamber in chambers.chambers],
+                    [chamber.volume_ml for chamber in chambers.chambers], chambers.scales,
                     chambers.walls_mm, mesh.n_nodes, len(mesh.tets), rest_ml,
                     outer_surface_distance_mm(mesh, gland.reference), cast, list(options.growth_pressures_kpa),
-                    volumes_ml, gland.notes + _growth_notes(out / "scene.toml", rest_ml, options.growth_pressures_kpa,
-                                                            volumes_ml),
-                    times)
+                    volumes_ml[:len(options.growth_pressures_kpa)], target, target_reached_ml, sizing, latent,
+                    gland.notes,
+                    warnings, times)
     stage("checks")
     from phantom.design.report import write_report
 
@@ -153,24 +203,27 @@ def _growth(scene_path: Path, pressures_kpa: Sequence[float],
     return float(model.rest_gland_volume_m3) * 1e6, volumes
 
 
-def _growth_notes(scene_path: Path, rest_ml: float, pressures_kpa: Sequence[float],
-                  volumes_ml: list[float]) -> list[str]:
-    """Whether the designed model reaches the paper's growth (45 ml from 26.3, scaled to this gland) by 3 kPa;
-    nothing when the curve stops short of 3 kPa."""
+def growth_warnings(scene_path: Path, gland_volume_ml: float, target: GrowthTarget, reached_ml: float | None,
+                    sizing: Sizing | None, min_wall_mm: float) -> list[str]:
+    """What a user must know about the growth target: nothing when the designed model reaches it (or was not solved
+    at its pressure), else how far it falls short and why (the walls' limit, the coarse search's error, or chambers
+    fixed by --chamber-scale)."""
     from phantom.model.scene import load_scene
 
-    reaching = [volume for pressure, volume in zip(pressures_kpa, volumes_ml, strict=True)
-                if pressure >= PAPER_PRESSURE_KPA]
-    if not reaching:
+    if reached_ml is None or target_reached(gland_volume_ml, target, reached_ml):
         return []
-    target = PAPER_GROWN_VOLUME_ML * rest_ml / PAPER_VOLUME_ML
-    if max(reaching) >= target:
-        return [f"reaches {target:.1f} ml (the paper's 45 ml scaled to this gland) by {PAPER_PRESSURE_KPA:g} kPa"]
     material = load_scene(scene_path).material
-    return [f"the paper's growth ({target:.1f} ml, its 45 ml scaled to this gland) is not reached: "
-            f"{max(reaching):.2f} ml at {PAPER_PRESSURE_KPA:g} kPa with the scene's material ({material.model}, E "
-            f"{material.youngs_modulus_pa / 1e3:g} kPa; calibrate it to the cast's measurements); the chambers are "
-            f"as large as the template and the walls allow, and sizing them to a growth target is not implemented"]
+    short = (f"the growth target ({target.volume_ml:.1f} ml at {target.pressure_kpa:g} kPa) is not reached: the "
+             f"designed model grows the gland to {reached_ml:.2f} ml at {target.pressure_kpa:g} kPa with the scene's "
+             f"material ({material.model}, E {material.youngs_modulus_pa / 1e3:g} kPa; calibrate it to the cast's "
+             f"measurements)")
+    if sizing is None:
+        return [f"{short}; the chambers are fixed by --chamber-scale (leave it out to size them to the target)"]
+    if not sizing.reached:
+        return [f"{short}: the chambers are the largest the {min_wall_mm:g} mm walls allow; thinner walls "
+                f"(--min-wall-mm), a softer silicone or a lower target reach it"]
+    return [f"{short}: the coarse linear search put the target at {sizing.scale:.3f} of the template "
+            f"({sizing.coarse_volume_ml:.2f} ml there); the designed mesh grows less"]
 
 
 def outer_surface_distance_mm(mesh: TetMesh, reference: Surface) -> float:
@@ -207,18 +260,36 @@ def design_summary(result: Design) -> dict[str, Any]:
         "smoothing_change_pct": result.smoothing_change_pct,
         "scale": result.scale,
         "chambers": [{"label": label, "volume_ml": volume, "scale_of_template": scale}
-                     for label, volume, scale in zip(CHAMBER_LABELS, result.chamber_volumes_ml, result.chamber_scales,
-                                                     strict=True)],
+                     for label, volume, scale in zip(result.chamber_labels, result.chamber_volumes_ml,
+                                                     result.chamber_scales, strict=True)],
         "walls_mm": result.walls_mm,
         "thinnest_wall": {"where": name, "mm": thinnest},
         "mesh": {"nodes": result.mesh_nodes, "tetrahedra": result.mesh_tets},
         "rest_volume_ml": result.rest_volume_ml,
         "outer_surface_mean_distance_mm": result.surface_distance_mm,
         "growth": {"pressures_kpa": result.growth_kpa, "gland_volumes_ml": result.growth_volumes_ml},
-        "cast": {"silicone_ml": result.cast.silicone_ml, "split_y_mm": result.cast.split_y_mm,
-                 "undercut_mm2": result.cast.undercut_mm2, "stem_clearances_mm": result.cast.stem_clearances_mm,
+        "cast": {"silicone_ml": result.cast.silicone_ml,
+                 "split_plane": {"normal": list(result.cast.split.normal), "offset_mm": result.cast.split.offset_mm,
+                                 "tilt_from_coronal_degrees": result.cast.split.tilt_degrees()},
+                 "undercut_mm2": result.cast.split.undercut_mm2,
+                 "coronal_undercut_mm2": result.cast.coronal_undercut_mm2,
+                 "stem_clearances_mm": result.cast.stem_clearances_mm,
                  "parts": [{**asdict(part), "path": str(part.path), "printable": part.printable}
                            for part in result.cast.parts]},
+        "growth_target": {"volume_ml": result.target.volume_ml, "pressure_kpa": result.target.pressure_kpa,
+                          "designed_volume_ml": result.target_reached_ml,
+                          "reached": target_reached(result.gland_volume_ml, result.target, result.target_reached_ml),
+                          "sizing": None if result.sizing is None else {
+                              "scale_of_template": result.sizing.scale, "coarse_reached": result.sizing.reached,
+                              "at_walls_limit": result.sizing.at_walls_limit,
+                              "coarse_size_mm": result.sizing.coarse_size_mm,
+                              "steps": [{"scale_of_template": scale, "coarse_linear_volume_ml": volume}
+                                        for scale, volume in result.sizing.steps]}},
+        "latent": None if result.latent is None else {
+            "shape_run": result.latent.run, "distance_to_average": result.latent.distance,
+            "population_spread": result.latent.spread, "in_spreads": result.latent.in_spreads,
+            "percentile": result.latent.percentile, "cases": result.latent.cases},
         "notes": result.notes,
+        "warnings": result.warnings,
         "stage_times_s": result.stage_times_s,
     }

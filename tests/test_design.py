@@ -75,6 +75,16 @@ def test_an_asymmetric_oblique_mask_becomes_a_scene_that_grows_and_a_printable_c
     summary = json.loads(printed)
     assert summary["gland_volume_ml"] == pytest.approx(26.3, rel=1e-3)
     assert min(summary["walls_mm"].values()) >= 2.0
+    # the paper's growth (45 ml at 3 kPa) is beyond the built-in material's reach: the chambers are the largest the
+    # walls allow (a wall at the minimum), and that is said on stderr and in the report
+    target = summary["growth_target"]
+    assert target["volume_ml"] == pytest.approx(45.0) and not target["reached"]
+    assert target["sizing"]["at_walls_limit"] and min(summary["walls_mm"].values()) < 2.5
+    assert "warning: the growth target (45.0 ml at 3 kPa) is not reached" in err
+    assert "the largest the 2 mm walls allow" in err
+    assert "the growth target (45.0 ml at 3 kPa) is not reached" in (out / "report.md").read_text()
+    # the split plane searched leaves less undercut than the coronal one
+    assert summary["cast"]["undercut_mm2"] < summary["cast"]["coronal_undercut_mm2"]
     assert summary["outer_surface_mean_distance_mm"] < 0.5
     # the wider lobe (patient's left, +x in the phantom's frame) gets the larger chamber
     left, right = summary["chambers"][1]["volume_ml"], summary["chambers"][2]["volume_ml"]
@@ -100,7 +110,8 @@ def test_the_builtin_outer_surface_gives_back_the_builtin_model(tmp_path, capsys
     vertices, triangles = body_surface_mesh_mm(1.0)
     source = tmp_path / "builtin.stl"
     trimesh.Trimesh(vertices, triangles, process=False).export(str(source))
-    status, _, err = run(capsys, "design", str(source), "--out", str(tmp_path / "d"), "--growth-kpa", "none")
+    status, _, err = run(capsys, "design", str(source), "--out", str(tmp_path / "d"), "--growth-kpa", "none",
+                         "--chamber-scale", "1")
     assert status == 0, err
     results = []
     for scene in (str(tmp_path / "d" / "scene.toml"), "builtin:prostate"):
@@ -246,7 +257,7 @@ def test_a_shape_written_as_the_shape_analysis_writes_its_average_designs(tmp_pa
     average = surface_of(occupancy, voxel_mm).mirrored_x()
     path = write_surface(average.vertices_mm, average.triangles, tmp_path / "avg.stl")
     status, printed, err = run(capsys, "design", str(path), "--out", str(tmp_path / "d"), "--size-mm", "4",
-                               "--growth-kpa", "1", "--json")
+                               "--growth-kpa", "1", "--chamber-scale", "1", "--json")
     assert status == 0, err
     summary = json.loads(printed)
     assert summary["growth"]["gland_volumes_ml"][0] > summary["rest_volume_ml"]
@@ -262,7 +273,7 @@ def test_a_10_node_design_solves_and_says_what_it_wrote(tmp_path, capsys):
     trimesh.Trimesh(vertices, triangles, process=False).export(str(source))
     out = tmp_path / "d"
     status, printed, err = run(capsys, "design", str(source), "--out", str(out), "--size-mm", "5",
-                               "--element-order", "2", "--growth-kpa", "1")
+                               "--element-order", "2", "--growth-kpa", "1", "--chamber-scale", "1")
     assert status == 0, err
     assert f"wrote {out}/scene.toml" in printed and "thinnest wall" in printed
     summary = json.loads((out / "design.json").read_text())

@@ -16,13 +16,13 @@ def register(subparsers: Subcommands) -> None:
     """Add ``design`` to the ``phantom`` parser."""
     parser = subparsers.add_parser(
         "design", help="a phantom from a patient's shape: MRI mask or closed mesh to a model, a scene and a cast",
-        description="The paper's design step. From FROM (a NIfTI label mask in the pelvic MRI dataset's layout, or "
-                    "a closed mesh in mm in the phantom's frame, e.g. what phantom shape average writes): the "
-                    "gland's surface (largest component, smoothed without shrinking, base up, scaled to "
-                    "--volume-ml), the built-in prostate's three chambers laid into its anatomy and shrunk until "
-                    "every wall is at least --min-wall-mm, a tagged tetrahedral mesh and a scene that phantom "
-                    "forward, inverse, calibrate and the daemon accept, the cast's STLs (two mould halves, a wax "
-                    "core per chamber) and report.md. Minutes at the default mesh size.")
+        description=("The paper's design step. From FROM (a NIfTI label mask in the pelvic MRI dataset's layout, or a "
+                    "closed mesh in mm in the phantom's frame, e.g. what phantom shape average writes): the gland's "
+                    "surface (largest component, smoothed without shrinking, base up, scaled to --volume-ml), the "
+                    "built-in prostate's chambers (--chambers) laid into its anatomy, sized so the model reaches the "
+                    "growth target (else as large as walls of --min-wall-mm allow), a tagged tetrahedral mesh and a "
+                    "scene that phantom forward, inverse, calibrate and the daemon accept, the cast's STLs (two mould"
+                    " halves, a wax core per chamber) and report.md. Minutes at the default mesh size."))
     parser.add_argument("source", metavar="FROM", help="a NIfTI mask or label map (.nii, .nii.gz), or a closed "
                                                        "mesh (.stl, .obj, .ply; mm, the phantom's frame)")
     parser.add_argument("--out", required=True, metavar="DIR", help="folder to write (created)")
@@ -30,9 +30,17 @@ def register(subparsers: Subcommands) -> None:
                         help="the gland's volume to scale to (default 26.3, the paper's average prostate)")
     parser.add_argument("--min-wall-mm", type=float, default=2.0,
                         help="the thinnest wall, chamber to surface and chamber to chamber (default 2)")
-    parser.add_argument("--chamber-scale", type=float, default=1.0,
-                        help="the chambers' size, times the built-in prostate's proportions (default 1; walls "
-                             "below the minimum shrink them further)")
+    parser.add_argument("--chambers", default="base,left,right",
+                        help="which of the built-in prostate's chambers to design, comma-separated (default "
+                             "base,left,right; any non-empty subset)")
+    parser.add_argument("--growth-target-ml", type=float, default=None,
+                        help="the grown gland's volume the chambers are sized for (default: the paper's 45 ml from "
+                             "26.3, scaled to --volume-ml)")
+    parser.add_argument("--growth-target-kpa", type=float, default=3.0,
+                        help="the pressure in every chamber at which the target is to be reached (default 3)")
+    parser.add_argument("--chamber-scale", type=float, default=None,
+                        help="fix the chambers' size instead of sizing them to the target: times the built-in "
+                             "prostate's proportions (walls below the minimum shrink them further)")
     parser.add_argument("--labels", default=None,
                         help="the gland's label numbers in a label map (a dataset *_mask.nii defaults to 4,5)")
     parser.add_argument("--size-mm", type=float, default=2.5, help="element size of the mesh (default 2.5)")
@@ -47,6 +55,9 @@ def register(subparsers: Subcommands) -> None:
     parser.add_argument("--growth-kpa", default="0.5,1,1.5,2,2.5,3",
                         help="pressures of the predicted growth curve, kPa (default 0.5,1,...,3; 'none' skips "
                              "the solves)")
+    parser.add_argument("--shape-run", default=None, metavar="RUN",
+                        help="a trained shape run (phantom shape train): report the source's latent distance to "
+                             "the run's population average (in its spread, and its percentile among the cases)")
     parser.add_argument("--json", action="store_true", help="print the design's figures as one JSON object")
     parser.set_defaults(run=run_design)
 
@@ -54,8 +65,10 @@ def register(subparsers: Subcommands) -> None:
 def run_design(args: argparse.Namespace) -> int:
     """Handler of ``phantom design``."""
     import json
+    import sys
 
     from phantom.cli.common import parse_numbers
+    from phantom.design.chambers import parse_chamber_kinds
     from phantom.design.errors import DesignError
     from phantom.design.pipeline import DesignOptions, design, design_summary
 
@@ -71,10 +84,16 @@ def run_design(args: argparse.Namespace) -> int:
         if any(not 0 < value <= 3.0 for value in growth):
             raise DesignError(f"--growth-kpa takes pressures above 0 and up to 3 kPa (the phantom's limit); got "
                               f"{args.growth_kpa!r}")
+    if args.chamber_scale is not None and args.growth_target_ml is not None:
+        raise DesignError("--chamber-scale fixes the chambers' size and --growth-target-ml sizes them: give one")
     options = DesignOptions(args.volume_ml, args.min_wall_mm, args.chamber_scale, args.size_mm, args.element_order,
-                            args.fixation_radius_mm, args.stem_diameter_mm, labels, args.smooth_iterations, growth)
+                            args.fixation_radius_mm, args.stem_diameter_mm, labels, args.smooth_iterations, growth,
+                            args.growth_target_ml, args.growth_target_kpa, parse_chamber_kinds(args.chambers),
+                            args.shape_run)
     result = design(args.source, args.out, options,
                     progress=(lambda line: None) if args.json else (lambda line: print(line, flush=True)))
+    for warning in result.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
     if args.json:
         print(json.dumps(design_summary(result)))
         return 0
@@ -83,6 +102,10 @@ def run_design(args: argparse.Namespace) -> int:
           + ", ".join(f"{volume:.2f}" for volume in result.chamber_volumes_ml)
           + f" ml; thinnest wall {thinnest:.2f} mm ({name}); outer surface {result.surface_distance_mm:.3f} mm from "
           f"the source's; silicone {result.cast.silicone_ml:.1f} ml")
+    if result.latent is not None:
+        print(f"latent distance to the population's average: {result.latent.distance:.3f} "
+              f"({result.latent.in_spreads:.2f} spreads; the {result.latent.percentile:.0f}th percentile of the run's "
+              f"{result.latent.cases} cases)")
     for note in result.notes:
         print(f"note: {note}")
     print(f"wrote {result.out}/scene.toml (try: phantom forward --scene {result.out}/scene.toml --pressures-kpa "
