@@ -27,11 +27,15 @@ lint:
 # follow the editable install's import hook, so the package's folders are mapped into one tree under .cache/ first.
 PARTS := $(wildcard protocol model scan shape host hil design)
 MYPY_TREE := .cache/mypy-src/phantom
+# mypy's cache lives with the project's other caches (phantom.cache_dir's root: $PHANTOM_CACHE_DIR, else
+# $XDG_CACHE_HOME/phantom or ~/.cache/phantom), so a fresh clone on this machine starts warm: 36 s of CPU cold,
+# 0.6 s warm. mypy checks each module's contents against the cache, so clones with different code share it safely.
+MYPY_CACHE := $(or $(PHANTOM_CACHE_DIR),$(or $(XDG_CACHE_HOME),$(HOME)/.cache)/phantom)/mypy
 types:
 	@mkdir -p $(MYPY_TREE)
 	@for f in __init__.py __main__.py cli; do ln -sfn ../../../phantom/$$f $(MYPY_TREE)/$$f; done
 	@for d in $(PARTS); do ln -sfn ../../../$$d $(MYPY_TREE)/$$d; done
-	$(VENV)/bin/mypy -m phantom -m phantom.__main__ -p phantom.cli $(addprefix -p phantom.,$(PARTS))
+	$(VENV)/bin/mypy --cache-dir $(MYPY_CACHE) -m phantom -m phantom.__main__ -p phantom.cli $(addprefix -p phantom.,$(PARTS))
 
 # The generated protocol files (messages.py, protocol_generated.h) must match protocol/spec.toml.
 protocol-check:

@@ -367,6 +367,7 @@ def test_a_measurements_medium_column_says_where_each_point_hung(tmp_path):
         load_measurements(path)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("medium", ["air", "water"])
 def test_a_ray_traced_under_gravity_is_the_full_solve_at_the_modulus_its_load_factor_stands_for(medium):
     """E is a load factor only if the body force scales with it too: the state at pressures p, weight b and

@@ -146,6 +146,7 @@ def test_a_stiffer_phantom_is_corrected_by_its_growth_and_the_inverse_then_hits_
         fit_correction([], grid)
 
 
+@pytest.mark.slow
 def test_one_scan_gives_an_offset_and_a_field_meets_a_bump_the_growth_cannot():
     grid = _linear_grid()
     one = fit_correction([Measurement((1.0, 1.0, 1.0), 26.5)], grid)

@@ -253,31 +253,17 @@ kernels.internal_forces(nodes, nodes, tets, dm_inverse, stiffness, True, 0, np.z
 
 
 @pytest.mark.slow
-def test_the_compiling_message_is_printed_only_when_numba_compiles(tmp_path):
+def test_numba_forgets_the_kernels_it_compiled_when_the_laws_they_inline_change(tmp_path):
     """With no build ahead of time, importing the kernels says numba will compile them unless numba's cache has
     them: the cache NUMBA_CACHE_DIR names when a parent process set it (pytest, a daemon), not the phantom cache's
-    own folder, else a second process announced a compilation that never came (a stray second line on stderr)."""
-    import os
-    import subprocess
-    import sys
+    own folder (each process here gets a phantom cache of its own), else a second process announced a compilation
+    that never came (a stray second line on stderr).
 
-    numba_cache = tmp_path / "numba"
-    message = "compiling the model's kernels with numba"
-    for run in ("first", "second"):
-        environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / run), NUMBA_CACHE_DIR=str(numba_cache),
-                           PHANTOM_JIT_KERNELS="1")
-        imported = subprocess.run([sys.executable, "-c", ONE_ELEMENT_FORCES], env=environment, capture_output=True,
-                                  text=True, timeout=240)
-        assert imported.returncode == 0, imported.stderr
-        assert (message in imported.stderr) == (run == "first"), (run, imported.stderr)
-
-
-@pytest.mark.slow
-def test_numba_forgets_the_kernels_it_compiled_when_the_laws_they_inline_change(tmp_path):
-    """numba keys a kernel's cache by the kernel's own file, but the kernels compile in the laws of materials.py:
+    numba keys a kernel's cache by the kernel's own file, but the kernels compile in the laws of materials.py:
     a stamp of both files' digest beside numba's cache says whose code it holds, and when it is another's (an
     edited materials.py) the kernels' cache is emptied and compiled again (the message says so), and the stamp
-    renewed."""
+    renewed. (One test for both: each compilation from an empty cache takes tens of seconds.)"""
+    import itertools
     import os
     import subprocess
     import sys
@@ -285,11 +271,12 @@ def test_numba_forgets_the_kernels_it_compiled_when_the_laws_they_inline_change(
     from phantom.model.fem.jit import sources_digest
 
     numba_cache = tmp_path / "numba"
-    environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / "cache"), NUMBA_CACHE_DIR=str(numba_cache),
-                       PHANTOM_JIT_KERNELS="1")
     message = "compiling the model's kernels with numba"
+    runs = itertools.count()
 
     def announced():
+        environment = dict(os.environ, PHANTOM_CACHE_DIR=str(tmp_path / f"cache{next(runs)}"),
+                           NUMBA_CACHE_DIR=str(numba_cache), PHANTOM_JIT_KERNELS="1")
         run = subprocess.run([sys.executable, "-c", ONE_ELEMENT_FORCES], env=environment, capture_output=True,
                              text=True, timeout=240)
         assert run.returncode == 0, run.stderr

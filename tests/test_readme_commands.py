@@ -26,8 +26,6 @@ from daemon_rig import wait_ready
 
 from phantom.cli.main import build_parser, join_list_values
 
-pytestmark = [pytest.mark.sim, pytest.mark.slow]
-
 ROOT = Path(__file__).resolve().parent.parent
 PHANTOM = Path(sys.executable).with_name("phantom")
 #: Subcommands that talk to a running daemon.
@@ -113,6 +111,8 @@ def default_daemon(tmp_path_factory, default_model_cached):
 RUNNABLE = [(where, line) for where, line in LINES if shlex.split(line)[1] in CLIENTS | RUN_OFFLINE]
 
 
+@pytest.mark.sim
+@pytest.mark.slow
 @pytest.mark.parametrize(("where", "line"), RUNNABLE, ids=[where for where, _ in RUNNABLE])
 def test_every_readme_client_and_inverse_line_runs(default_daemon, where, line):
     environment = {**os.environ, "PHANTOM_SOCKET": str(default_daemon)}

@@ -26,7 +26,7 @@ from phantom.hil.plant import (
 )
 from phantom.hil.sim import SimulatedBoard
 
-pytestmark = [pytest.mark.timeout(300), pytest.mark.sim]
+pytestmark = [pytest.mark.timeout(300)]
 
 
 def _air_volumes_ml(plant, pressures_pa):
@@ -54,6 +54,7 @@ def test_the_shipped_truth_passes_through_the_measured_phantoms_volumes():
                          - (measured_ml - measured_ml[0]))) < 0.01
 
 
+@pytest.mark.slow
 def test_the_shipped_truth_grows_with_every_pressure_and_its_chambers_hold_the_growth():
     from phantom.model import PhantomModel, load_scene
 
@@ -119,6 +120,7 @@ def test_the_truth_shape_has_the_truths_volume():
     assert enclosed_volume_ml(TruthShape(plant_path=None).surface([0.0, 0.0, 0.0])) < rest_ml - 0.1
 
 
+@pytest.mark.sim
 def test_the_board_plant_follows_the_truth_not_the_controllers_linear_model():
     plant = load_plant()
     with SimulatedBoard(speed=2.0, seed=3) as board, BoardLink(board.port, time_scale=2.0) as link:
