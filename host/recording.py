@@ -77,7 +77,8 @@ MEASURED_WIDTH = 1.5
 #: chamber's colour. Widths in points.
 GLAND_SERIES = {"commanded_ml": ("target", (128, 128, 128, 120), 7.0),
                 "estimated_ml": ("estimate", (204, 121, 167, 255), 1.5),
-                "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5)}
+                "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5),
+                "scanned_ml": ("scanned (measured)", (0, 158, 115, 255), 12.0)}
 #: Surfaces: the deformed phantom (tissue pink, slightly translucent so that the rest shape shows through where
 #: the gland has grown over it) and its rest shape (a pale blue ghost).
 MESH_RGBA = (235, 150, 140, 200)
@@ -434,8 +435,9 @@ class Recorder:
         for series, (label, colour, width) in GLAND_SERIES.items():
             # the target as dots (10 Hz, dense enough to read as a line): where there is none (vented, or a
             # pressure target with no prediction) no dots, where a line would bridge the gap
-            style = rr.SeriesPoints(colors=[colour], names=[label], marker_sizes=[width / 2]) if series == (
-                "commanded_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
+            # the scans as big dots: one a scan, where a line would join scans minutes apart
+            style = rr.SeriesPoints(colors=[colour], names=[label], marker_sizes=[width / 2]) if series in (
+                "commanded_ml", "scanned_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
             log(f"volume/{series}", style, static=True)
         log("phantom", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
@@ -557,6 +559,13 @@ class Recorder:
         if chamber_ml is not None:
             for part, volume_ml in zip(self.parts, chamber_ml, strict=True):
                 self._scalar(f"volume/chambers/{part}_ml", volume_ml)
+
+    def log_scanned_volume(self, time_s: float, volume_ml: float) -> None:
+        """A scan's gland volume (ml, reconstructed: measured) on the volume plot, at the time of the scan."""
+        if not self.enabled:
+            return
+        self._at(time_s)
+        self._scalar("volume/scanned_ml", volume_ml)
 
     def log_link(self, time_s: float, rtt_ms: float | None, retries: int, bad_frames: int, dropped: int) -> None:
         """Round-trip time (ms) and the link's cumulative counters."""
