@@ -361,6 +361,11 @@ class ControlCore:
         return self._solving is not None
 
     @property
+    def verifying(self) -> bool:
+        """Whether a verified target is being scanned or corrected (a scene's clock waits meanwhile)."""
+        return self._rounds is not None and bool(self._rounds.rounds)
+
+    @property
     def target_applied(self) -> bool:
         """Whether the board holds the current target's setpoints (acknowledged, not lost since)."""
         return self.target is not None and self.applied == self.target and self.board_ready
@@ -381,8 +386,9 @@ class ControlCore:
         self._next(now)
 
     def want(self, now: float, target: Target, source: str, step: int | None = None,
-             ramp: tuple[Target, Target] | None = None) -> None:
-        """Aim at ``target`` (a scene's, while the state is ``scene``): applied as soon as the board can take it."""
+             ramp: tuple[Target, Target] | None = None, verify: Verify | None = None) -> None:
+        """Aim at ``target`` (a scene's, while the state is ``scene``): applied as soon as the board can take it;
+        with ``verify`` (a scene step's), verified by scans once reached."""
         if target == self.target and source == self.source:
             ramp_ended = self.ramp is not None and ramp is None
             self.step, self.ramp = step, ramp
@@ -390,6 +396,8 @@ class ControlCore:
                 self._start_reach(now)  # a ramp that ends on the point it last sent
             return
         self._set_target(now, target, source, step, ramp, None)
+        if verify is not None and target.gland_volume_m3 is not None:
+            self._rounds = _Rounds(verify, target.gland_volume_m3 * ML_PER_M3, target.gland_volume_m3 * ML_PER_M3)
         self._next(now)
 
     def solved(self, now: float, target: Target, answer: InverseResult) -> None:

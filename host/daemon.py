@@ -195,6 +195,10 @@ class Daemon:
         if self.verify_scanner is None or "scan" not in self.api.handlers:
             return ("this daemon has no scanner to verify a target with (`phantom daemon` gives its `scan` method; "
                     "a daemon started without one cannot): set the target without verify")
+        if self.sim_board is None and self.verify_scanner.plan.get("camera", "virtual") == "virtual":
+            return ("this daemon drives a real board, and its verify scan's camera is the virtual one, which "
+                    "photographs only the simulated phantom: scan with a real camera and rig (README.md, \"A "
+                    "verified volume on a real rig\"), or set the target without verify")
         return None
 
     async def _scan_for_core(self, action: control.Scan) -> None:
@@ -448,8 +452,10 @@ class Daemon:
         if was_active and not self.scenes.active:
             self._feed(self.core.scene_ended, "finished")
         if target is not None and run is not None and self.core.state is ControlState.SCENE:
-            self._feed(self.core.want, target, f"scene:{run.name}", self.scenes.step_index(), self.scenes.ramp())
+            self._feed(self.core.want, target, f"scene:{run.name}", self.scenes.step_index(), self.scenes.ramp(),
+                       self.scenes.verify())
         self._feed(self.core.tick)
+        self.scenes.hold(self.core.verifying)
         self.table.report_tick(self.now_s())
         self.estimates.tick(self.now_s(), self.clock(), self.wants_shape(), self.spawn)
         self._publish_status_tick()

@@ -137,6 +137,11 @@ class ApiHandlers:
                                                    daemon.model.info.effective_model, daemon.model.info.scene_path)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
+        verified = [index for index, step in enumerate(prepared.timeline.steps) if step.verify is not None]
+        why = daemon.verify_refusal() if verified else None
+        if why is not None:
+            raise ApiError("invalid_params", f"{path}: steps {', '.join(map(str, verified))} scan (verify or scan): "
+                                             f"{why}; the scene was not started")
         return daemon.start_scene(prepared)
 
 

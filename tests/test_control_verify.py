@@ -66,7 +66,8 @@ def test_a_miss_is_corrected_applied_again_and_scanned_again_until_within(core):
     (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
     assert told.data["outcome"] == "reached" and told.data["scanned_volume_ml"] == 39.96
     assert [r["scanned_volume_ml"] for r in told.data["rounds"]] == [38.8, 39.96]
-    assert told.data["rounds"][0]["next"] == "41.200 ml: moved" and told.data["rounds"][1]["asked_ml"] == pytest.approx(41.2)
+    assert told.data["rounds"][0]["next"] == "41.200 ml: moved"
+    assert told.data["rounds"][1]["asked_ml"] == pytest.approx(41.2)
 
 
 def test_the_round_limit_ends_it_not_verified_and_holds_the_pressures(core):
