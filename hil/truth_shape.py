@@ -6,6 +6,9 @@ phantom's volumes, tabulated in hil/plant.toml). :class:`TruthShape` solves that
 surface at the pressures the plant holds and scales it about its centre to the plant's gland volume there (the
 residual has a volume, not a shape: the model's shape is the best guess of where it goes), which the virtual
 camera photographs; so a simulated scan sees the phantom as it is, not as the controller's model predicts it.
+The FE solves run in a process of their own (:class:`_SolverProcess`): a CHOLMOD factorisation holds the
+interpreter's lock for 1.4-3.6 s (measured on the loaded two-core machine), which in the daemon's process (its
+``scan`` renders the truth) starved the board's link into DEAD_HOST.
 
 :class:`ScannerBoard` is the simulated board (:class:`phantom.hil.sim.SimulatedBoard`) whose stepper drivers
 turn the scanner of ``phantom.protocol.motion.SCANNER_AXES`` (its steps per turn set in the harness at start),
@@ -15,6 +18,8 @@ drivers took).
 
 from __future__ import annotations
 
+import weakref
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +40,40 @@ REUSE_KPA = 0.01
 REUSE_SCALED_KPA = 0.1
 
 
+class _SolverProcess:
+    """The truth model's equilibria solved in one worker process (spawned: the daemon has threads), which builds
+    its own copy of the model once; the caller waits without holding the interpreter's lock."""
+
+    def __init__(self, scene: str, modulus_factor: float, mesh_size_mm: float | None):
+        import multiprocessing
+
+        self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_build_worker_model,
+                                        initargs=(scene, modulus_factor, mesh_size_mm))
+        weakref.finalize(self, self.pool.shutdown, wait=False, cancel_futures=True)
+
+    def positions_m(self, pressures_pa: np.ndarray, start: np.ndarray | None) -> np.ndarray:
+        positions: np.ndarray = self.pool.submit(_worker_positions_m, pressures_pa, start).result()
+        return positions
+
+
+#: The worker process's truth model (built by its initializer).
+_WORKER_MODEL: Any = None
+
+
+def _build_worker_model(scene: str, modulus_factor: float, mesh_size_mm: float | None) -> None:
+    global _WORKER_MODEL
+    from phantom.model import PhantomModel, load_scene
+
+    model = PhantomModel.from_scene(load_scene(scene), mesh_size_mm=mesh_size_mm)
+    _WORKER_MODEL = model.with_material(youngs_modulus_pa=model.material.youngs_modulus_pa * modulus_factor)
+
+
+def _worker_positions_m(pressures_pa: np.ndarray, start: np.ndarray | None) -> np.ndarray:
+    positions: np.ndarray = _WORKER_MODEL.equilibrium(pressures_pa, initial_positions_m=start).positions_m
+    return positions
+
+
 class TruthShape:
     """The truth model's outer surface (mm, the phantom's frame) at chamber pressures."""
 
@@ -51,6 +90,7 @@ class TruthShape:
         self.description = f"{scene} with E x {modulus_factor:g}" + (
             "" if self.plant is None else f", scaled to the gland volume of {self.plant.path}")
         self.surface_nodes, self.triangles = self.model.outer_surface()
+        self._solver = _SolverProcess(str(scene), modulus_factor, mesh_size_mm)
         self._last: tuple[np.ndarray, np.ndarray, TriangleMesh] | None = None
         self.solves = 0
 
@@ -65,10 +105,10 @@ class TruthShape:
             shape = self._last[2]
         else:
             start = None if self._last is None else self._last[1]
-            state = self.model.equilibrium(pressures * 1e3, initial_positions_m=start)
+            positions_m = self._solver.positions_m(pressures * 1e3, start)
             self.solves += 1
-            shape = TriangleMesh(state.positions_m[self.surface_nodes] * 1e3, self.triangles.astype(np.int64))
-            self._last = (pressures, state.positions_m, shape)
+            shape = TriangleMesh(positions_m[self.surface_nodes] * 1e3, self.triangles.astype(np.int64))
+            self._last = (pressures, positions_m, shape)
         return shape if wanted_ml is None else scaled_to_volume(shape, wanted_ml)
 
     def gland_volume_ml(self, pressures_kpa: list[float] | np.ndarray) -> float:

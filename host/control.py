@@ -568,14 +568,17 @@ class ControlCore:
         self._next(now)
 
     def scanned(self, now: float, round_: int, volume_ml: float | None, error: str | None = None,
-                folder: str | None = None) -> None:
-        """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``."""
+                folder: str | None = None, true_ml: float | None = None) -> None:
+        """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``;
+        ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round."""
         rounds, reach = self._rounds, self._reach
         if rounds is None or reach is None or rounds.doing != "scanning" or len(rounds.rounds) != round_:
             return  # the verification ended meanwhile (a fault, a vent, another target): its scan is not used
         rounds.doing = None
         entry = rounds.rounds[-1]
         entry["scan"] = folder
+        if true_ml is not None:
+            entry["true_volume_ml"] = true_ml
         described = reach.target.describe()
         if error is not None or volume_ml is None or not np.isfinite(volume_ml) or volume_ml <= 0:
             entry["scan_error"] = error or f"the reconstruction gave no volume ({volume_ml!r})"

@@ -221,7 +221,7 @@ class Daemon:
             self._feed(self.core.scanned, action.round, None, str(error), folder)
             return
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
-        self._feed(self.core.scanned, action.round, volume_ml, None, folder)
+        self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
 
     async def _correct_for_core(self, action: control.Correct) -> None:
         """A verified target's miss: the scan recorded as a measurement when the model can take one, then the
