@@ -758,11 +758,16 @@ class ControlCore:
             return
         gland_ml, chamber_ml = reach.estimate
         rounds = self._rounds
-        # a verified target's later rounds are judged by the scan, not by the estimate (their pressures are
-        # solved for a corrected model or a shifted volume)
-        if (rounds is None or not rounds.rounds) and not estimate_within(reach.target, self.answer, gland_ml,
-                                                                         chamber_ml, reach.tolerance_pct):
-            return
+        if rounds is None:
+            if not estimate_within(reach.target, self.answer, gland_ml, chamber_ml, reach.tolerance_pct):
+                return
+        elif self.answer is not None:
+            # a scan carves the intersection of its pictures: one taken before the phantom came to its volume
+            # would trim the hull, so the estimate must have come to the round's own answer (its pressures are
+            # solved for a corrected model or a shifted volume) within the verify tolerance first
+            wanted_ml = predicted_volume_ml(self.answer)
+            if abs(gland_ml - wanted_ml) > min(reach.tolerance_pct, rounds.verify.tolerance_pct) / 100.0 * wanted_ml:
+                return
         pressures_kpa = [float(p) / PA_PER_KPA for p in measured_pa]
         extra = {"estimated_volume_ml": gland_ml,
                  "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,

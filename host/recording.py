@@ -73,12 +73,12 @@ SETPOINT_ALPHA = 110
 SETPOINT_WIDTH = 6.0
 MEASURED_WIDTH = 1.5
 #: Gland volume series, in drawing order: target (wide translucent grey dots, under the others; dots so that no
-#: line bridges a time without a target), estimate (purple), the simulated plant's true volume (blue); none is a
-#: chamber's colour. Widths in points.
+#: line bridges a time without a target), estimate (purple), each scan's volume (big green dots, one a scan),
+#: the simulated plant's true volume (blue); none is a chamber's colour. Widths in points.
 GLAND_SERIES = {"commanded_ml": ("target", (128, 128, 128, 120), 7.0),
                 "estimated_ml": ("estimate", (204, 121, 167, 255), 1.5),
-                "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5),
-                "scanned_ml": ("scanned (measured)", (0, 158, 115, 255), 12.0)}
+                "scanned_ml": ("scanned (measured)", (0, 158, 115, 255), 12.0),
+                "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5)}
 #: Surfaces: the deformed phantom (tissue pink, slightly translucent so that the rest shape shows through where
 #: the gland has grown over it) and its rest shape (a pale blue ghost).
 MESH_RGBA = (235, 150, 140, 200)
