@@ -127,3 +127,12 @@ def test_a_recording_scan_is_one_round_whatever_it_measures(core):
     (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
     assert told.data["outcome"] == "reached" and told.data["scanned_volume_ml"] == 38.8
     assert told.data["verified"] is False   # recorded, not verified
+
+
+def test_the_shift_follows_the_phantoms_own_growth_per_ml_asked():
+    one = [{"asked_ml": 40.0, "scanned_volume_ml": 38.94}]
+    assert control.shifted_ml(one, 40.0) == pytest.approx(41.06)           # one round: the plain error
+    two = one + [{"asked_ml": 41.06, "scanned_volume_ml": 39.68}]          # the sim run's: 0.70 ml per ml
+    assert control.shifted_ml(two, 40.0) == pytest.approx(41.06 + 0.32 / (0.74 / 1.06))
+    noisy = one + [{"asked_ml": 41.06, "scanned_volume_ml": 38.95}]        # a secant of noise: not trusted
+    assert control.shifted_ml(noisy, 40.0) == pytest.approx(41.06 + 1.05)
