@@ -48,6 +48,9 @@ STEP_TOLERANCE_PCT = 1.0
 #: verify tolerance (0.3 %) is on the scanned volume, which the scanner's own error (0.03-0.16 %) separates from
 #: the true one.
 VERIFIED_TRUE_TOLERANCE_PCT = 0.3
+#: How long one verified volume may take (s): a round (a scan of 60 pictures, its reconstruction, the pressures
+#: settling again) took 1 to 5 minutes on the two cores, idle to loaded.
+VERIFY_TIMEOUT_S = 1800.0
 
 
 def daemon_command(scene: str, out: Path) -> list[str]:
@@ -137,7 +140,7 @@ def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]
         print(f"  verifying {target_ml:g} ml: reach on pressure, scan, correct ...", file=sys.stderr, flush=True)
         started_s = time.monotonic()
         try:
-            result = daemon.set_volume(target_ml, verify="scan")
+            result = daemon.set_volume(target_ml, verify="scan", timeout_s=VERIFY_TIMEOUT_S)
         except DaemonError as error:
             rounds = list(getattr(error, "rounds", []))
             rows.append({"target_ml": target_ml, "rounds": rounds, "error": str(error),
