@@ -88,3 +88,16 @@ def test_the_scene_clock_waits_while_a_step_scans():
     assert runner.scene_time_s() == pytest.approx(15.0)
     now[0] = 50.0
     assert runner.tick() is None and runner.run.finished      # 20 s of scene time, 30 s held beside it
+
+
+@pytest.mark.parametrize("line, words", [
+    (["set", "--pressures-kpa", "1,1,1", "--verify", "scan"], "give --volume-ml"),
+    (["set", "--volume-ml", "40", "--verify-rounds", "2"], "go with --verify scan"),
+])
+def test_the_command_line_refuses_verify_where_it_cannot_be_before_connecting(line, words):
+    from phantom import PhantomError
+    from phantom.cli.main import build_parser
+
+    args = build_parser().parse_args([*line, "--socket", "/nonexistent/d.sock"])
+    with pytest.raises(PhantomError, match=words):
+        args.run(args)
