@@ -21,6 +21,7 @@ import asyncio
 import dataclasses
 import itertools
 import logging
+import re
 import time
 from collections import deque
 from collections.abc import Coroutine
@@ -73,6 +74,17 @@ class VerifyScanner(Protocol):
         """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml`` and ``mesh`` (the
         surface's file); PhantomError when it cannot be (a picture without the phantom, a hull not closed)."""
         ...
+
+
+#: The reachable range an unreachable volume's message states (phantom.model.target's inverse).
+REACHABLE_RANGE = re.compile(r"give (-?[\d.]+) to (-?[\d.]+) ml")
+#: How far inside the reachable range a volume asked at its edge is (ml).
+EDGE_MARGIN_ML = 0.01
+
+
+def _volume(target: Target, volume_ml: float) -> Target:
+    """``target`` (a gland volume, its growth ratio kept) at another volume."""
+    return dataclasses.replace(target, gland_volume_m3=volume_ml / control.ML_PER_M3)
 
 
 def verify_folder(round_: int) -> Path:
@@ -246,9 +258,7 @@ class Daemon:
                     else:
                         how = "the target on the model corrected by the scan"
             if answer is None:
-                shifted = dataclasses.replace(action.target, gland_volume_m3=action.shifted_ml / control.ML_PER_M3)
-                answer = await self.solve(shifted)
-                how = f"{action.shifted_ml:.3f} ml: the volume asked moved by the scan's error"
+                answer, how = await self._solve_shifted(action)
         except ApiError as error:
             self._feed(self.core.correct_failed, action.round, error.code == "unreachable", str(error))
             return
@@ -256,6 +266,22 @@ class Daemon:
             self._feed(self.core.correct_failed, action.round, False, f"the model failed: {error}")
             return
         self._feed(self.core.corrected, action.round, answer, how)
+
+    async def _solve_shifted(self, action: control.Correct) -> tuple[InverseResult, str]:
+        """The volume asked moved by the scan's error, solved; one the model cannot reach (the phantom holds
+        more at rest than the model says) is asked at the edge of the model's reachable range instead."""
+        asked_ml, how = action.shifted_ml, f"{action.shifted_ml:.3f} ml: the volume asked moved by the scan's error"
+        try:
+            return await self.solve(_volume(action.target, asked_ml)), how
+        except ApiError as error:
+            found = REACHABLE_RANGE.search(str(error)) if error.code == "unreachable" else None
+            if found is None:
+                raise
+            low_ml, high_ml = float(found.group(1)), float(found.group(2))
+            edge_ml = min(max(asked_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
+            how = (f"{edge_ml:.3f} ml: the volume asked moved by the scan's error ({asked_ml:.3f} ml) is beyond the "
+                   f"model's reachable {low_ml:g} to {high_ml:g} ml, so its edge")
+            return await self.solve(_volume(action.target, edge_ml)), how
 
     async def _send_setpoints(self, action: control.SendSetpoints) -> None:
         try:

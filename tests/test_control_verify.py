@@ -136,3 +136,27 @@ def test_the_shift_follows_the_phantoms_own_growth_per_ml_asked():
     assert control.shifted_ml(two, 40.0) == pytest.approx(41.06 + 0.32 / (0.74 / 1.06))
     noisy = one + [{"asked_ml": 41.06, "scanned_volume_ml": 38.95}]        # a secant of noise: not trusted
     assert control.shifted_ml(noisy, 40.0) == pytest.approx(41.06 + 1.05)
+
+
+def test_a_shift_beyond_the_models_range_is_asked_at_its_edge():
+    """make demo's 26.5 ml: the phantom at rest holds more than the model (26.43 against 26.30 ml), so the volume
+    asked moved by the scan's error (26.0 ml) is below what the model can reach at 0 kPa."""
+    import asyncio
+    import types
+
+    from phantom.host.api import ApiError
+    from phantom.host.daemon import Daemon
+
+    asked = []
+
+    async def solve(target):
+        asked.append(target.gland_volume_m3 * 1e6)
+        if target.gland_volume_m3 * 1e6 < 26.296:
+            raise ApiError("unreachable", "the gland volume target 25.997 ml is unreachable: pressures between 0 and "
+                                          "[3, 3, 3] kPa give 26.296 to 51.581 ml; ask for a volume in that range")
+        return "answer"
+
+    action = control.Correct(1, volume(26.5), (0.1, 0.0, 0.0), 27.0, "/scans/1", 25.997, (100.0, 0.0, 0.0))
+    answer, how = asyncio.run(Daemon._solve_shifted(types.SimpleNamespace(solve=solve), action))
+    assert answer == "answer" and asked == [pytest.approx(25.997), pytest.approx(26.306)]
+    assert "beyond the model's reachable 26.296 to 51.581 ml, so its edge" in how
