@@ -6,6 +6,9 @@ phantom's volumes, tabulated in hil/plant.toml). :class:`TruthShape` solves that
 surface at the pressures the plant holds and scales it about its centre to the plant's gland volume there (the
 residual has a volume, not a shape: the model's shape is the best guess of where it goes), which the virtual
 camera photographs; so a simulated scan sees the phantom as it is, not as the controller's model predicts it.
+The FE solves run in a process of their own (:class:`_SolverProcess`): a CHOLMOD factorisation holds the
+interpreter's lock for 1.4-3.6 s (measured on the loaded two-core machine), which in the daemon's process (its
+``scan`` renders the truth) starved the board's link into DEAD_HOST.
 
 :class:`ScannerBoard` is the simulated board (:class:`phantom.hil.sim.SimulatedBoard`) whose stepper drivers
 turn the scanner of ``phantom.protocol.motion.SCANNER_AXES`` (its steps per turn set in the harness at start),
@@ -15,6 +18,8 @@ drivers took).
 
 from __future__ import annotations
 
+import weakref
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +33,45 @@ from phantom.protocol.motion import AXES, SCANNER_AXES
 
 #: Pressures closer than this (kPa, every chamber) to the last solved ones reuse its shape.
 REUSE_KPA = 0.01
+#: ... and this, when the shape is scaled to the plant's gland volume (computed at the pressures asked, so the
+#: volume is exact): a shape solved 0.1 kPa away differs from the true one by far less than the scanner resolves,
+#: and a settled phantom's ripple (an ADC count, 0.054 kPa) no longer costs an FE solve per picture (each one
+#: seconds to minutes of a loaded machine, with the daemon's scan waiting on it).
+REUSE_SCALED_KPA = 0.1
+
+
+class _SolverProcess:
+    """The truth model's equilibria solved in one worker process (spawned: the daemon has threads), which builds
+    its own copy of the model once; the caller waits without holding the interpreter's lock."""
+
+    def __init__(self, scene: str, modulus_factor: float, mesh_size_mm: float | None):
+        import multiprocessing
+
+        self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                        initializer=_build_worker_model,
+                                        initargs=(scene, modulus_factor, mesh_size_mm))
+        weakref.finalize(self, self.pool.shutdown, wait=False, cancel_futures=True)
+
+    def positions_m(self, pressures_pa: np.ndarray, start: np.ndarray | None) -> np.ndarray:
+        positions: np.ndarray = self.pool.submit(_worker_positions_m, pressures_pa, start).result()
+        return positions
+
+
+#: The worker process's truth model (built by its initializer).
+_WORKER_MODEL: Any = None
+
+
+def _build_worker_model(scene: str, modulus_factor: float, mesh_size_mm: float | None) -> None:
+    global _WORKER_MODEL
+    from phantom.model import PhantomModel, load_scene
+
+    model = PhantomModel.from_scene(load_scene(scene), mesh_size_mm=mesh_size_mm)
+    _WORKER_MODEL = model.with_material(youngs_modulus_pa=model.material.youngs_modulus_pa * modulus_factor)
+
+
+def _worker_positions_m(pressures_pa: np.ndarray, start: np.ndarray | None) -> np.ndarray:
+    positions: np.ndarray = _WORKER_MODEL.equilibrium(pressures_pa, initial_positions_m=start).positions_m
+    return positions
 
 
 class TruthShape:
@@ -46,24 +90,26 @@ class TruthShape:
         self.description = f"{scene} with E x {modulus_factor:g}" + (
             "" if self.plant is None else f", scaled to the gland volume of {self.plant.path}")
         self.surface_nodes, self.triangles = self.model.outer_surface()
+        self._solver = _SolverProcess(str(scene), modulus_factor, mesh_size_mm)
         self._last: tuple[np.ndarray, np.ndarray, TriangleMesh] | None = None
         self.solves = 0
 
     def surface(self, pressures_kpa: list[float] | np.ndarray) -> TriangleMesh:
-        """The surface at these pressures (kPa, chamber order); warm-started from the last solve, which is
-        reused when every pressure is within REUSE_KPA of it."""
+        """The surface at these pressures (kPa, chamber order); warm-started from the last solve, whose shape is
+        reused when every pressure is within REUSE_KPA of it (REUSE_SCALED_KPA when scaled to the plant's gland
+        volume at these pressures)."""
         pressures = np.asarray(pressures_kpa, dtype=float)
-        if self._last is not None and np.all(np.abs(self._last[0] - pressures) <= REUSE_KPA):
-            return self._last[2]
-        start = None if self._last is None else self._last[1]
-        state = self.model.equilibrium(pressures * 1e3, initial_positions_m=start)
-        self.solves += 1
-        mesh = TriangleMesh(state.positions_m[self.surface_nodes] * 1e3, self.triangles.astype(np.int64))
         wanted_ml = None if self.plant is None else self.plant.truth_gland_volume_ml(pressures * 1e3)
-        if wanted_ml is not None:
-            mesh = scaled_to_volume(mesh, wanted_ml)
-        self._last = (pressures, state.positions_m, mesh)
-        return mesh
+        reuse_kpa = REUSE_KPA if wanted_ml is None else REUSE_SCALED_KPA
+        if self._last is not None and np.all(np.abs(self._last[0] - pressures) <= reuse_kpa):
+            shape = self._last[2]
+        else:
+            start = None if self._last is None else self._last[1]
+            positions_m = self._solver.positions_m(pressures * 1e3, start)
+            self.solves += 1
+            shape = TriangleMesh(positions_m[self.surface_nodes] * 1e3, self.triangles.astype(np.int64))
+            self._last = (pressures, positions_m, shape)
+        return shape if wanted_ml is None else scaled_to_volume(shape, wanted_ml)
 
     def gland_volume_ml(self, pressures_kpa: list[float] | np.ndarray) -> float:
         """The gland volume (ml) of the surface at these pressures."""

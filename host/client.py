@@ -114,6 +114,21 @@ class ConnectionLostError(DaemonError):
     """The daemon closed the connection, or none answers on the socket."""
 
 
+class VerifyError(DaemonError):
+    """A verified target was not verified: a scan failed (``code`` ``scan_failed``: no correction was made from
+    it) or the scanned volume stayed outside the tolerance after the last round (``not_verified``); the pressures
+    are held. ``rounds`` are the rounds taken (each one's pressures and scanned volume)."""
+
+    @property
+    def rounds(self) -> list[dict[str, Any]]:
+        return list(self.data.get("rounds") or [])
+
+
+#: How long a set target is waited for by default (s), and how much longer each verify round (a scan and its
+#: reconstruction, a correction, the pressures settling again; about 30 s on the simulated rig, bench/README.md).
+SET_TIMEOUT_S = 60.0
+VERIFY_ROUND_S = 120.0
+
 _ERRORS: dict[str, type[DaemonError]] = {"unreachable": UnreachableError, "starting": StartingError}
 
 
@@ -259,6 +274,23 @@ class TargetResult:
     measured_pressures_kpa: tuple[float, ...] | None = None
     true_volume_ml: float | None = None
     waited_s: float | None = None
+    #: a verified target: the gland volume the last scan measured (ml), whether it is within the tolerance, and
+    #: each round (``round``, ``asked_ml``, ``setpoints_kpa``, ``pressures_kpa``, ``estimated_volume_ml``,
+    #: ``scanned_volume_ml``, ``scanned_error_pct``, ``scan`` folder, ``next``: what the next round asked)
+    scanned_volume_ml: float | None = None
+    verified: bool | None = None
+    rounds: tuple[dict[str, Any], ...] = ()
+
+    @property
+    def volume_source(self) -> str:
+        """Where :attr:`volume_ml` comes from: ``scan (measured)`` for a verified target, else ``model
+        (estimated)``."""
+        return "scan (measured)" if self.scanned_volume_ml is not None else "model (estimated)"
+
+    @property
+    def volume_ml(self) -> float | None:
+        """The volume reached: the scanned one (measured) when the target was verified, else the estimate."""
+        return self.scanned_volume_ml if self.scanned_volume_ml is not None else self.estimated_volume_ml
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> TargetResult:
@@ -520,10 +552,22 @@ class AsyncPhantom:
     # --- targets ---
 
     async def set_volume(self, volume_ml: float, *, wait: bool = True, tolerance_pct: float = 1.0,
-                         timeout_s: float = 60.0, growth_ratio: dict[str, float] | None = None) -> TargetResult:
+                         timeout_s: float | None = None, growth_ratio: dict[str, float] | None = None,
+                         verify: str | None = None, verify_tolerance_pct: float | None = None,
+                         verify_rounds: int | None = None) -> TargetResult:
         params: dict[str, Any] = {"volume_ml": volume_ml}
         if growth_ratio:
             params["growth_ratio"] = dict(growth_ratio)
+        if verify is not None:
+            params["verify"] = verify
+            if verify_tolerance_pct is not None:
+                params["verify_tolerance_pct"] = verify_tolerance_pct
+            if verify_rounds is not None:
+                params["verify_rounds"] = verify_rounds
+        elif verify_tolerance_pct is not None or verify_rounds is not None:
+            raise PhantomError('verify_tolerance_pct and verify_rounds go with verify="scan"')
+        if timeout_s is None:
+            timeout_s = SET_TIMEOUT_S if verify is None else SET_TIMEOUT_S + VERIFY_ROUND_S * (verify_rounds or 4)
         return await self._set(params, wait, tolerance_pct, timeout_s)
 
     async def set_chamber_volumes(self, volumes_ml: Sequence[float | None], *, wait: bool = True,
@@ -596,11 +640,18 @@ class AsyncPhantom:
             outcome = data["outcome"]
             if outcome == "reached":
                 status = await self.status()
+                scanned = data.get("scanned_volume_ml")
                 return dataclasses.replace(
                     result, estimated_volume_ml=data.get("estimated_volume_ml"),
                     estimated_chamber_volumes_ml=_floats(data.get("estimated_chamber_volumes_ml")),
                     measured_pressures_kpa=_floats(data.get("measured_pressures_kpa")),
-                    true_volume_ml=status.true_volume_ml, waited_s=time.monotonic() - started_s)
+                    true_volume_ml=status.true_volume_ml, waited_s=time.monotonic() - started_s,
+                    scanned_volume_ml=None if scanned is None else float(scanned),
+                    verified=data.get("verified") if "rounds" in data else None,
+                    rounds=tuple(data.get("rounds") or ()))
+            if outcome in ("scan_failed", "not_verified"):
+                raise VerifyError(outcome, str(data.get("text", f"{wanted} was not verified")),
+                                  {"rounds": data.get("rounds") or []})
             if outcome == "faulted":
                 status = await self.status()
                 raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}")
@@ -814,8 +865,10 @@ class Phantom:
         ``timeout_s``."""
         return self._loop.run(self.aio.wait_ready(timeout_s))
 
-    def set_volume(self, volume_ml: float, *, wait: bool = True, tolerance_pct: float = 1.0, timeout_s: float = 60.0,
-                   growth_ratio: dict[str, float] | None = None) -> TargetResult:
+    def set_volume(self, volume_ml: float, *, wait: bool = True, tolerance_pct: float = 1.0,
+                   timeout_s: float | None = None, growth_ratio: dict[str, float] | None = None,
+                   verify: str | None = None, verify_tolerance_pct: float | None = None,
+                   verify_rounds: int | None = None) -> TargetResult:
         """Make the gland ``volume_ml`` (ml): the inverse finds the chamber pressures and the board holds them.
 
         Parameters
@@ -828,11 +881,20 @@ class Phantom:
             second; False: return as soon as the setpoints are sent.
         tolerance_pct : float
             How close the estimate must come (% of the target).
-        timeout_s : float
-            How long to wait (s) before WaitTimeoutError.
+        timeout_s : float, optional
+            How long to wait (s) before WaitTimeoutError: 60 s by default, and 120 s more per round with verify.
         growth_ratio : dict, optional
             How the growth is shared: chamber name or index -> weight (``{"chamber1": 2, "chamber2": 1}``: the
             left lobe grows twice as much as the right).
+        verify : str, optional
+            ``"scan"``: once reached on pressure, scan the phantom and compare the scanned gland volume with the
+            target; outside ``verify_tolerance_pct`` the scan corrects the model (or the volume asked) and the
+            pressures are applied again, for at most ``verify_rounds`` scans. The result's ``volume_ml`` is then
+            the scanned (measured) volume, ``rounds`` each round's pressures and scanned volume.
+        verify_tolerance_pct : float, optional
+            How close the scanned volume must come (% of the target; default 0.3, from 0.05 to 20).
+        verify_rounds : int, optional
+            The most scans (default 4, at most 10).
 
         Raises
         ------
@@ -842,9 +904,15 @@ class Phantom:
             The board latched a fault while waiting (``faults`` names them).
         WaitTimeoutError, TargetReplacedError, DaemonRestartedError
             Not reached in time; another client replaced the target; the daemon restarted meanwhile.
+        VerifyError
+            With verify: a scan failed (no correction made from it), or the scanned volume stayed outside the
+            tolerance after the last round; the pressures are held. DaemonError ``invalid_params`` when the
+            daemon has no scanner.
         """
         return self._loop.run(self.aio.set_volume(volume_ml, wait=wait, tolerance_pct=tolerance_pct,
-                                                  timeout_s=timeout_s, growth_ratio=growth_ratio))
+                                                  timeout_s=timeout_s, growth_ratio=growth_ratio, verify=verify,
+                                                  verify_tolerance_pct=verify_tolerance_pct,
+                                                  verify_rounds=verify_rounds))
 
     def set_chamber_volumes(self, volumes_ml: Sequence[float | None], *, wait: bool = True, tolerance_pct: float = 1.0,
                             timeout_s: float = 60.0) -> TargetResult:

@@ -17,12 +17,14 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
     measured(pressures_pa) / estimated(gland, chambers)   what reached is judged on
     scene_started / scene_ended                     the scene runner's state
     model_changed                                   the model answers on another level: solve again
+    scanned(round, volume_ml, error)                a verified target's scan, reconstructed (or why it failed)
+    corrected(round, answer, how) / correct_failed  the pressures of a verified target's next round
     tick                                            retries and what waits
 
 Actions (:meth:`ControlCore.take_actions`): :class:`Solve`, :class:`SendSetpoints`, :class:`SendVent`,
 :class:`Tell` (an event for people, with an ``outcome`` for the targets clients wait on), :class:`StepApplied`,
 :class:`StepReached`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the reply to an API
-request).
+request), :class:`Scan` and :class:`Correct` (a verified target's rounds).
 
 Setpoints on the board that the daemon did not send (another program on the port, a board that lost its state)
 are a mismatch (:class:`phantom.host.board_watch.SetpointWatch`): the core vents and has the board's gains and
@@ -32,9 +34,13 @@ One send at a time: a vent decided while setpoints are in flight goes out when t
 of reached (:class:`ReachRule`): the pressures within ``settled_kpa`` of the setpoints for ``settled_for_s``, and
 the estimate within ``tolerance_pct`` of what was asked.
 
-The scan loop (issue 36) builds on this core: a verified target is a ``Reached`` outcome followed by a check of
-the estimate against a measurement (the place is :meth:`ControlCore._reach_tick`), and a scan owns the rig by
-offering its targets like the API does.
+A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
+then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
+pressures. A scanned gland volume within the tolerance of the target ends it ``reached`` with the scanned volume
+(the volume reported is MEASURED); one outside asks for a :class:`Correct` (the scan recorded as a measurement,
+the next round's pressures solved), applies that answer, and scans again, up to the round limit (then
+``not_verified``). A failed scan ends it ``scan_failed``: no correction from it, the pressures held. The rounds
+are in the outcome's ``rounds``.
 """
 
 from __future__ import annotations
@@ -170,7 +176,55 @@ class Answer:
     error: tuple[str, str] | None = None
 
 
-Action = Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
+#: The tolerance a verified target may ask for (%): from well above the scanner's own error (0.03-0.16 % on the
+#: verify scan, bench/README.md) to far beyond the model's (5-9 %).
+VERIFY_TOLERANCE_PCT = (0.05, 20.0)
+#: The most scans (rounds) a verified target may take.
+MAX_VERIFY_ROUNDS = 10
+
+
+@dataclass(frozen=True)
+class Verify:
+    """How a target is verified by the scanner: within ``tolerance_pct`` of the scanned gland volume, in at most
+    ``rounds`` scans; ``correct`` False only records one scan (a scene's ``scan = true``)."""
+
+    tolerance_pct: float = 0.3
+    rounds: int = 4
+    correct: bool = True
+
+    def to_json(self) -> dict[str, Any]:
+        return {"verify": "scan" if self.correct else "record", "verify_tolerance_pct": self.tolerance_pct,
+                "verify_rounds": self.rounds}
+
+
+@dataclass(frozen=True)
+class Scan:
+    """Scan the phantom and reconstruct the gland's volume, for round ``round`` (1, 2, ...) of the verified
+    ``target``, held at ``pressures_kpa`` (measured, settled)."""
+
+    round: int
+    target: Target
+    pressures_kpa: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Correct:
+    """The scan of round ``round`` missed: record it as a measurement (``pressures_kpa``, ``scanned_ml``) and
+    solve the next round's pressures: for ``target`` on the corrected model, or, when there is no correction or
+    it leaves the pressures as they were (``setpoints_pa``), for the gland volume ``shifted_ml`` (the volume
+    asked last moved by the scan's error, :func:`shifted_ml`)."""
+
+    round: int
+    target: Target
+    pressures_kpa: tuple[float, ...]
+    scanned_ml: float
+    scan_folder: str | None
+    shifted_ml: float
+    setpoints_pa: tuple[float, ...]
+
+
+Action = (Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
+          | Scan | Correct)
 
 
 @dataclass
@@ -178,6 +232,21 @@ class _Offer:
     request: int
     answer: InverseResult
     tolerance_pct: float | None
+    verify: Verify | None = None
+
+
+@dataclass
+class _Rounds:
+    """A verified target's rounds so far (:class:`Verify`): each one's pressures, asked and scanned volume."""
+
+    verify: Verify
+    target_ml: float
+    asked_ml: float
+    rounds: list[dict[str, Any]] = field(default_factory=list)
+    #: ``scanning`` or ``correcting`` while the driver performs it; None while the pressures settle
+    doing: str | None = None
+    #: the answer of the round being applied (solved for the target or a shifted volume)
+    answer: InverseResult | None = None
 
 
 @dataclass
@@ -222,6 +291,27 @@ def estimate_within(target: Target, answer: InverseResult | None, gland_ml: floa
     return abs(gland_ml - wanted_ml) <= share * wanted_ml
 
 
+#: The phantom's scanned growth per ml the model grows (the secant of two rounds) is trusted within these bounds;
+#: outside them (a scan's noise over a small step) the shift is the plain error.
+SECANT_SLOPE_RANGE = (0.3, 3.0)
+
+
+def shifted_ml(rounds: list[dict[str, Any]], target_ml: float) -> float:
+    """The volume to ask next so that the phantom comes to ``target_ml``: the last round's asked volume moved by
+    its scanned error, divided by how much the scanned volume moved per ml asked between the last two rounds (a
+    secant: the phantom may grow less than the model says; on the simulated phantom 0.70 ml per ml at 40 ml)."""
+    last = rounds[-1]
+    slope = 1.0
+    if len(rounds) >= 2 and "scanned_volume_ml" in rounds[-2]:
+        before = rounds[-2]
+        asked_step = last["asked_ml"] - before["asked_ml"]
+        if abs(asked_step) > 1e-6:
+            secant = (last["scanned_volume_ml"] - before["scanned_volume_ml"]) / asked_step
+            if SECANT_SLOPE_RANGE[0] <= secant <= SECANT_SLOPE_RANGE[1]:
+                slope = secant
+    return float(last["asked_ml"] + (target_ml - last["scanned_volume_ml"]) / slope)
+
+
 class ControlCore:
     """The target, its answer, what the board holds and why a target waits (module docstring)."""
 
@@ -263,6 +353,8 @@ class ControlCore:
         #: the target last told reached (not told again when the board takes it again)
         self._reached: Target | None = None
         self._measured: tuple[float, np.ndarray] | None = None
+        #: the verified target's rounds (None: the target is not verified, or its verification ended)
+        self._rounds: _Rounds | None = None
         self._actions: list[Action] = []
 
     # --- what the driver reads ----------------------------------------------------------------------------
@@ -290,26 +382,34 @@ class ControlCore:
         return self._solving is not None
 
     @property
+    def verifying(self) -> bool:
+        """Whether a verified target is being scanned or corrected (a scene's clock waits meanwhile)."""
+        return self._rounds is not None and bool(self._rounds.rounds)
+
+    @property
     def target_applied(self) -> bool:
         """Whether the board holds the current target's setpoints (acknowledged, not lost since)."""
         return self.target is not None and self.applied == self.target and self.board_ready
 
     # --- inputs -------------------------------------------------------------------------------------------
 
-    def offer(self, now: float, request: int, answer: InverseResult, tolerance_pct: float | None = None) -> None:
+    def offer(self, now: float, request: int, answer: InverseResult, tolerance_pct: float | None = None,
+              verify: Verify | None = None) -> None:
         """An API target, solved: sent when the board is free; on its ACK it replaces the target (and any scene);
-        the request is answered then, or with the error that stopped it (nothing changed then)."""
+        the request is answered then, or with the error that stopped it (nothing changed then). With ``verify``
+        (a gland volume target) it is then verified by scans (module docstring)."""
         if not self.board_ready:
             self._actions.append(Answer(request, error=("link_down", f"no board: {self.board_why}; the target was "
                                                         "not set")))
             return
         self._drop_offer("replaced by a newer set_target before it was sent")
-        self._offer = _Offer(request, answer, tolerance_pct)
+        self._offer = _Offer(request, answer, tolerance_pct, verify)
         self._next(now)
 
     def want(self, now: float, target: Target, source: str, step: int | None = None,
-             ramp: tuple[Target, Target] | None = None) -> None:
-        """Aim at ``target`` (a scene's, while the state is ``scene``): applied as soon as the board can take it."""
+             ramp: tuple[Target, Target] | None = None, verify: Verify | None = None) -> None:
+        """Aim at ``target`` (a scene's, while the state is ``scene``): applied as soon as the board can take it;
+        with ``verify`` (a scene step's), verified by scans once reached."""
         if target == self.target and source == self.source:
             ramp_ended = self.ramp is not None and ramp is None
             self.step, self.ramp = step, ramp
@@ -317,6 +417,8 @@ class ControlCore:
                 self._start_reach(now)  # a ramp that ends on the point it last sent
             return
         self._set_target(now, target, source, step, ramp, None)
+        if verify is not None and target.gland_volume_m3 is not None:
+            self._rounds = _Rounds(verify, target.gland_volume_m3 * ML_PER_M3, target.gland_volume_m3 * ML_PER_M3)
         self._next(now)
 
     def solved(self, now: float, target: Target, answer: InverseResult) -> None:
@@ -354,6 +456,10 @@ class ControlCore:
             self._set_target(now, target, "api", None, None, offer.tolerance_pct)
             self._reached = None  # asked again: told again
             self.answer = offer.answer
+            self._rounds = None
+            if offer.verify is not None and target.gland_volume_m3 is not None:
+                target_ml = target.gland_volume_m3 * ML_PER_M3
+                self._rounds = _Rounds(offer.verify, target_ml, target_ml)
             if changed:
                 pressures = ", ".join(f"{p / PA_PER_KPA:.3f}" for p in offer.answer.pressures_pa)
                 self._tell("target", f"target {target.describe()} -> setpoints {pressures} kPa (predicted "
@@ -482,6 +588,69 @@ class ControlCore:
             self.answer, self.applied = None, None
         self._next(now)
 
+    def scanned(self, now: float, round_: int, volume_ml: float | None, error: str | None = None,
+                folder: str | None = None, true_ml: float | None = None) -> None:
+        """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``;
+        ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round."""
+        rounds, reach = self._rounds, self._reach
+        if rounds is None or reach is None or rounds.doing != "scanning" or len(rounds.rounds) != round_:
+            return  # the verification ended meanwhile (a fault, a vent, another target): its scan is not used
+        rounds.doing = None
+        entry = rounds.rounds[-1]
+        entry["scan"] = folder
+        if true_ml is not None:
+            entry["true_volume_ml"] = true_ml
+        described = reach.target.describe()
+        if error is not None or volume_ml is None or not np.isfinite(volume_ml) or volume_ml <= 0:
+            entry["scan_error"] = error or f"the reconstruction gave no volume ({volume_ml!r})"
+            self._outcome("scan_failed", f"target {described} not verified: the scan of round {round_} failed "
+                          f"({entry['scan_error']}); no correction was made from it and the pressures are held",
+                          "ERROR", extra=self._rounds_json(rounds))
+            return
+        error_pct = 100.0 * (volume_ml - rounds.target_ml) / rounds.target_ml
+        entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct)
+        verify = rounds.verify
+        if not verify.correct or abs(error_pct) <= verify.tolerance_pct:
+            within = "within" if abs(error_pct) <= verify.tolerance_pct else "outside"
+            self._verified_outcome(reach, rounds, f"target {described} reached and MEASURED: scanned "
+                                   f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {within} {verify.tolerance_pct:g} %) "
+                                   f"after {round_} round(s)")
+        elif round_ >= verify.rounds:
+            self._outcome("not_verified", f"target {described} not verified: scanned {volume_ml:.2f} ml "
+                          f"({error_pct:+.2f} %) after {round_} round(s), the limit; the pressures are held (give "
+                          "more verify_rounds, or a wider verify_tolerance_pct)", "WARN",
+                          extra=self._rounds_json(rounds))
+        else:
+            rounds.doing = "correcting"
+            setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
+            self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "
+                       f"%, outside {verify.tolerance_pct:g} %): correcting")
+            self._actions.append(Correct(round_, reach.target, tuple(entry["pressures_kpa"]), float(volume_ml),
+                                         folder, shifted_ml(rounds.rounds, rounds.target_ml), setpoints))
+
+    def corrected(self, now: float, round_: int, answer: InverseResult, how: str) -> None:
+        """The pressures of the round after ``round_`` (``how`` says what they were solved for): applied."""
+        rounds, reach = self._rounds, self._reach
+        if rounds is None or reach is None or rounds.doing != "correcting" or len(rounds.rounds) != round_:
+            return
+        rounds.doing = None
+        rounds.rounds[-1]["next"] = how
+        asked_m3 = answer.target.gland_volume_m3
+        rounds.asked_ml = rounds.target_ml if asked_m3 is None else asked_m3 * ML_PER_M3
+        rounds.answer = self.answer = answer
+        self.applied = None
+        self._next(now)
+
+    def correct_failed(self, now: float, round_: int, unreachable: bool, text: str) -> None:
+        """The next round's pressures could not be solved (``unreachable``, or the model failed): the pressures
+        of the last round are held."""
+        rounds, reach = self._rounds, self._reach
+        if rounds is None or reach is None or rounds.doing != "correcting" or len(rounds.rounds) != round_:
+            return
+        self._outcome("unreachable" if unreachable else "not_verified",
+                      f"target {reach.target.describe()} not verified: the correction after round {round_} failed "
+                      f"({text}); the pressures are held", "WARN", extra=self._rounds_json(rounds))
+
     def scene_started(self, now: float) -> None:
         self.state = ControlState.SCENE
         self._drop_offer("replaced by a scene before it was sent")
@@ -534,7 +703,8 @@ class ControlCore:
             return
         self._retry_after_s = -np.inf  # due: tried now
         answer = self.answer
-        if answer is not None and answer.target == target:
+        if answer is not None and (answer.target == target or (self._rounds is not None
+                                                                and answer is self._rounds.answer)):
             self._send(now, target, answer)
         else:
             self._solving = target
@@ -608,17 +778,58 @@ class ControlCore:
         if settled_s < self.rule.settled_for_s or reach.estimate is None:
             return
         gland_ml, chamber_ml = reach.estimate
-        if not estimate_within(reach.target, self.answer, gland_ml, chamber_ml, reach.tolerance_pct):
+        rounds = self._rounds
+        if rounds is None:
+            if not estimate_within(reach.target, self.answer, gland_ml, chamber_ml, reach.tolerance_pct):
+                return
+        elif self.answer is not None:
+            # a scan carves the intersection of its pictures: one taken before the phantom came to its volume
+            # would trim the hull, so the estimate must have come to the round's own answer (its pressures are
+            # solved for a corrected model or a shifted volume) within the verify tolerance first
+            wanted_ml = predicted_volume_ml(self.answer)
+            if abs(gland_ml - wanted_ml) > min(reach.tolerance_pct, rounds.verify.tolerance_pct) / 100.0 * wanted_ml:
+                return
+        pressures_kpa = [float(p) / PA_PER_KPA for p in measured_pa]
+        extra = {"estimated_volume_ml": gland_ml,
+                 "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
+                 "measured_pressures_kpa": pressures_kpa, "after_s": now - reach.applied_s}
+        if rounds is not None:
+            if rounds.doing is None:
+                rounds.doing = "scanning"
+                rounds.rounds.append({"round": len(rounds.rounds) + 1, "asked_ml": rounds.asked_ml,
+                                      "setpoints_kpa": [float(p) / PA_PER_KPA for p in self.setpoints_pa],
+                                      "pressures_kpa": pressures_kpa, **extra})
+                self._tell("verify", f"target {reach.target.describe()}: round {len(rounds.rounds)} settled "
+                           f"(estimate {gland_ml:.2f} ml): scanning")
+                self._actions.append(Scan(len(rounds.rounds), reach.target, tuple(pressures_kpa)))
             return
+        self._reached_now(reach, "reached", f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, "
+                          f"pressures settled for {settled_s:.1f} s", extra)
+
+    def _reached_now(self, reach: _Reach, outcome: str, text: str, extra: dict[str, Any]) -> None:
         if reach.step is not None:
             self._actions.append(StepReached(reach.step))
         self._reached = reach.target
-        self._outcome("reached", f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, pressures "
-                      f"settled for {settled_s:.1f} s",
-                      extra={"estimated_volume_ml": gland_ml,
-                             "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
-                             "measured_pressures_kpa": [float(p) / PA_PER_KPA for p in measured_pa],
-                             "after_s": now - reach.applied_s})
+        self._outcome(outcome, text, extra=extra)
+
+    def _verified_outcome(self, reach: _Reach, rounds: _Rounds, text: str) -> None:
+        """Reached, the volume reported the scanned one (measured), with the rounds."""
+        last = rounds.rounds[-1]
+        extra = {"estimated_volume_ml": last["estimated_volume_ml"],
+                 "estimated_chamber_volumes_ml": last["estimated_chamber_volumes_ml"],
+                 "measured_pressures_kpa": last["pressures_kpa"], "after_s": last["after_s"],
+                 **self._rounds_json(rounds)}
+        self._reached_now(reach, "reached", text, extra)
+
+    @staticmethod
+    def _rounds_json(rounds: _Rounds) -> dict[str, Any]:
+        """What an outcome says of a verification: the scanned volume (measured) and each round."""
+        scanned = [entry["scanned_volume_ml"] for entry in rounds.rounds if "scanned_volume_ml" in entry]
+        return {"verify": rounds.verify.to_json(), "verified": bool(scanned) and rounds.verify.correct and abs(
+                    scanned[-1] - rounds.target_ml) <= rounds.verify.tolerance_pct / 100.0 * rounds.target_ml,
+                "scanned_volume_ml": scanned[-1] if scanned else None,
+                "volume_source": "scan (measured)" if scanned else "model (estimated)",
+                "rounds": [dict(entry) for entry in rounds.rounds]}
 
     def _replaced(self, why: str) -> None:
         if self._reach is not None:
@@ -627,6 +838,7 @@ class ControlCore:
     def _outcome(self, outcome: str, text: str, level: str = "INFO", extra: dict[str, Any] | None = None) -> None:
         """An outcome of the target waited on (reached, replaced, unreachable, faulted): told once, with data."""
         reach, self._reach = self._reach, None
+        self._rounds = None  # a verification ends with its target's outcome
         target = reach.target if reach is not None else self.target
         if target is None:
             return

@@ -7,17 +7,26 @@ its worker process, the simulated board if any, the link session; then the handl
 
 Tasks: the link (``LinkSession.run``), the control loop (every control period: the scene's target, the core's
 tick, a volume estimate when due, status to subscribers, link statistics to Rerun), the simulated board's watch.
+
+A verified target's scans (the core's :class:`~phantom.host.control.Scan`) go through the daemon's own ``scan``
+API method (host/motion.py) with the :class:`VerifyScanner`'s plan; the capture is reconstructed by the
+:class:`VerifyScanner` in a worker thread (the host imports nothing of the scanner's code: ``phantom daemon``
+gives it); a miss is recorded as a measurement through the model worker when it can take one
+(``record_measurement``) and the next round solved (:meth:`Daemon._correct_for_core`).
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import itertools
 import logging
+import re
 import time
 from collections import deque
 from collections.abc import Coroutine
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -44,6 +53,7 @@ from phantom.host.stalls import LoopStalls
 from phantom.host.startup import BackgroundTable, StartupProgress, notify_systemd
 from phantom.host.status import daemon_status
 from phantom.host.zeroing import ZEROING_WHY, SensorZero
+from phantom.model.corrections import data_dir
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
@@ -52,6 +62,34 @@ PA_PER_KPA = 1e3
 LEVELS = {"INFO": logging.INFO, "WARN": logging.WARNING, "ERROR": logging.ERROR}
 #: The control loop's rate (Hz): the scene's target, volume estimates and status to subscribers.
 CONTROL_HZ = 10.0
+
+
+class VerifyScanner(Protocol):
+    """What a verified target's scan needs besides the ``scan`` API method (``phantom.cli.scan_verify``):
+    ``plan``, the ``scan`` params of a verify scan (without ``out``), and :meth:`volume`."""
+
+    plan: dict[str, Any]
+
+    def volume(self, folder: str) -> dict[str, Any]:
+        """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml`` and ``mesh`` (the
+        surface's file); PhantomError when it cannot be (a picture without the phantom, a hull not closed)."""
+        ...
+
+
+#: The reachable range an unreachable volume's message states (phantom.model.target's inverse).
+REACHABLE_RANGE = re.compile(r"give (-?[\d.]+) to (-?[\d.]+) ml")
+#: How far inside the reachable range a volume asked at its edge is (ml).
+EDGE_MARGIN_ML = 0.01
+
+
+def _volume(target: Target, volume_ml: float) -> Target:
+    """``target`` (a gland volume, its growth ratio kept) at another volume."""
+    return dataclasses.replace(target, gland_volume_m3=volume_ml / control.ML_PER_M3)
+
+
+def verify_folder(round_: int) -> Path:
+    """Where a verified target's scan goes: the user's data directory (the scans are measurements kept)."""
+    return data_dir() / "scans" / f"{time.strftime('%Y%m%dT%H%M%S')}_{time.time_ns() % 10**9:09d}_round{round_}"
 
 
 class Daemon:
@@ -97,6 +135,8 @@ class Daemon:
                                      lambda: self._feed(self.core.model_changed))
         #: the scanner's axes (host/motion.py)
         self.motion = Orbit(self.board_command, self.event, simulated_truth(sim_board) if sim_board else None)
+        #: what reconstructs a verified target's scans (None: this daemon cannot verify targets)
+        self.verify_scanner: VerifyScanner | None = None
 
     # --- life cycle -------------------------------------------------------------------------------------
 
@@ -140,6 +180,10 @@ class Daemon:
             self.scenes.reached(action.index)
         elif isinstance(action, control.StopScene):
             self.scenes.stop(action.why)
+        elif isinstance(action, control.Scan):
+            self.spawn(self._scan_for_core(action))
+        elif isinstance(action, control.Correct):
+            self.spawn(self._correct_for_core(action))
         elif isinstance(action, control.Answer):
             waiting = self._requests.pop(action.request, None)
             if waiting is not None and not waiting.done():
@@ -157,6 +201,87 @@ class Daemon:
             self._feed(self.core.solve_failed, action.target, False, f"the model failed: {error}")
         else:
             self._feed(self.core.solved, action.target, answer)
+
+    def verify_refusal(self) -> str | None:
+        """Why this daemon cannot verify a target by scanning (None: it can)."""
+        if self.verify_scanner is None or "scan" not in self.api.handlers:
+            return ("this daemon has no scanner to verify a target with (`phantom daemon` gives its `scan` method; "
+                    "a daemon started without one cannot): set the target without verify")
+        if self.sim_board is None and self.verify_scanner.plan.get("camera", "virtual") == "virtual":
+            return ("this daemon drives a real board, and its verify scan's camera is the virtual one, which "
+                    "photographs only the simulated phantom: scan with a real camera and rig (README.md, \"A "
+                    "verified volume on a real rig\"), or set the target without verify")
+        return None
+
+    async def _scan_for_core(self, action: control.Scan) -> None:
+        """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread."""
+        folder: str | None = None
+        try:
+            scanner = self.verify_scanner
+            why = self.verify_refusal()
+            if scanner is None or why is not None:
+                raise ApiError("invalid_params", why or "no scanner")
+            out = verify_folder(action.round)
+            answer = await self.api.handlers["scan"]({"out": str(out), **scanner.plan})
+            assert isinstance(answer, dict)  # the scan method answers JSON-ready data
+            folder = str(answer["folder"])
+            if answer.get("status") != "complete":
+                raise ApiError("rejected", f"the capture ended {answer.get('status')!r}")
+            result = await asyncio.to_thread(scanner.volume, folder)
+            volume_ml = float(result["volume_ml"])
+        except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
+            self._feed(self.core.scanned, action.round, None, str(error), folder)
+            return
+        self.recorder.log_scanned_volume(self.now_s(), volume_ml)
+        self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
+
+    async def _correct_for_core(self, action: control.Correct) -> None:
+        """A verified target's miss: the scan recorded as a measurement when the model can take one, then the
+        next round's pressures: the target on the corrected model, or (no correction, or one that leaves the
+        setpoints as they were) the gland volume moved by the scan's error."""
+        how = ""
+        record = getattr(self.model, "record_measurement", None)
+        answer: InverseResult | None = None
+        try:
+            if record is not None:
+                try:
+                    recorded = record(list(action.pressures_kpa), action.scanned_ml, "scan", action.scan_folder)
+                    if asyncio.iscoroutine(recorded):
+                        await recorded
+                except Exception as error:  # the scan is still used: the asked volume moves by its error
+                    self.event("verify", f"the scan could not be recorded as a measurement: {error}", "WARN")
+                else:
+                    answer = await self.solve(action.target)
+                    setpoints = control.setpoints_for(answer.pressures_pa)
+                    if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
+                        answer = None
+                    else:
+                        how = "the target on the model corrected by the scan"
+            if answer is None:
+                answer, how = await self._solve_shifted(action)
+        except ApiError as error:
+            self._feed(self.core.correct_failed, action.round, error.code == "unreachable", str(error))
+            return
+        except Exception as error:  # the model worker failed
+            self._feed(self.core.correct_failed, action.round, False, f"the model failed: {error}")
+            return
+        self._feed(self.core.corrected, action.round, answer, how)
+
+    async def _solve_shifted(self, action: control.Correct) -> tuple[InverseResult, str]:
+        """The volume asked moved by the scan's error, solved; one the model cannot reach (the phantom holds
+        more at rest than the model says) is asked at the edge of the model's reachable range instead."""
+        asked_ml, how = action.shifted_ml, f"{action.shifted_ml:.3f} ml: the volume asked moved by the scan's error"
+        try:
+            return await self.solve(_volume(action.target, asked_ml)), how
+        except ApiError as error:
+            found = REACHABLE_RANGE.search(str(error)) if error.code == "unreachable" else None
+            if found is None:
+                raise
+            low_ml, high_ml = float(found.group(1)), float(found.group(2))
+            edge_ml = min(max(asked_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
+            how = (f"{edge_ml:.3f} ml: the volume asked moved by the scan's error ({asked_ml:.3f} ml) is beyond the "
+                   f"model's reachable {low_ml:g} to {high_ml:g} ml, so its edge")
+            return await self.solve(_volume(action.target, edge_ml)), how
 
     async def _send_setpoints(self, action: control.SendSetpoints) -> None:
         try:
@@ -192,18 +317,27 @@ class Daemon:
         self.recorder.log_solver(self.now_s(), answer.qp_solve_time_s, answer.solve_time_s)
         return answer
 
-    async def set_target(self, target: Target, tolerance_pct: float | None = None) -> dict[str, Any]:
+    async def set_target(self, target: Target, tolerance_pct: float | None = None,
+                         verify: control.Verify | None = None) -> dict[str, Any]:
         """A target from the API: solved first, so that an unreachable one changes nothing (a playing scene goes
-        on); then sent, and only once the board has acknowledged it does it replace the scene. Returns the
-        inverse's answer as JSON; raises ApiError (``unreachable``, ``link_down``, ``rejected``)."""
+        on); then sent, and only once the board has acknowledged it does it replace the scene; with ``verify``,
+        verified by scans once reached on pressure (host/control.py). Returns the inverse's answer as JSON;
+        raises ApiError (``unreachable``, ``link_down``, ``rejected``, ``invalid_params``: verify without a
+        scanner or not of a gland volume)."""
+        if verify is not None:
+            why = self.verify_refusal()
+            if why is None and target.gland_volume_m3 is None:
+                why = "verify compares the scanned gland volume with the target: give volume_ml"
+            if why is not None:
+                raise ApiError("invalid_params", f"set_target: {why}; the target was not set")
         if not self.session.online:
             raise ApiError("link_down", f"no board: the link is {self.session.state.value}; the target was not set")
         await self.zero.over()
         answer = await self.solve(target)
         request, waiting = self._request()
-        self._feed(self.core.offer, request, answer, tolerance_pct)
+        self._feed(self.core.offer, request, answer, tolerance_pct, verify)
         await waiting
-        return answer.to_json()
+        return {**answer.to_json(), **(verify.to_json() if verify is not None else {})}
 
     async def vent(self, why: str) -> None:
         """VENT (acknowledged): every setpoint 0, the target and any scene dropped; ``why`` goes to the status's
@@ -344,8 +478,10 @@ class Daemon:
         if was_active and not self.scenes.active:
             self._feed(self.core.scene_ended, "finished")
         if target is not None and run is not None and self.core.state is ControlState.SCENE:
-            self._feed(self.core.want, target, f"scene:{run.name}", self.scenes.step_index(), self.scenes.ramp())
+            self._feed(self.core.want, target, f"scene:{run.name}", self.scenes.step_index(), self.scenes.ramp(),
+                       self.scenes.verify())
         self._feed(self.core.tick)
+        self.scenes.hold(self.core.verifying)
         self.table.report_tick(self.now_s())
         self.estimates.tick(self.now_s(), self.clock(), self.wants_shape(), self.spawn)
         self._publish_status_tick()

@@ -14,6 +14,7 @@ import numpy as np
 
 from phantom import read_text
 from phantom.host.api import ApiError, Handler, RawJson
+from phantom.host.control import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
 from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import (
     check_step_count,
@@ -60,11 +61,12 @@ class ApiHandlers:
                                           or not 0 < tolerance_pct <= 100):
             raise ApiError("invalid_params", f"set_target: tolerance_pct (how close the estimate must come for the "
                            f"target to be reached, %) must be a number in (0, 100], got {tolerance_pct!r}")
+        verify = verify_of(params)
         try:
             target = parse_target(params, daemon.chamber_names, "set_target", daemon.chamber_labels)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
-        return await daemon.set_target(target, None if tolerance_pct is None else float(tolerance_pct))
+        return await daemon.set_target(target, None if tolerance_pct is None else float(tolerance_pct), verify)
 
     async def vent(self, params: dict[str, Any]) -> dict[str, Any]:
         await self.daemon.vent("on request: every setpoint is 0")
@@ -135,6 +137,11 @@ class ApiHandlers:
                                                    daemon.model.info.effective_model, daemon.model.info.scene_path)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
+        verified = [index for index, step in enumerate(prepared.timeline.steps) if step.verify is not None]
+        why = daemon.verify_refusal() if verified else None
+        if why is not None:
+            raise ApiError("invalid_params", f"{path}: steps {', '.join(map(str, verified))} scan (verify or scan): "
+                                             f"{why}; the scene was not started")
         return daemon.start_scene(prepared)
 
 
@@ -179,3 +186,34 @@ class HeavyRequests:
             yield
         finally:
             semaphore.release()
+
+
+def verify_of(params: dict[str, Any]) -> Verify | None:
+    """``set_target``'s ``verify`` (``"scan"``), ``verify_tolerance_pct`` and ``verify_rounds``, taken out of
+    ``params``: a Verify, or None without ``verify``; ApiError invalid_params for a bad one."""
+    verify = params.pop("verify", None)
+    tolerance_pct = params.pop("verify_tolerance_pct", None)
+    rounds = params.pop("verify_rounds", None)
+    if verify is None:
+        if tolerance_pct is not None or rounds is not None:
+            raise ApiError("invalid_params", "set_target: verify_tolerance_pct and verify_rounds go with verify: "
+                                             "\"scan\"")
+        return None
+    if verify != "scan":
+        raise ApiError("invalid_params", f"set_target: verify must be \"scan\" (the scanner measures the gland's "
+                                         f"volume), got {verify!r:.60}")
+    defaults = Verify()
+    if tolerance_pct is None:
+        tolerance_pct = defaults.tolerance_pct
+    if (isinstance(tolerance_pct, bool) or not isinstance(tolerance_pct, int | float)
+            or not VERIFY_TOLERANCE_PCT[0] <= tolerance_pct <= VERIFY_TOLERANCE_PCT[1]):
+        raise ApiError("invalid_params", f"set_target: verify_tolerance_pct (how close the scanned volume must come, "
+                                         f"%) must be a number from {VERIFY_TOLERANCE_PCT[0]:g} to "
+                                         f"{VERIFY_TOLERANCE_PCT[1]:g} (the scanner's own error is about 0.15 %), got "
+                                         f"{tolerance_pct!r:.60}")
+    if rounds is None:
+        rounds = defaults.rounds
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or not 1 <= rounds <= MAX_VERIFY_ROUNDS:
+        raise ApiError("invalid_params", f"set_target: verify_rounds (scans at most) must be a whole number from 1 "
+                                         f"to {MAX_VERIFY_ROUNDS}, got {rounds!r:.60}")
+    return Verify(float(tolerance_pct), int(rounds))

@@ -73,10 +73,11 @@ SETPOINT_ALPHA = 110
 SETPOINT_WIDTH = 6.0
 MEASURED_WIDTH = 1.5
 #: Gland volume series, in drawing order: target (wide translucent grey dots, under the others; dots so that no
-#: line bridges a time without a target), estimate (purple), the simulated plant's true volume (blue); none is a
-#: chamber's colour. Widths in points.
+#: line bridges a time without a target), estimate (purple), each scan's volume (big green dots, one a scan),
+#: the simulated plant's true volume (blue); none is a chamber's colour. Widths in points.
 GLAND_SERIES = {"commanded_ml": ("target", (128, 128, 128, 120), 7.0),
                 "estimated_ml": ("estimate", (204, 121, 167, 255), 1.5),
+                "scanned_ml": ("scanned (measured)", (0, 158, 115, 255), 12.0),
                 "true_ml": ("true (simulated plant)", (0, 114, 178, 255), 1.5),
                 "uncorrected_ml": ("model's own, before the correction by measured volumes", (230, 159, 0, 200), 1.0)}
 #: Surfaces: the deformed phantom (tissue pink, slightly translucent so that the rest shape shows through where
@@ -437,8 +438,9 @@ class Recorder:
         for series, (label, colour, width) in GLAND_SERIES.items():
             # the target as dots (10 Hz, dense enough to read as a line): where there is none (vented, or a
             # pressure target with no prediction) no dots, where a line would bridge the gap
-            style = rr.SeriesPoints(colors=[colour], names=[label], marker_sizes=[width / 2]) if series == (
-                "commanded_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
+            # the scans as big dots: one a scan, where a line would join scans minutes apart
+            style = rr.SeriesPoints(colors=[colour], names=[label], marker_sizes=[width / 2]) if series in (
+                "commanded_ml", "scanned_ml") else rr.SeriesLines(colors=[colour], names=[label], widths=[width])
             log(f"volume/{series}", style, static=True)
         for series, label in (("size_ml", "correction's size (ml)"), ("measurements", "measurements")):
             log(f"correction/{series}", rr.SeriesLines(names=[label], widths=[MEASURED_WIDTH]), static=True)
@@ -573,6 +575,13 @@ class Recorder:
         self._at(time_s)
         self._scalar("correction/size_ml", 0.0 if size_ml is None else size_ml)
         self._scalar("correction/measurements", float(count))
+
+    def log_scanned_volume(self, time_s: float, volume_ml: float) -> None:
+        """A scan's gland volume (ml, reconstructed: measured) on the volume plot, at the time of the scan."""
+        if not self.enabled:
+            return
+        self._at(time_s)
+        self._scalar("volume/scanned_ml", volume_ml)
 
     def log_link(self, time_s: float, rtt_ms: float | None, retries: int, bad_frames: int, dropped: int) -> None:
         """Round-trip time (ms) and the link's cumulative counters."""

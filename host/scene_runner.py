@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from phantom.host.control import Verify
 from phantom.host.scenes import Timeline, gland_volume_ml, parse_timeline
 from phantom.model.errors import SceneError
 from phantom.model.target import Target
@@ -59,9 +60,13 @@ class SceneRun:
     wants_shape: bool = False
     steps: list[StepRecord] = field(default_factory=list)
     finished: bool = False
+    #: since when (clock s) the scene's clock waits (a step being scanned); None: it runs
+    held_since_s: float | None = None
 
     def scene_time_s(self, clock_s: float) -> float:
-        """Seconds of scene time at clock reading ``clock_s`` (s)."""
+        """Seconds of scene time at clock reading ``clock_s`` (s); the time held (a scan) does not count."""
+        if self.held_since_s is not None:
+            clock_s = min(clock_s, self.held_since_s)
         return (clock_s - self.started_clock_s) * self.time_scale
 
     def to_json(self, clock_s: float) -> dict[str, Any]:
@@ -175,6 +180,27 @@ class SceneRunner:
             self.on_event("scene", f"scene {run.name} finished; holding its last target", "INFO")
             return None
         return run.timeline.target_at(scene_time_s)
+
+    def hold(self, held: bool) -> None:
+        """The scene's clock waits while ``held`` (a step's scan, host/control.py); it goes on from where it
+        stopped when released."""
+        run = self.run
+        if run is None or run.finished or held == (run.held_since_s is not None):
+            return
+        now_s = self.clock()
+        if held:
+            run.held_since_s = now_s
+        else:
+            assert run.held_since_s is not None
+            run.started_clock_s += now_s - run.held_since_s
+            run.held_since_s = None
+
+    def verify(self) -> Verify | None:
+        """How the step in force is verified by the scanner (None: it is not)."""
+        run = self.run
+        if run is None or run.finished or not run.steps:
+            return None
+        return run.timeline.steps[run.steps[-1].index].verify
 
     def step_index(self) -> int | None:
         """The index of the step in force (the last one started), or None when no scene plays or none started."""

@@ -10,7 +10,10 @@ edits no timeline. A whole scene (``[phantom]``, ``[material]``, ...) with steps
 A step starts at ``at_s`` (seconds from the start of the run) with exactly one target form:
 ``volume_ml`` (the gland's total volume, optionally with ``growth_ratio``), ``chamber_volumes_ml`` (one
 per chamber) or ``pressures_kpa`` (raw pressures, one per chamber). With ``ramp_s`` > 0 the target moves
-linearly from the previous step's over ``ramp_s`` seconds; it then holds until the next step starts.
+linearly from the previous step's over ``ramp_s`` seconds; it then holds until the next step starts. A
+``volume_ml`` step may be verified by the scanner once reached: ``verify = "scan"`` (optionally
+``verify_tolerance_pct``, ``verify_rounds``: scanned and corrected until within, as ``set_target``'s verify) or
+``scan = true`` (one scan recorded, no correction); the scene's clock waits while a step scans.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from phantom.host.control import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
 from phantom.model.errors import SceneError
 from phantom.model.scene import (
     BUILTIN_SCENES,
@@ -88,6 +92,8 @@ class Step:
     at_s: float
     target: Target
     ramp_s: float = 0.0
+    #: ``verify = "scan"`` (or ``scan = true``: one scan recorded, no correction) once reached (host/control.py)
+    verify: Verify | None = None
 
 
 @dataclass
@@ -267,7 +273,12 @@ def parse_timeline(raw_steps: object, chamber_names: list[str], name: str = "tim
         ramp_s = _number(raw.get("ramp_s", 0.0), f"{where}: ramp_s")
         if at_s < 0 or ramp_s < 0:
             raise SceneError(f"{where}: at_s and ramp_s must be >= 0, got at_s={at_s:g}, ramp_s={ramp_s:g}")
-        target = parse_target(raw, chamber_names, where)
+        verify = parse_step_verify(raw, where)
+        target = parse_target({key: value for key, value in raw.items() if key not in STEP_VERIFY_KEYS},
+                              chamber_names, where)
+        if verify is not None and target.gland_volume_m3 is None:
+            raise SceneError(f"{where}: verify and scan compare the scanned gland volume with the step's: give "
+                             "volume_ml")
         if steps:
             previous = steps[-1]
             if at_s <= previous.at_s:
@@ -284,8 +295,43 @@ def parse_timeline(raw_steps: object, chamber_names: list[str], name: str = "tim
                                  f"({previous_target.kind} -> {target.kind})")
             if previous_target.free_chambers != target.free_chambers:
                 raise SceneError(f"{where}: a chamber-volume ramp needs the same free chambers in both steps")
-        steps.append(Step(at_s, target, ramp_s))
+        steps.append(Step(at_s, target, ramp_s, verify))
     return Timeline(steps, name)
+
+
+#: A step's keys of the scanner: ``verify = "scan"`` (with ``verify_tolerance_pct``, ``verify_rounds``) or
+#: ``scan = true``.
+STEP_VERIFY_KEYS = ("verify", "verify_tolerance_pct", "verify_rounds", "scan")
+
+
+def parse_step_verify(raw: dict[str, Any], where: str) -> Verify | None:
+    """A step's ``verify = "scan"`` (its tolerance and rounds bounded as the API's) or ``scan = true``; None
+    without either; SceneError naming what is wrong."""
+    verify, scan = raw.get("verify"), raw.get("scan", False)
+    tolerance_pct, rounds = raw.get("verify_tolerance_pct"), raw.get("verify_rounds")
+    if not isinstance(scan, bool):
+        raise SceneError(f"{where}: scan must be true or false, got {scan!r:.60}")
+    if verify is None:
+        if tolerance_pct is not None or rounds is not None:
+            raise SceneError(f"{where}: verify_tolerance_pct and verify_rounds go with verify = \"scan\"")
+        return Verify(rounds=1, correct=False) if scan else None
+    if scan:
+        raise SceneError(f"{where}: give verify = \"scan\" (scan, correct until within the tolerance) or scan = "
+                         "true (one scan recorded, no correction), not both")
+    if verify != "scan":
+        raise SceneError(f"{where}: verify must be \"scan\", got {verify!r:.60}")
+    default = Verify()
+    tolerance_pct = default.tolerance_pct if tolerance_pct is None else tolerance_pct
+    low, high = VERIFY_TOLERANCE_PCT
+    if isinstance(tolerance_pct, bool) or not isinstance(tolerance_pct, int | float) or not (
+            low <= tolerance_pct <= high):
+        raise SceneError(f"{where}: verify_tolerance_pct must be a number from {low:g} to {high:g} (%), got "
+                         f"{tolerance_pct!r:.60}")
+    rounds = default.rounds if rounds is None else rounds
+    if isinstance(rounds, bool) or not isinstance(rounds, int) or not 1 <= rounds <= MAX_VERIFY_ROUNDS:
+        raise SceneError(f"{where}: verify_rounds must be a whole number from 1 to {MAX_VERIFY_ROUNDS}, got "
+                         f"{rounds!r:.60}")
+    return Verify(float(tolerance_pct), rounds)
 
 
 def example_scene_path(name: str) -> Path:

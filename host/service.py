@@ -20,7 +20,7 @@ from typing import Any
 from phantom import PhantomError
 from phantom.host.api import ApiError, ApiServer, Handler, default_socket_path
 from phantom.host.config import DaemonConfig
-from phantom.host.daemon import Daemon
+from phantom.host.daemon import Daemon, VerifyScanner
 from phantom.host.handlers import ApiHandlers
 from phantom.host.logs import configured_level
 from phantom.host.model_worker import ModelWorker
@@ -215,7 +215,7 @@ def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]
 
 
 async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None,
-               scanner: Scanner | None = None) -> int:
+               scanner: Scanner | None = None, verify_scanner: VerifyScanner | None = None) -> int:
     # SIGTERM or SIGINT while the parts are built (a first start builds the response table for minutes) cancels
     # the build: the parts built so far are closed and the model worker is ended with the processes it started
     loop = asyncio.get_running_loop()
@@ -230,11 +230,13 @@ async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | No
         return 0
     if scanner is not None:
         daemon.api.handlers.update(scan_method(daemon.motion, scanner, daemon.status))
+        daemon.verify_scanner = verify_scanner
     return await serve(daemon)
 
 
 def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None,
-               scanner: Scanner | None = None) -> int:
+               scanner: Scanner | None = None, verify_scanner: VerifyScanner | None = None) -> int:
     """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status. ``simulated_board`` builds
-    the board of ``config.sim``; ``scanner`` takes the ``scan`` API method's captures (host/motion.py)."""
-    return asyncio.run(_run(config, simulated_board, scanner))
+    the board of ``config.sim``; ``scanner`` takes the ``scan`` API method's captures (host/motion.py);
+    ``verify_scanner`` reconstructs a verified target's scans (host/daemon.py)."""
+    return asyncio.run(_run(config, simulated_board, scanner, verify_scanner))

@@ -50,8 +50,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                             "pressures have settled (a fault or --timeout-s is an error)")
     set_target.add_argument("--tolerance-pct", type=float, default=1.0, metavar="PCT",
                             help="with --wait: how close the estimate must come (%% of the target, default 1)")
-    set_target.add_argument("--timeout-s", type=float, default=60.0, metavar="S",
-                            help="with --wait: how long to wait (s, default 60)")
+    set_target.add_argument("--timeout-s", type=float, default=None, metavar="S",
+                            help="with --wait: how long to wait (s, default 60, and 120 more per verify round)")
+    set_target.add_argument("--verify", choices=["scan"],
+                            help="with --volume-ml: once reached on pressure, scan the phantom and correct until the "
+                            "scanned volume is within --verify-tolerance-pct (implies --wait)")
+    set_target.add_argument("--verify-tolerance-pct", type=float, metavar="PCT",
+                            help="with --verify: how close the scanned volume must come (%% of the target, default "
+                            "0.3)")
+    set_target.add_argument("--verify-rounds", type=int, metavar="N",
+                            help="with --verify: the most scans (default 4)")
     _add_json(set_target, "print the answer as JSON")
     _add_socket(set_target)
     set_target.set_defaults(run=_run_set)
@@ -232,11 +240,19 @@ def _run_set(args: argparse.Namespace) -> int:
 
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml")
-    options = {"wait": args.wait, "tolerance_pct": args.tolerance_pct, "timeout_s": args.timeout_s}
+    if args.verify is None and (args.verify_tolerance_pct is not None or args.verify_rounds is not None):
+        raise PhantomError("--verify-tolerance-pct and --verify-rounds go with --verify scan")
+    if args.verify is not None and args.volume_ml is None:
+        raise PhantomError("--verify scan compares the scanned gland volume with the target: give --volume-ml")
+    options: dict[str, Any] = {"wait": args.wait or args.verify is not None, "tolerance_pct": args.tolerance_pct}
+    if args.timeout_s is not None:
+        options["timeout_s"] = args.timeout_s
     with _connect(args) as daemon:
         if args.volume_ml is not None:
             result = daemon.set_volume(args.volume_ml, growth_ratio=parse_growth_ratio(args.growth_ratio)
-                                       if args.growth_ratio else None, **options)
+                                       if args.growth_ratio else None, verify=args.verify,
+                                       verify_tolerance_pct=args.verify_tolerance_pct,
+                                       verify_rounds=args.verify_rounds, **options)
         elif args.chamber_volumes_ml is not None:
             result = daemon.set_chamber_volumes(
                 parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True), **options)
@@ -256,6 +272,15 @@ def _run_set(args: argparse.Namespace) -> int:
             f", true {result.true_volume_ml:.2f} ml (simulated plant)")
         print(f"reached   {_ml(result.estimated_volume_ml)} estimated after {result.waited_s:.1f} s, pressures "
               f"settled{true_volume}")
+    if result.rounds:
+        print(f"{'round':<6} {'pressures (kPa)':>24} {'asked ml':>9} {'scanned ml':>11} {'error %':>8}")
+        for entry in result.rounds:
+            scanned = entry.get("scanned_volume_ml")
+            print(f"{entry['round']:<6} {_per_chamber(entry['pressures_kpa'], 3, 7):>24} {entry['asked_ml']:>9.2f} "
+                  f"{'-' if scanned is None else f'{scanned:.3f}':>11} "
+                  f"{'-' if scanned is None else format(entry['scanned_error_pct'], '+.2f'):>8}")
+        print(f"MEASURED  {_ml(result.scanned_volume_ml)} scanned (verified within the tolerance) after "
+              f"{len(result.rounds)} round(s)")
     return 0
 
 

@@ -112,6 +112,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
     from phantom.cli.scan_rig import DaemonScanner, SimulatedTruth
+    from phantom.cli.scan_verify import VerifyScan
 
     truth = SimulatedTruth()
     if args.sim_truth is not None:
@@ -121,7 +122,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     elif args.sim_truth_modulus_factor != 1.0:
         raise PhantomError("--sim-truth-modulus-factor is the --sim-truth scene's: give --sim-truth SCENE too")
     return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
-                      if config.sim else None, scanner=DaemonScanner(truth))
+                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=VerifyScan())
 
 
 def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:
