@@ -31,7 +31,15 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError, read_text, written_atomically
-from phantom.model.corrections import CorrectedModel, Correction, Measurement, ModelGrid
+from phantom.model.corrections import (
+    KINDS,
+    CorrectedModel,
+    Correction,
+    CorrectionError,
+    Measurement,
+    ModelGrid,
+    fit_correction,
+)
 
 #: The record's file format, and its name in the run's folder.
 FORMAT = "phantom-characterisation/1"
@@ -234,6 +242,24 @@ class CharacterisationRecord:
             raise CharacterisationError(f"the characterisation record {path} is damaged (a point finished twice): "
                                         f"start the run again in another folder")
         return record
+
+
+# ----------------------------------------------------------------------------------------------- the fit
+#: The kinds that need no residual field through every scan, tried when no field passes through them all.
+FIELDLESS_KINDS = tuple(kind for kind in KINDS if "field" not in kind)
+
+
+def fit_run(measurements: Sequence[Measurement], grid: ModelGrid) -> tuple[Correction, str]:
+    """The correction of the model by a run's scans (``fit_correction`` over every kind), and a note for the
+    report: when no residual field passes through all of them while every chamber keeps growing (the scans'
+    own noise between close states can ask for a shrinking chamber), the kinds without a field, and the note
+    says so."""
+    try:
+        return fit_correction(measurements, grid), ""
+    except CorrectionError as error:
+        note = (f"No residual field passes through every scan ({error}); the correction is chosen among "
+                f"{', '.join(FIELDLESS_KINDS)}.")
+        return fit_correction(measurements, grid, FIELDLESS_KINDS), note
 
 
 # ----------------------------------------------------------------------------------------------- the report

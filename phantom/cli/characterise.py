@@ -360,11 +360,13 @@ def _finish(record: CharacterisationRecord, grid: ModelGrid, args: argparse.Name
     import tempfile
 
     from phantom import written_atomically
-    from phantom.model.corrections import CorrectionStore, fit_correction
-    from phantom.scan.characterise import CharacterisationError, write_report
+    from phantom.model.corrections import CorrectionStore
+    from phantom.scan.characterise import CharacterisationError, fit_run, write_report
 
     say(f"fitting the correction to {len(record.results)} scans (each kind left out in turn) ...")
-    correction = fit_correction(record.measurements(), grid)
+    correction, note = fit_run(record.measurements(), grid)
+    if note:
+        say(note)
     with tempfile.TemporaryDirectory(prefix="phantom-characterise-") as scratch:
         export = CorrectionStore(Path(scratch) / "run.json")
         for measurement in record.measurements():
@@ -373,7 +375,8 @@ def _finish(record: CharacterisationRecord, grid: ModelGrid, args: argparse.Name
     csv_path = record.folder / "measurements.csv"
     with written_atomically(csv_path, CharacterisationError) as temporary:
         temporary.write_text(csv_text)
-    extra = [f"The measurements: {csv_path.name} (`phantom calibrate --measurements {csv_path.name}` reads it)."]
+    extra = [note, "", f"The measurements: {csv_path.name} (`phantom calibrate --measurements {csv_path.name}` reads "
+             "it)."]
     if args.calibrate:
         extra += _calibrate(record, csv_path, say)
     markdown, plot = write_report(record, grid, correction, extra)
