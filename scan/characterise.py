@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError, read_text, written_atomically
+from phantom import PhantomError, read_text, require_extra, written_atomically
 from phantom.model.corrections import (
     KINDS,
     CorrectedModel,
@@ -352,10 +352,11 @@ def write_plot(record: CharacterisationRecord, grid: ModelGrid, correction: Corr
     """``report.png``: left, the gland volume against the mean chamber pressure (the scans, the model and the
     corrected model at each, and both along the diagonal, every chamber at the same pressure); right, the model's
     and the corrected model's error against each scan (%)."""
-    import matplotlib
+    with require_extra("scan"):
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
     corrected = CorrectedModel(grid, correction)
     mean_kpa = np.array([np.mean(row.pressures_kpa) for row in rows])
