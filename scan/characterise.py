@@ -244,6 +244,15 @@ class CharacterisationRecord:
         return record
 
 
+def held_pressures_kpa(frames_kpa: Sequence[Sequence[float]]) -> list[float]:
+    """The pressures a scan was taken at (kPa): the mean over its pictures, a chamber's noise about 0 kPa at rest
+    (a mean of -0.001 kPa) read as 0: the blowers only push, and a measurement's pressures are gauge, >= 0."""
+    pressures = np.asarray(frames_kpa, dtype=float)
+    if pressures.ndim != 2 or len(pressures) == 0 or not np.all(np.isfinite(pressures)):
+        raise CharacterisationError(f"a scan's pictures need finite measured pressures, got {pressures.shape}")
+    return [float(p) for p in np.clip(pressures.mean(axis=0), 0.0, None)]
+
+
 # ----------------------------------------------------------------------------------------------- the fit
 #: The kinds that need no residual field through every scan, tried when no field passes through them all.
 FIELDLESS_KINDS = tuple(kind for kind in KINDS if "field" not in kind)

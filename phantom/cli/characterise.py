@@ -297,8 +297,9 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
             continue
         say(f"{label}: reached; scanning")
         result = _scan_point(client, record, index, folder, rig, grid, point_started, label)
+        measurement = result.measurement(record.model)  # checked before it is recorded: a record holds only these
         record.finish(result)
-        store.add(result.measurement(record.model))
+        store.add(measurement)
         record.mark_stored(index)
         session["points"] += 1
         elapsed = time.monotonic() - started
@@ -316,7 +317,7 @@ def _scan_point(client: Phantom, record: CharacterisationRecord, index: int, fol
 
     from phantom.host.client import DaemonError
     from phantom.scan.capture import CaptureFolder
-    from phantom.scan.characterise import CharacterisationError, PointResult
+    from phantom.scan.characterise import CharacterisationError, PointResult, held_pressures_kpa
     from phantom.scan.reconstruct import reconstruct
 
     scan = record.scan
@@ -343,11 +344,11 @@ def _scan_point(client: Phantom, record: CharacterisationRecord, index: int, fol
     if len(measured) != len(capture.frames):
         raise CharacterisationError(f"{label}: {len(capture.frames) - len(measured)} of the scan's pictures have no "
                                     f"measured pressures: the point is not stored (--resume scans it again)")
-    pressures = np.mean(np.asarray(measured, dtype=float), axis=0)
+    pressures = held_pressures_kpa(measured)
     volume_ml = reconstruct(capture, rig, scan["voxel_mm"]).volume_ml
-    return PointResult(index, list(record.points_kpa[index]), [float(p) for p in pressures], float(volume_ml),
-                       grid.gland_ml(pressures), str(folder.resolve()), _utc_now(), time.monotonic() - point_started,
-                       status.true_volume_ml)
+    return PointResult(index, list(record.points_kpa[index]), pressures, float(volume_ml),
+                       grid.gland_ml(np.asarray(pressures)), str(folder.resolve()), _utc_now(),
+                       time.monotonic() - point_started, status.true_volume_ml)
 
 
 def _kpa(pressures: Any) -> str:
