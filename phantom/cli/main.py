@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "phantom.cli.design",
     "phantom.cli.calibrate",
     "phantom.cli.corrections",
+    "phantom.cli.characterise",
     "phantom.cli.hil",
     "phantom.cli.motion",
     "phantom.cli.daemon",

@@ -1,0 +1,405 @@
+"""A phantom characterised by its own scans: the pressure states to visit, the run's record, and its report.
+
+``phantom characterise`` (phantom/cli/characterise.py) sets each pressure state of a design through the running
+daemon, scans the phantom there, reconstructs the scan and stores the scanned gland volume as a measurement
+(``phantom.model.corrections``); then fits the model's correction to them and writes a report. This module holds
+what needs no daemon:
+
+- the design: :func:`grid_design` (the product of given pressures on every chamber) and
+  :func:`space_filling_design` (a Latin hypercube of N states in the pressure box, optimised for its centred
+  discrepancy, scipy's ``LatinHypercube(optimization="random-cd")``), each visited in the order of
+  :func:`short_path` (nearest neighbour from rest: the blowers change as little as they can between states);
+- :class:`CharacterisationRecord`: ``DIR/characterisation.json``, the design, the scan plan and each finished
+  point, written atomically after every step, so that a stopped run resumes where it stopped: a finished point is
+  never scanned again, and a point is finished only once its scan is reconstructed and its measurement written;
+  a point is stored in the phantom's CorrectionStore after it is recorded (``stored``), and a run resumed after a
+  stop between the two stores it then;
+- :func:`write_report`: ``report.md`` (per point the model, the corrected model, the scan and on the simulated
+  rig the truth; each correction kind's leave-one-out error) and ``report.png`` (the volumes against pressure).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from phantom import PhantomError, read_text, require_extra, written_atomically
+from phantom.model.corrections import (
+    KINDS,
+    CorrectedModel,
+    Correction,
+    CorrectionError,
+    Measurement,
+    ModelGrid,
+    fit_correction,
+)
+
+#: The record's file format, and its name in the run's folder.
+FORMAT = "phantom-characterisation/1"
+RECORD_NAME = "characterisation.json"
+#: The most pressure states one run visits (a 10^3 grid; each takes a scan of a minute or more).
+MAX_POINTS = 1000
+#: The fewest: a correction's leave-one-out needs two.
+MIN_POINTS = 2
+#: Pressures are rounded to this (kPa): a tenth of the sensor's ADC count, so a design prints as it is set.
+PRESSURE_STEP_KPA = 0.001
+#: The largest record read (bytes).
+MAX_RECORD_BYTES = 16 * 2**20
+
+
+class CharacterisationError(PhantomError):
+    """A bad design, a record that does not match the run asked for, or a damaged record."""
+
+
+# ----------------------------------------------------------------------------------------------- the design
+def grid_design(values_kpa: Sequence[float], pressure_max_kpa: float, chambers: int = 3) -> np.ndarray:
+    """Every combination of ``values_kpa`` on the ``chambers`` chambers ((n^chambers, chambers) kPa), in the order
+    of :func:`short_path`. CharacterisationError for values outside 0..``pressure_max_kpa``, repeated or too many."""
+    values = np.asarray(values_kpa, dtype=float).ravel()
+    _check_box(pressure_max_kpa, chambers)
+    if values.size == 0 or not np.all(np.isfinite(values)):
+        raise CharacterisationError(f"--grid needs finite pressures (kPa), got {list(values_kpa)}")
+    if np.any(values < 0) or np.any(values > pressure_max_kpa + 1e-9):
+        raise CharacterisationError(f"--grid's pressures must lie in the daemon's pressure box, 0 to "
+                                    f"{pressure_max_kpa:g} kPa, got {', '.join(f'{v:g}' for v in values)}")
+    if len(np.unique(values)) != len(values):
+        raise CharacterisationError(f"--grid's pressures must differ, got {', '.join(f'{v:g}' for v in values)}")
+    count = len(values) ** chambers
+    if not MIN_POINTS <= count <= MAX_POINTS:
+        raise CharacterisationError(f"--grid of {len(values)} pressures on {chambers} chambers is {count} states: "
+                                    f"give {MIN_POINTS} to {MAX_POINTS}")
+    points = np.stack(np.meshgrid(*[np.sort(values)] * chambers, indexing="ij"), -1).reshape(-1, chambers)
+    return short_path(points)
+
+
+def space_filling_design(count: int, pressure_max_kpa: float, chambers: int = 3, seed: int = 0) -> np.ndarray:
+    """``count`` pressure states ((count, chambers) kPa) filling the box 0..``pressure_max_kpa`` on every chamber:
+    a Latin hypercube (each chamber's pressures one in each of ``count`` equal slices) whose centred discrepancy
+    scipy has lowered by swapping (``LatinHypercube(optimization="random-cd")``, ``seed``), in the order of
+    :func:`short_path`."""
+    from scipy.stats import qmc
+
+    _check_box(pressure_max_kpa, chambers)
+    if isinstance(count, bool) or not isinstance(count, int) or not MIN_POINTS <= count <= MAX_POINTS:
+        raise CharacterisationError(f"--points must be a whole number from {MIN_POINTS} to {MAX_POINTS}, got "
+                                    f"{count!r}")
+    unit = qmc.LatinHypercube(d=chambers, optimization="random-cd", seed=seed).random(count)
+    return short_path(np.round(unit * pressure_max_kpa / PRESSURE_STEP_KPA) * PRESSURE_STEP_KPA)
+
+
+def _check_box(pressure_max_kpa: float, chambers: int) -> None:
+    if not (math.isfinite(pressure_max_kpa) and pressure_max_kpa > 0):
+        raise CharacterisationError(f"the pressure box's top must be a positive number of kPa, got "
+                                    f"{pressure_max_kpa!r}")
+    if chambers < 1:
+        raise CharacterisationError(f"a phantom has at least one chamber, got {chambers}")
+
+
+def short_path(points_kpa: ArrayLike) -> np.ndarray:
+    """The points in the order of a short path: from the one nearest rest, each time the nearest not visited
+    (ties to the first): the pressures change little between points, so each settles fast."""
+    points = np.asarray(points_kpa, dtype=float)
+    left = list(range(len(points)))
+    here = np.zeros(points.shape[1])
+    order = []
+    while left:
+        distances = [float(np.abs(points[i] - here).sum()) for i in left]
+        nearest = left.pop(int(np.argmin(distances)))
+        order.append(nearest)
+        here = points[nearest]
+    return points[order]
+
+
+# ----------------------------------------------------------------------------------------------- the record
+@dataclass
+class PointResult:
+    """One finished point: the pressures asked and measured (kPa, the mean over the scan's pictures), the scanned
+    gland volume (ml), the model's there (ml), the simulated phantom's true volume (ml, None on a real board), the
+    scan's folder, when (UTC), how long it took (s), and whether it is in the phantom's CorrectionStore yet."""
+
+    index: int
+    asked_kpa: list[float]
+    pressures_kpa: list[float]
+    volume_ml: float
+    model_ml: float
+    scan_folder: str
+    time_utc: str
+    seconds: float
+    true_ml: float | None = None
+    stored: bool = False
+
+    def measurement(self, model: str) -> Measurement:
+        return Measurement(tuple(self.pressures_kpa), self.volume_ml, "scan", self.time_utc, self.scan_folder,
+                           model, self.model_ml)
+
+
+@dataclass
+class CharacterisationRecord:
+    """``DIR/characterisation.json`` (see the module docstring): the phantom's name, the model (scene), the
+    design (``{"kind": "grid", "values_kpa": [...]}`` or ``{"kind": "points", "count": N, "seed": S}``), the
+    pressure box, the points in the order visited, the scan's parameters, the rig, the finished points, the
+    skipped ones (index -> why: not reached, refused), and the elapsed time of each session of the run."""
+
+    folder: Path
+    phantom: str
+    model: str
+    design: dict[str, Any]
+    pressure_max_kpa: float
+    points_kpa: list[list[float]]
+    scan: dict[str, Any]
+    rig: str
+    results: list[PointResult] = field(default_factory=list)
+    skipped: dict[int, str] = field(default_factory=dict)
+    sessions: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def path(self) -> Path:
+        return self.folder / RECORD_NAME
+
+    @classmethod
+    def exists(cls, folder: str | Path) -> bool:
+        return (Path(folder) / RECORD_NAME).exists()
+
+    def done(self) -> set[int]:
+        return {result.index for result in self.results}
+
+    def pending(self) -> list[int]:
+        """The points not finished, in the order visited (the skipped ones too: they are tried again)."""
+        done = self.done()
+        return [index for index in range(len(self.points_kpa)) if index not in done]
+
+    def scan_folder(self, index: int) -> Path:
+        return self.folder / "scans" / f"{index:03d}"
+
+    def finish(self, result: PointResult) -> None:
+        """Record a finished point (not yet stored in the phantom's CorrectionStore) and save."""
+        if result.index in self.done():
+            raise CharacterisationError(f"point {result.index} is finished already: it is not scanned twice")
+        self.results.append(result)
+        self.skipped.pop(result.index, None)
+        self.save()
+
+    def mark_stored(self, index: int) -> None:
+        for result in self.results:
+            if result.index == index:
+                result.stored = True
+        self.save()
+
+    def skip(self, index: int, why: str) -> None:
+        self.skipped[index] = why
+        self.save()
+
+    def measurements(self) -> list[Measurement]:
+        return [result.measurement(self.model) for result in self.results]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"format": FORMAT, "phantom": self.phantom, "model": self.model, "design": self.design,
+                "pressure_max_kpa": self.pressure_max_kpa, "points_kpa": self.points_kpa, "scan": self.scan,
+                "rig": self.rig, "results": [asdict(result) for result in self.results],
+                "skipped": {str(index): why for index, why in sorted(self.skipped.items())},
+                "sessions": self.sessions}
+
+    def save(self) -> Path:
+        self.folder.mkdir(parents=True, exist_ok=True)
+        with written_atomically(self.path, CharacterisationError) as temporary:
+            temporary.write_text(json.dumps(self.to_json(), indent=1) + "\n")
+        return self.path
+
+    @classmethod
+    def load(cls, folder: str | Path) -> CharacterisationRecord:
+        """The record in ``folder``; CharacterisationError when there is none or it is damaged."""
+        folder = Path(folder)
+        path = folder / RECORD_NAME
+        if not path.exists():
+            raise CharacterisationError(f"{folder} holds no characterisation ({RECORD_NAME}) to resume: start one "
+                                        f"with --grid or --points")
+        text = read_text(path, MAX_RECORD_BYTES, "the characterisation record", CharacterisationError)
+        try:
+            document = json.loads(text)
+            if document.get("format") != FORMAT:
+                raise ValueError(f"format {document.get('format')!r}, not {FORMAT!r}")
+            record = cls(folder, str(document["phantom"]), str(document["model"]), dict(document["design"]),
+                         float(document["pressure_max_kpa"]),
+                         [[float(p) for p in point] for point in document["points_kpa"]], dict(document["scan"]),
+                         str(document["rig"]), [PointResult(**entry) for entry in document["results"]],
+                         {int(index): str(why) for index, why in document["skipped"].items()},
+                         list(document.get("sessions", [])))
+            for result in record.results:
+                if not 0 <= result.index < len(record.points_kpa):
+                    raise ValueError(f"a result for point {result.index} of {len(record.points_kpa)}")
+                result.measurement(record.model)  # its numbers are checked as a measurement's
+        except (ValueError, TypeError, KeyError, AttributeError, PhantomError) as error:
+            raise CharacterisationError(f"the characterisation record {path} is damaged ({error}): start the run "
+                                        f"again in another folder") from None
+        if len(record.done()) != len(record.results):
+            raise CharacterisationError(f"the characterisation record {path} is damaged (a point finished twice): "
+                                        f"start the run again in another folder")
+        return record
+
+
+def held_pressures_kpa(frames_kpa: Sequence[Sequence[float]]) -> list[float]:
+    """The pressures a scan was taken at (kPa): the mean over its pictures, a chamber's noise about 0 kPa at rest
+    (a mean of -0.001 kPa) read as 0: the blowers only push, and a measurement's pressures are gauge, >= 0."""
+    pressures = np.asarray(frames_kpa, dtype=float)
+    if pressures.ndim != 2 or len(pressures) == 0 or not np.all(np.isfinite(pressures)):
+        raise CharacterisationError(f"a scan's pictures need finite measured pressures, got {pressures.shape}")
+    return [float(p) for p in np.clip(pressures.mean(axis=0), 0.0, None)]
+
+
+# ----------------------------------------------------------------------------------------------- the fit
+#: The kinds that need no residual field through every scan, tried when no field passes through them all.
+FIELDLESS_KINDS = tuple(kind for kind in KINDS if "field" not in kind)
+
+
+def fit_run(measurements: Sequence[Measurement], grid: ModelGrid) -> tuple[Correction, str]:
+    """The correction of the model by a run's scans (``fit_correction`` over every kind), and a note for the
+    report: when no residual field passes through all of them while every chamber keeps growing (the scans'
+    own noise between close states can ask for a shrinking chamber), the kinds without a field, and the note
+    says so."""
+    try:
+        return fit_correction(measurements, grid), ""
+    except CorrectionError as error:
+        note = (f"No residual field passes through every scan ({error}); the correction is chosen among "
+                f"{', '.join(FIELDLESS_KINDS)}.")
+        return fit_correction(measurements, grid, FIELDLESS_KINDS), note
+
+
+# ----------------------------------------------------------------------------------------------- the report
+@dataclass(frozen=True)
+class ReportRow:
+    """One finished point in the report: its pressures (kPa), the model's, the corrected model's, the scanned
+    and (simulated) the true gland volume (ml)."""
+
+    index: int
+    pressures_kpa: list[float]
+    model_ml: float
+    corrected_ml: float
+    scan_ml: float
+    true_ml: float | None
+
+
+def report_rows(record: CharacterisationRecord, grid: ModelGrid, correction: Correction) -> list[ReportRow]:
+    corrected = CorrectedModel(grid, correction)
+    return [ReportRow(result.index, result.pressures_kpa, grid.gland_ml(np.asarray(result.pressures_kpa)),
+                      corrected.gland_ml(result.pressures_kpa), result.volume_ml, result.true_ml)
+            for result in sorted(record.results, key=lambda r: r.index)]
+
+
+def _pct(value: float, reference: float) -> str:
+    return f"{(value / reference - 1) * 100:+.2f} %"
+
+
+def write_report(record: CharacterisationRecord, grid: ModelGrid, correction: Correction,
+                 extra: Sequence[str] = ()) -> tuple[Path, Path]:
+    """``report.md`` and ``report.png`` in the record's folder; their paths. ``extra``: lines added at the end
+    (the calibration's summary)."""
+    rows = report_rows(record, grid, correction)
+    simulated = all(row.true_ml is not None for row in rows)
+    seconds = [result.seconds for result in record.results]
+    elapsed = sum(session.get("elapsed_s", 0.0) for session in record.sessions)
+    design = record.design
+    described = (f"a grid of {', '.join(f'{v:g}' for v in design['values_kpa'])} kPa on every chamber"
+                 if design["kind"] == "grid" else
+                 f"{design['count']} states of a Latin hypercube (centred discrepancy lowered, seed {design['seed']})")
+    scan = record.scan
+    lines = [f"# Characterisation of phantom {record.phantom!r}", "",
+             f"{len(rows)} of {len(record.points_kpa)} pressure states scanned ({described} in 0-"
+             f"{record.pressure_max_kpa:g} kPa); the model {record.model}; each scan {scan.get('views')} views per "
+             f"turn at {', '.join(f'{e:g}' for e in scan.get('elevations_deg', []))} deg, picture scale "
+             f"{scan.get('scale')}, {scan.get('voxel_mm')} mm voxels.",
+             f"Time: {elapsed:.0f} s in all over {len(record.sessions)} session(s); per point "
+             + (f"{np.mean(seconds):.1f} s on average ({min(seconds):.1f}-{max(seconds):.1f} s)." if seconds else "-"),
+             ""]
+    if record.skipped:
+        lines += ["Not scanned:", ""] + [f"- point {index} ({_kpa_text(record.points_kpa[index])} kPa): {why}"
+                                         for index, why in sorted(record.skipped.items())] + [""]
+    lines += ["## The correction", "",
+              f"The model misses the scans by {correction.uncorrected_pct:.2f} % on average. In force: "
+              f"**{correction.kind}** (offset {correction.offset_ml:+.3f} ml, growth x "
+              f"{1 + correction.growth_factor:.4f}"
+              f"{', and a residual field' if correction.residual_field is not None else ''}), fitted to "
+              f"{correction.count} scans; its largest size over the pressure box "
+              f"{correction.size_ml(grid):.3f} ml.", "",
+              "Leave-one-out (each scan left out in turn, predicted by the correction fitted to the rest; mean abs "
+              "error, % of the scanned volume):", "", "| correction | leave-one-out |", "|---|---|",
+              "| none (the model) | " + f"{correction.uncorrected_pct:.2f} % |"]
+    lines += [f"| {kind}{' (in force)' if kind == correction.kind else ''} | {error:.2f} % |"
+              for kind, error in correction.leave_one_out_pct.items()]
+    header = "| point | pressures (kPa) | model (ml) | corrected (ml) | scan (ml) | model vs scan | corrected vs scan |"
+    rule = "|---|---|---|---|---|---|---|"
+    if simulated:
+        header += " truth (ml) | scan vs truth |"
+        rule += "---|---|"
+    lines += ["", "## Per point", "", "The corrected model here is fitted to every scan, this one included (the "
+              "leave-one-out above says how it predicts a state not scanned).", "", header, rule]
+    for row in rows:
+        line = (f"| {row.index} | {_kpa_text(row.pressures_kpa)} | {row.model_ml:.3f} | {row.corrected_ml:.3f} | "
+                f"{row.scan_ml:.3f} | {_pct(row.model_ml, row.scan_ml)} | {_pct(row.corrected_ml, row.scan_ml)} |")
+        if simulated and row.true_ml is not None:
+            line += f" {row.true_ml:.3f} | {_pct(row.scan_ml, row.true_ml)} |"
+        lines.append(line)
+    lines += ["", "![model, corrected model and scans against pressure](report.png)", "", *extra]
+    markdown = record.folder / "report.md"
+    with written_atomically(markdown, CharacterisationError) as temporary:
+        temporary.write_text("\n".join(lines) + "\n")
+    return markdown, write_plot(record, grid, correction, rows)
+
+
+def _kpa_text(pressures: Sequence[float]) -> str:
+    return ", ".join(f"{p:.2f}" for p in pressures)
+
+
+def write_plot(record: CharacterisationRecord, grid: ModelGrid, correction: Correction,
+               rows: Sequence[ReportRow]) -> Path:
+    """``report.png``: left, the gland volume against the mean chamber pressure (the scans, the model and the
+    corrected model at each, and both along the diagonal, every chamber at the same pressure); right, the model's
+    and the corrected model's error against each scan (%)."""
+    with require_extra("scan"):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+    corrected = CorrectedModel(grid, correction)
+    mean_kpa = np.array([np.mean(row.pressures_kpa) for row in rows])
+    chambers = grid.chamber_ml.shape[-1]
+    line_kpa = np.linspace(0.0, record.pressure_max_kpa, 31)
+    figure, (volumes, errors) = plt.subplots(1, 2, figsize=(12, 5), constrained_layout=True)
+    volumes.plot(line_kpa, [grid.gland_ml(np.full(chambers, p)) for p in line_kpa], color="tab:blue", lw=1,
+                 label="model, every chamber at p")
+    volumes.plot(line_kpa, [corrected.gland_ml(np.full(chambers, p)) for p in line_kpa], color="tab:orange", lw=1,
+                 label="corrected model, every chamber at p")
+    volumes.scatter(mean_kpa, [row.model_ml for row in rows], marker="x", color="tab:blue", label="model")
+    volumes.scatter(mean_kpa, [row.corrected_ml for row in rows], marker="+", s=80, color="tab:orange",
+                    label="corrected model")
+    volumes.scatter(mean_kpa, [row.scan_ml for row in rows], s=14, color="black", label="scan", zorder=3)
+    if all(row.true_ml is not None for row in rows):
+        volumes.scatter(mean_kpa, [row.true_ml for row in rows], s=40, facecolors="none", edgecolors="tab:green",
+                        label="simulated truth")
+    volumes.set_xlabel("mean chamber pressure (kPa)")
+    volumes.set_ylabel("gland volume (ml)")
+    volumes.set_title(f"phantom {record.phantom!r}: {len(rows)} scans")
+    volumes.legend(fontsize=8)
+    errors.axhspan(-0.5, 0.5, color="0.9", label="within 0.5 %")
+    errors.axhline(0.0, color="0.5", lw=0.8)
+    errors.scatter(mean_kpa, [(row.model_ml / row.scan_ml - 1) * 100 for row in rows], marker="x",
+                   color="tab:blue", label=f"model (mean abs {correction.uncorrected_pct:.2f} %)")
+    errors.scatter(mean_kpa, [(row.corrected_ml / row.scan_ml - 1) * 100 for row in rows], marker="+", s=80,
+                   color="tab:orange", label=f"corrected, {correction.kind} (in sample)")
+    errors.set_xlabel("mean chamber pressure (kPa)")
+    errors.set_ylabel("volume vs the scan (%)")
+    loo = ", ".join(f"{kind} {error:.2f} %" for kind, error in correction.leave_one_out_pct.items())
+    errors.set_title("leave-one-out: " + (loo or "needs two scans"), fontsize=9)
+    errors.legend(fontsize=8)
+    path = record.folder / "report.png"
+    with written_atomically(path, CharacterisationError) as temporary:
+        figure.savefig(temporary, dpi=110, format="png")
+    plt.close(figure)
+    return path
