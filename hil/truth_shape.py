@@ -25,7 +25,7 @@ from __future__ import annotations
 import weakref
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -34,6 +34,9 @@ from phantom.hil.plant import CALIBRATED_SCENE_PATH, DEFAULT_PLANT_PATH, TRUTH_M
 from phantom.hil.sim import SimulatedBoard
 from phantom.model.mesh.surface import TriangleMesh
 from phantom.protocol.motion import AXES, SCANNER_AXES
+
+if TYPE_CHECKING:
+    from phantom.model.fidelity.response_table import SurfaceShapes
 
 #: Pressures closer than this (kPa, every chamber) to the last solved ones reuse its shape.
 REUSE_KPA = 0.01
@@ -78,7 +81,7 @@ def _worker_positions_m(pressures_pa: np.ndarray, start: np.ndarray | None) -> n
     return positions
 
 
-def _shipped_shapes(model: Any) -> Any:
+def _shipped_shapes(model: Any) -> SurfaceShapes | None:
     """The outer surface's shapes the scene ships (``[model] table_shapes``), or None: none shipped, or made
     for another mesh or box (then each shape is a solve, as without them)."""
     from phantom.model.fidelity.response_table import ResponseTableError, shipped_table_shapes
