@@ -88,7 +88,7 @@ def simulated_scene(client: DaemonClient, truth: TruthShape) -> Callable[[], tup
 
 
 def truth_scene(read: Callable[[], dict[str, Any] | None],
-                truth: TruthShape | TruthProcess) -> Callable[[], tuple[TriangleMesh, float, float]]:
+                truth: TruthShape) -> Callable[[], tuple[TriangleMesh, float, float]]:
     """The virtual camera's scene from the simulated board's truth as ``read`` returns it (``motion_status``'s
     ``simulated`` part)."""
     def now() -> tuple[TriangleMesh, float, float]:
@@ -153,56 +153,6 @@ class SimulatedTruth:
                           plant_path=self.plant_path or DEFAULT_PLANT_PATH)
 
 
-#: Within a scan the truth's shape solved last is reused while every pressure stays within this (kPa: two counts
-#: of the board's ADC, the daemon's settled band), scaled to the truth's gland volume at the pressures then.
-SHAPE_REUSE_KPA = 0.1
-
-
-class TruthProcess:
-    """The simulated phantom's surfaces (``TruthShape.surface``) solved in a process of its own: a solve takes
-    seconds to minutes and holds the interpreter's lock for seconds at a time, which in the daemon's process
-    starved its loops (the board's link went silent and latched DEAD_HOST mid-scan). The held pressures wander by
-    an ADC count or two during a scan: within SHAPE_REUSE_KPA of the last solve its shape is scaled to the
-    truth's volume at the pressures now, not solved again (the truth's shape is the model's, scaled to its volume,
-    hil/truth_shape.py)."""
-
-    def __init__(self, truth: SimulatedTruth):
-        import concurrent.futures
-        import multiprocessing
-
-        self._pool = concurrent.futures.ProcessPoolExecutor(1, multiprocessing.get_context("spawn"),
-                                                            initializer=_start_truth, initargs=(truth,))
-
-    def surface(self, pressures_kpa: list[float]) -> TriangleMesh:
-        mesh: TriangleMesh = self._pool.submit(_truth_surface, [float(p) for p in pressures_kpa]).result()
-        return mesh
-
-
-#: The truth shape of this process, when it is a TruthProcess's worker, and its last solve (pressures, surface).
-_WORKER_TRUTH: list[Any] = []
-
-
-def _start_truth(truth: SimulatedTruth) -> None:
-    _WORKER_TRUTH[:] = [truth.shape(), None]
-
-
-def _truth_surface(pressures_kpa: list[float]) -> TriangleMesh:
-    import numpy as np
-
-    from phantom.hil.truth_shape import scaled_to_volume
-
-    shape, last = _WORKER_TRUTH
-    pressures = np.asarray(pressures_kpa, dtype=float)
-    if last is not None and np.all(np.abs(last[0] - pressures) <= SHAPE_REUSE_KPA) and shape.plant is not None:
-        wanted_ml = shape.plant.truth_gland_volume_ml(pressures * 1e3)
-        if wanted_ml is not None:
-            scaled: TriangleMesh = scaled_to_volume(last[1], wanted_ml)
-            return scaled
-    mesh: TriangleMesh = shape.surface(pressures)
-    _WORKER_TRUTH[1] = (pressures, mesh)
-    return mesh
-
-
 class DaemonScanner:
     """The daemon's ``scan`` API method (a ``phantom.host.motion.Scanner``, given to the daemon by ``phantom
     daemon``): the capture loop in the daemon's process, with its axes and state (``ThreadRig``).
@@ -217,7 +167,7 @@ class DaemonScanner:
 
     def __init__(self, truth: SimulatedTruth | None = None):
         self.truth = truth or SimulatedTruth()
-        self._shape: TruthProcess | None = None
+        self._shape: TruthShape | None = None
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
         from phantom.cli.scan import load_rig
@@ -267,7 +217,7 @@ class DaemonScanner:
             except PhantomError as error:
                 raise PhantomError(f"scan: {error}") from None
             if self._shape is None:
-                self._shape = TruthProcess(self.truth)
+                self._shape = self.truth.shape()
             return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed,
                                  pose_at=_scaled_pose(scale))
         source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
