@@ -55,6 +55,9 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 #: The field keeps each chamber's and the gland's growth per kPa at least this fraction of the model's (a phantom
 #: that swells with every pressure; a pneumatic plant needs positive compliances).
 MIN_GROWTH_FRACTION = 0.3
+#: A measured pressure this close outside the grid's box (kPa: two counts of the board's ADC, its settled band)
+#: is on the box's edge: a chamber held at 3 kPa reads 3.01 on average, and its scan is a measurement at 3 kPa.
+EDGE_SLACK_KPA = 0.1
 #: The weight (kPa) of the field's slope beside its curvature in its roughness: a little, so that where no
 #: measurement holds it the field levels off rather than sweeping on.
 FIRST_DIFFERENCE_WEIGHT = 0.3
@@ -305,8 +308,9 @@ def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: 
     if pressures.shape != (len(gaps), chambers) or not np.all(np.isfinite(pressures)):
         raise CorrectionError(f"{what}: {chambers} finite pressures per volume are needed, got {pressures.shape[0]} "
                               f"rows of {pressures.shape[1]} for {len(gaps)} volumes")
-    if np.any(pressures < 0) or np.any(pressures > points[-1]):
+    if np.any(pressures < -EDGE_SLACK_KPA) or np.any(pressures > points[-1] + EDGE_SLACK_KPA):
         raise CorrectionError(f"{what} must lie on the grid, 0-{points[-1]:g} kPa")
+    pressures = np.clip(pressures, 0.0, points[-1])
     n = len(points)
     cells = n ** 3
     size = chambers * cells + 1            # each chamber's residual, then the constant

@@ -261,3 +261,17 @@ def test_a_fit_is_kept_in_the_cache_and_read_back_the_same_and_a_damaged_one_is_
     assert read_back.residual_field is not None and np.array_equal(read_back.residual_field.chamber_ml,
                                                                    field_only.residual_field.chamber_ml)
     assert read_back.residual_ml((0.5, 1.0, 2.0), 3.0) == field_only.residual_ml((0.5, 1.0, 2.0), 3.0)
+
+
+def test_a_scan_held_a_count_above_the_box_is_a_measurement_on_its_edge_and_one_beyond_is_refused():
+    """A chamber held at 3 kPa reads 3.01 on average: its scan fits the field as a measurement at 3 kPa (the
+    27-point characterisation's field was refused for it and fell back to a weaker kind); 3.5 kPa is refused."""
+    from phantom.model.corrections import smoothest_residual
+
+    grid = _linear_grid()
+    edge = smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, [[3.01, 0.0, 1.5]], [0.4])
+    at_three = smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, [[3.0, 0.0, 1.5]], [0.4])
+    assert edge.gland_at_ml([3.0, 0.0, 1.5]) == pytest.approx(0.4, abs=1e-3)
+    assert np.allclose(edge.gland_ml, at_three.gland_ml)
+    with pytest.raises(CorrectionError, match="must lie on the grid"):
+        smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, [[3.5, 0.0, 1.5]], [0.4])
