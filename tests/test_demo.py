@@ -48,7 +48,9 @@ def test_the_demo_prints_the_true_error_and_writes_its_report(tmp_path, capsys):
     from phantom.host.scenes import example_scene_path
 
     out = tmp_path / "out"
-    assert demo.main(["--scene", str(example_scene_path("bph_growth")), "--time-scale", "3", "--out", str(out)]) == 0
+    # the uncorrected table (the verified rounds are test_verify_sim's: minutes a volume)
+    assert demo.main(["--scene", str(example_scene_path("bph_growth")), "--time-scale", "3", "--out", str(out),
+                      "--no-verify"]) == 0
     printed = capsys.readouterr().out
     header = next(line for line in printed.splitlines() if line.startswith("step"))
     assert "true ml" in header and "true error %" in header and "reached" not in header
