@@ -24,7 +24,7 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
 Actions (:meth:`ControlCore.take_actions`): :class:`Solve`, :class:`SendSetpoints`, :class:`SendVent`,
 :class:`Tell` (an event for people, with an ``outcome`` for the targets clients wait on), :class:`StepApplied`,
 :class:`StepReached`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the reply to an API
-request), :class:`Scan` and :class:`Correct` (a verified target's rounds).
+request), :class:`Scan`, :class:`Correct` and :class:`Record` (a verified target's rounds).
 
 Setpoints on the board that the daemon did not send (another program on the port, a board that lost its state)
 are a mismatch (:class:`phantom.host.board_watch.SetpointWatch`): the core vents and has the board's gains and
@@ -36,11 +36,12 @@ the estimate within ``tolerance_pct`` of what was asked.
 
 A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
 then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
-pressures. A scanned gland volume within the tolerance of the target ends it ``reached`` with the scanned volume
-(the volume reported is MEASURED); one outside asks for a :class:`Correct` (the scan recorded as a measurement,
-the next round's pressures solved), applies that answer, and scans again, up to the round limit (then
-``not_verified``). A failed scan ends it ``scan_failed``: no correction from it, the pressures held. The rounds
-are in the outcome's ``rounds``.
+pressures. A scanned gland volume within a third of the tolerance of the target (:data:`VERIFY_AIM_SHARE`; on
+the last round, within the tolerance) ends it ``reached`` with the scanned volume (the volume reported is
+MEASURED) and asks for a :class:`Record` of the scan as a measurement; one outside asks for a :class:`Correct`
+(the scan recorded as a measurement, the next round's pressures solved), applies that answer, and scans again, up
+to the round limit (then ``not_verified``, the last scan recorded). A failed scan ends it ``scan_failed``: no
+correction from it, the pressures held. The rounds are in the outcome's ``rounds``.
 """
 
 from __future__ import annotations
@@ -181,6 +182,11 @@ class Answer:
 VERIFY_TOLERANCE_PCT = (0.05, 20.0)
 #: The most scans (rounds) a verified target may take.
 MAX_VERIFY_ROUNDS = 10
+#: While rounds remain, a verified target stops only on a scan within this share of its tolerance (it aims at the
+#: target, not at the tolerance's edge): the scanner's own error adds to the scanned error in the true volume, and
+#: the verify plan's is -0.18 % at 30 ml to +0.18 % at 45 ml (bench/README.md), so a scan stopped at +0.17 % of a
+#: 0.3 % tolerance left `make demo`'s 30 ml +0.36 % true. The last round still ends verified within the tolerance.
+VERIFY_AIM_SHARE = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -208,6 +214,18 @@ class Scan:
 
 
 @dataclass(frozen=True)
+class Record:
+    """The scan of round ``round`` ended the verification (within the tolerance, a recording scan, the round
+    limit): record it as a measurement (``pressures_kpa``, ``scanned_ml``, ``scan_folder``), as a miss's
+    :class:`Correct` does."""
+
+    round: int
+    pressures_kpa: tuple[float, ...]
+    scanned_ml: float
+    scan_folder: str | None
+
+
+@dataclass(frozen=True)
 class Correct:
     """The scan of round ``round`` missed: record it as a measurement (``pressures_kpa``, ``scanned_ml``) and
     solve the next round's pressures: for ``target`` on the corrected model, or, when there is no correction or
@@ -224,7 +242,7 @@ class Correct:
 
 
 Action = (Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
-          | Scan | Correct)
+          | Scan | Correct | Record)
 
 
 @dataclass
@@ -610,12 +628,15 @@ class ControlCore:
         error_pct = 100.0 * (volume_ml - rounds.target_ml) / rounds.target_ml
         entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct)
         verify = rounds.verify
-        if not verify.correct or abs(error_pct) <= verify.tolerance_pct:
-            within = "within" if abs(error_pct) <= verify.tolerance_pct else "outside"
+        within = abs(error_pct) <= verify.tolerance_pct
+        aim_pct = verify.tolerance_pct * VERIFY_AIM_SHARE
+        if not verify.correct or abs(error_pct) <= aim_pct or (within and round_ >= verify.rounds):
+            self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._verified_outcome(reach, rounds, f"target {described} reached and MEASURED: scanned "
-                                   f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {within} {verify.tolerance_pct:g} %) "
-                                   f"after {round_} round(s)")
+                                   f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {'within' if within else 'outside'} "
+                                   f"{verify.tolerance_pct:g} %) after {round_} round(s)")
         elif round_ >= verify.rounds:
+            self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._outcome("not_verified", f"target {described} not verified: scanned {volume_ml:.2f} ml "
                           f"({error_pct:+.2f} %) after {round_} round(s), the limit; the pressures are held (give "
                           "more verify_rounds, or a wider verify_tolerance_pct)", "WARN",
@@ -623,8 +644,10 @@ class ControlCore:
         else:
             rounds.doing = "correcting"
             setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
+            outside = (f"within {verify.tolerance_pct:g} % but outside the {aim_pct:.2g} % aimed at" if within
+                       else f"outside {verify.tolerance_pct:g} %")
             self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "
-                       f"%, outside {verify.tolerance_pct:g} %): correcting")
+                       f"%, {outside}): correcting")
             self._actions.append(Correct(round_, reach.target, tuple(entry["pressures_kpa"]), float(volume_ml),
                                          folder, shifted_ml(rounds.rounds, rounds.target_ml), setpoints))
 

@@ -11,8 +11,9 @@ tick, a volume estimate when due, status to subscribers, link statistics to Reru
 A verified target's scans (the core's :class:`~phantom.host.control.Scan`) go through the daemon's own ``scan``
 API method (host/motion.py) with the :class:`VerifyScanner`'s plan; the capture is reconstructed by the
 :class:`VerifyScanner` in a worker thread (the host imports nothing of the scanner's code: ``phantom daemon``
-gives it); a miss is recorded as a measurement through the model worker when it can take one
-(``record_measurement``) and the next round solved (:meth:`Daemon._correct_for_core`).
+gives it); every scan is recorded as a measurement through the model worker when it can take one
+(``record_measurement``, :meth:`Daemon._record_scan`): a miss's before the next round is solved
+(:meth:`Daemon._correct_for_core`), the scan that ends the verification on its own (the core's ``Record``).
 """
 
 from __future__ import annotations
@@ -184,6 +185,8 @@ class Daemon:
             self.spawn(self._scan_for_core(action))
         elif isinstance(action, control.Correct):
             self.spawn(self._correct_for_core(action))
+        elif isinstance(action, control.Record):
+            self.spawn(self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder))
         elif isinstance(action, control.Answer):
             waiting = self._requests.pop(action.request, None)
             if waiting is not None and not waiting.done():
@@ -240,23 +243,15 @@ class Daemon:
         next round's pressures: the target on the corrected model, or (no correction, or one that leaves the
         setpoints as they were) the gland volume moved by the scan's error."""
         how = ""
-        record = getattr(self.model, "record_measurement", None)
         answer: InverseResult | None = None
         try:
-            if record is not None:
-                try:
-                    recorded = record(list(action.pressures_kpa), action.scanned_ml, "scan", action.scan_folder)
-                    if asyncio.iscoroutine(recorded):
-                        await recorded
-                except Exception as error:  # the scan is still used: the asked volume moves by its error
-                    self.event("verify", f"the scan could not be recorded as a measurement: {error}", "WARN")
+            if await self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder):
+                answer = await self.solve(action.target)
+                setpoints = control.setpoints_for(answer.pressures_pa)
+                if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
+                    answer = None
                 else:
-                    answer = await self.solve(action.target)
-                    setpoints = control.setpoints_for(answer.pressures_pa)
-                    if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
-                        answer = None
-                    else:
-                        how = "the target on the model corrected by the scan"
+                    how = "the target on the model corrected by the scan"
             if answer is None:
                 answer, how = await self._solve_shifted(action)
         except ApiError as error:
@@ -266,6 +261,21 @@ class Daemon:
             self._feed(self.core.correct_failed, action.round, False, f"the model failed: {error}")
             return
         self._feed(self.core.corrected, action.round, answer, how)
+
+    async def _record_scan(self, pressures_kpa: tuple[float, ...], scanned_ml: float, folder: str | None) -> bool:
+        """A scan stored as a measurement of the phantom (the model's correction fitted again), when the model can
+        take one: whether it was (one that could not be is said; the scan is still the round's)."""
+        record = getattr(self.model, "record_measurement", None)
+        if record is None:
+            return False
+        try:
+            recorded = record(list(pressures_kpa), scanned_ml, "scan", folder)
+            if asyncio.iscoroutine(recorded):
+                await recorded
+        except Exception as error:
+            self.event("verify", f"the scan as a measurement of the phantom: {error}", "WARN")
+            return False
+        return True
 
     async def _solve_shifted(self, action: control.Correct) -> tuple[InverseResult, str]:
         """The volume asked moved by the scan's error, solved; one the model cannot reach (the phantom holds

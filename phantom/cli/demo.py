@@ -8,9 +8,10 @@ each step's target, estimate, true volume (the simulated plant's) and its error,
 model's own error, uncorrected. Then each step's volume is set again with ``verify="scan"`` (issue 36: scanned,
 corrected, applied again until the scanned volume is within 0.3 %) and a second table prints, per step, the
 target, the model's estimate, the scanned and the true volume before the correction (the first round) and after
-it (the last). ``--no-verify`` leaves the scans out. It stops the daemon with SIGTERM (it vents), reads the
-recording back (each scan's volume is on its volume plot) and writes its static report (``phantom report``)
-beside it: ``out/demo.html``.
+it (the last). ``--no-verify`` leaves the scans out. The scans and the measurements they store go to
+``out/data``, emptied at each start (not the user's data directory: the simulated phantom is not theirs). It
+stops the daemon with SIGTERM (it vents), reads the recording back (each scan's volume is on its volume plot)
+and writes its static report (``phantom report``) beside it: ``out/demo.html``.
 
 The recording is written to ``out/demo.running.rrd`` and becomes ``out/demo.rrd`` only when the demo succeeds:
 a failed demo leaves the last good recording alone, and says which part failed (the daemon's start, the board,
@@ -51,6 +52,15 @@ VERIFIED_TRUE_TOLERANCE_PCT = 0.3
 #: How long one verified volume may take (s): a round (a scan of 60 pictures, its reconstruction, the pressures
 #: settling again) took 1 to 5 minutes on the two cores, idle to loaded.
 VERIFY_TIMEOUT_S = 1800.0
+
+
+def demo_environment(out: Path) -> dict[str, str]:
+    """The daemon's environment: a data directory of its own, ``out/data``, emptied first (the scans and the
+    measurements they store): the simulated phantom's scans must not correct the user's own phantom's model,
+    and each demo starts from the model's own error."""
+    data = out / "data"
+    shutil.rmtree(data, ignore_errors=True)
+    return {**os.environ, "PHANTOM_DATA_DIR": str(data.resolve())}
 
 
 def daemon_command(scene: str, out: Path) -> list[str]:
@@ -208,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
     print("$ " + " ".join(command), file=sys.stderr)
     log_path = out / "daemon.log"
     with open(log_path, "w") as log:
-        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=demo_environment(out))
     succeeded = False
     try:
         ready_s = wait_until_ready(out / "demo.sock", process, log_path)
