@@ -72,15 +72,23 @@ class VerifyScanner(Protocol):
     plan: dict[str, Any]
 
     def volume(self, folder: str) -> dict[str, Any]:
-        """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml`` and ``mesh`` (the
-        surface's file); PhantomError when it cannot be (a picture without the phantom, a hull not closed)."""
+        """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml``, ``mesh`` (the
+        surface's file) and ``surface_mm`` (its vertices and triangles in the model's frame, for the recording;
+        None when the scan's frame is not the model's); PhantomError when it cannot be (a picture without the
+        phantom, a hull not closed)."""
         ...
 
 
 #: The reachable range an unreachable volume's message states (phantom.model.target's inverse).
 REACHABLE_RANGE = re.compile(r"give (-?[\d.]+) to (-?[\d.]+) ml")
+#: With a correction in force, the volume asked and the model's own volume it stands for (the model worker's
+#: unreachable message): the model's range moved by their difference is the corrected model's.
+CORRECTED_AS = re.compile(r"(-?[\d.]+) ml with the correction in force .* is the model's (-?[\d.]+) ml")
 #: How far inside the reachable range a volume asked at its edge is (ml).
 EDGE_MARGIN_ML = 0.01
+#: How many times a volume beyond the reachable range is asked again at its edge (the corrected model's edge moves
+#: with the correction's own value there).
+EDGE_TRIES = 3
 
 
 def _volume(target: Target, volume_ml: float) -> Target:
@@ -128,6 +136,8 @@ class Daemon:
         self._link_log_due_s = 0.0
         self.tasks: list[asyncio.Task[Any]] = []
         self.background: set[asyncio.Task[Any]] = set()
+        #: scans being stored as measurements: the shutdown waits for them (a scan is a measurement kept)
+        self.storing: set[asyncio.Future[Any]] = set()
         #: start-up: what it is doing until ready (the model answers and the board was first online and zeroed)
         self.startup = startup or StartupProgress(clock)
         self.ready = False
@@ -236,22 +246,32 @@ class Daemon:
             self._feed(self.core.scanned, action.round, None, str(error), folder)
             return
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
+        if result.get("surface_mm") is not None:
+            self.recorder.log_scan_surface(self.now_s(), *result["surface_mm"])
         self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
 
     async def _correct_for_core(self, action: control.Correct) -> None:
         """A verified target's miss: the scan recorded as a measurement when the model can take one, then the
-        next round's pressures: the target on the corrected model, or (no correction, or one that leaves the
-        setpoints as they were) the gland volume moved by the scan's error."""
+        next round's pressures: the target on the corrected model, or (no correction, one that leaves the
+        setpoints as they were, or one whose range the target is beyond) the gland volume moved by the scan's
+        error."""
         how = ""
         answer: InverseResult | None = None
         try:
             if await self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder):
-                answer = await self.solve(action.target)
-                setpoints = control.setpoints_for(answer.pressures_pa)
-                if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
-                    answer = None
+                try:
+                    answer = await self.solve(action.target)
+                except ApiError as error:
+                    if error.code != "unreachable":
+                        raise
+                    # beyond the corrected model's range (one scan near the rest shape corrects it by an offset
+                    # that the phantom at rest does not hold): the shifted volume, at the range's edge
                 else:
-                    how = "the target on the model corrected by the scan"
+                    setpoints = control.setpoints_for(answer.pressures_pa)
+                    if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
+                        answer = None
+                    else:
+                        how = "the target on the model corrected by the scan"
             if answer is None:
                 answer, how = await self._solve_shifted(action)
         except ApiError as error:
@@ -271,7 +291,10 @@ class Daemon:
         try:
             recorded = record(list(pressures_kpa), scanned_ml, "scan", folder)
             if asyncio.iscoroutine(recorded):
-                await recorded
+                storing = asyncio.ensure_future(recorded)
+                self.storing.add(storing)
+                storing.add_done_callback(self.storing.discard)
+                await asyncio.shield(storing)  # a round cancelled (a shutdown) does not cancel its store
         except Exception as error:
             self.event("verify", f"the scan as a measurement of the phantom: {error}", "WARN")
             return False
@@ -279,19 +302,25 @@ class Daemon:
 
     async def _solve_shifted(self, action: control.Correct) -> tuple[InverseResult, str]:
         """The volume asked moved by the scan's error, solved; one the model cannot reach (the phantom holds
-        more at rest than the model says) is asked at the edge of the model's reachable range instead."""
-        asked_ml, how = action.shifted_ml, f"{action.shifted_ml:.3f} ml: the volume asked moved by the scan's error"
-        try:
-            return await self.solve(_volume(action.target, asked_ml)), how
-        except ApiError as error:
-            found = REACHABLE_RANGE.search(str(error)) if error.code == "unreachable" else None
-            if found is None:
-                raise
-            low_ml, high_ml = float(found.group(1)), float(found.group(2))
-            edge_ml = min(max(asked_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
-            how = (f"{edge_ml:.3f} ml: the volume asked moved by the scan's error ({asked_ml:.3f} ml) is beyond the "
-                   f"model's reachable {low_ml:g} to {high_ml:g} ml, so its edge")
-            return await self.solve(_volume(action.target, edge_ml)), how
+        more at rest than the model says) is asked at the edge of the model's reachable range instead (with a
+        correction in force, the corrected model's: the model's moved by the correction there)."""
+        shifted_ml = action.shifted_ml
+        asked_ml, how = shifted_ml, f"{shifted_ml:.3f} ml: the volume asked moved by the scan's error"
+        for _ in range(EDGE_TRIES):
+            try:
+                return await self.solve(_volume(action.target, asked_ml)), how
+            except ApiError as error:
+                found = REACHABLE_RANGE.search(str(error)) if error.code == "unreachable" else None
+                if found is None:
+                    raise
+                corrected = CORRECTED_AS.search(str(error))
+                moved_ml = float(corrected.group(1)) - float(corrected.group(2)) if corrected else 0.0
+                low_ml, high_ml = float(found.group(1)) + moved_ml, float(found.group(2)) + moved_ml
+                asked_ml = min(max(shifted_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
+                how = (f"{asked_ml:.3f} ml: the volume asked moved by the scan's error ({shifted_ml:.3f} ml) is beyond "
+                       f"the model's reachable {low_ml:.3f} to {high_ml:.3f} ml"
+                       f"{' (with the correction in force)' if corrected else ''}, so its edge")
+        return await self.solve(_volume(action.target, asked_ml)), how
 
     async def _send_setpoints(self, action: control.SendSetpoints) -> None:
         try:

@@ -208,10 +208,50 @@ def test_the_scan_that_ends_a_verification_is_stored_through_the_model_worker():
             raise ValueError("a negative volume")
         return {"count": len(stored)}
 
-    daemon = types.SimpleNamespace(model=types.SimpleNamespace(record_measurement=record_measurement),
+    daemon = types.SimpleNamespace(model=types.SimpleNamespace(record_measurement=record_measurement), storing=set(),
                                    event=lambda kind, text, level="INFO", data=None: told.append((kind, text, level)))
     assert asyncio.run(Daemon._record_scan(daemon, (1.0, 0.5, 0.5), 40.03, "/scans/1")) is True
     assert stored == [([1.0, 0.5, 0.5], 40.03, "scan", "/scans/1")] and told == []
     assert asyncio.run(Daemon._record_scan(daemon, (1.0, 0.5, 0.5), -1.0, "/scans/2")) is False
     assert told == [("verify", "the scan as a measurement of the phantom: a negative volume", "WARN")]
     assert asyncio.run(Daemon._record_scan(types.SimpleNamespace(model=object()), (1.0,), 40.0, None)) is False
+
+
+def test_a_target_beyond_the_corrected_models_range_is_asked_at_that_ranges_edge():
+    """make demo's 26.5 ml: its first scan (27.00 ml at 0.1 kPa) corrects the model by +0.44 ml, so 26.5 ml is
+    below what the corrected model reaches at 0 kPa (26.74 ml), while the phantom at rest holds 26.43 ml. The
+    correction after round 1 failed ("unreachable") and the target ended not verified; now the volume asked moved
+    by the scan's error is asked at the corrected range's edge."""
+    import asyncio
+    import types
+
+    from phantom.host.api import ApiError
+    from phantom.host.daemon import Daemon
+
+    asked, fed = [], []
+
+    async def solve(target):   # the model worker with a +0.44 ml correction in force
+        volume_ml = target.gland_volume_m3 * 1e6
+        asked.append(volume_ml)
+        model_ml = volume_ml - 0.44
+        if model_ml < 26.296:
+            raise ApiError("unreachable", f"{volume_ml:.2f} ml with the correction in force (offset from 1 "
+                           f"measurement(s)) is the model's {model_ml:.2f} ml: the gland volume target {model_ml:.3f} "
+                           "ml is unreachable: pressures between 0 and [3, 3, 3] kPa give 26.296 to 51.581 ml; ask "
+                           "for a volume in that range or raise pressure_max")
+        return types.SimpleNamespace(pressures_pa=[1.0, 0.0, 0.0], target=target)
+
+    async def recorded(*_):
+        return True
+
+    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded,
+                                   core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
+                                   _feed=lambda method, *args: fed.append((method, args)))
+    daemon._solve_shifted = lambda action: Daemon._solve_shifted(daemon, action)
+    action = control.Correct(1, volume(26.5), (0.1, 0.1, 0.1), 27.0, "/scans/1", 26.0, (98.0, 97.0, 97.0))
+    asyncio.run(Daemon._correct_for_core(daemon, action))
+    assert asked[:2] == [pytest.approx(26.5), pytest.approx(26.0)]      # the target, then the shifted volume
+    assert asked[-1] == pytest.approx(26.746)                            # the corrected range's edge, inside it
+    ((method, (round_, answer, how)),) = fed
+    assert method == "corrected" and round_ == 1 and answer.target.gland_volume_m3 * 1e6 == pytest.approx(26.746)
+    assert "beyond the model's reachable 26.736 to 52.021 ml (with the correction in force), so its edge" in how

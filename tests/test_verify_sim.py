@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from daemon_rig import wait_ready
 
@@ -23,10 +24,13 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 @pytest.mark.timeout(1800)
 def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
     pytest.importorskip("cv2")
-    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    from phantom.host.recording import read_rrd
+    from phantom.model.corrections import CorrectionStore
+
+    sock, data, rrd = tmp_path / "d.sock", tmp_path / "data", tmp_path / "verify.rrd"
     log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--socket", str(sock)], stdout=log,
-                               stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--socket", str(sock), "--rerun-save", str(rrd)],
+                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
     try:
         wait_ready(sock, process, Path(log.name), 180)
         with phantom.connect(sock) as ph:
@@ -48,8 +52,24 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
         assert rounds[0]["pressures_kpa"] != rounds[-1]["pressures_kpa"] and "next" in rounds[0]
     finally:
         process.terminate()
-        process.wait(60)
+        process.wait(120)
         log.close()
+    # every scan is a measurement kept, the last (within the tolerance) too: stored before the daemon stopped
+    stored = CorrectionStore.for_phantom("default", data).entries()
+    assert [(entry.method, entry.volume_ml, entry.scan_file) for entry in stored] == [
+        ("scan", pytest.approx(entry["scanned_volume_ml"]), entry["scan"]) for entry in rounds]
+    # the recording read back: each scan's volume on the volume plot and its surface (phantom/scan, in the view of
+    # the model's), the last one enclosing the volume the round scanned
+    entities = read_rrd(rrd)
+    scanned = [values[0] for values in entities["/volume/scanned_ml"]["Scalars:scalars"]]
+    assert scanned == pytest.approx([entry["scanned_volume_ml"] for entry in rounds])
+    surfaces = entities["/phantom/scan"]
+    assert len(surfaces["time"]) == len(rounds) and surfaces["time"] == sorted(surfaces["time"])
+    last = np.asarray(surfaces["Mesh3D:vertex_positions"][-1], float)
+    triangles = np.asarray(surfaces["Mesh3D:triangle_indices"][-1], int)
+    corners = last[triangles]
+    enclosed_ml = np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() / 6e3
+    assert enclosed_ml == pytest.approx(rounds[-1]["scanned_volume_ml"], rel=1e-3)
 
 
 @pytest.mark.timeout(300)
