@@ -159,6 +159,11 @@ def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]
             continue
         rows.append({"target_ml": target_ml, "rounds": list(result.rounds), "error": None,
                      "took_s": time.monotonic() - started_s})
+        last = result.rounds[-1] if result.rounds else {}
+        true_ml = last.get("true_volume_ml")
+        true = "" if true_ml is None else f", true {true_ml:.3f} ml ({100.0 * (true_ml / target_ml - 1.0):+.3f} %)"
+        print(f"  {target_ml:g} ml: scanned {result.scanned_volume_ml:.3f} ml{true} after {len(result.rounds)} "
+              f"round(s), {rows[-1]['took_s']:.0f} s", file=sys.stderr, flush=True)
     return rows
 
 
