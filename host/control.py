@@ -17,7 +17,7 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
     measured(pressures_pa) / estimated(gland, chambers)   what reached is judged on
     scene_started / scene_ended                     the scene runner's state
     model_changed                                   the model answers on another level: solve again
-    scanned(round, volume_ml, error)                a verified target's scan, reconstructed (or why it failed)
+    scanned(round, volume_ml, error, link_lost)     a verified target's scan, reconstructed (or why it failed)
     corrected(round, answer, how) / correct_failed  the pressures of a verified target's next round
     tick                                            retries and what waits
 
@@ -41,7 +41,8 @@ the last round, within the tolerance) ends it ``reached`` with the scanned volum
 MEASURED) and asks for a :class:`Record` of the scan as a measurement; one outside asks for a :class:`Correct`
 (the scan recorded as a measurement, the next round's pressures solved), applies that answer, and scans again, up
 to the round limit (then ``not_verified``, the last scan recorded). A failed scan ends it ``scan_failed``: no
-correction from it, the pressures held. The rounds are in the outcome's ``rounds``.
+correction from it, the pressures held; one that failed while the board's link was lost is taken again once the
+pressures have settled (:data:`SCAN_RETRIES`). The rounds are in the outcome's ``rounds``.
 """
 
 from __future__ import annotations
@@ -182,6 +183,11 @@ class Answer:
 VERIFY_TOLERANCE_PCT = (0.05, 20.0)
 #: The most scans (rounds) a verified target may take.
 MAX_VERIFY_ROUNDS = 10
+#: How many scans of one verified target may be taken again after the board's link cut them short (a lost link,
+#: a board that reset: the rig's fault, not the phantom's); the round is scanned again once its pressures, applied
+#: again, have settled. On the loaded two cores the simulated board lost its link every minute or two, and a
+#: nine-minute scan with it.
+SCAN_RETRIES = 2
 #: While rounds remain, a verified target stops only on a scan within this share of its tolerance (it aims at the
 #: target, not at the tolerance's edge): the scanner's own error adds to the scanned error in the true volume, and
 #: the verify plan's is -0.18 % at 30 ml to +0.18 % at 45 ml (bench/README.md), so a scan stopped at +0.17 % of a
@@ -265,6 +271,8 @@ class _Rounds:
     doing: str | None = None
     #: the answer of the round being applied (solved for the target or a shifted volume)
     answer: InverseResult | None = None
+    #: scans taken again after the link cut them short (:data:`SCAN_RETRIES`)
+    retries: int = 0
 
 
 @dataclass
@@ -607,18 +615,27 @@ class ControlCore:
         self._next(now)
 
     def scanned(self, now: float, round_: int, volume_ml: float | None, error: str | None = None,
-                folder: str | None = None, true_ml: float | None = None) -> None:
+                folder: str | None = None, true_ml: float | None = None, link_lost: bool = False) -> None:
         """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``;
-        ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round."""
+        ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round.
+        ``link_lost``: the board's link was lost during a scan that failed; it is taken again (at most
+        :data:`SCAN_RETRIES` times) once the pressures, applied again, have settled."""
         rounds, reach = self._rounds, self._reach
         if rounds is None or reach is None or rounds.doing != "scanning" or len(rounds.rounds) != round_:
             return  # the verification ended meanwhile (a fault, a vent, another target): its scan is not used
         rounds.doing = None
+        described = reach.target.describe()
+        if error is not None and link_lost and rounds.retries < SCAN_RETRIES:
+            rounds.retries += 1
+            rounds.rounds.pop()
+            self._tell("verify", f"target {described}: the scan of round {round_} failed while the board's link was "
+                       f"lost ({error}): scanned again once the pressures have settled (retry {rounds.retries} of "
+                       f"{SCAN_RETRIES})", "WARN")
+            return
         entry = rounds.rounds[-1]
         entry["scan"] = folder
         if true_ml is not None:
             entry["true_volume_ml"] = true_ml
-        described = reach.target.describe()
         if error is not None or volume_ml is None or not np.isfinite(volume_ml) or volume_ml <= 0:
             entry["scan_error"] = error or f"the reconstruction gave no volume ({volume_ml!r})"
             self._outcome("scan_failed", f"target {described} not verified: the scan of round {round_} failed "

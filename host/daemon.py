@@ -229,6 +229,7 @@ class Daemon:
     async def _scan_for_core(self, action: control.Scan) -> None:
         """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread."""
         folder: str | None = None
+        links_lost = self._links_lost()
         try:
             scanner = self.verify_scanner
             why = self.verify_refusal()
@@ -243,12 +244,17 @@ class Daemon:
             result = await asyncio.to_thread(scanner.volume, folder)
             volume_ml = float(result["volume_ml"])
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
-            self._feed(self.core.scanned, action.round, None, str(error), folder)
+            self._feed(self.core.scanned, action.round, None, str(error), folder, None,
+                       self._links_lost() != links_lost)
             return
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
         if result.get("surface_mm") is not None:
             self.recorder.log_scan_surface(self.now_s(), *result["surface_mm"])
         self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
+
+    def _links_lost(self) -> int:
+        """How often the board's link was lost since the daemon started."""
+        return int(self.session.status().get("stats", {}).get("links_lost", 0))
 
     async def _correct_for_core(self, action: control.Correct) -> None:
         """A verified target's miss: the scan recorded as a measurement when the model can take one, then the

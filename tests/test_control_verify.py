@@ -123,6 +123,30 @@ def test_a_failed_scan_corrects_nothing_and_holds_the_pressures(core, volume_ml,
     assert core.target_applied
 
 
+def test_a_scan_cut_short_by_a_lost_link_is_taken_again_once_the_pressures_settle(core):
+    """Under load the simulated board lost its link every minute or two and make demo's 26.5 ml ended
+    scan_failed ("the link to the board is disconnected"): the rig's fault, not the phantom's."""
+    verified(core)
+    for retry in (1, 2):
+        core.scanned(3.0 * retry, 1, None, "the scan stopped: the link to the board is disconnected", "/scans/1",
+                     link_lost=True)
+        actions = core.take_actions()
+        assert outcomes(actions) == [] and of_kind(actions, (control.Correct, control.Record)) == []
+        assert any(f"retry {retry} of 2" in tell.text for tell in of_kind(actions, control.Tell))
+        # the link back, the target applied again: scanned again, as the same round, once settled
+        core.board(3.0 * retry + 0.1, False, "the board's gains and limits are being set")
+        core.board(3.0 * retry + 0.2, True)
+        (send,) = of_kind(core.take_actions(), control.SendSetpoints)
+        core.sent(3.0 * retry + 0.3, volume(40.0))
+        core.take_actions()
+        (scan,) = of_kind(settle(core, 3.0 * retry + 0.3, 1.2, estimate_ml=40.0), control.Scan)
+        assert scan.round == 1
+    # a third loss is one too many: the scan failed, the pressures held
+    core.scanned(9.0, 1, None, "the scan stopped: the link to the board is disconnected", "/scans/1", link_lost=True)
+    (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
+    assert told.data["outcome"] == "scan_failed" and len(told.data["rounds"]) == 1
+
+
 def test_a_fault_during_a_scan_ends_it_faulted_and_its_scan_is_not_used(core):
     verified(core)
     core.faults(2.0, ("OVERPRESSURE",))
