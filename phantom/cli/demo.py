@@ -49,6 +49,8 @@ STEP_TOLERANCE_PCT = 1.0
 #: verify tolerance (0.3 %) is on the scanned volume, which the scanner's own error (0.03-0.16 %) separates from
 #: the true one.
 VERIFIED_TRUE_TOLERANCE_PCT = 0.3
+#: How long a verified volume waits for the daemon's link to the board to come back before it is set (s).
+LINK_WAIT_S = 60.0
 #: How long one verified volume may take (s): a round (a scan of 60 pictures, its reconstruction, the pressures
 #: settling again) took 1 to 5 minutes on the two cores, idle to loaded.
 VERIFY_TIMEOUT_S = 1800.0
@@ -150,6 +152,7 @@ def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]
         print(f"  verifying {target_ml:g} ml: reach on pressure, scan, correct ...", file=sys.stderr, flush=True)
         started_s = time.monotonic()
         try:
+            wait_for_link(daemon)
             result = daemon.set_volume(target_ml, verify="scan", timeout_s=VERIFY_TIMEOUT_S)
         except DaemonError as error:
             rounds = list(getattr(error, "rounds", []))
@@ -165,6 +168,14 @@ def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]
         print(f"  {target_ml:g} ml: scanned {result.scanned_volume_ml:.3f} ml{true} after {len(result.rounds)} "
               f"round(s), {rows[-1]['took_s']:.0f} s", file=sys.stderr, flush=True)
     return rows
+
+
+def wait_for_link(daemon: Any, limit_s: float = LINK_WAIT_S) -> None:
+    """Wait (at most ``limit_s``) until the daemon's link to the board is online: a target set while it is down
+    is refused (``link_down``), and the simulated board on a loaded machine loses it for a second now and then."""
+    deadline_s = time.monotonic() + limit_s
+    while daemon.status().link != "online" and time.monotonic() < deadline_s:
+        time.sleep(0.5)
 
 
 def format_verified(rows: list[dict[str, Any]]) -> str:
