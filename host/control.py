@@ -618,8 +618,8 @@ class ControlCore:
                 folder: str | None = None, true_ml: float | None = None, link_lost: bool = False) -> None:
         """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``;
         ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round.
-        ``link_lost``: the board's link was lost during a scan that failed; it is taken again (at most
-        :data:`SCAN_RETRIES` times) once the pressures, applied again, have settled."""
+        ``link_lost``: the board's link was lost during a scan that failed (or just before it); it is taken again
+        (at most :data:`SCAN_RETRIES` times) once the pressures, applied again, have settled."""
         rounds, reach = self._rounds, self._reach
         if rounds is None or reach is None or rounds.doing != "scanning" or len(rounds.rounds) != round_:
             return  # the verification ended meanwhile (a fault, a vent, another target): its scan is not used

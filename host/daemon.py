@@ -84,6 +84,11 @@ REACHABLE_RANGE = re.compile(r"give (-?[\d.]+) to (-?[\d.]+) ml")
 #: With a correction in force, the volume asked and the model's own volume it stands for (the model worker's
 #: unreachable message): the model's range moved by their difference is the corrected model's.
 CORRECTED_AS = re.compile(r"(-?[\d.]+) ml with the correction in force .* is the model's (-?[\d.]+) ml")
+#: A verify scan that fails within this long after the board's link was lost fails for the rig's sake (s): a board
+#: that reset holds its axes busy (BUSY) while they stop, and the scan retaken at once was refused for it.
+LINK_LOSS_GRACE_S = 30.0
+#: How long a verify scan waits for the rig's axes to come to rest before it starts (s).
+RIG_REST_WAIT_S = 30.0
 #: How far inside the reachable range a volume asked at its edge is (ml).
 EDGE_MARGIN_ML = 0.01
 #: How many times a volume beyond the reachable range is asked again at its edge (the corrected model's edge moves
@@ -138,6 +143,8 @@ class Daemon:
         self.background: set[asyncio.Task[Any]] = set()
         #: scans being stored as measurements: the shutdown waits for them (a scan is a measurement kept)
         self.storing: set[asyncio.Future[Any]] = set()
+        #: when the board's link was last lost (s, :meth:`now_s`; None: never)
+        self.link_lost_s: float | None = None
         #: start-up: what it is doing until ready (the model answers and the board was first online and zeroed)
         self.startup = startup or StartupProgress(clock)
         self.ready = False
@@ -229,12 +236,13 @@ class Daemon:
     async def _scan_for_core(self, action: control.Scan) -> None:
         """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread."""
         folder: str | None = None
-        links_lost = self._links_lost()
+        started_s = self.now_s()
         try:
             scanner = self.verify_scanner
             why = self.verify_refusal()
             if scanner is None or why is not None:
                 raise ApiError("invalid_params", why or "no scanner")
+            await self._rig_at_rest()
             out = verify_folder(action.round)
             answer = await self.api.handlers["scan"]({"out": str(out), **scanner.plan})
             assert isinstance(answer, dict)  # the scan method answers JSON-ready data
@@ -244,17 +252,23 @@ class Daemon:
             result = await asyncio.to_thread(scanner.volume, folder)
             volume_ml = float(result["volume_ml"])
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
-            self._feed(self.core.scanned, action.round, None, str(error), folder, None,
-                       self._links_lost() != links_lost)
+            link_lost = self.link_lost_s is not None and self.link_lost_s >= started_s - LINK_LOSS_GRACE_S
+            self._feed(self.core.scanned, action.round, None, str(error), folder, None, link_lost)
             return
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
         if result.get("surface_mm") is not None:
             self.recorder.log_scan_surface(self.now_s(), *result["surface_mm"])
         self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
 
-    def _links_lost(self) -> int:
-        """How often the board's link was lost since the daemon started."""
-        return int(self.session.status().get("stats", {}).get("links_lost", 0))
+    async def _rig_at_rest(self) -> None:
+        """Wait (at most :data:`RIG_REST_WAIT_S`) until no axis of the rig moves, homes or stops: the board refuses
+        a move (BUSY) meanwhile, as after a reset while a scan moved it."""
+        deadline_s = self.now_s() + RIG_REST_WAIT_S
+        while self.now_s() < deadline_s:
+            status = self.motion.latest
+            if status is None or all(axis.state not in ("MOVING", "HOMING", "STOPPING") for axis in status.axes):
+                return
+            await asyncio.sleep(0.2)
 
     async def _correct_for_core(self, action: control.Correct) -> None:
         """A verified target's miss: the scan recorded as a measurement when the model can take one, then the
@@ -426,6 +440,8 @@ class Daemon:
     def event(self, kind: str, text: str, level: str = "INFO", data: dict[str, Any] | None = None) -> None:
         """Record an event: the status's recent events, Rerun's text log, subscribers, the log. ``data`` (a
         target's outcome) goes with it to subscribers."""
+        if kind == "link_lost":  # the session's event: a verify scan failing after it is retaken
+            self.link_lost_s = self.now_s()
         entry = {"time_s": round(self.now_s(), 3), "kind": kind, "level": level, "text": text, **(data or {})}
         self.events.append(entry)
         self.recorder.log_event(self.now_s(), text, level)
