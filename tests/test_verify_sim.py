@@ -58,18 +58,21 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
     stored = CorrectionStore.for_phantom("default", data).entries()
     assert [(entry.method, entry.volume_ml, entry.scan_file) for entry in stored] == [
         ("scan", pytest.approx(entry["scanned_volume_ml"]), entry["scan"]) for entry in rounds]
-    # the recording read back: each scan's volume on the volume plot and its surface (phantom/scan, in the view of
-    # the model's), the last one enclosing the volume the round scanned
-    entities = read_rrd(rrd)
-    scanned = [values[0] for values in entities["/volume/scanned_ml"]["Scalars:scalars"]]
-    assert scanned == pytest.approx([entry["scanned_volume_ml"] for entry in rounds])
-    surfaces = entities["/phantom/scan"]
-    assert len(surfaces["time"]) == len(rounds) and surfaces["time"] == sorted(surfaces["time"])
-    last = np.asarray(surfaces["Mesh3D:vertex_positions"][-1], float)
-    triangles = np.asarray(surfaces["Mesh3D:triangle_indices"][-1], int)
-    corners = last[triangles]
-    enclosed_ml = np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum() / 6e3
-    assert enclosed_ml == pytest.approx(rounds[-1]["scanned_volume_ml"], rel=1e-3)
+    # the recording read back (a run past 20 minutes is written in segments, the earlier ones set aside beside it
+    # as verify.<time>.rrd): each scan's volume on the volume plot and its surface (phantom/scan, in the view of
+    # the model's surface) enclosing that volume
+    scanned, enclosed_ml = [], []
+    for path in sorted(tmp_path.glob("verify*.rrd")):
+        entities = read_rrd(path)
+        scanned += [values[0] for values in entities.get("/volume/scanned_ml", {}).get("Scalars:scalars", [])]
+        surfaces = entities.get("/phantom/scan", {})
+        for positions, triangles in zip(surfaces.get("Mesh3D:vertex_positions", []),
+                                        surfaces.get("Mesh3D:triangle_indices", []), strict=True):
+            corners = np.asarray(positions, float)[np.asarray(triangles, int)]
+            enclosed_ml.append(np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum()
+                               / 6e3)
+    assert sorted(scanned) == pytest.approx(sorted(entry["scanned_volume_ml"] for entry in rounds))
+    assert sorted(enclosed_ml) == pytest.approx(sorted(scanned), rel=1e-3)
 
 
 @pytest.mark.timeout(300)
