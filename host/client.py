@@ -888,11 +888,13 @@ class Phantom:
             left lobe grows twice as much as the right).
         verify : str, optional
             ``"scan"``: once reached on pressure, scan the phantom and compare the scanned gland volume with the
-            target; outside ``verify_tolerance_pct`` the scan corrects the model (or the volume asked) and the
-            pressures are applied again, for at most ``verify_rounds`` scans. The result's ``volume_ml`` is then
+            target; outside a third of ``verify_tolerance_pct`` (the last round: outside it) the scan corrects
+            the model (or the volume asked) and the pressures are applied again, for at most ``verify_rounds``
+            scans; every scan is stored as a measurement of the phantom. The result's ``volume_ml`` is then
             the scanned (measured) volume, ``rounds`` each round's pressures and scanned volume.
         verify_tolerance_pct : float, optional
-            How close the scanned volume must come (% of the target; default 0.3, from 0.05 to 20).
+            How close the scanned volume must come (% of the target; default 0.3, from 0.05 to 20); the rounds
+            aim at a third of it (the scanner's own error adds to the scanned one in the true volume).
         verify_rounds : int, optional
             The most scans (default 4, at most 10).
 

@@ -17,14 +17,14 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
     measured(pressures_pa) / estimated(gland, chambers)   what reached is judged on
     scene_started / scene_ended                     the scene runner's state
     model_changed                                   the model answers on another level: solve again
-    scanned(round, volume_ml, error)                a verified target's scan, reconstructed (or why it failed)
+    scanned(round, volume_ml, error, link_lost)     a verified target's scan, reconstructed (or why it failed)
     corrected(round, answer, how) / correct_failed  the pressures of a verified target's next round
     tick                                            retries and what waits
 
 Actions (:meth:`ControlCore.take_actions`): :class:`Solve`, :class:`SendSetpoints`, :class:`SendVent`,
 :class:`Tell` (an event for people, with an ``outcome`` for the targets clients wait on), :class:`StepApplied`,
 :class:`StepReached`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the reply to an API
-request), :class:`Scan` and :class:`Correct` (a verified target's rounds).
+request), :class:`Scan`, :class:`Correct` and :class:`Record` (a verified target's rounds).
 
 Setpoints on the board that the daemon did not send (another program on the port, a board that lost its state)
 are a mismatch (:class:`phantom.host.board_watch.SetpointWatch`): the core vents and has the board's gains and
@@ -36,11 +36,13 @@ the estimate within ``tolerance_pct`` of what was asked.
 
 A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
 then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
-pressures. A scanned gland volume within the tolerance of the target ends it ``reached`` with the scanned volume
-(the volume reported is MEASURED); one outside asks for a :class:`Correct` (the scan recorded as a measurement,
-the next round's pressures solved), applies that answer, and scans again, up to the round limit (then
-``not_verified``). A failed scan ends it ``scan_failed``: no correction from it, the pressures held. The rounds
-are in the outcome's ``rounds``.
+pressures. A scanned gland volume within a third of the tolerance of the target (:data:`VERIFY_AIM_SHARE`; on
+the last round, within the tolerance) ends it ``reached`` with the scanned volume (the volume reported is
+MEASURED) and asks for a :class:`Record` of the scan as a measurement; one outside asks for a :class:`Correct`
+(the scan recorded as a measurement, the next round's pressures solved), applies that answer, and scans again, up
+to the round limit (then ``not_verified``, the last scan recorded). A failed scan ends it ``scan_failed``: no
+correction from it, the pressures held; one that failed while the board's link was lost is taken again once the
+pressures have settled (:data:`SCAN_RETRIES`). The rounds are in the outcome's ``rounds``.
 """
 
 from __future__ import annotations
@@ -181,6 +183,16 @@ class Answer:
 VERIFY_TOLERANCE_PCT = (0.05, 20.0)
 #: The most scans (rounds) a verified target may take.
 MAX_VERIFY_ROUNDS = 10
+#: How many scans of one verified target may be taken again after the board's link cut them short (a lost link,
+#: a board that reset: the rig's fault, not the phantom's); the round is scanned again once its pressures, applied
+#: again, have settled. On the loaded two cores the simulated board lost its link every minute or two, and a
+#: nine-minute scan with it.
+SCAN_RETRIES = 2
+#: While rounds remain, a verified target stops only on a scan within this share of its tolerance (it aims at the
+#: target, not at the tolerance's edge): the scanner's own error adds to the scanned error in the true volume, and
+#: the verify plan's is -0.18 % at 30 ml to +0.18 % at 45 ml (bench/README.md), so a scan stopped at +0.17 % of a
+#: 0.3 % tolerance left `make demo`'s 30 ml +0.36 % true. The last round still ends verified within the tolerance.
+VERIFY_AIM_SHARE = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -208,6 +220,18 @@ class Scan:
 
 
 @dataclass(frozen=True)
+class Record:
+    """The scan of round ``round`` ended the verification (within the tolerance, a recording scan, the round
+    limit): record it as a measurement (``pressures_kpa``, ``scanned_ml``, ``scan_folder``), as a miss's
+    :class:`Correct` does."""
+
+    round: int
+    pressures_kpa: tuple[float, ...]
+    scanned_ml: float
+    scan_folder: str | None
+
+
+@dataclass(frozen=True)
 class Correct:
     """The scan of round ``round`` missed: record it as a measurement (``pressures_kpa``, ``scanned_ml``) and
     solve the next round's pressures: for ``target`` on the corrected model, or, when there is no correction or
@@ -224,7 +248,7 @@ class Correct:
 
 
 Action = (Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
-          | Scan | Correct)
+          | Scan | Correct | Record)
 
 
 @dataclass
@@ -247,6 +271,8 @@ class _Rounds:
     doing: str | None = None
     #: the answer of the round being applied (solved for the target or a shifted volume)
     answer: InverseResult | None = None
+    #: scans taken again after the link cut them short (:data:`SCAN_RETRIES`)
+    retries: int = 0
 
 
 @dataclass
@@ -589,18 +615,27 @@ class ControlCore:
         self._next(now)
 
     def scanned(self, now: float, round_: int, volume_ml: float | None, error: str | None = None,
-                folder: str | None = None, true_ml: float | None = None) -> None:
+                folder: str | None = None, true_ml: float | None = None, link_lost: bool = False) -> None:
         """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``;
-        ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round."""
+        ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round.
+        ``link_lost``: the board's link was lost during a scan that failed (or just before it); it is taken again
+        (at most :data:`SCAN_RETRIES` times) once the pressures, applied again, have settled."""
         rounds, reach = self._rounds, self._reach
         if rounds is None or reach is None or rounds.doing != "scanning" or len(rounds.rounds) != round_:
             return  # the verification ended meanwhile (a fault, a vent, another target): its scan is not used
         rounds.doing = None
+        described = reach.target.describe()
+        if error is not None and link_lost and rounds.retries < SCAN_RETRIES:
+            rounds.retries += 1
+            rounds.rounds.pop()
+            self._tell("verify", f"target {described}: the scan of round {round_} failed while the board's link was "
+                       f"lost ({error}): scanned again once the pressures have settled (retry {rounds.retries} of "
+                       f"{SCAN_RETRIES})", "WARN")
+            return
         entry = rounds.rounds[-1]
         entry["scan"] = folder
         if true_ml is not None:
             entry["true_volume_ml"] = true_ml
-        described = reach.target.describe()
         if error is not None or volume_ml is None or not np.isfinite(volume_ml) or volume_ml <= 0:
             entry["scan_error"] = error or f"the reconstruction gave no volume ({volume_ml!r})"
             self._outcome("scan_failed", f"target {described} not verified: the scan of round {round_} failed "
@@ -610,12 +645,15 @@ class ControlCore:
         error_pct = 100.0 * (volume_ml - rounds.target_ml) / rounds.target_ml
         entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct)
         verify = rounds.verify
-        if not verify.correct or abs(error_pct) <= verify.tolerance_pct:
-            within = "within" if abs(error_pct) <= verify.tolerance_pct else "outside"
+        within = abs(error_pct) <= verify.tolerance_pct
+        aim_pct = verify.tolerance_pct * VERIFY_AIM_SHARE
+        if not verify.correct or abs(error_pct) <= aim_pct or (within and round_ >= verify.rounds):
+            self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._verified_outcome(reach, rounds, f"target {described} reached and MEASURED: scanned "
-                                   f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {within} {verify.tolerance_pct:g} %) "
-                                   f"after {round_} round(s)")
+                                   f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {'within' if within else 'outside'} "
+                                   f"{verify.tolerance_pct:g} %) after {round_} round(s)")
         elif round_ >= verify.rounds:
+            self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._outcome("not_verified", f"target {described} not verified: scanned {volume_ml:.2f} ml "
                           f"({error_pct:+.2f} %) after {round_} round(s), the limit; the pressures are held (give "
                           "more verify_rounds, or a wider verify_tolerance_pct)", "WARN",
@@ -623,8 +661,10 @@ class ControlCore:
         else:
             rounds.doing = "correcting"
             setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
+            outside = (f"within {verify.tolerance_pct:g} % but outside the {aim_pct:.2g} % aimed at" if within
+                       else f"outside {verify.tolerance_pct:g} %")
             self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "
-                       f"%, outside {verify.tolerance_pct:g} %): correcting")
+                       f"%, {outside}): correcting")
             self._actions.append(Correct(round_, reach.target, tuple(entry["pressures_kpa"]), float(volume_ml),
                                          folder, shifted_ml(rounds.rounds, rounds.target_ml), setpoints))
 

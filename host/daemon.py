@@ -11,8 +11,9 @@ tick, a volume estimate when due, status to subscribers, link statistics to Reru
 A verified target's scans (the core's :class:`~phantom.host.control.Scan`) go through the daemon's own ``scan``
 API method (host/motion.py) with the :class:`VerifyScanner`'s plan; the capture is reconstructed by the
 :class:`VerifyScanner` in a worker thread (the host imports nothing of the scanner's code: ``phantom daemon``
-gives it); a miss is recorded as a measurement through the model worker when it can take one
-(``record_measurement``) and the next round solved (:meth:`Daemon._correct_for_core`).
+gives it); every scan is recorded as a measurement through the model worker when it can take one
+(``record_measurement``, :meth:`Daemon._record_scan`): a miss's before the next round is solved
+(:meth:`Daemon._correct_for_core`), the scan that ends the verification on its own (the core's ``Record``).
 """
 
 from __future__ import annotations
@@ -71,15 +72,28 @@ class VerifyScanner(Protocol):
     plan: dict[str, Any]
 
     def volume(self, folder: str) -> dict[str, Any]:
-        """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml`` and ``mesh`` (the
-        surface's file); PhantomError when it cannot be (a picture without the phantom, a hull not closed)."""
+        """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml``, ``mesh`` (the
+        surface's file) and ``surface_mm`` (its vertices and triangles in the model's frame, for the recording;
+        None when the scan's frame is not the model's); PhantomError when it cannot be (a picture without the
+        phantom, a hull not closed)."""
         ...
 
 
 #: The reachable range an unreachable volume's message states (phantom.model.target's inverse).
 REACHABLE_RANGE = re.compile(r"give (-?[\d.]+) to (-?[\d.]+) ml")
+#: With a correction in force, the volume asked and the model's own volume it stands for (the model worker's
+#: unreachable message): the model's range moved by their difference is the corrected model's.
+CORRECTED_AS = re.compile(r"(-?[\d.]+) ml with the correction in force .* is the model's (-?[\d.]+) ml")
+#: A verify scan that fails within this long after the board's link was lost fails for the rig's sake (s): a board
+#: that reset holds its axes busy (BUSY) while they stop, and the scan retaken at once was refused for it.
+LINK_LOSS_GRACE_S = 30.0
+#: How long a verify scan waits for the rig's axes to come to rest before it starts (s).
+RIG_REST_WAIT_S = 30.0
 #: How far inside the reachable range a volume asked at its edge is (ml).
 EDGE_MARGIN_ML = 0.01
+#: How many times a volume beyond the reachable range is asked again at its edge (the corrected model's edge moves
+#: with the correction's own value there).
+EDGE_TRIES = 3
 
 
 def _volume(target: Target, volume_ml: float) -> Target:
@@ -127,6 +141,10 @@ class Daemon:
         self._link_log_due_s = 0.0
         self.tasks: list[asyncio.Task[Any]] = []
         self.background: set[asyncio.Task[Any]] = set()
+        #: scans being stored as measurements: the shutdown waits for them (a scan is a measurement kept)
+        self.storing: set[asyncio.Future[Any]] = set()
+        #: when the board's link was last lost (s, :meth:`now_s`; None: never)
+        self.link_lost_s: float | None = None
         #: start-up: what it is doing until ready (the model answers and the board was first online and zeroed)
         self.startup = startup or StartupProgress(clock)
         self.ready = False
@@ -184,6 +202,8 @@ class Daemon:
             self.spawn(self._scan_for_core(action))
         elif isinstance(action, control.Correct):
             self.spawn(self._correct_for_core(action))
+        elif isinstance(action, control.Record):
+            self.spawn(self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder))
         elif isinstance(action, control.Answer):
             waiting = self._requests.pop(action.request, None)
             if waiting is not None and not waiting.done():
@@ -216,11 +236,13 @@ class Daemon:
     async def _scan_for_core(self, action: control.Scan) -> None:
         """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread."""
         folder: str | None = None
+        started_s = self.now_s()
         try:
             scanner = self.verify_scanner
             why = self.verify_refusal()
             if scanner is None or why is not None:
                 raise ApiError("invalid_params", why or "no scanner")
+            await self._rig_at_rest()
             out = verify_folder(action.round)
             answer = await self.api.handlers["scan"]({"out": str(out), **scanner.plan})
             assert isinstance(answer, dict)  # the scan method answers JSON-ready data
@@ -230,28 +252,41 @@ class Daemon:
             result = await asyncio.to_thread(scanner.volume, folder)
             volume_ml = float(result["volume_ml"])
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
-            self._feed(self.core.scanned, action.round, None, str(error), folder)
+            link_lost = self.link_lost_s is not None and self.link_lost_s >= started_s - LINK_LOSS_GRACE_S
+            self._feed(self.core.scanned, action.round, None, str(error), folder, None, link_lost)
             return
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
+        if result.get("surface_mm") is not None:
+            self.recorder.log_scan_surface(self.now_s(), *result["surface_mm"])
         self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
+
+    async def _rig_at_rest(self) -> None:
+        """Wait (at most :data:`RIG_REST_WAIT_S`) until no axis of the rig moves, homes or stops: the board refuses
+        a move (BUSY) meanwhile, as after a reset while a scan moved it."""
+        deadline_s = self.now_s() + RIG_REST_WAIT_S
+        while self.now_s() < deadline_s:
+            status = self.motion.latest
+            if status is None or all(axis.state not in ("MOVING", "HOMING", "STOPPING") for axis in status.axes):
+                return
+            await asyncio.sleep(0.2)
 
     async def _correct_for_core(self, action: control.Correct) -> None:
         """A verified target's miss: the scan recorded as a measurement when the model can take one, then the
-        next round's pressures: the target on the corrected model, or (no correction, or one that leaves the
-        setpoints as they were) the gland volume moved by the scan's error."""
+        next round's pressures: the target on the corrected model, or (no correction, one that leaves the
+        setpoints as they were, or one whose range the target is beyond) the gland volume moved by the scan's
+        error."""
         how = ""
-        record = getattr(self.model, "record_measurement", None)
         answer: InverseResult | None = None
         try:
-            if record is not None:
+            if await self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder):
                 try:
-                    recorded = record(list(action.pressures_kpa), action.scanned_ml, "scan", action.scan_folder)
-                    if asyncio.iscoroutine(recorded):
-                        await recorded
-                except Exception as error:  # the scan is still used: the asked volume moves by its error
-                    self.event("verify", f"the scan could not be recorded as a measurement: {error}", "WARN")
-                else:
                     answer = await self.solve(action.target)
+                except ApiError as error:
+                    if error.code != "unreachable":
+                        raise
+                    # beyond the corrected model's range (one scan near the rest shape corrects it by an offset
+                    # that the phantom at rest does not hold): the shifted volume, at the range's edge
+                else:
                     setpoints = control.setpoints_for(answer.pressures_pa)
                     if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
                         answer = None
@@ -267,21 +302,45 @@ class Daemon:
             return
         self._feed(self.core.corrected, action.round, answer, how)
 
+    async def _record_scan(self, pressures_kpa: tuple[float, ...], scanned_ml: float, folder: str | None) -> bool:
+        """A scan stored as a measurement of the phantom (the model's correction fitted again), when the model can
+        take one: whether it was (one that could not be is said; the scan is still the round's)."""
+        record = getattr(self.model, "record_measurement", None)
+        if record is None:
+            return False
+        try:
+            recorded = record(list(pressures_kpa), scanned_ml, "scan", folder)
+            if asyncio.iscoroutine(recorded):
+                storing = asyncio.ensure_future(recorded)
+                self.storing.add(storing)
+                storing.add_done_callback(self.storing.discard)
+                await asyncio.shield(storing)  # a round cancelled (a shutdown) does not cancel its store
+        except Exception as error:
+            self.event("verify", f"the scan as a measurement of the phantom: {error}", "WARN")
+            return False
+        return True
+
     async def _solve_shifted(self, action: control.Correct) -> tuple[InverseResult, str]:
         """The volume asked moved by the scan's error, solved; one the model cannot reach (the phantom holds
-        more at rest than the model says) is asked at the edge of the model's reachable range instead."""
-        asked_ml, how = action.shifted_ml, f"{action.shifted_ml:.3f} ml: the volume asked moved by the scan's error"
-        try:
-            return await self.solve(_volume(action.target, asked_ml)), how
-        except ApiError as error:
-            found = REACHABLE_RANGE.search(str(error)) if error.code == "unreachable" else None
-            if found is None:
-                raise
-            low_ml, high_ml = float(found.group(1)), float(found.group(2))
-            edge_ml = min(max(asked_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
-            how = (f"{edge_ml:.3f} ml: the volume asked moved by the scan's error ({asked_ml:.3f} ml) is beyond the "
-                   f"model's reachable {low_ml:g} to {high_ml:g} ml, so its edge")
-            return await self.solve(_volume(action.target, edge_ml)), how
+        more at rest than the model says) is asked at the edge of the model's reachable range instead (with a
+        correction in force, the corrected model's: the model's moved by the correction there)."""
+        shifted_ml = action.shifted_ml
+        asked_ml, how = shifted_ml, f"{shifted_ml:.3f} ml: the volume asked moved by the scan's error"
+        for _ in range(EDGE_TRIES):
+            try:
+                return await self.solve(_volume(action.target, asked_ml)), how
+            except ApiError as error:
+                found = REACHABLE_RANGE.search(str(error)) if error.code == "unreachable" else None
+                if found is None:
+                    raise
+                corrected = CORRECTED_AS.search(str(error))
+                moved_ml = float(corrected.group(1)) - float(corrected.group(2)) if corrected else 0.0
+                low_ml, high_ml = float(found.group(1)) + moved_ml, float(found.group(2)) + moved_ml
+                asked_ml = min(max(shifted_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
+                how = (f"{asked_ml:.3f} ml: the volume asked moved by the scan's error ({shifted_ml:.3f} ml) is beyond "
+                       f"the model's reachable {low_ml:.3f} to {high_ml:.3f} ml"
+                       f"{' (with the correction in force)' if corrected else ''}, so its edge")
+        return await self.solve(_volume(action.target, asked_ml)), how
 
     async def _send_setpoints(self, action: control.SendSetpoints) -> None:
         try:
@@ -306,7 +365,12 @@ class Daemon:
         return request, waiting
 
     async def solve(self, target: Target, ramp: tuple[Target, Target] | None = None) -> InverseResult:
-        """The inverse's answer for ``target`` (on its ramp, when it is a point of one); ApiError ``unreachable``."""
+        """The inverse's answer for ``target`` (on its ramp, when it is a point of one); ApiError ``unreachable``.
+        Solved after any scan being stored: its refit changes the correction the estimate then uses, and a target
+        solved on the one before never came within its verify tolerance of the estimate (make demo's 35 ml, solved
+        3 s before 30 ml's last scan refitted the correction, waited for ever)."""
+        if self.storing:
+            await asyncio.wait(set(self.storing))
         try:
             if ramp is not None:
                 answer = await self.model.pressures_on_ramp(ramp[0], ramp[1], target)
@@ -381,6 +445,8 @@ class Daemon:
     def event(self, kind: str, text: str, level: str = "INFO", data: dict[str, Any] | None = None) -> None:
         """Record an event: the status's recent events, Rerun's text log, subscribers, the log. ``data`` (a
         target's outcome) goes with it to subscribers."""
+        if kind == "link_lost":  # the session's event: a verify scan failing after it is retaken
+            self.link_lost_s = self.now_s()
         entry = {"time_s": round(self.now_s(), 3), "kind": kind, "level": level, "text": text, **(data or {})}
         self.events.append(entry)
         self.recorder.log_event(self.now_s(), text, level)

@@ -13,6 +13,7 @@ in the entity paths:
     events                                                      text log: faults, reconnects, targets
     phantom/mesh, phantom/rest, phantom/axes                    deformed outer surface (mm), its rest shape, and
                                                                 the anatomical axes as 10 mm arrows
+    phantom/scan                                                the last scan's surface (mm), over the model's
 
 Nothing hides: Rerun draws a plot's series in the order of their entity paths, the last on top, whatever the
 blueprint lists; so what was asked for sorts first (``commanded``, drawn wide and translucent) and what was
@@ -84,6 +85,9 @@ GLAND_SERIES = {"commanded_ml": ("target", (128, 128, 128, 120), 7.0),
 #: the gland has grown over it) and its rest shape (a pale blue ghost).
 MESH_RGBA = (235, 150, 140, 200)
 REST_GHOST_RGBA = (120, 170, 255, 90)
+#: The last scan's surface, over the model's: the scanned volume's green, translucent so that the model's surface
+#: shows where it lies inside the scan.
+SCAN_RGBA = (0, 158, 115, 110)
 #: The anatomical axes drawn in the phantom view: direction, label, colour (x red, y green, z blue, as the viewer's
 #: own axes); each arrow is AXIS_MM long, the scale of the view.
 ANATOMICAL_AXES = (((1, 0, 0), "x: patient's left", (220, 50, 47)), ((0, 1, 0), "y: anterior", (60, 170, 60)),
@@ -582,6 +586,18 @@ class Recorder:
             return
         self._at(time_s)
         self._scalar("volume/scanned_ml", volume_ml)
+
+    def log_scan_surface(self, time_s: float, positions_mm: np.ndarray, triangles: np.ndarray) -> None:
+        """A scan's reconstructed surface (mm, the model's frame) over the model's, at the time of the scan; it
+        stands until the next scan's."""
+        if not self.enabled:
+            return
+        self._at(time_s)
+        positions = np.asarray(positions_mm, np.float32)
+        triangles = np.asarray(triangles, np.uint32)
+        self._stream.log("phantom/scan", self._rr.Mesh3D(vertex_positions=positions, triangle_indices=triangles,
+                                                         vertex_normals=vertex_normals(positions, triangles),
+                                                         albedo_factor=SCAN_RGBA))
 
     def log_link(self, time_s: float, rtt_ms: float | None, retries: int, bad_frames: int, dropped: int) -> None:
         """Round-trip time (ms) and the link's cumulative counters."""

@@ -13,7 +13,8 @@ per chamber) or ``pressures_kpa`` (raw pressures, one per chamber). With ``ramp_
 linearly from the previous step's over ``ramp_s`` seconds; it then holds until the next step starts. A
 ``volume_ml`` step may be verified by the scanner once reached: ``verify = "scan"`` (optionally
 ``verify_tolerance_pct``, ``verify_rounds``: scanned and corrected until within, as ``set_target``'s verify) or
-``scan = true`` (one scan recorded, no correction); the scene's clock waits while a step scans.
+``scan = true`` (one scan recorded and stored as a measurement, no second round); the scene's clock waits
+while a step scans.
 """
 
 from __future__ import annotations

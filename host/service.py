@@ -40,6 +40,8 @@ logger = logging.getLogger(__name__)
 
 #: File mode of the API's socket: the owner and the group may drive the phantom.
 SOCKET_MODE = 0o660
+#: How long the shutdown waits for the scans being stored as measurements (the correction's fit, s).
+STORE_WAIT_S = 60.0
 #: The methods that need the board: before the daemon is first ready they answer ``starting`` (with its progress).
 BOARD_METHODS = ("set_target", "run_scene", "zero", "clear_fault")
 
@@ -183,6 +185,9 @@ async def _shutdown(daemon: Daemon) -> None:
     """Vent the phantom (if the board is there), close the recording, the API, the link and the model."""
     logger.info("stopping: venting and closing")
     await daemon.motion.stop_scan("the daemon is stopping")  # its capture ends, marked stopped, drivers released
+    if daemon.storing:  # a verified target's last scan is stored as its outcome is told: kept, not cancelled
+        logger.info("stopping: storing %d scan(s) as measurements first", len(daemon.storing))
+        await asyncio.wait(set(daemon.storing), timeout=STORE_WAIT_S)
     if daemon.config.vent_on_exit and daemon.session.online:
         with contextlib.suppress(TimeoutError, ApiError):  # the core's event says why
             await asyncio.wait_for(daemon.vent("on shutdown"), 2.0)

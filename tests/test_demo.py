@@ -80,3 +80,25 @@ def test_the_verified_table_shows_before_and_after_the_correction_in_true_volume
                                 "39.980", "-0.050", "|", "2", "95"]
     assert "NOT VERIFIED: a scan failed" in table[2]
     assert table[3].startswith("after the scans: mean |true error| 0.050 % (largest 0.050 %)")   # the verified only
+
+
+def test_a_verified_volume_waits_for_the_boards_link_before_it_is_set(monkeypatch):
+    """The loaded machine's simulated board lost its link for a second as one verified volume ended, and the next
+    four were refused at once (link_down): each waits for the link first, then is set."""
+    import types
+
+    links = iter(["disconnected", "handshake", "online"])
+    calls = []
+
+    class Daemon:
+        def status(self):
+            calls.append("status")
+            return types.SimpleNamespace(link=next(links, "online"))
+
+        def set_volume(self, target_ml, **_):
+            calls.append(("set", target_ml))
+            return types.SimpleNamespace(rounds=[{"true_volume_ml": 30.01}], scanned_volume_ml=30.02)
+
+    monkeypatch.setattr(demo.time, "sleep", lambda _: None)
+    (row,) = demo.verified_steps(Daemon(), [30.0])
+    assert calls == ["status", "status", "status", ("set", 30.0)] and row["error"] is None

@@ -79,6 +79,8 @@ def recording(tmp_path_factory):
         if k % 5 == 0:
             recorder.log_volumes(time_s, 30.0, 26.0 + 0.1 * k, [2.0, 1.1, 1.2], true_ml=27.0 + 0.1 * k)
     recorder.log_mesh(3.8, rest * 1.05, triangles)
+    recorder.log_scanned_volume(3.85, 31.0)
+    recorder.log_scan_surface(3.85, rest * 1.07, triangles)
     recorder.log_mesh(3.9, rest * 1.1, triangles)
     recorder.set_scene_time(None)
     recorder.log_event(4.0, "daemon stopped")
@@ -155,6 +157,16 @@ def test_a_moving_surface_logs_its_triangles_once(recording):
     triangles = mesh["Mesh3D:triangle_indices"]
     assert np.array_equal(triangles[0], recording["triangles"]) and triangles[1] is None
     assert np.allclose(mesh["Mesh3D:vertex_positions"][0], recording["rest"] * 1.05, atol=1e-4)
+
+
+def test_a_scans_surface_stands_over_the_models_in_the_scanned_volumes_green(recording):
+    scan = recording["entities"]["/phantom/scan"]
+    assert scan["time"] == pytest.approx([3.85])
+    assert np.allclose(scan["Mesh3D:vertex_positions"][0], recording["rest"] * 1.07, atol=1e-4)
+    assert np.array_equal(scan["Mesh3D:triangle_indices"][0], recording["triangles"])
+    (albedo,), = scan["Mesh3D:albedo_factor"]
+    assert albedo >> 8 == packed_rgba(GLAND_SERIES["scanned_ml"][1][:3]) >> 8 and 0 < albedo & 0xFF < 255
+    assert scalars(recording["entities"]["/volume/scanned_ml"]["Scalars:scalars"]) == [31.0]
 
 
 def test_vertex_normals_flip_with_the_winding():

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 from daemon_rig import wait_ready
 
@@ -23,10 +24,13 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 @pytest.mark.timeout(1800)
 def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
     pytest.importorskip("cv2")
-    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    from phantom.host.recording import read_rrd
+    from phantom.model.corrections import CorrectionStore
+
+    sock, data, rrd = tmp_path / "d.sock", tmp_path / "data", tmp_path / "verify.rrd"
     log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--socket", str(sock)], stdout=log,
-                               stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--socket", str(sock), "--rerun-save", str(rrd)],
+                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
     try:
         wait_ready(sock, process, Path(log.name), 180)
         with phantom.connect(sock) as ph:
@@ -48,8 +52,27 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
         assert rounds[0]["pressures_kpa"] != rounds[-1]["pressures_kpa"] and "next" in rounds[0]
     finally:
         process.terminate()
-        process.wait(60)
+        process.wait(120)
         log.close()
+    # every scan is a measurement kept, the last (within the tolerance) too: stored before the daemon stopped
+    stored = CorrectionStore.for_phantom("default", data).entries()
+    assert [(entry.method, entry.volume_ml, entry.scan_file) for entry in stored] == [
+        ("scan", pytest.approx(entry["scanned_volume_ml"]), entry["scan"]) for entry in rounds]
+    # the recording read back (a run past 20 minutes is written in segments, the earlier ones set aside beside it
+    # as verify.<time>.rrd): each scan's volume on the volume plot and its surface (phantom/scan, in the view of
+    # the model's surface) enclosing that volume
+    scanned, enclosed_ml = [], []
+    for path in sorted(tmp_path.glob("verify*.rrd")):
+        entities = read_rrd(path)
+        scanned += [values[0] for values in entities.get("/volume/scanned_ml", {}).get("Scalars:scalars", [])]
+        surfaces = entities.get("/phantom/scan", {})
+        for positions, triangles in zip(surfaces.get("Mesh3D:vertex_positions", []),
+                                        surfaces.get("Mesh3D:triangle_indices", []), strict=True):
+            corners = np.asarray(positions, float)[np.asarray(triangles, int)]
+            enclosed_ml.append(np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum()
+                               / 6e3)
+    assert sorted(scanned) == pytest.approx(sorted(entry["scanned_volume_ml"] for entry in rounds))
+    assert sorted(enclosed_ml) == pytest.approx(sorted(scanned), rel=1e-3)
 
 
 @pytest.mark.timeout(300)

@@ -57,7 +57,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                             "scanned volume is within --verify-tolerance-pct (implies --wait)")
     set_target.add_argument("--verify-tolerance-pct", type=float, metavar="PCT",
                             help="with --verify: how close the scanned volume must come (%% of the target, default "
-                            "0.3)")
+                            "0.3; the rounds aim at a third of it, the last accepts it all)")
     set_target.add_argument("--verify-rounds", type=int, metavar="N",
                             help="with --verify: the most scans (default 4)")
     _add_json(set_target, "print the answer as JSON")

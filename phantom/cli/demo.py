@@ -8,9 +8,10 @@ each step's target, estimate, true volume (the simulated plant's) and its error,
 model's own error, uncorrected. Then each step's volume is set again with ``verify="scan"`` (issue 36: scanned,
 corrected, applied again until the scanned volume is within 0.3 %) and a second table prints, per step, the
 target, the model's estimate, the scanned and the true volume before the correction (the first round) and after
-it (the last). ``--no-verify`` leaves the scans out. It stops the daemon with SIGTERM (it vents), reads the
-recording back (each scan's volume is on its volume plot) and writes its static report (``phantom report``)
-beside it: ``out/demo.html``.
+it (the last). ``--no-verify`` leaves the scans out. The scans and the measurements they store go to
+``out/data``, emptied at each start (not the user's data directory: the simulated phantom is not theirs). It
+stops the daemon with SIGTERM (it vents), reads the recording back (each scan's volume is on its volume plot)
+and writes its static report (``phantom report``) beside it: ``out/demo.html``.
 
 The recording is written to ``out/demo.running.rrd`` and becomes ``out/demo.rrd`` only when the demo succeeds:
 a failed demo leaves the last good recording alone, and says which part failed (the daemon's start, the board,
@@ -48,9 +49,21 @@ STEP_TOLERANCE_PCT = 1.0
 #: verify tolerance (0.3 %) is on the scanned volume, which the scanner's own error (0.03-0.16 %) separates from
 #: the true one.
 VERIFIED_TRUE_TOLERANCE_PCT = 0.3
+#: How long a verified volume waits for the daemon's link to the board to come back before it is set (s).
+LINK_WAIT_S = 60.0
 #: How long one verified volume may take (s): a round (a scan of 60 pictures, its reconstruction, the pressures
-#: settling again) took 1 to 5 minutes on the two cores, idle to loaded.
-VERIFY_TIMEOUT_S = 1800.0
+#: settling again) took 1 to 5 minutes on the two cores, idle to loaded, and 8-9 minutes at load 17-30; four
+#: rounds and two retaken scans fit.
+VERIFY_TIMEOUT_S = 3600.0
+
+
+def demo_environment(out: Path) -> dict[str, str]:
+    """The daemon's environment: a data directory of its own, ``out/data``, emptied first (the scans and the
+    measurements they store): the simulated phantom's scans must not correct the user's own phantom's model,
+    and each demo starts from the model's own error."""
+    data = out / "data"
+    shutil.rmtree(data, ignore_errors=True)
+    return {**os.environ, "PHANTOM_DATA_DIR": str(data.resolve())}
 
 
 def daemon_command(scene: str, out: Path) -> list[str]:
@@ -140,6 +153,7 @@ def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]
         print(f"  verifying {target_ml:g} ml: reach on pressure, scan, correct ...", file=sys.stderr, flush=True)
         started_s = time.monotonic()
         try:
+            wait_for_link(daemon)
             result = daemon.set_volume(target_ml, verify="scan", timeout_s=VERIFY_TIMEOUT_S)
         except DaemonError as error:
             rounds = list(getattr(error, "rounds", []))
@@ -149,7 +163,20 @@ def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]
             continue
         rows.append({"target_ml": target_ml, "rounds": list(result.rounds), "error": None,
                      "took_s": time.monotonic() - started_s})
+        last = result.rounds[-1] if result.rounds else {}
+        true_ml = last.get("true_volume_ml")
+        true = "" if true_ml is None else f", true {true_ml:.3f} ml ({100.0 * (true_ml / target_ml - 1.0):+.3f} %)"
+        print(f"  {target_ml:g} ml: scanned {result.scanned_volume_ml:.3f} ml{true} after {len(result.rounds)} "
+              f"round(s), {rows[-1]['took_s']:.0f} s", file=sys.stderr, flush=True)
     return rows
+
+
+def wait_for_link(daemon: Any, limit_s: float = LINK_WAIT_S) -> None:
+    """Wait (at most ``limit_s``) until the daemon's link to the board is online: a target set while it is down
+    is refused (``link_down``), and the simulated board on a loaded machine loses it for a second now and then."""
+    deadline_s = time.monotonic() + limit_s
+    while daemon.status().link != "online" and time.monotonic() < deadline_s:
+        time.sleep(0.5)
 
 
 def format_verified(rows: list[dict[str, Any]]) -> str:
@@ -208,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
     print("$ " + " ".join(command), file=sys.stderr)
     log_path = out / "daemon.log"
     with open(log_path, "w") as log:
-        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=demo_environment(out))
     succeeded = False
     try:
         ready_s = wait_until_ready(out / "demo.sock", process, log_path)

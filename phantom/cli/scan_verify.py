@@ -19,7 +19,9 @@ VERIFY_PLAN: dict[str, Any] = {"views": 30, "elevations_deg": [0.0, 30.0], "scal
 class VerifyScan:
     """The verify scan's ``plan`` and :meth:`volume` (see the module docstring). A capture without a rig
     calibration taken with the virtual camera is posed by the virtual rig's true geometry (the simulated board's
-    scanner is the virtual rig); one taken with a real camera needs the rig's (``rig`` in the plan)."""
+    scanner is the virtual rig), its surface (``surface_mm``) in the model's frame; one taken with a real camera
+    needs the rig's (``rig`` in the plan), its surface in the rig's frame (``surface_mm`` None: the recording
+    shows no scan surface it cannot place over the model's)."""
 
     def __init__(self, plan: dict[str, Any] | None = None):
         self.plan = dict(VERIFY_PLAN if plan is None else plan)
@@ -31,6 +33,8 @@ class VerifyScan:
 
         capture = CaptureFolder.open(folder)
         rig = capture.rig()
+        # the virtual rig's world is the simulated phantom's frame, the model's; a calibrated rig's is its own
+        in_model_frame = rig is None
         if rig is None:
             if capture.camera.get("kind") != "virtual":
                 raise PhantomError(f"{folder} keeps no rig calibration: a real camera's scan needs the rig's (give "
@@ -42,5 +46,6 @@ class VerifyScan:
             raise PhantomError(f"the phantom touches the picture's edge in {result.touching_edge} of {result.views} "
                                "pictures: it is not wholly in view, its volume would be wrong")
         mesh = write_mesh(result.mesh, capture.path / "scan.ply")
+        surface = (result.mesh.vertices_mm, result.mesh.triangles) if in_model_frame else None
         return {"volume_ml": result.volume_ml, "mesh": str(mesh), "views": result.views,
-                "stage_s": result.stage_s}
+                "stage_s": result.stage_s, "surface_mm": surface}
