@@ -317,7 +317,7 @@ def test_scans_along_the_inverses_path_put_unscanned_targets_within_half_a_perce
     the states of `--path 19`, read 0.1 % low with 0.05 % of noise (about the scanner's own, bench/README.md
     "Scanner"), the correction the daemon fits to them, and seven targets each halfway between two scans' true
     volumes, set by the corrected inverse: their true volumes. Before: no field passed through these scans (the
-    field's hard growth floor: the truth grows 0.22 of the model's in places), and the 27 states of the grid 0,
+    field's hard growth floor: the truth grows a quarter of the model's in places), and the 27 states of the grid 0,
     1.5, 3 kPa missed by up to 2.8 % (bench/README.md, "Characterisation"). Measured 2026-11-27: worst 0.22 %."""
     from phantom.hil.plant import load_plant
     from phantom.model import PhantomModel, load_scene
