@@ -60,7 +60,7 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 MIN_GROWTH_FRACTION = 0.3
 #: What a correction's field pays for each ml its growth falls short of that floor (the floor is soft there: scans
 #: a little noisy between close states must not leave no field at all).
-GROWTH_PENALTY: float | None = 1.0
+GROWTH_PENALTY: float | None = 10.0
 #: A measured pressure this close outside the grid's box (kPa: two counts of the board's ADC, its settled band)
 #: is on the box's edge: a chamber held at 3 kPa reads 3.01 on average, and its scan is a measurement at 3 kPa.
 EDGE_SLACK_KPA = 0.1
@@ -570,6 +570,11 @@ def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correcti
     return correction
 
 
+#: Asked volumes this close (ml) on either side of a target the corrected volume does not meet between them: a
+#: jump along the inverse's path (:meth:`CorrectedModel.pressures_for_ml`).
+JUMP_ML = 1e-4
+
+
 class CorrectedModel:
     """A model's gland volume and inverse with a correction applied (the daemon's model can wrap its own).
 
@@ -597,16 +602,39 @@ class CorrectedModel:
         return float(model_ml) + self.correction.residual_ml(pressures_kpa, float(model_ml) - self.rest_ml)
 
     def pressures_for_ml(self, volume_ml: float, inverse: Callable[[float], np.ndarray],
-                         tolerance_ml: float = 1e-3, max_rounds: int = 10) -> tuple[np.ndarray, float, int]:
+                         tolerance_ml: float = 1e-3, max_rounds: int = 30) -> tuple[np.ndarray, float, int]:
         """Pressures (kPa) whose corrected gland volume is ``volume_ml``, that volume, and the inverse's rounds.
         CorrectionError when they do not converge (the target at the edge of the reachable range)."""
         asked = float(volume_ml)
         previous: tuple[float, float] | None = None
+        # once the target is bracketed, the asked volumes below and above it with their misses (ml), and which end
+        # was replaced last: regula falsi, Illinois (an end kept twice counts its miss half), since the inverse's
+        # path has kinks (one chamber's pressure turning) where secant steps from one side crawl
+        ends: dict[str, tuple[float, float, np.ndarray]] = {}
+        replaced, halved = "", {"below": 1.0, "above": 1.0}
         for rounds in range(1, max_rounds + 1):
             pressures = np.asarray(inverse(asked), dtype=float)
             corrected = self.gland_ml(pressures)
-            if abs(corrected - volume_ml) <= tolerance_ml:
+            miss = corrected - volume_ml
+            if abs(miss) <= tolerance_ml:
                 return pressures, corrected, rounds
+            side = "below" if miss < 0 else "above"
+            ends[side] = (asked, miss, pressures)
+            halved[side] = 1.0
+            if len(ends) == 2:
+                other = "above" if side == "below" else "below"
+                if side == replaced:
+                    halved[other] /= 2
+                replaced = side
+                (low, low_miss, _), (high, high_miss, _) = ends["below"], ends["above"]
+                if abs(high - low) <= JUMP_ML:
+                    # the target lies in a jump of the corrected volume along the inverse's path (the inverse
+                    # turns to another branch there, and the correction differs between the two): the nearer end
+                    _, miss, pressures = min(ends.values(), key=lambda end: abs(end[1]))
+                    return pressures, volume_ml + miss, rounds
+                low_miss, high_miss = low_miss * halved["below"], high_miss * halved["above"]
+                asked = low - low_miss * (high - low) / (high_miss - low_miss)
+                continue
             # secant steps: the corrected volume's slope in the asked one (1 at first: a constant correction)
             slope = 1.0
             if previous is not None and previous[0] != asked:
@@ -614,7 +642,7 @@ class CorrectedModel:
             previous = (asked, corrected)
             # within the model's range: near rest or the top a step may overshoot it (a phantom that grows faster
             # than the model at first asked the model for less than its rest)
-            asked = float(np.clip(asked + (volume_ml - corrected) / slope, self.rest_ml, self.top_ml))
+            asked = float(np.clip(asked - miss / slope, self.rest_ml, self.top_ml))
         raise CorrectionError(f"the corrected inverse did not meet {volume_ml:g} ml in {max_rounds} rounds (last "
                               f"{corrected:.3f} ml): the target is at the edge of what the phantom reaches")
 

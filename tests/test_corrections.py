@@ -347,3 +347,25 @@ def test_scans_along_the_inverses_path_put_unscanned_targets_within_half_a_perce
         pressures, _, _ = corrected.pressures_for_ml(target, inverse)
         assert np.min(np.abs(design - pressures).max(axis=1)) > 0.03, "the target is not a scanned state"
         assert true_ml(pressures) == pytest.approx(target, rel=0.005)
+
+
+def test_a_target_in_a_jump_of_the_corrected_volume_along_the_inverses_path_gets_the_nearer_side_and_says_so():
+    """The model's inverse turns to another branch at 30 ml (only the lobes, then all three chambers), and the
+    correction (0.5 ml per kPa of chamber 0) differs between them: the corrected volume jumps from 30.00 to 30.83
+    ml there, and no pressures give 30.5 ml. The answer is the nearer side, with its own corrected volume (before:
+    the secant crawled at the jump and the target was refused as unreachable)."""
+    from phantom.model.corrections import ResidualField
+
+    grid = _linear_grid()
+    residual = np.zeros((7, 7, 7, 3))
+    residual[..., 0] = 0.5 * grid.points_kpa[:, None, None]
+    correction = Correction("field", 3, residual_field=ResidualField(grid.points_kpa, residual, 0.0))
+
+    def inverse(volume_ml):
+        if volume_ml < 30.0:
+            return np.array([0.0, *[(volume_ml - 20.0) / 4.0] * 2])
+        return np.full(3, (volume_ml - 20.0) / 6.0)
+
+    pressures, volume, _ = CorrectedModel(grid, correction).pressures_for_ml(30.5, inverse)
+    assert volume == pytest.approx(30.0 + 0.5 * 10 / 6, abs=1e-3) and pressures[0] == pytest.approx(10 / 6, abs=1e-3)
+    assert CorrectedModel(grid, correction).pressures_for_ml(29.5, inverse)[1] == pytest.approx(29.5, abs=1e-3)
