@@ -234,6 +234,9 @@ def test_corrections_fit_reports_each_candidates_leave_one_out(store, capsys):
     assert "correction in force: offset" in out   # three points: the offset leaves the others out best
     assert main(["corrections", "fit", "--phantom", "nobody"]) == 2
     assert "no measurements to correct the model with: scan the phantom first" in capsys.readouterr().err
+    store.add(Measurement.now((1, 1, 1), 30.5))  # the same state read 0.54 ml more: no field passes through both
+    assert main(["corrections", "fit", "--phantom", "bench-phantom"]) == 0
+    assert "not fitted: field (no residual field passes through" in capsys.readouterr().out
 
 
 def test_a_fit_is_kept_in_the_cache_and_read_back_the_same_and_a_damaged_one_is_fitted_again(tmp_path, monkeypatch):
