@@ -14,11 +14,14 @@ squares to the measured minus the model's volumes:
 - ``growth``: a constant plus a multiple of the model's own growth above rest, what a refit of the modulus does
   to first order (the growth goes as 1/E);
 - ``field``: the smoothest residual on a grid over the pressures (:func:`smoothest_residual`) that meets every
-  measurement, each chamber's part zero while the chamber is not inflated, every growth kept positive;
+  measurement, each chamber's part zero while the chamber is not inflated, every growth kept above a floor that
+  is soft (each ml short costs ``GROWTH_PENALTY``: scans a little noisy between close states bend the field
+  instead of leaving none);
 - ``growth+field``: the growth's fit, and the field through what it leaves.
 
 The one with the least mean leave-one-out error over the stored measurements is used (with fewer than two,
-the offset: there is nothing to leave out), and the leave-one-out errors of all are kept to be reported.
+the offset: there is nothing to leave out), and the leave-one-out errors of all are kept to be reported; a field's
+kind that no field passes through (two measurements at one state that disagree) is left out, and why is kept.
 :class:`CorrectedModel` applies it to a model's estimate and inverse. The module reads no scans (a scan's volume
 comes from ``phantom.scan``, passed in by the command line or the daemon).
 """
@@ -55,6 +58,9 @@ NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 #: The field keeps each chamber's and the gland's growth per kPa at least this fraction of the model's (a phantom
 #: that swells with every pressure; a pneumatic plant needs positive compliances).
 MIN_GROWTH_FRACTION = 0.3
+#: What a correction's field pays for each ml its growth falls short of that floor (the floor is soft there: scans
+#: a little noisy between close states must not leave no field at all).
+GROWTH_PENALTY: float | None = 10.0
 #: A measured pressure this close outside the grid's box (kPa: two counts of the board's ADC, its settled band)
 #: is on the box's edge: a chamber held at 3 kPa reads 3.01 on average, and its scan is a measurement at 3 kPa.
 EDGE_SLACK_KPA = 0.1
@@ -67,6 +73,11 @@ KINDS = ("offset", "growth", "field", "growth+field")
 
 class CorrectionError(PhantomError):
     """A bad measurement, a damaged store, or a correction the measurements cannot support."""
+
+
+class NoFieldError(CorrectionError):
+    """No residual field passes through the measurements (two that contradict each other: different volumes at
+    the same pressures, or a growth the floor forbids where it is hard): the field's kinds are not fitted."""
 
 
 def data_dir() -> Path:
@@ -283,7 +294,8 @@ class ResidualField:
 
 def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: np.ndarray, pressures_kpa: ArrayLike,
                        gaps_ml: ArrayLike, what: str = "the measurements",
-                       min_growth_fraction: float = MIN_GROWTH_FRACTION) -> ResidualField:
+                       min_growth_fraction: float = MIN_GROWTH_FRACTION,
+                       growth_penalty: float | None = None) -> ResidualField:
     """The smoothest residual field over the grid that adds ``gaps_ml`` to the tabled volumes at the pressures.
 
     ``chamber_ml`` (n, n, n, 3) and ``gland_ml`` (n, n, n) are a model's volumes on the grid ``points_kpa`` in
@@ -292,11 +304,15 @@ def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: 
     gland part, interpolated trilinearly, is ``gaps_ml`` at the pressures and that keep each chamber's own growth
     and the gland's growth along every pressure at least ``min_growth_fraction`` of the tabled ones, the one with
     the least squared second (and, lightly, first) differences along every axis: a quadratic programme (OSQP).
+    With ``growth_penalty`` (per ml) that floor is soft: the growth may fall short of it, each ml short costing
+    that much beside the roughness.
 
     Raises
     ------
     CorrectionError
-        A pressure outside the grid or not finite, or measurements no growing phantom passes through.
+        A pressure outside the grid or not finite.
+    NoFieldError
+        Measurements no field passes through (with a hard floor: no growing phantom).
     """
     import osqp
     import scipy.sparse as sparse
@@ -337,30 +353,48 @@ def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: 
         rows.append(sparse.csr_matrix(np.concatenate([np.tile(_trilinear_weights(points, pressure), chambers), [1.0]])))
         lower.append(gap)
         upper.append(gap)
+    growth_rows, growth_floor = [], []
     for axis in range(chambers):
         difference = _axis_differences(n, axis, 1)
-        own_growth = difference @ chamber_ml[..., axis].ravel()
-        rows.append(on_chamber(axis, difference))
-        lower += list(-(1 - min_growth_fraction) * own_growth)
-        upper += [np.inf] * len(own_growth)
-        gland_growth = difference @ gland_ml.ravel()
-        rows.append(sparse.hstack([difference] * chambers + [sparse.csr_matrix((difference.shape[0], 1))]))
-        lower += list(-(1 - min_growth_fraction) * gland_growth)
-        upper += [np.inf] * len(gland_growth)
+        growth_rows.append(on_chamber(axis, difference))
+        growth_floor.append(-(1 - min_growth_fraction) * (difference @ chamber_ml[..., axis].ravel()))
+        growth_rows.append(sparse.hstack([difference] * chambers + [sparse.csr_matrix((difference.shape[0], 1))]))
+        growth_floor.append(-(1 - min_growth_fraction) * (difference @ gland_ml.ravel()))
+    growth = sparse.vstack(growth_rows)
+    floor = np.concatenate(growth_floor)
+    objective = roughness.T @ roughness + 1e-9 * sparse.identity(size)
+    linear = np.zeros(size)
+    if growth_penalty is None:
+        rows.append(growth)
+        lower += list(floor)
+        upper += [np.inf] * len(floor)
+    else:
+        # a soft floor: each growth row has a slack (ml) it may fall short by, each ml costing growth_penalty (and
+        # a little squared, which keeps OSQP's problem strictly convex); measurements a little noisy then bend
+        # the field where they must instead of leaving none
+        slacks = len(floor)
+        rows = [sparse.hstack([row, sparse.csr_matrix((row.shape[0], slacks))]) for row in rows]
+        rows.append(sparse.hstack([growth, sparse.identity(slacks)]))
+        lower += list(floor)
+        upper += [np.inf] * slacks
+        rows.append(sparse.hstack([sparse.csr_matrix((slacks, size)), sparse.identity(slacks)]))
+        lower += [0.0] * slacks
+        upper += [np.inf] * slacks
+        objective = sparse.block_diag([objective, 1e-3 * growth_penalty * sparse.identity(slacks)])
+        linear = np.concatenate([linear, np.full(slacks, float(growth_penalty))])
     solver = osqp.OSQP()
     # 1e-6 (ml) is far below a scan's error (0.01 ml); at 1e-8 the scans of one verified target's rounds, at
     # nearly the same pressures, kept OSQP iterating: a fit of 9 such scans took 219 s, at 1e-6 33 s, with the
     # same leave-one-out errors to 0.001 %
-    solver.setup((roughness.T @ roughness + 1e-9 * sparse.identity(size)).tocsc(), np.zeros(size),
-                 sparse.vstack(rows).tocsc(), np.array(lower), np.array(upper), verbose=False, eps_abs=1e-6,
-                 eps_rel=1e-6, max_iter=100000, polishing=True)
+    solver.setup(objective.tocsc(), linear, sparse.vstack(rows).tocsc(), np.array(lower), np.array(upper),
+                 verbose=False, eps_abs=1e-6, eps_rel=1e-6, max_iter=100000, polishing=True)
     result = solver.solve(raise_error=False)
     if result.info.status not in ("solved", "solved inaccurate") or result.x is None:
-        raise CorrectionError(f"no residual field passes through the volumes of {what} while every chamber and the "
+        raise NoFieldError(f"no residual field passes through the volumes of {what} while every chamber and the "
                               f"gland keep growing with their pressures ({result.info.status}): check the "
                               f"measurements")
     residual = np.stack([result.x[c * cells:(c + 1) * cells].reshape(n, n, n) for c in range(chambers)], -1)
-    return ResidualField(points, residual, float(result.x[-1]))
+    return ResidualField(points, residual, float(result.x[size - 1]))
 
 
 # ----------------------------------------------------------------------------- the correction
@@ -390,6 +424,8 @@ class Correction:
     residual_field: ResidualField | None = None
     leave_one_out_pct: dict[str, float] = field(default_factory=dict)
     uncorrected_pct: float = 0.0
+    #: the kinds asked for that no field could be fitted for, and why (:class:`NoFieldError`)
+    unfitted: dict[str, str] = field(default_factory=dict)
 
     def residual_ml(self, pressures_kpa: ArrayLike, model_growth_ml: float) -> float:
         """What to add to the model's gland volume at these pressures, where the model grew ``model_growth_ml``
@@ -411,7 +447,8 @@ class Correction:
         """For the daemon's status and the report: the kind, from how many measurements, the leave-one-out."""
         return {"kind": self.kind, "measurements": self.count, "offset_ml": self.offset_ml,
                 "growth_factor": self.growth_factor, "field": self.residual_field is not None,
-                "leave_one_out_pct": dict(self.leave_one_out_pct), "uncorrected_pct": self.uncorrected_pct}
+                "leave_one_out_pct": dict(self.leave_one_out_pct), "uncorrected_pct": self.uncorrected_pct,
+                "unfitted": dict(self.unfitted)}
 
     def to_document(self) -> dict[str, Any]:
         """Everything the correction is, its field's values included, as JSON (:meth:`from_document` reads it)."""
@@ -451,14 +488,15 @@ def _fit_kind(kind: str, pressures_kpa: np.ndarray, volumes_ml: np.ndarray, mode
     if kind in ("field", "growth+field"):
         left = gaps - offset - factor * growth
         residual_field = smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, pressures_kpa, left,
-                                            what)
+                                            what, MIN_GROWTH_FRACTION, GROWTH_PENALTY)
     return Correction(kind, len(volumes_ml), float(offset), float(factor), residual_field)
 
 
 def fit_correction(measurements: Sequence[Measurement], grid: ModelGrid,
                    kinds: Sequence[str] = KINDS) -> Correction:
     """The correction of the model (``grid``) by the measurements: of ``kinds``, the one with the least mean
-    leave-one-out error (see the module docstring). CorrectionError when there are none."""
+    leave-one-out error (see the module docstring); a field's kind no field passes through is left out
+    (``unfitted`` says why). CorrectionError when there are no measurements, or none of ``kinds`` fits."""
     if not measurements:
         raise CorrectionError("no measurements to correct the model with: scan the phantom first")
     unknown = sorted(set(kinds) - set(KINDS))
@@ -473,29 +511,38 @@ def fit_correction(measurements: Sequence[Measurement], grid: ModelGrid,
     rest_ml = grid.gland_ml(np.zeros(pressures.shape[1]))
     what = f"{len(volumes)} measurements"
     leave_one_out: dict[str, float] = {}
+    unfitted: dict[str, str] = {}
+    fits: dict[str, Correction] = {}
     count = len(volumes)
     for kind in kinds:
-        if count < MIN_MEASUREMENTS[kind] + 1:
+        if count < MIN_MEASUREMENTS[kind]:
             continue
-        errors = []
-        for left_out in range(count):
-            keep = np.arange(count) != left_out
-            fitted = _fit_kind(kind, pressures[keep], volumes[keep], model_ml[keep], rest_ml, grid, what)
-            predicted = model_ml[left_out] + fitted.residual_ml(pressures[left_out], model_ml[left_out] - rest_ml)
-            errors.append(abs(predicted - volumes[left_out]) / volumes[left_out] * 100)
-        leave_one_out[kind] = float(np.mean(errors))
-    fitted_kinds = [kind for kind in kinds if count >= MIN_MEASUREMENTS[kind]]
-    if not fitted_kinds:
-        raise CorrectionError(f"{count} measurement(s) fit none of {', '.join(kinds)}: store more")
-    best = min(leave_one_out, key=lambda kind: leave_one_out[kind]) if leave_one_out else fitted_kinds[0]
-    correction = _fit_kind(best, pressures, volumes, model_ml, rest_ml, grid, what)
+        try:
+            fits[kind] = _fit_kind(kind, pressures, volumes, model_ml, rest_ml, grid, what)
+            if count < MIN_MEASUREMENTS[kind] + 1:
+                continue
+            errors = []
+            for left_out in range(count):
+                keep = np.arange(count) != left_out
+                fitted = _fit_kind(kind, pressures[keep], volumes[keep], model_ml[keep], rest_ml, grid, what)
+                predicted = model_ml[left_out] + fitted.residual_ml(pressures[left_out], model_ml[left_out] - rest_ml)
+                errors.append(abs(predicted - volumes[left_out]) / volumes[left_out] * 100)
+            leave_one_out[kind] = float(np.mean(errors))
+        except NoFieldError as error:  # only a field's kinds raise it: the others are still chosen among
+            fits.pop(kind, None)
+            unfitted[kind] = str(error)
+    if not fits:
+        raise CorrectionError(f"{count} measurement(s) fit none of {', '.join(kinds)}: "
+                              + ("; ".join(unfitted.values()) if unfitted else "store more"))
+    best = (min(leave_one_out, key=lambda kind: leave_one_out[kind]) if leave_one_out else next(iter(fits)))
+    correction = fits[best]
     uncorrected = float(np.mean(np.abs(volumes - model_ml) / volumes * 100))
     return Correction(correction.kind, count, correction.offset_ml, correction.growth_factor,
-                      correction.residual_field, leave_one_out, uncorrected)
+                      correction.residual_field, leave_one_out, uncorrected, unfitted)
 
 
 #: Bumped when what a cached fit holds, or how a fit is made, changes.
-FIT_CACHE_VERSION = 1
+FIT_CACHE_VERSION = 2
 
 
 def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correction:
@@ -508,6 +555,7 @@ def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correcti
 
     digest = hashlib.sha256(json.dumps({"version": FIT_CACHE_VERSION, "kinds": KINDS,
                                         "min_growth_fraction": MIN_GROWTH_FRACTION,
+                                        "growth_penalty": GROWTH_PENALTY,
                                         "first_difference_weight": FIRST_DIFFERENCE_WEIGHT,
                                         "measurements": [asdict(m) for m in measurements]},
                                        sort_keys=True).encode())
@@ -522,6 +570,11 @@ def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correcti
     return correction
 
 
+#: Asked volumes this close (ml) on either side of a target the corrected volume does not meet between them: a
+#: jump along the inverse's path (:meth:`CorrectedModel.pressures_for_ml`).
+JUMP_ML = 1e-4
+
+
 class CorrectedModel:
     """A model's gland volume and inverse with a correction applied (the daemon's model can wrap its own).
 
@@ -533,7 +586,10 @@ class CorrectedModel:
     def __init__(self, grid: ModelGrid, correction: Correction):
         self.grid = grid
         self.correction = correction
-        self.rest_ml = grid.gland_ml(np.zeros(grid.chamber_ml.shape[-1]))
+        chambers = grid.chamber_ml.shape[-1]
+        self.rest_ml = grid.gland_ml(np.zeros(chambers))
+        #: the model's largest volume in the box: with the rest, the range the inverse is asked within
+        self.top_ml = grid.gland_ml(np.full(chambers, float(grid.points_kpa[-1])))
 
     def gland_ml(self, pressures_kpa: ArrayLike) -> float:
         """The corrected gland volume (ml) at these pressures (kPa)."""
@@ -546,22 +602,47 @@ class CorrectedModel:
         return float(model_ml) + self.correction.residual_ml(pressures_kpa, float(model_ml) - self.rest_ml)
 
     def pressures_for_ml(self, volume_ml: float, inverse: Callable[[float], np.ndarray],
-                         tolerance_ml: float = 1e-3, max_rounds: int = 10) -> tuple[np.ndarray, float, int]:
+                         tolerance_ml: float = 1e-3, max_rounds: int = 30) -> tuple[np.ndarray, float, int]:
         """Pressures (kPa) whose corrected gland volume is ``volume_ml``, that volume, and the inverse's rounds.
         CorrectionError when they do not converge (the target at the edge of the reachable range)."""
         asked = float(volume_ml)
         previous: tuple[float, float] | None = None
+        # once the target is bracketed, the asked volumes below and above it with their misses (ml), and which end
+        # was replaced last: regula falsi, Illinois (an end kept twice counts its miss half), since the inverse's
+        # path has kinks (one chamber's pressure turning) where secant steps from one side crawl
+        ends: dict[str, tuple[float, float, np.ndarray]] = {}
+        replaced, halved = "", {"below": 1.0, "above": 1.0}
         for rounds in range(1, max_rounds + 1):
             pressures = np.asarray(inverse(asked), dtype=float)
             corrected = self.gland_ml(pressures)
-            if abs(corrected - volume_ml) <= tolerance_ml:
+            miss = corrected - volume_ml
+            if abs(miss) <= tolerance_ml:
                 return pressures, corrected, rounds
+            side = "below" if miss < 0 else "above"
+            ends[side] = (asked, miss, pressures)
+            halved[side] = 1.0
+            if len(ends) == 2:
+                other = "above" if side == "below" else "below"
+                if side == replaced:
+                    halved[other] /= 2
+                replaced = side
+                (low, low_miss, _), (high, high_miss, _) = ends["below"], ends["above"]
+                if abs(high - low) <= JUMP_ML:
+                    # the target lies in a jump of the corrected volume along the inverse's path (the inverse
+                    # turns to another branch there, and the correction differs between the two): the nearer end
+                    _, miss, pressures = min(ends.values(), key=lambda end: abs(end[1]))
+                    return pressures, volume_ml + miss, rounds
+                low_miss, high_miss = low_miss * halved["below"], high_miss * halved["above"]
+                asked = low - low_miss * (high - low) / (high_miss - low_miss)
+                continue
             # secant steps: the corrected volume's slope in the asked one (1 at first: a constant correction)
             slope = 1.0
             if previous is not None and previous[0] != asked:
                 slope = float(np.clip((corrected - previous[1]) / (asked - previous[0]), 0.2, 5.0))
             previous = (asked, corrected)
-            asked += (volume_ml - corrected) / slope
+            # within the model's range: near rest or the top a step may overshoot it (a phantom that grows faster
+            # than the model at first asked the model for less than its rest)
+            asked = float(np.clip(asked - miss / slope, self.rest_ml, self.top_ml))
         raise CorrectionError(f"the corrected inverse did not meet {volume_ml:g} ml in {max_rounds} rounds (last "
                               f"{corrected:.3f} ml): the target is at the edge of what the phantom reaches")
 

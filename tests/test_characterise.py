@@ -12,13 +12,15 @@ from test_corrections import _linear_grid
 from phantom.cli import characterise as cli
 from phantom.cli.main import main
 from phantom.host.client import DaemonError, FaultError, UnreachableError
-from phantom.model.corrections import CorrectionStore, fit_correction
+from phantom.model.corrections import CorrectionError, CorrectionStore, Measurement, fit_correction
 from phantom.scan.characterise import (
     CharacterisationError,
     CharacterisationRecord,
     PointResult,
+    fit_run,
     grid_design,
     held_pressures_kpa,
+    path_design,
     short_path,
     space_filling_design,
     write_report,
@@ -59,6 +61,49 @@ def test_the_space_filling_design_is_a_latin_hypercube_in_the_box_the_same_for_a
 def test_a_bad_number_of_points_is_refused(count):
     with pytest.raises(CharacterisationError, match="--points must be a whole number from 2 to 1000"):
         space_filling_design(count, 3.0)
+
+
+def test_the_path_is_rest_then_the_inverses_states_at_volumes_evenly_to_the_top():
+    asked = []
+
+    def inverse(volume_ml):  # a model of equal chambers growing 2 ml/kPa each from 20 ml
+        asked.append(volume_ml)
+        return np.full(3, (volume_ml - 20.0) / 6.0)
+
+    points = path_design(5, inverse, 20.0, 38.0, samples=10)
+    np.testing.assert_allclose(asked[-4:], [24.5, 29.0, 33.5, 38.0])
+    np.testing.assert_allclose(points, [[0, 0, 0], [0.75] * 3, [1.5] * 3, [2.25] * 3, [3.0] * 3])
+
+    def bent(volume_ml):  # the same model inflating one chamber to its top first, then the other two
+        return np.array([min(volume_ml - 20.0, 6.0) / 2.0, *[max(volume_ml - 26.0, 0.0) / 4.0] * 2])
+
+    points = path_design(5, bent, 20.0, 38.0, samples=200)
+    # evenly along the path, 3 + 18 ** 0.5 kPa long: 1.81 kPa a step (not 4.5 ml: 2.25 kPa, then 1.06)
+    step = (3 + 18 ** 0.5) / 4
+    np.testing.assert_allclose(points[1:], [[step, 0, 0], [3, *[(2 * step - 3) / 2 ** 0.5] * 2],
+                                            [3, *[(3 * step - 3) / 2 ** 0.5] * 2], [3, 3, 3]], atol=0.01)
+
+
+@pytest.mark.parametrize(("count", "rest", "top", "why"), [
+    (1, 20.0, 38.0, "--path must be a whole number from 2"), (2.5, 20.0, 38.0, "--path must be a whole number"),
+    (5, 38.0, 20.0, "must grow from rest"), (5, 20.0, float("nan"), "must grow from rest")])
+def test_a_bad_path_is_refused(count, rest, top, why):
+    with pytest.raises(CharacterisationError, match=why):
+        path_design(count, lambda v: np.zeros(3), rest, top)
+
+
+def test_the_fit_falls_back_only_when_no_field_passes_through_the_scans():
+    """Two scans at one state that disagree: no field passes through both, the correction is chosen among the
+    kinds without one and the note says so. A scan outside the model's box is a bad measurement: an error, not
+    a fall-back (it was one before: every fit error fell back)."""
+    grid = _linear_grid()
+    scans = [Measurement((p, p, p), 20.3 + 5.4 * p) for p in (0.0, 1.0, 2.0, 3.0)]
+    correction, note = fit_run([*scans, Measurement((1.0, 1.0, 1.0), 26.0)], grid)
+    assert set(correction.unfitted) == {"field", "growth+field"} and correction.kind in ("offset", "growth")
+    assert "Not fitted: field, growth+field (no residual field passes through" in note
+    assert fit_run(scans, grid)[1] == ""
+    with pytest.raises(CorrectionError, match="must lie on the grid, 0-3 kPa"):
+        fit_run([*scans, Measurement((4.0, 0.0, 0.0), 30.0)], grid)
 
 
 def test_a_bad_pressure_box_is_refused():
@@ -140,7 +185,7 @@ def test_the_report_has_every_point_the_leave_one_out_and_a_plot(tmp_path):
 # --- the command line, without a daemon ------------------------------------------------------------------------
 def test_the_command_needs_a_design(tmp_path, capsys):
     assert main(["characterise", "--out", str(tmp_path / "run"), "--rig", "rig.json"]) == 2
-    assert "give the design: --grid KPA,KPA,... or --points N" in capsys.readouterr().err
+    assert "give the design: --path N, --grid KPA,KPA,... or --points N" in capsys.readouterr().err
 
 
 def test_a_finished_folder_is_not_started_again_without_resume(tmp_path, capsys):

@@ -234,6 +234,9 @@ def test_corrections_fit_reports_each_candidates_leave_one_out(store, capsys):
     assert "correction in force: offset" in out   # three points: the offset leaves the others out best
     assert main(["corrections", "fit", "--phantom", "nobody"]) == 2
     assert "no measurements to correct the model with: scan the phantom first" in capsys.readouterr().err
+    store.add(Measurement.now((1, 1, 1), 30.5))  # the same state read 0.54 ml more: no field passes through both
+    assert main(["corrections", "fit", "--phantom", "bench-phantom"]) == 0
+    assert "not fitted: field (no residual field passes through" in capsys.readouterr().out
 
 
 def test_a_fit_is_kept_in_the_cache_and_read_back_the_same_and_a_damaged_one_is_fitted_again(tmp_path, monkeypatch):
@@ -275,3 +278,97 @@ def test_a_scan_held_a_count_above_the_box_is_a_measurement_on_its_edge_and_one_
     assert np.allclose(edge.gland_ml, at_three.gland_ml)
     with pytest.raises(CorrectionError, match="must lie on the grid"):
         smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, [[3.5, 0.0, 1.5]], [0.4])
+
+
+def test_scans_a_little_noisy_between_close_states_still_give_a_field():
+    """A scan's noise (0.1 ml here) between two states 0.05 kPa apart asks for a chamber that shrinks as it is
+    inflated: the field's growth floor is soft (each ml short costs), so a field is fitted through them instead
+    of none (before: the QP was infeasible and the fit failed)."""
+    grid = _linear_grid()
+    rng = np.random.default_rng(7)
+    points = [*rng.uniform(0, 3, (6, 3)), (1.0, 1.0, 1.0), (1.05, 1.0, 1.0)]
+    volumes = [20.3 + 1.8 * float(np.sum(p)) for p in points]
+    volumes[-1] = volumes[-2] - 0.1
+    correction = fit_correction([Measurement(tuple(p), v) for p, v in zip(points, volumes, strict=True)], grid)
+    assert {"field", "growth+field"} <= set(correction.leave_one_out_pct) and not correction.unfitted
+    field = fit_correction([Measurement(tuple(p), v) for p, v in zip(points, volumes, strict=True)], grid, ["field"])
+    for p, v in zip(points, volumes, strict=True):
+        assert field.residual_ml(p, 0.0) + grid.gland_ml(np.asarray(p)) == pytest.approx(v, abs=1e-3)
+
+
+def test_the_corrected_inverse_asks_the_model_only_for_volumes_it_reaches():
+    """A phantom growing three times as fast as the model: the first secant step from a target just above rest
+    asked the model's inverse for less than its rest (which it refuses); it is kept at the rest and goes on."""
+    grid = _linear_grid()
+    correction = fit_correction([Measurement((p, p, p), 20.0 + 18.0 * p) for p in (0.0, 1.0, 2.0)], grid,
+                                ["growth"])
+    assert correction.growth_factor == pytest.approx(2.0)
+
+    def inverse(volume_ml):
+        if not 20.0 <= volume_ml <= 38.0:
+            raise CorrectionError(f"{volume_ml} ml is unreachable")
+        return np.full(3, (volume_ml - 20.0) / 6.0)
+
+    pressures, volume, _ = CorrectedModel(grid, correction).pressures_for_ml(21.0, inverse)
+    assert volume == pytest.approx(21.0, abs=1e-3) and np.sum(pressures) * 6.0 == pytest.approx(1.0, abs=1e-3)
+
+
+@pytest.mark.slow
+def test_scans_along_the_inverses_path_put_unscanned_targets_within_half_a_percent_of_the_truth():
+    """The issue's "after `phantom characterise`, targets across the reachable range, not scanned before, land
+    within 0.5 % of the true volume on the first round", offline: the shipped simulated phantom's true volumes at
+    the states of `--path 19`, read 0.1 % low with 0.05 % of noise (about the scanner's own, bench/README.md
+    "Scanner"), the correction the daemon fits to them, and seven targets each halfway between two scans' true
+    volumes, set by the corrected inverse: their true volumes. Before: no field passed through these scans (the
+    field's hard growth floor: the truth grows a quarter of the model's in places), and the 27 states of the grid 0,
+    1.5, 3 kPa missed by up to 2.8 % (bench/README.md, "Characterisation"). Measured 2026-11-27: worst 0.22 %."""
+    from phantom.hil.plant import load_plant
+    from phantom.model import PhantomModel, load_scene
+    from phantom.model.corrections import model_grid
+    from phantom.model.inverse import InverseSolver
+    from phantom.model.target import Target
+    from phantom.scan.characterise import path_design
+
+    plant = load_plant()
+    solver = InverseSolver(PhantomModel.from_scene(load_scene("builtin:converged")))
+    grid = model_grid(solver.estimator)
+
+    def inverse(volume_ml):
+        return np.asarray(solver.pressures_for(Target(gland_volume_m3=volume_ml * 1e-6)).pressures_pa) / 1e3
+
+    def true_ml(pressures_kpa):
+        return plant.truth_gland_volume_ml(np.asarray(pressures_kpa) * 1e3)
+
+    design = path_design(19, inverse, grid.gland_ml(np.zeros(3)), grid.gland_ml(np.full(3, 3.0)))
+    truths = np.array([true_ml(p) for p in design])
+    scanned = truths * (0.999 + 0.0005 * np.random.default_rng(0).standard_normal(len(design)))
+    correction = fit_correction([Measurement(tuple(p), v) for p, v in zip(design, scanned, strict=True)], grid)
+    assert correction.kind in ("field", "growth+field") and not correction.unfitted
+    corrected = CorrectedModel(grid, correction)
+    for first in (0, 3, 6, 9, 12, 15, 17):  # rest to the top
+        target = float(truths[first:first + 2].mean())
+        pressures, _, _ = corrected.pressures_for_ml(target, inverse)
+        assert np.min(np.abs(design - pressures).max(axis=1)) > 0.03, "the target is not a scanned state"
+        assert true_ml(pressures) == pytest.approx(target, rel=0.005)
+
+
+def test_a_target_in_a_jump_of_the_corrected_volume_along_the_inverses_path_gets_the_nearer_side_and_says_so():
+    """The model's inverse turns to another branch at 30 ml (only the lobes, then all three chambers), and the
+    correction (0.5 ml per kPa of chamber 0) differs between them: the corrected volume jumps from 30.00 to 30.83
+    ml there, and no pressures give 30.5 ml. The answer is the nearer side, with its own corrected volume (before:
+    the secant crawled at the jump and the target was refused as unreachable)."""
+    from phantom.model.corrections import ResidualField
+
+    grid = _linear_grid()
+    residual = np.zeros((7, 7, 7, 3))
+    residual[..., 0] = 0.5 * grid.points_kpa[:, None, None]
+    correction = Correction("field", 3, residual_field=ResidualField(grid.points_kpa, residual, 0.0))
+
+    def inverse(volume_ml):
+        if volume_ml < 30.0:
+            return np.array([0.0, *[(volume_ml - 20.0) / 4.0] * 2])
+        return np.full(3, (volume_ml - 20.0) / 6.0)
+
+    pressures, volume, _ = CorrectedModel(grid, correction).pressures_for_ml(30.5, inverse)
+    assert volume == pytest.approx(30.0 + 0.5 * 10 / 6, abs=1e-3) and pressures[0] == pytest.approx(10 / 6, abs=1e-3)
+    assert CorrectedModel(grid, correction).pressures_for_ml(29.5, inverse)[1] == pytest.approx(29.5, abs=1e-3)

@@ -128,4 +128,5 @@ def _fit(store: Any, args: argparse.Namespace) -> int:
              f"correction in force: {correction.kind} (offset {correction.offset_ml:+.3f} ml, growth x "
              f"{1 + correction.growth_factor:.4f}{', and a residual field' if correction.residual_field else ''}); "
              f"its largest size over the pressure box {summary['size_ml']:.3f} ml"]
+    lines += [f"not fitted: {kind} ({why})" for kind, why in correction.unfitted.items()]
     return _print(args, summary, "\n".join(lines))
