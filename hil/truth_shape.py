@@ -49,14 +49,18 @@ REUSE_SCALED_KPA = 0.1
 
 class _SolverProcess:
     """The truth model's equilibria solved in one worker process (spawned: the daemon has threads), which builds
-    its own copy of the model once; the caller waits without holding the interpreter's lock."""
+    its own copy of the model once; the caller waits without holding the interpreter's lock. The worker is
+    killed when the process that made it dies, however it dies (a SIGKILLed daemon left it solving for nobody);
+    Linux ties that to the thread that started it (a scan's thread of the daemon's executor, which lives as long
+    as the daemon)."""
 
     def __init__(self, scene: str, modulus_factor: float, mesh_size_mm: float | None):
         import multiprocessing
+        import os
 
         self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=_build_worker_model,
-                                        initargs=(scene, modulus_factor, mesh_size_mm))
+                                        initargs=(os.getpid(), scene, modulus_factor, mesh_size_mm))
         weakref.finalize(self, self.pool.shutdown, wait=False, cancel_futures=True)
 
     def positions_m(self, pressures_pa: np.ndarray, start: np.ndarray | None) -> np.ndarray:
@@ -68,9 +72,12 @@ class _SolverProcess:
 _WORKER_MODEL: Any = None
 
 
-def _build_worker_model(scene: str, modulus_factor: float, mesh_size_mm: float | None) -> None:
+def _build_worker_model(parent_pid: int, scene: str, modulus_factor: float, mesh_size_mm: float | None) -> None:
     global _WORKER_MODEL
     from phantom.model import PhantomModel, load_scene
+    from phantom.model.cluster import exit_with_parent
+
+    exit_with_parent(parent_pid)
 
     model = PhantomModel.from_scene(load_scene(scene), mesh_size_mm=mesh_size_mm)
     _WORKER_MODEL = model.with_material(youngs_modulus_pa=model.material.youngs_modulus_pa * modulus_factor)
