@@ -7,8 +7,19 @@ The truth is a coarser mesh (10 mm, 10-node) than the controller's model (builti
 64 solves and 8 checks take minutes, once per machine (cached by the scene's content, the factor and the shipped
 plant; the fixture builds it for the session when it is not cached)."""
 
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pytest
+from daemon_rig import wait_ready
+
+import phantom
+
+PHANTOM = Path(sys.executable).with_name("phantom")
 
 #: builtin:converged's material and mesh kind with the lobes' chambers scaled 1.1 (the controller's: 1.2), on a
 #: 10 mm mesh, and no shipped tables (they are the controller's scene's).
@@ -73,3 +84,46 @@ def test_the_truths_own_shapes_are_its_surface_without_a_solve(lobes_truth, capl
     converged = load_scene("builtin:converged").model_settings.table_shapes
     other = TruthShape(scene, MODULUS_FACTOR, plant_path=plant_path, shapes_path=converged)
     assert other._shapes is None and "are not this truth's" in caplog.text
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(1800)
+@pytest.mark.xfail(raises=AssertionError, strict=True, reason=(
+    "the done-when line is not met: the virtual scanner's visual hull overestimates this phantom by 1.3 % (round "
+    "1: scanned 37.28 ml where the truth held 36.79 ml at the same pressures; +0.16 % on the shipped truth), so "
+    "a loop verified within 0.3 % of the scan ends about 1.3 % under in true volume (bench/README.md)"))
+def test_another_phantom_reaches_a_verified_40_ml_in_true_volume(lobes_truth, tmp_path):
+    """15-20 minutes on the loaded two-core machine (three rounds of 60 pictures at half speed): not the 2 minutes
+    asked for; the verify scan's plan is the daemon's (phantom/cli/scan_verify.py)."""
+    pytest.importorskip("cv2")
+    scene, _, _ = lobes_truth
+    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    log = open(tmp_path / "daemon.log", "w+")
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-truth", str(scene),
+                                "--sim-truth-modulus-factor", f"{MODULUS_FACTOR:g}", "--socket", str(sock),
+                                # half speed: the board's dead-host deadline and simavr's pace tolerate twice the
+                                # stalls of a loaded machine (at speed 1 and load 22-28 a scan aborted on a lost
+                                # link in round 1 or 2 of three tries)
+                                "--sim-speed", "0.5"],
+                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
+    try:
+        wait_ready(sock, process, Path(log.name), 180)
+        started = time.monotonic()
+        with phantom.connect(sock) as ph:
+            result = ph.set_volume(40.0, verify="scan", timeout_s=1500)
+        took_s = time.monotonic() - started
+        rounds = result.rounds
+        assert result.verified and abs(result.scanned_volume_ml - 40.0) <= 0.003 * 40.0, rounds
+        # the phantom's true volume, which nothing in the loop sees, within 0.3 %
+        assert abs(result.true_volume_ml - 40.0) <= 0.003 * 40.0, rounds
+        # the controller's model alone misses this phantom by more than the tolerance: the rounds corrected it
+        assert len(rounds) >= 2 and abs(rounds[0]["true_volume_ml"] - 40.0) > 0.003 * 40.0, rounds
+        log.seek(0)
+        text = log.read()
+        assert "the simulated phantom's plant:" in text and "simulated phantom's truth [" not in text  # cached
+        print(f"verified 40 ml against the lobes-1.1, E x 0.9 truth in {took_s:.0f} s, {len(rounds)} rounds: "
+              + "; ".join(f"{entry['scanned_volume_ml']:.3f} / {entry['true_volume_ml']:.3f} ml" for entry in rounds))
+    finally:
+        process.terminate()
+        process.wait(60)
+        log.close()
