@@ -87,13 +87,13 @@ def test_the_truths_own_shapes_are_its_surface_without_a_solve(lobes_truth, capl
 
 
 @pytest.mark.sim
-@pytest.mark.timeout(1800)
+@pytest.mark.timeout(2400)
 @pytest.mark.xfail(raises=AssertionError, strict=True, reason=(
     "the done-when line is not met: the virtual scanner's visual hull overestimates this phantom by 1.3 % (round "
-    "1: scanned 37.28 ml where the truth held 36.79 ml at the same pressures; +0.16 % on the shipped truth), so "
+    "by round: +1.30, +1.20, +1.28, +1.27 %; +0.16 % on the shipped truth), so "
     "a loop verified within 0.3 % of the scan ends about 1.3 % under in true volume (bench/README.md)"))
 def test_another_phantom_reaches_a_verified_40_ml_in_true_volume(lobes_truth, tmp_path):
-    """15-20 minutes on the loaded two-core machine (three rounds of 60 pictures at half speed): not the 2 minutes
+    """10-20 minutes on the loaded two-core machine (four rounds of 60 pictures at half speed): not the 2 minutes
     asked for; the verify scan's plan is the daemon's (phantom/cli/scan_verify.py)."""
     pytest.importorskip("cv2")
     scene, _, _ = lobes_truth
@@ -110,7 +110,8 @@ def test_another_phantom_reaches_a_verified_40_ml_in_true_volume(lobes_truth, tm
         wait_ready(sock, process, Path(log.name), 180)
         started = time.monotonic()
         with phantom.connect(sock) as ph:
-            result = ph.set_volume(40.0, verify="scan", timeout_s=1500)
+            # six rounds: the default four ended at -0.31 % scanned (37.28, 39.60, 40.18, 39.87 ml)
+            result = ph.set_volume(40.0, verify="scan", verify_rounds=6, timeout_s=1700)
         took_s = time.monotonic() - started
         rounds = result.rounds
         assert result.verified and abs(result.scanned_volume_ml - 40.0) <= 0.003 * 40.0, rounds
