@@ -392,30 +392,51 @@ class TruthTable:
     description: str
 
 
-def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
-                           workers: int | None = None,
-                           progress: Callable[[int, int], None] | None = None,
-                           scheduler: str | None = None) -> TruthTable:
-    """Full solves of the scene with its modulus times ``modulus_factor`` at every grid point: the response
-    table's build (:func:`phantom.model.fidelity.response_table.build_response_table`, each point started from a
-    solved neighbour, as Dask tasks on ``workers`` local processes or the cluster at ``scheduler``), whose grid
-    over 0-3 kPa is the truth's."""
-    # the FEM's stack loads only when a truth table is made, not when a plant is read
+def truth_model(scene: str | Path, modulus_factor: float) -> Any:
+    """The simulated phantom's model (a ``PhantomModel``): the scene without the tables it ships (they are its
+    own modulus's) with its modulus times ``modulus_factor``; what the truth table and the truth shapes solve."""
+    # the FEM's stack loads only when a truth is made, not when a plant is read
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.fidelity.response_table import ResponseTableError, build_response_table
     from phantom.model.scene import scene_from_dict, without_shipped_tables
 
     loaded = load_scene(scene)
-    modulus_kpa = loaded.material.youngs_modulus_pa / 1e3 * modulus_factor
-    raw = without_shipped_tables(loaded.raw)
-    raw["material"]["youngs_modulus_kpa"] = modulus_kpa
-    truth = PhantomModel.from_scene(scene_from_dict(raw, loaded.path))
+    model = PhantomModel.from_scene(scene_from_dict(without_shipped_tables(loaded.raw), loaded.path))
+    return model.with_material(youngs_modulus_pa=model.material.youngs_modulus_pa * modulus_factor)
+
+
+def truth_table_from_scene(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR,
+                           workers: int | None = None,
+                           progress: Callable[[int, int], None] | None = None,
+                           scheduler: str | None = None, shapes_path: str | Path | None = None) -> TruthTable:
+    """Full solves of the scene with its modulus times ``modulus_factor`` (:func:`truth_model`) at every grid
+    point: the response table's build (:func:`phantom.model.fidelity.response_table.build_response_table`, each
+    point started from a solved neighbour, as Dask tasks on ``workers`` local processes or the cluster at
+    ``scheduler``), whose grid over 0-3 kPa is the truth's. Given ``shapes_path``, the same solves' outer
+    surfaces are written there too (``write_table_shapes``, checked against 4 more full solves): the truth's
+    shapes, which :class:`phantom.hil.truth_shape.TruthShape` reads instead of solving each."""
+    from phantom.model.fidelity.response_table import (
+        CHECK_FRACTIONS,
+        ResponseTableError,
+        build_response_table,
+        build_table_shapes,
+        write_table_shapes,
+    )
+
+    truth = truth_model(scene, modulus_factor)
     n = len(TRUTH_POINTS_KPA)
+    checks = 0 if shapes_path is None else len(CHECK_FRACTIONS)   # the shapes' own check: full solves
+    total = n ** N_CHAMBERS + len(CHECK_FRACTIONS) + checks
+    told = (lambda done, _: progress(done, total)) if progress is not None else None
     try:
-        table = build_response_table(truth, 1e3 * TRUTH_POINTS_KPA[-1], n, progress, workers, scheduler)
+        table = build_response_table(truth, 1e3 * TRUTH_POINTS_KPA[-1], n, told, workers, scheduler)
+        if shapes_path is not None:
+            write_table_shapes(build_table_shapes(truth, table.pressure_max_pa, n, table=table), truth, shapes_path)
+            if progress is not None:
+                progress(total, total)
     except ResponseTableError as error:
         raise PlantError(f"the truth model does not solve: {error}") from None
-    description = f"{scene} with E x {modulus_factor:g} = {modulus_kpa:.4g} kPa ({loaded.material.model})"
+    modulus_kpa = truth.material.youngs_modulus_pa / 1e3
+    description = f"{scene} with E x {modulus_factor:g} = {modulus_kpa:.4g} kPa ({truth.material.model})"
     return TruthTable(TRUTH_POINTS_KPA, 1e6 * table.chamber_values, 1e6 * table.gland_values, description)
 
 
@@ -454,16 +475,23 @@ def truth_through_measurements(table: TruthTable, pressures_kpa: ArrayLike, volu
                       f"of {source}")
 
 
-#: Bumped when what a cached truth plant holds changes.
-TRUTH_PLANT_VERSION = 1
+#: Bumped when what a cached truth plant holds changes (2: its truth shapes beside it).
+TRUTH_PLANT_VERSION = 2
+
+
+def truth_shapes_path(plant_path: str | Path) -> Path:
+    """Where :func:`truth_plant_path` keeps the truth's outer surface shapes beside its plant file."""
+    return Path(plant_path).with_suffix(".shapes.npz")
 
 
 def truth_plant_path(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FACTOR, workers: int | None = None,
                      progress: Callable[[int, int], None] | None = None) -> Path:
     """A plant file whose simulated phantom is ``scene`` at ``modulus_factor`` x its modulus: the shipped plant
     with the scene's chambers at rest (:func:`chambers_from_scene`) and its truth table
-    (:func:`truth_table_from_scene`, 64 solves, told to ``progress``), built on first use and cached (keyed by
-    the scene's content, the factor and the shipped plant) in the cache folder ``truth-plants``."""
+    (:func:`truth_table_from_scene`, 64 solves and 8 checks, told to ``progress``), built on first use and cached
+    (keyed by the scene's content, the factor and the shipped plant) in the cache folder ``truth-plants``, with
+    the truth's outer surface shapes from the same solves beside it (:func:`truth_shapes_path`), so that the
+    virtual camera photographs the truth without a solve per pressure state."""
     import hashlib
     import json
 
@@ -479,10 +507,13 @@ def truth_plant_path(scene: str | Path, modulus_factor: float = TRUTH_MODULUS_FA
     path = cache_dir("truth-plants") / f"{key}.toml"
     if path.exists():
         return path
-    with written_atomically(path, PlantError) as temporary:
+    # the shapes are renamed into place first: a plant file in the cache says that both are whole
+    with written_atomically(path, PlantError) as temporary, \
+            written_atomically(truth_shapes_path(path), PlantError) as shapes:
         temporary.write_text(DEFAULT_PLANT_PATH.read_text())
         write_chambers(chambers_from_scene(scene), temporary)
-        write_truth(truth_table_from_scene(scene, modulus_factor, workers, progress), temporary)
+        write_truth(truth_table_from_scene(scene, modulus_factor, workers, progress, shapes_path=shapes),
+                    temporary)
     return path
 
 

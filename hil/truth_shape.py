@@ -9,10 +9,11 @@ camera photographs; so a simulated scan sees the phantom as it is, not as the co
 Where the scene ships its outer surface's shapes (``[model] table_shapes``, as the shipped converged scene does),
 the truth's shape at p is read from them at p / the modulus factor, with no solve: a hyperelastic body's shape
 depends on the pressure over the modulus only (0.02 mm mean from the truth's own solve at (2, 1, 3) kPa; 1 s
-against 72 s for the solve on the loaded machine). Elsewhere (another scene, pressures beyond the shipped box),
-the FE solves run in a process of their own (:class:`_SolverProcess`): a CHOLMOD factorisation holds the
-interpreter's lock for 1.4-3.6 s (measured on the loaded two-core machine), which in the daemon's process (its
-``scan`` renders the truth) starved the board's link into DEAD_HOST.
+against 72 s for the solve on the loaded machine). A ``--sim-truth`` scene's truth reads its own shapes, built
+from the same solves as its plant (``phantom.hil.plant.truth_shapes_path``), at p. Elsewhere (a scene without
+either, pressures beyond the shapes' box), the FE solves run in a process of their own (:class:`_SolverProcess`):
+a CHOLMOD factorisation holds the interpreter's lock for 1.4-3.6 s (measured on the loaded two-core machine),
+which in the daemon's process (its ``scan`` renders the truth) starved the board's link into DEAD_HOST.
 
 :class:`ScannerBoard` is the simulated board (:class:`phantom.hil.sim.SimulatedBoard`) whose stepper drivers
 turn the scanner of ``phantom.protocol.motion.SCANNER_AXES`` (its steps per turn set in the harness at start),
@@ -22,6 +23,7 @@ drivers took).
 
 from __future__ import annotations
 
+import logging
 import weakref
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -30,7 +32,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from phantom.hil.motion import SimulatedRig
-from phantom.hil.plant import CALIBRATED_SCENE_PATH, DEFAULT_PLANT_PATH, TRUTH_MODULUS_FACTOR, load_plant
+from phantom.hil.plant import (
+    CALIBRATED_SCENE_PATH,
+    DEFAULT_PLANT_PATH,
+    TRUTH_MODULUS_FACTOR,
+    TRUTH_POINTS_KPA,
+    load_plant,
+)
 from phantom.hil.sim import SimulatedBoard
 from phantom.model.mesh.surface import TriangleMesh
 from phantom.protocol.motion import AXES, SCANNER_AXES
@@ -38,6 +46,10 @@ from phantom.protocol.motion import AXES, SCANNER_AXES
 if TYPE_CHECKING:
     from phantom.model.fidelity.response_table import SurfaceShapes
 
+logger = logging.getLogger(__name__)
+
+#: The pressure box (Pa) of a truth plant's shapes: its truth table's.
+TRUTH_MAX_PA = 1e3 * TRUTH_POINTS_KPA[-1]
 #: Pressures closer than this (kPa, every chamber) to the last solved ones reuse its shape.
 REUSE_KPA = 0.01
 #: ... and this, when the shape is scaled to the plant's gland volume (computed at the pressures asked, so the
@@ -49,14 +61,18 @@ REUSE_SCALED_KPA = 0.1
 
 class _SolverProcess:
     """The truth model's equilibria solved in one worker process (spawned: the daemon has threads), which builds
-    its own copy of the model once; the caller waits without holding the interpreter's lock."""
+    its own copy of the model once; the caller waits without holding the interpreter's lock. The worker is
+    killed when the process that made it dies, however it dies (a SIGKILLed daemon left it solving for nobody);
+    Linux ties that to the thread that started it (a scan's thread of the daemon's executor, which lives as long
+    as the daemon)."""
 
     def __init__(self, scene: str, modulus_factor: float, mesh_size_mm: float | None):
         import multiprocessing
+        import os
 
         self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=_build_worker_model,
-                                        initargs=(scene, modulus_factor, mesh_size_mm))
+                                        initargs=(os.getpid(), scene, modulus_factor, mesh_size_mm))
         weakref.finalize(self, self.pool.shutdown, wait=False, cancel_futures=True)
 
     def positions_m(self, pressures_pa: np.ndarray, start: np.ndarray | None) -> np.ndarray:
@@ -68,9 +84,12 @@ class _SolverProcess:
 _WORKER_MODEL: Any = None
 
 
-def _build_worker_model(scene: str, modulus_factor: float, mesh_size_mm: float | None) -> None:
+def _build_worker_model(parent_pid: int, scene: str, modulus_factor: float, mesh_size_mm: float | None) -> None:
     global _WORKER_MODEL
     from phantom.model import PhantomModel, load_scene
+    from phantom.model.cluster import exit_with_parent
+
+    exit_with_parent(parent_pid)
 
     model = PhantomModel.from_scene(load_scene(scene), mesh_size_mm=mesh_size_mm)
     _WORKER_MODEL = model.with_material(youngs_modulus_pa=model.material.youngs_modulus_pa * modulus_factor)
@@ -81,14 +100,18 @@ def _worker_positions_m(pressures_pa: np.ndarray, start: np.ndarray | None) -> n
     return positions
 
 
-def _shipped_shapes(model: Any) -> SurfaceShapes | None:
-    """The outer surface's shapes the scene ships (``[model] table_shapes``), or None: none shipped, or made
-    for another mesh or box (then each shape is a solve, as without them)."""
+def _shipped_shapes(model: Any, path: Path | None = None) -> SurfaceShapes | None:
+    """The outer surface's shapes the scene ships (``[model] table_shapes``; or those at ``path``, a truth
+    plant's), or None: none shipped, or made for another mesh or box (then each shape is a solve, as without
+    them)."""
     from phantom.model.fidelity.response_table import ResponseTableError, shipped_table_shapes
 
     try:
-        return shipped_table_shapes(model, model.model_settings.pressure_max_pa)
-    except ResponseTableError:
+        return shipped_table_shapes(model, model.model_settings.pressure_max_pa if path is None else TRUTH_MAX_PA,
+                                    path)
+    except ResponseTableError as error:
+        if path is not None:
+            logger.warning("the truth shapes %s are not this truth's (%s): each shape is a solve", path, error)
         return None
 
 
@@ -97,10 +120,11 @@ class TruthShape:
 
     def __init__(self, scene: str | Path = CALIBRATED_SCENE_PATH, modulus_factor: float = TRUTH_MODULUS_FACTOR,
                  mesh_size_mm: float | None = None, plant_path: str | Path | None = DEFAULT_PLANT_PATH,
-                 tabulated: bool = True):
+                 tabulated: bool = True, shapes_path: str | Path | None = None):
         """``plant_path``: the plant file whose truth table's gland volume the surface is scaled to (None: the
         FEM's own volume, unscaled); ``tabulated``: take the shapes the scene ships where they hold the pressures
-        (False: solve every shape)."""
+        (False: solve every shape); ``shapes_path``: the truth's own shapes (a truth plant's,
+        ``phantom.hil.plant.truth_shapes_path``) instead of the scene's."""
         # the FEM's stack loads only when a truth shape is wanted
         from phantom.model import PhantomModel, load_scene
 
@@ -111,7 +135,10 @@ class TruthShape:
             "" if self.plant is None else f", scaled to the gland volume of {self.plant.path}")
         self.surface_nodes, self.triangles = self.model.outer_surface()
         self.modulus_factor = float(modulus_factor)
-        self._shapes = _shipped_shapes(model) if tabulated else None
+        # the scene's shapes are its own modulus's: the truth's at p are theirs at p / factor
+        self._shapes_pa_per_truth_pa = 1.0 if shapes_path is not None else 1.0 / self.modulus_factor
+        self._shapes = None if not tabulated else (
+            _shipped_shapes(self.model, Path(shapes_path)) if shapes_path is not None else _shipped_shapes(model))
         self._solver_args = (str(scene), self.modulus_factor, mesh_size_mm)
         self._solver: _SolverProcess | None = None
         self._last: tuple[np.ndarray, np.ndarray, TriangleMesh] | None = None
@@ -126,7 +153,7 @@ class TruthShape:
         reuse_kpa = REUSE_KPA if wanted_ml is None else REUSE_SCALED_KPA
         if self._last is not None and np.all(np.abs(self._last[0] - pressures) <= reuse_kpa):
             shape = self._last[2]
-        elif (tabulated_m := self._tabulated_m(pressures)) is not None:
+        elif (tabulated_m := self._tabulated_m(pressures, 0.0 if wanted_ml is None else REUSE_SCALED_KPA)) is not None:
             shape = TriangleMesh(tabulated_m * 1e3, self.triangles.astype(np.int64))
         else:
             start = None if self._last is None else self._last[1]
@@ -138,17 +165,19 @@ class TruthShape:
             self._last = (pressures, positions_m, shape)
         return shape if wanted_ml is None else scaled_to_volume(shape, wanted_ml)
 
-    def _tabulated_m(self, pressures_kpa: np.ndarray) -> np.ndarray | None:
-        """The outer surface's nodes (m) from the scene's shipped shapes, or None where they cannot say (no
-        shapes shipped, or the pressures outside their box). The truth differs from the scene's model by its
-        modulus alone, and a hyperelastic body's shape depends on the pressure over the modulus only, so the truth
-        at p holds the model's shape at p / factor: no solve."""
+    def _tabulated_m(self, pressures_kpa: np.ndarray, margin_kpa: float) -> np.ndarray | None:
+        """The outer surface's nodes (m) from the tabulated shapes, or None where they cannot say (none, or the
+        pressures more than ``margin_kpa`` outside their box: a phantom held at the box's edge reads an ADC
+        count or two past it, whose shape is the edge's). The truth differs from the scene's model by its modulus
+        alone, and a hyperelastic body's shape depends on the pressure over the modulus only, so the truth at p
+        holds the model's shape at p / factor: no solve (the truth's own shapes: at p)."""
         if self._shapes is None:
             return None
-        model_pa = pressures_kpa * 1e3 / self.modulus_factor
-        if np.any(model_pa < 0) or np.any(model_pa > self._shapes.table.pressure_max_pa):
+        shapes_pa = pressures_kpa * 1e3 * self._shapes_pa_per_truth_pa
+        box_pa = self._shapes.table.pressure_max_pa
+        if np.any(shapes_pa < -margin_kpa * 1e3) or np.any(shapes_pa > box_pa + margin_kpa * 1e3):
             return None
-        return self._shapes.positions_m(model_pa, self.surface_nodes)
+        return self._shapes.positions_m(np.clip(shapes_pa, 0.0, box_pa), self.surface_nodes)
 
     def gland_volume_ml(self, pressures_kpa: list[float] | np.ndarray) -> float:
         """The gland volume (ml) of the surface at these pressures."""

@@ -30,6 +30,7 @@ import numpy as np
 import phantom
 from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
+from phantom.model.cluster import exit_with_parent
 from phantom.model.corrections import CorrectedModel, Correction, CorrectionError, CorrectionStore, Measurement
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
@@ -373,27 +374,7 @@ class Estimate:
 # an inverse at the "updated" or "full" fidelity). In a thread of the daemon they delayed the event loop enough
 # to miss the board's 500 ms dead-host deadline; in a process of their own they cannot.
 
-#: Linux prctl option: the signal a process gets when its parent dies (prctl(2)).
-PR_SET_PDEATHSIG = 1
-
 _worker_model: LoadedModel | None = None
-
-
-def exit_with_parent(parent_pid: int, signum: signal.Signals = signal.SIGKILL) -> None:
-    """In a child process: get ``signum`` (SIGKILL: be killed) when the parent dies, however it dies (SIGKILL
-    included).
-
-    Linux's PR_SET_PDEATHSIG through libc; if the parent died before this ran, exit now.
-    """
-    import ctypes
-    import ctypes.util
-
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    if libc.prctl(PR_SET_PDEATHSIG, int(signum), 0, 0, 0) != 0:
-        logger.warning("prctl(PR_SET_PDEATHSIG) failed (errno %d): the model worker may outlive a killed daemon",
-                       ctypes.get_errno())
-    if os.getppid() != parent_pid:
-        os._exit(0)
 
 
 def _worker_init(parent_pid: int, log_level: str, messages: Any = None) -> None:

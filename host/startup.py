@@ -140,7 +140,7 @@ def _build_in_child(scene_source: str, results: Connection, parent_pid: int) -> 
     a daemon killed during the build (the OOM killer, systemd's last resort) left the solver processes running
     under PID 1 and the semaphores of their pool in /dev/shm: the resource tracker that removes them waits until
     every process holding its pipe has ended."""
-    from phantom.host.model_worker import exit_with_parent
+    from phantom.model.cluster import exit_with_parent
 
     os.setpgid(0, 0)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the daemon's; it ends this process group

@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import signal
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -51,22 +52,30 @@ def local_cluster(n_workers: int | None = None) -> LocalCluster:
 
 
 #: Linux prctl option: the signal a process gets when its parent dies (prctl(2)).
-_PR_SET_PDEATHSIG = 1
+PR_SET_PDEATHSIG = 1
+
+
+def exit_with_parent(parent_pid: int, signum: signal.Signals = signal.SIGKILL) -> None:
+    """In a child process: get ``signum`` (SIGKILL: be killed) when the parent dies, however it dies (SIGKILL
+    included): Linux's PR_SET_PDEATHSIG through libc; if the parent died before this ran, exit now. The one hook
+    of every helper process the project starts (the daemon's model worker and API server, Dask's local workers,
+    the simulated phantom's shape solver), so that none outlives a killed parent, solving for nobody."""
+    import ctypes
+    import ctypes.util
+
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    if libc.prctl(PR_SET_PDEATHSIG, int(signum), 0, 0, 0) != 0:
+        logging.getLogger(__name__).warning("prctl(PR_SET_PDEATHSIG) failed (errno %d): this helper process may "
+                                            "outlive a killed parent", ctypes.get_errno())
+    if os.getppid() != parent_pid:
+        os._exit(0)
 
 
 def dask_setup(worker: object) -> None:
     """Dask's preload hook, in each worker process of :func:`local_cluster`: be killed when the process that made
     the cluster (a daemon's model worker, ``phantom model table``) dies, however it dies. Its nannies live in that
     process and the workers are its children, so a SIGKILLed builder left them running, solving for nobody."""
-    import ctypes
-    import ctypes.util
-    import signal
-
-    parent = os.getppid()
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
-    if os.getppid() != parent:  # the parent died before the hook was set
-        os._exit(0)
+    exit_with_parent(os.getppid())
 
 
 @contextlib.contextmanager

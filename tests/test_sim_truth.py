@@ -5,7 +5,7 @@ import pytest
 
 from phantom.cli.main import main
 from phantom.hil import plant as plant_module
-from phantom.hil.plant import DEFAULT_PLANT_PATH, PlantError, load_plant, truth_plant_path
+from phantom.hil.plant import DEFAULT_PLANT_PATH, PlantError, load_plant, truth_plant_path, truth_shapes_path
 
 
 @pytest.mark.parametrize(("argv", "message"), [
@@ -30,8 +30,9 @@ def test_a_truth_plant_is_built_once_from_the_scene_then_found_in_the_cache(tmp_
         return plant_module.FemChambers(str(scene), "test", 1e6 * shipped.cavity_volume_m3 * 1.1,
                                         1e9 * shipped.compliance_m3_per_pa)
 
-    def table(scene, modulus_factor, workers=None, progress=None):
+    def table(scene, modulus_factor, workers=None, progress=None, shapes_path=None):
         calls.append(("table", modulus_factor))
+        shapes_path.write_bytes(b"the truth's shapes")
         if progress is not None:
             progress(64, 64)
         return plant_module.TruthTable(plant_module.TRUTH_POINTS_KPA, 1e6 * shipped.truth_chamber_volume_m3,
@@ -43,6 +44,7 @@ def test_a_truth_plant_is_built_once_from_the_scene_then_found_in_the_cache(tmp_
     path = truth_plant_path("builtin:calibrated", 0.9, progress=lambda done, total: told.append((done, total)))
     assert calls == ["chambers", ("table", 0.9)] and told == [(64, 64)]
     built = load_plant(path)
+    assert truth_shapes_path(path).read_bytes() == b"the truth's shapes"      # beside it, from the same build
     assert built.truth_gland_volume_ml([0, 0, 0]) == pytest.approx(0.9 * shipped.truth_gland_volume_ml([0, 0, 0]),
                                                                     rel=1e-4)
     assert built.cavity_volume_m3 == pytest.approx(1.1 * shipped.cavity_volume_m3, rel=1e-4)

@@ -51,4 +51,64 @@ def test_the_shipped_shapes_give_the_truths_surface_without_a_solve():
     assert enclosed_volume_ml(surface) == pytest.approx(enclosed_volume_ml(reference), rel=1e-9)
     assert distance_mm.mean() < 0.08 and distance_mm.max() < 0.3
     box_kpa = tabulated._shapes.table.pressure_max_pa / 1e3
-    assert tabulated._tabulated_m(np.array([0.0, 0.0, 1.1 * box_kpa])) is None    # beyond the box: a solve
+    assert tabulated._tabulated_m(np.array([0.0, 0.0, 1.2 * box_kpa]), 0.1) is None   # beyond the box: a solve
+    # a phantom held at the box's edge or at rest reads an ADC count past it: the edge's shape, no solve
+    assert tabulated._tabulated_m(np.array([-0.05, 0.0, 1.06 * box_kpa + 0.05]), 0.1) is not None
+
+
+def _spawned_workers_of(pid):
+    """The multiprocessing workers ``pid`` spawned (not its resource tracker), alive."""
+    from pathlib import Path
+
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z" and b"spawn_main" in (stat.parent / "cmdline").read_bytes():
+            found.append(int(stat.parent.name))
+    return found
+
+
+def test_the_shape_solver_dies_with_a_sigkilled_parent():
+    """The FE fallback's worker process (hil/truth_shape.py ``_SolverProcess``) had no parent-death hook: a
+    daemon SIGKILLed while it solved (the OOM killer, systemd's last resort) left it running under PID 1."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from phantom.hil.plant import CALIBRATED_SCENE_PATH
+
+    parent = subprocess.Popen([sys.executable, "-c",
+                               "from phantom.hil.truth_shape import TruthShape\n"
+                               f"TruthShape({str(CALIBRATED_SCENE_PATH)!r}, tabulated=False).surface([3.0, 3.0, 3.0])\n"
+                               "raise SystemExit('the solve ended before the test killed its parent')"],
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        while not (solver := _spawned_workers_of(parent.pid)):
+            assert parent.poll() is None and time.monotonic() < deadline, parent.stderr.read() if parent.stderr else ""
+            time.sleep(0.1)
+        time.sleep(2.0)                                                 # building its model or solving
+        assert parent.poll() is None, "the parent ended before it was killed"
+        parent.send_signal(signal.SIGKILL)
+        assert parent.wait(10) == -signal.SIGKILL
+        deadline = time.monotonic() + 10
+        while (alive := [pid for pid in solver if os.path.exists(f"/proc/{pid}") and not _zombie(pid)]) \
+                and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert alive == [], f"the shape solver {alive} outlived its SIGKILLed parent"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait(10)
+
+
+def _zombie(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True

@@ -587,12 +587,13 @@ def shipped_table_volumes(model: PhantomModel, pressure_max_pa: float,
                          float(stored["build_time_s"]))
 
 
-def shipped_table_shapes(model: PhantomModel, pressure_max_pa: float) -> SurfaceShapes | None:
-    """The outer surface's shapes shipped with the model's scene (``[model] table_shapes``, on the file's own
-    grid), or None when it ships none, or (with a warning) when this mesh's nodes are not where the file has
-    them. Raises ResponseTableError, saying what differs, when the file was made for another model or pressure
-    box, or cannot be read."""
-    path = model.model_settings.table_shapes
+def shipped_table_shapes(model: PhantomModel, pressure_max_pa: float,
+                         path: Path | None = None) -> SurfaceShapes | None:
+    """The outer surface's shapes shipped with the model's scene (``[model] table_shapes``; or the file at
+    ``path``, written by :func:`write_table_shapes`), on the file's own grid, or None when it ships none, or
+    (with a warning) when this mesh's nodes are not where the file has them. Raises ResponseTableError, saying
+    what differs, when the file was made for another model or pressure box, or cannot be read."""
+    path = model.model_settings.table_shapes if path is None else path
     if path is None:
         return None
     remedy = ("use a copy of the scene without [model] table_shapes (each shape is then a full solve), or write "

@@ -130,14 +130,14 @@ def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:
     import sys
 
     from phantom.cli.scan_rig import SimulatedTruth
-    from phantom.hil.plant import truth_plant_path
+    from phantom.hil.plant import truth_plant_path, truth_shapes_path
     from phantom.model.cluster import stderr_progress
 
-    print(f"the simulated phantom: {scene} with E x {modulus_factor:g} (its plant is built once: the scene's "
-          f"chambers and 64 solves, then cached)", file=sys.stderr, flush=True)
+    print(f"the simulated phantom: {scene} with E x {modulus_factor:g} (its plant and shapes are built once: the "
+          f"scene's chambers and 64 solves, then cached)", file=sys.stderr, flush=True)
     path = truth_plant_path(scene, modulus_factor, progress=stderr_progress("simulated phantom's truth"))
     print(f"the simulated phantom's plant: {path}", file=sys.stderr, flush=True)
-    return SimulatedTruth(scene, modulus_factor, path)
+    return SimulatedTruth(scene, modulus_factor, path, truth_shapes_path(path))
 
 
 def _simulated_board(speed: float, plant: Path | None = None) -> SimulatedBoard:

@@ -138,19 +138,21 @@ def capture_through_daemon(client: DaemonClient, camera: FrameSource, plan: Plan
 
 @dataclass(frozen=True)
 class SimulatedTruth:
-    """The simulated phantom a virtual camera photographs: the scene, its modulus factor and the plant whose
-    gland volume its shape is scaled to (the defaults: the shipped truth, hil/truth_shape.py)."""
+    """The simulated phantom a virtual camera photographs: the scene, its modulus factor, the plant whose
+    gland volume its shape is scaled to and the truth's own shapes built with it (the defaults: the shipped
+    truth, hil/truth_shape.py, with the scene's shipped shapes)."""
 
     scene: str | Path | None = None
     modulus_factor: float | None = None
     plant_path: Path | None = None
+    shapes_path: Path | None = None
 
     def shape(self) -> TruthShape:
         from phantom.hil.plant import CALIBRATED_SCENE_PATH, DEFAULT_PLANT_PATH, TRUTH_MODULUS_FACTOR
         from phantom.hil.truth_shape import TruthShape
 
         return TruthShape(self.scene or CALIBRATED_SCENE_PATH, self.modulus_factor or TRUTH_MODULUS_FACTOR,
-                          plant_path=self.plant_path or DEFAULT_PLANT_PATH)
+                          plant_path=self.plant_path or DEFAULT_PLANT_PATH, shapes_path=self.shapes_path)
 
 
 class DaemonScanner:

@@ -1,0 +1,130 @@
+"""Another phantom as the simulated board's truth, end to end (issue 36's done-when line): ``phantom daemon --sim
+--sim-truth SCENE --sim-truth-modulus-factor 0.9`` with the lobes' chambers scaled 1.1 instead of the controller's
+1.2 and E x 0.9 reaches a verified 40 ml within 0.3 % of its TRUE volume through the Python API; and the truth's
+shapes, built with its plant, are what the virtual camera photographs, without an FE solve per pressure state.
+
+The truth is a coarser mesh (10 mm, 10-node) than the controller's model (builtin:converged, 7 mm): its plant's
+64 solves and 8 checks take minutes, once per machine (cached by the scene's content, the factor and the shipped
+plant; the fixture builds it for the session when it is not cached)."""
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from daemon_rig import wait_ready
+
+import phantom
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+
+#: builtin:converged's material and mesh kind with the lobes' chambers scaled 1.1 (the controller's: 1.2), on a
+#: 10 mm mesh, and no shipped tables (they are the controller's scene's).
+LOBES_1_1_SCENE = """\
+[phantom]
+mesh = "builtin:prostate"
+units = "mm"
+chambers = ["chamber0", "chamber1", "chamber2"]
+fixed = "fixed"
+
+[material]
+model = "gent"
+youngs_modulus_kpa = 10.85573
+gent_jm = 5.0
+
+[geometry]
+mesh_size_mm = 10.0
+element_order = 2
+lobe_chamber_scale = 1.1
+"""
+MODULUS_FACTOR = 0.9
+
+pytestmark = [pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def lobes_truth(tmp_path_factory):
+    """The scene file and its truth plant (built with progress on stderr unless cached) and shapes."""
+    from phantom.hil.plant import truth_plant_path, truth_shapes_path
+    from phantom.model.cluster import stderr_progress
+
+    scene = tmp_path_factory.mktemp("truth") / "lobes_1_1.toml"
+    scene.write_text(LOBES_1_1_SCENE)
+    plant = truth_plant_path(scene, MODULUS_FACTOR, progress=stderr_progress("the lobes-1.1 truth"))
+    return scene, plant, truth_shapes_path(plant)
+
+
+@pytest.mark.timeout(1800)
+def test_the_truths_own_shapes_are_its_surface_without_a_solve(lobes_truth, caplog):
+    """Read from the shapes built with the plant, off the grid and at an ADC count past the box's edge: no FE
+    solve, the plant's gland volume, and the shape of the truth model's own full solve (in the worker)."""
+    from phantom.hil.plant import load_plant
+    from phantom.hil.truth_shape import TruthShape
+    from phantom.model.mesh.surface import enclosed_volume_ml
+
+    scene, plant_path, shapes_path = lobes_truth
+    truth = TruthShape(scene, MODULUS_FACTOR, plant_path=plant_path, shapes_path=shapes_path)
+    pressures_kpa = np.array([1.3, 0.4, 2.2])
+    read = truth.surface(pressures_kpa)
+    truth.surface([3.05, 3.05, 0.0])                       # the box's edge rippled past: still read
+    assert truth.solves == 0
+    assert enclosed_volume_ml(read) == pytest.approx(
+        load_plant(plant_path).truth_gland_volume_ml(1e3 * pressures_kpa), rel=1e-9)
+    solved = TruthShape(scene, MODULUS_FACTOR, plant_path=plant_path, tabulated=False).surface(pressures_kpa)
+    # both scaled to the plant's volume: the shapes apart by less than the scanner's own mean error at 640x480
+    # (0.08 mm), as the shipped truth's shapes are (test_truth_shape_reuse.py)
+    off_mm = np.linalg.norm(read.vertices_mm - solved.vertices_mm, axis=1)
+    assert off_mm.mean() < 0.08 and off_mm.max() < 0.3, (off_mm.mean(), off_mm.max())
+    # another truth's shapes (the controller's scene's, another mesh and modulus) are refused, with why
+    from phantom.model.scene import load_scene
+
+    converged = load_scene("builtin:converged").model_settings.table_shapes
+    other = TruthShape(scene, MODULUS_FACTOR, plant_path=plant_path, shapes_path=converged)
+    assert other._shapes is None and "are not this truth's" in caplog.text
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(2400)
+@pytest.mark.xfail(raises=AssertionError, strict=True, reason=(
+    "the done-when line is not met: the virtual scanner's visual hull overestimates this phantom by 1.3 % (round "
+    "by round: +1.30, +1.20, +1.28, +1.27 %; +0.16 % on the shipped truth), so "
+    "a loop verified within 0.3 % of the scan ends about 1.3 % under in true volume (bench/README.md)"))
+def test_another_phantom_reaches_a_verified_40_ml_in_true_volume(lobes_truth, tmp_path):
+    """10-20 minutes on the loaded two-core machine (four rounds of 60 pictures at half speed): not the 2 minutes
+    asked for; the verify scan's plan is the daemon's (phantom/cli/scan_verify.py)."""
+    pytest.importorskip("cv2")
+    scene, _, _ = lobes_truth
+    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    log = open(tmp_path / "daemon.log", "w+")
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-truth", str(scene),
+                                "--sim-truth-modulus-factor", f"{MODULUS_FACTOR:g}", "--socket", str(sock),
+                                # half speed: the board's dead-host deadline and simavr's pace tolerate twice the
+                                # stalls of a loaded machine (at speed 1 and load 22-28 a scan aborted on a lost
+                                # link in round 1 or 2 of three tries)
+                                "--sim-speed", "0.5"],
+                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
+    try:
+        wait_ready(sock, process, Path(log.name), 180)
+        started = time.monotonic()
+        with phantom.connect(sock) as ph:
+            # six rounds: the default four ended at -0.31 % scanned (37.28, 39.60, 40.18, 39.87 ml)
+            result = ph.set_volume(40.0, verify="scan", verify_rounds=6, timeout_s=1700)
+        took_s = time.monotonic() - started
+        rounds = result.rounds
+        assert result.verified and abs(result.scanned_volume_ml - 40.0) <= 0.003 * 40.0, rounds
+        # the phantom's true volume, which nothing in the loop sees, within 0.3 %
+        assert abs(result.true_volume_ml - 40.0) <= 0.003 * 40.0, rounds
+        # the controller's model alone misses this phantom by more than the tolerance: the rounds corrected it
+        assert len(rounds) >= 2 and abs(rounds[0]["true_volume_ml"] - 40.0) > 0.003 * 40.0, rounds
+        log.seek(0)
+        text = log.read()
+        assert "the simulated phantom's plant:" in text and "simulated phantom's truth [" not in text  # cached
+        print(f"verified 40 ml against the lobes-1.1, E x 0.9 truth in {took_s:.0f} s, {len(rounds)} rounds: "
+              + "; ".join(f"{entry['scanned_volume_ml']:.3f} / {entry['true_volume_ml']:.3f} ml" for entry in rounds))
+    finally:
+        process.terminate()
+        process.wait(60)
+        log.close()
