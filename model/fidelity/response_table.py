@@ -8,8 +8,9 @@ once on a grid and interpolated by a tensor-product cubic spline:
 
 - grid: ``n`` evenly spaced pressures from 0 to ``p_max`` on each axis (``n^3`` points);
 - values: chamber and gland volumes (m^3) and every node's position (m), from full solves, each started from
-  a solved neighbour one step down a grid line (a few Newton iterations), each point a Dask task
-  (:mod:`phantom.model.cluster`) that starts when its neighbour is solved;
+  the quadratic through the (up to three) solved points before it down a grid line (3-6 Newton iterations on
+  ``builtin:converged``, 4-11 from the neighbour itself), each point a Dask task (:mod:`phantom.model.cluster`)
+  that starts when those are solved;
 - answers: the not-a-knot cubic spline through the grid along each axis, as a contraction of the grid values
   with each axis's cardinal-spline weights, and its exact gradient (the tangent compliance at the operating
   point), in a fraction of a millisecond; outside the box, the value at the nearest point of the box plus the
@@ -227,6 +228,13 @@ def _line_before(index: tuple[int, ...], count: int, origin_solved: bool) -> lis
 LINE_PREDICTOR_POINTS = 3
 
 
+#: Newton's tolerance at a grid point (relative to the load): the table is a spline through its points, checked
+#: against full solves to a tenth of a percent (:data:`CHECK_FRACTIONS`), and a residual of 1e-7 of the load moves
+#: a volume by about that fraction of its growth, so the last Newton iteration to the solver's 1e-9 bought nothing
+#: (bench/README.md, "The table's cost per point").
+POINT_TOLERANCE = 1e-7
+
+
 #: One grid point's answer: chamber volumes (m^3), gland volume (m^3), every node's position (m), and the CPU
 #: time its solve took (s; NaN for a point stored by a build that did not record it).
 PointResult = tuple[FloatArray, float, FloatArray, float]
@@ -242,7 +250,8 @@ def _solve_point(model: PhantomModel, pressures_pa: FloatArray, *line: PointResu
     if line and model.formulation != "linear":
         start_m, start_pa = model.extrapolated_start([point[2] for point in line])
     try:
-        state = model.equilibrium(pressures_pa, initial_positions_m=start_m, initial_element_pressures_pa=start_pa)
+        state = model.equilibrium(pressures_pa, initial_positions_m=start_m, tolerance=POINT_TOLERANCE,
+                                  initial_element_pressures_pa=start_pa)
     except SolveError as error:
         raise ResponseTableError(
             f"the model has no equilibrium at {np.round(pressures_pa / 1e3, 3).tolist()} kPa, inside the pressure "
