@@ -311,3 +311,48 @@ def test_volume_control_carries_the_element_pressures_to_the_same_equilibrium(me
     residual = problem.evaluate(state.positions_m).residual_n
     assert np.linalg.norm(residual) <= RELATIVE_TOLERANCE * problem.load_scale_n()
     assert model.body.element_volume_ratios(state.positions_m) == pytest.approx(1.0, abs=0.01)
+
+
+def test_a_start_extrapolated_along_a_line_of_loads_is_exact_on_a_polynomial_path(meshes):
+    """:meth:`PhantomModel.extrapolated_start`: the Lagrange polynomial through equally spaced states (nearest
+    first) at the next load, exact on a path that is that polynomial; the nearest state itself where only one is
+    given or the polynomial would invert an element."""
+    model = sphere_model(meshes[2], "gent", 0.4995, 20.0)
+    rest = model.nodes_m
+    rng = np.random.default_rng(5)
+    linear, square = (2e-5 * rng.standard_normal(rest.shape) for _ in range(2))
+    path = [rest + t * linear + t**2 * square for t in range(4)]
+    quadratic, pressures = model.extrapolated_start([path[2], path[1], path[0]])
+    np.testing.assert_allclose(quadratic, path[3], rtol=0, atol=1e-15)
+    ratios = [model.body.element_volume_ratios(x) for x in path[:3]]
+    np.testing.assert_allclose(pressures, model.body.eliminated_pressures_pa(3 * ratios[2] - 3 * ratios[1]
+                                                                             + ratios[0]), rtol=1e-12)
+    secant, _ = model.extrapolated_start([rest + 2 * linear, rest + linear])
+    np.testing.assert_allclose(secant, rest + 3 * linear, rtol=0, atol=1e-15)
+    assert model.extrapolated_start([path[1]])[1] is None
+    inside_out = rest.copy()
+    inside_out[:, 0] *= -1.0  # a mirror image: every element's det F < 0 at the extrapolation
+    halfway = (rest + inside_out) / 2
+    nearest, none = model.extrapolated_start([halfway, rest])
+    assert np.array_equal(nearest, halfway) and none is None
+    linear_model = sphere_model(meshes[1], "gent", 0.45, 20.0)
+    assert linear_model.extrapolated_start([linear_model.nodes_m, linear_model.nodes_m])[1] is None
+
+
+def test_a_start_extrapolated_from_three_solved_loads_saves_newton_iterations(meshes):
+    """The table's grid lines (bench/README.md, "The table's cost per point"): the next load's Newton from the
+    quadratic through the three equilibria before it reaches the same equilibrium as from the nearest one, in
+    fewer iterations."""
+    model = sphere_model(meshes[2], "gent", 0.4995, 20.0)
+    step_pa = 0.04 * YOUNGS_MODULUS_PA
+    line = [model.equilibrium([step_pa]).positions_m]
+    for load in (2, 3):
+        line.insert(0, model.equilibrium([load * step_pa], initial_positions_m=line[0]).positions_m)
+    from_nearest = model.equilibrium([4 * step_pa], initial_positions_m=line[0])
+    start_m, start_pa = model.extrapolated_start(line)
+    extrapolated = model.equilibrium([4 * step_pa], initial_positions_m=start_m,
+                                     initial_element_pressures_pa=start_pa)
+    assert extrapolated.load_steps == from_nearest.load_steps == 1  # Newton at the load, no path from rest
+    assert extrapolated.iterations < from_nearest.iterations, (extrapolated.iterations, from_nearest.iterations)
+    np.testing.assert_allclose(extrapolated.chamber_volumes_m3, from_nearest.chamber_volumes_m3, rtol=1e-9)
+    np.testing.assert_allclose(extrapolated.positions_m, from_nearest.positions_m, rtol=0, atol=1e-10)

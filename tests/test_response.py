@@ -17,6 +17,7 @@ from phantom.model.fidelity.response_table import (
     SHIPPED_MODES_TOLERANCE_M,
     SHIPPED_NODE_TOLERANCE_M,
     ResponseTableError,
+    _line_before,
     _predecessor,
     build_response_table,
     build_table_shapes,
@@ -169,6 +170,18 @@ def test_each_point_starts_from_a_neighbour_one_step_down_its_grid_line():
         while index is not None:
             index, steps = _predecessor(index), steps + 1
         assert steps - 1 <= 3 * 4
+
+
+def test_each_point_starts_from_up_to_three_points_down_its_grid_line_never_from_the_origin_it_left():
+    # nearest first, along the axis to its predecessor: the points a quadratic predictor goes through
+    assert _line_before((2, 3, 4), 3, True) == [(2, 3, 3), (2, 3, 2), (2, 3, 1)]
+    assert _line_before((2, 3, 1), 3, True) == [(2, 3, 0)]
+    assert _line_before((2, 3, 0), 2, True) == [(2, 2, 0), (2, 1, 0)]
+    assert _line_before((0, 0, 2), 3, True) == [(0, 0, 1), (0, 0, 0)]
+    # the rest shape is no equilibrium under a body force: not a point of the line then
+    assert _line_before((0, 0, 2), 3, False) == [(0, 0, 1)]
+    # a point next to the origin is solved from rest, and the origin has none
+    assert _line_before((0, 1, 0), 3, True) == [] and _line_before((0, 0, 0), 3, True) == []
 
 
 class _Killed(Exception):

@@ -9,6 +9,7 @@ rest), volumes, deformed shapes, and the compliance (volume per pressure) at res
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import tempfile
 import time
@@ -274,7 +275,8 @@ class PhantomModel:
 
     def equilibrium(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
                     initial_positions_m: FloatArray | None = None, tolerance: float = RELATIVE_TOLERANCE,
-                    body_force_n_per_m3: FloatArray | list[float] | None = None) -> State:
+                    body_force_n_per_m3: FloatArray | list[float] | None = None,
+                    initial_element_pressures_pa: FloatArray | None = None) -> State:
         """The equilibrium under gauge pressures (Pa, chamber order) and a body force (N/m^3; None: the scene's
         gravity hanging in air, :attr:`body_force_n_per_m3`).
 
@@ -283,7 +285,9 @@ class PhantomModel:
         Newton iterations with a line search on the total energy, cutting the load into steps when a full
         step fails. ``initial_positions_m`` starts from another configuration (default: rest); for a hyperelastic
         law Newton at the full load is tried from there first (it converges in a few iterations from a nearby
-        equilibrium), path following from zero load when it does not converge.
+        equilibrium), path following from zero load when it does not converge. ``initial_element_pressures_pa``
+        are a 10-node body's element pressures to start that Newton from (a predictor's, e.g.
+        :meth:`extrapolated_start`'s; None: eliminated at ``initial_positions_m``).
         Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert. A pressure
         under :attr:`pressure_resolution_pa` in magnitude is zero.
         """
@@ -297,7 +301,8 @@ class PhantomModel:
             if initial_positions_m is not None and problem.formulation in HYPERELASTIC_MODELS and problem.loaded:
                 # From a nearby equilibrium (an iteration's previous answer) Newton at the full load takes a few
                 # iterations; path following would start again from zero load on the inflated shape.
-                warm = newton(problem, problem.start_m, tolerance)
+                warm = newton(problem, problem.start_m, tolerance,
+                              element_pressures_pa=initial_element_pressures_pa if problem.mixed else None)
             if warm is not None and warm.converged:
                 positions_m, iterations, steps = warm.positions_m, warm.iterations, 1
             else:
@@ -309,6 +314,28 @@ class PhantomModel:
         return State(positions_m, chamber_volumes_m3, gland_volume_m3, iterations, time.perf_counter() - started,
                      problem.pressures_pa, problem.formulation, steps, load_positions_m,
                      problem.body_force_n_per_m3)
+
+    def extrapolated_start(self, line_m: list[FloatArray]) -> tuple[FloatArray, FloatArray | None]:
+        """A start for the equilibrium at the next of equally spaced loads along a line, from the equilibria at the
+        loads before it (``line_m``, nearest first: ``x(t - 1), x(t - 2), ...``): the polynomial through them at
+        ``t`` (a secant through two, a quadratic through three), exact on a path that is that polynomial, and a
+        10-node body's element pressures extrapolated alike (eliminated at each equilibrium, where they are the
+        carried ones: eliminated at the extrapolated positions, ``K (Jbar - 1)`` would carry K times the
+        extrapolation's error in the volume ratios; None for a 4-node body). The nearest equilibrium itself where
+        the polynomial would invert an element, or where only one is given."""
+        nearest = np.asarray(line_m[0], dtype=float)
+        count = len(line_m)
+        # Lagrange weights at t of the nodes t - 1, ..., t - count: (-1)^(j+1) C(count, j), j = 1..count
+        weights = np.array([(-1.0) ** (j + 1) * math.comb(count, j) for j in range(1, count + 1)])
+        guess: FloatArray = np.tensordot(weights, np.stack([np.asarray(x, float) for x in line_m]), axes=1)
+        if count < 2 or not np.isfinite(guess).all() or self.body.worst_element(guess) >= 0:
+            return nearest, None
+        if self.order != 2:
+            return guess, None
+        body = self.body
+        pressures: FloatArray = weights @ np.stack([body.eliminated_pressures_pa(body.element_volume_ratios(x))
+                                                     for x in line_m])
+        return guess, pressures
 
     # --- compliance ----------------------------------------------------------------------------------------
 

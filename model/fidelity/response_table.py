@@ -8,8 +8,9 @@ once on a grid and interpolated by a tensor-product cubic spline:
 
 - grid: ``n`` evenly spaced pressures from 0 to ``p_max`` on each axis (``n^3`` points);
 - values: chamber and gland volumes (m^3) and every node's position (m), from full solves, each started from
-  a solved neighbour one step down a grid line (a few Newton iterations), each point a Dask task
-  (:mod:`phantom.model.cluster`) that starts when its neighbour is solved;
+  the quadratic through the (up to three) solved points before it down a grid line (3-6 Newton iterations on
+  ``builtin:converged``, 4-11 from the neighbour itself), each point a Dask task (:mod:`phantom.model.cluster`)
+  that starts when those are solved;
 - answers: the not-a-knot cubic spline through the grid along each axis, as a contraction of the grid values
   with each axis's cardinal-spline weights, and its exact gradient (the tangent compliance at the operating
   point), in a fraction of a millisecond; outside the box, the value at the nearest point of the box plus the
@@ -208,19 +209,49 @@ def _predecessor(index: tuple[int, ...]) -> tuple[int, ...] | None:
     return tuple(position - (axis == raised[-1]) for axis, position in enumerate(index))
 
 
+def _line_before(index: tuple[int, ...], count: int, origin_solved: bool) -> list[tuple[int, ...]]:
+    """Up to ``count`` grid points down the grid line a point is solved along (its :func:`_predecessor`'s axis),
+    nearest first: the equilibria its solve's start is extrapolated from (:func:`_solve_point`). None where the
+    predecessor is the origin (that solve starts from rest); the origin itself only when ``origin_solved`` (the
+    rest shape is the equilibrium at zero pressure only without a body force)."""
+    before = _predecessor(index)
+    if before is None or not any(before):
+        return []
+    axis = next(axis for axis, (a, b) in enumerate(zip(index, before, strict=True)) if a != b)
+    line = [tuple(position - step * (other == axis) for other, position in enumerate(index))
+            for step in range(1, min(count, index[axis]) + 1)]
+    return [point for point in line if origin_solved or any(point)]
+
+
+#: Equilibria down a grid line that a point's start is extrapolated from (1: the neighbour itself; 2: a secant;
+#: 3: a quadratic), measured by bench/table_points.py (bench/README.md, "The table's cost per point").
+LINE_PREDICTOR_POINTS = 3
+
+
+#: Newton's tolerance at a grid point (relative to the load): the table is a spline through its points, checked
+#: against full solves to a tenth of a percent (:data:`CHECK_FRACTIONS`), and a residual of 1e-7 of the load moves
+#: a volume by about that fraction of its growth, so the last Newton iteration to the solver's 1e-9 bought nothing
+#: (bench/README.md, "The table's cost per point").
+POINT_TOLERANCE = 1e-7
+
+
 #: One grid point's answer: chamber volumes (m^3), gland volume (m^3), every node's position (m), and the CPU
 #: time its solve took (s; NaN for a point stored by a build that did not record it).
 PointResult = tuple[FloatArray, float, FloatArray, float]
 
 
-def _solve_point(model: PhantomModel, pressures_pa: FloatArray, previous: PointResult | None) -> PointResult:
-    """The equilibrium at ``pressures_pa``, started from ``previous`` (a neighbour's answer; None: from rest; a
-    small-strain solve takes its load on its start, so it always starts from rest). Runs on a Dask worker or
-    in the calling process."""
+def _solve_point(model: PhantomModel, pressures_pa: FloatArray, *line: PointResult) -> PointResult:
+    """The equilibrium at ``pressures_pa``, started from the answers ``line`` at the points before it down its
+    grid line, nearest first (:func:`_line_before`): extrapolated through them
+    (:meth:`~phantom.model.fem.model.PhantomModel.extrapolated_start`); none: from rest (a small-strain solve takes
+    its load on its start, so it always starts from rest). Runs on a Dask worker or in the calling process."""
     started_cpu_s = time.process_time()
-    warm = previous is not None and model.formulation != "linear"
+    start_m, start_pa = None, None
+    if line and model.formulation != "linear":
+        start_m, start_pa = model.extrapolated_start([point[2] for point in line])
     try:
-        state = model.equilibrium(pressures_pa, initial_positions_m=previous[2] if warm and previous else None)
+        state = model.equilibrium(pressures_pa, initial_positions_m=start_m, tolerance=POINT_TOLERANCE,
+                                  initial_element_pressures_pa=start_pa)
     except SolveError as error:
         raise ResponseTableError(
             f"the model has no equilibrium at {np.round(pressures_pa / 1e3, 3).tolist()} kPa, inside the pressure "
@@ -269,19 +300,19 @@ def _stored_points(folder: Path, grid: tuple[int, ...], n_nodes: int) -> dict[tu
 
 def _solve_grid(model: PhantomModel, nodes_pa: FloatArray, known: dict[tuple[int, ...], PointResult],
                 folder: Path, progress: Callable[[], None], workers: int, scheduler: str | None) -> None:
-    """Solve every grid point not in ``known`` (which holds the origin), each from its :func:`_predecessor`,
+    """Solve every grid point not in ``known`` (which holds the origin), each started from the points before it
+    down the grid line to its :func:`_predecessor` (:func:`_line_before`),
     storing each in ``folder`` and adding it to ``known`` as it comes; in this process for one worker and no
     scheduler, else as one Dask task per point (:func:`phantom.model.cluster.dask_client`)."""
     grid = (len(nodes_pa),) * int(model.n_chambers)
-    origin = (0,) * len(grid)  # from rest: a start at rest would spend a Newton attempt at the full load
+    origin_solved = not np.any(model.body_force_n_per_m3)  # rest is then the equilibrium at zero pressure
     missing = [index for index in np.ndindex(*grid) if index not in known]  # C order: predecessors first
     if not missing:
         return
     if workers == 1 and scheduler is None:
         for index in missing:
-            before = _predecessor(index)
-            assert before is not None  # the origin is known: the model at rest
-            known[index] = _solve_point(model, nodes_pa[list(index)], None if before == origin else known[before])
+            line = _line_before(index, LINE_PREDICTOR_POINTS, origin_solved)
+            known[index] = _solve_point(model, nodes_pa[list(index)], *(known[point] for point in line))
             _store_point(folder, index, known[index])
             progress()
         return
@@ -295,23 +326,22 @@ def _solve_grid(model: PhantomModel, nodes_pa: FloatArray, known: dict[tuple[int
 def _solve_on_dask(model: PhantomModel, nodes_pa: FloatArray, known: dict[tuple[int, ...], PointResult],
                    missing: list[tuple[int, ...]], folder: Path, progress: Callable[[], None], workers: int,
                    scheduler: str | None) -> None:
-    """:func:`_solve_grid`'s points as Dask tasks, each depending on its predecessor's task (or given its stored
-    answer), stored as they come in whatever order they finish."""
+    """:func:`_solve_grid`'s points as Dask tasks, each depending on the tasks of the points it starts from (or
+    given their stored answers), stored as they come in whatever order they finish."""
     # dask.distributed (1 s to import, an optional extra) only where a build is spread
     with require_extra("calibrate"):
         from dask.distributed import as_completed
 
-    origin = (0,) * int(model.n_chambers)
+    origin_solved = not np.any(model.body_force_n_per_m3)  # rest is then the equilibrium at zero pressure
     with dask_client(scheduler, workers) as client:
         # the model (17 MB pickled, with its factorisations) goes to each worker once, not with every task
         [model_on_workers] = client.scatter([model], broadcast=True, hash=False)
         futures: dict[tuple[int, ...], Any] = {}
         build = uuid.uuid4().hex[:12]  # keys of this build's tasks only, on a cluster that may run others
         for index in missing:
-            before = _predecessor(index)
-            assert before is not None
-            previous = None if before == origin else futures.get(before, known.get(before))
-            futures[index] = client.submit(_solve_point, model_on_workers, nodes_pa[list(index)], previous,
+            line = [futures.get(point, known.get(point))
+                    for point in _line_before(index, LINE_PREDICTOR_POINTS, origin_solved)]
+            futures[index] = client.submit(_solve_point, model_on_workers, nodes_pa[list(index)], *line,
                                            key=f"table-point-{build}-{'-'.join(map(str, index))}")
         points = {future.key: index for index, future in futures.items()}
         for future in as_completed(list(futures.values())):
