@@ -274,7 +274,9 @@ class PhantomModel:
 
     def equilibrium(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
                     initial_positions_m: FloatArray | None = None, tolerance: float = RELATIVE_TOLERANCE,
-                    body_force_n_per_m3: FloatArray | list[float] | None = None) -> State:
+                    body_force_n_per_m3: FloatArray | list[float] | None = None,
+                    predicted_positions_m: FloatArray | None = None,
+                    predicted_element_pressures_pa: FloatArray | None = None) -> State:
         """The equilibrium under gauge pressures (Pa, chamber order) and a body force (N/m^3; None: the scene's
         gravity hanging in air, :attr:`body_force_n_per_m3`).
 
@@ -283,7 +285,10 @@ class PhantomModel:
         Newton iterations with a line search on the total energy, cutting the load into steps when a full
         step fails. ``initial_positions_m`` starts from another configuration (default: rest); for a hyperelastic
         law Newton at the full load is tried from there first (it converges in a few iterations from a nearby
-        equilibrium), path following from zero load when it does not converge.
+        equilibrium), path following from zero load when it does not converge. ``predicted_positions_m`` (with
+        ``initial_positions_m``): where that Newton starts instead, e.g. a continuation's extrapolation of its last
+        equilibria, with a 10-node body's element pressures ``predicted_element_pressures_pa`` (None: eliminated
+        there); the problem's frame and the path following stay those of ``initial_positions_m``.
         Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert. A pressure
         under :attr:`pressure_resolution_pa` in magnitude is zero.
         """
@@ -297,7 +302,8 @@ class PhantomModel:
             if initial_positions_m is not None and problem.formulation in HYPERELASTIC_MODELS and problem.loaded:
                 # From a nearby equilibrium (an iteration's previous answer) Newton at the full load takes a few
                 # iterations; path following would start again from zero load on the inflated shape.
-                warm = newton(problem, problem.start_m, tolerance)
+                start_m = problem.start_m if predicted_positions_m is None else predicted_positions_m
+                warm = newton(problem, start_m, tolerance, element_pressures_pa=predicted_element_pressures_pa)
             if warm is not None and warm.converged:
                 positions_m, iterations, steps = warm.positions_m, warm.iterations, 1
             else:
