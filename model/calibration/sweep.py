@@ -158,17 +158,18 @@ def trace_ray(task: RayTask) -> RayTrace:
     body_force = np.asarray(task.body_force_n_per_m3, dtype=float)
     warm_start = model.formulation != "linear"
     rows, stopped = [], "end"
-    # the last equilibria on the ray: load factors, node positions, element pressures (10-node)
-    solved_t: list[float] = []
-    solved_m: list[FloatArray] = []
-    solved_pa: list[FloatArray | None] = []
+    # the last equilibria on the ray (load factors, node positions, 10-node element pressures), from rest at t = 0,
+    # which is one whether or not the ray's load factors start there (the full solves that verify a fit do not)
+    solved_t: list[float] = [0.0]
+    solved_m: list[FloatArray] = [model.nodes_m]
+    solved_pa: list[FloatArray | None] = [_element_pressures_pa(model, model.nodes_m)]
     for load_factor in task.load_factors:
         if load_factor == 0 or not (np.any(pressures) or np.any(body_force)):
             positions_m_here, chambers, gland = model.nodes_m, model.rest_chamber_volumes_m3, model.rest_gland_volume_m3
         else:
-            last = solved_m[-1] if solved_t and solved_t[-1] > 0 else None  # the first solve starts from rest
+            last = solved_m[-1] if solved_t[-1] > 0 else None  # the first solve starts from rest
             predicted_m = predicted_pa = None
-            if last is not None and len(solved_m) >= 2:
+            if last is not None and len(solved_t) > 1:  # (PREDICTOR_POINTS = 1: from the last equilibrium)
                 predicted_m = extrapolate(solved_t, solved_m, load_factor)
                 element_pressures = [carried for carried in solved_pa if carried is not None]
                 if len(element_pressures) == len(solved_t):  # a 10-node body
@@ -182,7 +183,7 @@ def trace_ray(task: RayTask) -> RayTrace:
                 stopped = str(error)
                 break
             positions_m_here, chambers, gland = state.positions_m, state.chamber_volumes_m3, state.gland_volume_m3
-        if warm_start:
+        if warm_start and load_factor > 0:
             solved_t = [*solved_t, load_factor][-PREDICTOR_POINTS:]
             solved_m = [*solved_m, positions_m_here][-PREDICTOR_POINTS:]
             solved_pa = [*solved_pa, _element_pressures_pa(model, positions_m_here)][-PREDICTOR_POINTS:]

@@ -44,6 +44,11 @@ FORMULATIONS = MATERIAL_MODELS
 PRESSURE_RESOLUTION_OF_MODULUS = 1e-5
 
 
+#: Newton iterations from a predicted start (:meth:`PhantomModel.equilibrium`'s ``predicted_positions_m``) before
+#: it is given up for the last equilibrium: a calibration trace's quadratic prediction converges in 5-6.
+PREDICTED_NEWTON_ITERATIONS = 10
+
+
 @dataclass
 class State:
     """A solved equilibrium.
@@ -301,14 +306,21 @@ class PhantomModel:
             warm = None
             if initial_positions_m is not None and problem.formulation in HYPERELASTIC_MODELS and problem.loaded:
                 # From a nearby equilibrium (an iteration's previous answer) Newton at the full load takes a few
-                # iterations; path following would start again from zero load on the inflated shape.
-                start_m = problem.start_m if predicted_positions_m is None else predicted_positions_m
-                warm = newton(problem, start_m, tolerance, element_pressures_pa=predicted_element_pressures_pa)
+                # iterations; path following would start again from zero load on the inflated shape. A prediction
+                # that does not converge within PREDICTED_NEWTON_ITERATIONS (near a limit point) is given up.
+                if predicted_positions_m is not None:
+                    warm = newton(problem, predicted_positions_m, tolerance,
+                                  element_pressures_pa=predicted_element_pressures_pa,
+                                  max_iterations=PREDICTED_NEWTON_ITERATIONS)
+                    iterations = warm.iterations
+                if warm is None or not warm.converged:
+                    warm = newton(problem, problem.start_m, tolerance)
+                    iterations += warm.iterations
             if warm is not None and warm.converged:
-                positions_m, iterations, steps = warm.positions_m, warm.iterations, 1
+                positions_m, steps = warm.positions_m, 1
             else:
                 path = follow_path(problem, tolerance)
-                positions_m, iterations, steps = path.positions_m, path.iterations, path.steps
+                positions_m, iterations, steps = path.positions_m, iterations + path.iterations, path.steps
         chamber_volumes_m3, gland_volume_m3 = self.volumes(positions_m)
         load_positions_m = (problem.start_m if problem.formulation == "linear" and initial_positions_m is not None
                             else None)
