@@ -63,10 +63,10 @@ def main() -> None:
         for index in points:
             line = _line_before(index, line_points, True)
             started = time.process_time()
-            start_m, start_pa = (model.extrapolated_start([known[point] for point in line]) if line
-                                 else (None, None))
-            state = model.equilibrium(nodes_pa[list(index)], initial_positions_m=start_m, tolerance=tolerance,
-                                      initial_element_pressures_pa=start_pa)
+            nearest_m, start_m, start_pa = ((known[line[0]], *model.extrapolated_start([known[p] for p in line]))
+                                            if line else (None, None, None))
+            state = model.equilibrium(nodes_pa[list(index)], initial_positions_m=nearest_m, tolerance=tolerance,
+                                      predicted_positions_m=start_m, predicted_element_pressures_pa=start_pa)
             cpu[index], iterations[index] = time.process_time() - started, state.iterations
             known[index] = state.positions_m
             volumes = np.append(state.chamber_volumes_m3, state.gland_volume_m3)

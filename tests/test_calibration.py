@@ -393,3 +393,37 @@ def test_a_ray_traced_under_gravity_is_the_full_solve_at_the_modulus_its_load_fa
             assert trace.gland_m3[k] == pytest.approx(state.gland_volume_m3, rel=1e-7)
             np.testing.assert_allclose(trace.chamber_m3[k], state.chamber_volumes_m3, rtol=1e-6)
         assert trace.gland_m3[-1] != trace.gland_m3[0]  # the weight alone moves the zero-pressure row too
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)  # six 10-node solves: about half a minute idle, minutes at a load average of 20
+def test_a_trace_started_from_extrapolated_equilibria_is_the_trace_started_from_the_last_one(monkeypatch):
+    """The traces' predictor (the last equilibria extrapolated in the load factor, positions and element
+    pressures) only changes where Newton starts: the 10-node ray at (3, 1, 2) kPa gives the same states, to the
+    solver's tolerance, as solves that each start from the previous equilibrium (PREDICTOR_POINTS = 1, what the
+    traces did before), in fewer Newton iterations."""
+    from phantom.model.calibration import sweep
+    from phantom.model.calibration.calibrate import ray_task
+
+    scene = load_scene(Path(__file__).resolve().parents[1] / "bench" / "calibration_ecoflex.toml")
+    raw = {**scene.raw, "material": {**scene.raw["material"], "gent_jm": 5.0}}
+    measurements = load_measurements(MEASUREMENTS, n_chambers=3)
+    task = ray_task(scene, raw, measurements, 7, (0.0, 1.5, 3.0, 4.5))  # E = 50 kPa / t: down to 11 kPa
+    iterations: list[int] = []
+    solve = PhantomModel.equilibrium
+
+    def counted(self, *args, **kwargs):
+        state = solve(self, *args, **kwargs)
+        iterations.append(state.iterations)
+        return state
+
+    monkeypatch.setattr(PhantomModel, "equilibrium", counted)
+    predicted = sweep.trace_ray(task)
+    predicted_iterations, iterations[:] = sum(iterations), []
+    monkeypatch.setattr(sweep, "PREDICTOR_POINTS", 1)
+    from_last = sweep.trace_ray(task)
+    assert predicted.stopped == from_last.stopped == "end"
+    np.testing.assert_allclose(predicted.gland_m3, from_last.gland_m3, rtol=1e-7)
+    np.testing.assert_allclose(predicted.chamber_m3, from_last.chamber_m3, rtol=1e-6)
+    np.testing.assert_allclose(predicted.max_i1_minus_3, from_last.max_i1_minus_3, rtol=1e-4)
+    assert predicted_iterations < sum(iterations)

@@ -315,8 +315,8 @@ def test_volume_control_carries_the_element_pressures_to_the_same_equilibrium(me
 
 def test_a_start_extrapolated_along_a_line_of_loads_is_exact_on_a_polynomial_path(meshes):
     """:meth:`PhantomModel.extrapolated_start`: the Lagrange polynomial through equally spaced states (nearest
-    first) at the next load, exact on a path that is that polynomial; the nearest state itself where only one is
-    given or the polynomial would invert an element."""
+    first, or at the load factors given) at the next load, exact on a path that is that polynomial; no prediction
+    where only one is given or the polynomial would invert an element."""
     model = sphere_model(meshes[2], "gent", 0.4995, 20.0)
     rest = model.nodes_m
     rng = np.random.default_rng(5)
@@ -329,12 +329,14 @@ def test_a_start_extrapolated_along_a_line_of_loads_is_exact_on_a_polynomial_pat
                                                                              + ratios[0]), rtol=1e-12)
     secant, _ = model.extrapolated_start([rest + 2 * linear, rest + linear])
     np.testing.assert_allclose(secant, rest + 3 * linear, rtol=0, atol=1e-15)
-    assert model.extrapolated_start([path[1]])[1] is None
+    # a calibration trace's load factors, unequally spaced (rest, 1, 3 -> 3.5)
+    uneven, _ = model.extrapolated_start([path[3], path[1], path[0]], [3.0, 1.0, 0.0], 3.5)
+    np.testing.assert_allclose(uneven, rest + 3.5 * linear + 3.5**2 * square, rtol=0, atol=1e-15)
+    assert model.extrapolated_start([path[1]]) == (None, None)
     inside_out = rest.copy()
     inside_out[:, 0] *= -1.0  # a mirror image: every element's det F < 0 at the extrapolation
     halfway = (rest + inside_out) / 2
-    nearest, none = model.extrapolated_start([halfway, rest])
-    assert np.array_equal(nearest, halfway) and none is None
+    assert model.extrapolated_start([halfway, rest]) == (None, None)
     linear_model = sphere_model(meshes[1], "gent", 0.45, 20.0)
     assert linear_model.extrapolated_start([linear_model.nodes_m, linear_model.nodes_m])[1] is None
 
@@ -350,8 +352,8 @@ def test_a_start_extrapolated_from_three_solved_loads_saves_newton_iterations(me
         line.insert(0, model.equilibrium([load * step_pa], initial_positions_m=line[0]).positions_m)
     from_nearest = model.equilibrium([4 * step_pa], initial_positions_m=line[0])
     start_m, start_pa = model.extrapolated_start(line)
-    extrapolated = model.equilibrium([4 * step_pa], initial_positions_m=start_m,
-                                     initial_element_pressures_pa=start_pa)
+    extrapolated = model.equilibrium([4 * step_pa], initial_positions_m=line[0], predicted_positions_m=start_m,
+                                     predicted_element_pressures_pa=start_pa)
     assert extrapolated.load_steps == from_nearest.load_steps == 1  # Newton at the load, no path from rest
     assert extrapolated.iterations < from_nearest.iterations, (extrapolated.iterations, from_nearest.iterations)
     np.testing.assert_allclose(extrapolated.chamber_volumes_m3, from_nearest.chamber_volumes_m3, rtol=1e-9)

@@ -9,7 +9,6 @@ rest), volumes, deformed shapes, and the compliance (volume per pressure) at res
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import tempfile
 import time
@@ -43,6 +42,11 @@ FORMULATIONS = MATERIAL_MODELS
 #: protocol's pressures are whole pascals); a fraction of E, not pascals, so that the same p/E gives the same
 #: shape at any modulus.
 PRESSURE_RESOLUTION_OF_MODULUS = 1e-5
+
+
+#: Newton iterations from a predicted start (:meth:`PhantomModel.equilibrium`'s ``predicted_positions_m``) before
+#: it is given up for the last equilibrium: a calibration trace's quadratic prediction converges in 5-6.
+PREDICTED_NEWTON_ITERATIONS = 10
 
 
 @dataclass
@@ -276,7 +280,8 @@ class PhantomModel:
     def equilibrium(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
                     initial_positions_m: FloatArray | None = None, tolerance: float = RELATIVE_TOLERANCE,
                     body_force_n_per_m3: FloatArray | list[float] | None = None,
-                    initial_element_pressures_pa: FloatArray | None = None) -> State:
+                    predicted_positions_m: FloatArray | None = None,
+                    predicted_element_pressures_pa: FloatArray | None = None) -> State:
         """The equilibrium under gauge pressures (Pa, chamber order) and a body force (N/m^3; None: the scene's
         gravity hanging in air, :attr:`body_force_n_per_m3`).
 
@@ -285,9 +290,10 @@ class PhantomModel:
         Newton iterations with a line search on the total energy, cutting the load into steps when a full
         step fails. ``initial_positions_m`` starts from another configuration (default: rest); for a hyperelastic
         law Newton at the full load is tried from there first (it converges in a few iterations from a nearby
-        equilibrium), path following from zero load when it does not converge. ``initial_element_pressures_pa``
-        are a 10-node body's element pressures to start that Newton from (a predictor's, e.g.
-        :meth:`extrapolated_start`'s; None: eliminated at ``initial_positions_m``).
+        equilibrium), path following from zero load when it does not converge. ``predicted_positions_m`` (with
+        ``initial_positions_m``): where that Newton starts instead, e.g. a continuation's extrapolation of its last
+        equilibria, with a 10-node body's element pressures ``predicted_element_pressures_pa`` (None: eliminated
+        there); the problem's frame and the path following stay those of ``initial_positions_m``.
         Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert. A pressure
         under :attr:`pressure_resolution_pa` in magnitude is zero.
         """
@@ -300,14 +306,21 @@ class PhantomModel:
             warm = None
             if initial_positions_m is not None and problem.formulation in HYPERELASTIC_MODELS and problem.loaded:
                 # From a nearby equilibrium (an iteration's previous answer) Newton at the full load takes a few
-                # iterations; path following would start again from zero load on the inflated shape.
-                warm = newton(problem, problem.start_m, tolerance,
-                              element_pressures_pa=initial_element_pressures_pa if problem.mixed else None)
+                # iterations; path following would start again from zero load on the inflated shape. A prediction
+                # that does not converge within PREDICTED_NEWTON_ITERATIONS (near a limit point) is given up.
+                if predicted_positions_m is not None:
+                    warm = newton(problem, predicted_positions_m, tolerance,
+                                  element_pressures_pa=predicted_element_pressures_pa,
+                                  max_iterations=PREDICTED_NEWTON_ITERATIONS)
+                    iterations = warm.iterations
+                if warm is None or not warm.converged:
+                    warm = newton(problem, problem.start_m, tolerance)
+                    iterations += warm.iterations
             if warm is not None and warm.converged:
-                positions_m, iterations, steps = warm.positions_m, warm.iterations, 1
+                positions_m, steps = warm.positions_m, 1
             else:
                 path = follow_path(problem, tolerance)
-                positions_m, iterations, steps = path.positions_m, path.iterations, path.steps
+                positions_m, iterations, steps = path.positions_m, iterations + path.iterations, path.steps
         chamber_volumes_m3, gland_volume_m3 = self.volumes(positions_m)
         load_positions_m = (problem.start_m if problem.formulation == "linear" and initial_positions_m is not None
                             else None)
@@ -315,26 +328,26 @@ class PhantomModel:
                      problem.pressures_pa, problem.formulation, steps, load_positions_m,
                      problem.body_force_n_per_m3)
 
-    def extrapolated_start(self, line_m: list[FloatArray]) -> tuple[FloatArray, FloatArray | None]:
-        """A start for the equilibrium at the next of equally spaced loads along a line, from the equilibria at the
-        loads before it (``line_m``, nearest first: ``x(t - 1), x(t - 2), ...``): the polynomial through them at
-        ``t`` (a secant through two, a quadratic through three), exact on a path that is that polynomial, and a
-        10-node body's element pressures extrapolated alike (eliminated at each equilibrium, where they are the
-        carried ones: eliminated at the extrapolated positions, ``K (Jbar - 1)`` would carry K times the
-        extrapolation's error in the volume ratios; None for a 4-node body). The nearest equilibrium itself where
-        the polynomial would invert an element, or where only one is given."""
-        nearest = np.asarray(line_m[0], dtype=float)
-        count = len(line_m)
-        # Lagrange weights at t of the nodes t - 1, ..., t - count: (-1)^(j+1) C(count, j), j = 1..count
-        weights = np.array([(-1.0) ** (j + 1) * math.comb(count, j) for j in range(1, count + 1)])
+    def extrapolated_start(self, line_m: list[FloatArray], load_factors: list[float] | None = None,
+                           load_factor: float = 0.0) -> tuple[FloatArray, FloatArray | None]:
+        """A predicted start (for :meth:`equilibrium`'s ``predicted_positions_m`` and
+        ``predicted_element_pressures_pa``) of the equilibrium at ``load_factor`` from the equilibria ``line_m``
+        at ``load_factors`` (nearest first; default equally spaced before it: ``-1, -2, ...``): the Lagrange
+        polynomial through them (a secant through two, a quadratic through three), exact on a path that is that
+        polynomial, and a 10-node body's element pressures extrapolated alike (eliminated at each equilibrium:
+        eliminated at the extrapolated positions, ``K (Jbar - 1)`` would carry K times the extrapolation's error in
+        the volume ratios; None for a 4-node body). ``(None, None)`` where only one is given or the polynomial
+        would invert an element: start from the nearest equilibrium."""
+        loads = [-(i + 1.0) for i in range(len(line_m))] if load_factors is None else list(load_factors)
+        weights = np.array([np.prod([(load_factor - t_j) / (t_i - t_j) for j, t_j in enumerate(loads) if j != i])
+                            for i, t_i in enumerate(loads)])
         guess: FloatArray = np.tensordot(weights, np.stack([np.asarray(x, float) for x in line_m]), axes=1)
-        if count < 2 or not np.isfinite(guess).all() or self.body.worst_element(guess) >= 0:
-            return nearest, None
+        if len(line_m) < 2 or not np.isfinite(guess).all() or self.body.worst_element(guess) >= 0:
+            return None, None
         if self.order != 2:
             return guess, None
-        body = self.body
-        pressures: FloatArray = weights @ np.stack([body.eliminated_pressures_pa(body.element_volume_ratios(x))
-                                                     for x in line_m])
+        carried = np.stack([self.body.eliminated_pressures_pa(self.body.element_volume_ratios(x)) for x in line_m])
+        pressures: FloatArray = np.tensordot(weights, carried, axes=1)
         return guess, pressures
 
     # --- compliance ----------------------------------------------------------------------------------------

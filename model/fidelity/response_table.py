@@ -246,12 +246,13 @@ def _solve_point(model: PhantomModel, pressures_pa: FloatArray, *line: PointResu
     (:meth:`~phantom.model.fem.model.PhantomModel.extrapolated_start`); none: from rest (a small-strain solve takes
     its load on its start, so it always starts from rest). Runs on a Dask worker or in the calling process."""
     started_cpu_s = time.process_time()
-    start_m, start_pa = None, None
+    nearest_m = predicted_m = predicted_pa = None
     if line and model.formulation != "linear":
-        start_m, start_pa = model.extrapolated_start([point[2] for point in line])
+        nearest_m = line[0][2]
+        predicted_m, predicted_pa = model.extrapolated_start([point[2] for point in line])
     try:
-        state = model.equilibrium(pressures_pa, initial_positions_m=start_m, tolerance=POINT_TOLERANCE,
-                                  initial_element_pressures_pa=start_pa)
+        state = model.equilibrium(pressures_pa, initial_positions_m=nearest_m, tolerance=POINT_TOLERANCE,
+                                  predicted_positions_m=predicted_m, predicted_element_pressures_pa=predicted_pa)
     except SolveError as error:
         raise ResponseTableError(
             f"the model has no equilibrium at {np.round(pressures_pa / 1e3, 3).tolist()} kPa, inside the pressure "
