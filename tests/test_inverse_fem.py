@@ -46,7 +46,6 @@ def test_the_cli_answer_meets_the_target_on_the_full_model_within_0_1_percent(mo
     assert all(value > 0 for value in report["pressures_kpa"])
 
 
-@pytest.mark.slow  # full-model solves (73 s at load 24)
 def test_a_growth_ratio_holds_on_the_full_model(model):
     solver = InverseSolver(model, pressure_max_pa=20e3, fidelity="full")
     target_m3 = model.rest_gland_volume_m3 + 0.6e-6

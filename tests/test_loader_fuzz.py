@@ -92,7 +92,6 @@ toml_values = st.recursive(
     max_leaves=8)
 
 
-@pytest.mark.slow  # make check's slowest: 60 scenes read, 190 s of its 2145 s run one at a time at load 24
 @FUZZ
 @given(data=st.data())
 def test_a_mutated_scene_is_read_or_refused(data):

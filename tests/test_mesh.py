@@ -233,7 +233,6 @@ def test_a_surface_mesh_without_tets_is_refused(tmp_path, sphere):
         read_mesh(tmp_path / "none.msh", 1e-3)
 
 
-@pytest.mark.slow  # a mesh and a model built in two processes (42 s at load 24)
 def test_mesh_command_writes_a_loadable_file(tmp_path):
     out = tmp_path / "prostate.msh"
     result = subprocess.run([str(PHANTOM), "mesh", "--scene", "builtin", "--out", str(out), "--size-mm", "6"],
