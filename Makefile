@@ -52,9 +52,12 @@ PYTEST := $(PY) -m pytest -q -n auto
 pytest-fast:
 	$(PYTEST) -m "not sim and not slow"
 
+# Both phases print their 25 slowest tests (setup, call and teardown apart), so that every CI log shows where the
+# time goes; the parallel phase also its 25 costliest in CPU time (--cpu-durations, tests/conftest.py), which a
+# loaded machine does not inflate as it does the wall clock.
 pytest:
-	$(PYTEST) -m "not sim"
-	$(PY) -m pytest -q -m sim
+	$(PYTEST) -m "not sim" --durations=25 --cpu-durations=25
+	$(PY) -m pytest -q -m sim --durations=25
 
 # Every image the docs show, made again by the commands their captions name (scripts/figures.py; minutes, not part
 # of make test). Installs Debian's chromium first, for the Rerun screenshots.

@@ -1,8 +1,11 @@
 """The bench's parts that need no simulated board: its step metrics against analytic responses, and the
-refusals of bad input by the metrics and by the simulated board before it starts (test_hil_sim.py runs the bench
-against the firmware in simavr)."""
+refusals of bad input by the metrics, by the simulated board and by ``phantom hil`` before a board starts
+(test_hil_sim.py runs the bench against the firmware in simavr)."""
 
 import math
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -57,3 +60,16 @@ def test_simulated_board_refuses_bad_use(tmp_path):
         idle.port  # noqa: B018
     with pytest.raises(PhantomError, match="not started"):
         idle.plant_state()
+
+
+def test_cli_refuses_cycles_on_a_real_port_and_a_missing_port(tmp_path):
+    phantom = Path(sys.executable).with_name("phantom")
+    cycles = subprocess.run([str(phantom), "hil", "cycles", "--port", str(tmp_path / "tty")], capture_output=True,
+                            text=True, timeout=60)
+    assert cycles.returncode == 2 and "need the simulator" in cycles.stderr
+    bad_gains = subprocess.run([str(phantom), "hil", "step", "--sim", "--pid", "1,2"], capture_output=True, text=True,
+                               timeout=60)
+    assert bad_gains.returncode == 2 and "--pid takes three gains" in bad_gains.stderr
+    missing = subprocess.run([str(phantom), "hil", "handshake", "--port", str(tmp_path / "tty")], capture_output=True,
+                             text=True, timeout=60)
+    assert missing.returncode == 2 and "cannot open the serial port" in missing.stderr

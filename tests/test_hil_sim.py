@@ -217,19 +217,6 @@ def test_cli_step_prints_the_metrics_as_json():
     assert metrics["chamber"] == 2 and abs(metrics["steady_state_error_kpa"]) < ADC_COUNT_KPA
 
 
-def test_cli_refuses_cycles_on_a_real_port_and_a_missing_port(tmp_path):
-    phantom = Path(sys.executable).with_name("phantom")
-    cycles = subprocess.run([str(phantom), "hil", "cycles", "--port", str(tmp_path / "tty")], capture_output=True,
-                            text=True, timeout=60)
-    assert cycles.returncode == 2 and "need the simulator" in cycles.stderr
-    bad_gains = subprocess.run([str(phantom), "hil", "step", "--sim", "--pid", "1,2"], capture_output=True, text=True,
-                               timeout=60)
-    assert bad_gains.returncode == 2 and "--pid takes three gains" in bad_gains.stderr
-    missing = subprocess.run([str(phantom), "hil", "handshake", "--port", str(tmp_path / "tty")], capture_output=True,
-                             text=True, timeout=60)
-    assert missing.returncode == 2 and "cannot open the serial port" in missing.stderr
-
-
 def test_mega_image_runs_with_its_own_pins_and_vectors():
     """The second target: the ATmega2560 image, whose chamber 2 blower is OC2B on D9 and whose interrupt vectors
     are numbered differently; its handshake names the board and chamber 2 regulates."""
