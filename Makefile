@@ -3,7 +3,7 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup demo test check lint types protocol-check firmware-test firmware-test-one pytest pytest-fast figures clean
+.PHONY: setup demo test check lint types protocol-check firmware-test firmware-test-one pytest pytest-fast test-long figures clean
 
 setup:
 	@scripts/bootstrap.sh
@@ -56,8 +56,13 @@ pytest-fast:
 # time goes; the parallel phase also its 25 costliest in CPU time (--cpu-durations, tests/conftest.py), which a
 # loaded machine does not inflate as it does the wall clock.
 pytest:
-	$(PYTEST) -m "not sim" --durations=25 --cpu-durations=25
-	$(PY) -m pytest -q -m sim --durations=25
+	$(PYTEST) -m "not sim and not long" --durations=25 --cpu-durations=25
+	$(PY) -m pytest -q -m "sim and not long" --durations=25
+
+# The tests of tens of minutes that make test leaves out (@pytest.mark.long): another phantom as the simulated
+# board's truth, its plant built and a target verified against it.
+test-long: setup
+	$(PY) -m pytest -q -m long --durations=25
 
 # Every image the docs show, made again by the commands their captions name (scripts/figures.py; minutes, not part
 # of make test). Installs Debian's chromium first, for the Rerun screenshots.

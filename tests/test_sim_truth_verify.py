@@ -42,7 +42,9 @@ lobe_chamber_scale = 1.1
 """
 MODULUS_FACTOR = 0.9
 
-pytestmark = [pytest.mark.slow]
+# long: its truth's plant and shapes take 5-10 min to build on a cold cache and the verified target 10-20 min, an
+# expected failure today: `make test-long` runs it, `make test` does not (its 20-minute budget)
+pytestmark = [pytest.mark.slow, pytest.mark.long]
 
 
 @pytest.fixture(scope="module")

@@ -329,7 +329,7 @@ class PhantomModel:
                      problem.body_force_n_per_m3)
 
     def extrapolated_start(self, line_m: list[FloatArray], load_factors: list[float] | None = None,
-                           load_factor: float = 0.0) -> tuple[FloatArray, FloatArray | None]:
+                           load_factor: float = 0.0) -> tuple[FloatArray | None, FloatArray | None]:
         """A predicted start (for :meth:`equilibrium`'s ``predicted_positions_m`` and
         ``predicted_element_pressures_pa``) of the equilibrium at ``load_factor`` from the equilibria ``line_m``
         at ``load_factors`` (nearest first; default equally spaced before it: ``-1, -2, ...``): the Lagrange
