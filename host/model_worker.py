@@ -31,7 +31,14 @@ import phantom
 from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
 from phantom.model.cluster import exit_with_parent
-from phantom.model.corrections import CorrectedModel, Correction, CorrectionError, CorrectionStore, Measurement
+from phantom.model.corrections import (
+    EDGE_SLACK_KPA,
+    CorrectedModel,
+    Correction,
+    CorrectionError,
+    CorrectionStore,
+    Measurement,
+)
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
@@ -595,11 +602,12 @@ def _fitter_record(scene_source: str, level: str, store_path: str, measurement: 
     if len(pressures) != chambers:
         raise CorrectionError(f"a measurement of this phantom has {chambers} pressures (one per chamber), got "
                               f"{len(pressures)}: is it of another phantom?")
-    if np.any(pressures > grid.points_kpa[-1]):
-        raise CorrectionError(f"a measurement's pressures must lie in the model's box, 0-{grid.points_kpa[-1]:g} "
+    top_kpa = float(grid.points_kpa[-1])
+    if np.any(pressures > top_kpa + EDGE_SLACK_KPA):  # a chamber held at the box's top reads a little over it
+        raise CorrectionError(f"a measurement's pressures must lie in the model's box, 0-{top_kpa:g} "
                               f"kPa, got {pressures.tolist()}")
     CorrectionStore(store_path).add(replace(measurement, model=scene_source,
-                                            model_volume_ml=grid.gland_ml(pressures)))
+                                            model_volume_ml=grid.gland_ml(np.clip(pressures, 0.0, top_kpa))))
     return _fitter_fit(scene_source, level, store_path)
 
 

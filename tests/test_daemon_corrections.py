@@ -177,12 +177,15 @@ def test_the_worker_fits_the_store_at_start_follows_it_refuses_another_phantoms_
             with pytest.raises(CorrectionError, match="box, 0-3 kPa"):
                 await worker.record_measurement([1.0, 1.0, 5.0], 30.0)
             assert len(store.entries()) == 5
+            # make demo's last 45 ml scan: chambers held at the box's top read 3.0003 and 3.0005 kPa (refused before)
+            edge = await worker.record_measurement([2.306, 3.0003, 3.0005], true_ml((2.306, 3.0, 3.0)))
+            assert edge["count"] == 6 and store.entries()[-1].pressures_kpa[2] == pytest.approx(3.0005)
             corrected = await worker.pressures_for(target)
             os.kill(next(iter(worker._pool._processes)), signal.SIGKILL)  # the OOM killer
             again = await worker.pressures_for(target)
             assert worker.restarts == 1 and np.allclose(again.pressures_pa, corrected.pressures_pa, atol=1.0)
             await worker.refit()  # the replaced worker reads the store again
-            assert worker.correction_status()["correction"]["count"] == 5
+            assert worker.correction_status()["correction"]["count"] == 6
         finally:
             worker.close()
 
