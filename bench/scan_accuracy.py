@@ -14,6 +14,13 @@ Writes a table (markdown, stdout), ``bench/scan_accuracy.png`` and ``bench/scan_
 
 Run: ``.venv/bin/python bench/scan_accuracy.py [--scales 0.25,0.5,1] [--views 6,12,30,60] [--out bench]``
 (about 12 minutes on two cores shared with other work); ``--concavity-only`` for the dented sphere alone.
+
+Another simulated phantom (``phantom daemon --sim --sim-truth SCENE --sim-truth-modulus-factor F``'s):
+``--sim-truth SCENE --modulus-factor F`` photographs that truth (its plant and shapes, built once and cached, as
+the daemon builds them); ``--pressures-kpa A,B,C`` a state of its own (default: the BPH target's); ``--true-poses``
+carves with the virtual rig's true geometry, as the daemon's verify scan does, instead of a calibration. For each
+shape it also prints the volume the camera renders against the plant's gland volume and the FE surface's own, and
+where the reconstruction lies off the truth, by height (signed closest-point distance, + outside). No plots then.
 """
 
 from __future__ import annotations
@@ -30,11 +37,13 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from phantom.hil.plant import truth_plant_path, truth_shapes_path  # noqa: E402
 from phantom.hil.truth_shape import TruthShape  # noqa: E402
 from phantom.host.scenes import load_timeline_scene  # noqa: E402
 from phantom.model import PhantomModel  # noqa: E402
+from phantom.model.cluster import stderr_progress  # noqa: E402
 from phantom.model.inverse import InverseSolver, Target  # noqa: E402
-from phantom.model.mesh.surface import SurfaceIndex, TriangleMesh, enclosed_volume_ml  # noqa: E402
+from phantom.model.mesh.surface import SurfaceIndex, TriangleMesh, enclosed_volume_ml, vertex_areas_mm2  # noqa: E402
 from phantom.scan.calibrate import calibrate_rig, target_views  # noqa: E402
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, virtual_rig  # noqa: E402
 from phantom.scan.capture import CaptureFolder, Plan  # noqa: E402
@@ -59,6 +68,35 @@ def section(mesh: TriangleMesh, z_mm: float) -> list[np.ndarray]:
         if len(points) == 2:
             segments.append(np.array(points))
     return segments
+
+
+def signed_distance_mm(points_mm: np.ndarray, truth: TriangleMesh) -> np.ndarray:
+    """Each point's closest-point distance (mm) to a closed surface, + outside it (by the closest triangle's
+    outward normal)."""
+    distance, closest, triangle = SurfaceIndex(truth.vertices_mm, truth.triangles).closest(points_mm)
+    corners = truth.vertices_mm[truth.triangles[triangle]]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    side = np.sign(np.einsum("ij,ij->i", points_mm - closest, normals))
+    signed: np.ndarray = np.where(side < 0, -distance, distance)
+    return signed
+
+
+def by_height(scanned: TriangleMesh, truth: TriangleMesh, bands: int = 6) -> list[tuple[float, float, float, float]]:
+    """Where a reconstruction lies off the truth, in ``bands`` bands of height: each band's lowest and highest z
+    (mm), its area-weighted mean signed distance (mm, + outside the truth) and the volume that puts outside (ml:
+    the area times the signed distance, summed)."""
+    signed = signed_distance_mm(scanned.vertices_mm, truth)
+    areas = vertex_areas_mm2(scanned.vertices_mm, scanned.triangles)
+    heights = scanned.vertices_mm[:, 2]
+    edges = np.linspace(heights.min(), heights.max(), bands + 1)
+    band = np.clip(np.searchsorted(edges, heights, side="right") - 1, 0, bands - 1)
+    rows = []
+    for number in range(bands):
+        chosen = band == number
+        rows.append((float(edges[number]), float(edges[number + 1]),
+                     float(np.average(signed[chosen], weights=areas[chosen])),
+                     float(np.sum(areas[chosen] * signed[chosen]) / 1e3)))
+    return rows
 
 
 def plot_accuracy(rows: list[tuple], path: Path) -> None:
@@ -125,6 +163,38 @@ def concavity(out: Path, voxel_mm: float, scratch: Path) -> None:
     plt.close(figure)
 
 
+def truth_and_shapes(args: argparse.Namespace) -> tuple[TruthShape, dict[str, TriangleMesh]]:
+    """The simulated phantom (the shipped truth, or ``--sim-truth``'s) and its surfaces at rest and at the state
+    photographed (``--pressures-kpa``, else the pressures the controller's model gives for the BPH scene's top
+    target), with the volumes the camera sees and the plant holds."""
+    if args.sim_truth is None:
+        truth = TruthShape()
+    else:
+        plant = truth_plant_path(args.sim_truth, args.modulus_factor, progress=stderr_progress("the truth's plant"))
+        truth = TruthShape(args.sim_truth, args.modulus_factor, plant_path=plant, shapes_path=truth_shapes_path(plant))
+    if args.pressures_kpa is not None:
+        pressures_kpa = np.array([float(value) for value in args.pressures_kpa.split(",")])
+        name = "at " + ", ".join(f"{value:g}" for value in pressures_kpa) + " kPa"
+    else:
+        scene = load_timeline_scene(str(BPH_SCENE))
+        top_ml = max(step["volume_ml"] for step in scene.raw["steps"])
+        pressures_kpa = InverseSolver(PhantomModel.from_scene(scene), fidelity="full").pressures_for(
+            Target(gland_volume_m3=top_ml * 1e-6)).pressures_pa / 1e3
+        name = f"{top_ml:g} ml target"
+    print(f"truth: {truth.description}; {name}: pressures {np.round(pressures_kpa, 3).tolist()} kPa")
+    shapes = {}
+    for label, state_kpa in (("rest", np.zeros(3)), (name, pressures_kpa)):
+        shapes[label] = truth.surface(state_kpa)
+        tabulated_m = truth._tabulated_m(state_kpa, 0.0)
+        fem = "" if tabulated_m is None else (
+            f", the FE surface's own {enclosed_volume_ml(TriangleMesh(tabulated_m * 1e3, shapes[label].triangles)):.3f}"
+            " ml (scaled to the plant's)")
+        plant_ml = None if truth.plant is None else truth.plant.truth_gland_volume_ml(1e3 * state_kpa)
+        print(f"  {label}: the camera sees {enclosed_volume_ml(shapes[label]):.3f} ml, the plant holds "
+              f"{plant_ml if plant_ml is None else round(plant_ml, 3)} ml{fem}")
+    return truth, shapes
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scales", default="0.25,0.5,1", help="picture sizes, fractions of 1280x960")
@@ -132,7 +202,14 @@ def main() -> None:
     parser.add_argument("--voxel-mm", type=float, default=VOXEL_MM)
     parser.add_argument("--out", default=str(Path(__file__).resolve().parent))
     parser.add_argument("--concavity-only", action="store_true", help="only the dented sphere (a few minutes)")
+    parser.add_argument("--sim-truth", metavar="SCENE", help="another simulated phantom (phantom daemon --sim-truth)")
+    parser.add_argument("--modulus-factor", type=float, default=1.0, help="--sim-truth's E factor")
+    parser.add_argument("--pressures-kpa", metavar="A,B,C", help="the state photographed besides rest")
+    parser.add_argument("--true-poses", action="store_true",
+                        help="carve with the virtual rig's true geometry (as the verify scan does), no calibration")
     args = parser.parse_args()
+    if args.modulus_factor != 1.0 and args.sim_truth is None:
+        parser.error("--modulus-factor is --sim-truth's: give --sim-truth SCENE too")
     scales = [float(value) for value in args.scales.split(",")]
     view_counts = [int(value) for value in args.views.split(",")]
     out = Path(args.out)
@@ -141,24 +218,21 @@ def main() -> None:
             concavity(out, args.voxel_mm, Path(scratch))
         return
 
-    scene = load_timeline_scene(str(BPH_SCENE))
-    top_ml = max(step["volume_ml"] for step in scene.raw["steps"])
-    pressures_kpa = InverseSolver(PhantomModel.from_scene(scene), fidelity="full").pressures_for(
-        Target(gland_volume_m3=top_ml * 1e-6)).pressures_pa / 1e3
-    truth = TruthShape()
-    shapes = {"rest": truth.surface([0.0, 0.0, 0.0]), f"{top_ml:g} ml target": truth.surface(pressures_kpa)}
-    print(f"truth: {truth.description}; the {top_ml:g} ml target's pressures {np.round(pressures_kpa, 3).tolist()} "
-          f"kPa give the truth {enclosed_volume_ml(shapes[f'{top_ml:g} ml target']):.3f} ml")
+    _, shapes = truth_and_shapes(args)
     rows = []
     with tempfile.TemporaryDirectory(prefix="scan-accuracy-") as scratch:
         for scale in scales:
             true_rig = virtual_rig(scale)
             started = time.perf_counter()
-            folders = render_target_captures(true_rig, Path(scratch) / f"target{scale:g}")
-            rig = calibrate_rig(target_views(folders), true_rig.camera.width, true_rig.camera.height)
-            to_truth = frame_map(rig, true_rig, 0.0)
-            print(f"scale {scale:g} ({true_rig.camera.width}x{true_rig.camera.height}): calibrated in "
-                  f"{time.perf_counter() - started:.0f} s, RMS {rig.calibration['rms_px']:.3f} px")
+            if args.true_poses:
+                rig, to_truth = true_rig, frame_map(true_rig, true_rig, 0.0)
+                print(f"scale {scale:g} ({true_rig.camera.width}x{true_rig.camera.height}): the true poses")
+            else:
+                folders = render_target_captures(true_rig, Path(scratch) / f"target{scale:g}")
+                rig = calibrate_rig(target_views(folders), true_rig.camera.width, true_rig.camera.height)
+                to_truth = frame_map(rig, true_rig, 0.0)
+                print(f"scale {scale:g} ({true_rig.camera.width}x{true_rig.camera.height}): calibrated in "
+                      f"{time.perf_counter() - started:.0f} s, RMS {rig.calibration['rms_px']:.3f} px")
             for name, shape in shapes.items():
                 folder = render_capture(shape, true_rig, Plan(60), Path(scratch) / f"{name}{scale:g}")
                 folder = CaptureFolder.open(folder.path)
@@ -173,13 +247,17 @@ def main() -> None:
                                  distance["mean"], distance["p95"], sum(result.stage_s.values())))
                     print(f"  {name:>16} {2 * views:4d} views: volume {volume_pct:+.3f} %, mean {distance['mean']:.4f} "
                           f"mm, p95 {distance['p95']:.4f} mm, reconstruction {rows[-1][-1]:.1f} s", flush=True)
+                print("    where, by height (z mm: mean signed distance, volume outside the truth): " + "; ".join(
+                    f"{low:.1f}..{high:.1f}: {mean_mm:+.3f} mm, {outside_ml:+.4f} ml"
+                    for low, high, mean_mm, outside_ml in by_height(scanned, shape)), flush=True)
         print("\n| shape | picture | views | volume vs truth | mean distance | p95 distance | reconstruction |")
         print("|---|---|---|---|---|---|---|")
         for name, _, width, height, views, volume_pct, mean, p95, seconds in rows:
             print(f"| {name} | {width}x{height} | {views} | {volume_pct:+.3f} % | {mean:.3f} mm | {p95:.3f} mm | "
                   f"{seconds:.1f} s |")
-        plot_accuracy(rows, out / "scan_accuracy.png")
-        concavity(out, args.voxel_mm, Path(scratch))
+        if args.sim_truth is None:
+            plot_accuracy(rows, out / "scan_accuracy.png")
+            concavity(out, args.voxel_mm, Path(scratch))
 
 
 if __name__ == "__main__":
