@@ -1,0 +1,39 @@
+"""The daemon's verify scan of a simulated phantom's truth, without the board (test code only).
+
+:func:`verify_scan_ml` photographs a truth (:class:`phantom.hil.truth_shape.TruthShape`) held at fixed pressures
+with the virtual camera as ``phantom daemon --sim`` makes it (``truth_scene``, the verify plan's picture size and
+poses), through the capture loop, and reads its volume with the verify scan's reconstruction
+(``phantom.cli.scan_verify.VerifyScan``): what a verified target's round reads, less the board.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from phantom.cli.scan_rig import _scaled_pose, truth_scene
+from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan
+from phantom.scan.camera import virtual_rig
+from phantom.scan.capture import CaptureFolder, Plan, capture
+from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit
+
+#: The verify scan's own error allowed against a truth (a fraction of its volume): under the verified targets'
+#: 0.3 %, so that a loop verified on the scan is verified in true volume.
+SCANNER_TOLERANCE = 0.002
+
+
+def verify_scan_ml(truth: Any, pressures_kpa: Sequence[float], folder: Path) -> float:
+    """The verify scan's gland volume (ml) of ``truth`` at ``pressures_kpa``, its capture made in ``folder``."""
+    orbit = VirtualOrbit()
+
+    def simulated() -> dict[str, Any]:
+        return {"rig_deg": [orbit.orbit_deg, orbit.elevation_deg], "pressures_kpa": list(pressures_kpa)}
+
+    elevations = tuple(VERIFY_PLAN["elevations_deg"])
+    camera = VirtualCamera(virtual_rig(VERIFY_PLAN["scale"], elevations), truth_scene(simulated, truth),
+                           pose_at=_scaled_pose(VERIFY_PLAN["scale"]))
+    plan = Plan(VERIFY_PLAN["views"], elevations, settle_s=0.0)
+    capture(orbit, camera, FixedPhantom(), plan, CaptureFolder.create(folder, camera.describe(), plan.to_json()))
+    volume_ml: float = VerifyScan().volume(str(folder))["volume_ml"]
+    return volume_ml
