@@ -215,9 +215,16 @@ class LoadedModel:
         With a correction in force, a gland volume target is met by the corrected volume: the inverse is asked
         for the model's volumes that the correction takes to the target (:meth:`CorrectedModel.pressures_for_ml`,
         a few inverses), and the answer's predicted gland volume is the corrected one. Chamber volume and
-        pressure targets are the model's own (the measurements are of the gland)."""
-        if self.corrected is None or target.kind != "volume":
+        pressure targets are the model's own pressures (the measurements are of the gland), their predicted gland
+        volume the corrected one too: the daemon's estimates are, and a pressure target is reached once the
+        estimate meets its prediction (before: never, once a correction moved the gland by over 1 % there)."""
+        if self.corrected is None:
             return self.solver.pressures_for(target)
+        if target.kind != "volume":
+            answer = self.solver.pressures_for(target)
+            gland_ml = self.corrected.corrected_ml(np.asarray(answer.pressures_pa, dtype=float) / PA_PER_KPA,
+                                                   answer.predicted_gland_volume_m3 * ML_PER_M3)
+            return replace(answer, predicted_gland_volume_m3=gland_ml / ML_PER_M3)
         assert target.gland_volume_m3 is not None  # the kind says so
         target_ml = target.gland_volume_m3 * ML_PER_M3
         corrected = self.corrected

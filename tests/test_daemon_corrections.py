@@ -109,6 +109,31 @@ def run(coroutine):
     return asyncio.run(coroutine)
 
 
+def test_a_pressure_target_with_a_correction_in_force_is_reached_at_its_pressures(loaded):
+    """The real `phantom characterise --path 13` on the simulated rig: from its third scan the field put the
+    corrected gland 4.5 % over the model's at the next point's pressures, the daemon's reach rule compared that
+    estimate with the pressure target's predicted volume (the model's own) and never called it reached: every
+    later point was skipped after 120 s. The prediction of a pressure (and chamber) target is the corrected gland
+    now, as the estimate is; its pressures and chambers are the model's own."""
+    from phantom.host.control import estimate_within
+
+    pressures = [591.0, 1131.0, 1131.0]
+    plain = loaded.pressures_for(Target(pressures_pa=pressures))
+    try:
+        loaded.set_correction(Correction("offset", 1, offset_ml=1.5))
+        for target in (Target(pressures_pa=pressures), Target(chamber_volumes_m3=[3.0 * ML, None, None])):
+            answer = loaded.pressures_for(target)
+            chambers, gland, model_gland = loaded.estimate(answer.pressures_pa)
+            assert answer.predicted_gland_volume_m3 / ML == pytest.approx(gland, abs=1e-6)
+            assert gland == pytest.approx(model_gland + 1.5)
+            assert estimate_within(target, answer, gland, tuple(chambers), 1.0), "reached at its own pressures"
+        answer = loaded.pressures_for(Target(pressures_pa=pressures))
+        assert list(answer.pressures_pa) == pressures
+        assert np.allclose(answer.predicted_chamber_volumes_m3, plain.predicted_chamber_volumes_m3)
+    finally:
+        loaded.set_correction(None)
+
+
 @pytest.mark.slow
 def test_the_worker_fits_the_store_at_start_follows_it_refuses_another_phantoms_and_survives_a_kill(data_dir):
     """A worker started with measurements stored answers a volume target with other pressures than one started
