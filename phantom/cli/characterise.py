@@ -300,7 +300,12 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
     import shutil
 
     from phantom.cli.common import format_duration
-    from phantom.host.client import FaultError, TargetReplacedError, UnreachableError, WaitTimeoutError
+    from phantom.host.client import (
+        DaemonError,
+        TargetReplacedError,
+        UnreachableError,
+        WaitTimeoutError,
+    )
     from phantom.scan.characterise import CharacterisationError
 
     pending = record.pending()
@@ -316,9 +321,6 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
             shutil.rmtree(folder)
         try:
             client.set_pressures(asked, wait=True, timeout_s=args.reach_timeout_s)
-        except FaultError as error:
-            raise CharacterisationError(f"{label}: {error.message}; then `phantom characterise --resume --out "
-                                        f"{record.folder}` goes on from this point") from None
         except TargetReplacedError as error:
             raise CharacterisationError(f"{label}: {error.message}: another client moved the phantom; run again "
                                         f"with --resume when it is free") from None
@@ -326,6 +328,9 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
             record.skip(index, error.message)
             say(f"{label}: skipped, not reached: {error.message}")
             continue
+        except DaemonError as error:  # a fault while reaching, or latched since the last point (the board refuses)
+            raise CharacterisationError(f"{label}: {error.message}; then `phantom characterise --resume --out "
+                                        f"{record.folder}` goes on from this point") from None
         say(f"{label}: reached; scanning")
         result = _scan_point(client, record, index, folder, rig, grid, point_started, label)
         measurement = result.measurement(record.model)  # checked before it is recorded: a record holds only these
