@@ -32,12 +32,12 @@ from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
 from phantom.model.cluster import exit_with_parent
 from phantom.model.corrections import (
-    EDGE_SLACK_KPA,
     CorrectedModel,
     Correction,
     CorrectionError,
     CorrectionStore,
     Measurement,
+    pressures_in_box,
 )
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
@@ -53,9 +53,6 @@ MM_PER_M = 1e3
 #: mean then meets the state solved last instead of costing a new solve (most of a second) each time, which
 #: would also take the CPU from the response table's build. 10 Pa moves a volume by about 0.1 %.
 FULL_SOLVE_QUANTUM_PA = 10.0
-#: A volume target this close outside the corrected model's range (ml: the corrected inverse's own tolerance) is
-#: still searched for: the search meets it at the edge.
-CORRECTED_RANGE_SLACK_ML = 1e-3
 
 
 class LoadedModel:
@@ -218,21 +215,19 @@ class LoadedModel:
         With a correction in force, a gland volume target is met by the corrected volume: the inverse is asked
         for the model's volumes that the correction takes to the target (:meth:`CorrectedModel.pressures_for_ml`,
         a few inverses), and the answer's predicted gland volume is the corrected one. Chamber volume and
-        pressure targets are the model's own (the measurements are of the gland)."""
-        if self.corrected is None or target.kind != "volume":
+        pressure targets are the model's own pressures (the measurements are of the gland), their predicted gland
+        volume the corrected one too: the daemon's estimates are, and a pressure target is reached once the
+        estimate meets its prediction (before: never, once a correction moved the gland by over 1 % there)."""
+        if self.corrected is None:
             return self.solver.pressures_for(target)
+        if target.kind != "volume":
+            answer = self.solver.pressures_for(target)
+            gland_ml = self.corrected.corrected_ml(np.asarray(answer.pressures_pa, dtype=float) / PA_PER_KPA,
+                                                   answer.predicted_gland_volume_m3 * ML_PER_M3)
+            return replace(answer, predicted_gland_volume_m3=gland_ml / ML_PER_M3)
         assert target.gland_volume_m3 is not None  # the kind says so
         target_ml = target.gland_volume_m3 * ML_PER_M3
-        # the corrected model's own range first: a target inside the model's range but beyond the corrected one (one
-        # scan near rest corrects by an offset the phantom at rest does not hold) is unreachable, with the range
-        # (the daemon's verify loop then asks its edge); searched for, it met nothing and failed as the model's fault
-        chambers = self.corrected.grid.chamber_ml.shape[-1]
-        low_ml = self.corrected.gland_ml(np.zeros(chambers))
-        high_ml = self.corrected.gland_ml(np.full(chambers, float(self.corrected.grid.points_kpa[-1])))
-        if not low_ml - CORRECTED_RANGE_SLACK_ML <= target_ml <= high_ml + CORRECTED_RANGE_SLACK_ML:
-            raise UnreachableTargetError(
-                f"{target_ml:.2f} ml is beyond the model's range with the correction in force "
-                f"({self._correction_words()}): give {low_ml:.3f} to {high_ml:.3f} ml")
+        corrected = self.corrected
         answers: list[InverseResult] = []
 
         def inverse_kpa(volume_ml: float) -> np.ndarray:
@@ -240,21 +235,17 @@ class LoadedModel:
                 answers.append(self.solver.pressures_for(replace(target, gland_volume_m3=volume_ml / ML_PER_M3)))
             except UnreachableTargetError as error:
                 raise UnreachableTargetError(
-                    f"{target_ml:.2f} ml with the correction in force ({self._correction_words()}) is the model's "
+                    f"{target_ml:.2f} ml with the correction in force ({corrected.describe()}) is the model's "
                     f"{volume_ml:.2f} ml: {error}") from None
             return np.asarray(answers[-1].pressures_pa, dtype=float) / PA_PER_KPA
 
-        _, corrected_ml, _ = self.corrected.pressures_for_ml(target_ml, inverse_kpa)
+        _, corrected_ml, _ = corrected.pressures_for_ml(target_ml, inverse_kpa)
         last = answers[-1]
         return InverseResult(target, last.pressures_pa, corrected_ml / ML_PER_M3, last.predicted_chamber_volumes_m3,
                              sum(answer.iterations for answer in answers),
                              sum(answer.solve_time_s for answer in answers),
                              sum(answer.qp_solve_time_s for answer in answers),
                              [entry for answer in answers for entry in answer.history])
-
-    def _correction_words(self) -> str:
-        correction = self.corrected.correction if self.corrected is not None else None
-        return "none" if correction is None else f"{correction.kind} from {correction.count} measurement(s)"
 
     def measured(self, pressures_pa: np.ndarray) -> np.ndarray:
         """Measured pressures (Pa) as the estimator takes them: negative ones 0, and on the full solve rounded to
@@ -602,12 +593,8 @@ def _fitter_record(scene_source: str, level: str, store_path: str, measurement: 
     if len(pressures) != chambers:
         raise CorrectionError(f"a measurement of this phantom has {chambers} pressures (one per chamber), got "
                               f"{len(pressures)}: is it of another phantom?")
-    top_kpa = float(grid.points_kpa[-1])
-    if np.any(pressures > top_kpa + EDGE_SLACK_KPA):  # a chamber held at the box's top reads a little over it
-        raise CorrectionError(f"a measurement's pressures must lie in the model's box, 0-{top_kpa:g} "
-                              f"kPa, got {pressures.tolist()}")
-    CorrectionStore(store_path).add(replace(measurement, model=scene_source,
-                                            model_volume_ml=grid.gland_ml(np.clip(pressures, 0.0, top_kpa))))
+    on_box = pressures_in_box(pressures, float(grid.points_kpa[-1]), "a measurement's pressures")
+    CorrectionStore(store_path).add(replace(measurement, model=scene_source, model_volume_ml=grid.gland_ml(on_box)))
     return _fitter_fit(scene_source, level, store_path)
 
 

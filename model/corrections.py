@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError, read_text, written_atomically
+from phantom.model.target import UnreachableTargetError
 
 #: The store's file format.
 FORMAT = "phantom-corrections/1"
@@ -64,6 +65,9 @@ GROWTH_PENALTY: float | None = 10.0
 #: A measured pressure this close outside the grid's box (kPa: two counts of the board's ADC, its settled band)
 #: is on the box's edge: a chamber held at 3 kPa reads 3.01 on average, and its scan is a measurement at 3 kPa.
 EDGE_SLACK_KPA = 0.1
+#: A volume target this close outside the corrected model's range (ml: the corrected inverse's own tolerance) is
+#: still searched for: the search meets it at the edge.
+RANGE_SLACK_ML = 1e-3
 #: The weight (kPa) of the field's slope beside its curvature in its roughness: a little, so that where no
 #: measurement holds it the field levels off rather than sweeping on.
 FIRST_DIFFERENCE_WEIGHT = 0.3
@@ -292,6 +296,25 @@ class ResidualField:
         return float(trilinear(self.gland_ml, self.points_kpa, np.asarray(pressures_kpa, dtype=float)))
 
 
+def pressures_in_box(pressures_kpa: ArrayLike, top_kpa: float, what: str = "a measurement") -> np.ndarray:
+    """Measured pressures (kPa) as a state of the box 0-``top_kpa``: those within EDGE_SLACK_KPA outside it are on
+    its edge (clipped to it: a chamber held at the top reads a little over it, one vented a little under 0).
+
+    Raises
+    ------
+    CorrectionError
+        A pressure further outside, or not finite.
+    """
+    pressures = np.asarray(pressures_kpa, dtype=float)
+    if not np.all(np.isfinite(pressures)) or np.any(pressures < -EDGE_SLACK_KPA) \
+            or np.any(pressures > top_kpa + EDGE_SLACK_KPA):
+        raise CorrectionError(f"{what} must lie on the grid, 0-{top_kpa:g} kPa, the model's pressure box "
+                              f"({EDGE_SLACK_KPA:g} kPa outside it is on its edge), got "
+                              f"{np.round(pressures, 4).tolist()}")
+    clipped: np.ndarray = np.clip(pressures, 0.0, top_kpa)
+    return clipped
+
+
 def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: np.ndarray, pressures_kpa: ArrayLike,
                        gaps_ml: ArrayLike, what: str = "the measurements",
                        min_growth_fraction: float = MIN_GROWTH_FRACTION,
@@ -324,9 +347,7 @@ def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: 
     if pressures.shape != (len(gaps), chambers) or not np.all(np.isfinite(pressures)):
         raise CorrectionError(f"{what}: {chambers} finite pressures per volume are needed, got {pressures.shape[0]} "
                               f"rows of {pressures.shape[1]} for {len(gaps)} volumes")
-    if np.any(pressures < -EDGE_SLACK_KPA) or np.any(pressures > points[-1] + EDGE_SLACK_KPA):
-        raise CorrectionError(f"{what} must lie on the grid, 0-{points[-1]:g} kPa")
-    pressures = np.clip(pressures, 0.0, points[-1])
+    pressures = pressures_in_box(pressures, float(points[-1]), what)
     n = len(points)
     cells = n ** 3
     size = chambers * cells + 1            # each chamber's residual, then the constant
@@ -590,6 +611,13 @@ class CorrectedModel:
         self.rest_ml = grid.gland_ml(np.zeros(chambers))
         #: the model's largest volume in the box: with the rest, the range the inverse is asked within
         self.top_ml = grid.gland_ml(np.full(chambers, float(grid.points_kpa[-1])))
+        #: the corrected volumes at rest and at the box's top: the range of volume targets with the correction
+        self.range_ml = (self.corrected_ml(np.zeros(chambers), self.rest_ml),
+                         self.corrected_ml(np.full(chambers, float(grid.points_kpa[-1])), self.top_ml))
+
+    def describe(self) -> str:
+        """The correction in words, for messages: its kind and from how many measurements."""
+        return f"{self.correction.kind} from {self.correction.count} measurement(s)"
 
     def gland_ml(self, pressures_kpa: ArrayLike) -> float:
         """The corrected gland volume (ml) at these pressures (kPa)."""
@@ -604,8 +632,22 @@ class CorrectedModel:
     def pressures_for_ml(self, volume_ml: float, inverse: Callable[[float], np.ndarray],
                          tolerance_ml: float = 1e-3, max_rounds: int = 30) -> tuple[np.ndarray, float, int]:
         """Pressures (kPa) whose corrected gland volume is ``volume_ml``, that volume, and the inverse's rounds.
-        CorrectionError when they do not converge (the target at the edge of the reachable range)."""
-        asked = float(volume_ml)
+
+        Raises
+        ------
+        UnreachableTargetError
+            ``volume_ml`` beyond the corrected range (:attr:`range_ml`, stated as "give LOW to HIGH ml", which the
+            daemon's verify loop reads), though perhaps inside the model's own: one scan near rest corrects by an
+            offset the phantom at rest does not hold, and searched for, such a target met nothing.
+        CorrectionError
+            The search did not converge (the target at the edge of the reachable range).
+        """
+        low_ml, high_ml = self.range_ml
+        if not low_ml - RANGE_SLACK_ML <= volume_ml <= high_ml + RANGE_SLACK_ML:
+            raise UnreachableTargetError(f"{volume_ml:.2f} ml is beyond the model's range with the correction in force "
+                                         f"({self.describe()}): give {low_ml:.3f} to {high_ml:.3f} ml")
+        # within the model's range from the first ask: the corrected range may reach past the model's
+        asked = float(np.clip(volume_ml, self.rest_ml, self.top_ml))
         previous: tuple[float, float] | None = None
         # once the target is bracketed, the asked volumes below and above it with their misses (ml), and which end
         # was replaced last: regula falsi, Illinois (an end kept twice counts its miss half), since the inverse's

@@ -279,6 +279,39 @@ def test_a_fault_during_a_point_stops_the_run_with_the_store_consistent_and_resu
     assert not (again.scan_folder(2) / "half.png").exists()
 
 
+def test_a_fault_latched_between_points_stops_the_run_with_how_to_go_on(tmp_path, monkeypatch):
+    """The real run on the simulated rig (bench/README.md, "Characterisation"): the board latched DEAD_HOST while
+    point 0's scan was reconstructed, and point 1's setpoints were refused by the board as a "rejected" error, not
+    a FaultError: the command died with the board's words and no word of --resume. Now any refusal of a point's
+    pressures stops the run with the point, why, and how to go on."""
+    record, store = _record(tmp_path / "run"), CorrectionStore(tmp_path / "store.json")
+
+    def latched(pressures):
+        if pressures == [1.0, 0.0, 0.0]:
+            raise DaemonError("rejected", "the board refused SET_SETPOINTS: FAULT_LATCHED (a fault is latched: clear "
+                                          "it first (phantom clear-fault))")
+    scanned = []
+    with pytest.raises(CharacterisationError, match=r"point 1 \(1.00, 0.00, 0.00 kPa\): the board refused "
+                       r"SET_SETPOINTS: FAULT_LATCHED .*clear-fault.*; then `phantom characterise --resume --out "):
+        _visit(record, store, FakeDaemon(on_set=latched), monkeypatch, scanned)
+    assert scanned == [0] and CharacterisationRecord.load(tmp_path / "run").pending() == [1, 2]
+
+
+def test_sigterm_stops_the_points_as_ctrl_c_does_and_leaves_the_handler_as_it_was():
+    """A run in the background ignores SIGINT; killed with SIGTERM, the session's time was not saved (the real
+    run's report counted 2104 s of its 2317 s of points). SIGTERM now raises KeyboardInterrupt in the points'
+    loop, whose handler saves the record and says --resume; outside it, SIGTERM is what it was."""
+    import os
+    import signal
+    import time
+
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(KeyboardInterrupt), cli._terminate_as_interrupt():
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler interrupts it at once
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
 def test_an_unreachable_point_is_skipped_and_tried_again_on_resume(tmp_path, monkeypatch):
     record, store = _record(tmp_path / "run"), CorrectionStore(tmp_path / "store.json")
 

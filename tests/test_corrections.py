@@ -280,6 +280,53 @@ def test_a_scan_held_a_count_above_the_box_is_a_measurement_on_its_edge_and_one_
         smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, [[3.5, 0.0, 1.5]], [0.4])
 
 
+def test_a_target_inside_the_models_range_but_beyond_the_corrected_one_is_unreachable_with_the_corrected_range():
+    """make demo's 26.5 ml: one scan near rest read 0.5 ml over the model, the offset it fitted put the corrected
+    rest above 26.5 ml, and the corrected inverse searched the model's range for 30 rounds and failed as the model's
+    fault. Refused by the corrected model itself (every caller, the daemon, the CLI and the bench, gets it) as
+    unreachable with the corrected range, in the words the daemon's verify loop reads to ask the range's edge; the
+    edge itself is met; beyond the model's own top too. Both are asked of no inverse."""
+    import re
+
+    from phantom.host.daemon import REACHABLE_RANGE
+    from phantom.model.target import UnreachableTargetError
+
+    grid = _linear_grid()
+    corrected = CorrectedModel(grid, Correction("offset", 1, offset_ml=1.5))
+    assert corrected.range_ml == pytest.approx((21.5, 39.5))
+    asked = []
+
+    def inverse(volume_ml):
+        asked.append(volume_ml)
+        return np.full(3, (volume_ml - 20.0) / 6.0)
+
+    for target_ml in (20.5, 39.6):  # inside the model's 20-38 ml, beyond the corrected 21.5-39.5; beyond both
+        with pytest.raises(UnreachableTargetError, match=r"beyond the model's range with the correction in force "
+                           r"\(offset from 1 measurement\(s\)\): give 21.500 to 39.500 ml") as raised:
+            corrected.pressures_for_ml(target_ml, inverse)
+        found = REACHABLE_RANGE.search(str(raised.value))
+        assert found is not None and float(found.group(1)) == pytest.approx(21.5, abs=1e-3)
+        assert not re.search("is the model's", str(raised.value))  # the range given is the corrected one
+    assert asked == []
+    pressures, volume, _ = corrected.pressures_for_ml(21.55, inverse)
+    assert volume == pytest.approx(21.55, abs=1e-3) and np.sum(pressures) * 2.0 == pytest.approx(0.05, abs=1e-3)
+    # the corrected top (39.5 ml) is past the model's (38 ml): the inverse is asked only within the model's range
+    pressures, volume, _ = corrected.pressures_for_ml(39.5, inverse)
+    assert volume == pytest.approx(39.5, abs=1e-3) and max(asked) <= 38.0
+
+
+def test_the_pressure_box_takes_a_reading_a_count_outside_as_its_edge_and_refuses_one_further_or_not_finite():
+    """One check of a measurement's pressures against the model's box, for the field's fit and the daemon's store:
+    0.1 kPa outside the box is on its edge (clipped to it), further or NaN is refused with the values."""
+    from phantom.model.corrections import pressures_in_box
+
+    assert pressures_in_box([-0.004, 3.0005, 1.2], 3.0).tolist() == [0.0, 3.0, 1.2]
+    for bad in ([-0.3, 1.0, 1.0], [1.0, 3.2, 1.0], [float("nan"), 1.0, 1.0]):
+        with pytest.raises(CorrectionError, match=r"a scan's pressures must lie on the grid, 0-3 kPa, the model's "
+                           r"pressure box \(0.1 kPa outside it is on its edge\), got \["):
+            pressures_in_box(bad, 3.0, "a scan's pressures")
+
+
 def test_scans_a_little_noisy_between_close_states_still_give_a_field():
     """A scan's noise (0.1 ml here) between two states 0.05 kPa apart asks for a chamber that shrinks as it is
     inflated: the field's growth floor is soft (each ml short costs), so a field is fitted through them instead

@@ -121,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
         session: dict[str, Any] = {"started_utc": _utc_now(), "points": 0, "elapsed_s": 0.0}
         record.sessions.append(session)
         try:
-            _visit(client, record, store, grid, rig, args, say, session, started)
+            with _terminate_as_interrupt():
+                _visit(client, record, store, grid, rig, args, say, session, started)
         except KeyboardInterrupt:
             say(f"stopped: {len(record.results)} of {len(record.points_kpa)} points done and stored; `phantom "
                 f"characterise --resume --out {out}` goes on")
@@ -134,6 +135,24 @@ def run(args: argparse.Namespace) -> int:
     if not record.results:
         raise CharacterisationError(f"no point was scanned ({len(record.skipped)} skipped): see {record.path}")
     return _finish(record, grid, args, say, sys.stdout)
+
+
+class _terminate_as_interrupt:  # noqa: N801 (used as a function: ``with _terminate_as_interrupt():``)
+    """SIGTERM stops the run as Ctrl-C does: the session's time and points saved in the record, `--resume` said.
+    A run in the background (`nohup phantom characterise ... &`) ignores SIGINT, and a kill left the session's time
+    out of the report's total (2 of 4 sessions of the real run on the simulated rig)."""
+
+    def __enter__(self) -> None:
+        import signal
+
+        def interrupt(signum: int, frame: object) -> None:
+            raise KeyboardInterrupt
+        self.previous = signal.signal(signal.SIGTERM, interrupt)
+
+    def __exit__(self, *exc: object) -> None:
+        import signal
+
+        signal.signal(signal.SIGTERM, self.previous)
 
 
 def _socket(args: argparse.Namespace) -> Path:
@@ -300,7 +319,12 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
     import shutil
 
     from phantom.cli.common import format_duration
-    from phantom.host.client import FaultError, TargetReplacedError, UnreachableError, WaitTimeoutError
+    from phantom.host.client import (
+        DaemonError,
+        TargetReplacedError,
+        UnreachableError,
+        WaitTimeoutError,
+    )
     from phantom.scan.characterise import CharacterisationError
 
     pending = record.pending()
@@ -316,9 +340,6 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
             shutil.rmtree(folder)
         try:
             client.set_pressures(asked, wait=True, timeout_s=args.reach_timeout_s)
-        except FaultError as error:
-            raise CharacterisationError(f"{label}: {error.message}; then `phantom characterise --resume --out "
-                                        f"{record.folder}` goes on from this point") from None
         except TargetReplacedError as error:
             raise CharacterisationError(f"{label}: {error.message}: another client moved the phantom; run again "
                                         f"with --resume when it is free") from None
@@ -326,6 +347,9 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
             record.skip(index, error.message)
             say(f"{label}: skipped, not reached: {error.message}")
             continue
+        except DaemonError as error:  # a fault while reaching, or latched since the last point (the board refuses)
+            raise CharacterisationError(f"{label}: {error.message}; then `phantom characterise --resume --out "
+                                        f"{record.folder}` goes on from this point") from None
         say(f"{label}: reached; scanning")
         result = _scan_point(client, record, index, folder, rig, grid, point_started, label)
         measurement = result.measurement(record.model)  # checked before it is recorded: a record holds only these
