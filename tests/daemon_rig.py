@@ -135,16 +135,19 @@ def board_holds_solution(status: dict[str, Any], volume_ml: float) -> bool:
 
 
 def telemetry_mean_kpa(socket_path: Path, seconds: float) -> tuple[Any, Any]:
-    """Mean measured pressures and the board's last setpoints (kPa) over ``seconds`` of subscribed telemetry."""
+    """Mean measured pressures and the board's last setpoints (kPa) over ``seconds`` of the board's time of
+    subscribed telemetry. Board time, not the wall clock's: a loaded machine runs the simulated board slower than
+    asked (at a load of 14 one wall second held 20 frames, fewer than the 50 Hz check wanted of two board seconds)."""
     import numpy as np
 
-    measured, setpoints = [], []
+    measured, setpoints, board_ms = [], [], []
     with DaemonClient(socket_path, timeout_s=10) as client:
-        started = time.monotonic()
         for message in client.events(["telemetry"]):
             measured.append(message["data"]["pressures_kpa"])
             setpoints.append(message["data"]["setpoints_kpa"])
-            if time.monotonic() - started > seconds:
+            board_ms.append(message["data"]["board_time_ms"])
+            if board_ms[-1] - board_ms[0] >= seconds * 1e3:
                 break
-    assert len(measured) > 20 * seconds, "telemetry should stream at 50 Hz of board time"
+    # one frame each 20 ms of board time (the default period), a few lost to the link at most
+    assert len(measured) >= 0.8 * 50 * seconds, f"telemetry should stream at 50 Hz of board time: {len(measured)}"
     return np.mean(measured, axis=0), np.asarray(setpoints[-1])

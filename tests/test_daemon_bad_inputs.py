@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import asyncio
 import resource
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -21,6 +23,7 @@ from phantom.model.scene import read_scene_toml
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 REPO = Path(__file__).resolve().parent.parent
+PHANTOM = Path(sys.executable).with_name("phantom")
 
 
 def peak_rss_mb() -> float:
@@ -154,3 +157,15 @@ def test_a_huge_measurement_table_is_refused_by_its_size(tmp_path):
         handle.truncate(2 * 2**30)
     with pytest.raises(CalibrationError, match="larger than 1 MiB"):
         load_measurements(huge, 3)
+
+
+def test_an_unwritable_recording_stops_the_start_with_one_line(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    started = subprocess.run([str(PHANTOM), "daemon", "--port", str(tmp_path / "no-board"), "--socket",
+                              str(tmp_path / "d.sock"), "--rerun-save", str(blocker / "run.rrd")],
+                             capture_output=True, text=True, timeout=120)
+    assert started.returncode == 2
+    errors = [line for line in started.stderr.splitlines() if line.startswith("phantom daemon: error:")]
+    assert errors == [started.stderr.strip().splitlines()[-1]] and "Traceback" not in started.stderr
+    assert not (tmp_path / "d.sock").exists()

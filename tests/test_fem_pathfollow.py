@@ -65,6 +65,7 @@ def test_just_below_a_limit_point_the_target_is_reached(sphere_mesh):
     assert_equilibrium(model, state)
 
 
+@pytest.mark.slow  # seconds of solves (3-5 s CPU): make test runs it, make check does not
 def test_past_a_limit_point_the_error_names_the_chamber_the_peak_and_where_it_stopped(sphere_mesh):
     model = sphere(sphere_mesh, "neo_hookean")
     started = time.perf_counter()

@@ -114,6 +114,7 @@ def test_a_lookup_forms_each_chambers_weights_once_and_they_are_the_tensor_splin
     assert len(calls) == 1  # both quantities from one set of weights
 
 
+@pytest.mark.slow  # seconds of solves (3-5 s CPU): make test runs it, make check does not
 def test_a_table_is_built_once_and_then_read_from_the_cache(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     built = response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
@@ -188,6 +189,7 @@ class _Killed(Exception):
     pass
 
 
+@pytest.mark.slow  # seconds of solves (3-5 s CPU): make test runs it, make check does not
 def test_a_killed_build_resumes_from_the_points_it_solved(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     whole = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=3, workers=1)
@@ -360,6 +362,7 @@ def test_shipped_table_volumes_answer_without_a_build_and_their_shapes_are_solve
     np.testing.assert_allclose(shape, model.equilibrium(OFF_GRID_PA[0]).positions_m, rtol=0, atol=1e-12)
 
 
+@pytest.mark.slow  # seconds of solves (3-5 s CPU): make test runs it, make check does not
 def test_shipped_table_volumes_of_another_model_are_refused_with_what_differs(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
     built = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)
@@ -400,6 +403,7 @@ def _shapes_scene(tmp_path, model, shapes):
     return scene_path
 
 
+@pytest.mark.slow  # seconds of solves (3-5 s CPU): make test runs it, make check does not
 def test_shipped_shapes_answer_the_outer_surface_without_a_solve_and_other_nodes_are_solved(model, monkeypatch,
                                                                                                tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
@@ -436,6 +440,7 @@ def test_shipped_shapes_answer_the_outer_surface_without_a_solve_and_other_nodes
     assert estimator.shape(OFF_GRID_PA[0]).shape == model.nodes_m.shape and len(solves) == 1  # the state kept
 
 
+@pytest.mark.slow  # seconds of solves (3-5 s CPU): make test runs it, make check does not
 def test_shipped_shapes_of_another_mesh_are_solved_and_of_another_model_refused(model, monkeypatch, tmp_path,
                                                                                 caplog):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))

@@ -107,6 +107,7 @@ def test_a_damaged_shapes_file_is_exit_2(tmp_path, change, message):
     assert message in result.stderr and "Traceback" not in result.stderr
 
 
+@pytest.mark.slow  # 4.3 s CPU deflating the 1 GiB member (larger than MAX_RSS_MIB, or it could not fail)
 def test_an_unused_member_is_not_read(tmp_path):
     """An .npz with an unused, deflated 3 GB member took 3.1 GB: only the table's arrays are read (1 GiB here)."""
     path = tmp_path / "v.npz"
