@@ -92,6 +92,7 @@ def test_a_bad_path_is_refused(count, rest, top, why):
         path_design(count, lambda v: np.zeros(3), rest, top)
 
 
+@pytest.mark.slow
 def test_the_fit_falls_back_only_when_no_field_passes_through_the_scans():
     """Two scans at one state that disagree: no field passes through both, the correction is chosen among the
     kinds without one and the note says so. A scan outside the model's box is a bad measurement: an error, not
@@ -163,6 +164,7 @@ def test_there_is_nothing_to_resume_in_an_empty_folder(tmp_path):
         CharacterisationRecord.load(tmp_path)
 
 
+@pytest.mark.slow
 def test_the_report_has_every_point_the_leave_one_out_and_a_plot(tmp_path):
     grid = _linear_grid()
     record = _record(tmp_path, [(a, b, c) for a in (0, 1.5, 3) for b in (0, 1.5, 3) for c in (0, 3)])

@@ -118,6 +118,7 @@ def _linear_grid(growth_ml_per_kpa=2.0, rest_ml=20.0):
     return ModelGrid(points, chamber, gland, lambda p: float(rest_ml + growth_ml_per_kpa * np.sum(p)), "linear")
 
 
+@pytest.mark.slow
 def test_a_stiffer_phantom_is_corrected_by_its_growth_and_the_inverse_then_hits_the_truth():
     """The truth grows 10 % less than the model and sits 0.3 ml higher: the growth correction wins the
     leave-one-out and is exact everywhere; the corrected inverse meets the truth."""
@@ -327,6 +328,7 @@ def test_the_pressure_box_takes_a_reading_a_count_outside_as_its_edge_and_refuse
             pressures_in_box(bad, 3.0, "a scan's pressures")
 
 
+@pytest.mark.slow
 def test_scans_a_little_noisy_between_close_states_still_give_a_field():
     """A scan's noise (0.1 ml here) between two states 0.05 kPa apart asks for a chamber that shrinks as it is
     inflated: the field's growth floor is soft (each ml short costs), so a field is fitted through them instead

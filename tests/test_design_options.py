@@ -154,6 +154,7 @@ def test_a_planes_undercut_is_the_closed_form_band_on_a_sphere():
     assert undercuts[1, 1] == pytest.approx(expected, rel=0.02)
 
 
+@pytest.mark.slow
 def test_the_split_plane_search_beats_the_coronal_plane_on_a_tilted_gland_and_keeps_the_builtins(tmp_path):
     from phantom.design.cast import choose_split_plane, coronal_plane
     from phantom.design.chambers import place_chambers

@@ -50,6 +50,7 @@ def test_step_metrics_refuse_bad_input():
         bench.step_metrics(np.arange(10), np.arange(10), 0.0)
 
 
+@pytest.mark.slow
 def test_simulated_board_refuses_bad_use(tmp_path):
     with pytest.raises(PhantomError, match="does not exist"):
         SimulatedBoard(elf=tmp_path / "missing.elf")

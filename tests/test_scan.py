@@ -161,6 +161,7 @@ def test_a_start_that_ends_at_the_best_alignment_is_not_called_another(tmp_path,
     assert transform["alternative_angle_deg"] is None or transform["alternative_angle_deg"] > AMBIGUOUS_ANGLE_DEG
 
 
+@pytest.mark.slow
 def test_the_synthetic_scan_command_writes_a_scan_of_the_models_gland(tmp_path, capsys, state):
     path = tmp_path / "new" / "scan.stl"
     assert cli.main(["scan", "synthetic", "--out", str(path), "--pressures-kpa", ",".join(map(str, PRESSURES_KPA)),
@@ -276,6 +277,7 @@ def test_a_missing_scan_file_is_named(tmp_path):
         scan_volume_ml(tmp_path / "absent.stl")
 
 
+@pytest.mark.slow
 def test_the_command_reports_json_and_writes_the_heatmap_and_recording(tmp_path, capsys, surface, state):
     from phantom.host.recording import read_rrd
 
@@ -342,8 +344,8 @@ def test_calibration_measurements_accept_a_scan_file(tmp_path, surface, state):
     assert measurements.volumes_m3[0] == pytest.approx(26.3e-6)
 
 
-@pytest.mark.parametrize("suffix", [pytest.param(".stl", marks=pytest.mark.slow), ".ply",
-                                    pytest.param(".obj", marks=pytest.mark.slow)])
+@pytest.mark.slow
+@pytest.mark.parametrize("suffix", [".stl", ".ply", ".obj"])
 def test_a_surface_written_by_phantom_forward_compares_at_zero_distance(tmp_path, capsys, suffix):
     """`phantom forward --out` into a surface format writes the gland's deformed outer surface, which compare-scan
     reads as a scan: same volume as the model's gland, no distance, no repair needed."""
