@@ -280,7 +280,7 @@ class Daemon:
         try:
             if await self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder):
                 try:
-                    answer = await self.solve(action.target)
+                    answer = await self.solve(await self._less_the_corrections_miss(action))
                 except ApiError as error:
                     if error.code != "unreachable":
                         raise
@@ -301,6 +301,18 @@ class Daemon:
             self._feed(self.core.correct_failed, action.round, False, f"the model failed: {error}")
             return
         self._feed(self.core.corrected, action.round, answer, how)
+
+    async def _less_the_corrections_miss(self, action: control.Correct) -> Target:
+        """The target to solve on the corrected model after a scan: the target less what the correction now in force
+        still misses at the scanned state. A correction fitted to every stored scan (an offset or a growth by least
+        squares) passes beside the newest one, so the target alone moved the pressures by a share of the scan's
+        error: `make demo`'s 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in its four rounds and was not verified."""
+        target_ml = None if action.target.gland_volume_m3 is None else action.target.gland_volume_m3 * control.ML_PER_M3
+        if target_ml is None:
+            return action.target
+        estimate = await self.model.estimate(np.asarray(action.pressures_kpa, dtype=float) * PA_PER_KPA)
+        miss_ml = action.scanned_ml - estimate.gland_volume_ml
+        return _volume(action.target, target_ml - miss_ml)
 
     async def _record_scan(self, pressures_kpa: tuple[float, ...], scanned_ml: float, folder: str | None) -> bool:
         """A scan stored as a measurement of the phantom (the model's correction fitted again), when the model can
