@@ -51,9 +51,7 @@ firmware-test:
 # core and its daemon and test a little more; the niced tests get what the board's side leaves and both cores once
 # the sim phase is over (the Linux scheduler gives a nice-19 process about 1/70 of a nice-0 one's share when both
 # want a core): run one after the other, the two phases took 8 + 19 minutes idle. The parallel phase's output
-# goes to $(PARALLEL_LOG) and is shown after the sim phase's; Ctrl-C stops both. A test that keeps every core busy
-# on purpose (@pytest.mark.exclusive: test_first_run's artificial load at normal priority) would starve the niced
-# tests for minutes, past their timeouts: it runs last, alone.
+# goes to $(PARALLEL_LOG) and is shown after the sim phase's; Ctrl-C stops both.
 PYTEST := $(PY) -m pytest -q -n auto
 PARALLEL_LOG := .cache/pytest-parallel.log
 
@@ -69,13 +67,11 @@ pytest:
 	parallel=$$!; trap 'kill -TERM -$$parallel 2>/dev/null; exit 130' INT TERM; \
 	echo "make test: the tests without a simulator run beside the simulated board's under nice 19 (their output in" \
 	  "$(PARALLEL_LOG), shown when both are done)"; \
-	$(PY) -m pytest -q -m "sim and not long and not exclusive" --durations=25; sim=$$?; \
+	$(PY) -m pytest -q -m "sim and not long" --durations=25; sim=$$?; \
 	wait $$parallel; parallel_status=$$?; \
 	echo "make test: the tests without a simulator (nice 19, beside the simulated board's):"; cat $(PARALLEL_LOG); \
-	$(PY) -m pytest -q -m "exclusive and not long" --durations=25; exclusive=$$?; \
-	echo "make test: simulated-board tests exit $$sim, the others exit $$parallel_status, those that load every" \
-	  "core exit $$exclusive"; \
-	[ $$sim -eq 0 ] && [ $$parallel_status -eq 0 ] && [ $$exclusive -eq 0 ]
+	echo "make test: simulated-board tests exit $$sim, the others exit $$parallel_status"; \
+	[ $$sim -eq 0 ] && [ $$parallel_status -eq 0 ]
 
 # The tests of tens of minutes that make test leaves out (@pytest.mark.long): another phantom as the simulated
 # board's truth, its plant built and a target verified against it.
