@@ -46,14 +46,8 @@ firmware-test:
 	$(MAKE) -C firmware test PYTHON=$(abspath $(PY))
 
 # pytest on every core (pytest-xdist). The simavr tests pace the simulated board to the wall clock and fail when
-# another process of their priority takes the CPU from them: make test runs them in a pytest of their own, one at a
-# time, and the other tests in the same minutes beside them under `nice -n 19`, on every core. A board takes one
-# core and its daemon and test a little more; the niced tests get what the board's side leaves and both cores once
-# the sim phase is over (the Linux scheduler gives a nice-19 process about 1/70 of a nice-0 one's share when both
-# want a core): run one after the other, the two phases took 8 + 19 minutes idle. The parallel phase's output
-# goes to $(PARALLEL_LOG) and is shown after the sim phase's; Ctrl-C stops both.
+# another worker takes the CPU from them: make test runs them afterwards in a pytest of their own, one at a time.
 PYTEST := $(PY) -m pytest -q -n auto
-PARALLEL_LOG := .cache/pytest-parallel.log
 
 pytest-fast:
 	$(PYTEST) -m "not sim and not slow"
@@ -62,16 +56,8 @@ pytest-fast:
 # time goes; the parallel phase also its 25 costliest in CPU time (--cpu-durations, tests/conftest.py), which a
 # loaded machine does not inflate as it does the wall clock.
 pytest:
-	@mkdir -p $(dir $(PARALLEL_LOG)); \
-	setsid nice -n 19 $(PYTEST) -m "not sim and not long" --durations=25 --cpu-durations=25 >$(PARALLEL_LOG) 2>&1 & \
-	parallel=$$!; trap 'kill -TERM -$$parallel 2>/dev/null; exit 130' INT TERM; \
-	echo "make test: the tests without a simulator run beside the simulated board's under nice 19 (their output in" \
-	  "$(PARALLEL_LOG), shown when both are done)"; \
-	$(PY) -m pytest -q -m "sim and not long" --durations=25; sim=$$?; \
-	wait $$parallel; parallel_status=$$?; \
-	echo "make test: the tests without a simulator (nice 19, beside the simulated board's):"; cat $(PARALLEL_LOG); \
-	echo "make test: simulated-board tests exit $$sim, the others exit $$parallel_status"; \
-	[ $$sim -eq 0 ] && [ $$parallel_status -eq 0 ]
+	$(PYTEST) -m "not sim and not long" --durations=25 --cpu-durations=25
+	$(PY) -m pytest -q -m "sim and not long" --durations=25
 
 # The tests of tens of minutes that make test leaves out (@pytest.mark.long): another phantom as the simulated
 # board's truth, its plant built and a target verified against it.

@@ -6,8 +6,7 @@ temporary file and renamed into place, so a reader never sees half of one. What 
 under :func:`machine_lock`, so that two workers do not build it twice at once. The tests that run simavr (marked
 ``sim``) pace the simulated board to the wall clock: with another worker busy beside them, the daemon's end-to-end
 tests missed events and acknowledgements on two cores, so `make test` runs them in a pytest of their own without
-xdist, with the others beside them under ``nice -n 19`` (Makefile). A lock a niced worker holds is not a wait at
-its priority: the sim test waiting for it leaves the CPU to it.
+xdist.
 """
 
 import fcntl
