@@ -307,12 +307,11 @@ class Daemon:
         still misses at the scanned state. A correction fitted to every stored scan (an offset or a growth by least
         squares) passes beside the newest one, so the target alone moved the pressures by a share of the scan's
         error: `make demo`'s 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in its four rounds and was not verified."""
-        target_ml = None if action.target.gland_volume_m3 is None else action.target.gland_volume_m3 * control.ML_PER_M3
-        if target_ml is None:
+        if action.target.gland_volume_m3 is None:
             return action.target
         estimate = await self.model.estimate(np.asarray(action.pressures_kpa, dtype=float) * PA_PER_KPA)
         miss_ml = action.scanned_ml - estimate.gland_volume_ml
-        return _volume(action.target, target_ml - miss_ml)
+        return _volume(action.target, action.target.gland_volume_m3 * control.ML_PER_M3 - miss_ml)
 
     async def _record_scan(self, pressures_kpa: tuple[float, ...], scanned_ml: float, folder: str | None) -> bool:
         """A scan stored as a measurement of the phantom (the model's correction fitted again), when the model can

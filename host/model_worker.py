@@ -222,8 +222,7 @@ class LoadedModel:
             return self.solver.pressures_for(target)
         if target.kind != "volume":
             answer = self.solver.pressures_for(target)
-            gland_ml = self.corrected.corrected_ml(np.asarray(answer.pressures_pa, dtype=float) / PA_PER_KPA,
-                                                   answer.predicted_gland_volume_m3 * ML_PER_M3)
+            gland_ml = self.gland_ml(np.asarray(answer.pressures_pa), answer.predicted_gland_volume_m3)
             return replace(answer, predicted_gland_volume_m3=gland_ml / ML_PER_M3)
         assert target.gland_volume_m3 is not None  # the kind says so
         target_ml = target.gland_volume_m3 * ML_PER_M3

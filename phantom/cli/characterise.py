@@ -10,7 +10,9 @@ write the report. Only argparse is imported at module load.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -137,22 +139,21 @@ def run(args: argparse.Namespace) -> int:
     return _finish(record, grid, args, say, sys.stdout)
 
 
-class _terminate_as_interrupt:  # noqa: N801 (used as a function: ``with _terminate_as_interrupt():``)
+@contextlib.contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
     """SIGTERM stops the run as Ctrl-C does: the session's time and points saved in the record, `--resume` said.
     A run in the background (`nohup phantom characterise ... &`) ignores SIGINT, and a kill left the session's time
     out of the report's total (2 of 4 sessions of the real run on the simulated rig)."""
+    import signal
 
-    def __enter__(self) -> None:
-        import signal
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
 
-        def interrupt(signum: int, frame: object) -> None:
-            raise KeyboardInterrupt
-        self.previous = signal.signal(signal.SIGTERM, interrupt)
-
-    def __exit__(self, *exc: object) -> None:
-        import signal
-
-        signal.signal(signal.SIGTERM, self.previous)
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def _socket(args: argparse.Namespace) -> Path:
