@@ -1,5 +1,7 @@
 """The factorisations the model chooses between agree, and CHOLMOD refuses what it cannot factorise."""
 
+import os
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -52,3 +54,27 @@ def test_an_indefinite_matrix_goes_to_cholmods_ldl_which_solves_it_and_prints_no
     assert capfd.readouterr() == ("", "")
     with pytest.raises(ArithmeticError, match="singular"):
         Factorization(sp.csr_matrix(np.diag([1.0, 0.0, 2.0])), "cholmod-ldl")
+
+
+def test_a_cholmod_factorisation_starts_no_threads():
+    """Debian's CHOLMOD ran its supernodal loops on four OpenMP threads whatever OMP_NUM_THREADS said: on two
+    cores they spent a third of a full solve in system time. Importing the solver caps OpenMP at one thread."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os, numpy as np, scipy.sparse as sp\n"
+        "from phantom.model.fem.linsolve import Factorization\n"
+        # a factorisation too small for CHOLMOD's parallel loops loads every library and its own threads
+        "Factorization(sp.identity(3, format='csr') * 2.0, 'cholmod').solve(np.ones(3))\n"
+        "matrix = (sp.diags([-1.0, 6.5, -1.0], [-1, 0, 1], shape=(20000, 20000))\n"
+        "          + sp.diags([-1.0, -1.0], [-400, 400], shape=(20000, 20000))).tocsr()\n"
+        "before = len(os.listdir('/proc/self/task'))\n"
+        "Factorization(matrix, 'cholmod').solve(np.ones(matrix.shape[0]))\n"
+        "print(before, len(os.listdir('/proc/self/task')))\n"
+    )
+    environment = {key: value for key, value in os.environ.items() if not key.startswith("OMP_")}
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, check=True,
+                            env=environment)
+    before, after = (int(count) for count in result.stdout.split())
+    assert after == before, f"a CHOLMOD factorisation started {after - before} threads"

@@ -17,6 +17,7 @@ and a stored one is solved by numba substitutions.
 
 from __future__ import annotations
 
+import os
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -29,6 +30,14 @@ if TYPE_CHECKING:
     import scipy.sparse
 
 METHODS = ("cholmod", "cholmod-ldl", "splu-mmd", "splu-colamd", "cg-ilu")
+
+# Debian's CHOLMOD runs its supernodal loops on a fixed four OpenMP threads (a num_threads clause, so
+# OMP_NUM_THREADS does not reach it): on two cores they woke some 30 000 times a second and took a third of a
+# full solve in system time (builtin:converged at (3,1,2) kPa: 33 s wall, 20 s user, 9 s system; with one
+# thread 17 s, 14 s, 3 s, the same equilibrium to the last digit; bench/README.md). OMP_THREAD_LIMIT caps even
+# those clauses. libgomp reads it when it loads, which is with CHOLMOD, imported only below; a value the user
+# set is kept, and the variable passes to the Dask workers and the solving processes this one starts.
+os.environ.setdefault("OMP_THREAD_LIMIT", "1")
 
 
 def default_method() -> str:
