@@ -40,11 +40,11 @@ def write_checkpoint(run: Path, params: Parameters, statistics: Parameters) -> P
 
 
 def write_config(run: Path, vae: VAEConfig, training: dict[str, Any], data: dict[str, Any], epochs_done: int,
-                 seconds: float) -> None:
-    """``config.json`` in ``run``."""
+                 seconds: float, device: str) -> None:
+    """``config.json`` in ``run``; ``device`` is what trained it ("cpu", "gpu (NVIDIA H200)")."""
     config = {"format": RUN_FORMAT, "version": RUN_VERSION, "vae": vae.as_dict(),
               "training": training, "data": data, "epochs_done": epochs_done,
-              "seconds": round(seconds, 1)}
+              "seconds": round(seconds, 1), "device": device}
     (run / "config.json").write_text(json.dumps(config, indent=1))
 
 

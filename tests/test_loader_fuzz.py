@@ -221,7 +221,7 @@ def run_folder(tmp_path_factory):
     network = VAEConfig(grid_size=8, latent_dim=4, channels=(4, 8))
     write_checkpoint(run, *init_parameters(network, jax.random.PRNGKey(0)))
     write_config(run, network, {}, {"voxel_mm": 2.0, "grid_size": 8, "labels": [1], "names": [], "held_out": []},
-                 1, 1.0)
+                 1, 1.0, "cpu")
     return run
 
 

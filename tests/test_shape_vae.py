@@ -14,7 +14,7 @@ from jax import lax  # noqa: E402
 from phantom.shape.analysis import ShapeModel  # noqa: E402
 from phantom.shape.dataset import ShapeSet  # noqa: E402
 from phantom.shape.errors import ShapeError  # noqa: E402
-from phantom.shape.training import TrainConfig, intersection_over_union, split_cases, train  # noqa: E402
+from phantom.shape.training import TrainConfig, compute_device, intersection_over_union, split_cases, train  # noqa: E402
 from phantom.shape.vae import (  # noqa: E402
     VAEConfig,
     decode_logits,
@@ -114,6 +114,7 @@ def test_a_seed_makes_training_reproducible_and_the_run_loads(tmp_path):
     assert any(not np.array_equal(stored[0][name], stored[2][name]) for name in stored[0])
     config = json.loads((runs[0] / "config.json").read_text())
     assert config["format"] == "phantom-shape-run" and config["epochs_done"] == 3
+    assert config["device"] == compute_device() == jax.devices()[0].platform  # this machine has no GPU: "cpu"
     assert config["data"]["voxel_mm"] == 2.0 and len(config["data"]["held_out"]) == 2
     history = json.loads((runs[0] / "history.json").read_text())
     assert [entry["epoch"] for entry in history] == [1, 2, 3]
@@ -171,7 +172,7 @@ def _run_folder(path, network=TINY, **config_changes):
     params, statistics = init_parameters(network, jax.random.PRNGKey(0))
     write_checkpoint(path, params, statistics)
     write_config(path, network, {}, {"voxel_mm": 2.0, "grid_size": network.grid_size, "labels": [1], "names": [],
-                                     "held_out": []}, 1, 1.0)
+                                     "held_out": []}, 1, 1.0, "cpu")
     config = json.loads((path / "config.json").read_text())
     for key, value in config_changes.items():
         if key.startswith("vae."):

@@ -150,7 +150,7 @@ def run_train(args: argparse.Namespace) -> int:
     from phantom.cli.common import parse_numbers
     from phantom.shape.dataset import load_shapes
     from phantom.shape.errors import ShapeError
-    from phantom.shape.training import TrainConfig, train
+    from phantom.shape.training import TrainConfig, compute_device, train
     from phantom.shape.vae import VAEConfig
 
     values = parse_numbers(args.channels, "--channels")
@@ -163,7 +163,7 @@ def run_train(args: argparse.Namespace) -> int:
                            validation_fraction=args.validation_fraction)
     shapes = load_shapes(args.data, grid_size=args.grid_size, labels=_labels(args.labels), progress=True)
     print(f"shape: {len(shapes.names)} shapes on a {args.grid_size}^3 grid of {shapes.voxel_mm:.3f} mm voxels; "
-          f"training {args.epochs} epochs", flush=True)
+          f"training {args.epochs} epochs on {compute_device()}", flush=True)
     run = train(shapes, args.out, vae, training, source=str(args.data))
     print(f"wrote the run {run} (parameters.npz, config.json, latents.npz, loss.png)")
     _warn_if_undertrained(run)
