@@ -22,7 +22,6 @@ import asyncio
 import dataclasses
 import itertools
 import logging
-import re
 import time
 from collections import deque
 from collections.abc import Coroutine
@@ -79,11 +78,6 @@ class VerifyScanner(Protocol):
         ...
 
 
-#: The reachable range an unreachable volume's message states (phantom.model.target's inverse).
-REACHABLE_RANGE = re.compile(r"give (-?[\d.]+) to (-?[\d.]+) ml")
-#: With a correction in force, the volume asked and the model's own volume it stands for (the model worker's
-#: unreachable message): the model's range moved by their difference is the corrected model's.
-CORRECTED_AS = re.compile(r"(-?[\d.]+) ml with the correction in force .* is the model's (-?[\d.]+) ml")
 #: A verify scan that fails within this long after the board's link was lost fails for the rig's sake (s): a board
 #: that reset holds its axes busy (BUSY) while they stop, and the scan retaken at once was refused for it.
 LINK_LOSS_GRACE_S = 30.0
@@ -341,16 +335,13 @@ class Daemon:
             try:
                 return await self.solve(_volume(action.target, asked_ml)), how
             except ApiError as error:
-                found = REACHABLE_RANGE.search(str(error)) if error.code == "unreachable" else None
-                if found is None:
+                if error.code != "unreachable" or not error.data or "gland_range_ml" not in error.data:
                     raise
-                corrected = CORRECTED_AS.search(str(error))
-                moved_ml = float(corrected.group(1)) - float(corrected.group(2)) if corrected else 0.0
-                low_ml, high_ml = float(found.group(1)) + moved_ml, float(found.group(2)) + moved_ml
+                low_ml, high_ml = error.data["gland_range_ml"]
                 asked_ml = min(max(shifted_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
                 how = (f"{asked_ml:.3f} ml: the volume asked moved by the scan's error ({shifted_ml:.3f} ml) is beyond "
                        f"the model's reachable {low_ml:.3f} to {high_ml:.3f} ml"
-                       f"{' (with the correction in force)' if corrected else ''}, so its edge")
+                       f"{' (with the correction in force)' if error.data['corrected'] else ''}, so its edge")
         return await self.solve(_volume(action.target, asked_ml)), how
 
     async def _send_setpoints(self, action: control.SendSetpoints) -> None:
@@ -388,7 +379,10 @@ class Daemon:
             else:
                 answer = await self.model.pressures_for(target)
         except UnreachableTargetError as error:
-            raise ApiError("unreachable", str(error)) from error
+            # the gland's reachable range (with a correction in force, the corrected model's) as data too
+            data = None if error.gland_range_ml is None else {"gland_range_ml": list(error.gland_range_ml),
+                                                              "corrected": error.corrected}
+            raise ApiError("unreachable", str(error), data) from error
         self.recorder.log_solver(self.now_s(), answer.qp_solve_time_s, answer.solve_time_s)
         return answer
 

@@ -233,9 +233,13 @@ class LoadedModel:
             try:
                 answers.append(self.solver.pressures_for(replace(target, gland_volume_m3=volume_ml / ML_PER_M3)))
             except UnreachableTargetError as error:
+                # the model's range, moved by what the correction adds here, is the corrected model's
+                moved_ml = target_ml - volume_ml
                 raise UnreachableTargetError(
                     f"{target_ml:.2f} ml with the correction in force ({corrected.describe()}) is the model's "
-                    f"{volume_ml:.2f} ml: {error}") from None
+                    f"{volume_ml:.2f} ml: {error}",
+                    None if error.gland_range_ml is None else
+                    (error.gland_range_ml[0] + moved_ml, error.gland_range_ml[1] + moved_ml), corrected=True) from None
             return np.asarray(answers[-1].pressures_pa, dtype=float) / PA_PER_KPA
 
         _, corrected_ml, _ = corrected.pressures_for_ml(target_ml, inverse_kpa)

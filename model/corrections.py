@@ -636,16 +636,18 @@ class CorrectedModel:
         Raises
         ------
         UnreachableTargetError
-            ``volume_ml`` beyond the corrected range (:attr:`range_ml`, stated as "give LOW to HIGH ml", which the
-            daemon's verify loop reads), though perhaps inside the model's own: one scan near rest corrects by an
-            offset the phantom at rest does not hold, and searched for, such a target met nothing.
+            ``volume_ml`` beyond the corrected range (:attr:`range_ml`, stated as "give LOW to HIGH ml" and held as
+            its ``gland_range_ml``, whose edge the daemon's verify loop asks), though perhaps inside the model's
+            own: one scan near rest corrects by an offset the phantom at rest does not hold, and searched for, such
+            a target met nothing.
         CorrectionError
             The search did not converge (the target at the edge of the reachable range).
         """
         low_ml, high_ml = self.range_ml
         if not low_ml - RANGE_SLACK_ML <= volume_ml <= high_ml + RANGE_SLACK_ML:
             raise UnreachableTargetError(f"{volume_ml:.2f} ml is beyond the model's range with the correction in force "
-                                         f"({self.describe()}): give {low_ml:.3f} to {high_ml:.3f} ml")
+                                         f"({self.describe()}): give {low_ml:.3f} to {high_ml:.3f} ml",
+                                         gland_range_ml=(low_ml, high_ml), corrected=True)
         # within the model's range from the first ask: the corrected range may reach past the model's
         asked = float(np.clip(volume_ml, self.rest_ml, self.top_ml))
         previous: tuple[float, float] | None = None

@@ -484,7 +484,7 @@ class InverseSolver:
                 residual_scaled = rows.objective_rows @ (candidate_pa * self.pressure_per_pa) - rows.objective_targets
                 worst = rows.objective_names[int(np.argmax(np.abs(residual_scaled) / self._row_offsets_scaled(rows)))]
                 low_ml, high_ml = self.reachable_range_ml(target, linearisation, worst)
-                raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
+                raise self._unreachable_error(target, worst, low_ml, high_ml)
             pressures_pa, evaluation, error, step = self._damped_step(target, pressures_pa, error, candidate_pa)
             chamber_volumes_m3, gland_volume_m3, _ = evaluation
             history.append({"pressures_pa": pressures_pa.tolist(), "relative_error": error, "reached": reached,
@@ -537,7 +537,7 @@ class InverseSolver:
             badness = np.nan_to_num(np.abs(targets) / self._row_offsets_scaled(rows), nan=np.inf)
         worst = rows.objective_names[int(np.argmax(badness))]
         low_ml, high_ml = self.reachable_range_ml(target, self.rest, worst)
-        raise UnreachableTargetError(self._unreachable_message(target, worst, low_ml, high_ml))
+        raise self._unreachable_error(target, worst, low_ml, high_ml)
 
     def solved_range_m3(self) -> tuple[FloatArray, FloatArray] | None:
         """The least and greatest chamber volumes then gland volume (m^3, each (n_chambers + 1,)) that full solves
@@ -573,8 +573,8 @@ class InverseSolver:
                 continue
             margin_m3 = self.tolerance * abs(volume_m3)
             if not low_m3[column] - margin_m3 <= volume_m3 <= high_m3[column] + margin_m3:
-                raise UnreachableTargetError(self._unreachable_message(
-                    target, row_name, low_m3[column] * ML_PER_M3, high_m3[column] * ML_PER_M3, constrained=False))
+                raise self._unreachable_error(
+                    target, row_name, low_m3[column] * ML_PER_M3, high_m3[column] * ML_PER_M3, constrained=False)
 
     def _evaluate(self, pressures_pa: FloatArray) -> Evaluation:
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
@@ -609,10 +609,10 @@ class InverseSolver:
                 offsets.append(self.rest.chamber_volumes_m3[int(name.split()[1])] * self.volume_per_m3)
         return np.array(offsets)
 
-    def _unreachable_message(self, target: Target, row_name: str, low_ml: float, high_ml: float,
-                             constrained: bool = True) -> str:
+    def _unreachable_error(self, target: Target, row_name: str, low_ml: float, high_ml: float,
+                           constrained: bool = True) -> UnreachableTargetError:
         """Why a row is out of reach, with its range (ml) over the pressure box (and, ``constrained``, under the
-        target's growth ratio and the growth limits)."""
+        target's growth ratio and the growth limits); the gland's range also as data."""
         wanted_m3 = (target.gland_volume_m3 if row_name == "gland"
                      else (target.chamber_volumes_m3 or [])[int(row_name.split()[1])])
         assert wanted_m3 is not None  # a row exists only for a wanted volume
@@ -627,11 +627,13 @@ class InverseSolver:
             constraints.append("growth limits")
         with_constraints = f" with the {' and '.join(constraints)}" if constraints else ""
         if low_ml - 1e-9 <= wanted_ml <= high_ml + 1e-9:
-            return (f"{what} target {wanted} ml is within the reachable range {low_ml:.3f}-{high_ml:.3f} ml "
-                    f"on its own, but contradicts the other targets{with_constraints}; drop or change one of them")
-        return (f"{what} target {wanted} ml is unreachable: pressures between 0 and [{limits}] kPa"
-                f"{with_constraints} give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range "
-                "or raise pressure_max")
+            return UnreachableTargetError(
+                f"{what} target {wanted} ml is within the reachable range {low_ml:.3f}-{high_ml:.3f} ml on its own, "
+                f"but contradicts the other targets{with_constraints}; drop or change one of them")
+        return UnreachableTargetError(
+            f"{what} target {wanted} ml is unreachable: pressures between 0 and [{limits}] kPa{with_constraints} "
+            f"give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range or raise pressure_max",
+            gland_range_ml=(low_ml, high_ml) if row_name == "gland" else None)
 
     def _evaluate_raw_pressures(self, target: Target, raw_pa: Sequence[float], started: float) -> InverseResult:
         pressures_pa = _finite("pressures_pa", raw_pa)

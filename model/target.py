@@ -17,7 +17,19 @@ from phantom import PhantomError
 ML_PER_M3 = 1e6
 PA_PER_KPA = 1e3
 class UnreachableTargetError(PhantomError):
-    """A target no allowed pressures reach; the message states the reachable range."""
+    """A target no allowed pressures reach; the message states the reachable range, and ``gland_range_ml`` holds
+    it (low, high) where the gland's volume is what is out of that range (the daemon's verify loop then asks for
+    the range's edge), else None; ``corrected``: the range is the model's with a correction of its answers by
+    measured volumes in force (:mod:`phantom.model.corrections`)."""
+
+    def __init__(self, message: str, gland_range_ml: tuple[float, float] | None = None, corrected: bool = False):
+        super().__init__(message)
+        self.gland_range_ml = gland_range_ml
+        self.corrected = corrected
+
+    def __reduce__(self) -> tuple[type[UnreachableTargetError], tuple[str, tuple[float, float] | None, bool]]:
+        # raised in the model worker's process: the range crosses with the message
+        return type(self), (str(self), self.gland_range_ml, self.corrected)
 
 
 #: The forms a target takes (:attr:`Target.kind`): the gland's volume, one volume per chamber, raw pressures.

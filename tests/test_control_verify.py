@@ -207,7 +207,8 @@ def test_a_shift_beyond_the_models_range_is_asked_at_its_edge():
         asked.append(target.gland_volume_m3 * 1e6)
         if target.gland_volume_m3 * 1e6 < 26.296:
             raise ApiError("unreachable", "the gland volume target 25.997 ml is unreachable: pressures between 0 and "
-                                          "[3, 3, 3] kPa give 26.296 to 51.581 ml; ask for a volume in that range")
+                                          "[3, 3, 3] kPa give 26.296 to 51.581 ml; ask for a volume in that range",
+                           {"gland_range_ml": [26.296, 51.581], "corrected": False})
         return "answer"
 
     action = control.Correct(1, volume(26.5), (0.1, 0.0, 0.0), 27.0, "/scans/1", 25.997, (100.0, 0.0, 0.0))
@@ -262,7 +263,8 @@ def test_a_target_beyond_the_corrected_models_range_is_asked_at_that_ranges_edge
             raise ApiError("unreachable", f"{volume_ml:.2f} ml with the correction in force (offset from 1 "
                            f"measurement(s)) is the model's {model_ml:.2f} ml: the gland volume target {model_ml:.3f} "
                            "ml is unreachable: pressures between 0 and [3, 3, 3] kPa give 26.296 to 51.581 ml; ask "
-                           "for a volume in that range or raise pressure_max")
+                           "for a volume in that range or raise pressure_max",
+                           {"gland_range_ml": [26.296 + 0.44, 51.581 + 0.44], "corrected": True})
         return types.SimpleNamespace(pressures_pa=[1.0, 0.0, 0.0], target=target)
 
     async def recorded(*_):
@@ -347,3 +349,28 @@ def test_a_target_is_solved_after_the_scan_being_stored():
 
     asyncio.run(main())
     assert order == ["stored", "solved"]
+
+
+def test_an_unreachable_answer_carries_the_glands_range_as_data():
+    """The verify loop asks for the edge of the range the model refused with: it reads it from the answer's data
+    (it read it out of the message's words before), the corrected model's where a correction is in force."""
+    import asyncio
+    import types
+
+    from phantom.host.api import ApiError
+    from phantom.host.daemon import Daemon
+    from phantom.model.target import UnreachableTargetError
+
+    for refusal, data in ((UnreachableTargetError("out of reach", (26.3, 51.6)),
+                           {"gland_range_ml": [26.3, 51.6], "corrected": False}),
+                          (UnreachableTargetError("out of reach", (26.7, 52.0), corrected=True),
+                           {"gland_range_ml": [26.7, 52.0], "corrected": True}),
+                          (UnreachableTargetError("chamber 0 out of reach"), None)):
+        async def pressures_for(target, refusal=refusal):
+            raise refusal
+
+        daemon = types.SimpleNamespace(storing=set(), model=types.SimpleNamespace(pressures_for=pressures_for))
+        with pytest.raises(ApiError) as answered:
+            asyncio.run(Daemon.solve(daemon, volume(20.0)))
+        assert answered.value.code == "unreachable" and str(answered.value) == str(refusal)
+        assert answered.value.data == data

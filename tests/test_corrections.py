@@ -287,9 +287,9 @@ def test_a_target_inside_the_models_range_but_beyond_the_corrected_one_is_unreac
     fault. Refused by the corrected model itself (every caller, the daemon, the CLI and the bench, gets it) as
     unreachable with the corrected range, in the words the daemon's verify loop reads to ask the range's edge; the
     edge itself is met; beyond the model's own top too. Both are asked of no inverse."""
+    import pickle
     import re
 
-    from phantom.host.daemon import REACHABLE_RANGE
     from phantom.model.target import UnreachableTargetError
 
     grid = _linear_grid()
@@ -305,8 +305,10 @@ def test_a_target_inside_the_models_range_but_beyond_the_corrected_one_is_unreac
         with pytest.raises(UnreachableTargetError, match=r"beyond the model's range with the correction in force "
                            r"\(offset from 1 measurement\(s\)\): give 21.500 to 39.500 ml") as raised:
             corrected.pressures_for_ml(target_ml, inverse)
-        found = REACHABLE_RANGE.search(str(raised.value))
-        assert found is not None and float(found.group(1)) == pytest.approx(21.5, abs=1e-3)
+        # the range as data, which crosses from the model worker's process with the error
+        crossed = pickle.loads(pickle.dumps(raised.value))
+        assert crossed.gland_range_ml == pytest.approx((21.5, 39.5)) and crossed.corrected
+        assert str(crossed) == str(raised.value)
         assert not re.search("is the model's", str(raised.value))  # the range given is the corrected one
     assert asked == []
     pressures, volume, _ = corrected.pressures_for_ml(21.55, inverse)

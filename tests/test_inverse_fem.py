@@ -129,6 +129,10 @@ def test_a_volume_beyond_the_tables_solves_is_refused_on_every_fidelity_without_
         message = str(caught.value)
         assert "is unreachable: pressures between 0 and [3, 3, 3] kPa give" in message, message
         assert f"give {values.min() * 1e6:.3f} to {values.max() * 1e6:.3f} ml" in message, message
+        # the gland's range as data too (the daemon's verify loop asks for its edge); a chamber's is not the gland's
+        expected = (values.min() * 1e6, values.max() * 1e6) if target.gland_volume_m3 else None
+        assert caught.value.gland_range_ml == (None if expected is None else pytest.approx(expected))
+        assert not caught.value.corrected
     assert solver.estimator.counts == {"full_solves": 0, "tangent_solves": 0, "shapes": 0}
     # a target within the range is not refused by the bound (the rest level answers it here: no solve)
     if fidelity == "rest":
