@@ -285,3 +285,20 @@ def test_a_mask_shorter_than_its_header_or_with_nan_values_is_refused(tmp_path):
     nibabel.save(nibabel.Nifti1Image(values, np.eye(4)), str(tmp_path / "nan_mask.nii"))
     with pytest.raises(ShapeError, match="the mask holds NaN or infinite values"):
         read_label_mask(find_cases(tmp_path / "nan_mask.nii")[0])
+
+
+@pytest.mark.slow
+def test_worker_processes_put_the_shapes_on_the_same_grids_and_name_a_shape_that_does_not_fit(
+        population, monkeypatch, capsys):
+    """589 cases took 150 s on one core to grid (most of `phantom shape train` on a GPU): worker processes make
+    them now, the same grids; a shape that does not fit is refused by name from a worker as in this process."""
+    from phantom.shape import dataset
+
+    alone = load_shapes(population, grid_size=32, workers=1)
+    monkeypatch.setattr(dataset, "PARALLEL_FROM_CASES", 2)  # seven cases: in workers all the same
+    together = load_shapes(population, grid_size=32, workers=2, progress=True)
+    assert together.names == alone.names and together.voxel_mm == alone.voxel_mm
+    np.testing.assert_array_equal(together.occupancy, alone.occupancy)
+    assert f"shape: put {CASES}/{CASES} shapes on the grid" in capsys.readouterr().out
+    with pytest.raises(ShapeError, match=r"_mask\.nii reaches .* beyond the grid's"):
+        load_shapes(population, grid_size=32, voxel_mm=alone.voxel_mm / 3, workers=2)
