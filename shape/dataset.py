@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from itertools import repeat
@@ -288,20 +288,22 @@ def _grids(shapes: list[LabelMask | ClosedSurface], names: list[str], voxel_mm: 
     if workers is None:
         workers = len(os.sched_getaffinity(0))
     if workers <= 1 or len(shapes) < PARALLEL_FROM_CASES:
-        grids = map(shape_grid, shapes, repeat(voxel_mm), repeat(grid_size), names)
-        return [_told(grid, number, len(shapes), progress) for number, grid in enumerate(grids, 1)]
+        return _told(map(shape_grid, shapes, repeat(voxel_mm), repeat(grid_size), names), len(shapes), progress)
     # spawned, not forked: the caller may have started JAX's threads, which a fork would copy mid-flight
     with ProcessPoolExecutor(max_workers=min(workers, len(shapes)),
                              mp_context=multiprocessing.get_context("spawn")) as pool:
-        grids = pool.map(shape_grid, shapes, repeat(voxel_mm), repeat(grid_size), names,
-                         chunksize=max(1, len(shapes) // (4 * workers)))
-        return [_told(grid, number, len(shapes), progress) for number, grid in enumerate(grids, 1)]
+        return _told(pool.map(shape_grid, shapes, repeat(voxel_mm), repeat(grid_size), names,
+                              chunksize=max(1, len(shapes) // (4 * workers))), len(shapes), progress)
 
 
-def _told(grid: np.ndarray, number: int, count: int, progress: bool) -> np.ndarray:
-    if progress and (number % 50 == 0 or number == count):
-        print(f"shape: put {number}/{count} shapes on the grid", flush=True)
-    return grid
+def _told(grids: Iterator[np.ndarray], count: int, progress: bool) -> list[np.ndarray]:
+    """The grids as they come, with a line of progress every 50."""
+    made = []
+    for number, grid in enumerate(grids, 1):
+        made.append(grid)
+        if progress and (number % 50 == 0 or number == count):
+            print(f"shape: put {number}/{count} shapes on the grid", flush=True)
+    return made
 
 
 def load_shapes(path: str | Path, grid_size: int = 32, labels: Sequence[int] = PROSTATE_LABELS,
