@@ -49,7 +49,7 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path, default_model_cached):
                 break
             assert time.monotonic() < deadline, Path(log.name).read_text()
             time.sleep(0.2)
-        result = subprocess.run([str(PHANTOM), "run-scene", "lopsided", "--time-scale", "4", "--wait", "--json",
+        result = subprocess.run([str(PHANTOM), "run-scene", "lopsided", "--time-scale", "8", "--wait", "--json",
                                  "--socket", str(sock)], capture_output=True, text=True, timeout=120)
         assert result.returncode == 0, result.stderr + Path(log.name).read_text()
         steps = json.loads(result.stdout)

@@ -1,20 +1,31 @@
 """The package a user installs: ``python -m build`` makes a wheel that installs into a fresh virtual environment
 and runs outside the repository, with an empty cache, so the firmware's sources, the simavr harness and the
-scenes must come from the wheel (its package data), not from the checkout."""
+scenes must come from the wheel (its package data), not from the checkout.
 
+Building the wheel and its venv takes minutes of CPU and no simulated board: it is done once for each state of
+the checkout (:func:`checkout_key`) and kept in the cache, so that make test's parallel phase builds it and its
+one-at-a-time sim phase, where only the handshake with the simulated board runs, finds it built."""
+
+import hashlib
+import os
+import shutil
 import subprocess
 import sys
+import tomllib
 import venv
 import zipfile
 from pathlib import Path
 
 import pytest
+from conftest import machine_lock
 
 import phantom
 
 REPO = Path(__file__).resolve().parent.parent
+#: How many installed checkouts the cache keeps (half a gigabyte each): the others are removed when one is built.
+KEPT_INSTALLS = 2
 
-pytestmark = [pytest.mark.slow, pytest.mark.sim, pytest.mark.timeout(900)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 
 def run(command: list[str], cwd: Path, env: dict[str, str] | None = None) -> str:
@@ -23,21 +34,66 @@ def run(command: list[str], cwd: Path, env: dict[str, str] | None = None) -> str
     return result.stdout
 
 
+def checkout_key() -> str | None:
+    """A hash of the files the wheel is built from as they are now in the checkout (pyproject.toml, the README
+    and the folders its package-dir maps; tracked with their changes, and untracked ones .gitignore does not
+    exclude), None outside a git checkout: the same key is the same wheel."""
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())
+    sources = ["pyproject.toml", "README.md", "LICENSE", *config["tool"]["setuptools"]["package-dir"].values()]
+
+    def git(*arguments: str) -> bytes:
+        return subprocess.run(["git", *arguments, "--", *sources], cwd=REPO, capture_output=True, check=True,
+                              timeout=60).stdout
+    try:
+        digest = hashlib.sha256(git("ls-files", "--stage") + git("diff", "HEAD", "--binary"))
+        for name in sorted(git("ls-files", "--others", "--exclude-standard", "-z").split(b"\0")):
+            if name and (REPO / name.decode()).is_file():
+                digest.update(name + b"\0" + (REPO / name.decode()).read_bytes())
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return digest.hexdigest()[:16]
+
+
+def build_and_install(root: Path) -> None:
+    """The wheel built from the checkout into ``root/dist``, installed into a fresh venv ``root/venv`` (its
+    dependencies from pip's index)."""
+    run([sys.executable, "-m", "build", "--wheel", "--outdir", str(root / "dist"), str(REPO)], cwd=root)
+    venv.create(root / "venv", with_pip=True)
+    run([str(root / "venv" / "bin" / "python"), "-m", "pip", "install", "--quiet",
+         str(next((root / "dist").glob("*.whl")))], cwd=root)
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory) -> dict[str, Path]:
-    """The wheel, built from the checkout, installed into a fresh venv (its dependencies from pip's index)."""
-    root = tmp_path_factory.mktemp("packaging")
-    run([sys.executable, "-m", "build", "--wheel", "--outdir", str(root / "dist"), str(REPO)], cwd=root)
-    wheel = next((root / "dist").glob("*.whl"))
-    venv.create(root / "venv", with_pip=True)
-    run([str(root / "venv" / "bin" / "python"), "-m", "pip", "install", "--quiet", str(wheel)], cwd=root)
-    return {"root": root, "wheel": wheel, "phantom": root / "venv" / "bin" / "phantom"}
+    """The wheel, built from the checkout, installed into a fresh venv: built once for this state of the checkout
+    (the other pytest workers and make test's sim phase wait for it and reuse it), or in a temporary folder
+    outside a git checkout. Its venv is never written to by the tests: each gets its own empty cache."""
+    key = checkout_key()
+    if key is None:
+        root = tmp_path_factory.mktemp("packaging")
+        build_and_install(root)
+    else:
+        installs = phantom.cache_dir("test-packaging")
+        root = installs / key
+        with machine_lock("test-packaging"):
+            if (root / "installed").is_file():
+                os.utime(root)  # the most recently used installs are the ones kept
+            else:
+                shutil.rmtree(root, ignore_errors=True)
+                root.mkdir()
+                build_and_install(root)
+                (root / "installed").write_text(key)
+                older = sorted((path for path in installs.iterdir() if path != root), key=lambda p: p.stat().st_mtime)
+                for path in older[:max(0, len(older) - (KEPT_INSTALLS - 1))]:
+                    shutil.rmtree(path, ignore_errors=True)
+    return {"root": root, "wheel": next((root / "dist").glob("*.whl")), "phantom": root / "venv" / "bin" / "phantom"}
 
 
-def user_env(root: Path) -> dict[str, str]:
-    """A user's environment: an empty cache of its own, no PYTHONPATH into the checkout."""
-    return {"PATH": f"{root / 'venv' / 'bin'}:/usr/bin:/bin", "HOME": str(root), "LANG": "C.UTF-8",
-            "PHANTOM_CACHE_DIR": str(root / "cache")}
+def user_env(installed: dict[str, Path], home: Path) -> dict[str, str]:
+    """A user's environment: the installed venv on PATH, a home and an empty cache of its own (under ``home``), no
+    PYTHONPATH into the checkout."""
+    return {"PATH": f"{installed['root'] / 'venv' / 'bin'}:/usr/bin:/bin", "HOME": str(home), "LANG": "C.UTF-8",
+            "PHANTOM_CACHE_DIR": str(home / "cache")}
 
 
 def test_the_wheel_carries_the_firmware_sources_the_harness_and_the_scenes(installed):
@@ -52,34 +108,32 @@ def test_the_wheel_carries_the_firmware_sources_the_harness_and_the_scenes(insta
     assert not any("/build/" in name or name.endswith((".o", ".elf", ".hex")) for name in names)
 
 
-def test_the_installed_example_scenes_find_the_table_files_they_name(installed):
+def test_the_installed_example_scenes_find_the_table_files_they_name(installed, tmp_path):
     # (the host's scenes name the model's shipped table files by a path relative to themselves)
-    root = installed["root"]
-    output = run([str(root / "venv" / "bin" / "python"), "-c",
+    output = run([str(installed["root"] / "venv" / "bin" / "python"), "-c",
                   "from phantom.host.scenes import example_scene_path\n"
                   "from phantom.host.scenes import load_timeline_scene\n"
                   "settings = load_timeline_scene(example_scene_path('bph_growth')).model_settings\n"
                   "print(settings.table_volumes.is_file(), settings.table_shapes.is_file(), settings.table_shapes)"],
-                 cwd=root, env=user_env(root))
+                 cwd=tmp_path, env=user_env(installed, tmp_path))
     assert output.split()[:2] == ["True", "True"] and "site-packages/phantom/model/scenes" in output, output
 
 
-def test_the_installed_package_solves_a_forward_case_outside_the_repository(installed):
-    root = installed["root"]
+def test_the_installed_package_solves_a_forward_case_outside_the_repository(installed, tmp_path):
     output = run([str(installed["phantom"]), "forward", "--scene", "builtin", "--pressures-kpa", "1,1,1"],
-                 cwd=root, env=user_env(root))
+                 cwd=tmp_path, env=user_env(installed, tmp_path))
     gland = next(line for line in output.splitlines() if line.startswith("gland")).split()
     assert 20.0 < float(gland[1]) < float(gland[2]) < 40.0, output  # rest volume, then the inflated one
 
 
-def test_the_installed_package_builds_the_firmware_and_shakes_hands_with_the_simulated_board(installed):
-    root = installed["root"]
-    output = run([str(installed["phantom"]), "hil", "handshake", "--sim"], cwd=root, env=user_env(root))
+@pytest.mark.sim
+def test_the_installed_package_builds_the_firmware_and_shakes_hands_with_the_simulated_board(installed, tmp_path):
+    output = run([str(installed["phantom"]), "hil", "handshake", "--sim"], cwd=tmp_path,
+                 env=user_env(installed, tmp_path))
     assert "passed: True" in output and "firmware_version:" in output, output
-    assert (root / "cache" / "firmware" / "uno-bench" / "phantom.elf").is_file(), "built into the user's cache"
+    assert (tmp_path / "cache" / "firmware" / "uno-bench" / "phantom.elf").is_file(), "built into the user's cache"
 
 
-def test_the_installed_package_says_its_version(installed):
-    root = installed["root"]
-    output = run([str(installed["phantom"]), "--version"], cwd=root, env=user_env(root))
+def test_the_installed_package_says_its_version(installed, tmp_path):
+    output = run([str(installed["phantom"]), "--version"], cwd=tmp_path, env=user_env(installed, tmp_path))
     assert output.split() == ["phantom", phantom.__version__]
