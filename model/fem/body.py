@@ -397,19 +397,18 @@ class SolidBody:
         if self.quadratic is None:
             return self.deformation_determinants(positions_m)
         data = self.quadratic
-        jacobians = np.einsum("eai,qak->eqik", positions_m[self.tets], data.volume_derivatives)
-        ratios: FloatArray = np.linalg.det(jacobians) @ data.volume_weights / data.volumes_m3
+        ratios: FloatArray = kernels.mixed_volume_ratios(positions_m, self.tets, data.volumes_m3,
+                                                         data.volume_derivatives, data.volume_weights)
         return ratios
 
     def element_volume_ratio_rates(self, positions_m: FloatArray, direction_m: FloatArray) -> FloatArray:
         """A 10-node body's ``d Jbar / ds`` of each element (m,) at ``positions_m`` moving along ``direction_m``
-        (n, 3): ``sum_q w_q det(J_q) tr(J_q^-1 dJ_q) / V_e``, the linearised change of its volume ratio."""
+        (n, 3): its volume's gradient dotted with its nodes' moves, over its rest volume (Jacobi's formula,
+        ``sum_q w_q det(J_q) tr(J_q^-1 dJ_q) / V_e``), the linearised change of its volume ratio."""
         assert self.quadratic is not None  # only 10-node bodies have the mixed pressure field
         data = self.quadratic
-        jacobians = np.einsum("eai,qak->eqik", positions_m[self.tets], data.volume_derivatives)
-        changes = np.einsum("eai,qak->eqik", direction_m[self.tets], data.volume_derivatives)
-        traces = np.einsum("eqij,eqji->eq", np.linalg.inv(jacobians), changes)
-        rates: FloatArray = (np.linalg.det(jacobians) * traces) @ data.volume_weights / data.volumes_m3
+        rates: FloatArray = kernels.mixed_volume_ratio_rates(positions_m, direction_m, self.tets, data.volumes_m3,
+                                                             data.volume_derivatives, data.volume_weights)
         return rates
 
     def eliminated_pressures_pa(self, volume_ratios: FloatArray,

@@ -20,6 +20,7 @@ import numpy as np
 import phantom
 from phantom.model.arrays import FloatArray, IntArray
 from phantom.model.errors import MeshError, SolveError
+from phantom.model.fem import heap
 from phantom.model.fem.body import Factor, SolidBody
 from phantom.model.fem.linsolve import Factorization, indefinite_method
 from phantom.model.fem.newton import RELATIVE_TOLERANCE, newton
@@ -277,6 +278,7 @@ class PhantomModel:
         return EquilibriumProblem(self.body, pressures, formulation, start, self.body.constraints_for(frame_m),
                                   body_force.copy())
 
+    @heap.solving()
     def equilibrium(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
                     initial_positions_m: FloatArray | None = None, tolerance: float = RELATIVE_TOLERANCE,
                     body_force_n_per_m3: FloatArray | list[float] | None = None,
