@@ -353,8 +353,13 @@ class SolidBody:
 
     def volume_gradients(self, positions_m: FloatArray) -> FloatArray:
         """``H``: (n_chambers + 1, 3 n) gradients of each chamber's volume and of the gland's (m^2)."""
-        surfaces = [*self.chamber_faces, self.outer_faces]
-        return np.stack([volume_gradient_m2(positions_m, faces).ravel() for faces in surfaces])
+        return np.concatenate([self.chamber_volume_gradients(positions_m),
+                               volume_gradient_m2(positions_m, self.outer_faces).reshape(1, -1)])
+
+    def chamber_volume_gradients(self, positions_m: FloatArray) -> FloatArray:
+        """(n_chambers, 3 n) gradients of each chamber's volume (m^2): the pressure load's, without the gland's
+        outer surface (as many faces as the chambers' together on the prostate)."""
+        return np.stack([volume_gradient_m2(positions_m, faces).ravel() for faces in self.chamber_faces])
 
     # --- elements --------------------------------------------------------------------------------------------
 

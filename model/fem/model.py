@@ -414,7 +414,7 @@ class PhantomModel:
         stiffness = self.stiffness_matrix(positions_m, formulation, pressures_pa=pressures_pa).tocsr()
         magnitudes = abs(stiffness)
         held = np.asarray(magnitudes.sum(axis=1)).ravel() == magnitudes.diagonal()
-        gradients = self.volume_gradients(positions_m)[:-1]
+        gradients = self.body.chamber_volume_gradients(positions_m)
         gradients[:, held] = 0.0
         try:
             factorization = Factorization(stiffness)
@@ -429,7 +429,7 @@ class PhantomModel:
     def _small_strain_displacement(self, load_positions_m: FloatArray) -> FloatArray:
         """``D = K^-1 H(x_L)^T`` (n_chambers, 3n), m/Pa: the small-strain displacement per pascal of each chamber
         with the load taken on ``load_positions_m`` (held dofs do not move)."""
-        gradients = self.volume_gradients(load_positions_m)[:-1]
+        gradients = self.body.chamber_volume_gradients(load_positions_m)
         held = ~self.body.rest_constraints.free_mask
         gradients[:, held] = 0.0
         displacement = self.rest_factorization().solve(gradients.T).T

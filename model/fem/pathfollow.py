@@ -42,6 +42,7 @@ import numpy as np
 
 from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
+from phantom.model.fem.body import Factor
 from phantom.model.fem.newton import LINE_SEARCH_HALVINGS, newton, preconditioned_cg
 from phantom.model.fem.problem import EquilibriumProblem
 
@@ -69,9 +70,13 @@ CONFIRMED_FALL_STEPS = 2
 #: ... or when the control volume exceeds this multiple of its rest value.
 MAX_CONTROL_GROWTH = 20.0
 VOLUME_NEWTON_ITERATIONS = 30
+#: A volume step that converged in this many Newton iterations or fewer doubles the next. With the cubic predictor
+#: a step takes 2-4 (builtin:converged): doubling after 4 or 5 made the (3,3,3) kPa path's late steps take 7-10.
+DOUBLING_ITERATIONS = 3
 #: Residual of a volume-controlled equilibrium on the path, relative to the full load (the end point is then
-#: solved to the caller's tolerance under pressure control).
-PATH_TOLERANCE = 1e-8
+#: solved to the caller's tolerance under pressure control). The path's points only feed the predictor: 1e-8
+#: took one more iteration a step than this on builtin:converged, the same end points.
+PATH_TOLERANCE = 1e-6
 #: The control volume constraint, relative to the control's rest value.
 CONTROL_TOLERANCE = 1e-11
 CROSSING_ITERATIONS = 30
@@ -90,13 +95,25 @@ VOLUME_KRYLOV_TOLERANCE = 1e-4
 VOLUME_KRYLOV_ITERATIONS = 40
 
 
+@dataclass(frozen=True)
+class PathRate:
+    """The path's direction at an equilibrium, per m^3 of the control volume: node positions (n, 3), load factor,
+    and a 10-node body's element pressures (None for a 4-node body)."""
+
+    positions_m_per_m3: FloatArray
+    load_factor_per_m3: float
+    pressures_pa_per_m3: FloatArray | None
+
+
 @dataclass
 class PathPoint:
-    """An equilibrium on the path: load factor, node positions (n, 3) m, control volume (m^3)."""
+    """An equilibrium on the path: load factor, node positions (n, 3) m, control volume (m^3), and the path's
+    direction there where it was solved (``rate``, for the cubic predictor)."""
 
     load_factor: float
     positions_m: FloatArray
     control_m3: float
+    rate: PathRate | None = None
 
 
 @dataclass
@@ -135,6 +152,8 @@ class _VolumeStep:
     iterations: int
     reason: str = ""
     worst_element: int = -1
+    #: the tangent factorised at the last iterate (None where the step took no iteration or solved by CG)
+    factor: Factor | None = None
 
 
 class _Path:
@@ -242,7 +261,7 @@ class _Path:
         if not self.problem.preconditioned:
             return 1.0
         displacement = self.problem.rest_factorization().solve(self.problem.load_n(self.start_m))
-        gradients = self.body.volume_gradients(self.start_m)[: self.body.n_chambers]
+        gradients = self.body.chamber_volume_gradients(self.start_m)
         chambers = self.body.chamber_volumes_m3(self.start_m)
         growth = float(np.max(np.abs(gradients @ displacement) / chambers))
         return 1.0 if growth <= FIRST_STEP_GROWTH else FIRST_STEP_GROWTH / growth
@@ -254,18 +273,24 @@ class _Path:
 
     # --- volume control ----------------------------------------------------------------------------------
 
-    def _tangent_direction(self, point: PathPoint) -> tuple[FloatArray, float] | None:
-        """d(positions)/d(c) and d(lam)/d(c) at an equilibrium, from ``K b = q``: ``dx/dc = b / (h . b)``; None
-        where the tangent gives no forward direction."""
-        factor = self.problem.at_load_factor(point.load_factor).tangent(point.positions_m, exact=True)
+    def _tangent_direction(self, point: PathPoint, factor: Factor | None = None) -> PathRate | None:
+        """The path's direction at an equilibrium from ``K b = q``: ``dx/dc = b / (h . b)``, ``dlam/dc = 1 / (h .
+        b)``, a 10-node body's element pressures ``K dJbar/dc``; None where the tangent gives no forward direction.
+        ``factor``: a factorised tangent near ``point`` (a volume step's last iterate's) instead of a new one."""
+        if factor is None:
+            factor = self.problem.at_load_factor(point.load_factor).tangent(point.positions_m, exact=True)
         b = factor.solve(self.problem.load_n(point.positions_m))
         curvature = float(self._control_gradient(point.positions_m) @ b)
         if not np.isfinite(curvature) or curvature <= 0:
             return None
-        return b.reshape(-1, 3) / curvature, 1.0 / curvature
+        direction = b.reshape(-1, 3) / curvature
+        pressures = (self.body.material.bulk_modulus_pa * self.body.element_volume_ratio_rates(point.positions_m,
+                                                                                                direction)
+                     if self.problem.mixed else None)
+        return PathRate(direction, 1.0 / curvature, pressures)
 
     def _control_gradient(self, positions_m: FloatArray) -> FloatArray:
-        gradients = self.body.volume_gradients(positions_m)[: self.body.n_chambers]
+        gradients = self.body.chamber_volume_gradients(positions_m)
         gradient: FloatArray = self.weights @ gradients
         gradient[self.constraints.dofs] = 0.0
         return gradient
@@ -284,9 +309,19 @@ class _Path:
             target = point.control_m3 + control_step
             guess_m, guess_factor, guess_pa = self._volume_guess(history, point, target)
             if guess_factor >= 1.0 and len(history) >= 2 and bisections == 0:
-                final = self._final_from_prediction(history, point, target, guess_factor)
-                if final is not None:
-                    return final
+                span = point.control_m3 - history[-2].control_m3
+                crossing_m3 = self._crossing(point, target, guess_factor)
+                if crossing_m3 is not None and crossing_m3 - point.control_m3 > span:
+                    # The predictor puts lam = 1 more than one span past the last point, where its cubic (or
+                    # quadratic) is extrapolated furthest: on builtin:converged at (3,3,3) kPa it put lam = 1.09
+                    # where 0.84 was, and Newton at the exact pressures from there failed (8 iterations), then the
+                    # step itself (a bisection). One span's step first, where the predictor is near.
+                    control_step, target = span, point.control_m3 + span
+                    guess_m, guess_factor, guess_pa = self._volume_guess(history, point, target)
+                elif crossing_m3 is not None:
+                    final = self._final_from_prediction(history, point, crossing_m3)
+                    if final is not None:
+                        return final
             worst = self.problem.worst_element(guess_m)
             if worst >= 0:  # the predictor itself inverts an element: a shorter step, no Newton spent
                 step = _VolumeStep(False, None, 0, "solve would invert elements", worst)
@@ -302,6 +337,8 @@ class _Path:
                 continue
             new = step.point
             assert new is not None  # a converged step has its point
+            if step.factor is not None:
+                new.rate = self._tangent_direction(new, step.factor)
             self.steps += 1
             history = [*history[-(PREDICTOR_POINTS - 1):], new]
             if new.load_factor >= 1.0:
@@ -315,7 +352,7 @@ class _Path:
                 raise self._unreachable(point, "past the limit point")
             if point.control_m3 > MAX_CONTROL_GROWTH * self.control_rest_m3:
                 raise self._unreachable(point, "the volume grows without the pressure reaching the target")
-            if step.iterations <= 5 and bisections == 0:
+            if step.iterations <= DOUBLING_ITERATIONS and bisections == 0:
                 control_step *= 2.0
             bisections = 0
         raise self._unreachable(point, f"the path took more than {MAX_PATH_STEPS} volume steps")
@@ -328,16 +365,42 @@ class _Path:
         10-node body's element pressures extrapolated alike (None: eliminated at the guess). A quadratic guess
         that would invert an element gives way to the secant's."""
         if len(history) >= 2 and np.all(np.diff([p.control_m3 for p in history]) > 0):
+            cubic = self._hermite(history[-2], history[-1], target_m3)
+            if cubic is not None and self._upright(cubic[0]):
+                return cubic
             for count in range(len(history), 1, -1):
                 guess, factor, pressures = self._extrapolated(history[-count:], target_m3)
                 if count == 2 or self._upright(guess):
                     return guess, factor, pressures
-        tangent = self._tangent_direction(point)
+        tangent = point.rate = point.rate or self._tangent_direction(point)
         if tangent is None:
             return point.positions_m, point.load_factor, None
-        direction, factor_rate = tangent
         change = target_m3 - point.control_m3
-        return point.positions_m + change * direction, point.load_factor + change * factor_rate, None
+        return (point.positions_m + change * tangent.positions_m_per_m3,
+                point.load_factor + change * tangent.load_factor_per_m3, None)
+
+    def _hermite(self, before: PathPoint, last: PathPoint,
+                 target_m3: float) -> tuple[FloatArray, float, FloatArray | None] | None:
+        """The cubic through two equilibria with the path's direction at each (Hermite's, in the control volume)
+        at ``target_m3``: positions, load factor, element pressures; None where a point has no direction."""
+        if before.rate is None or last.rate is None:
+            return None
+        span = last.control_m3 - before.control_m3
+        t = (target_m3 - before.control_m3) / span
+        # the Hermite basis: values at 0 and 1, then derivatives (per unit of t) at 0 and 1
+        weights = np.array([2 * t**3 - 3 * t**2 + 1, -2 * t**3 + 3 * t**2, span * (t**3 - 2 * t**2 + t),
+                            span * (t**3 - t**2)])
+        rates = (before.rate, last.rate)
+        guess: FloatArray = (weights[0] * before.positions_m + weights[1] * last.positions_m
+                             + weights[2] * rates[0].positions_m_per_m3 + weights[3] * rates[1].positions_m_per_m3)
+        factor = float(weights[0] * before.load_factor + weights[1] * last.load_factor
+                       + weights[2] * rates[0].load_factor_per_m3 + weights[3] * rates[1].load_factor_per_m3)
+        pressures = None
+        if self.problem.mixed and rates[0].pressures_pa_per_m3 is not None and rates[1].pressures_pa_per_m3 is not None:
+            values = self._combined_pressures([before, last], weights[:2])
+            assert values is not None  # a mixed body's
+            pressures = values + weights[2] * rates[0].pressures_pa_per_m3 + weights[3] * rates[1].pressures_pa_per_m3
+        return guess, factor, pressures
 
     def _extrapolated(self, points: list[PathPoint], target_m3: float) -> tuple[FloatArray, float, FloatArray | None]:
         """The Lagrange polynomial through ``points`` (in the control volume) at ``target_m3``: positions, load
@@ -361,16 +424,21 @@ class _Path:
         combined: FloatArray = np.asarray(weights) @ eliminated
         return combined
 
-    def _final_from_prediction(self, history: list[PathPoint], point: PathPoint, target_m3: float,
-                               guess_factor: float) -> FloatArray | None:
-        """The next volume step is predicted to carry the load factor past 1: Newton at the exact pressures from
-        the predictor where it reaches 1 (the control volume where the line from ``point`` to the prediction at
-        ``target_m3`` crosses lam = 1), at most FINAL_NEWTON_ITERATIONS; the equilibrium, or None (no iteration
-        is lost to the path: it steps on, and a step past lam = 1 is bracketed by :meth:`_cross`)."""
+    @staticmethod
+    def _crossing(point: PathPoint, target_m3: float, guess_factor: float) -> float | None:
+        """The control volume where the line from ``point`` to the prediction ``guess_factor`` at ``target_m3``
+        crosses lam = 1; None where the prediction does not rise."""
         if guess_factor <= point.load_factor:
             return None
-        crossing_m3 = point.control_m3 + (1.0 - point.load_factor) / (guess_factor - point.load_factor) * (
+        return point.control_m3 + (1.0 - point.load_factor) / (guess_factor - point.load_factor) * (
             target_m3 - point.control_m3)
+
+    def _final_from_prediction(self, history: list[PathPoint], point: PathPoint,
+                               crossing_m3: float) -> FloatArray | None:
+        """The next volume step is predicted to carry the load factor past 1: Newton at the exact pressures from
+        the predictor at ``crossing_m3``, where it reaches 1 (:meth:`_crossing`), at most FINAL_NEWTON_ITERATIONS;
+        the equilibrium, or None (no iteration is lost to the path: it steps on, and a step past lam = 1 is
+        bracketed by :meth:`_cross`)."""
         guess_m, _, guess_pa = self._volume_guess(history, point, crossing_m3)
         return self._final_newton(guess_m, guess_pa)
 
@@ -413,6 +481,7 @@ class _Path:
         # search on nearly every 7 mm step (three element passes) and then made anyway.
         krylov = not self.krylov_failed and self.problem.preconditioned and not self.problem.mixed
         crawling = 0
+        factor: Factor | None = None
         state = self._volume_residual(positions_m, load_factor, target_m3, carried, with_tangent=not krylov)
         if element_pressures_pa is not None:
             state = self._with_eliminated(state, positions_m, load_factor)
@@ -420,10 +489,11 @@ class _Path:
             residual, gap, merit = state.eliminated_n, state.gap_m3, state.merit
             if (np.linalg.norm(residual[free]) <= PATH_TOLERANCE * self.load_scale
                     and abs(gap) <= CONTROL_TOLERANCE * self.control_rest_m3):
-                return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1)
+                return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1, factor=factor)
             load = self.problem.load_n(positions_m)
             solutions = (self._krylov_solves(positions_m, load_factor, (-residual, load), carried) if krylov
                          else None)
+            factor = None
             if solutions is None:
                 self.krylov_failed = self.krylov_failed or krylov
                 krylov = False

@@ -118,7 +118,7 @@ class EquilibriumProblem:
     def load_n(self, positions_m: FloatArray) -> FloatArray:
         """The load per unit load factor at ``positions_m`` (3n,) N: the pressures' ``sum_c p_c dV_c/dx`` (the
         walls' own configuration; a follower load) and the body force's, zero at held dofs."""
-        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
+        load = load_from_gradients_n(self.pressures_pa, self.body.chamber_volume_gradients(positions_m))
         load += self.body_force_load_n()
         load[self.constraints.dofs] = 0.0
         return load
@@ -136,9 +136,9 @@ class EquilibriumProblem:
         or the dead load ``sum p dV/dx(start) + f_b`` and ``-load . x`` (linear)."""
         gravity = self.body_force_load_n()
         if self.formulation == "linear":
-            load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m)) + gravity
+            load = load_from_gradients_n(self.pressures_pa, self.body.chamber_volume_gradients(self.start_m)) + gravity
             return load, -float(np.einsum("i,i->", load, positions_m.ravel()))
-        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m)) + gravity
+        load = load_from_gradients_n(self.pressures_pa, self.body.chamber_volume_gradients(positions_m)) + gravity
         return load, -float(self.pressures_pa @ self.body.chamber_volumes_m3(positions_m)
                             + np.einsum("i,i->", gravity, positions_m.ravel()))
 
