@@ -424,6 +424,15 @@ class SolidBody:
         pressures_pa: FloatArray = self.material.bulk_modulus_pa * (volume_ratios - 1.0 + volume_ratio_changes)
         return pressures_pa
 
+    def element_pressure_forces_n(self, positions_m: FloatArray, element_pressures_pa: FloatArray) -> FloatArray:
+        """A 10-node body's nodal forces (3n,) N of element pressures (m,) alone, ``sum_e p_e dV_e/dx``: how the
+        elastic forces change when the pressures do (they are linear in them)."""
+        assert self.quadratic is not None  # only 10-node bodies have the mixed pressure field
+        forces_n = np.zeros_like(positions_m)
+        kernels.add_element_pressure_forces(positions_m, self.tets, self.quadratic.volume_derivatives,
+                                            self.quadratic.volume_weights, element_pressures_pa, forces_n)
+        return forces_n.ravel()
+
     def volume_constraint_error_n(self, volume_ratios: FloatArray, element_pressures_pa: FloatArray) -> FloatArray:
         """How far carried element pressures (m,) are from the volume ratios' ``K (Jbar - 1)``, as a force (N):
         ``mu V_e^(2/3) (Jbar - 1 - p / K)``, the constraint's error weighed at the shear modulus, not the bulk (the

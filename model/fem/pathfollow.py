@@ -497,7 +497,7 @@ class _Path:
         factor: Factor | None = None
         state = self._volume_residual(positions_m, load_factor, target_m3, carried, with_tangent=not krylov)
         if element_pressures_pa is not None:
-            state = self._with_eliminated(state, positions_m, load_factor)
+            state = self._with_eliminated(state, positions_m, element_pressures_pa)
         for iteration in range(1, VOLUME_NEWTON_ITERATIONS + 1):
             residual, gap, merit = state.eliminated_n, state.gap_m3, state.merit
             if (np.linalg.norm(residual[free]) <= PATH_TOLERANCE * self.load_scale
@@ -549,7 +549,7 @@ class _Path:
                 return _VolumeStep(False, None, iteration, reason, worst)
             positions_m, load_factor, carried, state = accepted
             if carried is not None:  # the convergence test and the next right-hand side: eliminated pressures
-                state = self._with_eliminated(state, positions_m, load_factor)
+                state = self._with_eliminated(state, positions_m, carried)
             # Crawling: tiny admissible steps in a row mean an element is being squeezed flat (or a Gent element
             # is locking) on the way to the target volume; a smaller volume step is the cure, not more iterations.
             crawling = crawling + 1 if halving >= CRAWL_HALVINGS else 0
@@ -599,11 +599,13 @@ class _Path:
         return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n, ratios,
                             evaluation.tangent_data)
 
-    def _with_eliminated(self, state: _VolumeState, positions_m: FloatArray, load_factor: float) -> _VolumeState:
-        """``state`` with its residual at eliminated pressures (the convergence test's and Newton's right-hand
-        side)."""
-        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m)
-        return dataclasses.replace(state, eliminated_n=evaluation.residual_n)
+    def _with_eliminated(self, state: _VolumeState, positions_m: FloatArray,
+                         carried_pa: FloatArray) -> _VolumeState:
+        """``state`` (at carried pressures ``carried_pa``) with its residual at eliminated pressures (the
+        convergence test's and Newton's right-hand side)."""
+        assert state.volume_ratios is not None  # a state at carried pressures has its volume ratios
+        return dataclasses.replace(state, eliminated_n=self.problem.eliminated_residual_n(
+            positions_m, state.residual_n, state.volume_ratios, carried_pa))
 
     def _cross(self, below: PathPoint, above: PathPoint) -> FloatArray:
         """The equilibrium at lam = 1 between two path points: Illinois regula falsi on the control volume,

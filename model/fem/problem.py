@@ -158,6 +158,17 @@ class EquilibriumProblem:
         return Evaluation(residual, elastic.energy_j + load_energy, elastic.smallest_det,
                           elastic.tangent_data if with_tangent else None)
 
+    def eliminated_residual_n(self, positions_m: FloatArray, carried_residual_n: FloatArray,
+                              volume_ratios: FloatArray, element_pressures_pa: FloatArray) -> FloatArray:
+        """A 10-node body's residual (3n,) at eliminated pressures, ``K (Jbar - 1)``, from its residual at carried
+        ones ``element_pressures_pa`` at the same positions (volume ratios ``Jbar``): they differ by the pressures'
+        change times the elements' volume gradients, one pass over the elements' volumes instead of an evaluation
+        (the law at every quadrature point, the load)."""
+        change_pa = self.body.eliminated_pressures_pa(volume_ratios) - element_pressures_pa
+        residual = carried_residual_n + self.body.element_pressure_forces_n(positions_m, change_pa)
+        residual[self.constraints.dofs] = 0.0
+        return residual
+
     def tangent_data(self, positions_m: FloatArray, element_pressures_pa: FloatArray | None = None) -> FloatArray:
         """The exact tangent's CSR data (N/m) at ``positions_m``, with the follower-pressure stiffness (and a
         10-node body's carried element pressures in its ``p d2v`` term, if given)."""
