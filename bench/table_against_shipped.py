@@ -2,8 +2,12 @@
 of each volume (relative to the value) and of each node's position at each grid point (mm).
 
 The shapes are stored as float32 modes and coefficients fitted per build, so two builds of the same solves may have
-other modes of the same space: the positions they give are compared, not the arrays. The previous whole build
-matched to 4e-11 of each volume and 1e-6 mm at every node (bench/README.md, "The table's cost per point").
+other modes of the same space: the positions they give are compared, not the arrays. A grid point's Newton stops at
+1e-7 of the load (``response_table.POINT_TOLERANCE``), so two builds whose solves took other iterates differ by
+about that much: the whole build of 2026-11-27 17:51 matched to 4e-11 of each volume, the one of 22:00 (after
+issue 40's solver changes) to 4.3e-11, both 1e-6 mm or better at every node; the tolerances below are 1e-9 of each
+volume and 1e-6 mm, far inside the files' own stated accuracy (their check errors, 0.139 % and 0.260 mm), which
+are compared too.
 
     .venv/bin/python bench/table_against_shipped.py t.npz s.npz
 """
@@ -16,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 SHIPPED = Path(__file__).resolve().parent.parent / "model" / "scenes"
-VOLUME_TOLERANCE = 4e-11
+VOLUME_TOLERANCE = 1e-9
 POSITION_TOLERANCE_MM = 1e-6
 
 
@@ -37,6 +41,7 @@ def main() -> None:
             worst = float(np.max(np.abs(built[key] - shipped[key]) / np.abs(shipped[key])))
             ok &= worst <= VOLUME_TOLERANCE
             print(f"volumes {key}: most off {worst:.1e} of the value (tolerance {VOLUME_TOLERANCE:g})")
+        ok &= bool(np.isclose(built["check_errors_pct"], shipped["check_errors_pct"], rtol=1e-3))
         print(f"volumes check error: built {float(built['check_errors_pct']):.4g} %, shipped "
               f"{float(shipped['check_errors_pct']):.4g} %; build time {float(built['build_time_s']):.0f} s")
     with np.load(args.shapes) as built, np.load(SHIPPED / "prostate_converged.shapes.npz") as shipped:
@@ -49,6 +54,7 @@ def main() -> None:
             worst = float(np.max(np.abs(built[key] - shipped[key]) / np.abs(shipped[key])))
             ok &= worst <= VOLUME_TOLERANCE
             print(f"shapes' volumes {key}: most off {worst:.1e}")
+        ok &= bool(np.isclose(built["check_error_m"], shipped["check_error_m"], rtol=1e-3))
         print(f"shapes check error: built {float(built['check_error_m']) * 1e3:.4g} mm, shipped "
               f"{float(shipped['check_error_m']) * 1e3:.4g} mm")
     print("equal to the shipped files within the tolerances" if ok else "NOT equal to the shipped files")
