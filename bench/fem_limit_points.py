@@ -15,7 +15,12 @@ import argparse
 import os
 import time
 
-from phantom.model import PhantomModel, load_scene
+# one BLAS thread, as `phantom forward` runs (phantom/cli/model.py): numpy's threaded OpenBLAS only loses time to
+# thread wake-ups on two busy cores
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+from phantom.model import PhantomModel, load_scene  # noqa: E402
 
 #: The gland volume (ml) and (iterations, accepted steps) at each point from rest with the path following before
 #: issue 40 (main at d0626fb: a first pressure step, then volume control from rest where it failed; secant

@@ -353,8 +353,13 @@ class SolidBody:
 
     def volume_gradients(self, positions_m: FloatArray) -> FloatArray:
         """``H``: (n_chambers + 1, 3 n) gradients of each chamber's volume and of the gland's (m^2)."""
-        surfaces = [*self.chamber_faces, self.outer_faces]
-        return np.stack([volume_gradient_m2(positions_m, faces).ravel() for faces in surfaces])
+        return np.concatenate([self.chamber_volume_gradients(positions_m),
+                               volume_gradient_m2(positions_m, self.outer_faces).reshape(1, -1)])
+
+    def chamber_volume_gradients(self, positions_m: FloatArray) -> FloatArray:
+        """(n_chambers, 3 n) gradients of each chamber's volume (m^2): the pressure load's, without the gland's
+        outer surface (as many faces as the chambers' together on the prostate)."""
+        return np.stack([volume_gradient_m2(positions_m, faces).ravel() for faces in self.chamber_faces])
 
     # --- elements --------------------------------------------------------------------------------------------
 
@@ -397,19 +402,18 @@ class SolidBody:
         if self.quadratic is None:
             return self.deformation_determinants(positions_m)
         data = self.quadratic
-        jacobians = np.einsum("eai,qak->eqik", positions_m[self.tets], data.volume_derivatives)
-        ratios: FloatArray = np.linalg.det(jacobians) @ data.volume_weights / data.volumes_m3
+        ratios: FloatArray = kernels.mixed_volume_ratios(positions_m, self.tets, data.volumes_m3,
+                                                         data.volume_derivatives, data.volume_weights)
         return ratios
 
     def element_volume_ratio_rates(self, positions_m: FloatArray, direction_m: FloatArray) -> FloatArray:
         """A 10-node body's ``d Jbar / ds`` of each element (m,) at ``positions_m`` moving along ``direction_m``
-        (n, 3): ``sum_q w_q det(J_q) tr(J_q^-1 dJ_q) / V_e``, the linearised change of its volume ratio."""
+        (n, 3): its volume's gradient dotted with its nodes' moves, over its rest volume (Jacobi's formula,
+        ``sum_q w_q det(J_q) tr(J_q^-1 dJ_q) / V_e``), the linearised change of its volume ratio."""
         assert self.quadratic is not None  # only 10-node bodies have the mixed pressure field
         data = self.quadratic
-        jacobians = np.einsum("eai,qak->eqik", positions_m[self.tets], data.volume_derivatives)
-        changes = np.einsum("eai,qak->eqik", direction_m[self.tets], data.volume_derivatives)
-        traces = np.einsum("eqij,eqji->eq", np.linalg.inv(jacobians), changes)
-        rates: FloatArray = (np.linalg.det(jacobians) * traces) @ data.volume_weights / data.volumes_m3
+        rates: FloatArray = kernels.mixed_volume_ratio_rates(positions_m, direction_m, self.tets, data.volumes_m3,
+                                                             data.volume_derivatives, data.volume_weights)
         return rates
 
     def eliminated_pressures_pa(self, volume_ratios: FloatArray,
@@ -419,6 +423,15 @@ class SolidBody:
         ``K (Jbar - 1 + dJbar)`` (the mixed Newton's, :func:`phantom.model.fem.newton.mixed_newton`)."""
         pressures_pa: FloatArray = self.material.bulk_modulus_pa * (volume_ratios - 1.0 + volume_ratio_changes)
         return pressures_pa
+
+    def element_pressure_forces_n(self, positions_m: FloatArray, element_pressures_pa: FloatArray) -> FloatArray:
+        """A 10-node body's nodal forces (3n,) N of element pressures (m,) alone, ``sum_e p_e dV_e/dx``: how the
+        elastic forces change when the pressures do (they are linear in them)."""
+        assert self.quadratic is not None  # only 10-node bodies have the mixed pressure field
+        forces_n = np.zeros_like(positions_m)
+        kernels.add_element_pressure_forces(positions_m, self.tets, self.quadratic.volume_derivatives,
+                                            self.quadratic.volume_weights, element_pressures_pa, forces_n)
+        return forces_n.ravel()
 
     def volume_constraint_error_n(self, volume_ratios: FloatArray, element_pressures_pa: FloatArray) -> FloatArray:
         """How far carried element pressures (m,) are from the volume ratios' ``K (Jbar - 1)``, as a force (N):

@@ -61,6 +61,12 @@ EXPORTS = {
                      "f8[:, :, ::1], f8[::1], i8, f8[::1], f8, i8, i8[:, :, ::1], i8[::1], f8[::1], f8[::1])"),
     "mixed_determinants": (("f8", "i8", "f8", "f8", "f8", "f8"),
                            "f8[::1](f8[:, ::1], i8[:, ::1], f8[:, :, :, ::1], f8[::1], f8[:, :, ::1], f8[::1])"),
+    "add_element_pressure_forces": (("f8", "i8", "f8", "f8", "f8", "out"),
+                                    "void(f8[:, ::1], i8[:, ::1], f8[:, :, ::1], f8[::1], f8[::1], f8[:, ::1])"),
+    "mixed_volume_ratios": (("f8", "i8", "f8", "f8", "f8"),
+                            "f8[::1](f8[:, ::1], i8[:, ::1], f8[::1], f8[:, :, ::1], f8[::1])"),
+    "mixed_volume_ratio_rates": (("f8", "f8", "i8", "f8", "f8", "f8"),
+                                 "f8[::1](f8[:, ::1], f8[:, ::1], i8[:, ::1], f8[::1], f8[:, :, ::1], f8[::1])"),
     "add_quadratic_pressure_stiffness": (("f8", "i8", None, "f8", "f8", "f8", "i8", "i4", "out"),
                                          "void(f8[:, ::1], i8[:, ::1], f8, f8[:, ::1], f8[:, :, ::1], f8[::1], "
                                          "i8[::1], i4[::1], f8[::1])"),
@@ -775,6 +781,65 @@ def mixed_determinants(positions_m: FloatArray, tets: IntArray, gradients: Float
                 least = det
         smallest[e] = least
     return smallest
+
+
+@kernel
+def mixed_volume_ratios(positions_m: FloatArray, tets: IntArray, rest_volumes_m3: FloatArray,
+                        volume_derivatives: FloatArray, volume_weights: FloatArray) -> FloatArray:
+    """Each 10-node element's current over rest volume, its ``Jbar`` (m,)."""
+    ratios = np.empty(tets.shape[0])
+    x = np.empty((10, 3))
+    jacobians = np.empty((volume_weights.shape[0], 3, 3))
+    volume_gradient = np.empty((10, 3))
+    for e in range(tets.shape[0]):
+        for a in range(10):
+            for i in range(3):
+                x[a, i] = positions_m[tets[e, a], i]
+        volume_m3 = _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient)
+        ratios[e] = volume_m3 / rest_volumes_m3[e]
+    return ratios
+
+
+@kernel
+def add_element_pressure_forces(positions_m: FloatArray, tets: IntArray, volume_derivatives: FloatArray,
+                                volume_weights: FloatArray, element_pressures_pa: FloatArray,
+                                forces_n: FloatArray) -> None:
+    """``forces_n`` (n, 3) += each 10-node element's pressure times its volume's gradient, ``sum_e p_e dV_e/dx``:
+    the pressure part of :func:`mixed_forces`' forces, which is linear in the pressures."""
+    x = np.empty((10, 3))
+    jacobians = np.empty((volume_weights.shape[0], 3, 3))
+    volume_gradient = np.empty((10, 3))
+    for e in range(tets.shape[0]):
+        for a in range(10):
+            for i in range(3):
+                x[a, i] = positions_m[tets[e, a], i]
+        _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient)
+        for a in range(10):
+            for i in range(3):
+                forces_n[tets[e, a], i] += element_pressures_pa[e] * volume_gradient[a, i]
+
+
+@kernel
+def mixed_volume_ratio_rates(positions_m: FloatArray, direction_m: FloatArray, tets: IntArray,
+                             rest_volumes_m3: FloatArray, volume_derivatives: FloatArray,
+                             volume_weights: FloatArray) -> FloatArray:
+    """Each 10-node element's ``d Jbar / ds`` (m,) at ``positions_m`` moving along ``direction_m`` (n, 3): its
+    volume's gradient dotted with the element's nodes' moves, over its rest volume."""
+    rates = np.empty(tets.shape[0])
+    x = np.empty((10, 3))
+    jacobians = np.empty((volume_weights.shape[0], 3, 3))
+    volume_gradient = np.empty((10, 3))
+    for e in range(tets.shape[0]):
+        for a in range(10):
+            for i in range(3):
+                x[a, i] = positions_m[tets[e, a], i]
+        _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient)
+        total = 0.0
+        for a in range(10):
+            for i in range(3):
+                total += volume_gradient[a, i] * direction_m[tets[e, a], i]
+        rates[e] = total / rest_volumes_m3[e]
+    return rates
 
 
 @kernel

@@ -20,6 +20,7 @@ import numpy as np
 import phantom
 from phantom.model.arrays import FloatArray, IntArray
 from phantom.model.errors import MeshError, SolveError
+from phantom.model.fem import heap
 from phantom.model.fem.body import Factor, SolidBody
 from phantom.model.fem.linsolve import Factorization, indefinite_method
 from phantom.model.fem.newton import RELATIVE_TOLERANCE, newton
@@ -277,6 +278,7 @@ class PhantomModel:
         return EquilibriumProblem(self.body, pressures, formulation, start, self.body.constraints_for(frame_m),
                                   body_force.copy())
 
+    @heap.solving()
     def equilibrium(self, pressures_pa: FloatArray | list[float], formulation: str | None = None,
                     initial_positions_m: FloatArray | None = None, tolerance: float = RELATIVE_TOLERANCE,
                     body_force_n_per_m3: FloatArray | list[float] | None = None,
@@ -412,7 +414,7 @@ class PhantomModel:
         stiffness = self.stiffness_matrix(positions_m, formulation, pressures_pa=pressures_pa).tocsr()
         magnitudes = abs(stiffness)
         held = np.asarray(magnitudes.sum(axis=1)).ravel() == magnitudes.diagonal()
-        gradients = self.volume_gradients(positions_m)[:-1]
+        gradients = self.body.chamber_volume_gradients(positions_m)
         gradients[:, held] = 0.0
         try:
             factorization = Factorization(stiffness)
@@ -427,7 +429,7 @@ class PhantomModel:
     def _small_strain_displacement(self, load_positions_m: FloatArray) -> FloatArray:
         """``D = K^-1 H(x_L)^T`` (n_chambers, 3n), m/Pa: the small-strain displacement per pascal of each chamber
         with the load taken on ``load_positions_m`` (held dofs do not move)."""
-        gradients = self.volume_gradients(load_positions_m)[:-1]
+        gradients = self.body.chamber_volume_gradients(load_positions_m)
         held = ~self.body.rest_constraints.free_mask
         gradients[:, held] = 0.0
         displacement = self.rest_factorization().solve(gradients.T).T

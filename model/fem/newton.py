@@ -206,14 +206,14 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
     assert body.quadratic is not None  # only 10-node bodies have the mixed pressure field
     ratios = body.element_volume_ratios(positions_m)
     pressures_pa = body.eliminated_pressures_pa(ratios) if element_pressures_pa is None else element_pressures_pa
-    eliminated = evaluation
+    eliminated_n = evaluation.residual_n
     carried = evaluation if element_pressures_pa is None else problem.evaluate(positions_m,
                                                                                 element_pressures_pa=pressures_pa)
     merit = _mixed_merit(body, carried.residual_n, ratios, pressures_pa)
     best_merit, best_iteration, previous_norm = np.inf, 0, np.inf
     tangent_data = None  # the exact tangent at the iterate, where the line search's element pass made it
     for iteration in range(1, max_iterations + 1):
-        residual_norm = norm(eliminated.residual_n)
+        residual_norm = norm(eliminated_n)
         stalled = residual_norm > 0.5 * previous_norm and residual_norm <= ROUNDING_TOLERANCE * load_scale
         if residual_norm <= tolerance * load_scale or stalled:
             return NewtonResult(positions_m, True, iteration - 1)
@@ -224,7 +224,7 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
             return NewtonResult(positions_m, False, iteration - 1, "mixed solve stalled")
         factorization = problem.tangent(positions_m, exact=True, damped=True, element_pressures_pa=pressures_pa,
                                         tangent_data=tangent_data)
-        direction = -factorization.solve(eliminated.residual_n).reshape(-1, 3)
+        direction = -factorization.solve(eliminated_n).reshape(-1, 3)
         pressure_step = body.eliminated_pressures_pa(ratios, body.element_volume_ratio_rates(positions_m, direction)) \
             - pressures_pa
         accepted = None
@@ -237,13 +237,14 @@ def mixed_newton(problem: EquilibriumProblem, positions_m: FloatArray, evaluatio
                 trial_ratios = body.element_volume_ratios(trial_m)
                 trial_merit = _mixed_merit(body, trial.residual_n, trial_ratios, trial_pa)
                 if trial_merit < merit:
-                    accepted = trial_m, trial_pa, trial_ratios, trial_merit, trial.tangent_data
+                    accepted = trial_m, trial_pa, trial_ratios, trial_merit, trial
                     break
             scale *= 0.5
         if accepted is None:
             return NewtonResult(positions_m, False, iteration, "mixed step found no descent")
-        positions_m, pressures_pa, ratios, merit, tangent_data = accepted
-        eliminated = problem.evaluate(positions_m)
+        positions_m, pressures_pa, ratios, merit, carried = accepted
+        tangent_data = carried.tangent_data
+        eliminated_n = problem.eliminated_residual_n(positions_m, carried.residual_n, ratios, pressures_pa)
     return NewtonResult(positions_m, False, max_iterations, "mixed solve did not converge")
 
 

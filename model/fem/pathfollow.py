@@ -20,8 +20,10 @@ the rest factor while it converges, else K factorised at every iterate, so limit
 pressure-controlled problem, where K is singular along the volume mode, are passed. K is factorised as Newton's
 is: CHOLMOD, shifted towards positive definite where it is not (a predictor off the path can be indefinite). A
 shifted K gives a damped step, not Newton's, which the merit's line search accepts or refuses. Each step starts
-from a quadratic through the last three equilibria in the control volume (a secant through two, the tangent
-from one), a 10-node body's element pressures extrapolated as the positions are. When the next step is predicted
+from Hermite's cubic through the last two equilibria and the path's direction at each (``K b = q`` with the
+tangent factorised at a step's last iterate: one back-substitution), else a quadratic through the last three
+equilibria in the control volume (a secant through two, the tangent from one: at rest the kept small-strain
+factor), a 10-node body's element pressures extrapolated as the positions are. When the next step is predicted
 to carry lam past 1, Newton at the exact pressures starts from the predictor where lam reaches 1 (at most
 FINAL_NEWTON_ITERATIONS); where it does not converge the path steps on, and a step past lam = 1 is bracketed
 (Newton from the interpolation between the two, then Illinois regula falsi on c) until the final state is a
@@ -42,6 +44,7 @@ import numpy as np
 
 from phantom.model.arrays import FloatArray
 from phantom.model.errors import SolveError
+from phantom.model.fem.body import Factor
 from phantom.model.fem.newton import LINE_SEARCH_HALVINGS, newton, preconditioned_cg
 from phantom.model.fem.problem import EquilibriumProblem
 
@@ -69,9 +72,14 @@ CONFIRMED_FALL_STEPS = 2
 #: ... or when the control volume exceeds this multiple of its rest value.
 MAX_CONTROL_GROWTH = 20.0
 VOLUME_NEWTON_ITERATIONS = 30
+#: A volume step that converged in this many Newton iterations or fewer doubles the next. With the cubic predictor
+#: a step takes 2-4 (builtin:converged): doubling after 4 or 5 made the (3,3,3) kPa path's late steps take 7-10.
+DOUBLING_ITERATIONS = 3
 #: Residual of a volume-controlled equilibrium on the path, relative to the full load (the end point is then
-#: solved to the caller's tolerance under pressure control).
-PATH_TOLERANCE = 1e-8
+#: solved to the caller's tolerance under pressure control). The path's points only feed the predictor: 1e-8
+#: took one more iteration a step than 1e-6 on builtin:converged, and 1e-6 one more a path than this ((3,3,3)
+#: and (2,2,2) kPa; 1e-4 no fewer), the same end points.
+PATH_TOLERANCE = 1e-5
 #: The control volume constraint, relative to the control's rest value.
 CONTROL_TOLERANCE = 1e-11
 CROSSING_ITERATIONS = 30
@@ -90,13 +98,25 @@ VOLUME_KRYLOV_TOLERANCE = 1e-4
 VOLUME_KRYLOV_ITERATIONS = 40
 
 
+@dataclass(frozen=True)
+class PathRate:
+    """The path's direction at an equilibrium, per m^3 of the control volume: node positions (n, 3), load factor,
+    and a 10-node body's element pressures (None for a 4-node body)."""
+
+    positions_m_per_m3: FloatArray
+    load_factor_per_m3: float
+    pressures_pa_per_m3: FloatArray | None
+
+
 @dataclass
 class PathPoint:
-    """An equilibrium on the path: load factor, node positions (n, 3) m, control volume (m^3)."""
+    """An equilibrium on the path: load factor, node positions (n, 3) m, control volume (m^3), and the path's
+    direction there where it was solved (``rate``, for the cubic predictor)."""
 
     load_factor: float
     positions_m: FloatArray
     control_m3: float
+    rate: PathRate | None = None
 
 
 @dataclass
@@ -135,6 +155,8 @@ class _VolumeStep:
     iterations: int
     reason: str = ""
     worst_element: int = -1
+    #: the tangent factorised at the last iterate (None where the step took no iteration or solved by CG)
+    factor: Factor | None = None
 
 
 class _Path:
@@ -155,6 +177,8 @@ class _Path:
         self.control_rest_m3 = (abs(self._control(self.start_m))
                                 or float(np.max(self.body.rest_chamber_volumes_m3)))
         self.peak: PathPoint | None = None
+        #: the small-strain displacement (n, 3) m under the whole load from the start, where it was solved
+        self.small_strain_m: FloatArray | None = None
         #: conjugate gradients on a volume step's tangent failed once: later steps factorise it straight away
         self.krylov_failed = False
 
@@ -189,15 +213,32 @@ class _Path:
     def _predict(self, points: list[PathPoint], load_factor: float) -> tuple[FloatArray, FloatArray | None]:
         """Secant extrapolation of the last two equilibria to ``load_factor`` (the last one when that would
         invert an element, or with a single point), with a 10-node body's element pressures extrapolated alike
-        (None: eliminated at the guess)."""
+        (None: eliminated at the guess). From the start alone: :meth:`_small_strain_guess`."""
         if len(points) < 2:
-            return points[-1].positions_m, None
+            return self._small_strain_guess(points[-1], load_factor)
         last, before = points[-1], points[-2]
         ratio = (load_factor - last.load_factor) / (last.load_factor - before.load_factor)
         guess = last.positions_m + ratio * (last.positions_m - before.positions_m)
         if not self._upright(guess):
             return last.positions_m, None
         return guess, self._extrapolated_pressures(before, last, ratio)
+
+    def _small_strain_guess(self, start: PathPoint, load_factor: float) -> tuple[FloatArray, FloatArray | None]:
+        """The first pressure step's start: the small-strain answer at ``load_factor`` (:meth:`_first_increment`'s
+        back-substitution) with a 10-node body's element pressures its volume ratios give, ``K dJbar``; the start
+        itself where there is none or it would invert an element. From rest, (1,1,1) kPa on builtin:converged
+        took 6 iterations from it, 14 from rest; (2,0,0) 9, 18 (bench/README.md, "Through the limit points")."""
+        if self.small_strain_m is None or start.load_factor != 0.0:
+            return start.positions_m, None
+        change = load_factor * self.small_strain_m
+        guess = start.positions_m + change
+        if not self._upright(guess):
+            return start.positions_m, None
+        pressures = self._combined_pressures([start], np.ones(1))
+        if pressures is not None:
+            pressures = pressures + self.body.material.bulk_modulus_pa * self.body.element_volume_ratio_rates(
+                start.positions_m, change)
+        return guess, pressures
 
     def _extrapolated_pressures(self, before: PathPoint, last: PathPoint, ratio: float) -> FloatArray | None:
         """A 10-node body's element pressures extrapolated as the positions are, ``last + ratio (last - before)``
@@ -242,7 +283,8 @@ class _Path:
         if not self.problem.preconditioned:
             return 1.0
         displacement = self.problem.rest_factorization().solve(self.problem.load_n(self.start_m))
-        gradients = self.body.volume_gradients(self.start_m)[: self.body.n_chambers]
+        self.small_strain_m = displacement.reshape(-1, 3)
+        gradients = self.body.chamber_volume_gradients(self.start_m)
         chambers = self.body.chamber_volumes_m3(self.start_m)
         growth = float(np.max(np.abs(gradients @ displacement) / chambers))
         return 1.0 if growth <= FIRST_STEP_GROWTH else FIRST_STEP_GROWTH / growth
@@ -254,18 +296,24 @@ class _Path:
 
     # --- volume control ----------------------------------------------------------------------------------
 
-    def _tangent_direction(self, point: PathPoint) -> tuple[FloatArray, float] | None:
-        """d(positions)/d(c) and d(lam)/d(c) at an equilibrium, from ``K b = q``: ``dx/dc = b / (h . b)``; None
-        where the tangent gives no forward direction."""
-        factor = self.problem.at_load_factor(point.load_factor).tangent(point.positions_m, exact=True)
+    def _tangent_direction(self, point: PathPoint, factor: Factor | None = None) -> PathRate | None:
+        """The path's direction at an equilibrium from ``K b = q``: ``dx/dc = b / (h . b)``, ``dlam/dc = 1 / (h .
+        b)``, a 10-node body's element pressures ``K dJbar/dc``; None where the tangent gives no forward direction.
+        ``factor``: a factorised tangent near ``point`` (a volume step's last iterate's) instead of a new one."""
+        if factor is None:
+            factor = self.problem.at_load_factor(point.load_factor).tangent(point.positions_m, exact=True)
         b = factor.solve(self.problem.load_n(point.positions_m))
         curvature = float(self._control_gradient(point.positions_m) @ b)
         if not np.isfinite(curvature) or curvature <= 0:
             return None
-        return b.reshape(-1, 3) / curvature, 1.0 / curvature
+        direction = b.reshape(-1, 3) / curvature
+        pressures = (self.body.material.bulk_modulus_pa * self.body.element_volume_ratio_rates(point.positions_m,
+                                                                                                direction)
+                     if self.problem.mixed else None)
+        return PathRate(direction, 1.0 / curvature, pressures)
 
     def _control_gradient(self, positions_m: FloatArray) -> FloatArray:
-        gradients = self.body.volume_gradients(positions_m)[: self.body.n_chambers]
+        gradients = self.body.chamber_volume_gradients(positions_m)
         gradient: FloatArray = self.weights @ gradients
         gradient[self.constraints.dofs] = 0.0
         return gradient
@@ -284,9 +332,19 @@ class _Path:
             target = point.control_m3 + control_step
             guess_m, guess_factor, guess_pa = self._volume_guess(history, point, target)
             if guess_factor >= 1.0 and len(history) >= 2 and bisections == 0:
-                final = self._final_from_prediction(history, point, target, guess_factor)
-                if final is not None:
-                    return final
+                span = point.control_m3 - history[-2].control_m3
+                crossing_m3 = self._crossing(point, target, guess_factor)
+                if crossing_m3 is not None and crossing_m3 - point.control_m3 > span:
+                    # The predictor puts lam = 1 more than one span past the last point, where its cubic (or
+                    # quadratic) is extrapolated furthest: on builtin:converged at (3,3,3) kPa it put lam = 1.09
+                    # where 0.84 was, and Newton at the exact pressures from there failed (8 iterations), then the
+                    # step itself (a bisection). One span's step first, where the predictor is near.
+                    control_step, target = span, point.control_m3 + span
+                    guess_m, guess_factor, guess_pa = self._volume_guess(history, point, target)
+                elif crossing_m3 is not None:
+                    final = self._final_from_prediction(history, point, crossing_m3)
+                    if final is not None:
+                        return final
             worst = self.problem.worst_element(guess_m)
             if worst >= 0:  # the predictor itself inverts an element: a shorter step, no Newton spent
                 step = _VolumeStep(False, None, 0, "solve would invert elements", worst)
@@ -302,6 +360,8 @@ class _Path:
                 continue
             new = step.point
             assert new is not None  # a converged step has its point
+            if step.factor is not None:
+                new.rate = self._tangent_direction(new, step.factor)
             self.steps += 1
             history = [*history[-(PREDICTOR_POINTS - 1):], new]
             if new.load_factor >= 1.0:
@@ -315,29 +375,66 @@ class _Path:
                 raise self._unreachable(point, "past the limit point")
             if point.control_m3 > MAX_CONTROL_GROWTH * self.control_rest_m3:
                 raise self._unreachable(point, "the volume grows without the pressure reaching the target")
-            if step.iterations <= 5 and bisections == 0:
+            if step.iterations <= DOUBLING_ITERATIONS and bisections == 0:
                 control_step *= 2.0
             bisections = 0
         raise self._unreachable(point, f"the path took more than {MAX_PATH_STEPS} volume steps")
 
     def _volume_guess(self, history: list[PathPoint], point: PathPoint,
                       target_m3: float) -> tuple[FloatArray, float, FloatArray | None]:
-        """Predictor for a volume step: the last equilibria (up to PREDICTOR_POINTS: a quadratic through three,
-        whose error at a doubled step is a third of the secant's order) extrapolated in the control volume, else
-        the tangent at the last (the caller checks that it inverts no element): positions, load factor, and a
-        10-node body's element pressures extrapolated alike (None: eliminated at the guess). A quadratic guess
-        that would invert an element gives way to the secant's."""
+        """Predictor for a volume step: Hermite's cubic through the last two equilibria and the path's direction
+        at each (:meth:`_hermite`) where they carry it, else the last equilibria (up to PREDICTOR_POINTS: a
+        quadratic through three, whose error at a doubled step is a third of the secant's order) extrapolated in
+        the control volume, else the tangent at the last (the caller checks that it inverts no element):
+        positions, load factor, and a 10-node body's element pressures extrapolated alike (None: eliminated at the
+        guess). A guess that would invert an element gives way to the next of these. The cubic cut a (3,3,3) kPa
+        solve of builtin:converged from 40 to 27 iterations with the doubling rule (bench/README.md)."""
         if len(history) >= 2 and np.all(np.diff([p.control_m3 for p in history]) > 0):
+            cubic = self._hermite(history[-2], history[-1], target_m3)
+            if cubic is not None and self._upright(cubic[0]):
+                return cubic
             for count in range(len(history), 1, -1):
                 guess, factor, pressures = self._extrapolated(history[-count:], target_m3)
                 if count == 2 or self._upright(guess):
                     return guess, factor, pressures
-        tangent = self._tangent_direction(point)
+        at_rest = (point.load_factor == 0.0 and self.problem.preconditioned
+                   and np.array_equal(point.positions_m, self.body.nodes_m))
+        # at rest the exact tangent is the small-strain stiffness, whose factor is kept (and on disk)
+        tangent = point.rate = point.rate or self._tangent_direction(
+            point, self.problem.rest_factorization() if at_rest else None)
         if tangent is None:
             return point.positions_m, point.load_factor, None
-        direction, factor_rate = tangent
         change = target_m3 - point.control_m3
-        return point.positions_m + change * direction, point.load_factor + change * factor_rate, None
+        pressures = None
+        if tangent.pressures_pa_per_m3 is not None:
+            pressures = self._combined_pressures([point], np.ones(1))
+            assert pressures is not None  # a mixed body's
+            pressures = pressures + change * tangent.pressures_pa_per_m3
+        return (point.positions_m + change * tangent.positions_m_per_m3,
+                point.load_factor + change * tangent.load_factor_per_m3, pressures)
+
+    def _hermite(self, before: PathPoint, last: PathPoint,
+                 target_m3: float) -> tuple[FloatArray, float, FloatArray | None] | None:
+        """The cubic through two equilibria with the path's direction at each (Hermite's, in the control volume)
+        at ``target_m3``: positions, load factor, element pressures; None where a point has no direction."""
+        if before.rate is None or last.rate is None:
+            return None
+        span = last.control_m3 - before.control_m3
+        t = (target_m3 - before.control_m3) / span
+        # the Hermite basis: values at 0 and 1, then derivatives (per unit of t) at 0 and 1
+        weights = np.array([2 * t**3 - 3 * t**2 + 1, -2 * t**3 + 3 * t**2, span * (t**3 - 2 * t**2 + t),
+                            span * (t**3 - t**2)])
+        rates = (before.rate, last.rate)
+        guess: FloatArray = (weights[0] * before.positions_m + weights[1] * last.positions_m
+                             + weights[2] * rates[0].positions_m_per_m3 + weights[3] * rates[1].positions_m_per_m3)
+        factor = float(weights[0] * before.load_factor + weights[1] * last.load_factor
+                       + weights[2] * rates[0].load_factor_per_m3 + weights[3] * rates[1].load_factor_per_m3)
+        pressures = None
+        if self.problem.mixed and rates[0].pressures_pa_per_m3 is not None and rates[1].pressures_pa_per_m3 is not None:
+            values = self._combined_pressures([before, last], weights[:2])
+            assert values is not None  # a mixed body's
+            pressures = values + weights[2] * rates[0].pressures_pa_per_m3 + weights[3] * rates[1].pressures_pa_per_m3
+        return guess, factor, pressures
 
     def _extrapolated(self, points: list[PathPoint], target_m3: float) -> tuple[FloatArray, float, FloatArray | None]:
         """The Lagrange polynomial through ``points`` (in the control volume) at ``target_m3``: positions, load
@@ -361,16 +458,21 @@ class _Path:
         combined: FloatArray = np.asarray(weights) @ eliminated
         return combined
 
-    def _final_from_prediction(self, history: list[PathPoint], point: PathPoint, target_m3: float,
-                               guess_factor: float) -> FloatArray | None:
-        """The next volume step is predicted to carry the load factor past 1: Newton at the exact pressures from
-        the predictor where it reaches 1 (the control volume where the line from ``point`` to the prediction at
-        ``target_m3`` crosses lam = 1), at most FINAL_NEWTON_ITERATIONS; the equilibrium, or None (no iteration
-        is lost to the path: it steps on, and a step past lam = 1 is bracketed by :meth:`_cross`)."""
+    @staticmethod
+    def _crossing(point: PathPoint, target_m3: float, guess_factor: float) -> float | None:
+        """The control volume where the line from ``point`` to the prediction ``guess_factor`` at ``target_m3``
+        crosses lam = 1; None where the prediction does not rise."""
         if guess_factor <= point.load_factor:
             return None
-        crossing_m3 = point.control_m3 + (1.0 - point.load_factor) / (guess_factor - point.load_factor) * (
+        return point.control_m3 + (1.0 - point.load_factor) / (guess_factor - point.load_factor) * (
             target_m3 - point.control_m3)
+
+    def _final_from_prediction(self, history: list[PathPoint], point: PathPoint,
+                               crossing_m3: float) -> FloatArray | None:
+        """The next volume step is predicted to carry the load factor past 1: Newton at the exact pressures from
+        the predictor at ``crossing_m3``, where it reaches 1 (:meth:`_crossing`), at most FINAL_NEWTON_ITERATIONS;
+        the equilibrium, or None (no iteration is lost to the path: it steps on, and a step past lam = 1 is
+        bracketed by :meth:`_cross`)."""
         guess_m, _, guess_pa = self._volume_guess(history, point, crossing_m3)
         return self._final_newton(guess_m, guess_pa)
 
@@ -413,17 +515,19 @@ class _Path:
         # search on nearly every 7 mm step (three element passes) and then made anyway.
         krylov = not self.krylov_failed and self.problem.preconditioned and not self.problem.mixed
         crawling = 0
+        factor: Factor | None = None
         state = self._volume_residual(positions_m, load_factor, target_m3, carried, with_tangent=not krylov)
         if element_pressures_pa is not None:
-            state = self._with_eliminated(state, positions_m, load_factor)
+            state = self._with_eliminated(state, positions_m, element_pressures_pa)
         for iteration in range(1, VOLUME_NEWTON_ITERATIONS + 1):
             residual, gap, merit = state.eliminated_n, state.gap_m3, state.merit
             if (np.linalg.norm(residual[free]) <= PATH_TOLERANCE * self.load_scale
                     and abs(gap) <= CONTROL_TOLERANCE * self.control_rest_m3):
-                return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1)
+                return _VolumeStep(True, self._point(load_factor, positions_m), iteration - 1, factor=factor)
             load = self.problem.load_n(positions_m)
             solutions = (self._krylov_solves(positions_m, load_factor, (-residual, load), carried) if krylov
                          else None)
+            factor = None
             if solutions is None:
                 self.krylov_failed = self.krylov_failed or krylov
                 krylov = False
@@ -466,7 +570,7 @@ class _Path:
                 return _VolumeStep(False, None, iteration, reason, worst)
             positions_m, load_factor, carried, state = accepted
             if carried is not None:  # the convergence test and the next right-hand side: eliminated pressures
-                state = self._with_eliminated(state, positions_m, load_factor)
+                state = self._with_eliminated(state, positions_m, carried)
             # Crawling: tiny admissible steps in a row mean an element is being squeezed flat (or a Gent element
             # is locking) on the way to the target volume; a smaller volume step is the cure, not more iterations.
             crawling = crawling + 1 if halving >= CRAWL_HALVINGS else 0
@@ -516,11 +620,13 @@ class _Path:
         return _VolumeState(evaluation.residual_n, gap, merit, evaluation.admissible, evaluation.residual_n, ratios,
                             evaluation.tangent_data)
 
-    def _with_eliminated(self, state: _VolumeState, positions_m: FloatArray, load_factor: float) -> _VolumeState:
-        """``state`` with its residual at eliminated pressures (the convergence test's and Newton's right-hand
-        side)."""
-        evaluation = self.problem.at_load_factor(load_factor).evaluate(positions_m)
-        return dataclasses.replace(state, eliminated_n=evaluation.residual_n)
+    def _with_eliminated(self, state: _VolumeState, positions_m: FloatArray,
+                         carried_pa: FloatArray) -> _VolumeState:
+        """``state`` (at carried pressures ``carried_pa``) with its residual at eliminated pressures (the
+        convergence test's and Newton's right-hand side)."""
+        assert state.volume_ratios is not None  # a state at carried pressures has its volume ratios
+        return dataclasses.replace(state, eliminated_n=self.problem.eliminated_residual_n(
+            positions_m, state.residual_n, state.volume_ratios, carried_pa))
 
     def _cross(self, below: PathPoint, above: PathPoint) -> FloatArray:
         """The equilibrium at lam = 1 between two path points: Illinois regula falsi on the control volume,

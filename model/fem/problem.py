@@ -118,7 +118,7 @@ class EquilibriumProblem:
     def load_n(self, positions_m: FloatArray) -> FloatArray:
         """The load per unit load factor at ``positions_m`` (3n,) N: the pressures' ``sum_c p_c dV_c/dx`` (the
         walls' own configuration; a follower load) and the body force's, zero at held dofs."""
-        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m))
+        load = load_from_gradients_n(self.pressures_pa, self.body.chamber_volume_gradients(positions_m))
         load += self.body_force_load_n()
         load[self.constraints.dofs] = 0.0
         return load
@@ -136,9 +136,9 @@ class EquilibriumProblem:
         or the dead load ``sum p dV/dx(start) + f_b`` and ``-load . x`` (linear)."""
         gravity = self.body_force_load_n()
         if self.formulation == "linear":
-            load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(self.start_m)) + gravity
+            load = load_from_gradients_n(self.pressures_pa, self.body.chamber_volume_gradients(self.start_m)) + gravity
             return load, -float(np.einsum("i,i->", load, positions_m.ravel()))
-        load = load_from_gradients_n(self.pressures_pa, self.body.volume_gradients(positions_m)) + gravity
+        load = load_from_gradients_n(self.pressures_pa, self.body.chamber_volume_gradients(positions_m)) + gravity
         return load, -float(self.pressures_pa @ self.body.chamber_volumes_m3(positions_m)
                             + np.einsum("i,i->", gravity, positions_m.ravel()))
 
@@ -157,6 +157,17 @@ class EquilibriumProblem:
         residual[self.constraints.dofs] = 0.0
         return Evaluation(residual, elastic.energy_j + load_energy, elastic.smallest_det,
                           elastic.tangent_data if with_tangent else None)
+
+    def eliminated_residual_n(self, positions_m: FloatArray, carried_residual_n: FloatArray,
+                              volume_ratios: FloatArray, element_pressures_pa: FloatArray) -> FloatArray:
+        """A 10-node body's residual (3n,) at eliminated pressures, ``K (Jbar - 1)``, from its residual at carried
+        ones ``element_pressures_pa`` at the same positions (volume ratios ``Jbar``): they differ by the pressures'
+        change times the elements' volume gradients, one pass over the elements' volumes instead of an evaluation
+        (the law at every quadrature point, the load)."""
+        change_pa = self.body.eliminated_pressures_pa(volume_ratios) - element_pressures_pa
+        residual = carried_residual_n + self.body.element_pressure_forces_n(positions_m, change_pa)
+        residual[self.constraints.dofs] = 0.0
+        return residual
 
     def tangent_data(self, positions_m: FloatArray, element_pressures_pa: FloatArray | None = None) -> FloatArray:
         """The exact tangent's CSR data (N/m) at ``positions_m``, with the follower-pressure stiffness (and a
