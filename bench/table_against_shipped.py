@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -30,6 +31,16 @@ def shape_positions_mm(shapes: np.lib.npyio.NpzFile) -> np.ndarray:
     return (shapes["rest_positions_m"] + displacement) * 1e3
 
 
+def volumes_agree(built: Any, shipped: Any, what: str) -> bool:
+    """Whether the built chamber and gland volumes are the shipped ones to VOLUME_TOLERANCE of each value."""
+    agree = True
+    for key in ("chamber", "gland"):
+        worst = float(np.max(np.abs(built[key] - shipped[key]) / np.abs(shipped[key])))
+        agree &= worst <= VOLUME_TOLERANCE
+        print(f"{what} {key}: most off {worst:.1e} of the value (tolerance {VOLUME_TOLERANCE:g})")
+    return agree
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("volumes", help="the built volumes' .npz (phantom model table --out)")
@@ -37,10 +48,7 @@ def main() -> None:
     args = parser.parse_args()
     ok = True
     with np.load(args.volumes) as built, np.load(SHIPPED / "prostate_converged.volumes.npz") as shipped:
-        for key in ("chamber", "gland"):
-            worst = float(np.max(np.abs(built[key] - shipped[key]) / np.abs(shipped[key])))
-            ok &= worst <= VOLUME_TOLERANCE
-            print(f"volumes {key}: most off {worst:.1e} of the value (tolerance {VOLUME_TOLERANCE:g})")
+        ok &= volumes_agree(built, shipped, "volumes")
         ok &= bool(np.isclose(built["check_errors_pct"], shipped["check_errors_pct"], rtol=1e-3))
         print(f"volumes check error: built {float(built['check_errors_pct']):.4g} %, shipped "
               f"{float(shipped['check_errors_pct']):.4g} %; build time {float(built['build_time_s']):.0f} s")
@@ -50,10 +58,7 @@ def main() -> None:
                     else np.inf)
         ok &= worst_mm <= POSITION_TOLERANCE_MM
         print(f"shapes: same nodes {same_nodes}, most off {worst_mm:.1e} mm (tolerance {POSITION_TOLERANCE_MM:g})")
-        for key in ("chamber", "gland"):
-            worst = float(np.max(np.abs(built[key] - shipped[key]) / np.abs(shipped[key])))
-            ok &= worst <= VOLUME_TOLERANCE
-            print(f"shapes' volumes {key}: most off {worst:.1e}")
+        ok &= volumes_agree(built, shipped, "shapes' volumes")
         ok &= bool(np.isclose(built["check_error_m"], shipped["check_error_m"], rtol=1e-3))
         print(f"shapes check error: built {float(built['check_error_m']) * 1e3:.4g} mm, shipped "
               f"{float(shipped['check_error_m']) * 1e3:.4g} mm")
