@@ -600,6 +600,17 @@ def _element_volume(x: FloatArray, volume_derivatives: FloatArray, volume_weight
     return volume
 
 
+@inline_kernel
+def _element_volume_at(positions_m: FloatArray, tets: IntArray, e: int, x: FloatArray, volume_derivatives: FloatArray,
+                       volume_weights: FloatArray, jacobians: FloatArray, volume_gradient: FloatArray) -> float:
+    """:func:`_element_volume` of element ``e``, its node positions first gathered from ``positions_m`` into
+    ``x`` (10, 3), which the caller may use after."""
+    for a in range(10):
+        for i in range(3):
+            x[a, i] = positions_m[tets[e, a], i]
+    return _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient)
+
+
 @kernel
 def mixed_forces(positions_m: FloatArray, tets: IntArray, gradients: FloatArray, weights: FloatArray,
                  rest_volumes_m3: FloatArray, volume_derivatives: FloatArray, volume_weights: FloatArray,
@@ -770,10 +781,8 @@ def mixed_determinants(positions_m: FloatArray, tets: IntArray, gradients: Float
     jacobians = np.empty((volume_weights.shape[0], 3, 3))
     volume_gradient = np.empty((10, 3))
     for e in range(n_tets):
-        for a in range(10):
-            for i in range(3):
-                x[a, i] = positions_m[tets[e, a], i]
-        least = _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient) / rest_volumes_m3[e]
+        least = _element_volume_at(positions_m, tets, e, x, volume_derivatives, volume_weights, jacobians,
+                                   volume_gradient) / rest_volumes_m3[e]
         for q in range(gradients.shape[1]):
             _quadratic_deformation_gradient(x, gradients[e, q], f)
             det = _det3(f)
@@ -792,10 +801,8 @@ def mixed_volume_ratios(positions_m: FloatArray, tets: IntArray, rest_volumes_m3
     jacobians = np.empty((volume_weights.shape[0], 3, 3))
     volume_gradient = np.empty((10, 3))
     for e in range(tets.shape[0]):
-        for a in range(10):
-            for i in range(3):
-                x[a, i] = positions_m[tets[e, a], i]
-        volume_m3 = _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient)
+        volume_m3 = _element_volume_at(positions_m, tets, e, x, volume_derivatives, volume_weights, jacobians,
+                                       volume_gradient)
         ratios[e] = volume_m3 / rest_volumes_m3[e]
     return ratios
 
@@ -810,10 +817,7 @@ def add_element_pressure_forces(positions_m: FloatArray, tets: IntArray, volume_
     jacobians = np.empty((volume_weights.shape[0], 3, 3))
     volume_gradient = np.empty((10, 3))
     for e in range(tets.shape[0]):
-        for a in range(10):
-            for i in range(3):
-                x[a, i] = positions_m[tets[e, a], i]
-        _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient)
+        _element_volume_at(positions_m, tets, e, x, volume_derivatives, volume_weights, jacobians, volume_gradient)
         for a in range(10):
             for i in range(3):
                 forces_n[tets[e, a], i] += element_pressures_pa[e] * volume_gradient[a, i]
@@ -830,10 +834,7 @@ def mixed_volume_ratio_rates(positions_m: FloatArray, direction_m: FloatArray, t
     jacobians = np.empty((volume_weights.shape[0], 3, 3))
     volume_gradient = np.empty((10, 3))
     for e in range(tets.shape[0]):
-        for a in range(10):
-            for i in range(3):
-                x[a, i] = positions_m[tets[e, a], i]
-        _element_volume(x, volume_derivatives, volume_weights, jacobians, volume_gradient)
+        _element_volume_at(positions_m, tets, e, x, volume_derivatives, volume_weights, jacobians, volume_gradient)
         total = 0.0
         for a in range(10):
             for i in range(3):
