@@ -252,7 +252,8 @@ class SimulatedBoard:
         telemetry_frames (None when the firmware has no such function), elapsed_cycles, frequency_hz,
         cpu_use_fraction (cycles inside any timed function or interrupt handler, counted once when they nest,
         over elapsed cycles), stack_bytes_max (the stack's deepest point, bytes below the top of RAM), regions
-        (every timed function's calls, total and max cycles) and serial (byte counters of the line).
+        (every timed function's calls, total and max cycles), serial (byte counters of the line) and simulator_steps
+        (the harness's steps: instructions, or jumps to the next event while the core sleeps).
         """
         reply = self._command("stats reset" if reset else "stats")
         stats: dict[str, Any] = {"elapsed_cycles": reply["elapsed_cycles"], "frequency_hz": reply["frequency_hz"]}
@@ -267,4 +268,5 @@ class SimulatedBoard:
         stats["stack_bytes_max"] = reply["stack_bytes_max"]
         stats["regions"] = reply["regions"]
         stats["serial"] = reply["serial"]
+        stats["simulator_steps"] = reply["simulator_steps"]
         return stats

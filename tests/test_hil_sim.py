@@ -273,3 +273,34 @@ def test_simulated_time_is_paced_to_the_wall_clock():
     lost_s = second["lost_s"] - first["lost_s"]
     assert simulated_s <= 0.5 * (wall_end - wall_start) + 0.01
     assert simulated_s + 0.5 * lost_s == pytest.approx(0.5 * (wall_end - wall_start), abs=0.03)
+
+
+def simulator_steps_per_cycle(board: SimulatedBoard, link: BoardLink, board_s: float) -> float:
+    """The harness's steps (instructions, or jumps to the next event while the core sleeps) per simulated cycle
+    over ``board_s`` of board time: the simulator's work, counted, whatever the machine's load."""
+    board.cycle_stats(reset=True)
+    bench.wait_board_time(link, board_s)
+    stats = board.cycle_stats()
+    return stats["simulator_steps"] / stats["elapsed_cycles"]
+
+
+def test_the_simulator_skips_the_sleeping_cycles_after_every_kind_of_start():
+    """simavr polls a low INT0 or INT1 pin on every cycle, enabled or not, and turns that polling on again at every
+    reset; the Uno's STEP0 and blower-2 outputs sit on those pins, low for minutes, and with it the simulator
+    stepped through every cycle the firmware slept (0.87 simulated seconds per CPU second flat out, one board a
+    whole core). The harness turns it off at each start: the steps stay near the firmware's busy fraction (about
+    a fifth of the cycles, bench/README.md) after a power-on, under load on all three chambers (blower 2's PWM
+    toggling its pin), after a watchdog reset and after a replug."""
+    with SimulatedBoard(speed=SPEED, seed=3) as board:
+        with BoardLink(board.port, time_scale=SPEED) as session:
+            bench.start_session(session)
+            assert simulator_steps_per_cycle(board, session, 0.5) < 0.4
+            session.command("SET_SETPOINTS", {"setpoint_pa": [1000, 1000, 1000]})
+            assert simulator_steps_per_cycle(board, session, 1.0) < 0.4
+            assert bench.check_watchdog(session, board)["passed"]
+            assert simulator_steps_per_cycle(board, session, 0.5) < 0.4
+        board.unplug()
+        board.replug()
+        with BoardLink(board.port, time_scale=SPEED) as session:
+            bench.start_session(session)
+            assert simulator_steps_per_cycle(board, session, 0.5) < 0.4

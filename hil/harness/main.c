@@ -24,6 +24,7 @@
 #include "plant.h"
 #include "profile.h"
 #include "serial_pty.h"
+#include "avr_extint.h"
 #include "sim_avr.h"
 #include "sim_elf.h"
 
@@ -47,6 +48,8 @@ typedef struct harness {
 	double lost_s;                /* wall-clock time the simulation could not keep up with, in total */
 	uint64_t resets;
 	uint64_t last_reset_cycle;
+	uint64_t steps;               /* simulator steps since `stats reset`: instructions, or jumps to the next event
+	                                 while the core sleeps (the harness's work, whatever the wall clock does) */
 	double all_off_since_s;       /* since when every commanded drive level is 0; < 0 while one is on */
 	double last_host_byte_s;      /* when the UART last received a byte from the host; < 0 before any */
 	uint32_t control_entry;       /* byte address of the control tick (the control_tick profile region), 0 if none */
@@ -154,10 +157,10 @@ static void reply_stats(harness_t *h)
 	char stack[24] = "null";
 	if (h->avr && h->profile.min_sp != 0xFFFF)
 		snprintf(stack, sizeof(stack), "%d", (int)h->avr->ramend - (int)h->profile.min_sp);
-	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"frequency_hz\": %llu, \"stack_bytes_max\": %s, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
+	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"simulator_steps\": %llu, \"frequency_hz\": %llu, \"stack_bytes_max\": %s, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
 	      "\"bytes_from_mcu\": %llu, \"bytes_dropped\": %llu, \"bytes_flipped\": %llu, \"bytes_overflowed\": %llu}}",
 	      (unsigned long long)(h->cycle - h->profile.since_cycle), (unsigned long long)h->profile.busy_cycles,
-	      (unsigned long long)h->frequency_hz, stack, regions,
+	      (unsigned long long)h->steps, (unsigned long long)h->frequency_hz, stack, regions,
 	      (unsigned long long)s->bytes_to_mcu, (unsigned long long)s->bytes_from_mcu,
 	      (unsigned long long)s->bytes_dropped, (unsigned long long)s->bytes_flipped,
 	      (unsigned long long)s->bytes_overflowed);
@@ -323,11 +326,25 @@ static void note_reset(harness_t *h)
 	h->driven_before_control = 0;
 }
 
+/* simavr polls a low-level external interrupt pin on every cycle while it reads low, whether or not the interrupt
+   is enabled ("strict level triggering", avr_extint.c; on by default and again after every reset). The firmware
+   enables no external interrupt, and its STEP0 and blower-2 outputs sit on the Uno's INT0 and INT1 pins (PD2,
+   PD3) and stay low for minutes: that polling, one simulator callback per cycle, took most of the harness's CPU
+   (an idle Uno ran at 0.87x the wall clock flat out, no faster than asked for 1x). Without it a low level raises
+   the interrupt flag once, as a falling edge does; with EIMSK clear the core sees neither. Called at each reset,
+   before the core runs its first instruction, so no poll is started. */
+static void no_level_polling(avr_t *avr)
+{
+	for (uint8_t n = 0; n < EXTINT_COUNT; n++)
+		avr_extint_set_strict_lvl_trig(avr, n, 0);
+}
+
 /* Start the core with a reset flag in MCUSR: power-on as a board gets power, external as a DTR pulse does
    (through the USB-serial chip's capacitor into RESET). */
 static void power_on_with(harness_t *h, uint8_t mcusr_flag)
 {
 	avr_reset(h->avr);
+	no_level_polling(h->avr);
 	h->avr->data[MCUSR_ADDRESS] |= mcusr_flag;
 	note_reset(h);
 	h->last_core_cycle = h->avr->cycle;
@@ -408,8 +425,10 @@ static void handle_command(harness_t *h, char *line)
 		reply_state(h);
 	} else if (!strcmp(command, "stats")) {
 		reply_stats(h);
-		if (count > 1 && !strcmp(words[1], "reset"))
+		if (count > 1 && !strcmp(words[1], "reset")) {
 			profile_reset(&h->profile, h->cycle);
+			h->steps = 0;
+		}
 	} else if (!strcmp(command, "fault") && count >= 2) {
 		handle_fault(h, words, count);
 	} else if (!strcmp(command, "motion") && h->avr) {
@@ -529,11 +548,13 @@ static void run_once(harness_t *h)
 {
 	if (h->powered && !h->halted) {
 		int state = avr_run(h->avr);
+		h->steps++;
 		uint64_t core_cycle = h->avr->cycle;
 		h->cycle += core_cycle - h->last_core_cycle;
 		h->last_core_cycle = core_cycle;
 		if (h->avr->pc == h->avr->reset_pc && state != cpu_Sleeping && h->cycle - h->last_reset_cycle > 4) {
 			/* the core restarted (watchdog): a function being timed never returns */
+			no_level_polling(h->avr);
 			h->resets++;
 			h->last_reset_cycle = h->cycle;
 			profile_abort(&h->profile);
