@@ -7,6 +7,7 @@
 #include "sim_avr.h"
 
 #define PROFILE_MAX_REGIONS 24
+#define PROFILE_FLASH_WORDS (1u << 17)   /* the largest flash simavr runs here (ATmega2560: 256 KB) in words */
 
 /* One function: counted from the cycle PC reaches its entry until SP rises above its entry value (return). */
 typedef struct profile_region {
@@ -27,6 +28,8 @@ typedef struct profile {
 	uint64_t last_cycle;
 	int any_active;
 	uint16_t min_sp;              /* the lowest stack pointer seen (the stack's deepest point) */
+	uint16_t lowest_entry_sp;     /* the lowest entry SP of the active regions: none returns until SP rises above */
+	uint8_t entries[PROFILE_FLASH_WORDS / 8];  /* a bit per flash word: a region's entry starts there */
 } profile_t;
 
 /* Add a region from "name=0xADDRESS" or "name=0xADDRESS:MIN_CYCLES"; 0 on success. */

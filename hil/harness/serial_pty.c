@@ -37,7 +37,9 @@ static int corrupt_byte(serial_pty_t *serial, uint8_t byte)
 	return byte;
 }
 
-/* The firmware wrote a byte to UDR0: pass it to the host (lost if nobody is connected or the pty is full). */
+/* The firmware wrote a byte to UDR0: queue it for the host (lost if nobody is connected or the pty is full). The
+   queue is written out at the next service, a millisecond of board time at most: a write per byte was 1500
+   system calls a second of telemetry. */
 static void on_uart_output(struct avr_irq_t *irq, uint32_t value, void *param)
 {
 	(void)irq;
@@ -46,9 +48,22 @@ static void on_uart_output(struct avr_irq_t *irq, uint32_t value, void *param)
 	int byte = corrupt_byte(serial, (uint8_t)value);
 	if (byte < 0 || serial->master_fd < 0)
 		return;
-	uint8_t out = (uint8_t)byte;
-	if (write(serial->master_fd, &out, 1) != 1)
+	if (serial->from_mcu_count == SERIAL_QUEUE_SIZE) {
 		serial->bytes_overflowed++;
+		return;
+	}
+	serial->from_mcu[serial->from_mcu_count++] = (uint8_t)byte;
+}
+
+/* Write the queued bytes to the pty; what it does not take (the host stopped reading) is lost. */
+static void flush_output(serial_pty_t *serial)
+{
+	if (serial->from_mcu_count == 0)
+		return;
+	ssize_t written = write(serial->master_fd, serial->from_mcu, serial->from_mcu_count);
+	size_t taken = written > 0 ? (size_t)written : 0;
+	serial->bytes_overflowed += serial->from_mcu_count - taken;
+	serial->from_mcu_count = 0;
 }
 
 /* The UART's receive FIFO has room again. */
@@ -112,6 +127,7 @@ void serial_pty_close(serial_pty_t *serial)
 	serial->master_fd = serial->slave_fd = -1;
 	serial->slave_path[0] = 0;
 	serial->to_mcu_count = 0;
+	serial->from_mcu_count = 0;
 }
 
 void serial_pty_poll(serial_pty_t *serial)
@@ -119,6 +135,7 @@ void serial_pty_poll(serial_pty_t *serial)
 	uint8_t buffer[256];
 	if (serial->master_fd < 0)
 		return;
+	flush_output(serial);
 	for (;;) {
 		size_t room = SERIAL_QUEUE_SIZE - serial->to_mcu_count;
 		if (room == 0)
@@ -134,6 +151,11 @@ void serial_pty_poll(serial_pty_t *serial)
 			serial->to_mcu_count++;
 		}
 	}
+}
+
+int serial_pty_wants_input(const serial_pty_t *serial)
+{
+	return serial->master_fd >= 0 && serial->to_mcu_count < SERIAL_QUEUE_SIZE;
 }
 
 int serial_pty_feed(serial_pty_t *serial)

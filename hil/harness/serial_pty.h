@@ -16,6 +16,8 @@ typedef struct serial_pty {
 	char link_path[512];          /* stable symlink to slave_path; empty for none */
 	uint8_t to_mcu[SERIAL_QUEUE_SIZE];
 	size_t to_mcu_head, to_mcu_count;
+	uint8_t from_mcu[SERIAL_QUEUE_SIZE];  /* the firmware's bytes not yet written to the pty */
+	size_t from_mcu_count;
 	int uart_full;                /* the UART's receive FIFO signalled XOFF */
 	avr_irq_t *uart_input;
 	double flip_probability;      /* per byte: one random bit flipped */
@@ -33,8 +35,12 @@ int serial_pty_open(serial_pty_t *serial);
 /* Close the pty and remove the link, as a pulled USB cable does; queued bytes are lost. */
 void serial_pty_close(serial_pty_t *serial);
 
-/* Move what the host wrote into the queue towards the MCU. */
+/* Write the firmware's bytes out (what the pty does not take is lost, as on a full USB buffer), then move what
+   the host wrote into the queue towards the MCU. */
 void serial_pty_poll(serial_pty_t *serial);
+
+/* Whether the host has written bytes the queue towards the MCU has room for (the pacing's wait ends then). */
+int serial_pty_wants_input(const serial_pty_t *serial);
 
 /* Hand one queued byte to the UART if it can take it (call once per byte time); 1 if a byte went. */
 int serial_pty_feed(serial_pty_t *serial);
