@@ -45,19 +45,17 @@ protocol-check:
 firmware-test:
 	$(MAKE) -C firmware test PYTHON=$(abspath $(PY))
 
-# pytest on every core (pytest-xdist). The simavr tests pace the simulated board to the wall clock and fail when
-# another worker takes the CPU from them: make test runs them afterwards in a pytest of their own, one at a time.
+# pytest on every core (pytest-xdist); tests/conftest.py schedules it (the modules whose tests share a fixture on one
+# worker, the longest tests first).
 PYTEST := $(PY) -m pytest -q -n auto
 
 pytest-fast:
 	$(PYTEST) -m "not sim and not slow"
 
-# Both phases print their 25 slowest tests (setup, call and teardown apart), so that every CI log shows where the
-# time goes; the parallel phase also its 25 costliest in CPU time (--cpu-durations, tests/conftest.py), which a
-# loaded machine does not inflate as it does the wall clock.
+# Two pytests at once: the simavr tests at normal priority, the others at nice 5 (scripts/pytest-all.sh says why);
+# each prints its slowest tests by the wall clock and by CPU time (--cpu-durations, tests/conftest.py).
 pytest:
-	$(PYTEST) -m "not sim and not long" --durations=25 --cpu-durations=25
-	$(PY) -m pytest -q -m "sim and not long" --durations=25
+	PYTHON=$(PY) scripts/pytest-all.sh
 
 # The tests of tens of minutes that make test leaves out (@pytest.mark.long): another phantom as the simulated
 # board's truth, its plant built and a target verified against it.

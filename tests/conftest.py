@@ -4,9 +4,9 @@
 session fixtures; the on-disk caches (``phantom.cache_dir``) are shared, and every cache entry is written to a
 temporary file and renamed into place, so a reader never sees half of one. What is expensive to build is built
 under :func:`machine_lock`, so that two workers do not build it twice at once. The tests that run simavr (marked
-``sim``) pace the simulated board to the wall clock: with another worker busy beside them, the daemon's end-to-end
-tests missed events and acknowledgements on two cores, so `make test` runs them in a pytest of their own without
-xdist.
+``sim``) pace the simulated board to the wall clock, and a daemon beside the board must answer it within its
+dead-host deadline: `make test` runs them in a pytest of their own, at a higher priority than the others
+(scripts/pytest-all.sh).
 """
 
 import fcntl
@@ -15,6 +15,7 @@ import os
 import resource
 from collections.abc import Iterator
 from contextlib import contextmanager
+from typing import Any
 
 import pytest
 
@@ -27,6 +28,77 @@ import phantom
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(phantom.cache_dir("jax")))
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
+
+
+# How xdist hands out the tests (tests/README.md, "Scheduling"). Two rules:
+#
+# - A module whose tests share a module-scoped fixture runs on one worker, in file order: the fixture is then
+#   built once (test_shape_analysis's VAE was trained on both workers, 25 s each), and the simavr modules' shared
+#   board or daemon sees its tests in the order they were written for (test_daemon_e2e's recording holds what its
+#   earlier tests logged). Every other test is a work unit of its own. The modules are named here because the
+#   scheduler, in pytest's controlling process, sees test ids only; pytest_collection_modifyitems refuses a test
+#   that shares such a fixture outside them.
+# - The longest work starts first (units with a simavr test marked slow, then with a slow test), so that none of
+#   it is left running alone at the end.
+KEPT_TOGETHER = frozenset(f"tests/{name}.py" for name in (
+    "test_daemon_board_promises", "test_daemon_corrections", "test_daemon_e2e", "test_daemon_scene_promises",
+    "test_examples", "test_fem_corotational", "test_fem_felupe", "test_fem_gravity", "test_fem_hyperelastic",
+    "test_fem_kernels", "test_fem_output", "test_fem_pathfollow", "test_fem_quadratic", "test_fidelity",
+    "test_hil_boot", "test_hil_sim", "test_inverse_fem", "test_inverse_gent", "test_loader_fuzz", "test_mesh",
+    "test_model_prostate", "test_motion_sim", "test_packaging", "test_python_api", "test_readme_commands",
+    "test_recording", "test_report", "test_response", "test_scan", "test_scan_calibrate", "test_scan_capture",
+    "test_scan_reconstruct", "test_scan_rig_sim", "test_scene_run_timeline", "test_shape_analysis",
+    "test_shape_data", "test_sim_truth_verify"))
+
+
+def work_unit(nodeid: str) -> str:
+    """The unit a worker runs whole: the module for the modules kept together, else the test itself."""
+    module = nodeid.split("::", 1)[0]
+    return module if module in KEPT_TOGETHER else nodeid
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """pytest-xdist's scheduler by work units (``--dist loadgroup`` and ``xdist_group`` do not work with pytest 9:
+    xdist renames ``item._nodeid``, which pytest 9 no longer reads); units are handed out in collection order,
+    which pytest_collection_modifyitems sorts longest first."""
+    if config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class WorkUnitScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return work_unit(nodeid)
+
+    config.option.loadscopereorder = False   # keep the collection's order, not the units' sizes
+    return WorkUnitScheduling(config, log)
+
+
+def _module_scoped_fixtures(item: pytest.Item) -> list[str]:
+    """The fixtures of a scope wider than a test that ``item`` uses and its own module defines."""
+    module = item.nodeid.split("::", 1)[0]
+    return [name for name, definitions in item._fixtureinfo.name2fixturedefs.items()
+            if definitions and definitions[-1].scope in ("module", "class")
+            and definitions[-1].baseid.split("::", 1)[0] == module]
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Refuse a test that shares a module-scoped fixture outside KEPT_TOGETHER, then sort the work units longest
+    first (stable: a unit's tests keep their file order)."""
+    for item in items:
+        if work_unit(item.nodeid) == item.nodeid and (shared := _module_scoped_fixtures(item)):
+            raise pytest.UsageError(
+                f"{item.nodeid} shares the module-scoped fixture(s) {', '.join(shared)}: add its module to "
+                f"KEPT_TOGETHER in tests/conftest.py, so that its tests run on one worker in file order")
+
+    def rank(item: pytest.Item) -> int:
+        slow = item.get_closest_marker("slow") is not None
+        return 0 if slow and item.get_closest_marker("sim") is not None else 1 if slow else 2
+
+    unit_rank: dict[str, int] = {}
+    for item in items:
+        unit = work_unit(item.nodeid)
+        unit_rank[unit] = min(unit_rank.get(unit, 2), rank(item))
+    items.sort(key=lambda item: unit_rank[work_unit(item.nodeid)])
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -151,3 +223,4 @@ def default_model_cached():
         model = PhantomModel.from_scene(load_scene("builtin:converged"))
         model.compliance()
         return model
+

@@ -3,8 +3,9 @@ and runs outside the repository, with an empty cache, so the firmware's sources,
 scenes must come from the wheel (its package data), not from the checkout.
 
 Building the wheel and its venv takes minutes of CPU and no simulated board: it is done once for each state of
-the checkout (:func:`checkout_key`) and kept in the cache, so that make test's parallel phase builds it and its
-one-at-a-time sim phase, where only the handshake with the simulated board runs, finds it built."""
+the checkout (:func:`checkout_key`) and kept in the cache, so that whichever of make test's two pytest runs asks
+first builds it and the other (the ``sim`` run, where only the handshake with the simulated board runs) finds it
+built."""
 
 import hashlib
 import os
@@ -66,7 +67,7 @@ def build_and_install(root: Path) -> None:
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory) -> dict[str, Path]:
     """The wheel, built from the checkout, installed into a fresh venv: built once for this state of the checkout
-    (the other pytest workers and make test's sim phase wait for it and reuse it), or in a temporary folder
+    (the other pytest workers and make test's other pytest run wait for it and reuse it), or in a temporary folder
     outside a git checkout. Its venv is never written to by the tests: each gets its own empty cache."""
     key = checkout_key()
     if key is None:

@@ -119,7 +119,8 @@ def test_every_readme_client_line_runs(default_daemon, where, line):
     runs(where, line, {**os.environ, "PHANTOM_SOCKET": str(default_daemon)})
 
 
-# the offline lines need no daemon: they run in make test's parallel phase, not in the one-at-a-time sim phase
+# the offline lines need no daemon: they are not marked sim, so make check runs them and make test runs them at a
+# lower priority beside the simavr tests
 @pytest.mark.slow
 @pytest.mark.parametrize(("where", "line"), OFFLINE_LINES, ids=[where for where, _ in OFFLINE_LINES])
 def test_every_readme_inverse_line_runs(where, line):

@@ -122,21 +122,24 @@ def scene_pressures_kpa(text: str, scene: Scene, option: str = "--pressures-kpa"
     return pressures
 
 
-def progress_reporter(label: str, every_s: float = 10.0) -> Callable[[int, int], None]:
+def progress_reporter(label: str, every_s: float = 10.0,
+                      clock_s: Callable[[], float] | None = None) -> Callable[[int, int], None]:
     """A ``progress(done, total)`` callback that shows ``label done/total, elapsed, time left`` on stderr: one
     line rewritten in place on a terminal; on a file or a pipe a line every ``every_s`` and at the end, so that a
     log holds lines (carriage returns made a log one line). The time left is from the rate since the first call,
     so set-up before it (imports, compiling, starting workers) does not count; unknown until something is done.
+    ``clock_s`` is the clock it reads (``time.monotonic`` unless given).
     """
     import sys
     import time
 
+    clock_s = clock_s or time.monotonic
     terminal = sys.stderr.isatty()
     first: list[tuple[float, int]] = []
     shown_s = [-math.inf]
 
     def report(done: int, total: int) -> None:
-        now = time.monotonic()
+        now = clock_s()
         if not first:
             first.append((now, done))
         started_s, done_at_start = first[0]

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# make test's pytest: two runs at once, each on every core (pytest-xdist), their lines prefixed [sim] and [rest].
+#
+# - [sim]: the tests that run the firmware in simavr (marked sim). They mostly wait on board time (a board paced to
+#   the wall clock takes about a fifth of a core, hil/README.md) while a daemon beside it must answer the board
+#   within its dead-host deadline (250 ms of wall clock at --sim-speed 2), so they run at normal priority.
+# - [rest]: every other test, at a lower priority (nice 5): it takes the CPU the boards leave, and a numerical test
+#   cannot hold a core a daemon is waiting for. (One run of both kinds on more workers than cores latched
+#   DEAD_HOST in two scans; on as many workers as cores, the workers sat in board time with a core idle.)
+#
+# Each run prints its slowest tests by the wall clock and by CPU time (--cpu-durations, tests/conftest.py). The
+# status is the first failing run's. Arguments are passed to both runs (e.g. -x, or -k EXPRESSION).
+set -uo pipefail
+cd "$(dirname "$0")/.."
+python=${PYTHON:-.venv/bin/python}
+
+"$python" -m pytest -q -n auto -m "sim and not long" --durations=15 --cpu-durations=15 "$@" 2>&1 \
+    | sed -u 's/^/[sim] /' &
+sim=$!
+nice -n 5 "$python" -m pytest -q -n auto -m "not sim and not long" --durations=25 --cpu-durations=25 "$@" 2>&1 \
+    | sed -u 's/^/[rest] /'
+rest=$?
+wait "$sim"
+sim=$?
+if [ "$sim" -ne 0 ]; then exit "$sim"; fi
+exit "$rest"
