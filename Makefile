@@ -2,6 +2,7 @@
 # (scripts/bootstrap.sh: Debian packages and .venv/), idempotently.
 VENV := .venv
 PY := $(VENV)/bin/python
+CORES := $(shell nproc 2>/dev/null || echo 2)
 
 .PHONY: setup demo test check lint types protocol-check firmware-test firmware-test-one pytest pytest-fast test-long figures clean
 
@@ -13,7 +14,10 @@ demo: setup
 	$(MAKE) -C firmware
 	$(PY) -m phantom.cli.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
 
-test: setup lint types protocol-check firmware-test pytest
+# The checks before pytest run side by side (each is one process, or the firmware's builds), on every core.
+test: setup
+	@$(MAKE) --no-print-directory -j$(CORES) --output-sync=target lint types protocol-check firmware-test
+	@$(MAKE) --no-print-directory pytest
 
 # The contributor's fast loop, about a minute: lint, types, the protocol check and the tests that need no
 # simulator and take no long numerical case (pytest -m "not sim and not slow"; mark a test that runs simavr with
