@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from phantom import require_extra, written_atomically
-from phantom.design.chambers import BASE, Chamber, ellipsoid_distance_mm
+from phantom.design.chambers import BASE, Chamber, least_ellipsoid_distance_mm
 from phantom.design.errors import DesignError
 from phantom.design.surface import Surface
 from phantom.model.arrays import FloatArray
@@ -180,7 +180,7 @@ def stem_directions(chambers: list[Chamber], split: SplitPlane, min_wall_mm: flo
             angle = math.radians(degrees)
             direction = outward * math.sin(angle) * across + math.cos(angle) * up
             points = start + along * direction
-            clearance = min(float(ellipsoid_distance_mm(points, other).min()) for other in others)
+            clearance = min(least_ellipsoid_distance_mm(points, other) for other in others)
             clearance -= stem_diameter_mm / 2
             if best is None or clearance > best[0]:
                 best = (clearance, direction)

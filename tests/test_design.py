@@ -282,3 +282,52 @@ def test_a_10_node_design_solves_and_says_what_it_wrote(tmp_path, capsys):
     assert summary["growth"]["gland_volumes_ml"][0] > summary["rest_volume_ml"] + 0.1
     report = (out / "report.md").read_text()
     assert "thinnest wall" in report and (out / "report.png").stat().st_size > 10_000
+
+
+def test_a_chambers_curvature_size_is_its_ellipsoids_shape_operator():
+    """The mesh size on a chamber, 2 pi rho / elements with rho the least principal radius of curvature, in its
+    closed form against the shape operator's eigenvalues (numpy's), and its closed forms on a sphere (rho = r) and
+    at an ellipsoid's pole (rho = b^2 / c along the c axis, b the smaller other axis); inf away from the surface."""
+    from phantom.design.chambers import Chamber
+    from phantom.design.meshing import _curvature_size_mm
+
+    def shape_operator_size(point, axes, centre, elements):
+        on_surface = (point - centre) / np.linalg.norm((point - centre) / axes)
+        gradient = 2.0 * on_surface / axes**2
+        normal = gradient / np.linalg.norm(gradient)
+        tangent = np.eye(3) - np.outer(normal, normal)
+        operator = tangent @ np.diag(2.0 / axes**2) @ tangent / np.linalg.norm(gradient)
+        return 2.0 * math.pi / np.linalg.eigvalsh(operator).max() / elements
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        axes, centre = rng.uniform(2.0, 12.0, 3), rng.uniform(-10.0, 10.0, 3)
+        chamber = Chamber(tuple(centre), tuple(axes))
+        point = centre + rng.uniform(0.6, 1.4) * axes * (direction := rng.normal(size=3)) / np.linalg.norm(
+            direction)
+        assert _curvature_size_mm(tuple(point), chamber, 8.0) == pytest.approx(
+            shape_operator_size(point, axes, centre, 8.0), rel=1e-9)
+    sphere = Chamber((1.0, 2.0, 3.0), (5.0, 5.0, 5.0))
+    assert _curvature_size_mm((1.0, 2.0, 8.2), sphere, 8.0) == pytest.approx(2 * math.pi * 5.0 / 8.0)
+    ellipsoid = Chamber((0.0, 0.0, 0.0), (4.0, 6.0, 10.0))
+    assert _curvature_size_mm((0.0, 0.0, 10.0), ellipsoid, 8.0) == pytest.approx(2 * math.pi * 16.0 / 10.0 / 8.0)
+    assert _curvature_size_mm((0.0, 0.0, 20.0), ellipsoid, 8.0) == math.inf
+    assert _curvature_size_mm((0.0, 0.0, 0.1), ellipsoid, 8.0) == math.inf
+
+
+def test_the_least_distance_to_a_chamber_is_the_least_of_every_points():
+    """measure_walls and the cast's clearances take the least signed distance to a chamber's ellipsoid, solved only
+    for the points whose bounds allow it: the same number as solving every point, for points outside, inside, on
+    the surface, and on a sphere (where the bounds meet)."""
+    from phantom.design.chambers import Chamber, ellipsoid_distance_mm, least_ellipsoid_distance_mm
+
+    rng = np.random.default_rng(11)
+    for trial in range(60):
+        axes = np.full(3, 6.0) if trial % 4 == 0 else rng.uniform(2.0, 14.0, 3)
+        chamber = Chamber(tuple(rng.uniform(-5.0, 5.0, 3)), tuple(axes))
+        centre = np.asarray(chamber.centre_mm)
+        points = {0: rng.uniform(-25.0, 25.0, (3000, 3)),
+                  1: centre + 0.6 * axes * rng.normal(size=(3000, 3)),
+                  2: centre + axes * (unit := rng.normal(size=(3000, 3))) / np.linalg.norm(unit, axis=1)[:, None],
+                  3: centre + rng.uniform(1.5, 3.0) * axes * np.eye(3)[trial % 3]}[trial % 4].reshape(-1, 3)
+        assert least_ellipsoid_distance_mm(points, chamber) == float(ellipsoid_distance_mm(points, chamber).min())

@@ -9,6 +9,7 @@ surface is measured here before :mod:`phantom.model.mesh.prostate` meshes the bo
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -134,18 +135,38 @@ class WallField:
     thickness_mm: FloatArray
 
     def at(self, x: float, y: float, z: float) -> float:
-        """The thickness (mm) at a point, trilinear between the grid's points (the nearest edge value outside)."""
-        shape = self.thickness_mm.shape
-        position = [(value - origin) / self.spacing_mm for value, origin in zip((x, y, z), self.origin_mm,
-                                                                               strict=True)]
-        cells = [min(max(int(math.floor(p)), 0), n - 2) for p, n in zip(position, shape, strict=True)]
-        weights = [min(max(p - c, 0.0), 1.0) for p, c in zip(position, cells, strict=True)]
-        i, j, k = cells
-        u, v, w = weights
-        block = self.thickness_mm[i:i + 2, j:j + 2, k:k + 2]
-        along_x = block[0] * (1.0 - u) + block[1] * u
-        along_y = along_x[0] * (1.0 - v) + along_x[1] * v
-        return float(along_y[0] * (1.0 - w) + along_y[1] * w)
+        """The thickness (mm) at a point, trilinear between the grid's points (the nearest edge value outside).
+
+        gmsh asks this once per point while meshing (hundreds of thousands of times), so it is scalar arithmetic
+        on the grid's values, in the order a 2x2x2 block's numpy interpolation takes: the same floats."""
+        nx, ny, nz = self.thickness_mm.shape
+        ox, oy, oz = self._origin
+        px, py, pz = (x - ox) / self.spacing_mm, (y - oy) / self.spacing_mm, (z - oz) / self.spacing_mm
+        i = min(max(int(math.floor(px)), 0), nx - 2)
+        j = min(max(int(math.floor(py)), 0), ny - 2)
+        k = min(max(int(math.floor(pz)), 0), nz - 2)
+        u, v, w = min(max(px - i, 0.0), 1.0), min(max(py - j, 0.0), 1.0), min(max(pz - k, 0.0), 1.0)
+        values = self._values
+        c = (i * ny + j) * nz + k           # the corner (i, j, k) in C order; +1 along z, +nz along y, +ny nz along x
+        dy, dx = nz, ny * nz
+        # along x, at the four (y, z) corners; then along y; then along z
+        x00 = values[c] * (1.0 - u) + values[c + dx] * u
+        x01 = values[c + 1] * (1.0 - u) + values[c + dx + 1] * u
+        x10 = values[c + dy] * (1.0 - u) + values[c + dx + dy] * u
+        x11 = values[c + dy + 1] * (1.0 - u) + values[c + dx + dy + 1] * u
+        y0 = x00 * (1.0 - v) + x10 * v
+        y1 = x01 * (1.0 - v) + x11 * v
+        return y0 * (1.0 - w) + y1 * w
+
+    @functools.cached_property
+    def _values(self) -> list[float]:
+        values: list[float] = np.ascontiguousarray(self.thickness_mm, dtype=float).ravel().tolist()
+        return values
+
+    @functools.cached_property
+    def _origin(self) -> tuple[float, float, float]:
+        x, y, z = (float(value) for value in self.origin_mm)
+        return x, y, z
 
 
 def wall_field(geometry: ProstateGeometry, spacing_mm: float = 1.0) -> WallField:
