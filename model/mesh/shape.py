@@ -139,7 +139,7 @@ class WallField:
 
         gmsh asks this once per point while meshing (hundreds of thousands of times), so it is scalar arithmetic
         on the grid's values, in the order a 2x2x2 block's numpy interpolation takes: the same floats."""
-        nx, ny, nz = self.thickness_mm.shape
+        nx, ny, nz = (int(n) for n in self.thickness_mm.shape)
         ox, oy, oz = self._origin
         px, py, pz = (x - ox) / self.spacing_mm, (y - oy) / self.spacing_mm, (z - oz) / self.spacing_mm
         i = min(max(int(math.floor(px)), 0), nx - 2)
