@@ -25,7 +25,7 @@ from phantom.host.client import Phantom
 from phantom.host.scenes import example_scene_path, load_timeline_scene
 from phantom.model.scene import load_scene
 
-pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(1500)]
+pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.busy_cores, pytest.mark.timeout(1500)]
 
 #: One busy process per core at normal priority: the artificial load.
 BUSY_LOOP = "while True:\n    pass\n"
