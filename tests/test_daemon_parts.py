@@ -573,7 +573,8 @@ def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(t
             time.sleep(0.2)
         time.sleep(1.0)                                        # the build's pool has made its semaphores
         everyone = _descendants(daemon.pid)
-        semaphores = set(Path("/dev/shm").glob("sem.*")) - semaphores_before
+        # the new ones that the daemon's processes hold (another test's, made meanwhile, may outlive this one)
+        semaphores = _semaphores_mapped_by([daemon.pid, *everyone]) - semaphores_before
         daemon.send_signal(signum)
         assert daemon.wait(30) == (0 if signum == signal.SIGTERM else -signal.SIGKILL)
         deadline = time.monotonic() + 10
@@ -597,6 +598,20 @@ def _parent(pid):
         return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
     except (OSError, IndexError, ValueError):
         return None
+
+
+def _semaphores_mapped_by(pids):
+    """The named POSIX semaphores (/dev/shm/sem.*) that any of ``pids`` has mapped, from /proc/PID/maps."""
+    found = set()
+    for pid in pids:
+        try:
+            maps = Path(f"/proc/{pid}/maps").read_text()
+        except OSError:
+            continue
+        # address, permissions, offset, device, inode, path (" (deleted)" after one already unlinked)
+        paths = (line.split(maxsplit=5)[5] for line in maps.splitlines() if " /dev/shm/sem." in line)
+        found.update(Path(path) for path in paths if not path.endswith(" (deleted)"))
+    return found
 
 
 def _runs(pid):
