@@ -124,7 +124,8 @@ class DaemonConfig:
                              "shape = true; 0: none; at most the control rate", metavar="HZ", at_least=0,
                              at_most=10)
     host_deadline_ms: int = setting(500, "the board's dead-host deadline (ms): it stops the blowers when the daemon "
-                                    "falls silent this long", metavar="MS", at_least=50, at_most=10000)
+                                    "falls silent this long (wall clock: a simulated board's counts at its speed)",
+                                    metavar="MS", at_least=50, at_most=10000)
     telemetry_period_ms: int = setting(20, "the board's telemetry period (ms)", metavar="MS", at_least=10,
                                        at_most=1000)
     kp_per_kpa: float = setting(4.0, "the board's PID proportional gain (drive level per kPa), sent to every chamber "

@@ -35,6 +35,7 @@ from phantom.host.startup import StartupProgress, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.model.errors import SceneError
 from phantom.protocol.link import BOOT_DELAY_S
+from phantom.protocol.messages import CONSTANTS
 
 logger = logging.getLogger(__name__)
 
@@ -128,14 +129,23 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None) 
         assert config.port is not None  # a DaemonConfig has exactly one board
         transport = SerialTransport(config.port, config.baud)
         boot_delay_s = max(BOOT_DELAY_S.values()) if config.boot_delay_s is None else config.boot_delay_s
+    return LinkThread(LinkSession(transport, link_timing(config, boot_delay_s)), LoopStalls())
+
+
+def link_timing(config: DaemonConfig, boot_delay_s: float) -> LinkTiming:
+    """The link's periods and deadlines: the configured ones in wall-clock time, on a simulated board at its speed
+    too."""
     # a simulated board faster than real time passes its dead-host deadline sooner (speed 0: as fast as it can,
     # about 5x here); a HELLO whose reply was lost must be repeated before that deadline: HELLOs go out at twice
-    # the keepalive period
+    # the keepalive period. The deadline itself is the configured one in wall-clock time, as a real board's: in
+    # board time it was half of it at --sim-speed 2, and a verified target's scan, reconstructed in a thread of
+    # the daemon's process while the tests loaded both cores, held the link's thread past it (DEAD_HOST)
     speed = (config.sim_speed or 10.0) if config.sim else 1.0
-    timing = LinkTiming(keepalive_s=min(0.1, 0.1 / speed), hello_timeout_s=min(0.2, 0.2 / speed),
-                        telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=config.host_deadline_ms,
-                        boot_delay_s=boot_delay_s)
-    return LinkThread(LinkSession(transport, timing), LoopStalls())
+    host_deadline_ms = max(CONSTANTS["MIN_HOST_DEADLINE_MS"],
+                           min(CONSTANTS["MAX_HOST_DEADLINE_MS"], round(config.host_deadline_ms * speed)))
+    return LinkTiming(keepalive_s=min(0.1, 0.1 / speed), hello_timeout_s=min(0.2, 0.2 / speed),
+                      telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=host_deadline_ms,
+                      boot_delay_s=boot_delay_s)
 
 
 async def serve(daemon: Daemon) -> int:

@@ -3,7 +3,7 @@
 #
 # - [sim]: the tests that run the firmware in simavr (marked sim). They mostly wait on board time (a board paced to
 #   the wall clock takes about a fifth of a core, hil/README.md) while a daemon beside it must answer the board
-#   within its dead-host deadline (250 ms of wall clock at --sim-speed 2), so they run at normal priority.
+#   within its dead-host deadline (500 ms of wall clock at any --sim-speed), so they run at normal priority.
 # - [rest]: every other test, at a lower priority (nice 5): it takes the CPU the boards leave, and a numerical test
 #   cannot hold a core a daemon is waiting for. (One run of both kinds on more workers than cores latched
 #   DEAD_HOST in two scans; on as many workers as cores, the workers sat in board time with a core idle.)

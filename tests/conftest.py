@@ -181,8 +181,9 @@ def _no_long_collections_during_a_simulated_board(request: pytest.FixtureRequest
     """Before a test that runs simavr: collect, then freeze what survives, so that no full garbage collection
     scans it again. The sim tests share one long pytest process whose heap grows with every test before them;
     its full collections held the GIL for 150-180 ms, long enough, with a loaded machine, for the link's
-    keepalive to miss the board's host deadline (500 ms of board time, 250 ms of wall time at speed 2) and for
-    the board to latch DEAD_HOST mid-test (a 350 ms collection latched it in both tries)."""
+    keepalive to miss the board's host deadline (then 500 ms of board time, 250 ms of wall time at speed 2; now
+    500 ms of wall time at any speed) and for the board to latch DEAD_HOST mid-test (a 350 ms collection latched
+    it in both tries)."""
     if request.node.get_closest_marker("sim") is not None:
         gc.collect()
         gc.freeze()

@@ -76,6 +76,23 @@ def test_a_config_needs_one_board_and_values_in_range():
     assert DaemonConfig(sim=True, rerun_save="x.rrd").rerun_save == Path("x.rrd")
 
 
+@pytest.mark.parametrize(("config", "keepalive_s", "board_deadline_ms"), [
+    (DaemonConfig(port="/dev/ttyACM0"), 0.1, 500),
+    (DaemonConfig(sim=True, sim_speed=2.0), 0.05, 1000),        # 500 ms of wall clock at twice real time
+    (DaemonConfig(sim=True, sim_speed=0.5), 0.1, 250),
+    (DaemonConfig(sim=True, sim_speed=0.0), 0.01, 5000),       # as fast as it can: about 5x, taken as 10x
+    (DaemonConfig(sim=True, sim_speed=4.0, host_deadline_ms=5000), 0.025, 10000),     # the board's longest
+])
+def test_the_dead_host_deadline_is_the_configured_wall_clock_time_at_a_simulated_boards_speed(
+        config, keepalive_s, board_deadline_ms):
+    """At --sim-speed 2 the board's 500 ms were 250 ms of wall clock, half a real board's: a scan reconstructed in
+    the daemon's process on a loaded machine held the link's thread past it (DEAD_HOST in make test)."""
+    from phantom.host.service import link_timing
+
+    timing = link_timing(config, 0.0)
+    assert (timing.keepalive_s, timing.host_deadline_ms) == (pytest.approx(keepalive_s), board_deadline_ms)
+
+
 def test_every_setting_is_a_daemon_flag_with_its_help_and_range():
     from phantom.cli import daemon as commands
 
