@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from phantom.model.fem.linsolve import Factorization, default_method, indefinite_method
+from phantom.model.fem.linsolve import (
+    Factorization,
+    FillOrdering,
+    cholmod_ordering,
+    default_method,
+    indefinite_method,
+)
 
 
 def laplacian_3d(n):
@@ -54,6 +60,39 @@ def test_an_indefinite_matrix_goes_to_cholmods_ldl_which_solves_it_and_prints_no
     assert capfd.readouterr() == ("", "")
     with pytest.raises(ArithmeticError, match="singular"):
         Factorization(sp.csr_matrix(np.diag([1.0, 0.0, 2.0])), "cholmod-ldl")
+
+
+@pytest.mark.parametrize("shift", [0.0, 3.0])   # positive definite (LL'), indefinite (LDL')
+def test_a_kept_ordering_factorises_the_permuted_matrix_to_the_same_solution(shift):
+    """With CHOLMOD's ordering kept (FillOrdering), the permuted matrix is factorised in its natural order: the
+    same solutions as CHOLMOD ordering it itself, and a stored factor whose permutation is the composition."""
+    matrix = laplacian_3d(9) - shift * sp.identity(729, format="csr")
+    matrix = matrix.tocsr()
+    matrix.sort_indices()
+    permutation = cholmod_ordering(laplacian_3d(9))
+    assert not np.array_equal(permutation, np.arange(729))        # (a real reordering, not the identity)
+    ordering = FillOrdering(permutation, matrix.indptr, matrix.indices)
+    rhs = np.random.default_rng(3).normal(size=(729, 2))
+    method = "cholmod" if shift == 0.0 else "cholmod-ldl"
+    ordered = Factorization(matrix, method, ordering=ordering)
+    again = Factorization(matrix * 2.0, method, ordered.analysis, ordering)       # the analysis reused
+    for factorization, scale in ((ordered, 1.0), (again, 2.0)):
+        solution = factorization.solve(rhs)
+        np.testing.assert_allclose(solution, Factorization(matrix, method).solve(rhs) / scale, rtol=0,
+                                   atol=1e-11 * np.abs(solution).max())
+        np.testing.assert_allclose(factorization.solve(rhs[:, 0]), solution[:, 0], rtol=0,
+                                   atol=1e-14 * np.abs(solution).max())                 # one right-hand side
+    if shift == 0.0:
+        stored = ordered.cholesky_factor()
+        assert stored is not None
+        np.testing.assert_allclose(stored.solve(rhs), ordered.solve(rhs), rtol=0, atol=1e-11 * np.abs(rhs).max())
+
+
+def test_an_ordering_that_is_not_a_permutation_is_refused():
+    matrix = laplacian_3d(4)
+    for bad in (np.arange(63), np.zeros(64, dtype=int), np.arange(1, 65)):
+        with pytest.raises(ValueError, match="not a permutation of the pattern's 64 rows"):
+            FillOrdering(bad, matrix.indptr, matrix.indices)
 
 
 def test_a_cholmod_factorisation_starts_no_threads():

@@ -162,9 +162,9 @@ def test_the_converged_scene_reaches_3_kpa_in_a_handful_of_steps_on_cholmod_alon
     methods: list[str] = []
     original = linsolve.Factorization.__init__
 
-    def recording(self, matrix, method=None, analysis=None):
+    def recording(self, matrix, method=None, analysis=None, ordering=None):
         methods.append(method or linsolve.default_method())
-        original(self, matrix, method, analysis)
+        original(self, matrix, method, analysis, ordering)
 
     linsolve.Factorization.__init__ = recording
     capfd.readouterr()  # (a cold cache's meshing message is not the solve's)

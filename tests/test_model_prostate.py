@@ -114,6 +114,39 @@ def test_tangent_compliance_at_an_inflated_state(coarse, tmp_path, monkeypatch):
     np.testing.assert_allclose(secant, w[:, 0], rtol=2e-2)
 
 
+def test_the_fill_ordering_is_kept_on_disk_read_by_a_new_body_and_made_again_when_bad(tmp_path, monkeypatch):
+    """CHOLMOD's ordering of a body's pattern is made once (phantom.cache_dir("orderings")): a new body of the same
+    mesh reads it instead of ordering again and factorises to the same bits; a file that is not a permutation of
+    the pattern's rows is not trusted but made again."""
+    from phantom.model.fem import body as fem_body
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+
+    def solved(rhs):
+        body = PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=8.0).body
+        data = body.elastic(body.nodes_m, "linear", fem_body.POSITIVE_TANGENT, body.rest_constraints).tangent_data
+        return body.factorize(data).solve(rhs)
+
+    rhs = np.random.default_rng(4).normal(size=3 * len(PhantomModel.from_scene(load_scene("builtin"),
+                                                                                mesh_size_mm=8.0).nodes_m))
+    first = solved(rhs)
+    stored = list((tmp_path / "orderings").glob("*.npy"))
+    assert len(stored) == 1
+    ordering = fem_body.cholmod_ordering
+    orderings = []
+
+    def counted(matrix):
+        orderings.append(matrix.shape)
+        return ordering(matrix)
+
+    monkeypatch.setattr(fem_body, "cholmod_ordering", counted)
+    np.testing.assert_array_equal(solved(rhs), first)
+    assert orderings == []
+    np.save(stored[0], np.arange(10))
+    np.testing.assert_array_equal(solved(rhs), first)
+    assert orderings == [(len(rhs), len(rhs))] and len(np.load(stored[0])) == len(rhs)
+
+
 def central_differences(solve, pressures_pa, step_pa):
     """dV/dp (chamber (3, 3) and gland (3,), m^3/Pa) by central differences of ``solve(pressures) -> State``."""
     chamber, gland = np.empty((3, 3)), np.empty(3)

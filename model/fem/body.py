@@ -30,7 +30,14 @@ import phantom
 from phantom.model.arrays import BoolArray, FloatArray, Int32Array, IntArray
 from phantom.model.errors import MeshError, SolveError
 from phantom.model.fem import kernels
-from phantom.model.fem.linsolve import CholeskyFactor, Factorization, default_method, indefinite_method
+from phantom.model.fem.linsolve import (
+    CholeskyFactor,
+    Factorization,
+    FillOrdering,
+    cholmod_ordering,
+    default_method,
+    indefinite_method,
+)
 from phantom.model.fem.materials import law_parameters
 from phantom.model.mesh.elements import (
     TET_DEGREE2_POINTS,
@@ -317,6 +324,7 @@ class SolidBody:
         self._factorizations: dict[tuple[int, ...], Factor] = {}
         self._cholmod_analysis: Any = None
         self._ldl_analysis: Any = None
+        self._fill_ordering: FillOrdering | None = None
         self._constraint_sets: dict[tuple[int, ...], Constraints] = {}
         self.rest_constraints = self.constraints_for(self.nodes_m)
 
@@ -378,6 +386,7 @@ class SolidBody:
         made in this process travels as its arrays (as the disk cache stores it; SuperLU's is made again)."""
         state = self.__dict__.copy()
         state["_cholmod_analysis"] = state["_ldl_analysis"] = None
+        state["_fill_ordering"] = None  # its gather is the size of the matrix: read again from the disk cache
         factors: dict[tuple[int, ...], Factor] = {}
         for key, factor in self._factorizations.items():
             arrays = factor.cholesky_factor() if isinstance(factor, Factorization) else factor
@@ -574,7 +583,8 @@ class SolidBody:
         may be indefinite (the exact tangent: positive definite on the stable path, not past a limit point) goes
         to CHOLMOD's Cholesky first, when that is the solver, and to :func:`indefinite_method` (CHOLMOD's LDL')
         when CHOLMOD finds it is not positive definite (SuperLU when the solver is not CHOLMOD). CHOLMOD's
-        symbolic analysis of the pattern is made once per body and mode.
+        symbolic analysis of the pattern is made once per body and mode, on the pattern's fill-reducing ordering
+        (:meth:`fill_ordering`).
 
         Raises ArithmeticError when a matrix said to be positive definite is not (CHOLMOD), or an indefinite one
         is singular (a zero pivot in LDL').
@@ -583,16 +593,42 @@ class SolidBody:
         method = self.linear_solver or default_method()
         if method != "cholmod":
             return Factorization(matrix, method if positive_definite else "splu-mmd")
+        ordering = self.fill_ordering(matrix)
         try:
-            factorization = Factorization(matrix, method, self._cholmod_analysis)
+            factorization = Factorization(matrix, method, self._cholmod_analysis, ordering)
         except ArithmeticError:
             if positive_definite:
                 raise
-            factorization = Factorization(matrix, indefinite_method(), self._ldl_analysis)
+            factorization = Factorization(matrix, indefinite_method(), self._ldl_analysis, ordering)
             self._ldl_analysis = factorization.analysis
             return factorization
         self._cholmod_analysis = factorization.analysis
         return factorization
+
+    def fill_ordering(self, matrix: scipy.sparse.csr_matrix) -> FillOrdering:
+        """CHOLMOD's fill-reducing ordering of the body's pattern (``matrix`` is one of its matrices), made once and
+        kept on disk (``phantom.cache_dir("orderings")``, keyed by the pattern), so that a new process does not
+        order the pattern again (AMD and METIS: 0.18 s of CPU on the 7 mm prostate). A stored file that is not a
+        permutation of the pattern's rows is made again."""
+        if self._fill_ordering is not None:
+            return self._fill_ordering
+        digest = hashlib.sha256()
+        for array in (self.pattern.indptr, self.pattern.indices):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        path = phantom.cache_dir("orderings") / f"{digest.hexdigest()[:32]}.npy"
+        if path.is_file():
+            try:
+                self._fill_ordering = FillOrdering(np.load(path), self.pattern.indptr, self.pattern.indices)
+                return self._fill_ordering
+            except (OSError, ValueError, EOFError):
+                path.unlink(missing_ok=True)
+        permutation = cholmod_ordering(matrix)
+        handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npy")
+        os.close(handle)
+        np.save(temporary, permutation.astype(np.int32))
+        os.replace(temporary, path)
+        self._fill_ordering = FillOrdering(permutation, self.pattern.indptr, self.pattern.indices)
+        return self._fill_ordering
 
     def rest_factorization(self, constraints: Constraints | None = None) -> Factor:
         """The factorised small-strain stiffness (elastic + springs + ``constraints``, default the rest ones),
