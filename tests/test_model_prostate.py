@@ -147,6 +147,34 @@ def test_the_fill_ordering_is_kept_on_disk_read_by_a_new_body_and_made_again_whe
     assert orderings == [(len(rhs), len(rhs))] and len(np.load(stored[0])) == len(rhs)
 
 
+def test_the_rest_factor_is_stored_read_back_for_any_modulus_and_made_again_when_damaged(tmp_path, monkeypatch):
+    """The small-strain stiffness's factor is kept on disk as a folder of arrays, read back (mapped) by a new body
+    and rescaled for another E; a damaged file is not trusted: the stiffness is factorised and stored again."""
+    from phantom.model.fem.linsolve import CholeskyFactor, Factorization
+
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
+
+    def model(youngs_modulus_pa=None):
+        built = PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=8.0)
+        return built if youngs_modulus_pa is None else built.with_material(youngs_modulus_pa=youngs_modulus_pa)
+
+    first = model()
+    made = first.body.rest_factorization()
+    assert isinstance(made, Factorization)
+    stored = list((tmp_path / "factorizations").iterdir())
+    assert len(stored) == 1 and stored[0].is_dir()
+    rhs = np.random.default_rng(5).normal(size=3 * len(first.nodes_m))
+    expected = made.solve(rhs)
+    read = model(2 * first.material.youngs_modulus_pa).body.rest_factorization()
+    assert isinstance(read, CholeskyFactor)
+    np.testing.assert_allclose(read.solve(rhs), expected / 2, rtol=0, atol=1e-10 * np.abs(expected).max())
+    (stored[0] / "values.npy").write_bytes(b"not an array")
+    again = model().body.rest_factorization()
+    assert isinstance(again, Factorization)
+    np.testing.assert_allclose(again.solve(rhs), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    assert isinstance(model().body.rest_factorization(), CholeskyFactor)          # stored again
+
+
 def central_differences(solve, pressures_pa, step_pa):
     """dV/dp (chamber (3, 3) and gland (3,), m^3/Pa) by central differences of ``solve(pressures) -> State``."""
     chamber, gland = np.empty((3, 3)), np.empty(3)
