@@ -3,6 +3,10 @@
 VENV := .venv
 PY := $(VENV)/bin/python
 CORES := $(shell nproc 2>/dev/null || echo 2)
+# Python may write its bytecode caches (__pycache__/, ignored by git) whatever the environment says: with
+# PYTHONDONTWRITEBYTECODE set (some images set it), every pytest worker rewrote the test modules' asserts and every
+# `phantom` a test started compiled the package from source again (make check: 126 -> 113 s of CPU without it).
+unexport PYTHONDONTWRITEBYTECODE
 
 .PHONY: setup demo test check lint types protocol-check firmware-test firmware-test-one pytest pytest-fast test-long figures clean
 

@@ -38,8 +38,8 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 #   earlier tests logged). Every other test is a work unit of its own. The modules are named here because the
 #   scheduler, in pytest's controlling process, sees test ids only; pytest_collection_modifyitems refuses a test
 #   that shares such a fixture outside them.
-# - The longest work starts first (units with a simavr test marked slow, then with a slow test), so that none of
-#   it is left running alone at the end.
+# - The longest work starts first (units with a simavr test marked slow, then with a slow test, and within each
+#   the modules kept together, most tests first), so that none of it is left running alone at the end.
 KEPT_TOGETHER = frozenset(f"tests/{name}.py" for name in (
     "test_daemon_board_promises", "test_daemon_corrections", "test_daemon_e2e", "test_daemon_scene_promises",
     "test_examples", "test_fem_corotational", "test_fem_felupe", "test_fem_gravity", "test_fem_hyperelastic",
@@ -95,10 +95,14 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         return 0 if slow and item.get_closest_marker("sim") is not None else 1 if slow else 2
 
     unit_rank: dict[str, int] = {}
+    unit_size: dict[str, int] = {}
     for item in items:
         unit = work_unit(item.nodeid)
         unit_rank[unit] = min(unit_rank.get(unit, 2), rank(item))
-    items.sort(key=lambda item: unit_rank[work_unit(item.nodeid)])
+        unit_size[unit] = unit_size.get(unit, 0) + 1
+    # within a rank, the modules kept together first, the largest first: single tests fill in around them at the
+    # end (make check's workers had finished a module's tests alone, the other idle)
+    items.sort(key=lambda item: (unit_rank[work_unit(item.nodeid)], -unit_size[work_unit(item.nodeid)]))
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:

@@ -98,6 +98,7 @@ def test_rest_compliance_predicts_small_inflations(coarse, tmp_path, monkeypatch
     assert len(list((tmp_path / "compliance").glob("*.npz"))) == 2
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 def test_tangent_compliance_at_an_inflated_state(coarse, tmp_path, monkeypatch):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     rest = coarse.compliance().chamber_m3_per_pa
@@ -120,15 +121,15 @@ def test_the_fill_ordering_is_kept_on_disk_read_by_a_new_body_and_made_again_whe
     the pattern's rows is not trusted but made again."""
     from phantom.model.fem import body as fem_body
 
+    mesh = PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=8.0)   # (meshed in the shared cache)
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
 
     def solved(rhs):
-        body = PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=8.0).body
+        body = mesh.with_material().body                                         # a new body of the mesh
         data = body.elastic(body.nodes_m, "linear", fem_body.POSITIVE_TANGENT, body.rest_constraints).tangent_data
         return body.factorize(data).solve(rhs)
 
-    rhs = np.random.default_rng(4).normal(size=3 * len(PhantomModel.from_scene(load_scene("builtin"),
-                                                                                mesh_size_mm=8.0).nodes_m))
+    rhs = np.random.default_rng(4).normal(size=3 * len(mesh.nodes_m))
     first = solved(rhs)
     stored = list((tmp_path / "orderings").glob("*.npy"))
     assert len(stored) == 1
@@ -152,11 +153,11 @@ def test_the_rest_factor_is_stored_read_back_for_any_modulus_and_made_again_when
     and rescaled for another E; a damaged file is not trusted: the stiffness is factorised and stored again."""
     from phantom.model.fem.linsolve import CholeskyFactor, Factorization
 
+    mesh = PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=8.0)   # (meshed in the shared cache)
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
 
     def model(youngs_modulus_pa=None):
-        built = PhantomModel.from_scene(load_scene("builtin"), mesh_size_mm=8.0)
-        return built if youngs_modulus_pa is None else built.with_material(youngs_modulus_pa=youngs_modulus_pa)
+        return mesh.with_material(youngs_modulus_pa=youngs_modulus_pa)             # a new body of the mesh
 
     first = model()
     made = first.body.rest_factorization()

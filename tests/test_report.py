@@ -84,6 +84,7 @@ def test_the_report_reads_the_recording_back_steps_volumes_chambers_events(recor
     assert [event.text for event in run.events][0] == "model ready"
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 def test_the_html_holds_everything_inline_the_true_error_and_a_picture_per_step(recording, tmp_path):
     out = write_report(recording, tmp_path / "deep" / "report.html")
     text = out.read_text()
@@ -123,6 +124,7 @@ def test_what_is_not_a_recording_is_refused_saying_what_to_give(tmp_path, conten
     assert not (tmp_path / "run.html").exists()
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 def test_the_command_line_writes_the_report_beside_the_recording_by_default(recording, tmp_path):
     copy = tmp_path / "copy.rrd"
     shutil.copy(recording, copy)

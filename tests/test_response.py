@@ -341,6 +341,7 @@ def _shipping_scene(tmp_path, built, model, volumes_name="volumes.npz", material
     return scene_path
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 def test_shipped_table_volumes_answer_without_a_build_and_their_shapes_are_solved(model, monkeypatch, tmp_path):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
     built = build_response_table(model, PRESSURE_MAX_PA, points_per_axis=2, workers=1)

@@ -79,6 +79,7 @@ def truth_in_model_frame(synthetic):
     return synthetic.rotation.T, -synthetic.rotation.T @ synthetic.translation_mm
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 @pytest.mark.parametrize("seed", [1, 2])
 def test_a_damaged_moved_scan_of_the_model_is_found_where_it_was_put(surface, state, seed):
     rng = np.random.default_rng(seed)
@@ -202,6 +203,7 @@ def test_many_points_take_the_neighbour_lists_and_agree(surface):
                                                                       surface.triangles), atol=1e-9)
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 def test_a_symmetric_state_is_reported_ambiguous(model):
     """With equal lobe pressures the surface is symmetric under a half turn about z: two alignments fit."""
     state = model.equilibrium([1e3, 1e3, 1e3])

@@ -68,6 +68,7 @@ def recording(tmp_path_factory):
     return folder, rig, plan, mesh
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 def test_recorded_frames_through_the_webcam_path_make_the_sphere(recording, tmp_path):
     frames, rig, plan, mesh = recording
     camera = Webcam(str(frames / "%04d.png"))

@@ -62,6 +62,7 @@ def test_silhouette_refuses_pictures_without_a_phantom():
         silhouette(np.zeros((120, 160), np.uint8))
 
 
+@pytest.mark.slow  # seconds of numerics: make test, not make check
 def test_sphere_from_a_rendered_capture(tmp_path):
     truth = sphere(15.0, VIRTUAL_CENTRE_MM, levels=5)
     folder = render_capture(truth, virtual_rig(0.5), Plan(12), tmp_path / "capture")

@@ -48,7 +48,9 @@ def _with_member(path, source, name, header_shape, data=b"", compression=zipfile
     """``source``'s arrays and a member ``name`` whose .npy header declares ``header_shape`` (float64)."""
     np.savez(path, **{key: value for key, value in _arrays(source).items() if key != name})
     header = {"descr": "<f8", "fortran_order": False, "shape": header_shape}
-    with zipfile.ZipFile(path, "a", compression) as archive, archive.open(f"{name}.npy", "w") as stream:
+    # (the fastest deflate: 512 MiB of zeros took 2.5 s at the default level, 0.9 s at 1)
+    with zipfile.ZipFile(path, "a", compression, compresslevel=1) as archive, \
+            archive.open(f"{name}.npy", "w") as stream:
         np.lib.format.write_array_header_1_0(stream, header)
         stream.write(data)
     return path
