@@ -23,10 +23,11 @@ test: setup
 	@$(MAKE) --no-print-directory -j$(CORES) --output-sync=target lint types protocol-check firmware-test
 	@$(MAKE) --no-print-directory pytest
 
-# The contributor's fast loop, about a minute: lint, types, the protocol check and the tests that need no
+# The contributor's fast loop, under a minute: lint, types, the protocol check and the tests that need no
 # simulator and take no long numerical case (pytest -m "not sim and not slow"; mark a test that runs simavr with
-# @pytest.mark.sim, one that takes seconds of numerics with @pytest.mark.slow).
-check: setup lint types protocol-check pytest-fast
+# @pytest.mark.sim, one that takes seconds of numerics with @pytest.mark.slow), side by side on every core.
+check: setup
+	@$(MAKE) --no-print-directory -j$(CORES) --output-sync=target lint types protocol-check pytest-fast
 
 lint:
 	$(VENV)/bin/ruff check .

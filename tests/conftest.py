@@ -9,12 +9,16 @@ dead-host deadline: `make test` runs them in a pytest of their own, at a higher 
 (scripts/pytest-all.sh).
 """
 
+import ast
 import fcntl
 import gc
+import itertools
 import os
+import re
 import resource
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -51,23 +55,88 @@ KEPT_TOGETHER = frozenset(f"tests/{name}.py" for name in (
     "test_shape_data", "test_sim_truth_verify"))
 
 
+#: The markers that -m expressions select on (pyproject.toml registers them).
+SELECTING_MARKERS = ("sim", "slow", "long", "busy_cores")
+
+
+def _module_markers(path: Path) -> set[str]:
+    """The SELECTING_MARKERS that a test module's ``pytestmark`` gives all its tests, read from its source."""
+    for node in ast.parse(path.read_text()).body:
+        if isinstance(node, ast.Assign) and any(isinstance(target, ast.Name) and target.id == "pytestmark"
+                                                for target in node.targets):
+            return {part.attr for part in ast.walk(node.value) if isinstance(part, ast.Attribute)
+                    and part.attr in SELECTING_MARKERS and isinstance(part.value, ast.Attribute)
+                    and part.value.attr == "mark"}
+    return set()
+
+
+def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:
+    """A test module whose ``pytestmark`` leaves the -m expression no test to select is not imported: collecting
+    test_shape_analysis imported JAX (1 s in each worker) for no test of make check. Its tests can only add
+    markers to the module's, so the module is left out only where the expression is false with every set of
+    markers its tests could have; an expression naming another marker leaves every module in."""
+    from _pytest.mark.expression import Expression
+
+    expression = config.getoption("markexpr")
+    if not expression or not (collection_path.name.startswith("test_") and collection_path.suffix == ".py"):
+        return None
+    if set(re.findall(r"[A-Za-z_]\w*", expression)) - {"and", "or", "not", *SELECTING_MARKERS}:
+        return None
+    markers = _module_markers(collection_path)
+    if not markers:
+        return None
+    compiled = Expression.compile(expression)
+    others = [marker for marker in SELECTING_MARKERS if marker not in markers]
+    for count in range(len(others) + 1):
+        for added in itertools.combinations(others, count):
+            if compiled.evaluate((markers | set(added)).__contains__):
+                return None
+    return True
+
+
 def work_unit(nodeid: str) -> str:
     """The unit a worker runs whole: the module for the modules kept together, else the test itself."""
     module = nodeid.split("::", 1)[0]
     return module if module in KEPT_TOGETHER else nodeid
 
 
+#: Where pytest's cache keeps each test's last measured duration (s, setup, call and teardown together).
+DURATIONS_KEY = "phantom/durations_s"
+_measured_s: dict[str, float] = {}
+
+
+def measured_first_key(tests: Iterable[str], measured_s: dict[str, float]) -> float:
+    """A work unit's place when units go longest first by their last measured duration (sort ascending): minus
+    the sum of its tests' durations, or minus infinity (first) where a test was never measured."""
+    durations_s = [measured_s.get(nodeid) for nodeid in tests]
+    return -float("inf") if None in durations_s else -sum(d for d in durations_s if d is not None)
+
+
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """pytest-xdist's scheduler by work units (``--dist loadgroup`` and ``xdist_group`` do not work with pytest 9:
-    xdist renames ``item._nodeid``, which pytest 9 no longer reads); units are handed out in collection order,
-    which pytest_collection_modifyitems sorts longest first."""
+    xdist renames ``item._nodeid``, which pytest 9 no longer reads); units are handed out longest first by the
+    durations the last runs measured (:func:`measured_first_key`), else in the order pytest_collection_modifyitems
+    sorts them. (The queue of units is reordered, in this controlling process, not the collection: xdist names a
+    worker's tests by their places in its own collection.)"""
     if config.getoption("dist") != "load":
         return None
     from xdist.scheduler import LoadScopeScheduling
 
     class WorkUnitScheduling(LoadScopeScheduling):
+        queue_ordered = False
+
         def _split_scope(self, nodeid: str) -> str:
             return work_unit(nodeid)
+
+        def _assign_work_unit(self, node: Any) -> None:
+            # the first call comes once schedule() has queued every unit, before any is handed out
+            measured_s = config.cache.get(DURATIONS_KEY, {}) if config.cache is not None else {}
+            if not self.queue_ordered and measured_s:
+                units = sorted(self.workqueue.items(), key=lambda unit: measured_first_key(unit[1], measured_s))
+                self.workqueue.clear()
+                self.workqueue.update(units)
+            self.queue_ordered = True
+            super()._assign_work_unit(node)
 
     config.option.loadscopereorder = False   # keep the collection's order, not the units' sizes
     return WorkUnitScheduling(config, log)
@@ -123,6 +192,19 @@ def _cpu_s() -> float:
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
     item.stash[_CPU_AT_START] = _cpu_s()
     return (yield)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Each test's duration, for the next run's order (in the controlling process, from every worker's reports)."""
+    _measured_s[report.nodeid] = _measured_s.get(report.nodeid, 0.0) + report.duration
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """The durations measured, added to those of earlier runs in pytest's cache (by the controlling process)."""
+    cache = session.config.cache
+    if cache is None or hasattr(session.config, "workerinput") or not _measured_s:
+        return
+    cache.set(DURATIONS_KEY, {**cache.get(DURATIONS_KEY, {}), **_measured_s})
 
 
 @pytest.hookimpl(wrapper=True)
