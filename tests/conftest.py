@@ -75,8 +75,10 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
     test_shape_analysis imported JAX (1 s in each worker) for no test of make check. Its tests can only add
     markers to the module's, so the module is left out only where the expression is false with every set of
     markers its tests could have; an expression naming another marker leaves every module in."""
-    from _pytest.mark.expression import Expression
-
+    try:  # pytest's own parser of -m (not public API: without it, every module is imported)
+        from _pytest.mark.expression import Expression
+    except ImportError:
+        return None
     expression = config.getoption("markexpr")
     if not expression or not (collection_path.name.startswith("test_") and collection_path.suffix == ".py"):
         return None
@@ -85,12 +87,15 @@ def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool 
     markers = _module_markers(collection_path)
     if not markers:
         return None
-    compiled = Expression.compile(expression)
     others = [marker for marker in SELECTING_MARKERS if marker not in markers]
-    for count in range(len(others) + 1):
-        for added in itertools.combinations(others, count):
-            if compiled.evaluate((markers | set(added)).__contains__):
-                return None
+    try:
+        compiled = Expression.compile(expression)
+        for count in range(len(others) + 1):
+            for added in itertools.combinations(others, count):
+                if compiled.evaluate((markers | set(added)).__contains__):
+                    return None
+    except (AttributeError, TypeError, ValueError, SyntaxError):  # another pytest's parser, or a bad expression
+        return None
     return True
 
 
