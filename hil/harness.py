@@ -5,6 +5,7 @@ The harness takes line commands on stdin and answers each with one JSON line on 
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import select
@@ -38,9 +39,13 @@ def build_harness() -> Path:
     if not Path("/usr/include/simavr/sim_avr.h").exists():
         raise HarnessError("cannot build the simavr harness: libsimavr-dev is not installed; run scripts/bootstrap.sh")
     build_dir = phantom.cache_dir("hil") / "harness"
-    result = subprocess.run(
-        ["make", "-s", "-C", str(HARNESS_SOURCE_DIR), f"BUILD={build_dir}"], capture_output=True, text=True
-    )
+    # one build at a time on this machine: two pytest workers that found the sources changed ran make at once, and
+    # one started the executable while the other was still linking it (OSError in 14 tests)
+    with open(phantom.cache_dir("hil") / "harness.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        result = subprocess.run(
+            ["make", "-s", "-C", str(HARNESS_SOURCE_DIR), f"BUILD={build_dir}"], capture_output=True, text=True
+        )
     if result.returncode != 0:
         raise HarnessError(f"building the simavr harness failed:\n{result.stdout}{result.stderr}")
     return build_dir / "phantom-hil"
