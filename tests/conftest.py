@@ -135,12 +135,13 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
 
         def _assign_work_unit(self, node: Any) -> None:
             # the first call comes once schedule() has queued every unit, before any is handed out
-            measured_s = config.cache.get(DURATIONS_KEY, {}) if config.cache is not None else {}
-            if not self.queue_ordered and measured_s:
-                units = sorted(self.workqueue.items(), key=lambda unit: measured_first_key(unit[1], measured_s))
-                self.workqueue.clear()
-                self.workqueue.update(units)
-            self.queue_ordered = True
+            if not self.queue_ordered:
+                self.queue_ordered = True
+                measured_s = config.cache.get(DURATIONS_KEY, {}) if config.cache is not None else {}
+                if measured_s:
+                    units = sorted(self.workqueue.items(), key=lambda unit: measured_first_key(unit[1], measured_s))
+                    self.workqueue.clear()
+                    self.workqueue.update(units)
             super()._assign_work_unit(node)
 
     config.option.loadscopereorder = False   # keep the collection's order, not the units' sizes

@@ -627,10 +627,8 @@ class SolidBody:
             except (OSError, ValueError, EOFError):
                 path.unlink(missing_ok=True)
         permutation = cholmod_ordering(matrix)
-        handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".npy")
-        os.close(handle)
-        np.save(temporary, permutation.astype(np.int32))
-        os.replace(temporary, path)
+        with phantom.written_atomically(path) as temporary:
+            np.save(temporary, permutation.astype(np.int32))
         self._fill_ordering = FillOrdering(permutation, self.pattern.indptr, self.pattern.indices)
         return self._fill_ordering
 
