@@ -27,8 +27,9 @@ def main() -> None:
     from phantom.hil.plant import load_plant
     from phantom.host.scenes import load_timeline_scene
     from phantom.model import PhantomModel
-    from phantom.model.corrections import CorrectedModel, Measurement, fit_correction, model_grid
+    from phantom.model.corrections import CorrectedModel, fit_correction, model_grid
     from phantom.model.inverse import InverseSolver
+    from phantom.model.measurements import Measurement
     from phantom.model.target import Target
     from phantom.scan.characterise import path_design
 

@@ -454,7 +454,8 @@ def truth_through_measurements(table: TruthTable, pressures_kpa: ArrayLike, volu
         When the measurements cannot be met so (two that contradict the growth's sign), or a pressure is
         negative or beyond the table's grid.
     """
-    from phantom.model.corrections import CorrectionError, smoothest_residual
+    from phantom.model.corrections import smoothest_residual
+    from phantom.model.measurements import CorrectionError
 
     points = np.asarray(table.points_kpa, dtype=float)
     pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))

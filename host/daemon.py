@@ -53,7 +53,7 @@ from phantom.host.stalls import LoopStalls
 from phantom.host.startup import BackgroundTable, StartupProgress, notify_systemd
 from phantom.host.status import daemon_status
 from phantom.host.zeroing import ZEROING_WHY, SensorZero
-from phantom.model.corrections import data_dir
+from phantom.model.measurements import data_dir
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)

@@ -33,14 +33,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError, read_text, require_extra, written_atomically
-from phantom.model.corrections import (
-    KINDS,
-    CorrectedModel,
-    Correction,
-    Measurement,
-    ModelGrid,
-    fit_correction,
-)
+from phantom.model.corrections import KINDS, CorrectedModel, Correction, ModelGrid, fit_correction
+from phantom.model.measurements import Measurement
 
 #: The record's file format, and its name in the run's folder.
 FORMAT = "phantom-characterisation/1"

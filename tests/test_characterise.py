@@ -12,7 +12,8 @@ from test_corrections import _linear_grid
 from phantom.cli import characterise as cli
 from phantom.cli.main import main
 from phantom.host.client import DaemonError, FaultError, UnreachableError
-from phantom.model.corrections import CorrectionError, CorrectionStore, Measurement, fit_correction
+from phantom.model.corrections import fit_correction
+from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement
 from phantom.scan.characterise import (
     CharacterisationError,
     CharacterisationRecord,

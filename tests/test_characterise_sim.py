@@ -19,7 +19,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 @pytest.mark.timeout(1500)
 def test_characterise_scans_stores_and_reports_through_a_simulated_daemon(tmp_path, default_model_cached):
     pytest.importorskip("cv2")
-    from phantom.model.corrections import CorrectionStore
+    from phantom.model.measurements import CorrectionStore
     from phantom.scan.camera import virtual_rig
 
     environment = {**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}

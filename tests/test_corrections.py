@@ -13,16 +13,8 @@ import pytest
 
 from phantom.cli.main import main
 from phantom.model.calibration.calibrate import load_measurements
-from phantom.model.corrections import (
-    CorrectedModel,
-    Correction,
-    CorrectionError,
-    CorrectionStore,
-    Measurement,
-    ModelGrid,
-    fit_correction,
-    trilinear,
-)
+from phantom.model.corrections import CorrectedModel, Correction, ModelGrid, fit_correction, trilinear
+from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement
 
 
 @pytest.fixture
@@ -77,7 +69,7 @@ def test_a_damaged_store_is_refused_with_what_to_do_and_another_phantoms_point_i
 
 KILLER = """
 import sys
-from phantom.model.corrections import CorrectionStore, Measurement
+from phantom.model.measurements import CorrectionStore, Measurement
 store = CorrectionStore(sys.argv[1])
 start = len(store.entries())
 for number in range(start, 100000):

@@ -16,7 +16,8 @@ import signal
 import numpy as np
 import pytest
 
-from phantom.model.corrections import Correction, CorrectionError, CorrectionStore, Measurement
+from phantom.model.corrections import Correction
+from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement
 from phantom.model.target import Target
 
 ML = 1e-6

@@ -25,7 +25,7 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
     pytest.importorskip("cv2")
     from phantom.host.recording import read_rrd
-    from phantom.model.corrections import CorrectionStore
+    from phantom.model.measurements import CorrectionStore
 
     sock, data, rrd = tmp_path / "d.sock", tmp_path / "data", tmp_path / "verify.rrd"
     log = open(tmp_path / "daemon.log", "w+")

@@ -18,7 +18,8 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from phantom.host.client import Phantom
-    from phantom.model.corrections import CorrectionStore, ModelGrid
+    from phantom.model.corrections import ModelGrid
+    from phantom.model.measurements import CorrectionStore
     from phantom.scan.camera import Rig
     from phantom.scan.characterise import CharacterisationRecord
 
@@ -84,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     import phantom
     from phantom.host.client import ConnectionLostError
-    from phantom.model.corrections import CorrectionStore
+    from phantom.model.measurements import CorrectionStore
     from phantom.scan.characterise import CharacterisationError, CharacterisationRecord
 
     out = Path(args.out)
@@ -417,7 +418,7 @@ def _finish(record: CharacterisationRecord, grid: ModelGrid, args: argparse.Name
     import tempfile
 
     from phantom import written_atomically
-    from phantom.model.corrections import CorrectionStore
+    from phantom.model.measurements import CorrectionStore
     from phantom.scan.characterise import CharacterisationError, fit_run, write_report
 
     say(f"fitting the correction to {len(record.results)} scans (each kind left out in turn) ...")

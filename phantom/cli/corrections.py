@@ -43,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
 
 
 def _run(args: argparse.Namespace) -> int:
-    from phantom.model.corrections import CorrectionStore
+    from phantom.model.measurements import CorrectionStore
 
     store = CorrectionStore.for_phantom(args.phantom)
     handler = {"list": _list, "add": _add, "clear": _clear, "export": _export, "fit": _fit}[args.action]
@@ -73,7 +73,7 @@ def _list(store: Any, args: argparse.Namespace) -> int:
 
 def _add(store: Any, args: argparse.Namespace) -> int:
     from phantom.cli.common import parse_numbers
-    from phantom.model.corrections import Measurement
+    from phantom.model.measurements import Measurement
 
     measurement = Measurement.now(parse_numbers(args.pressures_kpa, "--pressures-kpa"), args.volume_ml, args.method,
                                   args.scan_file)
@@ -97,7 +97,7 @@ def _export(store: Any, args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from phantom import written_atomically
-    from phantom.model.corrections import CorrectionError
+    from phantom.model.measurements import CorrectionError
 
     text = store.to_csv()
     if args.out is None:
