@@ -209,3 +209,44 @@ def test_a_store_linked_to_another_phantoms_is_refused_not_merged(data_dir):
 def test_absurd_numbers_and_wrong_types_are_refused_with_the_field_named(make, message):
     with pytest.raises(CorrectionError, match=message):
         make()
+
+
+@pytest.mark.sim
+def test_a_daemon_on_the_simulated_board_starts_uncorrected_saying_why_whatever_its_store_holds(
+        tmp_path, data_dir, default_model_cached):
+    """Each damaged store the red team found (before: 1e300 ml made the daemon exit 1 at start, a FIFO kept it from
+    ever being ready) leaves a daemon on the simulated board ready within its usual start (wait_online's 60 s),
+    uncorrected, its status and log saying why; the typo stored unconfirmed too."""
+    from daemon_rig import DaemonRig
+
+    from phantom.hil.sim import SimulatedBoard
+
+    corrections = data_dir / "corrections"
+    corrections.mkdir(parents=True)
+    cases = {"huge": DAMAGED["huge volume"], "clock": DAMAGED["time an object"], "twice": DAMAGED["duplicate keys"]}
+    for name, (content, _) in cases.items():
+        (corrections / f"{name}.json").write_text(content)
+    os.mkfifo(corrections / "fifo.json")
+    CorrectionStore.for_phantom("other").add(Measurement.now([1, 1, 1], 30.0))
+    os.symlink(corrections / "other.json", corrections / "linked.json")
+    typo = CorrectionStore.for_phantom("typo")
+    typo.add(Measurement((1.0, 1.0, 1.0), 39.96, status="unconfirmed", reason="a typo"))
+    whys = {"huge": "volume_ml", "clock": "time_utc", "twice": "duplicate key", "fifo": "not a regular file",
+            "linked": "is a link", "typo": "none of the 1 stored measurement(s) is confirmed"}
+    board = SimulatedBoard(speed=2.0).start()
+    try:
+        for name, why in whys.items():
+            folder = tmp_path / name
+            folder.mkdir()
+            rig = DaemonRig(folder, "--phantom", name, board=board)
+            try:
+                started = time.monotonic()
+                rig.wait_online()
+                correction = rig.status()["correction"]
+                assert not correction["in_force"] and why in (correction["error"] or ""), (name, correction)
+                assert why in rig.daemon_log(), name
+                print(f"{name}: ready in {time.monotonic() - started:.1f} s, uncorrected: {correction['error']}")
+            finally:
+                rig.close()
+    finally:
+        board.stop()
