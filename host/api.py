@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError
+from phantom import PhantomError, unique_keys
 from phantom.host.peer import private_folder
 
 logger = logging.getLogger(__name__)
@@ -63,6 +63,14 @@ RESERVED_FILES = 64
 #: that is ready in a turn before it looks at its timers again: 50 clients' `status` in one turn delayed the
 #: control loop's timers by their sum.
 REQUESTS_PER_TURN = 8
+
+#: How long a request line, once begun, may take to end (s): a client that stops half way through one is closed
+#: then, with why (3000 clients each holding half of a 60 kB line held 200 MB for as long as they stayed).
+PARTIAL_LINE_TIMEOUT_S = 10.0
+#: How long a new connection may stay silent before its first request (s): one that says nothing holds a file
+#: and its buffers for nothing. A client that has asked once may idle as long as it likes (a notebook's
+#: connection); at the connection cap the longest idle is shed.
+SILENT_TIMEOUT_S = 60.0
 
 #: Connections the kernel queues until the daemon accepts them (one at a time): a burst of clients must fit, for
 #: a client of a full queue (asyncio's, at least) believes it is connected and then finds the connection reset.
@@ -128,10 +136,16 @@ class ApiServer:
         beyond it closes the longest idle one (told why in an error line), so that the client that needs the
         daemon (to vent) is answered and the port can be reopened: at the file limit itself, accepting fails
         and asyncio stops listening for a second at a time.
+    partial_line_timeout_s, silent_timeout_s : float
+        A client whose request line has not ended this long after it began, or that has sent no request this long
+        after it connected, is told why and closed (:data:`PARTIAL_LINE_TIMEOUT_S`, :data:`SILENT_TIMEOUT_S`).
     """
 
     def __init__(self, socket_path: str | Path, handlers: dict[str, Handler], mode: int = 0o660,
-                 queue_lines: int = CLIENT_QUEUE_LINES, max_clients: int | None = None):
+                 queue_lines: int = CLIENT_QUEUE_LINES, max_clients: int | None = None,
+                 partial_line_timeout_s: float = PARTIAL_LINE_TIMEOUT_S, silent_timeout_s: float = SILENT_TIMEOUT_S):
+        self.partial_line_timeout_s = partial_line_timeout_s
+        self.silent_timeout_s = silent_timeout_s
         self.socket_path = Path(socket_path)
         self.handlers = dict(handlers)
         self.mode = mode
@@ -269,13 +283,17 @@ class ApiServer:
         writer_task = asyncio.create_task(self._drain_client(client, writer))
         self._tasks.add(writer_task)
         self._tasks.add(this_task)
+        asked = False
         try:
             while True:
                 try:
-                    line = await reader.readline()
+                    line = await self._read_line(reader, None if asked else self.silent_timeout_s)
                 except (ValueError, asyncio.LimitOverrunError):
                     client.offer(_error_line(None, "invalid_request",
                                              f"request longer than {MAX_REQUEST_BYTES} bytes: connection closed"))
+                    break
+                except TimeoutError as why:
+                    client.offer(_error_line(None, "invalid_request", f"{why}: connection closed"))
                     break
                 except (ConnectionError, asyncio.CancelledError):
                     # closing the server cancels this task; ending normally keeps asyncio's stream callback quiet
@@ -284,6 +302,7 @@ class ApiServer:
                     break
                 if not line.strip():
                     continue
+                asked = True
                 client.active_s = time.monotonic()
                 try:
                     reply = await self._answer(line, client)
@@ -304,6 +323,24 @@ class ApiServer:
             self._tasks.discard(writer_task)
             self._tasks.discard(this_task)
 
+    async def _read_line(self, reader: asyncio.StreamReader, silent_timeout_s: float | None) -> bytes:
+        """The next line (b"" at the end of the stream): its first byte waited for at most ``silent_timeout_s``
+        (None: for ever), the rest for at most the partial-line timeout. TimeoutError saying which was exceeded;
+        ValueError for a line over the limit."""
+        try:
+            first = await asyncio.wait_for(reader.readexactly(1), silent_timeout_s)
+        except asyncio.IncompleteReadError:
+            return b""
+        except TimeoutError:
+            raise TimeoutError(f"the connection sent no request within {silent_timeout_s:g} s") from None
+        if first == b"\n":
+            return first
+        try:
+            rest = await asyncio.wait_for(reader.readline(), self.partial_line_timeout_s)
+        except TimeoutError:
+            raise TimeoutError(f"a request line did not end within {self.partial_line_timeout_s:g} s") from None
+        return first + rest
+
     async def _drain_client(self, client: Client, writer: asyncio.StreamWriter) -> None:
         """Write the client's queued lines; a stuck client blocks only this task."""
         try:
@@ -320,7 +357,7 @@ class ApiServer:
         """The reply line to one request line."""
         self.requests_total += 1
         try:
-            request = json.loads(line.decode("utf-8"))
+            request = json.loads(line.decode("utf-8"), object_pairs_hook=unique_keys)
         except UnicodeDecodeError as error:
             self.errors_total += 1
             return _error_line(None, "parse_error", f"the request is not UTF-8 (byte {error.start}: "
@@ -329,7 +366,7 @@ class ApiServer:
             # JSONDecodeError, an integer of too many digits (ValueError), nesting deeper than the parser's stack
             self.errors_total += 1
             reason = error.msg if isinstance(error, json.JSONDecodeError) else (
-                "nested too deeply" if isinstance(error, RecursionError) else str(error).split(";")[0])
+                "nested too deeply" if isinstance(error, RecursionError) else str(error).split(";")[0][:200])
             return _error_line(None, "parse_error", f"the request is not valid JSON ({reason}): send one JSON "
                                "object per line")
         if not isinstance(request, dict):

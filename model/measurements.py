@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError, read_text, written_atomically
+from phantom import PhantomError, read_text, unique_keys, written_atomically
 
 #: The store's file format.
 FORMAT = "phantom-corrections/1"
@@ -142,16 +142,6 @@ def _shown(value: object) -> str:
     """A value for a message, cut short (a store may hold anything)."""
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
-
-
-def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
-    """A JSON object's members, refusing a key given twice (json keeps the last silently)."""
-    document: dict[str, Any] = {}
-    for key, value in pairs:
-        if key in document:
-            raise ValueError(f"duplicate key {key!r}")
-        document[key] = value
-    return document
 
 
 # ----------------------------------------------------------------------------------------------- plausibility
@@ -275,7 +265,7 @@ class CorrectionStore:
         if text is None:
             return []
         try:
-            document = json.loads(text, object_pairs_hook=_unique_keys)
+            document = json.loads(text, object_pairs_hook=unique_keys)
             if not isinstance(document, dict) or document.get("format") != FORMAT:
                 raise ValueError(f"format {document.get('format') if isinstance(document, dict) else None!r}, not "
                                  f"{FORMAT!r}")
