@@ -118,6 +118,9 @@ class Run:
     events: list[Event]
     surfaces: Surfaces | None
     steps: list[Step]
+    #: what the recording held that the report could not show, and why (a mesh whose triangles name vertices it
+    #: does not have)
+    notes: tuple[str, ...] = ()
 
 
 def _error_pct(value: float | None, reference: float | None) -> float | None:
@@ -176,17 +179,31 @@ def _events(entities: dict[str, dict[str, list[Any]]]) -> list[Event]:
             for time_s, level, text in rows if time_s is not None and text]
 
 
-def _surfaces(entities: dict[str, dict[str, list[Any]]]) -> Surfaces | None:
+def _surfaces(entities: dict[str, dict[str, list[Any]]], notes: list[str]) -> Surfaces | None:
     """The rest shape and the deformed surfaces, when the recording has both (the daemon logs them when its scene
-    asks for shapes)."""
+    asks for shapes) and they hold together: finite (n, 3) positions, (k, 3) triangles of those vertices; else
+    None, and ``notes`` says why."""
     import numpy as np
 
     rest = entities.get("/phantom/rest", {})
     moving = entities.get("/phantom/mesh", {})
     if not rest.get("Mesh3D:vertex_positions") or not moving.get("Mesh3D:vertex_positions"):
         return None
-    rest_mm = np.asarray(rest["Mesh3D:vertex_positions"][0], dtype=float)
-    triangles = np.asarray(rest["Mesh3D:triangle_indices"][0], dtype=np.int64)
+    try:
+        rest_mm = np.asarray(rest["Mesh3D:vertex_positions"][0], dtype=float)
+        triangles = np.asarray((rest.get("Mesh3D:triangle_indices") or [[]])[0], dtype=np.int64)
+    except (TypeError, ValueError, OverflowError) as error:
+        notes.append(f"the rest surface cannot be read ({error}): no pictures of the gland")
+        return None
+    if rest_mm.ndim != 2 or rest_mm.shape[1:] != (3,) or not np.all(np.isfinite(rest_mm)) \
+            or triangles.ndim != 2 or triangles.shape[1:] != (3,) or len(triangles) == 0:
+        notes.append(f"the rest surface is not a triangle mesh (positions {rest_mm.shape}, triangles "
+                     f"{triangles.shape}): no pictures of the gland")
+        return None
+    if triangles.min() < 0 or triangles.max() >= len(rest_mm):
+        notes.append(f"the rest surface's triangle indices run from {triangles.min()} to {triangles.max()} but it "
+                     f"has {len(rest_mm)} vertices: no pictures of the gland")
+        return None
     frames = [(time_s, np.asarray(positions, dtype=float))
               for time_s, positions in zip(moving["time"], moving["Mesh3D:vertex_positions"], strict=False)
               if time_s is not None and positions and len(positions) == len(rest_mm)]
@@ -236,7 +253,9 @@ def load_run(path: str | Path) -> Run:
     times = [float(t) for columns in entities.values() for t in columns.get("time", []) if t is not None]
     end_s = max(times, default=0.0)
     events = _events(entities)
-    return Run(path, end_s, volumes, chambers, events, _surfaces(entities), _steps(events, volumes, end_s))
+    notes: list[str] = []
+    surfaces = _surfaces(entities, notes)
+    return Run(path, end_s, volumes, chambers, events, surfaces, _steps(events, volumes, end_s), tuple(notes))
 
 
 # ------------------------------------------------------------------------------------------------ figures
@@ -294,7 +313,8 @@ def chamber_figure(run: Run) -> str:
                           linewidth=1.2, label="measured")
         if chamber.drive_level is not None:
             drive.plot(chamber.drive_level.time_s, chamber.drive_level.values, color=chamber.colour, linewidth=1.0)
-        pressure.set_title(f"{chamber.name} (chamber {chamber.index})")
+        # a name is text, whatever it holds (not mathtext: "$\\undefinedcommand$" stopped the report)
+        pressure.set_title(f"{chamber.name} (chamber {chamber.index})", parse_math=False)
         pressure.legend(loc="upper left", fontsize="small")
         for part in (pressure, drive):
             _mark_steps(part, run.steps)
@@ -451,6 +471,8 @@ def render_html(run: Run) -> str:
                   '<div class="pictures">' + "".join(
                       f"<figure>{image(data, caption, 'gland')}<figcaption>{html.escape(caption)}</figcaption>"
                       "</figure>" for caption, data in pictures) + "</div>"]
+    if run.notes:
+        parts += ["<h2>Not shown</h2>", "".join(f"<p>{html.escape(note)}</p>" for note in run.notes)]
     parts += ["<h2>Events</h2>", events_table(run.events)]
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{html.escape(run.path.name)}'
             f"</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n")
