@@ -63,3 +63,23 @@ def test_a_float_mask_is_refused_saying_what_it_holds(tmp_path, name):
     soft[8:12, 8:12, 8:12] = 0.95
     with pytest.raises(DesignError, match=r"fractional values \(0.7, 0.95; 2 in all\).*threshold it"):
         read_gland(_save(tmp_path / name, soft), 26.3)
+
+
+def test_a_mesh_gmsh_cannot_make_is_a_design_error_not_a_traceback(monkeypatch):
+    """gmsh raises plain Exceptions (an overlapping boundary of a rough surface): the design says so in one line.
+    gmsh is stood in for at this one layer (the red team's case meshed here after the shape checks: 176 s)."""
+    from phantom.design import meshing
+    from phantom.design.chambers import place_chambers, surface_samples_mm
+    from phantom.design.surface import Surface
+
+    def fails(*args, **kwargs):
+        raise Exception("Invalid boundary mesh (overlapping facets) on surface 1 surface 2")
+
+    monkeypatch.setattr(meshing, "mesh_solid", fails)
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=18.0)
+    surface = Surface(np.asarray(sphere.vertices), np.asarray(sphere.faces, dtype=np.int64))
+    chambers = place_chambers(surface, 2.0).chambers
+    with pytest.raises(DesignError, match=r"gmsh could not mesh the design \(Invalid boundary mesh"):
+        meshing.mesh_design(surface, chambers, 2.5, 1, 6.0, surface_samples_mm(surface))
