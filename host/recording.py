@@ -705,11 +705,15 @@ def _check_writable(path: Path) -> None:
 TIMELINES = ("time", "scene_time")
 
 
-def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
+def read_rrd(path: str | Path, points: frozenset[str] = frozenset(),
+             skip: frozenset[str] = frozenset()) -> dict[str, dict[str, list[Any]]]:
     """Read an ``.rrd`` back: entity path -> component column -> list of logged values (in ``time`` order).
 
     ``time`` and ``scene_time`` keys hold those timelines in seconds (``scene_time`` None for rows logged while
-    no scene ran). Used by tests and by ``make demo``.
+    no scene ran). Used by tests, by ``make demo`` and by ``phantom report``. Columns named in ``points``
+    (``"ENTITY:COMPONENT"``, a list of 3D points per row, e.g. ``"/phantom/mesh:Mesh3D:vertex_positions"``) are
+    read as (n, 3) float32 arrays (None for a row without) instead of Python lists, 12 bytes a point instead of
+    about 100; those named in ``skip`` are not read: a report of a long recording with meshes took 2.9 GB as lists.
     """
     with require_extra("record"):
         from rerun.chunk import RrdReader
@@ -727,8 +731,12 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
                 values = [None if ns is None else ns / 1e9 for ns in batch.column(name).cast("int64").to_pylist()]
                 column = columns.setdefault(name, [])
                 column.extend([None] * (before - len(column)))
-            elif name.startswith("rerun.") or name in ("log_time", "log_tick"):
+            elif name.startswith("rerun.") or name in ("log_time", "log_tick") \
+                    or f"{chunk.entity_path}:{name}" in skip:
                 continue
+            elif f"{chunk.entity_path}:{name}" in points:
+                values = _point_rows(batch.column(name))
+                column = columns.setdefault(name, [])
             else:
                 values = batch.column(name).to_pylist()
                 column = columns.setdefault(name, [])
@@ -743,3 +751,13 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
                 if len(columns[name]) == len(order):
                     columns[name] = [columns[name][i] for i in order]
     return entities
+
+
+def _point_rows(column: Any) -> list[np.ndarray | None]:
+    """A column of lists of 3D points (Arrow's list<fixed_size_list<float, 3>>) as one (n, 3) float32 array per
+    row (views of one buffer), None for a null row."""
+    offsets = column.offsets.to_numpy()
+    flat = column.flatten().flatten().to_numpy(zero_copy_only=False).astype(np.float32, copy=False).reshape(-1, 3)
+    start = offsets[0]
+    return [None if not column[row].is_valid else flat[offsets[row] - start:offsets[row + 1] - start]
+            for row in range(len(column))]

@@ -47,3 +47,21 @@ def test_a_chamber_named_like_mathtext_is_drawn_as_its_text(tmp_path):
     text = write_report(path, tmp_path / "run.html").read_text()
     assert "<b>" not in text.replace("<body>", "")
     assert [chamber.name for chamber in load_run(path).chambers] == names
+
+
+def test_the_deformed_surfaces_are_read_as_float32_arrays_not_lists_of_floats(tmp_path):
+    """A 51 MB recording of 1500 surfaces of 2562 vertices: the report took 1.9 GB (the points as Python lists)
+    and took 405 MB once they are arrays, its HTML byte for byte the same (measured for the commit; here the
+    mechanism)."""
+    from phantom.cli.report import MESH_POINTS, MESH_SKIPPED
+    from phantom.host.recording import read_rrd
+
+    path = _record(tmp_path / "run.rrd", ["base", "left lobe", "right lobe"])
+    run = load_run(path)
+    assert run.surfaces is not None and len(run.surfaces.positions_mm) == 10
+    assert all(isinstance(p, np.ndarray) and p.dtype == np.float32 for p in run.surfaces.positions_mm)
+    entities = read_rrd(path, points=MESH_POINTS, skip=MESH_SKIPPED)
+    assert "Mesh3D:vertex_normals" not in entities["/phantom/mesh"]
+    plain = read_rrd(path)["/phantom/mesh"]["Mesh3D:vertex_positions"]
+    for array, listed in zip(entities["/phantom/mesh"]["Mesh3D:vertex_positions"], plain, strict=True):
+        np.testing.assert_array_equal(array, np.asarray(listed, dtype=np.float32))

@@ -33,6 +33,11 @@ if TYPE_CHECKING:
 VOLUME_SERIES = {"commanded_ml": "target", "estimated_ml": "estimate", "true_ml": "true (simulated plant)"}
 #: A step event's text as the daemon logs it ("step 2 at 60 s: 35.00 ml over 15 s"): its index and target.
 STEP_EVENT = re.compile(r"^step (?P<index>\d+) at [^:]+: (?P<target>.*)$")
+#: The recording's columns read as arrays of points, and those not read (the deformed surface's normals, and its
+#: triangles: the rest shape's are drawn), so that a long recording's report takes memory for what it draws.
+MESH_POINTS = frozenset({"/phantom/mesh:Mesh3D:vertex_positions"})
+MESH_SKIPPED = frozenset({"/phantom/mesh:Mesh3D:vertex_normals", "/phantom/mesh:Mesh3D:triangle_indices",
+                          "/phantom/mesh:Mesh3D:albedo_factor", "/phantom/rest:Mesh3D:vertex_normals"})
 #: Pictures of the gland at most (when the recording has no steps, frames evenly spread over it).
 MAX_PICTURES = 12
 #: Figure sizes (inches at PLOT_DPI) and resolution.
@@ -87,7 +92,7 @@ class Surfaces:
         import numpy as np
 
         index = max(int(np.searchsorted(self.time_s, time_s, side="right")) - 1, 0)
-        return self.positions_mm[index]
+        return np.asarray(self.positions_mm[index], dtype=float)  # kept as the recording's float32
 
 
 @dataclass(frozen=True)
@@ -204,9 +209,9 @@ def _surfaces(entities: dict[str, dict[str, list[Any]]], notes: list[str]) -> Su
         notes.append(f"the rest surface's triangle indices run from {triangles.min()} to {triangles.max()} but it "
                      f"has {len(rest_mm)} vertices: no pictures of the gland")
         return None
-    frames = [(time_s, np.asarray(positions, dtype=float))
+    frames = [(time_s, positions)
               for time_s, positions in zip(moving["time"], moving["Mesh3D:vertex_positions"], strict=False)
-              if time_s is not None and positions and len(positions) == len(rest_mm)]
+              if time_s is not None and positions is not None and np.shape(positions) == rest_mm.shape]
     if not frames:
         return None
     return Surfaces(rest_mm, triangles, np.asarray([time_s for time_s, _ in frames]),
@@ -241,7 +246,8 @@ def load_run(path: str | Path) -> Run:
         raise PhantomError(f"{path}: no such recording (give the .rrd the daemon wrote with --rerun-save, e.g. "
                            "out/demo.rrd)")
     try:
-        entities = read_rrd(path)
+        # the deformed surfaces as arrays, not lists of floats, and nothing the report does not draw of them
+        entities = read_rrd(path, points=MESH_POINTS, skip=MESH_SKIPPED)
     except (ValueError, OSError, RuntimeError) as error:
         raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
                            "wrote") from None
