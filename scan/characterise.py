@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError, read_text, require_extra, written_atomically
+from phantom import PhantomError, read_text, require_extra, unique_keys, written_atomically
 from phantom.model.corrections import KINDS, CorrectedModel, Correction, ModelGrid, fit_correction
 from phantom.model.measurements import Measurement
 
@@ -253,7 +253,7 @@ class CharacterisationRecord:
                                         f"with --grid or --points")
         text = read_text(path, MAX_RECORD_BYTES, "the characterisation record", CharacterisationError)
         try:
-            document = json.loads(text)
+            document = json.loads(text, object_pairs_hook=unique_keys)
             if document.get("format") != FORMAT:
                 raise ValueError(f"format {document.get('format')!r}, not {FORMAT!r}")
             record = cls(folder, str(document["phantom"]), str(document["model"]), dict(document["design"]),

@@ -76,13 +76,15 @@ def test_a_record_from_another_run_is_refused_with_why(tmp_path):
     (lambda d: {**d, "design": {"kind": "grid", "values_kpa": "1,2"}}, "values_kpa must be a list of numbers"),
     (lambda d: {**d, "design": {"kind": "points", "count": 5}}, "design has no seed"),
     (lambda d: {**d, "design": {"kind": "magic"}}, "design's kind is one of grid, path, points"),
+    (lambda d: json.dumps(d).replace('"phantom": ', '"phantom": "other", "phantom": ', 1), "duplicate key 'phantom'"),
     (lambda d: {**d, "results": [{**d["results"][0], "asked_kpa": [3.0, 3.0, 3.0]}]},
      "point 1 was asked at .* not the design's"),
 ])
 def test_a_record_whose_design_or_rows_do_not_hold_together_is_refused_not_a_key_error(tmp_path, change, why):
     record = _record(tmp_path)
     record.finish(_row(record, 1, 22.3))
-    record.path.write_text(json.dumps(change(json.loads(record.path.read_text()))))
+    changed = change(json.loads(record.path.read_text()))
+    record.path.write_text(changed if isinstance(changed, str) else json.dumps(changed))
     with pytest.raises(CharacterisationError, match=why):
         CharacterisationRecord.load(tmp_path)
 

@@ -231,8 +231,9 @@ def test_a_daemon_on_the_simulated_board_starts_uncorrected_saying_why_whatever_
     os.symlink(corrections / "other.json", corrections / "linked.json")
     typo = CorrectionStore.for_phantom("typo")
     typo.add(Measurement((1.0, 1.0, 1.0), 39.96, status="unconfirmed", reason="a typo"))
-    whys = {"huge": "volume_ml", "clock": "time_utc", "twice": "duplicate key", "fifo": "not a regular file",
-            "linked": "is a link", "typo": "none of the 1 stored measurement(s) is confirmed"}
+    # the typo first: each daemon after it finds the board latched DEAD_HOST by the one killed before it
+    whys = {"typo": "none of the 1 stored measurement(s) is confirmed", "huge": "volume_ml", "clock": "time_utc",
+            "twice": "duplicate key", "fifo": "not a regular file", "linked": "is a link"}
     board = SimulatedBoard(speed=2.0).start()
     try:
         for name, why in whys.items():
@@ -246,6 +247,17 @@ def test_a_daemon_on_the_simulated_board_starts_uncorrected_saying_why_whatever_
                 assert not correction["in_force"] and why in (correction["error"] or ""), (name, correction)
                 assert why in rig.daemon_log(), name
                 print(f"{name}: ready in {time.monotonic() - started:.1f} s, uncorrected: {correction['error']}")
+                if name == "typo":
+                    # the done-when: 40 ml set with the typo stored is the model's own 40 ml, which the simulated
+                    # phantom holds within the model's known error (with the typo believed: 30.3 ml)
+                    done = rig.cli("set", "--volume-ml", "40", "--wait")
+                    assert done.returncode == 0, done.stderr
+                    from phantom.hil.plant import load_plant
+
+                    held_kpa = np.asarray(rig.status()["solution"]["pressures_kpa"], dtype=float)
+                    true_ml = load_plant().truth_gland_volume_ml(held_kpa * 1e3)  # what a scan there measures
+                    print(f"typo: 40 ml set, the simulated phantom holds {true_ml:.2f} ml")
+                    assert abs(true_ml - 40.0) < 40.0 * MODEL_ERROR_95_PCT / 100, true_ml
             finally:
                 rig.close()
     finally:
