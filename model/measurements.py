@@ -246,10 +246,12 @@ class CorrectionStore:
         """The file's modification time (ns), size and inode, None while there is none: a cheap check (one stat)
         of whether any writer changed the store since it was last read (every write replaces the file)."""
         try:
-            stat = self.path.stat()
+            info = self.path.stat()
         except FileNotFoundError:
             return None
-        return stat.st_mtime_ns, stat.st_size, stat.st_ino
+        except OSError:  # unreadable (a folder without permission): the read says why, the daemon goes on
+            return -1, -1, -1
+        return info.st_mtime_ns, info.st_size, info.st_ino
 
     def entries(self) -> list[Measurement]:
         """The stored measurements, oldest first ([] when there are none).

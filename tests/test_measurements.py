@@ -262,3 +262,4 @@ def test_a_daemon_on_the_simulated_board_starts_uncorrected_saying_why_whatever_
                 rig.close()
     finally:
         board.stop()
+

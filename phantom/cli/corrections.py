@@ -87,6 +87,8 @@ def _list(store: Any, args: argparse.Namespace) -> int:
 
 
 def _add(store: Any, args: argparse.Namespace) -> int:
+    import sys
+
     import numpy as np
 
     from phantom.cli.common import parse_numbers
@@ -103,10 +105,14 @@ def _add(store: Any, args: argparse.Namespace) -> int:
         raise CorrectionError(f"--pressures-kpa has {len(measurement.pressures_kpa)} values; the model {args.scene} "
                               f"has {chambers} chambers: give {chambers} pressures, one per chamber")
     on_box = pressures_in_box(measurement.pressures_kpa, float(grid.points_kpa[-1]), "--pressures-kpa")
+    confirmed = store.confirmed()
+    if confirmed and not args.json:  # a fit of many measurements not fitted before takes seconds
+        print(f"checking {args.volume_ml:g} ml against {args.scene} corrected by the {len(confirmed)} confirmed "
+              f"measurement(s) ...", file=sys.stderr, flush=True)
     measurement = judged(Measurement(measurement.pressures_kpa, measurement.volume_ml, measurement.method,
                                      measurement.time_utc, measurement.scan_file, args.scene,
                                      float(grid.gland_ml(np.asarray(on_box)))),
-                         grid, store.confirmed(), args.scene)
+                         grid, confirmed, args.scene)
     count = store.add(measurement)
     text = f"stored ({count} measurement(s) of phantom {args.phantom!r} in {store.path})"
     if measurement.status != "confirmed":
