@@ -211,7 +211,7 @@ def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement], mo
     """``measurement`` with its status: ``unconfirmed`` with the reason when it is implausible against the model
     (``grid``: a ``phantom.model.corrections.ModelGrid``) corrected by the ``confirmed`` measurements already
     stored (:func:`expectation`). ``fit(measurements, grid)`` fits them (default the cached fit); a fit that
-    fails leaves the model's own expectation. A measurement confirmed by a person is not judged again."""
+    fails leaves the model's own expectation."""
     from phantom.model.corrections import CorrectedModel, cached_fit
 
     pressures = np.clip(np.asarray(measurement.pressures_kpa, dtype=float), 0.0, float(grid.points_kpa[-1]))
