@@ -206,11 +206,11 @@ def expectation(pressures_kpa: ArrayLike, model_ml: float, corrected: Any | None
     return expected, max(half_width, expected * MIN_HALF_WIDTH_PCT / 100), basis
 
 
-def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement], model_name: str = "the model",
-           fit: Any | None = None) -> Measurement:
+def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement],
+           model_name: str = "the model") -> Measurement:
     """``measurement`` with its status: ``unconfirmed`` with the reason when it is implausible against the model
     (``grid``: a ``phantom.model.corrections.ModelGrid``) corrected by the ``confirmed`` measurements already
-    stored (:func:`expectation`). ``fit(measurements, grid)`` fits them (default the cached fit); a fit that
+    stored (:func:`expectation`; their fit is the cached one, the daemon's when it fitted them already); a fit that
     fails leaves the model's own expectation."""
     from phantom.model.corrections import CorrectedModel, cached_fit
 
@@ -218,7 +218,7 @@ def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement], mo
     corrected = None
     if confirmed:
         try:
-            corrected = CorrectedModel(grid, (fit or cached_fit)(confirmed, grid))
+            corrected = CorrectedModel(grid, cached_fit(confirmed, grid))
         except (CorrectionError, ValueError, ArithmeticError):
             corrected = None
     expected, half_width, basis = expectation(pressures, grid.gland_ml(pressures), corrected, model_name)
