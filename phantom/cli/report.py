@@ -33,11 +33,12 @@ if TYPE_CHECKING:
 VOLUME_SERIES = {"commanded_ml": "target", "estimated_ml": "estimate", "true_ml": "true (simulated plant)"}
 #: A step event's text as the daemon logs it ("step 2 at 60 s: 35.00 ml over 15 s"): its index and target.
 STEP_EVENT = re.compile(r"^step (?P<index>\d+) at [^:]+: (?P<target>.*)$")
-#: The recording's columns read as arrays of points, and those not read (the deformed surface's normals, and its
-#: triangles: the rest shape's are drawn), so that a long recording's report takes memory for what it draws.
-MESH_POINTS = frozenset({"/phantom/mesh:Mesh3D:vertex_positions"})
-MESH_SKIPPED = frozenset({"/phantom/mesh:Mesh3D:vertex_normals", "/phantom/mesh:Mesh3D:triangle_indices",
-                          "/phantom/mesh:Mesh3D:albedo_factor", "/phantom/rest:Mesh3D:vertex_normals"})
+#: The recording's columns not read at first (the deformed surfaces, their normals and triangles: the rest
+#: shape's are drawn); the surfaces pictured are read after, by a second pass over the recording, so that a long
+#: recording's report takes memory for what it draws.
+MESH_SKIPPED = frozenset({"/phantom/mesh:Mesh3D:vertex_positions", "/phantom/mesh:Mesh3D:vertex_normals",
+                          "/phantom/mesh:Mesh3D:triangle_indices", "/phantom/mesh:Mesh3D:albedo_factor",
+                          "/phantom/rest:Mesh3D:vertex_normals"})
 #: Pictures of the gland at most (when the recording has no steps, frames evenly spread over it).
 MAX_PICTURES = 12
 #: Figure sizes (inches at PLOT_DPI) and resolution.
@@ -81,18 +82,24 @@ class Event:
 
 @dataclass(frozen=True)
 class Surfaces:
-    """The gland's outer surface: the rest shape and the deformed one at each logged time (mm)."""
+    """The gland's outer surface: the rest shape, the times a deformed one was logged (s), and the deformed ones
+    read (mm; those pictured, by their time)."""
 
     rest_mm: np.ndarray
     triangles: np.ndarray
     time_s: np.ndarray
-    positions_mm: list[np.ndarray]
+    positions_mm: dict[float, np.ndarray]
+
+    def logged_at(self, time_s: float) -> float:
+        """The time of the last surface logged at or before ``time_s`` (the first one's before it)."""
+        import numpy as np
+
+        return float(self.time_s[max(int(np.searchsorted(self.time_s, time_s, side="right")) - 1, 0)])
 
     def at(self, time_s: float) -> np.ndarray:
         import numpy as np
 
-        index = max(int(np.searchsorted(self.time_s, time_s, side="right")) - 1, 0)
-        return np.asarray(self.positions_mm[index], dtype=float)  # kept as the recording's float32
+        return np.asarray(self.positions_mm[self.logged_at(time_s)], dtype=float)  # kept as the recording's float32
 
 
 @dataclass(frozen=True)
@@ -192,7 +199,7 @@ def _surfaces(entities: dict[str, dict[str, list[Any]]], notes: list[str]) -> Su
 
     rest = entities.get("/phantom/rest", {})
     moving = entities.get("/phantom/mesh", {})
-    if not rest.get("Mesh3D:vertex_positions") or not moving.get("Mesh3D:vertex_positions"):
+    if not rest.get("Mesh3D:vertex_positions") or not moving.get("time"):
         return None
     try:
         rest_mm = np.asarray(rest["Mesh3D:vertex_positions"][0], dtype=float)
@@ -209,13 +216,25 @@ def _surfaces(entities: dict[str, dict[str, list[Any]]], notes: list[str]) -> Su
         notes.append(f"the rest surface's triangle indices run from {triangles.min()} to {triangles.max()} but it "
                      f"has {len(rest_mm)} vertices: no pictures of the gland")
         return None
-    frames = [(time_s, positions)
-              for time_s, positions in zip(moving["time"], moving["Mesh3D:vertex_positions"], strict=False)
-              if time_s is not None and positions is not None and np.shape(positions) == rest_mm.shape]
-    if not frames:
+    times = sorted({time_s for time_s in moving.get("time", []) if time_s is not None})
+    if not times:
         return None
-    return Surfaces(rest_mm, triangles, np.asarray([time_s for time_s, _ in frames]),
-                    [positions for _, positions in frames])
+    return Surfaces(rest_mm, triangles, np.asarray(times, dtype=float), {})
+
+
+def _read_pictured(path: Path, surfaces: Surfaces, wanted_s: list[float], notes: list[str]) -> Surfaces | None:
+    """``surfaces`` with the deformed surfaces at the times pictured read (a second pass over the recording);
+    None, and ``notes`` says why, when one of them is not the rest shape's vertices."""
+    from phantom.host.recording import read_points_at
+
+    logged = {surfaces.logged_at(time_s - 1e-6) for time_s in wanted_s}
+    found = read_points_at(path, "/phantom/mesh", "Mesh3D:vertex_positions", logged)
+    wrong = sorted(time_s for time_s in logged if time_s not in found or found[time_s].shape != surfaces.rest_mm.shape)
+    if wrong:
+        notes.append(f"the surface logged at {wrong[0]:.1f} s is not the rest shape's {len(surfaces.rest_mm)} "
+                     f"vertices: no pictures of the gland")
+        return None
+    return Surfaces(surfaces.rest_mm, surfaces.triangles, surfaces.time_s, found)
 
 
 def _steps(events: list[Event], volumes: dict[str, Series], end_s: float) -> list[Step]:
@@ -246,8 +265,7 @@ def load_run(path: str | Path) -> Run:
         raise PhantomError(f"{path}: no such recording (give the .rrd the daemon wrote with --rerun-save, e.g. "
                            "out/demo.rrd)")
     try:
-        # the deformed surfaces as arrays, not lists of floats, and nothing the report does not draw of them
-        entities = read_rrd(path, points=MESH_POINTS, skip=MESH_SKIPPED)
+        entities = read_rrd(path, skip=MESH_SKIPPED)  # the surfaces pictured are read once it is known which
     except (ValueError, OSError, RuntimeError) as error:
         raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
                            "wrote") from None
@@ -261,7 +279,15 @@ def load_run(path: str | Path) -> Run:
     events = _events(entities)
     notes: list[str] = []
     surfaces = _surfaces(entities, notes)
-    return Run(path, end_s, volumes, chambers, events, surfaces, _steps(events, volumes, end_s), tuple(notes))
+    steps = _steps(events, volumes, end_s)
+    run = Run(path, end_s, volumes, chambers, events, surfaces, steps)
+    if surfaces is not None:
+        try:
+            surfaces = _read_pictured(path, surfaces, [time_s for _, time_s in picture_times(run)], notes)
+        except (ValueError, OSError, RuntimeError) as error:
+            raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
+                               "wrote") from None
+    return Run(path, end_s, volumes, chambers, events, surfaces, steps, tuple(notes))
 
 
 # ------------------------------------------------------------------------------------------------ figures
