@@ -61,7 +61,7 @@ MAX_PRESSURE_KPA = 1_000.0
 MAX_CHAMBERS = 16
 #: How many standard deviations from the expected volume a measured one may lie and still be believed (4: a true
 #: measurement of a Gaussian error is held out once in 16 000; the red team's typo, 39.96 for 29.96 ml at 1,1,1
-#: kPa, lies 7 of the model's own away).
+#: kPa, lies 6.5 of the model's own away).
 PLAUSIBLE_SIGMAS = 4.0
 #: The model's known error as a 95 % half-width (% of its volume), the band without a correction:
 #: builtin:converged misses Table I's eight measurements by up to 10.03 % (at 2,0,0 kPa; 4.64 % on average) and
