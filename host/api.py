@@ -72,9 +72,17 @@ PARTIAL_LINE_TIMEOUT_S = 10.0
 #: connection); at the connection cap the longest idle is shed.
 SILENT_TIMEOUT_S = 60.0
 
+#: How long after a client that held a long line is closed the heap's free pages are given back to the system (s):
+#: once for a burst of them (Python frees their buffers, glibc keeps the pages: 3000 such clients left 107 MB).
+GIVE_BACK_DELAY_S = 1.0
+
 #: Connections the kernel queues until the daemon accepts them (one at a time): a burst of clients must fit, for
 #: a client of a full queue (asyncio's, at least) believes it is connected and then finds the connection reset.
 LISTEN_BACKLOG = 1024
+
+
+class PartialLineTimeout(TimeoutError):
+    """A client began a request line and did not end it within the partial-line timeout."""
 
 
 class ApiError(PhantomError):
@@ -165,6 +173,7 @@ class ApiServer:
         self.starting: Callable[[], ApiError] = lambda: ApiError(
             "starting", "the daemon is still starting (loading its model): try again in a few seconds")
         self._tasks: set[asyncio.Task[None]] = set()
+        self._give_back: asyncio.TimerHandle | None = None
 
     async def start(self) -> None:
         """Bind and listen; raises PhantomError if another daemon already serves this socket."""
@@ -200,6 +209,8 @@ class ApiServer:
 
     async def close(self) -> None:
         """Stop listening, drop every client and remove the socket file."""
+        if self._give_back is not None:
+            self._give_back.cancel()
         if self._accepting is not None:
             self._accepting.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -283,7 +294,7 @@ class ApiServer:
         writer_task = asyncio.create_task(self._drain_client(client, writer))
         self._tasks.add(writer_task)
         self._tasks.add(this_task)
-        asked = False
+        asked = held_long_line = False
         try:
             while True:
                 try:
@@ -291,9 +302,11 @@ class ApiServer:
                 except (ValueError, asyncio.LimitOverrunError):
                     client.offer(_error_line(None, "invalid_request",
                                              f"request longer than {MAX_REQUEST_BYTES} bytes: connection closed"))
+                    held_long_line = True
                     break
                 except TimeoutError as why:
                     client.offer(_error_line(None, "invalid_request", f"{why}: connection closed"))
+                    held_long_line = isinstance(why, PartialLineTimeout)
                     break
                 except (ConnectionError, asyncio.CancelledError):
                     # closing the server cancels this task; ending normally keeps asyncio's stream callback quiet
@@ -322,6 +335,15 @@ class ApiServer:
             writer.close()
             self._tasks.discard(writer_task)
             self._tasks.discard(this_task)
+            if held_long_line and self._give_back is None:
+                self._give_back = asyncio.get_running_loop().call_later(GIVE_BACK_DELAY_S, self._given_back)
+
+    def _given_back(self) -> None:
+        """The heap's free pages back to the system, once after a burst of clients that held long lines closed."""
+        from phantom.model.fem.heap import give_back
+
+        self._give_back = None
+        give_back()
 
     async def _read_line(self, reader: asyncio.StreamReader, silent_timeout_s: float | None) -> bytes:
         """The next line (b"" at the end of the stream): its first byte waited for at most ``silent_timeout_s``
@@ -338,7 +360,7 @@ class ApiServer:
         try:
             rest = await asyncio.wait_for(reader.readline(), self.partial_line_timeout_s)
         except TimeoutError:
-            raise TimeoutError(f"a request line did not end within {self.partial_line_timeout_s:g} s") from None
+            raise PartialLineTimeout(f"a request line did not end within {self.partial_line_timeout_s:g} s") from None
         return first + rest
 
     async def _drain_client(self, client: Client, writer: asyncio.StreamWriter) -> None:
