@@ -736,7 +736,12 @@ class ModelWorker:
                                f"{self.info.pending_fidelity} level is built: the correction is fitted then",
                                self.store.signature(), 0, 0.0)
         else:
-            answer = await self._in_fitter(_fitter_fit, self._scene_source, self.info.fidelity, str(self.store.path))
+            try:
+                answer = await self._in_fitter(_fitter_fit, self._scene_source, self.info.fidelity,
+                                               str(self.store.path))
+            except BrokenProcessPool as error:  # died twice: the model's own answers, and why (never a failed start)
+                answer = FitAnswer(None, None, f"the fit's process died ({error}): the model's own answers until the "
+                                   f"store changes", self.store.signature(), 0, 0.0)
         await self._call(_worker_set_correction, answer.correction)
         self._put_in_force(answer)
         return answer

@@ -263,3 +263,28 @@ def test_a_daemon_on_the_simulated_board_starts_uncorrected_saying_why_whatever_
     finally:
         board.stop()
 
+
+
+def test_a_fitter_that_dies_twice_leaves_the_worker_started_uncorrected_saying_why(data_dir, monkeypatch):
+    """The fit's own process killed (OSQP crashing in C, the OOM killer) on its first try and its retry: the
+    daemon's model still starts, on its own answers, and says why (it raised out of the start, exit 1)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    from phantom.host.model_worker import ModelWorker
+
+    CorrectionStore.for_phantom("crashing").add(Measurement.now([1, 1, 1], 30.0))
+
+    async def dies(self, function, *arguments):
+        raise BrokenProcessPool("A process in the process pool was terminated abruptly")
+
+    monkeypatch.setattr(ModelWorker, "_in_fitter", dies)
+
+    async def scenario():
+        worker = await ModelWorker.start("builtin:converged", phantom="crashing")
+        try:
+            status = worker.correction_status()
+            assert not status["in_force"] and "the fit's process died" in status["error"], status
+        finally:
+            worker.close()
+
+    asyncio.run(scenario())
