@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from phantom import require_extra
+from phantom import PhantomError, require_extra
 from phantom.design.chambers import BASE, Chamber, chamber_name
 from phantom.design.errors import DesignError
 from phantom.design.surface import Surface
@@ -113,10 +113,17 @@ def mesh_design(surface: Surface, chambers: list[Chamber], size_mm: float, eleme
             size = min(size, _curvature_size_mm(point, chamber, elements))
         return size
 
-    with gmsh_session() as gmsh:
-        gmsh.model.add("design")
-        volume = _solid_from_shells(gmsh, shells, chambers)
-        nodes_mm, tets = mesh_solid(gmsh, [(3, volume)], size_mm, 0, element_order, size_at=size_at)
+    try:
+        with gmsh_session() as gmsh:
+            gmsh.model.add("design")
+            volume = _solid_from_shells(gmsh, shells, chambers)
+            nodes_mm, tets = mesh_solid(gmsh, [(3, volume)], size_mm, 0, element_order, size_at=size_at)
+    except PhantomError:
+        raise
+    except Exception as error:  # gmsh raises plain Exceptions (an overlapping or self-crossing surface)
+        raise DesignError(f"gmsh could not mesh the design ({' '.join(str(error).split())[:300]}): the gland's surface "
+                          f"or a chamber's is too rough or too thin for a {size_mm:g} mm mesh; a smoother or "
+                          f"finer mask, or another --size-mm") from None
     ellipsoids = tuple((chamber.centre_mm, chamber.semi_axes_mm) for chamber in chambers)
     groups = tag_surfaces(nodes_mm, tets, ellipsoids, base_pole_mm(surface, chambers), fixation_radius_mm,
                           patch_edge_meshed=False)

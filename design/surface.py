@@ -30,6 +30,12 @@ from phantom.shape.voxels import RAS_FROM_PHANTOM
 SMOOTHING_ITERATIONS = 20
 #: A second component at least this fraction of the largest's size makes the mask ambiguous (two glands?).
 AMBIGUOUS_COMPONENT_FRACTION = 0.5
+#: The fewest voxels across the gland in every direction of its grid: marching cubes on fewer gives no gland's
+#: surface (a one-voxel line ran 7 minutes at 1-3.5 GB before its mesh failed).
+MIN_VOXELS_ACROSS = 3
+#: The most a gland's longest principal extent may be times its shortest: a prostate is about 1.5 (4.5 x 3 x 3.5
+#: cm), an enlarged one 2-3; a needle scaled to a gland's volume meshes into millions of elements.
+MAX_ASPECT = 4.0
 
 
 @dataclass(frozen=True)
@@ -143,12 +149,21 @@ def _mask_surface(case: Case, labels: Sequence[int] | None, notes: list[str]) ->
         from scipy import ndimage
         from skimage import measure
 
+    try:
+        image: Any = nibabel.load(str(case.path))
+        values = np.unique(np.asarray(image.dataobj))
+    except Exception:  # nibabel raises several kinds for a damaged file: read_label_mask says it plainly
+        values = np.zeros(0)
+    if values.dtype.kind == "f":
+        finite = values[np.isfinite(values)]
+        fractional = finite[finite != np.round(finite)]
+        if fractional.size:
+            shown = ", ".join(f"{value:.3g}" for value in fractional[:5]) + (", ..." if fractional.size > 5 else "")
+            raise DesignError(f"{case.path}: the mask holds fractional values ({shown}; {fractional.size} in all): a "
+                              f"mask is labels or 0/1, not a probability map: threshold it (e.g. > 0.5) and save it "
+                              f"as integers")
     if labels is None:
-        try:
-            image: Any = nibabel.load(str(case.path))
-            present = sorted(int(value) for value in np.unique(np.asarray(image.dataobj)) if value != 0)
-        except Exception:  # nibabel raises several kinds for a damaged file: read_label_mask says it plainly
-            present = []
+        present = sorted(int(value) for value in values if value != 0)
         if present == [1]:
             # a binary mask, whatever its name says (a data set's *_mask.nii is a label map otherwise)
             case = Case(case.name, case.path, "mask")
@@ -168,12 +183,42 @@ def _mask_surface(case: Case, labels: Sequence[int] | None, notes: list[str]) ->
                               f"not clear; crop the mask to one, or choose its labels with --labels")
         notes.append(f"the mask has {count} separate pieces: kept the largest ({order[0] * voxel_ml:.2f} ml), "
                      f"dropped {count - 1} of {order[1:].sum() * voxel_ml:.3f} ml in all")
-    padded = np.pad((components == largest).astype(np.float32), 1)
+    gland = components == largest
+    where = np.nonzero(gland)
+    low = np.array([axis.min() for axis in where])
+    high = np.array([axis.max() for axis in where])
+    across = high - low + 1
+    if across.min() < MIN_VOXELS_ACROSS:
+        raise DesignError(f"{case.path}: the gland is {' x '.join(map(str, across))} voxels: a gland's surface needs "
+                          f"at least {MIN_VOXELS_ACROSS} voxels across in every direction of its grid; is it a "
+                          f"gland's mask (a line or a sheet is not)?")
+    if np.any(low == 0) or np.any(high == np.asarray(gland.shape) - 1):
+        faces = [f"{'ijk'[axis]} = {0 if low[axis] == 0 else gland.shape[axis] - 1}" for axis in range(3)
+                 for edge in (low[axis] == 0, high[axis] == gland.shape[axis] - 1) if edge]
+        notes.append(f"the gland touches the edge of the mask's grid ({', '.join(faces)}): it may be cut off "
+                     f"there (the design closes it flat); is the whole gland in the mask, and is it a gland's "
+                     f"mask (an all-ones volume is a box)?")
+    padded = np.pad(gland.astype(np.float32), 1)
     vertices, triangles, _, _ = measure.marching_cubes(padded, level=0.5)
     affine = mask.affine
     ras = (vertices - 1.0) @ affine[:3, :3].T + affine[:3, 3]
     surface = Surface(ras * RAS_FROM_PHANTOM, triangles.astype(np.int64)).outward()
+    _check_aspect(surface, case.path)
     return surface, float(sizes[largest - 1]) * mask.voxel_volume_mm3 / 1e3
+
+
+def _check_aspect(surface: Surface, path: Path) -> None:
+    """Refuse a shape whose longest principal extent is more than MAX_ASPECT times its shortest (no gland's)."""
+    centred = surface.vertices_mm - surface.vertices_mm.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred, full_matrices=False)
+    projected = centred @ axes.T
+    extents = np.sort(projected.max(axis=0) - projected.min(axis=0))[::-1]
+    aspect = extents[0] / max(extents[-1], 1e-9)
+    if aspect > MAX_ASPECT:
+        sizes = " x ".join(f"{extent:.1f}" for extent in extents)
+        raise DesignError(f"{path}: the shape is {aspect:.1f} times as long as it is thin ({sizes} mm along its "
+                          f"principal axes); a gland is at most {MAX_ASPECT:g} (a prostate about 1.5): is it a "
+                          f"gland's mask?")
 
 
 def _largest_body(surface: Surface, notes: list[str]) -> Surface:

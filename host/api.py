@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError
+from phantom import PhantomError, unique_keys
 from phantom.host.peer import private_folder
 
 logger = logging.getLogger(__name__)
@@ -64,9 +64,25 @@ RESERVED_FILES = 64
 #: control loop's timers by their sum.
 REQUESTS_PER_TURN = 8
 
+#: How long a request line, once begun, may take to end (s): a client that stops half way through one is closed
+#: then, with why (3000 clients each holding half of a 60 kB line held 200 MB for as long as they stayed).
+PARTIAL_LINE_TIMEOUT_S = 10.0
+#: How long a new connection may stay silent before its first request (s): one that says nothing holds a file
+#: and its buffers for nothing. A client that has asked once may idle as long as it likes (a notebook's
+#: connection); at the connection cap the longest idle is shed.
+SILENT_TIMEOUT_S = 60.0
+
+#: How long after a client that held a long line is closed the heap's free pages are given back to the system (s):
+#: once for a burst of them (Python frees their buffers, glibc keeps the pages: 3000 such clients left 107 MB).
+GIVE_BACK_DELAY_S = 1.0
+
 #: Connections the kernel queues until the daemon accepts them (one at a time): a burst of clients must fit, for
 #: a client of a full queue (asyncio's, at least) believes it is connected and then finds the connection reset.
 LISTEN_BACKLOG = 1024
+
+
+class PartialLineTimeout(TimeoutError):
+    """A client began a request line and did not end it within the partial-line timeout."""
 
 
 class ApiError(PhantomError):
@@ -128,10 +144,16 @@ class ApiServer:
         beyond it closes the longest idle one (told why in an error line), so that the client that needs the
         daemon (to vent) is answered and the port can be reopened: at the file limit itself, accepting fails
         and asyncio stops listening for a second at a time.
+    partial_line_timeout_s, silent_timeout_s : float
+        A client whose request line has not ended this long after it began, or that has sent no request this long
+        after it connected, is told why and closed (:data:`PARTIAL_LINE_TIMEOUT_S`, :data:`SILENT_TIMEOUT_S`).
     """
 
     def __init__(self, socket_path: str | Path, handlers: dict[str, Handler], mode: int = 0o660,
-                 queue_lines: int = CLIENT_QUEUE_LINES, max_clients: int | None = None):
+                 queue_lines: int = CLIENT_QUEUE_LINES, max_clients: int | None = None,
+                 partial_line_timeout_s: float = PARTIAL_LINE_TIMEOUT_S, silent_timeout_s: float = SILENT_TIMEOUT_S):
+        self.partial_line_timeout_s = partial_line_timeout_s
+        self.silent_timeout_s = silent_timeout_s
         self.socket_path = Path(socket_path)
         self.handlers = dict(handlers)
         self.mode = mode
@@ -151,6 +173,7 @@ class ApiServer:
         self.starting: Callable[[], ApiError] = lambda: ApiError(
             "starting", "the daemon is still starting (loading its model): try again in a few seconds")
         self._tasks: set[asyncio.Task[None]] = set()
+        self._give_back: asyncio.TimerHandle | None = None
 
     async def start(self) -> None:
         """Bind and listen; raises PhantomError if another daemon already serves this socket."""
@@ -186,6 +209,8 @@ class ApiServer:
 
     async def close(self) -> None:
         """Stop listening, drop every client and remove the socket file."""
+        if self._give_back is not None:
+            self._give_back.cancel()
         if self._accepting is not None:
             self._accepting.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
@@ -269,13 +294,19 @@ class ApiServer:
         writer_task = asyncio.create_task(self._drain_client(client, writer))
         self._tasks.add(writer_task)
         self._tasks.add(this_task)
+        asked = held_long_line = False
         try:
             while True:
                 try:
-                    line = await reader.readline()
+                    line = await self._read_line(reader, None if asked else self.silent_timeout_s)
                 except (ValueError, asyncio.LimitOverrunError):
                     client.offer(_error_line(None, "invalid_request",
                                              f"request longer than {MAX_REQUEST_BYTES} bytes: connection closed"))
+                    held_long_line = True
+                    break
+                except TimeoutError as why:
+                    client.offer(_error_line(None, "invalid_request", f"{why}: connection closed"))
+                    held_long_line = isinstance(why, PartialLineTimeout)
                     break
                 except (ConnectionError, asyncio.CancelledError):
                     # closing the server cancels this task; ending normally keeps asyncio's stream callback quiet
@@ -284,6 +315,7 @@ class ApiServer:
                     break
                 if not line.strip():
                     continue
+                asked = True
                 client.active_s = time.monotonic()
                 try:
                     reply = await self._answer(line, client)
@@ -303,6 +335,33 @@ class ApiServer:
             writer.close()
             self._tasks.discard(writer_task)
             self._tasks.discard(this_task)
+            if held_long_line and self._give_back is None:
+                self._give_back = asyncio.get_running_loop().call_later(GIVE_BACK_DELAY_S, self._given_back)
+
+    def _given_back(self) -> None:
+        """The heap's free pages back to the system, once after a burst of clients that held long lines closed."""
+        from phantom.model.fem.heap import give_back
+
+        self._give_back = None
+        give_back()
+
+    async def _read_line(self, reader: asyncio.StreamReader, silent_timeout_s: float | None) -> bytes:
+        """The next line (b"" at the end of the stream): its first byte waited for at most ``silent_timeout_s``
+        (None: for ever), the rest for at most the partial-line timeout. TimeoutError saying which was exceeded;
+        ValueError for a line over the limit."""
+        try:
+            first = await asyncio.wait_for(reader.readexactly(1), silent_timeout_s)
+        except asyncio.IncompleteReadError:
+            return b""
+        except TimeoutError:
+            raise TimeoutError(f"the connection sent no request within {silent_timeout_s:g} s") from None
+        if first == b"\n":
+            return first
+        try:
+            rest = await asyncio.wait_for(reader.readline(), self.partial_line_timeout_s)
+        except TimeoutError:
+            raise PartialLineTimeout(f"a request line did not end within {self.partial_line_timeout_s:g} s") from None
+        return first + rest
 
     async def _drain_client(self, client: Client, writer: asyncio.StreamWriter) -> None:
         """Write the client's queued lines; a stuck client blocks only this task."""
@@ -320,7 +379,7 @@ class ApiServer:
         """The reply line to one request line."""
         self.requests_total += 1
         try:
-            request = json.loads(line.decode("utf-8"))
+            request = json.loads(line.decode("utf-8"), object_pairs_hook=unique_keys)
         except UnicodeDecodeError as error:
             self.errors_total += 1
             return _error_line(None, "parse_error", f"the request is not UTF-8 (byte {error.start}: "
@@ -329,7 +388,7 @@ class ApiServer:
             # JSONDecodeError, an integer of too many digits (ValueError), nesting deeper than the parser's stack
             self.errors_total += 1
             reason = error.msg if isinstance(error, json.JSONDecodeError) else (
-                "nested too deeply" if isinstance(error, RecursionError) else str(error).split(";")[0])
+                "nested too deeply" if isinstance(error, RecursionError) else str(error).split(";")[0][:200])
             return _error_line(None, "parse_error", f"the request is not valid JSON ({reason}): send one JSON "
                                "object per line")
         if not isinstance(request, dict):

@@ -567,7 +567,9 @@ class AsyncPhantom:
         elif verify_tolerance_pct is not None or verify_rounds is not None:
             raise PhantomError('verify_tolerance_pct and verify_rounds go with verify="scan"')
         if timeout_s is None:
-            timeout_s = SET_TIMEOUT_S if verify is None else SET_TIMEOUT_S + VERIFY_ROUND_S * (verify_rounds or 4)
+            # rounds the daemon refuses (0, -1, 2.5) wait as the default's: its refusal says what was wrong
+            rounds = verify_rounds if isinstance(verify_rounds, int) and 0 < verify_rounds <= 100 else 4
+            timeout_s = SET_TIMEOUT_S if verify is None else SET_TIMEOUT_S + VERIFY_ROUND_S * rounds
         return await self._set(params, wait, tolerance_pct, timeout_s)
 
     async def set_chamber_volumes(self, volumes_ml: Sequence[float | None], *, wait: bool = True,

@@ -32,7 +32,7 @@ from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
 from phantom.model.cluster import exit_with_parent
 from phantom.model.corrections import CorrectedModel, Correction, pressures_in_box
-from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement
+from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement, judged
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)
@@ -572,12 +572,17 @@ def _fitter_fit(scene_source: str, level: str, store_path: str) -> FitAnswer:
         stored = len(entries)
         if not entries:
             return FitAnswer(None, None, None, signature, 0, 0.0)
+        confirmed = [entry for entry in entries if entry.status == "confirmed"]  # the unconfirmed wait for a person
+        if not confirmed:
+            return FitAnswer(None, None, f"none of the {stored} stored measurement(s) is confirmed (`phantom "
+                             f"corrections list`)", signature, stored, 0.0)
         grid = _fitter_grid(scene_source, level)
-        correction = cached_fit(entries, grid)
+        correction = cached_fit(confirmed, grid)
         return FitAnswer(correction, correction.summary(grid), None, signature, stored,
                          time.perf_counter() - started)
-    except (CorrectionError, ValueError, ArithmeticError) as error:  # numpy's LinAlgError is a ValueError
-        return FitAnswer(None, None, str(error), signature, stored, time.perf_counter() - started)
+    except Exception as error:  # anything a store or a fit raises (OSQP's own errors too) leaves the model's answers
+        why = str(error) if isinstance(error, CorrectionError) else f"{type(error).__name__}: {error}"
+        return FitAnswer(None, None, why, signature, stored, time.perf_counter() - started)
 
 
 def _fitter_record(scene_source: str, level: str, store_path: str, measurement: Measurement) -> FitAnswer:
@@ -591,8 +596,15 @@ def _fitter_record(scene_source: str, level: str, store_path: str, measurement: 
         raise CorrectionError(f"a measurement of this phantom has {chambers} pressures (one per chamber), got "
                               f"{len(pressures)}: is it of another phantom?")
     on_box = pressures_in_box(pressures, float(grid.points_kpa[-1]), "a measurement's pressures")
-    CorrectionStore(store_path).add(replace(measurement, model=scene_source, model_volume_ml=grid.gland_ml(on_box)))
-    return _fitter_fit(scene_source, level, store_path)
+    store = CorrectionStore(store_path)
+    measurement = judged(replace(measurement, model=scene_source, model_volume_ml=grid.gland_ml(on_box)), grid,
+                         store.confirmed(), scene_source)
+    store.add(measurement)
+    answer = _fitter_fit(scene_source, level, store_path)
+    if measurement.status != "confirmed":
+        return replace(answer, error=f"the scan was stored UNCONFIRMED, left out of the fit: {measurement.reason} "
+                       f"(`phantom corrections confirm N` if it is right)")
+    return answer
 
 
 def worker_pool(log_level: str = "info", messages: WorkerMessages | None = None) -> ProcessPoolExecutor:
@@ -724,7 +736,12 @@ class ModelWorker:
                                f"{self.info.pending_fidelity} level is built: the correction is fitted then",
                                self.store.signature(), 0, 0.0)
         else:
-            answer = await self._in_fitter(_fitter_fit, self._scene_source, self.info.fidelity, str(self.store.path))
+            try:
+                answer = await self._in_fitter(_fitter_fit, self._scene_source, self.info.fidelity,
+                                               str(self.store.path))
+            except BrokenProcessPool as error:  # died twice: the model's own answers, and why (never a failed start)
+                answer = FitAnswer(None, None, f"the fit's process died ({error}): the model's own answers until the "
+                                   f"store changes", self.store.signature(), 0, 0.0)
         await self._call(_worker_set_correction, answer.correction)
         self._put_in_force(answer)
         return answer
@@ -759,9 +776,9 @@ class ModelWorker:
             await asyncio.shield(self._fitting)
         self._fitting = asyncio.ensure_future(self._record_and_apply(measurement))
         answer = await asyncio.shield(self._fitting)
-        if answer.summary is None:
-            raise CorrectionError(f"the measurement was stored in {self.store.path}, but no correction is in force: "
-                                  f"{answer.error}")
+        if answer.summary is None or answer.error is not None:
+            raise CorrectionError(f"the measurement was stored in {self.store.path}, but "
+                                  f"{'no correction is in force: ' if answer.summary is None else ''}{answer.error}")
         return answer.summary
 
     async def _record_and_apply(self, measurement: Measurement) -> FitAnswer:

@@ -502,6 +502,8 @@ def scan_method(orbit: Orbit, scanner: Scanner, state: DaemonState) -> dict[str,
         except asyncio.CancelledError:
             run.request_stop("the daemon is stopping")
             raise
+        except ApiError:  # the scanner's refusal of its params (invalid_params), before anything moved
+            raise
         except PhantomError as error:
             raise ApiError("rejected", f"the scan stopped: {error}") from None
         if answer.get("status") != "complete":

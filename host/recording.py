@@ -55,7 +55,7 @@ import re
 import time
 import uuid
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any, TextIO
@@ -705,20 +705,17 @@ def _check_writable(path: Path) -> None:
 TIMELINES = ("time", "scene_time")
 
 
-def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
+def read_rrd(path: str | Path, skip: frozenset[str] = frozenset()) -> dict[str, dict[str, list[Any]]]:
     """Read an ``.rrd`` back: entity path -> component column -> list of logged values (in ``time`` order).
 
     ``time`` and ``scene_time`` keys hold those timelines in seconds (``scene_time`` None for rows logged while
-    no scene ran). Used by tests and by ``make demo``.
+    no scene ran). Used by tests, by ``make demo`` and by ``phantom report``. The columns named in ``skip``
+    (``"ENTITY:COMPONENT"``, e.g. ``"/phantom/mesh:Mesh3D:vertex_positions"``) are not read (their rows' times
+    are): a report of a long recording with its meshes as lists of Python floats took 2.9 GB
+    (:func:`read_points_at` reads the few rows of points wanted).
     """
-    with require_extra("record"):
-        from rerun.chunk import RrdReader
-
     entities: dict[str, dict[str, list[Any]]] = {}
-    with warnings.catch_warnings():  # "no footer": a crashed session's file has none; stream() reads it all
-        warnings.filterwarnings("ignore", message="RRD file has no footer")
-        reader = RrdReader(str(path))
-    for chunk in reader.stream().collect().stream():
+    for chunk in _chunks(path, compacted=True):
         batch = chunk.to_record_batch()
         columns = entities.setdefault(str(chunk.entity_path), {})
         before = len(columns.get("time", []))
@@ -727,7 +724,8 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
                 values = [None if ns is None else ns / 1e9 for ns in batch.column(name).cast("int64").to_pylist()]
                 column = columns.setdefault(name, [])
                 column.extend([None] * (before - len(column)))
-            elif name.startswith("rerun.") or name in ("log_time", "log_tick"):
+            elif name.startswith("rerun.") or name in ("log_time", "log_tick") \
+                    or f"{chunk.entity_path}:{name}" in skip:
                 continue
             else:
                 values = batch.column(name).to_pylist()
@@ -743,3 +741,36 @@ def read_rrd(path: str | Path) -> dict[str, dict[str, list[Any]]]:
                 if len(columns[name]) == len(order):
                     columns[name] = [columns[name][i] for i in order]
     return entities
+
+
+def _chunks(path: str | Path, compacted: bool = False) -> Iterator[Any]:
+    """The recording's chunks: the reader's lazy stream, one at a time as written (a long recording is not held
+    whole), or ``compacted`` (collected first: each entity's rows together, what :func:`read_rrd`'s columns
+    assume)."""
+    with require_extra("record"):
+        from rerun.chunk import RrdReader
+
+    with warnings.catch_warnings():  # "no footer": a crashed session's file has none; stream() reads it all
+        warnings.filterwarnings("ignore", message="RRD file has no footer")
+        reader = RrdReader(str(path))
+    yield from (reader.stream().collect().stream() if compacted else reader.stream())
+
+
+def read_points_at(path: str | Path, entity: str, component: str, times_s: set[float]) -> dict[float, np.ndarray]:
+    """The rows of ``entity``'s ``component`` (lists of 3D points, e.g. a mesh's ``Mesh3D:vertex_positions``)
+    logged at ``times_s`` (the ``time`` timeline, s, as :func:`read_rrd` gives it), each an (n, 3) float32 array:
+    a second pass over the recording that converts only those rows."""
+    found: dict[float, np.ndarray] = {}
+    for chunk in _chunks(path):
+        if str(chunk.entity_path) != entity:
+            continue
+        batch = chunk.to_record_batch()
+        if "time" not in batch.column_names or component not in batch.column_names:
+            continue
+        times = batch.column("time").cast("int64").to_pylist()
+        column = batch.column(component)
+        for row, ns in enumerate(times):
+            if ns is not None and ns / 1e9 in times_s and column[row].is_valid:
+                points = column[row].values.flatten().to_numpy(zero_copy_only=False)
+                found[ns / 1e9] = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    return found

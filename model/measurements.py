@@ -5,7 +5,20 @@ of the gland volume the model predicts there. :class:`CorrectionStore` keeps the
 user's data directory (``$PHANTOM_DATA_DIR``, else ``$XDG_DATA_HOME/phantom``, else ``~/.local/share/phantom``;
 ``corrections/NAME.json``), written atomically so that a kill or a full disk never leaves half a file, and
 exports them as the measurements CSV ``phantom calibrate`` reads. The correction fitted to them is
-:mod:`phantom.model.corrections`'s; this module reads no scans and fits nothing.
+:mod:`phantom.model.corrections`'s; this module reads no scans.
+
+A measurement is checked before it is believed (:func:`plausibility`, :func:`judged`): every path that stores a
+volume (``phantom corrections add``, ``phantom characterise``, the daemon's record of a scan) compares it with the
+volume expected at its pressures, and one further from it than ``PLAUSIBLE_SIGMAS`` standard deviations (the
+expectation's 95 % half-width / 1.96) is stored *unconfirmed*, with the reason, and left out of every fit
+(:meth:`CorrectionStore.confirmed`) until a person confirms it (``phantom corrections confirm N``) or removes it
+(``remove N``). The expectation is the corrected model's where a correction is in force (its band when it has one,
+else its volume with its leave-one-out error as the band), else the model's with its known error
+(``MODEL_ERROR_95_PCT``). The band is never narrower than ``MIN_HALF_WIDTH_PCT``.
+
+The store is read defensively (a damaged store must never stop the daemon): a link, a pipe or a device in its
+place is refused before it is opened, duplicate keys, wrong types and absurd numbers are refused with the field
+named.
 """
 
 from __future__ import annotations
@@ -19,14 +32,16 @@ import json
 import math
 import os
 import re
+import stat
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError, read_text, written_atomically
+from phantom import PhantomError, read_text, unique_keys, written_atomically
 
 #: The store's file format.
 FORMAT = "phantom-corrections/1"
@@ -36,6 +51,25 @@ METHODS = ("scan", "water_displacement")
 MAX_STORE_BYTES = 16 * 2**20
 #: A phantom's name in the store: a file name's safe characters.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+#: Whether a stored measurement is in the fit (``confirmed``) or held out until a person confirms it.
+STATUSES = ("confirmed", "unconfirmed")
+#: The largest volume (ml) and pressure (kPa) a measurement may hold: far beyond any phantom (a prostate is tens
+#: of ml; the blowers give a few kPa), far below what overflows a fit (1e300 ml crashed OSQP and the daemon).
+MAX_VOLUME_ML = 10_000.0
+MAX_PRESSURE_KPA = 1_000.0
+#: The most chambers a measurement has pressures for.
+MAX_CHAMBERS = 16
+#: How many standard deviations from the expected volume a measured one may lie and still be believed (4: a true
+#: measurement of a Gaussian error is held out once in 16 000; the red team's typo, 39.96 for 29.96 ml at 1,1,1
+#: kPa, lies 6.5 of the model's own away).
+PLAUSIBLE_SIGMAS = 4.0
+#: The model's known error as a 95 % half-width (% of its volume), the band without a correction:
+#: builtin:converged misses Table I's eight measurements by up to 10.03 % (at 2,0,0 kPa; 4.64 % on average) and
+#: the simulated phantom's truth by up to 10.7 % over the pressure box.
+MODEL_ERROR_95_PCT = 11.0
+#: The narrowest 95 % half-width a volume is checked against (% of the volume): a scan's own error and a phantom's
+#: drift between sessions, whatever a correction's leave-one-out says.
+MIN_HALF_WIDTH_PCT = 2.0
 
 
 class CorrectionError(PhantomError):
@@ -62,19 +96,34 @@ class Measurement:
     scan_file: str | None = None
     model: str | None = None
     model_volume_ml: float | None = None
+    #: ``confirmed`` (in the fit) or ``unconfirmed`` (held out: ``reason`` says why, a person confirms it)
+    status: str = "confirmed"
+    reason: str | None = None
 
     def __post_init__(self) -> None:
         pressures = self.pressures_kpa
-        if not pressures or not all(_is_number(p) and p >= 0 for p in pressures):
+        if not isinstance(pressures, tuple) or not 0 < len(pressures) <= MAX_CHAMBERS \
+                or not all(_is_number(p) and 0 <= p <= MAX_PRESSURE_KPA for p in pressures):
             raise CorrectionError(f"a measurement's pressures must be finite numbers >= 0 kPa (gauge; the blowers "
-                                  f"only push), got {list(pressures)}")
-        if not (_is_number(self.volume_ml) and self.volume_ml > 0):
-            raise CorrectionError(f"a measured volume must be a finite number of ml above 0, got {self.volume_ml!r}")
+                                  f"only push), at most {MAX_PRESSURE_KPA:g}, 1-{MAX_CHAMBERS} of them "
+                                  f"(pressures_kpa), got "
+                                  f"{_shown(list(pressures) if isinstance(pressures, tuple) else pressures)}")
+        if not (_is_number(self.volume_ml) and 0 < self.volume_ml <= MAX_VOLUME_ML):
+            raise CorrectionError(f"a measured volume must be a finite number of ml above 0 and at most "
+                                  f"{MAX_VOLUME_ML:g} (volume_ml), got {_shown(self.volume_ml)}")
         if self.method not in METHODS:
-            raise CorrectionError(f"a measurement's method is one of {', '.join(METHODS)}, got {self.method!r}")
-        if self.model_volume_ml is not None and not (_is_number(self.model_volume_ml) and self.model_volume_ml > 0):
-            raise CorrectionError(f"the model's volume must be a finite number of ml above 0, got "
-                                  f"{self.model_volume_ml!r}")
+            raise CorrectionError(f"a measurement's method is one of {', '.join(METHODS)}, got {_shown(self.method)}")
+        if self.model_volume_ml is not None and not (_is_number(self.model_volume_ml)
+                                                     and 0 < self.model_volume_ml <= MAX_VOLUME_ML):
+            raise CorrectionError(f"the model's volume (model_volume_ml) must be a finite number of ml above 0 and "
+                                  f"at most {MAX_VOLUME_ML:g}, got {_shown(self.model_volume_ml)}")
+        for name in ("time_utc", "scan_file", "model", "reason"):
+            value = getattr(self, name)
+            if not (isinstance(value, str) and len(value) <= 4096) and not (value is None and name != "time_utc"):
+                raise CorrectionError(f"a measurement's {name} must be text (at most 4096 characters)"
+                                      f"{'' if name == 'time_utc' else ' or null'}, got {_shown(value)}")
+        if self.status not in STATUSES:
+            raise CorrectionError(f"a measurement's status is one of {', '.join(STATUSES)}, got {_shown(self.status)}")
 
     @classmethod
     def now(cls, pressures_kpa: ArrayLike, volume_ml: float, method: str = "scan", scan_file: str | None = None,
@@ -87,6 +136,96 @@ class Measurement:
 
 def _is_number(value: object) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _shown(value: object) -> str:
+    """A value for a message, cut short (a store may hold anything)."""
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+# ----------------------------------------------------------------------------------------------- plausibility
+@dataclass(frozen=True)
+class Verdict:
+    """Whether a measured volume is believed, and when not, why (for the store's ``reason`` and the user)."""
+
+    plausible: bool
+    reason: str = ""
+
+
+def plausibility(volume_ml: float, expected_ml: float, half_width_95_ml: float, basis: str,
+                 sigmas: float = PLAUSIBLE_SIGMAS) -> Verdict:
+    """Whether ``volume_ml`` is within ``sigmas`` standard deviations of ``expected_ml``, whose 95 % half-width is
+    ``half_width_95_ml`` (a standard deviation is it / 1.96); ``basis`` names where the expectation came from.
+
+    Raises
+    ------
+    CorrectionError
+        A half-width that is not a finite number above 0.
+    """
+    if not (_is_number(half_width_95_ml) and half_width_95_ml > 0) or not _is_number(expected_ml):
+        raise CorrectionError(f"an expected volume needs a finite half-width above 0 ml, got {expected_ml!r} +- "
+                              f"{half_width_95_ml!r}")
+    sigma_ml = half_width_95_ml / 1.96
+    miss_ml = volume_ml - expected_ml
+    if abs(miss_ml) <= sigmas * sigma_ml:
+        return Verdict(True)
+    return Verdict(False, f"{volume_ml:.3f} ml is {miss_ml:+.3f} ml ({miss_ml / expected_ml * 100:+.1f} %) from the "
+                          f"expected {expected_ml:.3f} ml +- {half_width_95_ml:.3f} (95 %) of {basis}: "
+                          f"{abs(miss_ml) / sigma_ml:.1f} standard deviations, more than {sigmas:g}")
+
+
+def expectation(pressures_kpa: ArrayLike, model_ml: float, corrected: Any | None = None,
+                model_name: str = "the model") -> tuple[float, float, str]:
+    """The volume expected at these pressures (ml), its 95 % half-width (ml) and where it came from.
+
+    ``model_ml`` is the model's own volume there; ``corrected`` the corrected model in force (a
+    ``phantom.model.corrections.CorrectedModel``; None: none). With a correction: its band where it gives one
+    (``gland_band_ml(pressures) -> (mean, half-width)``), else its volume with its leave-one-out error as the band
+    (a mean absolute error is 0.8 of a standard deviation), else, with too few measurements for a leave-one-out,
+    the model's known error. Without: the model's volume and ``MODEL_ERROR_95_PCT``. Never narrower than
+    ``MIN_HALF_WIDTH_PCT``.
+    """
+    pressures = np.asarray(pressures_kpa, dtype=float)
+    if corrected is None:
+        expected, half_width, basis = model_ml, model_ml * MODEL_ERROR_95_PCT / 100, \
+            f"{model_name} (its known error, {MODEL_ERROR_95_PCT:g} %)"
+    elif hasattr(corrected, "gland_band_ml"):
+        expected, half_width = (float(v) for v in corrected.gland_band_ml(pressures))
+        basis = f"the correction in force ({corrected.describe()})"
+    else:
+        expected = float(corrected.gland_ml(pressures))
+        correction = corrected.correction
+        loo_pct = correction.leave_one_out_pct.get(correction.kind)
+        if loo_pct is None:
+            half_width = expected * MODEL_ERROR_95_PCT / 100
+            basis = f"the correction in force ({corrected.describe()}) with the model's known error"
+        else:
+            half_width = expected * 1.96 * 1.25 * loo_pct / 100
+            basis = f"the correction in force ({corrected.describe()}, leave-one-out {loo_pct:.2f} %)"
+    return expected, max(half_width, expected * MIN_HALF_WIDTH_PCT / 100), basis
+
+
+def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement],
+           model_name: str = "the model") -> Measurement:
+    """``measurement`` with its status: ``unconfirmed`` with the reason when it is implausible against the model
+    (``grid``: a ``phantom.model.corrections.ModelGrid``) corrected by the ``confirmed`` measurements already
+    stored (:func:`expectation`; their fit is the cached one, the daemon's when it fitted them already); a fit that
+    fails leaves the model's own expectation."""
+    from phantom.model.corrections import CorrectedModel, cached_fit
+
+    pressures = np.clip(np.asarray(measurement.pressures_kpa, dtype=float), 0.0, float(grid.points_kpa[-1]))
+    corrected = None
+    if confirmed:
+        try:
+            corrected = CorrectedModel(grid, cached_fit(confirmed, grid))
+        except (CorrectionError, ValueError, ArithmeticError):
+            corrected = None
+    expected, half_width, basis = expectation(pressures, grid.gland_ml(pressures), corrected, model_name)
+    verdict = plausibility(measurement.volume_ml, expected, half_width, basis)
+    if verdict.plausible:
+        return measurement
+    return replace(measurement, status="unconfirmed", reason=verdict.reason)
 
 
 class CorrectionStore:
@@ -107,25 +246,90 @@ class CorrectionStore:
         """The file's modification time (ns), size and inode, None while there is none: a cheap check (one stat)
         of whether any writer changed the store since it was last read (every write replaces the file)."""
         try:
-            stat = self.path.stat()
+            info = self.path.stat()
         except FileNotFoundError:
             return None
-        return stat.st_mtime_ns, stat.st_size, stat.st_ino
+        except OSError:  # unreadable (a folder without permission): the read says why, the daemon goes on
+            return -1, -1, -1
+        return info.st_mtime_ns, info.st_size, info.st_ino
 
     def entries(self) -> list[Measurement]:
-        """The stored measurements, oldest first ([] when there are none)."""
-        if not self.path.exists():
+        """The stored measurements, oldest first ([] when there are none).
+
+        Raises
+        ------
+        CorrectionError
+            A store that is a link (another phantom's store would be merged into this one at the next write), not
+            a regular file (a pipe would hang the reader: refused without being opened), too large, not UTF-8, or
+            damaged (its message names the entry and the field).
+        """
+        text = self._text()
+        if text is None:
             return []
-        text = read_text(self.path, MAX_STORE_BYTES, "the correction store", CorrectionError)
         try:
-            document = json.loads(text)
-            if document.get("format") != FORMAT:
-                raise ValueError(f"format {document.get('format')!r}, not {FORMAT!r}")
-            return [Measurement(**{**entry, "pressures_kpa": tuple(entry["pressures_kpa"])})
-                    for entry in document["measurements"]]
-        except (ValueError, TypeError, KeyError, AttributeError, CorrectionError) as error:
+            document = json.loads(text, object_pairs_hook=unique_keys)
+            if not isinstance(document, dict) or document.get("format") != FORMAT:
+                raise ValueError(f"format {document.get('format') if isinstance(document, dict) else None!r}, not "
+                                 f"{FORMAT!r}")
+            stored = document.get("measurements")
+            if not isinstance(stored, list):
+                raise ValueError(f"measurements is not a list but {type(stored).__name__}")
+            entries = []
+            for number, entry in enumerate(stored, start=1):
+                try:
+                    if not isinstance(entry, dict) or not isinstance(entry.get("pressures_kpa"), list):
+                        raise ValueError("not an object with a list pressures_kpa")
+                    entries.append(Measurement(**{**entry, "pressures_kpa": tuple(entry["pressures_kpa"])}))
+                except (ValueError, TypeError, CorrectionError) as error:
+                    raise ValueError(f"measurement {number}: {error}") from None
+            return entries
+        except (ValueError, TypeError, KeyError, AttributeError, RecursionError, CorrectionError) as error:
             raise CorrectionError(f"the correction store {self.path} is damaged ({error}): move it aside (the "
                                   f"measurements in it are then no longer used) or restore it from a copy") from None
+
+    def _text(self) -> str | None:
+        """The store's text (None: no store), refused unread when it is a link or not a regular file."""
+        try:
+            info = os.lstat(self.path)
+        except FileNotFoundError:
+            return None
+        except OSError as error:
+            raise CorrectionError(f"the correction store {self.path} cannot be read: {error.strerror}") from None
+        if stat.S_ISLNK(info.st_mode):
+            raise CorrectionError(f"the correction store {self.path} is a link (to {os.readlink(self.path)}): each "
+                                  f"phantom's store is its own file (a link to another's would merge them); replace "
+                                  f"it by a copy, or use that phantom's name")
+        if not stat.S_ISREG(info.st_mode):
+            raise CorrectionError(f"the correction store {self.path} is not a regular file (a pipe or a device): "
+                                  f"move it aside")
+        return read_text(self.path, MAX_STORE_BYTES, "the correction store", CorrectionError)
+
+    def confirmed(self) -> list[Measurement]:
+        """The stored measurements a fit uses: every one but those held unconfirmed."""
+        return [entry for entry in self.entries() if entry.status == "confirmed"]
+
+    def confirm(self, number: int) -> Measurement:
+        """Confirm measurement ``number`` (1 = the oldest, as listed): a person says it is right; it."""
+        with self._locked():
+            entries = self.entries()
+            self._check_number(number, entries)
+            entries[number - 1] = replace(entries[number - 1], status="confirmed", reason=None)
+            self._write(entries)
+            return entries[number - 1]
+
+    def remove(self, number: int) -> Measurement:
+        """Remove measurement ``number`` (1 = the oldest, as listed); the one removed."""
+        with self._locked():
+            entries = self.entries()
+            self._check_number(number, entries)
+            removed = entries.pop(number - 1)
+            self._write(entries)
+            return removed
+
+    def _check_number(self, number: int, entries: list[Measurement]) -> None:
+        if not 1 <= number <= len(entries):
+            raise CorrectionError(f"no measurement {number}: phantom {self.path.stem!r} has {len(entries)} "
+                                  f"(`phantom corrections list`)")
 
     def add(self, measurement: Measurement) -> int:
         """Store one more measurement (atomically); the number stored."""

@@ -155,6 +155,17 @@ def read_text(path: str | Path, max_bytes: int, what: str, error: type[PhantomEr
                     "save it as UTF-8") from None
 
 
+def unique_keys(pairs: list[tuple[str, object]]) -> dict[str, object]:
+    """``json.loads``'s ``object_pairs_hook`` that refuses a key given twice in an object (ValueError naming it):
+    JSON itself keeps the last silently, so a file or a request that says two things would mean the second."""
+    document: dict[str, object] = {}
+    for key, value in pairs:
+        if key in document:
+            raise ValueError(f"duplicate key {key!r}")
+        document[key] = value
+    return document
+
+
 @contextmanager
 def written_atomically(path: str | Path, error: type[PhantomError] = PhantomError,
                        ends_with: bytes | None = None) -> Iterator[Path]:

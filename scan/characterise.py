@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError, read_text, require_extra, written_atomically
+from phantom import PhantomError, read_text, require_extra, unique_keys, written_atomically
 from phantom.model.corrections import KINDS, CorrectedModel, Correction, ModelGrid, fit_correction
 from phantom.model.measurements import Measurement
 
@@ -218,6 +218,11 @@ class CharacterisationRecord:
                 result.stored = True
         self.save()
 
+    def forget(self, index: int) -> None:
+        """Take a finished point back to pending (its row refused on resume: it is scanned again) and save."""
+        self.results = [result for result in self.results if result.index != index]
+        self.save()
+
     def skip(self, index: int, why: str) -> None:
         self.skipped[index] = why
         self.save()
@@ -248,7 +253,7 @@ class CharacterisationRecord:
                                         f"with --grid or --points")
         text = read_text(path, MAX_RECORD_BYTES, "the characterisation record", CharacterisationError)
         try:
-            document = json.loads(text)
+            document = json.loads(text, object_pairs_hook=unique_keys)
             if document.get("format") != FORMAT:
                 raise ValueError(f"format {document.get('format')!r}, not {FORMAT!r}")
             record = cls(folder, str(document["phantom"]), str(document["model"]), dict(document["design"]),
@@ -257,10 +262,14 @@ class CharacterisationRecord:
                          str(document["rig"]), [PointResult(**entry) for entry in document["results"]],
                          {int(index): str(why) for index, why in document["skipped"].items()},
                          list(document.get("sessions", [])))
+            _check_design(record.design)
             for result in record.results:
                 if not 0 <= result.index < len(record.points_kpa):
                     raise ValueError(f"a result for point {result.index} of {len(record.points_kpa)}")
                 result.measurement(record.model)  # its numbers are checked as a measurement's
+                if not np.allclose(result.asked_kpa, record.points_kpa[result.index], atol=PRESSURE_STEP_KPA):
+                    raise ValueError(f"point {result.index} was asked at {result.asked_kpa} kPa, not the design's "
+                                     f"{record.points_kpa[result.index]}")
         except (ValueError, TypeError, KeyError, AttributeError, PhantomError) as error:
             raise CharacterisationError(f"the characterisation record {path} is damaged ({error}): start the run "
                                         f"again in another folder") from None
@@ -268,6 +277,68 @@ class CharacterisationRecord:
             raise CharacterisationError(f"the characterisation record {path} is damaged (a point finished twice): "
                                         f"start the run again in another folder")
         return record
+
+
+def _check_design(design: dict[str, Any]) -> None:
+    """A record's design holds the keys its kind needs, of the right types (ValueError: why)."""
+    kind = design.get("kind")
+    needs = {"grid": ("values_kpa",), "path": ("count",), "points": ("count", "seed")}
+    if kind not in needs:
+        raise ValueError(f"the design's kind is one of {', '.join(needs)}, got {kind!r:.40}")
+    for key in needs[kind]:
+        if key not in design:
+            raise ValueError(f"the {kind} design has no {key}")
+    values = design.get("values_kpa", [])
+    if not isinstance(values, list) or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+        raise ValueError(f"the design's values_kpa must be a list of numbers (kPa), got {values!r:.60}")
+    for key in ("count", "seed"):
+        if key in design and (not isinstance(design[key], int) or isinstance(design[key], bool)):
+            raise ValueError(f"the design's {key} must be a whole number, got {design[key]!r:.40}")
+
+
+#: How far a stored row's volume may be from its scan reconstructed again (relative): the same pictures, rig and
+#: voxel give the same carving; this is rounding.
+RESCAN_TOLERANCE = 1e-4
+
+
+def verified_row(record: CharacterisationRecord, result: PointResult, grid: ModelGrid,
+                 confirmed: list[Measurement], volume_of: Callable[[Path], float]) -> Measurement:
+    """The measurement a row finished but not stored gives, once verified: its scan folder is this run's and
+    holds a scan (``volume_of(folder)``: its volume reconstructed again, ml; CharacterisationError or a
+    PhantomError when it is no scan) whose volume is the row's; judged plausible or not against the model
+    corrected by the ``confirmed`` measurements (:func:`phantom.model.measurements.judged`: an implausible one is
+    stored unconfirmed).
+
+    Raises
+    ------
+    CharacterisationError
+        The row is refused (why): no scan folder, another volume than its scan's, or no scan there.
+    """
+    from phantom.model.measurements import judged
+
+    folder = record.scan_folder(result.index)
+    if not folder.is_dir():
+        raise CharacterisationError(f"point {result.index}: not stored: no scan folder {folder} (the record says "
+                                    f"{result.volume_ml:.3f} ml)")
+    try:
+        scanned_ml = float(volume_of(folder))
+    except PhantomError as error:
+        raise CharacterisationError(f"point {result.index}: not stored: its scan in {folder} cannot be "
+                                    f"reconstructed ({error})") from None
+    if not math.isclose(scanned_ml, result.volume_ml, rel_tol=RESCAN_TOLERANCE):
+        raise CharacterisationError(f"point {result.index}: not stored: the record says {result.volume_ml:.3f} ml, "
+                                    f"its scan in {folder} {scanned_ml:.3f} ml")
+    return judged(result.measurement(record.model), grid, confirmed, record.model)
+
+
+def check_same_folder(record: CharacterisationRecord) -> None:
+    """Refuse a record whose rows' scans are not in its own folder: a record copied from another run."""
+    for result in record.results:
+        own = record.scan_folder(result.index).resolve()
+        if Path(result.scan_folder).resolve() != own:
+            raise CharacterisationError(f"{record.path}: point {result.index}'s scan is in {result.scan_folder}, not "
+                                        f"this run's {own}: the record is from another run (copied or moved?): "
+                                        f"start the run again in another folder, or resume it where it was made")
 
 
 def held_pressures_kpa(frames_kpa: Sequence[Sequence[float]]) -> list[float]:

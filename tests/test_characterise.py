@@ -328,12 +328,19 @@ def test_an_unreachable_point_is_skipped_and_tried_again_on_resume(tmp_path, mon
 
 
 def test_a_stop_between_the_record_and_the_store_is_made_good_on_resume_once(tmp_path):
+    from dataclasses import replace
+
     record, store = _record(tmp_path / "run"), CorrectionStore(tmp_path / "store.json")
-    record.finish(_result(0, [0, 0, 0], 20.1))          # recorded, then killed before the store had it
-    record.finish(_result(1, [1, 0, 0], 22.3))
+    folders = [str(record.scan_folder(index).resolve()) for index in (0, 1)]
+    for index in (0, 1):
+        record.scan_folder(index).mkdir(parents=True)
+    record.finish(replace(_result(0, [0, 0, 0], 20.1), scan_folder=folders[0]))  # recorded, killed before the store
+    record.finish(replace(_result(1, [1, 0, 0], 22.3), scan_folder=folders[1]))
     store.add(record.results[1].measurement("linear"))  # killed after the store, before it was marked
-    cli._store_unstored(CharacterisationRecord.load(tmp_path / "run"), store, lambda text: None)
-    assert sorted(e.scan_file for e in store.entries()) == ["/scans/000", "/scans/001"]
+    scanned = {"000": 20.1, "001": 22.3}  # what each scan reconstructs to (see tests/test_characterise_record.py)
+    cli._store_unstored(CharacterisationRecord.load(tmp_path / "run"), store, lambda text: None, _linear_grid(),
+                        lambda folder: scanned[folder.name])
+    assert sorted(e.scan_file for e in store.entries()) == folders
     assert all(r.stored for r in CharacterisationRecord.load(tmp_path / "run").results)
 
 

@@ -80,7 +80,8 @@ def test_the_report_reads_the_recording_back_steps_volumes_chambers_events(recor
         assert step.estimate_ml == pytest.approx(target + 0.01, abs=0.02)
         assert step.true_ml == pytest.approx(step.estimate_ml * ratio, rel=1e-9)
         assert step.true_error_pct == pytest.approx((ratio - 1) * 100, abs=0.1)
-    assert run.surfaces is not None and len(run.surfaces.positions_mm) == END_S * 2
+    assert run.surfaces is not None and len(run.surfaces.time_s) == END_S * 2
+    assert len(run.surfaces.positions_mm) == len(STEPS)  # only the surfaces pictured are read
     assert [event.text for event in run.events][0] == "model ready"
 
 

@@ -119,7 +119,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.resume:
             record = _new_record(args, out, grid)
         rig = _rig(record)
-        _store_unstored(record, store, say)
+        _store_unstored(record, store, say, grid, lambda folder: _reconstructed_ml(folder, rig, record))
         started = time.monotonic()
         session: dict[str, Any] = {"started_utc": _utc_now(), "points": 0, "elapsed_s": 0.0}
         record.sessions.append(session)
@@ -304,15 +304,40 @@ def _rig(record: CharacterisationRecord) -> Rig:
     return rig
 
 
-def _store_unstored(record: CharacterisationRecord, store: CorrectionStore, say: Any) -> None:
-    """Store the finished points a stopped run recorded but had not stored yet (a stop between the two)."""
+def _store_unstored(record: CharacterisationRecord, store: CorrectionStore, say: Any, grid: ModelGrid,
+                    volume_of: Any) -> None:
+    """Store the finished points a stopped run recorded but had not stored yet (a stop between the two), each once
+    verified (:func:`phantom.scan.characterise.verified_row`: its scan is this run's and gives its volume): a row
+    refused is said why and scanned again; an implausible one is stored unconfirmed."""
+    from phantom.scan.characterise import CharacterisationError, check_same_folder, verified_row
+
+    check_same_folder(record)
     stored_files = {entry.scan_file for entry in store.entries()}
-    for result in record.results:
+    for result in list(record.results):
         if not result.stored:
             if result.scan_folder not in stored_files:
-                store.add(result.measurement(record.model))
-                say(f"point {result.index}: stored its scan now (the run stopped before it was)")
+                try:
+                    measurement = verified_row(record, result, grid, store.confirmed(), volume_of)
+                except CharacterisationError as refused:
+                    record.forget(result.index)
+                    say(f"{refused}; it is scanned again")
+                    continue
+                store.add(measurement)
+                say(f"point {result.index}: stored its scan now (the run stopped before it was)"
+                    + ("" if measurement.status == "confirmed" else f", UNCONFIRMED: {measurement.reason}"))
             record.mark_stored(result.index)
+
+
+def _reconstructed_ml(folder: Path, rig: Rig, record: CharacterisationRecord) -> float:
+    """The gland volume (ml) of the complete scan in ``folder`` reconstructed as the run does."""
+    from phantom.scan.capture import CaptureFolder
+    from phantom.scan.characterise import CharacterisationError
+    from phantom.scan.reconstruct import reconstruct
+
+    capture = CaptureFolder.open(folder)
+    if capture.status != "complete":
+        raise CharacterisationError(f"the scan ended {capture.status}, not complete")
+    return float(reconstruct(capture, rig, record.scan["voxel_mm"]).volume_ml)
 
 
 def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionStore, grid: ModelGrid, rig: Rig,
@@ -327,6 +352,7 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
         UnreachableError,
         WaitTimeoutError,
     )
+    from phantom.model.measurements import judged
     from phantom.scan.characterise import CharacterisationError
 
     pending = record.pending()
@@ -356,7 +382,11 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
         result = _scan_point(client, record, index, folder, rig, grid, point_started, label)
         measurement = result.measurement(record.model)  # checked before it is recorded: a record holds only these
         record.finish(result)
+        measurement = judged(measurement, grid, store.confirmed(), record.model)
         store.add(measurement)
+        if measurement.status != "confirmed":
+            say(f"{label}: stored UNCONFIRMED, left out of the fits: {measurement.reason} (`phantom corrections "
+                f"confirm N` if it is right)")
         record.mark_stored(index)
         session["points"] += 1
         elapsed = time.monotonic() - started
@@ -421,8 +451,14 @@ def _finish(record: CharacterisationRecord, grid: ModelGrid, args: argparse.Name
     from phantom.model.measurements import CorrectionStore
     from phantom.scan.characterise import CharacterisationError, fit_run, write_report
 
-    say(f"fitting the correction to {len(record.results)} scans (each kind left out in turn) ...")
-    correction, note = fit_run(record.measurements(), grid)
+    held_out = {entry.scan_file for entry in CorrectionStore.for_phantom(record.phantom).entries()
+                if entry.status != "confirmed"}
+    measurements = [m for m in record.measurements() if m.scan_file not in held_out]  # the confirmed ones
+    if not measurements:
+        raise CharacterisationError(f"every scan of the run is stored unconfirmed (`phantom corrections list "
+                                    f"--phantom {record.phantom}`): confirm those that are right, then run again")
+    say(f"fitting the correction to {len(measurements)} scans (each kind left out in turn) ...")
+    correction, note = fit_run(measurements, grid)
     if note:
         say(note)
     with tempfile.TemporaryDirectory(prefix="phantom-characterise-") as scratch:

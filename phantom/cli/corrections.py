@@ -1,8 +1,10 @@
 """Subcommand of ``phantom``: ``corrections`` (the measured volumes that correct a phantom's model).
 
-``list``, ``add`` (a water-displacement or other measurement by hand), ``clear``, ``export`` (the CSV ``phantom
-calibrate --measurements`` reads) and ``fit`` (the correction they give a scene's model, with every candidate's
-leave-one-out error). The store is ``phantom.model.corrections``; only argparse is imported at module load.
+``list``, ``add`` (a water-displacement or other measurement by hand: refused outside the model's pressure box,
+stored unconfirmed when implausible, :func:`phantom.model.measurements.judged`), ``confirm N`` and ``remove N`` (one
+entry), ``clear``, ``export`` (the CSV ``phantom calibrate --measurements`` reads) and ``fit`` (the correction they
+give a scene's model, with every candidate's leave-one-out error). The store is ``phantom.model.measurements``; only
+argparse is imported at module load.
 """
 
 from __future__ import annotations
@@ -14,8 +16,8 @@ from typing import Any
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``corrections`` to the ``phantom`` parser."""
     corrections = subparsers.add_parser(
-        "corrections", help="the scans and measurements that correct a phantom's model (list, add, clear, export, "
-        "fit)",
+        "corrections", help="the scans and measurements that correct a phantom's model (list, add, confirm, remove, "
+        "clear, export, fit)",
         description="Each scan of the phantom at known pressures is a measured gland volume that corrects the "
         "model; they are kept per phantom in the user's data directory ($PHANTOM_DATA_DIR, else "
         "$XDG_DATA_HOME/phantom, else ~/.local/share/phantom: corrections/NAME.json).")
@@ -28,6 +30,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     add.add_argument("--method", choices=("scan", "water_displacement"), default="water_displacement",
                      help="how it was measured (default water_displacement)")
     add.add_argument("--scan-file", help="the scan's file (kept as a reference)")
+    add.add_argument("--scene", default="builtin:converged", help="the model the volume is checked against (default "
+                     "builtin:converged): a volume implausible against it, corrected by the confirmed measurements, "
+                     "is stored unconfirmed and left out of the fit until `confirm N`")
+    confirm = actions.add_parser("confirm", help="confirm measurement N (as listed): it is right though implausible, "
+                                 "and the fit uses it from now on")
+    remove = actions.add_parser("remove", help="remove measurement N (as listed)")
+    for parser in (confirm, remove):
+        parser.add_argument("number", type=int, metavar="N", help="the measurement's number in `phantom corrections "
+                            "list` (1 = the oldest)")
     clear = actions.add_parser("clear", help="remove every stored measurement of the phantom")
     clear.add_argument("--yes", action="store_true", help="do it (without --yes: say how many would go)")
     export = actions.add_parser("export", help="write the measurements as the CSV `phantom calibrate` reads")
@@ -35,7 +46,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     fit = actions.add_parser("fit", help="the correction the measurements give a scene's model, and each "
                              "candidate's leave-one-out error")
     fit.add_argument("--scene", default="builtin:converged", help="the model's scene (default builtin:converged)")
-    for parser in (listing, add, clear, export, fit):
+    for parser in (listing, add, confirm, remove, clear, export, fit):
         parser.add_argument("--phantom", default="default", metavar="NAME",
                             help="which phantom's measurements (default 'default')")
         parser.add_argument("--json", action="store_true", help="print JSON")
@@ -46,7 +57,8 @@ def _run(args: argparse.Namespace) -> int:
     from phantom.model.measurements import CorrectionStore
 
     store = CorrectionStore.for_phantom(args.phantom)
-    handler = {"list": _list, "add": _add, "clear": _clear, "export": _export, "fit": _fit}[args.action]
+    handler = {"list": _list, "add": _add, "confirm": _confirm, "remove": _remove, "clear": _clear,
+               "export": _export, "fit": _fit}[args.action]
     return handler(store, args)
 
 
@@ -68,18 +80,61 @@ def _list(store: Any, args: argparse.Namespace) -> int:
             f", model {entry.model_volume_ml:.3f} ml ({(entry.model_volume_ml / entry.volume_ml - 1) * 100:+.2f} %)")
         lines.append(f"{number:3d}  {entry.time_utc or '-':25s}  {pressures} kPa  {entry.volume_ml:.3f} ml "
                      f"({entry.method}){model}" + (f"  {entry.scan_file}" if entry.scan_file else ""))
+        if entry.status != "confirmed":
+            lines.append(f"     UNCONFIRMED, left out of the fit: {entry.reason} (`phantom corrections confirm "
+                         f"{number}` if it is right, `remove {number}` if not)")
     return _print(args, {"path": str(store.path), "measurements": [asdict(e) for e in entries]}, "\n".join(lines))
 
 
 def _add(store: Any, args: argparse.Namespace) -> int:
+    import sys
+
+    import numpy as np
+
     from phantom.cli.common import parse_numbers
-    from phantom.model.measurements import Measurement
+    from phantom.model import PhantomModel, load_scene
+    from phantom.model.corrections import model_grid, pressures_in_box
+    from phantom.model.fidelity.levels import VolumeEstimator
+    from phantom.model.measurements import CorrectionError, Measurement, judged
 
     measurement = Measurement.now(parse_numbers(args.pressures_kpa, "--pressures-kpa"), args.volume_ml, args.method,
                                   args.scan_file)
+    grid = model_grid(VolumeEstimator(PhantomModel.from_scene(load_scene(args.scene))), args.scene)
+    chambers = grid.chamber_ml.shape[-1]
+    if len(measurement.pressures_kpa) != chambers:
+        raise CorrectionError(f"--pressures-kpa has {len(measurement.pressures_kpa)} values; the model {args.scene} "
+                              f"has {chambers} chambers: give {chambers} pressures, one per chamber")
+    on_box = pressures_in_box(measurement.pressures_kpa, float(grid.points_kpa[-1]), "--pressures-kpa")
+    confirmed = store.confirmed()
+    if confirmed and not args.json:  # a fit of many measurements not fitted before takes seconds
+        print(f"checking {args.volume_ml:g} ml against {args.scene} corrected by the {len(confirmed)} confirmed "
+              f"measurement(s) ...", file=sys.stderr, flush=True)
+    measurement = judged(Measurement(measurement.pressures_kpa, measurement.volume_ml, measurement.method,
+                                     measurement.time_utc, measurement.scan_file, args.scene,
+                                     float(grid.gland_ml(np.asarray(on_box)))),
+                         grid, confirmed, args.scene)
     count = store.add(measurement)
-    return _print(args, {"path": str(store.path), "measurements": count},
-                  f"stored ({count} measurement(s) of phantom {args.phantom!r} in {store.path})")
+    text = f"stored ({count} measurement(s) of phantom {args.phantom!r} in {store.path})"
+    if measurement.status != "confirmed":
+        text = (f"stored UNCONFIRMED as measurement {count}, left out of the fit: {measurement.reason}. If it is "
+                f"right: `phantom corrections confirm {count} --phantom {args.phantom}`; if not: `phantom "
+                f"corrections remove {count} --phantom {args.phantom}`")
+    return _print(args, {"path": str(store.path), "measurements": count, "status": measurement.status,
+                         "reason": measurement.reason}, text)
+
+
+def _confirm(store: Any, args: argparse.Namespace) -> int:
+    confirmed = store.confirm(args.number)
+    return _print(args, {"path": str(store.path), "confirmed": args.number},
+                  f"measurement {args.number} ({confirmed.volume_ml:.3f} ml) of phantom {args.phantom!r} confirmed: "
+                  f"the fit uses it")
+
+
+def _remove(store: Any, args: argparse.Namespace) -> int:
+    removed = store.remove(args.number)
+    return _print(args, {"path": str(store.path), "removed": args.number},
+                  f"removed measurement {args.number} ({removed.volume_ml:.3f} ml at "
+                  f"{', '.join(f'{p:g}' for p in removed.pressures_kpa)} kPa) of phantom {args.phantom!r}")
 
 
 def _clear(store: Any, args: argparse.Namespace) -> int:
@@ -115,7 +170,7 @@ def _fit(store: Any, args: argparse.Namespace) -> int:
     from phantom.model.corrections import cached_fit, model_grid
     from phantom.model.fidelity.levels import VolumeEstimator
 
-    entries = store.entries()
+    entries = store.confirmed()
     model = PhantomModel.from_scene(load_scene(args.scene))
     grid = model_grid(VolumeEstimator(model), args.scene)
     correction = cached_fit(entries, grid)

@@ -33,6 +33,12 @@ if TYPE_CHECKING:
 VOLUME_SERIES = {"commanded_ml": "target", "estimated_ml": "estimate", "true_ml": "true (simulated plant)"}
 #: A step event's text as the daemon logs it ("step 2 at 60 s: 35.00 ml over 15 s"): its index and target.
 STEP_EVENT = re.compile(r"^step (?P<index>\d+) at [^:]+: (?P<target>.*)$")
+#: The recording's columns not read at first (the deformed surfaces, their normals and triangles: the rest
+#: shape's are drawn); the surfaces pictured are read after, by a second pass over the recording, so that a long
+#: recording's report takes memory for what it draws.
+MESH_SKIPPED = frozenset({"/phantom/mesh:Mesh3D:vertex_positions", "/phantom/mesh:Mesh3D:vertex_normals",
+                          "/phantom/mesh:Mesh3D:triangle_indices", "/phantom/mesh:Mesh3D:albedo_factor",
+                          "/phantom/rest:Mesh3D:vertex_normals"})
 #: Pictures of the gland at most (when the recording has no steps, frames evenly spread over it).
 MAX_PICTURES = 12
 #: Figure sizes (inches at PLOT_DPI) and resolution.
@@ -76,18 +82,24 @@ class Event:
 
 @dataclass(frozen=True)
 class Surfaces:
-    """The gland's outer surface: the rest shape and the deformed one at each logged time (mm)."""
+    """The gland's outer surface: the rest shape, the times a deformed one was logged (s), and the deformed ones
+    read (mm; those pictured, by their time)."""
 
     rest_mm: np.ndarray
     triangles: np.ndarray
     time_s: np.ndarray
-    positions_mm: list[np.ndarray]
+    positions_mm: dict[float, np.ndarray]
+
+    def logged_at(self, time_s: float) -> float:
+        """The time of the last surface logged at or before ``time_s`` (the first one's before it)."""
+        import numpy as np
+
+        return float(self.time_s[max(int(np.searchsorted(self.time_s, time_s, side="right")) - 1, 0)])
 
     def at(self, time_s: float) -> np.ndarray:
         import numpy as np
 
-        index = max(int(np.searchsorted(self.time_s, time_s, side="right")) - 1, 0)
-        return self.positions_mm[index]
+        return np.asarray(self.positions_mm[self.logged_at(time_s)], dtype=float)  # kept as the recording's float32
 
 
 @dataclass(frozen=True)
@@ -118,6 +130,9 @@ class Run:
     events: list[Event]
     surfaces: Surfaces | None
     steps: list[Step]
+    #: what the recording held that the report could not show, and why (a mesh whose triangles name vertices it
+    #: does not have)
+    notes: tuple[str, ...] = ()
 
 
 def _error_pct(value: float | None, reference: float | None) -> float | None:
@@ -176,24 +191,50 @@ def _events(entities: dict[str, dict[str, list[Any]]]) -> list[Event]:
             for time_s, level, text in rows if time_s is not None and text]
 
 
-def _surfaces(entities: dict[str, dict[str, list[Any]]]) -> Surfaces | None:
+def _surfaces(entities: dict[str, dict[str, list[Any]]], notes: list[str]) -> Surfaces | None:
     """The rest shape and the deformed surfaces, when the recording has both (the daemon logs them when its scene
-    asks for shapes)."""
+    asks for shapes) and they hold together: finite (n, 3) positions, (k, 3) triangles of those vertices; else
+    None, and ``notes`` says why."""
     import numpy as np
 
     rest = entities.get("/phantom/rest", {})
     moving = entities.get("/phantom/mesh", {})
-    if not rest.get("Mesh3D:vertex_positions") or not moving.get("Mesh3D:vertex_positions"):
+    if not rest.get("Mesh3D:vertex_positions") or not moving.get("time"):
         return None
-    rest_mm = np.asarray(rest["Mesh3D:vertex_positions"][0], dtype=float)
-    triangles = np.asarray(rest["Mesh3D:triangle_indices"][0], dtype=np.int64)
-    frames = [(time_s, np.asarray(positions, dtype=float))
-              for time_s, positions in zip(moving["time"], moving["Mesh3D:vertex_positions"], strict=False)
-              if time_s is not None and positions and len(positions) == len(rest_mm)]
-    if not frames:
+    try:
+        rest_mm = np.asarray(rest["Mesh3D:vertex_positions"][0], dtype=float)
+        triangles = np.asarray((rest.get("Mesh3D:triangle_indices") or [[]])[0], dtype=np.int64)
+    except (TypeError, ValueError, OverflowError) as error:
+        notes.append(f"the rest surface cannot be read ({error}): no pictures of the gland")
         return None
-    return Surfaces(rest_mm, triangles, np.asarray([time_s for time_s, _ in frames]),
-                    [positions for _, positions in frames])
+    if rest_mm.ndim != 2 or rest_mm.shape[1:] != (3,) or not np.all(np.isfinite(rest_mm)) \
+            or triangles.ndim != 2 or triangles.shape[1:] != (3,) or len(triangles) == 0:
+        notes.append(f"the rest surface is not a triangle mesh (positions {rest_mm.shape}, triangles "
+                     f"{triangles.shape}): no pictures of the gland")
+        return None
+    if triangles.min() < 0 or triangles.max() >= len(rest_mm):
+        notes.append(f"the rest surface's triangle indices run from {triangles.min()} to {triangles.max()} but it "
+                     f"has {len(rest_mm)} vertices: no pictures of the gland")
+        return None
+    times = sorted({time_s for time_s in moving.get("time", []) if time_s is not None})
+    if not times:
+        return None
+    return Surfaces(rest_mm, triangles, np.asarray(times, dtype=float), {})
+
+
+def _read_pictured(path: Path, surfaces: Surfaces, wanted_s: list[float], notes: list[str]) -> Surfaces | None:
+    """``surfaces`` with the deformed surfaces at the times pictured read (a second pass over the recording);
+    None, and ``notes`` says why, when one of them is not the rest shape's vertices."""
+    from phantom.host.recording import read_points_at
+
+    logged = {surfaces.logged_at(time_s - 1e-6) for time_s in wanted_s}
+    found = read_points_at(path, "/phantom/mesh", "Mesh3D:vertex_positions", logged)
+    wrong = sorted(time_s for time_s in logged if time_s not in found or found[time_s].shape != surfaces.rest_mm.shape)
+    if wrong:
+        notes.append(f"the surface logged at {wrong[0]:.1f} s is not the rest shape's {len(surfaces.rest_mm)} "
+                     f"vertices: no pictures of the gland")
+        return None
+    return Surfaces(surfaces.rest_mm, surfaces.triangles, surfaces.time_s, found)
 
 
 def _steps(events: list[Event], volumes: dict[str, Series], end_s: float) -> list[Step]:
@@ -224,7 +265,7 @@ def load_run(path: str | Path) -> Run:
         raise PhantomError(f"{path}: no such recording (give the .rrd the daemon wrote with --rerun-save, e.g. "
                            "out/demo.rrd)")
     try:
-        entities = read_rrd(path)
+        entities = read_rrd(path, skip=MESH_SKIPPED)  # the surfaces pictured are read once it is known which
     except (ValueError, OSError, RuntimeError) as error:
         raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
                            "wrote") from None
@@ -236,7 +277,17 @@ def load_run(path: str | Path) -> Run:
     times = [float(t) for columns in entities.values() for t in columns.get("time", []) if t is not None]
     end_s = max(times, default=0.0)
     events = _events(entities)
-    return Run(path, end_s, volumes, chambers, events, _surfaces(entities), _steps(events, volumes, end_s))
+    notes: list[str] = []
+    surfaces = _surfaces(entities, notes)
+    steps = _steps(events, volumes, end_s)
+    run = Run(path, end_s, volumes, chambers, events, surfaces, steps)
+    if surfaces is not None:
+        try:
+            surfaces = _read_pictured(path, surfaces, [time_s for _, time_s in picture_times(run)], notes)
+        except (ValueError, OSError, RuntimeError) as error:
+            raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
+                               "wrote") from None
+    return Run(path, end_s, volumes, chambers, events, surfaces, steps, tuple(notes))
 
 
 # ------------------------------------------------------------------------------------------------ figures
@@ -294,7 +345,8 @@ def chamber_figure(run: Run) -> str:
                           linewidth=1.2, label="measured")
         if chamber.drive_level is not None:
             drive.plot(chamber.drive_level.time_s, chamber.drive_level.values, color=chamber.colour, linewidth=1.0)
-        pressure.set_title(f"{chamber.name} (chamber {chamber.index})")
+        # a name is text, whatever it holds (not mathtext: "$\\undefinedcommand$" stopped the report)
+        pressure.set_title(f"{chamber.name} (chamber {chamber.index})", parse_math=False)
         pressure.legend(loc="upper left", fontsize="small")
         for part in (pressure, drive):
             _mark_steps(part, run.steps)
@@ -451,6 +503,8 @@ def render_html(run: Run) -> str:
                   '<div class="pictures">' + "".join(
                       f"<figure>{image(data, caption, 'gland')}<figcaption>{html.escape(caption)}</figcaption>"
                       "</figure>" for caption, data in pictures) + "</div>"]
+    if run.notes:
+        parts += ["<h2>Not shown</h2>", "".join(f"<p>{html.escape(note)}</p>" for note in run.notes)]
     parts += ["<h2>Events</h2>", events_table(run.events)]
     return (f'<!DOCTYPE html>\n<html lang="en"><head><meta charset="utf-8"><title>{html.escape(run.path.name)}'
             f"</title><style>{STYLE}</style></head><body>{''.join(parts)}</body></html>\n")

@@ -173,8 +173,29 @@ class DaemonScanner:
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
         from phantom.cli.scan import load_rig
+        from phantom.host.api import ApiError
         from phantom.protocol.motion import SCANNER_AXES
-        from phantom.scan.capture import CaptureError, CaptureFolder, Plan, capture
+        from phantom.scan.capture import CaptureError, CaptureFolder, capture
+
+        try:
+            plan, seed = self._checked(params)
+        except PhantomError as error:  # bad params are the caller's to fix (invalid_params), not a state's refusal
+            raise ApiError("invalid_params", str(error)) from None
+        camera = self._camera(params, rig, plan.elevations_deg, params.get("scale", 1.0), seed)
+        kept = load_rig(params["rig"]) if params.get("rig") else None
+        folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
+        rig.configure(SCANNER_AXES)
+        answer: dict[str, Any] = {"folder": str(folder.path)}
+        try:
+            capture(rig, camera, rig, plan, folder, stop=rig)
+        except CaptureError as error:  # stopped or aborted: the folder says which, the error why
+            answer["reason"] = str(error)
+        return {**answer, "status": folder.status, "pictures": len(folder.frames)}
+
+    @staticmethod
+    def _checked(params: dict[str, Any]) -> tuple[Any, int]:
+        """The scan's plan and seed from its params; PhantomError for a param that is not one or is out of range."""
+        from phantom.scan.capture import Plan
 
         known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
                  "width", "height", "exposure", "focus", "rig"}
@@ -194,16 +215,7 @@ class DaemonScanner:
                         params.get("settle_s", 0.3), params.get("span_deg", 360.0))
         except PhantomError as error:
             raise PhantomError(f"scan: {error}") from None
-        camera = self._camera(params, rig, plan.elevations_deg, params.get("scale", 1.0), seed)
-        kept = load_rig(params["rig"]) if params.get("rig") else None
-        folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
-        rig.configure(SCANNER_AXES)
-        answer: dict[str, Any] = {"folder": str(folder.path)}
-        try:
-            capture(rig, camera, rig, plan, folder, stop=rig)
-        except CaptureError as error:  # stopped or aborted: the folder says which, the error why
-            answer["reason"] = str(error)
-        return {**answer, "status": folder.status, "pictures": len(folder.frames)}
+        return plan, seed
 
     def _camera(self, params: dict[str, Any], rig: Any, elevations: tuple[float, ...], scale: Any,
                 seed: int) -> FrameSource:
