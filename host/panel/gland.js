@@ -6,6 +6,8 @@ import * as THREE from "./vendor/three/three.module.min.js";
 const VIRIDIS = [[0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567, 0.551], [0.369, 0.789, 0.383],
   [0.993, 0.906, 0.144]];
 
+const SCALE_FLOOR_MM = 5;
+
 function viridis(t) {
   const x = Math.min(1, Math.max(0, t)) * (VIRIDIS.length - 1);
   const i = Math.min(VIRIDIS.length - 2, Math.floor(x));
@@ -33,6 +35,7 @@ export class Gland {
     this.scene.add(this.group);
     this.mesh = null;
     this.rest = null;
+    this.scaleMm = SCALE_FLOOR_MM;
     this.turnable();
     new ResizeObserver(() => this.resize()).observe(element);
     this.resize();
@@ -95,8 +98,11 @@ export class Gland {
         largest = Math.max(largest, moved[i]);
       }
     }
+    // the colour scale's top: the largest displacement, but at least SCALE_FLOOR_MM, so that a gland near its rest
+    // shape does not look as coloured as one grown by centimetres
+    this.scaleMm = Math.max(largest, SCALE_FLOOR_MM);
     const colours = new Float32Array(count * 3);
-    for (let i = 0; i < count; i++) colours.set(viridis(largest > 0 ? moved[i] / largest : 0), i * 3);
+    for (let i = 0; i < count; i++) colours.set(viridis(moved[i] / this.scaleMm), i * 3);
     const geometry = new THREE.BufferGeometry();
     geometry.setAttribute("position", new THREE.BufferAttribute(xyz, 3));
     geometry.setAttribute("color", new THREE.BufferAttribute(colours, 3));

@@ -108,6 +108,7 @@ function onStatus(status) {
   if (status.control === "vented" && state.outcome !== "vented") {
     state.outcome = "vented";
     setTargetState("vented", "working");
+    document.querySelectorAll(".preset.active").forEach((button) => button.classList.remove("active"));
   } else if (status.target_pending && !state.outcome) {
     setTargetState(`waiting: ${status.target_pending}`, "working");
   }
@@ -189,8 +190,8 @@ async function refreshGland() {
   try {
     const surface = await state.rpc.call("surface");
     const largest = state.gland.show(surface);
-    show("gland-max", `${largest.toFixed(1)} mm`);
-    show("gland-note", `at ${surface.pressures_kpa ? surface.pressures_kpa.map((p) => (Math.abs(p) < 0.005 ? 0 : p).toFixed(2)).join(" / ") + " kPa" : "rest"}; drag to turn it`);
+    show("gland-max", `${state.gland.scaleMm.toFixed(1)} mm`);
+    show("gland-note", `largest displacement ${largest.toFixed(1)} mm, at ${surface.pressures_kpa ? surface.pressures_kpa.map((p) => (Math.abs(p) < 0.005 ? 0 : p).toFixed(2)).join(" / ") + " kPa" : "rest"}; drag to turn it`);
     $("gland").dataset.drawn = String((Number($("gland").dataset.drawn) || 0) + 1);
   } catch (error) {
     show("gland-note", `the surface could not be drawn: ${error.message}`);
@@ -267,7 +268,7 @@ function buildChambers(labels) {
 
 function applyAccess(access) {
   state.access = access;
-  show("access", access === "control" ? "control" : "read-only");
+  show("access", access === "control" ? "control" : access === "read" ? "read-only" : "–");
   $("access").className = `pill ${access === "control" ? "ok" : "warn"}`;
   document.querySelectorAll("button.control, input.control, #volume-slider, #volume-set, #pressures-set, #vent, #clear-fault")
     .forEach((element) => { element.disabled = access !== "control"; });
@@ -328,6 +329,7 @@ function wire() {
 
 async function main() {
   wire();
+  applyAccess(null); // nothing to press until the daemon says what this token may do
   const access = await (await fetch("/access", { cache: "no-store" })).json();
   if (!access.access) {
     $("token-dialog").showModal();
@@ -341,7 +343,7 @@ async function main() {
       else if (topic === "events") onEvent(data);
     },
     onOpen: () => onOpen().catch((error) => notice(`the daemon did not answer: ${error.message}`)),
-    onClose: () => { show("link", "daemon unreachable"); $("link").className = "pill bad"; },
+    onClose: () => { show("link", "daemon unreachable"); $("link").className = "pill bad"; applyAccess(null); },
   });
   state.rpc.connect();
 }

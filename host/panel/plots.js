@@ -59,9 +59,9 @@ export class Plots {
     this.pressure = new Strip(document.getElementById("plot-pressure"), "Chamber pressure and setpoint (kPa)", [
       ...labels.map((label, i) => line(label, COLOURS[i % 3])),
       ...labels.map((label, i) => line(`${label} setpoint`, COLOURS[i % 3], [6, 5])),
-    ], 60);
+    ], 30);
     this.drive = new Strip(document.getElementById("plot-drive"), "Blower drive (0-1)",
-      labels.map((label, i) => line(label, COLOURS[i % 3])), 60, [0, 1]);
+      labels.map((label, i) => line(label, COLOURS[i % 3])), 30, [0, 1]);
     this.simulated = simulated;
     this.scheduled = false;
     this.lastDrawMs = 0;
@@ -84,12 +84,19 @@ export class Plots {
     if (this.scheduled) return;
     this.scheduled = true;
     const wait = Math.max(0, 1000 / REDRAW_HZ - (performance.now() - this.lastDrawMs));
-    setTimeout(() => requestAnimationFrame(() => {
-      this.scheduled = false;
-      this.lastDrawMs = performance.now();
-      this.volume.draw();
-      this.pressure.draw();
-      this.drive.draw();
-    }), wait);
+    setTimeout(() => this.drawInTurn([this.volume, this.pressure, this.drive]), wait);
+  }
+
+  drawInTurn(strips) {
+    // one chart per animation frame: three redraws in one task made it long enough to drop frames
+    requestAnimationFrame(() => {
+      strips[0].draw();
+      if (strips.length > 1) {
+        this.drawInTurn(strips.slice(1));
+      } else {
+        this.scheduled = false;
+        this.lastDrawMs = performance.now();
+      }
+    });
   }
 }
