@@ -7,6 +7,8 @@ const VIRIDIS = [[0.267, 0.005, 0.329], [0.229, 0.322, 0.546], [0.128, 0.567, 0.
   [0.993, 0.906, 0.144]];
 
 const SCALE_FLOOR_MM = 5;
+// where the camera looks from (a unit vector): in front of the gland and a little above it
+const VIEW_FROM = new THREE.Vector3(0, -80, 25).normalize();
 
 function viridis(t) {
   const x = Math.min(1, Math.max(0, t)) * (VIRIDIS.length - 1);
@@ -24,8 +26,6 @@ export class Gland {
     element.appendChild(this.renderer.domElement);
     this.scene = new THREE.Scene();
     this.camera = new THREE.PerspectiveCamera(35, 1, 1, 1000);
-    this.camera.position.set(0, -80, 25);
-    this.camera.lookAt(0, 0, 0);
     this.scene.add(new THREE.AmbientLight(0xffffff, 1.2));
     const light = new THREE.DirectionalLight(0xffffff, 2.0);
     light.position.set(-60, -100, 120);
@@ -108,6 +108,8 @@ export class Gland {
     geometry.setAttribute("color", new THREE.BufferAttribute(colours, 3));
     geometry.setIndex(surface.triangles.flat());
     geometry.computeVertexNormals();
+    geometry.computeBoundingSphere();
+    this.radius = geometry.boundingSphere.radius;
     if (this.mesh) {
       this.group.remove(this.mesh);
       this.mesh.geometry.dispose();
@@ -115,12 +117,20 @@ export class Gland {
       this.material = new THREE.MeshLambertMaterial({ vertexColors: true, side: THREE.DoubleSide });
     }
     this.mesh = new THREE.Mesh(geometry, this.material);
+    this.mesh.position.copy(geometry.boundingSphere.center).multiplyScalar(-1); // turned about its centre
     this.group.add(this.mesh);
     this.draw();
     return largest;
   }
 
   draw() {
+    // the camera as far as the gland needs to fill the view with a margin, whatever the view's shape
+    const radius = this.radius || 25;
+    const halfHeight = THREE.MathUtils.degToRad(this.camera.fov / 2);
+    const halfWidth = Math.atan(Math.tan(halfHeight) * this.camera.aspect);
+    const distance = (radius * 1.08) / Math.sin(Math.min(halfHeight, halfWidth));
+    this.camera.position.copy(VIEW_FROM).multiplyScalar(distance);
+    this.camera.lookAt(0, 0, 0);
     this.renderer.render(this.scene, this.camera);
   }
 }

@@ -342,7 +342,11 @@ async function main() {
       else if (topic === "status") onStatus(data);
       else if (topic === "events") onEvent(data);
     },
-    onOpen: () => onOpen().catch((error) => notice(`the daemon did not answer: ${error.message}`)),
+    onOpen: () => onOpen().catch((error) => {
+      // a daemon still starting answers "starting": ask again on a new connection
+      notice(`the daemon did not answer: ${error.message}; trying again`);
+      setTimeout(() => state.rpc.socket.close(), 2000);
+    }),
     onClose: () => { show("link", "daemon unreachable"); $("link").className = "pill bad"; applyAccess(null); },
   });
   state.rpc.connect();
