@@ -82,6 +82,7 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
         model = await ModelWorker.start(config.scene, configured_level(), defer_table=True, phantom=config.phantom,
                                         on_message=startup.tell)
         closers.append(model.close)
+        check_presets(presets, model.info.chamber_names, model.info.chamber_labels)  # the buttons' targets
         early.append(model.correction_event())
         sim_board = None
         if simulated_board is not None and config.sim:
@@ -110,7 +111,6 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
     handlers = ApiHandlers(daemon).table()
     for name in BOARD_METHODS:
         handlers[name] = _when_ready(daemon, handlers[name])
-    check_presets(presets, daemon.chamber_names, daemon.chamber_labels)
     handlers.update(preset_method(daemon, presets))
     api.handlers.update(handlers)
     api.handlers.update(daemon.motion.api_methods())
