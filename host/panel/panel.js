@@ -61,6 +61,7 @@ async function act(method, params, what) {
 
 function describeTarget(target) {
   if (!target) return "none";
+  if (typeof target === "string") return target; // a scene's step, described by the daemon
   if (target.volume_ml != null) {
     const ratio = target.growth_ratio ? ` (growth ${Object.entries(target.growth_ratio).map(([k, v]) => `${k} ${v}`).join(", ")})` : "";
     return `${target.volume_ml.toFixed(1)} ml${ratio}`;
@@ -105,6 +106,15 @@ function onStatus(status) {
   show("control", status.ready ? status.control : "starting");
   $("control").className = `pill ${status.control === "vented" ? "warn" : "ok"}`;
   show("target-text", status.control === "vented" ? "none (vented)" : describeTarget(status.target));
+  // a new target (this page's, another client's or a scene's step) is being reached until its outcome comes
+  const targetKey = JSON.stringify(status.target);
+  if (targetKey !== state.targetKey) {
+    state.targetKey = targetKey;
+    if (status.target && status.control !== "vented" && state.outcomeFor !== targetKey) {
+      state.outcome = null;
+      setTargetState("reaching…", "working");
+    }
+  }
   if (status.control === "vented" && state.outcome !== "vented") {
     state.outcome = "vented";
     setTargetState("vented", "working");
@@ -126,7 +136,8 @@ function onStatus(status) {
   show("fault-text", faults.map(faultWords).join("; "));
   const scene = status.scene;
   const step = scene && scene.steps.length ? scene.steps[scene.steps.length - 1] : null;
-  show("scene-state", scene ? `${scene.name} ${scene.finished ? "finished" : "playing"}, ${scene.time_s.toFixed(0)} of ${
+  const sceneName = scene ? scene.name.split("/").pop().replace(/\.toml$/, "").replaceAll("_", " ") : "";
+  show("scene-state", scene ? `${sceneName} ${scene.finished ? "ended" : "playing"}, ${scene.time_s.toFixed(0)} of ${
     scene.end_s.toFixed(0)} s${step ? `: step ${step.index} (${describeTarget(step.target)})` : ""}` : "no scene playing");
   renderPairs("correction", status.correction && status.correction.in_force
     ? status.correction : { "in force": "none", why: (status.correction && status.correction.error) || "no measured volumes" });
@@ -168,8 +179,10 @@ function onEvent(event) {
   list.prepend(item);
   while (list.children.length > 60) list.lastChild.remove();
   if (/scan|verif/.test(event.kind) || event.rounds) state.lastScanEvent = event.text;
-  if (!event.outcome || event.source !== "api") return;
+  if (!event.outcome || event.outcome === "replaced") return;
+  if (state.status && (state.status.control === "vented" || JSON.stringify(event.target) !== state.targetKey)) return;
   state.outcome = event.outcome;
+  state.outcomeFor = JSON.stringify(event.target);
   if (event.outcome === "reached") {
     const volume = event.scanned_volume_ml ?? event.estimated_volume_ml;
     setTargetState(`reached${volume != null ? ` (${volume.toFixed(1)} ml)` : ""}`, "reached");
@@ -287,8 +300,8 @@ async function onOpen() {
   buildControls(presets);
   $("verify-box").hidden = !identity.methods.includes("scan");
   applyAccess(identity.access);
-  for (const event of status.events.slice().reverse()) onEvent(event);
   onStatus(status);
+  for (const event of status.events) onEvent(event); // oldest first: each goes on top
   if (!state.gland) {
     try {
       state.gland = new Gland($("gland"));
