@@ -24,9 +24,10 @@ const state = {
 
 function show(id, text) {
   // write only what changed: status comes ten times a second, and an unchanged text costs a layout for nothing
-  if (state.shown[id] === text) return;
+  const element = $(id);
+  if (state.shown[id] === text || !element) return; // (the chambers' cards are built once the daemon named them)
   state.shown[id] = text;
-  $(id).textContent = text;
+  element.textContent = text;
 }
 
 function ml(value) { return value == null ? "–" : `${value.toFixed(1)} ml`; }
