@@ -239,3 +239,12 @@ def test_the_apis_lines_become_json_rpc():
     shed = json.loads(jsonrpc_frame(b'{"id":null,"error":{"code":"busy","message":"closed for a new one"}}\n'))
     assert shed["error"]["code"] == JSONRPC_CODES["busy"] and shed["error"]["data"] == {"error": "busy"}
     assert len(set(JSONRPC_CODES.values())) == len(JSONRPC_CODES)
+
+
+def test_a_port_in_use_is_refused_with_what_to_do(tmp_path, tokens):
+    async def test() -> None:
+        async with served(tmp_path, tokens) as (api, web):
+            second = WebServer(api, f"127.0.0.1:{web.port}", tokens)
+            with pytest.raises(WebError, match=f"cannot serve the panel on 127.0.0.1:{web.port}: .*another --http"):
+                await second.start()
+    run(test)

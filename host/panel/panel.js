@@ -138,8 +138,9 @@ function onStatus(status) {
   const scene = status.scene;
   const step = scene && scene.steps.length ? scene.steps[scene.steps.length - 1] : null;
   const sceneName = scene ? scene.name.split("/").pop().replace(/\.toml$/, "").replaceAll("_", " ") : "";
-  show("scene-state", scene ? `${sceneName} ${scene.finished ? "ended" : "playing"}, ${scene.time_s.toFixed(0)} of ${
-    scene.end_s.toFixed(0)} s${step ? `: step ${step.index} (${describeTarget(step.target)})` : ""}` : "no scene playing");
+  const stepText = step ? `: step ${step.index} (${describeTarget(step.target)})` : "";
+  show("scene-state", !scene ? "no scene playing" : scene.finished ? `${sceneName} ended${stepText}`
+    : `${sceneName} playing, ${scene.time_s.toFixed(0)} of ${scene.end_s.toFixed(0)} s${stepText}`);
   renderPairs("correction", status.correction && status.correction.in_force
     ? status.correction : { "in force": "none", why: (status.correction && status.correction.error) || "no measured volumes" });
   const verifyKeys = Object.keys(status).filter((key) => key.includes("verif") || key === "scan");
