@@ -15,8 +15,8 @@ It is safe from other web pages and other users:
 * the WebSocket's ``Origin``, when a browser sends one, must be this page's own (``http://`` + ``Host``): another
   page open in the same browser cannot drive the phantom;
 * every connection presents a token (:class:`PanelTokens`: a control and a read-only one, kept in the user's data
-  directory with mode 0600): opening ``/?token=...`` once keeps it in an HttpOnly cookie and takes it out of the
-  address bar; scripts send ``Authorization: Bearer ...``. A read-only token watches (status, the surface,
+  directory with mode 0600): opening ``/?token=...``, or once the ``/?code=...`` printed at start, keeps it in an
+  HttpOnly cookie and takes it out of the address bar; scripts send ``Authorization: Bearer ...``. A read-only token watches (status, the surface,
   subscriptions) and is answered ``forbidden`` for everything else;
 * ``--no-http-token`` is refused unless the address is loopback; tokens never reach the log (no access log: the
   first address carries the token).
@@ -239,6 +239,9 @@ class WebServer:
         self.host_names = frozenset(name.strip().lower().rstrip(".") for name in host_names if name.strip())
         self.cookie = f"phantom_panel_{self.port}"
         self.refused: dict[str, int] = {"host": 0, "origin": 0, "token": 0, "forbidden": 0}
+        #: what the address printed at start carries instead of the token (Jupyter's way): it opens the panel with
+        #: the control token once, and is spent (a terminal's scrollback or a shell's history holds nothing usable)
+        self.one_time_code: str | None = secrets.token_urlsafe(16) if tokens is not None else None
         self._runner: Any = None
 
     async def start(self) -> None:
@@ -316,19 +319,28 @@ class WebServer:
     # --- routes ----------------------------------------------------------------------------------------------
 
     async def _index(self, request: Any) -> Any:
-        """The page; ``/?token=...`` keeps the token in a cookie and takes it out of the address bar."""
+        """The page. ``/?code=...`` (the one-time code the daemon printed at start) or ``/?token=...`` keeps the
+        token in a cookie and takes it out of the address bar; the code is spent by its first use."""
         web = _aiohttp()
-        if "token" in request.query:
-            access = self._access(request)
-            if access is None:
+        token = request.query.get("token")
+        if "code" in request.query and self.tokens is not None:
+            code, self.one_time_code = self.one_time_code, None
+            if code is not None and hmac.compare_digest(request.query["code"].encode(), code.encode()):
+                token = self.tokens.control
+            else:
+                self.one_time_code = code  # a wrong code does not spend the right one
                 self.refused["token"] += 1
-                raise web.HTTPUnauthorized(text="this token is not the panel's: open the address the daemon "
-                                           "printed, or take a token from its panel-tokens.json\n")
-            response = web.Response(status=303, headers={"Location": "/"})
-            response.set_cookie(self.cookie, request.query["token"], httponly=True, samesite="Strict", path="/",
-                                max_age=30 * 24 * 3600)
-            return response
-        return web.FileResponse(PANEL_FILES / "index.html")
+                raise web.HTTPUnauthorized(text="this address's one-time code was used already (or is not this "
+                                           "daemon's): open the panel with a token from its panel-tokens.json\n")
+        elif token is not None and (self.tokens is None or self.tokens.access(token) is None):
+            self.refused["token"] += 1
+            raise web.HTTPUnauthorized(text="this token is not the panel's: open the address the daemon "
+                                       "printed, or take a token from its panel-tokens.json\n")
+        if token is None:
+            return web.FileResponse(PANEL_FILES / "index.html")
+        response = web.Response(status=303, headers={"Location": "/"})
+        response.set_cookie(self.cookie, token, httponly=True, samesite="Strict", path="/", max_age=30 * 24 * 3600)
+        return response
 
     async def _access_answer(self, request: Any) -> Any:
         """``{"access": "control" | "read" | null}``: what this browser's token allows (the page asks first)."""
@@ -436,14 +448,15 @@ class WebServer:
 
 def tell_panel_address(web: WebServer, stream: TextIO | None = None) -> None:
     """Say where the panel is, on stderr and not through the log (which must never hold a token): at a terminal
-    the address with the control token, to open once (as Jupyter prints its own); otherwise (a service's journal)
-    the address and the file that holds the tokens."""
+    the address with a one-time code for the control token, as Jupyter prints its own; otherwise (a service's
+    journal) the address and the file that holds the tokens."""
     stream = stream if stream is not None else sys.stderr
     if web.tokens is None:
         print(f"the panel: {web.url()} (no token asked: this machine only)", file=stream, flush=True)
-    elif stream.isatty():
-        print(f"the panel: open {web.url()}?token={web.tokens.control} once in a browser (control; the read-only "
-              f"token for a second screen is in {web.tokens.path})", file=stream, flush=True)
+    elif stream.isatty() and web.one_time_code is not None:
+        print(f"the panel: open {web.url()}?code={web.one_time_code} in a browser (once: it is then kept as a "
+              f"cookie; the tokens, control and read-only for a second screen, are in {web.tokens.path})",
+              file=stream, flush=True)
     else:
         print(f"the panel: {web.url()}, with a token from {web.tokens.path} (open {web.url()}?token=TOKEN once)",
               file=stream, flush=True)

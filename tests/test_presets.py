@@ -69,7 +69,7 @@ def test_a_preset_the_phantom_cannot_take_is_refused(target, words):
         check_presets((Preset("bad", "", target),), CHAMBERS, LABELS)
 
 
-def test_the_address_is_printed_with_the_token_only_at_a_terminal(tmp_path):
+def test_the_address_is_printed_with_a_one_time_code_only_at_a_terminal(tmp_path):
     class Terminal(io.StringIO):
         def isatty(self) -> bool:
             return True
@@ -80,8 +80,8 @@ def test_the_address_is_printed_with_the_token_only_at_a_terminal(tmp_path):
     tell_panel_address(web, journal)
     tell_panel_address(web, terminal)
     assert tokens.control not in journal.getvalue() and str(tokens.path) in journal.getvalue()
-    assert f"http://127.0.0.1:8080/?token={tokens.control}" in terminal.getvalue()
-    assert tokens.read not in terminal.getvalue()
+    assert f"http://127.0.0.1:8080/?code={web.one_time_code}" in terminal.getvalue()
+    assert tokens.control not in terminal.getvalue() and tokens.read not in terminal.getvalue()
 
 
 @pytest.mark.parametrize(("arguments", "config", "words"), [

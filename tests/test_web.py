@@ -248,3 +248,22 @@ def test_a_port_in_use_is_refused_with_what_to_do(tmp_path, tokens):
             with pytest.raises(WebError, match=f"cannot serve the panel on 127.0.0.1:{web.port}: .*another --http"):
                 await second.start()
     run(test)
+
+
+def test_the_printed_one_time_code_opens_the_panel_once(tmp_path, tokens):
+    async def test() -> None:
+        async with served(tmp_path, tokens) as (_, web), aiohttp.ClientSession(
+                cookie_jar=aiohttp.CookieJar(unsafe=True)) as session:
+            base = f"http://127.0.0.1:{web.port}"
+            code = web.one_time_code
+            assert code is not None and code not in (tokens.control, tokens.read)
+            async with session.get(f"{base}/?code=wrong", allow_redirects=False) as response:
+                assert response.status == 401
+            async with session.get(f"{base}/?code={code}", allow_redirects=False) as response:
+                assert response.status == 303 and response.headers["Location"] == "/"
+            async with session.get(f"{base}/access") as response:
+                assert (await response.json())["access"] == "control"
+            session.cookie_jar.clear()
+            async with session.get(f"{base}/?code={code}", allow_redirects=False) as response:
+                assert response.status == 401 and "used already" in await response.text()
+    run(test)
