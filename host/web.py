@@ -16,8 +16,8 @@ It is safe from other web pages and other users:
   page open in the same browser cannot drive the phantom;
 * every connection presents a token (:class:`PanelTokens`: a control and a read-only one, kept in the user's data
   directory with mode 0600): opening ``/?token=...``, or once the ``/?code=...`` printed at start, keeps it in an
-  HttpOnly cookie and takes it out of the address bar; scripts send ``Authorization: Bearer ...``. A read-only token watches (status, the surface,
-  subscriptions) and is answered ``forbidden`` for everything else;
+  HttpOnly cookie and takes it out of the address bar; scripts send ``Authorization: Bearer ...``. A read-only
+  token watches (status, the surface, subscriptions) and is answered ``forbidden`` for everything else;
 * ``--no-http-token`` is refused unless the address is loopback; tokens never reach the log (no access log: the
   first address carries the token).
 """
