@@ -167,6 +167,10 @@ def test_the_page_loads_with_its_plots_and_the_gland(panel):
     assert float(slider.get_attribute("min")) == pytest.approx(26.5) and 50 < float(slider.get_attribute("max")) < 52
     panel.wait(lambda: drawn_gland(gland_pixels(panel))[0] > 0.05, 20, "the gland drawn")
     panel.shot("loaded")
+    # phantom status says where the panel is (the tokens' file, not a token)
+    said = subprocess.run([str(PHANTOM), "status", "--socket", str(panel.socket)], capture_output=True, text=True,
+                          timeout=30)
+    assert f"panel     {panel.url}, tokens in {panel.folder / 'data' / 'panel-tokens.json'}" in said.stdout, said
     severe = [entry for entry in panel.driver.get_log("browser") if entry["level"] == "SEVERE"]
     assert not severe, severe
 
