@@ -62,6 +62,9 @@ for _number, _name in enumerate(name for name in ERROR_CODES if name not in JSON
 #: set_target waits for its solve); beyond it the connection is answered ``busy``.
 REQUESTS_IN_FLIGHT = 16
 
+#: How long closing waits for each WebSocket's goodbye, and for the requests in progress (s).
+CLOSE_WAIT_S = 2.0
+
 #: The tokens' file in the user's data directory.
 TOKENS_FILE = "panel-tokens.json"
 
@@ -243,6 +246,7 @@ class WebServer:
         #: the control token once, and is spent (a terminal's scrollback or a shell's history holds nothing usable)
         self.one_time_code: str | None = secrets.token_urlsafe(16) if tokens is not None else None
         self._runner: Any = None
+        self._sockets: set[Any] = set()
 
     async def start(self) -> None:
         """Listen; WebError if the address cannot be bound (the port taken, an address not this machine's)."""
@@ -253,7 +257,7 @@ class WebServer:
         app.router.add_get("/websocket", self._websocket)
         app.router.add_static("/static/", PANEL_FILES, follow_symlinks=False)
         # no access log: the first request's address carries the token
-        runner = web.AppRunner(app, access_log=None, handle_signals=False)
+        runner = web.AppRunner(app, access_log=None, handle_signals=False, shutdown_timeout=CLOSE_WAIT_S)
         await runner.setup()
         site = web.TCPSite(runner, self.host, self.port, reuse_address=True)
         try:
@@ -269,7 +273,11 @@ class WebServer:
                 self.port = server.sockets[0].getsockname()[1]
 
     async def close(self) -> None:
-        """Stop listening and close every WebSocket."""
+        """Close every WebSocket (telling the pages the daemon is going away) and stop listening. aiohttp alone
+        would wait up to a minute for the open WebSockets' handlers: a panel left open held the daemon's stop."""
+        for socket in list(self._sockets):
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(socket.close(code=1001, message=b"the daemon is stopping"), CLOSE_WAIT_S)
         if self._runner is not None:
             await self._runner.cleanup()
             self._runner = None
@@ -360,6 +368,7 @@ class WebServer:
                                        "(?token=...), or send Authorization: Bearer TOKEN\n")
         socket = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_REQUEST_BYTES)
         await socket.prepare(request)
+        self._sockets.add(socket)
         this_task = asyncio.current_task()
         assert this_task is not None  # aiohttp serves each request in a task
         client = self.api.connect(this_task)
@@ -388,6 +397,7 @@ class WebServer:
             with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError, Exception):
                 await asyncio.wait_for(asyncio.shield(writer), 0.5)
             writer.cancel()
+            self._sockets.discard(socket)
             with contextlib.suppress(Exception):
                 await socket.close()
         return socket

@@ -9,6 +9,7 @@ import json
 import logging
 import os
 import stat
+import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -266,4 +267,24 @@ def test_the_printed_one_time_code_opens_the_panel_once(tmp_path, tokens):
             session.cookie_jar.clear()
             async with session.get(f"{base}/?code={code}", allow_redirects=False) as response:
                 assert response.status == 401 and "used already" in await response.text()
+    run(test)
+
+
+def test_closing_ends_the_open_websockets_at_once(tmp_path, tokens):
+    # a panel left open must not hold the daemon's stop (aiohttp waits up to a minute for its handlers otherwise)
+    async def test() -> None:
+        api = ApiServer(tmp_path / "api.sock", {"status": _status})
+        await api.start()
+        web = WebServer(api, "127.0.0.1:0", tokens)
+        await web.start()
+        async with aiohttp.ClientSession() as session:
+            async with session.ws_connect(f"http://127.0.0.1:{web.port}/websocket",
+                                          headers={"Authorization": f"Bearer {tokens.control}"}) as socket:
+                assert (await call(socket, "status"))["result"]["link"] == "online"
+                started = time.monotonic()
+                await asyncio.wait_for(web.close(), 10)
+                assert time.monotonic() - started < 3.0
+                message = await socket.receive(timeout=5)
+                assert message.type in (aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED)
+        await api.close()
     run(test)
