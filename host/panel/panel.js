@@ -98,9 +98,19 @@ async function setTarget(target, name) {
 
 // --- what the daemon sends -------------------------------------------------------------------------------------------
 
+// The words and numbers are rewritten at most this often (ms): people read no faster, and each rewrite lays the page
+// out again; the plots take every status.
+const WORDS_EVERY_MS = 250;
+
 function onStatus(status) {
   state.status = status;
   state.plots && state.plots.status(status);
+  const now = performance.now();
+  const changed = (status.faults || []).length !== (state.faultCount ?? -1) || status.control !== state.control;
+  if (!changed && now - (state.wordsMs || 0) < WORDS_EVERY_MS) return; // a fault or a vent is shown at once
+  state.wordsMs = now;
+  state.faultCount = (status.faults || []).length;
+  state.control = status.control;
   const link = status.link;
   show("link", `link ${link}`);
   $("link").className = `pill ${link === "online" ? "ok" : link === "connecting" ? "warn" : "bad"}`;
