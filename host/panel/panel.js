@@ -111,6 +111,12 @@ function onStatus(status) {
   state.wordsMs = now;
   state.faultCount = (status.faults || []).length;
   state.control = status.control;
+  // vented and the chambers emptied: the gland back at rest is drawn once (a vent has no "reached")
+  if (status.control === "vented" && status.pressures_kpa && Math.max(...status.pressures_kpa) < 0.05
+      && state.glandKpa > 0.1) {
+    state.glandKpa = 0;
+    refreshGland();
+  }
   const link = status.link;
   show("link", `link ${link}`);
   $("link").className = `pill ${link === "online" ? "ok" : link === "connecting" ? "warn" : "bad"}`;
@@ -214,6 +220,7 @@ async function refreshGland() {
   if (!state.gland) return;
   try {
     const surface = await state.rpc.call("surface");
+    state.glandKpa = Math.max(...(surface.pressures_kpa || [0]));
     const largest = state.gland.show(surface);
     show("gland-max", `${state.gland.scaleMm.toFixed(1)} mm`);
     show("gland-note", `largest displacement ${largest.toFixed(1)} mm, at ${surface.pressures_kpa ? surface.pressures_kpa.map((p) => (Math.abs(p) < 0.005 ? 0 : p).toFixed(2)).join(" / ") + " kPa" : "rest"}; drag to turn it`);
@@ -329,10 +336,7 @@ async function onOpen() {
 }
 
 function wire() {
-  $("vent").addEventListener("click", async () => {
-    await act("vent", {}, "vent");
-    setTimeout(refreshGland, 4000);
-  });
+  $("vent").addEventListener("click", () => act("vent", {}, "vent"));
   $("clear-fault").addEventListener("click", async () => {
     const answer = await act("clear_fault", {}, "clear the fault");
     notice(`cleared ${answer.cleared.join(", ") || "nothing"}${answer.setpoints_restored ? "; the target is held again" : ""}`, "ok");
