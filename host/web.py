@@ -131,10 +131,10 @@ def panel_tokens(path: Path | None = None) -> PanelTokens:
 
 
 def parse_address(text: str) -> tuple[str, int]:
-    """``HOST:PORT`` (``127.0.0.1:8080``, ``[::1]:8080``, ``0.0.0.0:8080``, ``localhost:8080``; port 0: one the
-    system picks, which the status and the printed address say) as (host, port);
-    WebError for anything else."""
-    host, colon, port_text = text.rpartition(":")
+    """``HOST:PORT`` (``127.0.0.1:8080``, ``[::1]:8080``, ``0.0.0.0:8080``, ``localhost:8080``) or a port alone
+    (``8080``: loopback, this machine only) as (host, port); port 0: one the system picks, which the status and the
+    printed address say. WebError for anything else."""
+    host, colon, port_text = text.rpartition(":") if ":" in text else ("127.0.0.1", ":", text)
     host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
     if not colon or not host or not port_text.isdigit() or not 0 <= int(port_text) < 65536:
         raise WebError(f"--http {text!r}: give HOST:PORT, e.g. 127.0.0.1:8080 (this machine only) or "

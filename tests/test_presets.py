@@ -85,7 +85,7 @@ def test_the_address_is_printed_with_a_one_time_code_only_at_a_terminal(tmp_path
 
 
 @pytest.mark.parametrize(("arguments", "config", "words"), [
-    (["--http", "8080"], None, "--http '8080': give HOST:PORT"),
+    (["--http", "localhost"], None, "--http 'localhost': give HOST:PORT"),
     (["--http", "0.0.0.0:0", "--no-http-token"], None, "reachable from other machines: it needs the token"),
     ([], '[daemon]\nsim = true\nhttp = "127.0.0.1:0"\n\n[[presets]]\nname = "x"\nvolume_ml = -2\n',
      "preset 'x': volume_ml must be positive"),

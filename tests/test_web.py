@@ -94,7 +94,8 @@ def test_the_tokens_file_is_made_private_once_and_refused_when_others_may_read_i
 def test_addresses_hosts_and_origins():
     assert parse_address("127.0.0.1:8080") == ("127.0.0.1", 8080)
     assert parse_address("[::1]:8080") == ("::1", 8080)
-    for bad in ("8080", "127.0.0.1", "127.0.0.1:http", "127.0.0.1:70000", ":8080"):
+    assert parse_address("8080") == ("127.0.0.1", 8080)           # a port alone: this machine only
+    for bad in ("127.0.0.1", "127.0.0.1:http", "127.0.0.1:70000", ":8080", "http"):
         with pytest.raises(WebError, match="HOST:PORT"):
             parse_address(bad)
     names = frozenset({"labpc.example.org"})
