@@ -43,6 +43,7 @@ ERROR_CODES: dict[str, str] = {
                 "far it is; try again shortly",
     "rejected": "the board refused the command (e.g. a fault is latched and its cause persists)",
     "busy": "too many requests of this kind are in progress: try again when they are answered",
+    "forbidden": "this connection's token is read-only (host/web.py): it may watch the phantom, not drive it",
     "internal": "a bug in the daemon: please report it",
 }
 
@@ -288,9 +289,7 @@ class ApiServer:
         """Read requests from one client until it goes; answers go through its queue and writer task."""
         this_task = asyncio.current_task()
         assert this_task is not None  # a client is served in a task of its own
-        client = Client(self._next_client, asyncio.Queue(maxsize=self.queue_lines), task=this_task)
-        self._next_client += 1
-        self.clients[client.number] = client
+        client = self.connect(this_task)
         writer_task = asyncio.create_task(self._drain_client(client, writer))
         self._tasks.add(writer_task)
         self._tasks.add(this_task)
@@ -326,9 +325,7 @@ class ApiServer:
                 if reply is not None and not client.offer(reply):
                     self.dropped_lines_total += 1
         finally:
-            self.clients.pop(client.number, None)
-            with contextlib.suppress(asyncio.QueueFull):
-                client.queue.put_nowait(None)
+            self.disconnect(client)
             with contextlib.suppress(asyncio.TimeoutError, asyncio.CancelledError, Exception):
                 await asyncio.wait_for(asyncio.shield(writer_task), 0.5)
             writer_task.cancel()
@@ -408,31 +405,52 @@ class ApiServer:
         if not isinstance(params, dict):
             self.errors_total += 1
             return _error_line(request_id, "invalid_request", "\"params\" must be a JSON object")
-        result: object
-        await self._pace()
         try:
-            if method == "subscribe":
-                result = self._subscribe(client, params)
-            elif method in self.handlers:
-                result = await self.handlers[method](params)
-            elif not self.handlers:
-                raise self.starting()
-            else:
-                known = ", ".join(sorted([*self.handlers, "subscribe"]))
-                raise ApiError("unknown_method", f"unknown method {method!r}; methods: {known}")
+            result = await self.call(client, method, params)
         except ApiError as error:
-            self.errors_total += 1
             return _error_line(request_id, error.code, str(error), error.data)
-        except PhantomError as error:
-            self.errors_total += 1
-            return _error_line(request_id, "invalid_params", str(error))
-        except Exception as error:  # a handler bug must not take the daemon down; the client learns of it
-            logger.exception("API method %s failed", method)
-            self.errors_total += 1
-            return _error_line(request_id, "internal", f"{type(error).__name__}: {error}")
         if isinstance(result, RawJson):
             return f'{{"id":{json.dumps(request_id)},"result":{result}}}\n'.encode()
         return _encode({"id": request_id, "result": result})
+
+    async def call(self, client: Client, method: str, params: dict[str, Any]) -> object:
+        """Run one request of ``client`` (paced; ``subscribe`` handled here): the method's result, or ApiError
+        (a PhantomError answers ``invalid_params``, a handler's bug ``internal``, logged). The one dispatch of
+        every transport: the Unix socket's lines and the WebSocket's JSON-RPC (host/web.py)."""
+        await self._pace()
+        try:
+            if method == "subscribe":
+                return self._subscribe(client, params)
+            if method in self.handlers:
+                return await self.handlers[method](params)
+            if not self.handlers:
+                raise self.starting()
+            known = ", ".join(sorted([*self.handlers, "subscribe"]))
+            raise ApiError("unknown_method", f"unknown method {method!r}; methods: {known}")
+        except ApiError:
+            self.errors_total += 1
+            raise
+        except PhantomError as error:
+            self.errors_total += 1
+            raise ApiError("invalid_params", str(error)) from None
+        except Exception as error:  # a handler bug must not take the daemon down; the client learns of it
+            logger.exception("API method %s failed", method)
+            self.errors_total += 1
+            raise ApiError("internal", f"{type(error).__name__}: {error}") from error
+
+    def connect(self, task: asyncio.Task[Any]) -> Client:
+        """A new client served by ``task`` (cancelled to close it), counted among the clients until
+        :meth:`disconnect`: it receives what it subscribes to in its queue."""
+        client = Client(self._next_client, asyncio.Queue(maxsize=self.queue_lines), task=task)
+        self._next_client += 1
+        self.clients[client.number] = client
+        return client
+
+    def disconnect(self, client: Client) -> None:
+        """The client is gone: nothing more is queued for it, and its writer is told to end."""
+        self.clients.pop(client.number, None)
+        with contextlib.suppress(asyncio.QueueFull):
+            client.queue.put_nowait(None)
 
     async def _pace(self) -> None:
         """Wait for a turn of the event loop in which fewer than :data:`REQUESTS_PER_TURN` requests started."""

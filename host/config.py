@@ -142,6 +142,14 @@ class DaemonConfig:
                                  "tolerance", metavar="KPA", above=0, at_most=1)
     settled_for_s: float = setting(1.0, "how long the pressures must stay settled for a target to be reached (s)",
                                    metavar="S", at_least=0, at_most=60)
+    http: str | None = setting(None, "serve the browser panel and the API over a WebSocket at HOST:PORT (e.g. "
+                               "127.0.0.1:8080; a port alone is 127.0.0.1's, this machine only; off unless given): "
+                               "host/web.py", metavar="HOST:PORT")
+    http_token: bool = setting(True, "ask every panel connection for its token (panel-tokens.json in the user's data "
+                               "directory); --no-http-token is refused unless --http is a loopback address")
+    http_hosts: str | None = setting(None, "host names (comma-separated) the panel may be reached by besides IP "
+                                     "addresses and localhost, e.g. the lab PC's name: other Host headers are "
+                                     "refused (DNS rebinding)", metavar="NAMES")
     vent_on_exit: bool = setting(True, "vent the phantom when the daemon stops")
     zero_on_connect: bool = setting(True, "zero the pressure sensors (ZERO_SENSORS) after connecting when the "
                                     "phantom is vented")

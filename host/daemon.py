@@ -52,6 +52,7 @@ from phantom.host.sim_board import SimulatedBoardKeeper
 from phantom.host.stalls import LoopStalls
 from phantom.host.startup import BackgroundTable, StartupProgress, notify_systemd
 from phantom.host.status import daemon_status
+from phantom.host.web import WebServer
 from phantom.host.zeroing import ZEROING_WHY, SensorZero
 from phantom.model.measurements import data_dir
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
@@ -147,6 +148,8 @@ class Daemon:
                                      lambda: self._feed(self.core.model_changed))
         #: the scanner's axes (host/motion.py)
         self.motion = Orbit(self.board_command, self.event, simulated_truth(sim_board) if sim_board else None)
+        #: the browser panel's server (host/web.py), when the daemon serves one (--http)
+        self.web: WebServer | None = None
         #: what reconstructs a verified target's scans (None: this daemon cannot verify targets)
         self.verify_scanner: VerifyScanner | None = None
 

@@ -25,6 +25,7 @@ from phantom.host.handlers import ApiHandlers
 from phantom.host.logs import configured_level
 from phantom.host.model_worker import ModelWorker
 from phantom.host.motion import Scanner, scan_method
+from phantom.host.presets import DEFAULT_PRESETS, Preset, check_presets, preset_method
 from phantom.host.recording import Recorder
 from phantom.host.scene_runner import prepare_run
 from phantom.host.scenes import read_timeline_scene
@@ -33,6 +34,7 @@ from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
 from phantom.host.stalls import LoopStalls
 from phantom.host.startup import StartupProgress, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
+from phantom.host.web import WebServer, panel_tokens, tell_panel_address
 from phantom.model.errors import SceneError
 from phantom.protocol.link import BOOT_DELAY_S
 from phantom.protocol.messages import CONSTANTS
@@ -47,9 +49,11 @@ STORE_WAIT_S = 60.0
 BOARD_METHODS = ("set_target", "run_scene", "zero", "clear_fault")
 
 
-async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None) -> Daemon:
+async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None,
+                       presets: tuple[Preset, ...] = DEFAULT_PRESETS) -> Daemon:
     """Build every part, in an order that never harms another daemon; raises PhantomError (one line).
-    ``simulated_board`` builds the board of ``config.sim`` (the command line passes the HIL package's)."""
+    ``simulated_board`` builds the board of ``config.sim`` (the command line passes the HIL package's); ``presets``
+    are the panel's buttons (the config file's ``[[presets]]``)."""
     if config.sim and simulated_board is None:
         raise PhantomError("this program cannot simulate a board: start the daemon with `phantom daemon --sim`")
     startup = StartupProgress()
@@ -59,7 +63,12 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
     await api.start()  # first: a second daemon stops here, before it opens anything of the first's
     early: list[tuple[str, str, str]] = []  # what the parts say before the daemon exists
     closers: list[Callable[[], None]] = []
+    web = None
     try:
+        if config.http:  # the panel's port, taken or not, is known before anything slow
+            web = WebServer(api, config.http, panel_tokens() if config.http_token else None,
+                            tuple((config.http_hosts or "").split(",")))
+            await web.start()
         # the recording opens before the model is built: a path another daemon records to, or one that
         # cannot be written, is refused before anything slow
         startup.enter("opening the recording")
@@ -73,6 +82,7 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
         model = await ModelWorker.start(config.scene, configured_level(), defer_table=True, phantom=config.phantom,
                                         on_message=startup.tell)
         closers.append(model.close)
+        check_presets(presets, model.info.chamber_names, model.info.chamber_labels)  # the buttons' targets
         early.append(model.correction_event())
         sim_board = None
         if simulated_board is not None and config.sim:
@@ -85,9 +95,12 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
         for close in reversed(closers):
             with contextlib.suppress(Exception):
                 close()
+        if web is not None:
+            await web.close()
         await api.close()
         raise
     daemon = Daemon(config, api, model, recorder, session, sim_board, startup=startup)
+    daemon.web = web
     recorder.on_problem = lambda text, level: daemon.event("recording", text, level)
     if sim_board is not None:
         sim_board.on_event = daemon.event
@@ -98,6 +111,7 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
     handlers = ApiHandlers(daemon).table()
     for name in BOARD_METHODS:
         handlers[name] = _when_ready(daemon, handlers[name])
+    handlers.update(preset_method(daemon, presets))
     api.handlers.update(handlers)
     api.handlers.update(daemon.motion.api_methods())
     startup.enter("waiting for the board: the first connection")
@@ -215,6 +229,8 @@ async def _shutdown(daemon: Daemon) -> None:
     for task in [*daemon.tasks, *daemon.background]:
         with contextlib.suppress(asyncio.CancelledError, Exception):
             await task
+    if daemon.web is not None:
+        await daemon.web.close()
     await daemon.api.close()
     daemon.recorder.log_event(daemon.now_s(), "daemon stopped")
     daemon.recorder.close()
@@ -230,7 +246,8 @@ def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict[str, Any]
 
 
 async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None,
-               scanner: Scanner | None = None, verify_scanner: VerifyScanner | None = None) -> int:
+               scanner: Scanner | None = None, verify_scanner: VerifyScanner | None = None,
+               presets: tuple[Preset, ...] = DEFAULT_PRESETS) -> int:
     # SIGTERM or SIGINT while the parts are built (a first start builds the response table for minutes) cancels
     # the build: the parts built so far are closed and the model worker is ended with the processes it started
     loop = asyncio.get_running_loop()
@@ -239,10 +256,12 @@ async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | No
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, starting.cancel)
     try:
-        daemon = await start_daemon(config, simulated_board)
+        daemon = await start_daemon(config, simulated_board, presets)
     except asyncio.CancelledError:
         logger.info("stopped while starting")
         return 0
+    if daemon.web is not None:
+        tell_panel_address(daemon.web)
     if scanner is not None:
         daemon.api.handlers.update(scan_method(daemon.motion, scanner, daemon.status))
         daemon.verify_scanner = verify_scanner
@@ -250,8 +269,10 @@ async def _run(config: DaemonConfig, simulated_board: SimulatedBoardFactory | No
 
 
 def run_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFactory | None = None,
-               scanner: Scanner | None = None, verify_scanner: VerifyScanner | None = None) -> int:
+               scanner: Scanner | None = None, verify_scanner: VerifyScanner | None = None,
+               presets: tuple[Preset, ...] = DEFAULT_PRESETS) -> int:
     """Run the daemon in this process until SIGTERM/SIGINT; returns the exit status. ``simulated_board`` builds
     the board of ``config.sim``; ``scanner`` takes the ``scan`` API method's captures (host/motion.py);
-    ``verify_scanner`` reconstructs a verified target's scans (host/daemon.py)."""
-    return asyncio.run(_run(config, simulated_board, scanner, verify_scanner))
+    ``verify_scanner`` reconstructs a verified target's scans (host/daemon.py); ``presets`` are the panel's
+    buttons."""
+    return asyncio.run(_run(config, simulated_board, scanner, verify_scanner, presets))

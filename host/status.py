@@ -58,6 +58,7 @@ def daemon_status(daemon: Daemon) -> dict[str, Any]:
         "api": daemon.api.stats(), "event_loop": daemon.loop_stalls.to_json(),
         "recording": daemon.recorder.status(), "uptime_s": daemon.now_s(), "events": list(daemon.events)[-10:],
         "motion": daemon.motion.status(),
+        "web": daemon.web.status() if daemon.web is not None else None,
     }
     if daemon.sim_board is not None:
         status["simulated_board"] = daemon.sim_board.status()

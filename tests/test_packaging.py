@@ -104,7 +104,10 @@ def test_the_wheel_carries_the_firmware_sources_the_harness_and_the_scenes(insta
                 "phantom/hil/harness/Makefile", "phantom/model/scenes/prostate_calibrated.toml",
                 "phantom/model/scenes/prostate_converged.volumes.npz",
                 "phantom/model/scenes/prostate_converged.shapes.npz",
-                "phantom/host/scenes/bph_growth.toml", "phantom/protocol/spec.toml"}
+                "phantom/host/scenes/bph_growth.toml", "phantom/protocol/spec.toml",
+                # the browser panel's page and its vendored libraries (phantom daemon --http serves them)
+                "phantom/host/panel/index.html", "phantom/host/panel/panel.js",
+                "phantom/host/panel/vendor/three/three.module.min.js", "phantom/host/panel/vendor/uplot/LICENSE"}
     assert expected <= names, sorted(expected - names)
     assert not any("/build/" in name or name.endswith((".o", ".elf", ".hex")) for name in names)
 

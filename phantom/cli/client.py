@@ -194,6 +194,10 @@ def format_status(status: dict[str, Any]) -> str:
     ]
     if status.get("correction"):
         lines.append("corrected " + format_correction(status["correction"]))
+    web = status.get("web")
+    if web:  # the browser panel (phantom daemon --http)
+        token = f", tokens in {web['tokens_file']}" if web.get("token") else ", no token asked"
+        lines.append(f"panel     {web['url']}{token}")
     recording = status.get("recording")
     if recording:
         where = recording.get("path") or recording.get("viewer")

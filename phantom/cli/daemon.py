@@ -121,8 +121,12 @@ def _run_daemon(args: argparse.Namespace) -> int:
         truth = _simulated_truth(args.sim_truth, args.sim_truth_modulus_factor)
     elif args.sim_truth_modulus_factor != 1.0:
         raise PhantomError("--sim-truth-modulus-factor is the --sim-truth scene's: give --sim-truth SCENE too")
+    from phantom.host.presets import DEFAULT_PRESETS, load_presets
+
+    presets = (load_presets(args.config) if args.config else None) or DEFAULT_PRESETS
     return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
-                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=VerifyScan())
+                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=VerifyScan(),
+                      presets=presets)
 
 
 def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:

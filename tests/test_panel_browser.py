@@ -1,0 +1,310 @@
+"""The browser panel in a real browser: Debian's headless Chromium driven by Selenium against a real
+``phantom daemon --sim --http 127.0.0.1:PORT`` (the firmware in simavr). The page loads, the "symmetric BPH" preset
+reaches its volume (the page says "reached"), the 3D gland is drawn (a pixel check of a screenshot), no long task
+over 100 ms while telemetry streams for a minute, vent vents, a latched fault is shown in words and cleared, a page
+of another origin and a browser without the token are refused, and a read-only token cannot set a target.
+
+The tests share one daemon and one browser (module fixtures) and run in order. Screenshots are kept in the module's
+temporary folder (its path is printed) for people to look at.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from io import BytesIO
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from daemon_rig import wait_ready
+
+from phantom.host.client import DaemonClient
+
+pytestmark = [pytest.mark.sim, pytest.mark.skipif(shutil.which("chromedriver") is None,
+                                                  reason="needs Debian's chromium and chromium-driver")]
+
+webdriver = pytest.importorskip("selenium.webdriver")
+from selenium.webdriver.common.by import By  # noqa: E402
+from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+#: A task longer than this (ms) in the page's main thread is a dropped frame a person sees.
+LONG_TASK_MS = 100.0
+#: How long telemetry streams while the long tasks are counted (s).
+STREAM_S = 60.0
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+class Panel:
+    """The daemon, its panel's address and tokens, and the browser."""
+
+    def __init__(self, folder: Path, process: subprocess.Popen[Any], port: int, log: Path):
+        self.folder, self.process, self.port, self.log = folder, process, port, log
+        self.url = f"http://127.0.0.1:{port}/"
+        self.tokens = json.loads((folder / "data" / "panel-tokens.json").read_text())
+        self.socket = folder / "phantomd.sock"
+        self.driver: Any = None
+
+    def status(self) -> dict[str, Any]:
+        with DaemonClient(self.socket, timeout_s=10) as client:
+            answer: dict[str, Any] = client.call("status")
+            return answer
+
+    def wait(self, condition: Any, timeout_s: float, what: str) -> Any:
+        try:
+            return WebDriverWait(self.driver, timeout_s, poll_frequency=0.2).until(lambda _: condition())
+        except Exception as error:
+            self.shot("failed")
+            raise AssertionError(f"{what}: not within {timeout_s} s ({type(error).__name__}); page: "
+                                 f"{self.text('target-state')!r}, faults {self.text('fault-text')!r}; daemon log:\n"
+                                 f"{self.log.read_text()[-4000:]}") from None
+
+    def text(self, element_id: str) -> str:
+        return str(self.driver.find_element(By.ID, element_id).text)
+
+    def shot(self, name: str) -> Path:
+        path = self.folder / f"{name}.png"
+        self.driver.save_screenshot(str(path))
+        print(f"screenshot: {path}")
+        return path
+
+    def open(self, token: str) -> None:
+        self.driver.get(f"{self.url}?token={token}")
+        self.wait(lambda: self.driver.find_element(By.TAG_NAME, "body").get_attribute("data-ready") == "true", 60,
+                  "the page ready")
+
+
+def chromium(folder: Path) -> Any:
+    options = webdriver.ChromeOptions()
+    for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1400,1700",
+                     # WebGL without a GPU, as on a lab PC without one: SwiftShader, Chromium's CPU renderer
+                     "--use-angle=swiftshader", "--enable-unsafe-swiftshader", f"--user-data-dir={folder / 'profile'}"):
+        options.add_argument(argument)
+    binary = shutil.which("chromium")
+    if binary:
+        options.binary_location = binary
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL", "performance": "ALL"})
+    # the trace of the page's tasks (toplevel: each task and its duration; devtools.timeline: what it did)
+    options.add_experimental_option("perfLoggingPrefs", {"enableNetwork": False, "enablePage": False,
+                                                          "traceCategories": "toplevel,devtools.timeline"})
+    service = webdriver.ChromeService(executable_path=shutil.which("chromedriver"))
+    return webdriver.Chrome(options=options, service=service)
+
+
+@pytest.fixture(scope="module")
+def panel(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Panel]:
+    folder = tmp_path_factory.mktemp("panel")
+    port = free_port()
+    log = folder / "daemon.log"
+    environment = {**os.environ, "PHANTOM_DATA_DIR": str(folder / "data")}
+    with open(log, "w") as output:
+        process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--http", f"127.0.0.1:{port}", "--socket",
+                                    str(folder / "phantomd.sock")], stdout=output, stderr=subprocess.STDOUT,
+                                   env=environment)
+    try:
+        wait_ready(folder / "phantomd.sock", process, log, 120)
+        panel = Panel(folder, process, port, log)
+        panel.driver = chromium(folder)
+        try:
+            yield panel
+        finally:
+            panel.driver.quit()
+    finally:
+        process.send_signal(signal.SIGCONT)
+        process.terminate()
+        try:
+            process.wait(30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(10)
+    # the token is in no log: the daemon's (stderr is not a terminal: the address is printed without it)
+    text = log.read_text()
+    assert panel.tokens["control"] not in text and panel.tokens["read"] not in text
+
+
+def gland_pixels(panel: Panel) -> np.ndarray:
+    """The 3D view's pixels (RGB) from a screenshot of its element."""
+    from PIL import Image
+
+    png = panel.driver.find_element(By.ID, "gland").screenshot_as_png
+    return np.asarray(Image.open(BytesIO(png)).convert("RGB"), dtype=int)
+
+
+def drawn_gland(pixels: np.ndarray) -> tuple[float, int]:
+    """The share of the view the gland covers (not the white background), and how many distinct colours it has
+    (shading and the displacement's colour map), counted on a coarse grid of colours."""
+    covered = np.any(pixels < 235, axis=2)
+    colours = {tuple(colour) for colour in (pixels[covered] // 16).tolist()}
+    return float(covered.mean()), len(colours)
+
+
+def test_the_page_loads_with_its_plots_and_the_gland(panel):
+    panel.open(panel.tokens["control"])
+    assert panel.driver.current_url == panel.url            # the token left the address bar for a cookie
+    panel.wait(lambda: panel.text("link") == "link online", 20, "link online on the page")
+    assert panel.text("access") == "control"
+    names = [button.get_attribute("data-name") for button in panel.driver.find_elements(By.CSS_SELECTOR, ".preset")]
+    assert names == ["normal", "symmetric BPH", "left lobe enlarged", "right lobe enlarged"]
+    assert len(panel.driver.find_elements(By.CSS_SELECTOR, ".plot canvas")) == 3
+    slider = panel.driver.find_element(By.ID, "volume-slider")
+    assert float(slider.get_attribute("min")) == pytest.approx(26.5) and 50 < float(slider.get_attribute("max")) < 52
+    panel.wait(lambda: drawn_gland(gland_pixels(panel))[0] > 0.05, 20, "the gland drawn")
+    panel.shot("loaded")
+    # phantom status says where the panel is (the tokens' file, not a token)
+    said = subprocess.run([str(PHANTOM), "status", "--socket", str(panel.socket)], capture_output=True, text=True,
+                          timeout=30)
+    assert f"panel     {panel.url}, tokens in {panel.folder / 'data' / 'panel-tokens.json'}" in said.stdout, said
+    severe = [entry for entry in panel.driver.get_log("browser") if entry["level"] == "SEVERE"]
+    assert not severe, severe
+
+
+def test_the_symmetric_bph_preset_reaches_its_volume_and_redraws_the_gland(panel):
+    drawn_before = int(panel.driver.find_element(By.ID, "gland").get_attribute("data-drawn"))
+    started = time.monotonic()
+    panel.driver.find_element(By.CSS_SELECTOR, '.preset[data-name="symmetric BPH"]').click()
+    panel.wait(lambda: panel.text("target-state").startswith("reached"), 90, "symmetric BPH reached")
+    print(f"symmetric BPH reached in {time.monotonic() - started:.1f} s: {panel.text('target-state')}")
+    status = panel.status()
+    assert status["target"] == {"volume_ml": 44.0}
+    assert status["estimated_volume_ml"] == pytest.approx(44.0, rel=0.01)
+    assert "44.0 ml" in panel.text("target-text")
+    panel.wait(lambda: int(panel.driver.find_element(By.ID, "gland").get_attribute("data-drawn")) > drawn_before, 20,
+               "the gland redrawn once reached")
+    covered, colours = drawn_gland(gland_pixels(panel))
+    largest_mm = float(panel.text("gland-note").split("largest displacement ")[1].split()[0])
+    assert covered > 0.05 and colours > 20 and largest_mm > 1.0, (covered, colours, largest_mm)
+    panel.shot("symmetric-bph")
+
+
+#: The marker the test puts in Chromium's trace where the counted minute starts (console.timeStamp).
+STREAM_MARK = "phantom-telemetry-minute"
+
+
+def long_tasks_ms(performance_log: list[dict[str, Any]]) -> tuple[list[float], int]:
+    """The durations (ms) of the page's main-thread tasks longer than LONG_TASK_MS after :data:`STREAM_MARK`, in
+    Chromium's performance log (its trace: ``ThreadControllerImpl::RunTask`` events with their duration in µs, on
+    the thread that receives the WebSocket's messages), and how many tasks it ran there."""
+    events = [json.loads(entry["message"])["message"]["params"] for entry in performance_log
+              if '"Tracing.dataCollected"' in entry["message"]]
+    marks = [event["ts"] for event in events if event.get("name") == "TimeStamp"
+             and event.get("args", {}).get("data", {}).get("message") == STREAM_MARK]
+    threads = Counter((event.get("pid"), event.get("tid")) for event in events
+                      if event.get("name") == "WebSocketReceive")
+    assert marks and threads, "Chromium's performance log holds no trace of the page"
+    main_thread = threads.most_common(1)[0][0]
+    tasks = [event for event in events if event.get("name") in ("ThreadControllerImpl::RunTask", "RunTask")
+             and (event.get("pid"), event.get("tid")) == main_thread and event.get("ts", 0) >= marks[-1]]
+    return [event["dur"] / 1e3 for event in tasks if event.get("dur", 0) / 1e3 > LONG_TASK_MS], len(tasks)
+
+
+def test_no_long_task_while_telemetry_streams_for_a_minute(panel):
+    # the trace runs from the page's load (a get_log would end it): the minute starts at a mark put in it
+    panel.driver.execute_script(
+        f"console.timeStamp('{STREAM_MARK}'); window.longTasks = []; new PerformanceObserver((list) => {{ "
+        "for (const entry of list.getEntries()) window.longTasks.push(entry.duration); }).observe({type: 'longtask'});")
+    frames_before = panel.status()["link_detail"]["stats"]["frames_rx"]
+    time.sleep(STREAM_S)
+    frames = panel.status()["link_detail"]["stats"]["frames_rx"] - frames_before
+    assert frames > STREAM_S * 40, f"only {frames} frames in {STREAM_S} s: telemetry did not stream"
+    observed = panel.driver.execute_script("return window.longTasks;")
+    long_tasks, tasks = long_tasks_ms(panel.driver.get_log("performance"))
+    print(f"{frames} telemetry frames in {STREAM_S:g} s; {tasks} tasks on the page's main thread, over "
+          f"{LONG_TASK_MS:g} ms: {long_tasks}; long tasks (over 50 ms) the page saw: "
+          f"{[round(duration) for duration in observed]}; load {os.getloadavg()}")
+    assert tasks > STREAM_S * 10, f"only {tasks} tasks traced on the page's main thread"
+    assert not long_tasks, f"tasks over {LONG_TASK_MS} ms while telemetry streamed: {long_tasks}"
+    assert not [duration for duration in observed if duration > LONG_TASK_MS], observed
+    panel.shot("streaming")
+
+
+def test_vent_vents(panel):
+    panel.driver.find_element(By.ID, "vent").click()
+    panel.wait(lambda: panel.text("target-state") == "vented", 10, "the page shows vented")
+    panel.wait(lambda: max(panel.status()["pressures_kpa"]) < 0.2, 20, "the chambers vented")
+    assert panel.status()["control"] == "vented"
+
+
+def test_a_latched_fault_is_shown_in_words_and_cleared(panel):
+    # the daemon falls silent past the board's dead-host deadline (500 ms): the board latches DEAD_HOST
+    panel.process.send_signal(signal.SIGSTOP)
+    time.sleep(1.5)
+    panel.process.send_signal(signal.SIGCONT)
+    panel.wait(lambda: panel.driver.find_element(By.ID, "faults").is_displayed(), 20, "the fault shown")
+    assert "DEAD_HOST" in panel.text("fault-text") and "heard nothing from the daemon" in panel.text("fault-text")
+    panel.shot("fault")
+    panel.driver.find_element(By.ID, "clear-fault").click()
+    panel.wait(lambda: not panel.driver.find_element(By.ID, "faults").is_displayed(), 20, "the fault cleared")
+    assert panel.status()["faults"] == []
+
+
+class OtherSite(BaseHTTPRequestHandler):
+    """A page of another origin that tries the panel's WebSocket (with the browser's cookie, if it sends one)."""
+
+    target = ""
+
+    def do_GET(self) -> None:
+        page = (f"<!doctype html><title>other</title><script>window.outcome = 'pending';"
+                f"const socket = new WebSocket('ws://{self.target}/websocket');"
+                "socket.onopen = () => { window.outcome = 'open'; };"
+                "socket.onclose = () => { if (window.outcome === 'pending') window.outcome = 'refused'; };"
+                "</script>").encode()
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html")
+        self.send_header("Content-Length", str(len(page)))
+        self.end_headers()
+        self.wfile.write(page)
+
+    def log_message(self, *args: Any) -> None:
+        pass
+
+
+def test_a_page_of_another_origin_is_refused(panel):
+    OtherSite.target = f"127.0.0.1:{panel.port}"
+    server = ThreadingHTTPServer(("127.0.0.1", 0), OtherSite)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        refused_before = panel.status()["web"]["refused"]["origin"]
+        panel.driver.get(f"http://127.0.0.1:{server.server_address[1]}/")
+        panel.wait(lambda: panel.driver.execute_script("return window.outcome;") != "pending", 10, "an answer")
+        assert panel.driver.execute_script("return window.outcome;") == "refused"
+        assert panel.status()["web"]["refused"]["origin"] == refused_before + 1
+    finally:
+        server.shutdown()
+
+
+def test_a_browser_without_the_token_is_refused_and_a_read_only_one_cannot_set(panel):
+    panel.driver.delete_all_cookies()
+    panel.driver.get(panel.url)
+    panel.wait(lambda: panel.driver.find_element(By.ID, "token-dialog").is_displayed(), 10, "the token asked for")
+    assert panel.text("link") == "no token"
+    panel.shot("no-token")
+    panel.open(panel.tokens["read"])
+    assert panel.text("access") == "read-only"
+    preset = panel.driver.find_element(By.CSS_SELECTOR, '.preset[data-name="normal"]')
+    assert not preset.is_enabled() and not panel.driver.find_element(By.ID, "vent").is_enabled()
+    # and the API itself refuses, not only the buttons: the page's own WebSocket asks to set a target
+    answer = panel.driver.execute_async_script(
+        "const done = arguments[arguments.length - 1];"
+        "const socket = new WebSocket(`ws://${location.host}/websocket`);"
+        "socket.onopen = () => socket.send(JSON.stringify({jsonrpc: '2.0', id: 1, method: 'set_target', "
+        "params: {volume_ml: 30}}));"
+        "socket.onmessage = (message) => { const reply = JSON.parse(message.data); if (reply.id === 1) done(reply); };")
+    assert answer["error"]["data"]["error"] == "forbidden"
+    assert panel.status()["control"] == "vented"
