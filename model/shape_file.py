@@ -20,6 +20,7 @@ surface whose volume is no gland's in mm (:data:`GLAND_VOLUME_RANGE_ML`: a mesh 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -165,7 +166,10 @@ def _mesh_surface(path: Path) -> TriangleMesh:
     import meshio
 
     try:
-        mesh = meshio.read(str(path))
+        with warnings.catch_warnings():
+            # meshio's binary-STL size check overflows a 32-bit count on an ASCII file (harmless: it reads it)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mesh = meshio.read(str(path))
     except Exception as error:  # meshio raises several kinds for a damaged or foreign file
         raise ShapeFileError(f"{path}: not a readable mesh ({' '.join(str(error).split())}): give a closed triangle "
                              "mesh (STL, PLY, OBJ, VTK) in mm, or a NIfTI mask") from None

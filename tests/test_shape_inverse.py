@@ -4,6 +4,7 @@ phantom cannot reach gets the box's closest point with its distance said; bad ta
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import meshio
@@ -159,3 +160,55 @@ def test_bad_meshes_are_refused_with_why(shape_inverse, tmp_path):
         read_target_surface(tmp_path / "junk.stl")
     with pytest.raises(ShapeFileError, match="no such file"):
         read_target_surface(tmp_path / "missing.nii.gz")
+
+
+# --- phantom inverse --shape -----------------------------------------------------------------------------------
+
+
+def lopsided_mask(path: Path, left_stretch: float = 1.18, voxel_mm: tuple[float, float, float] = (0.7, 0.7, 1.4),
+                  ) -> Path:
+    """A NIfTI mask (RAS, anisotropic voxels) of the built-in prostate's body with its left half (the patient's
+    left, RAS -x) stretched sideways by ``left_stretch``: an enlarged left lobe, made apart from the FEM."""
+    from phantom.model.mesh.shape import ANTERIOR_POSTERIOR_RATIO, HALF_LENGTH_MM, equator_radius_mm, profile_radius_mm
+
+    extent_mm = np.array([44.0, 32.0, 48.0])
+    voxel = np.array(voxel_mm)
+    shape = np.ceil(extent_mm / voxel).astype(int)
+    origin_mm = -extent_mm / 2.0
+    ras = origin_mm + np.indices(shape).reshape(3, -1).T * voxel
+    x, y, z = -ras[:, 0], ras[:, 1], ras[:, 2]   # the phantom's frame: x to the patient's left
+    x = np.where(x > 0, x / left_stretch, x)
+    radius = np.maximum(profile_radius_mm(np.clip(z / HALF_LENGTH_MM, -1.0, 1.0), equator_radius_mm()), 1e-9)
+    inside = (np.abs(z) < HALF_LENGTH_MM) & ((x / radius) ** 2 + (y / (ANTERIOR_POSTERIOR_RATIO * radius)) ** 2 <= 1.0)
+    affine = np.diag([*voxel_mm, 1.0])
+    affine[:3, 3] = origin_mm
+    return write_mask(path, inside.reshape(shape), affine)
+
+
+@pytest.mark.slow
+def test_phantom_inverse_shape_grows_the_enlarged_lobe(default_model_cached, tmp_path, capsys):
+    from phantom.cli import main as cli
+
+    mask = lopsided_mask(tmp_path / "lopsided.nii.gz")
+    out = tmp_path / "answer"
+    assert cli.main(["inverse", "--shape", str(mask), "--refine-solves", "1", "--json", "--out", str(out)]) == 0
+    report = json.loads(capsys.readouterr().out)
+    pressures = report["pressures_kpa"]
+    assert report["chambers"] == ["base", "left lobe", "right lobe"]
+    assert pressures[1] == max(pressures) and pressures[1] > pressures[2] + 0.3, pressures
+    assert report["distance_mm"] < report["rest_distance_mm"]
+    assert report["regions"]["left"]["mean_mm"] < report["rest_regions"]["left"]["mean_mm"]
+    assert report["target_volume_ml"] > report["rest_volume_ml"]
+    assert len(report["refinement"]) == 1
+    assert json.loads((out / "shape_inverse.json").read_text())["pressures_kpa"] == pressures
+    assert (out / "residual.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert read_target_surface(out / "answer.stl").vertices_mm.shape[1] == 3
+
+
+def test_phantom_inverse_shape_refuses_what_goes_with_a_volume(tmp_path, capsys):
+    from phantom.cli import main as cli
+
+    assert cli.main(["inverse", "--shape", str(tmp_path / "none.nii.gz")]) != 0
+    assert "no such file" in capsys.readouterr().err
+    assert cli.main(["inverse", "--volume-ml", "30", "--out", str(tmp_path)]) != 0
+    assert "go with --shape" in capsys.readouterr().err
