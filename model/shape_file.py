@@ -68,6 +68,35 @@ def read_target_surface(path: str | Path, labels: Sequence[int] | None = None) -
     return checked_gland(surface, str(path))
 
 
+#: The most vertices of a mesh given in a request (the daemon's ``set_target`` with ``shape``): the API's request
+#: size bounds it anyway; a larger target is a file on the daemon's machine.
+MAX_REQUEST_VERTICES = 5000
+
+
+def surface_from_json(data: object, where: str = "shape") -> TriangleMesh:
+    """A target mesh given as ``{"vertices_mm": [[x, y, z], ...], "triangles": [[i, j, k], ...]}`` (mm, the
+    phantom's frame), checked as a gland (:func:`checked_gland`); at most :data:`MAX_REQUEST_VERTICES` vertices.
+    Raises ShapeFileError naming ``where``."""
+    if not isinstance(data, dict) or set(data) != {"vertices_mm", "triangles"}:
+        raise ShapeFileError(f"{where}: a mesh is an object with vertices_mm ([[x, y, z], ...] in mm) and triangles "
+                             "([[i, j, k], ...]), or the path of a file on the daemon's machine")
+    vertices, triangles = data["vertices_mm"], data["triangles"]
+    if not isinstance(vertices, list) or not isinstance(triangles, list):
+        raise ShapeFileError(f"{where}: vertices_mm and triangles are lists")
+    if len(vertices) > MAX_REQUEST_VERTICES or len(triangles) > 2 * MAX_REQUEST_VERTICES:
+        raise ShapeFileError(f"{where}: {len(vertices)} vertices, more than the {MAX_REQUEST_VERTICES} a request may "
+                             "carry: give the path of a file on the daemon's machine")
+    try:
+        vertices_mm = np.array(vertices, dtype=float).reshape(-1, 3)
+        indices = np.array(triangles, dtype=np.int64).reshape(-1, 3)
+    except (TypeError, ValueError):
+        raise ShapeFileError(f"{where}: vertices_mm are three numbers each, triangles three vertex indices each") \
+            from None
+    if len(vertices_mm) != len(vertices) or len(indices) != len(triangles):
+        raise ShapeFileError(f"{where}: vertices_mm are three numbers each, triangles three vertex indices each")
+    return checked_gland(TriangleMesh(vertices_mm, indices), where)
+
+
 def checked_gland(surface: TriangleMesh, where: str) -> TriangleMesh:
     """``surface`` checked as a target gland: closed, finite, of one body, outward, and of a gland's volume in mm
     (turned outward when it faces in). Raises ShapeFileError naming ``where``."""

@@ -220,17 +220,21 @@ def _barycentric(points: FloatArray, corners: FloatArray) -> FloatArray:
 
 
 def surface_shapes(model: PhantomModel, pressure_max_pa: float | None = None,
-                   progress: Callable[[int, int], None] | None = None) -> SurfaceShapes:
+                   progress: Callable[[int, int], None] | None = None, build: bool = True) -> SurfaceShapes:
     """The outer surface's shapes over the box for the shape inverse: those the scene ships (``[model]
     table_shapes``), else those of the model's response table in the disk cache, else built (64 full solves,
-    ``progress(done, total)`` told; minutes on a fine mesh)."""
+    ``progress(done, total)`` told; minutes on a fine mesh) or, without ``build``, ShapeInverseError."""
     pressure_max = float(model.model_settings.pressure_max_pa if pressure_max_pa is None else pressure_max_pa)
     shipped = shipped_table_shapes(model, pressure_max)
     if shipped is not None:
         return shipped
     stored = stored_response_table(model, pressure_max, model.model_settings.table_points)
-    return build_table_shapes(model, pressure_max, progress=progress,
-                              table=stored if stored is not None and stored.position_values is not None else None)
+    full = stored if stored is not None and stored.position_values is not None else None
+    if full is None and not build:
+        raise ShapeInverseError("the scene ships no table of its outer surface's shapes ([model] table_shapes) and "
+                                "none is cached: write one first (phantom model table SCENE --shapes-out FILE), "
+                                "or use phantom inverse --shape, which builds it")
+    return build_table_shapes(model, pressure_max, progress=progress, table=full)
 
 
 class ShapeInverse:

@@ -52,7 +52,7 @@ KEPT_TOGETHER = frozenset(f"tests/{name}.py" for name in (
     "test_model_prostate", "test_motion_sim", "test_packaging", "test_python_api", "test_readme_commands",
     "test_recording", "test_report", "test_response", "test_scan", "test_scan_calibrate", "test_scan_capture",
     "test_scan_reconstruct", "test_scan_rig_sim", "test_scene_run_timeline", "test_shape_analysis",
-    "test_shape_data", "test_sim_truth_verify"))
+    "test_shape_data", "test_shape_target_sim", "test_sim_truth_verify"))
 
 
 #: The markers that -m expressions select on (pyproject.toml registers them).
