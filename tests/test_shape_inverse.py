@@ -212,3 +212,26 @@ def test_phantom_inverse_shape_refuses_what_goes_with_a_volume(tmp_path, capsys)
     assert "no such file" in capsys.readouterr().err
     assert cli.main(["inverse", "--volume-ml", "30", "--out", str(tmp_path)]) != 0
     assert "go with --shape" in capsys.readouterr().err
+
+
+# --- phantom shape reach ---------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_phantom_shape_reach_over_a_synthetic_population(default_model_cached, tmp_path, capsys):
+    from phantom.cli import main as cli
+    from phantom.shape.synthetic import synthesize
+
+    synthesize(tmp_path / "population", cases=4, seed=3, images=False)
+    out = tmp_path / "reach"
+    assert cli.main(["shape", "reach", str(tmp_path / "population"), "--out", str(out), "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["cases"] == 4 and 0 <= figures["covered"] <= 4
+    rows = (out / "reach.csv").read_text().splitlines()
+    assert len(rows) == 5 and rows[0].startswith("case,volume_ml,pressure0_kpa")
+    cases = json.loads((out / "reach.json").read_text())["cases"]
+    # the best pressures never leave a case farther than the rest shape does
+    assert all(case["distance_mm"] <= case["rest_distance_mm"] + 1e-6 for case in cases)
+    assert any(case["distance_mm"] < case["rest_distance_mm"] - 0.1 for case in cases)
+    assert (out / "reach_histogram.png").read_bytes()[:4] == b"\x89PNG"
+    assert "latent" not in figures["files"]  # no run: no latent space to draw
