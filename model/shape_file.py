@@ -33,9 +33,10 @@ from phantom.model.mesh.tetmesh import open_edge_count, surface_components
 
 #: What a gland's volume (ml) may be: a surface outside is in other units than mm (metres, centimetres).
 GLAND_VOLUME_RANGE_ML = (2.0, 400.0)
-#: A voxel side (mm) outside this range is a header's wrong units or spacing.
+#: The voxel sizes (mm) a mask's affine may give: MRI and CT voxels are 0.1 to 10 mm; a micrometre voxel (a header
+#: in metres, or a missing scale) would put the prostate in a speck.
 VOXEL_RANGE_MM = (0.05, 20.0)
-#: The most voxels a mask may hold (a 512^3 grid).
+#: The most voxels a mask may have (a 512 x 512 x 512 volume), checked from its header before it is read.
 MAX_MASK_VOXELS = 512**3
 #: The most triangles a target mesh may hold (a finely sampled scan of a gland has some 10^5).
 MAX_TRIANGLES = 2_000_000
@@ -137,12 +138,13 @@ def checked_gland(surface: TriangleMesh, where: str) -> TriangleMesh:
     return mesh
 
 
-def _mask_surface(path: Path, labels: Sequence[int] | None) -> TriangleMesh:
-    """A NIfTI mask's gland surfaced (see the module), in the phantom's frame."""
+def read_nifti(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A NIfTI volume's voxel values (3D) and its voxel-to-RAS affine (4 x 4, mm), checked: a readable 3D volume
+    of at most :data:`MAX_MASK_VOXELS`, an affine that is finite and invertible with voxel sides within
+    :data:`VOXEL_RANGE_MM` (a NaN affine or micrometre voxels encoded as the empty grid, exit 0), finite numbers.
+    ShapeFileError naming the file otherwise. The shape analysis reads its masks through it too."""
     with require_extra("design"):
         import nibabel
-        from scipy import ndimage
-        from skimage import measure
 
     try:
         image: Any = nibabel.load(str(path))
@@ -152,26 +154,47 @@ def _mask_surface(path: Path, labels: Sequence[int] | None) -> TriangleMesh:
     if len(shape) == 4 and shape[3] == 1:
         shape = shape[:3]
     if len(shape) != 3:
-        raise ShapeFileError(f"{path}: a mask is a 3D volume, this one's shape is {shape}")
+        raise ShapeFileError(f"{path}: expected a 3D volume, got shape {shape}")
     if math.prod(shape) > MAX_MASK_VOXELS:
-        raise ShapeFileError(f"{path}: {' x '.join(map(str, shape))} voxels, more than a 512^3 mask: crop it to the "
-                             "gland's region first")
-    affine = np.asarray(image.affine, dtype=float)
-    if affine.shape != (4, 4) or not np.all(np.isfinite(affine)):
-        raise ShapeFileError(f"{path}: the affine (voxel to RAS mm) is not finite: fix the header's qform/sform")
-    sides_mm = np.linalg.norm(affine[:3, :3], axis=0)
-    if not np.all((sides_mm >= VOXEL_RANGE_MM[0]) & (sides_mm <= VOXEL_RANGE_MM[1])):
-        raise ShapeFileError(f"{path}: the voxel sides are {', '.join(f'{side:.3g}' for side in sides_mm)} mm, outside "
-                             f"{VOXEL_RANGE_MM[0]:g}-{VOXEL_RANGE_MM[1]:g} mm: the header's units or spacing are "
-                             "wrong (fix its pixdim, qform or sform)")
-    if abs(np.linalg.det(affine[:3, :3])) < 1e-6 * float(np.prod(sides_mm)):
-        raise ShapeFileError(f"{path}: the affine (voxel to RAS mm) is singular: fix the header's qform/sform")
+        raise ShapeFileError(f"{path}: the header declares {' x '.join(map(str, shape))} voxels, more than the "
+                             f"{MAX_MASK_VOXELS} of a 512^3 mask: crop or resample it to the prostate's region first")
+    affine = checked_affine(image.affine, path)
     try:
         values = np.asanyarray(image.dataobj).reshape(shape)
     except Exception as error:  # a file shorter than its header says, or damaged compression
         raise ShapeFileError(f"{path}: not a readable NIfTI file ({' '.join(str(error).split())})") from None
-    if values.dtype.kind not in "iufb" or (values.dtype.kind == "f" and not np.all(np.isfinite(values))):
-        raise ShapeFileError(f"{path}: the voxels are not finite numbers: a mask holds labels or 0/1")
+    if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
+        raise ShapeFileError(f"{path}: the mask holds NaN or infinite values: a mask is labels or 0/1")
+    if values.dtype.kind not in "iufb":
+        raise ShapeFileError(f"{path}: the mask's voxels are {values.dtype}, not numbers: a mask is labels or 0/1")
+    return values, affine
+
+
+def checked_affine(affine: Any, path: str | Path) -> np.ndarray:
+    """A NIfTI file's voxel-to-RAS affine (mm), checked (see :func:`read_nifti`); ShapeFileError otherwise."""
+    matrix = np.asarray(affine, dtype=float)
+    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
+        raise ShapeFileError(f"{path}: the affine (voxel to RAS mm) is not finite: fix the header's qform/sform")
+    sides_mm = np.linalg.norm(matrix[:3, :3], axis=0)
+    low, high = VOXEL_RANGE_MM
+    if not np.all((sides_mm >= low) & (sides_mm <= high)):
+        raise ShapeFileError(f"{path}: the voxel sides are {', '.join(f'{side:.3g}' for side in sides_mm)} mm, "
+                             f"outside [{low:g}, {high:g}] mm: the header's units or spacing are wrong (fix its "
+                             "pixdim, qform or sform)")
+    if abs(np.linalg.det(matrix[:3, :3])) < 1e-6 * float(np.prod(sides_mm)):
+        raise ShapeFileError(f"{path}: the affine (voxel to RAS mm) is singular (its axes are not independent): fix "
+                             "the header's qform/sform")
+    return matrix
+
+
+def _mask_surface(path: Path, labels: Sequence[int] | None) -> TriangleMesh:
+    """A NIfTI mask's gland surfaced (see the module), in the phantom's frame."""
+    with require_extra("design"):
+        from scipy import ndimage
+        from skimage import measure
+
+    values, affine = read_nifti(path)
+    sides_mm = np.linalg.norm(affine[:3, :3], axis=0)
     present = [int(value) for value in np.unique(values) if value != 0]
     if not present:
         raise ShapeFileError(f"{path}: the mask is empty (no voxel above 0): give the gland's segmentation")
