@@ -216,7 +216,7 @@ def _mask_surface(path: Path, labels: Sequence[int] | None) -> TriangleMesh:
     vertices, triangles, _, _ = measure.marching_cubes(blurred, level=0.5, step_size=step)
     ras_mm = (vertices - 3.0) @ affine[:3, :3].T + affine[:3, 3]
     surface = TriangleMesh(np.asarray(ras_mm * PHANTOM_FROM_RAS, float), np.asarray(triangles, np.int64))
-    return _largest_body(surface, str(path))
+    return largest_body(surface, str(path))
 
 
 def _mesh_surface(path: Path) -> TriangleMesh:
@@ -243,8 +243,9 @@ def _mesh_surface(path: Path) -> TriangleMesh:
     return TriangleMesh(points[first], triangles.astype(np.int64))
 
 
-def _largest_body(surface: TriangleMesh, where: str) -> TriangleMesh:
-    """The largest closed body of a mask's surface (a stray island of a segmentation dropped), vertices compacted."""
+def largest_body(surface: TriangleMesh, where: str) -> TriangleMesh:
+    """The largest closed body of a surface (a stray island of a segmentation or of a decoded shape dropped),
+    vertices compacted."""
     components = surface_components(surface.triangles)
     keep = surface.triangles
     if components.max() > 0:

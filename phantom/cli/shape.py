@@ -140,7 +140,7 @@ def run_reach(args: argparse.Namespace) -> int:
 
     from phantom.model import PhantomModel, load_scene
     from phantom.model.mesh.surface import TriangleMesh
-    from phantom.model.shape_file import checked_gland
+    from phantom.model.shape_file import checked_gland, largest_body
     from phantom.model.shape_inverse import ShapeInverse, surface_shapes
     from phantom.shape.dataset import find_cases
     from phantom.shape.errors import ShapeError
@@ -157,8 +157,9 @@ def run_reach(args: argparse.Namespace) -> int:
     if is_run:
         shape_model = _run_model(args.source)
         centres, _, decoded = shape_model.clusters(args.k)
-        cases = [(f"cluster {index}", checked_gland(TriangleMesh(shape.vertices_mm, shape.triangles),
-                                                    f"cluster {index}'s decoded centre"))
+        # a decoded centre may carry islands of voxels above one half: its largest body is the gland
+        cases = [(f"cluster {index}", checked_gland(largest_body(TriangleMesh(shape.vertices_mm, shape.triangles),
+                                                                 f"cluster {index}"), f"cluster {index}'s centre"))
                  for index, shape in enumerate(decoded)]
         latents: list[np.ndarray | None] = list(centres)
         background = shape_model.case_latents()[1]
