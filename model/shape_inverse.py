@@ -313,7 +313,7 @@ class ShapeInverse:
         """The distances both ways, and what their linearisation needs."""
         # phantom -> target: the phantom's nodes taken into the target's own frame, where its index was built
         inverse = (phantom_mm - pose.translation_mm) @ pose.rotation / pose.scale + target.centroid_mm
-        distance, closest, triangle = target.index.closest(inverse, by_neighbours=True)
+        distance, closest, triangle = target.index.closest(inverse)
         distance = distance * pose.scale
         closest_placed = pose.moved(closest, target.centroid_mm)
         away = phantom_mm - closest_placed

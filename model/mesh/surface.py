@@ -271,14 +271,12 @@ class SurfaceIndex:
             self._neighbours = (reach, start, np.concatenate(lists).astype(np.int64))
         return self._neighbours
 
-    def closest(self, points_mm: FloatArray, first_k: int = 16,
-                by_neighbours: bool | None = None) -> tuple[FloatArray, FloatArray, IntArray]:
+    def closest(self, points_mm: FloatArray, first_k: int = 16) -> tuple[FloatArray, FloatArray, IntArray]:
         """Distance (n,) mm, closest point (n, 3) mm and triangle (n,) of each query point (n, 3).
 
         Many points on a small surface (a scan against the model) first try the nearest centroid's neighbour
         list (one nearest-neighbour query each); the rest, and few points on a large surface, query the k
-        nearest centroids, more until the answer is exact. ``by_neighbours`` True tries the neighbour lists first
-        whatever the numbers: a surface queried again and again near it (the shape inverse's target).
+        nearest centroids, more until the answer is exact.
         """
         # numba (0.2 s to import, and the kernels' first load) only when closest points are first asked for
         from phantom.model.mesh import surface_kernels as kernels
@@ -289,7 +287,7 @@ class SurfaceIndex:
         closest = np.empty((n, 3))
         triangle = np.empty(n, np.int64)
         pending = np.arange(n)
-        if by_neighbours or (by_neighbours is None and n > 10 * len(self.triangles)):
+        if n > 10 * len(self.triangles):
             reach, start, neighbours = self._neighbour_lists()
             nearest_distance, nearest = self.tree.query(points_mm)
             done: BoolArray = np.zeros(n, np.bool_)
