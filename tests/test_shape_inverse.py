@@ -96,6 +96,19 @@ def test_a_target_smaller_than_the_rest_shape_gets_no_pressure(shape_inverse):
     assert result.distance_mm == pytest.approx(result.rest_distance_mm, rel=0.05)
 
 
+@pytest.mark.slow
+def test_a_uniform_scale_is_fitted_only_when_asked_and_reported_apart(shape_inverse):
+    # the rest shape 8 % larger (1.26 times the volume): rigidly, the box's closest point inflates the chambers;
+    # with a scale, the target is brought to the phantom's size at rest, and the scale says by how much
+    target = scaled_rest(shape_inverse, 1.08)
+    scaled = shape_inverse.solve(target, refine_solves=0, scale=True)
+    assert scaled.pose.scale == pytest.approx(1 / 1.08, rel=0.01)
+    assert np.all(scaled.pressures_pa < 100.0) and scaled.distance_mm < 0.05
+    assert scaled.to_json(["a", "b", "c"])["registration"]["kind"] == "rigid+scale"
+    rigid = shape_inverse.solve(target, refine_solves=0)
+    assert rigid.pose.scale == 1.0 and np.max(rigid.pressures_pa) > 500.0
+
+
 def test_the_table_answer_is_fast(shape_inverse):
     target = TriangleMesh(shape_inverse.table_surface(np.array([2000.0, 500.0, 1000.0]))[0], shape_inverse.triangles)
     result = shape_inverse.solve(target, refine_solves=0)
