@@ -90,6 +90,7 @@ def test_a_target_beyond_the_box_gets_its_closest_point_and_the_distance_said(sh
     assert all(error.signed_mm < 0 for error in result.regions.values())
 
 
+@pytest.mark.slow
 def test_a_target_smaller_than_the_rest_shape_gets_no_pressure(shape_inverse):
     result = shape_inverse.solve(scaled_rest(shape_inverse, 0.85), refine_solves=0)
     assert np.all(result.pressures_pa < 50.0)
@@ -109,6 +110,7 @@ def test_a_uniform_scale_is_fitted_only_when_asked_and_reported_apart(shape_inve
     assert rigid.pose.scale == 1.0 and np.max(rigid.pressures_pa) > 500.0
 
 
+@pytest.mark.slow
 def test_the_table_answer_is_fast(shape_inverse):
     target = TriangleMesh(shape_inverse.table_surface(np.array([2000.0, 500.0, 1000.0]))[0], shape_inverse.triangles)
     result = shape_inverse.solve(target, refine_solves=0)
