@@ -15,6 +15,7 @@ not the model's: like the built-in model, the designed one has closed chambers.
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +24,7 @@ import numpy as np
 from phantom import PhantomError, require_extra
 from phantom.design.chambers import BASE, Chamber, chamber_name
 from phantom.design.errors import DesignError
+from phantom.design.material import InheritedMaterial
 from phantom.design.surface import Surface
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.geometry import MESH_SIZE_RANGE_MM, Vector3
@@ -168,24 +170,22 @@ def _solid_from_shells(gmsh: Any, shells: list[Surface], chambers: list[Chamber]
     return volume
 
 
-def write_scene(mesh_path: Path, scene_path: Path, element_order: int, chambers: list[Chamber]) -> None:
-    """A scene naming the designed mesh (beside it) and its ``chambers``, with the built-in prostate's material and
-    model settings (on 10-node elements its modulus in the Neo-Hookean law), so that ``phantom forward``,
-    ``inverse``, ``calibrate`` and the daemon take it as they take the built-in one."""
+def write_scene(mesh_path: Path, scene_path: Path, material: InheritedMaterial, chambers: list[Chamber]) -> None:
+    """A scene naming the designed mesh (beside it) and its ``chambers``, with the inherited calibrated
+    ``material`` (:mod:`phantom.design.material`) and the built-in prostate's model settings, so that ``phantom
+    forward``, ``inverse``, ``calibrate`` and the daemon take it as they take the built-in one; its header says
+    which calibration it inherits and that the cast must be measured and calibrated."""
     from phantom import written_atomically
     from phantom.model.calibration.calibrate import dump_toml
-    from phantom.model.scene import QUADRATIC_POISSON_RATIO
 
     document = read_scene_toml(builtin_scene_path("builtin:prostate"))
     document["phantom"] = {"mesh": mesh_path.name, "units": "mm",
                            "chambers": [chamber_name(index) for index in range(len(chambers))],
                            "chamber_labels": [chamber.label for chamber in chambers], "fixed": "fixed"}
-    if element_order == 2:
-        # 10-node elements take a hyperelastic law, nearly incompressible like silicone (the co-rotational one is
-        # for 4-node elements)
-        document["material"].update(model="neo_hookean", poisson_ratio=QUADRATIC_POISSON_RATIO)
+    document["material"] = dict(material.table)
+    if material.element_order == 2:
         document.get("model", {}).pop("accuracy_pct", None)
-    header = ("A phantom designed by phantom design: the gland's mesh beside this file, the built-in prostate's\n"
-              "material (calibrate it against the cast phantom's measurements with phantom calibrate).")
+    header = textwrap.fill(f"A phantom designed by phantom design: the gland's mesh beside this file; "
+                           f"{material.caveat}.", 110)
     with written_atomically(scene_path, DesignError) as temporary:
         temporary.write_text(dump_toml(document, header))

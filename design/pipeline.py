@@ -20,6 +20,7 @@ from phantom.design.cast import Cast, make_cast, undercut_warnings
 from phantom.design.chambers import place_chambers, surface_samples_mm
 from phantom.design.errors import DesignError
 from phantom.design.latent import LatentDistance, latent_distance
+from phantom.design.material import DEFAULT_MATERIAL_FROM, InheritedMaterial, inherited_material
 from phantom.design.meshing import mesh_design, write_scene
 from phantom.design.sizing import (
     PAPER_VOLUME_ML,
@@ -46,7 +47,8 @@ class DesignOptions:
     #: None: sized to the growth target (see :mod:`phantom.design.sizing`); a number: the template's times it
     chamber_scale: float | None = None
     size_mm: float = 2.5
-    element_order: int = 1
+    #: None: the inherited material's (``material_from``'s: 10-node for builtin:converged)
+    element_order: int | None = None
     fixation_radius_mm: float = 6.0
     stem_diameter_mm: float = 3.0
     labels: tuple[int, ...] | None = None
@@ -59,6 +61,8 @@ class DesignOptions:
     chambers: tuple[int, ...] = (0, 1, 2)
     #: a trained shape run (``phantom shape train``): the source's latent distance to its population's average
     shape_run: str | None = None
+    #: the scene whose calibrated material law and element order the design inherits (phantom.design.material)
+    material_from: str = DEFAULT_MATERIAL_FROM
 
 
 @dataclass
@@ -91,6 +95,8 @@ class Design:
     #: what a user must know: printed on stderr as well as in the report
     warnings: list[str] = field(default_factory=list)
     stage_times_s: dict[str, float] = field(default_factory=dict)
+    #: the calibrated law and element order the design inherits (phantom.design.material)
+    material: InheritedMaterial | None = None
 
     @property
     def thinnest_wall(self) -> tuple[str, float]:
@@ -119,6 +125,7 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
         progress(f"design: {name} done in {times[name]:.1f} s")
         started = now
 
+    material = inherited_material(options.material_from, options.element_order)
     progress(f"design: reading {source}")
     gland = read_gland(source, options.volume_ml, options.labels, options.smoothing_iterations)
     target = growth_target(options.volume_ml, options.growth_target_ml, options.growth_target_kpa)
@@ -134,16 +141,16 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
         progress(f"design: sizing the chambers to grow the gland to {target.volume_ml:.1f} ml at "
                  f"{target.pressure_kpa:g} kPa")
         chambers, sizing = size_chambers(gland.surface, samples, options.chambers, options.min_wall_mm, target,
-                                         options.size_mm, options.fixation_radius_mm, progress)
+                                         options.size_mm, options.fixation_radius_mm, progress, material)
     else:
         chambers = place_chambers(gland.surface, options.min_wall_mm, options.chamber_scale, samples,
                                   options.chambers)
     stage("chambers")
     out.mkdir(parents=True, exist_ok=True)
-    mesh = mesh_design(gland.surface, chambers.chambers, options.size_mm, options.element_order,
+    mesh = mesh_design(gland.surface, chambers.chambers, options.size_mm, material.element_order,
                        options.fixation_radius_mm, samples)
     write_mesh(mesh, out / "gland.msh")
-    write_scene(out / "gland.msh", out / "scene.toml", options.element_order, chambers.chambers)
+    write_scene(out / "gland.msh", out / "scene.toml", material, chambers.chambers)
     _write_stl(gland.surface, out / "gland.stl")
     stage("mesh")
     progress("design: the cast (mould halves, cores)")
@@ -169,7 +176,7 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
                     outer_surface_distance_mm(mesh, gland.reference), cast, list(options.growth_pressures_kpa),
                     volumes_ml[:len(options.growth_pressures_kpa)], target, target_reached_ml, sizing, latent,
                     gland.notes,
-                    warnings, times)
+                    warnings, times, material)
     stage("checks")
     from phantom.design.report import write_report
 
@@ -192,15 +199,19 @@ def _growth(scene_path: Path, pressures_kpa: Sequence[float],
             progress: Callable[[str], None]) -> tuple[float, list[float]]:
     """The designed model's rest gland volume and its volume at each pressure (all chambers alike), ml."""
     from phantom.model.fem.model import PhantomModel
-    from phantom.model.scene import load_scene
+    from phantom.model.scene import HYPERELASTIC_MODELS, load_scene
 
     model = PhantomModel.from_scene(load_scene(scene_path))
-    volumes: list[float] = []
-    for pressure in pressures_kpa:
-        progress(f"design: growth at {pressure:g} kPa ({len(volumes) + 1}/{len(pressures_kpa)})")
-        state = model.equilibrium([pressure * 1e3] * model.n_chambers)
-        volumes.append(float(state.gland_volume_m3) * 1e6)
-    return float(model.rest_gland_volume_m3) * 1e6, volumes
+    volumes: dict[float, float] = {}
+    previous = None
+    # upward, each solve started from the one below (a hyperelastic solve from rest to 3 kPa follows the whole path)
+    for pressure in sorted(set(pressures_kpa)):
+        progress(f"design: growth at {pressure:g} kPa ({len(volumes) + 1}/{len(set(pressures_kpa))})")
+        warm = previous is not None and model.formulation in HYPERELASTIC_MODELS  # small strain: from rest
+        previous = model.equilibrium([pressure * 1e3] * model.n_chambers,
+                                     initial_positions_m=previous.positions_m if warm and previous else None)
+        volumes[pressure] = float(previous.gland_volume_m3) * 1e6
+    return float(model.rest_gland_volume_m3) * 1e6, [volumes[pressure] for pressure in pressures_kpa]
 
 
 def growth_warnings(scene_path: Path, gland_volume_ml: float, target: GrowthTarget, reached_ml: float | None,
@@ -213,16 +224,18 @@ def growth_warnings(scene_path: Path, gland_volume_ml: float, target: GrowthTarg
     if reached_ml is None or target_reached(gland_volume_ml, target, reached_ml):
         return []
     material = load_scene(scene_path).material
+    short_ml = target.volume_ml - reached_ml
     short = (f"the growth target ({target.volume_ml:.1f} ml at {target.pressure_kpa:g} kPa) is not reached: the "
-             f"designed model grows the gland to {reached_ml:.2f} ml at {target.pressure_kpa:g} kPa with the scene's "
-             f"material ({material.model}, E {material.youngs_modulus_pa / 1e3:g} kPa; calibrate it to the cast's "
-             f"measurements)")
+             f"designed model grows the gland to {reached_ml:.2f} ml at {target.pressure_kpa:g} kPa, {short_ml:.2f} ml "
+             f"({100 * short_ml / (target.volume_ml - gland_volume_ml):.0f} % of the growth wanted) short, with the "
+             f"scene's material ({material.model}, E {material.youngs_modulus_pa / 1e3:g} kPa; calibrate it to the "
+             f"cast's measurements)")
     if sizing is None:
         return [f"{short}; the chambers are fixed by --chamber-scale (leave it out to size them to the target)"]
     if not sizing.reached:
         return [f"{short}: the chambers are the largest the {min_wall_mm:g} mm walls allow; thinner walls "
                 f"(--min-wall-mm), a softer silicone or a lower target reach it"]
-    return [f"{short}: the coarse linear search put the target at {sizing.scale:.3f} of the template "
+    return [f"{short}: the coarse search put the target at {sizing.scale:.3f} of the template "
             f"({sizing.coarse_volume_ml:.2f} ml there); the designed mesh grows less"]
 
 
@@ -283,12 +296,15 @@ def design_summary(result: Design) -> dict[str, Any]:
                               "scale_of_template": result.sizing.scale, "coarse_reached": result.sizing.reached,
                               "at_walls_limit": result.sizing.at_walls_limit,
                               "coarse_size_mm": result.sizing.coarse_size_mm,
-                              "steps": [{"scale_of_template": scale, "coarse_linear_volume_ml": volume}
+                              "steps": [{"scale_of_template": scale, "coarse_volume_ml": volume}
                                         for scale, volume in result.sizing.steps]}},
         "latent": None if result.latent is None else {
             "shape_run": result.latent.run, "distance_to_average": result.latent.distance,
             "population_spread": result.latent.spread, "in_spreads": result.latent.in_spreads,
             "percentile": result.latent.percentile, "cases": result.latent.cases},
+        "material": None if result.material is None else {
+            "from": result.material.source, "table": result.material.table,
+            "element_order": result.material.element_order, "caveat": result.material.caveat},
         "notes": result.notes,
         "warnings": result.warnings,
         "stage_times_s": result.stage_times_s,

@@ -35,6 +35,7 @@ def write_report(result: Design, gland: Gland, chambers: ChamberDesign) -> None:
         f"- mesh: {result.mesh_nodes} nodes, {result.mesh_tets} tetrahedra (gland.msh, scene.toml)",
         f"- thinnest wall: {thinnest:.2f} mm ({name})",
         *latent_lines(result),
+        *([] if result.material is None else [f"- material: {result.material.caveat}"]),
         "",
         "| chamber | volume ml | scale of the template |",
         "|---|---|---|",

@@ -1,15 +1,18 @@
 """The chambers sized to a growth target: the paper's phantom grows from 26.3 to 45 ml within 3 kPa.
 
 The chambers' size is one number, the scale of the template's semi-axes (:func:`place_chambers`'s ``chamber_scale``;
-each chamber then shrinks where a wall would be under the minimum, so above some scale a chamber stays as large as
-its walls allow). The search finds that scale from the model's growth at the target pressure, on cheap solves: a
-coarse 4-node mesh of the same design (one element through the thinnest wall) and one small-strain (linear) solve
-each. It starts from the largest scale: when even the largest chambers the walls allow fall short, those are the
-design and the shortfall is said. Else it steps by the power law of growth in scale through its last two solves (a
-secant in log-log: growth goes about as the cube of the scale, faster in thin walls), kept within the bracket the
-solves so far give (bisecting when a step would leave it), until the coarse growth is within GROWTH_TOLERANCE of the
-target's: three or four solves. The designed mesh confirms the answer (the pipeline solves it at the target pressure
-with the scene's own material law), and the report gives both figures.
+each chamber then shrinks where a wall would be under the minimum, so above some scale a chamber stays as large as its
+walls allow). The search finds that scale from the model's growth at the target pressure, on cheap solves: a coarse
+mesh of the same design (one element through the thinnest wall, the inherited material's element order:
+:mod:`phantom.design.material`) and one solve each with the inherited calibrated law at the target pressure (a small-
+strain solve would miss a soft silicone's large-strain growth several-fold). It starts from the largest scale: when
+even the largest chambers the walls allow fall short, those are the design and the shortfall is said; a scale whose
+walls give way before the target pressure (no equilibrium) counts as growing without bound. Else it steps by the power
+law of growth in scale through its last two solves (a secant in log-log: growth goes about as the cube of the scale,
+faster in thin walls), kept within the bracket the solves so far give (bisecting when a step would leave it), until
+the coarse growth is within GROWTH_TOLERANCE of the target's: three or four solves. The designed mesh confirms the
+answer (the pipeline solves it at the target pressure with the scene's own material law), and the report gives both
+figures.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np
 
 from phantom.design.chambers import CHAMBER_SCALE_RANGE, ChamberDesign, place_chambers
 from phantom.design.errors import DesignError
+from phantom.design.material import InheritedMaterial
 from phantom.design.surface import Surface
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.geometry import MESH_SIZE_RANGE_MM
@@ -102,9 +106,9 @@ class Sizing:
 
 def size_chambers(surface: Surface, samples_mm: FloatArray, kinds: tuple[int, ...], min_wall_mm: float,
                   target: GrowthTarget, size_mm: float, fixation_radius_mm: float,
-                  progress: Callable[[str], None]) -> tuple[ChamberDesign, Sizing]:
-    """The chambers ``kinds`` at the least scale whose coarse linear growth reaches ``target``, else at the largest
-    the walls allow (see the module docstring)."""
+                  progress: Callable[[str], None], material: InheritedMaterial) -> tuple[ChamberDesign, Sizing]:
+    """The chambers ``kinds`` at the least scale whose coarse growth with ``material`` reaches ``target``, else at
+    the largest the walls allow (see the module docstring)."""
     coarse_mm = min(max(COARSE_FACTOR * size_mm, COARSE_SIZE_MM), MESH_SIZE_RANGE_MM[1])
     rest_ml = surface.volume_ml()
     steps: list[tuple[float, float]] = []
@@ -115,11 +119,11 @@ def size_chambers(surface: Surface, samples_mm: FloatArray, kinds: tuple[int, ..
         designs[scale] = place_chambers(surface, min_wall_mm, scale, samples_mm, kinds)
         # the coarse mesh's growth on the designed surface's volume: its own rest volume is the coarse surface's
         volume = rest_ml + coarse_growth_ml(surface, designs[scale], target.pressure_kpa, coarse_mm,
-                                            fixation_radius_mm, samples_mm)
+                                            fixation_radius_mm, samples_mm, material)
         steps.append((scale, volume))
         progress(f"design: sizing {len(steps)}/{most}: chambers at {scale:.3f} of the template grow the gland to "
-                 f"{volume:.2f} ml at {target.pressure_kpa:g} kPa (coarse {coarse_mm:g} mm mesh, linear; target "
-                 f"{target.volume_ml:.2f} ml)")
+                 f"{volume:.2f} ml at {target.pressure_kpa:g} kPa (coarse {coarse_mm:g} mm mesh, "
+                 f"{material.table['model']}; target {target.volume_ml:.2f} ml)")
         return volume
 
     wanted_ml = target.volume_ml - rest_ml
@@ -145,7 +149,7 @@ def size_chambers(surface: Surface, samples_mm: FloatArray, kinds: tuple[int, ..
         else:
             low = (scale, growth)
         # the next scale from the power law through the last two solves (a secant in log-log), kept in the bracket
-        if last[1] > 0.0 and growth > 0.0 and last[0] != scale:
+        if 0.0 < last[1] < math.inf and 0.0 < growth < math.inf and last[0] != scale:
             exponent = float(np.clip(math.log(last[1] / growth) / math.log(last[0] / scale), 1.0, 8.0))
         last = (scale, growth)
         scale = scale * (wanted_ml / max(growth, 1e-6 * wanted_ml)) ** (1.0 / exponent)
@@ -157,20 +161,28 @@ def size_chambers(surface: Surface, samples_mm: FloatArray, kinds: tuple[int, ..
 
 
 def coarse_growth_ml(surface: Surface, chambers: ChamberDesign, pressure_kpa: float, size_mm: float,
-                     fixation_radius_mm: float, samples_mm: FloatArray) -> float:
-    """The gland's growth (ml) at ``pressure_kpa`` in every chamber: the design meshed at ``size_mm`` on 4-node
-    elements with one element through the thinnest wall, one small-strain solve with the built-in prostate's
-    material."""
+                     fixation_radius_mm: float, samples_mm: FloatArray, material: InheritedMaterial) -> float:
+    """The gland's growth (ml) at ``pressure_kpa`` in every chamber: the design meshed at ``size_mm`` with
+    ``material``'s element order, one element through the thinnest wall, solved with its law; infinite where the
+    walls give way before that pressure (no equilibrium: a limit point)."""
     from phantom.design.meshing import mesh_design, write_scene
+    from phantom.model.errors import SolveError
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.tetmesh import write_mesh
     from phantom.model.scene import load_scene
 
-    mesh = mesh_design(surface, chambers.chambers, size_mm, 1, fixation_radius_mm, samples_mm, elements_per_wall=1)
+    mesh = mesh_design(surface, chambers.chambers, size_mm, material.element_order, fixation_radius_mm, samples_mm,
+                       elements_per_wall=1)
     with tempfile.TemporaryDirectory(prefix="phantom-sizing-") as folder:
         mesh_path = Path(folder) / "coarse.msh"
         write_mesh(mesh, mesh_path)
-        write_scene(mesh_path, Path(folder) / "scene.toml", 1, chambers.chambers)
+        write_scene(mesh_path, Path(folder) / "scene.toml", material, chambers.chambers)
         model = PhantomModel.from_scene(load_scene(Path(folder) / "scene.toml"))
-        state = model.equilibrium([pressure_kpa * 1e3] * model.n_chambers, formulation="linear")
+        # a small-strain law's one linear solve is what its Newton iterations would converge to at these strains
+        small_strain = material.table["model"] in ("linear", "corotational")
+        try:
+            state = model.equilibrium([pressure_kpa * 1e3] * model.n_chambers,
+                                      formulation="linear" if small_strain else None)
+        except SolveError:
+            return math.inf
     return float(state.gland_volume_m3 - model.rest_gland_volume_m3) * 1e6

@@ -29,6 +29,7 @@ import dataclasses
 import itertools
 import json
 import math
+import os
 import re
 import struct
 import threading
@@ -280,6 +281,9 @@ class TargetResult:
     scanned_volume_ml: float | None = None
     verified: bool | None = None
     rounds: tuple[dict[str, Any], ...] = ()
+    #: a shape target (:meth:`DaemonClient.set_shape`): the shape inverse's answer (``distance_mm``,
+    #: ``rest_distance_mm``, ``regions``, volumes, ...: ``phantom inverse --shape --json``'s), else None
+    shape: dict[str, Any] | None = None
 
     @property
     def volume_source(self) -> str:
@@ -295,7 +299,8 @@ class TargetResult:
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> TargetResult:
         return cls(dict(data["target"]), tuple(data["pressures_kpa"]), float(data["predicted_volume_ml"]),
-                   tuple(data["predicted_chamber_volumes_ml"]), int(data["iterations"]), float(data["solve_time_s"]))
+                   tuple(data["predicted_chamber_volumes_ml"]), int(data["iterations"]), float(data["solve_time_s"]),
+                   shape=dict(data["shape"]) if isinstance(data.get("shape"), dict) else None)
 
 
 @dataclass(frozen=True)
@@ -579,6 +584,17 @@ class AsyncPhantom:
     async def set_pressures(self, pressures_kpa: Sequence[float], *, wait: bool = True, tolerance_pct: float = 1.0,
                             timeout_s: float = 60.0) -> TargetResult:
         return await self._set({"pressures_kpa": list(pressures_kpa)}, wait, tolerance_pct, timeout_s)
+
+    async def set_shape(self, shape: str | os.PathLike[str] | dict[str, Any], *, wait: bool = True,
+                        labels: Sequence[int] | None = None, refine_solves: int | None = None,
+                        tolerance_pct: float = 1.0, timeout_s: float = SET_TIMEOUT_S + 60.0) -> TargetResult:
+        # a path as the daemon (on this machine, with another working folder) finds it
+        params: dict[str, Any] = {"shape": shape if isinstance(shape, dict) else os.path.abspath(os.fspath(shape))}
+        if labels is not None:
+            params["labels"] = [int(label) for label in labels]
+        if refine_solves is not None:
+            params["refine_solves"] = int(refine_solves)
+        return await self._set(params, wait, tolerance_pct, timeout_s)
 
     async def _set(self, params: dict[str, Any], wait: bool, tolerance_pct: float, timeout_s: float) -> TargetResult:
         if not (tolerance_pct > 0 and math.isfinite(tolerance_pct)):
@@ -931,6 +947,18 @@ class Phantom:
         estimate is within ``tolerance_pct`` of the volume the model predicts at them."""
         return self._loop.run(self.aio.set_pressures(pressures_kpa, wait=wait, tolerance_pct=tolerance_pct,
                                                      timeout_s=timeout_s))
+
+    def set_shape(self, shape: str | os.PathLike[str] | dict[str, Any], *, wait: bool = True,
+                  labels: Sequence[int] | None = None, refine_solves: int | None = None, tolerance_pct: float = 1.0,
+                  timeout_s: float = SET_TIMEOUT_S + 60.0) -> TargetResult:
+        """Make the phantom look most like a gland: ``shape`` a NIfTI mask or closed mesh (mm) on the daemon's
+        machine (a path), or a small mesh ``{"vertices_mm": [...], "triangles": [...]}``; ``labels`` the gland's
+        labels in a label map; ``refine_solves`` full solves after the table's answer (default 1). The daemon
+        answers the pressures of the shape inverse (``phantom inverse --shape``) and holds them; the result's
+        ``shape`` has the distance to the target at rest and at the answer, the per-region error and the
+        volumes. ``wait`` etc. as in :meth:`set_pressures`."""
+        return self._loop.run(self.aio.set_shape(shape, wait=wait, labels=labels, refine_solves=refine_solves,
+                                                 tolerance_pct=tolerance_pct, timeout_s=timeout_s))
 
     def vent(self) -> None:
         """All blowers off now: every setpoint 0; the target and any scene are dropped."""

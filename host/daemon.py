@@ -30,6 +30,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from phantom import PhantomError
 from phantom.host import control
 from phantom.host.api import ApiError, ApiServer
 from phantom.host.board_watch import BoardSettings, Stillness
@@ -410,6 +411,20 @@ class Daemon:
         self._feed(self.core.offer, request, answer, tolerance_pct, verify)
         await waiting
         return {**answer.to_json(), **(verify.to_json() if verify is not None else {})}
+
+    async def set_shape_target(self, shape: str | dict[str, Any], labels: list[int] | None, refine_solves: int,
+                               tolerance_pct: float | None = None) -> dict[str, Any]:
+        """A target gland from the API (``set_target`` with ``shape``): the shape inverse's pressures, solved in the
+        model worker, set as a pressure target; its answer under ``shape`` (distance, per-region error, ...).
+        ApiError ``invalid_params`` for a shape that cannot be used, else as :meth:`set_target`."""
+        if not self.session.online:
+            raise ApiError("link_down", f"no board: the link is {self.session.state.value}; the target was not set")
+        try:
+            answer = await self.model.shape_answer(shape, labels, refine_solves)
+        except PhantomError as error:
+            raise ApiError("invalid_params", f"set_target: shape: {error}; the target was not set") from error
+        target = Target(pressures_pa=[value * PA_PER_KPA for value in answer["pressures_kpa"]])
+        return {**await self.set_target(target, tolerance_pct), "shape": answer}
 
     async def vent(self, why: str) -> None:
         """VENT (acknowledged): every setpoint 0, the target and any scene dropped; ``why`` goes to the status's

@@ -8,11 +8,12 @@ import contextlib
 import json
 import time
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from phantom import read_text
+from phantom import PhantomError, read_text
 from phantom.host.api import ApiError, Handler, RawJson
 from phantom.host.control import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
 from phantom.host.scene_runner import PreparedRun, prepare_run
@@ -22,6 +23,8 @@ from phantom.host.scenes import (
     load_timeline_scene,
     model_differences,
     parse_target,
+    shape_steps,
+    with_shape_pressures,
 )
 from phantom.host.session import fault_names
 from phantom.model.errors import SceneError
@@ -61,6 +64,10 @@ class ApiHandlers:
                                           or not 0 < tolerance_pct <= 100):
             raise ApiError("invalid_params", f"set_target: tolerance_pct (how close the estimate must come for the "
                            f"target to be reached, %) must be a number in (0, 100], got {tolerance_pct!r}")
+        if "shape" in params:
+            shape, labels, refine_solves = shape_of(params)
+            return await daemon.set_shape_target(shape, labels, refine_solves,
+                                                 None if tolerance_pct is None else float(tolerance_pct))
         verify = verify_of(params)
         try:
             target = parse_target(params, daemon.chamber_names, "set_target", daemon.chamber_labels)
@@ -133,8 +140,19 @@ class ApiHandlers:
             raise ApiError("invalid_params", f"time_scale must be a number, got {time_scale!r}")
         try:
             async with self.heavy.slot("run_scene"):
+                shapes = await asyncio.to_thread(scene_shapes, path)
+                pressures_kpa = {}
+                for index, keys in shapes:  # solved before the scene starts: seconds each, in the model worker
+                    shape, labels, solves = shape_of(keys, f"{path}: steps[{index}]")
+                    try:
+                        answer = await daemon.model.shape_answer(shape, labels, solves)
+                    except PhantomError as error:
+                        raise ApiError("invalid_params", f"{path}: steps[{index}]: shape: {error}; the scene was not "
+                                                         "started") from error
+                    pressures_kpa[index] = answer["pressures_kpa"]
                 prepared = await asyncio.to_thread(prepare_scene, path, float(time_scale), daemon.chamber_names,
-                                                   daemon.model.info.effective_model, daemon.model.info.scene_path)
+                                                   daemon.model.info.effective_model, daemon.model.info.scene_path,
+                                                   pressures_kpa)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
         verified = [index for index, step in enumerate(prepared.timeline.steps) if step.verify is not None]
@@ -145,11 +163,47 @@ class ApiHandlers:
         return daemon.start_scene(prepared)
 
 
+#: Full solves that refine a shape target's answer by default (``set_target``'s ``refine_solves``): one, so that
+#: its distance is the full model's; each costs seconds of the model worker.
+SHAPE_REFINE_SOLVES = 1
+#: The most full solves a shape target may ask for.
+MAX_SHAPE_REFINE_SOLVES = 5
+
+
+def shape_of(params: dict[str, Any], where: str = "set_target") -> tuple[str | dict[str, Any], list[int] | None, int]:
+    """``set_target``'s (or a scene step's) ``shape`` (a file path on the daemon's machine, or a mesh object),
+    ``labels`` and ``refine_solves``, checked; ApiError ``invalid_params`` naming what is wrong."""
+    unknown = set(params) - {"shape", "labels", "refine_solves", "at_s", "ramp_s"}
+    if unknown:
+        raise ApiError("invalid_params", f"{where}: shape goes alone (with labels and refine_solves), not with "
+                                         f"{', '.join(sorted(unknown))}")
+    shape, labels, solves = params["shape"], params.get("labels"), params.get("refine_solves", SHAPE_REFINE_SOLVES)
+    if not (isinstance(shape, str) and shape) and not isinstance(shape, dict):
+        raise ApiError("invalid_params", f"{where}: shape is the path of a mask or mesh file on the daemon's machine, "
+                                         "or a mesh {vertices_mm, triangles}")
+    if labels is not None and (not isinstance(labels, list) or not labels or not all(
+            isinstance(label, int) and not isinstance(label, bool) and label > 0 for label in labels)):
+        raise ApiError("invalid_params", f"{where}: labels are the gland's labels in a label map, a list of positive "
+                                         f"whole numbers, got {labels!r}")
+    if isinstance(solves, bool) or not isinstance(solves, int) or not 0 <= solves <= MAX_SHAPE_REFINE_SOLVES:
+        raise ApiError("invalid_params", f"{where}: refine_solves (full solves after the table's answer) must be a "
+                                         f"whole number from 0 to {MAX_SHAPE_REFINE_SOLVES}, got {solves!r}")
+    return shape, labels, solves
+
+
+def scene_shapes(path: str) -> list[tuple[int, dict[str, Any]]]:
+    """A scene file's steps that give a ``shape`` (:func:`phantom.host.scenes.shape_steps`), read off the event
+    loop, its size checked first as :func:`prepare_scene` does."""
+    check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), path)
+    return shape_steps(load_timeline_scene(path).raw.get("steps"), Path(path).parent)
+
+
 def prepare_scene(path: str, time_scale: float, chamber_names: list[str], running_model: dict[str, Any],
-                  running_scene: str) -> PreparedRun:
+                  running_scene: str, shape_pressures_kpa: dict[int, list[float]] | None = None) -> PreparedRun:
     """Read a scene file and check its timeline against the running model (off the event loop: reading and
     checking a scene takes time in proportion to its size, which the scene reader and the timeline bound; a
-    scene of too many steps is refused before it is parsed)."""
+    scene of too many steps is refused before it is parsed); its shape steps played as the pressures
+    ``shape_pressures_kpa`` their shape inverse answered (step index -> kPa)."""
     check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), path)
     scene = load_timeline_scene(path)
     # the timeline runs on the loaded model: a scene for another phantom, material or model setting needs its own
@@ -158,7 +212,8 @@ def prepare_scene(path: str, time_scale: float, chamber_names: list[str], runnin
     if differing:
         raise SceneError(f"{path} describes another phantom than the running one (its [{'], ['.join(differing)}] "
                          f"differ from {running_scene}): restart the daemon with --scene {path}")
-    return prepare_run(scene.raw, str(path), chamber_names, time_scale, bool(scene.outputs.shape))
+    raw = with_shape_pressures(scene.raw, shape_pressures_kpa) if shape_pressures_kpa else scene.raw
+    return prepare_run(raw, str(path), chamber_names, time_scale, bool(scene.outputs.shape))
 
 
 class HeavyRequests:

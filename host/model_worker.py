@@ -105,6 +105,8 @@ class LoadedModel:
         #: its size (ml)
         self.corrected: CorrectedModel | None = None
         self.correction_size_ml: float | None = None
+        #: the shape inverse, made at its first target (``set_target`` with ``shape``)
+        self._shape_inverse: Any = None
 
     def table_stored(self) -> bool:
         """Whether the scene's response table is in the disk cache (or shipped), so the table level costs no build."""
@@ -322,6 +324,27 @@ class LoadedModel:
         return np.asarray(self.estimator.shape(self.measured(pressures_pa), nodes=used)) * MM_PER_M, triangles
 
 
+    def shape_answer(self, shape: str | dict[str, Any], labels: list[int] | None, refine_solves: int) -> dict[str, Any]:
+        """The shape inverse (:mod:`phantom.model.shape_inverse`) for a target gland: ``shape`` a file on this
+        machine or a mesh given in the request (:func:`~phantom.model.shape_file.surface_from_json`). Its answer
+        as JSON (kPa, mm, ml), without the surfaces. PhantomError for a bad shape or a scene without a table of
+        shapes (its build is minutes: not in the daemon)."""
+        from phantom.model.shape_file import read_target_surface, surface_from_json
+        from phantom.model.shape_inverse import ShapeInverse, surface_shapes
+
+        if self._shape_inverse is None:
+            self._shape_inverse = ShapeInverse(self.model, surface_shapes(self.model, build=False),
+                                               self.pressure_max_pa)
+        target = read_target_surface(shape, labels) if isinstance(shape, str) else surface_from_json(shape)
+        result = self._shape_inverse.solve(target, refine_solves, progress=self.report)
+        answer: dict[str, Any] = result.to_json(list(self.scene.chamber_labels))
+        answer["source"] = shape if isinstance(shape, str) else f"a mesh of {len(target.vertices_mm)} vertices"
+        if self.corrected is not None:
+            answer["notes"].append("the model's own shapes: the correction by measured volumes is of the gland's "
+                                   "volume, not its shape")
+        return answer
+
+
 def build_progress(report: Callable[[str], None], every_s: float = 10.0) -> Callable[[int, int], None]:
     """A ``progress(done, total)`` for a long model build that reports at most every ``every_s`` seconds, and
     at the end."""
@@ -501,6 +524,10 @@ def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_sur
         return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
     return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest, model_gland_ml,
                     model.correction_size_ml, corrected.correction.count)
+
+
+def _worker_shape_answer(shape: str | dict[str, Any], labels: list[int] | None, refine_solves: int) -> dict[str, Any]:
+    return _worker_model_or_fail().shape_answer(shape, labels, refine_solves)
 
 
 def _worker_set_correction(correction: Correction | None) -> None:
@@ -820,6 +847,12 @@ class ModelWorker:
         except BrokenProcessPool:
             await self._replace(pool)
         return await asyncio.get_running_loop().run_in_executor(self._pool, function, *arguments)
+
+    async def shape_answer(self, shape: str | dict[str, Any], labels: list[int] | None,
+                           refine_solves: int) -> dict[str, Any]:
+        """The shape inverse's answer for a target gland (:meth:`LoadedModel.shape_answer`), in the worker: seconds
+        with full solves, which the event loop does not wait on."""
+        return await self._call(_worker_shape_answer, shape, labels, refine_solves)
 
     async def use_level(self, level: str) -> ModelInfo:
         """Answer on ``level`` from now on (the pending table, once the build stored it); the new ``info``. The

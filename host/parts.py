@@ -112,6 +112,9 @@ class Model(Protocol):
 
     async def surface_json(self, pressures_pa: np.ndarray | None) -> str: ...
 
+    async def shape_answer(self, shape: str | dict[str, Any], labels: list[int] | None,
+                           refine_solves: int) -> dict[str, Any]: ...
+
     async def record_measurement(self, pressures_kpa: list[float], volume_ml: float, method: str = "scan",
                                  scan_file: str | None = None) -> dict[str, Any]: ...
 

@@ -14,7 +14,10 @@ linearly from the previous step's over ``ramp_s`` seconds; it then holds until t
 ``volume_ml`` step may be verified by the scanner once reached: ``verify = "scan"`` (optionally
 ``verify_tolerance_pct``, ``verify_rounds``: scanned and corrected until within, as ``set_target``'s verify) or
 ``scan = true`` (one scan recorded and stored as a measurement, no second round); the scene's clock waits
-while a step scans.
+while a step scans. A step may instead give a gland to look like, ``shape = "patient.nii.gz"`` (a mask or closed
+mesh, taken from the scene's folder; optionally ``labels`` and ``refine_solves``): the daemon's ``run_scene``
+solves it by the shape inverse before the scene starts and plays it as the pressures it answers
+(:func:`shape_steps`, :func:`with_shape_pressures`).
 """
 
 from __future__ import annotations
@@ -189,6 +192,9 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
     """
     if not isinstance(raw, dict):
         raise SceneError(f"{where}: a target must be a table/object, got {type(raw).__name__}")
+    if "shape" in raw:
+        raise SceneError(f"{where}: a shape step is solved when the daemon is asked to run the scene (phantom "
+                         "run-scene SCENE): start the daemon on the scene's model, then run it")
     keys = [key for key in TARGET_KEYS if key in raw]
     if len(keys) != 1:
         raise SceneError(
@@ -251,6 +257,29 @@ def _parse_growth_ratio(raw: Any, kind: str, chamber_names: list[str], where: st
             raise SceneError(f"{where}: growth_ratio weights must be positive, got {key} = {weight:g}")
         ratio[index] = weight
     return ratio
+
+
+def shape_steps(raw_steps: object, scene_folder: Path) -> list[tuple[int, dict[str, Any]]]:
+    """The steps of a ``[[steps]]`` list that give a ``shape``, each with its shape's keys (``shape`` resolved
+    from ``scene_folder`` when it is a relative path), in order; the others are left to :func:`parse_timeline`."""
+    found = []
+    for index, raw in enumerate(raw_steps if isinstance(raw_steps, list) else []):
+        if isinstance(raw, dict) and "shape" in raw:
+            keys = {key: value for key, value in raw.items() if key not in ("at_s", "ramp_s")}
+            if isinstance(keys["shape"], str) and keys["shape"]:
+                keys["shape"] = str(scene_folder / Path(keys["shape"]).expanduser())
+            found.append((index, keys))
+    return found
+
+
+def with_shape_pressures(raw: dict[str, Any], pressures_kpa: dict[int, list[float]]) -> dict[str, Any]:
+    """The scene's tables with each shape step (index -> the shape inverse's pressures, kPa) played as those
+    pressures: ``shape``, ``labels`` and ``refine_solves`` replaced by ``pressures_kpa``."""
+    steps = list(raw.get("steps") or [])
+    for index, pressures in pressures_kpa.items():
+        kept = {key: value for key, value in steps[index].items() if key not in ("shape", "labels", "refine_solves")}
+        steps[index] = {**kept, "pressures_kpa": list(pressures)}
+    return {**raw, "steps": steps}
 
 
 def parse_timeline(raw_steps: object, chamber_names: list[str], name: str = "timeline") -> Timeline:

@@ -48,6 +48,15 @@ def shaded_faces(vertices: np.ndarray, triangles: np.ndarray, values: np.ndarray
 
 def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
     """The model surface coloured by the signed distance to the scan (mm), front and side views, colour bar."""
+    return write_surface_heatmap(comparison.model_vertices_mm, comparison.model_triangles,
+                                 comparison.model_signed_distance_mm, path, title,
+                                 "signed distance to the scan (mm): + scan outside the model")
+
+
+def write_surface_heatmap(vertices_mm: np.ndarray, triangles: np.ndarray, signed_mm: np.ndarray, path: str | Path,
+                          title: str, colour_label: str) -> Path:
+    """A surface (mm) coloured by a signed distance per vertex (mm), front and side views, colour bar: a scan's
+    comparison with the model, or the shape inverse's residual (``phantom inverse --shape``)."""
     # matplotlib (0.5 s to import, an optional extra) only where a picture is drawn
     with require_extra("scan"):
         import matplotlib
@@ -57,8 +66,7 @@ def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
         from matplotlib.collections import PolyCollection
 
     path = Path(path)
-    vertices, triangles, values = subdivide(comparison.model_vertices_mm, comparison.model_triangles,
-                                            comparison.model_signed_distance_mm)
+    vertices, triangles, values = subdivide(vertices_mm, triangles, signed_mm)
     limit = colour_limit_mm(values)
     norm = matplotlib.colors.Normalize(-limit, limit)
     colour_map = matplotlib.colormaps[COLOUR_MAP]
@@ -75,7 +83,7 @@ def write_heatmap(comparison: Comparison, path: str | Path, title: str) -> Path:
         axis.set_ylabel(f"{'xyz'[up]} (mm)")
         axis.set_title(name, fontsize=10)
     bar = figure.colorbar(matplotlib.cm.ScalarMappable(norm, colour_map), ax=axes, shrink=0.8)
-    bar.set_label("signed distance to the scan (mm): + scan outside the model")
+    bar.set_label(colour_label)
     figure.suptitle(title, fontsize=10)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)

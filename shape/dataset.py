@@ -24,7 +24,6 @@ whole set (:attr:`ShapeSet.voxel_mm`, recorded with a trained run so that volume
 
 from __future__ import annotations
 
-import math
 import multiprocessing
 import os
 from collections.abc import Iterator, Sequence
@@ -32,12 +31,12 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from itertools import repeat
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from phantom import require_extra
 from phantom.model.mesh.tetmesh import open_edge_count
+from phantom.model.shape_file import ShapeFileError, read_nifti
 from phantom.shape.errors import ShapeError
 from phantom.shape.voxels import SUPERSAMPLE, ClosedSurface, LabelMask
 
@@ -52,11 +51,6 @@ NIFTI_EXTENSIONS = (".nii", ".nii.gz")
 MESH_EXTENSIONS = (".obj", ".ply", ".stl")
 #: Empty voxels kept between a set's largest shape and the grid's faces.
 MARGIN_VOXELS = 2
-#: The voxel sizes (mm) a mask's affine may give: MRI and CT voxels are 0.1 to 10 mm; a micrometre voxel (a
-#: header in metres, or a missing scale) would put the prostate in a speck.
-MASK_VOXEL_RANGE_MM = (0.05, 20.0)
-#: The most voxels a mask may have (a 512 x 512 x 512 volume), checked from its header before it is read.
-MAX_MASK_VOXELS = 512**3
 #: Fewer cases than this are put on the grid in this process: a worker process takes about a second to start,
 #: the time of four cases' grids (0.26 s each on this project's machine; 589 cases took 150 s on one core).
 PARALLEL_FROM_CASES = 16
@@ -140,29 +134,10 @@ def _label_text(labels: Sequence[int]) -> str:
 
 def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> LabelMask:
     """The shape's mask in a NIfTI file: ``labels`` of a label map, or the voxels above 0 of a binary mask."""
-    with require_extra("shape"):
-        import nibabel
     try:
-        image: Any = nibabel.load(str(case.path))
-        shape = tuple(int(side) for side in image.shape)
-    except Exception as error:  # nibabel raises several kinds for a damaged or foreign file
-        raise ShapeError(f"{case.path}: not a readable NIfTI file ({' '.join(str(error).split())})") from None
-    if len(shape) == 4 and shape[3] == 1:
-        shape = shape[:3]
-    if len(shape) != 3:
-        raise ShapeError(f"{case.path}: expected a 3D volume, got shape {shape}")
-    if math.prod(shape) > MAX_MASK_VOXELS:
-        raise ShapeError(f"{case.path}: the header declares {' x '.join(map(str, shape))} voxels, more than the "
-                         f"{MAX_MASK_VOXELS} of a 512^3 mask: crop or resample it to the prostate's region first")
-    affine = checked_affine(image.affine, case.path)
-    try:
-        values = np.asanyarray(image.dataobj).reshape(shape)
-    except Exception as error:  # a file shorter than its header says, or damaged compression
-        raise ShapeError(f"{case.path}: not a readable NIfTI file ({' '.join(str(error).split())})") from None
-    if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
-        raise ShapeError(f"{case.path}: the mask holds NaN or infinite values: a mask is labels or 0/1")
-    if values.dtype.kind not in "iufb":
-        raise ShapeError(f"{case.path}: the mask's voxels are {values.dtype}, not numbers: a mask is labels or 0/1")
+        values, affine = read_nifti(case.path)   # the checks of the shape inverse's targets
+    except ShapeFileError as error:
+        raise ShapeError(str(error)) from None
     is_label_map = case.kind == "labels" or values.max(initial=0) > 1
     if is_label_map:
         mask = np.isin(values, np.asarray(labels))
@@ -175,24 +150,6 @@ def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> Labe
         if not mask.any():
             raise ShapeError(f"{case.path}: the mask is empty (no voxel above 0)")
     return LabelMask(mask.astype(bool, copy=False), affine)
-
-
-def checked_affine(affine: Any, path: Path) -> np.ndarray:
-    """A NIfTI file's voxel-to-RAS affine, checked: finite, invertible, each voxel side within
-    :data:`MASK_VOXEL_RANGE_MM` (a NaN affine or micrometre voxels encoded as the empty grid, exit 0)."""
-    matrix = np.asarray(affine, dtype=float)
-    if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
-        raise ShapeError(f"{path}: the affine (voxel to RAS mm) is not finite: fix the header's qform/sform")
-    sides_mm = np.linalg.norm(matrix[:3, :3], axis=0)
-    low, high = MASK_VOXEL_RANGE_MM
-    if not np.all((sides_mm >= low) & (sides_mm <= high)):
-        raise ShapeError(f"{path}: the voxel sides are {', '.join(f'{side:.3g}' for side in sides_mm)} mm, outside "
-                         f"[{low:g}, {high:g}] mm: the header's units or spacing are wrong (fix its pixdim, qform or "
-                         f"sform)")
-    if abs(np.linalg.det(matrix[:3, :3])) < 1e-6 * float(np.prod(sides_mm)):
-        raise ShapeError(f"{path}: the affine (voxel to RAS mm) is singular (its axes are not independent): fix the "
-                         f"header's qform/sform")
-    return matrix
 
 
 def read_closed_mesh(path: str | Path) -> ClosedSurface:

@@ -46,6 +46,7 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 #   the modules kept together, most tests first), so that none of it is left running alone at the end.
 KEPT_TOGETHER = frozenset(f"tests/{name}.py" for name in (
     "test_daemon_board_promises", "test_daemon_corrections", "test_daemon_e2e", "test_daemon_scene_promises",
+    "test_shape_target_sim",
     "test_examples", "test_fem_corotational", "test_fem_felupe", "test_fem_gravity", "test_fem_hyperelastic",
     "test_fem_kernels", "test_fem_output", "test_fem_pathfollow", "test_fem_quadratic", "test_fidelity",
     "test_hil_boot", "test_hil_sim", "test_inverse_fem", "test_inverse_gent", "test_loader_fuzz", "test_mesh",

@@ -69,8 +69,10 @@ def run(capsys, *argv):
 def test_an_asymmetric_oblique_mask_becomes_a_scene_that_grows_and_a_printable_cast(tmp_path, capsys):
     mask = write_mask(tmp_path / "gland.nii.gz", asymmetric_gland)
     out = tmp_path / "design"
+    # the built-in prostate's uncalibrated material (E 50 kPa, 4-node): the geometry and the cast at their cheapest;
+    # tests/test_design_material.py designs with the calibrated default
     status, printed, err = run(capsys, "design", str(mask), "--out", str(out), "--size-mm", "4",
-                               "--growth-kpa", "none", "--json")
+                               "--growth-kpa", "none", "--material-from", "builtin", "--json")
     assert status == 0, err
     summary = json.loads(printed)
     assert summary["gland_volume_ml"] == pytest.approx(26.3, rel=1e-3)
@@ -111,7 +113,7 @@ def test_the_builtin_outer_surface_gives_back_the_builtin_model(tmp_path, capsys
     source = tmp_path / "builtin.stl"
     trimesh.Trimesh(vertices, triangles, process=False).export(str(source))
     status, _, err = run(capsys, "design", str(source), "--out", str(tmp_path / "d"), "--growth-kpa", "none",
-                         "--chamber-scale", "1")
+                         "--chamber-scale", "1", "--material-from", "builtin")
     assert status == 0, err
     results = []
     for scene in (str(tmp_path / "d" / "scene.toml"), "builtin:prostate"):
@@ -259,7 +261,7 @@ def test_a_shape_written_as_the_shape_analysis_writes_its_average_designs(tmp_pa
     average = surface_of(occupancy, voxel_mm).mirrored_x()
     path = write_surface(average.vertices_mm, average.triangles, tmp_path / "avg.stl")
     status, printed, err = run(capsys, "design", str(path), "--out", str(tmp_path / "d"), "--size-mm", "4",
-                               "--growth-kpa", "1", "--chamber-scale", "1", "--json")
+                               "--growth-kpa", "1", "--chamber-scale", "1", "--material-from", "builtin", "--json")
     assert status == 0, err
     summary = json.loads(printed)
     assert summary["growth"]["gland_volumes_ml"][0] > summary["rest_volume_ml"]
@@ -275,7 +277,8 @@ def test_a_10_node_design_solves_and_says_what_it_wrote(tmp_path, capsys):
     trimesh.Trimesh(vertices, triangles, process=False).export(str(source))
     out = tmp_path / "d"
     status, printed, err = run(capsys, "design", str(source), "--out", str(out), "--size-mm", "5",
-                               "--element-order", "2", "--growth-kpa", "1", "--chamber-scale", "1")
+                               "--element-order", "2", "--growth-kpa", "1", "--chamber-scale", "1", "--material-from",
+                               "builtin")
     assert status == 0, err
     assert f"wrote {out}/scene.toml" in printed and "thinnest wall" in printed
     summary = json.loads((out / "design.json").read_text())

@@ -58,8 +58,8 @@ def test_the_chambers_are_sized_to_a_target_the_walls_allow(tmp_path, capsys):
     coarse linear search's accuracy."""
     out = tmp_path / "d"
     status, printed, err = run(capsys, "design", str(small_mask(tmp_path)), "--out", str(out), "--size-mm", "5",
-                               "--growth-kpa",
-                               "none", "--growth-target-ml", "26.6", "--json")
+                               "--growth-kpa", "none", "--growth-target-ml", "26.6", "--material-from", "builtin",
+                               "--json")
     assert status == 0, err
     summary = json.loads(printed)
     target = summary["growth_target"]
@@ -68,10 +68,10 @@ def test_the_chambers_are_sized_to_a_target_the_walls_allow(tmp_path, capsys):
     steps = sizing["steps"]
     # the largest chambers first, then the search: a few solves (two to four measured, of at most six), the chosen
     # one within 5 % of the growth wanted
-    assert steps[0]["scale_of_template"] == 2.5 and steps[0]["coarse_linear_volume_ml"] > 26.6
+    assert steps[0]["scale_of_template"] == 2.5 and steps[0]["coarse_volume_ml"] > 26.6
     assert len(steps) <= 5
     chosen = [step for step in steps if step["scale_of_template"] == sizing["scale_of_template"]][0]
-    assert chosen["coarse_linear_volume_ml"] - 26.3 == pytest.approx(0.3, rel=0.05)
+    assert chosen["coarse_volume_ml"] - 26.3 == pytest.approx(0.3, rel=0.05)
     # the designed mesh's growth (0.31 ml measured), on the designed gland's volume
     assert target["designed_volume_ml"] - summary["gland_volume_ml"] == pytest.approx(0.3, rel=0.35)
     assert min(summary["walls_mm"].values()) >= 2.0
@@ -112,7 +112,8 @@ def test_a_two_chamber_design_runs_forward_and_inverse(tmp_path, capsys):
     mask = write_mask(tmp_path / "gland.nii.gz", asymmetric_gland)
     out = tmp_path / "d"
     status, printed, err = run(capsys, "design", str(mask), "--out", str(out), "--size-mm", "4", "--chambers",
-                               "left,right", "--chamber-scale", "1", "--growth-kpa", "1", "--json")
+                               "left,right", "--chamber-scale", "1", "--growth-kpa", "1", "--material-from", "builtin",
+                               "--json")
     assert status == 0, err
     summary = json.loads(printed)
     assert [chamber["label"] for chamber in summary["chambers"]] == ["left lobe", "right lobe"]
@@ -242,7 +243,7 @@ def test_a_data_set_case_reports_its_latent_distance(tmp_path, capsys):
     case = write_mask(tmp_path / "data" / "case01_mask.nii.gz", asymmetric_gland)
     status, printed, err = run(capsys, "design", str(case), "--out", str(tmp_path / "d"), "--shape-run",
                                str(run_path), "--size-mm", "6", "--chamber-scale", "1", "--growth-kpa", "none",
-                               "--json")
+                               "--material-from", "builtin", "--json")
     assert status == 0, err
     latent = json.loads(printed)["latent"]
     model = ShapeModel.load(run_path)

@@ -44,8 +44,13 @@ def register(subparsers: Subcommands) -> None:
     parser.add_argument("--labels", default=None,
                         help="the gland's label numbers in a label map (a dataset *_mask.nii defaults to 4,5)")
     parser.add_argument("--size-mm", type=float, default=2.5, help="element size of the mesh (default 2.5)")
-    parser.add_argument("--element-order", type=int, choices=(1, 2), default=1,
-                        help="1: 4-node tetrahedra (default), 2: 10-node")
+    parser.add_argument("--element-order", type=int, choices=(1, 2), default=None,
+                        help="1: 4-node tetrahedra, 2: 10-node (default: the inherited material's; 10-node for "
+                             "builtin:converged)")
+    parser.add_argument("--material-from", default="builtin:converged", metavar="SCENE",
+                        help="the scene whose calibrated material law and element order the design inherits and "
+                             "is sized with (default builtin:converged: Gent, E 10.86 kPa, 10-node); the cast must "
+                             "still be measured and the scene calibrated to it")
     parser.add_argument("--fixation-radius-mm", type=float, default=6.0,
                         help="the fixed patch's radius about the base pole, the tube junction (default 6)")
     parser.add_argument("--stem-diameter-mm", type=float, default=3.0,
@@ -89,7 +94,7 @@ def run_design(args: argparse.Namespace) -> int:
     options = DesignOptions(args.volume_ml, args.min_wall_mm, args.chamber_scale, args.size_mm, args.element_order,
                             args.fixation_radius_mm, args.stem_diameter_mm, labels, args.smooth_iterations, growth,
                             args.growth_target_ml, args.growth_target_kpa, parse_chamber_kinds(args.chambers),
-                            args.shape_run)
+                            args.shape_run, args.material_from)
     result = design(args.source, args.out, options,
                     progress=(lambda line: None) if args.json else (lambda line: print(line, flush=True)))
     for warning in result.warnings:
@@ -108,6 +113,8 @@ def run_design(args: argparse.Namespace) -> int:
               f"{result.latent.cases} cases)")
     for note in result.notes:
         print(f"note: {note}")
+    if result.material is not None:
+        print(f"note: {result.material.caveat}")
     print(f"wrote {result.out}/scene.toml (try: phantom forward --scene {result.out}/scene.toml --pressures-kpa "
           f"1,1,1) and report.md")
     return 0

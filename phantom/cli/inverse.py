@@ -27,6 +27,18 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     target.add_argument("--chamber-volumes-ml",
                         help="one volume (ml) per chamber, comma-separated; '-' leaves a chamber free")
     target.add_argument("--pressures-kpa", help="raw pressures (kPa), comma-separated: only bounds-checked")
+    target.add_argument("--shape", metavar="FILE",
+                        help="a gland to look like: a NIfTI mask or label map (.nii, .nii.gz) or a closed mesh in mm "
+                             "in the phantom's frame; answers the pressures that bring the phantom's surface closest "
+                             "to it (phantom.model.shape_inverse)")
+    inverse.add_argument("--labels", help="with --shape: the gland's labels in a label map, comma-separated (4,5)")
+    inverse.add_argument("--refine-solves", type=int, default=3,
+                         help="with --shape: full solves that refine the table's answer at most (0: the table's)")
+    inverse.add_argument("--scale", action="store_true",
+                         help="with --shape: fit a uniform scale of the target too (reported apart; default rigid)")
+    inverse.add_argument("--out", metavar="DIR",
+                         help="with --shape: write shape_inverse.json, the residual map residual.png and the "
+                              "phantom's surface at the answer (answer.stl) here")
     inverse.add_argument("--growth-ratio",
                          help="with --volume-ml: NAME=WEIGHT pairs (chamber names or indices), e.g. "
                               "'chamber1=2,chamber2=1' = chamber 1 grows twice as much as chamber 2")
@@ -74,6 +86,12 @@ def run_inverse(args: argparse.Namespace) -> int:
     from phantom.model.inverse import InverseSolver
     from phantom.model.target import Target
 
+    if args.shape is not None:
+        from phantom.cli.inverse_shape import run_shape_inverse
+
+        return run_shape_inverse(args)
+    if args.labels or args.out or args.scale:
+        raise PhantomError("--labels, --scale and --out go with --shape")
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml (the gland volume it shares out)")
     scene, model = _load_model(args)

@@ -103,7 +103,99 @@ def register(subparsers: Subcommands) -> None:
     report.add_argument("--k", type=int, default=3, help="number of clusters (default 3)")
 
 
+    reach = commands.add_parser(
+        "reach", help="how much of a population the phantom can show: each case's best pressures and distance",
+        description="For each case of a population (a shape dataset or folder of masks or meshes, or a trained "
+                    "run's cluster centres), the pressures that bring the phantom closest to it (the shape "
+                    "inverse: phantom inverse --shape) and the distance before and after; writes reach.csv, "
+                    "reach.json, a histogram and, with a run, the latent-space picture of the cases covered.")
+    reach.add_argument("source", metavar="RUN_OR_DATA",
+                       help="a run folder (its k-means cluster centres) or a dataset folder, folder of masks or "
+                            "meshes (each case)")
+    reach.add_argument("--scene", default="builtin:converged", help="the phantom (default builtin:converged)")
+    reach.add_argument("--out", required=True, metavar="DIR", help="folder for the table and pictures")
+    reach.add_argument("--within-mm", type=float, default=1.0,
+                       help="a case is covered when the phantom comes this close (mm, default 1)")
+    reach.add_argument("--run", dest="shape_run", metavar="RUN",
+                       help="with a dataset: the run whose latent space the picture uses")
+    reach.add_argument("--k", type=int, default=3, help="with a run: number of cluster centres (default 3)")
+    reach.add_argument("--labels", default=None, help="the gland's labels in label maps (default 4,5)")
+    reach.add_argument("--refine-solves", type=int, default=0,
+                       help="full solves that refine each case's table answer (default 0: the table's)")
+    reach.add_argument("--scale", action="store_true", help="fit a uniform scale of each case too")
+    reach.add_argument("--json", action="store_true", help="print one JSON object")
+    reach.set_defaults(run=run_reach)
+
+
 SHAPE_FILE_HELP = "a NIfTI mask or label map (the run's labels), or a closed mesh (mm, the phantom's frame)"
+
+
+def run_reach(args: argparse.Namespace) -> int:
+    """Handler of ``phantom shape reach``."""
+    import json
+    import sys
+    from pathlib import Path
+
+    import numpy as np
+
+    from phantom.model import PhantomModel, load_scene
+    from phantom.model.mesh.surface import TriangleMesh
+    from phantom.model.shape_file import checked_gland, largest_body
+    from phantom.model.shape_inverse import ShapeInverse, surface_shapes
+    from phantom.shape.dataset import find_cases
+    from phantom.shape.errors import ShapeError
+    from phantom.shape.reach import population, reach, summary, write_reach
+
+    if args.refine_solves < 0:
+        raise ShapeError(f"--refine-solves must be 0 or more, got {args.refine_solves}")
+    labels = _labels(args.labels) if args.labels else None
+    source = Path(args.source)
+    is_run = (source / "config.json").is_file()
+    if is_run and args.shape_run:
+        raise ShapeError("--run goes with a dataset: RUN_OR_DATA is a run already (its cluster centres)")
+    background = None
+    if is_run:
+        shape_model = _run_model(args.source)
+        centres, _, decoded = shape_model.clusters(args.k)
+        # a decoded centre may carry islands of voxels above one half: its largest body is the gland
+        cases = [(f"cluster {index}", checked_gland(largest_body(TriangleMesh(shape.vertices_mm, shape.triangles),
+                                                                 f"cluster {index}"), f"cluster {index}'s centre"))
+                 for index, shape in enumerate(decoded)]
+        latents: list[np.ndarray | None] = list(centres)
+        background = shape_model.case_latents()[1]
+        title = f"{args.source}: {args.k} cluster centres on {args.scene}"
+    else:
+        cases = population(source, labels)
+        latents = [None] * len(cases)
+        if args.shape_run:
+            shape_model = _run_model(args.shape_run)
+            latents = [shape_model.encode_file(case.path) for case in find_cases(source)]
+        title = f"{args.source}: {len(cases)} cases on {args.scene}"
+    model = PhantomModel.from_scene(load_scene(args.scene))
+
+    def told(message: str) -> None:
+        if not args.json:
+            print(message, file=sys.stderr, flush=True)
+
+    inverse = ShapeInverse(model, surface_shapes(model, progress=lambda done, total: told(
+        f"shape reach: the table of shapes, {done}/{total} solves")))
+    results = reach(inverse, cases, args.within_mm, args.refine_solves, args.scale, told)
+    for result, latent in zip(results, latents, strict=True):
+        result.latent = latent
+    files = write_reach(results, Path(args.out), args.within_mm, title, background)
+    figures = {**summary(results, args.within_mm), "files": files}
+    if args.json:
+        print(json.dumps(figures))
+        return 0
+    print(f"{'case':<16} {'ml':>7} {'kPa':>17} {'rest mm':>8} {'mm':>7} covered")
+    for result in results:
+        print(f"{result.name:<16} {result.volume_ml:7.2f} {','.join(f'{v:.2f}' for v in result.pressures_kpa):>17} "
+              f"{result.rest_distance_mm:8.3f} {result.distance_mm:7.3f} {'yes' if result.covered else 'no'}")
+    print(f"covered within {args.within_mm:g} mm: {figures['covered']} of {figures['cases']} cases "
+          f"({figures['covered_at_rest']} at rest); {figures['time_s']:.1f} s")
+    for kind, path in files.items():
+        print(f"{kind}: {path}")
+    return 0
 
 
 def _run_command(commands: Subcommands, name: str, handler: Callable[[argparse.Namespace], int], summary: str,
