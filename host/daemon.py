@@ -19,6 +19,7 @@ gives it); every scan is recorded as a measurement through the model worker when
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import itertools
 import logging
@@ -149,6 +150,8 @@ class Daemon:
         self.motion = Orbit(self.board_command, self.event, simulated_truth(sim_board) if sim_board else None)
         #: what reconstructs a verified target's scans (None: this daemon cannot verify targets)
         self.verify_scanner: VerifyScanner | None = None
+        #: the verify scan running or last run (a newer one stops it: :meth:`_scan_for_core`)
+        self.verify_scan: asyncio.Task[Any] | None = None
 
     # --- life cycle -------------------------------------------------------------------------------------
 
@@ -228,7 +231,14 @@ class Daemon:
         return None
 
     async def _scan_for_core(self, action: control.Scan) -> None:
-        """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread."""
+        """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread. A scan
+        still running for a verification that is no more (a second client's verified target replaced it) is
+        stopped first, and its answer is not fed to the core: the core asks one scan at a time."""
+        superseded, self.verify_scan = self.verify_scan, asyncio.current_task()
+        if superseded is not None and not superseded.done():
+            await self.motion.stop_scan("its verified target was replaced by another")
+            with contextlib.suppress(Exception):
+                await superseded
         folder: str | None = None
         started_s = self.now_s()
         try:
@@ -246,8 +256,12 @@ class Daemon:
             result = await asyncio.to_thread(scanner.volume, folder)
             volume_ml = float(result["volume_ml"])
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
+            if self.verify_scan is not asyncio.current_task():
+                return  # superseded: stopped for a newer verification, whose round this is not
             link_lost = self.link_lost_s is not None and self.link_lost_s >= started_s - LINK_LOSS_GRACE_S
             self._feed(self.core.scanned, action.round, None, str(error), folder, None, link_lost)
+            return
+        if self.verify_scan is not asyncio.current_task():
             return
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
         if result.get("surface_mm") is not None:

@@ -374,3 +374,58 @@ def test_an_unreachable_answer_carries_the_glands_range_as_data():
             asyncio.run(Daemon.solve(daemon, volume(20.0)))
         assert answered.value.code == "unreachable" and str(answered.value) == str(refusal)
         assert answered.value.data == data
+
+
+def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_scans_its_own():
+    """Issue 48's red team: a second client's verified target, reached while the first's scan ran, failed ("a
+    scan is running") and the abandoned capture kept the rig. Now the abandoned capture is stopped, its answer
+    (for a verification that is no more) is not fed to the core, and the new round's scan takes the rig."""
+    import asyncio
+    import types
+
+    from phantom.host.api import ApiError
+    from phantom.host.daemon import Daemon
+
+    fed, captures = [], []
+
+    async def main():
+        running = {}
+
+        async def scan(params):  # the scan API method: one capture at a time, as host/motion.py's
+            if running:
+                raise ApiError("rejected", "a scan is running (started now): wait for it, or stop it with motion_stop")
+            stopped = running["run"] = asyncio.Event()
+            captures.append(params["out"])
+            try:
+                if len(captures) == 1:  # the first capture runs until it is stopped
+                    await stopped.wait()
+                    return {"folder": params["out"], "status": "stopped", "reason": "stopped"}
+                return {"folder": params["out"], "status": "complete"}
+            finally:
+                running.clear()
+
+        async def stop_scan(reason):
+            if not running:
+                return False
+            running["run"].set()
+            while running:
+                await asyncio.sleep(0)
+            return True
+
+        scanner = types.SimpleNamespace(plan={}, volume=lambda folder: {"volume_ml": 35.02, "surface_mm": None})
+        daemon = types.SimpleNamespace(
+            verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
+            motion=types.SimpleNamespace(latest=None, stop_scan=stop_scan), link_lost_s=None, now_s=lambda: 0.0,
+            recorder=types.SimpleNamespace(log_scanned_volume=lambda *_: None), plant_volume_ml=lambda: 35.0,
+            core=types.SimpleNamespace(scanned="scanned"), _feed=lambda method, *args: fed.append((method, args)),
+            verify_scan=None)
+        daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
+        first = asyncio.ensure_future(Daemon._scan_for_core(daemon, control.Scan(1, volume(40.0), (1.0, 0.5, 0.5))))
+        await asyncio.sleep(0.01)
+        second = Daemon._scan_for_core(daemon, control.Scan(1, volume(35.0), (0.9, 0.4, 0.4)))
+        await asyncio.wait_for(asyncio.gather(first, second), 5.0)
+
+    asyncio.run(main())
+    assert len(captures) == 2
+    ((method, (round_, volume_ml, error, *_)),) = fed  # only the second's scan, measured
+    assert method == "scanned" and round_ == 1 and volume_ml == 35.02 and error is None
