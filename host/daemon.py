@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import dataclasses
 import itertools
 import logging
 import time
@@ -31,7 +30,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from phantom.host import control
+from phantom.host import control, verify
 from phantom.host.api import ApiError, ApiServer
 from phantom.host.board_watch import BoardSettings, Stillness
 from phantom.host.config import DaemonConfig
@@ -84,16 +83,6 @@ class VerifyScanner(Protocol):
 LINK_LOSS_GRACE_S = 30.0
 #: How long a verify scan waits for the rig's axes to come to rest before it starts (s).
 RIG_REST_WAIT_S = 30.0
-#: How far inside the reachable range a volume asked at its edge is (ml).
-EDGE_MARGIN_ML = 0.01
-#: How many times a volume beyond the reachable range is asked again at its edge (the corrected model's edge moves
-#: with the correction's own value there).
-EDGE_TRIES = 3
-
-
-def _volume(target: Target, volume_ml: float) -> Target:
-    """``target`` (a gland volume, its growth ratio kept) at another volume."""
-    return dataclasses.replace(target, gland_volume_m3=volume_ml / control.ML_PER_M3)
 
 
 def verify_folder(round_: int) -> Path:
@@ -279,47 +268,41 @@ class Daemon:
             await asyncio.sleep(0.2)
 
     async def _correct_for_core(self, action: control.Correct) -> None:
-        """A verified target's miss: the scan recorded as a measurement when the model can take one, then the
-        next round's pressures: the target on the corrected model, or (no correction, one that leaves the
-        setpoints as they were, or one whose range the target is beyond) the gland volume moved by the scan's
-        error."""
-        how = ""
-        answer: InverseResult | None = None
-        try:
-            if await self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder):
-                try:
-                    answer = await self.solve(await self._less_the_corrections_miss(action))
-                except ApiError as error:
-                    if error.code != "unreachable":
-                        raise
-                    # beyond the corrected model's range (one scan near the rest shape corrects it by an offset
-                    # that the phantom at rest does not hold): the shifted volume, at the range's edge
-                else:
-                    setpoints = control.setpoints_for(answer.pressures_pa)
-                    if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
-                        answer = None
+        """A verified target's miss: the next round's pressures, decided by :class:`phantom.host.verify.NextRound`;
+        the daemon only performs its actions (records the scan, solves what it asks) and feeds it the answers."""
+        policy = verify.NextRound(action)
+        policy.start(self.now_s())
+        while steps := policy.take_actions():
+            for step in steps:
+                if isinstance(step, verify.Record):
+                    stored = await self._record_scan(step.pressures_kpa, step.scanned_ml, step.scan_folder)
+                    corrected_ml = None
+                    if stored:
+                        with contextlib.suppress(Exception):  # the model failed: the shifted volume instead
+                            estimate = await self.model.estimate(np.asarray(step.pressures_kpa) * PA_PER_KPA)
+                            corrected_ml = estimate.gland_volume_ml
+                    policy.recorded(self.now_s(), stored, corrected_ml)
+                elif isinstance(step, verify.Solve):
+                    try:
+                        answer = await self.solve(step.target)
+                    except ApiError as error:
+                        if error.code == "unreachable":
+                            data = error.data or {}
+                            edge = data.get("gland_range_ml")
+                            policy.unreachable(self.now_s(), None if edge is None else (float(edge[0]), float(edge[1])),
+                                               bool(data.get("corrected")), str(error))
+                        else:
+                            policy.failed(self.now_s(), str(error))
+                    except Exception as error:  # the model worker failed
+                        policy.failed(self.now_s(), f"the model failed: {error}")
                     else:
-                        how = "the target on the model corrected by the scan"
-            if answer is None:
-                answer, how = await self._solve_shifted(action)
-        except ApiError as error:
-            self._feed(self.core.correct_failed, action.round, error.code == "unreachable", str(error))
-            return
-        except Exception as error:  # the model worker failed
-            self._feed(self.core.correct_failed, action.round, False, f"the model failed: {error}")
-            return
-        self._feed(self.core.corrected, action.round, answer, how)
-
-    async def _less_the_corrections_miss(self, action: control.Correct) -> Target:
-        """The target to solve on the corrected model after a scan: the target less what the correction now in force
-        still misses at the scanned state. A correction fitted to every stored scan (an offset or a growth by least
-        squares) passes beside the newest one, so the target alone moved the pressures by a share of the scan's
-        error: `make demo`'s 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in its four rounds and was not verified."""
-        if action.target.gland_volume_m3 is None:
-            return action.target
-        estimate = await self.model.estimate(np.asarray(action.pressures_kpa, dtype=float) * PA_PER_KPA)
-        miss_ml = action.scanned_ml - estimate.gland_volume_ml
-        return _volume(action.target, action.target.gland_volume_m3 * control.ML_PER_M3 - miss_ml)
+                        policy.solved(self.now_s(), answer)
+                elif isinstance(step, verify.Apply):
+                    self._feed(self.core.corrected, step.round, step.answer, step.how)
+                else:
+                    self._feed(self.core.correct_failed, step.round, step.unreachable, step.text)
+        if not policy.done:  # every event takes an action until the last: none is the policy's fault
+            self._feed(self.core.correct_failed, action.round, False, "the verify policy stopped without an answer")
 
     async def _record_scan(self, pressures_kpa: tuple[float, ...], scanned_ml: float, folder: str | None) -> bool:
         """A scan stored as a measurement of the phantom (the model's correction fitted again), when the model can
@@ -338,25 +321,6 @@ class Daemon:
             self.event("verify", f"the scan as a measurement of the phantom: {error}", "WARN")
             return False
         return True
-
-    async def _solve_shifted(self, action: control.Correct) -> tuple[InverseResult, str]:
-        """The volume asked moved by the scan's error, solved; one the model cannot reach (the phantom holds
-        more at rest than the model says) is asked at the edge of the model's reachable range instead (with a
-        correction in force, the corrected model's: the model's moved by the correction there)."""
-        shifted_ml = action.shifted_ml
-        asked_ml, how = shifted_ml, f"{shifted_ml:.3f} ml: the volume asked moved by the scan's error"
-        for _ in range(EDGE_TRIES):
-            try:
-                return await self.solve(_volume(action.target, asked_ml)), how
-            except ApiError as error:
-                if error.code != "unreachable" or not error.data or "gland_range_ml" not in error.data:
-                    raise
-                low_ml, high_ml = error.data["gland_range_ml"]
-                asked_ml = min(max(shifted_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
-                how = (f"{asked_ml:.3f} ml: the volume asked moved by the scan's error ({shifted_ml:.3f} ml) is beyond "
-                       f"the model's reachable {low_ml:.3f} to {high_ml:.3f} ml"
-                       f"{' (with the correction in force)' if error.data['corrected'] else ''}, so its edge")
-        return await self.solve(_volume(action.target, asked_ml)), how
 
     async def _send_setpoints(self, action: control.SendSetpoints) -> None:
         try:

@@ -192,29 +192,138 @@ def test_the_shift_follows_the_phantoms_own_growth_per_ml_asked():
     assert control.shifted_ml(noisy, 40.0) == pytest.approx(41.06 + 1.05)
 
 
+def answer_at(target, kpa=(1.0, 0.0, 0.0)):
+    """An inverse's answer for ``target`` at these pressures (kPa)."""
+    return answer_for(target, kpa)
+
+
 def test_a_shift_beyond_the_models_range_is_asked_at_its_edge():
     """make demo's 26.5 ml: the phantom at rest holds more than the model (26.43 against 26.30 ml), so the volume
-    asked moved by the scan's error (26.0 ml) is below what the model can reach at 0 kPa."""
+    asked moved by the scan's error (26.0 ml) is below what the model can reach at 0 kPa: asked at the range's
+    edge, the range read from the refusal's data. No correction took the scan (none recorded)."""
+    from phantom.host import verify
+
+    action = control.Correct(1, volume(26.5), (0.1, 0.0, 0.0), 27.0, "/scans/1", 25.997, (100.0, 0.0, 0.0))
+    policy = verify.NextRound(action)
+    policy.start(10.0)
+    (record,) = policy.take_actions()
+    assert isinstance(record, verify.Record) and record.scanned_ml == 27.0 and record.scan_folder == "/scans/1"
+    policy.recorded(11.0, False, None)
+    (solve,) = policy.take_actions()
+    assert isinstance(solve, verify.Solve) and solve.target.gland_volume_m3 * 1e6 == pytest.approx(25.997)
+    policy.unreachable(11.5, (26.296, 51.581), False, "unreachable")
+    (solve,) = policy.take_actions()
+    assert solve.target.gland_volume_m3 * 1e6 == pytest.approx(26.306)
+    assert "beyond the model's reachable 26.296 to 51.581 ml, so its edge" in solve.how
+    answer = answer_at(solve.target)
+    policy.solved(12.0, answer)
+    (apply,) = policy.take_actions()
+    assert isinstance(apply, verify.Apply) and apply.answer is answer and policy.done and apply.how == solve.how
+
+
+def test_the_edge_asked_too_often_or_a_range_not_given_gives_up_as_unreachable_and_a_failed_model_not():
+    from phantom.host import verify
+
+    action = control.Correct(2, volume(50.0), (3.0, 3.0, 3.0), 49.0, None, 51.0, (3000.0, 3000.0, 3000.0))
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, False, None)
+    for _ in range(verify.EDGE_TRIES):
+        policy.take_actions()
+        policy.unreachable(2.0, (26.0, 50.5), True, "beyond")
+    policy.take_actions()
+    policy.unreachable(3.0, (26.0, 50.4), True, "still beyond")
+    (give_up,) = policy.take_actions()
+    assert give_up == verify.GiveUp(2, True, "still beyond") and policy.done
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, False, None)
+    policy.take_actions()
+    policy.unreachable(2.0, None, False, "no range said")
+    assert policy.take_actions() == [verify.GiveUp(2, True, "no range said")]
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, True, 49.2)
+    policy.take_actions()
+    policy.failed(2.0, "the model failed: gone")
+    assert policy.take_actions() == [verify.GiveUp(2, False, "the model failed: gone")]
+
+
+def test_the_next_round_asks_the_target_less_what_the_refitted_correction_still_misses_at_the_scan():
+    """make demo's 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in four rounds and was not verified: the target
+    alone moved the pressures by a share of the scan's error. With the scan recorded, the next round asks the
+    corrected model (which now includes it) for the target less the scan's miss of it at the scanned pressures;
+    an answer that leaves the setpoints where they were, or a target beyond the corrected range, asks the
+    shifted volume instead."""
+    from phantom.host import verify
+
+    action = control.Correct(1, volume(30.0), (0.403, 0.482, 0.482), 28.66, "/scans/1", 31.34, (403.0, 482.0, 482.0))
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, True, 29.10)  # the refitted correction says 29.10 ml where the phantom scanned 28.66
+    (solve,) = policy.take_actions()
+    assert solve.target.gland_volume_m3 * 1e6 == pytest.approx(30.0 + (29.10 - 28.66))
+    assert solve.how == "the target on the model corrected by the scan"
+    policy.solved(2.0, answer_at(solve.target, (0.5, 0.6, 0.6)))
+    (apply,) = policy.take_actions()
+    assert isinstance(apply, verify.Apply) and apply.how == "the target on the model corrected by the scan"
+    same = verify.NextRound(action)
+    same.start(0.0)
+    same.take_actions()
+    same.recorded(1.0, True, 28.66)
+    (solve,) = same.take_actions()
+    same.solved(2.0, answer_at(solve.target, (0.403, 0.482, 0.482)))  # the setpoints of the round: moved nothing
+    (shifted,) = same.take_actions()
+    assert isinstance(shifted, verify.Solve) and shifted.target.gland_volume_m3 * 1e6 == pytest.approx(31.34)
+    beyond = verify.NextRound(action)
+    beyond.start(0.0)
+    beyond.take_actions()
+    beyond.recorded(1.0, True, 28.66)
+    beyond.take_actions()
+    beyond.unreachable(2.0, (30.5, 52.0), True, "beyond the corrected range")
+    (shifted,) = beyond.take_actions()
+    assert shifted.target.gland_volume_m3 * 1e6 == pytest.approx(31.34)
+
+
+def test_the_daemon_performs_the_next_rounds_actions_and_feeds_the_answers():
+    """The daemon only performs: the record through the model worker, the corrected estimate at the scan, the
+    solves (an unreachable one's range from the API error's data), and the core's corrected."""
     import asyncio
     import types
 
     from phantom.host.api import ApiError
     from phantom.host.daemon import Daemon
 
-    asked = []
+    asked, fed = [], []
 
-    async def solve(target):
-        asked.append(target.gland_volume_m3 * 1e6)
-        if target.gland_volume_m3 * 1e6 < 26.296:
-            raise ApiError("unreachable", "the gland volume target 25.997 ml is unreachable: pressures between 0 and "
-                                          "[3, 3, 3] kPa give 26.296 to 51.581 ml; ask for a volume in that range",
-                           {"gland_range_ml": [26.296, 51.581], "corrected": False})
-        return "answer"
+    async def solve(target):   # the model worker with a +0.44 ml correction in force
+        volume_ml = target.gland_volume_m3 * 1e6
+        asked.append(volume_ml)
+        if volume_ml < 26.736:
+            raise ApiError("unreachable", "beyond the corrected range", {"gland_range_ml": [26.736, 52.021],
+                                                                         "corrected": True})
+        return answer_for(target, (0.01, 0.0, 0.0))
 
-    action = control.Correct(1, volume(26.5), (0.1, 0.0, 0.0), 27.0, "/scans/1", 25.997, (100.0, 0.0, 0.0))
-    answer, how = asyncio.run(Daemon._solve_shifted(types.SimpleNamespace(solve=solve), action))
-    assert answer == "answer" and asked == [pytest.approx(25.997), pytest.approx(26.306)]
-    assert "beyond the model's reachable 26.296 to 51.581 ml, so its edge" in how
+    async def recorded(*_):
+        return True
+
+    async def estimate(pressures_pa):  # the correction fitted to that one scan passes through it
+        return types.SimpleNamespace(gland_volume_ml=27.0)
+
+    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded, model=types.SimpleNamespace(estimate=estimate),
+                                   core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
+                                   now_s=lambda: 0.0, _feed=lambda method, *args: fed.append((method, args)))
+    action = control.Correct(1, volume(26.5), (0.1, 0.1, 0.1), 27.0, "/scans/1", 26.0, (98.0, 97.0, 97.0))
+    asyncio.run(Daemon._correct_for_core(daemon, action))
+    assert asked[:2] == [pytest.approx(26.5), pytest.approx(26.0)]      # the target, then the shifted volume
+    assert asked[-1] == pytest.approx(26.746)                            # the corrected range's edge, inside it
+    ((method, (round_, answer, how)),) = fed
+    assert method == "corrected" and round_ == 1 and answer.target.gland_volume_m3 * 1e6 == pytest.approx(26.746)
+    assert "beyond the model's reachable 26.736 to 52.021 ml (with the correction in force), so its edge" in how
 
 
 def test_the_scan_that_ends_a_verification_is_stored_through_the_model_worker():
@@ -240,86 +349,6 @@ def test_the_scan_that_ends_a_verification_is_stored_through_the_model_worker():
     assert asyncio.run(Daemon._record_scan(daemon, (1.0, 0.5, 0.5), -1.0, "/scans/2")) is False
     assert told == [("verify", "the scan as a measurement of the phantom: a negative volume", "WARN")]
     assert asyncio.run(Daemon._record_scan(types.SimpleNamespace(model=object()), (1.0,), 40.0, None)) is False
-
-
-def test_a_target_beyond_the_corrected_models_range_is_asked_at_that_ranges_edge():
-    """make demo's 26.5 ml: its first scan (27.00 ml at 0.1 kPa) corrects the model by +0.44 ml, so 26.5 ml is
-    below what the corrected model reaches at 0 kPa (26.74 ml), while the phantom at rest holds 26.43 ml. The
-    correction after round 1 failed ("unreachable") and the target ended not verified; now the volume asked moved
-    by the scan's error is asked at the corrected range's edge."""
-    import asyncio
-    import types
-
-    from phantom.host.api import ApiError
-    from phantom.host.daemon import Daemon
-
-    asked, fed = [], []
-
-    async def solve(target):   # the model worker with a +0.44 ml correction in force
-        volume_ml = target.gland_volume_m3 * 1e6
-        asked.append(volume_ml)
-        model_ml = volume_ml - 0.44
-        if model_ml < 26.296:
-            raise ApiError("unreachable", f"{volume_ml:.2f} ml with the correction in force (offset from 1 "
-                           f"measurement(s)) is the model's {model_ml:.2f} ml: the gland volume target {model_ml:.3f} "
-                           "ml is unreachable: pressures between 0 and [3, 3, 3] kPa give 26.296 to 51.581 ml; ask "
-                           "for a volume in that range or raise pressure_max",
-                           {"gland_range_ml": [26.296 + 0.44, 51.581 + 0.44], "corrected": True})
-        return types.SimpleNamespace(pressures_pa=[1.0, 0.0, 0.0], target=target)
-
-    async def recorded(*_):
-        return True
-
-    async def estimate(pressures_pa):  # the offset fitted to that one scan passes through it
-        return types.SimpleNamespace(gland_volume_ml=27.0)
-
-    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded, model=types.SimpleNamespace(estimate=estimate),
-                                   core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
-                                   _feed=lambda method, *args: fed.append((method, args)))
-    daemon._solve_shifted = lambda action: Daemon._solve_shifted(daemon, action)
-    daemon._less_the_corrections_miss = lambda action: Daemon._less_the_corrections_miss(daemon, action)
-    action = control.Correct(1, volume(26.5), (0.1, 0.1, 0.1), 27.0, "/scans/1", 26.0, (98.0, 97.0, 97.0))
-    asyncio.run(Daemon._correct_for_core(daemon, action))
-    assert asked[:2] == [pytest.approx(26.5), pytest.approx(26.0)]      # the target, then the shifted volume
-    assert asked[-1] == pytest.approx(26.746)                            # the corrected range's edge, inside it
-    ((method, (round_, answer, how)),) = fed
-    assert method == "corrected" and round_ == 1 and answer.target.gland_volume_m3 * 1e6 == pytest.approx(26.746)
-    assert "beyond the model's reachable 26.736 to 52.021 ml (with the correction in force), so its edge" in how
-
-
-def test_the_next_round_asks_the_target_less_what_the_refitted_correction_still_misses_at_the_scan():
-    """make demo's 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in four rounds and was not verified: the correction
-    refitted to every stored scan (by least squares) passed beside the newest, and the target alone moved the
-    pressures by a share of the scan's error. The next round asks the corrected model for the target less the
-    scan's miss of the corrected model at the scanned pressures."""
-    import asyncio
-    import types
-
-    from phantom.host.daemon import Daemon
-
-    asked, estimated, fed = [], [], []
-
-    async def solve(target):
-        asked.append(target.gland_volume_m3 * 1e6)
-        return types.SimpleNamespace(pressures_pa=[500.0, 600.0, 600.0], target=target)
-
-    async def estimate(pressures_pa):  # the refitted correction says 29.10 ml where the phantom scanned 28.66
-        estimated.append(list(pressures_pa))
-        return types.SimpleNamespace(gland_volume_ml=29.10)
-
-    async def recorded(*_):
-        return True
-
-    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded, model=types.SimpleNamespace(estimate=estimate),
-                                   core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
-                                   _feed=lambda method, *args: fed.append((method, args)))
-    daemon._less_the_corrections_miss = lambda action: Daemon._less_the_corrections_miss(daemon, action)
-    action = control.Correct(1, volume(30.0), (0.403, 0.482, 0.482), 28.66, "/scans/1", 31.34, (403.0, 482.0, 482.0))
-    asyncio.run(Daemon._correct_for_core(daemon, action))
-    assert estimated == [[pytest.approx(403.0), pytest.approx(482.0), pytest.approx(482.0)]]  # at the scan's (Pa)
-    assert asked == [pytest.approx(30.0 + (29.10 - 28.66))]
-    ((method, (round_, answer, how)),) = fed
-    assert method == "corrected" and round_ == 1 and how == "the target on the model corrected by the scan"
 
 
 def test_a_target_is_solved_after_the_scan_being_stored():
