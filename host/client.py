@@ -891,7 +891,10 @@ class Phantom:
             target; outside a third of ``verify_tolerance_pct`` (the last round: outside it) the scan corrects
             the model (or the volume asked) and the pressures are applied again, for at most ``verify_rounds``
             scans; every scan is stored as a measurement of the phantom. The result's ``volume_ml`` is then
-            the scanned (measured) volume, ``rounds`` each round's pressures and scanned volume.
+            the scanned (measured) volume, ``rounds`` each round's pressures and scanned volume. ``"auto"``:
+            the same, unless the correction by the stored measurements is sure of the target (its 95 % band
+            there within ``verify_tolerance_pct``): then no scan, and the result says reached within +-``band_pct``
+            (95 %) from ``measurements`` stored measurements (``scanned`` False).
         verify_tolerance_pct : float, optional
             How close the scanned volume must come (% of the target; default 0.3, from 0.05 to 20); the rounds
             aim at a third of it (the scanner's own error adds to the scanned one in the true volume).

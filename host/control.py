@@ -198,15 +198,25 @@ VERIFY_AIM_SHARE = 1.0 / 3.0
 @dataclass(frozen=True)
 class Verify:
     """How a target is verified by the scanner: within ``tolerance_pct`` of the scanned gland volume, in at most
-    ``rounds`` scans; ``correct`` False only records one scan (a scene's ``scan = true``)."""
+    ``rounds`` scans; ``correct`` False only records one scan (a scene's ``scan = true``); ``auto`` scans only
+    when the correction's 95 % band at the target's answer is wider than the tolerance (:meth:`needs_scan`),
+    and otherwise says the target reached within that band, from how many stored measurements."""
 
     tolerance_pct: float = 0.3
     rounds: int = 4
     correct: bool = True
+    auto: bool = False
 
     def to_json(self) -> dict[str, Any]:
-        return {"verify": "scan" if self.correct else "record", "verify_tolerance_pct": self.tolerance_pct,
-                "verify_rounds": self.rounds}
+        return {"verify": "auto" if self.auto else "scan" if self.correct else "record",
+                "verify_tolerance_pct": self.tolerance_pct, "verify_rounds": self.rounds}
+
+    def needs_scan(self, answer: InverseResult, target_ml: float) -> bool:
+        """Whether the target of ``answer`` is scanned: always, unless ``auto`` and the answer's band (the
+        correction's 95 % half-width at its pressures, ml; none without a correction) is within the tolerance."""
+        band_ml = answer.band_ml
+        return (not self.auto or band_ml is None or not np.isfinite(band_ml)
+                or band_ml > self.tolerance_pct / 100.0 * target_ml)
 
 
 @dataclass(frozen=True)
@@ -381,6 +391,8 @@ class ControlCore:
         self._measured: tuple[float, np.ndarray] | None = None
         #: the verified target's rounds (None: the target is not verified, or its verification ended)
         self._rounds: _Rounds | None = None
+        #: a ``verify = "auto"`` target the correction is sure of (no scan): its Verify and answer
+        self._sure: tuple[Verify, InverseResult] | None = None
         self._actions: list[Action] = []
 
     # --- what the driver reads ----------------------------------------------------------------------------
@@ -443,6 +455,7 @@ class ControlCore:
                 self._start_reach(now)  # a ramp that ends on the point it last sent
             return
         self._set_target(now, target, source, step, ramp, None)
+        self._sure = None
         if verify is not None and target.gland_volume_m3 is not None:
             self._rounds = _Rounds(verify, target.gland_volume_m3 * ML_PER_M3, target.gland_volume_m3 * ML_PER_M3)
         self._next(now)
@@ -452,6 +465,9 @@ class ControlCore:
             self._solving = None
         if target == self.target:
             self.answer = answer
+            rounds = self._rounds
+            if rounds is not None and not rounds.rounds and not rounds.verify.needs_scan(answer, rounds.target_ml):
+                self._sure, self._rounds = (rounds.verify, answer), None  # a scene step's verify = "auto"
         self._next(now)
 
     def solve_failed(self, now: float, target: Target, unreachable: bool, text: str) -> None:
@@ -482,10 +498,13 @@ class ControlCore:
             self._set_target(now, target, "api", None, None, offer.tolerance_pct)
             self._reached = None  # asked again: told again
             self.answer = offer.answer
-            self._rounds = None
+            self._rounds = self._sure = None
             if offer.verify is not None and target.gland_volume_m3 is not None:
                 target_ml = target.gland_volume_m3 * ML_PER_M3
-                self._rounds = _Rounds(offer.verify, target_ml, target_ml)
+                if offer.verify.needs_scan(offer.answer, target_ml):
+                    self._rounds = _Rounds(offer.verify, target_ml, target_ml)
+                else:
+                    self._sure = (offer.verify, offer.answer)
             if changed:
                 pressures = ", ".join(f"{p / PA_PER_KPA:.3f}" for p in offer.answer.pressures_pa)
                 self._tell("target", f"target {target.describe()} -> setpoints {pressures} kPa (predicted "
@@ -830,8 +849,8 @@ class ControlCore:
             if abs(gland_ml - wanted_ml) > min(reach.tolerance_pct, rounds.verify.tolerance_pct) / 100.0 * wanted_ml:
                 return
         pressures_kpa = [float(p) / PA_PER_KPA for p in measured_pa]
-        extra = {"estimated_volume_ml": gland_ml,
-                 "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
+        extra: dict[str, Any] = {"estimated_volume_ml": gland_ml,
+                                 "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
                  "measured_pressures_kpa": pressures_kpa, "after_s": now - reach.applied_s}
         if rounds is not None:
             if rounds.doing is None:
@@ -843,8 +862,16 @@ class ControlCore:
                            f"(estimate {gland_ml:.2f} ml): scanning")
                 self._actions.append(Scan(len(rounds.rounds), reach.target, tuple(pressures_kpa)))
             return
-        self._reached_now(reach, "reached", f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, "
-                          f"pressures settled for {settled_s:.1f} s", extra)
+        text = f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, pressures settled for " \
+               f"{settled_s:.1f} s"
+        if self._sure is not None:  # verify = "auto" with a band within the tolerance: no scan
+            verify, answer = self._sure
+            band_pct = 100.0 * (answer.band_ml or 0.0) / gland_ml
+            text += (f"; verify auto: within +-{band_pct:.2f} % (95 %) from {answer.measurements} stored "
+                     f"measurement(s), within the {verify.tolerance_pct:g} % asked, so not scanned")
+            extra |= {"verify": verify.to_json(), "verified": False, "scanned": False, "band_ml": answer.band_ml,
+                      "band_pct": band_pct, "measurements": answer.measurements}
+        self._reached_now(reach, "reached", text, extra)
 
     def _reached_now(self, reach: _Reach, outcome: str, text: str, extra: dict[str, Any]) -> None:
         if reach.step is not None:
@@ -878,7 +905,7 @@ class ControlCore:
     def _outcome(self, outcome: str, text: str, level: str = "INFO", extra: dict[str, Any] | None = None) -> None:
         """An outcome of the target waited on (reached, replaced, unreachable, faulted): told once, with data."""
         reach, self._reach = self._reach, None
-        self._rounds = None  # a verification ends with its target's outcome
+        self._rounds = self._sure = None  # a verification ends with its target's outcome
         target = reach.target if reach is not None else self.target
         if target is None:
             return

@@ -217,7 +217,7 @@ class LoadedModel:
         if target.kind != "volume":
             answer = self.solver.pressures_for(target)
             gland_ml = self.gland_ml(np.asarray(answer.pressures_pa), answer.predicted_gland_volume_m3)
-            return replace(answer, predicted_gland_volume_m3=gland_ml / ML_PER_M3)
+            return self._with_band(replace(answer, predicted_gland_volume_m3=gland_ml / ML_PER_M3))
         assert target.gland_volume_m3 is not None  # the kind says so
         target_ml = target.gland_volume_m3 * ML_PER_M3
         corrected = self.corrected
@@ -238,11 +238,19 @@ class LoadedModel:
 
         _, corrected_ml, _ = corrected.pressures_for_ml(target_ml, inverse_kpa)
         last = answers[-1]
-        return InverseResult(target, last.pressures_pa, corrected_ml / ML_PER_M3, last.predicted_chamber_volumes_m3,
-                             sum(answer.iterations for answer in answers),
-                             sum(answer.solve_time_s for answer in answers),
-                             sum(answer.qp_solve_time_s for answer in answers),
-                             [entry for answer in answers for entry in answer.history])
+        return self._with_band(InverseResult(target, last.pressures_pa, corrected_ml / ML_PER_M3,
+                                             last.predicted_chamber_volumes_m3,
+                                             sum(answer.iterations for answer in answers),
+                                             sum(answer.solve_time_s for answer in answers),
+                                             sum(answer.qp_solve_time_s for answer in answers),
+                                             [entry for answer in answers for entry in answer.history]))
+
+    def _with_band(self, answer: InverseResult) -> InverseResult:
+        """The answer with the correction's 95 % band (ml) at its pressures and its number of measurements."""
+        if self.corrected is None:
+            return answer
+        _, band_ml = self.corrected.gland_band_ml(np.asarray(answer.pressures_pa, dtype=float) / PA_PER_KPA)
+        return replace(answer, band_ml=band_ml, measurements=self.corrected.correction.count)
 
     def measured(self, pressures_pa: np.ndarray) -> np.ndarray:
         """Measured pressures (Pa) as the estimator takes them: negative ones 0, and on the full solve rounded to

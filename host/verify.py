@@ -1,4 +1,4 @@
-"""A verified target's policy without I/O: what follows a scan that missed, and whether a target needs a scan.
+"""A verified target's policy without I/O: what follows a scan that missed.
 
 The control core (host/control.py) reaches a verified target on pressure, asks for its scan and judges the
 scanned volume against the tolerance; a miss is its :class:`~phantom.host.control.Correct` action. What the
@@ -15,8 +15,9 @@ nothing else. The policy:
    ``shifted_ml``), and one beyond the reachable range at the range's edge (its range is data, never read out of
    a message), at most :data:`EDGE_TRIES` times.
 
-:func:`scan_needed` is ``verify="auto"``'s choice: scan only when the correction's 95 % band at the target's
-answer is wider than the tolerance.
+``verify="auto"``'s choice, whether a target is scanned at all, is :meth:`phantom.host.control.Verify.needs_scan`
+(the core makes it when the target's answer comes): only when the correction's 95 % band at the answer is wider
+than the tolerance.
 """
 
 from __future__ import annotations
@@ -163,9 +164,3 @@ class NextRound:
     def _finish(self, action: Apply | GiveUp) -> None:
         self.done = True
         self._actions.append(action)
-
-
-def scan_needed(band_ml: float | None, target_ml: float, tolerance_pct: float) -> bool:
-    """``verify="auto"``: whether a target needs a scan: yes without a correction's band (no measurements), or
-    when its 95 % half-width at the target's answer (ml) is wider than the tolerance (% of ``target_ml``)."""
-    return band_ml is None or not np.isfinite(band_ml) or band_ml > tolerance_pct / 100.0 * target_ml

@@ -458,3 +458,67 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
     assert len(captures) == 2
     ((method, (round_, volume_ml, error, *_)),) = fed  # only the second's scan, measured
     assert method == "scanned" and round_ == 1 and volume_ml == 35.02 and error is None
+
+
+def _offered(core, target_ml, band_ml, verify, measurements=12):
+    """A target offered with an answer carrying the correction's band (ml) and acknowledged; the actions of its
+    settling."""
+    import dataclasses
+
+    target = volume(target_ml)
+    answer = dataclasses.replace(answer_for(target), band_ml=band_ml, measurements=measurements)
+    core.offer(0.0, 1, answer, verify=verify)
+    core.take_actions()
+    core.sent(0.0, target)
+    core.take_actions()
+    return settle(core, 0.0, 1.2, estimate_ml=target_ml)
+
+
+def test_verify_auto_with_a_band_within_the_tolerance_is_reached_without_a_scan_and_says_from_how_many(core):
+    """verify="auto": the correction's 95 % band at the answer, 0.08 ml of 40 ml (0.2 %), is within the 0.3 %
+    asked: no scan; the outcome says so, with the band and the measurements it comes from."""
+    actions = _offered(core, 40.0, 0.08, Verify(auto=True))
+    assert of_kind(actions, control.Scan) == [] and outcomes(actions) == ["reached"]
+    (told,) = [tell for tell in of_kind(actions, control.Tell) if tell.data]
+    assert "verify auto: within +-0.20 % (95 %) from 12 stored measurement(s), within the 0.3 % asked, so not " \
+           "scanned" in told.text
+    assert told.data["scanned"] is False and told.data["band_ml"] == 0.08 and told.data["measurements"] == 12
+    assert told.data["verify"]["verify"] == "auto"
+
+
+@pytest.mark.parametrize("band_ml", [0.2, None, float("nan")])
+def test_verify_auto_with_a_wide_band_or_none_scans_as_verify_scan_does(core, band_ml):
+    """A band of 0.2 ml at 40 ml (0.5 %) is wider than the 0.3 % asked; no correction (no band) knows nothing:
+    both are scanned, and the rounds go on as verify="scan"'s."""
+    actions = _offered(core, 40.0, band_ml, Verify(auto=True))
+    assert outcomes(actions) == [] and len(of_kind(actions, control.Scan)) == 1
+    core.scanned(3.5, 1, 40.03, None, "/scans/1")
+    (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
+    assert told.data["outcome"] == "reached" and told.data["verified"] and told.data["verify"]["verify"] == "auto"
+
+
+def test_a_scene_steps_verify_auto_is_decided_when_its_answer_comes(core):
+    import dataclasses
+
+    target = volume(35.0)
+    core.scene_started(0.0)
+    core.want(0.0, target, "scene", step=0, verify=Verify(auto=True))
+    core.take_actions()
+    core.solved(0.1, target, dataclasses.replace(answer_for(target), band_ml=0.05, measurements=20))
+    core.take_actions()
+    core.sent(0.2, target)
+    actions = core.take_actions() + settle(core, 0.2, 1.2, estimate_ml=35.0)
+    assert of_kind(actions, control.Scan) == [] and "reached" in outcomes(actions)
+
+
+def test_verify_auto_is_taken_by_the_api_and_by_a_scene_and_a_bad_word_is_refused():
+    from phantom.host.api import ApiError
+    from phantom.host.handlers import verify_of
+    from phantom.host.scenes import SceneError, parse_step_verify
+
+    assert verify_of({"verify": "auto"}) == Verify(0.3, 4, auto=True)
+    assert parse_step_verify({"verify": "auto", "verify_rounds": 2}, "step 1") == Verify(0.3, 2, auto=True)
+    with pytest.raises(ApiError, match='verify must be "scan" .* or "auto"'):
+        verify_of({"verify": "maybe"})
+    with pytest.raises(SceneError, match='step 1: verify must be "scan" or "auto"'):
+        parse_step_verify({"verify": "maybe"}, "step 1")

@@ -52,9 +52,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                             help="with --wait: how close the estimate must come (%% of the target, default 1)")
     set_target.add_argument("--timeout-s", type=float, default=None, metavar="S",
                             help="with --wait: how long to wait (s, default 60, and 120 more per verify round)")
-    set_target.add_argument("--verify", choices=["scan"],
+    set_target.add_argument("--verify", choices=["scan", "auto"],
                             help="with --volume-ml: once reached on pressure, scan the phantom and correct until the "
-                            "scanned volume is within --verify-tolerance-pct (implies --wait)")
+                            "scanned volume is within --verify-tolerance-pct (implies --wait); auto: scan only when "
+                            "the correction's 95 %% band at the target is wider than that")
     set_target.add_argument("--verify-tolerance-pct", type=float, metavar="PCT",
                             help="with --verify: how close the scanned volume must come (%% of the target, default "
                             "0.3; the rounds aim at a third of it, the last accepts it all)")
@@ -241,9 +242,10 @@ def _run_set(args: argparse.Namespace) -> int:
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml")
     if args.verify is None and (args.verify_tolerance_pct is not None or args.verify_rounds is not None):
-        raise PhantomError("--verify-tolerance-pct and --verify-rounds go with --verify scan")
+        raise PhantomError("--verify-tolerance-pct and --verify-rounds go with --verify scan or auto")
     if args.verify is not None and args.volume_ml is None:
-        raise PhantomError("--verify scan compares the scanned gland volume with the target: give --volume-ml")
+        raise PhantomError(f"--verify {args.verify} compares the scanned gland volume with the target: give "
+                           "--volume-ml")
     options: dict[str, Any] = {"wait": args.wait or args.verify is not None, "tolerance_pct": args.tolerance_pct}
     if args.timeout_s is not None:
         options["timeout_s"] = args.timeout_s
