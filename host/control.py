@@ -856,6 +856,8 @@ class ControlCore:
             if rounds.doing is None:
                 rounds.doing = "scanning"
                 rounds.rounds.append({"round": len(rounds.rounds) + 1, "asked_ml": rounds.asked_ml,
+                                      # the correction's 95 % band (ml) at the round's answer: what it knew there
+                                      "band_ml": None if self.answer is None else self.answer.band_ml,
                                       "setpoints_kpa": [float(p) / PA_PER_KPA for p in self.setpoints_pa],
                                       "pressures_kpa": pressures_kpa, **extra})
                 self._tell("verify", f"target {reach.target.describe()}: round {len(rounds.rounds)} settled "

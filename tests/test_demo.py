@@ -73,13 +73,15 @@ def test_the_demo_prints_the_true_error_and_writes_its_report(tmp_path, capsys):
 def test_the_verified_table_shows_before_and_after_the_correction_in_true_volume():
     rows = [{"target_ml": 40.0, "error": None, "took_s": 95.0,
              "rounds": [{"estimated_volume_ml": 39.9, "scanned_volume_ml": 38.85, "true_volume_ml": 38.8},
-                        {"estimated_volume_ml": 41.1, "scanned_volume_ml": 40.03, "true_volume_ml": 39.98}]},
+                        {"estimated_volume_ml": 41.1, "band_ml": 0.061, "scanned_volume_ml": 40.03,
+                         "true_volume_ml": 39.98}]},
             {"target_ml": 45.0, "error": "a scan failed", "took_s": 40.0, "rounds": [{"estimated_volume_ml": 45.0}]}]
     table = demo.format_verified(rows).splitlines()
-    assert table[1].split() == ["40.00", "|", "39.90", "38.850", "38.800", "-3.000", "|", "41.10", "40.030",
-                                "39.980", "-0.050", "|", "2", "95"]
+    assert table[1].split() == ["40.00", "|", "39.90", "38.850", "38.800", "-3.000", "|", "41.10", "0.061",
+                                "40.030", "39.980", "-0.050", "|", "2", "95"]
     assert "NOT VERIFIED: a scan failed" in table[2]
-    assert table[3].startswith("after the scans: mean |true error| 0.050 % (largest 0.050 %)")   # the verified only
+    assert table[3].startswith("after the scans: mean |true error| 0.050 % (largest 0.050 %), 1.5 rounds on "
+                               "average")   # the error of the verified only
 
 
 def test_a_verified_volume_waits_for_the_boards_link_before_it_is_set(monkeypatch):
