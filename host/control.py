@@ -589,8 +589,18 @@ class ControlCore:
             if self.target is not None and self._pending_since_s is None:
                 self._pending_since_s = now
             if self._reach is not None:
+                rounds, verifying = self._rounds, ""
+                if rounds is not None and rounds.rounds:
+                    # a fault mid-verify: which round, what it was doing, and what to do (the scans before are
+                    # stored measurements: the next try starts from the correction they give)
+                    doing = {"scanning": "scanning", "correcting": "solving the next round"}.get(
+                        rounds.doing or "", "applying its pressures")
+                    verifying = (f" during verify round {len(rounds.rounds)} of {rounds.verify.rounds} ({doing}); "
+                                 f"the scans before are stored. Find why ({', '.join(names)}: `phantom status`, the "
+                                 "daemon's log), clear it (`phantom clear-fault`), then set the target again")
                 self._outcome("faulted", f"target {self._reach.target.describe()} not reached: faults latched "
-                              f"({', '.join(names)})", "ERROR")
+                              f"({', '.join(names)}){verifying}", "ERROR",
+                              extra=self._rounds_json(rounds) if verifying and rounds is not None else None)
         elif not names:
             self._tell("fault", "faults cleared")
         self.fault_names = names

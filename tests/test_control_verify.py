@@ -148,9 +148,16 @@ def test_a_scan_cut_short_by_a_lost_link_is_taken_again_once_the_pressures_settl
 
 
 def test_a_fault_during_a_scan_ends_it_faulted_and_its_scan_is_not_used(core):
+    """A fault mid-verify (make demo's DEAD_HOST during round 2's scan stopped the blowers and refused the rest)
+    says which round, what it was doing and what to do."""
     verified(core)
-    core.faults(2.0, ("OVERPRESSURE",))
-    assert outcomes(core.take_actions()) == ["faulted"]
+    core.faults(2.0, ("DEAD_HOST",))
+    actions = core.take_actions()
+    assert outcomes(actions) == ["faulted"]
+    (told,) = [tell for tell in of_kind(actions, control.Tell) if tell.data]
+    assert "faults latched (DEAD_HOST) during verify round 1 of 4 (scanning); the scans before are stored" in told.text
+    assert "clear it (`phantom clear-fault`), then set the target again" in told.text
+    assert told.data["rounds"][0]["round"] == 1
     core.scanned(3.0, 1, 38.8, None, "/scans/1")          # the scan that ran through the fault
     assert of_kind(core.take_actions(), (control.Correct, control.Record)) == []
 
