@@ -654,7 +654,9 @@ class AsyncPhantom:
                                   {"rounds": data.get("rounds") or []})
             if outcome == "faulted":
                 status = await self.status()
-                raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}")
+                # mid-verify, the outcome says which round it was in and what to do
+                during = f" ({data['text']})" if data.get("rounds") and data.get("text") else ""
+                raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}{during}")
             if outcome == "unreachable":
                 raise UnreachableError("unreachable", str(data.get("text", f"{wanted} is unreachable")))
             raise TargetReplacedError("replaced", f"the target {wanted} was replaced while waiting for it: "
