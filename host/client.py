@@ -29,7 +29,6 @@ import dataclasses
 import itertools
 import json
 import math
-import re
 import struct
 import threading
 import time
@@ -68,16 +67,15 @@ class DaemonError(PhantomError):
 
 
 class UnreachableError(DaemonError):
-    """No pressures within the limits reach the target; ``range_ml`` is the reachable range (low, high) when the
-    daemon gave one."""
+    """No pressures within the limits reach the target; ``range_ml`` is the gland's reachable range (low, high)
+    when the daemon gave it (as data: ``gland_range_ml``, never read out of the message's words)."""
 
     @property
     def range_ml(self) -> tuple[float, float] | None:
-        found = re.search(r"give (-?[\d.]+) to (-?[\d.]+) ml|range (-?[\d.]+)-(-?[\d.]+) ml", self.message)
-        if found is None:
+        found = self.data.get("gland_range_ml")
+        if not isinstance(found, list | tuple) or len(found) != 2:
             return None
-        low, high = (value for value in found.groups() if value is not None)
-        return float(low), float(high)
+        return float(found[0]), float(found[1])
 
 
 class StartingError(DaemonError):
@@ -658,7 +656,8 @@ class AsyncPhantom:
                 during = f" ({data['text']})" if data.get("rounds") and data.get("text") else ""
                 raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}{during}")
             if outcome == "unreachable":
-                raise UnreachableError("unreachable", str(data.get("text", f"{wanted} is unreachable")))
+                raise UnreachableError("unreachable", str(data.get("text", f"{wanted} is unreachable")),
+                                       {"gland_range_ml": data["gland_range_ml"]} if "gland_range_ml" in data else None)
             raise TargetReplacedError("replaced", f"the target {wanted} was replaced while waiting for it: "
                                       f"{message['data'].get('text', outcome)}")
 

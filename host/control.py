@@ -470,14 +470,18 @@ class ControlCore:
                 self._sure, self._rounds = (rounds.verify, answer), None  # a scene step's verify = "auto"
         self._next(now)
 
-    def solve_failed(self, now: float, target: Target, unreachable: bool, text: str) -> None:
+    def solve_failed(self, now: float, target: Target, unreachable: bool, text: str,
+                     gland_range_ml: tuple[float, float] | None = None) -> None:
+        """The target could not be solved: ``unreachable`` (the gland's reachable range ``gland_range_ml`` goes
+        with the outcome as data, when the model gave it), or the model failed (tried again)."""
         if self._solving == target:
             self._solving = None
         if target == self.target:
             if unreachable:
                 self._unreachable = target
                 self._wait(f"unreachable: {text}")
-                self._outcome("unreachable", f"target {target.describe()} is unreachable: {text}", "WARN")
+                self._outcome("unreachable", f"target {target.describe()} is unreachable: {text}", "WARN",
+                              extra=None if gland_range_ml is None else {"gland_range_ml": list(gland_range_ml)})
             else:
                 self._retry_after_s = now + self.retry_s
                 self._wait(text)

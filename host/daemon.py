@@ -202,7 +202,9 @@ class Daemon:
         try:
             answer = await self.solve(action.target, action.ramp)
         except ApiError as error:
-            self._feed(self.core.solve_failed, action.target, error.code == "unreachable", str(error))
+            edge = (error.data or {}).get("gland_range_ml")
+            self._feed(self.core.solve_failed, action.target, error.code == "unreachable", str(error),
+                       None if edge is None else (float(edge[0]), float(edge[1])))
         except Exception as error:  # the model worker failed: said, and tried again
             self._feed(self.core.solve_failed, action.target, False, f"the model failed: {error}")
         else:

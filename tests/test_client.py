@@ -52,13 +52,14 @@ def test_a_daemon_still_starting_is_waited_for_then_reported_with_its_progress(t
         thread.join(10)
 
 
-def test_the_unreachable_range_is_read_from_either_wording():
+def test_the_unreachable_range_is_the_answers_data_never_its_words():
+    """Issue 48: no regular expression over refusal texts in the client: the range is the API error's data."""
     give = UnreachableError("unreachable", "the gland volume target 80.000 ml is unreachable: pressures between 0 "
-                            "and [3, 3, 3] kPa give 25.950 to 43.740 ml; ask for a volume in that range")
+                            "and [3, 3, 3] kPa give 25.950 to 43.740 ml; ask for a volume in that range",
+                            {"gland_range_ml": [25.95, 43.74], "corrected": False})
     assert give.range_ml == (25.95, 43.74)
-    within = UnreachableError("unreachable", "the volume of chamber 1 target 3.000 ml is within the reachable "
-                              "range 1.900-4.100 ml on its own, but contradicts the other targets")
-    assert within.range_ml == (1.9, 4.1)
+    words_only = UnreachableError("unreachable", "pressures between 0 and [3, 3, 3] kPa give 25.950 to 43.740 ml")
+    assert words_only.range_ml is None
     assert UnreachableError("unreachable", "the volume QP did not solve").range_ml is None
 
 
