@@ -94,14 +94,28 @@ def pressures_in_box(pressures_kpa: ArrayLike, top_kpa: float, what: str = "a me
 
 @dataclass(frozen=True)
 class ModelGrid:
-    """A model's volumes (ml) on a grid of pressures (kPa, the same on every axis), where a field lives, and its
-    gland volume anywhere (``gland_ml(pressures_kpa)``: the model's own estimate, e.g. its VolumeEstimator)."""
+    """A model's volumes (ml) on a grid of pressures (kPa, the same on every axis), the box the correction lives
+    in, and its gland volume anywhere (``gland_ml(pressures_kpa)``: the model's own estimate, e.g. its
+    VolumeEstimator)."""
 
     points_kpa: np.ndarray
     chamber_ml: np.ndarray     # (n, n, n, 3)
     gland_grid_ml: np.ndarray  # (n, n, n)
     gland_ml: Callable[[np.ndarray], float]
     description: str = ""
+    _measured_ml: dict[tuple[float, ...], float] = field(default_factory=dict, compare=False, repr=False)
+
+    def measured_states_ml(self, pressures_kpa: np.ndarray) -> np.ndarray:
+        """The model's gland volume (ml) at each measured state (rows of kPa), each state's kept: a fitter that
+        refits a store of 200 measurements after each new one evaluates the model once for the new one (an
+        evaluation is 3-13 ms of the table's interpolant, most of a fit of 200 otherwise)."""
+        volumes = []
+        for row in np.asarray(pressures_kpa, dtype=float):
+            key = tuple(float(p) for p in row)
+            if key not in self._measured_ml:
+                self._measured_ml[key] = float(self.gland_ml(row))
+            volumes.append(self._measured_ml[key])
+        return np.array(volumes)
 
 
 # ----------------------------------------------------------------------------- the correction
@@ -312,7 +326,7 @@ def _fit_correction(measurements: Sequence[Measurement], grid: ModelGrid, kinds:
                               f"{chambers} chambers: they are of another phantom")
     pressures = pressures_in_box(pressures, float(grid.points_kpa[-1]), f"{len(measurements)} measurements")
     volumes = np.array([m.volume_ml for m in measurements], dtype=float)
-    model_ml = np.array([grid.gland_ml(p) for p in pressures])
+    model_ml = grid.measured_states_ml(pressures)
     rest_ml = grid.gland_ml(np.zeros(chambers))
     growth = model_ml - rest_ml
     residual = volumes - model_ml
