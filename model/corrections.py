@@ -69,6 +69,10 @@ LENGTH_SCALE_BOUNDS_KPA = (0.3, 3.0)
 #: The bounds of the residual's standard deviation (ml) and of the white noise beyond the methods' (ml).
 AMPLITUDE_BOUNDS_ML = (1e-3, 10.0)
 WHITE_NOISE_BOUNDS_ML = (1e-4, 3.0)
+#: The most measurements the kernel's hyperparameters are fitted to (evenly through the store; the posterior
+#: takes them all): five hyperparameters are well set by 100 measurements, and the optimisation of the marginal
+#: likelihood costs a factorisation of all of them at each step.
+HYPERPARAMETER_MEASUREMENTS = 100
 #: The band's width in standard deviations (95 %, two-sided).
 BAND_Z = 1.959964
 
@@ -342,7 +346,11 @@ def _fit_correction(measurements: Sequence[Measurement], grid: ModelGrid, kinds:
         if trend.shape[1]:  # the kernel's hyperparameters are fitted to what the trend leaves (weighted)
             coefficients, *_ = np.linalg.lstsq(trend / method_noise[:, None], residual / method_noise, rcond=None)
             detrended = residual - trend @ coefficients
-        amplitude, scales, white = _hyperparameters(pressures, detrended, method_noise, optimise=count >= 3)
+        # the kernel's five hyperparameters from at most HYPERPARAMETER_MEASUREMENTS of them, evenly through the
+        # store: its marginal likelihood's optimisation is most of a fit (each step a factorisation of them all)
+        subset = np.unique(np.linspace(0, count - 1, min(count, HYPERPARAMETER_MEASUREMENTS)).round().astype(int))
+        amplitude, scales, white = _hyperparameters(pressures[subset], detrended[subset], method_noise[subset],
+                                                    optimise=count >= 3)
         noise = np.sqrt(method_noise ** 2 + white ** 2)
         posterior = _posterior(kind, pressures, growth, residual, noise, amplitude, scales)
         inverse_diagonal = np.diag(cho_solve((posterior.cholesky, True), np.eye(count)))
@@ -377,7 +385,7 @@ def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correcti
     digest = hashlib.sha256(json.dumps({"version": FIT_CACHE_VERSION, "trends": TRENDS, "prior": TREND_PRIOR_SD,
                                         "noise": [NOISE_SD_PCT, NOISE_SD_ML],
                                         "bounds": [LENGTH_SCALE_BOUNDS_KPA, AMPLITUDE_BOUNDS_ML,
-                                                   WHITE_NOISE_BOUNDS_ML],
+                                                   WHITE_NOISE_BOUNDS_ML, HYPERPARAMETER_MEASUREMENTS],
                                         "measurements": [asdict(m) for m in measurements]},
                                        sort_keys=True).encode())
     for array in (grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml):
