@@ -278,6 +278,11 @@ class TargetResult:
     scanned_volume_ml: float | None = None
     verified: bool | None = None
     rounds: tuple[dict[str, Any], ...] = ()
+    #: with a correction by measured volumes in force: its 95 % half-width (ml) at the answer's pressures and from
+    #: how many measurements; ``scanned`` False: ``verify="auto"`` found the band within the tolerance, no scan
+    band_ml: float | None = None
+    measurements: int = 0
+    scanned: bool | None = None
 
     @property
     def volume_source(self) -> str:
@@ -293,7 +298,9 @@ class TargetResult:
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> TargetResult:
         return cls(dict(data["target"]), tuple(data["pressures_kpa"]), float(data["predicted_volume_ml"]),
-                   tuple(data["predicted_chamber_volumes_ml"]), int(data["iterations"]), float(data["solve_time_s"]))
+                   tuple(data["predicted_chamber_volumes_ml"]), int(data["iterations"]), float(data["solve_time_s"]),
+                   band_ml=None if data.get("band_ml") is None else float(data["band_ml"]),
+                   measurements=int(data.get("measurements", 0)))
 
 
 @dataclass(frozen=True)
@@ -646,7 +653,7 @@ class AsyncPhantom:
                     true_volume_ml=status.true_volume_ml, waited_s=time.monotonic() - started_s,
                     scanned_volume_ml=None if scanned is None else float(scanned),
                     verified=data.get("verified") if "rounds" in data else None,
-                    rounds=tuple(data.get("rounds") or ()))
+                    rounds=tuple(data.get("rounds") or ()), scanned=data.get("scanned"))
             if outcome in ("scan_failed", "not_verified"):
                 raise VerifyError(outcome, str(data.get("text", f"{wanted} was not verified")),
                                   {"rounds": data.get("rounds") or []})

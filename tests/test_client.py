@@ -68,3 +68,14 @@ def test_phantom_connect_is_the_hosts_client():
 
     assert phantom.connect.__doc__ and "wait" in phantom.connect.__doc__
     assert client.Phantom.set_volume.__doc__ and "Raises" in client.Phantom.set_volume.__doc__
+
+
+def test_a_target_results_band_and_measurements_come_from_the_answer():
+    from phantom.host.client import TargetResult
+
+    answer = {"target": {"volume_ml": 35.0}, "pressures_kpa": [1.0, 1.5, 1.5], "predicted_volume_ml": 35.0,
+              "predicted_chamber_volumes_ml": [5.0, 6.0, 6.0], "iterations": 3, "solve_time_s": 0.05}
+    plain = TargetResult.from_json(answer)
+    assert plain.band_ml is None and plain.measurements == 0 and plain.scanned is None
+    corrected = TargetResult.from_json({**answer, "band_ml": 0.07, "measurements": 12})
+    assert corrected.band_ml == 0.07 and corrected.measurements == 12

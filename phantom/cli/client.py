@@ -267,13 +267,17 @@ def _run_set(args: argparse.Namespace) -> int:
     print(f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in labels))
     print(f"{'setpoint':<9} {_per_chamber(result.pressures_kpa)}  kPa")
     print(f"{'volume':<9} {_per_chamber(result.predicted_chamber_volumes_ml, 2)}  ml predicted")
-    print(f"gland     {result.predicted_volume_ml:.2f} ml predicted (inverse {result.iterations} "
+    band = "" if result.band_ml is None else (f", +-{result.band_ml:.3f} ml (95 %) from {result.measurements} "
+                                              "stored measurement(s)")
+    print(f"gland     {result.predicted_volume_ml:.2f} ml predicted{band} (inverse {result.iterations} "
           f"iteration(s), {result.solve_time_s * 1e3:.1f} ms)")
     if result.waited_s is not None:
         true_volume = "" if result.true_volume_ml is None else (
             f", true {result.true_volume_ml:.2f} ml (simulated plant)")
         print(f"reached   {_ml(result.estimated_volume_ml)} estimated after {result.waited_s:.1f} s, pressures "
               f"settled{true_volume}")
+    if result.scanned is False:
+        print("verify auto: the correction's band is within the tolerance: not scanned")
     if result.rounds:
         print(f"{'round':<6} {'pressures (kPa)':>24} {'asked ml':>9} {'scanned ml':>11} {'error %':>8}")
         for entry in result.rounds:
