@@ -104,3 +104,28 @@ def test_a_verified_volume_waits_for_the_boards_link_before_it_is_set(monkeypatc
     monkeypatch.setattr(demo.time, "sleep", lambda _: None)
     (row,) = demo.verified_steps(Daemon(), [30.0])
     assert calls == ["status", "status", "status", ("set", 30.0)] and row["error"] is None
+
+
+def test_a_fault_during_a_verified_volume_leaves_the_rest_untried_and_says_where_it_came():
+    """make demo on a loaded machine: DEAD_HOST during 26.5 ml's fourth round, then each later volume refused at
+    once (FAULT_LATCHED), four lines of the same cause. The fault's row says the round and what to do; the rest
+    are not tried."""
+    import types
+
+    from phantom.host.client import FaultError
+
+    tried = []
+
+    class Daemon:
+        def status(self):
+            return types.SimpleNamespace(link="online")
+
+        def set_volume(self, target_ml, **_):
+            tried.append(target_ml)
+            raise FaultError(("DEAD_HOST",), f"waiting for {target_ml:g} ml (target {target_ml:.2f} ml not reached: "
+                             "faults latched (DEAD_HOST) during verify round 4 of 4 (scanning); ...)")
+
+    rows = demo.verified_steps(Daemon(), [26.5, 30.0, 35.0])
+    assert tried == [26.5] and [row["target_ml"] for row in rows] == [26.5, 30.0, 35.0]
+    assert "during verify round 4 of 4 (scanning)" in rows[0]["error"]
+    assert rows[1]["error"] == rows[2]["error"] == "not tried: DEAD_HOST latched while verifying 26.5 ml"

@@ -146,15 +146,24 @@ def stop_daemon(process: subprocess.Popen[bytes]) -> int:
 def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]:
     """Each volume set with ``verify="scan"``: per target, the first and the last round (the model's estimate,
     the scanned and the true volume) and the rounds taken; a target that was not verified says why."""
-    from phantom.host.client import DaemonError
+    from phantom.host.client import DaemonError, FaultError
 
     rows: list[dict[str, Any]] = []
-    for target_ml in targets_ml:
+    for index, target_ml in enumerate(targets_ml):
         print(f"  verifying {target_ml:g} ml: reach on pressure, scan, correct ...", file=sys.stderr, flush=True)
         started_s = time.monotonic()
         try:
             wait_for_link(daemon)
             result = daemon.set_volume(target_ml, verify="scan", timeout_s=VERIFY_TIMEOUT_S)
+        except FaultError as error:
+            # a fault stops the blowers until it is cleared: the volumes after it are not tried (each was refused
+            # at once, FAULT_LATCHED), and the error says which round it came in and what to do
+            rows.append({"target_ml": target_ml, "rounds": list(getattr(error, "rounds", [])), "error": str(error),
+                         "took_s": time.monotonic() - started_s})
+            rows += [{"target_ml": later_ml, "rounds": [], "error": f"not tried: {', '.join(error.faults)} latched "
+                      f"while verifying {target_ml:g} ml", "took_s": 0.0} for later_ml in targets_ml[index + 1:]]
+            print(f"  {target_ml:g} ml: not verified: {error}; the rest are not tried", file=sys.stderr)
+            break
         except DaemonError as error:
             rounds = list(getattr(error, "rounds", []))
             rows.append({"target_ml": target_ml, "rounds": rounds, "error": str(error),
