@@ -285,8 +285,10 @@ def _hyperparameters(pressures_kpa: np.ndarray, residual_ml: np.ndarray, noise_m
     from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
     chambers = pressures_kpa.shape[1]
-    amplitude = float(np.clip(np.std(residual_ml) if len(residual_ml) > 1 else abs(residual_ml[0]),
-                              *AMPLITUDE_BOUNDS_ML))
+    # the residual's root mean square (its size about the zero mean), not its spread: two scans that agree on a
+    # residual of 0.5 ml are a residual of 0.5 ml, not one of their 0.02 ml difference (a start that near the
+    # bound left two scans' residual unrepresented, and the next round 0.8 % off near rest)
+    amplitude = float(np.clip(np.sqrt(np.mean(residual_ml ** 2)), *AMPLITUDE_BOUNDS_ML))
     kernel = (ConstantKernel(amplitude ** 2, tuple(b ** 2 for b in AMPLITUDE_BOUNDS_ML))
               * RBF(np.full(chambers, 1.5), LENGTH_SCALE_BOUNDS_KPA)
               # started at the methods' own noise, not at its bound: there its gradient in log space vanishes
@@ -371,7 +373,7 @@ def _fit_correction(measurements: Sequence[Measurement], grid: ModelGrid, kinds:
 
 
 #: Bumped when what a cached fit holds, or how a fit is made, changes.
-FIT_CACHE_VERSION = 3
+FIT_CACHE_VERSION = 4
 
 
 def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correction:
