@@ -2,11 +2,12 @@
 
 The same functions the daemon uses: the model worker's corrected inverse (:class:`CorrectedModel` over the
 daemon's default model, ``builtin:converged``), its fit (:func:`fit_correction` of the stored scans), the verify
-policy's next round (:class:`phantom.host.verify.NextRound`: record, refit, solve the target less what the corrected
-model still misses at the scan) and the control core's stop rule (:data:`phantom.host.control.VERIFY_AIM_SHARE`
-of the tolerance while rounds remain). The "scan" is the shipped simulated phantom's truth (hil/plant.toml) at the
-pressures, read with the scanner's error model (bench/README.md "Scanner": 0.12 % of noise; ``--bias-pct`` for
-its bias). Pressures are taken as reached exactly. Prints each volume's rounds and the TRUE error after.
+policy's next round (:class:`phantom.host.verify.NextRound`: record, refit, solve the target less what the
+corrected model still misses at the scan) and its stop rule (:func:`phantom.host.verify.judge_scan`: within
+:data:`~phantom.host.verify.VERIFY_AIM_SHARE` of the tolerance while rounds remain). The "scan" is the shipped
+simulated phantom's truth (hil/plant.toml) at the pressures, read with the scanner's error model (bench/README.md
+"Scanner": 0.12 % of noise; ``--bias-pct`` for its bias). Pressures are taken as reached exactly. Prints each
+volume's rounds and the TRUE error after, and the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--show-fits]
 """
@@ -23,7 +24,7 @@ DEMO_ML = (26.5, 30.0, 35.0, 40.0, 45.0)
 
 def main() -> None:
     from phantom.hil.plant import load_plant
-    from phantom.host import control
+    from phantom.host import verify
     from phantom.host.scenes import load_timeline_scene
     from phantom.model import PhantomModel
     from phantom.model.corrections import CorrectedModel, fit_correction, model_grid
@@ -36,7 +37,7 @@ def main() -> None:
     parser.add_argument("--noise-pct", type=float, default=0.12)
     parser.add_argument("--bias-pct", type=float, default=0.0)
     parser.add_argument("--tolerance-pct", type=float, default=0.3)
-    parser.add_argument("--aim-share", type=float, default=control.VERIFY_AIM_SHARE)
+    parser.add_argument("--aim-share", type=float, default=verify.VERIFY_AIM_SHARE)
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
@@ -82,9 +83,8 @@ def main() -> None:
                 true_pct = (truth / target_ml - 1) * 100
                 log.append(f"{error_pct:+.2f} / {true_pct:+.2f}")
                 store.append(Measurement(tuple(map(float, pressures)), float(scanned)))
-                within = abs(error_pct) <= args.tolerance_pct
-                if abs(error_pct) <= args.tolerance_pct * args.aim_share or (within and round_ >= args.rounds) \
-                        or round_ >= args.rounds:
+                if verify.judge_scan(error_pct, args.tolerance_pct, round_, args.rounds, True,
+                                     args.aim_share) != "correct":
                     break
                 corrected = CorrectedModel(grid, fit_correction(store, grid))
                 still_missed = scanned - corrected.gland_ml(pressures)

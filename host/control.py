@@ -36,8 +36,8 @@ the estimate within ``tolerance_pct`` of what was asked.
 
 A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
 then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
-pressures. A scanned gland volume within a third of the tolerance of the target (:data:`VERIFY_AIM_SHARE`; on
-the last round, within the tolerance) ends it ``reached`` with the scanned volume (the volume reported is
+pressures. A scanned gland volume within a third of the tolerance of the target (on the last round, within the
+tolerance; :func:`phantom.host.verify.judge_scan`) ends it ``reached`` with the scanned volume (the volume reported is
 MEASURED) and asks for a :class:`Record` of the scan as a measurement; one outside asks for a :class:`Correct`
 (the scan recorded as a measurement, the next round's pressures solved), applies that answer, and scans again, up
 to the round limit (then ``not_verified``, the last scan recorded). A failed scan ends it ``scan_failed``: no
@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from phantom.host import verify as verify_policy
 from phantom.host.board_watch import SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
@@ -188,11 +189,6 @@ MAX_VERIFY_ROUNDS = 10
 #: again, have settled. On the loaded two cores the simulated board lost its link every minute or two, and a
 #: nine-minute scan with it.
 SCAN_RETRIES = 2
-#: While rounds remain, a verified target stops only on a scan within this share of its tolerance (it aims at the
-#: target, not at the tolerance's edge): the scanner's own error adds to the scanned error in the true volume, and
-#: the verify plan's is -0.18 % at 30 ml to +0.18 % at 45 ml (bench/README.md), so a scan stopped at +0.17 % of a
-#: 0.3 % tolerance left `make demo`'s 30 ml +0.36 % true. The last round still ends verified within the tolerance.
-VERIFY_AIM_SHARE = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -679,13 +675,13 @@ class ControlCore:
         entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct)
         verify = rounds.verify
         within = abs(error_pct) <= verify.tolerance_pct
-        aim_pct = verify.tolerance_pct * VERIFY_AIM_SHARE
-        if not verify.correct or abs(error_pct) <= aim_pct or (within and round_ >= verify.rounds):
+        judged = verify_policy.judge_scan(error_pct, verify.tolerance_pct, round_, verify.rounds, verify.correct)
+        if judged == "verified":
             self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._verified_outcome(reach, rounds, f"target {described} reached and MEASURED: scanned "
                                    f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {'within' if within else 'outside'} "
                                    f"{verify.tolerance_pct:g} %) after {round_} round(s)")
-        elif round_ >= verify.rounds:
+        elif judged == "not_verified":
             self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._outcome("not_verified", f"target {described} not verified: scanned {volume_ml:.2f} ml "
                           f"({error_pct:+.2f} %) after {round_} round(s), the limit; the pressures are held (give "
@@ -694,6 +690,7 @@ class ControlCore:
         else:
             rounds.doing = "correcting"
             setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
+            aim_pct = verify.tolerance_pct * verify_policy.VERIFY_AIM_SHARE
             outside = (f"within {verify.tolerance_pct:g} % but outside the {aim_pct:.2g} % aimed at" if within
                        else f"outside {verify.tolerance_pct:g} %")
             self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "

@@ -199,6 +199,29 @@ def test_the_shift_follows_the_phantoms_own_growth_per_ml_asked():
     assert control.shifted_ml(noisy, 40.0) == pytest.approx(41.06 + 1.05)
 
 
+@pytest.mark.parametrize(("error_pct", "round_", "correct", "judged"), [
+    (0.09, 1, True, "verified"),        # within the third of 0.3 % aimed at
+    (-0.099, 1, True, "verified"),      # below it
+    (0.2, 1, True, "correct"),          # within 0.3 %, off the aim, rounds remain
+    (0.2, 4, True, "verified"),         # within 0.3 % on the last round
+    (-0.31, 4, True, "not_verified"),   # outside it on the last
+    (-2.0, 3, True, "correct"),
+    (-2.0, 1, False, "verified"),       # scanned only (a recording scan): one round, whatever it measures
+])
+def test_what_a_scan_means_is_judged_by_the_verify_policy(error_pct, round_, correct, judged):
+    from phantom.host import verify
+
+    assert verify.judge_scan(error_pct, 0.3, round_, 4, correct) == judged
+
+
+def test_the_whole_tolerance_can_be_aimed_at_offline():
+    """bench/verify_rounds.py compares the rule with a scan within the whole tolerance (aim_share 1)."""
+    from phantom.host import verify
+
+    assert verify.judge_scan(0.25, 0.3, 1, 4, True, aim_share=1.0) == "verified"
+    assert verify.judge_scan(0.25, 0.3, 1, 4, True) == "correct"
+
+
 def answer_at(target, kpa=(1.0, 0.0, 0.0)):
     """An inverse's answer for ``target`` at these pressures (kPa)."""
     return answer_for(target, kpa)
