@@ -9,7 +9,10 @@ simulated phantom's truth (hil/plant.toml) at the pressures, read with the scann
 "Scanner": 0.12 % of noise; ``--bias-pct`` for its bias). Pressures are taken as reached exactly. Prints each
 volume's rounds and the TRUE error after, and the mean rounds.
 
-    nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--show-fits]
+    nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
+    [--show-fits]
+
+(``phantom.scan`` is imported for ``--path``'s design only: a bench joins the parts.)
 """
 
 from __future__ import annotations
@@ -39,6 +42,9 @@ def main() -> None:
     parser.add_argument("--tolerance-pct", type=float, default=0.3)
     parser.add_argument("--aim-share", type=float, default=verify.VERIFY_AIM_SHARE)
     parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--path", type=int, default=0,
+                        help="start from a store of this many stand-in scans along the model's inverse path (as "
+                             "`phantom characterise --path N` stores), not an empty one")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
@@ -73,6 +79,14 @@ def main() -> None:
     for seed in range(args.seeds):
         rng = np.random.default_rng(seed)
         store: list[Measurement] = []
+        if args.path:
+            from phantom.scan.characterise import path_design
+
+            design = path_design(args.path, inverse_kpa, grid.gland_ml(np.zeros(3)), grid.gland_ml(np.full(3, 3.0)))
+            for state in design:
+                truth = true_ml(np.asarray(state))
+                store.append(Measurement(tuple(map(float, state)),
+                                         truth * (1 + (args.bias_pct + args.noise_pct * rng.standard_normal()) / 100)))
         for target_ml in DEMO_ML:
             pressures = solve_kpa(store, target_ml)
             log = []
