@@ -10,7 +10,7 @@ simulated phantom's truth (hil/plant.toml) at the pressures, read with the scann
 volume's rounds and the TRUE error after, and the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
-    [--show-fits]
+    [--stop-by-correction] [--show-fits]
 
 (``phantom.scan`` is imported for ``--path``'s design only: a bench joins the parts.)
 """
@@ -45,6 +45,9 @@ def main() -> None:
     parser.add_argument("--path", type=int, default=0,
                         help="start from a store of this many stand-in scans along the model's inverse path (as "
                              "`phantom characterise --path N` stores), not an empty one")
+    parser.add_argument("--stop-by-correction", action="store_true",
+                        help="also stop on a scan within the tolerance where the refitted correction at the scanned "
+                             "pressures, its 95 %% band added, is within it (a proposal: not what the daemon does)")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
@@ -101,6 +104,10 @@ def main() -> None:
                                      args.aim_share) != "correct":
                     break
                 corrected = CorrectedModel(grid, fit_correction(store, grid))
+                if args.stop_by_correction and abs(error_pct) <= args.tolerance_pct:
+                    mean_ml, band_ml = corrected.gland_band_ml(pressures)
+                    if (abs(mean_ml - target_ml) + band_ml) / target_ml * 100 <= args.tolerance_pct:
+                        break
                 still_missed = scanned - corrected.gland_ml(pressures)
                 if args.show_fits:
                     c = corrected.correction
