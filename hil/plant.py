@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError
-from phantom.model.corrections import trilinear
+from phantom.hil.truth_residual import trilinear
 
 #: The shipped plant parameter file.
 DEFAULT_PLANT_PATH = Path(__file__).resolve().parent / "plant.toml"
@@ -445,7 +445,7 @@ MEASURED_VOLUMES_PATH = Path(__file__).resolve().parent.parent / "model" / "data
 def truth_through_measurements(table: TruthTable, pressures_kpa: ArrayLike, volumes_ml: ArrayLike,
                                source: str = "the measurements") -> TruthTable:
     """The truth table plus the smoothest residual field that takes its gland volume, as the plant interpolates
-    it, through measured volumes (:func:`phantom.model.corrections.smoothest_residual`: per chamber, zero while
+    it, through measured volumes (:func:`phantom.hil.truth_residual.smoothest_residual`: per chamber, zero while
     the chamber is not inflated, every chamber's and the gland's growth kept positive).
 
     Raises
@@ -454,7 +454,7 @@ def truth_through_measurements(table: TruthTable, pressures_kpa: ArrayLike, volu
         When the measurements cannot be met so (two that contradict the growth's sign), or a pressure is
         negative or beyond the table's grid.
     """
-    from phantom.model.corrections import smoothest_residual
+    from phantom.hil.truth_residual import smoothest_residual
     from phantom.model.measurements import CorrectionError
 
     points = np.asarray(table.points_kpa, dtype=float)

@@ -30,7 +30,6 @@ import itertools
 import json
 import math
 import os
-import re
 import struct
 import threading
 import time
@@ -69,16 +68,15 @@ class DaemonError(PhantomError):
 
 
 class UnreachableError(DaemonError):
-    """No pressures within the limits reach the target; ``range_ml`` is the reachable range (low, high) when the
-    daemon gave one."""
+    """No pressures within the limits reach the target; ``range_ml`` is the gland's reachable range (low, high)
+    when the daemon gave it (as data: ``gland_range_ml``, never read out of the message's words)."""
 
     @property
     def range_ml(self) -> tuple[float, float] | None:
-        found = re.search(r"give (-?[\d.]+) to (-?[\d.]+) ml|range (-?[\d.]+)-(-?[\d.]+) ml", self.message)
-        if found is None:
+        found = self.data.get("gland_range_ml")
+        if not isinstance(found, list | tuple) or len(found) != 2:
             return None
-        low, high = (value for value in found.groups() if value is not None)
-        return float(low), float(high)
+        return float(found[0]), float(found[1])
 
 
 class StartingError(DaemonError):
@@ -281,6 +279,11 @@ class TargetResult:
     scanned_volume_ml: float | None = None
     verified: bool | None = None
     rounds: tuple[dict[str, Any], ...] = ()
+    #: with a correction by measured volumes in force: its 95 % half-width (ml) at the answer's pressures and from
+    #: how many measurements; ``scanned`` False: ``verify="auto"`` found the band within the tolerance, no scan
+    band_ml: float | None = None
+    measurements: int = 0
+    scanned: bool | None = None
     #: a shape target (:meth:`DaemonClient.set_shape`): the shape inverse's answer (``distance_mm``,
     #: ``rest_distance_mm``, ``regions``, volumes, ...: ``phantom inverse --shape --json``'s), else None
     shape: dict[str, Any] | None = None
@@ -300,6 +303,8 @@ class TargetResult:
     def from_json(cls, data: dict[str, Any]) -> TargetResult:
         return cls(dict(data["target"]), tuple(data["pressures_kpa"]), float(data["predicted_volume_ml"]),
                    tuple(data["predicted_chamber_volumes_ml"]), int(data["iterations"]), float(data["solve_time_s"]),
+                   band_ml=None if data.get("band_ml") is None else float(data["band_ml"]),
+                   measurements=int(data.get("measurements", 0)),
                    shape=dict(data["shape"]) if isinstance(data.get("shape"), dict) else None)
 
 
@@ -666,15 +671,18 @@ class AsyncPhantom:
                     true_volume_ml=status.true_volume_ml, waited_s=time.monotonic() - started_s,
                     scanned_volume_ml=None if scanned is None else float(scanned),
                     verified=data.get("verified") if "rounds" in data else None,
-                    rounds=tuple(data.get("rounds") or ()))
+                    rounds=tuple(data.get("rounds") or ()), scanned=data.get("scanned"))
             if outcome in ("scan_failed", "not_verified"):
                 raise VerifyError(outcome, str(data.get("text", f"{wanted} was not verified")),
                                   {"rounds": data.get("rounds") or []})
             if outcome == "faulted":
                 status = await self.status()
-                raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}")
+                # mid-verify, the outcome says which round it was in and what to do
+                during = f" ({data['text']})" if data.get("rounds") and data.get("text") else ""
+                raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}{during}")
             if outcome == "unreachable":
-                raise UnreachableError("unreachable", str(data.get("text", f"{wanted} is unreachable")))
+                raise UnreachableError("unreachable", str(data.get("text", f"{wanted} is unreachable")),
+                                       {"gland_range_ml": data["gland_range_ml"]} if "gland_range_ml" in data else None)
             raise TargetReplacedError("replaced", f"the target {wanted} was replaced while waiting for it: "
                                       f"{message['data'].get('text', outcome)}")
 
@@ -909,7 +917,10 @@ class Phantom:
             target; outside a third of ``verify_tolerance_pct`` (the last round: outside it) the scan corrects
             the model (or the volume asked) and the pressures are applied again, for at most ``verify_rounds``
             scans; every scan is stored as a measurement of the phantom. The result's ``volume_ml`` is then
-            the scanned (measured) volume, ``rounds`` each round's pressures and scanned volume.
+            the scanned (measured) volume, ``rounds`` each round's pressures and scanned volume. ``"auto"``:
+            the same, unless the correction by the stored measurements is sure of the target (its 95 % band
+            there within ``verify_tolerance_pct``): then no scan, and the result says reached within +-``band_pct``
+            (95 %) from ``measurements`` stored measurements (``scanned`` False).
         verify_tolerance_pct : float, optional
             How close the scanned volume must come (% of the target; default 0.3, from 0.05 to 20); the rounds
             aim at a third of it (the scanner's own error adds to the scanned one in the true volume).

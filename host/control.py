@@ -36,8 +36,8 @@ the estimate within ``tolerance_pct`` of what was asked.
 
 A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
 then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
-pressures. A scanned gland volume within a third of the tolerance of the target (:data:`VERIFY_AIM_SHARE`; on
-the last round, within the tolerance) ends it ``reached`` with the scanned volume (the volume reported is
+pressures. A scanned gland volume within a third of the tolerance of the target (on the last round, within the
+tolerance; :func:`phantom.host.verify.judge_scan`) ends it ``reached`` with the scanned volume (the volume reported is
 MEASURED) and asks for a :class:`Record` of the scan as a measurement; one outside asks for a :class:`Correct`
 (the scan recorded as a measurement, the next round's pressures solved), applies that answer, and scans again, up
 to the round limit (then ``not_verified``, the last scan recorded). A failed scan ends it ``scan_failed``: no
@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 
+from phantom.host import verify as verify_policy
 from phantom.host.board_watch import SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
@@ -188,25 +189,30 @@ MAX_VERIFY_ROUNDS = 10
 #: again, have settled. On the loaded two cores the simulated board lost its link every minute or two, and a
 #: nine-minute scan with it.
 SCAN_RETRIES = 2
-#: While rounds remain, a verified target stops only on a scan within this share of its tolerance (it aims at the
-#: target, not at the tolerance's edge): the scanner's own error adds to the scanned error in the true volume, and
-#: the verify plan's is -0.18 % at 30 ml to +0.18 % at 45 ml (bench/README.md), so a scan stopped at +0.17 % of a
-#: 0.3 % tolerance left `make demo`'s 30 ml +0.36 % true. The last round still ends verified within the tolerance.
-VERIFY_AIM_SHARE = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
 class Verify:
     """How a target is verified by the scanner: within ``tolerance_pct`` of the scanned gland volume, in at most
-    ``rounds`` scans; ``correct`` False only records one scan (a scene's ``scan = true``)."""
+    ``rounds`` scans; ``correct`` False only records one scan (a scene's ``scan = true``); ``auto`` scans only
+    when the correction's 95 % band at the target's answer is wider than the tolerance (:meth:`needs_scan`),
+    and otherwise says the target reached within that band, from how many stored measurements."""
 
     tolerance_pct: float = 0.3
     rounds: int = 4
     correct: bool = True
+    auto: bool = False
 
     def to_json(self) -> dict[str, Any]:
-        return {"verify": "scan" if self.correct else "record", "verify_tolerance_pct": self.tolerance_pct,
-                "verify_rounds": self.rounds}
+        return {"verify": "auto" if self.auto else "scan" if self.correct else "record",
+                "verify_tolerance_pct": self.tolerance_pct, "verify_rounds": self.rounds}
+
+    def needs_scan(self, answer: InverseResult, target_ml: float) -> bool:
+        """Whether the target of ``answer`` is scanned: always, unless ``auto`` and the answer's band (the
+        correction's 95 % half-width at its pressures, ml; none without a correction) is within the tolerance."""
+        band_ml = answer.band_ml
+        return (not self.auto or band_ml is None or not np.isfinite(band_ml)
+                or band_ml > self.tolerance_pct / 100.0 * target_ml)
 
 
 @dataclass(frozen=True)
@@ -381,6 +387,8 @@ class ControlCore:
         self._measured: tuple[float, np.ndarray] | None = None
         #: the verified target's rounds (None: the target is not verified, or its verification ended)
         self._rounds: _Rounds | None = None
+        #: a ``verify = "auto"`` target the correction is sure of (no scan): its Verify and answer
+        self._sure: tuple[Verify, InverseResult] | None = None
         self._actions: list[Action] = []
 
     # --- what the driver reads ----------------------------------------------------------------------------
@@ -443,6 +451,7 @@ class ControlCore:
                 self._start_reach(now)  # a ramp that ends on the point it last sent
             return
         self._set_target(now, target, source, step, ramp, None)
+        self._sure = None
         if verify is not None and target.gland_volume_m3 is not None:
             self._rounds = _Rounds(verify, target.gland_volume_m3 * ML_PER_M3, target.gland_volume_m3 * ML_PER_M3)
         self._next(now)
@@ -452,16 +461,23 @@ class ControlCore:
             self._solving = None
         if target == self.target:
             self.answer = answer
+            rounds = self._rounds
+            if rounds is not None and not rounds.rounds and not rounds.verify.needs_scan(answer, rounds.target_ml):
+                self._sure, self._rounds = (rounds.verify, answer), None  # a scene step's verify = "auto"
         self._next(now)
 
-    def solve_failed(self, now: float, target: Target, unreachable: bool, text: str) -> None:
+    def solve_failed(self, now: float, target: Target, unreachable: bool, text: str,
+                     gland_range_ml: tuple[float, float] | None = None) -> None:
+        """The target could not be solved: ``unreachable`` (the gland's reachable range ``gland_range_ml`` goes
+        with the outcome as data, when the model gave it), or the model failed (tried again)."""
         if self._solving == target:
             self._solving = None
         if target == self.target:
             if unreachable:
                 self._unreachable = target
                 self._wait(f"unreachable: {text}")
-                self._outcome("unreachable", f"target {target.describe()} is unreachable: {text}", "WARN")
+                self._outcome("unreachable", f"target {target.describe()} is unreachable: {text}", "WARN",
+                              extra=None if gland_range_ml is None else {"gland_range_ml": list(gland_range_ml)})
             else:
                 self._retry_after_s = now + self.retry_s
                 self._wait(text)
@@ -482,10 +498,13 @@ class ControlCore:
             self._set_target(now, target, "api", None, None, offer.tolerance_pct)
             self._reached = None  # asked again: told again
             self.answer = offer.answer
-            self._rounds = None
+            self._rounds = self._sure = None
             if offer.verify is not None and target.gland_volume_m3 is not None:
                 target_ml = target.gland_volume_m3 * ML_PER_M3
-                self._rounds = _Rounds(offer.verify, target_ml, target_ml)
+                if offer.verify.needs_scan(offer.answer, target_ml):
+                    self._rounds = _Rounds(offer.verify, target_ml, target_ml)
+                else:
+                    self._sure = (offer.verify, offer.answer)
             if changed:
                 pressures = ", ".join(f"{p / PA_PER_KPA:.3f}" for p in offer.answer.pressures_pa)
                 self._tell("target", f"target {target.describe()} -> setpoints {pressures} kPa (predicted "
@@ -570,8 +589,18 @@ class ControlCore:
             if self.target is not None and self._pending_since_s is None:
                 self._pending_since_s = now
             if self._reach is not None:
+                rounds, verifying = self._rounds, ""
+                if rounds is not None and rounds.rounds:
+                    # a fault mid-verify: which round, what it was doing, and what to do (the scans before are
+                    # stored measurements: the next try starts from the correction they give)
+                    doing = {"scanning": "scanning", "correcting": "solving the next round"}.get(
+                        rounds.doing or "", "applying its pressures")
+                    verifying = (f" during verify round {len(rounds.rounds)} of {rounds.verify.rounds} ({doing}); "
+                                 f"the scans before are stored. Find why ({', '.join(names)}: `phantom status`, the "
+                                 "daemon's log), clear it (`phantom clear-fault`), then set the target again")
                 self._outcome("faulted", f"target {self._reach.target.describe()} not reached: faults latched "
-                              f"({', '.join(names)})", "ERROR")
+                              f"({', '.join(names)}){verifying}", "ERROR",
+                              extra=self._rounds_json(rounds) if verifying and rounds is not None else None)
         elif not names:
             self._tell("fault", "faults cleared")
         self.fault_names = names
@@ -646,13 +675,13 @@ class ControlCore:
         entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct)
         verify = rounds.verify
         within = abs(error_pct) <= verify.tolerance_pct
-        aim_pct = verify.tolerance_pct * VERIFY_AIM_SHARE
-        if not verify.correct or abs(error_pct) <= aim_pct or (within and round_ >= verify.rounds):
+        judged = verify_policy.judge_scan(error_pct, verify.tolerance_pct, round_, verify.rounds, verify.correct)
+        if judged == "verified":
             self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._verified_outcome(reach, rounds, f"target {described} reached and MEASURED: scanned "
                                    f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {'within' if within else 'outside'} "
                                    f"{verify.tolerance_pct:g} %) after {round_} round(s)")
-        elif round_ >= verify.rounds:
+        elif judged == "not_verified":
             self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
             self._outcome("not_verified", f"target {described} not verified: scanned {volume_ml:.2f} ml "
                           f"({error_pct:+.2f} %) after {round_} round(s), the limit; the pressures are held (give "
@@ -661,6 +690,7 @@ class ControlCore:
         else:
             rounds.doing = "correcting"
             setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
+            aim_pct = verify.tolerance_pct * verify_policy.VERIFY_AIM_SHARE
             outside = (f"within {verify.tolerance_pct:g} % but outside the {aim_pct:.2g} % aimed at" if within
                        else f"outside {verify.tolerance_pct:g} %")
             self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "
@@ -830,21 +860,31 @@ class ControlCore:
             if abs(gland_ml - wanted_ml) > min(reach.tolerance_pct, rounds.verify.tolerance_pct) / 100.0 * wanted_ml:
                 return
         pressures_kpa = [float(p) / PA_PER_KPA for p in measured_pa]
-        extra = {"estimated_volume_ml": gland_ml,
-                 "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
+        extra: dict[str, Any] = {"estimated_volume_ml": gland_ml,
+                                 "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
                  "measured_pressures_kpa": pressures_kpa, "after_s": now - reach.applied_s}
         if rounds is not None:
             if rounds.doing is None:
                 rounds.doing = "scanning"
                 rounds.rounds.append({"round": len(rounds.rounds) + 1, "asked_ml": rounds.asked_ml,
+                                      # the correction's 95 % band (ml) at the round's answer: what it knew there
+                                      "band_ml": None if self.answer is None else self.answer.band_ml,
                                       "setpoints_kpa": [float(p) / PA_PER_KPA for p in self.setpoints_pa],
                                       "pressures_kpa": pressures_kpa, **extra})
                 self._tell("verify", f"target {reach.target.describe()}: round {len(rounds.rounds)} settled "
                            f"(estimate {gland_ml:.2f} ml): scanning")
                 self._actions.append(Scan(len(rounds.rounds), reach.target, tuple(pressures_kpa)))
             return
-        self._reached_now(reach, "reached", f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, "
-                          f"pressures settled for {settled_s:.1f} s", extra)
+        text = f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, pressures settled for " \
+               f"{settled_s:.1f} s"
+        if self._sure is not None:  # verify = "auto" with a band within the tolerance: no scan
+            verify, answer = self._sure
+            band_pct = 100.0 * (answer.band_ml or 0.0) / gland_ml
+            text += (f"; verify auto: within +-{band_pct:.2f} % (95 %) from {answer.measurements} stored "
+                     f"measurement(s), within the {verify.tolerance_pct:g} % asked, so not scanned")
+            extra |= {"verify": verify.to_json(), "verified": False, "scanned": False, "band_ml": answer.band_ml,
+                      "band_pct": band_pct, "measurements": answer.measurements}
+        self._reached_now(reach, "reached", text, extra)
 
     def _reached_now(self, reach: _Reach, outcome: str, text: str, extra: dict[str, Any]) -> None:
         if reach.step is not None:
@@ -878,7 +918,7 @@ class ControlCore:
     def _outcome(self, outcome: str, text: str, level: str = "INFO", extra: dict[str, Any] | None = None) -> None:
         """An outcome of the target waited on (reached, replaced, unreachable, faulted): told once, with data."""
         reach, self._reach = self._reach, None
-        self._rounds = None  # a verification ends with its target's outcome
+        self._rounds = self._sure = None  # a verification ends with its target's outcome
         target = reach.target if reach is not None else self.target
         if target is None:
             return

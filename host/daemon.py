@@ -19,7 +19,7 @@ gives it); every scan is recorded as a measurement through the model worker when
 from __future__ import annotations
 
 import asyncio
-import dataclasses
+import contextlib
 import itertools
 import logging
 import time
@@ -31,7 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from phantom import PhantomError
-from phantom.host import control
+from phantom.host import control, verify
 from phantom.host.api import ApiError, ApiServer
 from phantom.host.board_watch import BoardSettings, Stillness
 from phantom.host.config import DaemonConfig
@@ -85,16 +85,6 @@ class VerifyScanner(Protocol):
 LINK_LOSS_GRACE_S = 30.0
 #: How long a verify scan waits for the rig's axes to come to rest before it starts (s).
 RIG_REST_WAIT_S = 30.0
-#: How far inside the reachable range a volume asked at its edge is (ml).
-EDGE_MARGIN_ML = 0.01
-#: How many times a volume beyond the reachable range is asked again at its edge (the corrected model's edge moves
-#: with the correction's own value there).
-EDGE_TRIES = 3
-
-
-def _volume(target: Target, volume_ml: float) -> Target:
-    """``target`` (a gland volume, its growth ratio kept) at another volume."""
-    return dataclasses.replace(target, gland_volume_m3=volume_ml / control.ML_PER_M3)
 
 
 def verify_folder(round_: int) -> Path:
@@ -153,6 +143,8 @@ class Daemon:
         self.web: WebServer | None = None
         #: what reconstructs a verified target's scans (None: this daemon cannot verify targets)
         self.verify_scanner: VerifyScanner | None = None
+        #: the verify scan running or last run (a newer one stops it: :meth:`_scan_for_core`)
+        self.verify_scan: asyncio.Task[Any] | None = None
 
     # --- life cycle -------------------------------------------------------------------------------------
 
@@ -214,7 +206,9 @@ class Daemon:
         try:
             answer = await self.solve(action.target, action.ramp)
         except ApiError as error:
-            self._feed(self.core.solve_failed, action.target, error.code == "unreachable", str(error))
+            edge = (error.data or {}).get("gland_range_ml")
+            self._feed(self.core.solve_failed, action.target, error.code == "unreachable", str(error),
+                       None if edge is None else (float(edge[0]), float(edge[1])))
         except Exception as error:  # the model worker failed: said, and tried again
             self._feed(self.core.solve_failed, action.target, False, f"the model failed: {error}")
         else:
@@ -232,7 +226,14 @@ class Daemon:
         return None
 
     async def _scan_for_core(self, action: control.Scan) -> None:
-        """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread."""
+        """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread. A scan
+        still running for a verification that is no more (a second client's verified target replaced it) is
+        stopped first, and its answer is not fed to the core: the core asks one scan at a time."""
+        superseded, self.verify_scan = self.verify_scan, asyncio.current_task()
+        if superseded is not None and not superseded.done():
+            await self.motion.stop_scan("its verified target was replaced by another")
+            with contextlib.suppress(Exception):
+                await superseded
         folder: str | None = None
         started_s = self.now_s()
         try:
@@ -250,8 +251,12 @@ class Daemon:
             result = await asyncio.to_thread(scanner.volume, folder)
             volume_ml = float(result["volume_ml"])
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
+            if self.verify_scan is not asyncio.current_task():
+                return  # superseded: stopped for a newer verification, whose round this is not
             link_lost = self.link_lost_s is not None and self.link_lost_s >= started_s - LINK_LOSS_GRACE_S
             self._feed(self.core.scanned, action.round, None, str(error), folder, None, link_lost)
+            return
+        if self.verify_scan is not asyncio.current_task():
             return
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
         if result.get("surface_mm") is not None:
@@ -269,47 +274,41 @@ class Daemon:
             await asyncio.sleep(0.2)
 
     async def _correct_for_core(self, action: control.Correct) -> None:
-        """A verified target's miss: the scan recorded as a measurement when the model can take one, then the
-        next round's pressures: the target on the corrected model, or (no correction, one that leaves the
-        setpoints as they were, or one whose range the target is beyond) the gland volume moved by the scan's
-        error."""
-        how = ""
-        answer: InverseResult | None = None
-        try:
-            if await self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder):
-                try:
-                    answer = await self.solve(await self._less_the_corrections_miss(action))
-                except ApiError as error:
-                    if error.code != "unreachable":
-                        raise
-                    # beyond the corrected model's range (one scan near the rest shape corrects it by an offset
-                    # that the phantom at rest does not hold): the shifted volume, at the range's edge
-                else:
-                    setpoints = control.setpoints_for(answer.pressures_pa)
-                    if np.allclose(setpoints, action.setpoints_pa, atol=1.0):
-                        answer = None
+        """A verified target's miss: the next round's pressures, decided by :class:`phantom.host.verify.NextRound`;
+        the daemon only performs its actions (records the scan, solves what it asks) and feeds it the answers."""
+        policy = verify.NextRound(action)
+        policy.start(self.now_s())
+        while steps := policy.take_actions():
+            for step in steps:
+                if isinstance(step, verify.Record):
+                    stored = await self._record_scan(step.pressures_kpa, step.scanned_ml, step.scan_folder)
+                    corrected_ml = None
+                    if stored:
+                        with contextlib.suppress(Exception):  # the model failed: the shifted volume instead
+                            estimate = await self.model.estimate(np.asarray(step.pressures_kpa) * PA_PER_KPA)
+                            corrected_ml = estimate.gland_volume_ml
+                    policy.recorded(self.now_s(), stored, corrected_ml)
+                elif isinstance(step, verify.Solve):
+                    try:
+                        answer = await self.solve(step.target)
+                    except ApiError as error:
+                        if error.code == "unreachable":
+                            data = error.data or {}
+                            edge = data.get("gland_range_ml")
+                            policy.unreachable(self.now_s(), None if edge is None else (float(edge[0]), float(edge[1])),
+                                               bool(data.get("corrected")), str(error))
+                        else:
+                            policy.failed(self.now_s(), str(error))
+                    except Exception as error:  # the model worker failed
+                        policy.failed(self.now_s(), f"the model failed: {error}")
                     else:
-                        how = "the target on the model corrected by the scan"
-            if answer is None:
-                answer, how = await self._solve_shifted(action)
-        except ApiError as error:
-            self._feed(self.core.correct_failed, action.round, error.code == "unreachable", str(error))
-            return
-        except Exception as error:  # the model worker failed
-            self._feed(self.core.correct_failed, action.round, False, f"the model failed: {error}")
-            return
-        self._feed(self.core.corrected, action.round, answer, how)
-
-    async def _less_the_corrections_miss(self, action: control.Correct) -> Target:
-        """The target to solve on the corrected model after a scan: the target less what the correction now in force
-        still misses at the scanned state. A correction fitted to every stored scan (an offset or a growth by least
-        squares) passes beside the newest one, so the target alone moved the pressures by a share of the scan's
-        error: `make demo`'s 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in its four rounds and was not verified."""
-        if action.target.gland_volume_m3 is None:
-            return action.target
-        estimate = await self.model.estimate(np.asarray(action.pressures_kpa, dtype=float) * PA_PER_KPA)
-        miss_ml = action.scanned_ml - estimate.gland_volume_ml
-        return _volume(action.target, action.target.gland_volume_m3 * control.ML_PER_M3 - miss_ml)
+                        policy.solved(self.now_s(), answer)
+                elif isinstance(step, verify.Apply):
+                    self._feed(self.core.corrected, step.round, step.answer, step.how)
+                else:
+                    self._feed(self.core.correct_failed, step.round, step.unreachable, step.text)
+        if not policy.done:  # every event takes an action until the last: none is the policy's fault
+            self._feed(self.core.correct_failed, action.round, False, "the verify policy stopped without an answer")
 
     async def _record_scan(self, pressures_kpa: tuple[float, ...], scanned_ml: float, folder: str | None) -> bool:
         """A scan stored as a measurement of the phantom (the model's correction fitted again), when the model can
@@ -328,25 +327,6 @@ class Daemon:
             self.event("verify", f"the scan as a measurement of the phantom: {error}", "WARN")
             return False
         return True
-
-    async def _solve_shifted(self, action: control.Correct) -> tuple[InverseResult, str]:
-        """The volume asked moved by the scan's error, solved; one the model cannot reach (the phantom holds
-        more at rest than the model says) is asked at the edge of the model's reachable range instead (with a
-        correction in force, the corrected model's: the model's moved by the correction there)."""
-        shifted_ml = action.shifted_ml
-        asked_ml, how = shifted_ml, f"{shifted_ml:.3f} ml: the volume asked moved by the scan's error"
-        for _ in range(EDGE_TRIES):
-            try:
-                return await self.solve(_volume(action.target, asked_ml)), how
-            except ApiError as error:
-                if error.code != "unreachable" or not error.data or "gland_range_ml" not in error.data:
-                    raise
-                low_ml, high_ml = error.data["gland_range_ml"]
-                asked_ml = min(max(shifted_ml, low_ml + EDGE_MARGIN_ML), high_ml - EDGE_MARGIN_ML)
-                how = (f"{asked_ml:.3f} ml: the volume asked moved by the scan's error ({shifted_ml:.3f} ml) is beyond "
-                       f"the model's reachable {low_ml:.3f} to {high_ml:.3f} ml"
-                       f"{' (with the correction in force)' if error.data['corrected'] else ''}, so its edge")
-        return await self.solve(_volume(action.target, asked_ml)), how
 
     async def _send_setpoints(self, action: control.SendSetpoints) -> None:
         try:

@@ -244,8 +244,8 @@ class HeavyRequests:
 
 
 def verify_of(params: dict[str, Any]) -> Verify | None:
-    """``set_target``'s ``verify`` (``"scan"``), ``verify_tolerance_pct`` and ``verify_rounds``, taken out of
-    ``params``: a Verify, or None without ``verify``; ApiError invalid_params for a bad one."""
+    """``set_target``'s ``verify`` (``"scan"`` or ``"auto"``), ``verify_tolerance_pct`` and ``verify_rounds``,
+    taken out of ``params``: a Verify, or None without ``verify``; ApiError invalid_params for a bad one."""
     verify = params.pop("verify", None)
     tolerance_pct = params.pop("verify_tolerance_pct", None)
     rounds = params.pop("verify_rounds", None)
@@ -254,9 +254,10 @@ def verify_of(params: dict[str, Any]) -> Verify | None:
             raise ApiError("invalid_params", "set_target: verify_tolerance_pct and verify_rounds go with verify: "
                                              "\"scan\"")
         return None
-    if verify != "scan":
+    if verify not in ("scan", "auto"):
         raise ApiError("invalid_params", f"set_target: verify must be \"scan\" (the scanner measures the gland's "
-                                         f"volume), got {verify!r:.60}")
+                                         f"volume) or \"auto\" (a scan only when the correction's 95 % band at the "
+                                         f"target is wider than the tolerance), got {verify!r:.60}")
     defaults = Verify()
     if tolerance_pct is None:
         tolerance_pct = defaults.tolerance_pct
@@ -271,4 +272,4 @@ def verify_of(params: dict[str, Any]) -> Verify | None:
     if isinstance(rounds, bool) or not isinstance(rounds, int) or not 1 <= rounds <= MAX_VERIFY_ROUNDS:
         raise ApiError("invalid_params", f"set_target: verify_rounds (scans at most) must be a whole number from 1 "
                                          f"to {MAX_VERIFY_ROUNDS}, got {rounds!r:.60}")
-    return Verify(float(tolerance_pct), int(rounds))
+    return Verify(float(tolerance_pct), int(rounds), auto=verify == "auto")

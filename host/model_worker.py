@@ -219,7 +219,7 @@ class LoadedModel:
         if target.kind != "volume":
             answer = self.solver.pressures_for(target)
             gland_ml = self.gland_ml(np.asarray(answer.pressures_pa), answer.predicted_gland_volume_m3)
-            return replace(answer, predicted_gland_volume_m3=gland_ml / ML_PER_M3)
+            return self._with_band(replace(answer, predicted_gland_volume_m3=gland_ml / ML_PER_M3))
         assert target.gland_volume_m3 is not None  # the kind says so
         target_ml = target.gland_volume_m3 * ML_PER_M3
         corrected = self.corrected
@@ -240,11 +240,19 @@ class LoadedModel:
 
         _, corrected_ml, _ = corrected.pressures_for_ml(target_ml, inverse_kpa)
         last = answers[-1]
-        return InverseResult(target, last.pressures_pa, corrected_ml / ML_PER_M3, last.predicted_chamber_volumes_m3,
-                             sum(answer.iterations for answer in answers),
-                             sum(answer.solve_time_s for answer in answers),
-                             sum(answer.qp_solve_time_s for answer in answers),
-                             [entry for answer in answers for entry in answer.history])
+        return self._with_band(InverseResult(target, last.pressures_pa, corrected_ml / ML_PER_M3,
+                                             last.predicted_chamber_volumes_m3,
+                                             sum(answer.iterations for answer in answers),
+                                             sum(answer.solve_time_s for answer in answers),
+                                             sum(answer.qp_solve_time_s for answer in answers),
+                                             [entry for answer in answers for entry in answer.history]))
+
+    def _with_band(self, answer: InverseResult) -> InverseResult:
+        """The answer with the correction's 95 % band (ml) at its pressures and its number of measurements."""
+        if self.corrected is None:
+            return answer
+        _, band_ml = self.corrected.gland_band_ml(np.asarray(answer.pressures_pa, dtype=float) / PA_PER_KPA)
+        return replace(answer, band_ml=band_ml, measurements=self.corrected.correction.count)
 
     def measured(self, pressures_pa: np.ndarray) -> np.ndarray:
         """Measured pressures (Pa) as the estimator takes them: negative ones 0, and on the full solve rounded to
@@ -607,7 +615,7 @@ def _fitter_fit(scene_source: str, level: str, store_path: str) -> FitAnswer:
         correction = cached_fit(confirmed, grid)
         return FitAnswer(correction, correction.summary(grid), None, signature, stored,
                          time.perf_counter() - started)
-    except Exception as error:  # anything a store or a fit raises (OSQP's own errors too) leaves the model's answers
+    except Exception as error:  # anything a store or a fit raises leaves the model's answers
         why = str(error) if isinstance(error, CorrectionError) else f"{type(error).__name__}: {error}"
         return FitAnswer(None, None, why, signature, stored, time.perf_counter() - started)
 
@@ -624,12 +632,16 @@ def _fitter_record(scene_source: str, level: str, store_path: str, measurement: 
                               f"{len(pressures)}: is it of another phantom?")
     on_box = pressures_in_box(pressures, float(grid.points_kpa[-1]), "a measurement's pressures")
     store = CorrectionStore(store_path)
-    measurement = judged(replace(measurement, model=scene_source, model_volume_ml=grid.gland_ml(on_box)), grid,
-                         store.confirmed(), scene_source)
-    store.add(measurement)
+    stored = replace(measurement, model=scene_source, model_volume_ml=grid.gland_ml(on_box))
+    # a call retried after the fitter died (SIGTERM to the daemon's process group mid-fit) finds its measurement
+    # stored already, judged then: it is not stored (nor judged) twice
+    kept = next((entry for entry in store.entries() if replace(entry, status="confirmed", reason=None) == stored), None)
+    if kept is None:
+        kept = judged(stored, grid, store.confirmed(), scene_source)
+        store.add(kept)
     answer = _fitter_fit(scene_source, level, store_path)
-    if measurement.status != "confirmed":
-        return replace(answer, error=f"the scan was stored UNCONFIRMED, left out of the fit: {measurement.reason} "
+    if kept.status != "confirmed":
+        return replace(answer, error=f"the scan was stored UNCONFIRMED, left out of the fit: {kept.reason} "
                        f"(`phantom corrections confirm N` if it is right)")
     return answer
 
@@ -881,15 +893,26 @@ class ModelWorker:
             self.restarts += 1
             logger.warning("the model worker was replaced (%d since the daemon started)", self.restarts)
 
-    async def pressures_for(self, target: Target) -> InverseResult:
-        """Setpoints for ``target`` (a gland volume with the correction in force); raises the inverse's
-        UnreachableTargetError with its reachable range."""
+    async def _store_in_force(self) -> None:
+        """Before a target is solved: a store changed since the last fit is fitted, and the fit waited for (under
+        a second), so that the target is solved on the correction its estimates will be made with (before: solved
+        on the one before, it never came to its estimate, or was said reached 5.8 % off). A fit that fails leaves
+        the one before in force (logged)."""
         self.check_store()
+        fitting = self._fitting
+        if fitting is not None and not fitting.done():
+            with contextlib.suppress(Exception):
+                await asyncio.shield(fitting)
+
+    async def pressures_for(self, target: Target) -> InverseResult:
+        """Setpoints for ``target`` (a gland volume with the correction in force, the store's latest); raises the
+        inverse's UnreachableTargetError with its reachable range."""
+        await self._store_in_force()
         return await self._call(_worker_pressures_for, target)
 
     async def pressures_on_ramp(self, start: Target, end: Target, target: Target) -> InverseResult:
         """Setpoints for ``target`` on the ramp from ``start`` to ``end`` (:meth:`LoadedModel.pressures_on_ramp`)."""
-        self.check_store()
+        await self._store_in_force()
         return await self._call(_worker_pressures_on_ramp, start, end, target)
 
     async def estimate(self, pressures_pa: np.ndarray, with_surface: bool = False,

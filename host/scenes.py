@@ -335,8 +335,8 @@ STEP_VERIFY_KEYS = ("verify", "verify_tolerance_pct", "verify_rounds", "scan")
 
 
 def parse_step_verify(raw: dict[str, Any], where: str) -> Verify | None:
-    """A step's ``verify = "scan"`` (its tolerance and rounds bounded as the API's) or ``scan = true``; None
-    without either; SceneError naming what is wrong."""
+    """A step's ``verify = "scan"`` or ``"auto"`` (its tolerance and rounds bounded as the API's) or ``scan =
+    true``; None without either; SceneError naming what is wrong."""
     verify, scan = raw.get("verify"), raw.get("scan", False)
     tolerance_pct, rounds = raw.get("verify_tolerance_pct"), raw.get("verify_rounds")
     if not isinstance(scan, bool):
@@ -348,8 +348,9 @@ def parse_step_verify(raw: dict[str, Any], where: str) -> Verify | None:
     if scan:
         raise SceneError(f"{where}: give verify = \"scan\" (scan, correct until within the tolerance) or scan = "
                          "true (one scan recorded, no correction), not both")
-    if verify != "scan":
-        raise SceneError(f"{where}: verify must be \"scan\", got {verify!r:.60}")
+    if verify not in ("scan", "auto"):
+        raise SceneError(f"{where}: verify must be \"scan\" or \"auto\" (a scan only when the correction's 95 % band "
+                         f"at the target is wider than the tolerance), got {verify!r:.60}")
     default = Verify()
     tolerance_pct = default.tolerance_pct if tolerance_pct is None else tolerance_pct
     low, high = VERIFY_TOLERANCE_PCT
@@ -361,7 +362,7 @@ def parse_step_verify(raw: dict[str, Any], where: str) -> Verify | None:
     if isinstance(rounds, bool) or not isinstance(rounds, int) or not 1 <= rounds <= MAX_VERIFY_ROUNDS:
         raise SceneError(f"{where}: verify_rounds must be a whole number from 1 to {MAX_VERIFY_ROUNDS}, got "
                          f"{rounds!r:.60}")
-    return Verify(float(tolerance_pct), rounds)
+    return Verify(float(tolerance_pct), rounds, auto=verify == "auto")
 
 
 def example_scene_path(name: str) -> Path:

@@ -1,21 +1,30 @@
 """The correction of the model by the measured volumes (:mod:`phantom.model.measurements` keeps them).
 
-:func:`fit_correction` turns them into a residual over the pressures that the model's answers are corrected
-with, everywhere in the pressure box, not only at the points measured. The candidates, each fitted by least
-squares to the measured minus the model's volumes:
+:func:`fit_correction` models the residual, the measured minus the model's gland volume, over the pressure box as
+a Gaussian process (Kennedy and O'Hagan's calibration of a computer model): the calibrated model is the mean, and
+the residual is a smooth function of the three pressures (a squared-exponential kernel with a length scale per
+chamber, scikit-learn's ``GaussianProcessRegressor`` fitting its amplitude and length scales by marginal
+likelihood within :data:`LENGTH_SCALE_BOUNDS_KPA` and :data:`AMPLITUDE_BOUNDS_ML`), plus at most a low-order
+trend, each of the candidates of :data:`TRENDS`:
 
-- ``offset``: one constant (the rest volume's error: silicone, not air);
-- ``growth``: a constant plus a multiple of the model's own growth above rest, what a refit of the modulus does
-  to first order (the growth goes as 1/E);
-- ``field``: the smoothest residual on a grid over the pressures (:func:`smoothest_residual`) that meets every
-  measurement, each chamber's part zero while the chamber is not inflated, every growth kept above a floor that
-  is soft (each ml short costs ``GROWTH_PENALTY``: scans a little noisy between close states bend the field
-  instead of leaving none);
-- ``growth+field``: the growth's fit, and the field through what it leaves.
+- ``gp``: no trend, the model's volume is the mean;
+- ``gp+offset``: a constant (the rest volume's error: silicone, not air);
+- ``gp+growth``: a constant plus a multiple of the model's growth above rest (what a refit of the modulus does
+  to first order: the growth goes as 1/E).
 
-The one with the least mean leave-one-out error over the stored measurements is used (with fewer than two,
-the offset: there is nothing to leave out), and the leave-one-out errors of all are kept to be reported; a field's
-kind that no field passes through (two measurements at one state that disagree) is left out, and why is kept.
+A trend's coefficients are Gaussian with broad priors (:data:`TREND_PRIOR_SD`), so the candidates are Gaussian
+processes whose leave-one-out errors have a closed form; the one with the least mean leave-one-out error (with a
+single measurement: the greatest marginal likelihood) is used. Each measurement's noise is its method's
+(:data:`NOISE_SD_PCT` for a scan, the scanner's error model in bench/README.md "Scanner"; :data:`NOISE_SD_ML` for
+water displacement, the README's repeatability), plus a fitted white noise for what the measurements disagree by
+beyond that. The posterior mean passes within the noise of each measurement and, without a trend, returns to
+the model away from them; its standard deviation gives a 95 % band at any pressures
+(:meth:`CorrectedModel.gland_band_ml`). **The bound**: the correction is nowhere in the box larger than
+:attr:`Correction.bound_pct` of the model's volume there, the largest measured miss plus twice that
+measurement's noise, as a share of the model's volume at it (the mean is clipped to it: a trend fitted near rest
+extrapolates at most in proportion to the volume, not as the old field's 24 ml over a 45 ml box). A fit of 200
+measurements takes well under a second (bench/correction_fit.py).
+
 :class:`CorrectedModel` applies it to a model's estimate and inverse. The module reads no scans (a scan's volume
 comes from ``phantom.scan``, passed in by the command line or the daemon).
 """
@@ -23,9 +32,11 @@ comes from ``phantom.scan``, passed in by the command line or the daemon).
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
+import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -35,94 +46,35 @@ from phantom import written_atomically
 from phantom.model.measurements import CorrectionError, Measurement
 from phantom.model.target import UnreachableTargetError
 
-#: The field keeps each chamber's and the gland's growth per kPa at least this fraction of the model's (a phantom
-#: that swells with every pressure; a pneumatic plant needs positive compliances).
-MIN_GROWTH_FRACTION = 0.3
-#: What a correction's field pays for each ml its growth falls short of that floor (the floor is soft there: scans
-#: a little noisy between close states must not leave no field at all).
-GROWTH_PENALTY: float | None = 10.0
-#: A measured pressure this close outside the grid's box (kPa: two counts of the board's ADC, its settled band)
+#: A measured pressure this close outside the model's box (kPa: two counts of the board's ADC, its settled band)
 #: is on the box's edge: a chamber held at 3 kPa reads 3.01 on average, and its scan is a measurement at 3 kPa.
 EDGE_SLACK_KPA = 0.1
 #: A volume target this close outside the corrected model's range (ml: the corrected inverse's own tolerance) is
 #: still searched for: the search meets it at the edge.
 RANGE_SLACK_ML = 1e-3
-#: The weight (kPa) of the field's slope beside its curvature in its roughness: a little, so that where no
-#: measurement holds it the field levels off rather than sweeping on.
-FIRST_DIFFERENCE_WEIGHT = 0.3
-#: The candidate corrections, from the fewest parameters.
-KINDS = ("offset", "growth", "field", "growth+field")
-
-
-class NoFieldError(CorrectionError):
-    """No residual field passes through the measurements (two that contradict each other: different volumes at
-    the same pressures, or a growth the floor forbids where it is hard): the field's kinds are not fitted."""
-
-
-# ----------------------------------------------------------------------------- the residual field on a grid
-def trilinear(table: np.ndarray, points_kpa: ArrayLike, pressures_kpa: Sequence[float] | np.ndarray) -> np.ndarray:
-    """The table (n, n, n, ...) at pressures (kPa, one per chamber), trilinear inside, the edge cell's linear
-    extension outside (as the simulated board's plant.c does)."""
-    n = table.shape[0]
-    weights = _trilinear_weights(np.asarray(points_kpa, dtype=float), np.asarray(pressures_kpa, dtype=float))
-    return np.asarray(np.tensordot(weights, table.reshape(n ** 3, *table.shape[3:]), axes=1))
-
-
-def _axis_differences(n: int, axis: int, order: int) -> Any:
-    """The sparse operator of forward differences (``order`` 1 or 2) along ``axis`` of an (n, n, n) grid in C
-    order."""
-    import scipy.sparse as sparse
-
-    index = np.arange(n ** 3).reshape(n, n, n)
-    coefficients = (-1.0, 1.0) if order == 1 else (1.0, -2.0, 1.0)
-    rows, columns, values = [], [], []
-    row = 0
-    for cell in np.ndindex(n, n, n):
-        if cell[axis] + order >= n:
-            continue
-        for step, value in enumerate(coefficients):
-            shifted = list(cell)
-            shifted[axis] += step
-            rows.append(row)
-            columns.append(index[tuple(shifted)])
-            values.append(value)
-        row += 1
-    return sparse.csr_matrix((values, (rows, columns)), shape=(row, n ** 3))
-
-
-def _trilinear_weights(points_kpa: np.ndarray, pressures_kpa: np.ndarray) -> np.ndarray:
-    """The weights of the (n, n, n) grid's values (C order) whose sum is :func:`trilinear` at the pressures."""
-    n = len(points_kpa)
-    index = np.arange(n ** 3).reshape(n, n, n)
-    weights = np.zeros(n ** 3)
-    # the eight corners of the pressures' cell (the edge cell beyond the grid), each weighted by the product of
-    # its fractions along the axes
-    cells, fractions = [], []
-    for pressure in pressures_kpa:
-        cell = int(np.clip(np.searchsorted(points_kpa, pressure, side="right") - 1, 0, n - 2))
-        cells.append(cell)
-        fractions.append((pressure - points_kpa[cell]) / (points_kpa[cell + 1] - points_kpa[cell]))
-    for corner in np.ndindex(2, 2, 2):
-        weight = np.prod([f if c else 1.0 - f for c, f in zip(corner, fractions, strict=True)])
-        weights[index[tuple(cell + c for cell, c in zip(cells, corner, strict=True))]] += weight
-    return weights
-
-
-@dataclass(frozen=True)
-class ResidualField:
-    """Per chamber a residual on the grid ``points_kpa``^3 (ml, (n, n, n, 3)) and one constant (ml): the gland's
-    residual is their sum plus the constant, interpolated trilinearly."""
-
-    points_kpa: np.ndarray
-    chamber_ml: np.ndarray
-    constant_ml: float
-
-    @property
-    def gland_ml(self) -> np.ndarray:
-        return np.asarray(self.chamber_ml.sum(axis=-1) + self.constant_ml)
-
-    def gland_at_ml(self, pressures_kpa: ArrayLike) -> float:
-        return float(trilinear(self.gland_ml, self.points_kpa, np.asarray(pressures_kpa, dtype=float)))
+#: The candidate trends beneath the Gaussian process, from the fewest parameters.
+TRENDS = ("gp", "gp+offset", "gp+growth")
+#: The prior standard deviations of the trends' coefficients: the offset (ml) and the growth's factor (a
+#: modulus 2x off halves the growth): broad beside what a calibrated model misses by (0.1-2 ml, a few %).
+TREND_PRIOR_SD = {"offset": 5.0, "growth": 0.5}
+#: A scan's standard deviation (% of its volume): the verify plan's scans (60 pictures of 640x480) read -0.14 to
+#: +0.18 % of the truth across the volumes (bench/README.md "Scanner" and "Characterisation").
+NOISE_SD_PCT = {"scan": 0.12}
+#: A water displacement's standard deviation (ml): two repeats within 0.3 ml of each other (README.md,
+#: "Calibrating your phantom"), averaged.
+NOISE_SD_ML = {"water_displacement": 0.1}
+#: The bounds of the residual's length scales (kPa): from a tenth of the 0-3 kPa box (no wiggle between two
+#: close scans) to far beyond it (a residual that is nearly linear).
+LENGTH_SCALE_BOUNDS_KPA = (0.3, 3.0)
+#: The bounds of the residual's standard deviation (ml) and of the white noise beyond the methods' (ml).
+AMPLITUDE_BOUNDS_ML = (1e-3, 10.0)
+WHITE_NOISE_BOUNDS_ML = (1e-4, 3.0)
+#: The most measurements the kernel's hyperparameters are fitted to (evenly through the store; the posterior
+#: takes them all): five hyperparameters are well set by 100 measurements, and the optimisation of the marginal
+#: likelihood costs a factorisation of all of them at each step.
+HYPERPARAMETER_MEASUREMENTS = 100
+#: The band's width in standard deviations (95 %, two-sided).
+BAND_Z = 1.959964
 
 
 def pressures_in_box(pressures_kpa: ArrayLike, top_kpa: float, what: str = "a measurement") -> np.ndarray:
@@ -144,176 +96,177 @@ def pressures_in_box(pressures_kpa: ArrayLike, top_kpa: float, what: str = "a me
     return clipped
 
 
-def smoothest_residual(points_kpa: ArrayLike, chamber_ml: np.ndarray, gland_ml: np.ndarray, pressures_kpa: ArrayLike,
-                       gaps_ml: ArrayLike, what: str = "the measurements",
-                       min_growth_fraction: float = MIN_GROWTH_FRACTION,
-                       growth_penalty: float | None = None) -> ResidualField:
-    """The smoothest residual field over the grid that adds ``gaps_ml`` to the tabled volumes at the pressures.
-
-    ``chamber_ml`` (n, n, n, 3) and ``gland_ml`` (n, n, n) are a model's volumes on the grid ``points_kpa`` in
-    every axis. Each chamber gets its own residual, zero while that chamber is not inflated (the excess of a
-    chamber's growth is that chamber's), and the gland's is their sum plus one constant. Among the residuals whose
-    gland part, interpolated trilinearly, is ``gaps_ml`` at the pressures and that keep each chamber's own growth
-    and the gland's growth along every pressure at least ``min_growth_fraction`` of the tabled ones, the one with
-    the least squared second (and, lightly, first) differences along every axis: a quadratic programme (OSQP).
-    With ``growth_penalty`` (per ml) that floor is soft: the growth may fall short of it, each ml short costing
-    that much beside the roughness.
-
-    Raises
-    ------
-    CorrectionError
-        A pressure outside the grid or not finite.
-    NoFieldError
-        Measurements no field passes through (with a hard floor: no growing phantom).
-    """
-    import osqp
-    import scipy.sparse as sparse
-
-    points = np.asarray(points_kpa, dtype=float)
-    pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
-    gaps = np.asarray(gaps_ml, dtype=float).ravel()
-    chambers = chamber_ml.shape[-1]
-    if pressures.shape != (len(gaps), chambers) or not np.all(np.isfinite(pressures)):
-        raise CorrectionError(f"{what}: {chambers} finite pressures per volume are needed, got {pressures.shape[0]} "
-                              f"rows of {pressures.shape[1]} for {len(gaps)} volumes")
-    pressures = pressures_in_box(pressures, float(points[-1]), what)
-    n = len(points)
-    cells = n ** 3
-    size = chambers * cells + 1            # each chamber's residual, then the constant
-
-    def on_chamber(chamber: int, operator: Any) -> Any:
-        blocks = [sparse.csr_matrix((operator.shape[0], cells)) for _ in range(chambers)]
-        blocks[chamber] = operator
-        return sparse.hstack([*blocks, sparse.csr_matrix((operator.shape[0], 1))])
-
-    # the same functional on any grid: second differences / h^2 and first / h, squared, times the cell h^3
-    # (h in kPa), so a finer grid refines the field instead of changing it
-    spacing = float(points[1] - points[0])
-    weights = ((2, spacing ** -0.5), (1, FIRST_DIFFERENCE_WEIGHT * spacing ** 0.5))
-    roughness = sparse.vstack([on_chamber(chamber, weight * _axis_differences(n, axis, order))
-                               for chamber in range(chambers) for axis in range(chambers) for order, weight in weights])
-    rows, lower, upper = [], [], []
-    grid = np.stack(np.meshgrid(*[np.arange(n)] * chambers, indexing="ij"), -1).reshape(-1, chambers)
-    for chamber in range(chambers):
-        uninflated = np.flatnonzero(grid[:, chamber] == 0)
-        rows.append(on_chamber(chamber, sparse.identity(cells, format="csr")[uninflated]))
-        lower += [0.0] * len(uninflated)
-        upper += [0.0] * len(uninflated)
-    for pressure, gap in zip(pressures, gaps, strict=True):
-        rows.append(sparse.csr_matrix(np.concatenate([np.tile(_trilinear_weights(points, pressure), chambers), [1.0]])))
-        lower.append(gap)
-        upper.append(gap)
-    growth_rows, growth_floor = [], []
-    for axis in range(chambers):
-        difference = _axis_differences(n, axis, 1)
-        growth_rows.append(on_chamber(axis, difference))
-        growth_floor.append(-(1 - min_growth_fraction) * (difference @ chamber_ml[..., axis].ravel()))
-        growth_rows.append(sparse.hstack([difference] * chambers + [sparse.csr_matrix((difference.shape[0], 1))]))
-        growth_floor.append(-(1 - min_growth_fraction) * (difference @ gland_ml.ravel()))
-    growth = sparse.vstack(growth_rows)
-    floor = np.concatenate(growth_floor)
-    objective = roughness.T @ roughness + 1e-9 * sparse.identity(size)
-    linear = np.zeros(size)
-    if growth_penalty is None:
-        rows.append(growth)
-        lower += list(floor)
-        upper += [np.inf] * len(floor)
-    else:
-        # a soft floor: each growth row has a slack (ml) it may fall short by, each ml costing growth_penalty (and
-        # a little squared, which keeps OSQP's problem strictly convex); measurements a little noisy then bend
-        # the field where they must instead of leaving none
-        slacks = len(floor)
-        rows = [sparse.hstack([row, sparse.csr_matrix((row.shape[0], slacks))]) for row in rows]
-        rows.append(sparse.hstack([growth, sparse.identity(slacks)]))
-        lower += list(floor)
-        upper += [np.inf] * slacks
-        rows.append(sparse.hstack([sparse.csr_matrix((slacks, size)), sparse.identity(slacks)]))
-        lower += [0.0] * slacks
-        upper += [np.inf] * slacks
-        objective = sparse.block_diag([objective, 1e-3 * growth_penalty * sparse.identity(slacks)])
-        linear = np.concatenate([linear, np.full(slacks, float(growth_penalty))])
-    solver = osqp.OSQP()
-    # 1e-6 (ml) is far below a scan's error (0.01 ml); at 1e-8 the scans of one verified target's rounds, at
-    # nearly the same pressures, kept OSQP iterating: a fit of 9 such scans took 219 s, at 1e-6 33 s, with the
-    # same leave-one-out errors to 0.001 %
-    solver.setup(objective.tocsc(), linear, sparse.vstack(rows).tocsc(), np.array(lower), np.array(upper),
-                 verbose=False, eps_abs=1e-6, eps_rel=1e-6, max_iter=100000, polishing=True)
-    result = solver.solve(raise_error=False)
-    if result.info.status not in ("solved", "solved inaccurate") or result.x is None:
-        raise NoFieldError(f"no residual field passes through the volumes of {what} while every chamber and the "
-                              f"gland keep growing with their pressures ({result.info.status}): check the "
-                              f"measurements")
-    residual = np.stack([result.x[c * cells:(c + 1) * cells].reshape(n, n, n) for c in range(chambers)], -1)
-    return ResidualField(points, residual, float(result.x[size - 1]))
-
-
-# ----------------------------------------------------------------------------- the correction
 @dataclass(frozen=True)
 class ModelGrid:
-    """A model's volumes (ml) on a grid of pressures (kPa, the same on every axis), where a field lives, and its
-    gland volume anywhere (``gland_ml(pressures_kpa)``: the model's own estimate, e.g. its VolumeEstimator)."""
+    """A model's volumes (ml) on a grid of pressures (kPa, the same on every axis), the box the correction lives
+    in, and its gland volume anywhere (``gland_ml(pressures_kpa)``: the model's own estimate, e.g. its
+    VolumeEstimator)."""
 
     points_kpa: np.ndarray
     chamber_ml: np.ndarray     # (n, n, n, 3)
     gland_grid_ml: np.ndarray  # (n, n, n)
     gland_ml: Callable[[np.ndarray], float]
     description: str = ""
+    _measured_ml: dict[tuple[float, ...], float] = field(default_factory=dict, compare=False, repr=False)
+
+    def measured_states_ml(self, pressures_kpa: np.ndarray) -> np.ndarray:
+        """The model's gland volume (ml) at each measured state (rows of kPa), each state's kept: a fitter that
+        refits a store of 200 measurements after each new one evaluates the model once for the new one (an
+        evaluation is 3-13 ms of the table's interpolant, most of a fit of 200 otherwise)."""
+        volumes = []
+        for row in np.asarray(pressures_kpa, dtype=float):
+            key = tuple(float(p) for p in row)
+            if key not in self._measured_ml:
+                self._measured_ml[key] = float(self.gland_ml(row))
+            volumes.append(self._measured_ml[key])
+        return np.array(volumes)
+
+
+# ----------------------------------------------------------------------------- the correction
+def noise_sd_ml(measurement: Measurement) -> float:
+    """A measurement's standard deviation (ml) by its method: :data:`NOISE_SD_ML`, else :data:`NOISE_SD_PCT` of
+    its volume."""
+    if measurement.method in NOISE_SD_ML:
+        return NOISE_SD_ML[measurement.method]
+    return NOISE_SD_PCT[measurement.method] / 100.0 * measurement.volume_ml
+
+
+def _trend(kind: str, growth_ml: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A trend's columns at the model's growths (ml, (k,)) and its coefficients' prior variances."""
+    growth = np.asarray(growth_ml, dtype=float).reshape(-1)
+    if kind == "gp":
+        return np.zeros((len(growth), 0)), np.zeros(0)
+    if kind == "gp+offset":
+        return np.ones((len(growth), 1)), np.array([TREND_PRIOR_SD["offset"] ** 2])
+    return (np.column_stack([np.ones_like(growth), growth]),
+            np.array([TREND_PRIOR_SD["offset"] ** 2, TREND_PRIOR_SD["growth"] ** 2]))
+
+
+def _signal(first_kpa: np.ndarray, second_kpa: np.ndarray, amplitude_ml: float,
+            length_scales_kpa: np.ndarray) -> np.ndarray:
+    """The residual's squared-exponential covariance (ml^2) between two sets of pressures (kPa, (k, 3))."""
+    scaled = (first_kpa[:, None, :] - second_kpa[None, :, :]) / length_scales_kpa
+    return np.asarray(amplitude_ml ** 2 * np.exp(-0.5 * np.sum(scaled ** 2, axis=-1)))
+
+
+@dataclass(frozen=True)
+class _Posterior:
+    """What a prediction needs of a fitted process: the pressures and trend columns measured, the Cholesky factor
+    of the measurements' covariance and its solve against the residuals."""
+
+    pressures_kpa: np.ndarray
+    trend: np.ndarray
+    prior: np.ndarray
+    cholesky: np.ndarray
+    weights: np.ndarray
+
+
+def _posterior(kind: str, pressures_kpa: np.ndarray, growth_ml: np.ndarray, residual_ml: np.ndarray,
+               noise_ml: np.ndarray, amplitude_ml: float, length_scales_kpa: np.ndarray) -> _Posterior:
+    from scipy.linalg import cho_solve, cholesky
+
+    trend, prior = _trend(kind, growth_ml)
+    covariance = (_signal(pressures_kpa, pressures_kpa, amplitude_ml, length_scales_kpa)
+                  + (trend * prior) @ trend.T + np.diag(noise_ml ** 2))
+    factor = cholesky(covariance, lower=True)
+    return _Posterior(pressures_kpa, trend, prior, factor, cho_solve((factor, True), residual_ml))
 
 
 @dataclass(frozen=True)
 class Correction:
-    """A residual over the pressures (see the module docstring): ``kind``, fitted to ``count`` measurements,
-    ``offset_ml`` + ``growth_factor`` x the model's growth above rest + ``residual_field`` (a field kind's);
-    ``leave_one_out_pct``: the mean leave-one-out error (% of the volume) of each candidate that had enough
-    measurements for it; ``uncorrected_pct``: the model's own mean error on them (%)."""
+    """The residual over the pressures as a Gaussian process (see the module docstring).
+
+    ``kind``: the trend beneath it (one of :data:`TRENDS`); ``count`` measurements at ``pressures_kpa``, where
+    the model grew ``growth_ml`` above its rest and missed by ``residual_at_ml`` (measured minus model), each with
+    its noise ``noise_ml`` (its method's and the fitted white noise, ml); the kernel's ``amplitude_ml`` and
+    ``length_scales_kpa``; ``bound_pct``, the largest the correction is anywhere as a share of the model's volume
+    there (the model's rest is ``rest_ml``); ``offset_ml`` and
+    ``growth_factor``, the trend's coefficients (their posterior means); ``leave_one_out_pct``, each trend's mean
+    leave-one-out error (% of the volume); ``uncorrected_pct``, the model's own mean error on the measurements."""
 
     kind: str
     count: int
+    pressures_kpa: tuple[tuple[float, ...], ...] = ()
+    growth_ml: tuple[float, ...] = ()
+    residual_at_ml: tuple[float, ...] = ()
+    noise_ml: tuple[float, ...] = ()
+    amplitude_ml: float = AMPLITUDE_BOUNDS_ML[0]
+    length_scales_kpa: tuple[float, ...] = ()
+    white_noise_ml: float = 0.0
+    bound_pct: float = 0.0
+    rest_ml: float = 0.0
     offset_ml: float = 0.0
     growth_factor: float = 0.0
-    residual_field: ResidualField | None = None
     leave_one_out_pct: dict[str, float] = field(default_factory=dict)
     uncorrected_pct: float = 0.0
-    #: the kinds asked for that no field could be fitted for, and why (:class:`NoFieldError`)
-    unfitted: dict[str, str] = field(default_factory=dict)
+    log_marginal_likelihood: float = 0.0
+
+    @functools.cached_property
+    def _fitted(self) -> _Posterior:
+        return _posterior(self.kind, np.asarray(self.pressures_kpa, dtype=float), np.asarray(self.growth_ml),
+                          np.asarray(self.residual_at_ml), np.asarray(self.noise_ml), self.amplitude_ml,
+                          np.asarray(self.length_scales_kpa))
+
+    def band_ml(self, pressures_kpa: ArrayLike, model_growth_ml: ArrayLike) -> tuple[np.ndarray, np.ndarray]:
+        """The correction (ml, within +-``bound_pct`` of the model's volume) and its standard deviation (ml) at
+        pressures (kPa, one row of one per chamber each, or one such row), where the model grew
+        ``model_growth_ml`` above its rest."""
+        from scipy.linalg import solve_triangular
+
+        pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
+        growth = np.asarray(model_growth_ml, dtype=float).reshape(-1)
+        fitted = self._fitted
+        trend, prior = _trend(self.kind, growth)
+        cross = (_signal(pressures, fitted.pressures_kpa, self.amplitude_ml, np.asarray(self.length_scales_kpa))
+                 + (trend * prior) @ fitted.trend.T)
+        bound = self.bound_pct / 100.0 * np.abs(self.rest_ml + growth)
+        mean = np.clip(cross @ fitted.weights, -bound, bound)
+        projected = solve_triangular(fitted.cholesky, cross.T, lower=True)
+        variance = self.amplitude_ml ** 2 + np.sum(trend ** 2 * prior, axis=1) - np.sum(projected ** 2, axis=0)
+        return mean, np.sqrt(np.clip(variance, 0.0, None))
 
     def residual_ml(self, pressures_kpa: ArrayLike, model_growth_ml: float) -> float:
-        """What to add to the model's gland volume at these pressures, where the model grew ``model_growth_ml``
-        above its rest."""
-        value = self.offset_ml + self.growth_factor * model_growth_ml
-        if self.residual_field is not None:
-            value += self.residual_field.gland_at_ml(pressures_kpa)
-        return float(value)
+        """What to add to the model's gland volume at these pressures (kPa), where the model grew
+        ``model_growth_ml`` above its rest."""
+        return float(self.band_ml(pressures_kpa, [model_growth_ml])[0][0])
 
     def size_ml(self, grid: ModelGrid) -> float:
         """The correction's largest magnitude over the grid's box (ml): how far the model was from the
-        measurements anywhere."""
-        rest = float(grid.gland_grid_ml[0, 0, 0])
+        measurements anywhere (at most ``bound_pct`` of the model's largest volume)."""
         n = len(grid.points_kpa)
-        return max(abs(self.residual_ml(grid.points_kpa[list(index)], float(grid.gland_grid_ml[index]) - rest))
-                   for index in np.ndindex(n, n, n))
+        pressures = np.array([grid.points_kpa[list(index)] for index in np.ndindex(n, n, n)])
+        growth = np.asarray(grid.gland_grid_ml, dtype=float).reshape(-1) - float(grid.gland_grid_ml[0, 0, 0])
+        return float(np.max(np.abs(self.band_ml(pressures, growth)[0])))
+
+    def hyperparameters(self) -> str:
+        """The kernel's and the trend's fitted values in words, for reports."""
+        scales = ", ".join(f"{scale:.3g}" for scale in self.length_scales_kpa)
+        trend = {"gp": "no trend", "gp+offset": f"offset {self.offset_ml:+.3f} ml",
+                 "gp+growth": f"offset {self.offset_ml:+.3f} ml, growth x {1 + self.growth_factor:.4f}"}[self.kind]
+        return (f"amplitude {self.amplitude_ml:.3g} ml, length scales {scales} kPa, white noise "
+                f"{self.white_noise_ml:.3g} ml, {trend}; bound {self.bound_pct:.3f} % of the model's volume")
 
     def to_json(self) -> dict[str, Any]:
-        """For the daemon's status and the report: the kind, from how many measurements, the leave-one-out."""
+        """For the daemon's status and the report: the kind, from how many measurements, the hyperparameters, the
+        bound, the leave-one-out."""
         return {"kind": self.kind, "measurements": self.count, "offset_ml": self.offset_ml,
-                "growth_factor": self.growth_factor, "field": self.residual_field is not None,
-                "leave_one_out_pct": dict(self.leave_one_out_pct), "uncorrected_pct": self.uncorrected_pct,
-                "unfitted": dict(self.unfitted)}
+                "growth_factor": self.growth_factor, "amplitude_ml": self.amplitude_ml,
+                "length_scales_kpa": list(self.length_scales_kpa), "white_noise_ml": self.white_noise_ml,
+                "bound_pct": self.bound_pct, "leave_one_out_pct": dict(self.leave_one_out_pct),
+                "uncorrected_pct": self.uncorrected_pct}
 
     def to_document(self) -> dict[str, Any]:
-        """Everything the correction is, its field's values included, as JSON (:meth:`from_document` reads it)."""
-        residual = self.residual_field
-        return {**asdict(self), "residual_field": None if residual is None else {
-            "points_kpa": residual.points_kpa.tolist(), "chamber_ml": residual.chamber_ml.tolist(),
-            "constant_ml": residual.constant_ml}}
+        """Everything the correction is, as JSON (:meth:`from_document` reads it)."""
+        document: dict[str, Any] = json.loads(json.dumps(asdict(self)))
+        return document
 
     @classmethod
     def from_document(cls, document: dict[str, Any]) -> Correction:
         """The correction :meth:`to_document` wrote."""
-        residual = document["residual_field"]
-        return cls(**{**document, "residual_field": None if residual is None else ResidualField(
-            np.asarray(residual["points_kpa"], dtype=float), np.asarray(residual["chamber_ml"], dtype=float),
-            float(residual["constant_ml"]))})
+        return cls(**{**document, "pressures_kpa": tuple(tuple(float(p) for p in row)
+                                                         for row in document["pressures_kpa"]),
+                      **{name: tuple(float(v) for v in document[name])
+                         for name in ("growth_ml", "residual_at_ml", "noise_ml", "length_scales_kpa")}})
 
     def summary(self, grid: ModelGrid) -> dict[str, Any]:
         """:meth:`to_json` with the correction's size over the grid's box (``size_ml``, :meth:`size_ml`) and the
@@ -321,92 +274,120 @@ class Correction:
         return self.to_json() | {"size_ml": self.size_ml(grid), "count": self.count}
 
 
-#: The fewest measurements each kind is fitted to (its leave-one-out needs one more).
-MIN_MEASUREMENTS = {"offset": 1, "growth": 2, "field": 1, "growth+field": 2}
+def _hyperparameters(pressures_kpa: np.ndarray, residual_ml: np.ndarray, noise_ml: np.ndarray,
+                     optimise: bool) -> tuple[float, np.ndarray, float]:
+    """The residual's amplitude (ml), length scales (kPa) and white noise (ml) by scikit-learn's
+    GaussianProcessRegressor (the marginal likelihood, bounded); with ``optimise`` False, its starting values."""
+    import warnings
 
+    from sklearn.exceptions import ConvergenceWarning
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
-def _fit_kind(kind: str, pressures_kpa: np.ndarray, volumes_ml: np.ndarray, model_ml: np.ndarray, rest_ml: float,
-              grid: ModelGrid, what: str) -> Correction:
-    gaps = volumes_ml - model_ml
-    growth = model_ml - rest_ml
-    offset, factor = float(np.mean(gaps)), 0.0
-    if kind in ("growth", "growth+field"):
-        (offset, factor), *_ = np.linalg.lstsq(np.column_stack([np.ones_like(growth), growth]), gaps, rcond=None)
-    if kind == "field":
-        offset = 0.0
-    residual_field = None
-    if kind in ("field", "growth+field"):
-        left = gaps - offset - factor * growth
-        residual_field = smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, pressures_kpa, left,
-                                            what, MIN_GROWTH_FRACTION, GROWTH_PENALTY)
-    return Correction(kind, len(volumes_ml), float(offset), float(factor), residual_field)
+    chambers = pressures_kpa.shape[1]
+    # the residual's root mean square (its size about the zero mean), not its spread: two scans that agree on a
+    # residual of 0.5 ml are a residual of 0.5 ml, not one of their 0.02 ml difference (a start that near the
+    # bound left two scans' residual unrepresented, and the next round 0.8 % off near rest)
+    amplitude = float(np.clip(np.sqrt(np.mean(residual_ml ** 2)), *AMPLITUDE_BOUNDS_ML))
+    kernel = (ConstantKernel(amplitude ** 2, tuple(b ** 2 for b in AMPLITUDE_BOUNDS_ML))
+              * RBF(np.full(chambers, 1.5), LENGTH_SCALE_BOUNDS_KPA)
+              # started at the methods' own noise, not at its bound: there its gradient in log space vanishes
+              + WhiteKernel(float(np.clip(np.median(noise_ml), *WHITE_NOISE_BOUNDS_ML)) ** 2,
+                            tuple(b ** 2 for b in WHITE_NOISE_BOUNDS_ML)))
+    process = GaussianProcessRegressor(kernel, alpha=noise_ml ** 2, optimizer="fmin_l_bfgs_b" if optimise else None,
+                                       normalize_y=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)  # a bound reached is a bound kept
+        process.fit(pressures_kpa, residual_ml)
+    fitted = process.kernel_
+    white = math.sqrt(fitted.k2.noise_level) if optimise else WHITE_NOISE_BOUNDS_ML[0]  # unfitted: the methods'
+    return math.sqrt(fitted.k1.k1.constant_value), np.atleast_1d(fitted.k1.k2.length_scale).astype(float), white
 
 
 def fit_correction(measurements: Sequence[Measurement], grid: ModelGrid,
-                   kinds: Sequence[str] = KINDS) -> Correction:
-    """The correction of the model (``grid``) by the measurements: of ``kinds``, the one with the least mean
-    leave-one-out error (see the module docstring); a field's kind no field passes through is left out
-    (``unfitted`` says why). CorrectionError when there are no measurements, or none of ``kinds`` fits."""
+                   kinds: Sequence[str] = TRENDS) -> Correction:
+    """The correction of the model (``grid``) by the measurements: of the trends ``kinds``, the one with the least
+    mean leave-one-out error (one measurement: the greatest marginal likelihood), see the module docstring.
+    CorrectionError when there are no measurements, a trend is unknown, or a pressure is off the model's box."""
+    from threadpoolctl import threadpool_limits
+
+    # one BLAS thread: the matrices are at most a few hundred wide, and on a busy two-core machine BLAS's threads
+    # made a fit of 200 measurements 30 times slower (4 s against 0.12 s for one kernel's fit)
+    with threadpool_limits(1):
+        return _fit_correction(measurements, grid, kinds)
+
+
+def _fit_correction(measurements: Sequence[Measurement], grid: ModelGrid, kinds: Sequence[str]) -> Correction:
+    from scipy.linalg import cho_solve
+
     if not measurements:
         raise CorrectionError("no measurements to correct the model with: scan the phantom first")
-    unknown = sorted(set(kinds) - set(KINDS))
-    if unknown:
-        raise CorrectionError(f"unknown correction kinds {unknown}: choose from {', '.join(KINDS)}")
+    unknown = sorted(set(kinds) - set(TRENDS))
+    if unknown or not kinds:
+        raise CorrectionError(f"unknown correction kinds {unknown}: choose from {', '.join(TRENDS)}")
     pressures = np.array([m.pressures_kpa for m in measurements], dtype=float)
-    if pressures.shape[1] != grid.chamber_ml.shape[-1]:
+    chambers = grid.chamber_ml.shape[-1]
+    if pressures.shape[1] != chambers:
         raise CorrectionError(f"the measurements have {pressures.shape[1]} pressures, the model "
-                              f"{grid.chamber_ml.shape[-1]} chambers: they are of another phantom")
+                              f"{chambers} chambers: they are of another phantom")
+    pressures = pressures_in_box(pressures, float(grid.points_kpa[-1]), f"{len(measurements)} measurements")
     volumes = np.array([m.volume_ml for m in measurements], dtype=float)
-    model_ml = np.array([grid.gland_ml(p) for p in pressures])
-    rest_ml = grid.gland_ml(np.zeros(pressures.shape[1]))
-    what = f"{len(volumes)} measurements"
-    leave_one_out: dict[str, float] = {}
-    unfitted: dict[str, str] = {}
-    fits: dict[str, Correction] = {}
+    model_ml = grid.measured_states_ml(pressures)
+    rest_ml = grid.gland_ml(np.zeros(chambers))
+    growth = model_ml - rest_ml
+    residual = volumes - model_ml
+    method_noise = np.array([noise_sd_ml(m) for m in measurements])
     count = len(volumes)
+    bound_pct = float(np.max((np.abs(residual) + 2.0 * method_noise) / model_ml) * 100.0)
+    fits: dict[str, Correction] = {}
+    leave_one_out: dict[str, float] = {}
+    likelihoods: dict[str, float] = {}
     for kind in kinds:
-        if count < MIN_MEASUREMENTS[kind]:
-            continue
-        try:
-            fits[kind] = _fit_kind(kind, pressures, volumes, model_ml, rest_ml, grid, what)
-            if count < MIN_MEASUREMENTS[kind] + 1:
-                continue
-            errors = []
-            for left_out in range(count):
-                keep = np.arange(count) != left_out
-                fitted = _fit_kind(kind, pressures[keep], volumes[keep], model_ml[keep], rest_ml, grid, what)
-                predicted = model_ml[left_out] + fitted.residual_ml(pressures[left_out], model_ml[left_out] - rest_ml)
-                errors.append(abs(predicted - volumes[left_out]) / volumes[left_out] * 100)
-            leave_one_out[kind] = float(np.mean(errors))
-        except NoFieldError as error:  # only a field's kinds raise it: the others are still chosen among
-            fits.pop(kind, None)
-            unfitted[kind] = str(error)
-    if not fits:
-        raise CorrectionError(f"{count} measurement(s) fit none of {', '.join(kinds)}: "
-                              + ("; ".join(unfitted.values()) if unfitted else "store more"))
-    best = (min(leave_one_out, key=lambda kind: leave_one_out[kind]) if leave_one_out else next(iter(fits)))
-    correction = fits[best]
-    uncorrected = float(np.mean(np.abs(volumes - model_ml) / volumes * 100))
-    return Correction(correction.kind, count, correction.offset_ml, correction.growth_factor,
-                      correction.residual_field, leave_one_out, uncorrected, unfitted)
+        trend, prior = _trend(kind, growth)
+        detrended = residual
+        if trend.shape[1]:  # the kernel's hyperparameters are fitted to what the trend leaves (weighted)
+            coefficients, *_ = np.linalg.lstsq(trend / method_noise[:, None], residual / method_noise, rcond=None)
+            detrended = residual - trend @ coefficients
+        # the kernel's five hyperparameters from at most HYPERPARAMETER_MEASUREMENTS of them, evenly through the
+        # store: its marginal likelihood's optimisation is most of a fit (each step a factorisation of them all)
+        subset = np.unique(np.linspace(0, count - 1, min(count, HYPERPARAMETER_MEASUREMENTS)).round().astype(int))
+        amplitude, scales, white = _hyperparameters(pressures[subset], detrended[subset], method_noise[subset],
+                                                    optimise=count >= 3)
+        noise = np.sqrt(method_noise ** 2 + white ** 2)
+        posterior = _posterior(kind, pressures, growth, residual, noise, amplitude, scales)
+        inverse_diagonal = np.diag(cho_solve((posterior.cholesky, True), np.eye(count)))
+        leave_one_out[kind] = float(np.mean(np.abs(posterior.weights / inverse_diagonal) / volumes * 100))
+        likelihoods[kind] = float(-0.5 * residual @ posterior.weights - np.sum(np.log(np.diag(posterior.cholesky)))
+                                  - 0.5 * count * math.log(2 * math.pi))
+        coefficients = prior * (trend.T @ posterior.weights)
+        fits[kind] = Correction(kind, count, tuple(tuple(float(p) for p in row) for row in pressures),
+                                tuple(growth.tolist()), tuple(residual.tolist()), tuple(noise.tolist()), amplitude,
+                                tuple(scales.tolist()), white, bound_pct, rest_ml,
+                                float(coefficients[0]) if len(coefficients) else 0.0,
+                                float(coefficients[1]) if len(coefficients) > 1 else 0.0,
+                                log_marginal_likelihood=likelihoods[kind])
+    best = (min(leave_one_out, key=leave_one_out.__getitem__) if count >= 2
+            else max(likelihoods, key=likelihoods.__getitem__))
+    uncorrected = float(np.mean(np.abs(residual) / volumes * 100))
+    return replace(fits[best], leave_one_out_pct=leave_one_out if count >= 2 else {}, uncorrected_pct=uncorrected)
 
 
 #: Bumped when what a cached fit holds, or how a fit is made, changes.
-FIT_CACHE_VERSION = 2
+FIT_CACHE_VERSION = 4
 
 
 def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correction:
     """:func:`fit_correction`, kept in the cache folder ``corrections`` keyed by the measurements and the model's
     grid (its volumes), so that a daemon started again with many stored measurements does not fit them again
-    (17-28 s for 27 on this machine, a few ms read back). A cached file that cannot be read is fitted again."""
+    (the fit is under a second; read back, a few ms). A cached file that cannot be read is fitted again."""
     import hashlib
 
     from phantom import cache_dir
 
-    digest = hashlib.sha256(json.dumps({"version": FIT_CACHE_VERSION, "kinds": KINDS,
-                                        "min_growth_fraction": MIN_GROWTH_FRACTION,
-                                        "growth_penalty": GROWTH_PENALTY,
-                                        "first_difference_weight": FIRST_DIFFERENCE_WEIGHT,
+    digest = hashlib.sha256(json.dumps({"version": FIT_CACHE_VERSION, "trends": TRENDS, "prior": TREND_PRIOR_SD,
+                                        "noise": [NOISE_SD_PCT, NOISE_SD_ML],
+                                        "bounds": [LENGTH_SCALE_BOUNDS_KPA, AMPLITUDE_BOUNDS_ML,
+                                                   WHITE_NOISE_BOUNDS_ML, HYPERPARAMETER_MEASUREMENTS],
                                         "measurements": [asdict(m) for m in measurements]},
                                        sort_keys=True).encode())
     for array in (grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml):
@@ -452,6 +433,15 @@ class CorrectedModel:
         """The corrected gland volume (ml) at these pressures (kPa)."""
         pressures = np.asarray(pressures_kpa, dtype=float)
         return self.corrected_ml(pressures, self.grid.gland_ml(pressures))
+
+    def gland_band_ml(self, pressures_kpa: ArrayLike) -> tuple[float, float]:
+        """The corrected gland volume (ml) at these pressures (kPa) and the half-width (ml) of its 95 % band: where
+        the correction knows the phantom (measured nearby), narrow; away from the measurements, as wide as the
+        residual's own spread."""
+        pressures = np.asarray(pressures_kpa, dtype=float)
+        model_ml = self.grid.gland_ml(pressures)
+        mean, deviation = self.correction.band_ml(pressures, [model_ml - self.rest_ml])
+        return float(model_ml + mean[0]), float(BAND_Z * deviation[0])
 
     def corrected_ml(self, pressures_kpa: ArrayLike, model_ml: float) -> float:
         """The corrected gland volume (ml) at these pressures (kPa), where the model's own is ``model_ml`` (a caller

@@ -164,12 +164,17 @@ class InverseResult:
     solve_time_s: float
     qp_solve_time_s: float
     history: list[dict[str, Any]] = field(default_factory=list)
+    #: with a correction by measured volumes in force: the 95 % half-width (ml) of the predicted gland volume, and
+    #: from how many measurements (None and 0 without one)
+    band_ml: float | None = None
+    measurements: int = 0
 
     def to_json(self) -> dict[str, Any]:
         """The answer as the daemon's API reports it: the target (:meth:`Target.to_json`), ``pressures_kpa``,
         ``predicted_volume_ml``, ``predicted_chamber_volumes_ml``, ``iterations``, ``solve_time_s`` and
-        ``qp_time_s``."""
-        return {"target": self.target.to_json(),
+        ``qp_time_s``; with a correction in force, ``band_ml`` and ``measurements``."""
+        band = {} if self.band_ml is None else {"band_ml": float(self.band_ml), "measurements": int(self.measurements)}
+        return {**band, "target": self.target.to_json(),
                 "pressures_kpa": (np.asarray(self.pressures_pa, dtype=float) / PA_PER_KPA).tolist(),
                 "predicted_volume_ml": float(self.predicted_gland_volume_m3) * ML_PER_M3,
                 "predicted_chamber_volumes_ml": (np.asarray(self.predicted_chamber_volumes_m3, dtype=float)

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError, read_text, require_extra, unique_keys, written_atomically
-from phantom.model.corrections import KINDS, CorrectedModel, Correction, ModelGrid, fit_correction
+from phantom.model.corrections import CorrectedModel, Correction, ModelGrid, fit_correction
 from phantom.model.measurements import Measurement
 
 #: The record's file format, and its name in the run's folder.
@@ -352,16 +352,9 @@ def held_pressures_kpa(frames_kpa: Sequence[Sequence[float]]) -> list[float]:
 
 # ----------------------------------------------------------------------------------------------- the fit
 def fit_run(measurements: Sequence[Measurement], grid: ModelGrid) -> tuple[Correction, str]:
-    """The correction of the model by a run's scans (``fit_correction`` over every kind), and a note for the
-    report when a field's kind could not be fitted (no residual field passes through the scans: two at the same
-    state that disagree), so the correction was chosen among the others. A bad measurement is an error, not a
-    note."""
-    correction = fit_correction(measurements, grid)
-    if not correction.unfitted:
-        return correction, ""
-    why = next(iter(correction.unfitted.values()))
-    return correction, (f"Not fitted: {', '.join(correction.unfitted)} ({why}); the correction is chosen among "
-                        f"{', '.join(kind for kind in KINDS if kind not in correction.unfitted)}.")
+    """The correction of the model by a run's scans (``fit_correction``: a Gaussian process over every trend), and
+    a note for the report (none: every trend is fitted). A bad measurement is an error, not a note."""
+    return fit_correction(measurements, grid), ""
 
 
 # ----------------------------------------------------------------------------------------------- the report
@@ -412,9 +405,7 @@ def write_report(record: CharacterisationRecord, grid: ModelGrid, correction: Co
                                          for index, why in sorted(record.skipped.items())] + [""]
     lines += ["## The correction", "",
               f"The model misses the scans by {correction.uncorrected_pct:.2f} % on average. In force: "
-              f"**{correction.kind}** (offset {correction.offset_ml:+.3f} ml, growth x "
-              f"{1 + correction.growth_factor:.4f}"
-              f"{', and a residual field' if correction.residual_field is not None else ''}), fitted to "
+              f"**{correction.kind}**, a Gaussian process ({correction.hyperparameters()}), fitted to "
               f"{correction.count} scans; its largest size over the pressure box "
               f"{correction.size_ml(grid):.3f} ml.", "",
               "Leave-one-out (each scan left out in turn, predicted by the correction fitted to the rest; mean abs "

@@ -52,13 +52,14 @@ def test_a_daemon_still_starting_is_waited_for_then_reported_with_its_progress(t
         thread.join(10)
 
 
-def test_the_unreachable_range_is_read_from_either_wording():
+def test_the_unreachable_range_is_the_answers_data_never_its_words():
+    """Issue 48: no regular expression over refusal texts in the client: the range is the API error's data."""
     give = UnreachableError("unreachable", "the gland volume target 80.000 ml is unreachable: pressures between 0 "
-                            "and [3, 3, 3] kPa give 25.950 to 43.740 ml; ask for a volume in that range")
+                            "and [3, 3, 3] kPa give 25.950 to 43.740 ml; ask for a volume in that range",
+                            {"gland_range_ml": [25.95, 43.74], "corrected": False})
     assert give.range_ml == (25.95, 43.74)
-    within = UnreachableError("unreachable", "the volume of chamber 1 target 3.000 ml is within the reachable "
-                              "range 1.900-4.100 ml on its own, but contradicts the other targets")
-    assert within.range_ml == (1.9, 4.1)
+    words_only = UnreachableError("unreachable", "pressures between 0 and [3, 3, 3] kPa give 25.950 to 43.740 ml")
+    assert words_only.range_ml is None
     assert UnreachableError("unreachable", "the volume QP did not solve").range_ml is None
 
 
@@ -67,3 +68,14 @@ def test_phantom_connect_is_the_hosts_client():
 
     assert phantom.connect.__doc__ and "wait" in phantom.connect.__doc__
     assert client.Phantom.set_volume.__doc__ and "Raises" in client.Phantom.set_volume.__doc__
+
+
+def test_a_target_results_band_and_measurements_come_from_the_answer():
+    from phantom.host.client import TargetResult
+
+    answer = {"target": {"volume_ml": 35.0}, "pressures_kpa": [1.0, 1.5, 1.5], "predicted_volume_ml": 35.0,
+              "predicted_chamber_volumes_ml": [5.0, 6.0, 6.0], "iterations": 3, "solve_time_s": 0.05}
+    plain = TargetResult.from_json(answer)
+    assert plain.band_ml is None and plain.measurements == 0 and plain.scanned is None
+    corrected = TargetResult.from_json({**answer, "band_ml": 0.07, "measurements": 12})
+    assert corrected.band_ml == 0.07 and corrected.measurements == 12

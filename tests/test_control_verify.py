@@ -148,9 +148,16 @@ def test_a_scan_cut_short_by_a_lost_link_is_taken_again_once_the_pressures_settl
 
 
 def test_a_fault_during_a_scan_ends_it_faulted_and_its_scan_is_not_used(core):
+    """A fault mid-verify (make demo's DEAD_HOST during round 2's scan stopped the blowers and refused the rest)
+    says which round, what it was doing and what to do."""
     verified(core)
-    core.faults(2.0, ("OVERPRESSURE",))
-    assert outcomes(core.take_actions()) == ["faulted"]
+    core.faults(2.0, ("DEAD_HOST",))
+    actions = core.take_actions()
+    assert outcomes(actions) == ["faulted"]
+    (told,) = [tell for tell in of_kind(actions, control.Tell) if tell.data]
+    assert "faults latched (DEAD_HOST) during verify round 1 of 4 (scanning); the scans before are stored" in told.text
+    assert "clear it (`phantom clear-fault`), then set the target again" in told.text
+    assert told.data["rounds"][0]["round"] == 1
     core.scanned(3.0, 1, 38.8, None, "/scans/1")          # the scan that ran through the fault
     assert of_kind(core.take_actions(), (control.Correct, control.Record)) == []
 
@@ -192,29 +199,161 @@ def test_the_shift_follows_the_phantoms_own_growth_per_ml_asked():
     assert control.shifted_ml(noisy, 40.0) == pytest.approx(41.06 + 1.05)
 
 
+@pytest.mark.parametrize(("error_pct", "round_", "correct", "judged"), [
+    (0.09, 1, True, "verified"),        # within the third of 0.3 % aimed at
+    (-0.099, 1, True, "verified"),      # below it
+    (0.2, 1, True, "correct"),          # within 0.3 %, off the aim, rounds remain
+    (0.2, 4, True, "verified"),         # within 0.3 % on the last round
+    (-0.31, 4, True, "not_verified"),   # outside it on the last
+    (-2.0, 3, True, "correct"),
+    (-2.0, 1, False, "verified"),       # scanned only (a recording scan): one round, whatever it measures
+])
+def test_what_a_scan_means_is_judged_by_the_verify_policy(error_pct, round_, correct, judged):
+    from phantom.host import verify
+
+    assert verify.judge_scan(error_pct, 0.3, round_, 4, correct) == judged
+
+
+def test_the_whole_tolerance_can_be_aimed_at_offline():
+    """bench/verify_rounds.py compares the rule with a scan within the whole tolerance (aim_share 1)."""
+    from phantom.host import verify
+
+    assert verify.judge_scan(0.25, 0.3, 1, 4, True, aim_share=1.0) == "verified"
+    assert verify.judge_scan(0.25, 0.3, 1, 4, True) == "correct"
+
+
+def answer_at(target, kpa=(1.0, 0.0, 0.0)):
+    """An inverse's answer for ``target`` at these pressures (kPa)."""
+    return answer_for(target, kpa)
+
+
 def test_a_shift_beyond_the_models_range_is_asked_at_its_edge():
     """make demo's 26.5 ml: the phantom at rest holds more than the model (26.43 against 26.30 ml), so the volume
-    asked moved by the scan's error (26.0 ml) is below what the model can reach at 0 kPa."""
+    asked moved by the scan's error (26.0 ml) is below what the model can reach at 0 kPa: asked at the range's
+    edge, the range read from the refusal's data. No correction took the scan (none recorded)."""
+    from phantom.host import verify
+
+    action = control.Correct(1, volume(26.5), (0.1, 0.0, 0.0), 27.0, "/scans/1", 25.997, (100.0, 0.0, 0.0))
+    policy = verify.NextRound(action)
+    policy.start(10.0)
+    (record,) = policy.take_actions()
+    assert isinstance(record, verify.Record) and record.scanned_ml == 27.0 and record.scan_folder == "/scans/1"
+    policy.recorded(11.0, False, None)
+    (solve,) = policy.take_actions()
+    assert isinstance(solve, verify.Solve) and solve.target.gland_volume_m3 * 1e6 == pytest.approx(25.997)
+    policy.unreachable(11.5, (26.296, 51.581), False, "unreachable")
+    (solve,) = policy.take_actions()
+    assert solve.target.gland_volume_m3 * 1e6 == pytest.approx(26.306)
+    assert "beyond the model's reachable 26.296 to 51.581 ml, so its edge" in solve.how
+    answer = answer_at(solve.target)
+    policy.solved(12.0, answer)
+    (apply,) = policy.take_actions()
+    assert isinstance(apply, verify.Apply) and apply.answer is answer and policy.done and apply.how == solve.how
+
+
+def test_the_edge_asked_too_often_or_a_range_not_given_gives_up_as_unreachable_and_a_failed_model_not():
+    from phantom.host import verify
+
+    action = control.Correct(2, volume(50.0), (3.0, 3.0, 3.0), 49.0, None, 51.0, (3000.0, 3000.0, 3000.0))
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, False, None)
+    for _ in range(verify.EDGE_TRIES):
+        policy.take_actions()
+        policy.unreachable(2.0, (26.0, 50.5), True, "beyond")
+    policy.take_actions()
+    policy.unreachable(3.0, (26.0, 50.4), True, "still beyond")
+    (give_up,) = policy.take_actions()
+    assert give_up == verify.GiveUp(2, True, "still beyond") and policy.done
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, False, None)
+    policy.take_actions()
+    policy.unreachable(2.0, None, False, "no range said")
+    assert policy.take_actions() == [verify.GiveUp(2, True, "no range said")]
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, True, 49.2)
+    policy.take_actions()
+    policy.failed(2.0, "the model failed: gone")
+    assert policy.take_actions() == [verify.GiveUp(2, False, "the model failed: gone")]
+
+
+def test_the_next_round_asks_the_target_less_what_the_refitted_correction_still_misses_at_the_scan():
+    """make demo's 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in four rounds and was not verified: the target
+    alone moved the pressures by a share of the scan's error. With the scan recorded, the next round asks the
+    corrected model (which now includes it) for the target less the scan's miss of it at the scanned pressures;
+    an answer that leaves the setpoints where they were, or a target beyond the corrected range, asks the
+    shifted volume instead."""
+    from phantom.host import verify
+
+    action = control.Correct(1, volume(30.0), (0.403, 0.482, 0.482), 28.66, "/scans/1", 31.34, (403.0, 482.0, 482.0))
+    policy = verify.NextRound(action)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, True, 29.10)  # the refitted correction says 29.10 ml where the phantom scanned 28.66
+    (solve,) = policy.take_actions()
+    assert solve.target.gland_volume_m3 * 1e6 == pytest.approx(30.0 + (29.10 - 28.66))
+    assert solve.how == "the target on the model corrected by the scan"
+    policy.solved(2.0, answer_at(solve.target, (0.5, 0.6, 0.6)))
+    (apply,) = policy.take_actions()
+    assert isinstance(apply, verify.Apply) and apply.how == "the target on the model corrected by the scan"
+    same = verify.NextRound(action)
+    same.start(0.0)
+    same.take_actions()
+    same.recorded(1.0, True, 28.66)
+    (solve,) = same.take_actions()
+    same.solved(2.0, answer_at(solve.target, (0.403, 0.482, 0.482)))  # the setpoints of the round: moved nothing
+    (shifted,) = same.take_actions()
+    assert isinstance(shifted, verify.Solve) and shifted.target.gland_volume_m3 * 1e6 == pytest.approx(31.34)
+    beyond = verify.NextRound(action)
+    beyond.start(0.0)
+    beyond.take_actions()
+    beyond.recorded(1.0, True, 28.66)
+    beyond.take_actions()
+    beyond.unreachable(2.0, (30.5, 52.0), True, "beyond the corrected range")
+    (shifted,) = beyond.take_actions()
+    assert shifted.target.gland_volume_m3 * 1e6 == pytest.approx(31.34)
+
+
+def test_the_daemon_performs_the_next_rounds_actions_and_feeds_the_answers():
+    """The daemon only performs: the record through the model worker, the corrected estimate at the scan, the
+    solves (an unreachable one's range from the API error's data), and the core's corrected."""
     import asyncio
     import types
 
     from phantom.host.api import ApiError
     from phantom.host.daemon import Daemon
 
-    asked = []
+    asked, fed = [], []
 
-    async def solve(target):
-        asked.append(target.gland_volume_m3 * 1e6)
-        if target.gland_volume_m3 * 1e6 < 26.296:
-            raise ApiError("unreachable", "the gland volume target 25.997 ml is unreachable: pressures between 0 and "
-                                          "[3, 3, 3] kPa give 26.296 to 51.581 ml; ask for a volume in that range",
-                           {"gland_range_ml": [26.296, 51.581], "corrected": False})
-        return "answer"
+    async def solve(target):   # the model worker with a +0.44 ml correction in force
+        volume_ml = target.gland_volume_m3 * 1e6
+        asked.append(volume_ml)
+        if volume_ml < 26.736:
+            raise ApiError("unreachable", "beyond the corrected range", {"gland_range_ml": [26.736, 52.021],
+                                                                         "corrected": True})
+        return answer_for(target, (0.01, 0.0, 0.0))
 
-    action = control.Correct(1, volume(26.5), (0.1, 0.0, 0.0), 27.0, "/scans/1", 25.997, (100.0, 0.0, 0.0))
-    answer, how = asyncio.run(Daemon._solve_shifted(types.SimpleNamespace(solve=solve), action))
-    assert answer == "answer" and asked == [pytest.approx(25.997), pytest.approx(26.306)]
-    assert "beyond the model's reachable 26.296 to 51.581 ml, so its edge" in how
+    async def recorded(*_):
+        return True
+
+    async def estimate(pressures_pa):  # the correction fitted to that one scan passes through it
+        return types.SimpleNamespace(gland_volume_ml=27.0)
+
+    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded, model=types.SimpleNamespace(estimate=estimate),
+                                   core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
+                                   now_s=lambda: 0.0, _feed=lambda method, *args: fed.append((method, args)))
+    action = control.Correct(1, volume(26.5), (0.1, 0.1, 0.1), 27.0, "/scans/1", 26.0, (98.0, 97.0, 97.0))
+    asyncio.run(Daemon._correct_for_core(daemon, action))
+    assert asked[:2] == [pytest.approx(26.5), pytest.approx(26.0)]      # the target, then the shifted volume
+    assert asked[-1] == pytest.approx(26.746)                            # the corrected range's edge, inside it
+    ((method, (round_, answer, how)),) = fed
+    assert method == "corrected" and round_ == 1 and answer.target.gland_volume_m3 * 1e6 == pytest.approx(26.746)
+    assert "beyond the model's reachable 26.736 to 52.021 ml (with the correction in force), so its edge" in how
 
 
 def test_the_scan_that_ends_a_verification_is_stored_through_the_model_worker():
@@ -240,86 +379,6 @@ def test_the_scan_that_ends_a_verification_is_stored_through_the_model_worker():
     assert asyncio.run(Daemon._record_scan(daemon, (1.0, 0.5, 0.5), -1.0, "/scans/2")) is False
     assert told == [("verify", "the scan as a measurement of the phantom: a negative volume", "WARN")]
     assert asyncio.run(Daemon._record_scan(types.SimpleNamespace(model=object()), (1.0,), 40.0, None)) is False
-
-
-def test_a_target_beyond_the_corrected_models_range_is_asked_at_that_ranges_edge():
-    """make demo's 26.5 ml: its first scan (27.00 ml at 0.1 kPa) corrects the model by +0.44 ml, so 26.5 ml is
-    below what the corrected model reaches at 0 kPa (26.74 ml), while the phantom at rest holds 26.43 ml. The
-    correction after round 1 failed ("unreachable") and the target ended not verified; now the volume asked moved
-    by the scan's error is asked at the corrected range's edge."""
-    import asyncio
-    import types
-
-    from phantom.host.api import ApiError
-    from phantom.host.daemon import Daemon
-
-    asked, fed = [], []
-
-    async def solve(target):   # the model worker with a +0.44 ml correction in force
-        volume_ml = target.gland_volume_m3 * 1e6
-        asked.append(volume_ml)
-        model_ml = volume_ml - 0.44
-        if model_ml < 26.296:
-            raise ApiError("unreachable", f"{volume_ml:.2f} ml with the correction in force (offset from 1 "
-                           f"measurement(s)) is the model's {model_ml:.2f} ml: the gland volume target {model_ml:.3f} "
-                           "ml is unreachable: pressures between 0 and [3, 3, 3] kPa give 26.296 to 51.581 ml; ask "
-                           "for a volume in that range or raise pressure_max",
-                           {"gland_range_ml": [26.296 + 0.44, 51.581 + 0.44], "corrected": True})
-        return types.SimpleNamespace(pressures_pa=[1.0, 0.0, 0.0], target=target)
-
-    async def recorded(*_):
-        return True
-
-    async def estimate(pressures_pa):  # the offset fitted to that one scan passes through it
-        return types.SimpleNamespace(gland_volume_ml=27.0)
-
-    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded, model=types.SimpleNamespace(estimate=estimate),
-                                   core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
-                                   _feed=lambda method, *args: fed.append((method, args)))
-    daemon._solve_shifted = lambda action: Daemon._solve_shifted(daemon, action)
-    daemon._less_the_corrections_miss = lambda action: Daemon._less_the_corrections_miss(daemon, action)
-    action = control.Correct(1, volume(26.5), (0.1, 0.1, 0.1), 27.0, "/scans/1", 26.0, (98.0, 97.0, 97.0))
-    asyncio.run(Daemon._correct_for_core(daemon, action))
-    assert asked[:2] == [pytest.approx(26.5), pytest.approx(26.0)]      # the target, then the shifted volume
-    assert asked[-1] == pytest.approx(26.746)                            # the corrected range's edge, inside it
-    ((method, (round_, answer, how)),) = fed
-    assert method == "corrected" and round_ == 1 and answer.target.gland_volume_m3 * 1e6 == pytest.approx(26.746)
-    assert "beyond the model's reachable 26.736 to 52.021 ml (with the correction in force), so its edge" in how
-
-
-def test_the_next_round_asks_the_target_less_what_the_refitted_correction_still_misses_at_the_scan():
-    """make demo's 30 ml scanned 28.66, 29.02, 29.37, 29.77 ml in four rounds and was not verified: the correction
-    refitted to every stored scan (by least squares) passed beside the newest, and the target alone moved the
-    pressures by a share of the scan's error. The next round asks the corrected model for the target less the
-    scan's miss of the corrected model at the scanned pressures."""
-    import asyncio
-    import types
-
-    from phantom.host.daemon import Daemon
-
-    asked, estimated, fed = [], [], []
-
-    async def solve(target):
-        asked.append(target.gland_volume_m3 * 1e6)
-        return types.SimpleNamespace(pressures_pa=[500.0, 600.0, 600.0], target=target)
-
-    async def estimate(pressures_pa):  # the refitted correction says 29.10 ml where the phantom scanned 28.66
-        estimated.append(list(pressures_pa))
-        return types.SimpleNamespace(gland_volume_ml=29.10)
-
-    async def recorded(*_):
-        return True
-
-    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded, model=types.SimpleNamespace(estimate=estimate),
-                                   core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
-                                   _feed=lambda method, *args: fed.append((method, args)))
-    daemon._less_the_corrections_miss = lambda action: Daemon._less_the_corrections_miss(daemon, action)
-    action = control.Correct(1, volume(30.0), (0.403, 0.482, 0.482), 28.66, "/scans/1", 31.34, (403.0, 482.0, 482.0))
-    asyncio.run(Daemon._correct_for_core(daemon, action))
-    assert estimated == [[pytest.approx(403.0), pytest.approx(482.0), pytest.approx(482.0)]]  # at the scan's (Pa)
-    assert asked == [pytest.approx(30.0 + (29.10 - 28.66))]
-    ((method, (round_, answer, how)),) = fed
-    assert method == "corrected" and round_ == 1 and how == "the target on the model corrected by the scan"
 
 
 def test_a_target_is_solved_after_the_scan_being_stored():
@@ -374,3 +433,122 @@ def test_an_unreachable_answer_carries_the_glands_range_as_data():
             asyncio.run(Daemon.solve(daemon, volume(20.0)))
         assert answered.value.code == "unreachable" and str(answered.value) == str(refusal)
         assert answered.value.data == data
+
+
+def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_scans_its_own():
+    """Issue 48's red team: a second client's verified target, reached while the first's scan ran, failed ("a
+    scan is running") and the abandoned capture kept the rig. Now the abandoned capture is stopped, its answer
+    (for a verification that is no more) is not fed to the core, and the new round's scan takes the rig."""
+    import asyncio
+    import types
+
+    from phantom.host.api import ApiError
+    from phantom.host.daemon import Daemon
+
+    fed, captures = [], []
+
+    async def main():
+        running = {}
+
+        async def scan(params):  # the scan API method: one capture at a time, as host/motion.py's
+            if running:
+                raise ApiError("rejected", "a scan is running (started now): wait for it, or stop it with motion_stop")
+            stopped = running["run"] = asyncio.Event()
+            captures.append(params["out"])
+            try:
+                if len(captures) == 1:  # the first capture runs until it is stopped
+                    await stopped.wait()
+                    return {"folder": params["out"], "status": "stopped", "reason": "stopped"}
+                return {"folder": params["out"], "status": "complete"}
+            finally:
+                running.clear()
+
+        async def stop_scan(reason):
+            if not running:
+                return False
+            running["run"].set()
+            while running:
+                await asyncio.sleep(0)
+            return True
+
+        scanner = types.SimpleNamespace(plan={}, volume=lambda folder: {"volume_ml": 35.02, "surface_mm": None})
+        daemon = types.SimpleNamespace(
+            verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
+            motion=types.SimpleNamespace(latest=None, stop_scan=stop_scan), link_lost_s=None, now_s=lambda: 0.0,
+            recorder=types.SimpleNamespace(log_scanned_volume=lambda *_: None), plant_volume_ml=lambda: 35.0,
+            core=types.SimpleNamespace(scanned="scanned"), _feed=lambda method, *args: fed.append((method, args)),
+            verify_scan=None)
+        daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
+        first = asyncio.ensure_future(Daemon._scan_for_core(daemon, control.Scan(1, volume(40.0), (1.0, 0.5, 0.5))))
+        await asyncio.sleep(0.01)
+        second = Daemon._scan_for_core(daemon, control.Scan(1, volume(35.0), (0.9, 0.4, 0.4)))
+        await asyncio.wait_for(asyncio.gather(first, second), 5.0)
+
+    asyncio.run(main())
+    assert len(captures) == 2
+    ((method, (round_, volume_ml, error, *_)),) = fed  # only the second's scan, measured
+    assert method == "scanned" and round_ == 1 and volume_ml == 35.02 and error is None
+
+
+def _offered(core, target_ml, band_ml, verify, measurements=12):
+    """A target offered with an answer carrying the correction's band (ml) and acknowledged; the actions of its
+    settling."""
+    import dataclasses
+
+    target = volume(target_ml)
+    answer = dataclasses.replace(answer_for(target), band_ml=band_ml, measurements=measurements)
+    core.offer(0.0, 1, answer, verify=verify)
+    core.take_actions()
+    core.sent(0.0, target)
+    core.take_actions()
+    return settle(core, 0.0, 1.2, estimate_ml=target_ml)
+
+
+def test_verify_auto_with_a_band_within_the_tolerance_is_reached_without_a_scan_and_says_from_how_many(core):
+    """verify="auto": the correction's 95 % band at the answer, 0.08 ml of 40 ml (0.2 %), is within the 0.3 %
+    asked: no scan; the outcome says so, with the band and the measurements it comes from."""
+    actions = _offered(core, 40.0, 0.08, Verify(auto=True))
+    assert of_kind(actions, control.Scan) == [] and outcomes(actions) == ["reached"]
+    (told,) = [tell for tell in of_kind(actions, control.Tell) if tell.data]
+    assert "verify auto: within +-0.20 % (95 %) from 12 stored measurement(s), within the 0.3 % asked, so not " \
+           "scanned" in told.text
+    assert told.data["scanned"] is False and told.data["band_ml"] == 0.08 and told.data["measurements"] == 12
+    assert told.data["verify"]["verify"] == "auto"
+
+
+@pytest.mark.parametrize("band_ml", [0.2, None, float("nan")])
+def test_verify_auto_with_a_wide_band_or_none_scans_as_verify_scan_does(core, band_ml):
+    """A band of 0.2 ml at 40 ml (0.5 %) is wider than the 0.3 % asked; no correction (no band) knows nothing:
+    both are scanned, and the rounds go on as verify="scan"'s."""
+    actions = _offered(core, 40.0, band_ml, Verify(auto=True))
+    assert outcomes(actions) == [] and len(of_kind(actions, control.Scan)) == 1
+    core.scanned(3.5, 1, 40.03, None, "/scans/1")
+    (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
+    assert told.data["outcome"] == "reached" and told.data["verified"] and told.data["verify"]["verify"] == "auto"
+
+
+def test_a_scene_steps_verify_auto_is_decided_when_its_answer_comes(core):
+    import dataclasses
+
+    target = volume(35.0)
+    core.scene_started(0.0)
+    core.want(0.0, target, "scene", step=0, verify=Verify(auto=True))
+    core.take_actions()
+    core.solved(0.1, target, dataclasses.replace(answer_for(target), band_ml=0.05, measurements=20))
+    core.take_actions()
+    core.sent(0.2, target)
+    actions = core.take_actions() + settle(core, 0.2, 1.2, estimate_ml=35.0)
+    assert of_kind(actions, control.Scan) == [] and "reached" in outcomes(actions)
+
+
+def test_verify_auto_is_taken_by_the_api_and_by_a_scene_and_a_bad_word_is_refused():
+    from phantom.host.api import ApiError
+    from phantom.host.handlers import verify_of
+    from phantom.host.scenes import SceneError, parse_step_verify
+
+    assert verify_of({"verify": "auto"}) == Verify(0.3, 4, auto=True)
+    assert parse_step_verify({"verify": "auto", "verify_rounds": 2}, "step 1") == Verify(0.3, 2, auto=True)
+    with pytest.raises(ApiError, match='verify must be "scan" .* or "auto"'):
+        verify_of({"verify": "maybe"})
+    with pytest.raises(SceneError, match='step 1: verify must be "scan" or "auto"'):
+        parse_step_verify({"verify": "maybe"}, "step 1")

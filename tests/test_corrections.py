@@ -1,6 +1,7 @@
 """The measured volumes that correct a phantom's model (phantom.model.corrections, ``phantom corrections``): the
 store survives restarts and kills, refuses bad input with why, exports what ``phantom calibrate`` reads; the
-correction is chosen by leave-one-out and corrects the model away from the points measured."""
+correction, a Gaussian process whose trend is chosen by leave-one-out, corrects the model away from the points
+measured, knows where it does not know (its band), stays within its bound, and fits 200 measurements quickly."""
 
 import json
 import os
@@ -13,7 +14,7 @@ import pytest
 
 from phantom.cli.main import main
 from phantom.model.calibration.calibrate import load_measurements
-from phantom.model.corrections import CorrectedModel, Correction, ModelGrid, fit_correction, trilinear
+from phantom.model.corrections import TRENDS, CorrectedModel, Correction, ModelGrid, fit_correction
 from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement
 
 
@@ -110,67 +111,129 @@ def _linear_grid(growth_ml_per_kpa=2.0, rest_ml=20.0):
     return ModelGrid(points, chamber, gland, lambda p: float(rest_ml + growth_ml_per_kpa * np.sum(p)), "linear")
 
 
-@pytest.mark.slow
+def offset_correction(offset_ml, chambers=3):
+    """A correction that adds ``offset_ml`` everywhere (to about 1e-7 ml): one exact measurement at rest under a
+    broad offset trend and a residual of no spread."""
+    return Correction("gp+offset", 1, ((0.0,) * chambers,), (0.0,), (float(offset_ml),), (1e-4,), 1e-3,
+                      (1.5,) * chambers, 0.0, 1e6, 1.0, float(offset_ml))
+
+
 def test_a_stiffer_phantom_is_corrected_by_its_growth_and_the_inverse_then_hits_the_truth():
-    """The truth grows 10 % less than the model and sits 0.3 ml higher: the growth correction wins the
-    leave-one-out and is exact everywhere; the corrected inverse meets the truth."""
+    """The truth grows 10 % less than the model and sits 0.3 ml higher, scanned with the scanner's noise: the
+    growth trend wins the leave-one-out, the factor is found, and the corrected inverse meets the truth within the
+    noise."""
     grid = _linear_grid()
 
     def truth(p):
         return 20.3 + 1.8 * float(np.sum(p))
 
     rng = np.random.default_rng(4)
-    scanned = rng.uniform(0, 3, (6, 3))
-    correction = fit_correction([Measurement(tuple(p), truth(p)) for p in scanned], grid)
-    assert correction.kind == "growth"
-    assert correction.leave_one_out_pct["growth"] < 1e-6 < correction.leave_one_out_pct["offset"]
-    assert correction.growth_factor == pytest.approx(-0.1) and correction.offset_ml == pytest.approx(0.3)
+    scanned = rng.uniform(0, 3, (12, 3))
+    noise = 1 + 0.0012 * rng.standard_normal(len(scanned))
+    correction = fit_correction([Measurement(tuple(p), truth(p) * n) for p, n in zip(scanned, noise, strict=True)],
+                                grid)
+    assert correction.kind == "gp+growth" and set(correction.leave_one_out_pct) == set(TRENDS)
+    assert correction.leave_one_out_pct["gp+growth"] == min(correction.leave_one_out_pct.values()) < 0.2
+    assert correction.growth_factor == pytest.approx(-0.1, abs=0.01)
     corrected = CorrectedModel(grid, correction)
     for p in rng.uniform(0, 3, (5, 3)):
-        assert corrected.gland_ml(p) == pytest.approx(truth(p), rel=1e-9)
+        assert corrected.gland_ml(p) == pytest.approx(truth(p), rel=0.002)
 
     def inverse(volume_ml):  # the model's own inverse: equal pressures
         return np.full(3, (volume_ml - 20.0) / 6.0)
 
     pressures, volume, rounds = corrected.pressures_for_ml(35.0, inverse)
-    assert truth(pressures) == pytest.approx(35.0, abs=1e-3) and volume == pytest.approx(35.0, abs=1e-3)
-    assert rounds <= 3
+    assert truth(pressures) == pytest.approx(35.0, rel=0.002) and volume == pytest.approx(35.0, abs=1e-3)
+    assert rounds <= 4
     with pytest.raises(CorrectionError, match="no measurements"):
         fit_correction([], grid)
+    with pytest.raises(CorrectionError, match="unknown correction kinds"):
+        fit_correction([Measurement((1.0, 1.0, 1.0), 26.5)], grid, ["field"])
+
+
+def test_one_scan_corrects_near_it_returns_to_the_model_far_away_and_says_where_it_does_not_know():
+    """One scan at 1 kPa each that reads 0.5 ml over the model: there the corrected volume is the scan's within
+    its noise and the band is narrow; at the far corner of the box the correction is smaller and the band wide."""
+    grid = _linear_grid()
+    one = fit_correction([Measurement((1.0, 1.0, 1.0), 26.5)], grid)
+    assert one.leave_one_out_pct == {} and one.count == 1
+    corrected = CorrectedModel(grid, one)
+    near, near_band = corrected.gland_band_ml((1.0, 1.0, 1.0))
+    assert near == pytest.approx(26.5, abs=2 * 0.0012 * 26.5)
+    far, far_band = corrected.gland_band_ml((3.0, 0.0, 3.0))
+    assert abs(far - grid.gland_ml(np.array([3.0, 0.0, 3.0]))) < 0.5 and far_band > 2 * near_band
+    assert one.bound_pct == pytest.approx((0.5 + 2 * 0.0012 * 26.5) / 26.0 * 100)
+    assert one.size_ml(grid) <= one.bound_pct / 100 * 38.0
+
+
+def test_the_correction_is_nowhere_larger_than_its_bound_even_from_scans_only_near_rest():
+    """The old field, fitted to scans near rest, was "up to 23.9 ml over the pressure box" (make demo, issue
+    48): the growth trend fitted to a steep miss near rest would extrapolate so. The bound: the largest measured
+    miss plus twice its noise as a share of the model's volume there, nowhere exceeded (checked at 2000 random
+    states and the grid's)."""
+    grid = _linear_grid()
+    scans = [Measurement((p, q, 0.0), 20.0 + 2.0 * (p + q) + 3.0 * (p + q)) for p in (0.0, 0.1, 0.2)
+             for q in (0.0, 0.15)]
+    correction = fit_correction(scans, grid)
+    largest_pct = max((abs(s.volume_ml - grid.gland_ml(np.array(s.pressures_kpa))) + 2 * 0.0012 * s.volume_ml)
+                      / grid.gland_ml(np.array(s.pressures_kpa)) * 100 for s in scans)
+    assert correction.bound_pct == pytest.approx(largest_pct)
+    states = np.random.default_rng(3).uniform(0, 3, (2000, 3))
+    model = np.array([grid.gland_ml(p) for p in states])
+    mean, deviation = correction.band_ml(states, model - 20.0)
+    assert np.all(np.abs(mean) <= correction.bound_pct / 100 * model + 1e-12)
+    assert np.max(np.abs(mean) / model) > 0.9 * correction.bound_pct / 100  # the trend reaches it: the clip holds
+    assert correction.size_ml(grid) <= correction.bound_pct / 100 * 38.0 + 1e-12
+    assert np.all(deviation >= 0)
 
 
 @pytest.mark.slow
-def test_one_scan_gives_an_offset_and_a_field_meets_a_bump_the_growth_cannot():
+def test_a_bump_the_growth_cannot_follow_is_met_and_leave_one_out_chooses():
     grid = _linear_grid()
-    one = fit_correction([Measurement((1.0, 1.0, 1.0), 26.5)], grid)
-    assert one.kind == "offset" and one.offset_ml == pytest.approx(0.5) and one.leave_one_out_pct == {}
 
     def truth(p):  # chamber 0 softer past 1.5 kPa than any scale of the model's growth says
         return 20.0 + 2.0 * float(np.sum(p)) + 1.5 * max(p[0] - 1.5, 0.0) ** 2
 
     points = np.array(list(np.ndindex(3, 3, 3)), dtype=float) * 1.5
     correction = fit_correction([Measurement(tuple(p), truth(p)) for p in points], grid)
-    assert correction.kind in ("field", "growth+field")
-    assert correction.leave_one_out_pct[correction.kind] < correction.leave_one_out_pct["growth"]
+    assert correction.leave_one_out_pct[correction.kind] == min(correction.leave_one_out_pct.values())
     corrected = CorrectedModel(grid, correction)
-    for p in points:
-        assert corrected.gland_ml(p) == pytest.approx(truth(p), abs=1e-3)
+    for p in points:  # within the scanner's noise of each measurement
+        assert corrected.gland_ml(p) == pytest.approx(truth(p), rel=2 * 0.0012)
     rng = np.random.default_rng(5)
     held_out = rng.uniform(0, 3, (20, 3))
     errors = [abs(corrected.gland_ml(p) - truth(p)) / truth(p) * 100 for p in held_out]
     model_errors = [abs(grid.gland_ml(p) - truth(p)) / truth(p) * 100 for p in held_out]
-    # 1.06 % against the model's 2.02 % (2026-11-27): a kink between the scanned points is smoothed over
-    assert np.mean(errors) < 0.6 * np.mean(model_errors)
+    # 0.76 % against the model's 2.02 % (the old field's: 1.06 %); the bump between the scanned 1.5 and 3 kPa
+    # is smoothed over
+    assert np.mean(errors) < 0.5 * np.mean(model_errors)
+
+
+def test_two_hundred_measurements_are_fitted_and_the_fit_is_read_back_the_same():
+    """The issue's 128 stored measurements took the old field 130 s and kept the daemon from being ready; the
+    process's fit of 200 is a fraction of a second (bench/correction_fit.py measures it; no timing asserted
+    here): it is fitted, its leave-one-out is about the scanner's noise, and its document reads back the same."""
+    grid = _linear_grid()
+    rng = np.random.default_rng(8)
+    states = rng.uniform(0, 3, (200, 3))
+    scans = [Measurement(tuple(p), (20.3 + 1.8 * float(np.sum(p))) * (1 + 0.0012 * rng.standard_normal()))
+             for p in states]
+    correction = fit_correction(scans, grid)
+    assert correction.count == 200 and correction.leave_one_out_pct[correction.kind] < 0.15
+    again = Correction.from_document(json.loads(json.dumps(correction.to_document())))
+    assert again == correction
+    assert again.band_ml(states[:5], np.zeros(5))[0] == pytest.approx(correction.band_ml(states[:5], np.zeros(5))[0])
 
 
 @pytest.mark.slow
 def test_table_one_scanned_corrects_the_model_towards_the_simulated_phantom():
     """The eight Table I points stored as scans of the shipped simulated phantom (its truth passes through
-    them): the corrections' leave-one-out is reported, and each kind's error at held-out points measured against
-    the truth. Figures (2026-11-27): leave-one-out picks the offset (4.6 %; growth 5.1, field 5.5,
-    growth+field 6.7: eight irregular points leave each other out badly); at 30 random held-out points the mean
-    error is 2.69 % uncorrected and 1.24 % with the field: better, and short of the issue's 0.5 %."""
+    them): the trends' leave-one-out is reported, the chosen the least, and the error at held-out points measured
+    against the truth. Figures (2026-11-28): 2.69 % uncorrected; leave-one-out (8 irregular points leave each other
+    out badly) picks gp+offset (4.1 %; gp 4.1, gp+growth 4.9), 1.97 % held out; gp+growth 1.12 % (the old field:
+    1.24 %)."""
     from phantom.hil.plant import MEASURED_VOLUMES_PATH, load_plant
+    from phantom.hil.truth_residual import trilinear
     from phantom.model import PhantomModel, load_scene
     from phantom.model.corrections import model_grid
     from phantom.model.fidelity.levels import VolumeEstimator
@@ -180,7 +243,7 @@ def test_table_one_scanned_corrects_the_model_towards_the_simulated_phantom():
     grid = model_grid(VolumeEstimator(PhantomModel.from_scene(load_scene("builtin:converged")), level="table"))
     scans = [Measurement(tuple(row[:3]), row[3]) for row in rows]
     chosen = fit_correction(scans, grid)
-    assert set(chosen.leave_one_out_pct) == {"offset", "growth", "field", "growth+field"}
+    assert set(chosen.leave_one_out_pct) == set(TRENDS)
     assert chosen.leave_one_out_pct[chosen.kind] == min(chosen.leave_one_out_pct.values())
     held_out = np.random.default_rng(1).uniform(0, 3, (30, 3))
     truth = np.array([plant.truth_gland_volume_ml(1e3 * p) for p in held_out])
@@ -189,12 +252,11 @@ def test_table_one_scanned_corrects_the_model_towards_the_simulated_phantom():
         return float(np.mean([abs(model(p) - t) / t * 100 for p, t in zip(held_out, truth, strict=True)]))
 
     uncorrected = mean_error_pct(grid.gland_ml)
-    field = CorrectedModel(grid, fit_correction(scans, grid, ["field"]))
-    assert mean_error_pct(CorrectedModel(grid, chosen).gland_ml) < uncorrected
-    assert mean_error_pct(field.gland_ml) < 0.5 * uncorrected
-    # through the eight points themselves the field is exact (to the file's 5 digits)
-    for row in rows:
-        assert field.gland_ml(row[:3]) == pytest.approx(row[3], abs=0.01)
+    corrected = CorrectedModel(grid, chosen)
+    assert mean_error_pct(corrected.gland_ml) < uncorrected
+    assert mean_error_pct(CorrectedModel(grid, fit_correction(scans, grid, ["gp+growth"])).gland_ml) < 0.5 * uncorrected
+    for row in rows:  # through the eight points themselves, within the noise
+        assert corrected.gland_ml(row[:3]) == pytest.approx(row[3], rel=3 * 0.0012)
     assert float(trilinear(plant.truth_gland_volume_m3 * 1e6, np.arange(4.0), rows[2, :3])) == pytest.approx(34.80,
                                                                                                         abs=0.005)
 
@@ -217,23 +279,26 @@ def test_the_command_line_lists_adds_exports_and_clears(store, tmp_path, capsys)
 
 
 @pytest.mark.slow
-def test_corrections_fit_reports_each_candidates_leave_one_out(store, capsys):
+def test_corrections_fit_reports_each_trends_leave_one_out_the_hyperparameters_and_the_band(store, capsys):
     for pressures, volume in (((1, 1, 1), 29.96), ((2, 0, 0), 32.36), ((0, 0, 2), 31.20)):
         store.add(Measurement.now(pressures, volume))
     assert main(["corrections", "fit", "--phantom", "bench-phantom"]) == 0
     out = capsys.readouterr().out
     assert "3 measurement(s) of phantom 'bench-phantom'; the model builtin:converged misses them by" in out
-    assert "leave-one-out (mean abs error of the volume left out): offset" in out
-    assert "correction in force: offset" in out   # three points: the offset leaves the others out best
+    assert "leave-one-out (mean abs error of the volume left out): gp " in out and "gp+growth " in out
+    assert "a Gaussian process: amplitude" in out and "length scales" in out and "bound" in out
+    assert "at the measured pressures (kPa): measured, model, corrected +- its 95 % band (ml)" in out
+    assert "  1.000, 1.000, 1.000: 29.960, " in out and out.count(" +- ") == 4
     assert main(["corrections", "fit", "--phantom", "nobody"]) == 2
     assert "no measurements to correct the model with: scan the phantom first" in capsys.readouterr().err
-    store.add(Measurement.now((1, 1, 1), 30.5))  # the same state read 0.54 ml more: no field passes through both
-    assert main(["corrections", "fit", "--phantom", "bench-phantom"]) == 0
-    assert "not fitted: field (no residual field passes through" in capsys.readouterr().out
+    store.add(Measurement.now((1, 1, 1), 30.5))  # the same state read 0.54 ml more: the white noise takes it
+    assert main(["corrections", "fit", "--phantom", "bench-phantom", "--json"]) == 0
+    fitted = json.loads(capsys.readouterr().out)
+    assert fitted["white_noise_ml"] > 0.1 and len(fitted["band_at_measured"]) == 4
 
 
 def test_a_fit_is_kept_in_the_cache_and_read_back_the_same_and_a_damaged_one_is_fitted_again(tmp_path, monkeypatch):
-    """A daemon started again with many stored scans (27: 17-28 s to fit here) reads its fit back instead."""
+    """A daemon started again with many stored scans reads its fit back instead of fitting again."""
     from phantom.model.corrections import cached_fit
 
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
@@ -252,17 +317,12 @@ def test_a_fit_is_kept_in_the_cache_and_read_back_the_same_and_a_damaged_one_is_
     assert cached_fit(scans, grid).to_document() == fitted.to_document()
     assert json.loads(stored.read_text())["kind"] == fitted.kind
     assert cached_fit(scans[:2], grid).count == 2  # other measurements: another entry
-    field_only = fit_correction(scans, grid, ("field",))
-    read_back = Correction.from_document(json.loads(json.dumps(field_only.to_document())))
-    assert read_back.residual_field is not None and np.array_equal(read_back.residual_field.chamber_ml,
-                                                                   field_only.residual_field.chamber_ml)
-    assert read_back.residual_ml((0.5, 1.0, 2.0), 3.0) == field_only.residual_ml((0.5, 1.0, 2.0), 3.0)
 
 
 def test_a_scan_held_a_count_above_the_box_is_a_measurement_on_its_edge_and_one_beyond_is_refused():
-    """A chamber held at 3 kPa reads 3.01 on average: its scan fits the field as a measurement at 3 kPa (the
-    27-point characterisation's field was refused for it and fell back to a weaker kind); 3.5 kPa is refused."""
-    from phantom.model.corrections import smoothest_residual
+    """A chamber held at 3 kPa reads 3.01 on average: its measurement fits the truth plant's field as one at 3 kPa,
+    and the correction's process as one at 3 kPa too; 3.5 kPa is refused by both."""
+    from phantom.hil.truth_residual import smoothest_residual
 
     grid = _linear_grid()
     edge = smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, [[3.01, 0.0, 1.5]], [0.4])
@@ -271,6 +331,10 @@ def test_a_scan_held_a_count_above_the_box_is_a_measurement_on_its_edge_and_one_
     assert np.allclose(edge.gland_ml, at_three.gland_ml)
     with pytest.raises(CorrectionError, match="must lie on the grid"):
         smoothest_residual(grid.points_kpa, grid.chamber_ml, grid.gland_grid_ml, [[3.5, 0.0, 1.5]], [0.4])
+    edge_fit = fit_correction([Measurement((3.01, 0.0, 1.5), 29.4)], grid)
+    assert edge_fit.pressures_kpa == ((3.0, 0.0, 1.5),)
+    with pytest.raises(CorrectionError, match="must lie on the grid"):
+        fit_correction([Measurement((3.5, 0.0, 1.5), 29.4)], grid)
 
 
 def test_a_target_inside_the_models_range_but_beyond_the_corrected_one_is_unreachable_with_the_corrected_range():
@@ -285,7 +349,7 @@ def test_a_target_inside_the_models_range_but_beyond_the_corrected_one_is_unreac
     from phantom.model.target import UnreachableTargetError
 
     grid = _linear_grid()
-    corrected = CorrectedModel(grid, Correction("offset", 1, offset_ml=1.5))
+    corrected = CorrectedModel(grid, offset_correction(1.5))
     assert corrected.range_ml == pytest.approx((21.5, 39.5))
     asked = []
 
@@ -295,7 +359,7 @@ def test_a_target_inside_the_models_range_but_beyond_the_corrected_one_is_unreac
 
     for target_ml in (20.5, 39.6):  # inside the model's 20-38 ml, beyond the corrected 21.5-39.5; beyond both
         with pytest.raises(UnreachableTargetError, match=r"beyond the model's range with the correction in force "
-                           r"\(offset from 1 measurement\(s\)\): give 21.500 to 39.500 ml") as raised:
+                           r"\(gp\+offset from 1 measurement\(s\)\): give 21.500 to 39.500 ml") as raised:
             corrected.pressures_for_ml(target_ml, inverse)
         # the range as data, which crosses from the model worker's process with the error
         crossed = pickle.loads(pickle.dumps(raised.value))
@@ -322,21 +386,19 @@ def test_the_pressure_box_takes_a_reading_a_count_outside_as_its_edge_and_refuse
             pressures_in_box(bad, 3.0, "a scan's pressures")
 
 
-@pytest.mark.slow
-def test_scans_a_little_noisy_between_close_states_still_give_a_field():
-    """A scan's noise (0.1 ml here) between two states 0.05 kPa apart asks for a chamber that shrinks as it is
-    inflated: the field's growth floor is soft (each ml short costs), so a field is fitted through them instead
-    of none (before: the QP was infeasible and the fit failed)."""
+def test_scans_that_disagree_between_close_states_take_the_white_noise_not_a_wiggle():
+    """Two scans 0.05 kPa apart whose volumes disagree by 0.1 ml (a chamber that shrinks as it is inflated): the
+    field needed a soft growth floor to pass through them at all. The process takes the disagreement as noise:
+    its mean between them is neither, and a state further away is not bent by it."""
     grid = _linear_grid()
     rng = np.random.default_rng(7)
     points = [*rng.uniform(0, 3, (6, 3)), (1.0, 1.0, 1.0), (1.05, 1.0, 1.0)]
     volumes = [20.3 + 1.8 * float(np.sum(p)) for p in points]
     volumes[-1] = volumes[-2] - 0.1
     correction = fit_correction([Measurement(tuple(p), v) for p, v in zip(points, volumes, strict=True)], grid)
-    assert {"field", "growth+field"} <= set(correction.leave_one_out_pct) and not correction.unfitted
-    field = fit_correction([Measurement(tuple(p), v) for p, v in zip(points, volumes, strict=True)], grid, ["field"])
-    for p, v in zip(points, volumes, strict=True):
-        assert field.residual_ml(p, 0.0) + grid.gland_ml(np.asarray(p)) == pytest.approx(v, abs=1e-3)
+    corrected = CorrectedModel(grid, correction)
+    assert volumes[-1] - 0.01 < corrected.gland_ml(np.array([1.025, 1.0, 1.0])) < volumes[-2] + 0.01
+    assert corrected.gland_ml(np.array([2.0, 2.0, 2.0])) == pytest.approx(20.3 + 1.8 * 6, abs=0.1)
 
 
 def test_the_corrected_inverse_asks_the_model_only_for_volumes_it_reaches():
@@ -344,8 +406,8 @@ def test_the_corrected_inverse_asks_the_model_only_for_volumes_it_reaches():
     asked the model's inverse for less than its rest (which it refuses); it is kept at the rest and goes on."""
     grid = _linear_grid()
     correction = fit_correction([Measurement((p, p, p), 20.0 + 18.0 * p) for p in (0.0, 1.0, 2.0)], grid,
-                                ["growth"])
-    assert correction.growth_factor == pytest.approx(2.0)
+                                ["gp+growth"])
+    assert correction.growth_factor == pytest.approx(2.0, abs=0.05)
 
     def inverse(volume_ml):
         if not 20.0 <= volume_ml <= 38.0:
@@ -353,7 +415,7 @@ def test_the_corrected_inverse_asks_the_model_only_for_volumes_it_reaches():
         return np.full(3, (volume_ml - 20.0) / 6.0)
 
     pressures, volume, _ = CorrectedModel(grid, correction).pressures_for_ml(21.0, inverse)
-    assert volume == pytest.approx(21.0, abs=1e-3) and np.sum(pressures) * 6.0 == pytest.approx(1.0, abs=1e-3)
+    assert volume == pytest.approx(21.0, abs=1e-3) and np.sum(pressures) * 6.0 == pytest.approx(1.0, abs=0.05)
 
 
 @pytest.mark.slow
@@ -386,7 +448,6 @@ def test_scans_along_the_inverses_path_put_unscanned_targets_within_half_a_perce
     truths = np.array([true_ml(p) for p in design])
     scanned = truths * (0.999 + 0.0005 * np.random.default_rng(0).standard_normal(len(design)))
     correction = fit_correction([Measurement(tuple(p), v) for p, v in zip(design, scanned, strict=True)], grid)
-    assert correction.kind in ("field", "growth+field") and not correction.unfitted
     corrected = CorrectedModel(grid, correction)
     for first in (0, 3, 6, 9, 12, 15, 17):  # rest to the top
         target = float(truths[first:first + 2].mean())
@@ -397,21 +458,36 @@ def test_scans_along_the_inverses_path_put_unscanned_targets_within_half_a_perce
 
 def test_a_target_in_a_jump_of_the_corrected_volume_along_the_inverses_path_gets_the_nearer_side_and_says_so():
     """The model's inverse turns to another branch at 30 ml (only the lobes, then all three chambers), and the
-    correction (0.5 ml per kPa of chamber 0) differs between them: the corrected volume jumps from 30.00 to 30.83
-    ml there, and no pressures give 30.5 ml. The answer is the nearer side, with its own corrected volume (before:
-    the secant crawled at the jump and the target was refused as unreachable)."""
-    from phantom.model.corrections import ResidualField
-
+    correction (0.5 ml per kPa of chamber 0, measured by water displacement on a grid) differs between them: the
+    corrected volume jumps by about 0.8 ml there, and no pressures give 30.5 ml. The answer is the nearer side,
+    with its own corrected volume (before: the secant crawled at the jump and the target was refused as
+    unreachable)."""
     grid = _linear_grid()
-    residual = np.zeros((7, 7, 7, 3))
-    residual[..., 0] = 0.5 * grid.points_kpa[:, None, None]
-    correction = Correction("field", 3, residual_field=ResidualField(grid.points_kpa, residual, 0.0))
+    states = np.array(list(np.ndindex(4, 4, 4)), dtype=float)
+    correction = fit_correction([Measurement(tuple(p), grid.gland_ml(p) + 0.5 * p[0], "water_displacement")
+                                 for p in states], grid, ["gp"])
+    corrected = CorrectedModel(grid, correction)
 
     def inverse(volume_ml):
         if volume_ml < 30.0:
             return np.array([0.0, *[(volume_ml - 20.0) / 4.0] * 2])
         return np.full(3, (volume_ml - 20.0) / 6.0)
 
-    pressures, volume, _ = CorrectedModel(grid, correction).pressures_for_ml(30.5, inverse)
-    assert volume == pytest.approx(30.0 + 0.5 * 10 / 6, abs=1e-3) and pressures[0] == pytest.approx(10 / 6, abs=1e-3)
-    assert CorrectedModel(grid, correction).pressures_for_ml(29.5, inverse)[1] == pytest.approx(29.5, abs=1e-3)
+    pressures, volume, _ = corrected.pressures_for_ml(30.5, inverse)
+    assert volume == pytest.approx(corrected.gland_ml(pressures), abs=1e-9)
+    assert abs(volume - 30.5) > 0.2 and pressures[0] in (0.0, pytest.approx(10 / 6, abs=0.05))
+    assert corrected.pressures_for_ml(29.5, inverse)[1] == pytest.approx(29.5, abs=1e-3)
+
+
+def test_two_scans_that_agree_on_a_residual_are_met_by_the_process_alone():
+    """Two scans of one target's rounds, 0.1 kPa apart, both 0.6 ml over the model and within 0.01 ml of each
+    other: the process without a trend (fitted on its starting hyperparameters below three measurements) passes
+    within the scanner's noise of both. Its amplitude started at the residuals' spread (0.005 ml) left them
+    unrepresented: the corrected model stayed near the model's own, and the verify loop's next round near rest
+    moved by the whole residual (bench/verify_rounds.py)."""
+    grid = _linear_grid()
+    scans = [Measurement((0.1, 0.1, 0.1), grid.gland_ml(np.full(3, 0.1)) + 0.60),
+             Measurement((0.2, 0.1, 0.1), grid.gland_ml(np.array([0.2, 0.1, 0.1])) + 0.61)]
+    corrected = CorrectedModel(grid, fit_correction(scans, grid, kinds=("gp",)))
+    for scan in scans:
+        assert corrected.gland_ml(scan.pressures_kpa) == pytest.approx(scan.volume_ml, rel=2 * 0.0012)

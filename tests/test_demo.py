@@ -73,13 +73,15 @@ def test_the_demo_prints_the_true_error_and_writes_its_report(tmp_path, capsys):
 def test_the_verified_table_shows_before_and_after_the_correction_in_true_volume():
     rows = [{"target_ml": 40.0, "error": None, "took_s": 95.0,
              "rounds": [{"estimated_volume_ml": 39.9, "scanned_volume_ml": 38.85, "true_volume_ml": 38.8},
-                        {"estimated_volume_ml": 41.1, "scanned_volume_ml": 40.03, "true_volume_ml": 39.98}]},
+                        {"estimated_volume_ml": 41.1, "band_ml": 0.061, "scanned_volume_ml": 40.03,
+                         "true_volume_ml": 39.98}]},
             {"target_ml": 45.0, "error": "a scan failed", "took_s": 40.0, "rounds": [{"estimated_volume_ml": 45.0}]}]
     table = demo.format_verified(rows).splitlines()
-    assert table[1].split() == ["40.00", "|", "39.90", "38.850", "38.800", "-3.000", "|", "41.10", "40.030",
-                                "39.980", "-0.050", "|", "2", "95"]
+    assert table[1].split() == ["40.00", "|", "39.90", "38.850", "38.800", "-3.000", "|", "41.10", "0.061",
+                                "40.030", "39.980", "-0.050", "|", "2", "95"]
     assert "NOT VERIFIED: a scan failed" in table[2]
-    assert table[3].startswith("after the scans: mean |true error| 0.050 % (largest 0.050 %)")   # the verified only
+    assert table[3].startswith("after the scans: mean |true error| 0.050 % (largest 0.050 %), 1.5 rounds on "
+                               "average")   # the error of the verified only
 
 
 def test_a_verified_volume_waits_for_the_boards_link_before_it_is_set(monkeypatch):
@@ -102,3 +104,28 @@ def test_a_verified_volume_waits_for_the_boards_link_before_it_is_set(monkeypatc
     monkeypatch.setattr(demo.time, "sleep", lambda _: None)
     (row,) = demo.verified_steps(Daemon(), [30.0])
     assert calls == ["status", "status", "status", ("set", 30.0)] and row["error"] is None
+
+
+def test_a_fault_during_a_verified_volume_leaves_the_rest_untried_and_says_where_it_came():
+    """make demo on a loaded machine: DEAD_HOST during 26.5 ml's fourth round, then each later volume refused at
+    once (FAULT_LATCHED), four lines of the same cause. The fault's row says the round and what to do; the rest
+    are not tried."""
+    import types
+
+    from phantom.host.client import FaultError
+
+    tried = []
+
+    class Daemon:
+        def status(self):
+            return types.SimpleNamespace(link="online")
+
+        def set_volume(self, target_ml, **_):
+            tried.append(target_ml)
+            raise FaultError(("DEAD_HOST",), f"waiting for {target_ml:g} ml (target {target_ml:.2f} ml not reached: "
+                             "faults latched (DEAD_HOST) during verify round 4 of 4 (scanning); ...)")
+
+    rows = demo.verified_steps(Daemon(), [26.5, 30.0, 35.0])
+    assert tried == [26.5] and [row["target_ml"] for row in rows] == [26.5, 30.0, 35.0]
+    assert "during verify round 4 of 4 (scanning)" in rows[0]["error"]
+    assert rows[1]["error"] == rows[2]["error"] == "not tried: DEAD_HOST latched while verifying 26.5 ml"

@@ -77,6 +77,48 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
     assert sorted(enclosed_ml) == pytest.approx(sorted(scanned), rel=1e-3)
 
 
+@pytest.mark.busy_cores
+@pytest.mark.long
+@pytest.mark.timeout(1800)
+def test_a_verified_target_holds_the_link_with_one_busy_process_per_core(tmp_path):
+    """Issue 48: `make demo`'s verify latched DEAD_HOST during round 2's scan on a loaded machine (a
+    reconstruction and a fit running while the board waited), the blowers stopped and the rest was refused.
+    With one busy process per core beside the daemon (at normal priority, as tests/test_first_run.py's), a
+    verified target scans, learns and ends with no fault latched; its fits are in the fitter's process, its
+    captures and reconstructions in threads whose kernels release the GIL.
+
+    Not met yet, so in `make test-long` (not `make test`): on 2026-11-28, at load 10-13 from the other work on this
+    two-core machine (without the test's own busy processes), a verified 40 ml latched DEAD_HOST during round 1's
+    or round 2's capture in three runs of three, the daemon's loop late by up to 350 ms (its status's
+    event_loop) while the capture's thread rendered in its process: a thread holding the GIL while the kernel
+    runs another process stalls the loop. The capture and the reconstruction need a process of their own."""
+    pytest.importorskip("cv2")
+    from phantom.host.client import FaultError
+
+    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    load = [subprocess.Popen([sys.executable, "-c", "while True:\n    pass\n"]) for _ in range(os.cpu_count() or 2)]
+    log = open(tmp_path / "daemon.log", "w+")
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
+                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
+    try:
+        wait_ready(sock, process, Path(log.name), 600)
+        with phantom.connect(sock) as ph:
+            try:
+                result = ph.set_volume(35.0, verify="scan", timeout_s=1700)
+            except FaultError as error:
+                pytest.fail(f"a fault latched during the verify: {error}")
+            assert ph.status().faults == ()
+        assert result.verified and len(result.rounds) >= 1
+        assert abs(result.rounds[-1]["true_volume_ml"] - 35.0) <= 0.003 * 35.0, result.rounds
+    finally:
+        for busy in load:
+            busy.kill()
+            busy.wait()
+        process.terminate()
+        process.wait(120)
+        log.close()
+
+
 @pytest.mark.timeout(300)
 def test_a_daemon_on_a_real_boards_port_refuses_verify_and_changes_nothing(tmp_path):
     from phantom.hil.sim import SimulatedBoard

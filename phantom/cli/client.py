@@ -52,9 +52,10 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                             help="with --wait: how close the estimate must come (%% of the target, default 1)")
     set_target.add_argument("--timeout-s", type=float, default=None, metavar="S",
                             help="with --wait: how long to wait (s, default 60, and 120 more per verify round)")
-    set_target.add_argument("--verify", choices=["scan"],
+    set_target.add_argument("--verify", choices=["scan", "auto"],
                             help="with --volume-ml: once reached on pressure, scan the phantom and correct until the "
-                            "scanned volume is within --verify-tolerance-pct (implies --wait)")
+                            "scanned volume is within --verify-tolerance-pct (implies --wait); auto: scan only when "
+                            "the correction's 95 %% band at the target is wider than that")
     set_target.add_argument("--verify-tolerance-pct", type=float, metavar="PCT",
                             help="with --verify: how close the scanned volume must come (%% of the target, default "
                             "0.3; the rounds aim at a third of it, the last accepts it all)")
@@ -245,9 +246,10 @@ def _run_set(args: argparse.Namespace) -> int:
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml")
     if args.verify is None and (args.verify_tolerance_pct is not None or args.verify_rounds is not None):
-        raise PhantomError("--verify-tolerance-pct and --verify-rounds go with --verify scan")
+        raise PhantomError("--verify-tolerance-pct and --verify-rounds go with --verify scan or auto")
     if args.verify is not None and args.volume_ml is None:
-        raise PhantomError("--verify scan compares the scanned gland volume with the target: give --volume-ml")
+        raise PhantomError(f"--verify {args.verify} compares the scanned gland volume with the target: give "
+                           "--volume-ml")
     options: dict[str, Any] = {"wait": args.wait or args.verify is not None, "tolerance_pct": args.tolerance_pct}
     if args.timeout_s is not None:
         options["timeout_s"] = args.timeout_s
@@ -269,13 +271,17 @@ def _run_set(args: argparse.Namespace) -> int:
     print(f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in labels))
     print(f"{'setpoint':<9} {_per_chamber(result.pressures_kpa)}  kPa")
     print(f"{'volume':<9} {_per_chamber(result.predicted_chamber_volumes_ml, 2)}  ml predicted")
-    print(f"gland     {result.predicted_volume_ml:.2f} ml predicted (inverse {result.iterations} "
+    band = "" if result.band_ml is None else (f", +-{result.band_ml:.3f} ml (95 %) from {result.measurements} "
+                                              "stored measurement(s)")
+    print(f"gland     {result.predicted_volume_ml:.2f} ml predicted{band} (inverse {result.iterations} "
           f"iteration(s), {result.solve_time_s * 1e3:.1f} ms)")
     if result.waited_s is not None:
         true_volume = "" if result.true_volume_ml is None else (
             f", true {result.true_volume_ml:.2f} ml (simulated plant)")
         print(f"reached   {_ml(result.estimated_volume_ml)} estimated after {result.waited_s:.1f} s, pressures "
               f"settled{true_volume}")
+    if result.scanned is False:
+        print("verify auto: the correction's band is within the tolerance: not scanned")
     if result.rounds:
         print(f"{'round':<6} {'pressures (kPa)':>24} {'asked ml':>9} {'scanned ml':>11} {'error %':>8}")
         for entry in result.rounds:

@@ -166,8 +166,10 @@ def _export(store: Any, args: argparse.Namespace) -> int:
 
 
 def _fit(store: Any, args: argparse.Namespace) -> int:
+    import numpy as np
+
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.corrections import cached_fit, model_grid
+    from phantom.model.corrections import CorrectedModel, cached_fit, model_grid
     from phantom.model.fidelity.levels import VolumeEstimator
 
     entries = store.confirmed()
@@ -175,13 +177,20 @@ def _fit(store: Any, args: argparse.Namespace) -> int:
     grid = model_grid(VolumeEstimator(model), args.scene)
     correction = cached_fit(entries, grid)
     summary = correction.summary(grid)
+    corrected = CorrectedModel(grid, correction)
+    bands = [corrected.gland_band_ml(entry.pressures_kpa) for entry in entries]
+    summary["band_at_measured"] = [{"pressures_kpa": list(entry.pressures_kpa), "measured_ml": entry.volume_ml,
+                                    "model_ml": grid.gland_ml(np.asarray(entry.pressures_kpa)), "corrected_ml": mean,
+                                    "band_ml": half} for entry, (mean, half) in zip(entries, bands, strict=True)]
     lines = [f"{correction.count} measurement(s) of phantom {args.phantom!r}; the model {args.scene} misses them by "
              f"{correction.uncorrected_pct:.2f} % on average",
              "leave-one-out (mean abs error of the volume left out): "
              + (", ".join(f"{kind} {error:.2f} %" for kind, error in correction.leave_one_out_pct.items())
                 or "none (fewer than two measurements)"),
-             f"correction in force: {correction.kind} (offset {correction.offset_ml:+.3f} ml, growth x "
-             f"{1 + correction.growth_factor:.4f}{', and a residual field' if correction.residual_field else ''}); "
-             f"its largest size over the pressure box {summary['size_ml']:.3f} ml"]
-    lines += [f"not fitted: {kind} ({why})" for kind, why in correction.unfitted.items()]
+             f"correction in force: {correction.kind}, a Gaussian process: {correction.hyperparameters()}; its "
+             f"largest size over the pressure box {summary['size_ml']:.3f} ml",
+             "at the measured pressures (kPa): measured, model, corrected +- its 95 % band (ml)"]
+    lines += [f"  {', '.join(f'{p:.3f}' for p in entry.pressures_kpa)}: {entry.volume_ml:.3f}, "
+              f"{band['model_ml']:.3f}, {band['corrected_ml']:.3f} +- {band['band_ml']:.3f}"
+              for entry, band in zip(entries, summary["band_at_measured"], strict=True)]
     return _print(args, summary, "\n".join(lines))

@@ -146,15 +146,24 @@ def stop_daemon(process: subprocess.Popen[bytes]) -> int:
 def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]:
     """Each volume set with ``verify="scan"``: per target, the first and the last round (the model's estimate,
     the scanned and the true volume) and the rounds taken; a target that was not verified says why."""
-    from phantom.host.client import DaemonError
+    from phantom.host.client import DaemonError, FaultError
 
     rows: list[dict[str, Any]] = []
-    for target_ml in targets_ml:
+    for index, target_ml in enumerate(targets_ml):
         print(f"  verifying {target_ml:g} ml: reach on pressure, scan, correct ...", file=sys.stderr, flush=True)
         started_s = time.monotonic()
         try:
             wait_for_link(daemon)
             result = daemon.set_volume(target_ml, verify="scan", timeout_s=VERIFY_TIMEOUT_S)
+        except FaultError as error:
+            # a fault stops the blowers until it is cleared: the volumes after it are not tried (each was refused
+            # at once, FAULT_LATCHED), and the error says which round it came in and what to do
+            rows.append({"target_ml": target_ml, "rounds": list(getattr(error, "rounds", [])), "error": str(error),
+                         "took_s": time.monotonic() - started_s})
+            rows += [{"target_ml": later_ml, "rounds": [], "error": f"not tried: {', '.join(error.faults)} latched "
+                      f"while verifying {target_ml:g} ml", "took_s": 0.0} for later_ml in targets_ml[index + 1:]]
+            print(f"  {target_ml:g} ml: not verified: {error}; the rest are not tried", file=sys.stderr)
+            break
         except DaemonError as error:
             rounds = list(getattr(error, "rounds", []))
             rows.append({"target_ml": target_ml, "rounds": rounds, "error": str(error),
@@ -191,7 +200,8 @@ def format_verified(rows: list[dict[str, Any]]) -> str:
         return None if true_ml is None else 100.0 * (true_ml - target_ml) / target_ml
 
     lines = [f"{'target':>7} | {'before: estimate':>16} {'scanned':>8} {'true':>7} {'true err %':>10} | "
-             f"{'after: estimate':>15} {'scanned':>8} {'true':>7} {'true err %':>10} | {'rounds':>6} {'s':>5}"]
+             f"{'after: estimate':>15} {'band +-':>7} {'scanned':>8} {'true':>7} {'true err %':>10} | {'rounds':>6} "
+             f"{'s':>5}"]
     after_errors = []
     for row in rows:
         target_ml, rounds = row["target_ml"], row["rounds"]
@@ -203,12 +213,15 @@ def format_verified(rows: list[dict[str, Any]]) -> str:
         lines.append(f"{target_ml:>7.2f} | {number(first.get('estimated_volume_ml')):>16} "
                      f"{number(first.get('scanned_volume_ml'), 3):>8} {number(first.get('true_volume_ml'), 3):>7} "
                      f"{number(true_pct(first, target_ml), 3, True):>10} | "
-                     f"{number(last.get('estimated_volume_ml')):>15} {number(last.get('scanned_volume_ml'), 3):>8} "
+                     f"{number(last.get('estimated_volume_ml')):>15} {number(last.get('band_ml'), 3):>7} "
+                     f"{number(last.get('scanned_volume_ml'), 3):>8} "
                      f"{number(last.get('true_volume_ml'), 3):>7} {number(error, 3, True):>10} | {len(rounds):>6} "
                      f"{row['took_s']:>5.0f}" + ("" if row["error"] is None else f"  NOT VERIFIED: {row['error']}"))
     if after_errors:
         lines.append(f"after the scans: mean |true error| {sum(after_errors) / len(after_errors):.3f} % (largest "
-                     f"{max(after_errors):.3f} %); the estimate is the model's at the pressures held, the scanned "
+                     f"{max(after_errors):.3f} %), {sum(len(row['rounds']) for row in rows) / len(rows):.1f} rounds "
+                     "on average; the estimate is the model's at the pressures held (corrected by the scans stored "
+                     "so far), the band its correction's 95 % half-width there (ml; - without one), the scanned "
                      "volume what the scanner measured, the true one the simulated phantom's")
     return "\n".join(lines)
 
