@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike
 
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
-from phantom.model.errors import SolveError
+from phantom.model.errors import PeakPressureError, SolveError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
 from phantom.model.fidelity.response_table import ResponseTableError, stored_response_table
@@ -514,16 +514,30 @@ class InverseSolver:
         satisfy them)."""
         step = 1.0
         best: tuple[FloatArray, Evaluation, float, float] | None = None
+        above_peak: PeakPressureError | None = None
         for _ in range(STEP_HALVINGS + 1):
             trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
-            evaluation = self._evaluate(trial_pa)
+            try:
+                evaluation = self._evaluate(trial_pa, above_peak_ok=True)
+            except PeakPressureError as refusal:
+                # The linearisation overshot past a chamber's peak (a rest or chord compliance is stiffer than the
+                # path near it): a shorter step, below the peak the path found on the way. A target that only
+                # pressures past the peak reach is refused with it below.
+                above_peak = refusal
+                fraction = refusal.peak_pressure_kpa / refusal.pressure_kpa if refusal.pressure_kpa else 0.5
+                step *= min(0.5, 0.98 * fraction)
+                continue
             trial_error = self._relative_error(target, evaluation[0], evaluation[1])
             if trial_error <= (1.0 - SUFFICIENT_DECREASE * step) * error or trial_error <= self.tolerance:
                 return trial_pa, evaluation, trial_error, step
             if best is None or trial_error < best[2]:
                 best = (trial_pa, evaluation, trial_error, step)
             step *= 0.5
-        assert best is not None  # at least one trial was made
+        if best is None:
+            assert above_peak is not None  # every trial was refused for lying past a peak
+            raise LimitPointError(
+                f"every step towards the target lies past a chamber's peak ({above_peak}); the target lies past the "
+                "pressure-control limit point: ask for a smaller volume") from above_peak
         return best
 
     def _refuse_out_of_scale(self, target: Target) -> None:
@@ -576,12 +590,14 @@ class InverseSolver:
                 raise self._unreachable_error(
                     target, row_name, low_m3[column] * ML_PER_M3, high_m3[column] * ML_PER_M3, constrained=False)
 
-    def _evaluate(self, pressures_pa: FloatArray) -> Evaluation:
+    def _evaluate(self, pressures_pa: FloatArray, above_peak_ok: bool = False) -> Evaluation:
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
-        past the limit point."""
+        past the limit point (``above_peak_ok``: a PeakPressureError, which names the peak, passes through)."""
         try:
             return self.estimator.evaluate(pressures_pa)
         except SolveError as error:
+            if above_peak_ok and isinstance(error, PeakPressureError):
+                raise
             raise LimitPointError(
                 f"the forward model has no equilibrium at {np.round(pressures_pa / 1e3, 4).tolist()} kPa ({error}): "
                 "the target lies past the pressure-control limit point; ask for a smaller volume") from error

@@ -47,7 +47,8 @@ os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES", "0")
 KEPT_TOGETHER = frozenset(f"tests/{name}.py" for name in (
     "test_daemon_board_promises", "test_daemon_corrections", "test_daemon_e2e", "test_daemon_scene_promises",
     "test_examples", "test_fem_corotational", "test_fem_felupe", "test_fem_gravity", "test_fem_hyperelastic",
-    "test_fem_kernels", "test_fem_output", "test_fem_pathfollow", "test_fem_quadratic", "test_fidelity",
+    "test_fem_kernels", "test_fem_limit_point", "test_fem_output", "test_fem_pathfollow", "test_fem_quadratic",
+    "test_fidelity",
     "test_hil_boot", "test_hil_sim", "test_inverse_fem", "test_inverse_gent", "test_loader_fuzz", "test_mesh",
     "test_model_prostate", "test_motion_sim", "test_packaging", "test_python_api", "test_readme_commands",
     "test_recording", "test_report", "test_response", "test_scan", "test_scan_calibrate", "test_scan_capture",
