@@ -57,11 +57,8 @@ from phantom.model.errors import PeakPressureError, SolveError
 from phantom.model.fem.body import Factor
 from phantom.model.fem.linsolve import ShiftPreconditioned
 from phantom.model.fem.newton import LINE_SEARCH_HALVINGS, newton, preconditioned_cg
-from phantom.model.fem.problem import EquilibriumProblem
+from phantom.model.fem.problem import DAMPING_SHIFTS, EquilibriumProblem
 from phantom.model.scene import HYPERELASTIC_MODELS
-
-#: A solver for the exact tangent: a factorisation, or MINRES preconditioned with a shifted one.
-Solver = Factor | ShiftPreconditioned
 
 #: Switch to volume control when the secant slope d(lam)/d(c) falls below this fraction of the first step's.
 FLATTENING_RATIO = 0.2
@@ -118,6 +115,9 @@ FINAL_NEWTON_ITERATIONS = 8
 #: ``tau |diag K|``, moved every shear mode of a nearly incompressible body (its diagonal is the bulk modulus's):
 #: 94-133 MINRES iterations a solve on the 10-node sphere; K0 has the body's own proportions.
 STIFFNESS_SHIFTS = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0, 10.0, 100.0)
+#: A volume-controlled iterate takes Newton's exact step, not the damped one, once a damped step lowered the merit by
+#: less than this factor.
+DAMPED_PROGRESS = 0.25
 #: MINRES on an indefinite tangent: relative residual, and the iterations before the shifted factor's own (damped)
 #: step is taken instead. Near the path past a limit point a shift of 1e-3 K0 served, and MINRES took 26-47
 #: iterations; far off it (a predictor's first iterate) the shift was 0.1-0.3 K0 and MINRES 250-480.
@@ -125,6 +125,25 @@ EXACT_KRYLOV_TOLERANCE = 1e-9
 EXACT_KRYLOV_ITERATIONS = 80
 VOLUME_KRYLOV_TOLERANCE = 1e-4
 VOLUME_KRYLOV_ITERATIONS = 40
+
+
+class DampedFactor:
+    """The factor of a shifted tangent, ``K + tau |diag K|``, standing in for K (a damped Newton step)."""
+
+    def __init__(self, factor: Factor):
+        self.factor = factor
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """``(K + tau |diag K|)^-1 rhs``."""
+        return self.factor.solve(rhs)
+
+    def negative_pivots(self) -> int | None:
+        """Not K's: unknown."""
+        return None
+
+
+#: A solver for the tangent: a factorisation, MINRES preconditioned with a shifted one, or a shifted one (damped).
+Solver = Factor | ShiftPreconditioned | DampedFactor
 
 
 @dataclass(frozen=True)
@@ -566,6 +585,12 @@ class _Path:
         # search on nearly every 7 mm step (three element passes) and then made anyway.
         krylov = not self.krylov_failed and self.problem.preconditioned and not self.problem.mixed
         crawling = 0
+        # A damped step (the shifted factor's) where K is not positive definite, until one gains too little: then
+        # Newton's own (exact) step, which converges where the tangent is legitimately indefinite (past a peak).
+        # A damped step first keeps the paths that meet an indefinite iterate only off the path (a predictor's)
+        # as they were: builtin:converged at (3,1,2) kPa took 2 iterations and 3 s of MINRES more with the exact
+        # step at every iterate.
+        exact = False
         factor: Solver | None = None
         state = self._volume_residual(positions_m, load_factor, target_m3, carried, with_tangent=not krylov)
         if element_pressures_pa is not None:
@@ -587,7 +612,7 @@ class _Path:
                 # (a sum of squared residuals) whatever K's inertia; a shifted K (Levenberg-Marquardt) gave a damped
                 # step that stalled just before the peak of a thick sphere (bench/README.md, "Through the peak").
                 factor, both = self._exact_solve(load_factor, positions_m, carried, state.tangent_data,
-                                                 np.column_stack([-residual, load]))
+                                                 np.column_stack([-residual, load]), damped=not exact)
                 solutions = [both[:, 0], both[:, 1]]
             a, b = solutions
             h = self._control_gradient(positions_m)
@@ -621,6 +646,8 @@ class _Path:
                 worst = self.problem.worst_element(positions_m + change)
                 reason = "solve would invert elements" if worst >= 0 else "volume-controlled solve found no descent"
                 return _VolumeStep(False, None, iteration, reason, worst)
+            if isinstance(factor, DampedFactor) and accepted[3].merit > DAMPED_PROGRESS * merit:
+                exact = True
             positions_m, load_factor, carried, state = accepted
             if carried is not None:  # the convergence test and the next right-hand side: eliminated pressures
                 state = self._with_eliminated(state, positions_m, carried)
@@ -635,12 +662,16 @@ class _Path:
                            self.problem.worst_element(positions_m))
 
     def _exact_solve(self, load_factor: float, positions_m: FloatArray, carried: FloatArray | None,
-                     tangent_data: FloatArray | None, right_hand_sides: FloatArray) -> tuple[Solver, FloatArray]:
+                     tangent_data: FloatArray | None, right_hand_sides: FloatArray,
+                     damped: bool = False) -> tuple[Solver, FloatArray]:
         """The exact tangent at ``positions_m`` (and a 10-node body's ``carried`` element pressures) and its
         solutions for ``right_hand_sides`` (3n, k). Positive definite (before a limit point, the common case):
-        CHOLMOD's supernodal LL'. Indefinite (past it, or an iterate off the path): MINRES preconditioned with the
-        LL' of the tangent shifted by ``tau |diag K|``, the first ``tau`` of DAMPING_SHIFTS (from the last one that
-        served) that is positive definite (:class:`ShiftPreconditioned`); where MINRES fails, LDL'. The simplicial
+        CHOLMOD's supernodal LL'. Indefinite (past it, or an iterate off the path): with ``damped``, the
+        Levenberg-Marquardt step of ``K + tau |diag K|`` (the first tau of DAMPING_SHIFTS that CHOLMOD takes,
+        a :class:`DampedFactor`); else MINRES preconditioned with the LL' of ``K + s K0``, the first ``s`` of
+        STIFFNESS_SHIFTS (from near the last one that served) that is positive definite
+        (:class:`ShiftPreconditioned`), that shifted factor's own step where MINRES does not converge, and LDL'
+        where no shift is positive definite. The simplicial
         LDL' of a 10-node sphere's tangent (h = 1.75 mm, 18k dofs) took 7-15 s where LL' took 0.3-0.6 s (load 7-13
         on two cores); MINRES took 20-75 iterations, 0.2-0.8 s at h = 2.5 mm (bench/README.md, "Through the peak")."""
         loaded = self.problem.at_load_factor(load_factor)
@@ -654,6 +685,16 @@ class _Path:
             return factor, factor.solve(right_hand_sides)
         except ArithmeticError:
             pass
+        if damped:
+            diagonal = body.pattern.diagonal
+            for shift in DAMPING_SHIFTS:
+                shifted = data.copy()
+                shifted[diagonal] += shift * np.abs(data[diagonal])
+                try:
+                    damped_factor = DampedFactor(body.factorize(shifted, positive_definite=True))
+                except ArithmeticError:
+                    continue
+                return damped_factor, damped_factor.solve(right_hand_sides)
         if self.rest_stiffness is None:
             self.rest_stiffness = body.tangent_data(constraints=self.constraints)
         for index in range(self.shift_index, len(STIFFNESS_SHIFTS)):
