@@ -118,6 +118,9 @@ STIFFNESS_SHIFTS = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0, 10.0, 100.0)
 #: A volume-controlled iterate takes Newton's exact step, not the damped one, once a damped step lowered the merit by
 #: less than this factor.
 DAMPED_PROGRESS = 0.25
+#: ... near the path only (merit below this: residual about 1 % of the load): far off it the damped step is a
+#: descent all the same, and MINRES there needed a large shift and 150 iterations (the sphere's first volume step).
+EXACT_STEP_MERIT = 1e-4
 #: MINRES on an indefinite tangent: relative residual, and the iterations before the shifted factor's own (damped)
 #: step is taken instead. Near the path past a limit point a shift of 1e-3 K0 served, and MINRES took 26-47
 #: iterations; far off it (a predictor's first iterate) the shift was 0.1-0.3 K0 and MINRES 250-480.
@@ -359,6 +362,8 @@ class _Path:
         b)``, a 10-node body's element pressures ``K dJbar/dc``; None where the tangent gives no forward direction.
         ``factor``: a factorised tangent near ``point`` (a volume step's last iterate's) instead of a new one."""
         load = self.problem.load_n(point.positions_m)
+        if isinstance(factor, DampedFactor):  # not K's: its direction past a peak is not the path's
+            factor = None
         if factor is None:
             factor, b = self._exact_solve(point.load_factor, point.positions_m, None, None, load)
         else:
@@ -646,7 +651,8 @@ class _Path:
                 worst = self.problem.worst_element(positions_m + change)
                 reason = "solve would invert elements" if worst >= 0 else "volume-controlled solve found no descent"
                 return _VolumeStep(False, None, iteration, reason, worst)
-            if isinstance(factor, DampedFactor) and accepted[3].merit > DAMPED_PROGRESS * merit:
+            if (isinstance(factor, DampedFactor) and accepted[3].merit > DAMPED_PROGRESS * merit
+                    and accepted[3].merit < EXACT_STEP_MERIT):
                 exact = True
             positions_m, load_factor, carried, state = accepted
             if carried is not None:  # the convergence test and the next right-hand side: eliminated pressures
