@@ -937,3 +937,55 @@ def follow_path(problem: EquilibriumProblem, tolerance: float) -> PathResult:
     path = _Path(problem, tolerance)
     positions_m = path.run()
     return PathResult(positions_m, path.iterations, path.steps)
+
+
+@dataclass
+class VolumePoint:
+    """An equilibrium under volume control: node positions (n, 3) m, the load factor (the pressures are ``lam p``),
+    the control volume (m^3), and the path's dlam/dc there (1/m^3; negative past a peak, None where not solved)."""
+
+    positions_m: FloatArray
+    load_factor: float
+    control_m3: float
+    load_factor_per_m3: float | None
+
+
+def follow_volume(problem: EquilibriumProblem, controls_m3: FloatArray | list[float]) -> list[VolumePoint]:
+    """Equilibria of ``problem`` under volume control at each of ``controls_m3`` (the load-weighted chamber volume
+    ``c = sum w_i V_i``, ``w = p / max|p|``: one loaded chamber, its volume), from its start, through limit points:
+    the load factor at each is the pressure (``lam p``) that holds the chambers there, on the rising branch or the
+    falling one beyond a peak. The path steps as :func:`follow_path`'s volume control does (Hermite predictor,
+    doubling after a quick step, halving after a failed one). Raises SolveError where a step cannot be made (an
+    element would invert) even after halving it MAX_VOLUME_BISECTIONS times."""
+    path = _Path(problem, PATH_TOLERANCE)
+    point = path._point(0.0, path.start_m)
+    history = [point]
+    control_step = FIRST_VOLUME_STEP * path.control_rest_m3
+    answers = []
+    for wanted in sorted(float(c) for c in controls_m3):
+        bisections = 0
+        while point.control_m3 < wanted - CONTROL_TOLERANCE * path.control_rest_m3:
+            target = min(point.control_m3 + control_step, wanted)
+            guess_m, guess_factor, guess_pa = path._volume_guess(history, point, target)
+            worst = problem.worst_element(guess_m)
+            step = (path._volume_newton(guess_m, guess_factor, target, guess_pa) if worst < 0
+                    else _VolumeStep(False, None, 0, "solve would invert elements", worst))
+            path.iterations += step.iterations
+            if not step.converged or step.point is None:
+                bisections += 1
+                control_step /= 2.0
+                if bisections > MAX_VOLUME_BISECTIONS:
+                    raise path._unreachable(point, f"the {step.reason} one volume step further", step.worst_element)
+                continue
+            new = step.point
+            new.rate = path._tangent_direction(new, step.factor)
+            history = [*history[-(PREDICTOR_POINTS - 1):], new]
+            if step.iterations <= DOUBLING_ITERATIONS and bisections == 0:
+                control_step *= 2.0
+            bisections = 0
+            point = new
+        if point.rate is None and point.load_factor != 0.0:
+            point.rate = path._tangent_direction(point)
+        answers.append(VolumePoint(point.positions_m, point.load_factor, point.control_m3,
+                                   None if point.rate is None else point.rate.load_factor_per_m3))
+    return answers
