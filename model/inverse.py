@@ -537,7 +537,8 @@ class InverseSolver:
             assert above_peak is not None  # every trial was refused for lying past a peak
             raise LimitPointError(
                 f"every step towards the target lies past a chamber's peak ({above_peak}); the target lies past the "
-                "pressure-control limit point: ask for a smaller volume") from above_peak
+                "pressure-control limit point: ask for a smaller volume, or for the pressure that holds one chamber "
+                "there under volume control (pressure_on_path: its falling branch)") from above_peak
         return best
 
     def _refuse_out_of_scale(self, target: Target) -> None:
@@ -664,3 +665,51 @@ class InverseSolver:
         chamber_volumes_m3, gland_volume_m3, _ = self.estimator.evaluate(pressures_pa)
         return InverseResult(target, pressures_pa, gland_volume_m3, chamber_volumes_m3, 0,
                              time.perf_counter() - started, 0.0, [])
+
+
+@dataclass(frozen=True)
+class PathAnswer:
+    """The pressure that holds one chamber at a volume on its equilibrium path from rest (the others at zero gauge
+    pressure): ``branch`` is "rising" before the chamber's pressure-volume peak, "falling" beyond it (where only a
+    volume-controlled actuator holds it; under a pressure source it would burst through)."""
+
+    chamber: int
+    volume_m3: float
+    pressure_pa: float
+    branch: str
+    chamber_volumes_m3: FloatArray
+    gland_volume_m3: float
+
+
+def pressure_on_path(model: PhantomModel, chamber: int, volume_m3: float,
+                     pressure_max_pa: float | None = None) -> PathAnswer:
+    """The pressure (Pa) in ``chamber`` that holds it at ``volume_m3`` on its equilibrium path from rest, the other
+    chambers at zero: the path followed under volume control through the chamber's peak
+    (:func:`phantom.model.fem.pathfollow.follow_volume`), so a volume beyond the peak, which no pressure reaches
+    on the rising branch, is answered on the falling one, saying so.
+
+    Raises UnreachableTargetError for a volume below the chamber's rest volume or one whose pressure exceeds
+    ``pressure_max_pa`` (None: the scene's bound), SolveError where the path cannot be followed (an element
+    would invert)."""
+    from phantom.model.fem.pathfollow import follow_volume
+
+    if not (isinstance(chamber, (int, np.integer)) and 0 <= chamber < model.n_chambers):
+        raise PhantomError(f"chamber {chamber!r}: chambers are 0..{model.n_chambers - 1}")
+    volume_m3 = float(_finite("volume_m3", volume_m3))
+    rest_m3 = float(model.rest_chamber_volumes_m3[chamber])
+    limit_pa = float(model.model_settings.pressure_max_pa if pressure_max_pa is None else pressure_max_pa)
+    if volume_m3 < rest_m3:
+        raise UnreachableTargetError(f"chamber {chamber}'s volume {volume_m3 * ML_PER_M3:.4g} ml lies below its rest "
+                                     f"volume {rest_m3 * ML_PER_M3:.4g} ml: the blowers only inflate")
+    unit_pa = np.zeros(model.n_chambers)
+    unit_pa[chamber] = limit_pa
+    [point] = follow_volume(model.problem(unit_pa), [volume_m3])
+    pressure_pa = point.load_factor * limit_pa
+    if pressure_pa > limit_pa * (1.0 + 1e-9):
+        raise UnreachableTargetError(f"chamber {chamber} at {volume_m3 * ML_PER_M3:.4g} ml needs "
+                                     f"{pressure_pa / 1e3:.4g} kPa, above the bound {limit_pa / 1e3:g} kPa; raise "
+                                     "pressure_max or ask for a smaller volume")
+    falling = point.load_factor_per_m3 is not None and point.load_factor_per_m3 < 0
+    chamber_volumes_m3, gland_volume_m3 = model.volumes(point.positions_m)
+    return PathAnswer(chamber, volume_m3, float(pressure_pa), "falling" if falling else "rising",
+                      np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3))

@@ -20,7 +20,7 @@ from phantom.model.inverse import InverseSolver
 from phantom.model.mesh.prostate import generate_hollow_sphere
 from phantom.model.mesh.tetmesh import prepare_surfaces, write_mesh
 from phantom.model.scene import QUADRATIC_POISSON_RATIO, Material
-from phantom.model.target import Target
+from phantom.model.target import Target, UnreachableTargetError
 
 pytestmark = pytest.mark.slow  # seconds of solves each
 
@@ -121,3 +121,20 @@ def test_volume_control_follows_the_closed_form_through_and_past_the_peak(sphere
     np.testing.assert_allclose(pressures_pa, exact_pa, rtol=0.01)
     rates = [point.load_factor_per_m3 for point in points]
     assert rates[0] > 0 and rates[1] > 0 and rates[2] < 0 and rates[3] < 0
+
+
+def test_a_chamber_volume_past_the_peak_is_answered_on_the_falling_branch(sphere):
+    """Past the peak no pressure reaches the volume on the rising branch; under volume control the path holds it
+    with a pressure on the falling branch, and says which branch; before the peak the same call says rising."""
+    from phantom.model.inverse import pressure_on_path
+
+    mu = sphere.material.lame_mu_pa
+    rest_m3 = sphere.rest_chamber_volumes_m3[0]
+    for stretch, branch in ((1.5, "rising"), (2.4, "falling")):
+        answer = pressure_on_path(sphere, 0, rest_m3 * stretch**3)
+        exact_pa = incompressible_neo_hookean_pressure_pa(INNER_MM * 1e-3, OUTER_MM * 1e-3, stretch, mu)
+        assert answer.branch == branch
+        assert answer.pressure_pa == pytest.approx(exact_pa, rel=0.01)
+        assert answer.chamber_volumes_m3[0] == pytest.approx(rest_m3 * stretch**3, rel=1e-9)
+    with pytest.raises(UnreachableTargetError, match="below its rest"):
+        pressure_on_path(sphere, 0, 0.5 * rest_m3)
