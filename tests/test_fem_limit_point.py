@@ -138,3 +138,15 @@ def test_a_chamber_volume_past_the_peak_is_answered_on_the_falling_branch(sphere
         assert answer.chamber_volumes_m3[0] == pytest.approx(rest_m3 * stretch**3, rel=1e-9)
     with pytest.raises(UnreachableTargetError, match="below its rest"):
         pressure_on_path(sphere, 0, 0.5 * rest_m3)
+
+
+def test_the_default_inverse_probes_its_levels_below_a_peak_under_the_bound(sphere):
+    """The inverse's default fidelity is chosen by probing each level at the pressure bound; above the peak that
+    probe has no equilibrium, so it is made below the peak instead, and the chamber-volume inverse answers."""
+    mu = sphere.material.lame_mu_pa
+    solver = InverseSolver(sphere)
+    rest_m3 = sphere.rest_chamber_volumes_m3[0]
+    result = solver.pressures_for(Target(chamber_volumes_m3=[rest_m3 * 1.3**3]))
+    exact_pa = incompressible_neo_hookean_pressure_pa(INNER_MM * 1e-3, OUTER_MM * 1e-3, 1.3, mu)
+    print(f"\nlevel {solver.estimator.level}: {result.pressures_pa[0]:.2f} Pa, closed form {exact_pa:.2f} Pa")
+    assert result.pressures_pa[0] == pytest.approx(exact_pa, rel=0.01)
