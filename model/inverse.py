@@ -68,6 +68,8 @@ PROXIMAL_AFTER_DAMPING = 0.5
 POLISH_RELATIVE_ERROR = 1e-3
 #: Halvings of an outer step before the least-error trial is taken anyway (the next linearisation is made there).
 STEP_HALVINGS = 6
+#: A trial step stays below this fraction of a peak met before (:meth:`InverseSolver._above_known_peak`).
+PEAK_MARGIN = 0.99
 #: Armijo fraction: a step of fraction t is taken when it cuts the relative volume error by at least this times t.
 SUFFICIENT_DECREASE = 1e-4
 
@@ -258,6 +260,8 @@ class InverseSolver:
                                "m^3/Pa): the model is not restrained or not elastic; check the scene")
         self.volume_per_m3 = 1.0 / (float(np.mean(eigenvalues)) / self.pressure_per_pa)
         self._problems: dict[tuple[str, int, int], VolumeQP] = {}
+        #: the pressures (Pa) at the peaks that trials met, each along its trial's ray (:meth:`_above_known_peak`)
+        self._peaks_pa: list[FloatArray] = []
         self._solved_range: tuple[FloatArray, FloatArray] | None = None
 
     # ----------------------------------------------------------------- targets -> rows
@@ -517,6 +521,10 @@ class InverseSolver:
         above_peak: PeakPressureError | None = None
         for _ in range(STEP_HALVINGS + 1):
             trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
+            # below the peaks met so far (each failed trial costs a path to its peak)
+            while self._above_known_peak(trial_pa) and step > 1e-3:
+                step *= 0.9
+                trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
             try:
                 evaluation = self._evaluate(trial_pa, above_peak_ok=True)
             except PeakPressureError as refusal:
@@ -525,6 +533,7 @@ class InverseSolver:
                 # pressures past the peak reach is refused with it below.
                 above_peak = refusal
                 fraction = refusal.peak_pressure_kpa / refusal.pressure_kpa if refusal.pressure_kpa else 0.5
+                self._peaks_pa.append(fraction * trial_pa)
                 step *= min(0.5, 0.98 * fraction)
                 continue
             trial_error = self._relative_error(target, evaluation[0], evaluation[1])
@@ -540,6 +549,15 @@ class InverseSolver:
                 "pressure-control limit point: ask for a smaller volume, or for the pressure that holds one chamber "
                 "there under volume control (pressure_on_path: its falling branch)") from above_peak
         return best
+
+    def _above_known_peak(self, pressures_pa: FloatArray) -> bool:
+        """``pressures_pa`` lie at or above PEAK_MARGIN of a peak a trial met before, along its ray (the peak's
+        pressures scaled alike: exact for one loaded chamber, an estimate for several)."""
+        for peak_pa in self._peaks_pa:
+            loaded = peak_pa > 0
+            if np.any(loaded) and np.max(pressures_pa[loaded] / peak_pa[loaded]) >= PEAK_MARGIN:
+                return True
+        return False
 
     def _refuse_out_of_scale(self, target: Target) -> None:
         """A target orders of magnitude out of reach (1e300 ml) is refused with the reachable range before any

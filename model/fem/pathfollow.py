@@ -886,23 +886,30 @@ class _Path:
         fraction = float(grid[np.argmax(((a * grid + b) * grid + c) * grid)])
         return fraction if 0.0 < fraction < 1.0 else None
 
+    def _moved_most(self, point: PathPoint) -> tuple[int, FloatArray, str, float]:
+        """The chamber that grew most (weighted by the load) at ``point``, the chamber volumes (m^3) there, the
+        chamber described (name, target pressure, p/E) and its target pressure (kPa)."""
+        body = self.body
+        chambers = body.chamber_volumes_m3(point.positions_m)
+        growth = np.abs(self.weights) * (chambers / body.rest_chamber_volumes_m3 - 1.0)
+        chamber = int(np.argmax(growth))
+        target_kpa = float(self.pressures[chamber] / 1e3)
+        ratio = abs(self.pressures[chamber]) / body.material.youngs_modulus_pa
+        return (chamber, chambers, f"chamber {chamber} ({body.chamber_names[chamber]!r} at {target_kpa:g} kPa, "
+                f"p/E = {ratio:.3g})", target_kpa)
+
     def _past_peak(self, peak: PathPoint, point: PathPoint) -> PeakPressureError:
         """The pressure asked of the chamber that grew most lies above its peak (``peak``); the path went on to
         ``point``."""
         body = self.body
-        chambers = body.chamber_volumes_m3(peak.positions_m)
-        growth = np.abs(self.weights) * (chambers / body.rest_chamber_volumes_m3 - 1.0)
-        chamber = int(np.argmax(growth))
-        name = body.chamber_names[chamber]
-        target_kpa = self.pressures[chamber] / 1e3
+        chamber, chambers, described, target_kpa = self._moved_most(peak)
         peak_kpa = peak.load_factor * target_kpa
         peak_ml = chambers[chamber] * 1e6
-        ratio = abs(self.pressures[chamber]) / body.material.youngs_modulus_pa
         others = ("" if np.count_nonzero(self.pressures) <= 1 else
                   " with the other chambers' pressures in the same proportion")
         beyond_ml = body.chamber_volumes_m3(point.positions_m)[chamber] * 1e6
         return PeakPressureError(
-            f"chamber {chamber} ({name!r} at {target_kpa:g} kPa, p/E = {ratio:.3g}) is out of reach: its "
+            f"{described} is out of reach: its "
             f"pressure-volume curve peaks at {peak_kpa:.4g} kPa (at {peak_ml:.4g} ml){others} and falls beyond (a "
             f"limit point: a pressure source would burst it through; the path went on to "
             f"{point.load_factor * target_kpa:.4g} kPa at {beyond_ml:.4g} ml, rest "
@@ -913,18 +920,13 @@ class _Path:
     def _unreachable(self, point: PathPoint, why: str, worst_element: int = -1) -> SolveError:
         """The chamber that moved most (weighted), where the path stopped, and why."""
         body = self.body
-        chambers = body.chamber_volumes_m3(point.positions_m)
-        growth = np.abs(self.weights) * (chambers / body.rest_chamber_volumes_m3 - 1.0)
-        chamber = int(np.argmax(growth))
-        name = body.chamber_names[chamber]
-        target_kpa = self.pressures[chamber] / 1e3
+        chamber, chambers, described, target_kpa = self._moved_most(point)
         reached_kpa = point.load_factor * target_kpa
-        ratio = abs(self.pressures[chamber]) / body.material.youngs_modulus_pa
         detail = why
         if worst_element >= 0:
             detail = f"{why} (element {worst_element} at det F <= 0)"
         return SolveError(
-            f"chamber {chamber} ({name!r} at {target_kpa:g} kPa, p/E = {ratio:.3g}) is out of reach: {detail}; "
+            f"{described} is out of reach: {detail}; "
             f"the path stopped at {reached_kpa:.4g} kPa and {chambers[chamber] * 1e6:.4g} ml (rest "
             f"{body.rest_chamber_volumes_m3[chamber] * 1e6:.4g} ml, after {self.steps} accepted steps); try a lower "
             f"pressure in that chamber, a stiffer or strain-stiffening material (gent), or a finer mesh (--size-mm)")
