@@ -23,6 +23,7 @@ _EXPORTS = {
     "Compliance": "phantom.model.fem.model",
     "MeshError": "phantom.model.errors",
     "SolveError": "phantom.model.errors",
+    "PeakPressureError": "phantom.model.errors",
     "SceneError": "phantom.model.errors",
 }
 

@@ -18,6 +18,29 @@ class SolveError(PhantomError):
     """A solve that did not converge or inverted elements; the message names the chamber and pressure."""
 
 
+class PeakPressureError(SolveError):
+    """A pressure above a chamber's peak: its pressure-volume curve rises to a limit point and falls beyond, so no
+    equilibrium under that pressure lies on the path from rest (a pressure source would burst it through).
+
+    Attributes
+    ----------
+    chamber : int
+        The chamber whose curve peaks below its pressure.
+    pressure_kpa : float
+        The pressure asked of it (kPa).
+    peak_pressure_kpa, peak_volume_ml : float
+        The peak's pressure (kPa) and the chamber's volume there (ml), as the path located them.
+    """
+
+    def __init__(self, message: str, chamber: int, pressure_kpa: float, peak_pressure_kpa: float,
+                 peak_volume_ml: float):
+        super().__init__(message)
+        self.chamber = chamber
+        self.pressure_kpa = pressure_kpa
+        self.peak_pressure_kpa = peak_pressure_kpa
+        self.peak_volume_ml = peak_volume_ml
+
+
 def check_known_keys(table: Mapping[str, object], known: Iterable[str], section: str, where: str) -> None:
     """Refuse a table's keys that are not ``known`` with one SceneError that names each and the nearest known
     key (a misspelt ``youngs_modulus_kPa`` would otherwise be ignored and its default used in silence)."""

@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike
 
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
-from phantom.model.errors import SolveError
+from phantom.model.errors import PeakPressureError, SolveError
 from phantom.model.fem.model import PhantomModel
 from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
 from phantom.model.fidelity.response_table import ResponseTableError, stored_response_table
@@ -68,6 +68,10 @@ PROXIMAL_AFTER_DAMPING = 0.5
 POLISH_RELATIVE_ERROR = 1e-3
 #: Halvings of an outer step before the least-error trial is taken anyway (the next linearisation is made there).
 STEP_HALVINGS = 6
+#: A trial step stays below this fraction of a peak met before (:meth:`InverseSolver._above_known_peak`): the path
+#: locates a peak to 1e-5 of its load, and the curve is flat there (the thick sphere at the cavity stretch 1.75,
+#: its peak's 1.83, needs 0.997 of the peak's pressure).
+PEAK_MARGIN = 0.9999
 #: Armijo fraction: a step of fraction t is taken when it cuts the relative volume error by at least this times t.
 SUFFICIENT_DECREASE = 1e-4
 
@@ -258,6 +262,8 @@ class InverseSolver:
                                "m^3/Pa): the model is not restrained or not elastic; check the scene")
         self.volume_per_m3 = 1.0 / (float(np.mean(eigenvalues)) / self.pressure_per_pa)
         self._problems: dict[tuple[str, int, int], VolumeQP] = {}
+        #: the pressures (Pa) at the peaks that trials met, each along its trial's ray (:meth:`_above_known_peak`)
+        self._peaks_pa: list[FloatArray] = []
         self._solved_range: tuple[FloatArray, FloatArray] | None = None
 
     # ----------------------------------------------------------------- targets -> rows
@@ -514,17 +520,46 @@ class InverseSolver:
         satisfy them)."""
         step = 1.0
         best: tuple[FloatArray, Evaluation, float, float] | None = None
+        above_peak: PeakPressureError | None = None
         for _ in range(STEP_HALVINGS + 1):
             trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
-            evaluation = self._evaluate(trial_pa)
+            # below the peaks met so far (each failed trial costs a path to its peak)
+            while self._above_known_peak(trial_pa) and step > 1e-3:
+                step *= 0.9
+                trial_pa = pressures_pa + step * (candidate_pa - pressures_pa)
+            try:
+                evaluation = self._evaluate(trial_pa, above_peak_ok=True)
+            except PeakPressureError as refusal:
+                # The linearisation overshot past a chamber's peak (a rest or chord compliance is stiffer than the
+                # path near it): a shorter step, below the peak the path found on the way. A target that only
+                # pressures past the peak reach is refused with it below.
+                above_peak = refusal
+                fraction = refusal.peak_pressure_kpa / refusal.pressure_kpa if refusal.pressure_kpa else 0.5
+                self._peaks_pa.append(fraction * trial_pa)
+                step *= min(0.5, 0.98 * fraction)
+                continue
             trial_error = self._relative_error(target, evaluation[0], evaluation[1])
             if trial_error <= (1.0 - SUFFICIENT_DECREASE * step) * error or trial_error <= self.tolerance:
                 return trial_pa, evaluation, trial_error, step
             if best is None or trial_error < best[2]:
                 best = (trial_pa, evaluation, trial_error, step)
             step *= 0.5
-        assert best is not None  # at least one trial was made
+        if best is None:
+            assert above_peak is not None  # every trial was refused for lying past a peak
+            raise LimitPointError(
+                f"every step towards the target lies past a chamber's peak ({above_peak}); the target lies past the "
+                "pressure-control limit point: ask for a smaller volume, or for the pressure that holds one chamber "
+                "there under volume control (pressure_on_path: its falling branch)") from above_peak
         return best
+
+    def _above_known_peak(self, pressures_pa: FloatArray) -> bool:
+        """``pressures_pa`` lie at or above PEAK_MARGIN of a peak a trial met before, along its ray (the peak's
+        pressures scaled alike: exact for one loaded chamber, an estimate for several)."""
+        for peak_pa in self._peaks_pa:
+            loaded = peak_pa > 0
+            if np.any(loaded) and np.max(pressures_pa[loaded] / peak_pa[loaded]) >= PEAK_MARGIN:
+                return True
+        return False
 
     def _refuse_out_of_scale(self, target: Target) -> None:
         """A target orders of magnitude out of reach (1e300 ml) is refused with the reachable range before any
@@ -576,12 +611,14 @@ class InverseSolver:
                 raise self._unreachable_error(
                     target, row_name, low_m3[column] * ML_PER_M3, high_m3[column] * ML_PER_M3, constrained=False)
 
-    def _evaluate(self, pressures_pa: FloatArray) -> Evaluation:
+    def _evaluate(self, pressures_pa: FloatArray, above_peak_ok: bool = False) -> Evaluation:
         """The estimator's volumes at a candidate answer; a failed forward solve there means the candidate lies
-        past the limit point."""
+        past the limit point (``above_peak_ok``: a PeakPressureError, which names the peak, passes through)."""
         try:
             return self.estimator.evaluate(pressures_pa)
         except SolveError as error:
+            if above_peak_ok and isinstance(error, PeakPressureError):
+                raise
             raise LimitPointError(
                 f"the forward model has no equilibrium at {np.round(pressures_pa / 1e3, 4).tolist()} kPa ({error}): "
                 "the target lies past the pressure-control limit point; ask for a smaller volume") from error
@@ -648,3 +685,51 @@ class InverseSolver:
         chamber_volumes_m3, gland_volume_m3, _ = self.estimator.evaluate(pressures_pa)
         return InverseResult(target, pressures_pa, gland_volume_m3, chamber_volumes_m3, 0,
                              time.perf_counter() - started, 0.0, [])
+
+
+@dataclass(frozen=True)
+class PathAnswer:
+    """The pressure that holds one chamber at a volume on its equilibrium path from rest (the others at zero gauge
+    pressure): ``branch`` is "rising" before the chamber's pressure-volume peak, "falling" beyond it (where only a
+    volume-controlled actuator holds it; under a pressure source it would burst through)."""
+
+    chamber: int
+    volume_m3: float
+    pressure_pa: float
+    branch: str
+    chamber_volumes_m3: FloatArray
+    gland_volume_m3: float
+
+
+def pressure_on_path(model: PhantomModel, chamber: int, volume_m3: float,
+                     pressure_max_pa: float | None = None) -> PathAnswer:
+    """The pressure (Pa) in ``chamber`` that holds it at ``volume_m3`` on its equilibrium path from rest, the other
+    chambers at zero: the path followed under volume control through the chamber's peak
+    (:func:`phantom.model.fem.pathfollow.follow_volume`), so a volume beyond the peak, which no pressure reaches
+    on the rising branch, is answered on the falling one, saying so.
+
+    Raises UnreachableTargetError for a volume below the chamber's rest volume or one whose pressure exceeds
+    ``pressure_max_pa`` (None: the scene's bound), SolveError where the path cannot be followed (an element
+    would invert)."""
+    from phantom.model.fem.pathfollow import follow_volume
+
+    if not (isinstance(chamber, (int, np.integer)) and 0 <= chamber < model.n_chambers):
+        raise PhantomError(f"chamber {chamber!r}: chambers are 0..{model.n_chambers - 1}")
+    volume_m3 = float(_finite("volume_m3", volume_m3))
+    rest_m3 = float(model.rest_chamber_volumes_m3[chamber])
+    limit_pa = float(model.model_settings.pressure_max_pa if pressure_max_pa is None else pressure_max_pa)
+    if volume_m3 < rest_m3:
+        raise UnreachableTargetError(f"chamber {chamber}'s volume {volume_m3 * ML_PER_M3:.4g} ml lies below its rest "
+                                     f"volume {rest_m3 * ML_PER_M3:.4g} ml: the blowers only inflate")
+    unit_pa = np.zeros(model.n_chambers)
+    unit_pa[chamber] = limit_pa
+    [point] = follow_volume(model.problem(unit_pa), [volume_m3])
+    pressure_pa = point.load_factor * limit_pa
+    if pressure_pa > limit_pa * (1.0 + 1e-9):
+        raise UnreachableTargetError(f"chamber {chamber} at {volume_m3 * ML_PER_M3:.4g} ml needs "
+                                     f"{pressure_pa / 1e3:.4g} kPa, above the bound {limit_pa / 1e3:g} kPa; raise "
+                                     "pressure_max or ask for a smaller volume")
+    falling = point.load_factor_per_m3 is not None and point.load_factor_per_m3 < 0
+    chamber_volumes_m3, gland_volume_m3 = model.volumes(point.positions_m)
+    return PathAnswer(chamber, volume_m3, float(pressure_pa), "falling" if falling else "rising",
+                      np.asarray(chamber_volumes_m3, dtype=float), float(gland_volume_m3))

@@ -79,10 +79,61 @@ class CholeskyFactor:
                                           np.ascontiguousarray(rhs, dtype=np.float64))
         return solution * self.scale if self.scale != 1.0 else solution
 
+    def negative_pivots(self) -> int:
+        """0: a Cholesky factor's matrix is positive definite (see :meth:`Factorization.negative_pivots`)."""
+        return 0
+
     def arrays(self) -> dict[str, FloatArray | IntArray | Int32Array]:
         """The factor's arrays by name, as :meth:`__init__` takes them (for storing)."""
         return {"indptr": self.indptr, "indices": self.indices, "values": self.values,
                 "permutation": self.permutation}
+
+
+class ShiftPreconditioned:
+    """Solves with a symmetric indefinite matrix ``K`` (a tangent past a limit point) by MINRES, preconditioned
+    with the Cholesky factor of ``K`` shifted towards positive definite (``K + tau |diag K|``, which CHOLMOD's
+    supernodal LL' factorises in a tenth of a second where its simplicial LDL' of ``K`` took 7-15 s on a 10-node
+    sphere: bench/README.md, "Through the peak").
+
+    The preconditioned operator is the identity but for the few modes the shift moved (the volume mode past a
+    limit point, the softest others), so MINRES converges in a few tens of back-substitutions. ``multiply(v)``
+    is ``K v``; ``solve`` raises ArithmeticError when MINRES does not reach ``tolerance`` (relative residual) in
+    ``max_iterations``: the caller then factorises ``K`` by LDL'.
+    """
+
+    def __init__(self, multiply: Any, preconditioner: Any, tolerance: float = 1e-10, max_iterations: int = 300):
+        self.multiply = multiply
+        self.preconditioner = preconditioner
+        self.tolerance = tolerance
+        self.max_iterations = max_iterations
+        #: MINRES iterations spent in all solves
+        self.iterations = 0
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """``K^-1 rhs`` for one right-hand side (n,) or several (n, k)."""
+        if rhs.ndim == 2:
+            return np.column_stack([self.solve(column) for column in rhs.T])
+        import scipy.sparse.linalg as spla
+
+        size = rhs.shape[0]
+        operator = spla.LinearOperator((size, size), matvec=self.multiply, dtype=np.float64)
+        preconditioner = spla.LinearOperator((size, size), matvec=self.preconditioner.solve, dtype=np.float64)
+        counted = [0]
+
+        def count(_: FloatArray) -> None:
+            counted[0] += 1
+
+        solution, info = spla.minres(operator, rhs, M=preconditioner, rtol=self.tolerance,
+                                     maxiter=self.max_iterations, callback=count)
+        self.iterations += counted[0]
+        if info != 0 or not np.all(np.isfinite(solution)):
+            raise ArithmeticError(f"MINRES on the indefinite tangent did not converge ({info})")
+        result: FloatArray = solution
+        return result
+
+    def negative_pivots(self) -> int | None:
+        """Not counted (the shifted factor is positive definite; ``K`` has at least one negative eigenvalue)."""
+        return None
 
 
 class FillOrdering:
@@ -211,6 +262,16 @@ class Factorization:
         if info != 0:
             raise ArithmeticError(f"preconditioned CG did not converge ({info})")
         return solution
+
+    def negative_pivots(self) -> int | None:
+        """The number of negative eigenvalues of the matrix (Sylvester's law of inertia: those of D in LDL'): 0
+        for a Cholesky factor, the negative entries of D for CHOLMOD's LDL'; None where the method does not tell
+        (SuperLU, CG). Counting them costs one pass over D (n entries)."""
+        if self._cholmod is None:
+            return None
+        if self.method == "cholmod":
+            return 0
+        return int(np.count_nonzero(self._cholmod.D() < 0.0))
 
     def cholesky_factor(self) -> CholeskyFactor | None:
         """The Cholesky factor as arrays, to be stored ("cholmod"; None for the other methods)."""

@@ -16,10 +16,14 @@ Lagrange multiplier of ``c(x) = c_target``. Each volume-controlled step solves t
 
 (``K`` the exact tangent with the follower-pressure stiffness, ``q = sum p_i dV_i/dx`` the load per unit lam,
 ``h = dc/dx``) by block elimination (``dx = a + b dlam``, ``K a = -R``, ``K b = q``) with CG preconditioned by
-the rest factor while it converges, else K factorised at every iterate, so limit points of the
-pressure-controlled problem, where K is singular along the volume mode, are passed. K is factorised as Newton's
-is: CHOLMOD, shifted towards positive definite where it is not (a predictor off the path can be indefinite). A
-shifted K gives a damped step, not Newton's, which the merit's line search accepts or refuses. Each step starts
+the rest factor while it converges, else the exact K at every iterate, so limit points of the
+pressure-controlled problem, where K is singular along the volume mode, are passed. K is solved as it is:
+CHOLMOD's LL' where it is positive definite, else (past a limit point, or a predictor off the path) MINRES
+preconditioned with the LL' of ``K + s K0`` (K0 the small-strain stiffness, ``s`` the least of STIFFNESS_SHIFTS
+that is positive definite), whose solution is Newton's; far off the path, where MINRES does not converge in
+EXACT_KRYLOV_ITERATIONS, the shifted factor's own (damped) step, which the merit's line search accepts or
+refuses. A damped step at every iterate stalled just below a thick sphere's peak (minutes, then "did not
+converge"): past the peak the exact tangent is legitimately indefinite and only its step converges. Each step starts
 from Hermite's cubic through the last two equilibria and the path's direction at each (``K b = q`` with the
 tangent factorised at a step's last iterate: one back-substitution), else a quadratic through the last three
 equilibria in the control volume (a secant through two, the tangent from one: at rest the kept small-strain
@@ -29,10 +33,16 @@ FINAL_NEWTON_ITERATIONS); where it does not converge the path steps on, and a st
 (Newton from the interpolation between the two, then Illinois regula falsi on c) until the final state is a
 pressure-controlled equilibrium at the exact pressures.
 
-A target is unreachable when, past its peak, the load factor falls below ``PEAK_DROP`` of it, the control
-volume grows beyond ``MAX_CONTROL_GROWTH`` times its rest value, or a volume step cannot be made without
-inverting an element (or, for Gent, locking its chains) even after halving it ``MAX_VOLUME_BISECTIONS`` times;
-the SolveError then names the chamber, the pressure and volume where the path stopped, and why.
+The peak is detected by the load's sign change along the path (dlam/dc = 1 / (h . K^-1 q) turns negative as K
+gains a negative eigenvalue: the tangent's inertia) and located to PEAK_LOAD_TOLERANCE by volume solves at the
+maximum of Hermite's cubic of lam(c) through the equilibria that bracket it (one or two solves). For a law
+without strain stiffening (all but Gent and Yeoh) a load factor that fell is the answer: the pressures lie above
+the peak, and a PeakPressureError names the chamber, the peak's pressure and volume (its attributes too). A
+stiffening law's path goes on; it is unreachable when, past its peak, the load factor falls below ``PEAK_DROP``
+of it (PeakPressureError too), the control volume grows beyond ``MAX_CONTROL_GROWTH`` times its rest value, or a
+volume step cannot be made without inverting an element (or, for Gent, locking its chains) even after halving it
+``MAX_VOLUME_BISECTIONS`` times; the SolveError then names the chamber, the pressure and volume where the path
+stopped, and why.
 """
 
 from __future__ import annotations
@@ -43,10 +53,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from phantom.model.arrays import FloatArray
-from phantom.model.errors import SolveError
+from phantom.model.errors import PeakPressureError, SolveError
 from phantom.model.fem.body import Factor
+from phantom.model.fem.linsolve import ShiftPreconditioned
 from phantom.model.fem.newton import LINE_SEARCH_HALVINGS, newton, preconditioned_cg
-from phantom.model.fem.problem import EquilibriumProblem
+from phantom.model.fem.problem import DAMPING_SHIFTS, EquilibriumProblem
+from phantom.model.scene import HYPERELASTIC_MODELS
 
 #: Switch to volume control when the secant slope d(lam)/d(c) falls below this fraction of the first step's.
 FLATTENING_RATIO = 0.2
@@ -65,10 +77,14 @@ FIRST_VOLUME_STEP = 0.1
 MIN_CONTROL_STEP = 1e-2
 #: A volume-controlled path stops, unreachable, past a peak of lam when lam falls below this fraction of it...
 PEAK_DROP = 0.5
-#: ... or, for laws without strain stiffening (all but Gent and Yeoh), once lam has fallen on this many volume steps
-#: in a row: their pressure falls for good past the peak (a Neo-Hookean balloon: p ~ 1/lambda - 1/lambda^7), while
-#: Gent's rises again as its chains lock, and Yeoh's as its higher terms grow.
-CONFIRMED_FALL_STEPS = 2
+#: ... or, for laws without strain stiffening (all but these), as soon as lam has fallen on a volume step and its
+#: peak is located: their pressure falls for good past the peak (a Neo-Hookean balloon: p ~ 1/lambda - 1/lambda^7),
+#: while Gent's rises again as its chains lock, and Yeoh's as its higher terms grow.
+STIFFENING_LAWS = ("gent", "yeoh")
+#: The peak is located by volume solves at the maximum of Hermite's cubic of lam(c) through the equilibria that
+#: bracket it, until the solved load factor is within this of the cubic's (relative), or PEAK_SOLVES solves.
+PEAK_LOAD_TOLERANCE = 1e-5
+PEAK_SOLVES = 4
 #: ... or when the control volume exceeds this multiple of its rest value.
 MAX_CONTROL_GROWTH = 20.0
 VOLUME_NEWTON_ITERATIONS = 30
@@ -94,8 +110,43 @@ CRAWL_ITERATIONS = 2
 PREDICTOR_POINTS = 3
 #: Newton iterations at the exact pressures from a predictor near lam = 1 before the path steps on instead.
 FINAL_NEWTON_ITERATIONS = 8
+#: Multiples of the small-strain stiffness K0 tried in turn as the shift of an indefinite tangent, ``K + s K0``,
+#: whose Cholesky factor preconditions MINRES on K (:meth:`_Path._exact_solve`). A shift of the diagonal,
+#: ``tau |diag K|``, moved every shear mode of a nearly incompressible body (its diagonal is the bulk modulus's):
+#: 94-133 MINRES iterations a solve on the 10-node sphere; K0 has the body's own proportions.
+STIFFNESS_SHIFTS = (1e-3, 3e-3, 1e-2, 3e-2, 0.1, 0.3, 1.0, 3.0, 10.0, 100.0)
+#: A volume-controlled iterate takes Newton's exact step, not the damped one, once a damped step lowered the merit by
+#: less than this factor.
+DAMPED_PROGRESS = 0.25
+#: ... near the path only (merit below this: residual about 1 % of the load): far off it the damped step is a
+#: descent all the same, and MINRES there needed a large shift and 150 iterations (the sphere's first volume step).
+EXACT_STEP_MERIT = 1e-4
+#: MINRES on an indefinite tangent: relative residual, and the iterations before the shifted factor's own (damped)
+#: step is taken instead. Near the path past a limit point a shift of 1e-3 K0 served, and MINRES took 26-47
+#: iterations; far off it (a predictor's first iterate) the shift was 0.1-0.3 K0 and MINRES 250-480.
+EXACT_KRYLOV_TOLERANCE = 1e-9
+EXACT_KRYLOV_ITERATIONS = 80
 VOLUME_KRYLOV_TOLERANCE = 1e-4
 VOLUME_KRYLOV_ITERATIONS = 40
+
+
+class DampedFactor:
+    """The factor of a shifted tangent, ``K + tau |diag K|``, standing in for K (a damped Newton step)."""
+
+    def __init__(self, factor: Factor):
+        self.factor = factor
+
+    def solve(self, rhs: FloatArray) -> FloatArray:
+        """``(K + tau |diag K|)^-1 rhs``."""
+        return self.factor.solve(rhs)
+
+    def negative_pivots(self) -> int | None:
+        """Not K's: unknown."""
+        return None
+
+
+#: A solver for the tangent: a factorisation, MINRES preconditioned with a shifted one, or a shifted one (damped).
+Solver = Factor | ShiftPreconditioned | DampedFactor
 
 
 @dataclass(frozen=True)
@@ -106,6 +157,8 @@ class PathRate:
     positions_m_per_m3: FloatArray
     load_factor_per_m3: float
     pressures_pa_per_m3: FloatArray | None
+    #: negative eigenvalues of the tangent it was solved with (None: the factorisation does not tell)
+    negative_pivots: int | None = None
 
 
 @dataclass
@@ -156,7 +209,7 @@ class _VolumeStep:
     reason: str = ""
     worst_element: int = -1
     #: the tangent factorised at the last iterate (None where the step took no iteration or solved by CG)
-    factor: Factor | None = None
+    factor: Solver | None = None
 
 
 class _Path:
@@ -181,6 +234,13 @@ class _Path:
         self.small_strain_m: FloatArray | None = None
         #: conjugate gradients on a volume step's tangent failed once: later steps factorise it straight away
         self.krylov_failed = False
+        #: the lowest load factor at which a pressure-controlled step failed: the volume-controlled path makes no
+        #: Newton attempt at the full pressures from a prediction below it (the pressure may lie past a peak)
+        self.failed_load_factor: float | None = None
+        #: the first of STIFFNESS_SHIFTS to try on an indefinite tangent (:meth:`_exact_solve`)
+        self.shift_index = 0
+        #: the small-strain stiffness's data (the shift of an indefinite tangent), made when first needed
+        self.rest_stiffness: FloatArray | None = None
 
     # --- quantities --------------------------------------------------------------------------------------
 
@@ -268,6 +328,7 @@ class _Path:
                     return self._volume_controlled(points)
                 continue
             failures += 1
+            self.failed_load_factor = target
             # A smaller load cannot help a linear model, nor a residual stuck at the rounding floor (the floor
             # relative to the load only grows as the load shrinks).
             if not allow_switch or step.ill_conditioned or failures > MAX_LOAD_BISECTIONS:
@@ -296,21 +357,27 @@ class _Path:
 
     # --- volume control ----------------------------------------------------------------------------------
 
-    def _tangent_direction(self, point: PathPoint, factor: Factor | None = None) -> PathRate | None:
+    def _tangent_direction(self, point: PathPoint, factor: Solver | None = None) -> PathRate | None:
         """The path's direction at an equilibrium from ``K b = q``: ``dx/dc = b / (h . b)``, ``dlam/dc = 1 / (h .
         b)``, a 10-node body's element pressures ``K dJbar/dc``; None where the tangent gives no forward direction.
         ``factor``: a factorised tangent near ``point`` (a volume step's last iterate's) instead of a new one."""
+        load = self.problem.load_n(point.positions_m)
+        if isinstance(factor, DampedFactor):  # not K's: its direction past a peak is not the path's
+            factor = None
         if factor is None:
-            factor = self.problem.at_load_factor(point.load_factor).tangent(point.positions_m, exact=True)
-        b = factor.solve(self.problem.load_n(point.positions_m))
+            factor, b = self._exact_solve(point.load_factor, point.positions_m, None, None, load)
+        else:
+            b = factor.solve(load)
         curvature = float(self._control_gradient(point.positions_m) @ b)
-        if not np.isfinite(curvature) or curvature <= 0:
+        if not np.isfinite(curvature) or curvature == 0:
             return None
+        # (past a limit point K has a negative eigenvalue along the volume mode, h . K^-1 q < 0: the load falls as
+        # the volume grows, and the direction is still the path's)
         direction = b.reshape(-1, 3) / curvature
         pressures = (self.body.material.bulk_modulus_pa * self.body.element_volume_ratio_rates(point.positions_m,
                                                                                                 direction)
                      if self.problem.mixed else None)
-        return PathRate(direction, 1.0 / curvature, pressures)
+        return PathRate(direction, 1.0 / curvature, pressures, factor.negative_pivots())
 
     def _control_gradient(self, positions_m: FloatArray) -> FloatArray:
         gradients = self.body.chamber_volume_gradients(positions_m)
@@ -326,12 +393,14 @@ class _Path:
         else:
             control_step = FIRST_VOLUME_STEP * self.control_rest_m3
         history = [p for p in (previous, point) if p is not None]
-        bisections = falling = 0
+        bisections = 0
+        located = False  # the last peak was located (the load has fallen since)
         peak = self.peak = max(points, key=lambda p: p.load_factor)
         for _ in range(MAX_PATH_STEPS):
             target = point.control_m3 + control_step
             guess_m, guess_factor, guess_pa = self._volume_guess(history, point, target)
-            if guess_factor >= 1.0 and len(history) >= 2 and bisections == 0:
+            if guess_factor >= 1.0 and len(history) >= 2 and bisections == 0 and (
+                    self.failed_load_factor is None or point.load_factor >= self.failed_load_factor):
                 span = point.control_m3 - history[-2].control_m3
                 crossing_m3 = self._crossing(point, target, guess_factor)
                 if crossing_m3 is not None and crossing_m3 - point.control_m3 > span:
@@ -366,13 +435,19 @@ class _Path:
             history = [*history[-(PREDICTOR_POINTS - 1):], new]
             if new.load_factor >= 1.0:
                 return self._cross(point, new)
-            if new.load_factor > peak.load_factor:
+            if new.load_factor < point.load_factor and not located:
+                # The load fell: a limit point lies behind (the tangent's inertia changed there, and the path's
+                # dlam/dc changed sign). Located, it is the answer for a law whose pressure then falls for good.
+                peak = self.peak = self._locate_peak(history)
+                located = True
+                if self.formulation not in STIFFENING_LAWS:
+                    raise self._past_peak(peak, new)
+            elif new.load_factor > peak.load_factor:
                 peak = self.peak = new
-            falling = falling + 1 if new.load_factor < point.load_factor else 0
+                located = False
             point = new
-            if point.load_factor < PEAK_DROP * peak.load_factor or (
-                    falling >= CONFIRMED_FALL_STEPS and self.formulation not in ("gent", "yeoh")):
-                raise self._unreachable(point, "past the limit point")
+            if point.load_factor < PEAK_DROP * peak.load_factor:
+                raise self._past_peak(peak, point)
             if point.control_m3 > MAX_CONTROL_GROWTH * self.control_rest_m3:
                 raise self._unreachable(point, "the volume grows without the pressure reaching the target")
             if step.iterations <= DOUBLING_ITERATIONS and bisections == 0:
@@ -515,7 +590,13 @@ class _Path:
         # search on nearly every 7 mm step (three element passes) and then made anyway.
         krylov = not self.krylov_failed and self.problem.preconditioned and not self.problem.mixed
         crawling = 0
-        factor: Factor | None = None
+        # A damped step (the shifted factor's) where K is not positive definite, until one gains too little: then
+        # Newton's own (exact) step, which converges where the tangent is legitimately indefinite (past a peak).
+        # A damped step first keeps the paths that meet an indefinite iterate only off the path (a predictor's)
+        # as they were: builtin:converged at (3,1,2) kPa took 2 iterations and 3 s of MINRES more with the exact
+        # step at every iterate.
+        exact = False
+        factor: Solver | None = None
         state = self._volume_residual(positions_m, load_factor, target_m3, carried, with_tangent=not krylov)
         if element_pressures_pa is not None:
             state = self._with_eliminated(state, positions_m, element_pressures_pa)
@@ -531,10 +612,12 @@ class _Path:
             if solutions is None:
                 self.krylov_failed = self.krylov_failed or krylov
                 krylov = False
-                factor = self.problem.at_load_factor(load_factor).tangent(positions_m, exact=True, damped=True,
-                                                                          element_pressures_pa=carried,
-                                                                          tangent_data=state.tangent_data)
-                both = factor.solve(np.column_stack([-residual, load]))
+                # The exact tangent, indefinite past a limit point: CHOLMOD's LL' where it is positive definite,
+                # else its LDL' (:meth:`SolidBody.factorize`). Newton's step on the bordered system lowers the merit
+                # (a sum of squared residuals) whatever K's inertia; a shifted K (Levenberg-Marquardt) gave a damped
+                # step that stalled just before the peak of a thick sphere (bench/README.md, "Through the peak").
+                factor, both = self._exact_solve(load_factor, positions_m, carried, state.tangent_data,
+                                                 np.column_stack([-residual, load]), damped=not exact)
                 solutions = [both[:, 0], both[:, 1]]
             a, b = solutions
             h = self._control_gradient(positions_m)
@@ -568,6 +651,9 @@ class _Path:
                 worst = self.problem.worst_element(positions_m + change)
                 reason = "solve would invert elements" if worst >= 0 else "volume-controlled solve found no descent"
                 return _VolumeStep(False, None, iteration, reason, worst)
+            if (isinstance(factor, DampedFactor) and accepted[3].merit > DAMPED_PROGRESS * merit
+                    and accepted[3].merit < EXACT_STEP_MERIT):
+                exact = True
             positions_m, load_factor, carried, state = accepted
             if carried is not None:  # the convergence test and the next right-hand side: eliminated pressures
                 state = self._with_eliminated(state, positions_m, carried)
@@ -580,6 +666,60 @@ class _Path:
                                    "volume-controlled solve is crawling", worst)
         return _VolumeStep(False, None, VOLUME_NEWTON_ITERATIONS, "volume-controlled solve did not converge",
                            self.problem.worst_element(positions_m))
+
+    def _exact_solve(self, load_factor: float, positions_m: FloatArray, carried: FloatArray | None,
+                     tangent_data: FloatArray | None, right_hand_sides: FloatArray,
+                     damped: bool = False) -> tuple[Solver, FloatArray]:
+        """The exact tangent at ``positions_m`` (and a 10-node body's ``carried`` element pressures) and its
+        solutions for ``right_hand_sides`` (3n, k). Positive definite (before a limit point, the common case):
+        CHOLMOD's supernodal LL'. Indefinite (past it, or an iterate off the path): with ``damped``, the
+        Levenberg-Marquardt step of ``K + tau |diag K|`` (the first tau of DAMPING_SHIFTS that CHOLMOD takes,
+        a :class:`DampedFactor`); else MINRES preconditioned with the LL' of ``K + s K0``, the first ``s`` of
+        STIFFNESS_SHIFTS (from near the last one that served) that is positive definite
+        (:class:`ShiftPreconditioned`), that shifted factor's own step where MINRES does not converge, and LDL'
+        where no shift is positive definite. The simplicial
+        LDL' of a 10-node sphere's tangent (h = 1.75 mm, 18k dofs) took 7-15 s where LL' took 0.3-0.6 s (load 7-13
+        on two cores); MINRES took 20-75 iterations, 0.2-0.8 s at h = 2.5 mm (bench/README.md, "Through the peak")."""
+        loaded = self.problem.at_load_factor(load_factor)
+        body = self.body
+        if not (body.detects_indefinite and self.formulation in HYPERELASTIC_MODELS):
+            factor = loaded.tangent(positions_m, exact=True, element_pressures_pa=carried, tangent_data=tangent_data)
+            return factor, factor.solve(right_hand_sides)
+        data = tangent_data if tangent_data is not None else loaded.tangent_data(positions_m, carried)
+        try:
+            factor = body.factorize(data, positive_definite=True)
+            return factor, factor.solve(right_hand_sides)
+        except ArithmeticError:
+            pass
+        if damped:
+            diagonal = body.pattern.diagonal
+            for shift in DAMPING_SHIFTS:
+                shifted = data.copy()
+                shifted[diagonal] += shift * np.abs(data[diagonal])
+                try:
+                    damped_factor = DampedFactor(body.factorize(shifted, positive_definite=True))
+                except ArithmeticError:
+                    continue
+                return damped_factor, damped_factor.solve(right_hand_sides)
+        if self.rest_stiffness is None:
+            self.rest_stiffness = body.tangent_data(constraints=self.constraints)
+        for index in range(self.shift_index, len(STIFFNESS_SHIFTS)):
+            shifted = data + STIFFNESS_SHIFTS[index] * self.rest_stiffness
+            try:
+                preconditioner = body.factorize(shifted, positive_definite=True)
+            except ArithmeticError:
+                continue
+            self.shift_index = max(index - 2, 0)
+            solver = ShiftPreconditioned(lambda vector: body.multiply(data, vector), preconditioner,
+                                         EXACT_KRYLOV_TOLERANCE, EXACT_KRYLOV_ITERATIONS)
+            try:
+                return solver, solver.solve(right_hand_sides)
+            except ArithmeticError:
+                # far off the path (a predictor's first iterates) the shift is large and MINRES slow: the shifted
+                # factor's own step there, a damped Newton step that the merit's line search takes or refuses
+                return preconditioner, preconditioner.solve(right_hand_sides)
+        factor = body.factorize(data, positive_definite=False)
+        return factor, factor.solve(right_hand_sides)
 
     def _krylov_solves(self, positions_m: FloatArray, load_factor: float, right_hand_sides: tuple[FloatArray, ...],
                        element_pressures_pa: FloatArray | None = None) -> list[FloatArray] | None:
@@ -679,27 +819,114 @@ class _Path:
                 break
         raise self._unreachable(best, f"the {final.reason} at the exact pressures", final.worst_element)
 
-    def _unreachable(self, point: PathPoint, why: str, worst_element: int = -1) -> SolveError:
-        """The chamber that moved most (weighted), where the path stopped, and why."""
+    def _locate_peak(self, history: list[PathPoint]) -> PathPoint:
+        """The equilibrium at the limit point behind the last step of ``history`` (whose load factor fell), to
+        PEAK_LOAD_TOLERANCE: the maximum of Hermite's cubic of lam(c) through the bracketing equilibria and their
+        directions, solved there under volume control, the bracket narrowed on the sign of dlam/dc at the
+        solution. Where a solve fails, the highest equilibrium found."""
+        point, new = history[-2], history[-1]
+        if point.rate is None:
+            point.rate = self._tangent_direction(point)
+        if len(history) >= 3 and point.rate is not None and point.rate.load_factor_per_m3 < 0:
+            low, high = history[-3], point  # the load already fell at the last point: the peak lies before it
+        else:
+            low, high = point, new
+        best = max((low, high), key=lambda p: p.load_factor)
+        for _ in range(PEAK_SOLVES):
+            for end in (low, high):
+                if end.rate is None:
+                    end.rate = self._tangent_direction(end)
+            fraction = self._cubic_peak(low, high)
+            if fraction is None:
+                break
+            target = low.control_m3 + fraction * (high.control_m3 - low.control_m3)
+            cubic = self._hermite(low, high, target)
+            assert cubic is not None  # both ends have their direction
+            guess_m, predicted, guess_pa = cubic
+            if not self._upright(guess_m):
+                break
+            step = self._volume_newton(guess_m, predicted, target, guess_pa)
+            self.iterations += step.iterations
+            if not step.converged or step.point is None:
+                break
+            middle = step.point
+            middle.rate = self._tangent_direction(middle, step.factor)
+            self.steps += 1
+            if middle.load_factor > best.load_factor:
+                best = middle
+            if abs(middle.load_factor - predicted) <= PEAK_LOAD_TOLERANCE * abs(middle.load_factor):
+                break
+            if middle.rate is None:
+                break
+            if middle.rate.load_factor_per_m3 > 0:
+                low = middle
+            else:
+                high = middle
+        return best
+
+    @staticmethod
+    def _cubic_peak(low: PathPoint, high: PathPoint) -> float | None:
+        """Where (0..1 between ``low`` and ``high``, in the control volume) Hermite's cubic of the load factor peaks;
+        None where an end lacks its direction."""
+        if low.rate is None or high.rate is None:
+            return None
+        span = high.control_m3 - low.control_m3
+        start, end = low.load_factor, high.load_factor
+        slope_start, slope_end = span * low.rate.load_factor_per_m3, span * high.rate.load_factor_per_m3
+        # lam(t) = a t^3 + b t^2 + c t + d: its stationary points with lam'' < 0 inside the bracket
+        a = 2.0 * (start - end) + slope_start + slope_end
+        b = 3.0 * (end - start) - 2.0 * slope_start - slope_end
+        c = slope_start
+        roots = np.roots([3.0 * a, 2.0 * b, c]) if abs(a) > 1e-14 * (abs(b) + abs(c)) else np.array([-c / (2.0 * b)])
+        maxima = [float(t.real) for t in roots
+                  if abs(t.imag) < 1e-12 and 0.0 < t.real < 1.0 and 6.0 * a * t.real + 2.0 * b < 0.0]
+        if maxima:
+            return maxima[0]
+        grid = np.linspace(0.0, 1.0, 101)
+        fraction = float(grid[np.argmax(((a * grid + b) * grid + c) * grid)])
+        return fraction if 0.0 < fraction < 1.0 else None
+
+    def _moved_most(self, point: PathPoint) -> tuple[int, FloatArray, str, float]:
+        """The chamber that grew most (weighted by the load) at ``point``, the chamber volumes (m^3) there, the
+        chamber described (name, target pressure, p/E) and its target pressure (kPa)."""
         body = self.body
         chambers = body.chamber_volumes_m3(point.positions_m)
         growth = np.abs(self.weights) * (chambers / body.rest_chamber_volumes_m3 - 1.0)
         chamber = int(np.argmax(growth))
-        name = body.chamber_names[chamber]
-        target_kpa = self.pressures[chamber] / 1e3
-        reached_kpa = point.load_factor * target_kpa
-        peak = self.peak or point
-        peak_volume_ml = body.chamber_volumes_m3(peak.positions_m)[chamber] * 1e6
+        target_kpa = float(self.pressures[chamber] / 1e3)
         ratio = abs(self.pressures[chamber]) / body.material.youngs_modulus_pa
+        return (chamber, chambers, f"chamber {chamber} ({body.chamber_names[chamber]!r} at {target_kpa:g} kPa, "
+                f"p/E = {ratio:.3g})", target_kpa)
+
+    def _past_peak(self, peak: PathPoint, point: PathPoint) -> PeakPressureError:
+        """The pressure asked of the chamber that grew most lies above its peak (``peak``); the path went on to
+        ``point``."""
+        body = self.body
+        chamber, chambers, described, target_kpa = self._moved_most(peak)
+        peak_kpa = peak.load_factor * target_kpa
+        peak_ml = chambers[chamber] * 1e6
+        others = ("" if np.count_nonzero(self.pressures) <= 1 else
+                  " with the other chambers' pressures in the same proportion")
+        beyond_ml = body.chamber_volumes_m3(point.positions_m)[chamber] * 1e6
+        return PeakPressureError(
+            f"{described} is out of reach: its "
+            f"pressure-volume curve peaks at {peak_kpa:.4g} kPa (at {peak_ml:.4g} ml){others} and falls beyond (a "
+            f"limit point: a pressure source would burst it through; the path went on to "
+            f"{point.load_factor * target_kpa:.4g} kPa at {beyond_ml:.4g} ml, rest "
+            f"{body.rest_chamber_volumes_m3[chamber] * 1e6:.4g} ml); ask for at most {peak_kpa:.4g} kPa "
+            f"there, control its volume instead (phantom inverse --chamber-volumes-ml), or use a stiffer or "
+            f"strain-stiffening material (gent)", chamber, float(target_kpa), float(peak_kpa), float(peak_ml))
+
+    def _unreachable(self, point: PathPoint, why: str, worst_element: int = -1) -> SolveError:
+        """The chamber that moved most (weighted), where the path stopped, and why."""
+        body = self.body
+        chamber, chambers, described, target_kpa = self._moved_most(point)
+        reached_kpa = point.load_factor * target_kpa
         detail = why
-        if why == "past the limit point":
-            detail = (f"its pressure-volume curve peaks at {peak.load_factor * target_kpa:.4g} kPa "
-                      f"({peak_volume_ml:.4g} ml) and falls beyond (a limit point: a pressure source would burst "
-                      f"it through)")
-        elif worst_element >= 0:
+        if worst_element >= 0:
             detail = f"{why} (element {worst_element} at det F <= 0)"
         return SolveError(
-            f"chamber {chamber} ({name!r} at {target_kpa:g} kPa, p/E = {ratio:.3g}) is out of reach: {detail}; "
+            f"{described} is out of reach: {detail}; "
             f"the path stopped at {reached_kpa:.4g} kPa and {chambers[chamber] * 1e6:.4g} ml (rest "
             f"{body.rest_chamber_volumes_m3[chamber] * 1e6:.4g} ml, after {self.steps} accepted steps); try a lower "
             f"pressure in that chamber, a stiffer or strain-stiffening material (gent), or a finer mesh (--size-mm)")
@@ -712,3 +939,55 @@ def follow_path(problem: EquilibriumProblem, tolerance: float) -> PathResult:
     path = _Path(problem, tolerance)
     positions_m = path.run()
     return PathResult(positions_m, path.iterations, path.steps)
+
+
+@dataclass
+class VolumePoint:
+    """An equilibrium under volume control: node positions (n, 3) m, the load factor (the pressures are ``lam p``),
+    the control volume (m^3), and the path's dlam/dc there (1/m^3; negative past a peak, None where not solved)."""
+
+    positions_m: FloatArray
+    load_factor: float
+    control_m3: float
+    load_factor_per_m3: float | None
+
+
+def follow_volume(problem: EquilibriumProblem, controls_m3: FloatArray | list[float]) -> list[VolumePoint]:
+    """Equilibria of ``problem`` under volume control at each of ``controls_m3`` (the load-weighted chamber volume
+    ``c = sum w_i V_i``, ``w = p / max|p|``: one loaded chamber, its volume), from its start, through limit points:
+    the load factor at each is the pressure (``lam p``) that holds the chambers there, on the rising branch or the
+    falling one beyond a peak. The path steps as :func:`follow_path`'s volume control does (Hermite predictor,
+    doubling after a quick step, halving after a failed one). Raises SolveError where a step cannot be made (an
+    element would invert) even after halving it MAX_VOLUME_BISECTIONS times."""
+    path = _Path(problem, PATH_TOLERANCE)
+    point = path._point(0.0, path.start_m)
+    history = [point]
+    control_step = FIRST_VOLUME_STEP * path.control_rest_m3
+    answers = []
+    for wanted in sorted(float(c) for c in controls_m3):
+        bisections = 0
+        while point.control_m3 < wanted - CONTROL_TOLERANCE * path.control_rest_m3:
+            target = min(point.control_m3 + control_step, wanted)
+            guess_m, guess_factor, guess_pa = path._volume_guess(history, point, target)
+            worst = problem.worst_element(guess_m)
+            step = (path._volume_newton(guess_m, guess_factor, target, guess_pa) if worst < 0
+                    else _VolumeStep(False, None, 0, "solve would invert elements", worst))
+            path.iterations += step.iterations
+            if not step.converged or step.point is None:
+                bisections += 1
+                control_step /= 2.0
+                if bisections > MAX_VOLUME_BISECTIONS:
+                    raise path._unreachable(point, f"the {step.reason} one volume step further", step.worst_element)
+                continue
+            new = step.point
+            new.rate = path._tangent_direction(new, step.factor)
+            history = [*history[-(PREDICTOR_POINTS - 1):], new]
+            if step.iterations <= DOUBLING_ITERATIONS and bisections == 0:
+                control_step *= 2.0
+            bisections = 0
+            point = new
+        if point.rate is None and point.load_factor != 0.0:
+            point.rate = path._tangent_direction(point)
+        answers.append(VolumePoint(point.positions_m, point.load_factor, point.control_m3,
+                                   None if point.rate is None else point.rate.load_factor_per_m3))
+    return answers

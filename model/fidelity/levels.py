@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike
 
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
+from phantom.model.errors import PeakPressureError
 from phantom.model.fem.model import Compliance, PhantomModel, State
 from phantom.model.fidelity.response_table import (
     Progress,
@@ -53,6 +54,8 @@ from phantom.model.scene import FIDELITY_LEVELS
 
 #: The levels the probe compares (``table`` is only ever named: its first build is minutes of solves).
 PROBED_LEVELS = ("rest", "updated", "full")
+#: Where the pressure limit lies above a chamber's peak, the levels are probed at this fraction of the peak.
+PROBE_BELOW_PEAK = 0.9
 #: Full-level states kept as warm starts for later answers.
 KEPT_STATES = 16
 
@@ -255,6 +258,11 @@ class VolumeEstimator:
         solve on this mesh plus that solve's own discretisation error (:func:`discretisation_error`; none where
         the mesh cannot be refined here). Raises PhantomError, saying what would meet it, when no level does."""
         probe_pa = np.full(self.n_chambers, self.pressure_max_pa)
+        try:
+            self._full_state(probe_pa)  # (kept: the full level's probe below takes it)
+        except PeakPressureError as error:
+            # the limit lies above a chamber's peak (a soft material): probe below the peak the path found
+            probe_pa = probe_pa * PROBE_BELOW_PEAK * error.peak_pressure_kpa / error.pressure_kpa
         self.level = "rest"
         self.evaluate(probe_pa)  # the one-time rest compliance is not part of an answer's cost
         results = {}
