@@ -288,16 +288,20 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     summary = {"capture": str(folder.path), "mesh": str(path), "views": result.views, "voxel_mm": result.voxel_mm,
                "volume_ml": result.volume_ml, "vertices": len(result.mesh.vertices_mm),
                "triangles": len(result.mesh.triangles), "stage_s": result.stage_s,
-               "silhouettes_touching_edge": result.touching_edge}
+               "silhouettes_touching_edge": result.touching_edge,
+               "hanging": None if result.hanging is None else result.hanging.to_json()}
     if args.json:
         print(json.dumps(summary))
         return 0
     print(f"wrote {path}: {result.volume_ml:.3f} ml, {len(result.mesh.triangles)} triangles, closed; carved from "
           f"{result.views} pictures at {result.voxel_mm:g} mm in "
           + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in result.stage_s.items()))
+    if result.hanging is not None:
+        print(f"the tubes it hangs by taken off at the gland's base, {result.hanging.cut_mm:.2f} mm up the orbit's "
+              f"axis ({result.hanging.removed_ml:.2f} ml of them in view)")
     if result.touching_edge:
-        print(f"warning: the silhouette touches the picture's edge in {result.touching_edge} picture(s): the "
-              f"phantom was not whole in view there, and what was cut off is missing", file=sys.stderr)
+        print(f"warning: the phantom reaches the picture's edge in {result.touching_edge} picture(s): it was not "
+              f"whole in view there, and what was cut off is missing", file=sys.stderr)
     return 0
 
 
