@@ -91,3 +91,28 @@ def test_the_base_is_where_the_hull_widens_under_a_steady_column():
     assert base == pytest.approx(18.0, abs=h)
     # nothing hangs (the top of the gland is its widest is not a column): no base
     assert find_base(heights, gland) is None
+
+
+def test_the_virtual_rigs_real_look_hangs_the_gland_by_tubes_out_of_the_picture():
+    from phantom.scan.render import REAL_LOOK, Renderer, hung_scene, to_8bit
+    from phantom.scan.silhouette import silhouette
+    from phantom.scan.synthetic import sphere
+
+    # a gland with a flat base at its top, as the model's (clamped at z = 20 mm)
+    ball = sphere(15.0, np.array([0.0, 0.0, 0.0]), levels=4)
+    vertices = ball.vertices_mm.copy()
+    vertices[:, 2] = np.minimum(vertices[:, 2], 12.0)
+    gland = type(ball)(vertices, ball.triangles)
+    scene, normals, material = hung_scene(gland)
+    assert set(np.unique(material)) == {0, 1, 2}
+    tube_vertices = np.unique(scene.triangles[material == 1])
+    # the tubes start inside the base and run up past any picture
+    assert scene.vertices_mm[tube_vertices, 2].min() == pytest.approx(11.0)
+    assert scene.vertices_mm[tube_vertices, 2].max() > 100.0
+    rig = virtual_rig(0.25)
+    picture = to_8bit(Renderer(rig.camera, look=REAL_LOOK).render_mesh(scene, rig.pose(0.0, 30.0), normals, material),
+                      np.random.default_rng(0), REAL_LOOK)
+    found = silhouette(picture)
+    assert found.touches_top and found.touches_edge
+    alpha = alpha_matte(picture)
+    assert np.max(alpha[:, :20]) < 0.45 and np.max(alpha[-20:]) < 0.45  # the cloth's sides and bottom: backdrop

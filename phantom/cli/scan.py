@@ -8,7 +8,10 @@ Only argparse is imported at module load; the handlers import what they need whe
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from phantom.scan.render import Look
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -74,6 +77,12 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
     render.add_argument("--rig", help="keep this rig calibration (rig.json) beside the pictures instead of the true "
                                       "rig, e.g. one from phantom scan calibrate --sim")
     render.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    render.add_argument("--look", choices=("ideal", "real"), default="ideal",
+                        help="ideal: an even backdrop, a matt phantom floating in view (default); real: what a real "
+                             "rig sees, the phantom hung by three 4.4 mm tubes from a holder above, glossy, an "
+                             "uneven cloth in folds, vignetting")
+    for part in ("tubes", "gloss", "cloth", "vignetting", "noise"):
+        render.add_argument(f"--no-{part}", action="store_true", help=f"--look real without the {part}")
     render.set_defaults(run=run_render)
 
     reconstruct = actions.add_parser(
@@ -253,6 +262,19 @@ def _open_capture(path: str) -> Any:
     return folder
 
 
+def look_of(args: argparse.Namespace) -> Look:
+    """The virtual pictures' look from ``--look`` and its ``--no-PART`` flags."""
+    from dataclasses import replace
+
+    from phantom.scan.render import LOOKS
+
+    look = LOOKS[args.look]
+    look = replace(look, tubes=look.tubes and not args.no_tubes, gloss=0.0 if args.no_gloss else look.gloss,
+                   cloth=0.0 if args.no_cloth else look.cloth,
+                   vignetting=0.0 if args.no_vignetting else look.vignetting)
+    return replace(look, read_noise=0.0, shot_noise_gain=0.0) if args.no_noise else look
+
+
 def run_render(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan render``."""
     from phantom.cli.common import frame_progress
@@ -263,8 +285,10 @@ def run_render(args: argparse.Namespace) -> int:
     true_rig = virtual_rig(args.scale, plan.elevations_deg)
     kept = load_rig(args.rig) if args.rig else true_rig
     mesh = _read_mesh(args.mesh, args.units)
-    conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true"}
-    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, frame_progress("rendered"))
+    conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true",
+                  "look": args.look}
+    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, frame_progress("rendered"),
+                            look=look_of(args))
     if kept is not true_rig:
         kept.save(folder.path / "rig.json")
     print(f"wrote {len(folder.frames)} pictures of {args.mesh} ({true_rig.camera.width}x{true_rig.camera.height}) "
