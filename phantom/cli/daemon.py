@@ -11,6 +11,7 @@ import argparse
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from phantom.cli.common import setting_field
 from phantom.host.config import ConfigError, SettingField, checked, settings
 
 if TYPE_CHECKING:
@@ -48,11 +49,6 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                            metavar=speed.setting.metavar, help=_flag_help(speed))
     sim_board.add_argument("--json", action="store_true", help="print {\"port\": ...} as JSON")
     sim_board.set_defaults(run=_run_sim_board)
-
-
-def setting_field(name: str) -> SettingField:
-    """The daemon's setting ``name`` (its flag, type, default, help and range)."""
-    return next(item for item in settings() if item.name == name)
 
 
 def add_setting_flags(parser: argparse.ArgumentParser) -> None:

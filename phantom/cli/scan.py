@@ -210,16 +210,6 @@ def _add_plan_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--elevations", default="0,30", help="the elevations (deg) of the passes (default 0,30)")
 
 
-def plan_of(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
-    """The plan of ``--views`` and ``--elevations``, at most MAX_FRAMES pictures in all."""
-    from phantom.cli.common import parse_numbers
-    from phantom.scan.capture import Plan
-
-    return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
-
-
-
-
 def _checked_mesh(path: str) -> str:
     """A mesh file's path, refused (ScanError) before a reader holds it whole when it is over the size read."""
     from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size
@@ -234,15 +224,6 @@ def _read_mesh(path: str, units: str) -> Any:
     from phantom.scan.compare import read_scan
 
     return read_scan(_checked_mesh(path), units)
-
-
-def load_rig(path: str) -> Any:
-    """A rig calibration file (rig.json), its size checked before it is read."""
-    from phantom.cli.common import MAX_JSON_BYTES, check_input_size
-    from phantom.scan.camera import Rig, RigError
-
-    check_input_size(path, MAX_JSON_BYTES, "the rig file", RigError)
-    return Rig.load(path)
 
 
 def _open_capture(path: str) -> Any:
@@ -277,7 +258,7 @@ def look_of(args: argparse.Namespace) -> Look:
 
 def run_render(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan render``."""
-    from phantom.cli.common import frame_progress
+    from phantom.cli.common import frame_progress, load_rig, plan_of
     from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_capture
 
@@ -301,6 +282,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     import json
     import sys
 
+    from phantom.cli.common import load_rig
     from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
 
     folder = _open_capture(args.capture)
@@ -406,6 +388,7 @@ def rig_against_truth(rig: Any, truth: Any) -> dict[str, float]:
 
 def run_export(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan export``."""
+    from phantom.cli.common import load_rig
     from phantom.scan.capture import CaptureError
     from phantom.scan.export import export_colmap, export_meshroom
 

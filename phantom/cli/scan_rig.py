@@ -172,7 +172,7 @@ class DaemonScanner:
         self._shape: TruthShape | None = None
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
-        from phantom.cli.scan import load_rig
+        from phantom.cli.common import load_rig
         from phantom.protocol.motion import SCANNER_AXES
         from phantom.scan.capture import CaptureError, CaptureFolder, Plan, capture
 
@@ -230,8 +230,7 @@ def run_capture(args: Any) -> int:
     """Handler of ``phantom scan capture``."""
     import sys
 
-    from phantom.cli.common import frame_progress
-    from phantom.cli.scan import load_rig, plan_of
+    from phantom.cli.common import frame_progress, load_rig, plan_of
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
     from phantom.scan.camera import virtual_rig
@@ -337,9 +336,8 @@ def run_validate(args: Any) -> int:
 
     import numpy as np
 
-    from phantom.cli.common import frame_progress, parse_numbers
+    from phantom.cli.common import frame_progress, load_rig, parse_numbers, plan_of
     from phantom.cli.demo import wait_until_ready
-    from phantom.cli.scan import load_rig, plan_of
     from phantom.hil.truth_shape import TruthShape
     from phantom.host.client import DaemonClient
     from phantom.host.scenes import example_scene_path, load_timeline_scene
