@@ -162,10 +162,12 @@ class DaemonScanner:
     Params: ``out`` (the capture folder to make, required), ``views`` (per turn, default 60), ``elevations_deg``
     (default [0, 30]), ``start_deg`` (-180), ``span_deg`` (360), ``settle_s`` (0.3), ``camera`` ("virtual", the
     default, on the simulated board; a device number or a video path for a webcam), ``scale`` (the virtual
-    picture's size of 1280x960), ``seed``, ``width``, ``height``, ``exposure``, ``focus``, ``rig`` (a rig.json to
-    keep beside the pictures). Answers the folder, its status (``complete``, ``stopped`` by a stop request,
-``aborted``) and the number of pictures, and for a capture that did not complete the ``reason``. The virtual camera
-    photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon --sim-truth`` said another)."""
+    picture's size of 1280x960), ``look`` (the virtual pictures: "ideal", the default, or "real": the phantom hung
+    by its tubes, glossy, an uneven cloth, vignetting), ``seed``, ``width``, ``height``, ``exposure``, ``focus``,
+    ``rig`` (a rig.json to keep beside the pictures). Answers the folder, its status (``complete``, ``stopped``
+    by a stop request, ``aborted``) and the number of pictures, and for a capture that did not complete the
+    ``reason``. The virtual camera photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon
+    --sim-truth`` said another)."""
 
     def __init__(self, truth: SimulatedTruth | None = None):
         self.truth = truth or SimulatedTruth()
@@ -177,7 +179,7 @@ class DaemonScanner:
         from phantom.scan.capture import CaptureError, CaptureFolder, Plan, capture
 
         known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
-                 "width", "height", "exposure", "focus", "rig"}
+                 "width", "height", "exposure", "focus", "rig", "look"}
         unknown = sorted(set(params) - known)
         if unknown or not isinstance(params.get("out"), str):
             raise PhantomError(f"scan takes out (a folder, required) and {', '.join(sorted(known - {'out'}))}"
@@ -218,9 +220,16 @@ class DaemonScanner:
                 true_rig = virtual_rig(scale, elevations)
             except PhantomError as error:
                 raise PhantomError(f"scan: {error}") from None
+            from phantom.scan.render import LOOKS
+
+            look = params.get("look", "ideal")
+            if not isinstance(look, str) or look not in LOOKS:
+                raise PhantomError(f"scan: look must be one of {', '.join(sorted(LOOKS))} (the virtual camera's "
+                                   f"pictures: ideal, or as a real rig sees the phantom hung by its tubes), got "
+                                   f"{look!r}")
             if self._shape is None:
                 self._shape = self.truth.shape()
-            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed,
+            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed, look=LOOKS[look],
                                  pose_at=_scaled_pose(scale))
         source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
         return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"))
