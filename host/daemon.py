@@ -223,8 +223,9 @@ class Daemon:
                     "a daemon started without one cannot): set the target without verify")
         if self.sim_board is None and self.verify_scanner.plan.get("camera", "virtual") == "virtual":
             return ("this daemon drives a real board, and its verify scan's camera is the virtual one, which "
-                    "photographs only the simulated phantom: scan with a real camera and rig (README.md, \"A "
-                    "verified volume on a real rig\"), or set the target without verify")
+                    "photographs only the simulated phantom: start it with the rig's camera and calibration "
+                    "(phantom daemon --camera DEVICE|URL --rig rig.json; README.md, \"A verified volume on a real "
+                    "rig\"), or set the target without verify")
         return None
 
     async def _scan_for_core(self, action: control.Scan) -> None:

@@ -453,16 +453,19 @@ class Webcam:
     A device is set to the picture size asked for, with automatic exposure, focus and white balance off and
     ``exposure``/``focus`` fixed when given (in the driver's units); what the driver accepted is in
     :meth:`describe`. Each :meth:`grab` first drops ``flush`` buffered frames, so the picture is taken after the
-    orbit stopped, not before.
+    orbit stopped, not before. With ``size`` (the rig's calibrated width and height), a picture of any other size
+    is refused (CameraLost, saying both).
     """
 
     def __init__(self, source: int | str, width: int | None = None, height: int | None = None,
-                 exposure: float | None = None, focus: float | None = None, flush: int = 4):
+                 exposure: float | None = None, focus: float | None = None, flush: int = 4,
+                 size: tuple[int, int] | None = None):
         with require_extra("scan"):
             import cv2
 
         self._cv2 = cv2
         self.source = source
+        self.size = size
         self.flush = flush if isinstance(source, int) else 0
         self.capture = cv2.VideoCapture(source)
         if not self.capture.isOpened():
@@ -488,6 +491,10 @@ class Webcam:
             raise CameraLost(f"the camera {self.source!r} gave no picture (unplugged, or the recording ended)")
         if picture.ndim == 2:
             picture = self._cv2.cvtColor(picture, self._cv2.COLOR_GRAY2BGR)
+        if self.size is not None and (picture.shape[1], picture.shape[0]) != self.size:
+            raise CameraLost(f"the camera {self.source!r} gave a {picture.shape[1]}x{picture.shape[0]} picture, the "
+                             f"rig was calibrated at {self.size[0]}x{self.size[1]}: nothing of it is kept (has the "
+                             f"camera's resolution changed? calibrate the rig at the size it gives)")
         rgb: np.ndarray = np.ascontiguousarray(picture[:, :, ::-1])
         return rgb
 

@@ -117,8 +117,13 @@ def _run_daemon(args: argparse.Namespace) -> int:
         truth = _simulated_truth(args.sim_truth, args.sim_truth_modulus_factor)
     elif args.sim_truth_modulus_factor != 1.0:
         raise PhantomError("--sim-truth-modulus-factor is the --sim-truth scene's: give --sim-truth SCENE too")
+    verify = VerifyScan()
+    if config.camera is not None or config.rig is not None:
+        from phantom.cli.scan_rig import camera_plan
+
+        verify = VerifyScan(camera_plan(config.camera, config.rig))
     return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
-                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=VerifyScan())
+                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=verify)
 
 
 def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:

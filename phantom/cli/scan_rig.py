@@ -232,7 +232,42 @@ class DaemonScanner:
             return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed, look=LOOKS[look],
                                  pose_at=_scaled_pose(scale))
         source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
-        return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"))
+        size = None
+        if params.get("rig"):
+            from phantom.cli.common import load_rig
+
+            kept = load_rig(params["rig"]).camera
+            size = (kept.width, kept.height)
+        return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"),
+                      size=size)
+
+
+def camera_plan(camera: str | None, rig_path: Any) -> dict[str, Any]:
+    """The verify scan's plan with a real camera (``phantom daemon --camera DEVICE|URL --rig rig.json``), checked
+    before the daemon starts: the rig read, the camera opened and one picture taken, of the size the rig was
+    calibrated at (PhantomError saying why otherwise); 30 stops a turn at each of the rig's elevations."""
+    from phantom.cli.common import load_rig
+    from phantom.cli.scan_verify import VERIFY_PLAN
+    from phantom.scan.capture import Webcam
+
+    if camera is None or rig_path is None:
+        raise PhantomError("--camera and --rig go together: the camera's pictures are posed by the rig's calibration "
+                           "(phantom scan calibrate), give both")
+    rig = load_rig(str(rig_path))
+    source: int | str = int(camera) if camera.isdigit() else camera
+    webcam = Webcam(source, rig.camera.width, rig.camera.height)
+    try:
+        picture = webcam.grab()
+    finally:
+        webcam.close()
+    height, width = picture.shape[:2]
+    if (width, height) != (rig.camera.width, rig.camera.height):
+        raise PhantomError(f"the camera {camera} gives {width}x{height} pictures and the rig {rig_path} was calibrated "
+                           f"at {rig.camera.width}x{rig.camera.height}: calibrate the rig at the camera's size "
+                           f"(phantom scan capture --target, phantom scan calibrate), or give the camera that size")
+    return {"views": VERIFY_PLAN["views"], "elevations_deg": [entry.elevation_deg for entry in rig.elevations],
+            "settle_s": 0.3, "camera": camera, "width": rig.camera.width, "height": rig.camera.height,
+            "rig": str(rig_path)}
 
 
 def run_capture(args: Any) -> int:
