@@ -450,11 +450,12 @@ class Webcam:
     image sequence (``frames/%04d.png``), which VideoCapture reads through the same API, so a recording can
     stand in for the webcam in a test.
 
-    A device is set to the picture size asked for, with automatic exposure, focus and white balance off and
-    ``exposure``/``focus`` fixed when given (in the driver's units); what the driver accepted is in
-    :meth:`describe`. Each :meth:`grab` first drops ``flush`` buffered frames, so the picture is taken after the
-    orbit stopped, not before. With ``size`` (the rig's calibrated width and height), a picture of any other size
-    is refused (CameraLost, saying both).
+    A network stream (MJPEG over HTTP, RTSP: an IP camera, a phone as a webcam, ``phantom sim-board
+    --camera-stream``) is opened by its URL. A device is set to the picture size asked for, with automatic
+    exposure, focus and white balance off and ``exposure``/``focus`` fixed when given (in the driver's units);
+    what the driver accepted is in :meth:`describe`. Each :meth:`grab` of a device or a stream first drops
+    ``flush`` buffered frames, so the picture is taken after the orbit stopped, not before. With ``size`` (the
+    rig's calibrated width and height), a picture of any other size is refused (CameraLost, saying both).
     """
 
     def __init__(self, source: int | str, width: int | None = None, height: int | None = None,
@@ -466,7 +467,8 @@ class Webcam:
         self._cv2 = cv2
         self.source = source
         self.size = size
-        self.flush = flush if isinstance(source, int) else 0
+        # a device and a network stream (a URL) buffer pictures; a recording's every picture is wanted
+        self.flush = flush if isinstance(source, int) or "://" in source else 0
         self.capture = cv2.VideoCapture(source)
         if not self.capture.isOpened():
             raise CameraLost(f"cannot open the camera {source!r}: is it plugged in (ls /dev/video*), or the path "

@@ -44,9 +44,51 @@ def test_a_camera_without_a_rig_or_one_that_cannot_be_opened_is_refused(tmp_path
     assert done.returncode != 0 and "cannot open the camera" in done.stderr
 
 
+def test_a_camera_stream_address_that_is_not_host_and_port_is_refused():
+    done = subprocess.run([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "8080"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode != 0 and "--camera-stream must be HOST:PORT" in done.stderr
+
+
 def test_a_picture_of_another_size_during_a_capture_is_refused_saying_both_sizes(tmp_path):
     camera = _pictures(tmp_path / "camera", 320, 240)
     webcam = Webcam(camera, size=(640, 480))
     with pytest.raises(CameraLost, match="gave a 320x240 picture, the rig was calibrated at 640x480"):
         webcam.grab()
     assert Webcam(camera, size=(320, 240)).grab().shape == (240, 320, 3)
+
+
+@pytest.mark.sim  # starts the simulated board (simavr)
+def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(tmp_path):
+    import json
+
+    from phantom.scan.silhouette import silhouette
+
+    board = subprocess.Popen([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "127.0.0.1:0",
+                              "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = board.stdout.readline()
+        assert line, board.stderr.read()
+        streams = json.loads(line)["streams"]
+        assert set(streams) == {"phantom", "target0", "target1"}
+        pictures = {}
+        for name, url in streams.items():
+            capture = cv2.VideoCapture(url)  # as a daemon's --camera URL opens it
+            ok, picture = capture.read()
+            capture.release()
+            assert ok and picture.shape == (480, 640, 3), name
+            pictures[name] = picture[:, :, ::-1].copy()
+        found = silhouette(pictures["phantom"])
+        assert not found.touches_edge and 4000 < found.area_px < 40000  # the gland, whole in view
+        board_of = cv2.aruco.CharucoBoard((9, 6), 15.0, 11.0, cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+        corners, _, _, _ = cv2.aruco.CharucoDetector(board_of).detectBoard(cv2.cvtColor(pictures["target0"],
+                                                                                        cv2.COLOR_RGB2GRAY))
+        assert corners is not None and len(corners) >= 30  # the target facing the camera at orbit 0
+        import urllib.error
+        import urllib.request
+
+        with pytest.raises(urllib.error.HTTPError, match="404"):
+            urllib.request.urlopen(streams["phantom"].replace("phantom.mjpg", "nothing.mjpg"), timeout=10)
+    finally:
+        board.terminate()
+        board.wait(30)
