@@ -101,30 +101,6 @@ def truth_scene(read: Callable[[], dict[str, Any] | None],
     return now
 
 
-def wait_settled(client: DaemonClient, tolerance_kpa: float = 0.03, hold_s: float = 1.0,
-                 timeout_s: float = 60.0) -> list[float]:
-    """Wait until every measured pressure has stayed within ``tolerance_kpa`` of its setpoint for ``hold_s``;
-    the pressures then (kPa). PhantomError on a fault or after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    steady_since: float | None = None
-    while time.monotonic() < deadline:
-        status = _call(client, "status")
-        if status["faults"]:
-            raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
-        measured, wanted = status["pressures_kpa"], status["setpoints_kpa"]
-        close = measured is not None and wanted is not None and all(
-            abs(m - w) <= tolerance_kpa for m, w in zip(measured, wanted, strict=True))
-        now = time.monotonic()
-        if not close:
-            steady_since = None
-        elif steady_since is None:
-            steady_since = now
-        elif now - steady_since >= hold_s:
-            return [float(p) for p in measured]
-        time.sleep(0.1)
-    raise PhantomError(f"the pressures did not settle at their setpoints within {timeout_s:g} s")
-
-
 def capture_through_daemon(client: DaemonClient, camera: FrameSource, plan: Plan, folder: CaptureFolder,
                            progress: Progress | None = None) -> CaptureFolder:
     """Configure the axes and take the plan's pictures through the daemon (the capture loop of
@@ -380,6 +356,7 @@ def run_validate(args: Any) -> int:
 
     import numpy as np
 
+    import phantom
     from phantom.cli.common import frame_progress, load_rig, parse_numbers, plan_of
     from phantom.cli.demo import wait_until_ready
     from phantom.hil.truth_shape import TruthShape
@@ -435,10 +412,14 @@ def run_validate(args: Any) -> int:
     try:
         wait_until_ready(socket, process, out / "daemon.log", stage_limit_s=args.daemon_timeout_s)
         say("daemon ready")
-        with DaemonClient(socket) as client:
+        with DaemonClient(socket) as client, phantom.connect(socket) as daemon:
             for target_ml in targets:
-                answer = _call(client, "set_target", {"volume_ml": target_ml})
-                measured = wait_settled(client)
+                # reached and settled by the control core's rule (the client's wait), as every client waits
+                reached = daemon.set_volume(target_ml, wait=True)
+                answer: dict[str, Any] = {"pressures_kpa": list(reached.pressures_kpa),
+                                          "predicted_volume_ml": reached.predicted_volume_ml,
+                                          "iterations": reached.iterations}
+                measured = list(reached.measured_pressures_kpa or reached.pressures_kpa)
                 say(f"{target_ml:g} ml: inverse {', '.join(f'{p:.3f}' for p in answer['pressures_kpa'])} kPa, "
                     f"held at {', '.join(f'{p:.3f}' for p in measured)} kPa; capturing {len(plan.stops())} pictures")
                 folder = CaptureFolder.create(out / f"capture_{target_ml:g}ml", {}, plan.to_json(), {
