@@ -445,6 +445,12 @@ def _release(orbit: Orbit) -> str | None:
 # --- a webcam ---------------------------------------------------------------------------------------------------
 
 
+#: A stream's buffered pictures are read until two in a row take longer than this (s) to come: those were sent
+#: after the read began; at most this many are dropped.
+STREAM_WAIT_S = 0.05
+MAX_STREAM_FLUSH = 60
+
+
 class Webcam:
     """A camera through OpenCV's ``VideoCapture``: a device number (``0``: /dev/video0), or a video file or an
     image sequence (``frames/%04d.png``), which VideoCapture reads through the same API, so a recording can
@@ -453,8 +459,9 @@ class Webcam:
     A network stream (MJPEG over HTTP, RTSP: an IP camera, a phone as a webcam, ``phantom sim-board
     --camera-stream``) is opened by its URL. A device is set to the picture size asked for, with automatic
     exposure, focus and white balance off and ``exposure``/``focus`` fixed when given (in the driver's units);
-    what the driver accepted is in :meth:`describe`. Each :meth:`grab` of a device or a stream first drops
-    ``flush`` buffered frames, so the picture is taken after the orbit stopped, not before. With ``size`` (the
+    what the driver accepted is in :meth:`describe`. Each :meth:`grab` of a device first drops ``flush`` buffered
+    frames, of a stream every buffered one (until two in a row make it wait, then one more), so the picture is
+    taken after the orbit stopped, not before. With ``size`` (the
     rig's calibrated width and height), a picture of any other size is refused (CameraLost, saying both).
     """
 
@@ -468,7 +475,8 @@ class Webcam:
         self.source = source
         self.size = size
         # a device and a network stream (a URL) buffer pictures; a recording's every picture is wanted
-        self.flush = flush if isinstance(source, int) or "://" in source else 0
+        self.live = isinstance(source, str) and "://" in source
+        self.flush = flush if isinstance(source, int) else 0
         self.capture = cv2.VideoCapture(source)
         if not self.capture.isOpened():
             raise CameraLost(f"cannot open the camera {source!r}: is it plugged in (ls /dev/video*), or the path "
@@ -486,8 +494,20 @@ class Webcam:
                                            "accepted": bool(self.capture.set(getattr(cv2, name), value))}
 
     def grab(self) -> np.ndarray:
-        for _ in range(self.flush):
-            self.capture.grab()
+        if self.live:
+            # a stream's buffered pictures come at once; once two in a row made us wait, the buffer is empty and
+            # they were taken after this call began (the orbit already still): a slow decode on a busy machine
+            # makes one wait, seldom two
+            waited = 0
+            for _ in range(MAX_STREAM_FLUSH):
+                started = time.monotonic()
+                self.capture.grab()
+                waited = waited + 1 if time.monotonic() - started > STREAM_WAIT_S else 0
+                if waited == 2:
+                    break
+        else:
+            for _ in range(self.flush):
+                self.capture.grab()
         ok, picture = self.capture.read()
         if not ok or picture is None:
             raise CameraLost(f"the camera {self.source!r} gave no picture (unplugged, or the recording ended)")

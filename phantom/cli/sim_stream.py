@@ -10,7 +10,9 @@ rendered when it is sent, at the simulated rig's true angles (the pulses its dri
   (facing the camera at orbit 0, then turned round), for ``phantom scan capture --target`` and
   ``phantom scan calibrate``.
 
-Pictures of ``scale`` times 1280x960 in the ``look`` (scan/render.py: ideal, or real), JPEG quality 95. The socket's
+Pictures of ``scale`` times 1280x960 in the ``look`` (scan/render.py: ideal, or real), JPEG quality 95 with the
+colour at full resolution (4:4:4): with the usual 4:2:0, the colour key's edges blur over two pixels and a scan of
+the gland at rest read -2.1 % (a real camera's MJPEG has the same: prefer its 4:4:4 or raw mode). The socket's
 send buffer is kept small, so that a reader gets a picture rendered a frame ago, not several.
 """
 
@@ -83,7 +85,8 @@ class CameraStream:
             self._angles.pressures_kpa = [p / 1e3 for p in state["pressures_pa"]]
             rgb = self.cameras[path].grab()
         ok, encoded = cv2.imencode(".jpg", np.ascontiguousarray(rgb[:, :, ::-1]),
-                                   [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+                                   [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY,
+                                    cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
         if not ok:
             raise RuntimeError("JPEG encoding failed")
         return np.asarray(encoded)
