@@ -120,6 +120,11 @@ class DaemonConfig:
                                       group="recording")
     rerun_connect: str | None = setting(None, "stream to a Rerun viewer (rerun+http://.../proxy)", metavar="ADDR",
                                         group="recording")
+    camera: str | None = setting(None, "the scanner's camera for scans and verified targets on a real board: a V4L2 "
+                                 "device number (0: /dev/video0) or a stream's URL (MJPEG over HTTP, RTSP); needs "
+                                 "--rig", metavar="DEVICE|URL")
+    rig: Path | None = setting(None, "the scanner's rig calibration (rig.json from phantom scan calibrate) for "
+                               "--camera", metavar="RIG.json")
     mesh_hz: float = setting(1.0, "rate (Hz) of deformed-mesh logging while recording a scene with [outputs] "
                              "shape = true; 0: none; at most the control rate", metavar="HZ", at_least=0,
                              at_most=10)

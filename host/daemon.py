@@ -38,7 +38,7 @@ from phantom.host.config import DaemonConfig
 from phantom.host.control import ControlCore, ReachRule, predicted_volume_ml
 from phantom.host.estimation import EstimateSchedule, VolumeEstimates
 from phantom.host.model_worker import Estimate
-from phantom.host.motion import Orbit, simulated_truth
+from phantom.host.motion import LATE_REPLY, SCAN_TRIES, Orbit, simulated_truth
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.scene_runner import PreparedRun, SceneRunner
 from phantom.host.scenes import gland_volume_ml
@@ -221,8 +221,9 @@ class Daemon:
                     "a daemon started without one cannot): set the target without verify")
         if self.sim_board is None and self.verify_scanner.plan.get("camera", "virtual") == "virtual":
             return ("this daemon drives a real board, and its verify scan's camera is the virtual one, which "
-                    "photographs only the simulated phantom: scan with a real camera and rig (README.md, \"A "
-                    "verified volume on a real rig\"), or set the target without verify")
+                    "photographs only the simulated phantom: start it with the rig's camera and calibration "
+                    "(phantom daemon --camera DEVICE|URL --rig rig.json; README.md, \"A verified volume on a real "
+                    "rig\"), or set the target without verify")
         return None
 
     async def _scan_for_core(self, action: control.Scan) -> None:
@@ -241,10 +242,7 @@ class Daemon:
             why = self.verify_refusal()
             if scanner is None or why is not None:
                 raise ApiError("invalid_params", why or "no scanner")
-            await self._rig_at_rest()
-            out = verify_folder(action.round)
-            answer = await self.api.handlers["scan"]({"out": str(out), **scanner.plan})
-            assert isinstance(answer, dict)  # the scan method answers JSON-ready data
+            answer = await self.perform_scan(action.round, scanner.plan)
             folder = str(answer["folder"])
             if answer.get("status") != "complete":
                 raise ApiError("rejected", f"the capture ended {answer.get('status')!r}")
@@ -262,6 +260,23 @@ class Daemon:
         if result.get("surface_mm") is not None:
             self.recorder.log_scan_surface(self.now_s(), *result["surface_mm"])
         self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
+
+    async def perform_scan(self, round_: int, plan: dict[str, Any]) -> dict[str, Any]:
+        """One verified round's capture with the ``scan`` method's ``plan``, into a new folder of its own; a capture
+        that failed for a late reply of the board (a frame lost on the link) is taken again, :data:`SCAN_TRIES` in
+        all. The scan method's answer; ApiError when the last try failed."""
+        for attempt in range(1, SCAN_TRIES + 1):
+            await self._rig_at_rest()
+            try:
+                answer = await self.api.handlers["scan"]({"out": str(verify_folder(round_)), **plan})
+            except ApiError as error:
+                if attempt == SCAN_TRIES or LATE_REPLY not in str(error):
+                    raise
+                self.event("scan", f"the scan of round {round_} failed ({error}): scanned again", "WARN")
+                continue
+            assert isinstance(answer, dict)  # the scan method answers JSON-ready data
+            return answer
+        raise AssertionError("unreachable")
 
     async def _rig_at_rest(self) -> None:
         """Wait (at most :data:`RIG_REST_WAIT_S`) until no axis of the rig moves, homes or stops: the board refuses

@@ -59,6 +59,9 @@ AXIS_NAMES = {ORBIT: "orbit", ELEVATION: "elevation"}
 MOVE_SLACK_S = 5.0
 #: How long a configuration may take to be reported (MOTION_INFO).
 INFO_WAIT_S = 2.0
+#: How many times a configuration, and a move, is asked for when the board's reply is late (a frame lost or
+#: delayed on the link: a configuration's MOTION_INFO is sent once).
+REPLY_TRIES = 3
 #: A wait ends after its time on the board's clock, or this many times it on the wall clock (a stalled simulator).
 WALL_FACTOR = 10.0
 #: How long a stop waits for a running scan to end (s): its capture sees the request within a picture's time.
@@ -75,6 +78,19 @@ EventSink = Callable[[str, str, str], None]
 DaemonState = Callable[[], dict[str, Any]]
 
 Result = TypeVar("Result")
+
+
+#: What a late reply's error says (it reaches the daemon's verify as the scan's failure text).
+LATE_REPLY = "did not end within"
+#: A verified round's scan that failed for a late reply is taken this many times in all.
+SCAN_TRIES = 2
+
+
+class LateReply(ApiError):
+    """The board's reply to a motion command did not come in time (the command may be asked again)."""
+
+    def __init__(self, message: str):
+        super().__init__("rejected", message)
 
 
 class ScanRun:
@@ -139,10 +155,12 @@ class Orbit:
             while not done():
                 left = deadline - asyncio.get_running_loop().time()
                 board_s = self.latest.board_time_s if self.latest is not None else None
+                if started_board_s is None:  # no status before (no axis configured yet): the board's time from now
+                    started_board_s = board_s
                 late = started_board_s is not None and board_s is not None and board_s - started_board_s > timeout_s
                 if left <= 0 or late:
-                    raise ApiError("rejected", f"{what} did not end within {timeout_s:.0f} s (is the axis configured "
-                                               f"and the link up?)")
+                    raise LateReply(f"{what} {LATE_REPLY} {timeout_s:.0f} s (is the axis configured and the link "
+                                    f"up?)")
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._changed.wait(), min(left, 1.0))
 
@@ -166,10 +184,18 @@ class Orbit:
             fields_ = config.fields(axis)
         except MotionError as error:
             raise ApiError("invalid_params", str(error)) from None
+        what = f"the {AXIS_NAMES[axis]}'s configuration"
         async with self._lock:
-            self.reported.pop(axis, None)
-            await self._checked("MOTION_CONFIG", fields_, axis)
-            await self._wait(lambda: axis in self.reported, INFO_WAIT_S, f"the {AXIS_NAMES[axis]}'s configuration")
+            for attempt in range(1, REPLY_TRIES + 1):
+                self.reported.pop(axis, None)
+                await self._checked("MOTION_CONFIG", fields_, axis)
+                try:
+                    await self._wait(lambda: axis in self.reported, INFO_WAIT_S, what)
+                    break
+                except LateReply as error:
+                    if attempt == REPLY_TRIES:
+                        raise LateReply(f"{error} ({REPLY_TRIES} times)") from None
+                    self._event("motion", f"{error}: asked again ({attempt + 1} of {REPLY_TRIES})", "WARN")
             self.configs[axis] = config
             return self.reported[axis]
 
@@ -186,9 +212,18 @@ class Orbit:
                 start = self.latest.axes[axis].position_deg if self.latest is not None else angle
                 duration_s = abs(angle - start) / config.max_speed_deg_s + config.max_speed_deg_s / max(
                     config.max_accel_deg_s2, 1e-9)
-                status = await self._until_rest("MOVE_TO", {"axis": axis, "angle_mdeg": round(angle * 1e3)}, axis,
-                                                "REACHED", f"the {AXIS_NAMES[axis]}'s move to {angle:g} deg",
-                                                duration_s + MOVE_SLACK_S, f"{angle:g} deg")
+                what = f"the {AXIS_NAMES[axis]}'s move to {angle:g} deg"
+                for attempt in range(1, REPLY_TRIES + 1):
+                    try:
+                        # asked again, a move ends at once where it already is (or is refused BUSY if it moves)
+                        status = await self._until_rest("MOVE_TO", {"axis": axis, "angle_mdeg": round(angle * 1e3)},
+                                                        axis, "REACHED", what, duration_s + MOVE_SLACK_S,
+                                                        f"{angle:g} deg")
+                        break
+                    except LateReply as error:
+                        if attempt == REPLY_TRIES:
+                            raise LateReply(f"{error} ({REPLY_TRIES} times)") from None
+                        self._event("motion", f"{error}: asked again ({attempt + 1} of {REPLY_TRIES})", "WARN")
         assert status is not None
         return status
 

@@ -445,24 +445,37 @@ def _release(orbit: Orbit) -> str | None:
 # --- a webcam ---------------------------------------------------------------------------------------------------
 
 
+#: A stream's buffered pictures are read until two in a row take longer than this (s) to come: those were sent
+#: after the read began; at most this many are dropped.
+STREAM_WAIT_S = 0.05
+MAX_STREAM_FLUSH = 60
+
+
 class Webcam:
     """A camera through OpenCV's ``VideoCapture``: a device number (``0``: /dev/video0), or a video file or an
     image sequence (``frames/%04d.png``), which VideoCapture reads through the same API, so a recording can
     stand in for the webcam in a test.
 
-    A device is set to the picture size asked for, with automatic exposure, focus and white balance off and
-    ``exposure``/``focus`` fixed when given (in the driver's units); what the driver accepted is in
-    :meth:`describe`. Each :meth:`grab` first drops ``flush`` buffered frames, so the picture is taken after the
-    orbit stopped, not before.
+    A network stream (MJPEG over HTTP, RTSP: an IP camera, a phone as a webcam, ``phantom sim-board
+    --camera-stream``) is opened by its URL. A device is set to the picture size asked for, with automatic
+    exposure, focus and white balance off and ``exposure``/``focus`` fixed when given (in the driver's units);
+    what the driver accepted is in :meth:`describe`. Each :meth:`grab` of a device first drops ``flush`` buffered
+    frames, of a stream every buffered one (until two in a row make it wait, then one more), so the picture is
+    taken after the orbit stopped, not before. With ``size`` (the
+    rig's calibrated width and height), a picture of any other size is refused (CameraLost, saying both).
     """
 
     def __init__(self, source: int | str, width: int | None = None, height: int | None = None,
-                 exposure: float | None = None, focus: float | None = None, flush: int = 4):
+                 exposure: float | None = None, focus: float | None = None, flush: int = 4,
+                 size: tuple[int, int] | None = None):
         with require_extra("scan"):
             import cv2
 
         self._cv2 = cv2
         self.source = source
+        self.size = size
+        # a device and a network stream (a URL) buffer pictures; a recording's every picture is wanted
+        self.live = isinstance(source, str) and "://" in source
         self.flush = flush if isinstance(source, int) else 0
         self.capture = cv2.VideoCapture(source)
         if not self.capture.isOpened():
@@ -481,13 +494,29 @@ class Webcam:
                                            "accepted": bool(self.capture.set(getattr(cv2, name), value))}
 
     def grab(self) -> np.ndarray:
-        for _ in range(self.flush):
-            self.capture.grab()
+        if self.live:
+            # a stream's buffered pictures come at once; once two in a row made us wait, the buffer is empty and
+            # they were taken after this call began (the orbit already still): a slow decode on a busy machine
+            # makes one wait, seldom two
+            waited = 0
+            for _ in range(MAX_STREAM_FLUSH):
+                started = time.monotonic()
+                self.capture.grab()
+                waited = waited + 1 if time.monotonic() - started > STREAM_WAIT_S else 0
+                if waited == 2:
+                    break
+        else:
+            for _ in range(self.flush):
+                self.capture.grab()
         ok, picture = self.capture.read()
         if not ok or picture is None:
             raise CameraLost(f"the camera {self.source!r} gave no picture (unplugged, or the recording ended)")
         if picture.ndim == 2:
             picture = self._cv2.cvtColor(picture, self._cv2.COLOR_GRAY2BGR)
+        if self.size is not None and (picture.shape[1], picture.shape[0]) != self.size:
+            raise CameraLost(f"the camera {self.source!r} gave a {picture.shape[1]}x{picture.shape[0]} picture, the "
+                             f"rig was calibrated at {self.size[0]}x{self.size[1]}: nothing of it is kept (has the "
+                             f"camera's resolution changed? calibrate the rig at the size it gives)")
         rgb: np.ndarray = np.ascontiguousarray(picture[:, :, ::-1])
         return rgb
 

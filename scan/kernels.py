@@ -172,10 +172,13 @@ def cast_plane(rays: np.ndarray, origin: FloatArray, axis_u: FloatArray, axis_v:
 
 @kernel
 def shade_pixels(face: np.ndarray, weights: np.ndarray, triangles: IntArray, normals: FloatArray, lamp: FloatArray,
-                 ambient: float, lamp_power: float, albedo: FloatArray, backdrop: FloatArray, supersample: int,
+                 ambient: float, lamp_power: float, albedo: FloatArray, material: IntArray, gloss: FloatArray,
+                 shininess: float, rays: np.ndarray, backdrop: FloatArray, backdrop_level: np.ndarray, supersample: int,
                  out: np.ndarray) -> None:
-    """Each pixel of ``out`` (height, width, 3) the mean of its samples: Lambert's law with the normals (camera
-    frame, per vertex) interpolated at drawn samples, the backdrop's colour elsewhere."""
+    """Each pixel of ``out`` (height, width, 3) the mean of its samples: where drawn, Lambert's law with the normals
+    (camera frame, per vertex) interpolated, in the colour ``albedo[material[t]]`` of the triangle's material,
+    plus a white Blinn-Phong highlight of the lamp (``gloss`` per material, ``shininess`` its exponent; the view
+    along the sample's ray ``rays``); elsewhere the backdrop's colour times its level at the pixel."""
     s = supersample
     share = 1.0 / (s * s)
     for row in range(out.shape[0]):
@@ -185,9 +188,10 @@ def shade_pixels(face: np.ndarray, weights: np.ndarray, triangles: IntArray, nor
                 for i in range(column * s, column * s + s):
                     t = face[j, i]
                     if t < 0:
-                        r += backdrop[0]
-                        g += backdrop[1]
-                        b += backdrop[2]
+                        level = backdrop_level[row, column]
+                        r += level * backdrop[0]
+                        g += level * backdrop[1]
+                        b += level * backdrop[2]
                         continue
                     w1, w2 = weights[j, i, 0], weights[j, i, 1]
                     w0 = 1.0 - w1 - w2
@@ -195,12 +199,24 @@ def shade_pixels(face: np.ndarray, weights: np.ndarray, triangles: IntArray, nor
                     nx = w0 * normals[a, 0] + w1 * normals[bb, 0] + w2 * normals[c, 0]
                     ny = w0 * normals[a, 1] + w1 * normals[bb, 1] + w2 * normals[c, 1]
                     nz = w0 * normals[a, 2] + w1 * normals[bb, 2] + w2 * normals[c, 2]
-                    length = np.sqrt(nx * nx + ny * ny + nz * nz)
-                    cosine = (nx * lamp[0] + ny * lamp[1] + nz * lamp[2]) / max(length, 1e-12)
+                    length = max(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+                    nx, ny, nz = nx / length, ny / length, nz / length
+                    cosine = nx * lamp[0] + ny * lamp[1] + nz * lamp[2]
                     light = ambient + lamp_power * max(cosine, 0.0)
-                    r += light * albedo[0]
-                    g += light * albedo[1]
-                    b += light * albedo[2]
+                    m = material[t]
+                    highlight = 0.0
+                    if gloss[m] > 0.0:
+                        # the halfway vector between the lamp and the eye (the eye looks along the ray)
+                        dx, dy = rays[j, i, 0], rays[j, i, 1]
+                        norm = np.sqrt(dx * dx + dy * dy + 1.0)
+                        hx, hy, hz = lamp[0] - dx / norm, lamp[1] - dy / norm, lamp[2] - 1.0 / norm
+                        hnorm = max(np.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+                        facing = (nx * hx + ny * hy + nz * hz) / hnorm
+                        if facing > 0.0:
+                            highlight = gloss[m] * facing ** shininess
+                    r += light * albedo[m, 0] + highlight
+                    g += light * albedo[m, 1] + highlight
+                    b += light * albedo[m, 2] + highlight
             out[row, column, 0] = r * share
             out[row, column, 1] = g * share
             out[row, column, 2] = b * share

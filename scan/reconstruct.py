@@ -25,10 +25,11 @@ import numpy as np
 from phantom import memory_budget_bytes
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml
-from phantom.scan.camera import Rig
+from phantom.scan.camera import Camera, Pose, Rig
 from phantom.scan.capture import CaptureError, CaptureFolder, Frame
 from phantom.scan.carve import Carver, View, carve, surface
 from phantom.scan.compare import SCAN_SUFFIXES, ScanError
+from phantom.scan.hanging import HANGING_SHARE, Hanging, cut_column
 from phantom.scan.silhouette import SilhouetteError, silhouette
 
 #: The voxel size (mm) of the finest grid by default.
@@ -43,9 +44,10 @@ MIN_VOXEL_MM = 0.05
 #: The coarsest: a voxel of the phantom's wall thickness.
 MAX_VOXEL_MM = 5.0
 #: Bytes the carving keeps per pixel of a picture (a silhouette's signed distance, float32, at most the whole
-#: picture), and holds per picture being read and keyed (the picture, its float copies and its alpha).
+#: picture), and holds per picture being read and keyed (the picture, its linear copy, the key, the backdrop's
+#: level smoothed, its alpha).
 SILHOUETTE_BYTES_PER_PX = 4
-KEYING_BYTES_PER_PX = 40
+KEYING_BYTES_PER_PX = 64
 
 
 @dataclass
@@ -59,7 +61,25 @@ class Reconstruction:
     centre_mm: FloatArray
     stage_s: dict[str, float] = field(default_factory=dict)
     projections: int = 0
+    #: Pictures whose edge the reconstructed phantom reaches (what is past it is missing).
     touching_edge: int = 0
+    #: The hanging column taken off (None: nothing hung in view).
+    hanging: Hanging | None = None
+
+
+def views_cutting(mesh: TriangleMesh, camera: Camera, poses: Sequence[Pose], margin_px: float = 1.0) -> int:
+    """How many of the pictures the surface reaches the edge of (within ``margin_px``) or passes behind."""
+    count = 0
+    for pose in poses:
+        points = pose.apply(mesh.vertices_mm)
+        if np.any(points[:, 2] <= 1e-6):
+            count += 1
+            continue
+        pixels = camera.project(points)
+        if (np.any(pixels < margin_px - 0.5) or np.any(pixels[:, 0] > camera.width - 0.5 - margin_px)
+                or np.any(pixels[:, 1] > camera.height - 0.5 - margin_px)):
+            count += 1
+    return count
 
 
 def rig_centre(poses: Sequence[FloatArray], forwards: Sequence[FloatArray]) -> FloatArray:
@@ -122,11 +142,16 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     grid = carve(carver, centre, START_FRACTION * distance, voxel_mm, progress)
     stage_s["carve"] = time.perf_counter() - started
     started = time.perf_counter()
+    hanging = None
+    if sum(view.silhouette.touches_top for view in views) >= HANGING_SHARE * len(views):
+        grid, hanging = cut_column(grid, rig)
+        if progress is not None and hanging is not None:
+            progress(f"the hanging tubes taken off at {hanging.cut_mm:.2f} mm up the axis ({hanging.removed_ml:.3f} "
+                     f"ml of column, {hanging.column_area_mm2:.0f} mm^2 across)")
     mesh = surface(grid)
     stage_s["surface"] = time.perf_counter() - started
-    touching = sum(1 for view in views if view.silhouette.touches_edge)
     return Reconstruction(mesh, enclosed_volume_ml(mesh), voxel_mm, len(views), centre, stage_s, carver.projections,
-                          touching)
+                          views_cutting(mesh, rig.camera, poses), hanging)
 
 
 def write_mesh(mesh: TriangleMesh, path: str | Path) -> Path:

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from phantom import PhantomError, require_extra
-from phantom.scan import kernels
 from phantom.scan.render import srgb_to_linear
 
 #: Width (px) of the picture's border the backdrop's colour is read from.
@@ -30,6 +29,17 @@ BORDER_PX = 8
 #: A pixel whose colour is this far from the backdrop's (relative to the backdrop's brightness) is surely the
 #: phantom, for learning the phantom's colour.
 SURE_DISTANCE = 0.5
+
+
+#: A pixel whose hue is within this (cosine) of the phantom's is the phantom's, for learning its colour.
+PHANTOM_HUE_COS = float(np.cos(np.radians(12.0)))
+#: The backdrop's brightness is the key smoothed over this (px, a Gaussian's sigma) of surely backdrop pixels.
+BACKDROP_SMOOTHING_PX = 6.0
+#: The backdrop's brightness is not taken below this fraction of its border's.
+MIN_BACKDROP_LEVEL = 0.2
+#: A pixel further than this (relative to the backdrop's brightness) from every mix of the backdrop's colour and
+#: the phantom's is something else (a tube, the holder): opaque.
+OTHER_DISTANCE = 0.15
 
 
 #: The 256 sRGB codes in linear light.
@@ -51,12 +61,18 @@ class Silhouette:
     truncation_px: float
     area_px: float
     touches_edge: bool
+    touches_top: bool = False
 
 
 def alpha_matte(image: np.ndarray) -> np.ndarray:
     """The phantom's share of each pixel (0..1, float32) of an 8-bit sRGB picture (height, width, 3; RGB) taken
-    against a backdrop of one colour (see the module docstring). SilhouetteError if the backdrop's border is
-    not one colour or nothing in the picture differs from it."""
+    against a backdrop of one hue (see the module docstring): the key scaled by the backdrop's brightness where
+    it is (a cloth lit unevenly, in folds, darker in the picture's corners), and whatever is neither backdrop nor
+    phantom (tubes, a holder, a white highlight) opaque. SilhouetteError if the backdrop's border is not one
+    colour or nothing in the picture differs from it."""
+    with require_extra("scan"):
+        import cv2
+
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise SilhouetteError(f"a picture must be 8-bit colour (height, width, 3), got {image.dtype} {image.shape}")
     border = np.concatenate([image[:BORDER_PX].reshape(-1, 3), image[-BORDER_PX:].reshape(-1, 3),
@@ -72,15 +88,40 @@ def alpha_matte(image: np.ndarray) -> np.ndarray:
     if np.count_nonzero(sure) < 12:
         raise SilhouetteError("nothing in the picture differs from the backdrop: is the phantom in view?")
     colours = linear[sure]
-    direction = np.median(colours / np.maximum(np.linalg.norm(colours, axis=1, keepdims=True), 1e-6), axis=0)
+    hues = colours / np.maximum(np.linalg.norm(colours, axis=1, keepdims=True), 1e-6)
+    direction = np.median(hues, axis=0)
     direction /= np.linalg.norm(direction)
+    # tubes, a holder and highlights differ from the backdrop too: the phantom's hue is the one most of those
+    # pixels share, the others dropped
+    for _ in range(3):
+        alike = hues @ direction > PHANTOM_HUE_COS
+        if np.count_nonzero(alike) < 12:
+            break
+        direction = np.median(hues[alike], axis=0)
+        direction /= np.linalg.norm(direction)
     across = backdrop - (backdrop @ direction) * direction
     if np.linalg.norm(across) < 0.05 * brightness:
         raise SilhouetteError("the phantom and the backdrop have the same hue: use a backdrop of another colour "
                               "(green or blue behind the pink silicone)")
-    key = across / float(across @ backdrop)
-    alpha = np.empty(image.shape[:2], np.float32)
-    kernels.key_alpha(image, SRGB_TABLE, key, alpha)
+    key = (across / float(across @ backdrop)).astype(np.float32)
+    full = SRGB_TABLE[image]
+    keyed = full @ key  # 1 on the backdrop's colour, 0 on every shade of the phantom's
+    # the backdrop's brightness where it is: the key over the pixels surely backdrop (and not next to anything
+    # else), smoothed and carried over the phantom from around it
+    backdrop_mask = (keyed > 0.5).astype(np.uint8)
+    backdrop_mask = cv2.erode(backdrop_mask, np.ones((5, 5), np.uint8))
+    weight = cv2.GaussianBlur(backdrop_mask.astype(np.float32), (0, 0), BACKDROP_SMOOTHING_PX)
+    level = cv2.GaussianBlur(keyed * backdrop_mask, (0, 0), BACKDROP_SMOOTHING_PX)
+    local = np.where(weight > 1e-3, level / np.maximum(weight, 1e-3), 1.0)
+    local = np.clip(local, MIN_BACKDROP_LEVEL, None)
+    alpha: np.ndarray = np.clip(1.0 - keyed / local, 0.0, 1.0).astype(np.float32)
+    # what mixes neither the backdrop's colour nor the phantom's (white tubes, a dark holder) lies off the plane
+    # the two span: opaque, for it may hide the phantom behind it
+    normal = np.cross(backdrop, direction)
+    normal /= np.linalg.norm(normal)
+    other = (np.abs(full @ normal.astype(np.float32)) > OTHER_DISTANCE * brightness).astype(np.uint8)
+    other = cv2.morphologyEx(other, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))  # not the sensor's noise
+    alpha[other == 1] = 1.0
     return alpha
 
 
@@ -127,4 +168,4 @@ def silhouette(image: np.ndarray, truncation_px: float = 48.0) -> Silhouette:
     bx, by, bw, bh = cv2.boundingRect(mask)
     touches = bool(x0 + bx == 0 or y0 + by == 0 or x0 + bx + bw == width or y0 + by + bh == height)
     return Silhouette(np.ascontiguousarray(signed), (x0, y0, x1 - x0, y1 - y0), float(truncation_px),
-                      float(crop_alpha[mask == 1].sum()), touches)
+                      float(crop_alpha[mask == 1].sum()), touches, bool(y0 + by == 0))

@@ -23,7 +23,7 @@ from phantom.model.arrays import FloatArray
 from phantom.model.mesh.surface import TriangleMesh, vertex_normals
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, Pose, Rig, axis_rotation
 from phantom.scan.capture import CaptureFolder, Plan, Progress, capture
-from phantom.scan.render import DEFAULT_LOOK, SUPERSAMPLE, CharucoTarget, Look, Renderer, to_8bit
+from phantom.scan.render import DEFAULT_LOOK, SUPERSAMPLE, CharucoTarget, Look, Renderer, hung_scene, to_8bit
 
 #: What the virtual camera sees at one moment: the phantom's surface (mm, the rig's world) and the true orbit
 #: angle and elevation (deg).
@@ -46,19 +46,25 @@ class VirtualCamera:
         self.renderer = Renderer(rig.camera, supersample, look)
         self.rng = np.random.default_rng(seed)
         self.seed = seed
-        self._normals: tuple[TriangleMesh, np.ndarray] | None = None
+        self._drawn: tuple[TriangleMesh, TriangleMesh, np.ndarray, np.ndarray | None] | None = None
 
     def grab(self) -> np.ndarray:
         mesh, orbit_deg, elevation_deg = self.scene()
-        if self._normals is None or self._normals[0] is not mesh:
-            self._normals = (mesh, vertex_normals(mesh.vertices_mm, mesh.triangles))
-        linear = self.renderer.render_mesh(mesh, self.pose_at(orbit_deg, elevation_deg), self._normals[1])
+        if self._drawn is None or self._drawn[0] is not mesh:
+            if self.renderer.look.tubes and len(mesh.triangles):
+                self._drawn = (mesh, *hung_scene(mesh))
+            else:
+                self._drawn = (mesh, mesh, vertex_normals(mesh.vertices_mm, mesh.triangles), None)
+        linear = self.renderer.render_mesh(self._drawn[1], self.pose_at(orbit_deg, elevation_deg), self._drawn[2],
+                                           self._drawn[3])
         return to_8bit(linear, self.rng, self.renderer.look)
 
     def describe(self) -> dict[str, Any]:
         camera = self.rig.camera
+        look = self.renderer.look
         return {"kind": "virtual", "width": camera.width, "height": camera.height, "seed": self.seed,
-                "supersample": self.renderer.supersample}
+                "supersample": self.renderer.supersample, "tubes": look.tubes, "gloss": look.gloss,
+                "cloth": look.cloth, "vignetting": look.vignetting, "noise": look.noise}
 
 
 class VirtualOrbit:
@@ -89,11 +95,11 @@ class FixedPhantom:
 
 def render_capture(mesh: TriangleMesh, rig: Rig, plan: Plan, out: str | Path, seed: int = 0,
                    conditions: dict[str, Any] | None = None, progress: Progress | None = None,
-                   supersample: int = SUPERSAMPLE) -> CaptureFolder:
+                   supersample: int = SUPERSAMPLE, look: Look = DEFAULT_LOOK) -> CaptureFolder:
     """The virtual rig's pictures of ``mesh`` (mm, the rig's world) into a new capture folder, with ``rig``
     kept beside them."""
     orbit = VirtualOrbit()
-    camera = VirtualCamera(rig, lambda: (mesh, orbit.orbit_deg, orbit.elevation_deg), seed, supersample)
+    camera = VirtualCamera(rig, lambda: (mesh, orbit.orbit_deg, orbit.elevation_deg), seed, supersample, look)
     folder = CaptureFolder.create(out, camera.describe(), plan.to_json(), conditions, rig)
     return capture(orbit, camera, FixedPhantom(), replace(plan, settle_s=0.0), folder, progress)
 

@@ -230,3 +230,79 @@ def test_motion_api_refuses_non_finite_and_mistyped_parameters_before_the_board(
     with pytest.raises(ApiError, match=message) as raised:
         asyncio.run(call())
     assert raised.value.code == "invalid_params" and sent == []
+
+
+class _BoardLosingReplies:
+    """A board for host.motion's Orbit alone (the daemon's link and the firmware are test_motion_sim.py's): it
+    ACKs each command, answers MOTION_CONFIG with MOTION_INFO and MOVE_TO with a MOTION_STATUS at rest there,
+    sends a MOTION_STATUS every 100 ms of its clock (run 20 times as fast as the wall clock), and loses the
+    replies it is told to: ``lose`` counts, per message name, the replies still to lose."""
+
+    def __init__(self, lose):
+        self.lose = dict(lose)
+        self.sent = []
+        self.time_ms = 0
+        self.positions_mdeg = [0, 0]
+        self.orbit = None
+
+    def status(self):
+        return decode(encode("MOTION_STATUS", 0, {
+            "time_ms": self.time_ms, "state": [1, 1], "flags": [0b0011, 0b0011], "result": [1, 1],
+            "position_steps": [0, 0], "position_mdeg": list(self.positions_mdeg),
+            "target_mdeg": list(self.positions_mdeg), "velocity_mdeg_s": [0, 0]}))
+
+    async def command(self, name, fields):
+        import asyncio
+
+        self.sent.append(name)
+        reply = None
+        if name == "MOTION_CONFIG":
+            reply = decode(encode("MOTION_INFO", 0, fields))
+        elif name == "MOVE_TO":
+            self.positions_mdeg[fields["axis"]] = fields["angle_mdeg"]
+            reply = self.status()
+        if reply is not None:
+            if self.lose.get(reply.name, 0) > 0:
+                self.lose[reply.name] -= 1
+            else:
+                asyncio.get_running_loop().call_soon(self.orbit.on_message, reply)
+        return "OK"
+
+    async def tick(self):
+        import asyncio
+
+        while True:
+            await asyncio.sleep(0.005)
+            self.time_ms += 100
+            self.orbit.on_message(self.status())
+
+
+@pytest.mark.parametrize("lost", [1, 2])
+def test_a_lost_motion_info_is_asked_for_again_and_the_configuration_and_the_move_complete(lost):
+    """One late or lost reply ended a verification after four rounds ("the orbit's configuration did not end within
+    2 s"): the configuration is asked for again (at most REPLY_TRIES times), and so is a move whose status is lost."""
+    import asyncio
+
+    from phantom.host.motion import REPLY_TRIES, LateReply, Orbit
+
+    async def run(lose):
+        board = _BoardLosingReplies(lose)
+        events = []
+        board.orbit = orbit = Orbit(board.command, lambda *event: events.append(event))
+        ticking = asyncio.ensure_future(board.tick())
+        try:
+            await orbit.configure(mo.ORBIT, ORBIT)
+            await orbit.move({mo.ORBIT: 45.0})
+            return board, events
+        finally:
+            ticking.cancel()
+
+    board, events = asyncio.run(run({"MOTION_INFO": lost}))
+    assert board.sent.count("MOTION_CONFIG") == lost + 1
+    assert [event[1] for event in events] == [
+        f"the orbit's configuration did not end within 2 s (is the axis configured and the link up?): asked again "
+        f"({attempt + 1} of {REPLY_TRIES})" for attempt in range(1, lost + 1)]
+    # a configuration whose every reply is lost is refused, saying how often it was asked
+    with pytest.raises(LateReply, match=f"the orbit's configuration did not end within 2 s .*{REPLY_TRIES} times"):
+        asyncio.run(run({"MOTION_INFO": REPLY_TRIES}))
+

@@ -129,14 +129,19 @@ def test_every_readme_client_line_runs(default_daemon, where, line):
 # lower priority beside the simavr tests
 @pytest.mark.slow
 @pytest.mark.parametrize(("where", "line"), OFFLINE_LINES, ids=[where for where, _ in OFFLINE_LINES])
-def test_every_readme_inverse_line_runs(where, line):
-    runs(where, line, dict(os.environ))
+def test_every_readme_inverse_line_runs(where, line, tmp_path):
+    from test_shape_inverse import lopsided_mask
+
+    # the patient's mask the README names is the reader's own: here, a gland with its left lobe enlarged
+    inputs = {"patient_mask.nii.gz": str(lopsided_mask(tmp_path / "patient_mask.nii.gz"))}
+    runs(where, line, dict(os.environ), inputs)
 
 
-def runs(where: str, line: str, environment: dict[str, str]) -> None:
-    """Run each variant of a README line: it exits 0 (or is refused on purpose, with its error); a client prints
-    something."""
+def runs(where: str, line: str, environment: dict[str, str], inputs: dict[str, str] | None = None) -> None:
+    """Run each variant of a README line, the input files it names replaced by ``inputs`` (name -> path): it exits
+    0 (or is refused on purpose, with its error); a client prints something."""
     for arguments in variants(line):
+        arguments = [(inputs or {}).get(argument, argument) for argument in arguments]
         if arguments[0] == "watch" and "--count" not in arguments:
             arguments = [*arguments, "--count", "2"]
         if arguments[0] == "run-scene" and "--time-scale" in arguments:

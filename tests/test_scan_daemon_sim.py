@@ -36,6 +36,19 @@ def test_the_daemon_scans_through_its_api(tmp_path, default_model_cached):
                                           "settle_s": 0.05})
             assert answer == {"folder": str(out), "status": "complete", "pictures": 8}
             status = client.call("motion_status")
+            with pytest.raises(DaemonError, match="look must be one of ideal, real"):
+                client.call("scan", {"out": str(tmp_path / "z"), "look": "sepia"})
+            # the virtual camera's real look: the phantom hung by its tubes out of the picture's top edge
+            real = client.call("scan", {"out": str(tmp_path / "real"), "views": 1, "elevations_deg": [0],
+                                        "scale": 0.2, "settle_s": 0.05, "look": "real"})
+            assert real["status"] == "complete" and real["pictures"] == 1
+        described = json.loads((tmp_path / "real" / "capture.json").read_text())["camera"]
+        assert described["tubes"] and described["cloth"] == 1.0 and described["gloss"] > 0
+        from phantom.scan.capture import CaptureFolder
+        from phantom.scan.silhouette import silhouette
+
+        hung = CaptureFolder.open(tmp_path / "real")
+        assert silhouette(hung.image(hung.frames[0])).touches_top
         data = json.loads((out / "capture.json").read_text())
         stops = [angle for f in data["frames"] for angle in (f["orbit_deg"], f["elevation_deg"])]
         wanted = [-180.0, 0.0, -90.0, 0.0, 0.0, 0.0, 90.0, 0.0, 90.0, 30.0, 0.0, 30.0, -90.0, 30.0, -180.0, 30.0]

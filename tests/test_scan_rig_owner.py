@@ -114,3 +114,43 @@ def test_a_cancelled_scan_request_asks_its_capture_to_stop_and_frees_the_rig_whe
         await asyncio.wait_for(run_.ended.wait(), 5.0)
         assert run_.stop_requested() == "the daemon is stopping" and orbit.scan is None
     asyncio.run(run())
+
+
+def test_a_verified_rounds_scan_failed_for_a_late_reply_is_taken_again_once_and_only_for_that():
+    """The daemon's one entry point for a round's scan (Daemon.perform_scan), with a stand-in scan method: a capture
+    that failed because the board's reply was late is taken again into a new folder; any other failure, and a
+    second late reply, end the round."""
+    from types import SimpleNamespace
+
+    from phantom.host.daemon import Daemon
+    from phantom.host.motion import LATE_REPLY, SCAN_TRIES
+
+    def stand_in(failures):
+        calls, events = [], []
+
+        async def scan(params):
+            calls.append(params["out"])
+            if len(calls) <= len(failures):
+                raise ApiError("rejected", failures[len(calls) - 1])
+            return {"folder": params["out"], "status": "complete", "pictures": 60}
+
+        async def at_rest():
+            return None
+
+        daemon = SimpleNamespace(api=SimpleNamespace(handlers={"scan": scan}), _rig_at_rest=at_rest,
+                                 event=lambda *event: events.append(event))
+        return daemon, calls, events
+
+    late = f"the scan stopped: the orbit's configuration {LATE_REPLY} 2 s (is the axis configured and the link up?)"
+    daemon, calls, events = stand_in([late])
+    answer = asyncio.run(Daemon.perform_scan(daemon, 4, {"views": 30}))
+    assert answer["status"] == "complete" and len(calls) == 2 and calls[0] != calls[1]
+    assert events[0][0] == "scan" and "the scan of round 4 failed" in events[0][1] and events[0][2] == "WARN"
+    daemon, calls, _ = stand_in([late] * SCAN_TRIES)
+    with pytest.raises(ApiError, match=LATE_REPLY):
+        asyncio.run(Daemon.perform_scan(daemon, 4, {}))
+    assert len(calls) == SCAN_TRIES
+    daemon, calls, _ = stand_in(["the scan was aborted: the camera stopped delivering"])
+    with pytest.raises(ApiError, match="camera stopped"):
+        asyncio.run(Daemon.perform_scan(daemon, 4, {}))
+    assert len(calls) == 1

@@ -238,8 +238,7 @@ def _new_record(args: argparse.Namespace, out: Path, grid: ModelGrid) -> Charact
 
     import numpy as np
 
-    from phantom.cli.common import parse_numbers
-    from phantom.cli.scan import load_rig
+    from phantom.cli.common import load_rig, parse_numbers
     from phantom.scan.characterise import CharacterisationRecord, grid_design, path_design, space_filling_design
 
     pressure_max_kpa = float(grid.points_kpa[-1])
@@ -298,7 +297,7 @@ def _check_plan(scan: dict[str, Any]) -> None:
 
 
 def _rig(record: CharacterisationRecord) -> Rig:
-    from phantom.cli.scan import load_rig
+    from phantom.cli.common import load_rig
 
     rig: Rig = load_rig(str(record.folder / record.rig))
     return rig

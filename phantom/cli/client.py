@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from phantom.cli.daemon import setting_field
+from phantom.cli.common import setting_field
 
 if TYPE_CHECKING:
     from phantom.host.client import Phantom, Status

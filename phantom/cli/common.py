@@ -12,7 +12,12 @@ from typing import TYPE_CHECKING, Literal, overload
 from phantom import PhantomError
 
 if TYPE_CHECKING:
+    import argparse
+
+    from phantom.host.config import SettingField
     from phantom.model.scene import Scene
+    from phantom.scan.camera import Rig
+    from phantom.scan.capture import Plan
 
 
 @overload
@@ -176,3 +181,25 @@ def frame_progress(what: str) -> Callable[[int, int, object], None]:
     def show(done: int, total: int, frame: object) -> None:
         report(done, total)
     return show
+
+
+def plan_of(args: argparse.Namespace, settle_s: float = 0.0) -> Plan:
+    """The plan of ``--views`` and ``--elevations``, at most MAX_FRAMES pictures in all."""
+    from phantom.scan.capture import Plan
+
+    return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
+
+
+def load_rig(path: str) -> Rig:
+    """A rig calibration file (rig.json), its size checked before it is read."""
+    from phantom.scan.camera import Rig, RigError
+
+    check_input_size(path, MAX_JSON_BYTES, "the rig file", RigError)
+    return Rig.load(path)
+
+
+def setting_field(name: str) -> SettingField:
+    """The daemon's setting ``name`` (its flag, type, default, help and range)."""
+    from phantom.host.config import settings
+
+    return next(item for item in settings() if item.name == name)

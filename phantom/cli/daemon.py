@@ -11,6 +11,7 @@ import argparse
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+from phantom.cli.common import setting_field
 from phantom.host.config import ConfigError, SettingField, checked, settings
 
 if TYPE_CHECKING:
@@ -47,12 +48,15 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     sim_board.add_argument(speed.flag, dest=speed.name, type=_flag_value(speed), default=speed.default,
                            metavar=speed.setting.metavar, help=_flag_help(speed))
     sim_board.add_argument("--json", action="store_true", help="print {\"port\": ...} as JSON")
+    sim_board.add_argument("--camera-stream", metavar="HOST:PORT",
+                           help="serve the simulated rig's camera as MJPEG over HTTP (/phantom.mjpg, /target0.mjpg, "
+                                "/target1.mjpg) rendered at the rig's true angles, for `phantom daemon --port ... "
+                                "--camera http://HOST:PORT/phantom.mjpg` (port 0: any free one)")
+    sim_board.add_argument("--stream-scale", type=float, default=0.5,
+                           help="the stream's picture size as a fraction of 1280x960 (default 0.5)")
+    sim_board.add_argument("--stream-look", choices=("ideal", "real"), default="ideal",
+                           help="the stream's pictures: ideal, or as a real rig sees the phantom hung by its tubes")
     sim_board.set_defaults(run=_run_sim_board)
-
-
-def setting_field(name: str) -> SettingField:
-    """The daemon's setting ``name`` (its flag, type, default, help and range)."""
-    return next(item for item in settings() if item.name == name)
 
 
 def add_setting_flags(parser: argparse.ArgumentParser) -> None:
@@ -124,9 +128,13 @@ def _run_daemon(args: argparse.Namespace) -> int:
     from phantom.host.presets import DEFAULT_PRESETS, load_presets
 
     presets = (load_presets(args.config) if args.config else None) or DEFAULT_PRESETS
+    verify = VerifyScan()
+    if config.camera is not None or config.rig is not None:
+        from phantom.cli.scan_rig import camera_plan
+
+        verify = VerifyScan(camera_plan(config.camera, config.rig))
     return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
-                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=VerifyScan(),
-                      presets=presets)
+                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=verify, presets=presets)
 
 
 def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:
@@ -158,17 +166,41 @@ def _run_sim_board(args: argparse.Namespace) -> int:
     import signal
     import threading
 
+    from phantom import PhantomError
     from phantom.hil.sim import SimulatedBoard
 
     stop = threading.Event()
     for signum in (signal.SIGTERM, signal.SIGINT):
         signal.signal(signum, lambda *_: stop.set())
-    with SimulatedBoard(speed=args.sim_speed) as board:
-        if args.json:
-            print(json.dumps({"port": board.port, "speed": args.sim_speed}), flush=True)
-        else:
-            print(f"simulated board on {board.port} (speed {args.sim_speed:g}); drive it with "
-                  f"`phantom daemon --port {board.port}`; Ctrl-C stops it", flush=True)
-        while not stop.wait(0.5):
-            pass
+    stream_at = None
+    if args.camera_stream is not None:
+        host, _, port = args.camera_stream.rpartition(":")
+        if not host or not port.isdigit() or not 0 <= int(port) < 65536:
+            raise PhantomError(f"--camera-stream must be HOST:PORT (e.g. 127.0.0.1:8080), got {args.camera_stream!r}")
+        stream_at = (host, int(port))
+    board_type: type[SimulatedBoard] = SimulatedBoard
+    if stream_at is not None:
+        from phantom.hil.truth_shape import ScannerBoard
+
+        board_type = ScannerBoard
+    with board_type(speed=args.sim_speed) as board:
+        stream = None
+        if stream_at is not None:
+            from phantom.cli.sim_stream import CameraStream
+
+            stream = CameraStream(board, *stream_at, scale=args.stream_scale, look=args.stream_look).start()
+        try:
+            urls = {} if stream is None else {"streams": stream.urls()}
+            if args.json:
+                print(json.dumps({"port": board.port, "speed": args.sim_speed, **urls}), flush=True)
+            else:
+                print(f"simulated board on {board.port} (speed {args.sim_speed:g}); drive it with "
+                      f"`phantom daemon --port {board.port}`"
+                      + ("" if stream is None else f" --camera {stream.urls()['phantom']} --rig RIG.json")
+                      + "; Ctrl-C stops it", flush=True)
+            while not stop.wait(0.5):
+                pass
+        finally:
+            if stream is not None:
+                stream.close()
     return 0

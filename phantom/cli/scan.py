@@ -8,7 +8,10 @@ Only argparse is imported at module load; the handlers import what they need whe
 from __future__ import annotations
 
 import argparse
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from phantom.scan.render import Look
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -74,6 +77,12 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
     render.add_argument("--rig", help="keep this rig calibration (rig.json) beside the pictures instead of the true "
                                       "rig, e.g. one from phantom scan calibrate --sim")
     render.add_argument("--seed", type=int, default=0, help="seed of the sensor noise")
+    render.add_argument("--look", choices=("ideal", "real"), default="ideal",
+                        help="ideal: an even backdrop, a matt phantom floating in view (default); real: what a real "
+                             "rig sees, the phantom hung by three 4.4 mm tubes from a holder above, glossy, an "
+                             "uneven cloth in folds, vignetting")
+    for part in ("tubes", "gloss", "cloth", "vignetting", "noise"):
+        render.add_argument(f"--no-{part}", action="store_true", help=f"--look real without the {part}")
     render.set_defaults(run=run_render)
 
     reconstruct = actions.add_parser(
@@ -201,16 +210,6 @@ def _add_plan_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--elevations", default="0,30", help="the elevations (deg) of the passes (default 0,30)")
 
 
-def plan_of(args: argparse.Namespace, settle_s: float = 0.0) -> Any:
-    """The plan of ``--views`` and ``--elevations``, at most MAX_FRAMES pictures in all."""
-    from phantom.cli.common import parse_numbers
-    from phantom.scan.capture import Plan
-
-    return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
-
-
-
-
 def _checked_mesh(path: str) -> str:
     """A mesh file's path, refused (ScanError) before a reader holds it whole when it is over the size read."""
     from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size
@@ -225,15 +224,6 @@ def _read_mesh(path: str, units: str) -> Any:
     from phantom.scan.compare import read_scan
 
     return read_scan(_checked_mesh(path), units)
-
-
-def load_rig(path: str) -> Any:
-    """A rig calibration file (rig.json), its size checked before it is read."""
-    from phantom.cli.common import MAX_JSON_BYTES, check_input_size
-    from phantom.scan.camera import Rig, RigError
-
-    check_input_size(path, MAX_JSON_BYTES, "the rig file", RigError)
-    return Rig.load(path)
 
 
 def _open_capture(path: str) -> Any:
@@ -253,9 +243,22 @@ def _open_capture(path: str) -> Any:
     return folder
 
 
+def look_of(args: argparse.Namespace) -> Look:
+    """The virtual pictures' look from ``--look`` and its ``--no-PART`` flags."""
+    from dataclasses import replace
+
+    from phantom.scan.render import LOOKS
+
+    look = LOOKS[args.look]
+    look = replace(look, tubes=look.tubes and not args.no_tubes, gloss=0.0 if args.no_gloss else look.gloss,
+                   cloth=0.0 if args.no_cloth else look.cloth,
+                   vignetting=0.0 if args.no_vignetting else look.vignetting)
+    return replace(look, read_noise=0.0, shot_noise_gain=0.0) if args.no_noise else look
+
+
 def run_render(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan render``."""
-    from phantom.cli.common import frame_progress
+    from phantom.cli.common import frame_progress, load_rig, plan_of
     from phantom.scan.camera import virtual_rig
     from phantom.scan.virtual import render_capture
 
@@ -263,8 +266,10 @@ def run_render(args: argparse.Namespace) -> int:
     true_rig = virtual_rig(args.scale, plan.elevations_deg)
     kept = load_rig(args.rig) if args.rig else true_rig
     mesh = _read_mesh(args.mesh, args.units)
-    conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true"}
-    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, frame_progress("rendered"))
+    conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true",
+                  "look": args.look}
+    folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, frame_progress("rendered"),
+                            look=look_of(args))
     if kept is not true_rig:
         kept.save(folder.path / "rig.json")
     print(f"wrote {len(folder.frames)} pictures of {args.mesh} ({true_rig.camera.width}x{true_rig.camera.height}) "
@@ -277,6 +282,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     import json
     import sys
 
+    from phantom.cli.common import load_rig
     from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
 
     folder = _open_capture(args.capture)
@@ -288,16 +294,20 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     summary = {"capture": str(folder.path), "mesh": str(path), "views": result.views, "voxel_mm": result.voxel_mm,
                "volume_ml": result.volume_ml, "vertices": len(result.mesh.vertices_mm),
                "triangles": len(result.mesh.triangles), "stage_s": result.stage_s,
-               "silhouettes_touching_edge": result.touching_edge}
+               "silhouettes_touching_edge": result.touching_edge,
+               "hanging": None if result.hanging is None else result.hanging.to_json()}
     if args.json:
         print(json.dumps(summary))
         return 0
     print(f"wrote {path}: {result.volume_ml:.3f} ml, {len(result.mesh.triangles)} triangles, closed; carved from "
           f"{result.views} pictures at {result.voxel_mm:g} mm in "
           + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in result.stage_s.items()))
+    if result.hanging is not None:
+        print(f"the tubes it hangs by taken off at the gland's base, {result.hanging.cut_mm:.2f} mm up the orbit's "
+              f"axis ({result.hanging.removed_ml:.2f} ml of them in view)")
     if result.touching_edge:
-        print(f"warning: the silhouette touches the picture's edge in {result.touching_edge} picture(s): the "
-              f"phantom was not whole in view there, and what was cut off is missing", file=sys.stderr)
+        print(f"warning: the phantom reaches the picture's edge in {result.touching_edge} picture(s): it was not "
+              f"whole in view there, and what was cut off is missing", file=sys.stderr)
     return 0
 
 
@@ -378,6 +388,7 @@ def rig_against_truth(rig: Any, truth: Any) -> dict[str, float]:
 
 def run_export(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan export``."""
+    from phantom.cli.common import load_rig
     from phantom.scan.capture import CaptureError
     from phantom.scan.export import export_colmap, export_meshroom
 

@@ -101,30 +101,6 @@ def truth_scene(read: Callable[[], dict[str, Any] | None],
     return now
 
 
-def wait_settled(client: DaemonClient, tolerance_kpa: float = 0.03, hold_s: float = 1.0,
-                 timeout_s: float = 60.0) -> list[float]:
-    """Wait until every measured pressure has stayed within ``tolerance_kpa`` of its setpoint for ``hold_s``;
-    the pressures then (kPa). PhantomError on a fault or after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    steady_since: float | None = None
-    while time.monotonic() < deadline:
-        status = _call(client, "status")
-        if status["faults"]:
-            raise PhantomError(f"faults latched on the board: {', '.join(status['faults'])}")
-        measured, wanted = status["pressures_kpa"], status["setpoints_kpa"]
-        close = measured is not None and wanted is not None and all(
-            abs(m - w) <= tolerance_kpa for m, w in zip(measured, wanted, strict=True))
-        now = time.monotonic()
-        if not close:
-            steady_since = None
-        elif steady_since is None:
-            steady_since = now
-        elif now - steady_since >= hold_s:
-            return [float(p) for p in measured]
-        time.sleep(0.1)
-    raise PhantomError(f"the pressures did not settle at their setpoints within {timeout_s:g} s")
-
-
 def capture_through_daemon(client: DaemonClient, camera: FrameSource, plan: Plan, folder: CaptureFolder,
                            progress: Progress | None = None) -> CaptureFolder:
     """Configure the axes and take the plan's pictures through the daemon (the capture loop of
@@ -162,17 +138,19 @@ class DaemonScanner:
     Params: ``out`` (the capture folder to make, required), ``views`` (per turn, default 60), ``elevations_deg``
     (default [0, 30]), ``start_deg`` (-180), ``span_deg`` (360), ``settle_s`` (0.3), ``camera`` ("virtual", the
     default, on the simulated board; a device number or a video path for a webcam), ``scale`` (the virtual
-    picture's size of 1280x960), ``seed``, ``width``, ``height``, ``exposure``, ``focus``, ``rig`` (a rig.json to
-    keep beside the pictures). Answers the folder, its status (``complete``, ``stopped`` by a stop request,
-``aborted``) and the number of pictures, and for a capture that did not complete the ``reason``. The virtual camera
-    photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon --sim-truth`` said another)."""
+    picture's size of 1280x960), ``look`` (the virtual pictures: "ideal", the default, or "real": the phantom hung
+    by its tubes, glossy, an uneven cloth, vignetting), ``seed``, ``width``, ``height``, ``exposure``, ``focus``,
+    ``rig`` (a rig.json to keep beside the pictures). Answers the folder, its status (``complete``, ``stopped``
+    by a stop request, ``aborted``) and the number of pictures, and for a capture that did not complete the
+    ``reason``. The virtual camera photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon
+    --sim-truth`` said another)."""
 
     def __init__(self, truth: SimulatedTruth | None = None):
         self.truth = truth or SimulatedTruth()
         self._shape: TruthShape | None = None
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
-        from phantom.cli.scan import load_rig
+        from phantom.cli.common import load_rig
         from phantom.host.api import ApiError
         from phantom.protocol.motion import SCANNER_AXES
         from phantom.scan.capture import CaptureError, CaptureFolder, capture
@@ -198,7 +176,7 @@ class DaemonScanner:
         from phantom.scan.capture import Plan
 
         known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
-                 "width", "height", "exposure", "focus", "rig"}
+                 "width", "height", "exposure", "focus", "rig", "look"}
         unknown = sorted(set(params) - known)
         if unknown or not isinstance(params.get("out"), str):
             raise PhantomError(f"scan takes out (a folder, required) and {', '.join(sorted(known - {'out'}))}"
@@ -230,20 +208,61 @@ class DaemonScanner:
                 true_rig = virtual_rig(scale, elevations)
             except PhantomError as error:
                 raise PhantomError(f"scan: {error}") from None
+            from phantom.scan.render import LOOKS
+
+            look = params.get("look", "ideal")
+            if not isinstance(look, str) or look not in LOOKS:
+                raise PhantomError(f"scan: look must be one of {', '.join(sorted(LOOKS))} (the virtual camera's "
+                                   f"pictures: ideal, or as a real rig sees the phantom hung by its tubes), got "
+                                   f"{look!r}")
             if self._shape is None:
                 self._shape = self.truth.shape()
-            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed,
+            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed, look=LOOKS[look],
                                  pose_at=_scaled_pose(scale))
         source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
-        return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"))
+        size = None
+        if params.get("rig"):
+            from phantom.cli.common import load_rig
+
+            kept = load_rig(params["rig"]).camera
+            size = (kept.width, kept.height)
+        return Webcam(source, params.get("width"), params.get("height"), params.get("exposure"), params.get("focus"),
+                      size=size)
+
+
+def camera_plan(camera: str | None, rig_path: Any) -> dict[str, Any]:
+    """The verify scan's plan with a real camera (``phantom daemon --camera DEVICE|URL --rig rig.json``), checked
+    before the daemon starts: the rig read, the camera opened and one picture taken, of the size the rig was
+    calibrated at (PhantomError saying why otherwise); 30 stops a turn at each of the rig's elevations."""
+    from phantom.cli.common import load_rig
+    from phantom.cli.scan_verify import VERIFY_PLAN
+    from phantom.scan.capture import Webcam
+
+    if camera is None or rig_path is None:
+        raise PhantomError("--camera and --rig go together: the camera's pictures are posed by the rig's calibration "
+                           "(phantom scan calibrate), give both")
+    rig = load_rig(str(rig_path))
+    source: int | str = int(camera) if camera.isdigit() else camera
+    webcam = Webcam(source, rig.camera.width, rig.camera.height)
+    try:
+        picture = webcam.grab()
+    finally:
+        webcam.close()
+    height, width = picture.shape[:2]
+    if (width, height) != (rig.camera.width, rig.camera.height):
+        raise PhantomError(f"the camera {camera} gives {width}x{height} pictures and the rig {rig_path} was calibrated "
+                           f"at {rig.camera.width}x{rig.camera.height}: calibrate the rig at the camera's size "
+                           f"(phantom scan capture --target, phantom scan calibrate), or give the camera that size")
+    return {"views": VERIFY_PLAN["views"], "elevations_deg": [entry.elevation_deg for entry in rig.elevations],
+            "settle_s": 0.3, "camera": camera, "width": rig.camera.width, "height": rig.camera.height,
+            "rig": str(rig_path)}
 
 
 def run_capture(args: Any) -> int:
     """Handler of ``phantom scan capture``."""
     import sys
 
-    from phantom.cli.common import frame_progress
-    from phantom.cli.scan import load_rig, plan_of
+    from phantom.cli.common import frame_progress, load_rig, plan_of
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
     from phantom.scan.camera import virtual_rig
@@ -349,9 +368,9 @@ def run_validate(args: Any) -> int:
 
     import numpy as np
 
-    from phantom.cli.common import frame_progress, parse_numbers
+    import phantom
+    from phantom.cli.common import frame_progress, load_rig, parse_numbers, plan_of
     from phantom.cli.demo import wait_until_ready
-    from phantom.cli.scan import load_rig, plan_of
     from phantom.hil.truth_shape import TruthShape
     from phantom.host.client import DaemonClient
     from phantom.host.scenes import example_scene_path, load_timeline_scene
@@ -405,10 +424,14 @@ def run_validate(args: Any) -> int:
     try:
         wait_until_ready(socket, process, out / "daemon.log", stage_limit_s=args.daemon_timeout_s)
         say("daemon ready")
-        with DaemonClient(socket) as client:
+        with DaemonClient(socket) as client, phantom.connect(socket) as daemon:
             for target_ml in targets:
-                answer = _call(client, "set_target", {"volume_ml": target_ml})
-                measured = wait_settled(client)
+                # reached and settled by the control core's rule (the client's wait), as every client waits
+                reached = daemon.set_volume(target_ml, wait=True)
+                answer: dict[str, Any] = {"pressures_kpa": list(reached.pressures_kpa),
+                                          "predicted_volume_ml": reached.predicted_volume_ml,
+                                          "iterations": reached.iterations}
+                measured = list(reached.measured_pressures_kpa or reached.pressures_kpa)
                 say(f"{target_ml:g} ml: inverse {', '.join(f'{p:.3f}' for p in answer['pressures_kpa'])} kPa, "
                     f"held at {', '.join(f'{p:.3f}' for p in measured)} kPa; capturing {len(plan.stops())} pictures")
                 folder = CaptureFolder.create(out / f"capture_{target_ml:g}ml", {}, plan.to_json(), {

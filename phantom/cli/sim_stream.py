@@ -1,0 +1,133 @@
+"""The simulated board's camera as a network camera: ``phantom sim-board --camera-stream HOST:PORT``.
+
+A daemon started with ``--port`` on the simulated board drives it as a real board, with no simulated privileges:
+its pictures must come through a camera, as on a real rig. This serves the virtual camera's pictures as MJPEG
+over HTTP (what an IP camera or a phone as a webcam serves, which OpenCV's ``VideoCapture`` reads by URL), each
+rendered when it is sent, at the simulated rig's true angles (the pulses its drivers took, counted by simavr):
+
+- ``/phantom.mjpg``: the simulated phantom (the truth model at the plant's true pressures);
+- ``/target0.mjpg``, ``/target1.mjpg``: the ChArUco target, in the virtual rig's two calibration placements
+  (facing the camera at orbit 0, then turned round), for ``phantom scan capture --target`` and
+  ``phantom scan calibrate``.
+
+Pictures of ``scale`` times 1280x960 in the ``look`` (scan/render.py: ideal, or real), JPEG quality 95 with the
+colour at full resolution (4:4:4): with the usual 4:2:0, the colour key's edges blur over two pixels and a scan of
+the gland at rest read -2.1 % (a real camera's MJPEG has the same: prefer its 4:4:4 or raw mode). The socket's
+send buffer is kept small, so that a reader gets a picture rendered a frame ago, not several.
+"""
+
+from __future__ import annotations
+
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+
+import numpy as np
+
+#: The stream's paths: the phantom, and the target in each virtual calibration placement.
+PATHS = ("/phantom.mjpg", "/target0.mjpg", "/target1.mjpg")
+JPEG_QUALITY = 95
+SEND_BUFFER_BYTES = 64 * 1024
+
+
+class CameraStream:
+    """The simulated rig's camera served as MJPEG (see the module docstring) from ``board`` (a ScannerBoard)."""
+
+    def __init__(self, board: Any, host: str, port: int, scale: float = 0.5, look: str = "ideal"):
+        from phantom.hil.truth_shape import TruthShape
+        from phantom.scan.camera import virtual_pose, virtual_rig
+        from phantom.scan.render import LOOKS, CharucoTarget
+        from phantom.scan.virtual import VIRTUAL_PLACEMENTS, TargetCamera, VirtualCamera, target_pose_facing
+
+        self.board = board
+        self._lock = threading.Lock()
+        self._angles = _Angles()
+        rig = virtual_rig(scale)
+
+        def pose_at(orbit_deg: float, elevation_deg: float) -> Any:
+            return virtual_pose(orbit_deg, elevation_deg, scale)
+
+        truth = TruthShape()
+        target = CharucoTarget()
+        self.cameras: dict[str, Any] = {
+            "/phantom.mjpg": VirtualCamera(rig, lambda: (truth.surface(self._angles.pressures_kpa),
+                                                         self._angles.orbit_deg, self._angles.elevation_deg),
+                                           look=LOOKS[look], pose_at=pose_at)}
+        for number, (facing_deg, tilt_deg, spin_deg) in enumerate(VIRTUAL_PLACEMENTS):
+            self.cameras[f"/target{number}.mjpg"] = TargetCamera(
+                rig, target, target_pose_facing(facing_deg, tilt_deg, spin_deg, target), self._angles, number,
+                pose_at=pose_at)
+        self.server = ThreadingHTTPServer((host, port), self._handler())
+        self.server.daemon_threads = True
+        self.address = self.server.server_address
+        self._thread = threading.Thread(target=self.server.serve_forever, name="camera-stream", daemon=True)
+
+    def start(self) -> CameraStream:
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+    def urls(self) -> dict[str, str]:
+        host, port = str(self.address[0]), int(self.address[1])
+        return {path.strip("/").removesuffix(".mjpg"): f"http://{host}:{port}{path}" for path in PATHS}
+
+    def picture(self, path: str) -> np.ndarray:
+        """One JPEG of the camera at ``path``, rendered now at the rig's true angles."""
+        import cv2
+
+        with self._lock:  # the board's harness and the cameras' noise are not for two threads at once
+            state = self.board.plant_state()
+            rig_deg = state.get("rig_deg") or [0.0, 0.0]
+            self._angles.orbit_deg, self._angles.elevation_deg = (float(angle or 0.0) for angle in rig_deg)
+            self._angles.pressures_kpa = [p / 1e3 for p in state["pressures_pa"]]
+            rgb = self.cameras[path].grab()
+        ok, encoded = cv2.imencode(".jpg", np.ascontiguousarray(rgb[:, :, ::-1]),
+                                   [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY,
+                                    cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
+        if not ok:
+            raise RuntimeError("JPEG encoding failed")
+        return np.asarray(encoded)
+
+    def _handler(self) -> type[BaseHTTPRequestHandler]:
+        stream = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def setup(self) -> None:
+                import socket
+
+                self.request.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+                super().setup()
+
+            def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+                if self.path not in stream.cameras:
+                    self.send_error(404, f"the streams are {', '.join(PATHS)}")
+                    return
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.send_header("Cache-Control", "no-cache")
+                self.end_headers()
+                try:
+                    while True:
+                        jpeg = stream.picture(self.path).tobytes()
+                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
+                                         + str(len(jpeg)).encode() + b"\r\n\r\n" + jpeg + b"\r\n")
+                        self.wfile.flush()
+                except (BrokenPipeError, ConnectionResetError):
+                    return
+
+            def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (http.server's name)
+                return
+
+        return Handler
+
+
+class _Angles:
+    """Where the rig truly is (deg) and the plant's pressures (kPa) at the picture being rendered."""
+
+    def __init__(self) -> None:
+        self.orbit_deg = 0.0
+        self.elevation_deg = 0.0
+        self.pressures_kpa: list[float] = [0.0, 0.0, 0.0]

@@ -1,0 +1,94 @@
+"""``phantom daemon --camera DEVICE|URL --rig rig.json``: the verify scan's real camera, checked before the daemon
+starts (the rig read, one picture of the rig's size), and a picture of another size refused during a capture.
+OpenCV's VideoCapture reads an image sequence through the API a device or a stream uses, so the camera here is
+a folder of pictures."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+cv2 = pytest.importorskip("cv2")
+
+from phantom.scan.camera import virtual_rig  # noqa: E402
+from phantom.scan.capture import CameraLost, Webcam  # noqa: E402
+
+
+def _pictures(folder, width, height, count=2):
+    folder.mkdir(parents=True, exist_ok=True)
+    for index in range(count):
+        cv2.imwrite(str(folder / f"{index:04d}.png"), np.full((height, width, 3), 90, np.uint8))
+    return str(folder / "%04d.png")
+
+
+def _daemon(*arguments):
+    return subprocess.run([sys.executable, "-m", "phantom", "daemon", "--port", "/dev/null", *arguments],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_a_rig_calibrated_for_another_picture_size_is_refused_before_the_daemon_starts(tmp_path):
+    rig = virtual_rig(0.5).save(tmp_path / "rig.json")  # 640x480
+    camera = _pictures(tmp_path / "camera", 320, 240)
+    done = _daemon("--camera", camera, "--rig", str(rig))
+    assert done.returncode != 0
+    assert "gives 320x240 pictures and the rig" in done.stderr and "calibrated at 640x480" in done.stderr
+
+
+def test_a_camera_without_a_rig_or_one_that_cannot_be_opened_is_refused(tmp_path):
+    rig = virtual_rig(0.5).save(tmp_path / "rig.json")
+    assert "--camera and --rig go together" in _daemon("--camera", "0").stderr
+    done = _daemon("--camera", str(tmp_path / "none" / "%04d.png"), "--rig", str(rig))
+    assert done.returncode != 0 and "cannot open the camera" in done.stderr
+
+
+def test_a_camera_stream_address_that_is_not_host_and_port_is_refused():
+    done = subprocess.run([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "8080"],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode != 0 and "--camera-stream must be HOST:PORT" in done.stderr
+
+
+def test_a_picture_of_another_size_during_a_capture_is_refused_saying_both_sizes(tmp_path):
+    camera = _pictures(tmp_path / "camera", 320, 240)
+    webcam = Webcam(camera, size=(640, 480))
+    with pytest.raises(CameraLost, match="gave a 320x240 picture, the rig was calibrated at 640x480"):
+        webcam.grab()
+    assert Webcam(camera, size=(320, 240)).grab().shape == (240, 320, 3)
+
+
+@pytest.mark.sim  # starts the simulated board (simavr)
+def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(tmp_path):
+    import json
+
+    from phantom.scan.silhouette import silhouette
+
+    board = subprocess.Popen([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "127.0.0.1:0",
+                              "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = board.stdout.readline()
+        assert line, board.stderr.read()
+        streams = json.loads(line)["streams"]
+        assert set(streams) == {"phantom", "target0", "target1"}
+        pictures = {}
+        for name, url in streams.items():
+            capture = cv2.VideoCapture(url)  # as a daemon's --camera URL opens it
+            ok, picture = capture.read()
+            capture.release()
+            assert ok and picture.shape == (480, 640, 3), name
+            pictures[name] = picture[:, :, ::-1].copy()
+        found = silhouette(pictures["phantom"])
+        assert not found.touches_edge and 4000 < found.area_px < 40000  # the gland, whole in view
+        board_of = cv2.aruco.CharucoBoard((9, 6), 15.0, 11.0, cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+        corners, _, _, _ = cv2.aruco.CharucoDetector(board_of).detectBoard(cv2.cvtColor(pictures["target0"],
+                                                                                        cv2.COLOR_RGB2GRAY))
+        assert corners is not None and len(corners) >= 30  # the target facing the camera at orbit 0
+        import urllib.error
+        import urllib.request
+
+        with pytest.raises(urllib.error.HTTPError, match="404"):
+            urllib.request.urlopen(streams["phantom"].replace("phantom.mjpg", "nothing.mjpg"), timeout=10)
+    finally:
+        board.terminate()
+        board.wait(30)
