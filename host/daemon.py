@@ -38,7 +38,7 @@ from phantom.host.config import DaemonConfig
 from phantom.host.control import ControlCore, ReachRule, predicted_volume_ml
 from phantom.host.estimation import EstimateSchedule, VolumeEstimates
 from phantom.host.model_worker import Estimate
-from phantom.host.motion import LATE_REPLY, SCAN_TRIES, Orbit, simulated_truth
+from phantom.host.motion import SCAN_TRIES, Orbit, simulated_truth
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.scene_runner import PreparedRun, SceneRunner
 from phantom.host.scenes import gland_volume_ml
@@ -267,10 +267,11 @@ class Daemon:
         all. The scan method's answer; ApiError when the last try failed."""
         for attempt in range(1, SCAN_TRIES + 1):
             await self._rig_at_rest()
+            late_before = self.motion.late_replies
             try:
                 answer = await self.api.handlers["scan"]({"out": str(verify_folder(round_)), **plan})
             except ApiError as error:
-                if attempt == SCAN_TRIES or LATE_REPLY not in str(error):
+                if attempt == SCAN_TRIES or self.motion.late_replies == late_before:
                     raise
                 self.event("scan", f"the scan of round {round_} failed ({error}): scanned again", "WARN")
                 continue

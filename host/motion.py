@@ -80,8 +80,6 @@ DaemonState = Callable[[], dict[str, Any]]
 Result = TypeVar("Result")
 
 
-#: What a late reply's error says (it reaches the daemon's verify as the scan's failure text).
-LATE_REPLY = "did not end within"
 #: A verified round's scan that failed for a late reply is taken this many times in all.
 SCAN_TRIES = 2
 
@@ -128,6 +126,8 @@ class Orbit:
         self._lock = asyncio.Lock()
         #: the scan that owns the rig, None when none runs
         self.scan: ScanRun | None = None
+        #: how many waits for the board's reply ran out (a scan that failed meanwhile is worth taking again)
+        self.late_replies = 0
 
     # --- frames from the board ------------------------------------------------------------------------------
 
@@ -159,8 +159,9 @@ class Orbit:
                     started_board_s = board_s
                 late = started_board_s is not None and board_s is not None and board_s - started_board_s > timeout_s
                 if left <= 0 or late:
-                    raise LateReply(f"{what} {LATE_REPLY} {timeout_s:.0f} s (is the axis configured and the link "
-                                    f"up?)")
+                    self.late_replies += 1
+                    raise LateReply(f"{what} did not end within {timeout_s:.0f} s (is the axis configured and the "
+                                    f"link up?)")
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._changed.wait(), min(left, 1.0))
 
