@@ -31,8 +31,8 @@ import phantom
 from phantom.host.logs import configure_logging
 from phantom.host.scenes import effective_model
 from phantom.model.cluster import exit_with_parent
-from phantom.model.corrections import CorrectedModel, Correction, pressures_in_box
-from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement, judged
+from phantom.model.corrections import CorrectedModel, Correction, judged, pressures_in_box
+from phantom.model.measurements import CorrectionError, CorrectionStore, Measurement
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 
 logger = logging.getLogger(__name__)

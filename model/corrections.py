@@ -43,7 +43,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import written_atomically
-from phantom.model.measurements import CorrectionError, Measurement
+from phantom.model.measurements import CorrectionError, Measurement, expectation, plausibility
 from phantom.model.target import UnreachableTargetError
 
 #: A measured pressure this close outside the model's box (kPa: two counts of the board's ADC, its settled band)
@@ -525,3 +525,23 @@ def model_grid(estimator: Any, description: str = "") -> ModelGrid:
 
     return ModelGrid(points_kpa, 1e6 * np.asarray(table.chamber_values), 1e6 * np.asarray(table.gland_values),
                      gland_ml, description)
+
+
+def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement],
+           model_name: str = "the model") -> Measurement:
+    """``measurement`` with its status: ``unconfirmed`` with the reason when it is implausible against the model
+    (``grid``: a :class:`ModelGrid`) corrected by the ``confirmed`` measurements already stored
+    (:func:`phantom.model.measurements.expectation`; their fit is the cached one, the daemon's when it fitted them
+    already); a fit that fails leaves the model's own expectation."""
+    pressures = np.clip(np.asarray(measurement.pressures_kpa, dtype=float), 0.0, float(grid.points_kpa[-1]))
+    corrected = None
+    if confirmed:
+        try:
+            corrected = CorrectedModel(grid, cached_fit(confirmed, grid))
+        except (CorrectionError, ValueError, ArithmeticError):
+            corrected = None
+    expected, half_width, basis = expectation(pressures, grid.gland_ml(pressures), corrected, model_name)
+    verdict = plausibility(measurement.volume_ml, expected, half_width, basis)
+    if verdict.plausible:
+        return measurement
+    return replace(measurement, status="unconfirmed", reason=verdict.reason)

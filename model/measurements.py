@@ -206,28 +206,6 @@ def expectation(pressures_kpa: ArrayLike, model_ml: float, corrected: Any | None
     return expected, max(half_width, expected * MIN_HALF_WIDTH_PCT / 100), basis
 
 
-def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement],
-           model_name: str = "the model") -> Measurement:
-    """``measurement`` with its status: ``unconfirmed`` with the reason when it is implausible against the model
-    (``grid``: a ``phantom.model.corrections.ModelGrid``) corrected by the ``confirmed`` measurements already
-    stored (:func:`expectation`; their fit is the cached one, the daemon's when it fitted them already); a fit that
-    fails leaves the model's own expectation."""
-    from phantom.model.corrections import CorrectedModel, cached_fit
-
-    pressures = np.clip(np.asarray(measurement.pressures_kpa, dtype=float), 0.0, float(grid.points_kpa[-1]))
-    corrected = None
-    if confirmed:
-        try:
-            corrected = CorrectedModel(grid, cached_fit(confirmed, grid))
-        except (CorrectionError, ValueError, ArithmeticError):
-            corrected = None
-    expected, half_width, basis = expectation(pressures, grid.gland_ml(pressures), corrected, model_name)
-    verdict = plausibility(measurement.volume_ml, expected, half_width, basis)
-    if verdict.plausible:
-        return measurement
-    return replace(measurement, status="unconfirmed", reason=verdict.reason)
-
-
 class CorrectionStore:
     """The measurements of one phantom, in ``path`` (see the module docstring)."""
 

@@ -306,7 +306,7 @@ def verified_row(record: CharacterisationRecord, result: PointResult, grid: Mode
     """The measurement a row finished but not stored gives, once verified: its scan folder is this run's and
     holds a scan (``volume_of(folder)``: its volume reconstructed again, ml; CharacterisationError or a
     PhantomError when it is no scan) whose volume is the row's; judged plausible or not against the model
-    corrected by the ``confirmed`` measurements (:func:`phantom.model.measurements.judged`: an implausible one is
+    corrected by the ``confirmed`` measurements (:func:`phantom.model.corrections.judged`: an implausible one is
     stored unconfirmed).
 
     Raises
@@ -314,7 +314,7 @@ def verified_row(record: CharacterisationRecord, result: PointResult, grid: Mode
     CharacterisationError
         The row is refused (why): no scan folder, another volume than its scan's, or no scan there.
     """
-    from phantom.model.measurements import judged
+    from phantom.model.corrections import judged
 
     folder = record.scan_folder(result.index)
     if not folder.is_dir():

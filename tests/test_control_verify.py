@@ -474,11 +474,13 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
         scanner = types.SimpleNamespace(plan={}, volume=lambda folder: {"volume_ml": 35.02, "surface_mm": None})
         daemon = types.SimpleNamespace(
             verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
-            motion=types.SimpleNamespace(latest=None, stop_scan=stop_scan), link_lost_s=None, now_s=lambda: 0.0,
+            motion=types.SimpleNamespace(latest=None, stop_scan=stop_scan, late_replies=0), link_lost_s=None,
+            now_s=lambda: 0.0, event=lambda *_: None,
             recorder=types.SimpleNamespace(log_scanned_volume=lambda *_: None), plant_volume_ml=lambda: 35.0,
             core=types.SimpleNamespace(scanned="scanned"), _feed=lambda method, *args: fed.append((method, args)),
             verify_scan=None)
         daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
+        daemon.perform_scan = lambda round_, plan: Daemon.perform_scan(daemon, round_, plan)
         first = asyncio.ensure_future(Daemon._scan_for_core(daemon, control.Scan(1, volume(40.0), (1.0, 0.5, 0.5))))
         await asyncio.sleep(0.01)
         second = Daemon._scan_for_core(daemon, control.Scan(1, volume(35.0), (0.9, 0.4, 0.4)))

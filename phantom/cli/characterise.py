@@ -351,7 +351,7 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
         UnreachableError,
         WaitTimeoutError,
     )
-    from phantom.model.measurements import judged
+    from phantom.model.corrections import judged
     from phantom.scan.characterise import CharacterisationError
 
     pending = record.pending()

@@ -1,7 +1,7 @@
 """Subcommand of ``phantom``: ``corrections`` (the measured volumes that correct a phantom's model).
 
 ``list``, ``add`` (a water-displacement or other measurement by hand: refused outside the model's pressure box,
-stored unconfirmed when implausible, :func:`phantom.model.measurements.judged`), ``confirm N`` and ``remove N`` (one
+stored unconfirmed when implausible, :func:`phantom.model.corrections.judged`), ``confirm N`` and ``remove N`` (one
 entry), ``clear``, ``export`` (the CSV ``phantom calibrate --measurements`` reads) and ``fit`` (the correction they
 give a scene's model, with every candidate's leave-one-out error). The store is ``phantom.model.measurements``; only
 argparse is imported at module load.
@@ -93,9 +93,9 @@ def _add(store: Any, args: argparse.Namespace) -> int:
 
     from phantom.cli.common import parse_numbers
     from phantom.model import PhantomModel, load_scene
-    from phantom.model.corrections import model_grid, pressures_in_box
+    from phantom.model.corrections import judged, model_grid, pressures_in_box
     from phantom.model.fidelity.levels import VolumeEstimator
-    from phantom.model.measurements import CorrectionError, Measurement, judged
+    from phantom.model.measurements import CorrectionError, Measurement
 
     measurement = Measurement.now(parse_numbers(args.pressures_kpa, "--pressures-kpa"), args.volume_ml, args.method,
                                   args.scan_file)

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from phantom import require_extra
+
 #: The stream's paths: the phantom, and the target in each virtual calibration placement.
 PATHS = ("/phantom.mjpg", "/target0.mjpg", "/target1.mjpg")
 JPEG_QUALITY = 95
@@ -76,7 +78,8 @@ class CameraStream:
 
     def picture(self, path: str) -> np.ndarray:
         """One JPEG of the camera at ``path``, rendered now at the rig's true angles."""
-        import cv2
+        with require_extra("scan"):
+            import cv2
 
         with self._lock:  # the board's harness and the cameras' noise are not for two threads at once
             state = self.board.plant_state()
