@@ -7,14 +7,14 @@ user's data directory (``$PHANTOM_DATA_DIR``, else ``$XDG_DATA_HOME/phantom``, e
 exports them as the measurements CSV ``phantom calibrate`` reads. The correction fitted to them is
 :mod:`phantom.model.corrections`'s; this module reads no scans.
 
-A measurement is checked before it is believed (:func:`plausibility`, :func:`judged`): every path that stores a
-volume (``phantom corrections add``, ``phantom characterise``, the daemon's record of a scan) compares it with the
-volume expected at its pressures, and one further from it than ``PLAUSIBLE_SIGMAS`` standard deviations (the
-expectation's 95 % half-width / 1.96) is stored *unconfirmed*, with the reason, and left out of every fit
-(:meth:`CorrectionStore.confirmed`) until a person confirms it (``phantom corrections confirm N``) or removes it
-(``remove N``). The expectation is the corrected model's where a correction is in force (its band when it has one,
-else its volume with its leave-one-out error as the band), else the model's with its known error
-(``MODEL_ERROR_95_PCT``). The band is never narrower than ``MIN_HALF_WIDTH_PCT``.
+A measurement is checked before it is believed (:func:`plausibility`; ``phantom.model.corrections.judged``):
+every path that stores a volume (``phantom corrections add``, ``phantom characterise``, the daemon's record of a
+scan) compares it with the volume expected at its pressures, and one further from it than ``PLAUSIBLE_SIGMAS``
+standard deviations (the expectation's 95 % half-width / 1.96) is stored *unconfirmed*, with the reason, and left
+out of every fit (:meth:`CorrectionStore.confirmed`) until a person confirms it (``phantom corrections confirm
+N``) or removes it (``remove N``). The expectation is the corrected model's where a correction is in force (its
+95 % band), else the model's with its known error (``MODEL_ERROR_95_PCT``). The band is never narrower than
+``MIN_HALF_WIDTH_PCT``.
 
 The store is read defensively (a damaged store must never stop the daemon): a link, a pipe or a device in its
 place is refused before it is opened, duplicate keys, wrong types and absurd numbers are refused with the field
@@ -180,29 +180,17 @@ def expectation(pressures_kpa: ArrayLike, model_ml: float, corrected: Any | None
     """The volume expected at these pressures (ml), its 95 % half-width (ml) and where it came from.
 
     ``model_ml`` is the model's own volume there; ``corrected`` the corrected model in force (a
-    ``phantom.model.corrections.CorrectedModel``; None: none). With a correction: its band where it gives one
-    (``gland_band_ml(pressures) -> (mean, half-width)``), else its volume with its leave-one-out error as the band
-    (a mean absolute error is 0.8 of a standard deviation), else, with too few measurements for a leave-one-out,
-    the model's known error. Without: the model's volume and ``MODEL_ERROR_95_PCT``. Never narrower than
-    ``MIN_HALF_WIDTH_PCT``.
+    ``phantom.model.corrections.CorrectedModel``; None: none). With a correction: its band
+    (``gland_band_ml(pressures) -> (mean, half-width)``, the Gaussian process's 95 %). Without: the model's volume
+    and ``MODEL_ERROR_95_PCT``. Never narrower than ``MIN_HALF_WIDTH_PCT``.
     """
     pressures = np.asarray(pressures_kpa, dtype=float)
     if corrected is None:
         expected, half_width, basis = model_ml, model_ml * MODEL_ERROR_95_PCT / 100, \
             f"{model_name} (its known error, {MODEL_ERROR_95_PCT:g} %)"
-    elif hasattr(corrected, "gland_band_ml"):
+    else:
         expected, half_width = (float(v) for v in corrected.gland_band_ml(pressures))
         basis = f"the correction in force ({corrected.describe()})"
-    else:
-        expected = float(corrected.gland_ml(pressures))
-        correction = corrected.correction
-        loo_pct = correction.leave_one_out_pct.get(correction.kind)
-        if loo_pct is None:
-            half_width = expected * MODEL_ERROR_95_PCT / 100
-            basis = f"the correction in force ({corrected.describe()}) with the model's known error"
-        else:
-            half_width = expected * 1.96 * 1.25 * loo_pct / 100
-            basis = f"the correction in force ({corrected.describe()}, leave-one-out {loo_pct:.2f} %)"
     return expected, max(half_width, expected * MIN_HALF_WIDTH_PCT / 100), basis
 
 
