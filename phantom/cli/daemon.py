@@ -133,8 +133,17 @@ def _run_daemon(args: argparse.Namespace) -> int:
         from phantom.cli.scan_rig import camera_plan
 
         verify = VerifyScan(camera_plan(config.camera, config.rig))
-    return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
-                      if config.sim else None, scanner=DaemonScanner(truth), verify_scanner=verify, presets=presets)
+    from phantom.cli.scan_worker import ScanWorker
+
+    # the scans' capture and reconstruction in a process of their own: they hold the GIL for long stretches,
+    # which in the daemon's process held up its loops past the board's dead-host deadline on a busy machine
+    scans = ScanWorker(DaemonScanner(truth), verify)
+    try:
+        scans.start()
+        return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
+                          if config.sim else None, scanner=scans, verify_scanner=scans, presets=presets)
+    finally:
+        scans.close()
 
 
 def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:

@@ -133,7 +133,8 @@ class SimulatedTruth:
 
 class DaemonScanner:
     """The daemon's ``scan`` API method (a ``phantom.host.motion.Scanner``, given to the daemon by ``phantom
-    daemon``): the capture loop in the daemon's process, with its axes and state (``ThreadRig``).
+    daemon``): the capture loop, run by ``phantom daemon`` in the scan worker's process
+    (``phantom.cli.scan_worker``), with the daemon's axes and state through its rig (``ThreadRig``'s calls).
 
     Params: ``out`` (the capture folder to make, required), ``views`` (per turn, default 60), ``elevations_deg``
     (default [0, 30]), ``start_deg`` (-180), ``span_deg`` (360), ``settle_s`` (0.3), ``camera`` ("virtual", the
@@ -160,14 +161,19 @@ class DaemonScanner:
         except PhantomError as error:  # bad params are the caller's to fix (invalid_params), not a state's refusal
             raise ApiError("invalid_params", str(error)) from None
         camera = self._camera(params, rig, plan.elevations_deg, params.get("scale", 1.0), seed)
-        kept = load_rig(params["rig"]) if params.get("rig") else None
-        folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
-        rig.configure(SCANNER_AXES)
-        answer: dict[str, Any] = {"folder": str(folder.path)}
         try:
-            capture(rig, camera, rig, plan, folder, stop=rig)
-        except CaptureError as error:  # stopped or aborted: the folder says which, the error why
-            answer["reason"] = str(error)
+            kept = load_rig(params["rig"]) if params.get("rig") else None
+            folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
+            rig.configure(SCANNER_AXES)
+            answer: dict[str, Any] = {"folder": str(folder.path)}
+            try:
+                capture(rig, camera, rig, plan, folder, stop=rig)
+            except CaptureError as error:  # stopped or aborted: the folder says which, the error why
+                answer["reason"] = str(error)
+        finally:  # a webcam is let go: the process it was opened in outlives the scan, the next opens it again
+            close = getattr(camera, "close", None)
+            if close is not None:
+                close()
         return {**answer, "status": folder.status, "pictures": len(folder.frames)}
 
     @staticmethod

@@ -1,5 +1,6 @@
 """A verified target's scan, given to ``phantom daemon`` (a ``phantom.host.daemon.VerifyScanner``): the plan of
-the scan the daemon takes with its own ``scan`` method, and the capture's reconstruction to a gland volume.
+the scan the daemon takes with its own ``scan`` method, and the capture's reconstruction to a gland volume (run
+by ``phantom daemon`` in the scan worker's process, ``phantom.cli.scan_worker``, as the capture is).
 
 The plan was chosen by measurement (bench/README.md, "Scanner" and "A verified target"): the fewest pictures
 and the smallest picture whose volume error stays well under the verified targets' 0.3 %.

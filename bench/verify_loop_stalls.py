@@ -1,0 +1,172 @@
+"""How late the daemon's loops run while a verified target scans, learns and applies again, idle and with one
+busy process per core beside it (issue 48, "the link holds while the phantom learns").
+
+Per row, a fresh ``phantom daemon --sim --sim-speed 2`` (the firmware in simavr, the shipped simulated phantom)
+with an empty measurement store is asked one volume with ``verify="scan"`` (each round: the capture, the
+reconstruction, the correction's fit), and this script polls the daemon's status twice a second meanwhile. From
+the status's lists of probes later than 10 ms it takes, over the verify only (not the start-up), the longest
+lateness of a 20 ms timer on the daemon's event loop (``event_loop``), on the board link's loop (its own thread:
+``link_detail.event_loop``, the one whose silence past 500 ms makes the board latch DEAD_HOST) and how many
+probes of the link's loop were later than 100 ms; and, as the peer measured in the same run, the longest
+lateness of the same timer in a bare process that does nothing else (what the machine's scheduler alone costs).
+With busy processes, ``--busy N`` pure-Python loops run at normal priority beside the daemon from before the
+target is set until it is answered.
+
+    .venv/bin/python bench/verify_loop_stalls.py [--target 35] [--busy 0,2] [--logs DIR]   # 2-3 minutes a row
+
+Prints a Markdown table (bench/README.md, "A verified target's scan beside busy cores").
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import phantom
+from phantom.cli.demo import stop_daemon, wait_until_ready
+from phantom.host.client import DaemonClient, DaemonError
+
+#: A bare process's 20 ms timer: prints its longest lateness (ms) when its stdin closes.
+BARE_PEER = """
+import sys, threading, time
+longest = 0.0
+done = threading.Event()
+threading.Thread(target=lambda: (sys.stdin.read(), done.set()), daemon=True).start()
+while not done.is_set():
+    due = time.monotonic() + 0.02
+    time.sleep(0.02)
+    longest = max(longest, (time.monotonic() - due) * 1e3)
+print(longest)
+"""
+
+
+class StallWatch:
+    """The daemon's status polled from a thread: each loop's probes later than 10 ms, on the monotonic clock of
+    this process (the status says how long ago each was), kept between :meth:`start` and :meth:`stop`."""
+
+    def __init__(self, socket: Path):
+        self.socket = socket
+        self.stalls: dict[str, dict[float, float]] = {"daemon": {}, "link": {}}
+        self.faults: set[str] = set()
+        self._from_s = float("inf")
+        self._to_s = float("inf")
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._poll, daemon=True)
+
+    def start(self) -> None:
+        self._from_s = time.monotonic()
+        self._thread.start()
+
+    def stop(self) -> None:
+        """Stop polling, after one last status (the stalls and a fault up to the verify's answer)."""
+        self._to_s = time.monotonic()
+        self._done.set()
+        self._thread.join(10)
+        with DaemonClient(self.socket) as client:
+            self._take(client)
+
+    def _poll(self) -> None:
+        with DaemonClient(self.socket) as client:
+            while not self._done.wait(0.5):
+                self._take(client)
+
+    def _take(self, client: DaemonClient) -> None:
+        try:
+            status = client.call("status")
+        except (DaemonError, OSError):
+            return
+        now_s = time.monotonic()
+        self.faults.update(status.get("faults") or ())
+        for name, figures in (("daemon", status.get("event_loop")),
+                              ("link", (status.get("link_detail") or {}).get("event_loop"))):
+            for ago_s, late_ms in (figures or {}).get("notable_stalls", []):
+                self.stalls[name][round(now_s - ago_s, 2)] = late_ms
+
+    def during(self, name: str) -> list[float]:
+        """The loop's stalls (ms) from :meth:`start` to :meth:`stop`."""
+        return [late for at_s, late in self.stalls[name].items() if self._from_s <= at_s <= self._to_s]
+
+
+def one_row(target_ml: float, busy: int, logs: Path | None) -> dict[str, Any]:
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        log_path, sock = folder / "daemon.log", folder / "d.sock"
+        with open(log_path, "w") as log:
+            process = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--sim",
+                                        "--sim-speed", "2", "--socket", str(sock)], stdout=log,
+                                       stderr=subprocess.STDOUT, env={**os.environ,
+                                                                      "PHANTOM_DATA_DIR": str(folder / "data")})
+            load: list[subprocess.Popen[bytes]] = []
+            peer = subprocess.Popen([sys.executable, "-c", BARE_PEER], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                    text=True)
+            try:
+                wait_until_ready(sock, process, log_path)
+                load = [subprocess.Popen([sys.executable, "-c", "while True:\n    pass\n"]) for _ in range(busy)]
+                watch = StallWatch(sock)
+                load_before = os.getloadavg()[0]
+                started = time.monotonic()
+                watch.start()
+                error = ""
+                rounds: list[dict[str, Any]] = []
+                verified = False
+                with phantom.connect(sock) as ph:
+                    try:
+                        result = ph.set_volume(target_ml, verify="scan", timeout_s=1700)
+                        rounds, verified = list(result.rounds), bool(result.verified)
+                    except DaemonError as failed:
+                        error = str(failed)
+                        rounds = list(getattr(failed, "rounds", []) or [])
+                watch.stop()
+                seconds = time.monotonic() - started
+                load_after = os.getloadavg()[0]
+            finally:
+                for busy_process in load:
+                    busy_process.kill()
+                    busy_process.wait()
+                peer_out, _ = peer.communicate("", timeout=30)
+                stop_daemon(process)
+                if logs is not None:
+                    logs.mkdir(parents=True, exist_ok=True)
+                    shutil.copy(log_path, logs / f"daemon_busy{busy}_{time.strftime('%H%M%S')}.log")
+        daemon_ms, link_ms = watch.during("daemon"), watch.during("link")
+        true_ml = rounds[-1].get("true_volume_ml") if rounds else None
+        return {"busy": busy, "load": f"{load_before:.1f}-{load_after:.1f}", "seconds": seconds,
+                "rounds": len(rounds), "verified": verified,
+                "true_pct": None if true_ml is None else (true_ml - target_ml) / target_ml * 100,
+                "daemon_ms": max(daemon_ms, default=0.0), "link_ms": max(link_ms, default=0.0),
+                "link_over_100": sum(late > 100 for late in link_ms), "peer_ms": float(peer_out.strip() or "nan"),
+                "faults": ", ".join(sorted(watch.faults)) or "none", "error": error}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--target", type=float, default=35.0, help="the verified volume (ml)")
+    parser.add_argument("--busy", default=f"0,{os.cpu_count() or 2}",
+                        help="busy processes beside the daemon, one row each (comma-separated)")
+    parser.add_argument("--logs", type=Path, help="keep each row's daemon log in this folder")
+    args = parser.parse_args()
+    rows = [one_row(args.target, int(busy), args.logs) for busy in args.busy.split(",")]
+    print(f"`{Path(sys.argv[0]).name} --target {args.target:g} --busy {args.busy}`, {time.strftime('%Y-%m-%d %H:%M')} "
+          f"UTC, {os.cpu_count()} cores\n")
+    print("| busy processes | load (1 min) | seconds | rounds | verified | true error % | daemon's loop: longest "
+          "stall (ms) | link's loop (ms) | link's probes > 100 ms | bare peer process (ms) | faults |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        true_pct = "-" if row["true_pct"] is None else f"{row['true_pct']:+.2f}"
+        print(f"| {row['busy']} | {row['load']} | {row['seconds']:.0f} | {row['rounds']} | {row['verified']} | "
+              f"{true_pct} | {row['daemon_ms']:.0f} | {row['link_ms']:.0f} | {row['link_over_100']} | "
+              f"{row['peer_ms']:.0f} | {row['faults']} |")
+        if row["error"]:
+            print(f"\n(busy {row['busy']}: {row['error']})")
+
+
+if __name__ == "__main__":
+    main()
