@@ -1,20 +1,22 @@
 """How late the daemon's loops run while a verified target scans, learns and applies again, idle and with one
-busy process per core beside it (issue 48, "the link holds while the phantom learns").
+busy process per core beside it (issue 48, "the link holds while the phantom learns"), against the same target
+held without verify for as long (the peer: what the machine and the daemon's link cost without a scan).
 
 Per row, a fresh ``phantom daemon --sim --sim-speed 2`` (the firmware in simavr, the shipped simulated phantom)
-with an empty measurement store is asked one volume with ``verify="scan"`` (each round: the capture, the
-reconstruction, the correction's fit), and this script polls the daemon's status twice a second meanwhile. From
-the status's lists of probes later than 10 ms it takes, over the verify only (not the start-up), the longest
-lateness of a 20 ms timer on the daemon's event loop (``event_loop``), on the board link's loop (its own thread:
-``link_detail.event_loop``, the one whose silence past 500 ms makes the board latch DEAD_HOST) and how many
-probes of the link's loop were later than 100 ms; and, as the peer measured in the same run, the longest
-lateness of the same timer in a bare process that does nothing else (what the machine's scheduler alone costs).
-With busy processes, ``--busy N`` pure-Python loops run at normal priority beside the daemon from before the
-target is set until it is answered.
+with an empty measurement store is asked one volume, with ``verify="scan"`` (each round: the capture, the
+reconstruction, the correction's fit) or, for the peer row, without verify and then held for ``--hold-s``; this
+script polls the daemon's status twice a second meanwhile. From the status's lists of probes later than 10 ms it
+takes, over the verify or the hold only (not the start-up), the longest lateness of a 20 ms timer on the daemon's
+event loop (``event_loop``), on the board link's loop (its own thread: ``link_detail.event_loop``, the one whose
+silence past 500 ms makes the board latch DEAD_HOST) and how many probes of the link's loop were later than 100
+ms; and the longest lateness of the same timer in a bare process that does nothing else (what the machine's
+scheduling alone costs). With busy processes, ``--busy N`` pure-Python loops run at normal priority beside the
+daemon from before the target is set until it is answered (or the hold ends). A hold ends early on a fault.
 
-    .venv/bin/python bench/verify_loop_stalls.py [--target 35] [--busy 0,2] [--logs DIR]   # 2-3 minutes a row
+    .venv/bin/python bench/verify_loop_stalls.py [--target 35] [--busy 0,2] [--hold-s 90] [--logs DIR]
 
-Prints a Markdown table (bench/README.md, "A verified target's scan beside busy cores").
+About 2-3 minutes a verify row and two a hold row. Prints a Markdown table (bench/README.md, "A verified
+target's scan beside busy cores").
 """
 
 from __future__ import annotations
@@ -95,7 +97,8 @@ class StallWatch:
         return [late for at_s, late in self.stalls[name].items() if self._from_s <= at_s <= self._to_s]
 
 
-def one_row(target_ml: float, busy: int, logs: Path | None) -> dict[str, Any]:
+def one_row(target_ml: float, busy: int, hold_s: float | None, logs: Path | None) -> dict[str, Any]:
+    """One daemon asked ``target_ml`` with verify (``hold_s`` None), or without and held ``hold_s``."""
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         log_path, sock = folder / "daemon.log", folder / "d.sock"
@@ -119,8 +122,13 @@ def one_row(target_ml: float, busy: int, logs: Path | None) -> dict[str, Any]:
                 verified = False
                 with phantom.connect(sock) as ph:
                     try:
-                        result = ph.set_volume(target_ml, verify="scan", timeout_s=1700)
-                        rounds, verified = list(result.rounds), bool(result.verified)
+                        if hold_s is None:
+                            result = ph.set_volume(target_ml, verify="scan", timeout_s=1700)
+                            rounds, verified = list(result.rounds), bool(result.verified)
+                        else:
+                            ph.set_volume(target_ml, timeout_s=300)
+                            while time.monotonic() < started + hold_s and not ph.status().faults:
+                                time.sleep(1.0)
                     except DaemonError as failed:
                         error = str(failed)
                         rounds = list(getattr(failed, "rounds", []) or [])
@@ -135,12 +143,13 @@ def one_row(target_ml: float, busy: int, logs: Path | None) -> dict[str, Any]:
                 stop_daemon(process)
                 if logs is not None:
                     logs.mkdir(parents=True, exist_ok=True)
-                    shutil.copy(log_path, logs / f"daemon_busy{busy}_{time.strftime('%H%M%S')}.log")
+                    shutil.copy(log_path, logs / f"daemon_busy{busy}_{'verify' if hold_s is None else 'hold'}_"
+                                            f"{time.strftime('%H%M%S')}.log")
         daemon_ms, link_ms = watch.during("daemon"), watch.during("link")
         true_ml = rounds[-1].get("true_volume_ml") if rounds else None
-        return {"busy": busy, "load": f"{load_before:.1f}-{load_after:.1f}", "seconds": seconds,
-                "rounds": len(rounds), "verified": verified,
-                "true_pct": None if true_ml is None else (true_ml - target_ml) / target_ml * 100,
+        return {"busy": busy, "what": "verify" if hold_s is None else f"hold {hold_s:g} s",
+                "load": f"{load_before:.1f}-{load_after:.1f}", "seconds": seconds, "rounds": len(rounds),
+                "verified": verified, "true_pct": None if true_ml is None else (true_ml - target_ml) / target_ml * 100,
                 "daemon_ms": max(daemon_ms, default=0.0), "link_ms": max(link_ms, default=0.0),
                 "link_over_100": sum(late > 100 for late in link_ms), "peer_ms": float(peer_out.strip() or "nan"),
                 "faults": ", ".join(sorted(watch.faults)) or "none", "error": error}
@@ -152,20 +161,22 @@ def main() -> None:
     parser.add_argument("--busy", default=f"0,{os.cpu_count() or 2}",
                         help="busy processes beside the daemon, one row each (comma-separated)")
     parser.add_argument("--logs", type=Path, help="keep each row's daemon log in this folder")
+    parser.add_argument("--hold-s", type=float, default=90.0, help="how long the peer row holds the target (s)")
     args = parser.parse_args()
-    rows = [one_row(args.target, int(busy), args.logs) for busy in args.busy.split(",")]
-    print(f"`{Path(sys.argv[0]).name} --target {args.target:g} --busy {args.busy}`, {time.strftime('%Y-%m-%d %H:%M')} "
-          f"UTC, {os.cpu_count()} cores\n")
-    print("| busy processes | load (1 min) | seconds | rounds | verified | true error % | daemon's loop: longest "
-          "stall (ms) | link's loop (ms) | link's probes > 100 ms | bare peer process (ms) | faults |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    rows = [one_row(args.target, int(busy), hold_s, args.logs) for busy in args.busy.split(",")
+            for hold_s in (args.hold_s, None)]
+    print(f"`{Path(sys.argv[0]).name} --target {args.target:g} --busy {args.busy} --hold-s {args.hold_s:g}`, "
+          f"{time.strftime('%Y-%m-%d %H:%M')} UTC, {os.cpu_count()} cores\n")
+    print("| busy processes | asked | load (1 min) | seconds | rounds | verified | true error % | daemon's loop: "
+          "longest stall (ms) | link's loop (ms) | link's probes > 100 ms | bare peer process (ms) | faults |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for row in rows:
         true_pct = "-" if row["true_pct"] is None else f"{row['true_pct']:+.2f}"
-        print(f"| {row['busy']} | {row['load']} | {row['seconds']:.0f} | {row['rounds']} | {row['verified']} | "
-              f"{true_pct} | {row['daemon_ms']:.0f} | {row['link_ms']:.0f} | {row['link_over_100']} | "
-              f"{row['peer_ms']:.0f} | {row['faults']} |")
+        print(f"| {row['busy']} | {row['what']} | {row['load']} | {row['seconds']:.0f} | {row['rounds']} | "
+              f"{row['verified'] if row['what'] == 'verify' else '-'} | {true_pct} | {row['daemon_ms']:.0f} | "
+              f"{row['link_ms']:.0f} | {row['link_over_100']} | {row['peer_ms']:.0f} | {row['faults']} |")
         if row["error"]:
-            print(f"\n(busy {row['busy']}: {row['error']})")
+            print(f"\n(busy {row['busy']}, {row['what']}: {row['error']})\n")
 
 
 if __name__ == "__main__":
