@@ -137,7 +137,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
     # the scans' capture and reconstruction in a process of their own: they hold the GIL for long stretches,
     # which in the daemon's process held up its loops past the board's dead-host deadline on a busy machine
-    scans = ScanWorker(DaemonScanner(truth), verify)
+    scans = ScanWorker(DaemonScanner(truth), verify, getattr(args, "log_level", "info"))
     try:
         scans.start()
         return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)

@@ -61,10 +61,12 @@ class ScanWorker:
         The capture, run in the process for each ``scan`` request (picklable: sent to the process once).
     verify : VerifyScan
         The verify scan's plan (:attr:`plan`, read in the daemon) and its reconstruction (run in the process).
+    log_level : str
+        The process logs as the daemon does, at this level and above, to the daemon's stderr.
     """
 
-    def __init__(self, scanner: DaemonScanner, verify: VerifyScan):
-        self.scanner, self.verify = scanner, verify
+    def __init__(self, scanner: DaemonScanner, verify: VerifyScan, log_level: str = "info"):
+        self.scanner, self.verify, self.log_level = scanner, verify, log_level
         self.plan = verify.plan
         self._lock = threading.Lock()
         self._process: BaseProcess | None = None
@@ -150,8 +152,8 @@ class ScanWorker:
         context = multiprocessing.get_context("spawn")  # not forked: no copy of the daemon's threads and loops
         ours, theirs = context.Pipe()
         # not daemonic: the capture's truth shape starts a process of its own
-        process = context.Process(target=_serve, args=(theirs, os.getpid(), self.scanner, self.verify),
-                                  name="phantom scan worker")
+        process = context.Process(target=_serve, args=(theirs, os.getpid(), self.scanner, self.verify,
+                                                       self.log_level), name="phantom scan worker")
         process.start()
         theirs.close()
         self._process, self._connection = process, ours
@@ -236,12 +238,15 @@ class _PipeRig:
         return truth
 
 
-def _serve(connection: Connection, parent_pid: int, scanner: DaemonScanner, verify: VerifyScan) -> None:
+def _serve(connection: Connection, parent_pid: int, scanner: DaemonScanner, verify: VerifyScan,
+           log_level: str) -> None:
     """The process's loop: one job at a time until told to end (None) or the daemon's end closes."""
     from phantom.host.api import ApiError
+    from phantom.host.logs import configure_logging
     from phantom.model.cluster import exit_with_parent
 
     exit_with_parent(parent_pid)
+    configure_logging(log_level)
     # Ctrl-C and a SIGTERM to the daemon's process group are the daemon's to handle: it stops the scan (the
     # capture releases the motors and marks its folder stopped), then closes this process
     signal.signal(signal.SIGINT, signal.SIG_IGN)
