@@ -237,3 +237,51 @@ def test_a_webcams_capture_runs_in_the_worker_through_the_webcam_code(tmp_path):
     folder = CaptureFolder.open(tmp_path / "capture")
     assert folder.camera["kind"] == "webcam" and len(folder.frames) == 3
     assert [frame.pressures_kpa for frame in folder.frames] == [[1.0, 2.0, 3.0]] * 3
+
+
+#: A daemon's stand-in: starts a scan worker from its main thread, gives it a minute's work from another thread
+#: (a scan's: the worker does not read its pipe meanwhile), prints the worker's pid, then waits.
+WORKER_PARENT = """
+import sys, threading, time
+sys.path.insert(0, sys.argv[1])
+from test_scan_worker import RecordingScanner, ReconstructingVerify
+from phantom.cli.scan_worker import ScanWorker
+worker = ScanWorker(RecordingScanner(), ReconstructingVerify())
+worker.start()
+threading.Thread(target=worker, args=({"sort_s": 60.0}, None), daemon=True).start()
+time.sleep(1.0)
+print(worker.pid, flush=True)
+time.sleep(600)
+"""
+
+
+def test_the_worker_dies_with_a_daemon_killed_like_the_oom_killer_does():
+    """No scan worker is left rendering for nobody: busy with a scan, it gets SIGKILL when the thread that
+    started it (phantom daemon's main thread) dies, however it dies (idle, the pipe's end would tell it too)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    parent = subprocess.Popen([sys.executable, "-c", WORKER_PARENT, str(Path(__file__).parent)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        pid = int(parent.stdout.readline())
+        os.kill(parent.pid, signal.SIGKILL)
+        parent.wait(10)
+        deadline = time.monotonic() + 10
+        while not _ended(pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _ended(pid), f"the scan worker {pid} outlived its daemon"
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait()
+
+
+def _ended(pid):
+    """Whether the process has ended (gone, or a zombie waiting for init to reap it)."""
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except FileNotFoundError:
+        return True
