@@ -84,15 +84,15 @@ def test_a_verified_target_holds_the_link_with_one_busy_process_per_core(tmp_pat
     reconstruction and a fit running while the board waited), the blowers stopped and the rest was refused.
     With one busy process per core beside the daemon (at the test's own priority), a verified target scans,
     learns and ends with no fault latched, within 0.3 % of its true volume: its fits are in the fitter's
-    process, its captures and reconstructions in the scan worker's (phantom/cli/scan_worker.py, niced).
+    process, its captures and reconstructions in the scan worker's (phantom/cli/scan_worker.py, nice +5).
 
     Before the scan worker, the capture's rendering and the reconstruction ran in threads of the daemon and held
     the GIL its loops need: at load 6-9 a verified 35 ml latched DEAD_HOST in round 2 idle and with two busy
     processes, the daemon's loop late by up to 537 ms. With it, passed twice in a row (2026-11-29 00:51-01:02,
-    load 4-7 with the test's own busy processes; 6.2 and 4.5 minutes, each round's capture slowed by the busy
-    processes). What is left is the link's own: at load 7-10 from other work a held target without any scan
-    latched DEAD_HOST too, the link's loop 600 ms late (bench/README.md, "A verified target's scan beside busy
-    cores"). A failure says how late the daemon's loops were, and the machine's load."""
+    load 4-7 with the test's own busy processes; 6.2 and 4.5 minutes with the worker at nice +10), and in 2.1
+    minutes at +5 (load 1-3). What is left is the link's own: at load 7-10 from other work a held target without
+    any scan latched DEAD_HOST too, the link's loop 600 ms late (bench/README.md, "A verified target's scan beside
+    busy cores"). A failure says how late the daemon's loops were, and the machine's load."""
     pytest.importorskip("cv2")
     from phantom.host.client import FaultError
 

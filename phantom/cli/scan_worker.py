@@ -46,8 +46,9 @@ if TYPE_CHECKING:
 RIG_CALLS = frozenset({"configure", "move_to", "position_deg", "release", "stop_requested", "pressures_kpa",
                        "simulated"})
 #: How much lower the process's priority is than the daemon's (nice(2) increment; the truth shape's solver, its
-#: child, inherits it).
-WORKER_NICENESS = 10
+#: child, inherits it): a third of the daemon's weight. At +10 a verify beside two busy processes took twice as
+#: long (244 s against 116-131 s at +5 and 0) and was no less late on the link's loop (bench/README.md).
+WORKER_NICENESS = 5
 #: How long :meth:`ScanWorker.close` waits for the process to end once told to (s), before it is killed.
 CLOSE_WAIT_S = 10.0
 
