@@ -21,7 +21,7 @@ from phantom.design.chambers import place_chambers, surface_samples_mm
 from phantom.design.errors import DesignError
 from phantom.design.latent import LatentDistance, latent_distance
 from phantom.design.material import DEFAULT_MATERIAL_FROM, InheritedMaterial, inherited_material
-from phantom.design.meshing import ELEMENTS_PER_WALL, mesh_design, write_scene
+from phantom.design.meshing import ELEMENTS_PER_WALL, check_mesh_options, mesh_design, write_scene
 from phantom.design.sizing import (
     PAPER_VOLUME_ML,
     GrowthTarget,
@@ -120,6 +120,8 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
         raise DesignError(f"--stem-diameter-mm {options.stem_diameter_mm:g} is out of range: use 1 to 8 mm")
     if not options.chambers:
         raise DesignError("--chambers is empty: give one or more of base,left,right")
+    # before the sizing's solves: a mesh option is refused in a second, not after a minute of them
+    check_mesh_options(options.size_mm, options.element_order)
     if options.elements_per_wall not in (1, 2):
         raise DesignError(f"--elements-per-wall {options.elements_per_wall} is not 1 (a preview) or 2 (the design)")
     times: dict[str, float] = {}

@@ -216,8 +216,8 @@ def test_a_gland_too_small_for_three_chambers_is_refused(tmp_path, capsys):
     ("--volume-ml", "-1", "--volume-ml"), ("--min-wall-mm", "0.5", "--min-wall-mm"),
     ("--stem-diameter-mm", "20", "--stem-diameter-mm"), ("--growth-kpa", "5", "--growth-kpa"),
     ("--chamber-scale", "5", "--chamber-scale"),
-    # refused only once the chambers are laid out: 10.8 s of CPU (warm cache), the other five 0.4 s together
-    pytest.param("--size-mm", "50", "--size-mm", marks=pytest.mark.slow)])
+    # refused before the sizing's solves (it was refused after them: 53 s at a load average of 6.5)
+    ("--size-mm", "50", "--size-mm 50 is out of range: use 0.3 to 10 mm")])
 def test_out_of_range_options_are_refused(tmp_path, capsys, option, value, says):
     mask = write_mask(tmp_path / "gland.nii", asymmetric_gland, grid=(40, 40, 20), affine=oblique_affine((1.6,) * 3))
     status, _, err = run(capsys, "design", str(mask), "--out", str(tmp_path / "d"), option, value)
