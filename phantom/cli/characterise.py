@@ -65,8 +65,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--elevations", default="0,30", help="the passes' elevations (deg, default 0,30)")
     parser.add_argument("--scale", type=float, default=0.5,
                         help="the virtual camera's picture size, of 1280x960 (default 0.5: 640x480)")
-    parser.add_argument("--camera", default="virtual",
-                        help="'virtual' (the simulated board's, default) or a webcam's device number")
+    parser.add_argument("--camera", default=None,
+                        help="the daemon's camera (default): its --camera on a real board, else the simulated "
+                        "board's virtual one; or 'virtual', a device number, a stream's URL")
     parser.add_argument("--settle-s", type=float, default=0.3, help="wait after each move of the orbit (s)")
     parser.add_argument("--voxel-mm", type=float, default=0.3, help="the reconstruction's finest voxel (mm)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the design and of the sensor noise")
@@ -411,8 +412,9 @@ def _scan_point(client: Phantom, record: CharacterisationRecord, index: int, fol
               "settle_s": scan["settle_s"], "seed": scan["seed"] + index, "rig": str((record.folder /
                                                                                       record.rig).resolve())}
     camera = scan["camera"]
-    params["camera"] = int(camera) if str(camera).isdigit() else camera
-    if camera == "virtual":
+    if camera is not None:  # None: the daemon's own camera
+        params["camera"] = int(camera) if str(camera).isdigit() else camera
+    if camera in ("virtual", None):  # the size of the virtual camera's pictures (a real camera's is the rig's)
         params["scale"] = scan["scale"]
     try:
         client.call("scan", params)

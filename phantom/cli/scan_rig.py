@@ -145,8 +145,11 @@ class DaemonScanner:
     ``reason``. The virtual camera photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon
     --sim-truth`` said another)."""
 
-    def __init__(self, truth: SimulatedTruth | None = None):
+    def __init__(self, truth: SimulatedTruth | None = None, look: str = "ideal", camera: str | None = None):
         self.truth = truth or SimulatedTruth()
+        # what the params do not say: the virtual camera's pictures (phantom daemon --look), the camera (--camera)
+        self.look = look
+        self.camera = camera
         self._shape: TruthShape | None = None
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
@@ -174,6 +177,7 @@ class DaemonScanner:
     def _checked(params: dict[str, Any]) -> tuple[Any, int]:
         """The scan's plan and seed from its params; PhantomError for a param that is not one or is out of range."""
         from phantom.scan.capture import Plan
+        from phantom.scan.render import LOOKS
 
         known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
                  "width", "height", "exposure", "focus", "rig", "look"}
@@ -184,6 +188,10 @@ class DaemonScanner:
         elevations = params.get("elevations_deg", [0.0, 30.0])
         if not isinstance(elevations, list):
             raise PhantomError(f"scan: elevations_deg must be a list of angles (deg), got {elevations!r}")
+        look = params.get("look", "ideal")  # checked here: the default is the daemon's, checked by its config
+        if not isinstance(look, str) or look not in LOOKS:
+            raise PhantomError(f"scan: look must be one of {', '.join(sorted(LOOKS))} (the virtual camera's "
+                               f"pictures: ideal, or as a real rig sees the phantom hung by its tubes), got {look!r}")
         seed = params.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
             raise PhantomError(f"scan: seed must be a whole number from 0 to 2^32 - 1, got {seed!r}")
@@ -200,7 +208,7 @@ class DaemonScanner:
         from phantom.scan.camera import virtual_rig
         from phantom.scan.capture import Webcam
 
-        camera = params.get("camera", "virtual")
+        camera = params.get("camera", self.camera or "virtual")
         if camera == "virtual":
             from phantom.scan.virtual import VirtualCamera
 
@@ -210,14 +218,10 @@ class DaemonScanner:
                 raise PhantomError(f"scan: {error}") from None
             from phantom.scan.render import LOOKS
 
-            look = params.get("look", "ideal")
-            if not isinstance(look, str) or look not in LOOKS:
-                raise PhantomError(f"scan: look must be one of {', '.join(sorted(LOOKS))} (the virtual camera's "
-                                   f"pictures: ideal, or as a real rig sees the phantom hung by its tubes), got "
-                                   f"{look!r}")
             if self._shape is None:
                 self._shape = self.truth.shape()
-            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed, look=LOOKS[look],
+            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed,
+                                 look=LOOKS[params.get("look", self.look)],
                                  pose_at=_scaled_pose(scale))
         source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
         size = None
