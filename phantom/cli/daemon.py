@@ -134,9 +134,9 @@ def _run_daemon(args: argparse.Namespace) -> int:
         from phantom.cli.scan_rig import camera_plan
 
         verify = VerifyScan(camera_plan(config.camera, config.rig))
+    scanner = DaemonScanner(truth, config.look, config.camera)
     return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
-                      if config.sim else None, scanner=DaemonScanner(truth, config.look, config.camera), verify_scanner=verify,
-                      presets=presets)
+                      if config.sim else None, scanner=scanner, verify_scanner=verify, presets=presets)
 
 
 def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:

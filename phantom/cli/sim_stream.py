@@ -42,7 +42,7 @@ class CameraStream:
 
     def __init__(self, board: Any, host: str, port: int, scale: float = 0.5, look: str = "ideal"):
         from phantom.hil.truth_shape import TruthShape
-        from phantom.scan.camera import virtual_pose, virtual_rig
+        from phantom.scan.camera import virtual_pose_at, virtual_rig
         from phantom.scan.render import LOOKS, CharucoTarget
         from phantom.scan.virtual import VIRTUAL_PLACEMENTS, TargetCamera, VirtualCamera, target_pose_facing
 
@@ -50,10 +50,7 @@ class CameraStream:
         self._lock = threading.Lock()
         self._angles = _Angles()
         rig = virtual_rig(scale)
-
-        def pose_at(orbit_deg: float, elevation_deg: float) -> Any:
-            return virtual_pose(orbit_deg, elevation_deg, scale)
-
+        pose_at = virtual_pose_at(scale)
         truth = TruthShape()
         target = CharucoTarget()
         self.cameras: dict[str, Any] = {
