@@ -61,7 +61,8 @@ class _Daemon:
 
 
 @pytest.mark.sim  # the simulated board (simavr) and two daemons on its port
-@pytest.mark.slow  # the calibration's 28 pictures, then a verified target's rounds of 60: about 3-5 minutes
+@pytest.mark.slow  # the calibration's 28 pictures, then a verified target's rounds of 60: about 4-6 minutes
+@pytest.mark.timeout(900)  # three rounds of 80-120 s each at load 6-10
 def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
     env = {**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}
     board = subprocess.Popen([str(PHANTOM), "sim-board", "--camera-stream", "127.0.0.1:0", "--sim-speed",

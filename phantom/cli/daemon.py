@@ -193,11 +193,15 @@ def _run_sim_board(args: argparse.Namespace) -> int:
             stream = CameraStream(board, *stream_at, scale=args.stream_scale, look=args.stream_look).start()
         try:
             urls = {} if stream is None else {"streams": stream.urls()}
+            # the board counts its dead-host deadline on its own clock: faster than real time, a daemon that
+            # drives it as a real board gives it as many times the real 500 ms (at speed 0 no one factor holds)
+            deadline_ms = min(10000, round(500 * args.sim_speed))
+            deadline = "" if args.sim_speed in (0, 1) else f" --host-deadline-ms {deadline_ms}"
             if args.json:
                 print(json.dumps({"port": board.port, "speed": args.sim_speed, **urls}), flush=True)
             else:
                 print(f"simulated board on {board.port} (speed {args.sim_speed:g}); drive it with "
-                      f"`phantom daemon --port {board.port}`"
+                      f"`phantom daemon --port {board.port}{deadline}`"
                       + ("" if stream is None else f" --camera {stream.urls()['phantom']} --rig RIG.json")
                       + "; Ctrl-C stops it", flush=True)
             while not stop.wait(0.5):
