@@ -94,6 +94,8 @@ def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_
         with urllib.request.urlopen(streams["truth"], timeout=10) as answer:
             truth = json.load(answer)
         log = daemon.log_path.read_text()
+        print(f"verified {reached.verified} in {len(reached.rounds)} rounds, scanned {reached.scanned_volume_ml} ml, "
+              f"the truth {truth['gland_volume_ml']} ml")  # shown with -rP
         assert reached.verified, log[-4000:]
         assert reached.true_volume_ml is None  # a real board's daemon knows no truth
         assert abs(reached.scanned_volume_ml - 40) <= 0.003 * 40
