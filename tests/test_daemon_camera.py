@@ -107,3 +107,25 @@ def test_a_look_that_is_not_one_is_refused_saying_the_looks_there_are(tmp_path):
     done = subprocess.run([sys.executable, "-m", "phantom", "daemon", "--config", str(config)], capture_output=True,
                           text=True, timeout=120)
     assert done.returncode == 2 and "[daemon] look must be one of ideal, real, got 'sepia'" in done.stderr
+
+
+def test_the_daemons_scan_takes_the_daemons_camera_when_its_params_name_none(tmp_path):
+    """``phantom daemon --camera`` is the scan method's camera unless the params give another (characterise's
+    scans on a real rig then need no --camera of their own); the rig's picture size is checked either way."""
+    from phantom.cli.scan_rig import DaemonScanner
+
+    rig = virtual_rig(0.5).save(tmp_path / "rig.json")  # 640x480
+    own = _pictures(tmp_path / "own", 640, 480)
+    other = _pictures(tmp_path / "other", 320, 240)
+    camera = DaemonScanner(camera=own)._camera({"rig": str(rig)}, None, (0.0, 30.0), 1.0, 0)
+    try:
+        assert camera.describe()["source"] == own and camera.grab().shape == (480, 640, 3)
+    finally:
+        camera.close()
+    camera = DaemonScanner(camera=own)._camera({"camera": other, "rig": str(rig)}, None, (0.0,), 1.0, 0)
+    try:
+        assert camera.describe()["source"] == other
+        with pytest.raises(CameraLost, match="gave a 320x240 picture, the rig was calibrated at 640x480"):
+            camera.grab()
+    finally:
+        camera.close()
