@@ -65,13 +65,13 @@ class _Daemon:
 @pytest.mark.timeout(900)  # three rounds of 80-120 s each at load 6-10
 def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
     env = {**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}
+    board_log = open(tmp_path / "board.log", "w")  # a file, not a pipe no one reads on: it would fill and block
     board = subprocess.Popen([str(PHANTOM), "sim-board", "--camera-stream", "127.0.0.1:0", "--sim-speed",
-                              str(SIM_SPEED), "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                             env=env)
+                              str(SIM_SPEED), "--json"], stdout=subprocess.PIPE, stderr=board_log, text=True, env=env)
     daemon = None
     try:
         line = board.stdout.readline()
-        assert line, board.stderr.read()
+        assert line, (tmp_path / "board.log").read_text()
         said = json.loads(line)
         port, streams = said["port"], said["streams"]
 
@@ -110,5 +110,6 @@ def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_
             daemon.stop()
         board.terminate()
         board.wait(30)
+        board_log.close()
         for log in sorted(tmp_path.glob("daemon*.log")):  # shown with a failure: what the daemons said
             print(f"--- {log.name} (the last lines)\n" + "\n".join(log.read_text().splitlines()[-25:]))
