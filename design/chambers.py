@@ -7,9 +7,12 @@ built-in body's half-extents and laid into the gland's: along each axis, the ext
 left lobe's chamber takes the gland's extent to the left of the mid-sagittal plane, the right one the extent to the
 right, the base chamber the extent toward the base), so an asymmetric gland gets asymmetric chambers and the
 built-in body gets its own chambers back. ``chamber_scale`` multiplies every semi-axis; then every chamber whose wall
-(to the outer surface, or to another chamber) is below ``min_wall_mm`` shrinks about its centre until none is. A chamber
-that must shrink below :data:`SMALLEST_SCALE` of its template leaves no room: the gland is too small for its
-chambers at that wall.
+(to the outer surface, or to another chamber) is below ``min_wall_mm`` shrinks about its centre until none is, and
+each grows back in turn (bisection of its scale, up to ``chamber_scale``) to the largest its own walls allow: the
+shrinking alone overshoots, shrinking both chambers of a thin wall between them, and left the bilobed test gland's lobe
+chambers with 2.9 and 3.2 mm walls at a 2 mm minimum (4.45 ml of chambers where 5.79 ml fit). A chamber that must
+shrink below :data:`SMALLEST_SCALE` of its template leaves no room: the gland is too small for its chambers at that
+wall.
 
 Walls are measured between dense samples of the surfaces (0.5 mm apart, as the built-in geometry's check does).
 """
@@ -45,6 +48,10 @@ SMALLEST_SCALE = 0.5
 CHAMBER_SCALE_RANGE = (0.3, 2.5)
 #: Each step of the shrinking multiplies a chamber's semi-axes by this.
 SHRINK_STEP = 0.98
+#: After the shrinking, each chamber grows back to its walls in turn: sweeps over the chambers, and the bisection's
+#: relative tolerance of a chamber's scale (a semi-axis of 10 mm to 0.02 mm).
+REGROW_SWEEPS = 2
+REGROW_TOLERANCE = 0.002
 #: Spacing of the surface samples walls are measured on (mm).
 SAMPLE_SPACING_MM = 0.5
 
@@ -225,7 +232,7 @@ def place_chambers(surface: Surface, min_wall_mm: float, chamber_scale: float = 
         walls = measure_walls(samples_mm, chambers)
         thin = [name for name, value in walls.items() if value < min_wall_mm]
         if not thin:
-            return ChamberDesign(chambers, walls, scales)
+            break
         for index in range(len(chambers)):
             deficits = [min_wall_mm - walls[name] for name in thin if chamber_name(index) in name.split("-")]
             if deficits:
@@ -239,6 +246,43 @@ def place_chambers(surface: Surface, min_wall_mm: float, chamber_scale: float = 
                 f"the gland leaves no room for {_count(len(chambers))} with walls of {min_wall_mm:g} mm: the "
                 f"{chambers[index].label} chamber would shrink to {scales[index]:.2f} of the built-in's proportions "
                 f"(thinnest wall {', '.join(thin)}); design at a larger --volume-ml or a smaller --min-wall-mm")
+    # the shrinking overshoots (a thin wall between two chambers shrinks both; a step takes the whole deficit):
+    # each chamber grows back, in turn, to the largest scale up to the one asked that its own walls allow
+    for _ in range(REGROW_SWEEPS):
+        for index in range(len(chambers)):
+            scales[index] = _largest_scale(index, chambers, template, scales[index], chamber_scale, samples_mm,
+                                           min_wall_mm)
+            chambers[index] = template[index].scaled(scales[index] / chamber_scale)
+    return ChamberDesign(chambers, measure_walls(samples_mm, chambers), scales)
+
+
+def _own_wall_mm(index: int, chambers: list[Chamber], outer_samples_mm: FloatArray) -> float:
+    """The thinnest of chamber ``index``'s walls, to the outer surface and to each other chamber (mm)."""
+    chamber = chambers[index]
+    walls = [least_ellipsoid_distance_mm(outer_samples_mm, chamber)]
+    points = ellipsoid_points_mm(chamber.centre_mm, chamber.semi_axes_mm, SAMPLE_SPACING_MM)
+    walls += [least_ellipsoid_distance_mm(points, other) for other_index, other in enumerate(chambers)
+              if other_index != index]
+    return min(walls)
+
+
+def _largest_scale(index: int, chambers: list[Chamber], template: list[Chamber], scale: float, most: float,
+                   outer_samples_mm: FloatArray, min_wall_mm: float) -> float:
+    """The largest scale of chamber ``index`` between ``scale`` (whose walls hold) and ``most`` whose walls are at
+    least ``min_wall_mm``, the others as they are: bisection to REGROW_TOLERANCE of the scale."""
+
+    def holds(trial: float) -> bool:
+        others = list(chambers)
+        others[index] = template[index].scaled(trial / most)
+        return _own_wall_mm(index, others, outer_samples_mm) >= min_wall_mm
+
+    if holds(most):
+        return most
+    low, high = scale, most
+    while high - low > REGROW_TOLERANCE * low:
+        middle = 0.5 * (low + high)
+        low, high = (middle, high) if holds(middle) else (low, middle)
+    return low
 
 
 def _count(chambers: int) -> str:

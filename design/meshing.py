@@ -89,16 +89,22 @@ def _curvature_size_mm(point: tuple[float, float, float], chamber: Chamber, elem
     return 2.0 * math.pi / largest / elements
 
 
+def check_mesh_options(size_mm: float, element_order: int | None) -> None:
+    """DesignError for an element size outside MESH_SIZE_RANGE_MM or an element order not 1 or 2 (None: the
+    inherited material's, not checked here)."""
+    if not MESH_SIZE_RANGE_MM[0] <= size_mm <= MESH_SIZE_RANGE_MM[1]:
+        raise DesignError(f"--size-mm {size_mm:g} is out of range: use {MESH_SIZE_RANGE_MM[0]:g} to "
+                          f"{MESH_SIZE_RANGE_MM[1]:g} mm")
+    if element_order not in (1, 2, None):
+        raise DesignError(f"--element-order {element_order} is not 1 (4-node) or 2 (10-node)")
+
+
 def mesh_design(surface: Surface, chambers: list[Chamber], size_mm: float, element_order: int,
                 fixation_radius_mm: float, outer_samples_mm: FloatArray,
                 elements_per_wall: int = ELEMENTS_PER_WALL) -> TetMesh:
     """The tagged tetrahedral mesh (nodes in metres) of the gland with the chambers cut out; see the module
     docstring (``elements_per_wall``: fewer for a coarse mesh)."""
-    if not MESH_SIZE_RANGE_MM[0] <= size_mm <= MESH_SIZE_RANGE_MM[1]:
-        raise DesignError(f"--size-mm {size_mm:g} is out of range: use {MESH_SIZE_RANGE_MM[0]:g} to "
-                          f"{MESH_SIZE_RANGE_MM[1]:g} mm")
-    if element_order not in (1, 2):
-        raise DesignError(f"--element-order {element_order} is not 1 (4-node) or 2 (10-node)")
+    check_mesh_options(size_mm, element_order)
     shells = [surface] + [_ellipsoid_surface(chamber) for chamber in chambers]
     low = surface.vertices_mm.min(axis=0) - 1.0
     high = surface.vertices_mm.max(axis=0) + 1.0

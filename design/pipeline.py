@@ -21,7 +21,7 @@ from phantom.design.chambers import place_chambers, surface_samples_mm
 from phantom.design.errors import DesignError
 from phantom.design.latent import LatentDistance, latent_distance
 from phantom.design.material import DEFAULT_MATERIAL_FROM, InheritedMaterial, inherited_material
-from phantom.design.meshing import mesh_design, write_scene
+from phantom.design.meshing import ELEMENTS_PER_WALL, check_mesh_options, mesh_design, write_scene
 from phantom.design.sizing import (
     PAPER_VOLUME_ML,
     GrowthTarget,
@@ -63,6 +63,8 @@ class DesignOptions:
     shape_run: str | None = None
     #: the scene whose calibrated material law and element order the design inherits (phantom.design.material)
     material_from: str = DEFAULT_MATERIAL_FROM
+    #: elements through the thinnest wall: 2 (the design), or 1 (a preview on the sizing's own coarse mesh)
+    elements_per_wall: int = ELEMENTS_PER_WALL
 
 
 @dataclass
@@ -97,6 +99,9 @@ class Design:
     stage_times_s: dict[str, float] = field(default_factory=dict)
     #: the calibrated law and element order the design inherits (phantom.design.material)
     material: InheritedMaterial | None = None
+    #: the mesh's element size (mm, --size-mm) and elements through the thinnest wall (2; 1 for a preview)
+    mesh_size_mm: float = DesignOptions.size_mm
+    elements_per_wall: int = ELEMENTS_PER_WALL
 
     @property
     def thinnest_wall(self) -> tuple[str, float]:
@@ -115,6 +120,10 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
         raise DesignError(f"--stem-diameter-mm {options.stem_diameter_mm:g} is out of range: use 1 to 8 mm")
     if not options.chambers:
         raise DesignError("--chambers is empty: give one or more of base,left,right")
+    # before the sizing's solves: a mesh option is refused in a second, not after a minute of them
+    check_mesh_options(options.size_mm, options.element_order)
+    if options.elements_per_wall not in (1, 2):
+        raise DesignError(f"--elements-per-wall {options.elements_per_wall} is not 1 (a preview) or 2 (the design)")
     times: dict[str, float] = {}
     started = time.perf_counter()
 
@@ -148,7 +157,7 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
     stage("chambers")
     out.mkdir(parents=True, exist_ok=True)
     mesh = mesh_design(gland.surface, chambers.chambers, options.size_mm, material.element_order,
-                       options.fixation_radius_mm, samples)
+                       options.fixation_radius_mm, samples, options.elements_per_wall)
     write_mesh(mesh, out / "gland.msh")
     write_scene(out / "gland.msh", out / "scene.toml", material, chambers.chambers)
     _write_stl(gland.surface, out / "gland.stl")
@@ -176,7 +185,7 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DesignO
                     outer_surface_distance_mm(mesh, gland.reference), cast, list(options.growth_pressures_kpa),
                     volumes_ml[:len(options.growth_pressures_kpa)], target, target_reached_ml, sizing, latent,
                     gland.notes,
-                    warnings, times, material)
+                    warnings, times, material, options.size_mm, options.elements_per_wall)
     stage("checks")
     from phantom.design.report import write_report
 
@@ -277,7 +286,8 @@ def design_summary(result: Design) -> dict[str, Any]:
                                                      result.chamber_scales, strict=True)],
         "walls_mm": result.walls_mm,
         "thinnest_wall": {"where": name, "mm": thinnest},
-        "mesh": {"nodes": result.mesh_nodes, "tetrahedra": result.mesh_tets},
+        "mesh": {"nodes": result.mesh_nodes, "tetrahedra": result.mesh_tets, "size_mm": result.mesh_size_mm,
+                 "elements_per_wall": result.elements_per_wall},
         "rest_volume_ml": result.rest_volume_ml,
         "outer_surface_mean_distance_mm": result.surface_distance_mm,
         "growth": {"pressures_kpa": result.growth_kpa, "gland_volumes_ml": result.growth_volumes_ml},

@@ -32,7 +32,9 @@ def write_report(result: Design, gland: Gland, chambers: ChamberDesign) -> None:
         f"{result.rest_volume_ml:.2f} ml",
         f"- the model's outer surface lies {result.surface_distance_mm:.3f} mm (mean, both ways) from the source's "
         f"surface scaled alike",
-        f"- mesh: {result.mesh_nodes} nodes, {result.mesh_tets} tetrahedra (gland.msh, scene.toml)",
+        f"- mesh: {result.mesh_nodes} nodes, {result.mesh_tets} tetrahedra (gland.msh, scene.toml), "
+        f"{result.mesh_size_mm:g} mm, {result.elements_per_wall} through the thinnest wall"
+        + (" (a preview: design with 2 before casting)" if result.elements_per_wall == 1 else ""),
         f"- thinnest wall: {thinnest:.2f} mm ({name})",
         *latent_lines(result),
         *([] if result.material is None else [f"- material: {result.material.caveat}"]),

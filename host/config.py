@@ -56,6 +56,8 @@ class Setting:
         The range of a number: ``value >= at_least``, ``value > above``, ``value <= at_most``.
     group : str, optional
         A key of :data:`GROUPS`: the settings of one group exclude each other.
+    choices : tuple of str
+        The words a text setting may be (empty: any text).
     """
 
     help: str
@@ -64,9 +66,12 @@ class Setting:
     above: float | None = None
     at_most: float | None = None
     group: str | None = None
+    choices: tuple[str, ...] = ()
 
     def range_text(self) -> str:
-        """The range in words, e.g. ``between 50 and 10000``, ``> 0``; empty without one."""
+        """The range in words, e.g. ``between 50 and 10000``, ``> 0``, ``one of ideal, real``; empty without one."""
+        if self.choices:
+            return f"one of {', '.join(self.choices)}"
         low = f">= {self.at_least:g}" if self.at_least is not None else (
             f"> {self.above:g}" if self.above is not None else "")
         if self.at_most is None:
@@ -125,6 +130,9 @@ class DaemonConfig:
                                  "--rig", metavar="DEVICE|URL")
     rig: Path | None = setting(None, "the scanner's rig calibration (rig.json from phantom scan calibrate) for "
                                "--camera", metavar="RIG.json")
+    look: str = setting("ideal", "with --sim: the virtual camera's pictures, for scans and verified targets: ideal (an "
+                        "even backdrop, the phantom floating in view) or real (hung by its tubes, glossy, an uneven "
+                        "cloth, vignetting)", metavar="LOOK", choices=("ideal", "real"))
     mesh_hz: float = setting(1.0, "rate (Hz) of deformed-mesh logging while recording a scene with [outputs] "
                              "shape = true; 0: none; at most the control rate", metavar="HZ", at_least=0,
                              at_most=10)
@@ -225,6 +233,8 @@ def checked(name: str, value: Any, where: str) -> Any:
     if item.kind is str:
         if not isinstance(value, str):
             raise ConfigError(f"{where} must be a string, got {value!r}")
+        if item.setting.choices and value not in item.setting.choices:
+            raise ConfigError(f"{where} must be {item.setting.range_text()}, got {value!r}")
         return value
     numbers = (int,) if item.kind is int else (int, float)
     if isinstance(value, bool) or not isinstance(value, numbers):

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -352,6 +353,12 @@ VIRTUAL_ELEVATIONS_DEG = (0.0, 30.0)
 def virtual_pose(orbit_deg: float, elevation_deg: float, scale: float = 1.0) -> Pose:
     """The virtual rig's true camera pose at any orbit angle and elevation (deg)."""
     return virtual_rig(scale, (elevation_deg,)).pose(orbit_deg, elevation_deg)
+
+
+def virtual_pose_at(scale: float) -> Callable[[float, float], Pose]:
+    """The virtual rig's true pose at any (orbit_deg, elevation_deg), for pictures of ``scale`` times 1280x960: a
+    virtual camera's ``pose_at`` where the rig is at elevations its calibration does not list."""
+    return lambda orbit_deg, elevation_deg: virtual_pose(orbit_deg, elevation_deg, scale)
 
 
 #: The virtual camera's picture sizes (fractions of 1280x960): below, the phantom is a few pixels; above, one

@@ -27,7 +27,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -35,6 +35,9 @@ from numpy.typing import ArrayLike
 from phantom import PhantomError, read_text, require_extra, unique_keys, written_atomically
 from phantom.model.corrections import CorrectedModel, Correction, ModelGrid, fit_correction
 from phantom.model.measurements import Measurement
+
+if TYPE_CHECKING:
+    from phantom.scan.camera import Rig
 
 #: The record's file format, and its name in the run's folder.
 FORMAT = "phantom-characterisation/1"
@@ -348,6 +351,44 @@ def held_pressures_kpa(frames_kpa: Sequence[Sequence[float]]) -> list[float]:
     if pressures.ndim != 2 or len(pressures) == 0 or not np.all(np.isfinite(pressures)):
         raise CharacterisationError(f"a scan's pictures need finite measured pressures, got {pressures.shape}")
     return [float(p) for p in np.clip(pressures.mean(axis=0), 0.0, None)]
+
+
+def scan_params(record: CharacterisationRecord, index: int, folder: Path) -> dict[str, Any]:
+    """The daemon's ``scan`` params for point ``index`` into ``folder``: the run's plan, the rig kept with the run,
+    the camera (none named: the daemon's own, its --camera on a real board, else the virtual one, whose picture
+    size is the run's scale; a real camera's size is the rig's)."""
+    scan = record.scan
+    params: dict[str, Any] = {"out": str(folder.resolve()), "views": scan["views"],
+                              "elevations_deg": scan["elevations_deg"], "settle_s": scan["settle_s"],
+                              "seed": scan["seed"] + index, "rig": str((record.folder / record.rig).resolve())}
+    camera = scan["camera"]
+    if camera is not None:
+        params["camera"] = int(camera) if str(camera).isdigit() else camera
+    if camera in ("virtual", None):
+        params["scale"] = scan["scale"]
+    return params
+
+
+def measured_point(record: CharacterisationRecord, index: int, folder: Path, rig: Rig, grid: ModelGrid,
+                   time_utc: str, seconds: float, true_ml: float | None, label: str) -> PointResult:
+    """Point ``index`` from its scan's capture ``folder``: complete, every picture with its measured pressures
+    (held: their mean), reconstructed with ``rig`` at the run's voxel; the model's volume there from ``grid``.
+    CharacterisationError (saying that ``--resume`` scans it again) for a scan that cannot be stored."""
+    from phantom.scan.capture import CaptureFolder
+    from phantom.scan.reconstruct import reconstruct
+
+    capture = CaptureFolder.open(folder)
+    if capture.status != "complete":
+        raise CharacterisationError(f"{label}: the scan ended {capture.status}, not complete; the point is not "
+                                    f"stored: --resume scans it again")
+    measured = [frame.pressures_kpa for frame in capture.frames if frame.pressures_kpa is not None]
+    if len(measured) != len(capture.frames):
+        raise CharacterisationError(f"{label}: {len(capture.frames) - len(measured)} of the scan's pictures have no "
+                                    f"measured pressures: the point is not stored (--resume scans it again)")
+    pressures = held_pressures_kpa(measured)
+    volume_ml = reconstruct(capture, rig, record.scan["voxel_mm"]).volume_ml
+    return PointResult(index, list(record.points_kpa[index]), pressures, float(volume_ml),
+                       grid.gland_ml(np.asarray(pressures)), str(folder.resolve()), time_utc, seconds, true_ml)
 
 
 # ----------------------------------------------------------------------------------------------- the fit

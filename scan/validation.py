@@ -17,7 +17,7 @@ from __future__ import annotations
 import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -25,6 +25,10 @@ from phantom import require_extra
 from phantom.model.mesh.surface import SurfaceIndex, TriangleMesh, subdivide, vertex_areas_mm2
 from phantom.scan.camera import Pose, Rig
 from phantom.scan.compare import weighted_statistics
+
+if TYPE_CHECKING:
+    from phantom.model import PhantomModel
+    from phantom.scan.capture import CaptureFolder
 
 
 @dataclass
@@ -62,6 +66,72 @@ class TargetResult:
     def to_json(self) -> dict[str, Any]:
         return {**asdict(self), "scan_vs_target_pct": self.scan_vs_target_pct,
                 "scan_vs_model_pct": self.scan_vs_model_pct, "scan_vs_truth_pct": self.scan_vs_truth_pct}
+
+
+def scene_targets_ml(scene_path: str) -> list[float]:
+    """The gland volumes (ml) a scene's [[steps]] go through, in order, each once."""
+    import tomllib
+
+    from phantom import PhantomError, read_text
+    from phantom.model.scene import MAX_SCENE_BYTES
+
+    try:
+        steps = tomllib.loads(read_text(scene_path, MAX_SCENE_BYTES, "the scene")).get("steps", [])
+    except tomllib.TOMLDecodeError as error:
+        raise PhantomError(f"cannot read the scene {scene_path}: {error}") from None
+    volumes: list[float] = []
+    for step in steps:
+        volume = step.get("volume_ml")
+        if isinstance(volume, (int, float)) and volume not in volumes:
+            volumes.append(float(volume))
+    if not volumes:
+        raise PhantomError(f"the scene {scene_path} has no [[steps]] with volume_ml: give --targets")
+    return volumes
+
+
+class Truth(Protocol):
+    """The simulated phantom's truth (``phantom.hil.truth_shape.TruthShape``): its surface (mm) and its gland's
+    volume (ml) at chamber pressures (kPa)."""
+
+    def surface(self, pressures_kpa: list[float] | np.ndarray) -> TriangleMesh: ...
+
+    def gland_volume_ml(self, pressures_kpa: list[float] | np.ndarray) -> float: ...
+
+
+def measure_target(target_ml: float, inverse: dict[str, Any], folder: CaptureFolder, rig: Rig, to_truth: Pose,
+                   controller: PhantomModel, truth: Truth, out: Path,
+                   voxel_mm: float) -> tuple[TargetResult, tuple[TriangleMesh, np.ndarray]]:
+    """One target of the validation, from its capture ``folder``: the scan reconstructed with ``rig`` and written
+    (``out/scan_<target>ml.ply``), compared with the model at the pressures held during the capture (a heatmap,
+    ``out/heatmap_<target>ml.png``) and, mapped by ``to_truth``, with the truth there. ``inverse`` is what the
+    daemon answered the target (``pressures_kpa``, ``predicted_volume_ml``). Returns the result and the model's
+    surface in the rig's frame with its signed distance to the scan (mm), for the recording."""
+    from phantom.model.mesh.surface import model_surface
+    from phantom.scan.compare import compare, read_scan
+    from phantom.scan.heatmap import write_heatmap
+    from phantom.scan.reconstruct import reconstruct, write_mesh
+
+    pressures = np.array([frame.pressures_kpa for frame in folder.frames], dtype=float).mean(axis=0)
+    result = reconstruct(folder, rig, voxel_mm)
+    mesh_path = write_mesh(result.mesh, out / f"scan_{target_ml:g}ml.ply")
+    state = controller.equilibrium(pressures * 1e3)
+    model = model_surface(state.positions_m, controller.outer_triangles)
+    model_ml = state.gland_volume_m3 * 1e6
+    comparison = compare(read_scan(mesh_path), model, model_ml)
+    heatmap = write_heatmap(comparison, out / f"heatmap_{target_ml:g}ml.png",
+                            f"scan against the model at the {target_ml:g} ml target\nmean "
+                            f"{comparison.symmetric_mm['mean']:.3f} mm, volume {result.volume_ml:.2f} ml "
+                            f"(model {model_ml:.2f} ml)")
+    scanned = TriangleMesh(to_truth.apply(result.mesh.vertices_mm), result.mesh.triangles)
+    measured = TargetResult(
+        target_ml, [float(p) for p in inverse["pressures_kpa"]], pressures.tolist(),
+        float(inverse["predicted_volume_ml"]), model_ml, truth.gland_volume_ml(pressures), result.volume_ml,
+        comparison.symmetric_mm, truth_distances(scanned, truth.surface(pressures)), str(folder.path),
+        str(mesh_path), str(heatmap), len(folder.frames), [rig.camera.width, rig.camera.height], result.stage_s)
+    # the model into the rig's frame, where the reconstruction and the cameras are (x_model = R x + t)
+    alignment = comparison.alignment
+    in_rig_mm = (comparison.model_vertices_mm - alignment.translation_mm) @ alignment.rotation
+    return measured, (TriangleMesh(in_rig_mm, comparison.model_triangles), comparison.model_signed_distance_mm)
 
 
 def frame_map(calibrated: Rig, truth: Rig, elevation_deg: float) -> Pose:

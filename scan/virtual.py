@@ -19,6 +19,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from phantom import PhantomError
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.surface import TriangleMesh, vertex_normals
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, Pose, Rig, axis_rotation
@@ -152,6 +153,30 @@ def target_pose_facing(orbit_deg: float, tilt_deg: float, spin_deg: float, targe
 #: elevations: upright towards orbit 0, and towards orbit 180 tilted back 25 deg and turned 10 deg in its plane.
 VIRTUAL_PLACEMENTS = ((0.0, 0.0, 0.0), (180.0, 25.0, 10.0))
 VIRTUAL_TARGET_SPAN_DEG = 100.0
+
+
+def virtual_placement(number: int, target: CharucoTarget | None = None) -> Pose:
+    """The target's pose (target to world) in the virtual rig's calibration placement ``number``
+    (:data:`VIRTUAL_PLACEMENTS`); PhantomError for a placement there is not."""
+    if not 0 <= number < len(VIRTUAL_PLACEMENTS):
+        raise PhantomError(f"--placement is 0..{len(VIRTUAL_PLACEMENTS) - 1} on the virtual rig, got {number}")
+    return target_pose_facing(*VIRTUAL_PLACEMENTS[number], target or CharucoTarget())
+
+
+class AnglesRead:
+    """The rig's angles (an :class:`Angles`) read from ``read`` (orbit_deg, elevation_deg) each time a camera
+    renders: the simulated rig's true angles through the daemon, for the target's virtual pictures."""
+
+    def __init__(self, read: Callable[[], tuple[float, float]]):
+        self.read = read
+
+    @property
+    def orbit_deg(self) -> float:
+        return float(self.read()[0])
+
+    @property
+    def elevation_deg(self) -> float:
+        return float(self.read()[1])
 
 
 def render_target_captures(rig: Rig, out: str | Path, views: int = 11, seed: int = 0,

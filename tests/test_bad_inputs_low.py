@@ -41,6 +41,7 @@ def test_verify_rounds_out_of_range_is_refused_in_the_daemons_words_not_a_timeou
     ({"out": "x", "seed": -1}, "seed must be a whole number"),
     ({"out": "x", "elevations_deg": "0,30"}, "elevations_deg must be a list"),
     ({"out": "x", "colour": "red"}, "not colour"),
+    ({"out": "x", "look": "nonsense"}, "look must be one of ideal, real .* got 'nonsense'"),
 ])
 def test_a_scan_with_bad_params_is_invalid_params_not_rejected(tmp_path, params, words):
     from phantom.cli.scan_rig import DaemonScanner

@@ -352,3 +352,21 @@ def test_a_scan_at_rest_is_stored_at_zero_not_at_the_sensors_noise_below_it():
         held_pressures_kpa([[0.1, float("nan"), 0.0]])
     with pytest.raises(CharacterisationError, match="finite measured pressures"):
         held_pressures_kpa([])
+
+
+@pytest.mark.parametrize(("camera", "named", "scale"), [
+    (None, None, 0.5),  # the daemon's own: its --camera on a real board, else the virtual one at the run's scale
+    ("virtual", "virtual", 0.5),
+    ("2", 2, None),  # a device number
+    ("http://lab-camera:8080/video.mjpg", "http://lab-camera:8080/video.mjpg", None),  # a stream: the rig's size
+])
+def test_a_points_scan_names_the_runs_camera_or_leaves_it_to_the_daemon(tmp_path, camera, named, scale):
+    from phantom.scan.characterise import scan_params
+
+    record = _record(tmp_path)
+    record.scan["camera"] = camera
+    params = scan_params(record, 2, tmp_path / "scans" / "002")
+    assert params.get("camera") == named and ("camera" in params) == (named is not None)
+    assert params.get("scale") == scale
+    assert params["seed"] == 2 and params["rig"] == str((tmp_path / "rig.json").resolve())
+    assert params["out"] == str((tmp_path / "scans" / "002").resolve()) and params["views"] == 60

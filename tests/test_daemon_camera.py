@@ -70,7 +70,8 @@ def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(t
         line = board.stdout.readline()
         assert line, board.stderr.read()
         streams = json.loads(line)["streams"]
-        assert set(streams) == {"phantom", "target0", "target1"}
+        assert set(streams) == {"phantom", "target0", "target1", "truth"}
+        truth_url = streams.pop("truth")
         pictures = {}
         for name, url in streams.items():
             capture = cv2.VideoCapture(url)  # as a daemon's --camera URL opens it
@@ -89,6 +90,42 @@ def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(t
 
         with pytest.raises(urllib.error.HTTPError, match="404"):
             urllib.request.urlopen(streams["phantom"].replace("phantom.mjpg", "nothing.mjpg"), timeout=10)
+        with urllib.request.urlopen(truth_url, timeout=10) as answer:  # for a test to judge a scan by
+            truth = json.load(answer)
+        assert 26.0 < truth["gland_volume_ml"] < 27.0 and len(truth["pressures_kpa"]) == 3  # vented, at rest
+        assert truth["rig_deg"] is not None
     finally:
         board.terminate()
         board.wait(30)
+
+
+def test_a_look_that_is_not_one_is_refused_saying_the_looks_there_are(tmp_path):
+    done = _daemon("--look", "nonsense")
+    assert done.returncode == 2 and "--look: the value must be one of ideal, real, got 'nonsense'" in done.stderr
+    config = tmp_path / "phantomd.toml"
+    config.write_text('[daemon]\nsim = true\nlook = "sepia"\n')
+    done = subprocess.run([sys.executable, "-m", "phantom", "daemon", "--config", str(config)], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2 and "[daemon] look must be one of ideal, real, got 'sepia'" in done.stderr
+
+
+def test_the_daemons_scan_takes_the_daemons_camera_when_its_params_name_none(tmp_path):
+    """``phantom daemon --camera`` is the scan method's camera unless the params give another (characterise's
+    scans on a real rig then need no --camera of their own); the rig's picture size is checked either way."""
+    from phantom.cli.scan_rig import DaemonScanner
+
+    rig = virtual_rig(0.5).save(tmp_path / "rig.json")  # 640x480
+    own = _pictures(tmp_path / "own", 640, 480)
+    other = _pictures(tmp_path / "other", 320, 240)
+    camera = DaemonScanner(camera=own)._camera({"rig": str(rig)}, None, (0.0, 30.0), 1.0, 0)
+    try:
+        assert camera.describe()["source"] == own and camera.grab().shape == (480, 640, 3)
+    finally:
+        camera.close()
+    camera = DaemonScanner(camera=own)._camera({"camera": other, "rig": str(rig)}, None, (0.0,), 1.0, 0)
+    try:
+        assert camera.describe()["source"] == other
+        with pytest.raises(CameraLost, match="gave a 320x240 picture, the rig was calibrated at 640x480"):
+            camera.grab()
+    finally:
+        camera.close()

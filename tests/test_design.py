@@ -88,9 +88,12 @@ def test_an_asymmetric_oblique_mask_becomes_a_scene_that_grows_and_a_printable_c
     # the split plane searched leaves less undercut than the coronal one
     assert summary["cast"]["undercut_mm2"] < summary["cast"]["coronal_undercut_mm2"]
     assert summary["outer_surface_mean_distance_mm"] < 0.5
-    # the wider lobe (patient's left, +x in the phantom's frame) gets the larger chamber
-    left, right = summary["chambers"][1]["volume_ml"], summary["chambers"][2]["volume_ml"]
-    assert left > right
+    # at the walls' limit every chamber is as large as its own walls allow: one of its walls at the minimum (the
+    # lobes' chambers keep the template's proportions, laid into each side's extents, so which is larger is whichever
+    # lobe has more room for that shape: here the narrower lobe's, 2.02 ml against 1.91)
+    for index in range(3):
+        own = [wall for name, wall in summary["walls_mm"].items() if f"chamber{index}" in name.split("-")]
+        assert min(own) < 2.1, summary["walls_mm"]
     for part in summary["cast"]["parts"]:
         mesh = trimesh.load(part["path"], force="mesh")
         assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0, part["path"]
@@ -213,8 +216,8 @@ def test_a_gland_too_small_for_three_chambers_is_refused(tmp_path, capsys):
     ("--volume-ml", "-1", "--volume-ml"), ("--min-wall-mm", "0.5", "--min-wall-mm"),
     ("--stem-diameter-mm", "20", "--stem-diameter-mm"), ("--growth-kpa", "5", "--growth-kpa"),
     ("--chamber-scale", "5", "--chamber-scale"),
-    # refused only once the chambers are laid out: 10.8 s of CPU (warm cache), the other five 0.4 s together
-    pytest.param("--size-mm", "50", "--size-mm", marks=pytest.mark.slow)])
+    # refused before the sizing's solves (it was refused after them: 53 s at a load average of 6.5)
+    ("--size-mm", "50", "--size-mm 50 is out of range: use 0.3 to 10 mm")])
 def test_out_of_range_options_are_refused(tmp_path, capsys, option, value, says):
     mask = write_mask(tmp_path / "gland.nii", asymmetric_gland, grid=(40, 40, 20), affine=oblique_affine((1.6,) * 3))
     status, _, err = run(capsys, "design", str(mask), "--out", str(tmp_path / "d"), option, value)

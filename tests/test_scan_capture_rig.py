@@ -164,3 +164,26 @@ def test_the_angle_bound(tmp_path, offset_deg, kept):
     else:
         with pytest.raises(CaptureError, match="more than 0.1 deg off"):
             capture(orbit, Camera(), Phantom(), plan, _folder(tmp_path, plan))
+
+
+def test_a_virtual_placement_of_the_target_there_is_not_is_refused():
+    from phantom.scan.virtual import VIRTUAL_PLACEMENTS, target_pose_facing, virtual_placement
+
+    with pytest.raises(PhantomError, match=r"--placement is 0\.\.1 on the virtual rig, got 2"):
+        virtual_placement(2)
+    from phantom.scan.render import CharucoTarget
+
+    facing = target_pose_facing(*VIRTUAL_PLACEMENTS[1], CharucoTarget())
+    assert np.array_equal(virtual_placement(1).rotation, facing.rotation)
+
+
+def test_a_scenes_targets_are_its_steps_volumes_once_each_in_order(tmp_path):
+    from phantom.scan.validation import scene_targets_ml
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text("[[steps]]\nvolume_ml = 30\n[[steps]]\nvolume_ml = 27.5\n[[steps]]\nvolume_ml = 30\n"
+                     "[[steps]]\npressures_kpa = [1, 1, 1]\n")
+    assert scene_targets_ml(str(scene)) == [30.0, 27.5]
+    scene.write_text("[[steps]]\npressures_kpa = [1, 1, 1]\n")
+    with pytest.raises(PhantomError, match="has no \\[\\[steps\\]\\] with volume_ml: give --targets"):
+        scene_targets_ml(str(scene))

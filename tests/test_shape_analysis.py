@@ -156,3 +156,39 @@ def test_compare_scan_reports_the_latent_distance_given_a_shape_run(run, model, 
     assert main(["compare-scan", str(scan), "--scene", "builtin", "--pressures-kpa", "0,0,0", "--out",
                  str(tmp_path), "--shape-run", str(tmp_path / "no-run")]) == 2
     assert "no such run folder" in capsys.readouterr().err
+
+
+def test_shape_reach_over_the_runs_own_cluster_centres(run, model, default_model_cached, tmp_path, capsys):
+    """``phantom shape reach RUN``: the population is the trained run's k-means centres, decoded. Each centre's
+    volume is its decoded shape's, the best pressures bring the phantom no farther than its rest shape, the rest
+    distance is the one the shape analysis' own comparison (its ICP, a separate alignment) measures between the
+    centre and the phantom at rest, and the latent picture draws the centres over the run's cases."""
+    from phantom.model.mesh.surface import TriangleMesh as Mesh
+
+    out = tmp_path / "reach"
+    assert main(["shape", "reach", str(run), "--out", str(out), "--k", "2", "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["cases"] == 2 and set(figures["files"]) == {"table", "json", "histogram", "latent"}
+    cases = json.loads((out / "reach.json").read_text())["cases"]
+    assert [case["case"] for case in cases] == ["cluster 0", "cluster 1"]
+    _, _, decoded = model.clusters(2)
+    nodes, triangles = default_model_cached.outer_surface()
+    rest = phantom_mesh(Mesh(np.asarray(default_model_cached.nodes_m)[nodes] * 1e3, triangles))
+    for case, centre in zip(cases, decoded, strict=True):
+        assert case["volume_ml"] == pytest.approx(centre.volume_ml, rel=0.02)
+        # (at 0 kPa the answer's surface is the table's, a few nanometres from the rest nodes)
+        assert case["distance_mm"] <= case["rest_distance_mm"] + 1e-4
+        if centre.volume_ml < 0.9 * default_model_cached.rest_gland_volume_m3 * 1e6:
+            # a gland smaller than the phantom: it only inflates, so rest is its closest (17.4 ml measured)
+            assert case["pressures_kpa"] == [0.0, 0.0, 0.0] and len(case["at_limit"]) == 3
+        else:   # 33.3 ml measured: 1.55 mm at rest, 0.56 at 0.87, 1.79, 1.78 kPa
+            assert case["distance_mm"] < 0.6 * case["rest_distance_mm"]
+        assert all(0.0 <= value <= 3.0 + 1e-9 for value in case["pressures_kpa"])
+        compared = compare_shapes(model, rest, phantom_mesh(Mesh(centre.vertices_mm, centre.triangles)))
+        assert case["rest_distance_mm"] == pytest.approx(compared.mean_distance_mm, rel=0.15), compared
+    for name in ("reach_histogram.png", "reach_latent.png"):
+        assert (out / name).read_bytes()[:4] == b"\x89PNG" and (out / name).stat().st_size > 10000
+    assert main(["shape", "reach", str(run), "--out", str(out), "--k", "40"]) == 2
+    assert "--k must be between 1 and the run's 16 cases, got 40" in capsys.readouterr().err
+    assert main(["shape", "reach", str(run), "--out", str(out), "--run", str(run)]) == 2
+    assert "--run goes with a dataset" in capsys.readouterr().err

@@ -12,9 +12,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from phantom.cli.scan_rig import _scaled_pose, truth_scene
+from phantom.cli.scan_rig import truth_scene
 from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan
-from phantom.scan.camera import virtual_rig
+from phantom.scan.camera import virtual_pose_at, virtual_rig
 from phantom.scan.capture import CaptureFolder, Plan, capture
 from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit
 
@@ -32,7 +32,7 @@ def verify_scan_ml(truth: Any, pressures_kpa: Sequence[float], folder: Path) -> 
 
     elevations = tuple(VERIFY_PLAN["elevations_deg"])
     camera = VirtualCamera(virtual_rig(VERIFY_PLAN["scale"], elevations), truth_scene(simulated, truth),
-                           pose_at=_scaled_pose(VERIFY_PLAN["scale"]))
+                           pose_at=virtual_pose_at(VERIFY_PLAN["scale"]))
     plan = Plan(VERIFY_PLAN["views"], elevations, settle_s=0.0)
     capture(orbit, camera, FixedPhantom(), plan, CaptureFolder.create(folder, camera.describe(), plan.to_json()))
     volume_ml: float = VerifyScan().volume(str(folder))["volume_ml"]

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from phantom.model.corrections import ModelGrid
     from phantom.model.measurements import CorrectionStore
     from phantom.scan.camera import Rig
-    from phantom.scan.characterise import CharacterisationRecord
+    from phantom.scan.characterise import CharacterisationRecord, PointResult
 
 #: How much the daemon's model may differ from --scene's at rest (ml) before the run is refused as another model.
 SAME_MODEL_ML = 0.05
@@ -65,8 +65,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     parser.add_argument("--elevations", default="0,30", help="the passes' elevations (deg, default 0,30)")
     parser.add_argument("--scale", type=float, default=0.5,
                         help="the virtual camera's picture size, of 1280x960 (default 0.5: 640x480)")
-    parser.add_argument("--camera", default="virtual",
-                        help="'virtual' (the simulated board's, default) or a webcam's device number")
+    parser.add_argument("--camera", default=None,
+                        help="the daemon's camera (default): its --camera on a real board, else the simulated "
+                        "board's virtual one; or 'virtual', a device number, a stream's URL")
     parser.add_argument("--settle-s", type=float, default=0.3, help="wait after each move of the orbit (s)")
     parser.add_argument("--voxel-mm", type=float, default=0.3, help="the reconstruction's finest voxel (mm)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the design and of the sensor noise")
@@ -398,43 +399,21 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
 
 
 def _scan_point(client: Phantom, record: CharacterisationRecord, index: int, folder: Path, rig: Rig, grid: ModelGrid,
-                point_started: float, label: str) -> Any:
-    import numpy as np
-
+                point_started: float, label: str) -> PointResult:
+    """Scan point ``index`` with the daemon's ``scan`` and measure it (``phantom.scan.characterise``)."""
     from phantom.host.client import DaemonError
-    from phantom.scan.capture import CaptureFolder
-    from phantom.scan.characterise import CharacterisationError, PointResult, held_pressures_kpa
-    from phantom.scan.reconstruct import reconstruct
+    from phantom.scan.characterise import CharacterisationError, measured_point, scan_params
 
-    scan = record.scan
-    params = {"out": str(folder.resolve()), "views": scan["views"], "elevations_deg": scan["elevations_deg"],
-              "settle_s": scan["settle_s"], "seed": scan["seed"] + index, "rig": str((record.folder /
-                                                                                      record.rig).resolve())}
-    camera = scan["camera"]
-    params["camera"] = int(camera) if str(camera).isdigit() else camera
-    if camera == "virtual":
-        params["scale"] = scan["scale"]
     try:
-        client.call("scan", params)
+        client.call("scan", scan_params(record, index, folder))
     except DaemonError as error:
         faults = client.status().faults
         why = f" (faults latched: {', '.join(faults)}: remove the cause and `phantom clear-fault`)" if faults else ""
         raise CharacterisationError(f"{label}: {error.message}{why}; the point is not stored: `phantom characterise "
                                     f"--resume --out {record.folder}` scans it again") from None
-    status = client.status()
-    capture = CaptureFolder.open(folder)
-    if capture.status != "complete":
-        raise CharacterisationError(f"{label}: the scan ended {capture.status}, not complete; the point is not "
-                                    f"stored: --resume scans it again")
-    measured = [frame.pressures_kpa for frame in capture.frames if frame.pressures_kpa is not None]
-    if len(measured) != len(capture.frames):
-        raise CharacterisationError(f"{label}: {len(capture.frames) - len(measured)} of the scan's pictures have no "
-                                    f"measured pressures: the point is not stored (--resume scans it again)")
-    pressures = held_pressures_kpa(measured)
-    volume_ml = reconstruct(capture, rig, scan["voxel_mm"]).volume_ml
-    return PointResult(index, list(record.points_kpa[index]), pressures, float(volume_ml),
-                       grid.gland_ml(np.asarray(pressures)), str(folder.resolve()), _utc_now(),
-                       time.monotonic() - point_started, status.true_volume_ml)
+    true_ml = client.status().true_volume_ml
+    return measured_point(record, index, folder, rig, grid, _utc_now(), time.monotonic() - point_started, true_ml,
+                          label)
 
 
 def _kpa(pressures: Any) -> str:

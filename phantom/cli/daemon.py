@@ -51,7 +51,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     sim_board.add_argument("--camera-stream", metavar="HOST:PORT",
                            help="serve the simulated rig's camera as MJPEG over HTTP (/phantom.mjpg, /target0.mjpg, "
                                 "/target1.mjpg) rendered at the rig's true angles, for `phantom daemon --port ... "
-                                "--camera http://HOST:PORT/phantom.mjpg` (port 0: any free one)")
+                                "--camera http://HOST:PORT/phantom.mjpg` (port 0: any free one); /truth.json is the "
+                                "simulated phantom's truth, for a test to judge a scan by")
     sim_board.add_argument("--stream-scale", type=float, default=0.5,
                            help="the stream's picture size as a fraction of 1280x960 (default 0.5)")
     sim_board.add_argument("--stream-look", choices=("ideal", "real"), default="ideal",
@@ -116,7 +117,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
     from phantom.cli.scan_rig import DaemonScanner, SimulatedTruth
-    from phantom.cli.scan_verify import VerifyScan
+    from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan
 
     truth = SimulatedTruth()
     if args.sim_truth is not None:
@@ -128,7 +129,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     from phantom.host.presets import DEFAULT_PRESETS, load_presets
 
     presets = (load_presets(args.config) if args.config else None) or DEFAULT_PRESETS
-    verify = VerifyScan()
+    verify = VerifyScan({**VERIFY_PLAN, "look": config.look})
     if config.camera is not None or config.rig is not None:
         from phantom.cli.scan_rig import camera_plan
 
@@ -137,7 +138,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
     # the scans' capture and reconstruction in a process of their own: they hold the GIL for long stretches,
     # which in the daemon's process held up its loops past the board's dead-host deadline on a busy machine
-    scans = ScanWorker(DaemonScanner(truth), verify, getattr(args, "log_level", "info"))
+    scans = ScanWorker(DaemonScanner(truth, config.look, config.camera), verify, getattr(args, "log_level", "info"))
     try:
         scans.start()
         return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
@@ -200,11 +201,15 @@ def _run_sim_board(args: argparse.Namespace) -> int:
             stream = CameraStream(board, *stream_at, scale=args.stream_scale, look=args.stream_look).start()
         try:
             urls = {} if stream is None else {"streams": stream.urls()}
+            # the board counts its dead-host deadline on its own clock: faster than real time, a daemon that
+            # drives it as a real board gives it as many times the real 500 ms (at speed 0 no one factor holds)
+            deadline_ms = min(10000, round(500 * args.sim_speed))
+            deadline = "" if args.sim_speed in (0, 1) else f" --host-deadline-ms {deadline_ms}"
             if args.json:
                 print(json.dumps({"port": board.port, "speed": args.sim_speed, **urls}), flush=True)
             else:
                 print(f"simulated board on {board.port} (speed {args.sim_speed:g}); drive it with "
-                      f"`phantom daemon --port {board.port}`"
+                      f"`phantom daemon --port {board.port}{deadline}`"
                       + ("" if stream is None else f" --camera {stream.urls()['phantom']} --rig RIG.json")
                       + "; Ctrl-C stops it", flush=True)
             while not stop.wait(0.5):

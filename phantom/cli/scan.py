@@ -189,17 +189,65 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
 
 
 def run_capture(args: argparse.Namespace) -> int:
-    """Handler of ``phantom scan capture`` (phantom/cli/scan_rig.py)."""
-    from phantom.cli.scan_rig import run_capture as handler
+    """Handler of ``phantom scan capture``: the plan's pictures through the running daemon (its axes and state),
+    from a webcam or, on the simulated board, the virtual camera (of the phantom, or with --target of the
+    ChArUco target in a virtual placement)."""
+    import dataclasses
+    import sys
 
-    return handler(args)
+    from phantom.cli.common import frame_progress, load_rig, plan_of
+    from phantom.cli.scan_rig import capture_through_daemon, simulated_scene
+    from phantom.host.api import default_socket_path
+    from phantom.host.client import DaemonClient
+    from phantom.scan.camera import virtual_pose_at, virtual_rig
+    from phantom.scan.capture import CaptureFolder, FrameSource, Webcam
+    from phantom.scan.render import CharucoTarget
+
+    plan = dataclasses.replace(plan_of(args, args.settle_s), start_deg=args.start_deg, span_deg=args.span_deg)
+    rig = load_rig(args.rig) if args.rig else None
+    camera: FrameSource
+    with DaemonClient(args.socket or default_socket_path()) as client:
+        if args.camera == "virtual":
+            from phantom.hil.truth_shape import TruthShape
+            from phantom.scan.virtual import AnglesRead, TargetCamera, VirtualCamera, virtual_placement
+
+            true_rig = virtual_rig(args.scale, plan.elevations_deg)
+            if args.target:
+                camera = TargetCamera(true_rig, CharucoTarget(), virtual_placement(args.placement),
+                                      AnglesRead(lambda: _simulated_angles(client)), args.seed,
+                                      virtual_pose_at(args.scale))
+            else:
+                camera = VirtualCamera(true_rig, simulated_scene(client, TruthShape()), args.seed,
+                                       pose_at=virtual_pose_at(args.scale))
+        else:
+            source: int | str = int(args.camera) if args.camera.isdigit() else args.camera
+            camera = Webcam(source, args.width, args.height, args.exposure, args.focus)
+        conditions: dict[str, Any] = {"socket": str(args.socket or default_socket_path())}
+        if args.target:
+            conditions["target"] = CharucoTarget().to_json()
+        folder = CaptureFolder.create(args.out, camera.describe(), plan.to_json(), conditions, rig)
+        capture_through_daemon(client, camera, plan, folder, frame_progress("captured"))
+    print(f"captured {len(folder.frames)} pictures into {folder.path}", file=sys.stderr)
+    return 0
+
+
+def _simulated_angles(client: Any) -> tuple[float, float]:
+    """The simulated rig's true angles (deg) through the daemon (``motion_status``'s ``simulated``)."""
+    from phantom import PhantomError
+
+    simulated = client.call("motion_status").get("simulated") or {}
+    angles = simulated.get("rig_deg")
+    if angles is None or None in angles:
+        raise PhantomError("the daemon does not report a simulated rig: the virtual camera needs `phantom daemon "
+                           "--sim`")
+    return float(angles[0]), float(angles[1])
 
 
 def run_validate(args: argparse.Namespace) -> int:
-    """Handler of ``phantom scan validate`` (phantom/cli/scan_rig.py)."""
+    """Handler of ``phantom scan validate`` (phantom/cli/scan_validate.py)."""
     import sys
 
-    from phantom.cli.scan_rig import run_validate as handler
+    from phantom.cli.scan_validate import run_validate as handler
 
     args.argv = sys.argv[1:]
     return handler(args)

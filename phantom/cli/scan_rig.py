@@ -1,4 +1,6 @@
-"""The scanner driven through a running daemon: ``phantom scan capture`` and ``phantom scan validate --sim``.
+"""The scanner driven through a running daemon: the daemon's own ``scan`` method (:class:`DaemonScanner`), its
+real camera checked at its start (:func:`camera_plan`), and the capture through the daemon's API that
+``phantom scan capture`` and ``phantom scan validate --sim`` (phantom/cli/scan.py, scan_validate.py) use.
 
 This module joins the parts: the daemon's API client (host), the capture loop, the cameras and the
 reconstruction (scan), and on the simulated board the truth shape (hil). The capture loop's Protocols are met
@@ -14,8 +16,6 @@ here by adapters over the API:
 
 from __future__ import annotations
 
-import dataclasses
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -146,8 +146,11 @@ class DaemonScanner:
     ``reason``. The virtual camera photographs ``truth`` (the shipped simulated phantom unless ``phantom daemon
     --sim-truth`` said another)."""
 
-    def __init__(self, truth: SimulatedTruth | None = None):
+    def __init__(self, truth: SimulatedTruth | None = None, look: str = "ideal", camera: str | None = None):
         self.truth = truth or SimulatedTruth()
+        # what the params do not say: the virtual camera's pictures (phantom daemon --look), the camera (--camera)
+        self.look = look
+        self.camera = camera
         self._shape: TruthShape | None = None
 
     def __call__(self, params: dict[str, Any], rig: Any) -> dict[str, Any]:
@@ -180,6 +183,7 @@ class DaemonScanner:
     def _checked(params: dict[str, Any]) -> tuple[Any, int]:
         """The scan's plan and seed from its params; PhantomError for a param that is not one or is out of range."""
         from phantom.scan.capture import Plan
+        from phantom.scan.render import LOOKS
 
         known = {"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale", "seed",
                  "width", "height", "exposure", "focus", "rig", "look"}
@@ -190,6 +194,10 @@ class DaemonScanner:
         elevations = params.get("elevations_deg", [0.0, 30.0])
         if not isinstance(elevations, list):
             raise PhantomError(f"scan: elevations_deg must be a list of angles (deg), got {elevations!r}")
+        look = params.get("look", "ideal")  # checked here: the default is the daemon's, checked by its config
+        if not isinstance(look, str) or look not in LOOKS:
+            raise PhantomError(f"scan: look must be one of {', '.join(sorted(LOOKS))} (the virtual camera's "
+                               f"pictures: ideal, or as a real rig sees the phantom hung by its tubes), got {look!r}")
         seed = params.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
             raise PhantomError(f"scan: seed must be a whole number from 0 to 2^32 - 1, got {seed!r}")
@@ -203,10 +211,10 @@ class DaemonScanner:
 
     def _camera(self, params: dict[str, Any], rig: Any, elevations: tuple[float, ...], scale: Any,
                 seed: int) -> FrameSource:
-        from phantom.scan.camera import virtual_rig
+        from phantom.scan.camera import virtual_pose_at, virtual_rig
         from phantom.scan.capture import Webcam
 
-        camera = params.get("camera", "virtual")
+        camera = params.get("camera", self.camera or "virtual")
         if camera == "virtual":
             from phantom.scan.virtual import VirtualCamera
 
@@ -216,15 +224,11 @@ class DaemonScanner:
                 raise PhantomError(f"scan: {error}") from None
             from phantom.scan.render import LOOKS
 
-            look = params.get("look", "ideal")
-            if not isinstance(look, str) or look not in LOOKS:
-                raise PhantomError(f"scan: look must be one of {', '.join(sorted(LOOKS))} (the virtual camera's "
-                                   f"pictures: ideal, or as a real rig sees the phantom hung by its tubes), got "
-                                   f"{look!r}")
             if self._shape is None:
                 self._shape = self.truth.shape()
-            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed, look=LOOKS[look],
-                                 pose_at=_scaled_pose(scale))
+            return VirtualCamera(true_rig, truth_scene(rig.simulated, self._shape), seed,
+                                 look=LOOKS[params.get("look", self.look)],
+                                 pose_at=virtual_pose_at(scale))
         source = int(camera) if isinstance(camera, int) or str(camera).isdigit() else str(camera)
         size = None
         if params.get("rig"):
@@ -262,234 +266,3 @@ def camera_plan(camera: str | None, rig_path: Any) -> dict[str, Any]:
     return {"views": VERIFY_PLAN["views"], "elevations_deg": [entry.elevation_deg for entry in rig.elevations],
             "settle_s": 0.3, "camera": camera, "width": rig.camera.width, "height": rig.camera.height,
             "rig": str(rig_path)}
-
-
-def run_capture(args: Any) -> int:
-    """Handler of ``phantom scan capture``."""
-    import sys
-
-    from phantom.cli.common import frame_progress, load_rig, plan_of
-    from phantom.host.api import default_socket_path
-    from phantom.host.client import DaemonClient
-    from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureFolder, Webcam
-    from phantom.scan.render import CharucoTarget
-
-    plan = dataclasses.replace(plan_of(args, args.settle_s), start_deg=args.start_deg, span_deg=args.span_deg)
-    rig = load_rig(args.rig) if args.rig else None
-    camera: FrameSource
-    with DaemonClient(args.socket or default_socket_path()) as client:
-        if args.camera == "virtual":
-            from phantom.hil.truth_shape import TruthShape
-            from phantom.scan.virtual import TargetCamera, VirtualCamera
-
-            true_rig = virtual_rig(args.scale, plan.elevations_deg)
-            pose_at = _scaled_pose(args.scale)
-            if args.target:
-                camera = TargetCamera(true_rig, CharucoTarget(), _placement(args.placement), _FollowingOrbit(client),
-                                      args.seed, pose_at)
-            else:
-                camera = VirtualCamera(true_rig, simulated_scene(client, TruthShape()), args.seed, pose_at=pose_at)
-        else:
-            source: int | str = int(args.camera) if args.camera.isdigit() else args.camera
-            camera = Webcam(source, args.width, args.height, args.exposure, args.focus)
-        conditions: dict[str, Any] = {"socket": str(args.socket or default_socket_path())}
-        if args.target:
-            conditions["target"] = CharucoTarget().to_json()
-        folder = CaptureFolder.create(args.out, camera.describe(), plan.to_json(), conditions, rig)
-        progress = frame_progress("captured")
-        capture_through_daemon(client, camera, plan, folder, progress)
-    print(f"captured {len(folder.frames)} pictures into {folder.path}", file=sys.stderr)
-    return 0
-
-
-class _FollowingOrbit:
-    """The simulated rig's true angles, read when the target camera renders (it has the attributes the
-    TargetCamera reads)."""
-
-    def __init__(self, client: DaemonClient):
-        self.client = client
-
-    @property
-    def orbit_deg(self) -> float:
-        return float(self._angles()[0])
-
-    @property
-    def elevation_deg(self) -> float:
-        return float(self._angles()[1])
-
-    def _angles(self) -> list[float]:
-        simulated = _call(self.client, "motion_status").get("simulated") or {}
-        angles = simulated.get("rig_deg")
-        if angles is None or None in angles:
-            raise PhantomError("the daemon does not report a simulated rig: the virtual camera needs `phantom "
-                               "daemon --sim`")
-        return [float(a) for a in angles]
-
-
-def _scaled_pose(scale: float) -> Callable[[float, float], Any]:
-    from phantom.scan.camera import virtual_pose
-
-    return lambda orbit_deg, elevation_deg: virtual_pose(orbit_deg, elevation_deg, scale)
-
-
-def _placement(number: int) -> Any:
-    from phantom.scan.render import CharucoTarget
-    from phantom.scan.virtual import VIRTUAL_PLACEMENTS, target_pose_facing
-
-    if not 0 <= number < len(VIRTUAL_PLACEMENTS):
-        raise PhantomError(f"--placement is 0..{len(VIRTUAL_PLACEMENTS) - 1} on the virtual rig, got {number}")
-    return target_pose_facing(*VIRTUAL_PLACEMENTS[number], CharucoTarget())
-
-
-def scene_targets_ml(scene_path: str) -> list[float]:
-    """The gland volumes (ml) a scene's [[steps]] go through, in order, each once."""
-    import tomllib
-
-    from phantom import read_text
-    from phantom.model.scene import MAX_SCENE_BYTES
-
-    try:
-        steps = tomllib.loads(read_text(scene_path, MAX_SCENE_BYTES, "the scene")).get("steps", [])
-    except tomllib.TOMLDecodeError as error:
-        raise PhantomError(f"cannot read the scene {scene_path}: {error}") from None
-    volumes: list[float] = []
-    for step in steps:
-        volume = step.get("volume_ml")
-        if isinstance(volume, (int, float)) and volume not in volumes:
-            volumes.append(float(volume))
-    if not volumes:
-        raise PhantomError(f"the scene {scene_path} has no [[steps]] with volume_ml: give --targets")
-    return volumes
-
-
-def run_validate(args: Any) -> int:
-    """Handler of ``phantom scan validate --sim``: the paper's validation on the simulated rig."""
-    import json
-    import shlex
-    import signal
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    import numpy as np
-
-    import phantom
-    from phantom.cli.common import frame_progress, load_rig, parse_numbers, plan_of
-    from phantom.cli.demo import wait_until_ready
-    from phantom.hil.truth_shape import TruthShape
-    from phantom.host.client import DaemonClient
-    from phantom.host.scenes import example_scene_path, load_timeline_scene
-    from phantom.model import PhantomModel
-    from phantom.model.mesh.surface import TriangleMesh, model_surface
-    from phantom.scan.calibrate import calibrate_rig, target_views
-    from phantom.scan.camera import virtual_rig
-    from phantom.scan.capture import CaptureFolder
-    from phantom.scan.compare import compare, read_scan
-    from phantom.scan.heatmap import write_heatmap
-    from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
-    from phantom.scan.validation import TargetResult, frame_map, truth_distances, write_recording, write_report
-    from phantom.scan.virtual import VirtualCamera, render_target_captures
-
-    if not args.sim:
-        raise PhantomError("validate runs on the simulated rig: give --sim (with a real board, scan with `phantom "
-                           "scan capture`, `reconstruct` and `compare-scan`)")
-    plan = plan_of(args, args.settle_s)
-    elevations = plan.elevations_deg
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    scene = args.scene or str(example_scene_path("bph_growth"))
-    targets = parse_numbers(args.targets, "--targets") if args.targets else scene_targets_ml(scene)
-    true_rig = virtual_rig(args.scale, elevations)
-    started = time.monotonic()
-
-    def say(text: str) -> None:
-        print(f"[{time.monotonic() - started:6.1f} s] {text}", file=sys.stderr, flush=True)
-
-    # the rig's calibration, from rendered pictures of the target, as a real rig's from photographs of it
-    if args.rig:
-        rig = load_rig(args.rig)
-    else:
-        say("calibrating the virtual rig from pictures of the ChArUco target ...")
-        folders = render_target_captures(true_rig, out / "target", args.target_views)
-        rig = calibrate_rig(target_views(folders), true_rig.camera.width, true_rig.camera.height)
-        rig.save(out / "rig.json")
-        say(f"rig calibrated: reprojection RMS {rig.calibration['rms_px']:.3f} px")
-    to_truth = frame_map(rig, true_rig, elevations[0])
-    truth = TruthShape()
-    controller = PhantomModel.from_scene(load_timeline_scene(scene))
-    socket = out / "daemon.sock"
-    command = [str(Path(sys.executable).with_name("phantom")), "daemon", "--sim", "--scene", scene, "--socket",
-               str(socket), "--sim-speed", f"{args.sim_speed:g}"]
-    say("$ " + shlex.join(command))
-    log = open(out / "daemon.log", "w")
-    process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
-    results: list[TargetResult] = []
-    captures: list[Path] = []
-    models: list[tuple[TriangleMesh, np.ndarray]] = []
-    try:
-        wait_until_ready(socket, process, out / "daemon.log", stage_limit_s=args.daemon_timeout_s)
-        say("daemon ready")
-        with DaemonClient(socket) as client, phantom.connect(socket) as daemon:
-            for target_ml in targets:
-                # reached and settled by the control core's rule (the client's wait), as every client waits
-                reached = daemon.set_volume(target_ml, wait=True)
-                answer: dict[str, Any] = {"pressures_kpa": list(reached.pressures_kpa),
-                                          "predicted_volume_ml": reached.predicted_volume_ml,
-                                          "iterations": reached.iterations}
-                measured = list(reached.measured_pressures_kpa or reached.pressures_kpa)
-                say(f"{target_ml:g} ml: inverse {', '.join(f'{p:.3f}' for p in answer['pressures_kpa'])} kPa, "
-                    f"held at {', '.join(f'{p:.3f}' for p in measured)} kPa; capturing {len(plan.stops())} pictures")
-                folder = CaptureFolder.create(out / f"capture_{target_ml:g}ml", {}, plan.to_json(), {
-                    "scene": scene, "target_ml": target_ml, "inverse": answer}, rig)
-                camera = VirtualCamera(true_rig, simulated_scene(client, truth), args.seed,
-                                       pose_at=_scaled_pose(args.scale))
-                folder.camera = camera.describe()
-                capture_through_daemon(client, camera, plan, folder, frame_progress(f"  {target_ml:g} ml"))
-                frame_pressures = np.array([frame.pressures_kpa for frame in folder.frames], dtype=float)
-                pressures = frame_pressures.mean(axis=0)
-                result = reconstruct(folder, rig, args.voxel_mm or VOXEL_MM)
-                mesh_path = write_mesh(result.mesh, out / f"scan_{target_ml:g}ml.ply")
-                state = controller.equilibrium(pressures * 1e3)
-                model = model_surface(state.positions_m, controller.outer_triangles)
-                comparison = compare(read_scan(mesh_path), model, state.gland_volume_m3 * 1e6)
-                heatmap = write_heatmap(comparison, out / f"heatmap_{target_ml:g}ml.png",
-                                        f"scan against the model at the {target_ml:g} ml target\nmean "
-                                        f"{comparison.symmetric_mm['mean']:.3f} mm, volume {result.volume_ml:.2f} ml "
-                                        f"(model {state.gland_volume_m3 * 1e6:.2f} ml)")
-                scanned = TriangleMesh(to_truth.apply(result.mesh.vertices_mm), result.mesh.triangles)
-                true_surface = truth.surface(pressures)
-                results.append(TargetResult(
-                    target_ml, [float(p) for p in answer["pressures_kpa"]], pressures.tolist(),
-                    float(answer["predicted_volume_ml"]), state.gland_volume_m3 * 1e6,
-                    truth.gland_volume_ml(pressures), result.volume_ml, comparison.symmetric_mm,
-                    truth_distances(scanned, true_surface), str(folder.path), str(mesh_path), str(heatmap),
-                    len(folder.frames), [rig.camera.width, rig.camera.height], result.stage_s))
-                captures.append(folder.path)
-                # the model into the rig's frame, where the reconstruction and the cameras are (x_model = R x + t)
-                alignment = comparison.alignment
-                in_rig_mm = (comparison.model_vertices_mm - alignment.translation_mm) @ alignment.rotation
-                models.append((TriangleMesh(in_rig_mm, comparison.model_triangles),
-                               comparison.model_signed_distance_mm))
-                last = results[-1]
-                say(f"{target_ml:g} ml: scan {last.scan_ml:.2f} ml ({last.scan_vs_target_pct:+.2f} % of the target, "
-                    f"{last.scan_vs_model_pct:+.2f} % of the model, {last.scan_vs_truth_pct:+.2f} % of the truth); "
-                    f"mean distance to the model {last.model_distance_mm['mean']:.3f} mm, to the truth "
-                    f"{last.truth_distance_mm['mean']:.3f} mm")
-            _call(client, "vent")
-    finally:
-        if process.poll() is None:
-            process.send_signal(signal.SIGTERM)
-            process.wait(30)
-        log.close()
-    meta = {"command": shlex.join(["phantom", *args.argv]), "scene": scene,
-            "truth": truth.description, "rig": rig.calibration, "elapsed_s": time.monotonic() - started}
-    report = write_report(results, out, meta)
-    recording = write_recording(results, rig, captures, models, out / "validation.rrd") if args.rerun else None
-    if args.json:
-        print(json.dumps({"report": str(report), "recording": None if recording is None else str(recording),
-                          "targets": [r.to_json() for r in results]}))
-    else:
-        print(report.read_text())
-        print(f"report {report}" + (f", recording {recording}" if recording else ""))
-    return 0

@@ -8,7 +8,10 @@ rendered when it is sent, at the simulated rig's true angles (the pulses its dri
 - ``/phantom.mjpg``: the simulated phantom (the truth model at the plant's true pressures);
 - ``/target0.mjpg``, ``/target1.mjpg``: the ChArUco target, in the virtual rig's two calibration placements
   (facing the camera at orbit 0, then turned round), for ``phantom scan capture --target`` and
-  ``phantom scan calibrate``.
+  ``phantom scan calibrate``;
+- ``/truth.json``: the simulated phantom's truth now, for a test or a bench to judge a scan by (the plant's true
+  pressures in kPa, the truth model's gland volume in ml, the rig's true angles in deg). A daemon driving the
+  board reads nothing of it: it has no simulated privileges, as on a real rig.
 
 Pictures of ``scale`` times 1280x960 in the ``look`` (scan/render.py: ideal, or real), JPEG quality 95 with the
 colour at full resolution (4:4:4): with the usual 4:2:0, the colour key's edges blur over two pixels and a scan of
@@ -28,6 +31,8 @@ from phantom import require_extra
 
 #: The stream's paths: the phantom, and the target in each virtual calibration placement.
 PATHS = ("/phantom.mjpg", "/target0.mjpg", "/target1.mjpg")
+#: The simulated phantom's truth (JSON), for a test or a bench, never for the daemon.
+TRUTH_PATH = "/truth.json"
 JPEG_QUALITY = 95
 SEND_BUFFER_BYTES = 64 * 1024
 
@@ -37,7 +42,7 @@ class CameraStream:
 
     def __init__(self, board: Any, host: str, port: int, scale: float = 0.5, look: str = "ideal"):
         from phantom.hil.truth_shape import TruthShape
-        from phantom.scan.camera import virtual_pose, virtual_rig
+        from phantom.scan.camera import virtual_pose_at, virtual_rig
         from phantom.scan.render import LOOKS, CharucoTarget
         from phantom.scan.virtual import VIRTUAL_PLACEMENTS, TargetCamera, VirtualCamera, target_pose_facing
 
@@ -45,10 +50,7 @@ class CameraStream:
         self._lock = threading.Lock()
         self._angles = _Angles()
         rig = virtual_rig(scale)
-
-        def pose_at(orbit_deg: float, elevation_deg: float) -> Any:
-            return virtual_pose(orbit_deg, elevation_deg, scale)
-
+        pose_at = virtual_pose_at(scale)
         truth = TruthShape()
         target = CharucoTarget()
         self.cameras: dict[str, Any] = {
@@ -73,8 +75,18 @@ class CameraStream:
         self.server.server_close()
 
     def urls(self) -> dict[str, str]:
+        """The streams' URLs by name (phantom, target0, target1), and ``truth``: the truth's (not a stream)."""
         host, port = str(self.address[0]), int(self.address[1])
-        return {path.strip("/").removesuffix(".mjpg"): f"http://{host}:{port}{path}" for path in PATHS}
+        return {**{path.strip("/").removesuffix(".mjpg"): f"http://{host}:{port}{path}" for path in PATHS},
+                "truth": f"http://{host}:{port}{TRUTH_PATH}"}
+
+    def truth(self) -> dict[str, Any]:
+        """The simulated phantom now: ``pressures_kpa`` (the plant's true pressures), ``gland_volume_ml`` (the
+        truth model's, at them) and ``rig_deg`` (the rig's true orbit and elevation angles)."""
+        with self._lock:
+            state = self.board.plant_state()
+        return {"pressures_kpa": [p / 1e3 for p in state["pressures_pa"]],
+                "gland_volume_ml": state.get("gland_volume_ml"), "rig_deg": state.get("rig_deg")}
 
     def picture(self, path: str) -> np.ndarray:
         """One JPEG of the camera at ``path``, rendered now at the rig's true angles."""
@@ -105,8 +117,18 @@ class CameraStream:
                 super().setup()
 
             def do_GET(self) -> None:  # noqa: N802 (http.server's name)
+                if self.path == TRUTH_PATH:
+                    import json
+
+                    body = json.dumps(stream.truth()).encode()
+                    self.send_response(200)
+                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Length", str(len(body)))
+                    self.end_headers()
+                    self.wfile.write(body)
+                    return
                 if self.path not in stream.cameras:
-                    self.send_error(404, f"the streams are {', '.join(PATHS)}")
+                    self.send_error(404, f"the streams are {', '.join(PATHS)}; the truth is {TRUTH_PATH}")
                     return
                 self.send_response(200)
                 self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")

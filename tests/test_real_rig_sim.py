@@ -1,0 +1,115 @@
+"""A verified volume on a real rig, rehearsed end to end on the simulated board presented as a real one (the
+README's "A verified volume on a real rig", step by step): ``phantom sim-board --camera-stream`` (the firmware in
+simavr, its camera an MJPEG stream), ``phantom daemon --port`` on its serial port (no ``--sim``: no simulated
+privileges), the rig calibrated from the target's stream (``phantom scan capture --target``, ``phantom scan
+calibrate``), then the daemon again with ``--camera URL --rig rig.json`` and a 40 ml target with
+``verify="scan"`` through the Python API, judged against the simulated phantom's truth (the stream's
+``/truth.json``, which the daemon never reads)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+import phantom
+from tests.daemon_rig import wait_ready
+
+pytest.importorskip("cv2")
+
+PHANTOM = Path(sys.executable).with_name("phantom")
+#: The simulated board runs at twice real time (the orbit's moves and the pressures' settling take half the wall
+#: time), so its dead-host deadline, counted on the board's clock, is given as 1000 ms: a real board's 500 ms.
+SIM_SPEED = 2
+HOST_DEADLINE_MS = 1000
+
+
+def _run(*arguments: str, env: dict[str, str], timeout_s: float = 300) -> str:
+    done = subprocess.run([str(PHANTOM), *arguments], capture_output=True, text=True, timeout=timeout_s, env=env)
+    assert done.returncode == 0, f"phantom {' '.join(arguments)}:\n{done.stderr[-4000:]}"
+    return done.stdout + done.stderr
+
+
+class _Daemon:
+    """``phantom daemon --port PORT`` as a lab PC runs it against a board, its log in ``folder``."""
+
+    def __init__(self, folder: Path, port: str, env: dict[str, str], *arguments: str):
+        self.socket = folder / "phantomd.sock"
+        self.log_path = folder / f"daemon{len(list(folder.glob('daemon*.log')))}.log"
+        self.log = open(self.log_path, "w")
+        self.process = subprocess.Popen([str(PHANTOM), "daemon", "--port", port, "--socket", str(self.socket),
+                                         "--host-deadline-ms", str(HOST_DEADLINE_MS), *arguments],
+                                        stdout=self.log, stderr=subprocess.STDOUT, env=env)
+        wait_ready(self.socket, self.process, self.log_path, timeout_s=120)
+
+    def stop(self) -> None:
+        """SIGTERM, as Ctrl-C or systemd stops it: it vents the phantom and exits."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(30)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait(10)
+        self.log.close()
+
+
+@pytest.mark.sim  # the simulated board (simavr) and two daemons on its port
+@pytest.mark.slow  # the calibration's 28 pictures, then a verified target's rounds of 60: about 4-6 minutes
+@pytest.mark.timeout(900)  # three rounds of 80-120 s each at load 6-10
+def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
+    env = {**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}
+    board_log = open(tmp_path / "board.log", "w")  # a file, not a pipe no one reads on: it would fill and block
+    board = subprocess.Popen([str(PHANTOM), "sim-board", "--camera-stream", "127.0.0.1:0", "--sim-speed",
+                              str(SIM_SPEED), "--json"], stdout=subprocess.PIPE, stderr=board_log, text=True, env=env)
+    daemon = None
+    try:
+        line = board.stdout.readline()
+        assert line, (tmp_path / "board.log").read_text()
+        said = json.loads(line)
+        port, streams = said["port"], said["streams"]
+
+        # once per rig: the target's pictures through the stream, facing the camera at orbit 0 and turned round
+        daemon = _Daemon(tmp_path, port, env)
+        sock = str(daemon.socket)
+        _run("scan", "capture", "--target", "--camera", streams["target0"], "--out", str(tmp_path / "target0"),
+             "--views", "7", "--start-deg", "-45", "--span-deg", "90", "--settle-s", "0.1", "--socket", sock, env=env)
+        _run("scan", "capture", "--target", "--camera", streams["target1"], "--out", str(tmp_path / "target1"),
+             "--views", "7", "--start-deg", "130", "--span-deg", "60", "--settle-s", "0.1", "--socket", sock, env=env)
+        said_calibrate = _run("scan", "calibrate", str(tmp_path / "target0"), str(tmp_path / "target1"), "--out",
+                              str(tmp_path / "rig.json"), env=env)
+        assert "28 of 28 pictures" in said_calibrate
+        daemon.stop()
+
+        # the daemon given the camera and the rig: it scans for itself
+        daemon = _Daemon(tmp_path, port, env, "--camera", streams["phantom"], "--rig", str(tmp_path / "rig.json"))
+        with phantom.connect(daemon.socket) as lab:
+            reached = lab.set_volume(40, verify="scan")
+        with urllib.request.urlopen(streams["truth"], timeout=10) as answer:
+            truth = json.load(answer)
+        log = daemon.log_path.read_text()
+        print(f"verified {reached.verified} in {len(reached.rounds)} rounds, scanned {reached.scanned_volume_ml} ml, "
+              f"the truth {truth['gland_volume_ml']} ml")  # shown with -rP
+        assert reached.verified, log[-4000:]
+        assert reached.true_volume_ml is None  # a real board's daemon knows no truth
+        assert abs(reached.scanned_volume_ml - 40) <= 0.003 * 40
+        assert abs(truth["gland_volume_ml"] - 40) <= 0.003 * 40, (truth, reached.rounds)
+        # every round's scan went through the stream, posed by the calibrated rig kept beside its pictures
+        for entry in reached.rounds:
+            capture = json.loads((Path(entry["scan"]) / "capture.json").read_text())
+            assert capture["camera"]["kind"] == "webcam" and capture["camera"]["source"] == streams["phantom"]
+            assert (Path(entry["scan"]) / "rig.json").exists()
+    finally:
+        if daemon is not None:
+            daemon.stop()
+        board.terminate()
+        board.wait(30)
+        board_log.close()
+        for log in sorted(tmp_path.glob("daemon*.log")):  # shown with a failure: what the daemons said
+            print(f"--- {log.name} (the last lines)\n" + "\n".join(log.read_text().splitlines()[-25:]))
