@@ -8,7 +8,7 @@ its worker process, the simulated board if any, the link session; then the handl
 Tasks: the link (``LinkSession.run``), the control loop (every control period: the scene's target, the core's
 tick, a volume estimate when due, status to subscribers, link statistics to Rerun), the simulated board's watch.
 
-A verified target's scans (the core's :class:`~phantom.host.control.Scan`) go through the daemon's own ``scan``
+A verified target's scans (the core's :class:`~phantom.host.verify.Scan`) go through the daemon's own ``scan``
 API method (host/motion.py) with the :class:`VerifyScanner`'s plan; the capture is reconstructed by the
 :class:`VerifyScanner` in a worker thread (the host imports nothing of the scanner's code: ``phantom daemon``
 gives it); every scan is recorded as a measurement through the model worker when it can take one
@@ -188,11 +188,11 @@ class Daemon:
             self.scenes.reached(action.index)
         elif isinstance(action, control.StopScene):
             self.scenes.stop(action.why)
-        elif isinstance(action, control.Scan):
+        elif isinstance(action, verify.Scan):
             self.spawn(self._scan_for_core(action))
-        elif isinstance(action, control.Correct):
+        elif isinstance(action, verify.Correct):
             self.spawn(self._correct_for_core(action))
-        elif isinstance(action, control.Record):
+        elif isinstance(action, verify.Record):
             self.spawn(self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder))
         elif isinstance(action, control.Answer):
             waiting = self._requests.pop(action.request, None)
@@ -226,7 +226,7 @@ class Daemon:
                     "rig\"), or set the target without verify")
         return None
 
-    async def _scan_for_core(self, action: control.Scan) -> None:
+    async def _scan_for_core(self, action: verify.Scan) -> None:
         """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread. A scan
         still running for a verification that is no more (a second client's verified target replaced it) is
         stopped first, and its answer is not fed to the core: the core asks one scan at a time."""
@@ -289,7 +289,7 @@ class Daemon:
                 return
             await asyncio.sleep(0.2)
 
-    async def _correct_for_core(self, action: control.Correct) -> None:
+    async def _correct_for_core(self, action: verify.Correct) -> None:
         """A verified target's miss: the next round's pressures, decided by :class:`phantom.host.verify.NextRound`;
         the daemon only performs its actions (records the scan, solves what it asks) and feeds it the answers."""
         policy = verify.NextRound(action)
@@ -387,7 +387,7 @@ class Daemon:
         return answer
 
     async def set_target(self, target: Target, tolerance_pct: float | None = None,
-                         verify: control.Verify | None = None) -> dict[str, Any]:
+                         verify: verify.Verify | None = None) -> dict[str, Any]:
         """A target from the API: solved first, so that an unreachable one changes nothing (a playing scene goes
         on); then sent, and only once the board has acknowledged it does it replace the scene; with ``verify``,
         verified by scans once reached on pressure (host/control.py). Returns the inverse's answer as JSON;
