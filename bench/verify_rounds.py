@@ -3,14 +3,16 @@
 The same functions the daemon uses: the model worker's corrected inverse (:class:`CorrectedModel` over the
 daemon's default model, ``builtin:converged``), its fit (:func:`fit_correction` of the stored scans), the verify
 policy's next round (:class:`phantom.host.verify.NextRound`: record, refit, solve the target less what the
-corrected model still misses at the scan) and its stop rule (:func:`phantom.host.verify.judge_scan`: within
-:data:`~phantom.host.verify.VERIFY_AIM_SHARE` of the tolerance while rounds remain). The "scan" is the shipped
+corrected model still misses at the scan) and its stop rules (:func:`phantom.host.verify.judge_scan`: within
+:data:`~phantom.host.verify.VERIFY_AIM_SHARE` of the tolerance while rounds remain;
+:func:`phantom.host.verify.confirmed_by_correction`: a scan within the tolerance that the refitted correction,
+its band added, confirms). The "scan" is the shipped
 simulated phantom's truth (hil/plant.toml) at the pressures, read with the scanner's error model (bench/README.md
 "Scanner": 0.12 % of noise; ``--bias-pct`` for its bias). Pressures are taken as reached exactly. Prints each
 volume's rounds and the TRUE error after, and the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
-    [--stop-by-correction] [--show-fits]
+    [--no-stop-by-correction] [--show-fits]
 
 (``phantom.scan`` is imported for ``--path``'s design only: a bench joins the parts.)
 """
@@ -45,9 +47,10 @@ def main() -> None:
     parser.add_argument("--path", type=int, default=0,
                         help="start from a store of this many stand-in scans along the model's inverse path (as "
                              "`phantom characterise --path N` stores), not an empty one")
-    parser.add_argument("--stop-by-correction", action="store_true",
-                        help="also stop on a scan within the tolerance where the refitted correction at the scanned "
-                             "pressures, its 95 %% band added, is within it (a proposal: not what the daemon does)")
+    parser.add_argument("--no-stop-by-correction", dest="stop_by_correction", action="store_false",
+                        help="not stop on a scan within the tolerance where the refitted correction at the scanned "
+                             "pressures, its 95 %% band added, is within it (what the daemon does, "
+                             "verify.confirmed_by_correction): the third aimed at alone, as before")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
@@ -104,11 +107,12 @@ def main() -> None:
                                      args.aim_share) != "correct":
                     break
                 corrected = CorrectedModel(grid, fit_correction(store, grid))
-                if args.stop_by_correction and abs(error_pct) <= args.tolerance_pct:
-                    mean_ml, band_ml = corrected.gland_band_ml(pressures)
-                    if (abs(mean_ml - target_ml) + band_ml) / target_ml * 100 <= args.tolerance_pct:
-                        break
-                still_missed = scanned - corrected.gland_ml(pressures)
+                corrected_ml = corrected.gland_ml(pressures)
+                _, band_ml = corrected.gland_band_ml(pressures)
+                if args.stop_by_correction and verify.confirmed_by_correction(scanned, target_ml, corrected_ml,
+                                                                              band_ml, args.tolerance_pct):
+                    break
+                still_missed = scanned - corrected_ml
                 if args.show_fits:
                     c = corrected.correction
                     print(f"    {target_ml} r{round_} p={np.round(pressures, 3)} kind={c.kind} "

@@ -586,6 +586,21 @@ class ControlCore:
         self.applied = None
         self._next(now)
 
+    def confirmed(self, now: float, round_: int, corrected_ml: float, band_ml: float) -> None:
+        """Round ``round_``'s scan, within the tolerance but off the aim, is confirmed by the correction refitted
+        with it (:func:`phantom.host.verify.confirmed_by_correction`): reached and MEASURED, no next round (the
+        scan is stored already)."""
+        rounds, reach = self._rounds, self._reach
+        if rounds is None or reach is None or not rounds.confirmed(round_, corrected_ml, band_ml):
+            return
+        last, target_ml = rounds.last, rounds.target_ml
+        self._verified_outcome(reach, rounds, f"target {reach.target.describe()} reached and MEASURED: scanned "
+                               f"{last['scanned_volume_ml']:.2f} ml ({last['scanned_error_pct']:+.2f} %, within "
+                               f"{rounds.verify.tolerance_pct:g} %) after {round_} round(s), and the correction "
+                               f"refitted with the scan says {corrected_ml:.2f} ml +-{band_ml:.3f} ml (95 %) there "
+                               f"({100.0 * (corrected_ml - target_ml) / target_ml:+.2f} % +-"
+                               f"{100.0 * band_ml / target_ml:.2f} %), within it too")
+
     def correct_failed(self, now: float, round_: int, unreachable: bool, text: str) -> None:
         """The next round's pressures could not be solved (``unreachable``, or the model failed): the pressures
         of the last round are held."""

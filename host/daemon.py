@@ -298,12 +298,11 @@ class Daemon:
             for step in steps:
                 if isinstance(step, verify.Record):
                     stored = await self._record_scan(step.pressures_kpa, step.scanned_ml, step.scan_folder)
-                    corrected_ml = None
+                    corrected: tuple[float, float] | None = None
                     if stored:
                         with contextlib.suppress(Exception):  # the model failed: the shifted volume instead
-                            estimate = await self.model.estimate(np.asarray(step.pressures_kpa) * PA_PER_KPA)
-                            corrected_ml = estimate.gland_volume_ml
-                    policy.recorded(self.now_s(), stored, corrected_ml)
+                            corrected = await self.model.gland_band(np.asarray(step.pressures_kpa) * PA_PER_KPA)
+                    policy.recorded(self.now_s(), stored, *(corrected or (None, None)))
                 elif isinstance(step, verify.Solve):
                     try:
                         answer = await self.solve(step.target)
@@ -321,6 +320,8 @@ class Daemon:
                         policy.solved(self.now_s(), answer)
                 elif isinstance(step, verify.Apply):
                     self._feed(self.core.corrected, step.round, step.answer, step.how)
+                elif isinstance(step, verify.Confirm):
+                    self._feed(self.core.confirmed, step.round, step.corrected_ml, step.band_ml)
                 else:
                     self._feed(self.core.correct_failed, step.round, step.unreachable, step.text)
         if not policy.done:  # every event takes an action until the last: none is the policy's fault

@@ -333,10 +333,11 @@ def test_the_daemon_performs_the_next_rounds_actions_and_feeds_the_answers():
     async def recorded(*_):
         return True
 
-    async def estimate(pressures_pa):  # the correction fitted to that one scan passes through it
-        return types.SimpleNamespace(gland_volume_ml=27.0)
+    async def gland_band(pressures_pa):  # the correction fitted to that one scan passes through it
+        return 27.0, 0.06
 
-    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded, model=types.SimpleNamespace(estimate=estimate),
+    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded,
+                                   model=types.SimpleNamespace(gland_band=gland_band),
                                    core=types.SimpleNamespace(corrected="corrected", correct_failed="failed"),
                                    now_s=lambda: 0.0, _feed=lambda method, *args: fed.append((method, args)))
     action = policy_of.Correct(1, volume(26.5), (0.1, 0.1, 0.1), 27.0, "/scans/1", 26.0, (98.0, 97.0, 97.0))
@@ -546,3 +547,82 @@ def test_verify_auto_is_taken_by_the_api_and_by_a_scene_and_a_bad_word_is_refuse
         verify_of({"verify": "maybe"})
     with pytest.raises(SceneError, match='step 1: verify must be "scan" or "auto"'):
         parse_step_verify({"verify": "maybe"}, "step 1")
+
+
+def _miss_within(tolerance_pct=0.3):
+    """40 ml's round 1 scanned 40.1 ml (+0.25 %: within 0.3 %, outside the 0.1 % aimed at)."""
+    return policy_of.Correct(1, volume(40.0), (1.0, 0.5, 0.5), 40.1, "/scans/1", 39.9, (1000.0, 500.0, 500.0),
+                             tolerance_pct)
+
+
+@pytest.mark.parametrize(("corrected_ml", "band_ml", "tolerance_pct", "confirmed"), [
+    (40.02, 0.05, 0.3, True),    # the refitted process sure of 40.02 +- 0.05 ml (0.18 %): within 0.3 %
+    (40.02, 0.11, 0.3, False),   # its band wider: 0.05 + 0.275 % goes beyond 0.3 %
+    (40.1, 0.03, 0.3, False),    # it agrees with the scan, +0.25 %, + 0.075 %: beyond
+    (40.02, 0.05, None, False),  # a Correct made without the tolerance: always the next round
+    (40.02, float("nan"), 0.3, False),
+])
+def test_a_scan_within_the_tolerance_that_the_refitted_correction_confirms_ends_the_target(
+        corrected_ml, band_ml, tolerance_pct, confirmed):
+    """bench/verify_rounds.py --stop-by-correction, now the policy's: a scan within the tolerance ends the target
+    when the correction refitted with it, its 95 % band added, is within the tolerance at the scanned pressures."""
+    policy = policy_of.NextRound(_miss_within(tolerance_pct))
+    policy.start(0.0)
+    (record,) = policy.take_actions()
+    assert isinstance(record, policy_of.Record)
+    policy.recorded(1.0, True, corrected_ml, band_ml)
+    (action,) = policy.take_actions()
+    if confirmed:
+        assert action == policy_of.Confirm(1, corrected_ml, band_ml) and policy.done
+    else:
+        assert isinstance(action, policy_of.Solve) and not policy.done
+
+
+def test_a_scan_outside_the_tolerance_is_never_confirmed_however_sure_the_correction():
+    assert not policy_of.confirmed_by_correction(40.2, 40.0, 40.0, 0.0, 0.3)     # the scan 0.5 % off
+    assert policy_of.confirmed_by_correction(40.1, 40.0, 40.0, 0.12, 0.3)        # 0 + 0.3 %: on the edge
+    assert not policy_of.confirmed_by_correction(40.1, 40.0, 40.0, 0.121, 0.3)
+
+
+def test_the_core_ends_a_confirmed_round_reached_and_measured_and_a_stale_confirmation_changes_nothing(core):
+    verified(core)
+    core.scanned(3.0, 1, 40.1, None, "/scans/1")                   # +0.25 %: correcting
+    (correct,) = of_kind(core.take_actions(), policy_of.Correct)
+    assert correct.tolerance_pct == 0.3
+    core.confirmed(3.5, 2, 40.02, 0.05)                             # not this round's: nothing
+    assert core.take_actions() == []
+    core.confirmed(3.5, 1, 40.02, 0.05)
+    actions = core.take_actions()
+    (told,) = [tell for tell in of_kind(actions, control.Tell) if tell.data]
+    assert told.data["outcome"] == "reached" and told.data["verified"] is True
+    assert told.data["scanned_volume_ml"] == 40.1 and len(told.data["rounds"]) == 1
+    (round_,) = told.data["rounds"]
+    assert round_["corrected_volume_ml"] == 40.02 and round_["corrected_band_ml"] == 0.05
+    assert "the correction refitted with the scan says 40.02 ml +-0.050 ml (95 %)" in told.text
+    assert of_kind(actions, policy_of.Record) == []                 # stored already, by the next round's policy
+    assert not core.verifying
+
+
+def test_the_daemon_feeds_the_core_a_confirmation():
+    import asyncio
+    import types
+
+    from phantom.host.daemon import Daemon
+
+    fed, solved = [], []
+
+    async def recorded(*_):
+        return True
+
+    async def gland_band(pressures_pa):
+        return 40.02, 0.05
+
+    async def solve(target):
+        solved.append(target)
+
+    daemon = types.SimpleNamespace(solve=solve, _record_scan=recorded,
+                                   model=types.SimpleNamespace(gland_band=gland_band),
+                                   core=types.SimpleNamespace(confirmed="confirmed"), now_s=lambda: 0.0,
+                                   _feed=lambda method, *args: fed.append((method, args)))
+    asyncio.run(Daemon._correct_for_core(daemon, _miss_within()))
+    assert fed == [("confirmed", (1, 40.02, 0.05))] and solved == []
