@@ -10,6 +10,7 @@ from phantom.host import control
 from phantom.host import verify as policy_of
 from phantom.host.control import ControlCore, ReachRule
 from phantom.host.verify import Verify
+from phantom.model.target import Target
 
 
 @pytest.fixture
@@ -626,3 +627,56 @@ def test_the_daemon_feeds_the_core_a_confirmation():
                                    _feed=lambda method, *args: fed.append((method, args)))
     asyncio.run(Daemon._correct_for_core(daemon, _miss_within()))
     assert fed == [("confirmed", (1, 40.02, 0.05))] and solved == []
+
+
+def test_from_round_3_the_next_pressures_are_the_secant_of_the_last_two_rounds_on_the_line_between_them():
+    """make demo's 30 ml offline: +3.7, +1.2, -0.8 % (the corrected inverse's pressures jump to another branch of
+    the model's inverse path, where no scan is). From round 3 the next pressures lie on the line through the last
+    two rounds' pressures, where their scans' secant meets the target."""
+    assert policy_of.secant_kpa(((1.0, 1.0, 0.0), 31.0), ((0.6, 1.1, 0.0), 30.4), 30.0) == pytest.approx(
+        [1.0 + (1.0 / 0.6) * -0.4, 1.0 + (1.0 / 0.6) * 0.1, 0.0])
+    assert policy_of.secant_kpa(((1.0, 1.0, 0.0), 31.0), ((0.9, 1.0, 0.0), 30.95), 30.0) is None  # within noise
+    far = policy_of.secant_kpa(((1.0, 1.0, 1.0), 31.0), ((1.1, 1.0, 1.0), 30.8), 20.0)  # reaches at most 2 steps
+    assert far == pytest.approx([1.2, 1.0, 1.0])
+    assert policy_of.secant_kpa(((0.1, 0.0, 0.0), 27.0), ((0.2, 0.0, 0.0), 27.5), 25.0)[0] == 0.0   # never below 0
+    miss = policy_of.Correct(2, volume(30.0), (0.6, 1.1, 0.0), 30.4, "/scans/2", 29.6, (600.0, 1100.0, 0.0), 0.3,
+                             ((1.0, 1.0, 0.0), 31.0))
+    policy = policy_of.NextRound(miss)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, True, 30.3, 0.2)
+    (solve,) = policy.take_actions()
+    assert solve.target.pressures_pa == pytest.approx([1000.0 / 3.0, 1166.667, 0.0], abs=1e-3)
+    assert solve.how.startswith("the secant of rounds 1 and 2")
+    policy.unreachable(2.0, None, False, "chamber 1 above the box")     # refused: the corrected model's step
+    (solve,) = policy.take_actions()
+    assert solve.target.gland_volume_m3 * 1e6 == pytest.approx(30.0 - 0.1)
+    policy.solved(3.0, answer_at(solve.target, (0.5, 1.1, 0.0)))
+    (apply,) = policy.take_actions()
+    assert isinstance(apply, policy_of.Apply) and apply.how == "the target on the model corrected by the scan"
+
+
+def test_the_core_gives_round_2s_miss_round_1s_scan_and_a_secant_rounds_asked_volume_is_its_prediction(core):
+    verified(core)
+    core.scanned(3.0, 1, 38.8, None, "/scans/1")
+    (first,) = of_kind(core.take_actions(), policy_of.Correct)
+    assert first.before is None
+    core.corrected(3.5, 1, answer_for(volume(41.2), (1.1, 0.55, 0.55)), "41.200 ml: moved")
+    core.take_actions()
+    core.sent(3.6, volume(40.0))
+    core.take_actions()
+    settle(core, 3.6, 1.2, kpa=(1.1, 0.55, 0.55), estimate_ml=41.2)
+    core.scanned(6.0, 2, 39.5, None, "/scans/2")
+    (second,) = of_kind(core.take_actions(), policy_of.Correct)
+    assert second.before == ((1.0, 0.5, 0.5), 38.8) and second.tolerance_pct == 0.3
+    at_pressures = Target(pressures_pa=[1200.0, 600.0, 600.0])
+    core.corrected(6.5, 2, answer_for(at_pressures, (1.2, 0.6, 0.6), predicted_ml=40.3), "the secant of rounds 1 "
+                   "and 2")
+    (send,) = of_kind(core.take_actions(), control.SendSetpoints)
+    assert list(send.setpoints_pa) == [1200.0, 600.0, 600.0] and send.target == volume(40.0)
+    core.sent(6.6, volume(40.0))
+    core.take_actions()
+    settle(core, 6.6, 1.2, kpa=(1.2, 0.6, 0.6), estimate_ml=40.3)
+    core.scanned(9.0, 3, 40.01, None, "/scans/3")
+    (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
+    assert told.data["rounds"][2]["asked_ml"] == pytest.approx(40.3)   # the corrected model's volume there
