@@ -14,7 +14,7 @@ their repeatability). Pressures are taken as reached exactly. Prints each
 volume's rounds and the TRUE error after, and the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
-    [--no-stop-by-correction] [--no-secant] [--bias-by-volume] [--show-fits]
+    [--no-stop-by-correction] [--no-secant] [--bias-by-volume] [--show-fits] [--along-path]
 
 (``phantom.scan`` is imported for ``--path``'s design only: a bench joins the parts.)
 """
@@ -64,6 +64,9 @@ def main() -> None:
     parser.add_argument("--no-secant", dest="secant", action="store_false",
                         help="not the secant of the last two rounds (verify.secant_kpa, what the daemon does from "
                              "round 3): the corrected model's step every round, as before")
+    parser.add_argument("--along-path", action="store_true",
+                        help="only print the truth along the model's inverse path, 26.4-50 ml in 0.5 ml steps: its "
+                             "pressures, error and growth per ml the model grows")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
@@ -94,6 +97,16 @@ def main() -> None:
                                                      inverse_kpa)
         return pressures
 
+    if args.along_path:
+        before: tuple[float, float] | None = None
+        for volume_ml in np.arange(26.4, 50.01, 0.5):
+            pressures = inverse_kpa(float(volume_ml))
+            truth = true_ml(pressures)
+            slope = "" if before is None else f"{(truth - before[1]) / (volume_ml - before[0]):.2f}"
+            print(f"{volume_ml:6.2f} ml: {', '.join(f'{p:.3f}' for p in pressures)} kPa, true {truth:.3f} ml "
+                  f"({100 * (truth / volume_ml - 1):+.2f} %), true ml per model ml {slope}")
+            before = (float(volume_ml), truth)
+        return
     print(f"noise {args.noise_pct} %, bias {args.bias_pct:+} %, tolerance {args.tolerance_pct} %, stop within "
           f"{args.aim_share:.3g} of it while rounds remain, at most {args.rounds} rounds\n")
     print("| seed | target ml | per round: scanned / true error % | rounds | true error after % |")
