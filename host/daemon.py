@@ -68,9 +68,13 @@ CONTROL_HZ = 10.0
 
 class VerifyScanner(Protocol):
     """What a verified target's scan needs besides the ``scan`` API method (``phantom.cli.scan_verify``):
-    ``plan``, the ``scan`` params of a verify scan (without ``out``), and :meth:`volume`."""
+    ``plan``, the ``scan`` params of a verify scan (without ``out``), :meth:`plan_for` and :meth:`volume`."""
 
     plan: dict[str, Any]
+
+    def plan_for(self, tolerance_pct: float) -> dict[str, Any]:
+        """The ``scan`` params of a verified target's scan at ``tolerance_pct`` (%): the plan sized to it."""
+        ...
 
     def volume(self, folder: str) -> dict[str, Any]:
         """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml``, ``mesh`` (the
@@ -242,7 +246,7 @@ class Daemon:
             why = self.verify_refusal()
             if scanner is None or why is not None:
                 raise ApiError("invalid_params", why or "no scanner")
-            answer = await self.perform_scan(action.round, scanner.plan)
+            answer = await self.perform_scan(action.round, scanner.plan_for(action.tolerance_pct))
             folder = str(answer["folder"])
             if answer.get("status") != "complete":
                 raise ApiError("rejected", f"the capture ended {answer.get('status')!r}")

@@ -97,11 +97,13 @@ class Verify:
 @dataclass(frozen=True)
 class Scan:
     """Scan the phantom and reconstruct the gland's volume, for round ``round`` (1, 2, ...) of the verified
-    ``target``, held at ``pressures_kpa`` (measured, settled)."""
+    ``target``, held at ``pressures_kpa`` (measured, settled); its plan sized to the verification's
+    ``tolerance_pct`` (%, phantom/cli/scan_verify.py's ``VerifyScan.plan_for``)."""
 
     round: int
     target: Target
     pressures_kpa: tuple[float, ...]
+    tolerance_pct: float
 
 
 @dataclass(frozen=True)
@@ -288,7 +290,7 @@ class Rounds:
         # band_ml: the correction's 95 % band (ml) at the round's answer, what it knew there
         self.rounds.append({"round": len(self.rounds) + 1, "asked_ml": self.asked_ml, "band_ml": band_ml,
                             "setpoints_kpa": setpoints_kpa, "pressures_kpa": pressures_kpa, **reached})
-        return Scan(len(self.rounds), target, tuple(pressures_kpa))
+        return Scan(len(self.rounds), target, tuple(pressures_kpa), self.verify.tolerance_pct)
 
     def scanned(self, round_: int, volume_ml: float | None, error: str | None, folder: str | None,
                 true_ml: float | None, link_lost: bool) -> Scanned:

@@ -465,7 +465,8 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
                 await asyncio.sleep(0)
             return True
 
-        scanner = types.SimpleNamespace(plan={}, volume=lambda folder: {"volume_ml": 35.02, "surface_mm": None})
+        scanner = types.SimpleNamespace(plan={}, plan_for=lambda tolerance_pct: {},
+                                        volume=lambda folder: {"volume_ml": 35.02, "surface_mm": None})
         daemon = types.SimpleNamespace(
             verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
             motion=types.SimpleNamespace(latest=None, stop_scan=stop_scan, late_replies=0), link_lost_s=None,
@@ -475,9 +476,10 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
             verify_scan=None)
         daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
         daemon.perform_scan = lambda round_, plan: Daemon.perform_scan(daemon, round_, plan)
-        first = asyncio.ensure_future(Daemon._scan_for_core(daemon, policy_of.Scan(1, volume(40.0), (1.0, 0.5, 0.5))))
+        first_scan = policy_of.Scan(1, volume(40.0), (1.0, 0.5, 0.5), 0.3)
+        first = asyncio.ensure_future(Daemon._scan_for_core(daemon, first_scan))
         await asyncio.sleep(0.01)
-        second = Daemon._scan_for_core(daemon, policy_of.Scan(1, volume(35.0), (0.9, 0.4, 0.4)))
+        second = Daemon._scan_for_core(daemon, policy_of.Scan(1, volume(35.0), (0.9, 0.4, 0.4), 0.3))
         await asyncio.wait_for(asyncio.gather(first, second), 5.0)
 
     asyncio.run(main())
@@ -680,3 +682,24 @@ def test_the_core_gives_round_2s_miss_round_1s_scan_and_a_secant_rounds_asked_vo
     core.scanned(9.0, 3, 40.01, None, "/scans/3")
     (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
     assert told.data["rounds"][2]["asked_ml"] == pytest.approx(40.3)   # the corrected model's volume there
+
+
+@pytest.mark.parametrize(("tolerance_pct", "views"), [(0.3, 30), (0.05, 30), (0.7, 20), (1.0, 20), (1.1, 15), (2.5, 10),
+                                                      (20.0, 10)])
+def test_the_verify_scans_orbit_stops_are_the_fewest_whose_error_fits_what_the_tolerance_leaves_the_scanner(
+        tolerance_pct, views):
+    """Item 7: the plan from the scanner's error model (bench/README.md "Scanner"): the scanner may take what a
+    scan stopped within the third aimed at leaves of the tolerance; 0.3 % leaves 0.2 %, which only 30 stops per
+    elevation (0.16 %) meet; 1.1 % leaves 0.73 %: 15 stops (0.667 %), half the pictures."""
+    from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan, views_for
+
+    assert views_for(tolerance_pct) == views
+    plan = VerifyScan().plan_for(tolerance_pct)
+    assert plan == {**VERIFY_PLAN, "views": views}
+    rig_plan = VerifyScan({**VERIFY_PLAN, "camera": "/dev/video0", "views": 12}).plan_for(tolerance_pct)
+    assert rig_plan["camera"] == "/dev/video0" and rig_plan["views"] == min(12, views)   # never more than its own
+
+
+def test_a_verified_rounds_scan_carries_its_tolerance_for_the_plan(core):
+    scan = verified(core, verify=Verify(1.0, 3))
+    assert scan.tolerance_pct == 1.0
