@@ -15,6 +15,7 @@ volume's rounds and the TRUE error after, and the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
     [--no-stop-by-correction] [--no-secant] [--bias-by-volume] [--show-fits] [--along-path]
+    [--auto 28,32.5,37.5,42.5,47]
 
 (``phantom.scan`` is imported for ``--path``'s design only: a bench joins the parts.)
 """
@@ -67,6 +68,10 @@ def main() -> None:
     parser.add_argument("--along-path", action="store_true",
                         help="only print the truth along the model's inverse path, 26.4-50 ml in 0.5 ml steps: its "
                              "pressures, error and growth per ml the model grows")
+    parser.add_argument("--auto", type=lambda text: [float(v) for v in text.split(",")], default=[],
+                        metavar="ML,ML", help="after the verified volumes, these with verify=\"auto\": scanned only "
+                                              "when the correction's 95 %% band at the answer is wider than the "
+                                              "tolerance, else the true error of the answer")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
@@ -113,6 +118,8 @@ def main() -> None:
     print("|---|---|---|---|---|")
     all_rounds, worst_true, started = [], 0.0, time.perf_counter()
     verified_true: list[float] = []
+    auto_unscanned: list[float] = []
+    auto_scanned: list[float] = []
     unverified = 0
     for seed in range(args.seeds):
         rng = np.random.default_rng(seed)
@@ -167,11 +174,26 @@ def main() -> None:
                 unverified += 1
             worst_true = max(worst_true, abs(true_pct))
             print(f"| {seed} | {target_ml:g} | {', '.join(log)} | {round_} | {true_pct:+.2f} |", flush=True)
+        if args.auto:  # verify="auto" after the verified volumes: scanned only when the band is wider than asked
+            corrected = CorrectedModel(grid, fit_correction(store, grid))
+            for auto_ml in args.auto:
+                pressures = solve_kpa(store, auto_ml)
+                _, band_ml = corrected.gland_band_ml(pressures)
+                auto_true_pct = (true_ml(pressures) / auto_ml - 1) * 100
+                sure = band_ml <= args.tolerance_pct / 100 * auto_ml
+                (auto_unscanned if sure else auto_scanned).append(auto_true_pct)
+                print(f"|   | auto {auto_ml:g} | band +-{100 * band_ml / auto_ml:.2f} %: "
+                      f"{'not scanned' if sure else 'scanned'} | - | {auto_true_pct:+.2f} |", flush=True)
     outside = sum(error > args.tolerance_pct for error in verified_true)
     print(f"\nmean rounds {np.mean(all_rounds):.2f}, most {max(all_rounds)}, worst true error {worst_true:.2f} %; "
           f"{len(verified_true)} verified (true error mean {np.mean(verified_true):.2f} %, max "
           f"{max(verified_true, default=0):.2f} %, {outside} beyond the tolerance), {unverified} not verified "
           f"({time.perf_counter() - started:.0f} s)")
+    if args.auto:
+        print(f"verify auto: {len(auto_unscanned)} not scanned (true error mean "
+              f"{np.mean(np.abs(auto_unscanned)) if auto_unscanned else 0:.2f} %, max "
+              f"{max(map(abs, auto_unscanned), default=0):.2f} %), {len(auto_scanned)} scanned (their model's "
+              f"answer alone: max {max(map(abs, auto_scanned), default=0):.2f} % true)")
 
 
 if __name__ == "__main__":
