@@ -35,6 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from phantom.host.config import DaemonConfig
 from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
 
 #: While rounds remain, a verified target stops only on a scan within this share of its tolerance (it aims at the
@@ -162,25 +163,33 @@ SECANT_REACH = (-1.0, 2.0)
 #: Two rounds' scans closer than this (% of the target) give no secant: four times the scanner's noise (0.12 %,
 #: model/corrections.py's NOISE_SD_PCT), so that its slope is the phantom's, not the noise's.
 SECANT_MIN_STEP_PCT = 0.5
+#: No secant from a round whose pressures are all within this of rest (kPa, host/config.py's settled band): the
+#: board does not hold such setpoints finely (its blowers' least flow). make demo's 26.5 ml: the secant asked
+#: 0.017 kPa after a round measured at 0.012, the board settled at 0.03-0.05 kPa, and the scan read +0.67 % where
+#: the round before read -0.10 % (2026-11-29, not verified in 4 rounds).
+SECANT_FLOOR_KPA = DaemonConfig.settled_kpa
 
 
 def secant_kpa(before: tuple[tuple[float, ...], float], last: tuple[tuple[float, ...], float],
                target_ml: float) -> np.ndarray | None:
     """The pressures (kPa) on the line through two rounds' scanned pressures where their scanned volumes' secant
     meets ``target_ml``; each round is ``(pressures_kpa, scanned_ml)``. None when the scans are too close to give a
-    slope (:data:`SECANT_MIN_STEP_PCT`). The corrected inverse picks the model's inverse path, which jumps between
-    branches (chamber 1 from 1.00 to 0.87 kPa between 31.4 and 31.9 ml on builtin:converged), so its next pressures
-    often lie where no scan is and the process falls back towards the model there (make demo's 30 ml offline: +3.7,
-    +1.2, -0.8 % in three rounds); on the line between two scans the simulated phantom's truth, a table
-    interpolated linearly, is nearly linear. Offline (bench/verify_rounds.py, 40 targets from an empty store):
-    2.88 rounds a target against 3.10 with the scanner's bias by volume, 3.10 against 3.27 with its 0.12 % as
-    noise."""
+    slope (:data:`SECANT_MIN_STEP_PCT`), or when the last round's pressures are all near rest, where the board does
+    not hold them finely (:data:`SECANT_FLOOR_KPA`). The corrected inverse picks the model's inverse path, which
+    jumps between branches (chamber 1 from 1.00 to 0.87 kPa between 31.4 and 31.9 ml on builtin:converged), so
+    its next pressures often lie where no scan is and the process falls back towards the model there (make demo's
+    30 ml offline: +3.7, +1.2, -0.8 % in three rounds); on the line between two scans the simulated phantom's
+    truth, a table interpolated linearly, is nearly linear. Offline (bench/verify_rounds.py, 40 targets from an
+    empty store): 2.88 rounds a target against 3.10 with the scanner's bias by volume, 3.10 against 3.27 with its
+    0.12 % as noise."""
     (pressures_a, scanned_a), (pressures_b, scanned_b) = before, last
     if abs(scanned_b - scanned_a) < SECANT_MIN_STEP_PCT / 100.0 * target_ml:
         return None
     share = float(np.clip((target_ml - scanned_a) / (scanned_b - scanned_a), *SECANT_REACH))
     start, end = np.asarray(pressures_a, dtype=float), np.asarray(pressures_b, dtype=float)
     pressures_kpa: np.ndarray = np.clip(start + share * (end - start), 0.0, None)
+    if np.all(end < SECANT_FLOOR_KPA):
+        return None
     return pressures_kpa
 
 

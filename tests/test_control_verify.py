@@ -641,6 +641,8 @@ def test_from_round_3_the_next_pressures_are_the_secant_of_the_last_two_rounds_o
     far = policy_of.secant_kpa(((1.0, 1.0, 1.0), 31.0), ((1.1, 1.0, 1.0), 30.8), 20.0)  # reaches at most 2 steps
     assert far == pytest.approx([1.2, 1.0, 1.0])
     assert policy_of.secant_kpa(((0.1, 0.0, 0.0), 27.0), ((0.2, 0.0, 0.0), 27.5), 25.0)[0] == 0.0   # never below 0
+    # make demo's 26.5 ml near rest, where the board does not hold a setpoint finely: no secant from there
+    assert policy_of.secant_kpa(((0.098, 0.097, 0.097), 27.0), ((0.012, 0.014, 0.013), 26.47), 26.5) is None
     miss = policy_of.Correct(2, volume(30.0), (0.6, 1.1, 0.0), 30.4, "/scans/2", 29.6, (600.0, 1100.0, 0.0), 0.3,
                              ((1.0, 1.0, 0.0), 31.0))
     policy = policy_of.NextRound(miss)
