@@ -24,7 +24,8 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
 Actions (:meth:`ControlCore.take_actions`): :class:`Solve`, :class:`SendSetpoints`, :class:`SendVent`,
 :class:`Tell` (an event for people, with an ``outcome`` for the targets clients wait on), :class:`StepApplied`,
 :class:`StepReached`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the reply to an API
-request), :class:`Scan`, :class:`Correct` and :class:`Record` (a verified target's rounds).
+request), and a verified target's :class:`~phantom.host.verify.Scan`, :class:`~phantom.host.verify.Correct` and
+:class:`~phantom.host.verify.Record` (the verify policy's types, host/verify.py, below the core).
 
 Setpoints on the board that the daemon did not send (another program on the port, a board that lost its state)
 are a mismatch (:class:`phantom.host.board_watch.SetpointWatch`): the core vents and has the board's gains and
@@ -52,14 +53,12 @@ from typing import Any
 
 import numpy as np
 
-from phantom.host import verify as verify_policy
 from phantom.host.board_watch import SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
-from phantom.model.target import InverseResult, Target
+from phantom.host.verify import SCAN_RETRIES, VERIFY_AIM_SHARE, Correct, Record, Rounds, Scan, Verify
+from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
 
-PA_PER_KPA = 1e3
-ML_PER_M3 = 1e6
 #: After a target could not be sent (refused, not acknowledged), how long the core waits before it tries again (s).
 RETRY_S = 0.5
 #: The highest setpoint the wire carries (Pa, i16).
@@ -179,80 +178,6 @@ class Answer:
     error: tuple[str, str] | None = None
 
 
-#: The tolerance a verified target may ask for (%): from well above the scanner's own error (0.03-0.16 % on the
-#: verify scan, bench/README.md) to far beyond the model's (5-9 %).
-VERIFY_TOLERANCE_PCT = (0.05, 20.0)
-#: The most scans (rounds) a verified target may take.
-MAX_VERIFY_ROUNDS = 10
-#: How many scans of one verified target may be taken again after the board's link cut them short (a lost link,
-#: a board that reset: the rig's fault, not the phantom's); the round is scanned again once its pressures, applied
-#: again, have settled. On the loaded two cores the simulated board lost its link every minute or two, and a
-#: nine-minute scan with it.
-SCAN_RETRIES = 2
-
-
-@dataclass(frozen=True)
-class Verify:
-    """How a target is verified by the scanner: within ``tolerance_pct`` of the scanned gland volume, in at most
-    ``rounds`` scans; ``correct`` False only records one scan (a scene's ``scan = true``); ``auto`` scans only
-    when the correction's 95 % band at the target's answer is wider than the tolerance (:meth:`needs_scan`),
-    and otherwise says the target reached within that band, from how many stored measurements."""
-
-    tolerance_pct: float = 0.3
-    rounds: int = 4
-    correct: bool = True
-    auto: bool = False
-
-    def to_json(self) -> dict[str, Any]:
-        return {"verify": "auto" if self.auto else "scan" if self.correct else "record",
-                "verify_tolerance_pct": self.tolerance_pct, "verify_rounds": self.rounds}
-
-    def needs_scan(self, answer: InverseResult, target_ml: float) -> bool:
-        """Whether the target of ``answer`` is scanned: always, unless ``auto`` and the answer's band (the
-        correction's 95 % half-width at its pressures, ml; none without a correction) is within the tolerance."""
-        band_ml = answer.band_ml
-        return (not self.auto or band_ml is None or not np.isfinite(band_ml)
-                or band_ml > self.tolerance_pct / 100.0 * target_ml)
-
-
-@dataclass(frozen=True)
-class Scan:
-    """Scan the phantom and reconstruct the gland's volume, for round ``round`` (1, 2, ...) of the verified
-    ``target``, held at ``pressures_kpa`` (measured, settled)."""
-
-    round: int
-    target: Target
-    pressures_kpa: tuple[float, ...]
-
-
-@dataclass(frozen=True)
-class Record:
-    """The scan of round ``round`` ended the verification (within the tolerance, a recording scan, the round
-    limit): record it as a measurement (``pressures_kpa``, ``scanned_ml``, ``scan_folder``), as a miss's
-    :class:`Correct` does."""
-
-    round: int
-    pressures_kpa: tuple[float, ...]
-    scanned_ml: float
-    scan_folder: str | None
-
-
-@dataclass(frozen=True)
-class Correct:
-    """The scan of round ``round`` missed: record it as a measurement (``pressures_kpa``, ``scanned_ml``) and
-    solve the next round's pressures: for ``target`` on the corrected model, or, when there is no correction or
-    it leaves the pressures as they were (``setpoints_pa``), for the gland volume ``shifted_ml`` (the volume
-    asked last moved by the scan's error, :func:`shifted_ml`)."""
-
-    round: int
-    target: Target
-    pressures_kpa: tuple[float, ...]
-    scanned_ml: float
-    scan_folder: str | None
-    shifted_ml: float
-    setpoints_pa: tuple[float, ...]
-
-
 Action = (Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
           | Scan | Correct | Record)
 
@@ -263,22 +188,6 @@ class _Offer:
     answer: InverseResult
     tolerance_pct: float | None
     verify: Verify | None = None
-
-
-@dataclass
-class _Rounds:
-    """A verified target's rounds so far (:class:`Verify`): each one's pressures, asked and scanned volume."""
-
-    verify: Verify
-    target_ml: float
-    asked_ml: float
-    rounds: list[dict[str, Any]] = field(default_factory=list)
-    #: ``scanning`` or ``correcting`` while the driver performs it; None while the pressures settle
-    doing: str | None = None
-    #: the answer of the round being applied (solved for the target or a shifted volume)
-    answer: InverseResult | None = None
-    #: scans taken again after the link cut them short (:data:`SCAN_RETRIES`)
-    retries: int = 0
 
 
 @dataclass
@@ -323,27 +232,6 @@ def estimate_within(target: Target, answer: InverseResult | None, gland_ml: floa
     return abs(gland_ml - wanted_ml) <= share * wanted_ml
 
 
-#: The phantom's scanned growth per ml the model grows (the secant of two rounds) is trusted within these bounds;
-#: outside them (a scan's noise over a small step) the shift is the plain error.
-SECANT_SLOPE_RANGE = (0.3, 3.0)
-
-
-def shifted_ml(rounds: list[dict[str, Any]], target_ml: float) -> float:
-    """The volume to ask next so that the phantom comes to ``target_ml``: the last round's asked volume moved by
-    its scanned error, divided by how much the scanned volume moved per ml asked between the last two rounds (a
-    secant: the phantom may grow less than the model says; on the simulated phantom 0.70 ml per ml at 40 ml)."""
-    last = rounds[-1]
-    slope = 1.0
-    if len(rounds) >= 2 and "scanned_volume_ml" in rounds[-2]:
-        before = rounds[-2]
-        asked_step = last["asked_ml"] - before["asked_ml"]
-        if abs(asked_step) > 1e-6:
-            secant = (last["scanned_volume_ml"] - before["scanned_volume_ml"]) / asked_step
-            if SECANT_SLOPE_RANGE[0] <= secant <= SECANT_SLOPE_RANGE[1]:
-                slope = secant
-    return float(last["asked_ml"] + (target_ml - last["scanned_volume_ml"]) / slope)
-
-
 class ControlCore:
     """The target, its answer, what the board holds and why a target waits (module docstring)."""
 
@@ -386,7 +274,7 @@ class ControlCore:
         self._reached: Target | None = None
         self._measured: tuple[float, np.ndarray] | None = None
         #: the verified target's rounds (None: the target is not verified, or its verification ended)
-        self._rounds: _Rounds | None = None
+        self._rounds: Rounds | None = None
         #: a ``verify = "auto"`` target the correction is sure of (no scan): its Verify and answer
         self._sure: tuple[Verify, InverseResult] | None = None
         self._actions: list[Action] = []
@@ -453,7 +341,7 @@ class ControlCore:
         self._set_target(now, target, source, step, ramp, None)
         self._sure = None
         if verify is not None and target.gland_volume_m3 is not None:
-            self._rounds = _Rounds(verify, target.gland_volume_m3 * ML_PER_M3, target.gland_volume_m3 * ML_PER_M3)
+            self._rounds = Rounds(verify, target.gland_volume_m3 * ML_PER_M3, target.gland_volume_m3 * ML_PER_M3)
         self._next(now)
 
     def solved(self, now: float, target: Target, answer: InverseResult) -> None:
@@ -502,7 +390,7 @@ class ControlCore:
             if offer.verify is not None and target.gland_volume_m3 is not None:
                 target_ml = target.gland_volume_m3 * ML_PER_M3
                 if offer.verify.needs_scan(offer.answer, target_ml):
-                    self._rounds = _Rounds(offer.verify, target_ml, target_ml)
+                    self._rounds = Rounds(offer.verify, target_ml, target_ml)
                 else:
                     self._sure = (offer.verify, offer.answer)
             if changed:
@@ -600,7 +488,7 @@ class ControlCore:
                                  "daemon's log), clear it (`phantom clear-fault`), then set the target again")
                 self._outcome("faulted", f"target {self._reach.target.describe()} not reached: faults latched "
                               f"({', '.join(names)}){verifying}", "ERROR",
-                              extra=self._rounds_json(rounds) if verifying and rounds is not None else None)
+                              extra=rounds.to_json() if verifying and rounds is not None else None)
         elif not names:
             self._tell("fault", "faults cleared")
         self.fault_names = names
@@ -648,78 +536,80 @@ class ControlCore:
         """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``;
         ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round.
         ``link_lost``: the board's link was lost during a scan that failed (or just before it); it is taken again
-        (at most :data:`SCAN_RETRIES` times) once the pressures, applied again, have settled."""
+        (at most :data:`~phantom.host.verify.SCAN_RETRIES` times) once the pressures, applied again, have settled.
+        What the scan means is the verify policy's (:meth:`phantom.host.verify.Rounds.scanned`); the core tells it."""
         rounds, reach = self._rounds, self._reach
-        if rounds is None or reach is None or rounds.doing != "scanning" or len(rounds.rounds) != round_:
+        if rounds is None or reach is None:
             return  # the verification ended meanwhile (a fault, a vent, another target): its scan is not used
-        rounds.doing = None
+        judged = rounds.scanned(round_, volume_ml, error, folder, true_ml, link_lost)
         described = reach.target.describe()
-        if error is not None and link_lost and rounds.retries < SCAN_RETRIES:
-            rounds.retries += 1
-            rounds.rounds.pop()
+        if judged == "stale":
+            return
+        if judged == "retry":
             self._tell("verify", f"target {described}: the scan of round {round_} failed while the board's link was "
                        f"lost ({error}): scanned again once the pressures have settled (retry {rounds.retries} of "
                        f"{SCAN_RETRIES})", "WARN")
             return
-        entry = rounds.rounds[-1]
-        entry["scan"] = folder
-        if true_ml is not None:
-            entry["true_volume_ml"] = true_ml
-        if error is not None or volume_ml is None or not np.isfinite(volume_ml) or volume_ml <= 0:
-            entry["scan_error"] = error or f"the reconstruction gave no volume ({volume_ml!r})"
+        if judged == "failed":
             self._outcome("scan_failed", f"target {described} not verified: the scan of round {round_} failed "
-                          f"({entry['scan_error']}); no correction was made from it and the pressures are held",
-                          "ERROR", extra=self._rounds_json(rounds))
+                          f"({rounds.last['scan_error']}); no correction was made from it and the pressures are "
+                          "held", "ERROR", extra=rounds.to_json())
             return
-        error_pct = 100.0 * (volume_ml - rounds.target_ml) / rounds.target_ml
-        entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct)
-        verify = rounds.verify
+        assert volume_ml is not None
+        verify, error_pct = rounds.verify, rounds.last["scanned_error_pct"]
         within = abs(error_pct) <= verify.tolerance_pct
-        judged = verify_policy.judge_scan(error_pct, verify.tolerance_pct, round_, verify.rounds, verify.correct)
         if judged == "verified":
-            self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
+            self._actions.append(rounds.record())
             self._verified_outcome(reach, rounds, f"target {described} reached and MEASURED: scanned "
                                    f"{volume_ml:.2f} ml ({error_pct:+.2f} %, {'within' if within else 'outside'} "
                                    f"{verify.tolerance_pct:g} %) after {round_} round(s)")
         elif judged == "not_verified":
-            self._actions.append(Record(round_, tuple(entry["pressures_kpa"]), float(volume_ml), folder))
+            self._actions.append(rounds.record())
             self._outcome("not_verified", f"target {described} not verified: scanned {volume_ml:.2f} ml "
                           f"({error_pct:+.2f} %) after {round_} round(s), the limit; the pressures are held (give "
-                          "more verify_rounds, or a wider verify_tolerance_pct)", "WARN",
-                          extra=self._rounds_json(rounds))
+                          "more verify_rounds, or a wider verify_tolerance_pct)", "WARN", extra=rounds.to_json())
         else:
-            rounds.doing = "correcting"
             setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
-            aim_pct = verify.tolerance_pct * verify_policy.VERIFY_AIM_SHARE
+            aim_pct = verify.tolerance_pct * VERIFY_AIM_SHARE
             outside = (f"within {verify.tolerance_pct:g} % but outside the {aim_pct:.2g} % aimed at" if within
                        else f"outside {verify.tolerance_pct:g} %")
             self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "
                        f"%, {outside}): correcting")
-            self._actions.append(Correct(round_, reach.target, tuple(entry["pressures_kpa"]), float(volume_ml),
-                                         folder, shifted_ml(rounds.rounds, rounds.target_ml), setpoints))
+            self._actions.append(rounds.correct(reach.target, setpoints))
 
     def corrected(self, now: float, round_: int, answer: InverseResult, how: str) -> None:
         """The pressures of the round after ``round_`` (``how`` says what they were solved for): applied."""
-        rounds, reach = self._rounds, self._reach
-        if rounds is None or reach is None or rounds.doing != "correcting" or len(rounds.rounds) != round_:
+        rounds = self._rounds
+        if rounds is None or self._reach is None or not rounds.corrected(round_, answer, how):
             return
-        rounds.doing = None
-        rounds.rounds[-1]["next"] = how
-        asked_m3 = answer.target.gland_volume_m3
-        rounds.asked_ml = rounds.target_ml if asked_m3 is None else asked_m3 * ML_PER_M3
-        rounds.answer = self.answer = answer
+        self.answer = answer
         self.applied = None
         self._next(now)
+
+    def confirmed(self, now: float, round_: int, corrected_ml: float, band_ml: float) -> None:
+        """Round ``round_``'s scan, within the tolerance but off the aim, is confirmed by the correction refitted
+        with it (:func:`phantom.host.verify.confirmed_by_correction`): reached and MEASURED, no next round (the
+        scan is stored already)."""
+        rounds, reach = self._rounds, self._reach
+        if rounds is None or reach is None or not rounds.confirmed(round_, corrected_ml, band_ml):
+            return
+        last, target_ml = rounds.last, rounds.target_ml
+        self._verified_outcome(reach, rounds, f"target {reach.target.describe()} reached and MEASURED: scanned "
+                               f"{last['scanned_volume_ml']:.2f} ml ({last['scanned_error_pct']:+.2f} %, within "
+                               f"{rounds.verify.tolerance_pct:g} %) after {round_} round(s), and the correction "
+                               f"refitted with the scan says {corrected_ml:.2f} ml +-{band_ml:.3f} ml (95 %) there "
+                               f"({100.0 * (corrected_ml - target_ml) / target_ml:+.2f} % +-"
+                               f"{100.0 * band_ml / target_ml:.2f} %), within it too")
 
     def correct_failed(self, now: float, round_: int, unreachable: bool, text: str) -> None:
         """The next round's pressures could not be solved (``unreachable``, or the model failed): the pressures
         of the last round are held."""
         rounds, reach = self._rounds, self._reach
-        if rounds is None or reach is None or rounds.doing != "correcting" or len(rounds.rounds) != round_:
+        if rounds is None or reach is None or not rounds.correcting(round_):
             return
         self._outcome("unreachable" if unreachable else "not_verified",
                       f"target {reach.target.describe()} not verified: the correction after round {round_} failed "
-                      f"({text}); the pressures are held", "WARN", extra=self._rounds_json(rounds))
+                      f"({text}); the pressures are held", "WARN", extra=rounds.to_json())
 
     def scene_started(self, now: float) -> None:
         self.state = ControlState.SCENE
@@ -865,15 +755,12 @@ class ControlCore:
                  "measured_pressures_kpa": pressures_kpa, "after_s": now - reach.applied_s}
         if rounds is not None:
             if rounds.doing is None:
-                rounds.doing = "scanning"
-                rounds.rounds.append({"round": len(rounds.rounds) + 1, "asked_ml": rounds.asked_ml,
-                                      # the correction's 95 % band (ml) at the round's answer: what it knew there
-                                      "band_ml": None if self.answer is None else self.answer.band_ml,
-                                      "setpoints_kpa": [float(p) / PA_PER_KPA for p in self.setpoints_pa],
-                                      "pressures_kpa": pressures_kpa, **extra})
-                self._tell("verify", f"target {reach.target.describe()}: round {len(rounds.rounds)} settled "
+                setpoints_kpa = [float(p) / PA_PER_KPA for p in self.setpoints_pa]
+                scan = rounds.scan(reach.target, None if self.answer is None else self.answer.band_ml,
+                                   setpoints_kpa, pressures_kpa, extra)
+                self._tell("verify", f"target {reach.target.describe()}: round {scan.round} settled "
                            f"(estimate {gland_ml:.2f} ml): scanning")
-                self._actions.append(Scan(len(rounds.rounds), reach.target, tuple(pressures_kpa)))
+                self._actions.append(scan)
             return
         text = f"target {reach.target.describe()} reached: estimate {gland_ml:.2f} ml, pressures settled for " \
                f"{settled_s:.1f} s"
@@ -892,24 +779,14 @@ class ControlCore:
         self._reached = reach.target
         self._outcome(outcome, text, extra=extra)
 
-    def _verified_outcome(self, reach: _Reach, rounds: _Rounds, text: str) -> None:
+    def _verified_outcome(self, reach: _Reach, rounds: Rounds, text: str) -> None:
         """Reached, the volume reported the scanned one (measured), with the rounds."""
         last = rounds.rounds[-1]
         extra = {"estimated_volume_ml": last["estimated_volume_ml"],
                  "estimated_chamber_volumes_ml": last["estimated_chamber_volumes_ml"],
                  "measured_pressures_kpa": last["pressures_kpa"], "after_s": last["after_s"],
-                 **self._rounds_json(rounds)}
+                 **rounds.to_json()}
         self._reached_now(reach, "reached", text, extra)
-
-    @staticmethod
-    def _rounds_json(rounds: _Rounds) -> dict[str, Any]:
-        """What an outcome says of a verification: the scanned volume (measured) and each round."""
-        scanned = [entry["scanned_volume_ml"] for entry in rounds.rounds if "scanned_volume_ml" in entry]
-        return {"verify": rounds.verify.to_json(), "verified": bool(scanned) and rounds.verify.correct and abs(
-                    scanned[-1] - rounds.target_ml) <= rounds.verify.tolerance_pct / 100.0 * rounds.target_ml,
-                "scanned_volume_ml": scanned[-1] if scanned else None,
-                "volume_source": "scan (measured)" if scanned else "model (estimated)",
-                "rounds": [dict(entry) for entry in rounds.rounds]}
 
     def _replaced(self, why: str) -> None:
         if self._reach is not None:

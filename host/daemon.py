@@ -8,7 +8,7 @@ its worker process, the simulated board if any, the link session; then the handl
 Tasks: the link (``LinkSession.run``), the control loop (every control period: the scene's target, the core's
 tick, a volume estimate when due, status to subscribers, link statistics to Rerun), the simulated board's watch.
 
-A verified target's scans (the core's :class:`~phantom.host.control.Scan`) go through the daemon's own ``scan``
+A verified target's scans (the core's :class:`~phantom.host.verify.Scan`) go through the daemon's own ``scan``
 API method (host/motion.py) with the :class:`VerifyScanner`'s plan; the capture is reconstructed by the
 :class:`VerifyScanner` in a worker thread (the host imports nothing of the scanner's code: ``phantom daemon``
 gives it); every scan is recorded as a measurement through the model worker when it can take one
@@ -68,9 +68,13 @@ CONTROL_HZ = 10.0
 
 class VerifyScanner(Protocol):
     """What a verified target's scan needs besides the ``scan`` API method (``phantom.cli.scan_verify``):
-    ``plan``, the ``scan`` params of a verify scan (without ``out``), and :meth:`volume`."""
+    ``plan``, the ``scan`` params of a verify scan (without ``out``), :meth:`plan_for` and :meth:`volume`."""
 
     plan: dict[str, Any]
+
+    def plan_for(self, tolerance_pct: float) -> dict[str, Any]:
+        """The ``scan`` params of a verified target's scan at ``tolerance_pct`` (%): the plan sized to it."""
+        ...
 
     def volume(self, folder: str) -> dict[str, Any]:
         """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml``, ``mesh`` (the
@@ -188,11 +192,11 @@ class Daemon:
             self.scenes.reached(action.index)
         elif isinstance(action, control.StopScene):
             self.scenes.stop(action.why)
-        elif isinstance(action, control.Scan):
+        elif isinstance(action, verify.Scan):
             self.spawn(self._scan_for_core(action))
-        elif isinstance(action, control.Correct):
+        elif isinstance(action, verify.Correct):
             self.spawn(self._correct_for_core(action))
-        elif isinstance(action, control.Record):
+        elif isinstance(action, verify.Record):
             self.spawn(self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder))
         elif isinstance(action, control.Answer):
             waiting = self._requests.pop(action.request, None)
@@ -226,7 +230,7 @@ class Daemon:
                     "rig\"), or set the target without verify")
         return None
 
-    async def _scan_for_core(self, action: control.Scan) -> None:
+    async def _scan_for_core(self, action: verify.Scan) -> None:
         """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread. A scan
         still running for a verification that is no more (a second client's verified target replaced it) is
         stopped first, and its answer is not fed to the core: the core asks one scan at a time."""
@@ -242,7 +246,7 @@ class Daemon:
             why = self.verify_refusal()
             if scanner is None or why is not None:
                 raise ApiError("invalid_params", why or "no scanner")
-            answer = await self.perform_scan(action.round, scanner.plan)
+            answer = await self.perform_scan(action.round, scanner.plan_for(action.tolerance_pct))
             folder = str(answer["folder"])
             if answer.get("status") != "complete":
                 raise ApiError("rejected", f"the capture ended {answer.get('status')!r}")
@@ -289,7 +293,7 @@ class Daemon:
                 return
             await asyncio.sleep(0.2)
 
-    async def _correct_for_core(self, action: control.Correct) -> None:
+    async def _correct_for_core(self, action: verify.Correct) -> None:
         """A verified target's miss: the next round's pressures, decided by :class:`phantom.host.verify.NextRound`;
         the daemon only performs its actions (records the scan, solves what it asks) and feeds it the answers."""
         policy = verify.NextRound(action)
@@ -298,12 +302,11 @@ class Daemon:
             for step in steps:
                 if isinstance(step, verify.Record):
                     stored = await self._record_scan(step.pressures_kpa, step.scanned_ml, step.scan_folder)
-                    corrected_ml = None
+                    corrected: tuple[float, float] | None = None
                     if stored:
                         with contextlib.suppress(Exception):  # the model failed: the shifted volume instead
-                            estimate = await self.model.estimate(np.asarray(step.pressures_kpa) * PA_PER_KPA)
-                            corrected_ml = estimate.gland_volume_ml
-                    policy.recorded(self.now_s(), stored, corrected_ml)
+                            corrected = await self.model.gland_band(np.asarray(step.pressures_kpa) * PA_PER_KPA)
+                    policy.recorded(self.now_s(), stored, *(corrected or (None, None)))
                 elif isinstance(step, verify.Solve):
                     try:
                         answer = await self.solve(step.target)
@@ -321,6 +324,8 @@ class Daemon:
                         policy.solved(self.now_s(), answer)
                 elif isinstance(step, verify.Apply):
                     self._feed(self.core.corrected, step.round, step.answer, step.how)
+                elif isinstance(step, verify.Confirm):
+                    self._feed(self.core.confirmed, step.round, step.corrected_ml, step.band_ml)
                 else:
                     self._feed(self.core.correct_failed, step.round, step.unreachable, step.text)
         if not policy.done:  # every event takes an action until the last: none is the policy's fault
@@ -387,7 +392,7 @@ class Daemon:
         return answer
 
     async def set_target(self, target: Target, tolerance_pct: float | None = None,
-                         verify: control.Verify | None = None) -> dict[str, Any]:
+                         verify: verify.Verify | None = None) -> dict[str, Any]:
         """A target from the API: solved first, so that an unreachable one changes nothing (a playing scene goes
         on); then sent, and only once the board has acknowledged it does it replace the scene; with ``verify``,
         verified by scans once reached on pressure (host/control.py). Returns the inverse's answer as JSON;

@@ -15,7 +15,6 @@ import numpy as np
 
 from phantom import PhantomError, read_text
 from phantom.host.api import ApiError, Handler, RawJson
-from phantom.host.control import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
 from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import (
     check_step_count,
@@ -27,6 +26,7 @@ from phantom.host.scenes import (
     with_shape_pressures,
 )
 from phantom.host.session import fault_names
+from phantom.host.verify import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
 from phantom.model.errors import SceneError
 from phantom.model.scene import MAX_SCENE_BYTES, pressure_limit_error
 

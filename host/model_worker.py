@@ -321,6 +321,15 @@ class LoadedModel:
         return ((np.asarray(chamber_m3) * ML_PER_M3).tolist(), self.gland_ml(measured, float(gland_m3)),
                 float(gland_m3) * ML_PER_M3)
 
+    def gland_band(self, pressures_pa: np.ndarray) -> tuple[float, float] | None:
+        """The corrected gland volume (ml) at measured pressures (Pa) and the half-width of the correction's 95 %
+        band there (ml); None without a correction in force."""
+        if self.corrected is None:
+            return None
+        _, gland_ml, _ = self.estimate(pressures_pa)
+        _, band_ml = self.corrected.gland_band_ml(self.measured(pressures_pa) / PA_PER_KPA)
+        return gland_ml, band_ml
+
     def rest_surface_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """The outer surface at rest: positions (mm, (n, 3)) and triangles ((k, 3) indices into them)."""
         used, triangles = self._outer_surface
@@ -532,6 +541,10 @@ def _worker_estimate(pressures_pa: np.ndarray, with_surface: bool, with_rest_sur
         return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest)
     return Estimate(chamber_ml, gland_ml, surface, dict(model.estimator.counts), rest, model_gland_ml,
                     model.correction_size_ml, corrected.correction.count)
+
+
+def _worker_gland_band(pressures_pa: np.ndarray) -> tuple[float, float] | None:
+    return _worker_model_or_fail().gland_band(pressures_pa)
 
 
 def _worker_shape_answer(shape: str | dict[str, Any], labels: list[int] | None, refine_solves: int) -> dict[str, Any]:
@@ -923,6 +936,13 @@ class ModelWorker:
         self.check_store()
         return await self._call(_worker_estimate, np.asarray(pressures_pa, dtype=float), with_surface,
                                 with_rest_surface)
+
+    async def gland_band(self, pressures_pa: np.ndarray) -> tuple[float, float] | None:
+        """The corrected gland volume (ml) at ``pressures_pa`` (Pa) and the correction's 95 % band there (ml), on
+        the store's latest measurements (a store changed since the last fit is fitted first); None without a
+        correction."""
+        await self._store_in_force()
+        return await self._call(_worker_gland_band, np.asarray(pressures_pa, dtype=float))
 
     async def surface_json(self, pressures_pa: np.ndarray | None) -> str:
         """The outer surface at ``pressures_pa`` (Pa), or at rest for None, as the JSON text of an object

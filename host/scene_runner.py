@@ -14,8 +14,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from phantom.host.control import Verify
 from phantom.host.scenes import Timeline, gland_volume_ml, parse_timeline
+from phantom.host.verify import Verify
 from phantom.model.errors import SceneError
 from phantom.model.target import Target
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from phantom.host.control import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
+from phantom.host.verify import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
 from phantom.model.errors import SceneError
 from phantom.model.scene import (
     BUILTIN_SCENES,

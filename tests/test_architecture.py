@@ -217,10 +217,6 @@ def import_cycles(repo: Path) -> list[tuple[str, ...]]:
 #: off the list).
 KNOWN_CYCLES = frozenset({
     ("phantom.design.pipeline", "phantom.design.report"),
-    # verify.py (the verify policy) and control.py (the control core, which asks it what a scan means) import
-    # each other's functions and types: one cycle with the core's older one through the scenes
-    ("phantom.host.control", "phantom.host.model_worker", "phantom.host.parts", "phantom.host.scenes",
-     "phantom.host.verify"),
     ("phantom.host.daemon", "phantom.host.status"),
     ("phantom.model.fem.jit", "phantom.model.fem.kernels", "phantom.model.fem.materials"),
 })

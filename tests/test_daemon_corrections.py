@@ -48,7 +48,7 @@ def test_a_correction_moves_the_inverse_and_corrects_the_estimates_gland_not_its
     pressures = np.full(3, 1500.0)
     plain = loaded.pressures_for(target)
     chambers, gland, model_gland = loaded.estimate(pressures)
-    assert gland == model_gland
+    assert gland == model_gland and loaded.gland_band(pressures) is None   # no correction: no band
     try:
         loaded.set_correction(offset_correction(1.5))
         corrected = loaded.pressures_for(target)
@@ -59,6 +59,9 @@ def test_a_correction_moves_the_inverse_and_corrects_the_estimates_gland_not_its
         chambers_after, gland_after, model_after = loaded.estimate(pressures)
         assert (gland_after, model_after, chambers_after) == (pytest.approx(model_gland + 1.5), model_gland,
                                                               chambers)
+        # what the verify policy asks after a round's scan is stored: the corrected volume there and its band
+        band_gland, band_ml = loaded.gland_band(pressures)
+        assert band_gland == gland_after and 0.0 < band_ml < 10.0
         ramp = loaded.pressures_on_ramp(Target(gland_volume_m3=30 * ML), target, Target(gland_volume_m3=33 * ML))
         assert ramp.predicted_gland_volume_m3 / ML == pytest.approx(33, abs=1e-3)
         with pytest.raises(Exception, match="with the correction in force .gp.offset from 1 measurement"):
@@ -178,6 +181,8 @@ def test_the_worker_fits_the_store_at_start_follows_it_refuses_another_phantoms_
             recorded = await worker.record_measurement([1.5, 0.5, 0.0], true_ml((1.5, 0.5, 0)), scan_file="s.ply")
             assert recorded["count"] == 5 and recorded["size_ml"] > 0 and "leave_one_out_pct" in recorded
             assert store.entries()[-1].model == "builtin:converged" and store.entries()[-1].scan_file == "s.ply"
+            scanned_gland, scanned_band = await worker.gland_band(np.array([1500.0, 500.0, 0.0]))
+            assert scanned_gland == pytest.approx(true_ml((1.5, 0.5, 0)), rel=0.005) and 0.0 < scanned_band < 0.5
             with pytest.raises(CorrectionError, match="has 3 pressures.*got 4: is it of another phantom"):
                 await worker.record_measurement([1.0, 1.0, 1.0, 1.0], 30.0)
             with pytest.raises(CorrectionError, match="must lie on the grid, 0-3 kPa, the model's pressure box"):

@@ -239,6 +239,21 @@ def test_a_webcams_capture_runs_in_the_worker_through_the_webcam_code(tmp_path):
     assert [frame.pressures_kpa for frame in folder.frames] == [[1.0, 2.0, 3.0]] * 3
 
 
+def test_the_workers_verify_plan_is_its_verify_scans_sized_to_the_tolerance():
+    """The daemon asks its verify scanner (the worker) for a round's plan at the target's tolerance: the verify
+    scan's own answer, without starting the process."""
+    from phantom.cli.scan_rig import DaemonScanner
+
+    verify = VerifyScan()
+    worker = ScanWorker(DaemonScanner(), verify)
+    try:
+        for tolerance_pct in (0.3, 1.1, 5.0):
+            assert worker.plan_for(tolerance_pct) == verify.plan_for(tolerance_pct)
+        assert worker.plan_for(5.0)["views"] < worker.plan_for(0.3)["views"] and worker.pid is None
+    finally:
+        worker.close()
+
+
 #: A daemon's stand-in: starts a scan worker from its main thread, gives it a minute's work from another thread
 #: (a scan's: the worker does not read its pipe meanwhile), prints the worker's pid, then waits.
 WORKER_PARENT = """

@@ -5,10 +5,10 @@ scans."""
 import pytest
 
 from phantom.host.api import ApiError
-from phantom.host.control import Verify
 from phantom.host.handlers import verify_of
 from phantom.host.scene_runner import SceneRunner, prepare_run
 from phantom.host.scenes import parse_timeline
+from phantom.host.verify import Verify
 from phantom.model.errors import SceneError
 
 CHAMBERS = ["chamber0", "chamber1", "chamber2"]

@@ -247,6 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     command = daemon_command(args.scene, out)
     print("$ " + " ".join(command), file=sys.stderr)
     log_path = out / "daemon.log"
+    demo_started_s = time.monotonic()
     with open(log_path, "w") as log:
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=demo_environment(out))
     succeeded = False
@@ -295,7 +296,9 @@ def main(argv: list[str] | None = None) -> int:
               f"report {report}: plots, steps and pictures of the gland in one HTML file (any browser, mailable)\n"
               f"open the recording with `{rerun_command(shown)}` on a display; without one (over SSH) "
               f"`{rerun_command(shown)} --serve-web --bind 127.0.0.1` serves it to a browser (README.md, "
-              "\"Viewing a recording\")")
+              "\"Viewing a recording\")\n"
+              f"the demo took {(time.monotonic() - demo_started_s) / 60.0:.1f} min (the daemon's start, the scene"
+              f"{', the verified volumes' if verified else ''})")
         if not succeeded:
             why = [f"step {step['index']} missed its target by {step['error_pct']}" for step in missed]
             why += [f"{row['target_ml']:g} ml did not end within {VERIFIED_TRUE_TOLERANCE_PCT:g} % true"

@@ -61,7 +61,8 @@ class ScanWorker:
     scanner : DaemonScanner
         The capture, run in the process for each ``scan`` request (picklable: sent to the process once).
     verify : VerifyScan
-        The verify scan's plan (:attr:`plan`, read in the daemon) and its reconstruction (run in the process).
+        The verify scan's plan (:attr:`plan`, :meth:`plan_for`, read in the daemon) and its reconstruction (run
+        in the process).
     log_level : str
         The process logs as the daemon does, at this level and above, to the daemon's stderr.
     """
@@ -85,6 +86,10 @@ class ScanWorker:
         """A ``scan`` request's capture (``phantom.host.motion.Scanner``): blocking, called in the daemon's worker
         thread with its ``ThreadRig``, whose methods the capture calls through this thread."""
         return self._job("scan", params, rig)
+
+    def plan_for(self, tolerance_pct: float) -> dict[str, Any]:
+        """The verify scan's plan at ``tolerance_pct`` (%): the :class:`VerifyScan`'s, decided in the daemon."""
+        return self.verify.plan_for(tolerance_pct)
 
     def volume(self, folder: str) -> dict[str, Any]:
         """The capture folder reconstructed (``phantom.host.daemon.VerifyScanner``): blocking, run in a worker
