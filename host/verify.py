@@ -186,11 +186,11 @@ def secant_kpa(before: tuple[tuple[float, ...], float], last: tuple[tuple[float,
     (pressures_a, scanned_a), (pressures_b, scanned_b) = before, last
     if abs(scanned_b - scanned_a) < SECANT_MIN_STEP_PCT / 100.0 * target_ml:
         return None
-    share = float(np.clip((target_ml - scanned_a) / (scanned_b - scanned_a), *SECANT_REACH))
     start, end = np.asarray(pressures_a, dtype=float), np.asarray(pressures_b, dtype=float)
-    pressures_kpa: np.ndarray = np.clip(start + share * (end - start), 0.0, None)
     if np.all(end < SECANT_FLOOR_KPA):
         return None
+    share = float(np.clip((target_ml - scanned_a) / (scanned_b - scanned_a), *SECANT_REACH))
+    pressures_kpa: np.ndarray = np.clip(start + share * (end - start), 0.0, None)
     return pressures_kpa
 
 
@@ -348,7 +348,7 @@ class Rounds:
     def corrected(self, round_: int, answer: InverseResult, how: str) -> bool:
         """The next round's pressures after round ``round_`` (``how`` says what they were solved for); False when
         they are not this verification's."""
-        if self.doing != "correcting" or len(self.rounds) != round_:
+        if not self.correcting(round_):
             return False
         self.doing = None
         self.last["next"] = how
