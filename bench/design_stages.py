@@ -24,7 +24,8 @@ import nibabel
 import numpy as np
 import trimesh
 
-from phantom.design.pipeline import DesignOptions, design
+from phantom.design.pipeline import design
+from phantom.design.result import DesignOptions
 from phantom.model.fem.model import PhantomModel
 from phantom.model.mesh.prostate import generate_prostate
 from phantom.model.mesh.shape import body_surface_mesh_mm, inside_body

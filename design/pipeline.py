@@ -9,21 +9,21 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from phantom import require_extra, written_atomically
-from phantom.design.cast import Cast, make_cast, undercut_warnings
+from phantom.design.cast import make_cast, undercut_warnings
 from phantom.design.chambers import place_chambers, surface_samples_mm
 from phantom.design.errors import DesignError
-from phantom.design.latent import LatentDistance, latent_distance
-from phantom.design.material import DEFAULT_MATERIAL_FROM, InheritedMaterial, inherited_material
-from phantom.design.meshing import ELEMENTS_PER_WALL, check_mesh_options, mesh_design, write_scene
+from phantom.design.latent import latent_distance
+from phantom.design.material import inherited_material
+from phantom.design.meshing import check_mesh_options, mesh_design, write_scene
+from phantom.design.result import Design, DesignOptions
 from phantom.design.sizing import (
-    PAPER_VOLUME_ML,
     GrowthTarget,
     Sizing,
     growth_target,
@@ -34,82 +34,11 @@ from phantom.design.surface import Surface, read_gland
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.tetmesh import TetMesh, boundary_faces, enclosed_volume_m3, surface_components, write_mesh
 
-#: The pressures (kPa, all three chambers alike) of the predicted growth curve.
-GROWTH_PRESSURES_KPA = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0)
+#: ``phantom design``'s defaults (DesignOptions is frozen: one instance serves every call).
+DEFAULT_OPTIONS = DesignOptions()
 
 
-@dataclass(frozen=True)
-class DesignOptions:
-    """What ``phantom design`` is asked for (its options; see its --help)."""
-
-    volume_ml: float = PAPER_VOLUME_ML
-    min_wall_mm: float = 2.0
-    #: None: sized to the growth target (see :mod:`phantom.design.sizing`); a number: the template's times it
-    chamber_scale: float | None = None
-    size_mm: float = 2.5
-    #: None: the inherited material's (``material_from``'s: 10-node for builtin:converged)
-    element_order: int | None = None
-    fixation_radius_mm: float = 6.0
-    stem_diameter_mm: float = 3.0
-    labels: tuple[int, ...] | None = None
-    smoothing_iterations: int | None = None
-    growth_pressures_kpa: tuple[float, ...] = GROWTH_PRESSURES_KPA
-    #: the grown gland's volume (None: the paper's 45 ml from 26.3, scaled to --volume-ml) at this pressure
-    growth_target_ml: float | None = None
-    growth_target_kpa: float = 3.0
-    #: the template's chambers to design (indices into CHAMBER_KINDS)
-    chambers: tuple[int, ...] = (0, 1, 2)
-    #: a trained shape run (``phantom shape train``): the source's latent distance to its population's average
-    shape_run: str | None = None
-    #: the scene whose calibrated material law and element order the design inherits (phantom.design.material)
-    material_from: str = DEFAULT_MATERIAL_FROM
-    #: elements through the thinnest wall: 2 (the design), or 1 (a preview on the sizing's own coarse mesh)
-    elements_per_wall: int = ELEMENTS_PER_WALL
-
-
-@dataclass
-class Design:
-    """What was designed: the figures of the report, the stages' times (s) and the files written."""
-
-    out: Path
-    gland_volume_ml: float
-    source_volume_ml: float
-    smoothing_change_pct: float
-    scale: float
-    chamber_labels: list[str]
-    chamber_volumes_ml: list[float]
-    chamber_scales: list[float]
-    walls_mm: dict[str, float]
-    mesh_nodes: int
-    mesh_tets: int
-    rest_volume_ml: float
-    surface_distance_mm: float
-    cast: Cast
-    growth_kpa: list[float]
-    growth_volumes_ml: list[float]
-    target: GrowthTarget
-    #: the designed gland's volume at the target's pressure (ml): its volume plus the designed model's growth (None:
-    #: not solved, the chambers' scale given and the growth curve without the target's pressure)
-    target_reached_ml: float | None
-    sizing: Sizing | None
-    latent: LatentDistance | None
-    notes: list[str]
-    #: what a user must know: printed on stderr as well as in the report
-    warnings: list[str] = field(default_factory=list)
-    stage_times_s: dict[str, float] = field(default_factory=dict)
-    #: the calibrated law and element order the design inherits (phantom.design.material)
-    material: InheritedMaterial | None = None
-    #: the mesh's element size (mm, --size-mm) and elements through the thinnest wall (2; 1 for a preview)
-    mesh_size_mm: float = DesignOptions.size_mm
-    elements_per_wall: int = ELEMENTS_PER_WALL
-
-    @property
-    def thinnest_wall(self) -> tuple[str, float]:
-        name = min(self.walls_mm, key=lambda key: self.walls_mm[key])
-        return name, self.walls_mm[name]
-
-
-def design(source: str | Path, out: str | Path, options: DesignOptions = DesignOptions(),
+def design(source: str | Path, out: str | Path, options: DesignOptions = DEFAULT_OPTIONS,
            progress: Callable[[str], None] = print) -> Design:
     """Run every stage (see the module docstring); DesignError (or the shape analysis's ShapeError for a file it
     cannot read) on bad input, before anything is written."""

@@ -15,7 +15,7 @@ from phantom.design.sizing import GROWTH_TOLERANCE, target_reached
 from phantom.design.surface import Gland
 
 if TYPE_CHECKING:
-    from phantom.design.pipeline import Design
+    from phantom.design.result import Design
 
 
 def write_report(result: Design, gland: Gland, chambers: ChamberDesign) -> None:

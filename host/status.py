@@ -1,23 +1,72 @@
 """The daemon's status: everything ``phantom status --json`` shows (host/README.md, "The local API"), read from
-the daemon, its control core and its parts."""
+the daemon, its control core and its parts.
+
+What it reads of the daemon is :class:`StatusSource` (a Protocol the daemon satisfies, checked by mypy where
+:meth:`phantom.host.daemon.Daemon.status` calls :func:`daemon_status`): the daemon imports this module, and this
+module does not import the daemon.
+"""
 
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING, Any
+from collections import deque
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from phantom.host.parts import ControlState
+from phantom.host.parts import BoardSession, ControlState, Model, Recording
 from phantom.host.session import fault_names
 
 if TYPE_CHECKING:
-    from phantom.host.daemon import Daemon
+    from phantom.host.api import ApiServer
+    from phantom.host.board_watch import BoardSettings
+    from phantom.host.control import ControlCore
+    from phantom.host.estimation import EstimateSchedule, VolumeEstimates
+    from phantom.host.motion import Orbit
+    from phantom.host.scene_runner import SceneRunner
+    from phantom.host.session import Telemetry
+    from phantom.host.sim_board import SimulatedBoardKeeper
+    from phantom.host.stalls import LoopStalls
+    from phantom.host.startup import BackgroundTable, StartupProgress
+    from phantom.host.web import WebServer
+    from phantom.host.zeroing import SensorZero
 
 PA_PER_KPA = 1e3
 
 
-def daemon_status(daemon: Daemon) -> dict[str, Any]:
+class StatusSource(Protocol):
+    """What the status reads of the daemon (:class:`phantom.host.daemon.Daemon`): its parts and its state."""
+
+    telemetry: Telemetry | None
+    session: BoardSession
+    model: Model
+    core: ControlCore
+    schedule: EstimateSchedule
+    estimates: VolumeEstimates
+    chamber_names: list[str]
+    chamber_labels: list[str]
+    fault_flags: int
+    board_settings: BoardSettings
+    board_settings_source: str
+    zero: SensorZero
+    scenes: SceneRunner
+    table: BackgroundTable
+    ready: bool
+    startup: StartupProgress
+    api: ApiServer
+    loop_stalls: LoopStalls
+    recorder: Recording
+    events: deque[dict[str, Any]]
+    motion: Orbit
+    web: WebServer | None
+    sim_board: SimulatedBoardKeeper | None
+
+    def now_s(self) -> float: ...
+
+    def target_volume_ml(self) -> float | None: ...
+
+
+def daemon_status(daemon: StatusSource) -> dict[str, Any]:
     """Everything ``phantom status --json`` shows."""
     telemetry = daemon.telemetry if daemon.session.online else None  # a stale frame is not shown
     link, info, core = daemon.session.status(), daemon.model.info, daemon.core

@@ -99,7 +99,8 @@ def test_a_bilobed_mask_previewed_on_a_coarse_mesh_grows_as_the_design_does(tmp_
 
 def test_elements_per_wall_takes_one_or_two(tmp_path):
     """(The command line's choices are argparse's; the library refuses the rest before reading anything.)"""
-    from phantom.design.pipeline import DesignOptions, design
+    from phantom.design.pipeline import design
+    from phantom.design.result import DesignOptions
 
     with pytest.raises(DesignError, match="--elements-per-wall 3 is not 1 .a preview. or 2 .the design."):
         design(tmp_path / "absent.nii.gz", tmp_path / "d", DesignOptions(elements_per_wall=3))

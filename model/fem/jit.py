@@ -73,18 +73,14 @@ if COMPILED is None:
 _announced = False
 
 
-def _announce_compiling() -> None:
+def _announce_compiling(building: bool) -> None:
     """Say once that numba is about to compile (unless this process is the ahead-of-time build, which says so)."""
     global _announced
-    main = getattr(sys.modules.get("__main__"), "__spec__", None)
-    if not _announced and getattr(main, "name", None) != "phantom.model.fem.kernels":
+    if not _announced and not building:
         print("phantom: compiling the model's kernels with numba (about 10 s, once: they are cached; "
               "`python -m phantom.model.fem.kernels` builds them ahead of time)", file=sys.stderr, flush=True)
     _announced = True
 
-
-if COMPILED is None and not any(NUMBA_CACHE.rglob("kernels.internal_forces-*.nbi")):
-    _announce_compiling()
 
 Kernel = TypeVar("Kernel", bound=Callable[..., Any])
 
@@ -110,8 +106,10 @@ def inline_kernel(function: Kernel) -> Kernel:
     return cast(Kernel, dispatcher)
 
 
-def forget_stale_jit_cache() -> None:
-    """Empty numba's on-disk cache of every kernel when :data:`SOURCES` changed since it was written.
+def forget_stale_jit_cache(building: bool = False) -> None:
+    """Empty numba's on-disk cache of every kernel when :data:`SOURCES` changed since it was written, and say once
+    that numba is about to compile when the cache holds no kernels or stale ones (``building``: this process is the
+    ahead-of-time build, which says so itself). The kernels' module calls it as it is imported.
 
     numba keys a function's cache by its own file only, but a kernel compiles in the laws it calls from
     materials.py: after an edit of that file numba would load the old laws. A stamp of both files' digest beside
@@ -122,13 +120,15 @@ def forget_stale_jit_cache() -> None:
     folder = hashlib.sha256(str(SOURCES[0].parent).encode()).hexdigest()[:16]
     stamp = NUMBA_CACHE / f"phantom_fem_sources_{folder}.sha256"
     digest = sources_digest()
+    cached = any(NUMBA_CACHE.rglob("kernels.internal_forces-*.nbi"))
     try:
         if stamp.read_text() == digest:
+            if not cached:
+                _announce_compiling(building)
             return
     except OSError:
         pass
-    if any(NUMBA_CACHE.rglob("kernels.internal_forces-*.nbi")):
-        _announce_compiling()
+    _announce_compiling(building)
     for dispatcher in DISPATCHERS:
         dispatcher._cache.flush()  # numba's own index reset: its next call compiles and saves again
     stamp.parent.mkdir(parents=True, exist_ok=True)

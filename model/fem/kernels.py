@@ -1001,7 +1001,7 @@ def _exported(name: str, implementation: Callable[..., Any],
 
 #: The JIT dispatchers of the exported kernels (None when the ahead-of-time build is in use).
 JIT_KERNELS: dict[str, Any] | None = None if COMPILED is not None else {name: globals()[name] for name in EXPORTS}
-forget_stale_jit_cache()
+forget_stale_jit_cache(building=__name__ == "__main__")
 for _name, (_dtypes, _) in EXPORTS.items():
     globals()[_name] = _exported(_name, getattr(COMPILED, _name) if COMPILED else globals()[_name], _dtypes)
 

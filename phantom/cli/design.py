@@ -78,7 +78,8 @@ def run_design(args: argparse.Namespace) -> int:
     from phantom.cli.common import parse_numbers
     from phantom.design.chambers import parse_chamber_kinds
     from phantom.design.errors import DesignError
-    from phantom.design.pipeline import DesignOptions, design, design_summary
+    from phantom.design.pipeline import design, design_summary
+    from phantom.design.result import DesignOptions
 
     labels = None
     if args.labels is not None:
