@@ -6,6 +6,7 @@ The harness takes line commands on stdin and answers each with one JSON line on 
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import json
 import os
 import select
@@ -28,17 +29,26 @@ class HarnessError(PhantomError):
     """The harness cannot be built, did not start, or refused a command."""
 
 
+def harness_sources_digest() -> str:
+    """The first 16 hex digits of sha256 over the harness's sources (every file of :data:`HARNESS_SOURCE_DIR`)."""
+    digest = hashlib.sha256()
+    for source in sorted(path for path in HARNESS_SOURCE_DIR.iterdir() if path.is_file()):
+        digest.update(source.name.encode() + b"\0" + source.read_bytes())
+    return digest.hexdigest()[:16]
+
+
 def build_harness() -> Path:
     """Build the harness if its sources changed (``make``) and return the executable's path.
 
-    The build goes to ``phantom.cache_dir("hil")/harness``; make only recompiles when a source is newer.
+    The build goes to ``phantom.cache_dir("hil")/harness-<digest of the sources>``: checkouts share the cache, and
+    make's check of times alone handed one checkout's harness to another whose sources were older than it.
     """
     missing = [tool for tool in ("make", "cc") if shutil.which(tool) is None]
     if missing:
         raise HarnessError(f"cannot build the simavr harness: {', '.join(missing)} not found; run scripts/bootstrap.sh")
     if not Path("/usr/include/simavr/sim_avr.h").exists():
         raise HarnessError("cannot build the simavr harness: libsimavr-dev is not installed; run scripts/bootstrap.sh")
-    build_dir = phantom.cache_dir("hil") / "harness"
+    build_dir = phantom.cache_dir("hil") / f"harness-{harness_sources_digest()}"
     # one build at a time on this machine: two pytest workers that found the sources changed ran make at once, and
     # one started the executable while the other was still linking it (OSError in 14 tests)
     with open(phantom.cache_dir("hil") / "harness.lock", "w") as lock:

@@ -37,13 +37,14 @@ PROFILED_VECTORS = {
 }
 
 #: Faults and their parameters (unit in the name) with defaults.
-FAULTS = {
+FAULTS: dict[str, dict[str, float]] = {
     "sensor_cut": {},
     "tube_off": {},
     "supply": {"volts": 4.0},
     "leak": {"conductance_ml_per_s_per_kpa": 5.0},
     "stuck_blower": {"level": 1.0},
     "line_noise": {"flip_probability": 0.01, "drop_probability": 0.01},
+    "drop_frame": {"message_id": 0, "count": 1},
     "clear": {},
 }
 _PER_CHAMBER = {"sensor_cut", "tube_off", "leak", "stuck_blower"}
@@ -181,7 +182,9 @@ class SimulatedBoard:
             ``conductance_ml_per_s_per_kpa``, default 5), ``"stuck_blower"`` (the chamber's blower runs at
             ``level`` in [0, 1] whatever the firmware commands, default 1), ``"line_noise"`` (each byte in
             either direction is dropped with ``drop_probability`` and has one bit flipped with
-            ``flip_probability``, defaults 0.01), ``"clear"`` (remove every injected fault).
+            ``flip_probability``, defaults 0.01), ``"drop_frame"`` (the board's next ``count`` frames, default 1,
+            whose message id is ``message_id`` (``MsgId.MOTION_INFO``: no default) are lost whole on their way to
+            the host, as a frame whose CRC fails is), ``"clear"`` (remove every injected fault).
             A silent host needs no injection: the host just stops sending.
         chamber
             0, 1 or 2 for the per-chamber faults; must be None for the others.
@@ -209,7 +212,13 @@ class SimulatedBoard:
                                                                                   "drop_probability") else math.inf)
             if not low <= value <= limit:
                 raise SimulationError(f"{fault}.{name} must be in [{low:g}, {limit:g}], got {value!r}")
-        if fault == "leak":
+        if fault == "drop_frame":
+            if not (float(values["message_id"]).is_integer() and 1 <= values["message_id"] <= 255
+                    and float(values["count"]).is_integer() and 1 <= values["count"] <= 1000):
+                raise SimulationError(f"drop_frame needs message_id=<a message id, 1 to 255> (MsgId.MOTION_INFO) and "
+                                      f"count=<1 to 1000 frames>, got {values}")
+            line = f"fault drop_frame {int(values['message_id'])} {int(values['count'])}"
+        elif fault == "leak":
             line = f"fault leak {chamber} {values['conductance_ml_per_s_per_kpa'] * 1e-9!r}"
         elif fault == "stuck_blower":
             line = f"fault stuck_blower {chamber} {float(values['level'])!r}"

@@ -6,6 +6,7 @@
   setpoints the daemon did not send make it vent and say why.
 * After connecting to a phantom still deflating, the daemon waits for still readings, however long that takes
   (within its limit), before it zeroes the sensors, and shows how far it is.
+* A configuration's MOTION_INFO lost on the line is asked for again, and the configuration completes.
 * A daemon stopped with SIGTERM ends the board's session: the board does not latch DEAD_HOST afterwards.
 """
 
@@ -139,6 +140,25 @@ def test_a_program_beside_the_daemon_cannot_open_the_port_and_its_setpoints_are_
     rig.wait_status(lambda answer: "after the mismatch" in answer["board_settings"]["source"], 5,
                     "the daemon's gains and limit sent again")
     assert any("did not send" in event["text"] and event["level"] == "ERROR" for event in status["events"])
+
+
+def test_a_motion_info_lost_on_the_line_is_asked_for_again_and_the_configuration_completes(rig):
+    """The board sends a configuration's MOTION_INFO once; the harness loses exactly that frame on its way to the
+    daemon (issue 53: a verification failed for it): the daemon asks for the configuration again, says so, and the
+    orbit's configuration completes as the board reports it."""
+    from dataclasses import asdict
+
+    from phantom.protocol.messages import MsgId
+    from phantom.protocol.motion import SCANNER_AXES
+
+    dropped = rig.board.cycle_stats()["serial"]["frames_dropped"]
+    rig.board.inject("drop_frame", message_id=MsgId.MOTION_INFO, count=1)
+    answer = rig.call("motion_config", {"axis": 0, **asdict(SCANNER_AXES[0])}, timeout_s=60)
+    assert answer["config"] == asdict(SCANNER_AXES[0])
+    assert rig.board.cycle_stats()["serial"]["frames_dropped"] == dropped + 1
+    assert any("configuration did not end" in event["text"] and "asked again (2 of 3)" in event["text"]
+               for event in rig.status()["events"])
+    assert rig.call("motion_status")["axes"][0]["config"] == asdict(SCANNER_AXES[0])
 
 
 def test_sigterm_ends_the_boards_session_so_that_it_latches_no_dead_host_fault(rig):

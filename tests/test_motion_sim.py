@@ -116,6 +116,35 @@ def test_soft_limits_and_an_unconfigured_axis_are_refused_and_nothing_moves(rig,
     assert mo.status(link).axes[mo.ORBIT].state == "IDLE"
 
 
+def test_a_motion_info_dropped_on_the_line_is_lost_whole_and_the_next_configuration_is_reported(rig, board, link):
+    """The harness's ``drop_frame`` loses exactly the board's next MOTION_INFO on its way to the host, as a frame
+    whose CRC fails is lost (the board sends it once): the configuration is taken (ACK) but not reported, every
+    other frame still comes, and a configuration asked again is reported."""
+    from phantom.protocol.messages import MsgId
+
+    before = board.cycle_stats()["serial"]
+    board.inject("drop_frame", message_id=MsgId.MOTION_INFO, count=1)
+    with pytest.raises(mo.MotionError, match="did not report it"):
+        mo.configure(link, mo.ORBIT, ORBIT, timeout_s=1.0)
+    after = board.cycle_stats()["serial"]
+    assert after["frames_dropped"] - before["frames_dropped"] == 1
+    assert after["bytes_overflowed"] == before["bytes_overflowed"]
+    assert mo.status(link).axes[mo.ORBIT].state == "IDLE"  # MOTION_STATUS still comes
+    assert mo.configure(link, mo.ORBIT, ORBIT) == ORBIT
+    assert board.cycle_stats()["serial"]["frames_dropped"] == after["frames_dropped"]
+
+
+def test_drop_frame_is_refused_without_a_message_id_or_with_a_bad_count(board):
+    from phantom.hil.sim import SimulationError
+
+    with pytest.raises(SimulationError, match="message_id"):
+        board.inject("drop_frame")
+    with pytest.raises(SimulationError, match="count"):
+        board.inject("drop_frame", message_id=0x23, count=0.5)
+    with pytest.raises(SimulationError, match="takes"):
+        board.inject("drop_frame", message_id=0x23, chambers=1)
+
+
 @pytest.mark.parametrize("fault", ["over_pressure", "dead_host"])
 def test_a_latched_fault_halts_the_move_and_releases_the_driver_with_the_blowers(rig, board, link, fault):
     """Mid-move, an over-pressure (a blower stuck on) or a silent host latches a fault: the one fault path stops

@@ -590,6 +590,24 @@ TEST(motion_info_follows_each_configuration_and_each_hello_for_configured_axes) 
     CHECK_EQ(b.last(MSG_MOTION_INFO)->payload[0], 1);
 }
 
+// The board sends a configuration's MOTION_INFO once; a tick whose frame finds the transport full (the UART's ring)
+// must not lose it: it stays pending and goes in a later tick (the telemetry of that tick is dropped and counted).
+TEST(motion_info_that_finds_the_transport_full_is_sent_in_a_later_tick) {
+    MotionBench b;
+    b.hello();
+    b.ticks(5);
+    CHECK_EQ(b.reply_status(b.motion_config(0, 28800.0f, 30000, 60000, -190000, 190000)), STATUS_OK);
+    b.transport_full = true;
+    b.ticks(10);  // the configuration's MOTION_STATUS and MOTION_INFO, and a telemetry frame, find no room
+    b.transport_full = false;
+    CHECK_EQ(b.count(MSG_MOTION_INFO), 0);
+    b.ticks(5);
+    CHECK_EQ(b.count(MSG_MOTION_INFO), 1);
+    CHECK_EQ(b.last(MSG_MOTION_INFO)->payload[0], 0);
+    b.ticks(50);
+    CHECK_EQ(b.count(MSG_MOTION_INFO), 1);  // once
+}
+
 TEST(a_fault_during_a_move_halts_it_releases_the_driver_and_drops_the_reference) {
     MotionBench b;
     b.hello();

@@ -158,12 +158,12 @@ static void reply_stats(harness_t *h)
 	if (h->avr && h->profile.min_sp != 0xFFFF)
 		snprintf(stack, sizeof(stack), "%d", (int)h->avr->ramend - (int)h->profile.min_sp);
 	reply("{\"elapsed_cycles\": %llu, \"busy_cycles\": %llu, \"simulator_steps\": %llu, \"frequency_hz\": %llu, \"stack_bytes_max\": %s, \"regions\": {%s}, \"serial\": {\"bytes_to_mcu\": %llu, "
-	      "\"bytes_from_mcu\": %llu, \"bytes_dropped\": %llu, \"bytes_flipped\": %llu, \"bytes_overflowed\": %llu}}",
+	      "\"bytes_from_mcu\": %llu, \"bytes_dropped\": %llu, \"bytes_flipped\": %llu, \"bytes_overflowed\": %llu, \"frames_dropped\": %llu}}",
 	      (unsigned long long)(h->cycle - h->profile.since_cycle), (unsigned long long)h->profile.busy_cycles,
 	      (unsigned long long)h->steps, (unsigned long long)h->frequency_hz, stack, regions,
 	      (unsigned long long)s->bytes_to_mcu, (unsigned long long)s->bytes_from_mcu,
 	      (unsigned long long)s->bytes_dropped, (unsigned long long)s->bytes_flipped,
-	      (unsigned long long)s->bytes_overflowed);
+	      (unsigned long long)s->bytes_overflowed, (unsigned long long)s->frames_dropped);
 }
 
 /* Advance the plant one fixed step with the drive levels the firmware commands now. */
@@ -236,6 +236,7 @@ static void handle_fault(harness_t *h, char **words, int count)
 			h->plant.stuck_drive_level[i] = -1;
 		}
 		h->serial.flip_probability = h->serial.drop_probability = 0;
+		h->serial.drop_frames_left = 0;
 	} else if (!strcmp(kind, "sensor_cut") && count == 3 && chamber >= 0) {
 		h->plant.sensor_cut[chamber] = 1;
 	} else if (!strcmp(kind, "supply") && count == 3 && h->avr && !parse_number(words[2], &value) && value >= 2.0
@@ -254,9 +255,15 @@ static void handle_fault(harness_t *h, char **words, int count)
 	           && !parse_number(words[3], &other) && value >= 0 && value <= 1 && other >= 0 && other <= 1) {
 		h->serial.flip_probability = value;
 		h->serial.drop_probability = other;
+	} else if (!strcmp(kind, "drop_frame") && count == 4 && !parse_number(words[2], &value) && value >= 1
+	           && value <= 255 && value == floor(value) && !parse_number(words[3], &other) && other >= 1
+	           && other <= 1000 && other == floor(other)) {
+		/* the next OTHER frames from the board with message id VALUE are lost whole */
+		h->serial.drop_msg_id = (int)value;
+		h->serial.drop_frames_left = (uint32_t)other;
 	} else {
 		reply("{\"error\": \"bad fault command: use 'fault sensor_cut CH', 'fault tube_off CH', 'fault supply VOLTS', 'fault leak CH M3_PER_S_PER_PA', "
-		      "'fault stuck_blower CH LEVEL', 'fault line_noise FLIP_PROB DROP_PROB' or 'fault clear'\"}");
+		      "'fault stuck_blower CH LEVEL', 'fault line_noise FLIP_PROB DROP_PROB', 'fault drop_frame MSG_ID COUNT' or 'fault clear'\"}");
 		return;
 	}
 	reply("{\"ok\": true, \"time_s\": %.9f}", simulated_seconds(h));
@@ -624,6 +631,7 @@ int main(int argc, char **argv)
 	h->speed = 1.0;
 	h->frequency_hz = 16000000;
 	h->serial.master_fd = h->serial.slave_fd = -1;
+	h->serial.drop_msg_id = h->serial.held_code = -1;
 	static const struct option options[] = {
 		{"elf", required_argument, 0, 'e'}, {"mcu", required_argument, 0, 'm'},
 		{"link", required_argument, 0, 'l'}, {"baud", required_argument, 0, 'b'},

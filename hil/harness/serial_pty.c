@@ -37,22 +37,65 @@ static int corrupt_byte(serial_pty_t *serial, uint8_t byte)
 	return byte;
 }
 
-/* The firmware wrote a byte to UDR0: queue it for the host (lost if nobody is connected or the pty is full). The
-   queue is written out at the next service, a millisecond of board time at most: a write per byte was 1500
-   system calls a second of telemetry. */
-static void on_uart_output(struct avr_irq_t *irq, uint32_t value, void *param)
+/* Queue one byte for the host (lost if nobody is connected or the queue is full). */
+static void queue_for_host(serial_pty_t *serial, uint8_t byte)
 {
-	(void)irq;
-	serial_pty_t *serial = param;
-	serial->bytes_from_mcu++;
-	int byte = corrupt_byte(serial, (uint8_t)value);
-	if (byte < 0 || serial->master_fd < 0)
+	if (serial->master_fd < 0)
 		return;
 	if (serial->from_mcu_count == SERIAL_QUEUE_SIZE) {
 		serial->bytes_overflowed++;
 		return;
 	}
-	serial->from_mcu[serial->from_mcu_count++] = (uint8_t)byte;
+	serial->from_mcu[serial->from_mcu_count++] = byte;
+}
+
+/* Whether `fault drop_frame` loses the MCU's frame that starts with these two bytes: a frame is COBS(msg_id, seq,
+   payload, crc) then 0x00, and a message id is never 0, so the COBS code comes first and the id second. */
+static int drops_frame(serial_pty_t *serial, uint8_t second_byte)
+{
+	if (serial->drop_frames_left == 0 || second_byte != serial->drop_msg_id)
+		return 0;
+	serial->drop_frames_left--;
+	serial->frames_dropped++;
+	return 1;
+}
+
+/* The firmware wrote a byte to UDR0: queue it for the host. The queue is written out at the next service, a
+   millisecond of board time at most: a write per byte was 1500 system calls a second of telemetry. While a
+   `fault drop_frame` is armed, a frame's first byte waits for its second (the message id) to say whether the
+   frame goes. */
+static void on_uart_output(struct avr_irq_t *irq, uint32_t value, void *param)
+{
+	(void)irq;
+	serial_pty_t *serial = param;
+	serial->bytes_from_mcu++;
+	uint8_t sent = (uint8_t)value;
+	size_t position = serial->frame_position;
+	serial->frame_position = sent == 0 ? 0 : position + 1;
+	if (serial->dropping) {
+		serial->bytes_dropped++;
+		serial->dropping = sent != 0;
+		return;
+	}
+	if (position == 0 && sent != 0 && serial->drop_frames_left > 0) {
+		serial->held_code = sent;
+		return;
+	}
+	if (serial->held_code >= 0) {
+		uint8_t code = (uint8_t)serial->held_code;
+		serial->held_code = -1;
+		if (sent != 0 && drops_frame(serial, sent)) {
+			serial->bytes_dropped += 2;
+			serial->dropping = 1;
+			return;
+		}
+		int byte = corrupt_byte(serial, code);
+		if (byte >= 0)
+			queue_for_host(serial, (uint8_t)byte);
+	}
+	int byte = corrupt_byte(serial, sent);
+	if (byte >= 0)
+		queue_for_host(serial, (uint8_t)byte);
 }
 
 /* Write the queued bytes to the pty; what it does not take (the host stopped reading) is lost. */

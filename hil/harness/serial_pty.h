@@ -23,7 +23,14 @@ typedef struct serial_pty {
 	double flip_probability;      /* per byte: one random bit flipped */
 	double drop_probability;      /* per byte: the byte lost */
 	uint64_t rng_state;
-	uint64_t bytes_to_mcu, bytes_from_mcu, bytes_dropped, bytes_flipped, bytes_overflowed;
+	/* `fault drop_frame`: the next drop_frames_left frames from the MCU whose message id is drop_msg_id are lost
+	   whole (as a frame whose CRC fails is, but certainly and only that one) */
+	int drop_msg_id;              /* -1: none */
+	uint32_t drop_frames_left;
+	size_t frame_position;        /* of the MCU's next byte in its frame (0: a frame starts) */
+	int held_code;                /* a frame's first byte (COBS code), held until its message id is seen; -1 none */
+	int dropping;                 /* the frame being sent is dropped up to its delimiter */
+	uint64_t bytes_to_mcu, bytes_from_mcu, bytes_dropped, bytes_flipped, bytes_overflowed, frames_dropped;
 } serial_pty_t;
 
 /* Connect to the MCU's UART '0' IRQs; call once after the core is initialised. */

@@ -60,7 +60,8 @@ void Controller::handle_frame() {
         pong.board_time_ms = time_ms_;
         uint8_t out[Pong::PAYLOAD_SIZE];
         encode(pong, out);
-        return send(MSG_PONG, out, sizeof out);
+        send(MSG_PONG, out, sizeof out);
+        return;
     }
     if (id == MSG_VENT) return on_vent(seq);
     if (!session_open_) return reply(id, seq, STATUS_NO_SESSION);
@@ -508,19 +509,19 @@ bool Controller::send_motion_status() {
     return true;
 }
 
-// One pending MOTION_INFO (an axis's configuration as held), lowest axis first; whether one was sent.
+// One pending MOTION_INFO (an axis's configuration as held), lowest axis first; whether one was sent. It is sent
+// once, so it stays pending until the transport took it (a frame that finds the UART's ring full goes next time).
 bool Controller::send_motion_info() {
     if (!motion_info_pending_) return false;
     if (!session_open_) motion_info_pending_ = 0;
     for (uint8_t n = 0; n < AXES; ++n) {
         if (!(motion_info_pending_ & (1u << n))) continue;
-        motion_info_pending_ &= (uint8_t)~(1u << n);
         const AxisConfig& c = motion_.axis(n).config();
         MotionInfo msg = {n, c.steps_per_rev, c.max_speed_mdeg_s, c.max_accel_mdeg_s2, c.min_angle_mdeg,
                           c.max_angle_mdeg, c.home_speed_mdeg_s, c.options};
         uint8_t out[MotionInfo::PAYLOAD_SIZE];
         encode(msg, out);
-        send(MSG_MOTION_INFO, out, sizeof out);
+        if (send(MSG_MOTION_INFO, out, sizeof out)) motion_info_pending_ &= (uint8_t)~(1u << n);
         return true;
     }
     return false;
@@ -567,10 +568,12 @@ void Controller::vent() {
 }
 
 // Frame and send one message; count it when the transport has no room.
-void Controller::send(uint8_t msg_id, const uint8_t* payload, uint8_t payload_len) {
+bool Controller::send(uint8_t msg_id, const uint8_t* payload, uint8_t payload_len) {
     uint8_t frame[MAX_FRAME_BYTES];
     uint8_t len = frame_encode(msg_id, tx_seq_++, payload, payload_len, frame);
-    if (!send_frame_ || !send_frame_(frame, len, send_context_)) ++tx_dropped_;
+    if (send_frame_ && send_frame_(frame, len, send_context_)) return true;
+    ++tx_dropped_;
+    return false;
 }
 
 // ACK for OK and CLAMPED, NACK for every other status; remembered for a retransmission of the same command.

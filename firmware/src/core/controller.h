@@ -106,7 +106,7 @@ private:
     void latch_fault(uint8_t bit);
     bool fault_cause_present() const;
     void vent();
-    void send(uint8_t msg_id, const uint8_t* payload, uint8_t payload_len);
+    bool send(uint8_t msg_id, const uint8_t* payload, uint8_t payload_len);
     void reply(uint8_t ref_msg_id, uint8_t ref_seq, uint8_t status);
 
     FrameReader reader_;
