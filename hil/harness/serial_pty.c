@@ -171,6 +171,9 @@ void serial_pty_close(serial_pty_t *serial)
 	serial->slave_path[0] = 0;
 	serial->to_mcu_count = 0;
 	serial->from_mcu_count = 0;
+	serial->held_code = -1;  /* a frame cut by the unplug is not finished after it: the next starts afresh */
+	serial->dropping = 0;
+	serial->frame_position = 0;
 }
 
 void serial_pty_poll(serial_pty_t *serial)
