@@ -57,6 +57,9 @@ class StallWatch:
     def __init__(self, socket: Path):
         self.socket = socket
         self.stalls: dict[str, dict[float, float]] = {"daemon": {}, "link": {}}
+        #: each stall's parts: ms its thread waited for a core, ms the garbage collector ran
+        self.causes: dict[str, dict[float, list[Any]]] = {"daemon": {}, "link": {}}
+        self.gc: dict[str, Any] = {}
         self.faults: set[str] = set()
         self._from_s = float("inf")
         self._to_s = float("inf")
@@ -87,14 +90,29 @@ class StallWatch:
             return
         now_s = time.monotonic()
         self.faults.update(status.get("faults") or ())
+        self.gc = (status.get("event_loop") or {}).get("gc") or self.gc
         for name, figures in (("daemon", status.get("event_loop")),
                               ("link", (status.get("link_detail") or {}).get("event_loop"))):
-            for ago_s, late_ms in (figures or {}).get("notable_stalls", []):
+            for ago_s, late_ms, *causes in (figures or {}).get("notable_stalls", []):
                 self.stalls[name][round(now_s - ago_s, 2)] = late_ms
+                self.causes[name][round(now_s - ago_s, 2)] = causes
 
     def during(self, name: str) -> list[float]:
         """The loop's stalls (ms) from :meth:`start` to :meth:`stop`."""
         return [late for at_s, late in self.stalls[name].items() if self._from_s <= at_s <= self._to_s]
+
+    def worst(self, name: str, count: int = 3) -> list[str]:
+        """The loop's longest stalls from :meth:`start` to :meth:`stop`, each with what it was made of."""
+        stalls = sorted(((late, at_s) for at_s, late in self.stalls[name].items()
+                         if self._from_s <= at_s <= self._to_s), reverse=True)[:count]
+        described = []
+        for late, at_s in stalls:
+            queued_ms, gc_ms = (self.causes[name].get(at_s) or [None, None]) + [None, None][
+                len(self.causes[name].get(at_s) or []):]
+            described.append(f"{late:.0f} ms at +{at_s - self._from_s:.0f} s (waiting for a core "
+                             f"{'?' if queued_ms is None else f'{queued_ms:.0f}'} ms, the garbage collector "
+                             f"{'?' if gc_ms is None else f'{gc_ms:.0f}'} ms)")
+        return described
 
 
 def one_row(target_ml: float, busy: int, hold_s: float | None, logs: Path | None) -> dict[str, Any]:
@@ -152,7 +170,8 @@ def one_row(target_ml: float, busy: int, hold_s: float | None, logs: Path | None
                 "verified": verified, "true_pct": None if true_ml is None else (true_ml - target_ml) / target_ml * 100,
                 "daemon_ms": max(daemon_ms, default=0.0), "link_ms": max(link_ms, default=0.0),
                 "link_over_100": sum(late > 100 for late in link_ms), "peer_ms": float(peer_out.strip() or "nan"),
-                "faults": ", ".join(sorted(watch.faults)) or "none", "error": error}
+                "faults": ", ".join(sorted(watch.faults)) or "none", "error": error,
+                "link_worst": watch.worst("link"), "daemon_worst": watch.worst("daemon"), "gc": watch.gc}
 
 
 def main() -> None:
@@ -177,6 +196,11 @@ def main() -> None:
               f"{row['link_ms']:.0f} | {row['link_over_100']} | {row['peer_ms']:.0f} | {row['faults']} |")
         if row["error"]:
             print(f"\n(busy {row['busy']}, {row['what']}: {row['error']})\n")
+    print()
+    for row in rows:
+        print(f"- busy {row['busy']}, {row['what']}: the link's loop's longest stalls: "
+              f"{'; '.join(row['link_worst']) or 'none'}; the daemon's: {'; '.join(row['daemon_worst']) or 'none'}; "
+              f"the garbage collector: {row['gc']}")
 
 
 if __name__ == "__main__":

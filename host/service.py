@@ -31,7 +31,7 @@ from phantom.host.scene_runner import prepare_run
 from phantom.host.scenes import read_timeline_scene
 from phantom.host.session import LinkSession, LinkThread, LinkTiming, Transport
 from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
-from phantom.host.stalls import LoopStalls
+from phantom.host.stalls import GC_PAUSES, LoopStalls
 from phantom.host.startup import StartupProgress, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.host.web import WebServer, panel_tokens, tell_panel_address
@@ -168,6 +168,7 @@ async def serve(daemon: Daemon) -> int:
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, daemon.request_stop)
     loop.set_exception_handler(_log_loop_exception)
+    GC_PAUSES.install()
     try:
         info = daemon.model.info
         daemon.event("startup", "model ready: " + ", ".join(f"{key} {value:.2f} s"
