@@ -1,0 +1,400 @@
+"""The board link in a process of its own (:class:`LinkProcess`), at a real-time priority where it may have one.
+
+Why a process, and why a priority (issue 48, "the link holds while the phantom learns"): a verified target's
+scan beside one busy process per core latched DEAD_HOST, the link's loop 500-620 ms late. Its probe's thread
+waited for a core for most of each long stall (``/proc/thread-self/schedstat``: 123 of 171 ms in the worst of a
+verify at load 2.5-8, the garbage collector 0 ms; bench/README.md), and a thread of the daemon's process also
+waits for the GIL, which the daemon's loop holds when the kernel takes its core away. Here the link's loop is
+alone in a small process (its own GIL), which asks the kernel for ``SCHED_FIFO`` (the board's keepalive is the
+one thing on the machine that must keep time; it needs a few milliseconds of CPU a second): granted to root,
+to a user with ``RLIMIT_RTPRIO`` (``LimitRTPRIO=`` of a systemd unit, ``rtprio`` in limits.conf) or
+``CAP_SYS_NICE``; otherwise it keeps the daemon's priority and says so (status ``link_detail.process``).
+
+The daemon talks to it over a pipe: commands and the end of the session out; the session's telemetry, events,
+motion frames, answers and its status back. The process dies with the daemon (``PR_SET_PDEATHSIG``; the pipe's
+end too): its keepalive stops, and the board vents at its dead-host deadline, as with a daemon of one process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import multiprocessing
+import os
+import queue
+import signal
+import threading
+from collections.abc import Awaitable, Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+from phantom.host.session import (
+    BoardInfo,
+    CommandRejected,
+    LinkDown,
+    LinkSession,
+    LinkState,
+    LinkTiming,
+    Telemetry,
+    Transport,
+)
+from phantom.host.stalls import GC_PAUSES, LoopStalls
+from phantom.protocol import ProtocolError
+from phantom.protocol.codec import Message
+
+__all__ = ["LINK_RT_PRIORITY", "LinkProcess"]
+
+logger = logging.getLogger(__name__)
+
+#: The link process's SCHED_FIFO priority (1-99; low: above every normal process, below the kernel's threads).
+LINK_RT_PRIORITY = 10
+#: How often (s) the link process sends its status (the daemon's ``status`` shows the latest).
+STATUS_PERIOD_S = 0.2
+#: Telemetry frames the link process keeps for a daemon that does not read them (a stalled daemon): beyond, the
+#: oldest are dropped (counted as ``telemetry_dropped``), never the keepalive's time. 2 s at 100 frames/s.
+TELEMETRY_BACKLOG = 200
+#: How long (s) :meth:`LinkProcess.run` waits for the process to end after asking it to stop.
+STOP_WAIT_S = 5.0
+
+
+class LinkProcess:
+    """A :class:`LinkSession` on ``transport`` in a spawned process of its own; the daemon sees the session's
+    interface (:class:`phantom.host.parts.BoardSession`).
+
+    Parameters
+    ----------
+    transport : SerialTransport or CanTransport
+        Not opened: the process opens it (a CAN bus of python-can's ``virtual`` interface is per process).
+    timing : LinkTiming
+        The link core's periods and deadlines.
+    rt_priority : int or None
+        The SCHED_FIFO priority the process asks for (None: none; it keeps the daemon's).
+    """
+
+    def __init__(self, transport: Transport, timing: LinkTiming, rt_priority: int | None = LINK_RT_PRIORITY):
+        self.transport = transport
+        self.timing = timing
+        self.rt_priority = rt_priority
+        self._status: dict[str, Any] = {"state": LinkState.DISCONNECTED.value,
+                                        "transport": transport.description, "board": None, "board_info": None,
+                                        "last_error": "the link's process is starting", "stats": {}}
+        self._on_telemetry: Callable[[Telemetry], None] = lambda telemetry: None
+        self._on_event: Callable[[str, str, str], None] = lambda kind, text, level: None
+        self._on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None = None
+        self._on_motion: Callable[[Message], None] = lambda message: None
+        self._connection: Connection | None = None
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._answers: dict[int, asyncio.Future[Any]] = {}
+        self._ids = itertools.count()
+        self._stopping = False
+        self._ended: asyncio.Future[None] | None = None
+        self._onlines: set[asyncio.Task[None]] = set()
+
+    def attach(self, on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
+               on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None,
+               on_motion: Callable[[Message], None]) -> None:
+        """The session's callbacks, run on the loop that awaits :meth:`run`."""
+        self._on_telemetry, self._on_event, self._on_online, self._on_motion = (on_telemetry, on_event, on_online,
+                                                                               on_motion)
+
+    @property
+    def state(self) -> LinkState:
+        return LinkState(self._status["state"])
+
+    @property
+    def online(self) -> bool:
+        return self.state is LinkState.ONLINE
+
+    def status(self) -> dict[str, Any]:
+        """The session's status as the process last sent it (at most :data:`STATUS_PERIOD_S` old), with its
+        loop's stalls (``event_loop``) and the process (``process``: pid, scheduling)."""
+        return dict(self._status)
+
+    async def run(self) -> None:
+        """Start the process and serve it until :meth:`stop`; raises :class:`LinkDown` if it ended by itself."""
+        loop = asyncio.get_running_loop()
+        context = multiprocessing.get_context("spawn")  # not forked: no copy of the daemon's threads and loops
+        ours, theirs = context.Pipe()
+        level = logging.getLevelName(logging.getLogger("phantom").getEffectiveLevel()).lower()
+        process = context.Process(target=_serve, args=(theirs, os.getpid(), self.transport, self.timing,
+                                                       self.rt_priority, level),
+                                  name="phantom board link", daemon=True)
+        process.start()
+        theirs.close()
+        self._process, self._connection = process, ours
+        self._ended = loop.create_future()
+        loop.add_reader(ours.fileno(), self._readable)
+        try:
+            await asyncio.shield(self._ended)
+        except asyncio.CancelledError:
+            self.stop()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self._ended), STOP_WAIT_S)
+            raise
+        finally:
+            with contextlib.suppress(ValueError, OSError):
+                loop.remove_reader(ours.fileno())
+            ours.close()
+            await loop.run_in_executor(None, process.join, STOP_WAIT_S)
+            if process.is_alive():
+                process.kill()
+            self._fail_answers(LinkDown("no board: the link's process ended"))
+            self._status = {**self._status, "state": LinkState.STOPPED.value}
+        if not self._stopping:
+            raise LinkDown(f"the board link's process ended by itself (exit status {process.exitcode})")
+
+    def stop(self) -> None:
+        """Make :meth:`run` return after the process closed the port."""
+        self._stopping = True
+        self._send(("stop",))
+
+    async def command(self, name: str, fields: dict[str, Any] | None = None) -> str:
+        """:meth:`LinkSession.command`, run in the link's process."""
+        if not self.online:
+            last = self._status.get("last_error")
+            raise LinkDown(f"no board: the link is {self.state.value}" + (f" ({last})" if last else ""))
+        answer: str = await self._ask("command", name, fields or {})
+        return answer
+
+    async def end_session(self) -> bool:
+        """:meth:`LinkSession.end_session`, run in the link's process."""
+        try:
+            ended: bool = await self._ask("end_session")
+        except LinkDown:
+            return False
+        return ended
+
+    # --- the pipe -----------------------------------------------------------------------------------------
+
+    async def _ask(self, kind: str, *arguments: Any) -> Any:
+        request = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._answers[request] = future
+        if not self._send((kind, request, *arguments)):
+            self._answers.pop(request, None)
+            raise LinkDown("no board: the link's process is not running")
+        return await future
+
+    def _send(self, message: tuple[Any, ...]) -> bool:
+        connection = self._connection
+        if connection is None or connection.closed:
+            return False
+        try:
+            connection.send(message)
+        except (OSError, ValueError):
+            return False
+        return True
+
+    def _readable(self) -> None:
+        """What the process sent: every whole message there is (the pipe is read on the daemon's loop)."""
+        connection = self._connection
+        assert connection is not None
+        try:
+            while connection.poll():
+                self._handle(connection.recv())
+        except (EOFError, OSError):
+            asyncio.get_running_loop().remove_reader(connection.fileno())
+            if self._ended is not None and not self._ended.done():
+                self._ended.set_result(None)
+
+    def _handle(self, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == "telemetry":
+            self._on_telemetry(message[1])
+        elif kind == "motion":
+            self._on_motion(message[1])
+        elif kind == "status":
+            self._status = message[1]
+        elif kind == "event":
+            self._on_event(*message[1:])
+        elif kind == "online":
+            task = asyncio.create_task(self._bring_online(*message[1:]))
+            self._onlines.add(task)
+            task.add_done_callback(self._onlines.discard)
+        elif kind == "answer":
+            _, request, outcome, value = message
+            future = self._answers.pop(request, None)
+            if future is None or future.done():
+                return
+            if outcome == "ok":
+                future.set_result(value)
+            elif outcome == "rejected":
+                future.set_exception(CommandRejected(*value))
+            elif outcome == "invalid":
+                future.set_exception(ProtocolError(value))
+            else:
+                future.set_exception(LinkDown(value))
+
+    async def _bring_online(self, board: BoardInfo, reconnected: bool, connection: int) -> None:
+        """The daemon restores its state on the new connection; the process is told when it is done."""
+        try:
+            if self._on_online is not None:
+                await self._on_online(board, reconnected)
+        finally:
+            self._send(("online_done", connection))
+
+    def _fail_answers(self, error: Exception) -> None:
+        for future in self._answers.values():
+            if not future.done():
+                future.set_exception(error)
+        self._answers.clear()
+
+
+# --- the process ------------------------------------------------------------------------------------------
+
+def scheduling_of_this_process(rt_priority: int | None) -> str:
+    """Ask for SCHED_FIFO at ``rt_priority``; what the process runs at, for the status."""
+    if rt_priority is not None:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(rt_priority))
+        except OSError as error:
+            return (f"normal, nice {os.getpriority(os.PRIO_PROCESS, 0)} (SCHED_FIFO {rt_priority} refused: "
+                    f"{error.strerror}; allow it with the unit's LimitRTPRIO= or limits.conf's rtprio)")
+        return f"SCHED_FIFO {rt_priority}"
+    return f"normal, nice {os.getpriority(os.PRIO_PROCESS, 0)}"
+
+
+class _Sender:
+    """The process's messages to the daemon, written by a thread of their own so that a daemon that does not
+    read (a stalled loop, a full pipe) never holds up the link's loop; telemetry beyond
+    :data:`TELEMETRY_BACKLOG` frames waiting is dropped and counted, nothing else is."""
+
+    def __init__(self, connection: Connection):
+        self.connection = connection
+        self.telemetry_dropped = 0
+        self._queue: queue.SimpleQueue[tuple[Any, ...] | None] = queue.SimpleQueue()
+        self._telemetry_waiting = 0
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._write, name="to the daemon", daemon=True)
+        self._thread.start()
+
+    def send(self, message: tuple[Any, ...]) -> None:
+        if message[0] == "telemetry":
+            with self._lock:
+                if self._telemetry_waiting >= TELEMETRY_BACKLOG:
+                    self.telemetry_dropped += 1
+                    return
+                self._telemetry_waiting += 1
+        self._queue.put(message)
+
+    def close(self) -> None:
+        self._queue.put(None)
+        self._thread.join(STOP_WAIT_S)
+
+    def _write(self) -> None:
+        while (message := self._queue.get()) is not None:
+            if message[0] == "telemetry":
+                with self._lock:
+                    self._telemetry_waiting -= 1
+            try:
+                self.connection.send(message)
+            except (OSError, ValueError):
+                return
+
+
+def _serve(connection: Connection, parent_pid: int, transport: Transport, timing: LinkTiming,
+           rt_priority: int | None, log_level: str) -> None:
+    """The link's process: its session on its own loop until the daemon says stop or is gone."""
+    from phantom.host.logs import configure_logging
+    from phantom.model.cluster import exit_with_parent
+
+    exit_with_parent(parent_pid)
+    with contextlib.suppress(ValueError):
+        configure_logging(log_level)
+    # SIGTERM and Ctrl-C to the daemon's process group are the daemon's: it vents through this process and ends
+    # the board's session, then stops it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    scheduling = scheduling_of_this_process(rt_priority)
+    sender = _Sender(connection)
+    try:
+        asyncio.run(_run_session(connection, sender, transport, timing, scheduling))
+    finally:
+        sender.close()
+        connection.close()
+
+
+async def _run_session(connection: Connection, sender: _Sender, transport: Transport, timing: LinkTiming,
+                       scheduling: str) -> None:
+    loop = asyncio.get_running_loop()
+    #: each connection's wait for the daemon to restore its state, by the connection's number
+    restored: dict[int, asyncio.Future[None]] = {}
+    connections = itertools.count()
+    stalls = LoopStalls()
+    GC_PAUSES.install()
+
+    def send_status() -> None:
+        status = session.status()
+        status["event_loop"] = stalls.to_json()
+        status["process"] = {"pid": os.getpid(), "scheduling": scheduling,
+                             "telemetry_dropped": sender.telemetry_dropped}
+        sender.send(("status", status))
+
+    async def on_online(board: BoardInfo, reconnected: bool) -> None:
+        number = next(connections)
+        restored[number] = loop.create_future()
+        send_status()
+        sender.send(("online", board, reconnected, number))
+        try:
+            await restored[number]
+        finally:
+            del restored[number]
+
+    def on_event(kind: str, text: str, level: str) -> None:
+        send_status()
+        sender.send(("event", kind, text, level))
+
+    session = LinkSession(transport, timing, on_telemetry=lambda telemetry: sender.send(("telemetry", telemetry)),
+                          on_event=on_event, on_online=on_online,
+                          on_motion=lambda message: sender.send(("motion", message)))
+    tasks: set[asyncio.Task[None]] = set()
+
+    async def answer(request: int, work: Awaitable[Any]) -> None:
+        try:
+            sender.send(("answer", request, "ok", await work))
+        except CommandRejected as error:
+            sender.send(("answer", request, "rejected", (error.command, error.status)))
+        except ProtocolError as error:  # a field the protocol cannot carry: the caller's mistake, said as such
+            sender.send(("answer", request, "invalid", str(error)))
+        except Exception as error:  # LinkDown, or what it did not foresee: the daemon's command fails with it
+            sender.send(("answer", request, "down", str(error) or type(error).__name__))
+
+    def readable() -> None:
+        try:
+            while connection.poll():
+                message = connection.recv()
+                kind = message[0]
+                if kind == "command":
+                    task = loop.create_task(answer(message[1], session.command(message[2], message[3])))
+                elif kind == "end_session":
+                    task = loop.create_task(answer(message[1], session.end_session()))
+                elif kind == "online_done":
+                    waiting = restored.get(message[1])
+                    if waiting is not None and not waiting.done():
+                        waiting.set_result(None)
+                    continue
+                else:  # stop
+                    session.stop()
+                    continue
+                tasks.add(task)
+                task.add_done_callback(tasks.discard)
+        except (EOFError, OSError):  # the daemon is gone: stop, so that the board's deadline vents it
+            loop.remove_reader(connection.fileno())
+            session.stop()
+
+    async def report() -> None:
+        while True:
+            send_status()
+            await asyncio.sleep(STATUS_PERIOD_S)
+
+    loop.add_reader(connection.fileno(), readable)
+    helpers = [loop.create_task(stalls.probe()), loop.create_task(report())]
+    try:
+        await session.run()
+    finally:
+        for helper in helpers:
+            helper.cancel()
+        send_status()
+        session.transport.close()
