@@ -26,6 +26,7 @@ import os
 import queue
 import signal
 import threading
+import time
 from collections.abc import Awaitable, Callable
 from multiprocessing.connection import Connection
 from typing import Any
@@ -36,6 +37,7 @@ from phantom.host.session import (
     LinkDown,
     LinkSession,
     LinkState,
+    LinkStats,
     LinkTiming,
     Telemetry,
     Transport,
@@ -79,7 +81,8 @@ class LinkProcess:
         self.rt_priority = rt_priority
         self._status: dict[str, Any] = {"state": LinkState.DISCONNECTED.value,
                                         "transport": transport.description, "board": None, "board_info": None,
-                                        "last_error": "the link's process is starting", "stats": {}}
+                                        "last_error": "the link's process is starting",
+                                        "stats": LinkStats().as_dict({}, 0, None)}  # all its keys, zero
         self._on_telemetry: Callable[[Telemetry], None] = lambda telemetry: None
         self._on_event: Callable[[str, str, str], None] = lambda kind, text, level: None
         self._on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None = None
@@ -109,8 +112,15 @@ class LinkProcess:
 
     def status(self) -> dict[str, Any]:
         """The session's status as the process last sent it (at most :data:`STATUS_PERIOD_S` old), with its
-        loop's stalls (``event_loop``) and the process (``process``: pid, scheduling)."""
-        return dict(self._status)
+        loop's stalls (``event_loop``, its stalls' ages as of now) and the process (``process``: pid, scheduling)."""
+        status = dict(self._status)
+        sent_s = status.pop("sent_s", None)
+        loop = status.get("event_loop")
+        if sent_s is not None and loop is not None:  # one monotonic clock for the machine's processes
+            age_s = time.monotonic() - sent_s
+            status["event_loop"] = {**loop, "notable_stalls": [[round(ago_s + age_s, 3), *rest]
+                                                               for ago_s, *rest in loop["notable_stalls"]]}
+        return status
 
     async def run(self) -> None:
         """Start the process and serve it until :meth:`stop`; raises :class:`LinkDown` if it ended by itself."""
@@ -328,6 +338,7 @@ async def _run_session(connection: Connection, sender: _Sender, transport: Trans
     def send_status() -> None:
         status = session.status()
         status["event_loop"] = stalls.to_json()
+        status["sent_s"] = time.monotonic()
         status["process"] = {"pid": os.getpid(), "scheduling": scheduling,
                              "telemetry_dropped": sender.telemetry_dropped}
         sender.send(("status", status))
