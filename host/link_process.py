@@ -50,7 +50,8 @@ __all__ = ["LINK_RT_PRIORITY", "LinkProcess"]
 
 logger = logging.getLogger(__name__)
 
-#: The link process's SCHED_FIFO priority (1-99; low: above every normal process, below the kernel's threads).
+#: The link process's SCHED_FIFO priority by default (1-99; low: above every normal process, below the kernel's
+#: threads); the daemon's setting ``link_rt_priority``.
 LINK_RT_PRIORITY = 10
 #: How often (s) the link process sends its status (the daemon's ``status`` shows the latest).
 STATUS_PERIOD_S = 0.2

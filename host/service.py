@@ -144,7 +144,7 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None) 
         assert config.port is not None  # a DaemonConfig has exactly one board
         transport = SerialTransport(config.port, config.baud)
         boot_delay_s = max(BOOT_DELAY_S.values()) if config.boot_delay_s is None else config.boot_delay_s
-    return LinkProcess(transport, link_timing(config, boot_delay_s))
+    return LinkProcess(transport, link_timing(config, boot_delay_s), config.link_rt_priority or None)
 
 
 def link_timing(config: DaemonConfig, boot_delay_s: float) -> LinkTiming:

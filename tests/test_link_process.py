@@ -214,3 +214,25 @@ def test_a_fault_mid_verify_says_which_round_and_what_to_do(tmp_path):
         process.terminate()
         process.wait(120)
         log.close()
+
+
+def test_the_link_process_says_what_priority_it_got_and_why_not():
+    """Root (or CAP_SYS_NICE, or an RLIMIT_RTPRIO of 10: the systemd unit's LimitRTPRIO=10) gets SCHED_FIFO; a user
+    without the right keeps the daemon's priority and is told how to grant it. (The limit itself is not tried
+    here: this machine's container may not raise it.)"""
+    import shutil
+
+    setpriv = shutil.which("setpriv")
+    if setpriv is None or os.geteuid() != 0:
+        pytest.skip("needs root and util-linux's setpriv to run as a user without the right")
+    asked = ("from phantom.host.link_process import scheduling_of_this_process as scheduling; "
+             "print(scheduling(10)); print(scheduling(None))")
+    as_nobody = subprocess.run([setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", "--inh-caps=-all",
+                                sys.executable, "-c", asked], capture_output=True, text=True, timeout=60)
+    refused, not_asked = as_nobody.stdout.splitlines()
+    nice = os.getpriority(os.PRIO_PROCESS, 0)    # the test's own, which the children inherit
+    assert refused.startswith(f"normal, nice {nice} (SCHED_FIFO 10 refused: Operation not permitted") and \
+        "LimitRTPRIO=" in refused, as_nobody
+    assert not_asked == f"normal, nice {nice}"
+    as_root = subprocess.run([sys.executable, "-c", asked], capture_output=True, text=True, timeout=60)
+    assert as_root.stdout.splitlines()[0] == "SCHED_FIFO 10", as_root
