@@ -112,11 +112,12 @@ class StallWatch:
                          if self._from_s <= at_s <= self._to_s), reverse=True)[:count]
         described = []
         for late, at_s in stalls:
-            queued_ms, gc_ms = (self.causes[name].get(at_s) or [None, None]) + [None, None][
-                len(self.causes[name].get(at_s) or []):]
-            described.append(f"{late:.0f} ms at +{at_s - self._from_s:.0f} s (waiting for a core "
-                             f"{'?' if queued_ms is None else f'{queued_ms:.0f}'} ms, the garbage collector "
-                             f"{'?' if gc_ms is None else f'{gc_ms:.0f}'} ms)")
+            causes = list(self.causes[name].get(at_s) or [])
+            queued_ms, gc_ms, ran_ms, faults = (causes + [None] * 4)[:4]
+            said = [f"{'?' if value is None else f'{value:.0f}'}{unit}" for value, unit in
+                    ((queued_ms, " ms waiting for a core"), (gc_ms, " ms in the garbage collector"),
+                     (ran_ms, " ms on a core"), (faults, " major page faults"))]
+            described.append(f"{late:.0f} ms at +{at_s - self._from_s:.0f} s ({', '.join(said)})")
         return described
 
 

@@ -23,6 +23,7 @@ import itertools
 import logging
 import multiprocessing
 import os
+import pickle
 import queue
 import signal
 import threading
@@ -31,6 +32,7 @@ from collections.abc import Awaitable, Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
+from phantom.host import link_entry
 from phantom.host.session import (
     BoardInfo,
     CommandRejected,
@@ -129,8 +131,8 @@ class LinkProcess:
         context = multiprocessing.get_context("spawn")  # not forked: no copy of the daemon's threads and loops
         ours, theirs = context.Pipe()
         level = logging.getLevelName(logging.getLogger("phantom").getEffectiveLevel()).lower()
-        process = context.Process(target=_serve, args=(theirs, os.getpid(), self.transport, self.timing,
-                                                       self.rt_priority, level),
+        settings = pickle.dumps((self.transport, self.timing, self.rt_priority, level))
+        process = context.Process(target=link_entry.main, args=(theirs, os.getpid(), settings),
                                   name="phantom board link", daemon=True)
         process.start()
         theirs.close()
@@ -305,13 +307,12 @@ class _Sender:
                 return
 
 
-def _serve(connection: Connection, parent_pid: int, transport: Transport, timing: LinkTiming,
-           rt_priority: int | None, log_level: str) -> None:
-    """The link's process: its session on its own loop until the daemon says stop or is gone."""
+def serve_link(connection: Connection, transport: Transport, timing: LinkTiming, rt_priority: int | None,
+               log_level: str) -> None:
+    """The link's process (started by :mod:`phantom.host.link_entry`, which has made it die with the daemon): its
+    session on its own loop until the daemon says stop or is gone."""
     from phantom.host.logs import configure_logging
-    from phantom.model.cluster import exit_with_parent
 
-    exit_with_parent(parent_pid)
     with contextlib.suppress(ValueError):
         configure_logging(log_level)
     # SIGTERM and Ctrl-C to the daemon's process group are the daemon's: it vents through this process and ends

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import resource
 import threading
 import time
 from collections import deque
@@ -23,13 +24,14 @@ NOTABLE_STALL_MS = 10.0
 NOTABLE_SHOWN = 32
 
 
-def run_queue_wait_ms() -> float | None:
-    """How long (ms) the calling thread has waited for a core since it started: the second figure of
-    ``/proc/thread-self/schedstat`` (None where the kernel has none)."""
+def thread_times_ms() -> tuple[float, float, int] | None:
+    """The calling thread's time on a core and waiting for one (ms) since it started, from
+    ``/proc/thread-self/schedstat``, and its major page faults (``getrusage``); None where the kernel has none."""
     try:
         with open("/proc/thread-self/schedstat", "rb") as schedstat:
-            return int(schedstat.read().split()[1]) / 1e6
-    except (OSError, IndexError, ValueError):
+            ran_ns, waited_ns = schedstat.read().split()[:2]
+        return int(ran_ns) / 1e6, int(waited_ns) / 1e6, resource.getrusage(resource.RUSAGE_THREAD).ru_majflt
+    except (OSError, IndexError, ValueError, AttributeError):
         return None
 
 
@@ -95,27 +97,32 @@ class LoopStalls:
         self.probes = 0
         self._recent: deque[tuple[float, float]] = deque()
         #: the latest probes later than :data:`NOTABLE_STALL_MS`: (monotonic s, ms, ms of it the loop's thread
-        #: waited for a core or None, ms of it the garbage collector ran)
-        self.notable: deque[tuple[float, float, float | None, float]] = deque(maxlen=256)
+        #: waited for a core, ms of it the garbage collector ran, ms the thread ran, its major page faults; None
+        #: where the kernel does not say)
+        self.notable: deque[tuple[float, float, float | None, float, float | None, float | None]] = deque(maxlen=256)
 
     async def probe(self) -> None:
         """Runs until cancelled."""
-        waited_ms = run_queue_wait_ms()
+        times = thread_times_ms()
         while True:
             due_s = time.monotonic() + self.period_s
             await asyncio.sleep(self.period_s)
             now_s = time.monotonic()
             late_ms = max(0.0, now_s - due_s) * 1e3
-            waited_before_ms, waited_ms = waited_ms, run_queue_wait_ms()
-            queued_ms = None if waited_ms is None or waited_before_ms is None else waited_ms - waited_before_ms
-            self.record(now_s, late_ms, queued_ms,
-                        GC_PAUSES.within_ms(due_s - self.period_s, now_s) if late_ms > NOTABLE_STALL_MS else 0.0)
+            before, times = times, thread_times_ms()
+            parts: tuple[float | None, ...] = (None, None, None)
+            if before is not None and times is not None:
+                parts = tuple(after - earlier for after, earlier in zip(times, before, strict=True))
+            self.record(now_s, late_ms, parts[1],
+                        GC_PAUSES.within_ms(due_s - self.period_s, now_s) if late_ms > NOTABLE_STALL_MS else 0.0,
+                        parts[0], parts[2])
 
-    def record(self, now_s: float, late_ms: float, queued_ms: float | None = None, gc_ms: float = 0.0) -> None:
+    def record(self, now_s: float, late_ms: float, queued_ms: float | None = None, gc_ms: float = 0.0,
+               ran_ms: float | None = None, page_faults: float | None = None) -> None:
         self.probes += 1
         self.longest_ms = max(self.longest_ms, late_ms)
         if late_ms > NOTABLE_STALL_MS:
-            self.notable.append((now_s, late_ms, queued_ms, gc_ms))
+            self.notable.append((now_s, late_ms, queued_ms, gc_ms, ran_ms, page_faults))
         # the window's maximum: later probes that are at least as late make earlier ones irrelevant
         while self._recent and self._recent[-1][1] <= late_ms:
             self._recent.pop()
@@ -128,6 +135,6 @@ class LoopStalls:
         recent = self._recent[0][1] if self._recent else 0.0
         return {"longest_stall_ms": round(self.longest_ms, 1), "recent_stall_ms": round(recent, 1),
                 "recent_s": self.recent_s, "probe_period_ms": self.period_s * 1e3, "gc": GC_PAUSES.to_json(),
-                "notable_stalls": [[round(now_s - at_s, 3), round(late, 1),
-                                    None if queued is None else round(queued, 1), round(gc_ms, 1)]
-                                   for at_s, late, queued, gc_ms in list(self.notable)[-NOTABLE_SHOWN:]]}
+                "notable_stalls": [[round(now_s - at_s, 3), round(late, 1), *(None if part is None else round(part, 1)
+                                                                   for part in (queued, gc_ms, ran, faults))]
+                                   for at_s, late, queued, gc_ms, ran, faults in list(self.notable)[-NOTABLE_SHOWN:]]}
