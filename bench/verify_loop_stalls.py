@@ -108,10 +108,14 @@ class StallWatch:
 
     def worst(self, name: str, count: int = 3) -> list[str]:
         """The loop's longest stalls from :meth:`start` to :meth:`stop`, each with what it was made of."""
-        stalls = sorted(((late, at_s) for at_s, late in self.stalls[name].items()
-                         if self._from_s <= at_s <= self._to_s), reverse=True)[:count]
+        stalls: list[tuple[float, float]] = []
+        for late, at_s in sorted(((late, at_s) for at_s, late in self.stalls[name].items()
+                                  if self._from_s <= at_s <= self._to_s), reverse=True):
+            # one stall seen in several polls (its age rounded differently each time) is listed once
+            if not any(late == seen and abs(at_s - seen_at_s) < 0.5 for seen, seen_at_s in stalls):
+                stalls.append((late, at_s))
         described = []
-        for late, at_s in stalls:
+        for late, at_s in stalls[:count]:
             causes = list(self.causes[name].get(at_s) or [])
             queued_ms, gc_ms, ran_ms, faults = (causes + [None] * 4)[:4]
             said = [f"{'?' if value is None else f'{value:.0f}'}{unit}" for value, unit in

@@ -9,11 +9,11 @@ from multiprocessing.connection import Connection
 
 
 def main(connection: Connection, parent_pid: int, settings: bytes) -> None:
-    """The process's target: ``settings`` are :func:`phantom.host.link_process.serve_link`'s other arguments,
+    """The process's target: ``settings`` are :func:`phantom.host.link_child.serve_link`'s other arguments,
     pickled (unpickling them imports the session's modules)."""
     from phantom.model.cluster import exit_with_parent
 
     exit_with_parent(parent_pid)
-    from phantom.host.link_process import serve_link
+    from phantom.host.link_child import serve_link
 
     serve_link(connection, *pickle.loads(settings))

@@ -225,7 +225,7 @@ def test_the_link_process_says_what_priority_it_got_and_why_not():
     setpriv = shutil.which("setpriv")
     if setpriv is None or os.geteuid() != 0:
         pytest.skip("needs root and util-linux's setpriv to run as a user without the right")
-    asked = ("from phantom.host.link_process import scheduling_of_this_process as scheduling; "
+    asked = ("from phantom.host.link_child import scheduling_of_this_process as scheduling; "
              "print(scheduling(10)); print(scheduling(None))")
     as_nobody = subprocess.run([setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", "--inh-caps=-all",
                                 sys.executable, "-c", asked], capture_output=True, text=True, timeout=60)
