@@ -90,7 +90,7 @@ def test_a_verified_target_holds_the_link_with_one_busy_process_per_core(tmp_pat
     the link's loop was 500-620 ms late, its thread waiting for a core and for the GIL the daemon's loop held
     (bench/README.md, "A verified target's scan beside busy cores"). The link now runs in a process of its own at
     SCHED_FIFO (host/link_process.py; granted to root, or with an RLIMIT_RTPRIO as the systemd unit's): it passed
-    5 times in 5 (2026-11-29 03:15-03:55, load 5-11, 2.7-5.4 minutes; the daemon's loop up to 541 ms late, the
+    6 times in 6 (2026-11-29 03:15-04:00, load 3-11, 2.3-5.4 minutes; the daemon's loop up to 541 ms late, the
     link's 10-347 ms). Without a real-time priority (a user without the right) it is not expected to hold; so it
     stays in `make test-long`. A failure says how late the daemon's loops were, what the link's process ran at,
     and the load; a pass prints the same."""
