@@ -151,7 +151,7 @@ class PeerProbe:
 
 def longest(stalls: list[list[float]], since_ago_s: float) -> float:
     """The longest listed stall (ms) of those less than ``since_ago_s`` ago."""
-    return max((late for ago_s, late in stalls if ago_s <= since_ago_s), default=0.0)
+    return max((late for ago_s, late, *_ in stalls if ago_s <= since_ago_s), default=0.0)
 
 
 async def measure(socket_path: Path, name: str, load: Callable[[], Awaitable[None]], peer: PeerProbe) -> dict[str, Any]:

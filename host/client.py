@@ -678,7 +678,7 @@ class AsyncPhantom:
             if outcome == "faulted":
                 status = await self.status()
                 # mid-verify, the outcome says which round it was in and what to do
-                during = f" ({data['text']})" if data.get("rounds") and data.get("text") else ""
+                during = f" ({data['text']})" if "rounds" in data and data.get("text") else ""
                 raise FaultError(status.faults or ("a fault",), f"waiting for {wanted}{during}")
             if outcome == "unreachable":
                 raise UnreachableError("unreachable", str(data.get("text", f"{wanted} is unreachable")),

@@ -141,6 +141,10 @@ class DaemonConfig:
                                     metavar="MS", at_least=50, at_most=10000)
     telemetry_period_ms: int = setting(20, "the board's telemetry period (ms)", metavar="MS", at_least=10,
                                        at_most=1000)
+    link_rt_priority: int = setting(10, "the SCHED_FIFO priority the board link's process asks for, so that its "
+                                    "keepalive runs before a busy machine's other work (root, CAP_SYS_NICE or an "
+                                    "RLIMIT_RTPRIO this high: the systemd unit's LimitRTPRIO=); refused, it runs "
+                                    "at the daemon's priority; 0: do not ask", metavar="N", at_least=0, at_most=99)
     kp_per_kpa: float = setting(4.0, "the board's PID proportional gain (drive level per kPa), sent to every chamber "
                                 "with SET_PID at each connection", metavar="K", at_least=0, at_most=100)
     ki_per_kpa_s: float = setting(15.0, "the board's PID integral gain (drive level per kPa s)", metavar="K",

@@ -478,12 +478,14 @@ class ControlCore:
                 self._pending_since_s = now
             if self._reach is not None:
                 rounds, verifying = self._rounds, ""
-                if rounds is not None and rounds.rounds:
+                if rounds is not None:
                     # a fault mid-verify: which round, what it was doing, and what to do (the scans before are
-                    # stored measurements: the next try starts from the correction they give)
+                    # stored measurements: the next try starts from the correction they give). A round is listed
+                    # once scanned; one being applied (the first, or one whose scan the lost link took back) is next
                     doing = {"scanning": "scanning", "correcting": "solving the next round"}.get(
                         rounds.doing or "", "applying its pressures")
-                    verifying = (f" during verify round {len(rounds.rounds)} of {rounds.verify.rounds} ({doing}); "
+                    round_ = len(rounds.rounds) + (rounds.doing is None)
+                    verifying = (f" during verify round {round_} of {rounds.verify.rounds} ({doing}); "
                                  f"the scans before are stored. Find why ({', '.join(names)}: `phantom status`, the "
                                  "daemon's log), clear it (`phantom clear-fault`), then set the target again")
                 self._outcome("faulted", f"target {self._reach.target.describe()} not reached: faults latched "

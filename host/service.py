@@ -22,6 +22,7 @@ from phantom.host.api import ApiError, ApiServer, Handler, default_socket_path
 from phantom.host.config import DaemonConfig
 from phantom.host.daemon import Daemon, VerifyScanner
 from phantom.host.handlers import ApiHandlers
+from phantom.host.link_process import LinkProcess
 from phantom.host.logs import configured_level
 from phantom.host.model_worker import ModelWorker
 from phantom.host.motion import Scanner, scan_method
@@ -29,9 +30,9 @@ from phantom.host.presets import DEFAULT_PRESETS, Preset, check_presets, preset_
 from phantom.host.recording import Recorder
 from phantom.host.scene_runner import prepare_run
 from phantom.host.scenes import read_timeline_scene
-from phantom.host.session import LinkSession, LinkThread, LinkTiming, Transport
+from phantom.host.session import LinkTiming, Transport
 from phantom.host.sim_board import SimulatedBoardFactory, SimulatedBoardKeeper
-from phantom.host.stalls import LoopStalls
+from phantom.host.stalls import GC_PAUSES
 from phantom.host.startup import StartupProgress, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.host.web import WebServer, panel_tokens, tell_panel_address
@@ -129,9 +130,9 @@ def _when_ready(daemon: Daemon, handler: Handler) -> Handler:
     return guarded
 
 
-def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None) -> LinkThread:
-    """The link session over the configured transport, in a thread of its own (its callbacks attached once the
-    daemon is built)."""
+def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None) -> LinkProcess:
+    """The link session over the configured transport, in a process of its own at a real-time priority where it
+    may have one (its callbacks attached once the daemon is built)."""
     transport: Transport
     boot_delay_s = 0.0
     if config.can_channel:
@@ -143,7 +144,7 @@ def _link_session(config: DaemonConfig, sim_board: SimulatedBoardKeeper | None) 
         assert config.port is not None  # a DaemonConfig has exactly one board
         transport = SerialTransport(config.port, config.baud)
         boot_delay_s = max(BOOT_DELAY_S.values()) if config.boot_delay_s is None else config.boot_delay_s
-    return LinkThread(LinkSession(transport, link_timing(config, boot_delay_s)), LoopStalls())
+    return LinkProcess(transport, link_timing(config, boot_delay_s), config.link_rt_priority or None)
 
 
 def link_timing(config: DaemonConfig, boot_delay_s: float) -> LinkTiming:
@@ -153,7 +154,7 @@ def link_timing(config: DaemonConfig, boot_delay_s: float) -> LinkTiming:
     # about 5x here); a HELLO whose reply was lost must be repeated before that deadline: HELLOs go out at twice
     # the keepalive period. The deadline itself is the configured one in wall-clock time, as a real board's: in
     # board time it was half of it at --sim-speed 2, and a verified target's scan, reconstructed in a thread of
-    # the daemon's process while the tests loaded both cores, held the link's thread past it (DEAD_HOST)
+    # the daemon's process while the tests loaded both cores, held the link (then a thread) past it (DEAD_HOST)
     speed = (config.sim_speed or 10.0) if config.sim else 1.0
     host_deadline_ms = max(CONSTANTS["MIN_HOST_DEADLINE_MS"],
                            min(CONSTANTS["MAX_HOST_DEADLINE_MS"], round(config.host_deadline_ms * speed)))
@@ -168,6 +169,7 @@ async def serve(daemon: Daemon) -> int:
     for signum in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(signum, daemon.request_stop)
     loop.set_exception_handler(_log_loop_exception)
+    GC_PAUSES.install()
     try:
         info = daemon.model.info
         daemon.event("startup", "model ready: " + ", ".join(f"{key} {value:.2f} s"

@@ -19,16 +19,14 @@ import asyncio
 import contextlib
 import enum
 import logging
-import threading
 import time
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Awaitable, Callable
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol
 
 import numpy as np
 
 from phantom import PhantomError
-from phantom.host.stalls import LoopStalls
 from phantom.host.transports import TransportLost, TransportUnavailable
 from phantom.protocol import ProtocolError
 from phantom.protocol.codec import Message
@@ -54,13 +52,10 @@ from phantom.protocol.link import (
 )
 from phantom.protocol.messages import MESSAGES, PROTOCOL_VERSION, ChamberState, ConfigSource, Status, ZeroSource
 
-__all__ = ["BoardInfo", "CommandRejected", "LinkDown", "LinkSession", "LinkState", "LinkStats", "LinkThread",
+__all__ = ["BoardInfo", "CommandRejected", "LinkDown", "LinkSession", "LinkState", "LinkStats",
            "LinkTiming", "Telemetry", "fault_names"]
 
 logger = logging.getLogger(__name__)
-
-#: What a command run on the link's loop answers.
-Answer = TypeVar("Answer")
 
 _DRIVE_SCALE = {f.name: f.scale for f in MESSAGES["TELEMETRY"].fields}["drive"]
 
@@ -550,139 +545,3 @@ def _problem_kind(text: str) -> str:
         if any(word in lowered for word in words):
             return kind
     return lowered.split(":")[0]
-
-
-class LinkThread:
-    """A :class:`LinkSession` run on an event loop of its own, in a thread of its own: the board's keepalive,
-    retransmissions and port I/O keep their timing whatever the daemon's loop is busy with (a burst of API
-    clients delayed every timer of a shared loop by hundreds of milliseconds, past the board's dead-host
-    deadline). The daemon sees the session's interface (:class:`phantom.host.parts.BoardSession`): commands are
-    run on the link's loop and awaited from the daemon's; the session's callbacks are run on the daemon's loop.
-
-    Parameters
-    ----------
-    session : LinkSession
-        Its ``on_telemetry``, ``on_event`` and ``on_online`` are the daemon's; they are called on the loop that
-        awaits :meth:`run`.
-    loop_stalls : LoopStalls, optional
-        Probes the link's loop; its figures are the status's ``event_loop``.
-    """
-
-    def __init__(self, session: LinkSession, loop_stalls: LoopStalls | None = None):
-        self.session = session
-        self.loop_stalls = loop_stalls
-        self._daemon_loop: asyncio.AbstractEventLoop | None = None
-        self._link_loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self.attach(session.on_telemetry, session.on_event, session.on_online, session.on_motion)
-
-    def attach(self, on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
-               on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None,
-               on_motion: Callable[[Message], None]) -> None:
-        """The session's callbacks, run on the loop that awaits :meth:`run` (the daemon's, built after its link)."""
-        session = self.session
-        session.on_telemetry = lambda telemetry: self._to_daemon(on_telemetry, telemetry)
-        session.on_event = lambda kind, text, level: self._to_daemon(on_event, kind, text, level)
-        if on_online is not None:
-            session.on_online = lambda board, again: self._in_daemon(on_online(board, again))
-        session.on_motion = lambda message: self._to_daemon(on_motion, message)
-
-    @property
-    def transport(self) -> Transport:
-        return self.session.transport
-
-    @property
-    def online(self) -> bool:
-        return self.session.online
-
-    @property
-    def state(self) -> LinkState:
-        return self.session.state
-
-    def status(self) -> dict[str, Any]:
-        status = self.session.status()
-        if self.loop_stalls is not None:
-            status["event_loop"] = self.loop_stalls.to_json()
-        return status
-
-    async def run(self) -> None:
-        """Run the session in its thread until :meth:`stop`; raises what the session raised."""
-        self._daemon_loop = asyncio.get_running_loop()
-        finished: asyncio.Future[None] = self._daemon_loop.create_future()
-        self._thread = threading.Thread(target=self._main, args=(finished,), name="board link", daemon=True)
-        self._thread.start()
-        try:
-            await asyncio.shield(finished)
-        except asyncio.CancelledError:
-            self.stop()
-            await asyncio.to_thread(self._thread.join, 5.0)
-            raise
-
-    def stop(self) -> None:
-        """Make :meth:`run` return after the session closed its port."""
-        link_loop = self._link_loop
-        if link_loop is not None and not link_loop.is_closed():
-            with contextlib.suppress(RuntimeError):
-                link_loop.call_soon_threadsafe(self.session.stop)
-
-    async def command(self, name: str, fields: dict[str, Any] | None = None) -> str:
-        """:meth:`LinkSession.command`, run on the link's loop."""
-        return await self._on_link(self.session.command(name, fields))
-
-    async def end_session(self) -> bool:
-        """:meth:`LinkSession.end_session`, run on the link's loop."""
-        return await self._on_link(self.session.end_session())
-
-    # --- between the two loops --------------------------------------------------------------------------
-
-    def _main(self, finished: asyncio.Future[None]) -> None:
-        """The link's thread: its own event loop running the session (and the probe of its loop)."""
-        error: BaseException | None = None
-        try:
-            asyncio.run(self._serve())
-        except BaseException as raised:  # handed to the daemon's loop, which raises it in run()
-            error = raised
-        daemon_loop = self._daemon_loop
-        assert daemon_loop is not None
-        with contextlib.suppress(RuntimeError):  # the daemon's loop may be closed already
-            daemon_loop.call_soon_threadsafe(_settle, finished, error)
-
-    async def _serve(self) -> None:
-        self._link_loop = asyncio.get_running_loop()
-        probe = asyncio.create_task(self.loop_stalls.probe()) if self.loop_stalls is not None else None
-        try:
-            await self.session.run()
-        finally:
-            if probe is not None:
-                probe.cancel()
-            self.session.transport.close()
-            self._link_loop = None
-
-    async def _on_link(self, coroutine: Coroutine[Any, Any, Answer]) -> Answer:
-        link_loop = self._link_loop
-        if link_loop is None:
-            coroutine.close()
-            raise LinkDown("no board: the link is not running")
-        return await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(coroutine, link_loop))
-
-    def _to_daemon(self, function: Callable[..., None], *arguments: Any) -> None:
-        daemon_loop = self._daemon_loop
-        if daemon_loop is not None:
-            with contextlib.suppress(RuntimeError):
-                daemon_loop.call_soon_threadsafe(function, *arguments)
-
-    async def _in_daemon(self, awaitable: Awaitable[None]) -> None:
-        async def await_it() -> None:
-            await awaitable
-        daemon_loop = self._daemon_loop
-        assert daemon_loop is not None
-        await asyncio.wrap_future(asyncio.run_coroutine_threadsafe(await_it(), daemon_loop))
-
-
-def _settle(future: asyncio.Future[None], error: BaseException | None) -> None:
-    if future.done():
-        return
-    if error is None:
-        future.set_result(None)
-    else:
-        future.set_exception(error)

@@ -1,9 +1,14 @@
 """How late an event loop runs its timers: :class:`LoopStalls`, the daemon's measure of its own loop's stalls
-(status ``event_loop``) and of the board link's loop (status ``link_detail.event_loop``)."""
+(status ``event_loop``) and of the board link's loop (status ``link_detail.event_loop``); and what each notable
+stall was made of: the time its thread waited for a core (the kernel's run-queue delay) and the cyclic garbage
+collector's pauses (:class:`GcPauses`: every thread of the process waits for a collection)."""
 
 from __future__ import annotations
 
 import asyncio
+import gc
+import resource
+import threading
 import time
 from collections import deque
 from typing import Any
@@ -19,6 +24,67 @@ NOTABLE_STALL_MS = 10.0
 NOTABLE_SHOWN = 32
 
 
+def thread_times_ms() -> tuple[float, float, int] | None:
+    """The calling thread's time on a core and waiting for one (ms) since it started, from
+    ``/proc/thread-self/schedstat``, and its major page faults (``getrusage``); None where the kernel has none."""
+    try:
+        with open("/proc/thread-self/schedstat", "rb") as schedstat:
+            ran_ns, waited_ns = schedstat.read().split()[:2]
+        return int(ran_ns) / 1e6, int(waited_ns) / 1e6, resource.getrusage(resource.RUSAGE_THREAD).ru_majflt
+    except (OSError, IndexError, ValueError, AttributeError):
+        return None
+
+
+class GcPauses:
+    """The cyclic garbage collector's pauses in this process, timed by ``gc.callbacks``: a collection holds the
+    GIL, so every thread (the board link's too) waits for it. Keeps the latest (start s, end s, generation) on
+    the monotonic clock, the count and longest pause per generation."""
+
+    def __init__(self) -> None:
+        self.recent: deque[tuple[float, float, int]] = deque(maxlen=1024)
+        self.collections = [0, 0, 0]
+        self.longest_ms = [0.0, 0.0, 0.0]
+        self._started_s: float | None = None
+        self._lock = threading.Lock()
+
+    def install(self) -> GcPauses:
+        if self._callback not in gc.callbacks:
+            gc.callbacks.append(self._callback)
+        return self
+
+    def uninstall(self) -> None:
+        if self._callback in gc.callbacks:
+            gc.callbacks.remove(self._callback)
+
+    def _callback(self, phase: str, info: dict[str, int]) -> None:
+        now_s = time.monotonic()
+        if phase == "start":
+            self._started_s = now_s
+            return
+        started_s, self._started_s = self._started_s, None
+        if started_s is None:
+            return
+        generation = info.get("generation", 2)
+        with self._lock:
+            self.recent.append((started_s, now_s, generation))
+            self.collections[generation] += 1
+            self.longest_ms[generation] = max(self.longest_ms[generation], (now_s - started_s) * 1e3)
+
+    def within_ms(self, from_s: float, to_s: float) -> float:
+        """How long (ms) collections ran between ``from_s`` and ``to_s`` (monotonic s)."""
+        with self._lock:
+            pauses = list(self.recent)
+        return sum(max(0.0, min(end_s, to_s) - max(start_s, from_s)) for start_s, end_s, _ in pauses) * 1e3
+
+    def to_json(self) -> dict[str, Any]:
+        return {"collections": list(self.collections), "longest_ms": [round(ms, 1) for ms in self.longest_ms],
+                "frozen": gc.get_freeze_count()}
+
+
+#: This process's collector pauses (installed by the daemon at start-up).
+GC_PAUSES = GcPauses()
+
+
 class LoopStalls:
     """How late the event loop runs a timer: a probe every ``period_s``; the longest lateness since the start and
     over the last ``recent_s`` (ms). Whatever stalls the loop (work done inside it) delays every timer by as much:
@@ -30,22 +96,33 @@ class LoopStalls:
         self.longest_ms = 0.0
         self.probes = 0
         self._recent: deque[tuple[float, float]] = deque()
-        #: the latest probes later than :data:`NOTABLE_STALL_MS`: (monotonic s, ms)
-        self.notable: deque[tuple[float, float]] = deque(maxlen=256)
+        #: the latest probes later than :data:`NOTABLE_STALL_MS`: (monotonic s, ms, ms of it the loop's thread
+        #: waited for a core, ms of it the garbage collector ran, ms the thread ran, its major page faults; None
+        #: where the kernel does not say)
+        self.notable: deque[tuple[float, float, float | None, float, float | None, float | None]] = deque(maxlen=256)
 
     async def probe(self) -> None:
         """Runs until cancelled."""
+        times = thread_times_ms()
         while True:
             due_s = time.monotonic() + self.period_s
             await asyncio.sleep(self.period_s)
             now_s = time.monotonic()
-            self.record(now_s, max(0.0, now_s - due_s) * 1e3)
+            late_ms = max(0.0, now_s - due_s) * 1e3
+            before, times = times, thread_times_ms()
+            parts: tuple[float | None, ...] = (None, None, None)
+            if before is not None and times is not None:
+                parts = tuple(after - earlier for after, earlier in zip(times, before, strict=True))
+            self.record(now_s, late_ms, parts[1],
+                        GC_PAUSES.within_ms(due_s - self.period_s, now_s) if late_ms > NOTABLE_STALL_MS else 0.0,
+                        parts[0], parts[2])
 
-    def record(self, now_s: float, late_ms: float) -> None:
+    def record(self, now_s: float, late_ms: float, queued_ms: float | None = None, gc_ms: float = 0.0,
+               ran_ms: float | None = None, page_faults: float | None = None) -> None:
         self.probes += 1
         self.longest_ms = max(self.longest_ms, late_ms)
         if late_ms > NOTABLE_STALL_MS:
-            self.notable.append((now_s, late_ms))
+            self.notable.append((now_s, late_ms, queued_ms, gc_ms, ran_ms, page_faults))
         # the window's maximum: later probes that are at least as late make earlier ones irrelevant
         while self._recent and self._recent[-1][1] <= late_ms:
             self._recent.pop()
@@ -57,6 +134,7 @@ class LoopStalls:
             self._recent.popleft()
         recent = self._recent[0][1] if self._recent else 0.0
         return {"longest_stall_ms": round(self.longest_ms, 1), "recent_stall_ms": round(recent, 1),
-                "recent_s": self.recent_s, "probe_period_ms": self.period_s * 1e3,
-                "notable_stalls": [[round(now_s - at_s, 3), round(late, 1)] for at_s, late in
-                                   list(self.notable)[-NOTABLE_SHOWN:]]}
+                "recent_s": self.recent_s, "probe_period_ms": self.period_s * 1e3, "gc": GC_PAUSES.to_json(),
+                "notable_stalls": [[round(now_s - at_s, 3), round(late, 1), *(None if part is None else round(part, 1)
+                                                                   for part in (queued, gc_ms, ran, faults))]
+                                   for at_s, late, queued, gc_ms, ran, faults in list(self.notable)[-NOTABLE_SHOWN:]]}

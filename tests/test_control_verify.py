@@ -165,6 +165,20 @@ def test_a_fault_during_a_scan_ends_it_faulted_and_its_scan_is_not_used(core):
     assert of_kind(core.take_actions(), (policy_of.Correct, policy_of.Record)) == []
 
 
+def test_a_fault_after_the_link_was_lost_mid_scan_still_says_the_round(core):
+    """The link silenced past the board's deadline (a starved machine) is seen first as a lost link, the scan cut
+    short and to be taken again, then as DEAD_HOST latched once the link is back: the outcome still says which
+    round and what to do (it said only "faults latched (DEAD_HOST)", the round taken back before the fault)."""
+    verified(core)
+    core.scanned(3.0, 1, None, "the scan stopped: the link to the board is disconnected", "/scans/1", link_lost=True)
+    core.take_actions()
+    core.faults(3.2, ("DEAD_HOST",))
+    (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
+    assert told.data["outcome"] == "faulted"
+    assert "faults latched (DEAD_HOST) during verify round 1 of 4 (applying its pressures)" in told.text, told.text
+    assert "clear it (`phantom clear-fault`), then set the target again" in told.text
+
+
 def test_a_vent_or_another_target_during_a_scan_replaces_it(core):
     verified(core)
     core.vent(2.0, "on request")

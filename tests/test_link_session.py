@@ -617,16 +617,18 @@ def test_the_transport_knows_a_board_frames_length_from_its_first_two_bytes():
 def test_the_keepalive_keeps_time_while_the_daemons_loop_is_stalled(tmp_path):
     """Issue 23, defect 3: work inside the daemon's event loop (a 30 MB scene parsed, 100 surfaces encoded) held
     the link's timers too, past the board's 500 ms dead-host deadline. The link runs on its own loop in a thread
-    (LinkThread): a 1.5 s stall of the daemon's loop leaves no gap in the board's PINGs, commands still reach the
-    board, and the telemetry that arrived meanwhile is delivered to the daemon afterwards."""
-    from phantom.host.session import LinkThread
+    (now a process of its own, host/link_process.py): a 1.5 s stall of the daemon's loop leaves no gap in the
+    board's PINGs, commands still reach the board, and the telemetry that arrived meanwhile is delivered to the
+    daemon afterwards."""
+    from phantom.host.link_process import LinkProcess
 
     board = ScriptedBoard(tmp_path / "board")
     telemetry = []
 
     async def main():
-        link = LinkThread(LinkSession(SerialTransport(tmp_path / "board"), FAST, on_telemetry=telemetry.append,
-                                      on_event=lambda *event: None))
+        link = LinkProcess(SerialTransport(tmp_path / "board"), FAST)
+        link.attach(on_telemetry=telemetry.append, on_event=lambda *event: None, on_online=None,
+                    on_motion=lambda message: None)
         task = asyncio.create_task(link.run())
         try:
             await wait_for(lambda: link.online)

@@ -1,0 +1,245 @@
+"""The board link in a process of its own (:class:`LinkProcess`), at a real-time priority where it may have one.
+
+Why a process, and why a priority (issue 48, "the link holds while the phantom learns"): a verified target's
+scan beside one busy process per core latched DEAD_HOST, the link's loop 500-620 ms late. Its probe's thread
+waited for a core for most of each long stall (``/proc/thread-self/schedstat``: 123 of 171 ms in the worst of a
+verify at load 2.5-8, the garbage collector 0 ms; bench/README.md), and a thread of the daemon's process also
+waits for the GIL, which the daemon's loop holds when the kernel takes its core away. Here the link's loop is
+alone in a small process (its own GIL), which asks the kernel for ``SCHED_FIFO`` (the board's keepalive is the
+one thing on the machine that must keep time; it needs a few milliseconds of CPU a second): granted to root,
+to a user with ``RLIMIT_RTPRIO`` (``LimitRTPRIO=`` of a systemd unit, ``rtprio`` in limits.conf) or
+``CAP_SYS_NICE``; otherwise it keeps the daemon's priority and says so (status ``link_detail.process``).
+
+The daemon talks to it over a pipe: commands and the end of the session out; the session's telemetry, events,
+motion frames, answers and its status back. The process dies with the daemon (``PR_SET_PDEATHSIG``; the pipe's
+end too): its keepalive stops, and the board vents at its dead-host deadline, as with a daemon of one process.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import logging
+import multiprocessing
+import os
+import pickle
+import time
+from collections.abc import Awaitable, Callable
+from multiprocessing.connection import Connection
+from typing import Any
+
+from phantom.host import link_entry
+from phantom.host.session import (
+    BoardInfo,
+    CommandRejected,
+    LinkDown,
+    LinkState,
+    LinkStats,
+    LinkTiming,
+    Telemetry,
+    Transport,
+)
+from phantom.protocol import ProtocolError
+from phantom.protocol.codec import Message
+
+__all__ = ["LINK_RT_PRIORITY", "LinkProcess"]
+
+logger = logging.getLogger(__name__)
+
+#: The link process's SCHED_FIFO priority by default (1-99; low: above every normal process, below the kernel's
+#: threads); the daemon's setting ``link_rt_priority``.
+LINK_RT_PRIORITY = 10
+#: How long (s) :meth:`LinkProcess.run` waits for the process to end after asking it to stop.
+STOP_WAIT_S = 5.0
+
+
+class LinkProcess:
+    """A :class:`LinkSession` on ``transport`` in a spawned process of its own; the daemon sees the session's
+    interface (:class:`phantom.host.parts.BoardSession`).
+
+    Parameters
+    ----------
+    transport : SerialTransport or CanTransport
+        Not opened: the process opens it (a CAN bus of python-can's ``virtual`` interface is per process).
+    timing : LinkTiming
+        The link core's periods and deadlines.
+    rt_priority : int or None
+        The SCHED_FIFO priority the process asks for (None: none; it keeps the daemon's).
+    """
+
+    def __init__(self, transport: Transport, timing: LinkTiming, rt_priority: int | None = LINK_RT_PRIORITY):
+        self.transport = transport
+        self.timing = timing
+        self.rt_priority = rt_priority
+        self._status: dict[str, Any] = {"state": LinkState.DISCONNECTED.value,
+                                        "transport": transport.description, "board": None, "board_info": None,
+                                        "last_error": "the link's process is starting",
+                                        "stats": LinkStats().as_dict({}, 0, None)}  # all its keys, zero
+        self._on_telemetry: Callable[[Telemetry], None] = lambda telemetry: None
+        self._on_event: Callable[[str, str, str], None] = lambda kind, text, level: None
+        self._on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None = None
+        self._on_motion: Callable[[Message], None] = lambda message: None
+        self._connection: Connection | None = None
+        self._process: multiprocessing.process.BaseProcess | None = None
+        self._answers: dict[int, asyncio.Future[Any]] = {}
+        self._ids = itertools.count()
+        self._stopping = False
+        self._ended: asyncio.Future[None] | None = None
+        self._onlines: set[asyncio.Task[None]] = set()
+
+    def attach(self, on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
+               on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None,
+               on_motion: Callable[[Message], None]) -> None:
+        """The session's callbacks, run on the loop that awaits :meth:`run`."""
+        self._on_telemetry, self._on_event, self._on_online, self._on_motion = (on_telemetry, on_event, on_online,
+                                                                               on_motion)
+
+    @property
+    def state(self) -> LinkState:
+        return LinkState(self._status["state"])
+
+    @property
+    def online(self) -> bool:
+        return self.state is LinkState.ONLINE
+
+    def status(self) -> dict[str, Any]:
+        """The session's status as the process last sent it (at most :data:`STATUS_PERIOD_S` old), with its
+        loop's stalls (``event_loop``, its stalls' ages as of now) and the process (``process``: pid, scheduling)."""
+        status = dict(self._status)
+        sent_s = status.pop("sent_s", None)
+        loop = status.get("event_loop")
+        if sent_s is not None and loop is not None:  # one monotonic clock for the machine's processes
+            age_s = time.monotonic() - sent_s
+            status["event_loop"] = {**loop, "notable_stalls": [[round(ago_s + age_s, 3), *rest]
+                                                               for ago_s, *rest in loop["notable_stalls"]]}
+        return status
+
+    async def run(self) -> None:
+        """Start the process and serve it until :meth:`stop`; raises :class:`LinkDown` if it ended by itself."""
+        loop = asyncio.get_running_loop()
+        context = multiprocessing.get_context("spawn")  # not forked: no copy of the daemon's threads and loops
+        ours, theirs = context.Pipe()
+        level = logging.getLevelName(logging.getLogger("phantom").getEffectiveLevel()).lower()
+        settings = pickle.dumps((self.transport, self.timing, self.rt_priority, level))
+        process = context.Process(target=link_entry.main, args=(theirs, os.getpid(), settings),
+                                  name="phantom board link", daemon=True)
+        process.start()
+        theirs.close()
+        self._process, self._connection = process, ours
+        self._ended = loop.create_future()
+        loop.add_reader(ours.fileno(), self._readable)
+        try:
+            await asyncio.shield(self._ended)
+        except asyncio.CancelledError:
+            self.stop()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(asyncio.shield(self._ended), STOP_WAIT_S)
+            raise
+        finally:
+            with contextlib.suppress(ValueError, OSError):
+                loop.remove_reader(ours.fileno())
+            ours.close()
+            await loop.run_in_executor(None, process.join, STOP_WAIT_S)
+            if process.is_alive():
+                process.kill()
+            self._fail_answers(LinkDown("no board: the link's process ended"))
+            self._status = {**self._status, "state": LinkState.STOPPED.value}
+        if not self._stopping:
+            raise LinkDown(f"the board link's process ended by itself (exit status {process.exitcode})")
+
+    def stop(self) -> None:
+        """Make :meth:`run` return after the process closed the port."""
+        self._stopping = True
+        self._send(("stop",))
+
+    async def command(self, name: str, fields: dict[str, Any] | None = None) -> str:
+        """:meth:`LinkSession.command`, run in the link's process."""
+        if not self.online:
+            last = self._status.get("last_error")
+            raise LinkDown(f"no board: the link is {self.state.value}" + (f" ({last})" if last else ""))
+        answer: str = await self._ask("command", name, fields or {})
+        return answer
+
+    async def end_session(self) -> bool:
+        """:meth:`LinkSession.end_session`, run in the link's process."""
+        try:
+            ended: bool = await self._ask("end_session")
+        except LinkDown:
+            return False
+        return ended
+
+    # --- the pipe -----------------------------------------------------------------------------------------
+
+    async def _ask(self, kind: str, *arguments: Any) -> Any:
+        request = next(self._ids)
+        future: asyncio.Future[Any] = asyncio.get_running_loop().create_future()
+        self._answers[request] = future
+        if not self._send((kind, request, *arguments)):
+            self._answers.pop(request, None)
+            raise LinkDown("no board: the link's process is not running")
+        return await future
+
+    def _send(self, message: tuple[Any, ...]) -> bool:
+        connection = self._connection
+        if connection is None or connection.closed:
+            return False
+        try:
+            connection.send(message)
+        except (OSError, ValueError):
+            return False
+        return True
+
+    def _readable(self) -> None:
+        """What the process sent: every whole message there is (the pipe is read on the daemon's loop)."""
+        connection = self._connection
+        assert connection is not None
+        try:
+            while connection.poll():
+                self._handle(connection.recv())
+        except (EOFError, OSError):
+            asyncio.get_running_loop().remove_reader(connection.fileno())
+            if self._ended is not None and not self._ended.done():
+                self._ended.set_result(None)
+
+    def _handle(self, message: tuple[Any, ...]) -> None:
+        kind = message[0]
+        if kind == "telemetry":
+            self._on_telemetry(message[1])
+        elif kind == "motion":
+            self._on_motion(message[1])
+        elif kind == "status":
+            self._status = message[1]
+        elif kind == "event":
+            self._on_event(*message[1:])
+        elif kind == "online":
+            task = asyncio.create_task(self._bring_online(*message[1:]))
+            self._onlines.add(task)
+            task.add_done_callback(self._onlines.discard)
+        elif kind == "answer":
+            _, request, outcome, value = message
+            future = self._answers.pop(request, None)
+            if future is None or future.done():
+                return
+            if outcome == "ok":
+                future.set_result(value)
+            elif outcome == "rejected":
+                future.set_exception(CommandRejected(*value))
+            elif outcome == "invalid":
+                future.set_exception(ProtocolError(value))
+            else:
+                future.set_exception(LinkDown(value))
+
+    async def _bring_online(self, board: BoardInfo, reconnected: bool, connection: int) -> None:
+        """The daemon restores its state on the new connection; the process is told when it is done."""
+        try:
+            if self._on_online is not None:
+                await self._on_online(board, reconnected)
+        finally:
+            self._send(("online_done", connection))
+
+    def _fail_answers(self, error: Exception) -> None:
+        for future in self._answers.values():
+            if not future.done():
+                future.set_exception(error)
+        self._answers.clear()

@@ -1,0 +1,242 @@
+"""The board link in a process of its own (host/link_process.py; issue 48, "the link holds while the phantom
+learns"), against the real firmware in simavr: the daemon's process may hold its GIL, or be starved of a core,
+for longer than the board's dead-host deadline without the board latching DEAD_HOST; commands, telemetry,
+events and the end of the session cross the pipe; the process dies with the daemon, and the board then vents at
+its deadline as it must."""
+
+import asyncio
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from phantom.host.link_process import LinkProcess
+from phantom.host.session import CommandRejected, LinkDown, LinkTiming, fault_names
+from phantom.host.transports import SerialTransport
+from phantom.protocol import ProtocolError
+
+pytestmark = [pytest.mark.sim]
+
+#: the board at the wall clock's speed, the real firmware's 500 ms dead-host deadline
+TIMING = LinkTiming(keepalive_s=0.1, hello_timeout_s=0.2, host_deadline_ms=500)
+
+
+@pytest.fixture
+def board():
+    from phantom.hil.sim import SimulatedBoard
+
+    with SimulatedBoard(speed=1.0) as simulated:
+        yield simulated
+
+
+def hold_the_gil(seconds: float) -> float:
+    """One C call that keeps the GIL for about ``seconds`` (a sum over a range: no bytecode runs, so no other
+    thread of this process runs), as a big array operation, pickle or JSON of the daemon's does; its length (s)."""
+    started = time.monotonic()
+    sum(range(1_000_000))
+    per_million_s = max(time.monotonic() - started, 1e-4)
+    started = time.monotonic()
+    sum(range(int(seconds / per_million_s * 1e6)))
+    return time.monotonic() - started
+
+
+async def wait_for(predicate, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.02)
+
+
+def test_the_board_keeps_its_link_while_the_daemons_process_holds_the_gil(board):
+    """Before (the link's loop a thread of the daemon's process, session.LinkThread): a 1.5 s GIL hold in the
+    daemon's process silenced the link for 1.5 s and the board latched DEAD_HOST (its blowers stopped). The link's
+    process keeps its keepalive going meanwhile: no fault, and the telemetry of the hold is delivered after it."""
+    events, telemetry = [], []
+
+    async def main():
+        link = LinkProcess(SerialTransport(board.port), TIMING)
+        link.attach(on_telemetry=telemetry.append, on_event=lambda *event: events.append(event), on_online=None,
+                    on_motion=lambda message: None)
+        task = asyncio.create_task(link.run())
+        try:
+            await wait_for(lambda: link.online, 20)
+            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]}) == "OK"
+            await asyncio.sleep(0.3)
+            frames_before = len(telemetry)
+            held_s = hold_the_gil(1.5)
+            await asyncio.sleep(0.6)      # a fault latched during the hold would be told by now
+            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [0, 0, 0]}) == "OK"
+            status = link.status()
+            return held_s, len(telemetry) - frames_before, status, await link.end_session()
+        finally:
+            link.stop()
+            await asyncio.wait_for(task, 10)
+
+    held_s, frames, status, ended = asyncio.run(main())
+    assert held_s > 1.0                     # three times the board's deadline
+    assert not [event for event in events if event[0] == "fault"], events
+    assert all(frame.fault_flags == 0 for frame in telemetry)
+    assert frames >= 50                       # 20 ms telemetry, through the hold and after
+    assert status["state"] == "online" and status["stats"]["links_lost"] == 0
+    assert status["process"]["pid"] != os.getpid() and status["process"]["scheduling"]
+    assert status["event_loop"]["longest_stall_ms"] < 400, status["event_loop"]
+    assert ended                               # the board closed its session: no DEAD_HOST once we are gone
+
+
+def test_a_command_is_refused_with_the_boards_status_and_a_stopped_link_says_so(board):
+    async def main():
+        link = LinkProcess(SerialTransport(board.port), TIMING)
+        task = asyncio.create_task(link.run())
+        try:
+            with pytest.raises(LinkDown, match="no board: the link is"):
+                await link.command("SET_SETPOINTS", {"setpoint_pa": [0, 0, 0]})
+            await wait_for(lambda: link.online, 20)
+            with pytest.raises(ProtocolError, match="outside i16 range"):
+                await link.command("SET_SETPOINTS", {"setpoint_pa": [60000, 0, 0]})
+            with pytest.raises(CommandRejected, match="BAD_VALUE") as refused:
+                await link.command("SET_SETPOINTS", {"setpoint_pa": [-5000, 0, 0]})
+            assert refused.value.status == "BAD_VALUE" and refused.value.command == "SET_SETPOINTS"
+        finally:
+            link.stop()
+            await asyncio.wait_for(task, 10)
+        assert link.state.value == "stopped"
+        with pytest.raises(LinkDown):
+            await link.command("SET_SETPOINTS", {"setpoint_pa": [0, 0, 0]})
+
+    asyncio.run(main())
+
+
+KILLED_DAEMON = """
+import asyncio, sys
+from phantom.host.link_process import LinkProcess
+from phantom.host.session import LinkTiming
+from phantom.host.transports import SerialTransport
+from phantom.protocol import ProtocolError
+
+async def main():
+    link = LinkProcess(SerialTransport(sys.argv[1]), LinkTiming(keepalive_s=0.1, hello_timeout_s=0.2))
+    task = asyncio.create_task(link.run())
+    while not link.online:
+        await asyncio.sleep(0.05)
+    await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]})
+    print(link.status()["process"]["pid"], flush=True)
+    await task
+
+asyncio.run(main())
+"""
+
+
+def test_the_link_process_dies_with_the_daemon_and_the_board_vents_at_its_deadline(board):
+    """A daemon killed (SIGKILL: no goodbye) takes its link's process with it: the keepalive stops and the board
+    latches DEAD_HOST, its blowers off, as with a daemon of one process; nothing keeps a dead daemon's board
+    inflated."""
+    from phantom.hil.link import BoardLink  # the bench's own driver of the board, to read its faults after
+
+    daemon = subprocess.Popen([sys.executable, "-c", KILLED_DAEMON, board.port], stdout=subprocess.PIPE, text=True)
+    try:
+        link_pid = int(daemon.stdout.readline())
+        daemon.kill()
+        daemon.wait(10)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and os.path.exists(f"/proc/{link_pid}"):
+            time.sleep(0.05)
+        assert not os.path.exists(f"/proc/{link_pid}") or open(f"/proc/{link_pid}/stat").read().split()[2] == "Z"
+    finally:
+        if daemon.poll() is None:
+            daemon.kill()
+    time.sleep(1.0)          # the board's 500 ms deadline has passed
+    with BoardLink(board.port) as link:
+        reply = link.hello()
+    assert "DEAD_HOST" in fault_names(reply.fields["fault_flags"]), reply
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_a_fault_mid_verify_says_which_round_and_what_to_do(tmp_path):
+    """Issue 48 item 5: if a fault still latches mid-verify, the run says which round it was in and what to do.
+    The daemon's own link is silenced as a starved machine would (its process stopped 1.5 s, three times the
+    board's deadline, during round 1's scan): the board latches DEAD_HOST, and the verified target's wait ends
+    with a FaultError naming the fault, the round, and `phantom clear-fault`; the fault then clears."""
+    pytest.importorskip("cv2")
+    import signal
+    import threading
+    from pathlib import Path
+
+    from daemon_rig import wait_ready
+
+    import phantom
+    from phantom.host.client import FaultError
+
+    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    log = open(tmp_path / "daemon.log", "w+")
+    process = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--sim", "--sim-speed", "2",
+                                "--socket", str(sock)], stdout=log, stderr=subprocess.STDOUT,
+                               env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
+    caught: list[BaseException] = []
+    try:
+        wait_ready(sock, process, Path(log.name), 180)
+
+        def verify():
+            with phantom.connect(sock) as client:
+                try:
+                    client.set_volume(35.0, verify="scan", timeout_s=500)
+                except BaseException as error:   # noqa: BLE001 - handed to the test's thread
+                    caught.append(error)
+
+        waiting = threading.Thread(target=verify)
+        waiting.start()
+        with phantom.connect(sock) as ph:
+            deadline = time.monotonic() + 300
+            while not any("scanning" in event["text"] for event in ph.call("status")["events"]):
+                assert time.monotonic() < deadline and waiting.is_alive(), caught
+                time.sleep(0.2)
+            link_pid = ph.call("status")["link_detail"]["process"]["pid"]
+            os.kill(link_pid, signal.SIGSTOP)
+            time.sleep(1.5)
+            os.kill(link_pid, signal.SIGCONT)
+            waiting.join(120)
+            assert not waiting.is_alive()
+            (error,) = caught
+            assert isinstance(error, FaultError) and "DEAD_HOST" in error.faults, error
+            text = str(error)
+            assert "during verify round 1 of" in text and "phantom clear-fault" in text, text
+            deadline = time.monotonic() + 30
+            while ph.status().faults:
+                try:
+                    ph.clear_fault()
+                except phantom.PhantomError:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.5)
+            assert ph.status().faults == ()
+    finally:
+        process.terminate()
+        process.wait(120)
+        log.close()
+
+
+def test_the_link_process_says_what_priority_it_got_and_why_not():
+    """Root (or CAP_SYS_NICE, or an RLIMIT_RTPRIO of 10: the systemd unit's LimitRTPRIO=10) gets SCHED_FIFO; a user
+    without the right keeps the daemon's priority and is told how to grant it. (The limit itself is not tried
+    here: this machine's container may not raise it.)"""
+    import shutil
+
+    setpriv = shutil.which("setpriv")
+    if setpriv is None or os.geteuid() != 0:
+        pytest.skip("needs root and util-linux's setpriv to run as a user without the right")
+    asked = ("from phantom.host.link_child import scheduling_of_this_process as scheduling; "
+             "print(scheduling(10)); print(scheduling(None))")
+    as_nobody = subprocess.run([setpriv, "--reuid=65534", "--regid=65534", "--clear-groups", "--inh-caps=-all",
+                                sys.executable, "-c", asked], capture_output=True, text=True, timeout=60)
+    refused, not_asked = as_nobody.stdout.splitlines()
+    nice = os.getpriority(os.PRIO_PROCESS, 0)    # the test's own, which the children inherit
+    assert refused.startswith(f"normal, nice {nice} (SCHED_FIFO 10 refused: Operation not permitted") and \
+        "LimitRTPRIO=" in refused, as_nobody
+    assert not_asked == f"normal, nice {nice}"
+    as_root = subprocess.run([sys.executable, "-c", asked], capture_output=True, text=True, timeout=60)
+    effective = int(next(line for line in open("/proc/self/status") if line.startswith("CapEff:")).split()[1], 16)
+    if effective >> 23 & 1:   # CAP_SYS_NICE (a container may run root without it)
+        assert as_root.stdout.splitlines()[0] == "SCHED_FIFO 10", as_root
+    else:
+        assert "SCHED_FIFO 10 refused" in as_root.stdout, as_root
