@@ -201,6 +201,15 @@ class Frame:
     pressures_kpa: list[float] | None
     time_utc: str
     time_s: float
+    #: where the picture's time went (s), by stage of the capture loop (:data:`STAGES`); None when not measured
+    stage_s: dict[str, float] | None = None
+
+
+#: The capture loop's stages, as each picture's ``stage_s`` names them: the move to the stop (``move``: the board's
+#: move and its acknowledgements), the settle wait and stop check (``settle``), the pressures read (``pressures``),
+#: the rig's angles read before and after the picture (``position``), the picture taken or rendered (``grab``) and
+#: written with its record (``write``).
+STAGES = ("move", "settle", "pressures", "position", "grab", "write")
 
 
 @dataclass
@@ -353,7 +362,13 @@ def _checked_frame(record: Any, where: str) -> Frame:
         pressures = checked_array(pressures, (len(pressures),) if isinstance(pressures, list) else (-1,),
                                   f"{where}: pressures_kpa", CaptureError).tolist()
     time_s = float(checked_array(record.get("time_s", 0.0), (), f"{where}: time_s", CaptureError))
-    return Frame(index, image, orbit_deg, elevation_deg, pressures, str(record.get("time_utc", "")), time_s)
+    stages = record.get("stage_s")
+    if stages is not None:
+        if not isinstance(stages, dict) or set(stages) - set(STAGES):
+            raise CaptureError(f"{where}: stage_s must map some of {', '.join(STAGES)} to seconds, got {stages!r:.80}")
+        stages = {name: float(checked_array(value, (), f"{where}: stage_s {name}", CaptureError))
+                  for name, value in stages.items()}
+    return Frame(index, image, orbit_deg, elevation_deg, pressures, str(record.get("time_utc", "")), time_s, stages)
 
 
 def _utc_now() -> str:
@@ -372,20 +387,43 @@ def capture(orbit: Orbit, camera: FrameSource, phantom: PhantomState, plan: Plan
     started = time.monotonic()
     with _abort_cleanly(orbit, folder, len(stops), stop):
         for orbit_deg, elevation_deg in stops:
+            stages = _Stages()
             _check_stop(stop)
             orbit.move_to(orbit_deg, elevation_deg)
+            stages.ended("move")
             _check_stop(stop, plan.settle_s)
+            stages.ended("settle")
             pressures = phantom.pressures_kpa()
+            stages.ended("pressures")
             before = orbit.position_deg()
+            stages.ended("position")
             picture = camera.grab()
+            stages.ended("grab")
             after = orbit.position_deg()
+            stages.ended("position")
             _check_stop(stop)
+            stages.ended("settle")
             reported = _reported_angles((orbit_deg, elevation_deg), before, after, len(folder.frames))
             frame = folder.add(picture, *reported, pressures, time.monotonic() - started)
+            frame.stage_s = stages.ended("write")  # written with the next picture's record, or the folder's end
             if progress is not None:
                 progress(len(folder.frames), len(stops), frame)
         folder.finish("complete")
     return folder
+
+
+class _Stages:
+    """A picture's time by stage (s): each :meth:`ended` adds the time since the last to its stage."""
+
+    def __init__(self) -> None:
+        self.stage_s: dict[str, float] = {}
+        self._last = time.monotonic()
+
+    def ended(self, stage: str) -> dict[str, float]:
+        now = time.monotonic()
+        self.stage_s[stage] = round(self.stage_s.get(stage, 0.0) + now - self._last, 4)
+        self._last = now
+        return self.stage_s
 
 
 def _check_stop(stop: StopFlag | None, wait_s: float = 0.0) -> None:

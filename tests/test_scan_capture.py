@@ -9,7 +9,7 @@ import pytest
 from phantom import PhantomError
 from phantom.model.mesh.surface import enclosed_volume_ml
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, virtual_rig
-from phantom.scan.capture import CameraLost, CaptureError, CaptureFolder, Plan, Webcam, capture
+from phantom.scan.capture import STAGES, CameraLost, CaptureError, CaptureFolder, Plan, Webcam, capture
 from phantom.scan.synthetic import sphere
 
 cv2 = pytest.importorskip("cv2")
@@ -84,6 +84,9 @@ def test_recorded_frames_through_the_webcam_path_make_the_sphere(recording, tmp_
     assert first["image"] == "images/0000.png" and first["pressures_kpa"] == [1.0, 1.5, 0.5]
     assert first["orbit_deg"] == pytest.approx(-180.0 + 0.004) and "time_utc" in first and first["time_s"] >= 0
     assert (tmp_path / "capture" / "images" / "0019.png").is_file()
+    # where each picture's time went, read back: every stage of the loop, none negative
+    stages = [frame.stage_s for frame in CaptureFolder.open(tmp_path / "capture").frames]
+    assert all(set(stage) == set(STAGES) and min(stage.values()) >= 0 for stage in stages), stages[0]
     result = reconstruct(CaptureFolder.open(tmp_path / "capture"), voxel_mm=0.4)
     assert result.volume_ml == pytest.approx(enclosed_volume_ml(mesh), rel=0.015)
 
@@ -150,6 +153,9 @@ def _frames(count, **change):
     (_frames(2, pressures_kpa=[1.0, None]), "frame 0: pressures_kpa must be"),
     (_frames(2, time_s=float("nan")), "frame 0: time_s must be finite"),
     (_frames(2, index=True), "frame 0: index must be a whole number"),
+    (_frames(2, stage_s={"move": "slow"}), "frame 0: stage_s move must be a number"),
+    (_frames(2, stage_s={"nap": 1.0}), "frame 0: stage_s must map some of move, settle"),
+    (_frames(2, stage_s=[1.0]), "frame 0: stage_s must map some of move, settle"),
     (_frames(2, image="../../etc/passwd"), "frame 0: image must be a picture's path inside the folder"),
     (_frames(2, image="/etc/passwd"), "frame 0: image must be a picture's path inside the folder"),
     (_frames(5000, image="images/0000.png"), "frames must be a list of at most 2000 pictures, got 5000"),
