@@ -35,6 +35,26 @@ SceneNow = Callable[[], tuple[TriangleMesh, float, float]]
 PoseAt = Callable[[float, float], Pose]
 
 
+class PhantomShapes(Protocol):
+    """The simulated phantom's surface at any chamber pressures (``phantom.hil.truth_shape.TruthShape``)."""
+
+    def surface(self, pressures_kpa: list[float] | np.ndarray) -> TriangleMesh: ...
+
+
+def truth_scene(read: Callable[[], dict[str, Any] | None], truth: PhantomShapes) -> SceneNow:
+    """The virtual camera's scene on the simulated board: the truth's surface at the plant's true pressures and
+    the rig's true angles, as ``read`` returns them (``motion_status``'s ``simulated`` part: ``rig_deg``,
+    ``pressures_kpa``); PhantomError when it returns none (not the simulated board)."""
+    def now() -> tuple[TriangleMesh, float, float]:
+        simulated = read()
+        if not simulated or simulated.get("rig_deg") is None or None in simulated["rig_deg"]:
+            raise PhantomError("the daemon does not report a simulated rig: the virtual camera needs `phantom "
+                               "daemon --sim`; with a real board give --camera N (a webcam)")
+        orbit_deg, elevation_deg = simulated["rig_deg"]
+        return truth.surface(simulated["pressures_kpa"]), float(orbit_deg), float(elevation_deg)
+    return now
+
+
 class VirtualCamera:
     """A webcam on the rig, rendered (see the module docstring); ``seed`` makes the noise repeatable. The rig gives
     the camera; ``pose_at`` the true pose at any angles (default the rig's own poses)."""

@@ -239,7 +239,7 @@ def test_a_virtual_camera_scale_out_of_bounds_is_refused(scale):
 def test_the_daemons_scan_refuses_bad_parameters_before_it_makes_a_folder_or_moves(tmp_path, params, message):
     """The red team's cases (settle_s NaN, negative or 1e6, views 1e8, scale 6): refused with why by the daemon's
     scan handler before the capture folder exists and before the rig is touched (rig=None would fail on use)."""
-    from phantom.cli.scan_rig import DaemonScanner
+    from phantom.scan.daemon_scan import DaemonScanner
 
     out = tmp_path / "capture"
     with pytest.raises(PhantomError, match=f"scan: .*{message}"):
@@ -277,3 +277,25 @@ def test_validate_refuses_more_pictures_than_a_capture_holds_before_writing(tmp_
     assert main(["scan", "validate", "--sim", "--out", str(tmp_path / "out"), "--views", "700",
                  "--elevations", "0,10,20"]) == 2
     assert "give from 1 to 2000 in all" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+def test_the_daemons_virtual_camera_without_a_simulated_phantom_is_refused_before_a_folder(tmp_path):
+    """A daemon on a real board gives its scanner no simulated truth: a scan asking the virtual camera is refused
+    with what to give instead, before the capture folder exists (rig=None would fail on use)."""
+    from phantom.scan.daemon_scan import DaemonScanner
+
+    out = tmp_path / "capture"
+    with pytest.raises(PhantomError, match="this daemon has none: give the scan a real camera"):
+        DaemonScanner(None)({"out": str(out), "views": 2}, None)
+    assert not out.exists()
+
+
+def test_a_rig_file_that_is_no_file_is_refused_before_it_is_read(tmp_path):
+    """The scan's ``rig`` param names any path: /dev/zero (endless) and a folder are refused from their stat."""
+    from phantom.scan.camera import Rig, RigError
+
+    for path in ("/dev/zero", tmp_path):
+        with pytest.raises(RigError, match="is not a rig calibration"):
+            Rig.load(path)
+    with pytest.raises(RigError, match="does not exist: calibrate the rig first"):
+        Rig.load(tmp_path / "missing.json")
