@@ -30,6 +30,7 @@ stopped capture is readable too.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import datetime
 import json
@@ -95,7 +96,9 @@ class StopFlag(Protocol):
 
 
 class FrameSource(Protocol):
-    """A camera."""
+    """A camera. One that renders its pictures (the virtual camera) also has ``take() -> Callable[[],
+    np.ndarray]``: the picture's moment now (its scene and angles read), its rendering when called, which the
+    capture loop does while the rig moves to the next stop (:func:`capture`)."""
 
     def grab(self) -> np.ndarray:
         """A picture taken now: 8-bit RGB (height, width, 3); CameraLost if there is none."""
@@ -385,7 +388,8 @@ def capture(orbit: Orbit, camera: FrameSource, phantom: PhantomState, plan: Plan
     it, mark the folder stopped and raise CaptureStopped."""
     stops = plan.stops()
     started = time.monotonic()
-    with _abort_cleanly(orbit, folder, len(stops), stop):
+    pictures = _Pictures(folder, len(stops), progress)
+    with _abort_cleanly(orbit, folder, len(stops), stop, pictures.close):
         for orbit_deg, elevation_deg in stops:
             stages = _Stages()
             _check_stop(stop)
@@ -397,19 +401,75 @@ def capture(orbit: Orbit, camera: FrameSource, phantom: PhantomState, plan: Plan
             stages.ended("pressures")
             before = orbit.position_deg()
             stages.ended("position")
-            picture = camera.grab()
+            take = getattr(camera, "take", None)
+            if take is not None:
+                develop = take()
+            else:  # a webcam's picture is taken when grabbed
+                develop = _as_taken(camera.grab())
             stages.ended("grab")
             after = orbit.position_deg()
             stages.ended("position")
             _check_stop(stop)
             stages.ended("settle")
             reported = _reported_angles((orbit_deg, elevation_deg), before, after, len(folder.frames))
-            frame = folder.add(picture, *reported, pressures, time.monotonic() - started)
-            frame.stage_s = stages.ended("write")  # written with the next picture's record, or the folder's end
-            if progress is not None:
-                progress(len(folder.frames), len(stops), frame)
+            pictures.add(develop, reported, pressures, time.monotonic() - started, stages.stage_s)
+        pictures.close()
         folder.finish("complete")
     return folder
+
+
+class _Pictures:
+    """The pictures developed (a virtual camera's rendered) and written into the folder in a thread of their own,
+    one at a time in the order taken, while the rig moves to the next stop (unless a progress callback must see
+    each first): a picture's render and PNG then cost the scan nothing but where they are slower than a move.
+    The folder's capture.json is written by that thread only while a picture is under way; :meth:`close` waits
+    for it before the folder is finished."""
+
+    def __init__(self, folder: CaptureFolder, total: int, progress: Progress | None):
+        self.folder, self.total, self.progress = folder, total, progress
+        self._thread = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="capture-pictures")
+        self._pending: concurrent.futures.Future[Frame] | None = None
+
+    def add(self, develop: Callable[[], np.ndarray], angles_deg: tuple[float, float], pressures: list[float] | None,
+            time_s: float, stage_s: dict[str, float]) -> None:
+        """Develop and write a picture (in the thread), once the one before it is written; that one's failure
+        (a render's, a full disk) is raised here. With a progress callback the picture is waited for: the
+        callback sees each picture before the next move (and may stop the capture there)."""
+        self._wait()
+        self._pending = self._thread.submit(self._write, develop, angles_deg, pressures, time_s, stage_s)
+        if self.progress is not None:
+            self._wait()
+
+    def _write(self, develop: Callable[[], np.ndarray], angles_deg: tuple[float, float],
+               pressures: list[float] | None, time_s: float, stage_s: dict[str, float]) -> Frame:
+        started = time.monotonic()
+        picture = develop()
+        developed = time.monotonic()
+        frame = self.folder.add(picture, *angles_deg, pressures, time_s)
+        stage_s["grab"] = round(stage_s.get("grab", 0.0) + developed - started, 4)
+        stage_s["write"] = round(time.monotonic() - developed, 4)
+        frame.stage_s = stage_s  # written with the next picture's record, or the folder's end
+        return frame
+
+    def _wait(self) -> None:
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            frame = pending.result()
+            if self.progress is not None:
+                self.progress(len(self.folder.frames), self.total, frame)
+
+    def close(self) -> None:
+        """Wait for the picture under way (its failure raised, unless an error is already being handled: the
+        picture is then kept if it can be) and end the thread. Idempotent."""
+        try:
+            self._wait()
+        finally:
+            self._thread.shutdown()
+
+
+def _as_taken(picture: np.ndarray) -> Callable[[], np.ndarray]:
+    """A picture already developed (a webcam's), as a camera's ``take`` answers."""
+    return lambda: picture
 
 
 class _Stages:
@@ -451,10 +511,13 @@ def _reported_angles(planned: tuple[float, float], before: tuple[float, float], 
 
 
 @contextlib.contextmanager
-def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int, stop: StopFlag | None) -> Iterator[None]:
+def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int, stop: StopFlag | None,
+                   pictures_written: Callable[[], None]) -> Iterator[None]:
     try:
         yield
     except (PhantomError, OSError, KeyboardInterrupt) as error:
+        with contextlib.suppress(Exception):  # the picture under way kept if it can be; this error is the one told
+            pictures_written()
         # a move that a stop interrupted fails (ended STOPPED): that capture was stopped, not aborted
         requested = stop.stop_requested() if stop is not None else None
         stopped = isinstance(error, CaptureStopped) or requested is not None
@@ -469,6 +532,10 @@ def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int, stop: StopFl
         raise kind(f"capture {'stopped' if stopped else 'aborted'} after {len(folder.frames)} of {total} pictures: "
                    f"{reason}; the motors are {'released' if released is None else 'NOT released (' + released + ')'}"
                    f" and the pictures taken are kept in {folder.path}") from error
+    except BaseException:  # a bug: told as it is, the pictures' thread ended first
+        with contextlib.suppress(Exception):
+            pictures_written()
+        raise
 
 
 def _release(orbit: Orbit) -> str | None:

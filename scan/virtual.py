@@ -70,15 +70,23 @@ class VirtualCamera:
         self._drawn: tuple[TriangleMesh, TriangleMesh, np.ndarray, np.ndarray | None] | None = None
 
     def grab(self) -> np.ndarray:
+        return self.take()()
+
+    def take(self) -> Callable[[], np.ndarray]:
+        """The picture of this moment: the scene and the rig's angles read now; the returned call renders it (the
+        capture loop renders it while the rig moves on). Rendered in the order taken, one at a time."""
         mesh, orbit_deg, elevation_deg = self.scene()
-        if self._drawn is None or self._drawn[0] is not mesh:
-            if self.renderer.look.tubes and len(mesh.triangles):
-                self._drawn = (mesh, *hung_scene(mesh))
-            else:
-                self._drawn = (mesh, mesh, vertex_normals(mesh.vertices_mm, mesh.triangles), None)
-        linear = self.renderer.render_mesh(self._drawn[1], self.pose_at(orbit_deg, elevation_deg), self._drawn[2],
-                                           self._drawn[3])
-        return to_8bit(linear, self.rng, self.renderer.look)
+        pose = self.pose_at(orbit_deg, elevation_deg)
+
+        def develop() -> np.ndarray:
+            if self._drawn is None or self._drawn[0] is not mesh:
+                if self.renderer.look.tubes and len(mesh.triangles):
+                    self._drawn = (mesh, *hung_scene(mesh))
+                else:
+                    self._drawn = (mesh, mesh, vertex_normals(mesh.vertices_mm, mesh.triangles), None)
+            linear = self.renderer.render_mesh(self._drawn[1], pose, self._drawn[2], self._drawn[3])
+            return to_8bit(linear, self.rng, self.renderer.look)
+        return develop
 
     def describe(self) -> dict[str, Any]:
         camera = self.rig.camera
@@ -145,10 +153,11 @@ class TargetCamera(VirtualCamera):
                          pose_at=pose_at)
         self.target, self.target_pose, self.orbit = target, target_pose, orbit
 
-    def grab(self) -> np.ndarray:
+    def take(self) -> Callable[[], np.ndarray]:
         orbit = self.orbit
         pose = self.pose_at(orbit.orbit_deg, orbit.elevation_deg)
-        return to_8bit(self.renderer.render_target(self.target, self.target_pose, pose), self.rng, self.renderer.look)
+        return lambda: to_8bit(self.renderer.render_target(self.target, self.target_pose, pose), self.rng,
+                               self.renderer.look)
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "target": self.target.to_json()}
