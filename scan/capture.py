@@ -210,9 +210,9 @@ class Frame:
 
 #: The capture loop's stages, as each picture's ``stage_s`` names them: the move to the stop (``move``: the board's
 #: move and its acknowledgements), the settle wait and stop check (``settle``), the pressures read (``pressures``),
-#: the rig's angles read before and after the picture (``position``), the picture taken or rendered (``grab``) and
-#: written with its record (``write``).
-STAGES = ("move", "settle", "pressures", "position", "grab", "write")
+#: the rig's angles read before and after the picture (``position``), the picture taken or rendered (``grab``),
+#: written with its record (``write``) and, for a capture that keeps its pictures' silhouettes, keyed (``key``).
+STAGES = ("move", "settle", "pressures", "position", "grab", "write", "key")
 
 
 @dataclass
@@ -382,13 +382,16 @@ Progress = Callable[[int, int, Frame], None]
 
 
 def capture(orbit: Orbit, camera: FrameSource, phantom: PhantomState, plan: Plan, folder: CaptureFolder,
-            progress: Progress | None = None, stop: StopFlag | None = None) -> CaptureFolder:
+            progress: Progress | None = None, stop: StopFlag | None = None,
+            keep: Callable[[Frame, np.ndarray], None] | None = None) -> CaptureFolder:
     """Take the plan's pictures into ``folder``; on any failure or Ctrl-C release the orbit, mark the folder
     aborted (pictures kept) and raise CaptureError (KeyboardInterrupt for Ctrl-C); on a ``stop`` request release
-    it, mark the folder stopped and raise CaptureStopped."""
+    it, mark the folder stopped and raise CaptureStopped. ``keep`` is given each picture (RGB) once written, in
+    the pictures' thread (its time is the picture's ``key`` stage): the daemon's verify scan keys its silhouette
+    there (``phantom.scan.keying``)."""
     stops = plan.stops()
     started = time.monotonic()
-    pictures = _Pictures(folder, len(stops), progress)
+    pictures = _Pictures(folder, len(stops), progress, keep)
     with _abort_cleanly(orbit, folder, len(stops), stop, pictures.close):
         for orbit_deg, elevation_deg in stops:
             stages = _Stages()
@@ -425,8 +428,9 @@ class _Pictures:
     The folder's capture.json is written by that thread only while a picture is under way; :meth:`close` waits
     for it before the folder is finished."""
 
-    def __init__(self, folder: CaptureFolder, total: int, progress: Progress | None):
-        self.folder, self.total, self.progress = folder, total, progress
+    def __init__(self, folder: CaptureFolder, total: int, progress: Progress | None,
+                 keep: Callable[[Frame, np.ndarray], None] | None = None):
+        self.folder, self.total, self.progress, self.keep = folder, total, progress, keep
         self._thread = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="capture-pictures")
         self._pending: concurrent.futures.Future[Frame] | None = None
 
@@ -447,7 +451,11 @@ class _Pictures:
         developed = time.monotonic()
         frame = self.folder.add(picture, *angles_deg, pressures, time_s)
         stage_s["grab"] = round(stage_s.get("grab", 0.0) + developed - started, 4)
-        stage_s["write"] = round(time.monotonic() - developed, 4)
+        written = time.monotonic()
+        stage_s["write"] = round(written - developed, 4)
+        if self.keep is not None:
+            self.keep(frame, picture)
+            stage_s["key"] = round(time.monotonic() - written, 4)
         frame.stage_s = stage_s  # written with the next picture's record, or the folder's end
         return frame
 

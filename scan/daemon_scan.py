@@ -18,6 +18,7 @@ from phantom import PhantomError
 from phantom.protocol.motion import SCANNER_AXES, AxisConfig
 from phantom.scan.camera import Rig, virtual_pose_at, virtual_rig
 from phantom.scan.capture import CaptureError, CaptureFolder, FrameSource, Plan, Webcam, capture
+from phantom.scan.keying import KEYED
 
 if TYPE_CHECKING:
     from phantom.scan.virtual import PhantomShapes
@@ -49,7 +50,7 @@ class DaemonRig(Protocol):
 
 #: The params a ``scan`` request takes.
 SCAN_PARAMS = frozenset({"out", "views", "elevations_deg", "start_deg", "span_deg", "settle_s", "camera", "scale",
-                         "seed", "width", "height", "exposure", "focus", "rig", "look"})
+                         "seed", "width", "height", "exposure", "focus", "rig", "look", "key_silhouettes"})
 
 
 class DaemonScanner:
@@ -62,7 +63,9 @@ class DaemonScanner:
     default, on the simulated board; a device number or a video path for a webcam), ``scale`` (the virtual
     picture's size of 1280x960), ``look`` (the virtual pictures: "ideal", the default, or "real": the phantom hung
     by its tubes, glossy, an uneven cloth, vignetting), ``seed``, ``width``, ``height``, ``exposure``, ``focus``,
-    ``rig`` (a rig.json to keep beside the pictures). Answers the folder, its status (``complete``, ``stopped``
+    ``rig`` (a rig.json to keep beside the pictures), ``key_silhouettes`` (false; the daemon's verify scan sets it:
+    each picture's silhouette keyed as it is taken and kept in this process for the reconstruction that follows,
+    ``phantom.scan.keying``). Answers the folder, its status (``complete``, ``stopped``
     by a stop request, ``aborted``) and the number of pictures, and for a capture that did not complete the
     ``reason``. The virtual camera photographs what ``truth`` makes (the simulated phantom ``phantom daemon``
     gives: the shipped one unless ``--sim-truth`` said another; None: no virtual camera).
@@ -84,12 +87,16 @@ class DaemonScanner:
         try:
             kept = Rig.load(params["rig"]) if params.get("rig") else None
             folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
-            rig.configure(SCANNER_AXES)
             answer: dict[str, Any] = {"folder": str(folder.path)}
+            keep = KEYED.start(folder) if params.get("key_silhouettes") else None
             try:
-                capture(rig, camera, rig, plan, folder, stop=rig)
+                rig.configure(SCANNER_AXES)
+                capture(rig, camera, rig, plan, folder, stop=rig, keep=keep)
             except CaptureError as error:  # stopped or aborted: the folder says which, the error why
                 answer["reason"] = str(error)
+            finally:  # a capture that did not complete leaves no silhouettes to read
+                if keep is not None and folder.status != "complete":
+                    KEYED.drop(folder)
         finally:  # a webcam is let go: the process it was opened in outlives the scan, the next opens it again
             close = getattr(camera, "close", None)
             if close is not None:
@@ -114,6 +121,8 @@ class DaemonScanner:
             raise ScanParamsError(f"scan: look must be one of {', '.join(sorted(LOOKS))} (the virtual camera's "
                                   f"pictures: ideal, or as a real rig sees the phantom hung by its tubes), got "
                                   f"{look!r}")
+        if not isinstance(params.get("key_silhouettes", False), bool):
+            raise ScanParamsError(f"scan: key_silhouettes must be true or false, got {params['key_silhouettes']!r:.60}")
         seed = params.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
             raise ScanParamsError(f"scan: seed must be a whole number from 0 to 2^32 - 1, got {seed!r}")

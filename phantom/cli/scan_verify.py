@@ -58,6 +58,7 @@ class VerifyScan:
     def volume(self, folder: str) -> dict[str, Any]:
         from phantom.scan.camera import virtual_rig
         from phantom.scan.capture import CaptureFolder
+        from phantom.scan.keying import KEYED
         from phantom.scan.reconstruct import reconstruct, write_mesh
 
         capture = CaptureFolder.open(folder)
@@ -70,11 +71,13 @@ class VerifyScan:
                                    "the verify plan a rig, from phantom scan calibrate)")
             rig = virtual_rig(float(self.plan.get("scale", 1.0)),
                               tuple(float(e) for e in self.plan.get("elevations_deg", [0.0, 30.0])))
-        result = reconstruct(capture, rig)
+        # the silhouettes keyed while the capture ran in this process (key_silhouettes), the rest keyed here
+        keyed = KEYED.take(capture)
+        result = reconstruct(capture, rig, keyed=keyed)
         if result.touching_edge:
             raise PhantomError(f"the phantom touches the picture's edge in {result.touching_edge} of {result.views} "
                                "pictures: it is not wholly in view, its volume would be wrong")
         mesh = write_mesh(result.mesh, capture.path / "scan.ply")
         surface = (result.mesh.vertices_mm, result.mesh.triangles) if in_model_frame else None
         return {"volume_ml": result.volume_ml, "mesh": str(mesh), "views": result.views,
-                "stage_s": result.stage_s, "surface_mm": surface}
+                "stage_s": result.stage_s, "surface_mm": surface, "keyed_while_taken": len(keyed)}
