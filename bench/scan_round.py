@@ -124,10 +124,12 @@ def reconstruction_table(capture: CaptureFolder, verify: VerifyScan) -> float:
     return after_s
 
 
-def round_scans_s(scans: Path) -> list[float]:
-    """Each verified round's capture time (s, its last picture's time_s) from its folder under ``scans``."""
-    return [CaptureFolder.open(path).frames[-1].time_s for path in sorted(scans.glob("*_round*"))
-            if (path / "capture.json").is_file() and CaptureFolder.open(path).frames]
+def round_scans_s(scans: Path) -> list[tuple[float, float]]:
+    """Each verified round's capture time (s, its last picture's time_s) and its pictures' keying (s, the ``key``
+    stage's sum: done in the capture's pictures thread) from its folder under ``scans``."""
+    folders = [CaptureFolder.open(path) for path in sorted(scans.glob("*_round*")) if (path / "capture.json").is_file()]
+    return [(folder.frames[-1].time_s, sum((frame.stage_s or {}).get("key", 0.0) for frame in folder.frames))
+            for folder in folders if folder.frames]
 
 
 def main() -> None:
@@ -164,10 +166,11 @@ def main() -> None:
                         rounds = tuple(error.rounds)
                     verified_s = time.monotonic() - started
                     per_round_s = verified_s / max(len(rounds), 1)
-                    scans_s = round_scans_s(folder / "data" / "scans")
-                    scan_s = sum(scans_s) / max(len(scans_s), 1)
+                    scans = round_scans_s(folder / "data" / "scans")
+                    scan_s = sum(took_s for took_s, _ in scans) / max(len(scans), 1)
+                    each = ", ".join(f"{took_s:.1f} keying {key_s:.1f}" for took_s, key_s in scans)
                     print(f"verified target: {len(rounds)} round(s) in {verified_s:.1f} s, {per_round_s:.1f} s a round"
-                          f": its scan {scan_s:.1f} s (capture.json; {', '.join(f'{s:.1f}' for s in scans_s)}), "
+                          f": its scan {scan_s:.1f} s (capture.json; {each}), "
                           f"the reconstruction after it (as here) {reconstruct_s:.1f} s, the rest (fit, solve, "
                           f"pressures) {per_round_s - scan_s - reconstruct_s:.1f} s")
         finally:
