@@ -273,7 +273,9 @@ class Daemon:
             await self._rig_at_rest()
             late_before = self.motion.late_replies
             try:
-                answer = await self.api.handlers["scan"]({"out": str(verify_folder(round_)), **plan})
+                # the pictures' silhouettes keyed while the rig moves, in the process its reconstruction runs in
+                answer = await self.api.handlers["scan"]({"out": str(verify_folder(round_)), **plan,
+                                                          "key_silhouettes": True})
             except ApiError as error:
                 if attempt == SCAN_TRIES or self.motion.late_replies == late_before:
                     raise

@@ -510,9 +510,10 @@ def scannable_pressures_kpa(status: dict[str, Any]) -> list[float] | None:
 
 
 class Scanner(Protocol):
-    """A whole capture for the ``scan`` API method (``phantom.cli.scan_rig.DaemonScanner``): blocking, run in a
+    """A whole capture for the ``scan`` API method (``phantom.scan.daemon_scan.DaemonScanner``): blocking, run in a
     worker thread; ``params`` are the request's; returns the JSON answer (``folder``, ``status``, ``pictures``,
-    and ``reason`` when the status is not ``complete``); a PhantomError is the request's error."""
+    and ``reason`` when the status is not ``complete``); a PhantomError is the request's error, the caller's to
+    fix (``invalid_params``) when its ``code`` says so."""
 
     def __call__(self, params: dict[str, Any], rig: ThreadRig) -> dict[str, Any]: ...
 
@@ -541,6 +542,8 @@ def scan_method(orbit: Orbit, scanner: Scanner, state: DaemonState) -> dict[str,
         except ApiError:  # the scanner's refusal of its params (invalid_params), before anything moved
             raise
         except PhantomError as error:
+            if getattr(error, "code", None) == "invalid_params":  # its params, refused before anything moved
+                raise ApiError("invalid_params", str(error)) from None
             raise ApiError("rejected", f"the scan stopped: {error}") from None
         if answer.get("status") != "complete":
             raise ApiError("rejected", f"the scan was {answer.get('status')}: {answer.get('reason')}", answer)

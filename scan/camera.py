@@ -18,8 +18,10 @@ tilts the camera between passes). A rig's calibration (``phantom scan calibrate`
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import stat
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +46,10 @@ MIN_PICTURE_SIDE_PX = 16
 ROTATION_TOLERANCE = 1e-6
 #: The largest distance (mm) a rig's camera or axis may be from the world's origin: 10 m.
 MAX_RIG_DISTANCE_MM = 1e4
+
+
+#: The largest rig file read (a rig calibration is a few kB).
+MAX_RIG_FILE_BYTES = 16 * 2**20
 
 
 class RigError(PhantomError):
@@ -313,7 +319,14 @@ class Rig:
 
     @classmethod
     def load(cls, path: str | Path) -> Rig:
+        """A rig file, refused (RigError) before it is read when it is not a regular file of at most
+        :data:`MAX_RIG_FILE_BYTES` (a path a client names: /dev/zero is endless)."""
         path = Path(path)
+        with contextlib.suppress(OSError):  # a missing file: the read below says what to do
+            info = path.stat()
+            if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_RIG_FILE_BYTES:
+                raise RigError(f"the rig file {path} is not a rig calibration (not a regular file of at most "
+                               f"{MAX_RIG_FILE_BYTES // 2**20} MiB): give the rig.json phantom scan calibrate wrote")
         try:
             data = json.loads(path.read_text())
         except FileNotFoundError:

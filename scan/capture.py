@@ -30,6 +30,7 @@ stopped capture is readable too.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import datetime
 import json
@@ -95,7 +96,9 @@ class StopFlag(Protocol):
 
 
 class FrameSource(Protocol):
-    """A camera."""
+    """A camera. One that renders its pictures (the virtual camera) also has ``take() -> Callable[[],
+    np.ndarray]``: the picture's moment now (its scene and angles read), its rendering when called, which the
+    capture loop does while the rig moves to the next stop (:func:`capture`)."""
 
     def grab(self) -> np.ndarray:
         """A picture taken now: 8-bit RGB (height, width, 3); CameraLost if there is none."""
@@ -201,6 +204,15 @@ class Frame:
     pressures_kpa: list[float] | None
     time_utc: str
     time_s: float
+    #: where the picture's time went (s), by stage of the capture loop (:data:`STAGES`); None when not measured
+    stage_s: dict[str, float] | None = None
+
+
+#: The capture loop's stages, as each picture's ``stage_s`` names them: the move to the stop (``move``: the board's
+#: move and its acknowledgements), the settle wait and stop check (``settle``), the pressures read (``pressures``),
+#: the rig's angles read before and after the picture (``position``), the picture taken or rendered (``grab``),
+#: written with its record (``write``) and, for a capture that keeps its pictures' silhouettes, keyed (``key``).
+STAGES = ("move", "settle", "pressures", "position", "grab", "write", "key")
 
 
 @dataclass
@@ -353,7 +365,13 @@ def _checked_frame(record: Any, where: str) -> Frame:
         pressures = checked_array(pressures, (len(pressures),) if isinstance(pressures, list) else (-1,),
                                   f"{where}: pressures_kpa", CaptureError).tolist()
     time_s = float(checked_array(record.get("time_s", 0.0), (), f"{where}: time_s", CaptureError))
-    return Frame(index, image, orbit_deg, elevation_deg, pressures, str(record.get("time_utc", "")), time_s)
+    stages = record.get("stage_s")
+    if stages is not None:
+        if not isinstance(stages, dict) or set(stages) - set(STAGES):
+            raise CaptureError(f"{where}: stage_s must map some of {', '.join(STAGES)} to seconds, got {stages!r:.80}")
+        stages = {name: float(checked_array(value, (), f"{where}: stage_s {name}", CaptureError))
+                  for name, value in stages.items()}
+    return Frame(index, image, orbit_deg, elevation_deg, pressures, str(record.get("time_utc", "")), time_s, stages)
 
 
 def _utc_now() -> str:
@@ -364,28 +382,116 @@ Progress = Callable[[int, int, Frame], None]
 
 
 def capture(orbit: Orbit, camera: FrameSource, phantom: PhantomState, plan: Plan, folder: CaptureFolder,
-            progress: Progress | None = None, stop: StopFlag | None = None) -> CaptureFolder:
+            progress: Progress | None = None, stop: StopFlag | None = None,
+            keep: Callable[[Frame, np.ndarray], None] | None = None) -> CaptureFolder:
     """Take the plan's pictures into ``folder``; on any failure or Ctrl-C release the orbit, mark the folder
     aborted (pictures kept) and raise CaptureError (KeyboardInterrupt for Ctrl-C); on a ``stop`` request release
-    it, mark the folder stopped and raise CaptureStopped."""
+    it, mark the folder stopped and raise CaptureStopped. ``keep`` is given each picture (RGB) once written, in
+    the pictures' thread (its time is the picture's ``key`` stage): the daemon's verify scan keys its silhouette
+    there (``phantom.scan.keying``)."""
     stops = plan.stops()
     started = time.monotonic()
-    with _abort_cleanly(orbit, folder, len(stops), stop):
+    pictures = _Pictures(folder, len(stops), progress, keep)
+    with _abort_cleanly(orbit, folder, len(stops), stop, pictures.close):
         for orbit_deg, elevation_deg in stops:
+            stages = _Stages()
             _check_stop(stop)
             orbit.move_to(orbit_deg, elevation_deg)
+            stages.ended("move")
             _check_stop(stop, plan.settle_s)
+            stages.ended("settle")
             pressures = phantom.pressures_kpa()
+            stages.ended("pressures")
             before = orbit.position_deg()
-            picture = camera.grab()
+            stages.ended("position")
+            take = getattr(camera, "take", None)
+            if take is not None:
+                develop = take()
+            else:  # a webcam's picture is taken when grabbed
+                develop = _as_taken(camera.grab())
+            stages.ended("grab")
             after = orbit.position_deg()
+            stages.ended("position")
             _check_stop(stop)
+            stages.ended("settle")
             reported = _reported_angles((orbit_deg, elevation_deg), before, after, len(folder.frames))
-            frame = folder.add(picture, *reported, pressures, time.monotonic() - started)
-            if progress is not None:
-                progress(len(folder.frames), len(stops), frame)
+            pictures.add(develop, reported, pressures, time.monotonic() - started, stages.stage_s)
+        pictures.close()
         folder.finish("complete")
     return folder
+
+
+class _Pictures:
+    """The pictures developed (a virtual camera's rendered) and written into the folder in a thread of their own,
+    one at a time in the order taken, while the rig moves to the next stop (unless a progress callback must see
+    each first): a picture's render and PNG then cost the scan nothing but where they are slower than a move.
+    The folder's capture.json is written by that thread only while a picture is under way; :meth:`close` waits
+    for it before the folder is finished."""
+
+    def __init__(self, folder: CaptureFolder, total: int, progress: Progress | None,
+                 keep: Callable[[Frame, np.ndarray], None] | None = None):
+        self.folder, self.total, self.progress, self.keep = folder, total, progress, keep
+        self._thread = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="capture-pictures")
+        self._pending: concurrent.futures.Future[Frame] | None = None
+
+    def add(self, develop: Callable[[], np.ndarray], angles_deg: tuple[float, float], pressures: list[float] | None,
+            time_s: float, stage_s: dict[str, float]) -> None:
+        """Develop and write a picture (in the thread), once the one before it is written; that one's failure
+        (a render's, a full disk) is raised here. With a progress callback the picture is waited for: the
+        callback sees each picture before the next move (and may stop the capture there)."""
+        self._wait()
+        self._pending = self._thread.submit(self._write, develop, angles_deg, pressures, time_s, stage_s)
+        if self.progress is not None:
+            self._wait()
+
+    def _write(self, develop: Callable[[], np.ndarray], angles_deg: tuple[float, float],
+               pressures: list[float] | None, time_s: float, stage_s: dict[str, float]) -> Frame:
+        started = time.monotonic()
+        picture = develop()
+        developed = time.monotonic()
+        frame = self.folder.add(picture, *angles_deg, pressures, time_s)
+        stage_s["grab"] = round(stage_s.get("grab", 0.0) + developed - started, 4)
+        written = time.monotonic()
+        stage_s["write"] = round(written - developed, 4)
+        if self.keep is not None:
+            self.keep(frame, picture)
+            stage_s["key"] = round(time.monotonic() - written, 4)
+        frame.stage_s = stage_s  # written with the next picture's record, or the folder's end
+        return frame
+
+    def _wait(self) -> None:
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            frame = pending.result()
+            if self.progress is not None:
+                self.progress(len(self.folder.frames), self.total, frame)
+
+    def close(self) -> None:
+        """Wait for the picture under way (its failure raised, unless an error is already being handled: the
+        picture is then kept if it can be) and end the thread. Idempotent."""
+        try:
+            self._wait()
+        finally:
+            self._thread.shutdown()
+
+
+def _as_taken(picture: np.ndarray) -> Callable[[], np.ndarray]:
+    """A picture already developed (a webcam's), as a camera's ``take`` answers."""
+    return lambda: picture
+
+
+class _Stages:
+    """A picture's time by stage (s): each :meth:`ended` adds the time since the last to its stage."""
+
+    def __init__(self) -> None:
+        self.stage_s: dict[str, float] = {}
+        self._last = time.monotonic()
+
+    def ended(self, stage: str) -> dict[str, float]:
+        now = time.monotonic()
+        self.stage_s[stage] = round(self.stage_s.get(stage, 0.0) + now - self._last, 4)
+        self._last = now
+        return self.stage_s
 
 
 def _check_stop(stop: StopFlag | None, wait_s: float = 0.0) -> None:
@@ -413,10 +519,13 @@ def _reported_angles(planned: tuple[float, float], before: tuple[float, float], 
 
 
 @contextlib.contextmanager
-def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int, stop: StopFlag | None) -> Iterator[None]:
+def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int, stop: StopFlag | None,
+                   pictures_written: Callable[[], None]) -> Iterator[None]:
     try:
         yield
     except (PhantomError, OSError, KeyboardInterrupt) as error:
+        with contextlib.suppress(Exception):  # the picture under way kept if it can be; this error is the one told
+            pictures_written()
         # a move that a stop interrupted fails (ended STOPPED): that capture was stopped, not aborted
         requested = stop.stop_requested() if stop is not None else None
         stopped = isinstance(error, CaptureStopped) or requested is not None
@@ -431,6 +540,10 @@ def _abort_cleanly(orbit: Orbit, folder: CaptureFolder, total: int, stop: StopFl
         raise kind(f"capture {'stopped' if stopped else 'aborted'} after {len(folder.frames)} of {total} pictures: "
                    f"{reason}; the motors are {'released' if released is None else 'NOT released (' + released + ')'}"
                    f" and the pictures taken are kept in {folder.path}") from error
+    except BaseException:  # a bug: told as it is, the pictures' thread ended first
+        with contextlib.suppress(Exception):
+            pictures_written()
+        raise
 
 
 def _release(orbit: Orbit) -> str | None:

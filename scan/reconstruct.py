@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,11 +26,11 @@ from phantom import memory_budget_bytes
 from phantom.model.arrays import FloatArray
 from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml
 from phantom.scan.camera import Camera, Pose, Rig
-from phantom.scan.capture import CaptureError, CaptureFolder, Frame
+from phantom.scan.capture import CaptureError, CaptureFolder, Frame, png_size
 from phantom.scan.carve import Carver, View, carve, surface
 from phantom.scan.compare import SCAN_SUFFIXES, ScanError
 from phantom.scan.hanging import HANGING_SHARE, Hanging, cut_column
-from phantom.scan.silhouette import SilhouetteError, silhouette
+from phantom.scan.silhouette import Silhouette, SilhouetteError, silhouette
 
 #: The voxel size (mm) of the finest grid by default.
 VOXEL_MM = 0.3
@@ -94,10 +94,13 @@ def rig_centre(poses: Sequence[FloatArray], forwards: Sequence[FloatArray]) -> F
 
 
 def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float = VOXEL_MM,
-                frames: Sequence[Frame] | None = None, progress: Callable[[str], None] | None = None) -> Reconstruction:
+                frames: Sequence[Frame] | None = None, progress: Callable[[str], None] | None = None,
+                keyed: Mapping[str, Silhouette] | None = None) -> Reconstruction:
     """The carved surface of a capture folder's pictures (all, or ``frames``), posed by ``rig`` (default: the rig
-    kept in the folder). CaptureError for a folder without pictures or a rig, or pictures of another size than
-    the rig's camera; SilhouetteError for a picture without a silhouette; CarveError if nothing is left."""
+    kept in the folder). ``keyed``: silhouettes found already, by picture (``Frame.image``), each of the very
+    picture in the folder (``phantom.scan.keying``: keyed as the capture wrote them); the others are read and
+    keyed here. CaptureError for a folder without pictures or a rig, or pictures of another size than the rig's
+    camera; SilhouetteError for a picture without a silhouette; CarveError if nothing is left."""
     rig = rig if rig is not None else folder.rig()
     if rig is None:
         raise CaptureError(f"{folder.path} keeps no rig calibration (rig.json): give the rig's (--rig RIG.json, "
@@ -119,22 +122,33 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     started = time.perf_counter()
     poses = [rig.pose(frame.orbit_deg, frame.elevation_deg) for frame in frames]
 
+    keyed = {} if keyed is None else keyed
+
     def key(frame: Frame) -> tuple[Frame, object]:
-        image = folder.image(frame)
-        if image.shape[:2] != (rig.camera.height, rig.camera.width):
-            raise CaptureError(f"{frame.image} is {image.shape[1]}x{image.shape[0]}, the rig's camera "
+        found, image = keyed.get(frame.image), None
+        if found is None:
+            image = folder.image(frame)
+            height, width = image.shape[:2]
+        else:  # keyed as it was written: its size from its header
+            width, height = png_size(folder.path / frame.image)
+        if (height, width) != (rig.camera.height, rig.camera.width):
+            raise CaptureError(f"{frame.image} is {width}x{height}, the rig's camera "
                                f"{rig.camera.width}x{rig.camera.height}: calibrate the rig at this picture size")
+        if image is None:
+            return frame, found
         try:
             return frame, silhouette(image)
         except SilhouetteError as error:
             raise SilhouetteError(f"{frame.image}: {error}") from None
 
     with concurrent.futures.ThreadPoolExecutor(THREADS) as pool:
-        keyed = list(pool.map(key, frames))
-    views = [View(pose, found) for pose, (_, found) in zip(poses, keyed, strict=True)]  # type: ignore[arg-type]
+        silhouettes = list(pool.map(key, frames))
+    views = [View(pose, found) for pose, (_, found) in zip(poses, silhouettes, strict=True)]  # type: ignore[arg-type]
     stage_s["silhouettes"] = time.perf_counter() - started
     if progress is not None:
-        progress(f"{len(views)} silhouettes in {stage_s['silhouettes']:.1f} s")
+        ahead = sum(frame.image in keyed for frame in frames)
+        progress(f"{len(views)} silhouettes in {stage_s['silhouettes']:.1f} s"
+                 + (f" ({ahead} keyed as they were taken)" if ahead else ""))
     centre = rig_centre([pose.centre_mm for pose in poses], [pose.forward for pose in poses])
     distance = float(np.median([np.linalg.norm(pose.centre_mm - centre) for pose in poses]))
     carver = Carver(rig.camera, views, threads=THREADS)

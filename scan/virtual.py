@@ -35,6 +35,26 @@ SceneNow = Callable[[], tuple[TriangleMesh, float, float]]
 PoseAt = Callable[[float, float], Pose]
 
 
+class PhantomShapes(Protocol):
+    """The simulated phantom's surface at any chamber pressures (``phantom.hil.truth_shape.TruthShape``)."""
+
+    def surface(self, pressures_kpa: list[float] | np.ndarray) -> TriangleMesh: ...
+
+
+def truth_scene(read: Callable[[], dict[str, Any] | None], truth: PhantomShapes) -> SceneNow:
+    """The virtual camera's scene on the simulated board: the truth's surface at the plant's true pressures and
+    the rig's true angles, as ``read`` returns them (``motion_status``'s ``simulated`` part: ``rig_deg``,
+    ``pressures_kpa``); PhantomError when it returns none (not the simulated board)."""
+    def now() -> tuple[TriangleMesh, float, float]:
+        simulated = read()
+        if not simulated or simulated.get("rig_deg") is None or None in simulated["rig_deg"]:
+            raise PhantomError("the daemon does not report a simulated rig: the virtual camera needs `phantom "
+                               "daemon --sim`; with a real board give --camera N (a webcam)")
+        orbit_deg, elevation_deg = simulated["rig_deg"]
+        return truth.surface(simulated["pressures_kpa"]), float(orbit_deg), float(elevation_deg)
+    return now
+
+
 class VirtualCamera:
     """A webcam on the rig, rendered (see the module docstring); ``seed`` makes the noise repeatable. The rig gives
     the camera; ``pose_at`` the true pose at any angles (default the rig's own poses)."""
@@ -50,15 +70,23 @@ class VirtualCamera:
         self._drawn: tuple[TriangleMesh, TriangleMesh, np.ndarray, np.ndarray | None] | None = None
 
     def grab(self) -> np.ndarray:
+        return self.take()()
+
+    def take(self) -> Callable[[], np.ndarray]:
+        """The picture of this moment: the scene and the rig's angles read now; the returned call renders it (the
+        capture loop renders it while the rig moves on). Rendered in the order taken, one at a time."""
         mesh, orbit_deg, elevation_deg = self.scene()
-        if self._drawn is None or self._drawn[0] is not mesh:
-            if self.renderer.look.tubes and len(mesh.triangles):
-                self._drawn = (mesh, *hung_scene(mesh))
-            else:
-                self._drawn = (mesh, mesh, vertex_normals(mesh.vertices_mm, mesh.triangles), None)
-        linear = self.renderer.render_mesh(self._drawn[1], self.pose_at(orbit_deg, elevation_deg), self._drawn[2],
-                                           self._drawn[3])
-        return to_8bit(linear, self.rng, self.renderer.look)
+        pose = self.pose_at(orbit_deg, elevation_deg)
+
+        def develop() -> np.ndarray:
+            if self._drawn is None or self._drawn[0] is not mesh:
+                if self.renderer.look.tubes and len(mesh.triangles):
+                    self._drawn = (mesh, *hung_scene(mesh))
+                else:
+                    self._drawn = (mesh, mesh, vertex_normals(mesh.vertices_mm, mesh.triangles), None)
+            linear = self.renderer.render_mesh(self._drawn[1], pose, self._drawn[2], self._drawn[3])
+            return to_8bit(linear, self.rng, self.renderer.look)
+        return develop
 
     def describe(self) -> dict[str, Any]:
         camera = self.rig.camera
@@ -125,10 +153,11 @@ class TargetCamera(VirtualCamera):
                          pose_at=pose_at)
         self.target, self.target_pose, self.orbit = target, target_pose, orbit
 
-    def grab(self) -> np.ndarray:
+    def take(self) -> Callable[[], np.ndarray]:
         orbit = self.orbit
         pose = self.pose_at(orbit.orbit_deg, orbit.elevation_deg)
-        return to_8bit(self.renderer.render_target(self.target, self.target_pose, pose), self.rng, self.renderer.look)
+        return lambda: to_8bit(self.renderer.render_target(self.target, self.target_pose, pose), self.rng,
+                               self.renderer.look)
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "target": self.target.to_json()}

@@ -44,8 +44,8 @@ def test_verify_rounds_out_of_range_is_refused_in_the_daemons_words_not_a_timeou
     ({"out": "x", "look": "nonsense"}, "look must be one of ideal, real .* got 'nonsense'"),
 ])
 def test_a_scan_with_bad_params_is_invalid_params_not_rejected(tmp_path, params, words):
-    from phantom.cli.scan_rig import DaemonScanner
     from phantom.host.motion import Orbit, scan_method
+    from phantom.scan.daemon_scan import DaemonScanner
 
     async def run():
         orbit = Orbit(lambda name, fields: None, lambda kind, text, level: None)

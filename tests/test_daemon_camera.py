@@ -112,7 +112,7 @@ def test_a_look_that_is_not_one_is_refused_saying_the_looks_there_are(tmp_path):
 def test_the_daemons_scan_takes_the_daemons_camera_when_its_params_name_none(tmp_path):
     """``phantom daemon --camera`` is the scan method's camera unless the params give another (characterise's
     scans on a real rig then need no --camera of their own); the rig's picture size is checked either way."""
-    from phantom.cli.scan_rig import DaemonScanner
+    from phantom.scan.daemon_scan import DaemonScanner
 
     rig = virtual_rig(0.5).save(tmp_path / "rig.json")  # 640x480
     own = _pictures(tmp_path / "own", 640, 480)

@@ -79,8 +79,8 @@ def test_a_move_counts_its_steps_and_ends_at_the_angle(rig, link):
 def test_speed_and_acceleration_limits_hold_in_the_pulse_times(rig, link):
     """A long move cruises at the speed limit and ramps at the acceleration limit, and no span of the pulse train
     goes faster; a short one never reaches the speed limit. Both take about the fastest trapezoid's time."""
-    speed, accel = (ORBIT.steps(d) for d in (ORBIT.max_speed_deg_s, ORBIT.max_accel_deg_s2))  # 2400, 4800
-    for move_deg, cruises in ((-75.0, True), (5.0, False)):
+    speed, accel = (ORBIT.steps(d) for d in (ORBIT.max_speed_deg_s, ORBIT.max_accel_deg_s2))  # 2400, 19200
+    for move_deg, cruises in ((-75.0, True), (1.0, False)):
         rig.reset_counters()
         start_deg = mo.status(link).axes[mo.ORBIT].position_deg
         target_deg = start_deg + move_deg

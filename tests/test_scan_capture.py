@@ -9,7 +9,7 @@ import pytest
 from phantom import PhantomError
 from phantom.model.mesh.surface import enclosed_volume_ml
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, virtual_rig
-from phantom.scan.capture import CameraLost, CaptureError, CaptureFolder, Plan, Webcam, capture
+from phantom.scan.capture import STAGES, CameraLost, CaptureError, CaptureFolder, Plan, Webcam, capture
 from phantom.scan.synthetic import sphere
 
 cv2 = pytest.importorskip("cv2")
@@ -84,6 +84,9 @@ def test_recorded_frames_through_the_webcam_path_make_the_sphere(recording, tmp_
     assert first["image"] == "images/0000.png" and first["pressures_kpa"] == [1.0, 1.5, 0.5]
     assert first["orbit_deg"] == pytest.approx(-180.0 + 0.004) and "time_utc" in first and first["time_s"] >= 0
     assert (tmp_path / "capture" / "images" / "0019.png").is_file()
+    # where each picture's time went, read back: every stage of the loop, none negative
+    stages = [frame.stage_s for frame in CaptureFolder.open(tmp_path / "capture").frames]
+    assert all(set(stage) == set(STAGES) - {"key"} and min(stage.values()) >= 0 for stage in stages), stages[0]
     result = reconstruct(CaptureFolder.open(tmp_path / "capture"), voxel_mm=0.4)
     assert result.volume_ml == pytest.approx(enclosed_volume_ml(mesh), rel=0.015)
 
@@ -150,6 +153,9 @@ def _frames(count, **change):
     (_frames(2, pressures_kpa=[1.0, None]), "frame 0: pressures_kpa must be"),
     (_frames(2, time_s=float("nan")), "frame 0: time_s must be finite"),
     (_frames(2, index=True), "frame 0: index must be a whole number"),
+    (_frames(2, stage_s={"move": "slow"}), "frame 0: stage_s move must be a number"),
+    (_frames(2, stage_s={"nap": 1.0}), "frame 0: stage_s must map some of move, settle"),
+    (_frames(2, stage_s=[1.0]), "frame 0: stage_s must map some of move, settle"),
     (_frames(2, image="../../etc/passwd"), "frame 0: image must be a picture's path inside the folder"),
     (_frames(2, image="/etc/passwd"), "frame 0: image must be a picture's path inside the folder"),
     (_frames(5000, image="images/0000.png"), "frames must be a list of at most 2000 pictures, got 5000"),
@@ -229,11 +235,12 @@ def test_a_virtual_camera_scale_out_of_bounds_is_refused(scale):
     ({"elevations_deg": 30}, "elevations_deg must be a list"),
     ({"elevations_deg": ["up"]}, "an elevation must be a finite number"),
     ({"seed": -1}, "seed must be a whole number"),
+    ({"key_silhouettes": "yes"}, "key_silhouettes must be true or false"),
 ])
 def test_the_daemons_scan_refuses_bad_parameters_before_it_makes_a_folder_or_moves(tmp_path, params, message):
     """The red team's cases (settle_s NaN, negative or 1e6, views 1e8, scale 6): refused with why by the daemon's
     scan handler before the capture folder exists and before the rig is touched (rig=None would fail on use)."""
-    from phantom.cli.scan_rig import DaemonScanner
+    from phantom.scan.daemon_scan import DaemonScanner
 
     out = tmp_path / "capture"
     with pytest.raises(PhantomError, match=f"scan: .*{message}"):
@@ -271,3 +278,25 @@ def test_validate_refuses_more_pictures_than_a_capture_holds_before_writing(tmp_
     assert main(["scan", "validate", "--sim", "--out", str(tmp_path / "out"), "--views", "700",
                  "--elevations", "0,10,20"]) == 2
     assert "give from 1 to 2000 in all" in capsys.readouterr().err and not (tmp_path / "out").exists()
+
+
+def test_the_daemons_virtual_camera_without_a_simulated_phantom_is_refused_before_a_folder(tmp_path):
+    """A daemon on a real board gives its scanner no simulated truth: a scan asking the virtual camera is refused
+    with what to give instead, before the capture folder exists (rig=None would fail on use)."""
+    from phantom.scan.daemon_scan import DaemonScanner
+
+    out = tmp_path / "capture"
+    with pytest.raises(PhantomError, match="this daemon has none: give the scan a real camera"):
+        DaemonScanner(None)({"out": str(out), "views": 2}, None)
+    assert not out.exists()
+
+
+def test_a_rig_file_that_is_no_file_is_refused_before_it_is_read(tmp_path):
+    """The scan's ``rig`` param names any path: /dev/zero (endless) and a folder are refused from their stat."""
+    from phantom.scan.camera import Rig, RigError
+
+    for path in ("/dev/zero", tmp_path):
+        with pytest.raises(RigError, match="is not a rig calibration"):
+            Rig.load(path)
+    with pytest.raises(RigError, match="does not exist: calibrate the rig first"):
+        Rig.load(tmp_path / "missing.json")

@@ -187,3 +187,52 @@ def test_a_scenes_targets_are_its_steps_volumes_once_each_in_order(tmp_path):
     scene.write_text("[[steps]]\npressures_kpa = [1, 1, 1]\n")
     with pytest.raises(PhantomError, match="has no \\[\\[steps\\]\\] with volume_ml: give --targets"):
         scene_targets_ml(str(scene))
+
+
+class RenderingCamera(Camera):
+    """A camera that renders (as the virtual one): each picture taken at its moment and developed later, in
+    whichever thread; a develop fails at picture ``fail_at``."""
+
+    def __init__(self, orbit, fail_at=None):
+        self.orbit, self.fail_at, self.log, self.taken = orbit, fail_at, [], 0
+
+    def take(self):
+        number, self.taken = self.taken, self.taken + 1
+        self.log.append(("take", number, len(self.orbit.moves)))
+
+        def develop():
+            time.sleep(0.02)  # a render's time: the next move is asked meanwhile
+            self.log.append(("develop", number, len(self.orbit.moves), threading.current_thread().name))
+            if number == self.fail_at:
+                raise PhantomError("the render failed")
+            return np.full((8, 8, 3), number, np.uint8)
+        return develop
+
+
+def test_a_rendered_picture_is_developed_and_written_while_the_rig_moves_to_the_next_stop(tmp_path):
+    """The daemon's scan (no progress callback): picture k is rendered and written in the capture's own thread
+    while move k+1 runs, in the order taken, each written picture the one taken at its stop; the folder ends
+    complete with every frame's stage times."""
+    plan = Plan(5, (0.0,), settle_s=0.0)
+    orbit = StandInOrbit()
+    camera = RenderingCamera(orbit)
+    folder = capture(orbit, camera, Phantom(), plan, _folder(tmp_path, plan), stop=Flag())
+    assert folder.status == "complete" and len(folder.frames) == 5
+    developed = [entry for entry in camera.log if entry[0] == "develop"]
+    assert [entry[1] for entry in developed] == [0, 1, 2, 3, 4]
+    assert all(name.startswith("capture-pictures") for *_, name in developed)
+    # the picture of stop k (k+1 moves made when taken) developed after move k+2 was asked, the last one excepted
+    assert sum(moves > number + 1 for _, number, moves, _ in developed) >= 3, camera.log
+    for frame in CaptureFolder.open(tmp_path / "capture").frames:
+        assert int(folder.image(frame)[0, 0, 0]) == frame.index and set(frame.stage_s) >= {"move", "grab", "write"}
+
+
+def test_a_render_that_fails_aborts_the_capture_with_the_pictures_before_it_kept(tmp_path):
+    plan = Plan(6, (0.0,), settle_s=0.0)
+    orbit = StandInOrbit()
+    with pytest.raises(CaptureError, match="capture aborted after 2 of 6 pictures: the render failed; the motors "
+                                           "are released"):
+        capture(orbit, RenderingCamera(orbit, fail_at=2), Phantom(), plan, _folder(tmp_path, plan), stop=Flag())
+    data = json.loads((tmp_path / "capture" / "capture.json").read_text())
+    assert data["status"] == "aborted" and len(data["frames"]) == 2 and orbit.released == 1
+    assert len(orbit.moves) <= 4  # the failure is seen when the next picture is handed over: one move later

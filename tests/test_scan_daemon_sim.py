@@ -1,4 +1,4 @@
-"""The daemon's ``scan`` API method (host/motion.py, the capture given by ``phantom daemon``: phantom/cli/scan_rig.py)
+"""The daemon's ``scan`` API method (host/motion.py, the capture given by ``phantom daemon``: scan/daemon_scan.py)
 on the simulated board: the firmware's steppers turn the orbit in simavr, the virtual camera renders the truth
 phantom at the rig's counted angles, and the pictures land in a capture folder; bad requests are refused."""
 

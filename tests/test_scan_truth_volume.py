@@ -12,7 +12,7 @@ from truth_scan import SCANNER_TOLERANCE, verify_scan_ml
 @pytest.mark.slow
 def test_the_verify_scan_reads_the_shipped_truths_volume(tmp_path):
     pytest.importorskip("cv2")
-    from phantom.cli.scan_rig import SimulatedTruth
+    from phantom.hil.simulated_truth import SimulatedTruth
 
     truth = SimulatedTruth().shape()
     pressures_kpa = [0.794, 2.584, 2.584]

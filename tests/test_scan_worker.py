@@ -1,5 +1,5 @@
 """The daemon's scans in a process of their own (issue 48, "the link holds while the phantom learns";
-phantom/cli/scan_worker.py): the capture and the reconstruction run in the worker's process, each of the
+host/scan_worker.py): the capture and the reconstruction run in the worker's process, each of the
 capture's rig calls in the daemon's thread; the process is started once and kept, started again after it died,
 and ended by close; errors keep their kind across the pipe; and work that holds the GIL there does not hold up
 an event loop here, while in a thread it does (the defect: DEAD_HOST latched during a verify scan on a busy
@@ -16,8 +16,8 @@ import pytest
 
 from phantom import PhantomError
 from phantom.cli.scan_verify import VerifyScan
-from phantom.cli.scan_worker import ScanWorker
 from phantom.host.api import ApiError
+from phantom.host.scan_worker import ScanWorker
 
 
 class RecordingScanner:
@@ -218,8 +218,8 @@ def test_a_webcams_capture_runs_in_the_worker_through_the_webcam_code(tmp_path):
     cv2 = pytest.importorskip("cv2")
     import numpy as np
 
-    from phantom.cli.scan_rig import DaemonScanner
     from phantom.scan.capture import CaptureFolder
+    from phantom.scan.daemon_scan import DaemonScanner
 
     sequence = tmp_path / "camera"
     sequence.mkdir()
@@ -242,7 +242,7 @@ def test_a_webcams_capture_runs_in_the_worker_through_the_webcam_code(tmp_path):
 def test_the_workers_verify_plan_is_its_verify_scans_sized_to_the_tolerance():
     """The daemon asks its verify scanner (the worker) for a round's plan at the target's tolerance: the verify
     scan's own answer, without starting the process."""
-    from phantom.cli.scan_rig import DaemonScanner
+    from phantom.scan.daemon_scan import DaemonScanner
 
     verify = VerifyScan()
     worker = ScanWorker(DaemonScanner(), verify)
@@ -260,7 +260,7 @@ WORKER_PARENT = """
 import sys, threading, time
 sys.path.insert(0, sys.argv[1])
 from test_scan_worker import RecordingScanner, ReconstructingVerify
-from phantom.cli.scan_worker import ScanWorker
+from phantom.host.scan_worker import ScanWorker
 worker = ScanWorker(RecordingScanner(), ReconstructingVerify())
 worker.start()
 threading.Thread(target=worker, args=({"sort_s": 60.0}, None), daemon=True).start()

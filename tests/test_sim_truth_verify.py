@@ -100,7 +100,7 @@ def test_the_verify_scan_reads_this_truths_volume(lobes_truth, tmp_path, pressur
     earlier build read this truth 1.2-1.5 % high in all four rounds (bench/README.md): a scanner that far off fails
     here, in a minute, not after 20 minutes of rounds."""
     pytest.importorskip("cv2")
-    from phantom.cli.scan_rig import SimulatedTruth
+    from phantom.hil.simulated_truth import SimulatedTruth
 
     scene, plant_path, shapes_path = lobes_truth
     truth = SimulatedTruth(scene, MODULUS_FACTOR, plant_path, shapes_path).shape()

@@ -12,11 +12,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from phantom.cli.scan_rig import truth_scene
 from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan
 from phantom.scan.camera import virtual_pose_at, virtual_rig
 from phantom.scan.capture import CaptureFolder, Plan, capture
-from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit
+from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit, truth_scene
 
 #: The verify scan's own error allowed against a truth (a fraction of its volume): under the verified targets'
 #: 0.3 %, so that a loop verified on the scan is verified in true volume.

@@ -239,7 +239,8 @@ def _new_record(args: argparse.Namespace, out: Path, grid: ModelGrid) -> Charact
 
     import numpy as np
 
-    from phantom.cli.common import load_rig, parse_numbers
+    from phantom.cli.common import parse_numbers
+    from phantom.scan.camera import Rig
     from phantom.scan.characterise import CharacterisationRecord, grid_design, path_design, space_filling_design
 
     pressure_max_kpa = float(grid.points_kpa[-1])
@@ -256,7 +257,7 @@ def _new_record(args: argparse.Namespace, out: Path, grid: ModelGrid) -> Charact
     else:
         points = space_filling_design(args.points, pressure_max_kpa, chambers, args.seed)
         design = {"kind": "points", "count": args.points, "seed": args.seed}
-    load_rig(args.rig)  # a bad rig file is refused before the run starts
+    Rig.load(args.rig)  # a bad rig file is refused before the run starts
     out.mkdir(parents=True, exist_ok=True)
     shutil.copyfile(args.rig, out / "rig.json")
     scan = {"views": args.views, "elevations_deg": parse_numbers(args.elevations, "--elevations"),
@@ -298,9 +299,9 @@ def _check_plan(scan: dict[str, Any]) -> None:
 
 
 def _rig(record: CharacterisationRecord) -> Rig:
-    from phantom.cli.common import load_rig
+    from phantom.scan.camera import Rig
 
-    rig: Rig = load_rig(str(record.folder / record.rig))
+    rig: Rig = Rig.load(str(record.folder / record.rig))
     return rig
 
 

@@ -14,10 +14,10 @@ from phantom import PhantomError
 if TYPE_CHECKING:
     import argparse
 
+    from phantom.host.client import DaemonClient
     from phantom.host.config import SettingField
     from phantom.model.scene import Scene
-    from phantom.scan.camera import Rig
-    from phantom.scan.capture import Plan
+    from phantom.scan.capture import CaptureFolder, FrameSource, Plan, Progress
 
 
 @overload
@@ -190,12 +190,16 @@ def plan_of(args: argparse.Namespace, settle_s: float = 0.0) -> Plan:
     return Plan(args.views, tuple(parse_numbers(args.elevations, "--elevations")), settle_s=settle_s)
 
 
-def load_rig(path: str) -> Rig:
-    """A rig calibration file (rig.json), its size checked before it is read."""
-    from phantom.scan.camera import Rig, RigError
+def capture_through_daemon(client: DaemonClient, camera: FrameSource, plan: Plan, folder: CaptureFolder,
+                           progress: Progress | None = None) -> CaptureFolder:
+    """Configure the scanner's axes and take the plan's pictures through the daemon's API (the capture loop of
+    ``phantom.scan.capture`` in this process, the rig through ``phantom.host.scan_client``)."""
+    from phantom.host.scan_client import DaemonOrbit, DaemonPhantom
+    from phantom.scan.capture import capture
 
-    check_input_size(path, MAX_JSON_BYTES, "the rig file", RigError)
-    return Rig.load(path)
+    orbit = DaemonOrbit(client)
+    orbit.configure()
+    return capture(orbit, camera, DaemonPhantom(client), plan, folder, progress)
 
 
 def setting_field(name: str) -> SettingField:

@@ -17,8 +17,8 @@ from phantom.host.config import ConfigError, SettingField, checked, settings
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from phantom.cli.scan_rig import SimulatedTruth
     from phantom.hil.sim import SimulatedBoard
+    from phantom.hil.simulated_truth import SimulatedTruth
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -116,8 +116,9 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
-    from phantom.cli.scan_rig import DaemonScanner, SimulatedTruth
     from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan
+    from phantom.hil.simulated_truth import SimulatedTruth
+    from phantom.scan.daemon_scan import DaemonScanner
 
     truth = SimulatedTruth()
     if args.sim_truth is not None:
@@ -131,14 +132,17 @@ def _run_daemon(args: argparse.Namespace) -> int:
     presets = (load_presets(args.config) if args.config else None) or DEFAULT_PRESETS
     verify = VerifyScan({**VERIFY_PLAN, "look": config.look})
     if config.camera is not None or config.rig is not None:
-        from phantom.cli.scan_rig import camera_plan
+        from phantom.scan.daemon_scan import camera_plan
 
-        verify = VerifyScan(camera_plan(config.camera, config.rig))
-    from phantom.cli.scan_worker import ScanWorker
+        verify = VerifyScan(camera_plan(config.camera, config.rig, VERIFY_PLAN["views"]))
+    from phantom.host.scan_worker import ScanWorker
 
     # the scans' capture and reconstruction in a process of their own: they hold the GIL for long stretches,
     # which in the daemon's process held up its loops past the board's dead-host deadline on a busy machine
-    scans = ScanWorker(DaemonScanner(truth, config.look, config.camera), verify, getattr(args, "log_level", "info"))
+    # the simulated phantom's truth shape is built in the worker's process, on its first virtual picture; a real
+    # board has none for the virtual camera to photograph
+    scans = ScanWorker(DaemonScanner(truth.shape if config.sim else None, config.look, config.camera), verify,
+                       getattr(args, "log_level", "info"))
     try:
         scans.start()
         return run_daemon(config, simulated_board=functools.partial(_simulated_board, plant=truth.plant_path)
@@ -151,8 +155,8 @@ def _simulated_truth(scene: str, modulus_factor: float) -> SimulatedTruth:
     """The simulated phantom of ``--sim-truth``: its plant built (with progress on stderr) or found in the cache."""
     import sys
 
-    from phantom.cli.scan_rig import SimulatedTruth
     from phantom.hil.plant import truth_plant_path, truth_shapes_path
+    from phantom.hil.simulated_truth import SimulatedTruth
     from phantom.model.cluster import stderr_progress
 
     print(f"the simulated phantom: {scene} with E x {modulus_factor:g} (its plant and shapes are built once: the "

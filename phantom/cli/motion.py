@@ -47,7 +47,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         parser.add_argument("--steps-per-rev", type=float, default=28800,
                             help="steps per turn of the axis: full steps x microsteps x gear ratio (default 28800)")
         parser.add_argument("--max-speed", type=float, default=30.0, help="deg/s (default 30)")
-        parser.add_argument("--max-accel", type=float, default=60.0, help="deg/s^2 (default 60)")
+        parser.add_argument("--max-accel", type=float, default=240.0, help="deg/s^2 (default 240)")
         parser.add_argument("--limits", default="-190,190", help="soft limits MIN,MAX in deg (default -190,190)")
         parser.add_argument("--home-speed", type=float, default=10.0,
                             help="switch search speed in deg/s, with --home-switch (default 10)")

@@ -195,21 +195,21 @@ def run_capture(args: argparse.Namespace) -> int:
     import dataclasses
     import sys
 
-    from phantom.cli.common import frame_progress, load_rig, plan_of
-    from phantom.cli.scan_rig import capture_through_daemon, simulated_scene
+    from phantom.cli.common import capture_through_daemon, frame_progress, plan_of
     from phantom.host.api import default_socket_path
     from phantom.host.client import DaemonClient
-    from phantom.scan.camera import virtual_pose_at, virtual_rig
+    from phantom.host.scan_client import DaemonOrbit
+    from phantom.scan.camera import Rig, virtual_pose_at, virtual_rig
     from phantom.scan.capture import CaptureFolder, FrameSource, Webcam
     from phantom.scan.render import CharucoTarget
 
     plan = dataclasses.replace(plan_of(args, args.settle_s), start_deg=args.start_deg, span_deg=args.span_deg)
-    rig = load_rig(args.rig) if args.rig else None
+    rig = Rig.load(args.rig) if args.rig else None
     camera: FrameSource
     with DaemonClient(args.socket or default_socket_path()) as client:
         if args.camera == "virtual":
             from phantom.hil.truth_shape import TruthShape
-            from phantom.scan.virtual import AnglesRead, TargetCamera, VirtualCamera, virtual_placement
+            from phantom.scan.virtual import AnglesRead, TargetCamera, VirtualCamera, truth_scene, virtual_placement
 
             true_rig = virtual_rig(args.scale, plan.elevations_deg)
             if args.target:
@@ -217,7 +217,7 @@ def run_capture(args: argparse.Namespace) -> int:
                                       AnglesRead(lambda: _simulated_angles(client)), args.seed,
                                       virtual_pose_at(args.scale))
             else:
-                camera = VirtualCamera(true_rig, simulated_scene(client, TruthShape()), args.seed,
+                camera = VirtualCamera(true_rig, truth_scene(DaemonOrbit(client).simulated, TruthShape()), args.seed,
                                        pose_at=virtual_pose_at(args.scale))
         else:
             source: int | str = int(args.camera) if args.camera.isdigit() else args.camera
@@ -306,13 +306,13 @@ def look_of(args: argparse.Namespace) -> Look:
 
 def run_render(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan render``."""
-    from phantom.cli.common import frame_progress, load_rig, plan_of
-    from phantom.scan.camera import virtual_rig
+    from phantom.cli.common import frame_progress, plan_of
+    from phantom.scan.camera import Rig, virtual_rig
     from phantom.scan.virtual import render_capture
 
     plan = plan_of(args)
     true_rig = virtual_rig(args.scale, plan.elevations_deg)
-    kept = load_rig(args.rig) if args.rig else true_rig
+    kept = Rig.load(args.rig) if args.rig else true_rig
     mesh = _read_mesh(args.mesh, args.units)
     conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true",
                   "look": args.look}
@@ -330,11 +330,11 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     import json
     import sys
 
-    from phantom.cli.common import load_rig
+    from phantom.scan.camera import Rig
     from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
 
     folder = _open_capture(args.capture)
-    rig = load_rig(args.rig) if args.rig else None
+    rig = Rig.load(args.rig) if args.rig else None
     voxel_mm = VOXEL_MM if args.voxel_mm is None else args.voxel_mm
     result = reconstruct(folder, rig, voxel_mm, progress=None if args.json else lambda text: print(
         text, file=sys.stderr))
@@ -436,14 +436,14 @@ def rig_against_truth(rig: Any, truth: Any) -> dict[str, float]:
 
 def run_export(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan export``."""
-    from phantom.cli.common import load_rig
+    from phantom.scan.camera import Rig
     from phantom.scan.capture import CaptureError
     from phantom.scan.export import export_colmap, export_meshroom
 
     if not (args.colmap or args.meshroom):
         raise CaptureError("say what to write: --colmap FOLDER and/or --meshroom FILE")
     folder = _open_capture(args.capture)
-    rig = load_rig(args.rig) if args.rig else None
+    rig = Rig.load(args.rig) if args.rig else None
     if args.colmap:
         print(f"wrote the COLMAP model of {len(folder.frames)} pictures into {export_colmap(folder, args.colmap, rig)} "
               f"(images: {folder.path / 'images'})")

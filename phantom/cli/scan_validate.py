@@ -23,16 +23,16 @@ def run_validate(args: Any) -> int:
     import numpy as np
 
     import phantom
-    from phantom.cli.common import frame_progress, load_rig, parse_numbers, plan_of
+    from phantom.cli.common import capture_through_daemon, frame_progress, parse_numbers, plan_of
     from phantom.cli.demo import wait_until_ready
-    from phantom.cli.scan_rig import capture_through_daemon, simulated_scene
     from phantom.hil.truth_shape import TruthShape
     from phantom.host.client import DaemonClient
+    from phantom.host.scan_client import DaemonOrbit
     from phantom.host.scenes import example_scene_path, load_timeline_scene
     from phantom.model import PhantomModel
     from phantom.model.mesh.surface import TriangleMesh
     from phantom.scan.calibrate import calibrate_rig, target_views
-    from phantom.scan.camera import virtual_pose_at, virtual_rig
+    from phantom.scan.camera import Rig, virtual_pose_at, virtual_rig
     from phantom.scan.capture import CaptureFolder
     from phantom.scan.reconstruct import VOXEL_MM
     from phantom.scan.validation import (
@@ -43,7 +43,7 @@ def run_validate(args: Any) -> int:
         write_recording,
         write_report,
     )
-    from phantom.scan.virtual import VirtualCamera, render_target_captures
+    from phantom.scan.virtual import VirtualCamera, render_target_captures, truth_scene
 
     if not args.sim:
         raise PhantomError("validate runs on the simulated rig: give --sim (with a real board, scan with `phantom "
@@ -62,7 +62,7 @@ def run_validate(args: Any) -> int:
 
     # the rig's calibration, from rendered pictures of the target, as a real rig's from photographs of it
     if args.rig:
-        rig = load_rig(args.rig)
+        rig = Rig.load(args.rig)
     else:
         say("calibrating the virtual rig from pictures of the ChArUco target ...")
         folders = render_target_captures(true_rig, out / "target", args.target_views)
@@ -96,7 +96,7 @@ def run_validate(args: Any) -> int:
                     f"held at {', '.join(f'{p:.3f}' for p in measured)} kPa; capturing {len(plan.stops())} pictures")
                 folder = CaptureFolder.create(out / f"capture_{target_ml:g}ml", {}, plan.to_json(), {
                     "scene": scene, "target_ml": target_ml, "inverse": answer}, rig)
-                camera = VirtualCamera(true_rig, simulated_scene(client, truth), args.seed,
+                camera = VirtualCamera(true_rig, truth_scene(DaemonOrbit(client).simulated, truth), args.seed,
                                        pose_at=virtual_pose_at(args.scale))
                 folder.camera = camera.describe()
                 capture_through_daemon(client, camera, plan, folder, frame_progress(f"  {target_ml:g} ml"))

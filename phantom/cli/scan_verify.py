@@ -9,9 +9,13 @@ of 640x480 pictures (larger ones do not help).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from phantom import PhantomError
+
+if TYPE_CHECKING:
+    from phantom.scan.camera import Rig
+    from phantom.scan.capture import CaptureFolder
 
 #: The verify scan's plan (``scan`` params) for the default tolerance (0.3 %): 30 orbit stops at two elevations of
 #: 640x480 pictures, -0.13 % at rest and +0.16 % at the 45 ml target (:data:`SCAN_ERROR_PCT_BY_VIEWS`).
@@ -55,26 +59,36 @@ class VerifyScan:
         return {**self.plan, "views": min(int(self.plan.get("views", VERIFY_PLAN["views"])),
                                           views_for(tolerance_pct))}
 
-    def volume(self, folder: str) -> dict[str, Any]:
+    def rig_for(self, capture: CaptureFolder) -> Rig:
+        """The rig posing ``capture``'s pictures: the calibration kept with it, else (a virtual camera's) the
+        virtual rig's true geometry at this plan's scale and elevations; PhantomError for a real camera's without."""
         from phantom.scan.camera import virtual_rig
+
+        rig = capture.rig()
+        if rig is not None:
+            return rig
+        if capture.camera.get("kind") != "virtual":
+            raise PhantomError(f"{capture.path} keeps no rig calibration: a real camera's scan needs the rig's (give "
+                               "the verify plan a rig, from phantom scan calibrate)")
+        return virtual_rig(float(self.plan.get("scale", 1.0)),
+                           tuple(float(e) for e in self.plan.get("elevations_deg", [0.0, 30.0])))
+
+    def volume(self, folder: str) -> dict[str, Any]:
         from phantom.scan.capture import CaptureFolder
+        from phantom.scan.keying import KEYED
         from phantom.scan.reconstruct import reconstruct, write_mesh
 
         capture = CaptureFolder.open(folder)
-        rig = capture.rig()
+        rig = self.rig_for(capture)
         # the virtual rig's world is the simulated phantom's frame, the model's; a calibrated rig's is its own
-        in_model_frame = rig is None
-        if rig is None:
-            if capture.camera.get("kind") != "virtual":
-                raise PhantomError(f"{folder} keeps no rig calibration: a real camera's scan needs the rig's (give "
-                                   "the verify plan a rig, from phantom scan calibrate)")
-            rig = virtual_rig(float(self.plan.get("scale", 1.0)),
-                              tuple(float(e) for e in self.plan.get("elevations_deg", [0.0, 30.0])))
-        result = reconstruct(capture, rig)
+        in_model_frame = not capture.rig_file
+        # the silhouettes keyed while the capture ran in this process (key_silhouettes), the rest keyed here
+        keyed = KEYED.take(capture)
+        result = reconstruct(capture, rig, keyed=keyed)
         if result.touching_edge:
             raise PhantomError(f"the phantom touches the picture's edge in {result.touching_edge} of {result.views} "
                                "pictures: it is not wholly in view, its volume would be wrong")
         mesh = write_mesh(result.mesh, capture.path / "scan.ply")
         surface = (result.mesh.vertices_mm, result.mesh.triangles) if in_model_frame else None
         return {"volume_ml": result.volume_ml, "mesh": str(mesh), "views": result.views,
-                "stage_s": result.stage_s, "surface_mm": surface}
+                "stage_s": result.stage_s, "surface_mm": surface, "keyed_while_taken": len(keyed)}

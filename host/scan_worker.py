@@ -15,8 +15,9 @@ simulated phantom's truth shape are paid once; ``phantom daemon`` starts it befo
 the daemon has stopped, and it dies with the daemon however the daemon dies (PR_SET_PDEATHSIG). One job at a
 time: a scan asked during a reconstruction waits for it.
 
-In the process, the capture loop runs unchanged (:class:`phantom.cli.scan_rig.DaemonScanner`: the camera the
-scan's params say, a webcam through the same ``Webcam`` code as ever). Each of its calls on the rig (a move, the
+In the process, the capture loop runs unchanged (the scanner ``phantom daemon`` gives:
+``phantom.scan.daemon_scan.DaemonScanner``, the camera the scan's params say, a webcam through the same ``Webcam``
+code as ever). Each of its calls on the rig (a move, the
 rig's angles, the pressures, a stop request, the release, the simulated truth) is sent back over a pipe and
 performed by the daemon's ``ThreadRig`` in the daemon's worker thread, which runs it on the daemon's loop: the
 board link keeps one owner, and the daemon's thread does nothing heavy. What crosses the pipe is small: the
@@ -39,8 +40,8 @@ if TYPE_CHECKING:
     from multiprocessing.connection import Connection
     from multiprocessing.process import BaseProcess
 
-    from phantom.cli.scan_rig import DaemonScanner
-    from phantom.cli.scan_verify import VerifyScan
+    from phantom.host.daemon import VerifyScanner
+    from phantom.host.motion import Scanner
 
 #: The rig's calls a capture makes (``phantom.host.motion.ThreadRig``'s methods): the only ones relayed.
 RIG_CALLS = frozenset({"configure", "move_to", "position_deg", "release", "stop_requested", "pressures_kpa",
@@ -58,16 +59,16 @@ class ScanWorker:
 
     Parameters
     ----------
-    scanner : DaemonScanner
+    scanner : Scanner
         The capture, run in the process for each ``scan`` request (picklable: sent to the process once).
-    verify : VerifyScan
+    verify : VerifyScanner
         The verify scan's plan (:attr:`plan`, :meth:`plan_for`, read in the daemon) and its reconstruction (run
         in the process).
     log_level : str
         The process logs as the daemon does, at this level and above, to the daemon's stderr.
     """
 
-    def __init__(self, scanner: DaemonScanner, verify: VerifyScan, log_level: str = "info"):
+    def __init__(self, scanner: Scanner, verify: VerifyScanner, log_level: str = "info"):
         self.scanner, self.verify, self.log_level = scanner, verify, log_level
         self.plan = verify.plan
         self._lock = threading.Lock()
@@ -244,7 +245,7 @@ class _PipeRig:
         return truth
 
 
-def _serve(connection: Connection, parent_pid: int, scanner: DaemonScanner, verify: VerifyScan,
+def _serve(connection: Connection, parent_pid: int, scanner: Scanner, verify: VerifyScanner,
            log_level: str) -> None:
     """The process's loop: one job at a time until told to end (None) or the daemon's end closes."""
     from phantom.host.api import ApiError
@@ -260,7 +261,7 @@ def _serve(connection: Connection, parent_pid: int, scanner: DaemonScanner, veri
     # the capture's and the reconstruction's work can wait; the daemon's link cannot: on a busy machine the
     # kernel gives the cores to the daemon's threads (and the simulated board) first
     os.nice(WORKER_NICENESS)
-    rig = _PipeRig(connection)
+    rig: Any = _PipeRig(connection)  # the ThreadRig's calls, relayed to it
     while True:
         try:
             request = connection.recv()
@@ -276,8 +277,9 @@ def _serve(connection: Connection, parent_pid: int, scanner: DaemonScanner, veri
             return
         except ApiError as error:
             reply = ("api_error", error.code, str(error))
-        except PhantomError as error:
-            reply = ("phantom_error", str(error))
+        except PhantomError as error:  # a scanner's refusal of its params says so by its code (invalid_params)
+            code = getattr(error, "code", None)
+            reply = ("api_error", code, str(error)) if code == "invalid_params" else ("phantom_error", str(error))
         except Exception as error:  # a bug: its traceback to the daemon's log (this process's stderr is its)
             traceback.print_exc()
             reply = ("failed", f"{type(error).__name__}: {error}")
