@@ -7,14 +7,17 @@ corrected model still misses at the scan) and its stop rules (:func:`phantom.hos
 :data:`~phantom.host.verify.VERIFY_AIM_SHARE` of the tolerance while rounds remain;
 :func:`phantom.host.verify.confirmed_by_correction`: a scan within the tolerance that the refitted correction,
 its band added, confirms) and, from round 3, the secant of the last two rounds
-(:func:`phantom.host.verify.secant_kpa`). The "scan" is the shipped simulated phantom's truth (hil/plant.toml) at
-the pressures, read with the scanner's error model (bench/README.md "Scanner": 0.12 % of noise; ``--bias-pct``
-for a bias; ``--bias-by-volume`` for the bias make demo's scans measured, by volume, with ``--noise-pct 0.03``
-their repeatability). Pressures are taken as reached exactly. Prints each
-volume's rounds and the TRUE error after, and the mean rounds.
+(:func:`phantom.host.verify.secant_kpa`), and a scan within the tolerance near rest whose next pressures are
+within one ADC count of its own ends the target (:func:`phantom.host.verify.beyond_the_boards_step`). The "scan"
+is the shipped simulated phantom's truth (hil/plant.toml; ``--truth`` another plant's) at the pressures, read
+with the scanner's error model (bench/README.md "Scanner": 0.12 % of noise; ``--bias-pct`` for a bias;
+``--bias-by-volume`` for the bias make demo's scans measured, by volume, with ``--noise-pct 0.03`` their
+repeatability). Pressures are taken as reached exactly. Prints each volume's rounds and the TRUE error after, and
+the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
-    [--no-stop-by-correction] [--no-secant] [--bias-by-volume] [--show-fits] [--along-path]
+    [--no-stop-by-correction] [--no-secant] [--no-board-stop] [--bias-by-volume] [--show-fits] [--along-path]
+    [--truth PLANT]
     [--auto 28,32.5,37.5,42.5,47]
 
 (``phantom.scan`` is imported for ``--path``'s design only: a bench joins the parts.)
@@ -65,6 +68,14 @@ def main() -> None:
     parser.add_argument("--no-secant", dest="secant", action="store_false",
                         help="not the secant of the last two rounds (verify.secant_kpa, what the daemon does from "
                              "round 3): the corrected model's step every round, as before")
+    parser.add_argument("--no-board-stop", dest="board_stop", action="store_false",
+                        help="not stop on a scan within the tolerance whose next round's pressures are within one "
+                             "ADC count of the round's in every chamber (verify.beyond_the_boards_step, what the "
+                             "daemon does): the board holds a setpoint to a count, so that round would scan the "
+                             "same state again")
+    parser.add_argument("--truth", default=None, metavar="PLANT",
+                        help="another plant file's truth (e.g. the --sim-truth phantom's, cached by "
+                             "hil.plant.truth_plant_path) instead of the shipped hil/plant.toml's")
     parser.add_argument("--along-path", action="store_true",
                         help="only print the truth along the model's inverse path, 26.4-50 ml in 0.5 ml steps: its "
                              "pressures, error and growth per ml the model grows")
@@ -75,7 +86,7 @@ def main() -> None:
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
-    plant = load_plant()
+    plant = load_plant(args.truth)
     solver = InverseSolver(PhantomModel.from_scene(load_timeline_scene("builtin:converged")))
     grid = model_grid(solver.estimator)
 
@@ -164,9 +175,15 @@ def main() -> None:
                 secant = (verify.secant_kpa(history[-2], history[-1], target_ml)
                           if args.secant and len(history) >= 2 else None)
                 if secant is not None and np.all(secant <= 3.0):  # the daemon's model refuses beyond its box
-                    pressures = secant
-                    continue
-                pressures = solve_kpa(store, target_ml - still_missed)
+                    following = secant
+                else:
+                    following = solve_kpa(store, target_ml - still_missed)
+                before = (history[-2][0], (history[-2][1] / target_ml - 1) * 100) if len(history) >= 2 else None
+                if args.board_stop and verify.beyond_the_boards_step(following, pressures, error_pct,
+                                                                     args.tolerance_pct, before):
+                    log[-1] += " (board)"
+                    break
+                pressures = following
             all_rounds.append(round_)
             if abs(error_pct) <= args.tolerance_pct:
                 verified_true.append(abs(true_pct))
