@@ -26,6 +26,7 @@ the mean rounds.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import numpy as np
@@ -84,6 +85,8 @@ def main() -> None:
                                               "verified in rounds) only when the correction's 95 %% band at the "
                                               "answer is wider than the tolerance, else the true error of the "
                                               "answer")
+    parser.add_argument("--json", default=None, metavar="PATH",
+                        help="also write each target's rounds, last scanned and true error (%%) there, as JSON")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
@@ -133,6 +136,7 @@ def main() -> None:
     auto_unscanned: list[float] = []
     auto_scanned: list[float] = []
     auto_rounds: list[int] = []
+    rows: list[dict[str, object]] = []
     auto_unverified = 0
     unverified = 0
     for seed in range(args.seeds):
@@ -194,6 +198,8 @@ def main() -> None:
         for target_ml in DEMO_ML:
             round_, error_pct, true_pct, log = verified_rounds(target_ml, solve_kpa(store, target_ml))
             all_rounds.append(round_)
+            rows.append({"seed": seed, "target_ml": target_ml, "verify": "scan", "rounds": round_,
+                         "scanned_error_pct": error_pct, "true_error_pct": true_pct})
             if abs(error_pct) <= args.tolerance_pct:
                 verified_true.append(abs(true_pct))
             else:
@@ -207,11 +213,15 @@ def main() -> None:
             if band_ml <= args.tolerance_pct / 100 * auto_ml:
                 auto_true_pct = (true_ml(pressures) / auto_ml - 1) * 100
                 auto_unscanned.append(auto_true_pct)
+                rows.append({"seed": seed, "target_ml": auto_ml, "verify": "auto", "rounds": 0,
+                             "scanned_error_pct": None, "true_error_pct": auto_true_pct})
                 print(f"| {seed} | auto {auto_ml:g} | band +-{100 * band_ml / auto_ml:.2f} %: not scanned | 0 | "
                       f"{auto_true_pct:+.2f} |", flush=True)
                 continue
             round_, error_pct, auto_true_pct, log = verified_rounds(auto_ml, pressures)
             auto_scanned.append(auto_true_pct)
+            rows.append({"seed": seed, "target_ml": auto_ml, "verify": "auto", "rounds": round_,
+                         "scanned_error_pct": error_pct, "true_error_pct": auto_true_pct})
             auto_rounds.append(round_)
             auto_unverified += abs(error_pct) > args.tolerance_pct
             print(f"| {seed} | auto {auto_ml:g} | band +-{100 * band_ml / auto_ml:.2f} %, scanned: {', '.join(log)} | "
@@ -227,6 +237,10 @@ def main() -> None:
               f"{max(map(abs, auto_unscanned), default=0):.2f} %), {len(auto_scanned)} scanned in "
               f"{np.mean(auto_rounds) if auto_rounds else 0:.2f} rounds on average ({auto_unverified} not verified; "
               f"true error max {max(map(abs, auto_scanned), default=0):.2f} %)")
+    if args.json:
+        with open(args.json, "w") as out:
+            json.dump(rows, out, indent=1)
+
 
 if __name__ == "__main__":
     main()
