@@ -181,8 +181,9 @@ def main() -> None:
                           f"g={c.growth_factor:.3f} loo={ {k: round(v, 2) for k, v in c.leave_one_out_pct.items()} } "
                           f"missed={still_missed:.3f}")
                 history.append((tuple(map(float, pressures)), float(scanned)))
-                secant = (verify.secant_kpa(history[-2], history[-1], target_ml)
-                          if args.secant and len(history) >= 2 else None)
+                partner = verify.secant_partner([(i, *entry) for i, entry in enumerate(history)], target_ml)
+                secant = (verify.secant_kpa(partner[1:], history[-1], target_ml)
+                          if args.secant and partner is not None else None)
                 if secant is not None and np.all(secant <= 3.0):  # the daemon's model refuses beyond its box
                     following = secant
                 else:

@@ -644,7 +644,7 @@ def test_from_round_3_the_next_pressures_are_the_secant_of_the_last_two_rounds_o
     # make demo's 26.5 ml near rest, where the board does not hold a setpoint finely: no secant from there
     assert policy_of.secant_kpa(((0.098, 0.097, 0.097), 27.0), ((0.012, 0.014, 0.013), 26.47), 26.5) is None
     miss = policy_of.Correct(2, volume(30.0), (0.6, 1.1, 0.0), 30.4, "/scans/2", 29.6, (600.0, 1100.0, 0.0), 0.3,
-                             ((1.0, 1.0, 0.0), 31.0))
+                             ((1.0, 1.0, 0.0), 31.0), (1, (1.0, 1.0, 0.0), 31.0))
     policy = policy_of.NextRound(miss)
     policy.start(0.0)
     policy.take_actions()
@@ -673,6 +673,7 @@ def test_the_core_gives_round_2s_miss_round_1s_scan_and_a_secant_rounds_asked_vo
     core.scanned(6.0, 2, 39.5, None, "/scans/2")
     (second,) = of_kind(core.take_actions(), policy_of.Correct)
     assert second.before == ((1.0, 0.5, 0.5), 38.8) and second.tolerance_pct == 0.3
+    assert second.secant_from == (1, (1.0, 0.5, 0.5), 38.8)
     at_pressures = Target(pressures_pa=[1200.0, 600.0, 600.0])
     core.corrected(6.5, 2, answer_for(at_pressures, (1.2, 0.6, 0.6), predicted_ml=40.3), "the secant of rounds 1 "
                    "and 2")
@@ -785,3 +786,42 @@ def test_the_core_ends_a_held_round_reached_and_measured_and_the_daemon_feeds_it
                                    _feed=lambda method, *args: fed.append((method, args)))
     asyncio.run(Daemon._correct_for_core(daemon, _miss_near_rest()))
     assert fed == [("held", (2, pytest.approx((0.03, 0.03, 0.03))))]
+
+
+def test_a_secant_of_two_scans_too_close_for_a_slope_is_drawn_from_the_round_before_them():
+    """Offline, 30 ml: rounds 2 and 3 scanned 0.15-0.48 % apart (no slope but the noise's), and round 4, the
+    corrected model's step, overshot to -1.0 % true, not verified; the secant of rounds 1 and 3 does not."""
+    scanned = [(1, (0.83, 1.12, 1.12), 30.40), (2, (0.59, 1.11, 1.11), 30.22), (3, (0.36, 1.09, 1.09), 30.09)]
+    assert policy_of.secant_partner(scanned, 30.0) == scanned[0]            # 3 and 2: 0.43 % apart, too close
+    assert policy_of.secant_partner(scanned[1:], 30.0) is None              # nothing far enough
+    assert policy_of.secant_partner([scanned[0], scanned[2]], 30.0) == scanned[0]
+    assert policy_of.secant_partner([(1, (0.5, 0.5, 0.5), 29.0), *scanned[1:]], 30.0) == (1, (0.5, 0.5, 0.5), 29.0)
+    assert policy_of.secant_partner([(1, (0.5, 0.5, 0.5), 29.0), (2, (0.6, 0.6, 0.6), 29.8)], 30.0) == (
+        1, (0.5, 0.5, 0.5), 29.0)                                           # the round before, far enough
+    miss = policy_of.Correct(3, volume(30.0), scanned[2][1], 30.09, "/scans/3", 29.9, (360.0, 1090.0, 1090.0), 0.3,
+                             scanned[1][1:], scanned[0])
+    policy = policy_of.NextRound(miss)
+    policy.start(0.0)
+    policy.take_actions()
+    policy.recorded(1.0, True, 30.08, 0.2)
+    (solve,) = policy.take_actions()
+    assert solve.how.startswith("the secant of rounds 1 and 3")
+    share = 0.40 / 0.31                                                     # where 30.40 -> 30.09 meets 30.0
+    assert np.asarray(solve.target.pressures_pa) / 1e3 == pytest.approx(
+        np.asarray(scanned[0][1]) + share * (np.asarray(scanned[2][1]) - np.asarray(scanned[0][1])))
+
+
+def test_the_core_draws_round_4s_secant_from_round_1_when_rounds_2_and_3_scanned_too_close(core):
+    verified(core, 30.0, kpa=(0.83, 1.12, 1.12))
+    for round_, (scanned_ml, nxt) in enumerate([(30.40, (0.59, 1.11, 1.11)), (30.22, (0.36, 1.09, 1.09))], 1):
+        core.scanned(3.0 * round_, round_, scanned_ml, None, f"/scans/{round_}")
+        of_kind(core.take_actions(), policy_of.Correct)
+        core.corrected(3.0 * round_ + 0.5, round_, answer_for(volume(30.0), nxt), "corrected")
+        core.take_actions()
+        core.sent(3.0 * round_ + 0.6, volume(30.0))
+        core.take_actions()
+        settle(core, 3.0 * round_ + 0.6, 1.2, kpa=nxt, estimate_ml=30.0)
+    core.scanned(9.0, 3, 30.09, None, "/scans/3")
+    (third,) = of_kind(core.take_actions(), policy_of.Correct)
+    assert third.before == ((0.59, 1.11, 1.11), 30.22)
+    assert third.secant_from == (1, (0.83, 1.12, 1.12), 30.40)
