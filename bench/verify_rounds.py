@@ -7,14 +7,17 @@ corrected model still misses at the scan) and its stop rules (:func:`phantom.hos
 :data:`~phantom.host.verify.VERIFY_AIM_SHARE` of the tolerance while rounds remain;
 :func:`phantom.host.verify.confirmed_by_correction`: a scan within the tolerance that the refitted correction,
 its band added, confirms) and, from round 3, the secant of the last two rounds
-(:func:`phantom.host.verify.secant_kpa`). The "scan" is the shipped simulated phantom's truth (hil/plant.toml) at
-the pressures, read with the scanner's error model (bench/README.md "Scanner": 0.12 % of noise; ``--bias-pct``
-for a bias; ``--bias-by-volume`` for the bias make demo's scans measured, by volume, with ``--noise-pct 0.03``
-their repeatability). Pressures are taken as reached exactly. Prints each
-volume's rounds and the TRUE error after, and the mean rounds.
+(:func:`phantom.host.verify.secant_kpa`), and a scan within the tolerance near rest whose next pressures are
+within one ADC count of its own ends the target (:func:`phantom.host.verify.beyond_the_boards_step`). The "scan"
+is the shipped simulated phantom's truth (hil/plant.toml; ``--truth`` another plant's) at the pressures, read
+with the scanner's error model (bench/README.md "Scanner": 0.12 % of noise; ``--bias-pct`` for a bias;
+``--bias-by-volume`` for the bias make demo's scans measured, by volume, with ``--noise-pct 0.03`` their
+repeatability). Pressures are taken as reached exactly. Prints each volume's rounds and the TRUE error after, and
+the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
-    [--no-stop-by-correction] [--no-secant] [--bias-by-volume] [--show-fits] [--along-path]
+    [--no-stop-by-correction] [--no-secant] [--no-board-stop] [--bias-by-volume] [--show-fits] [--along-path]
+    [--truth PLANT]
     [--auto 28,32.5,37.5,42.5,47]
 
 (``phantom.scan`` is imported for ``--path``'s design only: a bench joins the parts.)
@@ -23,6 +26,7 @@ volume's rounds and the TRUE error after, and the mean rounds.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 
 import numpy as np
@@ -65,17 +69,28 @@ def main() -> None:
     parser.add_argument("--no-secant", dest="secant", action="store_false",
                         help="not the secant of the last two rounds (verify.secant_kpa, what the daemon does from "
                              "round 3): the corrected model's step every round, as before")
+    parser.add_argument("--no-board-stop", dest="board_stop", action="store_false",
+                        help="not stop on a scan within the tolerance whose next round's pressures are within one "
+                             "ADC count of the round's in every chamber (verify.beyond_the_boards_step, what the "
+                             "daemon does): the board holds a setpoint to a count, so that round would scan the "
+                             "same state again")
+    parser.add_argument("--truth", default=None, metavar="PLANT",
+                        help="another plant file's truth (e.g. the --sim-truth phantom's, cached by "
+                             "hil.plant.truth_plant_path) instead of the shipped hil/plant.toml's")
     parser.add_argument("--along-path", action="store_true",
                         help="only print the truth along the model's inverse path, 26.4-50 ml in 0.5 ml steps: its "
                              "pressures, error and growth per ml the model grows")
     parser.add_argument("--auto", type=lambda text: [float(v) for v in text.split(",")], default=[],
-                        metavar="ML,ML", help="after the verified volumes, these with verify=\"auto\": scanned only "
-                                              "when the correction's 95 %% band at the answer is wider than the "
-                                              "tolerance, else the true error of the answer")
+                        metavar="ML,ML", help="after the verified volumes, these with verify=\"auto\": scanned (and "
+                                              "verified in rounds) only when the correction's 95 %% band at the "
+                                              "answer is wider than the tolerance, else the true error of the "
+                                              "answer")
+    parser.add_argument("--json", default=None, metavar="PATH",
+                        help="also write each target's rounds, last scanned and true error (%%) there, as JSON")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
 
-    plant = load_plant()
+    plant = load_plant(args.truth)
     solver = InverseSolver(PhantomModel.from_scene(load_timeline_scene("builtin:converged")))
     grid = model_grid(solver.estimator)
 
@@ -120,6 +135,9 @@ def main() -> None:
     verified_true: list[float] = []
     auto_unscanned: list[float] = []
     auto_scanned: list[float] = []
+    auto_rounds: list[int] = []
+    rows: list[dict[str, object]] = []
+    auto_unverified = 0
     unverified = 0
     for seed in range(args.seeds):
         rng = np.random.default_rng(seed)
@@ -132,9 +150,11 @@ def main() -> None:
                 truth = true_ml(np.asarray(state))
                 noise_pct = args.noise_pct * rng.standard_normal()
                 store.append(Measurement(tuple(map(float, state)), truth * (1 + (bias_pct(truth) + noise_pct) / 100)))
-        for target_ml in DEMO_ML:
-            pressures = solve_kpa(store, target_ml)
-            log = []
+        def verified_rounds(target_ml: float, pressures: np.ndarray, store: list[Measurement] = store,
+                            rng: np.random.Generator = rng) -> tuple[int, float, float, list[str]]:
+            """One verified target's rounds from ``pressures``: how many, the last scan's error and the true one (%),
+            and each round's log."""
+            log: list[str] = []
             history: list[tuple[tuple[float, ...], float]] = []
             for round_ in range(1, args.rounds + 1):
                 truth = true_ml(pressures)
@@ -161,29 +181,52 @@ def main() -> None:
                           f"g={c.growth_factor:.3f} loo={ {k: round(v, 2) for k, v in c.leave_one_out_pct.items()} } "
                           f"missed={still_missed:.3f}")
                 history.append((tuple(map(float, pressures)), float(scanned)))
-                secant = (verify.secant_kpa(history[-2], history[-1], target_ml)
-                          if args.secant and len(history) >= 2 else None)
+                partner = verify.secant_partner([(i, *entry) for i, entry in enumerate(history)], target_ml)
+                secant = (verify.secant_kpa(partner[1:], history[-1], target_ml)
+                          if args.secant and partner is not None else None)
                 if secant is not None and np.all(secant <= 3.0):  # the daemon's model refuses beyond its box
-                    pressures = secant
-                    continue
-                pressures = solve_kpa(store, target_ml - still_missed)
+                    following = secant
+                else:
+                    following = solve_kpa(store, target_ml - still_missed)
+                before = (history[-2][0], (history[-2][1] / target_ml - 1) * 100) if len(history) >= 2 else None
+                if args.board_stop and verify.beyond_the_boards_step(following, pressures, error_pct,
+                                                                     args.tolerance_pct, before):
+                    log[-1] += " (board)"
+                    break
+                pressures = following
+            return round_, error_pct, true_pct, log
+
+        for target_ml in DEMO_ML:
+            round_, error_pct, true_pct, log = verified_rounds(target_ml, solve_kpa(store, target_ml))
             all_rounds.append(round_)
+            rows.append({"seed": seed, "target_ml": target_ml, "verify": "scan", "rounds": round_,
+                         "scanned_error_pct": error_pct, "true_error_pct": true_pct})
             if abs(error_pct) <= args.tolerance_pct:
                 verified_true.append(abs(true_pct))
             else:
                 unverified += 1
             worst_true = max(worst_true, abs(true_pct))
             print(f"| {seed} | {target_ml:g} | {', '.join(log)} | {round_} | {true_pct:+.2f} |", flush=True)
-        if args.auto:  # verify="auto" after the verified volumes: scanned only when the band is wider than asked
-            corrected = CorrectedModel(grid, fit_correction(store, grid))
-            for auto_ml in args.auto:
-                pressures = solve_kpa(store, auto_ml)
-                _, band_ml = corrected.gland_band_ml(pressures)
+        for auto_ml in args.auto:  # verify="auto" after the verified volumes: scanned only when the band is wider
+            pressures = solve_kpa(store, auto_ml)
+            _, band_ml = CorrectedModel(grid, fit_correction(store, grid)).gland_band_ml(pressures) if store else (
+                0.0, float("inf"))
+            if band_ml <= args.tolerance_pct / 100 * auto_ml:
                 auto_true_pct = (true_ml(pressures) / auto_ml - 1) * 100
-                sure = band_ml <= args.tolerance_pct / 100 * auto_ml
-                (auto_unscanned if sure else auto_scanned).append(auto_true_pct)
-                print(f"|   | auto {auto_ml:g} | band +-{100 * band_ml / auto_ml:.2f} %: "
-                      f"{'not scanned' if sure else 'scanned'} | - | {auto_true_pct:+.2f} |", flush=True)
+                auto_unscanned.append(auto_true_pct)
+                rows.append({"seed": seed, "target_ml": auto_ml, "verify": "auto", "rounds": 0,
+                             "scanned_error_pct": None, "true_error_pct": auto_true_pct})
+                print(f"| {seed} | auto {auto_ml:g} | band +-{100 * band_ml / auto_ml:.2f} %: not scanned | 0 | "
+                      f"{auto_true_pct:+.2f} |", flush=True)
+                continue
+            round_, error_pct, auto_true_pct, log = verified_rounds(auto_ml, pressures)
+            auto_scanned.append(auto_true_pct)
+            rows.append({"seed": seed, "target_ml": auto_ml, "verify": "auto", "rounds": round_,
+                         "scanned_error_pct": error_pct, "true_error_pct": auto_true_pct})
+            auto_rounds.append(round_)
+            auto_unverified += abs(error_pct) > args.tolerance_pct
+            print(f"| {seed} | auto {auto_ml:g} | band +-{100 * band_ml / auto_ml:.2f} %, scanned: {', '.join(log)} | "
+                  f"{round_} | {auto_true_pct:+.2f} |", flush=True)
     outside = sum(error > args.tolerance_pct for error in verified_true)
     print(f"\nmean rounds {np.mean(all_rounds):.2f}, most {max(all_rounds)}, worst true error {worst_true:.2f} %; "
           f"{len(verified_true)} verified (true error mean {np.mean(verified_true):.2f} %, max "
@@ -192,8 +235,12 @@ def main() -> None:
     if args.auto:
         print(f"verify auto: {len(auto_unscanned)} not scanned (true error mean "
               f"{np.mean(np.abs(auto_unscanned)) if auto_unscanned else 0:.2f} %, max "
-              f"{max(map(abs, auto_unscanned), default=0):.2f} %), {len(auto_scanned)} scanned (their model's "
-              f"answer alone: max {max(map(abs, auto_scanned), default=0):.2f} % true)")
+              f"{max(map(abs, auto_unscanned), default=0):.2f} %), {len(auto_scanned)} scanned in "
+              f"{np.mean(auto_rounds) if auto_rounds else 0:.2f} rounds on average ({auto_unverified} not verified; "
+              f"true error max {max(map(abs, auto_scanned), default=0):.2f} %)")
+    if args.json:
+        with open(args.json, "w") as out:
+            json.dump(rows, out, indent=1)
 
 
 if __name__ == "__main__":

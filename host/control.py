@@ -603,6 +603,20 @@ class ControlCore:
                                f"({100.0 * (corrected_ml - target_ml) / target_ml:+.2f} % +-"
                                f"{100.0 * band_ml / target_ml:.2f} %), within it too")
 
+    def held(self, now: float, round_: int, next_kpa: tuple[float, ...]) -> None:
+        """Round ``round_``'s scan is within the tolerance and the next round's pressures ``next_kpa`` are a step
+        the board cannot hold (:func:`phantom.host.verify.beyond_the_boards_step`): reached and MEASURED, no next
+        round (the scan is stored already)."""
+        rounds, reach = self._rounds, self._reach
+        if rounds is None or reach is None or not rounds.held(round_, next_kpa):
+            return
+        last = rounds.last
+        self._verified_outcome(reach, rounds, f"target {reach.target.describe()} reached and MEASURED: scanned "
+                               f"{last['scanned_volume_ml']:.2f} ml ({last['scanned_error_pct']:+.2f} %, within "
+                               f"{rounds.verify.tolerance_pct:g} %) after {round_} round(s); the next round's "
+                               f"pressures are within one ADC count of these near rest, a step the board cannot "
+                               "hold, so the scan stands")
+
     def correct_failed(self, now: float, round_: int, unreachable: bool, text: str) -> None:
         """The next round's pressures could not be solved (``unreachable``, or the model failed): the pressures
         of the last round are held."""

@@ -328,6 +328,8 @@ class Daemon:
                     self._feed(self.core.corrected, step.round, step.answer, step.how)
                 elif isinstance(step, verify.Confirm):
                     self._feed(self.core.confirmed, step.round, step.corrected_ml, step.band_ml)
+                elif isinstance(step, verify.Hold):
+                    self._feed(self.core.held, step.round, step.next_kpa)
                 else:
                     self._feed(self.core.correct_failed, step.round, step.unreachable, step.text)
         if not policy.done:  # every event takes an action until the last: none is the policy's fault

@@ -8,6 +8,7 @@ The truth is a coarser mesh (10 mm, 10-node) than the controller's model (builti
 64 solves and 8 checks take minutes, once per machine (cached by the scene's content, the factor and the shipped
 plant; the fixture builds it for the session when it is not cached)."""
 
+import json
 import os
 import subprocess
 import sys
@@ -152,3 +153,34 @@ def test_another_phantom_reaches_a_verified_40_ml_in_true_volume(lobes_truth, tm
         process.terminate()
         process.wait(STORE_WAIT_S + 60)
         log.close()
+
+
+@pytest.mark.timeout(900)
+def test_five_verified_then_five_auto_targets_on_this_truth_offline(lobes_truth, tmp_path):
+    """Issue 48's --sim-truth line, offline (bench/verify_rounds.py: the daemon's corrected inverse, correction fit
+    and verify policy, the truth's plant as the phantom, pressures held exactly, no simavr): from an empty store
+    make demo's five volumes verified, then five others with verify="auto", the scanner as it reads this truth
+    (+0.09 % bias, 0.03 % repeatability; "The scanner on this phantom" in bench/README.md), four seeds. Every
+    verified target within 0.3 % scanned and in true volume, in at most 3 rounds; every auto target within 0.5 %
+    true (scanned when the correction's band is wider than the tolerance: after five targets it always is).
+    Measured (2026-11-29, four seeds and eight alike): 2.10 rounds a verified target (the issue asks at most 2:
+    not asserted, not met), auto targets 1.95, true errors at most 0.19 / 0.23 %. About 20 s with the truth
+    cached."""
+    _, plant_path, _ = lobes_truth
+    out = tmp_path / "rounds.json"
+    bench = Path(__file__).resolve().parents[1] / "bench" / "verify_rounds.py"
+    subprocess.run([sys.executable, str(bench), "--truth", str(plant_path), "--seeds", "4", "--bias-pct", "0.09",
+                    "--noise-pct", "0.03", "--auto", "28,32.5,37.5,42.5,47", "--json", str(out)], check=True,
+                   timeout=800)
+    rows = json.loads(out.read_text())
+    verified = [row for row in rows if row["verify"] == "scan"]
+    auto = [row for row in rows if row["verify"] == "auto"]
+    assert len(verified) == 20 and len(auto) == 20
+    for row in verified:
+        assert abs(row["scanned_error_pct"]) <= 0.3 and abs(row["true_error_pct"]) <= 0.3, row
+        assert 1 <= row["rounds"] <= 3, row
+    assert all(abs(row["true_error_pct"]) <= 0.5 for row in auto), auto
+    largest = [max(abs(row["true_error_pct"]) for row in rows) for rows in (verified, auto)]
+    print(f"mean rounds {np.mean([row['rounds'] for row in verified]):.2f} verified, "
+          f"{np.mean([row['rounds'] for row in auto]):.2f} auto; largest true error {largest[0]:.2f} / "
+          f"{largest[1]:.2f} %")
