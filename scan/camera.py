@@ -324,9 +324,13 @@ class Rig:
         path = Path(path)
         with contextlib.suppress(OSError):  # a missing file: the read below says what to do
             info = path.stat()
-            if not stat.S_ISREG(info.st_mode) or info.st_size > MAX_RIG_FILE_BYTES:
-                raise RigError(f"the rig file {path} is not a rig calibration (not a regular file of at most "
-                               f"{MAX_RIG_FILE_BYTES // 2**20} MiB): give the rig.json phantom scan calibrate wrote")
+            if not stat.S_ISREG(info.st_mode):
+                raise RigError(f"the rig file {path} is not a regular file: give the rig.json phantom scan "
+                               "calibrate wrote")
+            if info.st_size > MAX_RIG_FILE_BYTES:
+                raise RigError(f"the rig file {path} holds {info.st_size / 2**20:.0f} MiB, more than the "
+                               f"{MAX_RIG_FILE_BYTES // 2**20} MiB a rig calibration can be: give the rig.json "
+                               "phantom scan calibrate wrote")
         try:
             data = json.loads(path.read_text())
         except FileNotFoundError:

@@ -296,7 +296,7 @@ def test_a_rig_file_that_is_no_file_is_refused_before_it_is_read(tmp_path):
     from phantom.scan.camera import Rig, RigError
 
     for path in ("/dev/zero", tmp_path):
-        with pytest.raises(RigError, match="is not a rig calibration"):
+        with pytest.raises(RigError, match="is not a regular file: give the rig.json"):
             Rig.load(path)
     with pytest.raises(RigError, match="does not exist: calibrate the rig first"):
         Rig.load(tmp_path / "missing.json")
