@@ -22,14 +22,13 @@ import argparse
 import json
 import math
 import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import phantom
-from phantom.cli.demo import stop_daemon, wait_until_ready
+from phantom.cli.demo import sim_daemon
 from phantom.cli.scan_verify import VerifyScan
 from phantom.host.client import Phantom, VerifyError
 from phantom.protocol.motion import SCANNER_AXES
@@ -141,14 +140,8 @@ def main() -> None:
     print(f"verify plan at 0.3 %: {json.dumps(plan)}; load {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
-        log_path = folder / "daemon.log"
-        with open(log_path, "w") as log:
-            process = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--sim",
-                                        "--socket", str(folder / "d.sock")], stdout=log, stderr=subprocess.STDOUT,
-                                       env={**os.environ, "PHANTOM_DATA_DIR": str(folder / "data")})
-        try:
-            wait_until_ready(folder / "d.sock", process, log_path)
-            with phantom.connect(folder / "d.sock", request_timeout_s=900) as ph:
+        with sim_daemon(folder) as socket:
+            with phantom.connect(socket, request_timeout_s=900) as ph:
                 started = time.monotonic()
                 ph.set_volume(args.target, timeout_s=300)
                 print(f"{args.target:g} ml held on pressure in {time.monotonic() - started:.1f} s")
@@ -173,8 +166,6 @@ def main() -> None:
                           f": its scan {scan_s:.1f} s (capture.json; {each}), "
                           f"the reconstruction after it (as here) {reconstruct_s:.1f} s, the rest (fit, solve, "
                           f"pressures) {per_round_s - scan_s - reconstruct_s:.1f} s")
-        finally:
-            stop_daemon(process)
 
 
 if __name__ == "__main__":

@@ -14,15 +14,13 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import phantom
-from phantom.cli.demo import stop_daemon, wait_until_ready
+from phantom.cli.demo import sim_daemon
 from phantom.host.client import VerifyError
 
 
@@ -32,16 +30,9 @@ def main() -> None:
     args = parser.parse_args()
     targets = [float(value) for value in args.targets.split(",")]
     with tempfile.TemporaryDirectory() as scratch:
-        folder = Path(scratch)
-        log_path = folder / "daemon.log"
-        with open(log_path, "w") as log:
-            process = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--sim",
-                                        "--socket", str(folder / "d.sock")], stdout=log, stderr=subprocess.STDOUT,
-                                       env={**os.environ, "PHANTOM_DATA_DIR": str(folder / "data")})
-        try:
-            wait_until_ready(folder / "d.sock", process, log_path)
+        with sim_daemon(Path(scratch)) as socket:
             rows = []
-            with phantom.connect(folder / "d.sock") as ph:
+            with phantom.connect(socket) as ph:
                 for target_ml in targets:
                     started = time.monotonic()
                     plain = ph.set_volume(target_ml, timeout_s=300)
@@ -53,8 +44,6 @@ def main() -> None:
                         print(f"{target_ml:g} ml not verified: {error}", file=sys.stderr)
                         verified = dataclasses.replace(plain, rounds=tuple(error.rounds))
                     rows.append((target_ml, plain_s, plain.true_volume_ml, time.monotonic() - started, verified))
-        finally:
-            stop_daemon(process)
     print(f"{'target ml':>9} {'on pressure s':>13} {'true ml':>8} | {'verified s':>10} {'rounds':>6} "
           f"{'x pressure':>10} | per round: scanned / true ml")
     for target_ml, plain_s, plain_true_ml, verified_s, result in rows:

@@ -24,6 +24,7 @@ one stage of its start that takes longer than STAGE_LIMIT_S is reported as stuck
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import os
 import shutil
@@ -31,6 +32,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -129,6 +131,22 @@ def wait_until_ready(socket: Path, process: subprocess.Popen[bytes], log_path: P
 
 def _tail(path: Path, lines: int = 15) -> str:
     return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+
+
+@contextlib.contextmanager
+def sim_daemon(folder: Path) -> Iterator[Path]:
+    """A ``phantom daemon --sim`` of the benches' own: its socket, log (``daemon.log``) and data directory in
+    ``folder``; ready when entered, stopped (:func:`stop_daemon`) on leaving. Yields its socket's path."""
+    socket, log_path = folder / "d.sock", folder / "daemon.log"
+    with open(log_path, "w") as log:
+        process = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--sim",
+                                    "--socket", str(socket)], stdout=log, stderr=subprocess.STDOUT,
+                                   env={**os.environ, "PHANTOM_DATA_DIR": str(folder / "data")})
+    try:
+        wait_until_ready(socket, process, log_path)
+        yield socket
+    finally:
+        stop_daemon(process)
 
 
 def stop_daemon(process: subprocess.Popen[bytes]) -> int:
