@@ -37,6 +37,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from phantom.cli.scan_verify import VERIFY_SETTLE_S  # noqa: E402
 from phantom.hil.plant import truth_plant_path, truth_shapes_path  # noqa: E402
 from phantom.hil.truth_shape import TruthShape  # noqa: E402
 from phantom.host.scenes import load_timeline_scene  # noqa: E402
@@ -44,6 +45,7 @@ from phantom.model import PhantomModel  # noqa: E402
 from phantom.model.cluster import stderr_progress  # noqa: E402
 from phantom.model.inverse import InverseSolver, Target  # noqa: E402
 from phantom.model.mesh.surface import SurfaceIndex, TriangleMesh, enclosed_volume_ml, vertex_areas_mm2  # noqa: E402
+from phantom.protocol.motion import SCANNER_AXES  # noqa: E402
 from phantom.scan.calibrate import calibrate_rig, target_views  # noqa: E402
 from phantom.scan.camera import VIRTUAL_CENTRE_MM, virtual_rig  # noqa: E402
 from phantom.scan.capture import CaptureFolder, Plan  # noqa: E402
@@ -97,6 +99,12 @@ def by_height(scanned: TriangleMesh, truth: TriangleMesh, bands: int = 6) -> lis
                      float(np.average(signed[chosen], weights=areas[chosen])),
                      float(np.sum(areas[chosen] * signed[chosen]) / 1e3)))
     return rows
+
+
+def plan_board_s(plan: Plan) -> float:
+    """A plan's time on the board (s): its moves on the scanner's axes (the move back to its first stop included)
+    and its settle after each."""
+    return plan.moves_s(SCANNER_AXES) + plan.settle_s * len(plan.stops())
 
 
 def plot_accuracy(rows: list[tuple], path: Path) -> None:
@@ -199,6 +207,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scales", default="0.25,0.5,1", help="picture sizes, fractions of 1280x960")
     parser.add_argument("--views", default="6,12,30,60", help="orbit stops per elevation (divisors of 60)")
+    parser.add_argument("--elevations", default="0+30",
+                        help="the elevation sets (deg) to carve from, ','-separated, each '+'-joined (e.g. "
+                             "0+30,0+15+30,15+45): the pictures are rendered at all of their elevations once, and each "
+                             "set's rows carved from its own")
+    parser.add_argument("--spans", default="360",
+                        help="the orbit's spans (deg, ','-separated): 360 a whole turn; 180 the stops of the first "
+                             "half turn only (-180 up to 0 deg, both passes over the same arc), as a plan's span_deg")
     parser.add_argument("--voxel-mm", type=float, default=VOXEL_MM)
     parser.add_argument("--out", default=str(Path(__file__).resolve().parent))
     parser.add_argument("--concavity-only", action="store_true", help="only the dented sphere (a few minutes)")
@@ -212,6 +227,9 @@ def main() -> None:
         parser.error("--modulus-factor is --sim-truth's: give --sim-truth SCENE too")
     scales = [float(value) for value in args.scales.split(",")]
     view_counts = [int(value) for value in args.views.split(",")]
+    elevation_sets = [tuple(float(value) for value in chosen.split("+")) for chosen in args.elevations.split(",")]
+    rendered_deg = tuple(sorted({elevation for chosen in elevation_sets for elevation in chosen}))
+    spans_deg = [float(value) for value in args.spans.split(",")]
     out = Path(args.out)
     if args.concavity_only:
         with tempfile.TemporaryDirectory(prefix="scan-accuracy-") as scratch:
@@ -222,7 +240,7 @@ def main() -> None:
     rows = []
     with tempfile.TemporaryDirectory(prefix="scan-accuracy-") as scratch:
         for scale in scales:
-            true_rig = virtual_rig(scale)
+            true_rig = virtual_rig(scale, rendered_deg)
             started = time.perf_counter()
             if args.true_poses:
                 rig, to_truth = true_rig, frame_map(true_rig, true_rig, 0.0)
@@ -234,29 +252,39 @@ def main() -> None:
                 print(f"scale {scale:g} ({true_rig.camera.width}x{true_rig.camera.height}): calibrated in "
                       f"{time.perf_counter() - started:.0f} s, RMS {rig.calibration['rms_px']:.3f} px")
             for name, shape in shapes.items():
-                folder = render_capture(shape, true_rig, Plan(60), Path(scratch) / f"{name}{scale:g}")
+                folder = render_capture(shape, true_rig, Plan(60, rendered_deg), Path(scratch) / f"{name}{scale:g}")
                 folder = CaptureFolder.open(folder.path)
-                for views in view_counts:
+                for elevations, views, span_deg in ((chosen, views, span) for chosen in elevation_sets
+                                                    for views in view_counts for span in spans_deg):
                     step = 60 // views
-                    frames = [frame for frame in folder.frames if round((frame.orbit_deg + 180.0) / 6.0) % step == 0]
+                    frames = [frame for frame in folder.frames if round((frame.orbit_deg + 180.0) / 6.0) % step == 0
+                              and frame.orbit_deg + 180.0 < span_deg - 1e-6
+                              and any(abs(frame.elevation_deg - elevation) < 1e-6 for elevation in elevations)]
                     result = reconstruct(folder, rig, args.voxel_mm, frames)
                     scanned = TriangleMesh(to_truth.apply(result.mesh.vertices_mm), result.mesh.triangles)
                     distance = truth_distances(scanned, shape)
                     volume_pct = 100 * (result.volume_ml / enclosed_volume_ml(shape) - 1)
-                    rows.append((name, scale, true_rig.camera.width, true_rig.camera.height, 2 * views, volume_pct,
-                                 distance["mean"], distance["p95"], sum(result.stage_s.values())))
-                    print(f"  {name:>16} {2 * views:4d} views: volume {volume_pct:+.3f} %, mean {distance['mean']:.4f} "
-                          f"mm, p95 {distance['p95']:.4f} mm, reconstruction {rows[-1][-1]:.1f} s", flush=True)
+                    stops = len(frames) // len(elevations)
+                    arc_deg = 360.0 if span_deg >= 360.0 else (stops - 1) * 6.0 * step
+                    board_s = plan_board_s(Plan(stops, elevations, span_deg=arc_deg, settle_s=VERIFY_SETTLE_S))
+                    at = "+".join(f"{elevation:g}" for elevation in elevations) + (
+                        "" if span_deg >= 360.0 else f" over {arc_deg:g}")
+                    rows.append((name, scale, true_rig.camera.width, true_rig.camera.height, len(frames), volume_pct,
+                                 distance["mean"], distance["p95"], sum(result.stage_s.values()), at, board_s))
+                    print(f"  {name:>16} {stops:3d} x {at:>8} deg ({board_s:.1f} s on the board): volume "
+                          f"{volume_pct:+.3f} %, mean {distance['mean']:.4f} mm, p95 {distance['p95']:.4f} mm, "
+                          f"reconstruction {rows[-1][-3]:.1f} s", flush=True)
                 print("    where, by height (z mm: mean signed distance, volume outside the truth): " + "; ".join(
                     f"{low:.1f}..{high:.1f}: {mean_mm:+.3f} mm, {outside_ml:+.4f} ml"
                     for low, high, mean_mm, outside_ml in by_height(scanned, shape)), flush=True)
-        print("\n| shape | picture | views | volume vs truth | mean distance | p95 distance | reconstruction |")
-        print("|---|---|---|---|---|---|---|")
-        for name, _, width, height, views, volume_pct, mean, p95, seconds in rows:
-            print(f"| {name} | {width}x{height} | {views} | {volume_pct:+.3f} % | {mean:.3f} mm | {p95:.3f} mm | "
-                  f"{seconds:.1f} s |")
-        if args.sim_truth is None:
-            plot_accuracy(rows, out / "scan_accuracy.png")
+        print("\n| shape | picture | elevations (deg) | views | scan (board) | volume vs truth | mean distance | "
+              "p95 distance | reconstruction |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for name, _, width, height, views, volume_pct, mean, p95, seconds, at, board_s in rows:
+            print(f"| {name} | {width}x{height} | {at} | {views} | {board_s:.1f} s | {volume_pct:+.3f} % | "
+                  f"{mean:.3f} mm | {p95:.3f} mm | {seconds:.1f} s |")
+        if args.sim_truth is None and len(elevation_sets) == 1:
+            plot_accuracy([row[:-2] for row in rows], out / "scan_accuracy.png")
             concavity(out, args.voxel_mm, Path(scratch))
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import tempfile
@@ -37,17 +36,6 @@ from phantom.scan.keying import KeyedPictures
 from phantom.scan.reconstruct import Reconstruction, reconstruct
 
 
-def move_s(distance_deg: float, speed_deg_s: float, accel_deg_s2: float) -> float:
-    """The board's time (s) for a move of ``distance_deg`` on a trapezoidal profile (a triangle when short)."""
-    distance_deg = abs(distance_deg)
-    if distance_deg == 0.0:
-        return 0.0
-    ramp_deg = speed_deg_s ** 2 / accel_deg_s2  # both ramps at full speed
-    if distance_deg <= ramp_deg:
-        return 2.0 * math.sqrt(distance_deg / accel_deg_s2)
-    return speed_deg_s / accel_deg_s2 + distance_deg / speed_deg_s
-
-
 def board_moves_s(folder: CaptureFolder, start_deg: tuple[float, float]) -> list[float]:
     """Each picture's move on the board's profile (s), the elevation's then the orbit's, from where the rig was
     before it (the first from ``start_deg``, the orbit's and the elevation's angles before the scan)."""
@@ -55,8 +43,7 @@ def board_moves_s(folder: CaptureFolder, start_deg: tuple[float, float]) -> list
     where = start_deg
     times = []
     for frame in folder.frames:
-        times.append(move_s(frame.elevation_deg - where[1], elevation.max_speed_deg_s, elevation.max_accel_deg_s2)
-                     + move_s(frame.orbit_deg - where[0], orbit.max_speed_deg_s, orbit.max_accel_deg_s2))
+        times.append(elevation.move_s(frame.elevation_deg - where[1]) + orbit.move_s(frame.orbit_deg - where[0]))
         where = (frame.orbit_deg, frame.elevation_deg)
     return times
 

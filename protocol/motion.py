@@ -81,6 +81,17 @@ class AxisConfig:
                          f"{self.home_speed_deg_s!r}")
         return found
 
+    def move_s(self, distance_deg: float) -> float:
+        """The board's time (s) for a move of ``distance_deg`` (either way) on this axis's trapezoidal profile: up
+        to ``max_speed_deg_s`` at ``max_accel_deg_s2`` and down again (a triangle when too short to reach it)."""
+        distance_deg = abs(distance_deg)
+        if distance_deg == 0.0:
+            return 0.0
+        ramps_deg = self.max_speed_deg_s ** 2 / self.max_accel_deg_s2  # both ramps at full speed
+        if distance_deg <= ramps_deg:
+            return 2.0 * math.sqrt(distance_deg / self.max_accel_deg_s2)
+        return self.max_speed_deg_s / self.max_accel_deg_s2 + distance_deg / self.max_speed_deg_s
+
     def fields(self, axis: int) -> dict[str, Any]:
         """MOTION_CONFIG's fields for this axis; MotionError naming every problem first."""
         check_axis(axis)

@@ -45,6 +45,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from phantom import PhantomError, require_extra
+from phantom.protocol.motion import AxisConfig
 from phantom.scan.camera import MAX_PICTURE_SIDE_PX, Rig, checked_array
 
 CAPTURE_FORMAT = "phantom-capture/1"
@@ -187,6 +188,16 @@ class Plan:
         for number, elevation in enumerate(self.elevations_deg):
             stops += [(angle, elevation) for angle in (angles if number % 2 == 0 else angles[::-1])]
         return stops
+
+    def moves_s(self, axes: Sequence[AxisConfig]) -> float:
+        """The board's time (s) for this plan's moves on ``axes`` (the orbit's configuration, the elevation's), as
+        the daemon moves them (each stop's elevation, then its orbit) and from the last stop to the first (a scan
+        after one of the same plan starts where that one ended): a pass's stops and the turn back after an odd
+        number of passes."""
+        orbit, elevation = axes
+        stops = self.stops()
+        return sum(elevation.move_s(to[1] - at[1]) + orbit.move_s(to[0] - at[0])
+                   for at, to in zip([stops[-1], *stops[:-1]], stops, strict=True))
 
     def to_json(self) -> dict[str, Any]:
         return {"views_per_elevation": self.views, "elevations_deg": list(self.elevations_deg),

@@ -701,20 +701,27 @@ def test_the_core_gives_round_2s_miss_round_1s_scan_and_a_secant_rounds_asked_vo
     assert told.data["rounds"][2]["asked_ml"] == pytest.approx(40.3)   # the corrected model's volume there
 
 
-@pytest.mark.parametrize(("tolerance_pct", "views"), [(0.3, 30), (0.05, 30), (0.7, 20), (1.0, 20), (1.1, 15), (2.5, 10),
-                                                      (20.0, 10)])
-def test_the_verify_scans_orbit_stops_are_the_fewest_whose_error_fits_what_the_tolerance_leaves_the_scanner(
-        tolerance_pct, views):
-    """Item 7: the plan from the scanner's error model (bench/README.md "Scanner"): the scanner may take what a
-    scan stopped within the third aimed at leaves of the tolerance; 0.3 % leaves 0.2 %, which only 30 stops per
-    elevation (0.16 %) meet; 1.1 % leaves 0.73 %: 15 stops (0.667 %), half the pictures."""
-    from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan, views_for
+@pytest.mark.parametrize(("tolerance_pct", "views", "elevations_deg"), [
+    (0.3, 20, [15.0, 45.0]), (0.05, 30, [0.0, 30.0]), (0.7, 15, [15.0, 45.0]), (1.0, 15, [15.0, 45.0]),
+    (2.5, 10, [0.0, 30.0]), (20.0, 10, [0.0, 30.0])])
+def test_the_verify_scans_plan_is_the_fastest_whose_error_fits_what_the_tolerance_leaves_the_scanner(
+        tolerance_pct, views, elevations_deg):
+    """Item 7: the plan from the scanner's error model (bench/README.md "Scanner") and the board's move profile:
+    the scanner may take what a scan stopped within the third aimed at leaves of the tolerance; 0.3 % leaves 0.2 %,
+    which 20 stops at 15 and 45 deg (0.17 %) meet 4 s sooner than 30 at 0 and 30 deg (0.16 %); nothing meets 0.03 %:
+    the most accurate. A calibrated rig's plan keeps its elevations and its stops as the most."""
+    from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan, plan_for_tolerance, scan_s
 
-    assert views_for(tolerance_pct) == views
+    assert plan_for_tolerance(tolerance_pct) == (views, tuple(elevations_deg))
     plan = VerifyScan().plan_for(tolerance_pct)
-    assert plan == {**VERIFY_PLAN, "views": views}
-    rig_plan = VerifyScan({**VERIFY_PLAN, "camera": "/dev/video0", "views": 12}).plan_for(tolerance_pct)
-    assert rig_plan["camera"] == "/dev/video0" and rig_plan["views"] == min(12, views)   # never more than its own
+    assert plan == {**VERIFY_PLAN, "views": views, "elevations_deg": elevations_deg}
+    assert scan_s(20, (15.0, 45.0)) == pytest.approx(31.55) and scan_s(30, (0.0, 30.0)) == pytest.approx(35.45)
+    rig_plan = VerifyScan({**VERIFY_PLAN, "camera": "/dev/video0", "rig": "rig.json", "views": 12,
+                           "elevations_deg": [0.0, 30.0]}).plan_for(tolerance_pct)
+    assert rig_plan["camera"] == "/dev/video0" and rig_plan["elevations_deg"] == [0.0, 30.0]
+    assert rig_plan["views"] == min(12, plan_for_tolerance(tolerance_pct, (0.0, 30.0))[0])   # never more than its own
+    unmeasured = {**VERIFY_PLAN, "rig": "rig.json", "views": 12, "elevations_deg": [5.0, 25.0]}
+    assert VerifyScan(unmeasured).plan_for(tolerance_pct) == unmeasured   # no error measured there: as given
 
 
 def test_a_verified_rounds_scan_carries_its_tolerance_for_the_plan(core):

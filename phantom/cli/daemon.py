@@ -116,7 +116,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
 
     file_values = load_config(args.config) if args.config else {}
     config = merged_config(file_values, {item.name: getattr(args, item.name) for item in settings()})
-    from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan
+    from phantom.cli.scan_verify import MOST_VIEWS, VERIFY_PLAN, VerifyScan
     from phantom.hil.simulated_truth import SimulatedTruth
     from phantom.scan.daemon_scan import DaemonScanner
 
@@ -134,7 +134,7 @@ def _run_daemon(args: argparse.Namespace) -> int:
     if config.camera is not None or config.rig is not None:
         from phantom.scan.daemon_scan import camera_plan
 
-        verify = VerifyScan(camera_plan(config.camera, config.rig, VERIFY_PLAN["views"]))
+        verify = VerifyScan(camera_plan(config.camera, config.rig, MOST_VIEWS))
     from phantom.host.scan_worker import ScanWorker
 
     # the scans' capture and reconstruction in a process of their own: they hold the GIL for long stretches,
