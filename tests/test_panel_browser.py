@@ -242,10 +242,12 @@ def test_vent_vents(panel):
 
 
 def test_a_latched_fault_is_shown_in_words_and_cleared(panel):
-    # the daemon falls silent past the board's dead-host deadline (500 ms): the board latches DEAD_HOST
-    panel.process.send_signal(signal.SIGSTOP)
+    # the daemon falls silent past the board's dead-host deadline (500 ms): the board latches DEAD_HOST. The
+    # board's keepalive is the link's process's (it holds while the daemon's loop stalls), so that one is stopped
+    link_pid = panel.status()["link_detail"]["process"]["pid"]
+    os.kill(link_pid, signal.SIGSTOP)
     time.sleep(1.5)
-    panel.process.send_signal(signal.SIGCONT)
+    os.kill(link_pid, signal.SIGCONT)
     panel.wait(lambda: panel.driver.find_element(By.ID, "faults").is_displayed(), 20, "the fault shown")
     assert "DEAD_HOST" in panel.text("fault-text") and "heard nothing from the daemon" in panel.text("fault-text")
     panel.shot("fault")
