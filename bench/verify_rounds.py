@@ -44,7 +44,7 @@ def main() -> None:
     from phantom.host import verify
     from phantom.host.scenes import load_timeline_scene
     from phantom.model import PhantomModel
-    from phantom.model.corrections import CorrectedModel, fit_correction, model_grid
+    from phantom.model.corrections import CorrectedModel, fit_correction, judged, model_grid
     from phantom.model.inverse import InverseSolver
     from phantom.model.measurements import Measurement
     from phantom.model.target import Target
@@ -108,6 +108,18 @@ def main() -> None:
     def inverse_kpa(volume_ml: float) -> np.ndarray:
         return np.asarray(solver.pressures_for(Target(gland_volume_m3=volume_ml * 1e-6)).pressures_pa) / 1e3
 
+    held_out: list[Measurement] = []
+
+    def stored(store: list[Measurement], measurement: Measurement) -> bool:
+        """Judge a measurement as the daemon does before it stores it (``judged``: a volume implausible against the
+        correction in force is stored unconfirmed, out of the fit); the confirmed go into ``store``."""
+        kept = judged(measurement, grid, store, fit=fit_correction)
+        if kept.status == "confirmed":
+            store.append(kept)
+            return True
+        held_out.append(kept)
+        return False
+
     def solve_kpa(store: list[Measurement], volume_ml: float) -> np.ndarray:
         if not store:
             return inverse_kpa(volume_ml)
@@ -149,7 +161,8 @@ def main() -> None:
             for state in design:
                 truth = true_ml(np.asarray(state))
                 noise_pct = args.noise_pct * rng.standard_normal()
-                store.append(Measurement(tuple(map(float, state)), truth * (1 + (bias_pct(truth) + noise_pct) / 100)))
+                stored(store, Measurement(tuple(map(float, state)),
+                                          truth * (1 + (bias_pct(truth) + noise_pct) / 100)))
         def verified_rounds(target_ml: float, pressures: np.ndarray, store: list[Measurement] = store,
                             rng: np.random.Generator = rng) -> tuple[int, float, float, list[str]]:
             """One verified target's rounds from ``pressures``: how many, the last scan's error and the true one (%),
@@ -162,7 +175,8 @@ def main() -> None:
                 error_pct = (scanned / target_ml - 1) * 100
                 true_pct = (truth / target_ml - 1) * 100
                 log.append(f"{error_pct:+.2f} / {true_pct:+.2f}")
-                store.append(Measurement(tuple(map(float, pressures)), float(scanned)))
+                if not stored(store, Measurement(tuple(map(float, pressures)), float(scanned))):
+                    log[-1] += " (unconfirmed)"
                 if verify.judge_scan(error_pct, args.tolerance_pct, round_, args.rounds, True,
                                      args.aim_share) != "correct":
                     break
@@ -230,8 +244,8 @@ def main() -> None:
     outside = sum(error > args.tolerance_pct for error in verified_true)
     print(f"\nmean rounds {np.mean(all_rounds):.2f}, most {max(all_rounds)}, worst true error {worst_true:.2f} %; "
           f"{len(verified_true)} verified (true error mean {np.mean(verified_true):.2f} %, max "
-          f"{max(verified_true, default=0):.2f} %, {outside} beyond the tolerance), {unverified} not verified "
-          f"({time.perf_counter() - started:.0f} s)")
+          f"{max(verified_true, default=0):.2f} %, {outside} beyond the tolerance), {unverified} not verified; "
+          f"{len(held_out)} scans stored unconfirmed ({time.perf_counter() - started:.0f} s)")
     if args.auto:
         print(f"verify auto: {len(auto_unscanned)} not scanned (true error mean "
               f"{np.mean(np.abs(auto_unscanned)) if auto_unscanned else 0:.2f} %, max "

@@ -167,6 +167,8 @@ class _Posterior:
     prior: np.ndarray
     cholesky: np.ndarray
     weights: np.ndarray
+    amplitude_ml: float
+    length_scales_kpa: np.ndarray
 
 
 def _posterior(kind: str, pressures_kpa: np.ndarray, growth_ml: np.ndarray, residual_ml: np.ndarray,
@@ -177,7 +179,23 @@ def _posterior(kind: str, pressures_kpa: np.ndarray, growth_ml: np.ndarray, resi
     covariance = (_signal(pressures_kpa, pressures_kpa, amplitude_ml, length_scales_kpa)
                   + (trend * prior) @ trend.T + np.diag(noise_ml ** 2))
     factor = cholesky(covariance, lower=True)
-    return _Posterior(pressures_kpa, trend, prior, factor, cho_solve((factor, True), residual_ml))
+    return _Posterior(pressures_kpa, trend, prior, factor, cho_solve((factor, True), residual_ml), amplitude_ml,
+                      length_scales_kpa)
+
+
+def _deviation_ml(posterior: _Posterior, pressures_kpa: np.ndarray, trend: np.ndarray,
+                  prior: np.ndarray) -> np.ndarray:
+    """The posterior standard deviation (ml) of the residual at pressures (kPa, (k, 3)), whose trend columns are
+    ``trend`` with prior variances ``prior``, of a fitted process (``posterior``)."""
+    from scipy.linalg import solve_triangular
+
+    amplitude_ml = posterior.amplitude_ml
+    cross = (_signal(pressures_kpa, posterior.pressures_kpa, amplitude_ml, posterior.length_scales_kpa)
+             + (trend * prior) @ posterior.trend.T)
+    projected = solve_triangular(posterior.cholesky, cross.T, lower=True)
+    variance = amplitude_ml ** 2 + np.sum(trend ** 2 * prior, axis=1) - np.sum(projected ** 2, axis=0)
+    deviation: np.ndarray = np.sqrt(np.clip(variance, 0.0, None))
+    return deviation
 
 
 @dataclass(frozen=True)
@@ -235,8 +253,6 @@ class Correction:
         """The correction (ml, within +-``bound_pct`` of the model's volume) and its standard deviation (ml) at
         pressures (kPa, one row of one per chamber each, or one such row), where the model grew
         ``model_growth_ml`` above its rest."""
-        from scipy.linalg import solve_triangular
-
         pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
         growth = np.asarray(model_growth_ml, dtype=float).reshape(-1)
         fitted = self._fitted
@@ -245,13 +261,25 @@ class Correction:
                  + (trend * prior) @ fitted.trend.T)
         bound = self.bound_pct / 100.0 * np.abs(self.rest_ml + growth)
         mean = np.clip(cross @ fitted.weights, -bound, bound)
-        for_band = self._for_band
-        if for_band is not fitted:  # the band assumes the residual smooth over at most BAND_LENGTH_SCALE_MAX_KPA
-            cross = (_signal(pressures, for_band.pressures_kpa, self.amplitude_ml, self._band_length_scales_kpa)
-                     + (trend * prior) @ for_band.trend.T)
-        projected = solve_triangular(for_band.cholesky, cross.T, lower=True)
-        variance = self.amplitude_ml ** 2 + np.sum(trend ** 2 * prior, axis=1) - np.sum(projected ** 2, axis=0)
-        return mean, np.sqrt(np.clip(variance, 0.0, None))
+        # the band assumes the residual smooth over at most BAND_LENGTH_SCALE_MAX_KPA
+        return mean, _deviation_ml(self._for_band, pressures, trend, prior)
+
+    def deviation_at_least_ml(self, pressures_kpa: ArrayLike, model_growth_ml: ArrayLike,
+                              prior_sd_ml: float) -> np.ndarray:
+        """The band's standard deviation (ml, as :meth:`band_ml`'s) of the process whose spread before any
+        measurement is at least ``prior_sd_ml`` (the model's own known error there): near the measurements their
+        noise, away from them what the model alone is known to miss by, not the fitted amplitude, which only
+        says how much the residual varied where it was measured."""
+        pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
+        growth = np.asarray(model_growth_ml, dtype=float).reshape(-1)
+        amplitude_ml = max(self.amplitude_ml, float(prior_sd_ml))
+        if amplitude_ml == self.amplitude_ml:
+            return self.band_ml(pressures, growth)[1]
+        trend, prior = _trend(self.kind, growth)
+        posterior = _posterior(self.kind, np.asarray(self.pressures_kpa, dtype=float), np.asarray(self.growth_ml),
+                               np.asarray(self.residual_at_ml), np.asarray(self.noise_ml), amplitude_ml,
+                               self._band_length_scales_kpa)
+        return _deviation_ml(posterior, pressures, trend, prior)
 
     def residual_ml(self, pressures_kpa: ArrayLike, model_growth_ml: float) -> float:
         """What to add to the model's gland volume at these pressures (kPa), where the model grew
@@ -471,6 +499,17 @@ class CorrectedModel:
         mean, deviation = self.correction.band_ml(pressures, [model_ml - self.rest_ml])
         return float(model_ml + mean[0]), float(BAND_Z * deviation[0])
 
+    def judging_band_ml(self, pressures_kpa: ArrayLike, model_half_width_ml: float) -> tuple[float, float]:
+        """:meth:`gland_band_ml` for judging a new measurement: the half-width never less than the model's own
+        known error (``model_half_width_ml``, 95 %) away from the measurements (:meth:`Correction.
+        deviation_at_least_ml`), so a phantom measured only near rest is not thought known at 3 kPa."""
+        pressures = np.asarray(pressures_kpa, dtype=float)
+        model_ml = self.grid.gland_ml(pressures)
+        growth = [model_ml - self.rest_ml]
+        mean, _ = self.correction.band_ml(pressures, growth)
+        deviation = self.correction.deviation_at_least_ml(pressures, growth, model_half_width_ml / BAND_Z)
+        return float(model_ml + mean[0]), float(BAND_Z * deviation[0])
+
     def corrected_ml(self, pressures_kpa: ArrayLike, model_ml: float) -> float:
         """The corrected gland volume (ml) at these pressures (kPa), where the model's own is ``model_ml`` (a caller
         that has it already spares the model a second evaluation)."""
@@ -555,17 +594,17 @@ def model_grid(estimator: Any, description: str = "") -> ModelGrid:
                      gland_ml, description)
 
 
-def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement],
-           model_name: str = "the model") -> Measurement:
+def judged(measurement: Measurement, grid: Any, confirmed: list[Measurement], model_name: str = "the model",
+           fit: Callable[[Sequence[Measurement], Any], Correction] = cached_fit) -> Measurement:
     """``measurement`` with its status: ``unconfirmed`` with the reason when it is implausible against the model
     (``grid``: a :class:`ModelGrid`) corrected by the ``confirmed`` measurements already stored
-    (:func:`phantom.model.measurements.expectation`; their fit is the cached one, the daemon's when it fitted them
-    already); a fit that fails leaves the model's own expectation."""
+    (:func:`phantom.model.measurements.expectation`; their ``fit`` is the cached one, the daemon's when it fitted
+    them already); a fit that fails leaves the model's own expectation."""
     pressures = np.clip(np.asarray(measurement.pressures_kpa, dtype=float), 0.0, float(grid.points_kpa[-1]))
     corrected = None
     if confirmed:
         try:
-            corrected = CorrectedModel(grid, cached_fit(confirmed, grid))
+            corrected = CorrectedModel(grid, fit(confirmed, grid))
         except (CorrectionError, ValueError, ArithmeticError):
             corrected = None
     expected, half_width, basis = expectation(pressures, grid.gland_ml(pressures), corrected, model_name)

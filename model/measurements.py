@@ -180,16 +180,17 @@ def expectation(pressures_kpa: ArrayLike, model_ml: float, corrected: Any | None
     """The volume expected at these pressures (ml), its 95 % half-width (ml) and where it came from.
 
     ``model_ml`` is the model's own volume there; ``corrected`` the corrected model in force (a
-    ``phantom.model.corrections.CorrectedModel``; None: none). With a correction: its band
-    (``gland_band_ml(pressures) -> (mean, half-width)``, the Gaussian process's 95 %). Without: the model's volume
-    and ``MODEL_ERROR_95_PCT``. Never narrower than ``MIN_HALF_WIDTH_PCT``.
+    ``phantom.model.corrections.CorrectedModel``; None: none). With a correction: its band (``judging_band_ml(
+    pressures, model_half_width_ml) -> (mean, half-width)``, the Gaussian process's 95 %, as wide as the model's
+    own known error away from the measurements). Without: the model's volume and ``MODEL_ERROR_95_PCT``. Never
+    narrower than ``MIN_HALF_WIDTH_PCT``.
     """
     pressures = np.asarray(pressures_kpa, dtype=float)
     if corrected is None:
         expected, half_width, basis = model_ml, model_ml * MODEL_ERROR_95_PCT / 100, \
             f"{model_name} (its known error, {MODEL_ERROR_95_PCT:g} %)"
     else:
-        expected, half_width = (float(v) for v in corrected.gland_band_ml(pressures))
+        expected, half_width = corrected.judging_band_ml(pressures, model_ml * MODEL_ERROR_95_PCT / 100)
         basis = f"the correction in force ({corrected.describe()})"
     return expected, max(half_width, expected * MIN_HALF_WIDTH_PCT / 100), basis
 
