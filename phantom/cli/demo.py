@@ -32,7 +32,7 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -134,13 +134,14 @@ def _tail(path: Path, lines: int = 15) -> str:
 
 
 @contextlib.contextmanager
-def sim_daemon(folder: Path) -> Iterator[Path]:
-    """A ``phantom daemon --sim`` of the benches' own: its socket, log (``daemon.log``) and data directory in
-    ``folder``; ready when entered, stopped (:func:`stop_daemon`) on leaving. Yields its socket's path."""
+def sim_daemon(folder: Path, options: Sequence[str] = ()) -> Iterator[Path]:
+    """A ``phantom daemon --sim`` of the benches' own (``options`` added to its command line): its socket, log
+    (``daemon.log``) and data directory in ``folder``; ready when entered, stopped (:func:`stop_daemon`) on
+    leaving. Yields its socket's path."""
     socket, log_path = folder / "d.sock", folder / "daemon.log"
     with open(log_path, "w") as log:
         process = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--sim",
-                                    "--socket", str(socket)], stdout=log, stderr=subprocess.STDOUT,
+                                    "--socket", str(socket), *options], stdout=log, stderr=subprocess.STDOUT,
                                    env={**os.environ, "PHANTOM_DATA_DIR": str(folder / "data")})
     try:
         wait_until_ready(socket, process, log_path)
