@@ -4,10 +4,12 @@
 :class:`phantom.hil.sim.SimulatedBoard` (the real firmware in simavr), and gives the tests its status, the
 ``phantom`` CLI, the raw API and its log. :func:`calibrated_scene` writes a scene on the daemon's default model
 (the calibrated Gent phantom, answered from its cached response table) with the given ``[[steps]]``.
+:func:`wait_for` awaits a condition in the link's tests' event loops.
 """
 
 from __future__ import annotations
 
+import asyncio
 import subprocess
 import sys
 import time
@@ -21,6 +23,14 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 REPO = Path(__file__).resolve().parent.parent
 #: One ADC count of the board's sensor (kPa): 5 V / 1024 / (0.018 * 5 V/kPa).
 ONE_ADC_COUNT_KPA = 5.0 / 1024 / (0.018 * 5.0)
+
+
+async def wait_for(predicate: Any, timeout_s: float = 5.0) -> None:
+    """Await ``predicate()`` true, polling every 20 ms; AssertionError after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.02)
 
 
 def calibrated_scene(steps: list[dict[str, Any]], end_s: float) -> str:

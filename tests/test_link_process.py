@@ -11,6 +11,7 @@ import sys
 import time
 
 import pytest
+from daemon_rig import wait_for
 
 from phantom.host.link_process import LinkProcess
 from phantom.host.session import CommandRejected, LinkDown, LinkTiming, fault_names
@@ -41,12 +42,6 @@ def hold_the_gil(seconds: float) -> float:
     sum(range(int(seconds / per_million_s * 1e6)))
     return time.monotonic() - started
 
-
-async def wait_for(predicate, timeout_s):
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        await asyncio.sleep(0.02)
 
 
 def test_the_board_keeps_its_link_while_the_daemons_process_holds_the_gil(board):

@@ -17,6 +17,7 @@ import time
 import tty
 
 import pytest
+from daemon_rig import wait_for
 
 from phantom.host.session import CommandRejected, LinkDown, LinkSession, LinkState, LinkTiming
 from phantom.host.transports import (
@@ -139,13 +140,6 @@ def run_session(transport, script, timing=FAST, **callbacks):
 
     return asyncio.run(main())
 
-
-async def wait_for(predicate, timeout_s=5.0):
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        await asyncio.sleep(0.01)
 
 
 def test_handshake_config_setpoints_and_telemetry_over_a_pty(tmp_path):

@@ -5,9 +5,9 @@ firmware's watchdog reset (provoked with the bench-only TEST_HANG) and bytes fli
 """
 
 import asyncio
-import time
 
 import pytest
+from daemon_rig import wait_for
 
 from phantom.host.session import LinkSession, LinkState, LinkTiming
 from phantom.host.transports import SerialTransport
@@ -26,12 +26,6 @@ def board():
     with SimulatedBoard(speed=SPEED) as simulated:
         yield simulated
 
-
-async def wait_for(predicate, timeout_s):
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        await asyncio.sleep(0.02)
 
 
 def test_a_watchdog_reset_behind_an_open_port_is_seen_and_its_cause_reported(board):
