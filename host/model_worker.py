@@ -326,9 +326,7 @@ class LoadedModel:
         band there (ml); None without a correction in force."""
         if self.corrected is None:
             return None
-        _, gland_ml, _ = self.estimate(pressures_pa)
-        _, band_ml = self.corrected.gland_band_ml(self.measured(pressures_pa) / PA_PER_KPA)
-        return gland_ml, band_ml
+        return self.corrected.gland_band_ml(self.measured(pressures_pa) / PA_PER_KPA)
 
     def rest_surface_mm(self) -> tuple[np.ndarray, np.ndarray]:
         """The outer surface at rest: positions (mm, (n, 3)) and triangles ((k, 3) indices into them)."""

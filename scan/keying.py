@@ -64,12 +64,12 @@ class KeyedPictures:
         if picture.dtype != np.uint8 or picture.ndim != 3 or picture.shape[2] != 3:
             return  # not what the PNG reads back as: the reconstruction keys the file
         digest = _digest(path / frame.image)
+        if digest is None:
+            return  # the file cannot be read back: the reconstruction keys it, or says why not
         try:
             found = silhouette(np.ascontiguousarray(picture))
         except PhantomError:
             return  # the reconstruction keys it again and says what is wrong with it
-        if digest is None:
-            return
         with self._lock:
             if self._folder == path:
                 self._keyed[frame.image] = _Keyed(found, digest)
