@@ -30,6 +30,7 @@ SAME_MODEL_ML = 0.05
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``characterise`` to the ``phantom`` parser."""
     from phantom.cli.client import _add_socket
+    from phantom.cli.scan_verify import VERIFY_SETTLE_S
 
     parser = subparsers.add_parser(
         "characterise", help="scan the phantom over its pressure box through the daemon, store the scans and fit "
@@ -60,15 +61,16 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                         help="the daemon's model scene (default builtin:converged, the daemon's default)")
     parser.add_argument("--views", type=int, default=30,
                         help="pictures per turn of the orbit (default 30: at two elevations, 60 pictures of 640x480 "
-                        "read the simulated phantom 0.09-0.14 %% low, the 120 of 60 a turn 0.24-0.36 %% low, in twice "
-                        "the time)")
+                        "read the simulated phantom -0.13 %% at rest and +0.16 %% at 45 ml, bench/README.md "
+                        "\"Scanner\"; the elevations a rig from `phantom scan calibrate --sim` has)")
     parser.add_argument("--elevations", default="0,30", help="the passes' elevations (deg, default 0,30)")
     parser.add_argument("--scale", type=float, default=0.5,
                         help="the virtual camera's picture size, of 1280x960 (default 0.5: 640x480)")
     parser.add_argument("--camera", default=None,
                         help="the daemon's camera (default): its --camera on a real board, else the simulated "
                         "board's virtual one; or 'virtual', a device number, a stream's URL")
-    parser.add_argument("--settle-s", type=float, default=0.3, help="wait after each move of the orbit (s)")
+    parser.add_argument("--settle-s", type=float, default=VERIFY_SETTLE_S,
+                        help=f"wait after each move of the orbit (s, default {VERIFY_SETTLE_S:g}, the verify scan's)")
     parser.add_argument("--voxel-mm", type=float, default=0.3, help="the reconstruction's finest voxel (mm)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the design and of the sensor noise")
     parser.add_argument("--reach-timeout-s", type=float, default=120.0,
