@@ -46,6 +46,9 @@ from phantom.protocol.motion import MotionStatus as MotionStatus
 
 #: How long to wait for a move, a homing or a stop to end when the caller gives no time (s of board time).
 DEFAULT_WAIT_S = 120.0
+#: A step the firmware counted is made by its step interrupt within the next window (5 control ticks of 2 ms):
+#: twice that of board time after a move's REACHED its driver has taken every pulse.
+PULSES_MADE_WITHIN_S = 0.02
 
 
 def _command(link: BoardLink, name: str, fields: dict[str, Any], axis: int, angle: str = "") -> Message:
@@ -153,10 +156,16 @@ def stop(link: BoardLink, release: bool = False, wait: bool = True, timeout_s: f
 
 
 def _at_rest(link: BoardLink, answer: Message, axis: int, expected: str, what: str, timeout_s: float) -> MotionStatus:
-    """The first status after a command's ACK with the axis at rest; MotionError unless it ended as expected."""
+    """The first status after a command's ACK with the axis at rest, returned once its driver has taken every
+    pulse; MotionError unless it ended as expected."""
     final = _wait_status(link, _statuses_after(link, answer), lambda s: s.axes[axis].at_rest, timeout_s, what)
     result = final.axes[axis].result
     if result == expected:
+        # the board counts a step when it hands it to its step interrupt, which makes it in the next window: the
+        # last pulses of a move come up to a window after its REACHED (read at once on a loaded machine, the
+        # motion check counted 1599 of 1600 pulses, and a test found the rig a step short of where it was sent)
+        wait_for_status(link, lambda later: later.board_time_s >= final.board_time_s + PULSES_MADE_WITHIN_S,
+                        timeout_s)
         return final
     if result == "FAULT":
         faults = [r.message.fields["fault_flags"] for r in link.received if r.message.name == "FAULT"]
@@ -307,10 +316,6 @@ def measure_cycles(link: BoardLink, board: SimulatedBoard | None, step_rate: flo
     }
 
 
-#: A step the firmware counted is made by its step interrupt within the next window (5 control ticks of 2 ms):
-#: twice that of board time after a move's REACHED its driver has taken every pulse.
-PULSES_MADE_WITHIN_S = 0.02
-
 
 #: The orbit of docs/hardware.md: a 200-step motor at 16 microsteps on a 9:1 belt, 30 deg/s, 240 deg/s^2,
 #: +-190 deg (the camera's cable allows a little over a turn), homed at 10 deg/s onto a switch at -185 deg.
@@ -340,13 +345,7 @@ def check_motion(link: BoardLink, board: SimulatedBoard | None = None, config: A
     report["there_deg"] = there.axes[axis].position_deg if there else None
     checks = {"reached": there is not None and there.axes[axis].position_steps == config.steps(target)}
     if rig is not None:
-        if there is not None:
-            # the board counts a step when it hands it to its step interrupt, which makes it in the next window:
-            # the last pulses of a move come up to a window after its REACHED, so the driver's count is read a
-            # status later (on a loaded machine it was read first: 1599 of 1600 pulses)
-            wait_for_status(link, lambda later: later.board_time_s >= there.board_time_s + PULSES_MADE_WITHIN_S,
-                            DEFAULT_WAIT_S)
-        simulated = rig.axes()[axis]
+        simulated = rig.axes()[axis]  # every pulse of the move made: move_to returns once they are
         times_s, directions = rig.pulse_log(axis)
         limits = profile_limits(times_s, directions)
         speed, accel = config.steps(config.max_speed_deg_s), config.steps(config.max_accel_deg_s2)
