@@ -101,12 +101,6 @@ def by_height(scanned: TriangleMesh, truth: TriangleMesh, bands: int = 6) -> lis
     return rows
 
 
-def plan_board_s(plan: Plan) -> float:
-    """A plan's time on the board (s): its moves on the scanner's axes (the move back to its first stop included)
-    and its settle after each."""
-    return plan.moves_s(SCANNER_AXES) + plan.settle_s * len(plan.stops())
-
-
 def plot_accuracy(rows: list[tuple], path: Path) -> None:
     """|volume error| and mean distance against the views, a line per shape and picture size (rows as printed:
     shape, scale, width, height, views, volume %, mean mm, p95 mm, seconds)."""
@@ -266,7 +260,7 @@ def main() -> None:
                     volume_pct = 100 * (result.volume_ml / enclosed_volume_ml(shape) - 1)
                     stops = len(frames) // len(elevations)
                     arc_deg = 360.0 if span_deg >= 360.0 else (stops - 1) * 6.0 * step
-                    board_s = plan_board_s(Plan(stops, elevations, span_deg=arc_deg, settle_s=VERIFY_SETTLE_S))
+                    board_s = Plan(stops, elevations, span_deg=arc_deg, settle_s=VERIFY_SETTLE_S).board_s(SCANNER_AXES)
                     at = "+".join(f"{elevation:g}" for elevation in elevations) + (
                         "" if span_deg >= 360.0 else f" over {arc_deg:g}")
                     rows.append((name, scale, true_rig.camera.width, true_rig.camera.height, len(frames), volume_pct,

@@ -199,6 +199,11 @@ class Plan:
         return sum(elevation.move_s(to[1] - at[1]) + orbit.move_s(to[0] - at[0])
                    for at, to in zip([stops[-1], *stops[:-1]], stops, strict=True))
 
+    def board_s(self, axes: Sequence[AxisConfig]) -> float:
+        """The plan's time on the board (s): its moves on ``axes`` (:meth:`moves_s`) and its settle after each
+        stop."""
+        return self.moves_s(axes) + self.settle_s * len(self.stops())
+
     def to_json(self) -> dict[str, Any]:
         return {"views_per_elevation": self.views, "elevations_deg": list(self.elevations_deg),
                 "start_deg": self.start_deg, "span_deg": self.span_deg, "settle_s": self.settle_s}

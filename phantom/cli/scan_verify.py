@@ -47,8 +47,7 @@ def scan_s(views: int, elevations_deg: tuple[float, ...], settle_s: float = VERI
     from phantom.protocol.motion import SCANNER_AXES
     from phantom.scan.capture import Plan
 
-    plan = Plan(views, elevations_deg, settle_s=settle_s)
-    return plan.moves_s(SCANNER_AXES) + settle_s * len(plan.stops())
+    return Plan(views, elevations_deg, settle_s=settle_s).board_s(SCANNER_AXES)
 
 
 def plan_for_tolerance(tolerance_pct: float, elevations_deg: tuple[float, ...] | None = None
