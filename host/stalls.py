@@ -47,14 +47,9 @@ class GcPauses:
         self._started_s: float | None = None
         self._lock = threading.Lock()
 
-    def install(self) -> GcPauses:
+    def install(self) -> None:
         if self._callback not in gc.callbacks:
             gc.callbacks.append(self._callback)
-        return self
-
-    def uninstall(self) -> None:
-        if self._callback in gc.callbacks:
-            gc.callbacks.remove(self._callback)
 
     def _callback(self, phase: str, info: dict[str, int]) -> None:
         now_s = time.monotonic()
