@@ -264,18 +264,13 @@ class Correction:
         # the band assumes the residual smooth over at most BAND_LENGTH_SCALE_MAX_KPA
         return mean, _deviation_ml(self._for_band, pressures, trend, prior)
 
-    def deviation_at_least_ml(self, pressures_kpa: ArrayLike, model_growth_ml: ArrayLike,
-                              prior_sd_ml: float) -> np.ndarray:
+    def deviation_with_amplitude_ml(self, pressures_kpa: ArrayLike, model_growth_ml: ArrayLike,
+                                    amplitude_ml: float) -> np.ndarray:
         """The band's standard deviation (ml, as :meth:`band_ml`'s) of the process whose spread before any
-        measurement is at least ``prior_sd_ml`` (the model's own known error there): near the measurements their
-        noise, away from them what the model alone is known to miss by, not the fitted amplitude, which only
-        says how much the residual varied where it was measured."""
+        measurement is ``amplitude_ml`` instead of the fitted one: near the measurements their noise, away from
+        them that amplitude."""
         pressures = np.atleast_2d(np.asarray(pressures_kpa, dtype=float))
-        growth = np.asarray(model_growth_ml, dtype=float).reshape(-1)
-        amplitude_ml = max(self.amplitude_ml, float(prior_sd_ml))
-        if amplitude_ml == self.amplitude_ml:
-            return self.band_ml(pressures, growth)[1]
-        trend, prior = _trend(self.kind, growth)
+        trend, prior = _trend(self.kind, np.asarray(model_growth_ml, dtype=float).reshape(-1))
         posterior = _posterior(self.kind, np.asarray(self.pressures_kpa, dtype=float), np.asarray(self.growth_ml),
                                np.asarray(self.residual_at_ml), np.asarray(self.noise_ml), amplitude_ml,
                                self._band_length_scales_kpa)
@@ -500,14 +495,18 @@ class CorrectedModel:
         return float(model_ml + mean[0]), float(BAND_Z * deviation[0])
 
     def judging_band_ml(self, pressures_kpa: ArrayLike, model_half_width_ml: float) -> tuple[float, float]:
-        """:meth:`gland_band_ml` for judging a new measurement: the half-width never less than the model's own
-        known error (``model_half_width_ml``, 95 %) away from the measurements (:meth:`Correction.
-        deviation_at_least_ml`), so a phantom measured only near rest is not thought known at 3 kPa."""
+        """:meth:`gland_band_ml` for judging a new measurement: the band of the process whose spread before any
+        measurement is at least the model's own known error (``model_half_width_ml``, 95 %), so that away from
+        the measurements the half-width is that error, not the fitted amplitude, which only says how much the
+        residual varied where it was measured: a phantom measured only near rest is not thought known at 3 kPa
+        (:meth:`Correction.deviation_with_amplitude_ml`)."""
         pressures = np.asarray(pressures_kpa, dtype=float)
         model_ml = self.grid.gland_ml(pressures)
         growth = [model_ml - self.rest_ml]
-        mean, _ = self.correction.band_ml(pressures, growth)
-        deviation = self.correction.deviation_at_least_ml(pressures, growth, model_half_width_ml / BAND_Z)
+        mean, deviation = self.correction.band_ml(pressures, growth)
+        prior_sd_ml = model_half_width_ml / BAND_Z
+        if prior_sd_ml > self.correction.amplitude_ml:
+            deviation = self.correction.deviation_with_amplitude_ml(pressures, growth, prior_sd_ml)
         return float(model_ml + mean[0]), float(BAND_Z * deviation[0])
 
     def corrected_ml(self, pressures_kpa: ArrayLike, model_ml: float) -> float:
