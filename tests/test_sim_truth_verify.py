@@ -8,7 +8,6 @@ The truth is a coarser mesh (10 mm, 10-node) than the controller's model (builti
 64 solves and 8 checks take minutes, once per machine (cached by the scene's content, the factor and the shipped
 plant; the fixture builds it for the session when it is not cached)."""
 
-import json
 import os
 import subprocess
 import sys
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from daemon_rig import wait_ready
+from rounds_bench import verify_rounds
 from truth_scan import SCANNER_TOLERANCE, verify_scan_ml
 
 import phantom
@@ -29,6 +29,9 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 #: 10 mm mesh (the file says why)
 LOBES_1_1_SCENE = Path(phantom.hil.__file__).with_name("truths") / "lobes_1_1.toml"
 MODULUS_FACTOR = 0.9
+#: The scanner as it reads this truth ("The scanner on this phantom" in bench/README.md): +0.09 % of bias, 0.03 %
+#: of repeatability
+THIS_SCANNER = ("--bias-pct", "0.09", "--noise-pct", "0.03")
 
 # long: its truth's plant and shapes take 5-10 min to build on a cold cache and the verified target 10-25 min:
 # `make test-long` runs it, `make test` does not (its 20-minute budget)
@@ -151,14 +154,7 @@ def test_five_verified_then_five_auto_targets_on_this_truth_offline(lobes_truth,
     not asserted, not met), auto targets 1.95, true errors at most 0.19 / 0.23 %. About 20 s with the truth
     cached."""
     _, plant_path, _ = lobes_truth
-    out = tmp_path / "rounds.json"
-    bench = Path(__file__).resolve().parents[1] / "bench" / "verify_rounds.py"
-    subprocess.run([sys.executable, str(bench), "--truth", str(plant_path), "--seeds", "4", "--bias-pct", "0.09",
-                    "--noise-pct", "0.03", "--auto", "28,32.5,37.5,42.5,47", "--json", str(out)], check=True,
-                   timeout=800)
-    rows = json.loads(out.read_text())
-    verified = [row for row in rows if row["verify"] == "scan"]
-    auto = [row for row in rows if row["verify"] == "auto"]
+    verified, auto, _ = verify_rounds(tmp_path, "--truth", str(plant_path), *THIS_SCANNER)
     assert len(verified) == 20 and len(auto) == 20
     for row in verified:
         assert abs(row["scanned_error_pct"]) <= 0.3 and abs(row["true_error_pct"]) <= 0.3, row
@@ -177,15 +173,9 @@ def test_after_a_36_point_characterisation_this_truths_targets_land_in_one_round
     +0.09 % bias and 0.03 % repeatability, four seeds): every verified target in one round within 0.3 % true, every
     verify="auto" target without a scan within 0.5 % true (measured, eight seeds: within 0.17 and 0.30 %)."""
     _, plant_path, _ = lobes_truth
-    out = tmp_path / "rounds.json"
-    bench = Path(__file__).resolve().parents[1] / "bench" / "verify_rounds.py"
-    subprocess.run([sys.executable, str(bench), "--truth", str(plant_path), "--seeds", "4", "--bias-pct", "0.09",
-                    "--noise-pct", "0.03", "--path", "36", "--auto", "28,32.5,37.5,42.5,47", "--json", str(out)],
-                   check=True, timeout=800)
-    rows = json.loads(out.read_text())
-    assert len(rows) == 40
-    for row in rows:
-        if row["verify"] == "scan":
-            assert row["rounds"] == 1 and abs(row["true_error_pct"]) <= 0.3, row
-        else:
-            assert row["rounds"] == 0 and abs(row["true_error_pct"]) <= 0.5, row
+    verified, auto, _ = verify_rounds(tmp_path, "--truth", str(plant_path), *THIS_SCANNER, "--path", "36")
+    assert len(verified) == 20 and len(auto) == 20
+    for row in verified:
+        assert row["rounds"] == 1 and abs(row["true_error_pct"]) <= 0.3, row
+    for row in auto:
+        assert row["rounds"] == 0 and abs(row["true_error_pct"]) <= 0.5, row

@@ -3,28 +3,14 @@ corrected inverse, correction fit, judging of each scan and verify policy; the p
 scanner's bias by volume as make demo's scans measured it and 0.03 % of repeatability; pressures held exactly; no
 simavr). ``tests/test_sim_truth_verify.py`` runs the same on another phantom."""
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "verify_rounds.py"
-AUTO_ML = "28,32.5,37.5,42.5,47"
+from rounds_bench import verify_rounds
 
 pytestmark = pytest.mark.slow
 
-
-def _rows(tmp_path: Path, *options: str) -> tuple[list[dict], list[dict], str]:
-    out = tmp_path / "rounds.json"
-    run = subprocess.run([sys.executable, str(BENCH), "--seeds", "4", "--bias-by-volume", "--noise-pct", "0.03",
-                          "--auto", AUTO_ML, "--json", str(out), *options], check=True, timeout=600,
-                         capture_output=True, text=True)
-    rows = json.loads(out.read_text())
-    return ([row for row in rows if row["verify"] == "scan"], [row for row in rows if row["verify"] == "auto"],
-            run.stdout)
+#: make demo's scans' scanner: its bias by volume and 0.03 % of repeatability
+SCANNER = ("--bias-by-volume", "--noise-pct", "0.03")
 
 
 def test_from_an_empty_store_every_verified_target_ends_within_the_tolerance_in_true_volume(tmp_path):
@@ -32,7 +18,7 @@ def test_from_an_empty_store_every_verified_target_ends_within_the_tolerance_in_
     4 rounds, and no scan held out as implausible. Measured (2026-11-29, eight seeds): 2.88 rounds a target, the
     issue's 2 not met (round 1 misses by the model's 1.3-2.6 %, round 2 lands within the third of the tolerance
     aimed at only where the phantom grows per ml as the corrected model says), largest true error 0.21 %."""
-    verified, _, printed = _rows(tmp_path)
+    verified, _, printed = verify_rounds(tmp_path, *SCANNER)
     assert len(verified) == 20
     for row in verified:
         assert abs(row["scanned_error_pct"]) <= 0.3 and abs(row["true_error_pct"]) <= 0.3, row
@@ -46,7 +32,7 @@ def test_after_a_36_point_characterisation_every_target_lands_in_one_round_and_a
     scanned with the same scanner), every verified target verified on its first scan within 0.3 % true, and
     every verify="auto" target reached without a scan within 0.5 % true (measured: within 0.17 %; 30 points left
     8 of 40 auto targets of eight seeds scanned, 19 points 1.40 rounds a verified target)."""
-    verified, auto, printed = _rows(tmp_path, "--path", "36")
+    verified, auto, printed = verify_rounds(tmp_path, *SCANNER, "--path", "36")
     assert len(verified) == 20 and len(auto) == 20
     for row in verified:
         assert row["rounds"] == 1 and abs(row["true_error_pct"]) <= 0.3, row
