@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import logging
 import os
 import queue
 import signal
@@ -19,6 +20,8 @@ from typing import Any
 from phantom.host.session import BoardInfo, CommandRejected, LinkSession, LinkTiming, Transport
 from phantom.host.stalls import GC_PAUSES, LoopStalls
 from phantom.protocol import ProtocolError
+
+logger = logging.getLogger(__name__)
 
 #: How often (s) the link process sends its status (the daemon's ``status`` shows the latest).
 STATUS_PERIOD_S = 0.2
@@ -80,7 +83,7 @@ class _Sender:
 
 
 def serve_link(connection: Connection, transport: Transport, timing: LinkTiming, rt_priority: int | None,
-               log_level: str) -> None:
+               log_level: str, daemon_silent_s: float) -> None:
     """The link's process (started by :mod:`phantom.host.link_entry`, which has made it die with the daemon): its
     session on its own loop until the daemon says stop or is gone."""
     from phantom.host.logs import configure_logging
@@ -94,15 +97,18 @@ def serve_link(connection: Connection, transport: Transport, timing: LinkTiming,
     scheduling = scheduling_of_this_process(rt_priority)
     sender = _Sender(connection)
     try:
-        asyncio.run(_run_session(connection, sender, transport, timing, scheduling))
+        asyncio.run(_run_session(connection, sender, transport, timing, scheduling, daemon_silent_s))
     finally:
         sender.close()
         connection.close()
 
 
 async def _run_session(connection: Connection, sender: _Sender, transport: Transport, timing: LinkTiming,
-                       scheduling: str) -> None:
+                       scheduling: str, daemon_silent_s: float) -> None:
     loop = asyncio.get_running_loop()
+    #: when the daemon last said anything (its loop says it is alive every LinkProcess.ALIVE_PERIOD_S), and
+    #: whether the keepalive is withheld for its silence
+    heard = {"at_s": time.monotonic(), "withheld": False}
     #: each connection's wait for the daemon to restore its state, by the connection's number
     restored: dict[int, asyncio.Future[None]] = {}
     connections = itertools.count()
@@ -150,7 +156,10 @@ async def _run_session(connection: Connection, sender: _Sender, transport: Trans
         try:
             while connection.poll():
                 message = connection.recv()
+                heard["at_s"] = time.monotonic()
                 kind = message[0]
+                if kind == "alive":
+                    continue
                 if kind == "command":
                     task = loop.create_task(answer(message[1], session.command(message[2], message[3])))
                 elif kind == "end_session":
@@ -169,8 +178,28 @@ async def _run_session(connection: Connection, sender: _Sender, transport: Trans
             loop.remove_reader(connection.fileno())
             session.stop()
 
+    def watch_the_daemon() -> None:
+        """A daemon silent for ``daemon_silent_s`` is hung: withhold the keepalive, so that the board latches
+        DEAD_HOST and vents as it would for a daemon gone; give it back once the daemon speaks again."""
+        silent_s = time.monotonic() - heard["at_s"]
+        if not heard["withheld"] and silent_s > daemon_silent_s and session.online:
+            heard["withheld"] = True
+            session.withhold_keepalive(True)
+            text = (f"the daemon's loop has said nothing for {silent_s:.1f} s (hung): the board's keepalive "
+                    "withheld, so that it latches DEAD_HOST and vents; restart the daemon if it does not come back")
+            logger.error(text)
+            on_event("daemon_silent", text, "ERROR")  # the daemon reads it when its loop runs again
+        elif heard["withheld"] and silent_s <= daemon_silent_s:
+            heard["withheld"] = False
+            session.withhold_keepalive(False)
+            text = ("the daemon answered again: the board's keepalive resumed (a fault it latched meanwhile stays "
+                    "until cleared: phantom clear-fault)")
+            logger.warning(text)
+            on_event("daemon_silent", text, "WARNING")
+
     async def report() -> None:
         while True:
+            watch_the_daemon()
             send_status()
             await asyncio.sleep(STATUS_PERIOD_S)
 

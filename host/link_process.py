@@ -13,6 +13,10 @@ to a user with ``RLIMIT_RTPRIO`` (``LimitRTPRIO=`` of a systemd unit, ``rtprio``
 The daemon talks to it over a pipe: commands and the end of the session out; the session's telemetry, events,
 motion frames, answers and its status back. The process dies with the daemon (``PR_SET_PDEATHSIG``; the pipe's
 end too): its keepalive stops, and the board vents at its dead-host deadline, as with a daemon of one process.
+A daemon alive but hung (its loop blocked: a deadlock, a call that never returns) would otherwise keep the
+phantom inflated with nobody to answer a stop: its loop says it is alive every :data:`ALIVE_PERIOD_S`, and a
+process that hears nothing from it for ``daemon_silent_s`` withholds the keepalive until it does, so that the
+board vents then too.
 """
 
 from __future__ import annotations
@@ -52,6 +56,12 @@ logger = logging.getLogger(__name__)
 LINK_RT_PRIORITY = 10
 #: How long (s) :meth:`LinkProcess.run` waits for the process to end after asking it to stop.
 STOP_WAIT_S = 5.0
+#: How often (s) the daemon's loop tells the link's process that it runs.
+ALIVE_PERIOD_S = 0.5
+#: How long (s) the daemon's loop may say nothing before the link's process lets the board vent: hung, not busy.
+#: Its longest stalls measured were 0.4-0.6 s beside busy cores and a 1.5 s GIL hold (bench/README.md, "A
+#: verified target's scan beside busy cores"; tests/test_link_process.py); the board's own deadline is 0.5 s.
+DAEMON_SILENT_S = 10.0
 
 
 class LinkProcess:
@@ -66,12 +76,20 @@ class LinkProcess:
         The link core's periods and deadlines.
     rt_priority : int or None
         The SCHED_FIFO priority the process asks for (None: none; it keeps the daemon's).
+    daemon_silent_s : float
+        How long the daemon's loop may be silent before the process withholds the board's keepalive (at least
+        twice :data:`ALIVE_PERIOD_S`).
     """
 
-    def __init__(self, transport: Transport, timing: LinkTiming, rt_priority: int | None = LINK_RT_PRIORITY):
+    def __init__(self, transport: Transport, timing: LinkTiming, rt_priority: int | None = LINK_RT_PRIORITY,
+                 daemon_silent_s: float = DAEMON_SILENT_S):
+        if not daemon_silent_s >= 2 * ALIVE_PERIOD_S:
+            raise ValueError(f"daemon_silent_s must be at least {2 * ALIVE_PERIOD_S:g} s (twice the daemon's "
+                             f"{ALIVE_PERIOD_S:g} s between words to the link's process), not {daemon_silent_s!r}")
         self.transport = transport
         self.timing = timing
         self.rt_priority = rt_priority
+        self.daemon_silent_s = daemon_silent_s
         self._status: dict[str, Any] = {"state": LinkState.DISCONNECTED.value,
                                         "transport": transport.description, "board": None, "board_info": None,
                                         "last_error": "the link's process is starting",
@@ -121,7 +139,7 @@ class LinkProcess:
         context = multiprocessing.get_context("spawn")  # not forked: no copy of the daemon's threads and loops
         ours, theirs = context.Pipe()
         level = logging.getLevelName(logging.getLogger("phantom").getEffectiveLevel()).lower()
-        settings = pickle.dumps((self.transport, self.timing, self.rt_priority, level))
+        settings = pickle.dumps((self.transport, self.timing, self.rt_priority, level, self.daemon_silent_s))
         process = context.Process(target=link_entry.main, args=(theirs, os.getpid(), settings),
                                   name="phantom board link", daemon=True)
         process.start()
@@ -129,6 +147,7 @@ class LinkProcess:
         self._process, self._connection = process, ours
         self._ended = loop.create_future()
         loop.add_reader(ours.fileno(), self._readable)
+        alive = loop.create_task(self._say_alive())
         try:
             await asyncio.shield(self._ended)
         except asyncio.CancelledError:
@@ -137,6 +156,7 @@ class LinkProcess:
                 await asyncio.wait_for(asyncio.shield(self._ended), STOP_WAIT_S)
             raise
         finally:
+            alive.cancel()
             with contextlib.suppress(ValueError, OSError):
                 loop.remove_reader(ours.fileno())
             ours.close()
@@ -170,6 +190,11 @@ class LinkProcess:
         return ended
 
     # --- the pipe -----------------------------------------------------------------------------------------
+
+    async def _say_alive(self) -> None:
+        """Tell the process, from the daemon's own loop, that it runs (a hung loop says nothing)."""
+        while self._send(("alive",)):
+            await asyncio.sleep(ALIVE_PERIOD_S)
 
     async def _ask(self, kind: str, *arguments: Any) -> Any:
         request = next(self._ids)

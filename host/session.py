@@ -194,6 +194,8 @@ class LinkSession:
         self._futures: dict[int, asyncio.Future[str]] = {}
         self._config_seq: int | None = None
         self._stopping = False
+        #: the keepalive held back while the daemon is silent (host/link_child.py): the board then vents
+        self._keepalive_withheld = False
         self._lost_at: float | None = None
         self._serving: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
@@ -246,6 +248,12 @@ class LinkSession:
     @property
     def online(self) -> bool:
         return self.state is LinkState.ONLINE
+
+    def withhold_keepalive(self, withheld: bool) -> None:
+        """Hold back the keepalive (the board latches DEAD_HOST at its deadline and vents), or give it back."""
+        self._keepalive_withheld = withheld
+        self.link.keepalive = self.online and not withheld
+        self._wake.set()  # the core's deadlines changed
 
     async def end_session(self) -> bool:
         """End the board's session before the daemon leaves: a HELLO with :data:`GOODBYE_SPEC_HASH`, which the
@@ -432,7 +440,7 @@ class LinkSession:
         self._set_state(LinkState.ONLINE, None)
         self._problem_ended()
         self._announce(reconnected)
-        self.link.keepalive = True
+        self.link.keepalive = not self._keepalive_withheld
         self._bringing_online = asyncio.create_task(self._bring_online(reconnected))
 
     async def _bring_online(self, reconnected: bool) -> None:

@@ -85,6 +85,45 @@ def test_the_board_keeps_its_link_while_the_daemons_process_holds_the_gil(board)
     assert ended                               # the board closed its session: no DEAD_HOST once we are gone
 
 
+def test_a_hung_daemon_lets_the_board_vent_and_is_told_so_when_it_wakes(board):
+    """Before: the link's process kept the board's keepalive going whatever the daemon did, so a daemon whose loop
+    hung (a deadlock, a call that never returns) held the phantom inflated for ever with nobody to answer a stop.
+    Now the process hears from the daemon's loop every ALIVE_PERIOD_S; silent for ``daemon_silent_s`` (1 s here),
+    it withholds the keepalive, the board latches DEAD_HOST at its deadline and vents, and the daemon is told
+    why when its loop runs again; the keepalive then resumes and the link stays online."""
+    events, telemetry = [], []
+
+    async def main():
+        link = LinkProcess(SerialTransport(board.port), TIMING, daemon_silent_s=1.0)
+        link.attach(on_telemetry=telemetry.append, on_event=lambda *event: events.append(event), on_online=None,
+                    on_motion=lambda message: None)
+        task = asyncio.create_task(link.run())
+        try:
+            await wait_for(lambda: link.online, 20)
+            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]}) == "OK"
+            await asyncio.sleep(0.5)
+            assert not any(frame.fault_flags for frame in telemetry)
+            time.sleep(2.5)               # the daemon's loop hung: 1 s of silence, then the board's 500 ms
+            await asyncio.sleep(1.0)      # what the link's process said meanwhile, and the keepalive back
+            return link.status()
+        finally:
+            link.stop()
+            await asyncio.wait_for(task, 10)
+
+    status = asyncio.run(main())
+    assert any("DEAD_HOST" in fault_names(frame.fault_flags) for frame in telemetry), "the board never vented"
+    silent = [text for kind, text, level in events if kind == "daemon_silent"]
+    assert silent and "withheld" in silent[0] and "DEAD_HOST" in silent[0], events
+    assert any("answered again" in text for text in silent), events
+    assert status["state"] == "online" and status["stats"]["links_lost"] == 0, status
+
+
+def test_the_link_process_refuses_a_silence_limit_it_cannot_keep(tmp_path):
+    """A limit under two of the daemon's words would call a running daemon hung."""
+    with pytest.raises(ValueError, match="daemon_silent_s must be at least 1 s"):
+        LinkProcess(SerialTransport(tmp_path / "board"), TIMING, daemon_silent_s=0.2)
+
+
 def test_a_command_is_refused_with_the_boards_status_and_a_stopped_link_says_so(board):
     async def main():
         link = LinkProcess(SerialTransport(board.port), TIMING)
