@@ -455,6 +455,9 @@ def cached_fit(measurements: Sequence[Measurement], grid: ModelGrid) -> Correcti
 #: Asked volumes this close (ml) on either side of a target the corrected volume does not meet between them: a
 #: jump along the inverse's path (:meth:`CorrectedModel.pressures_for_ml`).
 JUMP_ML = 1e-4
+#: The corrected volume's slope in the asked one (ml per ml) that a correction, smooth and small beside the
+#: growth, keeps within: the secant steps' bounds; a bracket steeper than the upper one holds a jump.
+SLOPE_BOUNDS = (0.2, 5.0)
 
 
 class CorrectedModel:
@@ -526,7 +529,7 @@ class CorrectedModel:
             own: one scan near rest corrects by an offset the phantom at rest does not hold, and searched for, such
             a target met nothing.
         CorrectionError
-            The search did not converge (the target at the edge of the reachable range).
+            The search did not converge (the corrected volume too steep there: the edge of the reachable range).
         """
         low_ml, high_ml = self.range_ml
         if not low_ml - RANGE_SLACK_ML <= volume_ml <= high_ml + RANGE_SLACK_ML:
@@ -561,19 +564,25 @@ class CorrectedModel:
                     # turns to another branch there, and the correction differs between the two): the nearer end
                     _, miss, pressures = min(ends.values(), key=lambda end: abs(end[1]))
                     return pressures, volume_ml + miss, rounds
+                if (high_miss - low_miss) / (high - low) > SLOPE_BOUNDS[1]:
+                    # steeper than a correction makes it: a jump inside, where false position crawls from the
+                    # side whose miss is the smaller (a target a hair beyond a jump's low side took 30 rounds)
+                    asked = 0.5 * (low + high)
+                    continue
                 low_miss, high_miss = low_miss * halved["below"], high_miss * halved["above"]
                 asked = low - low_miss * (high - low) / (high_miss - low_miss)
                 continue
             # secant steps: the corrected volume's slope in the asked one (1 at first: a constant correction)
             slope = 1.0
             if previous is not None and previous[0] != asked:
-                slope = float(np.clip((corrected - previous[1]) / (asked - previous[0]), 0.2, 5.0))
+                slope = float(np.clip((corrected - previous[1]) / (asked - previous[0]), *SLOPE_BOUNDS))
             previous = (asked, corrected)
             # within the model's range: near rest or the top a step may overshoot it (a phantom that grows faster
             # than the model at first asked the model for less than its rest)
             asked = float(np.clip(asked - miss / slope, self.rest_ml, self.top_ml))
         raise CorrectionError(f"the corrected inverse did not meet {volume_ml:g} ml in {max_rounds} rounds (last "
-                              f"{corrected:.3f} ml): the target is at the edge of what the phantom reaches")
+                              f"{corrected:.3f} ml): the corrected volume is too steep there (the edge of what the "
+                              "phantom reaches?); ask a volume a little further inside the range")
 
 
 def model_grid(estimator: Any, description: str = "") -> ModelGrid:
