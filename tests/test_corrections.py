@@ -456,23 +456,30 @@ def test_scans_along_the_inverses_path_put_unscanned_targets_within_half_a_perce
         assert true_ml(pressures) == pytest.approx(target, rel=0.005)
 
 
-def test_a_target_in_a_jump_of_the_corrected_volume_along_the_inverses_path_gets_the_nearer_side_and_says_so():
-    """The model's inverse turns to another branch at 30 ml (only the lobes, then all three chambers), and the
-    correction (0.5 ml per kPa of chamber 0, measured by water displacement on a grid) differs between them: the
-    corrected volume jumps by about 0.8 ml there, and no pressures give 30.5 ml. The answer is the nearer side,
-    with its own corrected volume (before: the secant crawled at the jump and the target was refused as
-    unreachable)."""
+def _a_jump_at_30_ml():
+    """A corrected model and an inverse whose path turns to another branch at 30 ml (only the lobes, then all
+    three chambers) where the correction (0.5 ml per kPa of chamber 0, measured by water displacement on a grid)
+    differs between the two: the corrected volume along the path jumps by about 0.8 ml there."""
     grid = _linear_grid()
     states = np.array(list(np.ndindex(4, 4, 4)), dtype=float)
     correction = fit_correction([Measurement(tuple(p), grid.gland_ml(p) + 0.5 * p[0], "water_displacement")
                                  for p in states], grid, ["gp"])
-    corrected = CorrectedModel(grid, correction)
 
     def inverse(volume_ml):
         if volume_ml < 30.0:
             return np.array([0.0, *[(volume_ml - 20.0) / 4.0] * 2])
         return np.full(3, (volume_ml - 20.0) / 6.0)
 
+    return CorrectedModel(grid, correction), inverse
+
+
+def test_a_target_in_a_jump_of_the_corrected_volume_along_the_inverses_path_gets_the_nearer_side_and_says_so():
+    """The model's inverse turns to another branch at 30 ml (only the lobes, then all three chambers), and the
+    correction (0.5 ml per kPa of chamber 0, measured by water displacement on a grid) differs between them: the
+    corrected volume jumps by about 0.8 ml there, and no pressures give 30.5 ml. The answer is the nearer side,
+    with its own corrected volume (before: the secant crawled at the jump and the target was refused as
+    unreachable)."""
+    corrected, inverse = _a_jump_at_30_ml()
     pressures, volume, _ = corrected.pressures_for_ml(30.5, inverse)
     assert volume == pytest.approx(corrected.gland_ml(pressures), abs=1e-9)
     assert abs(volume - 30.5) > 0.2 and pressures[0] in (0.0, pytest.approx(10 / 6, abs=0.05))
@@ -485,17 +492,7 @@ def test_a_target_a_hair_above_the_low_side_of_a_jump_is_not_refused_as_the_edge
     step moved a few thousandths of the bracket, and after 30 rounds a verify round was refused as "the target is
     at the edge of what the phantom reaches" in the middle of the range. The bracket is now halved while its
     slope is steeper than a correction can make it (a jump inside): the nearer side, in a few rounds."""
-    grid = _linear_grid()
-    states = np.array(list(np.ndindex(4, 4, 4)), dtype=float)
-    correction = fit_correction([Measurement(tuple(p), grid.gland_ml(p) + 0.5 * p[0], "water_displacement")
-                                 for p in states], grid, ["gp"])
-    corrected = CorrectedModel(grid, correction)
-
-    def inverse(volume_ml):
-        if volume_ml < 30.0:
-            return np.array([0.0, *[(volume_ml - 20.0) / 4.0] * 2])
-        return np.full(3, (volume_ml - 20.0) / 6.0)
-
+    corrected, inverse = _a_jump_at_30_ml()
     low_side_ml = corrected.gland_ml(inverse(30.0 - 1e-12))
     assert corrected.gland_ml(inverse(30.0)) - low_side_ml > 0.3       # the jump
     pressures, volume, rounds = corrected.pressures_for_ml(low_side_ml + 0.0015, inverse)

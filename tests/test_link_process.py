@@ -49,6 +49,21 @@ def hold_the_gil(seconds: float) -> float:
 
 
 
+async def online_and_inflated(link, events, telemetry):
+    """``link`` running (its task) and online, its events and telemetry kept, chamber 0 asked for 0.8 kPa."""
+    link.attach(on_telemetry=telemetry.append, on_event=lambda *event: events.append(event), on_online=None,
+                on_motion=lambda message: None)
+    task = asyncio.create_task(link.run())
+    try:
+        await wait_for(lambda: link.online, 20)
+        assert await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]}) == "OK"
+    except BaseException:
+        link.stop()
+        await asyncio.wait_for(task, 10)
+        raise
+    return link, task
+
+
 def test_the_board_keeps_its_link_while_the_daemons_process_holds_the_gil(board):
     """Before (the link's loop a thread of the daemon's process, session.LinkThread): a 1.5 s GIL hold in the
     daemon's process silenced the link for 1.5 s and the board latched DEAD_HOST (its blowers stopped). The link's
@@ -56,13 +71,8 @@ def test_the_board_keeps_its_link_while_the_daemons_process_holds_the_gil(board)
     events, telemetry = [], []
 
     async def main():
-        link = LinkProcess(SerialTransport(board.port), TIMING)
-        link.attach(on_telemetry=telemetry.append, on_event=lambda *event: events.append(event), on_online=None,
-                    on_motion=lambda message: None)
-        task = asyncio.create_task(link.run())
+        link, task = await online_and_inflated(LinkProcess(SerialTransport(board.port), TIMING), events, telemetry)
         try:
-            await wait_for(lambda: link.online, 20)
-            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]}) == "OK"
             await asyncio.sleep(0.3)
             frames_before = len(telemetry)
             held_s = hold_the_gil(1.5)
@@ -94,13 +104,9 @@ def test_a_hung_daemon_lets_the_board_vent_and_is_told_so_when_it_wakes(board):
     events, telemetry = [], []
 
     async def main():
-        link = LinkProcess(SerialTransport(board.port), TIMING, daemon_silent_s=1.0)
-        link.attach(on_telemetry=telemetry.append, on_event=lambda *event: events.append(event), on_online=None,
-                    on_motion=lambda message: None)
-        task = asyncio.create_task(link.run())
+        link, task = await online_and_inflated(LinkProcess(SerialTransport(board.port), TIMING, daemon_silent_s=1.0),
+                                               events, telemetry)
         try:
-            await wait_for(lambda: link.online, 20)
-            assert await link.command("SET_SETPOINTS", {"setpoint_pa": [800, 0, 0]}) == "OK"
             await asyncio.sleep(0.5)
             assert not any(frame.fault_flags for frame in telemetry)
             time.sleep(2.5)               # the daemon's loop hung: 1 s of silence, then the board's 500 ms
