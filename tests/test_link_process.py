@@ -285,3 +285,36 @@ def test_the_link_process_says_what_priority_it_got_and_why_not():
         assert as_root.stdout.splitlines()[0] == "SCHED_FIFO 10", as_root
     else:
         assert "SCHED_FIFO 10 refused" in as_root.stdout, as_root
+
+
+@pytest.mark.timeout(180)
+def test_a_daemon_stopped_for_longer_than_its_silence_lets_the_board_vent_and_says_so_after(tmp_path):
+    """The daemon itself (`phantom daemon --port`, its process stopped by SIGSTOP as a hung loop would be: its link's
+    process runs on) holding 0.8 kPa: after 10 s of its silence the board latches DEAD_HOST and vents; continued,
+    the daemon shows the fault and why in its events, its link online, and the fault clears."""
+    import signal
+
+    from daemon_rig import DaemonRig
+
+    import phantom
+    from phantom.host.link_process import DAEMON_SILENT_S
+
+    rig = DaemonRig(tmp_path, speed=1.0)
+    try:
+        rig.wait_online(120)
+        with phantom.connect(rig.socket) as ph:
+            ph.set_pressures([0.8, 0.0, 0.0])
+        os.kill(rig.process.pid, signal.SIGSTOP)
+        time.sleep(DAEMON_SILENT_S + 2.0)
+        os.kill(rig.process.pid, signal.SIGCONT)
+        status = rig.wait_status(lambda answer: "DEAD_HOST" in answer["faults"], 30, "DEAD_HOST latched")
+        texts = [event["text"] for event in status["events"]]
+        rig.wait_status(lambda answer: any("answered again" in event["text"] for event in answer["events"]), 10,
+                        "the keepalive resumed")
+        assert any("said nothing for" in text and "withheld" in text for text in texts), texts
+        assert status["link"] == "online", status
+        with phantom.connect(rig.socket) as ph:
+            ph.clear_fault()
+            assert ph.status().faults == ()
+    finally:
+        rig.close()
