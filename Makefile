@@ -24,8 +24,9 @@ test: setup
 	@$(MAKE) --no-print-directory pytest
 
 # The contributor's fast loop, under a minute: lint, types, the protocol check and the tests that need no
-# simulator and take no long numerical case (pytest -m "not sim and not slow"; mark a test that runs simavr with
-# @pytest.mark.sim, one that takes seconds of numerics with @pytest.mark.slow), side by side on every core.
+# simulator and take no long numerical case (pytest -m "not sim and not slow and not long"; mark a test that runs
+# simavr with @pytest.mark.sim, one that takes seconds of numerics with @pytest.mark.slow, one of tens of minutes
+# with @pytest.mark.long), side by side on every core.
 check: setup
 	@$(MAKE) --no-print-directory -j$(CORES) --output-sync=target lint types protocol-check pytest-fast
 
@@ -59,7 +60,7 @@ firmware-test:
 PYTEST := $(PY) -m pytest -q -n auto
 
 pytest-fast:
-	$(PYTEST) -m "not sim and not slow"
+	$(PYTEST) -m "not sim and not slow and not long"
 
 # Two pytests at once: the simavr tests at normal priority, the others at nice 5 (scripts/pytest-all.sh says why);
 # each prints its slowest tests by the wall clock and by CPU time (--cpu-durations, tests/conftest.py).
