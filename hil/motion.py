@@ -316,7 +316,6 @@ def measure_cycles(link: BoardLink, board: SimulatedBoard | None, step_rate: flo
     }
 
 
-
 #: The orbit of docs/hardware.md: a 200-step motor at 16 microsteps on a 9:1 belt, 30 deg/s, 240 deg/s^2,
 #: +-190 deg (the camera's cable allows a little over a turn), homed at 10 deg/s onto a switch at -185 deg.
 BENCH_ORBIT = SCANNER_AXES[ORBIT]

@@ -106,9 +106,8 @@ def serve_link(connection: Connection, transport: Transport, timing: LinkTiming,
 async def _run_session(connection: Connection, sender: _Sender, transport: Transport, timing: LinkTiming,
                        scheduling: str, daemon_silent_s: float) -> None:
     loop = asyncio.get_running_loop()
-    #: when the daemon last said anything (its loop says it is alive every LinkProcess.ALIVE_PERIOD_S), and
-    #: whether the keepalive is withheld for its silence
-    heard = {"at_s": time.monotonic(), "withheld": False}
+    #: when the daemon last said anything (its loop says it is alive every LinkProcess.ALIVE_PERIOD_S)
+    heard_at_s = time.monotonic()
     #: each connection's wait for the daemon to restore its state, by the connection's number
     restored: dict[int, asyncio.Future[None]] = {}
     connections = itertools.count()
@@ -153,10 +152,11 @@ async def _run_session(connection: Connection, sender: _Sender, transport: Trans
             sender.send(("answer", request, "down", str(error) or type(error).__name__))
 
     def readable() -> None:
+        nonlocal heard_at_s
         try:
             while connection.poll():
                 message = connection.recv()
-                heard["at_s"] = time.monotonic()
+                heard_at_s = time.monotonic()
                 kind = message[0]
                 if kind == "alive":
                     continue
@@ -181,16 +181,14 @@ async def _run_session(connection: Connection, sender: _Sender, transport: Trans
     def watch_the_daemon() -> None:
         """A daemon silent for ``daemon_silent_s`` is hung: withhold the keepalive, so that the board latches
         DEAD_HOST and vents as it would for a daemon gone; give it back once the daemon speaks again."""
-        silent_s = time.monotonic() - heard["at_s"]
-        if not heard["withheld"] and silent_s > daemon_silent_s and session.online:
-            heard["withheld"] = True
+        silent_s = time.monotonic() - heard_at_s
+        if not session.keepalive_withheld and silent_s > daemon_silent_s and session.online:
             session.withhold_keepalive(True)
             text = (f"the daemon's loop has said nothing for {silent_s:.1f} s (hung): the board's keepalive "
                     "withheld, so that it latches DEAD_HOST and vents; restart the daemon if it does not come back")
             logger.error(text)
             on_event("daemon_silent", text, "ERROR")  # the daemon reads it when its loop runs again
-        elif heard["withheld"] and silent_s <= daemon_silent_s:
-            heard["withheld"] = False
+        elif session.keepalive_withheld and silent_s <= daemon_silent_s:
             session.withhold_keepalive(False)
             text = ("the daemon answered again: the board's keepalive resumed (a fault it latched meanwhile stays "
                     "until cleared: phantom clear-fault)")

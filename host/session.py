@@ -249,6 +249,11 @@ class LinkSession:
     def online(self) -> bool:
         return self.state is LinkState.ONLINE
 
+    @property
+    def keepalive_withheld(self) -> bool:
+        """Whether :meth:`withhold_keepalive` holds the keepalive back."""
+        return self._keepalive_withheld
+
     def withhold_keepalive(self, withheld: bool) -> None:
         """Hold back the keepalive (the board latches DEAD_HOST at its deadline and vents), or give it back."""
         self._keepalive_withheld = withheld
