@@ -127,10 +127,16 @@ def alpha_matte(image: np.ndarray) -> np.ndarray:
 
 def silhouette(image: np.ndarray, truncation_px: float = 48.0) -> Silhouette:
     """The silhouette of the largest piece of phantom in the picture, holes filled, and its signed distance."""
+    return silhouette_of_alpha(alpha_matte(image), truncation_px)
+
+
+def silhouette_of_alpha(alpha: np.ndarray, truncation_px: float = 48.0) -> Silhouette:
+    """The silhouette of the largest piece of an alpha matte (the phantom's share of each pixel, 0..1, float32:
+    a picture's, :func:`alpha_matte`, or a known surface's coverage, ``phantom.scan.hull_bias``), holes filled,
+    and its signed distance. SilhouetteError when nothing in it is phantom."""
     with require_extra("scan"):
         import cv2
 
-    alpha = alpha_matte(image)
     height, width = alpha.shape
     # the largest piece, found on every fourth pixel, gives the crop the rest works in
     coarse = np.ascontiguousarray(alpha[::4, ::4] >= 0.5).astype(np.uint8)
