@@ -4,19 +4,21 @@ The same functions the daemon uses: the model worker's corrected inverse (:class
 daemon's default model, ``builtin:converged``), its fit (:func:`fit_correction` of the stored scans), the verify
 policy's next round (:class:`phantom.host.verify.NextRound`: record, refit, solve the target less what the
 corrected model still misses at the scan) and its stop rules (:func:`phantom.host.verify.judge_scan`: within
-:data:`~phantom.host.verify.VERIFY_AIM_SHARE` of the tolerance while rounds remain;
+the daemon's share of the tolerance while rounds remain, :func:`phantom.host.verify.aim_share`;
 :func:`phantom.host.verify.confirmed_by_correction`: a scan within the tolerance that the refitted correction,
 its band added, confirms) and, from round 3, the secant of the last two rounds
 (:func:`phantom.host.verify.secant_kpa`), and a scan within the tolerance near rest whose next pressures are
 within one ADC count of its own ends the target (:func:`phantom.host.verify.beyond_the_boards_step`). The "scan"
 is the shipped simulated phantom's truth (hil/plant.toml; ``--truth`` another plant's) at the pressures, read
 with the scanner's error model (bench/README.md "Scanner": 0.12 % of noise; ``--bias-pct`` for a bias;
-``--bias-by-volume`` for the bias make demo's scans measured, by volume, with ``--noise-pct 0.03`` their
-repeatability). Pressures are taken as reached exactly. Prints each volume's rounds and the TRUE error after, and
+``--bias-by-volume`` for the verify scan's by volume, the visual hull's error on the model's shape taken off as
+the daemon does, with ``--noise-pct 0.03`` its repeatability; ``--hull-left-in`` for the scanner before that).
+Pressures are taken as reached exactly. Prints each volume's rounds and the TRUE error after, and
 the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
-    [--no-stop-by-correction] [--no-secant] [--no-board-stop] [--bias-by-volume] [--show-fits] [--along-path]
+    [--no-stop-by-correction] [--no-secant] [--no-board-stop] [--bias-by-volume [--hull-left-in]] [--show-fits]
+    [--along-path]
     [--truth PLANT]
     [--auto 28,32.5,37.5,42.5,47]
 
@@ -32,12 +34,12 @@ import time
 import numpy as np
 
 DEMO_ML = (26.5, 30.0, 35.0, 40.0, 45.0)
-#: The verify plan's error against the simulated phantom's truth (%), by true volume (ml): make demo's scans of
-#: 2026-11-27 (bench/README.md, "make demo with the round asked less the correction's miss"), each volume's two
-#: rounds averaged: (27.04, 26.50) -0.13 %, (28.38, 29.95) -0.13 %, (32.88, 35.01) -0.10 %, (39.59, 39.95)
-#: +0.09 %, (42.31, 44.95) +0.15 %; repeated at one volume they differ by 0.01-0.05 %.
-SCANNER_BIAS_PCT = ((26.5, -0.13), (29.2, -0.13), (34.0, -0.10), (39.8, 0.09), (43.6, 0.15))
-
+#: The verify scan's error against the shipped simulated phantom's truth (%), by true volume (ml), as the daemon
+#: reads it now: the visual hull's error on the model's shape taken off (phantom.scan.hull_bias;
+#: bench/scan_hull_bias.py at make demo's states, the verify plan of 20 stops at 15 and 45 deg, 2026-11-29).
+SCANNER_BIAS_PCT = ((27.03, -0.030), (30.39, -0.035), (34.51, -0.054), (38.90, -0.046), (43.94, -0.045))
+#: ... and with the hull's error left in (``--hull-left-in``: the same bench's scans as reconstructed).
+HULL_LEFT_IN_BIAS_PCT = ((27.03, -0.007), (30.39, -0.002), (34.51, 0.052), (38.90, 0.116), (43.94, 0.167))
 
 def main() -> None:
     from phantom.hil.plant import load_plant
@@ -54,10 +56,15 @@ def main() -> None:
     parser.add_argument("--noise-pct", type=float, default=0.12)
     parser.add_argument("--bias-pct", type=float, default=0.0)
     parser.add_argument("--bias-by-volume", action="store_true",
-                        help="the scanner's bias as make demo's scans measured it, by true volume (SCANNER_BIAS_PCT, "
+                        help="the scanner's bias by true volume (SCANNER_BIAS_PCT, or HULL_LEFT_IN_BIAS_PCT; "
                              "interpolated), beside --noise-pct (then its repeatability) and --bias-pct")
     parser.add_argument("--tolerance-pct", type=float, default=0.3)
-    parser.add_argument("--aim-share", type=float, default=verify.VERIFY_AIM_SHARE)
+    parser.add_argument("--aim-share", type=float, default=None,
+                        help="stop within this share of the tolerance while rounds remain (default: the daemon's, "
+                             "verify.aim_share: 0.6 with the hull's error taken off, a third with it left in)")
+    parser.add_argument("--hull-left-in", action="store_true",
+                        help="the scanner as before the visual hull's error on the model's shape was taken off its "
+                             "volumes: --bias-by-volume's as HULL_LEFT_IN_BIAS_PCT, the aim a third of the tolerance")
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--path", type=int, default=0,
                         help="start from a store of this many stand-in scans along the model's inverse path (as "
@@ -89,6 +96,8 @@ def main() -> None:
                         help="also write each target's rounds, last scanned and true error (%%) there, as JSON")
     parser.add_argument("--show-fits", action="store_true", help="each refit's trend and hyperparameters")
     args = parser.parse_args()
+    if args.aim_share is None:
+        args.aim_share = verify.aim_share(not args.hull_left_in)
 
     plant = load_plant(args.truth)
     solver = InverseSolver(PhantomModel.from_scene(load_timeline_scene("builtin:converged")))
@@ -102,7 +111,7 @@ def main() -> None:
     def bias_pct(truth_ml: float) -> float:
         if not args.bias_by_volume:
             return float(args.bias_pct)
-        volumes, biases = zip(*SCANNER_BIAS_PCT, strict=True)
+        volumes, biases = zip(*(HULL_LEFT_IN_BIAS_PCT if args.hull_left_in else SCANNER_BIAS_PCT), strict=True)
         return float(args.bias_pct + np.interp(truth_ml, volumes, biases))
 
     def inverse_kpa(volume_ml: float) -> np.ndarray:

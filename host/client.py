@@ -275,7 +275,8 @@ class TargetResult:
     waited_s: float | None = None
     #: a verified target: the gland volume the last scan measured (ml), whether it is within the tolerance, and
     #: each round (``round``, ``asked_ml``, ``setpoints_kpa``, ``pressures_kpa``, ``estimated_volume_ml``,
-    #: ``scanned_volume_ml``, ``scanned_error_pct``, ``scan`` folder, ``next``: what the next round asked)
+    #: ``scanned_volume_ml``, ``scanned_error_pct``, ``hull_error_pct``: the visual hull's error on the model's
+    #: shape taken off it, ``scan`` folder, ``next``: what the next round asked)
     scanned_volume_ml: float | None = None
     verified: bool | None = None
     rounds: tuple[dict[str, Any], ...] = ()

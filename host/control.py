@@ -56,7 +56,7 @@ import numpy as np
 from phantom.host.board_watch import SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
-from phantom.host.verify import SCAN_RETRIES, VERIFY_AIM_SHARE, Correct, Record, Rounds, Scan, Verify
+from phantom.host.verify import SCAN_RETRIES, Correct, Record, Rounds, Scan, Verify, aim_share
 from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
 
 #: After a target could not be sent (refused, not acknowledged), how long the core waits before it tries again (s).
@@ -534,16 +534,19 @@ class ControlCore:
         self._next(now)
 
     def scanned(self, now: float, round_: int, volume_ml: float | None, error: str | None = None,
-                folder: str | None = None, true_ml: float | None = None, link_lost: bool = False) -> None:
+                folder: str | None = None, true_ml: float | None = None, link_lost: bool = False,
+                hull_error_pct: float | None = None) -> None:
         """The scan of a verified target's round ``round_``: the reconstructed gland volume (ml), or ``error``;
         ``true_ml``, the simulated phantom's true volume at the scan (None on a real board), goes in the round.
         ``link_lost``: the board's link was lost during a scan that failed (or just before it); it is taken again
         (at most :data:`~phantom.host.verify.SCAN_RETRIES` times) once the pressures, applied again, have settled.
-        What the scan means is the verify policy's (:meth:`phantom.host.verify.Rounds.scanned`); the core tells it."""
+        ``hull_error_pct``: the visual hull's error on the model's shape (%), taken off the volume (the round then
+        stops within more of the tolerance, :func:`phantom.host.verify.aim_share`; None: not taken off). What the
+        scan means is the verify policy's (:meth:`phantom.host.verify.Rounds.scanned`); the core tells it."""
         rounds, reach = self._rounds, self._reach
         if rounds is None or reach is None:
             return  # the verification ended meanwhile (a fault, a vent, another target): its scan is not used
-        judged = rounds.scanned(round_, volume_ml, error, folder, true_ml, link_lost)
+        judged = rounds.scanned(round_, volume_ml, error, folder, true_ml, link_lost, hull_error_pct)
         described = reach.target.describe()
         if judged == "stale":
             return
@@ -572,7 +575,7 @@ class ControlCore:
                           "more verify_rounds, or a wider verify_tolerance_pct)", "WARN", extra=rounds.to_json())
         else:
             setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
-            aim_pct = verify.tolerance_pct * VERIFY_AIM_SHARE
+            aim_pct = verify.tolerance_pct * aim_share(hull_error_pct is not None)
             outside = (f"within {verify.tolerance_pct:g} % but outside the {aim_pct:.2g} % aimed at" if within
                        else f"outside {verify.tolerance_pct:g} %")
             self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "

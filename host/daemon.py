@@ -76,11 +76,13 @@ class VerifyScanner(Protocol):
         """The ``scan`` params of a verified target's scan at ``tolerance_pct`` (%): the plan sized to it."""
         ...
 
-    def volume(self, folder: str) -> dict[str, Any]:
-        """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml``, ``mesh`` (the
-        surface's file) and ``surface_mm`` (its vertices and triangles in the model's frame, for the recording;
-        None when the scan's frame is not the model's); PhantomError when it cannot be (a picture without the
-        phantom, a hull not closed)."""
+    def volume(self, folder: str, model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
+        """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml`` (the visual hull's
+        error on ``model_surface_mm``, the model's outer surface at the scan's pressures, taken off),
+        ``scanned_raw_ml`` and ``hull_error_pct`` (None, ``hull_note`` says why), ``mesh`` (the surface's file)
+        and ``surface_mm`` (its vertices and triangles in the model's frame, for the recording; None when the
+        scan's frame is not the model's); PhantomError when it cannot be (a picture without the phantom, a hull
+        not closed)."""
         ...
 
 
@@ -250,7 +252,7 @@ class Daemon:
             folder = str(answer["folder"])
             if answer.get("status") != "complete":
                 raise ApiError("rejected", f"the capture ended {answer.get('status')!r}")
-            result = await asyncio.to_thread(scanner.volume, folder)
+            result = await asyncio.to_thread(scanner.volume, folder, await self._model_surface_mm(action))
             volume_ml = float(result["volume_ml"])
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
             if self.verify_scan is not asyncio.current_task():
@@ -260,10 +262,28 @@ class Daemon:
             return
         if self.verify_scan is not asyncio.current_task():
             return
+        if result.get("hull_error_pct") is not None:
+            self.event("scan", f"round {action.round}: the visual hull reads the model's shape at these pressures "
+                               f"{result['hull_error_pct']:+.3f} % off; taken off the scan's "
+                               f"{result['scanned_raw_ml']:.3f} ml: {volume_ml:.3f} ml")
+        elif result.get("hull_note"):
+            self.event("scan", f"round {action.round}: {result['hull_note']}", "WARN")
         self.recorder.log_scanned_volume(self.now_s(), volume_ml)
         if result.get("surface_mm") is not None:
             self.recorder.log_scan_surface(self.now_s(), *result["surface_mm"])
-        self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml())
+        self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml(), False,
+                   result.get("hull_error_pct"))
+
+    async def _model_surface_mm(self, action: verify.Scan) -> tuple[Any, Any] | None:
+        """The model's outer surface (positions mm, triangles) at the round's settled pressures, on which the scan's
+        reconstruction measures the visual hull's own error; None when the model cannot give it (said)."""
+        try:
+            estimate = await self.model.estimate(PA_PER_KPA * np.asarray(action.pressures_kpa), with_surface=True)
+        except Exception as error:  # the scan is still a measurement, only with the hull's error left in it
+            self.event("scan", f"round {action.round}: no model surface to measure the hull's error on ({error})",
+                       "WARN")
+            return None
+        return estimate.surface_mm
 
     async def perform_scan(self, round_: int, plan: dict[str, Any]) -> dict[str, Any]:
         """One verified round's capture with the ``scan`` method's ``plan``, into a new folder of its own; a capture

@@ -92,10 +92,10 @@ class ScanWorker:
         """The verify scan's plan at ``tolerance_pct`` (%): the :class:`VerifyScan`'s, decided in the daemon."""
         return self.verify.plan_for(tolerance_pct)
 
-    def volume(self, folder: str) -> dict[str, Any]:
+    def volume(self, folder: str, model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
         """The capture folder reconstructed (``phantom.host.daemon.VerifyScanner``): blocking, run in a worker
         thread of the daemon, which waits without holding the GIL."""
-        return self._job("volume", folder, None)
+        return self._job("volume", (folder, model_surface_mm), None)
 
     def close(self) -> None:
         """Tell the process to end and wait for it (killed after :data:`CLOSE_WAIT_S`); a job still running is
@@ -272,7 +272,7 @@ def _serve(connection: Connection, parent_pid: int, scanner: Scanner, verify: Ve
         kind, argument = request
         reply: tuple[Any, ...]
         try:
-            answer = scanner(argument, rig) if kind == "scan" else verify.volume(argument)
+            answer = scanner(argument, rig) if kind == "scan" else verify.volume(*argument)
         except _DaemonGone:
             return
         except ApiError as error:

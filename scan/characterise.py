@@ -38,6 +38,7 @@ from phantom.model.measurements import Measurement
 
 if TYPE_CHECKING:
     from phantom.scan.camera import Rig
+    from phantom.scan.capture import CaptureFolder
 
 #: The record's file format, and its name in the run's folder.
 FORMAT = "phantom-characterisation/1"
@@ -163,6 +164,9 @@ class PointResult:
     seconds: float
     true_ml: float | None = None
     stored: bool = False
+    #: the visual hull's error on the model's shape at the pressures (%), taken off ``volume_ml``; None: not taken
+    #: off (a record from before it was, or the model's surface fit no motion onto the scan)
+    hull_error_pct: float | None = None
 
     def measurement(self, model: str) -> Measurement:
         return Measurement(tuple(self.pressures_kpa), self.volume_ml, "scan", self.time_utc, self.scan_folder,
@@ -370,12 +374,13 @@ def scan_params(record: CharacterisationRecord, index: int, folder: Path) -> dic
 
 
 def measured_point(record: CharacterisationRecord, index: int, folder: Path, rig: Rig, grid: ModelGrid,
-                   time_utc: str, seconds: float, true_ml: float | None, label: str) -> PointResult:
+                   time_utc: str, seconds: float, true_ml: float | None, label: str,
+                   model_surface_at: SurfaceAt | None = None) -> PointResult:
     """Point ``index`` from its scan's capture ``folder``: complete, every picture with its measured pressures
-    (held: their mean), reconstructed with ``rig`` at the run's voxel; the model's volume there from ``grid``.
-    CharacterisationError (saying that ``--resume`` scans it again) for a scan that cannot be stored."""
+    (held: their mean), reconstructed with ``rig`` at the run's voxel (:func:`scanned_ml`); the model's volume
+    there from ``grid``. CharacterisationError (saying that ``--resume`` scans it again) for a scan that cannot
+    be stored."""
     from phantom.scan.capture import CaptureFolder
-    from phantom.scan.reconstruct import reconstruct
 
     capture = CaptureFolder.open(folder)
     if capture.status != "complete":
@@ -386,9 +391,31 @@ def measured_point(record: CharacterisationRecord, index: int, folder: Path, rig
         raise CharacterisationError(f"{label}: {len(capture.frames) - len(measured)} of the scan's pictures have no "
                                     f"measured pressures: the point is not stored (--resume scans it again)")
     pressures = held_pressures_kpa(measured)
-    volume_ml = reconstruct(capture, rig, record.scan["voxel_mm"]).volume_ml
-    return PointResult(index, list(record.points_kpa[index]), pressures, float(volume_ml),
-                       grid.gland_ml(np.asarray(pressures)), str(folder.resolve()), time_utc, seconds, true_ml)
+    volume_ml, hull_error_pct = scanned_ml(capture, rig, record.scan["voxel_mm"], pressures, model_surface_at)
+    return PointResult(index, list(record.points_kpa[index]), pressures, volume_ml,
+                       grid.gland_ml(np.asarray(pressures)), str(folder.resolve()), time_utc, seconds, true_ml,
+                       hull_error_pct=hull_error_pct)
+
+
+#: The model's outer surface at pressures (kPa): positions (mm) and triangles.
+SurfaceAt = Callable[[list[float]], tuple[Any, Any]]
+
+
+def scanned_ml(capture: CaptureFolder, rig: Rig, voxel_mm: float, pressures_kpa: list[float],
+               model_surface_at: SurfaceAt | None) -> tuple[float, float | None]:
+    """A complete capture's gland volume (ml) reconstructed at ``voxel_mm``, with the visual hull's error on the
+    model's surface at ``pressures_kpa`` taken off (``phantom.scan.hull_bias``, as a verified round's scan), and
+    that error (%; None: no surface, or it fit no motion onto the scan: the hull's volume as it is)."""
+    from phantom.scan.hull_bias import measured_hull_bias
+    from phantom.scan.reconstruct import reconstruct
+
+    result = reconstruct(capture, rig, voxel_mm)
+    if model_surface_at is None:
+        return float(result.volume_ml), None
+    hull = measured_hull_bias(capture, rig, result, model_surface_at(pressures_kpa))
+    if isinstance(hull, str):
+        return float(result.volume_ml), None
+    return float(hull.corrected_ml(result.volume_ml)), hull.error_pct
 
 
 # ----------------------------------------------------------------------------------------------- the fit

@@ -12,6 +12,7 @@ import signal
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from phantom import PhantomError
@@ -47,8 +48,9 @@ class RecordingScanner:
 class ReconstructingVerify(VerifyScan):
     """A verify scan whose reconstruction answers its process and the folder it was given."""
 
-    def volume(self, folder):
-        return {"volume_ml": 40.0, "folder": folder, "pid": os.getpid()}
+    def volume(self, folder, model_surface_mm=None):
+        return {"volume_ml": 40.0, "folder": folder, "pid": os.getpid(),
+                "surface_points": None if model_surface_mm is None else len(model_surface_mm[0])}
 
 
 class RecordingRig:
@@ -114,7 +116,10 @@ def test_the_capture_runs_in_the_workers_process_and_its_rig_calls_in_the_caller
     assert {thread for _, _, thread in rig.calls} == {threading.get_ident()}
     # the reconstruction in the same process, kept from the first job; the plan is the verify scan's
     volume = worker.volume("/data/scans/round1")
-    assert volume == {"volume_ml": 40.0, "folder": "/data/scans/round1", "pid": answer["pid"]}
+    assert volume == {"volume_ml": 40.0, "folder": "/data/scans/round1", "pid": answer["pid"], "surface_points": None}
+    # the model's surface at the scan's pressures goes with it (the hull's error is measured on it)
+    with_surface = worker.volume("/data/scans/round1", (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])))
+    assert with_surface["surface_points"] == 4
     assert worker.plan == {"views": 30}
 
 

@@ -22,8 +22,10 @@ from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit, trut
 SCANNER_TOLERANCE = 0.002
 
 
-def verify_scan_ml(truth: Any, pressures_kpa: Sequence[float], folder: Path) -> float:
-    """The verify scan's gland volume (ml) of ``truth`` at ``pressures_kpa``, its capture made in ``folder``."""
+def verify_scan(truth: Any, pressures_kpa: Sequence[float], folder: Path,
+                model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
+    """The verify scan's answer (``VerifyScan.volume``) for ``truth`` at ``pressures_kpa``, its capture made in
+    ``folder``; with the model's surface there, the visual hull's error on it taken off."""
     orbit = VirtualOrbit()
 
     def simulated() -> dict[str, Any]:
@@ -34,5 +36,10 @@ def verify_scan_ml(truth: Any, pressures_kpa: Sequence[float], folder: Path) -> 
                            pose_at=virtual_pose_at(VERIFY_PLAN["scale"]))
     plan = Plan(VERIFY_PLAN["views"], elevations, settle_s=0.0)
     capture(orbit, camera, FixedPhantom(), plan, CaptureFolder.create(folder, camera.describe(), plan.to_json()))
-    volume_ml: float = VerifyScan().volume(str(folder))["volume_ml"]
+    return VerifyScan().volume(str(folder), model_surface_mm)
+
+
+def verify_scan_ml(truth: Any, pressures_kpa: Sequence[float], folder: Path) -> float:
+    """The verify scan's gland volume (ml) of ``truth`` at ``pressures_kpa`` as the hull reads it."""
+    volume_ml: float = verify_scan(truth, pressures_kpa, folder)["volume_ml"]
     return volume_ml

@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         if not args.resume:
             record = _new_record(args, out, grid)
         rig = _rig(record)
-        _store_unstored(record, store, say, grid, lambda folder: _reconstructed_ml(folder, rig, record))
+        _store_unstored(record, store, say, grid, lambda folder: _reconstructed_ml(folder, rig, record, client))
         started = time.monotonic()
         session: dict[str, Any] = {"started_utc": _utc_now(), "points": 0, "elapsed_s": 0.0}
         record.sessions.append(session)
@@ -331,16 +331,28 @@ def _store_unstored(record: CharacterisationRecord, store: CorrectionStore, say:
             record.mark_stored(result.index)
 
 
-def _reconstructed_ml(folder: Path, rig: Rig, record: CharacterisationRecord) -> float:
-    """The gland volume (ml) of the complete scan in ``folder`` reconstructed as the run does."""
+def _reconstructed_ml(folder: Path, rig: Rig, record: CharacterisationRecord, client: Phantom) -> float:
+    """The gland volume (ml) of the complete scan in ``folder`` reconstructed as the run does (the hull's error
+    on the model's surface at its held pressures taken off)."""
     from phantom.scan.capture import CaptureFolder
-    from phantom.scan.characterise import CharacterisationError
-    from phantom.scan.reconstruct import reconstruct
+    from phantom.scan.characterise import CharacterisationError, held_pressures_kpa, scanned_ml
 
     capture = CaptureFolder.open(folder)
     if capture.status != "complete":
         raise CharacterisationError(f"the scan ended {capture.status}, not complete")
-    return float(reconstruct(capture, rig, record.scan["voxel_mm"]).volume_ml)
+    pressures = held_pressures_kpa([frame.pressures_kpa for frame in capture.frames if frame.pressures_kpa])
+    return scanned_ml(capture, rig, record.scan["voxel_mm"], pressures,
+                      _model_surface_at(client, record.pressure_max_kpa))[0]
+
+
+def _model_surface_at(client: Phantom, pressure_max_kpa: float) -> Any:
+    """The model's outer surface at pressures (kPa), asked of the daemon: positions (mm) and triangles. A point held
+    at the box's edge reads an ADC count or two past it (3.005 kPa), which the daemon refuses: its shape is the
+    edge's."""
+    def surface_at(pressures_kpa: list[float]) -> tuple[Any, Any]:
+        surface = client.surface([min(max(p, 0.0), pressure_max_kpa) for p in pressures_kpa])
+        return surface.vertices_mm, surface.faces
+    return surface_at
 
 
 def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionStore, grid: ModelGrid, rig: Rig,
@@ -396,7 +408,9 @@ def _visit(client: Phantom, record: CharacterisationRecord, store: CorrectionSto
         left = (len(pending) - number) * elapsed / number
         truth = "" if result.true_ml is None else (
             f", truth {result.true_ml:.3f} ml (scan {(result.volume_ml / result.true_ml - 1) * 100:+.2f} %)")
-        say(f"{label}: scan {result.volume_ml:.3f} ml, model {result.model_ml:.3f} ml "
+        hull = ("the hull's error not taken off (the model's surface fit no motion onto the scan)"
+                if result.hull_error_pct is None else f"the hull's {result.hull_error_pct:+.3f} % taken off")
+        say(f"{label}: scan {result.volume_ml:.3f} ml ({hull}), model {result.model_ml:.3f} ml "
             f"({(result.model_ml / result.volume_ml - 1) * 100:+.2f} %){truth}; {result.seconds:.0f} s; "
             f"{format_duration(elapsed)} elapsed, about {format_duration(left)} left")
 
@@ -416,7 +430,7 @@ def _scan_point(client: Phantom, record: CharacterisationRecord, index: int, fol
                                     f"--resume --out {record.folder}` scans it again") from None
     true_ml = client.status().true_volume_ml
     return measured_point(record, index, folder, rig, grid, _utc_now(), time.monotonic() - point_started, true_ml,
-                          label)
+                          label, _model_surface_at(client, record.pressure_max_kpa))
 
 
 def _kpa(pressures: Any) -> str:
