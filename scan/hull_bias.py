@@ -15,9 +15,10 @@ column) drawn from its base before it is moved.
 
 What it leaves (``bench/scan_hull_bias.py``, the verify plan of 20 stops at 15 and 45 deg, 640x480, six states
 from rest to 44 ml): on the shipped simulated phantom the scanned error went from -0.01..+0.17 % to within
-0.03 %; on another phantom (``--sim-truth``'s lobes 1.1, E x 0.9, whose shape the model does not share) from
-+0.04..+0.24 % to within 0.05 %. What it cannot see: a real camera's keying errors (a picture's own, not the
-hull's), and a phantom whose shape differs from the model's more than these do.
+0.054 % (hung by its tubes: 0.135 to 0.080 %); on another phantom (``--sim-truth``'s lobes 1.1, E x 0.9, whose
+shape the model does not share) from +0.04..+0.24 % to within 0.027 % (tubes: 0.219 to 0.083 %). What it cannot
+see: a real camera's keying errors (a picture's own, not the hull's), and a phantom whose shape differs from the
+model's more than these do.
 """
 
 from __future__ import annotations
