@@ -41,6 +41,7 @@ SCANNER_BIAS_PCT = ((27.03, -0.030), (30.39, -0.035), (34.51, -0.054), (38.90, -
 #: ... and with the hull's error left in (``--hull-left-in``: the same bench's scans as reconstructed).
 HULL_LEFT_IN_BIAS_PCT = ((27.03, -0.007), (30.39, -0.002), (34.51, 0.052), (38.90, 0.116), (43.94, 0.167))
 
+
 def main() -> None:
     from phantom.hil.plant import load_plant
     from phantom.host import verify
