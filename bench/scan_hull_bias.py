@@ -41,12 +41,12 @@ def main() -> None:
     from phantom.cli.scan_verify import VERIFY_PLAN
     from phantom.hil.plant import CALIBRATED_SCENE_PATH
     from phantom.hil.truth_shape import TruthShape
-    from phantom.scan.camera import virtual_pose_at, virtual_rig
-    from phantom.scan.capture import CaptureFolder, Plan, capture
+    from phantom.scan.camera import virtual_rig
+    from phantom.scan.capture import Plan
     from phantom.scan.hull_bias import hull_bias
     from phantom.scan.reconstruct import reconstruct
     from phantom.scan.render import LOOKS
-    from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit, truth_scene
+    from phantom.scan.virtual import render_capture
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--looks", default="ideal,real")
@@ -64,17 +64,11 @@ def main() -> None:
         truth = truth_of(phantom)
         for look in args.looks.split(","):
             for state, pressures in STATES_KPA.items():
-                orbit = VirtualOrbit()
-
-                def simulated(orbit: VirtualOrbit = orbit, pressures: tuple[float, ...] = pressures) -> dict[str, Any]:
-                    return {"rig_deg": [orbit.orbit_deg, orbit.elevation_deg], "pressures_kpa": list(pressures)}
-
-                camera = VirtualCamera(rig, truth_scene(simulated, truth), pose_at=virtual_pose_at(scale),
-                                       look=LOOKS[look])
-                plan = Plan(views, elevations, settle_s=0.0)
                 with tempfile.TemporaryDirectory() as folder:
-                    captured = CaptureFolder.create(Path(folder) / "scan", camera.describe(), plan.to_json())
-                    capture(orbit, camera, FixedPhantom(), plan, captured)
+                    # the virtual rig's pictures of the truth's surface at the pressures (its poses are the
+                    # daemon's simulated rig's); the correction is told which frame to take
+                    captured = render_capture(truth.surface(pressures), rig, Plan(views, elevations),
+                                              Path(folder) / "scan", look=LOOKS[look])
                     scanned = reconstruct(captured, rig)
                     surface = model.surface(pressures)
                     in_frame = hull_bias(captured, rig, scanned, surface, in_model_frame=True)

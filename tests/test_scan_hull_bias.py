@@ -16,18 +16,18 @@ import pytest
 
 pytest.importorskip("cv2")
 
-from phantom.cli.scan_verify import VerifyScan  # noqa: E402
+from truth_scan import verify_capture  # noqa: E402
+
+from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan  # noqa: E402
 from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml  # noqa: E402
-from phantom.scan.camera import virtual_pose_at, virtual_rig  # noqa: E402
-from phantom.scan.capture import CaptureFolder, Plan, capture  # noqa: E402
+from phantom.scan.camera import virtual_rig  # noqa: E402
 from phantom.scan.hull_bias import coverage_silhouette, hull_bias  # noqa: E402
 from phantom.scan.reconstruct import reconstruct  # noqa: E402
 from phantom.scan.render import Renderer  # noqa: E402
 from phantom.scan.synthetic import random_rotation, sphere  # noqa: E402
-from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit, truth_scene  # noqa: E402
 
-#: The verify plan's poses and picture size (phantom/cli/scan_verify.py's VERIFY_PLAN).
-SCALE, VIEWS, ELEVATIONS = 0.5, 20, (15.0, 45.0)
+#: The verify plan's poses and picture size, as the daemon's verify scan takes them (tests/truth_scan.py).
+SCALE, ELEVATIONS = VERIFY_PLAN["scale"], tuple(VERIFY_PLAN["elevations_deg"])
 CENTRE_MM = np.zeros(3)
 PHANTOM = sphere(20.0, CENTRE_MM, dent_mm=6.0)
 MODEL = sphere(20.6, CENTRE_MM, dent_mm=6.18)
@@ -45,16 +45,8 @@ class _Still:
 
 @pytest.fixture(scope="module")
 def scanned(tmp_path_factory):
-    orbit = VirtualOrbit()
-
-    def simulated():
-        return {"rig_deg": [orbit.orbit_deg, orbit.elevation_deg], "pressures_kpa": [0.0, 0.0, 0.0]}
-
+    folder = verify_capture(_Still(PHANTOM), [0.0, 0.0, 0.0], tmp_path_factory.mktemp("dented") / "scan")
     rig = virtual_rig(SCALE, ELEVATIONS)
-    camera = VirtualCamera(rig, truth_scene(simulated, _Still(PHANTOM)), pose_at=virtual_pose_at(SCALE))
-    plan = Plan(VIEWS, ELEVATIONS, settle_s=0.0)
-    folder = CaptureFolder.create(tmp_path_factory.mktemp("dented") / "scan", camera.describe(), plan.to_json())
-    capture(orbit, camera, FixedPhantom(), plan, folder)
     return folder, rig, reconstruct(folder, rig)
 
 
@@ -87,7 +79,7 @@ def test_a_model_in_another_frame_is_placed_on_the_scan_first(scanned):
 @pytest.mark.slow
 def test_the_verify_scan_reports_the_hull_taken_off_and_refuses_a_surface_that_is_not_the_phantoms(scanned):
     folder, _, result = scanned
-    verify = VerifyScan({"views": VIEWS, "elevations_deg": list(ELEVATIONS), "scale": SCALE})
+    verify = VerifyScan()
     answer = verify.volume(str(folder.path), (MODEL.vertices_mm, MODEL.triangles))
     assert answer["scanned_raw_ml"] == pytest.approx(result.volume_ml)
     assert answer["hull_error_pct"] > 0.5 and answer["hull_note"] == ""

@@ -22,10 +22,9 @@ from phantom.scan.virtual import FixedPhantom, VirtualCamera, VirtualOrbit, trut
 SCANNER_TOLERANCE = 0.002
 
 
-def verify_scan(truth: Any, pressures_kpa: Sequence[float], folder: Path,
-                model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
-    """The verify scan's answer (``VerifyScan.volume``) for ``truth`` at ``pressures_kpa``, its capture made in
-    ``folder``; with the model's surface there, the visual hull's error on it taken off."""
+def verify_capture(truth: Any, pressures_kpa: Sequence[float], folder: Path) -> CaptureFolder:
+    """The verify scan's capture of ``truth`` (anything with ``surface(pressures_kpa)``) at ``pressures_kpa`` into
+    ``folder``, as ``phantom daemon --sim`` takes it: no rig kept with it (the virtual rig's own geometry)."""
     orbit = VirtualOrbit()
 
     def simulated() -> dict[str, Any]:
@@ -35,7 +34,14 @@ def verify_scan(truth: Any, pressures_kpa: Sequence[float], folder: Path,
     camera = VirtualCamera(virtual_rig(VERIFY_PLAN["scale"], elevations), truth_scene(simulated, truth),
                            pose_at=virtual_pose_at(VERIFY_PLAN["scale"]))
     plan = Plan(VERIFY_PLAN["views"], elevations, settle_s=0.0)
-    capture(orbit, camera, FixedPhantom(), plan, CaptureFolder.create(folder, camera.describe(), plan.to_json()))
+    return capture(orbit, camera, FixedPhantom(), plan, CaptureFolder.create(folder, camera.describe(), plan.to_json()))
+
+
+def verify_scan(truth: Any, pressures_kpa: Sequence[float], folder: Path,
+                model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
+    """The verify scan's answer (``VerifyScan.volume``) for ``truth`` at ``pressures_kpa``, its capture made in
+    ``folder``; with the model's surface there, the visual hull's error on it taken off."""
+    verify_capture(truth, pressures_kpa, folder)
     return VerifyScan().volume(str(folder), model_surface_mm)
 
 
