@@ -94,8 +94,14 @@ class Panel:
 def chromium(folder: Path) -> Any:
     options = webdriver.ChromeOptions()
     for argument in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1400,1700",
-                     # WebGL without a GPU, as on a lab PC without one: SwiftShader, Chromium's CPU renderer
-                     "--use-angle=swiftshader", "--enable-unsafe-swiftshader", f"--user-data-dir={folder / 'profile'}"):
+                     # WebGL without a GPU, as on a lab PC without one: SwiftShader, Chromium's CPU renderer, for
+                     # WebGL only; the page is composited in software, as Chromium does without a GPU. Composited
+                     # through SwiftShader too, the streaming page's GPU process took 1.5 of the two cores, and
+                     # beside a busy process per core its screenshots took up to 25 s and timed out ("Timed out
+                     # receiving message from renderer", then no trace of the page: make test, 2026-11-29); in
+                     # software 0.13 of a core, and the module passed beside three busy shells.
+                     "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--disable-gpu-compositing",
+                     f"--user-data-dir={folder / 'profile'}"):
         options.add_argument(argument)
     binary = shutil.which("chromium")
     if binary:
