@@ -48,7 +48,6 @@ def hold_the_gil(seconds: float) -> float:
     return time.monotonic() - started
 
 
-
 async def online_and_inflated(link, events, telemetry):
     """``link`` running (its task) and online, its events and telemetry kept, chamber 0 asked for 0.8 kPa."""
     link.attach(on_telemetry=telemetry.append, on_event=lambda *event: events.append(event), on_online=None,
