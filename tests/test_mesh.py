@@ -342,3 +342,18 @@ def test_after_gmsh_a_closed_pipe_raises_instead_of_killing_the_process(tmp_path
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
                             timeout=120)
     assert result.returncode == 0 and result.stdout == "BrokenPipeError\n", (result.returncode, result.stderr)
+
+
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGHUP", "SIGQUIT"])
+def test_a_signal_handler_set_before_gmsh_still_handles_its_signal_after(tmp_path, signum):
+    """gmsh's initialize also sets SIGTERM, SIGHUP and SIGQUIT back to their default action, leaving Python's
+    handler in place on paper only: a response-table build that meshed its model died of the daemon's SIGTERM
+    (status -15) instead of killing its solver processes and releasing their semaphores (host/startup.py)."""
+    script = ("import os, signal\n"
+              "from phantom.model.mesh.prostate import generate_hollow_sphere\n"
+              f"signal.signal(signal.{signum}, lambda *_: print('handled'))\n"
+              "generate_hollow_sphere(10.0, 20.0, 8.0)\n"
+              f"os.kill(os.getpid(), signal.{signum})\n")
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                            timeout=120)
+    assert result.returncode == 0 and result.stdout == "handled\n", (result.returncode, result.stderr)

@@ -422,22 +422,31 @@ def write_mesh(mesh: TetMesh, path: str | Path, length_scale_m: float = 1e-3,
             raise MeshError(f"cannot write {path}: {error}; use .msh or .vtu") from error
 
 
+#: The signals whose disposition gmsh's initialize sets back to the default action (read off /proc/self/status
+#: before and after it, gmsh 4; it also resets SIGSEGV and SIGFPE, which Python leaves at their default).
+GMSH_RESET_SIGNALS = (signal.SIGPIPE, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
+
+
 @contextlib.contextmanager
 def gmsh_session() -> Iterator[Any]:
     """gmsh initialised quietly (no terminal output, one thread) for one model, finalised on exit.
 
-    gmsh's initialize sets SIGPIPE back to the default action (terminate) behind Python's back, which ignores it:
-    a later write to a closed pipe (a dead worker process, ``phantom forward ... | head``) then killed the whole
-    process instead of raising BrokenPipeError. The disposition Python had is set again (from the main thread,
-    the only one that may).
+    gmsh's initialize sets SIGPIPE, SIGTERM, SIGHUP and SIGQUIT back to the default action (terminate) behind
+    Python's back, whose handlers then stay in place on paper only: a later write to a closed pipe (a dead worker
+    process, ``phantom forward ... | head``) killed the whole process instead of raising BrokenPipeError (Python
+    ignores SIGPIPE), and a response-table build that meshed its model died of the daemon's SIGTERM instead of
+    ending its solver processes (host/startup.py). The dispositions Python had are set again (from the main
+    thread, the only one that may).
     """
     # gmsh (0.2 s to import, and a native library) only where a mesh is generated or an .msh written
     import gmsh
 
-    previous = signal.getsignal(signal.SIGPIPE)
+    previous = {signum: signal.getsignal(signum) for signum in GMSH_RESET_SIGNALS}
     gmsh.initialize(interruptible=False)
-    if previous is not None and threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGPIPE, previous)
+    if threading.current_thread() is threading.main_thread():
+        for signum, handler in previous.items():
+            if handler is not None:
+                signal.signal(signum, handler)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.NumThreads", 1)
