@@ -170,9 +170,9 @@ def _stop_build(signum: int, frame: object) -> None:
     """SIGTERM in the build process: kill the solver processes it started (mid-solve: their work is lost anyway),
     run multiprocessing's finalizers, which release the pool's semaphores (what Python's exit runs first), and
     exit at once. A SIGKILL of the whole group leaves the semaphores to the daemon's resource tracker, which warns
-    of leaked semaphores at its exit; and an exit through Python, unwinding the Dask cluster's shutdown, took 3.4 s
-    of the STOP_WAIT_S at nice 10 beside a busy process per core (0.2 s this way), and was killed past it in a
-    clean clone's make test."""
+    of leaked semaphores at its exit; and an exit through Python, unwinding the Dask cluster's shutdown, took
+    3.4-4.5 s of the STOP_WAIT_S at nice 10 beside busy processes (0.2-0.3 s this way), and was killed past it in
+    a clean clone's make test."""
     for task in Path("/proc/self/task").iterdir():
         for child in (task / "children").read_text().split():
             with contextlib.suppress(ProcessLookupError):
