@@ -150,7 +150,12 @@ def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_
         if daemon is not None:
             daemon.stop()
         board.terminate()
-        board.wait(30)
-        board_log.close()
-        for log in sorted(tmp_path.glob("daemon*.log")):  # shown with a failure: what the daemons said
-            print(f"--- {log.name} (the last lines)\n" + "\n".join(log.read_text().splitlines()[-25:]))
+        try:
+            board.wait(30)
+        finally:
+            if board.poll() is None:  # still there: its log has its threads' stacks (sim-board dumps them at 20 s)
+                board.kill()
+                board.wait(10)
+            board_log.close()
+            for log in [*sorted(tmp_path.glob("daemon*.log")), tmp_path / "board.log"]:  # shown with a failure
+                print(f"--- {log.name} (the last lines)\n" + "\n".join(log.read_text().splitlines()[-60:]))

@@ -176,6 +176,7 @@ def _simulated_board(speed: float, plant: Path | None = None) -> SimulatedBoard:
 
 
 def _run_sim_board(args: argparse.Namespace) -> int:
+    import faulthandler
     import json
     import signal
     import threading
@@ -218,6 +219,9 @@ def _run_sim_board(args: argparse.Namespace) -> int:
                       + "; Ctrl-C stops it", flush=True)
             while not stop.wait(0.5):
                 pass
+            # an end that hangs says where: every thread's stack on stderr (a test's board did not end within
+            # 30 s of its SIGTERM once in a clean clone's make test, 2026-11-29)
+            faulthandler.dump_traceback_later(20.0)
         finally:
             if stream is not None:
                 stream.close()
