@@ -42,6 +42,11 @@ from selenium.webdriver.support.ui import WebDriverWait  # noqa: E402
 PHANTOM = Path(sys.executable).with_name("phantom")
 #: A task longer than this (ms) in the page's main thread is a dropped frame a person sees.
 LONG_TASK_MS = 100.0
+#: The most CPU time (ms) one of the page's tasks may take: its own work, whatever else the machine runs (idle, a
+#: telemetry task takes under 5 ms, and 10 ms of wall time at most). The wall-time bound is counted in Chromium's
+#: trace; the page's PerformanceObserver's long tasks are only printed: beside a CI run at load 5.6 on two cores
+#: it once saw a 103 ms task where the trace had none over 100 ms (make test, 2026-11-29).
+TASK_CPU_MS = 50.0
 #: How long telemetry streams while the long tasks are counted (s).
 STREAM_S = 60.0
 
@@ -203,10 +208,10 @@ def test_the_symmetric_bph_preset_reaches_its_volume_and_redraws_the_gland(panel
 STREAM_MARK = "phantom-telemetry-minute"
 
 
-def long_tasks_ms(performance_log: list[dict[str, Any]]) -> tuple[list[float], int]:
-    """The durations (ms) of the page's main-thread tasks longer than LONG_TASK_MS after :data:`STREAM_MARK`, in
-    Chromium's performance log (its trace: ``ThreadControllerImpl::RunTask`` events with their duration in µs, on
-    the thread that receives the WebSocket's messages), and how many tasks it ran there."""
+def page_tasks(performance_log: list[dict[str, Any]]) -> list[tuple[float, float]]:
+    """The page's main-thread tasks after :data:`STREAM_MARK` in Chromium's performance log, each as (its wall
+    time, its thread's CPU time) in ms: its trace's ``ThreadControllerImpl::RunTask`` events (``dur`` and ``tdur``,
+    in µs) on the thread that receives the WebSocket's messages."""
     events = [json.loads(entry["message"])["message"]["params"] for entry in performance_log
               if '"Tracing.dataCollected"' in entry["message"]]
     marks = [event["ts"] for event in events if event.get("name") == "TimeStamp"
@@ -217,7 +222,8 @@ def long_tasks_ms(performance_log: list[dict[str, Any]]) -> tuple[list[float], i
     main_thread = threads.most_common(1)[0][0]
     tasks = [event for event in events if event.get("name") in ("ThreadControllerImpl::RunTask", "RunTask")
              and (event.get("pid"), event.get("tid")) == main_thread and event.get("ts", 0) >= marks[-1]]
-    return [event["dur"] / 1e3 for event in tasks if event.get("dur", 0) / 1e3 > LONG_TASK_MS], len(tasks)
+    assert all("tdur" in event for event in tasks), "Chromium's trace has no thread time (tdur) for the tasks"
+    return [(event.get("dur", 0) / 1e3, event["tdur"] / 1e3) for event in tasks]
 
 
 def test_no_long_task_while_telemetry_streams_for_a_minute(panel):
@@ -230,13 +236,16 @@ def test_no_long_task_while_telemetry_streams_for_a_minute(panel):
     frames = panel.status()["link_detail"]["stats"]["frames_rx"] - frames_before
     assert frames > STREAM_S * 40, f"only {frames} frames in {STREAM_S} s: telemetry did not stream"
     observed = panel.driver.execute_script("return window.longTasks;")
-    long_tasks, tasks = long_tasks_ms(panel.driver.get_log("performance"))
-    print(f"{frames} telemetry frames in {STREAM_S:g} s; {tasks} tasks on the page's main thread, over "
-          f"{LONG_TASK_MS:g} ms: {long_tasks}; long tasks (over 50 ms) the page saw: "
+    tasks = page_tasks(panel.driver.get_log("performance"))
+    long_tasks = [wall_ms for wall_ms, _ in tasks if wall_ms > LONG_TASK_MS]
+    costly_tasks = [cpu_ms for _, cpu_ms in tasks if cpu_ms > TASK_CPU_MS]
+    print(f"{frames} telemetry frames in {STREAM_S:g} s; {len(tasks)} tasks on the page's main thread, the "
+          f"longest {max(wall for wall, _ in tasks):.1f} ms, the costliest {max(cpu for _, cpu in tasks):.1f} ms "
+          f"of CPU; long tasks (over 50 ms) the page's PerformanceObserver saw: "
           f"{[round(duration) for duration in observed]}; load {os.getloadavg()}")
-    assert tasks > STREAM_S * 10, f"only {tasks} tasks traced on the page's main thread"
+    assert len(tasks) > STREAM_S * 10, f"only {len(tasks)} tasks traced on the page's main thread"
     assert not long_tasks, f"tasks over {LONG_TASK_MS} ms while telemetry streamed: {long_tasks}"
-    assert not [duration for duration in observed if duration > LONG_TASK_MS], observed
+    assert not costly_tasks, f"tasks over {TASK_CPU_MS} ms of CPU while telemetry streamed: {costly_tasks}"
     panel.shot("streaming")
 
 
