@@ -79,6 +79,15 @@ class _SolverProcess:
         positions: np.ndarray = self.pool.submit(_worker_positions_m, pressures_pa, start).result()
         return positions
 
+    def close(self) -> None:
+        """End the worker now, a solve in it or not; a caller waiting on that solve gets BrokenProcessPool. Not
+        waiting matters: at the interpreter's exit, concurrent.futures joins the pool's manager thread, which
+        waits for the running solve (a sim-board asked to stop mid-solve ended only when it did, 25 s later on
+        this machine idle, and past a test's 30 s wait under make test's load)."""
+        for process in list(self.pool._processes.values()):  # the executor has no kill of its own
+            process.kill()
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
 
 #: The worker process's truth model (built by its initializer).
 _WORKER_MODEL: Any = None
@@ -178,6 +187,11 @@ class TruthShape:
         if np.any(shapes_pa < -margin_kpa * 1e3) or np.any(shapes_pa > box_pa + margin_kpa * 1e3):
             return None
         return self._shapes.positions_m(np.clip(shapes_pa, 0.0, box_pa), self.surface_nodes)
+
+    def close(self) -> None:
+        """End the solver's process, if any, without waiting for a solve in it."""
+        if self._solver is not None:
+            self._solver.close()
 
     def gland_volume_ml(self, pressures_kpa: list[float] | np.ndarray) -> float:
         """The gland volume (ml) of the surface at these pressures."""

@@ -112,3 +112,39 @@ def _zombie(pid):
             return stat.read().rsplit(")", 1)[1].split()[0] == "Z"
     except OSError:
         return True
+
+
+EXIT_MID_SOLVE = """
+import threading, time
+from phantom.hil.truth_shape import TruthShape
+
+if __name__ == "__main__":
+    truth = TruthShape(tabulated=False)
+    threading.Thread(target=truth.surface, args=([5.0, 5.0, 5.0],), daemon=True).start()  # a picture's solve
+    while truth._solver is None or not truth._solver.pool._processes:
+        time.sleep(0.05)
+    time.sleep(2.0)  # the worker builds its model, then solves: seconds to a minute
+    truth.close()
+    print("returning", flush=True)
+"""
+
+
+def test_a_process_that_closes_its_truth_mid_solve_ends_at_once(tmp_path):
+    """A camera stream closed while a picture's shape is being solved (sim-board's SIGTERM) must not wait for the
+    solve: concurrent.futures joins its pools' threads at exit, and the one of a pool with a running solve waits
+    for it. Left open (the script without its ``close``, or a ``close`` that does not kill the worker), the same
+    process ended 20-25 s after it returned, idle; a test's sim-board did not end within 30 s of its SIGTERM under
+    make test's load."""
+    import subprocess
+    import sys
+    import time
+
+    script = tmp_path / "exit_mid_solve.py"
+    script.write_text(EXIT_MID_SOLVE)
+    process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE,
+                               stderr=subprocess.PIPE, text=True)
+    assert process.stdout.readline().strip() == "returning"
+    returned = time.monotonic()
+    process.wait(300)
+    ended_s = time.monotonic() - returned
+    assert ended_s < 3.0, (ended_s, process.stderr.read())

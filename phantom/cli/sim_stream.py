@@ -51,7 +51,7 @@ class CameraStream:
         self._angles = _Angles()
         rig = virtual_rig(scale)
         pose_at = virtual_pose_at(scale)
-        truth = TruthShape()
+        self._truth_shape = truth = TruthShape()
         target = CharucoTarget()
         self.cameras: dict[str, Any] = {
             "/phantom.mjpg": VirtualCamera(rig, lambda: (truth.surface(self._angles.pressures_kpa),
@@ -72,6 +72,7 @@ class CameraStream:
 
     def close(self) -> None:
         self.server.shutdown()
+        self._truth_shape.close()  # a picture being solved is not waited for: the stream is closing
         self.server.server_close()
 
     def urls(self) -> dict[str, str]:
