@@ -11,6 +11,9 @@ calibrated rig's path), taken off. Prints a table: the true volume, the scan's e
 seconds the correction took.
 
     nice -n 5 .venv/bin/python bench/scan_hull_bias.py [--looks ideal,real] [--phantoms shipped,lobes]
+        [--views N] [--elevations A+B]
+
+(``--views``/``--elevations``: another plan than the verify plan's, to size it with the hull's error taken off.)
 """
 
 from __future__ import annotations
@@ -51,11 +54,14 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--looks", default="ideal,real")
     parser.add_argument("--phantoms", default="shipped,lobes")
+    parser.add_argument("--views", type=int, default=VERIFY_PLAN["views"], help="orbit stops per elevation")
+    parser.add_argument("--elevations", default="+".join(f"{e:g}" for e in VERIFY_PLAN["elevations_deg"]),
+                        help="the elevations (deg), joined by +")
     args = parser.parse_args()
     model = TruthShape(CALIBRATED_SCENE_PATH, 1.0, plant_path=None)   # the controller's model's own shapes
-    views, elevations, scale = VERIFY_PLAN["views"], tuple(VERIFY_PLAN["elevations_deg"]), VERIFY_PLAN["scale"]
+    views, elevations, scale = args.views, tuple(map(float, args.elevations.split("+"))), VERIFY_PLAN["scale"]
     rig = virtual_rig(scale, elevations)
-    print(f"the verify plan: {views} stops at {elevations} deg, scale {scale}\n")
+    print(f"the plan: {views} stops at {elevations} deg, scale {scale}\n")
     print("| phantom | look | state | true ml | scan error % | hull on the model % | corrected % | placed by "
           "alignment: corrected % | s (in frame / aligned) |")
     print("|---|---|---|---|---|---|---|---|---|")
