@@ -22,6 +22,7 @@ send buffer is kept small, so that a reader gets a picture rendered a frame ago,
 from __future__ import annotations
 
 import threading
+from concurrent.futures.process import BrokenProcessPool
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
 
@@ -47,6 +48,7 @@ class CameraStream:
         from phantom.scan.virtual import VIRTUAL_PLACEMENTS, TargetCamera, VirtualCamera, target_pose_facing
 
         self.board = board
+        self.closing = False
         self._lock = threading.Lock()
         self._angles = _Angles()
         rig = virtual_rig(scale)
@@ -71,6 +73,7 @@ class CameraStream:
         return self
 
     def close(self) -> None:
+        self.closing = True
         self.server.shutdown()
         self._truth_shape.close()  # a picture being solved is not waited for: the stream is closing
         self.server.server_close()
@@ -143,6 +146,10 @@ class CameraStream:
                         self.wfile.flush()
                 except (BrokenPipeError, ConnectionResetError):
                     return
+                except BrokenProcessPool:
+                    if stream.closing:  # the truth's solver was ended under this picture: the stream is closing
+                        return
+                    raise
 
             def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 (http.server's name)
                 return
