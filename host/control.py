@@ -56,7 +56,7 @@ import numpy as np
 from phantom.host.board_watch import SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
-from phantom.host.verify import SCAN_RETRIES, Correct, Record, Rounds, Scan, Verify, aim_share
+from phantom.host.verify import SCAN_RETRIES, Correct, Record, Rounds, Scan, Verify
 from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
 
 #: After a target could not be sent (refused, not acknowledged), how long the core waits before it tries again (s).
@@ -575,7 +575,7 @@ class ControlCore:
                           "more verify_rounds, or a wider verify_tolerance_pct)", "WARN", extra=rounds.to_json())
         else:
             setpoints = tuple(float(p) for p in self.setpoints_pa) if self.setpoints_pa is not None else ()
-            aim_pct = verify.tolerance_pct * aim_share(hull_error_pct is not None)
+            aim_pct = rounds.last["aim_pct"]
             outside = (f"within {verify.tolerance_pct:g} % but outside the {aim_pct:.2g} % aimed at" if within
                        else f"outside {verify.tolerance_pct:g} %")
             self._tell("verify", f"target {described}: round {round_} scanned {volume_ml:.2f} ml ({error_pct:+.2f} "

@@ -397,9 +397,11 @@ class Rounds:
             entry["scan_error"] = error or f"the reconstruction gave no volume ({volume_ml!r})"
             return "failed"
         error_pct = 100.0 * (volume_ml - self.target_ml) / self.target_ml
-        entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct, hull_error_pct=hull_error_pct)
+        share = aim_share(hull_error_pct is not None)
+        entry.update(scanned_volume_ml=float(volume_ml), scanned_error_pct=error_pct, hull_error_pct=hull_error_pct,
+                     aim_pct=self.verify.tolerance_pct * share)
         judged = judge_scan(error_pct, self.verify.tolerance_pct, round_, self.verify.rounds, self.verify.correct,
-                            aim_share(hull_error_pct is not None))
+                            share)
         if judged == "correct":
             self.doing = "correcting"
         return judged

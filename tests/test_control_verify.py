@@ -239,6 +239,7 @@ def test_a_scan_with_the_hulls_error_taken_off_stops_within_more_of_the_toleranc
     (told,) = [tell for tell in of_kind(actions, control.Tell) if tell.data]
     assert told.data["outcome"] == "reached" and told.data["verified"] is True
     assert told.data["rounds"][0]["hull_error_pct"] == 0.21
+    assert told.data["rounds"][0]["aim_pct"] == pytest.approx(0.18)        # the round says the aim it was judged by
     assert of_kind(actions, policy_of.Correct) == []
     # outside 0.18 %, it is corrected, and the message says which aim it missed
     verified(core, verify=Verify(0.3, 2))
