@@ -40,7 +40,7 @@ def test_a_stream_closed_mid_solve_ends_at_once_and_quietly(capfd):
     stream.close()
     closed_s = time.monotonic() - started
     reader.join(10)
-    assert closed_s < 2.0, closed_s
+    assert closed_s < 5.0, closed_s                                       # the server's 0.5 s poll, a kill
     assert not reader.is_alive()                                          # the stream ended for its client
     time.sleep(0.5)
     assert "Traceback" not in capfd.readouterr().err

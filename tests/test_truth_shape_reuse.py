@@ -147,4 +147,5 @@ def test_a_process_that_closes_its_truth_mid_solve_ends_at_once(tmp_path):
     returned = time.monotonic()
     process.wait(300)
     ended_s = time.monotonic() - returned
-    assert ended_s < 3.0, (ended_s, process.stderr.read())
+    print(f"ended {ended_s:.2f} s after it returned")
+    assert ended_s < 5.0, (ended_s, process.stderr.read())  # idle 0.06 s; left to the solve, 20-25 s
