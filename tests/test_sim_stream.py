@@ -27,9 +27,11 @@ def test_a_stream_closed_mid_solve_ends_at_once_and_quietly(capfd):
 
     stream = CameraStream(HeldBeyondTheShapes(), "127.0.0.1", 0).start()
     truth = stream._truth_shape
-    reader = threading.Thread(target=lambda: urllib.request.urlopen(stream.urls()["phantom"], timeout=120).read(),
-                              daemon=True)
-    reader.start()
+    # two readers: the second's picture waits for the first's, and asks its solve of a solver the close ended
+    readers = [threading.Thread(target=lambda: urllib.request.urlopen(stream.urls()["phantom"], timeout=120).read(),
+                                daemon=True) for _ in range(2)]
+    for reader in readers:
+        reader.start()
     deadline = time.monotonic() + 60
     while truth._solver is None or not truth._solver.pool._processes:   # the picture's solve has started
         assert time.monotonic() < deadline, "no solve started for a phantom beyond the shapes' box"
@@ -39,8 +41,9 @@ def test_a_stream_closed_mid_solve_ends_at_once_and_quietly(capfd):
     started = time.monotonic()
     stream.close()
     closed_s = time.monotonic() - started
-    reader.join(10)
+    for reader in readers:
+        reader.join(10)
     assert closed_s < 5.0, closed_s                                       # the server's 0.5 s poll, a kill
-    assert not reader.is_alive()                                          # the stream ended for its client
+    assert not any(reader.is_alive() for reader in readers)               # the stream ended for its clients
     time.sleep(0.5)
     assert "Traceback" not in capfd.readouterr().err

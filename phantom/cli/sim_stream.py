@@ -147,7 +147,9 @@ class CameraStream:
                 except (BrokenPipeError, ConnectionResetError):
                     return
                 except BrokenProcessPool:
-                    if stream.closing:  # the truth's solver was ended under this picture: the stream is closing
+                    # the truth's solver ended under this picture, or before it (the pool is then broken): the
+                    # stream is closing
+                    if stream.closing:
                         return
                     raise
 
