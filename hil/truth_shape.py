@@ -73,20 +73,26 @@ class _SolverProcess:
         self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
                                         initializer=_build_worker_model,
                                         initargs=(os.getpid(), scene, modulus_factor, mesh_size_mm))
-        weakref.finalize(self, self.pool.shutdown, wait=False, cancel_futures=True)
+        self._end = weakref.finalize(self, _end_pool, self.pool)
 
     def positions_m(self, pressures_pa: np.ndarray, start: np.ndarray | None) -> np.ndarray:
         positions: np.ndarray = self.pool.submit(_worker_positions_m, pressures_pa, start).result()
         return positions
 
     def close(self) -> None:
-        """End the worker now, a solve in it or not; a caller waiting on that solve gets BrokenProcessPool. Not
-        waiting matters: at the interpreter's exit, concurrent.futures joins the pool's manager thread, which
-        waits for the running solve (a sim-board asked to stop mid-solve ended only when it did, 25 s later on
-        this machine idle, and past a test's 30 s wait under make test's load)."""
-        for process in list(self.pool._processes.values()):  # the executor has no kill of its own
-            process.kill()
-        self.pool.shutdown(wait=False, cancel_futures=True)
+        """End the worker now, a solve in it or not (:func:`_end_pool`, which also runs when this object is
+        collected; once either way)."""
+        self._end()
+
+
+def _end_pool(pool: ProcessPoolExecutor) -> None:
+    """Kill the pool's worker, a solve in it or not (a caller waiting on that solve gets BrokenProcessPool), and
+    shut the pool down. Not waiting matters: at the interpreter's exit, concurrent.futures joins the pool's manager
+    thread, which waits for the running solve (a sim-board asked to stop mid-solve ended only when it did, 25 s
+    later on this machine idle, and past a test's 30 s wait under make test's load)."""
+    for process in list(pool._processes.values()):  # the executor has no kill of its own
+        process.kill()
+    pool.shutdown(wait=False, cancel_futures=True)
 
 
 #: The worker process's truth model (built by its initializer).
