@@ -240,8 +240,8 @@ def format_verified(rows: list[dict[str, Any]]) -> str:
         lines.append(f"after the scans: mean |true error| {sum(after_errors) / len(after_errors):.3f} % (largest "
                      f"{max(after_errors):.3f} %), {sum(len(row['rounds']) for row in rows) / len(rows):.1f} rounds "
                      "on average; the estimate is the model's at the pressures held (corrected by the scans stored "
-                     "before the round's own), the band its correction's 95 % half-width there (ml; - without one), the scanned "
-                     "volume what the scanner measured, the true one the simulated phantom's")
+                     "before the round's own), the band its correction's 95 % half-width there (ml; - without one), "
+                     "the scanned volume what the scanner measured, the true one the simulated phantom's")
     return "\n".join(lines)
 
 
