@@ -208,10 +208,14 @@ def test_the_symmetric_bph_preset_reaches_its_volume_and_redraws_the_gland(panel
 STREAM_MARK = "phantom-telemetry-minute"
 
 
-def page_tasks(performance_log: list[dict[str, Any]]) -> list[tuple[float, float]]:
+def page_tasks(performance_log: list[dict[str, Any]]) -> tuple[list[tuple[float, float | None]], int]:
     """The page's main-thread tasks after :data:`STREAM_MARK` in Chromium's performance log, each as (its wall
-    time, its thread's CPU time) in ms: its trace's ``ThreadControllerImpl::RunTask`` events (``dur`` and ``tdur``,
-    in µs) on the thread that receives the WebSocket's messages."""
+    time, its thread's CPU time or None where the trace has none) in ms, and how many were unfinished when the
+    trace ended: its trace's ``ThreadControllerImpl::RunTask`` events on the thread that receives the WebSocket's
+    messages, complete ones (``X``: ``dur``, ``tdur``; µs) or begin and end pairs (``B``, ``E``: ``ts``, ``tts``).
+    A task still running when the trace stops has no end (an ``X`` without ``dur``, a ``B`` without its ``E``):
+    it is counted, not measured. (A clean clone's `make test` once failed on a task without ``tdur``, 2026-11-29:
+    the trace did not say which kind.)"""
     events = [json.loads(entry["message"])["message"]["params"] for entry in performance_log
               if '"Tracing.dataCollected"' in entry["message"]]
     marks = [event["ts"] for event in events if event.get("name") == "TimeStamp"
@@ -220,10 +224,24 @@ def page_tasks(performance_log: list[dict[str, Any]]) -> list[tuple[float, float
                       if event.get("name") == "WebSocketReceive")
     assert marks and threads, "Chromium's performance log holds no trace of the page"
     main_thread = threads.most_common(1)[0][0]
-    tasks = [event for event in events if event.get("name") in ("ThreadControllerImpl::RunTask", "RunTask")
-             and (event.get("pid"), event.get("tid")) == main_thread and event.get("ts", 0) >= marks[-1]]
-    assert all("tdur" in event for event in tasks), "Chromium's trace has no thread time (tdur) for the tasks"
-    return [(event.get("dur", 0) / 1e3, event["tdur"] / 1e3) for event in tasks]
+    tasks = sorted((event for event in events if event.get("name") in ("ThreadControllerImpl::RunTask", "RunTask")
+                    and (event.get("pid"), event.get("tid")) == main_thread and event.get("ts", 0) >= marks[-1]),
+                   key=lambda event: event["ts"])
+    measured: list[tuple[float, float | None]] = []
+    unfinished, begun = 0, []
+    for event in tasks:
+        phase = event.get("ph")
+        if phase == "B":
+            begun.append(event)
+        elif phase == "E" and begun:                      # (an end without its begin began before the mark)
+            start = begun.pop()
+            cpu_ms = (event["tts"] - start["tts"]) / 1e3 if "tts" in start and "tts" in event else None
+            measured.append(((event["ts"] - start["ts"]) / 1e3, cpu_ms))
+        elif phase == "X" and "dur" not in event:
+            unfinished += 1
+        elif phase == "X":
+            measured.append((event["dur"] / 1e3, event["tdur"] / 1e3 if "tdur" in event else None))
+    return measured, unfinished + len(begun)
 
 
 def test_no_long_task_while_telemetry_streams_for_a_minute(panel):
@@ -236,14 +254,17 @@ def test_no_long_task_while_telemetry_streams_for_a_minute(panel):
     frames = panel.status()["link_detail"]["stats"]["frames_rx"] - frames_before
     assert frames > STREAM_S * 40, f"only {frames} frames in {STREAM_S} s: telemetry did not stream"
     observed = panel.driver.execute_script("return window.longTasks;")
-    tasks = page_tasks(panel.driver.get_log("performance"))
+    tasks, unfinished = page_tasks(panel.driver.get_log("performance"))
+    cpu_times = [cpu_ms for _, cpu_ms in tasks if cpu_ms is not None]
     long_tasks = [wall_ms for wall_ms, _ in tasks if wall_ms > LONG_TASK_MS]
-    costly_tasks = [cpu_ms for _, cpu_ms in tasks if cpu_ms > TASK_CPU_MS]
+    costly_tasks = [cpu_ms for cpu_ms in cpu_times if cpu_ms > TASK_CPU_MS]
     print(f"{frames} telemetry frames in {STREAM_S:g} s; {len(tasks)} tasks on the page's main thread, the "
-          f"longest {max(wall for wall, _ in tasks):.1f} ms, the costliest {max(cpu for _, cpu in tasks):.1f} ms "
-          f"of CPU; long tasks (over 50 ms) the page's PerformanceObserver saw: "
+          f"longest {max(wall for wall, _ in tasks):.1f} ms, the costliest {max(cpu_times):.1f} ms of CPU "
+          f"({len(tasks) - len(cpu_times)} without their CPU time in the trace, {unfinished} unfinished when it "
+          f"ended); long tasks (over 50 ms) the page's PerformanceObserver saw: "
           f"{[round(duration) for duration in observed]}; load {os.getloadavg()}")
-    assert len(tasks) > STREAM_S * 10, f"only {len(tasks)} tasks traced on the page's main thread"
+    assert len(cpu_times) > STREAM_S * 10, (f"only {len(cpu_times)} tasks with their CPU time traced on the "
+                                            f"page's main thread (of {len(tasks)})")
     assert not long_tasks, f"tasks over {LONG_TASK_MS} ms while telemetry streamed: {long_tasks}"
     assert not costly_tasks, f"tasks over {TASK_CPU_MS} ms of CPU while telemetry streamed: {costly_tasks}"
     panel.shot("streaming")
