@@ -23,6 +23,7 @@ from phantom.hil.sim import SimulatedBoard
 from phantom.protocol.codec import Message
 from phantom.protocol.link import fault_names
 from phantom.protocol.messages import BITS, CONSTANTS, ENUMS, PROTOCOL_VERSION, SPEC_HASH
+from phantom.protocol.sensor import ADC_COUNT_KPA
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
 TELEMETRY_PERIOD_MS = CONSTANTS["MIN_TELEMETRY_PERIOD_MS"]
@@ -323,7 +324,7 @@ def check_step(link: BoardLink, chamber: int, target_kpa: float, duration_s: flo
         chamber=chamber,
         target_kpa=target_kpa,
         gains=None if gains is None else [float(g) for g in gains],
-        adc_count_kpa=5.0 / 1024 / (5.0 * 0.018),
+        adc_count_kpa=ADC_COUNT_KPA,
         max_drive_level=float(drives.max()),
         final_drive_level=float(drives[-20:].mean()),
         other_chambers_max_kpa=float(others.max()),

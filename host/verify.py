@@ -41,6 +41,7 @@ import numpy as np
 
 from phantom.host.config import DaemonConfig
 from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
+from phantom.protocol.sensor import ADC_COUNT_KPA
 
 #: While rounds remain, a verified target stops only on a scan within this share of its tolerance (it aims at the
 #: target, not at the tolerance's edge): the scanner's own error adds to the scanned error in the true volume, and
@@ -213,10 +214,9 @@ def secant_kpa(before: tuple[tuple[float, ...], float], last: tuple[tuple[float,
     return pressures_kpa
 
 
-#: One ADC count of the board's pressure sensors (kPa): the MPXV7025G's 18 mV per kPa at 5 V, read by a 10-bit ADC
-#: over 5 V (firmware/, hil/bench.py's ``adc_count_kpa``). The board holds a setpoint to about a count
-#: (tests/test_daemon_board_promises.py), and near rest coarser (its blowers' least flow).
-BOARD_STEP_KPA = 5.0 / 1024 / (5.0 * 0.018)
+#: The least step of the board's pressures (kPa): one count of its pressure reading. The board holds a setpoint to
+#: about a count (tests/test_daemon_board_promises.py), and near rest coarser (its blowers' least flow).
+BOARD_STEP_KPA = ADC_COUNT_KPA
 
 
 def secant_partner(scanned: list[tuple[int, tuple[float, ...], float]],

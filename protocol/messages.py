@@ -33,7 +33,7 @@ class MessageSpec(NamedTuple):
 
 
 PROTOCOL_VERSION = 1
-SPEC_HASH = 0x5810A65C
+SPEC_HASH = 0x6D76A27A
 MAX_BODY_BYTES = 64
 CHAMBER_COUNT = 3
 
@@ -116,6 +116,8 @@ CONSTANTS: dict[str, int] = {
     'PLAUSIBLE_MIN_DRIVE': 32768,  # 1/65535
     'PLAUSIBLE_MIN_CHANGE_PA': 150,  # Pa
     'PLAUSIBLE_TIME_MS': 300,  # ms
+    'ADC_FULL_SCALE_COUNTS': 1024,  # counts
+    'SENSOR_PERMILLE_PER_KPA': 18,  # 1/1000 of the supply per kPa
     'ZERO_MAX_OFFSET_PA': 2500,  # Pa
     'ZERO_STABLE_PA': 110,  # Pa
     'ZERO_SETTLE_MS': 2000,  # ms

@@ -21,8 +21,6 @@ from phantom.host.client import DaemonClient
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 REPO = Path(__file__).resolve().parent.parent
-#: One ADC count of the board's sensor (kPa): 5 V / 1024 / (0.018 * 5 V/kPa).
-ONE_ADC_COUNT_KPA = 5.0 / 1024 / (0.018 * 5.0)
 
 
 async def wait_for(predicate: Any, timeout_s: float = 5.0) -> None:

@@ -18,9 +18,10 @@ import time
 
 import numpy as np
 import pytest
-from daemon_rig import ONE_ADC_COUNT_KPA, DaemonRig, telemetry_mean_kpa
+from daemon_rig import DaemonRig, telemetry_mean_kpa
 
 from phantom.protocol.codec import encode
+from phantom.protocol.sensor import ADC_COUNT_KPA
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
@@ -54,7 +55,7 @@ def test_gains_a_bench_session_left_on_the_board_are_replaced_by_the_daemons(tmp
             measured_kpa, board_setpoints_kpa = telemetry_mean_kpa(rig.socket, 1.0)
             np.testing.assert_allclose(board_setpoints_kpa, answer["pressures_kpa"], atol=0.0015)
             # with the bench's gains (no integral) chamber 1 stayed about 40 % short
-            np.testing.assert_allclose(measured_kpa, board_setpoints_kpa, atol=ONE_ADC_COUNT_KPA)
+            np.testing.assert_allclose(measured_kpa, board_setpoints_kpa, atol=ADC_COUNT_KPA)
             settings = rig.status()["board_settings"]
             assert (settings["kp_per_kpa"], settings["ki_per_kpa_s"], settings["kd_s_per_kpa"]) == (4.0, 15.0, 0.0)
             assert settings["pressure_limit_kpa"] == 4.0 and settings["source"].startswith("set by the daemon")
@@ -67,7 +68,7 @@ def at_setpoints(status: dict) -> bool:
     """Whether the daemon's averaged pressures are within one ADC count of the board's setpoints."""
     mean, board = status["pressures_mean_kpa"], status["board_setpoints_kpa"]
     return mean is not None and board is not None and bool(
-        np.all(np.abs(np.subtract(mean, board)) <= ONE_ADC_COUNT_KPA) and max(board) > 0)
+        np.all(np.abs(np.subtract(mean, board)) <= ADC_COUNT_KPA) and max(board) > 0)
 
 
 def open_without_root_privileges(port: str) -> subprocess.CompletedProcess:

@@ -31,11 +31,11 @@ from daemon_rig import telemetry_mean_kpa
 from phantom import PhantomError
 from phantom.host.client import DaemonClient, DaemonError
 from phantom.host.recording import read_rrd
+from phantom.protocol.sensor import ADC_COUNT_KPA
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
 PHANTOM = Path(sys.executable).with_name("phantom")
-ONE_ADC_COUNT_KPA = 5.0 / 1024 / (0.018 * 5.0)
 #: The simulated board runs this much faster than real time (the daemon's keepalive stays well inside the
 #: firmware's 500 ms dead-host deadline at this speed).
 SPEED = 2.0
@@ -161,7 +161,7 @@ def test_set_32_ml_reaches_it_within_1_percent_and_holds_the_pressures(rig):
     measured_kpa, board_setpoints_kpa = telemetry_mean_kpa(rig["socket"], 1.0)
     # the board holds what the daemon sent, to the pascal (int16 Pa on the wire)
     np.testing.assert_allclose(board_setpoints_kpa, setpoints_kpa, atol=0.0015)
-    np.testing.assert_allclose(measured_kpa, board_setpoints_kpa, atol=ONE_ADC_COUNT_KPA)
+    np.testing.assert_allclose(measured_kpa, board_setpoints_kpa, atol=ADC_COUNT_KPA)
     answer = status(rig)
     assert answer["estimated_volume_ml"] == pytest.approx(32.0, rel=0.01)
     assert answer["target_volume_ml"] == 32.0 and answer["control"] == "holding"
@@ -180,7 +180,7 @@ def test_set_32_ml_reaches_it_within_1_percent_and_holds_the_pressures(rig):
             client.call("surface", {"pressures_kpa": [1, 1]})
     positions, triangles = np.asarray(inflated["positions_mm"]), np.asarray(inflated["triangles"])
     assert positions.shape[1] == 3 and triangles.shape[1] == 3 and triangles.max() == len(positions) - 1
-    assert np.asarray(inflated["pressures_kpa"]) == pytest.approx(setpoints_kpa, abs=ONE_ADC_COUNT_KPA)
+    assert np.asarray(inflated["pressures_kpa"]) == pytest.approx(setpoints_kpa, abs=ADC_COUNT_KPA)
     assert np.ptp(positions, axis=0).sum() > np.ptp(np.asarray(rest["positions_mm"]), axis=0).sum()
     assert rest["triangles"] == inflated["triangles"]
     # the plain-text views name the same numbers

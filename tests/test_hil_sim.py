@@ -20,14 +20,13 @@ from phantom.hil import bench
 from phantom.hil.link import BoardLink
 from phantom.hil.sim import SimulatedBoard
 from phantom.protocol.messages import CONSTANTS
+from phantom.protocol.sensor import ADC_COUNT_KPA
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(240)]
 
 SPEED = 2.0
 #: The firmware's dead-host deadline the bench configures (s).
 HOST_DEADLINE_S = bench.HOST_DEADLINE_MS / 1000
-#: One ADC count in kPa: 5 V / 1024 counts / (5 V x 0.018 per kPa).
-ADC_COUNT_KPA = 5.0 / 1024 / (5.0 * 0.018)
 
 
 @pytest.fixture(scope="module")

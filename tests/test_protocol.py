@@ -243,3 +243,11 @@ def test_constants_reach_both_sides_and_the_spec_hash():
     spec["constants"]["TICK_HZ"]["type"] = "f32"
     with pytest.raises(ProtocolError, match="TICK_HZ type"):
         generate.constants(spec)
+
+
+def test_one_count_of_the_pressure_reading_is_the_datasheets():
+    """The host's ADC count, from the spec's sensor constants, against the MPXV7025G's datasheet (Vout / Vs = 0.018
+    P[kPa] + 0.5) over a 10-bit ADC of Vs (the firmware's own conversion is tested against it in firmware/test)."""
+    from phantom.protocol.sensor import ADC_COUNT_KPA
+
+    assert ADC_COUNT_KPA == pytest.approx(5.0 / 1024 / (5.0 * 0.018), rel=1e-12)

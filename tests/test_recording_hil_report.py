@@ -8,6 +8,7 @@ import math
 import numpy as np
 
 from phantom.hil import bench
+from phantom.protocol.sensor import ADC_COUNT_KPA
 
 
 def first_order_step(chamber: int, tau_s: float, target_kpa: float = 2.0, overshoot: float = 0.0) -> dict:
@@ -15,7 +16,7 @@ def first_order_step(chamber: int, tau_s: float, target_kpa: float = 2.0, oversh
     t = np.arange(0, 2.5, 0.01)
     p = target_kpa * (1 - np.exp(-t / tau_s)) + overshoot * target_kpa * np.sin(np.pi * t / 0.6) * (t < 0.6)
     metrics = bench.step_metrics(t, p, target_kpa)
-    metrics.update(chamber=chamber, target_kpa=target_kpa, adc_count_kpa=5.0 / 1024 / (5.0 * 0.018),
+    metrics.update(chamber=chamber, target_kpa=target_kpa, adc_count_kpa=ADC_COUNT_KPA,
                    trace={"time_s": t.tolist(), "pressure_kpa": p.tolist(), "drive_level": np.clip(
                        2 * (target_kpa - p), 0, 1).tolist()})
     return metrics

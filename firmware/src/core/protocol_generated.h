@@ -6,7 +6,7 @@
 namespace proto {
 
 const uint16_t PROTOCOL_VERSION = 1;
-const uint32_t SPEC_HASH = 0x5810A65CUL;
+const uint32_t SPEC_HASH = 0x6D76A27AUL;
 const uint8_t MAX_BODY_BYTES = 64;
 const uint8_t CHAMBER_COUNT = 3;
 
@@ -19,6 +19,8 @@ const uint16_t LEAK_TIME_MS = 2000;  // starved this long in a row latches LEAK_
 const uint16_t PLAUSIBLE_MIN_DRIVE = 32768;  // drive level from which a reading must respond [1/65535]
 const int16_t PLAUSIBLE_MIN_CHANGE_PA = 150;  // how far the reading must rise under that drive [Pa]
 const uint16_t PLAUSIBLE_TIME_MS = 300;  // within this time, else IMPLAUSIBLE_n latches [ms]
+const uint16_t ADC_FULL_SCALE_COUNTS = 1024;  // a pressure reading's full scale: a 10-bit ADC over the sensor's supply (ratiometric), so one count is the supply / 1024 [counts]
+const uint8_t SENSOR_PERMILLE_PER_KPA = 18;  // the pressure sensor's sensitivity (MPXV7025G: Vout / Vs = 0.018 P[kPa] + 0.5): one count is 1e6 / (18 * 1024) = 54.25 Pa [1/1000 of the supply per kPa]
 const int16_t ZERO_MAX_OFFSET_PA = 2500;  // a zero further than this from the nominal zero is refused (MPXV7025G: 5 % of the 4.5 V span) [Pa]
 const int16_t ZERO_STABLE_PA = 110;  // readings within this of where they were (about 2 ADC counts) count as stable [Pa]
 const uint16_t ZERO_SETTLE_MS = 2000;  // blowers off and readings stable this long before a zero is measured [ms]

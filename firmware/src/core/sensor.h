@@ -10,12 +10,16 @@ namespace core {
 // Sixteenths of an ADC count per count: readings are averaged and kept with 4 fractional bits.
 const int16_t COUNTS_X16 = 16;
 // Nominal reading at 0 kPa: Vs / 2 = 512 counts.
-const int16_t NOMINAL_ZERO_X16 = 512 * COUNTS_X16;
+const int16_t NOMINAL_ZERO_X16 = proto::ADC_FULL_SCALE_COUNTS / 2 * COUNTS_X16;
 // Valid band 0.1 V .. 4.9 V of 5 V: 20.48 .. 1003.52 counts (a reading outside means a broken wire or sensor).
 const int16_t SENSOR_MIN_VALID_X16 = 328;
 const int16_t SENSOR_MAX_VALID_X16 = 16056;
-// Pa per sixteenth of a count, as a fraction over 2^12: 1000 / (0.018 * 1024 * 16) = 3.390842 = 13888.9 / 4096.
-const int32_t PA_PER_COUNT_X16_Q12 = 13889;
+// Pa per sixteenth of a count, as a fraction over 2^12, rounded: 1000 / (0.018 * 1024 * 16) = 3.390842 =
+// 13888.9 / 4096, from the spec's sensitivity and full scale (1000 Pa per kPa times 1000 per mille).
+const int64_t PA_PER_COUNT_X16_DIVISOR =
+    (int64_t)proto::SENSOR_PERMILLE_PER_KPA * proto::ADC_FULL_SCALE_COUNTS * COUNTS_X16;
+const int32_t PA_PER_COUNT_X16_Q12 =
+    (int32_t)((1000000LL * 4096 + PA_PER_COUNT_X16_DIVISOR / 2) / PA_PER_COUNT_X16_DIVISOR);
 
 // The spec's zero thresholds in sixteenths of a count (1 x16 = 3.39 Pa).
 const int16_t ZERO_MAX_OFFSET_X16 = (int16_t)((int32_t)proto::ZERO_MAX_OFFSET_PA * 4096 / PA_PER_COUNT_X16_Q12);
