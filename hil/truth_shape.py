@@ -158,6 +158,8 @@ class TruthShape:
         self._solver: _SolverProcess | None = None
         self._last: tuple[np.ndarray, np.ndarray, TriangleMesh] | None = None
         self.solves = 0
+        #: whether a shape is being solved in the solver's process now (its model built first: seconds)
+        self.solving = False
 
     def surface(self, pressures_kpa: list[float] | np.ndarray) -> TriangleMesh:
         """The surface at these pressures (kPa, chamber order); warm-started from the last solve, whose shape is
@@ -174,7 +176,11 @@ class TruthShape:
             start = None if self._last is None else self._last[1]
             if self._solver is None:
                 self._solver = _SolverProcess(*self._solver_args)
-            positions_m = self._solver.positions_m(pressures * 1e3, start)
+            self.solving = True
+            try:
+                positions_m = self._solver.positions_m(pressures * 1e3, start)
+            finally:
+                self.solving = False
             self.solves += 1
             shape = TriangleMesh(positions_m[self.surface_nodes] * 1e3, self.triangles.astype(np.int64))
             self._last = (pressures, positions_m, shape)

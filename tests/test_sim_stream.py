@@ -33,7 +33,7 @@ def test_a_stream_closed_mid_solve_ends_at_once_and_quietly(capfd):
     for reader in readers:
         reader.start()
     deadline = time.monotonic() + 60
-    while truth._solver is None or not truth._solver.pool._processes:   # the picture's solve has started
+    while not truth.solving:                                              # the picture's solve has started
         assert time.monotonic() < deadline, "no solve started for a phantom beyond the shapes' box"
         time.sleep(0.05)
     time.sleep(1.0)

@@ -121,7 +121,7 @@ from phantom.hil.truth_shape import TruthShape
 if __name__ == "__main__":
     truth = TruthShape(tabulated=False)
     threading.Thread(target=truth.surface, args=([5.0, 5.0, 5.0],), daemon=True).start()  # a picture's solve
-    while truth._solver is None or not truth._solver.pool._processes:
+    while not truth.solving:
         time.sleep(0.05)
     time.sleep(2.0)  # the worker builds its model, then solves: seconds to a minute
     truth.close()
