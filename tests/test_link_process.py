@@ -33,18 +33,15 @@ def board():
 
 
 def hold_the_gil(seconds: float) -> float:
-    """One C call that keeps the GIL for at least about ``seconds`` (a sum over a range: no bytecode runs, so no
-    other thread of this process runs), as a big array operation, pickle or JSON of the daemon's does; its length
-    (s). Its speed is the fastest of five samples: one sample preempted on a loaded machine made a hold of 0.92 s
-    where 1.5 were asked (CI, load 5)."""
-    samples = []
-    for _ in range(5):
-        started = time.monotonic()
-        sum(range(1_000_000))
-        samples.append(time.monotonic() - started)
-    per_million_s = max(min(samples), 1e-4)
+    """One C call that keeps the GIL for ``seconds`` of wall time (libc's usleep through ctypes.PyDLL, which does
+    not release it: no other thread of this process runs), as a big array operation, pickle or JSON of the daemon's
+    does; its length (s). Before, a sum over a range sized by a timed sample made a hold of 0.92 s where 1.5 were
+    asked, twice on a loaded machine (CI), though the fastest of five samples set its speed."""
+    import ctypes
+
+    sleep_holding_the_gil = ctypes.PyDLL(None).usleep
     started = time.monotonic()
-    sum(range(int(seconds / per_million_s * 1e6)))
+    sleep_holding_the_gil(ctypes.c_uint(round(seconds * 1e6)))
     return time.monotonic() - started
 
 
