@@ -11,9 +11,10 @@ namespace core {
 const int16_t COUNTS_X16 = 16;
 // Nominal reading at 0 kPa: Vs / 2 = 512 counts.
 const int16_t NOMINAL_ZERO_X16 = proto::ADC_FULL_SCALE_COUNTS / 2 * COUNTS_X16;
-// Valid band 0.1 V .. 4.9 V of 5 V: 20.48 .. 1003.52 counts (a reading outside means a broken wire or sensor).
-const int16_t SENSOR_MIN_VALID_X16 = 328;
-const int16_t SENSOR_MAX_VALID_X16 = 16056;
+// Valid band 0.1 V .. 4.9 V of 5 V, 1/50 and 49/50 of the full scale, rounded: 20.48 .. 1003.52 counts, 328 ..
+// 16056 sixteenths (a reading outside means a broken wire or sensor).
+const int16_t SENSOR_MIN_VALID_X16 = (int16_t)(((int32_t)proto::ADC_FULL_SCALE_COUNTS * COUNTS_X16 + 25) / 50);
+const int16_t SENSOR_MAX_VALID_X16 = (int16_t)(((int32_t)proto::ADC_FULL_SCALE_COUNTS * COUNTS_X16 * 49 + 25) / 50);
 // Pa per sixteenth of a count, as a fraction over 2^12, rounded: 1000 / (0.018 * 1024 * 16) = 3.390842 =
 // 13888.9 / 4096, from the spec's sensitivity and full scale (1000 Pa per kPa times 1000 per mille).
 const int64_t PA_PER_COUNT_X16_DIVISOR =
