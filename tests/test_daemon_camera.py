@@ -99,6 +99,59 @@ def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(t
         board.wait(30)
 
 
+class _CountedReads:
+    """A VideoCapture whose frames read (grabbed, or read whole) are counted."""
+
+    def __init__(self, capture):
+        self.capture, self.frames = capture, 0
+
+    def grab(self):
+        self.frames += 1
+        return self.capture.grab()
+
+    def read(self):
+        self.frames += 1
+        return self.capture.read()
+
+    def release(self):
+        self.capture.release()
+
+
+def test_a_picture_through_the_simulated_stream_drops_the_buffered_frames_and_no_more():
+    """The simulated stream rendered its pictures as fast as the machine allowed (30 ms each, idle): a reader's
+    grab, which drops a stream's buffered pictures until two in a row make it wait (50 ms), never met one, and each
+    picture of a scan read 61 frames (1.3-1.9 s of the board's CPU). At a webcam's frame rate it waits for the
+    fresh ones."""
+    import json
+    import time
+
+    from phantom.cli.sim_stream import FRAMES_PER_S
+    from phantom.scan.capture import MAX_STREAM_FLUSH
+
+    board = subprocess.Popen([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "127.0.0.1:0",
+                              "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = board.stdout.readline()
+        assert line, board.stderr.read()
+        camera = Webcam(json.loads(line)["streams"]["phantom"])
+        counted = camera.capture = _CountedReads(camera.capture)
+        read = []
+        for _ in range(3):
+            time.sleep(1.0)  # the orbit moves and settles: the stream's buffers fill
+            counted.frames = 0
+            assert camera.grab().shape == (480, 640, 3)
+            read.append(counted.frames)
+        assert max(read) < MAX_STREAM_FLUSH + 1, read  # it stopped on the fresh frames, not on the limit
+        counted.frames, started = 0, time.monotonic()
+        while time.monotonic() - started < 2.0:
+            counted.grab()
+        assert counted.frames <= 1.25 * FRAMES_PER_S * 2.0 + 4, counted.frames  # paced (a frame on its way)
+        camera.close()
+    finally:
+        board.terminate()
+        board.wait(30)
+
+
 def test_a_look_that_is_not_one_is_refused_saying_the_looks_there_are(tmp_path):
     done = _daemon("--look", "nonsense")
     assert done.returncode == 2 and "--look: the value must be one of ideal, real, got 'nonsense'" in done.stderr

@@ -2,8 +2,9 @@
 
 A daemon started with ``--port`` on the simulated board drives it as a real board, with no simulated privileges:
 its pictures must come through a camera, as on a real rig. This serves the virtual camera's pictures as MJPEG
-over HTTP (what an IP camera or a phone as a webcam serves, which OpenCV's ``VideoCapture`` reads by URL), each
-rendered when it is sent, at the simulated rig's true angles (the pulses its drivers took, counted by simavr):
+over HTTP (what an IP camera or a phone as a webcam serves, which OpenCV's ``VideoCapture`` reads by URL), at a
+webcam's frame rate (:data:`FRAMES_PER_S`), each rendered when it is sent, at the simulated rig's true angles (the
+pulses its drivers took, counted by simavr):
 
 - ``/phantom.mjpg``: the simulated phantom (the truth model at the plant's true pressures);
 - ``/target0.mjpg``, ``/target1.mjpg``: the ChArUco target, in the virtual rig's two calibration placements
@@ -22,6 +23,7 @@ send buffer is kept small, so that a reader gets a picture rendered a frame ago,
 from __future__ import annotations
 
 import threading
+import time
 from concurrent.futures.process import BrokenProcessPool
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any
@@ -36,6 +38,11 @@ PATHS = ("/phantom.mjpg", "/target0.mjpg", "/target1.mjpg")
 TRUTH_PATH = "/truth.json"
 JPEG_QUALITY = 95
 SEND_BUFFER_BYTES = 64 * 1024
+#: The stream's frame rate at most, a webcam's: a reader drops a stream's buffered pictures until two in a row make
+#: it wait (phantom.scan.capture.Webcam), which a picture rendered as fast as the machine allows (30 ms idle) never
+#: did: each picture of a scan read 61 frames, 1.3-1.9 s of this process's CPU (and the reader's decodes). At 15 a
+#: second a picture reads the 10-18 buffered and fresh ones in 0.3 s, 0.2 s of CPU.
+FRAMES_PER_S = 15.0
 
 
 class CameraStream:
@@ -138,8 +145,11 @@ class CameraStream:
                 self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
                 self.send_header("Cache-Control", "no-cache")
                 self.end_headers()
+                due_s = time.monotonic()
                 try:
                     while True:
+                        time.sleep(max(0.0, due_s - time.monotonic()))
+                        due_s = max(due_s + 1.0 / FRAMES_PER_S, time.monotonic())
                         jpeg = stream.picture(self.path).tobytes()
                         self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
                                          + str(len(jpeg)).encode() + b"\r\n\r\n" + jpeg + b"\r\n")
