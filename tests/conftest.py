@@ -176,8 +176,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for item in items:  # a build once per machine times its own setup, not the test's budget (MACHINE_BUILDS)
         if MACHINE_BUILDS & set(getattr(item, "fixturenames", ())):
             marker = item.get_closest_marker("timeout")
-            timeout_s = (marker.args[0] if marker and marker.args else marker.kwargs.get("timeout") if marker else None)
-            timeout_s = config.getini("timeout") if timeout_s is None else timeout_s
+            timeout_s = config.getini("timeout")
+            if marker is not None:
+                timeout_s = marker.args[0] if marker.args else marker.kwargs.get("timeout", timeout_s)
             item.add_marker(pytest.mark.timeout(float(timeout_s), func_only=True), append=False)
 
     def rank(item: pytest.Item) -> int:

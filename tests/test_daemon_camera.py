@@ -5,6 +5,8 @@ a folder of pictures."""
 
 from __future__ import annotations
 
+import contextlib
+import json
 import subprocess
 import sys
 
@@ -22,6 +24,20 @@ def _pictures(folder, width, height, count=2):
     for index in range(count):
         cv2.imwrite(str(folder / f"{index:04d}.png"), np.full((height, width, 3), 90, np.uint8))
     return str(folder / "%04d.png")
+
+
+@contextlib.contextmanager
+def _streaming_board():
+    """``phantom sim-board --camera-stream`` on a free port: its streams' URLs (what its ``--json`` line says)."""
+    board = subprocess.Popen([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "127.0.0.1:0",
+                              "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = board.stdout.readline()
+        assert line, board.stderr.read()
+        yield json.loads(line)["streams"]
+    finally:
+        board.terminate()
+        board.wait(30)
 
 
 def _daemon(*arguments):
@@ -60,16 +76,9 @@ def test_a_picture_of_another_size_during_a_capture_is_refused_saying_both_sizes
 
 @pytest.mark.sim  # starts the simulated board (simavr)
 def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(tmp_path):
-    import json
-
     from phantom.scan.silhouette import silhouette
 
-    board = subprocess.Popen([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "127.0.0.1:0",
-                              "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = board.stdout.readline()
-        assert line, board.stderr.read()
-        streams = json.loads(line)["streams"]
+    with _streaming_board() as streams:
         assert set(streams) == {"phantom", "target0", "target1", "truth"}
         truth_url = streams.pop("truth")
         pictures = {}
@@ -94,9 +103,6 @@ def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(t
             truth = json.load(answer)
         assert 26.0 < truth["gland_volume_ml"] < 27.0 and len(truth["pressures_kpa"]) == 3  # vented, at rest
         assert truth["rig_deg"] is not None
-    finally:
-        board.terminate()
-        board.wait(30)
 
 
 class _CountedReads:
@@ -117,23 +123,19 @@ class _CountedReads:
         self.capture.release()
 
 
+@pytest.mark.sim  # starts the simulated board (simavr)
 def test_a_picture_through_the_simulated_stream_drops_the_buffered_frames_and_no_more():
     """The simulated stream rendered its pictures as fast as the machine allowed (30 ms each, idle): a reader's
     grab, which drops a stream's buffered pictures until two in a row make it wait (50 ms), never met one, and each
     picture of a scan read 61 frames (1.3-1.9 s of the board's CPU). At a webcam's frame rate it waits for the
     fresh ones."""
-    import json
     import time
 
     from phantom.cli.sim_stream import FRAMES_PER_S
     from phantom.scan.capture import MAX_STREAM_FLUSH
 
-    board = subprocess.Popen([sys.executable, "-m", "phantom", "sim-board", "--camera-stream", "127.0.0.1:0",
-                              "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        line = board.stdout.readline()
-        assert line, board.stderr.read()
-        camera = Webcam(json.loads(line)["streams"]["phantom"])
+    with _streaming_board() as streams:
+        camera = Webcam(streams["phantom"])
         counted = camera.capture = _CountedReads(camera.capture)
         read = []
         for _ in range(3):
@@ -147,9 +149,6 @@ def test_a_picture_through_the_simulated_stream_drops_the_buffered_frames_and_no
             counted.grab()
         assert counted.frames <= 1.25 * FRAMES_PER_S * 2.0 + 4, counted.frames  # paced (a frame on its way)
         camera.close()
-    finally:
-        board.terminate()
-        board.wait(30)
 
 
 def test_a_look_that_is_not_one_is_refused_saying_the_looks_there_are(tmp_path):
