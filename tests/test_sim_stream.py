@@ -1,8 +1,9 @@
-"""The simulated rig's camera stream (phantom/cli/sim_stream.py, ``phantom sim-board --camera-stream``) closed while
-a picture's shape is being solved: it ends at once, and its picture's thread says nothing of the solver it lost
-(a traceback in the board's log at every stop would read as a failure). The board is a stand-in here, holding the
-phantom beyond the shipped shapes' box so that each picture's shape is an FE solve; the stream's own server,
-truth and cameras are real."""
+"""The simulated rig's camera stream (phantom/cli/sim_stream.py, ``phantom sim-board --camera-stream``): closed while
+a picture's shape is being solved, it ends at once, and its picture's thread says nothing of the solver it lost
+(a traceback in the board's log at every stop would read as a failure); while the rig moves it renders nothing,
+and the picture a scan's reader grabs after the move is of the rig where it stopped. The board is a stand-in here
+(holding the phantom beyond the shipped shapes' box, so that each picture's shape is an FE solve; turning the rig
+as the test says); the stream's own server, truth and cameras are real, and read by the scan's own reader."""
 
 from __future__ import annotations
 
@@ -10,9 +11,8 @@ import threading
 import time
 import urllib.request
 
+import numpy as np
 import pytest
-
-pytestmark = pytest.mark.slow  # an FE solve of the truth model in a worker process
 
 
 class HeldBeyondTheShapes:
@@ -22,6 +22,7 @@ class HeldBeyondTheShapes:
         return {"pressures_pa": [5000.0, 5000.0, 5000.0], "rig_deg": [0.0, 0.0]}
 
 
+@pytest.mark.slow  # an FE solve of the truth model in a worker process
 def test_a_stream_closed_mid_solve_ends_at_once_and_quietly(capfd):
     from phantom.cli.sim_stream import CameraStream
 
@@ -47,3 +48,58 @@ def test_a_stream_closed_mid_solve_ends_at_once_and_quietly(capfd):
     assert not any(reader.is_alive() for reader in readers)               # the stream ended for its clients
     time.sleep(0.5)
     assert "Traceback" not in capfd.readouterr().err
+
+
+class RigTurnedByTheTest:
+    """A board whose phantom rests (vented) and whose rig's orbit the test turns (deg)."""
+
+    def __init__(self) -> None:
+        self.orbit_deg = 0.0
+
+    def plant_state(self) -> dict[str, object]:
+        return {"pressures_pa": [0.0, 0.0, 0.0], "rig_deg": [self.orbit_deg, 0.0]}
+
+
+def _gland(picture: np.ndarray) -> np.ndarray:
+    from phantom.scan.silhouette import alpha_matte
+
+    return alpha_matte(picture) > 0.5
+
+
+def _overlap(first: np.ndarray, second: np.ndarray) -> float:
+    return float(np.sum(first & second) / np.sum(first | second))
+
+
+@pytest.mark.slow  # five moves of 0.75 s, and the stream's start
+def test_the_stream_renders_nothing_while_the_rig_moves_and_the_picture_after_is_where_it_stopped():
+    """A scan's moves and pictures through the stream, as the scan's reader takes them: each picture after its
+    move and settle. Rendering each frame of the moves (15 a second, none of them kept: the grab drops what was
+    sent before it) was most of the simulated rig's CPU: 14 pictures rendered a picture taken, now 3-4."""
+    import cv2
+
+    from phantom.cli.sim_stream import CameraStream
+    from phantom.scan.capture import Webcam
+
+    board = RigTurnedByTheTest()
+    stream = CameraStream(board, "127.0.0.1", 0).start()
+    try:
+        camera = Webcam(stream.urls()["phantom"])
+        at_rest = _gland(camera.grab())
+        rendered = stream.rendered
+        for _ in range(5):  # 18 deg in 0.75 s, a stepper's pulses at a time, as the verify scan's orbit stops
+            started, start_deg = time.monotonic(), board.orbit_deg
+            while (elapsed_s := time.monotonic() - started) < 0.75:
+                board.orbit_deg = start_deg + 24.0 * elapsed_s
+                time.sleep(0.005)
+            board.orbit_deg = start_deg + 18.0
+            time.sleep(0.05)  # the settle
+            turned = _gland(camera.grab())
+        rendered_a_picture = (stream.rendered - rendered) / 5
+        camera.close()
+        # the same camera rendered at 90 deg, directly
+        expected = _gland(cv2.imdecode(stream.picture("/phantom.mjpg"), cv2.IMREAD_COLOR)[:, :, ::-1])
+    finally:
+        stream.close()
+    assert rendered_a_picture <= 6, rendered_a_picture
+    assert _overlap(turned, expected) > 0.98 > 0.9 > _overlap(at_rest, expected), (
+        _overlap(turned, expected), _overlap(at_rest, expected))

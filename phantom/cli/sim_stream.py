@@ -4,7 +4,10 @@ A daemon started with ``--port`` on the simulated board drives it as a real boar
 its pictures must come through a camera, as on a real rig. This serves the virtual camera's pictures as MJPEG
 over HTTP (what an IP camera or a phone as a webcam serves, which OpenCV's ``VideoCapture`` reads by URL), at a
 webcam's frame rate (:data:`FRAMES_PER_S`), each rendered when it is sent, at the simulated rig's true angles (the
-pulses its drivers took, counted by simavr):
+pulses its drivers took, counted by simavr). While the rig moves (its angles changed since the frame before), the
+stream sends its last picture again instead of rendering one: a scan's reader drops every frame sent before its
+grab, which starts after the move and its settle (``phantom.scan.capture.Webcam``), and rendering the move was most
+of the simulated rig's CPU (a real camera's frames in motion are blurred, and dropped the same way):
 
 - ``/phantom.mjpg``: the simulated phantom (the truth model at the plant's true pressures);
 - ``/target0.mjpg``, ``/target1.mjpg``: the ChArUco target, in the virtual rig's two calibration placements
@@ -56,6 +59,8 @@ class CameraStream:
 
         self.board = board
         self.closing = False
+        #: pictures rendered so far; the stream's other frames repeat one while the rig moved
+        self.rendered = 0
         self._lock = threading.Lock()
         self._angles = _Angles()
         rig = virtual_rig(scale)
@@ -99,6 +104,11 @@ class CameraStream:
         return {"pressures_kpa": [p / 1e3 for p in state["pressures_pa"]],
                 "gland_volume_ml": state.get("gland_volume_ml"), "rig_deg": state.get("rig_deg")}
 
+    def rig_deg(self) -> list[float | None]:
+        """The rig's true angles now (deg: orbit, elevation; None for an axis not set up)."""
+        with self._lock:
+            return list(self.board.plant_state().get("rig_deg") or [None, None])
+
     def picture(self, path: str) -> np.ndarray:
         """One JPEG of the camera at ``path``, rendered now at the rig's true angles."""
         with require_extra("scan"):
@@ -110,6 +120,7 @@ class CameraStream:
             self._angles.orbit_deg, self._angles.elevation_deg = (float(angle or 0.0) for angle in rig_deg)
             self._angles.pressures_kpa = [p / 1e3 for p in state["pressures_pa"]]
             rgb = self.cameras[path].grab()
+            self.rendered += 1
         ok, encoded = cv2.imencode(".jpg", np.ascontiguousarray(rgb[:, :, ::-1]),
                                    [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY,
                                     cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444])
@@ -146,11 +157,15 @@ class CameraStream:
                 self.send_header("Cache-Control", "no-cache")
                 self.end_headers()
                 due_s = time.monotonic()
+                jpeg, before_deg = b"", None
                 try:
                     while True:
                         time.sleep(max(0.0, due_s - time.monotonic()))
                         due_s = max(due_s + 1.0 / FRAMES_PER_S, time.monotonic())
-                        jpeg = stream.picture(self.path).tobytes()
+                        rig_deg = stream.rig_deg()
+                        if not jpeg or rig_deg == before_deg:  # still since the frame before: a new picture
+                            jpeg = stream.picture(self.path).tobytes()
+                        before_deg = rig_deg
                         self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
                                          + str(len(jpeg)).encode() + b"\r\n\r\n" + jpeg + b"\r\n")
                         self.wfile.flush()
