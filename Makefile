@@ -18,9 +18,13 @@ demo: setup
 	$(MAKE) -C firmware
 	$(PY) -m phantom.cli.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
 
-# The checks before pytest run side by side (each is one process, or the firmware's builds), on every core.
-test: setup
-	@$(MAKE) --no-print-directory -j$(CORES) --output-sync=target lint types protocol-check firmware-test
+# The Debian packages first (the firmware's compilers among them); then the Python environment's install beside
+# the firmware's builds and tests; then the checks that need the environment side by side (each is one process),
+# on every core; then pytest.
+test:
+	@scripts/bootstrap.sh --packages-only
+	@$(MAKE) --no-print-directory -j$(CORES) setup firmware-test
+	@$(MAKE) --no-print-directory -j$(CORES) --output-sync=target lint types protocol-check
 	@$(MAKE) --no-print-directory pytest
 
 # The contributor's fast loop, under a minute: lint, types, the protocol check and the tests that need no
@@ -51,9 +55,11 @@ types:
 protocol-check:
 	$(PY) -m phantom.protocol.generate --check
 
-# The firmware core's native unit tests, the C++ golden-vector test and a bounded libFuzzer run.
+# The firmware core's native unit tests, the C++ golden-vector test and a bounded libFuzzer run. Its one Python
+# script (the golden vectors to C++) needs the standard library only: make test runs this beside the Python
+# environment's install (on a fresh machine pip's minute or two used one core of two).
 firmware-test:
-	$(MAKE) -C firmware test PYTHON=$(abspath $(PY))
+	$(MAKE) -C firmware test PYTHON=python3
 
 # pytest on every core (pytest-xdist); tests/conftest.py schedules it (the modules whose tests share a fixture on one
 # worker, the longest tests first).

@@ -6,8 +6,14 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# The package lists to install: the arguments (e.g. scripts/apt-packages-figures.txt as well), else the one for
-# building and testing.
+# --packages-only: the Debian packages alone (make test builds and tests the firmware, which needs them, while the
+# Python environment installs). The package lists to install: the arguments (e.g. scripts/apt-packages-figures.txt
+# as well), else the one for building and testing.
+packages_only=false
+if [ "${1:-}" = "--packages-only" ]; then
+    packages_only=true
+    shift
+fi
 lists=("${@:-scripts/apt-packages.txt}")
 packages=$(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' "${lists[@]}")
 missing=""
@@ -27,6 +33,9 @@ if [ -n "$missing" ]; then
     echo "bootstrap: installing Debian packages:$missing"
     $as_root apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $as_root apt-get install -y -qq --no-install-recommends $missing >/dev/null
+fi
+if $packages_only; then
+    exit 0
 fi
 
 python=${PYTHON:-python3}
