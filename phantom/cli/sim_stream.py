@@ -96,27 +96,28 @@ class CameraStream:
         return {**{path.strip("/").removesuffix(".mjpg"): f"http://{host}:{port}{path}" for path in PATHS},
                 "truth": f"http://{host}:{port}{TRUTH_PATH}"}
 
+    def plant_state(self) -> dict[str, Any]:
+        """The board's plant now (``pressures_pa``, ``gland_volume_ml``, ``rig_deg``: ``ScannerBoard.plant_state``)."""
+        with self._lock:  # the board's harness is not for two threads at once
+            state: dict[str, Any] = self.board.plant_state()
+        return state
+
     def truth(self) -> dict[str, Any]:
         """The simulated phantom now: ``pressures_kpa`` (the plant's true pressures), ``gland_volume_ml`` (the
         truth model's, at them) and ``rig_deg`` (the rig's true orbit and elevation angles)."""
-        with self._lock:
-            state = self.board.plant_state()
+        state = self.plant_state()
         return {"pressures_kpa": [p / 1e3 for p in state["pressures_pa"]],
                 "gland_volume_ml": state.get("gland_volume_ml"), "rig_deg": state.get("rig_deg")}
 
-    def rig_deg(self) -> list[float | None]:
-        """The rig's true angles now (deg: orbit, elevation; None for an axis not set up)."""
-        with self._lock:
-            return list(self.board.plant_state().get("rig_deg") or [None, None])
-
-    def picture(self, path: str) -> np.ndarray:
-        """One JPEG of the camera at ``path``, rendered now at the rig's true angles."""
+    def picture(self, path: str, state: dict[str, Any] | None = None) -> np.ndarray:
+        """One JPEG of the camera at ``path``, rendered now at the rig's true angles (those of ``state``, the
+        plant's as :meth:`plant_state` read it, when given; else read now)."""
         with require_extra("scan"):
             import cv2
 
-        with self._lock:  # the board's harness and the cameras' noise are not for two threads at once
-            state = self.board.plant_state()
-            rig_deg = state.get("rig_deg") or [0.0, 0.0]
+        state = self.plant_state() if state is None else state
+        rig_deg = state.get("rig_deg") or [0.0, 0.0]
+        with self._lock:  # the cameras' noise is not for two threads at once
             self._angles.orbit_deg, self._angles.elevation_deg = (float(angle or 0.0) for angle in rig_deg)
             self._angles.pressures_kpa = [p / 1e3 for p in state["pressures_pa"]]
             rgb = self.cameras[path].grab()
@@ -162,10 +163,10 @@ class CameraStream:
                     while True:
                         time.sleep(max(0.0, due_s - time.monotonic()))
                         due_s = max(due_s + 1.0 / FRAMES_PER_S, time.monotonic())
-                        rig_deg = stream.rig_deg()
-                        if not jpeg or rig_deg == before_deg:  # still since the frame before: a new picture
-                            jpeg = stream.picture(self.path).tobytes()
-                        before_deg = rig_deg
+                        state = stream.plant_state()
+                        if not jpeg or state.get("rig_deg") == before_deg:  # still since the frame before
+                            jpeg = stream.picture(self.path, state).tobytes()
+                        before_deg = state.get("rig_deg")
                         self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
                                          + str(len(jpeg)).encode() + b"\r\n\r\n" + jpeg + b"\r\n")
                         self.wfile.flush()
