@@ -18,7 +18,7 @@ the mean rounds.
 
     nice -n 10 .venv/bin/python bench/verify_rounds.py [--seeds 4] [--bias-pct 0] [--aim-share S] [--path N]
     [--no-stop-by-correction] [--no-secant] [--no-board-stop] [--bias-by-volume [--hull-left-in]] [--show-fits]
-    [--along-path]
+    [--along-path] [--oracle-step]
     [--truth PLANT]
     [--auto 28,32.5,37.5,42.5,47]
 
@@ -82,6 +82,10 @@ def main() -> None:
                              "ADC count of the round's in every chamber (verify.beyond_the_boards_step, what the "
                              "daemon does): the board holds a setpoint to a count, so that round would scan the "
                              "same state again")
+    parser.add_argument("--oracle-step", action="store_true",
+                        help="each next round's pressures moved along the policy's step to where the truth holds "
+                             "the target (the truth's own slope, which no scan gives): the least rounds any step "
+                             "policy can take, round 1 being the corrected model's answer")
     parser.add_argument("--truth", default=None, metavar="PLANT",
                         help="another plant file's truth (e.g. the --sim-truth phantom's, cached by "
                              "hil.plant.truth_plant_path) instead of the shipped hil/plant.toml's")
@@ -114,6 +118,20 @@ def main() -> None:
             return float(args.bias_pct)
         volumes, biases = zip(*(HULL_LEFT_IN_BIAS_PCT if args.hull_left_in else SCANNER_BIAS_PCT), strict=True)
         return float(args.bias_pct + np.interp(truth_ml, volumes, biases))
+
+    def truths_step(pressures: np.ndarray, following: np.ndarray, target_ml: float) -> np.ndarray:
+        """The point on the line from ``pressures`` through ``following`` (up to four times as far, within the
+        box) where the truth holds ``target_ml``, by bisection; ``following`` where the line does not reach it."""
+        def missed_ml(step: float) -> float:
+            return true_ml(np.clip(pressures + step * (following - pressures), 0.0, 3.0)) - target_ml
+
+        low, high = 0.0, 4.0
+        if missed_ml(low) * missed_ml(high) > 0:
+            return following
+        for _ in range(40):
+            middle = (low + high) / 2
+            low, high = (low, middle) if missed_ml(low) * missed_ml(middle) <= 0 else (middle, high)
+        return np.clip(pressures + (low + high) / 2 * (following - pressures), 0.0, 3.0)
 
     def inverse_kpa(volume_ml: float) -> np.ndarray:
         return np.asarray(solver.pressures_for(Target(gland_volume_m3=volume_ml * 1e-6)).pressures_pa) / 1e3
@@ -217,6 +235,8 @@ def main() -> None:
                                                                      args.tolerance_pct, before):
                     log[-1] += " (board)"
                     break
+                if args.oracle_step:
+                    following = truths_step(pressures, following, target_ml)
                 pressures = following
             return round_, error_pct, true_pct, log
 
