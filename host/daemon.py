@@ -268,7 +268,7 @@ class Daemon:
                                f"{result['scanned_raw_ml']:.3f} ml: {volume_ml:.3f} ml")
         elif result.get("hull_note"):
             self.event("scan", f"round {action.round}: {result['hull_note']}", "WARN")
-        self.recorder.log_scanned_volume(self.now_s(), volume_ml)
+        self.recorder.log_scanned_volume(self.now_s(), volume_ml, action.round, action.tolerance_pct)
         if result.get("surface_mm") is not None:
             self.recorder.log_scan_surface(self.now_s(), *result["surface_mm"])
         self._feed(self.core.scanned, action.round, volume_ml, None, folder, self.plant_volume_ml(), False,

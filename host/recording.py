@@ -580,12 +580,16 @@ class Recorder:
         self._scalar("correction/size_ml", 0.0 if size_ml is None else size_ml)
         self._scalar("correction/measurements", float(count))
 
-    def log_scanned_volume(self, time_s: float, volume_ml: float) -> None:
-        """A scan's gland volume (ml, reconstructed: measured) on the volume plot, at the time of the scan."""
+    def log_scanned_volume(self, time_s: float, volume_ml: float, round_: int, tolerance_pct: float) -> None:
+        """A verified target's scan: its gland volume (ml, reconstructed: measured) on the volume plot, at the time
+        of the scan, with its round (1 for a target's first scan) and the tolerance asked (%), which ``phantom
+        report`` groups and judges the scans by."""
         if not self.enabled:
             return
         self._at(time_s)
         self._scalar("volume/scanned_ml", volume_ml)
+        self._scalar("verify/round", float(round_))
+        self._scalar("verify/tolerance_pct", tolerance_pct)
 
     def log_scan_surface(self, time_s: float, positions_mm: np.ndarray, triangles: np.ndarray) -> None:
         """A scan's reconstructed surface (mm, the model's frame) over the model's, at the time of the scan; it

@@ -79,7 +79,7 @@ def recording(tmp_path_factory):
         if k % 5 == 0:
             recorder.log_volumes(time_s, 30.0, 26.0 + 0.1 * k, [2.0, 1.1, 1.2], true_ml=27.0 + 0.1 * k)
     recorder.log_mesh(3.8, rest * 1.05, triangles)
-    recorder.log_scanned_volume(3.85, 31.0)
+    recorder.log_scanned_volume(3.85, 31.0, 2, 0.3)
     recorder.log_scan_surface(3.85, rest * 1.07, triangles)
     recorder.log_mesh(3.9, rest * 1.1, triangles)
     recorder.set_scene_time(None)
@@ -167,6 +167,9 @@ def test_a_scans_surface_stands_over_the_models_in_the_scanned_volumes_green(rec
     (albedo,), = scan["Mesh3D:albedo_factor"]
     assert albedo >> 8 == packed_rgba(GLAND_SERIES["scanned_ml"][1][:3]) >> 8 and 0 < albedo & 0xFF < 255
     assert scalars(recording["entities"]["/volume/scanned_ml"]["Scalars:scalars"]) == [31.0]
+    assert scalars(recording["entities"]["/verify/round"]["Scalars:scalars"]) == [2.0]
+    assert scalars(recording["entities"]["/verify/tolerance_pct"]["Scalars:scalars"]) == [0.3]
+    assert recording["entities"]["/verify/round"]["time"] == pytest.approx([3.85])
 
 
 def test_vertex_normals_flip_with_the_winding():

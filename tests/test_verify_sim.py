@@ -63,10 +63,12 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
     # the recording read back (a run past 20 minutes is written in segments, the earlier ones set aside beside it
     # as verify.<time>.rrd): each scan's volume on the volume plot and its surface (phantom/scan, in the view of
     # the model's surface) enclosing that volume
-    scanned, enclosed_ml = [], []
+    scanned, rounds_logged, tolerances, enclosed_ml = [], [], [], []
     for path in sorted(tmp_path.glob("verify*.rrd")):
         entities = read_rrd(path)
         scanned += [values[0] for values in entities.get("/volume/scanned_ml", {}).get("Scalars:scalars", [])]
+        rounds_logged += [values[0] for values in entities.get("/verify/round", {}).get("Scalars:scalars", [])]
+        tolerances += [values[0] for values in entities.get("/verify/tolerance_pct", {}).get("Scalars:scalars", [])]
         surfaces = entities.get("/phantom/scan", {})
         for positions, triangles in zip(surfaces.get("Mesh3D:vertex_positions", []),
                                         surfaces.get("Mesh3D:triangle_indices", []), strict=True):
@@ -74,6 +76,8 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
             enclosed_ml.append(np.einsum("ij,ij->i", corners[:, 0], np.cross(corners[:, 1], corners[:, 2])).sum()
                                / 6e3)
     assert sorted(scanned) == pytest.approx(sorted(entry["scanned_volume_ml"] for entry in rounds))
+    # with each scan its round and the tolerance asked, which `phantom report` groups and judges the scans by
+    assert sorted(rounds_logged) == list(range(1, len(rounds) + 1)) and tolerances == [0.3] * len(rounds)
     # (the surface is the hull's: the hull's error on the model's shape, taken off the scanned volume, is in it)
     hull_ml = [entry["scanned_volume_ml"] * (1 + entry["hull_error_pct"] / 100) for entry in rounds]
     assert all(entry["hull_error_pct"] is not None for entry in rounds)

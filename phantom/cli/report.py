@@ -1,7 +1,8 @@
 """``phantom report RECORDING.rrd --out FILE.html``: a static, self-contained report of a daemon's recording.
 
 One HTML file that any browser opens without a network or a display and that can be mailed: the gland's volume
-(target, estimate, and the true volume where the recording has one: the simulated plant's), each chamber's
+(target, estimate, the true volume where the recording has one: the simulated plant's, and each verified target's
+scans), each verified target's scans round by round against its target, each chamber's
 pressure (setpoint and measured) and drive level, a table of the scene's steps with the estimate's and the true
 volume's error at the end of each step, pictures of the gland at the end of each step (coloured by how far its
 surface moved from the rest shape), and the event log. The plots are PNGs drawn with matplotlib and embedded as
@@ -30,7 +31,10 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 #: The gland's volume series in the recording, and how the report names them.
-VOLUME_SERIES = {"commanded_ml": "target", "estimated_ml": "estimate", "true_ml": "true (simulated plant)"}
+VOLUME_SERIES = {"commanded_ml": "target", "estimated_ml": "estimate", "true_ml": "true (simulated plant)",
+                 "scanned_ml": "scanned (measured)"}
+#: A verified target's scans: each one's round and the tolerance asked, logged beside its volume.
+VERIFY_SERIES = ("round", "tolerance_pct")
 #: A step event's text as the daemon logs it ("step 2 at 60 s: 35.00 ml over 15 s"): its index and target.
 STEP_EVENT = re.compile(r"^step (?P<index>\d+) at [^:]+: (?P<target>.*)$")
 #: The recording's columns not read at first (the deformed surfaces, their normals and triangles: the rest
@@ -120,6 +124,27 @@ class Step:
 
 
 @dataclass(frozen=True)
+class Scan:
+    """A verified target's scan: when (daemon time, s), its round (1, 2, ...), the target, the scanned and the true
+    volume then (ml) and the tolerance asked (%); None where the recording has no value."""
+
+    time_s: float
+    round: int
+    target_ml: float | None
+    scanned_ml: float
+    true_ml: float | None
+    tolerance_pct: float | None
+
+    @property
+    def error_pct(self) -> float | None:
+        return _error_pct(self.scanned_ml, self.target_ml)
+
+    @property
+    def true_error_pct(self) -> float | None:
+        return _error_pct(self.true_ml, self.target_ml)
+
+
+@dataclass(frozen=True)
 class Run:
     """What a recording holds, as the report shows it."""
 
@@ -130,6 +155,8 @@ class Run:
     events: list[Event]
     surfaces: Surfaces | None
     steps: list[Step]
+    #: the verified targets' scans, in the order taken
+    scans: list[Scan]
     #: what the recording held that the report could not show, and why (a mesh whose triangles name vertices it
     #: does not have)
     notes: tuple[str, ...] = ()
@@ -256,6 +283,29 @@ def _steps(events: list[Event], volumes: dict[str, Series], end_s: float) -> lis
     return steps
 
 
+def scans_in(volumes: dict[str, Series], verify: dict[str, Series]) -> list[Scan]:
+    """The verified targets' scans: each scanned volume with the round and tolerance logged at its time, and the
+    target and the true volume then. A recording from before rounds were logged numbers a target's scans in a
+    row from 1, a new target starting again."""
+    scanned = volumes.get("scanned_ml")
+    if scanned is None:
+        return []
+    scans: list[Scan] = []
+    for time_s, volume_ml in zip(scanned.time_s, scanned.values, strict=True):
+        def value(series: Series | None, at_s: float = float(time_s)) -> float | None:
+            return None if series is None else series.at(at_s + 1e-9)
+
+        target_ml = value(volumes.get("commanded_ml"))
+        logged_round = value(verify.get("round"))
+        if logged_round is not None:
+            round_ = int(logged_round)
+        else:
+            round_ = scans[-1].round + 1 if scans and scans[-1].target_ml == target_ml else 1
+        scans.append(Scan(float(time_s), round_, target_ml, float(volume_ml), value(volumes.get("true_ml")),
+                          value(verify.get("tolerance_pct"))))
+    return scans
+
+
 def load_run(path: str | Path) -> Run:
     """Read a recording back; PhantomError when the file is missing or is not a recording of the daemon."""
     from phantom.host.recording import read_rrd
@@ -280,14 +330,16 @@ def load_run(path: str | Path) -> Run:
     notes: list[str] = []
     surfaces = _surfaces(entities, notes)
     steps = _steps(events, volumes, end_s)
-    run = Run(path, end_s, volumes, chambers, events, surfaces, steps)
+    verify = {name: series for name in VERIFY_SERIES if (series := _series(entities.get(f"/verify/{name}")))}
+    scans = scans_in(volumes, verify)
+    run = Run(path, end_s, volumes, chambers, events, surfaces, steps, scans)
     if surfaces is not None:
         try:
             surfaces = _read_pictured(path, surfaces, [time_s for _, time_s in picture_times(run)], notes)
         except (ValueError, OSError, RuntimeError) as error:
             raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
                                "wrote") from None
-    return Run(path, end_s, volumes, chambers, events, surfaces, steps, tuple(notes))
+    return Run(path, end_s, volumes, chambers, events, surfaces, steps, scans, tuple(notes))
 
 
 # ------------------------------------------------------------------------------------------------ figures
@@ -308,7 +360,8 @@ def _mark_steps(axes: Any, steps: list[Step]) -> None:
 
 
 def volume_figure(run: Run) -> str:
-    """The gland's volume over the recording: target (grey dots), estimate, true; steps as thin lines."""
+    """The gland's volume over the recording: target (grey dots), estimate, true, the verified targets' scans
+    (green diamonds); steps as thin lines."""
     with require_extra("record"):
         import matplotlib.pyplot as plt
 
@@ -316,7 +369,8 @@ def volume_figure(run: Run) -> str:
     styles: dict[str, dict[str, Any]] = {
         "commanded_ml": {"color": "0.55", "marker": ".", "linestyle": "none", "markersize": 4},
         "estimated_ml": {"color": "#cc79a7", "linewidth": 1.6},  # the recording's colours for these series
-        "true_ml": {"color": "#0072b2", "linewidth": 1.6}}
+        "true_ml": {"color": "#0072b2", "linewidth": 1.6},
+        "scanned_ml": {"color": "#009e73", "marker": "D", "linestyle": "none", "markersize": 5}}
     for name, series in run.volumes.items():
         axes.plot(series.time_s, series.values, label=VOLUME_SERIES[name], **styles[name])
     _mark_steps(axes, run.steps)
@@ -324,6 +378,55 @@ def volume_figure(run: Run) -> str:
     axes.set_ylabel("gland volume (ml)")
     axes.grid(alpha=0.3)
     axes.legend(loc="upper left")
+    return _png(figure)
+
+
+def verified_targets(scans: list[Scan]) -> list[list[Scan]]:
+    """The scans by verified target: a round 1 (or a round not after the one before) starts another."""
+    targets: list[list[Scan]] = []
+    for scan in scans:
+        if not targets or scan.round <= targets[-1][-1].round:
+            targets.append([])
+        targets[-1].append(scan)
+    return targets
+
+
+def scans_figure(run: Run) -> str:
+    """Each verified target's scans against its target, round by round (%: scanned solid, true dashed where the
+    recording has it), the tolerance asked shaded; the axis linear within the tolerance and logarithmic beyond,
+    so that a first round's few percent and a last round's tenths both show."""
+    with require_extra("record"):
+        import matplotlib.pyplot as plt
+    import numpy as np
+
+    targets = verified_targets(run.scans)
+    tolerances = sorted({scan.tolerance_pct for scan in run.scans if scan.tolerance_pct is not None})
+    figure, axes = plt.subplots(figsize=(PLOT_WIDTH_IN, 3.6))
+    colours = plt.get_cmap("tab10")
+    for index, scans in enumerate(targets):
+        rounds = [scan.round for scan in scans]
+        colour = colours(index % 10)
+        target = "-" if scans[0].target_ml is None else f"{scans[0].target_ml:.2f} ml"
+        scanned = [np.nan if (error := scan.error_pct) is None else error for scan in scans]
+        axes.plot(rounds, scanned, color=colour, marker="o", label=target)
+        true = [value for scan in scans if (value := scan.true_error_pct) is not None]
+        if len(true) == len(scans):  # the simulated plant's, recorded at every scan
+            axes.plot(rounds, true, color=colour, marker="x", linestyle="--", linewidth=1.0)
+    for tolerance in tolerances:
+        axes.axhspan(-tolerance, tolerance, color="#009e73", alpha=0.12, zorder=0,
+                     label=f"the tolerance asked, +-{tolerance:g} %")
+    axes.axhline(0.0, color="0.4", linewidth=0.8)
+    errors = [abs(value) for scan in run.scans for value in (scan.error_pct, scan.true_error_pct) if value is not None]
+    reach = 1.5 * max([*errors, *tolerances, 0.3])
+    axes.set_yscale("symlog", linthresh=min(tolerances, default=0.3), linscale=0.5)
+    axes.set_ylim(-reach, reach)
+    ticks = [0.0] + [sign * tick for tick in (0.1, 0.3, 1.0, 3.0, 10.0, 30.0) if tick < reach for sign in (-1, 1)]
+    axes.set_yticks(sorted(ticks), [f"{tick:+g}" if tick else "0" for tick in sorted(ticks)])
+    axes.xaxis.set_major_locator(plt.MaxNLocator(integer=True))
+    axes.set_xlabel("round")
+    axes.set_ylabel("error against the target (%)")
+    axes.grid(alpha=0.3)
+    axes.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small")
     return _png(figure)
 
 
@@ -460,6 +563,26 @@ def steps_table(steps: list[Step]) -> str:
             + "".join(rows) + "</table>" + summary)
 
 
+def scans_table(scans: list[Scan]) -> str:
+    """The verified targets' scans as an HTML table: each target's rounds, the scanned volume and its error, the
+    true volume and its error where the recording has it, and whether the scan was within the tolerance asked."""
+    with_true = any(scan.true_ml is not None for scan in scans)
+    head = ["time (s)", "target", "round", "scanned ml", "error %"]
+    head += (["true ml", "true error %"] if with_true else []) + ["within the tolerance"]
+    rows = []
+    for scan in scans:
+        error = scan.error_pct
+        within = ("-" if error is None or scan.tolerance_pct is None
+                  else f"{'yes' if abs(error) <= scan.tolerance_pct else 'no'} (+-{scan.tolerance_pct:g} %)")
+        cells = [f"{scan.time_s:.1f}", "-" if scan.target_ml is None else f"{scan.target_ml:.2f} ml", str(scan.round),
+                 f"{scan.scanned_ml:.3f}", _number(error, signed=True)]
+        if with_true:
+            cells += [_number(scan.true_ml, 3), _number(scan.true_error_pct, signed=True)]
+        rows.append("<tr>" + "".join(f"<td>{cell}</td>" for cell in cells + [within]) + "</tr>")
+    return ("<table><tr>" + "".join(f"<th>{html.escape(name)}</th>" for name in head) + "</tr>"
+            + "".join(rows) + "</table>")
+
+
 def events_table(events: list[Event]) -> str:
     rows = "".join(f'<tr class="{html.escape(event.level.lower())}"><td>{event.time_s:.2f}</td>'
                    f"<td>{html.escape(event.level)}</td><td>{html.escape(event.text)}</td></tr>" for event in events)
@@ -493,6 +616,15 @@ def render_html(run: Run) -> str:
                   "own, where the recording has it.</p>", steps_table(run.steps)]
     if run.volumes:
         parts += ["<h2>Gland volume</h2>", image(volume_figure(run), "gland volume over time")]
+    if run.scans:
+        targets = verified_targets(run.scans)
+        parts += ["<h2>Verified targets: the scans</h2>",
+                  f"<p>{len(run.scans)} scans of {len(targets)} verified targets, "
+                  f"{len(run.scans) / len(targets):.1f} rounds a target. Each scan's volume against its target, "
+                  "round by round (scanned: solid; the simulated plant's true volume: dashed, where the recording "
+                  "has it); the tolerance asked is shaded. The axis is linear within it and logarithmic "
+                  "beyond.</p>", image(scans_figure(run), "each verified target's scans, round by round"),
+                  scans_table(run.scans)]
     if run.chambers:
         parts += ["<h2>Chambers: pressure and drive</h2>", image(chamber_figure(run), "chamber pressures")]
     pictures = gland_pictures(run)
