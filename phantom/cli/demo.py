@@ -312,7 +312,8 @@ def main(argv: list[str] | None = None) -> int:
         report = write_report(shown, shown.with_suffix(".html"))
         print(f"\nrecording {shown}: {len(entities)} entities, {logged} logged rows; faults: "
               f"{', '.join(faults) or 'none'}; daemon exit status {code}\n"
-              f"report {report}: plots, steps and pictures of the gland in one HTML file (any browser, mailable)\n"
+              f"report {report}: plots, steps{', the verified scans' if verified else ''} and pictures of the "
+              "gland in one HTML file (any browser, mailable)\n"
               f"open the recording with `{rerun_command(shown)}` on a display; without one (over SSH) "
               f"`{rerun_command(shown)} --serve-web --bind 127.0.0.1` serves it to a browser (README.md, "
               "\"Viewing a recording\")\n"
