@@ -290,19 +290,20 @@ def scans_in(volumes: dict[str, Series], verify: dict[str, Series]) -> list[Scan
     scanned = volumes.get("scanned_ml")
     if scanned is None:
         return []
-    scans: list[Scan] = []
-    for time_s, volume_ml in zip(scanned.time_s, scanned.values, strict=True):
-        def value(series: Series | None, at_s: float = float(time_s)) -> float | None:
-            return None if series is None else series.at(at_s + 1e-9)
+    def value(series: Series | None, time_s: float) -> float | None:
+        """The series' value logged with the scan (at its time) or last before it."""
+        return None if series is None else series.at(time_s + 1e-9)
 
-        target_ml = value(volumes.get("commanded_ml"))
-        logged_round = value(verify.get("round"))
+    scans: list[Scan] = []
+    for time_s, volume_ml in zip(scanned.time_s.tolist(), scanned.values.tolist(), strict=True):
+        target_ml = value(volumes.get("commanded_ml"), time_s)
+        logged_round = value(verify.get("round"), time_s)
         if logged_round is not None:
             round_ = int(logged_round)
         else:
             round_ = scans[-1].round + 1 if scans and scans[-1].target_ml == target_ml else 1
-        scans.append(Scan(float(time_s), round_, target_ml, float(volume_ml), value(volumes.get("true_ml")),
-                          value(verify.get("tolerance_pct"))))
+        scans.append(Scan(time_s, round_, target_ml, volume_ml, value(volumes.get("true_ml"), time_s),
+                          value(verify.get("tolerance_pct"), time_s)))
     return scans
 
 
