@@ -127,6 +127,8 @@ class VerifyError(DaemonError):
 #: reconstruction, a correction, the pressures settling again; about 30 s on the simulated rig, bench/README.md).
 SET_TIMEOUT_S = 60.0
 VERIFY_ROUND_S = 120.0
+#: The kinds of the daemon's events a wait for a target passes to its ``on_progress``: a verified target's rounds.
+PROGRESS_EVENTS = ("verify", "scan")
 
 _ERRORS: dict[str, type[DaemonError]] = {"unreachable": UnreachableError, "starting": StartingError}
 
@@ -210,7 +212,10 @@ class Status:
     uses). ``link`` is ``online`` when the board answers; ``control`` is ``idle``, ``holding``, ``scene`` or
     ``vented``; ``fidelity`` is the level the model answers on, ``fidelity_pending`` the level being built
     meanwhile (with ``model_build``'s progress); ``true_volume_ml`` is the simulated plant's own volume (only
-    with a simulated board). ``raw`` is the whole answer, for what this class does not name.
+    with a simulated board). ``verify`` is where a verified target's rounds are while they run (the round under
+    way, what it is doing, the scans so far: ``phantom.host.verify.Rounds.progress``), ``scan`` the pictures of
+    the scan being taken (``stops_reached`` of ``stops``), None when none runs. ``raw`` is the whole answer, for
+    what this class does not name.
     """
 
     ready: bool
@@ -234,6 +239,8 @@ class Status:
     recording: dict[str, Any] | None
     pid: int | None
     uptime_s: float
+    verify: dict[str, Any] | None
+    scan: dict[str, Any] | None
     raw: dict[str, Any] = field(repr=False, compare=False)
 
     @classmethod
@@ -253,7 +260,8 @@ class Status:
             model_build=Progress.from_json(build) if build and not build.get("finished") else None,
             scene=SceneState.from_json(data["scene"]) if data.get("scene") else None,
             true_volume_ml=data.get("plant_volume_ml"), recording=data.get("recording"), pid=data.get("pid"),
-            uptime_s=float(data.get("uptime_s", 0.0)), raw=data)
+            uptime_s=float(data.get("uptime_s", 0.0)), verify=data.get("verify"),
+            scan=(data.get("motion") or {}).get("scan"), raw=data)
 
 
 @dataclass(frozen=True)
@@ -565,7 +573,8 @@ class AsyncPhantom:
     async def set_volume(self, volume_ml: float, *, wait: bool = True, tolerance_pct: float = 1.0,
                          timeout_s: float | None = None, growth_ratio: dict[str, float] | None = None,
                          verify: str | None = None, verify_tolerance_pct: float | None = None,
-                         verify_rounds: int | None = None) -> TargetResult:
+                         verify_rounds: int | None = None,
+                         on_progress: Callable[[str], None] | None = None) -> TargetResult:
         params: dict[str, Any] = {"volume_ml": volume_ml}
         if growth_ratio:
             params["growth_ratio"] = dict(growth_ratio)
@@ -581,7 +590,7 @@ class AsyncPhantom:
             # rounds the daemon refuses (0, -1, 2.5) wait as the default's: its refusal says what was wrong
             rounds = verify_rounds if isinstance(verify_rounds, int) and 0 < verify_rounds <= 100 else 4
             timeout_s = SET_TIMEOUT_S if verify is None else SET_TIMEOUT_S + VERIFY_ROUND_S * rounds
-        return await self._set(params, wait, tolerance_pct, timeout_s)
+        return await self._set(params, wait, tolerance_pct, timeout_s, on_progress)
 
     async def set_chamber_volumes(self, volumes_ml: Sequence[float | None], *, wait: bool = True,
                                   tolerance_pct: float = 1.0, timeout_s: float = 60.0) -> TargetResult:
@@ -602,7 +611,8 @@ class AsyncPhantom:
             params["refine_solves"] = int(refine_solves)
         return await self._set(params, wait, tolerance_pct, timeout_s)
 
-    async def _set(self, params: dict[str, Any], wait: bool, tolerance_pct: float, timeout_s: float) -> TargetResult:
+    async def _set(self, params: dict[str, Any], wait: bool, tolerance_pct: float, timeout_s: float,
+                   on_progress: Callable[[str], None] | None = None) -> TargetResult:
         if not (tolerance_pct > 0 and math.isfinite(tolerance_pct)):
             raise PhantomError(f"tolerance_pct must be a positive number, got {tolerance_pct!r}")
         if not (timeout_s > 0 and math.isfinite(timeout_s)):
@@ -616,7 +626,7 @@ class AsyncPhantom:
         except BaseException:
             await outcomes.close()
             raise
-        return await self._wait_reached(result, outcomes, timeout_s)
+        return await self._wait_reached(result, outcomes, timeout_s, on_progress)
 
     async def _subscribed(self, topic: str) -> Connection:
         """A connection of its own subscribed to ``topic``'s events."""
@@ -628,16 +638,19 @@ class AsyncPhantom:
             raise
         return connection
 
-    async def _wait_reached(self, result: TargetResult, outcomes: Connection, timeout_s: float) -> TargetResult:
+    async def _wait_reached(self, result: TargetResult, outcomes: Connection, timeout_s: float,
+                            on_progress: Callable[[str], None] | None = None) -> TargetResult:
         """Wait for the daemon's word on the target (an event with its ``outcome``: the daemon's one rule of
         reached, host/control.py): return once reached; raise on a fault, a replaced target, a restarted daemon
-        or the timeout. Closes ``outcomes``, the events subscription."""
+        or the timeout; ``on_progress`` is given the text of each verify and scan event meanwhile (a verified
+        target's rounds). Closes ``outcomes``, the events subscription."""
         try:
-            return await self._outcome(result, outcomes, timeout_s)
+            return await self._outcome(result, outcomes, timeout_s, on_progress)
         finally:
             await outcomes.close()
 
-    async def _outcome(self, result: TargetResult, outcomes: Connection, timeout_s: float) -> TargetResult:
+    async def _outcome(self, result: TargetResult, outcomes: Connection, timeout_s: float,
+                       on_progress: Callable[[str], None] | None) -> TargetResult:
         started_s = time.monotonic()
         wanted = _describe(result.target)
         while True:
@@ -659,6 +672,8 @@ class AsyncPhantom:
                 outcomes = await self._subscribed("events")
                 continue
             data = message.get("data") or {}
+            if on_progress is not None and data.get("kind") in PROGRESS_EVENTS and "outcome" not in data:
+                on_progress(str(data.get("text", "")))
             if data.get("source") != "api" or data.get("target") != result.target or "outcome" not in data:
                 continue
             outcome = data["outcome"]
@@ -895,7 +910,8 @@ class Phantom:
     def set_volume(self, volume_ml: float, *, wait: bool = True, tolerance_pct: float = 1.0,
                    timeout_s: float | None = None, growth_ratio: dict[str, float] | None = None,
                    verify: str | None = None, verify_tolerance_pct: float | None = None,
-                   verify_rounds: int | None = None) -> TargetResult:
+                   verify_rounds: int | None = None, on_progress: Callable[[str], None] | None = None
+                   ) -> TargetResult:
         """Make the gland ``volume_ml`` (ml): the inverse finds the chamber pressures and the board holds them.
 
         Parameters
@@ -927,6 +943,9 @@ class Phantom:
             aim at a third of it (the scanner's own error adds to the scanned one in the true volume).
         verify_rounds : int, optional
             The most scans (default 4, at most 10).
+        on_progress : callable, optional
+            Given the text of each of the daemon's verify and scan events while waiting: a verified target's
+            rounds as they go (settled and scanning, scanned and correcting), a minute or two each.
 
         Raises
         ------
@@ -944,7 +963,7 @@ class Phantom:
         return self._loop.run(self.aio.set_volume(volume_ml, wait=wait, tolerance_pct=tolerance_pct,
                                                   timeout_s=timeout_s, growth_ratio=growth_ratio, verify=verify,
                                                   verify_tolerance_pct=verify_tolerance_pct,
-                                                  verify_rounds=verify_rounds))
+                                                  verify_rounds=verify_rounds, on_progress=on_progress))
 
     def set_chamber_volumes(self, volumes_ml: Sequence[float | None], *, wait: bool = True, tolerance_pct: float = 1.0,
                             timeout_s: float = 60.0) -> TargetResult:

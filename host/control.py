@@ -24,8 +24,9 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
 Actions (:meth:`ControlCore.take_actions`): :class:`Solve`, :class:`SendSetpoints`, :class:`SendVent`,
 :class:`Tell` (an event for people, with an ``outcome`` for the targets clients wait on), :class:`StepApplied`,
 :class:`StepReached`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the reply to an API
-request), and a verified target's :class:`~phantom.host.verify.Scan`, :class:`~phantom.host.verify.Correct` and
-:class:`~phantom.host.verify.Record` (the verify policy's types, host/verify.py, below the core).
+request), and a verified target's :class:`~phantom.host.verify.Scan`, :class:`~phantom.host.verify.StopScan`,
+:class:`~phantom.host.verify.Correct` and :class:`~phantom.host.verify.Record` (the verify policy's types,
+host/verify.py, below the core).
 
 Setpoints on the board that the daemon did not send (another program on the port, a board that lost its state)
 are a mismatch (:class:`phantom.host.board_watch.SetpointWatch`): the core vents and has the board's gains and
@@ -56,7 +57,7 @@ import numpy as np
 from phantom.host.board_watch import SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
-from phantom.host.verify import SCAN_RETRIES, Correct, Record, Rounds, Scan, Verify
+from phantom.host.verify import SCAN_RETRIES, Correct, Record, Rounds, Scan, StopScan, Verify
 from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
 
 #: After a target could not be sent (refused, not acknowledged), how long the core waits before it tries again (s).
@@ -179,7 +180,7 @@ class Answer:
 
 
 Action = (Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
-          | Scan | Correct | Record)
+          | Scan | StopScan | Correct | Record)
 
 
 @dataclass
@@ -307,6 +308,12 @@ class ControlCore:
     def verifying(self) -> bool:
         """Whether a verified target is being scanned or corrected (a scene's clock waits meanwhile)."""
         return self._rounds is not None and bool(self._rounds.rounds)
+
+    @property
+    def verify_progress(self) -> dict[str, Any] | None:
+        """Where the verified target's rounds are (:meth:`phantom.host.verify.Rounds.progress`), None while no
+        target is verified."""
+        return None if self._rounds is None else self._rounds.progress()
 
     @property
     def target_applied(self) -> bool:
@@ -480,12 +487,10 @@ class ControlCore:
                 rounds, verifying = self._rounds, ""
                 if rounds is not None:
                     # a fault mid-verify: which round, what it was doing, and what to do (the scans before are
-                    # stored measurements: the next try starts from the correction they give). A round is listed
-                    # once scanned; one being applied (the first, or one whose scan the lost link took back) is next
+                    # stored measurements: the next try starts from the correction they give)
                     doing = {"scanning": "scanning", "correcting": "solving the next round"}.get(
                         rounds.doing or "", "applying its pressures")
-                    round_ = len(rounds.rounds) + (rounds.doing is None)
-                    verifying = (f" during verify round {round_} of {rounds.verify.rounds} ({doing}); "
+                    verifying = (f" during verify round {rounds.underway} of {rounds.verify.rounds} ({doing}); "
                                  f"the scans before are stored. Find why ({', '.join(names)}: `phantom status`, the "
                                  "daemon's log), clear it (`phantom clear-fault`), then set the target again")
                 self._outcome("faulted", f"target {self._reach.target.describe()} not reached: faults latched "
@@ -814,6 +819,8 @@ class ControlCore:
     def _outcome(self, outcome: str, text: str, level: str = "INFO", extra: dict[str, Any] | None = None) -> None:
         """An outcome of the target waited on (reached, replaced, unreachable, faulted): told once, with data."""
         reach, self._reach = self._reach, None
+        if self._rounds is not None and self._rounds.doing == "scanning":
+            self._actions.append(StopScan(f"its verification ended: {text}"))
         self._rounds = self._sure = None  # a verification ends with its target's outcome
         target = reach.target if reach is not None else self.target
         if target is None:

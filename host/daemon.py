@@ -196,6 +196,8 @@ class Daemon:
             self.scenes.stop(action.why)
         elif isinstance(action, verify.Scan):
             self.spawn(self._scan_for_core(action))
+        elif isinstance(action, verify.StopScan):
+            self.spawn(self._stop_verify_scan(action.why))
         elif isinstance(action, verify.Correct):
             self.spawn(self._correct_for_core(action))
         elif isinstance(action, verify.Record):
@@ -231,6 +233,13 @@ class Daemon:
                     "(phantom daemon --camera DEVICE|URL --rig rig.json; README.md, \"A verified volume on a real "
                     "rig\"), or set the target without verify")
         return None
+
+    async def _stop_verify_scan(self, why: str) -> None:
+        """Stop the verify scan while it runs (its verification ended: ``why``); a scan a client took itself is
+        not the verification's, and is left alone."""
+        task = self.verify_scan
+        if task is not None and not task.done():
+            await self.motion.stop_scan(why)
 
     async def _scan_for_core(self, action: verify.Scan) -> None:
         """A verified target's scan: the ``scan`` API method's capture, reconstructed in a worker thread. A scan

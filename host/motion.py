@@ -92,13 +92,20 @@ class LateReply(ApiError):
 
 
 class ScanRun:
-    """A scan that owns the rig: when it started, and the stop request its capture thread checks."""
+    """A scan that owns the rig: when it started, how far it is (the orbit stops moved to, of how many: None
+    when its request left the plan to the scanner), and the stop request its capture thread checks."""
 
-    def __init__(self) -> None:
+    def __init__(self, stops: int | None = None) -> None:
         self.started_utc = datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds")
         self.ended = asyncio.Event()
+        self.stops = stops
+        #: the stops the capture has moved to (one picture each), counted by its thread (the one writer)
+        self.stops_reached = 0
         self._stop = threading.Event()
         self._reason = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"started_utc": self.started_utc, "stops_reached": self.stops_reached, "stops": self.stops}
 
     def request_stop(self, reason: str) -> None:
         """Ask the capture to stop (from the daemon's loop); the first reason is kept."""
@@ -316,7 +323,8 @@ class Orbit:
             if self.latest is not None:
                 entry.update(asdict(self.latest.axes[axis]))
             axes.append(entry)
-        return {"board_time_s": None if self.latest is None else self.latest.board_time_s, "axes": axes}
+        return {"board_time_s": None if self.latest is None else self.latest.board_time_s, "axes": axes,
+                "scan": None if self.scan is None else self.scan.to_json()}
 
     async def full_status(self) -> dict[str, Any]:
         """:meth:`status`, and on the simulated board its truth (``simulated``)."""
@@ -475,6 +483,8 @@ class ThreadRig:
             self._run(self._orbit.configure(axis, config))
 
     def move_to(self, orbit_deg: float, elevation_deg: float) -> tuple[float, float]:
+        """Move to a stop of the capture (a picture is taken there): counted in the scan's progress."""
+        self._scan.stops_reached += 1
         status = self._run(self._orbit.move({ELEVATION: elevation_deg, ORBIT: orbit_deg}))
         return status.axes[ORBIT].position_deg, status.axes[ELEVATION].position_deg
 
@@ -518,6 +528,15 @@ class Scanner(Protocol):
     def __call__(self, params: dict[str, Any], rig: ThreadRig) -> dict[str, Any]: ...
 
 
+def planned_stops(params: dict[str, Any]) -> int | None:
+    """How many orbit stops (pictures) a ``scan`` request's plan takes: its ``views`` at each of its
+    ``elevations_deg``; None when it leaves either to the scanner (or gives what the scanner will refuse)."""
+    views, elevations = params.get("views"), params.get("elevations_deg")
+    if isinstance(views, bool) or not isinstance(views, int) or not isinstance(elevations, list):
+        return None
+    return views * len(elevations)
+
+
 def scan_method(orbit: Orbit, scanner: Scanner, state: DaemonState) -> dict[str, Handler]:
     """The ``scan`` API method: ``scanner`` run in a worker thread with the daemon's axes, which it owns until it
     ends (one scan at a time). A capture that did not complete (stopped, aborted) is an ApiError ``rejected``
@@ -526,7 +545,7 @@ def scan_method(orbit: Orbit, scanner: Scanner, state: DaemonState) -> dict[str,
         if orbit.scan is not None:
             raise ApiError("rejected", f"a scan is running (started {orbit.scan.started_utc}): wait for it, or stop "
                                        f"it with motion_stop")
-        run = orbit.scan = ScanRun()
+        run = orbit.scan = ScanRun(planned_stops(params))
 
         def ended(_: object) -> None:  # when the thread has ended, not when this request was cancelled
             orbit.scan = None

@@ -121,6 +121,14 @@ class Scan:
 
 
 @dataclass(frozen=True)
+class StopScan:
+    """Stop the verify scan that is running: its verification ended (``why``: vented, replaced, a fault) before
+    the scan did, so its pictures would be of a phantom nobody waits for, and it holds the rig meanwhile."""
+
+    why: str
+
+
+@dataclass(frozen=True)
 class Record:
     """Store the scan of round ``round`` as a measurement (``pressures_kpa``, ``scanned_ml``, ``scan_folder``; the
     correction is refitted): the core's, for the scan that ended the verification (within the tolerance, a
@@ -469,6 +477,22 @@ class Rounds:
     def correcting(self, round_: int) -> bool:
         """Whether the next round after ``round_`` is being solved for this verification."""
         return self.doing == "correcting" and len(self.rounds) == round_
+
+    @property
+    def underway(self) -> int:
+        """The round under way: the last one listed while it scans or its miss is corrected, the one after it
+        while its pressures settle."""
+        return len(self.rounds) + (self.doing is None)
+
+    def progress(self) -> dict[str, Any]:
+        """Where the verification is, for the status while it runs (JSON-ready): the target (ml), the round under
+        way (1, 2, ...; :attr:`underway`), what it is doing (``settling``: the round's pressures applied and
+        settling; ``scanning``; ``correcting``: the next round's pressures being solved), each scan so far (round,
+        scanned volume, error %) and how it is verified (:meth:`Verify.to_json`: the tolerance, the most rounds)."""
+        return {"target_ml": self.target_ml, "round": self.underway, "doing": self.doing or "settling",
+                "scans": [{"round": entry["round"], "scanned_volume_ml": entry["scanned_volume_ml"],
+                           "scanned_error_pct": entry["scanned_error_pct"]}
+                          for entry in self.rounds if "scanned_volume_ml" in entry], **self.verify.to_json()}
 
     def to_json(self) -> dict[str, Any]:
         """What an outcome says of a verification: the scanned volume (measured) and each round."""

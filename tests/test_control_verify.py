@@ -102,6 +102,35 @@ def test_a_miss_is_corrected_applied_again_and_scanned_again_until_within(core):
     assert told.data["rounds"][1]["asked_ml"] == pytest.approx(41.2)
 
 
+def test_the_status_says_which_round_is_under_way_what_it_does_and_the_scans_so_far(core):
+    """A verified target takes minutes: the status (``verify``) says where its rounds are, the panel and
+    ``phantom status`` show it; none before or after."""
+    assert core.verify_progress is None
+    target = volume(40.0)
+    core.offer(0.0, 1, answer_for(target, (1.0, 0.5, 0.5)), verify=Verify(0.3, 3))
+    core.take_actions()
+    core.sent(0.0, target)
+    core.take_actions()
+    assert core.verify_progress == {"target_ml": pytest.approx(40.0), "round": 1, "doing": "settling", "scans": [],
+                                    "verify": "scan", "verify_tolerance_pct": 0.3, "verify_rounds": 3}
+    settle(core, 0.0, 1.2, kpa=(1.0, 0.5, 0.5), estimate_ml=40.0)
+    assert (core.verify_progress["round"], core.verify_progress["doing"]) == (1, "scanning")
+    core.scanned(3.0, 1, 38.8, None, "/scans/1")
+    core.take_actions()
+    progress = core.verify_progress
+    assert (progress["round"], progress["doing"]) == (1, "correcting")
+    assert progress["scans"] == [{"round": 1, "scanned_volume_ml": 38.8, "scanned_error_pct": pytest.approx(-3.0)}]
+    core.corrected(3.5, 1, answer_for(volume(41.2), (1.1, 0.55, 0.55)), "41.200 ml: moved")
+    core.take_actions()
+    assert (core.verify_progress["round"], core.verify_progress["doing"]) == (2, "settling")
+    core.sent(3.6, target)
+    core.take_actions()
+    settle(core, 3.6, 1.5, kpa=(1.1, 0.55, 0.55), estimate_ml=41.2)
+    assert (core.verify_progress["round"], core.verify_progress["doing"]) == (2, "scanning")
+    core.scanned(6.0, 2, 39.99, None, "/scans/2")
+    assert outcomes(core.take_actions()) == ["reached"] and core.verify_progress is None
+
+
 def test_the_round_limit_ends_it_not_verified_and_holds_the_pressures(core):
     verified(core, verify=Verify(0.3, 1))
     core.scanned(3.0, 1, 38.8, None, "/scans/1")
@@ -161,6 +190,7 @@ def test_a_fault_during_a_scan_ends_it_faulted_and_its_scan_is_not_used(core):
     assert "faults latched (DEAD_HOST) during verify round 1 of 4 (scanning); the scans before are stored" in told.text
     assert "clear it (`phantom clear-fault`), then set the target again" in told.text
     assert told.data["rounds"][0]["round"] == 1
+    assert len(of_kind(actions, policy_of.StopScan)) == 1   # the scan of a phantom going flat is stopped
     core.scanned(3.0, 1, 38.8, None, "/scans/1")          # the scan that ran through the fault
     assert of_kind(core.take_actions(), (policy_of.Correct, policy_of.Record)) == []
 
@@ -179,12 +209,33 @@ def test_a_fault_after_the_link_was_lost_mid_scan_still_says_the_round(core):
     assert "clear it (`phantom clear-fault`), then set the target again" in told.text
 
 
-def test_a_vent_or_another_target_during_a_scan_replaces_it(core):
+@pytest.mark.parametrize("ended_by", ["vent", "target", "verified target"])
+def test_a_vent_or_another_target_during_a_scan_replaces_it_and_stops_the_scan(core, ended_by):
+    """A scan of a verification that has ended photographs nothing anyone waits for, and holds the rig: a vent
+    mid-scan left the capture taking its 40 pictures of a deflating phantom (and motion refused) for 30 s."""
     verified(core)
-    core.vent(2.0, "on request")
-    assert outcomes(core.take_actions()) == ["replaced"]
+    if ended_by == "vent":
+        core.vent(2.0, "on request")
+    else:
+        core.offer(2.0, 2, answer_for(volume(35.0), (0.5, 0.5, 0.5)),
+                   verify=Verify() if ended_by == "verified target" else None)
+        core.take_actions()
+        core.sent(2.0, volume(35.0))
+    actions = core.take_actions()
+    assert outcomes(actions) == ["replaced"]
+    (stop,) = of_kind(actions, policy_of.StopScan)
+    assert stop.why.startswith("its verification ended: target 40.00 ml not reached: ")
+    assert ended_by != "vent" or stop.why.endswith("vented: on request")
     core.scanned(3.0, 1, 38.8, None, "/scans/1")
     assert outcomes(core.take_actions()) == []
+
+
+def test_a_verification_that_ends_while_not_scanning_stops_nothing(core):
+    verified(core)
+    core.scanned(3.0, 1, 38.8, None, "/scans/1")          # a miss: correcting, no scan running
+    core.take_actions()
+    core.vent(3.5, "on request")
+    assert of_kind(core.take_actions(), policy_of.StopScan) == []
 
 
 def test_a_correction_that_cannot_be_solved_ends_it_and_holds_the_pressures(core):
@@ -522,6 +573,42 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
     assert len(captures) == 2
     ((method, (round_, volume_ml, error, *_)),) = fed  # only the second's scan, measured
     assert method == "scanned" and round_ == 1 and volume_ml == 35.02 and error is None
+
+
+def test_the_daemon_stops_the_verify_scan_the_core_asks_it_to_and_no_other():
+    """The core's StopScan (its verification ended mid-scan) stops the running verify scan through the motion's
+    stop; with no verify scan running (ended, or never started) nothing is stopped: a scan a client took itself
+    is not the verification's."""
+    import asyncio
+    import types
+
+    from phantom.host.daemon import Daemon
+
+    stopped = []
+
+    async def main():
+        async def stop_scan(reason):
+            stopped.append(reason)
+            return True
+        daemon = types.SimpleNamespace(motion=types.SimpleNamespace(stop_scan=stop_scan), verify_scan=None,
+                                       background=set())
+        daemon.spawn = lambda coroutine: Daemon.spawn(daemon, coroutine)
+        daemon._stop_verify_scan = lambda why: Daemon._stop_verify_scan(daemon, why)
+        Daemon._perform(daemon, policy_of.StopScan("its verification ended: vented"))
+        await asyncio.sleep(0.01)
+        assert stopped == []                              # no verify scan: nothing stopped
+        capture = asyncio.Event()
+        daemon.verify_scan = asyncio.ensure_future(capture.wait())
+        Daemon._perform(daemon, policy_of.StopScan("its verification ended: vented"))
+        await asyncio.sleep(0.01)
+        assert stopped == ["its verification ended: vented"]
+        capture.set()
+        await daemon.verify_scan
+        Daemon._perform(daemon, policy_of.StopScan("its verification ended: replaced"))
+        await asyncio.sleep(0.01)
+        assert stopped == ["its verification ended: vented"]
+
+    asyncio.run(main())
 
 
 def _offered(core, target_ml, band_ml, verify, measurements=12):

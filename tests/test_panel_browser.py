@@ -1,7 +1,8 @@
 """The browser panel in a real browser: Debian's headless Chromium driven by Selenium against a real
 ``phantom daemon --sim --http 127.0.0.1:PORT`` (the firmware in simavr). The page loads, the "symmetric BPH" preset
 reaches its volume (the page says "reached"), the 3D gland is drawn (a pixel check of a screenshot), no long task
-over 100 ms while telemetry streams for a minute, vent vents, a latched fault is shown in words and cleared, a page
+over 100 ms while telemetry streams for a minute, vent vents, a verified volume shows its round and its scan's
+pictures and a vent stops its scan, a latched fault is shown in words and cleared, a page
 of another origin and a browser without the token are refused, and a read-only token cannot set a target.
 
 The tests share one daemon and one browser (module fixtures) and run in order. Screenshots are kept in the module's
@@ -275,6 +276,33 @@ def test_vent_vents(panel):
     panel.wait(lambda: panel.text("target-state") == "vented", 10, "the page shows vented")
     panel.wait(lambda: max(panel.status()["pressures_kpa"]) < 0.2, 20, "the chambers vented")
     assert panel.status()["control"] == "vented"
+
+
+def test_a_verified_volume_shows_its_round_and_pictures_and_a_vent_stops_its_scan(panel):
+    """verify = scan from the page: the page says which round is under way and how many of the scan's pictures are
+    taken (as `phantom status` does); a vent mid-scan stops the scan (the rig is free at once, no pictures of a
+    deflating phantom) and the line goes."""
+    from selenium.webdriver.support.ui import Select
+
+    Select(panel.driver.find_element(By.ID, "verify-mode")).select_by_value("scan")
+    panel.driver.execute_script("const slider = document.getElementById('volume-slider'); slider.value = '32'; "
+                                "slider.dispatchEvent(new Event('input'));")
+    panel.driver.find_element(By.ID, "volume-set").click()
+    panel.wait(lambda: "scanning (picture" in panel.text("verify-state"), 120, "the verify scan under way on the page")
+    panel.wait(lambda: int(panel.text("verify-state").split("picture ")[1].split()[0]) >= 3, 60, "pictures counted")
+    text = panel.text("verify-state")
+    assert text.startswith("verifying 32 ml (scan, within 0.3 %): round 1 of at most 4, scanning (picture "), text
+    assert text.endswith(" of 40)"), text
+    said = subprocess.run([str(PHANTOM), "status", "--socket", str(panel.socket)], capture_output=True, text=True,
+                          timeout=30)
+    assert "verify    32 ml (scan, within 0.3 %): round 1 of at most 4, scanning (picture " in said.stdout, said
+    panel.shot("verifying")
+    panel.driver.find_element(By.ID, "vent").click()
+    panel.wait(lambda: not panel.driver.find_element(By.ID, "verify-state").is_displayed(), 10, "the verify line gone")
+    panel.wait(lambda: panel.status()["motion"]["scan"] is None, 15, "the verify scan stopped by the vent")
+    assert any("the scan stopped (its verification ended: target 32.00 ml not reached: vented" in event["text"]
+               for event in panel.status()["events"])
+    Select(panel.driver.find_element(By.ID, "verify-mode")).select_by_value("")
 
 
 def test_a_latched_fault_is_shown_in_words_and_cleared(panel):

@@ -89,6 +89,40 @@ def test_a_scan_owns_the_rig_and_motion_stop_ends_it():
     asyncio.run(run())
 
 
+class MovingScanner(Scanner):
+    """A capture that moves to three stops (refused here: the axes are not configured; counted all the same), then
+    waits for its stop request."""
+
+    def __call__(self, params, rig):
+        from phantom import PhantomError
+
+        for orbit_deg in (0.0, 18.0, 36.0):
+            with pytest.raises(PhantomError, match="not configured"):
+                rig.move_to(orbit_deg, 15.0)
+        return super().__call__(params, rig)
+
+
+@pytest.mark.parametrize("plan, stops", [({"views": 20, "elevations_deg": [15.0, 45.0]}, 40), ({}, None),
+                                         ({"views": True, "elevations_deg": [0.0]}, None)])
+def test_the_motion_status_says_how_far_the_scan_is(plan, stops):
+    """The status's ``motion.scan`` (the panel and ``phantom status`` show it): the stops moved to of those its
+    plan takes (None: the request left the plan to the scanner), none once the scan has ended."""
+    async def run():
+        _, orbit, api, scan = _rig(MovingScanner())
+        assert (await api["motion_status"]({}))["scan"] is None
+        scanning = asyncio.ensure_future(scan({"out": "capture", **plan}))
+        await _until_scanning(orbit)
+        while orbit.scan.stops_reached < 3:
+            await asyncio.sleep(0.01)
+        progress = (await api["motion_status"]({}))["scan"]
+        assert progress == {"started_utc": orbit.scan.started_utc, "stops_reached": 3, "stops": stops}
+        await api["motion_stop"]({})
+        with pytest.raises(ApiError, match="stopped by motion_stop"):
+            await scanning
+        assert orbit.status()["scan"] is None
+    asyncio.run(run())
+
+
 def test_the_daemon_stopping_stops_the_scan_first():
     async def run():
         _, orbit, _, scan = _rig(Scanner())

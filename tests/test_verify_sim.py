@@ -1,12 +1,14 @@
 """A verified target end to end on the simulated board (issue 36): ``phantom daemon --sim`` (the firmware in
 simavr, the simulated phantom the measured one, which the controller's model misses by about 3 %) reaches 40 ml
 on pressure, scans it with its own scanner (the virtual camera at the rig's counted angles), corrects and applies
-again until the scanned volume is within 0.3 %; the simulated phantom's TRUE volume then ends within 0.3 %. And a
+again until the scanned volume is within 0.3 %; the simulated phantom's TRUE volume then ends within 0.3 %, and the
+wait's progress and the status told which round was under way meanwhile. And a
 daemon on a real board's port, whose verify scan would photograph nothing real, refuses verify."""
 
 import os
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,15 @@ from phantom.host.client import DaemonError
 PHANTOM = Path(sys.executable).with_name("phantom")
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
+
+
+def watch_progress(sock, seen, done):
+    """The status's verify progress and scan pictures, twice a second until ``done``, into ``seen``."""
+    with phantom.connect(sock) as watcher:
+        while not done.wait(0.5):
+            status = watcher.status()
+            if status.verify is not None:
+                seen.append((status.verify, status.scan))
 
 
 @pytest.mark.timeout(1800)
@@ -39,8 +50,25 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
             with pytest.raises(DaemonError, match="verify_tolerance_pct .* from 0.05 to 20") as bad:
                 ph.set_volume(40.0, verify="scan", verify_tolerance_pct=0.0)
             assert bad.value.code == "invalid_params" and ph.status().target is None   # nothing was set
-            result = ph.set_volume(40.0, verify="scan", timeout_s=1700)
+            told, seen, done = [], [], threading.Event()
+            watcher = threading.Thread(target=watch_progress, args=(sock, seen, done))
+            watcher.start()
+            try:
+                result = ph.set_volume(40.0, verify="scan", timeout_s=1700, on_progress=told.append)
+            finally:
+                done.set()
+                watcher.join(30)
         rounds = result.rounds
+        # the rounds as they went: the wait's progress (the daemon's events), and the status meanwhile (the round
+        # under way, what it does, the scans so far, the scan's pictures of its plan's 40), as the panel shows it
+        assert any("round 1 settled" in text and text.endswith("scanning") for text in told), told
+        assert any(f"round 1 scanned {rounds[0]['scanned_volume_ml']:.2f} ml" in text for text in told), told
+        scanning = [(verify, scan) for verify, scan in seen if verify["doing"] == "scanning" and scan]
+        assert {verify["round"] for verify, _ in scanning} >= {1, 2}, seen
+        assert [scan for _, scan in scanning if scan["stops"] != 40 or not 0 <= scan["stops_reached"] <= 40] == []
+        assert len({scan["stops_reached"] for _, scan in scanning}) > 5, scanning   # it counts up as it goes
+        later = [verify for verify, _ in seen if verify["round"] == 2]
+        assert later and later[-1]["scans"][0]["scanned_volume_ml"] == pytest.approx(rounds[0]["scanned_volume_ml"])
         assert result.verified and result.volume_source == "scan (measured)"
         assert result.volume_ml == result.scanned_volume_ml == rounds[-1]["scanned_volume_ml"]
         assert abs(result.scanned_volume_ml - 40.0) <= 0.003 * 40.0

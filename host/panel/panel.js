@@ -86,7 +86,8 @@ async function setTarget(target, name) {
   document.querySelectorAll(".preset").forEach((button) => button.classList.toggle("active", button.dataset.name === name));
   setTargetState("solving…", "working");
   const params = { ...target };
-  if ($("verify-scan") && $("verify-scan").checked) params.verify = "scan";
+  const verify = $("verify-box").hidden ? "" : $("verify-mode").value;
+  if (verify && params.volume_ml != null) params.verify = verify; // a volume is what a scan verifies
   try {
     const answer = await act("set_target", params, `set ${name || describeTarget(target)}`);
     if (!state.outcome) setTargetState("reaching…", "working");
@@ -159,9 +160,13 @@ function onStatus(status) {
     : `${sceneName} playing, ${scene.time_s.toFixed(0)} of ${scene.end_s.toFixed(0)} s${stepText}`);
   renderPairs("correction", status.correction && status.correction.in_force
     ? status.correction : { "in force": "none", why: (status.correction && status.correction.error) || "no measured volumes" });
-  const verifyKeys = Object.keys(status).filter((key) => key.includes("verif") || key === "scan");
+  const scanRun = status.motion && status.motion.scan;
+  const verifying = status.verify ? describeVerify(status.verify, scanRun) : "";
+  $("verify-state").hidden = !verifying;
+  show("verify-state", verifying);
   const scan = {};
-  for (const key of verifyKeys) scan[key] = status[key];
+  if (verifying) scan.verify = verifying;
+  else if (scanRun) scan.scan = `${describeScan(scanRun)}, started ${scanRun.started_utc}`;
   for (const axis of (status.motion && status.motion.axes) || []) {
     scan[axis.name] = axis.position_deg != null ? `${axis.position_deg.toFixed(1)}° ${axis.state || ""}` : (axis.state || "not configured");
   }
@@ -169,6 +174,21 @@ function onStatus(status) {
   renderPairs("scan", scan);
   if (!$("status-raw").closest("details").open) return;
   show("status-raw", JSON.stringify(status, null, 1));
+}
+
+function describeScan(scan) {
+  return `picture ${scan.stops_reached}${scan.stops != null ? ` of ${scan.stops}` : ""}`;
+}
+
+// Where a verified target's rounds are (the status's verify, phantom/cli/client.py's format_verify in words).
+function describeVerify(verify, scan) {
+  let doing = verify.doing;
+  if (doing === "scanning" && scan) doing += ` (${describeScan(scan)})`;
+  else if (doing === "correcting") doing = "solving the next round's pressures";
+  const scans = verify.scans.map((entry) => `round ${entry.round} scanned ${entry.scanned_volume_ml.toFixed(2)} ml `
+    + `(${entry.scanned_error_pct >= 0 ? "+" : ""}${entry.scanned_error_pct.toFixed(2)} %)`).join("; ");
+  return `verifying ${verify.target_ml} ml (${verify.verify}, within ${verify.verify_tolerance_pct} %): round `
+    + `${verify.round} of at most ${verify.verify_rounds}, ${doing}${scans ? `; ${scans}` : ""}`;
 }
 
 function renderPairs(id, object) {
@@ -302,7 +322,7 @@ function applyAccess(access) {
   state.access = access;
   show("access", access === "control" ? "control" : access === "read" ? "read-only" : "–");
   $("access").className = `pill ${access === "control" ? "ok" : "warn"}`;
-  document.querySelectorAll("button.control, input.control, #volume-slider, #volume-set, #pressures-set, #vent, #clear-fault")
+  document.querySelectorAll("button.control, input.control, select.control, #volume-slider, #volume-set, #pressures-set, #vent, #clear-fault")
     .forEach((element) => { element.disabled = access !== "control"; });
 }
 

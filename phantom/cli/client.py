@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -208,7 +209,31 @@ def format_status(status: dict[str, Any]) -> str:
         scene = status["scene"]
         lines.append(f"scene     {scene['name']}: {scene['time_s']:.1f} / {scene['end_s']:g} s"
                      + (" (finished)" if scene["finished"] else ""))
+    scan = (status.get("motion") or {}).get("scan")
+    if status.get("verify"):
+        lines.append("verify    " + format_verify(status["verify"], scan))
+    elif scan:
+        lines.append(f"scan      {format_scan(scan)}, started {scan['started_utc']}")
     return "\n".join(lines)
+
+
+def format_scan(scan: dict[str, Any]) -> str:
+    """A scan's pictures so far (the status's ``motion.scan``)."""
+    of = "" if scan.get("stops") is None else f" of {scan['stops']}"
+    return f"picture {scan['stops_reached']}{of}"
+
+
+def format_verify(verify: dict[str, Any], scan: dict[str, Any] | None = None) -> str:
+    """Where a verified target's rounds are (the status's ``verify``), with the scan's pictures while it scans."""
+    doing = verify["doing"]
+    if doing == "scanning" and scan:
+        doing += f" ({format_scan(scan)})"
+    elif doing == "correcting":
+        doing = "solving the next round's pressures"
+    scans = "; ".join(f"round {entry['round']} scanned {entry['scanned_volume_ml']:.2f} ml "
+                      f"({entry['scanned_error_pct']:+.2f} %)" for entry in verify["scans"])
+    return (f"{verify['target_ml']:g} ml ({verify['verify']}, within {verify['verify_tolerance_pct']:g} %): round "
+            f"{verify['round']} of at most {verify['verify_rounds']}, {doing}" + (f"; {scans}" if scans else ""))
 
 
 def format_correction(correction: dict[str, Any]) -> str:
@@ -258,7 +283,7 @@ def _run_set(args: argparse.Namespace) -> int:
             result = daemon.set_volume(args.volume_ml, growth_ratio=parse_growth_ratio(args.growth_ratio)
                                        if args.growth_ratio else None, verify=args.verify,
                                        verify_tolerance_pct=args.verify_tolerance_pct,
-                                       verify_rounds=args.verify_rounds, **options)
+                                       verify_rounds=args.verify_rounds, on_progress=_told, **options)
         elif args.chamber_volumes_ml is not None:
             result = daemon.set_chamber_volumes(
                 parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True), **options)
@@ -292,6 +317,11 @@ def _run_set(args: argparse.Namespace) -> int:
         print(f"MEASURED  {_ml(result.scanned_volume_ml)} scanned (verified within the tolerance) after "
               f"{len(result.rounds)} round(s)")
     return 0
+
+
+def _told(text: str) -> None:
+    """A verified target's round as it goes (the daemon's event), on stderr: a round takes a minute or two."""
+    print(f"  {text}", file=sys.stderr, flush=True)
 
 
 def format_simple(method: str, result: dict[str, Any]) -> str:
