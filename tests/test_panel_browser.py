@@ -293,6 +293,7 @@ def test_a_verified_volume_shows_its_round_and_pictures_and_a_vent_stops_its_sca
     text = panel.text("verify-state")
     assert text.startswith("verifying 32 ml (scan, within 0.3 %): round 1 of at most 4, scanning (picture "), text
     assert text.endswith(" of 40)"), text
+    assert panel.text("target-state") == "verifying, round 1…"
     said = subprocess.run([str(PHANTOM), "status", "--socket", str(panel.socket)], capture_output=True, text=True,
                           timeout=30)
     assert "verify    32 ml (scan, within 0.3 %): round 1 of at most 4, scanning (picture " in said.stdout, said

@@ -139,6 +139,8 @@ function onStatus(status) {
     document.querySelectorAll(".preset.active").forEach((button) => button.classList.remove("active"));
   } else if (status.target_pending && !state.outcome) {
     setTargetState(`waiting: ${status.target_pending}`, "working");
+  } else if (status.verify && !state.outcome) {
+    setTargetState(`verifying, round ${status.verify.round}…`, "working"); // the line below says how far
   }
   show("n-target", ml(status.target_volume_ml));
   show("n-estimate", ml(status.estimated_volume_ml));
