@@ -87,7 +87,7 @@ def daemon_status(daemon: StatusSource) -> dict[str, Any]:
         "rest_volume_ml": info.rest_volume_ml, "target_volume_ml": daemon.target_volume_ml(),
         "target": core.target.to_json() if core.target is not None else None, "target_source": core.source,
         "target_applied": core.target_applied,
-        # the verified target's rounds while they run, and its scan's pictures while one is taken
+        # the verified target's rounds while they run (its scan's pictures: motion.scan)
         "verify": core.verify_progress,
         "target_pending": core.pending if core.target is not None and not core.target_applied else None,
         "reached_rule": {"settled_kpa": core.rule.settled_kpa, "settled_for_s": core.rule.settled_for_s,
