@@ -87,7 +87,7 @@ async function setTarget(target, name) {
   setTargetState("solving…", "working");
   const params = { ...target };
   const verify = $("verify-box").hidden ? "" : $("verify-mode").value;
-  if (verify && params.volume_ml != null) params.verify = verify; // a volume is what a scan verifies
+  if (verify) params.verify = verify; // a target without a volume is refused, and the refusal says why
   try {
     const answer = await act("set_target", params, `set ${name || describeTarget(target)}`);
     if (!state.outcome) setTargetState("reaching…", "working");
