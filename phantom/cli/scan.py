@@ -225,8 +225,13 @@ def run_capture(args: argparse.Namespace) -> int:
         conditions: dict[str, Any] = {"socket": str(args.socket or default_socket_path())}
         if args.target:
             conditions["target"] = CharucoTarget().to_json()
-        folder = CaptureFolder.create(args.out, camera.describe(), plan.to_json(), conditions, rig)
-        capture_through_daemon(client, camera, plan, folder, frame_progress("captured"))
+        try:
+            folder = CaptureFolder.create(args.out, camera.describe(), plan.to_json(), conditions, rig)
+            capture_through_daemon(client, camera, plan, folder, frame_progress("captured"))
+        finally:
+            close = getattr(camera, "close", None)  # a webcam's, its stream's reader with it
+            if close is not None:
+                close()
     print(f"captured {len(folder.frames)} pictures into {folder.path}", file=sys.stderr)
     return 0
 

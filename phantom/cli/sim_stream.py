@@ -5,9 +5,9 @@ its pictures must come through a camera, as on a real rig. This serves the virtu
 over HTTP (what an IP camera or a phone as a webcam serves, which OpenCV's ``VideoCapture`` reads by URL), at a
 webcam's frame rate (:data:`FRAMES_PER_S`), each rendered when it is sent, at the simulated rig's true angles (the
 pulses its drivers took, counted by simavr). While the rig moves (its angles changed since the frame before), the
-stream sends its last picture again instead of rendering one: a scan's reader drops every frame sent before its
-grab, which starts after the move and its settle (``phantom.scan.capture.Webcam``), and rendering the move was most
-of the simulated rig's CPU (a real camera's frames in motion are blurred, and dropped the same way):
+stream sends its last picture again instead of rendering one: a scan's reader takes a picture from frames that
+arrive after its grab, which starts after the move and its settle (``phantom.scan.capture.Webcam``), and rendering
+the move was most of the simulated rig's CPU (a real camera's frames in motion are blurred, and dropped the same way):
 
 - ``/phantom.mjpg``: the simulated phantom (the truth model at the plant's true pressures);
 - ``/target0.mjpg``, ``/target1.mjpg``: the ChArUco target, in the virtual rig's two calibration placements
@@ -41,10 +41,9 @@ PATHS = ("/phantom.mjpg", "/target0.mjpg", "/target1.mjpg")
 TRUTH_PATH = "/truth.json"
 JPEG_QUALITY = 95
 SEND_BUFFER_BYTES = 64 * 1024
-#: The stream's frame rate at most, a webcam's: a reader drops a stream's buffered pictures until two in a row make
-#: it wait (phantom.scan.capture.Webcam), which a picture rendered as fast as the machine allows (30 ms idle) never
-#: did: each picture of a scan read 61 frames, 1.3-1.9 s of this process's CPU (and the reader's decodes). At 15 a
-#: second a picture reads the 10-18 buffered and fresh ones in 0.3 s, 0.2 s of CPU.
+#: The stream's frame rate at most, a webcam's. Rendered as fast as the machine allowed (30 ms idle), a scan's picture
+#: cost 1.3-1.9 s of this process's CPU; a reader reads every frame as it comes (phantom.scan.capture.Webcam), so
+#: the rate is what it decodes, 15 a second here.
 FRAMES_PER_S = 15.0
 
 
