@@ -91,6 +91,9 @@ class VerifyScanner(Protocol):
 LINK_LOSS_GRACE_S = 30.0
 #: How long a verify scan waits for the rig's axes to come to rest before it starts (s).
 RIG_REST_WAIT_S = 30.0
+#: How long a verification's outcome waits for its last scan to be stored before it is told anyway (s): a store
+#: is a fit of the correction, under a second for 200 measurements (bench/correction_fit.py).
+STORED_WAIT_S = 30.0
 
 
 def verify_folder(round_: int) -> Path:
@@ -179,7 +182,10 @@ class Daemon:
 
     def _perform(self, action: control.Action) -> None:
         if isinstance(action, control.Tell):
-            self.event(action.kind, action.text, action.level, action.data)
+            if action.data is not None and "rounds" in action.data and self.storing:
+                self.spawn(self._tell_once_stored(action))  # a verification's outcome: its scans stored first
+            else:
+                self.event(action.kind, action.text, action.level, action.data)
         elif isinstance(action, control.Solve):
             self.spawn(self._solve_for_core(action))
         elif isinstance(action, control.SendSetpoints):
@@ -201,7 +207,9 @@ class Daemon:
         elif isinstance(action, verify.Correct):
             self.spawn(self._correct_for_core(action))
         elif isinstance(action, verify.Record):
-            self.spawn(self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder))
+            recording = self.spawn(self._record_scan(action.pressures_kpa, action.scanned_ml, action.scan_folder))
+            self.storing.add(recording)  # from now: the outcome told with it waits for it
+            recording.add_done_callback(self.storing.discard)
         elif isinstance(action, control.Answer):
             waiting = self._requests.pop(action.request, None)
             if waiting is not None and not waiting.done():
@@ -363,6 +371,12 @@ class Daemon:
                     self._feed(self.core.correct_failed, step.round, step.unreachable, step.text)
         if not policy.done:  # every event takes an action until the last: none is the policy's fault
             self._feed(self.core.correct_failed, action.round, False, "the verify policy stopped without an answer")
+
+    async def _tell_once_stored(self, tell: control.Tell) -> None:
+        """A verification's outcome, told once the scans being stored are (at most :data:`STORED_WAIT_S`): a
+        client that reads the phantom's measurements on it finds its last scan there."""
+        await asyncio.wait(set(self.storing), timeout=STORED_WAIT_S)
+        self.event(tell.kind, tell.text, tell.level, tell.data)
 
     async def _record_scan(self, pressures_kpa: tuple[float, ...], scanned_ml: float, folder: str | None) -> bool:
         """A scan stored as a measurement of the phantom (the model's correction fitted again), when the model can

@@ -462,6 +462,47 @@ def test_the_scan_that_ends_a_verification_is_stored_through_the_model_worker():
     assert asyncio.run(Daemon._record_scan(types.SimpleNamespace(model=object()), (1.0,), 40.0, None)) is False
 
 
+def test_a_verifications_outcome_is_told_once_its_last_scan_is_stored():
+    """The core's Record of the scan that ends a verification and its outcome come together; the store runs in the
+    model worker. Told at once, a client that read the store on the outcome (tests/test_real_rig_sim.py under a
+    loaded make test) found the last scan missing. The outcome waits for the store; any other event does not."""
+    import asyncio
+    import types
+
+    from phantom.host.daemon import Daemon
+
+    told = []
+
+    async def main():
+        release = asyncio.Event()
+
+        async def record_measurement(pressures_kpa, volume_ml, method, scan_file):
+            await release.wait()
+            told.append("stored")
+            return {"count": 1}
+
+        daemon = types.SimpleNamespace(model=types.SimpleNamespace(record_measurement=record_measurement),
+                                       storing=set(), background=set(),
+                                       event=lambda kind, text, level="INFO", data=None: told.append(text))
+        for name in ("spawn", "_record_scan", "_tell_once_stored"):
+            setattr(daemon, name, getattr(Daemon, name).__get__(daemon))
+        outcome = control.Tell("target", "target 40.00 ml reached and MEASURED", "INFO",
+                               {"outcome": "reached", "rounds": [{"round": 1}]})
+        Daemon._perform(daemon, policy_of.Record(1, (1.0, 0.5, 0.5), 40.03, "/scans/1"))
+        Daemon._perform(daemon, outcome)
+        Daemon._perform(daemon, control.Tell("verify", "another event"))
+        await asyncio.sleep(0.05)
+        assert told == ["another event"]                  # the outcome waits for the store under way
+        release.set()
+        while len(told) < 3:
+            await asyncio.sleep(0.01)
+        Daemon._perform(daemon, outcome)                  # nothing being stored: told at once
+        assert told == ["another event", "stored", "target 40.00 ml reached and MEASURED",
+                        "target 40.00 ml reached and MEASURED"]
+
+    asyncio.run(main())
+
+
 def test_a_target_is_solved_after_the_scan_being_stored():
     """make demo's 35 ml was solved 3 s before 30 ml's last scan, stored after its verified outcome, refitted the
     correction; the estimate then used the new correction, never came within 0.3 % of the answer's volume, and the
