@@ -306,6 +306,49 @@ def test_a_verified_volume_shows_its_round_and_pictures_and_a_vent_stops_its_sca
     Select(panel.driver.find_element(By.ID, "verify-mode")).select_by_value("")
 
 
+def test_a_reached_target_says_how_its_volume_is_known(panel):
+    """A reached target's words on the page follow what the daemon knows of its volume: measured by a scan, within
+    the correction's 95 % band from the stored measurements (verify auto, not scanned: the page read "reached
+    (40.0 ml)", as if measured), or the model's estimate. The outcomes are the control core's own."""
+    import dataclasses
+
+    from test_control_core import answer_for, of_kind, settle, volume
+
+    from phantom.host import control
+    from phantom.host.control import ControlCore, ReachRule
+    from phantom.host.verify import Verify
+
+    def reached(verify, band_ml=None, scanned_ml=None):
+        core = ControlCore(3, ReachRule(settled_kpa=0.1, settled_for_s=1.0, tolerance_pct=1.0), retry_s=0.5)
+        core.board(0.0, True)
+        core.take_actions()
+        target = volume(40.0)
+        core.offer(0.0, 1, dataclasses.replace(answer_for(target), band_ml=band_ml, measurements=12), verify=verify)
+        core.take_actions()
+        core.sent(0.0, target)
+        core.take_actions()
+        actions = settle(core, 0.0, 1.2, estimate_ml=40.0)
+        if scanned_ml is not None:
+            core.scanned(3.5, 1, scanned_ml, None, "/scans/1")
+            actions = core.take_actions()
+        (told,) = [tell for tell in of_kind(actions, control.Tell) if tell.data and tell.data.get("outcome")]
+        assert told.data["outcome"] == "reached"
+        return json.loads(json.dumps(told.data))
+
+    if not panel.driver.current_url.startswith(panel.url):  # run alone: the page is not open yet
+        panel.open(panel.tokens["control"])
+
+    def words(event):
+        return panel.driver.execute_async_script(
+            "const [event, done] = arguments; import('/static/panel.js')"
+            ".then((page) => done(page.describeReached(event)), (error) => done(`not imported: ${error}`));", event)
+
+    assert words(reached(Verify(auto=True), band_ml=0.08)) == (
+        "reached (40.0 ml), within ±0.20 % (95 %) from 12 stored measurements")
+    assert words(reached(Verify(), scanned_ml=40.03)) == "reached and measured: scanned 40.03 ml after 1 round"
+    assert words(reached(None)) == "reached (40.0 ml)"
+
+
 def test_a_latched_fault_is_shown_in_words_and_cleared(panel):
     # the daemon falls silent past the board's dead-host deadline (500 ms): the board latches DEAD_HOST. The
     # board's keepalive is the link's process's (it holds while the daemon's loop stalls), so that one is stopped

@@ -193,6 +193,21 @@ function describeVerify(verify, scan) {
     + `${verify.round} of at most ${verify.verify_rounds}, ${doing}${scans ? `; ${scans}` : ""}`;
 }
 
+// What a reached target's outcome knows of its volume: scanned (measured), within the correction's band from the
+// stored measurements (verify auto, no scan), or the model's estimate.
+export function describeReached(event) {
+  if (event.verified) {
+    return `reached and measured: scanned ${event.scanned_volume_ml.toFixed(2)} ml after ${event.rounds.length} `
+      + `round${event.rounds.length === 1 ? "" : "s"}`;
+  }
+  const volume = event.estimated_volume_ml;
+  const text = event.scanned_volume_ml != null ? `reached, scanned ${event.scanned_volume_ml.toFixed(2)} ml`
+    : `reached${volume != null ? ` (${volume.toFixed(1)} ml)` : ""}`;
+  if (event.band_pct == null) return text;
+  return `${text}, within ±${event.band_pct.toFixed(2)} % (95 %) from ${event.measurements} stored measurement`
+    + `${event.measurements === 1 ? "" : "s"}`;
+}
+
 function renderPairs(id, object) {
   const text = JSON.stringify(object);
   if (state.shown[id] === text) return;
@@ -224,8 +239,7 @@ function onEvent(event) {
   state.outcome = event.outcome;
   state.outcomeFor = JSON.stringify(event.target);
   if (event.outcome === "reached") {
-    const volume = event.scanned_volume_ml ?? event.estimated_volume_ml;
-    setTargetState(`reached${volume != null ? ` (${volume.toFixed(1)} ml)` : ""}`, "reached");
+    setTargetState(describeReached(event), "reached");
     refreshGland();
   } else if (event.outcome !== "replaced") {
     setTargetState(event.outcome.replaceAll("_", " "), "failed");
