@@ -57,7 +57,7 @@ import numpy as np
 from phantom.host.board_watch import SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
-from phantom.host.verify import SCAN_RETRIES, Correct, Record, Rounds, Scan, StopScan, Verify
+from phantom.host.verify import DOING_WORDS, SCAN_RETRIES, Correct, Record, Rounds, Scan, StopScan, Verify
 from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
 
 #: After a target could not be sent (refused, not acknowledged), how long the core waits before it tries again (s).
@@ -488,8 +488,7 @@ class ControlCore:
                 if rounds is not None:
                     # a fault mid-verify: which round, what it was doing, and what to do (the scans before are
                     # stored measurements: the next try starts from the correction they give)
-                    doing = {"scanning": "scanning", "correcting": "solving the next round"}.get(
-                        rounds.doing or "", "applying its pressures")
+                    doing = DOING_WORDS[rounds.doing or "settling"]
                     verifying = (f" during verify round {rounds.underway} of {rounds.verify.rounds} ({doing}); "
                                  f"the scans before are stored. Find why ({', '.join(names)}: `phantom status`, the "
                                  "daemon's log), clear it (`phantom clear-fault`), then set the target again")

@@ -105,7 +105,10 @@ class ScanRun:
         self._reason = ""
 
     def to_json(self) -> dict[str, Any]:
-        return {"started_utc": self.started_utc, "stops_reached": self.stops_reached, "stops": self.stops}
+        """The scan for the status, with ``text``: how far it is in words (phantom status and the panel show it)."""
+        of = "" if self.stops is None else f" of {self.stops}"
+        return {"started_utc": self.started_utc, "stops_reached": self.stops_reached, "stops": self.stops,
+                "text": f"picture {self.stops_reached}{of}"}
 
     def request_stop(self, reason: str) -> None:
         """Ask the capture to stop (from the daemon's loop); the first reason is kept."""

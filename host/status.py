@@ -16,6 +16,7 @@ import numpy as np
 
 from phantom.host.parts import BoardSession, ControlState, Model, Recording
 from phantom.host.session import fault_names
+from phantom.host.verify import progress_text
 
 if TYPE_CHECKING:
     from phantom.host.api import ApiServer
@@ -71,6 +72,7 @@ def daemon_status(daemon: StatusSource) -> dict[str, Any]:
     telemetry = daemon.telemetry if daemon.session.online else None  # a stale frame is not shown
     link, info, core = daemon.session.status(), daemon.model.info, daemon.core
     window = daemon.schedule.window if telemetry is not None else None
+    progress, motion = core.verify_progress, daemon.motion.status()
     status = {
         "link": link["state"], "link_detail": link, "control": core.state.value,
         "chambers": daemon.chamber_names, "chamber_labels": daemon.chamber_labels,
@@ -87,8 +89,8 @@ def daemon_status(daemon: StatusSource) -> dict[str, Any]:
         "rest_volume_ml": info.rest_volume_ml, "target_volume_ml": daemon.target_volume_ml(),
         "target": core.target.to_json() if core.target is not None else None, "target_source": core.source,
         "target_applied": core.target_applied,
-        # the verified target's rounds while they run (its scan's pictures: motion.scan)
-        "verify": core.verify_progress,
+        # the verified target's rounds while they run, in words too (with its scan's pictures, motion.scan)
+        "verify": None if progress is None else {**progress, "text": progress_text(progress, motion["scan"])},
         "target_pending": core.pending if core.target is not None and not core.target_applied else None,
         "reached_rule": {"settled_kpa": core.rule.settled_kpa, "settled_for_s": core.rule.settled_for_s,
                          "tolerance_pct": core.tolerance_pct or core.rule.tolerance_pct},
@@ -108,7 +110,7 @@ def daemon_status(daemon: StatusSource) -> dict[str, Any]:
         "meshes_logged": daemon.estimates.meshes_logged,
         "api": daemon.api.stats(), "event_loop": daemon.loop_stalls.to_json(),
         "recording": daemon.recorder.status(), "uptime_s": daemon.now_s(), "events": list(daemon.events)[-10:],
-        "motion": daemon.motion.status(),
+        "motion": motion,
         "web": daemon.web.status() if daemon.web is not None else None,
     }
     if daemon.sim_board is not None:

@@ -363,6 +363,23 @@ def volume_target(target: Target, volume_ml: float) -> Target:
 #: and :func:`judge_scan`'s ``verified``, ``not_verified``, ``correct``.
 Scanned = Literal["stale", "retry", "failed", "verified", "not_verified", "correct"]
 
+#: What a verification is doing (:attr:`Rounds.doing`, ``settling`` when none), in words.
+DOING_WORDS = {"settling": "settling", "scanning": "scanning", "correcting": "solving the next round's pressures"}
+
+
+def progress_text(progress: dict[str, Any], scan: dict[str, Any] | None = None) -> str:
+    """A verification's progress (:meth:`Rounds.progress`) in words, with the scan's pictures while it scans
+    (``scan``: the running scan's status, ``text`` in it, :meth:`phantom.host.motion.ScanRun.to_json`): what
+    phantom status and the panel show."""
+    doing = DOING_WORDS[progress["doing"]]
+    if progress["doing"] == "scanning" and scan:
+        doing += f" ({scan['text']})"
+    scans = "; ".join(f"round {entry['round']} scanned {entry['scanned_volume_ml']:.2f} ml "
+                      f"({entry['scanned_error_pct']:+.2f} %)" for entry in progress["scans"])
+    return (f"{progress['target_ml']:g} ml ({progress['verify']}, within {progress['verify_tolerance_pct']:g} %): "
+            f"round {progress['round']} of at most {progress['verify_rounds']}, {doing}"
+            + (f"; {scans}" if scans else ""))
+
 
 @dataclass
 class Rounds:

@@ -205,7 +205,7 @@ def test_a_fault_after_the_link_was_lost_mid_scan_still_says_the_round(core):
     core.faults(3.2, ("DEAD_HOST",))
     (told,) = [tell for tell in of_kind(core.take_actions(), control.Tell) if tell.data]
     assert told.data["outcome"] == "faulted"
-    assert "faults latched (DEAD_HOST) during verify round 1 of 4 (applying its pressures)" in told.text, told.text
+    assert "faults latched (DEAD_HOST) during verify round 1 of 4 (settling)" in told.text, told.text
     assert "clear it (`phantom clear-fault`), then set the target again" in told.text
 
 

@@ -226,16 +226,23 @@ def test_the_step_table_shows_the_true_error_and_its_mean_not_the_estimates():
 
 
 def test_a_verified_targets_rounds_and_a_scans_pictures_read_as_words():
-    from phantom.cli.client import format_scan, format_verify
+    """The daemon words a verification's progress and a scan's (``text`` in the status): phantom status and the panel
+    show the same words."""
+    from phantom.host.motion import ScanRun
+    from phantom.host.verify import progress_text
 
     verify = {"target_ml": 35.0, "round": 2, "doing": "scanning", "verify": "scan", "verify_tolerance_pct": 0.3,
               "verify_rounds": 4, "scans": [{"round": 1, "scanned_volume_ml": 34.0312, "scanned_error_pct": -2.768}]}
-    scan = {"started_utc": "2026-11-30T08:00:00+00:00", "stops_reached": 14, "stops": 40}
-    assert format_verify(verify, scan) == ("35 ml (scan, within 0.3 %): round 2 of at most 4, scanning (picture 14 "
+    run = ScanRun(40)
+    run.stops_reached = 14
+    scan = run.to_json()
+    assert progress_text(verify, scan) == ("35 ml (scan, within 0.3 %): round 2 of at most 4, scanning (picture 14 "
                                            "of 40); round 1 scanned 34.03 ml (-2.77 %)")
-    assert format_verify({**verify, "round": 1, "doing": "correcting"}) == (
+    assert progress_text({**verify, "round": 1, "doing": "correcting"}) == (
         "35 ml (scan, within 0.3 %): round 1 of at most 4, solving the next round's pressures; round 1 scanned "
         "34.03 ml (-2.77 %)")
-    assert format_verify({**verify, "round": 1, "doing": "settling", "scans": []}, None).endswith(
+    assert progress_text({**verify, "round": 1, "doing": "settling", "scans": []}, None).endswith(
         "round 1 of at most 4, settling")
-    assert format_scan({**scan, "stops": None}) == "picture 14"
+    unplanned = ScanRun()
+    unplanned.stops_reached = 14
+    assert unplanned.to_json()["text"] == "picture 14"

@@ -115,7 +115,8 @@ def test_the_motion_status_says_how_far_the_scan_is(plan, stops):
         while orbit.scan.stops_reached < 3:
             await asyncio.sleep(0.01)
         progress = (await api["motion_status"]({}))["scan"]
-        assert progress == {"started_utc": orbit.scan.started_utc, "stops_reached": 3, "stops": stops}
+        assert progress == {"started_utc": orbit.scan.started_utc, "stops_reached": 3, "stops": stops,
+                            "text": "picture 3" + ("" if stops is None else f" of {stops}")}
         await api["motion_stop"]({})
         with pytest.raises(ApiError, match="stopped by motion_stop"):
             await scanning

@@ -163,12 +163,11 @@ function onStatus(status) {
   renderPairs("correction", status.correction && status.correction.in_force
     ? status.correction : { "in force": "none", why: (status.correction && status.correction.error) || "no measured volumes" });
   const scanRun = status.motion && status.motion.scan;
-  const verifying = status.verify ? describeVerify(status.verify, scanRun) : "";
+  const verifying = status.verify ? `verifying ${status.verify.text}` : "";
   $("verify-state").hidden = !verifying;
   show("verify-state", verifying);
-  const scan = {};
-  if (verifying) scan.verify = verifying;
-  else if (scanRun) scan.scan = `${describeScan(scanRun)}, started ${scanRun.started_utc}`;
+  const scan = {}; // a verification's rounds are on their own line above
+  if (scanRun) scan.scan = `${scanRun.text}, started ${scanRun.started_utc}`;
   for (const axis of (status.motion && status.motion.axes) || []) {
     scan[axis.name] = axis.position_deg != null ? `${axis.position_deg.toFixed(1)}° ${axis.state || ""}` : (axis.state || "not configured");
   }
@@ -176,21 +175,6 @@ function onStatus(status) {
   renderPairs("scan", scan);
   if (!$("status-raw").closest("details").open) return;
   show("status-raw", JSON.stringify(status, null, 1));
-}
-
-function describeScan(scan) {
-  return `picture ${scan.stops_reached}${scan.stops != null ? ` of ${scan.stops}` : ""}`;
-}
-
-// Where a verified target's rounds are (the status's verify, phantom/cli/client.py's format_verify in words).
-function describeVerify(verify, scan) {
-  let doing = verify.doing;
-  if (doing === "scanning" && scan) doing += ` (${describeScan(scan)})`;
-  else if (doing === "correcting") doing = "solving the next round's pressures";
-  const scans = verify.scans.map((entry) => `round ${entry.round} scanned ${entry.scanned_volume_ml.toFixed(2)} ml `
-    + `(${entry.scanned_error_pct >= 0 ? "+" : ""}${entry.scanned_error_pct.toFixed(2)} %)`).join("; ");
-  return `verifying ${verify.target_ml} ml (${verify.verify}, within ${verify.verify_tolerance_pct} %): round `
-    + `${verify.round} of at most ${verify.verify_rounds}, ${doing}${scans ? `; ${scans}` : ""}`;
 }
 
 // What a reached target's outcome knows of its volume: scanned (measured), within the correction's band from the

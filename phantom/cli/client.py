@@ -211,29 +211,10 @@ def format_status(status: dict[str, Any]) -> str:
                      + (" (finished)" if scene["finished"] else ""))
     scan = (status.get("motion") or {}).get("scan")
     if status.get("verify"):
-        lines.append("verify    " + format_verify(status["verify"], scan))
+        lines.append(f"verify    {status['verify']['text']}")
     elif scan:
-        lines.append(f"scan      {format_scan(scan)}, started {scan['started_utc']}")
+        lines.append(f"scan      {scan['text']}, started {scan['started_utc']}")
     return "\n".join(lines)
-
-
-def format_scan(scan: dict[str, Any]) -> str:
-    """A scan's pictures so far (the status's ``motion.scan``)."""
-    of = "" if scan.get("stops") is None else f" of {scan['stops']}"
-    return f"picture {scan['stops_reached']}{of}"
-
-
-def format_verify(verify: dict[str, Any], scan: dict[str, Any] | None = None) -> str:
-    """Where a verified target's rounds are (the status's ``verify``), with the scan's pictures while it scans."""
-    doing = verify["doing"]
-    if doing == "scanning" and scan:
-        doing += f" ({format_scan(scan)})"
-    elif doing == "correcting":
-        doing = "solving the next round's pressures"
-    scans = "; ".join(f"round {entry['round']} scanned {entry['scanned_volume_ml']:.2f} ml "
-                      f"({entry['scanned_error_pct']:+.2f} %)" for entry in verify["scans"])
-    return (f"{verify['target_ml']:g} ml ({verify['verify']}, within {verify['verify_tolerance_pct']:g} %): round "
-            f"{verify['round']} of at most {verify['verify_rounds']}, {doing}" + (f"; {scans}" if scans else ""))
 
 
 def format_correction(correction: dict[str, Any]) -> str:
