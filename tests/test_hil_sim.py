@@ -265,13 +265,21 @@ def test_simulated_time_is_paced_to_the_wall_clock():
     import time
 
     with SimulatedBoard(speed=0.5) as board:
-        first, wall_start = board.plant_state(), time.monotonic()
+        # each reading's wall time is bracketed: the harness read it somewhere between asking and the answer, and
+        # on a loaded machine this process can stall there too (timed from the answers alone, a loaded make test
+        # once read 0.534 s against 0.500 +- 0.03: a stall around a reading, given up as lost by the harness, is
+        # likely, the figures of that run were not kept)
+        asked_first = time.monotonic()
+        first, answered_first = board.plant_state(), time.monotonic()
         time.sleep(1.0)
-        second, wall_end = board.plant_state(), time.monotonic()
+        asked_second = time.monotonic()
+        second, answered_second = board.plant_state(), time.monotonic()
     simulated_s = second["time_s"] - first["time_s"]
     lost_s = second["lost_s"] - first["lost_s"]
-    assert simulated_s <= 0.5 * (wall_end - wall_start) + 0.01
-    assert simulated_s + 0.5 * lost_s == pytest.approx(0.5 * (wall_end - wall_start), abs=0.03)
+    shortest_s, longest_s = asked_second - answered_first, answered_second - asked_first
+    assert simulated_s <= 0.5 * longest_s + 0.01
+    assert 0.5 * shortest_s - 0.03 <= simulated_s + 0.5 * lost_s <= 0.5 * longest_s + 0.03, (
+        simulated_s, lost_s, shortest_s, longest_s)
 
 
 def simulator_steps_per_cycle(board: SimulatedBoard, link: BoardLink, board_s: float) -> float:
