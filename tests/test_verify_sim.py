@@ -67,6 +67,10 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
         assert {verify["round"] for verify, _ in scanning} >= {1, 2}, seen
         assert [scan for _, scan in scanning if scan["stops"] != 40 or not 0 <= scan["stops_reached"] <= 40] == []
         assert len({scan["stops_reached"] for _, scan in scanning}) > 5, scanning   # it counts up as it goes
+        # in the daemon's words, which phantom status and the panel print
+        assert all(verify["text"].startswith(f"40 ml (scan, within 0.3 %): round {verify['round']} of at most 4, ")
+                   for verify, _ in seen), seen
+        assert all(f"scanning (picture {scan['stops_reached']} of 40)" in verify["text"] for verify, scan in scanning)
         later = [verify for verify, _ in seen if verify["round"] == 2]
         assert later and later[-1]["scans"][0]["scanned_volume_ml"] == pytest.approx(rounds[0]["scanned_volume_ml"])
         assert result.verified and result.volume_source == "scan (measured)"
