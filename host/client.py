@@ -214,8 +214,9 @@ class Status:
     meanwhile (with ``model_build``'s progress); ``true_volume_ml`` is the simulated plant's own volume (only
     with a simulated board). ``verify`` is where a verified target's rounds are while they run (the round under
     way, what it is doing, the scans so far: ``phantom.host.verify.Rounds.progress``), ``scan`` the pictures of
-    the scan being taken (``stops_reached`` of ``stops``), None when none runs. ``raw`` is the whole answer, for
-    what this class does not name.
+    the scan being taken (``stops_reached`` of ``stops``), None when none runs; each has its ``text``, the
+    daemon's words for it (what ``phantom status`` prints). ``raw`` is the whole answer, for what this class does
+    not name.
     """
 
     ready: bool
