@@ -697,11 +697,9 @@ class _StreamReader:
                 if self._arrived_since_asked < STREAM_FRESH_FRAME:
                     continue
                 ok, picture = self.capture.retrieve()
-                if not ok or picture is None:
-                    self._lost = f"the camera {self.source!r} sent a picture that could not be decoded"
-                else:
+                if ok and picture is not None:  # one that could not be decoded is passed over for the next
                     self._picture, self._asked_s = picture, None
-                self._changed.notify_all()
+                    self._changed.notify_all()
 
     def picture(self) -> np.ndarray:
         """The :data:`STREAM_FRESH_FRAME`-th frame to arrive from now (CameraLost when the stream ended, or sent
