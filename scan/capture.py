@@ -608,7 +608,7 @@ class Webcam:
         self.source = source
         self.size = size
         # a device and a network stream (a URL) buffer pictures; a recording's every picture is wanted
-        self.live = isinstance(source, str) and "://" in source
+        self.live = _is_stream(source)
         self.flush = flush if isinstance(source, int) else 0
         self.capture = _open_video(source)
         if not self.capture.isOpened():
@@ -723,12 +723,17 @@ class _StreamReader:
         return not self._thread.is_alive()
 
 
+def _is_stream(source: int | str) -> bool:
+    """Whether ``source`` is a network stream's URL (MJPEG over HTTP, RTSP), not a device number or a file."""
+    return isinstance(source, str) and "://" in source
+
+
 def _open_video(source: int | str) -> Any:
     """OpenCV's VideoCapture of ``source`` (a seam for a test to slow its reads)."""
     with require_extra("scan"):
         import cv2
 
-    if isinstance(source, str) and "://" in source:  # a stream that stops sending ends a read, not waits forever
+    if _is_stream(source):  # a stream that stops sending ends a read, not waits forever
         return cv2.VideoCapture(source, cv2.CAP_ANY, [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(STREAM_SILENT_S * 1000),
                                                       cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(STREAM_SILENT_S * 1000)])
     return cv2.VideoCapture(source)
