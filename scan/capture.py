@@ -582,6 +582,10 @@ STREAM_FRESH_FRAME = 2
 #: A stream that sends no frame for this long (s) is lost: a webcam's 15-30 frames a second, a busy machine's
 #: pauses, and a stream's own pauses (the simulated one repeats a picture while the rig moves) are all well within.
 STREAM_SILENT_S = 10.0
+#: A stream whose reads fail this many times in a row is lost. OpenCV's FFmpeg reader decodes a frame as it grabs
+#: it, so a frame that cannot be decoded (cut short on a weak link) fails its read and the stream goes on; one that
+#: has ended (or timed out) fails every read at once.
+STREAM_FAILED_READS = 8
 
 
 class Webcam:
@@ -594,8 +598,10 @@ class Webcam:
     exposure, focus and white balance off and ``exposure``/``focus`` fixed when given (in the driver's units);
     what the driver accepted is in :meth:`describe`. Each :meth:`grab` of a device first drops ``flush`` buffered
     frames; a stream is read as it comes, on a thread of its own (:class:`_StreamReader`), and a picture is the
-    second frame to arrive after the grab, so it was taken after the orbit stopped, not before. With ``size`` (the
-    rig's calibrated width and height), a picture of any other size is refused (CameraLost, saying both).
+    second frame to arrive after the grab, so it was taken after the orbit stopped, not before; a frame it cannot
+    decode is passed over, and a stream whose last :data:`STREAM_FAILED_READS` frames could not be read, or that
+    sent nothing for :data:`STREAM_SILENT_S`, is lost (CameraLost). With ``size`` (the rig's calibrated width and
+    height), a picture of any other size is refused (CameraLost, saying both).
     """
 
     def __init__(self, source: int | str, width: int | None = None, height: int | None = None,
@@ -683,21 +689,27 @@ class _StreamReader:
         atexit.register(self.stop)
 
     def _read(self) -> None:
+        failed_reads = 0
         while not self._stopping:
             ok = self.capture.grab()
             arrived_s = time.monotonic()  # before the lock: a picture asked for while it waited is not this frame
             with self._changed:
-                if not ok:
-                    self._lost = f"the camera {self.source!r} sent no picture (unplugged, or the stream ended)"
-                    self._changed.notify_all()
-                    return
+                if not ok:  # a frame that could not be decoded is passed over for the next; an ended stream is lost
+                    failed_reads += 1
+                    if failed_reads >= STREAM_FAILED_READS:
+                        self._lost = (f"the camera {self.source!r} sent no picture (its last {failed_reads} frames "
+                                      f"could not be read: unplugged, the stream ended, or its frames are corrupt)")
+                        self._changed.notify_all()
+                        return
+                    continue
+                failed_reads = 0
                 if self._asked_s is None or arrived_s < self._asked_s:
                     continue
                 self._arrived_since_asked += 1
                 if self._arrived_since_asked < STREAM_FRESH_FRAME:
                     continue
                 ok, picture = self.capture.retrieve()
-                if ok and picture is not None:  # one that could not be decoded is passed over for the next
+                if ok and picture is not None:  # FFmpeg decoded it in its grab; another backend may fail here
                     self._picture, self._asked_s = picture, None
                     self._changed.notify_all()
 
