@@ -5,10 +5,12 @@ again until the scanned volume is within 0.3 %; the simulated phantom's TRUE vol
 wait's progress and the status told which round was under way meanwhile. And a
 daemon on a real board's port, whose verify scan would photograph nothing real, refuses verify."""
 
+import json
 import os
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +18,7 @@ import pytest
 from daemon_rig import wait_ready
 
 import phantom
-from phantom.host.client import DaemonError
+from phantom.host.client import DaemonError, TargetResult
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 
@@ -50,19 +52,35 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
             with pytest.raises(DaemonError, match="verify_tolerance_pct .* from 0.05 to 20") as bad:
                 ph.set_volume(40.0, verify="scan", verify_tolerance_pct=0.0)
             assert bad.value.code == "invalid_params" and ph.status().target is None   # nothing was set
-            told, seen, done = [], [], threading.Event()
-            watcher = threading.Thread(target=watch_progress, args=(sock, seen, done))
-            watcher.start()
-            try:
-                result = ph.set_volume(40.0, verify="scan", timeout_s=1700, on_progress=told.append)
-            finally:
-                done.set()
-                watcher.join(30)
+        seen, done = [], threading.Event()
+        watcher = threading.Thread(target=watch_progress, args=(sock, seen, done))
+        watcher.start()
+        try:  # the command line a lab engineer types: its result as JSON, the rounds as they go on stderr
+            typed = subprocess.Popen([str(PHANTOM), "set", "--socket", str(sock), "--volume-ml", "40", "--verify",
+                                      "scan", "--timeout-s", "1700", "--json"], stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+            told_at = []                                   # (when, line) of what it printed on stderr
+            teller = threading.Thread(target=lambda: told_at.extend((time.monotonic(), line.rstrip())
+                                                                    for line in typed.stderr))
+            teller.start()
+            answer = typed.stdout.read()
+            typed.wait(1750)
+            ended_s = time.monotonic()
+            teller.join(30)
+        finally:
+            done.set()
+            watcher.join(30)
+        told = [line for _, line in told_at]
+        assert typed.returncode == 0, told[-30:]
+        result = TargetResult(**json.loads(answer))                   # phantom set --json's is the API's
         rounds = result.rounds
-        # the rounds as they went: the wait's progress (the daemon's events), and the status meanwhile (the round
-        # under way, what it does, the scans so far, the scan's pictures of its plan's 40), as the panel shows it
+        # the rounds as they went: the wait's progress (the daemon's events, printed as they came, the first
+        # round's scan a round or more before the command ended), and the status meanwhile (the round under way,
+        # what it does, the scans so far, the scan's pictures of its plan's 40), as the panel shows it
         assert any("round 1 settled" in text and text.endswith("scanning") for text in told), told
-        assert any(f"round 1 scanned {rounds[0]['scanned_volume_ml']:.2f} ml" in text for text in told), told
+        first_scanned = [when for when, text in told_at
+                         if f"round 1 scanned {rounds[0]['scanned_volume_ml']:.2f} ml" in text]
+        assert first_scanned and first_scanned[0] < ended_s - 20, told_at
         scanning = [(verify, scan) for verify, scan in seen if verify["doing"] == "scanning" and scan]
         assert {verify["round"] for verify, _ in scanning} >= {1, 2}, seen
         assert [scan for _, scan in scanning if scan["stops"] != 40 or not 0 <= scan["stops_reached"] <= 40] == []
