@@ -125,6 +125,19 @@ def test_progress_in_a_log_is_lines_with_the_time_left_not_carriage_returns(caps
                          "calibrate: stage 1: 10/10, 50 s"]
 
 
+def test_a_verified_targets_rounds_are_printed_as_they_come_with_the_seconds_since_it_was_set(capsys):
+    """``phantom set --verify`` and ``make demo`` print the daemon's texts with one printer: a round takes a
+    minute, and the seconds say how the target is going."""
+    clock = iter([1000.0, 1004.2, 1047.0, 1085.6])
+    tell = common.progress_printer("    ", clock_s=lambda: next(clock))
+    tell("target 40.00 ml: round 1 settled (estimate 40.00 ml): scanning")
+    assert capsys.readouterr().err == "       4 s  target 40.00 ml: round 1 settled (estimate 40.00 ml): scanning\n"
+    tell("round 1 scanned 38.94 ml")
+    tell("round 2 settled")
+    assert capsys.readouterr().err.splitlines() == ["      47 s  round 1 scanned 38.94 ml",
+                                                    "      86 s  round 2 settled"]
+
+
 def test_the_fit_names_its_stages():
     from phantom.cli.calibrate import fit_progress
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -59,7 +58,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                             "the correction's 95 %% band at the target is wider than that")
     set_target.add_argument("--verify-tolerance-pct", type=float, metavar="PCT",
                             help="with --verify: how close the scanned volume must come (%% of the target, default "
-                            "0.3; the rounds aim at a third of it, the last accepts it all)")
+                            "0.3; the rounds aim at 0.6 of it, a third where the scan's hull error could not be "
+                            "taken off; the last accepts it all)")
     set_target.add_argument("--verify-rounds", type=int, metavar="N",
                             help="with --verify: the most scans (default 4)")
     _add_json(set_target, "print the answer as JSON")
@@ -247,7 +247,7 @@ def _run_set(args: argparse.Namespace) -> int:
     import json
 
     from phantom import PhantomError
-    from phantom.cli.common import parse_growth_ratio, parse_numbers
+    from phantom.cli.common import parse_growth_ratio, parse_numbers, progress_printer
 
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml")
@@ -264,7 +264,7 @@ def _run_set(args: argparse.Namespace) -> int:
             result = daemon.set_volume(args.volume_ml, growth_ratio=parse_growth_ratio(args.growth_ratio)
                                        if args.growth_ratio else None, verify=args.verify,
                                        verify_tolerance_pct=args.verify_tolerance_pct,
-                                       verify_rounds=args.verify_rounds, on_progress=_told, **options)
+                                       verify_rounds=args.verify_rounds, on_progress=progress_printer(), **options)
         elif args.chamber_volumes_ml is not None:
             result = daemon.set_chamber_volumes(
                 parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True), **options)
@@ -298,11 +298,6 @@ def _run_set(args: argparse.Namespace) -> int:
         print(f"MEASURED  {_ml(result.scanned_volume_ml)} scanned (verified within the tolerance) after "
               f"{len(result.rounds)} round(s)")
     return 0
-
-
-def _told(text: str) -> None:
-    """A verified target's round as it goes (the daemon's event), on stderr: a round takes a minute or two."""
-    print(f"  {text}", file=sys.stderr, flush=True)
 
 
 def format_simple(method: str, result: dict[str, Any]) -> str:

@@ -162,6 +162,21 @@ def progress_reporter(label: str, every_s: float = 10.0,
     return report
 
 
+def progress_printer(indent: str = "  ", clock_s: Callable[[], float] | None = None) -> Callable[[str], None]:
+    """A verified target's ``on_progress`` (``DaemonClient.set_volume``): each of the daemon's texts on stderr as
+    it comes, after the seconds since the printer was made (when the target was set): a round takes a minute or
+    two. ``clock_s`` is the clock it reads (``time.monotonic`` unless given)."""
+    import sys
+    import time
+
+    clock_s = clock_s or time.monotonic
+    started_s = clock_s()
+
+    def tell(text: str) -> None:
+        print(f"{indent}{clock_s() - started_s:4.0f} s  {text}", file=sys.stderr, flush=True)
+    return tell
+
+
 def format_duration(seconds: float) -> str:
     """``42 s``, ``3 min 05 s``, ``2 h 10 min``: a duration as people read it."""
     seconds = max(0, int(round(seconds)))

@@ -33,7 +33,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator, Sequence
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -163,14 +162,10 @@ def stop_daemon(process: subprocess.Popen[bytes]) -> int:
     return int(process.returncode)
 
 
-def _told(started_s: float, text: str) -> None:
-    """A verified target's round as it goes (the daemon's event), with the time since the target was set."""
-    print(f"    {time.monotonic() - started_s:4.0f} s  {text}", file=sys.stderr, flush=True)
-
-
 def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]:
     """Each volume set with ``verify="scan"``: per target, the first and the last round (the model's estimate,
     the scanned and the true volume) and the rounds taken; a target that was not verified says why."""
+    from phantom.cli.common import progress_printer
     from phantom.host.client import DaemonError, FaultError
 
     rows: list[dict[str, Any]] = []
@@ -180,7 +175,7 @@ def verified_steps(daemon: Any, targets_ml: list[float]) -> list[dict[str, Any]]
         try:
             wait_for_link(daemon)
             result = daemon.set_volume(target_ml, verify="scan", timeout_s=VERIFY_TIMEOUT_S,
-                                       on_progress=partial(_told, started_s))
+                                       on_progress=progress_printer("    "))
         except FaultError as error:
             # a fault stops the blowers until it is cleared: the volumes after it are not tried (each was refused
             # at once, FAULT_LATCHED), and the error says which round it came in and what to do
