@@ -109,6 +109,9 @@ class FrameSource(Protocol):
     def describe(self) -> dict[str, Any]:
         """What the camera is and how it is set, for capture.json."""
 
+    def close(self) -> None:
+        """Lets the camera go (a webcam's device, a stream's reader); one that holds nothing does nothing."""
+
 
 class PhantomState(Protocol):
     """The phantom being scanned."""

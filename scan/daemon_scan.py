@@ -98,9 +98,7 @@ class DaemonScanner:
                 if keep is not None and folder.status != "complete":
                     KEYED.drop(folder)
         finally:  # a webcam is let go: the process it was opened in outlives the scan, the next opens it again
-            close = getattr(camera, "close", None)
-            if close is not None:
-                close()
+            camera.close()
         return {**answer, "status": folder.status, "pictures": len(folder.frames)}
 
     @staticmethod

@@ -72,6 +72,9 @@ class VirtualCamera:
     def grab(self) -> np.ndarray:
         return self.take()()
 
+    def close(self) -> None:
+        """Nothing to let go: a rendered camera holds no device."""
+
     def take(self) -> Callable[[], np.ndarray]:
         """The picture of this moment: the scene and the rig's angles read now; the returned call renders it (the
         capture loop renders it while the rig moves on). Rendered in the order taken, one at a time."""

@@ -229,9 +229,7 @@ def run_capture(args: argparse.Namespace) -> int:
             folder = CaptureFolder.create(args.out, camera.describe(), plan.to_json(), conditions, rig)
             capture_through_daemon(client, camera, plan, folder, frame_progress("captured"))
         finally:
-            close = getattr(camera, "close", None)  # a webcam's, its stream's reader with it
-            if close is not None:
-                close()
+            camera.close()  # a webcam's, its stream's reader with it
     print(f"captured {len(folder.frames)} pictures into {folder.path}", file=sys.stderr)
     return 0
 
