@@ -142,6 +142,9 @@ class Tell:
     text: str
     level: str = "INFO"
     data: dict[str, Any] | None = None
+    #: a verification's outcome: told once the scans it stored are stored (a client reading the phantom's
+    #: measurements on it finds its last scan there)
+    after_stored: bool = False
 
 
 @dataclass(frozen=True)
@@ -818,6 +821,7 @@ class ControlCore:
     def _outcome(self, outcome: str, text: str, level: str = "INFO", extra: dict[str, Any] | None = None) -> None:
         """An outcome of the target waited on (reached, replaced, unreachable, faulted): told once, with data."""
         reach, self._reach = self._reach, None
+        verifying = self._rounds is not None
         if self._rounds is not None and self._rounds.doing == "scanning":
             self._actions.append(StopScan(f"its verification ended: {text}"))
         self._rounds = self._sure = None  # a verification ends with its target's outcome
@@ -826,10 +830,11 @@ class ControlCore:
             return
         source = reach.source if reach is not None else self.source
         self._tell("target", text, level, {"outcome": outcome, "target": target.to_json(), "source": source,
-                                           **(extra or {})})
+                                           **(extra or {})}, after_stored=verifying)
 
-    def _tell(self, kind: str, text: str, level: str = "INFO", data: dict[str, Any] | None = None) -> None:
-        self._actions.append(Tell(kind, text, level, data))
+    def _tell(self, kind: str, text: str, level: str = "INFO", data: dict[str, Any] | None = None,
+              after_stored: bool = False) -> None:
+        self._actions.append(Tell(kind, text, level, data, after_stored))
 
 
 def _kpa(pressures_pa: np.ndarray | None) -> str:

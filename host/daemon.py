@@ -182,8 +182,8 @@ class Daemon:
 
     def _perform(self, action: control.Action) -> None:
         if isinstance(action, control.Tell):
-            if action.data is not None and "rounds" in action.data and self.storing:
-                self.spawn(self._tell_once_stored(action))  # a verification's outcome: its scans stored first
+            if action.after_stored and self.storing:
+                self.spawn(self._tell_once_stored(action))
             else:
                 self.event(action.kind, action.text, action.level, action.data)
         elif isinstance(action, control.Solve):

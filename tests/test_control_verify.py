@@ -47,9 +47,18 @@ def test_a_scan_within_the_aim_ends_it_reached_with_the_measured_volume_and_reco
     assert round_["round"] == 1 and round_["scanned_error_pct"] == pytest.approx(0.075)
     assert round_["pressures_kpa"] == pytest.approx([1.0, 0.5, 0.5]) and round_["scan"] == "/scans/1"
     assert "MEASURED" in told.text
+    assert told.after_stored                          # the daemon tells it once that scan is stored
     # the scan that ends it is a measurement as good as a miss's: stored too
     assert of_kind(actions, policy_of.Record) == [policy_of.Record(1, (1.0, 0.5, 0.5), 40.03, "/scans/1")]
     assert of_kind(actions, policy_of.Correct) == []
+    # a target without a verification is told at once, whatever is being stored
+    core.offer(4.0, 2, answer_for(volume(35.0), (0.8, 0.4, 0.4)))
+    core.take_actions()
+    core.sent(4.0, volume(35.0))
+    core.take_actions()
+    (plain,) = [tell for tell in of_kind(settle(core, 4.0, 1.2, kpa=(0.8, 0.4, 0.4), estimate_ml=35.0), control.Tell)
+                if tell.data]
+    assert plain.data["outcome"] == "reached" and not plain.after_stored
 
 
 def test_a_scan_within_the_tolerance_but_off_the_aim_is_corrected_while_rounds_remain(core):
@@ -487,7 +496,7 @@ def test_a_verifications_outcome_is_told_once_its_last_scan_is_stored():
         for name in ("spawn", "_record_scan", "_tell_once_stored"):
             setattr(daemon, name, getattr(Daemon, name).__get__(daemon))
         outcome = control.Tell("target", "target 40.00 ml reached and MEASURED", "INFO",
-                               {"outcome": "reached", "rounds": [{"round": 1}]})
+                               {"outcome": "reached", "rounds": [{"round": 1}]}, after_stored=True)
         Daemon._perform(daemon, policy_of.Record(1, (1.0, 0.5, 0.5), 40.03, "/scans/1"))
         Daemon._perform(daemon, outcome)
         Daemon._perform(daemon, control.Tell("verify", "another event"))
