@@ -932,7 +932,8 @@ class Phantom:
             left lobe grows twice as much as the right).
         verify : str, optional
             ``"scan"``: once reached on pressure, scan the phantom and compare the scanned gland volume with the
-            target; outside a third of ``verify_tolerance_pct`` (the last round: outside it) the scan corrects
+            target; outside 0.6 of ``verify_tolerance_pct`` (a third for a scan whose visual hull's error could
+            not be taken off; the last round: outside it) the scan corrects
             the model (or the volume asked) and the pressures are applied again, for at most ``verify_rounds``
             scans; every scan is stored as a measurement of the phantom. The result's ``volume_ml`` is then
             the scanned (measured) volume, ``rounds`` each round's pressures and scanned volume. ``"auto"``:
@@ -941,7 +942,8 @@ class Phantom:
             (95 %) from ``measurements`` stored measurements (``scanned`` False).
         verify_tolerance_pct : float, optional
             How close the scanned volume must come (% of the target; default 0.3, from 0.05 to 20); the rounds
-            aim at a third of it (the scanner's own error adds to the scanned one in the true volume).
+            aim at 0.6 of it, a third without the hull's error taken off (the scanner's own error adds to the
+            scanned one in the true volume).
         verify_rounds : int, optional
             The most scans (default 4, at most 10).
         on_progress : callable, optional

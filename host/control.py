@@ -38,11 +38,12 @@ the estimate within ``tolerance_pct`` of what was asked.
 
 A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
 then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
-pressures. A scanned gland volume within a third of the tolerance of the target (on the last round, within the
-tolerance; :func:`phantom.host.verify.judge_scan`) ends it ``reached`` with the scanned volume (the volume reported is
-MEASURED) and asks for a :class:`Record` of the scan as a measurement; one outside asks for a :class:`Correct`
-(the scan recorded as a measurement, the next round's pressures solved), applies that answer, and scans again, up
-to the round limit (then ``not_verified``, the last scan recorded). A failed scan ends it ``scan_failed``: no
+pressures. A scanned gland volume within the share of the tolerance a round aims at (0.6 of it, a third for a scan
+whose hull's error could not be taken off: :func:`phantom.host.verify.aim_share`; on the last round, within the
+tolerance; :func:`phantom.host.verify.judge_scan`) ends it ``reached`` with the scanned volume (the volume reported
+is MEASURED) and asks for a :class:`Record` of the scan as a measurement; one outside asks for a :class:`Correct`
+(the scan recorded as a measurement, the next round's pressures solved), applies that answer, and scans again, up to
+the round limit (then ``not_verified``, the last scan recorded). A failed scan ends it ``scan_failed``: no
 correction from it, the pressures held; one that failed while the board's link was lost is taken again once the
 pressures have settled (:data:`SCAN_RETRIES`). The rounds are in the outcome's ``rounds``.
 """

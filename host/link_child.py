@@ -26,7 +26,8 @@ logger = logging.getLogger(__name__)
 #: How often (s) the link process sends its status (the daemon's ``status`` shows the latest).
 STATUS_PERIOD_S = 0.2
 #: Telemetry frames the link process keeps for a daemon that does not read them (a stalled daemon): beyond, the
-#: oldest are dropped (counted as ``telemetry_dropped``), never the keepalive's time. 2 s at 100 frames/s.
+#: oldest are dropped (counted as ``telemetry_dropped``), never the keepalive's time. 4 s at the default 50
+#: frames/s, 2 s at the fastest (10 ms).
 TELEMETRY_BACKLOG = 200
 #: How long (s) the writer to the daemon is given to finish when the process ends.
 STOP_WAIT_S = 5.0

@@ -57,7 +57,7 @@ TRENDS = ("gp", "gp+offset", "gp+growth")
 #: The prior standard deviations of the trends' coefficients: the offset (ml) and the growth's factor (a
 #: modulus 2x off halves the growth): broad beside what a calibrated model misses by (0.1-2 ml, a few %).
 TREND_PRIOR_SD = {"offset": 5.0, "growth": 0.5}
-#: A scan's standard deviation (% of its volume): the verify plan's scans (60 pictures of 640x480) read -0.14 to
+#: A scan's standard deviation (% of its volume): the verify plan's scans (then 60 pictures of 640x480) read -0.14 to
 #: +0.18 % of the truth across the volumes (bench/README.md "Scanner" and "Characterisation").
 NOISE_SD_PCT = {"scan": 0.12}
 #: A water displacement's standard deviation (ml): two repeats within 0.3 ml of each other (README.md,

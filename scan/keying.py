@@ -2,11 +2,11 @@
 follows (the daemon's verify scan: its capture and its reconstruction run in one scan worker process,
 ``phantom.host.scan_worker``).
 
-Keying is a third of a verify scan's reconstruction (60 pictures of 640x480: 1.6 s of 5 s idle) and needs nothing
-but its own picture, so the capture's pictures thread keys each one after writing it, while the rig moves to the
-next stop; after the last picture only the carving and the surface remain. The silhouette is keyed from the very
-array written losslessly to the PNG, so it is the one :func:`phantom.scan.reconstruct.reconstruct` finds reading
-the PNG back: the volume is the same to the last digit (``tests/test_scan_keying.py``).
+Keying is a third of a verify scan's reconstruction (60 pictures of 640x480, the plan of then: 1.6 s of 5 s idle)
+and needs nothing but its own picture, so the capture's pictures thread keys each one after writing it, while the
+rig moves to the next stop; after the last picture only the carving and the surface remain. The silhouette is keyed
+from the very array written losslessly to the PNG, so it is the one :func:`phantom.scan.reconstruct.reconstruct`
+finds reading the PNG back: the volume is the same to the last digit (``tests/test_scan_keying.py``).
 
 Nothing half-done is read later: one capture's silhouettes are kept at a time (a new capture drops the last
 one's), a capture that did not complete has them dropped, a picture whose keying failed has none (the
