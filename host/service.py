@@ -210,14 +210,16 @@ def _task_ended(daemon: Daemon, task: asyncio.Task[Any]) -> None:
 async def _shutdown(daemon: Daemon) -> None:
     """Vent the phantom (if the board is there), close the recording, the API, the link and the model."""
     logger.info("stopping: venting and closing")
+    venting = daemon.config.vent_on_exit and daemon.session.online
+    if venting:  # first: a target waited on (a verified one's scan too) ends told it was vented, as it is
+        with contextlib.suppress(TimeoutError, ApiError):  # the core's event says why
+            await asyncio.wait_for(daemon.vent("on shutdown"), 2.0)
     await daemon.motion.stop_scan("the daemon is stopping")  # its capture ends, marked stopped, drivers released
     if daemon.storing:  # a verified target's last scan is stored as its outcome is told: kept, not cancelled
         logger.info("stopping: storing %d scan(s) as measurements first", len(daemon.storing))
         await asyncio.wait(set(daemon.storing), timeout=STORE_WAIT_S)
-    if daemon.config.vent_on_exit and daemon.session.online:
-        with contextlib.suppress(TimeoutError, ApiError):  # the core's event says why
-            await asyncio.wait_for(daemon.vent("on shutdown"), 2.0)
-        # and the board's session ends, so that it does not latch DEAD_HOST once the daemon is gone
+    if venting:
+        # the board's session ends, so that it does not latch DEAD_HOST once the daemon is gone
         if await daemon.session.end_session():
             daemon.event("link", "session ended: the board is vented and expects no host")
         else:

@@ -206,3 +206,46 @@ def test_a_daemon_on_a_real_boards_port_refuses_verify_and_changes_nothing(tmp_p
             process.terminate()
             process.wait(60)
             log.close()
+
+
+@pytest.mark.timeout(300)
+def test_a_daemon_stopped_during_a_verified_targets_scan_says_it_vented_not_that_it_holds(tmp_path):
+    """SIGTERM while a verified target's round is scanning: the daemon stops the scan and vents. It told the waiting
+    client "the scan of round 1 failed ... the pressures are held", and then vented them; the client is now told
+    the target was not reached because the daemon vented on its way out, and the daemon ends within seconds."""
+    pytest.importorskip("cv2")
+    import signal
+
+    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    log = open(tmp_path / "daemon.log", "w+")
+    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
+                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
+    try:
+        wait_ready(sock, process, Path(log.name), 180)
+        told = []
+
+        def verify():
+            try:
+                with phantom.connect(sock) as ph:
+                    ph.set_volume(35.0, verify="scan", timeout_s=250)
+            except DaemonError as error:
+                told.append(error)
+
+        waiting = threading.Thread(target=verify)
+        waiting.start()
+        with phantom.connect(sock) as watcher:
+            deadline = time.monotonic() + 120
+            while (watcher.status().verify or {}).get("doing") != "scanning":
+                assert time.monotonic() < deadline, "the verified target never scanned"
+                time.sleep(0.2)
+        time.sleep(2.0)                                                    # a few pictures in
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(30) == 0, log.read_text()[-3000:]
+        waiting.join(30)
+        (error,) = told
+        assert "not reached: vented: on shutdown" in str(error) and "held" not in str(error), str(error)
+    finally:
+        if process.poll() is None:
+            process.terminate()
+            process.wait(60)
+        log.close()
