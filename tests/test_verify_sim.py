@@ -208,11 +208,22 @@ def test_a_daemon_on_a_real_boards_port_refuses_verify_and_changes_nothing(tmp_p
             log.close()
 
 
+def wait_scanning(sock, timeout_s=120):
+    """Until the daemon's verified target is scanning."""
+    with phantom.connect(sock) as watcher:
+        deadline = time.monotonic() + timeout_s
+        while (watcher.status().verify or {}).get("doing") != "scanning":
+            assert time.monotonic() < deadline, "the verified target never scanned"
+            time.sleep(0.2)
+
+
 @pytest.mark.timeout(300)
-def test_a_daemon_stopped_during_a_verified_targets_scan_says_it_vented_not_that_it_holds(tmp_path):
-    """SIGTERM while a verified target's round is scanning: the daemon stops the scan and vents. It told the waiting
-    client "the scan of round 1 failed ... the pressures are held", and then vented them; the client is now told
-    the target was not reached because the daemon vented on its way out, and the daemon ends within seconds."""
+def test_a_client_that_leaves_a_verified_target_and_a_daemon_that_stops_during_one_say_what_goes_on(tmp_path):
+    """``phantom set --verify`` interrupted (Ctrl-C) said "interrupted" while the daemon went on verifying (and
+    inflating): it now says the daemon goes on with the target, and how to stop it. SIGTERM while a verified
+    target's round is scanning: the daemon stops the scan and vents. It told the waiting client "the scan of round
+    1 failed ... the pressures are held", and then vented them; the client is now told the target was not reached
+    because the daemon vented on its way out, and the daemon ends within seconds."""
     pytest.importorskip("cv2")
     import signal
 
@@ -222,6 +233,16 @@ def test_a_daemon_stopped_during_a_verified_targets_scan_says_it_vented_not_that
                                stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
     try:
         wait_ready(sock, process, Path(log.name), 180)
+        typed = subprocess.Popen([str(PHANTOM), "set", "--socket", str(sock), "--volume-ml", "35", "--verify",
+                                  "scan"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        wait_scanning(sock)
+        typed.send_signal(signal.SIGINT)
+        _, said = typed.communicate(timeout=30)
+        assert typed.returncode == 130, said
+        assert ("phantom set: the daemon goes on with the target (35.00 ml; verify: 35 ml (scan, within 0.3 %): "
+                "round 1 of at most 4, scanning") in said and "`phantom vent` stops it" in said, said
+        with phantom.connect(sock) as ph:
+            assert ph.status().verify["target_ml"] == 35.0                # and it does
         told = []
 
         def verify():
@@ -231,13 +252,10 @@ def test_a_daemon_stopped_during_a_verified_targets_scan_says_it_vented_not_that
             except DaemonError as error:
                 told.append(error)
 
-        waiting = threading.Thread(target=verify)
+        waiting = threading.Thread(target=verify)                       # the same target, set again
         waiting.start()
-        with phantom.connect(sock) as watcher:
-            deadline = time.monotonic() + 120
-            while (watcher.status().verify or {}).get("doing") != "scanning":
-                assert time.monotonic() < deadline, "the verified target never scanned"
-                time.sleep(0.2)
+        time.sleep(1.0)
+        wait_scanning(sock)
         time.sleep(2.0)                                                    # a few pictures in
         process.send_signal(signal.SIGTERM)
         assert process.wait(30) == 0, log.read_text()[-3000:]

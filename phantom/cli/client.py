@@ -260,16 +260,21 @@ def _run_set(args: argparse.Namespace) -> int:
     if args.timeout_s is not None:
         options["timeout_s"] = args.timeout_s
     with _connect(args) as daemon:
-        if args.volume_ml is not None:
-            result = daemon.set_volume(args.volume_ml, growth_ratio=parse_growth_ratio(args.growth_ratio)
-                                       if args.growth_ratio else None, verify=args.verify,
-                                       verify_tolerance_pct=args.verify_tolerance_pct,
-                                       verify_rounds=args.verify_rounds, on_progress=progress_printer(), **options)
-        elif args.chamber_volumes_ml is not None:
-            result = daemon.set_chamber_volumes(
-                parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True), **options)
-        else:
-            result = daemon.set_pressures(parse_numbers(args.pressures_kpa, "--pressures-kpa"), **options)
+        try:
+            if args.volume_ml is not None:
+                result = daemon.set_volume(args.volume_ml, growth_ratio=parse_growth_ratio(args.growth_ratio)
+                                           if args.growth_ratio else None, verify=args.verify,
+                                           verify_tolerance_pct=args.verify_tolerance_pct,
+                                           verify_rounds=args.verify_rounds, on_progress=progress_printer(),
+                                           **options)
+            elif args.chamber_volumes_ml is not None:
+                result = daemon.set_chamber_volumes(
+                    parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml", allow_free=True), **options)
+            else:
+                result = daemon.set_pressures(parse_numbers(args.pressures_kpa, "--pressures-kpa"), **options)
+        except KeyboardInterrupt:
+            _tell_what_goes_on(args)
+            raise
         labels = daemon.status().chamber_labels
     if args.json:
         print(json.dumps(dataclasses.asdict(result), indent=2))
@@ -298,6 +303,25 @@ def _run_set(args: argparse.Namespace) -> int:
         print(f"MEASURED  {_ml(result.scanned_volume_ml)} scanned (verified within the tolerance) after "
               f"{len(result.rounds)} round(s)")
     return 0
+
+
+def _tell_what_goes_on(args: argparse.Namespace) -> None:
+    """``phantom set`` interrupted while it waited: the target is the daemon's, which goes on with it (a verified
+    one's rounds too). Says so, from the daemon's status, so that nobody takes the interrupt for a stop."""
+    import sys
+
+    try:
+        with _connect(args, wait_ready=False) as daemon:
+            status = daemon.status()
+    except Exception:  # the daemon gone too: nothing goes on that it could say
+        return
+    if status.target is None:
+        return
+    target = (f"{status.target_volume_ml:.2f} ml" if status.target_volume_ml is not None
+              else ", ".join(f"{key} {value}" for key, value in status.target.items()))
+    verify = f"; verify: {status.verify['text']}" if status.verify else ""
+    print(f"phantom set: the daemon goes on with the target ({target}{verify}): `phantom status` shows it, "
+          "`phantom vent` stops it", file=sys.stderr, flush=True)
 
 
 def format_simple(method: str, result: dict[str, Any]) -> str:
