@@ -621,8 +621,9 @@ class Webcam:
         self.flush = flush if isinstance(source, int) else 0
         self.capture = _open_video(source)
         if not self.capture.isOpened():
-            raise CameraLost(f"cannot open the camera {source!r}: is it plugged in (ls /dev/video*), or the path "
-                             f"right?")
+            hint = ("is the stream up and its URL right? (open it in a browser)" if self.live
+                    else "is it plugged in? (ls /dev/video*)" if isinstance(source, int) else "is the path right?")
+            raise CameraLost(f"cannot open the camera {source!r}: {hint}")
         self._stream = _StreamReader(self.capture, source) if self.live else None
         self.settings: dict[str, Any] = {}
         if isinstance(source, int):

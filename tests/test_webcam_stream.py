@@ -159,3 +159,10 @@ def test_a_stream_that_sends_nothing_readable_is_a_lost_camera_saying_so(stream)
             camera.grab()
     finally:
         camera.close()
+
+
+def test_a_stream_that_cannot_be_opened_is_refused_with_a_hint_for_a_stream():
+    """A URL nobody serves was refused with a device's hint ("is it plugged in (ls /dev/video*)")."""
+    with pytest.raises(CameraLost, match=r"cannot open the camera 'http://127\.0\.0\.1:9/none\.mjpg': is the "
+                                         r"stream up and its URL right\? \(open it in a browser\)"):
+        Webcam("http://127.0.0.1:9/none.mjpg")
