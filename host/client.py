@@ -653,7 +653,7 @@ class AsyncPhantom:
     async def _outcome(self, result: TargetResult, outcomes: Connection, timeout_s: float,
                        on_progress: Callable[[str], None] | None) -> TargetResult:
         started_s = time.monotonic()
-        wanted = _describe(result.target)
+        wanted = describe_target(result.target)
         while True:
             left_s = started_s + timeout_s - time.monotonic()
             try:
@@ -723,7 +723,7 @@ class AsyncPhantom:
             if status.pid != self.daemon_pid:
                 self.daemon_pid = status.pid
                 raise DaemonRestartedError("restarted", f"the daemon restarted while waiting for {wanted} (it "
-                                           f"now holds {_describe(status.target)}, control {status.control}): "
+                                           f"now holds {describe_target(status.target)}, control {status.control}): "
                                            "set the target again")
             return status
 
@@ -797,7 +797,9 @@ class AsyncPhantom:
             await connection.close()
 
 
-def _describe(target: dict[str, Any] | None) -> str:
+def describe_target(target: dict[str, Any] | None) -> str:
+    """A target as the daemon states it (``Status.target``, ``TargetResult.target``) in words: ``40 ml``,
+    ``chamber volumes 2, -, - ml``, ``pressures 1, 1, 1 kPa``; ``none``."""
     if not target:
         return "none"
     if "volume_ml" in target:

@@ -310,6 +310,8 @@ def _tell_what_goes_on(args: argparse.Namespace) -> None:
     one's rounds too). Says so, from the daemon's status, so that nobody takes the interrupt for a stop."""
     import sys
 
+    from phantom.host.client import describe_target
+
     try:
         with _connect(args, wait_ready=False) as daemon:
             status = daemon.status()
@@ -318,7 +320,7 @@ def _tell_what_goes_on(args: argparse.Namespace) -> None:
     if status.target is None:
         return
     target = (f"{status.target_volume_ml:.2f} ml" if status.target_volume_ml is not None
-              else ", ".join(f"{key} {value}" for key, value in status.target.items()))
+              else describe_target(status.target))
     verify = f"; verify: {status.verify['text']}" if status.verify else ""
     print(f"phantom set: the daemon goes on with the target ({target}{verify}): `phantom status` shows it, "
           "`phantom vent` stops it", file=sys.stderr, flush=True)
