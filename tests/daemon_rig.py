@@ -2,7 +2,8 @@
 
 :class:`DaemonRig` starts ``phantom daemon --port PORT`` as its own process against a
 :class:`phantom.hil.sim.SimulatedBoard` (the real firmware in simavr), and gives the tests its status, the
-``phantom`` CLI, the raw API and its log. :func:`calibrated_scene` writes a scene on the daemon's default model
+``phantom`` CLI, the raw API and its log; :func:`daemon_process` runs ``phantom daemon`` (``--sim`` or a port) for
+the length of a ``with`` block. :func:`calibrated_scene` writes a scene on the daemon's default model
 (the calibrated Gent phantom, answered from its cached response table) with the given ``[[steps]]``.
 :func:`wait_for` awaits a condition in the link's tests' event loops.
 """
@@ -13,6 +14,9 @@ import asyncio
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -57,6 +61,38 @@ def wait_ready(socket: Path, process: subprocess.Popen[Any], log_path: Path, tim
             pass
         assert time.monotonic() < deadline, log_path.read_text()
         time.sleep(0.2)
+
+
+@dataclass(frozen=True)
+class DaemonProcess:
+    """A ``phantom daemon`` process, its API's socket and the file its output goes to."""
+
+    process: subprocess.Popen[Any]
+    socket: Path
+    log_path: Path
+
+    def log(self) -> str:
+        """What it printed so far."""
+        return self.log_path.read_text()
+
+
+@contextmanager
+def daemon_process(directory: Path, *arguments: str, ready_s: float, stop_s: float = 30.0,
+                   env: dict[str, str] | None = None, socket_name: str = "d.sock") -> Iterator[DaemonProcess]:
+    """``phantom daemon ARGUMENTS --socket DIRECTORY/SOCKET_NAME`` as its own process, its output in
+    DIRECTORY/daemon.log, ready (:func:`wait_ready` within ``ready_s``) when the block starts; on the way out, unless
+    it has ended already, SIGTERM (it vents and stores, as systemd stops it) and a wait of up to ``stop_s``."""
+    socket, log_path = directory / socket_name, directory / "daemon.log"
+    with open(log_path, "w") as log:
+        process = subprocess.Popen([str(PHANTOM), "daemon", *arguments, "--socket", str(socket)], stdout=log,
+                                   stderr=subprocess.STDOUT, env=env)
+        try:
+            wait_ready(socket, process, log_path, ready_s)
+            yield DaemonProcess(process, socket, log_path)
+        finally:
+            if process.poll() is None:
+                process.terminate()
+                process.wait(stop_s)
 
 
 class DaemonRig:

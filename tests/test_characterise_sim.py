@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from daemon_rig import wait_ready
+from daemon_rig import daemon_process
 
 PHANTOM = Path(sys.executable).with_name("phantom")
 
@@ -24,26 +24,18 @@ def test_characterise_scans_stores_and_reports_through_a_simulated_daemon(tmp_pa
 
     environment = {**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}
     virtual_rig(0.25, (0.0, 30.0)).save(tmp_path / "rig.json")  # the virtual camera's own geometry
-    sock = tmp_path / "d.sock"
-    log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
-                               stdout=log, stderr=subprocess.STDOUT, env=environment)
     out = tmp_path / "run"
-    command = [str(PHANTOM), "characterise", "--out", str(out), "--socket", str(sock), "--json"]
-    try:
-        wait_ready(sock, process, Path(log.name), 120)
+    with daemon_process(tmp_path, "--sim", "--sim-speed", "2", ready_s=120, env=environment) as daemon:
+        sock = daemon.socket
+        command = [str(PHANTOM), "characterise", "--out", str(out), "--socket", str(sock), "--json"]
         done = subprocess.run([*command, "--points", "2", "--rig", str(tmp_path / "rig.json"), "--views", "8",
                                "--scale", "0.25", "--settle-s", "0", "--voxel-mm", "0.5", "--phantom", "bench"],
                               capture_output=True, text=True, env=environment, timeout=1400)
-        assert done.returncode == 0, done.stderr + log.read()
+        assert done.returncode == 0, done.stderr + daemon.log()
         again = subprocess.run([*command, "--resume"], capture_output=True, text=True, env=environment, timeout=300)
         assert again.returncode == 0, again.stderr
         status = json.loads(subprocess.run([str(PHANTOM), "status", "--json", "--socket", str(sock)],
                                            capture_output=True, text=True, timeout=60).stdout)
-    finally:
-        process.terminate()
-        process.wait(30)
-        log.close()
     record = json.loads((out / "characterisation.json").read_text())
     assert len(record["results"]) == 2 and not record["skipped"]
     for result in record["results"]:

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
-from daemon_rig import wait_ready
+from daemon_rig import daemon_process
 
 from phantom import PhantomError
 from phantom.host.client import DaemonClient
@@ -29,15 +29,10 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 
 @pytest.mark.timeout(900)  # the first user of the calibrated model's response table may build it
 def test_sim_daemon_plays_the_lopsided_scene(tmp_path, default_model_cached):
-    sock = tmp_path / "d.sock"
-    log = open(tmp_path / "daemon.log", "w+")
     recording = tmp_path / "lopsided.rrd"
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--scene",
-                                str(example_scene_path("lopsided")), "--socket", str(sock), "--rerun-save",
-                                str(recording), "--mesh-hz", "5"],
-                               stdout=log, stderr=subprocess.STDOUT)
-    try:
-        wait_ready(sock, process, Path(log.name), 60)
+    with daemon_process(tmp_path, "--sim", "--sim-speed", "2", "--scene", str(example_scene_path("lopsided")),
+                        "--rerun-save", str(recording), "--mesh-hz", "5", ready_s=60) as daemon:
+        sock, process = daemon.socket, daemon.process
         # the daemon's own simulator dies: the daemon says so, starts another and plays the scene on it
         simulator = simulator_of(process.pid)
         os.kill(simulator, signal.SIGKILL)
@@ -47,11 +42,11 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path, default_model_cached):
                 status = client.call("status")
             if status["simulated_board"]["restarts"] == 1 and status["link"] == "online":
                 break
-            assert time.monotonic() < deadline, Path(log.name).read_text()
+            assert time.monotonic() < deadline, daemon.log()
             time.sleep(0.2)
         result = subprocess.run([str(PHANTOM), "run-scene", "lopsided", "--time-scale", "8", "--wait", "--json",
                                  "--socket", str(sock)], capture_output=True, text=True, timeout=120)
-        assert result.returncode == 0, result.stderr + Path(log.name).read_text()
+        assert result.returncode == 0, result.stderr + daemon.log()
         steps = json.loads(result.stdout)
         assert [step["target"].split()[0] for step in steps] == ["30.00", "36.00", "36.00", "pressures"]
         for step in steps:
@@ -65,11 +60,9 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path, default_model_cached):
         assert status["fidelity"] == "table"
         # the calibrated Gent model answers from its response table: no solve while the scene plays
         assert status["model_counts"]["full_solves"] == 0 and status["model_counts"]["tangent_solves"] == 0
-    finally:
         process.send_signal(signal.SIGTERM)
         code = process.wait(30)
-        log.close()
-    text = Path(log.name).read_text()
+    text = daemon.log()
     assert code == 0 and "vented: on shutdown" in text, text
     assert "starting the simulated board" in text
     assert "the simulated board (simavr) died: restarting it" in text

@@ -5,15 +5,14 @@ surface)."""
 
 import os
 import re
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import nbclient
 import nbformat
 import pytest
+from daemon_rig import daemon_process
 
 REPO = Path(__file__).resolve().parent.parent
 PHANTOM = Path(sys.executable).with_name("phantom")
@@ -24,21 +23,8 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.timeout(900)]
 @pytest.fixture(scope="module")
 def sim_daemon(tmp_path_factory, default_model_cached):
     """``phantom daemon --sim`` with its defaults (the calibrated model, its table from the cache)."""
-    directory = tmp_path_factory.mktemp("examples")
-    socket = directory / "phantomd.sock"
-    log = open(directory / "daemon.log", "w")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--socket", str(socket)], stdout=log,
-                               stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 120
-    while not socket.is_socket():
-        assert process.poll() is None and time.monotonic() < deadline, (directory / "daemon.log").read_text()
-        time.sleep(0.2)
-    try:
-        yield {"socket": socket, "log": directory / "daemon.log"}
-    finally:
-        process.send_signal(signal.SIGTERM)
-        process.wait(60)
-        log.close()
+    with daemon_process(tmp_path_factory.mktemp("examples"), "--sim", ready_s=120, stop_s=60) as daemon:
+        yield {"socket": daemon.socket, "log": daemon.log_path}
 
 
 def test_the_inverse_targets_script_prints_each_target_with_its_estimate_and_true_volume(sim_daemon):

@@ -203,21 +203,16 @@ def test_a_fault_mid_verify_says_which_round_and_what_to_do(tmp_path):
     pytest.importorskip("cv2")
     import signal
     import threading
-    from pathlib import Path
 
-    from daemon_rig import wait_ready
+    from daemon_rig import daemon_process
 
     import phantom
     from phantom.host.client import FaultError
 
-    sock, data = tmp_path / "d.sock", tmp_path / "data"
-    log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--sim", "--sim-speed", "2",
-                                "--socket", str(sock)], stdout=log, stderr=subprocess.STDOUT,
-                               env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
     caught: list[BaseException] = []
-    try:
-        wait_ready(sock, process, Path(log.name), 180)
+    with daemon_process(tmp_path, "--sim", "--sim-speed", "2", ready_s=180, stop_s=120,
+                        env={**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}) as daemon:
+        sock = daemon.socket
 
         def verify():
             with phantom.connect(sock) as client:
@@ -251,10 +246,6 @@ def test_a_fault_mid_verify_says_which_round_and_what_to_do(tmp_path):
                     assert time.monotonic() < deadline
                     time.sleep(0.5)
             assert ph.status().faults == ()
-    finally:
-        process.terminate()
-        process.wait(120)
-        log.close()
 
 
 def test_the_link_process_says_what_priority_it_got_and_why_not():

@@ -16,13 +16,12 @@ plays at 60 (the timelines last minutes).
 import os
 import re
 import shlex
-import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from daemon_rig import wait_ready
+from daemon_rig import daemon_process
 
 from phantom.cli.main import build_parser, join_list_values
 
@@ -100,18 +99,8 @@ def test_every_readme_command_line_parses(where, line):
 @pytest.fixture(scope="module")
 def default_daemon(tmp_path_factory, default_model_cached):
     """``phantom daemon --sim`` with every default (scene builtin:calibrated), at twice real time."""
-    folder = tmp_path_factory.mktemp("readme")
-    sock = folder / "d.sock"
-    log = open(folder / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
-                               stdout=log, stderr=subprocess.STDOUT)
-    try:
-        wait_ready(sock, process, Path(log.name), 90)
-        yield sock
-    finally:
-        process.send_signal(signal.SIGTERM)
-        process.wait(30)
-        log.close()
+    with daemon_process(tmp_path_factory.mktemp("readme"), "--sim", "--sim-speed", "2", ready_s=90) as daemon:
+        yield daemon.socket
 
 
 CLIENT_LINES = [(where, line) for where, line in LINES if shlex.split(line)[1] in CLIENTS]

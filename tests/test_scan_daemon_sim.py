@@ -3,12 +3,11 @@ on the simulated board: the firmware's steppers turn the orbit in simavr, the vi
 phantom at the rig's counted angles, and the pictures land in a capture folder; bad requests are refused."""
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from daemon_rig import wait_ready
+from daemon_rig import daemon_process
 
 from phantom.host.client import DaemonClient, DaemonError
 
@@ -20,13 +19,8 @@ pytestmark = [pytest.mark.sim, pytest.mark.slow]
 @pytest.mark.timeout(600)
 def test_the_daemon_scans_through_its_api(tmp_path, default_model_cached):
     pytest.importorskip("cv2")
-    sock = tmp_path / "d.sock"
-    log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
-                               stdout=log, stderr=subprocess.STDOUT)
-    try:
-        wait_ready(sock, process, Path(log.name), 120)
-        with DaemonClient(sock, timeout_s=300) as client:
+    with daemon_process(tmp_path, "--sim", "--sim-speed", "2", ready_s=120) as daemon:
+        with DaemonClient(daemon.socket, timeout_s=300) as client:
             with pytest.raises(DaemonError, match=r"scan takes out .*not colour"):
                 client.call("scan", {"out": str(tmp_path / "x"), "colour": "red"})
             with pytest.raises(DaemonError, match="views must be at least 1"):
@@ -57,7 +51,3 @@ def test_the_daemon_scans_through_its_api(tmp_path, default_model_cached):
         assert data["camera"]["kind"] == "virtual" and (out / "images" / "0007.png").is_file()
         # the simulated rig's true angle (the pulses counted by simavr) is where the board says the orbit is
         assert status["simulated"]["rig_deg"] == pytest.approx([-180.0, 30.0], abs=0.01)
-    finally:
-        process.terminate()
-        process.wait(30)
-        log.close()

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 import pytest
-from daemon_rig import wait_ready
+from daemon_rig import daemon_process
 
 from phantom.host.client import DaemonClient, DaemonError
 
@@ -29,18 +29,8 @@ PLAN = {"views": 2, "elevations_deg": [0], "start_deg": -20.0, "span_deg": 40.0,
 @pytest.fixture(scope="module")
 def daemon(tmp_path_factory, default_model_cached):
     pytest.importorskip("cv2")
-    folder = tmp_path_factory.mktemp("rig")
-    sock, log = folder / "d.sock", open(folder / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
-                               stdout=log, stderr=subprocess.STDOUT)
-    try:
-        wait_ready(sock, process, Path(log.name), 120)
-        yield process, sock, Path(log.name)
-    finally:
-        if process.poll() is None:
-            process.terminate()
-            process.wait(30)
-        log.close()
+    with daemon_process(tmp_path_factory.mktemp("rig"), "--sim", "--sim-speed", "2", ready_s=120) as daemon:
+        yield daemon.process, daemon.socket, daemon.log_path
 
 
 class ScanInThread:

@@ -9,14 +9,13 @@ The truth is a coarser mesh (10 mm, 10-node) than the controller's model (builti
 plant; the fixture builds it for the session when it is not cached)."""
 
 import os
-import subprocess
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-from daemon_rig import wait_ready
+from daemon_rig import daemon_process
 from rounds_bench import verify_rounds
 from truth_scan import SCANNER_TOLERANCE, verify_scan_ml
 
@@ -108,17 +107,12 @@ def test_another_phantom_reaches_a_verified_40_ml_in_true_volume(lobes_truth, tm
 
     pytest.importorskip("cv2")
     scene, _, _ = lobes_truth
-    sock, data = tmp_path / "d.sock", tmp_path / "data"
-    log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-truth", str(scene),
-                                "--sim-truth-modulus-factor", f"{MODULUS_FACTOR:g}", "--socket", str(sock),
-                                # half speed: the board's dead-host deadline and simavr's pace tolerate twice the
-                                # stalls of a loaded machine (at speed 1 and load 22-28 a scan aborted on a lost
-                                # link in round 1 or 2 of three tries)
-                                "--sim-speed", "0.5"],
-                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
-    try:
-        wait_ready(sock, process, Path(log.name), 180)
+    # half speed: the board's dead-host deadline and simavr's pace tolerate twice the stalls of a loaded machine (at
+    # speed 1 and load 22-28 a scan aborted on a lost link in round 1 or 2 of three tries)
+    with daemon_process(tmp_path, "--sim", "--sim-truth", str(scene), "--sim-truth-modulus-factor",
+                        f"{MODULUS_FACTOR:g}", "--sim-speed", "0.5", ready_s=180, stop_s=STORE_WAIT_S + 60,
+                        env={**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}) as daemon:
+        sock = daemon.socket
         started = time.monotonic()
         with phantom.connect(sock) as ph:
             # six rounds: the loop's corrections near 40 ml went 39.56, 40.21, 39.87, 40.09, then 39.95 ml scanned
@@ -131,15 +125,10 @@ def test_another_phantom_reaches_a_verified_40_ml_in_true_volume(lobes_truth, tm
         assert abs(result.true_volume_ml - 40.0) <= 0.003 * 40.0, rounds
         # the controller's model alone misses this phantom by more than the tolerance: the rounds corrected it
         assert len(rounds) >= 2 and abs(rounds[0]["true_volume_ml"] - 40.0) > 0.003 * 40.0, rounds
-        log.seek(0)
-        text = log.read()
+        text = daemon.log()
         assert "the simulated phantom's plant:" in text and "simulated phantom's truth [" not in text  # cached
         print(f"verified 40 ml against the lobes-1.1, E x 0.9 truth in {took_s:.0f} s, {len(rounds)} rounds: "
               + "; ".join(f"{entry['scanned_volume_ml']:.3f} / {entry['true_volume_ml']:.3f} ml" for entry in rounds))
-    finally:
-        process.terminate()
-        process.wait(STORE_WAIT_S + 60)
-        log.close()
 
 
 @pytest.mark.timeout(900)

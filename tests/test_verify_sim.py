@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemon_rig import wait_ready
+from daemon_rig import daemon_process
 
 import phantom
 from phantom.host.client import DaemonError, TargetResult
@@ -40,14 +40,11 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
     from phantom.host.recording import read_rrd
     from phantom.model.measurements import CorrectionStore
 
-    sock, data, rrd = tmp_path / "d.sock", tmp_path / "data", tmp_path / "verify.rrd"
-    log = open(tmp_path / "daemon.log", "w+")
-    # the board at twice the wall clock: the orbit's 180 moves take half the time (each round about 80 -> 55 s)
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock),
-                                "--rerun-save", str(rrd)], stdout=log, stderr=subprocess.STDOUT,
-                               env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
-    try:
-        wait_ready(sock, process, Path(log.name), 180)
+    data, rrd = tmp_path / "data", tmp_path / "verify.rrd"
+    # the board at twice the wall clock: the orbit's moves take half the time
+    with daemon_process(tmp_path, "--sim", "--sim-speed", "2", "--rerun-save", str(rrd), ready_s=180, stop_s=120,
+                        env={**os.environ, "PHANTOM_DATA_DIR": str(data)}) as daemon:
+        sock = daemon.socket
         with phantom.connect(sock) as ph:
             with pytest.raises(DaemonError, match="verify_tolerance_pct .* from 0.05 to 20") as bad:
                 ph.set_volume(40.0, verify="scan", verify_tolerance_pct=0.0)
@@ -102,10 +99,6 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
         assert all(Path(entry["scan"], "scan.ply").is_file() and Path(entry["scan"]).parent.parent == data
                    for entry in rounds)
         assert rounds[0]["pressures_kpa"] != rounds[-1]["pressures_kpa"] and "next" in rounds[0]
-    finally:
-        process.terminate()
-        process.wait(120)
-        log.close()
     # every scan is a measurement kept, the last (within the tolerance) too: stored before the daemon stopped
     stored = CorrectionStore.for_phantom("default", data).entries()
     assert [(entry.method, entry.volume_ml, entry.scan_file) for entry in stored] == [
@@ -154,14 +147,12 @@ def test_a_verified_target_holds_the_link_with_one_busy_process_per_core(tmp_pat
     pytest.importorskip("cv2")
     from phantom.host.client import FaultError
 
-    sock, data = tmp_path / "d.sock", tmp_path / "data"
+    data = tmp_path / "data"
     load = [subprocess.Popen([sys.executable, "-c", "while True:\n    pass\n"]) for _ in range(os.cpu_count() or 2)]
-    log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
-                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
     try:
-        wait_ready(sock, process, Path(log.name), 600)
-        with phantom.connect(sock) as ph:
+        with (daemon_process(tmp_path, "--sim", "--sim-speed", "2", ready_s=600, stop_s=120,
+                             env={**os.environ, "PHANTOM_DATA_DIR": str(data)}) as daemon,
+              phantom.connect(daemon.socket) as ph):
             try:
                 result = ph.set_volume(35.0, verify="scan", timeout_s=1700)
             except FaultError as error:
@@ -181,31 +172,19 @@ def test_a_verified_target_holds_the_link_with_one_busy_process_per_core(tmp_pat
         for busy in load:
             busy.kill()
             busy.wait()
-        process.terminate()
-        process.wait(120)
-        log.close()
 
 
 @pytest.mark.timeout(300)
 def test_a_daemon_on_a_real_boards_port_refuses_verify_and_changes_nothing(tmp_path):
     from phantom.hil.sim import SimulatedBoard
 
-    sock = tmp_path / "d.sock"
-    log = open(tmp_path / "daemon.log", "w+")
-    with SimulatedBoard(speed=1.0) as board:
-        process = subprocess.Popen([str(PHANTOM), "daemon", "--port", board.port, "--socket", str(sock)],
-                                   stdout=log, stderr=subprocess.STDOUT)
-        try:
-            wait_ready(sock, process, Path(log.name), 180)
-            with phantom.connect(sock) as ph:
-                with pytest.raises(DaemonError, match="real board.*virtual one.*without verify") as refused:
-                    ph.set_volume(35.0, verify="scan")
-                assert refused.value.code == "invalid_params" and ph.status().target is None
-                assert ph.set_volume(35.0, wait=False).target == {"volume_ml": 35.0}   # without verify it goes
-        finally:
-            process.terminate()
-            process.wait(60)
-            log.close()
+    with (SimulatedBoard(speed=1.0) as board,
+          daemon_process(tmp_path, "--port", board.port, ready_s=180, stop_s=60) as daemon,
+          phantom.connect(daemon.socket) as ph):
+        with pytest.raises(DaemonError, match="real board.*virtual one.*without verify") as refused:
+            ph.set_volume(35.0, verify="scan")
+        assert refused.value.code == "invalid_params" and ph.status().target is None
+        assert ph.set_volume(35.0, wait=False).target == {"volume_ml": 35.0}   # without verify it goes
 
 
 def wait_scanning(sock, timeout_s=120):
@@ -227,12 +206,9 @@ def test_a_client_that_leaves_a_verified_target_and_a_daemon_that_stops_during_o
     pytest.importorskip("cv2")
     import signal
 
-    sock, data = tmp_path / "d.sock", tmp_path / "data"
-    log = open(tmp_path / "daemon.log", "w+")
-    process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--sim-speed", "2", "--socket", str(sock)],
-                               stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PHANTOM_DATA_DIR": str(data)})
-    try:
-        wait_ready(sock, process, Path(log.name), 180)
+    with daemon_process(tmp_path, "--sim", "--sim-speed", "2", ready_s=180, stop_s=60,
+                        env={**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}) as daemon:
+        sock, process = daemon.socket, daemon.process
         typed = subprocess.Popen([str(PHANTOM), "set", "--socket", str(sock), "--volume-ml", "35", "--verify",
                                   "scan"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         wait_scanning(sock)
@@ -258,12 +234,7 @@ def test_a_client_that_leaves_a_verified_target_and_a_daemon_that_stops_during_o
         wait_scanning(sock)
         time.sleep(2.0)                                                    # a few pictures in
         process.send_signal(signal.SIGTERM)
-        assert process.wait(30) == 0, log.read_text()[-3000:]
+        assert process.wait(30) == 0, daemon.log()[-3000:]
         waiting.join(30)
         (error,) = told
         assert "not reached: vented: on shutdown" in str(error) and "held" not in str(error), str(error)
-    finally:
-        if process.poll() is None:
-            process.terminate()
-            process.wait(60)
-        log.close()
