@@ -194,13 +194,17 @@ class SceneState:
     time_s: float
     end_s: float
     time_scale: float
+    #: it played to its end, or was stopped before it (``stopped``)
     finished: bool
     steps: tuple[SceneStep, ...]
+    #: why it was stopped before its end (another target, vent); None: it was not
+    stopped: str | None = None
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> SceneState:
         return cls(str(data["name"]), float(data["time_s"]), float(data["end_s"]), float(data["time_scale"]),
-                   bool(data["finished"]), tuple(SceneStep.from_json(step) for step in data.get("steps", [])))
+                   bool(data["finished"]), tuple(SceneStep.from_json(step) for step in data.get("steps", [])),
+                   data.get("stopped"))
 
 
 @dataclass(frozen=True)
@@ -760,6 +764,9 @@ class AsyncPhantom:
                                           "it finished")
             if on_progress is not None:
                 on_progress(status)
+            if status.scene.stopped is not None:
+                raise TargetReplacedError("replaced", f"the scene {run.name} was stopped at {status.scene.time_s:.1f} "
+                                          f"of {status.scene.end_s:g} s: {status.scene.stopped}")
             if status.scene.finished:
                 return status.scene
             if time.monotonic() >= deadline_s:

@@ -59,8 +59,11 @@ class SceneRun:
     started_clock_s: float
     wants_shape: bool = False
     steps: list[StepRecord] = field(default_factory=list)
+    #: it played to its end, or was stopped before it (``stopped``)
     finished: bool = False
-    #: since when (clock s) the scene's clock waits (a step being scanned); None: it runs
+    #: why it was stopped before its end (a new target, vent); None: it was not
+    stopped: str | None = None
+    #: since when (clock s) the scene's clock waits (a step being scanned, or the scene stopped); None: it runs
     held_since_s: float | None = None
 
     def scene_time_s(self, clock_s: float) -> float:
@@ -71,7 +74,7 @@ class SceneRun:
 
     def to_json(self, clock_s: float) -> dict[str, Any]:
         return {"name": self.name, "time_s": min(self.scene_time_s(clock_s), self.end_s), "end_s": self.end_s,
-                "time_scale": self.time_scale, "finished": self.finished,
+                "time_scale": self.time_scale, "finished": self.finished, "stopped": self.stopped,
                 "steps": [step.to_json() for step in self.steps]}
 
 
@@ -151,7 +154,9 @@ class SceneRunner:
     def stop(self, why: str) -> None:
         """Stop the playing scene (a new target, vent); its record stays for ``status``."""
         if self.active and self.run is not None:
-            self.run.finished = True
+            self.run.finished, self.run.stopped = True, why
+            if self.run.held_since_s is None:          # its time stands where it stopped
+                self.run.held_since_s = self.clock()
             self.on_event("scene", f"scene {self.run.name} stopped: {why}", "INFO")
 
     def tick(self) -> Target | None:

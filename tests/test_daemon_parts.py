@@ -85,6 +85,25 @@ def test_a_stopped_scene_gives_no_target_and_bad_scenes_are_refused():
         runner.start(SCENE, "bph", CHAMBERS, float("nan"))
 
 
+def test_a_stopped_scene_says_it_was_stopped_and_why_and_its_time_stands_where_it_stopped():
+    """A scene stopped by another request was shown "finished", its time going on after the stop: a client waiting
+    for it (``run-scene --wait``) took the stop for its end and reported success."""
+    clock, _, runner = runner_with_events()
+    runner.start(SCENE, "bph", CHAMBERS, 2.0)
+    runner.tick()
+    clock.now_s += 3.0
+    runner.stop("a set_target request")
+    clock.now_s += 5.0
+    stopped = runner.run.to_json(clock())
+    assert stopped["finished"] and stopped["stopped"] == "a set_target request"
+    assert stopped["time_s"] == pytest.approx(6.0)
+    runner.start(SCENE, "bph", CHAMBERS, 2.0)
+    clock.now_s += 15.0
+    runner.tick()
+    ended = runner.run.to_json(clock())
+    assert ended["finished"] and ended["stopped"] is None and ended["time_s"] == 30.0
+
+
 def test_the_schedule_estimates_on_change_or_once_a_second_and_shapes_only_when_wanted():
     schedule = EstimateSchedule(mesh_hz=2.0)
     assert schedule.due(0.0, wants_shape=False) is None          # no telemetry yet

@@ -219,6 +219,25 @@ def test_a_scene_played_with_wait_reports_each_step(rig):
     assert all(abs(step.error_pct) < 1.0 for step in scene.steps), scene.steps
 
 
+def test_a_scene_stopped_by_another_client_ends_the_wait_saying_so(rig):
+    """``run_scene(wait=True)`` (``phantom run-scene --wait``) returned the steps so far as if the scene had ended,
+    and the command exited 0, when another client's target stopped it."""
+    with phantom.connect(rig["socket"]) as ph, phantom.connect(rig["socket"]) as other:
+        timer = threading.Timer(1.0, lambda: other.set_pressures([0.5, 0.5, 0.5], wait=False))
+        timer.start()
+        try:
+            with pytest.raises(TargetReplacedError,
+                               match=r"the scene .*short.toml was stopped at 1\.\d of 16 s: a set_target request"):
+                ph.run_scene(rig["dir"] / "short.toml", wait=True, time_scale=1.0)
+        finally:
+            timer.join()
+        scene = ph.status().scene
+        assert scene.stopped == "a set_target request" and scene.time_s < scene.end_s
+    shown = subprocess.run([str(PHANTOM), "status", "--socket", str(rig["socket"])], capture_output=True, text=True,
+                           timeout=60).stdout
+    assert f"{scene.time_s:.1f} / 16 s (stopped: a set_target request)" in shown, shown
+
+
 def test_the_asyncio_twin(rig):
     async def script():
         async with await phantom.connect_async(rig["socket"]) as ph:

@@ -158,7 +158,8 @@ function onStatus(status) {
   const step = scene && scene.steps.length ? scene.steps[scene.steps.length - 1] : null;
   const sceneName = scene ? scene.name.split("/").pop().replace(/\.toml$/, "").replaceAll("_", " ") : "";
   const stepText = step ? `: step ${step.index} (${describeTarget(step.target)})` : "";
-  show("scene-state", !scene ? "no scene playing" : scene.finished ? `${sceneName} ended${stepText}`
+  show("scene-state", !scene ? "no scene playing" : scene.stopped ? `${sceneName} stopped (${scene.stopped})${stepText}`
+    : scene.finished ? `${sceneName} ended${stepText}`
     : `${sceneName} playing, ${scene.time_s.toFixed(0)} of ${scene.end_s.toFixed(0)} s${stepText}`);
   renderPairs("correction", status.correction && status.correction.in_force
     ? status.correction : { "in force": "none", why: (status.correction && status.correction.error) || "no measured volumes" });

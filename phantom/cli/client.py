@@ -208,7 +208,8 @@ def format_status(status: dict[str, Any]) -> str:
     if status.get("scene"):
         scene = status["scene"]
         lines.append(f"scene     {scene['name']}: {scene['time_s']:.1f} / {scene['end_s']:g} s"
-                     + (" (finished)" if scene["finished"] else ""))
+                     + (f" (stopped: {scene['stopped']})" if scene.get("stopped") else
+                        " (finished)" if scene["finished"] else ""))
     scan = (status.get("motion") or {}).get("scan")
     if status.get("verify"):
         lines.append(f"verify    {status['verify']['text']}")
