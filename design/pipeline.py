@@ -7,6 +7,8 @@ surface), the cast's STLs, ``report.md`` with ``report.png`` and ``design.json``
 from __future__ import annotations
 
 import json
+import os
+import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -53,6 +55,7 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DEFAULT
     check_mesh_options(options.size_mm, options.element_order)
     if options.elements_per_wall not in (1, 2):
         raise DesignError(f"--elements-per-wall {options.elements_per_wall} is not 1 (a preview) or 2 (the design)")
+    check_out_folder(out)
     times: dict[str, float] = {}
     started = time.perf_counter()
 
@@ -123,6 +126,20 @@ def design(source: str | Path, out: str | Path, options: DesignOptions = DEFAULT
     with written_atomically(out / "design.json", DesignError) as temporary:
         temporary.write_text(json.dumps(design_summary(result), indent=1) + "\n")
     return result
+
+
+def check_out_folder(out: Path) -> None:
+    """Refuse ``out`` (DesignError) when it is a file or no folder can be made there: before the slow stages, not
+    after a minute of the sizing's solves. Nothing is left: a bad input refused later leaves no folder behind, so
+    the check makes a folder in the nearest one that exists and removes it at once."""
+    try:
+        if out.exists() and not out.is_dir():
+            raise DesignError(f"--out {out} is a file: give a folder")
+        nearest = next(folder for folder in (out, *out.parents) if folder.exists())
+        os.rmdir(tempfile.mkdtemp(prefix=".design-", dir=nearest))
+    except OSError as problem:
+        raise DesignError(f"--out {out} cannot be made a folder ({problem.strerror or problem}): give a folder you "
+                          "can write") from None
 
 
 def _write_stl(surface: Surface, path: Path) -> None:

@@ -178,13 +178,18 @@ def written_atomically(path: str | Path, error: type[PhantomError] = PhantomErro
     written.
     """
     path = Path(path)
-    descriptor, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    try:
+        descriptor, name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    except OSError as problem:
+        # the folder is missing, not a folder, or not the user's to write: not a full disk
+        raise error(f"cannot write {path}: {problem.strerror or problem} in {path.parent}: give a folder you can "
+                    "write") from None
     os.close(descriptor)
     temporary = Path(name)
-    umask = os.umask(0o022)
-    os.umask(umask)
-    os.chmod(temporary, 0o666 & ~umask)  # the mode a plain open() gives, not mkstemp's 0600
     try:
+        umask = os.umask(0o022)
+        os.umask(umask)
+        os.chmod(temporary, 0o666 & ~umask)  # the mode a plain open() gives, not mkstemp's 0600
         yield temporary
         with open(temporary, "rb+") as handle:
             size = handle.seek(0, os.SEEK_END)

@@ -224,6 +224,24 @@ def test_out_of_range_options_are_refused(tmp_path, capsys, option, value, says)
     assert status == 2 and says in err
 
 
+@pytest.mark.parametrize(("out", "says"), [
+    ("notes.txt", "is a file: give a folder"),
+    ("/proc/d", "cannot be made a folder (No such file or directory): give a folder you can write")])
+def test_an_out_that_cannot_become_a_folder_is_refused_before_the_sizing(tmp_path, capsys, monkeypatch, out, says):
+    """`--out EXISTING_FILE` (or an unwritable place) gave a FileExistsError (FileNotFoundError) traceback, and
+    only after the chambers' sizing: a minute of solves."""
+    def no_sizing(*args, **kwargs):
+        pytest.fail("the chambers were sized before --out was checked")
+
+    monkeypatch.setattr("phantom.design.pipeline.size_chambers", no_sizing)
+    mask = write_mask(tmp_path / "gland.nii", asymmetric_gland, grid=(40, 40, 20), affine=oblique_affine((1.6,) * 3))
+    (tmp_path / "notes.txt").write_text("someone's notes")
+    out = tmp_path / out                                       # /proc/d stays itself
+    status, _, err = run(capsys, "design", str(mask), "--out", str(out))
+    assert status == 2 and err == f"phantom design: error: --out {out} {says}\n"
+    assert (tmp_path / "notes.txt").read_text() == "someone's notes"
+
+
 def test_a_folder_is_refused(tmp_path, capsys):
     write_mask(tmp_path / "a.nii", asymmetric_gland, grid=(20, 20, 10))
     status, _, err = run(capsys, "design", str(tmp_path), "--out", str(tmp_path / "d"))

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from phantom import PhantomError, written_atomically
 from phantom.model.errors import MeshError
 from phantom.model.mesh.tetmesh import read_mesh, write_mesh
 
@@ -77,3 +78,24 @@ def test_a_deformed_mesh_written_to_a_full_disk_is_an_error_and_leaves_no_file(t
     assert result.returncode == 2, result.stdout + result.stderr
     assert "cannot write" in result.stderr and "wrote" not in result.stdout
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(("folder", "says"), [("/proc", "No such file or directory"),
+                                              ("/sys", "Permission denied"),
+                                              ("missing", "No such file or directory")])
+def test_a_file_in_a_folder_that_cannot_be_written_is_one_line(tmp_path, folder, says):
+    """The temporary file beside the path was made outside the error's ``try``: a FileNotFoundError or
+    PermissionError traceback after the work (``forward --out /proc/x.vtu``, ``corrections export --out
+    /sys/m.csv``)."""
+    path = (tmp_path / folder if folder == "missing" else Path(folder)) / "x.csv"
+    with pytest.raises(PhantomError) as caught, written_atomically(path) as temporary:
+        temporary.write_text("never written\n")
+    assert str(caught.value) == f"cannot write {path}: {says} in {path.parent}: give a folder you can write"
+
+
+def test_a_command_writing_into_a_folder_that_cannot_be_written_says_so_in_one_line():
+    result = subprocess.run([str(PHANTOM), "mesh", "--scene", "builtin:calibrated", "--out", "/proc/x.msh"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr == ("phantom mesh: error: cannot write /proc/x.msh: No such file or directory in /proc: "
+                             "give a folder you can write\n")
