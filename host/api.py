@@ -81,6 +81,9 @@ GIVE_BACK_DELAY_S = 1.0
 #: a client of a full queue (asyncio's, at least) believes it is connected and then finds the connection reset.
 LISTEN_BACKLOG = 1024
 
+#: The longest path a Unix socket may have (bytes): Linux's ``sun_path`` holds 108 with the closing NUL.
+MAX_SOCKET_PATH_BYTES = 107
+
 
 class PartialLineTimeout(TimeoutError):
     """A client began a request line and did not end it within the partial-line timeout."""
@@ -178,6 +181,7 @@ class ApiServer:
 
     async def start(self) -> None:
         """Bind and listen; raises PhantomError if another daemon already serves this socket."""
+        check_socket_path(self.socket_path)
         try:
             self.socket_path.parent.mkdir(parents=True, exist_ok=True)
             existing = os.lstat(self.socket_path)
@@ -519,6 +523,15 @@ async def _socket_is_live(path: Path) -> bool:
         return False
     writer.close()
     return True
+
+
+def check_socket_path(path: Path) -> None:
+    """Refuse (PhantomError) a path too long to be a Unix socket's, before the daemon binds or a client connects:
+    the socket module says only ``AF_UNIX path too long``, without an errno."""
+    length = len(os.fsencode(path))
+    if length > MAX_SOCKET_PATH_BYTES:
+        raise PhantomError(f"the socket path {path} is {length} bytes long: a Unix socket's path may be at most "
+                           f"{MAX_SOCKET_PATH_BYTES} bytes (on Linux); pass a shorter socket path")
 
 
 def default_socket_path() -> Path:

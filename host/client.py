@@ -29,6 +29,7 @@ import dataclasses
 import itertools
 import json
 import math
+import numbers
 import os
 import struct
 import threading
@@ -39,7 +40,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from phantom import PhantomError
-from phantom.host.api import default_socket_path
+from phantom.host.api import check_socket_path, default_socket_path
 from phantom.host.peer import check_daemon_peer
 
 if TYPE_CHECKING:
@@ -412,6 +413,7 @@ class Connection:
     @classmethod
     async def open(cls, socket_path: str | Path) -> Connection:
         path = Path(socket_path)
+        check_socket_path(path)
         try:
             reader, writer = await asyncio.open_unix_connection(str(path), limit=2**26)
         except (FileNotFoundError, ConnectionRefusedError) as error:
@@ -459,8 +461,7 @@ class Connection:
         arrive meanwhile are kept for :meth:`next_event`."""
         async with self._lock:
             request_id = next(self._ids)
-            await self.send_line((json.dumps({"id": request_id, "method": method, "params": params or {}})
-                                  + "\n").encode())
+            await self.send_line((_request_json(request_id, method, params or {}) + "\n").encode())
             while True:
                 message = await self.read_message()
                 if "event" in message:
@@ -480,6 +481,28 @@ class Connection:
             message = await self.read_message()
             if "event" in message:
                 return message
+
+
+def _request_json(request_id: int, method: str, params: dict[str, Any]) -> str:
+    """A request as a JSON line; PhantomError for a param JSON has no form for (the daemon checks the rest)."""
+    try:
+        return json.dumps({"id": request_id, "method": method, "params": params}, default=_json_value)
+    except (TypeError, ValueError) as error:
+        raise PhantomError(f"{method}: {error}: give numbers, text, lists and dicts (numpy's numbers and arrays "
+                           "too)") from None
+
+
+def _json_value(value: object) -> object:
+    """JSON's form of what ``json`` cannot write: numpy's numbers and arrays, what a notebook passes (numpy is
+    not imported for it: the command-line clients start without it)."""
+    if type(value).__module__ == "numpy" and hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} {value!r} cannot be sent")
+
+
+def _is_number(value: object) -> bool:
+    """Whether ``value`` is a real number (numpy's too), not a bool or text."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 # --- the asyncio API ----------------------------------------------------------------------------------------
@@ -515,6 +538,12 @@ class AsyncPhantom:
                       on_wait: Callable[[str], None] | None = None) -> AsyncPhantom:
         """Connect and wait until the daemon is ready (its model answers and the board is online), for at most
         ``ready_timeout_s`` (0: do not wait); ``on_wait`` is told what it is waiting for, now and then."""
+        # the client's own settings: refused here, before they make a wait's arithmetic fail or never end
+        if not (_is_number(request_timeout_s) and 0 < request_timeout_s < math.inf):
+            raise PhantomError(f"request_timeout_s must be a positive number of seconds, got {request_timeout_s!r}")
+        if not (_is_number(ready_timeout_s) and ready_timeout_s >= 0):
+            raise PhantomError(f"ready_timeout_s must be a number of seconds, 0 or more (0: do not wait), got "
+                               f"{ready_timeout_s!r}")
         path = Path(socket) if socket is not None else default_socket_path()
         phantom = cls(await Connection.open(path), request_timeout_s, ready_timeout_s)
         try:
@@ -582,7 +611,7 @@ class AsyncPhantom:
                          on_progress: Callable[[str], None] | None = None) -> TargetResult:
         params: dict[str, Any] = {"volume_ml": volume_ml}
         if growth_ratio:
-            params["growth_ratio"] = dict(growth_ratio)
+            params["growth_ratio"] = growth_ratio
         if verify is not None:
             params["verify"] = verify
             if verify_tolerance_pct is not None:
@@ -593,34 +622,33 @@ class AsyncPhantom:
             raise PhantomError('verify_tolerance_pct and verify_rounds go with verify="scan"')
         if timeout_s is None:
             # rounds the daemon refuses (0, -1, 2.5) wait as the default's: its refusal says what was wrong
-            rounds = verify_rounds if isinstance(verify_rounds, int) and 0 < verify_rounds <= 100 else 4
+            rounds = verify_rounds if isinstance(verify_rounds, numbers.Integral) and 0 < verify_rounds <= 100 else 4
             timeout_s = SET_TIMEOUT_S if verify is None else SET_TIMEOUT_S + VERIFY_ROUND_S * rounds
         return await self._set(params, wait, tolerance_pct, timeout_s, on_progress)
 
     async def set_chamber_volumes(self, volumes_ml: Sequence[float | None], *, wait: bool = True,
                                   tolerance_pct: float = 1.0, timeout_s: float = 60.0) -> TargetResult:
-        return await self._set({"chamber_volumes_ml": list(volumes_ml)}, wait, tolerance_pct, timeout_s)
+        return await self._set({"chamber_volumes_ml": volumes_ml}, wait, tolerance_pct, timeout_s)
 
     async def set_pressures(self, pressures_kpa: Sequence[float], *, wait: bool = True, tolerance_pct: float = 1.0,
                             timeout_s: float = 60.0) -> TargetResult:
-        return await self._set({"pressures_kpa": list(pressures_kpa)}, wait, tolerance_pct, timeout_s)
+        return await self._set({"pressures_kpa": pressures_kpa}, wait, tolerance_pct, timeout_s)
 
     async def set_shape(self, shape: str | os.PathLike[str] | dict[str, Any], *, wait: bool = True,
                         labels: Sequence[int] | None = None, refine_solves: int | None = None,
                         tolerance_pct: float = 1.0, timeout_s: float = SET_TIMEOUT_S + 60.0) -> TargetResult:
         # a path as the daemon (on this machine, with another working folder) finds it
-        params: dict[str, Any] = {"shape": shape if isinstance(shape, dict) else os.path.abspath(os.fspath(shape))}
+        params: dict[str, Any] = {"shape": os.path.abspath(shape) if isinstance(shape, str | os.PathLike) else shape}
         if labels is not None:
-            params["labels"] = [int(label) for label in labels]
+            params["labels"] = labels
         if refine_solves is not None:
-            params["refine_solves"] = int(refine_solves)
+            params["refine_solves"] = refine_solves
         return await self._set(params, wait, tolerance_pct, timeout_s)
 
     async def _set(self, params: dict[str, Any], wait: bool, tolerance_pct: float, timeout_s: float,
                    on_progress: Callable[[str], None] | None = None) -> TargetResult:
-        if not (tolerance_pct > 0 and math.isfinite(tolerance_pct)):
-            raise PhantomError(f"tolerance_pct must be a positive number, got {tolerance_pct!r}")
-        if not (timeout_s > 0 and math.isfinite(timeout_s)):
+        # the wait is the client's own, so is its check; the daemon checks the target and tolerance_pct
+        if not (_is_number(timeout_s) and 0 < timeout_s < math.inf):
             raise PhantomError(f"timeout_s must be a positive number of seconds, got {timeout_s!r}")
         if not wait:
             return TargetResult.from_json(await self.call("set_target", {**params, "tolerance_pct": tolerance_pct}))
@@ -777,7 +805,7 @@ class AsyncPhantom:
     async def surface(self, pressures_kpa: Sequence[float] | None = None) -> Surface:
         import numpy as np  # only here and in save_stl(): the command-line clients start without it
 
-        params = {} if pressures_kpa is None else {"pressures_kpa": list(pressures_kpa)}
+        params = {} if pressures_kpa is None else {"pressures_kpa": pressures_kpa}
         answer = await self.call("surface", params)
         return Surface(np.asarray(answer["positions_mm"], dtype=float), np.asarray(answer["triangles"], dtype=np.int64),
                        _floats(answer.get("pressures_kpa")))
@@ -883,7 +911,7 @@ class Phantom:
     Every method blocks until the daemon answers (or, with ``wait=True``, until the target is reached) and raises
     a :class:`DaemonError` subclass saying what to do when it cannot. Use it as a context manager, or call
     :meth:`close`. It is the blocking face of :class:`AsyncPhantom` (``.aio``), which runs on an event loop in a
-    background thread.
+    background thread. Numbers and lists of numbers may be numpy's (scalars, arrays); the daemon checks them.
     """
 
     def __init__(self, aio: AsyncPhantom, loop: _LoopThread):

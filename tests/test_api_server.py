@@ -277,3 +277,19 @@ def test_connections_beyond_the_file_limit_close_the_longest_idle_and_say_so_onc
     warnings = [line for line in stderr.splitlines() if "WARNING" in line]
     assert len(warnings) == 1 and "connections" in warnings[0], stderr[-3000:]
     assert "Traceback" not in stderr
+
+
+def test_a_socket_path_too_long_for_a_unix_socket_says_the_limit(tmp_path):
+    """`phantom daemon --socket <too long>` said `cannot listen on ...: None`: bind's error has no strerror."""
+    path = tmp_path / ("x" * 120 + ".sock")
+
+    async def main():
+        server = ApiServer(path, HANDLERS)
+        with pytest.raises(PhantomError) as caught:
+            await server.start()
+        await server.close()
+        return str(caught.value)
+
+    assert asyncio.run(main()) == (f"the socket path {path} is {len(str(path))} bytes long: a Unix socket's path may "
+                                   "be at most 107 bytes (on Linux); pass a shorter socket path")
+    assert not path.exists()
