@@ -20,7 +20,7 @@ from typing import Any
 from phantom import PhantomError
 from phantom.host.api import ApiError, ApiServer, Handler, default_socket_path
 from phantom.host.config import DaemonConfig
-from phantom.host.daemon import Daemon, VerifyScanner
+from phantom.host.daemon import PA_PER_KPA, Daemon, VerifyScanner
 from phantom.host.handlers import ApiHandlers
 from phantom.host.link_process import LinkProcess
 from phantom.host.logs import configured_level
@@ -74,6 +74,7 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
         # cannot be written, is refused before anything slow
         startup.enter("opening the recording")
         timeline = read_timeline_scene(config.scene)
+        _check_pressure_limit(config, timeline.scene.model_settings.pressure_max_pa / PA_PER_KPA)
         early.append(("startup", f"playing {timeline.describe(config.scene)}", "INFO"))
         recorder = Recorder(timeline.scene.chamber_labels, config.rerun_save, config.rerun_connect,
                             on_problem=lambda text, level: early.append(("recording", text, level)))
@@ -117,6 +118,17 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
     api.handlers.update(daemon.motion.api_methods())
     startup.enter("waiting for the board: the first connection")
     return daemon
+
+
+def _check_pressure_limit(config: DaemonConfig, pressure_max_kpa: float) -> None:
+    """The board's over-pressure limit must let through every pressure the model may set (up to its scene's
+    ``pressure_max_kpa``): below it, the board refuses each setpoint above the limit, targets the daemon says it
+    reaches among them."""
+    if config.pressure_limit_kpa < pressure_max_kpa:
+        raise PhantomError(f"the pressure limit ({config.pressure_limit_kpa:g} kPa) is below the scene "
+                           f"{config.scene}'s pressure_max_kpa ({pressure_max_kpa:g} kPa), up to which the model sets "
+                           f"pressures: give --pressure-limit-kpa (or pressure_limit_kpa in the config file) of at "
+                           f"least {pressure_max_kpa:g}, or a scene with a lower [model] pressure_max_kpa")
 
 
 def _when_ready(daemon: Daemon, handler: Handler) -> Handler:

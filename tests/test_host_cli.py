@@ -118,6 +118,17 @@ def test_daemon_flags_out_of_range_are_usage_errors(tmp_path, flags, message):
     assert result.returncode == 2 and result.stderr.strip().splitlines()[-1] == f"phantom daemon: error: {message}"
 
 
+def test_a_pressure_limit_below_the_scenes_pressure_max_is_refused_before_anything_slow(tmp_path):
+    """It was taken, and every target the model reached above it was then refused by the board (SET_SETPOINTS:
+    BAD_VALUE), 45 ml among them, inside the range the daemon said it reached."""
+    result = run_phantom("daemon", "--sim", "--socket", str(tmp_path / "d.sock"), "--pressure-limit-kpa", "2")
+    assert result.returncode == 2 and result.stderr.strip().splitlines()[-1] == (
+        "phantom daemon: error: the pressure limit (2 kPa) is below the scene builtin:converged's pressure_max_kpa "
+        "(3 kPa), up to which the model sets pressures: give --pressure-limit-kpa (or pressure_limit_kpa in the "
+        "config file) of at least 3, or a scene with a lower [model] pressure_max_kpa")
+    assert not (tmp_path / "d.sock").exists()
+
+
 def test_a_config_file_out_of_range_is_one_line_and_exit_2(tmp_path):
     path = tmp_path / "phantomd.toml"
     path.write_text("[daemon]\nsim = true\ntelemetry_period_ms = 0\n")
@@ -246,3 +257,36 @@ def test_a_verified_targets_rounds_and_a_scans_pictures_read_as_words():
     unplanned = ScanRun()
     unplanned.stops_reached = 14
     assert unplanned.to_json()["text"] == "picture 14"
+
+
+@pytest.mark.parametrize("count", ["0", "-3"])
+def test_a_watch_count_below_one_is_a_usage_error(tmp_path, count):
+    """``--count 0`` watched forever and ``--count -3`` printed one line."""
+    result = run_phantom("watch", "--count", count, "--socket", str(tmp_path / "none.sock"))
+    assert result.returncode == 2
+    assert result.stderr.splitlines()[-1] == (f"phantom watch: error: argument --count: {count} is below 1: give how "
+                                              "many status lines to print, or leave --count out to watch until "
+                                              "interrupted")
+
+
+@pytest.mark.parametrize("options", [["--tolerance-pct", "2"], ["--timeout-s", "5"],
+                                     ["--tolerance-pct", "2", "--timeout-s", "5"]])
+def test_a_waits_options_without_wait_are_refused_before_connecting(options):
+    """They were ignored without a word: ``set`` returns as soon as the setpoints are sent."""
+    from phantom.cli.main import build_parser
+
+    args = build_parser().parse_args(["set", "--volume-ml", "32", *options, "--socket", "/nonexistent/d.sock"])
+    with pytest.raises(PhantomError) as caught:
+        args.run(args)
+    assert str(caught.value) == ("--tolerance-pct and --timeout-s go with --wait: add --wait (without it, set "
+                                 "returns as soon as the setpoints are sent)")
+
+
+@pytest.mark.parametrize("waits", [["--wait"], ["--verify", "scan"]])
+def test_a_waits_options_go_with_wait_and_with_verify_which_waits(waits):
+    from phantom.cli.main import build_parser
+
+    args = build_parser().parse_args(["set", "--volume-ml", "32", *waits, "--tolerance-pct", "2", "--timeout-s",
+                                      "500", "--socket", "/nonexistent/d.sock"])
+    with pytest.raises(PhantomError, match="no daemon is listening on /nonexistent/d.sock"):
+        args.run(args)

@@ -48,7 +48,7 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     set_target.add_argument("--wait", action="store_true",
                             help="return once the estimated volume is within --tolerance-pct of the target and the "
                             "pressures have settled (a fault or --timeout-s is an error)")
-    set_target.add_argument("--tolerance-pct", type=float, default=1.0, metavar="PCT",
+    set_target.add_argument("--tolerance-pct", type=float, metavar="PCT",
                             help="with --wait: how close the estimate must come (%% of the target, default 1)")
     set_target.add_argument("--timeout-s", type=float, default=None, metavar="S",
                             help="with --wait: how long to wait (s, default 60, and 120 more per verify round)")
@@ -97,10 +97,22 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     watch = subparsers.add_parser("watch", help="a live text view of pressures, volumes and events",
                                   description="Print the daemon's pressures, setpoints and volumes twice a "
                                   "second, and its events as they happen, until interrupted.")
-    watch.add_argument("--count", type=int, metavar="N", help="stop after N status lines")
+    watch.add_argument("--count", type=_count, metavar="N", help="stop after N status lines")
     _add_json(watch, "print one JSON object per line (status and events) instead of text")
     _add_socket(watch)
     watch.set_defaults(run=_run_watch)
+
+
+def _count(text: str) -> int:
+    """argparse's type for ``watch --count``: a whole number, at least 1 (0 would watch forever)."""
+    try:
+        count = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if count < 1:
+        raise argparse.ArgumentTypeError(f"{count} is below 1: give how many status lines to print, or leave --count "
+                                         "out to watch until interrupted")
+    return count
 
 
 def _add_json(parser: argparse.ArgumentParser, text: str) -> None:
@@ -257,7 +269,12 @@ def _run_set(args: argparse.Namespace) -> int:
     if args.verify is not None and args.volume_ml is None:
         raise PhantomError(f"--verify {args.verify} compares the scanned gland volume with the target: give "
                            "--volume-ml")
-    options: dict[str, Any] = {"wait": args.wait or args.verify is not None, "tolerance_pct": args.tolerance_pct}
+    options: dict[str, Any] = {"wait": args.wait or args.verify is not None}
+    if not options["wait"] and (args.tolerance_pct is not None or args.timeout_s is not None):
+        raise PhantomError("--tolerance-pct and --timeout-s go with --wait: add --wait (without it, set returns as "
+                           "soon as the setpoints are sent)")
+    if args.tolerance_pct is not None:
+        options["tolerance_pct"] = args.tolerance_pct
     if args.timeout_s is not None:
         options["timeout_s"] = args.timeout_s
     with _connect(args) as daemon:
@@ -461,6 +478,6 @@ def _run_watch(args: argparse.Namespace) -> int:
                       f"set (kPa) {_kpa(status.raw['setpoints_kpa'])}  {_ml(status.estimated_volume_ml)} "
                       f"-> {_ml(status.target_volume_ml)}  faults {','.join(status.faults) or 'none'}", flush=True)
             printed += 1
-            if args.count and printed >= args.count:
+            if args.count is not None and printed >= args.count:
                 return 0
             time.sleep(WATCH_PERIOD_S)
