@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError
+from phantom import PhantomError, is_finite_number
 from phantom.hil.truth_residual import trilinear
 
 #: The shipped plant parameter file.
@@ -130,7 +130,7 @@ def _number(section: dict[str, Any], key: str, where: str, *, positive: bool = F
     if key not in section:
         raise PlantError(f"{where}: missing key {key!r}; see hil/plant.toml for the expected layout")
     value = section[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if not is_finite_number(value):
         raise PlantError(f"{where}.{key}: expected a finite number, got {value!r}")
     if positive and not (value > 0 or (allow_zero and value == 0)):
         raise PlantError(f"{where}.{key}: must be {'>= 0' if allow_zero else '> 0'}, got {value!r}")

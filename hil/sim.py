@@ -13,7 +13,7 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from phantom import PhantomError, process_temporary_folder
+from phantom import PhantomError, is_finite_number, process_temporary_folder
 from phantom.hil.firmware import ensure_firmware, function_addresses, mcu_of, stock_bootloader
 from phantom.hil.harness import HarnessProcess
 from phantom.hil.plant import load_plant
@@ -206,7 +206,7 @@ class SimulatedBoard:
             raise SimulationError(f"fault {fault!r} applies to the whole board: leave chamber=None")
         values = {**FAULTS[fault], **params}
         for name, value in values.items():
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            if not is_finite_number(value):
                 raise SimulationError(f"{fault}.{name} must be a number, got {value!r}")
             low, limit = (2.0, 5.5) if name == "volts" else (0, 1.0 if name in ("level", "flip_probability",
                                                                                   "drop_probability") else math.inf)

@@ -28,7 +28,6 @@ import contextlib
 import dataclasses
 import itertools
 import json
-import math
 import numbers
 import os
 import struct
@@ -39,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from phantom import PhantomError
+from phantom import PhantomError, is_finite_number
 from phantom.host.api import check_socket_path, default_socket_path
 from phantom.host.peer import check_daemon_peer
 
@@ -500,11 +499,6 @@ def _json_value(value: object) -> object:
     raise TypeError(f"{type(value).__name__} {value!r} cannot be sent")
 
 
-def _is_number(value: object) -> bool:
-    """Whether ``value`` is a real number (numpy's too), not a bool or text."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
 # --- the asyncio API ----------------------------------------------------------------------------------------
 
 def resolve_scene(path: str | Path) -> str:
@@ -539,9 +533,9 @@ class AsyncPhantom:
         """Connect and wait until the daemon is ready (its model answers and the board is online), for at most
         ``ready_timeout_s`` (0: do not wait); ``on_wait`` is told what it is waiting for, now and then."""
         # the client's own settings: refused here, before they make a wait's arithmetic fail or never end
-        if not (_is_number(request_timeout_s) and 0 < request_timeout_s < math.inf):
+        if not (is_finite_number(request_timeout_s) and request_timeout_s > 0):
             raise PhantomError(f"request_timeout_s must be a positive number of seconds, got {request_timeout_s!r}")
-        if not (_is_number(ready_timeout_s) and ready_timeout_s >= 0):
+        if not (is_finite_number(ready_timeout_s) and ready_timeout_s >= 0):
             raise PhantomError(f"ready_timeout_s must be a number of seconds, 0 or more (0: do not wait), got "
                                f"{ready_timeout_s!r}")
         path = Path(socket) if socket is not None else default_socket_path()
@@ -648,7 +642,7 @@ class AsyncPhantom:
     async def _set(self, params: dict[str, Any], wait: bool, tolerance_pct: float, timeout_s: float,
                    on_progress: Callable[[str], None] | None = None) -> TargetResult:
         # the wait is the client's own, so is its check; the daemon checks the target and tolerance_pct
-        if not (_is_number(timeout_s) and 0 < timeout_s < math.inf):
+        if not (is_finite_number(timeout_s) and timeout_s > 0):
             raise PhantomError(f"timeout_s must be a positive number of seconds, got {timeout_s!r}")
         if not wait:
             return TargetResult.from_json(await self.call("set_target", {**params, "tolerance_pct": tolerance_pct}))

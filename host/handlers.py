@@ -19,6 +19,7 @@ from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import (
     check_step_count,
     effective_model,
+    finite_number,
     load_timeline_scene,
     model_differences,
     parse_target,
@@ -136,8 +137,13 @@ class ApiHandlers:
         time_scale: Any = params.get("time_scale", 1.0)
         if not isinstance(path, str) or not path:
             raise ApiError("invalid_params", "run_scene needs params.path: the scene TOML file (absolute path)")
-        if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)):
-            raise ApiError("invalid_params", f"time_scale must be a number, got {time_scale!r}")
+        if "\0" in path:  # no file can be named so: opening it raised ValueError, answered as a bug
+            raise ApiError("invalid_params", f"run_scene: params.path {path!r:.200} is not a valid path: it holds a "
+                                             "null character; give the scene TOML file's path")
+        try:
+            time_scale = finite_number(time_scale, "run_scene: time_scale")
+        except SceneError as error:
+            raise ApiError("invalid_params", str(error)) from error
         try:
             async with self.heavy.slot("run_scene"):
                 shapes = await asyncio.to_thread(scene_shapes, path)
@@ -150,7 +156,7 @@ class ApiHandlers:
                         raise ApiError("invalid_params", f"{path}: steps[{index}]: shape: {error}; the scene was not "
                                                          "started") from error
                     pressures_kpa[index] = answer["pressures_kpa"]
-                prepared = await asyncio.to_thread(prepare_scene, path, float(time_scale), daemon.chamber_names,
+                prepared = await asyncio.to_thread(prepare_scene, path, time_scale, daemon.chamber_names,
                                                    daemon.model.info.effective_model, daemon.model.info.scene_path,
                                                    pressures_kpa)
         except SceneError as error:

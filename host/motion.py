@@ -31,13 +31,12 @@ import asyncio
 import concurrent.futures
 import contextlib
 import datetime
-import math
 import threading
 from collections.abc import Awaitable, Callable
 from dataclasses import asdict, fields
 from typing import Any, Protocol, TypeVar
 
-from phantom import PhantomError
+from phantom import PhantomError, is_finite_number
 from phantom.host.api import ApiError, Handler
 from phantom.host.session import CommandRejected
 from phantom.host.sim_board import SimulatedBoardKeeper
@@ -359,7 +358,7 @@ class Orbit:
                 if not isinstance(value, bool):
                     raise ApiError("invalid_params", f"motion_config: {field.name} must be true or false, got "
                                                      f"{value!r:.60}")
-            elif isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            elif not is_finite_number(value):
                 raise ApiError("invalid_params", f"motion_config: {field.name} must be a finite number, got "
                                                  f"{value!r:.60}")
         try:

@@ -9,12 +9,12 @@ volume it reached; at ``end_s`` the run finishes and its last target holds.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from phantom.host.scenes import Timeline, gland_volume_ml, parse_timeline
+from phantom import is_finite_number
+from phantom.host.scenes import MAX_SCENE_S, Timeline, gland_volume_ml, parse_timeline
 from phantom.host.verify import Verify
 from phantom.model.errors import SceneError
 from phantom.model.target import Target
@@ -98,13 +98,11 @@ def prepare_run(raw: dict[str, Any], name: str, chamber_names: list[str], time_s
         raise SceneError(f"{name} has no [[steps]]: nothing to run")
     settings = raw.get("timeline", {})
     end_s = settings.get("end_s", timeline.duration_s + 10.0) if isinstance(settings, dict) else None
-    if isinstance(end_s, bool) or not isinstance(end_s, (int, float)) or not math.isfinite(end_s) or (
-            end_s < timeline.duration_s):
-        raise SceneError(f"{name}: [timeline] end_s must be a number >= {timeline.duration_s:g} s "
-                         "(the end of the last step's ramp)")
-    if isinstance(time_scale, bool) or not isinstance(time_scale, (int, float)) or not math.isfinite(time_scale) or (
-            time_scale <= 0):
-        raise SceneError(f"time_scale must be a positive number, got {time_scale!r}")
+    if not is_finite_number(end_s) or not timeline.duration_s <= end_s <= MAX_SCENE_S:
+        raise SceneError(f"{name}: [timeline] end_s must be a number from {timeline.duration_s:g} s (the end of the "
+                         f"last step's ramp) to {MAX_SCENE_S:g} s (a week), got {end_s!r:.40}")
+    if not is_finite_number(time_scale) or time_scale <= 0:
+        raise SceneError(f"time_scale must be a positive number, got {time_scale!r:.40}")
     return PreparedRun(name, timeline, float(end_s), float(time_scale), wants_shape)
 
 

@@ -59,6 +59,10 @@ MIN_VOLUME_ML = 1e-3
 #: The most steps a timeline may have: a step every 2 s for over an hour. A 20,000-step scene took 0.57 s to
 #: check, time the daemon's loop cannot give at once.
 MAX_STEPS = 2000
+#: The latest a step may start and end its ramp (s of scene time): a week, far beyond a session at the bench or a
+#: night's endurance run (the shipped scenes last minutes), and far below 1e300 s, which was taken and made a
+#: scene without ``[timeline] end_s`` run for ever.
+MAX_SCENE_S = 7 * 24 * 3600.0
 
 
 #: A ``[[steps]]`` table header at the start of a line of TOML text.
@@ -164,13 +168,20 @@ class Timeline:
         return Target.of_kind(step.target.kind, values, step.target.growth_ratio)
 
 
-def _number(value: object, what: str) -> float:
-    """A finite float from a TOML/JSON value, or a SceneError naming ``what``."""
+def finite_number(value: object, what: str) -> float:
+    """A finite float from a TOML/JSON value, or a SceneError naming ``what``: the check of a target's numbers
+    (``set_target``, ``surface``, a scene's steps), a step's times and ``run_scene``'s time scale."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise SceneError(f"{what} must be a number, got {value!r}")
-    if not math.isfinite(value):
+    try:
+        number = float(value)
+    except OverflowError:  # JSON and TOML allow an integer of any length; a float holds up to about 1.8e308
+        digits = math.floor(int(value).bit_length() * math.log10(2)) + 1
+        raise SceneError(f"{what} must be a finite number (at most about 1.8e308), got an integer of about {digits} "
+                         "digits") from None
+    if not math.isfinite(number):
         raise SceneError(f"{what} must be finite, got {value!r}")
-    return float(value)
+    return number
 
 
 def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "target",
@@ -195,6 +206,11 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
     if "shape" in raw:
         raise SceneError(f"{where}: a shape step is solved when the daemon is asked to run the scene (phantom "
                          "run-scene SCENE): start the daemon on the scene's model, then run it")
+    # a misspelt key first: else "volum_ml = 30" was told that no target key was given
+    unknown = set(raw) - set(TARGET_KEYS) - {"growth_ratio", "at_s", "ramp_s"}
+    if unknown:
+        raise SceneError(f"{where}: unknown key(s) {', '.join(repr(key) for key in sorted(unknown))}: a target gives "
+                         f"exactly one of {', '.join(TARGET_KEYS)} (growth_ratio with volume_ml)")
     keys = [key for key in TARGET_KEYS if key in raw]
     if len(keys) != 1:
         raise SceneError(
@@ -204,7 +220,7 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
     n_chambers = len(chamber_names)
     labels = list(chamber_labels) if chamber_labels is not None else chamber_labels_of({}, chamber_names)
     if kind == "volume_ml":
-        volume_ml = _number(raw[kind], f"{where}: volume_ml")
+        volume_ml = finite_number(raw[kind], f"{where}: volume_ml")
         if volume_ml < MIN_VOLUME_ML:
             raise SceneError(f"{where}: volume_ml must be positive (at least {MIN_VOLUME_ML:g} ml), got {volume_ml:g}")
         values: tuple[float | None, ...] = (volume_ml,)
@@ -214,13 +230,13 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
             raise SceneError(f"{where}: {kind} must be a list of {n_chambers} numbers (one per chamber: "
                              f"{describe_chambers(labels)}), got {listed!r}")
         if kind == "pressures_kpa":
-            pressures = [_number(value, f"{where}: pressures_kpa[{i}]") for i, value in enumerate(listed)]
+            pressures = [finite_number(value, f"{where}: pressures_kpa[{i}]") for i, value in enumerate(listed)]
             refused = pressure_limit_error(pressures, labels)  # the upper limit is the model's: the inverse's
             if refused:
                 raise SceneError(f"{where}: {refused}")
             values = tuple(pressures)
         else:
-            values = tuple(None if value is None else _number(value, f"{where}: chamber_volumes_ml[{i}]")
+            values = tuple(None if value is None else finite_number(value, f"{where}: chamber_volumes_ml[{i}]")
                            for i, value in enumerate(listed))
             if all(value is None for value in values):
                 raise SceneError(f"{where}: chamber_volumes_ml needs at least one number")
@@ -228,9 +244,6 @@ def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "ta
                 raise SceneError(f"{where}: chamber_volumes_ml must be positive (at least {MIN_VOLUME_ML:g} ml "
                                  f"each), got {list(values)}")
     growth_ratio = _parse_growth_ratio(raw.get("growth_ratio"), kind, chamber_names, where)
-    unknown = set(raw) - set(TARGET_KEYS) - {"growth_ratio", "at_s", "ramp_s"}
-    if unknown:
-        raise SceneError(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
     return Target.of_kind(TARGET_KEYS[kind], [None if value is None else _to_si(kind, value) for value in values],
                           growth_ratio)
 
@@ -252,7 +265,7 @@ def _parse_growth_ratio(raw: Any, kind: str, chamber_names: list[str], where: st
         else:
             raise SceneError(f"{where}: growth_ratio names unknown chamber {key!r}; chambers are "
                              f"{', '.join(chamber_names)}")
-        weight = _number(weight, f"{where}: growth_ratio[{key}]")
+        weight = finite_number(weight, f"{where}: growth_ratio[{key}]")
         if weight <= 0:
             raise SceneError(f"{where}: growth_ratio weights must be positive, got {key} = {weight:g}")
         ratio[index] = weight
@@ -299,10 +312,11 @@ def parse_timeline(raw_steps: object, chamber_names: list[str], name: str = "tim
         where = f"{name}: steps[{position}]"
         if not isinstance(raw, dict) or "at_s" not in raw:
             raise SceneError(f"{where}: every step needs at_s (its start time in seconds)")
-        at_s = _number(raw["at_s"], f"{where}: at_s")
-        ramp_s = _number(raw.get("ramp_s", 0.0), f"{where}: ramp_s")
-        if at_s < 0 or ramp_s < 0:
-            raise SceneError(f"{where}: at_s and ramp_s must be >= 0, got at_s={at_s:g}, ramp_s={ramp_s:g}")
+        at_s = finite_number(raw["at_s"], f"{where}: at_s")
+        ramp_s = finite_number(raw.get("ramp_s", 0.0), f"{where}: ramp_s")
+        if at_s < 0 or ramp_s < 0 or at_s + ramp_s > MAX_SCENE_S:
+            raise SceneError(f"{where}: at_s and ramp_s must be >= 0 and the step's ramp end by {MAX_SCENE_S:g} s "
+                             f"(a week, the longest scene), got at_s={at_s:g}, ramp_s={ramp_s:g}")
         verify = parse_step_verify(raw, where)
         target = parse_target({key: value for key, value in raw.items() if key not in STEP_VERIFY_KEYS},
                               chamber_names, where)

@@ -29,7 +29,6 @@ import datetime
 import fcntl
 import io
 import json
-import math
 import os
 import re
 import stat
@@ -41,7 +40,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError, read_text, unique_keys, written_atomically
+from phantom import PhantomError, is_finite_number, read_text, unique_keys, written_atomically
 
 #: The store's file format.
 FORMAT = "phantom-corrections/1"
@@ -103,17 +102,17 @@ class Measurement:
     def __post_init__(self) -> None:
         pressures = self.pressures_kpa
         if not isinstance(pressures, tuple) or not 0 < len(pressures) <= MAX_CHAMBERS \
-                or not all(_is_number(p) and 0 <= p <= MAX_PRESSURE_KPA for p in pressures):
+                or not all(is_finite_number(p) and 0 <= p <= MAX_PRESSURE_KPA for p in pressures):
             raise CorrectionError(f"a measurement's pressures must be finite numbers >= 0 kPa (gauge; the blowers "
                                   f"only push), at most {MAX_PRESSURE_KPA:g}, 1-{MAX_CHAMBERS} of them "
                                   f"(pressures_kpa), got "
                                   f"{_shown(list(pressures) if isinstance(pressures, tuple) else pressures)}")
-        if not (_is_number(self.volume_ml) and 0 < self.volume_ml <= MAX_VOLUME_ML):
+        if not (is_finite_number(self.volume_ml) and 0 < self.volume_ml <= MAX_VOLUME_ML):
             raise CorrectionError(f"a measured volume must be a finite number of ml above 0 and at most "
                                   f"{MAX_VOLUME_ML:g} (volume_ml), got {_shown(self.volume_ml)}")
         if self.method not in METHODS:
             raise CorrectionError(f"a measurement's method is one of {', '.join(METHODS)}, got {_shown(self.method)}")
-        if self.model_volume_ml is not None and not (_is_number(self.model_volume_ml)
+        if self.model_volume_ml is not None and not (is_finite_number(self.model_volume_ml)
                                                      and 0 < self.model_volume_ml <= MAX_VOLUME_ML):
             raise CorrectionError(f"the model's volume (model_volume_ml) must be a finite number of ml above 0 and "
                                   f"at most {MAX_VOLUME_ML:g}, got {_shown(self.model_volume_ml)}")
@@ -134,8 +133,13 @@ class Measurement:
                    time_utc, scan_file, model, None if model_volume_ml is None else float(model_volume_ml))
 
 
-def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+def _check_chambers(entries: list[Measurement]) -> None:
+    """Refuse the last of a phantom's measurements when it has another number of pressures (one per chamber) than
+    the first: a store of two phantoms' exported misaligned rows and could not be fitted."""
+    first, last = len(entries[0].pressures_kpa), len(entries[-1].pressures_kpa)
+    if last != first:
+        raise ValueError(f"it has {last} pressures, measurement 1 has {first}: a phantom's measurements have one "
+                         f"per chamber; is it another phantom's?")
 
 
 def _shown(value: object) -> str:
@@ -163,7 +167,7 @@ def plausibility(volume_ml: float, expected_ml: float, half_width_95_ml: float, 
     CorrectionError
         A half-width that is not a finite number above 0.
     """
-    if not (_is_number(half_width_95_ml) and half_width_95_ml > 0) or not _is_number(expected_ml):
+    if not (is_finite_number(half_width_95_ml) and half_width_95_ml > 0) or not is_finite_number(expected_ml):
         raise CorrectionError(f"an expected volume needs a finite half-width above 0 ml, got {expected_ml!r} +- "
                               f"{half_width_95_ml!r}")
     sigma_ml = half_width_95_ml / 1.96
@@ -247,6 +251,7 @@ class CorrectionStore:
                     if not isinstance(entry, dict) or not isinstance(entry.get("pressures_kpa"), list):
                         raise ValueError("not an object with a list pressures_kpa")
                     entries.append(Measurement(**{**entry, "pressures_kpa": tuple(entry["pressures_kpa"])}))
+                    _check_chambers(entries)
                 except (ValueError, TypeError, CorrectionError) as error:
                     raise ValueError(f"measurement {number}: {error}") from None
             return entries

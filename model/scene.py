@@ -9,14 +9,13 @@ simulated board's truth) and for the tables other parts own (``[[steps]]``, ``[h
 
 import copy
 import dataclasses
-import math
 import tomllib
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from phantom import read_text
+from phantom import is_finite_number, read_text
 from phantom.model.errors import SceneError, check_known_keys
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 
@@ -289,6 +288,10 @@ QUADRATIC_POISSON_RATIO = 0.4996
 def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     """Build a Scene from a parsed TOML dict; ``path`` anchors relative mesh paths (else the working folder)."""
     where = f"scene {path}" if path else "scene"
+    if isinstance(raw.get("model"), str):  # not a [model] table but the model a timeline plays on
+        raise SceneError(f"{where} is a timeline scene (its [[steps]] play on the model it names, model = "
+                         f"{raw['model']!r}): phantom run-scene and phantom daemon --scene play it; this command wants "
+                         f"a model scene ([phantom], [material]), such as the one it names")
     check_known_keys(raw, MODEL_SECTIONS + HOST_SECTIONS, "the file", where)
     for section in MODEL_SECTIONS:
         if section in raw and not isinstance(raw[section], dict):
@@ -318,6 +321,9 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     fixed = phantom_table.get("fixed")
     if fixed is not None and not isinstance(fixed, str):
         raise SceneError(f"{where}: [phantom] fixed must be a surface group name (or absent)")
+    steps = raw.get("steps", [])
+    if not isinstance(steps, list):
+        raise SceneError(f"{where}: steps must be an array of tables ([[steps]]), got {steps!r:.60}")
     return Scene(
         path=path,
         mesh=mesh,
@@ -329,7 +335,7 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
         chamber_labels=chamber_labels_of(phantom_table, chambers, where),
         model_settings=_model_settings(raw.get("model", {}), where, path),
         load=_load(raw.get("load"), where),
-        steps=list(raw.get("steps", [])),
+        steps=list(steps),
         raw=raw,
         geometry=geometry,
     )
@@ -362,7 +368,7 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
                          f"'gent' and 'yeoh'; for small strains use 'corotational' or 'linear'")
     gent_jm = table.get("gent_jm")
     if model == "gent":
-        if isinstance(gent_jm, bool) or not isinstance(gent_jm, int | float) or not 0 < gent_jm < float("inf"):
+        if not is_finite_number(gent_jm) or not gent_jm > 0:
             raise SceneError(f"{where}: [material] model = 'gent' needs gent_jm, the locking value of I1 - 3 "
                              f"(a positive number, e.g. 20 for silicone), got {gent_jm!r}")
         gent_jm = float(gent_jm)
@@ -371,7 +377,7 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
     yeoh = [table.get(key) for key in YEOH_KEYS]
     if model == "yeoh":
         for key, value in zip(YEOH_KEYS, yeoh, strict=True):
-            if isinstance(value, bool) or not isinstance(value, int | float) or not abs(value) < float("inf"):
+            if not is_finite_number(value):
                 raise SceneError(f"{where}: [material] model = 'yeoh' needs {' and '.join(YEOH_KEYS)}, its C20 and "
                                  f"C30 as multiples of C10 = mu/2 (numbers, e.g. 0.05 and 0.001), got {key} = "
                                  f"{value!r}")
@@ -380,11 +386,11 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
                          f"{model!r}")
     youngs_modulus_kpa = table.get("youngs_modulus_kpa", 50.0)
     poisson_ratio = table.get("poisson_ratio", QUADRATIC_POISSON_RATIO if quadratic else 0.45)
-    if (isinstance(youngs_modulus_kpa, bool) or not isinstance(youngs_modulus_kpa, int | float)
-            or not 0 < youngs_modulus_kpa < math.inf):
-        raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got {youngs_modulus_kpa}")
+    if not is_finite_number(youngs_modulus_kpa) or not youngs_modulus_kpa > 0:
+        raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got "
+                         f"{youngs_modulus_kpa!r}")
     if isinstance(poisson_ratio, bool) or not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
-        raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio}")
+        raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio!r}")
     return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm,
                     *(None if value is None else float(value) for value in yeoh))
 
@@ -439,7 +445,7 @@ def pressure_limit_error(pressures_kpa: Sequence[float], labels: Sequence[str],
 
 def _positive_number(table: dict[str, Any], key: str, default: float, where: str) -> float:
     value = table.get(key, default)
-    if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
+    if not is_finite_number(value) or not value > 0:
         raise SceneError(f"{where}: [model] {key} must be a positive number, got {value!r}")
     return float(value)
 
@@ -511,9 +517,7 @@ def _load(table: Any, where: str) -> Load:
         raise SceneError(f"{where}: [load] density_kg_m3 must be a positive number (Ecoflex 00-10: 1040), got "
                          f"{density!r}")
     gravity = table.get("gravity_m_s2", [0.0, 0.0, -STANDARD_GRAVITY_M_S2])
-    if (not isinstance(gravity, list) or len(gravity) != 3 or not all(
-            isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-            for value in gravity)):
+    if not isinstance(gravity, list) or len(gravity) != 3 or not all(is_finite_number(value) for value in gravity):
         raise SceneError(f"{where}: [load] gravity_m_s2 must be three numbers (m/s^2, e.g. [0, 0, -9.81] for the "
                          f"built-in prostate hanging from its base), got {gravity!r}")
     x, y, z = (float(value) for value in gravity)

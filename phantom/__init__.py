@@ -8,6 +8,8 @@ import which.
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 import shutil
 import stat
@@ -15,7 +17,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeGuard
 
 if TYPE_CHECKING:
     from phantom.host.client import AsyncPhantom, Phantom
@@ -153,6 +155,17 @@ def read_text(path: str | Path, max_bytes: int, what: str, error: type[PhantomEr
         utf16 = data.startswith((b"\xff\xfe", b"\xfe\xff"))
         raise error(f"{what} {path} is not UTF-8 text ({'it is UTF-16' if utf16 else f'byte {problem.start}'}): "
                     "save it as UTF-8") from None
+
+
+def is_finite_number(value: object) -> TypeGuard[float]:
+    """Whether ``value`` is a real number a float holds (numpy's too): not a bool or text, not inf or nan, nor an
+    integer of hundreds of digits, which JSON and TOML read and ``math.isfinite`` or ``float()`` of it overflows."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def unique_keys(pairs: list[tuple[str, object]]) -> dict[str, object]:

@@ -35,7 +35,6 @@ import concurrent.futures
 import contextlib
 import datetime
 import json
-import math
 import os
 import threading
 import time
@@ -46,7 +45,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from phantom import PhantomError, require_extra
+from phantom import PhantomError, is_finite_number, require_extra
 from phantom.protocol.motion import AxisConfig
 from phantom.scan.camera import MAX_PICTURE_SIDE_PX, Rig, checked_array
 
@@ -136,7 +135,7 @@ MAX_ANGLE_DEG = 360.0
 
 def _finite(name: str, value: object, low: float, high: float, unit: str, why: str) -> float:
     """``value`` as a float within [low, high], or CaptureError saying which parameter and why."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if not is_finite_number(value):
         raise CaptureError(f"{name} must be a finite number of {unit}, got {value!r}")
     if not low <= value <= high:
         raise CaptureError(f"{name} must be between {low:g} and {high:g} {unit} ({why}), got {value:g}")

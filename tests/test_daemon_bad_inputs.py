@@ -5,11 +5,13 @@ a timeline's steps are bounded, and heavy requests wait in a bounded queue."""
 from __future__ import annotations
 
 import asyncio
+import re
 import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -132,6 +134,47 @@ def test_heavy_requests_beyond_the_queue_are_answered_busy():
 def test_targets_that_gave_an_internal_error_are_refused_with_a_reason(raw, words):
     with pytest.raises(SceneError, match=words):
         parse_target(raw, CHAMBERS)
+
+
+#: A JSON (or TOML) integer of 401 digits: no float holds it (``float(HUGE)`` raises OverflowError).
+HUGE = 10**400
+
+
+@pytest.mark.parametrize("raw, key", [
+    ({"volume_ml": HUGE}, "volume_ml"),
+    ({"pressures_kpa": [1, HUGE, 1]}, r"pressures_kpa\[1\]"),
+    ({"chamber_volumes_ml": [None, HUGE, None]}, r"chamber_volumes_ml\[1\]"),
+    ({"volume_ml": 30, "growth_ratio": {"chamber1": HUGE}}, r"growth_ratio\[chamber1\]"),
+])
+def test_an_integer_too_large_for_a_number_is_refused_like_any_bad_number(raw, key):
+    """A 401-digit integer (JSON and TOML allow any) was an OverflowError, answered ``internal``."""
+    with pytest.raises(SceneError, match=f"{key} must be a finite number.*got an integer of about 401 digits") as error:
+        parse_target(raw, CHAMBERS, "set_target")
+    assert "\n" not in str(error.value) and len(str(error.value)) < 200
+
+
+def _api_handlers():
+    from phantom.host.handlers import ApiHandlers
+
+    daemon = SimpleNamespace(chamber_names=CHAMBERS, chamber_labels=["base", "left lobe", "right lobe"])
+    return ApiHandlers(daemon)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("method, params, words", [
+    ("set_target", {"volume_ml": HUGE}, "volume_ml must be a finite number"),
+    ("set_target", {"pressures_kpa": [HUGE, 1, 1]}, r"pressures_kpa\[0\] must be a finite number"),
+    ("surface", {"pressures_kpa": [1, 1, HUGE]}, r"pressures_kpa\[2\] must be a finite number"),
+    ("run_scene", {"path": str(REPO / "host" / "scenes" / "bph_growth.toml"), "time_scale": HUGE},
+     "time_scale must be a finite number"),
+    ("run_scene", {"path": "/tmp/a\u0000b"}, "is not a valid path: it holds a null character"),
+])
+def test_requests_that_were_answered_internal_are_invalid_params(method, params, words):
+    """Each was a bug in the daemon's answer (code ``internal``): an OverflowError or ValueError out of a handler."""
+    handler = _api_handlers().table()[method]
+    with pytest.raises(ApiError) as error:
+        asyncio.run(handler(params))
+    assert error.value.code == "invalid_params", error.value
+    assert re.search(words, str(error.value)), error.value
 
 
 MEASUREMENTS = "# pressures and volumes, 20 °C\np0_kpa,p1_kpa,p2_kpa,measured_ml\n0,0,0,26.1\n1,1,1,30.2\n2,2,2,34.5\n"

@@ -79,8 +79,10 @@ def test_a_stopped_scene_gives_no_target_and_bad_scenes_are_refused():
     assert runner.tick() is None and "scene bph stopped: vented" in events
     with pytest.raises(SceneError, match="no \\[\\[steps\\]\\]"):
         runner.start({}, "empty", CHAMBERS, 1.0)
-    with pytest.raises(SceneError, match="end_s must be a number >= 14"):
+    with pytest.raises(SceneError, match="end_s must be a number from 14 s .* to 604800 s .*got 5"):
         runner.start({**SCENE, "timeline": {"end_s": 5}}, "short", CHAMBERS, 1.0)
+    with pytest.raises(SceneError, match="end_s must be a number from 14 s .*got 1000000"):   # it overflowed a float
+        runner.start({**SCENE, "timeline": {"end_s": 10**400}}, "long", CHAMBERS, 1.0)
     with pytest.raises(SceneError, match="time_scale must be a positive"):
         runner.start(SCENE, "bph", CHAMBERS, float("nan"))
 

@@ -184,6 +184,16 @@ DAMAGED = {
     "duplicate keys": ('{"format": "phantom-corrections/1", "measurements": [{"pressures_kpa": [1, 1, 1], '
                        '"volume_ml": 30.0, "volume_ml": 40.0}]}', "duplicate key 'volume_ml'"),
     "entries not a list": ('{"format": "phantom-corrections/1", "measurements": {"a": 1}}', "measurements"),
+    # an integer of 401 digits: no float holds it (was an OverflowError traceback from every command)
+    "volume an integer too large": (json.dumps({"format": "phantom-corrections/1",
+                                                "measurements": [_entry(volume_ml=10**400)]}), "volume_ml"),
+    "pressure an integer too large": (json.dumps({"format": "phantom-corrections/1",
+                                                  "measurements": [_entry(pressures_kpa=[1, 10**400, 1])]}),
+                                      "pressures_kpa"),
+    # entries of two phantoms (was listed, exported as misaligned rows, and a ValueError traceback from fit)
+    "chamber counts differ": (json.dumps({"format": "phantom-corrections/1",
+                                          "measurements": [_entry(), _entry(pressures_kpa=[1, 1])]}),
+                              "measurement 2: it has 2 pressures, measurement 1 has 3"),
 }
 
 
@@ -194,6 +204,30 @@ def test_a_damaged_store_is_refused_with_the_field_named(data_dir, kind):
     with pytest.raises(CorrectionError, match="is damaged") as refused:
         CorrectionStore.for_phantom("bad").entries()
     assert field in str(refused.value)
+
+
+@pytest.mark.parametrize("kind", ["volume an integer too large", "chamber counts differ"])
+@pytest.mark.parametrize("action", ["list", "export", "fit"])
+def test_every_corrections_command_reports_a_damaged_entry_with_what_to_do(data_dir, capsys, kind, action):
+    content, field = DAMAGED[kind]
+    _store_file(data_dir, "bad", content)
+    assert main(["corrections", action, "--phantom", "bad"]) == 2
+    captured = capsys.readouterr()
+    assert "is damaged" in captured.err and field in captured.err and "move it aside" in captured.err
+    assert "Traceback" not in captured.err and captured.out == ""
+
+
+@pytest.mark.parametrize("kind", ["volume an integer too large", "chamber counts differ"])
+def test_the_daemons_fit_says_a_store_with_a_damaged_entry_is_damaged(data_dir, kind):
+    """The daemon's status showed ``OverflowError: int too large to convert to float``, not that the store is
+    damaged and what to do."""
+    from phantom.host.model_worker import _fitter_fit
+
+    content, field = DAMAGED[kind]
+    path = _store_file(data_dir, "bad", content)
+    answer = _fitter_fit("builtin:converged", "table", str(path))
+    assert answer.correction is None and answer.error is not None
+    assert answer.error.startswith(f"the correction store {path} is damaged") and field in answer.error
 
 
 def test_a_fifo_or_a_device_in_place_of_the_store_is_refused_without_being_opened(data_dir, tmp_path):

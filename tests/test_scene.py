@@ -186,6 +186,17 @@ def test_chamber_labels_name_every_chamber(tmp_path, labels):
         ("youngs_modulus_kpa = 20", "youngs_modulus_kpa = true", "youngs_modulus_kpa must be a positive"),
         ("[host]", "[outputs]\nshape = 1\n[host]", "[outputs] shape must be true or false, got 1"),
         ("[phantom]", 'outputs = "all"\n[phantom]', "outputs must be a table ([outputs]), got 'all'"),
+        # a quoted number was printed as a number: "must be a positive number, got 10"
+        ("youngs_modulus_kpa = 20", 'youngs_modulus_kpa = "10"', "youngs_modulus_kpa must be a positive number, "
+                                                                 "got '10'"),
+        ("poisson_ratio = 0.3", 'poisson_ratio = "0.3"', "poisson_ratio must lie in (-1, 0.5), got '0.3'"),
+        # an integer of 401 digits (TOML allows any): no float holds it; each was an OverflowError traceback
+        ("youngs_modulus_kpa = 20", f"youngs_modulus_kpa = {10**400}", "youngs_modulus_kpa must be a positive number"),
+        ('model = "linear"', f'model = "gent"\ngent_jm = {10**400}', "model = 'gent' needs gent_jm"),
+        ('model = "linear"', f'model = "yeoh"\nyeoh_c20_over_c10 = {10**400}\nyeoh_c30_over_c10 = 0',
+         "model = 'yeoh' needs yeoh_c20_over_c10"),
+        ("[host]", f"[model]\npressure_max_kpa = {10**400}\n[host]", "pressure_max_kpa must be a positive number"),
+        ("[host]", f"[load]\ngravity_m_s2 = [0, 0, {10**400}]\n[host]", "gravity_m_s2 must be three numbers"),
     ],
 )
 def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
@@ -272,4 +283,29 @@ def test_run_scene_names_a_misspelt_key_instead_of_another_phantom(tmp_path):
     path = write_scene(tmp_path, text + "\n[material]\nyoungs_modulus_kPa = 10.85573\n")
     with pytest.raises(SceneError, match=r"\[material\] has unknown key 'youngs_modulus_kPa' \(did you mean "
                                          r"'youngs_modulus_kpa'\?\)"):
+        prepare_scene(str(path), 1.0, ["chamber0", "chamber1", "chamber2"], {}, "running.toml")
+
+
+def test_scene_check_of_a_timeline_scene_says_which_commands_play_it(capsys):
+    """``phantom scene check host/scenes/bph_growth.toml`` said ``model must be a table ([model]), got
+    'builtin:converged'``: a timeline scene names its model; it is played, not checked as a model."""
+    from phantom.host.scenes import example_scene_path
+
+    path = example_scene_path("bph_growth")
+    assert main(["scene", "check", str(path)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert f"{path} is a timeline scene" in error and "model = 'builtin:converged'" in error
+    assert "phantom run-scene" in error and "phantom daemon --scene" in error
+    assert "model must be a table" not in error and len(error.splitlines()) == 1
+
+
+def test_steps_that_are_not_an_array_of_tables_are_refused_by_scene_check_and_run_scene(tmp_path):
+    """``steps = 5`` was TypeError: 'int' object is not iterable (run_scene answered ``internal``)."""
+    from phantom.host.handlers import prepare_scene
+
+    words = r"steps must be an array of tables \(\[\[steps\]\]\), got 5"
+    with pytest.raises(SceneError, match=words):
+        load_scene(write_scene(tmp_path, "steps = 5\n" + GOOD.split("[[steps]]")[0]))
+    path = write_scene(tmp_path, 'model = "builtin:converged"\nsteps = 5\n')
+    with pytest.raises(SceneError, match=words):
         prepare_scene(str(path), 1.0, ["chamber0", "chamber1", "chamber2"], {}, "running.toml")

@@ -70,6 +70,12 @@ def test_growth_ratio_takes_chamber_names_or_indices():
     ([{"at_s": 0, "volume_ml": 30, "growth_ratio": {"lobe": 1}}], "unknown chamber 'lobe'"),
     ([{"at_s": 0, "volume_ml": 30, "growth_ratio": {"chamber1": 0}}], "must be positive"),
     ([{"at_s": 0, "volume_ml": 30, "colour": "red"}], "unknown key"),
+    # a misspelt target key was "give exactly one of ...; got none"
+    ([{"at_s": 0, "volum_ml": 30}], r"unknown key\(s\) 'volum_ml': a target gives exactly one of volume_ml"),
+    # a step beyond any scene's time was accepted (and a scene without end_s then ran for 1e300 s)
+    ([{"at_s": 1e300, "volume_ml": 30}], r"end by 604800 s \(a week.*got at_s=1e\+300"),
+    ([{"at_s": 0, "volume_ml": 30}, {"at_s": 5, "ramp_s": 1e300, "volume_ml": 35}], r"end by 604800 s"),
+    ([{"at_s": 604800, "ramp_s": 0, "volume_ml": 30}, {"at_s": 604801, "volume_ml": 35}], r"end by 604800 s"),
     ([{"at_s": -1, "volume_ml": 30}], "must be >= 0"),
     ([{"at_s": 5, "volume_ml": 30}, {"at_s": 5, "volume_ml": 31}], "must be later"),
     ([{"at_s": 0, "ramp_s": 3, "volume_ml": 30}], "first step cannot ramp"),

@@ -28,10 +28,10 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import math
 from dataclasses import dataclass
 from typing import Any
 
+from phantom import is_finite_number
 from phantom.model.errors import SceneError, check_known_keys
 
 #: The thinnest silicone wall a lost-wax cast makes (mm).
@@ -100,7 +100,7 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
     for name, value in table.items():
         if name.endswith("_mm") and isinstance(fields[name].default, tuple):
             if (not isinstance(value, list | tuple) or len(value) != 3
-                    or not all(_finite_number(item) for item in value)):
+                    or not all(is_finite_number(item) for item in value)):
                 raise SceneError(f"{where}: [geometry] {name} must be three numbers (x, y, z in mm), got {value!r}")
             if "semi_axes" in name and min(value) <= 0:
                 raise SceneError(f"{where}: [geometry] {name} must be positive, got {value!r}")
@@ -112,7 +112,7 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
                                  f"quadratic), got {value!r}")
             values[name] = int(value)
             continue
-        if not _finite_number(value):
+        if not is_finite_number(value):
             raise SceneError(f"{where}: [geometry] {name} must be a number, got {value!r}")
         low, high = {"base_chamber_scale": SCALE_RANGE, "lobe_chamber_scale": SCALE_RANGE,
                      "fixation_radius_mm": FIXATION_RADIUS_RANGE_MM,
@@ -126,7 +126,3 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
         raise SceneError(f"{where}: [geometry] lobe_chamber_centre_mm must have x > 0 (the left lobe; the right "
                          f"one is its mirror image), got {list(geometry.lobe_chamber_centre_mm)}")
     return geometry
-
-
-def _finite_number(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
