@@ -81,6 +81,9 @@ GIVE_BACK_DELAY_S = 1.0
 #: a client of a full queue (asyncio's, at least) believes it is connected and then finds the connection reset.
 LISTEN_BACKLOG = 1024
 
+#: How long a cancelled client task is given to end before it is cancelled again (s).
+CANCEL_AGAIN_S = 0.1
+
 #: The longest path a Unix socket may have (bytes): Linux's ``sun_path`` holds 108 with the closing NUL.
 MAX_SOCKET_PATH_BYTES = 107
 
@@ -220,11 +223,7 @@ class ApiServer:
             self._accepting.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await self._accepting
-        for task in list(self._tasks):
-            task.cancel()
-        for task in list(self._tasks):
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await task
+        await _cancelled(set(self._tasks))
         if self._listener is None:
             return  # never listened: the path, if any, is another daemon's
         self._listener.close()
@@ -285,9 +284,7 @@ class ApiServer:
                                "the longest idle, was closed for a new one; reconnect when needed"))
         self.clients.pop(idle.number, None)
         if idle.task is not None:
-            idle.task.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await idle.task
+            await _cancelled({idle.task})
 
     async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Read requests from one client until it goes; answers go through its queue and writer task."""
@@ -523,6 +520,21 @@ async def _socket_is_live(path: Path) -> bool:
         return False
     writer.close()
     return True
+
+
+async def _cancelled(tasks: set[asyncio.Task[None]]) -> None:
+    """Cancel ``tasks`` and wait until each has ended, cancelling again those that go on. On Python 3.11 a
+    cancellation that meets the end of an ``asyncio.wait_for`` in one turn is lost (wait_for returns the read's
+    result): a client's task then went on to wait for the next line, and closing the server waited for it until
+    the client left."""
+    pending = {task for task in tasks if not task.done()}
+    while pending:
+        for task in pending:
+            task.cancel()
+        _, pending = await asyncio.wait(pending, timeout=CANCEL_AGAIN_S)
+    for task in tasks:
+        if task.done() and not task.cancelled():
+            task.exception()  # retrieved: a task that failed was logged where it failed
 
 
 def check_socket_path(path: Path) -> None:

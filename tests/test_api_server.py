@@ -293,3 +293,50 @@ def test_a_socket_path_too_long_for_a_unix_socket_says_the_limit(tmp_path):
     assert asyncio.run(main()) == (f"the socket path {path} is {len(str(path))} bytes long: a Unix socket's path may "
                                    "be at most 107 bytes (on Linux); pass a shorter socket path")
     assert not path.exists()
+
+
+def test_closing_ends_within_a_second_while_clients_keep_asking(tmp_path):
+    """A daemon told to stop (SIGTERM) waited for ever in close() while a client polled status: on Python 3.11 a
+    cancellation that meets the end of a read under ``asyncio.wait_for`` in one turn is lost, and the client's task
+    went on to wait for its next line, holding the socket (a new daemon was refused) until the client left."""
+
+    async def poll(path, stop):
+        reader, writer = await asyncio.open_unix_connection(str(path))
+        try:
+            while not stop.is_set():
+                writer.write(b'{"id": 1, ')              # a line in two writes: its end read under wait_for
+                await writer.drain()
+                await asyncio.sleep(0)
+                writer.write(b'"method": "echo"}\n')
+                await writer.drain()
+                if not await reader.readline():
+                    return
+        except ConnectionError:
+            return
+        finally:
+            writer.close()
+
+    async def close_took_s(path):
+        server = ApiServer(path, HANDLERS)
+        await server.start()
+        stop = asyncio.Event()
+        pollers = [asyncio.create_task(poll(path, stop)) for _ in range(4)]
+        await asyncio.sleep(0.2)
+        started = asyncio.get_running_loop().time()
+        closing = asyncio.create_task(server.close())
+        done, _ = await asyncio.wait({closing}, timeout=3.0)
+        stop.set()
+        await asyncio.wait(pollers, timeout=3.0)
+        if not done:
+            return None                                    # close() hung: its task is abandoned with the loop
+        return asyncio.get_running_loop().time() - started
+
+    async def main():
+        return [await close_took_s(tmp_path / f"api{number}.sock") for number in range(5)]
+
+    loop = asyncio.new_event_loop()
+    try:
+        took_s = loop.run_until_complete(main())
+    finally:
+        loop.close()
+    assert all(took is not None and took < 1.5 for took in took_s), took_s
