@@ -17,6 +17,11 @@ A daemon alive but hung (its loop blocked: a deadlock, a call that never returns
 phantom inflated with nobody to answer a stop: its loop says it is alive every :data:`ALIVE_PERIOD_S`, and a
 process that hears nothing from it for ``daemon_silent_s`` withholds the keepalive until it does, so that the
 board vents then too.
+
+The other way round, a link's process that stops reporting (stopped, hung, starved of every core) leaves the
+daemon with its last status: from :data:`LINK_SILENT_S` without one, the link is ``silent`` (not online: no
+measured pressure or estimate is shown as current, commands are refused), the daemon is told so at once and, when
+the process reports again, for how long it was silent.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 from phantom.host import link_entry
+from phantom.host.link_child import STATUS_PERIOD_S
 from phantom.host.session import (
     BoardInfo,
     CommandRejected,
@@ -47,7 +53,7 @@ from phantom.host.session import (
 from phantom.protocol import ProtocolError
 from phantom.protocol.codec import Message
 
-__all__ = ["LINK_RT_PRIORITY", "LinkProcess"]
+__all__ = ["LINK_RT_PRIORITY", "LINK_SILENT_S", "LinkProcess"]
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +68,14 @@ ALIVE_PERIOD_S = 0.5
 #: Its longest stalls measured were 0.4-0.6 s beside busy cores and a 1.5 s GIL hold (bench/README.md, "A
 #: verified target's scan beside busy cores"; tests/test_link_process.py); the board's own deadline is 0.5 s.
 DAEMON_SILENT_S = 10.0
+#: How long (s) the link's process may send no status (it sends one every STATUS_PERIOD_S, 0.2 s) before its link is
+#: shown as ``silent``: five missed, and twice the board's 500 ms dead-host deadline, which a process that did not
+#: run for that long has let pass (its keepalive stopped with it).
+LINK_SILENT_S = 5 * STATUS_PERIOD_S
+#: How long (s) a link found online again after a silence must stay online, on its connection of before, before the
+#: daemon restores the board's state on it: the process's first status after a stop may be the one it had before,
+#: its loss of the board found only a moment later (then the reconnection restores it).
+SILENCE_SETTLE_S = 2 * STATUS_PERIOD_S
 
 
 class LinkProcess:
@@ -79,10 +93,13 @@ class LinkProcess:
     daemon_silent_s : float
         How long the daemon's loop may be silent before the process withholds the board's keepalive (at least
         twice :data:`ALIVE_PERIOD_S`).
+    clock : callable() -> float, optional
+        The daemon's monotonic clock in seconds (``time.monotonic``; a counter in tests): when each status arrived,
+        and how long the process has been silent.
     """
 
     def __init__(self, transport: Transport, timing: LinkTiming, rt_priority: int | None = LINK_RT_PRIORITY,
-                 daemon_silent_s: float = DAEMON_SILENT_S):
+                 daemon_silent_s: float = DAEMON_SILENT_S, clock: Callable[[], float] = time.monotonic):
         if not daemon_silent_s >= 2 * ALIVE_PERIOD_S:
             raise ValueError(f"daemon_silent_s must be at least {2 * ALIVE_PERIOD_S:g} s (twice the daemon's "
                              f"{ALIVE_PERIOD_S:g} s between words to the link's process), not {daemon_silent_s!r}")
@@ -90,6 +107,7 @@ class LinkProcess:
         self.timing = timing
         self.rt_priority = rt_priority
         self.daemon_silent_s = daemon_silent_s
+        self.clock = clock
         self._status: dict[str, Any] = {"state": LinkState.DISCONNECTED.value,
                                         "transport": transport.description, "board": None, "board_info": None,
                                         "last_error": "the link's process is starting",
@@ -105,6 +123,15 @@ class LinkProcess:
         self._stopping = False
         self._ended: asyncio.Future[None] | None = None
         self._onlines: set[asyncio.Task[None]] = set()
+        #: when the last status arrived (the clock's s; None: none yet, the process is starting)
+        self._reported_at: float | None = None
+        #: since when (the clock's s) the process has been told to be silent (None: it is not)
+        self._silent_since: float | None = None
+        #: the board of the latest connection the process said was online, and that connection's count
+        self._board: BoardInfo | None = None
+        #: after a silence with the link still online on its connection of before: since when it has been (None:
+        #: nothing to restore), and that connection's count
+        self._online_again: tuple[float, int] | None = None
 
     def attach(self, on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
                on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None,
@@ -115,7 +142,18 @@ class LinkProcess:
 
     @property
     def state(self) -> LinkState:
+        """The session's state as its process last said it, or ``silent`` when it has not reported for
+        :data:`LINK_SILENT_S`: what it said then is no longer known to hold."""
+        if self.silent_for_s() is not None:
+            return LinkState.SILENT
         return LinkState(self._status["state"])
+
+    def silent_for_s(self) -> float | None:
+        """How long (s) the process has sent no status, once beyond :data:`LINK_SILENT_S` (None: it reports)."""
+        if self._reported_at is None or self._status["state"] == LinkState.STOPPED.value:
+            return None
+        silent_s = self.clock() - self._reported_at
+        return silent_s if silent_s > LINK_SILENT_S else None
 
     @property
     def online(self) -> bool:
@@ -125,6 +163,8 @@ class LinkProcess:
         """The session's status as the process last sent it (at most :data:`STATUS_PERIOD_S` old), with its
         loop's stalls (``event_loop``, its stalls' ages as of now) and the process (``process``: pid, scheduling)."""
         status = dict(self._status)
+        if (silent_s := self.silent_for_s()) is not None:
+            status["state"], status["last_error"] = LinkState.SILENT.value, self._silence_text(silent_s)
         sent_s = status.pop("sent_s", None)
         loop = status.get("event_loop")
         if sent_s is not None and loop is not None:  # one monotonic clock for the machine's processes
@@ -148,6 +188,7 @@ class LinkProcess:
         self._ended = loop.create_future()
         loop.add_reader(ours.fileno(), self._readable)
         alive = loop.create_task(self._say_alive())
+        watch = loop.create_task(self._watch_the_process())
         try:
             await asyncio.shield(self._ended)
         except asyncio.CancelledError:
@@ -157,6 +198,7 @@ class LinkProcess:
             raise
         finally:
             alive.cancel()
+            watch.cancel()
             with contextlib.suppress(ValueError, OSError):
                 loop.remove_reader(ours.fileno())
             ours.close()
@@ -188,6 +230,56 @@ class LinkProcess:
         except LinkDown:
             return False
         return ended
+
+    def check_reports(self) -> None:
+        """Tell the daemon (an event) when the process has just gone silent; restore the board's state once a
+        link that stayed online through a silence is seen to hold (:data:`SILENCE_SETTLE_S`)."""
+        silent_s = self.silent_for_s()
+        if silent_s is not None and self._silent_since is None:
+            assert self._reported_at is not None
+            self._silent_since = self._reported_at
+            text = self._silence_text(silent_s)
+            logger.error(text)
+            # a link lost for the daemon: a verified target's scan failing now is retaken
+            self._on_event("link_lost", f"link lost: {text}", "ERROR")
+        self._restore_if_online_again()
+
+    def _silence_text(self, silent_s: float) -> str:
+        pid = self._status.get("process", {}).get("pid")
+        return (f"the link's process{f' (pid {pid})' if pid else ''} has not reported for {silent_s:.1f} s (it "
+                f"reports every {STATUS_PERIOD_S:g} s): stopped or hung; the board's state is unknown, and what the "
+                "process last said is not shown as current")
+
+    def _reported(self, status: dict[str, Any]) -> None:
+        """A status from the process: the link is what it says; a silence before it is over, and told."""
+        self._status, self._reported_at = status, self.clock()
+        if self._silent_since is None:
+            return
+        silent_s, self._silent_since = self._reported_at - self._silent_since, None
+        text = f"the link's process reported again after {silent_s:.1f} s silent"
+        logger.warning(text)
+        self._on_event("link_process", text, "WARN")
+        if status["state"] == LinkState.ONLINE.value and self._board is not None:
+            self._online_again = (self._reported_at, status["stats"]["connects"])
+
+    def _restore_if_online_again(self) -> None:
+        if self._online_again is None:
+            return
+        since, connects = self._online_again
+        if self._status["state"] != LinkState.ONLINE.value or self._status["stats"]["connects"] != connects:
+            self._online_again = None  # lost, or reconnected: the reconnection restores the board's state
+        elif self.clock() - since >= SILENCE_SETTLE_S and self._board is not None:
+            # no loss the process found: the board may still have let go meanwhile (DEAD_HOST, vented), and the
+            # daemon took it for gone; its state is restored as after a reconnection
+            self._online_again = None
+            self._on_event("link_process", "the link stayed online through its process's silence: the board's "
+                           "state is restored as after a reconnection", "WARN")
+            self._start_bringing_online(self._board, True, None)
+
+    async def _watch_the_process(self) -> None:
+        while True:
+            self.check_reports()
+            await asyncio.sleep(STATUS_PERIOD_S)
 
     # --- the pipe -----------------------------------------------------------------------------------------
 
@@ -234,13 +326,12 @@ class LinkProcess:
         elif kind == "motion":
             self._on_motion(message[1])
         elif kind == "status":
-            self._status = message[1]
+            self._reported(message[1])
         elif kind == "event":
             self._on_event(*message[1:])
         elif kind == "online":
-            task = asyncio.create_task(self._bring_online(*message[1:]))
-            self._onlines.add(task)
-            task.add_done_callback(self._onlines.discard)
+            self._board, self._online_again = message[1], None
+            self._start_bringing_online(*message[1:])
         elif kind == "answer":
             _, request, outcome, value = message
             future = self._answers.pop(request, None)
@@ -255,13 +346,20 @@ class LinkProcess:
             else:
                 future.set_exception(LinkDown(value))
 
-    async def _bring_online(self, board: BoardInfo, reconnected: bool, connection: int) -> None:
-        """The daemon restores its state on the new connection; the process is told when it is done."""
+    def _start_bringing_online(self, board: BoardInfo, reconnected: bool, connection: int | None) -> None:
+        task = asyncio.create_task(self._bring_online(board, reconnected, connection))
+        self._onlines.add(task)
+        task.add_done_callback(self._onlines.discard)
+
+    async def _bring_online(self, board: BoardInfo, reconnected: bool, connection: int | None) -> None:
+        """The daemon restores its state on the new connection; the process is told when it is done (None: a
+        connection it did not announce, kept through a silence: nothing of it waits)."""
         try:
             if self._on_online is not None:
                 await self._on_online(board, reconnected)
         finally:
-            self._send(("online_done", connection))
+            if connection is not None:
+                self._send(("online_done", connection))
 
     def _fail_answers(self, error: Exception) -> None:
         for future in self._answers.values():

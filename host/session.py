@@ -75,6 +75,9 @@ class LinkState(enum.StrEnum):
     ONLINE = "online"
     INCOMPATIBLE = "incompatible"
     STOPPED = "stopped"
+    #: the daemon's view of a link whose process has not reported for longer than its deadline (host/link_process.py):
+    #: what the board does is unknown, and what the process last said is not current
+    SILENT = "silent"
 
 
 class LinkDown(PhantomError):
@@ -197,6 +200,8 @@ class LinkSession:
         #: the keepalive held back while the daemon is silent (host/link_child.py): the board then vents
         self._keepalive_withheld = False
         self._lost_at: float | None = None
+        #: when the board's bytes last arrived (the outage after a loss is counted from then)
+        self._heard_at: float | None = None
         self._serving: asyncio.Task[None] | None = None
         self._wake = asyncio.Event()
         #: the link core's deadline :meth:`_serve` sleeps until (None: none)
@@ -360,7 +365,8 @@ class LinkSession:
         what ended it."""
         while True:
             data = await self.transport.read()
-            for event in self.link.receive(data, self.clock()):
+            self._heard_at = self.clock()
+            for event in self.link.receive(data, self._heard_at):
                 self._handle(event)
             self._flush()
             deadline = self.link.next_deadline()
@@ -494,7 +500,9 @@ class LinkSession:
         self._problem_started(reason)
         if was_online:
             self.stats.links_lost += 1
-            self._lost_at = self.clock()
+            # from the board's last word: a loss found late (the board silent for 1 s, the link's process stopped
+            # for seconds and its silence seen once it ran again) lasted from then, not from its finding
+            self._lost_at = self._heard_at if self._heard_at is not None else self.clock()
             self.on_event("link_lost", f"link lost: {reason}", "WARN")
 
     def _problem_started(self, text: str) -> None:

@@ -120,6 +120,75 @@ def test_a_hung_daemon_lets_the_board_vent_and_is_told_so_when_it_wakes(board):
     assert status["state"] == "online" and status["stats"]["links_lost"] == 0, status
 
 
+def reported(state: str, connects: int = 1) -> tuple:
+    """A status message as the link's process sends it (the keys the daemon's side reads)."""
+    return ("status", {"state": state, "transport": "serial /dev/null", "board": None, "board_info": None,
+                       "last_error": None, "stats": {"connects": connects}, "process": {"pid": 4242}})
+
+
+def test_a_link_whose_process_stopped_reporting_is_silent_not_online_and_told_so(tmp_path):
+    """Before: the daemon showed the last status its link's process had sent, however old: a process stopped
+    (SIGSTOP) for 8 s left `link online`, its pressures and estimate shown as current, while the board had latched
+    DEAD_HOST and vented. Now, on the daemon's clock, a process that has sent no status for LINK_SILENT_S (five of
+    its 0.2 s periods) makes the link `silent`: not online, commands refused, the status and an event saying for
+    how long; when it reports again, the event says how long the silence really lasted."""
+    from phantom.host.link_process import LINK_SILENT_S, SILENCE_SETTLE_S
+
+    now = [100.0]
+    events, onlines = [], []
+
+    async def on_online(board, reconnected):
+        onlines.append((board, reconnected))
+
+    async def main():
+        link = LinkProcess(SerialTransport(tmp_path / "board"), TIMING, clock=lambda: now[0])
+        link.attach(on_telemetry=lambda telemetry: None, on_event=lambda *event: events.append(event),
+                    on_online=on_online, on_motion=lambda message: None)
+        assert link.state.value == "disconnected"         # starting: no status yet is no silence
+        now[0] += 30.0
+        link.check_reports()
+        assert link.state.value == "disconnected" and not events
+        link._handle(reported("online"))
+        link._handle(("online", "board", False, 0))
+        await asyncio.sleep(0)
+        onlines.clear()
+        now[0] += LINK_SILENT_S - 0.05                   # late, not silent
+        link.check_reports()
+        assert link.online and link.status()["state"] == "online" and not events
+        now[0] += 0.25
+        link.check_reports()
+        status = link.status()
+        assert not link.online and link.state.value == "silent" and status["state"] == "silent", status
+        assert "has not reported for 1.2 s" in status["last_error"] and "pid 4242" in status["last_error"], status
+        ((kind, text, level),) = events
+        assert kind == "link_lost" and "has not reported for 1.2 s" in text and level == "ERROR"
+        with pytest.raises(LinkDown, match="the link is silent"):
+            await link.command("SET_SETPOINTS", {"setpoint_pa": [0, 0, 0]})
+        now[0] += 6.8
+        link.check_reports()                             # told once
+        assert len(events) == 1 and "has not reported for 8.0 s" in link.status()["last_error"]
+        link._handle(reported("online"))                 # back, its connection of before still up
+        assert link.online and "reported again after 8.0 s silent" in events[1][1], events
+        link.check_reports()
+        assert not onlines                               # not yet: a loss may be found a moment later
+        now[0] += SILENCE_SETTLE_S
+        link._handle(reported("online"))
+        link.check_reports()
+        await asyncio.sleep(0)
+        assert onlines == [("board", True)] and "restored as after a reconnection" in events[2][1], events
+        now[0] += 3.0                                    # silent again; back, its loss found: no restore of ours
+        link.check_reports()
+        link._handle(reported("online"))
+        now[0] += 0.01
+        link._handle(reported("disconnected"))
+        now[0] += SILENCE_SETTLE_S
+        link.check_reports()
+        await asyncio.sleep(0)
+        assert len(onlines) == 1 and link.state.value == "disconnected"
+
+    asyncio.run(main())
+
+
 def test_the_link_process_refuses_a_silence_limit_it_cannot_keep(tmp_path):
     """A limit under two of the daemon's words would call a running daemon hung."""
     with pytest.raises(ValueError, match="daemon_silent_s must be at least 1 s"):
@@ -305,3 +374,44 @@ def test_a_daemon_stopped_for_longer_than_its_silence_lets_the_board_vent_and_sa
             assert ph.status().faults == ()
     finally:
         rig.close()
+
+
+@pytest.mark.timeout(240)
+def test_a_daemon_whose_link_process_is_stopped_shows_it_silent_and_the_whole_outage_after(tmp_path):
+    """The red team's run (`phantom daemon --sim`, its link's process stopped by SIGSTOP for seconds, then continued).
+    Before: 4 s into the stop, `link online` with the pressures and the gland's estimate of before the stop as
+    current, while the board had latched DEAD_HOST and vented; continued, "link restored after 0.2 s". Now the link
+    is silent, no measured pressure or estimate is shown, the events say since when; after, the outage told is the
+    stop's length, and the link comes back online."""
+    import re
+    import signal
+
+    from daemon_rig import daemon_process
+
+    import phantom
+
+    environment = {**os.environ, **{name: str(tmp_path / name) for name in ("XDG_DATA_HOME", "XDG_CACHE_HOME",
+                                                                             "XDG_CONFIG_HOME", "XDG_STATE_HOME")}}
+    with daemon_process(tmp_path, "--sim", ready_s=180, env=environment) as daemon, \
+            phantom.connect(daemon.socket) as ph:
+        ph.set_pressures([0.8, 0.0, 0.0])
+        link_pid = ph.call("status")["link_detail"]["process"]["pid"]
+        os.kill(link_pid, signal.SIGSTOP)
+        try:
+            time.sleep(4.0)
+            stopped = ph.call("status")
+        finally:
+            os.kill(link_pid, signal.SIGCONT)
+        deadline = time.monotonic() + 30
+        while (status := ph.call("status"))["link"] != "online" or not any(
+                "restored after" in event["text"] for event in status["events"]):
+            assert time.monotonic() < deadline, status
+            time.sleep(0.2)
+    assert stopped["link"] == "silent", stopped["link_detail"]
+    assert stopped["pressures_kpa"] is None and stopped["estimated_volume_ml"] is None, stopped
+    assert re.search(r"has not reported for [34]\.\d s", stopped["link_detail"]["last_error"]), stopped["link_detail"]
+    assert any("has not reported for" in event["text"] for event in stopped["events"]), stopped["events"]
+    texts = [event["text"] for event in status["events"]]
+    silences = [float(found) for text in texts for found in re.findall(r"reported again after ([\d.]+) s", text)]
+    outages = [float(found) for text in texts for found in re.findall(r"restored after ([\d.]+) s", text)]
+    assert silences and silences[0] >= 3.5 and outages and outages[-1] >= 3.5, texts
