@@ -38,6 +38,8 @@ is closed (about 2 MB a minute at the daemon's rates), so a long session is clos
 :data:`SEGMENT_S` and goes on in a new file at the same path, with the same recording id (``rerun run*.rrd``
 shows the whole session). A disk that fills up pauses the recording (closed properly while it can be) before
 the SDK's writer fails; it resumes in a new file once there is room, and both are events and in ``status``.
+:func:`read_rrd` reads a file without its footer (a killed daemon's) and one cut short in the middle of a message
+(a writer stopped by a full disk): everything before that message, with a :class:`RecordingCutShort` warning.
 
 Memory stays bounded otherwise: the chunk batcher flushes every 0.5 s rather than every few milliseconds, so a
 telemetry series is one chunk per half second rather than one per frame, and a moving mesh sends its triangles
@@ -52,13 +54,15 @@ import fcntl
 import logging
 import os
 import re
+import struct
+import tempfile
 import time
 import uuid
 import warnings
 from collections.abc import Callable, Iterator, Sequence
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any, TextIO
+from typing import IO, Any, TextIO
 
 import numpy as np
 
@@ -119,6 +123,11 @@ CLOSE_TIMEOUT_S = 30.0
 class RecordingError(PhantomError):
     """The recording could not be opened (unwritable path, full disk, a path another daemon records to, bad
     viewer address)."""
+
+
+class RecordingCutShort(UserWarning):
+    """The recording ends in the middle of a message (its writer stopped there: a full disk, or it is still being
+    written): what comes before it is read, its last bytes are not."""
 
 
 def entity_part(name: str) -> str:
@@ -716,7 +725,8 @@ def read_rrd(path: str | Path, skip: frozenset[str] = frozenset()) -> dict[str, 
     no scene ran). Used by tests, by ``make demo`` and by ``phantom report``. The columns named in ``skip``
     (``"ENTITY:COMPONENT"``, e.g. ``"/phantom/mesh:Mesh3D:vertex_positions"``) are not read (their rows' times
     are): a report of a long recording with its meshes as lists of Python floats took 2.9 GB
-    (:func:`read_points_at` reads the few rows of points wanted).
+    (:func:`read_points_at` reads the few rows of points wanted). A file cut short in the middle of a message is
+    read up to it, with a :class:`RecordingCutShort` warning that says how many bytes were not read.
     """
     entities: dict[str, dict[str, list[Any]]] = {}
     for chunk in _chunks(path, compacted=True):
@@ -750,14 +760,68 @@ def read_rrd(path: str | Path, skip: frozenset[str] = frozenset()) -> dict[str, 
 def _chunks(path: str | Path, compacted: bool = False) -> Iterator[Any]:
     """The recording's chunks: the reader's lazy stream, one at a time as written (a long recording is not held
     whole), or ``compacted`` (collected first: each entity's rows together, what :func:`read_rrd`'s columns
-    assume)."""
+    assume). A file cut short in the middle of a message is read up to that message (rerun's reader refuses the
+    whole file: "Message payload ... exceeds file size"), from a copy of what comes before it in the temporary
+    folder, and :class:`RecordingCutShort` says how many bytes were not read."""
     with require_extra("record"):
         from rerun.chunk import RrdReader
 
-    with warnings.catch_warnings():  # "no footer": a crashed session's file has none; stream() reads it all
-        warnings.filterwarnings("ignore", message="RRD file has no footer")
-        reader = RrdReader(str(path))
-    yield from (reader.stream().collect().stream() if compacted else reader.stream())
+    with contextlib.ExitStack() as stack:
+        whole = _whole_messages_end(path)
+        if whole is not None:
+            unread = os.path.getsize(path) - whole
+            copy = stack.enter_context(tempfile.NamedTemporaryFile(prefix="cut-short.", suffix=".rrd"))
+            _copy_head(path, whole, copy)
+            warnings.warn(RecordingCutShort(
+                f"{path} ends cut short, in the middle of a message (its writer stopped there: a full disk, or it "
+                f"is still being written): its last {unread} bytes are not read"), stacklevel=3)
+        with warnings.catch_warnings():  # "no footer": a crashed session's file has none; stream() reads it all
+            warnings.filterwarnings("ignore", message="RRD file has no footer")
+            reader = RrdReader(str(path) if whole is None else copy.name)
+        yield from (reader.stream().collect().stream() if compacted else reader.stream())
+
+
+#: An .rrd stream: a header ("RRF2", the format's version, the encoding options), then messages, each a header
+#: (its kind and its payload's length, little-endian u64s) and its payload; kinds 1-3 are data (the store's info,
+#: chunks, the blueprint's activation), kind 0 ends the stream (its payload and what follows: the footer).
+RRD_MAGIC = b"RRF2"
+RRD_HEADER_BYTES = 12
+RRD_MESSAGE_HEADER = struct.Struct("<QQ")
+RRD_MESSAGE_KINDS = (0, 1, 2, 3)
+
+
+def _whole_messages_end(path: str | Path) -> int | None:
+    """Where the file's whole messages end when it ends in the middle of one (in its header or its payload); None
+    when it ends where a message does (with or without the end of the stream and its footer) or is not a stream
+    of the messages above (rerun's reader judges it). Only the messages' headers are read."""
+    size = os.path.getsize(path)
+    with open(path, "rb") as file:
+        if size <= RRD_HEADER_BYTES or file.read(len(RRD_MAGIC)) != RRD_MAGIC:
+            return None
+        end = RRD_HEADER_BYTES
+        while end < size:
+            file.seek(end)
+            header = file.read(RRD_MESSAGE_HEADER.size)
+            if len(header) < RRD_MESSAGE_HEADER.size:
+                return end
+            kind, length = RRD_MESSAGE_HEADER.unpack(header)
+            if kind not in RRD_MESSAGE_KINDS:
+                return None
+            if end + RRD_MESSAGE_HEADER.size + length > size:
+                return end
+            if kind == 0:
+                return None
+            end += RRD_MESSAGE_HEADER.size + length
+    return None
+
+
+def _copy_head(path: str | Path, length: int, target: IO[bytes]) -> None:
+    """Copy the first ``length`` bytes of the file at ``path`` to ``target`` (a MB at a time)."""
+    with open(path, "rb") as source:
+        while length > 0 and (block := source.read(min(length, 2**20))):
+            target.write(block)
+            length -= len(block)
+    target.flush()
 
 
 def read_points_at(path: str | Path, entity: str, component: str, times_s: set[float]) -> dict[float, np.ndarray]:

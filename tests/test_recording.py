@@ -4,14 +4,17 @@ What a person sees depends on what is in the file: the entities (chambers named 
 ``scene_time`` timeline, one colour per chamber, a drawing order in which nothing hides, the mesh's normals, the
 translucent rest-shape ghost, the anatomical axes and the blueprint. The files: complete (a footer, which
 ``rerun rrd verify`` checks), never overwritten, one daemon per path, segments for long sessions, a pause on a
-full disk and a resume. Errors: a recording that cannot be written is a one-line PhantomError from ``open()``,
-and nothing is touched before ``open()``.
+full disk and a resume; a file cut short in the middle of a message (a disk that filled up under the writer) is
+read up to that message, saying so. Errors: a recording that cannot be written is a one-line PhantomError from
+``open()``, and nothing is touched before ``open()``.
 """
 
 from __future__ import annotations
 
+import struct
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -25,8 +28,10 @@ from phantom.host.recording import (
     PAUSE_BELOW_BYTES,
     RESUME_ABOVE_BYTES,
     Recorder,
+    RecordingCutShort,
     RecordingError,
     entity_part,
+    read_points_at,
     read_rrd,
     vertex_normals,
 )
@@ -500,3 +505,66 @@ def test_a_real_full_disk_pauses_the_recording(tmp_path):
                               capture_output=True).returncode == 0
     finally:
         subprocess.run(["umount", str(small)], check=True)
+
+
+def message_starts(data: bytes) -> list[int]:
+    """Where each message of an .rrd stream begins: after the stream's 12-byte header ("RRF2", its version and
+    options), each message is a 16-byte header (its kind and its payload's length, little-endian u64s) and the
+    payload; kind 0 ends the stream (its payload the footer)."""
+    starts, at = [], 12
+    while at + 16 <= len(data):
+        starts.append(at)
+        kind, length = struct.unpack_from("<QQ", data, at)
+        at += 16 + length
+        if kind == 0:
+            break
+    return starts
+
+
+@pytest.fixture(scope="module")
+def unfinished(tmp_path_factory):
+    """A recording as a writer that stopped leaves it: whole messages and no footer."""
+    path = tmp_path_factory.mktemp("unfinished") / "run.rrd"
+    rest, triangles = uv_sphere(10.0, rings=6, segments=8)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(recording_module, "WRITE_FOOTER", False)
+        recorder = Recorder(NAMES, save_path=path)
+        recorder.open()
+        recorder.log_rest_surface(rest, triangles)
+        for k in range(20):
+            recorder.log_telemetry(0.1 * k, [0.01 * k] * 3, [1.0, 2.0, 3.0], [0.5, 0.25, 0.125])
+            recorder.log_volumes(0.1 * k, 30.0, 26.0 + 0.1 * k, [2.0, 1.1, 1.2])
+            recorder.log_mesh(0.1 * k, rest * (1 + 0.01 * k), triangles)
+        recorder.log_event(2.0, "daemon stopped")
+        recorder.close()
+    return path
+
+
+@pytest.mark.parametrize("where", ["payload", "header", "footer"])
+def test_a_recording_cut_short_in_its_last_message_is_read_up_to_it_and_says_so(recording, unfinished, where,
+                                                                                 tmp_path):
+    """A disk that filled up stopped the SDK's writer in the middle of a message (its payload, its header, or the
+    footer of a file being closed): rerun's reader refused the whole file ("Message payload ... exceeds file
+    size"). Everything before that message is read, as a file that ends where a message does (a killed daemon's)
+    is read, and read_rrd warns that the file ends cut short and how many bytes were not read."""
+    data = (recording["path"] if where == "footer" else unfinished).read_bytes()
+    last = message_starts(data)[-1]
+    kind, length = struct.unpack_from("<QQ", data, last)
+    assert (kind == 0) == (where == "footer") and length > 40
+    cut = {"payload": last + 16 + length // 2, "header": last + 7, "footer": last + 16 + 10}[where]
+    whole, cut_short = tmp_path / "whole.rrd", tmp_path / "cut.rrd"
+    whole.write_bytes(data[:last])  # the messages before the one cut: rerun reads such a file as it is
+    cut_short.write_bytes(data[:cut])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RecordingCutShort)  # a file that ends where a message does is not cut short
+        expected = read_rrd(whole)
+    with pytest.warns(RecordingCutShort, match=f"{cut_short} ends cut short.* its last {cut - last} bytes"):
+        entities = read_rrd(cut_short)
+    assert entities == expected
+    assert {"/volume/estimated_ml", "/chamber/base/measured_kpa", "/phantom/rest"} <= set(entities)
+    assert cut_short.read_bytes() == data[:cut], "the recording is left as it is"
+    # the second pass (phantom report's surfaces) reads it too
+    mesh_s = {time_s for time_s in entities.get("/phantom/mesh", {}).get("time", []) if time_s is not None}
+    with pytest.warns(RecordingCutShort):
+        found = read_points_at(cut_short, "/phantom/mesh", "Mesh3D:vertex_positions", mesh_s)
+    assert set(found) == mesh_s

@@ -1,6 +1,7 @@
 """``phantom report`` reads what a recording says defensively (issue 51, item 4): triangle indices beyond the
 vertices leave the pictures out and say why (was an IndexError traceback), a chamber named like mathtext is drawn
-as its text (was matplotlib's ParseFatalException)."""
+as its text (was matplotlib's ParseFatalException); a recording cut short in the middle of a message (a disk that
+filled up under the writer) is reported up to that message, saying so (was refused as not a recording)."""
 
 from __future__ import annotations
 
@@ -67,3 +68,24 @@ def test_only_the_surfaces_pictured_are_read_and_they_are_the_recordings(tmp_pat
     for time_s, kept in run.surfaces.positions_mm.items():
         assert kept.dtype == np.float32
         np.testing.assert_array_equal(kept, np.asarray(logged[time_s], dtype=np.float32))
+
+
+def test_a_recording_cut_short_is_reported_up_to_the_cut_saying_so(tmp_path, monkeypatch, capsys):
+    """The red team's full disk: the daemon's file ended in the middle of a message, without its footer, and
+    ``phantom report`` said it "cannot be read as a Rerun recording". It reports what was written before, and
+    says (on the page and on stderr) that the recording ends cut short."""
+    import phantom.host.recording
+    from phantom.cli.main import main
+
+    monkeypatch.setattr(phantom.host.recording, "WRITE_FOOTER", False)  # as a writer that stopped leaves it
+    path = _record(tmp_path / "run.rrd", ["base", "left lobe", "right lobe"])
+    whole = path.read_bytes()
+    path.write_bytes(whole[:-5])  # 5 bytes short of the end of its last message
+    run = load_run(path)
+    assert run.volumes and len(run.chambers) == 3
+    (note,) = [note for note in run.notes if "cut short" in note]
+    assert str(path) in note and "bytes" in note
+    assert main(["report", str(path), "--out", str(tmp_path / "run.html")]) == 0
+    assert "ends cut short" in capsys.readouterr().err
+    text = (tmp_path / "run.html").read_text()
+    assert "ends cut short" in text and "Chambers: pressure and drive" in text

@@ -10,16 +10,21 @@ base64, so the file holds everything it shows.
 
 It reads the ``.rrd`` back with the SDK's reader (:func:`phantom.host.recording.read_rrd`), so it shows what was
 recorded and nothing else: a recording without meshes has no pictures, one without a true volume no true
-column. The entity paths are those :mod:`phantom.host.recording` writes.
+column; one cut short in the middle of a message (a full disk) up to that message, and the report (and the command
+line) says so. The entity paths are those :mod:`phantom.host.recording` writes.
 """
 
 from __future__ import annotations
 
 import argparse
 import base64
+import contextlib
 import html
 import io
+import logging
 import re
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -29,6 +34,8 @@ from phantom import PhantomError, require_extra
 if TYPE_CHECKING:
     import numpy as np
     from matplotlib.figure import Figure
+
+logger = logging.getLogger(__name__)
 
 #: The gland's volume series in the recording, and how the report names them.
 VOLUME_SERIES = {"commanded_ml": "target", "estimated_ml": "estimate", "true_ml": "true (simulated plant)",
@@ -307,16 +314,36 @@ def scans_in(volumes: dict[str, Series], verify: dict[str, Series]) -> list[Scan
     return scans
 
 
+@contextlib.contextmanager
+def _cut_short_noted(notes: list[str]) -> Iterator[None]:
+    """The reader's word that the recording ends cut short (:class:`phantom.host.recording.RecordingCutShort`)
+    as a note of the report, once, and a warning on the command line; other warnings go on as they came."""
+    from phantom.host.recording import RecordingCutShort
+
+    with warnings.catch_warnings(record=True) as told:
+        warnings.simplefilter("always", RecordingCutShort)
+        yield
+    for warning in told:
+        if not issubclass(warning.category, RecordingCutShort):
+            warnings.warn_explicit(warning.message, warning.category, warning.filename, warning.lineno)
+        elif str(warning.message) not in notes:
+            notes.append(str(warning.message))
+            logger.warning("%s", warning.message)
+
+
 def load_run(path: str | Path) -> Run:
-    """Read a recording back; PhantomError when the file is missing or is not a recording of the daemon."""
+    """Read a recording back; PhantomError when the file is missing or is not a recording of the daemon. One cut
+    short in the middle of a message is read up to it, and its notes say so."""
     from phantom.host.recording import read_rrd
 
     path = Path(path)
     if not path.is_file():
         raise PhantomError(f"{path}: no such recording (give the .rrd the daemon wrote with --rerun-save, e.g. "
                            "out/demo.rrd)")
+    notes: list[str] = []
     try:
-        entities = read_rrd(path, skip=MESH_SKIPPED)  # the surfaces pictured are read once it is known which
+        with _cut_short_noted(notes):
+            entities = read_rrd(path, skip=MESH_SKIPPED)  # the surfaces pictured are read once it is known which
     except (ValueError, OSError, RuntimeError) as error:
         raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
                            "wrote") from None
@@ -328,7 +355,6 @@ def load_run(path: str | Path) -> Run:
     times = [float(t) for columns in entities.values() for t in columns.get("time", []) if t is not None]
     end_s = max(times, default=0.0)
     events = _events(entities)
-    notes: list[str] = []
     surfaces = _surfaces(entities, notes)
     steps = _steps(events, volumes, end_s)
     verify = {name: series for name in VERIFY_SERIES if (series := _series(entities.get(f"/verify/{name}")))}
@@ -336,7 +362,8 @@ def load_run(path: str | Path) -> Run:
     run = Run(path, end_s, volumes, chambers, events, surfaces, steps, scans)
     if surfaces is not None:
         try:
-            surfaces = _read_pictured(path, surfaces, [time_s for _, time_s in picture_times(run)], notes)
+            with _cut_short_noted(notes):
+                surfaces = _read_pictured(path, surfaces, [time_s for _, time_s in picture_times(run)], notes)
         except (ValueError, OSError, RuntimeError) as error:
             raise PhantomError(f"{path} cannot be read as a Rerun recording ({error}); give an .rrd the daemon "
                                "wrote") from None
