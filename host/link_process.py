@@ -34,6 +34,7 @@ import multiprocessing
 import os
 import pickle
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable
 from multiprocessing.connection import Connection
 from typing import Any
@@ -76,6 +77,11 @@ LINK_SILENT_S = 5 * STATUS_PERIOD_S
 #: daemon restores the board's state on it: the process's first status after a stop may be the one it had before,
 #: its loss of the board found only a moment later (then the reconnection restores it).
 SILENCE_SETTLE_S = 2 * STATUS_PERIOD_S
+#: A link's process that ends by itself (the OOM killer, a crash) is started again, as the simulated board and the
+#: model worker are, unless it has ended more than this many times within :data:`LINK_RESTART_WINDOW_S`: then the
+#: daemon stops (exit status 1; systemd starts it again), a process that dies at once being a fault, not bad luck.
+LINK_RESTARTS = 3
+LINK_RESTART_WINDOW_S = 60.0
 
 
 class LinkProcess:
@@ -132,6 +138,8 @@ class LinkProcess:
         #: after a silence with the link still online on its connection of before: since when it has been (None:
         #: nothing to restore), and that connection's count
         self._online_again: tuple[float, int] | None = None
+        #: how often the process ended by itself and was started again
+        self.restarts = 0
 
     def attach(self, on_telemetry: Callable[[Telemetry], None], on_event: Callable[[str, str, str], None],
                on_online: Callable[[BoardInfo, bool], Awaitable[None]] | None,
@@ -171,9 +179,35 @@ class LinkProcess:
             age_s = time.monotonic() - sent_s
             status["event_loop"] = {**loop, "notable_stalls": [[round(ago_s + age_s, 3), *rest]
                                                                for ago_s, *rest in loop["notable_stalls"]]}
+        status["process"] = {**status.get("process", {}), "restarts": self.restarts}
         return status
 
     async def run(self) -> None:
+        """Start the process and serve it until :meth:`stop`. One that ends by itself is started again and the
+        daemon told (the board, without its keepalive meanwhile, vents at its dead-host deadline: a fault to clear);
+        :class:`LinkDown` once it has ended more than :data:`LINK_RESTARTS` times within
+        :data:`LINK_RESTART_WINDOW_S`."""
+        ended_s: deque[float] = deque()
+        while True:
+            try:
+                await self._serve_one_process()
+                return
+            except LinkDown as error:
+                now_s = self.clock()
+                ended_s.append(now_s)
+                while now_s - ended_s[0] > LINK_RESTART_WINDOW_S:
+                    ended_s.popleft()
+                if len(ended_s) > LINK_RESTARTS:
+                    raise LinkDown(f"{error}, {len(ended_s)} times within {LINK_RESTART_WINDOW_S:g} s: not started "
+                                   "again") from None
+                self.restarts += 1
+                self._silent_since = self._online_again = None
+                text = (f"{error}: started again (restart {self.restarts}); the board, without its keepalive "
+                        "meanwhile, vents at its dead-host deadline")
+                logger.error("%s", text)
+                self._on_event("link_process", text, "ERROR")
+
+    async def _serve_one_process(self) -> None:
         """Start the process and serve it until :meth:`stop`; raises :class:`LinkDown` if it ended by itself."""
         loop = asyncio.get_running_loop()
         context = multiprocessing.get_context("spawn")  # not forked: no copy of the daemon's threads and loops

@@ -415,3 +415,44 @@ def test_a_daemon_whose_link_process_is_stopped_shows_it_silent_and_the_whole_ou
     silences = [float(found) for text in texts for found in re.findall(r"reported again after ([\d.]+) s", text)]
     outages = [float(found) for text in texts for found in re.findall(r"restored after ([\d.]+) s", text)]
     assert silences and silences[0] >= 3.5 and outages and outages[-1] >= 3.5, texts
+
+
+@pytest.mark.timeout(240)
+def test_a_killed_link_process_is_started_again_and_the_daemon_goes_on(tmp_path):
+    """The red team's run: the link's process killed (SIGKILL, as the OOM killer would) while a target was held.
+    Before, the daemon stopped with exit status 1, its target dropped, its log saying it vented, which nothing could
+    send. Now the process is started again, as the simulated board and the model worker are: the daemon says so,
+    the board comes back online (its dead-host deadline passed meanwhile: DEAD_HOST latched, told as a fault to
+    clear), and the daemon goes on serving."""
+    import signal
+
+    from daemon_rig import daemon_process
+
+    import phantom
+
+    environment = {**os.environ, **{name: str(tmp_path / name) for name in ("XDG_DATA_HOME", "XDG_CACHE_HOME",
+                                                                             "XDG_CONFIG_HOME", "XDG_STATE_HOME")}}
+    with daemon_process(tmp_path, "--sim", ready_s=180, env=environment) as daemon, \
+            phantom.connect(daemon.socket) as ph:
+        ph.set_pressures([0.8, 0.0, 0.0])
+        killed = ph.call("status")["link_detail"]["process"]["pid"]
+        os.kill(killed, signal.SIGKILL)
+        deadline = time.monotonic() + 60
+        while (status := ph.call("status"))["link"] != "online" or (
+                status["link_detail"]["process"]["pid"] == killed):
+            assert daemon.process.poll() is None, daemon.log()[-3000:]
+            assert time.monotonic() < deadline, status["link_detail"]
+            time.sleep(0.2)
+        texts = [event["text"] for event in status["events"]]
+        assert any("the board link's process ended by itself" in text and "started again" in text
+                   for text in texts), texts
+        assert status["link_detail"]["process"]["restarts"] == 1, status["link_detail"]["process"]
+        deadline = time.monotonic() + 30
+        while ph.status().faults:                         # the board let go meanwhile: the fault is cleared
+            try:
+                ph.clear_fault()
+            except phantom.PhantomError:
+                assert time.monotonic() < deadline
+                time.sleep(0.5)
+        assert ph.set_pressures([0.6, 0.0, 0.0]).target == {"pressures_kpa": [0.6, 0.0, 0.0]}
+    assert daemon.process.returncode == 0, daemon.log()[-3000:]
