@@ -274,6 +274,8 @@ class ControlCore:
         self._offer_sent: _Offer | None = None
         self._vent: SendVent | None = None
         self._venting = False
+        #: a VENT the board could not be told (the link down): sent again once the board is back
+        self._vent_waits_for_board = False
         self._reach: _Reach | None = None
         #: the target last told reached (not told again when the board takes it again)
         self._reached: Target | None = None
@@ -444,11 +446,13 @@ class ControlCore:
         self.vented_why = why
         if self._vent is not None and self._vent.request is not None:
             self._actions.append(Answer(self._vent.request))  # the VENT still to go answers both
-        self._vent = SendVent(why, level, request)
+        self._vent, self._vent_waits_for_board = SendVent(why, level, request), False  # asked: tried at once
         self._next(now)
 
-    def vent_done(self, now: float, error: str | None) -> None:
-        """The VENT's answer: acknowledged (``error`` None), or why the board could not be told."""
+    def vent_done(self, now: float, error: str | None, link_down: bool = False) -> None:
+        """The VENT's answer: acknowledged (``error`` None), or why the board could not be told. With the link
+        down (``link_down``) the VENT stays to go once the board is back (:meth:`board`): the target is dropped
+        already, and the board, left without its keepalive, vents by itself at its dead-host deadline meanwhile."""
         vent, self._vent, self._venting = self._vent, None, False
         self.applied = None
         self.setpoints_pa = np.zeros(self.chamber_count) if error is None else None
@@ -456,6 +460,11 @@ class ControlCore:
         if vent is not None:
             if error is None:
                 self._tell("vent", f"vented: {vent.why}", vent.level)
+            elif link_down:
+                error = (f"{error}: the target is dropped and the VENT goes to the board when it is back (a board "
+                         "left without its host vents by itself at its dead-host deadline)")
+                self._tell("vent", f"could not vent yet ({vent.why}): {error}", "WARN")
+                self._vent, self._vent_waits_for_board = SendVent(vent.why, vent.level, None), True
             else:
                 self._tell("vent", f"could not vent ({vent.why}): {error}", "ERROR")
             if vent.request is not None:
@@ -467,6 +476,7 @@ class ControlCore:
         that comes back holds none of ours (it may have reset): the target is applied again; with none, the
         board must hold nothing."""
         if ready != self.board_ready:
+            self._vent_waits_for_board = self._vent_waits_for_board and not ready
             self.applied = None
             idle = self.target is None or self.state is ControlState.VENTED
             self.setpoints_pa = np.zeros(self.chamber_count) if ready and idle else None
@@ -670,6 +680,8 @@ class ControlCore:
         if self.busy:
             return
         if self._vent is not None:
+            if self._vent_waits_for_board:
+                return
             self._venting = True
             self.watch.expect(None, now)  # in flight: the board may show either
             self._actions.append(self._vent)

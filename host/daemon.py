@@ -409,7 +409,7 @@ class Daemon:
         try:
             await self.board_command("VENT")
         except ApiError as error:
-            self._feed(self.core.vent_done, str(error))
+            self._feed(self.core.vent_done, str(error), error.code == "link_down")
         else:
             self._feed(self.core.vent_done, None)
 

@@ -180,6 +180,29 @@ def test_a_vent_drops_the_target_and_the_scene_and_answers_its_request_once_ackn
     assert answer.error == ("link_down", "the link is down") and core.setpoints_pa is None
 
 
+def test_a_vent_the_board_could_not_be_told_goes_when_the_board_is_back_and_says_so_at_once(core):
+    """The red team's case: a vent asked while the link was down answered link_down ("nothing changed") while the
+    target was dropped, and no VENT went when the link came back: the board still held the old setpoints, and the
+    daemon took them for another program driving the board."""
+    hold(core, 0.0, volume(36.0))
+    core.board(1.0, False, "the link is disconnected")
+    core.vent(1.5, "on request", request=7)
+    assert of_kind(core.take_actions(), control.SendVent) == [control.SendVent("on request", "INFO", 7)]
+    core.vent_done(1.6, "no board: the link is disconnected", link_down=True)
+    (answer,) = of_kind(core.take_actions(), control.Answer)
+    code, text = answer.error
+    assert code == "link_down" and "the target is dropped and the VENT goes to the board when it is back" in text
+    assert core.state is ControlState.VENTED and core.target is None
+    core.tick(2.0)
+    assert of_kind(core.take_actions(), control.SendVent) == []      # not again while the board is away
+    core.board(5.0, True)
+    assert of_kind(core.take_actions(), control.SendVent) == [control.SendVent("on request", "INFO", None)]
+    core.vent_done(5.1, None)
+    told = [action.text for action in of_kind(core.take_actions(), control.Tell)]
+    assert told == ["vented: on request"] and core.take_actions() == []
+    np.testing.assert_array_equal(core.setpoints_pa, np.zeros(3))
+
+
 def test_a_vent_waits_for_the_setpoints_in_flight(core):
     core.offer(0.0, 1, answer_for(volume(32.0)))
     core.take_actions()
