@@ -409,6 +409,9 @@ def test_a_daemon_whose_link_process_is_stopped_shows_it_silent_and_the_whole_ou
             time.sleep(0.2)
     assert stopped["link"] == "silent", stopped["link_detail"]
     assert stopped["pressures_kpa"] is None and stopped["estimated_volume_ml"] is None, stopped
+    from phantom.cli.client import format_status  # phantom status: the board's faults are not known now
+
+    assert "faults    unknown while the link is silent (last known: none)" in format_status(stopped)
     assert re.search(r"has not reported for [34]\.\d s", stopped["link_detail"]["last_error"]), stopped["link_detail"]
     assert any("has not reported for" in event["text"] for event in stopped["events"]), stopped["events"]
     texts = [event["text"] for event in status["events"]]

@@ -180,6 +180,12 @@ def _per_chamber(values: Sequence[float | None] | None, digits: int = 3, width: 
     return " ".join(f"{value:>{width}.{digits}f}" if value is not None else f"{'free':>{width}}" for value in values)
 
 
+def _faults(status: dict[str, Any]) -> str:
+    """The board's latched faults, or, with no link to the board, that they are unknown (the last known beside)."""
+    known = ", ".join(status["faults"]) or "none"
+    return known if status["link"] == "online" else f"unknown while the link is {status['link']} (last known: {known})"
+
+
 def format_status(status: dict[str, Any]) -> str:
     """A few readable lines of a status answer, one column per chamber (named as the scene names them)."""
     link = status["link_detail"]
@@ -203,7 +209,7 @@ def format_status(status: dict[str, Any]) -> str:
         f"{'volume':<9} {_per_chamber(status.get('estimated_chamber_volumes_ml'), 2)}  ml estimated",
         f"gland     {_ml(status['estimated_volume_ml'])} estimated, target {_ml(status['target_volume_ml'])} "
         f"(rest {status['rest_volume_ml']:.2f} ml){true_volume}",
-        f"faults    {', '.join(status['faults']) or 'none'}",
+        f"faults    {_faults(status)}",
         "model     " + format_model(status),
     ]
     if status.get("correction"):
