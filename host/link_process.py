@@ -161,7 +161,17 @@ class LinkProcess:
         if self._reported_at is None or self._status["state"] == LinkState.STOPPED.value:
             return None
         silent_s = self.clock() - self._reported_at
-        return silent_s if silent_s > LINK_SILENT_S else None
+        if silent_s <= LINK_SILENT_S or self._messages_waiting():
+            return None
+        return silent_s
+
+    def _messages_waiting(self) -> bool:
+        """Whether the process has sent what the daemon has not read yet: then the daemon's loop was late (a stall
+        of its own, up to 1.5 s measured), not the process silent."""
+        try:
+            return self._connection is not None and self._connection.poll()
+        except (EOFError, OSError):
+            return False
 
     @property
     def online(self) -> bool:

@@ -189,6 +189,33 @@ def test_a_link_whose_process_stopped_reporting_is_silent_not_online_and_told_so
     asyncio.run(main())
 
 
+def test_a_daemon_loop_late_to_read_its_link_process_is_no_silence_of_the_process(tmp_path):
+    """The daemon's loop, held up beyond LINK_SILENT_S (a GIL hold, a starved machine: up to 1.5 s measured),
+    finds the last status it read old while newer ones wait in the pipe: the process is reporting, the daemon was
+    late. That is not a silence (no link lost, no restore of the board's state)."""
+    from phantom.host.link_process import LINK_SILENT_S
+
+    now, events = [100.0], []
+
+    class WaitingPipe:
+        """The pipe's daemon end, with messages waiting."""
+
+        def poll(self):
+            return True
+
+    link = LinkProcess(SerialTransport(tmp_path / "board"), TIMING, clock=lambda: now[0])
+    link.attach(on_telemetry=lambda telemetry: None, on_event=lambda *event: events.append(event),
+                on_online=None, on_motion=lambda message: None)
+    link._handle(reported("online"))
+    link._connection = WaitingPipe()
+    now[0] += LINK_SILENT_S + 0.5
+    link.check_reports()
+    assert link.online and not events
+    link._connection = None                              # nothing waiting: the process has said nothing
+    link.check_reports()
+    assert link.state.value == "silent" and events[0][0] == "link_lost"
+
+
 def test_the_link_process_refuses_a_silence_limit_it_cannot_keep(tmp_path):
     """A limit under two of the daemon's words would call a running daemon hung."""
     with pytest.raises(ValueError, match="daemon_silent_s must be at least 1 s"):
