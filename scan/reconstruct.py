@@ -168,11 +168,17 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
                           views_cutting(mesh, rig.camera, poses), hanging)
 
 
-def write_mesh(mesh: TriangleMesh, path: str | Path) -> Path:
-    """Write a surface (mm) as PLY, STL or OBJ (by the suffix)."""
+def check_mesh_path(path: str | Path) -> Path:
+    """``path`` as a mesh :func:`write_mesh` can write (by its suffix), checked before any carve; ScanError if not."""
     path = Path(path)
     if path.suffix.lower() not in SCAN_SUFFIXES:
         raise ScanError(f"{path}: write the mesh as .ply, .stl or .obj")
+    return path
+
+
+def write_mesh(mesh: TriangleMesh, path: str | Path) -> Path:
+    """Write a surface (mm) as PLY, STL or OBJ (by the suffix)."""
+    path = check_mesh_path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         meshio.write_points_cells(path, mesh.vertices_mm, [("triangle", mesh.triangles.astype(np.int32))])

@@ -2,6 +2,7 @@
 cannot see, the capture folder's pictures back to a mesh (phantom.scan.render, silhouette, carve, reconstruct)."""
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -171,3 +172,30 @@ def test_a_camera_whose_projection_is_nan_is_refused_and_the_kernel_reads_nothin
                           np.array(camera.distortion), good.max_radius2, good.distances, good.offsets, good.crops,
                           good.truncation_px, 10.0, out)
     assert out.shape == (2,)  # reached: no read outside the silhouettes
+
+
+def test_reconstruct_refuses_a_capture_that_did_not_complete_unless_told_partial(sphere_capture, tmp_path, capsys):
+    """An aborted capture with 5 of its plan's 16 pictures carved +3.5 % (3 of them +16.6 %) without a word: part
+    of the views carve a hull too large. It is refused, saying how many of the plan's pictures it holds, unless
+    --partial asks for it, which then says what it carved. A mesh suffix it cannot write is refused before the
+    carve, not after."""
+    import json
+    import shutil
+
+    from phantom.cli.main import main
+
+    folder = tmp_path / "aborted"
+    shutil.copytree(sphere_capture.path, folder)
+    record = json.loads((folder / "capture.json").read_text())
+    record["status"], record["reason"] = "aborted", "the orbit stalled"
+    record["frames"] = record["frames"][:4]
+    (folder / "capture.json").write_text(json.dumps(record))
+    assert main(["scan", "reconstruct", str(folder), "--out", str(tmp_path / "a.ply")]) == 2
+    said = capsys.readouterr().err
+    assert "was aborted (the orbit stalled) with 4 of its plan's 12 pictures" in said and "--partial" in said, said
+    assert not (tmp_path / "a.ply").exists()
+    assert main(["scan", "reconstruct", str(folder), "--out", str(tmp_path / "a.ply"), "--partial"]) == 0
+    assert "carved from 4 of the plan's 12 pictures (the capture was aborted)" in capsys.readouterr().out
+    started = time.monotonic()
+    assert main(["scan", "reconstruct", str(sphere_capture.path), "--out", str(tmp_path / "a.xyz")]) == 2
+    assert "write the mesh as .ply, .stl or .obj" in capsys.readouterr().err and time.monotonic() - started < 1.0

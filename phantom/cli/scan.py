@@ -11,6 +11,7 @@ import argparse
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from phantom.scan.capture import CaptureFolder
     from phantom.scan.render import Look
 
 
@@ -94,6 +95,9 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
     reconstruct.add_argument("--out", required=True, help="the mesh to write: .ply, .stl or .obj")
     reconstruct.add_argument("--rig", help="the rig calibration (rig.json; default the one in the folder)")
     reconstruct.add_argument("--voxel-mm", type=float, default=None, help="the finest voxel (mm, default 0.3)")
+    reconstruct.add_argument("--partial", action="store_true",
+                             help="carve a capture that did not complete (aborted, stopped) from the pictures it "
+                             "has: fewer sides carve a hull too large")
     reconstruct.add_argument("--json", action="store_true", help="print one JSON object")
     reconstruct.set_defaults(run=run_reconstruct)
 
@@ -328,15 +332,35 @@ def run_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _planned(folder: CaptureFolder) -> int:
+    """How many pictures the capture's plan takes (its views at each of its elevations; 0: no plan is kept)."""
+    views = folder.plan.get("views_per_elevation", 0)
+    return int(views) * len(folder.plan.get("elevations_deg") or [0]) if isinstance(views, int) else 0
+
+
+def _partial_capture(folder: CaptureFolder) -> str | None:
+    """What is missing from a capture that did not complete (its status, its pictures of its plan's), or None."""
+    if folder.status == "complete" and len(folder.frames) >= _planned(folder):
+        return None
+    reason = f" ({folder.reason})" if folder.reason else ""
+    return f"was {folder.status}{reason} with {len(folder.frames)} of its plan's {_planned(folder)} pictures"
+
+
 def run_reconstruct(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan reconstruct``."""
     import json
     import sys
 
     from phantom.scan.camera import Rig
-    from phantom.scan.reconstruct import VOXEL_MM, reconstruct, write_mesh
+    from phantom.scan.capture import CaptureError
+    from phantom.scan.reconstruct import VOXEL_MM, check_mesh_path, reconstruct, write_mesh
 
+    check_mesh_path(args.out)
     folder = _open_capture(args.capture)
+    partial = _partial_capture(folder)
+    if partial is not None and not args.partial:
+        raise CaptureError(f"{folder.path} {partial}: fewer sides carve a hull too large; take the capture again, or "
+                           "give --partial to carve what it has")
     rig = Rig.load(args.rig) if args.rig else None
     voxel_mm = VOXEL_MM if args.voxel_mm is None else args.voxel_mm
     result = reconstruct(folder, rig, voxel_mm, progress=None if args.json else lambda text: print(
@@ -346,12 +370,15 @@ def run_reconstruct(args: argparse.Namespace) -> int:
                "volume_ml": result.volume_ml, "vertices": len(result.mesh.vertices_mm),
                "triangles": len(result.mesh.triangles), "stage_s": result.stage_s,
                "silhouettes_touching_edge": result.touching_edge,
-               "hanging": None if result.hanging is None else result.hanging.to_json()}
+               "hanging": None if result.hanging is None else result.hanging.to_json(), "partial": partial}
     if args.json:
         print(json.dumps(summary))
         return 0
+    carved = (f"{result.views} pictures" if partial is None else
+              f"{result.views} of the plan's {_planned(folder)} pictures (the capture was "
+              f"{folder.status})")
     print(f"wrote {path}: {result.volume_ml:.3f} ml, {len(result.mesh.triangles)} triangles, closed; carved from "
-          f"{result.views} pictures at {result.voxel_mm:g} mm in "
+          f"{carved} at {result.voxel_mm:g} mm in "
           + ", ".join(f"{stage} {seconds:.1f} s" for stage, seconds in result.stage_s.items()))
     if result.hanging is not None:
         print(f"the tubes it hangs by taken off at the gland's base, {result.hanging.cut_mm:.2f} mm up the orbit's "
