@@ -2,8 +2,12 @@
 ``phantom daemon --sim --http 127.0.0.1:PORT`` (the firmware in simavr). The page loads, the "symmetric BPH" preset
 reaches its volume (the page says "reached"), the 3D gland is drawn (a pixel check of a screenshot), no long task
 over 100 ms while telemetry streams for a minute, vent vents, a verified volume shows its round and its scan's
-pictures and a vent stops its scan, a latched fault is shown in words and cleared, a page
-of another origin and a browser without the token are refused, and a read-only token cannot set a target.
+pictures and a vent stops its scan, a latched fault is shown in words in the always-visible header (the target
+no longer "reached") and cleared, a preset is highlighted only while its target is held, a refused request is
+said beside it (not as the held target's state), a pressure that is not a number is refused, V vents from the
+slider and a number field, a frozen daemon is shown stale, a page of another origin and a browser without the
+token are refused, a read-only token cannot set a target, and a restarted daemon is followed (with new tokens,
+the page asks for one).
 
 The tests share one daemon and one browser (module fixtures) and run in order. Screenshots are kept in the module's
 temporary folder (its path is printed) for people to look at.
@@ -65,6 +69,7 @@ class Panel:
         self.folder, self.process, self.port, self.log = folder, process, port, log
         self.url = f"http://127.0.0.1:{port}/"
         self.tokens = json.loads((folder / "data" / "panel-tokens.json").read_text())
+        self.all_tokens = [self.tokens["control"], self.tokens["read"]]
         self.socket = folder / "phantomd.sock"
         self.driver: Any = None
 
@@ -120,35 +125,50 @@ def chromium(folder: Path) -> Any:
     return webdriver.Chrome(options=options, service=service)
 
 
-@pytest.fixture(scope="module")
-def panel(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Panel]:
-    folder = tmp_path_factory.mktemp("panel")
-    port = free_port()
-    log = folder / "daemon.log"
+def start_daemon(folder: Path, port: int, log: Path) -> subprocess.Popen[Any]:
+    """``phantom daemon --sim --http 127.0.0.1:PORT`` in ``folder`` (its data directory, its socket), ready; its
+    output appended to ``log``."""
     environment = {**os.environ, "PHANTOM_DATA_DIR": str(folder / "data")}
-    with open(log, "w") as output:
+    with open(log, "a") as output:
         process = subprocess.Popen([str(PHANTOM), "daemon", "--sim", "--http", f"127.0.0.1:{port}", "--socket",
                                     str(folder / "phantomd.sock")], stdout=output, stderr=subprocess.STDOUT,
                                    env=environment)
     try:
         wait_ready(folder / "phantomd.sock", process, log, 120)
-        panel = Panel(folder, process, port, log)
+    except BaseException:
+        stop_daemon(process)
+        raise
+    return process
+
+
+def stop_daemon(process: subprocess.Popen[Any]) -> None:
+    process.send_signal(signal.SIGCONT)
+    process.terminate()
+    try:
+        process.wait(30)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait(10)
+
+
+@pytest.fixture(scope="module")
+def panel(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Panel]:
+    folder = tmp_path_factory.mktemp("panel")
+    port = free_port()
+    log = folder / "daemon.log"
+    log.write_text("")
+    panel = Panel(folder, start_daemon(folder, port, log), port, log)
+    try:
         panel.driver = chromium(folder)
         try:
             yield panel
         finally:
             panel.driver.quit()
     finally:
-        process.send_signal(signal.SIGCONT)
-        process.terminate()
-        try:
-            process.wait(30)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(10)
-    # the token is in no log: the daemon's (stderr is not a terminal: the address is printed without it)
+        stop_daemon(panel.process)  # (a test may have started another)
+    # the tokens are in no log: the daemon's (stderr is not a terminal: the address is printed without them)
     text = log.read_text()
-    assert panel.tokens["control"] not in text and panel.tokens["read"] not in text
+    assert not [token for token in panel.all_tokens if token in text]
 
 
 def gland_pixels(panel: Panel) -> np.ndarray:
@@ -349,19 +369,157 @@ def test_a_reached_target_says_how_its_volume_is_known(panel):
     assert words(reached(None)) == "reached (40.0 ml)"
 
 
+def active_presets(panel: Panel) -> list[str]:
+    return [button.get_attribute("data-name")
+            for button in panel.driver.find_elements(By.CSS_SELECTOR, ".preset.active")]
+
+
+def in_view(panel: Panel, element_id: str) -> bool:
+    """Whether the element is on screen as the page is scrolled now (all of it, inside the window)."""
+    return bool(panel.driver.execute_script(
+        "const box = document.getElementById(arguments[0]).getBoundingClientRect();"
+        "return box.height > 0 && box.top >= 0 && box.bottom <= window.innerHeight;", element_id))
+
+
+def set_elsewhere(panel: Panel, target: dict[str, Any]) -> None:
+    """A target set by another client (the CLI, a script), not by the page."""
+    with DaemonClient(panel.socket, timeout_s=30) as client:
+        client.call("set_target", target)
+
+
 def test_a_latched_fault_is_shown_in_words_and_cleared(panel):
-    # the daemon falls silent past the board's dead-host deadline (500 ms): the board latches DEAD_HOST. The
-    # board's keepalive is the link's process's (it holds while the daemon's loop stalls), so that one is stopped
-    link_pid = panel.status()["link_detail"]["process"]["pid"]
-    os.kill(link_pid, signal.SIGSTOP)
-    time.sleep(1.5)
-    os.kill(link_pid, signal.SIGCONT)
-    panel.wait(lambda: panel.driver.find_element(By.ID, "faults").is_displayed(), 20, "the fault shown")
+    """A fault latched while a reached target is held: the sticky header says FAULT wherever the page is scrolled
+    (1024x768, at the scenes: the banner above them was off screen), the target is no longer "reached" and the
+    header no longer "holding"; a preset pressed meanwhile is refused and not highlighted; the words point to the
+    page's Clear fault button; once cleared the waiting words go at once."""
+    panel.driver.find_element(By.CSS_SELECTOR, '.preset[data-name="left lobe enlarged"]').click()
+    panel.wait(lambda: panel.text("target-state").startswith("reached"), 90, "left lobe enlarged reached")
+    assert "34.0 ml (growth left lobe 3, right lobe 1)" in panel.text("target-text")  # the chambers by name
+    assert active_presets(panel) == ["left lobe enlarged"]
+    size = panel.driver.get_window_size()
+    panel.driver.set_window_size(1024, 768)
+    try:
+        panel.driver.execute_script("document.getElementById('scenes').scrollIntoView({block: 'center'});")
+        # the daemon falls silent past the board's dead-host deadline (500 ms): the board latches DEAD_HOST. The
+        # board's keepalive is the link's process's (it holds while the daemon's loop stalls), so that one is
+        # stopped
+        link_pid = panel.status()["link_detail"]["process"]["pid"]
+        os.kill(link_pid, signal.SIGSTOP)
+        time.sleep(1.5)
+        os.kill(link_pid, signal.SIGCONT)
+        panel.wait(lambda: "FAULT" in panel.text("control"), 20, "the fault in the header")
+        assert "DEAD_HOST" in panel.text("control") and in_view(panel, "control") and in_view(panel, "faults")
+        assert in_view(panel, "clear-fault")
+        panel.shot("fault-scrolled-1024x768")
+    finally:
+        panel.driver.set_window_size(size["width"], size["height"])
+    panel.driver.execute_script("window.scrollTo(0, 0);")
+    assert panel.driver.find_element(By.ID, "faults").is_displayed()
     assert "DEAD_HOST" in panel.text("fault-text") and "heard nothing from the daemon" in panel.text("fault-text")
+    assert not panel.text("target-state").startswith("reached"), panel.text("target-state")
+    panel.driver.find_element(By.CSS_SELECTOR, '.preset[data-name="symmetric BPH"]').click()
+    panel.wait(lambda: "FAULT_LATCHED" in panel.text("notice"), 20, "the preset refused")
+    assert active_presets(panel) == ["left lobe enlarged"]  # the target held, not the one refused
+    assert panel.status()["target"]["volume_ml"] == 34.0
+    panel.wait(lambda: "Clear fault" in panel.text("target-state"), 10, "the target's words point to the button")
+    assert "phantom clear-fault" not in panel.text("target-state")
     panel.shot("fault")
     panel.driver.find_element(By.ID, "clear-fault").click()
     panel.wait(lambda: not panel.driver.find_element(By.ID, "faults").is_displayed(), 20, "the fault cleared")
     assert panel.status()["faults"] == []
+    panel.wait(lambda: "Clear fault" not in panel.text("target-state")
+               and not panel.text("target-state").startswith(("waiting", "not held")), 3,
+               "the fault's words gone from the target")
+    assert "FAULT" not in panel.text("control")
+    panel.wait(lambda: panel.text("target-state").startswith("reached"), 60, "the target held again")
+    print(f"after the fault: {panel.text('target-state')}")
+
+
+def test_a_preset_is_highlighted_only_while_its_target_is_held(panel):
+    set_elsewhere(panel, {"volume_ml": 30.0})
+    panel.wait(lambda: active_presets(panel) == [], 5, "the highlight gone with another client's target")
+    set_elsewhere(panel, {"volume_ml": 26.5})
+    panel.wait(lambda: active_presets(panel) == ["normal"], 5, "normal's target highlights it, whoever set it")
+    set_elsewhere(panel, {"volume_ml": 30.0})
+    panel.wait(lambda: panel.text("target-state").startswith("reached"), 60, "30 ml reached")
+    assert active_presets(panel) == []
+
+
+def set_pressures(panel: Panel, *values: str) -> None:
+    if not panel.driver.find_element(By.ID, "pressure-0").is_displayed():
+        panel.driver.find_element(By.CSS_SELECTOR, "#engineer summary").click()
+    for i, value in enumerate(values):
+        field = panel.driver.find_element(By.ID, f"pressure-{i}")
+        field.clear()
+        if value:
+            field.send_keys(value)
+    panel.driver.find_element(By.ID, "pressures-set").click()
+
+
+def test_a_refused_request_is_not_the_held_targets_state(panel):
+    """5 kPa is refused (the blowers reach 3): the page says so beside the request; the target held (30 ml,
+    reached) stays as it is, and stays so after the notice has gone."""
+    set_pressures(panel, "5", "1", "1")
+    panel.wait(lambda: "not applied" in panel.text("request-state"), 20, "the refusal beside the request")
+    assert "kPa" in panel.text("request-state") and panel.driver.find_element(By.ID, "notice").is_displayed()
+    assert panel.text("target-state").startswith("reached"), panel.text("target-state")
+    assert "30.0 ml" in panel.text("target-text")
+    panel.shot("refused-request")
+    # the next request's outcome replaces it
+    panel.driver.find_element(By.CSS_SELECTOR, '.preset[data-name="normal"]').click()
+    panel.wait(lambda: not panel.driver.find_element(By.ID, "request-state").is_displayed(), 20, "the refusal gone")
+    panel.wait(lambda: panel.text("target-state").startswith("reached"), 60, "normal reached")
+
+
+def test_a_pressure_that_is_not_a_number_is_refused_naming_its_field(panel):
+    """An empty field or 1e400 was sent as 0 kPa (or null) and applied: refused on the page, naming the field."""
+    held = panel.status()["target"]
+    for values, field in ((("", "1", "1"), "base"), (("1", "1e400", "1"), "left lobe")):
+        panel.driver.execute_script("document.getElementById('notice').hidden = true;")
+        set_pressures(panel, *values)
+        panel.wait(lambda: panel.driver.find_element(By.ID, "notice").is_displayed(), 5, "the input refused")
+        assert field in panel.text("notice") and "number" in panel.text("notice"), panel.text("notice")
+        assert panel.status()["target"] == held
+    # a pressure target with verify on: the page says what to do (the API's words named volume_ml)
+    from selenium.webdriver.support.ui import Select
+
+    Select(panel.driver.find_element(By.ID, "verify-mode")).select_by_value("auto")
+    set_pressures(panel, "0", "0.5", "0.5")
+    panel.wait(lambda: "verify" in panel.text("request-state"), 5, "verify's refusal")
+    assert "to no" in panel.text("request-state") and panel.status()["target"] == held
+    Select(panel.driver.find_element(By.ID, "verify-mode")).select_by_value("")
+
+
+def test_the_v_key_vents_from_the_slider_and_a_pressure_field(panel):
+    for element_id in ("volume-slider", "pressure-0"):
+        set_elsewhere(panel, {"pressures_kpa": [0, 0.5, 0.5]})
+        assert panel.status()["control"] == "holding"
+        panel.driver.execute_script("document.getElementById(arguments[0]).focus();", element_id)
+        panel.driver.switch_to.active_element.send_keys("v")
+        panel.wait(lambda: panel.status()["control"] == "vented", 5, f"V vented with {element_id} in focus")
+    panel.wait(lambda: panel.text("target-state") == "vented", 5, "the page shows vented")
+
+
+def test_a_frozen_daemon_is_shown_stale_and_a_control_pressed_says_so(panel):
+    """The daemon stopped (SIGSTOP): no status for 2 s and the page greys out what it shows and says the daemon
+    is not answering; VENT pressed says it was not answered. The page comes back live once the daemon does."""
+    set_elsewhere(panel, {"pressures_kpa": [0, 0.5, 0.5]})
+    panel.wait(lambda: panel.text("target-state").startswith("reached"), 30, "0/0.5/0.5 kPa reached")
+    os.kill(panel.process.pid, signal.SIGSTOP)
+    try:
+        started = time.monotonic()
+        panel.wait(lambda: "not answering" in panel.text("link"), 5, "the page sees the daemon silent")
+        print(f"stale shown {time.monotonic() - started:.1f} s after the daemon stopped")
+        assert panel.text("n-estimate") == "–" and panel.text("ch1-p") == "–", panel.text("ch1-p")
+        assert panel.text("control") == "–" and not panel.text("target-state").startswith("reached")
+        panel.driver.find_element(By.ID, "vent").click()
+        panel.wait(lambda: "not answer" in panel.text("notice"), 5, "the vent said unanswered")
+        assert panel.driver.find_element(By.TAG_NAME, "body").get_attribute("data-stale") == "true"
+        panel.shot("daemon-frozen")
+    finally:
+        os.kill(panel.process.pid, signal.SIGCONT)
+    panel.wait(lambda: panel.text("link") == "link online" and panel.text("n-estimate") != "–", 15, "live again")
+    panel.wait(lambda: panel.status()["control"] == "vented", 10, "the vent done once the daemon answered")
 
 
 class OtherSite(BaseHTTPRequestHandler):
@@ -404,6 +562,8 @@ def test_a_browser_without_the_token_is_refused_and_a_read_only_one_cannot_set(p
     panel.driver.get(panel.url)
     panel.wait(lambda: panel.driver.find_element(By.ID, "token-dialog").is_displayed(), 10, "the token asked for")
     assert panel.text("link") == "no token"
+    panel.driver.find_element(By.ID, "token-input").send_keys("vv")  # a text field types V
+    assert panel.driver.find_element(By.ID, "token-input").get_attribute("value") == "vv"
     panel.shot("no-token")
     panel.open(panel.tokens["read"])
     assert panel.text("access") == "read-only"
@@ -418,3 +578,33 @@ def test_a_browser_without_the_token_is_refused_and_a_read_only_one_cannot_set(p
         "socket.onmessage = (message) => { const reply = JSON.parse(message.data); if (reply.id === 1) done(reply); };")
     assert answer["error"]["data"]["error"] == "forbidden"
     assert panel.status()["control"] == "vented"
+
+
+def restart(panel: Panel, new_tokens: bool) -> None:
+    stop_daemon(panel.process)
+    if new_tokens:
+        (panel.folder / "data" / "panel-tokens.json").unlink()
+    panel.process = start_daemon(panel.folder, panel.port, panel.log)
+    panel.tokens = json.loads((panel.folder / "data" / "panel-tokens.json").read_text())
+    panel.all_tokens += [panel.tokens["control"], panel.tokens["read"]]
+
+
+def test_a_daemon_restarted_is_followed_and_with_new_tokens_asks_for_one(panel):
+    """The daemon stopped: the page says so and shows no live numbers; restarted, the page follows it (its
+    target line says what the daemon says: no target, not the vent before); restarted with new tokens, its
+    WebSocket is refused and the page asks for a token as a fresh load does (it retried for ever)."""
+    panel.open(panel.tokens["control"])
+    panel.wait(lambda: panel.text("link") == "link online", 20, "link online")
+    stop_daemon(panel.process)
+    panel.wait(lambda: "not answering" in panel.text("link"), 5, "the page sees the daemon gone")
+    assert panel.text("n-estimate") == "–" and panel.text("ch0-p") == "–"
+    panel.shot("daemon-stopped")
+    restart(panel, new_tokens=False)
+    panel.wait(lambda: panel.text("link") == "link online" and panel.text("control") == "idle", 30, "back, idle")
+    assert panel.text("target-state") != "vented" and panel.text("target-text") == "none"
+    restart(panel, new_tokens=True)
+    panel.wait(lambda: panel.driver.find_element(By.ID, "token-dialog").is_displayed(), 30, "the token asked for")
+    assert "token" in panel.text("link")
+    panel.shot("new-tokens")
+    panel.open(panel.tokens["control"])
+    panel.wait(lambda: panel.text("link") == "link online", 20, "link online with the new token")

@@ -17,9 +17,18 @@ const FAULT_WORDS = {
   SUPPLY: "the board's supply voltage is too low",
 };
 
+// No status for this long (ms; it comes ten times a second) and what the page shows is marked stale: the daemon is
+// stopped, frozen or gone, and nothing on the page is live any more.
+const STALE_MS = 2000;
+// A measured pressure this close to 0 (kPa: one count of the sensor's ADC, its noise) is shown as 0.00.
+const NOISE_KPA = 0.05;
+
 const state = {
-  access: null, labels: ["base", "left lobe", "right lobe"], plots: null, gland: null, presets: [],
-  status: null, outcome: null, wanted: null, simulated: false, shown: {},
+  access: null, labels: ["base", "left lobe", "right lobe"], chambers: [], plots: null, gland: null,
+  status: null, simulated: false, shown: {},
+  // the latest outcome the daemon told (reached, faulted, ...), for the target it names: {key, outcome, text}
+  outcome: null,
+  lastStatusMs: 0, stale: false, inFlight: new Set(),
 };
 
 function show(id, text) {
@@ -31,7 +40,7 @@ function show(id, text) {
 }
 
 function ml(value) { return value == null ? "–" : `${value.toFixed(1)} ml`; }
-function kpa(value) { return value == null ? "–" : `${(Math.abs(value) < 0.005 ? 0 : value).toFixed(2)} kPa`; }
+function kpa(value) { return value == null ? "–" : `${(Math.abs(value) < NOISE_KPA ? 0 : value).toFixed(2)} kPa`; }
 
 function faultWords(name) {
   const match = /^([A-Z_]+?)(?:_(\d))?$/.exec(name);
@@ -42,29 +51,72 @@ function faultWords(name) {
 
 function notice(text, kind = "warn") {
   const box = $("notice");
-  box.textContent = text;
+  box.textContent = panelWords(text);
   box.hidden = !text;
   box.dataset.kind = kind;
   clearTimeout(notice.timer);
   if (text) notice.timer = setTimeout(() => { box.hidden = true; }, 12000);
 }
 
+// A request the page sends for a button: what went wrong goes to the notice, in words. While the daemon is not
+// answering nothing but a vent is sent (a target or a scene arriving whenever it wakes would surprise); a vent is
+// sent, and the notice says that nobody answered it.
 async function act(method, params, what) {
+  if (state.stale && method !== "vent") {
+    const error = new Error("not sent: the daemon is not answering");
+    notice(`${what}: ${error.message}`);
+    throw error;
+  }
+  if (state.stale) notice(`${what}: sent, but the daemon is not answering: not known to be done`);
+  state.inFlight.add(what);
   try {
     return await state.rpc.call(method, params);
   } catch (error) {
     notice(`${what}: ${error.message}`);
     throw error;
+  } finally {
+    state.inFlight.delete(what);
   }
 }
 
 // --- targets ---------------------------------------------------------------------------------------------------
 
+// A growth ratio's key as a chamber's index: the daemon's status says "1", a preset "chamber1" or "left lobe".
+function chamberIndex(key) {
+  if (/^\d+$/.test(key)) return Number(key);
+  const named = state.chambers.indexOf(key);
+  if (named >= 0) return named;
+  const labelled = state.labels.indexOf(key);
+  if (labelled >= 0) return labelled;
+  const numbered = /^chamber(\d+)$/.exec(key);
+  return numbered ? Number(numbered[1]) : key;
+}
+
+function growthRatio(ratio) {
+  return Object.entries(ratio).map(([key, weight]) => [chamberIndex(key), weight])
+    .sort(([a], [b]) => (a < b ? -1 : a > b ? 1 : 0));
+}
+
+// A target as one string, however it was written (a preset's, the status's): equal strings are the same target.
+function targetKey(target) {
+  if (!target || typeof target !== "object") return null;
+  const number = (value) => (value == null ? null : Number(Number(value).toPrecision(6)));
+  if (target.volume_ml != null) {
+    return JSON.stringify({ volume_ml: number(target.volume_ml),
+      growth: target.growth_ratio ? growthRatio(target.growth_ratio).map(([i, w]) => [i, number(w)]) : null });
+  }
+  for (const kind of ["pressures_kpa", "chamber_volumes_ml"]) {
+    if (target[kind]) return JSON.stringify({ [kind]: target[kind].map(number) });
+  }
+  return JSON.stringify(target);
+}
+
 function describeTarget(target) {
   if (!target) return "none";
   if (typeof target === "string") return target; // a scene's step, described by the daemon
   if (target.volume_ml != null) {
-    const ratio = target.growth_ratio ? ` (growth ${Object.entries(target.growth_ratio).map(([k, v]) => `${k} ${v}`).join(", ")})` : "";
+    const ratio = target.growth_ratio ? ` (growth ${growthRatio(target.growth_ratio).map(([i, weight]) =>
+      `${typeof i === "number" ? state.labels[i] || `chamber ${i}` : i} ${weight}`).join(", ")})` : "";
     return `${target.volume_ml.toFixed(1)} ml${ratio}`;
   }
   if (target.pressures_kpa) return `${target.pressures_kpa.map((p) => p.toFixed(2)).join(" / ")} kPa`;
@@ -80,21 +132,65 @@ function setTargetState(text, kind) {
   element.className = `state ${kind}`;
 }
 
+// The line under the target: this page's request while it is answered, and a refused one's why until the next
+// request. The target line itself is always the target the daemon holds (a refused request leaves it as it was).
+function showRequest(text, kind = "working") {
+  $("request-state").hidden = !text;
+  show("request-state", panelWords(text || ""));
+  $("request-state").className = `request ${kind}`;
+}
+
+function refuse(what, why) {
+  notice(`${what}: ${why}`);
+  showRequest(`${what}: not applied: ${why}`, "failed");
+}
+
 async function setTarget(target, name) {
-  state.outcome = null;
-  state.wanted = name || null;
-  document.querySelectorAll(".preset").forEach((button) => button.classList.toggle("active", button.dataset.name === name));
-  setTargetState("solving…", "working");
+  const what = `set ${name || describeTarget(target)}`;
   const params = { ...target };
   const verify = $("verify-box").hidden ? "" : $("verify-mode").value;
-  if (verify) params.verify = verify; // a target without a volume is refused, and the refusal says why
+  if (verify && target.volume_ml == null) {
+    refuse(what, `verify (${verify}) checks a gland volume by the scanner: set "Verify a volume by the scanner" `
+      + "to no for chamber pressures");
+    return;
+  }
+  if (verify) params.verify = verify;
+  showRequest(`${what}: solving…`);
   try {
-    const answer = await act("set_target", params, `set ${name || describeTarget(target)}`);
-    if (!state.outcome) setTargetState("reaching…", "working");
+    const answer = await act("set_target", params, what);
+    showRequest(null);
+    // the same target asked again is judged again: its earlier outcome no longer stands
+    if (answer && state.outcome && state.outcome.key === targetKey(answer.target)) state.outcome = null;
+    renderTarget();
     return answer;
   } catch (error) {
-    setTargetState(error.code === "unreachable" ? "unreachable" : "refused", "failed");
+    showRequest(`${what}: not applied: ${error.message}`, "failed");
   }
+}
+
+// A number typed in a field, or a notice naming the field and undefined.
+function fieldNumber(input, name) {
+  const value = input.value.trim();
+  const number = Number(value);
+  if (input.validity.badInput || value === "" || !Number.isFinite(number)) {
+    const why = input.validity.badInput ? "is not a number" : value === "" ? "is empty" : `${value} is not a finite number`;
+    return { error: `${name} ${why}: give a number of kPa` };
+  }
+  return { number };
+}
+
+function setPressures() {
+  const pressures = [];
+  for (const [i, label] of state.labels.entries()) {
+    const { number, error } = fieldNumber($(`pressure-${i}`), label);
+    if (error) {
+      refuse("set pressures", error);
+      $(`pressure-${i}`).focus();
+      return;
+    }
+    pressures.push(number);
+  }
+  setTarget({ pressures_kpa: pressures }, null);
 }
 
 // --- what the daemon sends -------------------------------------------------------------------------------------------
@@ -103,15 +199,102 @@ async function setTarget(target, name) {
 // out again; the plots take every status.
 const WORDS_EVERY_MS = 250;
 
+// What the target line says, from the latest status and the outcome the daemon told for its target.
+function renderTarget() {
+  const status = state.status;
+  if (!status || state.stale) return;
+  const key = targetKey(status.target);
+  const faults = status.faults || [];
+  const told = state.outcome && state.outcome.key === key ? state.outcome : null;
+  if (status.control === "vented") {
+    setTargetState("vented", "working");
+  } else if (!status.target) {
+    setTargetState(status.ready ? "no target" : "starting…", "idle");
+  } else if (faults.length) {
+    // the board set every chamber to 0 when the fault latched: the target is not held, whatever was reached
+    setTargetState(`not held: fault latched (${faults.join(", ")}); find why, then press Clear fault`, "failed");
+  } else if (status.target_pending) {
+    setTargetState(`waiting: ${panelWords(status.target_pending)}`, "working");
+  } else if (status.verify && !told) {
+    setTargetState(`verifying, round ${status.verify.round}…`, "working"); // the line below says how far
+  } else if (told && told.outcome === "reached" && told.faulted) {
+    // reached before a fault; held again since it was cleared (the daemon does not tell reached twice): the
+    // pressures back within the reached rule's band of their setpoints say it is held again
+    setTargetState(settled(status) ? `${told.text}, held again after the fault` : "held again after the fault: "
+      + "settling…", settled(status) ? "reached" : "working");
+  } else if (told && told.outcome === "reached") {
+    setTargetState(told.text, "reached");
+  } else if (told && told.outcome !== "faulted") {
+    setTargetState(told.outcome.replaceAll("_", " "), "failed");
+  } else {
+    setTargetState("reaching…", "working"); // (a target faulted is reached again once the fault is cleared)
+  }
+}
+
+function settled(status) {
+  const measured = status.pressures_mean_kpa;
+  const setpoints = status.setpoints_kpa;
+  const band = (status.reached_rule && status.reached_rule.settled_kpa) || 0.1;
+  return Boolean(measured && setpoints && setpoints.every((setpoint, i) => Math.abs(measured[i] - setpoint) <= band));
+}
+
+// The daemon's words for the CLI, as the page says them (it has a button for it).
+function panelWords(text) {
+  return text.replace(/\(?`?phantom clear-fault`?\)?/g, "(the Clear fault button)");
+}
+
+// Which preset is the target held: only that one is highlighted (not one pressed and refused, nor one replaced
+// by another client's target or a scene's step).
+function highlightPreset(status) {
+  const key = status.control === "vented" ? null : targetKey(status.target);
+  document.querySelectorAll(".preset").forEach((button) => {
+    const active = key !== null && button.dataset.key === key;
+    if (button.classList.contains("active") !== active) button.classList.toggle("active", active);
+  });
+}
+
+// Nothing from the daemon for STALE_MS, or the connection lost: nothing shown is live any more. The numbers and
+// states go, the page is greyed, and the header says so.
+function markStale(why) {
+  show("link", why);
+  $("link").className = "pill bad";
+  if (state.stale) return;
+  state.stale = true;
+  document.body.dataset.stale = "true";
+  show("control", "–");
+  $("control").className = "pill";
+  for (const id of ["n-target", "n-estimate", "n-true"]) show(id, "–");
+  state.labels.forEach((_, i) => { show(`ch${i}-p`, "–"); show(`ch${i}-s`, "not known: the daemon is not answering"); });
+  setTargetState("not known: the daemon is not answering", "failed");
+  for (const what of state.inFlight) notice(`${what}: no answer yet: the daemon is not answering`);
+}
+
+function watchStatus() {
+  if (!state.stale && state.lastStatusMs && performance.now() - state.lastStatusMs > STALE_MS) {
+    markStale("daemon not answering");
+  }
+}
+
 function onStatus(status) {
   state.status = status;
+  state.lastStatusMs = performance.now();
   state.plots && state.plots.status(status);
   const now = performance.now();
-  const changed = (status.faults || []).length !== (state.faultCount ?? -1) || status.control !== state.control;
+  const faults = status.faults || [];
+  let changed = faults.length !== (state.faultCount ?? -1) || status.control !== state.control;
+  if (state.stale) {
+    state.stale = false;
+    delete document.body.dataset.stale;
+    changed = true;
+  }
   if (!changed && now - (state.wordsMs || 0) < WORDS_EVERY_MS) return; // a fault or a vent is shown at once
   state.wordsMs = now;
-  state.faultCount = (status.faults || []).length;
+  state.faultCount = faults.length;
   state.control = status.control;
+  const key = targetKey(status.target);
+  if (faults.length && state.outcome && state.outcome.key === key && state.outcome.outcome === "reached") {
+    state.outcome.faulted = true;
+  }
   // vented and the chambers emptied: the gland back at rest is drawn once (a vent has no "reached")
   if (status.control === "vented" && status.pressures_kpa && Math.max(...status.pressures_kpa) < 0.05
       && state.glandKpa > 0.1) {
@@ -121,27 +304,12 @@ function onStatus(status) {
   const link = status.link;
   show("link", `link ${link}`);
   $("link").className = `pill ${link === "online" ? "ok" : link === "connecting" ? "warn" : "bad"}`;
-  show("control", status.ready ? status.control : "starting");
-  $("control").className = `pill ${status.control === "vented" ? "warn" : "ok"}`;
+  // the header is always on screen: a latched fault is said there, wherever the page is scrolled
+  show("control", faults.length ? `FAULT: ${faults.join(", ")}` : status.ready ? status.control : "starting");
+  $("control").className = `pill ${faults.length ? "bad" : status.control === "vented" ? "warn" : "ok"}`;
   show("target-text", status.control === "vented" ? "none (vented)" : describeTarget(status.target));
-  // a new target (this page's, another client's or a scene's step) is being reached until its outcome comes
-  const targetKey = JSON.stringify(status.target);
-  if (targetKey !== state.targetKey) {
-    state.targetKey = targetKey;
-    if (status.target && status.control !== "vented" && state.outcomeFor !== targetKey) {
-      state.outcome = null;
-      setTargetState("reaching…", "working");
-    }
-  }
-  if (status.control === "vented" && state.outcome !== "vented") {
-    state.outcome = "vented";
-    setTargetState("vented", "working");
-    document.querySelectorAll(".preset.active").forEach((button) => button.classList.remove("active"));
-  } else if (status.target_pending && !state.outcome) {
-    setTargetState(`waiting: ${status.target_pending}`, "working");
-  } else if (status.verify && !state.outcome) {
-    setTargetState(`verifying, round ${status.verify.round}…`, "working"); // the line below says how far
-  }
+  renderTarget();
+  highlightPreset(status);
   show("n-target", ml(status.target_volume_ml));
   show("n-estimate", ml(status.estimated_volume_ml));
   if (status.plant_volume_ml != null) { $("n-true-box").hidden = false; show("n-true", ml(status.plant_volume_ml)); }
@@ -151,8 +319,8 @@ function onStatus(status) {
       status.drive_levels ? Math.round(status.drive_levels[i] * 100) + " %" : "–"}, ${
       status.chamber_states ? status.chamber_states[i] : "–"}`);
   });
-  const faults = status.faults || [];
   $("faults").hidden = faults.length === 0;
+  document.body.dataset.fault = faults.length ? "true" : "false";
   show("fault-text", faults.map(faultWords).join("; "));
   const scene = status.scene;
   const step = scene && scene.steps.length ? scene.steps[scene.steps.length - 1] : null;
@@ -220,14 +388,11 @@ function onEvent(event) {
   while (list.children.length > 60) list.lastChild.remove();
   if (/scan|verif/.test(event.kind) || event.rounds) state.lastScanEvent = event.text;
   if (!event.outcome || event.outcome === "replaced") return;
-  if (state.status && (state.status.control === "vented" || JSON.stringify(event.target) !== state.targetKey)) return;
-  state.outcome = event.outcome;
-  state.outcomeFor = JSON.stringify(event.target);
-  if (event.outcome === "reached") {
-    setTargetState(describeReached(event), "reached");
+  state.outcome = { key: targetKey(event.target), outcome: event.outcome,
+    text: event.outcome === "reached" ? describeReached(event) : event.outcome };
+  renderTarget();
+  if (event.outcome === "reached" && state.status && state.outcome.key === targetKey(state.status.target)) {
     refreshGland();
-  } else if (event.outcome !== "replaced") {
-    setTargetState(event.outcome.replaceAll("_", " "), "failed");
   }
 }
 
@@ -244,7 +409,7 @@ async function refreshGland() {
     state.glandKpa = Math.max(...(surface.pressures_kpa || [0]));
     const largest = state.gland.show(surface);
     show("gland-max", `${state.gland.scaleMm.toFixed(1)} mm`);
-    show("gland-note", `largest displacement ${largest.toFixed(1)} mm, at ${surface.pressures_kpa ? surface.pressures_kpa.map((p) => (Math.abs(p) < 0.005 ? 0 : p).toFixed(2)).join(" / ") + " kPa" : "rest"}; drag to turn it`);
+    show("gland-note", `largest displacement ${largest.toFixed(1)} mm, at ${surface.pressures_kpa ? surface.pressures_kpa.map((p) => (Math.abs(p) < NOISE_KPA ? 0 : p).toFixed(2)).join(" / ") + " kPa" : "rest"}; drag to turn it`);
     $("gland").dataset.drawn = String((Number($("gland").dataset.drawn) || 0) + 1);
   } catch (error) {
     show("gland-note", `the surface could not be drawn: ${error.message}`);
@@ -260,6 +425,7 @@ function buildControls(answer) {
     const button = document.createElement("button");
     button.className = "preset control";
     button.dataset.name = preset.name;
+    button.dataset.key = targetKey(preset.target);
     const name = document.createElement("b");
     name.textContent = preset.name;
     const meaning = document.createElement("span");
@@ -293,7 +459,6 @@ function buildControls(answer) {
     button.textContent = `▶ ${scene.name.replaceAll("_", " ")}`;
     button.title = scene.description;
     button.addEventListener("click", async () => {
-      state.outcome = null;
       await act("run_scene", { path: scene.path }, `play ${scene.name}`);
       notice(`playing ${scene.name}`, "ok");
     });
@@ -303,7 +468,7 @@ function buildControls(answer) {
   stop.id = "scene-stop";
   stop.className = "control";
   stop.textContent = "■ Stop (vents)";
-  stop.addEventListener("click", () => act("vent", {}, "stop the scene"));
+  stop.addEventListener("click", () => { showRequest(null); act("vent", {}, "stop the scene"); });
   scenes.append(stop);
 }
 
@@ -331,7 +496,10 @@ async function onOpen() {
   const identity = await state.rpc.call("identify");
   await state.rpc.call("subscribe", { topics: ["status", "events", "telemetry"] });
   const [presets, status] = await Promise.all([state.rpc.call("presets"), state.rpc.call("status")]);
+  if (status.pid !== state.pid) state.outcome = null; // another daemon (restarted): what the last one told is gone
+  state.pid = status.pid;
   state.labels = status.chamber_labels;
+  state.chambers = status.chambers || [];
   state.simulated = status.plant_volume_ml != null || status.simulated_board != null;
   if (!state.plots) {
     state.plots = new Plots(state.labels, state.simulated);
@@ -357,7 +525,7 @@ async function onOpen() {
 }
 
 function wire() {
-  $("vent").addEventListener("click", () => act("vent", {}, "vent"));
+  $("vent").addEventListener("click", () => { showRequest(null); act("vent", {}, "vent").catch(() => {}); });
   $("clear-fault").addEventListener("click", async () => {
     const answer = await act("clear_fault", {}, "clear the fault");
     notice(`cleared ${answer.cleared.join(", ") || "nothing"}${answer.setpoints_restored ? "; the target is held again" : ""}`, "ok");
@@ -366,15 +534,48 @@ function wire() {
   slider.addEventListener("input", () => { $("volume-value").textContent = `${Number(slider.value).toFixed(1)} ml`; });
   slider.addEventListener("keydown", (event) => { if (event.key === "Enter") $("volume-set").click(); });
   $("volume-set").addEventListener("click", () => setTarget({ volume_ml: Number(slider.value) }, null));
-  $("pressures-set").addEventListener("click", () => setTarget({
-    pressures_kpa: state.labels.map((_, i) => Number($(`pressure-${i}`).value)) }, null));
+  $("pressures-set").addEventListener("click", setPressures);
   $("gland-refresh").addEventListener("click", refreshGland);
   document.addEventListener("keydown", (event) => {
-    // V vents from anywhere but a text field: the one key that must always work
-    if ((event.key === "v" || event.key === "V") && !/INPUT|TEXTAREA/.test(event.target.tagName) && !event.ctrlKey && !event.metaKey) {
+    // V vents from anywhere but a field that types text (the slider, a number field: V vents): the one key that
+    // must always work
+    if ((event.key === "v" || event.key === "V") && !typesText(event.target) && !event.ctrlKey && !event.metaKey
+        && !event.altKey) {
+      event.preventDefault();
       $("vent").click();
     }
   });
+  setInterval(watchStatus, 250);
+}
+
+// Whether a key pressed in this element types a character into it (a text field, the token's): V is then a letter.
+function typesText(element) {
+  if (element.isContentEditable || element.tagName === "TEXTAREA") return true;
+  return element.tagName === "INPUT" && !["range", "number", "checkbox", "radio", "button", "submit", "reset",
+    "color", "file"].includes(element.type);
+}
+
+function askToken(why, link) {
+  $("token-why").textContent = why;
+  if (!$("token-dialog").open) $("token-dialog").showModal();
+  show("link", link);
+  $("link").className = "pill bad";
+}
+
+// The connection closed: the daemon stopped or restarted, or it no longer takes this page's token (restarted
+// with new ones: the WebSocket is refused, 401, which a page cannot read; /access says it).
+async function onClose() {
+  markStale("daemon not answering (connection lost)");
+  try {
+    const access = await (await fetch("/access", { cache: "no-store" })).json();
+    if (!access.access && access.token_needed) {
+      state.rpc.stop();
+      askToken("The daemon refused this panel's token: it was restarted with new tokens, or they were replaced. "
+        + "Give the new one.", "token refused");
+    }
+  } catch {
+    // the daemon is not there: the connection is tried again
+  }
 }
 
 async function main() {
@@ -382,8 +583,7 @@ async function main() {
   applyAccess(null); // nothing to press until the daemon says what this token may do
   const access = await (await fetch("/access", { cache: "no-store" })).json();
   if (!access.access) {
-    $("token-dialog").showModal();
-    show("link", "no token");
+    askToken("This panel needs its token.", "no token");
     return;
   }
   state.rpc = new Rpc({
@@ -397,7 +597,7 @@ async function main() {
       notice(`the daemon did not answer: ${error.message}; trying again`);
       setTimeout(() => state.rpc.socket.close(), 2000);
     }),
-    onClose: () => { show("link", "daemon unreachable"); $("link").className = "pill bad"; applyAccess(null); },
+    onClose,
   });
   state.rpc.connect();
 }

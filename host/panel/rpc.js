@@ -1,5 +1,6 @@
 // The daemon's API over the WebSocket (host/web.py): JSON-RPC 2.0 as Moonraker frames it. Requests return promises;
-// notifications (notify_<topic>) go to the handlers given; the connection is made again when it drops.
+// notifications (notify_<topic>) go to the handlers given; the connection is made again when it drops, until stop()
+// (the daemon refuses this page's token: a person must give another).
 
 export class Rpc {
   constructor({ onNotify, onOpen, onClose }) {
@@ -10,16 +11,25 @@ export class Rpc {
     this.pending = new Map();
     this.socket = null;
     this.retryMs = 500;
+    this.stopped = false;
+  }
+
+  stop() {
+    this.stopped = true;
+    if (this.socket) this.socket.close();
   }
 
   connect() {
+    if (this.stopped) return;
     const scheme = location.protocol === "https:" ? "wss:" : "ws:";
     const socket = new WebSocket(`${scheme}//${location.host}/websocket`);
     this.socket = socket;
     socket.onopen = () => { this.retryMs = 500; this.onOpen(); };
     socket.onmessage = (message) => this.receive(message.data);
     socket.onclose = () => {
-      for (const { reject } of this.pending.values()) reject(new Error("the connection to the daemon was lost"));
+      for (const { reject } of this.pending.values()) {
+        reject(new Error("no answer: the connection to the daemon was lost"));
+      }
       this.pending.clear();
       this.onClose();
       setTimeout(() => this.connect(), this.retryMs);
@@ -47,7 +57,7 @@ export class Rpc {
 
   call(method, params = {}) {
     if (!this.socket || this.socket.readyState !== WebSocket.OPEN) {
-      return Promise.reject(new Error("not connected to the daemon"));
+      return Promise.reject(new Error("not sent: the daemon is not answering (no connection to it)"));
     }
     const id = this.nextId++;
     this.socket.send(JSON.stringify({ jsonrpc: "2.0", method, params, id }));
