@@ -135,6 +135,10 @@ def check_out_folder(out: Path) -> None:
     try:
         if out.exists() and not out.is_dir():
             raise DesignError(f"--out {out} is a file: give a folder")
+        held = sorted(path.name for path in out.iterdir()) if out.is_dir() else []
+        if held:  # a design over another would leave the other's files beside it (a core of a chamber it has not)
+            raise DesignError(f"--out {out} holds files already ({', '.join(held[:3])}"
+                              f"{', ...' if len(held) > 3 else ''}): give a new or empty folder")
         nearest = next(folder for folder in (out, *out.parents) if folder.exists())
         os.rmdir(tempfile.mkdtemp(prefix=".design-", dir=nearest))
     except OSError as problem:

@@ -226,6 +226,9 @@ def test_out_of_range_options_are_refused(tmp_path, capsys, option, value, says)
 
 @pytest.mark.parametrize(("out", "says"), [
     ("notes.txt", "is a file: give a folder"),
+    # a design written over another replaced it without a word, and left the other's files (a wax core of a
+    # chamber the new design has not)
+    (".", "holds files already (gland.nii, notes.txt): give a new or empty folder"),
     ("/proc/d", "cannot be made a folder (No such file or directory): give a folder you can write")])
 def test_an_out_that_cannot_become_a_folder_is_refused_before_the_sizing(tmp_path, capsys, monkeypatch, out, says):
     """`--out EXISTING_FILE` (or an unwritable place) gave a FileExistsError (FileNotFoundError) traceback, and
@@ -355,3 +358,25 @@ def test_the_least_distance_to_a_chamber_is_the_least_of_every_points():
                   2: centre + axes * (unit := rng.normal(size=(3000, 3))) / np.linalg.norm(unit, axis=1)[:, None],
                   3: centre + rng.uniform(1.5, 3.0) * axes * np.eye(3)[trial % 3]}[trial % 4].reshape(-1, 3)
         assert least_ellipsoid_distance_mm(points, chamber) == float(ellipsoid_distance_mm(points, chamber).min())
+
+
+def test_a_mesh_with_every_other_triangle_turned_designs_the_gland_the_consistent_one_does(tmp_path):
+    """Every other triangle turned read as a ~0.05 ml gland that the design scaled 8 times up (and then meshed
+    for minutes): the surface is wound one way and outward as it is read."""
+    from phantom.design.surface import read_gland
+
+    ellipsoid = trimesh.creation.icosphere(4)
+    vertices = np.asarray(ellipsoid.vertices) * [22.0, 16.0, 19.0]
+    faces = np.asarray(ellipsoid.faces)
+    mixed = faces.copy()
+    mixed[::2] = mixed[::2, ::-1]
+    trimesh.Trimesh(vertices, faces, process=False).export(str(tmp_path / "gland.stl"))
+    trimesh.Trimesh(vertices, mixed, process=False).export(str(tmp_path / "mixed.stl"))
+    consistent = read_gland(tmp_path / "gland.stl", 26.3)
+    repaired = read_gland(tmp_path / "mixed.stl", 26.3)
+    assert consistent.source_volume_ml == pytest.approx(4 / 3 * math.pi * 22 * 16 * 19 / 1e3, rel=0.01)
+    assert repaired.source_volume_ml == pytest.approx(consistent.source_volume_ml, rel=1e-12)
+    assert repaired.scale == pytest.approx(consistent.scale, rel=1e-12)
+    # an STL lists each triangle's corners: the vertices are numbered as first met, so compare the solids
+    assert repaired.surface.centroid_mm() == pytest.approx(consistent.surface.centroid_mm(), abs=1e-9)
+    assert repaired.surface.volume_ml() == pytest.approx(26.3, rel=1e-9)
