@@ -136,6 +136,9 @@ def test_the_commands_refuse_bad_input_in_one_line(run, tmp_path, capsys):
     assert "--labels" in capsys.readouterr().err
     assert main(["shape", "train", str(tmp_path), "--out", str(tmp_path / "run"), "--channels", "16,2.5"]) == 2
     assert "--channels takes positive whole numbers" in capsys.readouterr().err
+    # a run is hours of training: another over it was written in its place without a word
+    assert main(["shape", "train", str(tmp_path), "--out", str(run)]) == 2
+    assert "holds a trained run already (config.json): give another --out, or --replace" in capsys.readouterr().err
     assert main(["shape", "average", str(run), "--out", str(tmp_path / "average.vtk")]) == 2
     assert "write the mesh as .obj, .ply or .stl" in capsys.readouterr().err
 

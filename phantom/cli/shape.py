@@ -49,6 +49,7 @@ def register(subparsers: Subcommands) -> None:
     train.add_argument("data", metavar="DATA", help="the dataset folder (with data/), or a folder of masks or "
                                                     "closed meshes")
     train.add_argument("--out", required=True, metavar="RUN", help="run folder to write")
+    train.add_argument("--replace", action="store_true", help="train again over a run already in --out")
     train.add_argument("--epochs", type=int, default=500, help="training epochs (default 500, as the paper)")
     train.add_argument("--seed", type=int, default=0, help="seed of weights, split and batches (default 0)")
     train.add_argument("--batch-size", type=int, default=10, help="cases per step (default 10)")
@@ -245,6 +246,10 @@ def run_train(args: argparse.Namespace) -> int:
     from phantom.shape.training import TrainConfig, compute_device, train
     from phantom.shape.vae import VAEConfig
 
+    done = Path(args.out) / "config.json"
+    if done.is_file() and not args.replace:  # a run is hours of training: it is not replaced by a slip
+        raise ShapeError(f"--out {args.out} holds a trained run already ({done.name}): give another --out, or "
+                         "--replace to train again over it")
     values = parse_numbers(args.channels, "--channels")
     if any(v is None or v != int(v) or v < 1 for v in values):
         raise ShapeError(f"--channels takes positive whole numbers like 16,32,64; got {args.channels!r}")
