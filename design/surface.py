@@ -8,7 +8,7 @@ reported) and turned into the phantom's frame from the mask's RAS axes (x to the
 from apex to base: :data:`phantom.shape.voxels.RAS_FROM_PHANTOM`), centred and scaled to the target volume. The
 mid-sagittal plane is taken through the gland's centroid (x = 0 after centring: a mask has no landmark of the
 midline), the other axes are centred on the bounding box. A closed mesh is read as ``phantom shape`` reads one
-(mm, already in the phantom's frame).
+(mm, already in the phantom's frame; wound one way and outward).
 """
 
 from __future__ import annotations
@@ -126,7 +126,8 @@ def read_gland(path: str | Path, volume_ml: float, labels: Sequence[int] | None 
     notes: list[str] = []
     if case.kind == "mesh":
         closed = read_closed_mesh(case.path).mirrored_x()  # shape reads meshes into RAS; back to the phantom's
-        raw = _largest_body(Surface(closed.vertices_mm, closed.triangles).outward(), notes)
+        # read_closed_mesh winds it one way and outward; the mirror keeps it outward
+        raw = _largest_body(Surface(closed.vertices_mm, closed.triangles), notes)
         source_volume_ml = raw.volume_ml()
         iterations = 0 if smoothing_iterations is None else smoothing_iterations
     else:

@@ -30,6 +30,7 @@ import numpy as np
 from phantom import PhantomError, require_extra
 from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml
 from phantom.model.mesh.tetmesh import open_edge_count, surface_components
+from phantom.model.mesh.winding import WindingError, outward_surface
 
 #: What a gland's volume (ml) may be: a surface outside is in other units than mm (metres, centimetres).
 GLAND_VOLUME_RANGE_ML = (2.0, 400.0)
@@ -124,10 +125,11 @@ def checked_gland(surface: TriangleMesh, where: str) -> TriangleMesh:
     components = surface_components(triangles)
     if components.max() > 0:
         raise ShapeFileError(f"{where}: the mesh holds {components.max() + 1} separate bodies: keep the gland's")
-    mesh = TriangleMesh(vertices, triangles)
+    try:  # wound one way and outward: faces of mixed winding summed to a speck's volume, read as metres
+        mesh, _ = outward_surface(TriangleMesh(vertices, triangles))
+    except WindingError as error:
+        raise ShapeFileError(f"{where}: {error}") from None
     volume_ml = enclosed_volume_ml(mesh)
-    if volume_ml < 0:
-        mesh, volume_ml = TriangleMesh(vertices, triangles[:, ::-1].copy()), -volume_ml
     low, high = GLAND_VOLUME_RANGE_ML
     if not low <= volume_ml <= high:
         size_mm = float(np.max(np.ptp(vertices, axis=0)))

@@ -1,11 +1,11 @@
 """Compare a 3D scan of the phantom with the model: read, clean, align, measure (millimetres throughout).
 
 A scan (OBJ, PLY or STL from photogrammetry or a structured-light scanner) is read in the unit it was exported
-in, cleaned (largest connected piece kept, stray fragments dropped, holes closed by MeshFix so that its volume
-is defined), and aligned rigidly to the model's deformed outer surface (:func:`phantom.model.mesh.surface.align`:
-principal axes, the 24 axis-to-axis candidates, point-to-plane ICP on exact closest points). The result says how
-far the surfaces are apart (closest-point distances both ways, area-weighted) and, per model vertex, the signed
-distance to the scan (positive where the scan lies outside the model).
+in, cleaned (largest connected piece kept, stray fragments dropped, its triangles wound one way, holes closed by
+MeshFix so that its volume is defined), and aligned rigidly to the model's deformed outer surface
+(:func:`phantom.model.mesh.surface.align`: principal axes, the 24 axis-to-axis candidates, point-to-plane ICP on
+exact closest points). The result says how far the surfaces are apart (closest-point distances both ways,
+area-weighted) and, per model vertex, the signed distance to the scan (positive where the scan lies outside the model).
 
 The surface geometry itself (areas, normals, volumes, closest points, ICP) is the model's
 (:mod:`phantom.model.mesh.surface`); what is here is about scans: reading their files, cleaning them, closing
@@ -37,6 +37,7 @@ from phantom.model.mesh.surface import (
     vertex_areas_mm2,
     vertex_normals,
 )
+from phantom.model.mesh.winding import WindingError, consistent_winding
 
 #: Millimetres per unit of a scan file.
 UNITS_MM = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
@@ -80,6 +81,7 @@ class CleanReport:
     removed_component_triangles: int
     holes_filled: int
     added_triangles: int
+    rewound_triangles: int
     reoriented: bool
     output_vertices: int
     output_triangles: int
@@ -91,6 +93,8 @@ class CleanReport:
         parts.append(f"{self.removed_components} stray fragment(s) removed "
                      f"({self.removed_component_triangles} triangles)")
         parts.append(f"{self.holes_filled} hole(s) closed ({self.added_triangles} triangles added)")
+        if self.rewound_triangles:
+            parts.append(f"{self.rewound_triangles} triangles turned to face the same way as their neighbours")
         if self.reoriented:
             parts.append("faces turned outward")
         return "; ".join(parts)
@@ -359,7 +363,12 @@ def _count_loops(edges: np.ndarray, n_vertices: int) -> int:
 
 def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanReport]:
     """The watertight, outward-oriented largest piece of a scan, that piece before its holes were closed (the
-    measured surface, for distances), and what was changed."""
+    measured surface, for distances), and what was changed.
+
+    The piece is wound one way (:func:`phantom.model.mesh.winding.consistent_winding`) before its holes are
+    closed (each fill runs its hole's edges against the scan's) and turned outward after. Raises ScanError for a
+    scan whose triangles cannot be wound one way (non-manifold edges, one-sided).
+    """
     areas = triangle_areas_mm2(mesh.vertices_mm, mesh.triangles)
     keep = drop_degenerate(mesh.triangles, areas)
     triangles, areas = mesh.triangles[keep], areas[keep]
@@ -367,6 +376,10 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
         raise ScanError("the scan has no triangle of non-zero area")
     in_largest, pieces = largest_component(triangles, areas)
     measured = compact(mesh.vertices_mm, triangles[in_largest])
+    try:
+        measured.triangles, rewound = consistent_winding(measured.triangles)
+    except WindingError as error:
+        raise ScanError(f"the scan's largest piece cannot be measured: {error}") from None
     closed, holes = close_holes(measured)
     reoriented = enclosed_volume_ml(closed) < 0
     if reoriented:
@@ -376,7 +389,8 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
         input_vertices=len(mesh.vertices_mm), input_triangles=len(mesh.triangles),
         removed_degenerate_triangles=int(np.count_nonzero(~keep)), removed_components=pieces - 1,
         removed_component_triangles=int(np.count_nonzero(~in_largest)), holes_filled=holes,
-        added_triangles=len(closed.triangles) - len(measured.triangles), reoriented=bool(reoriented),
+        added_triangles=len(closed.triangles) - len(measured.triangles), rewound_triangles=rewound,
+        reoriented=bool(reoriented),
         output_vertices=len(closed.vertices_mm), output_triangles=len(closed.triangles))
     return closed, measured, report
 

@@ -35,7 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from phantom import require_extra
+from phantom.model.mesh.surface import TriangleMesh
 from phantom.model.mesh.tetmesh import open_edge_count
+from phantom.model.mesh.winding import WindingError, outward_surface
 from phantom.model.shape_file import ShapeFileError, read_nifti
 from phantom.shape.errors import ShapeError
 from phantom.shape.voxels import SUPERSAMPLE, ClosedSurface, LabelMask
@@ -153,9 +155,11 @@ def read_label_mask(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> Labe
 
 
 def read_closed_mesh(path: str | Path) -> ClosedSurface:
-    """A closed triangle mesh (mm, the phantom's frame) as a surface in RAS mm.
+    """A closed triangle mesh (mm, the phantom's frame) as a surface in RAS mm, wound one way and outward
+    (:func:`phantom.model.mesh.winding.outward_surface`).
 
-    Raises ShapeError when the file cannot be read or the surface is not closed.
+    Raises ShapeError when the file cannot be read, the surface is not closed, or its triangles cannot be wound
+    one way.
     """
     # trimesh (0.3 s to import) only where a mesh is read
     with require_extra("shape"):
@@ -174,7 +178,11 @@ def read_closed_mesh(path: str | Path) -> ClosedSurface:
     if open_edges:
         raise ShapeError(f"{path}: the mesh is not closed ({open_edges} open edges): close its holes first "
                          f"(compare-scan cleans and closes scans)")
-    return ClosedSurface(vertices, triangles).outward().mirrored_x()
+    try:
+        outward, _ = outward_surface(TriangleMesh(vertices, triangles))
+    except WindingError as error:
+        raise ShapeError(f"{path}: {error}") from None
+    return ClosedSurface(outward.vertices_mm, outward.triangles).mirrored_x()
 
 
 def read_shape(case: Case, labels: Sequence[int] = PROSTATE_LABELS) -> LabelMask | ClosedSurface:

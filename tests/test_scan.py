@@ -27,7 +27,7 @@ from phantom.model.mesh.surface import (
     rotation_angle_deg,
     triangle_areas_mm2,
 )
-from phantom.scan.compare import ScanError, compare, read_scan, scan_volume_ml
+from phantom.scan.compare import ScanError, clean_scan, compare, read_scan, scan_volume_ml
 from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = (1.0, 2.0, 0.5)
@@ -362,3 +362,48 @@ def test_a_surface_written_by_phantom_forward_compares_at_zero_distance(tmp_path
     assert report["clean"]["removed_components"] == 0 and report["clean"]["holes_filled"] == 0
     assert report["scan_volume_ml"] == pytest.approx(forward["total_volume_ml"], rel=1e-6)
     assert report["distance_mm"]["max"] < 1e-3
+
+
+def turned_every_other(mesh: TriangleMesh) -> TriangleMesh:
+    """The same surface with every other triangle listed the other way round (inconsistent winding)."""
+    triangles = mesh.triangles.copy()
+    triangles[::2] = triangles[::2, ::-1]
+    return TriangleMesh(mesh.vertices_mm, triangles)
+
+
+def test_a_scan_with_every_other_triangle_turned_measures_as_the_consistent_one(tmp_path, capsys, surface, state):
+    """The red team's scan: `phantom scan synthetic --levels 1 --holes 2` with every other triangle turned read
+    0.138 ml (of 32.1) in compare-scan, scan import and calibrate. Cleaning winds it one way before closing its
+    holes; a scan that cannot be wound one way is refused naming why."""
+    synthetic = make_scan(surface, np.random.default_rng(0), levels=1, holes=2, fragment=True)
+    mixed = turned_every_other(synthetic.mesh)
+    assert abs(enclosed_volume_ml(mixed)) < 0.1 * state.gland_volume_m3 * 1e6  # the defect's input
+    closed, _, report = clean_scan(synthetic.mesh)
+    mixed_closed, _, mixed_report = clean_scan(mixed)
+    assert enclosed_volume_ml(mixed_closed) == pytest.approx(enclosed_volume_ml(closed), rel=1e-9)
+    assert enclosed_volume_ml(closed) == pytest.approx(state.gland_volume_m3 * 1e6, rel=0.005)
+    assert report.rewound_triangles == 0 and mixed_report.rewound_triangles > 0
+    assert "triangles turned to face the same way" in mixed_report.summary()
+    # calibrate's measured_ml from a scan file, and scan import (the command line, once)
+    path = write_mesh(tmp_path / "mixed.ply", mixed)
+    assert scan_volume_ml(path) == pytest.approx(enclosed_volume_ml(closed), rel=1e-9)
+    assert cli.main(["scan", "import", str(path), "--out", str(tmp_path / "imported.ply")]) == 0
+    assert f"{enclosed_volume_ml(closed):.3f} ml" in capsys.readouterr().out
+    # a fin on one edge (three triangles share it): no one winding can be chosen
+    a, b, _ = mixed.triangles[0]
+    finned = TriangleMesh(np.vstack([mixed.vertices_mm, mixed.vertices_mm[a] + 5.0]),
+                          np.vstack([mixed.triangles, [[a, b, len(mixed.vertices_mm)]]]))
+    with pytest.raises(ScanError, match=r"the scan's largest piece cannot be measured: .* shared by more than two "
+                                        r"triangles \(non-manifold\)"):
+        clean_scan(finned)
+
+
+@pytest.mark.slow
+def test_compare_scan_measures_a_mixed_winding_scan_at_the_models_volume(surface, state):
+    rng = np.random.default_rng(4)
+    synthetic = make_scan(surface, rng, levels=1, holes=2, rotation=random_rotation(rng),
+                          translation_mm=[5.0, -10.0, 20.0])
+    result = compare(turned_every_other(synthetic.mesh), surface, state.gland_volume_m3 * 1e6)
+    assert result.scan_volume_ml == pytest.approx(state.gland_volume_m3 * 1e6, rel=0.005)
+    assert result.clean.rewound_triangles > 0 and result.clean.holes_filled == 2
+    assert result.symmetric_mm["mean"] < 0.05

@@ -302,3 +302,32 @@ def test_worker_processes_put_the_shapes_on_the_same_grids_and_name_a_shape_that
     assert f"shape: put {CASES}/{CASES} shapes on the grid" in capsys.readouterr().out
     with pytest.raises(ShapeError, match=r"_mask\.nii reaches .* beyond the grid's"):
         load_shapes(population, grid_size=32, voxel_mm=alone.voxel_mm / 3, workers=2)
+
+
+def test_a_closed_mesh_with_every_other_triangle_turned_reads_as_the_consistent_one(tmp_path):
+    """Each triangle of a closed mesh is wound one way and outward as it is read (the shape analysis, and phantom
+    design through it): every other triangle turned read as a sliver of the volume before. A mesh that cannot be
+    wound one way is refused naming why."""
+    import trimesh
+
+    vertices, faces = _ellipsoid((20.0, 14.0, 17.0), subdivisions=3)
+    vertices = vertices + [5.0, -3.0, 40.0]
+    mixed = np.asarray(faces).copy()
+    mixed[::2] = mixed[::2, ::-1]
+    trimesh.Trimesh(vertices, faces, process=False).export(str(tmp_path / "consistent.ply"))
+    trimesh.Trimesh(vertices, mixed, process=False).export(str(tmp_path / "mixed.ply"))
+    consistent = read_closed_mesh(tmp_path / "consistent.ply")
+    repaired = read_closed_mesh(tmp_path / "mixed.ply")
+    assert repaired.signed_volume_ml() == pytest.approx(consistent.signed_volume_ml(), rel=1e-12)
+    np.testing.assert_array_equal(repaired.triangles, consistent.triangles)
+    assert consistent.signed_volume_ml() == pytest.approx(4 / 3 * np.pi * 20 * 14 * 17 / 1e3, rel=0.02)
+    # closed but one-sided: an n x n grid of quads, its columns a ring, its last row joined to the first mirrored
+    n = 6
+    index = np.arange(n * n).reshape(n, n)
+    above = np.vstack([index[1:], index[0, (-np.arange(n)) % n]])
+    quads = np.stack([index, np.roll(index, -1, axis=1), np.roll(above, -1, axis=1), above], -1).reshape(-1, 4)
+    bottle = np.vstack([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    points = np.random.default_rng(0).normal(size=(n * n, 3))
+    trimesh.Trimesh(points, bottle, process=False).export(str(tmp_path / "bottle.ply"))
+    with pytest.raises(ShapeError, match=r"bottle\.ply: the surface is one-sided"):
+        read_closed_mesh(tmp_path / "bottle.ply")
