@@ -130,8 +130,8 @@ def mesh_design(surface: Surface, chambers: list[Chamber], size_mm: float, eleme
         raise
     except Exception as error:  # gmsh raises plain Exceptions (an overlapping or self-crossing surface)
         raise DesignError(f"gmsh could not mesh the design ({' '.join(str(error).split())[:300]}): the gland's surface "
-                          f"or a chamber's is too rough or too thin for a {size_mm:g} mm mesh; a smoother or "
-                          f"finer mask, or another --size-mm") from None
+                          f"or a chamber's is too rough or too thin for a {size_mm:g} mm mesh: smooth it more "
+                          f"(--smooth-iterations, 20 for a mask by default: try 60), or give a finer mask") from None
     ellipsoids = tuple((chamber.centre_mm, chamber.semi_axes_mm) for chamber in chambers)
     groups = tag_surfaces(nodes_mm, tets, ellipsoids, base_pole_mm(surface, chambers), fixation_radius_mm,
                           patch_edge_meshed=False)
