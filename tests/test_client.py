@@ -3,6 +3,7 @@ answering ``starting`` with its progress), and the pieces a script sees (errors,
 simulated board is tests/test_python_api.py."""
 
 import asyncio
+import contextlib
 import functools
 import threading
 
@@ -12,6 +13,27 @@ import pytest
 import phantom
 from phantom.host.api import ApiError, ApiServer
 from phantom.host.client import ConnectionLostError, StartingError, UnreachableError
+
+
+@contextlib.contextmanager
+def served(server: ApiServer):
+    """``server`` listening on an event loop in a thread of its own for the length of the block."""
+    async def serve(ready: threading.Event, stop: threading.Event):
+        await server.start()
+        ready.set()
+        while not stop.is_set():
+            await asyncio.sleep(0.05)
+        await server.close()
+
+    ready, stop = threading.Event(), threading.Event()
+    thread = threading.Thread(target=asyncio.run, args=(serve(ready, stop),))
+    thread.start()
+    try:
+        ready.wait(10)
+        yield
+    finally:
+        stop.set()
+        thread.join(10)
 
 
 def test_no_daemon_is_one_line_naming_the_socket(tmp_path):
@@ -25,21 +47,10 @@ def test_no_daemon_is_one_line_naming_the_socket(tmp_path):
 def test_a_daemon_still_starting_is_waited_for_then_reported_with_its_progress(tmp_path, ready_timeout_s):
     """A daemon that has not built its parts answers ``starting`` with what it is doing: connect waits for it
     (telling ``on_wait``) and gives up with that progress."""
-    async def serve(ready: threading.Event, stop: threading.Event):
-        server = ApiServer(tmp_path / "d.sock", {})
-        server.starting = lambda: ApiError("starting", "the daemon is still starting: loading the model of "
-                                           "builtin:calibrated (12 s so far)", {"stage": "loading the model"})
-        await server.start()
-        ready.set()
-        while not stop.is_set():
-            await asyncio.sleep(0.05)
-        await server.close()
-
-    ready, stop = threading.Event(), threading.Event()
-    thread = threading.Thread(target=asyncio.run, args=(serve(ready, stop),))
-    thread.start()
-    try:
-        ready.wait(10)
+    server = ApiServer(tmp_path / "d.sock", {})
+    server.starting = lambda: ApiError("starting", "the daemon is still starting: loading the model of "
+                                       "builtin:calibrated (12 s so far)", {"stage": "loading the model"})
+    with served(server):
         told = []
         with pytest.raises(StartingError) as caught:
             phantom.connect(tmp_path / "d.sock", ready_timeout_s=ready_timeout_s, on_wait=told.append)
@@ -49,9 +60,6 @@ def test_a_daemon_still_starting_is_waited_for_then_reported_with_its_progress(t
             assert "was not ready after 1 s" in str(caught.value) and told
         else:
             assert caught.value.data == {"stage": "loading the model"}
-    finally:
-        stop.set()
-        thread.join(10)
 
 
 def test_the_unreachable_range_is_the_answers_data_never_its_words():
@@ -125,24 +133,9 @@ def params_daemon(tmp_path):
             return {"positions_mm": [[0.0, 0.0, 0.0]], "triangles": [[0, 0, 0]], "pressures_kpa": None}
         return await handlers[method](params)
 
-    async def serve(ready: threading.Event, stop: threading.Event):
-        server = ApiServer(tmp_path / "d.sock", {method: functools.partial(record, method=method)
-                                                 for method in ("status", "set_target", "surface")})
-        await server.start()
-        ready.set()
-        while not stop.is_set():
-            await asyncio.sleep(0.05)
-        await server.close()
-
-    ready, stop = threading.Event(), threading.Event()
-    thread = threading.Thread(target=asyncio.run, args=(serve(ready, stop),))
-    thread.start()
-    try:
-        ready.wait(10)
+    with served(ApiServer(tmp_path / "d.sock", {method: functools.partial(record, method=method)
+                                                for method in ("status", "set_target", "surface")})):
         yield tmp_path / "d.sock", asked
-    finally:
-        stop.set()
-        thread.join(10)
 
 
 @pytest.mark.parametrize(("call", "says"), [

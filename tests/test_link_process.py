@@ -5,6 +5,7 @@ events and the end of the session cross the pipe; the process dies with the daem
 its deadline as it must."""
 
 import asyncio
+import contextlib
 import os
 import subprocess
 import sys
@@ -403,6 +404,22 @@ def test_a_daemon_stopped_for_longer_than_its_silence_lets_the_board_vent_and_sa
         rig.close()
 
 
+@contextlib.contextmanager
+def holding_sim_daemon(tmp_path):
+    """``phantom daemon --sim`` (its folders in ``tmp_path``) holding 0.8 kPa in the base: the daemon, a client of
+    it and its link process's pid."""
+    from daemon_rig import daemon_process
+
+    import phantom
+
+    environment = {**os.environ, **{name: str(tmp_path / name) for name in ("XDG_DATA_HOME", "XDG_CACHE_HOME",
+                                                                             "XDG_CONFIG_HOME", "XDG_STATE_HOME")}}
+    with daemon_process(tmp_path, "--sim", ready_s=180, env=environment) as daemon, \
+            phantom.connect(daemon.socket) as ph:
+        ph.set_pressures([0.8, 0.0, 0.0])
+        yield daemon, ph, ph.call("status")["link_detail"]["process"]["pid"]
+
+
 @pytest.mark.timeout(240)
 def test_a_daemon_whose_link_process_is_stopped_shows_it_silent_and_the_whole_outage_after(tmp_path):
     """The red team's run (`phantom daemon --sim`, its link's process stopped by SIGSTOP for seconds, then continued).
@@ -413,16 +430,7 @@ def test_a_daemon_whose_link_process_is_stopped_shows_it_silent_and_the_whole_ou
     import re
     import signal
 
-    from daemon_rig import daemon_process
-
-    import phantom
-
-    environment = {**os.environ, **{name: str(tmp_path / name) for name in ("XDG_DATA_HOME", "XDG_CACHE_HOME",
-                                                                             "XDG_CONFIG_HOME", "XDG_STATE_HOME")}}
-    with daemon_process(tmp_path, "--sim", ready_s=180, env=environment) as daemon, \
-            phantom.connect(daemon.socket) as ph:
-        ph.set_pressures([0.8, 0.0, 0.0])
-        link_pid = ph.call("status")["link_detail"]["process"]["pid"]
+    with holding_sim_daemon(tmp_path) as (daemon, ph, link_pid):
         os.kill(link_pid, signal.SIGSTOP)
         try:
             time.sleep(4.0)
@@ -456,16 +464,9 @@ def test_a_killed_link_process_is_started_again_and_the_daemon_goes_on(tmp_path)
     clear), and the daemon goes on serving."""
     import signal
 
-    from daemon_rig import daemon_process
-
     import phantom
 
-    environment = {**os.environ, **{name: str(tmp_path / name) for name in ("XDG_DATA_HOME", "XDG_CACHE_HOME",
-                                                                             "XDG_CONFIG_HOME", "XDG_STATE_HOME")}}
-    with daemon_process(tmp_path, "--sim", ready_s=180, env=environment) as daemon, \
-            phantom.connect(daemon.socket) as ph:
-        ph.set_pressures([0.8, 0.0, 0.0])
-        killed = ph.call("status")["link_detail"]["process"]["pid"]
+    with holding_sim_daemon(tmp_path) as (daemon, ph, killed):
         os.kill(killed, signal.SIGKILL)
         deadline = time.monotonic() + 60
         while (status := ph.call("status"))["link"] != "online" or (
