@@ -329,15 +329,20 @@ def _run_set(args: argparse.Namespace) -> int:
     return 0
 
 
+#: How long (s) an interrupted ``phantom set`` waits for the daemon's status to say what goes on.
+TELL_TIMEOUT_S = 5.0
+
+
 def _tell_what_goes_on(args: argparse.Namespace) -> None:
     """``phantom set`` interrupted while it waited: the target is the daemon's, which goes on with it (a verified
     one's rounds too). Says so, from the daemon's status, so that nobody takes the interrupt for a stop."""
     import sys
 
+    import phantom
     from phantom.host.client import describe_target
 
-    try:
-        with _connect(args, wait_ready=False) as daemon:
+    try:  # a few seconds at most: the person pressed Ctrl-C to get the terminal back
+        with phantom.connect(_socket(args), request_timeout_s=TELL_TIMEOUT_S, ready_timeout_s=0.0) as daemon:
             status = daemon.status()
     except Exception:  # the daemon gone too: nothing goes on that it could say
         return
