@@ -26,12 +26,14 @@ import bisect
 import dataclasses
 import functools
 import math
+import numbers
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from phantom import is_finite_number
 from phantom.host.verify import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT, Verify
 from phantom.model.errors import SceneError
 from phantom.model.scene import (
@@ -171,17 +173,15 @@ class Timeline:
 def finite_number(value: object, what: str) -> float:
     """A finite float from a TOML/JSON value, or a SceneError naming ``what``: the check of a target's numbers
     (``set_target``, ``surface``, a scene's steps), a step's times and ``run_scene``'s time scale."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
+    if is_finite_number(value):
+        return float(value)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise SceneError(f"{what} must be a number, got {value!r}")
-    try:
-        number = float(value)
-    except OverflowError:  # JSON and TOML allow an integer of any length; a float holds up to about 1.8e308
+    if isinstance(value, numbers.Integral):  # JSON and TOML allow an integer of any length; a float holds ~1.8e308
         digits = math.floor(int(value).bit_length() * math.log10(2)) + 1
         raise SceneError(f"{what} must be a finite number (at most about 1.8e308), got an integer of about {digits} "
-                         "digits") from None
-    if not math.isfinite(number):
-        raise SceneError(f"{what} must be finite, got {value!r}")
-    return number
+                         "digits")
+    raise SceneError(f"{what} must be finite, got {value!r}")
 
 
 def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "target",
