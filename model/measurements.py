@@ -347,7 +347,9 @@ class CorrectionStore:
     def to_csv(self) -> str:
         """The measurements as the CSV ``phantom calibrate`` reads (``p0_kpa, ..., measured_ml``, ``medium``: a
         water displacement's phantom hung in water), with ``method``, ``time_utc``, ``scan_file`` and
-        ``model_ml`` (the model's volume there when stored) beside, which it ignores."""
+        ``model_ml`` (the model's volume there when stored) beside, which it ignores. An unconfirmed measurement is
+        a ``#`` line (a comment to calibrate) saying why: left out of calibrate's fit as out of every other, and
+        kept in the copy."""
         entries = self.entries()
         if not entries:
             raise CorrectionError(f"no measurements stored in {self.path}: nothing to export")
@@ -356,9 +358,11 @@ class CorrectionStore:
         chambers = len(entries[0].pressures_kpa)
         writer.writerow([*(f"p{i}_kpa" for i in range(chambers)), "measured_ml", "medium", "method", "time_utc",
                          "scan_file", "model_ml"])
-        for entry in entries:
-            writer.writerow([*(f"{p:.6g}" for p in entry.pressures_kpa), f"{entry.volume_ml:.6g}",
-                             "water" if entry.method == "water_displacement" else "air", entry.method,
-                             entry.time_utc, entry.scan_file or "",
-                             "" if entry.model_volume_ml is None else f"{entry.model_volume_ml:.6g}"])
+        for number, entry in enumerate(entries, start=1):
+            row = [*(f"{p:.6g}" for p in entry.pressures_kpa), f"{entry.volume_ml:.6g}",
+                   "water" if entry.method == "water_displacement" else "air", entry.method, entry.time_utc,
+                   entry.scan_file or "", "" if entry.model_volume_ml is None else f"{entry.model_volume_ml:.6g}"]
+            if entry.status != "confirmed":
+                out.write(f"# measurement {number} unconfirmed ({entry.reason or 'not confirmed'}), left out: ")
+            writer.writerow(row)
         return out.getvalue()

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from phantom.cli.main import main
+from phantom.model.calibration.calibrate import load_measurements
 from phantom.model.measurements import (
     MODEL_ERROR_95_PCT,
     PLAUSIBLE_SIGMAS,
@@ -121,6 +122,30 @@ def test_a_typo_is_stored_unconfirmed_out_of_the_fit_until_confirmed_and_one_ent
     assert main(["corrections", "remove", "--phantom", "p", "5"]) == 2
     assert "no measurement 5: phantom 'p' has 1 (`phantom corrections list`)" in capsys.readouterr().err
     assert main(["corrections", "confirm", "--phantom", "p", "0"]) == 2
+
+
+def test_an_unconfirmed_typo_is_exported_as_a_comment_that_calibrate_does_not_fit(data_dir, tmp_path, capsys):
+    """``corrections export`` wrote every measurement as a row, an unconfirmed typo with the rest, so ``phantom
+    calibrate --measurements`` fitted the material to it: the store leaves it out of every fit, and so does the CSV
+    now (a comment line saying why, kept in the copy)."""
+    for volume_ml in ("29.96", "39.96", "32.36"):
+        pressures = "2,0,0" if volume_ml == "32.36" else "1,1,1"
+        assert main(["corrections", "add", "--phantom", "p", "--pressures-kpa", pressures, "--volume-ml",
+                     volume_ml]) == 0
+    assert [e.status for e in CorrectionStore.for_phantom("p").entries()] == ["confirmed", "unconfirmed", "confirmed"]
+    capsys.readouterr()
+    out = tmp_path / "measured.csv"
+    assert main(["corrections", "export", "--phantom", "p", "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "wrote 2 measurement(s)" in said and "the unconfirmed measurement(s) 2 as comment" in said and "phantom corrections confirm" in said
+    lines = out.read_text().splitlines()
+    assert [line.split(",")[3] for line in lines[1:] if not line.startswith("#")] == ["29.96", "32.36"]
+    (comment,) = [line for line in lines if line.startswith("#")]
+    assert "unconfirmed" in comment and "39.96" in comment and "expected" in comment
+    with open(out, "a") as csv_file:
+        csv_file.write("0,0,0,26.43,air,scan,,,\n")   # calibrate needs three rows
+    measured = load_measurements(out, 3)
+    assert sorted(np.round(measured.volumes_m3 * 1e6, 2)) == [26.43, 29.96, 32.36]
 
 
 def test_a_measurement_outside_the_pressure_box_is_refused_at_the_door(data_dir, capsys):

@@ -160,9 +160,14 @@ def _export(store: Any, args: argparse.Namespace) -> int:
         return 0
     with written_atomically(Path(args.out), CorrectionError) as temporary:
         temporary.write_text(text)
-    return _print(args, {"out": args.out, "measurements": text.count("\n") - 1},
-                  f"wrote {text.count(chr(10)) - 1} measurement(s) to {args.out} (`phantom calibrate --measurements "
-                  f"{args.out}` reads it)")
+    entries = store.entries()
+    unconfirmed = [number for number, entry in enumerate(entries, start=1) if entry.status != "confirmed"]
+    left_out = "" if not unconfirmed else (
+        f"; the unconfirmed measurement(s) {', '.join(map(str, unconfirmed))} as comment lines, left out as from "
+        "every fit (`phantom corrections confirm N` if one is right)")
+    return _print(args, {"out": args.out, "measurements": len(entries) - len(unconfirmed), "unconfirmed": unconfirmed},
+                  f"wrote {len(entries) - len(unconfirmed)} measurement(s) to {args.out} (`phantom calibrate "
+                  f"--measurements {args.out}` reads it){left_out}")
 
 
 def _fit(store: Any, args: argparse.Namespace) -> int:
