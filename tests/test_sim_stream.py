@@ -180,3 +180,31 @@ def test_a_script_that_leaves_its_stream_open_ends_cleanly():
         stream.close()
     for done in ended:
         assert (done.returncode, done.stdout.strip()) == (0, "(480, 640, 3)"), done.stderr[-2000:]
+
+
+@pytest.mark.sim  # the simulated board (simavr) behind the stream
+@pytest.mark.timeout(120)  # a line missing is a read that waits for ever
+def test_the_sim_board_prints_a_command_to_copy_and_the_streams_to_calibrate_with():
+    """``phantom sim-board --camera-stream`` printed the daemon's command with its closing backquote before
+    ``--camera ... --rig``, so the command copied from between them had no camera; and no stream of the target
+    the rig is calibrated from, which the README said it printed."""
+    import re
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    board = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "sim-board", "--camera-stream",
+                              "127.0.0.1:0", "--sim-speed", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True)
+    try:
+        said = board.stdout.readline() + board.stdout.readline()
+    finally:
+        board.send_signal(signal.SIGINT)
+        board.wait(30)
+    (command,) = re.findall(r"`([^`]*)`", said)
+    assert command.startswith("phantom daemon --port ") and "--host-deadline-ms 1000" in command, said
+    assert re.search(r" --camera http://127\.0\.0\.1:\d+/phantom\.mjpg --rig RIG\.json$", command), said
+    for name in ("target0", "target1"):
+        assert re.search(rf"{name} http://127\.0\.0\.1:\d+/{name}\.mjpg", said), said
+    assert "/truth.json" in said.splitlines()[1], said

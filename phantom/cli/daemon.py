@@ -213,10 +213,16 @@ def _run_sim_board(args: argparse.Namespace) -> int:
             if args.json:
                 print(json.dumps({"port": board.port, "speed": args.sim_speed, **urls}), flush=True)
             else:
+                camera = "" if stream is None else f" --camera {stream.urls()['phantom']} --rig RIG.json"
                 print(f"simulated board on {board.port} (speed {args.sim_speed:g}); drive it with "
-                      f"`phantom daemon --port {board.port}{deadline}`"
-                      + ("" if stream is None else f" --camera {stream.urls()['phantom']} --rig RIG.json")
-                      + "; Ctrl-C stops it", flush=True)
+                      f"`phantom daemon --port {board.port}{deadline}{camera}`; Ctrl-C stops it", flush=True)
+                if stream is not None:
+                    # the rig is calibrated first, from the target's two placements (README.md, "A verified
+                    # volume on a real rig")
+                    streams = stream.urls()
+                    truth = streams.pop("truth")
+                    print("camera streams: " + ", ".join(f"{name} {url}" for name, url in streams.items())
+                          + f"; the simulated phantom's truth (a test's, never the daemon's): {truth}", flush=True)
             while not stop.wait(0.5):
                 pass
             # an end that hangs says where: every thread's stack on stderr (a test's board did not end within
