@@ -16,6 +16,7 @@ import numpy as np
 
 from phantom import require_extra
 from phantom.model.fidelity.table_files import Member, read_members
+from phantom.model.shape_file import GLAND_VOLUME_RANGE_ML
 from phantom.shape import vae as network
 from phantom.shape.checkpoint import read_run
 from phantom.shape.dataset import PROSTATE_LABELS, find_cases, read_shape, shape_grid
@@ -118,7 +119,22 @@ class ShapeModel:
                             surface.volume_ml())
 
     def grid_of(self, shape: LabelMask | ClosedSurface, name: str) -> np.ndarray:
-        """A shape on this run's grid (its voxel size), centred on its centroid."""
+        """A shape on this run's grid (its voxel size), centred on its centroid; ShapeError for a shape of no
+        gland's size (:data:`~phantom.model.shape_file.GLAND_VOLUME_RANGE_ML`, the bound the shape inverse's
+        targets keep)."""
+        volume_ml = shape.volume_ml()
+        low, high = GLAND_VOLUME_RANGE_ML
+        if not low <= volume_ml <= high:
+            # a speck of a mask still lands on a voxel or two of the grid, and the encoder gave it a latent vector
+            # as if it were a gland
+            try:
+                trained_ml = self.trained_volumes_ml()
+                trained = f"; this run was trained on {trained_ml.min():.1f}-{trained_ml.max():.1f} ml"
+            except ShapeError:  # a run without its cases' volumes: the bound alone
+                trained = ""
+            raise ShapeError(f"{name}: the shape is {volume_ml:.3g} ml, no gland's size ({low:g}-{high:g} ml)"
+                             f"{trained}: give a whole gland's mask (its voxel sizes in the header) or a closed mesh "
+                             "in mm")
         return shape_grid(shape, self.voxel_mm, self.grid_size, name)
 
     def read(self, path: str | Path) -> LabelMask | ClosedSurface:
@@ -148,6 +164,15 @@ class ShapeModel:
             raise ShapeError(f"the latents {path} name {len(stored['names'])} cases for {len(stored['mean'])} "
                              f"latent vectors: train the run again (phantom shape train)")
         return [str(name) for name in stored["names"]], np.asarray(stored["mean"], float)
+
+    def trained_volumes_ml(self) -> np.ndarray:
+        """The volumes (ml) of the cases the run was trained on, as read (from ``latents.npz``)."""
+        path = self.run / "latents.npz"
+        stored = read_members(path, {"volumes_ml": Member((None,))}, f"the latents {path}",
+                              "train the run again (phantom shape train)", ShapeError)
+        if not len(stored["volumes_ml"]):
+            raise ShapeError(f"the latents {path} hold no volumes: train the run again (phantom shape train)")
+        return np.asarray(stored["volumes_ml"], float)
 
     def average(self) -> DecodedShape:
         """The average shape: the mean of every case's latent vector, decoded (the paper's average prostate)."""
