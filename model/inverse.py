@@ -669,7 +669,8 @@ class InverseSolver:
                 f"but contradicts the other targets{with_constraints}; drop or change one of them")
         return UnreachableTargetError(
             f"{what} target {wanted} ml is unreachable: pressures between 0 and [{limits}] kPa{with_constraints} "
-            f"give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range or raise pressure_max",
+            f"give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range or raise the scene's "
+            "pressure_max_kpa",
             gland_range_ml=(low_ml, high_ml) if row_name == "gland" else None)
 
     def _evaluate_raw_pressures(self, target: Target, raw_pa: Sequence[float], started: float) -> InverseResult:

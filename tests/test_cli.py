@@ -1,5 +1,6 @@
 """The ``phantom`` console script as a user meets it: installed, on PATH, with clear usage errors."""
 
+import json
 import re
 import subprocess
 import sys
@@ -108,6 +109,19 @@ def test_offline_commands_refuse_what_the_daemon_refuses_in_its_words(tmp_path, 
         assert result.returncode == 2 and result.stderr.strip().endswith(f"--pressures-kpa: {daemon_words}"), (
             command, result.stderr)
 
+
+
+@pytest.mark.slow  # two 10-node solves and a mesh
+def test_the_offline_commands_run_on_the_shipped_model_without_a_scene(tmp_path):
+    """The README says the offline commands run on ``builtin:converged``; ``forward`` and ``mesh`` asked for
+    ``--scene`` (an argparse error), ``inverse`` did not."""
+    result = run_phantom("forward", "--pressures-kpa", "1,1,1", "--json")
+    assert result.returncode == 0, result.stderr
+    named = run_phantom("forward", "--scene", "builtin:converged", "--pressures-kpa", "1,1,1", "--json")
+    assert json.loads(result.stdout)["total_volume_ml"] == json.loads(named.stdout)["total_volume_ml"]
+    result = run_phantom("mesh", "--out", str(tmp_path / "prostate.msh"), "--json")
+    assert result.returncode == 0, result.stderr
+    assert (tmp_path / "prostate.msh").stat().st_size > 0
 
 
 def test_progress_in_a_log_is_lines_with_the_time_left_not_carriage_returns(capsys):

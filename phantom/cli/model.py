@@ -22,8 +22,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "mesh", help="write a scene's tetrahedral mesh (with its groups) to a file",
         description="Write the scene's mesh with its physical groups: .msh (MSH 4.1, named groups) or any "
                     "format meshio writes (.vtu keeps groups as cell data). Coordinates in the scene's unit.")
-    mesh.add_argument("--scene", required=True,
-                      help="a scene TOML path, or 'builtin', 'builtin:calibrated', 'builtin:converged'")
+    mesh.add_argument("--scene", default="builtin:converged",
+                      help="a scene TOML path, or 'builtin', 'builtin:calibrated', 'builtin:converged' (the default, "
+                           "as for the other offline commands)")
     mesh.add_argument("--out", required=True, help="output file (.msh or .vtu)")
     mesh.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     mesh.add_argument("--json", action="store_true", help="print one JSON object instead of a line")
@@ -33,9 +34,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "forward", help="solve the model at given chamber pressures: volumes, iterations, time",
         description="Solve the scene's model at gauge pressures (kPa, chamber order) and print the chamber "
                     "volumes, the gland volume and its change, the iterations and the solve time.")
-    forward.add_argument("--scene", required=True,
-                         help="a scene TOML path, or 'builtin', 'builtin:calibrated', 'builtin:converged' (10-node, "
-                              "converged: the deformed mesh to take into planning)")
+    forward.add_argument("--scene", default="builtin:converged",
+                         help="a scene TOML path, or 'builtin', 'builtin:calibrated', 'builtin:converged' (the "
+                              "default: 10-node, converged, the deformed mesh to take into planning)")
     forward.add_argument("--pressures-kpa", required=True,
                          help="comma-separated gauge pressures in kPa, one per chamber, e.g. 1,1,1")
     # phantom.model.scene.MATERIAL_MODELS spelled out: importing the model for the parser would cost every CLI call
