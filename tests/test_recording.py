@@ -11,6 +11,7 @@ read up to that message, saying so. Errors: a recording that cannot be written i
 
 from __future__ import annotations
 
+import re
 import struct
 import subprocess
 import sys
@@ -568,3 +569,51 @@ def test_a_recording_cut_short_in_its_last_message_is_read_up_to_it_and_says_so(
     with pytest.warns(RecordingCutShort):
         found = read_points_at(cut_short, "/phantom/mesh", "Mesh3D:vertex_positions", mesh_s)
     assert set(found) == mesh_s
+
+
+def readme_entities(parts: list[str]) -> set[str]:
+    """The entity paths host/README.md's recording table lists (``a/b/c, d`` is ``a/b/c`` and ``a/b/d``), each
+    ``<chamber>`` made each of ``parts``."""
+    text = (Path(__file__).resolve().parents[1] / "host" / "README.md").read_text()
+    table = text.split("`_`; the plots show the name itself):\n\n", 1)[1].split("\n\n", 1)[0]
+    listed = set()
+    for line in table.splitlines():
+        if line.startswith("     ") and not line.startswith("    " + line.strip()):  # a note's next line
+            continue
+        names = re.split(r"\s{2,}", line.strip())[0]
+        first, *others = names.split(", ")
+        prefix = first.rsplit("/", 1)[0]
+        paths = [first, *(other if "/" in other else f"{prefix}/{other}" for other in others)]
+        listed |= {path.replace("<chamber>", part) for path in paths for part in parts}
+    return {"/" + path for path in listed}
+
+
+def test_the_readme_lists_every_entity_a_recording_holds(tmp_path):
+    """host/README.md listed ``setpoint_kpa`` and ``volume/target_ml`` for entities the daemon writes as
+    ``commanded_kpa`` and ``commanded_ml``, and left out the scan's, the correction's and the axes: code reading a
+    recording by the README got a KeyError. Every ``log_`` method of the recorder is called here (a new one fails
+    this test until it is), and what the file holds is what the README lists."""
+    rest, triangles = uv_sphere(20.0)
+    recorder = Recorder(NAMES, save_path=tmp_path / "all.rrd")
+    recorder.open()
+    calls = {
+        "log_rest_surface": lambda: recorder.log_rest_surface(rest, triangles),
+        "log_telemetry": lambda: recorder.log_telemetry(0.1, [0.1, 0.2, 0.3], [1.0, 2.0, 3.0], [0.5, 0.2, 0.1]),
+        "log_volumes": lambda: recorder.log_volumes(0.1, 30.0, 29.0, [2.0, 1.1, 1.2], true_ml=29.5, model_ml=28.0),
+        "log_correction": lambda: recorder.log_correction(0.2, 0.4, 3),
+        "log_scanned_volume": lambda: recorder.log_scanned_volume(0.3, 29.9, 1, 0.3),
+        "log_scan_surface": lambda: recorder.log_scan_surface(0.3, rest * 1.01, triangles),
+        "log_link": lambda: recorder.log_link(0.4, 3.0, 0, 0, 0),
+        "log_solver": lambda: recorder.log_solver(0.5, 0.001, 0.01),
+        "log_event": lambda: recorder.log_event(0.6, "a target"),
+        "log_mesh": lambda: recorder.log_mesh(0.7, rest * 1.02, triangles),
+    }
+    assert set(calls) == {name for name in dir(Recorder) if name.startswith("log_")}
+    for call in calls.values():
+        call()
+    recorder.close()
+    # not what a reader reads: a plot's style alone, the 3D view's axes' directions, Rerun's own properties
+    held = {path for path, columns in read_rrd(tmp_path / "all.rrd").items()
+            if any(column.split(":")[0] not in ("SeriesLines", "SeriesPoints", "ViewCoordinates", "time",
+                                                "scene_time") for column in columns)} - {"/__properties"}
+    assert held == readme_entities([entity_part(name) for name in NAMES])
