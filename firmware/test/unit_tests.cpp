@@ -1161,11 +1161,75 @@ TEST(status_led_blinks_the_fault_code) {
     b.counts[0] = 5;
     b.ticks(SENSOR_BAD_TICKS);
     lit_ms = 0;
-    for (int t = 0; t < 2500; t += TICK_MS) {
+    for (int t = 0; t < 2 * 400 + 1400; t += TICK_MS) {
         b.ticks(1);
         lit_ms += b.controller.status_led_on() ? TICK_MS : 0;
     }
-    CHECK_EQ(lit_ms, 2 * 200);  // SENSOR: two 200 ms blinks per 2.5 s
+    CHECK_EQ(lit_ms, 2 * 200);  // SENSOR: two 200 ms blinks per 2.2 s repeat
+}
+
+// The LED as the board shows it (time advancing a tick at a time), as runs of lit and dark: whole runs only, the
+// first and the last (cut by the window) dropped. A run's sign is its level: + lit, - dark.
+static std::vector<int> led_runs_ms(uint8_t code, uint32_t from_ms, uint32_t span_ms) {
+    std::vector<int> runs;
+    bool level = Controller::blink_code_on(code, from_ms);
+    int length = 0;
+    for (uint32_t t = from_ms; t < from_ms + span_ms; t += TICK_MS) {
+        bool on = Controller::blink_code_on(code, t);
+        if (on != level) {
+            runs.push_back(level ? length : -length);
+            level = on;
+            length = 0;
+        }
+        length += TICK_MS;
+    }
+    if (!runs.empty()) runs.erase(runs.begin());
+    return runs;
+}
+
+// Every code a person can count: within each repeat exactly `code` blinks, and between repeats a dark pause at
+// least three times the longest gap between blinks (of any code) and at least 1 s, so the repeats never run
+// together.
+TEST(status_led_blink_codes_are_countable) {
+    uint8_t largest = 0;
+    for (uint8_t bit = 0; bit < 16; ++bit) {
+        uint8_t code = Controller::fault_blink_code((uint16_t)(1u << bit));
+        if (code > largest) largest = code;
+    }
+    CHECK_EQ(largest, 7);
+    // A gap between blinks: any dark run shorter than the longest one of its code.
+    int longest_gap_ms = 0;
+    for (uint8_t code = 1; code <= largest; ++code) {
+        std::vector<int> runs = led_runs_ms(code, 0, 30000);
+        int longest_dark_ms = 0;
+        for (size_t k = 0; k < runs.size(); ++k)
+            if (-runs[k] > longest_dark_ms) longest_dark_ms = -runs[k];
+        for (size_t k = 0; k < runs.size(); ++k)
+            if (-runs[k] < longest_dark_ms && -runs[k] > longest_gap_ms) longest_gap_ms = -runs[k];
+    }
+    CHECK(longest_gap_ms >= 100);  // the blinks are told apart
+    for (uint8_t code = 1; code <= largest; ++code) {
+        for (uint32_t from_ms = 0; from_ms < 6000; from_ms += 1234) {
+            std::vector<int> runs = led_runs_ms(code, from_ms, 30000);
+            int pauses = 0, blinks = -1;  // blinks since the last pause; -1 before the first one
+            for (size_t k = 0; k < runs.size(); ++k) {
+                int run = runs[k];
+                if (run > 0) {
+                    CHECK(run >= 100 && run <= 400);  // a blink one can see and tell from the next
+                    if (blinks >= 0) ++blinks;
+                } else if (-run >= 3 * longest_gap_ms && -run >= 1000) {
+                    if (blinks >= 0 && blinks != code) fprintf(stderr, "code %d: %d blinks a repeat\n", code, blinks);
+                    if (blinks >= 0) CHECK_EQ(blinks, code);
+                    blinks = 0;
+                    ++pauses;
+                } else {
+                    if (-run > longest_gap_ms) fprintf(stderr, "code %d: a pause of %d ms\n", code, -run);
+                    CHECK(-run <= longest_gap_ms);  // a gap between blinks, never something in between
+                }
+            }
+            CHECK(pauses >= 4);  // 30 s shows several repeats
+        }
+    }
 }
 
 int main() { return check::run_all("firmware core unit tests"); }

@@ -621,14 +621,18 @@ uint8_t Controller::fault_blink_code(uint16_t fault_flags) {
     return 0;
 }
 
-// Fault: `code` blinks of 200 ms on / 200 ms off, then dark until the 2.5 s cycle restarts. No fault: on with
-// a session, else a 50 ms blink each second (the firmware runs).
+// `code` blinks of 200 ms on / 200 ms off, then 1.6 s dark from the last blink's end (8 times the gap between
+// blinks), over and over: a repeat of 400 * code + 1400 ms (1.8 s for code 1, 4.2 s for code 7; the 16-bit
+// arithmetic holds for codes up to 160).
+bool Controller::blink_code_on(uint8_t code, uint32_t time_ms) {
+    uint16_t phase_ms = (uint16_t)(time_ms % (400u * code + 1400u));
+    return phase_ms < 400u * code && phase_ms % 400u < 200u;
+}
+
+// Fault: its blink code. No fault: on with a session, else a 50 ms blink each second (the firmware runs).
 bool Controller::status_led_on() const {
     uint8_t code = fault_blink_code(fault_flags_);
-    if (code) {
-        uint16_t phase_ms = (uint16_t)(time_ms_ % 2500u);
-        return phase_ms < 400u * code && phase_ms % 400u < 200u;
-    }
+    if (code) return blink_code_on(code, time_ms_);
     if (session_open_) return true;
     return time_ms_ % 1000u < 50u;
 }

@@ -67,9 +67,11 @@ public:
     uint16_t settings_generation() const { return settings_generation_; }
     void settings(uint8_t out[SETTINGS_BYTES]) const;
     // The status LED: a short blink each second when idle, on while a session is open, and with a fault
-    // latched a blink code (fault_blink_code) repeated every 2.5 s.
+    // latched its blink code (fault_blink_code): that many 200 ms blinks 200 ms apart, then 1.6 s dark, repeated
+    // (blink_code_on: whether the LED is lit at board time `time_ms`).
     bool status_led_on() const;
     static uint8_t fault_blink_code(uint16_t fault_flags);
+    static bool blink_code_on(uint8_t code, uint32_t time_ms);
 
 private:
     void handle_frame();
