@@ -36,9 +36,12 @@ STOP_LIMITS_S = {
     # from the injection: the reading falls to the room's within a few ms, the PID pushes at full drive, and
     # the firmware's plausibility time (the reading never moves) passes, then one tick
     "tube_off": CONSTANTS["PLAUSIBLE_TIME_MS"] / 1e3 + 0.05,
-    # from the injection: the stuck blower first has to push the pressure over the limit (about 0.5 s on the
-    # default plant from 1.5 kPa), then one tick
-    "stuck_blower": 2.0,
+    # from the injection: the stuck blower first has to push the pressure from 1.5 kPa over the limit (4 kPa), then
+    # one tick. The fill is the plant's: 1.92 s on the simulated board since its truth table (2026-11-27: 2.6 ml/kPa
+    # over the first kPa where the linear plant had 1.0; 0.5 s before), 0.7 kPa/s near the limit, so one ADC count
+    # is 0.08 s. The limit leaves a quarter of that fill for a real chamber's (a firmware that missed the latch
+    # would let the blower run on for ever)
+    "stuck_blower": 2.5,
     # from the host's last byte: the deadline, counted from the tick that saw the last frame (up to one tick
     # later) and compared strictly (one more tick), then the drive update after that tick (under one tick)
     "silent_host": HOST_DEADLINE_MS / 1000 + 0.006,
