@@ -344,6 +344,9 @@ class CaptureFolder:
         with require_extra("scan"):
             import cv2
 
+        if not (self.path / frame.image).is_file():  # said here: OpenCV's reader would print a warning of its own
+            raise CaptureError(f"the picture {self.path / frame.image} that {CAPTURE_FILE} names is missing: copy the "
+                               f"capture folder whole, or take the capture again")
         width, height = png_size(self.path / frame.image)
         if max(width, height) > MAX_PICTURE_SIDE_PX:
             raise CaptureError(f"{self.path / frame.image} is {width}x{height}, larger than any camera's "

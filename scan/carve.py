@@ -11,6 +11,13 @@ Coarse to fine: a coarse grid over a cube around the orbit's centre first; each 
 covers the box of the previous level's inside and band, and computes F only where the previous level found
 the surface near (|F| < 2 h); elsewhere the coarse value stands, whose sign is right. Each point stops at the
 first view that puts it further outside than the band, so most of the empty space costs one or two views.
+
+The views' agreement (:func:`view_agreement`): the hull's surface projected into each picture must cover its
+silhouette, each silhouette having carved the hull; a picture that moved against the others (the camera or the
+turntable bumped while it was taken) has a silhouette that sticks out of the hull the others carve, and cuts off
+a slab of it that the other pictures then miss, so every silhouette is left partly uncovered, and the moved one
+bounds much more of the hull's surface than any other. What runs out of the pictures (the tubes the phantom hangs
+by, out of the top edge) is cut where the first picture ends, and so not counted.
 """
 
 from __future__ import annotations
@@ -35,6 +42,15 @@ from phantom.scan.silhouette import Silhouette
 COARSE_POINTS = 32
 #: A finer level computes F where the coarser one had |F| below this many of its spacings.
 BAND_SPACINGS = 2.0
+#: A silhouette's pixel is compared with the hull when it is more than this (px) inside the silhouette's edge: the
+#: edge is placed to a fraction of a pixel, the hull a fraction of a voxel from it.
+AGREEMENT_EDGE_PX = 1.0
+#: The orbit's axis is sampled every this (mm) for the stretch of it every picture sees ...
+AXIS_STEP_MM = 0.25
+#: ... and a line of sight that passes it within this (mm) of that stretch's ends is not counted either: the tubes
+#: stand a few mm off the axis, so a slanted line of sight through one passes the axis a little above or below it
+#: (up to 3 mm measured at 30 deg).
+AXIS_MARGIN_MM = 5.0
 #: Bytes a level holds per point of its box while it is carved (each point's index and its parent's, int64 x 3
 #: each, the parent's value, the mask, the value and the points computed): the estimate checked before a level
 #: is allocated.
@@ -86,6 +102,8 @@ class Carver:
             raise CarveError(f"the camera's intrinsics (fx, fy, cx, cy, distortion) {intrinsics.tolist()} are not "
                              f"finite with positive focal lengths: calibrate the rig again")
         order = spread_order(len(views))
+        #: each of :attr:`views`' place among the views given
+        self.order = order
         self.views = [views[index] for index in order]
         self.camera = camera
         self.rotations = np.ascontiguousarray([view.pose.rotation for view in self.views], dtype=np.float64)
@@ -113,14 +131,37 @@ class Carver:
                                              camera.cx, camera.cy, distortion, self.max_radius2, self.distances,
                                              self.offsets, self.crops, self.truncation_px, float(stop_mm), out[part]))
 
-        # interleaved slices share the work evenly (the hull's points cost more than the empty space's)
-        parts = [slice(k, None, self.threads) for k in range(self.threads)] if len(points) > 10000 else [slice(None)]
-        if len(parts) == 1:
-            self.projections += run(parts[0])
-        else:
-            with concurrent.futures.ThreadPoolExecutor(len(parts)) as pool:
-                self.projections += sum(pool.map(run, parts))
+        self.projections += self._shared(len(points), run)
         return out
+
+    def surface_in_views(self, points_mm: FloatArray) -> tuple[np.ndarray, IntArray]:
+        """Points on the hull's surface (n, 3; mm) in the views: each view's pixels one of them projects to (uint8
+        1, laid out as :attr:`distances`) and each point's bounding view (its index in :attr:`views`: the one whose
+        silhouette's edge is nearest the point; -1 where none sees it)."""
+        points = np.ascontiguousarray(points_mm, dtype=np.float64)
+        covered = np.zeros(len(self.distances), np.uint8)
+        bounding = np.empty(len(points), np.int64)
+        camera = self.camera
+        distortion = np.array(camera.distortion, float)
+
+        def run(part: slice) -> int:
+            # the threads' parts may mark the same pixel: each only ever sets it to 1
+            kernels.hull_in_views(points[part], self.rotations, self.translations, camera.fx, camera.fy, camera.cx,
+                                  camera.cy, distortion, self.max_radius2, self.distances, self.offsets, self.crops,
+                                  self.truncation_px, covered, bounding[part])
+            return 0
+
+        self._shared(len(points), run)
+        return covered, bounding
+
+    def _shared(self, count: int, run: Callable[[slice], int]) -> int:
+        """``run`` over ``count`` points shared by the carver's threads (the sum of what it returns)."""
+        # interleaved slices share the work evenly (the hull's points cost more than the empty space's)
+        parts = [slice(k, None, self.threads) for k in range(self.threads)] if count > 10000 else [slice(None)]
+        if len(parts) == 1:
+            return run(parts[0])
+        with concurrent.futures.ThreadPoolExecutor(len(parts)) as pool:
+            return sum(pool.map(run, parts))
 
 
 def _grid_points(origin: FloatArray, spacing: float, shape: tuple[int, int, int]) -> FloatArray:
@@ -174,6 +215,92 @@ def carve(carver: Carver, centre_mm: FloatArray, half_size_mm: float, voxel_mm: 
         fine[compute] = carver.field(fine_origin + fine_index[compute] * fine_spacing, BAND_SPACINGS * fine_spacing)
         origin, spacing, values = fine_origin, fine_spacing, fine.reshape(fine_shape)
     return Grid(origin, spacing, values)
+
+
+@dataclass(frozen=True)
+class ViewAgreement:
+    """How each view's silhouette (in the order the views were given) agrees with a carved hull: ``uncovered``, the
+    share of the silhouette (its pixels more than :data:`AGREEMENT_EDGE_PX` inside the edge) onto which no point of
+    the hull projects, lines of sight that pass the orbit's axis beyond what every picture sees of it (less
+    :data:`AXIS_MARGIN_MM`) not counted; ``bounding``, the share of the hull's surface where that view's
+    silhouette is the one that bounds it."""
+
+    uncovered: FloatArray
+    bounding: FloatArray
+
+
+def view_agreement(grid: Grid, carver: Carver, axis_point_mm: FloatArray, axis_direction: FloatArray
+                   ) -> ViewAgreement:
+    """The agreement of ``carver``'s views with the hull on ``grid`` (see the module docstring), the orbit's axis
+    through ``axis_point_mm`` along ``axis_direction`` (unit): the grid points within half a voxel of the hull's
+    surface projected into every picture (where the hull's surface is, to a fraction of a voxel), each
+    silhouette's pixel counted covered within a voxel's image of one."""
+    with require_extra("scan"):
+        import cv2
+
+    spacing = grid.spacing_mm
+    points = np.ascontiguousarray(grid.origin_mm + np.argwhere(np.abs(grid.values) < 0.5 * spacing) * spacing)
+    camera = carver.camera
+    covered, bounding = carver.surface_in_views(points)
+    middle = grid.origin_mm + 0.5 * spacing * (np.array(grid.values.shape) - 1)
+    axis = np.asarray(axis_direction, float)
+    low_mm, high_mm = axis_seen_mm(carver, np.asarray(axis_point_mm, float), axis, float(
+        np.max([np.linalg.norm(view.pose.centre_mm - middle) for view in carver.views])))
+    focal = 0.5 * (camera.fx + camera.fy)
+    uncovered = np.zeros(len(carver.views))
+    for number, view in enumerate(carver.views):
+        x0, y0, width, height = view.silhouette.crop
+        offset = int(carver.offsets[number])
+        hit = covered[offset:offset + width * height].reshape(height, width)
+        # the surface's points are a voxel apart: what lies within a voxel's image of one is covered
+        reach_px = max(1.0, spacing * focal / float(view.pose.apply(middle[None])[0, 2])) + 0.5
+        inner = view.silhouette.signed_distance_px < -AGREEMENT_EDGE_PX
+        missed = inner & (cv2.distanceTransform(1 - hit, cv2.DIST_L2, 3) > reach_px)
+        rows, columns = np.nonzero(missed)
+        if len(rows):
+            rays = camera.normalized_rays(np.column_stack([columns + x0, rows + y0]).astype(float))
+            directions = np.column_stack([rays, np.ones(len(rays))]) @ view.pose.rotation
+            along_mm = _passing_axis_mm(view.pose.centre_mm, directions, np.asarray(axis_point_mm, float), axis)
+            rows = rows[(along_mm >= low_mm + AXIS_MARGIN_MM) & (along_mm <= high_mm - AXIS_MARGIN_MM)]
+        uncovered[number] = len(rows) / max(int(np.count_nonzero(inner)), 1)
+    by_view = np.bincount(bounding[bounding >= 0], minlength=len(carver.views)) / max(len(points), 1)
+    # back to the order the views were given in
+    given_uncovered, given_bounding = np.empty(len(carver.views)), np.empty(len(carver.views))
+    given_uncovered[carver.order], given_bounding[carver.order] = uncovered, by_view
+    return ViewAgreement(given_uncovered, given_bounding)
+
+
+def axis_seen_mm(carver: Carver, axis_point_mm: FloatArray, axis_direction: FloatArray, reach_mm: float
+                 ) -> tuple[float, float]:
+    """The stretch of the orbit's axis (mm along ``axis_direction`` from ``axis_point_mm``, within ``reach_mm``)
+    that every picture sees; all of it (-inf, inf) where no picture sees any (nothing is discounted)."""
+    along = np.arange(-reach_mm, reach_mm + AXIS_STEP_MM, AXIS_STEP_MM)
+    points = axis_point_mm + along[:, None] * axis_direction
+    camera = carver.camera
+    seen = np.ones(len(points), bool)
+    for view in carver.views:
+        local = view.pose.apply(points)
+        ahead = local[:, 2] > kernels.NEAR_MM
+        normalized = local[:, :2] / np.where(ahead, local[:, 2], 1.0)[:, None]
+        ahead &= np.sum(normalized ** 2, axis=1) <= carver.max_radius2
+        pixels = camera.project(np.where(ahead[:, None], local, [0.0, 0.0, 1.0]))
+        seen &= ahead & np.all((pixels >= 0.0) & (pixels <= [camera.width - 1.0, camera.height - 1.0]), axis=1)
+    if not np.any(seen):
+        return -math.inf, math.inf
+    return float(along[seen].min()), float(along[seen].max())
+
+
+def _passing_axis_mm(origin_mm: FloatArray, directions: FloatArray, axis_point_mm: FloatArray,
+                     axis_direction: FloatArray) -> FloatArray:
+    """Where (mm along the axis) each line of sight from ``origin_mm`` along ``directions`` (n, 3) passes nearest
+    the axis."""
+    offset = origin_mm - axis_point_mm
+    square = np.sum(directions ** 2, axis=1)
+    slant = directions @ axis_direction
+    across = directions @ offset
+    height = float(axis_direction @ offset)
+    along: FloatArray = (square * height - slant * across) / np.maximum(square - slant ** 2, 1e-12)
+    return along
 
 
 def surface(grid: Grid) -> TriangleMesh:

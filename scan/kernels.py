@@ -1,6 +1,7 @@
 """The scanner's numba kernels (cached under ``phantom.cache_dir("numba")``): the virtual camera's (the rays of
 the sensor's samples through the lens, the z-buffered triangle rasteriser, the ray cast of a plane target, the
-shading and averaging of each pixel's samples), the silhouette's colour key and the carving's field.
+shading and averaging of each pixel's samples), the silhouette's colour key, the carving's field and the carved
+hull's surface seen by the views (what each covers, which bounds it).
 
 Arrays are C-contiguous: float64 positions (mm), int64 triangles, float32 sample rays and outputs. The rasteriser
 works in the ideal (undistorted) normalized image plane, where a triangle's edges are straight: every sample
@@ -260,6 +261,35 @@ def key_alpha(image: np.ndarray, table: np.ndarray, key: FloatArray, out: np.nda
 
 
 @kernel
+def crop_position(x: float, y: float, z: float, fx: float, fy: float, cx: float, cy: float, distortion: FloatArray,
+                  max_radius2: float, x0: int, y0: int, width: int, height: int) -> tuple[float, float]:
+    """Where a point in a camera's frame (mm, z >= NEAR_MM) falls in the crop ``x0, y0, width, height`` of its
+    picture (px from the crop's corner); (-1, -1) outside the crop, or for a ray further from the optical axis than
+    ``max_radius2`` (ideal normalized, squared), which the lens model would fold back into the picture."""
+    xn, yn = x / z, y / z
+    if xn * xn + yn * yn > max_radius2:
+        return -1.0, -1.0
+    dx, dy = distort_point(xn, yn, distortion)
+    u = fx * dx + cx - x0
+    w = fy * dy + cy - y0
+    if not (0.0 <= u <= width - 1.0 and 0.0 <= w <= height - 1.0):  # NaN too: it would index anywhere
+        return -1.0, -1.0
+    return u, w
+
+
+@kernel
+def crop_value(values: np.ndarray, offset: int, width: int, height: int, u: float, w: float) -> float:
+    """The bilinear interpolation at ``(u, w)`` (px, within the crop) of a crop's values, stored row by row from
+    ``offset`` of ``values``."""
+    iu, iw = min(int(u), width - 2), min(int(w), height - 2)
+    fu, fw = u - iu, w - iw
+    base = offset + iw * width + iu
+    value: float = ((1.0 - fu) * (1.0 - fw) * values[base] + fu * (1.0 - fw) * values[base + 1]
+                    + (1.0 - fu) * fw * values[base + width] + fu * fw * values[base + width + 1])
+    return value
+
+
+@kernel
 def hull_distance(points: FloatArray, rotations: FloatArray, translations: FloatArray, fx: float, fy: float,
                   cx: float, cy: float, distortion: FloatArray, max_radius2: float, distances: np.ndarray,
                   offsets: IntArray, crops: IntArray, truncation_px: float, stop_mm: float, out: np.ndarray) -> int:
@@ -280,22 +310,12 @@ def hull_distance(points: FloatArray, rotations: FloatArray, translations: Float
             if z < NEAR_MM:
                 worst = 1e30
                 break
-            xn, yn = x / z, y / z
-            if xn * xn + yn * yn > max_radius2:
+            u, w = crop_position(x, y, z, fx, fy, cx, cy, distortion, max_radius2, crops[v, 0], crops[v, 1],
+                                 crops[v, 2], crops[v, 3])
+            if u < 0.0:
                 d = truncation_px
             else:
-                dx, dy = distort_point(xn, yn, distortion)
-                u = fx * dx + cx - crops[v, 0]
-                w = fy * dy + cy - crops[v, 1]
-                width, height = crops[v, 2], crops[v, 3]
-                if not (0.0 <= u <= width - 1.0 and 0.0 <= w <= height - 1.0):  # NaN too: it would index anywhere
-                    d = truncation_px
-                else:
-                    iu, iw = min(int(u), width - 2), min(int(w), height - 2)
-                    fu, fw = u - iu, w - iw
-                    base = offsets[v] + iw * width + iu
-                    d = ((1.0 - fu) * (1.0 - fw) * distances[base] + fu * (1.0 - fw) * distances[base + 1]
-                         + (1.0 - fu) * fw * distances[base + width] + fu * fw * distances[base + width + 1])
+                d = crop_value(distances, offsets[v], crops[v, 2], crops[v, 3], u, w)
             d_mm = d * z / focal
             if d_mm > worst:
                 worst = d_mm
@@ -303,3 +323,38 @@ def hull_distance(points: FloatArray, rotations: FloatArray, translations: Float
                 break
         out[n] = worst
     return projections
+
+
+@kernel
+def hull_in_views(points: FloatArray, rotations: FloatArray, translations: FloatArray, fx: float, fy: float,
+                  cx: float, cy: float, distortion: FloatArray, max_radius2: float, distances: np.ndarray,
+                  offsets: IntArray, crops: IntArray, truncation_px: float, covered: np.ndarray,
+                  bounding: np.ndarray) -> None:
+    """Points on the carved hull's surface (world, mm) seen by the views :func:`hull_distance` carved with: each
+    view's pixel nearest each point's projection set to 1 in ``covered`` (uint8, laid out as ``distances``: the
+    views' crops one after the other), and each point's ``bounding`` view, the one whose silhouette's edge is
+    nearest it (the largest signed distance, mm; -1 where no view sees it)."""
+    focal = 0.5 * (fx + fy)
+    nearest = np.full(points.shape[0], -1e30)
+    bounding[:] = -1
+    # view by view: neighbouring points fall on neighbouring pixels of one crop (a quarter less time than point by
+    # point: 107 ms against 142 for 87k points in 60 views)
+    for v in range(rotations.shape[0]):
+        x0, y0, width, height = crops[v, 0], crops[v, 1], crops[v, 2], crops[v, 3]
+        for n in range(points.shape[0]):
+            px, py, pz = points[n, 0], points[n, 1], points[n, 2]
+            x = rotations[v, 0, 0] * px + rotations[v, 0, 1] * py + rotations[v, 0, 2] * pz + translations[v, 0]
+            y = rotations[v, 1, 0] * px + rotations[v, 1, 1] * py + rotations[v, 1, 2] * pz + translations[v, 1]
+            z = rotations[v, 2, 0] * px + rotations[v, 2, 1] * py + rotations[v, 2, 2] * pz + translations[v, 2]
+            if z < NEAR_MM:
+                continue
+            u, w = crop_position(x, y, z, fx, fy, cx, cy, distortion, max_radius2, x0, y0, width, height)
+            if u < 0.0:
+                d = truncation_px
+            else:
+                covered[offsets[v] + int(w + 0.5) * width + int(u + 0.5)] = 1
+                d = crop_value(distances, offsets[v], width, height, u, w)
+            d_mm = d * z / focal
+            if d_mm > nearest[n]:
+                nearest[n] = d_mm
+                bounding[n] = v

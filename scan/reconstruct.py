@@ -9,6 +9,12 @@ and the kernels release the interpreter's lock), and so is the carving.
 The visual hull is the largest shape consistent with the silhouettes: it holds the phantom and touches it wherever
 a camera sees its outline. A dent that no line of sight grazes (a concavity: the surface curving inwards in every
 direction) is filled in; :mod:`bench/scan_accuracy.py` shows how much on a shape with one.
+
+A capture whose pictures do not line up is refused (CarveError) rather than carved: a picture taken after the
+camera or the turntable was bumped cuts a slab off the hull (one shifted 30 px of the verify scan's 640x480 read
+its volume 14 % low). Each silhouette must be covered by the hull's projection
+(:func:`phantom.scan.carve.view_agreement`, scan/README.md for the figures); where one is not, the picture whose
+silhouette bounds the most of the hull is carved without, and named when the others then all agree.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from phantom.model.arrays import FloatArray
 from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml
 from phantom.scan.camera import Camera, Pose, Rig
 from phantom.scan.capture import CaptureError, CaptureFolder, Frame, png_size
-from phantom.scan.carve import Carver, View, carve, surface
+from phantom.scan.carve import CarveError, Carver, View, ViewAgreement, carve, surface, view_agreement
 from phantom.scan.compare import SCAN_SUFFIXES, ScanError
 from phantom.scan.hanging import HANGING_SHARE, Hanging, cut_column
 from phantom.scan.silhouette import Silhouette, SilhouetteError, silhouette
@@ -43,6 +49,10 @@ THREADS = 2
 MIN_VOXEL_MM = 0.05
 #: The coarsest: a voxel of the phantom's wall thickness.
 MAX_VOXEL_MM = 5.0
+#: The most of a silhouette's area the hull may leave uncovered (a share) in a capture whose pictures line up:
+#: steady captures of the virtual rig read 0.00 % (ideal and hung by its tubes, 320x240 to 1280x960), one picture
+#: moved 5 px at 640x480 0.64 %, 10 px 2.5 % or more (scan/README.md, "Pictures that do not line up").
+MAX_UNCOVERED = 0.005
 #: Bytes the carving keeps per pixel of a picture (a silhouette's signed distance, float32, at most the whole
 #: picture), and holds per picture being read and keyed (the picture, its linear copy, the key, the backdrop's
 #: level smoothed, its alpha).
@@ -65,6 +75,8 @@ class Reconstruction:
     touching_edge: int = 0
     #: The hanging column taken off (None: nothing hung in view).
     hanging: Hanging | None = None
+    #: The largest share of a picture's silhouette the hull leaves uncovered (%): near 0 when the pictures line up.
+    worst_uncovered_pct: float = 0.0
 
 
 def views_cutting(mesh: TriangleMesh, camera: Camera, poses: Sequence[Pose], margin_px: float = 1.0) -> int:
@@ -100,7 +112,8 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     kept in the folder). ``keyed``: silhouettes found already, by picture (``Frame.image``), each of the very
     picture in the folder (``phantom.scan.keying``: keyed as the capture wrote them); the others are read and
     keyed here. CaptureError for a folder without pictures or a rig, or pictures of another size than the rig's
-    camera; SilhouetteError for a picture without a silhouette; CarveError if nothing is left."""
+    camera; SilhouetteError for a picture without a silhouette; CarveError if nothing is left, or if the pictures
+    do not line up (:func:`out_of_line`)."""
     rig = rig if rig is not None else folder.rig()
     if rig is None:
         raise CaptureError(f"{folder.path} keeps no rig calibration (rig.json): give the rig's (--rig RIG.json, "
@@ -156,6 +169,9 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     grid = carve(carver, centre, START_FRACTION * distance, voxel_mm, progress)
     stage_s["carve"] = time.perf_counter() - started
     started = time.perf_counter()
+    agreement = view_agreement(grid, carver, rig.axis_point_mm, rig.axis_direction)
+    stage_s["agreement"] = time.perf_counter() - started
+    started = time.perf_counter()
     hanging = None
     if sum(view.silhouette.touches_top for view in views) >= HANGING_SHARE * len(views):
         grid, hanging = cut_column(grid, rig)
@@ -164,8 +180,40 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
                      f"ml of column, {hanging.column_area_mm2:.0f} mm^2 across)")
     mesh = surface(grid)
     stage_s["surface"] = time.perf_counter() - started
+    touching = views_cutting(mesh, rig.camera, poses)
+    # a phantom cut by a picture's edge leaves the other pictures' silhouettes uncovered where it is cut off: it is
+    # said as such (touching_edge), not as pictures that moved
+    if touching == 0 and np.max(agreement.uncovered) > MAX_UNCOVERED:
+        raise out_of_line(frames, views, carver, agreement, rig, centre, START_FRACTION * distance, voxel_mm)
     return Reconstruction(mesh, enclosed_volume_ml(mesh), voxel_mm, len(views), centre, stage_s, carver.projections,
-                          views_cutting(mesh, rig.camera, poses), hanging)
+                          touching, hanging, 100.0 * float(np.max(agreement.uncovered)))
+
+
+def out_of_line(frames: Sequence[Frame], views: Sequence[View], carver: Carver, agreement: ViewAgreement, rig: Rig,
+                centre_mm: FloatArray, half_size_mm: float, voxel_mm: float) -> CarveError:
+    """The refusal of a capture whose pictures do not line up (``agreement`` of its ``views``, carved by
+    ``carver``: some silhouette's uncovered share over :data:`MAX_UNCOVERED`): the picture whose silhouette bounds
+    the most of the hull carved without it, named when the others then all line up; else the pictures the hull
+    covers least."""
+    suspect = int(np.argmax(agreement.bounding))
+    others = [view for number, view in enumerate(views) if number != suspect]
+    without = carve(Carver(rig.camera, others, threads=THREADS), centre_mm, half_size_mm, voxel_mm)
+    # every view against the hull the others carve: the suspect's own share is how far it sticks out
+    against = view_agreement(without, carver, rig.axis_point_mm, rig.axis_direction).uncovered
+    rest = np.delete(against, suspect)
+    if np.max(rest) <= MAX_UNCOVERED:
+        frame = frames[suspect]
+        return CarveError(f"{frame.image} (frame {frame.index}) is out of line with the other {len(rest)} pictures: "
+                          f"{against[suspect]:.1%} of its silhouette lies outside the hull they carve (theirs: at most "
+                          f"{np.max(rest):.2%}, a steady capture's under {MAX_UNCOVERED:.1%}); the camera or the "
+                          f"turntable moved while it was taken: take the capture again")
+    worst = np.argsort(agreement.uncovered)[::-1][:3]
+    named = ", ".join(f"{frames[number].image} {agreement.uncovered[number]:.1%}" for number in worst)
+    return CarveError(f"the pictures do not line up: the hull carved from all {len(views)} leaves up to "
+                      f"{np.max(agreement.uncovered):.1%} of a silhouette uncovered ({named}; a steady capture: under "
+                      f"{MAX_UNCOVERED:.1%}), and no one picture left out mends it; the camera or the turntable moved "
+                      f"during the capture, or the rig's calibration does not pose these pictures: take the capture "
+                      f"again (or calibrate the rig again)")
 
 
 def check_mesh_path(path: str | Path) -> Path:

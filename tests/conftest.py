@@ -52,7 +52,8 @@ KEPT_TOGETHER = frozenset(f"tests/{name}.py" for name in (
     "test_fidelity",
     "test_hil_boot", "test_hil_sim", "test_inverse_fem", "test_inverse_gent", "test_loader_fuzz", "test_mesh",
     "test_model_prostate", "test_motion_sim", "test_packaging", "test_python_api", "test_readme_commands",
-    "test_recording", "test_report", "test_response", "test_scan", "test_scan_calibrate", "test_scan_capture",
+    "test_recording", "test_report", "test_response", "test_scan", "test_scan_bumped", "test_scan_calibrate",
+    "test_scan_capture",
     "test_scan_hull_bias", "test_scan_hung", "test_scan_reconstruct", "test_scan_rig_sim", "test_scene_run_timeline",
     "test_shape_analysis",
     "test_shape_data", "test_sim_truth_verify", "test_panel_browser"))

@@ -389,6 +389,10 @@ def test_a_scan_with_every_other_triangle_turned_measures_as_the_consistent_one(
     assert scan_volume_ml(path) == pytest.approx(enclosed_volume_ml(closed), rel=1e-9)
     assert cli.main(["scan", "import", str(path), "--out", str(tmp_path / "imported.ply")]) == 0
     assert f"{enclosed_volume_ml(closed):.3f} ml" in capsys.readouterr().out
+    # a scan already there is not written over without a word (as scan reconstruct's)
+    assert cli.main(["scan", "import", str(path), "--out", str(tmp_path / "imported.ply")]) == 2
+    assert "exists already: give another --out, or --replace to write over it" in capsys.readouterr().err
+    assert cli.main(["scan", "import", str(path), "--out", str(tmp_path / "imported.ply"), "--replace"]) == 0
     # a fin on one edge (three triangles share it): no one winding can be chosen
     a, b, _ = mixed.triangles[0]
     finned = TriangleMesh(np.vstack([mixed.vertices_mm, mixed.vertices_mm[a] + 5.0]),

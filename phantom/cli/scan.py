@@ -93,6 +93,7 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
                     "the rig's frame; phantom compare-scan reads it like any scan.")
     reconstruct.add_argument("capture", metavar="DIR", help="a capture folder (capture.json, images/)")
     reconstruct.add_argument("--out", required=True, help="the mesh to write: .ply, .stl or .obj")
+    reconstruct.add_argument("--replace", action="store_true", help="write over a mesh already at --out")
     reconstruct.add_argument("--rig", help="the rig calibration (rig.json; default the one in the folder)")
     reconstruct.add_argument("--voxel-mm", type=float, default=None, help="the finest voxel (mm, default 0.3)")
     reconstruct.add_argument("--partial", action="store_true",
@@ -134,6 +135,7 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
     imported.add_argument("mesh", metavar="MESH", help="the tool's mesh: .obj, .ply or .stl")
     imported.add_argument("--out", required=True, help="the mesh to write: .ply, .stl or .obj")
     imported.add_argument("--units", choices=("mm", "cm", "m"), default="mm", help="the mesh's unit (default mm)")
+    imported.add_argument("--replace", action="store_true", help="write over a mesh already at --out")
     imported.set_defaults(run=run_import)
 
     capture = actions.add_parser(
@@ -151,7 +153,8 @@ def register_scanner(actions: argparse._SubParsersAction[argparse.ArgumentParser
     capture.add_argument("--settle-s", type=float, default=0.3, help="wait after each move (s, default 0.3)")
     capture.add_argument("--camera", default="virtual",
                          help="'virtual' (the simulated board's virtual camera, default), a device number (0 for "
-                              "/dev/video0), or a video file or image sequence (frames/%%04d.png)")
+                              "/dev/video0), a network camera's stream URL (http://HOST:PORT/phantom.mjpg, "
+                              "rtsp://...), or a video file or image sequence (frames/%%04d.png)")
     capture.add_argument("--width", type=int, help="webcam: picture width (px)")
     capture.add_argument("--height", type=int, help="webcam: picture height (px)")
     capture.add_argument("--exposure", type=float, help="webcam: fixed exposure (the driver's units)")
@@ -356,6 +359,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     from phantom.scan.reconstruct import VOXEL_MM, check_mesh_path, reconstruct, write_mesh
 
     check_mesh_path(args.out)
+    _check_out_is_free(args)
     folder = _open_capture(args.capture)
     partial = _partial_capture(folder)
     if partial is not None and not args.partial:
@@ -369,7 +373,7 @@ def run_reconstruct(args: argparse.Namespace) -> int:
     summary = {"capture": str(folder.path), "mesh": str(path), "views": result.views, "voxel_mm": result.voxel_mm,
                "volume_ml": result.volume_ml, "vertices": len(result.mesh.vertices_mm),
                "triangles": len(result.mesh.triangles), "stage_s": result.stage_s,
-               "silhouettes_touching_edge": result.touching_edge,
+               "silhouettes_touching_edge": result.touching_edge, "worst_uncovered_pct": result.worst_uncovered_pct,
                "hanging": None if result.hanging is None else result.hanging.to_json(), "partial": partial}
     if args.json:
         print(json.dumps(summary))
@@ -482,12 +486,24 @@ def run_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_out_is_free(args: argparse.Namespace) -> None:
+    """A mesh already at ``--out`` (another scan's) is not written over by a slip of the option: ScanError unless
+    ``--replace``."""
+    from pathlib import Path
+
+    from phantom.scan.compare import ScanError
+
+    if Path(args.out).exists() and not args.replace:
+        raise ScanError(f"--out {args.out} exists already: give another --out, or --replace to write over it")
+
+
 def run_import(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan import``."""
     from phantom.model.mesh.surface import enclosed_volume_ml
     from phantom.scan.export import import_mesh
     from phantom.scan.reconstruct import write_mesh
 
+    _check_out_is_free(args)
     mesh = import_mesh(_checked_mesh(args.mesh), args.units)
     path = write_mesh(mesh, args.out)
     print(f"wrote {path}: {enclosed_volume_ml(mesh):.3f} ml, {len(mesh.triangles)} triangles, closed")
