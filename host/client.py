@@ -452,8 +452,20 @@ class Connection:
             raise self._lost() from error
         if not line:
             raise self._lost()
-        message: dict[str, Any] = json.loads(line)
+        try:
+            message = json.loads(line)
+        except ValueError:
+            message = None
+        if not isinstance(message, dict) or not ("event" in message or "id" in message):
+            raise self.not_a_daemon(line)
         return message
+
+    def not_a_daemon(self, answer: object) -> DaemonError:
+        """The error of a socket that answered what no phantom daemon sends (another program's socket)."""
+        said = answer.decode(errors="replace") if isinstance(answer, bytes) else json.dumps(answer)
+        return DaemonError("not_a_daemon", f"{self.socket_path} answered {said.strip()[:80]!r}, not a phantom "
+                           "daemon's answer: is it another program's socket? Give the daemon's (--socket, "
+                           "$PHANTOM_SOCKET)")
 
     async def call(self, method: str, params: dict[str, Any] | None = None) -> Any:
         """Send one request and return its result; raises the DaemonError subclass of its error code. Events that
@@ -469,7 +481,12 @@ class Connection:
                     break
         if "error" in message:
             error = message["error"]
+            if not (isinstance(error, dict) and isinstance(error.get("code"), str)
+                    and isinstance(error.get("message"), str)):
+                raise self.not_a_daemon(message)
             raise _error(error["code"], error["message"], error.get("data"))
+        if "result" not in message:
+            raise self.not_a_daemon(message)
         return message["result"]
 
     async def next_event(self) -> dict[str, Any]:
@@ -571,7 +588,11 @@ class AsyncPhantom:
                               f"{self.request_timeout_s:g} s (request_timeout_s)") from None
 
     async def status(self) -> Status:
-        return Status.from_json(await self.call("status"))
+        answer = await self.call("status")
+        try:
+            return Status.from_json(answer)
+        except (KeyError, TypeError, AttributeError, ValueError):  # a status no phantom daemon sends
+            raise self.connection.not_a_daemon(answer) from None
 
     async def wait_ready(self, timeout_s: float = READY_TIMEOUT_S,
                          on_wait: Callable[[str], None] | None = None) -> Status:

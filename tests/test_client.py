@@ -12,7 +12,7 @@ import pytest
 
 import phantom
 from phantom.host.api import ApiError, ApiServer
-from phantom.host.client import ConnectionLostError, StartingError, UnreachableError
+from phantom.host.client import ConnectionLostError, DaemonError, StartingError, UnreachableError
 
 
 @contextlib.contextmanager
@@ -186,3 +186,54 @@ def test_a_request_timeout_that_is_not_a_positive_number_is_refused_before_conne
     with pytest.raises(phantom.PhantomError) as caught:
         phantom.connect(tmp_path / "none.sock", request_timeout_s=timeout_s)
     assert str(caught.value) == f"request_timeout_s must be a positive number of seconds, got {timeout_s!r}"
+
+
+@contextlib.contextmanager
+def another_program(path, answer: bytes):
+    """A unix socket at ``path`` served by another program: to every line it gets, it answers ``answer``."""
+    import socket
+
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(path))
+    listener.listen()
+    listener.settimeout(0.2)
+    stop = threading.Event()
+
+    def serve():
+        while not stop.is_set():
+            try:
+                connection, _ = listener.accept()
+            except TimeoutError:
+                continue
+            with connection:
+                connection.settimeout(0.2)
+                while not stop.is_set():
+                    try:
+                        if not connection.recv(4096):
+                            break
+                    except TimeoutError:
+                        continue
+                    connection.sendall(answer)
+
+    thread = threading.Thread(target=serve)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(10)
+        listener.close()
+
+
+@pytest.mark.parametrize("answer", [b"HTTP/1.1 400 Bad Request\r\n\r\n", b"[1, 2]\n", b'{"id": 1, "result": {}}\n',
+                                    b'{"id": 1, "error": "boom"}\n', b'{"id": 1, "result": [1]}\n', b'"text"\n'])
+def test_another_programs_socket_is_said_to_be_no_phantom_daemon(tmp_path, answer):
+    """``phantom.connect()`` to a socket another program serves raised its raw parse errors (JSONDecodeError,
+    AttributeError 'list', KeyError 'link', TypeError): it says the socket is not a phantom daemon's."""
+    path = tmp_path / "other.sock"
+    with another_program(path, answer), pytest.raises(DaemonError) as caught:
+        with phantom.connect(path, ready_timeout_s=0.0, request_timeout_s=5.0) as lab:
+            lab.status()
+    assert caught.value.code == "not_a_daemon"
+    message = str(caught.value)
+    assert "\n" not in message and str(path) in message and "not a phantom daemon" in message, message
