@@ -45,6 +45,9 @@ SCAN_SUFFIXES = (".obj", ".ply", ".stl")
 #: A scan whose size (area-weighted RMS radius) differs from the model's by more than this factor is not
 #: aligned: its unit is wrong, or it is not this phantom.
 SCALE_TOLERANCE = 1.5
+#: The built-in phantom's size (builtin:calibrated's outer surface at rest, area-weighted RMS radius): what a scan
+#: measured without a model is checked against, so that measuring a volume needs no model built.
+PHANTOM_RMS_RADIUS_MM = 18.8
 
 
 class ScanError(PhantomError):
@@ -361,21 +364,35 @@ def _count_loops(edges: np.ndarray, n_vertices: int) -> int:
     return len(np.unique(labels[np.unique(edges)]))
 
 
+def _triangle_mesh(mesh: TriangleMesh, what: str) -> TriangleMesh:
+    """``mesh``, or TypeError naming its type and the conversion (another library's mesh, trimesh's say, has
+    ``vertices`` and ``faces``, not ``vertices_mm`` and ``triangles``)."""
+    if not isinstance(mesh, TriangleMesh):
+        raise TypeError(f"{what} must be a phantom.model.mesh.surface.TriangleMesh in mm, got "
+                        f"{type(mesh).__module__}.{type(mesh).__qualname__}: convert it with "
+                        f"TriangleMesh(mesh.vertices, mesh.faces) (scaled to mm), or read a file with read_scan")
+    return mesh
+
+
 def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanReport]:
     """The watertight, outward-oriented largest piece of a scan, that piece before its holes were closed (the
     measured surface, for distances), and what was changed.
 
+    Exactly coincident vertices are merged first (a triangle soup made in memory, as an STL file's is when read).
     The piece is wound one way (:func:`phantom.model.mesh.winding.consistent_winding`) before its holes are
-    closed (each fill runs its hole's edges against the scan's) and turned outward after. Raises ScanError for a
-    scan whose triangles cannot be wound one way (non-manifold edges, one-sided).
+    closed (each fill runs its hole's edges against the scan's) and turned outward after. Raises TypeError for
+    anything but a TriangleMesh, ScanError for a scan whose triangles cannot be wound one way (non-manifold edges,
+    one-sided).
     """
-    areas = triangle_areas_mm2(mesh.vertices_mm, mesh.triangles)
-    keep = drop_degenerate(mesh.triangles, areas)
-    triangles, areas = mesh.triangles[keep], areas[keep]
+    mesh = _triangle_mesh(mesh, "a scan")
+    vertices, triangles = merge_coincident_vertices(mesh.vertices_mm, mesh.triangles)
+    areas = triangle_areas_mm2(vertices, triangles)
+    keep = drop_degenerate(triangles, areas)
+    triangles, areas = triangles[keep], areas[keep]
     if len(triangles) == 0:
         raise ScanError("the scan has no triangle of non-zero area")
     in_largest, pieces = largest_component(triangles, areas)
-    measured = compact(mesh.vertices_mm, triangles[in_largest])
+    measured = compact(vertices, triangles[in_largest])
     try:
         measured.triangles, rewound = consistent_winding(measured.triangles)
     except WindingError as error:
@@ -383,8 +400,10 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
     closed, holes = close_holes(measured)
     reoriented = enclosed_volume_ml(closed) < 0
     if reoriented:
-        closed.triangles = closed.triangles[:, ::-1].copy()
-        measured.triangles = measured.triangles[:, ::-1].copy()
+        # New meshes, not turned in place: a scan without holes comes back from close_holes as the same object,
+        # which turning both in place would turn twice.
+        closed = TriangleMesh(closed.vertices_mm, closed.triangles[:, ::-1].copy())
+        measured = TriangleMesh(measured.vertices_mm, measured.triangles[:, ::-1].copy())
     report = CleanReport(
         input_vertices=len(mesh.vertices_mm), input_triangles=len(mesh.triangles),
         removed_degenerate_triangles=int(np.count_nonzero(~keep)), removed_components=pieces - 1,
@@ -395,22 +414,38 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
     return closed, measured, report
 
 
-def scan_volume_ml(path: str | Path, units: str = "mm") -> float:
-    """The volume (ml) of a scan file after cleaning: its largest piece, holes closed."""
+def scan_volume_ml(path: str | Path, units: str = "mm", model: TriangleMesh | None = None) -> float:
+    """The volume (ml) of a scan file after cleaning: its largest piece, holes closed.
+
+    Its size is checked as :func:`compare` checks it, against ``model``'s (a surface in mm) or, without one, the
+    built-in phantom's (:data:`PHANTOM_RMS_RADIUS_MM`): a file in another unit is refused naming it.
+    """
     closed, _, _ = clean_scan(read_scan(path, units))
+    if model is None:
+        reference_mm = PHANTOM_RMS_RADIUS_MM
+        otherwise = "scale it to mm, or pass model= (the phantom's surface in mm) if it is another phantom"
+    else:
+        reference_mm = Frame.of(_triangle_mesh(model, "the model surface")).rms_radius_mm
+        otherwise = "scale it to mm before measuring it"
+    check_scale(Frame.of(closed).rms_radius_mm, reference_mm, units, "measure",
+                "export it in mm (or pass units={unit!r})", otherwise)
     return enclosed_volume_ml(closed)
 
 
-def check_scale(scan: Frame, model: Frame, units: str) -> None:
-    """Raise ScanError when the scan's size is far from the model's, suggesting the unit that would fit."""
-    ratio = scan.rms_radius_mm / model.rms_radius_mm
+def check_scale(scan_size_mm: float, model_size_mm: float, units: str, purpose: str = "align",
+                remedy: str = "pass --units {unit}", otherwise: str = "scale it to millimetres before comparing"
+                ) -> None:
+    """Raise ScanError when the scan's size (RMS radius, mm) is far from the model's, suggesting the unit that
+    would fit: ``remedy`` (``{unit}`` is filled in) says how to give that unit; ``otherwise`` what to do when
+    none fits. The scan is about to be ``purpose``d (align, measure)."""
+    ratio = scan_size_mm / model_size_mm
     if 1.0 / SCALE_TOLERANCE <= ratio <= SCALE_TOLERANCE:
         return
-    hint = "scale it to millimetres before comparing"
+    hint = otherwise
     for unit, mm in UNITS_MM.items():
         if unit != units and 1.0 / SCALE_TOLERANCE <= ratio * mm / UNITS_MM[units] <= SCALE_TOLERANCE:
-            hint = f"it looks like the file is in {unit}: pass --units {unit}"
-    raise ScanError(f"the scan is {ratio:.3g} times the model's size (read in {units}), too far off to align: "
+            hint = f"it looks like the file is in {unit}: {remedy.format(unit=unit)}"
+    raise ScanError(f"the scan is {ratio:.3g} times the model's size (read in {units}), too far off to {purpose}: "
                     f"{hint}")
 
 
@@ -433,13 +468,16 @@ def weighted_statistics(values: np.ndarray, weights: np.ndarray) -> dict[str, fl
 
 def compare(scan: TriangleMesh, model: TriangleMesh, model_volume_ml: float, units: str = "mm", seed: int = 0,
             clock: StageClock | None = None) -> Comparison:
-    """Clean the scan, align it to the model surface (mm) and measure distances and volumes."""
+    """Clean the scan, align it to the model surface (mm) and measure distances and volumes.
+
+    Both are :class:`~phantom.model.mesh.surface.TriangleMesh` (another library's mesh raises TypeError)."""
     clock = clock or StageClock()
+    model = _triangle_mesh(model, "the model surface")
     with clock.stage("clean"):
         closed, measured, report = clean_scan(scan)
     with clock.stage("align"):
         scan_frame, model_frame = Frame.of(closed), Frame.of(model)
-        check_scale(scan_frame, model_frame, units)
+        check_scale(scan_frame.rms_radius_mm, model_frame.rms_radius_mm, units)
         model_index = SurfaceIndex(model.vertices_mm, model.triangles)
         try:
             alignment = align(scan_frame, measured.vertices_mm, model, model_frame, model_index,

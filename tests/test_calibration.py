@@ -77,6 +77,27 @@ def test_a_scan_file_entry_is_measured_by_the_callable_given(tmp_path):
         load_measurements(path)
 
 
+@pytest.mark.slow  # the scene's model built twice (here and in the command's loader)
+def test_phantom_calibrates_scan_files_are_measured_against_the_scenes_phantom(tmp_path):
+    """``phantom calibrate``'s scan files: each is measured at the scene's phantom's size (a file in cm is refused
+    naming the unit, not read as a speck of 0.03 ml), the scene's surface built once, at the first scan."""
+    from phantom.cli.calibrate import _scan_volume_of
+    from phantom.model.mesh.surface import enclosed_volume_ml, model_surface
+    from phantom.scan.compare import ScanError
+    from phantom.scan.reconstruct import write_mesh
+
+    scene = load_scene("builtin")
+    model = PhantomModel.from_scene(scene)
+    rest = model_surface(model.nodes_m, model.outer_triangles)
+    in_mm, in_cm = tmp_path / "rest_mm.ply", tmp_path / "rest_cm.ply"
+    write_mesh(rest, in_mm)
+    write_mesh(dataclasses.replace(rest, vertices_mm=rest.vertices_mm / 10), in_cm)
+    measured_ml = _scan_volume_of(scene)
+    assert measured_ml(in_mm) == pytest.approx(enclosed_volume_ml(rest), rel=1e-6)
+    with pytest.raises(ScanError, match="in cm"):
+        measured_ml(in_cm)
+
+
 def _synthetic_responses(admissible_below_t=np.inf, traced_below_t=np.inf, fixed_lobe_scale=None):
     """A known family: G_j(theta, t) = 26 ml + a_j t + c_j theta t^2, on a grid of theta and t; NaN (not
     traced, as beyond a trace's growth stop) above ``traced_below_t``; with ``fixed_lobe_scale``, a second,

@@ -20,6 +20,7 @@ from phantom.model import PhantomModel, load_scene
 from phantom.model.calibration.calibrate import load_measurements
 from phantom.model.mesh.surface import (
     AMBIGUOUS_ANGLE_DEG,
+    Frame,
     SurfaceIndex,
     TriangleMesh,
     enclosed_volume_ml,
@@ -27,7 +28,14 @@ from phantom.model.mesh.surface import (
     rotation_angle_deg,
     triangle_areas_mm2,
 )
-from phantom.scan.compare import ScanError, clean_scan, compare, read_scan, scan_volume_ml
+from phantom.scan.compare import (
+    PHANTOM_RMS_RADIUS_MM,
+    ScanError,
+    clean_scan,
+    compare,
+    read_scan,
+    scan_volume_ml,
+)
 from phantom.scan.synthetic import make_scan, random_rotation
 
 PRESSURES_KPA = (1.0, 2.0, 0.5)
@@ -47,6 +55,12 @@ def state(model):
 @pytest.fixture(scope="module")
 def surface(model, state):
     return model_surface(state.positions_m, model.outer_triangles)
+
+
+@pytest.fixture(scope="module")
+def rest(model):
+    """The model's outer surface at rest: closed and outward, with no solve to wait for."""
+    return model_surface(model.nodes_m, model.outer_triangles)
 
 
 def write_mesh(path, mesh: TriangleMesh, scale=1.0):
@@ -229,7 +243,8 @@ def test_units_scale_and_a_wrong_unit_is_named(tmp_path, surface, state):
     synthetic = make_scan(surface, np.random.default_rng(4), levels=1, holes=2)
     path = write_mesh(tmp_path / "scan.obj", synthetic.mesh, scale=1e-3)
     assert scan_volume_ml(path, units="m") == pytest.approx(state.gland_volume_m3 * 1e6, rel=0.005)
-    assert scan_volume_ml(path, units="mm") == pytest.approx(state.gland_volume_m3 * 1e-3, rel=0.005)
+    with pytest.raises(ScanError, match="the file is in m: export it in mm"):
+        scan_volume_ml(path, units="mm")
     with pytest.raises(ScanError, match="pass --units m"):
         compare(read_scan(path, units="mm"), surface, state.gland_volume_m3 * 1e6)
 
@@ -266,17 +281,84 @@ def test_a_textured_obj_is_read_closed_across_its_seams(tmp_path):
     """Photogrammetry OBJs carry texture coordinates; a reader may split a vertex where they differ (a seam),
     which would open the surface. A tetrahedron with a seam reads back closed, with its exact volume."""
     path = tmp_path / "textured.obj"
-    path.write_text("mtllib texturedMesh.mtl\nv 0 0 0\nv 10 0 0\nv 0 10 0\nv 0 0 10\n"
+    path.write_text("mtllib texturedMesh.mtl\nv 0 0 0\nv 3 0 0\nv 0 3 0\nv 0 0 3\n"
                     "vt 0 0\nvt 1 0\nvt 0 1\nvt 0.5 0.5\nvt 0.2 0.2\nusemtl material0\n"
                     "f 1/1 3/3 2/2\nf 1/5 2/2 4/4\nf 1/1 4/4 3/3\nf 2/2 3/3 4/5\n")
     scan = read_scan(path, units="cm")
     assert len(scan.vertices_mm) == 4
-    assert scan_volume_ml(path, units="cm") == pytest.approx(1000.0 / 6.0)
+    assert scan_volume_ml(path, units="cm") == pytest.approx(27.0 / 6.0)
 
 
 def test_a_missing_scan_file_is_named(tmp_path):
     with pytest.raises(ScanError, match="does not exist"):
         scan_volume_ml(tmp_path / "absent.stl")
+
+
+def test_an_inside_out_or_mirrored_closed_scan_measures_outward(tmp_path, rest):
+    """The red team's scan_inv.ply: a closed scan wound inside out read -26.4 ml, and compare reported -200 %
+    beside "faces turned outward" (with no hole to close, the one mesh was turned twice). A mirror image of the
+    surface is inside out as well."""
+    volume_ml = enclosed_volume_ml(rest)
+    assert volume_ml > 0
+    inverted = TriangleMesh(rest.vertices_mm, rest.triangles[:, ::-1].copy())
+    mirrored = TriangleMesh(rest.vertices_mm * [-1.0, 1.0, 1.0], rest.triangles)
+    for name, mesh in (("inverted", inverted), ("mirrored", mirrored)):
+        assert enclosed_volume_ml(mesh) == pytest.approx(-volume_ml)  # the defect's input
+        assert scan_volume_ml(write_mesh(tmp_path / f"{name}.ply", mesh)) == pytest.approx(volume_ml, rel=1e-9)
+    result = compare(inverted, rest, volume_ml)
+    assert result.clean.reoriented and result.clean.holes_filled == 0
+    assert result.scan_volume_ml == pytest.approx(volume_ml, rel=1e-9)
+    assert result.to_json()["volume_difference_pct"] == pytest.approx(0.0, abs=1e-6)
+    assert result.symmetric_mm["max"] < 1e-3
+
+
+def test_the_scan_volume_of_a_file_in_another_unit_is_refused_naming_it(tmp_path, rest):
+    """The red team: a scan in cm read as mm measured 0.026 ml without a word, where compare named the unit.
+    scan_volume_ml checks the size as compare does, against the model given or else the built-in phantom's."""
+    volume_ml = enclosed_volume_ml(rest)
+    for unit, scale in (("cm", 0.1), ("m", 1e-3)):
+        path = write_mesh(tmp_path / f"scan_{unit}.ply", rest, scale=scale)
+        with pytest.raises(ScanError, match=f"the file is in {unit}: export it in mm") as raised:
+            scan_volume_ml(path)
+        assert "\n" not in str(raised.value)
+        assert scan_volume_ml(path, units=unit) == pytest.approx(volume_ml, rel=1e-9)
+    # another phantom, twice the size: measured against its own model, refused against the built-in one
+    double = TriangleMesh(2.0 * rest.vertices_mm, rest.triangles)
+    path = write_mesh(tmp_path / "double.ply", double)
+    with pytest.raises(ScanError, match="2 times the model's size .* pass model="):
+        scan_volume_ml(path)
+    assert scan_volume_ml(path, model=double) == pytest.approx(8.0 * volume_ml, rel=1e-9)
+    # the built-in phantom's size, kept as a number so that measuring a scan needs no model
+    assert PHANTOM_RMS_RADIUS_MM == pytest.approx(Frame.of(rest).rms_radius_mm, rel=0.01)
+
+
+def test_compare_refuses_another_librarys_mesh_naming_the_type_it_takes(rest):
+    """The red team: compare(trimesh.Trimesh(...)) failed with AttributeError: 'Trimesh' object has no attribute
+    'vertices_mm'. The model surface passed as one is refused the same way."""
+    trimesh = pytest.importorskip("trimesh")
+    other = trimesh.Trimesh(rest.vertices_mm, rest.triangles, process=False)
+    with pytest.raises(TypeError, match=r"got trimesh\.base\.Trimesh: .*TriangleMesh\(mesh\.vertices, mesh\.faces\)"
+                       ) as raised:
+        compare(other, rest, enclosed_volume_ml(rest))
+    assert "\n" not in str(raised.value)
+    with pytest.raises(TypeError, match="the model surface must be a phantom.model.mesh.surface.TriangleMesh"):
+        compare(rest, other, enclosed_volume_ml(rest))
+
+
+def test_a_triangle_soup_in_memory_is_welded_as_a_file_is(tmp_path, rest):
+    """The red team: each triangle with its own three vertices (as an STL stores them) could not be closed in
+    memory ("3 open edges remain") while the same soup read from an STL was welded by the reader."""
+    volume_ml = enclosed_volume_ml(rest)
+    soup = TriangleMesh(rest.vertices_mm[rest.triangles].reshape(-1, 3),
+                        np.arange(3 * len(rest.triangles)).reshape(-1, 3))
+    result = compare(soup, rest, volume_ml)
+    assert result.clean.input_vertices == 3 * len(rest.triangles)
+    assert result.clean.output_vertices == len(np.unique(rest.triangles))
+    assert result.clean.removed_components == 0 and result.clean.holes_filled == 0
+    assert result.scan_volume_ml == pytest.approx(volume_ml, rel=1e-9)
+    assert result.symmetric_mm["max"] < 1e-3
+    # the same soup through an STL file (float32 coordinates)
+    assert scan_volume_ml(write_mesh(tmp_path / "soup.stl", rest)) == pytest.approx(volume_ml, rel=1e-5)
 
 
 @pytest.mark.slow

@@ -137,7 +137,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         raise PhantomError(f"--workers must be at least 1, got {args.workers}")
     scene = _scene_for(args)
     measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers),
-                                     scan_volume_ml=_scan_volume_ml)
+                                     scan_volume_ml=_scan_volume_of(scene))
     grid = parse_grid(args.grid or DEFAULT_GRIDS[scene.material.model])
     band = None
     if args.modulus_band_pct is not None:
@@ -244,9 +244,10 @@ def recommended_fit(measurements: str | Path, output: str = "my_phantom.toml") -
             f"--grid gent_jm=5 --grid base_chamber_scale=1 --grid lobe_chamber_scale=1.2 --output {output}")
 
 
-def _scan_volume_ml(path: Path) -> float:
+def _scan_volume_ml(path: Path, rest_surface: Any = None) -> float:
     """The cleaned, watertight volume (ml) of a scan file in mm: the scan comparison's, for a measurements CSV
-    or an answer that names a scan (the model reads no scans itself)."""
+    or an answer that names a scan (the model reads no scans itself). Its size is checked against
+    ``rest_surface`` (the phantom's at rest, mm), else the built-in phantom's: a file in another unit is refused."""
     from phantom import PhantomError
 
     try:
@@ -254,7 +255,24 @@ def _scan_volume_ml(path: Path) -> float:
     except ImportError:
         raise PhantomError("scan files need phantom.scan.compare, which this install lacks: give the volume "
                            "in ml") from None
-    return scan_volume_ml(path, units="mm")
+    return scan_volume_ml(path, units="mm", model=rest_surface)
+
+
+def _scan_volume_of(scene: Any) -> Callable[[Path], float]:
+    """:func:`_scan_volume_ml` checked against ``scene``'s phantom at rest (one designed larger or smaller than
+    the built-in one), its surface built at the first scan file (a CSV of numbers needs none)."""
+    rest: list[Any] = []
+
+    def measured_ml(path: Path) -> float:
+        if not rest:
+            from phantom.model.fem.model import PhantomModel
+            from phantom.model.mesh.surface import model_surface
+
+            model = PhantomModel.from_scene(scene)
+            rest.append(model_surface(model.nodes_m, model.outer_triangles))
+        return _scan_volume_ml(path, rest[0])
+
+    return measured_ml
 
 
 def _parse_points(text: str) -> list[list[float]]:
