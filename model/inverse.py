@@ -36,10 +36,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from phantom import PhantomError
+from phantom import PhantomError, is_finite_number
 from phantom.model.arrays import FloatArray
 from phantom.model.errors import PeakPressureError, SolveError
 from phantom.model.fem.model import PhantomModel
+from phantom.model.fem.newton import RELATIVE_TOLERANCE
 from phantom.model.fidelity.levels import Evaluation, VolumeEstimator
 from phantom.model.fidelity.response_table import ResponseTableError, stored_response_table
 from phantom.model.scene import chamber_labels_of, pressure_limit_error
@@ -74,6 +75,11 @@ STEP_HALVINGS = 6
 PEAK_MARGIN = 0.9999
 #: Armijo fraction: a step of fraction t is taken when it cuts the relative volume error by at least this times t.
 SUFFICIENT_DECREASE = 1e-4
+#: The outer iteration's tolerances (relative volume errors, fractions) an InverseSolver takes: none finer than the
+#: forward solve's own Newton tolerance (relative to its load), which the volumes it measures the error with are
+#: good to, and none looser than 10 %, the model's own known error (11 %, measurements.MODEL_ERROR_95_PCT): 1
+#: meant as 1 % was taken as 100 %, and 0, -1 or nan ran 15 linearisations (47 s) to "did not converge".
+TOLERANCE_RANGE = (RELATIVE_TOLERANCE, 0.1)
 
 
 class LimitPointError(UnreachableTargetError):
@@ -102,6 +108,11 @@ def _finite(name: str, values: ArrayLike) -> FloatArray:
     if not np.all(np.isfinite(array)):
         raise PhantomError(f"{name} must be finite numbers, got {np.asarray(values).tolist()}")
     return array
+
+
+def _one_or_per_chamber(shape: tuple[int, ...], n_chambers: int) -> bool:
+    """Whether a bound of ``shape`` is one value (a number, or a list of one) or one per chamber."""
+    return shape in ((), (1,), (n_chambers,))
 
 
 def _dense_csc_pattern(matrix: FloatArray, upper: bool) -> scipy.sparse.csc_matrix:
@@ -221,9 +232,10 @@ class InverseSolver:
     max_growth_m3 : float or sequence of (float or None), optional
         Upper limit on each chamber's growth above its rest volume (m^3).
     tolerance : float
-        Relative volume tolerance of the outer iteration (dimensionless, of the target volume).
+        Relative volume tolerance of the outer iteration (a fraction of the target volume: 0.001 is 0.1 %), within
+        :data:`TOLERANCE_RANGE`.
     max_iterations : int
-        Linearisations before giving up.
+        Linearisations before giving up (at least 1).
     estimator : VolumeEstimator, optional
         A ready estimator to share (its level wins over ``fidelity``).
 
@@ -233,18 +245,32 @@ class InverseSolver:
     def __init__(self, model: PhantomModel, pressure_max_pa: float | Sequence[float] | None = None,
                  fidelity: str | None = None, max_growth_m3: float | Sequence[float | None] | None = None,
                  tolerance: float = 2e-5, max_iterations: int = 15, estimator: VolumeEstimator | None = None):
+        low, high = TOLERANCE_RANGE
+        if not (is_finite_number(tolerance) and low <= tolerance <= high):
+            raise PhantomError(f"tolerance is the relative volume error the inverse stops at, a fraction: 0.001 is "
+                               f"0.1 %; give one from {low:g} to {high:g}, got {tolerance!r}")
+        if isinstance(max_iterations, bool) or not isinstance(max_iterations, int | np.integer) or max_iterations < 1:
+            raise PhantomError(f"max_iterations must be an integer of at least 1, got {max_iterations!r} (the "
+                               "linearisations before the inverse gives up)")
         self.model = model
         self.n_chambers = int(model.n_chambers)
         if pressure_max_pa is None:
             pressure_max_pa = model.model_settings.pressure_max_pa
-        self.pressure_max_pa = np.broadcast_to(_finite("pressure_max_pa", pressure_max_pa),
-                                               (self.n_chambers,)).astype(float)
+        limits_pa = _finite("pressure_max_pa", pressure_max_pa)
+        if not _one_or_per_chamber(np.shape(limits_pa), self.n_chambers):
+            raise PhantomError(f"pressure_max_pa is one pressure (Pa) or one per chamber ({self.n_chambers}), got "
+                               f"{limits_pa.tolist()}")
+        self.pressure_max_pa = np.broadcast_to(limits_pa, (self.n_chambers,)).astype(float)
         if np.any(self.pressure_max_pa <= 0):
             raise PhantomError(f"pressure_max_pa must be positive, got {self.pressure_max_pa.tolist()}")
         if max_growth_m3 is None:
             max_growth_m3 = [None] * self.n_chambers
-        max_growth_m3 = list(np.broadcast_to(np.array(max_growth_m3, dtype=object), (self.n_chambers,)))
-        self.max_growth_m3 = [None if value is None else float(value) for value in max_growth_m3]
+        growths = np.array(max_growth_m3, dtype=object)
+        if not _one_or_per_chamber(growths.shape, self.n_chambers):
+            raise PhantomError(f"max_growth_m3 is one growth (m^3) or one (or None) per chamber ({self.n_chambers}), "
+                               f"got {growths.tolist()!r:.80}")
+        self.max_growth_m3 = [None if value is None else float(value)
+                              for value in np.broadcast_to(growths, (self.n_chambers,))]
         # QP units: pressures in units of the largest bound, volumes in units of the rest compliance's volume
         # change at that pressure, so that every entry of the QP is of order one whatever E and the mesh.
         self.pressure_per_pa = 1.0 / float(self.pressure_max_pa.max())

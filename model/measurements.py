@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from phantom import PhantomError, is_finite_number, read_text, unique_keys, written_atomically
+from phantom.model.shape_file import GLAND_VOLUME_RANGE_ML
 
 #: The store's file format.
 FORMAT = "phantom-corrections/1"
@@ -52,10 +53,14 @@ MAX_STORE_BYTES = 16 * 2**20
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 #: Whether a stored measurement is in the fit (``confirmed``) or held out until a person confirms it.
 STATUSES = ("confirmed", "unconfirmed")
-#: The largest volume (ml) and pressure (kPa) a measurement may hold: far beyond any phantom (a prostate is tens
-#: of ml; the blowers give a few kPa), far below what overflows a fit (1e300 ml crashed OSQP and the daemon).
+#: The largest model volume (ml) and pressure (kPa) a measurement may hold: far beyond any phantom (a prostate is
+#: tens of ml; the blowers give a few kPa), far below what overflows a fit (1e300 ml crashed OSQP and the daemon).
+#: The measured volume itself is a whole gland's (:data:`GLAND_VOLUME_RANGE_ML`).
 MAX_VOLUME_ML = 10_000.0
 MAX_PRESSURE_KPA = 1_000.0
+#: The units a measured volume is mistaken for, and their size in ml: 40e-6 (m^3) was stored as 4e-05 ml and drew
+#: the corrected gland to about 0 ml.
+MISTAKEN_UNITS_ML = {"m^3": 1e6, "litres": 1e3, "mm^3": 1e-3}
 #: The most chambers a measurement has pressures for.
 MAX_CHAMBERS = 16
 #: How many standard deviations from the expected volume a measured one may lie and still be believed (4: a true
@@ -107,9 +112,10 @@ class Measurement:
                                   f"only push), at most {MAX_PRESSURE_KPA:g}, 1-{MAX_CHAMBERS} of them "
                                   f"(pressures_kpa), got "
                                   f"{_shown(list(pressures) if isinstance(pressures, tuple) else pressures)}")
-        if not (is_finite_number(self.volume_ml) and 0 < self.volume_ml <= MAX_VOLUME_ML):
-            raise CorrectionError(f"a measured volume must be a finite number of ml above 0 and at most "
-                                  f"{MAX_VOLUME_ML:g} (volume_ml), got {_shown(self.volume_ml)}")
+        low, high = GLAND_VOLUME_RANGE_ML
+        if not (is_finite_number(self.volume_ml) and low <= self.volume_ml <= high):
+            raise CorrectionError(f"a measured volume must be a finite number of ml within a whole gland's, "
+                                  f"{low:g}-{high:g} ml (volume_ml){_unit_hint(self.volume_ml)}")
         if self.method not in METHODS:
             raise CorrectionError(f"a measurement's method is one of {', '.join(METHODS)}, got {_shown(self.method)}")
         if self.model_volume_ml is not None and not (is_finite_number(self.model_volume_ml)
@@ -140,6 +146,16 @@ def _check_chambers(entries: list[Measurement]) -> None:
     if last != first:
         raise ValueError(f"it has {last} pressures, measurement 1 has {first}: a phantom's measurements have one "
                          f"per chamber; is it another phantom's?")
+
+
+def _unit_hint(volume: object) -> str:
+    """The end of the message for a volume outside a gland's range: ``: in ml? got 4e-05, which is 40 ml in m^3:
+    convert it`` where another unit (:data:`MISTAKEN_UNITS_ML`) makes it a gland's, else ``, got VALUE``."""
+    low, high = GLAND_VOLUME_RANGE_ML
+    for unit, ml_per_unit in MISTAKEN_UNITS_ML.items():
+        if is_finite_number(volume) and low <= volume * ml_per_unit <= high:
+            return f": in ml? got {volume:g}, which is {volume * ml_per_unit:g} ml in {unit}: convert it"
+    return f", got {_shown(volume)}"
 
 
 def _shown(value: object) -> str:
@@ -304,7 +320,10 @@ class CorrectionStore:
                                   f"(`phantom corrections list`)")
 
     def add(self, measurement: Measurement) -> int:
-        """Store one more measurement (atomically); the number stored."""
+        """Store one more measurement (atomically) as it is given, confirmed unless its ``status`` says otherwise;
+        the number stored. It judges nothing: a library user calls :func:`phantom.model.corrections.judged` first,
+        which holds an implausible volume unconfirmed, out of every fit (as ``phantom corrections add``, ``phantom
+        characterise`` and the daemon do); a volume added without it is in the next fit whatever it is."""
         with self._locked():
             return self._add(measurement)
 

@@ -57,6 +57,10 @@ HYPERELASTIC_MODELS = ("neo_hookean", "gent", "yeoh")
 #: for): a scene's default ``[model] pressure_max_kpa``, and the highest pressure a calibration measurement may
 #: have.
 PRESSURE_LIMIT_PA = 3000.0
+#: The pressure sensor's range (kPa): the MPXV7025G reads gauge pressures up to 25 kPa (docs/hardware.md), so a
+#: scene's ``[model] pressure_max_kpa`` above it is a pressure no phantom of this rig is driven to, most likely
+#: written in Pa (3000 for 3 kPa).
+SENSOR_RANGE_KPA = 25.0
 #: The ways the model answers "what volumes do these pressures give" (:mod:`phantom.model.fidelity.levels`).
 FIDELITY_LEVELS = ("rest", "updated", "full", "table")
 #: Volume accuracy assumed when a scene states none (percent of the volume).
@@ -65,6 +69,11 @@ DEFAULT_ACCURACY_PCT = 1.0
 #: the calibrated model 5 points missed full solves by up to 3.5 % of a chamber's volume (its cavity's curve has
 #: an inflection), 7 by 0.1-0.2 % (bench/README.md, "The daemon on the calibrated model").
 DEFAULT_TABLE_POINTS = 7
+#: The most grid points per pressure axis a scene may ask of its table: 13 halves the default's step (0.25 kPa on
+#: 3 kPa), 13^3 = 2197 full solves, at about 3 s of CPU a point on builtin:converged (bench/README.md, "The table's
+#: cost per point") about 2 CPU-hours, once per machine. Every shipped scene uses the default 7; 100 asked for
+#: 10^6 solves (35 CPU-days, the daemon hung building it).
+MAX_TABLE_POINTS = 13
 #: Ecoflex 00-10's density (kg/m^3), the default of a scene's ``[load] density_kg_m3``.
 SILICONE_DENSITY_KG_M3 = 1040.0
 #: Water's density (kg/m^3): a phantom measured in water feels only its density's excess over it.
@@ -500,8 +509,16 @@ def _model_settings(table: dict[str, Any], where: str, path: Path | None = None)
     points = table.get("table_points", DEFAULT_TABLE_POINTS)
     if isinstance(points, bool) or not isinstance(points, int) or points < 2:
         raise SceneError(f"{where}: [model] table_points must be an integer of at least 2, got {points!r}")
+    if points > MAX_TABLE_POINTS:
+        raise SceneError(f"{where}: [model] table_points must be at most {MAX_TABLE_POINTS} (the default "
+                         f"{DEFAULT_TABLE_POINTS}'s step halved; the table's build is a full solve per grid point, "
+                         f"{points}^3 = {points**3:,} on three chambers), got {points!r}")
+    pressure_max_kpa = _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where)
+    if pressure_max_kpa > SENSOR_RANGE_KPA:
+        raise SceneError(f"{where}: [model] pressure_max_kpa = {pressure_max_kpa:g} is above the pressure sensor's "
+                         f"range (MPXV7025G, 0-{SENSOR_RANGE_KPA:g} kPa): give it in kPa (3 is 3000 Pa)")
     return ModelSettings(fidelity, _positive_number(table, "accuracy_pct", DEFAULT_ACCURACY_PCT, where),
-                         _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where) * 1e3, points,
+                         pressure_max_kpa * 1e3, points,
                          _shipped_file(table, "table_volumes", where, path),
                          _shipped_file(table, "table_shapes", where, path))
 

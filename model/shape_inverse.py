@@ -57,6 +57,7 @@ from phantom.model.mesh.surface import (
     rotation_from_vector,
     vertex_areas_mm2,
 )
+from phantom.model.shape_file import checked_gland
 
 #: Target points used (area-weighted draw) when its surface has more vertices.
 MAX_TARGET_POINTS = 4000
@@ -430,9 +431,13 @@ class ShapeInverse:
     def solve(self, target_surface: TriangleMesh, refine_solves: int = REFINE_SOLVES, scale: bool = False,
               progress: Callable[[str], None] | None = None) -> ShapeInverseResult:
         """The pressures and pose that bring the phantom's surface closest to ``target_surface`` (see the module):
-        from the table, then ``refine_solves`` full solves at most (0: the table's answer, without a full solve)."""
+        from the table, then ``refine_solves`` full solves at most (0: the table's answer, without a full solve).
+        ShapeFileError for a target that is not a gland's closed surface in mm (:func:`checked_gland`)."""
         if refine_solves < 0:
             raise ShapeInverseError(f"refine_solves must be 0 or more, got {refine_solves}")
+        # checked here, whoever made the surface (a file, a request, a library user's mesh): a target in cm
+        # (0.026 ml) came back as 0, 0, 0 kPa at 12.4 mm without a word
+        target_surface = checked_gland(target_surface, "the target surface")
         say = progress or (lambda message: None)
         started, started_cpu = time.perf_counter(), time.process_time()
         target = self.prepared(target_surface)

@@ -5,6 +5,7 @@ and read answers without loading the finite-element model (numpy only).
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -39,6 +40,23 @@ TARGET_KINDS = ("volume", "chamber_volumes", "pressures")
 JSON_DIGITS = 12
 
 
+def _is_number(value: object) -> bool:
+    """A real number (numpy's too), not a bool: the shape of a target's value. Whether it is finite and fits the
+    model is the solver's check (:meth:`InverseSolver.pressures_for`), which knows the chambers."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _are_numbers(values: object, none_allowed: bool = False) -> bool:
+    """A flat sequence (a list, a tuple, a 1-D array) of :func:`_is_number` (or None where ``none_allowed``)."""
+    if isinstance(values, np.ndarray) and values.ndim == 1:
+        items = list(values)
+    elif isinstance(values, Sequence) and not isinstance(values, str | bytes):
+        items = list(values)
+    else:
+        return False
+    return all(_is_number(value) or (none_allowed and value is None) for value in items)
+
+
 def _people_units(value_si: float, per_si: float) -> float:
     """``value_si * per_si`` rounded to JSON_DIGITS significant digits."""
     return float(f"{value_si * per_si:.{JSON_DIGITS}g}")
@@ -68,6 +86,26 @@ class Target:
     chamber_volumes_m3: Sequence[float | None] | None = None
     growth_ratio: Mapping[int, float] | None = None
     pressures_pa: Sequence[float] | None = None
+
+    def __post_init__(self) -> None:
+        # Each value's shape, when the target is made: an array for the gland's volume, a bool for a chamber or a
+        # list for a weight used to crash deep in numpy's QP set-up with nothing said of the target. (``!r:.80``:
+        # a value's repr cut to 80 characters, however large an array was given.)
+        if self.gland_volume_m3 is not None and not _is_number(self.gland_volume_m3):
+            raise PhantomError(f"a target's gland_volume_m3 is one volume (m^3), a number, got "
+                               f"{self.gland_volume_m3!r:.80}")
+        if self.chamber_volumes_m3 is not None and not _are_numbers(self.chamber_volumes_m3, none_allowed=True):
+            raise PhantomError(f"a target's chamber_volumes_m3 is one volume (m^3) or None per chamber, e.g. "
+                               f"[2e-06, None, None], got {self.chamber_volumes_m3!r:.80}")
+        if self.pressures_pa is not None and not _are_numbers(self.pressures_pa):
+            raise PhantomError(f"a target's pressures_pa is one pressure (Pa) per chamber, e.g. [1000.0, 0.0, 0.0], "
+                               f"got {self.pressures_pa!r:.80}")
+        if self.growth_ratio is not None and not (
+                isinstance(self.growth_ratio, Mapping)
+                and all(isinstance(index, int | np.integer) and not isinstance(index, bool) and _is_number(weight)
+                        for index, weight in self.growth_ratio.items())):
+            raise PhantomError(f"a target's growth_ratio maps chamber indices (integers) to weights (numbers), e.g. "
+                               f"{{1: 2.0, 2: 1.0}}, got {self.growth_ratio!r:.80}")
 
     @classmethod
     def of_kind(cls, kind: str, values: Sequence[float | None],

@@ -48,7 +48,8 @@ def test_the_store_keeps_measurements_across_a_restart_and_exports_what_calibrat
     (lambda: Measurement((1.0, -0.5, 0.0), 30.0), "pressures must be finite numbers >= 0"),
     (lambda: Measurement((1.0, float("nan"), 0.0), 30.0), "pressures must be finite numbers >= 0"),
     (lambda: Measurement((1.0, 1.0, 1.0), float("inf")), "measured volume must be a finite number"),
-    (lambda: Measurement((1.0, 1.0, 1.0), 0.0), "measured volume must be a finite number of ml above 0"),
+    (lambda: Measurement((1.0, 1.0, 1.0), 0.0), "measured volume must be a finite number of ml within a whole "
+                                                "gland's, 2-400 ml"),
     (lambda: Measurement((1.0, 1.0, 1.0), 30.0, "guess"), "method is one of scan, water_displacement"),
     (lambda: CorrectionStore.for_phantom("../etc/passwd"), "a phantom's name is 1-64 letters"),
 ])
@@ -275,7 +276,8 @@ def test_the_command_line_lists_adds_exports_and_clears(store, tmp_path, capsys)
     assert main(["corrections", "clear", "--phantom", "bench-phantom", "--yes"]) == 0
     assert store.entries() == []
     assert main(["corrections", "add", "--pressures-kpa", "1,1", "--volume-ml", "-3"]) == 2
-    assert "measured volume must be a finite number of ml above 0" in capsys.readouterr().err
+    assert "measured volume must be a finite number of ml within a whole gland's, 2-400 ml (volume_ml), got -3.0" \
+        in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -169,6 +169,12 @@ def newton(problem: EquilibriumProblem, positions_m: FloatArray, tolerance: floa
     """
     evaluation = problem.evaluate(positions_m)
     load_scale = max(problem.load_scale_n(), norm(evaluation.residual_n) if initial_imbalance else 0.0)
+    if not problem.loaded:
+        # No load to be relative to: its floor (1e-12 E L^2) times the tolerance lies below the residual that
+        # rounding the positions alone leaves, so a solve from the rest shape itself "stagnated" there and was
+        # called ill-conditioned. Without a load, a residual within ROUNDING_FLOOR_MARGIN of that floor is the
+        # equilibrium (1.8e-9 N on the built-in prostate: about 1e-12 m of position).
+        load_scale = max(load_scale, ROUNDING_FLOOR_MARGIN * problem.rounding_floor_n(positions_m) / tolerance)
     spent = 0
     if problem.mixed:
         mixed = mixed_newton(problem, positions_m, evaluation, tolerance, load_scale, element_pressures_pa,
