@@ -4,11 +4,12 @@ simavr, its camera an MJPEG stream), ``phantom daemon --port`` on its serial por
 privileges), the rig calibrated from the target's stream (``phantom scan capture --target``, ``phantom scan
 calibrate``), then the daemon again with ``--camera URL --rig rig.json`` and a 40 ml target with
 ``verify="scan"`` through the Python API, judged against the simulated phantom's truth (the stream's
-``/truth.json``, which the daemon never reads); then ``phantom characterise`` through the same daemon, camera and
-rig on a path of two points, whose scans correct the next target's answer."""
+``/truth.json``, which the daemon never reads); and (make test-long) ``phantom characterise`` through the same
+daemon, camera and rig on a path of two points, whose scans correct the next target's answer."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -16,6 +17,8 @@ import subprocess
 import sys
 import time
 import urllib.request
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
@@ -63,11 +66,22 @@ class _Daemon:
         self.log.close()
 
 
-@pytest.mark.sim  # the simulated board (simavr) and two daemons on its port
-@pytest.mark.slow  # the calibration's 28 pictures, a verified target's rounds of 60, a characterisation's 2 scans
-# of 30: 7.5-8 minutes at load 6-8 (the characterisation 2.1-2.2 of them)
-@pytest.mark.timeout(1200)  # three rounds of 80-120 s each at load 6-10, then the characterisation's 3 minutes
-def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
+@dataclass
+class RealRig:
+    """The simulated board served as a real one, its rig calibrated, and the daemon given its camera and rig."""
+
+    daemon: _Daemon
+    streams: dict[str, str]
+    env: dict[str, str]
+    folder: Path
+
+
+@contextlib.contextmanager
+def real_rig(tmp_path: Path) -> Iterator[RealRig]:
+    """The README's "A verified volume on a real rig" up to the daemon that scans for itself: ``phantom sim-board
+    --camera-stream``, a daemon on its port, the target's pictures through the stream (facing the camera at orbit
+    0, then turned round), ``phantom scan calibrate``, and the daemon again with ``--camera URL --rig rig.json``.
+    Its logs are printed at the end (shown with a failure)."""
     env = {**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}
     board_log = open(tmp_path / "board.log", "w")  # a file, not a pipe no one reads on: it would fill and block
     board = subprocess.Popen([str(PHANTOM), "sim-board", "--camera-stream", "127.0.0.1:0", "--sim-speed",
@@ -93,59 +107,7 @@ def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_
 
         # the daemon given the camera and the rig: it scans for itself
         daemon = _Daemon(tmp_path, port, env, "--camera", streams["phantom"], "--rig", str(tmp_path / "rig.json"))
-        with phantom.connect(daemon.socket) as lab:
-            reached = lab.set_volume(40, verify="scan")
-        with urllib.request.urlopen(streams["truth"], timeout=10) as answer:
-            truth = json.load(answer)
-        log = daemon.log_path.read_text()
-        print(f"verified {reached.verified} in {len(reached.rounds)} rounds, scanned {reached.scanned_volume_ml} ml, "
-              f"the truth {truth['gland_volume_ml']} ml")  # shown with -rP
-        assert reached.verified, log[-4000:]
-        assert reached.true_volume_ml is None  # a real board's daemon knows no truth
-        assert abs(reached.scanned_volume_ml - 40) <= 0.003 * 40
-        assert abs(truth["gland_volume_ml"] - 40) <= 0.003 * 40, (truth, reached.rounds)
-        # every round's scan went through the stream, posed by the calibrated rig kept beside its pictures
-        for entry in reached.rounds:
-            capture = json.loads((Path(entry["scan"]) / "capture.json").read_text())
-            assert capture["camera"]["kind"] == "webcam" and capture["camera"]["source"] == streams["phantom"]
-            assert (Path(entry["scan"]) / "rig.json").exists()
-
-        # the same daemon characterises the phantom on a small path (rest and the top of the model's inverse)
-        # through the same camera and rig; its scans join the phantom's measurements, and the next target's answer
-        # is corrected by them. 15 views a turn (30 pictures, half the default's): about 60 s a point; the rest
-        # point read 26.51 ml against 26.39 ml with 30 views (fewer silhouettes carve less), not judged here
-        with phantom.connect(daemon.socket) as lab:
-            store = CorrectionStore(lab.status().raw["correction"]["store"])
-        confirmed_before = sum(entry.status == "confirmed" for entry in store.entries())
-        started = time.monotonic()
-        said = _run("characterise", "--path", "2", "--views", "15", "--rig", str(tmp_path / "rig.json"), "--out",
-                    str(tmp_path / "characterised"), "--socket", sock, "--json", env=env, timeout_s=600)
-        print(f"characterise: {time.monotonic() - started:.0f} s")  # shown with -rP
-        summary = json.loads([line for line in said.splitlines() if line.startswith("{")][-1])
-        assert (summary["points"], summary["skipped"]) == (2, 0), said[-3000:]
-        entries = store.entries()
-        run = [entry for entry in entries
-               if entry.scan_file and Path(entry.scan_file).is_relative_to(tmp_path / "characterised")]
-        assert len(run) == 2
-        # the rest point at least agrees with the scans before; a point the correction so far finds implausible
-        # is stored unconfirmed and left out (phantom.model.corrections.judged), as the report says
-        confirmed = [entry for entry in run if entry.status == "confirmed"]
-        rest = [entry for entry in run if max(entry.pressures_kpa) < 0.1]  # the measured pressures, near 0
-        assert len(rest) == 1 and rest[0].status == "confirmed", said[-3000:]
-        with phantom.connect(daemon.socket) as lab:
-            lab.set_volume(35, wait=False)  # an answer after the store changed starts a fit (if none ran since)
-            deadline = time.monotonic() + 120
-            while True:
-                correction = lab.status().raw["correction"]
-                if correction["stored"] == len(entries) and not correction["fitting"]:
-                    break
-                assert time.monotonic() < deadline, correction
-                time.sleep(0.5)
-            answer = lab.set_volume(35, wait=False)
-        assert correction["in_force"], correction
-        assert answer.measurements == correction["correction"]["count"] == confirmed_before + len(confirmed), (
-            answer, correction)
-        assert answer.band_ml is not None
+        yield RealRig(daemon, streams, env, tmp_path)
     finally:
         if daemon is not None:
             daemon.stop()
@@ -159,3 +121,72 @@ def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_
             board_log.close()
             for log in [*sorted(tmp_path.glob("daemon*.log")), tmp_path / "board.log"]:  # shown with a failure
                 print(f"--- {log.name} (the last lines)\n" + "\n".join(log.read_text().splitlines()[-60:]))
+
+
+@pytest.mark.sim  # the simulated board (simavr) and two daemons on its port
+@pytest.mark.slow  # the calibration's 28 pictures, then a verified target's rounds of 40: 5-6 minutes at load 6-8
+@pytest.mark.timeout(1200)  # three rounds of 80-120 s each at load 6-10
+def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
+    with real_rig(tmp_path) as rig:
+        with phantom.connect(rig.daemon.socket) as lab:
+            reached = lab.set_volume(40, verify="scan")
+        with urllib.request.urlopen(rig.streams["truth"], timeout=10) as answer:
+            truth = json.load(answer)
+        log = rig.daemon.log_path.read_text()
+        print(f"verified {reached.verified} in {len(reached.rounds)} rounds, scanned {reached.scanned_volume_ml} ml, "
+              f"the truth {truth['gland_volume_ml']} ml")  # shown with -rP
+        assert reached.verified, log[-4000:]
+        assert reached.true_volume_ml is None  # a real board's daemon knows no truth
+        assert abs(reached.scanned_volume_ml - 40) <= 0.003 * 40
+        assert abs(truth["gland_volume_ml"] - 40) <= 0.003 * 40, (truth, reached.rounds)
+        # every round's scan went through the stream, posed by the calibrated rig kept beside its pictures
+        for entry in reached.rounds:
+            capture = json.loads((Path(entry["scan"]) / "capture.json").read_text())
+            assert capture["camera"]["kind"] == "webcam" and capture["camera"]["source"] == rig.streams["phantom"]
+            assert (Path(entry["scan"]) / "rig.json").exists()
+
+
+@pytest.mark.sim
+@pytest.mark.long  # make test-long: the rig's calibration, then a characterisation's 2 scans of 30 (2.1-2.2
+# minutes at load 6-8); make test runs characterise through the simulated daemon (test_characterise_sim.py) and
+# the real rig's scans through the verified target above
+@pytest.mark.timeout(1200)
+def test_characterise_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
+    """The same daemon characterises the phantom on a small path (rest and the top of the model's inverse) through
+    the same camera and rig; its scans join the phantom's measurements, and the next target's answer is corrected
+    by them. 15 views a turn (30 pictures, half the default's): about 60 s a point; the rest point read 26.51 ml
+    against 26.39 ml with 30 views (fewer silhouettes carve less), not judged here."""
+    with real_rig(tmp_path) as rig:
+        with phantom.connect(rig.daemon.socket) as lab:
+            store = CorrectionStore(lab.status().raw["correction"]["store"])
+        confirmed_before = sum(entry.status == "confirmed" for entry in store.entries())
+        started = time.monotonic()
+        said = _run("characterise", "--path", "2", "--views", "15", "--rig", str(tmp_path / "rig.json"), "--out",
+                    str(tmp_path / "characterised"), "--socket", str(rig.daemon.socket), "--json", env=rig.env,
+                    timeout_s=600)
+        print(f"characterise: {time.monotonic() - started:.0f} s")  # shown with -rP
+        summary = json.loads([line for line in said.splitlines() if line.startswith("{")][-1])
+        assert (summary["points"], summary["skipped"]) == (2, 0), said[-3000:]
+        entries = store.entries()
+        run = [entry for entry in entries
+               if entry.scan_file and Path(entry.scan_file).is_relative_to(tmp_path / "characterised")]
+        assert len(run) == 2
+        # the rest point at least agrees with the scans before; a point the correction so far finds implausible
+        # is stored unconfirmed and left out (phantom.model.corrections.judged), as the report says
+        confirmed = [entry for entry in run if entry.status == "confirmed"]
+        rest = [entry for entry in run if max(entry.pressures_kpa) < 0.1]  # the measured pressures, near 0
+        assert len(rest) == 1 and rest[0].status == "confirmed", said[-3000:]
+        with phantom.connect(rig.daemon.socket) as lab:
+            lab.set_volume(35, wait=False)  # an answer after the store changed starts a fit (if none ran since)
+            deadline = time.monotonic() + 120
+            while True:
+                correction = lab.status().raw["correction"]
+                if correction["stored"] == len(entries) and not correction["fitting"]:
+                    break
+                assert time.monotonic() < deadline, correction
+                time.sleep(0.5)
+            answer = lab.set_volume(35, wait=False)
+        assert correction["in_force"], correction
+        assert answer.measurements == correction["correction"]["count"] == confirmed_before + len(confirmed), (
+            answer, correction)
+        assert answer.band_ml is not None
