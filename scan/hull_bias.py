@@ -115,7 +115,7 @@ def hull_bias(capture: CaptureFolder, rig: Rig, scanned: Reconstruction, surface
     renderer = Renderer(rig.camera)
     keyed = {frame.image: coverage_silhouette(renderer, scene, rig.pose(frame.orbit_deg, frame.elevation_deg))
              for frame in capture.frames}
-    carved = reconstruct(capture, rig, scanned.voxel_mm, keyed=keyed)
+    carved = reconstruct(capture, rig, scanned.voxel_mm, keyed=keyed, check_lined_up=False)
     return HullBias(carved.volume_ml, enclosed_volume_ml(surface), aligned, time.perf_counter() - started)
 
 

@@ -75,8 +75,9 @@ class Reconstruction:
     touching_edge: int = 0
     #: The hanging column taken off (None: nothing hung in view).
     hanging: Hanging | None = None
-    #: The largest share of a picture's silhouette the hull leaves uncovered (%): near 0 when the pictures line up.
-    worst_uncovered_pct: float = 0.0
+    #: The largest share of a picture's silhouette the hull leaves uncovered (%): near 0 when the pictures line up;
+    #: None when not checked (``reconstruct(check_lined_up=False)``).
+    worst_uncovered_pct: float | None = None
 
 
 def views_cutting(mesh: TriangleMesh, camera: Camera, poses: Sequence[Pose], margin_px: float = 1.0) -> int:
@@ -107,13 +108,14 @@ def rig_centre(poses: Sequence[FloatArray], forwards: Sequence[FloatArray]) -> F
 
 def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float = VOXEL_MM,
                 frames: Sequence[Frame] | None = None, progress: Callable[[str], None] | None = None,
-                keyed: Mapping[str, Silhouette] | None = None) -> Reconstruction:
+                keyed: Mapping[str, Silhouette] | None = None, check_lined_up: bool = True) -> Reconstruction:
     """The carved surface of a capture folder's pictures (all, or ``frames``), posed by ``rig`` (default: the rig
     kept in the folder). ``keyed``: silhouettes found already, by picture (``Frame.image``), each of the very
     picture in the folder (``phantom.scan.keying``: keyed as the capture wrote them); the others are read and
     keyed here. CaptureError for a folder without pictures or a rig, or pictures of another size than the rig's
     camera; SilhouetteError for a picture without a silhouette; CarveError if nothing is left, or if the pictures
-    do not line up (:func:`out_of_line`)."""
+    do not line up (:func:`out_of_line`; not checked with ``check_lined_up`` False: silhouettes rendered from one
+    surface at the capture's poses line up by construction)."""
     rig = rig if rig is not None else folder.rig()
     if rig is None:
         raise CaptureError(f"{folder.path} keeps no rig calibration (rig.json): give the rig's (--rig RIG.json, "
@@ -169,7 +171,7 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     grid = carve(carver, centre, START_FRACTION * distance, voxel_mm, progress)
     stage_s["carve"] = time.perf_counter() - started
     started = time.perf_counter()
-    agreement = view_agreement(grid, carver, rig.axis_point_mm, rig.axis_direction)
+    agreement = view_agreement(grid, carver, rig.axis_point_mm, rig.axis_direction) if check_lined_up else None
     stage_s["agreement"] = time.perf_counter() - started
     started = time.perf_counter()
     hanging = None
@@ -183,10 +185,10 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     touching = views_cutting(mesh, rig.camera, poses)
     # a phantom cut by a picture's edge leaves the other pictures' silhouettes uncovered where it is cut off: it is
     # said as such (touching_edge), not as pictures that moved
-    if touching == 0 and np.max(agreement.uncovered) > MAX_UNCOVERED:
+    if agreement is not None and touching == 0 and np.max(agreement.uncovered) > MAX_UNCOVERED:
         raise out_of_line(frames, views, carver, agreement, rig, centre, START_FRACTION * distance, voxel_mm)
     return Reconstruction(mesh, enclosed_volume_ml(mesh), voxel_mm, len(views), centre, stage_s, carver.projections,
-                          touching, hanging, 100.0 * float(np.max(agreement.uncovered)))
+                          touching, hanging, None if agreement is None else 100.0 * float(np.max(agreement.uncovered)))
 
 
 def out_of_line(frames: Sequence[Frame], views: Sequence[View], carver: Carver, agreement: ViewAgreement, rig: Rig,
