@@ -77,23 +77,22 @@ def test_a_scan_file_entry_is_measured_by_the_callable_given(tmp_path):
         load_measurements(path)
 
 
-@pytest.mark.slow  # the scene's model built twice (here and in the command's loader)
+@pytest.mark.slow  # the scene's model built for its surface at rest
 def test_phantom_calibrates_scan_files_are_measured_against_the_scenes_phantom(tmp_path):
     """``phantom calibrate``'s scan files: each is measured at the scene's phantom's size (a file in cm is refused
     naming the unit, not read as a speck of 0.03 ml), the scene's surface built once, at the first scan."""
     from phantom.cli.calibrate import _scan_volume_of
-    from phantom.model.mesh.surface import enclosed_volume_ml, model_surface
+    from phantom.model.mesh.surface import enclosed_volume_ml
     from phantom.scan.compare import ScanError
     from phantom.scan.reconstruct import write_mesh
+    from phantom.scan.synthetic import sphere
 
-    scene = load_scene("builtin")
-    model = PhantomModel.from_scene(scene)
-    rest = model_surface(model.nodes_m, model.outer_triangles)
-    in_mm, in_cm = tmp_path / "rest_mm.ply", tmp_path / "rest_cm.ply"
-    write_mesh(rest, in_mm)
-    write_mesh(dataclasses.replace(rest, vertices_mm=rest.vertices_mm / 10), in_cm)
-    measured_ml = _scan_volume_of(scene)
-    assert measured_ml(in_mm) == pytest.approx(enclosed_volume_ml(rest), rel=1e-6)
+    gland = sphere(18.8, np.zeros(3))   # about the phantom's size at rest (its RMS radius), 27.8 ml
+    in_mm, in_cm = tmp_path / "gland_mm.ply", tmp_path / "gland_cm.ply"
+    write_mesh(gland, in_mm)
+    write_mesh(dataclasses.replace(gland, vertices_mm=gland.vertices_mm / 10), in_cm)
+    measured_ml = _scan_volume_of(load_scene("builtin"))
+    assert measured_ml(in_mm) == pytest.approx(enclosed_volume_ml(gland), rel=1e-6)
     with pytest.raises(ScanError, match="in cm"):
         measured_ml(in_cm)
 
