@@ -6,17 +6,11 @@ from __future__ import annotations
 import ast
 import asyncio
 import importlib.metadata
-import json
-import os
 import re
-import shutil
-import subprocess
 import sys
 import tomllib
-import venv
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 import phantom
@@ -225,49 +219,3 @@ def test_cholmod_asked_for_without_scikit_sparse(monkeypatch):
     with pytest.raises(MissingExtraError) as error:
         Factorization(scipy.sparse.identity(3, format="csr"), method="cholmod")
     check_message(error, "sksparse", "cholmod")
-
-
-@pytest.fixture
-def fresh_venv(tmp_path):
-    """A new venv folder, removed afterwards (half a gigabyte is not left in pytest's temp folders)."""
-    environment = tmp_path / "venv"
-    yield environment
-    shutil.rmtree(environment, ignore_errors=True)
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(900)  # a venv, pip and the kernels compiled into an empty cache: minutes on a busy machine
-def test_the_base_install_runs_the_model_and_the_daemon(tmp_path, fresh_venv):
-    """A fresh venv with ``pip install -e .`` and no extra (pip's cache makes it quick) runs ``phantom forward``,
-    imports the daemon, and refuses compare-scan in one line naming the extra."""
-    environment = fresh_venv
-    venv.create(environment, with_pip=True)
-    python = environment / "bin" / "python"
-    env = {**os.environ, "PHANTOM_CACHE_DIR": str(tmp_path / "cache"), "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
-    subprocess.run([python, "-m", "pip", "install", "-q", "-e", str(REPO)], check=True, env=env, timeout=240,
-                   capture_output=True)
-    listed = subprocess.run([python, "-m", "pip", "list", "--format=freeze"], check=True, env=env,
-                            capture_output=True, text=True).stdout
-    installed = {canonical(line.partition("==")[0]) for line in listed.splitlines()}
-    for extra in ("record", "can", "scan", "calibrate", "cholmod"):
-        assert not installed & {requirement(text)[0] for text in EXTRAS[extra]}, extra
-
-    phantom_command = environment / "bin" / "phantom"
-    forward = subprocess.run([phantom_command, "forward", "--scene", "builtin", "--pressures-kpa", "1,1,1",
-                              "--json"], env=env, capture_output=True, text=True, timeout=240)
-    assert forward.returncode == 0, forward.stderr
-    volumes = json.loads(forward.stdout)
-    assert volumes["total_volume_ml"] == pytest.approx(26.3756, abs=1e-3)
-    assert np.isfinite(volumes["chamber_volumes_ml"]).all()
-
-    daemon = subprocess.run([python, "-c", "import phantom.host.daemon, phantom.cli.daemon"], env=env,
-                            capture_output=True, text=True, timeout=180)
-    assert daemon.returncode == 0, daemon.stderr
-
-    scan = tmp_path / "scan.ply"
-    scan.write_text("ply\n")
-    refused = subprocess.run([phantom_command, "compare-scan", str(scan), "--scene", "builtin",
-                              "--pressures-kpa", "0,0,0"], env=env, capture_output=True, text=True, timeout=120)
-    assert refused.returncode == 2
-    assert refused.stderr.strip().count("\n") == 0
-    assert f"pip install -e '{REPO}[scan]'" in refused.stderr

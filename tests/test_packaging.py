@@ -9,6 +9,7 @@ built."""
 
 import hashlib
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -128,6 +129,29 @@ def test_the_installed_package_solves_a_forward_case_outside_the_repository(inst
                  cwd=tmp_path, env=user_env(installed, tmp_path))
     gland = next(line for line in output.splitlines() if line.startswith("gland")).split()
     assert 20.0 < float(gland[1]) < float(gland[2]) < 40.0, output  # rest volume, then the inflated one
+
+
+def test_the_installed_package_is_the_base_install_whose_missing_extra_is_named(installed, tmp_path):
+    """The wheel installed without an extra (what ``pip install active-prostate-phantom`` gives) holds none of the
+    extras' packages, imports the daemon, and refuses a scan comparison in one line naming the pip command that
+    brings its extra (the distribution's: outside a checkout). (The forward solve above is the base install's
+    model; this venv is the one base install make test builds.)"""
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())
+    python, env = str(installed["root"] / "venv" / "bin" / "python"), user_env(installed, tmp_path)
+    listed = run([python, "-m", "pip", "list", "--format=freeze"], cwd=tmp_path, env=env)
+    names = {re.sub(r"[-_.]+", "-", line.partition("==")[0]).lower() for line in listed.splitlines()}
+    for extra in ("record", "can", "scan", "calibrate", "cholmod"):
+        wanted = {re.sub(r"[-_.]+", "-", re.split(r"[\s\[<>=!~;]", text, maxsplit=1)[0]).lower()
+                  for text in config["project"]["optional-dependencies"][extra]}
+        assert not names & wanted, (extra, names & wanted)
+    run([python, "-c", "import phantom.host.daemon, phantom.cli.daemon"], cwd=tmp_path, env=env)
+    scan = tmp_path / "scan.ply"
+    scan.write_text("ply\n")
+    refused = subprocess.run([str(installed["phantom"]), "compare-scan", str(scan), "--scene", "builtin",
+                              "--pressures-kpa", "0,0,0"], cwd=tmp_path, env=env, capture_output=True, text=True,
+                             timeout=120)
+    assert refused.returncode == 2 and refused.stderr.strip().count("\n") == 0, refused.stderr
+    assert "pip install 'active-prostate-phantom[scan]'" in refused.stderr, refused.stderr
 
 
 @pytest.mark.sim

@@ -517,6 +517,11 @@ def run_compare_scan(args: argparse.Namespace) -> int:
 
     import numpy as np
 
+    from phantom import require_extra
+
+    with require_extra("scan"):  # said at once, not after the model's kernels are compiled (10 s on a new cache)
+        import trimesh  # noqa: F401
+
     from phantom.cli.common import scene_pressures_kpa
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.surface import model_surface, rotation_axis
