@@ -415,7 +415,7 @@ def test_a_ray_traced_under_gravity_is_the_full_solve_at_the_modulus_its_load_fa
         assert trace.gland_m3[-1] != trace.gland_m3[0]  # the weight alone moves the zero-pressure row too
 
 
-@pytest.mark.slow
+@pytest.mark.long  # six 10-node solves, 30-35 s of CPU in make test's 20 minutes: make test-long runs it
 @pytest.mark.timeout(900)  # six 10-node solves: about half a minute idle, minutes at a load average of 20
 def test_a_trace_started_from_extrapolated_equilibria_is_the_trace_started_from_the_last_one(monkeypatch):
     """The traces' predictor (the last equilibria extrapolated in the load factor, positions and element

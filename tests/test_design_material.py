@@ -36,18 +36,19 @@ def test_a_material_scene_that_cannot_be_read_is_refused(tmp_path):
         inherited_material(str(tmp_path / "absent.toml"))
 
 
-def _check_the_bilobed_design(summary, out, err):
+def _check_the_bilobed_design(summary, out, err, grown_at_1_kpa=True):
     """The done-when line of issue 52 on a design of the bilobed mask: the calibrated material said in the scene and
-    report, at least 2 ml of growth at 1,1,1 kPa, and the default growth target (45 ml at 3 kPa) within 5 % of the
-    growth wanted, either way."""
+    report, at least 2 ml of growth at 1,1,1 kPa (``grown_at_1_kpa``: the design's growth solved there), and the
+    default growth target (45 ml at 3 kPa) within 5 % of the growth wanted, either way."""
     assert summary["material"]["from"] == "builtin:converged" and summary["material"]["element_order"] == 2
     scene = (out / "scene.toml").read_text()
     assert 'model = "gent"' in scene and "youngs_modulus_kpa = 10.8" in scene
     assert "builtin:converged's" in scene and "calibrate" in scene
     assert "builtin:converged's calibration" in (out / "report.md").read_text()
-    assert summary["growth"]["pressures_kpa"] == [1.0]
-    grown_ml = summary["growth"]["gland_volumes_ml"][0] - summary["rest_volume_ml"]
-    assert grown_ml >= 2.0, grown_ml    # the uncalibrated material: 0.17 ml
+    if grown_at_1_kpa:
+        assert summary["growth"]["pressures_kpa"] == [1.0]
+        grown_ml = summary["growth"]["gland_volumes_ml"][0] - summary["rest_volume_ml"]
+        assert grown_ml >= 2.0, grown_ml    # the uncalibrated material: 0.17 ml
     target = summary["growth_target"]
     wanted_ml = target["volume_ml"] - summary["gland_volume_ml"]
     assert target["volume_ml"] == pytest.approx(45.0) and target["reached"], target
@@ -83,18 +84,18 @@ def test_a_bilobed_mask_grows_with_the_calibrated_material(tmp_path, capsys):
 @pytest.mark.timeout(900)  # 2.9 min at a load average of 7 on two cores
 def test_a_bilobed_mask_previewed_on_a_coarse_mesh_grows_as_the_design_does(tmp_path, capsys):
     """The long test's design in make test: the same mask, walls, material and sizing, previewed with
-    --elements-per-wall 1 on a 6.4 mm mesh (one 10-node element through the thinnest wall; 7,247 nodes, the
-    growth solved in 72 s). Its figures converge under refinement: +2.23 ml at 1,1,1 kPa and 45.04 ml at 3 kPa here,
-    +2.23 ml and 44.46 ml on the long test's 4 mm mesh with two elements through the wall (28,352 nodes; its
-    growth solved in 11.6 min)."""
+    --elements-per-wall 1 on a 6.4 mm mesh (one 10-node element through the thinnest wall; 7,247 nodes), its growth
+    to the target confirmed on it: 45.04 ml at 3 kPa here, 44.46 ml on the long test's 4 mm mesh with two elements
+    through the wall (28,352 nodes). The growth at 1,1,1 kPa (+2.23 ml on both meshes; 72 s of solve here, 11.6 min
+    there) is the long test's alone: make test's 20 minutes (48 s here without it, 90 s with it)."""
     out = tmp_path / "d"
     status, printed, err = run(capsys, "design", str(_bilobed_mask(tmp_path)), "--out", str(out), "--size-mm", "6.4",
-                               "--elements-per-wall", "1", "--growth-kpa", "1", "--json")
+                               "--elements-per-wall", "1", "--growth-kpa", "none", "--json")
     assert status == 0, err
     summary = json.loads(printed)
     assert summary["mesh"]["elements_per_wall"] == 1 and summary["mesh"]["size_mm"] == 6.4
     assert "a preview: design with 2 before casting" in (out / "report.md").read_text()
-    _check_the_bilobed_design(summary, out, err)
+    _check_the_bilobed_design(summary, out, err, grown_at_1_kpa=False)
 
 
 def test_elements_per_wall_takes_one_or_two(tmp_path):
