@@ -363,13 +363,13 @@ class CorrectionStore:
         with written_atomically(self.path, CorrectionError) as temporary:
             temporary.write_text(json.dumps(document, indent=1) + "\n")
 
-    def to_csv(self) -> str:
+    def to_csv(self, entries: list[Measurement] | None = None) -> str:
         """The measurements as the CSV ``phantom calibrate`` reads (``p0_kpa, ..., measured_ml``, ``medium``: a
         water displacement's phantom hung in water), with ``method``, ``time_utc``, ``scan_file`` and
         ``model_ml`` (the model's volume there when stored) beside, which it ignores. An unconfirmed measurement is
         a ``#`` line (a comment to calibrate) saying why: left out of calibrate's fit as out of every other, and
-        kept in the copy."""
-        entries = self.entries()
+        kept in the copy. ``entries``: the measurements as read already (default: the store's now)."""
+        entries = self.entries() if entries is None else entries
         if not entries:
             raise CorrectionError(f"no measurements stored in {self.path}: nothing to export")
         out = io.StringIO()

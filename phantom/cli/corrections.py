@@ -154,13 +154,13 @@ def _export(store: Any, args: argparse.Namespace) -> int:
     from phantom import written_atomically
     from phantom.model.measurements import CorrectionError
 
-    text = store.to_csv()
+    entries = store.entries()  # read once: the file and the count said are of the same measurements
+    text = store.to_csv(entries)
     if args.out is None:
         print(text, end="")
         return 0
     with written_atomically(Path(args.out), CorrectionError) as temporary:
         temporary.write_text(text)
-    entries = store.entries()
     unconfirmed = [number for number, entry in enumerate(entries, start=1) if entry.status != "confirmed"]
     left_out = "" if not unconfirmed else (
         f"; the unconfirmed measurement(s) {', '.join(map(str, unconfirmed))} as comment lines, left out as from "
