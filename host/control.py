@@ -36,6 +36,12 @@ One send at a time: a vent decided while setpoints are in flight goes out when t
 of reached (:class:`ReachRule`): the pressures within ``settled_kpa`` of the setpoints for ``settled_for_s``, and
 the estimate within ``tolerance_pct`` of what was asked.
 
+Reached is told once per target. A fault latched after it sets every setpoint to 0 (the board's doing): the target
+is then not held (:attr:`ControlCore.target_after_fault` ``not_held``), its setpoints are sent again once the fault
+is cleared (``settling``), and once the same rule holds on them again (the estimate is not asked of a target a scan
+verified: the scan measured the volume at these setpoints) the core tells it, ``held_again``: an event of kind
+``target`` with ``held_again: true`` and no ``outcome``, so that a client waiting on a target is never woken by it.
+
 A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
 then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
 pressures. A scanned gland volume within the share of the tolerance a round aims at (0.6 of it, a third for a scan
@@ -207,6 +213,10 @@ class _Reach:
     settling: Settling
     estimate: tuple[float, tuple[float, ...] | None] | None = None
 
+    def again(self, now: float, rule: ReachRule) -> None:
+        """Judged again from ``now`` (its setpoints sent again): the settling and the estimate start over."""
+        self.applied_s, self.settling, self.estimate = now, Settling(rule), None
+
 
 def setpoints_for(pressures_pa: np.ndarray) -> np.ndarray:
     """The inverse's pressures (Pa) as the wire carries them: whole Pa within 0..32767."""
@@ -279,6 +289,12 @@ class ControlCore:
         self._reach: _Reach | None = None
         #: the target last told reached (not told again when the board takes it again)
         self._reached: Target | None = None
+        #: whether that target's reached came from a scan (held again is then judged on the pressures alone)
+        self._reached_scanned = False
+        #: what became of the reached target after a fault (:attr:`target_after_fault`; None: no fault since)
+        self._after_fault: str | None = None
+        #: the reached target's setpoints sent again after a fault, judged by the reach rule until held again
+        self._again: _Reach | None = None
         self._measured: tuple[float, np.ndarray] | None = None
         #: the verified target's rounds (None: the target is not verified, or its verification ended)
         self._rounds: Rounds | None = None
@@ -320,6 +336,13 @@ class ControlCore:
         """Where the verified target's rounds are (:meth:`phantom.host.verify.Rounds.progress`), None while no
         target is verified."""
         return None if self._rounds is None else self._rounds.progress()
+
+    @property
+    def target_after_fault(self) -> str | None:
+        """What became of the target in force after a fault latched once it was reached: ``not_held`` (the board
+        set every setpoint to 0), ``settling`` (its setpoints sent again once the fault was cleared), ``held_again``
+        (the reach rule holds on them again: told once, as an event); None while no fault came after its reached."""
+        return self._after_fault if self.target is not None else None
 
     @property
     def target_applied(self) -> bool:
@@ -397,7 +420,7 @@ class ControlCore:
             self.state = ControlState.HOLDING
             changed = target != self.target
             self._set_target(now, target, "api", None, None, offer.tolerance_pct)
-            self._reached = None  # asked again: told again
+            self._forget_reached()  # asked again: told again
             self.answer = offer.answer
             self._rounds = self._sure = None
             if offer.verify is not None and target.gland_volume_m3 is not None:
@@ -440,6 +463,7 @@ class ControlCore:
                                                                          "acknowledged it")))
             self._offer_sent = None
         self._replaced(f"vented: {why}")
+        self._forget_reached()
         self.state = ControlState.VENTED
         self.target = self.source = self.answer = self.step = self.ramp = None
         self.pending, self._pending_since_s, self._unreachable = None, None, None
@@ -497,6 +521,8 @@ class ControlCore:
             self.watch.expect(self.setpoints_pa, now)
             if self.target is not None and self._pending_since_s is None:
                 self._pending_since_s = now
+            if self.target is not None and self.target == self._reached:
+                self._after_fault, self._again = "not_held", None  # told reached: no outcome, held again later
             if self._reach is not None:
                 rounds, verifying = self._rounds, ""
                 if rounds is not None:
@@ -540,9 +566,9 @@ class ControlCore:
 
     def estimated(self, now: float, gland_ml: float, chamber_ml: tuple[float, ...] | None) -> None:
         """An estimate of pressures measured at ``now`` or later."""
-        reach = self._reach
-        if reach is not None and now >= reach.applied_s:
-            reach.estimate = (gland_ml, chamber_ml)
+        for reach in (self._reach, self._again):
+            if reach is not None and now >= reach.applied_s:
+                reach.estimate = (gland_ml, chamber_ml)
         self._reach_tick(now)
 
     def model_changed(self, now: float) -> None:
@@ -723,7 +749,7 @@ class ControlCore:
                     ramp: tuple[Target, Target] | None, tolerance_pct: float | None) -> None:
         if target != self.target or source != self.source:
             self._replaced(f"replaced by {target.describe()} ({source})")
-            self._reached = None
+            self._forget_reached()
         if self._pending_since_s is None:
             self._pending_since_s = now
         if self.answer is not None and self.answer.target != target:
@@ -746,10 +772,19 @@ class ControlCore:
     def _start_reach(self, now: float) -> None:
         """Judge reached from now on (a scene's ramp points are not waited on: its step is, once the ramp ends)."""
         target = self.target
+        if target is not None and target == self._reached and self._after_fault in ("not_held", "settling"):
+            # reached before a fault: its setpoints, sent again, are judged until held again (told once)
+            self._after_fault = "settling"
+            if self._again is not None and self._again.target == target:
+                self._again.again(now, self.rule)
+            else:
+                self._again = _Reach(target, self.source or "", self.step, self.tolerance_pct
+                                     or self.rule.tolerance_pct, now, Settling(self.rule))
+            return
         if target is None or self.ramp is not None or target == self._reached:
             return
         if self._reach is not None and self._reach.target == target:
-            self._reach.applied_s, self._reach.settling, self._reach.estimate = now, Settling(self.rule), None
+            self._reach.again(now, self.rule)
             return
         self._reach = _Reach(target, self.source or "", self.step, self.tolerance_pct or self.rule.tolerance_pct, now,
                              Settling(self.rule))
@@ -762,20 +797,31 @@ class ControlCore:
                           "take it"), "WARN")
         self.pending = why
 
-    def _reach_tick(self, now: float) -> None:
-        """Reached: the one definition (:class:`ReachRule`). A scan's verified target adds its check after it."""
-        reach = self._reach
-        if (reach is None or reach.target != self.applied or not self.board_ready or self.fault_names
-                or self._measured is None or self.setpoints_pa is None):
-            return
+    def _settled_s(self, reach: _Reach, now: float) -> float | None:
+        """How long (s) the pressures have been within the rule's band of the setpoints held for ``reach``'s
+        target, once that is long enough and there is an estimate to judge; None before."""
+        if (reach.target != self.applied or not self.board_ready or self.fault_names or self._measured is None
+                or self.setpoints_pa is None):
+            return None
         measured_s, measured_pa = self._measured
         if measured_s < reach.applied_s:
-            return
+            return None
         reach.settling.frame(measured_s, measured_pa, self.setpoints_pa)
         since_s = reach.settling.since_s
         settled_s = 0.0 if since_s is None else now - since_s
         if settled_s < self.rule.settled_for_s or reach.estimate is None:
+            return None
+        return settled_s
+
+    def _reach_tick(self, now: float) -> None:
+        """Reached: the one definition (:class:`ReachRule`). A scan's verified target adds its check after it."""
+        self._held_again_tick(now)
+        reach = self._reach
+        settled_s = None if reach is None else self._settled_s(reach, now)
+        if reach is None or settled_s is None or reach.estimate is None or self._measured is None:
             return
+        measured_pa = self._measured[1]
+        assert self.setpoints_pa is not None  # (judged on them)
         gland_ml, chamber_ml = reach.estimate
         rounds = self._rounds
         if rounds is None:
@@ -812,10 +858,36 @@ class ControlCore:
                       "band_pct": band_pct, "measurements": answer.measurements}
         self._reached_now(reach, "reached", text, extra)
 
+    def _held_again_tick(self, now: float) -> None:
+        """A reached target's setpoints, sent again after a fault, held again by the same rule: told once, as an
+        event without an outcome (its outcome was told: reached)."""
+        again = self._again
+        settled_s = None if again is None else self._settled_s(again, now)
+        if again is None or settled_s is None or again.estimate is None or self._measured is None:
+            return
+        gland_ml, chamber_ml = again.estimate
+        if not self._reached_scanned and not estimate_within(again.target, self.answer, gland_ml, chamber_ml,
+                                                             again.tolerance_pct):
+            return
+        self._again, self._after_fault = None, "held_again"
+        self._tell("target", f"target {again.target.describe()} held again after the fault: estimate "
+                   f"{gland_ml:.2f} ml, pressures settled for {settled_s:.1f} s",
+                   data={"held_again": True, "target": again.target.to_json(), "source": again.source,
+                         "estimated_volume_ml": gland_ml,
+                         "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
+                         "measured_pressures_kpa": [float(p) / PA_PER_KPA for p in self._measured[1]],
+                         "after_s": now - again.applied_s})
+
+    def _forget_reached(self) -> None:
+        """The target is judged afresh (another one, the same asked again, a vent): its reached and what came of
+        it after a fault go."""
+        self._reached, self._reached_scanned, self._after_fault, self._again = None, False, None, None
+
     def _reached_now(self, reach: _Reach, outcome: str, text: str, extra: dict[str, Any]) -> None:
         if reach.step is not None:
             self._actions.append(StepReached(reach.step))
-        self._reached = reach.target
+        self._reached, self._reached_scanned = reach.target, extra.get("scanned_volume_ml") is not None
+        self._after_fault, self._again = None, None
         self._outcome(outcome, text, extra=extra)
 
     def _verified_outcome(self, reach: _Reach, rounds: Rounds, text: str) -> None:

@@ -27,7 +27,12 @@ def of_kind(actions, kind):
 
 
 def outcomes(actions):
-    return [action.data["outcome"] for action in of_kind(actions, control.Tell) if action.data]
+    return [tell.data["outcome"] for tell in of_kind(actions, control.Tell) if tell.data and "outcome" in tell.data]
+
+
+def held_again(actions):
+    """The "held again after the fault" events among the actions (data without an outcome)."""
+    return [tell for tell in of_kind(actions, control.Tell) if tell.data and tell.data.get("held_again")]
 
 
 @pytest.fixture
@@ -158,6 +163,111 @@ def test_a_fault_before_reached_is_told_faulted_and_the_target_is_sent_again_onc
     core.faults(3.0, ())
     (send,) = of_kind(core.take_actions(), control.SendSetpoints)  # the known answer, no new solve
     assert send.target == target
+
+
+def fault_and_clear(core, at, target, names=("SENSOR_1",)):
+    """A fault latched at ``at`` and cleared a second later: the target's setpoints sent again and acknowledged;
+    the actions."""
+    core.faults(at, names)
+    actions = core.take_actions()
+    core.faults(at + 1.0, ())
+    actions += core.take_actions()
+    (send,) = of_kind(actions, control.SendSetpoints)
+    assert send.target == target
+    core.sent(at + 1.1, target)
+    return actions + core.take_actions()
+
+
+def test_a_reached_target_held_again_after_a_fault_is_told_once_by_the_same_rule_and_is_no_second_outcome(core):
+    """The panel judged "held again after the fault" itself (its own copy of the settled band): the core says it,
+    by the reach rule, in an event without an outcome (a client waiting on a target is not woken by it) and in its
+    state (the status's ``target_after_fault``)."""
+    target = volume(32.0)
+    hold(core, 0.0, target)
+    assert outcomes(settle(core, 0.0, 1.2, estimate_ml=32.0)) == ["reached"] and core.target_after_fault is None
+    core.faults(2.0, ("SENSOR_1",))
+    actions = core.take_actions()
+    assert outcomes(actions) == [] and held_again(actions) == []      # reached already: no "faulted" outcome
+    assert core.target_after_fault == "not_held"                      # the board set every setpoint to 0
+    core.faults(3.0, ())
+    (send,) = of_kind(core.take_actions(), control.SendSetpoints)
+    assert core.target_after_fault == "not_held"                      # not held until the board took them
+    core.sent(3.1, target)
+    core.take_actions()
+    assert core.target_after_fault == "settling"
+    # the same rule as reached: the pressures within the band for settled_for_s ...
+    assert held_again(settle(core, 3.1, 1.2, kpa=(0.0, 0.0, 0.0), estimate_ml=32.0)) == []   # still at 0
+    assert held_again(settle(core, 4.4, 0.8, estimate_ml=32.0)) == []                         # 0.8 s: not yet
+    assert held_again(settle(core, 5.3, 0.3, kpa=(1.2, 0.5, 0.5), estimate_ml=32.0)) == []    # off: restarts
+    # ... and the estimate within the target's tolerance
+    assert held_again(settle(core, 5.7, 1.5, estimate_ml=33.0)) == []                         # 3 % off
+    assert core.target_after_fault == "settling"
+    actions = settle(core, 7.3, 1.2, estimate_ml=32.1)
+    (told,) = held_again(actions)
+    assert outcomes(actions) == [] and of_kind(actions, control.StepReached) == []
+    assert told.kind == "target" and "outcome" not in told.data
+    assert "held again after the fault" in told.text and told.text.startswith("target 32.00 ml")
+    assert told.data["target"] == {"volume_ml": pytest.approx(32.0)} and told.data["source"] == "api"
+    assert told.data["estimated_volume_ml"] == 32.1 and told.data["measured_pressures_kpa"] == [1.0, 0.5, 0.5]
+    assert core.target_after_fault == "held_again"
+    assert held_again(settle(core, 8.6, 2.0, estimate_ml=32.1)) == []                         # told once
+
+
+def test_a_fault_while_settling_again_is_no_outcome_and_a_new_target_forgets_the_fault(core):
+    target = volume(32.0)
+    hold(core, 0.0, target)
+    settle(core, 0.0, 1.2, estimate_ml=32.0)
+    fault_and_clear(core, 2.0, target)
+    settle(core, 3.1, 0.5, estimate_ml=32.0)
+    core.faults(3.7, ("OVERPRESSURE",))                                # again, before it was held again
+    actions = core.take_actions()
+    assert outcomes(actions) == [] and core.target_after_fault == "not_held"
+    core.faults(4.0, ())
+    core.take_actions()
+    core.sent(4.1, target)
+    core.take_actions()
+    (told,) = held_again(settle(core, 4.1, 1.2, estimate_ml=32.0))
+    assert core.target_after_fault == "held_again"
+    # the same target asked again is judged again: a reached outcome, the fault forgotten
+    hold(core, 6.0, target, request=2)
+    assert core.target_after_fault is None
+    assert outcomes(settle(core, 6.0, 1.2, estimate_ml=32.0)) == ["reached"]
+    # another target forgets it too; a vent as well
+    fault_and_clear(core, 8.0, target)
+    assert core.target_after_fault == "settling"
+    actions = hold(core, 9.5, volume(35.0), kpa=(1.5, 0.5, 0.5), request=3)
+    assert outcomes(actions) == [] and core.target_after_fault is None   # no "replaced": it was reached
+    settle(core, 9.5, 1.2, kpa=(1.5, 0.5, 0.5), estimate_ml=35.0)
+    core.faults(11.0, ("LEAK_0",))
+    assert core.target_after_fault == "not_held"
+    core.vent(11.5, "on request")
+    assert core.target_after_fault is None
+
+
+def test_a_target_faulted_before_it_was_reached_is_reached_once_cleared_not_held_again(core):
+    target = volume(32.0)
+    hold(core, 0.0, target)
+    core.faults(0.5, ("OVERPRESSURE",))
+    assert outcomes(core.take_actions()) == ["faulted"] and core.target_after_fault is None
+    core.faults(1.0, ())
+    core.take_actions()
+    core.sent(1.1, target)
+    actions = settle(core, 1.1, 1.2, estimate_ml=32.0)
+    assert outcomes(actions) == ["reached"] and held_again(actions) == [] and core.target_after_fault is None
+
+
+def test_a_scene_step_held_again_after_a_fault_is_told_and_not_reached_twice():
+    core = ControlCore(3, ReachRule(settled_kpa=0.1, settled_for_s=1.0, tolerance_pct=1.0))
+    core.board(0.0, True)
+    core.scene_started(0.0)
+    core.want(0.0, volume(30.0), "scene:bph", 0)
+    core.solved(0.1, volume(30.0), answer_for(volume(30.0)))
+    core.sent(0.2, volume(30.0))
+    assert control.StepReached(0) in settle(core, 0.2, 1.2, estimate_ml=30.0)
+    fault_and_clear(core, 2.0, volume(30.0))
+    actions = settle(core, 3.1, 1.2, estimate_ml=30.0)
+    (told,) = held_again(actions)
+    assert told.data["source"] == "scene:bph" and of_kind(actions, control.StepReached) == []
 
 
 def test_a_vent_drops_the_target_and_the_scene_and_answers_its_request_once_acknowledged(core):

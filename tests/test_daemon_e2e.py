@@ -278,13 +278,22 @@ def test_a_latched_fault_is_shown_and_cleared_only_on_request(rig):
     # the cause is gone but the fault stays latched until someone asks
     answer = status(rig)
     assert "SENSOR_1" in answer["faults"] and answer["chamber_states"] == ["FAULT"] * 3
+    assert answer["target_after_fault"] == "not_held"     # reached before the fault: the board zeroed its setpoints
     cleared = phantom_cli(rig, "clear-fault", "--json")
     assert cleared.returncode == 0, cleared.stderr
     assert json.loads(cleared.stdout) == {"cleared": ["SENSOR_1"], "setpoints_restored": True,
                                           "target": {"volume_ml": 32.0}}
     wait_until(lambda: status(rig)["faults"] == [], 5, rig, "faults cleared")
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "volume back at 32 ml after the fault")
-    texts = [event["text"] for event in status(rig)["events"]]
+    # held again by the daemon's reached rule: said in the status and told once, as no second outcome
+    wait_until(lambda: status(rig)["target_after_fault"] == "held_again", 30, rig, "the target held again")
+    events = status(rig)["events"]
+    (held,) = [event for event in events if event.get("held_again")]
+    assert held["kind"] == "target" and "outcome" not in held and held["target"] == {"volume_ml": 32.0}
+    assert "held again after the fault" in held["text"]
+    latched_s = max(event["time_s"] for event in events if event["kind"] == "fault" and "latched" in event["text"])
+    assert not [event for event in events if event.get("outcome") and event["time_s"] >= latched_s]
+    texts = [event["text"] for event in events]
     assert any("SENSOR_1" in text and "latched" in text for text in texts)
 
 

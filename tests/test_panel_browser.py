@@ -391,7 +391,8 @@ def test_a_latched_fault_is_shown_in_words_and_cleared(panel):
     """A fault latched while a reached target is held: the sticky header says FAULT wherever the page is scrolled
     (1024x768, at the scenes: the banner above them was off screen), the target is no longer "reached" and the
     header no longer "holding"; a preset pressed meanwhile is refused and not highlighted; the words point to the
-    page's Clear fault button; once cleared the waiting words go at once."""
+    page's Clear fault button; once cleared the waiting words go at once, and the target is said held again once
+    the daemon says so."""
     panel.driver.find_element(By.CSS_SELECTOR, '.preset[data-name="left lobe enlarged"]').click()
     panel.wait(lambda: panel.text("target-state").startswith("reached"), 90, "left lobe enlarged reached")
     assert "34.0 ml (growth left lobe 3, right lobe 1)" in panel.text("target-text")  # the chambers by name
@@ -431,7 +432,11 @@ def test_a_latched_fault_is_shown_in_words_and_cleared(panel):
                and not panel.text("target-state").startswith(("waiting", "not held")), 3,
                "the fault's words gone from the target")
     assert "FAULT" not in panel.text("control")
-    panel.wait(lambda: panel.text("target-state").startswith("reached"), 60, "the target held again")
+    panel.wait(lambda: "the target's setpoints are restored" in panel.text("notice"), 12, "the clear's answer")
+    # held again: the daemon's word (its reached rule, the status's target_after_fault), not the page's own
+    panel.wait(lambda: panel.text("target-state").endswith("held again after the fault"), 60, "the target held again")
+    assert panel.text("target-state").startswith("reached") and panel.status()["target_after_fault"] == "held_again"
+    panel.shot("held-again")
     print(f"after the fault: {panel.text('target-state')}")
 
 

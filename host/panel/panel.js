@@ -217,11 +217,14 @@ function renderTarget() {
     setTargetState(`waiting: ${panelWords(status.target_pending)}`, "working");
   } else if (status.verify && !told) {
     setTargetState(`verifying, round ${status.verify.round}…`, "working"); // the line below says how far
-  } else if (told && told.outcome === "reached" && told.faulted) {
-    // reached before a fault; held again since it was cleared (the daemon does not tell reached twice): the
-    // pressures back within the reached rule's band of their setpoints say it is held again
-    setTargetState(settled(status) ? `${told.text}, held again after the fault` : "held again after the fault: "
-      + "settling…", settled(status) ? "reached" : "working");
+  } else if (status.target_after_fault === "held_again") {
+    // reached before a fault, and held again since it was cleared: the daemon's word (its reached rule), told once
+    const reached = told && told.outcome === "reached" ? `${told.text}, ` : "";
+    setTargetState(`${reached}held again after the fault`, "reached");
+  } else if (status.target_after_fault === "settling") {
+    setTargetState("settling again after the fault…", "working");
+  } else if (status.target_after_fault === "not_held") {
+    setTargetState("not held since the fault: its setpoints are being sent again…", "working");
   } else if (told && told.outcome === "reached") {
     setTargetState(told.text, "reached");
   } else if (told && told.outcome !== "faulted") {
@@ -229,13 +232,6 @@ function renderTarget() {
   } else {
     setTargetState("reaching…", "working"); // (a target faulted is reached again once the fault is cleared)
   }
-}
-
-function settled(status) {
-  const measured = status.pressures_mean_kpa;
-  const setpoints = status.setpoints_kpa;
-  const band = (status.reached_rule && status.reached_rule.settled_kpa) || 0.1;
-  return Boolean(measured && setpoints && setpoints.every((setpoint, i) => Math.abs(measured[i] - setpoint) <= band));
 }
 
 // The daemon's words for the CLI, as the page says them (it has a button for it).
@@ -291,10 +287,6 @@ function onStatus(status) {
   state.wordsMs = now;
   state.faultCount = faults.length;
   state.control = status.control;
-  const key = targetKey(status.target);
-  if (faults.length && state.outcome && state.outcome.key === key && state.outcome.outcome === "reached") {
-    state.outcome.faulted = true;
-  }
   // vented and the chambers emptied: the gland back at rest is drawn once (a vent has no "reached")
   if (status.control === "vented" && status.pressures_kpa && Math.max(...status.pressures_kpa) < 0.05
       && state.glandKpa > 0.1) {
@@ -528,7 +520,8 @@ function wire() {
   $("vent").addEventListener("click", () => { showRequest(null); act("vent", {}, "vent").catch(() => {}); });
   $("clear-fault").addEventListener("click", async () => {
     const answer = await act("clear_fault", {}, "clear the fault");
-    notice(`cleared ${answer.cleared.join(", ") || "nothing"}${answer.setpoints_restored ? "; the target is held again" : ""}`, "ok");
+    notice(`cleared ${answer.cleared.join(", ") || "nothing"}${answer.setpoints_restored
+      ? "; the target's setpoints are restored" : ""}`, "ok");
   });
   const slider = $("volume-slider");
   slider.addEventListener("input", () => { $("volume-value").textContent = `${Number(slider.value).toFixed(1)} ml`; });
