@@ -287,6 +287,8 @@ def test_a_latched_fault_is_shown_and_cleared_only_on_request(rig):
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "volume back at 32 ml after the fault")
     # held again by the daemon's reached rule: said in the status and told once, as no second outcome
     wait_until(lambda: status(rig)["target_after_fault"] == "held_again", 30, rig, "the target held again")
+    said = phantom_cli(rig, "status")
+    assert "); held again after the fault\n" in said.stdout, said.stdout + said.stderr  # phantom status says it
     events = status(rig)["events"]
     (held,) = [event for event in events if event.get("held_again")]
     assert held["kind"] == "target" and "outcome" not in held and held["target"] == {"volume_ml": 32.0}

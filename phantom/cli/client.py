@@ -186,6 +186,11 @@ def _faults(status: dict[str, Any]) -> str:
     return known if status["link"] == "online" else f"unknown while the link is {status['link']} (last known: {known})"
 
 
+#: What became of a reached target after a fault (the status's ``target_after_fault``), as ``phantom status`` says it.
+AFTER_FAULT_WORDS = {"not_held": "not held since the fault: its setpoints go again once it is cleared",
+                     "settling": "settling again after the fault", "held_again": "held again after the fault"}
+
+
 def format_status(status: dict[str, Any]) -> str:
     """A few readable lines of a status answer, one column per chamber (named as the scene names them)."""
     link = status["link_detail"]
@@ -202,7 +207,8 @@ def format_status(status: dict[str, Any]) -> str:
         f"board     {board.get('board', '-')} firmware {board.get('firmware_version', '-')}, reset cause "
         f"{board.get('reset_cause', '-')}; rtt {rtt}, retries {stats['retries']}, bad frames {stats['bad_frames']}, "
         f"reconnects {stats['reconnects']}",
-        f"control   {status['control']}" + (f" ({status['target_source']})" if status.get("target_source") else ""),
+        f"control   {status['control']}" + (f" ({status['target_source']})" if status.get("target_source") else "")
+        + (f"; {AFTER_FAULT_WORDS[status['target_after_fault']]}" if status.get("target_after_fault") else ""),
         f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in _labels(status)),
         f"{'pressure':<9} {_per_chamber(status['pressures_kpa'])}  kPa measured",
         f"{'setpoint':<9} {_per_chamber(status['setpoints_kpa'])}  kPa",
