@@ -82,7 +82,7 @@ def closed_pressure_pa(stretch: float, mu: float) -> float:
 def sphere_cases(size_mm: float, quick: bool, peer: bool) -> None:
     model = sphere(size_mm)
     model.rest_factorization()
-    model.equilibrium([1.0])  # compile the kernels once
+    model.equilibrium([0.01 * model.material.lame_mu_pa])  # compile the kernels once (a real load, not a kPa typo)
     mu = model.material.lame_mu_pa
     peak_pa = PEAK_OVER_MU * mu
     rest = model.rest_chamber_volumes_m3[0]

@@ -107,6 +107,8 @@ class LoadedModel:
         self.correction_size_ml: float | None = None
         #: the shape inverse, made at its first target (``set_target`` with ``shape``)
         self._shape_inverse: Any = None
+        #: whether the last measured pressures lay beyond what the table answers (:meth:`measured` says so once)
+        self._beyond_table = False
 
     def table_stored(self) -> bool:
         """Whether the scene's response table is in the disk cache (or shipped), so the table level costs no build."""
@@ -255,9 +257,24 @@ class LoadedModel:
         return replace(answer, band_ml=band_ml, measurements=self.corrected.correction.count)
 
     def measured(self, pressures_pa: np.ndarray) -> np.ndarray:
-        """Measured pressures (Pa) as the estimator takes them: negative ones 0, and on the full solve rounded to
+        """Measured pressures (Pa) as the estimator takes them: negative ones 0; on the table no further over its
+        box than it answers (a sensor a count or two over the box is in its linear extension; one far over it, a
+        fault, is estimated at the extension's edge, and the log says so once per excursion: the table refuses
+        it, and a refusal would leave the daemon without an estimate); and on the full solve rounded to
         FULL_SOLVE_QUANTUM_PA."""
         pressures = np.clip(np.asarray(pressures_pa, dtype=float), 0.0, None)
+        table = self.estimator.table
+        if table is not None:
+            edge_pa = table.pressure_max_pa + table.extension_pa
+            beyond = bool(np.any(pressures > edge_pa))
+            if beyond and not self._beyond_table:
+                logger.warning("measured pressures %s kPa lie outside the model's box, 0-%g kPa, further than its "
+                               "table answers (%g kPa): the volumes are estimated at the table's edge, %g kPa, "
+                               "until they are back", ", ".join(f"{p:g}" for p in pressures / PA_PER_KPA),
+                               table.pressure_max_pa / PA_PER_KPA, table.extension_pa / PA_PER_KPA,
+                               edge_pa / PA_PER_KPA)
+            self._beyond_table = beyond
+            pressures = np.minimum(pressures, edge_pa)
         if self.estimator.level == "full":
             pressures = np.round(pressures / FULL_SOLVE_QUANTUM_PA) * FULL_SOLVE_QUANTUM_PA
         return np.asarray(pressures, dtype=float)
@@ -618,10 +635,14 @@ def _fitter_fit(scene_source: str, level: str, store_path: str) -> FitAnswer:
         stored = len(entries)
         if not entries:
             return FitAnswer(None, None, None, signature, 0, 0.0)
-        confirmed = [entry for entry in entries if entry.status == "confirmed"]  # the unconfirmed wait for a person
+        # the unconfirmed wait for a person, the refused (a volume no gland has) for one to remove them
+        confirmed = [entry for entry in entries if entry.status == "confirmed"]
         if not confirmed:
+            refused = "".join(f"; measurement {number} refused: {entry.reason} (`phantom corrections remove "
+                              f"{number}`)" for number, entry in enumerate(entries, start=1)
+                              if entry.status == "refused")
             return FitAnswer(None, None, f"none of the {stored} stored measurement(s) is confirmed (`phantom "
-                             f"corrections list`)", signature, stored, 0.0)
+                             f"corrections list`){refused}", signature, stored, 0.0)
         grid = _fitter_grid(scene_source, level)
         correction = cached_fit(confirmed, grid)
         return FitAnswer(correction, correction.summary(grid), None, signature, stored,
@@ -645,8 +666,10 @@ def _fitter_record(scene_source: str, level: str, store_path: str, measurement: 
     store = CorrectionStore(store_path)
     stored = replace(measurement, model=scene_source, model_volume_ml=grid.gland_ml(on_box))
     # a call retried after the fitter died (SIGTERM to the daemon's process group mid-fit) finds its measurement
-    # stored already, judged then: it is not stored (nor judged) twice
-    kept = next((entry for entry in store.entries() if replace(entry, status="confirmed", reason=None) == stored), None)
+    # stored already, judged then: it is not stored (nor judged) twice (compared as stored with the entry's status:
+    # a refused entry, a volume no gland has, cannot be made confirmed to compare)
+    kept = next((entry for entry in store.entries()
+                 if replace(stored, status=entry.status, reason=entry.reason) == entry), None)
     if kept is None:
         kept = judged(stored, grid, store.confirmed(), scene_source)
         store.add(kept)
@@ -847,8 +870,11 @@ class ModelWorker:
         if fit.summary is None:
             return "correction", f"no correction of {name} in force: {fit.error}", "WARN"
         summary = fit.summary
+        # the unconfirmed and the refused stored beside them: the listing says which and why
+        left_out = (f" ({fit.stored - summary['count']} of the {fit.stored} stored left out of it: `phantom "
+                    f"corrections list`)" if fit.stored > summary["count"] else "")
         return "correction", (f"correction of {name} in force: {summary['kind']} from {summary['count']} "
-                              f"measurement(s), up to {summary['size_ml']:.3f} ml over the pressure box, "
+                              f"measurement(s){left_out}, up to {summary['size_ml']:.3f} ml over the pressure box, "
                               f"leave-one-out {_leave_one_out_words(summary)} (fitted in {fit.fit_s:.1f} s)"), "INFO"
 
     def correction_status(self) -> dict[str, Any]:

@@ -24,6 +24,7 @@ _EXPORTS = {
     "MeshError": "phantom.model.errors",
     "SolveError": "phantom.model.errors",
     "PeakPressureError": "phantom.model.errors",
+    "PressureUnitWarning": "phantom.model.errors",
     "SceneError": "phantom.model.errors",
 }
 

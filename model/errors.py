@@ -18,6 +18,12 @@ class SolveError(PhantomError):
     """A solve that did not converge or inverted elements; the message names the chamber and pressure."""
 
 
+class PressureUnitWarning(UserWarning):
+    """Chamber pressures that look like kPa given where Pa are taken (:func:`phantom.model.fem.model.warn_if_kpa`):
+    ``equilibrium([1, 2, 0.5])`` answers all but the rest shape. A load of a few Pa on purpose silences it with
+    ``warnings.filterwarnings("ignore", category=PressureUnitWarning)``."""
+
+
 class PeakPressureError(SolveError):
     """A pressure above a chamber's peak: its pressure-volume curve rises to a limit point and falls beyond, so no
     equilibrium under that pressure lies on the path from rest (a pressure source would burst it through).

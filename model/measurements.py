@@ -18,7 +18,10 @@ N``) or removes it (``remove N``). The expectation is the corrected model's wher
 
 The store is read defensively (a damaged store must never stop the daemon): a link, a pipe or a device in its
 place is refused before it is opened, duplicate keys, wrong types and absurd numbers are refused with the field
-named.
+named. One measured volume that is a number but no gland's (outside :data:`GLAND_VOLUME_RANGE_ML`: an older
+version, or a hand edit, stored it) does not take the rest of the store with it: that entry is read *refused*,
+with why, kept in the file and left out of every fit, until a person removes it (or corrects it by hand and
+confirms it).
 """
 
 from __future__ import annotations
@@ -51,8 +54,9 @@ METHODS = ("scan", "water_displacement")
 MAX_STORE_BYTES = 16 * 2**20
 #: A phantom's name in the store: a file name's safe characters.
 NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
-#: Whether a stored measurement is in the fit (``confirmed``) or held out until a person confirms it.
-STATUSES = ("confirmed", "unconfirmed")
+#: Whether a stored measurement is in the fit (``confirmed``), held out until a person confirms it
+#: (``unconfirmed``), or held out because its volume is no gland's (``refused``: the store's reader gives it).
+STATUSES = ("confirmed", "unconfirmed", "refused")
 #: The largest model volume (ml) and pressure (kPa) a measurement may hold: far beyond any phantom (a prostate is
 #: tens of ml; the blowers give a few kPa), far below what overflows a fit (1e300 ml crashed OSQP and the daemon).
 #: The measured volume itself is a whole gland's (:data:`GLAND_VOLUME_RANGE_ML`).
@@ -100,7 +104,8 @@ class Measurement:
     scan_file: str | None = None
     model: str | None = None
     model_volume_ml: float | None = None
-    #: ``confirmed`` (in the fit) or ``unconfirmed`` (held out: ``reason`` says why, a person confirms it)
+    #: ``confirmed`` (in the fit), ``unconfirmed`` (held out: ``reason`` says why, a person confirms it) or
+    #: ``refused`` (held out: its volume is no gland's, ``reason`` says so; any other volume is refused outright)
     status: str = "confirmed"
     reason: str | None = None
 
@@ -112,10 +117,10 @@ class Measurement:
                                   f"only push), at most {MAX_PRESSURE_KPA:g}, 1-{MAX_CHAMBERS} of them "
                                   f"(pressures_kpa), got "
                                   f"{_shown(list(pressures) if isinstance(pressures, tuple) else pressures)}")
-        low, high = GLAND_VOLUME_RANGE_ML
-        if not (is_finite_number(self.volume_ml) and low <= self.volume_ml <= high):
-            raise CorrectionError(f"a measured volume must be a finite number of ml within a whole gland's, "
-                                  f"{low:g}-{high:g} ml (volume_ml){_unit_hint(self.volume_ml)}")
+        problem = _volume_problem(self.volume_ml)
+        # a refused measurement holds the volume the store held, whatever it is, as long as it is a number
+        if problem is not None and not (self.status == "refused" and is_finite_number(self.volume_ml)):
+            raise CorrectionError(problem)
         if self.method not in METHODS:
             raise CorrectionError(f"a measurement's method is one of {', '.join(METHODS)}, got {_shown(self.method)}")
         if self.model_volume_ml is not None and not (is_finite_number(self.model_volume_ml)
@@ -129,6 +134,8 @@ class Measurement:
                                       f"{'' if name == 'time_utc' else ' or null'}, got {_shown(value)}")
         if self.status not in STATUSES:
             raise CorrectionError(f"a measurement's status is one of {', '.join(STATUSES)}, got {_shown(self.status)}")
+        if self.status == "refused" and not self.reason:
+            raise CorrectionError("a refused measurement says why it is refused (reason)")
 
     @classmethod
     def now(cls, pressures_kpa: ArrayLike, volume_ml: float, method: str = "scan", scan_file: str | None = None,
@@ -146,6 +153,26 @@ def _check_chambers(entries: list[Measurement]) -> None:
     if last != first:
         raise ValueError(f"it has {last} pressures, measurement 1 has {first}: a phantom's measurements have one "
                          f"per chamber; is it another phantom's?")
+
+
+def _volume_problem(volume: object) -> str | None:
+    """What is wrong with a measured volume (ml), None when it is a whole gland's (:data:`GLAND_VOLUME_RANGE_ML`)."""
+    low, high = GLAND_VOLUME_RANGE_ML
+    if is_finite_number(volume) and low <= volume <= high:
+        return None
+    return (f"a measured volume must be a finite number of ml within a whole gland's, {low:g}-{high:g} ml "
+            f"(volume_ml){_unit_hint(volume)}")
+
+
+def _read_entry(entry: dict[str, Any]) -> Measurement:
+    """A stored entry as a measurement: one whose volume is a number but no gland's is ``refused``, saying why (its
+    stored status and reason give way: no fit may use it, whatever a person said of it before)."""
+    fields = {**entry, "pressures_kpa": tuple(entry["pressures_kpa"])}
+    problem = _volume_problem(entry.get("volume_ml"))
+    if problem is not None and is_finite_number(entry.get("volume_ml")):
+        fields |= {"status": "refused", "reason": f"read as {entry['volume_ml']:g} ml: {problem}; left out of every "
+                                                  f"fit (an older version or a hand edit stored it)"}
+    return Measurement(**fields)
 
 
 def _unit_hint(volume: object) -> str:
@@ -243,6 +270,8 @@ class CorrectionStore:
     def entries(self) -> list[Measurement]:
         """The stored measurements, oldest first ([] when there are none).
 
+        An entry whose volume is a number but no gland's is read ``refused`` (its reason says why), not as damage.
+
         Raises
         ------
         CorrectionError
@@ -266,7 +295,7 @@ class CorrectionStore:
                 try:
                     if not isinstance(entry, dict) or not isinstance(entry.get("pressures_kpa"), list):
                         raise ValueError("not an object with a list pressures_kpa")
-                    entries.append(Measurement(**{**entry, "pressures_kpa": tuple(entry["pressures_kpa"])}))
+                    entries.append(_read_entry(entry))
                     _check_chambers(entries)
                 except (ValueError, TypeError, CorrectionError) as error:
                     raise ValueError(f"measurement {number}: {error}") from None
@@ -293,14 +322,19 @@ class CorrectionStore:
         return read_text(self.path, MAX_STORE_BYTES, "the correction store", CorrectionError)
 
     def confirmed(self) -> list[Measurement]:
-        """The stored measurements a fit uses: every one but those held unconfirmed."""
+        """The stored measurements a fit uses: every one but those held unconfirmed or refused."""
         return [entry for entry in self.entries() if entry.status == "confirmed"]
 
     def confirm(self, number: int) -> Measurement:
-        """Confirm measurement ``number`` (1 = the oldest, as listed): a person says it is right; it."""
+        """Confirm measurement ``number`` (1 = the oldest, as listed): a person says it is right; it. CorrectionError
+        for one whose volume is no gland's: no word of a person makes it one."""
         with self._locked():
             entries = self.entries()
             self._check_number(number, entries)
+            if _volume_problem(entries[number - 1].volume_ml) is not None:
+                raise CorrectionError(f"measurement {number} cannot be confirmed: {entries[number - 1].reason}. "
+                                      f"Remove it (`phantom corrections remove {number}`) and add the volume again "
+                                      f"in ml")
             entries[number - 1] = replace(entries[number - 1], status="confirmed", reason=None)
             self._write(entries)
             return entries[number - 1]
@@ -367,8 +401,9 @@ class CorrectionStore:
         """The measurements as the CSV ``phantom calibrate`` reads (``p0_kpa, ..., measured_ml``, ``medium``: a
         water displacement's phantom hung in water), with ``method``, ``time_utc``, ``scan_file`` and
         ``model_ml`` (the model's volume there when stored) beside, which it ignores. An unconfirmed measurement is
-        a ``#`` line (a comment to calibrate) saying why: left out of calibrate's fit as out of every other, and
-        kept in the copy. ``entries``: the measurements as read already (default: the store's now)."""
+        a ``#`` line (a comment to calibrate) saying why, and so is a refused one: left out of calibrate's fit as
+        out of every other, and kept in the copy. ``entries``: the measurements as read already (default: the
+        store's now)."""
         entries = self.entries() if entries is None else entries
         if not entries:
             raise CorrectionError(f"no measurements stored in {self.path}: nothing to export")
@@ -382,6 +417,6 @@ class CorrectionStore:
                    "water" if entry.method == "water_displacement" else "air", entry.method, entry.time_utc,
                    entry.scan_file or "", "" if entry.model_volume_ml is None else f"{entry.model_volume_ml:.6g}"]
             if entry.status != "confirmed":
-                out.write(f"# measurement {number} unconfirmed ({entry.reason or 'not confirmed'}), left out: ")
+                out.write(f"# measurement {number} {entry.status} ({entry.reason or 'not confirmed'}), left out: ")
             writer.writerow(row)
         return out.getvalue()

@@ -541,3 +541,23 @@ def test_the_band_between_two_clusters_of_scans_assumes_no_smoother_a_residual_t
     assert mean_now == pytest.approx(mean_before)                         # the mean is the fitted process's
     _, at_scan = CorrectedModel(grid, smooth).gland_band_ml(np.array(clusters[0][0]))
     assert at_scan < 2.5 * 0.0012 * grid.gland_ml(np.array(clusters[0][0]))
+
+
+def test_two_scans_at_the_same_pressures_that_disagree_widen_the_band_there_by_their_disagreement():
+    """35 and 39 ml measured at the same pressures, passed straight to fit_correction (the command line and the
+    daemon hold the second unconfirmed; a library user need not): below three measurements the white noise was not
+    fitted, and the band there was +-0.06 ml, as if the scanner alone erred. Their disagreement is now the white
+    noise's floor: the band is at least half their difference. Scans that agree, and scans at different
+    pressures, keep the fit they had (the verify loop's numbers come from it)."""
+    grid = _linear_grid()
+    at = (1.0, 1.0, 1.0)
+    correction = fit_correction([Measurement(at, 35.0), Measurement(at, 39.0)], grid)
+    _, band_ml = CorrectedModel(grid, correction).gland_band_ml(np.array(at))
+    assert band_ml >= 0.5 * (39.0 - 35.0), band_ml
+    assert correction.white_noise_ml == pytest.approx(np.sqrt(0.5 * 4.0 ** 2), rel=0.01)
+    # replicates the scanner's own noise explains leave the white noise at its bound: no floor
+    agreeing = fit_correction([Measurement(at, 30.00), Measurement(at, 30.02)], grid)
+    assert agreeing.white_noise_ml == pytest.approx(1e-4)
+    # a third scan elsewhere: the fitted white noise is no less than the replicates' disagreement either
+    three = fit_correction([Measurement(at, 35.0), Measurement(at, 39.0), Measurement((2.0, 0.0, 0.0), 25.0)], grid)
+    assert CorrectedModel(grid, three).gland_band_ml(np.array(at))[1] >= 0.5 * (39.0 - 35.0)

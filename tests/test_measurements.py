@@ -194,9 +194,9 @@ def test_a_typo_stored_by_hand_does_not_move_the_daemons_model(data_dir):
 
 
 # ----------------------------------------------------------------------------------------------- damaged stores
+#: (1e300 ml, which made the daemon exit 1 at start, is a volume no gland has: that entry alone is left out, below)
+HUGE_VOLUME = json.dumps({"format": "phantom-corrections/1", "measurements": [_entry(volume_ml=1e300)]})
 DAMAGED = {
-    "huge volume": (json.dumps({"format": "phantom-corrections/1", "measurements": [_entry(volume_ml=1e300)]}),
-                    "volume_ml"),
     "huge pressure": (json.dumps({"format": "phantom-corrections/1",
                                   "measurements": [_entry(pressures_kpa=[1e300, 1, 1])]}), "pressures_kpa"),
     "time a number": (json.dumps({"format": "phantom-corrections/1", "measurements": [_entry(time_utc=5)]}),
@@ -282,6 +282,77 @@ def test_a_store_linked_to_another_phantoms_is_refused_not_merged(data_dir):
     assert len(other.entries()) == 1 and other.path.is_file() and not other.path.is_symlink()
 
 
+# ----------------------------------------------------------------------------------------------- a volume no gland has
+#: A store an older version (or a hand edit) left with one volume outside a whole gland's 2-400 ml among good ones:
+#: 40 ml written in m^3 (4e-05), then another measurement.
+NO_GLANDS = {"format": "phantom-corrections/1", "measurements": [
+    _entry(), _entry(volume_ml=4e-05, pressures_kpa=[2, 0, 0]), _entry(volume_ml=31.0, pressures_kpa=[1, 1, 1.5])]}
+
+
+def test_a_volume_no_gland_has_is_kept_in_the_store_left_out_of_the_fit_and_says_why_not_the_store_refused(data_dir):
+    """Before: the whole store read as damaged ("move it aside"), so every measurement in it was refused for one
+    entry an older version let in. Now that entry is ``refused``: listed with why, out of every fit, kept in the
+    file through later writes; it cannot be confirmed as it is (remove it and add the volume again in ml)."""
+    path = _store_file(data_dir, "old", NO_GLANDS)
+    store = CorrectionStore.for_phantom("old")
+    entries = store.entries()
+    assert [e.status for e in entries] == ["confirmed", "refused", "confirmed"]
+    reason = entries[1].reason or ""
+    assert "4e-05" in reason and "2-400 ml" in reason and "40 ml in m^3" in reason, reason
+    assert [e.volume_ml for e in store.confirmed()] == [30.0, 31.0]
+    store.add(Measurement((2.0, 2.0, 2.0), 33.0))
+    kept = json.loads(path.read_text())["measurements"]
+    assert [m["volume_ml"] for m in kept] == [30.0, 4e-05, 31.0, 33.0] and kept[1]["status"] == "refused"
+    assert [e.status for e in CorrectionStore.for_phantom("old").entries()] == ["confirmed", "refused", "confirmed",
+                                                                               "confirmed"]
+    with pytest.raises(CorrectionError, match=r"measurement 2 cannot be confirmed: .*4e-05.*phantom corrections "
+                                              r"remove 2"):
+        store.confirm(2)
+    assert store.remove(2).volume_ml == 4e-05
+    assert [e.status for e in store.entries()] == ["confirmed"] * 3
+
+
+def test_every_corrections_command_reads_a_store_with_a_volume_no_gland_has_and_shows_it_left_out(data_dir, capsys,
+                                                                                                tmp_path):
+    _store_file(data_dir, "old", NO_GLANDS)
+    assert main(["corrections", "list", "--phantom", "old"]) == 0
+    listed = capsys.readouterr().out
+    assert "REFUSED, left out of the fit" in listed and "4e-05" in listed and "remove 2" in listed
+    out = tmp_path / "measured.csv"
+    assert main(["corrections", "export", "--phantom", "old", "--out", str(out)]) == 0
+    said = capsys.readouterr().out
+    assert "wrote 2 measurement(s)" in said and "refused measurement(s) 2" in said and "unconfirmed" not in said
+    (comment,) = [line for line in out.read_text().splitlines() if line.startswith("#")]
+    assert "measurement 2 refused" in comment and "2-400 ml" in comment
+    assert main(["corrections", "fit", "--phantom", "old", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["count"] == 2
+
+
+def test_the_daemons_fit_leaves_a_volume_no_gland_has_out_and_says_so_and_records_beside_it(data_dir):
+    """The daemon's fitter fits the store's good measurements (before: the store was damaged, no correction);
+    with nothing else stored it says which is refused and why; and a scan recorded beside it is stored (the
+    check for a retried record compared each stored entry confirmed, which a refused volume cannot be)."""
+    from types import SimpleNamespace
+
+    from phantom.host.model_worker import ModelWorker, _fitter_fit, _fitter_record
+
+    path = _store_file(data_dir, "old", NO_GLANDS)
+    answer = _fitter_fit("builtin:converged", "table", str(path))
+    assert answer.error is None and answer.correction is not None and answer.correction.count == 2
+    assert answer.stored == 3
+    _, said, level = ModelWorker.correction_event(SimpleNamespace(fit=answer, phantom="old"))  # the daemon's log
+    assert level == "INFO" and "from 2 measurement(s) (1 of the 3 stored left out of it: `phantom corrections " \
+        "list`)" in said
+    alone = _store_file(data_dir, "alone", HUGE_VOLUME)
+    answer = _fitter_fit("builtin:converged", "table", str(alone))
+    assert answer.correction is None and "measurement 1 refused" in (answer.error or "")
+    assert "volume_ml" in (answer.error or "") and "phantom corrections remove 1" in (answer.error or "")
+    recorded = _fitter_record("builtin:converged", "table", str(path),
+                              Measurement((1.5, 1.5, 1.5), 33.0, time_utc="2026-01-02T00:00:00+00:00"))
+    assert recorded.correction is not None and recorded.correction.count == 3
+    assert [e.status for e in CorrectionStore(path).entries()] == ["confirmed", "refused", "confirmed", "confirmed"]
+
+
 @pytest.mark.parametrize(("make", "message"), [
     (lambda: Measurement((1.0, 1.0, 1.0), 1e300), "volume_ml"),
     (lambda: Measurement((1.0, 1.0, 1.0), 30.0, time_utc=5), "time_utc"),          # type: ignore[arg-type]
@@ -298,15 +369,16 @@ def test_a_daemon_on_the_simulated_board_starts_uncorrected_saying_why_whatever_
         tmp_path, data_dir, default_model_cached):
     """Each damaged store the red team found (before: 1e300 ml made the daemon exit 1 at start, a FIFO kept it from
     ever being ready) leaves a daemon on the simulated board ready within its usual start (wait_online's 60 s),
-    uncorrected, its status and log saying why; the typo stored unconfirmed too."""
+    uncorrected, its status and log saying why; the typo stored unconfirmed too, and 1e300 ml (no gland's volume)
+    read refused, left out, with why."""
     from daemon_rig import DaemonRig
 
     from phantom.hil.sim import SimulatedBoard
 
     corrections = data_dir / "corrections"
     corrections.mkdir(parents=True)
-    cases = {"huge": DAMAGED["huge volume"], "clock": DAMAGED["time an object"], "twice": DAMAGED["duplicate keys"]}
-    for name, (content, _) in cases.items():
+    cases = {"huge": HUGE_VOLUME, "clock": DAMAGED["time an object"][0], "twice": DAMAGED["duplicate keys"][0]}
+    for name, content in cases.items():
         (corrections / f"{name}.json").write_text(content)
     os.mkfifo(corrections / "fifo.json")
     CorrectionStore.for_phantom("other").add(Measurement.now([1, 1, 1], 30.0))
@@ -314,7 +386,8 @@ def test_a_daemon_on_the_simulated_board_starts_uncorrected_saying_why_whatever_
     typo = CorrectionStore.for_phantom("typo")
     typo.add(Measurement((1.0, 1.0, 1.0), 39.96, status="unconfirmed", reason="a typo"))
     # the typo first: each daemon after it finds the board latched DEAD_HOST by the one killed before it
-    whys = {"typo": "none of the 1 stored measurement(s) is confirmed", "huge": "volume_ml", "clock": "time_utc",
+    whys = {"typo": "none of the 1 stored measurement(s) is confirmed", "huge": "measurement 1 refused: read as "
+            "1e+300 ml", "clock": "time_utc",
             "twice": "duplicate key", "fifo": "not a regular file", "linked": "is a link"}
     board = SimulatedBoard(speed=2.0).start()
     try:

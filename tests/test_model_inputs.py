@@ -185,3 +185,111 @@ def test_bounds_of_the_wrong_length_are_refused_naming_the_chambers(builtin, val
     with pytest.raises(PhantomError) as error:
         InverseSolver(builtin, fidelity="rest", **values)
     assert message in str(error.value), str(error.value)
+
+
+# --- 7. pressures are Pa, and a table answers within its box -------------------------------------------------------
+
+
+@pytest.fixture
+def table_estimator():
+    from phantom.model.fidelity.levels import VolumeEstimator
+
+    # the daemon's model, its table's volumes shipped with the scene: no build (0.5 s from the disk cache)
+    return VolumeEstimator(PhantomModel.from_scene(load_scene("builtin:converged")), level="table")
+
+
+@pytest.mark.parametrize("pressures_pa", [[1e6, 0.0, 0.0], [0.0, 5e3, 0.0], [-1e3, 0.0, 0.0]])
+def test_a_table_refuses_pressures_far_outside_its_box_naming_the_box_and_the_unit(table_estimator, pressures_pa):
+    """1e6 Pa gave 12973 ml (5097 ml and chambers of -39 ml on builtin:converged) from the table's linear extension,
+    without a word: beyond its box by more than a tenth of it the table does not know the model."""
+    from phantom.model.fidelity.response_table import ResponseTableError
+
+    for ask in (table_estimator.volumes, table_estimator.table.volumes, table_estimator.table.compliance):
+        with pytest.raises(ResponseTableError) as error:
+            ask(pressures_pa)
+        message = str(error.value)
+        assert "0-3000 Pa (0-3 kPa) per chamber" in message and "300 Pa" in message, message
+        assert "give pressures in Pa within" in message and "fidelity full" in message, message
+
+
+def test_a_table_extends_an_overshoot_of_its_box_linearly_up_to_a_tenth_of_it(table_estimator):
+    """A chamber at the box's top reads a count or two over it, a step's overshoot more: answered (the tangent's
+    extension, within 1 % of the growth at 200 Pa beyond, tests/test_response.py), up to a tenth of the box."""
+    table = table_estimator.table
+    top_ml = table_estimator.volumes([3000.0, 0.0, 0.0])[1] * 1e6
+    slope_ml_per_pa = table.compliance([3000.0, 0.0, 0.0])[1][0] * 1e6
+    for over_pa in (100.0, 300.0):
+        gland_ml = table_estimator.volumes([3000.0 + over_pa, 0.0, 0.0])[1] * 1e6
+        assert gland_ml == pytest.approx(top_ml + over_pa * slope_ml_per_pa, rel=1e-12)
+    assert table_estimator.volumes([-300.0, 0.0, 0.0])[1] < table_estimator.volumes([0.0, 0.0, 0.0])[1]
+
+
+def test_the_daemons_estimate_of_a_pressure_far_outside_the_box_is_the_tables_edge_said_once(caplog):
+    """The daemon passes measured pressures (a sensor a count over the box, a fault far over it): a refusal would
+    leave it without an estimate, so it estimates at the edge of what the table answers and says so in its log,
+    once per excursion (before: 5097 ml at 1e6 Pa)."""
+    import logging
+
+    from phantom.host.model_worker import LoadedModel
+
+    loaded = LoadedModel("builtin:converged", report=lambda text: None)
+    edge = loaded.estimate(np.array([3300.0, 0.0, 0.0]))
+    with caplog.at_level(logging.WARNING, logger="phantom.host.model_worker"):
+        far = loaded.estimate(np.array([1e6, 0.0, 0.0]))
+        again = loaded.estimate(np.array([2e4, 0.0, 0.0]))
+        assert far == edge and again == edge
+        warned = [record.getMessage() for record in caplog.records]
+        assert len(warned) == 1 and "0-3 kPa" in warned[0] and "1000, 0, 0 kPa" in warned[0], warned
+        loaded.estimate(np.array([3000.0, 0.0, 0.0]))   # back within: the next excursion is said again
+        loaded.estimate(np.array([1e5, 0.0, 0.0]))
+        assert len(caplog.records) == 2
+    assert loaded.estimate(np.array([3050.0, 0.0, 0.0]))[1] < edge[1]   # an ADC count over: its own answer
+
+
+@pytest.mark.parametrize("pressures", [[1.0, 2.0, 0.5], [3.0, 3.0, 3.0]])
+def test_kpa_passed_as_pa_is_warned_of_saying_what_the_model_takes(builtin, pressures):
+    """``equilibrium([1, 2, 0.5])`` meant kPa and answered (all but) the rest shape without a word: pressures all
+    under 50 Pa, below one count of the phantom's sensors (54 Pa), are no state of the phantom. Warned, not refused:
+    a load of a few Pa on purpose (a small-strain check) is the model's to answer."""
+    from phantom.model import PressureUnitWarning
+    from phantom.model.fidelity.levels import VolumeEstimator
+
+    with pytest.warns(PressureUnitWarning) as warned:
+        builtin.equilibrium(pressures)
+    message = str(warned[0].message)
+    assert "did you pass kPa? this takes Pa (x 1000" in message and f"{pressures[0]:g}" in message, message
+    assert warned[0].filename == __file__   # the caller's line, not the library's
+    with pytest.warns(PressureUnitWarning, match="did you pass kPa"):
+        builtin.deformed_surface(pressures)
+    with pytest.warns(PressureUnitWarning, match="did you pass kPa") as warned:
+        VolumeEstimator(builtin, level="rest").volumes(pressures)
+    assert len(warned) == 1
+
+
+@pytest.mark.parametrize("pressures", [[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [1e3, 2e3, 0.5e3], [60.0, 60.0, 60.0]])
+def test_rest_and_pressures_the_phantom_can_hold_are_not_warned_of(builtin, pressures):
+    import warnings
+
+    from phantom.model.fidelity.levels import VolumeEstimator
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        VolumeEstimator(builtin, level="rest").volumes(pressures)
+        builtin.equilibrium(pressures)
+
+
+def test_the_daemons_estimate_of_vented_chambers_reading_a_few_pa_is_not_warned_of(tmp_path):
+    """The daemon estimates measured pressures, and vented chambers read a few Pa (sensor noise about a zero):
+    its calls, from inside the package, are not a user's kPa, and its full solve is not warned of."""
+    import warnings
+
+    from phantom.host.model_worker import LoadedModel
+
+    scene = tmp_path / "full.toml"
+    scene.write_text(builtin_scene_path("builtin").read_text().replace("[model]\n", '[model]\nfidelity = "full"\n'))
+    loaded = LoadedModel(str(scene), report=lambda text: None)
+    assert loaded.estimator.level == "full"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, gland_ml, _ = loaded.estimate(np.array([10.0, 12.0, 23.0]))
+    assert gland_ml > loaded.rest_volume_ml

@@ -75,6 +75,7 @@ def test_solution_scales_exactly_with_youngs_modulus(coarse):
     np.testing.assert_allclose(scaled.chamber_volumes_m3, reference.chamber_volumes_m3, rtol=1e-10)
 
 
+@pytest.mark.filterwarnings("ignore::phantom.model.PressureUnitWarning")  # a load of a few Pa on purpose
 def test_rest_compliance_predicts_small_inflations(coarse, tmp_path, monkeypatch):
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path))
     compliance = coarse.compliance()

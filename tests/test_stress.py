@@ -238,6 +238,7 @@ def test_neo_hookean_scales_over_six_decades_of_modulus(youngs_modulus_pa):
     np.testing.assert_allclose(state.positions_m, expected.positions_m, rtol=0, atol=1e-9 * OUTER_MM * 1e-3)
 
 
+@pytest.mark.filterwarnings("ignore::phantom.model.PressureUnitWarning")  # a load of a few Pa on purpose
 def test_neo_hookean_at_poisson_ratio_0_49_converges_and_matches_small_strain():
     model = sphere(poisson_ratio=0.49, model="neo_hookean")
     compliance = model.compliance().chamber_m3_per_pa[0, 0]

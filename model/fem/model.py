@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -19,7 +21,7 @@ import numpy as np
 
 import phantom
 from phantom.model.arrays import FloatArray, IntArray
-from phantom.model.errors import MeshError, SolveError
+from phantom.model.errors import MeshError, PressureUnitWarning, SolveError
 from phantom.model.fem import heap
 from phantom.model.fem.body import Factor, SolidBody
 from phantom.model.fem.linsolve import Factorization, indefinite_method
@@ -43,6 +45,38 @@ FORMULATIONS = MATERIAL_MODELS
 #: protocol's pressures are whole pascals); a fraction of E, not pascals, so that the same p/E gives the same
 #: shape at any modulus.
 PRESSURE_RESOLUTION_OF_MODULUS = 1e-5
+#: Chamber pressures (Pa) all above 0 and under this are kPa given as Pa, most likely: the phantom's sensors
+#: resolve one ADC count, 54.25 Pa (docs/physics.md, "Sensor"), so a state its board holds has a chamber at a count
+#: or more, or every one vented (about 0); its box is 0 to a few kPa, which as Pa is all under it. ``[1, 2, 0.5]``
+#: answered all but the rest shape in silence (:func:`warn_if_kpa`) ...
+KPA_AS_PA_BELOW_PA = 50.0
+#: ... when they are under this fraction of the Young's modulus too: a load that deforms the body by about 0.1 % at
+#: most, all but the rest shape (the box's kPa as Pa on the phantom's silicone, 6-50 kPa, is 2e-5 to 5e-4 of it). A
+#: model of a softer material (a test's 1 Pa sphere) is deformed by a few Pa, which are then no mistake.
+KPA_AS_PA_OF_MODULUS = 1e-3
+
+
+def warn_if_kpa(pressures_pa: FloatArray, model: PhantomModel) -> None:
+    """Warn (:class:`PressureUnitWarning`, at the caller's line) when every chamber pressure (Pa) is above 0 and under
+    :data:`KPA_AS_PA_BELOW_PA` and :data:`KPA_AS_PA_OF_MODULUS` of the ``model``'s modulus, and the function
+    calling this was called from outside the package: the package's own calls pass measured pressures (a vented
+    chamber reads a few Pa) and solvers' iterates, which are Pa. A warning, not a refusal: a load of a few Pa on
+    purpose (a small-strain check) is the model's to answer."""
+    if not (pressures_pa.size and np.all(pressures_pa > 0) and np.all(pressures_pa < KPA_AS_PA_BELOW_PA)):
+        return
+    # frames: 0 this function, 1 the model's entry point, then its caller, past a decorator's wrapper
+    # (equilibrium's heap.solving is a context manager's)
+    frame, depth = sys._getframe(2), 2
+    while frame.f_back is not None and frame.f_globals.get("__name__") == "contextlib":
+        frame, depth = frame.f_back, depth + 1
+    caller = str(frame.f_globals.get("__name__", ""))
+    if caller == "phantom" or caller.startswith("phantom.") \
+            or np.any(pressures_pa >= KPA_AS_PA_OF_MODULUS * model.material.youngs_modulus_pa):
+        return
+    shown, times_1000 = (", ".join(f"{p:g}" for p in pressures) for pressures in (pressures_pa, 1e3 * pressures_pa))
+    warnings.warn(f"the chamber pressures {shown} Pa are all under {KPA_AS_PA_BELOW_PA:g} Pa, below one count of the "
+                  f"phantom's sensors (54 Pa), and answer all but the rest shape: did you pass kPa? this takes Pa (x "
+                  f"1000: {times_1000} Pa)", PressureUnitWarning, stacklevel=depth + 1)
 
 
 #: Newton iterations from a predicted start (:meth:`PhantomModel.equilibrium`'s ``predicted_positions_m``) before
@@ -204,6 +238,7 @@ class PhantomModel:
         Solves like :meth:`equilibrium` (same arguments and errors). The surface's node order is fixed for a
         model (``np.unique`` of the outer triangles), so successive calls can be drawn as one changing mesh.
         """
+        warn_if_kpa(self._check_pressures(pressures_pa), self)
         state = self.equilibrium(pressures_pa, formulation=formulation, initial_positions_m=initial_positions_m)
         surface_nodes, triangles = self.outer_surface()
         return state.positions_m[surface_nodes] * 1e3, triangles
@@ -297,10 +332,12 @@ class PhantomModel:
         equilibria, with a 10-node body's element pressures ``predicted_element_pressures_pa`` (None: eliminated
         there); the problem's frame and the path following stay those of ``initial_positions_m``.
         Raises SolveError (naming the chamber and pressure) when it cannot converge or elements invert. A pressure
-        under :attr:`pressure_resolution_pa` in magnitude is zero.
+        under :attr:`pressure_resolution_pa` in magnitude is zero. Pressures that look like kPa (all above 0 and
+        under :data:`KPA_AS_PA_BELOW_PA`) are warned of (:func:`warn_if_kpa`), and solved.
         """
         started = time.perf_counter()
         pressures = self._check_pressures(pressures_pa)
+        warn_if_kpa(pressures, self)
         resolved = np.where(np.abs(pressures) < self.pressure_resolution_pa, 0.0, pressures)
         problem = self.problem(resolved, formulation, initial_positions_m, body_force_n_per_m3)
         positions_m, iterations, steps = problem.start_m, 0, 0

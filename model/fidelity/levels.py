@@ -41,7 +41,7 @@ from numpy.typing import ArrayLike
 from phantom import PhantomError
 from phantom.model.arrays import FloatArray
 from phantom.model.errors import PeakPressureError
-from phantom.model.fem.model import Compliance, PhantomModel, State
+from phantom.model.fem.model import Compliance, PhantomModel, State, warn_if_kpa
 from phantom.model.fidelity.response_table import (
     Progress,
     ResponseTable,
@@ -148,7 +148,9 @@ class VolumeEstimator:
         return None if self.discretisation is None else self.discretisation.error_pct
 
     def volumes(self, pressures_pa: ArrayLike) -> tuple[FloatArray, float]:
-        """Chamber volumes (m^3, one per chamber) and the gland volume (m^3) at ``pressures_pa``."""
+        """Chamber volumes (m^3, one per chamber) and the gland volume (m^3) at ``pressures_pa`` (Pa: ones that look
+        like kPa are warned of, :func:`~phantom.model.fem.model.warn_if_kpa`)."""
+        warn_if_kpa(_checked_pressures(pressures_pa, self.n_chambers), self.model)
         chamber_volumes_m3, gland_volume_m3, _ = self.evaluate(pressures_pa)
         return chamber_volumes_m3, gland_volume_m3
 
@@ -156,6 +158,7 @@ class VolumeEstimator:
         """Nodal positions (m, shape (nodes, 3)) at ``pressures_pa``: of every node, or of ``nodes`` (indices)
         when given; computed only when called."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
+        warn_if_kpa(pressures, self.model)
         self.counts["shapes"] += 1
         if self.shapes is not None and nodes is not None:
             surface_m = self.shapes.positions_m(pressures, nodes)
@@ -177,6 +180,7 @@ class VolumeEstimator:
         """Volumes as :meth:`volumes`, plus the solver state where the level has one (else None): ``full``, and
         ``updated`` for a small-strain material, whose positions are exactly the linear solve's."""
         pressures = _checked_pressures(pressures_pa, self.n_chambers)
+        warn_if_kpa(pressures, self.model)
         if self.level == "rest":
             compliance = self.rest_compliance
             return (np.asarray(self.model.rest_chamber_volumes_m3, dtype=float) + compliance.chamber_m3_per_pa

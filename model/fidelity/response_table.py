@@ -14,7 +14,9 @@ once on a grid and interpolated by a tensor-product cubic spline:
 - answers: the not-a-knot cubic spline through the grid along each axis, as a contraction of the grid values
   with each axis's cardinal-spline weights, and its exact gradient (the tangent compliance at the operating
   point), in a fraction of a millisecond; outside the box, the value at the nearest point of the box plus the
-  gradient there times the distance (an overshoot of a few pascal must not meet a cubic's extrapolation).
+  gradient there times the distance (an overshoot of a few pascal must not meet a cubic's extrapolation), up to
+  :data:`EXTENSION_OF_BOX` of the box beyond it: further out the table does not know the model, and is refused
+  (1e6 Pa answered 12973 ml).
 
 Along chamber 0's axis of the calibrated model (its cavity grows 4.5-fold, with an inflection) a spline through
 0.5 kPa steps misses a dense set of full solves by 0.007 ml, a polynomial through 7 Chebyshev nodes by 0.03 ml.
@@ -84,6 +86,11 @@ SHIPPED_SHAPE_POINTS = 4
 SHIPPED_NODE_TOLERANCE_M = 1e-9
 #: How far (m) the singular modes a shape table ships may put a node from its solved position at a grid point.
 SHIPPED_MODES_TOLERANCE_M = 2e-5
+#: How far outside its box (a fraction of the box's top, on each side) a table extends linearly: a chamber held at
+#: the top reads an ADC count or two (54 Pa each) over it, a step's overshoot more, and 200 Pa over a 3 kPa box
+#: the extension is within 1 % of the full solve's growth (tests/test_response.py); its error grows as the
+#: distance squared, and far beyond it is no answer of the model's (1e6 Pa gave 12973 ml).
+EXTENSION_OF_BOX = 0.1
 
 Progress = Callable[[int, int], None]
 #: One axis's cardinal-spline weights at a pressure, and their slope per Pa.
@@ -137,10 +144,28 @@ class ResponseTable:
     def points_per_axis(self) -> int:
         return int(self.gland_values.shape[0])
 
+    @property
+    def extension_pa(self) -> float:
+        """How far outside its box (Pa) the table answers, by its linear extension (:data:`EXTENSION_OF_BOX`)."""
+        return EXTENSION_OF_BOX * self.pressure_max_pa
+
     def _bases(self, pressures_pa: np.ndarray) -> tuple[list[Basis], np.ndarray]:
         """Per chamber: the basis and its slope (per Pa) at the pressure clipped into the box; and the excess
-        of each pressure over the box (Pa), for the linear extension outside."""
-        inside_pa = np.clip(pressures_pa, 0.0, self.pressure_max_pa)
+        of each pressure over the box (Pa), for the linear extension outside.
+
+        Raises
+        ------
+        ResponseTableError
+            A pressure further outside the box than :attr:`extension_pa`, or not finite.
+        """
+        top_pa, extension_pa = self.pressure_max_pa, self.extension_pa
+        if not np.all(np.isfinite(pressures_pa)) or np.any(pressures_pa < -extension_pa) \
+                or np.any(pressures_pa > top_pa + extension_pa):
+            raise ResponseTableError(
+                f"the response table answers within its box, 0-{top_pa:g} Pa (0-{top_pa / 1e3:g} kPa) per chamber, "
+                f"and up to {extension_pa:g} Pa outside it; got {np.asarray(pressures_pa).tolist()} Pa: give "
+                f"pressures in Pa within the box (the model beyond it: fidelity full)")
+        inside_pa = np.clip(pressures_pa, 0.0, top_pa)
         # One piece of the splines' coefficients per chamber gives both the weights and their slopes (scipy's
         # CubicSpline evaluates the two separately, and a lookup needed them for every chamber and quantity).
         coefficients = _cardinal_splines(self.points_per_axis).c        # (4, n - 1, n), highest power first
@@ -178,7 +203,8 @@ class ResponseTable:
         return value
 
     def volumes(self, pressures_pa: ArrayLike) -> tuple[np.ndarray, float]:
-        """Chamber volumes (m^3) and the gland volume (m^3) at ``pressures_pa`` (Pa, one per chamber)."""
+        """Chamber volumes (m^3) and the gland volume (m^3) at ``pressures_pa`` (Pa, one per chamber; within
+        :attr:`extension_pa` of the box, else ResponseTableError)."""
         pressures = np.asarray(pressures_pa, dtype=float)
         bases = self._bases(pressures)
         return (self._value(self.chamber_values, pressures, bases),

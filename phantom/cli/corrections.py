@@ -80,9 +80,12 @@ def _list(store: Any, args: argparse.Namespace) -> int:
             f", model {entry.model_volume_ml:.3f} ml ({(entry.model_volume_ml / entry.volume_ml - 1) * 100:+.2f} %)")
         lines.append(f"{number:3d}  {entry.time_utc or '-':25s}  {pressures} kPa  {entry.volume_ml:.3f} ml "
                      f"({entry.method}){model}" + (f"  {entry.scan_file}" if entry.scan_file else ""))
-        if entry.status != "confirmed":
+        if entry.status == "unconfirmed":
             lines.append(f"     UNCONFIRMED, left out of the fit: {entry.reason} (`phantom corrections confirm "
                          f"{number}` if it is right, `remove {number}` if not)")
+        elif entry.status == "refused":
+            lines.append(f"     REFUSED, left out of the fit: {entry.reason} (`phantom corrections remove {number}`, "
+                         f"then add the volume again in ml)")
     return _print(args, {"path": str(store.path), "measurements": [asdict(e) for e in entries]}, "\n".join(lines))
 
 
@@ -161,13 +164,18 @@ def _export(store: Any, args: argparse.Namespace) -> int:
         return 0
     with written_atomically(Path(args.out), CorrectionError) as temporary:
         temporary.write_text(text)
-    unconfirmed = [number for number, entry in enumerate(entries, start=1) if entry.status != "confirmed"]
+    unconfirmed = [number for number, entry in enumerate(entries, start=1) if entry.status == "unconfirmed"]
+    refused = [number for number, entry in enumerate(entries, start=1) if entry.status == "refused"]
     left_out = "" if not unconfirmed else (
         f"; the unconfirmed measurement(s) {', '.join(map(str, unconfirmed))} as comment lines, left out as from "
         "every fit (`phantom corrections confirm N` if one is right)")
-    return _print(args, {"out": args.out, "measurements": len(entries) - len(unconfirmed), "unconfirmed": unconfirmed},
-                  f"wrote {len(entries) - len(unconfirmed)} measurement(s) to {args.out} (`phantom calibrate "
-                  f"--measurements {args.out}` reads it){left_out}")
+    if refused:
+        left_out += (f"; the refused measurement(s) {', '.join(map(str, refused))} (a volume no gland has) as comment "
+                     "lines, left out as from every fit (`phantom corrections list` says why)")
+    written = len(entries) - len(unconfirmed) - len(refused)
+    return _print(args, {"out": args.out, "measurements": written, "unconfirmed": unconfirmed, "refused": refused},
+                  f"wrote {written} measurement(s) to {args.out} (`phantom calibrate --measurements {args.out}` reads "
+                  f"it){left_out}")
 
 
 def _fit(store: Any, args: argparse.Namespace) -> int:
