@@ -11,6 +11,7 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
     sent / send_failed                              the board's answer to a SendSetpoints action
     vent / vent_done                                a vent decided (a request, a mismatch, a refusal); its answer
     board(ready, why)                               whether the board can take setpoints (online and configured)
+    board_restarted(why)                            the board started again (its clock went back): it holds nothing
     faults(names)                                   the latched faults the telemetry shows
     zeroing(why)                                    a zero of the sensors in progress (setpoints would cancel it)
     board_setpoints(setpoints_pa)                   the setpoints a telemetry frame says the board holds
@@ -36,11 +37,17 @@ One send at a time: a vent decided while setpoints are in flight goes out when t
 of reached (:class:`ReachRule`): the pressures within ``settled_kpa`` of the setpoints for ``settled_for_s``, and
 the estimate within ``tolerance_pct`` of what was asked.
 
-Reached is told once per target. A fault latched after it sets every setpoint to 0 (the board's doing): the target
-is then not held (:attr:`ControlCore.target_after_fault` ``not_held``), its setpoints are sent again once the fault
-is cleared (``settling``), and once the same rule holds on them again (the estimate is not asked of a target a scan
-verified: the scan measured the volume at these setpoints) the core tells it, ``held_again``: an event of kind
-``target`` with ``held_again: true`` and no ``outcome``, so that a client waiting on a target is never woken by it.
+Reached is told once per target. A board that loses the setpoints of a reached target interrupts it
+(:attr:`ControlCore.target_after_interruption`, with what it came ``after``): a fault latched (``fault``: the board
+sets every setpoint to 0), a board that restarted (``board restart``: its clock went back, :meth:`board_restarted`;
+it starts with none), or a link lost after which the board reports setpoints that are not the target's (``link
+loss``). The target is then ``not_held`` until the board acknowledged its setpoints again (sent once the fault is
+cleared, or the board is back), then ``settling``, and once the same rule holds on them again (the estimate is not
+asked of a target a scan verified: the scan measured the volume at these setpoints) the core tells it,
+``held_again``: an event of kind ``target`` with ``held_again: true``, ``after`` and no ``outcome``, so that a
+client waiting on a target is never woken by it. A link lost while the board kept the target's setpoints (its
+first frame since reports them, and it did not restart) interrupted nothing: its state, unknown while the board is
+away (:attr:`ControlCore.awaits_board_frame`), is decided by that frame or by the restart the driver sees in it.
 
 A verified target (:class:`Verify`, ``set_target``'s ``verify: "scan"``) is reached on pressure as any other;
 then, instead of its ``reached`` outcome, the core asks for a :class:`Scan` of the phantom at the settled
@@ -61,7 +68,7 @@ from typing import Any
 
 import numpy as np
 
-from phantom.host.board_watch import SetpointWatch
+from phantom.host.board_watch import SAME_SETPOINT_PA, SetpointWatch
 from phantom.host.config import DaemonConfig
 from phantom.host.parts import ControlState
 from phantom.host.verify import DOING_WORDS, SCAN_RETRIES, Correct, Record, Rounds, Scan, StopScan, Verify
@@ -71,6 +78,9 @@ from phantom.model.target import ML_PER_M3, PA_PER_KPA, InverseResult, Target
 RETRY_S = 0.5
 #: The highest setpoint the wire carries (Pa, i16).
 MAX_SETPOINT_PA = 32767.0
+#: What interrupted a reached target (:attr:`ControlCore.target_after_interruption`'s ``after``), in words: "held
+#: again after ..."
+AFTER_WORDS = {"fault": "the fault", "board restart": "the board restarted", "link loss": "the link was lost"}
 
 
 @dataclass(frozen=True)
@@ -218,6 +228,18 @@ class _Reach:
         self.applied_s, self.settling, self.estimate = now, Settling(rule), None
 
 
+@dataclass
+class _Away:
+    """A reached target whose board went away (its link lost, or being set up again): whether the board kept
+    its setpoints (``held_pa``) is decided by the first frame it sends once back, or by a restart."""
+
+    held_pa: np.ndarray
+    #: a frame since came with the target's setpoints while they were being sent again (kept, or landed)
+    frames_seen: bool = False
+    #: the target's setpoints sent again were acknowledged before any frame came (s): the next frame decides
+    acked_s: float | None = None
+
+
 def setpoints_for(pressures_pa: np.ndarray) -> np.ndarray:
     """The inverse's pressures (Pa) as the wire carries them: whole Pa within 0..32767."""
     return np.asarray([round(min(max(float(p), 0.0), MAX_SETPOINT_PA)) for p in pressures_pa], dtype=float)
@@ -291,10 +313,14 @@ class ControlCore:
         self._reached: Target | None = None
         #: whether that target's reached came from a scan (held again is then judged on the pressures alone)
         self._reached_scanned = False
-        #: what became of the reached target after a fault (:attr:`target_after_fault`; None: no fault since)
-        self._after_fault: str | None = None
-        #: the reached target's setpoints sent again after a fault, judged by the reach rule until held again
+        #: what became of the reached target after it was interrupted (:attr:`target_after_interruption`; None:
+        #: not interrupted since), and after what (``fault``, ``board restart``, ``link loss``)
+        self._held: str | None = None
+        self._held_after: str | None = None
+        #: the reached target's setpoints sent again after an interruption, judged by the reach rule until held again
         self._again: _Reach | None = None
+        #: the reached target's board went away: whether it kept the setpoints is not known yet
+        self._away: _Away | None = None
         self._measured: tuple[float, np.ndarray] | None = None
         #: the verified target's rounds (None: the target is not verified, or its verification ended)
         self._rounds: Rounds | None = None
@@ -338,11 +364,21 @@ class ControlCore:
         return None if self._rounds is None else self._rounds.progress()
 
     @property
-    def target_after_fault(self) -> str | None:
-        """What became of the target in force after a fault latched once it was reached: ``not_held`` (the board
-        set every setpoint to 0), ``settling`` (its setpoints sent again once the fault was cleared), ``held_again``
-        (the reach rule holds on them again: told once, as an event); None while no fault came after its reached."""
-        return self._after_fault if self.target is not None else None
+    def target_after_interruption(self) -> dict[str, str] | None:
+        """What became of the target in force after the board lost its setpoints once it was reached:
+        ``{"state": ..., "after": ...}``, the state ``not_held`` (not acknowledged again yet), ``settling`` (its
+        setpoints acknowledged again), ``held_again`` (the reach rule holds on them again: told once, as an event),
+        after ``fault``, ``board restart`` or ``link loss``; None while nothing interrupted it since its reached."""
+        if self.target is None or self._held is None or self._held_after is None:
+            return None
+        return {"state": self._held, "after": self._held_after}
+
+    @property
+    def awaits_board_frame(self) -> bool:
+        """Whether the board came back (or is away) holding a reached target whose setpoints it may have lost,
+        and no frame has said yet: the driver lets one come before the board is declared ready, so that it is
+        judged on what the board held rather than on the setpoints sent again."""
+        return self._away is not None and not self._away.frames_seen and self._away.acked_s is None
 
     @property
     def target_applied(self) -> bool:
@@ -414,6 +450,12 @@ class ControlCore:
             return
         self.setpoints_pa, self.applied = sending.setpoints_pa, target
         self.watch.expect(self.setpoints_pa, now)
+        away = self._away
+        if away is not None and target == self._reached:
+            if away.frames_seen:
+                self._away = None  # a frame since showed them: kept (or landed first), nothing lost that was seen
+            else:
+                away.acked_s = now  # no frame yet: the next one (a restart, or not) decides
         offer, self._offer_sent = self._offer_sent, None
         if offer is not None and offer.answer.target == target:
             self.scene_ended(now, "a set_target request", stop=True)
@@ -501,6 +543,8 @@ class ControlCore:
         board must hold nothing."""
         if ready != self.board_ready:
             self._vent_waits_for_board = self._vent_waits_for_board and not ready
+            if not ready:
+                self._went_away()
             self.applied = None
             idle = self.target is None or self.state is ControlState.VENTED
             self.setpoints_pa = np.zeros(self.chamber_count) if ready and idle else None
@@ -521,8 +565,7 @@ class ControlCore:
             self.watch.expect(self.setpoints_pa, now)
             if self.target is not None and self._pending_since_s is None:
                 self._pending_since_s = now
-            if self.target is not None and self.target == self._reached:
-                self._after_fault, self._again = "not_held", None  # told reached: no outcome, held again later
+            self._interrupted(now, "fault", "")  # told reached: no outcome, held again later
             if self._reach is not None:
                 rounds, verifying = self._rounds, ""
                 if rounds is not None:
@@ -545,8 +588,28 @@ class ControlCore:
         self.zeroing_why = why
         self._next(now)
 
+    def board_restarted(self, now: float, why: str) -> None:
+        """The board started again (``why``: its clock went back): it holds no setpoints; a reached target is
+        interrupted (its setpoints go again once the link is back, as after any reconnection)."""
+        away = self._away
+        acked_s = None if away is None else away.acked_s
+        self._interrupted(now, "board restart", f"the board restarted ({why}), so it held none of its setpoints")
+        if acked_s is not None and self.target_applied:
+            self._start_reach(acked_s)  # the setpoints sent again were taken after the restart: settling since
+
     def board_setpoints(self, now: float, setpoints_pa: np.ndarray) -> None:
-        """The setpoints a telemetry frame reports: ones the daemon did not send vent the phantom."""
+        """The setpoints a telemetry frame reports: ones the daemon did not send vent the phantom. The first
+        frames after a reached target's board went away say whether it kept the target's setpoints."""
+        away = self._away
+        if away is not None:
+            lost = _differ(setpoints_pa, away.held_pa)
+            if away.acked_s is not None or (not lost and self._sending is None):
+                self._away = None  # kept (the setpoints acknowledged since, and no restart came with this frame)
+            elif lost:
+                self._interrupted(now, "link loss", f"the board reports setpoints {_kpa(setpoints_pa)} kPa since its "
+                                  f"link was lost, not the target's {_kpa(away.held_pa)} kPa")
+            else:
+                away.frames_seen = True
         if self.fault_names or self.busy or not self.watch.frame(setpoints_pa, now):
             return
         expected = self.watch.expected_pa
@@ -772,9 +835,9 @@ class ControlCore:
     def _start_reach(self, now: float) -> None:
         """Judge reached from now on (a scene's ramp points are not waited on: its step is, once the ramp ends)."""
         target = self.target
-        if target is not None and target == self._reached and self._after_fault in ("not_held", "settling"):
-            # reached before a fault: its setpoints, sent again, are judged until held again (told once)
-            self._after_fault = "settling"
+        if target is not None and target == self._reached and self._held in ("not_held", "settling"):
+            # reached before an interruption: its setpoints, sent again, are judged until held again (told once)
+            self._held = "settling"
             if self._again is not None and self._again.target == target:
                 self._again.again(now, self.rule)
             else:
@@ -859,8 +922,8 @@ class ControlCore:
         self._reached_now(reach, "reached", text, extra)
 
     def _held_again_tick(self, now: float) -> None:
-        """A reached target's setpoints, sent again after a fault, held again by the same rule: told once, as an
-        event without an outcome (its outcome was told: reached)."""
+        """A reached target's setpoints, sent again after an interruption, held again by the same rule: told once,
+        as an event without an outcome (its outcome was told: reached)."""
         again = self._again
         settled_s = None if again is None else self._settled_s(again, now)
         if again is None or settled_s is None or again.estimate is None or self._measured is None:
@@ -869,10 +932,11 @@ class ControlCore:
         if not self._reached_scanned and not estimate_within(again.target, self.answer, gland_ml, chamber_ml,
                                                              again.tolerance_pct):
             return
-        self._again, self._after_fault = None, "held_again"
-        self._tell("target", f"target {again.target.describe()} held again after the fault: estimate "
+        self._again, self._held = None, "held_again"
+        after = self._held_after or "fault"
+        self._tell("target", f"target {again.target.describe()} held again after {AFTER_WORDS[after]}: estimate "
                    f"{gland_ml:.2f} ml, pressures settled for {settled_s:.1f} s",
-                   data={"held_again": True, "target": again.target.to_json(), "source": again.source,
+                   data={"held_again": True, "after": after, "target": again.target.to_json(), "source": again.source,
                          "estimated_volume_ml": gland_ml,
                          "estimated_chamber_volumes_ml": list(chamber_ml) if chamber_ml is not None else None,
                          "measured_pressures_kpa": [float(p) / PA_PER_KPA for p in self._measured[1]],
@@ -880,14 +944,42 @@ class ControlCore:
 
     def _forget_reached(self) -> None:
         """The target is judged afresh (another one, the same asked again, a vent): its reached and what came of
-        it after a fault go."""
-        self._reached, self._reached_scanned, self._after_fault, self._again = None, False, None, None
+        it after an interruption go."""
+        self._reached, self._reached_scanned, self._again, self._away = None, False, None, None
+        self._held = self._held_after = None
+
+    def _holds_reached(self) -> bool:
+        """Whether the target in force was told reached (and not vented since)."""
+        return self.target is not None and self.target == self._reached and self.state is not ControlState.VENTED
+
+    def _went_away(self) -> None:
+        """The board can no longer take setpoints (its link lost, or being set up again): a reached target whose
+        setpoints it held may have lost them, which its first frame back says (a board away again before that
+        is judged afresh)."""
+        if self._away is not None:
+            self._away.frames_seen, self._away.acked_s = False, None
+        elif (self._holds_reached() and self.applied == self.target and self.setpoints_pa is not None
+              and self._held != "not_held"):
+            self._away = _Away(np.array(self.setpoints_pa, dtype=float))
+
+    def _interrupted(self, now: float, after: str, why: str) -> None:
+        """The board lost the setpoints of the reached target (``after`` what, ``why`` in words): it is not held
+        until they are acknowledged again, then judged until held again. Said once (a fault says it itself)."""
+        self._away = None
+        if not self._holds_reached():
+            return
+        said = self._held == "not_held"
+        self._held, self._held_after, self._again = "not_held", after, None
+        if not said and after != "fault":
+            assert self.target is not None
+            self._tell("target", f"target {self.target.describe()} not held: {why}; its setpoints go to the board "
+                       "again, and it is told when they are held again", "WARN")
 
     def _reached_now(self, reach: _Reach, outcome: str, text: str, extra: dict[str, Any]) -> None:
         if reach.step is not None:
             self._actions.append(StepReached(reach.step))
         self._reached, self._reached_scanned = reach.target, extra.get("scanned_volume_ml") is not None
-        self._after_fault, self._again = None, None
+        self._held = self._held_after = self._again = self._away = None
         self._outcome(outcome, text, extra=extra)
 
     def _verified_outcome(self, reach: _Reach, rounds: Rounds, text: str) -> None:
@@ -920,6 +1012,11 @@ class ControlCore:
     def _tell(self, kind: str, text: str, level: str = "INFO", data: dict[str, Any] | None = None,
               after_stored: bool = False) -> None:
         self._actions.append(Tell(kind, text, level, data, after_stored))
+
+
+def _differ(setpoints_pa: np.ndarray, held_pa: np.ndarray) -> bool:
+    """Whether a frame's setpoints are not those held (by more than the wire's pascal)."""
+    return bool(np.max(np.abs(np.asarray(setpoints_pa, dtype=float) - held_pa)) > SAME_SETPOINT_PA)
 
 
 def _kpa(pressures_pa: np.ndarray | None) -> str:

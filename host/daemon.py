@@ -57,6 +57,7 @@ from phantom.host.web import WebServer
 from phantom.host.zeroing import ZEROING_WHY, SensorZero
 from phantom.model.measurements import data_dir
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
+from phantom.protocol.link import BOARD_CLOCK_JITTER_MS
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +95,10 @@ RIG_REST_WAIT_S = 30.0
 #: How long a verification's outcome waits for its last scan to be stored before it is told anyway (s): a store
 #: is a fit of the correction, under a second for 200 measurements (bench/correction_fit.py).
 STORED_WAIT_S = 30.0
+#: How long a reconnection waits for the board's first frame before it sends a reached target's setpoints again
+#: (s): the frame says whether the board kept them (a link briefly lost) or lost them (it restarted), which the
+#: setpoints sent again would hide. Telemetry streams every 20 ms from the handshake on.
+FIRST_FRAME_WAIT_S = 0.5
 
 
 def verify_folder(round_: int) -> Path:
@@ -115,6 +120,8 @@ class Daemon:
         self.chamber_labels = list(model.info.chamber_labels)
         self.core = ControlCore(len(self.chamber_names), ReachRule(config.settled_kpa, config.settled_for_s))
         self.telemetry: Telemetry | None = None
+        #: set by every telemetry frame (a reconnection waits on it: :data:`FIRST_FRAME_WAIT_S`)
+        self._frame_came = asyncio.Event()
         self.events: deque[dict[str, Any]] = deque(maxlen=100)
         self.fault_flags = 0
         self.scenes = SceneRunner(clock, self.event)
@@ -525,8 +532,13 @@ class Daemon:
         logger.log(LEVELS.get(level, logging.INFO), "%s", text)
 
     def on_telemetry(self, telemetry: Telemetry) -> None:
-        """Keep the latest frame and the estimation window; the core sees its faults and setpoints."""
-        self.telemetry = telemetry
+        """Keep the latest frame and the estimation window; the core sees a restart (the board's clock went back
+        since the last frame, across a reconnection too), its faults and setpoints."""
+        last, self.telemetry = self.telemetry, telemetry
+        self._frame_came.set()
+        if last is not None and telemetry.board_time_ms + BOARD_CLOCK_JITTER_MS < last.board_time_ms:
+            self._feed(self.core.board_restarted, f"its clock went back from {last.board_time_ms / 1e3:.1f} s to "
+                       f"{telemetry.board_time_ms / 1e3:.1f} s")
         self.schedule.add(telemetry.board_time_ms / 1e3, telemetry.pressures_pa)
         self.stillness.frame(telemetry.board_time_ms / 1e3, telemetry.pressures_pa)
         self.fault_flags = telemetry.fault_flags
@@ -544,7 +556,8 @@ class Daemon:
 
     async def on_online(self, board: BoardInfo, reconnected: bool) -> None:
         """The link came up: set the board's gains and limits, then the core applies the current target (a board
-        that reset holds no setpoints), or the sensors are zeroed if the phantom is vented."""
+        that reset holds no setpoints; for a reached target, once the board's first frame said whether it kept
+        them), or the sensors are zeroed if the phantom is vented."""
         self.schedule.clear()
         self.stillness = Stillness()
         self._board_configured = False
@@ -556,6 +569,12 @@ class Daemon:
             self._feed(self.core.board, False, why)
             return
         await self.send_board_settings("at connection")
+        if self.core.awaits_board_frame:
+            # a reached target's board is back: its first frame says whether it kept the setpoints before they go
+            # again (a lost link, its session re-opened) or lost them (a restart), and so whether it was interrupted
+            self._frame_came.clear()
+            with contextlib.suppress(TimeoutError):
+                await asyncio.wait_for(self._frame_came.wait(), FIRST_FRAME_WAIT_S)
         self._board_configured = True
         self._feed(self.core.board, True)
         idle = self.core.target is None or self.core.state is ControlState.VENTED

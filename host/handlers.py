@@ -38,7 +38,7 @@ PA_PER_KPA = 1e3
 #: How long clear_fault waits, once the board acknowledged it, for telemetry without the fault (s) ...
 CLEARED_IN_TELEMETRY_S = 1.0
 #: ... then for the target's setpoints to be acknowledged again (s; held again is the control core's later word,
-#: ``target_after_fault``): a solve on full solves takes seconds.
+#: ``target_after_interruption``): a solve on full solves takes seconds.
 RESTORED_S = 10.0
 
 

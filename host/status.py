@@ -92,9 +92,10 @@ def daemon_status(daemon: StatusSource) -> dict[str, Any]:
         # the verified target's rounds while they run, in words too (with its scan's pictures, motion.scan)
         "verify": None if progress is None else {**progress, "text": progress_text(progress, motion["scan"])},
         "target_pending": core.pending if core.target is not None and not core.target_applied else None,
-        # what became of the target after a fault latched once it was reached (the reach rule's word, not the
-        # panel's): not_held, settling (its setpoints sent again), held_again; None without such a fault
-        "target_after_fault": core.target_after_fault,
+        # what became of the target after the board lost its setpoints once it was reached (the reach rule's word,
+        # not the panel's): {"state": not_held | settling (its setpoints acknowledged again) | held_again, "after":
+        # fault | board restart | link loss}; None while nothing interrupted it
+        "target_after_interruption": core.target_after_interruption,
         "reached_rule": {"settled_kpa": core.rule.settled_kpa, "settled_for_s": core.rule.settled_for_s,
                          "tolerance_pct": core.tolerance_pct or core.rule.tolerance_pct},
         "solution": core.answer.to_json() if core.answer is not None else None,

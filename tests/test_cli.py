@@ -172,3 +172,24 @@ def test_calibrate_record_recommends_the_fit_the_readme_recommends():
 
     readme = (Path(__file__).parents[1] / "README.md").read_text().replace("\\\n", " ")
     assert " ".join(recommended_fit("my_phantom.csv").split()) in " ".join(readme.split())
+
+
+def test_phantom_status_says_what_became_of_a_reached_target_after_an_interruption_in_the_daemons_words():
+    """The status's target_after_interruption, after its control line; the words for what interrupted it are the
+    daemon's (its "held again after ..." event) and the panel's."""
+    from phantom.cli.client import INTERRUPTION_WORDS, _after_interruption
+    from phantom.host.control import AFTER_WORDS
+
+    assert INTERRUPTION_WORDS == AFTER_WORDS
+    panel = (Path(__file__).resolve().parent.parent / "host" / "panel" / "panel.js").read_text()
+    for after, words in AFTER_WORDS.items():
+        assert f'"{after}": "{words}"' in panel
+    assert _after_interruption(None) == ""
+    assert _after_interruption({"state": "not_held", "after": "fault"}) == (
+        "; not held since the fault: its setpoints go again once it is cleared")
+    assert _after_interruption({"state": "not_held", "after": "board restart"}) == (
+        "; not held since the board restarted: its setpoints go to the board again")
+    assert _after_interruption({"state": "settling", "after": "link loss"}) == (
+        "; settling again after the link was lost")
+    assert _after_interruption({"state": "held_again", "after": "board restart"}) == (
+        "; held again after the board restarted")

@@ -31,8 +31,13 @@ def outcomes(actions):
 
 
 def held_again(actions):
-    """The "held again after the fault" events among the actions (data without an outcome)."""
+    """The "held again after ..." events among the actions (data without an outcome)."""
     return [tell for tell in of_kind(actions, control.Tell) if tell.data and tell.data.get("held_again")]
+
+
+def after_fault(state):
+    """The core's ``target_after_interruption`` for a fault's interruption in ``state``."""
+    return {"state": state, "after": "fault"}
 
 
 @pytest.fixture
@@ -181,27 +186,27 @@ def fault_and_clear(core, at, target, names=("SENSOR_1",)):
 def test_a_reached_target_held_again_after_a_fault_is_told_once_by_the_same_rule_and_is_no_second_outcome(core):
     """The panel judged "held again after the fault" itself (its own copy of the settled band): the core says it,
     by the reach rule, in an event without an outcome (a client waiting on a target is not woken by it) and in its
-    state (the status's ``target_after_fault``)."""
+    state (the status's ``target_after_interruption``)."""
     target = volume(32.0)
     hold(core, 0.0, target)
-    assert outcomes(settle(core, 0.0, 1.2, estimate_ml=32.0)) == ["reached"] and core.target_after_fault is None
+    assert outcomes(settle(core, 0.0, 1.2, estimate_ml=32.0)) == ["reached"] and core.target_after_interruption is None
     core.faults(2.0, ("SENSOR_1",))
     actions = core.take_actions()
     assert outcomes(actions) == [] and held_again(actions) == []      # reached already: no "faulted" outcome
-    assert core.target_after_fault == "not_held"                      # the board set every setpoint to 0
+    assert core.target_after_interruption == after_fault("not_held")  # the board set every setpoint to 0
     core.faults(3.0, ())
     (send,) = of_kind(core.take_actions(), control.SendSetpoints)
-    assert core.target_after_fault == "not_held"                      # not held until the board took them
+    assert core.target_after_interruption == after_fault("not_held")  # not held until the board took them
     core.sent(3.1, target)
     core.take_actions()
-    assert core.target_after_fault == "settling"
+    assert core.target_after_interruption == after_fault("settling")
     # the same rule as reached: the pressures within the band for settled_for_s ...
     assert held_again(settle(core, 3.1, 1.2, kpa=(0.0, 0.0, 0.0), estimate_ml=32.0)) == []   # still at 0
     assert held_again(settle(core, 4.4, 0.8, estimate_ml=32.0)) == []                         # 0.8 s: not yet
     assert held_again(settle(core, 5.3, 0.3, kpa=(1.2, 0.5, 0.5), estimate_ml=32.0)) == []    # off: restarts
     # ... and the estimate within the target's tolerance
     assert held_again(settle(core, 5.7, 1.5, estimate_ml=33.0)) == []                         # 3 % off
-    assert core.target_after_fault == "settling"
+    assert core.target_after_interruption == after_fault("settling")
     actions = settle(core, 7.3, 1.2, estimate_ml=32.1)
     (told,) = held_again(actions)
     assert outcomes(actions) == [] and of_kind(actions, control.StepReached) == []
@@ -209,7 +214,7 @@ def test_a_reached_target_held_again_after_a_fault_is_told_once_by_the_same_rule
     assert "held again after the fault" in told.text and told.text.startswith("target 32.00 ml")
     assert told.data["target"] == {"volume_ml": pytest.approx(32.0)} and told.data["source"] == "api"
     assert told.data["estimated_volume_ml"] == 32.1 and told.data["measured_pressures_kpa"] == [1.0, 0.5, 0.5]
-    assert core.target_after_fault == "held_again"
+    assert core.target_after_interruption == after_fault("held_again")
     assert held_again(settle(core, 8.6, 2.0, estimate_ml=32.1)) == []                         # told once
 
 
@@ -221,39 +226,39 @@ def test_a_fault_while_settling_again_is_no_outcome_and_a_new_target_forgets_the
     settle(core, 3.1, 0.5, estimate_ml=32.0)
     core.faults(3.7, ("OVERPRESSURE",))                                # again, before it was held again
     actions = core.take_actions()
-    assert outcomes(actions) == [] and core.target_after_fault == "not_held"
+    assert outcomes(actions) == [] and core.target_after_interruption == after_fault("not_held")
     core.faults(4.0, ())
     core.take_actions()
     core.sent(4.1, target)
     core.take_actions()
     (told,) = held_again(settle(core, 4.1, 1.2, estimate_ml=32.0))
-    assert core.target_after_fault == "held_again"
+    assert core.target_after_interruption == after_fault("held_again")
     # the same target asked again is judged again: a reached outcome, the fault forgotten
     hold(core, 6.0, target, request=2)
-    assert core.target_after_fault is None
+    assert core.target_after_interruption is None
     assert outcomes(settle(core, 6.0, 1.2, estimate_ml=32.0)) == ["reached"]
     # another target forgets it too; a vent as well
     fault_and_clear(core, 8.0, target)
-    assert core.target_after_fault == "settling"
+    assert core.target_after_interruption == after_fault("settling")
     actions = hold(core, 9.5, volume(35.0), kpa=(1.5, 0.5, 0.5), request=3)
-    assert outcomes(actions) == [] and core.target_after_fault is None   # no "replaced": it was reached
+    assert outcomes(actions) == [] and core.target_after_interruption is None   # no "replaced": it was reached
     settle(core, 9.5, 1.2, kpa=(1.5, 0.5, 0.5), estimate_ml=35.0)
     core.faults(11.0, ("LEAK_0",))
-    assert core.target_after_fault == "not_held"
+    assert core.target_after_interruption == after_fault("not_held")
     core.vent(11.5, "on request")
-    assert core.target_after_fault is None
+    assert core.target_after_interruption is None
 
 
 def test_a_target_faulted_before_it_was_reached_is_reached_once_cleared_not_held_again(core):
     target = volume(32.0)
     hold(core, 0.0, target)
     core.faults(0.5, ("OVERPRESSURE",))
-    assert outcomes(core.take_actions()) == ["faulted"] and core.target_after_fault is None
+    assert outcomes(core.take_actions()) == ["faulted"] and core.target_after_interruption is None
     core.faults(1.0, ())
     core.take_actions()
     core.sent(1.1, target)
     actions = settle(core, 1.1, 1.2, estimate_ml=32.0)
-    assert outcomes(actions) == ["reached"] and held_again(actions) == [] and core.target_after_fault is None
+    assert outcomes(actions) == ["reached"] and held_again(actions) == [] and core.target_after_interruption is None
 
 
 def test_a_scene_step_held_again_after_a_fault_is_told_and_not_reached_twice():
@@ -268,6 +273,209 @@ def test_a_scene_step_held_again_after_a_fault_is_told_and_not_reached_twice():
     actions = settle(core, 3.1, 1.2, estimate_ml=30.0)
     (told,) = held_again(actions)
     assert told.data["source"] == "scene:bph" and of_kind(actions, control.StepReached) == []
+
+
+# --- a reached target whose board lost its setpoints without a fault: a restart, a lost link ------------------
+
+HELD_PA = np.asarray([1000.0, 500.0, 500.0])
+
+
+def reached(core, target=None):
+    """``target`` (32 ml) held and reached from 0 s; the core."""
+    target = target or volume(32.0)
+    hold(core, 0.0, target)
+    assert outcomes(settle(core, 0.0, 1.2, estimate_ml=32.0)) == ["reached"]
+    assert core.target_after_interruption is None
+    return core
+
+
+def tells(actions):
+    return [tell.text for tell in of_kind(actions, control.Tell)]
+
+
+def test_a_reached_target_on_a_board_that_restarted_is_not_held_then_settling_then_held_again(core):
+    """The gap: a board that restarted (power-on reset, USB cable pulled and plugged back) comes back with no
+    setpoints; the daemon sends the target's again, and while the phantom re-inflates the status said it reached.
+    It is not held until the board acknowledged them, then settling, then held again by the reach rule."""
+    target = volume(32.0)
+    reached(core, target)
+    core.board(2.0, False, "the link is disconnected")
+    assert core.target_after_interruption is None                    # unknown while it is away: nothing said
+    core.board_restarted(3.0, "its clock went back from 2000 to 1600 ms")
+    actions = core.take_actions()
+    assert core.target_after_interruption == {"state": "not_held", "after": "board restart"}
+    (said,) = [tell for tell in of_kind(actions, control.Tell) if "not held" in tell.text]
+    assert said.kind == "target" and said.level == "WARN" and not said.data      # no outcome, no held_again
+    assert "not held: the board restarted" in said.text and "its clock went back" in said.text
+    core.board_setpoints(3.02, np.zeros(3))                          # the restarted board holds nothing
+    assert core.take_actions() == []                                 # said once
+    core.board(3.1, True)
+    (send,) = of_kind(core.take_actions(), control.SendSetpoints)
+    assert send.target == target
+    assert core.target_after_interruption == {"state": "not_held", "after": "board restart"}   # not taken yet
+    core.sent(3.2, target)
+    actions = core.take_actions()
+    assert outcomes(actions) == [] and core.target_applied
+    assert core.target_after_interruption == {"state": "settling", "after": "board restart"}
+    assert held_again(settle(core, 3.2, 1.5, kpa=(0.3, 0.1, 0.1), estimate_ml=25.0)) == []   # re-inflating
+    actions = settle(core, 4.8, 1.2, estimate_ml=32.1)
+    (told,) = held_again(actions)
+    assert outcomes(actions) == [] and told.kind == "target" and "outcome" not in told.data
+    assert "held again after the board restarted" in told.text and told.data["after"] == "board restart"
+    assert told.data["target"] == {"volume_ml": pytest.approx(32.0)} and told.data["source"] == "api"
+    assert core.target_after_interruption == {"state": "held_again", "after": "board restart"}
+    assert held_again(settle(core, 6.1, 2.0, estimate_ml=32.1)) == []                         # told once
+
+
+def test_a_lost_link_after_which_the_board_reports_other_setpoints_is_an_interruption(core):
+    """No restart seen (its clock did not go back), but the board reports setpoints that are not the target's
+    once its link is back: it lost them, and the target is not held until they are taken again."""
+    target = volume(32.0)
+    reached(core, target)
+    core.board(2.0, False, "the link is disconnected")
+    assert core.awaits_board_frame                                   # a frame will say whether it kept them
+    core.board_setpoints(2.9, np.zeros(3))
+    actions = core.take_actions()
+    assert core.target_after_interruption == {"state": "not_held", "after": "link loss"}
+    assert any("not held: the board reports setpoints 0.000, 0.000, 0.000 kPa" in text for text in tells(actions))
+    assert not core.awaits_board_frame
+    core.board(3.0, True)
+    core.take_actions()
+    core.sent(3.1, target)
+    core.take_actions()
+    assert core.target_after_interruption == {"state": "settling", "after": "link loss"}
+    (told,) = held_again(settle(core, 3.1, 1.2, estimate_ml=32.0))
+    assert "held again after the link was lost" in told.text and told.data["after"] == "link loss"
+    assert core.target_after_interruption == {"state": "held_again", "after": "link loss"}
+
+
+def test_setpoints_lost_seen_while_they_are_sent_again_are_an_interruption(core):
+    """The board back before a frame said anything: a frame sampled before the setpoints sent again landed, at
+    0, says the board had lost them."""
+    target = volume(32.0)
+    reached(core, target)
+    core.board(2.0, False, "the link is disconnected")
+    core.board(2.5, True)
+    (send,) = of_kind(core.take_actions(), control.SendSetpoints)
+    core.board_setpoints(2.51, np.zeros(3))                          # before the ACK: what the board held
+    assert core.target_after_interruption == {"state": "not_held", "after": "link loss"}
+    core.sent(2.55, target)
+    assert core.target_after_interruption == {"state": "settling", "after": "link loss"}
+
+
+@pytest.mark.parametrize("in_flight", [False, True], ids=["before the send", "while it is in flight"])
+def test_a_link_briefly_silent_while_the_board_kept_its_setpoints_is_no_interruption(core, in_flight):
+    """A link silent for a moment (the link's process stalled, a silence that ended without a reset): the board
+    reports the target's setpoints still, so nothing was interrupted: no words, no held again."""
+    target = volume(32.0)
+    reached(core, target)
+    core.board(2.0, False, "the link's process has not reported for 1.2 s")
+    if not in_flight:
+        core.board_setpoints(2.4, HELD_PA)
+        assert not core.awaits_board_frame
+    core.board(2.5, True)
+    actions = core.take_actions()
+    if in_flight:
+        core.board_setpoints(2.51, HELD_PA)                          # kept, or landed: it held them either way
+    core.sent(2.55, target)
+    actions += core.take_actions()
+    actions += settle(core, 2.6, 2.0, estimate_ml=32.0)
+    core.board_setpoints(4.7, HELD_PA)
+    actions += core.take_actions()
+    assert core.target_after_interruption is None and held_again(actions) == [] and outcomes(actions) == []
+    assert not [text for text in tells(actions) if "not held" in text]
+
+
+def test_a_restart_seen_only_after_the_setpoints_were_taken_again_settles_from_their_ack(core):
+    """No frame came between the board's return and the ACK of the setpoints sent again: the first frame after
+    it tells the restart (its clock went back), and the target is settling from the ACK on, not stuck not held."""
+    target = volume(32.0)
+    reached(core, target)
+    core.board(2.0, False, "the link is disconnected")
+    core.board(2.5, True)
+    core.take_actions()
+    core.sent(2.55, target)
+    core.take_actions()
+    assert core.target_after_interruption is None
+    core.board_restarted(2.57, "its clock went back from 2000 to 1520 ms")
+    core.board_setpoints(2.57, HELD_PA)                              # the setpoints sent again, taken
+    assert core.target_after_interruption == {"state": "settling", "after": "board restart"}
+    (told,) = held_again(settle(core, 2.6, 1.2, estimate_ml=32.0))
+    assert "after the board restarted" in told.text
+
+
+def test_the_first_frame_after_the_setpoints_were_taken_again_without_a_restart_is_no_interruption(core):
+    target = volume(32.0)
+    reached(core, target)
+    core.board(2.0, False, "the link is disconnected")
+    core.board(2.5, True)
+    core.take_actions()
+    core.sent(2.55, target)
+    core.board_setpoints(2.57, HELD_PA)
+    core.board_restarted(5.0, "its clock went back")                 # a restart later is one of its own ...
+    assert core.target_after_interruption == {"state": "not_held", "after": "board restart"}
+
+
+def test_a_board_that_restarts_during_an_open_session_reads_not_held_until_its_link_is_back(core):
+    """The frame whose clock went back comes while the link is still up (the session ends on it right after)."""
+    target = volume(32.0)
+    reached(core, target)
+    core.board_restarted(2.0, "its clock went back from 2000 to 120 ms")
+    assert core.target_after_interruption == {"state": "not_held", "after": "board restart"}
+    core.board(2.01, False, "the link is disconnected: the board restarted")
+    core.board_setpoints(3.0, np.zeros(3))
+    core.board(3.1, True)
+    core.take_actions()
+    assert core.target_after_interruption == {"state": "not_held", "after": "board restart"}
+    core.sent(3.2, target)
+    assert core.target_after_interruption == {"state": "settling", "after": "board restart"}
+
+
+def test_a_fault_latched_while_the_link_was_lost_is_the_faults_interruption(core):
+    """DEAD_HOST: the board latched a fault while the daemon was away; it is the fault's (cleared on request)."""
+    target = volume(32.0)
+    reached(core, target)
+    core.board(2.0, False, "the link's process has not reported for 1.2 s")
+    core.faults(2.9, ("DEAD_HOST",))
+    core.board_setpoints(2.9, np.zeros(3))
+    actions = core.take_actions()
+    assert core.target_after_interruption == after_fault("not_held")
+    assert not [text for text in tells(actions) if "not held" in text]   # the fault says it
+    core.board(3.0, True)
+    core.faults(4.0, ())
+    core.take_actions()
+    core.sent(4.1, target)
+    assert core.target_after_interruption == after_fault("settling")
+
+
+def test_a_board_restart_before_reached_or_without_a_target_is_no_interruption(core):
+    core.board_restarted(0.5, "its clock went back")
+    assert core.target_after_interruption is None and core.take_actions() == []
+    target = volume(32.0)
+    hold(core, 1.0, target)
+    settle(core, 1.0, 0.5, estimate_ml=32.0)                         # not reached yet
+    core.board(1.6, False, "the link is disconnected")
+    core.board_restarted(2.0, "its clock went back")
+    core.board(2.1, True)
+    core.take_actions()
+    core.sent(2.2, target)
+    actions = settle(core, 2.2, 1.2, estimate_ml=32.0)
+    assert outcomes(actions) == ["reached"] and held_again(actions) == []
+    assert core.target_after_interruption is None
+
+
+def test_a_vent_or_another_target_forgets_an_interruption(core):
+    target = volume(32.0)
+    reached(core, target)
+    core.board_restarted(2.0, "its clock went back")
+    assert core.target_after_interruption["state"] == "not_held"
+    hold(core, 2.5, volume(35.0), kpa=(1.5, 0.5, 0.5), request=2)
+    assert core.target_after_interruption is None
+    settle(core, 2.5, 1.2, kpa=(1.5, 0.5, 0.5), estimate_ml=35.0)
+    core.board(4.0, False, "the link is disconnected")
+    assert core.awaits_board_frame
+    core.vent(4.5, "on request")
+    assert core.target_after_interruption is None and not core.awaits_board_frame
 
 
 def test_a_vent_drops_the_target_and_the_scene_and_answers_its_request_once_acknowledged(core):

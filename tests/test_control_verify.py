@@ -1015,14 +1015,14 @@ def test_the_core_draws_round_4s_secant_from_round_1_when_rounds_2_and_3_scanned
 def test_a_verified_target_held_again_after_a_fault_is_judged_on_its_pressures_not_the_models_estimate(core):
     """The scan said the volume at these setpoints; the model's estimate, off by more than the tolerance, does not
     keep the restored setpoints from being held again."""
-    from test_control_core import fault_and_clear, held_again
+    from test_control_core import after_fault, fault_and_clear, held_again
 
     verified(core)
     core.scanned(3.5, 1, 40.03, None, "/scans/1")
     assert outcomes(core.take_actions()) == ["reached"]
     fault_and_clear(core, 5.0, volume(40.0))
-    assert core.target_after_fault == "settling"
+    assert core.target_after_interruption == after_fault("settling")
     actions = settle(core, 6.1, 1.2, estimate_ml=40.6)                # the model's estimate 1.5 % off
     (told,) = held_again(actions)
     assert outcomes(actions) == [] and of_kind(actions, policy_of.Scan) == []   # not scanned again
-    assert core.target_after_fault == "held_again"
+    assert core.target_after_interruption == after_fault("held_again")

@@ -228,6 +228,8 @@ def test_bad_requests_get_clear_errors_and_change_nothing(rig):
 
 def test_unplugged_board_is_recovered_by_itself(rig):
     board = rig["board"]
+    wait_until(lambda: any(event.get("outcome") == "reached" for event in status(rig)["events"]), 30, rig,
+               "32 ml told reached")
     setpoints = status(rig)["setpoints_kpa"]
     board.unplug()
     wait_until(lambda: status(rig)["link"] == "disconnected", 10, rig, "link seen as lost")
@@ -247,7 +249,25 @@ def test_unplugged_board_is_recovered_by_itself(rig):
     # the daemon restores its setpoints on the board that reset, and the chambers come back to them
     wait_until(lambda: status(rig)["board_setpoints_kpa"] == pytest.approx(setpoints, abs=0.0015), 10, rig,
                "setpoints restored on the board")
+    # the 32 ml reached before the unplug is not said reached while the phantom inflates again: the board
+    # restarted (its clock went back) and lost its setpoints, so the target is not held, then settling ...
+    wait_until(lambda: status(rig)["target_after_interruption"] is not None, 10, rig, "the interruption said")
+    interrupted = status(rig)["target_after_interruption"]
+    assert interrupted["after"] == "board restart" and interrupted["state"] in ("not_held", "settling", "held_again")
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "volume back at 32 ml")
+    # ... then held again by the reached rule, told once, with no second outcome
+    wait_until(lambda: status(rig)["target_after_interruption"] == {"state": "held_again", "after": "board restart"},
+               30, rig, "the target held again after the restart")
+    said = phantom_cli(rig, "status")
+    assert "); held again after the board restarted\n" in said.stdout, said.stdout + said.stderr
+    events = status(rig)["events"]
+    lost_s = max(event["time_s"] for event in events if event["kind"] == "link_lost")
+    (not_held,) = [event for event in events if event["kind"] == "target" and "not held: the board restarted"
+                   in event["text"]]
+    (held,) = [event for event in events if event.get("held_again")]
+    assert lost_s < not_held["time_s"] <= held["time_s"] and "outcome" not in not_held and "outcome" not in held
+    assert held["after"] == "board restart" and "held again after the board restarted" in held["text"]
+    assert not [event for event in events if event.get("outcome") and event["time_s"] >= lost_s]
 
 
 def test_a_short_scene_runs_its_steps_and_reports_each(rig):
@@ -278,7 +298,8 @@ def test_a_latched_fault_is_shown_and_cleared_only_on_request(rig):
     # the cause is gone but the fault stays latched until someone asks
     answer = status(rig)
     assert "SENSOR_1" in answer["faults"] and answer["chamber_states"] == ["FAULT"] * 3
-    assert answer["target_after_fault"] == "not_held"     # reached before the fault: the board zeroed its setpoints
+    # reached before the fault: the board zeroed its setpoints
+    assert answer["target_after_interruption"] == {"state": "not_held", "after": "fault"}
     cleared = phantom_cli(rig, "clear-fault", "--json")
     assert cleared.returncode == 0, cleared.stderr
     assert json.loads(cleared.stdout) == {"cleared": ["SENSOR_1"], "setpoints_restored": True,
@@ -286,11 +307,12 @@ def test_a_latched_fault_is_shown_and_cleared_only_on_request(rig):
     wait_until(lambda: status(rig)["faults"] == [], 5, rig, "faults cleared")
     wait_until(lambda: settled_at(rig, 32.0), 30, rig, "volume back at 32 ml after the fault")
     # held again by the daemon's reached rule: said in the status and told once, as no second outcome
-    wait_until(lambda: status(rig)["target_after_fault"] == "held_again", 30, rig, "the target held again")
+    wait_until(lambda: status(rig)["target_after_interruption"] == {"state": "held_again", "after": "fault"}, 30, rig,
+               "the target held again")
     said = phantom_cli(rig, "status")
     assert "); held again after the fault\n" in said.stdout, said.stdout + said.stderr  # phantom status says it
     events = status(rig)["events"]
-    (held,) = [event for event in events if event.get("held_again")]
+    (held,) = [event for event in events if event.get("held_again") and event["after"] == "fault"]
     assert held["kind"] == "target" and "outcome" not in held and held["target"] == {"volume_ml": 32.0}
     assert "held again after the fault" in held["text"]
     latched_s = max(event["time_s"] for event in events if event["kind"] == "fault" and "latched" in event["text"])

@@ -661,3 +661,71 @@ def test_the_table_builds_progress_is_logged_at_once_and_then_every_report_perio
         logged = [record.getMessage() for record in caplog.records if "response table solves" in record.getMessage()]
     assert [message.split(" (")[0] for message in logged] == [
         f"response table solves: {seconds:.1f} s so far" for seconds in (0.0, BUILD_REPORT_S, 2 * BUILD_REPORT_S)]
+
+
+def board_frame(board_time_ms: int, setpoints_kpa, kpa=None, fault_flags=0):
+    from types import SimpleNamespace
+
+    setpoints = np.asarray(setpoints_kpa, dtype=float) * 1e3
+    pressures = setpoints if kpa is None else np.asarray(kpa, dtype=float) * 1e3
+    return SimpleNamespace(board_time_ms=board_time_ms, pressures_pa=pressures, setpoints_pa=setpoints,
+                           drive_levels=np.zeros(3), states=["REGULATING"] * 3, fault_flags=fault_flags)
+
+
+@pytest.mark.parametrize("back", ["restarted", "kept", "lost", "no frame"])
+def test_a_reconnection_lets_the_boards_first_frame_say_whether_a_reached_target_was_interrupted(monkeypatch, back):
+    """The link back after a loss: before the reached target's setpoints go again, the daemon lets the board's
+    first frame come, whose clock (gone back: it restarted) or setpoints (not the target's: lost) say whether the
+    target was interrupted; a board that kept them interrupted nothing."""
+    from test_control_core import HELD_PA, hold, settle, volume
+
+    from phantom.host import daemon as daemon_module
+    from phantom.host.session import BoardInfo
+
+    monkeypatch.setattr(daemon_module, "FIRST_FRAME_WAIT_S", 0.2)
+    parts, clock = PartsStandIn(False), FakeClock()
+    daemon = parts.daemon(False, clock)
+    core, held_kpa = daemon.core, HELD_PA / 1e3
+    core.board(clock.now_s, True)
+    hold(core, clock.now_s, volume(32.0))
+    settle(core, clock.now_s, 1.2 + core.rule.settled_for_s, estimate_ml=32.0)
+    assert core._reached == volume(32.0)
+    daemon.on_telemetry(board_frame(60_000, held_kpa))                   # up for a minute, holding the target
+    clock.now_s += 5.0
+    daemon._feed(core.board, False, "the link is disconnected")
+    info = BoardInfo(1, 0, "1.0.0", "UNO", 3, "POWER_ON", 0)
+
+    async def reconnect():
+        online = asyncio.create_task(daemon.on_online(info, True))
+        for _ in range(20):
+            await asyncio.sleep(0)
+        waited = not online.done()                                       # the first frame is waited for
+        if back == "restarted":
+            daemon.on_telemetry(board_frame(1_600, [0, 0, 0], [0, 0, 0]))   # its clock went back
+        elif back == "kept":
+            daemon.on_telemetry(board_frame(66_000, held_kpa))
+        elif back == "lost":
+            daemon.on_telemetry(board_frame(66_000, [0, 0, 0], [0, 0, 0]))
+        await online
+        for _ in range(20):                                              # the setpoints sent again, acknowledged
+            await asyncio.sleep(0)
+        return waited
+
+    assert asyncio.run(reconnect())
+    assert ("command", "SET_SETPOINTS") in parts.calls and core.target_applied
+    after = {"restarted": "board restart", "lost": "link loss"}.get(back)
+    texts = [event["text"] for event in daemon.events]
+    if after is None:  # kept, or no frame came: nothing said
+        assert core.target_after_interruption is None and not [text for text in texts if "not held" in text]
+    else:
+        assert core.target_after_interruption == {"state": "settling", "after": after}
+        assert status_of(daemon)["target_after_interruption"] == {"state": "settling", "after": after}
+        (said,) = [text for text in texts if "not held" in text]
+        assert ("the board restarted (its clock went back from 60.0 s to 1.6 s)" in said if back == "restarted"
+                else "the board reports setpoints 0.000, 0.000, 0.000 kPa since its link was lost" in said)
+
+
+def status_of(daemon):
+    from phantom.host.status import daemon_status
+
+    return daemon_status(daemon)

@@ -433,9 +433,10 @@ def test_a_latched_fault_is_shown_in_words_and_cleared(panel):
                "the fault's words gone from the target")
     assert "FAULT" not in panel.text("control")
     panel.wait(lambda: "the target's setpoints are restored" in panel.text("notice"), 12, "the clear's answer")
-    # held again: the daemon's word (its reached rule, the status's target_after_fault), not the page's own
+    # held again: the daemon's word (its reached rule, the status's target_after_interruption), not the page's own
     panel.wait(lambda: panel.text("target-state").endswith("held again after the fault"), 60, "the target held again")
-    assert panel.text("target-state").startswith("reached") and panel.status()["target_after_fault"] == "held_again"
+    assert panel.text("target-state").startswith("reached")
+    assert panel.status()["target_after_interruption"] == {"state": "held_again", "after": "fault"}
     panel.shot("held-again")
     print(f"after the fault: {panel.text('target-state')}")
 

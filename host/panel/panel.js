@@ -206,6 +206,7 @@ function renderTarget() {
   const key = targetKey(status.target);
   const faults = status.faults || [];
   const told = state.outcome && state.outcome.key === key ? state.outcome : null;
+  const interrupted = status.target_after_interruption; // {state, after}: the board lost a reached target's setpoints
   if (status.control === "vented") {
     setTargetState("vented", "working");
   } else if (!status.target) {
@@ -217,14 +218,15 @@ function renderTarget() {
     setTargetState(`waiting: ${panelWords(status.target_pending)}`, "working");
   } else if (status.verify && !told) {
     setTargetState(`verifying, round ${status.verify.round}…`, "working"); // the line below says how far
-  } else if (status.target_after_fault === "held_again") {
-    // reached before a fault, and held again since it was cleared: the daemon's word (its reached rule), told once
+  } else if (interrupted && interrupted.state === "held_again") {
+    // reached before the board lost its setpoints (a fault, a restart, a lost link), and held again since: the
+    // daemon's word (its reached rule), told once
     const reached = told && told.outcome === "reached" ? `${told.text}, ` : "";
-    setTargetState(`${reached}held again after the fault`, "reached");
-  } else if (status.target_after_fault === "settling") {
-    setTargetState("settling again after the fault…", "working");
-  } else if (status.target_after_fault === "not_held") {
-    setTargetState("not held since the fault: its setpoints are being sent again…", "working");
+    setTargetState(`${reached}held again after ${interruptedAfter(interrupted)}`, "reached");
+  } else if (interrupted && interrupted.state === "settling") {
+    setTargetState(`settling again after ${interruptedAfter(interrupted)}…`, "working");
+  } else if (interrupted && interrupted.state === "not_held") {
+    setTargetState(`not held since ${interruptedAfter(interrupted)}: its setpoints are being sent again…`, "working");
   } else if (told && told.outcome === "reached") {
     setTargetState(told.text, "reached");
   } else if (told && told.outcome !== "faulted") {
@@ -232,6 +234,14 @@ function renderTarget() {
   } else {
     setTargetState("reaching…", "working"); // (a target faulted is reached again once the fault is cleared)
   }
+}
+
+// What interrupted a reached target (the status's target_after_interruption.after), in words.
+const INTERRUPTION_WORDS = { "fault": "the fault", "board restart": "the board restarted",
+  "link loss": "the link was lost" };
+
+function interruptedAfter(interrupted) {
+  return INTERRUPTION_WORDS[interrupted.after] || interrupted.after;
 }
 
 // The daemon's words for the CLI, as the page says them (it has a button for it).

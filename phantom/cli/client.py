@@ -186,9 +186,24 @@ def _faults(status: dict[str, Any]) -> str:
     return known if status["link"] == "online" else f"unknown while the link is {status['link']} (last known: {known})"
 
 
-#: What became of a reached target after a fault (the status's ``target_after_fault``), as ``phantom status`` says it.
-AFTER_FAULT_WORDS = {"not_held": "not held since the fault: its setpoints go again once it is cleared",
-                     "settling": "settling again after the fault", "held_again": "held again after the fault"}
+#: What interrupted a reached target (the status's ``target_after_interruption``'s ``after``), as ``phantom status``
+#: says it.
+INTERRUPTION_WORDS = {"fault": "the fault", "board restart": "the board restarted", "link loss": "the link was lost"}
+
+
+def _after_interruption(held: dict[str, str] | None) -> str:
+    """What became of a reached target after the board lost its setpoints (the status's
+    ``target_after_interruption``), as ``phantom status`` says it after its control line; empty when nothing did."""
+    if not held:
+        return ""
+    state, after = held.get("state"), held.get("after")
+    words = INTERRUPTION_WORDS.get(str(after), str(after))
+    if state == "not_held":
+        again = "go again once it is cleared" if after == "fault" else "go to the board again"
+        return f"; not held since {words}: its setpoints {again}"
+    if state == "settling":
+        return f"; settling again after {words}"
+    return f"; held again after {words}" if state == "held_again" else f"; {state} after {words}"
 
 
 def format_status(status: dict[str, Any]) -> str:
@@ -208,7 +223,7 @@ def format_status(status: dict[str, Any]) -> str:
         f"{board.get('reset_cause', '-')}; rtt {rtt}, retries {stats['retries']}, bad frames {stats['bad_frames']}, "
         f"reconnects {stats['reconnects']}",
         f"control   {status['control']}" + (f" ({status['target_source']})" if status.get("target_source") else "")
-        + (f"; {AFTER_FAULT_WORDS[status['target_after_fault']]}" if status.get("target_after_fault") else ""),
+        + _after_interruption(status.get("target_after_interruption")),
         f"{'chamber':<9} " + " ".join(f"{label:>11}" for label in _labels(status)),
         f"{'pressure':<9} {_per_chamber(status['pressures_kpa'])}  kPa measured",
         f"{'setpoint':<9} {_per_chamber(status['setpoints_kpa'])}  kPa",
