@@ -386,15 +386,21 @@ def test_a_link_briefly_silent_while_the_board_kept_its_setpoints_is_no_interrup
     assert not [text for text in tells(actions) if "not held" in text]
 
 
-def test_a_restart_seen_only_after_the_setpoints_were_taken_again_settles_from_their_ack(core):
-    """No frame came between the board's return and the ACK of the setpoints sent again: the first frame after
-    it tells the restart (its clock went back), and the target is settling from the ACK on, not stuck not held."""
-    target = volume(32.0)
+def back_and_taken_again(core, target):
+    """``target`` reached, its board away at 2 s and back at 2.5 s, the setpoints sent again taken at 2.55 s before
+    any frame came."""
     reached(core, target)
     core.board(2.0, False, "the link is disconnected")
     core.board(2.5, True)
     core.take_actions()
     core.sent(2.55, target)
+
+
+def test_a_restart_seen_only_after_the_setpoints_were_taken_again_settles_from_their_ack(core):
+    """No frame came between the board's return and the ACK of the setpoints sent again: the first frame after
+    it tells the restart (its clock went back), and the target is settling from the ACK on, not stuck not held."""
+    target = volume(32.0)
+    back_and_taken_again(core, target)
     core.take_actions()
     assert core.target_after_interruption is None
     core.board_restarted(2.57, "its clock went back from 2000 to 1520 ms")
@@ -406,11 +412,7 @@ def test_a_restart_seen_only_after_the_setpoints_were_taken_again_settles_from_t
 
 def test_the_first_frame_after_the_setpoints_were_taken_again_without_a_restart_is_no_interruption(core):
     target = volume(32.0)
-    reached(core, target)
-    core.board(2.0, False, "the link is disconnected")
-    core.board(2.5, True)
-    core.take_actions()
-    core.sent(2.55, target)
+    back_and_taken_again(core, target)
     core.board_setpoints(2.57, HELD_PA)
     core.board_restarted(5.0, "its clock went back")                 # a restart later is one of its own ...
     assert core.target_after_interruption == {"state": "not_held", "after": "board restart"}
