@@ -36,6 +36,18 @@ PROFILED_VECTORS = {
                    "watchdog_isr": 12},
 }
 
+#: The harness's SCHED_FIFO priority while paced (``SimulatedBoard(rt_priority=...)``): the simulated board stands
+#: in for hardware, which never waits for a core. On a loaded machine a harness at normal priority waited for one
+#: for up to 0.4 s at a time (its own session, hence its own autogroup: the other processes' nice values do not
+#: reach it); a wait of a second is a board silent for a second, which a daemon driving it as a real board takes
+#: for a lost link: it reconnects, stays silent meanwhile (the boot delay) and the board latches DEAD_HOST
+#: (tests/test_real_rig_sim.py in make test, twice in five runs). Below the board link's (``LINK_RT_PRIORITY``,
+#: 10, phantom.host.link_process), so that the host's keepalive never waits for the simulator. Granted to root or
+#: with an RLIMIT_RTPRIO; otherwise the harness runs at normal priority and ``scheduling`` says why. Never asked
+#: unpaced (speed 0: it runs flat out), and given up for good by a harness that cannot keep up at its speed
+#: (it slept under a tenth of a second: hil/harness/main.c, the real-time guard).
+HARNESS_RT_PRIORITY = 5
+
 #: Faults and their parameters (unit in the name) with defaults.
 FAULTS: dict[str, dict[str, float]] = {
     "sensor_cut": {},
@@ -87,10 +99,14 @@ class SimulatedBoard:
         False (the default): the image starts at address 0, as on a board flashed over ISP. True: the MCU's
         stock Arduino bootloader (Optiboot 4.4 on the Uno, stk500v2 on the Mega, from arduino-core-avr) is
         flashed too and the board starts through it, as a stock board does. A path: that .hex instead.
+    rt_priority
+        The harness's SCHED_FIFO priority while paced (default :data:`HARNESS_RT_PRIORITY`; None: normal
+        priority); refused without the right, and never at speed 0. ``scheduling`` says what it runs at.
     """
 
     def __init__(self, elf: str | Path | None = None, plant: str | Path | None = None, speed: float = 1.0,
-                 seed: int = 0, bootloader: bool | str | Path = False):
+                 seed: int = 0, bootloader: bool | str | Path = False,
+                 rt_priority: int | None = HARNESS_RT_PRIORITY):
         if not (isinstance(speed, (int, float)) and math.isfinite(speed) and speed >= 0):
             raise SimulationError(
                 f"speed must be a number >= 0 (1 = real time, 0 = as fast as possible), got {speed!r}"
@@ -104,6 +120,11 @@ class SimulatedBoard:
         elif bootloader is not False and not Path(bootloader).is_file():
             raise SimulationError(f"the bootloader image {bootloader} does not exist")
         self.bootloader = None if bootloader is False else Path(bootloader)
+        if rt_priority is not None and not (isinstance(rt_priority, int) and 1 <= rt_priority <= 99):
+            raise SimulationError(f"rt_priority must be a SCHED_FIFO priority, 1 to 99, or None, got {rt_priority!r}")
+        self.rt_priority = rt_priority
+        #: what the harness runs at ("SCHED_FIFO 5", or "normal (...)" saying why), once started
+        self.scheduling: str | None = None
         self._directory: tempfile.TemporaryDirectory[str] | None = None
         self._harness: HarnessProcess | None = None
 
@@ -124,6 +145,8 @@ class SimulatedBoard:
         arguments += ["--speed", repr(self.speed), "--seed", str(self.seed)]
         if self.bootloader is not None:
             arguments += ["--bootloader", str(self.bootloader)]
+        if self.rt_priority is not None and self.speed > 0:
+            arguments += ["--rt-priority", str(self.rt_priority)]
         for role, (address, min_cycles) in _profiled_regions(self.elf, mcu).items():
             arguments += ["--profile", f"{role}={address:#x}:{min_cycles}"]
         try:
@@ -132,6 +155,7 @@ class SimulatedBoard:
             directory.cleanup()
             self._directory = None
             raise
+        self.scheduling = self._harness.ready.get("scheduling")
         return self
 
     def stop(self) -> None:
@@ -240,7 +264,12 @@ class SimulatedBoard:
         mode: "floating", "pullup", "low", "high" or "pwm"), reset_s (when the core last started from its reset
         vector), control_since_s (when the control tick first ran after that, None before),
         floating_before_control_s (how long a blower pin floated in between) and driven_before_control
-        (whether a blower pin was driven high or by PWM in between); motion, one entry per stepper axis as its
+        (whether a blower pin was driven high or by PWM in between); lags (the last stalls of the harness behind
+        the clock over 50 ms, each [time of day s, board time s, stall s]), host_gaps (the last gaps of over
+        0.25 s of board time between the host's bytes to the UART, each [time of day s, board time s at its end,
+        gap s, wall-clock s the harness gave up meanwhile, bytes then queued for the UART]: a gap with nothing
+        given up is a host that sent nothing), scheduling (what the harness runs at: ``rt_priority``), cpu_s (the
+        harness's CPU time since it started); motion, one entry per stepper axis as its
         driver turned it (steps, angle_deg: None until the mechanism's steps per turn are set, enabled); and
         gland_volume_ml, the truth model's gland volume at these pressures, when the plant has a truth table."""
         state = self._command("state")

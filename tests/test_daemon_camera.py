@@ -79,8 +79,8 @@ def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(t
     from phantom.scan.silhouette import silhouette
 
     with _streaming_board() as streams:
-        assert set(streams) == {"phantom", "target0", "target1", "truth"}
-        truth_url = streams.pop("truth")
+        assert set(streams) == {"phantom", "target0", "target1", "truth", "board"}
+        truth_url, board_url = streams.pop("truth"), streams.pop("board")
         pictures = {}
         for name, url in streams.items():
             capture = cv2.VideoCapture(url)  # as a daemon's --camera URL opens it
@@ -103,6 +103,10 @@ def test_the_simulated_board_serves_its_camera_as_an_mjpeg_stream_opencv_reads(t
             truth = json.load(answer)
         assert 26.0 < truth["gland_volume_ml"] < 27.0 and len(truth["pressures_kpa"]) == 3  # vented, at rest
         assert truth["rig_deg"] is not None
+        with urllib.request.urlopen(board_url, timeout=10) as answer:  # for a test to explain a lost link by
+            board = json.load(answer)
+        assert board["time_s"] > 0 and board["lost_s"] >= 0 and isinstance(board["host_gaps"], list)
+        assert {"bytes_to_mcu", "bytes_from_mcu", "bytes_overflowed"} <= set(board["serial"]) and board["scheduling"]
 
 
 class _CountedReads:

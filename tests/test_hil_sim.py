@@ -282,6 +282,55 @@ def test_simulated_time_is_paced_to_the_wall_clock():
         simulated_s, lost_s, shortest_s, longest_s)
 
 
+def _harness_pids() -> set[int]:
+    """This process's phantom-hil children."""
+    pids = set()
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        for child in (task / "children").read_text().split():
+            if Path(f"/proc/{child}/comm").read_text().strip() == "phantom-hil":
+                pids.add(int(child))
+    return pids
+
+
+def test_a_paced_harness_asks_for_a_real_time_priority_below_the_links_and_gives_it_up_when_it_cannot_keep_up():
+    """The simulated board stands in for hardware, which never waits for a core: a paced harness runs at SCHED_FIFO
+    (HARNESS_RT_PRIORITY, below the board link's), where it may (root, CAP_SYS_NICE); an unpaced one never does; one
+    that cannot keep up at its speed (it sleeps under a tenth of a second) gives the priority up within seconds,
+    rather than keep a core from every other process. Where the right is missing, it says why."""
+    import time
+
+    from phantom.hil.sim import HARNESS_RT_PRIORITY
+    from phantom.host.link_process import LINK_RT_PRIORITY
+
+    assert 0 < HARNESS_RT_PRIORITY < LINK_RT_PRIORITY
+    effective = int(next(line for line in open("/proc/self/status") if line.startswith("CapEff:")).split()[1], 16)
+    may = bool(effective >> 23 & 1)  # CAP_SYS_NICE (a container may run root without it)
+    before = _harness_pids()
+    with SimulatedBoard(speed=SPEED) as paced:
+        (pid,) = _harness_pids() - before
+        if may:
+            assert paced.scheduling == f"SCHED_FIFO {HARNESS_RT_PRIORITY}"
+            assert os.sched_getscheduler(pid) & ~os.SCHED_RESET_ON_FORK == os.SCHED_FIFO  # its children would not
+            assert os.sched_getparam(pid).sched_priority == HARNESS_RT_PRIORITY
+        else:
+            assert paced.scheduling.startswith(f"normal (SCHED_FIFO {HARNESS_RT_PRIORITY} refused: "), paced.scheduling
+        assert paced.plant_state()["scheduling"] == paced.scheduling
+    with SimulatedBoard(speed=0) as unpaced:
+        (pid,) = _harness_pids() - before
+        assert unpaced.scheduling.startswith("normal") and os.sched_getscheduler(pid) == os.SCHED_OTHER
+    if not may:
+        return
+    with SimulatedBoard(speed=100) as flat_out:  # flat out it runs about 7x real time
+        (pid,) = _harness_pids() - before
+        deadline = time.monotonic() + 20
+        while (said := flat_out.plant_state()["scheduling"]) == f"SCHED_FIFO {HARNESS_RT_PRIORITY}":
+            assert time.monotonic() < deadline, "a harness that cannot keep up kept its real-time priority"
+            time.sleep(0.2)
+        assert said.startswith(f"normal (SCHED_FIFO {HARNESS_RT_PRIORITY} given up at board time ") and \
+            "cannot keep up at speed 100" in said, said
+        assert os.sched_getscheduler(pid) == os.SCHED_OTHER
+
+
 def simulator_steps_per_cycle(board: SimulatedBoard, link: BoardLink, board_s: float) -> float:
     """The harness's steps (instructions, or jumps to the next event while the core sleeps) per simulated cycle
     over ``board_s`` of board time: the simulator's work, counted, whatever the machine's load."""

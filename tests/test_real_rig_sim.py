@@ -76,6 +76,28 @@ class RealRig:
     folder: Path
 
 
+def _link_account(streams: dict[str, str] | None, socket: Path | None) -> str:
+    """What explains a lost link, both sides of it: the simulated board's timing (the stream's ``/board.json``: how
+    far the harness fell behind the wall clock, the gaps in the host's bytes to its UART, the line's counters) and
+    the daemon's link (its ``link_detail``: the link process's scheduling and its loop's stalls, the counters)."""
+    lines = []
+    if streams is not None:
+        try:
+            with urllib.request.urlopen(streams["board"], timeout=10) as answer:
+                lines.append(f"the simulated board: {json.dumps(json.load(answer))}")
+        except Exception as error:  # an account, not a check: the board may be gone
+            lines.append(f"the simulated board: not read ({error})")
+    if socket is not None and socket.exists():
+        try:
+            with phantom.connect(socket) as lab:
+                detail = lab.status().raw.get("link_detail") or {}
+            keys = ("state", "last_error", "process", "event_loop", "stats")
+            lines.append(f"the daemon's link: {json.dumps({key: detail.get(key) for key in keys})}")
+        except Exception as error:
+            lines.append(f"the daemon's link: not read ({error})")
+    return "\n".join(lines)
+
+
 @contextlib.contextmanager
 def real_rig(tmp_path: Path) -> Iterator[RealRig]:
     """The README's "A verified volume on a real rig" up to the daemon that scans for itself: ``phantom sim-board
@@ -86,7 +108,7 @@ def real_rig(tmp_path: Path) -> Iterator[RealRig]:
     board_log = open(tmp_path / "board.log", "w")  # a file, not a pipe no one reads on: it would fill and block
     board = subprocess.Popen([str(PHANTOM), "sim-board", "--camera-stream", "127.0.0.1:0", "--sim-speed",
                               str(SIM_SPEED), "--json"], stdout=subprocess.PIPE, stderr=board_log, text=True, env=env)
-    daemon = None
+    daemon, streams = None, None
     try:
         line = board.stdout.readline()
         assert line, (tmp_path / "board.log").read_text()
@@ -109,6 +131,8 @@ def real_rig(tmp_path: Path) -> Iterator[RealRig]:
         daemon = _Daemon(tmp_path, port, env, "--camera", streams["phantom"], "--rig", str(tmp_path / "rig.json"))
         yield RealRig(daemon, streams, env, tmp_path)
     finally:
+        # shown with a failure (a DEAD_HOST latched, the link lost), and with -rP
+        print("--- the link, both sides\n" + _link_account(streams, None if daemon is None else daemon.socket))
         if daemon is not None:
             daemon.stop()
         board.terminate()

@@ -11,6 +11,7 @@
 #include <getopt.h>
 #include <math.h>
 #include <poll.h>
+#include <sched.h>
 #include <signal.h>
 #include <stdarg.h>
 #include <stdio.h>
@@ -27,6 +28,11 @@
 #include "avr_extint.h"
 #include "sim_avr.h"
 #include "sim_elf.h"
+
+/* The notable stalls and host gaps kept (the last ones), and what makes one notable (s). */
+#define NOTABLE_KEPT 8
+#define NOTABLE_LAG_S 0.05
+#define NOTABLE_GAP_S 0.25
 
 typedef struct harness {
 	avr_t *avr;                   /* NULL when running the plant alone (--no-mcu) */
@@ -46,6 +52,13 @@ typedef struct harness {
 	uint64_t pace_origin_cycle;
 	double max_lag_s;             /* the longest stall behind the clock */
 	double lost_s;                /* wall-clock time the simulation could not keep up with, in total */
+	/* the last NOTABLE_KEPT stalls of the harness behind the clock (over NOTABLE_LAG_S), and the last gaps in
+	   the host's bytes to the UART (over NOTABLE_GAP_S of board time): what a DEAD_HOST on a loaded machine is
+	   explained by (the harness starved, or the host silent while the board ran) */
+	struct { double at_epoch_s, at_s, lag_s; } lags[NOTABLE_KEPT];
+	struct { double at_epoch_s, at_s, gap_s, lost_s; size_t queued; } gaps[NOTABLE_KEPT];
+	uint64_t lag_count, gap_count;
+	double lost_at_host_byte_s;   /* lost_s when the UART last received a host byte */
 	uint64_t resets;
 	uint64_t last_reset_cycle;
 	uint64_t steps;               /* simulator steps since `stats reset`: instructions, or jumps to the next event
@@ -60,10 +73,23 @@ typedef struct harness {
 	int bootloader;               /* a bootloader was loaded: the reset vector is its start */
 	double peak_pa[3];            /* each chamber's highest true pressure since the last `fault` command */
 	double nominal_supply_v;      /* the 5 V rail as the plant file gives it */
+	int rt_priority;              /* --rt-priority: the SCHED_FIFO priority asked for while paced (0: none) */
+	int realtime;                 /* running at it now */
+	char scheduling[256];         /* what the harness runs at, and why (for `state`) */
+	double busy_window_start_s;   /* the wall-clock second being measured for the real-time guard */
+	double busy_window_slept_s;   /* how long the harness slept in it */
 	char line[1024];
 	size_t line_length;
 	int quit;
 } harness_t;
+
+/* The time of day (s since the epoch): when a notable stall or gap happened, to set beside a host's log. */
+static double epoch_seconds(void)
+{
+	struct timespec now;
+	clock_gettime(CLOCK_REALTIME, &now);
+	return now.tv_sec + now.tv_nsec * 1e-9;
+}
 
 /* Monotonic wall-clock time in seconds. */
 static double wall_seconds(void)
@@ -130,14 +156,34 @@ static void reply_state(harness_t *h)
 	}
 	if (h->control_since_s >= 0)
 		snprintf(control_since, sizeof(control_since), "%.9f", h->control_since_s);
+	char lags[NOTABLE_KEPT * 64 + 8] = "[", gaps[NOTABLE_KEPT * 96 + 8] = "[";
+	size_t lags_used = 1, gaps_used = 1;
+	uint64_t first = h->lag_count > NOTABLE_KEPT ? h->lag_count - NOTABLE_KEPT : 0;
+	for (uint64_t k = first; k < h->lag_count; k++) {
+		const typeof(h->lags[0]) *lag = &h->lags[k % NOTABLE_KEPT];
+		lags_used += snprintf(lags + lags_used, sizeof(lags) - lags_used, "%s[%.3f, %.3f, %.3f]", k > first ? ", " : "",
+		                      lag->at_epoch_s, lag->at_s, lag->lag_s);
+	}
+	snprintf(lags + lags_used, sizeof(lags) - lags_used, "]");
+	first = h->gap_count > NOTABLE_KEPT ? h->gap_count - NOTABLE_KEPT : 0;
+	for (uint64_t k = first; k < h->gap_count; k++) {
+		const typeof(h->gaps[0]) *gap = &h->gaps[k % NOTABLE_KEPT];
+		gaps_used += snprintf(gaps + gaps_used, sizeof(gaps) - gaps_used, "%s[%.3f, %.3f, %.3f, %.3f, %zu]",
+		                      k > first ? ", " : "", gap->at_epoch_s, gap->at_s, gap->gap_s, gap->lost_s, gap->queued);
+	}
+	snprintf(gaps + gaps_used, sizeof(gaps) - gaps_used, "]");
+	struct timespec cpu;
+	clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &cpu);
 	reply("{\"time_s\": %.9f, \"all_off_since_s\": %s, \"last_host_byte_s\": %s, \"pressures_pa\": %s, \"drive_levels\": %s, \"effective_drive_levels\": %s, "
 	      "\"chamber_volumes_ml\": %s, \"sensor_voltages_v\": %s, \"powered\": %s, \"halted\": %s, "
 	      "\"resets\": %llu, \"max_lag_s\": %.6f, \"lost_s\": %.6f, \"blower_pins\": %s, \"reset_s\": %.9f, "
 	      "\"control_since_s\": %s, \"floating_before_control_s\": %.6f, \"driven_before_control\": %s, "
-	      "\"peak_pressures_pa\": %s, \"motion\": %s}",
+	      "\"peak_pressures_pa\": %s, \"motion\": %s, \"lags\": %s, \"host_gaps\": %s, \"scheduling\": \"%s\", "
+	      "\"cpu_s\": %.3f}",
 	      simulated_seconds(h), off_since, last_byte, pressures, drives, actual, volumes, sensed, h->powered ? "true" : "false",
 	      h->halted ? "true" : "false", (unsigned long long)h->resets, h->max_lag_s, h->lost_s, pins, h->reset_s,
-	      control_since, h->floating_s, h->driven_before_control ? "true" : "false", peaks, motion);
+	      control_since, h->floating_s, h->driven_before_control ? "true" : "false", peaks, motion, lags, gaps,
+	      h->scheduling, cpu.tv_sec + cpu.tv_nsec * 1e-9);
 }
 
 /* Answer `stats`: cycle counts of the timed functions and the serial line counters. */
@@ -516,6 +562,57 @@ static void poll_commands(harness_t *h, int timeout_ms)
    board time (the service period) cost a third of a paced board's CPU. */
 #define PACE_AHEAD_S 0.002
 
+/* The real-time guard: a harness at a real-time priority that slept less than this share of a wall-clock second
+   cannot keep up at its speed on this machine (flat out it runs about 7x real time); it gives the priority up,
+   for good, rather than take a core from every other process. Paced at 2x it sleeps 60-80 % of each second. */
+#define REALTIME_MIN_SLEEP 0.1
+
+/* Ask for SCHED_FIFO at --rt-priority (a paced board only: unpaced, it runs flat out). The simulated board
+   stands in for hardware, which never waits for a core: a harness that waited a second for one (a loaded
+   machine) sent the host nothing for that second, and the host, taking the board for gone, reconnected and let
+   its dead-host deadline pass. Below the board link's priority (phantom.host.link_process), so that the host's
+   keepalive never waits for the simulator. Refused (no CAP_SYS_NICE, no RLIMIT_RTPRIO): normal, and says why. */
+static void ask_realtime(harness_t *h)
+{
+	if (h->rt_priority <= 0) {
+		snprintf(h->scheduling, sizeof(h->scheduling), "normal (no real-time priority asked)");
+		return;
+	}
+	if (h->speed <= 0) {
+		snprintf(h->scheduling, sizeof(h->scheduling), "normal (unpaced: never a real-time priority)");
+		return;
+	}
+	struct sched_param param = {.sched_priority = h->rt_priority};
+	if (sched_setscheduler(0, SCHED_FIFO | SCHED_RESET_ON_FORK, &param) < 0) {
+		snprintf(h->scheduling, sizeof(h->scheduling), "normal (SCHED_FIFO %d refused: %s)", h->rt_priority,
+		         strerror(errno));
+		return;
+	}
+	h->realtime = 1;
+	snprintf(h->scheduling, sizeof(h->scheduling), "SCHED_FIFO %d", h->rt_priority);
+}
+
+/* The real-time guard (REALTIME_MIN_SLEEP), checked once a wall-clock second. */
+static void guard_realtime(harness_t *h, double now_s)
+{
+	double window_s = now_s - h->busy_window_start_s;
+	if (window_s < 1.0)
+		return;
+	double slept = h->busy_window_slept_s / window_s;
+	h->busy_window_start_s = now_s;
+	h->busy_window_slept_s = 0;
+	if (!h->realtime || slept >= REALTIME_MIN_SLEEP)
+		return;
+	struct sched_param param = {.sched_priority = 0};
+	if (sched_setscheduler(0, SCHED_OTHER, &param) < 0)
+		return;
+	h->realtime = 0;
+	snprintf(h->scheduling, sizeof(h->scheduling), "normal (SCHED_FIFO %d given up at board time %.3f s: it slept "
+	         "%.0f %% of a second, it cannot keep up at speed %g)", h->rt_priority, simulated_seconds(h),
+	         100 * slept, h->speed);
+	fprintf(stderr, "phantom-hil: %s\n", h->scheduling);
+}
+
 /* Sleep until the wall clock catches up with simulated time divided by the speed, once simulated time is
    PACE_AHEAD_S ahead; bytes from the host or a command end the sleep early, so they wait no longer than before. */
 static void pace(harness_t *h)
@@ -525,18 +622,26 @@ static void pace(harness_t *h)
 	double target_s = h->pace_origin_wall_s + (double)(h->cycle - h->pace_origin_cycle) / h->frequency_hz / h->speed;
 	double now_s = wall_seconds();
 	double ahead_s = target_s - now_s;
+	guard_realtime(h, now_s);
 	if (ahead_s >= PACE_AHEAD_S) {
 		struct timespec pause = {.tv_sec = (time_t)ahead_s, .tv_nsec = (long)((ahead_s - floor(ahead_s)) * 1e9)};
 		struct pollfd input[2] = {
 			{.fd = serial_pty_wants_input(&h->serial) ? h->serial.master_fd : -1, .events = POLLIN},
 			{.fd = STDIN_FILENO, .events = POLLIN}};
 		ppoll(input, 2, &pause, NULL);
+		h->busy_window_slept_s += wall_seconds() - now_s;
 	} else if (-ahead_s > PACE_SLACK_S) {
 		/* behind the clock: give the time up rather than catch it up later, so that simulated time never runs
 		   faster than asked (a host deadline never shrinks by more than PACE_AHEAD_S) */
 		if (-ahead_s > h->max_lag_s)
 			h->max_lag_s = -ahead_s;
 		h->lost_s += -ahead_s;
+		if (-ahead_s > NOTABLE_LAG_S) {
+			typeof(h->lags[0]) *lag = &h->lags[h->lag_count++ % NOTABLE_KEPT];
+			lag->at_epoch_s = epoch_seconds();
+			lag->at_s = simulated_seconds(h);
+			lag->lag_s = -ahead_s;
+		}
 		h->pace_origin_wall_s = now_s;
 		h->pace_origin_cycle = h->cycle;
 	}
@@ -592,8 +697,19 @@ static void run_once(harness_t *h)
 		h->cycle = h->next_plant_cycle < h->next_service_cycle ? h->next_plant_cycle : h->next_service_cycle;
 	}
 	while (h->cycle >= h->next_byte_cycle) {
-		if (h->powered && !h->halted && serial_pty_feed(&h->serial))
-			h->last_host_byte_s = simulated_seconds(h);
+		if (h->powered && !h->halted && serial_pty_feed(&h->serial)) {
+			double now_s = simulated_seconds(h);
+			if (h->last_host_byte_s >= 0 && now_s - h->last_host_byte_s > NOTABLE_GAP_S) {
+				typeof(h->gaps[0]) *gap = &h->gaps[h->gap_count++ % NOTABLE_KEPT];
+				gap->at_epoch_s = epoch_seconds();
+				gap->at_s = now_s;
+				gap->gap_s = now_s - h->last_host_byte_s;
+				gap->lost_s = h->lost_s - h->lost_at_host_byte_s;
+				gap->queued = h->serial.to_mcu_count;
+			}
+			h->last_host_byte_s = now_s;
+			h->lost_at_host_byte_s = h->lost_s;
+		}
 		h->next_byte_cycle += h->byte_cycles;
 	}
 	while (h->cycle >= h->next_plant_cycle) {
@@ -611,7 +727,8 @@ static void usage(const char *message)
 {
 	fprintf(stderr, "phantom-hil: %s\n"
 	        "usage: phantom-hil (--elf FIRMWARE.elf [--mcu atmega328p] [--link PATH] [--baud 115200]\n"
-	        "                    [--speed 1.0] [--profile NAME=0xADDR[:MIN_CYCLES]]... [--bootloader FILE.hex]\n"
+	        "                    [--speed 1.0] [--rt-priority 0] [--profile NAME=0xADDR[:MIN_CYCLES]]...\n"
+	        "                    [--bootloader FILE.hex]\n"
 	        "                    | --no-mcu)\n"
 	        "                   [--frequency 16000000] [--seed 0] --param NAME=VALUE...\n", message);
 	exit(2);
@@ -638,7 +755,7 @@ int main(int argc, char **argv)
 		{"speed", required_argument, 0, 's'}, {"profile", required_argument, 0, 'p'},
 		{"no-mcu", no_argument, 0, 'n'}, {"frequency", required_argument, 0, 'f'},
 		{"seed", required_argument, 0, 'r'}, {"param", required_argument, 0, 'k'},
-		{"bootloader", required_argument, 0, 'B'}, {0, 0, 0, 0},
+		{"bootloader", required_argument, 0, 'B'}, {"rt-priority", required_argument, 0, 'R'}, {0, 0, 0, 0},
 	};
 	int option;
 	while ((option = getopt_long(argc, argv, "", options, NULL)) != -1) {
@@ -652,6 +769,11 @@ int main(int argc, char **argv)
 		case 's': if (parse_number(optarg, &h->speed) || h->speed < 0) usage("--speed takes a number >= 0"); break;
 		case 'n': no_mcu = 1; break;
 		case 'B': bootloader_path = optarg; break;
+		case 'R':
+			if (parse_number(optarg, &value) || value < 0 || value > 99 || value != floor(value))
+				usage("--rt-priority takes a SCHED_FIFO priority, 1 to 99 (0: none)");
+			h->rt_priority = (int)value;
+			break;
 		case 'f': h->frequency_hz = strtoull(optarg, NULL, 0); break;
 		case 'r': seed = strtoull(optarg, NULL, 0); break;
 		case 'p':
@@ -689,6 +811,7 @@ int main(int argc, char **argv)
 	signal(SIGPIPE, SIG_IGN);
 
 	if (no_mcu) {
+		snprintf(h->scheduling, sizeof(h->scheduling), "normal (the plant alone: not paced)");
 		reply("{\"ready\": true, \"mcu\": null}");
 		while (!h->quit)
 			poll_commands(h, -1);
@@ -746,9 +869,10 @@ int main(int argc, char **argv)
 	h->next_plant_cycle = h->plant_step_cycles;
 	h->next_service_cycle = h->service_cycles;
 	h->next_byte_cycle = h->byte_cycles;
-	reply("{\"ready\": true, \"mcu\": \"%s\", \"pty\": \"%s\", \"link\": \"%s\"}", mcu, h->serial.slave_path,
-	      h->serial.link_path);
-	h->pace_origin_wall_s = wall_seconds();
+	ask_realtime(h);
+	reply("{\"ready\": true, \"mcu\": \"%s\", \"pty\": \"%s\", \"link\": \"%s\", \"scheduling\": \"%s\"}", mcu,
+	      h->serial.slave_path, h->serial.link_path, h->scheduling);
+	h->pace_origin_wall_s = h->busy_window_start_s = wall_seconds();
 	h->pace_origin_cycle = 0;
 	while (!h->quit)
 		run_once(h);

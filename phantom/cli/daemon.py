@@ -220,9 +220,10 @@ def _run_sim_board(args: argparse.Namespace) -> int:
                     # the rig is calibrated first, from the target's two placements (README.md, "A verified
                     # volume on a real rig")
                     streams = stream.urls()
-                    truth = streams.pop("truth")
+                    truth, timing = streams.pop("truth"), streams.pop("board")
                     print("camera streams: " + ", ".join(f"{name} {url}" for name, url in streams.items())
-                          + f"; the simulated phantom's truth (a test's, never the daemon's): {truth}", flush=True)
+                          + f"; the simulated phantom's truth (a test's, never the daemon's): {truth}; the simulated "
+                          f"board's timing: {timing}", flush=True)
             while not stop.wait(0.5):
                 pass
             # an end that hangs says where: every thread's stack on stderr (a test's board did not end within

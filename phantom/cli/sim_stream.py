@@ -16,6 +16,10 @@ the move was most of the simulated rig's CPU (a real camera's frames in motion a
 - ``/truth.json``: the simulated phantom's truth now, for a test or a bench to judge a scan by (the plant's true
   pressures in kPa, the truth model's gland volume in ml, the rig's true angles in deg). A daemon driving the
   board reads nothing of it: it has no simulated privileges, as on a real rig.
+- ``/board.json``: the simulated board's own account of its timing, for a test to explain a lost link by: its
+  time, how far it fell behind the wall clock (``max_lag_s``, ``lost_s``, the last notable ``lags``), the last
+  notable gaps in the host's bytes to its UART (``host_gaps``) and the serial line's counters (``serial``); see
+  :meth:`CameraStream.board_timing`.
 
 Pictures of ``scale`` times 1280x960 in the ``look`` (scan/render.py: ideal, or real), JPEG quality 95 with the
 colour at full resolution (4:4:4): with the usual 4:2:0, the colour key's edges blur over two pixels and a scan of
@@ -39,6 +43,8 @@ from phantom import require_extra
 PATHS = ("/phantom.mjpg", "/target0.mjpg", "/target1.mjpg")
 #: The simulated phantom's truth (JSON), for a test or a bench, never for the daemon.
 TRUTH_PATH = "/truth.json"
+#: The simulated board's timing and serial counters (JSON), for a test or a bench, never for the daemon.
+BOARD_PATH = "/board.json"
 JPEG_QUALITY = 95
 SEND_BUFFER_BYTES = 64 * 1024
 #: The stream's frame rate at most, a webcam's. Rendered as fast as the machine allowed (30 ms idle), a scan's picture
@@ -90,10 +96,11 @@ class CameraStream:
         self.server.server_close()
 
     def urls(self) -> dict[str, str]:
-        """The streams' URLs by name (phantom, target0, target1), and ``truth``: the truth's (not a stream)."""
+        """The streams' URLs by name (phantom, target0, target1), ``truth``: the truth's, and ``board``: the
+        board's timing (neither a stream)."""
         host, port = str(self.address[0]), int(self.address[1])
         return {**{path.strip("/").removesuffix(".mjpg"): f"http://{host}:{port}{path}" for path in PATHS},
-                "truth": f"http://{host}:{port}{TRUTH_PATH}"}
+                "truth": f"http://{host}:{port}{TRUTH_PATH}", "board": f"http://{host}:{port}{BOARD_PATH}"}
 
     def plant_state(self) -> dict[str, Any]:
         """The board's plant now (``pressures_pa``, ``gland_volume_ml``, ``rig_deg``: ``ScannerBoard.plant_state``)."""
@@ -107,6 +114,23 @@ class CameraStream:
         state = self.plant_state()
         return {"pressures_kpa": [p / 1e3 for p in state["pressures_pa"]],
                 "gland_volume_ml": state.get("gland_volume_ml"), "rig_deg": state.get("rig_deg")}
+
+    def board_timing(self) -> dict[str, Any]:
+        """The harness's account of the board's time (``phantom.hil.sim.SimulatedBoard.plant_state``): ``time_s``
+        (board time), ``last_host_byte_s`` (when its UART last took a byte from the host), ``max_lag_s`` and
+        ``lost_s`` (the harness behind the wall clock: its longest stall, and all the time it gave up), ``lags`` (the
+        last notable stalls, each ``[time of day s, board time s, stall s]``), ``host_gaps`` (the last gaps of over
+        0.25 s of board time between the host's bytes to the UART, each ``[time of day s, board time s at its end,
+        gap s of board time, wall time s the harness gave up meanwhile, bytes queued for the UART at its end]``),
+        ``resets``, ``scheduling`` (what the harness runs at: ``phantom.hil.sim.HARNESS_RT_PRIORITY``), ``cpu_s``
+        (the harness's CPU time) and ``serial`` (the line's byte counters: to and from the MCU, dropped,
+        overflowed)."""
+        with self._lock:
+            state = self.board.plant_state()
+            serial = self.board.cycle_stats()["serial"]
+        keys = ("time_s", "last_host_byte_s", "max_lag_s", "lost_s", "lags", "host_gaps", "resets", "powered",
+                "scheduling", "cpu_s")
+        return {**{key: state.get(key) for key in keys}, "serial": serial}
 
     def picture(self, path: str, state: dict[str, Any] | None = None) -> np.ndarray:
         """One JPEG of the camera at ``path``, rendered now at the rig's true angles (those of ``state``, the
@@ -139,10 +163,10 @@ class CameraStream:
                 super().setup()
 
             def do_GET(self) -> None:  # noqa: N802 (http.server's name)
-                if self.path == TRUTH_PATH:
+                if self.path in (TRUTH_PATH, BOARD_PATH):
                     import json
 
-                    body = json.dumps(stream.truth()).encode()
+                    body = json.dumps(stream.truth() if self.path == TRUTH_PATH else stream.board_timing()).encode()
                     self.send_response(200)
                     self.send_header("Content-Type", "application/json")
                     self.send_header("Content-Length", str(len(body)))
@@ -150,7 +174,8 @@ class CameraStream:
                     self.wfile.write(body)
                     return
                 if self.path not in stream.cameras:
-                    self.send_error(404, f"the streams are {', '.join(PATHS)}; the truth is {TRUTH_PATH}")
+                    self.send_error(404, f"the streams are {', '.join(PATHS)}; the truth is {TRUTH_PATH}, the board's "
+                                         f"timing {BOARD_PATH}")
                     return
                 self.send_response(200)
                 self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
