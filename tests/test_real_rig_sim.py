@@ -4,7 +4,7 @@ simavr, its camera an MJPEG stream), ``phantom daemon --port`` on its serial por
 privileges), the rig calibrated from the target's stream (``phantom scan capture --target``, ``phantom scan
 calibrate``), then the daemon again with ``--camera URL --rig rig.json`` and a 40 ml target with
 ``verify="scan"`` through the Python API, judged against the simulated phantom's truth (the stream's
-``/truth.json``, which the daemon never reads); and (make test-long) ``phantom characterise`` through the same
+``/truth.json``, which the daemon never reads); and ``phantom characterise`` through the same
 daemon, camera and rig on a path of two points, whose scans correct the next target's answer."""
 
 from __future__ import annotations
@@ -149,6 +149,13 @@ def real_rig(tmp_path: Path) -> Iterator[RealRig]:
 
 @pytest.mark.sim  # the simulated board (simavr) and two daemons on its port
 @pytest.mark.slow  # the calibration's 28 pictures, then a verified target's rounds of 40: 5-6 minutes at load 6-8
+# make test-long, not make test: beside make test's other runs it latched DEAD_HOST in 3 of 6 clean-clone runs
+# (2026-11-30). Once the simulated board's harness starved for a second (fixed: its real-time priority); once,
+# after that fix, the daemon's link process (SCHED_FIFO 10) sent nothing for 0.87 s while its loop's thread was
+# neither running nor waiting for a core (7.8 ms run, 0 ms queued, no collection, no page fault: blocked in
+# something not yet found; the test prints the board's host gaps and the link's stalls, which showed it). Alone, or
+# beside busy processes, it passes (4 of 4 at load 6-12)
+@pytest.mark.long
 @pytest.mark.timeout(1200)  # three rounds of 80-120 s each at load 6-10
 def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
     with real_rig(tmp_path) as rig:
@@ -172,8 +179,8 @@ def test_a_verified_40_ml_target_through_a_camera_stream_on_a_board_driven_as_a_
 
 @pytest.mark.sim
 @pytest.mark.long  # make test-long: the rig's calibration, then a characterisation's 2 scans of 30 (2.1-2.2
-# minutes at load 6-8); make test runs characterise through the simulated daemon (test_characterise_sim.py) and
-# the real rig's scans through the verified target above
+# minutes at load 6-8); make test runs characterise through the simulated daemon (test_characterise_sim.py), and
+# the camera stream a real rig's daemon reads (test_daemon_camera.py, test_sim_stream.py, test_webcam_stream.py)
 @pytest.mark.timeout(1200)
 def test_characterise_through_a_camera_stream_on_a_board_driven_as_a_real_one(tmp_path):
     """The same daemon characterises the phantom on a small path (rest and the top of the model's inverse) through
