@@ -57,7 +57,7 @@ from phantom.host.web import WebServer
 from phantom.host.zeroing import ZEROING_WHY, SensorZero
 from phantom.model.measurements import data_dir
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
-from phantom.protocol.link import BOARD_CLOCK_JITTER_MS
+from phantom.protocol.link import board_clock_went_back
 
 logger = logging.getLogger(__name__)
 
@@ -536,7 +536,7 @@ class Daemon:
         since the last frame, across a reconnection too), its faults and setpoints."""
         last, self.telemetry = self.telemetry, telemetry
         self._frame_came.set()
-        if last is not None and telemetry.board_time_ms + BOARD_CLOCK_JITTER_MS < last.board_time_ms:
+        if last is not None and board_clock_went_back(last.board_time_ms, telemetry.board_time_ms):
             self._feed(self.core.board_restarted, f"its clock went back from {last.board_time_ms / 1e3:.1f} s to "
                        f"{telemetry.board_time_ms / 1e3:.1f} s")
         self.schedule.add(telemetry.board_time_ms / 1e3, telemetry.pressures_pa)

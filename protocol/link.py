@@ -47,6 +47,12 @@ BOOT_DELAY_S = {"uno": 1.5, "mega": 2.0, "sim": 0.0}
 _PINGS_REMEMBERED = 64
 
 
+def board_clock_went_back(earlier_ms: int, later_ms: int) -> bool:
+    """Whether the board's clock went back from ``earlier_ms`` to ``later_ms`` by more than its jitter between
+    frames (:data:`BOARD_CLOCK_JITTER_MS`): the board restarted in between."""
+    return later_ms + BOARD_CLOCK_JITTER_MS < earlier_ms
+
+
 def enum_name(table: type[Status] | type[ResetCause] | type[Board] | type[ChamberState], value: int) -> str:
     """The name of a wire value in one of the spec's enums, or the number as text if the spec has none."""
     try:
@@ -490,7 +496,7 @@ class HostLink:
     def _board_clock(self, board_time_ms: int) -> list[Event]:
         earlier = self._board_time_ms
         self._board_time_ms = board_time_ms
-        if earlier is not None and board_time_ms + BOARD_CLOCK_JITTER_MS < earlier:
+        if earlier is not None and board_clock_went_back(earlier, board_time_ms):
             self.session_open = False
             return [BoardRestarted(earlier, board_time_ms)]
         return []
