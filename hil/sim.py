@@ -45,7 +45,7 @@ PROFILED_VECTORS = {
 #: 10, phantom.host.link_process), so that the host's keepalive never waits for the simulator. Granted to root or
 #: with an RLIMIT_RTPRIO; otherwise the harness runs at normal priority and ``scheduling`` says why. Never asked
 #: unpaced (speed 0: it runs flat out), and given up for good by a harness that cannot keep up at its speed
-#: (it slept under a tenth of a second: hil/harness/main.c, the real-time guard).
+#: (it slept under a tenth of 0.2 s of wall clock: hil/harness/main.c, the real-time guard).
 HARNESS_RT_PRIORITY = 5
 
 #: Faults and their parameters (unit in the name) with defaults.

@@ -295,8 +295,9 @@ def _harness_pids() -> set[int]:
 def test_a_paced_harness_asks_for_a_real_time_priority_below_the_links_and_gives_it_up_when_it_cannot_keep_up():
     """The simulated board stands in for hardware, which never waits for a core: a paced harness runs at SCHED_FIFO
     (HARNESS_RT_PRIORITY, below the board link's), where it may (root, CAP_SYS_NICE); an unpaced one never does; one
-    that cannot keep up at its speed (it sleeps under a tenth of a second) gives the priority up within seconds,
-    rather than keep a core from every other process. Where the right is missing, it says why."""
+    that cannot keep up at its speed (it sleeps under a tenth of 0.2 s) gives the priority up after that window,
+    rather than keep a core from every other process (the tests beside it in make test's [sim] run among them).
+    Where the right is missing, it says why."""
     import time
 
     from phantom.hil.sim import HARNESS_RT_PRIORITY
@@ -320,15 +321,18 @@ def test_a_paced_harness_asks_for_a_real_time_priority_below_the_links_and_gives
         assert unpaced.scheduling.startswith("normal") and os.sched_getscheduler(pid) == os.SCHED_OTHER
     if not may:
         return
-    with SimulatedBoard(speed=100) as flat_out:  # flat out it runs about 7x real time
+    with SimulatedBoard(speed=100) as flat_out:  # it cannot run 100x real time: flat out it runs 7-20x
+        ready = time.monotonic()  # its first window starts when it says it is ready
         (pid,) = _harness_pids() - before
-        deadline = time.monotonic() + 20
         while (said := flat_out.plant_state()["scheduling"]) == f"SCHED_FIFO {HARNESS_RT_PRIORITY}":
-            assert time.monotonic() < deadline, "a harness that cannot keep up kept its real-time priority"
-            time.sleep(0.2)
+            assert time.monotonic() < ready + 20, "a harness that cannot keep up kept its real-time priority"
+            time.sleep(0.02)
+        seen_s = time.monotonic() - ready
         assert said.startswith(f"normal (SCHED_FIFO {HARNESS_RT_PRIORITY} given up at board time ") and \
             "cannot keep up at speed 100" in said, said
         assert os.sched_getscheduler(pid) == os.SCHED_OTHER
+        # after its first window of 0.2 s: a window of a second held a core for a second from the tests beside it
+        assert seen_s < 0.7, (seen_s, said)
 
 
 def simulator_steps_per_cycle(board: SimulatedBoard, link: BoardLink, board_s: float) -> float:
