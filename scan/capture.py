@@ -585,7 +585,7 @@ def _release(orbit: Orbit) -> str | None:
 #: way already (sent a frame period before), the second was sent after the ask.
 STREAM_FRESH_FRAME = 2
 #: A stream that sends no frame for this long (s) is lost: a webcam's 15-30 frames a second, a busy machine's
-#: pauses, and a stream's own pauses (the simulated one repeats a picture while the rig moves) are all well within.
+#: pauses, and a stream's own pauses (the simulated one sends nothing while the rig moves) are all well within.
 STREAM_SILENT_S = 10.0
 #: A stream whose reads fail this many times in a row is lost. OpenCV's FFmpeg reader decodes a frame as it grabs
 #: it, so a frame that cannot be decoded (cut short on a weak link) fails its read and the stream goes on; one that

@@ -182,15 +182,21 @@ class CameraStream:
                 self.send_header("Cache-Control", "no-cache")
                 self.end_headers()
                 due_s = time.monotonic()
-                jpeg, before_deg = b"", None
+                sent, before_deg = False, None
                 try:
                     while True:
                         time.sleep(max(0.0, due_s - time.monotonic()))
                         due_s = max(due_s + 1.0 / FRAMES_PER_S, time.monotonic())
                         state = stream.plant_state()
-                        if not jpeg or state.get("rig_deg") == before_deg:  # still since the frame before
-                            jpeg = stream.picture(self.path, state).tobytes()
+                        still = state.get("rig_deg") == before_deg  # since the frame before
                         before_deg = state.get("rig_deg")
+                        if sent and not still:
+                            # no frame while the rig moves, nor at the first tick after it stopped (not yet known
+                            # still): the last picture sent again was of where the rig had been, and a reader a
+                            # frame behind took it for where the rig stopped
+                            continue
+                        jpeg = stream.picture(self.path, state).tobytes()
+                        sent = True
                         self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: "
                                          + str(len(jpeg)).encode() + b"\r\n\r\n" + jpeg + b"\r\n")
                         self.wfile.flush()
