@@ -414,21 +414,24 @@ def clean_scan(mesh: TriangleMesh) -> tuple[TriangleMesh, TriangleMesh, CleanRep
     return closed, measured, report
 
 
-def scan_volume_ml(path: str | Path, units: str = "mm", model: TriangleMesh | None = None) -> float:
+def scan_volume_ml(path: str | Path, units: str = "mm", model: TriangleMesh | None = None,
+                   remedy: str = "export it in mm (or pass units={unit!r})", otherwise: str | None = None) -> float:
     """The volume (ml) of a scan file after cleaning: its largest piece, holes closed.
 
     Its size is checked as :func:`compare` checks it, against ``model``'s (a surface in mm) or, without one, the
-    built-in phantom's (:data:`PHANTOM_RMS_RADIUS_MM`): a file in another unit is refused naming it.
+    built-in phantom's (:data:`PHANTOM_RMS_RADIUS_MM`): a file in another unit is refused naming it, and saying
+    what to do in the caller's terms (:func:`check_scale`'s ``remedy`` and ``otherwise``; by default this
+    function's arguments).
     """
     closed, _, _ = clean_scan(read_scan(path, units))
     if model is None:
         reference_mm = PHANTOM_RMS_RADIUS_MM
-        otherwise = "scale it to mm, or pass model= (the phantom's surface in mm) if it is another phantom"
+        said = "scale it to mm, or pass model= (the phantom's surface in mm) if it is another phantom"
     else:
         reference_mm = Frame.of(_triangle_mesh(model, "the model surface")).rms_radius_mm
-        otherwise = "scale it to mm before measuring it"
-    check_scale(Frame.of(closed).rms_radius_mm, reference_mm, units, "measure",
-                "export it in mm (or pass units={unit!r})", otherwise)
+        said = "scale it to mm before measuring it"
+    check_scale(Frame.of(closed).rms_radius_mm, reference_mm, units, "measure", remedy,
+                said if otherwise is None else otherwise)
     return enclosed_volume_ml(closed)
 
 

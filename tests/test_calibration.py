@@ -93,8 +93,16 @@ def test_phantom_calibrates_scan_files_are_measured_against_the_scenes_phantom(t
     write_mesh(dataclasses.replace(gland, vertices_mm=gland.vertices_mm / 10), in_cm)
     measured_ml = _scan_volume_of(load_scene("builtin"))
     assert measured_ml(in_mm) == pytest.approx(enclosed_volume_ml(gland), rel=1e-6)
-    with pytest.raises(ScanError, match="in cm"):
+    with pytest.raises(ScanError, match=r"in cm: export it in mm \(phantom calibrate reads scan files in mm\)") \
+            as refused:
         measured_ml(in_cm)
+    assert "units=" not in str(refused.value)  # a library's argument, which a CSV or a prompt cannot pass
+    speck = tmp_path / "speck.ply"  # no unit makes it the phantom's size
+    write_mesh(dataclasses.replace(gland, vertices_mm=gland.vertices_mm / 3000), speck)
+    with pytest.raises(ScanError, match=r"is it a scan of this phantom \(the --scene\)\? Export it in mm, or give "
+                                        r"the volume in ml") as refused:
+        measured_ml(speck)
+    assert "model=" not in str(refused.value)
 
 
 def _synthetic_responses(admissible_below_t=np.inf, traced_below_t=np.inf, fixed_lobe_scale=None):

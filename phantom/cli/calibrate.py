@@ -255,7 +255,12 @@ def _scan_volume_ml(path: Path, rest_surface: Any = None) -> float:
     except ImportError:
         raise PhantomError("scan files need phantom.scan.compare, which this install lacks: give the volume "
                            "in ml") from None
-    return scan_volume_ml(path, units="mm", model=rest_surface)
+    # a measurements CSV or a typed answer names a file, with no unit beside it: the remedies are the file's
+    phantom = "the --scene" if rest_surface is not None else "the built-in one"
+    return scan_volume_ml(path, units="mm", model=rest_surface,
+                          remedy="export it in mm (phantom calibrate reads scan files in mm)",
+                          otherwise=f"is it a scan of this phantom ({phantom})? Export it in mm, or give the "
+                                    f"volume in ml")
 
 
 def _scan_volume_of(scene: Any) -> Callable[[Path], float]:
