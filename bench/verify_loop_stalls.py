@@ -117,11 +117,13 @@ class StallWatch:
         described = []
         for late, at_s in stalls[:count]:
             causes = list(self.causes[name].get(at_s) or [])
-            queued_ms, gc_ms, ran_ms, faults, stolen_ms = (causes + [None] * 5)[:5]
+            queued_ms, gc_ms, ran_ms, faults, stolen_ms, blocked = (causes + [None] * 6)[:6]
             said = [f"{'?' if value is None else f'{value:.0f}'}{unit}" for value, unit in
                     ((queued_ms, " ms waiting for a core"), (gc_ms, " ms in the garbage collector"),
                      (ran_ms, " ms on a core"), (faults, " major page faults"),
                      (stolen_ms, " ms stolen by the hypervisor"))]
+            if blocked:
+                said.append(f"seen in {blocked}")
             described.append(f"{late:.0f} ms at +{at_s - self._from_s:.0f} s ({', '.join(said)})")
         return described
 
