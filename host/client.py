@@ -178,12 +178,14 @@ class SceneStep:
     error_pct: float | None
     reached_after_s: float | None
     true_volume_ml: float | None
+    #: why its target (or a point of its ramp) was beyond the phantom's range; None: it was not
+    unreachable: str | None = None
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> SceneStep:
         return cls(int(data["index"]), float(data["at_s"]), str(data["target"]), data.get("target_volume_ml"),
                    data.get("reached_volume_ml"), data.get("error_pct"), data.get("reached_after_s"),
-                   data.get("true_volume_ml"))
+                   data.get("true_volume_ml"), data.get("unreachable"))
 
 
 @dataclass(frozen=True)

@@ -24,8 +24,9 @@ Inputs (each takes ``now``, seconds on the daemon's monotonic clock)::
 
 Actions (:meth:`ControlCore.take_actions`): :class:`Solve`, :class:`SendSetpoints`, :class:`SendVent`,
 :class:`Tell` (an event for people, with an ``outcome`` for the targets clients wait on), :class:`StepApplied`,
-:class:`StepReached`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the reply to an API
-request), and a verified target's :class:`~phantom.host.verify.Scan`, :class:`~phantom.host.verify.StopScan`,
+:class:`StepReached`, :class:`StepUnreachable`, :class:`StopScene`, :class:`ConfigureBoard`, :class:`Answer` (the
+reply to an API request), and a verified target's :class:`~phantom.host.verify.Scan`,
+:class:`~phantom.host.verify.StopScan`,
 :class:`~phantom.host.verify.Correct` and :class:`~phantom.host.verify.Record` (the verify policy's types,
 host/verify.py, below the core).
 
@@ -179,6 +180,15 @@ class StepReached:
 
 
 @dataclass(frozen=True)
+class StepUnreachable:
+    """Scene step ``index``'s target (or a point of its ramp) is beyond what the phantom reaches: ``text`` says
+    why."""
+
+    index: int
+    text: str
+
+
+@dataclass(frozen=True)
 class StopScene:
     why: str
 
@@ -199,8 +209,8 @@ class Answer:
     error: tuple[str, str] | None = None
 
 
-Action = (Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StopScene | ConfigureBoard | Answer
-          | Scan | StopScan | Correct | Record)
+Action = (Solve | SendSetpoints | SendVent | Tell | StepApplied | StepReached | StepUnreachable | StopScene
+          | ConfigureBoard | Answer | Scan | StopScan | Correct | Record)
 
 
 @dataclass
@@ -435,6 +445,9 @@ class ControlCore:
         if target == self.target:
             if unreachable:
                 self._unreachable = target
+                if self.step is not None:
+                    self._actions.append(StepUnreachable(self.step, f"target {target.describe()} is unreachable: "
+                                                                    f"{text}"))
                 self._wait(f"unreachable: {text}")
                 self._outcome("unreachable", f"target {target.describe()} is unreachable: {text}", "WARN",
                               extra=None if gland_range_ml is None else {"gland_range_ml": list(gland_range_ml)})

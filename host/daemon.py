@@ -41,7 +41,7 @@ from phantom.host.model_worker import Estimate
 from phantom.host.motion import SCAN_TRIES, Orbit, simulated_truth
 from phantom.host.parts import BoardSession, Clock, ControlState, Model, Recording
 from phantom.host.scene_runner import PreparedRun, SceneRunner
-from phantom.host.scenes import gland_volume_ml
+from phantom.host.scenes import ML_PER_M3, gland_volume_ml
 from phantom.host.session import (
     BoardInfo,
     CommandRejected,
@@ -205,6 +205,8 @@ class Daemon:
             self.scenes.applied(action.index)
         elif isinstance(action, control.StepReached):
             self.scenes.reached(action.index)
+        elif isinstance(action, control.StepUnreachable):
+            self.scenes.unreachable(action.index, action.text)
         elif isinstance(action, control.StopScene):
             self.scenes.stop(action.why)
         elif isinstance(action, verify.Scan):
@@ -641,6 +643,47 @@ class Daemon:
         self.table.report_tick(self.now_s())
         self.estimates.tick(self.now_s(), self.clock(), self.wants_shape(), self.spawn)
         self._publish_status_tick()
+
+    async def check_scene_reachable(self, prepared: PreparedRun) -> None:
+        """Refuse a scene with a gland volume step beyond the reachable range when it is loaded, before anything
+        moves: ApiError ``unreachable``, as ``set_target``'s, naming the step (index, time) and the range, which
+        goes as data too (``gland_range_ml``, ``corrected``, and ``step``, ``at_s``, ``steps``: every volume step
+        beyond it).
+
+        The model worker is asked for the scene's highest and lowest volume step only, whatever the number of
+        steps: a gland volume is continuous over the pressure box, so that the steps between two reachable ones
+        are reachable; an end beyond the range is answered with the worker's own range (the response table's,
+        without a solve, where it is at hand; with a correction in force, the corrected model's), and every volume
+        step is checked against that range. Steps of the other kinds (pressures, chamber volumes), a volume step
+        that only its growth ratio puts out of reach, and answers other than unreachable (the limit point) are
+        solved as they come, as before."""
+        steps = [(index, step.at_s, volume_ml) for index, step in enumerate(prepared.timeline.steps)
+                 if (volume_ml := gland_volume_ml(step.target)) is not None]
+        if not steps:
+            return
+        highest, lowest = max(steps, key=lambda step: step[2]), min(steps, key=lambda step: step[2])
+        for index, at_s, volume_ml in dict.fromkeys((highest, lowest)):
+            try:
+                await self.model.pressures_for(Target(gland_volume_m3=volume_ml / ML_PER_M3))
+            except UnreachableTargetError as error:
+                where = f"{prepared.name}: steps[{index}] at {at_s:g} s"
+                if error.gland_range_ml is None:
+                    raise ApiError("unreachable", f"{where}: {error}; the scene was not started",
+                                   {"step": index, "at_s": at_s}) from error
+                low_ml, high_ml = (float(value) for value in error.gland_range_ml)
+                beyond = sorted({step for step in steps if not low_ml <= step[2] <= high_ml} | {(index, at_s,
+                                                                                                 volume_ml)})
+                first, corrected = beyond[0], " with the correction in force" if error.corrected else ""
+                also = (f" (so are steps {', '.join(str(step[0]) for step in beyond[1:])})" if len(beyond) > 1
+                        else "")
+                raise ApiError(
+                    "unreachable", f"{prepared.name}: steps[{first[0]}] at {first[1]:g} s asks {first[2]:.2f} ml of "
+                    f"gland volume, beyond the reachable range {low_ml:.3f} to {high_ml:.3f} ml{corrected}{also}; "
+                    "ask for volumes in that range or raise the scene's pressure_max_kpa; the scene was not started",
+                    {"gland_range_ml": [low_ml, high_ml], "corrected": error.corrected, "step": first[0],
+                     "at_s": first[1], "steps": [step[0] for step in beyond]}) from error
+            except PhantomError:
+                continue  # not a matter of range (the limit point): the step is solved when it comes, as before
 
     def start_scene(self, prepared: PreparedRun) -> dict[str, Any]:
         """Start playing a checked scene (:func:`phantom.host.scene_runner.prepare_run`)."""

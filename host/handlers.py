@@ -19,11 +19,11 @@ from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import (
     check_step_count,
     effective_model,
-    finite_number,
     load_timeline_scene,
     model_differences,
     parse_target,
     shape_steps,
+    time_scale_of,
     with_shape_pressures,
 )
 from phantom.host.session import fault_names
@@ -142,7 +142,7 @@ class ApiHandlers:
             raise ApiError("invalid_params", f"run_scene: params.path {path!r:.200} is not a valid path: it holds a "
                                              "null character; give the scene TOML file's path")
         try:
-            time_scale = finite_number(time_scale, "run_scene: time_scale")
+            time_scale = time_scale_of(time_scale)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
         try:
@@ -160,6 +160,8 @@ class ApiHandlers:
                 prepared = await asyncio.to_thread(prepare_scene, path, time_scale, daemon.chamber_names,
                                                    daemon.model.info.effective_model, daemon.model.info.scene_path,
                                                    pressures_kpa)
+                # a gland volume beyond the reachable range is refused before anything moves (ApiError unreachable)
+                await daemon.check_scene_reachable(prepared)
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
         verified = [index for index, step in enumerate(prepared.timeline.steps) if step.verify is not None]

@@ -37,6 +37,8 @@ class StepRecord:
     true_volume_ml: float | None = None
     #: when (s after the step's start) the board first acknowledged setpoints for this step; None: not yet
     applied_after_s: float | None = None
+    #: why its target (or a point of its ramp) could not be reached: beyond the phantom's range; None: it could
+    unreachable: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         error_pct = None
@@ -45,7 +47,8 @@ class StepRecord:
         return {"index": self.index, "at_s": self.at_s, "target": self.target,
                 "target_volume_ml": self.target_volume_ml, "reached_volume_ml": self.final_volume_ml,
                 "error_pct": error_pct, "reached_after_s": self.reached_after_s,
-                "true_volume_ml": self.true_volume_ml, "applied_after_s": self.applied_after_s}
+                "true_volume_ml": self.true_volume_ml, "applied_after_s": self.applied_after_s,
+                "unreachable": self.unreachable}
 
 
 @dataclass
@@ -232,6 +235,14 @@ class SceneRunner:
             return
         record = run.steps[index]
         record.reached_after_s = max(0.0, self.clock() - record.started_clock_s)
+
+    def unreachable(self, index: int, text: str) -> None:
+        """Step ``index``'s target (or a point of its ramp) is beyond the phantom's range: the first ``text`` is
+        its ``unreachable``."""
+        run = self.run
+        if run is None or index >= len(run.steps) or run.steps[index].unreachable is not None:
+            return
+        run.steps[index].unreachable = text
 
     def observe(self, estimated_volume_ml: float, predicted_volume_ml: float | None = None,
                 solved_target: Target | None = None, true_volume_ml: float | None = None) -> None:

@@ -65,6 +65,10 @@ MAX_STEPS = 2000
 #: night's endurance run (the shipped scenes last minutes), and far below 1e300 s, which was taken and made a
 #: scene without ``[timeline] end_s`` run for ever.
 MAX_SCENE_S = 7 * 24 * 3600.0
+#: The fastest ``run_scene`` plays a timeline (times faster than written): a week's timeline (:data:`MAX_SCENE_S`)
+#: in about ten minutes. Faster, a scene's steps last less than the daemon's control period (0.1 s); 1e308 was
+#: taken and answered a wall duration of 2e-306 s.
+MAX_TIME_SCALE = 1000.0
 
 
 #: A ``[[steps]]`` table header at the start of a line of TOML text.
@@ -172,7 +176,8 @@ class Timeline:
 
 def finite_number(value: object, what: str) -> float:
     """A finite float from a TOML/JSON value, or a SceneError naming ``what``: the check of a target's numbers
-    (``set_target``, ``surface``, a scene's steps), a step's times and ``run_scene``'s time scale."""
+    (``set_target``, ``surface``, a scene's steps), a step's times and ``run_scene``'s time scale (also bounded
+    by :func:`time_scale_of`)."""
     if is_finite_number(value):
         return float(value)
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
@@ -182,6 +187,17 @@ def finite_number(value: object, what: str) -> float:
         raise SceneError(f"{what} must be a finite number (at most about 1.8e308), got an integer of about {digits} "
                          "digits")
     raise SceneError(f"{what} must be finite, got {value!r}")
+
+
+def time_scale_of(value: object, what: str = "run_scene: time_scale") -> float:
+    """``run_scene``'s time scale: a number above 0 and at most :data:`MAX_TIME_SCALE`; SceneError naming the
+    bound."""
+    time_scale = finite_number(value, what)
+    if not 0.0 < time_scale <= MAX_TIME_SCALE:
+        raise SceneError(f"{what} must be above 0 and at most {MAX_TIME_SCALE:g} (times faster than the scene is "
+                         f"written: a week's timeline in about {MAX_SCENE_S / MAX_TIME_SCALE / 60:.0f} minutes), got "
+                         f"{time_scale:g}")
+    return time_scale
 
 
 def parse_target(raw: dict[str, Any], chamber_names: list[str], where: str = "target",

@@ -585,6 +585,9 @@ def test_an_unreachable_scene_target_is_told_once_and_not_solved_again(core):
     core.solve_failed(0.1, target, True, "above the reachable 26-45 ml")
     actions = core.take_actions()
     assert outcomes(actions) == ["unreachable"] and core.pending.startswith("unreachable")
+    # the step's record says it (run-scene --wait exits 1 with it)
+    assert of_kind(actions, control.StepUnreachable) == [
+        control.StepUnreachable(0, f"target {target.describe()} is unreachable: above the reachable 26-45 ml")]
     for now in (1.0, 2.0, 3.0):
         core.tick(now)
     assert core.take_actions() == []
