@@ -161,7 +161,7 @@ def _volume_problem(volume: object) -> str | None:
     if is_finite_number(volume) and low <= volume <= high:
         return None
     return (f"a measured volume must be a finite number of ml within a whole gland's, {low:g}-{high:g} ml "
-            f"(volume_ml){_unit_hint(volume)}")
+            f"(volume_ml){unit_hint(volume)}")
 
 
 def _read_entry(entry: dict[str, Any]) -> Measurement:
@@ -175,7 +175,7 @@ def _read_entry(entry: dict[str, Any]) -> Measurement:
     return Measurement(**fields)
 
 
-def _unit_hint(volume: object) -> str:
+def unit_hint(volume: object) -> str:
     """The end of the message for a volume outside a gland's range: ``: in ml? got 4e-05, which is 40 ml in m^3:
     convert it`` where another unit (:data:`MISTAKEN_UNITS_ML`) makes it a gland's, else ``, got VALUE``."""
     low, high = GLAND_VOLUME_RANGE_ML

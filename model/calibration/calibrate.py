@@ -49,6 +49,7 @@ from phantom.model.arrays import BoolArray, FloatArray
 from phantom.model.calibration.sweep import RayTask, RayTrace, cached_trace, run_sweep
 from phantom.model.errors import MeshError
 from phantom.model.fem.model import PhantomModel
+from phantom.model.measurements import unit_hint
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 from phantom.model.mesh.shape import check_walls
 from phantom.model.scene import (
@@ -59,6 +60,7 @@ from phantom.model.scene import (
     scene_from_dict,
     without_shipped_tables,
 )
+from phantom.model.shape_file import GLAND_VOLUME_RANGE_ML
 
 #: The largest measurement file read (bytes): a table of thousands of rows is far smaller.
 MAX_MEASUREMENT_BYTES = 2**20
@@ -127,8 +129,9 @@ def load_measurements(path: str | Path, n_chambers: int | None = None,
     Raises
     ------
     CalibrationError
-        Missing file or columns, non-numeric, non-finite or negative values, a chamber count that does not
-        match the model, fewer than three rows, or a scan file with no ``scan_volume_ml`` to measure it.
+        Missing file or columns, non-numeric, non-finite or negative values, a volume no whole gland has (one in
+        ul or litres: the row and the unit are named), a chamber count that does not match the model, fewer than
+        three rows, or a scan file with no ``scan_volume_ml`` to measure it.
     """
     path = Path(path)
     text = read_text(path, MAX_MEASUREMENT_BYTES, "the measurement file", CalibrationError)
@@ -176,10 +179,17 @@ def load_measurements(path: str | Path, n_chambers: int | None = None,
 
 
 def _measured_volume_ml(entry: str | None, folder: Path, scan_volume_ml: ScanVolume | None, where: str) -> float:
-    """A ``measured_ml`` entry: a number, or a scan file whose volume ``scan_volume_ml`` measures."""
+    """A ``measured_ml`` entry: a number, or a scan file whose volume ``scan_volume_ml`` measures. A number outside a
+    whole gland's volumes (:data:`~phantom.model.shape_file.GLAND_VOLUME_RANGE_ML`, the corrections store's range)
+    is refused, naming the unit that makes it one (30000: mm^3), before any fit."""
     text = (entry or "").strip()
     if Path(text).suffix.lower() not in SCAN_SUFFIXES:
-        return float(text)
+        volume_ml = float(text)
+        low, high = GLAND_VOLUME_RANGE_ML  # the store's check of a measured volume (phantom corrections add)
+        if np.isfinite(volume_ml) and volume_ml > 0 and not low <= volume_ml <= high:  # <= 0, nan: the file's check
+            raise CalibrationError(f"{where}: measured_ml must be a whole gland's volume, {low:g}-{high:g} ml"
+                                   f"{unit_hint(volume_ml)}")
+        return volume_ml
     if scan_volume_ml is None:
         raise CalibrationError(f"{where}: {text} is a scan file, and nothing here measures scans: pass "
                                "load_measurements a scan_volume_ml (phantom calibrate uses the scan comparison's)")

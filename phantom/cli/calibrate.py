@@ -95,6 +95,7 @@ def _scene_for(args: argparse.Namespace) -> Scene:
     from phantom.model.scene import load_scene, scene_from_dict
 
     scene = load_scene(args.scene)
+    _check_flags(args, scene)
     document = scene.raw
     if args.material:
         document = scene_with(document, {})
@@ -123,11 +124,60 @@ def _scene_for(args: argparse.Namespace) -> Scene:
     return scene
 
 
+def _check_flags(args: argparse.Namespace, scene: Scene) -> None:
+    """Refuse a --gent-jm, --size-mm or --grid value the scene's own checks refuse, naming the flag, before it is
+    merged into the scene (whose checks would blame the scene file for it)."""
+    from phantom import PhantomError
+    from phantom.model.calibration.calibrate import parse_grid
+
+    law = args.material or scene.material.model
+    if args.gent_jm is not None:
+        if law != "gent":
+            given = f"--material {law}" if args.material else f"the scene's law is {law!r}"
+            raise PhantomError(f"--gent-jm applies to the Gent law only ({given}): add --material gent")
+        _check_value(scene, "--gent-jm", "gent_jm", args.gent_jm)
+    if args.size_mm is not None and scene.geometry is not None:
+        _check_value(scene, "--size-mm", "mesh_size_mm", args.size_mm)
+    if args.grid:
+        grid = parse_grid(args.grid)
+        for name, values in zip(grid.names, grid.values, strict=True):
+            if name == "poisson_ratio" or name == "gent_jm" or scene.geometry is not None:  # else: calibrate says
+                for value in values:
+                    _check_value(scene, f"--grid {name}", name, float(value))
+
+
+def _check_value(scene: Scene, flag: str, key: str, value: float) -> None:
+    """Check ``value`` of the [material] or [geometry] ``key`` by the scene's own checks (and bounds), on the scene
+    with it alone set; PhantomError naming ``flag`` for one they refuse. ``gent_jm`` is checked under the Gent law
+    (whether the law is Gent is the caller's check)."""
+    from phantom import PhantomError
+    from phantom.model.calibration.calibrate import MATERIAL_PARAMETERS, scene_with
+    from phantom.model.errors import SceneError
+    from phantom.model.scene import YEOH_KEYS, scene_from_dict
+
+    document = scene_with(scene.raw, {key: value})
+    table = "material" if key in MATERIAL_PARAMETERS else "geometry"
+    if key == "gent_jm":
+        document["material"]["model"] = "gent"
+        for other in YEOH_KEYS:
+            document["material"].pop(other, None)
+    try:
+        scene_from_dict(document, scene.path)
+    except SceneError as error:
+        where = f"scene {scene.path}" if scene.path else "scene"  # scene_from_dict's prefix: the file is not at fault
+        reason = str(error).removeprefix(f"{where}: ")
+        named = (reason.replace(f"[{table}] {key} = {float(value)}", f"{flag} {value:g}")
+                 .replace(f"[{table}] model = 'gent' needs {key}, ", f"{flag} must be ")
+                 .replace(f"[{table}] {key}", flag))
+        raise PhantomError(named if named != reason else f"{flag} {value:g}: {reason}") from None
+
+
 def run_calibrate(args: argparse.Namespace) -> int:
     """Handler of ``phantom calibrate``."""
     import json
 
     from phantom import PhantomError
+    from phantom.cli.common import check_output_file
     from phantom.model.calibration.calibrate import calibrate, load_measurements, parse_grid, write_calibrated_scene
 
     if not args.measurements:
@@ -136,15 +186,19 @@ def run_calibrate(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise PhantomError(f"--workers must be at least 1, got {args.workers}")
     scene = _scene_for(args)
-    measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers),
-                                     scan_volume_ml=_scan_volume_of(scene))
-    grid = parse_grid(args.grid or DEFAULT_GRIDS[scene.material.model])
+    stem = Path(scene.path).stem if scene.path else "scene"
+    output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
+    check_output_file(args.output or output, "--output" if args.output else "the default --output",
+                      f"{stem}_calibrated.toml")
     band = None
     if args.modulus_band_pct is not None:
         if not 0 < args.modulus_band_pct < 100:
             raise PhantomError(f"--modulus-band-pct must be within (0, 100), got {args.modulus_band_pct}")
         e0 = scene.material.youngs_modulus_pa
         band = (e0 * (1 - args.modulus_band_pct / 100), e0 * (1 + args.modulus_band_pct / 100))
+    measurements = load_measurements(args.measurements, n_chambers=len(scene.chambers),
+                                     scan_volume_ml=_scan_volume_of(scene))
+    grid = parse_grid(args.grid or DEFAULT_GRIDS[scene.material.model])
     cluster = None if args.scheduler else local_cluster_deaf_to_ctrl_c(args.workers)
     scheduler = args.scheduler if cluster is None else cluster.scheduler_address
     try:
@@ -154,8 +208,6 @@ def run_calibrate(args: argparse.Namespace) -> int:
     finally:
         if cluster is not None:
             cluster.close()
-    stem = Path(scene.path).stem if scene.path else "scene"
-    output = Path(args.output) if args.output else Path.cwd() / f"{stem}_calibrated.toml"
     parameters = ", ".join(f"{name} = {value:.4g}" for name, value in result.parameters.items())
     grid_text = " ".join(f"--grid {name}={','.join(f'{v:g}' for v in values)}"
                          for name, values in zip(grid.names, grid.values, strict=True))

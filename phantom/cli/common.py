@@ -111,9 +111,31 @@ def check_input_size(path: str | Path, max_bytes: int, what: str, error: type[Ph
                     f"read: {hint}")
 
 
-def scene_pressures_kpa(text: str, scene: Scene, option: str = "--pressures-kpa") -> list[float]:
+def check_output_file(path: str | Path, option: str, example: str, error: type[PhantomError] = PhantomError) -> Path:
+    """A file a command writes at the end of its work, refused in one line before it starts: a folder (``example``
+    names a file in it), a path under a file, or one in a folder this user cannot write (folders that are missing
+    are made when it is written)."""
+    import os
+
+    file = Path(path)
+    if file.is_dir():
+        raise error(f"{option} {path} is a folder: give the file to write, e.g. {file / example}")
+    folder = file.parent
+    while not folder.exists() and folder != folder.parent:  # the nearest folder there is: the rest is made
+        folder = folder.parent
+    if not folder.is_dir():
+        raise error(f"{option} {path}: {folder} is not a folder: give a path in a folder")
+    if not os.access(folder, os.W_OK | os.X_OK) or (file.exists() and not os.access(file, os.W_OK)):
+        what = f"{file} is" if file.exists() else f"the folder {folder} is"
+        raise error(f"{option} {path}: {what} not writable: give a path you can write")
+    return file
+
+
+def scene_pressures_kpa(text: str, scene: Scene, option: str = "--pressures-kpa",
+                        pressure_max_kpa: float | None = None) -> list[float]:
     """Chamber pressures (kPa) given for a scene on the command line: one per chamber, each within what the daemon
-    allows, refused in its words (:func:`phantom.model.scene.pressure_limit_error`), before any model is built."""
+    allows, refused in its words (:func:`phantom.model.scene.pressure_limit_error`), before any model is built.
+    ``pressure_max_kpa``: the bound to check them against where the command line gives one (None: the scene's)."""
     from phantom.model.scene import describe_chambers, pressure_limit_error
 
     pressures = parse_numbers(text, option)
@@ -121,7 +143,9 @@ def scene_pressures_kpa(text: str, scene: Scene, option: str = "--pressures-kpa"
     if len(pressures) != len(labels):
         raise PhantomError(f"{option} has {len(pressures)} values; the scene has {len(labels)} chambers "
                            f"({describe_chambers(labels)}): give one pressure per chamber, in that order")
-    refused = pressure_limit_error(pressures, labels, scene.model_settings.pressure_max_pa / 1e3)
+    if pressure_max_kpa is None:
+        pressure_max_kpa = scene.model_settings.pressure_max_pa / 1e3
+    refused = pressure_limit_error(pressures, labels, pressure_max_kpa)
     if refused:
         raise PhantomError(f"{option}: {refused}")
     return pressures

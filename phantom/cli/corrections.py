@@ -42,7 +42,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     clear = actions.add_parser("clear", help="remove every stored measurement of the phantom")
     clear.add_argument("--yes", action="store_true", help="do it (without --yes: say how many would go)")
     export = actions.add_parser("export", help="write the measurements as the CSV `phantom calibrate` reads")
-    export.add_argument("--out", help="the CSV file to write (default: stdout)")
+    export.add_argument("--out", help="the CSV file to write (default: stdout); never the store itself")
+    export.add_argument("--replace", action="store_true", help="write over a file already at --out")
     fit = actions.add_parser("fit", help="the correction the measurements give a scene's model, and each "
                              "candidate's leave-one-out error")
     fit.add_argument("--scene", default="builtin:converged", help="the model's scene (default builtin:converged)")
@@ -151,12 +152,36 @@ def _clear(store: Any, args: argparse.Namespace) -> int:
                   f"removed {removed} measurement(s) of phantom {args.phantom!r}")
 
 
+def _check_out(store: Any, args: argparse.Namespace) -> None:
+    """Refuse an --out that is the store itself (also through a link or another path to it: the CSV would replace
+    the measurements), a folder, or a file already there without ``--replace``, before the store is read."""
+    import os
+    from pathlib import Path
+
+    from phantom.model.measurements import CorrectionError
+
+    out = Path(args.out)
+    same = os.path.realpath(out) == os.path.realpath(store.path)  # realpath: a link loop raises nothing
+    if not same and out.exists() and store.path.exists():
+        same = os.path.samefile(out, store.path)  # a hard link to it
+    if same:
+        raise CorrectionError(f"--out {args.out} is the correction store of phantom {args.phantom!r} "
+                              f"({store.path}): the CSV would replace the measurements; give another --out")
+    if out.is_dir():
+        raise CorrectionError(f"--out {args.out} is a folder: give the CSV file to write, e.g. "
+                              f"{out / f'{args.phantom}.csv'}")
+    if (out.exists() or out.is_symlink()) and not args.replace:
+        raise CorrectionError(f"--out {args.out} exists already: give another --out, or --replace to write over it")
+
+
 def _export(store: Any, args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from phantom import written_atomically
     from phantom.model.measurements import CorrectionError
 
+    if args.out is not None:
+        _check_out(store, args)
     entries = store.entries()  # read once: the file and the count said are of the same measurements
     text = store.to_csv(entries)
     if args.out is None:
