@@ -106,6 +106,17 @@ def rig_centre(poses: Sequence[FloatArray], forwards: Sequence[FloatArray]) -> F
     return point
 
 
+def check_voxel_mm(voxel_mm: float) -> None:
+    """Refuse a voxel size outside :data:`MIN_VOXEL_MM`-:data:`MAX_VOXEL_MM` (CaptureError), saying which way it
+    is out: too fine resolves less than a pixel and only takes memory, too coarse loses the phantom's shape."""
+    if MIN_VOXEL_MM <= voxel_mm <= MAX_VOXEL_MM:
+        return
+    why = ("a grid finer than that resolves less than a pixel and only takes memory" if voxel_mm < MIN_VOXEL_MM else
+           "a coarser grid loses the phantom's shape" if voxel_mm > MAX_VOXEL_MM else "not a finite number of mm")
+    raise CaptureError(f"the voxel size must be from {MIN_VOXEL_MM:g} to {MAX_VOXEL_MM:g} mm, got {voxel_mm!r} mm: "
+                       f"{why} (give --voxel-mm within the range; default {VOXEL_MM:g})")
+
+
 def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float = VOXEL_MM,
                 frames: Sequence[Frame] | None = None, progress: Callable[[str], None] | None = None,
                 keyed: Mapping[str, Silhouette] | None = None, check_lined_up: bool = True) -> Reconstruction:
@@ -123,9 +134,7 @@ def reconstruct(folder: CaptureFolder, rig: Rig | None = None, voxel_mm: float =
     frames = list(folder.frames if frames is None else frames)
     if len(frames) < 2:
         raise CaptureError(f"{folder.path} has {len(frames)} picture(s): carving needs pictures from several sides")
-    if not MIN_VOXEL_MM <= voxel_mm <= MAX_VOXEL_MM:
-        raise CaptureError(f"the voxel size must be from {MIN_VOXEL_MM:g} to {MAX_VOXEL_MM:g} mm, got {voxel_mm!r} "
-                           f"mm: a finer grid resolves less than a pixel (give --voxel-mm within the range)")
+    check_voxel_mm(voxel_mm)
     pixels = rig.camera.width * rig.camera.height
     needed = pixels * (len(frames) * SILHOUETTE_BYTES_PER_PX + THREADS * KEYING_BYTES_PER_PX)
     budget = memory_budget_bytes()

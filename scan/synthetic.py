@@ -41,9 +41,14 @@ def make_scan(surface: TriangleMesh, rng: np.random.Generator, levels: int = 2, 
     normals = vertex_normals(vertices, triangles)
     vertices = vertices + normals * (offset_mm + noise_mm * rng.normal(size=(len(vertices), 1)))
     if holes:
+        if holes > len(vertices):
+            raise ValueError(f"{holes} holes need as many vertices to centre them on; the surface has "
+                             f"{len(vertices)}")
         centres = vertices[rng.choice(len(vertices), holes, replace=False)]
         centroid = vertices[triangles].mean(axis=1)
-        near = np.linalg.norm(centroid[:, None, :] - centres[None], axis=2).min(axis=1) < hole_radius_mm
+        near = np.zeros(len(triangles), dtype=bool)
+        for centre in centres:  # one at a time: all at once is triangles x holes x 3 (GBs at millions of triangles)
+            near |= np.linalg.norm(centroid - centre, axis=1) < hole_radius_mm
         triangles = triangles[~near]
     mesh = compact(vertices, triangles)
     if fragment:

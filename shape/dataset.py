@@ -158,8 +158,8 @@ def read_closed_mesh(path: str | Path) -> ClosedSurface:
     """A closed triangle mesh (mm, the phantom's frame) as a surface in RAS mm, wound one way and outward
     (:func:`phantom.model.mesh.winding.outward_surface`).
 
-    Raises ShapeError when the file cannot be read, the surface is not closed, or its triangles cannot be wound
-    one way.
+    Raises ShapeError when the file cannot be read, a vertex is not finite, the surface is not closed, or its
+    triangles cannot be wound one way.
     """
     # trimesh (0.3 s to import) only where a mesh is read
     with require_extra("shape"):
@@ -172,6 +172,10 @@ def read_closed_mesh(path: str | Path) -> ClosedSurface:
         raise ShapeError(f"{path}: not a readable mesh ({error})") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise ShapeError(f"{path}: the mesh has no triangles")
+    finite = np.isfinite(np.asarray(loaded.vertices, np.float64)).all(axis=1)
+    if not finite.all():  # the merge below drops them, and what was left failed far later without a word
+        raise ShapeError(f"{path} has {np.count_nonzero(~finite)} vertices with non-finite coordinates (nan or "
+                         f"inf), first at index {int(np.flatnonzero(~finite)[0])}: re-export the mesh")
     merged = trimesh.Trimesh(np.asarray(loaded.vertices, np.float64), np.asarray(loaded.faces, np.int64), process=True)
     vertices, triangles = np.asarray(merged.vertices, float), np.asarray(merged.faces, np.int64)
     open_edges = open_edge_count(triangles)

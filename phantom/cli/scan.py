@@ -14,6 +14,19 @@ if TYPE_CHECKING:
     from phantom.scan.capture import CaptureFolder
     from phantom.scan.render import Look
 
+#: ``scan synthetic``'s largest ``--noise-mm`` (mm, sigma): a scanner's noise is tenths of a mm; 5 mm is a wall's
+#: thickness, and the scan is still the phantom's shape.
+MAX_NOISE_MM = 5.0
+#: ``scan synthetic``'s most ``--levels``: each multiplies the vertices by 4 (the built-in phantom's surface at 6:
+#: 2.1 million vertices, 1.2 GB and 40 s to write; 12 would be 8 billion).
+MAX_LEVELS = 6
+#: ``scan synthetic``'s most ``--holes``: a hole is 2.5 mm across (20 mm^2) of the phantom's 4,400 mm^2 surface;
+#: 50 take a fifth of it, more leave too little to align (and the coarsest surface has 500 vertices to centre
+#: them on).
+MAX_HOLES = 50
+#: The file a Rerun recording is written to ends with this.
+RECORDING_SUFFIX = ".rrd"
+
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     """Add ``compare-scan`` to the ``phantom`` parser."""
@@ -56,10 +69,13 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                            help="the chamber pressures (kPa, chamber order; default 1,2,0.5)")
     synthetic.add_argument("--modulus-factor", type=float, default=1.0,
                            help="make the scan from the model with E times this (another material)")
-    synthetic.add_argument("--noise-mm", type=float, default=0.05, help="noise along the normals (mm, sigma)")
-    synthetic.add_argument("--holes", type=int, default=3, help="holes cut out of the surface")
-    synthetic.add_argument("--levels", type=int, default=2, help="midpoint subdivisions (4: about 250k vertices)")
-    synthetic.add_argument("--seed", type=int, default=0, help="seed of the noise, holes and motion")
+    synthetic.add_argument("--noise-mm", type=float, default=0.05,
+                           help=f"noise along the normals (mm, sigma; 0 to {MAX_NOISE_MM:g})")
+    synthetic.add_argument("--holes", type=int, default=3, help=f"holes cut out of the surface (0 to {MAX_HOLES})")
+    synthetic.add_argument("--levels", type=int, default=2,
+                           help=f"midpoint subdivisions, each 4 times the vertices (0 to {MAX_LEVELS}; the built-in "
+                                f"phantom: 2 about 8k, 4 about 130k, 6 about 2 million)")
+    synthetic.add_argument("--seed", type=int, default=0, help="seed of the noise, holes and motion (0 or more)")
     synthetic.set_defaults(run=run_synthetic_scan)
 
 
@@ -356,9 +372,11 @@ def run_reconstruct(args: argparse.Namespace) -> int:
 
     from phantom.scan.camera import Rig
     from phantom.scan.capture import CaptureError
-    from phantom.scan.reconstruct import VOXEL_MM, check_mesh_path, reconstruct, write_mesh
+    from phantom.scan.reconstruct import VOXEL_MM, check_mesh_path, check_voxel_mm, reconstruct, write_mesh
 
     check_mesh_path(args.out)
+    if args.voxel_mm is not None:
+        check_voxel_mm(args.voxel_mm)
     _check_out_is_free(args)
     folder = _open_capture(args.capture)
     partial = _partial_capture(folder)
@@ -499,12 +517,17 @@ def _check_out_is_free(args: argparse.Namespace) -> None:
 
 def run_import(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan import``."""
-    from phantom.model.mesh.surface import enclosed_volume_ml
+    from phantom.model.mesh.surface import Frame, enclosed_volume_ml
+    from phantom.scan.compare import PHANTOM_RMS_RADIUS_MM, check_scale
     from phantom.scan.export import import_mesh
-    from phantom.scan.reconstruct import write_mesh
+    from phantom.scan.reconstruct import check_mesh_path, write_mesh
 
+    check_mesh_path(args.out)
     _check_out_is_free(args)
     mesh = import_mesh(_checked_mesh(args.mesh), args.units)
+    # compare-scan's check of the size, against the built-in phantom's: a mesh in mm read as cm was 32 litres
+    check_scale(Frame.of(mesh).rms_radius_mm, PHANTOM_RMS_RADIUS_MM, args.units, "import", "pass --units {unit}",
+                "scale it to mm (or give its unit with --units) before importing it")
     path = write_mesh(mesh, args.out)
     print(f"wrote {path}: {enclosed_volume_ml(mesh):.3f} ml, {len(mesh.triangles)} triangles, closed")
     return 0
@@ -519,6 +542,8 @@ def run_compare_scan(args: argparse.Namespace) -> int:
 
     from phantom import require_extra
 
+    if args.rerun_save:
+        check_recording_path(args.rerun_save)
     with require_extra("scan"):  # said at once, not after the model's kernels are compiled (10 s on a new cache)
         import trimesh  # noqa: F401
 
@@ -592,6 +617,21 @@ def run_compare_scan(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_recording_path(path: str, option: str = "--rerun-save") -> None:
+    """A Rerun recording's file, refused in one line (ScanError) before the comparison when it cannot be written:
+    another suffix than .rrd, a folder (the SDK's "Failed to create file: Is a directory" came as a traceback
+    after it), or a place it cannot be made (:func:`~phantom.cli.common.check_output_file`)."""
+    from pathlib import Path
+
+    from phantom.cli.common import check_output_file
+    from phantom.scan.compare import ScanError
+
+    if Path(path).suffix.lower() != RECORDING_SUFFIX and not Path(path).is_dir():
+        raise ScanError(f"{option} {path}: a Rerun recording is a {RECORDING_SUFFIX} file: give a file name ending "
+                        f"in {RECORDING_SUFFIX}")
+    check_output_file(path, option, f"compare{RECORDING_SUFFIX}", ScanError)
+
+
 def run_synthetic_scan(args: argparse.Namespace) -> int:
     """Handler of ``phantom scan synthetic``."""
     import meshio
@@ -604,8 +644,7 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
     from phantom.model.scene import load_scene
     from phantom.scan.synthetic import make_scan, random_rotation
 
-    if not args.modulus_factor > 0 or args.noise_mm < 0 or args.holes < 0 or args.levels < 0:
-        raise PhantomError("--modulus-factor must be positive, and --noise-mm, --holes and --levels not negative")
+    check_synthetic_arguments(args)
     scene = load_scene(args.scene)
     pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
     model = PhantomModel.from_scene(scene)
@@ -616,10 +655,47 @@ def run_synthetic_scan(args: argparse.Namespace) -> int:
     scan = make_scan(model_surface(state.positions_m, model.outer_triangles), rng, levels=args.levels,
                      noise_mm=args.noise_mm, holes=args.holes, fragment=True, rotation=random_rotation(rng),
                      translation_mm=rng.uniform(-50.0, 50.0, 3))
-    path = output_file(args.out)
+    path = output_file(args.out)  # checked before the solve; its folder is made now
     try:
         meshio.write_points_cells(path, scan.mesh.vertices_mm, [("triangle", scan.mesh.triangles.astype(np.int32))])
     except (OSError, KeyError, meshio.WriteError) as error:
         raise PhantomError(f"cannot write {path}: {error}; give a .ply, .stl or .obj --out") from None
     print(f"wrote {path}: {len(scan.mesh.vertices_mm)} vertices, gland {state.gland_volume_m3 * 1e6:.3f} ml")
     return 0
+
+
+def check_synthetic_arguments(args: argparse.Namespace) -> None:
+    """``scan synthetic``'s numbers and ``--out``, refused in one line (PhantomError) before the model is solved:
+    NaN noise wrote a scan of NaN vertices, ``--levels 12`` ran for minutes, a ``.txt`` --out, a negative seed
+    and more holes than vertices were tracebacks after the solve."""
+    import math
+    from pathlib import Path
+
+    from phantom import PhantomError
+    from phantom.scan.compare import SCAN_SUFFIXES
+
+    if not (math.isfinite(args.modulus_factor) and args.modulus_factor > 0):
+        raise PhantomError(f"--modulus-factor {args.modulus_factor:g} must be a finite number above 0 (E times it; "
+                           f"e.g. 0.85)")
+    if not 0 <= args.noise_mm <= MAX_NOISE_MM:  # NaN fails it too
+        raise PhantomError(f"--noise-mm {args.noise_mm:g} is out of range: give a noise from 0 to {MAX_NOISE_MM:g} mm "
+                           f"(sigma, along the normals; a scanner's is tenths of a mm)")
+    if args.levels < 0:
+        raise PhantomError(f"--levels {args.levels}: give 0 to {MAX_LEVELS} subdivisions, not negative")
+    if args.holes < 0:
+        raise PhantomError(f"--holes {args.holes}: give 0 to {MAX_HOLES} holes, not negative")
+    if args.levels > MAX_LEVELS:
+        raise PhantomError(f"--levels {args.levels} is too many: each level multiplies the vertices by 4 "
+                           f"({MAX_LEVELS} makes about 2 million of the built-in phantom's, 1.2 GB of memory); give "
+                           f"0 to {MAX_LEVELS}")
+    if args.holes > MAX_HOLES:
+        raise PhantomError(f"--holes {args.holes} is too many: each cuts 20 mm^2 of the phantom's 4,400 mm^2 surface, "
+                           f"and more than {MAX_HOLES} leave too little to align; give 0 to {MAX_HOLES}")
+    if args.seed < 0:
+        raise PhantomError(f"--seed {args.seed} is negative: give a whole number, 0 or more")
+    out = Path(args.out)
+    if out.suffix.lower() not in SCAN_SUFFIXES:
+        raise PhantomError(f"--out {out}: a scan is written as .ply, .stl or .obj (not "
+                           f"{out.suffix or 'no extension'}): give a file name ending in one of them")
+    if out.is_dir():
+        raise PhantomError(f"--out {out} is a folder: give a file name (.ply, .stl or .obj)")
