@@ -98,7 +98,7 @@ def test_growth_limits_through_the_cli(model, capsys):
     (("--volume-ml", "30", "--growth-ratio", "1:two"), "NAME=WEIGHT pairs"),
     (("--chamber-volumes-ml", "1,x,2"), "comma-separated numbers"),
     (("--pressures-kpa", "1,1,1", "--growth-ratio", "1:2,2:1"), "goes with --volume-ml"),
-    (("--volume-ml", "26.5", "--max-growth-ml", "0.1,0.1"), "needs 3 values"),
+    (("--volume-ml", "26.5", "--max-growth-ml", "0.1,0.1"), "has 2 values; the scene has 3 chambers"),
 ])
 def test_cli_input_errors_say_what_to_do(arguments, message):
     from phantom import PhantomError
