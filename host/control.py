@@ -95,6 +95,10 @@ class ReachRule:
     tolerance_pct: float = 1.0
 
 
+#: A target's own ``tolerance_pct`` (``set_target``, ``phantom set --tolerance-pct``) is above 0 and at most this:
+#: within 100 % of the target, anything the phantom holds is reached.
+MAX_TOLERANCE_PCT = 100.0
+
 #: The one rule of settled pressures and reached targets, from the daemon's settings' defaults (host/config.py:
 #: the settled band is two ADC counts of the MPXV7025G); --settled-kpa, --settled-for-s and a target's own
 #: tolerance_pct replace its values.

@@ -15,6 +15,7 @@ import numpy as np
 
 from phantom import PhantomError, read_text
 from phantom.host.api import ApiError, Handler, RawJson
+from phantom.host.control import MAX_TOLERANCE_PCT
 from phantom.host.scene_runner import PreparedRun, prepare_run
 from phantom.host.scenes import (
     check_step_count,
@@ -63,9 +64,10 @@ class ApiHandlers:
         params = dict(params)
         tolerance_pct = params.pop("tolerance_pct", None)
         if tolerance_pct is not None and (isinstance(tolerance_pct, bool) or not isinstance(tolerance_pct, (int, float))
-                                          or not 0 < tolerance_pct <= 100):
+                                          or not 0 < tolerance_pct <= MAX_TOLERANCE_PCT):
             raise ApiError("invalid_params", f"set_target: tolerance_pct (how close the estimate must come for the "
-                           f"target to be reached, %) must be a number in (0, 100], got {tolerance_pct!r}")
+                           f"target to be reached, %) must be a number in (0, {MAX_TOLERANCE_PCT:g}], got "
+                           f"{tolerance_pct!r}")
         if "shape" in params:
             shape, labels, refine_solves = shape_of(params)
             return await daemon.set_shape_target(shape, labels, refine_solves,

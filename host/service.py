@@ -93,6 +93,9 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
             startup.enter(f"starting the simulated board (firmware in simavr, speed {config.sim_speed:g})")
             await asyncio.get_running_loop().run_in_executor(None, sim_board.start)
         session = _link_session(config, sim_board)
+        daemon = Daemon(config, api, model, recorder, session, sim_board, startup=startup)
+        if config.run_scene:  # a volume step beyond the reachable range stops the start, as run_scene refuses it
+            await _check_start_up_scene(daemon)
     except BaseException:
         for close in reversed(closers):
             with contextlib.suppress(Exception):
@@ -101,7 +104,6 @@ async def start_daemon(config: DaemonConfig, simulated_board: SimulatedBoardFact
             await web.close()
         await api.close()
         raise
-    daemon = Daemon(config, api, model, recorder, session, sim_board, startup=startup)
     daemon.web = web
     recorder.on_problem = lambda text, level: daemon.event("recording", text, level)
     if sim_board is not None:
@@ -129,6 +131,22 @@ def _check_pressure_limit(config: DaemonConfig, pressure_max_kpa: float) -> None
                            f"{config.scene}'s pressure_max_kpa ({pressure_max_kpa:g} kPa), up to which the model sets "
                            f"pressures: give --pressure-limit-kpa (or pressure_limit_kpa in the config file) of at "
                            f"least {pressure_max_kpa:g}, or a scene with a lower [model] pressure_max_kpa")
+
+
+async def _check_start_up_scene(daemon: Daemon) -> None:
+    """``--run-scene``'s scene is checked as ``run_scene`` checks one at load (:meth:`Daemon.check_scene_reachable`):
+    a gland volume step beyond the reachable range raises PhantomError (one line) naming the step and the range.
+    A scene whose steps are not valid is left to :func:`serve`, which says why it was not started."""
+    info = daemon.model.info
+    try:
+        prepared = prepare_run(info.scene_raw, info.scene_path, daemon.chamber_names, 1.0, info.wants_shape)
+    except SceneError:
+        return
+    try:
+        await daemon.check_scene_reachable(prepared)
+    except ApiError as error:
+        raise PhantomError(f"--run-scene: {str(error).removesuffix('; the scene was not started')} (the daemon "
+                           "was not started)") from None
 
 
 def _when_ready(daemon: Daemon, handler: Handler) -> Handler:

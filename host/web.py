@@ -30,6 +30,7 @@ import hmac
 import ipaddress
 import json
 import logging
+import math
 import os
 import secrets
 import stat
@@ -423,8 +424,11 @@ class WebServer:
                                        "request per message").encode())
             return
         request_id = request.get("id") if isinstance(request, dict) else None
-        if not (request_id is None or isinstance(request_id, (str, int))) or isinstance(request_id, bool):
-            request_id = None
+        if not _valid_id(request_id):  # refused before anything runs; its id cannot be echoed: answered with null
+            self.api.errors_total += 1
+            client.offer(jsonrpc_error(None, "invalid_request", "a request's id must be a string, a number or null, "
+                                       f"got {_json_kind(request_id)}: give one of those").encode())
+            return
         method = request.get("method") if isinstance(request, dict) else None
         params = request.get("params", {}) if isinstance(request, dict) else None
         if (not isinstance(request, dict) or request.get("jsonrpc") != "2.0" or not isinstance(method, str)
@@ -454,6 +458,22 @@ class WebServer:
         if "id" in request and not client.offer(reply.encode()):
             self.api.dropped_lines_total += 1
 
+
+
+def _valid_id(request_id: object) -> bool:
+    """A JSON-RPC 2.0 id: a string, a number (finite: NaN or Infinity is not JSON) or null."""
+    if request_id is None or isinstance(request_id, str | int) and not isinstance(request_id, bool):
+        return True
+    return isinstance(request_id, float) and math.isfinite(request_id)
+
+
+def _json_kind(value: object) -> str:
+    """What a JSON value is, in JSON's words."""
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, float):
+        return f"{value} (not a JSON number)"
+    return "an object" if isinstance(value, dict) else "an array" if isinstance(value, list) else type(value).__name__
 
 
 def tell_panel_address(web: WebServer, stream: TextIO | None = None) -> None:

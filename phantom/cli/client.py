@@ -283,6 +283,42 @@ def format_model(status: dict[str, Any]) -> str:
     return text
 
 
+def _check_set_numbers(args: argparse.Namespace) -> None:
+    """``phantom set``'s numbers against the daemon's bounds, before connecting, naming the flags (the daemon's
+    refusals name its params); the number of chamber volumes is the daemon's to check (it knows its chambers)."""
+    from phantom import PhantomError, is_finite_number
+    from phantom.cli.common import parse_numbers
+    from phantom.host.control import MAX_TOLERANCE_PCT
+    from phantom.host.scenes import MIN_VOLUME_ML
+    from phantom.host.verify import MAX_VERIFY_ROUNDS, VERIFY_TOLERANCE_PCT
+
+    if args.volume_ml is not None and not (is_finite_number(args.volume_ml) and args.volume_ml >= MIN_VOLUME_ML):
+        raise PhantomError(f"--volume-ml must be a number of at least {MIN_VOLUME_ML:g} ml, got {args.volume_ml:g}")
+    if args.chamber_volumes_ml is not None:
+        volumes = [value for value in parse_numbers(args.chamber_volumes_ml, "--chamber-volumes-ml",
+                                                    allow_free=True) if value is not None]
+        if not volumes:
+            raise PhantomError("--chamber-volumes-ml needs at least one number: give a volume (ml) for one chamber "
+                               "or more, '-' for the free ones")
+        if min(volumes) < MIN_VOLUME_ML:
+            raise PhantomError(f"--chamber-volumes-ml: each volume must be at least {MIN_VOLUME_ML:g} ml, got "
+                               f"{args.chamber_volumes_ml}")
+    if args.tolerance_pct is not None and not (is_finite_number(args.tolerance_pct)
+                                               and 0 < args.tolerance_pct <= MAX_TOLERANCE_PCT):
+        raise PhantomError(f"--tolerance-pct must be a number more than 0 and at most {MAX_TOLERANCE_PCT:g} (% of the "
+                           f"target), got {args.tolerance_pct:g}")
+    if args.timeout_s is not None and not (is_finite_number(args.timeout_s) and args.timeout_s > 0):
+        raise PhantomError(f"--timeout-s must be a positive number of seconds, got {args.timeout_s:g}")
+    low_pct, high_pct = VERIFY_TOLERANCE_PCT
+    if args.verify_tolerance_pct is not None and not (is_finite_number(args.verify_tolerance_pct)
+                                                      and low_pct <= args.verify_tolerance_pct <= high_pct):
+        raise PhantomError(f"--verify-tolerance-pct must be a number from {low_pct:g} to {high_pct:g} (% of the "
+                           f"target), got {args.verify_tolerance_pct:g}")
+    if args.verify_rounds is not None and not 1 <= args.verify_rounds <= MAX_VERIFY_ROUNDS:
+        raise PhantomError(f"--verify-rounds must be a whole number from 1 to {MAX_VERIFY_ROUNDS}, got "
+                           f"{args.verify_rounds}")
+
+
 def _run_set(args: argparse.Namespace) -> int:
     import json
 
@@ -300,6 +336,7 @@ def _run_set(args: argparse.Namespace) -> int:
     if not options["wait"] and (args.tolerance_pct is not None or args.timeout_s is not None):
         raise PhantomError("--tolerance-pct and --timeout-s go with --wait: add --wait (without it, set returns as "
                            "soon as the setpoints are sent)")
+    _check_set_numbers(args)
     if args.tolerance_pct is not None:
         options["tolerance_pct"] = args.tolerance_pct
     if args.timeout_s is not None:
