@@ -276,8 +276,8 @@ def test_the_command_line_lists_adds_exports_and_clears(store, tmp_path, capsys)
     assert main(["corrections", "clear", "--phantom", "bench-phantom", "--yes"]) == 0
     assert store.entries() == []
     assert main(["corrections", "add", "--pressures-kpa", "1,1", "--volume-ml", "-3"]) == 2
-    assert "measured volume must be a finite number of ml within a whole gland's, 2-400 ml (volume_ml), got -3.0" \
-        in capsys.readouterr().err
+    assert "--volume-ml is the measured gland volume, a finite number of ml within a whole gland's, 2-400 ml, got " \
+           "-3.0" in capsys.readouterr().err
 
 
 @pytest.mark.slow

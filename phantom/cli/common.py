@@ -89,24 +89,36 @@ MAX_PICTURE_BYTES = 64 * 2**20
 MAX_JSON_BYTES = 16 * 2**20
 
 
-def check_input_size(path: str | Path, max_bytes: int, what: str, error: type[PhantomError] = PhantomError,
-                     hint: str = "that is not one of ours (give the right file)") -> None:
+def check_input_size(path: str | Path, max_bytes: int | None, what: str, error: type[PhantomError] = PhantomError,
+                     hint: str = "that is not one of ours (give the right file)", *, give: str | None = None,
+                     required: bool = False) -> None:
     """Refuse, before a library reads it whole, a file a user named that is larger than ``max_bytes`` (a 2 GB
     sparse file took 4-6 GB of memory to refuse) or not a file at all (/dev/zero, a pipe: endless).
 
-    A missing file, or a folder, is left to the reader, whose message says what to do. Raises ``error`` with a
-    one-line message that starts with ``what`` and the path, and ends with ``hint`` for a file too large.
+    A missing file, or a folder, is left to the reader, whose message says what to do; unless ``give`` says what
+    the command reads there (e.g. "a mesh file (.obj, .ply or .stl)"): then a folder is refused, saying to give
+    that; and with ``required``, a missing file too (for a file named and kept, not read). ``max_bytes`` None:
+    no size is refused (a file only referred to). Raises ``error`` with a one-line message that starts with
+    ``what`` and the path, and ends with ``hint`` for a file too large.
     """
     path = Path(path)
     try:
         info = path.stat()
-    except OSError:
+    except (FileNotFoundError, NotADirectoryError):
+        if required:
+            raise error(f"{what} {path} does not exist: check the path") from None
+        return
+    except OSError as problem:
+        if required:
+            raise error(f"{what} {path} cannot be read: {problem.strerror}") from None
         return
     if stat.S_ISDIR(info.st_mode):
+        if give is not None:
+            raise error(f"{what} {path} is a folder: give {give}")
         return
     if not stat.S_ISREG(info.st_mode):
         raise error(f"{what} {path} is not a regular file (a device or a pipe): give a file")
-    if info.st_size > max_bytes:
+    if max_bytes is not None and info.st_size > max_bytes:
         raise error(f"{what} {path} is {info.st_size / 2**20:.0f} MiB, more than the {max_bytes / 2**20:g} MiB "
                     f"read: {hint}")
 

@@ -90,19 +90,41 @@ def _list(store: Any, args: argparse.Namespace) -> int:
     return _print(args, {"path": str(store.path), "measurements": [asdict(e) for e in entries]}, "\n".join(lines))
 
 
+def _checked_add(args: argparse.Namespace) -> list[float]:
+    """``add``'s numbers and scan file refused in the command line's terms (its flags) before any model is built
+    (the store's own messages name its fields, for library callers): the pressures, as a list of kPa."""
+    import math
+
+    from phantom.cli.common import check_input_size, parse_numbers
+    from phantom.model.measurements import MAX_CHAMBERS, MAX_PRESSURE_KPA, CorrectionError, unit_hint
+    from phantom.model.shape_file import GLAND_VOLUME_RANGE_ML
+
+    pressures = parse_numbers(args.pressures_kpa, "--pressures-kpa")
+    if len(pressures) > MAX_CHAMBERS or not all(0 <= value <= MAX_PRESSURE_KPA for value in pressures):
+        raise CorrectionError(f"--pressures-kpa takes the chamber pressures in kPa, each 0 or more (gauge: the "
+                              f"blowers only push) and at most {MAX_PRESSURE_KPA:g}, one per chamber (at most "
+                              f"{MAX_CHAMBERS}); got {args.pressures_kpa}")
+    low, high = GLAND_VOLUME_RANGE_ML
+    if not (math.isfinite(args.volume_ml) and low <= args.volume_ml <= high):
+        raise CorrectionError(f"--volume-ml is the measured gland volume, a finite number of ml within a whole "
+                              f"gland's, {low:g}-{high:g} ml{unit_hint(args.volume_ml)}")
+    if args.scan_file is not None:
+        check_input_size(args.scan_file, None, "--scan-file", CorrectionError,
+                         give="the scan's mesh file (.obj, .ply or .stl)", required=True)
+    return pressures
+
+
 def _add(store: Any, args: argparse.Namespace) -> int:
     import sys
 
     import numpy as np
 
-    from phantom.cli.common import parse_numbers
     from phantom.model import PhantomModel, load_scene
     from phantom.model.corrections import judged, model_grid, pressures_in_box
     from phantom.model.fidelity.levels import VolumeEstimator
     from phantom.model.measurements import CorrectionError, Measurement
 
-    measurement = Measurement.now(parse_numbers(args.pressures_kpa, "--pressures-kpa"), args.volume_ml, args.method,
-                                  args.scan_file)
+    measurement = Measurement.now(_checked_add(args), args.volume_ml, args.method, args.scan_file)
     grid = model_grid(VolumeEstimator(PhantomModel.from_scene(load_scene(args.scene))), args.scene)
     chambers = grid.chamber_ml.shape[-1]
     if len(measurement.pressures_kpa) != chambers:

@@ -33,8 +33,9 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
                              "in the phantom's frame; answers the pressures that bring the phantom's surface closest "
                              "to it (phantom.model.shape_inverse)")
     inverse.add_argument("--labels", help="with --shape: the gland's labels in a label map, comma-separated (4,5)")
-    inverse.add_argument("--refine-solves", type=int, default=3,
-                         help="with --shape: full solves that refine the table's answer at most (0: the table's)")
+    inverse.add_argument("--refine-solves", type=int,
+                         help="with --shape: full solves that refine the table's answer at most (0: the table's; "
+                              "default 3)")
     inverse.add_argument("--scale", action="store_true",
                          help="with --shape: fit a uniform scale of the target too (reported apart; default rigid)")
     inverse.add_argument("--out", metavar="DIR",
@@ -179,8 +180,8 @@ def run_inverse(args: argparse.Namespace) -> int:
         from phantom.cli.inverse_shape import run_shape_inverse
 
         return run_shape_inverse(args)
-    if args.labels or args.out or args.scale:
-        raise PhantomError("--labels, --scale and --out go with --shape")
+    if args.labels or args.out or args.scale or args.refine_solves is not None:
+        raise PhantomError("--labels, --scale, --out and --refine-solves go with --shape")
     if args.growth_ratio and args.volume_ml is None:
         raise PhantomError("--growth-ratio goes with --volume-ml (the gland volume it shares out)")
     scene = load_scene(args.scene)

@@ -25,17 +25,35 @@ def _labels(text: str | None) -> list[int] | None:
     return [int(value) for value in parse_numbers(text, "--labels") if value is not None]
 
 
+def refine_solves(args: argparse.Namespace) -> int:
+    """``--refine-solves``: the full solves that refine the table's answer at most, the model's default when not
+    given (None: given or not is told apart, so that it is refused without ``--shape``)."""
+    from phantom import PhantomError
+    from phantom.model.shape_inverse import REFINE_SOLVES
+
+    if args.refine_solves is None:
+        return REFINE_SOLVES
+    if args.refine_solves < 0:
+        raise PhantomError(f"--refine-solves must be 0 or more, got {args.refine_solves}")
+    return int(args.refine_solves)
+
+
+#: What ``--shape`` reads: said when a folder is given in its place.
+SHAPE_FILE = "a NIfTI mask (.nii, .nii.gz) or a closed mesh file in mm (STL, PLY, OBJ, VTK)"
+
+
 def run_shape_inverse(args: argparse.Namespace) -> int:
     """Handler of ``phantom inverse --shape``."""
     from phantom import PhantomError
+    from phantom.cli.common import check_input_size
     from phantom.model import PhantomModel, load_scene
     from phantom.model.shape_file import read_target_surface
     from phantom.model.shape_inverse import ShapeInverse, surface_shapes
 
     if args.growth_ratio or args.max_growth_ml or args.fidelity:
         raise PhantomError("--growth-ratio, --max-growth-ml and --fidelity go with a volume target, not --shape")
-    if args.refine_solves < 0:
-        raise PhantomError(f"--refine-solves must be 0 or more, got {args.refine_solves}")
+    solves = refine_solves(args)
+    check_input_size(args.shape, None, "--shape", give=SHAPE_FILE)
     target = read_target_surface(args.shape, _labels(args.labels))
     scene = load_scene(args.scene)
     model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
@@ -45,7 +63,7 @@ def run_shape_inverse(args: argparse.Namespace) -> int:
         print(f"shape inverse: the table of shapes, {done}/{total} solves", file=sys.stderr, flush=True)
 
     inverse = ShapeInverse(model, surface_shapes(model, progress=told), pressure_max_pa)
-    result = inverse.solve(target, args.refine_solves, scale=args.scale,
+    result = inverse.solve(target, solves, scale=args.scale,
                            progress=lambda message: print(message, file=sys.stderr, flush=True))
     report = result.to_json(list(scene.chamber_labels))
     if args.out:

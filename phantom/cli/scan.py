@@ -284,20 +284,21 @@ def _add_plan_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--elevations", default="0,30", help="the elevations (deg) of the passes (default 0,30)")
 
 
-def _checked_mesh(path: str) -> str:
-    """A mesh file's path, refused (ScanError) before a reader holds it whole when it is over the size read."""
+def _checked_mesh(path: str, what: str = "the mesh", give: str | None = None) -> str:
+    """A mesh file's path, refused (ScanError) before a reader holds it whole when it is over the size read; with
+    ``give`` (what to give instead), a folder named in its place too."""
     from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size
     from phantom.scan.compare import ScanError
 
-    check_input_size(path, MAX_MESH_BYTES, "the mesh", ScanError, MESH_TOO_LARGE)
+    check_input_size(path, MAX_MESH_BYTES, what, ScanError, MESH_TOO_LARGE, give=give)
     return path
 
 
-def _read_mesh(path: str, units: str) -> Any:
+def _read_mesh(path: str, units: str, what: str = "the mesh", give: str | None = None) -> Any:
     """A scan or mesh file (OBJ, PLY, STL) as a TriangleMesh in mm, its size checked before it is read."""
     from phantom.scan.compare import read_scan
 
-    return read_scan(_checked_mesh(path), units)
+    return read_scan(_checked_mesh(path, what, give), units)
 
 
 def _open_capture(path: str) -> Any:
@@ -339,7 +340,7 @@ def run_render(args: argparse.Namespace) -> int:
     plan = plan_of(args)
     true_rig = virtual_rig(args.scale, plan.elevations_deg)
     kept = Rig.load(args.rig) if args.rig else true_rig
-    mesh = _read_mesh(args.mesh, args.units)
+    mesh = _read_mesh(args.mesh, args.units, give="the mesh file to render (.obj, .ply or .stl)")
     conditions = {"mesh": str(args.mesh), "units": args.units, "rig": "given" if args.rig else "virtual, true",
                   "look": args.look}
     folder = render_capture(mesh, true_rig, plan, args.out, args.seed, conditions, frame_progress("rendered"),
@@ -524,7 +525,7 @@ def run_import(args: argparse.Namespace) -> int:
 
     check_mesh_path(args.out)
     _check_out_is_free(args)
-    mesh = import_mesh(_checked_mesh(args.mesh), args.units)
+    mesh = import_mesh(_checked_mesh(args.mesh, give="the tool's mesh file (.obj, .ply or .stl)"), args.units)
     # compare-scan's check of the size, against the built-in phantom's: a mesh in mm read as cm was 32 litres
     check_scale(Frame.of(mesh).rms_radius_mm, PHANTOM_RMS_RADIUS_MM, args.units, "import", "pass --units {unit}",
                 "scale it to mm (or give its unit with --units) before importing it")
@@ -542,6 +543,8 @@ def run_compare_scan(args: argparse.Namespace) -> int:
 
     from phantom import require_extra
 
+    scan_file = "the scan's mesh file (.obj, .ply or .stl)"
+    _checked_mesh(args.scan, "the scan file", scan_file)  # a folder said at once, before the scene is read
     if args.rerun_save:
         check_recording_path(args.rerun_save)
     with require_extra("scan"):  # said at once, not after the model's kernels are compiled (10 s on a new cache)
@@ -558,7 +561,7 @@ def run_compare_scan(args: argparse.Namespace) -> int:
     pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
     clock = StageClock()
     with clock.stage("read"):
-        scan = _read_mesh(args.scan, args.units)
+        scan = _read_mesh(args.scan, args.units, "the scan file", scan_file)
     with clock.stage("model"):
         _checked_mesh(scene.mesh)
         model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
