@@ -46,6 +46,15 @@ OUTPUT_KEYS = ("volumes", "shape")
 MODEL_SECTIONS = ("phantom", "geometry", "material", "model", "load", "outputs")
 HOST_SECTIONS = ("steps", "timeline", "host")
 
+#: The surface groups of the built-in prostate's mesh (phantom.model.mesh.prostate.tag_surfaces): the chamber walls
+#: a scene may name in ``[phantom] chambers``, and the fixation patch, the only group its ``fixed`` may name.
+BUILTIN_CHAMBER_GROUPS = ("chamber0", "chamber1", "chamber2")
+BUILTIN_FIXED_GROUP = "fixed"
+#: The range of ``[material] youngs_modulus_kpa`` (kPa): the softest gels and silicones (Ecoflex 00-10 about 50,
+#: the calibrated phantom 2.6-11) to the stiffest elastomers with margin either way, 0.1 kPa to 100 MPa. Outside it
+#: the number is in another unit or a typo: 1e300 was taken, and the model answered zero growth in silence.
+YOUNGS_MODULUS_RANGE_KPA = (0.1, 1.0e5)
+
 #: Length units a scene may declare for its mesh, and their size in metres.
 LENGTH_UNITS_M = {"m": 1.0, "cm": 1.0e-2, "mm": 1.0e-3, "um": 1.0e-6}
 
@@ -277,6 +286,9 @@ def load_scene(source: str | Path) -> Scene:
 def read_scene_toml(path: str | Path) -> dict[str, Any]:
     """The parsed TOML of a scene file, with a clear SceneError when it is missing or malformed."""
     path = Path(path)
+    if not path.exists() and path.name.startswith("builtin:"):  # a misspelt built-in name, not a file in a folder
+        raise SceneError(f"{path.name} is not a built-in scene: give one of {', '.join(BUILTIN_SCENES)}, or a "
+                         f"scene TOML path")
     if not path.exists():
         raise SceneError(f"the scene file {path} does not exist: give a TOML path or one of "
                          f"{', '.join(BUILTIN_SCENES)}")
@@ -330,6 +342,14 @@ def scene_from_dict(raw: dict[str, Any], path: Path | None = None) -> Scene:
     fixed = phantom_table.get("fixed")
     if fixed is not None and not isinstance(fixed, str):
         raise SceneError(f"{where}: [phantom] fixed must be a surface group name (or absent)")
+    if geometry is not None:  # the built-in mesh's groups are known without meshing it; a mesh file's when read
+        for chamber in chambers:
+            if chamber not in BUILTIN_CHAMBER_GROUPS:
+                raise SceneError(f"{where}: [phantom] chambers names {chamber!r}, which the built-in prostate "
+                                 f"lacks: its chambers are {', '.join(BUILTIN_CHAMBER_GROUPS)}")
+        if fixed is not None and fixed != BUILTIN_FIXED_GROUP:
+            raise SceneError(f"{where}: [phantom] fixed = {fixed!r} is not a group of the built-in prostate: give "
+                             f"{BUILTIN_FIXED_GROUP!r} (its fixation patch) or leave the key out")
     steps = raw.get("steps", [])
     if not isinstance(steps, list):
         raise SceneError(f"{where}: steps must be an array of tables ([[steps]]), got {steps!r:.60}")
@@ -398,6 +418,11 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
     if not is_finite_number(youngs_modulus_kpa) or not youngs_modulus_kpa > 0:
         raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got "
                          f"{youngs_modulus_kpa!r}")
+    low_kpa, high_kpa = YOUNGS_MODULUS_RANGE_KPA
+    if not low_kpa <= youngs_modulus_kpa <= high_kpa:
+        raise SceneError(f"{where}: [material] youngs_modulus_kpa = {youngs_modulus_kpa:g} is outside what a "
+                         f"silicone or elastomer has, {low_kpa:g} kPa to {high_kpa / 1e3:g} MPa: give it in kPa "
+                         f"(Ecoflex 00-10: about 50)")
     if isinstance(poisson_ratio, bool) or not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
         raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio!r}")
     return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm,

@@ -7,13 +7,17 @@ Only argparse is imported at module load; handlers import what they need when th
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+from collections.abc import Iterator
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from phantom import written_atomically
 
 if TYPE_CHECKING:
     from phantom.model.fem.model import PhantomModel, State
+    from phantom.model.scene import Scene
 
 
 def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -25,7 +29,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
     mesh.add_argument("--scene", default="builtin:converged",
                       help="a scene TOML path, or 'builtin', 'builtin:calibrated', 'builtin:converged' (the default, "
                            "as for the other offline commands)")
-    mesh.add_argument("--out", required=True, help="output file (.msh or .vtu)")
+    mesh.add_argument("--out", required=True, help="output file: .msh or .vtu, or another of the formats a refused "
+                                                    "name lists")
     mesh.add_argument("--size-mm", type=float, default=None, help="element size of the built-in mesh (mm)")
     mesh.add_argument("--json", action="store_true", help="print one JSON object instead of a line")
     mesh.set_defaults(run=run_mesh)
@@ -97,12 +102,13 @@ def _single_threaded_blas() -> None:
 
 def run_mesh(args: argparse.Namespace) -> int:
     """Write the scene's mesh to ``--out``."""
-    from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size, output_file
+    from phantom.cli.common import MAX_MESH_BYTES, MESH_TOO_LARGE, check_input_size
     from phantom.model.errors import MeshError
     from phantom.model.mesh.prostate import builtin_prostate
     from phantom.model.mesh.tetmesh import read_mesh, write_mesh
     from phantom.model.scene import load_scene
 
+    out = _checked_out(args.out, MESH_FORMATS)
     scene = load_scene(args.scene)
     if scene.mesh == "builtin:prostate":
         mesh = builtin_prostate(args.size_mm, scene.geometry)
@@ -111,7 +117,8 @@ def run_mesh(args: argparse.Namespace) -> int:
     else:
         check_input_size(scene.mesh, MAX_MESH_BYTES, "the scene's mesh file", MeshError, MESH_TOO_LARGE)
         mesh = read_mesh(scene.mesh, scene.length_scale_m)
-    write_mesh(mesh, output_file(args.out), scene.length_scale_m)
+    with _folders_made_for(out) as made:
+        write_mesh(mesh, out, scene.length_scale_m)
     if args.json:
         import json
 
@@ -119,7 +126,7 @@ def run_mesh(args: argparse.Namespace) -> int:
                           "groups": list(mesh.surface_groups)}))
     else:
         print(f"wrote {args.out}: {mesh.n_nodes} nodes, {len(mesh.tets)} tetrahedra, groups "
-              f"{', '.join(mesh.surface_groups)}")
+              f"{', '.join(mesh.surface_groups)}{_made_note(made)}")
     return 0
 
 
@@ -135,14 +142,17 @@ def run_forward(args: argparse.Namespace) -> int:
     from phantom.model.scene import load_scene
 
     started = time.perf_counter()
+    out = _checked_out(args.out, VOLUME_FORMATS + SURFACE_FORMATS) if args.out else None
     scene = load_scene(args.scene)
     args.pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
     check_input_size(scene.mesh, MAX_MESH_BYTES, "the scene's mesh file", MeshError, MESH_TOO_LARGE)
     model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
     state = model.equilibrium([p * 1e3 for p in args.pressures_kpa], formulation=args.formulation)
     total_s = time.perf_counter() - started
-    if args.out:
-        _write_deformed(model, state, args.out, scene.length_scale_m)
+    made = None
+    if out:
+        with _folders_made_for(out) as made:
+            _write_deformed(model, state, out, scene.length_scale_m)
     rest_ml = model.rest_gland_volume_m3 * 1e6
     # how far the material compressed or swelled: det F per 4-node element, the dilatation per 10-node one
     volume_ratios = model.body.element_volume_ratios(state.positions_m)
@@ -176,7 +186,7 @@ def run_forward(args: argparse.Namespace) -> int:
           f"{state.iterations} Newton iterations, solve {state.solve_time_s:.3f} s, model total {total_s:.3f} s; "
           f"element volume ratios {volume_ratios.min():.4f} to {volume_ratios.max():.4f}")
     if args.out:
-        print(f"wrote the deformed mesh to {args.out}")
+        print(f"wrote the deformed mesh to {args.out}{_made_note(made)}")
     return 0
 
 
@@ -223,30 +233,116 @@ def run_table(args: argparse.Namespace) -> int:
     return 0
 
 
-#: Formats that hold triangles only: ``--out`` writes the deformed outer surface to them (a tetrahedral mesh's
-#: surface groups alone, the chamber walls and the fixation, would not describe the gland).
+#: Formats that hold triangles only: ``forward --out`` writes the deformed outer surface to them (a tetrahedral
+#: mesh's surface groups alone, the chamber walls and the fixation, would not describe the gland).
 SURFACE_FORMATS = (".stl", ".obj", ".ply", ".off")
+#: The formats ``--out`` writes a tetrahedral mesh to, 4- or 10-node, with its nodes: .msh by gmsh (MSH 4.1, named
+#: groups), the others by meshio (tests/test_model_cli_inputs.py writes and reads back each). The rest of meshio's
+#: drop 10-node elements (.mesh, .ugrid, .tec, .avs, .xml, .ele), need a library the package does not install
+#: (h5py, netCDF4: .xdmf, .med, .exo, .cgns, ...), hold no tetrahedra (.wkt, .svg) or fail (.su2, .f3grid, .gz).
+VOLUME_FORMATS = (".msh", ".vtu", ".vtk", ".inp", ".bdf", ".nas", ".fem", ".mdpa", ".vol", ".post", ".dato")
+#: What ``phantom mesh --out`` writes: the tetrahedral formats, and the triangle formats meshio writes a mesh's
+#: surface groups to (its tetrahedra dropped; .obj refuses a mesh with tetrahedra).
+MESH_FORMATS = (*VOLUME_FORMATS, ".stl", ".ply", ".off")
 
 
-def _write_deformed(model: PhantomModel, state: State, out: str, length_scale_m: float) -> None:
-    """The deformed mesh to ``out`` (its folder created when missing), coordinates in the scene's unit; the outer
-    surface only for a surface format."""
+def _checked_out(out: str, formats: tuple[str, ...], option: str = "--out") -> Path:
+    """``--out``, refused in one line before any work when its extension is not one of ``formats`` or it cannot be
+    written (a folder, a path under a file, a folder this user cannot write); its missing folders are made only
+    when it is written (:func:`_folders_made_for`)."""
+    from phantom.cli.common import check_output_file
+    from phantom.model.errors import MeshError
+
+    path = Path(out)
+    suffix = path.suffix.lower()
+    if suffix not in formats:
+        said = f"its extension {suffix!r} is not a format it writes" if suffix else "it has no extension"
+        surfaces = [suffix for suffix in formats if suffix not in VOLUME_FORMATS]
+        surface_words = ("its surface groups' triangles" if formats == MESH_FORMATS
+                         else "the deformed gland's outer surface")
+        raise MeshError(f"{option} {out}: {said}: end it with one of {', '.join(VOLUME_FORMATS)} (the tetrahedral "
+                        f"mesh with its groups) or {', '.join(surfaces)} ({surface_words})")
+    return check_output_file(path, option, f"deformed{formats[0]}", MeshError)
+
+
+@contextlib.contextmanager
+def _folders_made_for(path: Path) -> Iterator[Path | None]:
+    """The missing folders of ``path`` made for the ``with`` body that writes it (as model/README.md documents),
+    and removed again when it fails, so that a refused or failed write leaves no folder behind; yields the
+    topmost folder made (None when none was)."""
     from phantom.cli.common import output_file
+
+    missing = []
+    for folder in path.absolute().parents:
+        if folder.exists():
+            break
+        missing.append(folder)
+    try:
+        output_file(path)
+        yield missing[-1] if missing else None
+    except BaseException:
+        for folder in missing:  # the deepest first; a folder something else wrote into stays
+            try:
+                folder.rmdir()
+            except OSError:
+                break
+        raise
+
+
+def _made_note(made: Path | None) -> str:
+    return f" (made the folder {made})" if made else ""
+
+
+def _write_deformed(model: PhantomModel, state: State, path: Path, length_scale_m: float) -> None:
+    """The deformed mesh to ``path`` (its folder there), coordinates in the scene's unit; the outer surface only
+    for a surface format."""
     from phantom.model.errors import MeshError
     from phantom.model.mesh.tetmesh import write_mesh
 
-    path = output_file(out)
     if path.suffix.lower() in SURFACE_FORMATS:
         import meshio
 
         surface_nodes, triangles = model.outer_surface()
         surface = meshio.Mesh(state.positions_m[surface_nodes] / length_scale_m, [("triangle", triangles)])
         with written_atomically(path, MeshError) as temporary:
-            surface.write(temporary)
+            surface.write(temporary, file_format=meshio.extension_to_filetypes[path.suffix.lower()][0])
         return
     # each element's volume ratio (det F; a 10-node element's dilatation) travels with a meshio format
     write_mesh(model.deformed_mesh(state), path, length_scale_m,
                {"volume_ratio": model.body.element_volume_ratios(state.positions_m)})
+
+
+#: How a .npz file (a zip archive of .npy arrays, numpy.savez's) starts.
+NPZ_START = b"PK\x03\x04"
+
+
+def _check_named_files(scene: Scene) -> None:
+    """What ``scene check`` adds to the reader's checks before it says valid: the table files the scene names are
+    .npz files (the reader leaves their contents to the model that reads them, which refuses a bad one in its own
+    words), and its mesh file is there: a warning on stderr only, as a scene may be written before its mesh is
+    (tests/test_scene.py checks such a scene; every command that meshes refuses it)."""
+    import sys
+
+    from phantom.model.errors import SceneError
+
+    where = f"scene {scene.path}"
+    if scene.mesh != "builtin:prostate" and not Path(scene.mesh).is_file():
+        print(f"phantom scene: warning: {where}: [phantom] mesh names {scene.mesh}, which is not a file: every "
+              f"command that meshes the scene will refuse it; give a mesh file's path (taken from the scene's "
+              f"folder) or 'builtin:prostate'", file=sys.stderr)
+    settings = scene.model_settings
+    for key, file in (("table_volumes", settings.table_volumes), ("table_shapes", settings.table_shapes)):
+        if file is None:
+            continue
+        try:
+            with open(file, "rb") as opened:
+                start = opened.read(len(NPZ_START))
+        except OSError as error:
+            raise SceneError(f"{where}: [model] {key} names {file}, which cannot be read ({error.strerror}): make "
+                             f"it readable, or remove the key") from None
+        if start != NPZ_START:
+            raise SceneError(f"{where}: [model] {key} names {file}, which is not a .npz: name the one phantom model "
+                             f"table wrote (--out for table_volumes, --shapes-out for table_shapes), or remove the key")
 
 
 def run_scene_check(args: argparse.Namespace) -> int:
@@ -256,6 +352,7 @@ def run_scene_check(args: argparse.Namespace) -> int:
     from phantom.model.scene import load_scene, resolved_scene
 
     scene = load_scene(args.scene)
+    _check_named_files(scene)
     rows = resolved_scene(scene)
     if args.json:
         resolved: dict[str, dict[str, dict[str, object]]] = {}
