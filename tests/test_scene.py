@@ -286,17 +286,30 @@ def test_run_scene_names_a_misspelt_key_instead_of_another_phantom(tmp_path):
         prepare_scene(str(path), 1.0, ["chamber0", "chamber1", "chamber2"], {}, "running.toml")
 
 
-def test_scene_check_of_a_timeline_scene_says_which_commands_play_it(capsys):
+def test_scene_check_of_a_timeline_scene_checks_it_as_the_daemon_reads_it(capsys, tmp_path):
     """``phantom scene check host/scenes/bph_growth.toml`` said ``model must be a table ([model]), got
-    'builtin:converged'``: a timeline scene names its model; it is played, not checked as a model."""
+    'builtin:converged'``, then that a timeline scene is played, not checked: a trainer writing one had no way to
+    check it without a daemon. It is checked as ``run_scene`` reads it: its model, what it overrides, its steps
+    against the model's chambers."""
     from phantom.host.scenes import example_scene_path
 
     path = example_scene_path("bph_growth")
-    assert main(["scene", "check", str(path)]) == 2
-    error = capsys.readouterr().err.strip()
-    assert f"{path} is a timeline scene" in error and "model = 'builtin:converged'" in error
-    assert "phantom run-scene" in error and "phantom daemon --scene" in error
-    assert "model must be a table" not in error and len(error.splitlines()) == 1
+    assert main(["scene", "check", str(path)]) == 0
+    said = capsys.readouterr().out
+    assert f"scene {path}: valid, a timeline scene: 5 step(s) over 210 s on its model builtin:converged" in said
+    assert "it overrides outputs.shape = true" in said and "phantom run-scene" in said
+    assert main(["scene", "check", str(example_scene_path("lopsided")), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["steps"] == 4
+    for name, steps, words in (
+            ("nan", "[[steps]]\nat_s = 0\nvolume_ml = nan\n", "volume_ml"),
+            ("chamber", "[[steps]]\nat_s = 0\nchamber_volumes_ml = [1, 2]\n", "chamber_volumes_ml"),
+            ("order", "[[steps]]\nat_s = 5\nvolume_ml = 30\n[[steps]]\nat_s = 1\nvolume_ml = 32\n", "at_s"),
+            ("shape", '[[steps]]\nat_s = 0\nshape = "absent.stl"\n', "steps[0]'s shape")):
+        broken = tmp_path / f"{name}.toml"
+        broken.write_text('model = "builtin:converged"\n' + steps)
+        assert main(["scene", "check", str(broken)]) == 2, name
+        error = capsys.readouterr().err.strip()
+        assert str(broken) in error and words in error and len(error.splitlines()) == 1, error
 
 
 def test_steps_that_are_not_an_array_of_tables_are_refused_by_scene_check_and_run_scene(tmp_path):

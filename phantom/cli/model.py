@@ -65,7 +65,8 @@ def register(subparsers: argparse._SubParsersAction[argparse.ArgumentParser]) ->
         "check", help="check a scene and print every value it resolves to, and where each came from",
         description="Read a scene as the model does (an unknown or misspelt key, a value out of range: one line, "
                     "exit status 2) and print each value of its tables as the model uses it, marked 'file' where "
-                    "the file gives it and 'default' where it does not.")
+                    "the file gives it and 'default' where it does not. A timeline scene (model = \"...\" and "
+                    "[[steps]]) is checked as the daemon reads it: its model, what it overrides, its steps.")
     check.add_argument("scene", metavar="FILE", help="a scene TOML path, or 'builtin', 'builtin:calibrated', "
                                                      "'builtin:converged'")
     check.add_argument("--json", action="store_true", help="print one JSON object")
@@ -345,12 +346,54 @@ def _check_named_files(scene: Scene) -> None:
                              f"table wrote (--out for table_volumes, --shapes-out for table_shapes), or remove the key")
 
 
+def _check_timeline_scene(args: argparse.Namespace) -> int:
+    """A timeline scene checked as ``run_scene`` reads it, without a daemon: its model (and what the file overrides
+    of it), its steps against the model's chambers, its timeline; a shape step's file is solved when it runs, so
+    here it must only be there. Prints what it found (``--json``: as one object)."""
+    import json
+    from pathlib import Path
+
+    from phantom import read_text
+    from phantom.host.scene_runner import prepare_run
+    from phantom.host.scenes import check_step_count, read_timeline_scene, shape_steps, with_shape_pressures
+    from phantom.model.errors import SceneError
+    from phantom.model.scene import MAX_SCENE_BYTES
+
+    path = Path(args.scene)
+    check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), path)
+    timeline = read_timeline_scene(path)
+    scene = timeline.scene
+    shaped = shape_steps(scene.raw.get("steps"), path.parent)
+    for index, keys in shaped:
+        if not Path(str(keys["shape"])).is_file():
+            raise SceneError(f"{path}: steps[{index}]'s shape {keys['shape']} is not a file: give the path of a "
+                             "NIfTI mask or closed mesh (relative to the scene's folder)")
+    # a shape step is played as the pressures its shape inverse answers when the scene is run: any will do here
+    raw = with_shape_pressures(scene.raw, {index: [0.0] * len(scene.chambers) for index, _ in shaped})
+    prepared = prepare_run(raw, str(path), list(scene.chambers), 1.0, bool(scene.outputs.shape))
+    steps, end_s = len(prepared.timeline.steps), prepared.end_s
+    if args.json:
+        print(json.dumps({"scene": str(path), "timeline": True, "model": timeline.model,
+                          "overrides": timeline.overrides, "steps": steps, "shape_steps": len(shaped),
+                          "end_s": end_s}))
+        return 0
+    print(f"scene {path}: valid, a timeline scene: {steps} step(s) over {end_s:g} s on its model {timeline.model}"
+          + (f", {len(shaped)} of them shapes solved when it is run" if shaped else ""))
+    print(f"  it overrides {', '.join(timeline.overrides)}" if timeline.overrides else "  it overrides nothing")
+    print("  play it with phantom run-scene (a daemon on its model) or phantom daemon --scene; a target beyond "
+          "the phantom's range is refused when it is run")
+    return 0
+
+
 def run_scene_check(args: argparse.Namespace) -> int:
-    """Print the scene's resolved values and their sources."""
+    """Print the scene's resolved values and their sources; a timeline scene (one that names its model) is checked
+    as the daemon reads it (:func:`_check_timeline_scene`)."""
     import json
 
-    from phantom.model.scene import load_scene, resolved_scene
+    from phantom.model.scene import BUILTIN_SCENES, load_scene, read_scene_toml, resolved_scene
 
+    if args.scene not in BUILTIN_SCENES and isinstance(read_scene_toml(args.scene).get("model"), str):
+        return _check_timeline_scene(args)
     scene = load_scene(args.scene)
     _check_named_files(scene)
     rows = resolved_scene(scene)
