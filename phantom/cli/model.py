@@ -360,7 +360,7 @@ def _check_timeline_scene(args: argparse.Namespace) -> int:
     from phantom.model.scene import MAX_SCENE_BYTES
 
     path = Path(args.scene)
-    check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), path)
+    check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), str(path))
     timeline = read_timeline_scene(path)
     scene = timeline.scene
     shaped = shape_steps(scene.raw.get("steps"), path.parent)
