@@ -285,6 +285,16 @@ def _measured_volumes_of_the_test_only(tmp_path_factory: pytest.TempPathFactory,
     monkeypatch.setenv("PHANTOM_DATA_DIR", str(tmp_path_factory.mktemp("phantom-data")))
 
 
+@pytest.fixture
+def data_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A command line's data and cache folders in the test's own (a refusal builds no model, so a cold cache costs
+    nothing), run from that folder; the data folder. A module that needs the model's warm cache has its own."""
+    monkeypatch.setenv("PHANTOM_DATA_DIR", str(tmp_path / "data"))
+    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.chdir(tmp_path)
+    return tmp_path / "data"
+
+
 @pytest.fixture(autouse=True)
 def _no_long_collections_during_a_simulated_board(request: pytest.FixtureRequest) -> None:
     """Before a test that runs simavr: collect, then freeze what survives, so that no full garbage collection

@@ -28,14 +28,6 @@ def no_model(monkeypatch):
     monkeypatch.setattr(model_corrections, "model_grid", _unreached)
 
 
-@pytest.fixture
-def data_dir(tmp_path, monkeypatch):
-    monkeypatch.setenv("PHANTOM_DATA_DIR", str(tmp_path / "data"))
-    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.chdir(tmp_path)
-    return tmp_path / "data"
-
-
 def _refused(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
     assert main(argv) == 2
     lines = [line for line in capsys.readouterr().err.splitlines()

@@ -18,14 +18,6 @@ from phantom.model.measurements import CorrectionStore
 MEASUREMENTS = Path(__file__).resolve().parent.parent / "model" / "data" / "forward_measurements.csv"
 
 
-@pytest.fixture
-def data_dir(tmp_path, monkeypatch):
-    monkeypatch.setenv("PHANTOM_DATA_DIR", str(tmp_path / "data"))
-    monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.chdir(tmp_path)
-    return tmp_path / "data"
-
-
 def _stored(data_dir, name="default"):
     """A store of one measurement, written directly (no model is built)."""
     store = CorrectionStore.for_phantom(name)
