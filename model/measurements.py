@@ -155,11 +155,17 @@ def _check_chambers(entries: list[Measurement]) -> None:
                          f"per chamber; is it another phantom's?")
 
 
-def _volume_problem(volume: object) -> str | None:
-    """What is wrong with a measured volume (ml), None when it is a whole gland's (:data:`GLAND_VOLUME_RANGE_ML`)."""
+def is_gland_volume(volume: object) -> bool:
+    """Whether a measured volume (ml) is a whole gland's: a finite number within :data:`GLAND_VOLUME_RANGE_ML`."""
     low, high = GLAND_VOLUME_RANGE_ML
-    if is_finite_number(volume) and low <= volume <= high:
+    return is_finite_number(volume) and low <= volume <= high
+
+
+def _volume_problem(volume: object) -> str | None:
+    """What is wrong with a measured volume (ml), None when it is a whole gland's (:func:`is_gland_volume`)."""
+    if is_gland_volume(volume):
         return None
+    low, high = GLAND_VOLUME_RANGE_ML
     return (f"a measured volume must be a finite number of ml within a whole gland's, {low:g}-{high:g} ml "
             f"(volume_ml){unit_hint(volume)}")
 

@@ -197,13 +197,13 @@ def test_the_steps_the_daemon_found_unreachable_are_said_in_one_line():
     """A step the load's range check cannot judge (not a gland volume) and the daemon then found beyond the
     phantom's range: its record's ``unreachable`` says why; a step merely not yet settled (a scene played fast) is
     not a failure."""
-    from phantom.cli.client import not_reached
+    from phantom.cli.client import unreachable_steps
 
-    line = not_reached(DEFECT_STEPS)
+    line = unreachable_steps(DEFECT_STEPS)
     assert line is not None and "\n" not in line
     assert line == ("step 1 (at 20 s): target chambers 9, -, - ml is unreachable: base at 9 ml is beyond its "
                     "0.0-4.1 ml"), line
-    assert not_reached([DEFECT_STEPS[0], DEFECT_STEPS[2]]) is None
+    assert unreachable_steps([DEFECT_STEPS[0], DEFECT_STEPS[2]]) is None
 
 
 def cli_run_scene(monkeypatch, capsys, steps, *arguments):

@@ -49,7 +49,7 @@ from phantom.model.arrays import BoolArray, FloatArray
 from phantom.model.calibration.sweep import RayTask, RayTrace, cached_trace, run_sweep
 from phantom.model.errors import MeshError
 from phantom.model.fem.model import PhantomModel
-from phantom.model.measurements import unit_hint
+from phantom.model.measurements import is_gland_volume, unit_hint
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 from phantom.model.mesh.shape import check_walls
 from phantom.model.scene import (
@@ -185,8 +185,9 @@ def _measured_volume_ml(entry: str | None, folder: Path, scan_volume_ml: ScanVol
     text = (entry or "").strip()
     if Path(text).suffix.lower() not in SCAN_SUFFIXES:
         volume_ml = float(text)
-        low, high = GLAND_VOLUME_RANGE_ML  # the store's check of a measured volume (phantom corrections add)
-        if np.isfinite(volume_ml) and volume_ml > 0 and not low <= volume_ml <= high:  # <= 0, nan: the file's check
+        # the store's check of a measured volume (phantom corrections add); <= 0, nan: the file's own check
+        if np.isfinite(volume_ml) and volume_ml > 0 and not is_gland_volume(volume_ml):
+            low, high = GLAND_VOLUME_RANGE_ML
             raise CalibrationError(f"{where}: measured_ml must be a whole gland's volume, {low:g}-{high:g} ml"
                                    f"{unit_hint(volume_ml)}")
         return volume_ml

@@ -510,14 +510,14 @@ def _run_scene(args: argparse.Namespace) -> int:
         finished = daemon.follow_scene(started, on_progress=scene_progress(args.time_scale))
     steps = [dataclasses.asdict(step) for step in finished.steps]
     print(json.dumps(steps, indent=2) if args.json else format_steps(steps))
-    missed = not_reached(steps)
+    missed = unreachable_steps(steps)
     if missed:
         print(f"phantom run-scene: error: {missed}", file=sys.stderr)
         return 1
     return 0
 
 
-def not_reached(steps: list[dict[str, Any]]) -> str | None:
+def unreachable_steps(steps: list[dict[str, Any]]) -> str | None:
     """The steps of a finished scene (the status's step records) whose target, or a point of its ramp, the daemon
     found beyond the phantom's range (``unreachable``), in one line; None when there were none."""
     missed = [step for step in steps if step.get("unreachable")]

@@ -93,10 +93,9 @@ def _list(store: Any, args: argparse.Namespace) -> int:
 def _checked_add(args: argparse.Namespace) -> list[float]:
     """``add``'s numbers and scan file refused in the command line's terms (its flags) before any model is built
     (the store's own messages name its fields, for library callers): the pressures, as a list of kPa."""
-    import math
 
     from phantom.cli.common import check_input_size, parse_numbers
-    from phantom.model.measurements import MAX_CHAMBERS, MAX_PRESSURE_KPA, CorrectionError, unit_hint
+    from phantom.model.measurements import MAX_CHAMBERS, MAX_PRESSURE_KPA, CorrectionError, is_gland_volume, unit_hint
     from phantom.model.shape_file import GLAND_VOLUME_RANGE_ML
 
     pressures = parse_numbers(args.pressures_kpa, "--pressures-kpa")
@@ -104,8 +103,8 @@ def _checked_add(args: argparse.Namespace) -> list[float]:
         raise CorrectionError(f"--pressures-kpa takes the chamber pressures in kPa, each 0 or more (gauge: the "
                               f"blowers only push) and at most {MAX_PRESSURE_KPA:g}, one per chamber (at most "
                               f"{MAX_CHAMBERS}); got {args.pressures_kpa}")
-    low, high = GLAND_VOLUME_RANGE_ML
-    if not (math.isfinite(args.volume_ml) and low <= args.volume_ml <= high):
+    if not is_gland_volume(args.volume_ml):
+        low, high = GLAND_VOLUME_RANGE_ML
         raise CorrectionError(f"--volume-ml is the measured gland volume, a finite number of ml within a whole "
                               f"gland's, {low:g}-{high:g} ml{unit_hint(args.volume_ml)}")
     if args.scan_file is not None:

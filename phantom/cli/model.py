@@ -351,7 +351,6 @@ def _check_timeline_scene(args: argparse.Namespace) -> int:
     of it), its steps against the model's chambers, its timeline; a shape step's file is solved when it runs, so
     here it must only be there. Prints what it found (``--json``: as one object)."""
     import json
-    from pathlib import Path
 
     from phantom import read_text
     from phantom.host.scene_runner import prepare_run
