@@ -34,6 +34,7 @@ from phantom.model.scene import MAX_SCENE_BYTES, pressure_limit_error
 
 if TYPE_CHECKING:
     from phantom.host.daemon import Daemon
+    from phantom.model.scene import Scene
 
 PA_PER_KPA = 1e3
 #: How long clear_fault waits, once the board acknowledged it, for telemetry without the fault (s) ...
@@ -209,6 +210,15 @@ def scene_shapes(path: str) -> list[tuple[int, dict[str, Any]]]:
     return shape_steps(load_timeline_scene(path).raw.get("steps"), Path(path).parent)
 
 
+def prepare_scene_run(scene: Scene, name: str, chamber_names: list[str], time_scale: float,
+                      shape_pressures_kpa: dict[int, list[float]] | None = None) -> PreparedRun:
+    """A read scene's run (:func:`prepare_run`: its timeline checked against ``chamber_names``, named ``name``),
+    its shape steps played as the pressures ``shape_pressures_kpa`` their shape inverse answered (step index ->
+    kPa): what the daemon's :func:`prepare_scene` plays and ``phantom scene check`` checks."""
+    raw = with_shape_pressures(scene.raw, shape_pressures_kpa) if shape_pressures_kpa else scene.raw
+    return prepare_run(raw, name, chamber_names, time_scale, bool(scene.outputs.shape))
+
+
 def prepare_scene(path: str, time_scale: float, chamber_names: list[str], running_model: dict[str, Any],
                   running_scene: str, shape_pressures_kpa: dict[int, list[float]] | None = None) -> PreparedRun:
     """Read a scene file and check its timeline against the running model (off the event loop: reading and
@@ -223,8 +233,7 @@ def prepare_scene(path: str, time_scale: float, chamber_names: list[str], runnin
     if differing:
         raise SceneError(f"{path} describes another phantom than the running one (its [{'], ['.join(differing)}] "
                          f"differ from {running_scene}): restart the daemon with --scene {path}")
-    raw = with_shape_pressures(scene.raw, shape_pressures_kpa) if shape_pressures_kpa else scene.raw
-    return prepare_run(raw, str(path), chamber_names, time_scale, bool(scene.outputs.shape))
+    return prepare_scene_run(scene, path, chamber_names, time_scale, shape_pressures_kpa)
 
 
 class HeavyRequests:

@@ -461,15 +461,17 @@ class TimelineScene:
         return f"the scene {source} on its model {self.model}{said}"
 
 
-def read_timeline_scene(source: str | Path) -> TimelineScene:
+def read_timeline_scene(source: str | Path, raw: dict[str, Any] | None = None) -> TimelineScene:
     """Read a scene for the daemon: a built-in name, a whole scene file, or a timeline scene naming its model
-    (module docstring). Raises SceneError naming what is wrong."""
+    (module docstring); ``raw``: the file's TOML when it was already read (:func:`read_scene_toml`). Raises
+    SceneError naming what is wrong."""
     name = str(source)
     if name in BUILTIN_SCENES:
         path = builtin_scene_path(name)
         return TimelineScene(scene_from_dict(read_scene_toml(path), path), None, [])
     path = Path(name)
-    raw = read_scene_toml(path)
+    if raw is None:
+        raw = read_scene_toml(path)
     named = raw.get("model")
     if not isinstance(named, str):
         return TimelineScene(scene_from_dict(raw, path), None, [])

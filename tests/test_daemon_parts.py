@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from daemon_standins import CHAMBERS, DaemonStandIns, FakeClock, ModelInProcess, model_info
 
 from phantom import PhantomError
 from phantom.cli.common import output_file
@@ -20,16 +21,6 @@ from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
 from phantom.host.model_worker import _descendants
 from phantom.host.scene_runner import SceneRunner, prepare_run
 from phantom.model.errors import SceneError
-
-CHAMBERS = ["chamber0", "chamber1", "chamber2"]
-
-
-class FakeClock:
-    def __init__(self):
-        self.now_s = 100.0
-
-    def __call__(self):
-        return self.now_s
 
 
 def runner_with_events():
@@ -298,74 +289,22 @@ def test_a_daemon_told_to_simulate_without_a_board_factory_refuses_before_it_tak
 
 # --- the daemon's wiring, one layer, with stand-ins for the parts it is given ---------------------------------
 
-class PartsStandIn:
-    """Stand-ins for the daemon's parts (a unit test of the wiring alone; end to end they are real)."""
+class PartsStandIn(DaemonStandIns):
+    """Stand-ins for the daemon's parts (a unit test of the wiring alone; end to end they are real): a model whose
+    scene asks for shapes or not, a board that refuses ZERO_SENSORS with ``refuse_zero_with`` (its first
+    ``refusals`` tries; None: every one)."""
 
     def __init__(self, scene_shape: bool, refuse_zero_with: str | None = None, refusals: int | None = None):
-        from types import SimpleNamespace
+        super().__init__(model_info(26.1, "updated", "scene.toml", wants_shape=scene_shape))
+        self.refuse_zero_with, self.refusals = refuse_zero_with, refusals
 
-        from phantom.host.api import ApiServer
-        from phantom.host.model_worker import ModelInfo
+    def answer(self, name):
+        from phantom.host.session import CommandRejected
 
-        self.calls: list[tuple] = []
-        info = ModelInfo(CHAMBERS, ["base", "left lobe", "right lobe"], 26.1, {"total_s": 1.0}, "updated", {},
-                         "scene.toml", 3000.0, scene_shape, {})
-        parts = self
-
-        class Model:
-            restarts = 0
-
-            def __init__(self):
-                self.info = info
-
-            async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
-                from phantom.host.model_worker import Estimate
-
-                parts.calls.append(("estimate", with_surface))
-                surface = (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])) if with_surface else None
-                rest = surface if with_surface and with_rest_surface else None
-                return Estimate([2.0, 1.1, 1.1], 30.0, surface, {"shapes": sum(
-                    1 for call in parts.calls if call == ("estimate", True))}, rest)
-
-            async def surface_json(self, pressures_pa):
-                return '{"positions_mm": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "triangles": [[0, 1, 2]]}'
-
-            def correction_status(self):
-                return {"in_force": False, "correction": None}
-
-            def close(self):
-                pass
-
-        class Recorder:
-            def __getattr__(self, name):
-                return lambda *args, **kwargs: parts.calls.append((name, *args[:1]))
-
-        class Session:
-            online = True
-            transport = SimpleNamespace(description="stand-in", close=lambda: None)
-
-            async def command(self, name, fields=None):
-                from phantom.host.session import CommandRejected
-
-                parts.calls.append(("command", name))
-                zero_tries = sum(1 for call in parts.calls if call == ("command", "ZERO_SENSORS"))
-                if name == "ZERO_SENSORS" and refuse_zero_with and (refusals is None or zero_tries <= refusals):
-                    raise CommandRejected(name, refuse_zero_with)
-                return "OK"
-
-            def status(self):
-                return {"state": "online", "stats": {"rtt_ms": None, "retries": 0, "bad_frames": 0, "tx_dropped": 0,
-                                                     "commands_failed": 0}}
-
-        self.model, self.recorder, self.session = Model(), Recorder(), Session()
-        self.api = ApiServer("/nonexistent/never-started.sock", {})
-
-    def daemon(self, recording: bool, clock):
-        from phantom.host.config import DaemonConfig
-        from phantom.host.daemon import Daemon
-
-        config = DaemonConfig(sim=True, rerun_save="x.rrd" if recording else None, mesh_hz=2.0)
-        return Daemon(config, self.api, self.model, self.recorder, self.session, None, clock=clock)
+        zero_tries = self.commands.count("ZERO_SENSORS")
+        if name == "ZERO_SENSORS" and self.refuse_zero_with and (self.refusals is None or zero_tries <= self.refusals):
+            raise CommandRejected(name, self.refuse_zero_with)
+        return "OK"
 
 
 def frame(board_time_ms: int, kpa: float):
@@ -396,7 +335,7 @@ def test_a_shape_is_computed_and_logged_only_when_the_scene_asks_and_something_r
     import asyncio
 
     parts, clock = PartsStandIn(scene_shape), FakeClock()
-    daemon = parts.daemon(recording, clock)
+    daemon = parts.daemon(clock, rerun_save="x.rrd" if recording else None, mesh_hz=2.0)
     asyncio.run(run_control(daemon, clock, 10.0))
     shapes_asked = sum(1 for call in parts.calls if call == ("estimate", True))
     logged = [call for call in parts.calls if call[0] in ("log_mesh", "log_rest_surface")]
@@ -418,7 +357,7 @@ def test_a_refused_zero_says_why(status, reason):
     from phantom.host.api import ApiError
 
     parts = PartsStandIn(False, refuse_zero_with=status)
-    daemon = parts.daemon(False, FakeClock())
+    daemon = parts.daemon()
     with pytest.raises(ApiError, match=f"{status}.*{reason}") as refused:
         asyncio.run(daemon.zero.sensors())
     assert refused.value.code == "rejected"
@@ -433,7 +372,7 @@ def test_after_connecting_a_board_not_yet_settled_is_asked_again_until_the_limit
     monkeypatch.setattr(zeroing, "ZERO_RETRY_S", 0.01)
     monkeypatch.setattr(zeroing, "ZERO_SETTLE_LIMIT_S", 0.4)
     parts = PartsStandIn(False, refuse_zero_with="NOT_SETTLED", refusals=refusals)
-    daemon = parts.daemon(False, FakeClock())
+    daemon = parts.daemon()
     asyncio.run(daemon.zero.after_connecting())
     tries = sum(1 for call in parts.calls if call == ("command", "ZERO_SENSORS"))
     texts = [event["text"] for event in daemon.events]
@@ -453,7 +392,7 @@ def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(cap
     from phantom.host import service
 
     parts = PartsStandIn(False)
-    daemon = parts.daemon(False, FakeClock())
+    daemon = parts.daemon()
 
     async def broken():
         raise RuntimeError("the link task broke")
@@ -475,33 +414,6 @@ def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(cap
     assert record.exc_info and "the link task broke" in str(record.exc_info[1])
 
 
-class ModelInProcess:
-    """The model worker's own functions, called in this process (the worker's answers without its process)."""
-
-    restarts = 0
-
-    def __init__(self, scene):
-        from phantom.host import model_worker
-
-        self.worker = model_worker
-        self.info = model_worker._worker_start(scene)
-
-    async def pressures_for(self, target):
-        return self.worker._worker_pressures_for(target)
-
-    async def pressures_on_ramp(self, start, end, target):
-        return self.worker._worker_pressures_on_ramp(start, end, target)
-
-    async def estimate(self, pressures_pa, with_surface=False, with_rest_surface=False):
-        return self.worker._worker_estimate(pressures_pa, with_surface, with_rest_surface)
-
-    def correction_status(self):
-        return {"in_force": False, "correction": None}
-
-    def close(self):
-        pass
-
-
 @pytest.mark.slow
 def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer(calibrated_response_table):
     """Each point of a 30 -> 35 ml ramp solved on its own gave chamber 0 setpoints that jumped by up to +0.16 and
@@ -512,7 +424,7 @@ def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer
 
     parts, clock = PartsStandIn(False), FakeClock()
     parts.model = ModelInProcess("builtin:calibrated")
-    daemon = parts.daemon(False, clock)
+    daemon = parts.daemon(clock)
     sent = []
 
     async def command(name, fields=None):
@@ -651,7 +563,7 @@ def test_the_table_builds_progress_is_logged_at_once_and_then_every_report_perio
     from phantom.host.startup import BUILD_REPORT_S
 
     parts, clock = PartsStandIn(False), FakeClock()
-    daemon = parts.daemon(False, clock)
+    daemon = parts.daemon(clock)
     daemon.table.build = SimpleNamespace(finished=False,
                                          text=lambda: f"response table solves: {daemon.now_s():.1f} s so far")
     with caplog.at_level(logging.INFO, logger="phantom.host.startup"):
@@ -684,7 +596,7 @@ def test_a_reconnection_lets_the_boards_first_frame_say_whether_a_reached_target
 
     monkeypatch.setattr(daemon_module, "FIRST_FRAME_WAIT_S", 0.2)
     parts, clock = PartsStandIn(False), FakeClock()
-    daemon = parts.daemon(False, clock)
+    daemon = parts.daemon(clock)
     core, held_kpa = daemon.core, HELD_PA / 1e3
     core.board(clock.now_s, True)
     hold(core, clock.now_s, volume(32.0))

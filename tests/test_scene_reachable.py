@@ -18,6 +18,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
+from daemon_standins import DaemonStandIns, ModelInProcess, StandInModel, model_info
 
 from phantom.host.api import ApiError
 from phantom.host.scenes import example_scene_path, load_timeline_scene
@@ -25,7 +26,6 @@ from phantom.model.target import UnreachableTargetError
 
 REPO = Path(__file__).resolve().parent.parent
 PHANTOM = Path(sys.executable).with_name("phantom")
-CHAMBERS = ["chamber0", "chamber1", "chamber2"]
 #: The range the converged model's unreachable answers state (host/README.md: "give 26.296 to 51.581 ml").
 RANGE_ML = (26.296, 51.581)
 
@@ -45,68 +45,37 @@ def scene_file(path: Path, steps: list[str], end_s: float) -> Path:
     return path
 
 
-class StandIns:
-    """The daemon's parts as stand-ins: a model whose inverse refuses gland volumes beyond :data:`RANGE_ML` with
-    that range (as the worker's does) and counts what it is asked, a board that records its commands."""
+class RangeModel(StandInModel):
+    """A model whose inverse refuses gland volumes beyond :data:`RANGE_ML` with that range (as the worker's does)
+    and notes each volume it is asked in the stand-ins' ``asked``."""
+
+    async def pressures_for(self, target):
+        volume_ml = target.gland_volume_m3 * 1e6
+        self.parts.asked.append(volume_ml)
+        if not RANGE_ML[0] <= volume_ml <= RANGE_ML[1]:
+            raise UnreachableTargetError(f"the gland volume target {volume_ml:.3f} ml is unreachable: "
+                                         f"pressures between 0 and [3, 3, 3] kPa give {RANGE_ML[0]} to "
+                                         f"{RANGE_ML[1]} ml", RANGE_ML)
+        return SimpleNamespace(target=target)
+
+
+class StandIns(DaemonStandIns):
+    """The daemon's parts as stand-ins on the model of ``scene``: the model a :class:`RangeModel`, the board
+    noting its commands (``commands``)."""
+
+    model_type = RangeModel
 
     def __init__(self, scene: Path):
-        from phantom.host.api import ApiServer
-        from phantom.host.model_worker import ModelInfo
         from phantom.host.scenes import effective_model
 
         self.asked: list[float] = []
-        self.commands: list[str] = []
-        info = ModelInfo(CHAMBERS, ["base", "left lobe", "right lobe"], RANGE_ML[0], {"total_s": 1.0}, "table", {},
-                         "builtin:converged", 3000.0, False, effective_model(load_timeline_scene(scene)))
-        parts = self
-
-        class Model:
-            restarts = 0
-
-            def __init__(self):
-                self.info = info
-
-            async def pressures_for(self, target):
-                volume_ml = target.gland_volume_m3 * 1e6
-                parts.asked.append(volume_ml)
-                if not RANGE_ML[0] <= volume_ml <= RANGE_ML[1]:
-                    raise UnreachableTargetError(f"the gland volume target {volume_ml:.3f} ml is unreachable: "
-                                                 f"pressures between 0 and [3, 3, 3] kPa give {RANGE_ML[0]} to "
-                                                 f"{RANGE_ML[1]} ml", RANGE_ML)
-                return SimpleNamespace(target=target)
-
-            def correction_status(self):
-                return {"in_force": False, "correction": None}
-
-            def close(self):
-                pass
-
-        class Recorder:
-            def __getattr__(self, name):
-                return lambda *args, **kwargs: None
-
-        class Session:
-            online = True
-            transport = SimpleNamespace(description="stand-in", close=lambda: None)
-
-            async def command(self, name, fields=None):
-                parts.commands.append(name)
-                return "OK"
-
-            def status(self):
-                return {"state": "online", "stats": {"rtt_ms": None, "retries": 0, "bad_frames": 0, "tx_dropped": 0,
-                                                     "commands_failed": 0}}
-
-        self.model, self.recorder, self.session = Model(), Recorder(), Session()
-        self.api = ApiServer("/nonexistent/never-started.sock", {})
+        super().__init__(model_info(RANGE_ML[0], "table", "builtin:converged",
+                                    effective_model=effective_model(load_timeline_scene(scene))))
 
     def handlers(self):
-        from phantom.host.config import DaemonConfig
-        from phantom.host.daemon import Daemon
         from phantom.host.handlers import ApiHandlers
 
-        daemon = Daemon(DaemonConfig(sim=True), self.api, self.model, self.recorder, self.session, None,
-                        clock=lambda: 100.0)
+        daemon = self.daemon()
         return daemon, ApiHandlers(daemon)
 
 
@@ -257,24 +226,7 @@ def test_the_refusal_states_the_range_the_model_worker_answers_a_set_with(tmp_pa
 
     scene = bph_with(tmp_path / "h_vol.toml", "volume_ml = 30", "volume_ml = 3000")
     parts = StandIns(scene)
-    info = model_worker._worker_start("builtin:converged")
-
-    class Model:
-        restarts = 0
-
-        def __init__(self):
-            self.info = info
-
-        async def pressures_for(self, target):
-            return model_worker._worker_pressures_for(target)
-
-        def correction_status(self):
-            return {"in_force": False, "correction": None}
-
-        def close(self):
-            pass
-
-    parts.model = Model()
+    parts.model = ModelInProcess("builtin:converged")
     daemon, handlers = parts.handlers()
     with pytest.raises(UnreachableTargetError) as set_error:
         model_worker._worker_pressures_for(Target(gland_volume_m3=3000e-6))

@@ -11,7 +11,7 @@ import contextlib
 import os
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from phantom import written_atomically
 
@@ -346,21 +346,19 @@ def _check_named_files(scene: Scene) -> None:
                              f"table wrote (--out for table_volumes, --shapes-out for table_shapes), or remove the key")
 
 
-def _check_timeline_scene(args: argparse.Namespace) -> int:
-    """A timeline scene checked as ``run_scene`` reads it, without a daemon: its model (and what the file overrides
-    of it), its steps against the model's chambers, its timeline; a shape step's file is solved when it runs, so
-    here it must only be there. Prints what it found (``--json``: as one object)."""
+def _check_timeline_scene(args: argparse.Namespace, raw: dict[str, Any]) -> int:
+    """A timeline scene (``raw``: its file's TOML) checked as ``run_scene`` reads it, without a daemon: its model
+    (and what the file overrides of it), its steps against the model's chambers, its timeline; a shape step's file
+    is solved when it runs, so here it must only be there. Prints what it found (``--json``: as one object)."""
     import json
 
-    from phantom import read_text
-    from phantom.host.scene_runner import prepare_run
-    from phantom.host.scenes import check_step_count, read_timeline_scene, shape_steps, with_shape_pressures
+    from phantom.host.handlers import prepare_scene_run
+    from phantom.host.scenes import read_timeline_scene, shape_steps
     from phantom.model.errors import SceneError
-    from phantom.model.scene import MAX_SCENE_BYTES
 
     path = Path(args.scene)
-    check_step_count(read_text(path, MAX_SCENE_BYTES, "the scene file", SceneError), str(path))
-    timeline = read_timeline_scene(path)
+    # (the daemon counts a file's steps before it parses it; here it is parsed: its timeline's check counts them)
+    timeline = read_timeline_scene(path, raw)
     scene = timeline.scene
     shaped = shape_steps(scene.raw.get("steps"), path.parent)
     for index, keys in shaped:
@@ -368,8 +366,8 @@ def _check_timeline_scene(args: argparse.Namespace) -> int:
             raise SceneError(f"{path}: steps[{index}]'s shape {keys['shape']} is not a file: give the path of a "
                              "NIfTI mask or closed mesh (relative to the scene's folder)")
     # a shape step is played as the pressures its shape inverse answers when the scene is run: any will do here
-    raw = with_shape_pressures(scene.raw, {index: [0.0] * len(scene.chambers) for index, _ in shaped})
-    prepared = prepare_run(raw, str(path), list(scene.chambers), 1.0, bool(scene.outputs.shape))
+    prepared = prepare_scene_run(scene, str(path), list(scene.chambers), 1.0,
+                                 {index: [0.0] * len(scene.chambers) for index, _ in shaped})
     steps, end_s = len(prepared.timeline.steps), prepared.end_s
     if args.json:
         print(json.dumps({"scene": str(path), "timeline": True, "model": timeline.model,
@@ -389,11 +387,15 @@ def run_scene_check(args: argparse.Namespace) -> int:
     as the daemon reads it (:func:`_check_timeline_scene`)."""
     import json
 
-    from phantom.model.scene import BUILTIN_SCENES, load_scene, read_scene_toml, resolved_scene
+    from phantom.model.scene import BUILTIN_SCENES, load_scene, read_scene_toml, resolved_scene, scene_from_dict
 
-    if args.scene not in BUILTIN_SCENES and isinstance(read_scene_toml(args.scene).get("model"), str):
-        return _check_timeline_scene(args)
-    scene = load_scene(args.scene)
+    if args.scene in BUILTIN_SCENES:
+        scene = load_scene(args.scene)
+    else:
+        raw = read_scene_toml(args.scene)
+        if isinstance(raw.get("model"), str):
+            return _check_timeline_scene(args, raw)
+        scene = scene_from_dict(raw, Path(args.scene))
     _check_named_files(scene)
     rows = resolved_scene(scene)
     if args.json:
