@@ -21,13 +21,14 @@ from phantom import PhantomError, require_extra
 from phantom.hil.link import BoardLink, LinkError, Received
 from phantom.hil.sim import SimulatedBoard
 from phantom.protocol.codec import Message
-from phantom.protocol.link import fault_names
+from phantom.protocol.link import board_host_deadline_ms, fault_names
 from phantom.protocol.messages import BITS, CONSTANTS, ENUMS, PROTOCOL_VERSION, SPEC_HASH
 from phantom.protocol.sensor import ADC_COUNT_KPA
 
 #: Telemetry period for the checks (ms): the finest the protocol allows, for the step's time resolution.
 TELEMETRY_PERIOD_MS = CONSTANTS["MIN_TELEMETRY_PERIOD_MS"]
-#: Dead-host deadline the checks configure (ms): the firmware's default.
+#: Dead-host deadline the checks configure (ms of wall clock): the firmware's default, which is a real board's;
+#: a simulated board at another speed gets the deadline that gives its host as long (:func:`host_deadline_s`).
 HOST_DEADLINE_MS = CONSTANTS["DEFAULT_HOST_DEADLINE_MS"]
 #: Stated time within which the blowers must stop after each fault (s), and why:
 STOP_LIMITS_S = {
@@ -42,15 +43,30 @@ STOP_LIMITS_S = {
     # is 0.08 s. The limit leaves a quarter of that fill for a real chamber's (a firmware that missed the latch
     # would let the blower run on for ever)
     "stuck_blower": 2.5,
-    # from the host's last byte: the deadline, counted from the tick that saw the last frame (up to one tick
-    # later) and compared strictly (one more tick), then the drive update after that tick (under one tick)
-    "silent_host": HOST_DEADLINE_MS / 1000 + 0.006,
     # from the step to 1.5 kPa with the severe leak already there: the blower runs at its ceiling from the first
     # tick, the chamber rises (the reading responds) but stays far below its setpoint, so the firmware's 2 s at
     # the ceiling, then one tick; 0.05 s of margin for the command's way to the board. (A severe leak that opens
     # under a held pressure is the plausibility rule's: the reading falls and never rises, see tube_off.)
     "leak": CONSTANTS["LEAK_TIME_MS"] / 1e3 + 0.05,
 }
+#: A silent host's stop limit from its last byte, past the session's deadline (:func:`host_deadline_s`): that
+#: deadline counted from the tick that saw the last frame (up to one tick later) and compared strictly (one more
+#: tick), then the drive update after that tick (under one tick).
+SILENT_HOST_LATE_S = 0.006
+
+
+def host_deadline_s(link: BoardLink) -> float:
+    """The dead-host deadline :func:`start_session` gives the board on ``link`` (s of the board's clock): the
+    checks' :data:`HOST_DEADLINE_MS` of wall clock at the link's speed."""
+    return board_host_deadline_ms(HOST_DEADLINE_MS, link.time_scale) / 1e3
+
+
+def stop_limit_s(fault: str, link: BoardLink) -> float:
+    """How long ``fault`` may take to stop the blowers on ``link``'s board (s of its clock): :data:`STOP_LIMITS_S`,
+    a silent host's from its session's deadline."""
+    return host_deadline_s(link) + SILENT_HOST_LATE_S if fault == "silent_host" else STOP_LIMITS_S[fault]
+
+
 #: The firmware's leak rule (protocol/spec.toml's constants, PROTOCOL.md section 7): LEAK_n latches when the
 #: blower sits at its ceiling while the chamber reads more than this far below its setpoint (kPa) ...
 LEAK_MIN_ERROR_KPA = CONSTANTS["LEAK_MIN_ERROR_PA"] / 1e3
@@ -154,7 +170,8 @@ def step_metrics(times_s: ArrayLike, pressures_kpa: ArrayLike, target_kpa: float
 def start_session(link: BoardLink, telemetry_period_ms: int = TELEMETRY_PERIOD_MS) -> dict[str, Any]:
     """HELLO, configure telemetry and the deadline, start the keepalive, clear a latched fault if any."""
     reply = link.hello()
-    link.command("SET_CONFIG", {"telemetry_period_ms": telemetry_period_ms, "host_deadline_ms": HOST_DEADLINE_MS})
+    link.command("SET_CONFIG", {"telemetry_period_ms": telemetry_period_ms,
+                                "host_deadline_ms": round(host_deadline_s(link) * 1e3)})
     link.keepalive(True)
     if reply.fields["fault_flags"]:
         link.command("CLEAR_FAULT", accept_nack=True)
@@ -391,7 +408,8 @@ def check_fault(link: BoardLink, board: SimulatedBoard | None, fault: str,
         _regulate(link, 1.5, 1.5)
         start = link.mark()
         injected_s = board.inject(fault, chamber=chamber)
-    got = wait_on_board_clock(link, lambda m: m.name == "FAULT", max(3.0, 1.0 + STOP_LIMITS_S[fault]), start)
+    got = wait_on_board_clock(link, lambda m: m.name == "FAULT", max(3.0, 1.0 + stop_limit_s(fault, link)),
+                              start)
     result: dict[str, Any] = {"fault": fault, "chamber": chamber}
     if board is not None:
         state = board.plant_state()
@@ -423,9 +441,9 @@ def check_fault(link: BoardLink, board: SimulatedBoard | None, fault: str,
         "silent_host": "DEAD_HOST",
     }[fault]
     result["expected"] = expected
-    result["limit_s"] = STOP_LIMITS_S[fault]
+    result["limit_s"] = stop_limit_s(fault, link)
     stop = result.get("stop_time_s")
-    result["passed"] = result["latched"] == expected and stop is not None and stop <= STOP_LIMITS_S[fault]
+    result["passed"] = result["latched"] == expected and stop is not None and stop <= result["limit_s"]
     if board is not None:
         _recover(link, board)
     else:

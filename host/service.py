@@ -37,8 +37,7 @@ from phantom.host.startup import StartupProgress, notify_systemd
 from phantom.host.transports import CanTransport, SerialTransport
 from phantom.host.web import WebServer, panel_tokens, tell_panel_address
 from phantom.model.errors import SceneError
-from phantom.protocol.link import BOOT_DELAY_S
-from phantom.protocol.messages import CONSTANTS
+from phantom.protocol.link import BOOT_DELAY_S, board_host_deadline_ms
 
 logger = logging.getLogger(__name__)
 
@@ -186,10 +185,9 @@ def link_timing(config: DaemonConfig, boot_delay_s: float) -> LinkTiming:
     # board time it was half of it at --sim-speed 2, and a verified target's scan, reconstructed in a thread of
     # the daemon's process while the tests loaded both cores, held the link (then a thread) past it (DEAD_HOST)
     speed = (config.sim_speed or 10.0) if config.sim else 1.0
-    host_deadline_ms = max(CONSTANTS["MIN_HOST_DEADLINE_MS"],
-                           min(CONSTANTS["MAX_HOST_DEADLINE_MS"], round(config.host_deadline_ms * speed)))
     return LinkTiming(keepalive_s=min(0.1, 0.1 / speed), hello_timeout_s=min(0.2, 0.2 / speed),
-                      telemetry_period_ms=config.telemetry_period_ms, host_deadline_ms=host_deadline_ms,
+                      telemetry_period_ms=config.telemetry_period_ms,
+                      host_deadline_ms=board_host_deadline_ms(config.host_deadline_ms, speed),
                       boot_delay_s=boot_delay_s)
 
 

@@ -23,6 +23,7 @@ from typing import Any
 from phantom.protocol.codec import FrameReader, Message, check_hello_reply, encode
 from phantom.protocol.errors import ProtocolError
 from phantom.protocol.messages import (
+    CONSTANTS,
     MESSAGES,
     PROTOCOL_VERSION,
     SPEC_HASH,
@@ -65,6 +66,14 @@ def fault_names(fault_flags: int) -> list[str]:
     """The names of the set bits of a fault bit set (``bits.fault`` in the spec), low bit first."""
     known = {flag.value: flag.name for flag in Fault}
     return [known.get(1 << bit) or f"BIT{bit}" for bit in range(16) if fault_flags >> bit & 1]
+
+
+def board_host_deadline_ms(wall_ms: float, speed: float) -> int:
+    """The dead-host deadline (ms of the board's clock, for SET_CONFIG) that leaves a host ``wall_ms`` of wall clock
+    on a board running ``speed`` times real time (1: a real board), within what the board accepts. A host's stalls
+    are wall-clock ones, whatever the board's speed: at twice real time the firmware's 500 ms were 250 ms of wall
+    clock, which a test's link thread beside busy cores missed (DEAD_HOST)."""
+    return max(CONSTANTS["MIN_HOST_DEADLINE_MS"], min(CONSTANTS["MAX_HOST_DEADLINE_MS"], round(wall_ms * speed)))
 
 
 @dataclass(frozen=True)
