@@ -48,7 +48,10 @@ fi
 if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
     echo "bootstrap: installing the project and every extra into .venv (one to two minutes the first time)"
     log=.venv/install.log
-    if ! { .venv/bin/python -m pip install -q --upgrade pip && .venv/bin/python -m pip install -q -e ".[all,test]"; } \
+    # --no-compile: pip byte-compiles every module it installs (a third of the install's time, 54 against 37 s
+    # here); Python compiles the few a command imports on first use instead, in a fraction of a second.
+    if ! { .venv/bin/python -m pip install -q --upgrade pip \
+           && .venv/bin/python -m pip install -q --no-compile -e ".[all,test]"; } \
         >"$log" 2>&1; then
         cat "$log" >&2
         echo "bootstrap: pip failed (output above, also in $log)" >&2
