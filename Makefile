@@ -16,7 +16,7 @@ setup:
 # The daemon drives the simulated phantom (the firmware image in simavr) through the BPH growth scene.
 demo: setup
 	$(MAKE) -C firmware
-	$(PY) -m phantom.cli.demo --scene host/scenes/bph_growth.toml --time-scale 3 --out out
+	$(PY) -m phantom.cli.demo --scene host/scenes/bph_growth.toml --time-scale 4 --out out
 
 # The Debian packages first (the firmware's compilers among them); then the Python environment's install beside
 # the firmware's builds and tests; then the checks that need the environment side by side (each is one process),

@@ -39,7 +39,7 @@ def test_the_viewer_command_is_plain_rerun_when_path_finds_this_environments(mon
 
 
 @pytest.mark.sim
-@pytest.mark.slow  # the daemon on the simulated board plays make demo's BPH scene, at x6 (make demo: x3), 45 s
+@pytest.mark.slow  # the daemon on the simulated board plays make demo's BPH scene, at x6 (make demo: x4), 45 s
 def test_the_demo_prints_the_true_error_and_writes_its_report(tmp_path, capsys):
     """What `make demo` promises: the table's true volume and its error against each target with their mean, read
     from what the simulated plant reported (not hard-coded), and the recording's HTML report beside it."""

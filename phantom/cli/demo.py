@@ -18,7 +18,7 @@ a failed demo leaves the last good recording alone, and says which part failed (
 the scene) with the daemon's log. Nothing waits on a fixed wall-clock limit while the daemon makes progress;
 one stage of its start that takes longer than STAGE_LIMIT_S is reported as stuck.
 
-    python -m phantom.cli.demo [--scene host/scenes/bph_growth.toml] [--time-scale 3] [--out out/]
+    python -m phantom.cli.demo [--scene host/scenes/bph_growth.toml] [--time-scale 4] [--out out/]
 """
 
 from __future__ import annotations
@@ -257,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
 
     parser = argparse.ArgumentParser(prog="python -m phantom.cli.demo", description=__doc__.splitlines()[0])
     parser.add_argument("--scene", default=str(example_scene_path("bph_growth")))
-    parser.add_argument("--time-scale", type=float, default=3.0, help="play the timeline this much faster")
+    parser.add_argument("--time-scale", type=float, default=4.0, help="play the timeline this much faster")
     parser.add_argument("--out", default="out", help="folder for the recording, socket and log")
     parser.add_argument("--no-verify", dest="verify", action="store_false",
                         help="leave out the scans that verify each step's volume")
