@@ -50,7 +50,7 @@ from phantom.host.session import (
     fault_names,
 )
 from phantom.host.sim_board import SimulatedBoardKeeper
-from phantom.host.stalls import LoopStalls
+from phantom.host.stalls import LoopStalls, said_stalls
 from phantom.host.startup import BackgroundTable, StartupProgress, notify_systemd
 from phantom.host.status import daemon_status
 from phantom.host.web import WebServer
@@ -95,6 +95,11 @@ RIG_REST_WAIT_S = 30.0
 #: How long a verification's outcome waits for its last scan to be stored before it is told anyway (s): a store
 #: is a fit of the correction, under a second for 200 measurements (bench/correction_fit.py).
 STORED_WAIT_S = 30.0
+#: How far back the link loop's stalls are told when DEAD_HOST latches (s): the deadline (500 ms) and the
+#: telemetry that brings the fault to the daemon, with room; told this long after the fault (s), once the link's
+#: process has measured a stall it was in and sent its status (every 0.2 s).
+DEAD_HOST_LOOKBACK_S = 3.0
+DEAD_HOST_TOLD_AFTER_S = 1.0
 #: How long a reconnection waits for the board's first frame before it sends a reached target's setpoints again
 #: (s): the frame says whether the board kept them (a link briefly lost) or lost them (it restarted), which the
 #: setpoints sent again would hide. Telemetry streams every 20 ms from the handshake on.
@@ -532,6 +537,23 @@ class Daemon:
         self.recorder.log_event(self.now_s(), text, level)
         self.api.publish("events", entry)
         logger.log(LEVELS.get(level, logging.INFO), "%s", text)
+        if kind == "fault" and text.startswith("fault latched: DEAD_HOST"):  # the board's FAULT frame (session)
+            self.spawn(self._say_what_came_before_dead_host())
+
+    async def _say_what_came_before_dead_host(self) -> None:
+        """DEAD_HOST latched: say what the link's loop did in the seconds before (its notable stalls) and, on a
+        simulated board, what the board heard of it. A hung daemon says so itself (the link process withholds the
+        keepalive); this tells a link loop that stalled from a line or a machine that did."""
+        # the link's status a moment later: the loop that was stalled has measured its stall by then, and has sent it
+        await asyncio.sleep(DEAD_HOST_TOLD_AFTER_S)
+        loop = self.session.status().get("event_loop")
+        if loop is not None:
+            stalls = said_stalls(loop["notable_stalls"], DEAD_HOST_LOOKBACK_S + DEAD_HOST_TOLD_AFTER_S)
+            self.event("link", f"before DEAD_HOST, the link's loop: {stalls}", "WARN")
+        if self.sim_board is not None:
+            said = await asyncio.get_running_loop().run_in_executor(None, self.sim_board.gaps_said)
+            if said is not None:
+                self.event("sim", f"before DEAD_HOST, {said}", "WARN")
 
     def on_telemetry(self, telemetry: Telemetry) -> None:
         """Keep the latest frame and the estimation window; the core sees a restart (the board's clock went back

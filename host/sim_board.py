@@ -102,6 +102,24 @@ class SimulatedBoardKeeper:
         self.plant_volume_ml = plant_volume_ml(state)
         return True
 
+    def gaps_said(self) -> str | None:
+        """What the simulated board heard of its host lately, in words (blocking): the last gap in the host's bytes
+        over a quarter second of its time and how the simulator ran meanwhile; None when it does not answer."""
+        if self.board is None:
+            return None
+        try:
+            state = self.board.plant_state()
+        except Exception:  # the simulator is gone: watch() says so
+            return None
+        running = f"the simulator running at {state.get('scheduling', 'an unknown priority')}"
+        gaps = state.get("host_gaps") or []
+        if not gaps:
+            return f"the simulated board saw no gap over 0.25 s of its time in the host's bytes ({running})"
+        _, board_s, gap_s, given_up_s, queued = gaps[-1]
+        return (f"the simulated board's last gap in the host's bytes: {gap_s:.3f} s of its time, ending at "
+                f"{board_s:.3f} s; meanwhile the simulator gave up {given_up_s:.3f} s of wall clock (its own stalls) "
+                f"and {queued} byte(s) waited for its UART ({running})")
+
     async def watch(self) -> None:
         """Poll the plant; restart the simulator when it died (runs until cancelled)."""
         loop = asyncio.get_running_loop()

@@ -166,6 +166,24 @@ class BlockSampler:
         self._stop.set()
 
 
+def said_stalls(notable_stalls: list[list[Any]], within_s: float) -> str:
+    """A loop's ``notable_stalls`` (its status's: how long ago (s), how late (ms), then what it was made of) of the
+    last ``within_s`` seconds in words: how many, and the longest with its parts."""
+    recent = [stall for stall in notable_stalls if stall[0] <= within_s]
+    if not recent:
+        return f"no stall over {NOTABLE_STALL_MS:g} ms in the last {within_s:g} s: it ran on time"
+    ago_s, late_ms, queued_ms, gc_ms, ran_ms, page_faults, stolen, blocked_in = max(recent, key=lambda s: s[1])
+    parts = [f"{label} {value:g} ms" for label, value in (("ran", ran_ms), ("waited for a core", queued_ms),
+                                                          ("in the garbage collector", gc_ms),
+                                                          ("stolen by the hypervisor", stolen)) if value is not None]
+    if page_faults:
+        parts.append(f"{page_faults:g} page faults")
+    if blocked_in:
+        parts.append(f"blocked in {blocked_in}")
+    return (f"{len(recent)} stall(s) over {NOTABLE_STALL_MS:g} ms in the last {within_s:g} s, the longest "
+            f"{late_ms:g} ms {ago_s:.1f} s ago" + (f" ({', '.join(parts)})" if parts else ""))
+
+
 class LoopStalls:
     """How late the event loop runs a timer: a probe every ``period_s``; the longest lateness since the start and
     over the last ``recent_s`` (ms). Whatever stalls the loop (work done inside it) delays every timer by as much:

@@ -456,6 +456,37 @@ def test_a_daemon_whose_link_process_is_stopped_shows_it_silent_and_the_whole_ou
 
 
 @pytest.mark.timeout(240)
+def test_a_dead_host_while_the_link_stays_online_is_told_with_what_came_before_it(tmp_path):
+    """DEAD_HOST latched while the link stayed online (make test's panel daemon, 2026-12-01: five seconds after it was
+    ready, beside busy cores, with nothing in its log to say why). The link's process stopped for 0.8 s: past the
+    board's deadline (0.5 s), short of the link's own silence (1 s). A second after the fault, the events say
+    what came before it: the link loop's stall of the whole stop, and the simulated board's gap in the host's bytes
+    as long, the simulator itself having lost no time."""
+    import re
+    import signal
+
+    with holding_sim_daemon(tmp_path) as (daemon, ph, link_pid):
+        os.kill(link_pid, signal.SIGSTOP)
+        try:
+            time.sleep(0.8)
+        finally:
+            os.kill(link_pid, signal.SIGCONT)
+        deadline = time.monotonic() + 30
+        while True:
+            texts = [event["text"] for event in ph.call("status")["events"]]
+            if any(text.startswith("before DEAD_HOST, the simulated board") for text in texts):
+                break
+            assert time.monotonic() < deadline, "\n".join(texts)
+            time.sleep(0.2)
+    assert any(text.startswith("fault latched: DEAD_HOST") for text in texts), texts
+    loop_said = next(text for text in texts if text.startswith("before DEAD_HOST, the link's loop: "))
+    assert 700 <= float(re.search(r"the longest ([\d.]+) ms", loop_said).group(1)) < 5000, loop_said
+    board_said = next(text for text in texts if text.startswith("before DEAD_HOST, the simulated board"))
+    found = re.search(r"last gap in the host's bytes: ([\d.]+) s of its time, .* gave up ([\d.]+) s", board_said)
+    assert found and 0.5 <= float(found.group(1)) < 5 and float(found.group(2)) < 0.3, board_said
+
+
+@pytest.mark.timeout(240)
 def test_a_killed_link_process_is_started_again_and_the_daemon_goes_on(tmp_path):
     """The red team's run: the link's process killed (SIGKILL, as the OOM killer would) while a target was held.
     Before, the daemon stopped with exit status 1, its target dropped, its log saying it vented, which nothing could

@@ -114,3 +114,23 @@ def test_what_a_thread_is_doing_in_the_kernels_words():
     if platform.machine() == "x86_64":  # where the kernel has it sleep: anon_pipe_read here, pipe_read before 6.x
         assert seen.startswith(f"read pipe:[{pipe}] (") and seen.endswith("pipe_read)"), seen
     assert blocked_in(2**22 + 12345) is None  # no such thread
+
+
+def test_the_stalls_before_a_fault_are_said_in_words_the_longest_with_its_parts():
+    """What the daemon says when DEAD_HOST latches: the link loop's stalls of the last seconds, the longest with
+    what it was made of; a loop that ran on time says so; older stalls are left out."""
+    from phantom.host.stalls import said_stalls
+
+    blocked = _stall_once(lambda: time.sleep(0.3))
+    said = said_stalls(blocked, 5.0)
+    longest = max(stall[1] for stall in blocked)
+    assert said.startswith(f"{len(blocked)} stall(s) over {NOTABLE_STALL_MS:g} ms in the last 5 s, the longest "
+                           f"{longest:g} ms"), said
+    assert 290 <= longest < 1000 and "ran " in said, said
+    assert said_stalls(blocked, 0.0) == f"no stall over {NOTABLE_STALL_MS:g} ms in the last 0 s: it ran on time"
+    assert said_stalls([], 3.0).endswith("it ran on time")
+    # every part the record kept is said (a part the machine does not give, None, is not)
+    stall = [0.5, 612.0, 1.5, None, 3.0, 2, 0.0, "write (/dev/pts/3)"]
+    assert said_stalls([stall], 3.0) == ("1 stall(s) over 10 ms in the last 3 s, the longest 612 ms 0.5 s ago (ran 3 "
+                                         "ms, waited for a core 1.5 ms, stolen by the hypervisor 0 ms, 2 page faults, "
+                                         "blocked in write (/dev/pts/3))")
