@@ -254,8 +254,13 @@ class InverseSolver:
                                "linearisations before the inverse gives up)")
         self.model = model
         self.n_chambers = int(model.n_chambers)
+        #: what a target beyond the box should raise: the scene's bound, or the one this solver was given below it
+        self.bound_to_raise = "the scene's pressure_max_kpa"
         if pressure_max_pa is None:
             pressure_max_pa = model.model_settings.pressure_max_pa
+        elif np.any(np.asarray(pressure_max_pa, dtype=float) < model.model_settings.pressure_max_pa):
+            self.bound_to_raise = (f"the pressure bound asked, up to the scene's pressure_max_kpa "
+                                   f"({model.model_settings.pressure_max_pa / 1e3:g} kPa)")
         limits_pa = _finite("pressure_max_pa", pressure_max_pa)
         if not _one_or_per_chamber(np.shape(limits_pa), self.n_chambers):
             raise PhantomError(f"pressure_max_pa is one pressure (Pa) or one per chamber ({self.n_chambers}), got "
@@ -695,8 +700,7 @@ class InverseSolver:
                 f"but contradicts the other targets{with_constraints}; drop or change one of them")
         return UnreachableTargetError(
             f"{what} target {wanted} ml is unreachable: pressures between 0 and [{limits}] kPa{with_constraints} "
-            f"give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range or raise the scene's "
-            "pressure_max_kpa",
+            f"give {low_ml:.3f} to {high_ml:.3f} ml; ask for a volume in that range or raise {self.bound_to_raise}",
             gland_range_ml=(low_ml, high_ml) if row_name == "gland" else None)
 
     def _evaluate_raw_pressures(self, target: Target, raw_pa: Sequence[float], started: float) -> InverseResult:

@@ -117,7 +117,7 @@ class Measurement:
                                   f"only push), at most {MAX_PRESSURE_KPA:g}, 1-{MAX_CHAMBERS} of them "
                                   f"(pressures_kpa), got "
                                   f"{_shown(list(pressures) if isinstance(pressures, tuple) else pressures)}")
-        problem = _volume_problem(self.volume_ml)
+        problem = gland_volume_problem(self.volume_ml)
         # a refused measurement holds the volume the store held, whatever it is, as long as it is a number
         if problem is not None and not (self.status == "refused" and is_finite_number(self.volume_ml)):
             raise CorrectionError(problem)
@@ -161,20 +161,21 @@ def is_gland_volume(volume: object) -> bool:
     return is_finite_number(volume) and low <= volume <= high
 
 
-def _volume_problem(volume: object) -> str | None:
-    """What is wrong with a measured volume (ml), None when it is a whole gland's (:func:`is_gland_volume`)."""
+def gland_volume_problem(volume: object, named: str = "a measured volume (volume_ml)") -> str | None:
+    """What is wrong with a measured volume (ml), the input ``named`` (the store's field, a CSV column, a flag);
+    None when it is a whole gland's (:func:`is_gland_volume`). One wording wherever a measured volume comes in."""
     if is_gland_volume(volume):
         return None
     low, high = GLAND_VOLUME_RANGE_ML
-    return (f"a measured volume must be a finite number of ml within a whole gland's, {low:g}-{high:g} ml "
-            f"(volume_ml){unit_hint(volume)}")
+    return (f"{named} must be a whole gland's volume, a finite number of ml within {low:g}-{high:g} ml"
+            f"{unit_hint(volume)}")
 
 
 def _read_entry(entry: dict[str, Any]) -> Measurement:
     """A stored entry as a measurement: one whose volume is a number but no gland's is ``refused``, saying why (its
     stored status and reason give way: no fit may use it, whatever a person said of it before)."""
     fields = {**entry, "pressures_kpa": tuple(entry["pressures_kpa"])}
-    problem = _volume_problem(entry.get("volume_ml"))
+    problem = gland_volume_problem(entry.get("volume_ml"))
     if problem is not None and is_finite_number(entry.get("volume_ml")):
         fields |= {"status": "refused", "reason": f"read as {entry['volume_ml']:g} ml: {problem}; left out of every "
                                                   f"fit (an older version or a hand edit stored it)"}
@@ -337,7 +338,7 @@ class CorrectionStore:
         with self._locked():
             entries = self.entries()
             self._check_number(number, entries)
-            if _volume_problem(entries[number - 1].volume_ml) is not None:
+            if gland_volume_problem(entries[number - 1].volume_ml) is not None:
                 raise CorrectionError(f"measurement {number} cannot be confirmed: {entries[number - 1].reason}. "
                                       f"Remove it (`phantom corrections remove {number}`) and add the volume again "
                                       f"in ml")

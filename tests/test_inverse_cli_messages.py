@@ -107,3 +107,14 @@ def test_what_the_solver_library_prints_to_stdout_stays_off_it(capfd):
         os.write(1, b"Polishing not needed - no active set detected at optimal point\n")
     print("after")
     assert capfd.readouterr().out == "after\n"
+
+
+def test_a_volume_beyond_the_bound_asked_says_to_raise_that_bound_not_the_scenes(capsys):
+    """A target out of reach under --pressure-max-kpa below the scene's bound: raising the scene's pressure_max_kpa
+    (what the message said) changes nothing; the bound asked is what to raise, as far as the scene's."""
+    message = refusal(capsys, "--volume-ml", "45", "--pressure-max-kpa", "1")
+    assert "between 0 and [1, 1, 1] kPa give 26.296 to 29.239 ml" in message, message
+    assert message.rstrip().endswith("raise the pressure bound asked, up to the scene's pressure_max_kpa (3 kPa)")
+    message = refusal(capsys, "--volume-ml", "60")
+    assert message.rstrip().endswith("between 0 and [3, 3, 3] kPa give 26.296 to 51.581 ml; ask for a volume in "
+                                     "that range or raise the scene's pressure_max_kpa"), message

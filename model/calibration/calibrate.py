@@ -49,7 +49,7 @@ from phantom.model.arrays import BoolArray, FloatArray
 from phantom.model.calibration.sweep import RayTask, RayTrace, cached_trace, run_sweep
 from phantom.model.errors import MeshError
 from phantom.model.fem.model import PhantomModel
-from phantom.model.measurements import is_gland_volume, unit_hint
+from phantom.model.measurements import gland_volume_problem
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 from phantom.model.mesh.shape import check_walls
 from phantom.model.scene import (
@@ -60,7 +60,6 @@ from phantom.model.scene import (
     scene_from_dict,
     without_shipped_tables,
 )
-from phantom.model.shape_file import GLAND_VOLUME_RANGE_ML
 
 #: The largest measurement file read (bytes): a table of thousands of rows is far smaller.
 MAX_MEASUREMENT_BYTES = 2**20
@@ -186,10 +185,8 @@ def _measured_volume_ml(entry: str | None, folder: Path, scan_volume_ml: ScanVol
     if Path(text).suffix.lower() not in SCAN_SUFFIXES:
         volume_ml = float(text)
         # the store's check of a measured volume (phantom corrections add); <= 0, nan: the file's own check
-        if np.isfinite(volume_ml) and volume_ml > 0 and not is_gland_volume(volume_ml):
-            low, high = GLAND_VOLUME_RANGE_ML
-            raise CalibrationError(f"{where}: measured_ml must be a whole gland's volume, {low:g}-{high:g} ml"
-                                   f"{unit_hint(volume_ml)}")
+        if np.isfinite(volume_ml) and volume_ml > 0 and (problem := gland_volume_problem(volume_ml, "measured_ml")):
+            raise CalibrationError(f"{where}: {problem}")
         return volume_ml
     if scan_volume_ml is None:
         raise CalibrationError(f"{where}: {text} is a scan file, and nothing here measures scans: pass "

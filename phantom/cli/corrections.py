@@ -95,18 +95,15 @@ def _checked_add(args: argparse.Namespace) -> list[float]:
     (the store's own messages name its fields, for library callers): the pressures, as a list of kPa."""
 
     from phantom.cli.common import check_input_size, parse_numbers
-    from phantom.model.measurements import MAX_CHAMBERS, MAX_PRESSURE_KPA, CorrectionError, is_gland_volume, unit_hint
-    from phantom.model.shape_file import GLAND_VOLUME_RANGE_ML
+    from phantom.model.measurements import MAX_CHAMBERS, MAX_PRESSURE_KPA, CorrectionError, gland_volume_problem
 
     pressures = parse_numbers(args.pressures_kpa, "--pressures-kpa")
     if len(pressures) > MAX_CHAMBERS or not all(0 <= value <= MAX_PRESSURE_KPA for value in pressures):
         raise CorrectionError(f"--pressures-kpa takes the chamber pressures in kPa, each 0 or more (gauge: the "
                               f"blowers only push) and at most {MAX_PRESSURE_KPA:g}, one per chamber (at most "
                               f"{MAX_CHAMBERS}); got {args.pressures_kpa}")
-    if not is_gland_volume(args.volume_ml):
-        low, high = GLAND_VOLUME_RANGE_ML
-        raise CorrectionError(f"--volume-ml is the measured gland volume, a finite number of ml within a whole "
-                              f"gland's, {low:g}-{high:g} ml{unit_hint(args.volume_ml)}")
+    if problem := gland_volume_problem(args.volume_ml, "--volume-ml (the measured gland volume)"):
+        raise CorrectionError(problem)
     if args.scan_file is not None:
         check_input_size(args.scan_file, None, "--scan-file", CorrectionError,
                          give="the scan's mesh file (.obj, .ply or .stl)", required=True)
