@@ -89,7 +89,8 @@ def test_a_measurements_csv_in_ul_is_refused_naming_the_file_row_and_unit(tmp_pa
     path = tmp_path / "c_ul.csv"
     path.write_text("p0_kpa,p1_kpa,p2_kpa,measured_ml\n0,0,0,26400\n1,1,1,30000\n2,2,2,40000\n1,0,0,28000\n")
     with pytest.raises(CalibrationError, match=r"c_ul.csv, data row 1: measured_ml must be a whole gland's volume, "
-                                               r"a finite number of ml within 2-400 ml: in ml\? got 26400, which is 26.4 ml in mm\^3: convert it"):
+                                               r"a finite number of ml within 2-400 ml: in ml\? got 26400, which is "
+                                               r"26.4 ml in mm\^3: convert it"):
         load_measurements(path, n_chambers=3)
     path.write_text("p0_kpa,measured_ml\n0,26\n1,27\n2,1000\n")
     with pytest.raises(CalibrationError, match=r"data row 3: measured_ml must be a whole gland's volume, a finite "
