@@ -187,12 +187,16 @@ def test_a_daemon_on_a_real_boards_port_refuses_verify_and_changes_nothing(tmp_p
         assert ph.set_volume(35.0, wait=False).target == {"volume_ml": 35.0}   # without verify it goes
 
 
-def wait_scanning(sock, timeout_s=120):
-    """Until the daemon's verified target is scanning."""
-    with phantom.connect(sock) as watcher:
+def wait_scanning(daemon, timeout_s=120):
+    """Until the daemon's verified target is scanning; if it never does, what it did instead (its verify status,
+    its faults, its log: once in a clean clone's make test, with nothing said)."""
+    with phantom.connect(daemon.socket) as watcher:
         deadline = time.monotonic() + timeout_s
-        while (watcher.status().verify or {}).get("doing") != "scanning":
-            assert time.monotonic() < deadline, "the verified target never scanned"
+        while ((status := watcher.call("status")).get("verify") or {}).get("doing") != "scanning":
+            assert time.monotonic() < deadline, (
+                f"the verified target never scanned in {timeout_s} s: verify {status.get('verify')}, target "
+                f"{status.get('target')}, faults {status.get('faults')}, link {status.get('link')}; the daemon's "
+                f"log:\n{daemon.log()[-4000:]}")
             time.sleep(0.2)
 
 
@@ -212,7 +216,11 @@ def test_a_client_that_leaves_a_verified_target_and_a_daemon_that_stops_during_o
         typed = subprocess.Popen([str(PHANTOM), "set", "--socket", str(sock), "--volume-ml", "35", "--verify",
                                   "scan"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                  preexec_fn=as_at_a_terminal)  # Ctrl-C as a person's: not ignored
-        wait_scanning(sock)
+        try:
+            wait_scanning(daemon)
+        except AssertionError as error:
+            typed.kill()
+            raise AssertionError(f"{error}\nphantom set said: {typed.communicate()[1]!r}") from None
         typed.send_signal(signal.SIGINT)
         try:
             _, said = typed.communicate(timeout=60)
@@ -237,7 +245,7 @@ def test_a_client_that_leaves_a_verified_target_and_a_daemon_that_stops_during_o
         waiting = threading.Thread(target=verify)                       # the same target, set again
         waiting.start()
         time.sleep(1.0)
-        wait_scanning(sock)
+        wait_scanning(daemon)
         time.sleep(2.0)                                                    # a few pictures in
         process.send_signal(signal.SIGTERM)
         assert process.wait(30) == 0, daemon.log()[-3000:]
