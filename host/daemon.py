@@ -678,7 +678,7 @@ class Daemon:
         without a solve, where it is at hand; with a correction in force, the corrected model's), and every volume
         step is checked against that range. Steps of the other kinds (pressures, chamber volumes), a volume step
         that only its growth ratio puts out of reach, and answers other than unreachable (the limit point) are
-        solved as they come, as before."""
+        solved as they come, as before. The caller says what was not started."""
         steps = [(index, step.at_s, volume_ml) for index, step in enumerate(prepared.timeline.steps)
                  if (volume_ml := gland_volume_ml(step.target)) is not None]
         if not steps:
@@ -690,8 +690,7 @@ class Daemon:
             except UnreachableTargetError as error:
                 where = f"{prepared.name}: steps[{index}] at {at_s:g} s"
                 if error.gland_range_ml is None:
-                    raise ApiError("unreachable", f"{where}: {error}; the scene was not started",
-                                   {"step": index, "at_s": at_s}) from error
+                    raise ApiError("unreachable", f"{where}: {error}", {"step": index, "at_s": at_s}) from error
                 low_ml, high_ml = (float(value) for value in error.gland_range_ml)
                 beyond = sorted({step for step in steps if not low_ml <= step[2] <= high_ml} | {(index, at_s,
                                                                                                  volume_ml)})
@@ -701,7 +700,7 @@ class Daemon:
                 raise ApiError(
                     "unreachable", f"{prepared.name}: steps[{first[0]}] at {first[1]:g} s asks {first[2]:.2f} ml of "
                     f"gland volume, beyond the reachable range {low_ml:.3f} to {high_ml:.3f} ml{corrected}{also}; "
-                    "ask for volumes in that range or raise the scene's pressure_max_kpa; the scene was not started",
+                    "ask for volumes in that range or raise the scene's pressure_max_kpa",
                     {"gland_range_ml": [low_ml, high_ml], "corrected": error.corrected, "step": first[0],
                      "at_s": first[1], "steps": [step[0] for step in beyond]}) from error
             except PhantomError:

@@ -164,7 +164,10 @@ class ApiHandlers:
                                                    daemon.model.info.effective_model, daemon.model.info.scene_path,
                                                    pressures_kpa)
                 # a gland volume beyond the reachable range is refused before anything moves (ApiError unreachable)
-                await daemon.check_scene_reachable(prepared)
+                try:
+                    await daemon.check_scene_reachable(prepared)
+                except ApiError as error:
+                    raise ApiError(error.code, f"{error}; the scene was not started", error.data) from error
         except SceneError as error:
             raise ApiError("invalid_params", str(error)) from error
         verified = [index for index, step in enumerate(prepared.timeline.steps) if step.verify is not None]

@@ -144,8 +144,7 @@ async def _check_start_up_scene(daemon: Daemon) -> None:
     try:
         await daemon.check_scene_reachable(prepared)
     except ApiError as error:
-        raise PhantomError(f"--run-scene: {str(error).removesuffix('; the scene was not started')} (the daemon "
-                           "was not started)") from None
+        raise PhantomError(f"--run-scene: {error} (the daemon was not started)") from None
 
 
 def _when_ready(daemon: Daemon, handler: Handler) -> Handler:

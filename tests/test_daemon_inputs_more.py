@@ -62,6 +62,7 @@ def test_a_start_up_scene_beyond_the_reachable_range_stops_the_start_with_one_li
     assert isinstance(error, PhantomError), error  # before: the daemon started and played the scene
     said = str(error)
     assert "\n" not in said and "--run-scene" in said, said
+    assert said.endswith("(the daemon was not started)") and "the scene was not started" not in said, said
     assert "steps[1] at 20 s asks 3000.00 ml" in said and f"{RANGE_ML[0]} to {RANGE_ML[1]} ml" in said, said
     assert parts.asked == [3000.0] and parts.commands == []
     assert parts.closed == ["model"] and not socket.exists()  # what was built is closed
