@@ -294,11 +294,11 @@ def _checked_mesh(path: str, what: str = "the mesh", give: str | None = None) ->
     return path
 
 
-def _read_mesh(path: str, units: str, what: str = "the mesh", give: str | None = None) -> Any:
+def _read_mesh(path: str, units: str, give: str | None = None) -> Any:
     """A scan or mesh file (OBJ, PLY, STL) as a TriangleMesh in mm, its size checked before it is read."""
     from phantom.scan.compare import read_scan
 
-    return read_scan(_checked_mesh(path, what, give), units)
+    return read_scan(_checked_mesh(path, give=give), units)
 
 
 def _open_capture(path: str) -> Any:
@@ -543,8 +543,8 @@ def run_compare_scan(args: argparse.Namespace) -> int:
 
     from phantom import require_extra
 
-    scan_file = "the scan's mesh file (.obj, .ply or .stl)"
-    _checked_mesh(args.scan, "the scan file", scan_file)  # a folder said at once, before the scene is read
+    # its size, or a folder in its place, said at once, before the scene is read (read below as it is)
+    _checked_mesh(args.scan, "the scan file", "the scan's mesh file (.obj, .ply or .stl)")
     if args.rerun_save:
         check_recording_path(args.rerun_save)
     with require_extra("scan"):  # said at once, not after the model's kernels are compiled (10 s on a new cache)
@@ -554,14 +554,14 @@ def run_compare_scan(args: argparse.Namespace) -> int:
     from phantom.model.fem.model import PhantomModel
     from phantom.model.mesh.surface import model_surface, rotation_axis
     from phantom.model.scene import load_scene
-    from phantom.scan.compare import StageClock, compare
+    from phantom.scan.compare import StageClock, compare, read_scan
     from phantom.scan.heatmap import write_heatmap, write_recording
 
     scene = load_scene(args.scene)
     pressures_kpa = scene_pressures_kpa(args.pressures_kpa, scene)
     clock = StageClock()
     with clock.stage("read"):
-        scan = _read_mesh(args.scan, args.units, "the scan file", scan_file)
+        scan = read_scan(args.scan, args.units)
     with clock.stage("model"):
         _checked_mesh(scene.mesh)
         model = PhantomModel.from_scene(scene, mesh_size_mm=args.size_mm)
