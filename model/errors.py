@@ -7,7 +7,23 @@ from phantom import PhantomError
 
 
 class SceneError(PhantomError):
-    """A scene file that cannot be read or says something the model cannot do."""
+    """A scene file that cannot be read or says something the model cannot do.
+
+    One that refuses a single setting's value (:func:`setting_refused`) names it in ``key`` (its name in its table,
+    e.g. ``"poisson_ratio"``) and ``requirement`` (what the value must be, phrased to follow the name: ``"must lie
+    in (-1, 0.5)"``), so that a command that took the value from a flag can say the flag instead; both are None
+    otherwise."""
+
+    def __init__(self, message: str, key: str | None = None, requirement: str | None = None):
+        super().__init__(message)
+        self.key = key
+        self.requirement = requirement
+
+
+def setting_refused(where: str, table: str, key: str, requirement: str, value: object) -> SceneError:
+    """The SceneError of the ``[table] key`` of the scene at ``where`` whose ``value`` breaks ``requirement``:
+    "WHERE: [TABLE] KEY REQUIREMENT, got VALUE"."""
+    return SceneError(f"{where}: [{table}] {key} {requirement}, got {value!r}", key, requirement)
 
 
 class MeshError(PhantomError):

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from phantom import is_finite_number, read_text
-from phantom.model.errors import SceneError, check_known_keys
+from phantom.model.errors import SceneError, check_known_keys, setting_refused
 from phantom.model.mesh.geometry import ProstateGeometry, geometry_from_table
 
 #: The largest scene file read (bytes): a scene of the most steps a timeline may have is about 100 KiB.
@@ -397,9 +397,11 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
                          f"'gent' and 'yeoh'; for small strains use 'corotational' or 'linear'")
     gent_jm = table.get("gent_jm")
     if model == "gent":
+        locking = "the locking value of I1 - 3 (a positive number, e.g. 20 for silicone)"
+        if gent_jm is None:
+            raise SceneError(f"{where}: [material] model = 'gent' needs gent_jm, {locking}")
         if not is_finite_number(gent_jm) or not gent_jm > 0:
-            raise SceneError(f"{where}: [material] model = 'gent' needs gent_jm, the locking value of I1 - 3 "
-                             f"(a positive number, e.g. 20 for silicone), got {gent_jm!r}")
+            raise setting_refused(where, "material", "gent_jm", f"must be {locking}", gent_jm)
         gent_jm = float(gent_jm)
     elif gent_jm is not None:
         raise SceneError(f"{where}: [material] gent_jm applies to model = 'gent' only, not {model!r}")
@@ -416,15 +418,14 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
     youngs_modulus_kpa = table.get("youngs_modulus_kpa", 50.0)
     poisson_ratio = table.get("poisson_ratio", QUADRATIC_POISSON_RATIO if quadratic else 0.45)
     if not is_finite_number(youngs_modulus_kpa) or not youngs_modulus_kpa > 0:
-        raise SceneError(f"{where}: [material] youngs_modulus_kpa must be a positive number, got "
-                         f"{youngs_modulus_kpa!r}")
+        raise setting_refused(where, "material", "youngs_modulus_kpa", "must be a positive number", youngs_modulus_kpa)
     low_kpa, high_kpa = YOUNGS_MODULUS_RANGE_KPA
     if not low_kpa <= youngs_modulus_kpa <= high_kpa:
         raise SceneError(f"{where}: [material] youngs_modulus_kpa = {youngs_modulus_kpa:g} is outside what a "
                          f"silicone or elastomer has, {low_kpa:g} kPa to {high_kpa / 1e3:g} MPa: give it in kPa "
                          f"(Ecoflex 00-10: about 50)")
     if isinstance(poisson_ratio, bool) or not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
-        raise SceneError(f"{where}: [material] poisson_ratio must lie in (-1, 0.5), got {poisson_ratio!r}")
+        raise setting_refused(where, "material", "poisson_ratio", "must lie in (-1, 0.5)", poisson_ratio)
     return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm,
                     *(None if value is None else float(value) for value in yeoh))
 

@@ -165,8 +165,8 @@ def test_scene_reads_the_hyperelastic_materials():
 
 @pytest.mark.parametrize(("material", "message"), [
     ({"model": "gent"}, "needs gent_jm"),
-    ({"model": "gent", "gent_jm": -1}, "needs gent_jm"),
-    ({"model": "gent", "gent_jm": "20"}, "needs gent_jm"),
+    ({"model": "gent", "gent_jm": -1}, "gent_jm must be the locking value of I1 - 3"),
+    ({"model": "gent", "gent_jm": "20"}, "gent_jm must be the locking value of I1 - 3"),
     ({"model": "neo_hookean", "gent_jm": 20}, "applies to model = 'gent' only"),
     ({"model": "mooney"}, "'neo_hookean', 'gent' and 'yeoh'"),
     ({"model": "yeoh"}, "needs yeoh_c20_over_c10 and yeoh_c30_over_c10"),

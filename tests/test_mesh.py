@@ -294,7 +294,7 @@ def test_the_scene_geometry_table_reaches_the_model(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("table, error, message", [
-    ("min_wall_mm = 0.5", SceneError, r"min_wall_mm = 0.5 is outside \[1, 10\] \(thinner walls cannot be cast\)"),
+    ("min_wall_mm = 0.5", SceneError, r"min_wall_mm must lie in \[1, 10\] \(thinner walls cannot be cast\), got 0.5"),
     ("lobe_chamber_scale = 1.3", MeshError, "wall chamber[12]-outer is 1.[34]. mm thick, below min_wall_mm = 2"),
     ("base_chamber_scale = 1.3\nlobe_chamber_scale = 1.3", MeshError, "chamber0-chamber1 overlaps"),
     ("min_wall_mm = 3.6", MeshError, "below min_wall_mm = 3.6"),

@@ -8,7 +8,7 @@ import pytest
 from phantom import PhantomError
 from phantom.cli.main import main
 from phantom.model import SceneError, load_scene
-from phantom.model.scene import PRESSURE_LIMIT_PA, ModelSettings, builtin_scene_path
+from phantom.model.scene import PRESSURE_LIMIT_PA, ModelSettings, builtin_scene_path, scene_from_dict
 
 
 def write_scene(tmp_path, text):
@@ -192,7 +192,7 @@ def test_chamber_labels_name_every_chamber(tmp_path, labels):
         ("poisson_ratio = 0.3", 'poisson_ratio = "0.3"', "poisson_ratio must lie in (-1, 0.5), got '0.3'"),
         # an integer of 401 digits (TOML allows any): no float holds it; each was an OverflowError traceback
         ("youngs_modulus_kpa = 20", f"youngs_modulus_kpa = {10**400}", "youngs_modulus_kpa must be a positive number"),
-        ('model = "linear"', f'model = "gent"\ngent_jm = {10**400}', "model = 'gent' needs gent_jm"),
+        ('model = "linear"', f'model = "gent"\ngent_jm = {10**400}', "gent_jm must be the locking value"),
         ('model = "linear"', f'model = "yeoh"\nyeoh_c20_over_c10 = {10**400}\nyeoh_c30_over_c10 = 0',
          "model = 'yeoh' needs yeoh_c20_over_c10"),
         ("[host]", f"[model]\npressure_max_kpa = {10**400}\n[host]", "pressure_max_kpa must be a positive number"),
@@ -206,6 +206,28 @@ def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
     assert message in str(error.value)
     assert isinstance(error.value, PhantomError)
 
+
+
+@pytest.mark.parametrize(("table", "key", "value", "requirement"), [
+    ("material", "poisson_ratio", 0.5, "must lie in (-1, 0.5)"),
+    ("material", "youngs_modulus_kpa", -1, "must be a positive number"),
+    ("material", "gent_jm", -2, "must be the locking value of I1 - 3 (a positive number, e.g. 20 for silicone)"),
+    ("geometry", "lobe_chamber_scale", 5.0, "must lie in [0.3, 2.5]"),
+    ("geometry", "min_wall_mm", 0.1, "must lie in [1, 10] (thinner walls cannot be cast)"),
+    ("geometry", "mesh_size_mm", "7", "must be a number"),
+])
+def test_a_refused_value_names_its_key_and_what_it_must_be_for_a_caller_that_took_it_from_a_flag(
+        table, key, value, requirement):
+    # a command that set the value from a flag (calibrate's --grid, --size-mm) says the flag and the requirement,
+    # taken from these fields: it once rewrote the message's text, and fell back to a vaguer one when it changed
+    raw = load_scene("builtin").raw
+    document = {**raw, table: {**raw.get(table, {}), key: value}}
+    if key == "gent_jm":
+        document["material"] = {"model": "gent", "youngs_modulus_kpa": 50.0, "gent_jm": value}
+    with pytest.raises(SceneError) as error:
+        scene_from_dict(document)
+    assert (error.value.key, error.value.requirement) == (key, requirement)
+    assert f"[{table}] {key} {requirement}, got {value!r}" in str(error.value)
 
 @pytest.mark.parametrize(("replace", "by", "message"), [
     ("youngs_modulus_kpa = 50.0", "youngs_modulus_kPa = 20.0",

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from phantom import is_finite_number
-from phantom.model.errors import SceneError, check_known_keys
+from phantom.model.errors import SceneError, check_known_keys, setting_refused
 
 #: The thinnest silicone wall a lost-wax cast makes (mm).
 MANUFACTURABLE_WALL_MM = 1.0
@@ -101,25 +101,25 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
         if name.endswith("_mm") and isinstance(fields[name].default, tuple):
             if (not isinstance(value, list | tuple) or len(value) != 3
                     or not all(is_finite_number(item) for item in value)):
-                raise SceneError(f"{where}: [geometry] {name} must be three numbers (x, y, z in mm), got {value!r}")
+                raise setting_refused(where, "geometry", name, "must be three numbers (x, y, z in mm)", value)
             if "semi_axes" in name and min(value) <= 0:
-                raise SceneError(f"{where}: [geometry] {name} must be positive, got {value!r}")
+                raise setting_refused(where, "geometry", name, "must be positive", value)
             values[name] = tuple(float(item) for item in value)
             continue
         if name == "element_order":
             if value not in ELEMENT_ORDERS or isinstance(value, bool) or not float(value).is_integer():
-                raise SceneError(f"{where}: [geometry] element_order must be 1 (4-node tetrahedra) or 2 (10-node, "
-                                 f"quadratic), got {value!r}")
+                raise setting_refused(where, "geometry", name, "must be 1 (4-node tetrahedra) or 2 (10-node, "
+                                      "quadratic)", value)
             values[name] = int(value)
             continue
         if not is_finite_number(value):
-            raise SceneError(f"{where}: [geometry] {name} must be a number, got {value!r}")
+            raise setting_refused(where, "geometry", name, "must be a number", value)
         low, high = {"base_chamber_scale": SCALE_RANGE, "lobe_chamber_scale": SCALE_RANGE,
                      "fixation_radius_mm": FIXATION_RADIUS_RANGE_MM,
                      "min_wall_mm": (MANUFACTURABLE_WALL_MM, 10.0), "mesh_size_mm": MESH_SIZE_RANGE_MM}[name]
         if not low <= value <= high:
             why = " (thinner walls cannot be cast)" if name == "min_wall_mm" else ""
-            raise SceneError(f"{where}: [geometry] {name} = {value} is outside [{low:g}, {high:g}]{why}")
+            raise setting_refused(where, "geometry", name, f"must lie in [{low:g}, {high:g}]{why}", value)
         values[name] = float(value)
     geometry = ProstateGeometry(**values)
     if geometry.lobe_chamber_centre_mm[0] <= 0:

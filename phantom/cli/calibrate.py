@@ -151,12 +151,11 @@ def _check_value(scene: Scene, flag: str, key: str, value: float) -> None:
     with it alone set; PhantomError naming ``flag`` for one they refuse. ``gent_jm`` is checked under the Gent law
     (whether the law is Gent is the caller's check)."""
     from phantom import PhantomError
-    from phantom.model.calibration.calibrate import MATERIAL_PARAMETERS, scene_with
+    from phantom.model.calibration.calibrate import scene_with
     from phantom.model.errors import SceneError
     from phantom.model.scene import YEOH_KEYS, scene_from_dict
 
     document = scene_with(scene.raw, {key: value})
-    table = "material" if key in MATERIAL_PARAMETERS else "geometry"
     if key == "gent_jm":
         document["material"]["model"] = "gent"
         for other in YEOH_KEYS:
@@ -164,12 +163,10 @@ def _check_value(scene: Scene, flag: str, key: str, value: float) -> None:
     try:
         scene_from_dict(document, scene.path)
     except SceneError as error:
+        if error.key == key and error.requirement is not None:
+            raise PhantomError(f"{flag} {error.requirement}, got {value:g}") from None
         where = f"scene {scene.path}" if scene.path else "scene"  # scene_from_dict's prefix: the file is not at fault
-        reason = str(error).removeprefix(f"{where}: ")
-        named = (reason.replace(f"[{table}] {key} = {float(value)}", f"{flag} {value:g}")
-                 .replace(f"[{table}] model = 'gent' needs {key}, ", f"{flag} must be ")
-                 .replace(f"[{table}] {key}", flag))
-        raise PhantomError(named if named != reason else f"{flag} {value:g}: {reason}") from None
+        raise PhantomError(f"{flag} {value:g}: {str(error).removeprefix(f'{where}: ')}") from None
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
