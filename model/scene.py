@@ -421,9 +421,9 @@ def _material(table: dict[str, Any], where: str, quadratic: bool = False) -> Mat
         raise setting_refused(where, "material", "youngs_modulus_kpa", "must be a positive number", youngs_modulus_kpa)
     low_kpa, high_kpa = YOUNGS_MODULUS_RANGE_KPA
     if not low_kpa <= youngs_modulus_kpa <= high_kpa:
-        raise SceneError(f"{where}: [material] youngs_modulus_kpa = {youngs_modulus_kpa:g} is outside what a "
-                         f"silicone or elastomer has, {low_kpa:g} kPa to {high_kpa / 1e3:g} MPa: give it in kPa "
-                         f"(Ecoflex 00-10: about 50)")
+        raise setting_refused(where, "material", "youngs_modulus_kpa",
+                              f"must lie in what a silicone or elastomer has, {low_kpa:g} kPa to "
+                              f"{high_kpa / 1e3:g} MPa, given in kPa (Ecoflex 00-10: about 50)", youngs_modulus_kpa)
     if isinstance(poisson_ratio, bool) or not isinstance(poisson_ratio, int | float) or not -1.0 < poisson_ratio < 0.5:
         raise setting_refused(where, "material", "poisson_ratio", "must lie in (-1, 0.5)", poisson_ratio)
     return Material(model, float(youngs_modulus_kpa) * 1e3, float(poisson_ratio), gent_jm,

@@ -211,6 +211,8 @@ def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
 @pytest.mark.parametrize(("table", "key", "value", "requirement"), [
     ("material", "poisson_ratio", 0.5, "must lie in (-1, 0.5)"),
     ("material", "youngs_modulus_kpa", -1, "must be a positive number"),
+    ("material", "youngs_modulus_kpa", 5e6, "must lie in what a silicone or elastomer has, 0.1 kPa to 100 MPa, "
+                                            "given in kPa (Ecoflex 00-10: about 50)"),
     ("material", "gent_jm", -2, "must be the locking value of I1 - 3 (a positive number, e.g. 20 for silicone)"),
     ("geometry", "lobe_chamber_scale", 5.0, "must lie in [0.3, 2.5]"),
     ("geometry", "min_wall_mm", 0.1, "must lie in [1, 10] (thinner walls cannot be cast)"),
