@@ -207,7 +207,6 @@ def test_bad_scenes_say_what_is_wrong(tmp_path, replace, by, message):
     assert isinstance(error.value, PhantomError)
 
 
-
 @pytest.mark.parametrize(("table", "key", "value", "requirement"), [
     ("material", "poisson_ratio", 0.5, "must lie in (-1, 0.5)"),
     ("material", "youngs_modulus_kpa", -1, "must be a positive number"),
@@ -230,6 +229,7 @@ def test_a_refused_value_names_its_key_and_what_it_must_be_for_a_caller_that_too
         scene_from_dict(document)
     assert (error.value.key, error.value.requirement) == (key, requirement)
     assert f"[{table}] {key} {requirement}, got {value!r}" in str(error.value)
+
 
 @pytest.mark.parametrize(("replace", "by", "message"), [
     ("youngs_modulus_kpa = 50.0", "youngs_modulus_kPa = 20.0",
