@@ -481,7 +481,7 @@ def pressure_limit_error(pressures_kpa: Sequence[float], labels: Sequence[str],
 def _positive_number(table: dict[str, Any], key: str, default: float, where: str) -> float:
     value = table.get(key, default)
     if not is_finite_number(value) or not value > 0:
-        raise SceneError(f"{where}: [model] {key} must be a positive number, got {value!r}")
+        raise setting_refused(where, "model", key, "must be a positive number", value)
     return float(value)
 
 
@@ -531,14 +531,15 @@ def _model_settings(table: dict[str, Any], where: str, path: Path | None = None)
     check_known_keys(table, MODEL_KEYS, "[model]", where)
     fidelity = table.get("fidelity")
     if fidelity is not None and fidelity not in FIDELITY_LEVELS:
-        raise SceneError(f"{where}: [model] fidelity must be one of {', '.join(FIDELITY_LEVELS)}, got {fidelity!r}")
+        raise setting_refused(where, "model", "fidelity", f"must be one of {', '.join(FIDELITY_LEVELS)}", fidelity)
     points = table.get("table_points", DEFAULT_TABLE_POINTS)
     if isinstance(points, bool) or not isinstance(points, int) or points < 2:
-        raise SceneError(f"{where}: [model] table_points must be an integer of at least 2, got {points!r}")
+        raise setting_refused(where, "model", "table_points", "must be an integer of at least 2", points)
     if points > MAX_TABLE_POINTS:
-        raise SceneError(f"{where}: [model] table_points must be at most {MAX_TABLE_POINTS} (the default "
-                         f"{DEFAULT_TABLE_POINTS}'s step halved; the table's build is a full solve per grid point, "
-                         f"{points}^3 = {points**3:,} on three chambers), got {points!r}")
+        raise setting_refused(where, "model", "table_points",
+                              f"must be at most {MAX_TABLE_POINTS} (the default {DEFAULT_TABLE_POINTS}'s step "
+                              f"halved; the table's build is a full solve per grid point, {points}^3 = "
+                              f"{points**3:,} on three chambers)", points)
     pressure_max_kpa = _positive_number(table, "pressure_max_kpa", PRESSURE_LIMIT_PA / 1e3, where)
     if pressure_max_kpa > SENSOR_RANGE_KPA:
         raise SceneError(f"{where}: [model] pressure_max_kpa = {pressure_max_kpa:g} is above the pressure sensor's "
@@ -557,12 +558,12 @@ def _load(table: Any, where: str) -> Load:
     check_known_keys(table, LOAD_KEYS, "[load]", where)
     density = table.get("density_kg_m3", SILICONE_DENSITY_KG_M3)
     if isinstance(density, bool) or not isinstance(density, int | float) or not 0 < density < 1e5:
-        raise SceneError(f"{where}: [load] density_kg_m3 must be a positive number (Ecoflex 00-10: 1040), got "
-                         f"{density!r}")
+        raise setting_refused(where, "load", "density_kg_m3", "must be a positive number (Ecoflex 00-10: 1040)",
+                              density)
     gravity = table.get("gravity_m_s2", [0.0, 0.0, -STANDARD_GRAVITY_M_S2])
     if not isinstance(gravity, list) or len(gravity) != 3 or not all(is_finite_number(value) for value in gravity):
-        raise SceneError(f"{where}: [load] gravity_m_s2 must be three numbers (m/s^2, e.g. [0, 0, -9.81] for the "
-                         f"built-in prostate hanging from its base), got {gravity!r}")
+        raise setting_refused(where, "load", "gravity_m_s2", "must be three numbers (m/s^2, e.g. [0, 0, -9.81] for "
+                              "the built-in prostate hanging from its base)", gravity)
     x, y, z = (float(value) for value in gravity)
     return Load(float(density), (x, y, z))
 
@@ -571,5 +572,5 @@ def _outputs(table: dict[str, Any], where: str) -> dict[str, bool]:
     check_known_keys(table, OUTPUT_KEYS, "[outputs]", where)
     for key, value in table.items():
         if not isinstance(value, bool):
-            raise SceneError(f"{where}: [outputs] {key} must be true or false, got {value!r}")
+            raise setting_refused(where, "outputs", key, "must be true or false", value)
     return dict(table)

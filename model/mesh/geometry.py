@@ -123,6 +123,6 @@ def geometry_from_table(table: dict[str, Any], where: str) -> ProstateGeometry:
         values[name] = float(value)
     geometry = ProstateGeometry(**values)
     if geometry.lobe_chamber_centre_mm[0] <= 0:
-        raise SceneError(f"{where}: [geometry] lobe_chamber_centre_mm must have x > 0 (the left lobe; the right "
-                         f"one is its mirror image), got {list(geometry.lobe_chamber_centre_mm)}")
+        raise setting_refused(where, "geometry", "lobe_chamber_centre_mm", "must have x > 0 (the left lobe; the right "
+                              "one is its mirror image)", list(geometry.lobe_chamber_centre_mm))
     return geometry
