@@ -58,6 +58,7 @@ from phantom.host.zeroing import ZEROING_WHY, SensorZero
 from phantom.model.measurements import data_dir
 from phantom.model.target import InverseResult, Target, UnreachableTargetError
 from phantom.protocol.link import board_clock_went_back
+from phantom.protocol.motion import ELEVATION
 
 logger = logging.getLogger(__name__)
 
@@ -323,9 +324,12 @@ class Daemon:
         for attempt in range(1, SCAN_TRIES + 1):
             await self._rig_at_rest()
             late_before = self.motion.late_replies
+            status = self.motion.latest
+            # from the elevation the last scan ended at, not tilted back first
+            passes = verify.passes_from(plan, None if status is None else status.axes[ELEVATION].position_deg)
             try:
                 # the pictures' silhouettes keyed while the rig moves, in the process its reconstruction runs in
-                answer = await self.api.handlers["scan"]({"out": str(verify_folder(round_)), **plan,
+                answer = await self.api.handlers["scan"]({"out": str(verify_folder(round_)), **passes,
                                                           "key_silhouettes": True})
             except ApiError as error:
                 if attempt == SCAN_TRIES or self.motion.late_replies == late_before:

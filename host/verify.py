@@ -353,6 +353,21 @@ def judge_scan(error_pct: float, tolerance_pct: float, round_: int, rounds: int,
     return "not_verified" if round_ >= rounds else "correct"
 
 
+def passes_from(plan: dict[str, Any], elevation_deg: float | None) -> dict[str, Any]:
+    """A verify scan's ``plan`` (the ``scan`` method's params) with its passes in the order that starts at the rig's
+    elevation ``elevation_deg`` (None: not known, the plan as it is): the passes reversed when the rig is nearer
+    the last pass's elevation than the first's. A plan of two passes ends where it started on the orbit, at its
+    last elevation, so the next round's scan in the same order first tilts back a whole pass (1.0 s of the verify
+    plan's 31.6 s on the board then, once a round); the other way round it starts where the last one ended. The scan
+    reads the same: its pictures are the same stops."""
+    elevations = list(plan.get("elevations_deg", []))
+    if elevation_deg is None or len(elevations) < 2:
+        return dict(plan)
+    if abs(elevations[-1] - elevation_deg) < abs(elevations[0] - elevation_deg):
+        elevations.reverse()
+    return {**plan, "elevations_deg": elevations}
+
+
 def volume_target(target: Target, volume_ml: float) -> Target:
     """``target`` (a gland volume, its growth ratio kept) at another volume (ml)."""
     return dataclasses.replace(target, gland_volume_m3=volume_ml / ML_PER_M3)

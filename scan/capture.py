@@ -39,7 +39,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -195,13 +195,15 @@ class Plan:
 
     def moves_s(self, axes: Sequence[AxisConfig]) -> float:
         """The board's time (s) for this plan's moves on ``axes`` (the orbit's configuration, the elevation's), as
-        the daemon moves them (each stop's elevation, then its orbit) and from the last stop to the first (a scan
-        after one of the same plan starts where that one ended): a pass's stops and the turn back after an odd
-        number of passes."""
+        the daemon moves them (each stop's elevation, then its orbit), and from the last stop to where the next
+        scan of the plan starts: the daemon takes it from the elevation this one ended at, its passes the other way
+        round (``phantom.host.verify.passes_from``), so after an even number of passes it starts where this one
+        ended, after an odd number a turn back."""
         orbit, elevation = axes
         stops = self.stops()
+        following = replace(self, elevations_deg=self.elevations_deg[::-1]).stops()[0]
         return sum(elevation.move_s(to[1] - at[1]) + orbit.move_s(to[0] - at[0])
-                   for at, to in zip([stops[-1], *stops[:-1]], stops, strict=True))
+                   for at, to in zip(stops, [*stops[1:], following], strict=True))
 
     def board_s(self, axes: Sequence[AxisConfig]) -> float:
         """The plan's time on the board (s): its moves on ``axes`` (:meth:`moves_s`) and its settle after each

@@ -879,13 +879,28 @@ def test_the_verify_scans_plan_is_the_fastest_whose_error_fits_what_the_toleranc
     assert plan_for_tolerance(tolerance_pct) == (views, tuple(elevations_deg))
     plan = VerifyScan().plan_for(tolerance_pct)
     assert plan == {**VERIFY_PLAN, "views": views, "elevations_deg": elevations_deg}
-    assert scan_s(20, (15.0, 45.0)) == pytest.approx(31.55) and scan_s(30, (0.0, 30.0)) == pytest.approx(35.45)
+    assert scan_s(20, (15.0, 45.0)) == pytest.approx(30.55) and scan_s(30, (0.0, 30.0)) == pytest.approx(34.45)
     rig_plan = VerifyScan({**VERIFY_PLAN, "camera": "/dev/video0", "rig": "rig.json", "views": 12,
                            "elevations_deg": [0.0, 30.0]}).plan_for(tolerance_pct)
     assert rig_plan["camera"] == "/dev/video0" and rig_plan["elevations_deg"] == [0.0, 30.0]
     assert rig_plan["views"] == min(12, plan_for_tolerance(tolerance_pct, (0.0, 30.0))[0])   # never more than its own
     unmeasured = {**VERIFY_PLAN, "rig": "rig.json", "views": 12, "elevations_deg": [5.0, 25.0]}
     assert VerifyScan(unmeasured).plan_for(tolerance_pct) == unmeasured   # no error measured there: as given
+
+
+@pytest.mark.parametrize(("elevation_deg", "passes"), [
+    (45.0, [45.0, 15.0]), (44.98, [45.0, 15.0]), (15.0, [15.0, 45.0]), (0.0, [15.0, 45.0]), (30.0, [15.0, 45.0]),
+    (None, [15.0, 45.0])])
+def test_a_verify_scan_starts_its_passes_at_the_elevation_the_rig_is_at(elevation_deg, passes):
+    """A round's scan of two passes ends at its last elevation: the next one starts there, its passes the other way
+    round, instead of tilting back a whole pass first (1 s a round); the rig's elevation not known, or no nearer
+    the last pass than the first: the plan as it is. Nothing else of the plan changes."""
+    from phantom.cli.scan_verify import VERIFY_PLAN
+
+    plan = {**VERIFY_PLAN, "elevations_deg": [15.0, 45.0]}
+    assert policy_of.passes_from(plan, elevation_deg) == {**plan, "elevations_deg": passes}
+    assert plan["elevations_deg"] == [15.0, 45.0]          # the plan given is left as it was
+    assert policy_of.passes_from({**plan, "elevations_deg": [30.0]}, 0.0)["elevations_deg"] == [30.0]
 
 
 def test_a_verified_rounds_scan_carries_its_tolerance_for_the_plan(core):

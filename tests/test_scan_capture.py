@@ -202,15 +202,18 @@ def test_plan_runs_every_other_pass_backwards():
 def test_a_plans_moves_take_the_axes_trapezoid_and_the_turn_back_after_an_odd_number_of_passes():
     """The board's time of a verify plan's moves (the plan's sizing, phantom/cli/scan_verify.py): a 12 deg stop
     ramps up and down at 240 deg/s^2 and cruises at 30 deg/s (0.125 + 0.4 s), a 2 deg one never reaches it (a
-    triangle, 2 sqrt(2/240) s); the 30 deg tilt 1.0 s; a third pass ends a turn away from the first stop."""
+    triangle, 2 sqrt(2/240) s); the 30 deg tilt 1.0 s, once between two passes (the next scan starts at the
+    elevation this one ended at, not tilted back); a third pass ends a turn away from the first stop."""
     from phantom.protocol.motion import SCANNER_AXES
 
     orbit, elevation = SCANNER_AXES
     assert orbit.move_s(-12.0) == pytest.approx(0.525) and orbit.move_s(0.0) == 0.0
     assert orbit.move_s(2.0) == pytest.approx(2 * (2.0 / 240.0) ** 0.5) and elevation.move_s(30.0) == pytest.approx(1.0)
-    assert Plan(30, (0.0, 30.0)).moves_s(SCANNER_AXES) == pytest.approx(58 * 0.525 + 2 * 1.0)
+    assert Plan(30, (0.0, 30.0)).moves_s(SCANNER_AXES) == pytest.approx(58 * 0.525 + 1.0)
+    assert Plan(30, (30.0, 0.0)).moves_s(SCANNER_AXES) == pytest.approx(58 * 0.525 + 1.0)
     assert Plan(30, (0.0, 15.0, 30.0)).moves_s(SCANNER_AXES) == pytest.approx(
-        87 * 0.525 + 2 * elevation.move_s(15.0) + elevation.move_s(30.0) + orbit.move_s(348.0))
+        87 * 0.525 + 2 * elevation.move_s(15.0) + orbit.move_s(348.0))
+    assert Plan(30, (0.0,)).moves_s(SCANNER_AXES) == pytest.approx(29 * 0.525 + orbit.move_s(348.0))
 
 @pytest.mark.parametrize(("plan", "message"), [
     (dict(views=0), "views must be at least 1"),

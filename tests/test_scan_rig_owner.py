@@ -165,7 +165,7 @@ def test_a_verified_rounds_scan_failed_for_a_late_reply_is_taken_again_once_and_
 
     def stand_in(failures):
         calls, events = [], []
-        motion = SimpleNamespace(late_replies=0)
+        motion = SimpleNamespace(late_replies=0, latest=None)  # no status from the board yet, as at a start
 
         async def scan(params):
             calls.append(params["out"])

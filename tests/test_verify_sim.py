@@ -99,6 +99,10 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
         assert all(Path(entry["scan"], "scan.ply").is_file() and Path(entry["scan"]).parent.parent == data
                    for entry in rounds)
         assert rounds[0]["pressures_kpa"] != rounds[-1]["pressures_kpa"] and "next" in rounds[0]
+        # each round's scan starts at the elevation the one before ended at: its passes the other way round
+        frames = [json.loads(Path(entry["scan"], "capture.json").read_text())["frames"] for entry in rounds]
+        assert [scan[0]["elevation_deg"] for scan in frames[1:]] == pytest.approx(
+            [scan[-1]["elevation_deg"] for scan in frames[:-1]], abs=0.5), frames
     # every scan is a measurement kept, the last (within the tolerance) too: stored before the daemon stopped
     stored = CorrectionStore.for_phantom("default", data).entries()
     assert [(entry.method, entry.volume_ml, entry.scan_file) for entry in stored] == [

@@ -56,7 +56,7 @@ def plan_for_tolerance(tolerance_pct: float, elevations_deg: tuple[float, ...] |
     (:data:`SCAN_ERROR_PCT_BY_PLAN`) fits in what the verify loop leaves the scanner of ``tolerance_pct`` (%): the
     tolerance less the share a round aims at (:data:`phantom.host.verify.VERIFY_AIM_SHARE`), so that a scan
     stopped within the aim is within the tolerance in true volume. 0.3 % (0.2 % left): 20 stops at 15 and 45 deg
-    (0.17 %, 31.6 s; 30 at 0 and 30 deg 35.4 s); 0.5-1 %: 15 at 15 and 45 deg; 2.5 %: 10 at 0 and 30 deg. A
+    (0.17 %, 30.6 s; 30 at 0 and 30 deg 34.4 s); 0.5-1 %: 15 at 15 and 45 deg; 2.5 %: 10 at 0 and 30 deg. A
     tolerance tighter than any plan meets takes the most accurate. ``elevations_deg`` keeps to plans at those (a
     calibrated rig's); None when none is measured there. The plan is sized for the hull's error left in (this
     table), so a round whose scan could not have it taken off (``phantom.scan.hull_bias``: the model's surface did
