@@ -78,6 +78,12 @@ class VerifyScanner(Protocol):
         """The ``scan`` params of a verified target's scan at ``tolerance_pct`` (%): the plan sized to it."""
         ...
 
+    def expect_surface(self, model_surface_mm: tuple[Any, Any] | None) -> None:
+        """The model's outer surface at the next verify scan's pressures (None: none), given before its capture
+        (blocking: run in a worker thread), so that the capture renders its silhouettes while the rig moves for
+        :meth:`volume`'s hull error."""
+        ...
+
     def volume(self, folder: str, model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
         """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml`` (the visual hull's
         error on ``model_surface_mm``, the model's outer surface at the scan's pressures, taken off),
@@ -280,11 +286,15 @@ class Daemon:
             why = self.verify_refusal()
             if scanner is None or why is not None:
                 raise ApiError("invalid_params", why or "no scanner")
+            # the model's surface at the round's pressures before the capture: its silhouettes are rendered while
+            # the rig moves, for the hull's error measured after it
+            surface_mm = await self._model_surface_mm(action)
+            await asyncio.to_thread(scanner.expect_surface, surface_mm)
             answer = await self.perform_scan(action.round, scanner.plan_for(action.tolerance_pct))
             folder = str(answer["folder"])
             if answer.get("status") != "complete":
                 raise ApiError("rejected", f"the capture ended {answer.get('status')!r}")
-            result = await asyncio.to_thread(scanner.volume, folder, await self._model_surface_mm(action))
+            result = await asyncio.to_thread(scanner.volume, folder, surface_mm)
             volume_ml = float(result["volume_ml"])
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
             if self.verify_scan is not asyncio.current_task():

@@ -92,6 +92,11 @@ class ScanWorker:
         """The verify scan's plan at ``tolerance_pct`` (%): the :class:`VerifyScan`'s, decided in the daemon."""
         return self.verify.plan_for(tolerance_pct)
 
+    def expect_surface(self, model_surface_mm: tuple[Any, Any] | None) -> None:
+        """The model's surface at the next verify scan's pressures, given to the process before its capture
+        (``phantom.host.daemon.VerifyScanner``): blocking, run in a worker thread of the daemon."""
+        self._job("surface", model_surface_mm, None)
+
     def volume(self, folder: str, model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
         """The capture folder reconstructed (``phantom.host.daemon.VerifyScanner``): blocking, run in a worker
         thread of the daemon, which waits without holding the GIL."""
@@ -272,7 +277,13 @@ def _serve(connection: Connection, parent_pid: int, scanner: Scanner, verify: Ve
         kind, argument = request
         reply: tuple[Any, ...]
         try:
-            answer = scanner(argument, rig) if kind == "scan" else verify.volume(*argument)
+            if kind == "scan":
+                answer = scanner(argument, rig)
+            elif kind == "surface":
+                verify.expect_surface(argument)
+                answer = {}
+            else:
+                answer = verify.volume(*argument)
         except _DaemonGone:
             return
         except ApiError as error:

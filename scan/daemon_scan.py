@@ -21,6 +21,9 @@ from phantom.scan.capture import CaptureError, CaptureFolder, FrameSource, Plan,
 from phantom.scan.keying import KEYED
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from phantom.scan.capture import Frame
     from phantom.scan.virtual import PhantomShapes
 
 
@@ -88,7 +91,7 @@ class DaemonScanner:
             kept = Rig.load(params["rig"]) if params.get("rig") else None
             folder = CaptureFolder.create(params["out"], camera.describe(), plan.to_json(), {"by": "daemon"}, kept)
             answer: dict[str, Any] = {"folder": str(folder.path)}
-            keep = KEYED.start(folder) if params.get("key_silhouettes") else None
+            keep = self._keeper(folder, camera) if params.get("key_silhouettes") else None
             try:
                 rig.configure(SCANNER_AXES)
                 capture(rig, camera, rig, plan, folder, stop=rig, keep=keep)
@@ -100,6 +103,26 @@ class DaemonScanner:
         finally:  # a webcam is let go: the process it was opened in outlives the scan, the next opens it again
             camera.close()
         return {**answer, "status": folder.status, "pictures": len(folder.frames)}
+
+    @staticmethod
+    def _keeper(folder: CaptureFolder, camera: FrameSource) -> Callable[[Frame, np.ndarray], None]:
+        """What the capture gives each picture once written: its silhouette keyed (``phantom.scan.keying``) and,
+        for a virtual camera's (posed in the model's frame), the model's silhouette at its pose rendered
+        (``phantom.scan.hull_bias.ModelSilhouettes``, when the daemon gave the model's surface at the scan's
+        pressures), both kept for the reconstruction that follows."""
+        from phantom.scan.hull_bias import MODEL_SILHOUETTES  # the renderer's kernels: in the scan worker only
+        from phantom.scan.virtual import VirtualCamera
+
+        key = KEYED.start(folder)
+        render = MODEL_SILHOUETTES.start(folder, camera.rig) if isinstance(camera, VirtualCamera) else None
+        if render is None:
+            return key
+
+        def keep(frame: Frame, picture: np.ndarray) -> None:
+            key(frame, picture)
+            render(frame)
+
+        return keep
 
     @staticmethod
     def _checked(params: dict[str, Any]) -> tuple[Plan, int]:

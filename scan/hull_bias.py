@@ -23,15 +23,19 @@ model's more than these do.
 
 from __future__ import annotations
 
+import threading
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from phantom import PhantomError
 from phantom.model.mesh.surface import AlignmentError, TriangleMesh, enclosed_volume_ml
 from phantom.scan.camera import Pose, Rig
-from phantom.scan.capture import CaptureFolder
+from phantom.scan.capture import CaptureFolder, Frame
 from phantom.scan.reconstruct import Reconstruction, reconstruct
 from phantom.scan.render import Renderer, hung_scene
 from phantom.scan.silhouette import Silhouette, silhouette_of_alpha
@@ -98,12 +102,14 @@ def check_fit(surface: TriangleMesh, scanned: TriangleMesh) -> None:
 
 
 def hull_bias(capture: CaptureFolder, rig: Rig, scanned: Reconstruction, surface: TriangleMesh,
-              in_model_frame: bool) -> HullBias:
+              in_model_frame: bool, rendered: Mapping[str, Rendered] | None = None) -> HullBias:
     """The hull's error on the model's ``surface`` (mm, the model's frame) at the scan's pressures, for the scan
     ``scanned`` of ``capture`` posed by ``rig``: its frames carved at the scan's voxel, from silhouettes of the
     surface (and of the tubes it hangs by, when the scan cut a hanging column). ``in_model_frame``: the rig's frame
     is the model's (the virtual rig's own geometry: the scan must lie on the surface, :func:`check_fit`); else the
-    surface is placed on the scan first (:func:`placed_on_scan`). AlignmentError when it fits no motion onto it."""
+    surface is placed on the scan first (:func:`placed_on_scan`). ``rendered``: the surface's silhouettes rendered
+    while the capture ran (:class:`ModelSilhouettes`), by picture, each used where it was rendered at the very pose
+    and the scene is the surface itself. AlignmentError when it fits no motion onto it."""
     started = time.perf_counter()
     scene = hung_scene(surface)[0] if scanned.hanging is not None else surface
     aligned = not in_model_frame
@@ -112,25 +118,113 @@ def hull_bias(capture: CaptureFolder, rig: Rig, scanned: Reconstruction, surface
         scene = TriangleMesh(scene.vertices_mm @ rotation.T + translation, scene.triangles)
     else:
         check_fit(surface, scanned.mesh)
+    rendered = rendered if rendered is not None and scene is surface else {}
     renderer = Renderer(rig.camera)
-    keyed = {frame.image: coverage_silhouette(renderer, scene, rig.pose(frame.orbit_deg, frame.elevation_deg))
-             for frame in capture.frames}
+    keyed = {}
+    for frame in capture.frames:
+        pose = rig.pose(frame.orbit_deg, frame.elevation_deg)
+        kept = rendered.get(frame.image)
+        keyed[frame.image] = (kept.silhouette if kept is not None and kept.at(pose)
+                              else coverage_silhouette(renderer, scene, pose))
     carved = reconstruct(capture, rig, scanned.voxel_mm, keyed=keyed, check_lined_up=False)
     return HullBias(carved.volume_ml, enclosed_volume_ml(surface), aligned, time.perf_counter() - started)
 
 
+@dataclass(frozen=True)
+class Rendered:
+    """The model's silhouette in one picture of a capture, and the pose it was rendered at."""
+
+    pose: Pose
+    silhouette: Silhouette
+
+    def at(self, pose: Pose) -> bool:
+        """Whether it was rendered at ``pose``, exactly."""
+        return bool(np.array_equal(self.pose.rotation, pose.rotation)
+                    and np.array_equal(self.pose.translation_mm, pose.translation_mm))
+
+
+class ModelSilhouettes:
+    """The model's silhouettes at a verify capture's stops, rendered in the capture's pictures thread as each
+    picture is written, while the rig moves to the next stop, for the hull's error measured after the capture
+    (:func:`hull_bias`): the verify plan's 40 renders of 640x480 were 1.4 s of the 3.3 s the hull's error took
+    after each verify scan. Kept in this process (the daemon's scan worker, where its verify captures and their
+    reconstructions run), as the pictures' own silhouettes are (``phantom.scan.keying``): the surface the next
+    captures are measured on (:meth:`expect`), one capture's silhouettes at a time (:meth:`start`), handed out
+    once (:meth:`take`) and only for that very surface; :func:`hull_bias` uses each only at the pose it was
+    rendered at. Only a capture posed in the model's frame (the virtual rig's own geometry) renders them: a
+    calibrated rig's needs the scan to place the surface first."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._surface: TriangleMesh | None = None
+        self._folder: Path | None = None
+        self._rendered: dict[str, Rendered] = {}
+
+    def expect(self, surface_mm: tuple[Any, Any] | None) -> None:
+        """The model's outer surface (positions mm, triangles; the model's frame) at the next captures' pressures;
+        None: none (the captures render nothing)."""
+        surface = None if surface_mm is None else _mesh(surface_mm)
+        with self._lock:
+            self._surface, self._folder, self._rendered = surface, None, {}
+
+    def start(self, folder: CaptureFolder, rig: Rig) -> Callable[[Frame], None] | None:
+        """Render the expected surface's silhouette at each of ``folder``'s pictures, posed by ``rig``, from now on
+        (another capture's are dropped): the call to make with each frame once its picture is written; None when
+        no surface is expected."""
+        path = folder.path.resolve()
+        with self._lock:
+            surface = self._surface
+            self._folder, self._rendered = path, {}
+        if surface is None:
+            return None
+        renderer = Renderer(rig.camera)
+
+        def render(frame: Frame) -> None:
+            pose = rig.pose(frame.orbit_deg, frame.elevation_deg)
+            try:
+                found = coverage_silhouette(renderer, surface, pose)
+            except PhantomError:
+                return  # the hull's error renders it again, and says what is wrong
+            with self._lock:
+                if self._folder == path:
+                    self._rendered[frame.image] = Rendered(pose, found)
+
+        return render
+
+    def take(self, folder: CaptureFolder, surface_mm: tuple[Any, Any]) -> dict[str, Rendered]:
+        """The silhouettes rendered of ``folder``'s pictures, by picture (``Frame.image``), if they are of the
+        surface ``surface_mm`` ({} otherwise); forgotten here."""
+        with self._lock:
+            if self._folder != folder.path.resolve() or self._surface is None:
+                return {}
+            rendered, surface, self._folder, self._rendered = self._rendered, self._surface, None, {}
+        given = _mesh(surface_mm)
+        same = (np.array_equal(given.vertices_mm, surface.vertices_mm)
+                and np.array_equal(given.triangles, surface.triangles))
+        return rendered if same else {}
+
+
+def _mesh(surface_mm: tuple[Any, Any]) -> TriangleMesh:
+    positions_mm, triangles = surface_mm
+    return TriangleMesh(np.asarray(positions_mm, dtype=float), np.asarray(triangles, dtype=np.int64))
+
+
+#: This process's: the daemon's scan worker renders its verify captures' model silhouettes here.
+MODEL_SILHOUETTES = ModelSilhouettes()
+
+
 def measured_hull_bias(capture: CaptureFolder, rig: Rig, scanned: Reconstruction,
-                       model_surface_mm: tuple[Any, Any]) -> HullBias | str:
+                       model_surface_mm: tuple[Any, Any], rendered: Mapping[str, Rendered] | None = None
+                       ) -> HullBias | str:
     """:func:`hull_bias` for a scan of ``capture`` and the model's surface at its pressures (positions mm,
     triangles; the model's frame), in the model's frame when the capture keeps no rig of its own (the virtual
     rig's geometry); or why there is none, to be said beside the scan's own volume: the surface does not lie on
-    the scan, where it is or after any rigid motion (not this phantom, or not at these pressures)."""
+    the scan, where it is or after any rigid motion (not this phantom, or not at these pressures). ``rendered``:
+    the surface's silhouettes rendered while the capture ran (:class:`ModelSilhouettes`)."""
     from phantom.scan.carve import CarveError
     from phantom.scan.silhouette import SilhouetteError
 
-    positions_mm, triangles = model_surface_mm
-    surface = TriangleMesh(np.asarray(positions_mm, dtype=float), np.asarray(triangles, dtype=np.int64))
     try:
-        return hull_bias(capture, rig, scanned, surface, in_model_frame=not capture.rig_file)
+        return hull_bias(capture, rig, scanned, _mesh(model_surface_mm), not capture.rig_file, rendered)
     except (AlignmentError, SilhouetteError, CarveError) as error:
         return f"the hull's error not taken off: the model's surface does not fit the scan ({error})"

@@ -602,7 +602,7 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
                 await asyncio.sleep(0)
             return True
 
-        scanner = types.SimpleNamespace(plan={}, plan_for=lambda tolerance_pct: {},
+        scanner = types.SimpleNamespace(plan={}, plan_for=lambda tolerance_pct: {}, expect_surface=lambda surface: None,
                                         volume=lambda folder, surface: {"volume_ml": 35.02, "surface_mm": None})
         daemon = types.SimpleNamespace(
             verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,

@@ -21,7 +21,7 @@ from truth_scan import verify_capture  # noqa: E402
 from phantom.cli.scan_verify import VERIFY_PLAN, VerifyScan  # noqa: E402
 from phantom.model.mesh.surface import TriangleMesh, enclosed_volume_ml  # noqa: E402
 from phantom.scan.camera import virtual_rig  # noqa: E402
-from phantom.scan.hull_bias import coverage_silhouette, hull_bias  # noqa: E402
+from phantom.scan.hull_bias import ModelSilhouettes, Rendered, coverage_silhouette, hull_bias  # noqa: E402
 from phantom.scan.reconstruct import reconstruct  # noqa: E402
 from phantom.scan.render import Renderer  # noqa: E402
 from phantom.scan.synthetic import random_rotation, sphere  # noqa: E402
@@ -60,6 +60,40 @@ def test_the_hull_read_on_a_larger_model_takes_the_dents_error_off_the_scan(scan
     corrected_pct = 100 * (hull.corrected_ml(result.volume_ml) / true_ml - 1)
     assert abs(corrected_pct) < 0.1 * raw_pct, (raw_pct, hull.error_pct, corrected_pct)
     assert not hull.aligned and hull.seconds > 0
+
+
+@pytest.mark.slow
+def test_the_models_silhouettes_rendered_while_the_capture_ran_give_its_hull_to_the_last_digit(scanned):
+    """The daemon's verify capture renders the model's silhouettes as each picture is written (its scan worker,
+    ModelSilhouettes), not after the capture: the hull carved from them is the one rendered after, to the last
+    digit. They are handed out once, and only for the very surface expected; a silhouette rendered at another pose
+    than the picture's is rendered again (a wrong one at the right pose would change the hull); with no surface
+    expected a capture renders nothing."""
+    folder, rig, result = scanned
+    silhouettes, model = ModelSilhouettes(), (MODEL.vertices_mm, MODEL.triangles)
+    assert silhouettes.start(folder, rig) is None
+    silhouettes.expect(model)
+    render = silhouettes.start(folder, rig)
+    for frame in folder.frames:
+        render(frame)
+    rendered = silhouettes.take(folder, model)
+    assert sorted(rendered) == sorted(frame.image for frame in folder.frames) and len(rendered) == 40
+    assert silhouettes.take(folder, model) == {}  # handed out once
+    after = hull_bias(folder, rig, result, MODEL, in_model_frame=True)
+    ahead = hull_bias(folder, rig, result, MODEL, in_model_frame=True, rendered=rendered)
+    assert ahead.carved_ml == after.carved_ml and ahead.enclosed_ml == after.enclosed_ml
+    # another surface than the one expected: none handed out
+    silhouettes.expect(model)
+    render = silhouettes.start(folder, rig)
+    render(folder.frames[0])
+    assert silhouettes.take(folder, (PHANTOM.vertices_mm, PHANTOM.triangles)) == {}
+    # a picture's silhouette swapped for another's: at that other picture's pose it is not used, at its own it is
+    first, other = folder.frames[0], folder.frames[len(folder.frames) // 2]
+    swapped = rendered[other.image].silhouette
+    posed_elsewhere = {**rendered, first.image: Rendered(rig.pose(other.orbit_deg, other.elevation_deg), swapped)}
+    assert hull_bias(folder, rig, result, MODEL, True, posed_elsewhere).carved_ml == after.carved_ml
+    posed_here = {**rendered, first.image: Rendered(rig.pose(first.orbit_deg, first.elevation_deg), swapped)}
+    assert hull_bias(folder, rig, result, MODEL, True, posed_here).carved_ml != after.carved_ml
 
 
 @pytest.mark.slow

@@ -46,10 +46,16 @@ class RecordingScanner:
 
 
 class ReconstructingVerify(VerifyScan):
-    """A verify scan whose reconstruction answers its process and the folder it was given."""
+    """A verify scan whose reconstruction answers its process, the folder it was given and the points of the
+    surface it was told to expect before."""
+
+    expected_points = None
+
+    def expect_surface(self, model_surface_mm):
+        ReconstructingVerify.expected_points = None if model_surface_mm is None else len(model_surface_mm[0])
 
     def volume(self, folder, model_surface_mm=None):
-        return {"volume_ml": 40.0, "folder": folder, "pid": os.getpid(),
+        return {"volume_ml": 40.0, "folder": folder, "pid": os.getpid(), "expected_points": self.expected_points,
                 "surface_points": None if model_surface_mm is None else len(model_surface_mm[0])}
 
 
@@ -116,10 +122,14 @@ def test_the_capture_runs_in_the_workers_process_and_its_rig_calls_in_the_caller
     assert {thread for _, _, thread in rig.calls} == {threading.get_ident()}
     # the reconstruction in the same process, kept from the first job; the plan is the verify scan's
     volume = worker.volume("/data/scans/round1")
-    assert volume == {"volume_ml": 40.0, "folder": "/data/scans/round1", "pid": answer["pid"], "surface_points": None}
-    # the model's surface at the scan's pressures goes with it (the hull's error is measured on it)
-    with_surface = worker.volume("/data/scans/round1", (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]])))
-    assert with_surface["surface_points"] == 4
+    assert volume == {"volume_ml": 40.0, "folder": "/data/scans/round1", "pid": answer["pid"],
+                      "expected_points": None, "surface_points": None}
+    # the model's surface at the scan's pressures goes with it (the hull's error is measured on it), and to the
+    # process before the capture (its silhouettes rendered while the rig moves)
+    surface = (np.zeros((4, 3)), np.array([[0, 1, 2], [0, 2, 3]]))
+    assert worker.expect_surface(surface) is None
+    with_surface = worker.volume("/data/scans/round1", surface)
+    assert with_surface["surface_points"] == 4 and with_surface["expected_points"] == 4
     assert worker.plan == {"views": 30}
 
 

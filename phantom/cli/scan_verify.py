@@ -119,6 +119,14 @@ class VerifyScan:
         return virtual_rig(float(self.plan.get("scale", 1.0)), tuple(
             float(e) for e in capture.plan.get("elevations_deg", self.plan.get("elevations_deg", [0.0, 30.0]))))
 
+    def expect_surface(self, model_surface_mm: tuple[Any, Any] | None) -> None:
+        """The model's outer surface (positions mm, triangles) at the next verify scan's pressures, given before its
+        capture (None: none): the capture renders its silhouettes while the rig moves, for :meth:`volume`'s hull
+        error (``phantom.scan.hull_bias.ModelSilhouettes``)."""
+        from phantom.scan.hull_bias import MODEL_SILHOUETTES
+
+        MODEL_SILHOUETTES.expect(model_surface_mm)
+
     def volume(self, folder: str, model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
         """The capture in ``folder`` reconstructed: ``volume_ml`` (with the visual hull's error on the model's
         surface at the scan's pressures, ``model_surface_mm`` (positions mm, triangles), taken off:
@@ -126,7 +134,7 @@ class VerifyScan:
         surface given, or none could be placed on the scan, ``hull_note`` says why), ``mesh``, ``views``,
         ``stage_s``, ``surface_mm`` and ``keyed_while_taken``. PhantomError for a scan that cannot be read."""
         from phantom.scan.capture import CaptureFolder
-        from phantom.scan.hull_bias import measured_hull_bias
+        from phantom.scan.hull_bias import MODEL_SILHOUETTES, measured_hull_bias
         from phantom.scan.keying import KEYED
         from phantom.scan.reconstruct import reconstruct, write_mesh
 
@@ -144,7 +152,8 @@ class VerifyScan:
         surface = (result.mesh.vertices_mm, result.mesh.triangles) if in_model_frame else None
         volume_ml, hull_error_pct, note = result.volume_ml, None, "no model surface given"
         if model_surface_mm is not None:
-            hull = measured_hull_bias(capture, rig, result, model_surface_mm)
+            hull = measured_hull_bias(capture, rig, result, model_surface_mm,
+                                      MODEL_SILHOUETTES.take(capture, model_surface_mm))
             if isinstance(hull, str):
                 note = hull
             else:
