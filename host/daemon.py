@@ -87,10 +87,10 @@ class VerifyScanner(Protocol):
     def volume(self, folder: str, model_surface_mm: tuple[Any, Any] | None = None) -> dict[str, Any]:
         """The capture folder reconstructed (blocking: run in a worker thread): ``volume_ml`` (the visual hull's
         error on ``model_surface_mm``, the model's outer surface at the scan's pressures, taken off),
-        ``scanned_raw_ml`` and ``hull_error_pct`` (None, ``hull_note`` says why), ``mesh`` (the surface's file)
-        and ``surface_mm`` (its vertices and triangles in the model's frame, for the recording; None when the
-        scan's frame is not the model's); PhantomError when it cannot be (a picture without the phantom, a hull
-        not closed)."""
+        ``scanned_raw_ml`` and ``hull_error_pct`` (None, ``hull_note`` says why), ``mesh`` (the surface's file),
+        ``surface_mm`` (its vertices and triangles in the model's frame, for the recording; None when the scan's
+        frame is not the model's), ``stage_s``, ``keyed_while_taken`` and ``hull_rendered_while_taken``;
+        PhantomError when it cannot be (a picture without the phantom, a hull not closed)."""
         ...
 
 
@@ -305,9 +305,14 @@ class Daemon:
         if self.verify_scan is not asyncio.current_task():
             return
         if result.get("hull_error_pct") is not None:
+            # with how the reconstruction went: its stages' seconds, and how many pictures' silhouettes (the scan's
+            # own, the model's) were ready when the capture ended
             self.event("scan", f"round {action.round}: the visual hull reads the model's shape at these pressures "
                                f"{result['hull_error_pct']:+.3f} % off; taken off the scan's "
-                               f"{result['scanned_raw_ml']:.3f} ml: {volume_ml:.3f} ml")
+                               f"{result['scanned_raw_ml']:.3f} ml: {volume_ml:.3f} ml",
+                       data={"round": action.round, "stage_s": result.get("stage_s"),
+                             "keyed_while_taken": result.get("keyed_while_taken"),
+                             "hull_rendered_while_taken": result.get("hull_rendered_while_taken")})
         elif result.get("hull_note"):
             self.event("scan", f"round {action.round}: {result['hull_note']}", "WARN")
         self.recorder.log_scanned_volume(self.now_s(), volume_ml, action.round, action.tolerance_pct)
@@ -543,7 +548,7 @@ class Daemon:
 
     def event(self, kind: str, text: str, level: str = "INFO", data: dict[str, Any] | None = None) -> None:
         """Record an event: the status's recent events, Rerun's text log, subscribers, the log. ``data`` (a
-        target's outcome) goes with it to subscribers."""
+        target's outcome, a verify scan's reconstruction) goes with it to subscribers and the status."""
         if kind == "link_lost":  # the session's event: a verify scan failing after it is retaken
             self.link_lost_s = self.now_s()
         entry = {"time_s": round(self.now_s(), 3), "kind": kind, "level": level, "text": text, **(data or {})}

@@ -44,12 +44,14 @@ from phantom.scan.silhouette import Silhouette, silhouette_of_alpha
 @dataclass(frozen=True)
 class HullBias:
     """The model's surface carved as a scan was (ml), its own enclosed volume (ml), whether it was placed on the
-    scan by alignment (a calibrated rig's frame), and the seconds it took."""
+    scan by alignment (a calibrated rig's frame), the seconds it took, and of how many pictures the model's
+    silhouette had been rendered while the capture ran (:class:`ModelSilhouettes`; the others rendered here)."""
 
     carved_ml: float
     enclosed_ml: float
     aligned: bool
     seconds: float
+    rendered_while_taken: int = 0
 
     @property
     def ratio(self) -> float:
@@ -120,14 +122,16 @@ def hull_bias(capture: CaptureFolder, rig: Rig, scanned: Reconstruction, surface
         check_fit(surface, scanned.mesh)
     rendered = rendered if rendered is not None and scene is surface else {}
     renderer = Renderer(rig.camera)
-    keyed = {}
+    keyed, taken = {}, 0
     for frame in capture.frames:
         pose = rig.pose(frame.orbit_deg, frame.elevation_deg)
         kept = rendered.get(frame.image)
-        keyed[frame.image] = (kept.silhouette if kept is not None and kept.at(pose)
-                              else coverage_silhouette(renderer, scene, pose))
+        if kept is not None and kept.at(pose):
+            keyed[frame.image], taken = kept.silhouette, taken + 1
+        else:
+            keyed[frame.image] = coverage_silhouette(renderer, scene, pose)
     carved = reconstruct(capture, rig, scanned.voxel_mm, keyed=keyed, check_lined_up=False)
-    return HullBias(carved.volume_ml, enclosed_volume_ml(surface), aligned, time.perf_counter() - started)
+    return HullBias(carved.volume_ml, enclosed_volume_ml(surface), aligned, time.perf_counter() - started, taken)
 
 
 @dataclass(frozen=True)

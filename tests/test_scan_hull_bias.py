@@ -82,6 +82,7 @@ def test_the_models_silhouettes_rendered_while_the_capture_ran_give_its_hull_to_
     after = hull_bias(folder, rig, result, MODEL, in_model_frame=True)
     ahead = hull_bias(folder, rig, result, MODEL, in_model_frame=True, rendered=rendered)
     assert ahead.carved_ml == after.carved_ml and ahead.enclosed_ml == after.enclosed_ml
+    assert ahead.rendered_while_taken == 40 and after.rendered_while_taken == 0
     # another surface than the one expected: none handed out
     silhouettes.expect(model)
     render = silhouettes.start(folder, rig)
@@ -91,7 +92,8 @@ def test_the_models_silhouettes_rendered_while_the_capture_ran_give_its_hull_to_
     first, other = folder.frames[0], folder.frames[len(folder.frames) // 2]
     swapped = rendered[other.image].silhouette
     posed_elsewhere = {**rendered, first.image: Rendered(rig.pose(other.orbit_deg, other.elevation_deg), swapped)}
-    assert hull_bias(folder, rig, result, MODEL, True, posed_elsewhere).carved_ml == after.carved_ml
+    elsewhere = hull_bias(folder, rig, result, MODEL, True, posed_elsewhere)
+    assert elsewhere.carved_ml == after.carved_ml and elsewhere.rendered_while_taken == 39
     posed_here = {**rendered, first.image: Rendered(rig.pose(first.orbit_deg, first.elevation_deg), swapped)}
     assert hull_bias(folder, rig, result, MODEL, True, posed_here).carved_ml != after.carved_ml
 

@@ -25,13 +25,19 @@ PHANTOM = Path(sys.executable).with_name("phantom")
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
 
-def watch_progress(sock, seen, done):
-    """The status's verify progress and scan pictures, twice a second until ``done``, into ``seen``."""
+def watch_progress(sock, seen, hull_events, done):
+    """The status's verify progress and scan pictures, twice a second until ``done``, into ``seen``; its recent
+    events of the hull's error taken off a round's scan into ``hull_events`` (by round)."""
     with phantom.connect(sock) as watcher:
-        while not done.wait(0.5):
+        while True:
+            stopping = done.wait(0.5)
             status = watcher.status()
             if status.verify is not None:
                 seen.append((status.verify, status.scan))
+            hull_events.update({event["round"]: event for event in status.raw["events"]
+                                if "the visual hull reads" in event["text"]})
+            if stopping:  # once more after the command ended: its last round's events too
+                return
 
 
 @pytest.mark.timeout(1800)
@@ -49,8 +55,8 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
             with pytest.raises(DaemonError, match="verify_tolerance_pct .* from 0.05 to 20") as bad:
                 ph.set_volume(40.0, verify="scan", verify_tolerance_pct=0.0)
             assert bad.value.code == "invalid_params" and ph.status().target is None   # nothing was set
-        seen, done = [], threading.Event()
-        watcher = threading.Thread(target=watch_progress, args=(sock, seen, done))
+        seen, hull_events, done = [], {}, threading.Event()
+        watcher = threading.Thread(target=watch_progress, args=(sock, seen, hull_events, done))
         watcher.start()
         try:  # the command line a lab engineer types: its result as JSON, the rounds as they go on stderr
             typed = subprocess.Popen([str(PHANTOM), "set", "--socket", str(sock), "--volume-ml", "40", "--verify",
@@ -99,6 +105,11 @@ def test_a_verified_target_ends_within_0_3_pct_of_the_true_volume(tmp_path):
         assert all(Path(entry["scan"], "scan.ply").is_file() and Path(entry["scan"]).parent.parent == data
                    for entry in rounds)
         assert rounds[0]["pressures_kpa"] != rounds[-1]["pressures_kpa"] and "next" in rounds[0]
+        # each round's scan had every picture's silhouette keyed, and the model's silhouette for the hull's error
+        # rendered, while the rig moved (the scan worker's capture): after it only the carving is left
+        assert sorted(hull_events) == list(range(1, len(rounds) + 1)), hull_events
+        assert all(event["keyed_while_taken"] == event["hull_rendered_while_taken"] == 40
+                   and event["stage_s"]["hull_bias"] > 0 for event in hull_events.values()), hull_events
         # each round's scan starts at the elevation the one before ended at: its passes the other way round
         frames = [json.loads(Path(entry["scan"], "capture.json").read_text())["frames"] for entry in rounds]
         assert [scan[0]["elevation_deg"] for scan in frames[1:]] == pytest.approx(

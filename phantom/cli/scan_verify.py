@@ -132,7 +132,9 @@ class VerifyScan:
         surface at the scan's pressures, ``model_surface_mm`` (positions mm, triangles), taken off:
         ``phantom.scan.hull_bias``), ``scanned_raw_ml`` (the hull's own volume), ``hull_error_pct`` (None: no
         surface given, or none could be placed on the scan, ``hull_note`` says why), ``mesh``, ``views``,
-        ``stage_s``, ``surface_mm`` and ``keyed_while_taken``. PhantomError for a scan that cannot be read."""
+        ``stage_s``, ``surface_mm``, ``keyed_while_taken`` (the pictures whose silhouettes were keyed while the
+        capture ran) and ``hull_rendered_while_taken`` (those whose model silhouette for the hull's error was
+        rendered then). PhantomError for a scan that cannot be read."""
         from phantom.scan.capture import CaptureFolder
         from phantom.scan.hull_bias import MODEL_SILHOUETTES, measured_hull_bias
         from phantom.scan.keying import KEYED
@@ -150,7 +152,7 @@ class VerifyScan:
                                "pictures: it is not wholly in view, its volume would be wrong")
         mesh = write_mesh(result.mesh, capture.path / "scan.ply")
         surface = (result.mesh.vertices_mm, result.mesh.triangles) if in_model_frame else None
-        volume_ml, hull_error_pct, note = result.volume_ml, None, "no model surface given"
+        volume_ml, hull_error_pct, note, rendered = result.volume_ml, None, "no model surface given", 0
         if model_surface_mm is not None:
             hull = measured_hull_bias(capture, rig, result, model_surface_mm,
                                       MODEL_SILHOUETTES.take(capture, model_surface_mm))
@@ -158,7 +160,8 @@ class VerifyScan:
                 note = hull
             else:
                 volume_ml, hull_error_pct, note = hull.corrected_ml(result.volume_ml), hull.error_pct, ""
+                rendered = hull.rendered_while_taken
                 result.stage_s["hull_bias"] = hull.seconds
         return {"volume_ml": volume_ml, "scanned_raw_ml": result.volume_ml, "hull_error_pct": hull_error_pct,
                 "hull_note": note, "mesh": str(mesh), "views": result.views, "stage_s": result.stage_s,
-                "surface_mm": surface, "keyed_while_taken": len(keyed)}
+                "surface_mm": surface, "keyed_while_taken": len(keyed), "hull_rendered_while_taken": rendered}
