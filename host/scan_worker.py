@@ -46,10 +46,6 @@ if TYPE_CHECKING:
 #: The rig's calls a capture makes (``phantom.host.motion.ThreadRig``'s methods): the only ones relayed.
 RIG_CALLS = frozenset({"configure", "move_to", "position_deg", "release", "stop_requested", "pressures_kpa",
                        "simulated"})
-#: How much lower the process's priority is than the daemon's (nice(2) increment; the truth shape's solver, its
-#: child, inherits it): a third of the daemon's weight. At +10 a verify beside two busy processes took twice as
-#: long (244 s against 116-131 s at +5 and 0) and was no less late on the link's loop (bench/README.md).
-WORKER_NICENESS = 5
 #: How long :meth:`ScanWorker.close` waits for the process to end once told to (s), before it is killed.
 CLOSE_WAIT_S = 10.0
 
@@ -263,9 +259,9 @@ def _serve(connection: Connection, parent_pid: int, scanner: Scanner, verify: Ve
     # capture releases the motors and marks its folder stopped), then closes this process
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # the capture's and the reconstruction's work can wait; the daemon's link cannot: on a busy machine the
-    # kernel gives the cores to the daemon's threads (and the simulated board) first
-    os.nice(WORKER_NICENESS)
+    # at the daemon's priority, not below it: the reconstruction is a round's wait, the board holding its pressures
+    # meanwhile, and the link that must not wait is in a process of its own (real-time where allowed). Niced +5,
+    # beside a busy process per core, a round took 73 s against 46 s (bench/README.md, "A round's last seconds")
     rig: Any = _PipeRig(connection)  # the ThreadRig's calls, relayed to it
     while True:
         try:
