@@ -99,7 +99,7 @@ class DaemonScanner:
                 answer["reason"] = str(error)
             finally:  # a capture that did not complete leaves no silhouettes to read
                 if keep is not None and folder.status != "complete":
-                    KEYED.drop(folder)
+                    self._drop(folder)
         finally:  # a webcam is let go: the process it was opened in outlives the scan, the next opens it again
             camera.close()
         return {**answer, "status": folder.status, "pictures": len(folder.frames)}
@@ -123,6 +123,15 @@ class DaemonScanner:
             render(frame)
 
         return keep
+
+    @staticmethod
+    def _drop(folder: CaptureFolder) -> None:
+        """Forget what :meth:`_keeper` kept of a capture that stopped or aborted: its keyed silhouettes, and the
+        model's rendered ones with the surface they were of."""
+        from phantom.scan.hull_bias import MODEL_SILHOUETTES
+
+        KEYED.drop(folder)
+        MODEL_SILHOUETTES.drop(folder)
 
     @staticmethod
     def _checked(params: dict[str, Any]) -> tuple[Plan, int]:

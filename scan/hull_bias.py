@@ -153,10 +153,11 @@ class ModelSilhouettes:
     (:func:`hull_bias`): the verify plan's 40 renders of 640x480 were 1.4 s of the 3.3 s the hull's error took
     after each verify scan. Kept in this process (the daemon's scan worker, where its verify captures and their
     reconstructions run), as the pictures' own silhouettes are (``phantom.scan.keying``): the surface the next
-    captures are measured on (:meth:`expect`), one capture's silhouettes at a time (:meth:`start`), handed out
-    once (:meth:`take`) and only for that very surface; :func:`hull_bias` uses each only at the pose it was
-    rendered at. Only a capture posed in the model's frame (the virtual rig's own geometry) renders them: a
-    calibrated rig's needs the scan to place the surface first."""
+    capture is measured on (:meth:`expect`), one capture's silhouettes at a time (:meth:`start`), handed out
+    once (:meth:`take`) and only for that very surface, which goes with them, or with the capture's
+    (:meth:`drop`) when it stopped: a later capture renders only a surface expected for it; :func:`hull_bias`
+    uses each only at the pose it was rendered at. Only a capture posed in the model's frame (the virtual rig's
+    own geometry) renders them: a calibrated rig's needs the scan to place the surface first."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -165,8 +166,8 @@ class ModelSilhouettes:
         self._rendered: dict[str, Rendered] = {}
 
     def expect(self, surface_mm: tuple[Any, Any] | None) -> None:
-        """The model's outer surface (positions mm, triangles; the model's frame) at the next captures' pressures;
-        None: none (the captures render nothing)."""
+        """The model's outer surface (positions mm, triangles; the model's frame) at the next capture's pressures;
+        None: none (the capture renders nothing)."""
         surface = None if surface_mm is None else _mesh(surface_mm)
         with self._lock:
             self._surface, self._folder, self._rendered = surface, None, {}
@@ -197,15 +198,22 @@ class ModelSilhouettes:
 
     def take(self, folder: CaptureFolder, surface_mm: tuple[Any, Any]) -> dict[str, Rendered]:
         """The silhouettes rendered of ``folder``'s pictures, by picture (``Frame.image``), if they are of the
-        surface ``surface_mm`` ({} otherwise); forgotten here."""
+        surface ``surface_mm`` ({} otherwise); forgotten here, with the surface."""
         with self._lock:
             if self._folder != folder.path.resolve() or self._surface is None:
                 return {}
-            rendered, surface, self._folder, self._rendered = self._rendered, self._surface, None, {}
+            rendered, surface = self._rendered, self._surface
+            self._surface, self._folder, self._rendered = None, None, {}
         given = _mesh(surface_mm)
         same = (np.array_equal(given.vertices_mm, surface.vertices_mm)
                 and np.array_equal(given.triangles, surface.triangles))
         return rendered if same else {}
+
+    def drop(self, folder: CaptureFolder) -> None:
+        """Forget ``folder``'s silhouettes and the surface they were of (its capture stopped or aborted)."""
+        with self._lock:
+            if self._folder == folder.path.resolve():
+                self._surface, self._folder, self._rendered = None, None, {}
 
 
 def _mesh(surface_mm: tuple[Any, Any]) -> TriangleMesh:
