@@ -126,8 +126,8 @@ class DaemonScanner:
 
     @staticmethod
     def _drop(folder: CaptureFolder) -> None:
-        """Forget what :meth:`_keeper` kept of a capture that stopped or aborted: its keyed silhouettes, and the
-        model's rendered ones with the surface they were of."""
+        """Forget what :meth:`_keeper` kept of a capture that stopped or aborted: its keyed silhouettes and the
+        model's rendered ones."""
         from phantom.scan.hull_bias import MODEL_SILHOUETTES
 
         KEYED.drop(folder)

@@ -154,10 +154,11 @@ class ModelSilhouettes:
     after each verify scan. Kept in this process (the daemon's scan worker, where its verify captures and their
     reconstructions run), as the pictures' own silhouettes are (``phantom.scan.keying``): the surface the next
     capture is measured on (:meth:`expect`), one capture's silhouettes at a time (:meth:`start`), handed out
-    once (:meth:`take`) and only for that very surface, which goes with them, or with the capture's
-    (:meth:`drop`) when it stopped: a later capture renders only a surface expected for it; :func:`hull_bias`
-    uses each only at the pose it was rendered at. Only a capture posed in the model's frame (the virtual rig's
-    own geometry) renders them: a calibrated rig's needs the scan to place the surface first."""
+    once (:meth:`take`) and only for that very surface, which goes with them (a later capture renders only a
+    surface expected for it); a capture that stopped drops its silhouettes (:meth:`drop`) and keeps the surface
+    for the round's capture taken again; :func:`hull_bias` uses each only at the pose it was rendered at. Only a
+    capture posed in the model's frame (the virtual rig's own geometry) renders them: a calibrated rig's needs the
+    scan to place the surface first."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -210,10 +211,11 @@ class ModelSilhouettes:
         return rendered if same else {}
 
     def drop(self, folder: CaptureFolder) -> None:
-        """Forget ``folder``'s silhouettes and the surface they were of (its capture stopped or aborted)."""
+        """Forget ``folder``'s silhouettes (its capture stopped or aborted); the surface stays expected: the
+        daemon takes a round's capture again, at the same pressures, when the board's reply came late."""
         with self._lock:
             if self._folder == folder.path.resolve():
-                self._surface, self._folder, self._rendered = None, None, {}
+                self._folder, self._rendered = None, {}
 
 
 def _mesh(surface_mm: tuple[Any, Any]) -> TriangleMesh:

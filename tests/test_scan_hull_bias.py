@@ -66,9 +66,10 @@ def test_the_hull_read_on_a_larger_model_takes_the_dents_error_off_the_scan(scan
 def test_the_models_silhouettes_rendered_while_the_capture_ran_give_its_hull_to_the_last_digit(scanned):
     """The daemon's verify capture renders the model's silhouettes as each picture is written (its scan worker,
     ModelSilhouettes), not after the capture: the hull carved from them is the one rendered after, to the last
-    digit. They are handed out once, and only for the very surface expected, which goes with them (or with a
-    stopped capture's drop); a silhouette rendered at another pose than the picture's is rendered again (a wrong
-    one at the right pose would change the hull); with no surface expected a capture renders nothing."""
+    digit. They are handed out once, and only for the very surface expected, which goes with them (a stopped
+    capture's are dropped, the surface kept for the capture taken again); a silhouette rendered at another pose
+    than the picture's is rendered again (a wrong one at the right pose would change the hull); with no surface
+    expected a capture renders nothing."""
     folder, rig, result = scanned
     silhouettes, model = ModelSilhouettes(), (MODEL.vertices_mm, MODEL.triangles)
     assert silhouettes.start(folder, rig) is None
@@ -89,12 +90,16 @@ def test_the_models_silhouettes_rendered_while_the_capture_ran_give_its_hull_to_
     render = silhouettes.start(folder, rig)
     render(folder.frames[0])
     assert silhouettes.take(folder, (PHANTOM.vertices_mm, PHANTOM.triangles)) == {}
-    # a capture stopped or aborted: its silhouettes and its surface dropped, not kept for the next
+    # a capture stopped or aborted: its silhouettes dropped, not handed to the next; the surface kept for the
+    # round's capture taken again
     silhouettes.expect(model)
     render = silhouettes.start(folder, rig)
     render(folder.frames[0])
     silhouettes.drop(folder)
-    assert silhouettes.take(folder, model) == {} and silhouettes.start(folder, rig) is None
+    assert silhouettes.take(folder, model) == {}
+    render = silhouettes.start(folder, rig)
+    render(folder.frames[1])
+    assert list(silhouettes.take(folder, model)) == [folder.frames[1].image]
     # a picture's silhouette swapped for another's: at that other picture's pose it is not used, at its own it is
     first, other = folder.frames[0], folder.frames[len(folder.frames) // 2]
     swapped = rendered[other.image].silhouette
