@@ -109,6 +109,14 @@ def _flag_value(item: SettingField) -> Callable[[str], Any]:
 
 def _run_daemon(args: argparse.Namespace) -> int:
     import functools
+    import os
+
+    # The daemon's worker processes (scan, model, link) read it when they import numpy: numpy asks the kernel for
+    # huge pages on its large arrays, and where transparent huge pages are "madvise" (Debian's and Ubuntu's
+    # default) the kernel compacts memory for them on the spot. The scan worker sits idle while the rig moves and
+    # then carves: its carve took 2.7-4.0 s after each capture with that advice and 0.8-0.9 s without
+    # (bench/carve_after_idle.py). A value the daemon was started with is kept.
+    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
     from phantom import PhantomError
     from phantom.host.config import load_config, merged_config
