@@ -13,9 +13,12 @@ unexport PYTHONDONTWRITEBYTECODE
 setup:
 	@scripts/bootstrap.sh
 
-# The daemon drives the simulated phantom (the firmware image in simavr) through the BPH growth scene.
-demo: setup
-	$(MAKE) -C firmware
+# The daemon drives the simulated phantom (the firmware image in simavr) through the BPH growth scene. It installs
+# only what it uses (pyproject.toml's extra "demo") and builds only the image the simulated board runs (the Uno's
+# with TEST_HANG, hil/firmware.py's DEFAULT_IMAGE).
+demo:
+	@scripts/bootstrap.sh --extras demo
+	$(MAKE) -C firmware uno-bench
 	$(PY) -m phantom.cli.demo --scene host/scenes/bph_growth.toml --time-scale 4 --out out
 
 # The Debian packages first (the firmware's compilers among them); then the Python environment's install beside

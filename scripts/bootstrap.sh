@@ -1,19 +1,26 @@
 #!/usr/bin/env bash
 # Make this checkout ready to build and test: the Debian packages in scripts/apt-packages.txt (or in the lists
-# given as arguments) and a Python environment in .venv/ with the project installed editable with every extra
-# (pyproject.toml).
-# Idempotent: a second run checks, prints one line, and installs nothing.
+# given as arguments) and a Python environment in .venv/ with the project installed editable with the optional
+# dependencies named by --extras (pyproject.toml; default every extra and the test tools, "all,test").
+# Idempotent: a second run checks, prints one line, and installs nothing. .venv/.installed keeps pyproject.toml's
+# digest and the extras installed; asking for extras not among them installs those beside them.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # --packages-only: the Debian packages alone (make test builds and tests the firmware, which needs them, while the
 # Python environment installs). The package lists to install: the arguments (e.g. scripts/apt-packages-figures.txt
 # as well), else the one for building and testing.
+# --extras LIST: the optional dependencies to install (comma-separated extras of pyproject.toml; make demo asks for
+# its own, "demo", without the test tools and the stacks it does not use).
 packages_only=false
-if [ "${1:-}" = "--packages-only" ]; then
-    packages_only=true
-    shift
-fi
+extras=all,test
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --packages-only) packages_only=true; shift ;;
+        --extras) extras=${2:?"bootstrap: --extras needs a comma-separated list of pyproject.toml's extras"}; shift 2 ;;
+        *) break ;;
+    esac
+done
 lists=("${@:-scripts/apt-packages.txt}")
 packages=$(sed -e 's/#.*//' -e '/^[[:space:]]*$/d' "${lists[@]}")
 missing=""
@@ -40,18 +47,28 @@ fi
 
 python=${PYTHON:-python3}
 stamp=.venv/.installed
-wanted=$(sha256sum pyproject.toml | cut -d' ' -f1)
+digest=$(sha256sum pyproject.toml | cut -d' ' -f1)
+stamped_digest="" stamped_extras=""
+if [ -f "$stamp" ]; then read -r stamped_digest stamped_extras < "$stamp" || true; fi
+# the extras wanted: those asked for, with those already installed when pyproject.toml has not changed since
+installed=""
+if [ "$stamped_digest" = "$digest" ]; then
+    installed=$stamped_extras
+fi
+wanted=$(printf '%s\n' ${installed//,/ } ${extras//,/ } | sort -u | paste -sd, -)
+# "all" holds what "demo" holds: make demo after make test installs nothing
+case ",$wanted," in *,all,*) wanted=$(printf '%s\n' ${wanted//,/ } | grep -vx demo | paste -sd, -) ;; esac
 if [ ! -x .venv/bin/python ]; then
     echo "bootstrap: creating .venv with $($python --version)"
     "$python" -m venv .venv
 fi
-if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
-    echo "bootstrap: installing the project and every extra into .venv (one to two minutes the first time)"
+if [ "$installed" != "$wanted" ]; then
+    echo "bootstrap: installing the project and its extras $wanted into .venv (under a minute to two the first time)"
     log=.venv/install.log
     # --no-compile: pip byte-compiles every module it installs (a third of the install's time, 54 against 37 s
     # here); Python compiles the few a command imports on first use instead, in a fraction of a second.
     if ! { .venv/bin/python -m pip install -q --upgrade pip \
-           && .venv/bin/python -m pip install -q --no-compile -e ".[all,test]"; } \
+           && .venv/bin/python -m pip install -q --no-compile -e ".[$wanted]"; } \
         >"$log" 2>&1; then
         cat "$log" >&2
         echo "bootstrap: pip failed (output above, also in $log)" >&2
@@ -68,6 +85,6 @@ if [ "$(cat "$stamp" 2>/dev/null)" != "$wanted" ]; then
            && .venv/bin/phantom inverse --scene builtin:converged --volume-ml 30 --json; } >>"$log" 2>&1; then
         echo "bootstrap: warning: preparing the model failed (see $log); the daemon prepares it on first use"
     fi
-    echo "$wanted" > "$stamp"
+    echo "$digest $wanted" > "$stamp"
 fi
 echo "bootstrap: ready (Debian packages present, .venv up to date)"
