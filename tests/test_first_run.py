@@ -157,14 +157,15 @@ def test_a_table_build_stopped_mid_solve_ends_at_once_beside_a_busy_process_per_
     from phantom.host.startup import STOP_WAIT_S, TableBuild
 
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "empty-cache"))  # the 4-node model's table not there
+    build = TableBuild("builtin:calibrated")
+    assert build.pid is not None
+    deadline = time.monotonic() + 300
+    while not descendants(build.pid):  # its solver processes started: it is mid-solve
+        assert time.monotonic() < deadline and not build.read(), "the build started no solver process"
+        time.sleep(0.2)
+    # the load from here on: what is timed is the stop (the build's meshing beside it only took make test's CPU)
     load = [subprocess.Popen([sys.executable, "-c", BUSY_LOOP]) for _ in range(os.cpu_count() or 2)]
     try:
-        build = TableBuild("builtin:calibrated")
-        assert build.pid is not None
-        deadline = time.monotonic() + 300
-        while not descendants(build.pid):  # its solver processes started: it is mid-solve
-            assert time.monotonic() < deadline and not build.read(), "the build started no solver process"
-            time.sleep(0.2)
         time.sleep(2.0)
         solvers = descendants(build.pid)
         started_s = time.monotonic()

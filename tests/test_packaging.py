@@ -61,7 +61,9 @@ def build_and_install(root: Path) -> None:
     dependencies from pip's index)."""
     run([sys.executable, "-m", "build", "--wheel", "--outdir", str(root / "dist"), str(REPO)], cwd=root)
     venv.create(root / "venv", with_pip=True)
-    run([str(root / "venv" / "bin" / "python"), "-m", "pip", "install", "--quiet",
+    # --no-compile: as scripts/bootstrap.sh installs (pip's byte-compiling is a third of an install's time); the
+    # few modules a command imports compile on first use
+    run([str(root / "venv" / "bin" / "python"), "-m", "pip", "install", "--quiet", "--no-compile",
          str(next((root / "dist").glob("*.whl")))], cwd=root)
 
 
@@ -69,7 +71,8 @@ def build_and_install(root: Path) -> None:
 def installed(tmp_path_factory) -> dict[str, Path]:
     """The wheel, built from the checkout, installed into a fresh venv: built once for this state of the checkout
     (the other pytest workers and make test's other pytest run wait for it and reuse it), or in a temporary folder
-    outside a git checkout. Its venv is never written to by the tests: each gets its own empty cache."""
+    outside a git checkout. The tests write nothing into its venv but Python's bytecode caches: each gets its own
+    empty cache."""
     key = checkout_key()
     if key is None:
         root = tmp_path_factory.mktemp("packaging")
