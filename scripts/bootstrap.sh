@@ -63,7 +63,7 @@ if [ ! -x .venv/bin/python ]; then
     "$python" -m venv .venv
 fi
 if [ "$installed" != "$wanted" ]; then
-    echo "bootstrap: installing the project and its extras $wanted into .venv (under a minute to two the first time)"
+    echo "bootstrap: installing the project and its extras $wanted into .venv (about a minute the first time)"
     log=.venv/install.log
     # --no-compile: pip byte-compiles every module it installs (a third of the install's time, 54 against 37 s
     # here); Python compiles the few a command imports on first use instead, in a fraction of a second.
