@@ -299,7 +299,10 @@ class Daemon:
         except Exception as error:  # any failure of the scan is the round's, told to the core: no correction
             if self.verify_scan is not asyncio.current_task():
                 return  # superseded: stopped for a newer verification, whose round this is not
-            link_lost = self.link_lost_s is not None and self.link_lost_s >= started_s - LINK_LOSS_GRACE_S
+            # lost during the scan (or just before it), or not online now: a silence the scan found before any
+            # event of it was told
+            link_lost = ((self.link_lost_s is not None and self.link_lost_s >= started_s - LINK_LOSS_GRACE_S)
+                         or not self.session.online)
             self._feed(self.core.scanned, action.round, None, str(error), folder, None, link_lost)
             return
         if self.verify_scan is not asyncio.current_task():

@@ -262,6 +262,9 @@ class LinkProcess:
     async def command(self, name: str, fields: dict[str, Any] | None = None) -> str:
         """:meth:`LinkSession.command`, run in the link's process."""
         if not self.online:
+            # a silence found here before the watch (every STATUS_PERIOD_S) is told first: a verified target's scan
+            # failing on it must find the link lost (retaken, then the fault named), not a failed scan
+            self.check_reports()
             last = self._status.get("last_error")
             raise LinkDown(f"no board: the link is {self.state.value}" + (f" ({last})" if last else ""))
         answer: str = await self._ask("command", name, fields or {})

@@ -625,6 +625,39 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
     assert method == "scanned" and round_ == 1 and volume_ml == 35.02 and error is None
 
 
+@pytest.mark.parametrize(("online", "lost_s", "link_lost"), [(False, None, True), (True, None, False),
+                                                             (True, -5.0, True), (True, -60.0, False)])
+def test_a_verify_scan_failing_while_the_link_is_not_online_is_a_lost_links_retaken(online, lost_s, link_lost):
+    """A verify scan that failed on a link found silent before any event of its loss was told (a clean clone's
+    make test: "the scan stopped: no board: the link is silent") was fed to the core as a plain failure, and the
+    target ended ``scan_failed``, "the pressures are held", while the board latched DEAD_HOST. A link not online
+    when the scan fails, or lost during it (or just before, LINK_LOSS_GRACE_S), makes it the lost link's."""
+    import asyncio
+    import types
+
+    from phantom.host.api import ApiError
+    from phantom.host.daemon import Daemon
+
+    fed = []
+
+    async def scan(params):
+        raise ApiError("link_down", "no board: the link is silent")
+
+    scanner = types.SimpleNamespace(plan_for=lambda tolerance_pct: {}, expect_surface=lambda surface: None)
+    daemon = types.SimpleNamespace(
+        verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
+        motion=types.SimpleNamespace(latest=None, late_replies=0), link_lost_s=lost_s,
+        session=types.SimpleNamespace(online=online), now_s=lambda: 0.0, event=lambda *_: None,
+        core=types.SimpleNamespace(scanned="scanned"), _feed=lambda method, *args: fed.append((method, args)),
+        verify_scan=None, _model_surface_mm=lambda action: asyncio.sleep(0, result=None))
+    daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
+    daemon.perform_scan = lambda round_, plan: Daemon.perform_scan(daemon, round_, plan)
+    asyncio.run(Daemon._scan_for_core(daemon, policy_of.Scan(1, volume(35.0), (0.9, 0.4, 0.4), 0.3)))
+    ((method, (round_, volume_ml, error, _, _, told_lost)),) = fed
+    assert method == "scanned" and round_ == 1 and volume_ml is None and "the link is silent" in error
+    assert told_lost is link_lost
+
+
 def test_the_daemon_stops_the_verify_scan_the_core_asks_it_to_and_no_other():
     """The core's StopScan (its verification ended mid-scan) stops the running verify scan through the motion's
     stop; with no verify scan running (ended, or never started) nothing is stopped: a scan a client took itself

@@ -217,6 +217,30 @@ def test_a_daemon_loop_late_to_read_its_link_process_is_no_silence_of_the_proces
     assert link.state.value == "silent" and events[0][0] == "link_lost"
 
 
+def test_a_command_that_finds_the_link_silent_first_tells_the_loss_before_it_is_refused(tmp_path):
+    """The silence is watched every STATUS_PERIOD_S; a command in between found the link silent and was refused
+    before the daemon had heard of the loss. In a clean clone's make test a verified target's scan failed so
+    ("no board: the link is silent") and ended ``scan_failed``, "the pressures are held", while the board latched
+    DEAD_HOST: a scan failing on a lost link is retaken, and the fault then named, only once the loss is told."""
+    from phantom.host.link_process import LINK_SILENT_S
+
+    now, events = [100.0], []
+
+    async def main():
+        link = LinkProcess(SerialTransport(tmp_path / "board"), TIMING, clock=lambda: now[0])
+        link.attach(on_telemetry=lambda telemetry: None, on_event=lambda *event: events.append(event),
+                    on_online=None, on_motion=lambda message: None)
+        link._handle(reported("online"))
+        now[0] += LINK_SILENT_S + 0.1                    # silent, and no watch has run since
+        with pytest.raises(LinkDown, match="the link is silent"):
+            await link.command("SET_SETPOINTS", {"setpoint_pa": [0, 0, 0]})
+        assert [kind for kind, _, _ in events] == ["link_lost"], events
+        link.check_reports()                             # the watch after it: told once
+        assert len(events) == 1
+
+    asyncio.run(main())
+
+
 def test_the_link_process_refuses_a_silence_limit_it_cannot_keep(tmp_path):
     """A limit under two of the daemon's words would call a running daemon hung."""
     with pytest.raises(ValueError, match="daemon_silent_s must be at least 1 s"):
