@@ -19,21 +19,22 @@ def pytest_collection_finish(session):
 
 
 def test_a_test_that_builds_into_the_machines_cache_is_timed_from_its_call_only(tmp_path):
-    """On a cold cache the calibrated table's build, in the setup of the first test that uses it, took 293 s of the
-    300 s pytest-timeout gives a test (a clean clone's make test, two busy cores), and the test failed: a test that
-    uses a build once per machine (conftest.MACHINE_BUILDS) is timed from its call; the others as before."""
+    """On a cold cache the calibrated table's build (shipped with its scene since), in the setup of the first test
+    that used it, took 293 s of the 300 s pytest-timeout gives a test (a clean clone's make test, two busy cores),
+    and the test failed: a test that uses a build once per machine (conftest.MACHINE_BUILDS) is timed from its
+    call; the others as before."""
     (tmp_path / "show_timeouts.py").write_text(SHOW_TIMEOUTS)
     path = os.pathsep.join(filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")]))
     done = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "show_timeouts", "tests/test_daemon_parts.py",
-         "-k", "volume_ramp or scene_runner_follows_its_clock"],
+        [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "show_timeouts",
+         "tests/test_daemon_inputs_more.py", "-k", "run_scene_beyond_the_range or reachable_start_up_scene_starts"],
         cwd=ROOT, capture_output=True, text=True, timeout=120, env={**os.environ, "PYTHONPATH": path})
     assert done.returncode == 0, done.stdout + done.stderr
     shown = {line.split()[1]: line.split(" ", 2)[2] for line in done.stdout.splitlines()
              if line.startswith("TIMEOUT ")}
     assert shown == {
-        "test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer": "(300.0,) {'func_only': True}",
-        "test_the_scene_runner_follows_its_clock_scaled_and_finishes_at_the_end": "None None"}, done.stdout
+        "test_phantom_daemon_run_scene_beyond_the_range_exits_2_with_one_line": "(300.0,) {'func_only': True}",
+        "test_a_reachable_start_up_scene_starts": "None None"}, done.stdout
 
 
 def test_the_suite_runs_without_pytests_cache(tmp_path):

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import calibrated_without_its_table
 from daemon_standins import CHAMBERS, DaemonStandIns, FakeClock, ModelInProcess, model_info
 
 from phantom import PhantomError
@@ -415,7 +416,7 @@ def test_a_main_task_that_fails_is_logged_and_stops_the_daemon_with_status_1(cap
 
 
 @pytest.mark.slow
-def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer(calibrated_response_table):
+def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer():
     """Each point of a 30 -> 35 ml ramp solved on its own gave chamber 0 setpoints that jumped by up to +0.16 and
     -0.15 kPa from one control tick to the next, down then up (the QP's answer moved between chambers)."""
     import asyncio
@@ -455,7 +456,7 @@ def test_a_volume_ramp_gives_setpoints_that_rise_smoothly_to_the_inverses_answer
 
 
 @pytest.mark.slow
-def test_a_model_worker_killed_like_the_oom_killer_does_is_replaced_and_answers(calibrated_response_table):
+def test_a_model_worker_killed_like_the_oom_killer_does_is_replaced_and_answers():
     """Before, every later set_target and surface failed with BrokenProcessPool until the daemon restarted."""
     from phantom.host.model_worker import ModelWorker
     from phantom.host.scenes import parse_target
@@ -493,10 +494,10 @@ def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(t
         if kind.name != "response":
             (cache / kind.name).symlink_to(kind)
     semaphores_before = set(Path("/dev/shm").glob("sem.*"))
-    # (the 4-node scene: the default model ships its table, so a daemon on it builds none)
+    # (the 4-node scene without its table files: the built-in ones ship theirs, so a daemon on them builds none)
     daemon = subprocess.Popen([str(Path(sys.executable).with_name("phantom")), "daemon", "--port",
                                str(tmp_path / "no-board"), "--socket", str(tmp_path / "d.sock"), "--scene",
-                               "builtin:calibrated"],
+                               str(calibrated_without_its_table(tmp_path))],
                               env={**os.environ, "PHANTOM_CACHE_DIR": str(cache)}, stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE, text=True)
     try:

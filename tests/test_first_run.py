@@ -1,8 +1,9 @@
 """A lab's first run: ``make demo``'s daemon started on an empty cache while every core is kept busy must serve
 soon and reach its scene's first target. The demo's model (``builtin:converged``) ships its response table's
-volumes and shapes, so it serves on the table once meshed; a scene whose table is not shipped (the 4-node
-``builtin:calibrated``) must serve at once on the full solve while its table builds in the background, at a lower
-priority, say so, and reach its first target; stopped meanwhile, it leaves no build process behind.
+volumes and shapes, so it serves on the table once meshed; a scene whose table is not shipped (a copy of the 4-node
+``builtin:calibrated`` without its table files) must serve at once on the full solve while its table builds in the
+background, at a lower priority, say so, and reach its first target; stopped meanwhile, it leaves no build process
+behind.
 
 This is the case that failed before: the daemon built the calibrated model's table (about 200 CPU-seconds) before
 it answered anything, and the demo gave up after a fixed 120 s blaming the board.
@@ -18,6 +19,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from conftest import calibrated_without_its_table
 
 import phantom
 from phantom.cli.demo import daemon_command, wait_until_ready
@@ -113,10 +115,10 @@ def test_the_demo_daemon_on_an_empty_cache_under_load_serves_on_its_shipped_tabl
 
 
 def test_a_daemon_whose_table_is_not_shipped_serves_on_full_solves_while_it_builds(tmp_path):
-    # the demo's timeline on the 4-node model, whose table is built once per machine
+    # the demo's timeline on the 4-node model, its table not shipped
     bph = example_scene_path("bph_growth").read_text()
     scene_path = tmp_path / "bph_4_node.toml"
-    scene_path.write_text(load_scene("builtin:calibrated").path.read_text() + "\n[timeline]"
+    scene_path.write_text(calibrated_without_its_table(tmp_path).read_text() + "\n[timeline]"
                           + bph.split("[timeline]", 1)[1].replace("volume_ml = 26.5\n", "volume_ml = 26\n")
                           .replace("volume_ml = 45\n", "volume_ml = 43\n"))  # its reach: 25.95-43.74 ml
     first_target_ml = float(load_scene(str(scene_path)).steps[0]["volume_ml"])
@@ -157,7 +159,7 @@ def test_a_table_build_stopped_mid_solve_ends_at_once_beside_a_busy_process_per_
     from phantom.host.startup import STOP_WAIT_S, TableBuild
 
     monkeypatch.setenv("PHANTOM_CACHE_DIR", str(tmp_path / "empty-cache"))  # the 4-node model's table not there
-    build = TableBuild("builtin:calibrated")
+    build = TableBuild(str(calibrated_without_its_table(tmp_path)))
     assert build.pid is not None
     deadline = time.monotonic() + 300
     while not descendants(build.pid):  # its solver processes started: it is mid-solve

@@ -106,6 +106,8 @@ def test_the_wheel_carries_the_firmware_sources_the_harness_and_the_scenes(insta
     expected = {"phantom/hil/firmware_sources/Makefile", "phantom/hil/firmware_sources/src/phantom.ino",
                 "phantom/hil/firmware_sources/src/core/controller.cpp", "phantom/hil/harness/main.c",
                 "phantom/hil/harness/Makefile", "phantom/model/scenes/prostate_calibrated.toml",
+                "phantom/model/scenes/prostate_calibrated.volumes.npz",
+                "phantom/model/scenes/prostate_calibrated.shapes.npz",
                 "phantom/model/scenes/prostate_converged.volumes.npz",
                 "phantom/model/scenes/prostate_converged.shapes.npz",
                 "phantom/host/scenes/bph_growth.toml", "phantom/protocol/spec.toml",

@@ -280,26 +280,38 @@ def test_an_inaccurate_table_is_refused_with_what_to_do(monkeypatch, tmp_path):
         VolumeEstimator(coarse)
 
 
-# --- the 4-node calibration, whose table is built (the daemon's default until the converged one) --------------
+# --- the 4-node calibration, whose table's volumes and shapes ship with it -----------------------------------
 
 @pytest.fixture(scope="module")
-def calibrated(calibrated_response_table):
-    """The 4-node calibration and its estimator, on the table (conftest.py builds it once per machine)."""
+def calibrated(tmp_path_factory):
+    """The 4-node calibration and its estimator, on the table its scene ships (as on a machine that never built
+    one: a table in this machine's cache would be read first)."""
+    from phantom.model.fidelity import response_table
+
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
-    return model, VolumeEstimator(model)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(response_table, "_cache_path", lambda *args: tmp_path_factory.mktemp("cache") / "none.npz")
+        return model, VolumeEstimator(model)
 
 
 @pytest.mark.slow
 def test_the_calibrated_scene_answers_from_its_table_within_a_tenth_of_a_percent(calibrated):
     model, estimator = calibrated
-    assert estimator.level == "table"
+    # the volumes shipped with the scene (no nodes' positions) and its outer surface's shapes, not a build
+    assert estimator.level == "table" and estimator.table.position_values is None and estimator.shapes is not None
+    used, _ = model.outer_surface()
     rng = np.random.default_rng(12)
-    # Tolerance: 0.5 % of each growth and 0.1 % of the gland volume (the daemon's step tolerance is 1 %).
+    # Tolerance: 0.5 % of each growth and 0.1 % of the gland volume (the daemon's step tolerance is 1 %); the
+    # outer surface between the shapes' 1 kPa grid points within three times their check's error (0.15 mm).
     for pressures_pa in rng.uniform(0.0, PRESSURE_MAX_PA, size=(3, 3)):
         errors, state = _growth_errors(model, estimator.table, pressures_pa)
         assert errors.max() < 5e-3, (pressures_pa, errors)
         _, gland = estimator.volumes(pressures_pa)
         assert gland == pytest.approx(state.gland_volume_m3, rel=1e-3)
+        off_m = np.linalg.norm(estimator.shape(pressures_pa, nodes=used) - state.positions_m[used], axis=1)
+        moved_m = np.linalg.norm(state.positions_m[used] - model.nodes_m[used], axis=1)
+        assert off_m.max() < 3 * estimator.shapes.check_error_m and moved_m.max() > 1e-3, (off_m.max(), moved_m.max())
+    assert estimator.counts["full_solves"] == 0
 
 
 @pytest.mark.slow

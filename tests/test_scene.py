@@ -8,7 +8,7 @@ import pytest
 from phantom import PhantomError
 from phantom.cli.main import main
 from phantom.model import SceneError, load_scene
-from phantom.model.scene import PRESSURE_LIMIT_PA, ModelSettings, builtin_scene_path, scene_from_dict
+from phantom.model.scene import PRESSURE_LIMIT_PA, SCENES_DIR, ModelSettings, builtin_scene_path, scene_from_dict
 
 
 def write_scene(tmp_path, text):
@@ -57,7 +57,11 @@ def test_the_calibrated_builtin_scene_is_a_finite_strain_fit_on_the_built_in_bod
     assert scene.material.model == "gent" and scene.material.poisson_ratio == pytest.approx(0.45)
     # the geometry it was fitted with, meshed at the size it was fitted on, and a daemon answers from its table
     assert scene.geometry.lobe_chamber_scale > 1.0 and scene.geometry.mesh_size_mm == 4.0
-    assert scene.model_settings == ModelSettings(fidelity="table", accuracy_pct=1.0, pressure_max_pa=3000.0)
+    # (the table's volumes and its outer surface's shapes ship beside it)
+    assert scene.model_settings == ModelSettings(
+        fidelity="table", accuracy_pct=1.0, pressure_max_pa=3000.0,
+        table_volumes=SCENES_DIR / "prostate_calibrated.volumes.npz",
+        table_shapes=SCENES_DIR / "prostate_calibrated.shapes.npz")
 
 
 @pytest.mark.slow
@@ -109,7 +113,8 @@ def test_table_files_are_files_beside_the_scene_and_a_calibration_drops_them(tmp
         load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:absent.npz"\n'))
     for escaping in ("../../x.npz", "sub/x.npz", "/etc/x.npz"):
         with pytest.raises(SceneError, match=r"builtin:NAME names a file in the built-in scenes' folder "
-                                             r"\(prostate_converged.shapes.npz, prostate_converged.volumes.npz\)"):
+                                             r"\(prostate_calibrated.shapes.npz, prostate_calibrated.volumes.npz, "
+                                             r"prostate_converged.shapes.npz, prostate_converged.volumes.npz\)"):
             load_scene(write_scene(tmp_path, GOOD + f'[model]\n{key} = "builtin:{escaping}"\n'))
     # the files belong to the scene's own parameters: a copy with others set (a calibration's) names none
     copied = scene_with(load_scene("builtin:converged").raw, {"gent_jm": 20.0})
