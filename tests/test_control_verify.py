@@ -566,12 +566,34 @@ def test_an_unreachable_answer_carries_the_glands_range_as_data():
         assert answered.value.data == data
 
 
+def verify_scan_standin(scan, fed, stop_scan=None, online=True, link_lost_s=None):
+    """The daemon's parts a verify scan touches (``Daemon._scan_for_core`` and ``perform_scan`` run on it, the
+    rest stood in for): the scan API method ``scan``, the motion's ``stop_scan``, the link ``online`` and lost at
+    ``link_lost_s``; a scan read as 35.02 ml; what is fed to the core appended to ``fed``."""
+    import asyncio
+    import types
+
+    from phantom.host.daemon import Daemon
+
+    scanner = types.SimpleNamespace(plan={}, plan_for=lambda tolerance_pct: {}, expect_surface=lambda surface: None,
+                                    volume=lambda folder, surface: {"volume_ml": 35.02, "surface_mm": None})
+    daemon = types.SimpleNamespace(
+        verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
+        motion=types.SimpleNamespace(latest=None, stop_scan=stop_scan, late_replies=0), link_lost_s=link_lost_s,
+        session=types.SimpleNamespace(online=online), now_s=lambda: 0.0, event=lambda *_: None,
+        recorder=types.SimpleNamespace(log_scanned_volume=lambda *_: None), plant_volume_ml=lambda: 35.0,
+        core=types.SimpleNamespace(scanned="scanned"), _feed=lambda method, *args: fed.append((method, args)),
+        verify_scan=None, _model_surface_mm=lambda action: asyncio.sleep(0, result=None))
+    daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
+    daemon.perform_scan = lambda round_, plan: Daemon.perform_scan(daemon, round_, plan)
+    return daemon
+
+
 def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_scans_its_own():
     """Issue 48's red team: a second client's verified target, reached while the first's scan ran, failed ("a
     scan is running") and the abandoned capture kept the rig. Now the abandoned capture is stopped, its answer
     (for a verification that is no more) is not fed to the core, and the new round's scan takes the rig."""
     import asyncio
-    import types
 
     from phantom.host.api import ApiError
     from phantom.host.daemon import Daemon
@@ -602,17 +624,7 @@ def test_a_second_verified_target_during_a_scan_stops_the_abandoned_capture_and_
                 await asyncio.sleep(0)
             return True
 
-        scanner = types.SimpleNamespace(plan={}, plan_for=lambda tolerance_pct: {}, expect_surface=lambda surface: None,
-                                        volume=lambda folder, surface: {"volume_ml": 35.02, "surface_mm": None})
-        daemon = types.SimpleNamespace(
-            verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
-            motion=types.SimpleNamespace(latest=None, stop_scan=stop_scan, late_replies=0), link_lost_s=None,
-            now_s=lambda: 0.0, event=lambda *_: None,
-            recorder=types.SimpleNamespace(log_scanned_volume=lambda *_: None), plant_volume_ml=lambda: 35.0,
-            core=types.SimpleNamespace(scanned="scanned"), _feed=lambda method, *args: fed.append((method, args)),
-            verify_scan=None, _model_surface_mm=lambda action: asyncio.sleep(0, result=None))
-        daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
-        daemon.perform_scan = lambda round_, plan: Daemon.perform_scan(daemon, round_, plan)
+        daemon = verify_scan_standin(scan, fed, stop_scan=stop_scan)
         first_scan = policy_of.Scan(1, volume(40.0), (1.0, 0.5, 0.5), 0.3)
         first = asyncio.ensure_future(Daemon._scan_for_core(daemon, first_scan))
         await asyncio.sleep(0.01)
@@ -633,7 +645,6 @@ def test_a_verify_scan_failing_while_the_link_is_not_online_is_a_lost_links_reta
     target ended ``scan_failed``, "the pressures are held", while the board latched DEAD_HOST. A link not online
     when the scan fails, or lost during it (or just before, LINK_LOSS_GRACE_S), makes it the lost link's."""
     import asyncio
-    import types
 
     from phantom.host.api import ApiError
     from phantom.host.daemon import Daemon
@@ -643,15 +654,7 @@ def test_a_verify_scan_failing_while_the_link_is_not_online_is_a_lost_links_reta
     async def scan(params):
         raise ApiError("link_down", "no board: the link is silent")
 
-    scanner = types.SimpleNamespace(plan_for=lambda tolerance_pct: {}, expect_surface=lambda surface: None)
-    daemon = types.SimpleNamespace(
-        verify_scanner=scanner, api=types.SimpleNamespace(handlers={"scan": scan}), verify_refusal=lambda: None,
-        motion=types.SimpleNamespace(latest=None, late_replies=0), link_lost_s=lost_s,
-        session=types.SimpleNamespace(online=online), now_s=lambda: 0.0, event=lambda *_: None,
-        core=types.SimpleNamespace(scanned="scanned"), _feed=lambda method, *args: fed.append((method, args)),
-        verify_scan=None, _model_surface_mm=lambda action: asyncio.sleep(0, result=None))
-    daemon._rig_at_rest = lambda: Daemon._rig_at_rest(daemon)
-    daemon.perform_scan = lambda round_, plan: Daemon.perform_scan(daemon, round_, plan)
+    daemon = verify_scan_standin(scan, fed, online=online, link_lost_s=lost_s)
     asyncio.run(Daemon._scan_for_core(daemon, policy_of.Scan(1, volume(35.0), (0.9, 0.4, 0.4), 0.3)))
     ((method, (round_, volume_ml, error, _, _, told_lost)),) = fed
     assert method == "scanned" and round_ == 1 and volume_ml is None and "the link is silent" in error
