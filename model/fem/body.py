@@ -60,7 +60,8 @@ if TYPE_CHECKING:
 
 #: Spring stiffness at the fixation as a multiple of E * area / edge length (dimensionless).
 FIXED_PENALTY = 1.0e3
-#: Bump when the solver's numbers change, so cached compliances and factors are recomputed.
+#: Bump when the solver's numbers change, so cached compliances and factors are recomputed (and write the tables
+#: the built-in scenes ship again: model/scenes/*.toml say how).
 SOLVER_VERSION = 2
 #: The arrays of a stored rest factor (:class:`CholeskyFactor`'s), each an .npy file of its folder.
 STORED_FACTOR_ARRAYS = ("indptr", "indices", "values", "permutation")

@@ -73,7 +73,8 @@ from phantom.model.scene import DEFAULT_TABLE_POINTS
 if TYPE_CHECKING:
     from scipy.interpolate import CubicSpline
 
-#: Bump when what a table holds or how it is built changes, so stored tables are rebuilt.
+#: Bump when what a table holds or how it is built changes, so stored tables are rebuilt (and write the tables
+#: the built-in scenes ship again: model/scenes/*.toml say how).
 TABLE_VERSION = 1
 #: Where each build is checked against full solves (fractions of the pressure limit per chamber): points far
 #: from every node, one near each corner region and one inside.
