@@ -98,7 +98,7 @@ def test_every_readme_command_line_parses(where, line):
 
 @pytest.fixture(scope="module")
 def default_daemon(tmp_path_factory, default_model_cached):
-    """``phantom daemon --sim`` with every default (scene builtin:calibrated), at twice real time."""
+    """``phantom daemon --sim`` with every default (scene builtin:converged), at twice real time."""
     with daemon_process(tmp_path_factory.mktemp("readme"), "--sim", "--sim-speed", "2", ready_s=90) as daemon:
         yield daemon.socket
 
