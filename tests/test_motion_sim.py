@@ -233,8 +233,12 @@ def test_cpu_and_tick_deadline_while_the_orbit_moves_at_the_top_step_rate():
     with SimulatedBoard(speed=1.0, seed=5) as board, BoardLink(board.port, keepalive_s=0.25) as session:
         result = mo.measure_cycles(session, board, mo.MAX_STEP_RATE, duration_s=3.0)
     print(f"CPU {100 * result['cpu_use_fraction']:.1f} %, tick max {result['control_tick_cycles_max']} cycles, "
-          f"step interrupt {result['step_isr_cycles_mean']:.0f} cycles, {result['steps']} steps")
-    assert result["steps"] == pytest.approx(mo.MAX_STEP_RATE * result["elapsed_s"], rel=0.02)
+          f"step interrupt {result['step_isr_cycles_mean']:.0f} cycles, {result['steps']} steps at "
+          f"{result['pulse_rate_hz']:.1f} Hz")
+    # the driver's pulses at the top rate in board time (the steps counted between the host's round trips took
+    # 7770 where the cycle statistics' window held 7595 in a loaded make test: the round trips' board time too)
+    assert result["pulse_rate_hz"] == pytest.approx(mo.MAX_STEP_RATE, rel=0.02)
+    assert result["steps"] >= 0.98 * mo.MAX_STEP_RATE * result["elapsed_s"]
     assert result["tick_overruns"] == 0
     assert result["control_tick_cycles_max"] < 0.5 * result["control_tick_budget_cycles"]
     assert result["cpu_use_fraction"] < 0.25
