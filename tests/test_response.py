@@ -289,8 +289,9 @@ def calibrated(tmp_path_factory):
     from phantom.model.fidelity import response_table
 
     model = PhantomModel.from_scene(load_scene("builtin:calibrated"))
+    not_built = tmp_path_factory.mktemp("cache") / "none.npz"
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(response_table, "_cache_path", lambda *args: tmp_path_factory.mktemp("cache") / "none.npz")
+        patch.setattr(response_table, "_cache_path", lambda *args: not_built)
         return model, VolumeEstimator(model)
 
 
