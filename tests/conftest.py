@@ -309,10 +309,12 @@ def _no_long_collections_during_a_simulated_board(request: pytest.FixtureRequest
         gc.freeze()
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture
 def dask_scheduler() -> Iterator[str]:
-    """The address of a two-worker LocalCluster, shared by the tests that spread solves on Dask (starting one
-    takes seconds)."""
+    """The address of a two-worker LocalCluster of the test's own. Not the session's: a cluster starts and closes
+    in about a second and 1.5 CPU-seconds, but idle it takes about a tenth of a core (its workers' heartbeats
+    and statistical profilers, its scheduler's loop in the pytest worker), and a session's lived on from its first
+    test to the end of the run (two of them, in two workers, in make test)."""
     from phantom.model.cluster import local_cluster
 
     cluster = local_cluster(2)
