@@ -8,8 +8,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
 import math
+import os
+import select
+import struct
 import tempfile
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +67,18 @@ FAULTS: dict[str, dict[str, float]] = {
     "clear": {},
 }
 _PER_CHAMBER = {"sensor_cut", "tube_off", "leak", "stuck_blower"}
+
+
+#: inotify's event bit for an open of the watched file (linux/inotify.h).
+_IN_OPEN = 0x20
+
+
+def _event_offsets(events: bytes) -> Iterator[int]:
+    """Where each ``struct inotify_event`` starts in what one read of an inotify descriptor gave."""
+    offset = 0
+    while offset + 16 <= len(events):
+        yield offset
+        offset += 16 + struct.unpack_from("I", events, offset + 12)[0]
 
 
 class SimulationError(PhantomError):
@@ -193,6 +212,59 @@ class SimulatedBoard:
         if cause not in ("external", "power"):
             raise SimulationError(f"reset cause must be 'external' or 'power', got {cause!r}")
         return float(self._command(f"reset {cause}")["time_s"])
+
+    @contextlib.contextmanager
+    def resetting_on_open(self) -> Iterator[list[float]]:
+        """Within the block, each open of the port resets the MCU (``"external"``), as the DTR line of a real
+        board's USB-serial chip does when a program opens its port; yields the simulated times of the resets so
+        far (a list that grows).
+
+        This is how an upload reaches the stock bootloader however late avrdude starts. After a reset, the stock
+        bootloaders listen for about a second (the application starts 0.8 s after it on the Mega, 1.0 s on the
+        Uno), and avrdude takes about half of that from its start to its first byte: a reset made before ``make
+        upload`` started was spent before avrdude sent anything in a loaded ``make test``. A pty has no DTR line,
+        so the open itself, seen by inotify, is the signal."""
+        if self._harness is None:
+            raise SimulationError("the simulated board is not started: use it as a context manager or call start()")
+        libc = ctypes.CDLL(None, use_errno=True)
+        watch = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+        if watch < 0:
+            raise SimulationError(f"cannot watch the port for opens: {os.strerror(ctypes.get_errno())}")
+        stop_read, stop_write = os.pipe()
+        resets: list[float] = []
+        failures: list[BaseException] = []
+
+        def reset_at_each_open() -> None:
+            while True:
+                ready, _, _ = select.select([watch, stop_read], [], [])
+                if stop_read in ready:
+                    return
+                events = os.read(watch, 4096)
+                # struct inotify_event: wd, mask, cookie, len, then len bytes of name (none for a watched file)
+                if any(struct.unpack_from("iIII", events, offset)[1] & _IN_OPEN
+                       for offset in _event_offsets(events)):
+                    try:
+                        resets.append(self.reset("external"))
+                    except BaseException as error:  # raised in the caller's thread at the block's end
+                        failures.append(error)
+                        return
+
+        try:
+            if libc.inotify_add_watch(watch, os.path.realpath(self.port).encode(), _IN_OPEN) < 0:
+                raise SimulationError(f"cannot watch the port {self.port} for opens: "
+                                      f"{os.strerror(ctypes.get_errno())}")
+            resetter = threading.Thread(target=reset_at_each_open, name="dtr-on-open", daemon=True)
+            resetter.start()
+            try:
+                yield resets
+            finally:
+                os.write(stop_write, b"x")
+                resetter.join()
+        finally:
+            for fd in (watch, stop_read, stop_write):
+                os.close(fd)
+        if failures:
+            raise failures[0]
 
     def inject(self, fault: str, chamber: int | None = None, **params: float) -> float:
         """Inject a fault into the plant or the serial line.

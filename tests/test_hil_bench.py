@@ -61,6 +61,8 @@ def test_simulated_board_refuses_bad_use(tmp_path):
         idle.port  # noqa: B018
     with pytest.raises(PhantomError, match="not started"):
         idle.plant_state()
+    with pytest.raises(PhantomError, match="not started"), idle.resetting_on_open():
+        pass
 
 
 def test_cli_refuses_cycles_on_a_real_port_and_a_missing_port(tmp_path):

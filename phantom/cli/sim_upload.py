@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 #: The image a board starts on before the rehearsal flashes BOARD: the other image of its MCU.
@@ -41,13 +40,13 @@ def main(argv: list[str] | None = None) -> int:
         with SimulatedBoard(elf=build_folder() / STARTS_ON[args.board] / "phantom.elf", speed=1.0,
                             bootloader=True) as board:
             print(f"rehearsal: a simulated board (simavr, the stock bootloader, {STARTS_ON[args.board]} image) at "
-                  f"{board.port}; resetting it as a USB port does, then:", flush=True)
-            time.sleep(0.3)
-            board.reset("external")
+                  f"{board.port}, reset when avrdude opens it as a USB port's DTR line resets a board:", flush=True)
             command = ["make", "--no-print-directory", "-C", str(firmware), "upload", f"BOARD={args.board}",
                        f"PORT={board.port}"]
-            print("$ " + " ".join(command[:1] + command[3:]), flush=True)
-            if subprocess.run(command, timeout=180).returncode != 0:
+            print("$ " + " ".join(command[:1] + command[2:]), flush=True)
+            with board.resetting_on_open():
+                uploaded = subprocess.run(command, timeout=180).returncode == 0
+            if not uploaded:
                 print("rehearsal: the upload failed (avrdude's output above)", file=sys.stderr)
                 return 1
             with BoardLink(board.port) as link:
