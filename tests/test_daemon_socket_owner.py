@@ -36,12 +36,10 @@ while True:
 
 
 def start_fake(path, user_id: int | None = None, python: str = sys.executable) -> subprocess.Popen:
-    def become() -> None:
-        if user_id is not None:
-            os.setgid(user_id)
-            os.setuid(user_id)
+    # the user and group set by Popen itself, not by a preexec_fn: Python code between fork and exec in a worker
+    # whose threads (JAX's) may hold locks can hang, and JAX warns of every such fork
     fake = subprocess.Popen([python, "-c", FAKE_DAEMON, str(path)], stdout=subprocess.PIPE, text=True,
-                            preexec_fn=become)
+                            user=user_id, group=user_id)
     assert fake.stdout is not None and fake.stdout.readline().strip() == "ready"
     return fake
 
