@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--board", choices=sorted(STARTS_ON), default="uno")
     args = parser.parse_args(argv)
     firmware = Path(__file__).resolve().parents[2] / "firmware"
-    for image in (args.board, STARTS_ON[args.board]):  # both up to date, so make goes straight to avrdude
+    for image in (args.board, STARTS_ON[args.board]):  # built first: what make upload prints is avrdude's
         subprocess.run(["make", "--no-print-directory", "-C", str(firmware), image], check=True,
                        stdout=subprocess.DEVNULL)
     try:
