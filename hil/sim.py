@@ -73,12 +73,14 @@ _PER_CHAMBER = {"sensor_cut", "tube_off", "leak", "stuck_blower"}
 _IN_OPEN = 0x20
 
 
-def _event_offsets(events: bytes) -> Iterator[int]:
-    """Where each ``struct inotify_event`` starts in what one read of an inotify descriptor gave."""
+def _event_masks(events: bytes) -> Iterator[int]:
+    """The mask of each ``struct inotify_event`` in what one read of an inotify descriptor gave (each: wd, mask,
+    cookie, len, then len bytes of name, none for a watched file)."""
     offset = 0
     while offset + 16 <= len(events):
-        yield offset
-        offset += 16 + struct.unpack_from("I", events, offset + 12)[0]
+        _, mask, _, name_length = struct.unpack_from("iIII", events, offset)
+        yield mask
+        offset += 16 + name_length
 
 
 class SimulationError(PhantomError):
@@ -224,8 +226,7 @@ class SimulatedBoard:
         Uno), and avrdude takes about half of that from its start to its first byte: a reset made before ``make
         upload`` started was spent before avrdude sent anything in a loaded ``make test``. A pty has no DTR line,
         so the open itself, seen by inotify, is the signal."""
-        if self._harness is None:
-            raise SimulationError("the simulated board is not started: use it as a context manager or call start()")
+        port = os.path.realpath(self.port)  # the pty itself; refused if the board is not started
         libc = ctypes.CDLL(None, use_errno=True)
         watch = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
         if watch < 0:
@@ -239,10 +240,7 @@ class SimulatedBoard:
                 ready, _, _ = select.select([watch, stop_read], [], [])
                 if stop_read in ready:
                     return
-                events = os.read(watch, 4096)
-                # struct inotify_event: wd, mask, cookie, len, then len bytes of name (none for a watched file)
-                if any(struct.unpack_from("iIII", events, offset)[1] & _IN_OPEN
-                       for offset in _event_offsets(events)):
+                if any(mask & _IN_OPEN for mask in _event_masks(os.read(watch, 4096))):
                     try:
                         resets.append(self.reset("external"))
                     except BaseException as error:  # raised in the caller's thread at the block's end
@@ -250,7 +248,7 @@ class SimulatedBoard:
                         return
 
         try:
-            if libc.inotify_add_watch(watch, os.path.realpath(self.port).encode(), _IN_OPEN) < 0:
+            if libc.inotify_add_watch(watch, port.encode(), _IN_OPEN) < 0:
                 raise SimulationError(f"cannot watch the port {self.port} for opens: "
                                       f"{os.strerror(ctypes.get_errno())}")
             resetter = threading.Thread(target=reset_at_each_open, name="dtr-on-open", daemon=True)
