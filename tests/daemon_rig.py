@@ -11,7 +11,6 @@ the length of a ``with`` block. :func:`calibrated_scene` writes a scene on the d
 from __future__ import annotations
 
 import asyncio
-import signal
 import subprocess
 import sys
 import time
@@ -77,12 +76,13 @@ class DaemonProcess:
         return self.log_path.read_text()
 
 
-def as_at_a_terminal() -> None:
-    """A child's ``preexec_fn``: Ctrl-C (SIGINT) as a terminal's foreground command has it. A background job of a
-    non-interactive shell, such as make test's [sim] run (scripts/pytest-all.sh), passes SIGINT on ignored to
-    everything it starts, and a Python started so never raises KeyboardInterrupt: a test that sends a command
-    SIGINT, as a person's Ctrl-C, then waited in vain (test_verify_sim's ``phantom set`` interrupted)."""
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+#: A child's command prefix: Ctrl-C (SIGINT) as a terminal's foreground command has it (coreutils' env resets it
+#: to the default action before it executes the command). A background job of a non-interactive shell, such as make
+#: test's [sim] run (scripts/pytest-all.sh), passes SIGINT on ignored to everything it starts, and a Python started
+#: so never raises KeyboardInterrupt: a test that sends a command SIGINT, as a person's Ctrl-C, then waited in vain
+#: (test_verify_sim's ``phantom set`` interrupted). A prefix, not a ``preexec_fn``: that would run Python between
+#: fork and exec in a worker that may hold JAX's threads from another test.
+AS_AT_A_TERMINAL = ("env", "--default-signal=INT")
 
 
 @contextmanager

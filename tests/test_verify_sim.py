@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from daemon_rig import as_at_a_terminal, daemon_process
+from daemon_rig import AS_AT_A_TERMINAL, daemon_process
 
 import phantom
 from phantom.host.client import DaemonError, TargetResult
@@ -235,9 +235,9 @@ def test_a_client_that_leaves_a_verified_target_and_a_daemon_that_stops_during_o
     with daemon_process(tmp_path, "--sim", "--sim-speed", "2", ready_s=180, stop_s=60,
                         env={**os.environ, "PHANTOM_DATA_DIR": str(tmp_path / "data")}) as daemon:
         sock, process = daemon.socket, daemon.process
-        typed = subprocess.Popen([str(PHANTOM), "set", "--socket", str(sock), "--volume-ml", "35", "--verify",
-                                  "scan"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                 preexec_fn=as_at_a_terminal)  # Ctrl-C as a person's: not ignored
+        # Ctrl-C as a person's: not ignored
+        typed = subprocess.Popen([*AS_AT_A_TERMINAL, str(PHANTOM), "set", "--socket", str(sock), "--volume-ml", "35",
+                                  "--verify", "scan"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             wait_scanning(daemon)
         except AssertionError as error:
