@@ -173,12 +173,24 @@ def _stop_build(signum: int, frame: object) -> None:
     of leaked semaphores at its exit; and an exit through Python, unwinding the Dask cluster's shutdown, took
     3.4-4.5 s of the STOP_WAIT_S at nice 10 beside busy processes (0.2-0.3 s this way), and was killed past it in
     a clean clone's make test."""
-    for task in Path("/proc/self/task").iterdir():
-        for child in (task / "children").read_text().split():
-            with contextlib.suppress(ProcessLookupError):
-                os.kill(int(child), signal.SIGKILL)
+    for child in child_pids():
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(child, signal.SIGKILL)
     multiprocessing_util._exit_function()  # type: ignore[attr-defined]  # private, as Python's exit calls it
     os._exit(0)
+
+
+def child_pids(pid: int | None = None) -> list[int]:
+    """The children of a process (this one by default): those of each of its threads, from /proc; none once it has
+    ended. A thread that ends while they are read (the build's Dask threads come and go) has none: its folder is
+    gone by the read (FileNotFoundError, or ESRCH), which in the build's SIGTERM handler left it to Python's slow
+    exit."""
+    pids: list[int] = []
+    with contextlib.suppress(FileNotFoundError, ProcessLookupError):
+        for task in Path(f"/proc/{'self' if pid is None else pid}/task").iterdir():
+            with contextlib.suppress(FileNotFoundError, ProcessLookupError):
+                pids.extend(int(child) for child in (task / "children").read_text().split())
+    return pids
 
 
 class TableBuild:

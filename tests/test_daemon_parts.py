@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from phantom.cli.common import output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
 from phantom.host.model_worker import _descendants
 from phantom.host.scene_runner import SceneRunner, prepare_run
+from phantom.host.startup import child_pids
 from phantom.model.errors import SceneError
 
 
@@ -219,6 +221,36 @@ def test_the_model_worker_dies_with_its_parent_even_on_sigkill():
     finally:
         if parent.poll() is None:
             parent.kill()
+
+
+def test_the_builds_children_are_listed_while_its_threads_come_and_go():
+    # the table build's SIGTERM handler kills the children it lists: a thread of the build (Dask's) that ended
+    # between the listing of /proc/self/task and the read of its children raised FileNotFoundError there, and the
+    # build then ended through Python's slow exit (3.8 s of the daemon's 5 s wait, a clean clone's make test)
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    churning = True
+
+    def churn() -> None:
+        while churning:
+            thread = threading.Thread(target=lambda: None)
+            thread.start()
+            thread.join()
+
+    churners = [threading.Thread(target=churn) for _ in range(2)]
+    for thread in churners:
+        thread.start()
+    try:
+        listings, deadline = 0, time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            assert child.pid in child_pids()
+            listings += 1
+        assert listings > 20  # about 700 idle; the old read failed on one in five
+    finally:
+        churning = False
+        for thread in churners:
+            thread.join()
+        child.kill()
+        child.wait()
 
 
 def test_under_systemd_levels_are_journald_priorities_on_every_line(capfd, monkeypatch):

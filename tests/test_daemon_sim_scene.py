@@ -21,6 +21,7 @@ from phantom import PhantomError
 from phantom.host.client import DaemonClient
 from phantom.host.recording import read_rrd
 from phantom.host.scenes import example_scene_path
+from phantom.host.startup import child_pids
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 
@@ -76,12 +77,11 @@ def simulator_of(pid: int) -> int:
     pending = [pid]
     while pending:
         parent = pending.pop()
-        for task in Path(f"/proc/{parent}/task").iterdir():
-            for child in (task / "children").read_text().split():
-                command = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
-                if b"--elf" in command:
-                    return int(child)
-                pending.append(int(child))
+        for child in child_pids(parent):
+            command = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
+            if b"--elf" in command:
+                return child
+            pending.append(child)
     raise AssertionError("the daemon runs no simulated board")
 
 
@@ -129,8 +129,7 @@ def test_a_killed_daemon_leaves_no_worker_and_its_board_vents_at_the_dead_host_d
             while max(board.plant_state()["drive_levels"]) == 0:
                 assert time.monotonic() < deadline, "the blowers never started"
                 time.sleep(0.1)
-            workers = [int(child) for task in Path(f"/proc/{daemon.pid}/task").iterdir()
-                       for child in (task / "children").read_text().split()]
+            workers = child_pids(daemon.pid)
             assert workers, "the daemon runs its model in a worker process"
             # its workers' numpy asks for no huge pages: after an idle wait the kernel compacted memory for them on
             # the spot, and a verify scan's carve took 3-4 times as long (bench/carve_after_idle.py)

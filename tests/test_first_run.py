@@ -25,6 +25,7 @@ import phantom
 from phantom.cli.demo import daemon_command, wait_until_ready
 from phantom.host.client import Phantom
 from phantom.host.scenes import example_scene_path, load_timeline_scene
+from phantom.host.startup import child_pids
 from phantom.model.scene import load_scene
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.busy_cores, pytest.mark.timeout(1500)]
@@ -37,17 +38,9 @@ def descendants(pid: int) -> set[int]:
     """Every process below ``pid``."""
     found, pending = set(), [pid]
     while pending:
-        parent = pending.pop()
-        tasks = Path(f"/proc/{parent}/task")
-        if not tasks.is_dir():
-            continue
-        for task in tasks.iterdir():
-            try:
-                children = [int(child) for child in (task / "children").read_text().split()]
-            except OSError:
-                continue
-            found.update(children)
-            pending.extend(children)
+        children = child_pids(pending.pop())
+        found.update(children)
+        pending.extend(children)
     return found
 
 

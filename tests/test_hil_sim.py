@@ -19,6 +19,7 @@ from phantom import PhantomError
 from phantom.hil import bench
 from phantom.hil.link import BoardLink
 from phantom.hil.sim import SimulatedBoard
+from phantom.host.startup import child_pids
 from phantom.protocol.messages import CONSTANTS
 from phantom.protocol.sensor import ADC_COUNT_KPA
 
@@ -286,10 +287,9 @@ def test_simulated_time_is_paced_to_the_wall_clock():
 def _harness_pids() -> set[int]:
     """This process's phantom-hil children."""
     pids = set()
-    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
-        for child in (task / "children").read_text().split():
-            if Path(f"/proc/{child}/comm").read_text().strip() == "phantom-hil":
-                pids.add(int(child))
+    for child in child_pids():
+        if Path(f"/proc/{child}/comm").read_text().strip() == "phantom-hil":
+            pids.add(child)
     return pids
 
 
