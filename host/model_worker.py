@@ -22,13 +22,13 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
 import numpy as np
 
 import phantom
 from phantom.host.logs import configure_logging
+from phantom.host.processes import descendants
 from phantom.host.scenes import effective_model
 from phantom.model.cluster import exit_with_parent
 from phantom.model.corrections import CorrectedModel, Correction, judged, pressures_in_box
@@ -693,29 +693,10 @@ def end_pool(pool: ProcessPoolExecutor) -> None:
     building a response table has a pool of its own, whose processes are not told when their parent dies (left
     running under PID 1, one spinning, one hung on a pipe, when the daemon stopped during the build)."""
     workers = list(getattr(pool, "_processes", None) or {})  # the executor keeps its processes by pid
-    for pid in [*(child for worker in workers for child in _descendants(worker)), *workers]:
+    for pid in [*(child for worker in workers for child in descendants(worker)), *workers]:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.kill(pid, signal.SIGKILL)
     pool.shutdown(wait=False, cancel_futures=True)
-
-
-def _descendants(pid: int) -> list[int]:
-    """Every process below ``pid`` (children, theirs...), read from /proc; none where /proc cannot say."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        children.setdefault(parent, []).append(int(entry.name))
-    found, below = [], [pid]
-    while below:
-        for child in children.get(below.pop(), []):
-            found.append(child)
-            below.append(child)
-    return found
 
 
 async def _started_pool(scene_source: str, log_level: str, defer_table: bool,

@@ -26,8 +26,9 @@ import time
 from dataclasses import dataclass
 from multiprocessing import util as multiprocessing_util
 from multiprocessing.connection import Connection
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from phantom.host.processes import child_pids
 
 if TYPE_CHECKING:
     from collections.abc import Callable
@@ -178,19 +179,6 @@ def _stop_build(signum: int, frame: object) -> None:
             os.kill(child, signal.SIGKILL)
     multiprocessing_util._exit_function()  # type: ignore[attr-defined]  # private, as Python's exit calls it
     os._exit(0)
-
-
-def child_pids(pid: int | None = None) -> list[int]:
-    """The children of a process (this one by default): those of each of its threads, from /proc; none once it has
-    ended. A thread that ends while they are read (the build's Dask threads come and go) has none: its folder is
-    gone by the read (FileNotFoundError, or ESRCH), which in the build's SIGTERM handler left it to Python's slow
-    exit."""
-    pids: list[int] = []
-    with contextlib.suppress(FileNotFoundError, ProcessLookupError):
-        for task in Path(f"/proc/{'self' if pid is None else pid}/task").iterdir():
-            with contextlib.suppress(FileNotFoundError, ProcessLookupError):
-                pids.extend(int(child) for child in (task / "children").read_text().split())
-    return pids
 
 
 class TableBuild:

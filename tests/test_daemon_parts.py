@@ -20,9 +20,8 @@ from daemon_standins import CHAMBERS, DaemonStandIns, FakeClock, ModelInProcess,
 from phantom import PhantomError
 from phantom.cli.common import output_file
 from phantom.host.estimation import ESTIMATE_CHANGE_PA, EstimateSchedule
-from phantom.host.model_worker import _descendants
+from phantom.host.processes import child_pids, descendants
 from phantom.host.scene_runner import SceneRunner, prepare_run
-from phantom.host.startup import child_pids
 from phantom.model.errors import SceneError
 
 
@@ -534,11 +533,11 @@ def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(t
                               stderr=subprocess.PIPE, text=True)
     try:
         deadline = time.monotonic() + 180
-        while not (builders := [pid for pid in _descendants(daemon.pid) if pid not in _children(daemon.pid)]):
+        while not (builders := [pid for pid in descendants(daemon.pid) if pid not in child_pids(daemon.pid)]):
             assert daemon.poll() is None and time.monotonic() < deadline, "no table build started"
             time.sleep(0.2)
         time.sleep(1.0)                                        # the build's pool has made its semaphores
-        everyone = _descendants(daemon.pid)
+        everyone = descendants(daemon.pid)
         # the new ones that the daemon's processes hold (another test's, made meanwhile, may outlive this one)
         semaphores = _semaphores_mapped_by([daemon.pid, *everyone]) - semaphores_before
         daemon.send_signal(signum)
@@ -553,17 +552,6 @@ def test_a_daemon_stopped_while_it_builds_its_response_table_leaves_no_process(t
         if daemon.poll() is None:
             daemon.kill()
             daemon.wait(10)
-
-
-def _children(pid):
-    return [child for child in _descendants(pid) if _parent(child) == pid]
-
-
-def _parent(pid):
-    try:
-        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
-    except (OSError, IndexError, ValueError):
-        return None
 
 
 def _semaphores_mapped_by(pids):

@@ -19,9 +19,9 @@ from daemon_rig import daemon_process
 
 from phantom import PhantomError
 from phantom.host.client import DaemonClient
+from phantom.host.processes import child_pids
 from phantom.host.recording import read_rrd
 from phantom.host.scenes import example_scene_path
-from phantom.host.startup import child_pids
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow]
 

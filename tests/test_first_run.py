@@ -24,24 +24,14 @@ from conftest import calibrated_without_its_table
 import phantom
 from phantom.cli.demo import daemon_command, wait_until_ready
 from phantom.host.client import Phantom
+from phantom.host.processes import descendants
 from phantom.host.scenes import example_scene_path, load_timeline_scene
-from phantom.host.startup import child_pids
 from phantom.model.scene import load_scene
 
 pytestmark = [pytest.mark.sim, pytest.mark.slow, pytest.mark.busy_cores, pytest.mark.timeout(1500)]
 
 #: One busy process per core at normal priority: the artificial load.
 BUSY_LOOP = "while True:\n    pass\n"
-
-
-def descendants(pid: int) -> set[int]:
-    """Every process below ``pid``."""
-    found, pending = set(), [pid]
-    while pending:
-        children = child_pids(pending.pop())
-        found.update(children)
-        pending.extend(children)
-    return found
 
 
 @contextmanager

@@ -19,7 +19,7 @@ from phantom import PhantomError
 from phantom.hil import bench
 from phantom.hil.link import BoardLink
 from phantom.hil.sim import SimulatedBoard
-from phantom.host.startup import child_pids
+from phantom.host.processes import child_pids
 from phantom.protocol.messages import CONSTANTS
 from phantom.protocol.sensor import ADC_COUNT_KPA
 
