@@ -3,28 +3,37 @@
 
 from __future__ import annotations
 
-import contextlib
+import os
 from pathlib import Path
 
 
+def _parents() -> dict[int, list[int]]:
+    """Every process's children (pids), by its parent's pid: each /proc/PID/stat's fourth field. Each process's stat
+    says who its parent is whichever of the parent's threads started it, and needs no kernel option (a thread's
+    /proc/PID/task/TID/children does: CONFIG_PROC_CHILDREN). A process that ends while they are read is left out."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):  # ended meanwhile (ENOENT, ESRCH)
+            continue
+        children.setdefault(parent, []).append(int(entry.name))
+    return children
+
+
 def child_pids(pid: int | None = None) -> list[int]:
-    """The children of a process (this one by default): those of each of its threads, from /proc; none once it has
-    ended. A thread that ends while they are read (the build's Dask threads come and go) has none: its folder is
-    gone by the read (FileNotFoundError, or ESRCH), which in the table build's SIGTERM handler
-    (phantom.host.startup) left the build to Python's slow exit."""
-    pids: list[int] = []
-    with contextlib.suppress(FileNotFoundError, ProcessLookupError):
-        for task in Path(f"/proc/{'self' if pid is None else pid}/task").iterdir():
-            with contextlib.suppress(FileNotFoundError, ProcessLookupError):
-                pids.extend(int(child) for child in (task / "children").read_text().split())
-    return pids
+    """The children of a process (this one by default)."""
+    return _parents().get(os.getpid() if pid is None else pid, [])
 
 
 def descendants(pid: int) -> list[int]:
-    """Every process below ``pid`` (its children, theirs...), from /proc (:func:`child_pids`)."""
+    """Every process below ``pid`` (its children, theirs...)."""
+    children = _parents()
     found, pending = [], [pid]
     while pending:
-        children = child_pids(pending.pop())
-        found.extend(children)
-        pending.extend(children)
+        below = children.get(pending.pop(), [])
+        found.extend(below)
+        pending.extend(below)
     return found

@@ -222,18 +222,20 @@ def test_the_model_worker_dies_with_its_parent_even_on_sigkill():
             parent.kill()
 
 
-def test_the_builds_children_are_listed_while_its_threads_come_and_go():
-    # the table build's SIGTERM handler kills the children it lists: a thread of the build (Dask's) that ended
-    # between the listing of /proc/self/task and the read of its children raised FileNotFoundError there, and the
-    # build then ended through Python's slow exit (3.8 s of the daemon's 5 s wait, a clean clone's make test)
-    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+def test_children_and_descendants_are_listed_while_other_processes_come_and_go():
+    # the table build's SIGTERM handler kills the children it lists: one that ended between the listing and its read
+    # raised FileNotFoundError there (a thread of the build's, then), and the build ended through Python's slow
+    # exit (3.8 s of the daemon's 5 s wait, a clean clone's make test). Processes ending meanwhile, here: a listing
+    # of /proc read without care failed on 97 % of tries beside them
+    parent = subprocess.Popen([sys.executable, "-c", "import subprocess, sys, time\n"
+                               "child = subprocess.Popen(['sleep', '30'])\nprint(child.pid, flush=True)\n"
+                               "time.sleep(30)"], stdout=subprocess.PIPE, text=True)
+    grandchild = int(parent.stdout.readline())
     churning = True
 
     def churn() -> None:
         while churning:
-            thread = threading.Thread(target=lambda: None)
-            thread.start()
-            thread.join()
+            subprocess.run(["true"], check=True)
 
     churners = [threading.Thread(target=churn) for _ in range(2)]
     for thread in churners:
@@ -241,15 +243,17 @@ def test_the_builds_children_are_listed_while_its_threads_come_and_go():
     try:
         listings, deadline = 0, time.monotonic() + 0.5
         while time.monotonic() < deadline:
-            assert child.pid in child_pids()
+            assert parent.pid in child_pids() and grandchild not in child_pids()
+            assert child_pids(parent.pid) == [grandchild] and grandchild in descendants(os.getpid())
             listings += 1
-        assert listings > 20  # about 700 idle; the old read failed on one in five
+        assert listings > 5
     finally:
         churning = False
         for thread in churners:
             thread.join()
-        child.kill()
-        child.wait()
+        parent.kill()
+        parent.wait()
+        os.kill(grandchild, signal.SIGKILL)
 
 
 def test_under_systemd_levels_are_journald_priorities_on_every_line(capfd, monkeypatch):
