@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 
-def _parents() -> dict[int, list[int]]:
+def _children_by_parent() -> dict[int, list[int]]:
     """Every process's children (pids), by its parent's pid: each /proc/PID/stat's fourth field. Each process's stat
     says who its parent is whichever of the parent's threads started it, and needs no kernel option (a thread's
     /proc/PID/task/TID/children does: CONFIG_PROC_CHILDREN). A process that ends while they are read is left out."""
@@ -25,12 +25,12 @@ def _parents() -> dict[int, list[int]]:
 
 def child_pids(pid: int | None = None) -> list[int]:
     """The children of a process (this one by default)."""
-    return _parents().get(os.getpid() if pid is None else pid, [])
+    return _children_by_parent().get(os.getpid() if pid is None else pid, [])
 
 
 def descendants(pid: int) -> list[int]:
     """Every process below ``pid`` (its children, theirs...)."""
-    children = _parents()
+    children = _children_by_parent()
     found, pending = [], [pid]
     while pending:
         below = children.get(pending.pop(), [])

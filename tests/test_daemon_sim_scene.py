@@ -19,7 +19,7 @@ from daemon_rig import daemon_process
 
 from phantom import PhantomError
 from phantom.host.client import DaemonClient
-from phantom.host.processes import child_pids
+from phantom.host.processes import child_pids, descendants
 from phantom.host.recording import read_rrd
 from phantom.host.scenes import example_scene_path
 
@@ -74,14 +74,9 @@ def test_sim_daemon_plays_the_lopsided_scene(tmp_path, default_model_cached):
 
 def simulator_of(pid: int) -> int:
     """The simavr harness among a process's descendants (the daemon's own simulated board)."""
-    pending = [pid]
-    while pending:
-        parent = pending.pop()
-        for child in child_pids(parent):
-            command = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
-            if b"--elf" in command:
-                return child
-            pending.append(child)
+    for child in descendants(pid):
+        if b"--elf" in Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0"):
+            return child
     raise AssertionError("the daemon runs no simulated board")
 
 
