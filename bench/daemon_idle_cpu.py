@@ -9,7 +9,10 @@ keeps streaming: what reading those bytes costs at the least. The daemon's reads
 the serial transport waited out a frame's bytes, the daemon read the port as often as the peer (about 1300 times
 a second) and spent 5-9 % of a core idle.
 
-    .venv/bin/python bench/daemon_idle_cpu.py [--seconds 20]
+    .venv/bin/python bench/daemon_idle_cpu.py [--seconds 20] [--record]
+
+``--record``: the daemon records to an ``.rrd`` (``--rerun-save``), as ``make demo``'s does, and a second daemon
+that does not is measured in the same run: what recording the telemetry costs.
 
 Prints a Markdown table (bench/README.md, "The daemon's idle CPU").
 """
@@ -60,9 +63,22 @@ def cpu_s(pid: int) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--record", action="store_true", help="also a daemon that records to an .rrd")
     args = parser.parse_args()
     from daemon_rig import DaemonRig
 
+    recorded_cpu = None
+    if args.record:
+        with tempfile.TemporaryDirectory(prefix="phantom-idle-") as folder:
+            rig = DaemonRig(Path(folder), "--rerun-save", str(Path(folder) / "idle.rrd"), speed=1.0)
+            try:
+                rig.wait_online(120)
+                time.sleep(3.0)
+                started, cpu_before = time.monotonic(), cpu_s(rig.process.pid)
+                time.sleep(args.seconds)
+                recorded_cpu = 100 * (cpu_s(rig.process.pid) - cpu_before) / (time.monotonic() - started)
+            finally:
+                rig.close()
     with tempfile.TemporaryDirectory(prefix="phantom-idle-") as folder:
         rig = DaemonRig(Path(folder), speed=1.0)
         try:
@@ -89,8 +105,11 @@ def main() -> None:
           f"{peer_wakeups_per_s:.0f} reads/s |")
     print(f"| daemon, idle (vented, 50 Hz telemetry) | {daemon_cpu:.2f} | {daemon_cpu / max(peer_cpu, 1e-9):.1f} | "
           f"{frames_per_s:.0f} frames received/s in {reads_per_s:.0f} reads/s |")
+    if recorded_cpu is not None:
+        print(f"| daemon, idle, recording to an .rrd | {recorded_cpu:.2f} | {recorded_cpu / max(peer_cpu, 1e-9):.1f} | "
+              "the same board |")
     print(json.dumps({"daemon_cpu_percent": daemon_cpu, "peer_cpu_percent": peer_cpu, "daemon_reads_per_s": reads_per_s,
-                      "peer_reads_per_s": peer_wakeups_per_s}))
+                      "peer_reads_per_s": peer_wakeups_per_s, "recording_daemon_cpu_percent": recorded_cpu}))
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ hold the same pressure, and one line would hide the other).
 
 Timelines: ``time`` (seconds since the daemon started) on everything, and ``scene_time`` (seconds into the
 running scene's timeline) on what is logged while a scene runs, so that a scene's steps line up with its file.
-The SDK adds ``log_time`` (the wall clock).
+The SDK adds ``log_time`` (the wall clock) to all but the telemetry, which is sent in columns.
 
 The blueprint (the layout the viewer opens with): one column per chamber with its pressure, drive level and
 volume; the gland volume under them; link and solver in tabs; legends in the top-left corner, where a recording
@@ -118,6 +118,12 @@ CHECK_PERIOD_S = 2.0
 RETRY_AFTER_S = 30.0
 #: How long (s) closing a file may take: the SDK writes what is queued and the footer.
 CLOSE_TIMEOUT_S = 30.0
+#: Telemetry (50 frames a second, three series a chamber) is held and sent this often (s), one column of frames a
+#: series (``send_columns``): a value logged at a time took 560 us of the daemon's event loop a frame, 2.8 % of a
+#: core (bench/README.md, "The daemon's idle CPU"). A live viewer's plots lag by at most this.
+TELEMETRY_BATCH_S = 0.5
+#: The telemetry series of a chamber, in the order a held frame keeps them.
+TELEMETRY_SERIES = ("commanded_kpa", "measured_kpa", "drive_level")
 
 
 class RecordingError(PhantomError):
@@ -342,6 +348,12 @@ class Recorder:
         self._size = -1
         self._grew_s = 0.0
         self._logged_since_growth = False
+        # telemetry frames held for the next send: their time, scene time (NaN: no scene) and values (one row a
+        # frame: TELEMETRY_SERIES of each chamber in turn), and when (clock) the first of them came
+        self._held_times_s: list[float] = []
+        self._held_scene_times_s: list[float] = []
+        self._held_values: list[np.ndarray] = []
+        self._held_since_s = 0.0
 
     @property
     def wants_mesh(self) -> bool:
@@ -424,6 +436,7 @@ class Recorder:
 
     def _end_segment(self, timeout_s: float) -> None:
         """Write out what is queued and the footer, and close the file (or the viewer's connection)."""
+        self._send_telemetry()
         stream, self._stream, self.enabled = self._stream, None, False
         if stream is None:
             return
@@ -466,6 +479,8 @@ class Recorder:
         a new segment when this one is old, a pause when the disk fills up or the file stops growing, a resume
         once there is room again. Each change is told to ``on_problem``."""
         now_s = self.clock()
+        if self._held_times_s and now_s - self._held_since_s >= TELEMETRY_BATCH_S:
+            self._send_telemetry()
         if self.save_path is None or self._lock is None or now_s < self._next_check_s:
             return
         self._next_check_s = now_s + CHECK_PERIOD_S
@@ -508,6 +523,7 @@ class Recorder:
         if not (self._logged_since_growth and now_s - self._grew_s >= STALLED_AFTER_S):
             return False
         # a busy machine's writer may only be late: ask it to write out what is queued before calling it dead
+        self._send_telemetry()
         if self._stream is not None:
             try:
                 self._stream.flush(timeout_sec=STALL_FLUSH_TIMEOUT_S)
@@ -555,14 +571,43 @@ class Recorder:
 
     def log_telemetry(self, time_s: float, measured_kpa: np.ndarray, setpoint_kpa: np.ndarray,
                       drive_levels: np.ndarray) -> None:
-        """Per chamber: measured and set pressure (kPa) and drive level (0..1)."""
+        """Per chamber: measured and set pressure (kPa) and drive level (0..1). Held, and sent with the frames of
+        the next :data:`TELEMETRY_BATCH_S` (by this call or :meth:`check`); a value that is not finite is left out."""
         if not self.enabled:
             return
-        self._at(time_s)
-        for index, part in enumerate(self.parts):
-            self._scalar(f"chamber/{part}/commanded_kpa", setpoint_kpa[index])
-            self._scalar(f"chamber/{part}/measured_kpa", measured_kpa[index])
-            self._scalar(f"chamber/{part}/drive_level", drive_levels[index])
+        self._logged_since_growth = True
+        now_s = self.clock()
+        if not self._held_times_s:
+            self._held_since_s = now_s
+        self._held_times_s.append(float(time_s))
+        self._held_scene_times_s.append(np.nan if self._scene_time_s is None else self._scene_time_s)
+        self._held_values.append(np.column_stack([setpoint_kpa, measured_kpa, drive_levels]).astype(float).ravel())
+        if now_s - self._held_since_s >= TELEMETRY_BATCH_S:
+            self._send_telemetry()
+
+    def _send_telemetry(self) -> None:
+        """Send the held telemetry frames: per series, its finite values at their times (and scene times, for the
+        frames logged while a scene ran)."""
+        if not self._held_times_s:
+            return
+        times_s, scene_times_s = np.array(self._held_times_s), np.array(self._held_scene_times_s)
+        values = np.vstack(self._held_values)
+        self._held_times_s, self._held_scene_times_s, self._held_values = [], [], []
+        if self._stream is None:
+            return
+        rr = self._rr
+        in_scene = np.isfinite(scene_times_s)
+        paths = [f"chamber/{part}/{series}" for part in self.parts for series in TELEMETRY_SERIES]
+        for column, path in enumerate(paths):
+            finite = np.isfinite(values[:, column])
+            for rows in (finite & in_scene, finite & ~in_scene):
+                if not rows.any():
+                    continue
+                indexes = [rr.TimeColumn("time", duration=times_s[rows])]
+                if in_scene[rows][0]:
+                    indexes.append(rr.TimeColumn("scene_time", duration=scene_times_s[rows]))
+                self._stream.send_columns(path, indexes=indexes,
+                                          columns=rr.Scalars.columns(scalars=values[rows, column]))
 
     def log_volumes(self, time_s: float, target_ml: float | None, estimated_ml: float | None,
                     chamber_ml: Sequence[float] | None = None, true_ml: float | None = None,

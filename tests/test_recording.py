@@ -395,6 +395,47 @@ class FakeDisk:
         return self.free
 
 
+def measured_base_kpa_in(path: Path) -> list[float]:
+    """The base chamber's measured pressures in a file still being written (read up to its last message)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RecordingCutShort)  # no footer yet
+        return scalars(read_rrd(path).get("/chamber/base/measured_kpa", {}).get("Scalars:scalars", []))
+
+
+def test_telemetry_is_sent_in_batches_and_the_control_loops_check_sends_what_waits(tmp_path):
+    """Telemetry frames are held for TELEMETRY_BATCH_S and sent a column a series (a value logged at a time cost the
+    daemon's loop 2.8 % of a core); the control loop's check() sends frames held that long, so a board that goes
+    quiet leaves nothing unsent; a value that is not finite is left out of its series alone."""
+    disk = FakeDisk()
+    path = tmp_path / "run.rrd"
+    recorder = Recorder(NAMES, save_path=path, clock=disk.clock, free_space=disk.free_space)
+    recorder.open()
+    batch_s = recording_module.TELEMETRY_BATCH_S
+    for k in range(5):
+        disk.now_s = 0.02 * k
+        recorder.log_telemetry(disk.now_s, [0.1 * k, 0.2, 0.3], [np.nan if k == 2 else 1.0, 2.0, 3.0], [0.5] * 3)
+    recorder.check()
+    recorder._stream.flush(timeout_sec=10.0)
+    assert measured_base_kpa_in(path) == [], "sent before its batch was full"
+    disk.now_s = batch_s  # the board went quiet: the next check sends what waits
+    recorder.check()
+    recorder._stream.flush(timeout_sec=10.0)
+    assert measured_base_kpa_in(path) == pytest.approx([0.1 * k for k in range(5)])
+    disk.now_s = 2 * batch_s  # frames keep coming: the frame a batch's time after the first sends them all
+    recorder.log_telemetry(disk.now_s, [1.0, 0.2, 0.3], [1.0, 2.0, 3.0], [0.5] * 3)
+    disk.now_s = 3 * batch_s
+    recorder.log_telemetry(disk.now_s, [2.0, 0.2, 0.3], [1.0, 2.0, 3.0], [0.5] * 3)
+    recorder._stream.flush(timeout_sec=10.0)
+    assert measured_base_kpa_in(path)[5:] == pytest.approx([1.0, 2.0])
+    recorder.log_telemetry(disk.now_s + 0.02, [3.0, 0.2, 0.3], [1.0, 2.0, 3.0], [0.5] * 3)
+    recorder.close()  # what is held is written with the file's end
+    entities = read_rrd(path)
+    assert scalars(entities["/chamber/base/measured_kpa"]["Scalars:scalars"]) == pytest.approx(
+        [0.0, 0.1, 0.2, 0.3, 0.4, 1.0, 2.0, 3.0])
+    assert entities["/chamber/base/commanded_kpa"]["time"] == pytest.approx([0.0, 0.02, 0.06, 0.08, 1.0, 1.5, 1.52])
+    assert len(entities["/chamber/left_lobe/commanded_kpa"]["time"]) == 8
+
+
 def test_a_full_disk_pauses_the_recording_with_an_event_and_it_resumes_in_a_new_file(tmp_path):
     disk, told = FakeDisk(), []
     path = tmp_path / "run.rrd"
