@@ -234,14 +234,6 @@ def to_8bit(linear: np.ndarray, rng: np.random.Generator | None, look: Look = DE
     return ENCODE_TABLE[np.asarray(np.clip(values, 0.0, 1.0) * (ENCODE_LEVELS - 1) + 0.5, np.int32)]
 
 
-def srgb_to_linear(image: np.ndarray) -> np.ndarray:
-    """8-bit sRGB to linear light, float32 (a table of the 256 values)."""
-    codes = np.arange(256) / 255.0
-    table = np.where(codes <= 0.04045, codes / 12.92, ((codes + 0.055) / 1.055) ** 2.4).astype(np.float32)
-    linear: np.ndarray = table[image]
-    return linear
-
-
 # --- the calibration target --------------------------------------------------------------------------------------
 
 #: The default target: a ChArUco board of 9 x 6 squares of 15 mm (markers of 11 mm, dictionary 4x4_50) on a

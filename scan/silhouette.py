@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from phantom import PhantomError, require_extra
-from phantom.scan.render import srgb_to_linear
 
 #: Width (px) of the picture's border the backdrop's colour is read from.
 BORDER_PX = 8
@@ -40,6 +39,16 @@ MIN_BACKDROP_LEVEL = 0.2
 #: A pixel further than this (relative to the backdrop's brightness) from every mix of the backdrop's colour and
 #: the phantom's is something else (a tube, the holder): opaque.
 OTHER_DISTANCE = 0.15
+
+
+def srgb_to_linear(image: np.ndarray) -> np.ndarray:
+    """8-bit sRGB to linear light, float32 (a table of the 256 values). Here, not beside the renderer that encodes
+    pictures the other way: importing the renderer compiles or loads its numba kernels, which the daemon's own
+    process (it keys no picture; its scan worker does) would pay for at every start."""
+    codes = np.arange(256) / 255.0
+    table = np.where(codes <= 0.04045, codes / 12.92, ((codes + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    linear: np.ndarray = table[image]
+    return linear
 
 
 #: The 256 sRGB codes in linear light.
